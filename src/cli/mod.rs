@@ -1,0 +1,76 @@
+//! The `crispen` command line. Each subcommand lives in its own file and is a thin layer
+//! over the library: parse arguments, set up logging and progress, call in, report.
+//! `anyhow` is used only in this layer.
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+pub mod control;
+pub mod enhance;
+pub mod logging;
+pub mod print;
+pub mod run;
+pub mod sim;
+pub mod slice;
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "crispen",
+    version,
+    about = "Sharpen small 3D prints, slice them, and print them on a farm of Marlin printers"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Enhance a mesh for a printed height (adaptive unsharp masking)
+    Enhance(enhance::Args),
+    /// Enhance, scale and slice a model into Marlin G-code with a real slicer
+    Slice(slice::Args),
+    /// Stream a G-code file to a Marlin printer over serial
+    Print(print::Args),
+    /// Run a simulated Marlin printer on a pty
+    Sim(sim::Args),
+    /// Run the print-farm daemon (hot folders, jobs, printers)
+    Run(run::Args),
+    /// Show the daemon's printers and jobs
+    Status(control::StatusArgs),
+    /// Confirm a printer's bed has been cleared so it may take the next job
+    Clear(control::PrinterArgs),
+    /// Cancel a job (a printing job is stopped safely)
+    Cancel(control::JobArgs),
+    /// Pause a printer's current print
+    Pause(control::PrinterArgs),
+    /// Resume a paused printer
+    Resume(control::PrinterArgs),
+    /// Put a failed, cancelled or interrupted job back in the queue
+    Retry(control::JobArgs),
+}
+
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    logging::init();
+    let result = match cli.command {
+        Command::Enhance(a) => enhance::run(a),
+        Command::Slice(a) => slice::run(a),
+        Command::Print(a) => print::run(a),
+        Command::Sim(a) => sim::run(a),
+        Command::Run(a) => run::run(a),
+        Command::Status(a) => control::status(a),
+        Command::Clear(a) => control::clear(a),
+        Command::Cancel(a) => control::cancel(a),
+        Command::Pause(a) => control::pause(a),
+        Command::Resume(a) => control::resume(a),
+        Command::Retry(a) => control::retry(a),
+    };
+    match result {
+        Ok(code) => code,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,18 @@
+//! crispen: make small 3D prints keep the features of their big originals.
+//!
+//! The library is layered so each part can be used and tested on its own:
+//! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
+//! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
+//! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
+//! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
+//!   and the simulated printer used by tests, the quick start and the demo farm.
+//! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
+//!   supervisors, control socket.
+//! - [`cli`]: the `crispen` subcommands, thin wrappers over the above.
+
+pub mod cli;
+pub mod daemon;
+pub mod enhance;
+pub mod marlin;
+pub mod mesh;
+pub mod slice;

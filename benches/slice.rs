@@ -1,0 +1,65 @@
+//! Benchmark: one `crispen::slice` job end to end, per slicer and model, with the time of
+//! each step (load, enhance, slice, check). Prints one comparable line per case: the median
+//! of a few runs. `cargo bench --bench slice` (set CRISPEN_BENCH_RUNS to change the runs).
+
+use crispen::enhance::Strength;
+use crispen::slice::{slice, SliceReport, SliceRequest, SlicerKind, UpAxis};
+use std::path::Path;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() {
+    let runs: usize = std::env::var("CRISPEN_BENCH_RUNS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3)
+        .max(1);
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let cases = [
+        ("spot", root.join("tests/data/spot.obj"), 30.0),
+        ("bunny", root.join("../shared/models/bunny.obj"), 40.0),
+    ];
+    let dir = tempfile::tempdir().expect("temporary folder");
+    println!(
+        "case                         load_s enhance_s  slice_s  check_s  total_s layers  lines"
+    );
+    for (name, model, height) in &cases {
+        for slicer in [SlicerKind::Prusa, SlicerKind::Cura] {
+            for strength in [Strength::Off, Strength::Auto] {
+                let mut req = SliceRequest::new(model, dir.path().join("bench.gcode"), *height);
+                req.slicer = slicer;
+                req.strength = strength;
+                // Both models are Y-up OBJ files.
+                req.up = UpAxis::Y;
+                let reports: Vec<SliceReport> = (0..runs)
+                    .map(|_| match slice(&req, &mut |_| {}) {
+                        Ok(r) => r,
+                        Err(e) => panic!("{name} with {slicer}: {e}"),
+                    })
+                    .collect();
+                let m = |f: fn(&SliceReport) -> f64| median(reports.iter().map(f).collect());
+                let label = format!(
+                    "{name}@{height}mm {slicer} {}",
+                    if strength == Strength::Off {
+                        "plain"
+                    } else {
+                        "auto"
+                    }
+                );
+                println!(
+                    "{label:<28} {:>6.3} {:>9.3} {:>8.3} {:>8.3} {:>8.3} {:>6} {:>6}",
+                    m(|r| r.timings.load_s),
+                    m(|r| r.timings.enhance_s),
+                    m(|r| r.timings.slice_s),
+                    m(|r| r.timings.check_s),
+                    m(|r| r.timings.total_s),
+                    reports[0].layer_count,
+                    reports[0].gcode_lines,
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,254 @@
+//! Soak benchmark of the print-farm daemon: 20 simulated printers (separate `crispen sim`
+//! processes, so their cost is not counted as the daemon's) all printing a realistic job
+//! (tests/data/spot.obj enhanced and sliced for 50 mm by PrusaSlicer) from one `crispen run`.
+//!
+//! Measured over a window of CRISPEN_SOAK_SECONDS (default 60) once every printer is past
+//! its heat-up:
+//! - the daemon's CPU (utime+stime from /proc/<pid>/stat) as a share of one core, and its
+//!   memory (VmRSS now, VmHWM peak since start, which includes preparing the 20 jobs);
+//! - starvation: each printer's acknowledged lines per second in the window, compared with
+//!   the same job streamed by a daemon driving a single printer (the uncontended rate, same
+//!   window after heat-up). A ratio near 1.0 means no printer waited for lines.
+//!
+//! Sims run at CRISPEN_SOAK_TIME_SCALE (default 0.2: five times real speed, so heat-ups
+//! take seconds and each printer needs five times the real line rate, a harder load than
+//! a real farm; set 1.0 for real timing). `cargo bench --bench soak`.
+
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_crispen");
+
+struct Reaper(Vec<Child>);
+impl Drop for Reaper {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+fn spawn_sim(firmware: &str, time_scale: f64, reaper: &mut Reaper) -> PathBuf {
+    let mut child = Command::new(BIN)
+        .args(["sim", "--firmware", firmware, "--time-scale"])
+        .arg(time_scale.to_string())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start crispen sim");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    reaper.0.push(child);
+    PathBuf::from(
+        line.trim()
+            .strip_prefix("crispen sim: listening on ")
+            .unwrap_or_else(|| panic!("unexpected sim greeting {line:?}")),
+    )
+}
+
+fn proc_cpu_s(pid: u32) -> f64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
+    let fields: Vec<&str> = stat
+        .rsplit_once(')')
+        .unwrap()
+        .1
+        .split_whitespace()
+        .collect();
+    (fields[11].parse::<f64>().unwrap() + fields[12].parse::<f64>().unwrap()) / 100.0
+}
+
+fn proc_kb(pid: u32, key: &str) -> f64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap()
+        .lines()
+        .find(|l| l.starts_with(key))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.0)
+}
+
+fn status(config: &Path) -> Option<Value> {
+    let out = Command::new(BIN)
+        .args(["status", "--json", "--config"])
+        .arg(config)
+        .output()
+        .ok()?;
+    serde_json::from_slice(&out.stdout).ok()
+}
+
+struct Farm {
+    dir: tempfile::TempDir,
+    config: PathBuf,
+    daemon: Child,
+    _sims: Reaper,
+}
+
+fn start_farm(printers: usize, time_scale: f64) -> Farm {
+    let dir = tempfile::tempdir().unwrap();
+    let mut sims = Reaper(Vec::new());
+    let mut text = String::from(
+        "[spool]\ndir = \"spool\"\n[control]\nsocket = \"crispen.sock\"\n\
+         [farm]\nmax_heating = 20\nsettle_s = 0.5\n",
+    );
+    let mut names = Vec::new();
+    for i in 0..printers {
+        let firmware = if i % 2 == 0 { "marlin2" } else { "ultimaker2" };
+        let port = spawn_sim(firmware, time_scale, &mut sims);
+        text += &format!(
+            "[[printer]]\nname = \"p{i:02}\"\nport = \"{}\"\nfirmware = \"{firmware}\"\n",
+            port.display()
+        );
+        names.push(format!("\"p{i:02}\""));
+    }
+    text += &format!(
+        "[[folder]]\npath = \"hot\"\nheight_mm = 50\nprinters = [{}]\n",
+        names.join(", ")
+    );
+    let config = dir.path().join("crispen.toml");
+    std::fs::write(&config, text).unwrap();
+    let log = std::fs::File::create(dir.path().join("daemon.log")).unwrap();
+    let daemon = Command::new(BIN)
+        .args(["run", "--config"])
+        .arg(&config)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(log)
+        .spawn()
+        .unwrap();
+    let hot = dir.path().join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/spot.obj");
+    for i in 0..printers {
+        let part = hot.join(format!("spot{i:02}.obj.part"));
+        std::fs::copy(model, &part).unwrap();
+        std::fs::rename(&part, hot.join(format!("spot{i:02}.obj"))).unwrap();
+    }
+    Farm {
+        dir,
+        config,
+        daemon,
+        _sims: sims,
+    }
+}
+
+/// Per printer: acknowledged lines per second over `window`, starting when the printer
+/// is first seen past its heat-up. Also returns the farm-wide window of the last printer
+/// for the CPU measurement.
+fn measure(farm: &mut Farm, printers: usize, window: Duration) -> (Vec<f64>, f64, f64, f64) {
+    let deadline = Instant::now() + Duration::from_secs(900);
+    let mut start: Vec<Option<(Instant, u64)>> = vec![None; printers];
+    let mut rate: Vec<Option<f64>> = vec![None; printers];
+    let mut cpu_window: Option<(Instant, f64)> = None;
+    let mut cpu_share = 0.0;
+    let pid = farm.daemon.id();
+    while rate.iter().any(Option::is_none) {
+        assert!(
+            Instant::now() < deadline,
+            "farm did not get going; see {}",
+            farm.dir.path().join("daemon.log").display()
+        );
+        assert!(farm.daemon.try_wait().unwrap().is_none(), "daemon exited");
+        std::thread::sleep(Duration::from_millis(500));
+        let Some(s) = status(&farm.config) else {
+            continue;
+        };
+        let now = Instant::now();
+        for (i, p) in s["printers"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .enumerate()
+            .take(printers)
+        {
+            let acked = p["progress"]["lines_acked"].as_u64().unwrap_or(0);
+            let heated =
+                p["progress"]["heated"].as_bool().unwrap_or(false) && p["state"] == "printing";
+            match start[i] {
+                None if heated => start[i] = Some((now, acked)),
+                Some((t0, a0)) if rate[i].is_none() && now - t0 >= window => {
+                    rate[i] = Some((acked - a0) as f64 / (now - t0).as_secs_f64());
+                }
+                _ => {}
+            }
+        }
+        // CPU window: from the moment all printers are past heat-up, for `window`.
+        if cpu_window.is_none() && start.iter().all(Option::is_some) {
+            cpu_window = Some((now, proc_cpu_s(pid)));
+        }
+        if let Some((t0, c0)) = cpu_window {
+            if now - t0 >= window && cpu_share == 0.0 {
+                cpu_share = (proc_cpu_s(pid) - c0) / (now - t0).as_secs_f64();
+            }
+        }
+    }
+    while cpu_share == 0.0 {
+        let (t0, c0) = cpu_window.unwrap();
+        std::thread::sleep(Duration::from_millis(500));
+        if t0.elapsed() >= window {
+            cpu_share = (proc_cpu_s(pid) - c0) / t0.elapsed().as_secs_f64();
+        }
+    }
+    let rss = proc_kb(pid, "VmRSS:") / 1024.0;
+    let hwm = proc_kb(pid, "VmHWM:") / 1024.0;
+    (
+        rate.into_iter().map(Option::unwrap).collect(),
+        cpu_share,
+        rss,
+        hwm,
+    )
+}
+
+fn main() {
+    let window = Duration::from_secs_f64(
+        std::env::var("CRISPEN_SOAK_SECONDS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(60.0),
+    );
+    let time_scale: f64 = std::env::var("CRISPEN_SOAK_TIME_SCALE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.2);
+    let printers: usize = std::env::var("CRISPEN_SOAK_PRINTERS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20);
+    println!(
+        "soak: {printers} printers, sim time scale {time_scale}, window {:.0} s",
+        window.as_secs_f64()
+    );
+
+    let mut solo = start_farm(1, time_scale);
+    let (solo_rate, solo_cpu, solo_rss, _) = measure(&mut solo, 1, window);
+    let _ = solo.daemon.kill();
+    let _ = solo.daemon.wait();
+    println!(
+        "soak: reference, 1 printer alone: {:.0} lines/s acknowledged, daemon CPU {:.2}% of a core, VmRSS {solo_rss:.1} MB",
+        solo_rate[0],
+        solo_cpu * 100.0
+    );
+
+    let mut farm = start_farm(printers, time_scale);
+    let (rates, cpu, rss, hwm) = measure(&mut farm, printers, window);
+    let _ = farm.daemon.kill();
+    let _ = farm.daemon.wait();
+    let min = rates.iter().cloned().fold(f64::INFINITY, f64::min);
+    let mean = rates.iter().sum::<f64>() / rates.len() as f64;
+    println!(
+        "soak: daemon CPU while streaming to {printers} printers: {:.2}% of one core (goal < 5%)",
+        cpu * 100.0
+    );
+    println!("soak: daemon memory: VmRSS {rss:.1} MB, VmHWM {hwm:.1} MB (peak includes preparing {printers} jobs; goal < 100 MB)");
+    println!(
+        "soak: lines/s per printer: min {min:.0}, mean {mean:.0}; vs alone {:.0}: min ratio {:.2}, mean ratio {:.2} (1.0 = not starved)",
+        solo_rate[0],
+        min / solo_rate[0],
+        mean / solo_rate[0]
+    );
+}

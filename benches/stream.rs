@@ -1,0 +1,156 @@
+//! Benchmark: the host streamer against `crispen sim` (its own process, over a pty).
+//! Job lines per second and host CPU time per 10,000 lines, one line in flight (as
+//! OctoPrint and Printrun do) against send-ahead, on near-instant moves (time scale 0) and
+//! on realistic ones (time scale 1: short segments of a curve at print speed). The host
+//! runs in this process, so this process's CPU time (from /proc) is the host's cost.
+//! `cargo bench --bench stream` (CRISPEN_BENCH_LINES sets the instant-run line count).
+
+use crispen::marlin::firmware::Firmware;
+use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::stream::{Connection, PrintProgress, StreamOptions};
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").expect("stat");
+    let after = stat.rsplit_once(')').expect("stat format").1;
+    let fields: Vec<&str> = after.split_whitespace().collect();
+    let ticks: f64 = fields[11].parse::<f64>().unwrap() + fields[12].parse::<f64>().unwrap();
+    // USER_HZ is 100 on Linux.
+    ticks / 100.0
+}
+
+/// Short segments of a circle, as slicers write for curved, finely tessellated models.
+fn curve(lines: usize, segment_mm: f64, feed: f64) -> GcodeProgram {
+    let radius = 20.0;
+    let step = segment_mm / radius;
+    let commands = (0..lines)
+        .map(|i| {
+            let a = i as f64 * step;
+            format!(
+                "G1 X{:.3} Y{:.3} E{:.5} F{feed}",
+                100.0 + radius * a.cos(),
+                100.0 + radius * a.sin(),
+                i as f64 * 0.002
+            )
+        })
+        .collect();
+    GcodeProgram::from_commands("curve", commands)
+}
+
+fn start_sim(fw: Firmware, time_scale: f64) -> (Child, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_crispen"))
+        .args([
+            "sim",
+            "--firmware",
+            fw.name(),
+            "--time-scale",
+            &time_scale.to_string(),
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("crispen sim starts");
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    let device = first
+        .trim()
+        .strip_prefix("crispen sim: listening on ")
+        .expect("sim prints its device")
+        .to_string();
+    (child, device)
+}
+
+struct Run {
+    lines_per_s: f64,
+    cpu_per_10k: f64,
+    cpu_percent: f64,
+}
+
+fn run(
+    rt: &tokio::runtime::Runtime,
+    fw: Firmware,
+    send_ahead: bool,
+    time_scale: f64,
+    program: &GcodeProgram,
+) -> Run {
+    let (mut sim, device) = start_sim(fw, time_scale);
+    let mut opts = StreamOptions::for_firmware(fw);
+    opts.send_ahead = send_ahead;
+    opts.protocol.quiet_period = Duration::from_millis(200);
+    let (wall, cpu) = rt.block_on(async {
+        let mut conn = Connection::open(std::path::Path::new(&device), &opts)
+            .await
+            .expect("connects");
+        let (_control, control_rx) = tokio::sync::mpsc::channel(1);
+        let (progress, _) = tokio::sync::watch::channel(PrintProgress::default());
+        let cpu0 = cpu_seconds();
+        let t0 = Instant::now();
+        conn.print(program, control_rx, progress)
+            .await
+            .expect("job done");
+        (t0.elapsed().as_secs_f64(), cpu_seconds() - cpu0)
+    });
+    let _ = sim.kill();
+    let _ = sim.wait();
+    let n = program.len() as f64;
+    Run {
+        lines_per_s: n / wall,
+        cpu_per_10k: cpu / n * 10_000.0,
+        cpu_percent: cpu / wall * 100.0,
+    }
+}
+
+fn main() {
+    let instant_lines: usize = std::env::var("CRISPEN_BENCH_LINES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(10_000);
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    // 250000 baud carries 25,000 bytes/s: about this many of these lines per second.
+    let sample = curve(100, 0.2, 3000.0);
+    let bytes: usize = sample.commands().iter().map(|c| c.len() + 12).sum();
+    let link_rate = 25_000.0 / (bytes as f64 / 100.0);
+    println!("stream benchmark: a 250000-baud link carries ~{link_rate:.0} such lines/s");
+    println!(
+        "{:<11} {:<9} {:<12} {:>9} {:>12} {:>11}",
+        "firmware", "moves", "mode", "lines/s", "cpu s/10k", "cpu %core"
+    );
+    for fw in Firmware::ALL {
+        for (label, time_scale, program) in [
+            ("instant", 0.0, curve(instant_lines, 0.2, 3000.0)),
+            // 0.2 mm segments at 50 mm/s: 250 segments/s wanted by the motion.
+            ("realistic", 1.0, curve(1_500, 0.2, 3000.0)),
+        ] {
+            let mut rates = Vec::new();
+            let mut cpu = Vec::new();
+            for (mode, send_ahead) in [("one-line", false), ("send-ahead", true)] {
+                let r = run(&rt, fw, send_ahead, time_scale, &program);
+                println!(
+                    "{:<11} {:<9} {:<12} {:>9.0} {:>12.3} {:>11.2}",
+                    fw.name(),
+                    label,
+                    mode,
+                    r.lines_per_s,
+                    r.cpu_per_10k,
+                    r.cpu_percent
+                );
+                rates.push(r.lines_per_s);
+                cpu.push(r.cpu_per_10k);
+            }
+            println!(
+                "{:<11} {:<9} send-ahead / one-line = {:.2}x; send-ahead CPU per line × link rate ≈ {:.2}% of a core",
+                fw.name(),
+                label,
+                rates[1] / rates[0],
+                cpu[1] / 10_000.0 * link_rate * 100.0
+            );
+        }
+    }
+}

@@ -1,0 +1,134 @@
+//! `crispen print FILE.gcode --port PATH`: stream one G-code file to a Marlin printer.
+//! A thin layer over [`crate::marlin::stream::Connection`]: a progress bar on a terminal,
+//! Ctrl-C cancels safely (heaters, fan and motors off), exit 0 only when every line was
+//! acknowledged.
+
+use crate::marlin::firmware::Firmware;
+use crate::marlin::gcode::GcodeProgram;
+use crate::marlin::stream::{Connection, PrintProgress, PrintState, StreamControl, StreamOptions};
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The G-code file (Marlin flavour, with its own heating and start/end code)
+    pub file: PathBuf,
+    /// Serial device of the printer (e.g. /dev/ttyUSB0, or the pty `crispen sim` prints)
+    #[arg(long)]
+    pub port: PathBuf,
+    /// Baud rate (default: the firmware's usual rate)
+    #[arg(long)]
+    pub baud: Option<u32>,
+    /// Firmware profile: marlin2 or ultimaker2
+    #[arg(long, default_value = "marlin2")]
+    pub firmware: Firmware,
+    /// Keep only one line in flight (as OctoPrint and Printrun do) instead of sending ahead
+    #[arg(long)]
+    pub one_line: bool,
+    /// Fail the job when M109/M190 has not reached its temperature after this many seconds
+    #[arg(long, default_value_t = 1200)]
+    pub heat_timeout: u64,
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let program = GcodeProgram::load_for(&args.file, args.firmware)?;
+    let mut opts = StreamOptions::for_firmware(args.firmware);
+    if let Some(baud) = args.baud {
+        opts.baud = baud;
+    }
+    opts.send_ahead = !args.one_line;
+    opts.protocol.heat_timeout = Duration::from_secs(args.heat_timeout);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    runtime.block_on(print(args, program, opts))
+}
+
+async fn print(args: Args, program: GcodeProgram, opts: StreamOptions) -> anyhow::Result<ExitCode> {
+    let mut conn = Connection::open(&args.port, &opts).await?;
+    let info = conn.firmware_info();
+    tracing::info!(
+        printer = %args.port.display(),
+        firmware = info.name.as_deref().unwrap_or("unknown"),
+        lines = program.len(),
+        "streaming {}",
+        args.file.display()
+    );
+
+    let (control_tx, control_rx) = tokio::sync::mpsc::channel(4);
+    let (progress_tx, mut progress_rx) = tokio::sync::watch::channel(PrintProgress::default());
+
+    // Ctrl-C: first press cancels safely; the job then ends with the safe-stop lines.
+    let ctrl_c = tokio::spawn(async move {
+        if tokio::signal::ctrl_c().await.is_ok() {
+            eprintln!(
+                "\ncancelling: switching heaters, fan and motors off (Ctrl-C again to abort)"
+            );
+            let _ = control_tx.send(StreamControl::Cancel).await;
+            if tokio::signal::ctrl_c().await.is_ok() {
+                std::process::exit(130);
+            }
+        }
+    });
+
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = ProgressBar::new(program.len() as u64);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} lines {percent}% {msg} [{elapsed_precise}, {eta} left]",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar
+    });
+    let bar_task = bar.clone().map(|bar| {
+        tokio::spawn(async move {
+            while progress_rx.changed().await.is_ok() {
+                let p = progress_rx.borrow_and_update().clone();
+                bar.set_position(p.lines_acked as u64);
+                bar.set_message(describe(&p));
+            }
+        })
+    });
+
+    let result = conn.print(&program, control_rx, progress_tx).await;
+    ctrl_c.abort();
+    if let Some(task) = bar_task {
+        let _ = task.await;
+    }
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    let report = result.with_context(|| format!("printing {}", args.file.display()))?;
+    eprintln!(
+        "done: {} lines acknowledged in {:.1} s ({} resends, {} silence probes)",
+        report.lines_acked, report.duration_s, report.resends, report.silence_probes
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn describe(p: &PrintProgress) -> String {
+    let temp = |name: &str, t: Option<crate::marlin::stream::Temp>| match t {
+        Some(t) => match t.target {
+            Some(target) if target > 0.0 => format!(" {name} {:.0}/{:.0}°C", t.current, target),
+            _ => format!(" {name} {:.0}°C", t.current),
+        },
+        None => String::new(),
+    };
+    let state = match p.state {
+        PrintState::Printing => "",
+        PrintState::Heating => "heating",
+        PrintState::Paused => "paused",
+        PrintState::Pausing => "pausing",
+        PrintState::Cancelling => "cancelling",
+        PrintState::Connecting => "connecting",
+        PrintState::Done => "done",
+        PrintState::Failed => "failed",
+    };
+    format!("{state}{}{}", temp("hotend", p.hotend), temp("bed", p.bed))
+}

@@ -1,0 +1,47 @@
+//! `crispen run`: the print-farm daemon. Loads the config (or the built-in demo default),
+//! then hands over to [`crispen::daemon::run`] on a multi-threaded tokio runtime.
+
+use crate::daemon::{self, config::Config, RunOptions};
+use anyhow::Context;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Config file (default: the built-in demo under ./crispen-demo/ with a simulated printer)
+    #[arg(long, short)]
+    pub config: Option<PathBuf>,
+    /// Exit once no job is waiting, preparing or printing and at least one job finished
+    #[arg(long)]
+    pub exit_when_idle: bool,
+    /// Check the config and exit
+    #[arg(long)]
+    pub check: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::builtin_default(),
+    };
+    if args.check {
+        println!(
+            "{}: OK ({} printers, {} folders)",
+            config.source.display(),
+            config.printers.len(),
+            config.folders.len()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let options = RunOptions {
+        config_path: args.config.clone(),
+        exit_when_idle: args.exit_when_idle,
+    };
+    runtime.block_on(daemon::run(config, options))?;
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,128 @@
+//! `crispen sim`: run a simulated Marlin printer on a pty until SIGINT/SIGTERM. The first
+//! line on stdout names the device (scripts and the quick start read it); `--link` adds a
+//! stable symlink, removed again on exit.
+
+use crate::marlin::firmware::Firmware;
+use crate::marlin::sim::{self, Faults, SimConfig};
+use anyhow::{bail, Context};
+use nix::sys::signal::{SigSet, Signal};
+use std::io::Write;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Make a symlink to the pty device here (replaces an existing symlink)
+    #[arg(long)]
+    pub link: Option<PathBuf>,
+    /// Firmware to behave like
+    #[arg(long, default_value = "marlin2")]
+    pub firmware: Firmware,
+    /// Seed for the fault generator (same seed, same faults)
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Simulated seconds per real second: 1 = real timing, 0 = instant moves and heating
+    #[arg(long, default_value_t = 1.0)]
+    pub time_scale: f64,
+    /// Append every executed command to this file
+    #[arg(long)]
+    pub record: Option<PathBuf>,
+    /// Probability that a received line arrives corrupted
+    #[arg(long, default_value_t = 0.0)]
+    pub corrupt: f64,
+    /// Probability that an `ok` is lost
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_ok: f64,
+    /// Probability of a resend request for a good line
+    #[arg(long, default_value_t = 0.0)]
+    pub spurious_resend: f64,
+    /// Probability that a command starts a busy period (marlin2)
+    #[arg(long, default_value_t = 0.0)]
+    pub busy: f64,
+    /// Probability that an answer is garbled or noise is sent
+    #[arg(long, default_value_t = 0.0)]
+    pub garbage: f64,
+    /// Reset (print `start`) after N numbered lines
+    #[arg(long, value_name = "N")]
+    pub reset_after: Option<usize>,
+    /// Close the pty (unplug) after N numbered lines
+    #[arg(long, value_name = "N")]
+    pub unplug_after: Option<usize>,
+    /// Stop answering after N numbered lines
+    #[arg(long, value_name = "N")]
+    pub silence_after: Option<usize>,
+    /// Halt with a fatal error after N numbered lines
+    #[arg(long, value_name = "N")]
+    pub fatal_after: Option<usize>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    for (name, p) in [
+        ("--corrupt", args.corrupt),
+        ("--drop-ok", args.drop_ok),
+        ("--spurious-resend", args.spurious_resend),
+        ("--busy", args.busy),
+        ("--garbage", args.garbage),
+    ] {
+        if !(0.0..=1.0).contains(&p) {
+            bail!("{name} {p} is not a probability; give a value from 0 to 1");
+        }
+    }
+    if !(args.time_scale >= 0.0 && args.time_scale.is_finite()) {
+        bail!(
+            "--time-scale {} must be 0 (instant) or a positive number (1 = real time)",
+            args.time_scale
+        );
+    }
+    let mut cfg = SimConfig::new(args.firmware);
+    cfg.seed = args.seed;
+    cfg.time_scale = args.time_scale;
+    cfg.record = args.record;
+    cfg.link = args.link.clone();
+    cfg.faults = Faults {
+        corrupt_host_bytes: args.corrupt,
+        drop_ok: args.drop_ok,
+        spurious_resend: args.spurious_resend,
+        busy: args.busy,
+        garbage: args.garbage,
+        reset_after_lines: args.reset_after,
+        unplug_after_lines: args.unplug_after,
+        silence_after_lines: args.silence_after,
+        fatal_after_lines: args.fatal_after,
+    };
+
+    // Block the stop signals before the printer thread starts so it inherits the mask and
+    // only this thread receives them, in sigwait below.
+    let mut signals = SigSet::empty();
+    signals.add(Signal::SIGINT);
+    signals.add(Signal::SIGTERM);
+    signals
+        .thread_block()
+        .context("cannot block SIGINT/SIGTERM")?;
+
+    let handle = sim::spawn(cfg).with_context(|| match &args.link {
+        Some(link) => format!(
+            "cannot start the simulated printer (link {})",
+            link.display()
+        ),
+        None => "cannot start the simulated printer".to_string(),
+    })?;
+    let mut stdout = std::io::stdout().lock();
+    writeln!(
+        stdout,
+        "crispen sim: listening on {}",
+        handle.device_path().display()
+    )?;
+    stdout.flush()?;
+    drop(stdout);
+    tracing::info!(
+        printer = %handle.device_path().display(),
+        firmware = %args.firmware,
+        link = ?args.link,
+        "simulated printer running; stop with Ctrl-C"
+    );
+    let signal = signals.wait().context("waiting for SIGINT/SIGTERM")?;
+    tracing::info!(?signal, "stopping the simulated printer");
+    handle.shutdown();
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,151 @@
+//! `crispen slice`: enhance, scale and slice one model into a Marlin G-code job with a real
+//! slicer, over [`crispen::slice::slice`](crate::slice::slice). Shows the step on a terminal
+//! and prints a summary, or the full report with `--json`.
+
+use crate::enhance::{Phase, Strength, StrengthTable};
+use crate::slice::{SliceRequest, SliceSettings, SliceStep, SlicerKind, UpAxis, SETTING_KEYS};
+use anyhow::Context;
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The model to print (STL, OBJ or 3MF)
+    pub model: PathBuf,
+    /// Where to write the G-code
+    #[arg(short, long, value_name = "OUT.gcode")]
+    pub output: PathBuf,
+    /// Printed height of the model in mm (its Z extent on the bed)
+    #[arg(long, value_name = "MM")]
+    pub height: f64,
+    /// Slicer to run: prusa (PrusaSlicer) or cura (CuraEngine)
+    #[arg(long, default_value = "prusa", value_parser = parse_slicer)]
+    pub slicer: SlicerKind,
+    /// Enhancement strength λ2 (default: chosen from the printed height)
+    #[arg(long, value_name = "L2", conflicts_with = "no_enhance")]
+    pub strength: Option<f64>,
+    /// Slice the model unmodified
+    #[arg(long)]
+    pub no_enhance: bool,
+    /// The model's up axis: z (STL convention) or y (common in OBJ files)
+    #[arg(long, default_value = "z", value_parser = parse_up)]
+    pub up: UpAxis,
+    /// Slicer profile replacing the built-in one (PrusaSlicer .ini, CuraEngine .toml)
+    #[arg(long, value_name = "FILE")]
+    pub profile: Option<PathBuf>,
+    /// Override a setting: layer_height, infill, supports, nozzle_temp, bed_temp, material
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Print the report as JSON on stdout
+    #[arg(long)]
+    pub json: bool,
+    /// Stop the slicer after this many seconds
+    #[arg(long, value_name = "SECS", default_value_t = 600)]
+    pub timeout: u64,
+}
+
+fn parse_slicer(s: &str) -> Result<SlicerKind, String> {
+    s.parse()
+}
+
+fn parse_up(s: &str) -> Result<UpAxis, String> {
+    s.parse()
+}
+
+fn step_text(step: SliceStep) -> String {
+    match step {
+        SliceStep::Loading => "loading the model".into(),
+        SliceStep::Enhancing(Phase::Operators) => "enhancing: building operators".into(),
+        SliceStep::Enhancing(Phase::Factorize) => "enhancing: factorizing".into(),
+        SliceStep::Enhancing(Phase::Solve(i)) => format!("enhancing: solving ({i})"),
+        SliceStep::Enhancing(Phase::Combine) => "enhancing: combining".into(),
+        SliceStep::Slicing => "slicing".into(),
+        SliceStep::Checking => "checking the G-code".into(),
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let mut settings = SliceSettings::default();
+    for pair in &args.set {
+        let (key, value) = pair.split_once('=').with_context(|| {
+            format!(
+                "--set {pair:?}: expected KEY=VALUE with KEY one of {}",
+                SETTING_KEYS.join(", ")
+            )
+        })?;
+        settings.set(key.trim(), value)?;
+    }
+    let strength = if args.no_enhance {
+        Strength::Off
+    } else if let Some(l2) = args.strength {
+        Strength::Lambda2(l2)
+    } else {
+        Strength::Auto
+    };
+    let mut req = SliceRequest::new(&args.model, &args.output, args.height);
+    req.slicer = args.slicer;
+    req.up = args.up;
+    req.strength = strength;
+    req.strength_table = StrengthTable::default();
+    req.settings = settings;
+    req.profile = args.profile.clone();
+    req.timeout = Duration::from_secs(args.timeout.max(1));
+
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new_spinner();
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        );
+        bar.enable_steady_tick(Duration::from_millis(120));
+        bar
+    });
+    let mut progress = |step: SliceStep| {
+        if let Some(bar) = &bar {
+            bar.set_message(format!("{}: {}", args.model.display(), step_text(step)));
+        }
+    };
+    let result = crate::slice::slice(&req, &mut progress);
+    if let Some(bar) = &bar {
+        bar.finish_and_clear();
+    }
+    let report = result?;
+
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        let enhancement = match report.enhancement.lambda2 {
+            Some(l2) => format!("enhanced with λ2 = {l2}"),
+            None => "unmodified".into(),
+        };
+        let time = report
+            .estimated_print_time_s
+            .map(|s| {
+                let s = s.round() as u64;
+                format!("{}h {:02}m", s / 3600, (s % 3600) / 60)
+            })
+            .unwrap_or_else(|| "unknown".into());
+        let filament = match (report.filament_mm, report.filament_g) {
+            (Some(mm), Some(g)) => format!("{:.2} m ({g:.1} g)", mm / 1000.0),
+            (Some(mm), None) => format!("{:.2} m", mm / 1000.0),
+            _ => "unknown".into(),
+        };
+        println!(
+            "{}: {} mm tall, {enhancement}; sliced by {} into {} layers ({} G-code lines)\n\
+             estimated print time {time}, filament {filament}; took {:.1} s\nwrote {}",
+            report.model.display(),
+            report.height_mm,
+            report
+                .slicer_version
+                .clone()
+                .unwrap_or_else(|| report.slicer.to_string()),
+            report.layer_count,
+            report.gcode_lines,
+            report.timings.total_s,
+            report.output.display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

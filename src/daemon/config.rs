@@ -1,0 +1,676 @@
+//! The daemon's configuration: a TOML file read in two stages. First the text is parsed into
+//! `Raw*` structs that mirror the file (unknown keys rejected), then [`Config::from_raw`]
+//! checks every value and converts it into the types the daemon uses. Every error names the
+//! file, the section and the key, so an operator can fix the file without reading code; a
+//! wrong file is always an error, never silently replaced by defaults.
+
+use crate::marlin::firmware::Firmware;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeSet;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// A configuration problem, located as precisely as the file allows.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{file}: cannot read: {source} (hint: pass --config FILE with a readable file)")]
+    Read {
+        file: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{file}: line {line}, in {section}: {message}")]
+    Parse {
+        file: PathBuf,
+        line: usize,
+        section: String,
+        message: String,
+    },
+    #[error("{file}: {section}: key `{key}`: {message}")]
+    Invalid {
+        file: PathBuf,
+        section: String,
+        key: String,
+        message: String,
+    },
+}
+
+/// How strongly a folder's models are enhanced; mirrors `crispen::enhance::Strength`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StrengthSetting {
+    /// Chosen from the target height with the default table.
+    Auto,
+    /// No enhancement.
+    Off,
+    /// A fixed lambda2.
+    Lambda2(f64),
+}
+
+/// Which slicer prepares a folder's models; mirrors `crispen::slice::SlicerKind`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SlicerChoice {
+    Prusa,
+    Cura,
+}
+
+/// What SIGTERM does to a print in progress.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OnShutdown {
+    /// Keep streaming until the print ends, then exit.
+    Finish,
+    /// Stop safely (heaters off) and mark the job interrupted.
+    Stop,
+}
+
+// ---------------------------------------------------------------- stage 1: the file's shape
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawConfig {
+    spool: RawSpool,
+    #[serde(default)]
+    control: Option<RawControl>,
+    #[serde(default)]
+    farm: Option<RawFarm>,
+    #[serde(default, rename = "printer")]
+    printers: Vec<RawPrinter>,
+    #[serde(default, rename = "folder")]
+    folders: Vec<RawFolder>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSpool {
+    dir: PathBuf,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawControl {
+    socket: PathBuf,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFarm {
+    max_heating: Option<i64>,
+    on_shutdown: Option<OnShutdown>,
+    settle_s: Option<f64>,
+    rescan_s: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPrinter {
+    name: String,
+    port: Option<PathBuf>,
+    firmware: String,
+    baud: Option<i64>,
+    simulate: Option<RawSimulate>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSimulate {
+    time_scale: Option<f64>,
+    seed: Option<u64>,
+    record: Option<PathBuf>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFolder {
+    path: PathBuf,
+    height_mm: f64,
+    printers: Vec<String>,
+    strength: Option<toml::Value>,
+    enhance: Option<bool>,
+    slicer: Option<SlicerChoice>,
+    profile: Option<PathBuf>,
+    timeout_s: Option<f64>,
+    settings: Option<toml::Table>,
+}
+
+// ---------------------------------------------------------------- stage 2: checked values
+
+/// The checked configuration the daemon runs with.
+#[derive(Debug, Clone)]
+pub struct Config {
+    /// The file it came from ("(built-in default)" when none).
+    pub source: PathBuf,
+    pub spool_dir: PathBuf,
+    pub socket: PathBuf,
+    pub farm: FarmConfig,
+    pub printers: Vec<PrinterConfig>,
+    pub folders: Vec<FolderConfig>,
+}
+
+#[derive(Debug, Clone)]
+pub struct FarmConfig {
+    /// At most this many printers heat up at once.
+    pub max_heating: usize,
+    pub on_shutdown: OnShutdown,
+    /// A dropped file whose size and mtime stay unchanged this long is taken as complete.
+    pub settle: Duration,
+    /// Hot folders are rescanned this often in case a watch event was missed.
+    pub rescan: Duration,
+}
+
+/// Where a printer is reached: a real serial port, or a simulated printer the daemon
+/// starts once at startup (and then treats exactly like a serial port).
+#[derive(Debug, Clone, PartialEq)]
+pub enum PrinterPort {
+    Serial(PathBuf),
+    Simulated {
+        time_scale: f64,
+        seed: u64,
+        record: Option<PathBuf>,
+    },
+}
+
+#[derive(Debug, Clone)]
+pub struct PrinterConfig {
+    pub name: String,
+    pub port: PrinterPort,
+    pub firmware: Firmware,
+    pub baud: u32,
+}
+
+#[derive(Debug, Clone)]
+pub struct FolderConfig {
+    pub path: PathBuf,
+    pub height_mm: f64,
+    pub printers: Vec<String>,
+    pub strength: StrengthSetting,
+    pub slicer: SlicerChoice,
+    pub profile: Option<PathBuf>,
+    pub timeout: Duration,
+    /// Slicer setting overrides on top of the profile.
+    pub settings: crate::slice::SliceSettings,
+}
+
+impl Config {
+    /// Reads and checks a config file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let file = std::fs::File::open(path).map_err(|source| ConfigError::Read {
+            file: path.to_path_buf(),
+            source,
+        })?;
+        Config::from_reader(file, path)
+    }
+
+    /// Reads and checks a config from any reader; `path` names it in errors and anchors
+    /// relative paths (they are relative to the file's directory).
+    pub fn from_reader(mut reader: impl Read, path: &Path) -> Result<Config, ConfigError> {
+        let mut text = String::new();
+        reader
+            .read_to_string(&mut text)
+            .map_err(|source| ConfigError::Read {
+                file: path.to_path_buf(),
+                source,
+            })?;
+        Config::parse(&text, path)
+    }
+
+    /// Parses and checks config text.
+    pub fn parse(text: &str, path: &Path) -> Result<Config, ConfigError> {
+        let raw: RawConfig = toml::from_str(text).map_err(|e| {
+            let offset = e.span().map(|s| s.start).unwrap_or(0);
+            let (line, section) = locate(text, offset);
+            ConfigError::Parse {
+                file: path.to_path_buf(),
+                line,
+                section,
+                message: e.message().trim().to_string(),
+            }
+        })?;
+        let base = path
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| PathBuf::from("."));
+        Config::from_raw(raw, path, &base)
+    }
+
+    /// The configuration used when no file is given: everything under `./crispen-demo/`,
+    /// one hot folder for 50 mm prints and one fast simulated Ultimaker 2, so the quick
+    /// start needs no hardware.
+    pub fn builtin_default() -> Config {
+        let text = r#"
+[spool]
+dir = "crispen-demo/spool"
+[control]
+socket = "crispen-demo/crispen.sock"
+[farm]
+max_heating = 1
+settle_s = 2
+[[printer]]
+name = "demo"
+firmware = "ultimaker2"
+[printer.simulate]
+time_scale = 0.01
+[[folder]]
+path = "crispen-demo/hot/50mm"
+height_mm = 50
+printers = ["demo"]
+"#;
+        let mut config = Config::parse(text, Path::new("./(built-in default)"))
+            .expect("the built-in default config is valid");
+        config.source = PathBuf::from("(built-in default)");
+        config
+    }
+
+    /// The folder configuration a hot-folder path belongs to.
+    pub fn folder(&self, path: &Path) -> Option<&FolderConfig> {
+        self.folders.iter().find(|f| f.path == path)
+    }
+
+    fn from_raw(raw: RawConfig, file: &Path, base: &Path) -> Result<Config, ConfigError> {
+        let invalid = |section: String, key: &str, message: String| ConfigError::Invalid {
+            file: file.to_path_buf(),
+            section,
+            key: key.to_string(),
+            message,
+        };
+        let anchor = |p: &Path| {
+            if p.is_absolute() {
+                p.to_path_buf()
+            } else {
+                base.join(p)
+            }
+        };
+
+        let spool_dir = anchor(&raw.spool.dir);
+        if raw.spool.dir.as_os_str().is_empty() {
+            return Err(invalid("[spool]".into(), "dir", "must not be empty".into()));
+        }
+        let socket = match &raw.control {
+            Some(c) if c.socket.as_os_str().is_empty() => {
+                return Err(invalid(
+                    "[control]".into(),
+                    "socket",
+                    "must not be empty".into(),
+                ))
+            }
+            Some(c) => anchor(&c.socket),
+            None => spool_dir.join("crispen.sock"),
+        };
+
+        let farm = {
+            let raw_farm = raw.farm.unwrap_or(RawFarm {
+                max_heating: None,
+                on_shutdown: None,
+                settle_s: None,
+                rescan_s: None,
+            });
+            let max_heating = match raw_farm.max_heating {
+                None => 2,
+                Some(n) if n >= 1 => n as usize,
+                Some(n) => {
+                    return Err(invalid(
+                        "[farm]".into(),
+                        "max_heating",
+                        format!("must be at least 1, got {n}"),
+                    ))
+                }
+            };
+            let seconds = |key: &str, value: Option<f64>, default: f64| {
+                let v = value.unwrap_or(default);
+                if v.is_finite() && v > 0.0 && v < 86_400.0 {
+                    Ok(Duration::from_secs_f64(v))
+                } else {
+                    Err(invalid(
+                        "[farm]".into(),
+                        key,
+                        format!("must be a number of seconds > 0, got {v}"),
+                    ))
+                }
+            };
+            FarmConfig {
+                max_heating,
+                on_shutdown: raw_farm.on_shutdown.unwrap_or(OnShutdown::Finish),
+                settle: seconds("settle_s", raw_farm.settle_s, 5.0)?,
+                rescan: seconds("rescan_s", raw_farm.rescan_s, 30.0)?,
+            }
+        };
+
+        let mut printers = Vec::new();
+        let mut names = BTreeSet::new();
+        for (i, p) in raw.printers.into_iter().enumerate() {
+            let section = format!("[[printer]] #{} (name {:?})", i + 1, p.name);
+            if p.name.is_empty()
+                || !p
+                    .name
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.')
+            {
+                return Err(invalid(
+                    section,
+                    "name",
+                    "must be non-empty and use only letters, digits, `-`, `_`, `.`".into(),
+                ));
+            }
+            if !names.insert(p.name.clone()) {
+                return Err(invalid(
+                    section,
+                    "name",
+                    "is used by another printer".into(),
+                ));
+            }
+            let firmware: Firmware = p
+                .firmware
+                .parse()
+                .map_err(|m: String| invalid(section.clone(), "firmware", m))?;
+            let baud = match p.baud {
+                None => firmware.default_baud(),
+                Some(b) if (300..=4_000_000).contains(&b) => b as u32,
+                Some(b) => {
+                    return Err(invalid(
+                        section,
+                        "baud",
+                        format!("must be between 300 and 4000000, got {b}"),
+                    ))
+                }
+            };
+            let port = match (p.port, p.simulate) {
+                (Some(_), Some(_)) => {
+                    return Err(invalid(
+                        section,
+                        "simulate",
+                        "give either `port` or a `[printer.simulate]` table, not both".into(),
+                    ))
+                }
+                (None, None) => {
+                    return Err(invalid(
+                        section,
+                        "port",
+                        "missing (hint: a serial device such as /dev/ttyUSB0, or a \
+                         [printer.simulate] table for a simulated printer)"
+                            .into(),
+                    ))
+                }
+                (Some(port), None) => PrinterPort::Serial(anchor(&port)),
+                (None, Some(sim)) => {
+                    let sim_section = format!("{section}.simulate");
+                    let time_scale = sim.time_scale.unwrap_or(1.0);
+                    if !(time_scale.is_finite() && (0.0..=100.0).contains(&time_scale)) {
+                        return Err(invalid(
+                            sim_section,
+                            "time_scale",
+                            format!("must be between 0 (instant) and 100, got {time_scale}"),
+                        ));
+                    }
+                    PrinterPort::Simulated {
+                        time_scale,
+                        seed: sim.seed.unwrap_or(i as u64 + 1),
+                        record: sim.record.map(|r| anchor(&r)),
+                    }
+                }
+            };
+            printers.push(PrinterConfig {
+                name: p.name,
+                port,
+                firmware,
+                baud,
+            });
+        }
+
+        let mut folders: Vec<FolderConfig> = Vec::new();
+        for (i, f) in raw.folders.into_iter().enumerate() {
+            let section = format!(
+                "[[folder]] #{} (path {:?})",
+                i + 1,
+                f.path.display().to_string()
+            );
+            if f.path.as_os_str().is_empty() {
+                return Err(invalid(section, "path", "must not be empty".into()));
+            }
+            let path = anchor(&f.path);
+            if folders.iter().any(|o| o.path == path) {
+                return Err(invalid(section, "path", "is configured twice".into()));
+            }
+            if !(f.height_mm.is_finite() && f.height_mm > 0.0) {
+                return Err(invalid(
+                    section,
+                    "height_mm",
+                    format!("must be > 0, got {}", f.height_mm),
+                ));
+            }
+            if f.height_mm > 1000.0 {
+                return Err(invalid(
+                    section,
+                    "height_mm",
+                    format!("must be at most 1000 mm, got {}", f.height_mm),
+                ));
+            }
+            if f.printers.is_empty() {
+                return Err(invalid(
+                    section,
+                    "printers",
+                    "must name at least one printer".into(),
+                ));
+            }
+            for name in &f.printers {
+                if !names.contains(name) {
+                    return Err(invalid(
+                        section,
+                        "printers",
+                        format!("no [[printer]] is named {name:?}"),
+                    ));
+                }
+            }
+            let strength = match (&f.strength, f.enhance) {
+                (_, Some(false)) => StrengthSetting::Off,
+                (None, _) => StrengthSetting::Auto,
+                (Some(v), _) => {
+                    parse_strength(v).map_err(|m| invalid(section.clone(), "strength", m))?
+                }
+            };
+            let timeout = match f.timeout_s {
+                None => Duration::from_secs(600),
+                Some(t) if t.is_finite() && t > 0.0 => Duration::from_secs_f64(t),
+                Some(t) => {
+                    return Err(invalid(
+                        section,
+                        "timeout_s",
+                        format!("must be > 0, got {t}"),
+                    ))
+                }
+            };
+            let settings = match f.settings {
+                None => crate::slice::SliceSettings::default(),
+                Some(table) => {
+                    let settings: crate::slice::SliceSettings = toml::Value::Table(table)
+                        .try_into()
+                        .map_err(|e: toml::de::Error| {
+                            invalid(section.clone(), "settings", e.message().trim().to_string())
+                        })?;
+                    settings
+                        .validate()
+                        .map_err(|e| invalid(section.clone(), "settings", e.to_string()))?;
+                    settings
+                }
+            };
+            folders.push(FolderConfig {
+                path,
+                height_mm: f.height_mm,
+                printers: f.printers,
+                strength,
+                slicer: f.slicer.unwrap_or(SlicerChoice::Prusa),
+                profile: f.profile.map(|p| anchor(&p)),
+                timeout,
+                settings,
+            });
+        }
+
+        Ok(Config {
+            source: file.to_path_buf(),
+            spool_dir,
+            socket,
+            farm,
+            printers,
+            folders,
+        })
+    }
+}
+
+/// `strength = "auto" | "off" | <lambda2>`.
+pub fn parse_strength(value: &toml::Value) -> Result<StrengthSetting, String> {
+    match value {
+        toml::Value::String(s) if s == "auto" => Ok(StrengthSetting::Auto),
+        toml::Value::String(s) if s == "off" => Ok(StrengthSetting::Off),
+        toml::Value::Float(x) if x.is_finite() && *x >= 0.0 => Ok(StrengthSetting::Lambda2(*x)),
+        toml::Value::Integer(x) if *x >= 0 => Ok(StrengthSetting::Lambda2(*x as f64)),
+        other => Err(format!(
+            "must be \"auto\", \"off\" or a lambda2 >= 0, got {other}"
+        )),
+    }
+}
+
+/// Line number (1-based) of a byte offset and the table header that encloses it.
+fn locate(text: &str, offset: usize) -> (usize, String) {
+    let offset = offset.min(text.len());
+    let before = &text[..offset];
+    let line = before.matches('\n').count() + 1;
+    let mut section = "the top level".to_string();
+    let mut counts: std::collections::HashMap<String, usize> = Default::default();
+    for l in before.lines() {
+        let t = l.trim();
+        if t.starts_with("[[") {
+            if let Some(end) = t.find("]]") {
+                let name = t[2..end].trim().to_string();
+                let n = counts.entry(name.clone()).or_insert(0);
+                *n += 1;
+                section = format!("[[{name}]] #{n}");
+            }
+        } else if t.starts_with('[') {
+            if let Some(end) = t.find(']') {
+                let name = t[1..end].trim().to_string();
+                // `[printer.simulate]` belongs to the latest `[[printer]]`.
+                match name.split_once('.') {
+                    Some((parent, child)) if counts.contains_key(parent) => {
+                        section = format!("[[{parent}]] #{}.{child}", counts[parent]);
+                    }
+                    _ => section = format!("[{name}]"),
+                }
+            }
+        }
+    }
+    (line, section)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GOOD: &str = r#"
+[spool]
+dir = "/var/lib/crispen"
+[control]
+socket = "/run/crispen/crispen.sock"
+[farm]
+max_heating = 1
+on_shutdown = "stop"
+[[printer]]
+name = "um2-a"
+port = "/dev/ttyACM0"
+firmware = "ultimaker2"
+[[printer]]
+name = "sim"
+firmware = "marlin2"
+[printer.simulate]
+time_scale = 0.5
+[[folder]]
+path = "/srv/print/5cm"
+height_mm = 50
+printers = ["um2-a", "sim"]
+strength = 0.4
+[[folder]]
+path = "hot/igea"
+height_mm = 30
+printers = ["sim"]
+enhance = false
+slicer = "cura"
+"#;
+
+    fn parse(text: &str) -> Result<Config, ConfigError> {
+        Config::parse(text, Path::new("/etc/crispen/crispen.toml"))
+    }
+
+    #[test]
+    fn good_config_is_converted() {
+        let c = parse(GOOD).unwrap();
+        assert_eq!(c.farm.max_heating, 1);
+        assert_eq!(c.farm.on_shutdown, OnShutdown::Stop);
+        assert_eq!(c.printers[0].baud, 250_000);
+        assert_eq!(
+            c.printers[0].port,
+            PrinterPort::Serial("/dev/ttyACM0".into())
+        );
+        assert!(
+            matches!(c.printers[1].port, PrinterPort::Simulated { time_scale, .. } if time_scale == 0.5)
+        );
+        assert_eq!(c.folders[0].strength, StrengthSetting::Lambda2(0.4));
+        assert_eq!(c.folders[1].strength, StrengthSetting::Off);
+        assert_eq!(c.folders[1].slicer, SlicerChoice::Cura);
+        // Relative paths are anchored at the config file's directory.
+        assert_eq!(c.folders[1].path, PathBuf::from("/etc/crispen/hot/igea"));
+    }
+
+    #[test]
+    fn unknown_key_names_line_section_and_key() {
+        let text = GOOD.replace("height_mm = 30", "heigth_mm = 30");
+        let err = parse(&text).unwrap_err().to_string();
+        assert!(err.starts_with("/etc/crispen/crispen.toml: line "), "{err}");
+        assert!(err.contains("[[folder]] #2"), "{err}");
+        assert!(err.contains("heigth_mm"), "{err}");
+    }
+
+    #[test]
+    fn unknown_key_in_simulate_table_is_located() {
+        let text = GOOD.replace("time_scale = 0.5", "time_scael = 0.5");
+        let err = parse(&text).unwrap_err().to_string();
+        assert!(err.contains("[[printer]] #2.simulate"), "{err}");
+        assert!(err.contains("time_scael"), "{err}");
+    }
+
+    #[test]
+    fn bad_values_name_section_and_key() {
+        let cases = [
+            ("height_mm = 50", "height_mm = -5", "[[folder]] #1 (path \"/srv/print/5cm\"): key `height_mm`: must be > 0"),
+            ("max_heating = 1", "max_heating = 0", "[farm]: key `max_heating`"),
+            ("firmware = \"ultimaker2\"", "firmware = \"repetier\"", "[[printer]] #1 (name \"um2-a\"): key `firmware`"),
+            ("printers = [\"sim\"]", "printers = [\"nope\"]", "[[folder]] #2 (path \"hot/igea\"): key `printers`: no [[printer]] is named \"nope\""),
+            ("strength = 0.4", "strength = \"max\"", "key `strength`"),
+            ("port = \"/dev/ttyACM0\"\n", "", "key `port`: missing"),
+            ("strength = 0.4", "strength = 0.4\nsettings = { infil_percent = 20 }", "key `settings`: unknown field `infil_percent`"),
+        ];
+        for (from, to, expected) in cases {
+            let text = GOOD.replacen(from, to, 1);
+            assert_ne!(text, GOOD, "{from}");
+            let err = parse(&text).unwrap_err().to_string();
+            assert!(err.contains(expected), "{err}\n  expected: {expected}");
+            assert!(err.starts_with("/etc/crispen/crispen.toml: "), "{err}");
+        }
+    }
+
+    #[test]
+    fn wrong_type_is_a_parse_error_with_location() {
+        let text = GOOD.replace("max_heating = 1", "max_heating = \"one\"");
+        let err = parse(&text).unwrap_err().to_string();
+        assert!(err.contains("[farm]"), "{err}");
+        assert!(err.contains("line 7"), "{err}");
+    }
+
+    #[test]
+    fn builtin_default_is_a_simulated_demo() {
+        let c = Config::builtin_default();
+        assert_eq!(c.printers.len(), 1);
+        assert!(matches!(c.printers[0].port, PrinterPort::Simulated { .. }));
+        assert!(c.folders[0].path.ends_with("crispen-demo/hot/50mm"));
+        assert_eq!(c.folders[0].height_mm, 50.0);
+    }
+}

@@ -1,0 +1,328 @@
+//! The control API: JSON lines over a unix socket (mode 0660, so the service user's group
+//! may use it). Each request line gets one response line. [`serve`] runs in the daemon;
+//! [`request`] is the client used by `crispen status|clear|cancel|pause|resume|retry`.
+//!
+//! Requests: `{"cmd":"status"}`, `{"cmd":"clear","printer":"a"}`, `{"cmd":"cancel","job":"0001-x"}`,
+//! `{"cmd":"pause","printer":"a"}`, `{"cmd":"resume","printer":"a"}`, `{"cmd":"retry","job":"..."}`.
+//! Responses: `{"ok":true,"message":...,"status":{...}}` or `{"ok":false,"error":"..."}`.
+
+use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
+use super::job::{JobState, PrinterGate};
+use serde::{Deserialize, Serialize};
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::fs::PermissionsExt;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt};
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "cmd", rename_all = "lowercase", deny_unknown_fields)]
+pub enum Request {
+    Status,
+    Clear { printer: String },
+    Cancel { job: String },
+    Pause { printer: String },
+    Resume { printer: String },
+    Retry { job: String },
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, Default)]
+pub struct Response {
+    pub ok: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub status: Option<Status>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Status {
+    pub printers: Vec<PrinterStatus>,
+    pub jobs: Vec<JobStatus>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct JobStatus {
+    pub id: String,
+    pub file: String,
+    pub folder: PathBuf,
+    pub state: JobState,
+    pub printer: Option<String>,
+    pub reason: Option<String>,
+    /// Preparation step, while preparing.
+    pub step: Option<String>,
+    /// Print progress, while printing.
+    pub progress: Option<LiveProgress>,
+    pub copies_done: u32,
+    pub copies: u32,
+    pub updated: f64,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ControlError {
+    #[error("cannot reach the daemon at {socket}: {source} (hint: is `crispen run` running with the same --config?)")]
+    Connect {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("control socket {socket}: {source}")]
+    Io {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("control socket {socket}: unreadable answer: {message}")]
+    Protocol { socket: PathBuf, message: String },
+}
+
+/// Sends one request and waits for its answer (blocking; used by the CLI).
+pub fn request(socket: &Path, req: &Request) -> Result<Response, ControlError> {
+    let stream = std::os::unix::net::UnixStream::connect(socket).map_err(|source| {
+        ControlError::Connect {
+            socket: socket.to_path_buf(),
+            source,
+        }
+    })?;
+    let io = |source| ControlError::Io {
+        socket: socket.to_path_buf(),
+        source,
+    };
+    let mut line = serde_json::to_string(req).expect("request serialises");
+    line.push('\n');
+    (&stream).write_all(line.as_bytes()).map_err(io)?;
+    let mut answer = String::new();
+    BufReader::new(&stream).read_line(&mut answer).map_err(io)?;
+    serde_json::from_str(&answer).map_err(|e| ControlError::Protocol {
+        socket: socket.to_path_buf(),
+        message: e.to_string(),
+    })
+}
+
+/// Builds the status snapshot.
+pub fn status(farm: &Farm) -> Status {
+    let printers: Vec<PrinterStatus> = farm
+        .printers
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .values()
+        .cloned()
+        .collect();
+    let preparing = farm
+        .preparing
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .clone();
+    let store = farm.store();
+    let jobs = store
+        .jobs()
+        .map(|j| JobStatus {
+            id: j.id.clone(),
+            file: j.file.clone(),
+            folder: j.folder.clone(),
+            state: j.state,
+            printer: j.printer.clone(),
+            reason: j.reason.clone(),
+            step: (j.state == JobState::Preparing)
+                .then(|| preparing.get(&j.id).cloned())
+                .flatten(),
+            progress: (j.state == JobState::Printing)
+                .then(|| {
+                    printers
+                        .iter()
+                        .find(|p| p.job.as_deref() == Some(j.id.as_str()))
+                        .and_then(|p| p.progress.clone())
+                })
+                .flatten(),
+            copies_done: j.copies_done,
+            copies: j.copies_wanted(),
+            updated: j.history.last().map(|h| h.1).unwrap_or(0.0),
+        })
+        .collect();
+    Status { printers, jobs }
+}
+
+/// Carries out one request.
+pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
+    let result: Result<Option<String>, String> = match req {
+        Request::Status => {
+            return Response {
+                ok: true,
+                status: Some(status(farm)),
+                ..Default::default()
+            }
+        }
+        Request::Clear { printer } => clear(farm, &printer),
+        Request::Pause { printer } => send_print_command(farm, &printer, PrintCommand::Pause).await,
+        Request::Resume { printer } => {
+            send_print_command(farm, &printer, PrintCommand::Resume).await
+        }
+        Request::Cancel { job } => cancel(farm, &job).await,
+        Request::Retry { job } => {
+            let r = farm.store().retry(&job).map_err(|e| e.to_string());
+            r.map(|_| {
+                farm.bump();
+                Some(format!("job {job} queued again"))
+            })
+        }
+    };
+    match result {
+        Ok(message) => Response {
+            ok: true,
+            message,
+            ..Default::default()
+        },
+        Err(error) => Response {
+            ok: false,
+            error: Some(error),
+            ..Default::default()
+        },
+    }
+}
+
+fn known_printer(farm: &Farm, printer: &str) -> Result<(), String> {
+    if farm
+        .printers
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .contains_key(printer)
+    {
+        Ok(())
+    } else {
+        Err(format!(
+            "no printer {printer:?} (hint: `crispen status` lists the printers)"
+        ))
+    }
+}
+
+fn clear(farm: &Farm, printer: &str) -> Result<Option<String>, String> {
+    known_printer(farm, printer)?;
+    let mut store = farm.store();
+    let gate = store.gate(printer);
+    if !gate.bed_not_cleared {
+        return Ok(Some(format!("{printer}: bed was already clear")));
+    }
+    store
+        .set_gate(
+            printer,
+            PrinterGate {
+                bed_not_cleared: false,
+                last_job: gate.last_job,
+            },
+        )
+        .map_err(|e| e.to_string())?;
+    drop(store);
+    tracing::info!(printer, "bed cleared");
+    farm.bump();
+    Ok(Some(format!(
+        "{printer}: bed cleared; it may take the next job"
+    )))
+}
+
+async fn send_print_command(
+    farm: &Farm,
+    printer: &str,
+    command: PrintCommand,
+) -> Result<Option<String>, String> {
+    known_printer(farm, printer)?;
+    let tx = farm
+        .print_controls
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .get(printer)
+        .cloned();
+    let Some(tx) = tx else {
+        return Err(format!("{printer} is not printing"));
+    };
+    tx.send(command)
+        .await
+        .map_err(|_| format!("{printer}: the print just ended"))?;
+    tracing::info!(printer, ?command, "print command sent");
+    Ok(Some(format!("{printer}: {command:?} sent")))
+}
+
+async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
+    let job = farm
+        .store()
+        .get(id)
+        .cloned()
+        .ok_or_else(|| format!("no job {id:?} (hint: `crispen status` lists the jobs)"))?;
+    match job.state {
+        JobState::Queued | JobState::Preparing | JobState::Ready => {
+            farm.transition(
+                id,
+                JobState::Cancelled,
+                Some("cancelled by the operator".into()),
+            )
+            .map_err(|e| e.to_string())?;
+            Ok(Some(format!("job {id} cancelled")))
+        }
+        JobState::Printing => {
+            let printer = job.printer.unwrap_or_default();
+            send_print_command(farm, &printer, PrintCommand::Cancel).await?;
+            Ok(Some(format!(
+                "job {id}: stopping the print on {printer} (heaters off)"
+            )))
+        }
+        other => Err(format!(
+            "job {id} is {other}; only active jobs can be cancelled"
+        )),
+    }
+}
+
+/// Binds the control socket (replacing a stale one) with mode 0660.
+pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
+    let io = |source| ControlError::Io {
+        socket: socket.to_path_buf(),
+        source,
+    };
+    if let Some(dir) = socket.parent() {
+        std::fs::create_dir_all(dir).map_err(io)?;
+    }
+    if socket.exists() {
+        if std::os::unix::net::UnixStream::connect(socket).is_ok() {
+            return Err(ControlError::Io {
+                socket: socket.to_path_buf(),
+                source: std::io::Error::new(
+                    std::io::ErrorKind::AddrInUse,
+                    "another daemon is listening here (hint: stop it, or use another [control] socket)",
+                ),
+            });
+        }
+        std::fs::remove_file(socket).map_err(io)?;
+    }
+    let listener = tokio::net::UnixListener::bind(socket).map_err(io)?;
+    std::fs::set_permissions(socket, std::fs::Permissions::from_mode(0o660)).map_err(io)?;
+    Ok(listener)
+}
+
+/// Answers requests until the listener is dropped.
+pub async fn serve(farm: Arc<Farm>, listener: tokio::net::UnixListener) {
+    loop {
+        let Ok((stream, _)) = listener.accept().await else {
+            continue;
+        };
+        let farm = Arc::clone(&farm);
+        tokio::spawn(async move {
+            let (read, mut write) = stream.into_split();
+            let mut lines = tokio::io::BufReader::new(read).lines();
+            while let Ok(Some(line)) = lines.next_line().await {
+                let response = match serde_json::from_str::<Request>(&line) {
+                    Ok(req) => handle(&farm, req).await,
+                    Err(e) => Response {
+                        ok: false,
+                        error: Some(format!("bad request: {e}")),
+                        ..Default::default()
+                    },
+                };
+                let mut out = serde_json::to_string(&response).expect("response serialises");
+                out.push('\n');
+                if write.write_all(out.as_bytes()).await.is_err() {
+                    break;
+                }
+            }
+        });
+    }
+}

@@ -1,0 +1,427 @@
+//! The print-farm daemon behind `crispen run`: hot folders feed a job spool, jobs are
+//! prepared (enhanced and sliced) off the async runtime, and each printer's supervisor
+//! prints ready jobs one at a time, waiting for its bed to be cleared in between.
+//!
+//! - [`config`]: the TOML configuration, checked in two stages.
+//! - [`job`]: the spool of job directories and their atomically written state.
+//! - [`hotfolder`]: deciding when a dropped file is complete.
+//! - [`prepare`]: sidecars and the slicer step.
+//! - [`printer`]: printer supervisors and staggered heat-ups.
+//! - [`control`]: the JSON-lines control socket and its client.
+//! - [`farm`]: the state all of these share.
+//!
+//! [`run`] wires them together; I/O endpoints (printer ports, the preparer) are resolved
+//! once here at startup, so no other part knows whether a printer is simulated.
+
+pub mod config;
+pub mod control;
+pub mod farm;
+pub mod hotfolder;
+pub mod job;
+pub mod prepare;
+pub mod printer;
+
+use config::{Config, PrinterPort};
+use farm::{Farm, PrinterState, PrinterStatus};
+use job::{JobState, JobStore};
+use prepare::Preparer;
+use printer::Connector;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::{mpsc, Semaphore};
+use tracing::Instrument;
+
+#[derive(Debug, thiserror::Error)]
+pub enum DaemonError {
+    #[error(transparent)]
+    Config(#[from] config::ConfigError),
+    #[error(transparent)]
+    Store(#[from] job::StoreError),
+    #[error(transparent)]
+    Control(#[from] control::ControlError),
+    #[error("printer {printer}: cannot start its simulator: {message}")]
+    Simulator { printer: String, message: String },
+    #[error("cannot install signal handlers: {0}")]
+    Signals(std::io::Error),
+}
+
+/// How `crispen run` was asked to behave.
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
+    /// The config file to re-read on SIGHUP (None: the built-in default, not reloadable).
+    pub config_path: Option<PathBuf>,
+    /// Exit once no job has work left and at least one job finished during this run.
+    pub exit_when_idle: bool,
+}
+
+/// A printer endpoint resolved at startup. Simulators live as long as the daemon.
+struct ResolvedPrinters {
+    connectors: Vec<(String, String, String, Box<dyn Connector>)>,
+    _simulators: Vec<Box<dyn std::any::Any + Send>>,
+}
+
+fn resolve_printers(config: &Config) -> Result<ResolvedPrinters, DaemonError> {
+    let mut connectors = Vec::new();
+    let mut simulators: Vec<Box<dyn std::any::Any + Send>> = Vec::new();
+    for p in &config.printers {
+        let port = match &p.port {
+            PrinterPort::Serial(path) => path.clone(),
+            PrinterPort::Simulated {
+                time_scale,
+                seed,
+                record,
+            } => {
+                let mut sim = crate::marlin::sim::SimConfig::new(p.firmware);
+                sim.time_scale = *time_scale;
+                sim.seed = *seed;
+                sim.record = record.clone();
+                let handle =
+                    crate::marlin::sim::spawn(sim).map_err(|e| DaemonError::Simulator {
+                        printer: p.name.clone(),
+                        message: e.to_string(),
+                    })?;
+                let device = handle.device_path().to_path_buf();
+                tracing::info!(printer = %p.name, device = %device.display(), time_scale, "simulated printer started");
+                simulators.push(Box::new(handle));
+                device
+            }
+        };
+        let connector: Box<dyn Connector> = Box::new(printer::MarlinConnector {
+            port: port.clone(),
+            firmware: p.firmware,
+            baud: p.baud,
+        });
+        connectors.push((
+            p.name.clone(),
+            p.firmware.name().to_string(),
+            port.display().to_string(),
+            connector,
+        ));
+    }
+    Ok(ResolvedPrinters {
+        connectors,
+        _simulators: simulators,
+    })
+}
+
+/// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`).
+pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError> {
+    run_with(config, options, Arc::new(prepare::SlicePreparer)).await
+}
+
+/// [`run`] with a chosen preparer.
+pub async fn run_with(
+    config: Config,
+    options: RunOptions,
+    preparer: Arc<dyn Preparer>,
+) -> Result<(), DaemonError> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut sigterm = signal(SignalKind::terminate()).map_err(DaemonError::Signals)?;
+    let mut sigint = signal(SignalKind::interrupt()).map_err(DaemonError::Signals)?;
+    let mut sighup = signal(SignalKind::hangup()).map_err(DaemonError::Signals)?;
+
+    let mut store = JobStore::open(&config.spool_dir)?;
+    for id in store.recover()? {
+        let job = store.get(&id).expect("recovered job exists");
+        tracing::warn!(job = %id, state = job.state.name(), "job found mid-flight after a restart");
+    }
+    let listener = control::bind(&config.socket)?;
+    let resolved = resolve_printers(&config)?;
+    tracing::info!(
+        config = %config.source.display(),
+        spool = %config.spool_dir.display(),
+        socket = %config.socket.display(),
+        printers = config.printers.len(),
+        folders = config.folders.len(),
+        "crispen daemon starting"
+    );
+    let farm = Farm::new(config.clone(), store);
+    {
+        let mut printers = farm.printers.lock().unwrap_or_else(|e| e.into_inner());
+        for (name, firmware, port, _) in &resolved.connectors {
+            printers.insert(
+                name.clone(),
+                PrinterStatus {
+                    name: name.clone(),
+                    state: PrinterState::Connecting,
+                    firmware: firmware.clone(),
+                    port: port.clone(),
+                    job: None,
+                    progress: None,
+                    detail: None,
+                },
+            );
+        }
+    }
+
+    let control_task = tokio::spawn(control::serve(Arc::clone(&farm), listener));
+    let mut pickup = spawn_pickup(&farm, &config);
+    let prepare_task = tokio::spawn(prepare_loop(Arc::clone(&farm), preparer));
+    let mut supervisors = Vec::new();
+    for (name, _, _, connector) in resolved.connectors {
+        supervisors.push(tokio::spawn(printer::supervise(
+            Arc::clone(&farm),
+            name,
+            connector,
+        )));
+    }
+
+    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
+    let mut watchdog_usec = 0u64;
+    let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
+    let tick = if watchdog {
+        Duration::from_micros(watchdog_usec / 2).max(Duration::from_millis(100))
+    } else {
+        Duration::from_secs(5)
+    };
+    let mut ticker = tokio::time::interval(tick);
+    let mut wake = farm.subscribe();
+    loop {
+        tokio::select! {
+            _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
+            _ = sigint.recv() => { tracing::info!("SIGINT: stopping"); break; }
+            _ = sighup.recv() => {
+                reload(&farm, &options, &mut pickup);
+            }
+            _ = ticker.tick() => {
+                if watchdog {
+                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                }
+                let summary = summary(&farm);
+                let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Status(&summary)]);
+            }
+            _ = wake.changed() => {
+                if options.exit_when_idle
+                    && farm.finished_this_run.load(std::sync::atomic::Ordering::SeqCst) > 0
+                    && farm.idle()
+                {
+                    tracing::info!("no work left: exiting (--exit-when-idle)");
+                    break;
+                }
+            }
+        }
+    }
+
+    // Shutdown: take no new work; preparation in progress finishes (its job becomes ready)
+    // or is parked back in the queue by the restart rules; prints finish or stop per config.
+    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+    farm.begin_stop();
+    pickup.abort();
+    let _ = prepare_task.await;
+    for s in supervisors {
+        let _ = s.await;
+    }
+    control_task.abort();
+    let _ = std::fs::remove_file(&farm.config().socket);
+    tracing::info!("crispen daemon stopped");
+    Ok(())
+}
+
+fn summary(farm: &Farm) -> String {
+    let printers = farm.printers.lock().unwrap_or_else(|e| e.into_inner());
+    let printing = printers
+        .values()
+        .filter(|p| p.state == PrinterState::Printing)
+        .count();
+    let total = printers.len();
+    drop(printers);
+    let store = farm.store();
+    let count = |s: JobState| store.jobs().filter(|j| j.state == s).count();
+    format!(
+        "{printing}/{total} printers printing; jobs: {} queued, {} preparing, {} ready, {} failed",
+        count(JobState::Queued),
+        count(JobState::Preparing),
+        count(JobState::Ready),
+        count(JobState::Failed)
+    )
+}
+
+/// SIGHUP: re-read the config file. A bad file is refused and the old config kept. Folder
+/// and farm settings take effect at once; changes to printers need a restart.
+fn reload(farm: &Arc<Farm>, options: &RunOptions, pickup: &mut tokio::task::JoinHandle<()>) {
+    let Some(path) = &options.config_path else {
+        tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
+        return;
+    };
+    match Config::load(path) {
+        Err(e) => tracing::error!(error = %e, "SIGHUP: new config refused; keeping the old one"),
+        Ok(new) => {
+            let old = farm.config();
+            if new.spool_dir != old.spool_dir || new.socket != old.socket {
+                tracing::warn!("SIGHUP: [spool] and [control] changes need a restart; ignored");
+            }
+            let printers_changed =
+                new.printers.len() != old.printers.len()
+                    || new.printers.iter().zip(&old.printers).any(|(a, b)| {
+                        a.name != b.name || a.port != b.port || a.firmware != b.firmware
+                    });
+            if printers_changed {
+                tracing::warn!("SIGHUP: [[printer]] changes need a restart; the rest is applied");
+            }
+            let mut merged = new;
+            merged.spool_dir = old.spool_dir.clone();
+            merged.socket = old.socket.clone();
+            merged.printers = old.printers.clone();
+            pickup.abort();
+            *farm.config.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(merged.clone());
+            *pickup = spawn_pickup(farm, &merged);
+            farm.bump();
+            tracing::info!("SIGHUP: config reloaded");
+        }
+    }
+}
+
+/// Starts watching the hot folders and admitting complete files as jobs.
+fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()> {
+    let folders: Vec<PathBuf> = config.folders.iter().map(|f| f.path.clone()).collect();
+    let (tx, mut rx) = mpsc::channel(64);
+    let farm = Arc::clone(farm);
+    let settle = config.farm.settle;
+    let rescan = config.farm.rescan;
+    tokio::spawn(async move {
+        let watcher = tokio::spawn(hotfolder::watch(folders, settle, rescan, tx));
+        while let Some((path, folder)) = rx.recv().await {
+            if farm.stopping() {
+                break;
+            }
+            let admitted = farm.store().admit(&path, &folder);
+            match admitted {
+                Ok(job) => {
+                    tracing::info!(job = %job.id, file = %path.display(), "picked up");
+                    farm.bump();
+                }
+                Err(e) => tracing::error!(file = %path.display(), error = %e, "cannot pick up"),
+            }
+        }
+        watcher.abort();
+    })
+}
+
+/// Prepares queued jobs, oldest first, at most one per core at a time.
+async fn prepare_loop(farm: Arc<Farm>, preparer: Arc<dyn Preparer>) {
+    let cores = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    let permits = Arc::new(Semaphore::new(cores));
+    let mut running = tokio::task::JoinSet::new();
+    loop {
+        let mut wake = farm.subscribe();
+        if farm.stopping() {
+            break;
+        }
+        while let Ok(permit) = Arc::clone(&permits).try_acquire_owned() {
+            let next = farm
+                .store()
+                .jobs()
+                .find(|j| j.state == JobState::Queued)
+                .map(|j| j.id.clone());
+            let Some(id) = next else { break };
+            if farm.transition(&id, JobState::Preparing, None).is_err() {
+                break;
+            }
+            let farm = Arc::clone(&farm);
+            let preparer = Arc::clone(&preparer);
+            let span = tracing::info_span!("job", job = %id);
+            running.spawn(
+                async move {
+                    let f = Arc::clone(&farm);
+                    let job_id = id.clone();
+                    let result =
+                        tokio::task::spawn_blocking(move || prepare_one(&f, &job_id, &*preparer))
+                            .await
+                            .unwrap_or_else(|e| Err(format!("preparation crashed: {e}")));
+                    drop(permit);
+                    finish_preparation(&farm, &id, result);
+                    release_freed_memory();
+                }
+                .instrument(span),
+            );
+        }
+        tokio::select! {
+            _ = wake.changed() => {}
+            Some(_) = running.join_next() => {}
+        }
+    }
+    // Let preparations in progress finish; their jobs become ready (or, if we are killed
+    // first, queued again at the next start).
+    while running.join_next().await.is_some() {}
+}
+
+/// Preparation (mesh, solver) allocates hundreds of megabytes on blocking threads, each
+/// with its own malloc arena; glibc keeps freed arena memory mapped, so a farm that
+/// prepared many jobs would keep that peak for weeks. Hand it back to the system.
+fn release_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks the allocator's own free lists.
+    unsafe {
+        nix::libc::malloc_trim(0);
+    }
+}
+
+fn prepare_one(
+    farm: &Farm,
+    id: &str,
+    preparer: &dyn Preparer,
+) -> Result<(serde_json::Value, Option<job::Sidecar>), String> {
+    let (job, dir) = {
+        let store = farm.store();
+        let job = store.get(id).cloned().ok_or("job vanished")?;
+        (job, store.job_dir(id))
+    };
+    let config = farm.config();
+    let folder = config.folder(&job.folder).ok_or_else(|| {
+        format!(
+            "folder {} is no longer in the config (hint: add it back and `crispen retry` the job)",
+            job.folder.display()
+        )
+    })?;
+    let sidecar = prepare::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
+    let task = prepare::resolve_task(id, &dir, &job.file, folder, sidecar.as_ref())?;
+    tracing::info!(
+        model = %task.model.display(),
+        height_mm = task.height_mm,
+        strength = ?task.strength,
+        "preparing"
+    );
+    let mut progress = |step: &str| {
+        farm.preparing
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(id.to_string(), step.to_string());
+    };
+    let report = preparer.prepare(&task, &mut progress)?;
+    Ok((report, sidecar))
+}
+
+fn finish_preparation(
+    farm: &Farm,
+    id: &str,
+    result: Result<(serde_json::Value, Option<job::Sidecar>), String>,
+) {
+    farm.preparing
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .remove(id);
+    // Cancelled (or otherwise moved on) while being prepared: the result is not wanted.
+    if farm.store().get(id).map(|j| j.state) != Some(JobState::Preparing) {
+        return;
+    }
+    let outcome = match result {
+        Ok((report, sidecar)) => {
+            // The store guard must be gone before `transition` locks it again.
+            let saved = farm.store().update(id, |j| {
+                j.slice_report = Some(report);
+                j.sidecar = sidecar;
+            });
+            match saved {
+                Ok(_) => farm.transition(id, JobState::Ready, None),
+                Err(e) => Err(e),
+            }
+        }
+        Err(reason) => farm.transition(id, JobState::Failed, Some(reason)),
+    };
+    if let Err(e) = outcome {
+        tracing::error!(job = id, error = %e, "cannot record the preparation's outcome");
+    }
+}

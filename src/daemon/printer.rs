@@ -1,0 +1,409 @@
+//! Printer supervisors: one task per printer that connects (reconnecting with backoff),
+//! waits for its bed to be cleared, takes the oldest ready job of one of its folders,
+//! holds it until a heating permit is free, streams it, and records the outcome.
+//!
+//! Staggered heat-ups, approximated: a print holds one of `[farm] max_heating` permits from
+//! its start until the streamer has had the last heat-and-wait command (`M109`/`M190`/
+//! `M116`) of the program's opening acknowledged; Marlin acknowledges those only once the
+//! temperature is reached, so the permit is held exactly through the heat-up. A program
+//! without such a command releases the permit at once.
+//!
+//! The supervisor reaches the printer through [`Connector`]/[`PrinterLink`], so the real
+//! Marlin streamer is wired in in one place ([`MarlinConnector`]).
+
+use super::farm::{Farm, LiveProgress, PrintCommand, PrinterState};
+use super::job::{JobState, PrinterGate};
+use crate::marlin::gcode::GcodeProgram;
+use crate::marlin::stream::{
+    Connection, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
+};
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::{mpsc, watch};
+use tracing::Instrument;
+
+pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
+
+/// How a print ended, if not well.
+#[derive(Debug, Clone)]
+pub enum PrintFailure {
+    /// Stopped on request (heaters off).
+    Cancelled(String),
+    /// The printer went away; the connection must be re-opened.
+    Lost(String),
+    /// The print failed on the printer's side (it said so, or reset).
+    Failed(String),
+}
+
+/// An open connection to a printer.
+pub trait PrinterLink: Send {
+    /// Streams the G-code file at `gcode`; `control` pauses/resumes/cancels it, progress is
+    /// published on `progress`. Returns a JSON report.
+    fn print<'a>(
+        &'a mut self,
+        gcode: &'a Path,
+        control: mpsc::Receiver<PrintCommand>,
+        progress: watch::Sender<LiveProgress>,
+    ) -> BoxFuture<'a, Result<serde_json::Value, PrintFailure>>;
+}
+
+/// Opens connections to one printer.
+pub trait Connector: Send + Sync {
+    fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, String>>;
+}
+
+/// Index (in the program's command list) of the last heat-and-wait command of the opening
+/// part of a program (before the first extruding move), if any.
+pub fn heat_up_end(commands: &[String]) -> Option<usize> {
+    let mut last = None;
+    for (i, c) in commands.iter().enumerate() {
+        let word = c.split_whitespace().next().unwrap_or("");
+        match word {
+            "M109" | "M190" | "M116" => last = Some(i),
+            "G1" | "G0" if c.contains(" E") && last.is_some() => break,
+            _ => {}
+        }
+    }
+    last
+}
+
+/// Runs one printer's supervisor until shutdown.
+pub async fn supervise(farm: Arc<Farm>, name: String, connector: Box<dyn Connector>) {
+    let span = tracing::info_span!("printer", printer = %name);
+    supervise_inner(farm, name, connector)
+        .instrument(span)
+        .await
+}
+
+async fn supervise_inner(farm: Arc<Farm>, name: String, connector: Box<dyn Connector>) {
+    let mut backoff = Duration::from_millis(500);
+    let mut stopping = farm.subscribe_stopping();
+    'connect: loop {
+        if farm.stopping() {
+            break;
+        }
+        farm.set_printer(&name, |p| p.state = PrinterState::Connecting);
+        let mut link = match connector.connect().await {
+            Ok(link) => {
+                backoff = Duration::from_millis(500);
+                tracing::info!("connected");
+                link
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, retry_in_s = backoff.as_secs_f64(), "cannot connect");
+                farm.set_printer(&name, |p| {
+                    p.state = PrinterState::Disconnected;
+                    p.detail = Some(e.clone());
+                });
+                tokio::select! {
+                    _ = tokio::time::sleep(backoff) => {}
+                    _ = stopping.changed() => {}
+                }
+                backoff = (backoff * 2).min(Duration::from_secs(30));
+                continue;
+            }
+        };
+        farm.set_printer(&name, |p| p.detail = None);
+        loop {
+            let mut wake = farm.subscribe();
+            if farm.stopping() {
+                break 'connect;
+            }
+            let gate = farm.store().gate(&name);
+            if gate.bed_not_cleared {
+                farm.set_printer(&name, |p| {
+                    p.state = PrinterState::BedNotCleared;
+                    p.job = gate.last_job.clone();
+                });
+                let _ = wake.changed().await;
+                continue;
+            }
+            let Some(job_id) = claim_job(&farm, &name) else {
+                farm.set_printer(&name, |p| {
+                    p.state = PrinterState::Idle;
+                    p.job = None;
+                    p.progress = None;
+                });
+                let _ = wake.changed().await;
+                continue;
+            };
+            let span = tracing::info_span!("job", job = %job_id);
+            let lost = run_job(&farm, &name, &job_id, link.as_mut())
+                .instrument(span)
+                .await;
+            if lost {
+                continue 'connect;
+            }
+        }
+    }
+    farm.set_printer(&name, |p| p.state = PrinterState::Stopped);
+}
+
+/// Takes the oldest ready job this printer may print, marking it printing.
+fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
+    let config = farm.config();
+    let mut store = farm.store();
+    let id = store
+        .jobs()
+        .filter(|j| j.state == JobState::Ready)
+        .find(|j| {
+            let served = config
+                .folder(&j.folder)
+                .is_some_and(|f| f.printers.iter().any(|p| p == printer));
+            let wanted = j
+                .sidecar
+                .as_ref()
+                .and_then(|s| s.printer.as_deref())
+                .is_none_or(|p| p == printer);
+            served && wanted
+        })
+        .map(|j| j.id.clone())?;
+    store
+        .update(&id, |j| j.printer = Some(printer.to_string()))
+        .ok()?;
+    drop(store);
+    farm.transition(&id, JobState::Printing, None).ok()?;
+    Some(id)
+}
+
+/// Prints one job. Returns true when the connection was lost.
+async fn run_job(
+    farm: &Arc<Farm>,
+    printer: &str,
+    job_id: &str,
+    link: &mut dyn PrinterLink,
+) -> bool {
+    let gcode: PathBuf = {
+        let store = farm.store();
+        let Some(job) = store.get(job_id) else {
+            return false;
+        };
+        store.job_dir(job_id).join(format!("{}.gcode", job.file))
+    };
+
+    farm.set_printer(printer, |p| {
+        p.state = PrinterState::WaitingToHeat;
+        p.job = Some(job_id.to_string());
+        p.progress = None;
+    });
+    let permit = Arc::clone(&farm.heating).acquire_owned().await.ok();
+    tracing::info!(gcode = %gcode.display(), "starting print");
+    farm.set_printer(printer, |p| p.state = PrinterState::Printing);
+
+    let (control_tx, control_rx) = mpsc::channel(8);
+    farm.print_controls
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .insert(printer.to_string(), control_tx.clone());
+    let (progress_tx, mut progress_rx) = watch::channel(LiveProgress::default());
+
+    // A stop requested by shutdown (on_shutdown = "stop") is a cancel that ends as
+    // interrupted rather than cancelled.
+    let stop_on_shutdown = farm.config().farm.on_shutdown == super::config::OnShutdown::Stop;
+    let mut stopping = farm.subscribe_stopping();
+    let mut permit = permit;
+    let print = link.print(&gcode, control_rx, progress_tx);
+    tokio::pin!(print);
+    let mut shutdown_stop = false;
+    let mut progress_open = true;
+    let outcome = loop {
+        tokio::select! {
+            outcome = &mut print => break outcome,
+            changed = progress_rx.changed(), if progress_open => {
+                if changed.is_err() { progress_open = false; continue; }
+                let live = progress_rx.borrow_and_update().clone();
+                if permit.is_some() && live.heated {
+                    permit = None;
+                    tracing::info!("heat-up done; heating permit released");
+                }
+                farm.set_printer(printer, |p| {
+                    p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
+                    p.progress = Some(live);
+                });
+            }
+            _ = stopping.changed(), if stop_on_shutdown && !shutdown_stop => {
+                if farm.stopping() {
+                    shutdown_stop = true;
+                    let _ = control_tx.send(PrintCommand::Cancel).await;
+                }
+            }
+        }
+    };
+    drop(permit);
+    farm.print_controls
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .remove(printer);
+
+    let gate = PrinterGate {
+        bed_not_cleared: true,
+        last_job: Some(job_id.to_string()),
+    };
+    if let Err(e) = farm.store().set_gate(printer, gate) {
+        tracing::error!(error = %e, "cannot persist the bed gate");
+    }
+    let (state, reason, lost) = match outcome {
+        Ok(report) => {
+            let more = {
+                let mut store = farm.store();
+                store
+                    .update(job_id, |j| {
+                        j.copies_done += 1;
+                        j.print_report = Some(report);
+                    })
+                    .map(|j| j.copies_done < j.copies_wanted())
+                    .unwrap_or(false)
+            };
+            if more {
+                (JobState::Ready, None, false)
+            } else {
+                (JobState::Done, None, false)
+            }
+        }
+        Err(PrintFailure::Cancelled(why)) if shutdown_stop => (
+            JobState::Interrupted,
+            Some(format!(
+                "stopped safely at shutdown ({why}); clear the bed, then `crispen retry` if wanted"
+            )),
+            false,
+        ),
+        Err(PrintFailure::Cancelled(why)) => (JobState::Cancelled, Some(why), false),
+        Err(PrintFailure::Lost(why)) => (
+            JobState::Interrupted,
+            Some(format!(
+                "{why}; check the printer and clear its bed, then `crispen retry` if wanted"
+            )),
+            true,
+        ),
+        Err(PrintFailure::Failed(why)) => (JobState::Failed, Some(why), false),
+    };
+    if let Err(e) = farm.transition(job_id, state, reason) {
+        tracing::error!(error = %e, "cannot record the print's outcome");
+    }
+    farm.set_printer(printer, |p| {
+        p.state = PrinterState::BedNotCleared;
+    });
+    lost
+}
+
+/// The real printer connection: `crispen::marlin::stream` on a serial port or pty.
+pub struct MarlinConnector {
+    pub port: PathBuf,
+    pub firmware: crate::marlin::firmware::Firmware,
+    pub baud: u32,
+}
+
+impl Connector for MarlinConnector {
+    fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, String>> {
+        Box::pin(async move {
+            let mut opts = StreamOptions::for_firmware(self.firmware);
+            opts.baud = self.baud;
+            let connection = Connection::open(&self.port, &opts)
+                .await
+                .map_err(|e| e.to_string())?;
+            Ok(Box::new(MarlinLink {
+                connection,
+                firmware: self.firmware,
+            }) as Box<dyn PrinterLink>)
+        })
+    }
+}
+
+struct MarlinLink {
+    connection: Connection,
+    firmware: crate::marlin::firmware::Firmware,
+}
+
+impl PrinterLink for MarlinLink {
+    fn print<'a>(
+        &'a mut self,
+        gcode: &'a Path,
+        mut control: mpsc::Receiver<PrintCommand>,
+        progress: watch::Sender<LiveProgress>,
+    ) -> BoxFuture<'a, Result<serde_json::Value, PrintFailure>> {
+        Box::pin(async move {
+            let program = GcodeProgram::load_for(gcode, self.firmware)
+                .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?;
+            let heat_end = heat_up_end(program.commands());
+            let (stream_tx, stream_rx) = mpsc::channel(8);
+            let (inner_tx, mut inner_rx) = watch::channel(PrintProgress::default());
+            let print = self.connection.print(&program, stream_rx, inner_tx);
+            tokio::pin!(print);
+            let mut control_open = true;
+            let mut progress_open = true;
+            let result = loop {
+                tokio::select! {
+                    result = &mut print => break result,
+                    command = control.recv(), if control_open => match command {
+                        None => control_open = false,
+                        Some(c) => {
+                            let c = match c {
+                                PrintCommand::Pause => StreamControl::Pause,
+                                PrintCommand::Resume => StreamControl::Resume,
+                                PrintCommand::Cancel => StreamControl::Cancel,
+                            };
+                            let _ = stream_tx.send(c).await;
+                        }
+                    },
+                    changed = inner_rx.changed(), if progress_open => {
+                        if changed.is_err() {
+                            progress_open = false;
+                            continue;
+                        }
+                        let p = inner_rx.borrow_and_update().clone();
+                        progress.send_replace(LiveProgress {
+                            lines_acked: p.lines_acked,
+                            lines_total: p.lines_total,
+                            hotend_c: p.hotend.map(|t| t.current),
+                            hotend_target_c: p.hotend.and_then(|t| t.target),
+                            bed_c: p.bed.map(|t| t.current),
+                            bed_target_c: p.bed.and_then(|t| t.target),
+                            elapsed_s: p.elapsed_s,
+                            remaining_s: p.remaining_s,
+                            heated: heat_end.is_none_or(|i| p.lines_acked > i),
+                            paused: matches!(p.state, PrintState::Paused | PrintState::Pausing),
+                        });
+                    }
+                }
+            };
+            match result {
+                Ok(report) => Ok(serde_json::to_value(&report).unwrap_or_default()),
+                Err(e) => Err(match e {
+                    PrintError::Cancelled { .. } => PrintFailure::Cancelled(e.to_string()),
+                    PrintError::Open(_)
+                    | PrintError::NoAnswer { .. }
+                    | PrintError::Disconnected { .. }
+                    | PrintError::PrinterReset { .. }
+                    | PrintError::Silent { .. } => PrintFailure::Lost(e.to_string()),
+                    _ => PrintFailure::Failed(e.to_string()),
+                }),
+            }
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn heat_up_ends_at_last_wait_before_extrusion() {
+        let prog: Vec<String> = [
+            "M140 S60",
+            "M104 S200",
+            "M190 S60",
+            "M109 S200",
+            "G28",
+            "G1 X10 E5",
+            "M109 S210",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        assert_eq!(heat_up_end(&prog), Some(3));
+        assert_eq!(heat_up_end(&prog[..2]), None);
+    }
+}

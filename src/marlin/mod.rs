@@ -1,0 +1,15 @@
+//! Talking to Marlin printers.
+//!
+//! - [`firmware`]: what each supported firmware can do (buffer sizes, optional features).
+//! - `protocol`: the host state machine. Pure: bytes and the current time go in, lines to
+//!   send, events and deadlines come out. No ports, no clocks.
+//! - `transport` / `stream`: the serial port and the async driver around the state machine.
+//! - `sim`: a simulated printer on a real pty, speaking the same protocol, with injectable
+//!   faults. Tests, the quick start and the demo farm use it.
+
+pub mod firmware;
+pub mod sim;
+pub mod gcode;
+pub mod protocol;
+pub mod stream;
+pub mod transport;

@@ -1,0 +1,769 @@
+//! Unit tests of the protocol core. A tiny line-checking printer model (number and
+//! checksum checks, `Resend:` + `ok` like Marlin, no flushing, so late lines produce the
+//! duplicate requests real printers send) answers the host; the tests then check what the
+//! printer executed, not what the host believes.
+
+use super::*;
+use std::collections::HashSet;
+
+const UM2_GREETING: &str = "FIRMWARE_NAME:Marlin Ultimaker2; Sprinter/grbl mashup for gen6 FIRMWARE_URL:http://github.com/Ultimaker PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ultimaker EXTRUDER_COUNT:1\n";
+const GREETING: &str = "FIRMWARE_NAME:Marlin 2.1.2.1 (Github) SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ender-3 EXTRUDER_COUNT:1 UUID:cede2a2f\nCap:AUTOREPORT_TEMP:1\nCap:EMERGENCY_PARSER:1\nCap:BUSY_PROTOCOL:1\n";
+
+struct MiniPrinter {
+    expected: u64,
+    executed: Vec<String>,
+    partial: Vec<u8>,
+    /// Line numbers whose next arrival is treated as corrupted (once each).
+    corrupt: HashSet<u64>,
+    /// Reject this number every time (resend storm).
+    always_corrupt: Option<u64>,
+    /// Swallow the `ok` of commands equal to this, once.
+    lose_ok_of: Option<String>,
+    received: Vec<(u64, String)>,
+    ultimaker: bool,
+}
+
+impl MiniPrinter {
+    fn new() -> Self {
+        MiniPrinter {
+            expected: 1,
+            executed: Vec::new(),
+            partial: Vec::new(),
+            corrupt: HashSet::new(),
+            always_corrupt: None,
+            lose_ok_of: None,
+            received: Vec::new(),
+            ultimaker: false,
+        }
+    }
+
+    fn receive(&mut self, bytes: &[u8]) -> Vec<u8> {
+        let mut out = String::new();
+        self.partial.extend_from_slice(bytes);
+        while let Some(pos) = self.partial.iter().position(|&b| b == b'\n') {
+            let line: Vec<u8> = self.partial.drain(..=pos).collect();
+            let line = String::from_utf8(line[..line.len() - 1].to_vec()).unwrap();
+            let (body, cs) = line.rsplit_once('*').expect("host lines carry a checksum");
+            assert_eq!(
+                checksum(body.as_bytes()),
+                cs.parse::<u8>().unwrap(),
+                "bad checksum: {line}"
+            );
+            let (n, cmd) = body.split_once(' ').unwrap();
+            let n: u64 = n.strip_prefix('N').unwrap().parse().unwrap();
+            self.received.push((n, cmd.to_string()));
+            let last = self.expected - 1;
+            if cmd.starts_with("M110") {
+                self.expected = cmd.trim_start_matches("M110 N").parse::<u64>().unwrap() + 1;
+                out.push_str("ok\n");
+                continue;
+            }
+            if self.corrupt.remove(&n) || self.always_corrupt == Some(n) {
+                out.push_str(&format!(
+                    "Error:checksum mismatch, Last Line: {last}\nResend: {}\nok\n",
+                    last + 1
+                ));
+                continue;
+            }
+            if n != self.expected {
+                out.push_str(&format!(
+                    "Error:Line Number is not Last Line Number+1, Last Line: {last}\nResend: {}\nok\n",
+                    last + 1
+                ));
+                continue;
+            }
+            self.expected += 1;
+            self.executed.push(cmd.to_string());
+            if self.lose_ok_of.as_deref() == Some(cmd) {
+                self.lose_ok_of = None;
+                continue;
+            }
+            if cmd == "M115" {
+                out.push_str(if self.ultimaker {
+                    UM2_GREETING
+                } else {
+                    GREETING
+                });
+            }
+            if cmd == "M105" {
+                out.push_str("ok T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n");
+            } else {
+                out.push_str("ok\n");
+            }
+        }
+        out.into_bytes()
+    }
+
+    fn job_executed(&self) -> Vec<String> {
+        self.executed
+            .iter()
+            .filter(|c| !is_housekeeping(c))
+            .cloned()
+            .collect()
+    }
+}
+
+fn is_housekeeping(c: &str) -> bool {
+    ["M105", "M110", "M115", "M155", "M73"].contains(&code_of(c))
+}
+
+fn job(n: usize) -> Vec<String> {
+    (0..n)
+        .map(|i| format!("G1 X{}.{} Y{} E{}", i % 200, i % 10, (i * 7) % 200, i))
+        .collect()
+}
+
+fn opts(fw: Firmware) -> ProtocolOptions {
+    ProtocolOptions::for_firmware(fw)
+}
+
+/// Host through the handshake with `printer`.
+fn connect(o: ProtocolOptions, printer: &mut MiniPrinter, now: Instant) -> (Host, Vec<Event>) {
+    printer.ultimaker = o.firmware == Firmware::Ultimaker2;
+    let mut host = Host::new(o, now);
+    host.feed(b"start\necho: External Reset\n", now);
+    assert!(
+        host.take_outgoing().is_empty(),
+        "nothing before the printer settles"
+    );
+    let later = now + Duration::from_secs(1);
+    host.tick(later);
+    let events = exchange(&mut host, printer, later, 100);
+    (host, events)
+}
+
+/// Let host and printer talk until the host stops sending; returns the events.
+fn exchange(host: &mut Host, printer: &mut MiniPrinter, now: Instant, rounds: usize) -> Vec<Event> {
+    let mut events = Vec::new();
+    for _ in 0..rounds {
+        let out = host.take_outgoing();
+        if out.is_empty() {
+            break;
+        }
+        let answer = printer.receive(&out);
+        host.feed(&answer, now);
+    }
+    while let Some(e) = host.poll_event() {
+        events.push(e);
+    }
+    events
+}
+
+/// Run a job to its end, advancing the clock through deadlines when the link is quiet.
+fn run_job(host: &mut Host, printer: &mut MiniPrinter, start: Instant) -> Vec<Event> {
+    let mut now = start;
+    let mut events = Vec::new();
+    for _ in 0..100_000 {
+        events.extend(exchange(host, printer, now, 1_000_000));
+        if host.is_finished() {
+            return events;
+        }
+        let Some(d) = host.next_deadline() else {
+            panic!("stalled without a deadline: {events:?}");
+        };
+        now = d.max(now);
+        host.tick(now);
+    }
+    panic!("job did not finish");
+}
+
+fn failure(events: &[Event]) -> Option<&Failure> {
+    events.iter().find_map(|e| match e {
+        Event::Failed(f) => Some(f),
+        _ => None,
+    })
+}
+
+fn done(events: &[Event]) -> bool {
+    events.iter().any(|e| matches!(e, Event::Done(_)))
+}
+
+#[test]
+fn frames_match_marlin_checksums() {
+    assert_eq!(frame(0, "M110 N0"), "N0 M110 N0*125\n");
+    assert_eq!(
+        checksum(b"N1 M105"),
+        b"N1 M105".iter().fold(0, |a, b| a ^ b)
+    );
+}
+
+#[test]
+fn handshake_reads_firmware_name_and_capabilities() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (host, events) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let info = events
+        .iter()
+        .find_map(|e| match e {
+            Event::Connected(i) => Some(i.clone()),
+            _ => None,
+        })
+        .expect("connected");
+    assert_eq!(
+        info.name.as_deref(),
+        Some("Marlin 2.1.2.1 (Github) SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin")
+    );
+    assert_eq!(info.protocol_version.as_deref(), Some("1.0"));
+    assert_eq!(info.machine_type.as_deref(), Some("Ender-3"));
+    assert_eq!(info.extruder_count, Some(1));
+    assert_eq!(info.capability("AUTOREPORT_TEMP"), Some(true));
+    assert!(host.is_idle());
+    assert_eq!(printer.received[0], (0, "M110 N0".to_string()));
+    assert_eq!(printer.received[1], (1, "M115".to_string()));
+}
+
+#[test]
+fn handshake_without_start_waits_for_quiet_and_retries_then_fails() {
+    let t0 = Instant::now();
+    let mut host = Host::new(opts(Firmware::Ultimaker2), t0);
+    host.tick(t0 + Duration::from_millis(500));
+    assert!(
+        host.take_outgoing().is_empty(),
+        "sent before the quiet period"
+    );
+    let mut now = t0 + Duration::from_millis(1500);
+    host.tick(now);
+    let first = String::from_utf8(host.take_outgoing()).unwrap();
+    assert_eq!(
+        first,
+        format!("{}{}", frame(0, "M110 N0"), frame(1, "M115"))
+    );
+    // A printer that never answers: three attempts, then a clear failure.
+    for _ in 0..3 {
+        now = host.next_deadline().unwrap();
+        host.tick(now);
+    }
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    assert!(
+        matches!(failure(&events), Some(Failure::NoAnswer { .. })),
+        "{events:?}"
+    );
+}
+
+#[test]
+fn clean_job_executes_every_line_once_in_order_both_window_modes() {
+    for fw in Firmware::ALL {
+        for send_ahead in [false, true] {
+            let now = Instant::now();
+            let mut printer = MiniPrinter::new();
+            let mut o = opts(fw);
+            o.send_ahead = send_ahead;
+            let (mut host, _) = connect(o, &mut printer, now);
+            let commands = job(300);
+            assert!(host.start_job(commands.clone(), now));
+            // The first batch respects the window.
+            let first = host.take_outgoing();
+            let lines = first.iter().filter(|&&b| b == b'\n').count();
+            if send_ahead {
+                assert!(lines > 1, "send-ahead sends more than one line");
+                // What does not fit in the command slots fits the receive buffer.
+                let slots = fw.command_slots() - 1;
+                let buffered: usize = String::from_utf8(first.clone())
+                    .unwrap()
+                    .lines()
+                    .skip(slots)
+                    .map(|l| l.len() + 1)
+                    .sum();
+                assert!(
+                    buffered <= fw.rx_buffer_bytes(),
+                    "{buffered} bytes buffered"
+                );
+            } else {
+                assert_eq!(lines, 1);
+            }
+            let answer = printer.receive(&first);
+            host.feed(&answer, now);
+            let events = run_job(&mut host, &mut printer, now);
+            assert!(done(&events), "{fw} {send_ahead}: {:?}", failure(&events));
+            assert_eq!(
+                printer.job_executed(),
+                commands,
+                "{fw} send_ahead={send_ahead}"
+            );
+            assert_eq!(host.acked_job_lines(), 300);
+            if fw == Firmware::Marlin2 {
+                assert!(printer.executed.iter().any(|c| c == "M155 S2"));
+                assert!(printer.executed.iter().any(|c| c.starts_with("M73 P")));
+            } else {
+                assert!(!printer
+                    .executed
+                    .iter()
+                    .any(|c| c.starts_with("M155") || c.starts_with("M73")));
+            }
+        }
+    }
+}
+
+#[test]
+fn corrupted_lines_are_replayed_from_the_requested_line_exactly_once() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let commands = job(200);
+    printer.corrupt.extend([3, 4, 17, 40, 41, 42, 150]);
+    host.start_job(commands.clone(), now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(done(&events), "{:?}", failure(&events));
+    assert_eq!(printer.job_executed(), commands);
+    assert!(host.resends() >= 3);
+    // Lines already in flight when the first request came produce duplicate requests;
+    // they must not trigger extra replays: each corrupted line is received at most
+    // (window + 1) times.
+    for n in [3u64, 17, 150] {
+        let times = printer.received.iter().filter(|(m, _)| *m == n).count();
+        assert!((2..=3).contains(&times), "line {n} received {times} times");
+    }
+}
+
+#[test]
+fn a_resend_storm_fails_after_the_limit() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Ultimaker2);
+    o.resend_limit = 4;
+    let (mut host, _) = connect(o, &mut printer, now);
+    printer.always_corrupt = Some(5);
+    host.start_job(job(50), now);
+    let events = run_job(&mut host, &mut printer, now);
+    match failure(&events) {
+        Some(Failure::ResendLimit {
+            line: 5,
+            times: 4,
+            last_acked,
+        }) => {
+            assert!(*last_acked <= 4, "{last_acked}")
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(
+        printer.job_executed().len(),
+        4,
+        "lines 1..4 are the job's first four"
+    );
+}
+
+#[test]
+fn a_request_for_a_line_no_longer_kept_fails_instead_of_guessing() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Marlin2);
+    o.history_lines = 8;
+    o.send_ahead = false;
+    let (mut host, _) = connect(o, &mut printer, now);
+    host.start_job(job(100), now);
+    for _ in 0..40 {
+        let out = host.take_outgoing();
+        let answer = printer.receive(&out);
+        host.feed(&answer, now);
+    }
+    while host.poll_event().is_some() {}
+    host.take_outgoing();
+    host.feed(b"Resend: 3\nok\n", now);
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    assert!(
+        matches!(failure(&events), Some(Failure::LineGone { line: 3, .. })),
+        "{events:?}"
+    );
+    assert!(
+        host.take_outgoing().is_empty(),
+        "nothing sent after the failure"
+    );
+}
+
+#[test]
+fn every_byte_split_of_printer_output_gives_the_same_events() {
+    let stream: &[u8] = b"ok\nok T:200.0 /210.0 B:60.0 /60.0 @:127 B@:0\necho:busy: processing\r\nResend:2\nok\nT:201.5 /210.0 B:60.1 /60.0\nrs 2\nok\n";
+    let reference = {
+        let (mut host, now) = running_host();
+        host.feed(stream, now);
+        std::iter::from_fn(|| host.poll_event()).collect::<Vec<_>>()
+    };
+    assert!(reference
+        .iter()
+        .any(|e| matches!(e, Event::Resend { line: 2, .. })));
+    assert!(reference.iter().any(|e| matches!(e, Event::Busy(_))));
+    for cut in 0..=stream.len() {
+        let (mut host, now) = running_host();
+        host.feed(&stream[..cut], now);
+        host.feed(&stream[cut..], now);
+        let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+        assert_eq!(events, reference, "split at {cut}");
+    }
+    // And one byte at a time.
+    let (mut host, now) = running_host();
+    for b in stream {
+        host.feed(std::slice::from_ref(b), now);
+    }
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    assert_eq!(events, reference);
+}
+
+/// A Marlin2 host mid-job with a few lines in flight and no events pending.
+fn running_host() -> (Host, Instant) {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    host.start_job(job(20), now);
+    // Paused, so the host sends nothing new in reaction to what the tests feed.
+    host.pause(now);
+    host.take_outgoing();
+    while host.poll_event().is_some() {}
+    (host, now)
+}
+
+#[test]
+fn garbage_from_the_printer_is_tolerated() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let commands = job(60);
+    host.start_job(commands.clone(), now);
+    let mut t = now;
+    let mut events = Vec::new();
+    for round in 0..10_000 {
+        let out = host.take_outgoing();
+        let mut answer = printer.receive(&out);
+        if round % 3 == 0 {
+            // Noise on the line: binary junk, a line number never sent, a split line.
+            answer.splice(
+                0..0,
+                b"\xff\xfe\x00junk\n\xc3(\nResend: 034497\nok"
+                    .iter()
+                    .copied(),
+            );
+            answer.extend_from_slice(b"\n");
+        }
+        host.feed(&answer, t);
+        events.extend(std::iter::from_fn(|| host.poll_event()));
+        if host.is_finished() {
+            break;
+        }
+        if out.is_empty() {
+            t = host.next_deadline().unwrap().max(t);
+            host.tick(t);
+        }
+    }
+    assert!(done(&events), "{:?}", failure(&events));
+    assert_eq!(printer.job_executed(), commands);
+}
+
+#[test]
+fn okk_counts_as_ok() {
+    let (mut host, now) = running_host();
+    let before = host.in_flight.len();
+    host.feed(b"okk\n", now);
+    assert_eq!(host.in_flight.len(), before - 1);
+}
+
+#[test]
+fn start_in_mid_job_fails_as_printer_reset() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    host.start_job(job(300), now);
+    for _ in 0..10 {
+        let out = host.take_outgoing();
+        let answer = printer.receive(&out);
+        host.feed(&answer, now);
+    }
+    let acked = host.acked_job_lines();
+    assert!(acked > 0);
+    host.take_outgoing();
+    host.feed(b"sta", now);
+    host.feed(b"rt\necho:Marlin 1.0\n", now);
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    assert_eq!(
+        failure(&events),
+        Some(&Failure::PrinterReset { last_acked: acked })
+    );
+    assert!(host.take_outgoing().is_empty());
+}
+
+#[test]
+fn fatal_errors_carry_the_whole_message() {
+    let (mut host, now) = running_host();
+    host.feed(
+        b"Error:Heating failed, system stopped! Heater_ID: 0\nError:Printer halted. kill() called!\n",
+        now,
+    );
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    match failure(&events) {
+        Some(Failure::Fatal { message, .. }) => {
+            assert!(message.contains("Heating failed"), "{message}");
+            assert!(message.contains("kill() called"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    let (mut host, now) = running_host();
+    host.feed(
+        b"Error:Printer stopped due to errors. Fix the error and use M999 to restart.\n",
+        now,
+    );
+    assert!(host.is_finished());
+}
+
+#[test]
+fn a_lost_ok_is_found_by_an_m105_probe_within_seconds() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Marlin2);
+    o.send_ahead = false;
+    let (mut host, _) = connect(o, &mut printer, now);
+    let mut commands = job(10);
+    commands.push("G1 X5 Y5 F3000".into());
+    commands.extend(job(10));
+    printer.lose_ok_of = Some("G1 X5 Y5 F3000".into());
+    host.start_job(commands.clone(), now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(
+        done(&events),
+        "{:?} {:?} {events:?}",
+        failure(&events),
+        printer.received
+    );
+    assert!(events.iter().any(|e| matches!(e, Event::Probe)));
+    assert_eq!(printer.job_executed(), commands);
+}
+
+#[test]
+fn silence_is_measured_in_seconds_but_long_commands_are_not_silence() {
+    let (mut host, now) = running_host();
+    // Short command in flight: a probe after silence_probe, failure after silence_fail.
+    let probe_at = host.next_deadline().unwrap();
+    assert!(
+        probe_at <= now + Duration::from_secs(3),
+        "probe within seconds"
+    );
+    host.tick(probe_at);
+    let sent = String::from_utf8(host.take_outgoing()).unwrap();
+    assert!(sent.contains(" M105*"), "{sent}");
+    let fail_at = now + Duration::from_secs(30);
+    let mut t = probe_at;
+    while t < fail_at {
+        t = host.next_deadline().unwrap();
+        host.tick(t);
+    }
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    assert!(
+        matches!(failure(&events), Some(Failure::Silent { .. })),
+        "{events:?}"
+    );
+
+    // G28 at the front: quiet for minutes is fine (a probe may wait behind it).
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    host.start_job(vec!["G28".into(), "G1 X1".into()], now);
+    let out = host.take_outgoing();
+    let text = String::from_utf8(out.clone()).unwrap();
+    assert!(text.contains("G28"));
+    // Acknowledge only M110 and M155 so G28 is at the front.
+    host.feed(b"ok\nok\n", now);
+    host.take_outgoing();
+    host.tick(now + Duration::from_secs(120));
+    assert!(!host.is_finished());
+    let sent = String::from_utf8(host.take_outgoing()).unwrap();
+    assert!(sent.matches("M105").count() <= 1, "{sent}");
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    assert!(failure(&events).is_none(), "{events:?}");
+}
+
+#[test]
+fn busy_messages_keep_the_link_alive() {
+    let (mut host, now) = running_host();
+    let mut t = now;
+    for _ in 0..40 {
+        t += Duration::from_secs(2);
+        host.feed(b"echo:busy: processing\n", t);
+        host.tick(t);
+    }
+    let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+    assert!(failure(&events).is_none());
+    assert!(!events.iter().any(|e| matches!(e, Event::Probe)));
+}
+
+#[test]
+fn a_heat_up_that_never_arrives_stops_safely_and_fails() {
+    for fw in Firmware::ALL {
+        let now = Instant::now();
+        let mut printer = MiniPrinter::new();
+        let mut o = opts(fw);
+        o.heat_timeout = Duration::from_secs(60);
+        let (mut host, _) = connect(o, &mut printer, now);
+        host.start_job(vec!["M109 S210".into(), "G1 X1".into()], now);
+        let out = host.take_outgoing();
+        // The printer accepts M110 (and M155) but M109 never finishes.
+        let text = String::from_utf8(out).unwrap();
+        let before_heat = text.lines().take_while(|l| !l.contains("M109")).count();
+        for _ in 0..before_heat {
+            host.feed(b"ok\n", now);
+        }
+        let mut t = now;
+        // 70 s: past the 60 s limit once, not twice (then it would give up on the stop).
+        for _ in 0..14 {
+            t += Duration::from_secs(5);
+            host.feed(b"T:25.0 /210.0 B:20.0 /0.0 @:127 B@:0 W:?\n", t);
+            host.tick(t);
+        }
+        let sent = String::from_utf8(host.take_outgoing()).unwrap();
+        assert_eq!(sent.contains("M108"), fw.emergency_parser(), "{fw}: {sent}");
+        // M109 ends (broken out or finally acknowledged), then the safe-stop lines.
+        let mut sent = sent;
+        for _ in 0..10 {
+            host.feed(b"ok\n", t);
+            sent.push_str(&String::from_utf8(host.take_outgoing()).unwrap());
+        }
+        for line in SAFE_STOP {
+            assert!(sent.contains(line), "{fw}: {sent}");
+        }
+        let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
+        match failure(&events) {
+            Some(Failure::HeatTimeout {
+                command,
+                temperatures,
+                ..
+            }) => {
+                assert_eq!(command, "M109 S210");
+                assert_eq!(temperatures.hotend.unwrap().current, 25.0);
+            }
+            other => panic!("{fw}: {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn cancel_sends_the_safe_stop_lines_and_no_more_job_lines() {
+    for fw in Firmware::ALL {
+        let now = Instant::now();
+        let mut printer = MiniPrinter::new();
+        let (mut host, _) = connect(opts(fw), &mut printer, now);
+        let commands = job(300);
+        host.start_job(commands.clone(), now);
+        for _ in 0..3 {
+            let out = host.take_outgoing();
+            let answer = printer.receive(&out);
+            host.feed(&answer, now);
+        }
+        host.cancel(now);
+        let events = run_job(&mut host, &mut printer, now);
+        let Some(Failure::Cancelled { last_acked }) = failure(&events) else {
+            panic!("{events:?}");
+        };
+        let executed = printer.job_executed();
+        let tail: Vec<&str> = executed[executed.len() - 4..]
+            .iter()
+            .map(|s| s.as_str())
+            .collect();
+        assert_eq!(tail, SAFE_STOP, "{fw}");
+        let job_part = &executed[..executed.len() - 4];
+        let job_part: Vec<&String> = job_part.iter().filter(|c| *c != "M108").collect();
+        assert_eq!(job_part.len(), *last_acked, "{fw}");
+        assert!(job_part.iter().zip(&commands).all(|(a, b)| *a == b));
+        assert!(*last_acked < 100);
+        assert_eq!(
+            printer.executed.iter().any(|c| c == "M108"),
+            fw.emergency_parser()
+        );
+    }
+}
+
+#[test]
+fn cancel_during_a_resend_renumbers_the_safe_stop_lines() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let commands = job(50);
+    host.start_job(commands.clone(), now);
+    printer.corrupt.insert(8);
+    for _ in 0..3 {
+        let out = host.take_outgoing();
+        let answer = printer.receive(&out);
+        host.feed(&answer, now);
+    }
+    // Lines in flight now; cancel, and let the printer reject what follows a corrupted one.
+    let out = host.take_outgoing();
+    host.cancel(now);
+    let mut more = out;
+    more.extend(host.take_outgoing());
+    let answer = printer.receive(&more);
+    host.feed(&answer, now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(
+        matches!(failure(&events), Some(Failure::Cancelled { .. })),
+        "{events:?}"
+    );
+    let executed = printer.job_executed();
+    assert_eq!(&executed[executed.len() - 4..], SAFE_STOP);
+}
+
+#[test]
+fn pause_stops_job_lines_and_resume_continues() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let commands = job(300);
+    host.start_job(commands.clone(), now);
+    for _ in 0..3 {
+        let out = host.take_outgoing();
+        let answer = printer.receive(&out);
+        host.feed(&answer, now);
+    }
+    host.pause(now);
+    let events = exchange(&mut host, &mut printer, now, 100);
+    assert!(
+        events.iter().any(|e| matches!(e, Event::Paused)),
+        "{events:?}"
+    );
+    let executed_at_pause = printer.job_executed().len();
+    // Time passes while paused: polls only, no job lines.
+    let t = now + Duration::from_secs(30);
+    host.tick(t);
+    exchange(&mut host, &mut printer, t, 100);
+    assert_eq!(printer.job_executed().len(), executed_at_pause);
+    host.resume(t);
+    let events = run_job(&mut host, &mut printer, t);
+    assert!(done(&events));
+    assert_eq!(printer.job_executed(), commands);
+}
+
+#[test]
+fn over_long_lines_are_refused_before_sending() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Marlin2);
+    o.send_ahead = false;
+    let (mut host, _) = connect(o, &mut printer, now);
+    host.start_job(vec!["G28".into(), format!("M117 {}", "x".repeat(95))], now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(
+        matches!(failure(&events), Some(Failure::LineTooLong { .. })),
+        "{events:?}"
+    );
+    assert!(!printer.executed.iter().any(|c| c.starts_with("M117")));
+}
+
+#[test]
+fn temperatures_are_polled_without_autoreport() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    host.start_job(vec!["G4 P1".into(); 3], now);
+    host.take_outgoing();
+    host.tick(now + Duration::from_secs(10));
+    // M105 waits behind the window; it is queued and goes out once the window frees.
+    host.feed(b"ok\nok\nok\nok\n", now + Duration::from_secs(10));
+    let sent = String::from_utf8(host.take_outgoing()).unwrap();
+    assert!(sent.contains(" M105*"), "{sent}");
+    host.feed(
+        b"ok T:180.5 /200.0 B:55.0 /60.0 @:100 B@:0\n",
+        now + Duration::from_secs(11),
+    );
+    assert_eq!(
+        host.temperatures().hotend,
+        Some(Temp {
+            current: 180.5,
+            target: Some(200.0)
+        })
+    );
+    assert_eq!(host.temperatures().bed.unwrap().current, 55.0);
+}

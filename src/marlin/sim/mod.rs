@@ -1,0 +1,397 @@
+//! A simulated Marlin printer on a real pty.
+//!
+//! [`spawn`] opens a pseudo-terminal, runs the printer on its own thread and returns at once
+//! with the device path a host opens like a USB serial port. The printer side of the
+//! protocol (line numbers, checksums, resends, `ok` timing, the receive buffer, heating,
+//! M115 per firmware profile) lives in the I/O-free [`printer`] core; this file only moves
+//! bytes between the pty and that core and sleeps until the core's next deadline, so an
+//! idle simulator costs no CPU (the daemon's soak benchmark runs twenty of them).
+//!
+//! Faults (corrupted host bytes, lost `ok`s, spurious resends, busy periods, garbage,
+//! reset/unplug/silence/fatal after N lines) are drawn from a seeded ChaCha generator so a
+//! test with a fixed seed sees the same faults every run. Every command the printer
+//! executes is recorded ([`SimHandle::executed`], and optionally a file) so tests can prove
+//! that a host delivered a job exactly once and in order.
+
+mod printer;
+
+use crate::marlin::firmware::Firmware;
+use nix::fcntl::{fcntl, FcntlArg, OFlag};
+use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+use nix::sys::termios;
+use printer::{Printer, Status};
+use std::fs::File;
+use std::io::{self, Write};
+use std::os::fd::{AsFd, OwnedFd};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+/// Faults to inject. Probabilities are per received line (host side) or per emitted line
+/// (printer side); `*_after_lines` fire once, right after the printer starts executing its
+/// N-th numbered line (so exactly N numbered lines have been executed, and the N-th one's
+/// `ok` is never sent). `Default` injects nothing.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Faults {
+    /// Probability per received line that one of its bytes arrives corrupted, which the
+    /// printer detects (checksum / line number) and answers with a resend request.
+    pub corrupt_host_bytes: f64,
+    /// Probability that the `ok` for a command is never sent (M105's answer is exempt, so
+    /// a host's M105 probe always recovers).
+    pub drop_ok: f64,
+    /// Probability that a good numbered line is answered as if it had been corrupted.
+    pub spurious_resend: f64,
+    /// Probability that a command triggers a busy period with `echo:busy: processing`
+    /// keep-alives before its `ok` (firmware with the busy protocol only).
+    pub busy: f64,
+    /// Probability per emitted line of garbage: a corrupted `ok` (`okk`, or an `ok` lost
+    /// in binary noise), a garbled temperature report, a non-UTF-8 noise line, or the
+    /// `Resend:12` spelling. Never a resend request for a different line.
+    pub garbage: f64,
+    /// Reboot (`start`, state forgotten, line numbers back to 0) after N numbered lines.
+    pub reset_after_lines: Option<usize>,
+    /// Close the pty after N numbered lines: the host sees a hang-up and the device vanishes.
+    pub unplug_after_lines: Option<usize>,
+    /// Stop answering anything after N numbered lines.
+    pub silence_after_lines: Option<usize>,
+    /// Halt with `Error:...` / `Error:Printer halted. kill() called!` after N numbered lines.
+    pub fatal_after_lines: Option<usize>,
+}
+
+/// How to run a simulated printer.
+#[derive(Debug, Clone)]
+pub struct SimConfig {
+    pub firmware: Firmware,
+    /// Seed of the fault generator: the same seed and input give the same faults.
+    pub seed: u64,
+    /// Simulated seconds → real seconds. 0.0 makes moves, heating and homing instant;
+    /// 1.0 is real timing.
+    pub time_scale: f64,
+    pub faults: Faults,
+    /// Append each executed command to this file, one per line, flushed at once.
+    pub record: Option<PathBuf>,
+    /// Make a symlink to the pty device here (an existing symlink is replaced).
+    pub link: Option<PathBuf>,
+}
+
+impl SimConfig {
+    /// A fault-free printer with instant timing and seed 0.
+    pub fn new(firmware: Firmware) -> Self {
+        SimConfig {
+            firmware,
+            seed: 0,
+            time_scale: 0.0,
+            faults: Faults::default(),
+            record: None,
+            link: None,
+        }
+    }
+}
+
+/// Commands a host sends on its own account (not from the job): tests filter these out of
+/// [`SimHandle::executed`] before comparing with the job file.
+pub fn is_housekeeping(cmd: &str) -> bool {
+    let word = cmd.split_whitespace().next().unwrap_or("");
+    matches!(
+        word.to_ascii_uppercase().as_str(),
+        "M105" | "M110" | "M115" | "M155" | "M114" | "M27" | "M73"
+    )
+}
+
+/// A running simulated printer. Dropping it stops the printer like [`SimHandle::shutdown`].
+pub struct SimHandle {
+    device: PathBuf,
+    link: Option<PathBuf>,
+    executed: Arc<Mutex<Vec<String>>>,
+    wake: Option<OwnedFd>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl SimHandle {
+    /// The pty device (e.g. `/dev/pts/7`) a host opens.
+    pub fn device_path(&self) -> &Path {
+        &self.device
+    }
+
+    /// The commands executed so far, in order, without `N<n> ` and `*<checksum>`.
+    pub fn executed(&self) -> Vec<String> {
+        self.executed
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// Stop the printer, close the pty and remove the link (if it still points to us).
+    pub fn shutdown(mut self) {
+        self.stop();
+    }
+
+    fn stop(&mut self) {
+        // Closing the write end of the wake pipe makes the printer thread's poll return.
+        self.wake.take();
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+        if let Some(link) = self.link.take() {
+            if std::fs::read_link(&link).ok().as_deref() == Some(self.device.as_path()) {
+                let _ = std::fs::remove_file(&link);
+            }
+        }
+    }
+}
+
+impl Drop for SimHandle {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// Open a pty and start the printer on its own thread. Returns at once.
+pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
+    let pty = nix::pty::openpty(None, None).map_err(|e| {
+        with_context(
+            e,
+            "cannot open a pty (is /dev/pts mounted and /dev/ptmx usable?)",
+        )
+    })?;
+    // Raw mode on the slave side: no echo, no line editing, no CR/LF translation, exactly
+    // like a USB serial port. The settings live with the pty, so they survive the host's
+    // open/close.
+    let mut attrs = termios::tcgetattr(&pty.slave)
+        .map_err(|e| with_context(e, "cannot read the pty's terminal settings"))?;
+    termios::cfmakeraw(&mut attrs);
+    termios::tcsetattr(&pty.slave, termios::SetArg::TCSANOW, &attrs)
+        .map_err(|e| with_context(e, "cannot put the pty in raw mode"))?;
+    let device = nix::unistd::ttyname(&pty.slave)
+        .map_err(|e| with_context(e, "cannot find the pty's device path"))?;
+    // We close our slave descriptor so the master reports a hang-up while no host has the
+    // port open; output is then discarded, as on a cable nobody listens to.
+    drop(pty.slave);
+    let master = pty.master;
+    let flags = fcntl(&master, FcntlArg::F_GETFL).map_err(io::Error::from)?;
+    fcntl(
+        &master,
+        FcntlArg::F_SETFL(OFlag::from_bits_truncate(flags) | OFlag::O_NONBLOCK),
+    )
+    .map_err(io::Error::from)?;
+
+    if let Some(link) = &cfg.link {
+        if let Ok(meta) = std::fs::symlink_metadata(link) {
+            if meta.file_type().is_symlink() {
+                std::fs::remove_file(link).map_err(|e| {
+                    io::Error::new(
+                        e.kind(),
+                        format!("cannot replace the old link {}: {e}", link.display()),
+                    )
+                })?;
+            } else {
+                return Err(io::Error::new(
+                    io::ErrorKind::AlreadyExists,
+                    format!(
+                        "{} exists and is not a symlink; refusing to replace it",
+                        link.display()
+                    ),
+                ));
+            }
+        }
+        std::os::unix::fs::symlink(&device, link).map_err(|e| {
+            io::Error::new(
+                e.kind(),
+                format!(
+                    "cannot link {} to {}: {e} (does the folder exist and is it writable?)",
+                    link.display(),
+                    device.display()
+                ),
+            )
+        })?;
+    }
+    let record = match &cfg.record {
+        Some(path) => Some(
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(path)
+                .map_err(|e| {
+                    io::Error::new(e.kind(), format!("record file {}: {e}", path.display()))
+                })?,
+        ),
+        None => None,
+    };
+    let (wake_rx, wake_tx) = nix::unistd::pipe()
+        .map_err(|e| with_context(e, "cannot create the simulator's wake-up pipe"))?;
+    let executed = Arc::new(Mutex::new(Vec::new()));
+    let printer = Printer::new(&cfg, Instant::now());
+    let recorder = Recorder {
+        executed: executed.clone(),
+        file: record,
+    };
+    let name = device.display().to_string();
+    let link_for_thread = cfg.link.clone();
+    let device_for_thread = device.clone();
+    let thread = std::thread::Builder::new()
+        .name(format!("sim {name}"))
+        .spawn(move || {
+            let _span = tracing::info_span!("sim", printer = %name).entered();
+            run(master, wake_rx, printer, recorder);
+            // The pty is closed now (unplug or shutdown): an unplugged device disappears,
+            // and so does its udev-style link.
+            if let Some(link) = link_for_thread {
+                if std::fs::read_link(&link).ok().as_deref() == Some(device_for_thread.as_path()) {
+                    let _ = std::fs::remove_file(&link);
+                }
+            }
+        })?;
+    Ok(SimHandle {
+        device,
+        link: cfg.link.clone(),
+        executed,
+        wake: Some(wake_tx),
+        thread: Some(thread),
+    })
+}
+
+fn with_context(err: nix::errno::Errno, what: &str) -> io::Error {
+    let err = io::Error::from(err);
+    io::Error::new(err.kind(), format!("{what}: {err}"))
+}
+
+/// Where executed commands go: the shared list, and the record file if any.
+pub(crate) struct Recorder {
+    executed: Arc<Mutex<Vec<String>>>,
+    file: Option<File>,
+}
+
+impl Recorder {
+    pub(crate) fn push(&mut self, cmd: &str) {
+        self.executed
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(cmd.to_string());
+        if let Some(file) = &mut self.file {
+            if let Err(err) = writeln!(file, "{cmd}").and_then(|_| file.flush()) {
+                tracing::warn!(%err, "cannot append to the record file; recording stopped");
+                self.file = None;
+            }
+        }
+    }
+}
+
+const MAX_OUTPUT_BACKLOG: usize = 64 * 1024;
+
+/// The printer thread: shuttle bytes between the pty master and the printer core, sleeping
+/// in poll() until input arrives, output can drain, the core's next deadline, or shutdown.
+fn run(master: OwnedFd, wake: OwnedFd, mut printer: Printer, mut recorder: Recorder) {
+    let mut scratch = [0u8; 4096];
+    let mut host_connected = false;
+    loop {
+        let now = Instant::now();
+        printer.advance(now, &mut recorder);
+        if printer.status() == Status::Unplugged {
+            tracing::info!("simulated unplug: closing the pty");
+            return;
+        }
+        if !host_connected {
+            // Nobody listens: what the printer says is lost, as on an unconnected cable.
+            printer.take_output();
+        }
+        // A host that never reads must not make the printer hoard output without bound
+        // (a real UART just sends it into the void).
+        let backlog = printer.output().len();
+        if backlog > MAX_OUTPUT_BACKLOG {
+            printer.consume_output(backlog - MAX_OUTPUT_BACKLOG);
+        }
+        let mut out_pending = false;
+        if host_connected {
+            let out = printer.output();
+            if !out.is_empty() {
+                match nix::unistd::write(&master, out) {
+                    Ok(n) => printer.consume_output(n),
+                    Err(nix::errno::Errno::EAGAIN) => {}
+                    Err(nix::errno::Errno::EIO) => host_connected = false,
+                    Err(err) => {
+                        tracing::warn!(%err, "pty write failed");
+                        host_connected = false;
+                    }
+                }
+                out_pending = !printer.output().is_empty();
+            }
+        }
+        let timeout = match printer.next_deadline() {
+            Some(t) => t.saturating_duration_since(Instant::now()),
+            None => Duration::from_secs(3600),
+        };
+        // While no host has the port open the master reports a hang-up continuously, so
+        // look again for a host only every 50 ms instead of spinning.
+        let timeout = if host_connected {
+            timeout
+        } else {
+            timeout.min(Duration::from_millis(50))
+        };
+        let mut master_flags = PollFlags::empty();
+        if host_connected {
+            master_flags |= PollFlags::POLLIN;
+            if out_pending {
+                master_flags |= PollFlags::POLLOUT;
+            }
+        }
+        let mut fds = vec![PollFd::new(wake.as_fd(), PollFlags::POLLIN)];
+        // Without a host the master always reports POLLHUP, so it is left out of the poll
+        // (which then only sleeps) and probed by a read afterwards.
+        if host_connected {
+            fds.push(PollFd::new(master.as_fd(), master_flags));
+        }
+        let ms = timeout.as_millis().min(i32::MAX as u128) as i32;
+        // Round up so a deadline 0.4 ms away does not turn into a busy loop of 0 ms polls.
+        let ms = if timeout > Duration::from_millis(ms as u64) {
+            ms.saturating_add(1)
+        } else {
+            ms
+        };
+        match poll(
+            &mut fds,
+            PollTimeout::try_from(ms).unwrap_or(PollTimeout::MAX),
+        ) {
+            Ok(_) => {}
+            Err(nix::errno::Errno::EINTR) => continue,
+            Err(err) => {
+                tracing::error!(%err, "poll failed; stopping the simulated printer");
+                return;
+            }
+        }
+        if fds[0].revents().is_some_and(|r| !r.is_empty()) {
+            return; // shutdown: the handle closed the pipe
+        }
+        if !host_connected {
+            // Probe: a read that does not fail with EIO means a host opened the port.
+            match nix::unistd::read(&master, &mut scratch) {
+                Err(nix::errno::Errno::EIO) => {}
+                Ok(n) => {
+                    host_connected = true;
+                    tracing::debug!("host opened the port");
+                    printer.receive(&scratch[..n], Instant::now(), &mut recorder);
+                }
+                Err(_) => host_connected = true,
+            }
+            continue;
+        }
+        let revents = fds
+            .get(1)
+            .and_then(|f| f.revents())
+            .unwrap_or(PollFlags::empty());
+        if revents.contains(PollFlags::POLLIN) {
+            match nix::unistd::read(&master, &mut scratch) {
+                Ok(0) | Err(nix::errno::Errno::EIO) => {
+                    host_connected = false;
+                    tracing::debug!("host closed the port");
+                }
+                Ok(n) => printer.receive(&scratch[..n], Instant::now(), &mut recorder),
+                Err(nix::errno::Errno::EAGAIN) => {}
+                Err(err) => tracing::warn!(%err, "pty read failed"),
+            }
+        } else if revents.contains(PollFlags::POLLHUP) {
+            host_connected = false;
+            tracing::debug!("host closed the port");
+        }
+    }
+}

@@ -1,0 +1,1096 @@
+//! The simulated firmware itself, without I/O: bytes from the host and the current time go
+//! in, bytes for the host and the next deadline come out. It follows Marlin's structure:
+//! a serial receive ring (`rx_buffer_bytes`), a line assembler that moves complete lines
+//! into `command_slots` after checking line number and checksum, a main loop that executes
+//! one command at a time (a blocking command such as M109 stalls it, so the ring fills and
+//! the host must wait), a 16-move planner that drains at the moves' real speed, and an
+//! emergency parser that sees M108/M112 as the bytes arrive.
+
+use super::{Faults, Recorder, SimConfig};
+use crate::marlin::firmware::Firmware;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+const PLANNER_MOVES: usize = 16;
+const AMBIENT: f64 = 21.0;
+const HOTEND_HEAT_RATE: f64 = 2.5; // °C per simulated second
+const HOTEND_COOL_RATE: f64 = 1.0;
+const BED_HEAT_RATE: f64 = 0.8;
+const BED_COOL_RATE: f64 = 0.3;
+const HOMING_SECONDS: f64 = 3.0;
+const DEFAULT_FEEDRATE: f64 = 1500.0; // mm/min
+/// Shortest real interval between periodic messages, so a tiny time scale cannot turn
+/// keep-alives and temperature reports into a flood.
+const MIN_PERIOD: Duration = Duration::from_millis(50);
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Status {
+    Running,
+    /// After M112 or a fatal error: reads and discards input, says nothing.
+    Halted,
+    /// The silence fault: alive but mute.
+    Silent,
+    /// The unplug fault: the pty must be closed.
+    Unplugged,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Heater {
+    Hotend,
+    Bed,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Temperature {
+    current: f64,
+    target: f64,
+}
+
+/// What the command at the head of the queue waits for before it can finish.
+#[derive(Debug, Clone)]
+enum Wait {
+    /// A move waits for a free planner slot.
+    PlannerSlot {
+        seconds: f64,
+    },
+    /// M400, and the synchronisation before G28/G4.
+    Drain {
+        then: Option<Box<Wait>>,
+    },
+    Until(Instant),
+    /// A `Until` that starts only when it is reached (after a drain).
+    For(f64),
+    Heat {
+        heater: Heater,
+        cooling_too: bool,
+    },
+}
+
+struct Active {
+    wait: Wait,
+    /// Line number for ADVANCED_OK and whether to answer at all.
+    n: Option<u64>,
+    /// Sends `echo:busy: processing` while it waits (long commands, busy fault).
+    busy: bool,
+    next_heat_report: Option<Instant>,
+}
+
+struct Queued {
+    n: Option<u64>,
+    cmd: String,
+}
+
+pub(crate) struct Printer {
+    fw: Firmware,
+    time_scale: f64,
+    faults: Faults,
+    rng: ChaCha8Rng,
+    status: Status,
+    rx: VecDeque<u8>,
+    assembling: Vec<u8>,
+    /// Set when the assembled line overflowed MAX_CMD_SIZE (the rest of it is dropped).
+    overlong: bool,
+    emergency: Vec<u8>,
+    slots: VecDeque<Queued>,
+    last_n: u64,
+    active: Option<Active>,
+    planner: VecDeque<Duration>,
+    planner_head_end: Option<Instant>,
+    position: [f64; 4],
+    relative: bool,
+    relative_e: bool,
+    feedrate: f64,
+    hotend: Temperature,
+    bed: Temperature,
+    temps_at: Instant,
+    autoreport: Option<Duration>,
+    next_autoreport: Option<Instant>,
+    keepalive: f64,
+    next_keepalive: Option<Instant>,
+    heat_break: bool,
+    numbered_executed: usize,
+    out: Vec<u8>,
+}
+
+impl Printer {
+    pub(crate) fn new(cfg: &SimConfig, now: Instant) -> Self {
+        let mut p = Printer {
+            fw: cfg.firmware,
+            time_scale: cfg.time_scale.max(0.0),
+            faults: cfg.faults.clone(),
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            status: Status::Running,
+            rx: VecDeque::new(),
+            assembling: Vec::new(),
+            overlong: false,
+            emergency: Vec::new(),
+            slots: VecDeque::new(),
+            last_n: 0,
+            active: None,
+            planner: VecDeque::new(),
+            planner_head_end: None,
+            position: [0.0; 4],
+            relative: false,
+            relative_e: false,
+            feedrate: DEFAULT_FEEDRATE,
+            hotend: Temperature {
+                current: AMBIENT,
+                target: 0.0,
+            },
+            bed: Temperature {
+                current: AMBIENT,
+                target: 0.0,
+            },
+            temps_at: now,
+            autoreport: None,
+            next_autoreport: None,
+            keepalive: 2.0,
+            next_keepalive: None,
+            heat_break: false,
+            numbered_executed: 0,
+            out: Vec::new(),
+        };
+        p.boot();
+        p
+    }
+
+    /// Power-on or reset: everything but the temperatures is forgotten.
+    fn boot(&mut self) {
+        self.rx.clear();
+        self.assembling.clear();
+        self.overlong = false;
+        self.emergency.clear();
+        self.slots.clear();
+        self.last_n = 0;
+        self.active = None;
+        self.planner.clear();
+        self.planner_head_end = None;
+        self.position = [0.0; 4];
+        self.relative = false;
+        self.relative_e = false;
+        self.feedrate = DEFAULT_FEEDRATE;
+        self.hotend.target = 0.0;
+        self.bed.target = 0.0;
+        self.autoreport = None;
+        self.next_autoreport = None;
+        self.keepalive = 2.0;
+        self.next_keepalive = None;
+        self.heat_break = false;
+        self.say("start");
+        if self.fw == Firmware::Marlin2 {
+            self.say("echo:Marlin 2.1.2");
+            self.say("echo: Last Updated: 2023-03-21 | Author: (crispen sim)");
+            self.say("echo:Compiled: crispen");
+            self.say("echo: Free Memory: 2714  PlannerBufferBytes: 1296");
+        }
+    }
+
+    pub(crate) fn status(&self) -> Status {
+        self.status
+    }
+
+    pub(crate) fn output(&self) -> &[u8] {
+        &self.out
+    }
+
+    pub(crate) fn consume_output(&mut self, n: usize) {
+        self.out.drain(..n.min(self.out.len()));
+    }
+
+    pub(crate) fn take_output(&mut self) -> Vec<u8> {
+        std::mem::take(&mut self.out)
+    }
+
+    fn real(&self, sim_seconds: f64) -> Duration {
+        Duration::from_secs_f64((sim_seconds * self.time_scale).max(0.0))
+    }
+
+    fn period(&self, sim_seconds: f64) -> Duration {
+        self.real(sim_seconds).max(MIN_PERIOD)
+    }
+
+    // ----- output -------------------------------------------------------------------
+
+    /// Emit a line exactly as given (banners, errors, M115: never garbled).
+    fn say(&mut self, line: &str) {
+        if self.status != Status::Running {
+            return;
+        }
+        self.out.extend_from_slice(line.as_bytes());
+        self.out.push(b'\n');
+    }
+
+    /// Emit a line that the garbage fault may corrupt in ways a correct host survives.
+    fn say_noisy(&mut self, line: &str) {
+        if self.status != Status::Running {
+            return;
+        }
+        if self.faults.garbage > 0.0 && self.rng.random_bool(self.faults.garbage.min(1.0)) {
+            let mut bytes = line.as_bytes().to_vec();
+            if line.starts_with("ok") {
+                if self.rng.random_bool(0.5) {
+                    bytes.insert(2, b'k'); // `okk`: still reads as an ok to a lenient host
+                } else {
+                    // The ok drowned in noise: a lost ack the host recovers by probing.
+                    bytes = b"o\xff\xfek".to_vec();
+                }
+            } else if line.starts_with("Resend: ") {
+                bytes = line.replacen("Resend: ", "Resend:", 1).into_bytes();
+            } else if !bytes.is_empty() {
+                let at = self.rng.random_range(0..bytes.len());
+                bytes[at] = 0x80 | self.rng.random::<u8>();
+            }
+            self.out.extend_from_slice(&bytes);
+            self.out.push(b'\n');
+            if self.rng.random_bool(0.3) {
+                self.out.extend_from_slice(b"\xfe\x00\xc3(noise\x9f\n");
+            }
+            return;
+        }
+        self.say(line);
+    }
+
+    fn drop_this_ok(&mut self) -> bool {
+        let drop = self.faults.drop_ok > 0.0 && self.rng.random_bool(self.faults.drop_ok.min(1.0));
+        if drop {
+            tracing::debug!("fault: dropping an ok");
+        }
+        drop
+    }
+
+    fn ok(&mut self, n: Option<u64>) {
+        if self.drop_this_ok() {
+            return;
+        }
+        let line = if self.fw.advanced_ok() {
+            let planner_free = PLANNER_MOVES - self.planner.len().min(PLANNER_MOVES);
+            // Marlin counts the command being acknowledged as still occupying its slot.
+            let slots_free = self.fw.command_slots().saturating_sub(self.slots.len() + 1);
+            match n {
+                Some(n) => format!("ok N{n} P{planner_free} B{slots_free}"),
+                None => format!("ok P{planner_free} B{slots_free}"),
+            }
+        } else {
+            "ok".to_string()
+        };
+        self.say_noisy(&line);
+    }
+
+    fn temperature_report(&self) -> String {
+        format!(
+            "T:{:.2} /{:.2} B:{:.2} /{:.2} @:0 B@:0",
+            self.hotend.current, self.hotend.target, self.bed.current, self.bed.target
+        )
+    }
+
+    // ----- input --------------------------------------------------------------------
+
+    /// Bytes from the host. They enter the receive ring; bytes that do not fit are lost,
+    /// as on a real board whose host sent more than the ring holds (the line they belonged
+    /// to then fails its checksum and is resent).
+    ///
+    /// The pty hands over in one go what a UART delivers byte by byte, and a board's main
+    /// loop empties its ring far faster than 115200 baud fills it; so when the ring is full
+    /// the main loop gets to run first, and bytes are lost only when it cannot take lines
+    /// (all command slots full, or stuck in a blocking command such as M109).
+    pub(crate) fn receive(&mut self, bytes: &[u8], now: Instant, recorder: &mut Recorder) {
+        let mut lost = 0usize;
+        for &b in bytes {
+            if self.status != Status::Running {
+                return;
+            }
+            if self.fw.emergency_parser() {
+                self.emergency_byte(b);
+                if self.status != Status::Running {
+                    return;
+                }
+            }
+            if self.rx.len() >= self.fw.rx_buffer_bytes() {
+                self.advance(now, recorder);
+            }
+            if self.rx.len() < self.fw.rx_buffer_bytes() {
+                self.rx.push_back(b);
+            } else {
+                lost += 1;
+            }
+        }
+        if lost > 0 {
+            tracing::debug!(lost, "receive buffer overrun: bytes lost");
+        }
+    }
+
+    /// Marlin's EMERGENCY_PARSER: acts on M108/M112 as they arrive, even while the main
+    /// loop is stuck in a heat wait.
+    fn emergency_byte(&mut self, b: u8) {
+        if b != b'\n' && b != b'\r' {
+            if self.emergency.len() < 128 {
+                self.emergency.push(b);
+            }
+            return;
+        }
+        let line = String::from_utf8_lossy(&self.emergency).into_owned();
+        self.emergency.clear();
+        let cmd = strip_number_and_checksum(&line);
+        let word = cmd
+            .split_whitespace()
+            .next()
+            .unwrap_or("")
+            .to_ascii_uppercase();
+        match word.as_str() {
+            "M112" => {
+                tracing::warn!("M112: emergency stop");
+                self.say("Error:Printer halted. kill() called!");
+                self.status = Status::Halted;
+            }
+            "M108" => {
+                // Only a heat wait in progress is broken; a stray M108 must not cut the
+                // next one short.
+                let heating = self
+                    .active
+                    .as_ref()
+                    .is_some_and(|a| matches!(a.wait, Wait::Heat { .. }));
+                self.heat_break = heating;
+            }
+            _ => {}
+        }
+    }
+
+    /// Move complete lines from the ring into free command slots, checking them as
+    /// Marlin's get_serial_commands does.
+    fn fill_slots(&mut self) {
+        while self.status == Status::Running && self.slots.len() < self.fw.command_slots() {
+            let Some(b) = self.rx.pop_front() else { return };
+            if b == b'\n' || b == b'\r' {
+                let raw = std::mem::take(&mut self.assembling);
+                let overlong = std::mem::replace(&mut self.overlong, false);
+                if raw.iter().all(|c| c.is_ascii_whitespace()) && !overlong {
+                    continue;
+                }
+                self.accept_line(raw);
+                continue;
+            }
+            if self.assembling.len() < self.fw.max_line_bytes() {
+                self.assembling.push(b);
+            } else {
+                self.overlong = true; // Marlin stops storing; the checksum will fail
+            }
+        }
+    }
+
+    fn accept_line(&mut self, mut raw: Vec<u8>) {
+        // Comments are not stored (Marlin drops `;...` while reading).
+        if let Some(at) = raw.iter().position(|&c| c == b';') {
+            raw.truncate(at);
+        }
+        if self.faults.corrupt_host_bytes > 0.0
+            && !raw.is_empty()
+            && self
+                .rng
+                .random_bool(self.faults.corrupt_host_bytes.min(1.0))
+        {
+            let at = self.rng.random_range(0..raw.len());
+            // Any byte but the ones that would change the line's framing in a way a
+            // checksum cannot see (a new `N` or `*`).
+            let mut c = raw[at];
+            while c == raw[at] || c == b'N' || c == b'*' {
+                c = self.rng.random_range(0x20u8..0x7f);
+            }
+            tracing::debug!(at, "fault: corrupting a received line");
+            raw[at] = c;
+        }
+        let line = String::from_utf8_lossy(&raw).trim().to_string();
+        if line.is_empty() {
+            return;
+        }
+        if let Some(rest) = line.strip_prefix('N') {
+            let is_m110 = line.contains("M110");
+            // For M110 the last N on the line wins (`N101 M110 N100`).
+            let number_text = if is_m110 {
+                line.rfind('N').map(|i| &line[i + 1..]).unwrap_or(rest)
+            } else {
+                rest
+            };
+            let n = leading_int(number_text);
+            if !is_m110 && n != Some(self.last_n as i64 + 1) {
+                return self.line_error("Line Number is not Last Line Number+1");
+            }
+            let Some(star) = line.rfind('*') else {
+                return self.line_error("No Checksum with line number");
+            };
+            let sum = line.as_bytes()[..star].iter().fold(0u8, |a, &b| a ^ b);
+            if leading_int(&line[star + 1..]) != Some(sum as i64) {
+                return self.line_error("checksum mismatch");
+            }
+            if self.faults.spurious_resend > 0.0
+                && self.rng.random_bool(self.faults.spurious_resend.min(1.0))
+            {
+                tracing::debug!("fault: spurious resend");
+                return self.line_error("checksum mismatch");
+            }
+            let n = n.unwrap_or(0).max(0) as u64;
+            self.last_n = n;
+            let cmd = strip_number_and_checksum(&line).to_string();
+            let line_n = leading_int(rest).map(|v| v.max(0) as u64);
+            self.slots.push_back(Queued { n: line_n, cmd });
+        } else if line.contains('*') {
+            self.line_error("No Line Number with checksum");
+        } else {
+            self.slots.push_back(Queued { n: None, cmd: line });
+        }
+    }
+
+    /// Marlin's gcode_line_error + flush_and_request_resend: report, drop the rest of the
+    /// receive buffer, ask for the next expected line, and (per profile) ok.
+    fn line_error(&mut self, what: &str) {
+        let last = self.last_n;
+        tracing::debug!(error = what, last_line = last, "line rejected");
+        self.say(&format!("Error:{what}, Last Line: {last}"));
+        self.rx.clear();
+        self.assembling.clear();
+        self.overlong = false;
+        self.say_noisy(&format!("Resend: {}", last + 1));
+        if self.fw.ok_after_resend() {
+            // Marlin prints a bare `ok` here, without the ADVANCED_OK fields.
+            if !self.drop_this_ok() {
+                self.say_noisy("ok");
+            }
+        }
+    }
+
+    // ----- time ---------------------------------------------------------------------
+
+    fn update_planner(&mut self, now: Instant) {
+        while let Some(end) = self.planner_head_end {
+            if now < end {
+                break;
+            }
+            self.planner.pop_front();
+            self.planner_head_end = self.planner.front().map(|d| end + *d);
+        }
+    }
+
+    fn update_temperatures(&mut self, now: Instant) {
+        let real = now.saturating_duration_since(self.temps_at).as_secs_f64();
+        self.temps_at = now;
+        let sim = if self.time_scale == 0.0 {
+            f64::INFINITY
+        } else {
+            real / self.time_scale
+        };
+        for (t, heat, cool) in [
+            (&mut self.hotend, HOTEND_HEAT_RATE, HOTEND_COOL_RATE),
+            (&mut self.bed, BED_HEAT_RATE, BED_COOL_RATE),
+        ] {
+            let goal = t.target.max(AMBIENT);
+            if t.current < goal {
+                t.current = (t.current + heat * sim).min(goal);
+            } else if t.current > goal {
+                t.current = (t.current - cool * sim).max(goal);
+            }
+        }
+    }
+
+    /// Run the printer up to `now`: drain the planner, heat, finish and start commands.
+    pub(crate) fn advance(&mut self, now: Instant, recorder: &mut Recorder) {
+        if self.status != Status::Running {
+            return;
+        }
+        self.update_planner(now);
+        self.update_temperatures(now);
+        loop {
+            if self.status != Status::Running {
+                return;
+            }
+            // A command in progress holds the main loop (as in Marlin, where M109 or a move
+            // waiting for planner room blocks in its handler): no lines are read meanwhile.
+            if self.active.is_some() {
+                if !self.progress_active(now) {
+                    break;
+                }
+                continue;
+            }
+            self.fill_slots();
+            let Some(next) = self.slots.pop_front() else {
+                break;
+            };
+            self.execute(next, now, recorder);
+        }
+        if let (Some(period), Some(at)) = (self.autoreport, self.next_autoreport) {
+            if now >= at {
+                let report = self.temperature_report();
+                self.say_noisy(&report);
+                self.next_autoreport = Some(now + period);
+            }
+        }
+        let busy = self.active.as_ref().is_some_and(|a| a.busy);
+        if busy && self.fw.busy_protocol() && self.keepalive > 0.0 {
+            if let Some(at) = self.next_keepalive {
+                if now >= at {
+                    self.say_noisy("echo:busy: processing");
+                    self.next_keepalive = Some(now + self.period(self.keepalive));
+                }
+            }
+        }
+        if let Some(active) = &mut self.active {
+            if let (Some(at), Wait::Heat { .. }) = (active.next_heat_report, &active.wait) {
+                if now >= at {
+                    let period = Duration::from_secs_f64(self.time_scale).max(MIN_PERIOD);
+                    active.next_heat_report = Some(now + period);
+                    let report = self.temperature_report();
+                    self.say_noisy(&report);
+                }
+            }
+        }
+    }
+
+    /// Try to finish the active command; true if it finished.
+    fn progress_active(&mut self, now: Instant) -> bool {
+        let Some(mut active) = self.active.take() else {
+            return true;
+        };
+        loop {
+            let done = match &active.wait {
+                Wait::PlannerSlot { seconds } => {
+                    if self.planner.len() < PLANNER_MOVES {
+                        let seconds = *seconds;
+                        self.plan(seconds, now);
+                        true
+                    } else {
+                        false
+                    }
+                }
+                Wait::Drain { then } => {
+                    if self.planner.is_empty() {
+                        match then {
+                            Some(next) => {
+                                active.wait = (**next).clone();
+                                continue;
+                            }
+                            None => true,
+                        }
+                    } else {
+                        false
+                    }
+                }
+                Wait::For(seconds) => {
+                    active.wait = Wait::Until(now + self.real(*seconds));
+                    continue;
+                }
+                Wait::Until(at) => now >= *at,
+                Wait::Heat {
+                    heater,
+                    cooling_too,
+                } => {
+                    let t = match heater {
+                        Heater::Hotend => self.hotend,
+                        Heater::Bed => self.bed,
+                    };
+                    let reached = if *cooling_too {
+                        (t.current - t.target.max(AMBIENT)).abs() <= 1.0
+                    } else {
+                        t.current >= t.target - 1.0
+                    };
+                    std::mem::take(&mut self.heat_break) || reached
+                }
+            };
+            if done {
+                self.ok(active.n);
+                self.next_keepalive = None;
+                return true;
+            }
+            self.active = Some(active);
+            return false;
+        }
+    }
+
+    fn plan(&mut self, seconds: f64, now: Instant) {
+        let d = self.real(seconds);
+        if self.planner.is_empty() {
+            self.planner_head_end = Some(now + d);
+        }
+        self.planner.push_back(d);
+    }
+
+    /// When `advance` must run again (None: only when input arrives).
+    pub(crate) fn next_deadline(&self) -> Option<Instant> {
+        if self.status != Status::Running {
+            return None;
+        }
+        let mut next: Option<Instant> = self.planner_head_end;
+        let mut consider = |t: Option<Instant>| {
+            if let Some(t) = t {
+                next = Some(next.map_or(t, |n| n.min(t)));
+            }
+        };
+        consider(self.next_autoreport);
+        if let Some(active) = &self.active {
+            if active.busy && self.fw.busy_protocol() && self.keepalive > 0.0 {
+                consider(self.next_keepalive);
+            }
+            match active.wait {
+                Wait::Until(at) => consider(Some(at)),
+                Wait::Heat { .. } => {
+                    consider(active.next_heat_report);
+                    // Re-check the temperature every simulated second (and at least
+                    // every 50 ms of real time).
+                    consider(Some(
+                        Instant::now() + Duration::from_secs_f64(self.time_scale).max(MIN_PERIOD),
+                    ));
+                }
+                Wait::For(_) => consider(Some(Instant::now())),
+                _ => {}
+            }
+        }
+        next
+    }
+
+    // ----- commands -----------------------------------------------------------------
+
+    fn execute(&mut self, queued: Queued, now: Instant, recorder: &mut Recorder) {
+        let Queued { n, cmd } = queued;
+        tracing::trace!(line = ?n, cmd = %cmd, "executing");
+        recorder.push(&cmd);
+        if n.is_some() {
+            self.numbered_executed += 1;
+            if self.fire_line_faults() {
+                return;
+            }
+        }
+        let words = parse_words(&cmd);
+        let Some(&(letter, code)) = words.first() else {
+            return self.ok(n);
+        };
+        let code_int = code as i64;
+        let is_whole = (code - code.round()).abs() < 1e-9;
+        let busy_fault = self.fw.busy_protocol()
+            && self.faults.busy > 0.0
+            && self.rng.random_bool(self.faults.busy.min(1.0));
+        if busy_fault {
+            tracing::debug!("fault: busy period");
+        }
+        let mut wait: Option<Wait> = None;
+        let mut long = false;
+        match (letter, is_whole.then_some(code_int)) {
+            ('G', Some(0..=3)) => {
+                let seconds = self.move_seconds(&words, code_int);
+                if self.planner.len() < PLANNER_MOVES {
+                    self.plan(seconds, now);
+                } else {
+                    wait = Some(Wait::PlannerSlot { seconds });
+                    long = true;
+                }
+            }
+            ('G', Some(4)) => {
+                let ms =
+                    word(&words, 'P').unwrap_or(0.0) + word(&words, 'S').unwrap_or(0.0) * 1000.0;
+                wait = Some(Wait::Drain {
+                    then: Some(Box::new(Wait::For(ms / 1000.0))),
+                });
+                long = true;
+            }
+            ('G', Some(28)) => {
+                for (i, axis) in ['X', 'Y', 'Z'].into_iter().enumerate() {
+                    let all = !['X', 'Y', 'Z'].iter().any(|a| word_present(&words, *a));
+                    if all || word_present(&words, axis) {
+                        self.position[i] = 0.0;
+                    }
+                }
+                wait = Some(Wait::Drain {
+                    then: Some(Box::new(Wait::For(HOMING_SECONDS))),
+                });
+                long = true;
+            }
+            ('G', Some(29)) => {
+                wait = Some(Wait::Drain {
+                    then: Some(Box::new(Wait::For(HOMING_SECONDS * 3.0))),
+                });
+                long = true;
+            }
+            ('G', Some(90)) => {
+                self.relative = false;
+                self.relative_e = false;
+            }
+            ('G', Some(91)) => {
+                self.relative = true;
+                self.relative_e = true;
+            }
+            ('G', Some(92)) => {
+                for (i, axis) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
+                    if let Some(v) = word(&words, axis) {
+                        self.position[i] = v;
+                    }
+                }
+            }
+            ('M', Some(82)) => self.relative_e = false,
+            ('M', Some(83)) => self.relative_e = true,
+            ('M', Some(400)) => {
+                wait = Some(Wait::Drain { then: None });
+                long = true;
+            }
+            ('M', Some(104)) | ('M', Some(109)) => {
+                let t = word(&words, 'S').or_else(|| word(&words, 'R'));
+                if let Some(t) = t {
+                    self.hotend.target = t.max(0.0);
+                }
+                if code_int == 109 {
+                    wait = Some(Wait::Heat {
+                        heater: Heater::Hotend,
+                        cooling_too: word_present(&words, 'R'),
+                    });
+                    long = true;
+                }
+            }
+            ('M', Some(140)) | ('M', Some(190)) => {
+                let t = word(&words, 'S').or_else(|| word(&words, 'R'));
+                if let Some(t) = t {
+                    self.bed.target = t.max(0.0);
+                }
+                if code_int == 190 {
+                    wait = Some(Wait::Heat {
+                        heater: Heater::Bed,
+                        cooling_too: word_present(&words, 'R'),
+                    });
+                    long = true;
+                }
+            }
+            ('M', Some(105)) => {
+                // M105 answers `ok` and the report on one line; never dropped, so a host's
+                // probe after a lost ok always gets through.
+                let report = format!("ok {}", self.temperature_report());
+                self.say_noisy(&report);
+                return;
+            }
+            ('M', Some(108)) => {}
+            ('M', Some(112)) if self.fw.emergency_parser() => {
+                self.say("Error:Printer halted. kill() called!");
+                self.status = Status::Halted;
+                return;
+            }
+            ('M', Some(110)) => {}
+            ('M', Some(113)) if self.fw.busy_protocol() => {
+                match word(&words, 'S') {
+                    // S0 turns the keep-alives off, as in Marlin.
+                    Some(s) => self.keepalive = s.clamp(0.0, 60.0),
+                    None => {
+                        let interval = self.keepalive;
+                        self.say(&format!("echo:M113 S{interval}"));
+                    }
+                }
+            }
+            ('M', Some(114)) => {
+                let [x, y, z, e] = self.position;
+                self.say(&format!(
+                    "X:{x:.2} Y:{y:.2} Z:{z:.2} E:{e:.2} Count X:{} Y:{} Z:{}",
+                    (x * 80.0) as i64,
+                    (y * 80.0) as i64,
+                    (z * 400.0) as i64
+                ));
+            }
+            ('M', Some(115)) => self.m115(),
+            ('M', Some(155)) if self.fw.autoreport_temp() => {
+                let s = word(&words, 'S').unwrap_or(0.0);
+                if s > 0.0 {
+                    let period = self.period(s);
+                    self.autoreport = Some(period);
+                    self.next_autoreport = Some(now + period);
+                } else {
+                    self.autoreport = None;
+                    self.next_autoreport = None;
+                }
+            }
+            ('M', Some(27)) => self.say("Not SD printing"),
+            _ if self.fw == Firmware::Marlin2 && !known_marlin2(letter, code) => {
+                self.say(&format!("echo:Unknown command: \"{cmd}\""));
+            }
+            _ => {}
+        }
+        if busy_fault && wait.is_none() {
+            // The command holds the main loop for three keep-alive intervals.
+            let hold = self.period(self.keepalive) * 3;
+            wait = Some(Wait::Until(now + hold));
+            long = true;
+        }
+        match wait {
+            None => self.ok(n),
+            Some(wait) => {
+                let heat = matches!(wait, Wait::Heat { .. });
+                self.active = Some(Active {
+                    wait,
+                    n,
+                    busy: long,
+                    next_heat_report: heat.then(|| now + MIN_PERIOD.max(self.real(1.0))),
+                });
+                self.next_keepalive = Some(now + self.period(self.keepalive));
+                // A wait that is already over (instant timing) finishes right away.
+                self.progress_active(now);
+            }
+        }
+    }
+
+    /// Apply the `*_after_lines` faults; true if the command must not run.
+    fn fire_line_faults(&mut self) -> bool {
+        let count = self.numbered_executed;
+        if self.faults.reset_after_lines == Some(count) {
+            tracing::warn!(lines = count, "fault: printer reset");
+            self.boot();
+            return true;
+        }
+        if self.faults.unplug_after_lines == Some(count) {
+            tracing::warn!(lines = count, "fault: unplug");
+            self.status = Status::Unplugged;
+            return true;
+        }
+        if self.faults.silence_after_lines == Some(count) {
+            tracing::warn!(lines = count, "fault: silence");
+            self.status = Status::Silent;
+            return true;
+        }
+        if self.faults.fatal_after_lines == Some(count) {
+            tracing::warn!(lines = count, "fault: fatal error");
+            self.say("Error:Thermal Runaway, system stopped! Heater_ID: 0");
+            self.say("Error:Printer halted. kill() called!");
+            self.status = Status::Halted;
+            return true;
+        }
+        false
+    }
+
+    fn m115(&mut self) {
+        match self.fw {
+            Firmware::Marlin2 => {
+                self.say(
+                    "FIRMWARE_NAME:Marlin 2.1.2 (crispen sim) \
+                     SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 \
+                     MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff",
+                );
+                for cap in [
+                    "SERIAL_XON_XOFF:0",
+                    "BINARY_FILE_TRANSFER:0",
+                    "EEPROM:1",
+                    "VOLUMETRIC:1",
+                    "AUTOREPORT_POS:0",
+                    "AUTOREPORT_TEMP:1",
+                    "PROGRESS:0",
+                    "PRINT_JOB:1",
+                    "AUTOLEVEL:0",
+                    "Z_PROBE:0",
+                    "LEVELING_DATA:0",
+                    "BUILD_PERCENT:1",
+                    "SOFTWARE_POWER:0",
+                    "TOGGLE_LIGHTS:0",
+                    "CASE_LIGHT_BRIGHTNESS:0",
+                    "EMERGENCY_PARSER:1",
+                    "HOST_ACTION_COMMANDS:0",
+                    "PROMPT_SUPPORT:0",
+                    "SDCARD:0",
+                    "AUTOREPORT_SD_STATUS:0",
+                    "THERMAL_PROTECTION:1",
+                    "MOTION_MODES:0",
+                    "ARCS:1",
+                    "BABYSTEPPING:0",
+                    "CHAMBER_TEMPERATURE:0",
+                    "BUSY_PROTOCOL:1",
+                    "ADVANCED_OK:1",
+                ] {
+                    self.say(&format!("Cap:{cap}"));
+                }
+            }
+            Firmware::Ultimaker2 => self.say(
+                "FIRMWARE_NAME:Marlin Ultimaker2; Sprinter/grbl mashup for gen6 \
+                 FIRMWARE_URL:https://github.com/Ultimaker/Ultimaker2Marlin \
+                 PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ultimaker EXTRUDER_COUNT:1",
+            ),
+        }
+    }
+
+    /// Simulated seconds a G0–G3 takes at its feedrate (F is persistent, mm/min).
+    fn move_seconds(&mut self, words: &[(char, f64)], code: i64) -> f64 {
+        if let Some(f) = word(words, 'F') {
+            if f > 0.0 {
+                self.feedrate = f;
+            }
+        }
+        let start = self.position;
+        let mut end = start;
+        for (i, axis) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
+            if let Some(v) = word(words, axis) {
+                let rel = if i == 3 {
+                    self.relative_e
+                } else {
+                    self.relative
+                };
+                end[i] = if rel { start[i] + v } else { v };
+            }
+        }
+        self.position = end;
+        let (dx, dy, dz) = (end[0] - start[0], end[1] - start[1], end[2] - start[2]);
+        let mut distance = (dx * dx + dy * dy + dz * dz).sqrt();
+        if code == 2 || code == 3 {
+            let (i, j) = (
+                word(words, 'I').unwrap_or(0.0),
+                word(words, 'J').unwrap_or(0.0),
+            );
+            let radius = (i * i + j * j).sqrt();
+            if radius > 0.0 {
+                let (cx, cy) = (start[0] + i, start[1] + j);
+                let a0 = (start[1] - cy).atan2(start[0] - cx);
+                let a1 = (end[1] - cy).atan2(end[0] - cx);
+                let mut sweep = if code == 3 { a1 - a0 } else { a0 - a1 };
+                if sweep <= 1e-9 {
+                    sweep += std::f64::consts::TAU;
+                }
+                distance = (radius * sweep).hypot(dz);
+            }
+        }
+        if distance == 0.0 {
+            distance = (end[3] - start[3]).abs();
+        }
+        distance / (self.feedrate / 60.0)
+    }
+}
+
+/// `N12 G1 X5*34` → `G1 X5` (also for lines without N or checksum).
+pub(crate) fn strip_number_and_checksum(line: &str) -> &str {
+    let mut s = line.trim();
+    if let Some(star) = s.rfind('*') {
+        s = &s[..star];
+    }
+    if let Some(rest) = s.strip_prefix('N') {
+        let digits = rest
+            .find(|c: char| !(c.is_ascii_digit() || c == '-'))
+            .unwrap_or(rest.len());
+        s = &rest[digits..];
+    }
+    s.trim()
+}
+
+fn leading_int(s: &str) -> Option<i64> {
+    let s = s.trim_start();
+    let end = s
+        .char_indices()
+        .find(|&(i, c)| !(c.is_ascii_digit() || (i == 0 && c == '-')))
+        .map_or(s.len(), |(i, _)| i);
+    s[..end].parse().ok()
+}
+
+/// G-code words (`G1 X10.5 F3000`, also `G1X10`): letter and number pairs. Text after
+/// M117/M118 and the like is not needed by the simulator and parses as noise.
+fn parse_words(cmd: &str) -> Vec<(char, f64)> {
+    let bytes = cmd.as_bytes();
+    let mut words = Vec::new();
+    let mut i = 0;
+    while i < bytes.len() {
+        let c = bytes[i] as char;
+        if c.is_ascii_alphabetic() {
+            let start = i + 1;
+            let mut end = start;
+            while end < bytes.len()
+                && (bytes[end].is_ascii_digit() || matches!(bytes[end], b'.' | b'-' | b'+'))
+            {
+                end += 1;
+            }
+            let value = cmd[start..end].parse().unwrap_or(0.0);
+            words.push((c.to_ascii_uppercase(), value));
+            i = end.max(start);
+        } else {
+            i += 1;
+        }
+    }
+    words
+}
+
+fn word(words: &[(char, f64)], letter: char) -> Option<f64> {
+    words.iter().skip(1).find(|w| w.0 == letter).map(|w| w.1)
+}
+
+fn word_present(words: &[(char, f64)], letter: char) -> bool {
+    words.iter().skip(1).any(|w| w.0 == letter)
+}
+
+/// G/M codes a typical Marlin 2 build knows (enough for slicer output); others get
+/// `echo:Unknown command`.
+fn known_marlin2(letter: char, code: f64) -> bool {
+    let whole = code.trunc() as i64;
+    match letter {
+        'G' => matches!(
+            whole,
+            0..=5 | 10 | 11 | 12 | 17..=21 | 26..=30 | 33 | 34 | 38 | 42 | 53..=61 | 76 | 80 | 90..=92
+        ),
+        'M' => matches!(
+            whole,
+            0 | 1 | 3..=5 | 16..=34 | 42 | 48 | 73 | 75..=78 | 80..=92 | 100 | 104..=125
+                | 140 | 141 | 145 | 149 | 150 | 155 | 163 | 164 | 190 | 191 | 200..=209
+                | 211 | 217..=221 | 226 | 240 | 250 | 256 | 260..=261 | 280 | 281 | 290
+                | 300 | 301 | 302..=306 | 350 | 351 | 355 | 360 | 380 | 381 | 400..=422
+                | 425 | 428 | 430 | 486 | 500..=504 | 510..=512 | 524 | 540 | 569 | 575
+                | 600 | 603 | 605 | 665 | 666 | 672 | 701 | 702 | 710 | 808 | 810..=813
+                | 851 | 852 | 860..=869 | 871 | 876 | 900 | 906 | 907..=919 | 928 | 993..=999
+        ),
+        'T' => true,
+        _ => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn strips_number_and_checksum() {
+        assert_eq!(strip_number_and_checksum("N12 G1 X5*34"), "G1 X5");
+        assert_eq!(strip_number_and_checksum("N0 M110 N0*125"), "M110 N0");
+        assert_eq!(strip_number_and_checksum("G28"), "G28");
+    }
+
+    fn printer(fw: Firmware) -> Printer {
+        let mut cfg = SimConfig::new(fw);
+        cfg.time_scale = 1.0;
+        Printer::new(&cfg, Instant::now())
+    }
+
+    #[test]
+    fn moves_take_their_distance_over_their_feedrate() {
+        let mut p = printer(Firmware::Marlin2);
+        let secs = p.move_seconds(&parse_words("G1 X10 F600"), 1);
+        assert!((secs - 1.0).abs() < 1e-9, "{secs}");
+        // F is persistent; then a diagonal from (10, 0) to (0, 20).
+        let secs = p.move_seconds(&parse_words("G1 X0 Y20"), 1);
+        assert!((secs - 500f64.sqrt() / 10.0).abs() < 1e-9, "{secs}");
+        // Relative mode after G91 (handled in execute): emulate it directly.
+        p.relative = true;
+        let secs = p.move_seconds(&parse_words("G1 X-10"), 1);
+        assert!((secs - 1.0).abs() < 1e-9);
+        // Extrusion-only moves take their filament length.
+        p.relative_e = true;
+        let secs = p.move_seconds(&parse_words("G1 E5 F300"), 1);
+        assert!((secs - 1.0).abs() < 1e-9, "{secs}");
+    }
+
+    #[test]
+    fn arcs_take_their_arc_length() {
+        let mut p = printer(Firmware::Marlin2);
+        p.position = [10.0, 0.0, 0.0, 0.0];
+        // Counter-clockwise quarter circle of radius 10 around the origin at 60 mm/s.
+        let secs = p.move_seconds(&parse_words("G3 X0 Y10 I-10 J0 F3600"), 3);
+        let expected = std::f64::consts::FRAC_PI_2 * 10.0 / 60.0;
+        assert!((secs - expected).abs() < 1e-9, "{secs} vs {expected}");
+    }
+
+    #[test]
+    fn boot_banner_per_profile() {
+        let p = printer(Firmware::Ultimaker2);
+        assert_eq!(p.output(), b"start\n");
+        let p = printer(Firmware::Marlin2);
+        assert!(p.output().starts_with(b"start\necho:Marlin 2.1.2\n"));
+    }
+
+    #[test]
+    fn parses_words_without_spaces() {
+        assert_eq!(
+            parse_words("G1X10.5Y-2F3000"),
+            vec![('G', 1.0), ('X', 10.5), ('Y', -2.0), ('F', 3000.0)]
+        );
+    }
+}

@@ -1,0 +1,426 @@
+//! End-to-end test of `crispen run`: the real binary, two simulated printers on real ptys
+//! (declared in the config), the real PrusaSlicer, real files dropped into a hot folder.
+//! It checks pick-up (rename-in, slow copy, sidecar), failure of a corrupt model, the
+//! bed-clear gate, exactly-once delivery of every done job's G-code, and recovery after
+//! `kill -9` in the middle of a print.
+
+use crispen::marlin::firmware::Firmware;
+use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::sim::is_housekeeping;
+use serde_json::Value;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_crispen");
+
+struct Daemon {
+    child: Child,
+}
+
+impl Daemon {
+    fn start(config: &Path, log: &Path) -> Daemon {
+        let log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(log)
+            .unwrap();
+        let child = Command::new(BIN)
+            .args(["run", "--config"])
+            .arg(config)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        Daemon { child }
+    }
+    fn kill9(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        self.kill9();
+    }
+}
+
+fn ctl(config: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(BIN)
+        .args(args)
+        .arg("--config")
+        .arg(config)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        ),
+    )
+}
+
+fn status(config: &Path) -> Option<Value> {
+    let (ok, text) = ctl(config, &["status", "--json"]);
+    if !ok {
+        return None;
+    }
+    serde_json::from_str(&text).ok()
+}
+
+fn job_by_file<'a>(status: &'a Value, file: &str) -> Option<&'a Value> {
+    status["jobs"]
+        .as_array()?
+        .iter()
+        .find(|j| j["file"] == file)
+}
+
+fn printer<'a>(status: &'a Value, name: &str) -> &'a Value {
+    status["printers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == name)
+        .unwrap()
+}
+
+/// Polls the status until `check` holds; panics with the last status and the log after
+/// `limit`.
+fn wait_for(
+    config: &Path,
+    log: &Path,
+    limit: Duration,
+    what: &str,
+    check: impl Fn(&Value) -> bool,
+) -> Value {
+    let start = Instant::now();
+    let mut last = None;
+    while start.elapsed() < limit {
+        if let Some(s) = status(config) {
+            if check(&s) {
+                return s;
+            }
+            last = Some(s);
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    panic!(
+        "timed out waiting for {what}\nlast status: {}\nlog:\n{}",
+        serde_json::to_string_pretty(&last).unwrap(),
+        std::fs::read_to_string(log).unwrap_or_default()
+    );
+}
+
+fn state_of(s: &Value, file: &str) -> String {
+    job_by_file(s, file)
+        .and_then(|j| j["state"].as_str())
+        .unwrap_or("")
+        .to_string()
+}
+
+fn recorded(path: &Path) -> Vec<String> {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .map(str::to_string)
+        .filter(|c| !is_housekeeping(c))
+        .collect()
+}
+
+#[test]
+fn farm_end_to_end_with_restart() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let hot = root.join("hot/25mm");
+    std::fs::create_dir_all(&hot).unwrap();
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    let rec_a = root.join("a.rec");
+    let rec_b = root.join("b.rec");
+    std::fs::write(
+        &config,
+        format!(
+            r#"
+[spool]
+dir = "spool"
+[control]
+socket = "crispen.sock"
+[farm]
+max_heating = 1
+settle_s = 1.0
+rescan_s = 2
+[[printer]]
+name = "a"
+firmware = "marlin2"
+[printer.simulate]
+time_scale = 0.01
+record = "{}"
+[[printer]]
+name = "b"
+firmware = "ultimaker2"
+[printer.simulate]
+time_scale = 0.01
+record = "{}"
+[[folder]]
+path = "hot/25mm"
+height_mm = 25
+printers = ["a", "b"]
+"#,
+            rec_a.display(),
+            rec_b.display()
+        ),
+    )
+    .unwrap();
+    let model = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/spot.obj")).unwrap();
+
+    let mut daemon = Daemon::start(&config, &log);
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(20),
+        "the daemon to answer",
+        |s| s["printers"].as_array().is_some_and(|p| p.len() == 2),
+    );
+
+    // 1. Renamed in: complete at once.
+    std::fs::write(hot.join("first.obj.part"), &model).unwrap();
+    std::fs::rename(hot.join("first.obj.part"), hot.join("first.obj")).unwrap();
+    // 2. A corrupt model.
+    std::fs::write(
+        hot.join("broken.stl"),
+        b"solid broken\nfacet normal 0 0 this is not an stl\n",
+    )
+    .unwrap();
+    // 3. A sidecar turning enhancement off (sidecar first, as a user would copy both).
+    std::fs::write(hot.join("igea.obj.toml"), "enhance = false\n").unwrap();
+    std::fs::write(hot.join("igea.obj"), &model).unwrap();
+    // 4. Copied slowly, in chunks, with pauses shorter than the settle time.
+    {
+        let mut f = std::fs::File::create(hot.join("slow.obj")).unwrap();
+        for chunk in model.chunks(model.len() / 8 + 1) {
+            f.write_all(chunk).unwrap();
+            f.flush().unwrap();
+            std::thread::sleep(Duration::from_millis(300));
+            // Half-copied: must not have been taken.
+            assert!(hot.join("slow.obj").exists());
+        }
+    }
+    let dropped = ["first.obj", "broken.stl", "igea.obj", "slow.obj"];
+
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the corrupt model to fail",
+        |s| state_of(s, "broken.stl") == "failed",
+    );
+    let reason = job_by_file(&s, "broken.stl").unwrap()["reason"]
+        .as_str()
+        .unwrap_or("")
+        .to_string();
+    assert!(
+        reason.contains("broken.stl"),
+        "failure reason names the file: {reason}"
+    );
+
+    // Two printers, three good jobs: two get printed, then both printers wait for their
+    // beds to be cleared and the third job stays ready.
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(240),
+        "two prints done",
+        |s| {
+            ["first.obj", "igea.obj", "slow.obj"]
+                .iter()
+                .filter(|f| state_of(s, f) == "done")
+                .count()
+                == 2
+                && printer(s, "a")["state"] == "bed_not_cleared"
+                && printer(s, "b")["state"] == "bed_not_cleared"
+        },
+    );
+    let waiting: String = ["first.obj", "igea.obj", "slow.obj"]
+        .iter()
+        .find(|f| state_of(&s, f) != "done")
+        .unwrap()
+        .to_string();
+    std::thread::sleep(Duration::from_secs(3));
+    let s = status(&config).unwrap();
+    assert_eq!(
+        state_of(&s, &waiting),
+        "ready",
+        "the bed gate holds the next job"
+    );
+    let igea = job_by_file(&s, "igea.obj").unwrap();
+    assert!(igea["state"] != "failed", "{igea}");
+
+    // Clear printer a: it takes the waiting job. Kill the daemon mid-print.
+    let (ok, out) = ctl(&config, &["clear", "a"]);
+    assert!(ok, "{out}");
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "the third job printing",
+        |s| {
+            let p = printer(s, "a");
+            p["state"] == "printing" && p["progress"]["lines_acked"].as_u64().unwrap_or(0) > 200
+        },
+    );
+    daemon.kill9();
+    let before: Value = {
+        let spool = root.join("spool/jobs");
+        let mut states = serde_json::Map::new();
+        for e in std::fs::read_dir(&spool).unwrap() {
+            let j: Value =
+                serde_json::from_slice(&std::fs::read(e.unwrap().path().join("job.json")).unwrap())
+                    .unwrap();
+            states.insert(j["file"].as_str().unwrap().to_string(), j["state"].clone());
+        }
+        Value::Object(states)
+    };
+    assert_eq!(before[&waiting], "printing");
+
+    let mut daemon = Daemon::start(&config, &log);
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(30),
+        "the restarted daemon's printers",
+        |s| {
+            s["printers"]
+                .as_array()
+                .is_some_and(|p| p.len() == 2 && p.iter().all(|p| p["state"] != "connecting"))
+        },
+    );
+    assert_eq!(state_of(&s, &waiting), "interrupted");
+    assert_eq!(printer(&s, "a")["state"], "bed_not_cleared");
+    for f in dropped {
+        if f != waiting {
+            assert_eq!(
+                before[f],
+                state_of(&s, f),
+                "{f} kept its state across the restart"
+            );
+        }
+    }
+
+    // No dropped file is missing: each is in its job directory, none left in the folder.
+    for f in dropped {
+        let job = job_by_file(&s, f).unwrap_or_else(|| panic!("{f} has a job"));
+        let id = job["id"].as_str().unwrap();
+        assert!(
+            root.join("spool/jobs").join(id).join(f).is_file(),
+            "{f} kept in the spool"
+        );
+    }
+    assert!(root
+        .join("spool/jobs")
+        .join(job_by_file(&s, "igea.obj").unwrap()["id"].as_str().unwrap())
+        .join("igea.obj.toml")
+        .is_file());
+
+    // Every done job's G-code was executed exactly once, in order, by its printer.
+    for (name, rec, fw) in [
+        ("a", &rec_a, Firmware::Marlin2),
+        ("b", &rec_b, Firmware::Ultimaker2),
+    ] {
+        let executed = recorded(rec);
+        let mut expected: Vec<String> = Vec::new();
+        for f in ["first.obj", "igea.obj", "slow.obj"] {
+            let job = job_by_file(&s, f).unwrap();
+            if job["printer"] == name && job["state"] == "done" {
+                let gcode: PathBuf = root
+                    .join("spool/jobs")
+                    .join(job["id"].as_str().unwrap())
+                    .join(format!("{f}.gcode"));
+                expected.extend(
+                    GcodeProgram::load_for(&gcode, fw)
+                        .unwrap()
+                        .commands()
+                        .iter()
+                        .cloned(),
+                );
+            }
+        }
+        assert!(!expected.is_empty(), "printer {name} printed a job");
+        assert!(
+            executed.len() >= expected.len(),
+            "printer {name} executed everything"
+        );
+        if let Some(i) = (0..expected.len()).find(|&i| executed[i] != expected[i]) {
+            panic!(
+                "printer {name} did not execute its done jobs exactly once, in order: first difference at command {i}: executed {:?}, expected {:?}",
+                &executed[i.saturating_sub(2)..(i + 3).min(executed.len())],
+                &expected[i.saturating_sub(2)..(i + 3).min(expected.len())]
+            );
+        }
+        if name == "b" {
+            assert_eq!(executed.len(), expected.len(), "nothing else ran on b");
+        }
+    }
+
+    // The enhancement was off for the sidecar's job and on for the others.
+    let report = |f: &str| -> Value {
+        let id = job_by_file(&s, f).unwrap()["id"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        serde_json::from_slice(
+            &std::fs::read(root.join("spool/jobs").join(id).join("job.json")).unwrap(),
+        )
+        .unwrap()
+    };
+    assert_eq!(
+        report("igea.obj")["slice_report"]["enhancement"]["mode"],
+        "unmodified"
+    );
+    assert_eq!(
+        report("first.obj")["slice_report"]["enhancement"]["mode"],
+        "enhanced"
+    );
+
+    // SIGHUP with a broken config: refused, the daemon carries on with the old one.
+    let good = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(&config, good.replace("height_mm = 25", "height_mm = -1")).unwrap();
+    let pid = nix::unistd::Pid::from_raw(daemon.child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
+    std::fs::write(&config, &good).unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    assert!(
+        daemon.child.try_wait().unwrap().is_none(),
+        "still running after a bad reload"
+    );
+    assert!(
+        status(&config).is_some(),
+        "still answering after a bad reload"
+    );
+    let log_text = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        log_text.contains("new config refused"),
+        "the refusal is logged"
+    );
+    assert!(log_text.contains("height_mm"), "the refusal names the key");
+
+    // SIGTERM with nothing printing: a clean exit, socket removed.
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    let started = Instant::now();
+    let code = loop {
+        if let Some(code) = daemon.child.try_wait().unwrap() {
+            break code;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "daemon did not stop on SIGTERM"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(code.success(), "{code:?}");
+    assert!(!root.join("crispen.sock").exists());
+}

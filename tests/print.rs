@@ -1,0 +1,431 @@
+//! The host streamer against the simulated printer over real ptys: one test per fault
+//! class and their combination. Each proves what the printer executed (its own record),
+//! not what the host believes: the job exactly once and in order, or an exact prefix and
+//! the right error. The last tests run the real `crispen sim` and `crispen print` binaries.
+
+use crispen::marlin::firmware::Firmware;
+use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::sim::{self, Faults, SimConfig, SimHandle};
+use crispen::marlin::stream::{
+    Connection, PrintError, PrintProgress, PrintReport, StreamControl, StreamOptions,
+};
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::time::Duration;
+use tokio::sync::{mpsc, watch};
+
+/// A plausible small job: heat, home, many short moves (a tessellated curve), cool down.
+fn job_text(moves: usize) -> String {
+    let mut s = String::from(
+        "; generated test job\nM140 S60\nM104 S200\nM190 S60\nM109 S200 ; wait\nG28\nG92 E0\n",
+    );
+    for i in 0..moves {
+        let a = i as f64 * 0.05;
+        s.push_str(&format!(
+            "G1 X{:.3} Y{:.3} E{:.4} F1800\n",
+            100.0 + 20.0 * a.cos(),
+            100.0 + 20.0 * a.sin(),
+            i as f64 * 0.01
+        ));
+        if i % 50 == 0 {
+            s.push_str(&format!(";LAYER:{}\n\n", i / 50));
+        }
+    }
+    s.push_str("M400\nM104 S0\nM140 S0\nM84\n");
+    s
+}
+
+fn program(fw: Firmware, moves: usize) -> GcodeProgram {
+    GcodeProgram::read(job_text(moves).as_bytes(), "test.gcode", fw).unwrap()
+}
+
+fn start_sim(fw: Firmware, faults: Faults, seed: u64) -> SimHandle {
+    let mut cfg = SimConfig::new(fw);
+    cfg.faults = faults;
+    cfg.seed = seed;
+    sim::spawn(cfg).expect("simulator starts")
+}
+
+/// Short timeouts so fault tests take seconds, not minutes.
+fn options(fw: Firmware) -> StreamOptions {
+    let mut o = StreamOptions::for_firmware(fw);
+    o.protocol.quiet_period = Duration::from_millis(300);
+    o.protocol.silence_probe = Duration::from_millis(400);
+    o.protocol.silence_fail = Duration::from_secs(4);
+    o.connect_timeout = Duration::from_secs(10);
+    o
+}
+
+/// What the printer executed of the job: housekeeping (M105, M110, M155, M73...) removed,
+/// and so are fragments that are not commands at all. After a line error the printer drops
+/// its receive buffer, which can cut a line in two; when the tail also lost its `*` to
+/// corruption it arrives as an unnumbered non-command (e.g. `300 F1800b1`), which Marlin
+/// answers with "Unknown command". The simulator records those too.
+fn job_executed(sim: &SimHandle) -> Vec<String> {
+    sim.executed()
+        .into_iter()
+        .filter(|c| !sim::is_housekeeping(c))
+        .filter(|c| is_command(c))
+        .collect()
+}
+
+fn is_command(c: &str) -> bool {
+    let mut chars = c.chars();
+    matches!(chars.next(), Some('G' | 'M' | 'T' | 'g' | 'm' | 't'))
+        && chars.next().is_some_and(|d| d.is_ascii_digit())
+}
+
+async fn stream(
+    sim: &SimHandle,
+    opts: &StreamOptions,
+    program: &GcodeProgram,
+) -> Result<PrintReport, PrintError> {
+    let mut conn = Connection::open(sim.device_path(), opts).await?;
+    let (_control, control_rx) = mpsc::channel(1);
+    let (progress, _) = watch::channel(PrintProgress::default());
+    tokio::time::timeout(
+        Duration::from_secs(120),
+        conn.print(program, control_rx, progress),
+    )
+    .await
+    .expect("job ends within two minutes")
+}
+
+async fn exactly_once(fw: Firmware, faults: Faults, seed: u64, moves: usize) -> PrintReport {
+    let sim = start_sim(fw, faults.clone(), seed);
+    let program = program(fw, moves);
+    let report = stream(&sim, &options(fw), &program)
+        .await
+        .unwrap_or_else(|e| panic!("{fw} {faults:?}: {e}"));
+    assert_eq!(
+        job_executed(&sim),
+        program.commands(),
+        "{fw} {faults:?}: executed sequence differs from the file"
+    );
+    assert_eq!(report.lines_acked, program.len());
+    sim.shutdown();
+    report
+}
+
+#[tokio::test]
+async fn clean_link_delivers_the_file_exactly_once() {
+    for fw in Firmware::ALL {
+        let report = exactly_once(fw, Faults::default(), 1, 400).await;
+        assert_eq!(report.resends, 0, "{fw}");
+    }
+}
+
+#[tokio::test]
+async fn corrupted_host_bytes_are_resent_exactly_once() {
+    for fw in Firmware::ALL {
+        let faults = Faults {
+            corrupt_host_bytes: 0.05,
+            ..Faults::default()
+        };
+        let report = exactly_once(fw, faults, 7, 600).await;
+        assert!(report.resends > 0, "{fw}: the fault was injected");
+    }
+}
+
+#[tokio::test]
+async fn spurious_resends_are_handled() {
+    let faults = Faults {
+        spurious_resend: 0.05,
+        ..Faults::default()
+    };
+    for fw in Firmware::ALL {
+        let report = exactly_once(fw, faults.clone(), 11, 500).await;
+        assert!(report.resends > 0, "{fw}");
+    }
+}
+
+#[tokio::test]
+async fn lost_oks_are_recovered_by_probes() {
+    let faults = Faults {
+        drop_ok: 0.03,
+        ..Faults::default()
+    };
+    for fw in Firmware::ALL {
+        let report = exactly_once(fw, faults.clone(), 3, 300).await;
+        assert!(report.silence_probes > 0, "{fw}");
+    }
+}
+
+#[tokio::test]
+async fn busy_periods_and_garbage_are_tolerated() {
+    let faults = Faults {
+        busy: 0.02,
+        garbage: 0.05,
+        ..Faults::default()
+    };
+    for fw in Firmware::ALL {
+        exactly_once(fw, faults.clone(), 5, 500).await;
+    }
+}
+
+#[tokio::test]
+async fn all_faults_at_once_still_deliver_exactly_once() {
+    let faults = Faults {
+        corrupt_host_bytes: 0.03,
+        drop_ok: 0.02,
+        spurious_resend: 0.02,
+        busy: 0.01,
+        garbage: 0.03,
+        ..Faults::default()
+    };
+    for fw in Firmware::ALL {
+        for seed in [21, 22] {
+            exactly_once(fw, faults.clone(), seed, 500).await;
+        }
+    }
+}
+
+#[tokio::test]
+async fn unplug_leaves_an_exact_prefix_and_a_disconnect_error() {
+    for fw in Firmware::ALL {
+        let faults = Faults {
+            unplug_after_lines: Some(120),
+            ..Faults::default()
+        };
+        let sim = start_sim(fw, faults, 1);
+        let program = program(fw, 400);
+        let err = stream(&sim, &options(fw), &program).await.unwrap_err();
+        let executed = job_executed(&sim);
+        assert!(
+            matches!(err, PrintError::Disconnected { .. }),
+            "{fw}: {err}"
+        );
+        let msg = err.to_string();
+        assert!(
+            msg.contains("disconnected") && msg.contains("last acknowledged line"),
+            "{msg}"
+        );
+        assert!(!executed.is_empty() && executed.len() < program.len());
+        assert_eq!(
+            executed,
+            program.commands()[..executed.len()],
+            "{fw}: a prefix"
+        );
+        let acked = err.last_acked().unwrap();
+        assert!(
+            acked <= executed.len(),
+            "{fw}: acked {acked} > executed {}",
+            executed.len()
+        );
+        assert!(
+            acked + 8 >= executed.len(),
+            "{fw}: acked {acked} far behind {}",
+            executed.len()
+        );
+    }
+}
+
+#[tokio::test]
+async fn a_printer_reset_fails_the_job_with_its_reason() {
+    for fw in Firmware::ALL {
+        let faults = Faults {
+            reset_after_lines: Some(100),
+            ..Faults::default()
+        };
+        let sim = start_sim(fw, faults, 1);
+        let program = program(fw, 300);
+        let err = stream(&sim, &options(fw), &program).await.unwrap_err();
+        assert!(
+            matches!(err, PrintError::PrinterReset { .. }),
+            "{fw}: {err}"
+        );
+        assert!(err.to_string().contains("reset"), "{err}");
+        let executed = job_executed(&sim);
+        assert_eq!(
+            executed,
+            program.commands()[..executed.len()],
+            "{fw}: a prefix"
+        );
+    }
+}
+
+#[tokio::test]
+async fn a_fatal_error_fails_the_job_with_the_printer_message() {
+    for fw in Firmware::ALL {
+        let faults = Faults {
+            fatal_after_lines: Some(80),
+            ..Faults::default()
+        };
+        let sim = start_sim(fw, faults, 1);
+        let program = program(fw, 300);
+        let err = stream(&sim, &options(fw), &program).await.unwrap_err();
+        match &err {
+            PrintError::Fatal { message, .. } => {
+                assert!(
+                    message.contains("kill()") || message.contains("stopped"),
+                    "{message}"
+                )
+            }
+            other => panic!("{fw}: {other}"),
+        }
+    }
+}
+
+#[tokio::test]
+async fn a_silent_printer_fails_the_job_within_seconds() {
+    let faults = Faults {
+        silence_after_lines: Some(60),
+        ..Faults::default()
+    };
+    let sim = start_sim(Firmware::Marlin2, faults, 1);
+    let program = program(Firmware::Marlin2, 300);
+    let started = std::time::Instant::now();
+    let err = stream(&sim, &options(Firmware::Marlin2), &program)
+        .await
+        .unwrap_err();
+    assert!(matches!(err, PrintError::Silent { .. }), "{err}");
+    assert!(started.elapsed() < Duration::from_secs(30));
+}
+
+#[tokio::test]
+async fn cancel_runs_the_safe_stop_lines() {
+    for fw in Firmware::ALL {
+        let mut cfg = SimConfig::new(fw);
+        // Real timing, so the job is still running when we cancel.
+        cfg.time_scale = 1.0;
+        let sim = sim::spawn(cfg).unwrap();
+        let text = (0..400)
+            .map(|i| format!("G1 X{} Y{} F6000\n", 10 + (i % 2) * 50, 10 + (i % 3) * 20))
+            .collect::<String>();
+        let program = GcodeProgram::read(text.as_bytes(), "moves.gcode", fw).unwrap();
+        let mut conn = Connection::open(sim.device_path(), &options(fw))
+            .await
+            .unwrap();
+        let (control, control_rx) = mpsc::channel(1);
+        let (progress, mut progress_rx) = watch::channel(PrintProgress::default());
+        let canceller = tokio::spawn(async move {
+            while progress_rx.changed().await.is_ok() {
+                if progress_rx.borrow().lines_acked >= 20 {
+                    control.send(StreamControl::Cancel).await.unwrap();
+                    return;
+                }
+            }
+        });
+        let err = tokio::time::timeout(
+            Duration::from_secs(60),
+            conn.print(&program, control_rx, progress),
+        )
+        .await
+        .unwrap()
+        .unwrap_err();
+        canceller.await.unwrap();
+        assert!(matches!(err, PrintError::Cancelled { .. }), "{fw}: {err}");
+        let executed: Vec<String> = job_executed(&sim)
+            .into_iter()
+            .filter(|c| c != "M108")
+            .collect();
+        let n = executed.len();
+        assert!(n > 20 && n < 404, "{fw}: {n}");
+        assert_eq!(
+            executed[n - 4..],
+            ["M104 S0", "M140 S0", "M107", "M84"],
+            "{fw}"
+        );
+        assert_eq!(
+            executed[..n - 4],
+            program.commands()[..n - 4],
+            "{fw}: job prefix"
+        );
+    }
+}
+
+/// The real binaries: `crispen sim` in its own process, `crispen print` streaming to it.
+#[test]
+fn crispen_print_streams_to_crispen_sim() {
+    let dir = tempfile::tempdir().unwrap();
+    let record = dir.path().join("executed.txt");
+    let gcode = dir.path().join("job.gcode");
+    std::fs::write(&gcode, job_text(300)).unwrap();
+    let exe = env!("CARGO_BIN_EXE_crispen");
+
+    let mut sim = Command::new(exe)
+        .args([
+            "sim",
+            "--time-scale",
+            "0",
+            "--corrupt",
+            "0.02",
+            "--seed",
+            "4",
+            "--record",
+        ])
+        .arg(&record)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    BufReader::new(sim.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    let device = first
+        .trim()
+        .strip_prefix("crispen sim: listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {first:?}"))
+        .to_string();
+
+    let out = Command::new(exe)
+        .args(["print"])
+        .arg(&gcode)
+        .args(["--port", &device])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("done: "), "{stderr}");
+
+    // A file that cannot be sent fails before anything is sent, naming file and line.
+    std::fs::write(&gcode, format!("G28\nM117 {}\n", "x".repeat(100))).unwrap();
+    let out = Command::new(exe)
+        .args(["print"])
+        .arg(&gcode)
+        .args(["--port", &device])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(stderr.contains("job.gcode:2:"), "{stderr}");
+
+    let _ = nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(sim.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    );
+    let _ = sim.wait();
+    let executed: Vec<String> = std::fs::read_to_string(&record)
+        .unwrap()
+        .lines()
+        .filter(|c| !sim::is_housekeeping(c) && is_command(c))
+        .map(String::from)
+        .collect();
+    let expected = program(Firmware::Marlin2, 300);
+    assert_eq!(executed, expected.commands());
+}
+
+#[tokio::test]
+async fn one_connection_runs_jobs_back_to_back() {
+    let fw = Firmware::Marlin2;
+    let sim = start_sim(fw, Faults::default(), 2);
+    let program = program(fw, 100);
+    let mut conn = Connection::open(sim.device_path(), &options(fw))
+        .await
+        .unwrap();
+    for _ in 0..2 {
+        let (_control, control_rx) = mpsc::channel(1);
+        let (progress, progress_rx) = watch::channel(PrintProgress::default());
+        let report = conn.print(&program, control_rx, progress).await.unwrap();
+        assert_eq!(report.lines_acked, program.len());
+        assert_eq!(progress_rx.borrow().lines_acked, program.len());
+    }
+    let twice: Vec<String> = program
+        .commands()
+        .iter()
+        .chain(program.commands())
+        .cloned()
+        .collect();
+    assert_eq!(job_executed(&sim), twice);
+}

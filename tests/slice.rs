@@ -1,0 +1,371 @@
+//! `crispen::slice` and `crispen slice` against the real slicers (PrusaSlicer and
+//! CuraEngine, installed by scripts/setup) and real failing programs (shell scripts
+//! standing in for a slicer that crashes, hangs or writes nonsense).
+//!
+//! Each G-code job is re-read here independently of the library's own check, so a bug in
+//! the check cannot hide a bad job.
+
+use crispen::enhance::Strength;
+use crispen::slice::{slice, SliceError, SliceRequest, SliceSettings, SliceStep, SlicerKind};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+fn spot() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj")
+}
+
+fn bunny() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/bunny.obj")
+}
+
+/// Facts read straight from a G-code file.
+#[derive(Debug)]
+struct Job {
+    text: String,
+    /// Line numbers (1-based) of the first M190, M109 and extrusion with XY movement.
+    first_bed_wait: usize,
+    first_nozzle_wait: usize,
+    first_extrusion: usize,
+    min_xy: [f64; 2],
+    max_xy: [f64; 2],
+    top_z: f64,
+    layers: usize,
+}
+
+fn read_job(path: &Path) -> Job {
+    let text = std::fs::read_to_string(path).expect("G-code written");
+    let (mut x, mut y, mut z, mut e) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    let mut job = Job {
+        text: String::new(),
+        first_bed_wait: 0,
+        first_nozzle_wait: 0,
+        first_extrusion: 0,
+        min_xy: [f64::MAX; 2],
+        max_xy: [f64::MIN; 2],
+        top_z: 0.0,
+        layers: 0,
+    };
+    let mut zs: Vec<f64> = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let code = line.split(';').next().unwrap().trim();
+        let mut words = code.split_whitespace();
+        match words.next() {
+            Some("M190") if job.first_bed_wait == 0 => job.first_bed_wait = i + 1,
+            Some("M109") if job.first_nozzle_wait == 0 => job.first_nozzle_wait = i + 1,
+            Some("G92") => {
+                for w in words {
+                    if let Some(v) = w.strip_prefix('E') {
+                        e = v.parse().unwrap();
+                    }
+                }
+            }
+            Some("G0") | Some("G1") => {
+                let (mut nx, mut ny, mut nz, mut ne) = (x, y, z, e);
+                for w in words {
+                    let v = || w[1..].parse::<f64>().unwrap();
+                    match &w[..1] {
+                        "X" => nx = v(),
+                        "Y" => ny = v(),
+                        "Z" => nz = v(),
+                        "E" => ne = v(),
+                        _ => {}
+                    }
+                }
+                if ne > e && (nx != x || ny != y) && code.starts_with("G1") {
+                    if job.first_extrusion == 0 {
+                        job.first_extrusion = i + 1;
+                    }
+                    job.min_xy = [job.min_xy[0].min(nx), job.min_xy[1].min(ny)];
+                    job.max_xy = [job.max_xy[0].max(nx), job.max_xy[1].max(ny)];
+                    job.top_z = job.top_z.max(nz);
+                    if !zs.iter().any(|q| (q - nz).abs() < 1e-6) {
+                        zs.push(nz);
+                    }
+                }
+                (x, y, z, e) = (nx, ny, nz, ne);
+            }
+            Some("G91") => break, // the end code; the print itself is absolute
+            _ => {}
+        }
+    }
+    job.layers = zs.len();
+    job.text = text;
+    job
+}
+
+/// A job that heats before printing, prints on the bed, centred, up to the asked height
+/// (within three layers: slicers drop pointed tips narrower than the nozzle).
+fn assert_good_job(job: &Job, height: f64, layer: f64) {
+    assert!(job.first_extrusion > 0, "no extrusion");
+    assert!(
+        job.first_bed_wait > 0 && job.first_bed_wait < job.first_extrusion,
+        "bed not heated before printing: {job:?}"
+    );
+    assert!(job.first_nozzle_wait > 0 && job.first_nozzle_wait < job.first_extrusion);
+    for k in 0..2 {
+        assert!(job.min_xy[k] >= 0.0 && job.max_xy[k] <= 223.0, "{job:?}");
+        // Centred: the print's middle is within a few mm of the bed's (the skirt is
+        // symmetric around the model).
+        let mid = (job.min_xy[k] + job.max_xy[k]) / 2.0;
+        assert!((mid - 111.5).abs() < 3.0, "not centred: {mid} in {job:?}");
+    }
+    assert!(
+        (job.top_z - height).abs() <= 3.0 * layer + 1e-6,
+        "top at {} for height {height}",
+        job.top_z
+    );
+    let expected_layers = height / layer;
+    assert!(
+        (job.layers as f64 - expected_layers).abs() <= 4.0,
+        "{} layers, expected about {expected_layers}",
+        job.layers
+    );
+    assert!(
+        job.text.contains("M84"),
+        "the end code turns the motors off"
+    );
+}
+
+fn write_script(dir: &Path, name: &str, body: &str) -> PathBuf {
+    use std::os::unix::fs::PermissionsExt;
+    let path = dir.join(name);
+    std::fs::write(&path, format!("#!/bin/sh\n{body}\n")).unwrap();
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755)).unwrap();
+    path
+}
+
+#[test]
+fn prusaslicer_slices_spot_and_the_enhanced_job_differs_from_the_unmodified_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let enhanced_out = dir.path().join("spot.gcode");
+    let mut steps = Vec::new();
+    let mut req = SliceRequest::new(spot(), &enhanced_out, 30.0);
+    req.strength = Strength::Lambda2(20.0);
+    let report = slice(&req, &mut |s| steps.push(s)).expect("PrusaSlicer slices spot");
+    assert_eq!(report.slicer, SlicerKind::Prusa);
+    assert!(report
+        .slicer_version
+        .as_deref()
+        .is_some_and(|v| v.starts_with("PrusaSlicer 2.")));
+    assert_eq!(report.enhancement.lambda2, Some(20.0));
+    assert!(report.enhancement.report.is_some());
+    assert!(report.estimated_print_time_s.is_some_and(|t| t > 60.0));
+    assert!(report.filament_mm.is_some_and(|mm| mm > 10.0));
+    assert!(report.filament_g.is_some_and(|g| g > 0.0));
+    assert!((report.model_size_mm[2] - 30.0).abs() < 1e-6);
+    assert_eq!(steps.first(), Some(&SliceStep::Loading));
+    assert!(steps.iter().any(|s| matches!(s, SliceStep::Enhancing(_))));
+    assert_eq!(steps.last(), Some(&SliceStep::Checking));
+    let job = read_job(&enhanced_out);
+    assert_good_job(&job, 30.0, 0.2);
+    assert_eq!(report.layer_count, job.layers);
+    assert!(job.text.contains("M109 S210") && job.text.contains("M190 S60"));
+
+    let plain_out = dir.path().join("spot-plain.gcode");
+    let mut req = SliceRequest::new(spot(), &plain_out, 30.0);
+    req.strength = Strength::Off;
+    let plain = slice(&req, &mut |_| {}).expect("unmodified spot slices");
+    assert_eq!(plain.enhancement.lambda2, None);
+    assert_eq!(plain.enhancement.mode, "unmodified");
+    let plain_job = read_job(&plain_out);
+    assert_good_job(&plain_job, 30.0, 0.2);
+    // Compare only the moves: the header has a timestamp.
+    let moves = |t: &str| -> Vec<String> {
+        t.lines()
+            .filter(|l| l.starts_with("G1 "))
+            .map(str::to_string)
+            .collect()
+    };
+    assert_ne!(moves(&job.text), moves(&plain_job.text));
+}
+
+#[test]
+fn curaengine_slices_the_bunny_with_overrides_through_the_cli() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bunny.gcode");
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_crispen"))
+        .args([
+            "slice",
+            bunny().to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ])
+        .args(["--height", "25", "--slicer", "cura", "--json", "--up", "y"])
+        .args(["--set", "layer_height=0.15", "--set", "infill=10"])
+        .args(["--set", "nozzle_temp=215", "--set", "material=petg"])
+        .output()
+        .expect("crispen runs");
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).expect("JSON report");
+    assert_eq!(report["slicer"], "cura");
+    assert!(report["slicer_version"]
+        .as_str()
+        .unwrap()
+        .starts_with("CuraEngine 4."));
+    assert_eq!(report["material"], "petg");
+    assert_eq!(report["up"], "y");
+    // Standing up, the bunny is taller than deep; lying on its side (Z up) it is not.
+    let size = &report["model_size_mm"];
+    assert!(size[1].as_f64().unwrap() < 25.0, "{size}");
+    assert_eq!(report["nozzle_temp_c"], 215.0);
+    assert_eq!(report["bed_temp_c"], 85.0);
+    assert_eq!(report["layer_height_mm"], 0.15);
+    assert_eq!(report["enhancement"]["mode"], "enhanced");
+    assert!(report["estimated_print_time_s"].as_f64().unwrap() > 60.0);
+    assert!(report["filament_mm"].as_f64().unwrap() > 10.0);
+    let job = read_job(&out);
+    assert_good_job(&job, 25.0, 0.15);
+    assert_eq!(report["layer_count"].as_u64().unwrap() as usize, job.layers);
+    assert!(job.text.contains("M109 S215") && job.text.contains("M190 S85"));
+    assert!(job.text.contains(";FLAVOR:Marlin"));
+}
+
+#[test]
+fn a_slicer_exiting_non_zero_is_reported_with_its_status_and_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let fake = write_script(
+        dir.path(),
+        "crashing-slicer",
+        "echo 'Slicing...'\necho 'error: the mesh exploded' >&2\nexit 3",
+    );
+    let out = dir.path().join("out.gcode");
+    let mut req = SliceRequest::new(spot(), &out, 20.0);
+    req.strength = Strength::Off;
+    req.slicer_program = Some(fake);
+    let err = slice(&req, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, SliceError::SlicerFailed { .. }), "{err:?}");
+    let msg = err.to_string();
+    assert!(msg.contains("PrusaSlicer"), "{msg}");
+    assert!(msg.contains("exit status: 3"), "{msg}");
+    assert!(msg.contains("the mesh exploded"), "{msg}");
+    assert!(msg.contains("spot.obj"), "{msg}");
+    assert!(!out.exists());
+}
+
+#[test]
+fn a_hanging_slicer_is_killed_at_the_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let fake = write_script(
+        dir.path(),
+        "hanging-slicer",
+        "echo 'thinking hard'\nsleep 60",
+    );
+    let mut req = SliceRequest::new(spot(), dir.path().join("out.gcode"), 20.0);
+    req.strength = Strength::Off;
+    req.slicer = SlicerKind::Cura;
+    req.slicer_program = Some(fake);
+    req.timeout = Duration::from_millis(500);
+    let started = Instant::now();
+    let err = slice(&req, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, SliceError::Timeout { .. }), "{err:?}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("CuraEngine") && msg.contains("thinking hard"),
+        "{msg}"
+    );
+    // Well before the script's own 60 s: it and its `sleep` were killed.
+    assert!(started.elapsed() < Duration::from_secs(30));
+}
+
+#[test]
+fn a_model_too_tall_or_too_wide_fails_before_any_slicer_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let marker = dir.path().join("slicer-ran");
+    let fake = write_script(
+        dir.path(),
+        "recording-slicer",
+        &format!("touch '{}'", marker.display()),
+    );
+    let mut req = SliceRequest::new(spot(), dir.path().join("out.gcode"), 210.0);
+    req.strength = Strength::Off;
+    req.slicer_program = Some(fake.clone());
+    let err = slice(&req, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, SliceError::TooBig { .. }), "{err:?}");
+    assert!(err.to_string().contains("does not fit"), "{err}");
+
+    // The bunny is 1.3 times as wide as it is tall: at 180 mm it fits in height, not on
+    // the bed.
+    req.model = bunny();
+    req.height_mm = 180.0;
+    let err = slice(&req, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, SliceError::TooBig { .. }), "{err:?}");
+    assert!(
+        !marker.exists(),
+        "the slicer must not run for a model that does not fit"
+    );
+}
+
+#[test]
+fn a_missing_slicer_names_the_package_to_install() {
+    for (kind, package) in [
+        (SlicerKind::Prusa, "prusa-slicer"),
+        (SlicerKind::Cura, "cura-engine"),
+    ] {
+        let mut req = SliceRequest::new(spot(), "/tmp/never-written.gcode", 20.0);
+        req.strength = Strength::Off;
+        req.slicer = kind;
+        req.slicer_program = Some("/nonexistent/crispen-test/slicer".into());
+        let err = slice(&req, &mut |_| {}).unwrap_err();
+        assert!(matches!(err, SliceError::SlicerMissing { .. }), "{err:?}");
+        assert!(
+            err.to_string()
+                .contains(&format!("apt-get install {package}")),
+            "{err}"
+        );
+    }
+}
+
+#[test]
+fn nonsense_gcode_is_refused_and_the_existing_job_is_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    // Writes heating and travel moves but never extrudes, to whatever --output names.
+    let fake = write_script(
+        dir.path(),
+        "lazy-slicer",
+        "while [ $# -gt 0 ]; do [ \"$1\" = --output ] && out=$2; shift; done\n\
+         printf 'M190 S60\\nM109 S210\\nG1 X10 Y10 Z0.2\\n' > \"$out\"",
+    );
+    let out = dir.path().join("job.gcode");
+    std::fs::write(&out, "; the previous, good job\n").unwrap();
+    let mut req = SliceRequest::new(spot(), &out, 20.0);
+    req.strength = Strength::Off;
+    req.slicer_program = Some(fake);
+    let err = slice(&req, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, SliceError::BadOutput { .. }), "{err:?}");
+    assert!(err.to_string().contains("no extruding moves"), "{err}");
+    assert_eq!(
+        std::fs::read_to_string(&out).unwrap(),
+        "; the previous, good job\n"
+    );
+}
+
+#[test]
+fn bad_settings_and_profiles_are_refused_before_slicing() {
+    let mut s = SliceSettings::default();
+    let err = s.set("infill", "lots").unwrap_err();
+    assert!(err.to_string().contains("infill=lots"), "{err}");
+    let err = s.set("layer_height", "0.8").unwrap_err();
+    assert!(err.to_string().contains("between 0.05 and 0.32"), "{err}");
+    let err = s.set("colour", "red").unwrap_err();
+    assert!(err.to_string().contains("known settings"), "{err}");
+    s.set("material", "PETG").unwrap();
+    assert_eq!(s.temperatures().unwrap(), (235.0, 85.0));
+    let job = SliceSettings {
+        nozzle_temp_c: Some(240.0),
+        ..Default::default()
+    };
+    assert_eq!(s.merge(&job).temperatures().unwrap(), (240.0, 85.0));
+
+    let dir = tempfile::tempdir().unwrap();
+    let profile = dir.path().join("bundle.ini");
+    std::fs::write(&profile, "[printer:Ultimaker 2]\nnozzle_diameter = 0.4\n").unwrap();
+    let mut req = SliceRequest::new(spot(), dir.path().join("out.gcode"), 20.0);
+    req.profile = Some(profile);
+    let err = slice(&req, &mut |_| {}).unwrap_err();
+    assert!(matches!(err, SliceError::BadProfile { .. }), "{err:?}");
+    assert!(err.to_string().contains("bundle.ini"), "{err}");
+}

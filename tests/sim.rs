@@ -634,8 +634,63 @@ fn crispen_sim_prints_its_device_and_manages_its_link() {
 }
 
 #[test]
+fn link_latency_delays_the_command_and_the_answer() {
+    let latency = Duration::from_millis(40);
+    let mut cfg = SimConfig::new(Firmware::Marlin2);
+    cfg.link_latency = latency;
+    let (_sim, mut port) = start(cfg);
+    port.handshake();
+    let sent = Instant::now();
+    port.send_numbered(1, "M105");
+    let (_, ok) = port.until("ok");
+    let round_trip = sent.elapsed();
+    assert_eq!(ok, "ok T:21.00 /0.00 B:21.00 /0.00 @:0 B@:0");
+    // The command travels one way, the answer the other.
+    assert!(
+        round_trip >= latency * 2,
+        "M105 answered after {round_trip:?}, sooner than two link latencies of {latency:?}"
+    );
+}
+
+#[test]
+fn baud_limit_paces_the_bytes_on_the_wire() {
+    let baud = 1200;
+    let mut cfg = SimConfig::new(Firmware::Marlin2);
+    cfg.baud = Some(baud);
+    let (_sim, mut port) = start(cfg);
+    let line = numbered(1, "M105");
+    let sent = Instant::now();
+    port.send(&line);
+    let (_, ok) = port.until("ok");
+    let took = sent.elapsed();
+    // Both lines with their newline, 10 bits per byte, one after the other.
+    let bytes = (line.len() + 1 + ok.len() + 1) as f64;
+    let wire = Duration::from_secs_f64(bytes * 10.0 / baud as f64);
+    assert!(
+        took >= wire,
+        "{bytes} bytes at {baud} baud took only {took:?}"
+    );
+}
+
+#[test]
+fn a_fragment_that_is_no_command_is_answered_but_never_executed() {
+    // What is left of `N7 G1 X300 F1800*61` when a line error flushed the receive buffer
+    // mid-line and corruption took the `*`.
+    let (sim, mut port) = start(SimConfig::new(Firmware::Marlin2));
+    port.handshake();
+    port.send("300 F1800b1");
+    let (lines, _) = port.until("ok");
+    assert_eq!(lines, ["echo:Unknown command: \"300 F1800b1\""]);
+    port.send_numbered(1, "G1 X1");
+    port.until("ok");
+    assert_eq!(sim.executed(), ["M110 N0", "G1 X1"]);
+}
+
+#[test]
 fn faults_default_to_none() {
     assert_eq!(Faults::default().reset_after_lines, None);
     assert_eq!(Faults::default().corrupt_host_bytes, 0.0);
+    let cfg = SimConfig::new(Firmware::Marlin2);
+    assert_eq!((cfg.link_latency, cfg.baud), (Duration::ZERO, None));
     assert!(is_housekeeping("M105") && is_housekeeping("M110 N0") && !is_housekeeping("G1 X1"));
 }

@@ -1,6 +1,7 @@
 //! Logging setup shared by every subcommand: `tracing` to stderr, or to the journal when
 //! running under systemd (JOURNAL_STREAM is set). `RUST_LOG` overrides the level.
 
+use std::io::IsTerminal;
 use tracing_subscriber::{fmt, prelude::*, EnvFilter};
 
 pub fn init() {
@@ -13,6 +14,11 @@ pub fn init() {
         }
     }
     let _ = registry
-        .with(fmt::layer().with_writer(std::io::stderr).with_target(false))
+        .with(
+            fmt::layer()
+                .with_writer(std::io::stderr)
+                .with_ansi(std::io::stderr().is_terminal())
+                .with_target(false),
+        )
         .try_init();
 }

@@ -24,6 +24,13 @@ pub struct Args {
     /// Simulated seconds per real second: 1 = real timing, 0 = instant moves and heating
     #[arg(long, default_value_t = 1.0)]
     pub time_scale: f64,
+    /// One-way link latency in milliseconds, both directions (a USB serial adapter adds
+    /// 1-16 ms; a pty adds none)
+    #[arg(long, value_name = "MS", default_value_t = 0.0)]
+    pub latency_ms: f64,
+    /// Limit the link to this many bits per second (10 bits per byte), both directions
+    #[arg(long, value_name = "BAUD")]
+    pub baud_limit: Option<u32>,
     /// Append every executed command to this file
     #[arg(long)]
     pub record: Option<PathBuf>,
@@ -74,7 +81,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.time_scale
         );
     }
+    if !(args.latency_ms >= 0.0 && args.latency_ms <= 60_000.0) {
+        bail!(
+            "--latency-ms {} must be from 0 to 60000 milliseconds",
+            args.latency_ms
+        );
+    }
+    if args.baud_limit == Some(0) {
+        bail!("--baud-limit 0 would never deliver a byte; give a rate such as 115200");
+    }
     let mut cfg = SimConfig::new(args.firmware);
+    cfg.link_latency = std::time::Duration::from_secs_f64(args.latency_ms / 1000.0);
+    cfg.baud = args.baud_limit;
     cfg.seed = args.seed;
     cfg.time_scale = args.time_scale;
     cfg.record = args.record;

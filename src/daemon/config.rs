@@ -4,7 +4,9 @@
 //! file, the section and the key, so an operator can fix the file without reading code; a
 //! wrong file is always an error, never silently replaced by defaults.
 
+use crate::enhance::Strength;
 use crate::marlin::firmware::Firmware;
+use crate::slice::{SlicerKind, UpAxis};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeSet;
 use std::io::Read;
@@ -34,26 +36,6 @@ pub enum ConfigError {
         key: String,
         message: String,
     },
-}
-
-/// How strongly a folder's models are enhanced; mirrors `crispen::enhance::Strength`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum StrengthSetting {
-    /// Chosen from the target height with the default table.
-    Auto,
-    /// No enhancement.
-    Off,
-    /// A fixed lambda2.
-    Lambda2(f64),
-}
-
-/// Which slicer prepares a folder's models; mirrors `crispen::slice::SlicerKind`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum SlicerChoice {
-    Prusa,
-    Cura,
 }
 
 /// What SIGTERM does to a print in progress.
@@ -129,7 +111,8 @@ struct RawFolder {
     printers: Vec<String>,
     strength: Option<toml::Value>,
     enhance: Option<bool>,
-    slicer: Option<SlicerChoice>,
+    slicer: Option<SlicerKind>,
+    up: Option<UpAxis>,
     profile: Option<PathBuf>,
     timeout_s: Option<f64>,
     settings: Option<toml::Table>,
@@ -185,8 +168,10 @@ pub struct FolderConfig {
     pub path: PathBuf,
     pub height_mm: f64,
     pub printers: Vec<String>,
-    pub strength: StrengthSetting,
-    pub slicer: SlicerChoice,
+    pub strength: Strength,
+    pub slicer: SlicerKind,
+    /// Which of the dropped files' axes points up (STL: z; many OBJ files: y).
+    pub up: UpAxis,
     pub profile: Option<PathBuf>,
     pub timeout: Duration,
     /// Slicer setting overrides on top of the profile.
@@ -228,10 +213,10 @@ impl Config {
                 message: e.message().trim().to_string(),
             }
         })?;
-        let base = path
-            .parent()
-            .map(Path::to_path_buf)
-            .unwrap_or_else(|| PathBuf::from("."));
+        // Every configured path is made absolute here, once: the watcher compares event
+        // paths (absolute) with folder paths, and the daemon may change directory later.
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let base = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
         Config::from_raw(raw, path, &base)
     }
 
@@ -463,8 +448,8 @@ printers = ["demo"]
                 }
             }
             let strength = match (&f.strength, f.enhance) {
-                (_, Some(false)) => StrengthSetting::Off,
-                (None, _) => StrengthSetting::Auto,
+                (_, Some(false)) => Strength::Off,
+                (None, _) => Strength::Auto,
                 (Some(v), _) => {
                     parse_strength(v).map_err(|m| invalid(section.clone(), "strength", m))?
                 }
@@ -499,7 +484,8 @@ printers = ["demo"]
                 height_mm: f.height_mm,
                 printers: f.printers,
                 strength,
-                slicer: f.slicer.unwrap_or(SlicerChoice::Prusa),
+                slicer: f.slicer.unwrap_or_default(),
+                up: f.up.unwrap_or_default(),
                 profile: f.profile.map(|p| anchor(&p)),
                 timeout,
                 settings,
@@ -518,12 +504,12 @@ printers = ["demo"]
 }
 
 /// `strength = "auto" | "off" | <lambda2>`.
-pub fn parse_strength(value: &toml::Value) -> Result<StrengthSetting, String> {
+pub fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     match value {
-        toml::Value::String(s) if s == "auto" => Ok(StrengthSetting::Auto),
-        toml::Value::String(s) if s == "off" => Ok(StrengthSetting::Off),
-        toml::Value::Float(x) if x.is_finite() && *x >= 0.0 => Ok(StrengthSetting::Lambda2(*x)),
-        toml::Value::Integer(x) if *x >= 0 => Ok(StrengthSetting::Lambda2(*x as f64)),
+        toml::Value::String(s) if s == "auto" => Ok(Strength::Auto),
+        toml::Value::String(s) if s == "off" => Ok(Strength::Off),
+        toml::Value::Float(x) if x.is_finite() && *x >= 0.0 => Ok(Strength::Lambda2(*x)),
+        toml::Value::Integer(x) if *x >= 0 => Ok(Strength::Lambda2(*x as f64)),
         other => Err(format!(
             "must be \"auto\", \"off\" or a lambda2 >= 0, got {other}"
         )),
@@ -613,9 +599,9 @@ slicer = "cura"
         assert!(
             matches!(c.printers[1].port, PrinterPort::Simulated { time_scale, .. } if time_scale == 0.5)
         );
-        assert_eq!(c.folders[0].strength, StrengthSetting::Lambda2(0.4));
-        assert_eq!(c.folders[1].strength, StrengthSetting::Off);
-        assert_eq!(c.folders[1].slicer, SlicerChoice::Cura);
+        assert_eq!(c.folders[0].strength, Strength::Lambda2(0.4));
+        assert_eq!(c.folders[1].strength, Strength::Off);
+        assert_eq!(c.folders[1].slicer, SlicerKind::Cura);
         // Relative paths are anchored at the config file's directory.
         assert_eq!(c.folders[1].path, PathBuf::from("/etc/crispen/hot/igea"));
     }
@@ -671,6 +657,8 @@ slicer = "cura"
         assert_eq!(c.printers.len(), 1);
         assert!(matches!(c.printers[0].port, PrinterPort::Simulated { .. }));
         assert!(c.folders[0].path.ends_with("crispen-demo/hot/50mm"));
+        // Absolute, so watch events (which carry absolute paths) match the folder.
+        assert!(c.folders[0].path.is_absolute() && c.spool_dir.is_absolute());
         assert_eq!(c.folders[0].height_mm, 50.0);
     }
 }

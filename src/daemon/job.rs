@@ -84,6 +84,8 @@ pub struct Sidecar {
     pub strength: Option<toml::Value>,
     pub copies: Option<u32>,
     pub printer: Option<String>,
+    /// Which of the model's axes points up: "z" or "y".
+    pub up: Option<crate::slice::UpAxis>,
 }
 
 /// One job as persisted in `job.json`.

@@ -327,10 +327,13 @@ async fn prepare_loop(farm: Arc<Farm>, preparer: Arc<dyn Preparer>) {
                 async move {
                     let f = Arc::clone(&farm);
                     let job_id = id.clone();
-                    let result =
-                        tokio::task::spawn_blocking(move || prepare_one(&f, &job_id, &*preparer))
-                            .await
-                            .unwrap_or_else(|e| Err(format!("preparation crashed: {e}")));
+                    let span = tracing::Span::current();
+                    let result = tokio::task::spawn_blocking(move || {
+                        let _entered = span.enter();
+                        prepare_one(&f, &job_id, &*preparer)
+                    })
+                    .await
+                    .unwrap_or_else(|e| Err(format!("preparation crashed: {e}")));
                     drop(permit);
                     finish_preparation(&farm, &id, result);
                     release_freed_memory();

@@ -3,8 +3,10 @@
 //! calls [`Preparer::prepare`] on a blocking thread (bounded by a semaphore of the core
 //! count); [`SlicePreparer`] is the real one, built on `crispen::slice`.
 
-use super::config::{parse_strength, FolderConfig, SlicerChoice, StrengthSetting};
+use super::config::{parse_strength, FolderConfig};
 use super::job::Sidecar;
+use crate::enhance::Strength;
+use crate::slice::{SlicerKind, UpAxis};
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -16,8 +18,9 @@ pub struct PrepareTask {
     pub model: PathBuf,
     pub output: PathBuf,
     pub height_mm: f64,
-    pub strength: StrengthSetting,
-    pub slicer: SlicerChoice,
+    pub strength: Strength,
+    pub slicer: SlicerKind,
+    pub up: UpAxis,
     pub profile: Option<PathBuf>,
     pub settings: crate::slice::SliceSettings,
     pub timeout: Duration,
@@ -51,7 +54,7 @@ pub fn parse_sidecar(mut reader: impl Read, path: &Path) -> Result<Sidecar, Stri
         .map_err(|e| format!("sidecar {}: cannot read: {e}", path.display()))?;
     let sidecar: Sidecar = toml::from_str(&text).map_err(|e| {
         format!(
-            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, copies, printer)",
+            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer)",
             path.display(),
             e.message().trim()
         )
@@ -87,17 +90,21 @@ pub fn resolve_task(
 ) -> Result<PrepareTask, String> {
     let mut strength = folder.strength;
     let mut height_mm = folder.height_mm;
+    let mut up = folder.up;
     if let Some(s) = sidecar {
         if let Some(h) = s.height_mm {
             height_mm = h;
+        }
+        if let Some(axis) = s.up {
+            up = axis;
         }
         if let Some(v) = &s.strength {
             strength = parse_strength(v)?;
         }
         if s.enhance == Some(false) {
-            strength = StrengthSetting::Off;
-        } else if s.enhance == Some(true) && strength == StrengthSetting::Off {
-            strength = StrengthSetting::Auto;
+            strength = Strength::Off;
+        } else if s.enhance == Some(true) && strength == Strength::Off {
+            strength = Strength::Auto;
         }
         if let Some(p) = &s.printer {
             if !folder.printers.contains(p) {
@@ -116,6 +123,7 @@ pub fn resolve_task(
         height_mm,
         strength,
         slicer: folder.slicer,
+        up,
         profile: folder.profile.clone(),
         settings: folder.settings.clone(),
         timeout: folder.timeout,
@@ -139,18 +147,12 @@ fn real_slice(
     task: &PrepareTask,
     progress: &mut dyn FnMut(&str),
 ) -> Result<serde_json::Value, String> {
-    use crate::enhance::{Phase, Strength};
-    use crate::slice::{SliceRequest, SliceStep, SlicerKind};
+    use crate::enhance::Phase;
+    use crate::slice::{SliceRequest, SliceStep};
     let mut req = SliceRequest::new(&task.model, &task.output, task.height_mm);
-    req.slicer = match task.slicer {
-        SlicerChoice::Prusa => SlicerKind::Prusa,
-        SlicerChoice::Cura => SlicerKind::Cura,
-    };
-    req.strength = match task.strength {
-        StrengthSetting::Auto => Strength::Auto,
-        StrengthSetting::Off => Strength::Off,
-        StrengthSetting::Lambda2(l) => Strength::Lambda2(l),
-    };
+    req.slicer = task.slicer;
+    req.strength = task.strength;
+    req.up = task.up;
     req.settings = task.settings.clone();
     req.profile = task.profile.clone();
     req.timeout = task.timeout;
@@ -179,8 +181,9 @@ mod tests {
             path: "/hot".into(),
             height_mm: 50.0,
             printers: vec!["a".into(), "b".into()],
-            strength: StrengthSetting::Auto,
-            slicer: SlicerChoice::Prusa,
+            strength: Strength::Auto,
+            slicer: SlicerKind::Prusa,
+            up: UpAxis::Z,
             profile: None,
             timeout: Duration::from_secs(60),
             settings: Default::default(),
@@ -190,13 +193,14 @@ mod tests {
     #[test]
     fn sidecar_overrides_and_rejects_unknown_keys() {
         let s = parse_sidecar(
-            &b"enhance = false\nheight_mm = 20\n"[..],
+            &b"enhance = false\nheight_mm = 20\nup = \"y\"\n"[..],
             Path::new("m.stl.toml"),
         )
         .unwrap();
         let t = resolve_task("j", Path::new("/s/j"), "m.stl", &folder(), Some(&s)).unwrap();
-        assert_eq!(t.strength, StrengthSetting::Off);
+        assert_eq!(t.strength, Strength::Off);
         assert_eq!(t.height_mm, 20.0);
+        assert_eq!(t.up, UpAxis::Y);
         assert_eq!(t.output, PathBuf::from("/s/j/m.stl.gcode"));
 
         let err = parse_sidecar(&b"enhanse = false\n"[..], Path::new("m.stl.toml")).unwrap_err();

@@ -334,6 +334,9 @@ impl PrinterLink for MarlinLink {
             tokio::pin!(print);
             let mut control_open = true;
             let mut progress_open = true;
+            let mut last_forward = std::time::Instant::now() - Duration::from_secs(1);
+            let mut last_heated = false;
+            let mut last_paused = false;
             let result = loop {
                 tokio::select! {
                     result = &mut print => break result,
@@ -354,6 +357,20 @@ impl PrinterLink for MarlinLink {
                             continue;
                         }
                         let p = inner_rx.borrow_and_update().clone();
+                        let heated = heat_end.is_none_or(|i| p.lines_acked > i);
+                        let paused = matches!(p.state, PrintState::Paused | PrintState::Pausing);
+                        // The streamer publishes on every acknowledgement; the farm only
+                        // needs a few updates a second, or at once when heat-up or pause
+                        // state changes (the heating permit waits on it).
+                        let due = last_forward.elapsed() >= Duration::from_millis(250)
+                            || heated != last_heated
+                            || paused != last_paused;
+                        if !due {
+                            continue;
+                        }
+                        last_forward = std::time::Instant::now();
+                        last_heated = heated;
+                        last_paused = paused;
                         progress.send_replace(LiveProgress {
                             lines_acked: p.lines_acked,
                             lines_total: p.lines_total,
@@ -363,8 +380,8 @@ impl PrinterLink for MarlinLink {
                             bed_target_c: p.bed.and_then(|t| t.target),
                             elapsed_s: p.elapsed_s,
                             remaining_s: p.remaining_s,
-                            heated: heat_end.is_none_or(|i| p.lines_acked > i),
-                            paused: matches!(p.state, PrintState::Paused | PrintState::Pausing),
+                            heated,
+                            paused,
                         });
                     }
                 }

@@ -375,6 +375,8 @@ impl Connection {
         loop {
             flush(&mut self.host, &self.transport);
             let mut changed = false;
+            // State changes are published at once; counters at most every 100 ms.
+            let mut state_changed = false;
             while let Some(event) = self.host.poll_event() {
                 match event {
                     Event::Done(summary) => {
@@ -399,11 +401,11 @@ impl Connection {
                     Event::Progress { .. } | Event::Temperatures(_) => changed = true,
                     Event::Paused => {
                         state = PrintState::Paused;
-                        changed = true;
+                        state_changed = true;
                     }
                     Event::Resumed => {
                         state = PrintState::Printing;
-                        changed = true;
+                        state_changed = true;
                     }
                     Event::Resend { line, replay } => {
                         tracing::debug!(printer = %port.display(), job = program.name(), line, replay, "printer asked for a resend")
@@ -418,7 +420,7 @@ impl Connection {
                     Event::Connected(_) => {}
                 }
             }
-            if changed && last_publish.elapsed() >= Duration::from_millis(100) {
+            if state_changed || (changed && last_publish.elapsed() >= Duration::from_millis(100)) {
                 let shown = if state == PrintState::Printing && self.host.heating() {
                     PrintState::Heating
                 } else {

@@ -5,7 +5,9 @@
 //! protocol (line numbers, checksums, resends, `ok` timing, the receive buffer, heating,
 //! M115 per firmware profile) lives in the I/O-free [`printer`] core; this file only moves
 //! bytes between the pty and that core and sleeps until the core's next deadline, so an
-//! idle simulator costs no CPU (the daemon's soak benchmark runs twenty of them).
+//! idle simulator costs no CPU (the daemon's soak benchmark runs twenty of them). Bytes
+//! cross a link model on the way ([`SimConfig::link_latency`], [`SimConfig::baud`]): queues
+//! of timestamped batches whose arrival times are just more deadlines for that sleep.
 //!
 //! Faults (corrupted host bytes, lost `ok`s, spurious resends, busy periods, garbage,
 //! reset/unplug/silence/fatal after N lines) are drawn from a seeded ChaCha generator so a
@@ -20,6 +22,7 @@ use nix::fcntl::{fcntl, FcntlArg, OFlag};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::termios;
 use printer::{Printer, Status};
+use std::collections::VecDeque;
 use std::fs::File;
 use std::io::{self, Write};
 use std::os::fd::{AsFd, OwnedFd};
@@ -73,6 +76,18 @@ pub struct SimConfig {
     pub record: Option<PathBuf>,
     /// Make a symlink to the pty device here (an existing symlink is replaced).
     pub link: Option<PathBuf>,
+    /// One-way delay of the link, applied in both directions: bytes the printer sends reach
+    /// the host no earlier than this after the printer produced them, and bytes the host
+    /// writes reach the printer no earlier than this after they were written. A pty has no
+    /// latency of its own, but a USB serial link does (1 ms full-speed frames; an FTDI
+    /// adapter holds short answers up to its 16 ms latency timer), and that round trip is
+    /// what a host with one line in flight pays per line. Zero by default so tests and the
+    /// fault simulation stay fast and exact; benchmarks set it to compare hosts fairly.
+    pub link_latency: Duration,
+    /// Line speed in bits per second (10 bits per byte, 8N1) in both directions, or `None`
+    /// for no limit. A pty moves bytes as fast as memory; at 115200 baud a 30-byte G1 line
+    /// takes 2.6 ms on the wire.
+    pub baud: Option<u32>,
 }
 
 impl SimConfig {
@@ -85,6 +100,8 @@ impl SimConfig {
             faults: Faults::default(),
             record: None,
             link: None,
+            link_latency: Duration::ZERO,
+            baud: None,
         }
     }
 }
@@ -222,6 +239,13 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
         .map_err(|e| with_context(e, "cannot create the simulator's wake-up pipe"))?;
     let executed = Arc::new(Mutex::new(Vec::new()));
     let printer = Printer::new(&cfg, Instant::now());
+    let wire = Wire {
+        latency: cfg.link_latency,
+        byte_time: cfg
+            .baud
+            .filter(|&b| b > 0)
+            .map(|b| Duration::from_secs_f64(10.0 / b as f64)),
+    };
     let recorder = Recorder {
         executed: executed.clone(),
         file: record,
@@ -233,7 +257,7 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
         .name(format!("sim {name}"))
         .spawn(move || {
             let _span = tracing::info_span!("sim", printer = %name).entered();
-            run(master, wake_rx, printer, recorder);
+            run(master, wake_rx, printer, recorder, wire);
             // The pty is closed now (unplug or shutdown): an unplugged device disappears,
             // and so does its udev-style link.
             if let Some(link) = link_for_thread {
@@ -279,45 +303,128 @@ impl Recorder {
 
 const MAX_OUTPUT_BACKLOG: usize = 64 * 1024;
 
-/// The printer thread: shuttle bytes between the pty master and the printer core, sleeping
-/// in poll() until input arrives, output can drain, the core's next deadline, or shutdown.
-fn run(master: OwnedFd, wake: OwnedFd, mut printer: Printer, mut recorder: Recorder) {
+/// The link's timing: latency and, with a baud limit, the time one byte occupies the wire.
+#[derive(Debug, Clone, Copy)]
+struct Wire {
+    latency: Duration,
+    byte_time: Option<Duration>,
+}
+
+/// Bytes on their way through the link in one direction, each batch with the time it
+/// arrives at the far end. Batches keep their order; the poll loop sleeps until the first
+/// one is due.
+#[derive(Default)]
+struct InFlight {
+    batches: VecDeque<(Instant, Vec<u8>)>,
+    /// When the wire is free again (baud limit): a batch is serialised after the one before.
+    wire_free: Option<Instant>,
+    bytes: usize,
+}
+
+impl InFlight {
+    fn send(&mut self, wire: &Wire, now: Instant, bytes: Vec<u8>) {
+        let mut sent = now;
+        if let Some(byte_time) = wire.byte_time {
+            let start = self.wire_free.map_or(now, |free| free.max(now));
+            sent = start + byte_time * bytes.len() as u32;
+            self.wire_free = Some(sent);
+        }
+        self.bytes += bytes.len();
+        self.batches.push_back((sent + wire.latency, bytes));
+    }
+
+    fn next_due(&self) -> Option<Instant> {
+        self.batches.front().map(|b| b.0)
+    }
+
+    /// The first batch if it has arrived by `now`.
+    fn arrived(&mut self, now: Instant) -> Option<&mut Vec<u8>> {
+        match self.batches.front_mut() {
+            Some((due, bytes)) if *due <= now => Some(bytes),
+            _ => None,
+        }
+    }
+
+    /// Remove `n` bytes from the front of the first batch (all of it when fully delivered).
+    fn consume(&mut self, n: usize) {
+        if let Some((_, bytes)) = self.batches.front_mut() {
+            let n = n.min(bytes.len());
+            bytes.drain(..n);
+            self.bytes -= n;
+            if bytes.is_empty() {
+                self.batches.pop_front();
+            }
+        }
+    }
+
+    fn clear(&mut self) {
+        self.batches.clear();
+        self.bytes = 0;
+    }
+}
+
+/// The printer thread: shuttle bytes between the pty master and the printer core through
+/// the link model, sleeping in poll() until input arrives, output can drain, bytes in flight
+/// arrive, the core's next deadline, or shutdown.
+fn run(master: OwnedFd, wake: OwnedFd, mut printer: Printer, mut recorder: Recorder, wire: Wire) {
     let mut scratch = [0u8; 4096];
     let mut host_connected = false;
+    let mut to_printer = InFlight::default();
+    let mut to_host = InFlight::default();
     loop {
         let now = Instant::now();
+        while let Some(bytes) = to_printer.arrived(now) {
+            let bytes = std::mem::take(bytes);
+            to_printer.consume(bytes.len());
+            printer.receive(&bytes, now, &mut recorder);
+        }
         printer.advance(now, &mut recorder);
         if printer.status() == Status::Unplugged {
             tracing::info!("simulated unplug: closing the pty");
             return;
         }
+        let out = printer.take_output();
         if !host_connected {
             // Nobody listens: what the printer says is lost, as on an unconnected cable.
-            printer.take_output();
+            to_host.clear();
+            to_printer.clear();
+        } else if !out.is_empty() {
+            to_host.send(&wire, now, out);
         }
         // A host that never reads must not make the printer hoard output without bound
         // (a real UART just sends it into the void).
-        let backlog = printer.output().len();
-        if backlog > MAX_OUTPUT_BACKLOG {
-            printer.consume_output(backlog - MAX_OUTPUT_BACKLOG);
+        while to_host.bytes > MAX_OUTPUT_BACKLOG {
+            to_host.consume(to_host.bytes - MAX_OUTPUT_BACKLOG);
         }
+        // True while arrived bytes wait for the host to read (the pty is full): poll then
+        // waits for POLLOUT rather than for a deadline already in the past.
         let mut out_pending = false;
-        if host_connected {
-            let out = printer.output();
-            if !out.is_empty() {
-                match nix::unistd::write(&master, out) {
-                    Ok(n) => printer.consume_output(n),
-                    Err(nix::errno::Errno::EAGAIN) => {}
-                    Err(nix::errno::Errno::EIO) => host_connected = false,
-                    Err(err) => {
-                        tracing::warn!(%err, "pty write failed");
-                        host_connected = false;
-                    }
+        while let Some(bytes) = to_host.arrived(now) {
+            match nix::unistd::write(&master, bytes) {
+                Ok(n) => to_host.consume(n),
+                Err(nix::errno::Errno::EAGAIN) => {
+                    out_pending = true;
+                    break;
                 }
-                out_pending = !printer.output().is_empty();
+                Err(err) => {
+                    if err != nix::errno::Errno::EIO {
+                        tracing::warn!(%err, "pty write failed");
+                    }
+                    host_connected = false;
+                    break;
+                }
             }
         }
-        let timeout = match printer.next_deadline() {
+        let arrivals = [
+            printer.next_deadline(),
+            to_printer.next_due(),
+            if out_pending {
+                None
+            } else {
+                to_host.next_due()
+            },
+        ];
+        let timeout = match arrivals.into_iter().flatten().min() {
             Some(t) => t.saturating_duration_since(Instant::now()),
             None => Duration::from_secs(3600),
         };
@@ -369,7 +476,7 @@ fn run(master: OwnedFd, wake: OwnedFd, mut printer: Printer, mut recorder: Recor
                 Ok(n) => {
                     host_connected = true;
                     tracing::debug!("host opened the port");
-                    printer.receive(&scratch[..n], Instant::now(), &mut recorder);
+                    to_printer.send(&wire, Instant::now(), scratch[..n].to_vec());
                 }
                 Err(_) => host_connected = true,
             }
@@ -385,7 +492,7 @@ fn run(master: OwnedFd, wake: OwnedFd, mut printer: Printer, mut recorder: Recor
                     host_connected = false;
                     tracing::debug!("host closed the port");
                 }
-                Ok(n) => printer.receive(&scratch[..n], Instant::now(), &mut recorder),
+                Ok(n) => to_printer.send(&wire, Instant::now(), scratch[..n].to_vec()),
                 Err(nix::errno::Errno::EAGAIN) => {}
                 Err(err) => tracing::warn!(%err, "pty read failed"),
             }

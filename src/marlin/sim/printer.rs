@@ -191,12 +191,9 @@ impl Printer {
         self.status
     }
 
-    pub(crate) fn output(&self) -> &[u8] {
+    #[cfg(test)]
+    fn output(&self) -> &[u8] {
         &self.out
-    }
-
-    pub(crate) fn consume_output(&mut self, n: usize) {
-        self.out.drain(..n.min(self.out.len()));
     }
 
     pub(crate) fn take_output(&mut self) -> Vec<u8> {
@@ -651,6 +648,13 @@ impl Printer {
     fn execute(&mut self, queued: Queued, now: Instant, recorder: &mut Recorder) {
         let Queued { n, cmd } = queued;
         tracing::trace!(line = ?n, cmd = %cmd, "executing");
+        if !cmd.is_empty() && !is_command_word(&cmd) {
+            // Not a command at all, e.g. the tail of a line cut in two when a line error
+            // flushed the receive buffer (`300 F1800b1`). Marlin's parser finds no G/M/T
+            // word, says so and acknowledges; nothing is executed, so nothing is recorded.
+            self.say(&format!("echo:Unknown command: \"{cmd}\""));
+            return self.ok(n);
+        }
         recorder.push(&cmd);
         if n.is_some() {
             self.numbered_executed += 1;
@@ -1007,6 +1011,14 @@ fn word(words: &[(char, f64)], letter: char) -> Option<f64> {
 
 fn word_present(words: &[(char, f64)], letter: char) -> bool {
     words.iter().skip(1).any(|w| w.0 == letter)
+}
+
+/// Whether a line starts with a command word (`G1`, `M105`, `T0`, also lower case) that
+/// Marlin's parser dispatches. Anything else never reaches a command handler.
+fn is_command_word(cmd: &str) -> bool {
+    let mut chars = cmd.trim_start().chars();
+    matches!(chars.next(), Some('G' | 'M' | 'T' | 'g' | 'm' | 't'))
+        && chars.next().is_some_and(|c| c.is_ascii_digit())
 }
 
 /// G/M codes a typical Marlin 2 build knows (enough for slicer output); others get

@@ -112,6 +112,26 @@ pub struct Job {
 }
 
 impl Job {
+    /// A job just picked up: queued, with nothing prepared or printed yet.
+    fn queued(id: String, seq: u64, file: String, folder: PathBuf) -> Job {
+        Job {
+            id,
+            seq,
+            file,
+            folder,
+            state: JobState::Queued,
+            history: vec![(JobState::Queued, now_s())],
+            printer: None,
+            reason: None,
+            sidecar: None,
+            copies_done: 0,
+            slice_report: None,
+            print_report: None,
+        }
+    }
+}
+
+impl Job {
     pub fn copies_wanted(&self) -> u32 {
         self.sidecar
             .as_ref()
@@ -235,20 +255,7 @@ impl JobStore {
             }
             let seq = self.next_seq;
             self.next_seq += 1;
-            let job = Job {
-                id: id.clone(),
-                seq,
-                file,
-                folder,
-                state: JobState::Queued,
-                history: vec![(JobState::Queued, now_s())],
-                printer: None,
-                reason: None,
-                sidecar: None,
-                copies_done: 0,
-                slice_report: None,
-                print_report: None,
-            };
+            let job = Job::queued(id.clone(), seq, file, folder);
             self.save(&job)?;
             self.jobs.insert(id, job);
         }
@@ -358,20 +365,7 @@ impl JobStore {
         if sidecar_path.is_file() {
             move_file(&sidecar_path, &dir.join(format!("{file}.toml")))?;
         }
-        let job = Job {
-            id: id.clone(),
-            seq,
-            file,
-            folder: folder.to_path_buf(),
-            state: JobState::Queued,
-            history: vec![(JobState::Queued, now_s())],
-            printer: None,
-            reason: None,
-            sidecar: None,
-            copies_done: 0,
-            slice_report: None,
-            print_report: None,
-        };
+        let job = Job::queued(id.clone(), seq, file, folder.to_path_buf());
         self.save(&job)?;
         self.jobs.insert(id, job.clone());
         Ok(job)

@@ -8,6 +8,7 @@ use super::firmware::Firmware;
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Bytes the host adds around a command: `N<number> ` before and `*<checksum>` after.
 /// Numbers up to 9 digits cover any job; the checksum is at most 3 digits.
@@ -45,10 +46,13 @@ pub enum GcodeError {
 
 /// A parsed job: the commands to send, in order, exactly as they will reach the printer
 /// (after the host adds its line number and checksum).
+///
+/// The commands are shared, not copied: the protocol core streaming a job holds a clone of
+/// the same `Arc`, so a printing job keeps its G-code in memory once.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct GcodeProgram {
     name: String,
-    commands: Vec<String>,
+    commands: Arc<[String]>,
     source_lines: Vec<usize>,
 }
 
@@ -135,7 +139,7 @@ impl GcodeProgram {
         }
         Ok(GcodeProgram {
             name: name.to_string(),
-            commands,
+            commands: commands.into(),
             source_lines,
         })
     }
@@ -145,7 +149,7 @@ impl GcodeProgram {
         let source_lines = (1..=commands.len()).collect();
         GcodeProgram {
             name: name.to_string(),
-            commands,
+            commands: commands.into(),
             source_lines,
         }
     }
@@ -161,6 +165,10 @@ impl GcodeProgram {
     }
     pub fn commands(&self) -> &[String] {
         &self.commands
+    }
+    /// The commands as a shared handle (no copy), for the protocol core.
+    pub fn shared_commands(&self) -> Arc<[String]> {
+        Arc::clone(&self.commands)
     }
     /// The 1-based line in the source file of command `index` (0-based).
     pub fn source_line(&self, index: usize) -> Option<usize> {

@@ -8,8 +8,8 @@
 //!   faults. Tests, the quick start and the demo farm use it.
 
 pub mod firmware;
-pub mod sim;
 pub mod gcode;
 pub mod protocol;
+pub mod sim;
 pub mod stream;
 pub mod transport;

@@ -14,6 +14,7 @@
 use super::firmware::Firmware;
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// XOR of every byte, as Marlin checks it.
@@ -26,6 +27,13 @@ pub fn frame(number: u64, command: &str) -> String {
     let body = format!("N{number} {command}");
     let cs = checksum(body.as_bytes());
     format!("{body}*{cs}\n")
+}
+
+/// Upper bound of `frame(number, command).len()` without building the line: `N`, the
+/// number, a space, the command, `*`, a checksum of at most three digits and `\n`.
+fn wire_len_bound(number: u64, command: &str) -> usize {
+    let digits = number.checked_ilog10().map_or(1, |d| d as usize + 1);
+    1 + digits + 1 + command.len() + 1 + 3 + 1
 }
 
 /// Tunables; [`ProtocolOptions::for_firmware`] gives sensible values.
@@ -52,7 +60,8 @@ pub struct ProtocolOptions {
     pub temperature_interval: Duration,
     /// How many times the same line may be requested again before the job fails.
     pub resend_limit: u32,
-    /// Lines kept for resends.
+    /// Lines kept for resends. Marlin only ever asks for a line it has not acknowledged
+    /// (those are always kept), so this needs to cover the send-ahead window, not the job.
     pub history_lines: usize,
 }
 
@@ -69,7 +78,8 @@ impl ProtocolOptions {
             heat_timeout: Duration::from_secs(1200),
             temperature_interval: Duration::from_secs(2),
             resend_limit: 10,
-            history_lines: 100_000,
+            // Each kept line is a copy of its command: a whole job's worth costs MBs per printer.
+            history_lines: 1024,
         }
     }
 }
@@ -236,7 +246,7 @@ pub struct Host {
     outgoing: Vec<u8>,
     events: VecDeque<Event>,
 
-    job: Vec<String>,
+    job: Arc<[String]>,
     next_job: usize,
     acked_job: usize,
     pending: VecDeque<(Kind, String)>,
@@ -248,7 +258,6 @@ pub struct Host {
     swallow_oks: u32,
     duplicate_budget: Option<(u64, u64)>,
     repeated: Option<(u64, u32)>,
-    free_slots: Option<u32>,
 
     opened_at: Instant,
     last_rx: Instant,
@@ -298,7 +307,7 @@ impl Host {
             rx_partial: Vec::new(),
             outgoing: Vec::new(),
             events: VecDeque::new(),
-            job: Vec::new(),
+            job: Arc::from([]),
             next_job: 0,
             acked_job: 0,
             pending: VecDeque::new(),
@@ -310,7 +319,6 @@ impl Host {
             swallow_oks: 0,
             duplicate_budget: None,
             repeated: None,
-            free_slots: None,
             opened_at: now,
             last_rx: now,
             front_since: now,
@@ -379,13 +387,15 @@ impl Host {
     }
 
     /// Start streaming `commands` (already stripped of comments) after the handshake.
-    /// Returns false when the host is not idle.
-    pub fn start_job(&mut self, commands: Vec<String>, now: Instant) -> bool {
+    /// Returns false when the host is not idle. Pass a shared handle (e.g.
+    /// [`GcodeProgram::shared_commands`](super::gcode::GcodeProgram::shared_commands)) so a
+    /// long job is not held in memory twice.
+    pub fn start_job(&mut self, commands: impl Into<Arc<[String]>>, now: Instant) -> bool {
         if self.phase != Phase::Idle {
             return false;
         }
         self.phase = Phase::Job;
-        self.job = commands;
+        self.job = commands.into();
         self.next_job = 0;
         self.acked_job = 0;
         self.reset_numbering();
@@ -641,7 +651,6 @@ impl Host {
         self.send_cursor = 0;
         self.duplicate_budget = None;
         self.repeated = None;
-        self.free_slots = None;
     }
 
     fn send_greeting(&mut self, now: Instant) {
@@ -758,16 +767,13 @@ impl Host {
         if !self.opts.send_ahead {
             return false;
         }
-        // Unacknowledged lines sit in the printer's receive buffer, or, on firmware that
-        // acknowledges a command only once it ran (ADVANCED_OK tells how many of its
-        // command slots are free), partly in those slots. Only the rest must fit the buffer.
-        let slots = match self.free_slots {
-            Some(free) => (self.opts.firmware.command_slots().saturating_sub(1))
-                .min(self.in_flight.len().saturating_sub(1) + free as usize),
-            None => 0,
-        };
-        let buffered: usize = self.in_flight.iter().skip(slots).map(|f| f.bytes).sum();
-        buffered + bytes <= self.opts.firmware.rx_buffer_bytes()
+        // Every unacknowledged line may still sit in the printer's receive ring: while the
+        // firmware is blocked (planner full, M109, G28...) its loop does not move lines into
+        // command slots, so free slots announced by ADVANCED_OK (`B`) are no room for more
+        // bytes. Bytes beyond the ring are lost and two lines merge into one whose checksum
+        // may even pass; so the bytes in flight never exceed the ring. One byte of margin:
+        // Marlin's ring tells full from empty by leaving one cell unused.
+        self.in_flight_bytes + bytes < self.opts.firmware.rx_buffer_bytes()
     }
 
     /// Send whatever the window allows. A line gets its number only when it is sent, so
@@ -786,7 +792,7 @@ impl Host {
                 let Some(line) = self.history_line(number) else {
                     break;
                 };
-                if !self.window_allows(line.command.len() + 16) {
+                if !self.window_allows(wire_len_bound(number, &line.command)) {
                     break;
                 }
                 self.transmit(number, now);
@@ -799,7 +805,7 @@ impl Host {
             } else {
                 break;
             };
-            if !self.window_allows(candidate_len + 16) {
+            if !self.window_allows(candidate_len + wire_len_bound(self.next_number, "")) {
                 break;
             }
             let number = if let Some((kind, command)) = self.pending.pop_front() {
@@ -1030,10 +1036,6 @@ impl Host {
             self.swallow_oks -= 1;
             return;
         }
-        // ADVANCED_OK: `ok N<last> P<planner> B<slots>`.
-        self.free_slots = lower
-            .split_whitespace()
-            .find_map(|t| t.strip_prefix('b').and_then(|v| v.parse::<u32>().ok()));
         let answers_m105 = lower.contains("t:");
         let through = if answers_m105 {
             self.in_flight.iter().position(|f| f.is_m105)
@@ -1159,7 +1161,6 @@ impl Host {
         let replay = self.send_cursor - n;
         self.send_cursor = n;
         self.resends += 1;
-        self.free_slots = None;
         self.events.push_back(Event::Resend { line: n, replay });
         if self.stopping.is_some() {
             // Job lines after n are not sent again during a stop; renumber the rest.

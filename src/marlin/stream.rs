@@ -353,7 +353,7 @@ impl Connection {
         let mut state = PrintState::Printing;
         let mut control_open = true;
         self.host
-            .start_job(program.commands().to_vec(), Instant::now());
+            .start_job(program.shared_commands(), Instant::now());
         let publish = |host: &Host, state: PrintState| {
             let elapsed = started.elapsed().as_secs_f64();
             let acked = host.acked_job_lines();

@@ -68,15 +68,7 @@ pub fn clean(vertices: Vec<[f64; 3]>, faces: Vec<[u32; 3]>) -> (Mesh, CleanRepor
 }
 
 fn zero_area(vertices: &[[f64; 3]], f: [u32; 3]) -> bool {
-    let [a, b, c] = f.map(|i| vertices[i as usize]);
-    let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-    let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-    let n = [
-        u[1] * v[2] - u[2] * v[1],
-        u[2] * v[0] - u[0] * v[2],
-        u[0] * v[1] - u[1] * v[0],
-    ];
-    n == [0.0, 0.0, 0.0]
+    super::triangle_normal(vertices, f) == [0.0, 0.0, 0.0]
 }
 
 #[cfg(test)]

@@ -337,3 +337,15 @@ pub fn save(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
 pub fn write_stl(w: impl Write, mesh: &Mesh) -> std::io::Result<()> {
     stl::write_binary(w, mesh)
 }
+
+/// The (unnormalised) normal of triangle `f`: twice its area times its unit normal.
+pub(crate) fn triangle_normal(vertices: &[[f64; 3]], f: [u32; 3]) -> [f64; 3] {
+    let [a, b, c] = f.map(|i| vertices[i as usize]);
+    let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+    let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+    [
+        u[1] * v[2] - u[2] * v[1],
+        u[2] * v[0] - u[0] * v[2],
+        u[0] * v[1] - u[1] * v[0],
+    ]
+}

@@ -125,13 +125,7 @@ fn parse_error(source_name: &str, location: &str, e: std::io::Error) -> MeshErro
 pub(super) fn write_binary(mut w: impl Write, mesh: &Mesh) -> std::io::Result<()> {
     let triangles = mesh.faces.iter().map(|f| {
         let [a, b, c] = f.map(|i| mesh.vertices[i as usize]);
-        let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-        let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-        let n = [
-            u[1] * v[2] - u[2] * v[1],
-            u[2] * v[0] - u[0] * v[2],
-            u[0] * v[1] - u[1] * v[0],
-        ];
+        let n = super::triangle_normal(&mesh.vertices, *f);
         let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
         let n = if len > 0.0 {
             n.map(|x| x / len)

@@ -256,17 +256,11 @@ fn clean_job_executes_every_line_once_in_order_both_window_modes() {
             let lines = first.iter().filter(|&&b| b == b'\n').count();
             if send_ahead {
                 assert!(lines > 1, "send-ahead sends more than one line");
-                // What does not fit in the command slots fits the receive buffer.
-                let slots = fw.command_slots() - 1;
-                let buffered: usize = String::from_utf8(first.clone())
-                    .unwrap()
-                    .lines()
-                    .skip(slots)
-                    .map(|l| l.len() + 1)
-                    .sum();
+                // Everything unacknowledged fits the receive buffer.
                 assert!(
-                    buffered <= fw.rx_buffer_bytes(),
-                    "{buffered} bytes buffered"
+                    first.len() <= fw.rx_buffer_bytes(),
+                    "{} bytes in flight",
+                    first.len()
                 );
             } else {
                 assert_eq!(lines, 1);
@@ -292,6 +286,50 @@ fn clean_job_executes_every_line_once_in_order_both_window_modes() {
             }
         }
     }
+}
+
+/// A blocked Marlin (planner full) moves no lines out of its receive ring, however many
+/// command slots its ADVANCED_OK answers advertise. The host must never have more bytes
+/// unacknowledged than the ring holds, or bytes are lost and lines merge.
+#[test]
+fn advanced_ok_free_slots_never_extend_the_bytes_in_flight_beyond_the_rx_buffer() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    assert!(host.start_job(job(400), now));
+    let limit = Firmware::Marlin2.rx_buffer_bytes();
+    // Lines on the wire not yet acknowledged, oldest first: (number, bytes).
+    let mut unacked: VecDeque<(u64, usize)> = VecDeque::new();
+    let mut most_in_flight = 0;
+    let mut most_lines = 0;
+    for _ in 0..10_000 {
+        let out = String::from_utf8(host.take_outgoing()).unwrap();
+        for line in out.split_inclusive('\n') {
+            let number = line[1..line.find(' ').unwrap()].parse::<u64>().unwrap();
+            unacked.push_back((number, line.len()));
+        }
+        let in_flight: usize = unacked.iter().map(|&(_, bytes)| bytes).sum();
+        assert!(
+            in_flight <= limit,
+            "{in_flight} bytes in {} lines unacknowledged, ring holds {limit}",
+            unacked.len()
+        );
+        most_in_flight = most_in_flight.max(in_flight);
+        most_lines = most_lines.max(unacked.len());
+        // The printer finishes one command at a time and claims plenty of free slots.
+        let Some((number, _)) = unacked.pop_front() else {
+            break;
+        };
+        host.feed(format!("ok N{number} P15 B32\n").as_bytes(), now);
+    }
+    assert!(unacked.is_empty(), "the job did not drain");
+    assert_eq!(host.acked_job_lines(), 400);
+    // The bound still leaves room for send-ahead: several lines travel together.
+    assert!(most_lines >= 3, "only {most_lines} lines in flight");
+    assert!(
+        most_in_flight > limit / 2,
+        "only {most_in_flight} bytes in flight"
+    );
 }
 
 #[test]

@@ -139,7 +139,7 @@ fn main() {
         .unwrap();
     // 250000 baud carries 25,000 bytes/s: about this many of these lines per second.
     let sample = curve(100, 0.2, 3000.0);
-    let bytes: usize = sample.commands().iter().map(|c| c.len() + 12).sum();
+    let bytes: usize = sample.iter().map(|c| c.len() + 12).sum();
     let link_rate = 25_000.0 / (bytes as f64 / 100.0);
     println!("stream benchmark: a 250000-baud link carries ~{link_rate:.0} such lines/s");
     println!(

@@ -345,9 +345,8 @@ printers = ["a", "b"]
                 expected.extend(
                     GcodeProgram::load_for(&gcode, fw)
                         .unwrap()
-                        .commands()
                         .iter()
-                        .cloned(),
+                        .map(str::to_owned),
                 );
             }
         }
@@ -425,4 +424,100 @@ printers = ["a", "b"]
     };
     assert!(code.success(), "{code:?}");
     assert!(!root.join("crispen.sock").exists());
+}
+
+/// Cancelling a job while its model is being sliced stops the slicer: its process is
+/// killed rather than left to finish work nobody wants, and the job ends cancelled with
+/// its model still in the spool.
+#[test]
+fn cancel_during_preparation_kills_the_slicer() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    // A stand-in slicer that never finishes and says which process it is.
+    let pid_file = root.join("slicer.pid");
+    let slicer = root.join("endless-slicer");
+    std::fs::write(
+        &slicer,
+        format!(
+            "#!/bin/sh\necho $$ > {}\nexec sleep 600\n",
+            pid_file.display()
+        ),
+    )
+    .unwrap();
+    Command::new("chmod")
+        .arg("755")
+        .arg(&slicer)
+        .status()
+        .unwrap();
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"{spool}\"\n[control]\nsocket = \"{sock}\"\n[farm]\nsettle_s = 0.5\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+             [[folder]]\npath = \"{hot}\"\nheight_mm = 30\nprinters = [\"p\"]\n",
+            spool = root.join("spool").display(),
+            sock = root.join("c.sock").display(),
+            hot = hot.display(),
+        ),
+    )
+    .unwrap();
+    let log = root.join("daemon.log");
+    let log_file = std::fs::File::create(&log).unwrap();
+    let _daemon = Daemon {
+        child: Command::new(BIN)
+            .args(["run", "--config"])
+            .arg(&config)
+            .env("CRISPEN_PRUSA_SLICER", &slicer)
+            .stdout(Stdio::null())
+            .stderr(log_file)
+            .spawn()
+            .unwrap(),
+    };
+
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
+    std::fs::copy(&model, hot.join("spot.obj.part")).unwrap();
+    std::fs::rename(hot.join("spot.obj.part"), hot.join("spot.obj")).unwrap();
+
+    let s = wait_for(&config, &log, Duration::from_secs(30), "preparing", |s| {
+        state_of(s, "spot.obj") == "preparing"
+    });
+    let id = job_by_file(&s, "spot.obj").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let start = Instant::now();
+    while !pid_file.exists() {
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "the slicer never started"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let pid: u32 = std::fs::read_to_string(&pid_file)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    let proc_dir = PathBuf::from(format!("/proc/{pid}"));
+    assert!(proc_dir.exists(), "the slicer should be running");
+
+    let (ok, text) = ctl(&config, &["cancel", &id]);
+    assert!(ok, "{text}");
+    wait_for(&config, &log, Duration::from_secs(10), "cancelled", |s| {
+        state_of(s, "spot.obj") == "cancelled"
+    });
+    let start = Instant::now();
+    while proc_dir.exists() {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "the slicer (pid {pid}) is still running after the cancel\nlog:\n{}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // The dropped model is still accounted for.
+    assert!(root.join("spool/jobs").join(&id).join("spot.obj").exists());
 }

@@ -88,7 +88,7 @@ async fn exactly_once(fw: Firmware, faults: Faults, seed: u64, moves: usize) -> 
         .unwrap_or_else(|e| panic!("{fw} {faults:?}: {e}"));
     assert_eq!(
         job_executed(&sim),
-        program.commands(),
+        program.to_vec(),
         "{fw} {faults:?}: executed sequence differs from the file"
     );
     assert_eq!(report.lines_acked, program.len());
@@ -192,7 +192,7 @@ async fn unplug_leaves_an_exact_prefix_and_a_disconnect_error() {
         assert!(!executed.is_empty() && executed.len() < program.len());
         assert_eq!(
             executed,
-            program.commands()[..executed.len()],
+            program.to_vec()[..executed.len()],
             "{fw}: a prefix"
         );
         let acked = err.last_acked().unwrap();
@@ -227,7 +227,7 @@ async fn a_printer_reset_fails_the_job_with_its_reason() {
         let executed = job_executed(&sim);
         assert_eq!(
             executed,
-            program.commands()[..executed.len()],
+            program.to_vec()[..executed.len()],
             "{fw}: a prefix"
         );
     }
@@ -317,7 +317,7 @@ async fn cancel_runs_the_safe_stop_lines() {
         );
         assert_eq!(
             executed[..n - 4],
-            program.commands()[..n - 4],
+            program.to_vec()[..n - 4],
             "{fw}: job prefix"
         );
     }
@@ -392,7 +392,7 @@ fn crispen_print_streams_to_crispen_sim() {
         .map(String::from)
         .collect();
     let expected = program(Firmware::Marlin2, 300);
-    assert_eq!(executed, expected.commands());
+    assert_eq!(executed, expected.to_vec());
 }
 
 #[tokio::test]
@@ -411,10 +411,9 @@ async fn one_connection_runs_jobs_back_to_back() {
         assert_eq!(progress_rx.borrow().lines_acked, program.len());
     }
     let twice: Vec<String> = program
-        .commands()
         .iter()
-        .chain(program.commands())
-        .cloned()
+        .chain(program.iter())
+        .map(str::to_owned)
         .collect();
     assert_eq!(job_executed(&sim), twice);
 }
@@ -460,5 +459,5 @@ async fn pause_holds_the_job_and_resume_finishes_it_exactly_once() {
     assert_eq!(at_pause, later, "nothing executed while paused");
     assert!(at_pause < program.len());
     assert_eq!(report.lines_acked, program.len());
-    assert_eq!(job_executed(&sim), program.commands());
+    assert_eq!(job_executed(&sim), program.to_vec());
 }

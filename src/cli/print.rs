@@ -46,14 +46,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    runtime.block_on(print(args, program, opts))
+    // The same `printer` and `job` fields the daemon's logs carry.
+    let span = tracing::info_span!(
+        "print",
+        printer = %args.port.display(),
+        job = %args.file.display()
+    );
+    runtime.block_on(tracing::Instrument::instrument(
+        print(args, program, opts),
+        span,
+    ))
 }
 
 async fn print(args: Args, program: GcodeProgram, opts: StreamOptions) -> anyhow::Result<ExitCode> {
     let mut conn = Connection::open(&args.port, &opts).await?;
     let info = conn.firmware_info();
     tracing::info!(
-        printer = %args.port.display(),
         firmware = info.name.as_deref().unwrap_or("unknown"),
         lines = program.len(),
         "streaming {}",

@@ -9,6 +9,7 @@
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{JobState, PrinterGate};
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -110,11 +111,13 @@ pub fn status(farm: &Farm) -> Status {
         .values()
         .cloned()
         .collect();
-    let preparing = farm
+    let preparing: HashMap<String, String> = farm
         .preparing
         .lock()
         .unwrap_or_else(|e| e.into_inner())
-        .clone();
+        .iter()
+        .map(|(id, p)| (id.clone(), p.step.clone()))
+        .collect();
     let store = farm.store();
     let jobs = store
         .jobs()
@@ -257,6 +260,15 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
                 Some("cancelled by the operator".into()),
             )
             .map_err(|e| e.to_string())?;
+            // A slicer already running for it is stopped, not left to finish unwanted.
+            if let Some(p) = farm
+                .preparing
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .get(id)
+            {
+                p.cancel.store(true, std::sync::atomic::Ordering::Relaxed);
+            }
             Ok(Some(format!("job {id} cancelled")))
         }
         JobState::Printing => {

@@ -61,12 +61,19 @@ pub enum PrintCommand {
     Cancel,
 }
 
+/// A preparation in progress.
+pub struct Preparation {
+    pub step: String,
+    /// Set by `crispen cancel`; the slicer's child process is killed when it is seen.
+    pub cancel: Arc<std::sync::atomic::AtomicBool>,
+}
+
 pub struct Farm {
     pub config: RwLock<Arc<Config>>,
     pub store: Mutex<JobStore>,
     pub printers: Mutex<BTreeMap<String, PrinterStatus>>,
-    /// Preparation progress of jobs being prepared (step name).
-    pub preparing: Mutex<HashMap<String, String>>,
+    /// Jobs being prepared: their current step, and the flag that stops their slicer.
+    pub preparing: Mutex<HashMap<String, Preparation>>,
     /// Control channel into each printer's running print.
     pub print_controls: Mutex<HashMap<String, mpsc::Sender<PrintCommand>>>,
     /// Bumped on every change that may let a task make progress.

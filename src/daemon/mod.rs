@@ -387,11 +387,25 @@ fn prepare_one(
         strength = ?task.strength,
         "preparing"
     );
+    farm.preparing
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .insert(
+            id.to_string(),
+            farm::Preparation {
+                step: "starting".into(),
+                cancel: task.cancel.clone(),
+            },
+        );
     let mut progress = |step: &str| {
-        farm.preparing
+        if let Some(p) = farm
+            .preparing
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .insert(id.to_string(), step.to_string());
+            .get_mut(id)
+        {
+            p.step = step.to_string();
+        }
     };
     let report = preparer.prepare(&task, &mut progress)?;
     Ok((report, sidecar))

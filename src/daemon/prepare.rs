@@ -9,6 +9,8 @@ use crate::enhance::Strength;
 use crate::slice::{SlicerKind, UpAxis};
 use std::io::Read;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use std::time::Duration;
 
 /// Everything one preparation needs, resolved from the folder config and the sidecar.
@@ -24,6 +26,8 @@ pub struct PrepareTask {
     pub profile: Option<PathBuf>,
     pub settings: crate::slice::SliceSettings,
     pub timeout: Duration,
+    /// Set when the job is cancelled while being prepared.
+    pub cancel: Arc<AtomicBool>,
 }
 
 /// Turns a model into G-code. Returns a JSON report kept in the job, or the reason the
@@ -127,6 +131,7 @@ pub fn resolve_task(
         profile: folder.profile.clone(),
         settings: folder.settings.clone(),
         timeout: folder.timeout,
+        cancel: Arc::default(),
     })
 }
 
@@ -156,6 +161,7 @@ fn real_slice(
     req.settings = task.settings.clone();
     req.profile = task.profile.clone();
     req.timeout = task.timeout;
+    req.cancel = Some(task.cancel.clone());
     let report = crate::slice::slice(&req, &mut |step| {
         let name = match step {
             SliceStep::Loading => "loading".to_string(),

@@ -57,9 +57,10 @@ pub trait Connector: Send + Sync {
 
 /// Index (in the program's command list) of the last heat-and-wait command of the opening
 /// part of a program (before the first extruding move), if any.
-pub fn heat_up_end(commands: &[String]) -> Option<usize> {
+pub fn heat_up_end<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Option<usize> {
     let mut last = None;
-    for (i, c) in commands.iter().enumerate() {
+    for (i, c) in commands.into_iter().enumerate() {
+        let c = c.as_ref();
         let word = c.split_whitespace().next().unwrap_or("");
         match word {
             "M109" | "M190" | "M116" => last = Some(i),
@@ -327,7 +328,7 @@ impl PrinterLink for MarlinLink {
         Box::pin(async move {
             let program = GcodeProgram::load_for(gcode, self.firmware)
                 .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?;
-            let heat_end = heat_up_end(program.commands());
+            let heat_end = heat_up_end(program.iter());
             let (stream_tx, stream_rx) = mpsc::channel(8);
             let (inner_tx, mut inner_rx) = watch::channel(PrintProgress::default());
             let print = self.connection.print(&program, stream_rx, inner_tx);

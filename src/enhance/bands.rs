@@ -415,6 +415,7 @@ fn solve_cg(
         // Tighter than the spec's 1e-10: the bands are small differences of the
         // solutions, amplified by λ2.
         let converged = cg::solve(&lap, delta, rhs, &mut x, CG_TOLERANCE, CG_MAX_ITERATIONS);
+        tracing::debug!(delta, iterations = ?converged, "conjugate gradients");
         let mut ax = vec![[0.0; 3]; x.len()];
         lap.apply(delta, &x, &mut ax);
         let residual = (0..3)

@@ -42,18 +42,97 @@ pub enum GcodeError {
     NotText { file: String, line: usize },
     #[error("{file}: no G-code commands in the file (only comments or blank lines)")]
     Empty { file: String },
+    #[error("{file}: too large: more than 4 GiB of G-code commands (split the job)")]
+    TooLarge { file: String },
+}
+
+/// A job's commands stored back to back in one shared buffer, with the end offset of each.
+///
+/// A sliced job has tens of thousands of short commands; one `String` each costs ~80 bytes
+/// with its heap block, which for a farm of printers adds up to hundreds of MB. Packed, a
+/// command costs its own bytes plus 4 for its offset, and a clone is two reference counts.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GcodeCommands {
+    text: Arc<str>,
+    ends: Arc<[u32]>,
+}
+
+impl GcodeCommands {
+    /// Pack commands; `None` if they do not fit 32-bit offsets (more than 4 GiB).
+    pub fn pack<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Option<Self> {
+        let mut text = String::new();
+        let mut ends = Vec::new();
+        for command in commands {
+            text.push_str(command.as_ref());
+            ends.push(u32::try_from(text.len()).ok()?);
+        }
+        Some(GcodeCommands {
+            text: text.into(),
+            ends: ends.into(),
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.ends.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.ends.is_empty()
+    }
+    /// Command `index` (0-based), or `None` past the end.
+    pub fn get(&self, index: usize) -> Option<&str> {
+        let end = *self.ends.get(index)? as usize;
+        let start = match index {
+            0 => 0,
+            _ => self.ends[index - 1] as usize,
+        };
+        Some(&self.text[start..end])
+    }
+    pub fn iter(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
+        (0..self.len()).map(|i| &self[i])
+    }
+    /// Owned copies of all commands (tests and small jobs only: this undoes the packing).
+    pub fn to_vec(&self) -> Vec<String> {
+        self.iter().map(str::to_owned).collect()
+    }
+}
+
+impl std::ops::Index<usize> for GcodeCommands {
+    type Output = str;
+    fn index(&self, index: usize) -> &str {
+        match self.get(index) {
+            Some(command) => command,
+            None => panic!("command {index} out of range (job has {})", self.len()),
+        }
+    }
+}
+
+impl Default for GcodeCommands {
+    fn default() -> Self {
+        GcodeCommands {
+            text: Arc::from(""),
+            ends: Arc::from([]),
+        }
+    }
+}
+
+/// For generated jobs held in memory (tests, benchmarks); a real file goes through
+/// [`GcodeProgram::read`], which reports an oversized job as an error instead.
+impl From<Vec<String>> for GcodeCommands {
+    fn from(commands: Vec<String>) -> Self {
+        GcodeCommands::pack(commands).expect("in-memory job under 4 GiB")
+    }
 }
 
 /// A parsed job: the commands to send, in order, exactly as they will reach the printer
 /// (after the host adds its line number and checksum).
 ///
-/// The commands are shared, not copied: the protocol core streaming a job holds a clone of
-/// the same `Arc`, so a printing job keeps its G-code in memory once.
+/// The commands are packed and shared, not copied: the protocol core streaming a job holds a
+/// clone of the same buffers, so a printing job keeps its G-code in memory once.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct GcodeProgram {
     name: String,
-    commands: Arc<[String]>,
-    source_lines: Vec<usize>,
+    commands: GcodeCommands,
+    source_lines: Arc<[u32]>,
 }
 
 impl GcodeProgram {
@@ -84,8 +163,12 @@ impl GcodeProgram {
     /// Parse G-code from any reader; `name` is used in error messages.
     pub fn read(reader: impl Read, name: &str, firmware: Firmware) -> Result<Self, GcodeError> {
         let max = firmware.max_line_bytes().saturating_sub(FRAMING_BYTES);
-        let mut commands = Vec::new();
-        let mut source_lines = Vec::new();
+        let too_large = || GcodeError::TooLarge {
+            file: name.to_string(),
+        };
+        let mut text = String::new();
+        let mut ends: Vec<u32> = Vec::new();
+        let mut source_lines: Vec<u32> = Vec::new();
         let mut reader = BufReader::new(reader);
         let mut raw = Vec::new();
         let mut line_no = 0;
@@ -129,24 +212,28 @@ impl GcodeProgram {
                     firmware,
                 });
             }
-            commands.push(code.to_string());
-            source_lines.push(line_no);
+            text.push_str(code);
+            ends.push(u32::try_from(text.len()).map_err(|_| too_large())?);
+            source_lines.push(u32::try_from(line_no).map_err(|_| too_large())?);
         }
-        if commands.is_empty() {
+        if ends.is_empty() {
             return Err(GcodeError::Empty {
                 file: name.to_string(),
             });
         }
         Ok(GcodeProgram {
             name: name.to_string(),
-            commands: commands.into(),
-            source_lines,
+            commands: GcodeCommands {
+                text: text.into(),
+                ends: ends.into(),
+            },
+            source_lines: source_lines.into(),
         })
     }
 
     /// Build a program from commands already in memory (benchmarks, generated jobs).
     pub fn from_commands(name: &str, commands: Vec<String>) -> Self {
-        let source_lines = (1..=commands.len()).collect();
+        let source_lines = (1..=commands.len() as u32).collect();
         GcodeProgram {
             name: name.to_string(),
             commands: commands.into(),
@@ -163,16 +250,27 @@ impl GcodeProgram {
     pub fn is_empty(&self) -> bool {
         self.commands.is_empty()
     }
-    pub fn commands(&self) -> &[String] {
+    pub fn commands(&self) -> &GcodeCommands {
         &self.commands
     }
+    /// Command `index` (0-based), or `None` past the end.
+    pub fn command(&self, index: usize) -> Option<&str> {
+        self.commands.get(index)
+    }
+    pub fn iter(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
+        self.commands.iter()
+    }
+    /// Owned copies of all commands (tests and small jobs only: this undoes the packing).
+    pub fn to_vec(&self) -> Vec<String> {
+        self.commands.to_vec()
+    }
     /// The commands as a shared handle (no copy), for the protocol core.
-    pub fn shared_commands(&self) -> Arc<[String]> {
-        Arc::clone(&self.commands)
+    pub fn shared_commands(&self) -> GcodeCommands {
+        self.commands.clone()
     }
     /// The 1-based line in the source file of command `index` (0-based).
     pub fn source_line(&self, index: usize) -> Option<usize> {
-        self.source_lines.get(index).copied()
+        self.source_lines.get(index).map(|&line| line as usize)
     }
 }
 
@@ -187,7 +285,9 @@ mod tests {
     #[test]
     fn strips_comments_and_blank_lines_and_keeps_source_lines() {
         let p = parse(b"; header\n\nG28 ; home\r\n  G1 X1 Y2  \n;only comment\nM104 S0").unwrap();
-        assert_eq!(p.commands(), ["G28", "G1 X1 Y2", "M104 S0"]);
+        assert_eq!(p.to_vec(), ["G28", "G1 X1 Y2", "M104 S0"]);
+        assert_eq!(p.command(1), Some("G1 X1 Y2"));
+        assert_eq!(p.command(3), None);
         assert_eq!(p.source_line(0), Some(3));
         assert_eq!(p.source_line(1), Some(4));
         assert_eq!(p.source_line(2), Some(6));
@@ -196,7 +296,7 @@ mod tests {
 
     #[test]
     fn non_utf8_in_comments_is_fine_but_not_in_commands() {
-        assert_eq!(parse(b"G1 X1 ; \xff\xfe\n").unwrap().commands(), ["G1 X1"]);
+        assert_eq!(parse(b"G1 X1 ; \xff\xfe\n").unwrap().to_vec(), ["G1 X1"]);
         let err = parse(b"G28\nG1 X\xff\n").unwrap_err();
         assert!(matches!(err, GcodeError::NotText { line: 2, .. }), "{err}");
     }
@@ -224,6 +324,18 @@ mod tests {
             parse(b"; nothing\n\n").unwrap_err(),
             GcodeError::Empty { .. }
         ));
+    }
+
+    #[test]
+    fn packed_commands_keep_boundaries_and_share_on_clone() {
+        let commands = GcodeCommands::pack(["G28", "", "G1 X1"]).unwrap();
+        assert_eq!(commands.len(), 3);
+        assert_eq!(commands.iter().collect::<Vec<_>>(), ["G28", "", "G1 X1"]);
+        assert_eq!(&commands[2], "G1 X1");
+        assert_eq!(commands.get(3), None);
+        let copy = commands.clone();
+        assert!(Arc::ptr_eq(&copy.text, &commands.text));
+        assert!(GcodeCommands::default().is_empty());
     }
 
     #[test]

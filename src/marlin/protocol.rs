@@ -12,9 +12,9 @@
 //! after such a final `M105` is answered.
 
 use super::firmware::Firmware;
+use super::gcode::GcodeCommands;
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// XOR of every byte, as Marlin checks it.
@@ -246,7 +246,7 @@ pub struct Host {
     outgoing: Vec<u8>,
     events: VecDeque<Event>,
 
-    job: Arc<[String]>,
+    job: GcodeCommands,
     next_job: usize,
     acked_job: usize,
     pending: VecDeque<(Kind, String)>,
@@ -307,7 +307,7 @@ impl Host {
             rx_partial: Vec::new(),
             outgoing: Vec::new(),
             events: VecDeque::new(),
-            job: Arc::from([]),
+            job: GcodeCommands::default(),
             next_job: 0,
             acked_job: 0,
             pending: VecDeque::new(),
@@ -390,7 +390,7 @@ impl Host {
     /// Returns false when the host is not idle. Pass a shared handle (e.g.
     /// [`GcodeProgram::shared_commands`](super::gcode::GcodeProgram::shared_commands)) so a
     /// long job is not held in memory twice.
-    pub fn start_job(&mut self, commands: impl Into<Arc<[String]>>, now: Instant) -> bool {
+    pub fn start_job(&mut self, commands: impl Into<GcodeCommands>, now: Instant) -> bool {
         if self.phase != Phase::Idle {
             return false;
         }
@@ -813,7 +813,7 @@ impl Host {
             } else {
                 let idx = self.next_job;
                 self.next_job += 1;
-                let command = self.job[idx].clone();
+                let command = self.job[idx].to_owned();
                 self.new_line(Kind::Job(idx), command)
             };
             self.transmit(number, now);

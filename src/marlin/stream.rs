@@ -287,7 +287,7 @@ impl Connection {
             while let Some(event) = host.poll_event() {
                 match event {
                     Event::Connected(info) => {
-                        tracing::info!(printer = %port.display(), firmware = ?info.name, "printer connected");
+                        tracing::info!(port = %port.display(), firmware = ?info.name, "printer connected");
                         return Ok(Connection {
                             transport,
                             host,
@@ -297,7 +297,7 @@ impl Connection {
                         });
                     }
                     Event::Failed(f) => return Err(PrintError::from_failure(port, f)),
-                    Event::Message(m) => tracing::debug!(printer = %port.display(), "printer: {m}"),
+                    Event::Message(m) => tracing::debug!(port = %port.display(), "printer: {m}"),
                     _ => {}
                 }
             }
@@ -381,7 +381,7 @@ impl Connection {
                 match event {
                     Event::Done(summary) => {
                         publish(&self.host, PrintState::Done);
-                        tracing::info!(printer = %port.display(), job = program.name(), lines = total, "print finished");
+                        tracing::info!(port = %port.display(), gcode = program.name(), lines = total, "print finished");
                         return Ok(PrintReport {
                             port: port.clone(),
                             lines_total: total,
@@ -395,7 +395,7 @@ impl Connection {
                     Event::Failed(f) => {
                         publish(&self.host, PrintState::Failed);
                         let err = PrintError::from_failure(&port, f);
-                        tracing::warn!(printer = %port.display(), job = program.name(), "print failed: {err}");
+                        tracing::warn!(port = %port.display(), gcode = program.name(), "print failed: {err}");
                         return Err(err);
                     }
                     Event::Progress { .. } | Event::Temperatures(_) => changed = true,
@@ -408,14 +408,14 @@ impl Connection {
                         state_changed = true;
                     }
                     Event::Resend { line, replay } => {
-                        tracing::debug!(printer = %port.display(), job = program.name(), line, replay, "printer asked for a resend")
+                        tracing::debug!(port = %port.display(), gcode = program.name(), line, replay, "printer asked for a resend")
                     }
                     Event::Probe => {
-                        tracing::debug!(printer = %port.display(), job = program.name(), "printer silent; probing with M105")
+                        tracing::debug!(port = %port.display(), gcode = program.name(), "printer silent; probing with M105")
                     }
                     Event::Busy(_) => {}
                     Event::Message(m) => {
-                        tracing::debug!(printer = %port.display(), job = program.name(), "printer: {m}")
+                        tracing::debug!(port = %port.display(), gcode = program.name(), "printer: {m}")
                     }
                     Event::Connected(_) => {}
                 }
@@ -439,7 +439,7 @@ impl Connection {
                     LinkEvent::Closed(reason) => {
                         publish(&self.host, PrintState::Failed);
                         let last_acked = self.host.acked_job_lines();
-                        tracing::warn!(printer = %port.display(), job = program.name(), last_acked, "printer disconnected: {reason}");
+                        tracing::warn!(port = %port.display(), gcode = program.name(), last_acked, "printer disconnected: {reason}");
                         return Err(PrintError::Disconnected { port: port.clone(), reason, last_acked });
                     }
                 },

@@ -1,13 +1,14 @@
 //! Enhancement benchmark: time per phase and peak memory for the bunny, Nefertiti and a
-//! subdivided Nefertiti of about a million vertices, plus the whole `crispen enhance`
-//! process from file to file on the bunny.
+//! subdivided Nefertiti (0.8 M vertices) and a subdivided Homer (1.01 M), plus the whole
+//! `crispen enhance` process from file to file on the bunny and on the 1 M mesh.
 //!
 //! Each case runs in a child process (this binary re-executed with `--case NAME`) so its
 //! peak resident memory (VmHWM) is its own. Run with `cargo bench --bench enhance`;
-//! `-- --quick` skips the large mesh.
+//! `-- --quick` skips the large meshes.
 
 use crispen::enhance::{Bands, EnhanceOptions, Phase, Solver};
 use crispen::mesh::{self, Mesh};
+use nix::sys::resource::{getrusage, UsageWho};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -104,18 +105,15 @@ fn peak_rss_mib() -> f64 {
 /// write; print one line of figures.
 fn run_case(name: &str, solver: &str) {
     let t = Instant::now();
-    let mesh = match name {
-        "bunny" => mesh::load(&models().join("bunny.obj")).unwrap().mesh,
-        "nefertiti" => mesh::load(&models().join("nefertiti.obj")).unwrap().mesh,
-        other => {
-            let k: usize = other
-                .trim_start_matches("nefertiti-x")
-                .parse()
-                .expect("case nefertiti-xK");
-            let base = mesh::load(&models().join("nefertiti.obj")).unwrap().mesh;
-            subdivide(&base, k)
-        }
+    // MODEL or MODEL-xK: a shared model, or it subdivided with k segments per edge.
+    let (model, k) = match name.split_once("-x") {
+        Some((model, k)) => (model, k.parse().expect("case MODEL-xK")),
+        None => (name, 1),
     };
+    let base = mesh::load(&models().join(format!("{model}.obj")))
+        .unwrap()
+        .mesh;
+    let mesh = if k == 1 { base } else { subdivide(&base, k) };
     let load_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let chosen = match solver {
@@ -160,6 +158,13 @@ fn main() {
         run_case(&args[i + 1], args.get(i + 2).map_or("auto", String::as_str));
         return;
     }
+    if let Some(i) = args.iter().position(|a| a == "--file-to-file") {
+        let runs = args[i + 2]
+            .parse()
+            .expect("--file-to-file INPUT RUNS OUTDIR");
+        run_file_to_file(Path::new(&args[i + 1]), runs, Path::new(&args[i + 3]));
+        return;
+    }
     let quick = args.iter().any(|a| a == "--quick");
     let exe = std::env::current_exe().unwrap();
     println!(
@@ -182,12 +187,12 @@ fn main() {
         // k = 2: ~200 k vertices, above the 134 k-vertex scan that libigl + CHOLMOD needs
         // about 8 s for (crispen's target there: 5x faster, i.e. under 1.6 s).
         cases.push(("nefertiti-x2", "auto", 1));
-        // k = 4 splits each edge in four (= midpoint subdivision twice): ~0.8 M vertices;
-        // k = 5: ~1.25 M. Together they bracket the 1 M target.
+        // k = 4 splits each edge in four (= midpoint subdivision twice): ~0.8 M vertices.
         // Conjugate gradients need ~35 s at 0.8 M (their iteration count grows with the
         // resolution), so only the automatic choice (Cholesky) runs for these.
         cases.push(("nefertiti-x4", "auto", 1));
-        cases.push(("nefertiti-x5", "auto", 1));
+        // homer.obj has 6 k vertices: k = 13 makes 1.01 M, the 1 M target itself.
+        cases.push(("homer-x13", "auto", 1));
     }
     for (case, solver, repeats) in cases {
         for _ in 0..repeats {
@@ -200,19 +205,45 @@ fn main() {
     }
 
     // The whole process, file to file, as a user runs it.
-    let crispen = env!("CARGO_BIN_EXE_crispen");
     let dir = tempfile::tempdir().unwrap();
+    file_to_file(&exe, &models().join("bunny.obj"), 7, dir.path());
+    if !quick {
+        let big = dir.path().join("homer-x13.obj");
+        let homer = mesh::load(&models().join("homer.obj")).unwrap().mesh;
+        mesh::save(&big, &subdivide(&homer, 13)).unwrap();
+        file_to_file(&exe, &big, 2, dir.path());
+    }
+}
+
+/// Runs `crispen enhance INPUT` (λ2 = 20) as its own process from a child of the
+/// benchmark, so that the children's peak memory is only crispen's.
+fn file_to_file(exe: &Path, input: &Path, runs: usize, out_dir: &Path) {
+    let status = Command::new(exe)
+        .arg("--file-to-file")
+        .args([input, Path::new(&runs.to_string()), out_dir])
+        .status()
+        .unwrap();
+    assert!(
+        status.success(),
+        "file-to-file run on {} failed",
+        input.display()
+    );
+}
+
+fn run_file_to_file(input: &Path, runs: usize, out_dir: &Path) {
+    let crispen = env!("CARGO_BIN_EXE_crispen");
+    let name = input.file_stem().unwrap().to_string_lossy();
+    let output = out_dir.join(format!("{name}-enhanced.stl"));
     let mut times = Vec::new();
-    for _ in 0..7 {
+    let mut report = serde_json::Value::Null;
+    for _ in 0..runs {
         let t = Instant::now();
         let out = Command::new(crispen)
-            .args([
-                "enhance",
-                models().join("bunny.obj").to_str().unwrap(),
-                "-o",
-            ])
-            .arg(dir.path().join("bunny20.obj"))
-            .args(["--strength", "20"])
+            .arg("enhance")
+            .arg(input)
+            .arg("-o")
+            .arg(&output)
+            .args(["--strength", "20", "--json"])
             .env("RUST_LOG", "warn")
             .output()
             .unwrap();
@@ -222,11 +253,18 @@ fn main() {
             String::from_utf8_lossy(&out.stderr)
         );
         times.push(t.elapsed().as_secs_f64());
+        report = serde_json::from_slice(&out.stdout).expect("crispen enhance --json report");
     }
     times.sort_by(f64::total_cmp);
+    let phase = |key: &str| report["timings"][key].as_f64().unwrap_or(f64::NAN);
+    let usage = getrusage(UsageWho::RUSAGE_CHILDREN).unwrap();
     println!(
-        "crispen enhance bunny.obj -> bunny20.obj (whole process, 7 runs): best {:.3} s, median {:.3} s",
+        "crispen enhance {name}.obj -> {name}-enhanced.stl (whole process, {runs} runs): best {:.3} s, median {:.3} s (last run: load {:.3} s, enhance {:.3} s, save {:.3} s), peak {:.1} MiB",
         times[0],
-        times[times.len() / 2]
+        times[times.len() / 2],
+        phase("load_s"),
+        phase("total_s") - phase("load_s") - phase("save_s"),
+        phase("save_s"),
+        usage.max_rss() as f64 / 1024.0
     );
 }

@@ -9,10 +9,16 @@ use super::{EnhanceError, EnhanceOptions, Phase, PhaseTimings};
 use crate::mesh::Mesh;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::perm::PermRef;
-use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, SymmetricOrdering};
-use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering,
+};
+use faer::sparse::linalg::SymbolicSupernodalParams;
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat, SymbolicSparseColMatRef};
+use faer::traits::ComplexField;
 use faer::{Conj, Mat, Par, Side};
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::mpsc;
 use std::time::Instant;
 
 /// How to solve the three systems of spec step 3.
@@ -20,10 +26,10 @@ use std::time::Instant;
 pub enum Solver {
     /// Conjugate gradients below [`CG_MAX_VERTICES`] vertices (falling back to
     /// Cholesky if they do not converge), Cholesky from there on. CG's iteration count
-    /// grows with the mesh's resolution, Cholesky's cost does not depend on δ: the
-    /// crossover was estimated from benches/enhance.rs: CG takes 0.5× Cholesky's time on
-    /// the bunny and on Nefertiti (35k, 50k vertices) and 4.7× at 0.8 M; both grow
-    /// like n^1.5 or so, putting the break-even near 110k; 80k leaves a margin.
+    /// grows with the mesh's resolution, Cholesky's cost does not depend on δ. Measured
+    /// with benches/enhance.rs (2 cores), CG over Cholesky time: 0.4× on the bunny (35 k
+    /// vertices), 0.8× on Nefertiti (50 k), 0.6× on the bunny subdivided to 139 k, 1.1×
+    /// and 1.3× on Nefertiti and Homer subdivided to 200 k and 216 k.
     #[default]
     Auto,
     /// Sparse Cholesky (faer), one symbolic analysis for the three δ.
@@ -33,7 +39,7 @@ pub enum Solver {
 }
 
 /// Below this many vertices [`Solver::Auto`] uses conjugate gradients.
-pub const CG_MAX_VERTICES: usize = 80_000;
+pub const CG_MAX_VERTICES: usize = 150_000;
 
 /// The smoothing steps of spec step 3, in unit-sphere units.
 pub const DELTAS: [f64; 3] = [0.5e-5, 1e-5, 1e-4];
@@ -256,8 +262,13 @@ fn validate(mesh: &Mesh) -> Result<(), EnhanceError> {
 /// The three solutions V_δ and each one's relative residual.
 type Solved = (Vec<Vec<[f64; 3]>>, [f64; 3]);
 
-/// Spec step 3 by sparse Cholesky: one symbolic analysis, three numeric factorisations,
-/// each solve with the three coordinates as right-hand sides.
+/// Spec step 3 by sparse Cholesky: one symbolic analysis, then per δ a numeric
+/// factorisation and a solve with the three coordinates as right-hand sides.
+///
+/// The δ are independent once the pattern is analysed, so they run on up to three
+/// threads, each factorising sequentially. On 2 cores two concurrent factorisations take
+/// 0.6× the time of two in a row, where faer's parallel factorisation of one matrix
+/// measured no faster than its sequential one (0.8 M vertices).
 fn solve_cholesky(
     ops: &Operators,
     positions: &[[f64; 3]],
@@ -265,11 +276,69 @@ fn solve_cholesky(
     timings: &mut PhaseTimings,
     progress: &mut dyn FnMut(Phase),
 ) -> Result<Solved, EnhanceError> {
-    let n = ops.n;
     // One symbolic analysis (fill-reducing ordering, elimination tree,
     // supernodes) serves all three δ, whose matrices share the pattern.
     progress(Phase::Factorize);
     let t = Instant::now();
+    let (pattern, symbolic) = analyse(ops, positions)?;
+    timings.symbolic_s = t.elapsed().as_secs_f64();
+    timings.factorize_s += timings.symbolic_s;
+    let system = System {
+        ops,
+        pattern: pattern.as_ref(),
+        symbolic: &symbolic,
+        rhs,
+    };
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(DELTAS.len());
+    let next = AtomicUsize::new(0);
+    let mut solved: [Option<DeltaSolution>; 3] = Default::default();
+    progress(Phase::Solve(0));
+    std::thread::scope(|scope| {
+        let (sender, receiver) = mpsc::channel();
+        for _ in 0..workers {
+            let sender = sender.clone();
+            let (system, next) = (&system, &next);
+            scope.spawn(move || loop {
+                let k = next.fetch_add(1, Ordering::Relaxed);
+                if k >= DELTAS.len() || sender.send((k, system.solve(DELTAS[k]))).is_err() {
+                    break;
+                }
+            });
+        }
+        drop(sender);
+        let mut finished = 0;
+        for (k, result) in receiver {
+            // Stop the workers from starting another δ; the scope waits for running ones.
+            let solution = result.inspect_err(|_| next.store(DELTAS.len(), Ordering::Relaxed))?;
+            timings.factorize_s += solution.factorize_s;
+            timings.solve_s += solution.solve_s;
+            solved[k] = Some(solution);
+            finished += 1;
+            if finished < DELTAS.len() {
+                progress(Phase::Solve(finished));
+            }
+        }
+        Ok::<_, EnhanceError>(())
+    })?;
+
+    let mut residuals = [0.0; 3];
+    let mut solutions = Vec::with_capacity(3);
+    for (k, solution) in solved.into_iter().enumerate() {
+        let solution = solution.expect("every δ solved or an error returned");
+        residuals[k] = solution.residual;
+        solutions.push(solution.x);
+    }
+    Ok((solutions, residuals))
+}
+
+/// The pattern of `M − δL` and its symbolic Cholesky analysis.
+fn analyse(
+    ops: &Operators,
+    positions: &[[f64; 3]],
+) -> Result<(SymbolicSparseColMat<usize>, SymbolicCholesky<usize>), EnhanceError> {
+    let n = ops.n;
     let pattern = SymbolicSparseColMat::<usize>::new_checked(
         n,
         n,
@@ -293,70 +362,137 @@ fn solve_cholesky(
     } else {
         SymmetricOrdering::Custom(PermRef::new_checked(&forward, &inverse, n))
     };
-    let symbolic =
-        factorize_symbolic_cholesky(pattern.as_ref(), Side::Lower, order, Default::default())
-            .map_err(|e| EnhanceError::Solver {
-                delta: None,
-                message: format!("symbolic analysis failed: {e:?}"),
-            })?;
-    timings.symbolic_s = t.elapsed().as_secs_f64();
+    let params = CholeskySymbolicParams {
+        supernodal_params: SymbolicSupernodalParams {
+            relax: Some(SUPERNODE_RELAXATION),
+        },
+        ..Default::default()
+    };
+    let symbolic = factorize_symbolic_cholesky(pattern.as_ref(), Side::Lower, order, params)
+        .map_err(|e| EnhanceError::Solver {
+            delta: None,
+            message: format!("symbolic analysis failed: {e:?}"),
+        })?;
     tracing::debug!(
         vertices = n,
         factor_entries = symbolic.len_val(),
         "symbolic analysis"
     );
-    let (factor_par, solve_par) = parallelism(n);
-    let mut factor_values = vec![0.0f64; symbolic.len_val()];
-    let mut factor_scratch = MemBuffer::new(
-        symbolic.factorize_numeric_llt_scratch::<f64>(factor_par, Default::default()),
-    );
-    let mut solve_scratch = MemBuffer::new(symbolic.solve_in_place_scratch::<f64>(3, solve_par));
-    timings.factorize_s += t.elapsed().as_secs_f64();
+    Ok((pattern, symbolic))
+}
 
-    let mut solutions: Vec<Vec<[f64; 3]>> = Vec::with_capacity(3);
-    let mut residuals = [0.0; 3];
-    for (k, &delta) in DELTAS.iter().enumerate() {
-        progress(Phase::Solve(k));
+/// Supernode amalgamation: faer's default (CHOLMOD's) with the two larger-supernode
+/// thresholds doubled, allowing a little more explicit fill for fewer, larger dense blocks
+/// (measured 10 % faster factorisation for 2 % more factor entries at 0.8 M vertices).
+const SUPERNODE_RELAXATION: &[(usize, f64)] = &[(4, 1.0), (16, 0.8), (48, 0.2), (usize::MAX, 0.1)];
+
+/// Iterative-refinement steps after the first solve. Single precision gains about
+/// five digits per step on these matrices (first solve ~1e-5, then 1e-10, 1e-15).
+const MAX_REFINEMENTS: usize = 4;
+
+/// One of the three systems `(M − δL) V = M V0`, sharing pattern, analysis and
+/// right-hand side with the other two.
+struct System<'a> {
+    ops: &'a Operators,
+    pattern: SymbolicSparseColMatRef<'a, usize>,
+    symbolic: &'a SymbolicCholesky<usize>,
+    rhs: &'a [[f64; 3]],
+}
+
+struct DeltaSolution {
+    x: Vec<[f64; 3]>,
+    residual: f64,
+    factorize_s: f64,
+    solve_s: f64,
+}
+
+impl System<'_> {
+    /// Solve for one δ: factorise in single precision and refine in double, which
+    /// halves the factor's memory and takes 0.65× the time; if single precision breaks
+    /// down or refinement stalls (badly conditioned geometry), factorise in double.
+    fn solve(&self, delta: f64) -> Result<DeltaSolution, EnhanceError> {
+        let values = self.ops.system_values(delta);
+        match self.factorize_and_solve::<f32>(delta, &values) {
+            Ok(solution) if solution.residual <= MAX_RELATIVE_RESIDUAL => return Ok(solution),
+            Ok(solution) => tracing::debug!(
+                delta,
+                residual = solution.residual,
+                "single-precision factor did not converge; factorising in double"
+            ),
+            Err(error) => {
+                tracing::debug!(delta, %error, "single-precision factorisation failed; factorising in double")
+            }
+        }
+        let solution = self.factorize_and_solve::<f64>(delta, &values)?;
+        if !(solution.residual <= MAX_RELATIVE_RESIDUAL) {
+            return Err(EnhanceError::Solver {
+                delta: Some(delta),
+                message: format!(
+                    "the solve reached a relative residual of only {:.3e} (needs {:e})",
+                    solution.residual, MAX_RELATIVE_RESIDUAL
+                ),
+            });
+        }
+        Ok(solution)
+    }
+
+    /// Factorise `M − δL` in precision `T`, solve in `T` and refine the solution against
+    /// the double-precision matrix until its residual is far below the spec's bound.
+    fn factorize_and_solve<T: FactorScalar>(
+        &self,
+        delta: f64,
+        values: &[f64],
+    ) -> Result<DeltaSolution, EnhanceError> {
         let t = Instant::now();
-        let values = ops.system_values(delta);
-        let matrix = SparseColMatRef::new(pattern.as_ref(), &values);
-        let llt = symbolic
+        let values_t: Vec<T> = values.iter().map(|&v| T::from_f64(v)).collect();
+        let mut factor_values = vec![T::from_f64(0.0); self.symbolic.len_val()];
+        let mut scratch = MemBuffer::new(
+            self.symbolic
+                .factorize_numeric_llt_scratch::<T>(Par::Seq, Default::default())
+                .or(self.symbolic.solve_in_place_scratch::<T>(3, Par::Seq)),
+        );
+        let llt = self
+            .symbolic
             .factorize_numeric_llt(
                 &mut factor_values,
-                matrix,
+                SparseColMatRef::new(self.pattern, &values_t),
                 Side::Lower,
                 Default::default(),
-                factor_par,
-                MemStack::new(&mut factor_scratch),
+                Par::Seq,
+                MemStack::new(&mut scratch),
                 Default::default(),
             )
             .map_err(|e| EnhanceError::Solver {
                 delta: Some(delta),
                 message: format!(
                     "Cholesky factorisation failed ({e:?}): the matrix is not positive \
-                         definite, which points at badly broken geometry"
+                     definite, which points at badly broken geometry"
                 ),
             })?;
-        timings.factorize_s += t.elapsed().as_secs_f64();
+        let factorize_s = t.elapsed().as_secs_f64();
 
         let t = Instant::now();
+        // Solves A·c = b for a right-hand side scaled to unit size first: refinement
+        // residuals shrink towards 1e-25 and would underflow single precision otherwise.
         let mut solve = |b: &[[f64; 3]]| -> Vec<[f64; 3]> {
-            let mut x = Mat::from_fn(b.len(), 3, |i, c| b[i][c]);
+            let scale = b.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+            if scale == 0.0 {
+                return vec![[0.0; 3]; b.len()];
+            }
+            let mut x = Mat::from_fn(b.len(), 3, |i, c| T::from_f64(b[i][c] / scale));
             llt.solve_in_place_with_conj(
                 Conj::No,
                 x.as_mut(),
-                solve_par,
-                MemStack::new(&mut solve_scratch),
+                Par::Seq,
+                MemStack::new(&mut scratch),
             );
             (0..b.len())
-                .map(|i| std::array::from_fn(|c| x[(i, c)]))
+                .map(|i| std::array::from_fn(|c| x[(i, c)].to_f64() * scale))
                 .collect()
         };
-        let mut x = solve(rhs);
-        let mut residual = relative_residual(ops, &values, &x, rhs);
-        // One or two steps of iterative refinement recover accuracy lost to a badly
-        // conditioned matrix; on ordinary meshes the first solve is already ~1e-15.
-        for _ in 0..2 {
+        let mut x = solve(self.rhs);
+        let mut residual = relative_residual(self.ops, values, &x, self.rhs);
+        for _ in 0..MAX_REFINEMENTS {
             if residual.0 <= MAX_RELATIVE_RESIDUAL * 1e-2 {
                 break;
             }
@@ -366,22 +502,52 @@ fn solve_cholesky(
                     xi[c] += ci[c];
                 }
             }
-            residual = relative_residual(ops, &values, &x, rhs);
+            let before = residual.0;
+            residual = relative_residual(self.ops, values, &x, self.rhs);
+            if !(residual.0 < before * 0.5) {
+                break; // stalled: more steps will not help
+            }
         }
-        if !(residual.0 <= MAX_RELATIVE_RESIDUAL) {
-            return Err(EnhanceError::Solver {
-                delta: Some(delta),
-                message: format!(
-                    "the solve reached a relative residual of only {:.3e} (needs {:e})",
-                    residual.0, MAX_RELATIVE_RESIDUAL
-                ),
-            });
-        }
-        residuals[k] = residual.0;
-        solutions.push(x);
-        timings.solve_s += t.elapsed().as_secs_f64();
+        tracing::debug!(
+            delta,
+            precision = T::NAME,
+            residual = residual.0,
+            "Cholesky solve"
+        );
+        Ok(DeltaSolution {
+            x,
+            residual: residual.0,
+            factorize_s,
+            solve_s: t.elapsed().as_secs_f64(),
+        })
     }
-    Ok((solutions, residuals))
+}
+
+/// The precisions a factor is computed in.
+trait FactorScalar: ComplexField + Copy {
+    const NAME: &'static str;
+    fn from_f64(value: f64) -> Self;
+    fn to_f64(self) -> f64;
+}
+
+impl FactorScalar for f32 {
+    const NAME: &'static str = "single";
+    fn from_f64(value: f64) -> Self {
+        value as f32
+    }
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+}
+
+impl FactorScalar for f64 {
+    const NAME: &'static str = "double";
+    fn from_f64(value: f64) -> Self {
+        value
+    }
+    fn to_f64(self) -> f64 {
+        self
+    }
 }
 
 /// Spec step 3 by preconditioned conjugate gradients, each δ warm-started from the
@@ -453,25 +619,8 @@ fn solve_cg(
 const CG_TOLERANCE: f64 = 1e-12;
 const CG_MAX_ITERATIONS: usize = 20_000;
 
-/// Threads for the numeric factorisation and for the triangular solves. The parallel
-/// supernodal triangular solve measured several times slower than the sequential one on
-/// 2 cores for every mesh size, so solves stay sequential; small factorisations too,
-/// where coordination costs more than it gains. For large ones the parallel
-/// factorisation measured within noise of the sequential one on a loaded 2-core machine
-/// (other builds running); it is kept for idle and larger machines.
-fn parallelism(n: usize) -> (Par, Par) {
-    let factor = if n >= PARALLEL_FACTOR_MIN_VERTICES {
-        Par::rayon(0)
-    } else {
-        Par::Seq
-    };
-    (factor, Par::Seq)
-}
-
-const PARALLEL_FACTOR_MIN_VERTICES: usize = 100_000;
-
 /// From this many vertices the Cholesky path orders by nested dissection, not AMD
-/// (measured at 0.8 M vertices: symbolic analysis 2.5 s → 0.7 s, same numeric cost).
+/// (measured at 0.8 M vertices: symbolic analysis 2.5 s → 0.7 s, and no more fill).
 const ND_MIN_VERTICES: usize = 100_000;
 
 /// Worst relative residual over the three columns, and the residual b − Ax itself.
@@ -500,4 +649,58 @@ fn relative_residual(
         })
         .fold(0.0, f64::max);
     (worst, r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The bunny scaled to about the unit sphere (its radius is ~0.1), its operators and the right-hand side `M V0`.
+    fn bunny_system() -> (Operators, Vec<[f64; 3]>, Vec<[f64; 3]>) {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/bunny.obj");
+        let mesh = crate::mesh::load(&path).unwrap().mesh;
+        let v0: Vec<[f64; 3]> = mesh.vertices.iter().map(|v| v.map(|c| c * 10.0)).collect();
+        let ops = Operators::build(&v0, &mesh.faces);
+        let rhs = v0
+            .iter()
+            .zip(&ops.mass)
+            .map(|(v, m)| v.map(|c| c * m))
+            .collect();
+        (ops, v0, rhs)
+    }
+
+    #[test]
+    fn single_precision_factor_refines_to_the_double_precision_solution() {
+        let (ops, v0, rhs) = bunny_system();
+        let (pattern, symbolic) = analyse(&ops, &v0).unwrap();
+        let system = System {
+            ops: &ops,
+            pattern: pattern.as_ref(),
+            symbolic: &symbolic,
+            rhs: &rhs,
+        };
+        for delta in DELTAS {
+            let values = ops.system_values(delta);
+            let single = system.factorize_and_solve::<f32>(delta, &values).unwrap();
+            let double = system.factorize_and_solve::<f64>(delta, &values).unwrap();
+            assert!(
+                single.residual <= MAX_RELATIVE_RESIDUAL * 1e-2,
+                "{delta}: {}",
+                single.residual
+            );
+            assert!(
+                double.residual <= MAX_RELATIVE_RESIDUAL * 1e-2,
+                "{delta}: {}",
+                double.residual
+            );
+            let worst = single
+                .x
+                .iter()
+                .zip(&double.x)
+                .flat_map(|(a, b)| (0..3).map(move |c| (a[c] - b[c]).abs()))
+                .fold(0.0, f64::max);
+            assert!(worst < 1e-9, "δ = {delta}: solutions differ by {worst:e}");
+        }
+    }
 }

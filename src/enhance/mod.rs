@@ -73,7 +73,9 @@ pub enum Phase {
 }
 
 /// Seconds per phase. `factorize_s` includes the symbolic analysis and the three
-/// numeric factorisations; `solve_s` the triangular solves and residual checks.
+/// numeric factorisations; `solve_s` the triangular solves and residual checks. The
+/// Cholesky path works on the three δ concurrently, so its two figures add up the time
+/// of each δ and can together exceed the wall time they took.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct PhaseTimings {
     pub operators_s: f64,

@@ -3,7 +3,10 @@
 //! vertices; numbering both halves first (recursively) and the cut last confines the
 //! fill to the halves and the cut, which for surface meshes gives much less fill and
 //! work than approximate minimum degree, and is computed in O(n log n) without the
-//! symbolic elimination AMD simulates.
+//! symbolic elimination AMD simulates. The two halves of a cut are independent, so
+//! large ones are dissected in parallel.
+
+use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
 
 /// Returns the elimination order (`order[k]` = the vertex eliminated k-th) for the
 /// symmetric pattern given as a lower-triangular CSC (`col_ptr`, `row_idx`, diagonal
@@ -41,78 +44,111 @@ pub fn nested_dissection(
     }
     drop(cursor);
 
-    // part[v]: which pending subset v belongs to; fresh ids per split.
-    let mut part = vec![0u32; n];
-    let mut next_part = 1u32;
+    let dissection = Dissection {
+        positions,
+        start,
+        adjacent,
+        part: (0..n).map(|_| AtomicU32::new(0)).collect(),
+        next_part: AtomicU32::new(1),
+    };
     let mut order = Vec::with_capacity(n);
-    // Explicit stack instead of recursion: (subset, its part id, separator to emit after).
-    enum Task {
-        Split(Vec<u32>, u32),
-        Emit(Vec<u32>),
-    }
-    let mut stack = vec![Task::Split((0..n as u32).collect(), 0)];
-    while let Some(task) = stack.pop() {
-        let (mut set, id) = match task {
-            Task::Emit(vertices) => {
-                order.extend(vertices.iter().map(|&v| v as usize));
-                continue;
-            }
-            Task::Split(set, id) => (set, id),
-        };
-        if set.len() <= 64 {
-            order.extend(set.iter().map(|&v| v as usize));
-            continue;
-        }
-        // Cut across the longest side of the subset's bounding box, at the median.
-        let mut lo = [f64::INFINITY; 3];
-        let mut hi = [f64::NEG_INFINITY; 3];
-        for &v in &set {
-            let p = positions[v as usize];
-            for k in 0..3 {
-                lo[k] = lo[k].min(p[k]);
-                hi[k] = hi[k].max(p[k]);
-            }
-        }
-        let axis = (0..3)
-            .max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b])))
-            .unwrap_or(0);
-        let mid = set.len() / 2;
-        set.select_nth_unstable_by(mid, |&a, &b| {
-            positions[a as usize][axis].total_cmp(&positions[b as usize][axis])
-        });
-        let right: Vec<u32> = set.split_off(mid);
-        let mut left = set;
-        let (left_id, right_id) = (next_part, next_part + 1);
-        next_part += 2;
-        for &v in &left {
-            part[v as usize] = left_id;
-        }
-        for &v in &right {
-            part[v as usize] = right_id;
-        }
-        // Separator: the left vertices with a neighbour on the right.
-        let mut separator = Vec::new();
-        left.retain(|&v| {
-            let touches_right = adjacent[start[v as usize]..start[v as usize + 1]]
-                .iter()
-                .any(|&u| part[u as usize] == right_id);
-            if touches_right {
-                separator.push(v);
-            }
-            !touches_right
-        });
-        let separator_id = next_part;
-        next_part += 1;
-        for &v in &separator {
-            part[v as usize] = separator_id;
-        }
-        let _ = id;
-        // Stack order: left first, then right, then the separator.
-        stack.push(Task::Emit(separator));
-        stack.push(Task::Split(right, right_id));
-        stack.push(Task::Split(left, left_id));
-    }
+    dissection.dissect((0..n as u32).collect(), &mut order);
     order
+}
+
+/// Subsets this small are numbered as they come: their fill is negligible.
+const LEAF_SIZE: usize = 64;
+/// Subsets this large have their two halves dissected on separate threads.
+const PARALLEL_MIN: usize = 20_000;
+
+struct Dissection<'a> {
+    positions: &'a [[f64; 3]],
+    start: Vec<usize>,
+    adjacent: Vec<u32>,
+    /// Which subset each vertex is in, by a fresh id per subset. Concurrent dissections
+    /// write only their own vertices and compare only against their own ids, so relaxed
+    /// atomics suffice.
+    part: Vec<AtomicU32>,
+    next_part: AtomicU32,
+}
+
+impl Dissection<'_> {
+    /// Appends `set`'s elimination order to `order`: its halves, then its separator.
+    fn dissect(&self, set: Vec<u32>, order: &mut Vec<usize>) {
+        if set.len() <= LEAF_SIZE {
+            order.extend(set.iter().map(|&v| v as usize));
+            return;
+        }
+        let (left, right, separator) = self.split(set);
+        if left.len() + right.len() >= PARALLEL_MIN {
+            let mut right_order = Vec::with_capacity(right.len());
+            rayon::join(
+                || self.dissect(left, order),
+                || self.dissect(right, &mut right_order),
+            );
+            order.append(&mut right_order);
+        } else {
+            self.dissect(left, order);
+            self.dissect(right, order);
+        }
+        order.extend(separator.iter().map(|&v| v as usize));
+    }
+
+    /// Splits `set` into two halves and a separator between them. Tries a median cut
+    /// across each axis and keeps the smallest separator: the longest side of the
+    /// bounding box is a poor guide on curved surfaces, and the separators' sizes decide
+    /// the factor's fill.
+    fn split(&self, set: Vec<u32>) -> (Vec<u32>, Vec<u32>, Vec<u32>) {
+        let mut best: Option<(Vec<u32>, Vec<u32>, Vec<u32>)> = None;
+        for axis in 0..3 {
+            let mut trial = set.clone();
+            let mid = trial.len() / 2;
+            trial.select_nth_unstable_by(mid, |&a, &b| {
+                self.positions[a as usize][axis].total_cmp(&self.positions[b as usize][axis])
+            });
+            let right = trial.split_off(mid);
+            let left = trial;
+            let left_id = self.mark(&left);
+            let right_id = self.mark(&right);
+            // The separator is one side's vertices with a neighbour on the other side:
+            // whichever side has fewer.
+            let from_left = left.iter().filter(|&&v| self.touches(v, right_id)).count();
+            let from_right = right.iter().filter(|&&v| self.touches(v, left_id)).count();
+            let (size, cut, keep, other_id) = if from_left <= from_right {
+                (from_left, left, right, right_id)
+            } else {
+                (from_right, right, left, left_id)
+            };
+            if best.as_ref().is_none_or(|b| size < b.2.len()) {
+                let (separator, rest): (Vec<u32>, Vec<u32>) =
+                    cut.into_iter().partition(|&v| self.touches(v, other_id));
+                best = Some((rest, keep, separator));
+            }
+        }
+        let (left, right, separator) = best.expect("three trial cuts");
+        // Later trials re-marked the vertices: mark the chosen halves again so that each
+        // half's own dissection sees its neighbours across the cut as outside.
+        self.mark(&left);
+        self.mark(&right);
+        self.mark(&separator);
+        (left, right, separator)
+    }
+
+    /// Gives `vertices` a fresh subset id and returns it.
+    fn mark(&self, vertices: &[u32]) -> u32 {
+        let id = self.next_part.fetch_add(1, Relaxed);
+        for &v in vertices {
+            self.part[v as usize].store(id, Relaxed);
+        }
+        id
+    }
+
+    fn touches(&self, v: u32, part: u32) -> bool {
+        let v = v as usize;
+        self.adjacent[self.start[v]..self.start[v + 1]]
+            .iter()
+            .any(|&u| self.part[u as usize].load(Relaxed) == part)
+    }
 }
 
 #[cfg(test)]

@@ -263,6 +263,7 @@ printers = ["a", "b"]
     assert!(igea["state"] != "failed", "{igea}");
 
     // Clear printer a: it takes the waiting job. Kill the daemon mid-print.
+    assert_eq!(printer(&s, "a")["bed_cleared"], false);
     let (ok, out) = ctl(&config, &["clear", "a"]);
     assert!(ok, "{out}");
     wait_for(
@@ -303,6 +304,7 @@ printers = ["a", "b"]
     );
     assert_eq!(state_of(&s, &waiting), "interrupted");
     assert_eq!(printer(&s, "a")["state"], "bed_not_cleared");
+    assert_eq!(printer(&s, "a")["bed_cleared"], false);
     for f in dropped {
         if f != waiting {
             assert_eq!(
@@ -520,4 +522,175 @@ fn cancel_during_preparation_kills_the_slicer() {
     }
     // The dropped model is still accounted for.
     assert!(root.join("spool/jobs").join(&id).join("spot.obj").exists());
+}
+
+/// The printer's executed job commands (housekeeping dropped) as recorded by its simulator.
+fn job_gcode(root: &Path, id: &str, file: &str) -> Vec<String> {
+    let path = root
+        .join("spool/jobs")
+        .join(id)
+        .join(format!("{file}.gcode"));
+    GcodeProgram::load_for(&path, Firmware::Marlin2)
+        .unwrap()
+        .to_vec()
+}
+
+/// Asserts the recorded commands are a prefix of the job followed by the safe-stop lines
+/// (heaters, fan, motors off; on Marlin 2 after an M108 that breaks a heating wait).
+#[track_caller]
+fn assert_prefix_then_safe_stop(recorded: &[String], job: &[String]) {
+    let safe_stop = ["M104 S0", "M140 S0", "M107", "M84"].map(String::from);
+    let tail = &recorded[recorded.len().saturating_sub(8)..];
+    assert!(
+        recorded.ends_with(&safe_stop),
+        "the print must end with the safe-stop lines: {tail:?}"
+    );
+    let mut prefix = &recorded[..recorded.len() - safe_stop.len()];
+    if prefix.last().is_some_and(|c| c == "M108") {
+        prefix = &prefix[..prefix.len() - 1];
+    }
+    assert!(
+        prefix.len() < job.len(),
+        "the job was stopped before its end: {tail:?}"
+    );
+    if let Some(i) = (0..prefix.len()).find(|&i| prefix[i] != job[i]) {
+        panic!(
+            "executed command {i} is {:?}, the job's is {:?}",
+            prefix[i], job[i]
+        );
+    }
+}
+
+/// Pause, resume and cancel reach a print through the daemon; a cancelled job can be
+/// retried once the bed is cleared; and with `on_shutdown = "stop"` a SIGTERM stops the
+/// print safely, leaves its job interrupted, and the restarted daemon keeps the bed gate.
+#[test]
+fn print_controls_and_stop_at_shutdown() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    let rec = root.join("p.rec");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+             [farm]\nsettle_s = 0.5\non_shutdown = \"stop\"\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n\
+             [printer.simulate]\ntime_scale = 0.02\nrecord = \"{}\"\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
+            rec.display()
+        ),
+    )
+    .unwrap();
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
+    let mut daemon = Daemon::start(&config, &log);
+    std::fs::copy(&model, hot.join("spot.obj.part")).unwrap();
+    std::fs::rename(hot.join("spot.obj.part"), hot.join("spot.obj")).unwrap();
+
+    let acked = |s: &Value| {
+        printer(s, "p")["progress"]["lines_acked"]
+            .as_u64()
+            .unwrap_or(0)
+    };
+    let s = wait_for(&config, &log, Duration::from_secs(120), "printing", |s| {
+        printer(s, "p")["state"] == "printing" && acked(s) > 100
+    });
+    let id = job_by_file(&s, "spot.obj").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+
+    // Pause: no more lines are acknowledged while paused.
+    let (ok, out) = ctl(&config, &["pause", "p"]);
+    assert!(ok, "{out}");
+    let paused = wait_for(&config, &log, Duration::from_secs(20), "paused", |s| {
+        printer(s, "p")["state"] == "paused"
+    });
+    std::thread::sleep(Duration::from_millis(1500));
+    let s = status(&config).unwrap();
+    assert_eq!(printer(&s, "p")["state"], "paused");
+    assert_eq!(acked(&s), acked(&paused), "lines went on while paused");
+
+    // Resume: lines flow again.
+    let (ok, out) = ctl(&config, &["resume", "p"]);
+    assert!(ok, "{out}");
+    let before = acked(&s);
+    wait_for(&config, &log, Duration::from_secs(20), "resumed", |s| {
+        printer(s, "p")["state"] == "printing" && acked(s) > before + 50
+    });
+
+    // Cancel: the job ends cancelled, the printer ran the safe-stop lines, and the bed
+    // gate holds the printer.
+    let (ok, out) = ctl(&config, &["cancel", &id]);
+    assert!(ok, "{out}");
+    let s = wait_for(&config, &log, Duration::from_secs(30), "cancelled", |s| {
+        state_of(s, "spot.obj") == "cancelled" && printer(s, "p")["state"] == "bed_not_cleared"
+    });
+    assert_eq!(printer(&s, "p")["bed_cleared"], false);
+    let job = job_gcode(root, &id, "spot.obj");
+    assert_prefix_then_safe_stop(&recorded(&rec), &job);
+
+    // Retry: the job waits for the bed, then prints again from its first line.
+    let (ok, out) = ctl(&config, &["retry", &id]);
+    assert!(ok, "{out}");
+    std::thread::sleep(Duration::from_secs(2));
+    let s = status(&config).unwrap();
+    assert_ne!(
+        state_of(&s, "spot.obj"),
+        "printing",
+        "the bed gate holds a retried job"
+    );
+    let executed_before_retry = recorded(&rec).len();
+    let (ok, out) = ctl(&config, &["clear", "p"]);
+    assert!(ok, "{out}");
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "printing again",
+        |s| state_of(s, "spot.obj") == "printing" && acked(s) > 100,
+    );
+
+    // SIGTERM with on_shutdown = "stop": the print stops safely and the daemon exits.
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(daemon.child.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    let start = Instant::now();
+    let exit = loop {
+        if let Some(exit) = daemon.child.try_wait().unwrap() {
+            break exit;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "the daemon did not exit after SIGTERM\nlog:\n{}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(exit.success(), "{exit:?}");
+    let retried = recorded(&rec)[executed_before_retry..].to_vec();
+    assert_prefix_then_safe_stop(&retried, &job);
+    let stored: Value = serde_json::from_slice(
+        &std::fs::read(root.join("spool/jobs").join(&id).join("job.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(stored["state"], "interrupted", "{stored}");
+    assert!(
+        stored["reason"].as_str().unwrap_or("").contains("shutdown"),
+        "{stored}"
+    );
+
+    // After a restart the job is still interrupted and the bed still needs clearing.
+    let _daemon = Daemon::start(&config, &log);
+    let s = wait_for(&config, &log, Duration::from_secs(30), "restarted", |s| {
+        s["printers"].as_array().is_some_and(|p| p.len() == 1)
+    });
+    assert_eq!(state_of(&s, "spot.obj"), "interrupted");
+    assert_eq!(printer(&s, "p")["bed_cleared"], false);
+    assert!(root.join("spool/jobs").join(&id).join("spot.obj").is_file());
 }

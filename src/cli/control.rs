@@ -110,6 +110,12 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
                 .map(|d| format!("  ({d})"))
                 .unwrap_or_default()
         );
+        if !p.bed_cleared {
+            println!(
+                "{:<16} bed not cleared: remove the print, then `crispen clear {}`",
+                "", p.name
+            );
+        }
     }
     println!();
     println!("JOB                          STATE        PRINTER          FILE / REASON");

@@ -104,7 +104,7 @@ pub fn request(socket: &Path, req: &Request) -> Result<Response, ControlError> {
 
 /// Builds the status snapshot.
 pub fn status(farm: &Farm) -> Status {
-    let printers: Vec<PrinterStatus> = farm
+    let mut printers: Vec<PrinterStatus> = farm
         .printers
         .lock()
         .unwrap_or_else(|e| e.into_inner())
@@ -119,6 +119,9 @@ pub fn status(farm: &Farm) -> Status {
         .map(|(id, p)| (id.clone(), p.step.clone()))
         .collect();
     let store = farm.store();
+    for p in &mut printers {
+        p.bed_cleared = !store.gate(&p.name).bed_not_cleared;
+    }
     let jobs = store
         .jobs()
         .map(|j| JobStatus {
@@ -165,9 +168,12 @@ pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
         Request::Cancel { job } => cancel(farm, &job).await,
         Request::Retry { job } => {
             let r = farm.store().retry(&job).map_err(|e| e.to_string());
-            r.map(|_| {
+            r.map(|retried| {
                 farm.bump();
-                Some(format!("job {job} queued again"))
+                Some(match retried.state {
+                    JobState::Ready => format!("job {job} is ready to print again"),
+                    _ => format!("job {job} queued for preparation again"),
+                })
             })
         }
     };

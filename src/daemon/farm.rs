@@ -51,6 +51,9 @@ pub struct PrinterStatus {
     pub progress: Option<LiveProgress>,
     /// Why the printer is in its state (e.g. the last connection error).
     pub detail: Option<String>,
+    /// False from the end of a print until `crispen clear`, whatever the connection
+    /// does meanwhile: an offline printer can still have a finished print on its bed.
+    pub bed_cleared: bool,
 }
 
 /// What a control command asks of a print in progress.

@@ -422,9 +422,22 @@ impl JobStore {
                 allowed: "failed, cancelled or interrupted",
             });
         }
+        // A job that was prepared keeps its G-code: printing it again is what a retry
+        // after a cancelled or interrupted print means, and slicing again would give a
+        // slightly different program (PrusaSlicer's output varies from run to run).
+        let prepared = job.slice_report.is_some()
+            && self
+                .job_dir(id)
+                .join(format!("{}.gcode", job.file))
+                .is_file();
+        let state = if prepared {
+            JobState::Ready
+        } else {
+            JobState::Queued
+        };
         self.update(id, |j| {
-            j.state = JobState::Queued;
-            j.history.push((JobState::Queued, now_s()));
+            j.state = state;
+            j.history.push((state, now_s()));
             j.reason = None;
             j.printer = None;
         })
@@ -521,9 +534,19 @@ mod tests {
             .transition(&a, JobState::Failed, Some("bad mesh".into()))
             .unwrap();
         let job = store.retry(&a).unwrap();
-        assert_eq!(job.state, JobState::Queued);
+        assert_eq!(job.state, JobState::Queued, "nothing prepared: prepare again");
         assert_eq!(job.reason, None);
         assert!(matches!(store.retry("nope"), Err(StoreError::NoSuchJob(_))));
+
+        // Prepared, then cancelled in print: straight back to ready with its G-code.
+        std::fs::write(store.job_dir(&a).join("a.stl.gcode"), b"G28\n").unwrap();
+        store
+            .update(&a, |j| j.slice_report = Some(serde_json::json!({})))
+            .unwrap();
+        store
+            .transition(&a, JobState::Cancelled, Some("cancelled".into()))
+            .unwrap();
+        assert_eq!(store.retry(&a).unwrap().state, JobState::Ready);
     }
 
     #[test]

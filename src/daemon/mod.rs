@@ -150,6 +150,7 @@ pub async fn run_with(
                     job: None,
                     progress: None,
                     detail: None,
+                    bed_cleared: true,
                 },
             );
         }

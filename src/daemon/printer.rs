@@ -359,7 +359,9 @@ impl PrinterLink for MarlinLink {
                         }
                         let p = inner_rx.borrow_and_update().clone();
                         let heated = heat_end.is_none_or(|i| p.lines_acked > i);
-                        let paused = matches!(p.state, PrintState::Paused | PrintState::Pausing);
+                        // Paused once the printer has drained the lines in flight: until
+                        // then it is still printing them.
+                        let paused = p.state == PrintState::Paused;
                         // The streamer publishes on every acknowledgement; the farm only
                         // needs a few updates a second, or at once when heat-up or pause
                         // state changes (the heating permit waits on it).

@@ -1,8 +1,10 @@
-//! End-to-end test of `crispen run`: the real binary, two simulated printers on real ptys
-//! (declared in the config), the real PrusaSlicer, real files dropped into a hot folder.
-//! It checks pick-up (rename-in, slow copy, sidecar), failure of a corrupt model, the
-//! bed-clear gate, exactly-once delivery of every done job's G-code, and recovery after
-//! `kill -9` in the middle of a print.
+//! End-to-end tests of `crispen run`: the real binary, simulated printers on real ptys
+//! (declared in the config, or separate `crispen sim` processes), the real PrusaSlicer,
+//! real files dropped into a hot folder. They check pick-up (rename-in, slow copy,
+//! sidecar), failure of a corrupt model, the bed-clear gate, exactly-once delivery of
+//! every done job's G-code, recovery after `kill -9` in the middle of a print, print
+//! controls (pause, resume, cancel, retry), a safe stop at SIGTERM, an unplugged printer
+//! and its reconnection, and printers added and removed by SIGHUP.
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
@@ -693,4 +695,222 @@ fn print_controls_and_stop_at_shutdown() {
     assert_eq!(state_of(&s, "spot.obj"), "interrupted");
     assert_eq!(printer(&s, "p")["bed_cleared"], false);
     assert!(root.join("spool/jobs").join(&id).join("spot.obj").is_file());
+}
+
+/// A `crispen sim` process of its own (not one the daemon starts), so the test can pull
+/// its plug and put a new one in its place.
+struct SimProcess {
+    child: Child,
+}
+
+impl SimProcess {
+    fn start(link: &Path, record: &Path, faults: &[&str]) -> SimProcess {
+        let _ = std::fs::remove_file(link);
+        let child = Command::new(BIN)
+            .args([
+                "sim",
+                "--firmware",
+                "marlin2",
+                "--time-scale",
+                "0.02",
+                "--link",
+            ])
+            .arg(link)
+            .arg("--record")
+            .arg(record)
+            .args(faults)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let start = Instant::now();
+        while std::fs::read_link(link).is_err() {
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "sim link never appeared"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        SimProcess { child }
+    }
+}
+
+impl Drop for SimProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A printer unplugged mid-print over a noisy link (corrupt bytes, garbage answers): the
+/// job ends interrupted with the last acknowledged line, having executed an exact prefix
+/// of its G-code; the supervisor reconnects when a printer is back on the port, holds it
+/// for the bed clear, and a retried job then prints whole, exactly once.
+#[test]
+fn unplugged_printer_interrupts_the_job_and_reconnects() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let link = root.join("ttyUM2");
+    let (rec1, rec2) = (root.join("first.rec"), root.join("second.rec"));
+    let first = SimProcess::start(
+        &link,
+        &rec1,
+        &[
+            "--unplug-after",
+            "600",
+            "--corrupt",
+            "0.01",
+            "--garbage",
+            "0.01",
+            "--seed",
+            "7",
+        ],
+    );
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.5\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\nport = \"{}\"\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
+            link.display()
+        ),
+    )
+    .unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
+    std::fs::copy(&model, hot.join("spot.obj.part")).unwrap();
+    std::fs::rename(hot.join("spot.obj.part"), hot.join("spot.obj")).unwrap();
+
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "interrupted",
+        |s| state_of(s, "spot.obj") == "interrupted",
+    );
+    let job = job_by_file(&s, "spot.obj").unwrap();
+    let id = job["id"].as_str().unwrap().to_string();
+    let reason = job["reason"].as_str().unwrap_or("");
+    assert!(
+        reason.contains("disconnected") && reason.contains("last acknowledged line"),
+        "{reason}"
+    );
+    assert_eq!(printer(&s, "p")["bed_cleared"], false);
+    let gcode = job_gcode(root, &id, "spot.obj");
+    let executed = recorded(&rec1);
+    assert!(
+        executed.len() > 100 && executed.len() < gcode.len(),
+        "{} of {} lines",
+        executed.len(),
+        gcode.len()
+    );
+    if let Some(i) = (0..executed.len()).find(|&i| executed[i] != gcode[i]) {
+        panic!(
+            "executed command {i} is {:?}, the job's is {:?}",
+            executed[i], gcode[i]
+        );
+    }
+    drop(first);
+
+    // Plug a printer back in: the supervisor finds it and holds it for the bed clear.
+    let _second = SimProcess::start(&link, &rec2, &[]);
+    wait_for(&config, &log, Duration::from_secs(60), "reconnected", |s| {
+        printer(s, "p")["state"] == "bed_not_cleared"
+    });
+    for args in [["retry", id.as_str()], ["clear", "p"]] {
+        let (ok, out) = ctl(&config, &args);
+        assert!(ok, "{out}");
+    }
+    wait_for(&config, &log, Duration::from_secs(240), "printed", |s| {
+        state_of(s, "spot.obj") == "done"
+    });
+    assert!(
+        recorded(&rec2) == gcode,
+        "the retried print ran the job exactly once"
+    );
+}
+
+/// SIGHUP applies printer changes: an added printer starts and takes work, a removed
+/// one leaves the status; the other printers carry on untouched.
+#[test]
+fn reload_adds_and_retires_printers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    let write_config = |printers: &[&str], folder_printers: &str| {
+        let mut text = String::from(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.5\n",
+        );
+        for name in printers {
+            text.push_str(&format!(
+                "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n\
+                 [printer.simulate]\ntime_scale = 0.0\n"
+            ));
+        }
+        text.push_str(&format!(
+            "[[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [{folder_printers}]\n"
+        ));
+        std::fs::write(&config, text).unwrap();
+    };
+    let names = |s: &Value| -> Vec<String> {
+        s["printers"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["name"].as_str().unwrap().to_string())
+            .collect()
+    };
+    write_config(&["a"], "\"a\"");
+    let daemon = Daemon::start(&config, &log);
+    let hup = || {
+        nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(daemon.child.id() as i32),
+            nix::sys::signal::Signal::SIGHUP,
+        )
+        .unwrap()
+    };
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(20),
+        "printer a idle",
+        |s| printer(s, "a")["state"] == "idle",
+    );
+
+    // Add b, and give the folder to b alone: b starts and prints the next job.
+    write_config(&["a", "b"], "\"b\"");
+    hup();
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(20),
+        "printer b idle",
+        |s| names(s) == ["a", "b"] && printer(s, "b")["state"] == "idle",
+    );
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
+    std::fs::copy(&model, root.join("hot/spot.obj.part")).unwrap();
+    std::fs::rename(root.join("hot/spot.obj.part"), root.join("hot/spot.obj")).unwrap();
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "printed on b",
+        |s| state_of(s, "spot.obj") == "done",
+    );
+    assert_eq!(job_by_file(&s, "spot.obj").unwrap()["printer"], "b");
+    assert_eq!(printer(&s, "a")["state"], "idle", "a was not disturbed");
+
+    // Remove a: it leaves the status, b keeps its bed gate.
+    write_config(&["b"], "\"b\"");
+    hup();
+    let s = wait_for(&config, &log, Duration::from_secs(20), "a retired", |s| {
+        names(s) == ["b"]
+    });
+    assert_eq!(printer(&s, "b")["state"], "bed_not_cleared");
 }

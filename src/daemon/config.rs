@@ -155,7 +155,7 @@ pub enum PrinterPort {
     },
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct PrinterConfig {
     pub name: String,
     pub port: PrinterPort,

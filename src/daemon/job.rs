@@ -534,7 +534,11 @@ mod tests {
             .transition(&a, JobState::Failed, Some("bad mesh".into()))
             .unwrap();
         let job = store.retry(&a).unwrap();
-        assert_eq!(job.state, JobState::Queued, "nothing prepared: prepare again");
+        assert_eq!(
+            job.state,
+            JobState::Queued,
+            "nothing prepared: prepare again"
+        );
         assert_eq!(job.reason, None);
         assert!(matches!(store.retry("nope"), Err(StoreError::NoSuchJob(_))));
 

@@ -11,7 +11,7 @@
 //! - [`farm`]: the state all of these share.
 //!
 //! [`run`] wires them together; I/O endpoints (printer ports, the preparer) are resolved
-//! once here at startup, so no other part knows whether a printer is simulated.
+//! here, at startup and on a reload, so no other part knows whether a printer is simulated.
 
 pub mod config;
 pub mod control;
@@ -21,15 +21,15 @@ pub mod job;
 pub mod prepare;
 pub mod printer;
 
-use config::{Config, PrinterPort};
+use config::{Config, PrinterConfig, PrinterPort};
 use farm::{Farm, PrinterState, PrinterStatus};
 use job::{JobState, JobStore};
 use prepare::Preparer;
-use printer::Connector;
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::{mpsc, Semaphore};
+use tokio::sync::{mpsc, watch, Semaphore};
 use tracing::Instrument;
 
 #[derive(Debug, thiserror::Error)]
@@ -55,54 +55,156 @@ pub struct RunOptions {
     pub exit_when_idle: bool,
 }
 
-/// A printer endpoint resolved at startup. Simulators live as long as the daemon.
-struct ResolvedPrinters {
-    connectors: Vec<(String, String, String, Box<dyn Connector>)>,
-    _simulators: Vec<Box<dyn std::any::Any + Send>>,
+/// The printer supervisors, one per configured printer, and how a reload changes them:
+/// a printer added to the config starts at once; one removed or changed retires when it
+/// is not printing (a print in progress is never cut short by a reload), and a changed
+/// one then starts again with its new settings.
+struct Fleet {
+    running: BTreeMap<String, Supervised>,
+    /// Retired supervisors still finishing a print.
+    retiring: Vec<Supervised>,
+    /// New settings for printers whose old supervisor is still retiring.
+    waiting: Vec<PrinterConfig>,
 }
 
-fn resolve_printers(config: &Config) -> Result<ResolvedPrinters, DaemonError> {
-    let mut connectors = Vec::new();
-    let mut simulators: Vec<Box<dyn std::any::Any + Send>> = Vec::new();
-    for p in &config.printers {
-        let port = match &p.port {
-            PrinterPort::Serial(path) => path.clone(),
+struct Supervised {
+    spec: PrinterConfig,
+    task: tokio::task::JoinHandle<()>,
+    retire: watch::Sender<bool>,
+    /// Keeps a simulated printer alive as long as its supervisor.
+    _simulator: Option<crate::marlin::sim::SimHandle>,
+}
+
+impl Fleet {
+    fn start_all(farm: &Arc<Farm>, printers: &[PrinterConfig]) -> Result<Fleet, DaemonError> {
+        let mut fleet = Fleet {
+            running: BTreeMap::new(),
+            retiring: Vec::new(),
+            waiting: Vec::new(),
+        };
+        for spec in printers {
+            fleet.start(farm, spec.clone())?;
+        }
+        Ok(fleet)
+    }
+
+    /// Resolves the printer's port (starting its simulator if it has one), shows it in
+    /// the status and starts its supervisor.
+    fn start(&mut self, farm: &Arc<Farm>, spec: PrinterConfig) -> Result<(), DaemonError> {
+        let (port, simulator) = match &spec.port {
+            PrinterPort::Serial(path) => (path.clone(), None),
             PrinterPort::Simulated {
                 time_scale,
                 seed,
                 record,
             } => {
-                let mut sim = crate::marlin::sim::SimConfig::new(p.firmware);
+                let mut sim = crate::marlin::sim::SimConfig::new(spec.firmware);
                 sim.time_scale = *time_scale;
                 sim.seed = *seed;
                 sim.record = record.clone();
                 let handle =
                     crate::marlin::sim::spawn(sim).map_err(|e| DaemonError::Simulator {
-                        printer: p.name.clone(),
+                        printer: spec.name.clone(),
                         message: e.to_string(),
                     })?;
                 let device = handle.device_path().to_path_buf();
-                tracing::info!(printer = %p.name, device = %device.display(), time_scale, "simulated printer started");
-                simulators.push(Box::new(handle));
-                device
+                tracing::info!(printer = %spec.name, device = %device.display(), time_scale, "simulated printer started");
+                (device, Some(handle))
             }
         };
-        let connector: Box<dyn Connector> = Box::new(printer::MarlinConnector {
-            port: port.clone(),
-            firmware: p.firmware,
-            baud: p.baud,
+        farm.printers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(
+                spec.name.clone(),
+                PrinterStatus {
+                    name: spec.name.clone(),
+                    state: PrinterState::Connecting,
+                    firmware: spec.firmware.name().to_string(),
+                    port: port.display().to_string(),
+                    job: None,
+                    progress: None,
+                    detail: None,
+                    bed_cleared: true,
+                },
+            );
+        let connector = Box::new(printer::MarlinConnector {
+            port,
+            firmware: spec.firmware,
+            baud: spec.baud,
         });
-        connectors.push((
-            p.name.clone(),
-            p.firmware.name().to_string(),
-            port.display().to_string(),
+        let (retire, retired) = watch::channel(false);
+        let task = tokio::spawn(printer::supervise(
+            Arc::clone(farm),
+            spec.name.clone(),
             connector,
+            retired,
         ));
+        self.running.insert(
+            spec.name.clone(),
+            Supervised {
+                spec,
+                task,
+                retire,
+                _simulator: simulator,
+            },
+        );
+        Ok(())
     }
-    Ok(ResolvedPrinters {
-        connectors,
-        _simulators: simulators,
-    })
+
+    /// Applies a reloaded config's printers.
+    fn apply(&mut self, farm: &Arc<Farm>, printers: &[PrinterConfig]) {
+        let names: Vec<String> = self.running.keys().cloned().collect();
+        for name in names {
+            let spec = &self.running[&name].spec;
+            match printers.iter().find(|p| p.name == name) {
+                Some(new) if new == spec => {}
+                new => {
+                    let old = self.running.remove(&name).expect("listed above");
+                    old.retire.send_replace(true);
+                    tracing::info!(printer = %name, "config reload: retiring the printer's supervisor");
+                    self.retiring.push(old);
+                    if let Some(new) = new {
+                        self.waiting.push(new.clone());
+                    }
+                }
+            }
+        }
+        self.waiting
+            .retain(|w| printers.iter().any(|p| p.name == w.name));
+        for new in printers {
+            if !self.running.contains_key(&new.name)
+                && !self.waiting.iter().any(|w| w.name == new.name)
+            {
+                self.waiting.push(new.clone());
+            }
+        }
+        self.settle(farm);
+    }
+
+    /// Lets go of retired supervisors that have finished and starts the waiting printers
+    /// whose names are free again.
+    fn settle(&mut self, farm: &Arc<Farm>) {
+        self.retiring.retain(|s| !s.task.is_finished());
+        let waiting = std::mem::take(&mut self.waiting);
+        for spec in waiting {
+            if self.retiring.iter().any(|s| s.spec.name == spec.name) {
+                self.waiting.push(spec);
+                continue;
+            }
+            let name = spec.name.clone();
+            if let Err(e) = self.start(farm, spec) {
+                tracing::error!(printer = %name, error = %e, "config reload: cannot start the printer");
+            }
+        }
+    }
+
+    /// Waits for every supervisor to end (after [`Farm::begin_stop`]).
+    async fn join(self) {
+        for s in self.running.into_values().chain(self.retiring) {
+            let _ = s.task.await;
+        }
+    }
 }
 
 /// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`).
@@ -127,7 +229,6 @@ pub async fn run_with(
         tracing::warn!(job = %id, state = job.state.name(), "job found mid-flight after a restart");
     }
     let listener = control::bind(&config.socket)?;
-    let resolved = resolve_printers(&config)?;
     tracing::info!(
         config = %config.source.display(),
         spool = %config.spool_dir.display(),
@@ -137,36 +238,10 @@ pub async fn run_with(
         "crispen daemon starting"
     );
     let farm = Farm::new(config.clone(), store);
-    {
-        let mut printers = farm.printers.lock().unwrap_or_else(|e| e.into_inner());
-        for (name, firmware, port, _) in &resolved.connectors {
-            printers.insert(
-                name.clone(),
-                PrinterStatus {
-                    name: name.clone(),
-                    state: PrinterState::Connecting,
-                    firmware: firmware.clone(),
-                    port: port.clone(),
-                    job: None,
-                    progress: None,
-                    detail: None,
-                    bed_cleared: true,
-                },
-            );
-        }
-    }
-
+    let mut fleet = Fleet::start_all(&farm, &config.printers)?;
     let control_task = tokio::spawn(control::serve(Arc::clone(&farm), listener));
     let mut pickup = spawn_pickup(&farm, &config);
     let prepare_task = tokio::spawn(prepare_loop(Arc::clone(&farm), preparer));
-    let mut supervisors = Vec::new();
-    for (name, _, _, connector) in resolved.connectors {
-        supervisors.push(tokio::spawn(printer::supervise(
-            Arc::clone(&farm),
-            name,
-            connector,
-        )));
-    }
 
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     let mut watchdog_usec = 0u64;
@@ -183,9 +258,10 @@ pub async fn run_with(
             _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
             _ = sigint.recv() => { tracing::info!("SIGINT: stopping"); break; }
             _ = sighup.recv() => {
-                reload(&farm, &options, &mut pickup);
+                reload(&farm, &options, &mut pickup, &mut fleet);
             }
             _ = ticker.tick() => {
+                fleet.settle(&farm);
                 if watchdog {
                     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
                 }
@@ -210,9 +286,7 @@ pub async fn run_with(
     farm.begin_stop();
     pickup.abort();
     let _ = prepare_task.await;
-    for s in supervisors {
-        let _ = s.await;
-    }
+    fleet.join().await;
     control_task.abort();
     let _ = std::fs::remove_file(&farm.config().socket);
     tracing::info!("crispen daemon stopped");
@@ -238,9 +312,15 @@ fn summary(farm: &Farm) -> String {
     )
 }
 
-/// SIGHUP: re-read the config file. A bad file is refused and the old config kept. Folder
-/// and farm settings take effect at once; changes to printers need a restart.
-fn reload(farm: &Arc<Farm>, options: &RunOptions, pickup: &mut tokio::task::JoinHandle<()>) {
+/// SIGHUP: re-read the config file. A bad file is refused and the old config kept. Folder,
+/// farm and printer changes take effect (printers as [`Fleet::apply`] says); the spool and
+/// the control socket need a restart.
+fn reload(
+    farm: &Arc<Farm>,
+    options: &RunOptions,
+    pickup: &mut tokio::task::JoinHandle<()>,
+    fleet: &mut Fleet,
+) {
     let Some(path) = &options.config_path else {
         tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
         return;
@@ -252,20 +332,12 @@ fn reload(farm: &Arc<Farm>, options: &RunOptions, pickup: &mut tokio::task::Join
             if new.spool_dir != old.spool_dir || new.socket != old.socket {
                 tracing::warn!("SIGHUP: [spool] and [control] changes need a restart; ignored");
             }
-            let printers_changed =
-                new.printers.len() != old.printers.len()
-                    || new.printers.iter().zip(&old.printers).any(|(a, b)| {
-                        a.name != b.name || a.port != b.port || a.firmware != b.firmware
-                    });
-            if printers_changed {
-                tracing::warn!("SIGHUP: [[printer]] changes need a restart; the rest is applied");
-            }
             let mut merged = new;
             merged.spool_dir = old.spool_dir.clone();
             merged.socket = old.socket.clone();
-            merged.printers = old.printers.clone();
             pickup.abort();
             *farm.config.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(merged.clone());
+            fleet.apply(farm, &merged.printers);
             *pickup = spawn_pickup(farm, &merged);
             farm.bump();
             tracing::info!("SIGHUP: config reloaded");

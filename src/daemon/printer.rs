@@ -71,19 +71,31 @@ pub fn heat_up_end<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Opti
     last
 }
 
-/// Runs one printer's supervisor until shutdown.
-pub async fn supervise(farm: Arc<Farm>, name: String, connector: Box<dyn Connector>) {
+/// Runs one printer's supervisor until shutdown, or until `retire` turns true (the printer
+/// left the config or changed); either takes effect between prints, never during one.
+pub async fn supervise(
+    farm: Arc<Farm>,
+    name: String,
+    connector: Box<dyn Connector>,
+    retire: watch::Receiver<bool>,
+) {
     let span = tracing::info_span!("printer", printer = %name);
-    supervise_inner(farm, name, connector)
+    supervise_inner(farm, name, connector, retire)
         .instrument(span)
         .await
 }
 
-async fn supervise_inner(farm: Arc<Farm>, name: String, connector: Box<dyn Connector>) {
+async fn supervise_inner(
+    farm: Arc<Farm>,
+    name: String,
+    connector: Box<dyn Connector>,
+    mut retire: watch::Receiver<bool>,
+) {
     let mut backoff = Duration::from_millis(500);
     let mut stopping = farm.subscribe_stopping();
+    let done = |retire: &watch::Receiver<bool>| farm.stopping() || *retire.borrow();
     'connect: loop {
-        if farm.stopping() {
+        if done(&retire) {
             break;
         }
         farm.set_printer(&name, |p| p.state = PrinterState::Connecting);
@@ -102,6 +114,7 @@ async fn supervise_inner(farm: Arc<Farm>, name: String, connector: Box<dyn Conne
                 tokio::select! {
                     _ = tokio::time::sleep(backoff) => {}
                     _ = stopping.changed() => {}
+                    _ = retire.changed() => {}
                 }
                 backoff = (backoff * 2).min(Duration::from_secs(30));
                 continue;
@@ -110,7 +123,7 @@ async fn supervise_inner(farm: Arc<Farm>, name: String, connector: Box<dyn Conne
         farm.set_printer(&name, |p| p.detail = None);
         loop {
             let mut wake = farm.subscribe();
-            if farm.stopping() {
+            if done(&retire) {
                 break 'connect;
             }
             let gate = farm.store().gate(&name);
@@ -119,7 +132,10 @@ async fn supervise_inner(farm: Arc<Farm>, name: String, connector: Box<dyn Conne
                     p.state = PrinterState::BedNotCleared;
                     p.job = gate.last_job.clone();
                 });
-                let _ = wake.changed().await;
+                tokio::select! {
+                    _ = wake.changed() => {}
+                    _ = retire.changed() => {}
+                }
                 continue;
             }
             let Some(job_id) = claim_job(&farm, &name) else {
@@ -128,7 +144,10 @@ async fn supervise_inner(farm: Arc<Farm>, name: String, connector: Box<dyn Conne
                     p.job = None;
                     p.progress = None;
                 });
-                let _ = wake.changed().await;
+                tokio::select! {
+                    _ = wake.changed() => {}
+                    _ = retire.changed() => {}
+                }
                 continue;
             };
             let span = tracing::info_span!("job", job = %job_id);
@@ -140,7 +159,15 @@ async fn supervise_inner(farm: Arc<Farm>, name: String, connector: Box<dyn Conne
             }
         }
     }
-    farm.set_printer(&name, |p| p.state = PrinterState::Stopped);
+    if *retire.borrow() && !farm.stopping() {
+        tracing::info!("supervisor retired by a config reload");
+        farm.printers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&name);
+    } else {
+        farm.set_printer(&name, |p| p.state = PrinterState::Stopped);
+    }
 }
 
 /// Takes the oldest ready job this printer may print, marking it printing.

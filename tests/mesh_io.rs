@@ -97,11 +97,18 @@ fn truncated_ascii_stl_is_refused() {
         }
         other => panic!("{other:?}"),
     }
+    // Cut in the middle of a vertex line, as a copy in progress leaves it.
+    let mid_line = &ASCII_STL[..ASCII_STL.rfind("vertex").unwrap() + 10];
+    let text = read(mid_line.as_bytes()).unwrap_err().to_string();
+    assert!(text.contains("truncated"), "{text}");
+    // A complete file with a bad number is malformed, not truncated.
     let garbled = ASCII_STL.replace("vertex 0 1 0", "vertex 0 one 0");
-    assert!(matches!(
-        read(garbled.as_bytes()),
-        Err(MeshError::Parse { .. })
-    ));
+    match read(garbled.as_bytes()) {
+        Err(e @ MeshError::Parse { .. }) => {
+            assert!(!e.to_string().contains("truncated"), "{e}")
+        }
+        other => panic!("{other:?}"),
+    }
 }
 
 #[test]
@@ -320,6 +327,29 @@ fn three_mf_applies_build_and_component_transforms_and_units() {
         .collect();
     assert_eq!(loaded.mesh.vertices, expected);
     assert_eq!(loaded.mesh.faces, tetrahedron().faces);
+}
+
+#[test]
+fn three_mf_without_build_takes_each_top_level_object_once() {
+    // Object 2 places object 1 (shifted up by 5); with no <build>, only 2 is printed, not
+    // 1 as well.
+    let model = r#"<?xml version="1.0"?>
+<model unit="millimeter" xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02">
+ <resources>
+  <object id="1"><mesh><vertices>VERTICES</vertices><triangles>TRIANGLES</triangles></mesh></object>
+  <object id="2"><components><component objectid="1" transform="1 0 0 0 1 0 0 0 1 0 0 5"/></components></object>
+ </resources>
+</model>"#
+        .replace("VERTICES", TETRA_VERTICES)
+        .replace("TRIANGLES", TETRA_TRIANGLES);
+    let loaded = read(&three_mf(&[("3D/3dmodel.model", &model)])).unwrap();
+    assert_eq!(loaded.mesh.faces, tetrahedron().faces);
+    let shifted: Vec<[f64; 3]> = tetrahedron()
+        .vertices
+        .iter()
+        .map(|v| [v[0], v[1], v[2] + 5.0])
+        .collect();
+    assert_eq!(loaded.mesh.vertices, shifted);
 }
 
 #[test]

@@ -53,6 +53,13 @@ pub(super) fn parse_ascii(
     let mut cursor = Cursor::new(normalised);
     let reader = stl_io::create_stl_reader(&mut cursor)
         .map_err(|e| parse_error(source_name, "first line", e))?;
+    // A file cut short (a copy in progress, a failed download) ends without `endsolid`:
+    // say so, rather than reporting the last, half-written facet as malformed.
+    let complete = bytes
+        .trim_ascii_end()
+        .rsplit(|&b| b == b'\n')
+        .next()
+        .is_some_and(|last| last.trim_ascii_start().starts_with(b"endsolid"));
     collect(
         reader,
         estimate.min(limits.max_faces),
@@ -60,6 +67,22 @@ pub(super) fn parse_ascii(
         limits,
         |i| format!("facet {}", i + 1),
     )
+    .map_err(|e| match e {
+        MeshError::Parse {
+            source_name,
+            format,
+            location,
+            ..
+        } if !complete => MeshError::Parse {
+            source_name,
+            format,
+            location,
+            message: "the file ends here without `endsolid`: it is truncated (or still being \
+                      copied)"
+                .into(),
+        },
+        other => other,
+    })
 }
 
 fn collect(

@@ -6,7 +6,7 @@
 
 use super::{Limits, MeshError, MeshFormat, RawMesh};
 use quick_xml::events::{BytesStart, Event};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::io::{Cursor, Read};
 
 /// Affine map in 3MF's row-vector convention: p' = p·A + t, stored as rows of A, then t.
@@ -121,8 +121,25 @@ pub(super) fn parse(
         [0.; 3],
     ];
     let items: Vec<(String, Transform)> = if root_part.build.is_empty() {
-        // No build section: take every object that is not only a component of another.
-        let mut ids: Vec<&String> = root_part.objects.keys().collect();
+        // No build section (the spec requires one, but some exporters leave it out):
+        // take every object that is not a component of another, so that an assembly's
+        // parts are not counted twice.
+        let used: HashSet<&str> = root_part
+            .objects
+            .values()
+            .filter_map(|o| match o {
+                Object::Components(components) => Some(components),
+                Object::Mesh { .. } => None,
+            })
+            .flatten()
+            .filter(|c| c.part.is_empty() || normalise_part_name(&c.part) == root_key)
+            .map(|c| c.object_id.as_str())
+            .collect();
+        let mut ids: Vec<&String> = root_part
+            .objects
+            .keys()
+            .filter(|id| !used.contains(id.as_str()))
+            .collect();
         ids.sort();
         ids.into_iter().map(|id| (id.clone(), IDENTITY)).collect()
     } else {

@@ -101,11 +101,8 @@ fn peak_rss_mib() -> f64 {
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
-/// One case, in this (child) process: load or make the mesh, compute bands, combine,
-/// write; print one line of figures.
-fn run_case(name: &str, solver: &str) {
-    let t = Instant::now();
-    // MODEL or MODEL-xK: a shared model, or it subdivided with k segments per edge.
+/// MODEL or MODEL-xK: a shared model, or it subdivided with k segments per edge.
+fn case_mesh(name: &str) -> Mesh {
     let (model, k) = match name.split_once("-x") {
         Some((model, k)) => (model, k.parse().expect("case MODEL-xK")),
         None => (name, 1),
@@ -113,7 +110,18 @@ fn run_case(name: &str, solver: &str) {
     let base = mesh::load(&models().join(format!("{model}.obj")))
         .unwrap()
         .mesh;
-    let mesh = if k == 1 { base } else { subdivide(&base, k) };
+    if k == 1 {
+        base
+    } else {
+        subdivide(&base, k)
+    }
+}
+
+/// One case, in this (child) process: load or make the mesh, compute bands, combine,
+/// write; print one line of figures.
+fn run_case(name: &str, solver: &str) {
+    let t = Instant::now();
+    let mesh = case_mesh(name);
     let load_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let chosen = match solver {
@@ -156,6 +164,11 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     if let Some(i) = args.iter().position(|a| a == "--case") {
         run_case(&args[i + 1], args.get(i + 2).map_or("auto", String::as_str));
+        return;
+    }
+    if let Some(i) = args.iter().position(|a| a == "--write-mesh") {
+        // For profiling outside the benchmark: `-- --write-mesh homer-x13 /tmp/big.obj`.
+        mesh::save(Path::new(&args[i + 2]), &case_mesh(&args[i + 1])).unwrap();
         return;
     }
     if let Some(i) = args.iter().position(|a| a == "--file-to-file") {
@@ -209,8 +222,7 @@ fn main() {
     file_to_file(&exe, &models().join("bunny.obj"), 7, dir.path());
     if !quick {
         let big = dir.path().join("homer-x13.obj");
-        let homer = mesh::load(&models().join("homer.obj")).unwrap().mesh;
-        mesh::save(&big, &subdivide(&homer, 13)).unwrap();
+        mesh::save(&big, &case_mesh("homer-x13")).unwrap();
         file_to_file(&exe, &big, 2, dir.path());
     }
 }

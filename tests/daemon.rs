@@ -2,7 +2,8 @@
 //! (declared in the config, or separate `crispen sim` processes), the real PrusaSlicer,
 //! real files dropped into a hot folder. They check pick-up (rename-in, slow copy,
 //! sidecar), failure of a corrupt model, the bed-clear gate, exactly-once delivery of
-//! every done job's G-code, recovery after `kill -9` in the middle of a print, print
+//! every done job's G-code, recovery after `kill -9` in the middle of a print or of a
+//! slicing (whose slicer must not outlive the daemon), print
 //! controls (pause, resume, cancel, retry), a safe stop at SIGTERM, an unplugged printer
 //! and its reconnection, and printers added and removed by SIGHUP.
 
@@ -430,13 +431,17 @@ printers = ["a", "b"]
     assert!(!root.join("crispen.sock").exists());
 }
 
-/// Cancelling a job while its model is being sliced stops the slicer: its process is
-/// killed rather than left to finish work nobody wants, and the job ends cancelled with
-/// its model still in the spool.
-#[test]
-fn cancel_during_preparation_kills_the_slicer() {
-    let dir = tempfile::tempdir().unwrap();
-    let root = dir.path();
+/// A farm whose slicer never finishes, with a model dropped in: the daemon running, the
+/// job preparing and the stand-in slicer's process started.
+struct StuckSlicing {
+    config: PathBuf,
+    log: PathBuf,
+    daemon: Daemon,
+    job: String,
+    slicer_proc: PathBuf,
+}
+
+fn start_stuck_slicing(root: &Path) -> StuckSlicing {
     let hot = root.join("hot");
     std::fs::create_dir_all(&hot).unwrap();
     // A stand-in slicer that never finishes and says which process it is.
@@ -470,7 +475,7 @@ fn cancel_during_preparation_kills_the_slicer() {
     .unwrap();
     let log = root.join("daemon.log");
     let log_file = std::fs::File::create(&log).unwrap();
-    let _daemon = Daemon {
+    let daemon = Daemon {
         child: Command::new(BIN)
             .args(["run", "--config"])
             .arg(&config)
@@ -488,7 +493,7 @@ fn cancel_during_preparation_kills_the_slicer() {
     let s = wait_for(&config, &log, Duration::from_secs(30), "preparing", |s| {
         state_of(s, "spot.obj") == "preparing"
     });
-    let id = job_by_file(&s, "spot.obj").unwrap()["id"]
+    let job = job_by_file(&s, "spot.obj").unwrap()["id"]
         .as_str()
         .unwrap()
         .to_string();
@@ -505,25 +510,84 @@ fn cancel_during_preparation_kills_the_slicer() {
         .trim()
         .parse()
         .unwrap();
-    let proc_dir = PathBuf::from(format!("/proc/{pid}"));
-    assert!(proc_dir.exists(), "the slicer should be running");
+    let slicer_proc = PathBuf::from(format!("/proc/{pid}"));
+    assert!(slicer_proc.exists(), "the slicer should be running");
+    StuckSlicing {
+        config,
+        log,
+        daemon,
+        job,
+        slicer_proc,
+    }
+}
 
-    let (ok, text) = ctl(&config, &["cancel", &id]);
-    assert!(ok, "{text}");
-    wait_for(&config, &log, Duration::from_secs(10), "cancelled", |s| {
-        state_of(s, "spot.obj") == "cancelled"
-    });
+fn assert_gone_soon(proc_dir: &Path, log: &Path, after: &str) {
     let start = Instant::now();
     while proc_dir.exists() {
         assert!(
             start.elapsed() < Duration::from_secs(10),
-            "the slicer (pid {pid}) is still running after the cancel\nlog:\n{}",
-            std::fs::read_to_string(&log).unwrap_or_default()
+            "the slicer ({}) is still running after {after}\nlog:\n{}",
+            proc_dir.display(),
+            std::fs::read_to_string(log).unwrap_or_default()
         );
         std::thread::sleep(Duration::from_millis(50));
     }
+}
+
+/// Cancelling a job while its model is being sliced stops the slicer: its process is
+/// killed rather than left to finish work nobody wants, and the job ends cancelled with
+/// its model still in the spool.
+#[test]
+fn cancel_during_preparation_kills_the_slicer() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let farm = start_stuck_slicing(root);
+    let (ok, text) = ctl(&farm.config, &["cancel", &farm.job]);
+    assert!(ok, "{text}");
+    wait_for(
+        &farm.config,
+        &farm.log,
+        Duration::from_secs(10),
+        "cancelled",
+        |s| state_of(s, "spot.obj") == "cancelled",
+    );
+    assert_gone_soon(&farm.slicer_proc, &farm.log, "the cancel");
     // The dropped model is still accounted for.
-    assert!(root.join("spool/jobs").join(&id).join("spot.obj").exists());
+    assert!(root
+        .join("spool/jobs")
+        .join(&farm.job)
+        .join("spot.obj")
+        .exists());
+}
+
+/// `kill -9` of the daemon while a model is being sliced: the kernel takes the slicer
+/// down with it, and the restarted daemon prepares the job again (with the real slicer
+/// this time) and prints it.
+#[test]
+fn daemon_killed_during_preparation_resumes_the_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let mut farm = start_stuck_slicing(root);
+    farm.daemon.kill9();
+    assert_gone_soon(&farm.slicer_proc, &farm.log, "the daemon was killed");
+    let stored: Value = serde_json::from_slice(
+        &std::fs::read(root.join("spool/jobs").join(&farm.job).join("job.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(stored["state"], "preparing", "{stored}");
+
+    let _daemon = Daemon::start(&farm.config, &farm.log);
+    let s = wait_for(
+        &farm.config,
+        &farm.log,
+        Duration::from_secs(120),
+        "done",
+        |s| state_of(s, "spot.obj") == "done",
+    );
+    assert_eq!(
+        job_by_file(&s, "spot.obj").unwrap()["id"],
+        farm.job.as_str()
+    );
 }
 
 /// The printer's executed job commands (housekeeping dropped) as recorded by its simulator.

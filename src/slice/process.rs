@@ -1,7 +1,8 @@
 //! Running a slicer as a child process: its stdout and stderr are read while it runs (so a
 //! chatty slicer never blocks on a full pipe) and the last lines kept for error messages;
 //! a timeout and a cancel flag are enforced; and the child, in its own process group, is
-//! killed with everything it started when the run ends early or the guard is dropped.
+//! killed with everything it started when the run ends early or the guard is dropped, and
+//! by the kernel if this process dies.
 
 use std::collections::VecDeque;
 use std::ffi::OsString;
@@ -145,6 +146,20 @@ pub fn run(
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .process_group(0);
+    // If this process dies without a chance to clean up (kill -9, a crash), the kernel
+    // kills the slicer too, instead of leaving it to run on with no one waiting for it.
+    let parent = nix::unistd::getpid();
+    // SAFETY: between fork and exec only async-signal-safe calls: prctl and getppid.
+    unsafe {
+        cmd.pre_exec(move || {
+            nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGKILL)?;
+            if nix::unistd::getppid() != parent {
+                // The parent died before the line above took effect.
+                return Err(std::io::Error::other("the parent process has exited"));
+            }
+            Ok(())
+        });
+    }
     let mut child = match cmd.spawn() {
         Ok(c) => c,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(RunError::NotFound),

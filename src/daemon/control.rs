@@ -253,19 +253,26 @@ async fn send_print_command(
 }
 
 async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
-    let job = farm
-        .store()
-        .get(id)
-        .cloned()
-        .ok_or_else(|| format!("no job {id:?} (hint: `crispen status` lists the jobs)"))?;
+    // Checked and changed under one hold of the lock: a printer claiming the job between
+    // the two would otherwise print a job marked cancelled.
+    let job = {
+        let mut store = farm.store();
+        let job = store
+            .get(id)
+            .cloned()
+            .ok_or_else(|| format!("no job {id:?} (hint: `crispen status` lists the jobs)"))?;
+        if matches!(
+            job.state,
+            JobState::Queued | JobState::Preparing | JobState::Ready
+        ) {
+            let reason = Some("cancelled by the operator".into());
+            farm.transition_in(&mut store, id, JobState::Cancelled, reason)
+                .map_err(|e| e.to_string())?;
+        }
+        job
+    };
     match job.state {
         JobState::Queued | JobState::Preparing | JobState::Ready => {
-            farm.transition(
-                id,
-                JobState::Cancelled,
-                Some("cancelled by the operator".into()),
-            )
-            .map_err(|e| e.to_string())?;
             // A slicer already running for it is stopped, not left to finish unwanted.
             if let Some(p) = farm
                 .preparing

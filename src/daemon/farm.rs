@@ -145,7 +145,19 @@ impl Farm {
         state: JobState,
         reason: Option<String>,
     ) -> Result<Job, StoreError> {
-        let job = self.store().transition(id, state, reason.clone())?;
+        self.transition_in(&mut self.store(), id, state, reason)
+    }
+
+    /// [`Farm::transition`] with the store already locked, for a caller whose check and
+    /// change must not be split by another task (claiming a job).
+    pub fn transition_in(
+        &self,
+        store: &mut JobStore,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+    ) -> Result<Job, StoreError> {
+        let job = store.transition(id, state, reason.clone())?;
         match &reason {
             Some(r) => tracing::info!(job = id, state = state.name(), reason = %r, "job state"),
             None => tracing::info!(job = id, state = state.name(), "job state"),

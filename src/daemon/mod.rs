@@ -494,23 +494,21 @@ fn finish_preparation(
         .unwrap_or_else(|e| e.into_inner())
         .remove(id);
     // Cancelled (or otherwise moved on) while being prepared: the result is not wanted.
-    if farm.store().get(id).map(|j| j.state) != Some(JobState::Preparing) {
+    // Checked and recorded under one hold of the lock, so a cancel cannot slip between.
+    let mut store = farm.store();
+    if store.get(id).map(|j| j.state) != Some(JobState::Preparing) {
         return;
     }
     let outcome = match result {
-        Ok((report, sidecar)) => {
-            // The store guard must be gone before `transition` locks it again.
-            let saved = farm.store().update(id, |j| {
+        Ok((report, sidecar)) => store
+            .update(id, |j| {
                 j.slice_report = Some(report);
                 j.sidecar = sidecar;
-            });
-            match saved {
-                Ok(_) => farm.transition(id, JobState::Ready, None),
-                Err(e) => Err(e),
-            }
-        }
-        Err(reason) => farm.transition(id, JobState::Failed, Some(reason)),
+            })
+            .and_then(|_| farm.transition_in(&mut store, id, JobState::Ready, None)),
+        Err(reason) => farm.transition_in(&mut store, id, JobState::Failed, Some(reason)),
     };
+    drop(store);
     if let Err(e) = outcome {
         tracing::error!(job = id, error = %e, "cannot record the preparation's outcome");
     }

@@ -170,8 +170,10 @@ async fn supervise_inner(
     }
 }
 
-/// Takes the oldest ready job this printer may print, marking it printing.
-fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
+/// Takes the oldest ready job this printer may print, marking it printing. The search and
+/// the change happen under one hold of the store's lock: supervisors run on several
+/// threads, and two of them must never take the same job.
+pub(crate) fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let config = farm.config();
     let mut store = farm.store();
     let id = store
@@ -192,8 +194,8 @@ fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     store
         .update(&id, |j| j.printer = Some(printer.to_string()))
         .ok()?;
-    drop(store);
-    farm.transition(&id, JobState::Printing, None).ok()?;
+    farm.transition_in(&mut store, &id, JobState::Printing, None)
+        .ok()?;
     Some(id)
 }
 
@@ -452,5 +454,63 @@ mod tests {
         .collect();
         assert_eq!(heat_up_end(&prog), Some(3));
         assert_eq!(heat_up_end(&prog[..2]), None);
+    }
+
+    /// Many supervisors claiming at once, on real threads: every ready job goes to exactly
+    /// one printer (a claim split from its state change once printed a job twice).
+    #[test]
+    fn concurrent_claims_take_each_job_once() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let printers: Vec<String> = (0..8).map(|i| format!("p{i}")).collect();
+        let mut text = String::from("[spool]\ndir = \"spool\"\n");
+        for p in &printers {
+            text += &format!(
+                "[[printer]]\nname = \"{p}\"\nfirmware = \"marlin2\"\n[printer.simulate]\n"
+            );
+        }
+        text += &format!(
+            "[[folder]]\npath = {:?}\nheight_mm = 30\nprinters = {:?}\n",
+            hot.display().to_string(),
+            printers
+        );
+        let config =
+            super::super::config::Config::parse(&text, &tmp.path().join("crispen.toml")).unwrap();
+        let mut store = super::super::job::JobStore::open(&tmp.path().join("spool")).unwrap();
+        let mut ids = Vec::new();
+        for i in 0..200 {
+            let file = hot.join(format!("m{i}.stl"));
+            std::fs::write(&file, b"solid x\nendsolid x\n").unwrap();
+            let job = store.admit(&file, &hot).unwrap();
+            store.transition(&job.id, JobState::Ready, None).unwrap();
+            ids.push(job.id);
+        }
+        let farm = Farm::new(config, store);
+        let barrier = std::sync::Barrier::new(printers.len());
+        let claimed: Vec<Vec<String>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = printers
+                .iter()
+                .map(|p| {
+                    let (farm, barrier) = (&farm, &barrier);
+                    scope.spawn(move || {
+                        barrier.wait();
+                        std::iter::from_fn(|| claim_job(farm, p)).collect()
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        let mut all: Vec<String> = claimed.concat();
+        all.sort();
+        assert_eq!(all, ids, "each ready job claimed exactly once");
+        let store = farm.store();
+        for (p, jobs) in printers.iter().zip(&claimed) {
+            for id in jobs {
+                let job = store.get(id).unwrap();
+                assert_eq!(job.state, JobState::Printing);
+                assert_eq!(job.printer.as_deref(), Some(p.as_str()));
+            }
+        }
     }
 }

@@ -397,8 +397,21 @@ printers = ["a", "b"]
     std::fs::write(&config, good.replace("height_mm = 25", "height_mm = -1")).unwrap();
     let pid = nix::unistd::Pid::from_raw(daemon.child.id() as i32);
     nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
+    // The good file goes back only once the daemon has read the bad one.
+    let started = Instant::now();
+    let refusal = loop {
+        let log_text = std::fs::read_to_string(&log).unwrap();
+        if let Some(line) = log_text.lines().find(|l| l.contains("new config refused")) {
+            break line.to_string();
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "the refusal is logged"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
     std::fs::write(&config, &good).unwrap();
-    std::thread::sleep(Duration::from_millis(500));
+    assert!(refusal.contains("height_mm"), "the refusal names the key");
     assert!(
         daemon.child.try_wait().unwrap().is_none(),
         "still running after a bad reload"
@@ -407,12 +420,6 @@ printers = ["a", "b"]
         status(&config).is_some(),
         "still answering after a bad reload"
     );
-    let log_text = std::fs::read_to_string(&log).unwrap();
-    assert!(
-        log_text.contains("new config refused"),
-        "the refusal is logged"
-    );
-    assert!(log_text.contains("height_mm"), "the refusal names the key");
 
     // SIGTERM with nothing printing: a clean exit, socket removed.
     nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
@@ -976,5 +983,10 @@ fn reload_adds_and_retires_printers() {
     let s = wait_for(&config, &log, Duration::from_secs(20), "a retired", |s| {
         names(s) == ["b"]
     });
-    assert_eq!(printer(&s, "b")["state"], "bed_not_cleared");
+    assert_eq!(
+        printer(&s, "b")["state"],
+        "bed_not_cleared",
+        "log:\n{}",
+        std::fs::read_to_string(&log).unwrap_or_default()
+    );
 }

@@ -390,7 +390,9 @@ printers = ["demo"]
                     }
                     PrinterPort::Simulated {
                         time_scale,
-                        seed: sim.seed.unwrap_or(i as u64 + 1),
+                        // From the name, not the position: removing another printer
+                        // must not change this one (a reload would restart it).
+                        seed: sim.seed.unwrap_or_else(|| name_seed(&p.name)),
                         record: sim.record.map(|r| anchor(&r)),
                     }
                 }
@@ -504,6 +506,13 @@ printers = ["demo"]
 }
 
 /// `strength = "auto" | "off" | <lambda2>`.
+/// A stable seed from a printer's name (FNV-1a), the same on every run and reload.
+fn name_seed(name: &str) -> u64 {
+    name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
 pub fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     match value {
         toml::Value::String(s) if s == "auto" => Ok(Strength::Auto),
@@ -584,6 +593,20 @@ slicer = "cura"
 
     fn parse(text: &str) -> Result<Config, ConfigError> {
         Config::parse(text, Path::new("/etc/crispen/crispen.toml"))
+    }
+
+    /// A reload compares printers' settings to decide which to restart, so a printer's
+    /// converted settings must not depend on the others (its default seed once did).
+    #[test]
+    fn printer_settings_do_not_depend_on_other_printers() {
+        let printer = |name: &str| {
+            format!("[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n[printer.simulate]\n")
+        };
+        let spool = "[spool]\ndir = \"spool\"\n";
+        let both = parse(&(spool.to_string() + &printer("a") + &printer("b"))).unwrap();
+        let alone = parse(&(spool.to_string() + &printer("b"))).unwrap();
+        assert_eq!(both.printers[1], alone.printers[0]);
+        assert_ne!(both.printers[0].port, both.printers[1].port, "seeds differ");
     }
 
     #[test]

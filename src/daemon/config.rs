@@ -505,7 +505,6 @@ printers = ["demo"]
     }
 }
 
-/// `strength = "auto" | "off" | <lambda2>`.
 /// A stable seed from a printer's name (FNV-1a), the same on every run and reload.
 fn name_seed(name: &str) -> u64 {
     name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
@@ -513,6 +512,7 @@ fn name_seed(name: &str) -> u64 {
     })
 }
 
+/// `strength = "auto" | "off" | <lambda2>`.
 pub fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     match value {
         toml::Value::String(s) if s == "auto" => Ok(Strength::Auto),

@@ -173,7 +173,7 @@ async fn supervise_inner(
 /// Takes the oldest ready job this printer may print, marking it printing. The search and
 /// the change happen under one hold of the store's lock: supervisors run on several
 /// threads, and two of them must never take the same job.
-pub(crate) fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
+fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let config = farm.config();
     let mut store = farm.store();
     let id = store
@@ -476,8 +476,8 @@ mod tests {
             printers
         );
         let config =
-            super::super::config::Config::parse(&text, &tmp.path().join("crispen.toml")).unwrap();
-        let mut store = super::super::job::JobStore::open(&tmp.path().join("spool")).unwrap();
+            crate::daemon::config::Config::parse(&text, &tmp.path().join("crispen.toml")).unwrap();
+        let mut store = crate::daemon::job::JobStore::open(&tmp.path().join("spool")).unwrap();
         let mut ids = Vec::new();
         for i in 0..200 {
             let file = hot.join(format!("m{i}.stl"));

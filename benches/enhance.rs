@@ -10,13 +10,12 @@ use crispen::enhance::{Bands, EnhanceOptions, Phase, Solver};
 use crispen::mesh::{self, Mesh};
 use nix::sys::resource::{getrusage, UsageWho};
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
-fn models() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models")
-}
+#[path = "../tests/common/mod.rs"]
+mod common;
 
 /// Splits every edge into `k` segments and every triangle into k² (k = 2 is the usual
 /// midpoint 1→4 subdivision). Shared edges get shared vertices, so the result stays a
@@ -101,13 +100,13 @@ fn peak_rss_mib() -> f64 {
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
-/// MODEL or MODEL-xK: a shared model, or it subdivided with k segments per edge.
+/// MODEL or MODEL-xK: a model of tests/data, or it subdivided with k segments per edge.
 fn case_mesh(name: &str) -> Mesh {
     let (model, k) = match name.split_once("-x") {
         Some((model, k)) => (model, k.parse().expect("case MODEL-xK")),
         None => (name, 1),
     };
-    let base = mesh::load(&models().join(format!("{model}.obj")))
+    let base = mesh::load(&common::model(&format!("{model}.obj")))
         .unwrap()
         .mesh;
     if k == 1 {
@@ -219,7 +218,7 @@ fn main() {
 
     // The whole process, file to file, as a user runs it.
     let dir = tempfile::tempdir().unwrap();
-    file_to_file(&exe, &models().join("bunny.obj"), 7, dir.path());
+    file_to_file(&exe, &common::model("bunny.obj"), 7, dir.path());
     if !quick {
         let big = dir.path().join("homer-x13.obj");
         mesh::save(&big, &case_mesh("homer-x13")).unwrap();

@@ -109,74 +109,11 @@ fn both_solvers_match_the_reference() {
     }
 }
 
-/// Splits every edge of `mesh` into `k` and every triangle into k², sharing edge points.
-fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
-    let mut vertices = mesh.vertices.clone();
-    let mut faces = Vec::new();
-    let mut edges: std::collections::HashMap<(u32, u32), u32> = Default::default();
-    for f in &mesh.faces {
-        let mut grid = vec![0u32; (k + 1) * (k + 1)];
-        for j in 0..=k {
-            for i in 0..=(k - j) {
-                let corner = |i: usize, j: usize| -> Option<u32> {
-                    match (i, j) {
-                        (0, 0) => Some(f[0]),
-                        (i, 0) if i == k => Some(f[1]),
-                        (0, j) if j == k => Some(f[2]),
-                        _ => None,
-                    }
-                };
-                let edge = match (i, j) {
-                    _ if corner(i, j).is_some() => None,
-                    (i, 0) => Some((f[0], f[1], i)),
-                    (0, j) => Some((f[0], f[2], j)),
-                    (i, j) if i + j == k => Some((f[1], f[2], j)),
-                    _ => None,
-                };
-                let index = if let Some(c) = corner(i, j) {
-                    c
-                } else if let Some((u, v, m)) = edge {
-                    let (lo, hi, m) = if u < v { (u, v, m) } else { (v, u, k - m) };
-                    let start = *edges.entry((lo, hi)).or_insert_with(|| {
-                        let start = vertices.len() as u32;
-                        for s in 1..k {
-                            let (a, b) = (vertices[lo as usize], vertices[hi as usize]);
-                            vertices.push(std::array::from_fn(|c| {
-                                a[c] + (b[c] - a[c]) * s as f64 / k as f64
-                            }));
-                        }
-                        start
-                    });
-                    start + m as u32 - 1
-                } else {
-                    let [a, b, c] = f.map(|v| vertices[v as usize]);
-                    let (s, t) = (i as f64 / k as f64, j as f64 / k as f64);
-                    vertices.push(std::array::from_fn(|d| {
-                        a[d] + s * (b[d] - a[d]) + t * (c[d] - a[d])
-                    }));
-                    vertices.len() as u32 - 1
-                };
-                grid[j * (k + 1) + i] = index;
-            }
-        }
-        let g = |i: usize, j: usize| grid[j * (k + 1) + i];
-        for j in 0..k {
-            for i in 0..(k - j) {
-                faces.push([g(i, j), g(i + 1, j), g(i, j + 1)]);
-                if i + j + 1 < k {
-                    faces.push([g(i + 1, j), g(i + 1, j + 1), g(i, j + 1)]);
-                }
-            }
-        }
-    }
-    Mesh { vertices, faces }
-}
-
 #[test]
 fn large_mesh_solvers_agree() {
     // Above 100k vertices the Cholesky path orders by nested dissection instead of AMD;
     // cross-check it against conjugate gradients on a subdivided Spot (~105k vertices).
-    let big = subdivide(&spot(), 6);
+    let big = common::subdivide(&spot(), 6);
     assert!(big.vertices.len() > 100_000, "{}", big.vertices.len());
     let (cleaned, report) = mesh::clean(big.vertices.clone(), big.faces.clone());
     assert_eq!(

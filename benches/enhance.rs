@@ -9,7 +9,6 @@
 use crispen::enhance::{Bands, EnhanceOptions, Phase, Solver};
 use crispen::mesh::{self, Mesh};
 use nix::sys::resource::{getrusage, UsageWho};
-use std::collections::HashMap;
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;

@@ -207,10 +207,17 @@ pub fn pictures(before: &Mesh, after: &Mesh, up: UpAxis, size: u32) -> Option<Pi
     }
     let camera = Camera::three_quarter(before.bounds()?, up, size);
     let (heat, max_displacement) = displacement_colors(before, after);
+    let [after_image, displacement]: [Image; 2] = raster::render_paints(
+        after,
+        &camera,
+        &[Paint::Uniform(MODEL_COLOR), Paint::PerVertex(&heat)],
+    )
+    .try_into()
+    .ok()?;
     Some(Pictures {
         before: render(before, &camera, Paint::Uniform(MODEL_COLOR)),
-        after: render(after, &camera, Paint::Uniform(MODEL_COLOR)),
-        displacement: render(after, &camera, Paint::PerVertex(&heat)),
+        after: after_image,
+        displacement,
         max_displacement,
     })
 }

@@ -199,7 +199,7 @@ mod tests {
         // Sorted by stable path: the two by-id paths first, then the bare device.
         let canonical = |n: &str| std::fs::canonicalize(dev.path().join(n)).unwrap();
         assert_eq!(devices[0].device, canonical("ttyACM1"));
-        assert_eq!(devices[0].by_id, [mk3.clone()]);
+        assert_eq!(devices[0].by_id, std::slice::from_ref(&mk3));
         assert_eq!(devices[0].stable_path(), mk3);
         assert_eq!(
             devices[0].usb.as_ref().unwrap().serial_number.as_deref(),

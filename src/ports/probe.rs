@@ -14,6 +14,9 @@ use std::time::{Duration, Instant};
 /// the open stays silent in its bootloader for about a second, then prints `start` and its
 /// settings; if `start` comes after the greeting, the greeting starts over.
 pub const QUIET: Duration = Duration::from_millis(1500);
+/// Greet after this long even if the printer never goes quiet (temperature reports that
+/// a previous host switched on with `M155 S1` keep coming every second).
+pub const BOOT_LIMIT: Duration = Duration::from_secs(6);
 /// A greeting line unanswered this long is sent again.
 pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(3);
 /// Greetings tried before giving up (the caller's overall timeout may end it sooner).
@@ -41,6 +44,8 @@ pub struct Probe {
     phase: Phase,
     /// When the current phase's timer started (last byte in Boot, the send otherwise).
     since: Instant,
+    /// When the current Boot phase began (the open, or a `start` during the greeting).
+    boot_began: Instant,
     partial: Vec<u8>,
     out: Vec<u8>,
     answer: Vec<String>,
@@ -58,6 +63,7 @@ impl Probe {
         Probe {
             phase: Phase::Boot,
             since: now,
+            boot_began: now,
             partial: Vec::new(),
             out: Vec::new(),
             answer: Vec::new(),
@@ -89,7 +95,9 @@ impl Probe {
     pub fn tick(&mut self, now: Instant) {
         let waited = now.saturating_duration_since(self.since);
         match self.phase {
-            Phase::Boot if waited >= QUIET => self.greet(now),
+            Phase::Boot if waited >= QUIET || now >= self.boot_began + BOOT_LIMIT => {
+                self.greet(now)
+            }
             Phase::Numbering | Phase::Asking if waited >= ANSWER_TIMEOUT => self.greet_again(now),
             _ => {}
         }
@@ -98,7 +106,7 @@ impl Probe {
     /// When [`Probe::tick`] next has something to do.
     pub fn next_deadline(&self) -> Option<Instant> {
         match self.phase {
-            Phase::Boot => Some(self.since + QUIET),
+            Phase::Boot => Some((self.since + QUIET).min(self.boot_began + BOOT_LIMIT)),
             Phase::Numbering | Phase::Asking => Some(self.since + ANSWER_TIMEOUT),
             Phase::Answered | Phase::GaveUp => None,
         }
@@ -169,6 +177,7 @@ impl Probe {
                 // It rebooted under the greeting: wait for it to settle, then greet again.
                 self.phase = Phase::Boot;
                 self.since = now;
+                self.boot_began = now;
             }
             return;
         }
@@ -357,6 +366,30 @@ mod tests {
                 ["FIRMWARE_NAME:Marlin Ultimaker2; Sprinter/grbl mashup for gen6 EXTRUDER_COUNT:1"]
             );
         }
+    }
+
+    #[test]
+    fn a_printer_that_never_goes_quiet_is_greeted_after_the_boot_limit() {
+        let t0 = Instant::now();
+        let mut p = Probe::new(t0);
+        let report = b"T:21.3 /0.0 B:20.9 /0.0 @:0 B@:0\n";
+        let mut t = t0;
+        while p.take_outgoing().is_empty() {
+            assert!(
+                t < t0 + BOOT_LIMIT + Duration::from_secs(1),
+                "never greeted"
+            );
+            t += Duration::from_secs(1);
+            p.feed(report, t);
+            p.tick(t);
+        }
+        assert!(t >= t0 + BOOT_LIMIT);
+        p.feed(report, t);
+        p.feed(b"ok\n", t);
+        assert_eq!(p.take_outgoing(), frame(1, "M115").into_bytes());
+        p.feed(report, t);
+        p.feed(b"FIRMWARE_NAME:Marlin 2.1.2\nok\n", t);
+        assert_eq!(p.answer().unwrap(), ["FIRMWARE_NAME:Marlin 2.1.2"]);
     }
 
     #[test]

@@ -7,6 +7,7 @@
 //! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
 //! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
 //!   and the simulated printer used by tests, the quick start and the demo farm.
+//! - [`ports`]: finding serial devices and asking a printer what it is (M115).
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
 //! - [`cli`]: the `crispen` subcommands, thin wrappers over the above.
@@ -16,5 +17,6 @@ pub mod daemon;
 pub mod enhance;
 pub mod marlin;
 pub mod mesh;
+pub mod ports;
 pub mod preview;
 pub mod slice;

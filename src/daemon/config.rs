@@ -405,6 +405,8 @@ printers = ["demo"]
             });
         }
 
+        super::ports::check_unique(&printers, file)?;
+
         let mut folders: Vec<FolderConfig> = Vec::new();
         for (i, f) in raw.folders.into_iter().enumerate() {
             let section = format!(

@@ -34,6 +34,9 @@ pub(crate) enum Status {
     Silent,
     /// The unplug fault: the pty must be closed.
     Unplugged,
+    /// Held in reset by the bootloader after the host opened the port (DTR): input is
+    /// lost until the firmware starts and says `start`.
+    Booting(Instant),
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -70,8 +73,10 @@ enum Wait {
 
 struct Active {
     wait: Wait,
-    /// Line number for ADVANCED_OK and whether to answer at all.
+    /// Line number for ADVANCED_OK.
     n: Option<u64>,
+    /// Its `ok` was sent when it entered the queue.
+    answered: bool,
     /// Sends `echo:busy: processing` while it waits (long commands, busy fault).
     busy: bool,
     next_heat_report: Option<Instant>,
@@ -80,6 +85,8 @@ struct Active {
 struct Queued {
     n: Option<u64>,
     cmd: String,
+    /// Already acknowledged on entering the queue (Ultimaker2Marlin's moves).
+    acked: bool,
 }
 
 pub(crate) struct Printer {
@@ -111,6 +118,13 @@ pub(crate) struct Printer {
     next_keepalive: Option<Instant>,
     heat_break: bool,
     numbered_executed: usize,
+    /// A `;` was seen on the line being assembled (Ultimaker2Marlin's `:` rule stops there).
+    in_comment: bool,
+    /// The command being finished was acknowledged on entry: its `ok` is not sent again.
+    answered: bool,
+    /// NO_TIMEOUTS: say `wait` this often while the command queue is empty.
+    wait_when_idle: Option<Duration>,
+    next_wait: Option<Instant>,
     out: Vec<u8>,
 }
 
@@ -150,6 +164,10 @@ impl Printer {
             next_keepalive: None,
             heat_break: false,
             numbered_executed: 0,
+            in_comment: false,
+            answered: false,
+            wait_when_idle: cfg.wait_when_idle,
+            next_wait: None,
             out: Vec::new(),
         };
         p.boot();
@@ -178,7 +196,13 @@ impl Printer {
         self.keepalive = 2.0;
         self.next_keepalive = None;
         self.heat_break = false;
+        self.in_comment = false;
+        self.next_wait = None;
         self.say("start");
+        if self.fw == Firmware::Marlin20 {
+            self.say("echo:Marlin 2.0.9.3");
+            self.say("echo: Last Updated: 2021-12-25 | Author: (crispen sim)");
+        }
         if self.fw == Firmware::Marlin2 {
             self.say("echo:Marlin 2.1.2");
             self.say("echo: Last Updated: 2023-03-21 | Author: (crispen sim)");
@@ -189,6 +213,20 @@ impl Printer {
 
     pub(crate) fn status(&self) -> Status {
         self.status
+    }
+
+    /// The host opened the port: DTR resets the board, the bootloader waits `delay`, then
+    /// the firmware boots. A halted or silent printer is reset too, as a real one would be.
+    pub(crate) fn reset_on_open(&mut self, now: Instant, delay: Duration) {
+        if self.status == Status::Unplugged {
+            return;
+        }
+        tracing::info!(
+            ?delay,
+            "host opened the port: reset (DTR) and bootloader delay"
+        );
+        self.out.clear();
+        self.status = Status::Booting(now + delay);
     }
 
     #[cfg(test)]
@@ -258,7 +296,7 @@ impl Printer {
     }
 
     fn ok(&mut self, n: Option<u64>) {
-        if self.drop_this_ok() {
+        if std::mem::take(&mut self.answered) || self.drop_this_ok() {
             return;
         }
         let line = if self.fw.advanced_ok() {
@@ -294,6 +332,9 @@ impl Printer {
     /// (all command slots full, or stuck in a blocking command such as M109).
     pub(crate) fn receive(&mut self, bytes: &[u8], now: Instant, recorder: &mut Recorder) {
         let mut lost = 0usize;
+        if matches!(self.status, Status::Booting(_)) {
+            return; // the bootloader does not listen to the firmware's protocol
+        }
         for &b in bytes {
             if self.status != Status::Running {
                 return;
@@ -359,7 +400,13 @@ impl Printer {
     fn fill_slots(&mut self) {
         while self.status == Status::Running && self.slots.len() < self.fw.command_slots() {
             let Some(b) = self.rx.pop_front() else { return };
-            if b == b'\n' || b == b'\r' {
+            if b == b';' {
+                self.in_comment = true;
+            }
+            // Ultimaker2Marlin's reader also ends a line at a `:` outside comments.
+            let colon_end = b == b':' && self.fw.colon_ends_line() && !self.in_comment;
+            if b == b'\n' || b == b'\r' || colon_end {
+                self.in_comment = false;
                 let raw = std::mem::take(&mut self.assembling);
                 let overlong = std::mem::replace(&mut self.overlong, false);
                 if raw.iter().all(|c| c.is_ascii_whitespace()) && !overlong {
@@ -403,14 +450,22 @@ impl Printer {
         }
         if let Some(rest) = line.strip_prefix('N') {
             let is_m110 = line.contains("M110");
-            // For M110 the last N on the line wins (`N101 M110 N100`).
-            let number_text = if is_m110 {
+            // For M110 Marlin 2 takes the last N on the line (`N101 M110 N100`);
+            // Ultimaker2Marlin has no M110 handler and keeps the line's own number.
+            let number_text = if is_m110 && self.fw.is_marlin2() {
                 line.rfind('N').map(|i| &line[i + 1..]).unwrap_or(rest)
             } else {
                 rest
             };
             let n = leading_int(number_text);
             if !is_m110 && n != Some(self.last_n as i64 + 1) {
+                let last = self.last_n as i64;
+                if self.fw.ignores_duplicate_lines()
+                    && n.is_some_and(|n| n == last || n == last - 1)
+                {
+                    tracing::debug!(line = ?n, "duplicate line ignored");
+                    return;
+                }
                 return self.line_error("Line Number is not Last Line Number+1");
             }
             let Some(star) = line.rfind('*') else {
@@ -430,12 +485,24 @@ impl Printer {
             self.last_n = n;
             let cmd = strip_number_and_checksum(&line).to_string();
             let line_n = leading_int(rest).map(|v| v.max(0) as u64);
-            self.slots.push_back(Queued { n: line_n, cmd });
-        } else if line.contains('*') {
-            self.line_error("No Line Number with checksum");
+            self.enqueue(line_n, cmd);
+        } else if line.contains('*') && !self.fw.is_marlin2() {
+            // Ultimaker2Marlin: an error, and neither `Resend:` nor `ok`.
+            self.say("Error:No Line Number with checksum");
         } else {
-            self.slots.push_back(Queued { n: None, cmd: line });
+            // Marlin 2 checks nothing on a line without N: it runs it (a checksum, if any,
+            // is cut off).
+            let cmd = strip_number_and_checksum(&line).to_string();
+            self.enqueue(None, cmd);
         }
+    }
+
+    fn enqueue(&mut self, n: Option<u64>, cmd: String) {
+        let acked = self.fw.acks_moves_on_entry() && is_move(&cmd);
+        if acked {
+            self.ok(n);
+        }
+        self.slots.push_back(Queued { n, cmd, acked });
     }
 
     /// Marlin's gcode_line_error + flush_and_request_resend: report, drop the rest of the
@@ -491,6 +558,14 @@ impl Printer {
 
     /// Run the printer up to `now`: drain the planner, heat, finish and start commands.
     pub(crate) fn advance(&mut self, now: Instant, recorder: &mut Recorder) {
+        if let Status::Booting(until) = self.status {
+            if now < until {
+                return;
+            }
+            self.status = Status::Running;
+            self.temps_at = now;
+            self.boot();
+        }
         if self.status != Status::Running {
             return;
         }
@@ -531,14 +606,45 @@ impl Printer {
             }
         }
         if let Some(active) = &mut self.active {
-            if let (Some(at), Wait::Heat { .. }) = (active.next_heat_report, &active.wait) {
+            if let (Some(at), Wait::Heat { heater, .. }) = (active.next_heat_report, &active.wait) {
                 if now >= at {
+                    let heater = *heater;
                     let period = Duration::from_secs_f64(self.time_scale).max(MIN_PERIOD);
                     active.next_heat_report = Some(now + period);
-                    let report = self.temperature_report();
+                    let report = self.heat_wait_report(heater);
                     self.say_noisy(&report);
                 }
             }
+        }
+        // NO_TIMEOUTS: `wait` while the command queue is empty.
+        if let Some(interval) = self.wait_when_idle {
+            if self.is_idle() {
+                let at = *self.next_wait.get_or_insert(now + interval);
+                if now >= at {
+                    self.say("wait");
+                    self.next_wait = Some(now + interval);
+                }
+            } else {
+                self.next_wait = None;
+            }
+        }
+    }
+
+    fn is_idle(&self) -> bool {
+        self.active.is_none() && self.slots.is_empty() && self.rx.is_empty()
+    }
+
+    /// The report printed every second inside M109/M190: Marlin's with a `W:` residency
+    /// countdown, Ultimaker2Marlin's without the target (`T:210.0 E:0 W:?`).
+    fn heat_wait_report(&self, heater: Heater) -> String {
+        match (self.fw, heater) {
+            (Firmware::Ultimaker2, Heater::Hotend) => {
+                format!("T:{:.1} E:0 W:?", self.hotend.current)
+            }
+            (Firmware::Ultimaker2, Heater::Bed) => {
+                format!("T:{:.1} E:0 B:{:.1}", self.hotend.current, self.bed.current)
+            }
+            _ => format!("{} W:?", self.temperature_report()),
         }
     }
 
@@ -593,6 +699,7 @@ impl Printer {
                 }
             };
             if done {
+                self.answered = active.answered;
                 self.ok(active.n);
                 self.next_keepalive = None;
                 return true;
@@ -612,6 +719,9 @@ impl Printer {
 
     /// When `advance` must run again (None: only when input arrives).
     pub(crate) fn next_deadline(&self) -> Option<Instant> {
+        if let Status::Booting(until) = self.status {
+            return Some(until);
+        }
         if self.status != Status::Running {
             return None;
         }
@@ -622,6 +732,13 @@ impl Printer {
             }
         };
         consider(self.next_autoreport);
+        if let Some(interval) = self.wait_when_idle {
+            if self.is_idle() {
+                consider(Some(
+                    self.next_wait.unwrap_or_else(|| Instant::now() + interval),
+                ));
+            }
+        }
         if let Some(active) = &self.active {
             if active.busy && self.fw.busy_protocol() && self.keepalive > 0.0 {
                 consider(self.next_keepalive);
@@ -646,7 +763,7 @@ impl Printer {
     // ----- commands -----------------------------------------------------------------
 
     fn execute(&mut self, queued: Queued, now: Instant, recorder: &mut Recorder) {
-        let Queued { n, cmd } = queued;
+        let Queued { n, cmd, acked } = queued;
         tracing::trace!(line = ?n, cmd = %cmd, "executing");
         if !cmd.is_empty() && !is_command_word(&cmd) {
             // Not a command at all, e.g. the tail of a line cut in two when a line error
@@ -772,6 +889,10 @@ impl Printer {
                 self.status = Status::Halted;
                 return;
             }
+            ('M', Some(110)) if self.fw == Firmware::Ultimaker2 => {
+                // No M110 handler: the line's own number already reset the counter.
+                self.say(&format!("echo:Unknown command: \"{cmd}\""));
+            }
             ('M', Some(110)) => {}
             ('M', Some(113)) if self.fw.busy_protocol() => {
                 match word(&words, 'S') {
@@ -805,7 +926,7 @@ impl Printer {
                 }
             }
             ('M', Some(27)) => self.say("Not SD printing"),
-            _ if self.fw == Firmware::Marlin2 && !known_marlin2(letter, code) => {
+            _ if self.fw.is_marlin2() && !known_marlin2(letter, code) => {
                 self.say(&format!("echo:Unknown command: \"{cmd}\""));
             }
             _ => {}
@@ -816,6 +937,8 @@ impl Printer {
             wait = Some(Wait::Until(now + hold));
             long = true;
         }
+        // An `ok` already sent on entry is not sent again.
+        self.answered = acked;
         match wait {
             None => self.ok(n),
             Some(wait) => {
@@ -823,6 +946,7 @@ impl Printer {
                 self.active = Some(Active {
                     wait,
                     n,
+                    answered: std::mem::take(&mut self.answered),
                     busy: long,
                     next_heat_report: heat.then(|| now + MIN_PERIOD.max(self.real(1.0))),
                 });
@@ -836,6 +960,17 @@ impl Printer {
     /// Apply the `*_after_lines` faults; true if the command must not run.
     fn fire_line_faults(&mut self) -> bool {
         let count = self.numbered_executed;
+        let actions: Vec<String> = self
+            .faults
+            .actions
+            .iter()
+            .filter(|(after, _)| *after == count)
+            .map(|(_, name)| name.clone())
+            .collect();
+        for name in actions {
+            tracing::info!(lines = count, action = %name, "host action from the printer's menu");
+            self.say(&format!("//action:{name}"));
+        }
         if self.faults.reset_after_lines == Some(count) {
             tracing::warn!(lines = count, "fault: printer reset");
             self.boot();
@@ -863,6 +998,22 @@ impl Printer {
 
     fn m115(&mut self) {
         match self.fw {
+            Firmware::Marlin20 => {
+                self.say(
+                    "FIRMWARE_NAME:Marlin 2.0.9.3 (crispen sim) \
+                     SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 \
+                     MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff",
+                );
+                for cap in [
+                    "EEPROM:1",
+                    "AUTOREPORT_TEMP:1",
+                    "EMERGENCY_PARSER:1",
+                    "HOST_ACTION_COMMANDS:1",
+                    "BUSY_PROTOCOL:1",
+                ] {
+                    self.say(&format!("Cap:{cap}"));
+                }
+            }
             Firmware::Marlin2 => {
                 self.say(
                     "FIRMWARE_NAME:Marlin 2.1.2 (crispen sim) \
@@ -886,7 +1037,7 @@ impl Printer {
                     "TOGGLE_LIGHTS:0",
                     "CASE_LIGHT_BRIGHTNESS:0",
                     "EMERGENCY_PARSER:1",
-                    "HOST_ACTION_COMMANDS:0",
+                    "HOST_ACTION_COMMANDS:1",
                     "PROMPT_SUPPORT:0",
                     "SDCARD:0",
                     "AUTOREPORT_SD_STATUS:0",
@@ -1015,6 +1166,11 @@ fn word_present(words: &[(char, f64)], letter: char) -> bool {
 
 /// Whether a line starts with a command word (`G1`, `M105`, `T0`, also lower case) that
 /// Marlin's parser dispatches. Anything else never reaches a command handler.
+fn is_move(cmd: &str) -> bool {
+    let words = parse_words(cmd);
+    matches!(words.first(), Some(&('G', code)) if (0.0..=3.0).contains(&code) && code.fract() == 0.0)
+}
+
 fn is_command_word(cmd: &str) -> bool {
     let mut chars = cmd.trim_start().chars();
     matches!(chars.next(), Some('G' | 'M' | 'T' | 'g' | 'm' | 't'))

@@ -292,6 +292,21 @@ enum Stop {
     Failure { failure: Failure, give_up: Instant },
 }
 
+/// An M109/M190 the printer may still be working on. Tracked apart from the order of `ok`s,
+/// which Ultimaker2Marlin does not keep (it acknowledges moves queued behind the heat
+/// command before the heat command ends).
+#[derive(Debug, Clone)]
+struct HeatWait {
+    number: u64,
+    command: String,
+    bed: bool,
+    /// `S`/`R` of the command.
+    target: Option<f64>,
+    since: Instant,
+    /// The closest distance to the target seen so far, and when.
+    best: Option<(f64, Instant)>,
+}
+
 /// Whether this firmware sends an `ok` after `Resend:`, learnt from unambiguous cases (a
 /// resend with nothing else awaiting an `ok`): Marlin 2.1 and Ultimaker2Marlin do, Marlin
 /// 2.0 does not, Marlin 1.1 sometimes. Until two observations agree, the firmware profile's
@@ -366,8 +381,9 @@ pub struct Host {
     temps: Temperatures,
     /// The printer reports `W:` (inside an M109/M190 wait) and has not answered since.
     heat_reported: bool,
-    /// During a heat wait: the closest distance to the target seen so far, and when.
-    heat_best: Option<(f64, Instant)>,
+    heat: Option<HeatWait>,
+    /// The pause was confirmed by an answered `M105` after the last job line.
+    pause_synced: bool,
     recent_errors: Vec<String>,
     paused: bool,
     paused_reported: bool,
@@ -382,7 +398,6 @@ pub struct Host {
 
 const LONG_COMMANDS: [&str; 4] = ["G28", "G29", "M400", "G4"];
 const HEAT_COMMANDS: [&str; 2] = ["M109", "M190"];
-const MOVES: [&str; 8] = ["G0", "G1", "G2", "G3", "G00", "G01", "G02", "G03"];
 const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
 const MAX_PARTIAL: usize = 4096;
 
@@ -436,7 +451,8 @@ impl Host {
             next_poll: now,
             temps: Temperatures::default(),
             heat_reported: false,
-            heat_best: None,
+            heat: None,
+            pause_synced: false,
             recent_errors: Vec::new(),
             paused: false,
             paused_reported: false,
@@ -469,14 +485,12 @@ impl Host {
         self.info = info;
         self.phase = Phase::Idle;
     }
-    /// The printer is inside M109/M190: it says so in its reports (`W:`), or the heat
-    /// command is the oldest line without an answer. The reports win where `ok`s do not
-    /// come in line order (Ultimaker2Marlin acknowledges moves as they enter its queue).
+    /// The printer is inside M109/M190: it says so in its reports (`W:`), or a heat command
+    /// was sent and is not known to have ended: by an `ok` right after its `W:` reports (the
+    /// firmware reads nothing while it waits), by an answer confirming a later line, or,
+    /// where `ok`s keep line order, by its own `ok`.
     pub fn heating(&self) -> bool {
-        self.heat_reported
-            || self
-                .front_line()
-                .is_some_and(|l| is_code(&l.command, &HEAT_COMMANDS))
+        self.heat_reported || self.heat.is_some()
     }
     pub fn acked_job_lines(&self) -> usize {
         self.acked_job
@@ -519,6 +533,9 @@ impl Host {
         self.next_job = 0;
         self.acked_job = 0;
         self.reset_numbering();
+        // The M110 goes alone: if the printer rejects it, its request names a line of the
+        // old count, and no line of the new count is on its way to be taken for it.
+        self.cautious_until = 2;
         self.pending.push_back((Kind::Setup, "M110 N0".into()));
         if self.autoreport() {
             let secs = self.opts.temperature_interval.as_secs().max(1);
@@ -562,6 +579,7 @@ impl Host {
         if self.phase == Phase::Job && self.stopping.is_none() && !self.paused {
             self.paused = true;
             self.paused_reported = false;
+            self.pause_synced = false;
             self.pump(now);
         }
     }
@@ -630,10 +648,15 @@ impl Host {
                 if let Some(Stop::Failure { give_up, .. }) = &self.stopping {
                     at(*give_up);
                 }
+                if let Some(deadline) = self.heat_deadline() {
+                    at(deadline);
+                }
                 if let Some(front) = self.front_line() {
-                    at(self.next_probe_at());
-                    if is_code(&front.command, &HEAT_COMMANDS) {
-                        at(self.heat_deadline());
+                    if self.resend_hold.is_none() {
+                        at(self.next_probe_at());
+                    }
+                    if self.heating() || is_code(&front.command, &HEAT_COMMANDS) {
+                        // The heat wait has its own limit.
                     } else if is_code(&front.command, &LONG_COMMANDS) {
                         at(self.last_rx + self.opts.long_command_timeout);
                     } else {
@@ -690,25 +713,26 @@ impl Host {
                 self.pending.push_back((Kind::Housekeeping, "M105".into()));
             }
         }
+        let last_acked = self.acked_job;
+        if self.heat_deadline().is_some_and(|d| now >= d) {
+            let heat = self.heat.take().expect("a deadline means a heat wait");
+            let temperatures = self.temps;
+            self.fail_safely(
+                Failure::HeatTimeout {
+                    command: heat.command,
+                    waited: now - heat.since,
+                    temperatures,
+                    last_acked,
+                },
+                now,
+            );
+            return;
+        }
         let Some(front) = self.front_line().cloned() else {
             return;
         };
-        let last_acked = self.acked_job;
-        if is_code(&front.command, &HEAT_COMMANDS) {
-            if now >= self.heat_deadline() {
-                let temperatures = self.temps;
-                let waited = now - self.front_since;
-                self.fail_safely(
-                    Failure::HeatTimeout {
-                        command: front.command,
-                        waited,
-                        temperatures,
-                        last_acked,
-                    },
-                    now,
-                );
-                return;
-            }
+        if self.heating() || is_code(&front.command, &HEAT_COMMANDS) {
+            // Inside a heat wait: its own limit applies.
         } else if is_code(&front.command, &LONG_COMMANDS) {
             if now - self.last_rx >= self.opts.long_command_timeout {
                 self.fail(Failure::Silent {
@@ -760,11 +784,10 @@ impl Host {
 
     /// When a heat wait times out: `heat_timeout` after it started or after its
     /// temperature last came closer to the target, whichever is later.
-    fn heat_deadline(&self) -> Instant {
-        let progress = self
-            .heat_best
-            .map_or(self.front_since, |(_, at)| at.max(self.front_since));
-        progress + self.opts.heat_timeout
+    fn heat_deadline(&self) -> Option<Instant> {
+        let heat = self.heat.as_ref()?;
+        let progress = heat.best.map_or(heat.since, |(_, at)| at.max(heat.since));
+        Some(progress + self.opts.heat_timeout)
     }
 
     /// When to probe with M105 if nothing moves. Long commands are probed too: the M105
@@ -773,9 +796,10 @@ impl Host {
     fn next_probe_at(&self) -> Instant {
         let probe = self.opts.silence_probe;
         let base = self.last_progress.max(self.front_since) + probe;
-        let long_front = self.front_line().is_some_and(|l| {
-            is_code(&l.command, &HEAT_COMMANDS) || is_code(&l.command, &LONG_COMMANDS)
-        });
+        let long_front = self.heating()
+            || self.front_line().is_some_and(|l| {
+                is_code(&l.command, &HEAT_COMMANDS) || is_code(&l.command, &LONG_COMMANDS)
+            });
         if long_front && self.in_flight.iter().any(|f| f.is_m105) {
             // It waits behind the long command; more probes would only fill the buffer.
             return base.max(self.front_since + self.opts.long_command_timeout);
@@ -845,7 +869,8 @@ impl Host {
         self.pending
             .retain(|(kind, _)| matches!(kind, Kind::SafeStop | Kind::Setup));
         self.resend_hold = None;
-        if self.emergency_parser() {
+        let failure = matches!(self.stopping, Some(Stop::Failure { .. }));
+        if self.emergency_parser() && !failure {
             if self.pending.is_empty() {
                 // Numbered, outside the window: the emergency parser acts on it on arrival
                 // (breaking an M109/M190 wait), and the queue then acknowledges it in order.
@@ -854,8 +879,6 @@ impl Host {
                     self.transmit(number, now);
                 }
             } else {
-                // After the `M110` that resets the counter; the emergency parser still acts
-                // on it as soon as it arrives.
                 self.pending.push_back((Kind::SafeStop, "M108".into()));
             }
         }
@@ -877,8 +900,25 @@ impl Host {
                 let give_up = now + self.opts.silence_fail;
                 self.stopping = Some(Stop::Failure { failure, give_up });
                 self.paused = false;
+                // A new episode with numbers of its own, above any the printer has seen:
+                // `N<k> M110 N<k>` passes whatever it expects, and a request for an older
+                // number then means it rejected the M110 (see `handle_resend`).
+                let first = self.next_number;
                 self.reset_numbering();
-                self.pending.push_back((Kind::Setup, "M110 N0".into()));
+                self.next_number = first;
+                self.send_cursor = first;
+                self.cautious_until = first + 2;
+                self.pending
+                    .push_back((Kind::Setup, format!("M110 N{first}")));
+                if self.emergency_parser() {
+                    // Break a heat wait the printer may be stuck in; without a number, so it
+                    // needs no place in the sequence (the emergency parser acts on arrival;
+                    // the queue later runs it as an unnumbered command and says `ok`).
+                    self.outgoing.extend_from_slice(b"M108\n");
+                    if !self.advanced_ok {
+                        self.swallow_oks += 1;
+                    }
+                }
                 // A new episode: what the last one left in flight is gone.
                 self.last_progress = now;
                 self.last_ack = now;
@@ -976,7 +1016,20 @@ impl Host {
             return;
         }
         if is_heat {
-            self.heat_best = None;
+            let command = line.command.clone();
+            let words: Vec<&str> = command.split_whitespace().collect();
+            let target = words[1..]
+                .iter()
+                .find_map(|w| w.strip_prefix(['S', 'R', 's', 'r']))
+                .and_then(|v| v.parse::<f64>().ok());
+            self.heat = Some(HeatWait {
+                number,
+                bed: is_code(&command, &["M190"]),
+                command,
+                target,
+                since: now,
+                best: None,
+            });
         }
         if self.in_flight.is_empty() {
             self.front_since = now;
@@ -1071,6 +1124,14 @@ impl Host {
             return;
         }
         if self.paused {
+            if !self.pause_synced {
+                // Drained of `ok`s is not drained: Ultimaker2Marlin acknowledges moves as
+                // they enter its queue. An answered M105 is processed after all of them.
+                self.pause_synced = true;
+                self.pending.push_back((Kind::Sync, "M105".into()));
+                self.pump(now);
+                return;
+            }
             if !self.paused_reported {
                 self.paused_reported = true;
                 self.events.push_back(Event::Paused);
@@ -1157,6 +1218,11 @@ impl Host {
             Reply::Busy(line) => {
                 self.last_progress = now;
                 self.events.push_back(Event::Busy(line));
+            }
+            Reply::Wait if matches!(self.phase, Phase::Boot { .. }) => {
+                // Up and idle (a NO_TIMEOUTS build says so all the time, so the link would
+                // never fall quiet): greet it now.
+                self.send_greeting(now);
             }
             Reply::Wait => {
                 // The printer's queue is empty. Lines still believed in flight had their
@@ -1256,21 +1322,21 @@ impl Host {
         self.temps.hotend = merge(self.temps.hotend, report.temperatures.hotend);
         self.temps.bed = merge(self.temps.bed, report.temperatures.bed);
         self.heat_reported = report.waiting;
-        if let Some(front) = self.front_line() {
-            let heater = match code_of(&front.command).to_ascii_uppercase().as_str() {
-                "M109" => self.temps.hotend,
-                "M190" => self.temps.bed,
-                _ => None,
+        if let Some(heat) = &mut self.heat {
+            let reading = if heat.bed {
+                self.temps.bed
+            } else {
+                self.temps.hotend
             };
-            if let Some(Temp {
-                current,
-                target: Some(target),
-            }) = heater
-            {
-                let gap = (target - current).abs();
-                match self.heat_best {
-                    Some((best, _)) if gap > best - 0.5 => {}
-                    _ => self.heat_best = Some((gap, now)),
+            if let Some(reading) = reading {
+                if let Some(target) = heat.target.or(reading.target) {
+                    // Progress is coming closer to the target: rising for a heat-up,
+                    // falling for a cool-down (`M190 R30`).
+                    let gap = (target - reading.current).abs();
+                    match heat.best {
+                        Some((best, _)) if gap > best - 0.5 => {}
+                        _ => heat.best = Some((gap, now)),
+                    }
                 }
             }
         }
@@ -1280,7 +1346,11 @@ impl Host {
     fn handle_ok(&mut self, ok: &OkReply, now: Instant) {
         self.last_progress = now;
         // Any `ok` ends a heat wait's reports: the printer reads commands again.
-        let heat_was_reported = std::mem::take(&mut self.heat_reported);
+        if std::mem::take(&mut self.heat_reported) {
+            // The first `ok` after the in-wait reports: the printer read nothing while it
+            // waited, so this is the heat command's own.
+            self.heat = None;
+        }
         if ok.report.is_some() {
             // The answer of an M105: the printer processed it after every earlier line.
             if let Some(pos) = self.in_flight.iter().position(|f| f.is_m105) {
@@ -1323,26 +1393,7 @@ impl Host {
         }
         // A plain `ok` answers the oldest line, but never a final sync `M105`: that one
         // waits for its own answer, which carries the temperatures.
-        let Some(mut pos) = self.in_flight.iter().position(|f| !f.sync) else {
-            return;
-        };
-        if self.opts.firmware.acks_moves_on_entry() && !heat_was_reported {
-            // Ultimaker2Marlin acknowledges a move when it enters the queue, so while a
-            // heat wait has not begun reporting, an `ok` is a later move's entry rather
-            // than the heat command's end (which comes after its `W:` reports).
-            let oldest_is_heat = self
-                .history_line(self.in_flight[pos].number)
-                .is_some_and(|l| is_code(&l.command, &HEAT_COMMANDS));
-            if oldest_is_heat {
-                if let Some(move_pos) = self.in_flight.iter().position(|f| {
-                    self.history_line(f.number)
-                        .is_some_and(|l| is_code(&l.command, &MOVES))
-                }) {
-                    pos = move_pos;
-                }
-            }
-        }
-        {
+        if let Some(pos) = self.in_flight.iter().position(|f| !f.sync) {
             let f = self.in_flight.remove(pos).expect("position is valid");
             self.in_flight_bytes -= f.bytes;
             self.acknowledged(f.number, now);
@@ -1357,11 +1408,19 @@ impl Host {
             self.acknowledged(f.number, now);
         }
         self.confirmed = Some(self.confirmed.map_or(number, |c| c.max(number)));
+        if self.heat.as_ref().is_some_and(|h| h.number < number) {
+            self.heat = None; // a later line was answered: the wait is over
+        }
     }
 
     fn acknowledged(&mut self, number: u64, now: Instant) {
         self.front_since = now;
         self.last_ack = now;
+        if !self.opts.firmware.acks_moves_on_entry()
+            && self.heat.as_ref().is_some_and(|h| h.number == number)
+        {
+            self.heat = None; // `ok`s in line order: this is the heat command's own
+        }
         // A successful answer after the requested line ends a resend episode.
         if let Some((line, _)) = self.repeated {
             if number >= line {
@@ -1412,16 +1471,24 @@ impl Host {
             return;
         }
         let never_sent = n >= self.next_number || n > self.send_cursor;
-        let counter_reset_pending = self.in_flight.front().is_some_and(|f| f.number == 0)
+        let counter_reset_pending = self.in_flight.front().is_some_and(|f| f.number == first)
             && self
-                .history_line(0)
+                .history_line(first)
                 .is_some_and(|l| l.kind == Kind::Setup && is_code(&l.command, &["M110"]));
         // A request for a line we never sent, after an error that names the line before it,
         // while our `M110` is unanswered: the printer rejected the `M110` (its counter still
         // runs from before). Send it again. A garbled number never matches its error.
         let consistent = std::mem::take(&mut self.error_last_line) == n.checked_sub(1);
+        let stop_first = match self.stopping {
+            Some(Stop::Failure { .. }) => Some(first),
+            _ => None,
+        };
         let n = if never_sent && counter_reset_pending && consistent {
-            0
+            first
+        } else if let Some(first) = stop_first.filter(|&f| n < f) {
+            // The printer still counts from before the stop: it rejected our M110. The
+            // safe-stop lines are harmless to run twice, so replaying from it is safe.
+            first
         } else {
             n
         };

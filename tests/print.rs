@@ -278,13 +278,15 @@ async fn cancel_runs_the_safe_stop_lines() {
         // Real timing, so the job is still running when we cancel.
         cfg.time_scale = 1.0;
         let sim = sim::spawn(cfg).unwrap();
+        // Ultimaker2Marlin acknowledges moves as they enter its queue: after a cancel it
+        // says nothing while it works off up to 8 queued moves at real speed.
+        let mut opts = options(fw);
+        opts.protocol.silence_fail = Duration::from_secs(15);
         let text = (0..400)
             .map(|i| format!("G1 X{} Y{} F6000\n", 10 + (i % 2) * 50, 10 + (i % 3) * 20))
             .collect::<String>();
         let program = GcodeProgram::read(text.as_bytes(), "moves.gcode", fw).unwrap();
-        let mut conn = Connection::open(sim.device_path(), &options(fw))
-            .await
-            .unwrap();
+        let mut conn = Connection::open(sim.device_path(), &opts).await.unwrap();
         let (control, control_rx) = mpsc::channel(1);
         let (progress, mut progress_rx) = watch::channel(PrintProgress::default());
         let canceller = tokio::spawn(async move {
@@ -505,8 +507,14 @@ async fn marlin20_without_ok_after_resend_is_recognised_at_run_time() {
     opts.protocol.resend_ok_wait = Duration::from_millis(300);
     let report = stream(&sim, &opts, &program).await.unwrap();
     assert_eq!(job_executed(&sim), program.to_vec());
-    assert!(report.resends > 3);
-    assert_eq!(report.silence_probes, 0, "ok accounting drifted");
+    assert!(report.resends > 5, "{report:?}");
+    // A wrong guess would leave a line waiting for an `ok` after nearly every resend, each
+    // found only by a probe. (A line whose `N` itself was corrupted runs as a fragment and
+    // does need one.)
+    assert!(
+        report.silence_probes * 4 <= report.resends,
+        "ok accounting drifted: {report:?}"
+    );
 }
 
 /// NO_TIMEOUTS: the printer says `wait` while idle. With lost `ok`s the host must take it
@@ -529,7 +537,10 @@ async fn a_printer_that_says_wait_when_idle_never_stalls_a_job() {
             .await
             .unwrap_or_else(|e| panic!("{fw}: {e}"));
         assert_eq!(job_executed(&sim), program.to_vec(), "{fw}");
-        assert!(report.silence_probes > 0, "{fw}: an ok was lost");
+        if !fw.advanced_ok() {
+            // (ADVANCED_OK heals a lost `ok` with the next one, by its number.)
+            assert!(report.silence_probes > 0, "{fw}: an ok was lost");
+        }
         assert!(
             started.elapsed() < Duration::from_secs(20),
             "{fw}: took {:?}",

@@ -1228,9 +1228,12 @@ impl Host {
                 // The printer's queue is empty. Lines still believed in flight had their
                 // `ok`s lost (or are still on the wire): probe at once, never treat it as a
                 // sign of life.
-                let recent_probe = self.last_probe.is_some_and(|p| {
-                    now.saturating_duration_since(p) < self.opts.silence_probe / 2
-                });
+                // At most one probe a second: `wait` comes often, and a probe's answer
+                // takes a moment.
+                let spacing = (self.opts.silence_probe / 2).min(Duration::from_secs(1));
+                let recent_probe = self
+                    .last_probe
+                    .is_some_and(|p| now.saturating_duration_since(p) < spacing);
                 if self.phase == Phase::Job && !self.in_flight.is_empty() && !recent_probe {
                     self.probe(now);
                 }

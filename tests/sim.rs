@@ -120,9 +120,18 @@ impl Port {
     }
 
     /// Reset line numbers the way a host does on connect.
+    /// Like a host, it tries again when the line gets no answer (Marlin 2.1 ignores a
+    /// corrupted `N0` line silently: it takes it for a duplicate).
     fn handshake(&mut self) {
-        self.send_numbered(0, "M110 N0");
-        self.until("ok");
+        for _ in 0..10 {
+            self.send_numbered(0, "M110 N0");
+            while let Some(line) = self.line(Duration::from_secs(1)) {
+                if line.starts_with("ok") {
+                    return;
+                }
+            }
+        }
+        panic!("no answer to M110; saw {:#?}", self.seen);
     }
 }
 

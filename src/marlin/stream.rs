@@ -175,8 +175,9 @@ pub enum PrintError {
         last_acked: usize,
     },
     #[error(
-        "printer on {port}: `{command}` did not reach its temperature within {waited_s:.0} s \
-         (now {temperatures}); heaters were switched off, last acknowledged line {last_acked}"
+        "printer on {port}: `{command}` stopped coming closer to its temperature (waited \
+         {waited_s:.0} s in all, now {temperatures}); heaters were switched off, last \
+         acknowledged line {last_acked}"
     )]
     HeatTimeout {
         port: PathBuf,

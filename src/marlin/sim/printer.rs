@@ -6,8 +6,14 @@
 //! the host must wait), a 16-move planner that drains at the moves' real speed, and an
 //! emergency parser that sees M108/M112 as the bytes arrive.
 
+mod dialect;
+mod motion;
+mod thermal;
+
 use super::{Faults, Recorder, SimConfig};
 use crate::marlin::firmware::Firmware;
+use dialect::known_marlin2;
+use motion::{is_move, parse_words, word, word_present};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;
@@ -15,10 +21,6 @@ use std::time::{Duration, Instant};
 
 const PLANNER_MOVES: usize = 16;
 const AMBIENT: f64 = 21.0;
-const HOTEND_HEAT_RATE: f64 = 2.5; // °C per simulated second
-const HOTEND_COOL_RATE: f64 = 1.0;
-const BED_HEAT_RATE: f64 = 0.8;
-const BED_COOL_RATE: f64 = 0.3;
 const HOMING_SECONDS: f64 = 3.0;
 const DEFAULT_FEEDRATE: f64 = 1500.0; // mm/min
 /// Shortest real interval between periodic messages, so a tiny time scale cannot turn
@@ -313,13 +315,6 @@ impl Printer {
         self.say_noisy(&line);
     }
 
-    fn temperature_report(&self) -> String {
-        format!(
-            "T:{:.2} /{:.2} B:{:.2} /{:.2} @:0 B@:0",
-            self.hotend.current, self.hotend.target, self.bed.current, self.bed.target
-        )
-    }
-
     // ----- input --------------------------------------------------------------------
 
     /// Bytes from the host. They enter the receive ring; bytes that do not fit are lost,
@@ -434,15 +429,22 @@ impl Printer {
                 .rng
                 .random_bool(self.faults.corrupt_host_bytes.min(1.0))
         {
-            let at = self.rng.random_range(0..raw.len());
-            // Any byte but the ones that would change the line's framing in a way a
-            // checksum cannot see (a new `N` or `*`).
+            // Any byte but the framing a checksum cannot protect: the leading `N` (without
+            // it Marlin 2 checks nothing and runs the rest) and the `*`; and no new ones.
+            let start = usize::from(raw[0] == b'N');
+            let mut at = self.rng.random_range(start.min(raw.len() - 1)..raw.len());
+            if raw[at] == b'*' {
+                // The last checksum-protected byte before it.
+                at = at.saturating_sub(1).max(start);
+            }
             let mut c = raw[at];
             while c == raw[at] || c == b'N' || c == b'*' {
                 c = self.rng.random_range(0x20u8..0x7f);
             }
-            tracing::debug!(at, "fault: corrupting a received line");
-            raw[at] = c;
+            if raw[at] != b'*' && !(at == 0 && raw[0] == b'N') {
+                tracing::debug!(at, "fault: corrupting a received line");
+                raw[at] = c;
+            }
         }
         let line = String::from_utf8_lossy(&raw).trim().to_string();
         if line.is_empty() {
@@ -525,37 +527,6 @@ impl Printer {
 
     // ----- time ---------------------------------------------------------------------
 
-    fn update_planner(&mut self, now: Instant) {
-        while let Some(end) = self.planner_head_end {
-            if now < end {
-                break;
-            }
-            self.planner.pop_front();
-            self.planner_head_end = self.planner.front().map(|d| end + *d);
-        }
-    }
-
-    fn update_temperatures(&mut self, now: Instant) {
-        let real = now.saturating_duration_since(self.temps_at).as_secs_f64();
-        self.temps_at = now;
-        let sim = if self.time_scale == 0.0 {
-            f64::INFINITY
-        } else {
-            real / self.time_scale
-        };
-        for (t, heat, cool) in [
-            (&mut self.hotend, HOTEND_HEAT_RATE, HOTEND_COOL_RATE),
-            (&mut self.bed, BED_HEAT_RATE, BED_COOL_RATE),
-        ] {
-            let goal = t.target.max(AMBIENT);
-            if t.current < goal {
-                t.current = (t.current + heat * sim).min(goal);
-            } else if t.current > goal {
-                t.current = (t.current - cool * sim).max(goal);
-            }
-        }
-    }
-
     /// Run the printer up to `now`: drain the planner, heat, finish and start commands.
     pub(crate) fn advance(&mut self, now: Instant, recorder: &mut Recorder) {
         if let Status::Booting(until) = self.status {
@@ -634,20 +605,6 @@ impl Printer {
         self.active.is_none() && self.slots.is_empty() && self.rx.is_empty()
     }
 
-    /// The report printed every second inside M109/M190: Marlin's with a `W:` residency
-    /// countdown, Ultimaker2Marlin's without the target (`T:210.0 E:0 W:?`).
-    fn heat_wait_report(&self, heater: Heater) -> String {
-        match (self.fw, heater) {
-            (Firmware::Ultimaker2, Heater::Hotend) => {
-                format!("T:{:.1} E:0 W:?", self.hotend.current)
-            }
-            (Firmware::Ultimaker2, Heater::Bed) => {
-                format!("T:{:.1} E:0 B:{:.1}", self.hotend.current, self.bed.current)
-            }
-            _ => format!("{} W:?", self.temperature_report()),
-        }
-    }
-
     /// Try to finish the active command; true if it finished.
     fn progress_active(&mut self, now: Instant) -> bool {
         let Some(mut active) = self.active.take() else {
@@ -707,14 +664,6 @@ impl Printer {
             self.active = Some(active);
             return false;
         }
-    }
-
-    fn plan(&mut self, seconds: f64, now: Instant) {
-        let d = self.real(seconds);
-        if self.planner.is_empty() {
-            self.planner_head_end = Some(now + d);
-        }
-        self.planner.push_back(d);
     }
 
     /// When `advance` must run again (None: only when input arrives).
@@ -995,115 +944,6 @@ impl Printer {
         }
         false
     }
-
-    fn m115(&mut self) {
-        match self.fw {
-            Firmware::Marlin20 => {
-                self.say(
-                    "FIRMWARE_NAME:Marlin 2.0.9.3 (crispen sim) \
-                     SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 \
-                     MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff",
-                );
-                for cap in [
-                    "EEPROM:1",
-                    "AUTOREPORT_TEMP:1",
-                    "EMERGENCY_PARSER:1",
-                    "HOST_ACTION_COMMANDS:1",
-                    "BUSY_PROTOCOL:1",
-                ] {
-                    self.say(&format!("Cap:{cap}"));
-                }
-            }
-            Firmware::Marlin2 => {
-                self.say(
-                    "FIRMWARE_NAME:Marlin 2.1.2 (crispen sim) \
-                     SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 \
-                     MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff",
-                );
-                for cap in [
-                    "SERIAL_XON_XOFF:0",
-                    "BINARY_FILE_TRANSFER:0",
-                    "EEPROM:1",
-                    "VOLUMETRIC:1",
-                    "AUTOREPORT_POS:0",
-                    "AUTOREPORT_TEMP:1",
-                    "PROGRESS:0",
-                    "PRINT_JOB:1",
-                    "AUTOLEVEL:0",
-                    "Z_PROBE:0",
-                    "LEVELING_DATA:0",
-                    "BUILD_PERCENT:1",
-                    "SOFTWARE_POWER:0",
-                    "TOGGLE_LIGHTS:0",
-                    "CASE_LIGHT_BRIGHTNESS:0",
-                    "EMERGENCY_PARSER:1",
-                    "HOST_ACTION_COMMANDS:1",
-                    "PROMPT_SUPPORT:0",
-                    "SDCARD:0",
-                    "AUTOREPORT_SD_STATUS:0",
-                    "THERMAL_PROTECTION:1",
-                    "MOTION_MODES:0",
-                    "ARCS:1",
-                    "BABYSTEPPING:0",
-                    "CHAMBER_TEMPERATURE:0",
-                    "BUSY_PROTOCOL:1",
-                    "ADVANCED_OK:1",
-                ] {
-                    self.say(&format!("Cap:{cap}"));
-                }
-            }
-            Firmware::Ultimaker2 => self.say(
-                "FIRMWARE_NAME:Marlin Ultimaker2; Sprinter/grbl mashup for gen6 \
-                 FIRMWARE_URL:https://github.com/Ultimaker/Ultimaker2Marlin \
-                 PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ultimaker EXTRUDER_COUNT:1",
-            ),
-        }
-    }
-
-    /// Simulated seconds a G0–G3 takes at its feedrate (F is persistent, mm/min).
-    fn move_seconds(&mut self, words: &[(char, f64)], code: i64) -> f64 {
-        if let Some(f) = word(words, 'F') {
-            if f > 0.0 {
-                self.feedrate = f;
-            }
-        }
-        let start = self.position;
-        let mut end = start;
-        for (i, axis) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-            if let Some(v) = word(words, axis) {
-                let rel = if i == 3 {
-                    self.relative_e
-                } else {
-                    self.relative
-                };
-                end[i] = if rel { start[i] + v } else { v };
-            }
-        }
-        self.position = end;
-        let (dx, dy, dz) = (end[0] - start[0], end[1] - start[1], end[2] - start[2]);
-        let mut distance = (dx * dx + dy * dy + dz * dz).sqrt();
-        if code == 2 || code == 3 {
-            let (i, j) = (
-                word(words, 'I').unwrap_or(0.0),
-                word(words, 'J').unwrap_or(0.0),
-            );
-            let radius = (i * i + j * j).sqrt();
-            if radius > 0.0 {
-                let (cx, cy) = (start[0] + i, start[1] + j);
-                let a0 = (start[1] - cy).atan2(start[0] - cx);
-                let a1 = (end[1] - cy).atan2(end[0] - cx);
-                let mut sweep = if code == 3 { a1 - a0 } else { a0 - a1 };
-                if sweep <= 1e-9 {
-                    sweep += std::f64::consts::TAU;
-                }
-                distance = (radius * sweep).hypot(dz);
-            }
-        }
-        if distance == 0.0 {
-            distance = (end[3] - start[3]).abs();
-        }
-        distance / (self.feedrate / 60.0)
-    }
 }
 
 /// `N12 G1 X5*34` → `G1 X5` (also for lines without N or checksum).
@@ -1129,76 +969,11 @@ fn leading_int(s: &str) -> Option<i64> {
         .map_or(s.len(), |(i, _)| i);
     s[..end].parse().ok()
 }
-
-/// G-code words (`G1 X10.5 F3000`, also `G1X10`): letter and number pairs. Text after
-/// M117/M118 and the like is not needed by the simulator and parses as noise.
-fn parse_words(cmd: &str) -> Vec<(char, f64)> {
-    let bytes = cmd.as_bytes();
-    let mut words = Vec::new();
-    let mut i = 0;
-    while i < bytes.len() {
-        let c = bytes[i] as char;
-        if c.is_ascii_alphabetic() {
-            let start = i + 1;
-            let mut end = start;
-            while end < bytes.len()
-                && (bytes[end].is_ascii_digit() || matches!(bytes[end], b'.' | b'-' | b'+'))
-            {
-                end += 1;
-            }
-            let value = cmd[start..end].parse().unwrap_or(0.0);
-            words.push((c.to_ascii_uppercase(), value));
-            i = end.max(start);
-        } else {
-            i += 1;
-        }
-    }
-    words
-}
-
-fn word(words: &[(char, f64)], letter: char) -> Option<f64> {
-    words.iter().skip(1).find(|w| w.0 == letter).map(|w| w.1)
-}
-
-fn word_present(words: &[(char, f64)], letter: char) -> bool {
-    words.iter().skip(1).any(|w| w.0 == letter)
-}
-
 /// Whether a line starts with a command word (`G1`, `M105`, `T0`, also lower case) that
-/// Marlin's parser dispatches. Anything else never reaches a command handler.
-fn is_move(cmd: &str) -> bool {
-    let words = parse_words(cmd);
-    matches!(words.first(), Some(&('G', code)) if (0.0..=3.0).contains(&code) && code.fract() == 0.0)
-}
-
 fn is_command_word(cmd: &str) -> bool {
     let mut chars = cmd.trim_start().chars();
     matches!(chars.next(), Some('G' | 'M' | 'T' | 'g' | 'm' | 't'))
         && chars.next().is_some_and(|c| c.is_ascii_digit())
-}
-
-/// G/M codes a typical Marlin 2 build knows (enough for slicer output); others get
-/// `echo:Unknown command`.
-fn known_marlin2(letter: char, code: f64) -> bool {
-    let whole = code.trunc() as i64;
-    match letter {
-        'G' => matches!(
-            whole,
-            0..=5 | 10 | 11 | 12 | 17..=21 | 26..=30 | 33 | 34 | 38 | 42 | 53..=61 | 76 | 80 | 90..=92
-        ),
-        'M' => matches!(
-            whole,
-            0 | 1 | 3..=5 | 16..=34 | 42 | 48 | 73 | 75..=78 | 80..=92 | 100 | 104..=125
-                | 140 | 141 | 145 | 149 | 150 | 155 | 163 | 164 | 190 | 191 | 200..=209
-                | 211 | 217..=221 | 226 | 240 | 250 | 256 | 260..=261 | 280 | 281 | 290
-                | 300 | 301 | 302..=306 | 350 | 351 | 355 | 360 | 380 | 381 | 400..=422
-                | 425 | 428 | 430 | 486 | 500..=504 | 510..=512 | 524 | 540 | 569 | 575
-                | 600 | 603 | 605 | 665 | 666 | 672 | 701 | 702 | 710 | 808 | 810..=813
-                | 851 | 852 | 860..=869 | 871 | 876 | 900 | 906 | 907..=919 | 928 | 993..=999
-        ),
-        'T' => true,
-        _ => false,
-    }
 }
 
 #[cfg(test)]

@@ -15,6 +15,7 @@
 //! - this file: numbering, the send window and the host state machine acting on replies.
 
 pub mod reply;
+mod window;
 
 use super::firmware::Firmware;
 use super::gcode::GcodeCommands;
@@ -33,13 +34,6 @@ pub fn frame(number: u64, command: &str) -> String {
     let body = format!("N{number} {command}");
     let cs = checksum(body.as_bytes());
     format!("{body}*{cs}\n")
-}
-
-/// Upper bound of `frame(number, command).len()` without building the line: `N`, the
-/// number, a space, the command, `*`, a checksum of at most three digits and `\n`.
-fn wire_len_bound(number: u64, command: &str) -> usize {
-    let digits = number.checked_ilog10().map_or(1, |d| d as usize + 1);
-    1 + digits + 1 + command.len() + 1 + 3 + 1
 }
 
 /// Tunables; [`ProtocolOptions::for_firmware`] gives sensible values.
@@ -490,7 +484,16 @@ impl Host {
     /// firmware reads nothing while it waits), by an answer confirming a later line, or,
     /// where `ok`s keep line order, by its own `ok`.
     pub fn heating(&self) -> bool {
-        self.heat_reported || self.heat.is_some()
+        self.heat_reported || self.heat.is_some() || self.heat_at_front()
+    }
+
+    /// The oldest unanswered line is M109/M190, or the printer reports that it waits: it
+    /// reads nothing else meanwhile, so silence is no sign of trouble.
+    fn heat_at_front(&self) -> bool {
+        self.heat_reported
+            || self
+                .front_line()
+                .is_some_and(|l| is_code(&l.command, &HEAT_COMMANDS))
     }
     pub fn acked_job_lines(&self) -> usize {
         self.acked_job
@@ -655,7 +658,7 @@ impl Host {
                     if self.resend_hold.is_none() {
                         at(self.next_probe_at());
                     }
-                    if self.heating() || is_code(&front.command, &HEAT_COMMANDS) {
+                    if self.heat_at_front() {
                         // The heat wait has its own limit.
                     } else if is_code(&front.command, &LONG_COMMANDS) {
                         at(self.last_rx + self.opts.long_command_timeout);
@@ -731,7 +734,7 @@ impl Host {
         let Some(front) = self.front_line().cloned() else {
             return;
         };
-        if self.heating() || is_code(&front.command, &HEAT_COMMANDS) {
+        if self.heat_at_front() {
             // Inside a heat wait: its own limit applies.
         } else if is_code(&front.command, &LONG_COMMANDS) {
             if now - self.last_rx >= self.opts.long_command_timeout {
@@ -796,10 +799,10 @@ impl Host {
     fn next_probe_at(&self) -> Instant {
         let probe = self.opts.silence_probe;
         let base = self.last_progress.max(self.front_since) + probe;
-        let long_front = self.heating()
-            || self.front_line().is_some_and(|l| {
-                is_code(&l.command, &HEAT_COMMANDS) || is_code(&l.command, &LONG_COMMANDS)
-            });
+        let long_front = self.heat_at_front()
+            || self
+                .front_line()
+                .is_some_and(|l| is_code(&l.command, &LONG_COMMANDS));
         if long_front && self.in_flight.iter().any(|f| f.is_m105) {
             // It waits behind the long command; more probes would only fill the buffer.
             return base.max(self.front_since + self.opts.long_command_timeout);
@@ -832,26 +835,6 @@ impl Host {
     fn front_line(&self) -> Option<&Line> {
         let front = self.in_flight.front()?;
         self.history_line(front.number)
-    }
-
-    fn history_line(&self, number: u64) -> Option<&Line> {
-        let first = self.history.front()?.number;
-        self.history.get(number.checked_sub(first)? as usize)
-    }
-
-    fn reset_numbering(&mut self) {
-        self.history.clear();
-        self.in_flight.clear();
-        self.in_flight_bytes = 0;
-        self.pending.clear();
-        self.next_number = 0;
-        self.send_cursor = 0;
-        self.swallow_oks = 0;
-        self.duplicate_budget = None;
-        self.repeated = None;
-        self.resend_hold = None;
-        self.cautious_until = 0;
-        self.confirmed = None;
     }
 
     fn send_greeting(&mut self, now: Instant) {
@@ -942,171 +925,11 @@ impl Host {
         self.fail(failure);
     }
 
-    fn discard_unsent_job_lines(&mut self) {
-        let Some(first) = self.history.front().map(|l| l.number) else {
-            return;
-        };
-        if self.send_cursor >= self.next_number {
-            return;
-        }
-        let keep = (self.send_cursor - first) as usize;
-        let dropped: Vec<Line> = self.history.drain(keep..).collect();
-        self.next_number = self.send_cursor;
-        for line in dropped.into_iter().rev() {
-            if line.kind == Kind::SafeStop {
-                self.pending.push_front((line.kind, line.command));
-            }
-        }
-    }
-
     fn fail(&mut self, failure: Failure) {
         if self.phase != Phase::Finished {
             self.phase = Phase::Finished;
             self.events.push_back(Event::Failed(failure));
         }
-    }
-
-    /// Give the next line a number and remember it for resends.
-    fn new_line(&mut self, kind: Kind, command: String) -> u64 {
-        let number = self.next_number;
-        self.next_number += 1;
-        // A job's own `M110 N<k>` would move the printer's counter away from the host's:
-        // it is sent as `M110 N<its own number>`, which keeps both in step.
-        let command = if matches!(kind, Kind::Job(_)) && is_code(&command, &["M110"]) {
-            format!("M110 N{number}")
-        } else {
-            command
-        };
-        self.history.push_back(Line {
-            number,
-            kind,
-            command,
-        });
-        // Keep history bounded, but never drop lines that are not yet acknowledged.
-        let oldest_needed = self
-            .in_flight
-            .front()
-            .map_or(self.send_cursor, |f| f.number.min(self.send_cursor));
-        while self.history.len() > self.opts.history_lines
-            && self
-                .history
-                .front()
-                .is_some_and(|l| l.number < oldest_needed)
-        {
-            self.history.pop_front();
-        }
-        number
-    }
-
-    fn transmit(&mut self, number: u64, now: Instant) {
-        let Some(line) = self.history_line(number) else {
-            return;
-        };
-        let wire = frame(number, &line.command);
-        let is_m105 = code_of(&line.command).eq_ignore_ascii_case("M105");
-        let sync = line.kind == Kind::Sync;
-        let is_heat = is_code(&line.command, &HEAT_COMMANDS);
-        if wire.len() - 1 > self.opts.firmware.max_line_bytes() {
-            let failure = Failure::LineTooLong {
-                command: line.command.clone(),
-                len: wire.len() - 1,
-                max: self.opts.firmware.max_line_bytes(),
-            };
-            self.fail_safely(failure, now);
-            return;
-        }
-        if is_heat {
-            let command = line.command.clone();
-            let words: Vec<&str> = command.split_whitespace().collect();
-            let target = words[1..]
-                .iter()
-                .find_map(|w| w.strip_prefix(['S', 'R', 's', 'r']))
-                .and_then(|v| v.parse::<f64>().ok());
-            self.heat = Some(HeatWait {
-                number,
-                bed: is_code(&command, &["M190"]),
-                command,
-                target,
-                since: now,
-                best: None,
-            });
-        }
-        if self.in_flight.is_empty() {
-            self.front_since = now;
-        }
-        self.outgoing.extend_from_slice(wire.as_bytes());
-        self.in_flight.push_back(InFlight {
-            number,
-            bytes: wire.len(),
-            is_m105,
-            sync,
-        });
-        self.in_flight_bytes += wire.len();
-        self.send_cursor = number + 1;
-        self.lines_sent += 1;
-    }
-
-    fn window_allows(&self, number: u64, bytes: usize) -> bool {
-        if self.in_flight.is_empty() {
-            return true;
-        }
-        if !self.opts.send_ahead || number < self.cautious_until {
-            return false;
-        }
-        // Every unacknowledged line may still sit in the printer's receive ring: while the
-        // firmware is blocked (planner full, M109, G28...) its loop does not move lines into
-        // command slots, so free slots announced by ADVANCED_OK (`B`) are no room for more
-        // bytes. Bytes beyond the ring are lost and two lines merge into one whose checksum
-        // may even pass; so the bytes in flight never exceed the ring. One byte of margin:
-        // Marlin's ring tells full from empty by leaving one cell unused.
-        self.in_flight_bytes + bytes < self.opts.firmware.rx_buffer_bytes()
-    }
-
-    /// Send whatever the window allows. A line gets its number only when it is sent, so
-    /// numbers always match the order on the wire.
-    fn pump(&mut self, now: Instant) {
-        loop {
-            if matches!(
-                self.phase,
-                Phase::Finished | Phase::Idle | Phase::Boot { .. }
-            ) || self.resend_hold.is_some()
-            {
-                return;
-            }
-            if self.send_cursor < self.next_number {
-                // Replaying after a resend request.
-                let number = self.send_cursor;
-                let Some(line) = self.history_line(number) else {
-                    break;
-                };
-                if !self.window_allows(number, wire_len_bound(number, &line.command)) {
-                    break;
-                }
-                self.transmit(number, now);
-                continue;
-            }
-            let candidate_len = if let Some((_, command)) = self.pending.front() {
-                command.len()
-            } else if self.accepting_job_lines() && self.next_job < self.job.len() {
-                self.job[self.next_job].len()
-            } else {
-                break;
-            };
-            let number = self.next_number;
-            if !self.window_allows(number, candidate_len + wire_len_bound(number, "")) {
-                break;
-            }
-            let number = if let Some((kind, command)) = self.pending.pop_front() {
-                self.new_line(kind, command)
-            } else {
-                let idx = self.next_job;
-                self.next_job += 1;
-                let command = self.job[idx].to_owned();
-                self.new_line(Kind::Job(idx), command)
-            };
-            self.transmit(number, now);
-        }
-        self.check_progress(now);
     }
 
     fn check_progress(&mut self, now: Instant) {
@@ -1339,6 +1162,10 @@ impl Host {
                     match heat.best {
                         Some((best, _)) if gap > best - 0.5 => {}
                         _ => heat.best = Some((gap, now)),
+                    }
+                    if gap <= 2.0 && !report.waiting {
+                        // There, and the printer no longer reports a wait.
+                        self.heat = None;
                     }
                 }
             }

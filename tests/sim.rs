@@ -835,3 +835,66 @@ fn reset_on_open_loses_input_until_start() {
     port.handshake();
     assert_eq!(sim.executed(), ["M110 N0"]);
 }
+
+/// The dialect switches of `crispen sim`: a Marlin 2.0 that says `wait` when idle and
+/// resets on open, with host actions on demand; and clear refusals of bad values.
+#[test]
+fn crispen_sim_switches_for_firmware_behaviours() {
+    let exe = env!("CARGO_BIN_EXE_crispen");
+    let mut child = std::process::Command::new(exe)
+        .args([
+            "sim",
+            "--firmware",
+            "marlin20",
+            "--time-scale",
+            "0",
+            "--wait-when-idle-ms",
+            "100",
+            "--reset-on-open-ms",
+            "300",
+            "--action-after",
+            "1:cancel",
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut first = String::new();
+    std::io::BufRead::read_line(&mut stdout, &mut first).unwrap();
+    let device = first
+        .trim_end()
+        .strip_prefix("crispen sim: listening on ")
+        .unwrap_or_else(|| panic!("first line: {first:?}"))
+        .to_string();
+    let mut port = Port::open(Path::new(&device));
+    port.until("start");
+    port.until("wait");
+    port.send_numbered(0, "M110 N0");
+    port.until("//action:cancel");
+    port.until("ok");
+    port.send_numbered(1, "M115");
+    let (lines, _) = port.until("ok");
+    assert!(lines.iter().any(|l| l.contains("Marlin 2.0")), "{lines:?}");
+    drop(port);
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(child.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    assert!(child.wait().unwrap().success());
+
+    for (flag, value, says) in [
+        ("--action-after", "pause", "expected N:NAME"),
+        ("--action-after", "3:pa use", "action name"),
+        ("--wait-when-idle-ms", "0", "flood"),
+    ] {
+        let out = std::process::Command::new(exe)
+            .args(["sim", flag, value])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{flag} {value}");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(says), "{flag} {value}: {stderr}");
+    }
+}

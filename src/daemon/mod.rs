@@ -133,6 +133,7 @@ impl Fleet {
             port,
             firmware: spec.firmware,
             baud: spec.baud,
+            heat_timeout: spec.heat_timeout,
         });
         let (retire, retired) = watch::channel(false);
         let task = tokio::spawn(printer::supervise(

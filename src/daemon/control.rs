@@ -14,7 +14,7 @@ use std::io::{BufRead, BufReader, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt};
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt};
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "cmd", rename_all = "lowercase", deny_unknown_fields)]
@@ -280,7 +280,7 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
                 .unwrap_or_else(|e| e.into_inner())
                 .get(id)
             {
-                p.cancel.store(true, std::sync::atomic::Ordering::Relaxed);
+                p.cancel.cancel();
             }
             Ok(Some(format!("job {id} cancelled")))
         }
@@ -297,8 +297,18 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
     }
 }
 
-/// Binds the control socket (replacing a stale one) with mode 0660.
+/// Longest request line accepted; a request is a few short fields.
+pub const MAX_REQUEST_BYTES: usize = 64 * 1024;
+/// A connection with no complete request for this long is closed.
+pub const IDLE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+/// Connections served at once; more wait in the kernel's backlog.
+pub const MAX_CONNECTIONS: usize = 64;
+
+/// Binds the control socket with mode 0660. An existing socket nobody answers on (left by
+/// a daemon that was killed) is replaced; anything else at the path is left alone and
+/// refused, so a mistyped `[control] socket` can never remove a file.
 pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
+    use std::os::unix::fs::FileTypeExt;
     let io = |source| ControlError::Io {
         socket: socket.to_path_buf(),
         source,
@@ -306,48 +316,95 @@ pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
     if let Some(dir) = socket.parent() {
         std::fs::create_dir_all(dir).map_err(io)?;
     }
-    if socket.exists() {
-        if std::os::unix::net::UnixStream::connect(socket).is_ok() {
-            return Err(ControlError::Io {
-                socket: socket.to_path_buf(),
-                source: std::io::Error::new(
+    match std::fs::symlink_metadata(socket) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(io(e)),
+        Ok(meta) if !meta.file_type().is_socket() => {
+            return Err(io(std::io::Error::new(
+                std::io::ErrorKind::AlreadyExists,
+                "the path exists and is not a socket; it is left alone (hint: use another [control] socket)",
+            )))
+        }
+        Ok(_) => {
+            if std::os::unix::net::UnixStream::connect(socket).is_ok() {
+                return Err(io(std::io::Error::new(
                     std::io::ErrorKind::AddrInUse,
                     "another daemon is listening here (hint: stop it, or use another [control] socket)",
-                ),
-            });
+                )));
+            }
+            std::fs::remove_file(socket).map_err(io)?;
         }
-        std::fs::remove_file(socket).map_err(io)?;
     }
     let listener = tokio::net::UnixListener::bind(socket).map_err(io)?;
     std::fs::set_permissions(socket, std::fs::Permissions::from_mode(0o660)).map_err(io)?;
     Ok(listener)
 }
 
-/// Answers requests until the listener is dropped.
+/// Answers requests until the task is dropped: at most [`MAX_CONNECTIONS`] connections at
+/// once, each closed after [`IDLE_TIMEOUT`] without a request or at a request longer than
+/// [`MAX_REQUEST_BYTES`]; when accepting fails (out of file descriptors) it waits a
+/// little longer each time instead of spinning.
 pub async fn serve(farm: Arc<Farm>, listener: tokio::net::UnixListener) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    let mut backoff = std::time::Duration::from_millis(10);
     loop {
-        let Ok((stream, _)) = listener.accept().await else {
-            continue;
+        let Ok(slot) = Arc::clone(&slots).acquire_owned().await else {
+            return;
         };
+        let stream = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    tracing::warn!(error = %e, retry_in_ms = backoff.as_millis() as u64, "control socket: cannot accept");
+                    tokio::time::sleep(backoff).await;
+                    backoff = (backoff * 2).min(std::time::Duration::from_secs(1));
+                    continue;
+                }
+            },
+            _ = farm.shutdown.cancelled() => return,
+        };
+        backoff = std::time::Duration::from_millis(10);
         let farm = Arc::clone(&farm);
         tokio::spawn(async move {
-            let (read, mut write) = stream.into_split();
-            let mut lines = tokio::io::BufReader::new(read).lines();
-            while let Ok(Some(line)) = lines.next_line().await {
-                let response = match serde_json::from_str::<Request>(&line) {
-                    Ok(req) => handle(&farm, req).await,
-                    Err(e) => Response {
-                        ok: false,
-                        error: Some(format!("bad request: {e}")),
-                        ..Default::default()
-                    },
-                };
-                let mut out = serde_json::to_string(&response).expect("response serialises");
-                out.push('\n');
-                if write.write_all(out.as_bytes()).await.is_err() {
-                    break;
-                }
-            }
+            let _slot = slot;
+            serve_connection(&farm, stream).await;
         });
+    }
+}
+
+async fn serve_connection(farm: &Arc<Farm>, stream: tokio::net::UnixStream) {
+    let (read, mut write) = stream.into_split();
+    let mut reader = tokio::io::BufReader::new(read);
+    loop {
+        let mut line = Vec::new();
+        let mut limited = (&mut reader).take(MAX_REQUEST_BYTES as u64 + 1);
+        let read = limited.read_until(b'\n', &mut line);
+        let read = tokio::select! {
+            read = tokio::time::timeout(IDLE_TIMEOUT, read) => read,
+            _ = farm.shutdown.cancelled() => return,
+        };
+        let response = match read {
+            Err(_) | Ok(Err(_)) | Ok(Ok(0)) => return,
+            Ok(Ok(_)) if line.len() > MAX_REQUEST_BYTES => Response {
+                ok: false,
+                error: Some(format!(
+                    "bad request: longer than {MAX_REQUEST_BYTES} bytes; the connection is closed"
+                )),
+                ..Default::default()
+            },
+            Ok(Ok(_)) => match serde_json::from_slice::<Request>(&line) {
+                Ok(req) => handle(farm, req).await,
+                Err(e) => Response {
+                    ok: false,
+                    error: Some(format!("bad request: {e}")),
+                    ..Default::default()
+                },
+            },
+        };
+        let mut out = serde_json::to_string(&response).expect("response serialises");
+        out.push('\n');
+        if write.write_all(out.as_bytes()).await.is_err() || line.len() > MAX_REQUEST_BYTES {
+            return;
+        }
     }
 }

@@ -27,6 +27,9 @@ use std::time::{Duration, Instant};
 
 /// Usable build volume of the Ultimaker 2, in mm (X, Y, Z).
 pub const BED_MM: [f64; 3] = [223.0, 223.0, 205.0];
+/// Printed heights accepted, mm: from a height that still holds a shape of a few layers
+/// to the build volume's height.
+pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=BED_MM[2];
 /// Room kept free around the model on each side, for the skirt the profiles print.
 pub const SKIRT_MARGIN_MM: f64 = 5.0;
 
@@ -305,6 +308,8 @@ pub struct SliceRequest {
     pub cancel: Option<Arc<AtomicBool>>,
     /// The model's up axis (default Z).
     pub up: UpAxis,
+    /// Where to keep the mesh that was sliced (enhanced, scaled and placed), as binary STL.
+    pub keep_mesh: Option<PathBuf>,
 }
 
 impl SliceRequest {
@@ -324,6 +329,7 @@ impl SliceRequest {
             slicer_program: None,
             cancel: None,
             up: UpAxis::Z,
+            keep_mesh: None,
         }
     }
 }
@@ -495,13 +501,14 @@ pub fn slice(
     req.settings.validate()?;
     let (nozzle_temp_c, bed_temp_c) = req.settings.temperatures()?;
     let material = req.settings.material_preset()?;
-    if !(req.height_mm.is_finite() && req.height_mm > 0.0) {
+    if !(req.height_mm.is_finite() && HEIGHT_MM.contains(&req.height_mm)) {
         return Err(SliceError::BadSetting {
             key: "height".into(),
             value: req.height_mm.to_string(),
             hint: format!(
-                "the printed height must be above 0 and at most {} mm",
-                BED_MM[2]
+                "the printed height must be from {} to {} mm",
+                HEIGHT_MM.start(),
+                HEIGHT_MM.end()
             ),
         });
     }
@@ -562,6 +569,9 @@ pub fn slice(
         crate::mesh::write_stl(&mut w, &mesh)
             .and_then(|_| std::io::Write::flush(&mut w))
             .map_err(SliceError::io("cannot write temporary STL", &stl_path))?;
+    }
+    if let Some(keep) = &req.keep_mesh {
+        persist(&stl_path, keep)?;
     }
     let gcode_path = work.path().join("job.gcode");
     let job = profiles::JobParams {
@@ -739,8 +749,8 @@ pub fn place_on_bed(mesh: &mut Mesh, height_mm: f64, model: &Path) -> Result<[f6
     Ok(size)
 }
 
-/// Moves the checked G-code to its destination without ever leaving a half-written job
-/// there: copy next to it, then rename over it.
+/// Copies a finished file (checked G-code, the mesh that was sliced) to its destination
+/// without ever leaving a half-written one there: copy next to it, then rename over it.
 fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     let dir = match to.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
@@ -748,13 +758,12 @@ fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     };
     let mut tmp = tempfile::Builder::new()
         .prefix(".crispen-")
-        .suffix(".gcode.part")
+        .suffix(".part")
         .tempfile_in(dir)
-        .map_err(SliceError::io("cannot write G-code into", dir))?;
-    let mut src = std::fs::File::open(from).map_err(SliceError::io("cannot read G-code", from))?;
-    std::io::copy(&mut src, tmp.as_file_mut())
-        .map_err(SliceError::io("cannot write G-code", to))?;
-    // Temporary files are private (0600); a job is an ordinary file others may read.
+        .map_err(SliceError::io("cannot write into", dir))?;
+    let mut src = std::fs::File::open(from).map_err(SliceError::io("cannot read", from))?;
+    std::io::copy(&mut src, tmp.as_file_mut()).map_err(SliceError::io("cannot write", to))?;
+    // Temporary files are private (0600); a job's files are ordinary files others may read.
     {
         use std::os::unix::fs::PermissionsExt;
         let _ = tmp
@@ -763,9 +772,9 @@ fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     }
     tmp.as_file()
         .sync_all()
-        .map_err(SliceError::io("cannot write G-code", to))?;
+        .map_err(SliceError::io("cannot write", to))?;
     tmp.persist(to).map_err(|e| SliceError::Io {
-        context: "cannot write G-code",
+        context: "cannot write",
         path: to.to_path_buf(),
         source: e.error,
     })?;

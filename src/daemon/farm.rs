@@ -200,7 +200,29 @@ impl Farm {
         also: impl FnOnce(&mut Job),
     ) -> Result<Job, StoreError> {
         let job = store.transition_with(id, state, reason.clone(), also)?;
-        match &reason {
+        self.announce(id, state, &reason);
+        Ok(job)
+    }
+
+    /// Records the outcome of a print, which has happened whether or not it can be
+    /// written now (see [`JobStore::record_outcome`]).
+    pub fn record_outcome(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job),
+    ) -> Result<Job, StoreError> {
+        let job = self
+            .store()
+            .record_outcome(id, state, reason.clone(), also)?;
+        self.announce(id, state, &reason);
+        Ok(job)
+    }
+
+    /// Logs a state change, counts final states, and wakes the tasks.
+    fn announce(&self, id: &str, state: JobState, reason: &Option<String>) {
+        match reason {
             Some(r) => tracing::info!(job = id, state = state.name(), reason = %r, "job state"),
             None => tracing::info!(job = id, state = state.name(), "job state"),
         }
@@ -209,7 +231,6 @@ impl Farm {
                 .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         }
         self.bump();
-        Ok(job)
     }
 
     pub fn set_printer(&self, name: &str, change: impl FnOnce(&mut PrinterStatus)) {

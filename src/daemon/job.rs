@@ -207,6 +207,8 @@ pub struct JobStore {
     jobs: BTreeMap<String, Job>,
     gates: BTreeMap<String, PrinterGate>,
     next_seq: u64,
+    /// Jobs whose state in memory is newer than on disk (see [`JobStore::record_outcome`]).
+    unwritten: std::collections::BTreeSet<String>,
 }
 
 fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
@@ -300,6 +302,7 @@ impl JobStore {
             jobs,
             gates,
             next_seq,
+            unwritten: Default::default(),
         };
         store.adopt_orphans()?;
         Ok(store)
@@ -445,29 +448,59 @@ impl JobStore {
             .collect();
         let id = format!("{seq:04}-{stem}");
         let dir = self.job_dir(&id);
+        let mut sidecar_name = source.as_os_str().to_owned();
+        sidecar_name.push(".toml");
+        let sidecar = PathBuf::from(sidecar_name);
+        let job = Job::queued(id.clone(), seq, file, folder.to_path_buf());
+        // A pick-up that cannot be completed (a full disk) is undone: the files go back to
+        // the hot folder and no half job is left behind.
+        let mut moved = Vec::new();
+        if let Err(e) = self.admit_into(&job, source, &sidecar, &mut moved) {
+            let mut undone = true;
+            for (from, to) in moved.iter().rev() {
+                undone &= move_file(to, from).is_ok();
+            }
+            if undone {
+                let _ = std::fs::remove_dir_all(&dir);
+            } else {
+                tracing::error!(job = %id, dir = %dir.display(), "a failed pick-up could not be undone; its files stay in the job directory");
+            }
+            return Err(e);
+        }
+        self.jobs.insert(id, job.clone());
+        Ok(job)
+    }
+
+    /// The steps of [`JobStore::admit`]; each file moved is recorded in `moved` as
+    /// (from, to) so that a failure can be undone.
+    fn admit_into(
+        &self,
+        job: &Job,
+        source: &Path,
+        sidecar: &Path,
+        moved: &mut Vec<(PathBuf, PathBuf)>,
+    ) -> Result<(), StoreError> {
+        let dir = self.job_dir(&job.id);
         std::fs::create_dir_all(&dir).map_err(io_err(&dir, "create job directory"))?;
         // Written before the move so a crash between the move and job.json still leaves
         // enough to rebuild the job (see adopt_orphans).
         let origin = serde_json::to_vec(&Origin {
-            id: id.clone(),
-            file: file.clone(),
-            folder: folder.to_path_buf(),
+            id: job.id.clone(),
+            file: job.file.clone(),
+            folder: job.folder.clone(),
         })
         .expect("origin serialises");
         write_atomic(&dir.join("origin.json"), &origin)?;
-        move_file(source, &dir.join(&file))?;
+        let model = dir.join(&job.file);
+        move_file(source, &model)?;
+        moved.push((source.to_path_buf(), model));
         // The sidecar travels with its model.
-        let mut sidecar_name = source.as_os_str().to_owned();
-        sidecar_name.push(".toml");
-        let sidecar_path = PathBuf::from(sidecar_name);
-        let sidecar_is_file = std::fs::symlink_metadata(&sidecar_path).is_ok_and(|m| m.is_file());
-        if sidecar_is_file {
-            move_file(&sidecar_path, &dir.join(format!("{file}.toml")))?;
+        if std::fs::symlink_metadata(sidecar).is_ok_and(|m| m.is_file()) {
+            let to = dir.join(format!("{}.toml", job.file));
+            move_file(sidecar, &to)?;
+            moved.push((sidecar.to_path_buf(), to));
         }
-        let job = Job::queued(id.clone(), seq, file, folder.to_path_buf());
-        self.save(&job)?;
-        self.jobs.insert(id, job.clone());
-        Ok(job)
+        self.save(job)
     }
 
     /// Moves a sidecar that arrived after its model into the job's directory: as the
@@ -525,22 +558,48 @@ impl JobStore {
         reason: Option<String>,
         also: impl FnOnce(&mut Job),
     ) -> Result<Job, StoreError> {
-        self.change(id, |job| {
-            if !job.state.can_go_to(state) {
-                return Err(StoreError::IllegalTransition {
-                    id: id.to_string(),
-                    from: job.state,
-                    to: state,
-                });
+        self.change(id, |job| apply_transition(job, state, reason, also))
+    }
+
+    /// [`JobStore::transition_with`] for an outcome that has already happened (a print
+    /// ended): it is recorded in memory even when it cannot be written (a full disk), and
+    /// written by [`JobStore::write_pending`] once it can, so a finished print is never
+    /// taken for an unfinished one and offered again.
+    pub fn record_outcome(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job),
+    ) -> Result<Job, StoreError> {
+        let mut job = self
+            .jobs
+            .get(id)
+            .cloned()
+            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+        apply_transition(&mut job, state, reason, also)?;
+        self.jobs.insert(id.to_string(), job.clone());
+        if let Err(e) = self.save(&job) {
+            tracing::error!(job = id, error = %e, "cannot write the job's state; kept in memory and written again when possible");
+            self.unwritten.insert(id.to_string());
+        }
+        Ok(job)
+    }
+
+    /// Writes the jobs whose state could not be written before; returns how many remain.
+    pub fn write_pending(&mut self) -> usize {
+        let ids: Vec<String> = self.unwritten.iter().cloned().collect();
+        for id in ids {
+            let written = match self.jobs.get(&id) {
+                Some(job) => self.save(job).is_ok() || !self.job_dir(&id).is_dir(),
+                None => true,
+            };
+            if written {
+                tracing::info!(job = %id, "job state written after all");
+                self.unwritten.remove(&id);
             }
-            also(job);
-            job.state = state;
-            job.history.push((state, now_s()));
-            if reason.is_some() || state.is_active() {
-                job.reason = reason;
-            }
-            Ok(())
-        })
+        }
+        self.unwritten.len()
     }
 
     /// Applies `change` to a job's other fields and persists it; its state stays (only
@@ -565,7 +624,9 @@ impl JobStore {
             .cloned()
             .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
         change(&mut job)?;
-        if let Err(e) = self.save(&job) {
+        if let Err(e) = self.save(&job).inspect(|_| {
+            self.unwritten.remove(id);
+        }) {
             let dir = self.job_dir(id);
             if dir.is_dir() {
                 return Err(e);
@@ -618,6 +679,30 @@ impl JobStore {
         };
         self.transition_with(id, state, None, |j| j.printer = None)
     }
+}
+
+/// Checks a state change against [`JobState::can_go_to`] (the only place it is checked)
+/// and applies it with `also`'s changes to the other fields.
+fn apply_transition(
+    job: &mut Job,
+    state: JobState,
+    reason: Option<String>,
+    also: impl FnOnce(&mut Job),
+) -> Result<(), StoreError> {
+    if !job.state.can_go_to(state) {
+        return Err(StoreError::IllegalTransition {
+            id: job.id.clone(),
+            from: job.state,
+            to: state,
+        });
+    }
+    also(job);
+    job.state = state;
+    job.history.push((state, now_s()));
+    if reason.is_some() || state.is_active() {
+        job.reason = reason;
+    }
+    Ok(())
 }
 
 /// What a job directory says about where its model came from (written before the model
@@ -707,17 +792,31 @@ fn unreadable_job(dir: &Path, id: &str, seq: u64, error: &StoreError) -> Job {
     job
 }
 
+/// Moves a file, copying it when `from` and `to` are on different filesystems. A copy
+/// goes to a temporary name first and is renamed into place only once whole and synced,
+/// so a copy cut short (a full disk) never passes for the file.
 fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
     match std::fs::rename(from, to) {
         Ok(()) => Ok(()),
         Err(e) if e.raw_os_error() == Some(nix::libc::EXDEV) => {
-            std::fs::copy(from, to).map_err(io_err(to, "copy model into spool"))?;
-            std::fs::File::open(to)
-                .and_then(|f| f.sync_all())
-                .map_err(io_err(to, "fsync"))?;
-            std::fs::remove_file(from).map_err(io_err(from, "remove after copying into spool"))
+            let mut tmp_name = std::ffi::OsString::from(".crispen-copy-");
+            tmp_name.push(to.file_name().unwrap_or_default());
+            let tmp = to.with_file_name(tmp_name);
+            let copied = std::fs::copy(from, &tmp)
+                .map_err(io_err(to, "copy into spool"))
+                .and_then(|_| {
+                    std::fs::File::open(&tmp)
+                        .and_then(|f| f.sync_all())
+                        .map_err(io_err(&tmp, "fsync"))
+                })
+                .and_then(|_| std::fs::rename(&tmp, to).map_err(io_err(to, "rename into place")));
+            if copied.is_err() {
+                let _ = std::fs::remove_file(&tmp);
+            }
+            copied?;
+            std::fs::remove_file(from).map_err(io_err(from, "remove after copying"))
         }
-        Err(e) => Err(io_err(from, "move into spool")(e)),
+        Err(e) => Err(io_err(from, "move")(e)),
     }
 }
 
@@ -1092,5 +1191,69 @@ mod tests {
         let job = store.get(&a).unwrap();
         assert_eq!(job.state, JobState::Failed);
         assert!(job.reason.as_deref().unwrap().contains("removed"));
+    }
+
+    /// Makes every later write of this job's state fail, as a full disk would: the
+    /// temporary file's name is taken by a directory.
+    fn block_writes(store: &JobStore, id: &str) -> PathBuf {
+        let blocker = store.job_dir(id).join("job.tmp");
+        std::fs::create_dir_all(&blocker).unwrap();
+        blocker
+    }
+
+    /// A pick-up that cannot be completed leaves the model and its sidecar in the hot
+    /// folder and no half job in the spool, now or after a restart.
+    #[test]
+    fn a_pickup_that_cannot_be_written_is_undone() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        block_writes(&store, "0001-a_stl");
+        let src = drop_file(&hot, "a.stl");
+        std::fs::write(hot.join("a.stl.toml"), "enhance = false\n").unwrap();
+        store.admit(&src, &hot).unwrap_err();
+        assert_eq!(std::fs::read(&src).unwrap(), b"solid x\nendsolid x\n");
+        assert!(hot.join("a.stl.toml").is_file());
+        assert!(!store.job_dir("0001-a_stl").exists(), "no half job left");
+        assert_eq!(store.jobs().count(), 0);
+        drop(store);
+        assert_eq!(JobStore::open(&spool).unwrap().jobs().count(), 0);
+    }
+
+    /// A print that finished while its state could not be written counts as done at
+    /// once (never retried, never offered again) and is written once writing works.
+    #[test]
+    fn an_outcome_that_cannot_be_written_is_kept_and_written_later() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
+        for state in [JobState::Preparing, JobState::Ready, JobState::Printing] {
+            store.transition(&a, state, None).unwrap();
+        }
+        let blocker = block_writes(&store, &a);
+        let job = store
+            .record_outcome(&a, JobState::Done, None, |j| j.copies_done += 1)
+            .unwrap();
+        assert_eq!(job.state, JobState::Done);
+        assert_eq!(store.get(&a).unwrap().state, JobState::Done);
+        assert!(matches!(
+            store.retry(&a),
+            Err(StoreError::WrongState { .. })
+        ));
+        let on_disk = |store: &JobStore| -> Job {
+            serde_json::from_slice(&std::fs::read(store.job_dir(&a).join("job.json")).unwrap())
+                .unwrap()
+        };
+        assert_eq!(on_disk(&store).state, JobState::Printing);
+        assert_eq!(store.write_pending(), 1, "still not writable");
+        std::fs::remove_dir(&blocker).unwrap();
+        assert_eq!(store.write_pending(), 0);
+        let written = on_disk(&store);
+        assert_eq!((written.state, written.copies_done), (JobState::Done, 1));
     }
 }

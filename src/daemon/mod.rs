@@ -263,6 +263,8 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
             }
             _ = ticker.tick() => {
                 fleet.settle(&farm);
+                let pending = Arc::clone(&farm);
+                tokio::task::spawn_blocking(move || pending.store().write_pending());
                 if watchdog {
                     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
                 }

@@ -299,18 +299,14 @@ async fn run_job(
     if let Err(e) = farm.store().set_gate(printer, gate) {
         tracing::error!(error = %e, "cannot persist the bed gate");
     }
+    let mut printed = None;
     let (state, reason, lost) = match outcome {
         Ok(report) => {
-            let more = {
-                let mut store = farm.store();
-                store
-                    .update(job_id, |j| {
-                        j.copies_done += 1;
-                        j.print_report = Some(report);
-                    })
-                    .map(|j| j.copies_done < j.copies_wanted())
-                    .unwrap_or(false)
-            };
+            let more = farm
+                .store()
+                .get(job_id)
+                .is_some_and(|j| j.copies_done + 1 < j.copies_wanted());
+            printed = Some(report);
             if more {
                 (JobState::Ready, None, false)
             } else {
@@ -334,7 +330,13 @@ async fn run_job(
         ),
         Err(PrintFailure::Failed(why)) => (JobState::Failed, Some(why), false),
     };
-    if let Err(e) = farm.transition(job_id, state, reason) {
+    let recorded = farm.record_outcome(job_id, state, reason, |j| {
+        if let Some(report) = printed {
+            j.copies_done += 1;
+            j.print_report = Some(report);
+        }
+    });
+    if let Err(e) = recorded {
         tracing::error!(error = %e, "cannot record the print's outcome");
     }
     farm.set_printer(printer, |p| {

@@ -1323,7 +1323,16 @@ fn a_sidecar_arriving_after_its_model_is_honoured_or_reported() {
     let _daemon = Daemon::start(&config, &log);
     let hot = root.join("hot");
     drop_model(&hot, "late.obj", &spot());
-    std::thread::sleep(Duration::from_millis(300));
+    // The sidecar comes once the model has become a job.
+    let s = wait_for(&config, &log, Duration::from_secs(30), "picked up", |s| {
+        job_by_file(s, "late.obj").is_some()
+    });
+    assert_eq!(
+        state_of(&s, "late.obj"),
+        "queued",
+        "waiting for a late sidecar"
+    );
+    assert!(!hot.join("late.obj").exists());
     drop_model(&hot, "late.obj.toml", b"enhance = false\n");
     let s = wait_for(&config, &log, Duration::from_secs(120), "done", |s| {
         state_of(s, "late.obj") == "done"

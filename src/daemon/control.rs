@@ -372,6 +372,17 @@ pub async fn serve(farm: Arc<Farm>, listener: tokio::net::UnixListener) {
     }
 }
 
+/// Decodes one request line (as read, newline included or not) or says what is wrong
+/// with it.
+pub fn parse_request(line: &[u8]) -> Result<Request, String> {
+    if line.len() > MAX_REQUEST_BYTES {
+        return Err(format!(
+            "bad request: longer than {MAX_REQUEST_BYTES} bytes; the connection is closed"
+        ));
+    }
+    serde_json::from_slice(line).map_err(|e| format!("bad request: {e}"))
+}
+
 async fn serve_connection(farm: &Arc<Farm>, stream: tokio::net::UnixStream) {
     let (read, mut write) = stream.into_split();
     let mut reader = tokio::io::BufReader::new(read);
@@ -385,18 +396,11 @@ async fn serve_connection(farm: &Arc<Farm>, stream: tokio::net::UnixStream) {
         };
         let response = match read {
             Err(_) | Ok(Err(_)) | Ok(Ok(0)) => return,
-            Ok(Ok(_)) if line.len() > MAX_REQUEST_BYTES => Response {
-                ok: false,
-                error: Some(format!(
-                    "bad request: longer than {MAX_REQUEST_BYTES} bytes; the connection is closed"
-                )),
-                ..Default::default()
-            },
-            Ok(Ok(_)) => match serde_json::from_slice::<Request>(&line) {
+            Ok(Ok(_)) => match parse_request(&line) {
                 Ok(req) => handle(farm, req).await,
-                Err(e) => Response {
+                Err(error) => Response {
                     ok: false,
-                    error: Some(format!("bad request: {e}")),
+                    error: Some(error),
                     ..Default::default()
                 },
             },

@@ -1,4 +1,5 @@
-//! Triangle meshes: reading STL / OBJ / 3MF, cleaning, and writing STL / OBJ.
+//! Triangle meshes: reading STL / OBJ / 3MF, cleaning, writing STL / OBJ, and placing a
+//! mesh on a printer's bed ([`place`]).
 //!
 //! This is the geometry core's only I/O. Everything that reads a file is a thin wrapper
 //! over a function taking `impl Read`, so tests feed bytes. The format is sniffed from the
@@ -9,6 +10,7 @@
 
 mod clean;
 mod obj;
+pub mod place;
 mod stl;
 mod threemf;
 

@@ -1365,3 +1365,88 @@ fn a_sidecar_arriving_after_its_model_is_honoured_or_reported() {
     assert!(log_text.contains("NOT applied"), "reported in the log");
     assert!(!hot.join("late.obj.toml").exists());
 }
+
+/// SIGTERM while one printer heats up and another waits for the heating permit: the
+/// waiting printer never starts (its job goes back to ready for the next start), and the
+/// daemon exits once the heating one has stopped safely. (The wait for the permit was not
+/// raced with shutdown: the waiting printer took the freed permit and printed its whole
+/// job during the shutdown.)
+#[test]
+fn sigterm_while_waiting_to_heat_starts_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    let printer_toml = |name: &str| {
+        format!(
+            "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n[printer.simulate]\n\
+             time_scale = 0.1\nrecord = \"{}\"\n",
+            root.join(format!("{name}.rec")).display()
+        )
+    };
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+             [farm]\nsettle_s = 0.3\nmax_heating = 1\non_shutdown = \"stop\"\n{}{}\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"a\", \"b\"]\n",
+            printer_toml("a"),
+            printer_toml("b")
+        ),
+    )
+    .unwrap();
+    // Both prepared before either printer may start, so both want to heat at once.
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    std::fs::write(
+        root.join("spool/printers.json"),
+        r#"{"a": {"bed_not_cleared": true, "last_job": null}, "b": {"bed_not_cleared": true, "last_job": null}}"#,
+    )
+    .unwrap();
+    let mut daemon = Daemon::start(&config, &log);
+    drop_model(&hot, "one.obj", &spot());
+    drop_model(&hot, "two.obj", &spot());
+    wait_for(&config, &log, Duration::from_secs(180), "both ready", |s| {
+        state_of(s, "one.obj") == "ready" && state_of(s, "two.obj") == "ready"
+    });
+    for p in ["a", "b"] {
+        let (ok, out) = ctl(&config, &["clear", p]);
+        assert!(ok, "{out}");
+    }
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "one heating, one waiting",
+        |s| {
+            let states = [
+                printer(s, "a")["state"].clone(),
+                printer(s, "b")["state"].clone(),
+            ];
+            states.contains(&Value::from("printing"))
+                && states.contains(&Value::from("waiting_to_heat"))
+        },
+    );
+    let waiting = if printer(&s, "a")["state"] == "waiting_to_heat" {
+        "a"
+    } else {
+        "b"
+    };
+    let waiting_job = printer(&s, waiting)["job"].as_str().unwrap().to_string();
+    let pid = nix::unistd::Pid::from_raw(daemon.child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    let code = wait_exit(&mut daemon, Duration::from_secs(60), &log);
+    assert!(code.success(), "{code:?}");
+    let executed = recorded(&root.join(format!("{waiting}.rec")));
+    assert!(
+        executed.is_empty(),
+        "the waiting printer ran {} commands",
+        executed.len()
+    );
+    let stored: Value = serde_json::from_slice(
+        &std::fs::read(root.join("spool/jobs").join(&waiting_job).join("job.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(stored["state"], "ready", "{stored}");
+}

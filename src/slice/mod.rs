@@ -13,9 +13,11 @@
 //! crispen's (from the material preset unless overridden), because the shared start code
 //! heats with them.
 
+pub mod cura;
 pub mod gcode;
 pub mod process;
 pub mod profiles;
+pub mod prusa;
 mod settings;
 
 pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
@@ -407,14 +409,7 @@ pub fn slice(
         bed_temp_c,
         height_mm: req.height_mm,
     };
-    let invocation = profiles::build_invocation(
-        req.slicer,
-        &profile,
-        &job,
-        work.path(),
-        &stl_path,
-        &gcode_path,
-    )?;
+    let invocation = profile.invocation(&job, work.path(), &stl_path, &gcode_path)?;
     let program = req
         .slicer_program
         .clone()

@@ -386,7 +386,7 @@ fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
         }
         return;
     }
-    let model = name.trim_end_matches(".toml");
+    let model = name.strip_suffix(".toml").unwrap_or(&name);
     if !path.exists() || folder.join(model).exists() {
         // Taken with its model already, or its model is still arriving.
         return;

@@ -89,18 +89,8 @@ pub async fn run_child(
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .kill_on_drop(true);
-    // If the daemon dies without a chance to clean up, the kernel kills the child too.
-    let parent = nix::unistd::getpid();
-    // SAFETY: between fork and exec only async-signal-safe calls: prctl and getppid.
-    unsafe {
-        cmd.pre_exec(move || {
-            nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGKILL)?;
-            if nix::unistd::getppid() != parent {
-                return Err(std::io::Error::other("the parent process has exited"));
-            }
-            Ok(())
-        });
-    }
+    // The child (and the slicer it runs, in turn) dies with the daemon.
+    crate::slice::process::die_with_this_process(cmd.as_std_mut());
     let mut child = cmd.spawn().map_err(|source| PrepareError::Spawn {
         program: program.to_path_buf(),
         source,

@@ -19,9 +19,7 @@ pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
     let outcome = prepare::prepare(&task, &mut |step| say(&ChildMessage::Step(step)));
     let code = match outcome {
         Ok(report) => {
-            say(&ChildMessage::Done(
-                serde_json::to_value(&report).unwrap_or_default(),
-            ));
+            say(&ChildMessage::Done(Box::new(report)));
             ExitCode::SUCCESS
         }
         Err(e) => {

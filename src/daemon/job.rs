@@ -149,7 +149,7 @@ pub struct Job {
     /// Copies printed so far (a sidecar may ask for more than one).
     #[serde(default)]
     pub copies_done: u32,
-    pub slice_report: Option<serde_json::Value>,
+    pub slice_report: Option<crate::slice::SliceReport>,
     pub print_report: Option<serde_json::Value>,
 }
 
@@ -920,7 +920,7 @@ mod tests {
         // Prepared, then cancelled in print: straight back to ready with its G-code.
         std::fs::write(store.job_dir(&a).join("a.stl.gcode"), b"G28\n").unwrap();
         store
-            .update(&a, |j| j.slice_report = Some(serde_json::json!({})))
+            .update(&a, |j| j.slice_report = Some(Default::default()))
             .unwrap();
         store.transition(&a, JobState::Preparing, None).unwrap();
         store.transition(&a, JobState::Ready, None).unwrap();

@@ -547,7 +547,7 @@ fn resolve(farm: &Farm, id: &str) -> Result<(prepare::PrepareTask, Option<job::S
 fn finish_preparation(
     farm: &Farm,
     id: &str,
-    result: Result<(serde_json::Value, Option<job::Sidecar>), prepare::PrepareError>,
+    result: Result<(crate::slice::SliceReport, Option<job::Sidecar>), prepare::PrepareError>,
 ) {
     farm.preparing
         .lock()

@@ -45,8 +45,7 @@ pub struct PrepareTask {
 pub enum ChildMessage {
     /// The step it is on (shown by `crispen status`).
     Step(String),
-    /// The slice report (kept in the job as it is).
-    Done(serde_json::Value),
+    Done(Box<SliceReport>),
     /// The job failed; the reason is for the operator.
     Failed(String),
 }
@@ -82,7 +81,7 @@ pub async fn run_child(
     task: &PrepareTask,
     cancel: &CancellationToken,
     mut on_step: impl FnMut(String),
-) -> Result<serde_json::Value, PrepareError> {
+) -> Result<SliceReport, PrepareError> {
     let mut cmd = tokio::process::Command::new(program);
     cmd.arg("prepare-job")
         .stdin(std::process::Stdio::piped())
@@ -150,7 +149,7 @@ pub async fn run_child(
         }
     };
     match answer {
-        Some(ChildMessage::Done(report)) => Ok(report),
+        Some(ChildMessage::Done(report)) => Ok(*report),
         Some(ChildMessage::Failed(reason)) => Err(PrepareError::Failed(reason)),
         _ => Err(PrepareError::Crashed {
             status: status.map_or_else(|e| e.to_string(), |s| s.to_string()),

@@ -76,7 +76,7 @@ pub enum Phase {
 /// numeric factorisations; `solve_s` the triangular solves and residual checks. The
 /// Cholesky path works on the three δ concurrently, so its two figures add up the time
 /// of each δ and can together exceed the wall time they took.
-#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct PhaseTimings {
     pub operators_s: f64,
     pub factorize_s: f64,
@@ -88,7 +88,7 @@ pub struct PhaseTimings {
 }
 
 /// What [`enhance`] did, in the input's units.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct EnhanceReport {
     pub vertices: usize,
     pub faces: usize,

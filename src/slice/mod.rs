@@ -175,17 +175,17 @@ pub enum SliceStep {
 }
 
 /// How the model was changed before slicing.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct EnhancementSummary {
     /// The λ2 used, or `None` when the model was printed unmodified.
     pub lambda2: Option<f64>,
     /// `"enhanced"` or `"unmodified"`.
-    pub mode: &'static str,
+    pub mode: String,
     pub report: Option<EnhanceReport>,
 }
 
 /// Seconds spent in each step.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct StepTimings {
     pub load_s: f64,
     pub enhance_s: f64,
@@ -195,7 +195,7 @@ pub struct StepTimings {
 }
 
 /// What a finished job produced.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct SliceReport {
     pub model: PathBuf,
     pub output: PathBuf,
@@ -204,7 +204,7 @@ pub struct SliceReport {
     pub enhancement: EnhancementSummary,
     pub slicer: SlicerKind,
     pub slicer_version: Option<String>,
-    pub material: &'static str,
+    pub material: String,
     pub nozzle_temp_c: f64,
     pub bed_temp_c: f64,
     /// Model footprint on the bed after scaling, mm (X, Y, Z).
@@ -513,12 +513,13 @@ pub fn slice(
                 "enhanced"
             } else {
                 "unmodified"
-            },
+            }
+            .to_string(),
             report,
         },
         slicer: req.slicer,
         slicer_version: stats.slicer_version,
-        material: material.name,
+        material: material.name.to_string(),
         nozzle_temp_c,
         bed_temp_c,
         model_size_mm: size,

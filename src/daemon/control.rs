@@ -7,7 +7,7 @@
 //! Responses: `{"ok":true,"message":...,"status":{...}}` or `{"ok":false,"error":"..."}`.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
-use super::job::{JobState, PrinterGate};
+use super::job::{JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
@@ -59,6 +59,21 @@ pub struct JobStatus {
     pub copies_done: u32,
     pub copies: u32,
     pub updated: f64,
+}
+
+/// Why a control command was refused; the client shows the message.
+#[derive(Debug, thiserror::Error)]
+pub enum CommandError {
+    #[error("no printer {0:?} (hint: `crispen status` lists the printers)")]
+    NoPrinter(String),
+    #[error("{0} is not printing")]
+    NotPrinting(String),
+    #[error("{0}: the print just ended")]
+    PrintEnded(String),
+    #[error("job {id} is {state}; only active jobs can be cancelled")]
+    NotActive { id: String, state: JobState },
+    #[error(transparent)]
+    Store(#[from] StoreError),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -152,7 +167,7 @@ pub fn status(farm: &Farm) -> Status {
 
 /// Carries out one request.
 pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
-    let result: Result<Option<String>, String> = match req {
+    let result: Result<Option<String>, CommandError> = match req {
         Request::Status => {
             return Response {
                 ok: true,
@@ -167,7 +182,7 @@ pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
         }
         Request::Cancel { job } => cancel(farm, &job).await,
         Request::Retry { job } => {
-            let r = farm.store().retry(&job).map_err(|e| e.to_string());
+            let r = farm.store().retry(&job).map_err(CommandError::from);
             r.map(|retried| {
                 farm.bump();
                 Some(match retried.state {
@@ -185,13 +200,13 @@ pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
         },
         Err(error) => Response {
             ok: false,
-            error: Some(error),
+            error: Some(error.to_string()),
             ..Default::default()
         },
     }
 }
 
-fn known_printer(farm: &Farm, printer: &str) -> Result<(), String> {
+fn known_printer(farm: &Farm, printer: &str) -> Result<(), CommandError> {
     if farm
         .printers
         .lock()
@@ -200,28 +215,24 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<(), String> {
     {
         Ok(())
     } else {
-        Err(format!(
-            "no printer {printer:?} (hint: `crispen status` lists the printers)"
-        ))
+        Err(CommandError::NoPrinter(printer.to_string()))
     }
 }
 
-fn clear(farm: &Farm, printer: &str) -> Result<Option<String>, String> {
+fn clear(farm: &Farm, printer: &str) -> Result<Option<String>, CommandError> {
     known_printer(farm, printer)?;
     let mut store = farm.store();
     let gate = store.gate(printer);
     if !gate.bed_not_cleared {
         return Ok(Some(format!("{printer}: bed was already clear")));
     }
-    store
-        .set_gate(
-            printer,
-            PrinterGate {
-                bed_not_cleared: false,
-                last_job: gate.last_job,
-            },
-        )
-        .map_err(|e| e.to_string())?;
+    store.set_gate(
+        printer,
+        PrinterGate {
+            bed_not_cleared: false,
+            last_job: gate.last_job,
+        },
+    )?;
     drop(store);
     tracing::info!(printer, "bed cleared");
     farm.bump();
@@ -234,7 +245,7 @@ async fn send_print_command(
     farm: &Farm,
     printer: &str,
     command: PrintCommand,
-) -> Result<Option<String>, String> {
+) -> Result<Option<String>, CommandError> {
     known_printer(farm, printer)?;
     let tx = farm
         .print_controls
@@ -243,16 +254,16 @@ async fn send_print_command(
         .get(printer)
         .cloned();
     let Some(tx) = tx else {
-        return Err(format!("{printer} is not printing"));
+        return Err(CommandError::NotPrinting(printer.to_string()));
     };
     tx.send(command)
         .await
-        .map_err(|_| format!("{printer}: the print just ended"))?;
+        .map_err(|_| CommandError::PrintEnded(printer.to_string()))?;
     tracing::info!(printer, ?command, "print command sent");
     Ok(Some(format!("{printer}: {command:?} sent")))
 }
 
-async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
+async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, CommandError> {
     // Checked and changed under one hold of the lock: a printer claiming the job between
     // the two would otherwise print a job marked cancelled.
     let job = {
@@ -260,14 +271,13 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
         let job = store
             .get(id)
             .cloned()
-            .ok_or_else(|| format!("no job {id:?} (hint: `crispen status` lists the jobs)"))?;
+            .ok_or_else(|| CommandError::from(StoreError::NoSuchJob(id.to_string())))?;
         if matches!(
             job.state,
             JobState::Queued | JobState::Preparing | JobState::Ready
         ) {
             let reason = Some("cancelled by the operator".into());
-            farm.transition_in(&mut store, id, JobState::Cancelled, reason)
-                .map_err(|e| e.to_string())?;
+            farm.transition_in(&mut store, id, JobState::Cancelled, reason)?;
         }
         job
     };
@@ -291,9 +301,10 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
                 "job {id}: stopping the print on {printer} (heaters off)"
             )))
         }
-        other => Err(format!(
-            "job {id} is {other}; only active jobs can be cancelled"
-        )),
+        other => Err(CommandError::NotActive {
+            id: id.to_string(),
+            state: other,
+        }),
     }
 }
 

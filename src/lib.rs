@@ -3,9 +3,11 @@
 //! The library is layered so each part can be used and tested on its own:
 //! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
+//! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
 //! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
 //! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
 //!   and the simulated printer used by tests, the quick start and the demo farm.
+//! - [`ports`]: finding serial devices and asking a printer what it is (M115).
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
 //! - [`cli`]: the `crispen` subcommands, thin wrappers over the above.
@@ -15,4 +17,6 @@ pub mod daemon;
 pub mod enhance;
 pub mod marlin;
 pub mod mesh;
+pub mod ports;
+pub mod preview;
 pub mod slice;

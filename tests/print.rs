@@ -278,13 +278,15 @@ async fn cancel_runs_the_safe_stop_lines() {
         // Real timing, so the job is still running when we cancel.
         cfg.time_scale = 1.0;
         let sim = sim::spawn(cfg).unwrap();
+        // Ultimaker2Marlin acknowledges moves as they enter its queue: after a cancel it
+        // says nothing while it works off up to 8 queued moves at real speed.
+        let mut opts = options(fw);
+        opts.protocol.silence_fail = Duration::from_secs(15);
         let text = (0..400)
             .map(|i| format!("G1 X{} Y{} F6000\n", 10 + (i % 2) * 50, 10 + (i % 3) * 20))
             .collect::<String>();
         let program = GcodeProgram::read(text.as_bytes(), "moves.gcode", fw).unwrap();
-        let mut conn = Connection::open(sim.device_path(), &options(fw))
-            .await
-            .unwrap();
+        let mut conn = Connection::open(sim.device_path(), &opts).await.unwrap();
         let (control, control_rx) = mpsc::channel(1);
         let (progress, mut progress_rx) = watch::channel(PrintProgress::default());
         let canceller = tokio::spawn(async move {
@@ -460,4 +462,238 @@ async fn pause_holds_the_job_and_resume_finishes_it_exactly_once() {
     assert!(at_pause < program.len());
     assert_eq!(report.lines_acked, program.len());
     assert_eq!(job_executed(&sim), program.to_vec());
+}
+
+// ----- real firmware behaviours (docs/firmware.md) ------------------------------------------
+
+fn start_sim_with(cfg: SimConfig) -> SimHandle {
+    sim::spawn(cfg).expect("simulator starts")
+}
+
+/// The done-when figure: under 3 % corrupted lines and 1 % lost `ok`s, for every firmware
+/// flavour, the job runs exactly once and ends done.
+#[tokio::test]
+async fn every_flavour_delivers_exactly_once_through_3_percent_corruption_and_1_percent_lost_oks() {
+    let faults = Faults {
+        corrupt_host_bytes: 0.03,
+        drop_ok: 0.01,
+        ..Faults::default()
+    };
+    for fw in Firmware::ALL {
+        for seed in [31, 32] {
+            let report = exactly_once(fw, faults.clone(), seed, 600).await;
+            assert!(
+                report.resends > 0,
+                "{fw} seed {seed}: the fault was injected"
+            );
+        }
+    }
+}
+
+/// A Marlin 2.0 printer sends no `ok` after `Resend:`. Streamed one line at a time with
+/// the 2.1 profile (the wrong guess), the host learns it from the first answers: no line is
+/// ever left waiting for an `ok` that will not come, so no probe is needed.
+#[tokio::test]
+async fn marlin20_without_ok_after_resend_is_recognised_at_run_time() {
+    let fw = Firmware::Marlin20;
+    let faults = Faults {
+        corrupt_host_bytes: 0.05,
+        ..Faults::default()
+    };
+    let sim = start_sim(fw, faults, 9);
+    let program = program(fw, 300);
+    let mut opts = options(Firmware::Marlin2);
+    opts.send_ahead = false;
+    opts.protocol.resend_ok_wait = Duration::from_millis(300);
+    let report = stream(&sim, &opts, &program).await.unwrap();
+    assert_eq!(job_executed(&sim), program.to_vec());
+    assert!(report.resends > 5, "{report:?}");
+    // A wrong guess would leave a line waiting for an `ok` after nearly every resend, each
+    // found only by a probe. (A line whose `N` itself was corrupted runs as a fragment and
+    // does need one.)
+    assert!(
+        report.silence_probes * 4 <= report.resends,
+        "ok accounting drifted: {report:?}"
+    );
+}
+
+/// NO_TIMEOUTS: the printer says `wait` while idle. With lost `ok`s the host must take it
+/// as a sign that they were lost, never as a keep-alive that postpones its probe.
+#[tokio::test]
+async fn a_printer_that_says_wait_when_idle_never_stalls_a_job() {
+    for fw in Firmware::ALL {
+        let mut cfg = SimConfig::new(fw);
+        cfg.seed = 5;
+        cfg.faults.drop_ok = 0.02;
+        cfg.wait_when_idle = Some(Duration::from_millis(100));
+        let sim = start_sim_with(cfg);
+        let program = program(fw, 300);
+        let mut opts = options(fw);
+        // Probing on silence alone would take ages: only `wait` can make it quick.
+        opts.protocol.silence_probe = Duration::from_secs(20);
+        opts.protocol.silence_fail = Duration::from_secs(60);
+        let started = std::time::Instant::now();
+        let report = stream(&sim, &opts, &program)
+            .await
+            .unwrap_or_else(|e| panic!("{fw}: {e}"));
+        assert_eq!(job_executed(&sim), program.to_vec(), "{fw}");
+        if !fw.advanced_ok() {
+            // (ADVANCED_OK heals a lost `ok` with the next one, by its number.)
+            assert!(report.silence_probes > 0, "{fw}: an ok was lost");
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "{fw}: took {:?}",
+            started.elapsed()
+        );
+    }
+}
+
+/// Stop and Pause on the printer's own screen (`//action:cancel`, `//action:pause`).
+#[tokio::test]
+async fn host_actions_from_the_printer_pause_and_cancel_the_job() {
+    for fw in [Firmware::Marlin2, Firmware::Marlin20] {
+        // Cancel: the job ends cancelled, with the safe-stop lines run.
+        let mut cfg = SimConfig::new(fw);
+        cfg.faults.actions = vec![(60, "cancel".into())];
+        let sim = start_sim_with(cfg);
+        let program = program(fw, 300);
+        let err = stream(&sim, &options(fw), &program).await.unwrap_err();
+        assert!(matches!(err, PrintError::Cancelled { .. }), "{fw}: {err}");
+        let executed = job_executed(&sim);
+        let n = executed.len();
+        assert!(n < program.len(), "{fw}: {n}");
+        assert!(
+            executed[n - 5..].ends_with(&[
+                "M104 S0".to_string(),
+                "M140 S0".into(),
+                "M107".into(),
+                "M84".into()
+            ]),
+            "{fw}: {:?}",
+            &executed[n - 5..]
+        );
+
+        // Pause: the job holds (state Paused) until resumed, then finishes exactly once.
+        let mut cfg = SimConfig::new(fw);
+        cfg.faults.actions = vec![(60, "pause".into())];
+        let sim = start_sim_with(cfg);
+        let mut conn = Connection::open(sim.device_path(), &options(fw))
+            .await
+            .unwrap();
+        let (control, control_rx) = mpsc::channel(1);
+        let (progress, mut progress_rx) = watch::channel(PrintProgress::default());
+        let driver = tokio::spawn(async move {
+            while progress_rx.borrow().state != crispen::marlin::stream::PrintState::Paused {
+                progress_rx.changed().await.unwrap();
+            }
+            let acked = progress_rx.borrow().lines_acked;
+            control.send(StreamControl::Resume).await.unwrap();
+            acked
+        });
+        let report = tokio::time::timeout(
+            Duration::from_secs(60),
+            conn.print(&program, control_rx, progress),
+        )
+        .await
+        .unwrap()
+        .unwrap();
+        let acked_at_pause = driver.await.unwrap();
+        assert!(acked_at_pause < program.len(), "{fw}");
+        assert_eq!(report.lines_acked, program.len());
+        assert_eq!(job_executed(&sim), program.to_vec(), "{fw}");
+    }
+}
+
+/// Opening the port resets many boards (DTR): the bootloader ignores the first second,
+/// then the firmware says `start`. The handshake gets through and the job runs once.
+#[tokio::test]
+async fn a_reset_on_open_with_a_bootloader_delay_is_waited_out() {
+    for fw in Firmware::ALL {
+        let mut cfg = SimConfig::new(fw);
+        cfg.reset_on_open = Some(Duration::from_millis(1200));
+        let sim = start_sim_with(cfg);
+        let program = program(fw, 100);
+        stream(&sim, &options(fw), &program)
+            .await
+            .unwrap_or_else(|e| panic!("{fw}: {e}"));
+        assert_eq!(job_executed(&sim), program.to_vec(), "{fw}");
+    }
+}
+
+/// Ultimaker2Marlin acknowledges moves when they enter its queue, so the moves queued
+/// behind an M109 are acknowledged before it finishes. The host's heating state follows
+/// what the printer reports, not the order of `ok`s: while it still heats, the job never
+/// shows as printing past the heat-up (the daemon's heating permit hangs on this).
+#[tokio::test]
+async fn ultimaker2_heating_state_follows_the_printer_not_the_order_of_oks() {
+    let fw = Firmware::Ultimaker2;
+    let mut cfg = SimConfig::new(fw);
+    cfg.time_scale = 0.02;
+    let sim = start_sim_with(cfg);
+    let text = "M104 S200\nG1 X1 F3000\nG1 X2\nM109 S200\nG1 X3\nG1 X4\nG1 X5\nG1 X6\nM104 S0\n";
+    let program = GcodeProgram::read(text.as_bytes(), "heat.gcode", fw).unwrap();
+    let heat_index = 3;
+    let mut conn = Connection::open(sim.device_path(), &options(fw))
+        .await
+        .unwrap();
+    let (_control, control_rx) = mpsc::channel(1);
+    let (progress, mut progress_rx) = watch::channel(PrintProgress::default());
+    let watcher = tokio::spawn(async move {
+        let mut wrong = Vec::new();
+        let mut saw_heating = false;
+        while progress_rx.changed().await.is_ok() {
+            let p = progress_rx.borrow().clone();
+            saw_heating |= p.state == crispen::marlin::stream::PrintState::Heating;
+            let hot = p.hotend.is_some_and(|t| t.current >= 195.0);
+            if p.lines_acked > heat_index
+                && p.state != crispen::marlin::stream::PrintState::Heating
+                && p.state != crispen::marlin::stream::PrintState::Done
+                && !hot
+            {
+                wrong.push((p.lines_acked, p.state, p.hotend));
+            }
+        }
+        (saw_heating, wrong)
+    });
+    tokio::time::timeout(
+        Duration::from_secs(60),
+        conn.print(&program, control_rx, progress),
+    )
+    .await
+    .unwrap()
+    .unwrap();
+    drop(conn);
+    let (saw_heating, wrong) = watcher.await.unwrap();
+    assert!(saw_heating);
+    assert!(
+        wrong.is_empty(),
+        "shown past the heat-up while cold: {wrong:?}"
+    );
+    assert_eq!(job_executed(&sim), program.to_vec());
+}
+
+/// A noise burst that makes the host give up is the common failure while the printer
+/// still answers: the printer must end with heaters, fan and motors off.
+#[tokio::test]
+async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
+    for fw in Firmware::ALL {
+        let faults = Faults {
+            corrupt_host_bytes: 0.6,
+            ..Faults::default()
+        };
+        let sim = start_sim(fw, faults, 3);
+        let program = program(fw, 300);
+        let mut opts = options(fw);
+        opts.protocol.resend_limit = 3;
+        let err = stream(&sim, &opts, &program).await.unwrap_err();
+        assert!(matches!(err, PrintError::ResendLimit { .. }), "{fw}: {err}");
+        let executed = job_executed(&sim);
+        let n = executed.len();
+        assert!(n >= 4, "{fw}: {executed:?}");
+        let tail = &executed[n.saturating_sub(6)..];
+        for line in ["M104 S0", "M140 S0", "M107", "M84"] {
+            assert!(tail.iter().any(|c| c == line), "{fw}: {tail:?}");
+        }
+    }
 }

@@ -11,12 +11,12 @@ fn systemd_unit_verifies() {
         "/config/crispen.service"
     ))
     .unwrap();
-    assert!(unit.contains("ExecStart=/usr/local/bin/crispen run"));
+    assert!(unit.contains("ExecStart=/usr/bin/crispen run"));
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("crispen.service");
     std::fs::write(
         &path,
-        unit.replace("/usr/local/bin/crispen", env!("CARGO_BIN_EXE_crispen")),
+        unit.replace("/usr/bin/crispen", env!("CARGO_BIN_EXE_crispen")),
     )
     .unwrap();
     let out = Command::new("systemd-analyze")

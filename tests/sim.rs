@@ -120,9 +120,18 @@ impl Port {
     }
 
     /// Reset line numbers the way a host does on connect.
+    /// Like a host, it tries again when the line gets no answer (Marlin 2.1 ignores a
+    /// corrupted `N0` line silently: it takes it for a duplicate).
     fn handshake(&mut self) {
-        self.send_numbered(0, "M110 N0");
-        self.until("ok");
+        for _ in 0..10 {
+            self.send_numbered(0, "M110 N0");
+            while let Some(line) = self.line(Duration::from_secs(1)) {
+                if line.starts_with("ok") {
+                    return;
+                }
+            }
+        }
+        panic!("no answer to M110; saw {:#?}", self.seen);
     }
 }
 
@@ -156,7 +165,10 @@ fn checksum_error_asks_for_resend_then_ok_and_drops_the_rest_of_the_buffer() {
         let (_, err) = port.until("Error:");
         assert_eq!(err, "Error:checksum mismatch, Last Line: 0", "{fw}");
         assert_eq!(port.line(WAIT).as_deref(), Some("Resend: 1"), "{fw}");
-        assert!(port.line(WAIT).unwrap().starts_with("ok"), "{fw}");
+        // Marlin 2.0 sends no `ok` after `Resend:`.
+        if fw.ok_after_resend() {
+            assert!(port.line(WAIT).unwrap().starts_with("ok"), "{fw}");
+        }
         assert!(port.drain(Duration::from_millis(200)).is_empty(), "{fw}");
         port.send_numbered(1, "G1 X1");
         let (_, ok) = port.until("ok");
@@ -535,7 +547,13 @@ fn silence_and_fatal_after_lines() {
     port.send_numbered(1, "G1 X1");
     port.send_numbered(2, "M105");
     port.send("M105");
-    assert!(port.drain(Duration::from_millis(300)).is_empty());
+    // Ultimaker2Marlin acknowledges the move as it enters the queue, before it runs; after
+    // that nothing.
+    let said = port.drain(Duration::from_millis(300));
+    assert!(
+        said.len() <= 1 && said.iter().all(|l| l == "ok"),
+        "{said:?}"
+    );
     assert_eq!(sim.executed(), ["M110 N0", "G1 X1"]);
 
     let mut cfg = SimConfig::new(Firmware::Marlin2);
@@ -693,4 +711,190 @@ fn faults_default_to_none() {
     let cfg = SimConfig::new(Firmware::Marlin2);
     assert_eq!((cfg.link_latency, cfg.baud), (Duration::ZERO, None));
     assert!(is_housekeeping("M105") && is_housekeeping("M110 N0") && !is_housekeeping("G1 X1"));
+}
+
+// ----- firmware dialects (docs/firmware.md) --------------------------------------------------
+
+/// Ultimaker2Marlin ends a line at `:`: the head fails for want of a checksum, the tail is
+/// a checksum without a line number (an error with neither `Resend:` nor `ok`).
+#[test]
+fn ultimaker2_ends_a_line_at_a_colon_and_refuses_checksums_without_numbers() {
+    let (sim, mut port) = start(SimConfig::new(Firmware::Ultimaker2));
+    port.handshake();
+    port.send_numbered(1, "M117 ETA 01:23");
+    let (_, err) = port.until("Error:");
+    assert_eq!(err, "Error:No Checksum with line number, Last Line: 0");
+    assert_eq!(port.line(WAIT).as_deref(), Some("Resend: 1"));
+    assert_eq!(port.line(WAIT).as_deref(), Some("ok"));
+    // (The tail `23*..` went with the flush of the receive buffer.) A line with a checksum
+    // but no number:
+    port.send("G1 X9*12");
+    assert_eq!(
+        port.line(WAIT).as_deref(),
+        Some("Error:No Line Number with checksum")
+    );
+    assert!(port.drain(Duration::from_millis(200)).is_empty(), "no ok");
+    assert!(job_commands(&sim).is_empty());
+    // A colon inside a comment does not end the line.
+    port.send(&format!("{} ; at 01:23", numbered(1, "G1 X1")));
+    port.until("ok");
+    assert_eq!(job_commands(&sim), ["G1 X1"]);
+}
+
+/// Marlin 2 runs a line without `N` unchecked; 2.1 ignores a repeated line number silently,
+/// 2.0 asks for the expected line.
+#[test]
+fn marlin2_runs_unnumbered_lines_and_21_ignores_duplicates() {
+    for fw in [Firmware::Marlin2, Firmware::Marlin20] {
+        let (sim, mut port) = start(SimConfig::new(fw));
+        port.handshake();
+        port.send("G1 X7*99");
+        port.until("ok");
+        port.send_numbered(1, "G1 X1");
+        port.until("ok");
+        port.send_numbered(1, "G1 X1");
+        let said = port.drain(Duration::from_millis(300));
+        if fw.ignores_duplicate_lines() {
+            assert!(said.is_empty(), "{fw}: {said:?}");
+        } else {
+            assert!(said.iter().any(|l| l == "Resend: 2"), "{fw}: {said:?}");
+        }
+        assert_eq!(job_commands(&sim), ["G1 X7", "G1 X1"], "{fw}");
+    }
+}
+
+/// NO_TIMEOUTS: `wait` only while the queue is empty.
+#[test]
+fn wait_when_idle_only_while_the_queue_is_empty() {
+    let mut cfg = SimConfig::new(Firmware::Marlin2);
+    cfg.time_scale = 1.0;
+    cfg.wait_when_idle = Some(Duration::from_millis(100));
+    let (_sim, mut port) = start(cfg);
+    port.handshake();
+    let until = Instant::now() + Duration::from_millis(350);
+    let mut said = Vec::new();
+    while let Some(line) = port.line(until.saturating_duration_since(Instant::now())) {
+        said.push(line);
+    }
+    assert!(
+        said.iter().filter(|l| *l == "wait").count() >= 2,
+        "{said:?}"
+    );
+    // G4 S1 holds the queue for a second: busy keep-alives, no `wait`, until it ends.
+    port.send_numbered(1, "G4 S1");
+    let (before, _) = port.until("ok");
+    assert!(!before.iter().any(|l| l == "wait"), "{before:?}");
+}
+
+/// The printer's own Stop/Pause menu items, on demand after N lines; and the Ultimaker 2's
+/// heat-wait report without a target, with moves acknowledged as they enter the queue
+/// (before the M109 ahead of them finishes).
+#[test]
+fn host_actions_on_demand_and_ultimaker2_heating() {
+    let mut cfg = SimConfig::new(Firmware::Ultimaker2);
+    cfg.time_scale = 0.05;
+    // After the M110 and the M109 (counted when it starts).
+    cfg.faults.actions = vec![(2, "pause".into())];
+    let (_sim, mut port) = start(cfg);
+    port.handshake();
+    port.send_raw(
+        format!(
+            "{}\n{}\n",
+            numbered(1, "M109 S60"),
+            numbered(2, "G1 X5 F3000")
+        )
+        .as_bytes(),
+    );
+    let (before, _) = port.until("//action:pause");
+    let (during, _) = port.until("T:");
+    let mut lines: Vec<String> = before.into_iter().chain(during).collect();
+    lines.extend(port.drain(Duration::from_secs(3)));
+    let first_ok = lines.iter().position(|l| l == "ok").expect("the G1's ok");
+    let report = lines
+        .iter()
+        .position(|l| l.ends_with("E:0 W:?"))
+        .unwrap_or_else(|| panic!("no UM2 heat report: {lines:?}"));
+    assert!(first_ok < report, "the move's ok came at entry: {lines:?}");
+    assert!(lines[report].starts_with("T:") && !lines[report].contains('/'));
+    assert_eq!(lines.iter().filter(|l| *l == "ok").count(), 2, "{lines:?}");
+}
+
+/// Opening the port resets the board: input during the bootloader delay is lost, then
+/// `start`.
+#[test]
+fn reset_on_open_loses_input_until_start() {
+    let mut cfg = SimConfig::new(Firmware::Marlin2);
+    cfg.reset_on_open = Some(Duration::from_millis(800));
+    let (sim, mut port) = start(cfg);
+    let opened = Instant::now();
+    port.send_numbered(0, "M110 N0");
+    let (_, start) = port.until("start");
+    assert_eq!(start, "start");
+    assert!(opened.elapsed() >= Duration::from_millis(700));
+    assert!(sim.executed().is_empty(), "the bootloader ran nothing");
+    port.handshake();
+    assert_eq!(sim.executed(), ["M110 N0"]);
+}
+
+/// The dialect switches of `crispen sim`: a Marlin 2.0 that says `wait` when idle and
+/// resets on open, with host actions on demand; and clear refusals of bad values.
+#[test]
+fn crispen_sim_switches_for_firmware_behaviours() {
+    let exe = env!("CARGO_BIN_EXE_crispen");
+    let mut child = std::process::Command::new(exe)
+        .args([
+            "sim",
+            "--firmware",
+            "marlin20",
+            "--time-scale",
+            "0",
+            "--wait-when-idle-ms",
+            "100",
+            "--reset-on-open-ms",
+            "300",
+            "--action-after",
+            "1:cancel",
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut first = String::new();
+    std::io::BufRead::read_line(&mut stdout, &mut first).unwrap();
+    let device = first
+        .trim_end()
+        .strip_prefix("crispen sim: listening on ")
+        .unwrap_or_else(|| panic!("first line: {first:?}"))
+        .to_string();
+    let mut port = Port::open(Path::new(&device));
+    port.until("start");
+    port.until("wait");
+    port.send_numbered(0, "M110 N0");
+    port.until("//action:cancel");
+    port.until("ok");
+    port.send_numbered(1, "M115");
+    let (lines, _) = port.until("ok");
+    assert!(lines.iter().any(|l| l.contains("Marlin 2.0")), "{lines:?}");
+    drop(port);
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(child.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    assert!(child.wait().unwrap().success());
+
+    for (flag, value, says) in [
+        ("--action-after", "pause", "expected N:NAME"),
+        ("--action-after", "3:pa use", "action name"),
+        ("--wait-when-idle-ms", "0", "flood"),
+    ] {
+        let out = std::process::Command::new(exe)
+            .args(["sim", flag, value])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{flag} {value}");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(says), "{flag} {value}: {stderr}");
+    }
 }

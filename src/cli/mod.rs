@@ -8,6 +8,7 @@ use std::process::ExitCode;
 pub mod control;
 pub mod enhance;
 pub mod logging;
+pub mod ports;
 pub mod prepare_job;
 pub mod print;
 pub mod run;
@@ -35,6 +36,8 @@ pub enum Command {
     Print(print::Args),
     /// Run a simulated Marlin printer on a pty
     Sim(sim::Args),
+    /// List serial ports (stable names, USB ids, which printer uses each), or probe one
+    Ports(ports::Args),
     /// Run the print-farm daemon (hot folders, jobs, printers)
     Run(run::Args),
     /// Show the daemon's printers and jobs
@@ -62,6 +65,7 @@ pub fn main() -> ExitCode {
         Command::Slice(a) => slice::run(a),
         Command::Print(a) => print::run(a),
         Command::Sim(a) => sim::run(a),
+        Command::Ports(a) => ports::run(a),
         Command::Run(a) => run::run(a),
         Command::Status(a) => control::status(a),
         Command::Clear(a) => control::clear(a),

@@ -23,14 +23,15 @@ pub struct Args {
     /// Baud rate (default: the firmware's usual rate)
     #[arg(long)]
     pub baud: Option<u32>,
-    /// Firmware profile: marlin2 or ultimaker2
+    /// Firmware profile: marlin2, marlin20 or ultimaker2
     #[arg(long, default_value = "marlin2")]
     pub firmware: Firmware,
     /// Keep only one line in flight (as OctoPrint and Printrun do) instead of sending ahead
     #[arg(long)]
     pub one_line: bool,
-    /// Fail the job when M109/M190 has not reached its temperature after this many seconds
-    #[arg(long, default_value_t = 1200)]
+    /// Fail the job (heaters off) when M109/M190 has not come closer to its temperature
+    /// for this many seconds
+    #[arg(long, default_value_t = 1200, value_parser = clap::value_parser!(u64).range(10..=86_400))]
     pub heat_timeout: u64,
 }
 
@@ -114,8 +115,12 @@ async fn print(args: Args, program: GcodeProgram, opts: StreamOptions) -> anyhow
     }
     let report = result.with_context(|| format!("printing {}", args.file.display()))?;
     eprintln!(
-        "done: {} lines acknowledged in {:.1} s ({} resends, {} silence probes)",
-        report.lines_acked, report.duration_s, report.resends, report.silence_probes
+        "done: {} lines acknowledged in {:.1} s ({} resends, {} silence probes, {} fragments)",
+        report.lines_acked,
+        report.duration_s,
+        report.resends,
+        report.silence_probes,
+        report.fragments
     );
     Ok(ExitCode::SUCCESS)
 }

@@ -24,6 +24,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Some(path) => Config::load(path)?,
         None => Config::builtin_default(),
     };
+    // Kernel names such as /dev/ttyACM0 work today but may swap printers after a reboot.
+    for warning in daemon::ports::warnings(&config.printers) {
+        if args.check {
+            eprintln!("warning: {warning}");
+        } else {
+            tracing::warn!(printer = %warning.printer, "{}", warning.message);
+        }
+    }
     if args.check {
         println!(
             "{}: OK ({} printers, {} folders)",

@@ -15,7 +15,8 @@ pub struct Args {
     /// Make a symlink to the pty device here (replaces an existing symlink)
     #[arg(long)]
     pub link: Option<PathBuf>,
-    /// Firmware to behave like
+    /// Firmware to behave like: marlin2 (2.1), marlin20 (no `ok` after `Resend:`, no
+    /// ADVANCED_OK) or ultimaker2
     #[arg(long, default_value = "marlin2")]
     pub firmware: Firmware,
     /// Seed for the fault generator (same seed, same faults)
@@ -61,6 +62,31 @@ pub struct Args {
     /// Halt with a fatal error after N numbered lines
     #[arg(long, value_name = "N")]
     pub fatal_after: Option<usize>,
+    /// Send `//action:NAME` after N numbered lines, as the printer's own Stop/Pause/Resume
+    /// menu items do (e.g. `--action-after 100:pause --action-after 120:resume`)
+    #[arg(long, value_name = "N:NAME", value_parser = parse_action)]
+    pub action_after: Vec<(usize, String)>,
+    /// Say `wait` every MS milliseconds while the command queue is empty (NO_TIMEOUTS)
+    #[arg(long, value_name = "MS")]
+    pub wait_when_idle_ms: Option<u64>,
+    /// Reset when a host opens the port (DTR), with this bootloader delay in milliseconds
+    #[arg(long, value_name = "MS")]
+    pub reset_on_open_ms: Option<u64>,
+}
+
+fn parse_action(text: &str) -> Result<(usize, String), String> {
+    let (n, name) = text
+        .split_once(':')
+        .ok_or_else(|| format!("`{text}`: expected N:NAME, e.g. 100:pause"))?;
+    let n = n
+        .parse()
+        .map_err(|_| format!("`{text}`: {n} is not a line count"))?;
+    if name.is_empty() || !name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') {
+        return Err(format!(
+            "`{text}`: the action name must be letters, digits or `_` (cancel, pause, resume)"
+        ));
+    }
+    Ok((n, name.to_string()))
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
@@ -107,7 +133,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         unplug_after_lines: args.unplug_after,
         silence_after_lines: args.silence_after,
         fatal_after_lines: args.fatal_after,
+        actions: args.action_after.clone(),
     };
+    if args.wait_when_idle_ms == Some(0) {
+        bail!("--wait-when-idle-ms 0 would flood the link; give an interval such as 1000");
+    }
+    cfg.wait_when_idle = args.wait_when_idle_ms.map(std::time::Duration::from_millis);
+    cfg.reset_on_open = args
+        .reset_on_open_ms
+        .map(|ms| std::time::Duration::from_millis(ms.min(60_000)));
 
     // Block the stop signals before the printer thread starts so it inherits the mask and
     // only this thread receives them, in sigwait below.

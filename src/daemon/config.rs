@@ -92,6 +92,7 @@ struct RawPrinter {
     port: Option<PathBuf>,
     firmware: String,
     baud: Option<i64>,
+    heat_timeout_s: Option<i64>,
     simulate: Option<RawSimulate>,
 }
 
@@ -161,6 +162,9 @@ pub struct PrinterConfig {
     pub port: PrinterPort,
     pub firmware: Firmware,
     pub baud: u32,
+    /// An M109/M190 whose temperature stops coming closer to its target for this long
+    /// fails the job (heaters off).
+    pub heat_timeout: Duration,
 }
 
 #[derive(Debug, Clone)]
@@ -371,6 +375,17 @@ printers = ["demo"]
                     ))
                 }
             };
+            let heat_timeout = match p.heat_timeout_s {
+                None => Duration::from_secs(1200),
+                Some(s) if (10..=86_400).contains(&s) => Duration::from_secs(s as u64),
+                Some(s) => {
+                    return Err(invalid(
+                        section,
+                        "heat_timeout_s",
+                        format!("must be between 10 and 86400 seconds, got {s}"),
+                    ))
+                }
+            };
             let port = match (p.port, p.simulate) {
                 (Some(_), Some(_)) => {
                     return Err(invalid(
@@ -413,8 +428,11 @@ printers = ["demo"]
                 port,
                 firmware,
                 baud,
+                heat_timeout,
             });
         }
+
+        super::ports::check_unique(&printers, file)?;
 
         let mut folders: Vec<FolderConfig> = Vec::new();
         for (i, f) in raw.folders.into_iter().enumerate() {
@@ -698,6 +716,16 @@ slicer = "cura"
         assert_eq!(c.farm.max_heating, 1);
         assert_eq!(c.farm.on_shutdown, OnShutdown::Stop);
         assert_eq!(c.printers[0].baud, 250_000);
+        assert_eq!(c.printers[0].heat_timeout, Duration::from_secs(1200));
+        let text = GOOD.replacen(
+            "firmware = \"ultimaker2\"",
+            "firmware = \"ultimaker2\"\nheat_timeout_s = 600",
+            1,
+        );
+        assert_eq!(
+            parse(&text).unwrap().printers[0].heat_timeout,
+            Duration::from_secs(600)
+        );
         assert_eq!(
             c.printers[0].port,
             PrinterPort::Serial("/dev/ttyACM0".into())
@@ -738,6 +766,7 @@ slicer = "cura"
             ("printers = [\"sim\"]", "printers = [\"nope\"]", "[[folder]] #2 (path \"hot/igea\"): key `printers`: no [[printer]] is named \"nope\""),
             ("strength = 0.4", "strength = \"max\"", "key `strength`"),
             ("port = \"/dev/ttyACM0\"\n", "", "key `port`: missing"),
+            ("firmware = \"ultimaker2\"", "firmware = \"ultimaker2\"\nheat_timeout_s = 5", "[[printer]] #1 (name \"um2-a\"): key `heat_timeout_s`: must be between 10"),
             ("strength = 0.4", "strength = 0.4\nsettings = { infil_percent = 20 }", "key `settings`: unknown field `infil_percent`"),
         ];
         for (from, to, expected) in cases {

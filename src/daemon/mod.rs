@@ -18,6 +18,7 @@ pub mod control;
 pub mod farm;
 pub mod hotfolder;
 pub mod job;
+pub mod ports;
 pub mod prepare;
 pub mod printer;
 
@@ -136,6 +137,7 @@ impl Fleet {
             port,
             firmware: spec.firmware,
             baud: spec.baud,
+            heat_timeout: spec.heat_timeout,
         });
         let (retire, retired) = watch::channel(false);
         let task = tokio::spawn(printer::supervise(

@@ -365,6 +365,7 @@ pub struct MarlinConnector {
     pub port: PathBuf,
     pub firmware: crate::marlin::firmware::Firmware,
     pub baud: u32,
+    pub heat_timeout: Duration,
 }
 
 impl Connector for MarlinConnector {
@@ -372,6 +373,7 @@ impl Connector for MarlinConnector {
         Box::pin(async move {
             let mut opts = StreamOptions::for_firmware(self.firmware);
             opts.baud = self.baud;
+            opts.protocol.heat_timeout = self.heat_timeout;
             let connection = Connection::open(&self.port, &opts)
                 .await
                 .map_err(|e| e.to_string())?;
@@ -428,7 +430,11 @@ impl PrinterLink for MarlinLink {
                             continue;
                         }
                         let p = inner_rx.borrow_and_update().clone();
-                        let heated = heat_end.is_none_or(|i| p.lines_acked > i);
+                        // Past the heat-up in acknowledgements, and not heating by the
+                        // printer's own reports (Ultimaker2Marlin acknowledges moves queued
+                        // behind an M109 before it finishes).
+                        let heated = heat_end.is_none_or(|i| p.lines_acked > i)
+                            && p.state != PrintState::Heating;
                         // Paused once the printer has drained the lines in flight: until
                         // then it is still printing them.
                         let paused = p.state == PrintState::Paused;

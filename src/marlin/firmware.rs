@@ -1,6 +1,6 @@
 //! Firmware profiles: the facts about a printer's firmware that both the host and the
 //! simulator must agree on. Values come from Marlin's and Ultimaker2Marlin's defaults
-//! (see ../shared/docs/marlin-host-protocol.md).
+//! (see docs/host-protocol.md and docs/firmware.md).
 
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -9,25 +9,35 @@ use std::str::FromStr;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Firmware {
-    /// Marlin 2.x with the usual options: ADVANCED_OK, busy protocol, autoreport, M112/M108.
+    /// Marlin 2.1 with the usual options: ADVANCED_OK, busy protocol, autoreport, M112/M108.
     Marlin2,
+    /// Marlin 2.0.x as commonly built: no `ok` after `Resend:` (its
+    /// `flush_and_request_resend` sends none) and no ADVANCED_OK; busy protocol, autoreport,
+    /// M112/M108 as 2.1.
+    Marlin20,
     /// Ultimaker2Marlin: 250000 baud, 128-byte RX buffer, 8 command slots, none of the
     /// optional protocol features, and `Resend:` is always followed by `ok`.
     Ultimaker2,
 }
 
 impl Firmware {
-    pub const ALL: [Firmware; 2] = [Firmware::Marlin2, Firmware::Ultimaker2];
+    pub const ALL: [Firmware; 3] = [Firmware::Marlin2, Firmware::Marlin20, Firmware::Ultimaker2];
+
+    /// The Marlin 2 family (2.0 and 2.1).
+    pub fn is_marlin2(self) -> bool {
+        matches!(self, Firmware::Marlin2 | Firmware::Marlin20)
+    }
 
     pub fn name(self) -> &'static str {
         match self {
             Firmware::Marlin2 => "marlin2",
+            Firmware::Marlin20 => "marlin20",
             Firmware::Ultimaker2 => "ultimaker2",
         }
     }
     pub fn default_baud(self) -> u32 {
         match self {
-            Firmware::Marlin2 => 115_200,
+            Firmware::Marlin2 | Firmware::Marlin20 => 115_200,
             Firmware::Ultimaker2 => 250_000,
         }
     }
@@ -38,7 +48,7 @@ impl Firmware {
     /// Command slots (Marlin's BUFSIZE).
     pub fn command_slots(self) -> usize {
         match self {
-            Firmware::Marlin2 => 4,
+            Firmware::Marlin2 | Firmware::Marlin20 => 4,
             Firmware::Ultimaker2 => 8,
         }
     }
@@ -52,27 +62,43 @@ impl Firmware {
     }
     /// `M155 S<s>` temperature autoreport (and `Cap:AUTOREPORT_TEMP:1`).
     pub fn autoreport_temp(self) -> bool {
-        matches!(self, Firmware::Marlin2)
+        self.is_marlin2()
     }
     /// `echo:busy: processing` keep-alives (M113).
     pub fn busy_protocol(self) -> bool {
-        matches!(self, Firmware::Marlin2)
+        self.is_marlin2()
     }
     /// `Cap:` lines in the M115 answer.
     pub fn reports_capabilities(self) -> bool {
-        matches!(self, Firmware::Marlin2)
+        self.is_marlin2()
     }
     /// M112 emergency stop and M108 break-out of heat waits (EMERGENCY_PARSER).
     pub fn emergency_parser(self) -> bool {
-        matches!(self, Firmware::Marlin2)
+        self.is_marlin2()
     }
     /// M73 progress display.
     pub fn progress_m73(self) -> bool {
+        self.is_marlin2()
+    }
+    /// Whether a `Resend:` request is followed by an `ok` for the rejected line. The host
+    /// learns this at run time; this value only stands in until it knows.
+    pub fn ok_after_resend(self) -> bool {
+        !matches!(self, Firmware::Marlin20)
+    }
+    /// Ultimaker2Marlin's reader ends a line at `:` (outside comments), so a command with a
+    /// colon never passes its checksum.
+    pub fn colon_ends_line(self) -> bool {
+        matches!(self, Firmware::Ultimaker2)
+    }
+    /// A line numbered like the last accepted one, or one less, is ignored without any
+    /// answer (Marlin 2.1); older firmware asks for the expected line instead.
+    pub fn ignores_duplicate_lines(self) -> bool {
         matches!(self, Firmware::Marlin2)
     }
-    /// Whether a `Resend:` request is followed by an `ok` for the rejected line.
-    pub fn ok_after_resend(self) -> bool {
-        true
+    /// Moves (G0–G3) are acknowledged when they enter the command queue, other commands
+    /// when they finish, so `ok`s do not come in line order (Ultimaker2Marlin).
+    pub fn acks_moves_on_entry(self) -> bool {
+        matches!(self, Firmware::Ultimaker2)
     }
 }
 
@@ -88,6 +114,8 @@ impl FromStr for Firmware {
         Firmware::ALL
             .into_iter()
             .find(|f| f.name() == s)
-            .ok_or_else(|| format!("unknown firmware `{s}` (expected marlin2 or ultimaker2)"))
+            .ok_or_else(|| {
+                format!("unknown firmware `{s}` (expected marlin2, marlin20 or ultimaker2)")
+            })
     }
 }

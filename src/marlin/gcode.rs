@@ -38,6 +38,20 @@ pub enum GcodeError {
          remove it"
     )]
     Asterisk { file: String, line: usize },
+    #[error(
+        "{file}:{line}: command contains `:`, where {firmware} ends a line, so it would never \
+         pass its checksum; remove the colon (e.g. `M117 ETA 01:23` -> `M117 ETA 01h23`)"
+    )]
+    Colon {
+        file: String,
+        line: usize,
+        firmware: Firmware,
+    },
+    #[error(
+        "{file}:{line}: command contains `\\` outside quotes, which Marlin drops, so the \
+         printer would run something else than the file says; remove it"
+    )]
+    Backslash { file: String, line: usize },
     #[error("{file}:{line}: command is not valid text (UTF-8)")]
     NotText { file: String, line: usize },
     #[error("{file}: no G-code commands in the file (only comments or blank lines)")]
@@ -136,13 +150,13 @@ pub struct GcodeProgram {
 }
 
 impl GcodeProgram {
-    /// Load a file, checking line lengths against the strictest supported firmware.
+    /// Load a file that must suit every supported firmware.
     pub fn load(path: &Path) -> Result<Self, GcodeError> {
-        let strictest = Firmware::ALL
-            .into_iter()
-            .min_by_key(|f| f.max_line_bytes())
-            .unwrap_or(Firmware::Marlin2);
-        Self::load_for(path, strictest)
+        let mut program = None;
+        for firmware in Firmware::ALL {
+            program = Some(Self::load_for(path, firmware)?);
+        }
+        Ok(program.expect("at least one firmware"))
     }
 
     /// Load a file for one firmware.
@@ -199,6 +213,19 @@ impl GcodeProgram {
             }
             if code.contains('*') {
                 return Err(GcodeError::Asterisk {
+                    file: name.to_string(),
+                    line: line_no,
+                });
+            }
+            if firmware.colon_ends_line() && code.contains(':') {
+                return Err(GcodeError::Colon {
+                    file: name.to_string(),
+                    line: line_no,
+                    firmware,
+                });
+            }
+            if has_unquoted_backslash(code) {
+                return Err(GcodeError::Backslash {
                     file: name.to_string(),
                     line: line_no,
                 });
@@ -274,6 +301,23 @@ impl GcodeProgram {
     }
 }
 
+/// A `\\` outside a `"..."` string: Marlin's parser drops it.
+fn has_unquoted_backslash(code: &str) -> bool {
+    let mut quoted = false;
+    let mut bytes = code.bytes();
+    while let Some(b) = bytes.next() {
+        match b {
+            b'"' => quoted = !quoted,
+            b'\\' if quoted => {
+                bytes.next(); // an escape inside quotes
+            }
+            b'\\' => return true,
+            _ => {}
+        }
+    }
+    false
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -336,6 +380,28 @@ mod tests {
         let copy = commands.clone();
         assert!(Arc::ptr_eq(&copy.text, &commands.text));
         assert!(GcodeCommands::default().is_empty());
+    }
+
+    #[test]
+    fn colons_for_ultimaker2_and_bare_backslashes_are_refused_naming_the_line() {
+        let text = b"G28\nM117 ETA 01:23\n";
+        let err = GcodeProgram::read(&text[..], "job.gcode", Firmware::Ultimaker2).unwrap_err();
+        assert!(matches!(err, GcodeError::Colon { line: 2, .. }), "{err}");
+        assert!(err.to_string().starts_with("job.gcode:2:"), "{err}");
+        // Marlin reads colons fine; a colon in a comment is no command at all.
+        assert!(GcodeProgram::read(&text[..], "job.gcode", Firmware::Marlin2).is_ok());
+        assert!(GcodeProgram::read(&b"G28 ; at 01:23\n"[..], "j", Firmware::Ultimaker2).is_ok());
+        for fw in Firmware::ALL {
+            let err = GcodeProgram::read(&b"M117 a\\b\n"[..], "j.gcode", fw).unwrap_err();
+            assert!(
+                matches!(err, GcodeError::Backslash { line: 1, .. }),
+                "{fw}: {err}"
+            );
+        }
+        assert!(
+            parse(b"M118 \"a\\\"b\"\n").is_ok(),
+            "escapes inside quotes are kept"
+        );
     }
 
     #[test]

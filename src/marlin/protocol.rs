@@ -10,9 +10,16 @@
 //! carrying a temperature report answers an `M105`, which the printer processes after every
 //! earlier line, so it acknowledges everything up to that `M105`. A job only counts as done
 //! after such a final `M105` is answered.
+//!
+//! - [`reply`]: each printer line classified into a pure [`Reply`] first.
+//! - this file: numbering, the send window and the host state machine acting on replies.
+
+pub mod reply;
+mod window;
 
 use super::firmware::Firmware;
 use super::gcode::GcodeCommands;
+use reply::{HostAction, OkReply, Reply, Report};
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -27,13 +34,6 @@ pub fn frame(number: u64, command: &str) -> String {
     let body = format!("N{number} {command}");
     let cs = checksum(body.as_bytes());
     format!("{body}*{cs}\n")
-}
-
-/// Upper bound of `frame(number, command).len()` without building the line: `N`, the
-/// number, a space, the command, `*`, a checksum of at most three digits and `\n`.
-fn wire_len_bound(number: u64, command: &str) -> usize {
-    let digits = number.checked_ilog10().map_or(1, |d| d as usize + 1);
-    1 + digits + 1 + command.len() + 1 + 3 + 1
 }
 
 /// Tunables; [`ProtocolOptions::for_firmware`] gives sensible values.
@@ -54,8 +54,19 @@ pub struct ProtocolOptions {
     pub silence_fail: Duration,
     /// No byte at all for this long while a long command (G28, G29, M400, G4) runs.
     pub long_command_timeout: Duration,
-    /// M109/M190 not finished after this long: stop safely and fail the job.
+    /// M109/M190 whose temperature has not come closer to its target for this long: stop
+    /// safely and fail the job. A wait that still makes progress never times out.
     pub heat_timeout: Duration,
+    /// No line acknowledged for this long while the printer keeps talking (outside heat
+    /// waits and long commands): stop safely and fail the job.
+    pub no_progress_timeout: Duration,
+    /// After a `Resend:` while it is not yet known whether this firmware sends an `ok`
+    /// after it (Marlin 2.1 and Ultimaker2Marlin do, Marlin 2.0 does not), wait this long
+    /// for one before replaying.
+    pub resend_ok_wait: Duration,
+    /// After a resend, this many further lines go one at a time: a burst right after a
+    /// receive-buffer flush is what cuts lines into fragments the firmware may execute.
+    pub cautious_lines: u64,
     /// Interval of temperature reports (autoreport) or polls.
     pub temperature_interval: Duration,
     /// How many times the same line may be requested again before the job fails.
@@ -76,6 +87,9 @@ impl ProtocolOptions {
             silence_fail: Duration::from_secs(30),
             long_command_timeout: Duration::from_secs(900),
             heat_timeout: Duration::from_secs(1200),
+            no_progress_timeout: Duration::from_secs(180),
+            resend_ok_wait: Duration::from_secs(1),
+            cautious_lines: 8,
             temperature_interval: Duration::from_secs(2),
             resend_limit: 10,
             // Each kept line is a copy of its command: a whole job's worth costs MBs per printer.
@@ -138,7 +152,20 @@ pub enum Failure {
         oldest_kept: u64,
         last_acked: usize,
     },
+    /// The printer asked for a line it had already confirmed (an answered `M105`, an
+    /// `ok N`): it lost its state (a reset without `start`, a power dip); replaying on top
+    /// of a half-printed layer would be guessing.
+    LostState {
+        line: u64,
+        confirmed: u64,
+        last_acked: usize,
+    },
     Silent {
+        waited: Duration,
+        last_acked: usize,
+    },
+    /// The printer kept talking but acknowledged nothing for this long.
+    NoProgress {
         waited: Duration,
         last_acked: usize,
     },
@@ -164,6 +191,9 @@ pub struct JobSummary {
     pub lines_sent: u64,
     pub resends: u64,
     pub probes: u64,
+    /// Pieces of lines the printer answered on their own (the tail of a line cut by a
+    /// receive-buffer flush): seen as `Unknown command` or as an `ok` without a line number.
+    pub fragments: u64,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -175,19 +205,28 @@ pub enum Event {
         total: usize,
     },
     Temperatures(Temperatures),
-    /// `busy:`/`wait` keep-alive.
+    /// `busy:` keep-alive.
     Busy(String),
     /// The printer asked for `line` again; `replay` lines will be sent again.
     Resend {
         line: u64,
         replay: u64,
     },
-    /// The printer was silent; an `M105` probe went out.
+    /// The printer was silent, or said `wait` with lines in flight; an `M105` probe went out.
     Probe,
+    /// The printer answered a piece of a line on its own (see [`JobSummary::fragments`]).
+    Fragment(String),
+    /// `//action:cancel|pause|resume` from the printer's own menu; the host acts on it.
+    HostAction(HostAction),
     /// Informational printer output (`echo:`, non-fatal `Error:`) worth logging.
     Message(String),
     Paused,
     Resumed,
+    /// A failure stopped the printer: heaters, fan and motors off. `confirmed`: the printer
+    /// acknowledged those lines (an answered `M105` after them).
+    SafeStop {
+        confirmed: bool,
+    },
     Done(JobSummary),
     Failed(Failure),
 }
@@ -198,8 +237,11 @@ enum Kind {
     Job(usize),
     /// M110 / M115 at connect or job start.
     Setup,
-    /// M105 polls, probes and the final sync; M155, M73.
+    /// M105 polls and probes; M155, M73.
     Housekeeping,
+    /// The `M105` that ends a job or a stop: only its own answer (`ok T:`, or an `ok N`
+    /// past it) acknowledges it, never a plain `ok` that may belong to something else.
+    Sync,
     /// M108 and the heaters/fan/motors-off lines.
     SafeStop,
 }
@@ -216,6 +258,7 @@ struct InFlight {
     number: u64,
     bytes: usize,
     is_m105: bool,
+    sync: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -231,10 +274,48 @@ enum Phase {
     Finished,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum StopReason {
+/// Why a job stops sending its lines.
+#[derive(Debug, Clone, PartialEq)]
+enum Stop {
+    /// On request: the safe-stop lines follow the job's numbering.
     Cancel,
-    Heat,
+    /// A failure while the printer still answers: the line counter is reset with `M110`
+    /// (the printer's idea of the next line is not to be trusted), the safe-stop lines go
+    /// out, and the failure is reported once an `M105` after them is answered or `give_up`
+    /// passes.
+    Failure { failure: Failure, give_up: Instant },
+}
+
+/// An M109/M190 the printer may still be working on. Tracked apart from the order of `ok`s,
+/// which Ultimaker2Marlin does not keep (it acknowledges moves queued behind the heat
+/// command before the heat command ends).
+#[derive(Debug, Clone)]
+struct HeatWait {
+    number: u64,
+    command: String,
+    bed: bool,
+    /// `S`/`R` of the command.
+    target: Option<f64>,
+    since: Instant,
+    /// The closest distance to the target seen so far, and when.
+    best: Option<(f64, Instant)>,
+}
+
+/// Whether this firmware sends an `ok` after `Resend:`, learnt from unambiguous cases (a
+/// resend with nothing else awaiting an `ok`): Marlin 2.1 and Ultimaker2Marlin do, Marlin
+/// 2.0 does not, Marlin 1.1 sometimes. Until two observations agree, the firmware profile's
+/// value stands in where a case is ambiguous.
+#[derive(Debug, Clone, Copy, Default)]
+struct ResendOk {
+    seen_ok: u32,
+    seen_none: u32,
+}
+
+impl ResendOk {
+    fn known(&self) -> Option<bool> {
+        (self.seen_ok + self.seen_none >= 2 && self.seen_ok != self.seen_none)
+            .then_some(self.seen_ok > self.seen_none)
+    }
 }
 
 /// The host side of one printer connection.
@@ -255,26 +336,52 @@ pub struct Host {
     send_cursor: u64,
     in_flight: VecDeque<InFlight>,
     in_flight_bytes: usize,
+    /// `ok`s to ignore: the `ok` after a `Resend:` and after a fragment's `Unknown command`.
     swallow_oks: u32,
+    /// Duplicate resend requests to ignore: (line, how many). Lines already on their way
+    /// when the replay began each cause one, always as a line-number error (Marlin checks
+    /// the number first); a request after a checksum error is the replay itself corrupted
+    /// again, a new request.
     duplicate_budget: Option<(u64, u64)>,
+    /// The `Error:` before the next `Resend:` was a line-number error.
+    number_error: bool,
+    /// Its `Last Line: <k>`.
+    error_last_line: Option<u64>,
     repeated: Option<(u64, u32)>,
+    resend_ok: ResendOk,
+    /// Replay held back until this time while waiting to see whether an `ok` follows the
+    /// `Resend:` (see [`ResendOk`]).
+    resend_hold: Option<Instant>,
+    /// One line in flight until this line number is reached (after a resend).
+    cautious_until: u64,
+    /// `ok N<n> P<p> B<b>` seen: `ok`s are matched to lines by number.
+    advanced_ok: bool,
+    /// The highest line number the printer has certainly accepted.
+    confirmed: Option<u64>,
+    fragments: u64,
 
     opened_at: Instant,
     last_rx: Instant,
     front_since: Instant,
     last_probe: Option<Instant>,
-    /// Last `ok`, resend request or busy keep-alive: temperature reports alone do not
-    /// prove that commands are moving.
+    /// Last `ok`, resend request or busy keep-alive: temperature reports and `wait` alone
+    /// do not prove that commands are moving.
     last_progress: Instant,
+    /// Last time a line was acknowledged.
+    last_ack: Instant,
     greeting_sent_at: Instant,
     greeting_attempts: u32,
     next_poll: Instant,
     temps: Temperatures,
+    /// The printer reports `W:` (inside an M109/M190 wait) and has not answered since.
+    heat_reported: bool,
+    heat: Option<HeatWait>,
+    /// The pause was confirmed by an answered `M105` after the last job line.
+    pause_synced: bool,
     recent_errors: Vec<String>,
     paused: bool,
     paused_reported: bool,
-    stopping: Option<StopReason>,
-    heat_failure: Option<(String, Duration)>,
+    stopping: Option<Stop>,
     sync_queued: bool,
     last_m73: Option<usize>,
 
@@ -318,21 +425,32 @@ impl Host {
             in_flight_bytes: 0,
             swallow_oks: 0,
             duplicate_budget: None,
+            number_error: false,
+            error_last_line: None,
             repeated: None,
+            resend_ok: ResendOk::default(),
+            resend_hold: None,
+            cautious_until: 0,
+            advanced_ok: false,
+            confirmed: None,
+            fragments: 0,
             opened_at: now,
             last_rx: now,
             front_since: now,
             last_probe: None,
             last_progress: now,
+            last_ack: now,
             greeting_sent_at: now,
             greeting_attempts: 0,
             next_poll: now,
             temps: Temperatures::default(),
+            heat_reported: false,
+            heat: None,
+            pause_synced: false,
             recent_errors: Vec::new(),
             paused: false,
             paused_reported: false,
             stopping: None,
-            heat_failure: None,
             sync_queued: false,
             last_m73: None,
             lines_sent: 0,
@@ -357,13 +475,25 @@ impl Host {
     }
     /// For a new job on a link that was greeted before: skip the handshake.
     pub fn mark_connected(&mut self, info: FirmwareInfo) {
+        self.advanced_ok = info.capability("ADVANCED_OK") == Some(true);
         self.info = info;
         self.phase = Phase::Idle;
     }
-    /// The printer is working on M109/M190.
+    /// The printer is inside M109/M190: it says so in its reports (`W:`), or a heat command
+    /// was sent and is not known to have ended: by an `ok` right after its `W:` reports (the
+    /// firmware reads nothing while it waits), by an answer confirming a later line, or,
+    /// where `ok`s keep line order, by its own `ok`.
     pub fn heating(&self) -> bool {
-        self.front_line()
-            .is_some_and(|l| is_code(&l.command, &HEAT_COMMANDS))
+        self.heat_reported || self.heat.is_some() || self.heat_at_front()
+    }
+
+    /// The oldest unanswered line is M109/M190, or the printer reports that it waits: it
+    /// reads nothing else meanwhile, so silence is no sign of trouble.
+    fn heat_at_front(&self) -> bool {
+        self.heat_reported
+            || self
+                .front_line()
+                .is_some_and(|l| is_code(&l.command, &HEAT_COMMANDS))
     }
     pub fn acked_job_lines(&self) -> usize {
         self.acked_job
@@ -376,6 +506,13 @@ impl Host {
     }
     pub fn resends(&self) -> u64 {
         self.resends
+    }
+    pub fn fragments(&self) -> u64 {
+        self.fragments
+    }
+    /// Whether the firmware was seen to send an `ok` after `Resend:` (None: not known yet).
+    pub fn ok_after_resend(&self) -> Option<bool> {
+        self.resend_ok.known()
     }
 
     /// Bytes to write to the port now.
@@ -399,6 +536,9 @@ impl Host {
         self.next_job = 0;
         self.acked_job = 0;
         self.reset_numbering();
+        // The M110 goes alone: if the printer rejects it, its request names a line of the
+        // old count, and no line of the new count is on its way to be taken for it.
+        self.cautious_until = 2;
         self.pending.push_back((Kind::Setup, "M110 N0".into()));
         if self.autoreport() {
             let secs = self.opts.temperature_interval.as_secs().max(1);
@@ -409,6 +549,7 @@ impl Host {
         self.front_since = now;
         self.last_rx = now;
         self.last_progress = now;
+        self.last_ack = now;
         self.last_probe = None;
         self.paused = false;
         self.stopping = None;
@@ -417,6 +558,7 @@ impl Host {
         self.lines_sent = 0;
         self.resends = 0;
         self.probes = 0;
+        self.fragments = 0;
         self.pump(now);
         true
     }
@@ -425,7 +567,13 @@ impl Host {
     /// then heaters, fan and motors off as ordinary numbered lines.
     pub fn cancel(&mut self, now: Instant) {
         if self.phase == Phase::Job && self.stopping.is_none() {
-            self.begin_stop(StopReason::Cancel, now);
+            self.stopping = Some(Stop::Cancel);
+            self.paused = false;
+            // Job lines waiting to be (re)sent are never sent now; the printer expects the
+            // first of them next, so the safe-stop lines take over their numbers.
+            self.discard_unsent_job_lines();
+            self.queue_safe_stop(now);
+            self.pump(now);
         }
     }
 
@@ -434,6 +582,7 @@ impl Host {
         if self.phase == Phase::Job && self.stopping.is_none() && !self.paused {
             self.paused = true;
             self.paused_reported = false;
+            self.pause_synced = false;
             self.pump(now);
         }
     }
@@ -459,7 +608,9 @@ impl Host {
             let mut line = std::mem::take(&mut self.rx_partial);
             line.extend_from_slice(&rest[..pos]);
             rest = &rest[pos + 1..];
-            self.handle_line(&line, now);
+            if let Some(reply) = Reply::parse(&line) {
+                self.handle(reply, now);
+            }
             if self.phase == Phase::Finished {
                 return;
             }
@@ -494,14 +645,26 @@ impl Host {
                 if !self.autoreport() && self.accepting_job_lines() {
                     at(self.next_poll);
                 }
+                if let Some(hold) = self.resend_hold {
+                    at(hold);
+                }
+                if let Some(Stop::Failure { give_up, .. }) = &self.stopping {
+                    at(*give_up);
+                }
+                if let Some(deadline) = self.heat_deadline() {
+                    at(deadline);
+                }
                 if let Some(front) = self.front_line() {
-                    at(self.next_probe_at());
-                    if is_code(&front.command, &HEAT_COMMANDS) {
-                        at(self.front_since + self.opts.heat_timeout);
+                    if self.resend_hold.is_none() {
+                        at(self.next_probe_at());
+                    }
+                    if self.heat_at_front() {
+                        // The heat wait has its own limit.
                     } else if is_code(&front.command, &LONG_COMMANDS) {
                         at(self.last_rx + self.opts.long_command_timeout);
                     } else {
                         at(self.last_rx + self.opts.silence_fail);
+                        at(self.last_ack + self.opts.no_progress_timeout);
                     }
                 }
                 deadline
@@ -534,6 +697,17 @@ impl Host {
     }
 
     fn tick_job(&mut self, now: Instant) {
+        if let Some(Stop::Failure { give_up, .. }) = &self.stopping {
+            if now >= *give_up {
+                self.finish_stop(false);
+                return;
+            }
+        }
+        if self.resend_hold.is_some_and(|hold| now >= hold) {
+            // No `ok` came after the `Resend:`: this firmware sends none.
+            self.resend_hold = None;
+            self.resend_ok.seen_none += 1;
+        }
         if !self.autoreport() && self.accepting_job_lines() && now >= self.next_poll {
             self.next_poll = now + self.opts.temperature_interval;
             if !self.in_flight.iter().any(|f| f.is_m105)
@@ -542,29 +716,26 @@ impl Host {
                 self.pending.push_back((Kind::Housekeeping, "M105".into()));
             }
         }
+        let last_acked = self.acked_job;
+        if self.heat_deadline().is_some_and(|d| now >= d) {
+            let heat = self.heat.take().expect("a deadline means a heat wait");
+            let temperatures = self.temps;
+            self.fail_safely(
+                Failure::HeatTimeout {
+                    command: heat.command,
+                    waited: now - heat.since,
+                    temperatures,
+                    last_acked,
+                },
+                now,
+            );
+            return;
+        }
         let Some(front) = self.front_line().cloned() else {
             return;
         };
-        let last_acked = self.acked_job;
-        if is_code(&front.command, &HEAT_COMMANDS) {
-            let waited = now - self.front_since;
-            if waited >= self.opts.heat_timeout {
-                if self.stopping.is_some() {
-                    // Even the safe stop is stuck behind the heat wait (no M108 here).
-                    let temperatures = self.temps;
-                    self.fail(Failure::HeatTimeout {
-                        command: front.command,
-                        waited,
-                        temperatures,
-                        last_acked,
-                    });
-                } else {
-                    self.heat_failure = Some((front.command.clone(), waited));
-                    self.begin_stop(StopReason::Heat, now);
-                    // Give the safe stop its own full period before giving up.
-                    self.front_since = now;
-                }
-            }
+        if self.heat_at_front() {
+            // Inside a heat wait: its own limit applies.
         } else if is_code(&front.command, &LONG_COMMANDS) {
             if now - self.last_rx >= self.opts.long_command_timeout {
                 self.fail(Failure::Silent {
@@ -577,21 +748,49 @@ impl Host {
                 waited: now - self.last_rx,
                 last_acked,
             });
+        } else if now - self.last_ack >= self.opts.no_progress_timeout {
+            self.fail_safely(
+                Failure::NoProgress {
+                    waited: now - self.last_ack,
+                    last_acked,
+                },
+                now,
+            );
+            return;
         }
         if self.phase == Phase::Job && now >= self.next_probe_at() {
-            self.last_probe = Some(now);
-            self.probes += 1;
-            self.events.push_back(Event::Probe);
-            // The probe bypasses the send window: the printer is most likely idle and
-            // the window only looks full because an `ok` was lost.
-            if self.send_cursor < self.next_number {
-                // A replay is waiting: the line the printer asked for is the probe.
-                self.transmit(self.send_cursor, now);
-            } else {
-                let number = self.new_line(Kind::Housekeeping, "M105".into());
-                self.transmit(number, now);
-            }
+            self.probe(now);
         }
+    }
+
+    /// Send an `M105` at once, outside the send window: the printer is most likely idle and
+    /// the window only looks full because an `ok` was lost. Its answer acknowledges every
+    /// earlier line.
+    fn probe(&mut self, now: Instant) {
+        if self.resend_hold.is_some() {
+            return;
+        }
+        self.last_probe = Some(now);
+        self.probes += 1;
+        self.events.push_back(Event::Probe);
+        // An ignored duplicate resend request may have been a real one: after a probe, a
+        // repeated request is always new.
+        self.duplicate_budget = None;
+        if self.send_cursor < self.next_number {
+            // A replay is waiting: the line the printer asked for is the probe.
+            self.transmit(self.send_cursor, now);
+        } else {
+            let number = self.new_line(Kind::Housekeeping, "M105".into());
+            self.transmit(number, now);
+        }
+    }
+
+    /// When a heat wait times out: `heat_timeout` after it started or after its
+    /// temperature last came closer to the target, whichever is later.
+    fn heat_deadline(&self) -> Option<Instant> {
+        let heat = self.heat.as_ref()?;
+        let progress = heat.best.map_or(heat.since, |(_, at)| at.max(heat.since));
+        Some(progress + self.opts.heat_timeout)
     }
 
     /// When to probe with M105 if nothing moves. Long commands are probed too: the M105
@@ -600,9 +799,10 @@ impl Host {
     fn next_probe_at(&self) -> Instant {
         let probe = self.opts.silence_probe;
         let base = self.last_progress.max(self.front_since) + probe;
-        let long_front = self.front_line().is_some_and(|l| {
-            is_code(&l.command, &HEAT_COMMANDS) || is_code(&l.command, &LONG_COMMANDS)
-        });
+        let long_front = self.heat_at_front()
+            || self
+                .front_line()
+                .is_some_and(|l| is_code(&l.command, &LONG_COMMANDS));
         if long_front && self.in_flight.iter().any(|f| f.is_m105) {
             // It waits behind the long command; more probes would only fill the buffer.
             return base.max(self.front_since + self.opts.long_command_timeout);
@@ -637,22 +837,6 @@ impl Host {
         self.history_line(front.number)
     }
 
-    fn history_line(&self, number: u64) -> Option<&Line> {
-        let first = self.history.front()?.number;
-        self.history.get(number.checked_sub(first)? as usize)
-    }
-
-    fn reset_numbering(&mut self) {
-        self.history.clear();
-        self.in_flight.clear();
-        self.in_flight_bytes = 0;
-        self.pending.clear();
-        self.next_number = 0;
-        self.send_cursor = 0;
-        self.duplicate_budget = None;
-        self.repeated = None;
-    }
-
     fn send_greeting(&mut self, now: Instant) {
         self.phase = Phase::Greeting;
         self.greeting_attempts += 1;
@@ -662,41 +846,83 @@ impl Host {
         self.pending.push_back((Kind::Setup, "M115".into()));
     }
 
-    fn begin_stop(&mut self, reason: StopReason, now: Instant) {
-        self.stopping = Some(reason);
-        self.paused = false;
-        // Job lines waiting to be (re)sent are never sent now; the printer expects the
-        // first of them next, so the safe-stop lines take over their numbers.
-        self.discard_unsent_job_lines();
-        self.pending.retain(|(kind, _)| *kind == Kind::SafeStop);
-        if self.emergency_parser() {
-            // Numbered, outside the window: the emergency parser acts on it on arrival
-            // (breaking an M109/M190 wait), and the queue then acknowledges it in order.
-            let number = self.new_line(Kind::SafeStop, "M108".into());
-            if self.send_cursor == number {
-                self.transmit(number, now);
+    /// M108 (breaking a heat wait where the firmware can), then heaters, fan and motors off,
+    /// autoreport off, and an `M105` whose answer confirms them all.
+    fn queue_safe_stop(&mut self, now: Instant) {
+        self.pending
+            .retain(|(kind, _)| matches!(kind, Kind::SafeStop | Kind::Setup));
+        self.resend_hold = None;
+        let failure = matches!(self.stopping, Some(Stop::Failure { .. }));
+        if self.emergency_parser() && !failure {
+            if self.pending.is_empty() {
+                // Numbered, outside the window: the emergency parser acts on it on arrival
+                // (breaking an M109/M190 wait), and the queue then acknowledges it in order.
+                let number = self.new_line(Kind::SafeStop, "M108".into());
+                if self.send_cursor == number {
+                    self.transmit(number, now);
+                }
+            } else {
+                self.pending.push_back((Kind::SafeStop, "M108".into()));
             }
         }
         for cmd in SAFE_STOP {
             self.pending.push_back((Kind::SafeStop, cmd.into()));
         }
+        if self.autoreport() {
+            self.pending.push_back((Kind::SafeStop, "M155 S0".into()));
+        }
+        self.pending.push_back((Kind::Sync, "M105".into()));
     }
 
-    fn discard_unsent_job_lines(&mut self) {
-        let Some(first) = self.history.front().map(|l| l.number) else {
-            return;
-        };
-        if self.send_cursor >= self.next_number {
-            return;
-        }
-        let keep = (self.send_cursor - first) as usize;
-        let dropped: Vec<Line> = self.history.drain(keep..).collect();
-        self.next_number = self.send_cursor;
-        for line in dropped.into_iter().rev() {
-            if line.kind == Kind::SafeStop {
-                self.pending.push_front((line.kind, line.command));
+    /// A failure while the printer still answers: never leave it hot. The printer's line
+    /// counter is reset (`M110`), whatever it expected, and the safe-stop lines follow.
+    fn fail_safely(&mut self, failure: Failure, now: Instant) {
+        match (&self.phase, &self.stopping) {
+            (Phase::Job, Some(Stop::Failure { .. })) => self.finish_stop(false),
+            (Phase::Job, _) => {
+                let give_up = now + self.opts.silence_fail;
+                self.stopping = Some(Stop::Failure { failure, give_up });
+                self.paused = false;
+                // A new episode with numbers of its own, above any the printer has seen:
+                // `N<k> M110 N<k>` passes whatever it expects, and a request for an older
+                // number then means it rejected the M110 (see `handle_resend`).
+                let first = self.next_number;
+                self.reset_numbering();
+                self.next_number = first;
+                self.send_cursor = first;
+                self.cautious_until = first + 2;
+                self.pending
+                    .push_back((Kind::Setup, format!("M110 N{first}")));
+                if self.emergency_parser() {
+                    // Break a heat wait the printer may be stuck in; without a number, so it
+                    // needs no place in the sequence (the emergency parser acts on arrival;
+                    // the queue later runs it as an unnumbered command and says `ok`).
+                    self.outgoing.extend_from_slice(b"M108\n");
+                    if !self.advanced_ok {
+                        self.swallow_oks += 1;
+                    }
+                }
+                // A new episode: what the last one left in flight is gone.
+                self.last_progress = now;
+                self.last_ack = now;
+                self.front_since = now;
+                self.queue_safe_stop(now);
+                self.pump(now);
             }
+            _ => self.fail(failure),
         }
+    }
+
+    /// Report the failure that stopped the printer, with whether the stop was confirmed.
+    fn finish_stop(&mut self, confirmed: bool) {
+        let failure = match self.stopping.take() {
+            Some(Stop::Failure { failure, .. }) => failure,
+            _ => Failure::Cancelled {
+                last_acked: self.acked_job,
+            },
+        };
+        self.events.push_back(Event::SafeStop { confirmed });
+        self.fail(failure);
     }
 
     fn fail(&mut self, failure: Failure) {
@@ -706,122 +932,7 @@ impl Host {
         }
     }
 
-    /// Give the next line a number and remember it for resends.
-    fn new_line(&mut self, kind: Kind, command: String) -> u64 {
-        let number = self.next_number;
-        self.next_number += 1;
-        self.history.push_back(Line {
-            number,
-            kind,
-            command,
-        });
-        // Keep history bounded, but never drop lines that are not yet acknowledged.
-        let oldest_needed = self
-            .in_flight
-            .front()
-            .map_or(self.send_cursor, |f| f.number.min(self.send_cursor));
-        while self.history.len() > self.opts.history_lines
-            && self
-                .history
-                .front()
-                .is_some_and(|l| l.number < oldest_needed)
-        {
-            self.history.pop_front();
-        }
-        number
-    }
-
-    fn transmit(&mut self, number: u64, now: Instant) {
-        let Some(line) = self.history_line(number) else {
-            return;
-        };
-        let wire = frame(number, &line.command);
-        let is_m105 = code_of(&line.command).eq_ignore_ascii_case("M105");
-        if wire.len() - 1 > self.opts.firmware.max_line_bytes() {
-            let failure = Failure::LineTooLong {
-                command: line.command.clone(),
-                len: wire.len() - 1,
-                max: self.opts.firmware.max_line_bytes(),
-            };
-            self.fail(failure);
-            return;
-        }
-        if self.in_flight.is_empty() {
-            self.front_since = now;
-        }
-        self.outgoing.extend_from_slice(wire.as_bytes());
-        self.in_flight.push_back(InFlight {
-            number,
-            bytes: wire.len(),
-            is_m105,
-        });
-        self.in_flight_bytes += wire.len();
-        self.send_cursor = number + 1;
-        self.lines_sent += 1;
-    }
-
-    fn window_allows(&self, bytes: usize) -> bool {
-        if self.in_flight.is_empty() {
-            return true;
-        }
-        if !self.opts.send_ahead {
-            return false;
-        }
-        // Every unacknowledged line may still sit in the printer's receive ring: while the
-        // firmware is blocked (planner full, M109, G28...) its loop does not move lines into
-        // command slots, so free slots announced by ADVANCED_OK (`B`) are no room for more
-        // bytes. Bytes beyond the ring are lost and two lines merge into one whose checksum
-        // may even pass; so the bytes in flight never exceed the ring. One byte of margin:
-        // Marlin's ring tells full from empty by leaving one cell unused.
-        self.in_flight_bytes + bytes < self.opts.firmware.rx_buffer_bytes()
-    }
-
-    /// Send whatever the window allows. A line gets its number only when it is sent, so
-    /// numbers always match the order on the wire.
-    fn pump(&mut self, now: Instant) {
-        loop {
-            if matches!(
-                self.phase,
-                Phase::Finished | Phase::Idle | Phase::Boot { .. }
-            ) {
-                return;
-            }
-            if self.send_cursor < self.next_number {
-                // Replaying after a resend request.
-                let number = self.send_cursor;
-                let Some(line) = self.history_line(number) else {
-                    break;
-                };
-                if !self.window_allows(wire_len_bound(number, &line.command)) {
-                    break;
-                }
-                self.transmit(number, now);
-                continue;
-            }
-            let candidate_len = if let Some((_, command)) = self.pending.front() {
-                command.len()
-            } else if self.accepting_job_lines() && self.next_job < self.job.len() {
-                self.job[self.next_job].len()
-            } else {
-                break;
-            };
-            if !self.window_allows(candidate_len + wire_len_bound(self.next_number, "")) {
-                break;
-            }
-            let number = if let Some((kind, command)) = self.pending.pop_front() {
-                self.new_line(kind, command)
-            } else {
-                let idx = self.next_job;
-                self.next_job += 1;
-                let command = self.job[idx].to_owned();
-                self.new_line(Kind::Job(idx), command)
-            };
-            self.transmit(number, now);
-        }
-        self.check_progress(now);
-    }
-
-    fn check_progress(&mut self, _now: Instant) {
+    fn check_progress(&mut self, now: Instant) {
         if self.phase != Phase::Job {
             return;
         }
@@ -831,23 +942,19 @@ impl Host {
         if !drained {
             return;
         }
-        if let Some(reason) = self.stopping {
-            let last_acked = self.acked_job;
-            match (reason, self.heat_failure.take()) {
-                (StopReason::Heat, Some((command, waited))) => {
-                    let temperatures = self.temps;
-                    self.fail(Failure::HeatTimeout {
-                        command,
-                        waited,
-                        temperatures,
-                        last_acked,
-                    })
-                }
-                _ => self.fail(Failure::Cancelled { last_acked }),
-            }
+        if self.stopping.is_some() {
+            self.finish_stop(true);
             return;
         }
         if self.paused {
+            if !self.pause_synced {
+                // Drained of `ok`s is not drained: Ultimaker2Marlin acknowledges moves as
+                // they enter its queue. An answered M105 is processed after all of them.
+                self.pause_synced = true;
+                self.pending.push_back((Kind::Sync, "M105".into()));
+                self.pump(now);
+                return;
+            }
             if !self.paused_reported {
                 self.paused_reported = true;
                 self.events.push_back(Event::Paused);
@@ -858,10 +965,15 @@ impl Host {
             return;
         }
         if !self.sync_queued {
-            // Only an answered M105 proves every earlier line was accepted in order.
+            // Only an answered M105 proves every earlier line was accepted in order. The
+            // printer stays connected between jobs: its reports stop with the job.
             self.sync_queued = true;
-            self.pending.push_back((Kind::Housekeeping, "M105".into()));
-            self.pump(_now);
+            if self.autoreport() {
+                self.pending
+                    .push_back((Kind::Housekeeping, "M155 S0".into()));
+            }
+            self.pending.push_back((Kind::Sync, "M105".into()));
+            self.pump(now);
             return;
         }
         self.acked_job = self.job.len();
@@ -875,19 +987,13 @@ impl Host {
             lines_sent: self.lines_sent,
             resends: self.resends,
             probes: self.probes,
+            fragments: self.fragments,
         }));
     }
 
-    fn handle_line(&mut self, raw: &[u8], now: Instant) {
-        let text = String::from_utf8_lossy(raw);
-        let line = text.trim_matches(|c: char| c.is_whitespace() || c == '\0');
-        if line.is_empty() {
-            return;
-        }
-        let lower = line.to_ascii_lowercase();
-
-        if lower == "start" {
-            match self.phase {
+    fn handle(&mut self, reply: Reply, now: Instant) {
+        match reply {
+            Reply::Start => match self.phase {
                 Phase::Boot { .. } => self.phase = Phase::Boot { saw_start: true },
                 Phase::Greeting => {
                     // Rebooted while we greeted it: start over once it settles.
@@ -895,67 +1001,105 @@ impl Host {
                     self.phase = Phase::Boot { saw_start: true };
                 }
                 _ => {
+                    // A reset switches the heaters off; the print is lost.
                     let last_acked = self.acked_job;
                     self.fail(Failure::PrinterReset { last_acked });
                 }
-            }
-            return;
-        }
-        if lower.starts_with("error:") || lower.starts_with("!!") {
-            if lower.contains("kill()")
-                || lower.contains("printer halted")
-                || lower.contains("printer stopped")
-            {
+            },
+            Reply::Fatal(line) => {
                 let mut parts = std::mem::take(&mut self.recent_errors);
-                parts.push(line.to_string());
+                parts.push(line);
                 let message = parts.join(" / ");
                 let last_acked = self.acked_job;
                 self.fail(Failure::Fatal {
                     message,
                     last_acked,
                 });
-                return;
             }
-            if !lower.contains("last line") {
-                self.recent_errors.push(line.to_string());
+            Reply::LineError(line) => {
+                // Its `Resend:` follows on its own line.
+                let lower = line.to_ascii_lowercase();
+                self.number_error = lower.contains("line number is not");
+                self.error_last_line = lower
+                    .rsplit_once("last line:")
+                    .and_then(|(_, k)| k.trim().parse().ok());
+            }
+            Reply::Error(line) => {
+                self.recent_errors.push(line.clone());
                 if self.recent_errors.len() > 4 {
                     self.recent_errors.remove(0);
                 }
-                self.events.push_back(Event::Message(line.to_string()));
+                self.events.push_back(Event::Message(line));
             }
-            // A line error's `Resend:` follows on its own line.
-            return;
-        }
-        if let Some(n) = parse_resend(&lower) {
-            self.handle_resend(n, now);
-            return;
-        }
-        if lower.starts_with("ok") {
-            self.parse_temperatures(line);
-            self.handle_ok(&lower, now);
-            return;
-        }
-        if lower.contains("busy:") || lower == "wait" {
-            self.last_progress = now;
-            self.events.push_back(Event::Busy(line.to_string()));
-            return;
-        }
-        if lower.starts_with("firmware_name:") || lower.contains(" firmware_name:") {
-            self.parse_firmware_line(line);
-            return;
-        }
-        if let Some(cap) = line.strip_prefix("Cap:") {
-            if let Some((name, value)) = cap.rsplit_once(':') {
-                self.info
-                    .capabilities
-                    .insert(name.trim().to_string(), value.trim() == "1");
+            Reply::Resend(n) => self.handle_resend(n, now),
+            Reply::Ok(ok) => {
+                if let Some(report) = ok.report {
+                    self.take_report(report, now);
+                }
+                self.handle_ok(&ok, now);
             }
-            return;
+            Reply::Busy(line) => {
+                self.last_progress = now;
+                self.events.push_back(Event::Busy(line));
+            }
+            Reply::Wait if matches!(self.phase, Phase::Boot { .. }) => {
+                // Up and idle (a NO_TIMEOUTS build says so all the time, so the link would
+                // never fall quiet): greet it now.
+                self.send_greeting(now);
+            }
+            Reply::Wait => {
+                // The printer's queue is empty. Lines still believed in flight had their
+                // `ok`s lost (or are still on the wire): probe at once, never treat it as a
+                // sign of life.
+                // At most one probe a second: `wait` comes often, and a probe's answer
+                // takes a moment.
+                let spacing = (self.opts.silence_probe / 2).min(Duration::from_secs(1));
+                let recent_probe = self
+                    .last_probe
+                    .is_some_and(|p| now.saturating_duration_since(p) < spacing);
+                if self.phase == Phase::Job && !self.in_flight.is_empty() && !recent_probe {
+                    self.probe(now);
+                }
+            }
+            Reply::UnknownCommand(text) => {
+                // Some firmware quotes the whole line, number and checksum included.
+                let command = strip_framing(&text);
+                let ours = self.in_flight.iter().any(|f| {
+                    self.history_line(f.number)
+                        .is_some_and(|l| l.command.trim().eq_ignore_ascii_case(command))
+                });
+                if ours {
+                    self.events
+                        .push_back(Event::Message(format!("Unknown command: \"{text}\"")));
+                } else {
+                    // Not a line we sent: the piece of a line cut by a buffer flush. Its
+                    // `ok` (plain in builds without ADVANCED_OK) answers no line of ours.
+                    self.fragments += 1;
+                    if !self.advanced_ok {
+                        self.swallow_oks += 1;
+                    }
+                    self.events.push_back(Event::Fragment(text));
+                }
+            }
+            Reply::Temperatures(report) => self.take_report(report, now),
+            Reply::FirmwareName(line) => self.parse_firmware_line(&line),
+            Reply::Capability(name, value) => {
+                if name == "ADVANCED_OK" && value {
+                    self.advanced_ok = true;
+                }
+                self.info.capabilities.insert(name, value);
+            }
+            Reply::Action(action) => {
+                self.events.push_back(Event::HostAction(action.clone()));
+                match action {
+                    HostAction::Cancel => self.cancel(now),
+                    HostAction::Pause => self.pause(now),
+                    HostAction::Resume => self.resume(now),
+                    HostAction::Other(_) => {}
+                }
+            }
+            Reply::Other(line) => self.events.push_back(Event::Message(line)),
         }
-        if self.parse_temperatures(line) {
-            return;
-        }
-        self.events.push_back(Event::Message(line.to_string()));
     }
 
     fn parse_firmware_line(&mut self, line: &str) {
@@ -990,83 +1134,129 @@ impl Host {
         }
     }
 
-    /// Parse `T:cur /target B:cur /target`; returns whether a hotend reading was found.
-    fn parse_temperatures(&mut self, line: &str) -> bool {
-        let mut temps = Temperatures::default();
-        let tokens: Vec<&str> = line.split_whitespace().collect();
-        let mut i = 0;
-        while i < tokens.len() {
-            let token = tokens[i];
-            let (slot, value) = if let Some(v) = token.strip_prefix("T:") {
-                (&mut temps.hotend, v)
-            } else if let Some(v) = token.strip_prefix("B:") {
-                (&mut temps.bed, v)
+    /// Take a temperature report: a reading without a target (Ultimaker2Marlin's
+    /// `T:210.0 E:0 W:?`) keeps the target known before. During a heat wait, note when the
+    /// temperature last came closer to its target.
+    fn take_report(&mut self, report: Report, now: Instant) {
+        let merge = |old: Option<Temp>, new: Option<Temp>| match (old, new) {
+            (Some(old), Some(new)) => Some(Temp {
+                current: new.current,
+                target: new.target.or(old.target),
+            }),
+            (old, new) => new.or(old),
+        };
+        self.temps.hotend = merge(self.temps.hotend, report.temperatures.hotend);
+        self.temps.bed = merge(self.temps.bed, report.temperatures.bed);
+        self.heat_reported = report.waiting;
+        if let Some(heat) = &mut self.heat {
+            let reading = if heat.bed {
+                self.temps.bed
             } else {
-                i += 1;
-                continue;
+                self.temps.hotend
             };
-            if let Ok(current) = value.parse::<f64>() {
-                let target = tokens
-                    .get(i + 1)
-                    .and_then(|t| t.strip_prefix('/'))
-                    .and_then(|t| t.parse::<f64>().ok());
-                if slot.is_none() {
-                    *slot = Some(Temp { current, target });
+            if let Some(reading) = reading {
+                if let Some(target) = heat.target.or(reading.target) {
+                    // Progress is coming closer to the target: rising for a heat-up,
+                    // falling for a cool-down (`M190 R30`).
+                    let gap = (target - reading.current).abs();
+                    match heat.best {
+                        Some((best, _)) if gap > best - 0.5 => {}
+                        _ => heat.best = Some((gap, now)),
+                    }
+                    if gap <= 2.0 && !report.waiting {
+                        // There, and the printer no longer reports a wait.
+                        self.heat = None;
+                    }
                 }
             }
-            i += 1;
-        }
-        if temps.hotend.is_none() && temps.bed.is_none() {
-            return false;
-        }
-        if temps.hotend.is_some() {
-            self.temps.hotend = temps.hotend;
-        }
-        if temps.bed.is_some() {
-            self.temps.bed = temps.bed;
         }
         self.events.push_back(Event::Temperatures(self.temps));
-        temps.hotend.is_some()
     }
 
-    fn handle_ok(&mut self, lower: &str, now: Instant) {
+    fn handle_ok(&mut self, ok: &OkReply, now: Instant) {
         self.last_progress = now;
+        // Any `ok` ends a heat wait's reports: the printer reads commands again.
+        if std::mem::take(&mut self.heat_reported) {
+            // The first `ok` after the in-wait reports: the printer read nothing while it
+            // waited, so this is the heat command's own.
+            self.heat = None;
+        }
+        if ok.report.is_some() {
+            // The answer of an M105: the printer processed it after every earlier line.
+            if let Some(pos) = self.in_flight.iter().position(|f| f.is_m105) {
+                let number = self.in_flight[pos].number;
+                // Every `ok` owed by an earlier `Resend:` or fragment came before this one:
+                // a debt still open was a guess that went wrong.
+                self.swallow_oks = 0;
+                self.ack_through(number, now);
+                return;
+            }
+        }
+        if let Some(n) = ok.line {
+            self.advanced_ok = true;
+            if n < self.next_number {
+                self.ack_through(n, now);
+            }
+            return;
+        }
+        if ok.advanced {
+            // ADVANCED_OK answer without a number: it answered a line that had none, the
+            // tail of a line cut by a receive-buffer flush, which the firmware executed.
+            self.fragments += 1;
+            self.events.push_back(Event::Fragment(
+                "a line without a number was executed".into(),
+            ));
+            return;
+        }
+        if self.advanced_ok {
+            // A plain `ok` in an ADVANCED_OK build is the one after `Resend:`.
+            return;
+        }
         if self.swallow_oks > 0 {
-            // The `ok` that follows a `Resend:` belongs to the rejected line.
             self.swallow_oks -= 1;
             return;
         }
-        let answers_m105 = lower.contains("t:");
-        let through = if answers_m105 {
-            self.in_flight.iter().position(|f| f.is_m105)
-        } else {
-            None
-        };
-        let count = match through {
-            Some(pos) => pos + 1,
-            None if self.in_flight.is_empty() => 0,
-            None => 1,
-        };
-        for _ in 0..count {
-            if let Some(f) = self.in_flight.pop_front() {
-                self.in_flight_bytes -= f.bytes;
-                self.acknowledge(f.number);
-            }
+        if self.resend_hold.take().is_some() {
+            // Nothing else awaited an `ok`: it is the one after the `Resend:`.
+            self.resend_ok.seen_ok += 1;
+            return;
         }
-        if count > 0 {
-            self.front_since = now;
-        }
-        // A successful answer ends a resend episode.
-        if count > 0 {
-            if let Some((line, _)) = self.repeated {
-                if self.in_flight.front().is_none_or(|f| f.number > line) {
-                    self.repeated = None;
-                }
-            }
+        // A plain `ok` answers the oldest line, but never a final sync `M105`: that one
+        // waits for its own answer, which carries the temperatures.
+        if let Some(pos) = self.in_flight.iter().position(|f| !f.sync) {
+            let f = self.in_flight.remove(pos).expect("position is valid");
+            self.in_flight_bytes -= f.bytes;
+            self.acknowledged(f.number, now);
         }
     }
 
-    fn acknowledge(&mut self, number: u64) {
+    /// Every line up to `number` is acknowledged (and certainly accepted by the printer).
+    fn ack_through(&mut self, number: u64, now: Instant) {
+        while self.in_flight.front().is_some_and(|f| f.number <= number) {
+            let f = self.in_flight.pop_front().expect("front exists");
+            self.in_flight_bytes -= f.bytes;
+            self.acknowledged(f.number, now);
+        }
+        self.confirmed = Some(self.confirmed.map_or(number, |c| c.max(number)));
+        if self.heat.as_ref().is_some_and(|h| h.number < number) {
+            self.heat = None; // a later line was answered: the wait is over
+        }
+    }
+
+    fn acknowledged(&mut self, number: u64, now: Instant) {
+        self.front_since = now;
+        self.last_ack = now;
+        if !self.opts.firmware.acks_moves_on_entry()
+            && self.heat.as_ref().is_some_and(|h| h.number == number)
+        {
+            self.heat = None; // `ok`s in line order: this is the heat command's own
+        }
+        // A successful answer after the requested line ends a resend episode.
+        if let Some((line, _)) = self.repeated {
+            if number >= line {
+                self.repeated = None;
+            }
+        }
         let Some(line) = self.history_line(number) else {
             return;
         };
@@ -1097,18 +1287,55 @@ impl Host {
 
     fn handle_resend(&mut self, n: u64, now: Instant) {
         self.last_progress = now;
-        if self.opts.firmware.ok_after_resend() {
-            self.swallow_oks += 1;
-        }
+        // Whether an `ok` follows this `Resend:` (plain `ok`s are ignored anyway where
+        // ADVANCED_OK numbers them).
+        let expect_ok = !self.advanced_ok
+            && self
+                .resend_ok
+                .known()
+                .unwrap_or(self.opts.firmware.ok_after_resend());
         let first = self.history.front().map_or(self.next_number, |l| l.number);
         if self.phase == Phase::Greeting && (n < first || n >= self.next_number) {
             // The printer's counter is from an earlier session; M110 resets it.
             self.send_greeting(now);
             return;
         }
+        let never_sent = n >= self.next_number || n > self.send_cursor;
+        let counter_reset_pending = self.in_flight.front().is_some_and(|f| f.number == first)
+            && self
+                .history_line(first)
+                .is_some_and(|l| l.kind == Kind::Setup && is_code(&l.command, &["M110"]));
+        // A request for a line we never sent, after an error that names the line before it,
+        // while our `M110` is unanswered: the printer rejected the `M110` (its counter still
+        // runs from before). Send it again. A garbled number never matches its error.
+        let consistent = std::mem::take(&mut self.error_last_line) == n.checked_sub(1);
+        let stop_first = match self.stopping {
+            Some(Stop::Failure { .. }) => Some(first),
+            _ => None,
+        };
+        let n = if never_sent && counter_reset_pending && consistent {
+            first
+        } else if let Some(first) = stop_first.filter(|&f| n < f) {
+            // The printer still counts from before the stop: it rejected our M110. The
+            // safe-stop lines are harmless to run twice, so replaying from it is safe.
+            first
+        } else {
+            n
+        };
+        if let Some(confirmed) = self.confirmed.filter(|&c| n <= c) {
+            let last_acked = self.acked_job;
+            self.fail_safely(
+                Failure::LostState {
+                    line: n,
+                    confirmed,
+                    last_acked,
+                },
+                now,
+            );
+            return;
+        }
         if n >= self.next_number || n > self.send_cursor {
             // Never sent: a garbled number (`Resend: 034497`). Nothing to replay.
-            self.swallow_oks = self.swallow_oks.saturating_sub(1);
             self.events.push_back(Event::Message(format!(
                 "ignored resend request for line {n}"
             )));
@@ -1116,17 +1343,24 @@ impl Host {
         }
         if n < first {
             let last_acked = self.acked_job;
-            self.fail(Failure::LineGone {
-                line: n,
-                oldest_kept: first,
-                last_acked,
-            });
+            self.fail_safely(
+                Failure::LineGone {
+                    line: n,
+                    oldest_kept: first,
+                    last_acked,
+                },
+                now,
+            );
             return;
         }
+        let number_error = std::mem::take(&mut self.number_error);
         if let Some((line, remaining)) = self.duplicate_budget {
-            if line == n && remaining > 0 {
+            if line == n && remaining > 0 && number_error {
                 // Caused by a line that was already on its way when we began replaying.
                 self.duplicate_budget = Some((line, remaining - 1));
+                if expect_ok {
+                    self.swallow_oks += 1;
+                }
                 return;
             }
         }
@@ -1135,13 +1369,21 @@ impl Host {
             _ => 1,
         };
         self.repeated = Some((n, times));
-        if times > self.opts.resend_limit {
+        // The safe stop gets a generous limit of its own: giving up on it leaves a printer hot.
+        let limit = match self.stopping {
+            Some(Stop::Failure { .. }) => self.opts.resend_limit.max(10) * 3,
+            _ => self.opts.resend_limit,
+        };
+        if times > limit {
             let last_acked = self.acked_job;
-            self.fail(Failure::ResendLimit {
-                line: n,
-                times: times - 1,
-                last_acked,
-            });
+            self.fail_safely(
+                Failure::ResendLimit {
+                    line: n,
+                    times: times - 1,
+                    last_acked,
+                },
+                now,
+            );
             return;
         }
         // The printer dropped line n and everything after it.
@@ -1158,11 +1400,24 @@ impl Host {
         });
         self.in_flight_bytes = self.in_flight.iter().map(|f| f.bytes).sum();
         self.duplicate_budget = Some((n, dropped_after));
+        if !self.advanced_ok {
+            match self.resend_ok.known() {
+                Some(true) => self.swallow_oks += 1,
+                Some(false) => {}
+                // Nothing else awaits an `ok`: whether one comes tells this firmware's way.
+                None if self.in_flight.is_empty() => {
+                    self.resend_hold = Some(now + self.opts.resend_ok_wait)
+                }
+                None if expect_ok => self.swallow_oks += 1,
+                None => {}
+            }
+        }
         let replay = self.send_cursor - n;
+        self.cautious_until = self.send_cursor.max(n) + self.opts.cautious_lines;
         self.send_cursor = n;
         self.resends += 1;
         self.events.push_back(Event::Resend { line: n, replay });
-        if self.stopping.is_some() {
+        if self.stopping == Some(Stop::Cancel) {
             // Job lines after n are not sent again during a stop; renumber the rest.
             let keep = (n - first) as usize;
             let dropped: Vec<Line> = self.history.drain(keep..).collect();
@@ -1176,15 +1431,22 @@ impl Host {
     }
 }
 
-/// `Resend: 12`, `Resend:12`, `rs 12`, `rs:12`.
-fn parse_resend(lower: &str) -> Option<u64> {
-    let rest = match lower.find("resend") {
-        Some(pos) => &lower[pos + "resend".len()..],
-        None => lower.strip_prefix("rs")?,
-    };
-    let rest = rest.trim_start_matches([':', ' ', '\t']);
-    let digits: String = rest.chars().take_while(|c| c.is_ascii_digit()).collect();
-    digits.parse().ok()
+/// `N12 G1 X5*34` -> `G1 X5`; text without a number or checksum stays as it is.
+fn strip_framing(text: &str) -> &str {
+    let mut s = text.trim();
+    if let Some(rest) = s.strip_prefix('N') {
+        if let Some((number, command)) = rest.split_once(' ') {
+            if !number.is_empty() && number.bytes().all(|b| b.is_ascii_digit()) {
+                s = command;
+                if let Some((body, cs)) = s.rsplit_once('*') {
+                    if cs.bytes().all(|b| b.is_ascii_digit()) {
+                        s = body;
+                    }
+                }
+            }
+        }
+    }
+    s.trim()
 }
 
 #[cfg(test)]

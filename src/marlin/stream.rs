@@ -5,6 +5,7 @@
 
 use super::firmware::Firmware;
 use super::gcode::GcodeProgram;
+use super::protocol::reply::{HostAction, Reply};
 use super::protocol::{Event, Failure, Host, ProtocolOptions};
 use super::transport::{LinkEvent, Transport, TransportError};
 use serde::Serialize;
@@ -87,6 +88,8 @@ pub struct PrintReport {
     pub lines_sent: u64,
     pub resends: u64,
     pub silence_probes: u64,
+    /// Pieces of lines the printer answered on their own after a receive-buffer flush.
+    pub fragments: u64,
     pub duration_s: f64,
 }
 
@@ -143,6 +146,26 @@ pub enum PrintError {
         last_acked: usize,
     },
     #[error(
+        "printer on {port} asked for line {line} again although it had confirmed line \
+         {confirmed}: it lost its state (reset or power dip?); stopped safely rather than \
+         replaying onto a half-printed part, last acknowledged line {last_acked}"
+    )]
+    LostState {
+        port: PathBuf,
+        line: u64,
+        confirmed: u64,
+        last_acked: usize,
+    },
+    #[error(
+        "printer on {port} kept talking but acknowledged no line for {waited_s:.0} s; \
+         stopped safely, last acknowledged line {last_acked}"
+    )]
+    NoProgress {
+        port: PathBuf,
+        waited_s: f64,
+        last_acked: usize,
+    },
+    #[error(
         "printer on {port} went silent for {waited_s:.1} s and did not answer M105 probes; \
          last acknowledged line {last_acked}"
     )]
@@ -152,8 +175,9 @@ pub enum PrintError {
         last_acked: usize,
     },
     #[error(
-        "printer on {port}: `{command}` did not reach its temperature within {waited_s:.0} s \
-         (now {temperatures}); heaters were switched off, last acknowledged line {last_acked}"
+        "printer on {port}: `{command}` stopped coming closer to its temperature (waited \
+         {waited_s:.0} s in all, now {temperatures}); heaters were switched off, last \
+         acknowledged line {last_acked}"
     )]
     HeatTimeout {
         port: PathBuf,
@@ -187,6 +211,8 @@ impl PrintError {
             | PrintError::ResendLimit { last_acked, .. }
             | PrintError::LineGone { last_acked, .. }
             | PrintError::Silent { last_acked, .. }
+            | PrintError::LostState { last_acked, .. }
+            | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
             | PrintError::Cancelled { last_acked, .. } => Some(*last_acked),
             _ => None,
@@ -227,6 +253,21 @@ impl PrintError {
                 port,
                 line,
                 oldest_kept,
+                last_acked,
+            },
+            Failure::LostState {
+                line,
+                confirmed,
+                last_acked,
+            } => PrintError::LostState {
+                port,
+                line,
+                confirmed,
+                last_acked,
+            },
+            Failure::NoProgress { waited, last_acked } => PrintError::NoProgress {
+                port,
+                waited_s: waited.as_secs_f64(),
                 last_acked,
             },
             Failure::Silent { waited, last_acked } => PrintError::Silent {
@@ -333,6 +374,49 @@ impl Connection {
         &self.opts
     }
 
+    /// Read and log what the printer said since the last job (temperature reports, `start`
+    /// after a power cycle, messages), for up to `duration`; returns early, with an error,
+    /// if the link closes. The daemon calls this while a printer waits for its bed to be
+    /// cleared; [`Connection::print`] drains the rest before a job starts.
+    pub async fn idle_for(&mut self, duration: Duration) -> Result<(), PrintError> {
+        let until = tokio::time::Instant::now() + duration;
+        let mut partial = Vec::new();
+        loop {
+            tokio::select! {
+                link = self.transport.recv() => match link {
+                    LinkEvent::Data(bytes) => {
+                        log_idle_lines(&self.port, &mut partial, &bytes);
+                    }
+                    LinkEvent::Closed(reason) => {
+                        return Err(PrintError::Disconnected { port: self.port.clone(), reason, last_acked: 0 });
+                    }
+                },
+                _ = tokio::time::sleep_until(until) => return Ok(()),
+            }
+        }
+    }
+
+    /// Log what arrived between jobs; true if the printer rebooted meanwhile.
+    fn drain_idle_input(&mut self) -> Result<bool, PrintError> {
+        let mut partial = Vec::new();
+        let mut rebooted = false;
+        while let Some(link) = self.transport.try_recv() {
+            match link {
+                LinkEvent::Data(bytes) => {
+                    rebooted |= log_idle_lines(&self.port, &mut partial, &bytes);
+                }
+                LinkEvent::Closed(reason) => {
+                    return Err(PrintError::Disconnected {
+                        port: self.port.clone(),
+                        reason,
+                        last_acked: 0,
+                    });
+                }
+            }
+        }
+        Ok(rebooted)
+    }
+
     /// Stream `program`; returns when every line was acknowledged, or why not.
     pub async fn print(
         &mut self,
@@ -340,6 +424,12 @@ impl Connection {
         mut control: mpsc::Receiver<StreamControl>,
         progress: watch::Sender<PrintProgress>,
     ) -> Result<PrintReport, PrintError> {
+        // Begin on a clean link: what the printer said between jobs is logged, not taken
+        // for answers to this job; after a reboot, its banner is let through first.
+        if self.drain_idle_input()? {
+            tokio::time::sleep(self.opts.protocol.quiet_period).await;
+            self.drain_idle_input()?;
+        }
         if !self.host.is_idle() {
             // A previous job ended: the protocol core is single-use per job outcome, so
             // start a fresh one on the same (already greeted) link.
@@ -389,6 +479,7 @@ impl Connection {
                             lines_sent: summary.lines_sent,
                             resends: summary.resends,
                             silence_probes: summary.probes,
+                            fragments: summary.fragments,
                             duration_s: started.elapsed().as_secs_f64(),
                         });
                     }
@@ -416,6 +507,24 @@ impl Connection {
                     Event::Busy(_) => {}
                     Event::Message(m) => {
                         tracing::debug!(port = %port.display(), gcode = program.name(), "printer: {m}")
+                    }
+                    Event::Fragment(text) => {
+                        tracing::warn!(port = %port.display(), gcode = program.name(), "printer answered a piece of a line on its own: {text}")
+                    }
+                    Event::HostAction(action) => {
+                        tracing::info!(port = %port.display(), gcode = program.name(), ?action, "printer asked the host to act");
+                        match action {
+                            HostAction::Cancel => state = PrintState::Cancelling,
+                            HostAction::Pause => state = PrintState::Pausing,
+                            HostAction::Resume | HostAction::Other(_) => {}
+                        }
+                        state_changed = true;
+                    }
+                    Event::SafeStop { confirmed: true } => {
+                        tracing::info!(port = %port.display(), gcode = program.name(), "printer stopped safely: heaters, fan and motors off")
+                    }
+                    Event::SafeStop { confirmed: false } => {
+                        tracing::error!(port = %port.display(), gcode = program.name(), "the printer did not confirm heaters off; check it now")
                     }
                     Event::Connected(_) => {}
                 }
@@ -461,6 +570,35 @@ impl Connection {
             }
         }
     }
+}
+
+/// Split `bytes` into lines (keeping an unfinished one in `partial`) and log each as the
+/// printer's idle talk; true if one was a boot (`start`).
+fn log_idle_lines(port: &Path, partial: &mut Vec<u8>, bytes: &[u8]) -> bool {
+    let mut rebooted = false;
+    for &b in bytes {
+        if b != b'\n' {
+            if partial.len() < 4096 {
+                partial.push(b);
+            }
+            continue;
+        }
+        match Reply::parse(&std::mem::take(partial)) {
+            Some(Reply::Start) => {
+                rebooted = true;
+                tracing::warn!(port = %port.display(), "printer rebooted while idle (it said `start`)");
+            }
+            Some(Reply::Temperatures(r)) => {
+                tracing::debug!(port = %port.display(), "idle printer: {}", describe_temps(&r.temperatures))
+            }
+            Some(Reply::Fatal(line)) | Some(Reply::Error(line)) => {
+                tracing::warn!(port = %port.display(), "idle printer: {line}")
+            }
+            Some(other) => tracing::info!(port = %port.display(), "idle printer: {other:?}"),
+            None => {}
+        }
+    }
+    rebooted
 }
 
 async fn sleep_until_opt(deadline: Option<tokio::time::Instant>) {

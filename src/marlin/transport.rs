@@ -135,6 +135,11 @@ impl Transport {
         }
     }
 
+    /// A chunk already received, without waiting.
+    pub fn try_recv(&mut self) -> Option<LinkEvent> {
+        self.incoming.try_recv().ok()
+    }
+
     /// The next chunk from the printer, or `Closed`.
     pub async fn recv(&mut self) -> LinkEvent {
         self.incoming

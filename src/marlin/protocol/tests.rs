@@ -21,6 +21,15 @@ struct MiniPrinter {
     lose_ok_of: Option<String>,
     received: Vec<(u64, String)>,
     ultimaker: bool,
+    /// Marlin 2.0: no `ok` after `Resend:`.
+    ok_after_resend: bool,
+    /// ADVANCED_OK: `ok N<n> P<p> B<b>`, and a plain `ok` after `Resend:`.
+    advanced: bool,
+    /// Discard the rest of what arrived with a bad line (Marlin flushes its receive buffer),
+    /// so lines sent after it cause no duplicate requests.
+    flush_on_error: bool,
+    /// Line numbers corrupted on their first two arrivals (the replay is corrupted again).
+    corrupt_twice: HashSet<u64>,
 }
 
 impl MiniPrinter {
@@ -34,6 +43,26 @@ impl MiniPrinter {
             lose_ok_of: None,
             received: Vec::new(),
             ultimaker: false,
+            ok_after_resend: true,
+            advanced: false,
+            flush_on_error: false,
+            corrupt_twice: HashSet::new(),
+        }
+    }
+
+    fn resend_answer(&self, error: &str, last: u64) -> String {
+        let mut out = format!("Error:{error}, Last Line: {last}\nResend: {}\n", last + 1);
+        if self.ok_after_resend {
+            out.push_str("ok\n");
+        }
+        out
+    }
+
+    fn ok_line(&self, n: u64) -> String {
+        if self.advanced {
+            format!("ok N{n} P15 B3\n")
+        } else {
+            "ok\n".into()
         }
     }
 
@@ -43,7 +72,16 @@ impl MiniPrinter {
         while let Some(pos) = self.partial.iter().position(|&b| b == b'\n') {
             let line: Vec<u8> = self.partial.drain(..=pos).collect();
             let line = String::from_utf8(line[..line.len() - 1].to_vec()).unwrap();
-            let (body, cs) = line.rsplit_once('*').expect("host lines carry a checksum");
+            let Some((body, cs)) = line.rsplit_once('*') else {
+                // Without a number Marlin 2 checks nothing and runs it (the host's M108).
+                assert!(
+                    !line.starts_with('N'),
+                    "numbered line without checksum: {line}"
+                );
+                self.executed.push(line.clone());
+                out.push_str(if self.advanced { "ok P15 B3\n" } else { "ok\n" });
+                continue;
+            };
             assert_eq!(
                 checksum(body.as_bytes()),
                 cs.parse::<u8>().unwrap(),
@@ -55,21 +93,25 @@ impl MiniPrinter {
             let last = self.expected - 1;
             if cmd.starts_with("M110") {
                 self.expected = cmd.trim_start_matches("M110 N").parse::<u64>().unwrap() + 1;
-                out.push_str("ok\n");
-                continue;
-            }
-            if self.corrupt.remove(&n) || self.always_corrupt == Some(n) {
-                out.push_str(&format!(
-                    "Error:checksum mismatch, Last Line: {last}\nResend: {}\nok\n",
-                    last + 1
-                ));
+                out.push_str(&self.ok_line(n));
                 continue;
             }
             if n != self.expected {
-                out.push_str(&format!(
-                    "Error:Line Number is not Last Line Number+1, Last Line: {last}\nResend: {}\nok\n",
-                    last + 1
-                ));
+                out.push_str(&self.resend_answer("Line Number is not Last Line Number+1", last));
+                if self.flush_on_error {
+                    self.partial.clear();
+                    break;
+                }
+                continue;
+            }
+            let twice = self.corrupt_twice.contains(&n)
+                && self.received.iter().filter(|(m, _)| *m == n).count() <= 2;
+            if self.corrupt.remove(&n) || self.always_corrupt == Some(n) || twice {
+                out.push_str(&self.resend_answer("checksum mismatch", last));
+                if self.flush_on_error {
+                    self.partial.clear();
+                    break;
+                }
                 continue;
             }
             self.expected += 1;
@@ -88,7 +130,7 @@ impl MiniPrinter {
             if cmd == "M105" {
                 out.push_str("ok T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n");
             } else {
-                out.push_str("ok\n");
+                out.push_str(&self.ok_line(n));
             }
         }
         out.into_bytes()
@@ -251,7 +293,11 @@ fn clean_job_executes_every_line_once_in_order_both_window_modes() {
             let (mut host, _) = connect(o, &mut printer, now);
             let commands = job(300);
             assert!(host.start_job(commands.clone(), now));
-            // The first batch respects the window.
+            // The M110 goes alone; then the first batch respects the window.
+            let m110 = host.take_outgoing();
+            assert_eq!(m110, frame(0, "M110 N0").as_bytes());
+            let answer = printer.receive(&m110);
+            host.feed(&answer, now);
             let first = host.take_outgoing();
             let lines = first.iter().filter(|&&b| b == b'\n').count();
             if send_ahead {
@@ -275,7 +321,7 @@ fn clean_job_executes_every_line_once_in_order_both_window_modes() {
                 "{fw} send_ahead={send_ahead}"
             );
             assert_eq!(host.acked_job_lines(), 300);
-            if fw == Firmware::Marlin2 {
+            if fw.is_marlin2() {
                 assert!(printer.executed.iter().any(|c| c == "M155 S2"));
                 assert!(printer.executed.iter().any(|c| c.starts_with("M73 P")));
             } else {
@@ -373,11 +419,12 @@ fn a_resend_storm_fails_after_the_limit() {
         }
         other => panic!("{other:?}"),
     }
-    assert_eq!(
-        printer.job_executed().len(),
-        4,
-        "lines 1..4 are the job's first four"
-    );
+    let job_lines: Vec<String> = printer
+        .job_executed()
+        .into_iter()
+        .filter(|c| !SAFE_STOP.contains(&c.as_str()) && c != "M108")
+        .collect();
+    assert_eq!(job_lines, job(4), "lines 1..4 are the job's first four");
 }
 
 #[test]
@@ -397,20 +444,23 @@ fn a_request_for_a_line_no_longer_kept_fails_instead_of_guessing() {
     while host.poll_event().is_some() {}
     host.take_outgoing();
     host.feed(b"Resend: 3\nok\n", now);
+    // Nothing but the safe stop is sent after the failure.
+    let executed = answer_safe_stop(&mut host, now);
+    assert_safe_stop(&executed);
+    assert!(
+        !executed.iter().any(|c| c.starts_with("G1")),
+        "{executed:?}"
+    );
     let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
     assert!(
         matches!(failure(&events), Some(Failure::LineGone { line: 3, .. })),
         "{events:?}"
     );
-    assert!(
-        host.take_outgoing().is_empty(),
-        "nothing sent after the failure"
-    );
 }
 
 #[test]
 fn every_byte_split_of_printer_output_gives_the_same_events() {
-    let stream: &[u8] = b"ok\nok T:200.0 /210.0 B:60.0 /60.0 @:127 B@:0\necho:busy: processing\r\nResend:2\nok\nT:201.5 /210.0 B:60.1 /60.0\nrs 2\nok\n";
+    let stream: &[u8] = b"ok\nok T:200.0 /210.0 B:60.0 /60.0 @:127 B@:0\necho:busy: processing\r\nResend:2\nok\nT:201.5 /210.0 B:60.1 /60.0\nError:Line Number is not Last Line Number+1, Last Line: 1\nrs 2\nok\n";
     let reference = {
         let (mut host, now) = running_host();
         host.feed(stream, now);
@@ -442,7 +492,9 @@ fn running_host() -> (Host, Instant) {
     let mut printer = MiniPrinter::new();
     let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
     host.start_job(job(20), now);
-    // Paused, so the host sends nothing new in reaction to what the tests feed.
+    host.take_outgoing();
+    host.feed(b"ok\n", now); // the M110 goes alone; then lines are in flight
+                             // Paused, so the host sends nothing new in reaction to what the tests feed.
     host.pause(now);
     host.take_outgoing();
     while host.poll_event().is_some() {}
@@ -592,11 +644,13 @@ fn silence_is_measured_in_seconds_but_long_commands_are_not_silence() {
     let mut printer = MiniPrinter::new();
     let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
     host.start_job(vec!["G28".into(), "G1 X1".into()], now);
+    host.take_outgoing();
+    host.feed(b"ok\n", now); // M110
     let out = host.take_outgoing();
     let text = String::from_utf8(out.clone()).unwrap();
     assert!(text.contains("G28"));
-    // Acknowledge only M110 and M155 so G28 is at the front.
-    host.feed(b"ok\nok\n", now);
+    // Acknowledge only M155 so G28 is at the front.
+    host.feed(b"ok\n", now);
     host.take_outgoing();
     host.tick(now + Duration::from_secs(120));
     assert!(!host.is_finished());
@@ -645,15 +699,14 @@ fn a_heat_up_that_never_arrives_stops_safely_and_fails() {
         }
         let sent = String::from_utf8(host.take_outgoing()).unwrap();
         assert_eq!(sent.contains("M108"), fw.emergency_parser(), "{fw}: {sent}");
-        // M109 ends (broken out or finally acknowledged), then the safe-stop lines.
-        let mut sent = sent;
-        for _ in 0..10 {
-            host.feed(b"ok\n", t);
-            sent.push_str(&String::from_utf8(host.take_outgoing()).unwrap());
-        }
-        for line in SAFE_STOP {
-            assert!(sent.contains(line), "{fw}: {sent}");
-        }
+        // M109 ends (broken out or finally acknowledged), then the safe-stop lines; the
+        // failure is reported once the M105 after them is answered.
+        host.feed(b"ok\n", t);
+        let mut executed = commands_in(&sent);
+        host.outgoing.splice(0..0, sent.bytes());
+        executed.clear();
+        executed.extend(answer_safe_stop(&mut host, t));
+        assert_safe_stop(&executed);
         let events: Vec<Event> = std::iter::from_fn(|| host.poll_event()).collect();
         match failure(&events) {
             Some(Failure::HeatTimeout {
@@ -804,4 +857,502 @@ fn temperatures_are_polled_without_autoreport() {
         })
     );
     assert_eq!(host.temperatures().bed.unwrap().current, 55.0);
+}
+
+// ----- behaviours of real firmware (see docs/firmware.md) ---------------------------------
+
+/// Everything the host wrote, as text.
+fn sent(host: &mut Host) -> String {
+    String::from_utf8(host.take_outgoing()).unwrap()
+}
+
+fn drain_events(host: &mut Host) -> Vec<Event> {
+    std::iter::from_fn(|| host.poll_event()).collect()
+}
+
+/// A printer with NO_TIMEOUTS says `wait` when its queue is empty. With a line believed in
+/// flight that means its `ok` was lost: the host probes at once instead of taking `wait`
+/// for a sign of life (which stalled the job for good).
+#[test]
+fn wait_with_lines_in_flight_means_lost_oks_and_probes_at_once() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Ultimaker2);
+    o.send_ahead = false;
+    let (mut host, _) = connect(o, &mut printer, now);
+    let mut commands = job(5);
+    commands.push("G1 X5 Y5 F3000".into());
+    commands.extend(job(5));
+    printer.lose_ok_of = Some("G1 X5 Y5 F3000".into());
+    host.start_job(commands.clone(), now);
+    exchange(&mut host, &mut printer, now, 1000);
+    assert!(!host.is_finished());
+    // The printer idles and says so, well before the silence probe would fire.
+    let t = now + Duration::from_millis(500);
+    host.feed(b"wait\n", t);
+    let probe = sent(&mut host);
+    assert!(probe.contains(" M105*"), "no probe after `wait`: {probe:?}");
+    let answer = printer.receive(probe.as_bytes());
+    host.feed(&answer, t);
+    let events = run_job(&mut host, &mut printer, t);
+    assert!(done(&events), "{:?}", failure(&events));
+    assert_eq!(printer.job_executed(), commands);
+
+    // `wait` with nothing in flight is just an idle printer: no probe, and it keeps nothing
+    // alive (a short command unanswered still fails on silence).
+    let (mut host, now) = running_host();
+    host.feed(b"wait\n", now);
+    assert!(sent(&mut host).is_empty() || host.resends() == 0);
+}
+
+/// Marlin 2.0 sends no `ok` after `Resend:`, Marlin 2.1 and Ultimaker2Marlin do. The host
+/// learns which from the answers, whatever its profile says, and never needs a probe to
+/// recover from a wrong guess.
+#[test]
+fn whether_an_ok_follows_resend_is_learnt_at_run_time() {
+    for (profile, printer_sends_ok) in [
+        (Firmware::Marlin2, false),
+        (Firmware::Marlin20, true),
+        (Firmware::Marlin2, true),
+        (Firmware::Marlin20, false),
+    ] {
+        let now = Instant::now();
+        let mut printer = MiniPrinter::new();
+        printer.ok_after_resend = printer_sends_ok;
+        let mut o = opts(profile);
+        o.send_ahead = false;
+        let (mut host, _) = connect(o, &mut printer, now);
+        let commands = job(120);
+        printer.corrupt.extend([5, 20, 40, 60, 80, 100]);
+        host.start_job(commands.clone(), now);
+        let events = run_job(&mut host, &mut printer, now);
+        let summary = events.iter().find_map(|e| match e {
+            Event::Done(s) => Some(s.clone()),
+            _ => None,
+        });
+        let summary = summary.unwrap_or_else(|| panic!("{profile}: {:?}", failure(&events)));
+        assert_eq!(printer.job_executed(), commands, "{profile}");
+        assert_eq!(
+            host.ok_after_resend(),
+            Some(printer_sends_ok),
+            "{profile} printer_sends_ok={printer_sends_ok}"
+        );
+        assert_eq!(
+            summary.probes, 0,
+            "{profile} printer_sends_ok={printer_sends_ok}: ok accounting drifted"
+        );
+    }
+}
+
+/// ADVANCED_OK answers name their line: a lost `ok` is healed by the next one, and the
+/// plain `ok` after `Resend:` acknowledges nothing.
+#[test]
+fn advanced_ok_is_matched_to_its_line_by_number() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    printer.advanced = true;
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let mut commands = job(30);
+    commands.push("G1 X5 Y5 F3000".into());
+    commands.extend(job(30));
+    printer.lose_ok_of = Some("G1 X5 Y5 F3000".into());
+    printer.corrupt.extend([10, 45]);
+    host.start_job(commands.clone(), now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(done(&events), "{:?}", failure(&events));
+    assert_eq!(printer.job_executed(), commands);
+    assert!(
+        !events.iter().any(|e| matches!(e, Event::Probe)),
+        "the lost ok needed a probe: oks were counted, not matched"
+    );
+
+    // Directly: lines 3..=5 in flight; `ok N5` acknowledges all three, a plain `ok` none.
+    let (mut host, now) = running_host();
+    let acked = host.acked_job_lines();
+    host.feed(b"ok\n", now);
+    assert_eq!(
+        host.acked_job_lines(),
+        acked,
+        "plain ok in an ADVANCED_OK build"
+    );
+}
+
+/// After a flush, the tail of a cut line reaches the printer without a number. Its
+/// `Unknown command` + `ok` (or an ADVANCED_OK `ok` without `N`) answers no line of ours.
+#[test]
+fn an_ok_answering_a_fragment_is_not_a_job_lines_ok() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Ultimaker2);
+    o.send_ahead = false;
+    let (mut host, _) = connect(o, &mut printer, now);
+    host.start_job(job(5), now);
+    let first = sent(&mut host);
+    assert!(first.contains("M110"));
+    host.feed(b"ok\n", now); // M110
+    let line = sent(&mut host);
+    assert!(line.starts_with("N1 G1"), "{line}");
+    let before = host.acked_job_lines();
+    host.feed(b"echo:Unknown command: \"300 F1800\"\nok\n", now);
+    assert_eq!(
+        host.acked_job_lines(),
+        before,
+        "the fragment's ok acknowledged a line"
+    );
+    let events = drain_events(&mut host);
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, Event::Fragment(t) if t == "300 F1800")));
+    host.feed(b"ok\n", now);
+    assert_eq!(host.acked_job_lines(), before + 1);
+    assert_eq!(host.fragments(), 1);
+
+    // The answer to a line of ours that the firmware does not know is that line's ok.
+    let (mut host, now) = running_host();
+    host.feed(b"echo:Unknown command: \"G1 X0.0 Y0 E0\"\n", now);
+    host.feed(b"echo:Unknown command: \"N4 G1 X1.1 Y7 E1*96\"\n", now);
+    assert_eq!(host.fragments(), 0);
+    // ADVANCED_OK: `ok P.. B..` without N answered a line without a number.
+    let (mut host, now) = running_host();
+    host.feed(b"ok P15 B3\n", now);
+    assert_eq!(host.fragments(), 1);
+}
+
+/// Collect what a printer would execute of `text` (numbered lines, checksums checked).
+fn commands_in(text: &str) -> Vec<String> {
+    text.lines()
+        .map(
+            |l| match l.strip_prefix('N').and_then(|l| l.split_once(' ')) {
+                Some((_, rest)) => rest.rsplit_once('*').map_or(rest, |(cmd, _)| cmd),
+                None => l, // unnumbered (the M108 of a failure stop)
+            },
+        )
+        .map(str::to_string)
+        .collect()
+}
+
+/// Run the safe stop the host started: answer every line, M105 with a report.
+fn answer_safe_stop(host: &mut Host, now: Instant) -> Vec<String> {
+    let mut executed = Vec::new();
+    for _ in 0..20 {
+        let out = sent(host);
+        if out.is_empty() {
+            break;
+        }
+        for cmd in commands_in(&out) {
+            if cmd == "M105" {
+                host.feed(b"ok T:180.0 /0.0 B:50.0 /0.0 @:0 B@:0\n", now);
+            } else {
+                host.feed(b"ok\n", now);
+            }
+            executed.push(cmd);
+        }
+    }
+    executed
+}
+
+fn assert_safe_stop(executed: &[String]) {
+    let at = executed
+        .iter()
+        .position(|c| c.starts_with("M110"))
+        .expect("the counter is reset first");
+    for line in SAFE_STOP {
+        assert!(
+            executed[at..].iter().any(|c| c == line),
+            "{line} missing: {executed:?}"
+        );
+    }
+    assert_eq!(executed.last().map(String::as_str), Some("M105"));
+}
+
+/// A resend for a line the printer had confirmed (here by answering an M105 after it)
+/// means it lost its state: never replay onto a half-printed part; stop it safely.
+#[test]
+fn a_resend_for_a_confirmed_line_fails_safely() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Ultimaker2);
+    o.send_ahead = false;
+    let (mut host, _) = connect(o, &mut printer, now);
+    host.start_job(job(50), now);
+    exchange(&mut host, &mut printer, now, 10);
+    // Force an M105 poll and answer it: everything up to it is confirmed.
+    let t = now + Duration::from_secs(3);
+    host.tick(t);
+    exchange(&mut host, &mut printer, t, 10);
+    assert!(
+        printer.received.iter().any(|(_, c)| c == "M105"),
+        "{:?}",
+        printer.received
+    );
+    drain_events(&mut host);
+    host.take_outgoing();
+    host.feed(
+        b"Error:Line Number is not Last Line Number+1, Last Line: 1\nResend: 2\nok\n",
+        t,
+    );
+    let executed = answer_safe_stop(&mut host, t);
+    assert_safe_stop(&executed);
+    let events = drain_events(&mut host);
+    assert!(
+        events.contains(&Event::SafeStop { confirmed: true }),
+        "{events:?}"
+    );
+    assert!(
+        matches!(failure(&events), Some(Failure::LostState { line: 2, .. })),
+        "{events:?}"
+    );
+}
+
+#[test]
+fn start_glued_to_a_report_is_a_reset() {
+    let (mut host, now) = running_host();
+    host.feed(b"T:205.3 /210.00 B:6start\n", now);
+    let events = drain_events(&mut host);
+    assert!(
+        matches!(failure(&events), Some(Failure::PrinterReset { .. })),
+        "{events:?}"
+    );
+}
+
+/// A noise burst that makes the host give up is the common case of a failure while the
+/// printer still answers: it must end with heaters, fan and motors off, acknowledged.
+#[test]
+fn giving_up_on_a_resend_storm_leaves_the_printer_safe() {
+    for fw in Firmware::ALL {
+        let now = Instant::now();
+        let mut printer = MiniPrinter::new();
+        let mut o = opts(fw);
+        o.resend_limit = 4;
+        let (mut host, _) = connect(o, &mut printer, now);
+        printer.always_corrupt = Some(12);
+        host.start_job(job(50), now);
+        let events = run_job(&mut host, &mut printer, now);
+        assert!(
+            matches!(
+                failure(&events),
+                Some(Failure::ResendLimit { line: 12, .. })
+            ),
+            "{fw}: {events:?}"
+        );
+        assert!(
+            events.contains(&Event::SafeStop { confirmed: true }),
+            "{fw}: {events:?}"
+        );
+        let tail: Vec<String> = printer
+            .executed
+            .iter()
+            .rev()
+            .take(SAFE_STOP.len() + 3)
+            .rev()
+            .cloned()
+            .collect();
+        for line in SAFE_STOP {
+            assert!(tail.iter().any(|c| c == line), "{fw}: {tail:?}");
+        }
+    }
+}
+
+/// Marlin flushes its buffer after a bad line, so the lines sent after it often cause no
+/// duplicate requests. When the replayed line is corrupted again, its request (after a
+/// checksum error) is a new one: replayed at once, not mistaken for a duplicate.
+#[test]
+fn a_repeated_resend_after_a_corrupted_replay_is_a_new_request() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    printer.flush_on_error = true;
+    printer.corrupt_twice.extend([10, 30]);
+    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let commands = job(60);
+    host.start_job(commands.clone(), now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(done(&events), "{:?}", failure(&events));
+    assert_eq!(printer.job_executed(), commands);
+    assert!(
+        !events.iter().any(|e| matches!(e, Event::Probe)),
+        "a stall needed a probe: {events:?}"
+    );
+}
+
+/// `M110` inside the job would move the printer's counter away from the host's.
+#[test]
+fn m110_inside_a_job_keeps_the_numbering_in_step() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let mut commands = job(20);
+    commands.insert(10, "M110 N0".into());
+    host.start_job(commands.clone(), now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(done(&events), "{:?}", failure(&events));
+    let expected: Vec<String> = commands.into_iter().filter(|c| c != "M110 N0").collect();
+    assert_eq!(printer.job_executed(), expected);
+    assert_eq!(host.resends(), 0);
+}
+
+/// A heat wait fails only when the temperature stops coming closer to its target; a slow
+/// heat-up or cool-down (`M190 R30`) that makes progress takes as long as it takes.
+#[test]
+fn heat_waits_time_out_only_without_progress() {
+    for (command, start, step, target) in [
+        ("M109 S210", 25.0, 2.0, 210.0),
+        ("M190 R30", 80.0, -0.5, 30.0),
+    ] {
+        let now = Instant::now();
+        let mut printer = MiniPrinter::new();
+        let mut o = opts(Firmware::Ultimaker2);
+        o.heat_timeout = Duration::from_secs(60);
+        o.send_ahead = false;
+        let (mut host, _) = connect(o, &mut printer, now);
+        host.start_job(vec![command.into(), "G1 X1".into()], now);
+        host.feed(b"ok\n", now); // M110
+        let out = sent(&mut host);
+        assert!(out.contains(command), "{out}");
+        let mut t = now;
+        let mut temp: f64 = start;
+        // Ten minutes of slow progress: ten times the limit.
+        for _ in 0..600 {
+            t += Duration::from_secs(1);
+            temp += step;
+            let report = if command.starts_with("M109") {
+                format!("T:{temp:.1} /{target:.1} B:20.0 /0.0 W:?\n")
+            } else {
+                format!("T:20.0 /0.0 B:{temp:.1} /{target:.1} W:?\n")
+            };
+            host.feed(report.as_bytes(), t);
+            host.tick(t);
+            if (temp - target).abs() <= 1.0 {
+                break;
+            }
+        }
+        let events = drain_events(&mut host);
+        assert!(failure(&events).is_none(), "{command}: {events:?}");
+        assert!(host.heating(), "{command}");
+        // Stuck 5 °C short for longer than the limit: that fails.
+        for _ in 0..70 {
+            t += Duration::from_secs(1);
+            let report = format!(
+                "T:{:.1} /{target:.1} B:{:.1} /{target:.1} W:?\n",
+                target - 5.0,
+                target - 5.0
+            );
+            host.feed(report.as_bytes(), t);
+            host.tick(t);
+        }
+        let events = drain_events(&mut host);
+        let _ = events;
+        let executed = answer_safe_stop(&mut host, t);
+        let events = drain_events(&mut host);
+        assert!(
+            matches!(failure(&events), Some(Failure::HeatTimeout { .. })),
+            "{command}: {events:?}"
+        );
+        assert_safe_stop(&executed);
+    }
+}
+
+/// Ultimaker2Marlin's in-wait reports carry no target; the target stays known.
+#[test]
+fn ultimaker2_heat_reports_keep_the_target() {
+    let (mut host, now) = running_host();
+    host.feed(b"ok T:150.0 /210.0 B:60.0 /60.0 @:0 B@:0\n", now);
+    host.feed(b"T:160.0 E:0 W:?\n", now);
+    let hotend = host.temperatures().hotend.unwrap();
+    assert_eq!(hotend.current, 160.0);
+    assert_eq!(hotend.target, Some(210.0));
+    assert!(host.heating(), "the printer says it waits");
+    host.feed(b"ok\n", now);
+    assert!(
+        !host.heating(),
+        "an ok ends the wait; the front line is a move"
+    );
+}
+
+/// Stop and Pause on the printer's own screen send `//action:` lines; the host acts on them
+/// as on its own commands.
+#[test]
+fn host_actions_from_the_printer_pause_resume_and_cancel() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    host.start_job(job(40), now);
+    exchange(&mut host, &mut printer, now, 3);
+    host.feed(b"//action:pause\n", now);
+    let events = exchange(&mut host, &mut printer, now, 100);
+    assert!(
+        events.contains(&Event::HostAction(HostAction::Pause)),
+        "{events:?}"
+    );
+    assert!(events.contains(&Event::Paused), "{events:?}");
+    let executed_while_paused = printer.job_executed().len();
+    assert!(executed_while_paused < 40);
+    host.feed(b"//action:resume\n", now);
+    let events = exchange(&mut host, &mut printer, now, 5);
+    assert!(events.contains(&Event::Resumed), "{events:?}");
+    assert!(printer.job_executed().len() > executed_while_paused);
+    host.feed(b"//action:cancel\n", now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(
+        matches!(failure(&events), Some(Failure::Cancelled { .. })),
+        "{events:?}"
+    );
+    for line in SAFE_STOP {
+        assert!(printer.executed.iter().any(|c| c == line), "{line}");
+    }
+    assert!(printer.job_executed().len() < 40 + SAFE_STOP.len());
+}
+
+/// A printer that keeps talking (temperature reports) but acknowledges nothing: the job
+/// fails after the no-progress limit, and the printer is stopped safely.
+#[test]
+fn a_job_without_progress_fails_safely_with_the_reason() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let mut o = opts(Firmware::Marlin2);
+    o.no_progress_timeout = Duration::from_secs(60);
+    let (mut host, _) = connect(o, &mut printer, now);
+    host.start_job(job(20), now);
+    host.take_outgoing();
+    let mut t = now;
+    for _ in 0..70 {
+        t += Duration::from_secs(1);
+        host.feed(b"T:20.0 /0.0 B:20.0 /0.0 @:0 B@:0\n", t);
+        host.tick(t);
+        let out = sent(&mut host);
+        if out.contains(" M110 N") {
+            host.outgoing.splice(0..0, out.bytes());
+            break;
+        }
+    }
+    let executed = answer_safe_stop(&mut host, t);
+    assert_safe_stop(&executed);
+    let events = drain_events(&mut host);
+    assert!(
+        matches!(failure(&events), Some(Failure::NoProgress { .. })),
+        "{events:?}"
+    );
+}
+
+/// The job's end turns autoreport off: the printer stays connected while its bed waits to
+/// be cleared, and its reports must not run into the next job.
+#[test]
+fn autoreport_is_switched_off_at_the_end_of_a_job() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    host.start_job(job(20), now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(done(&events));
+    let on = printer
+        .executed
+        .iter()
+        .position(|c| c == "M155 S2")
+        .unwrap();
+    let off = printer
+        .executed
+        .iter()
+        .position(|c| c == "M155 S0")
+        .unwrap();
+    assert!(on < off);
+    assert_eq!(printer.executed.last().map(String::as_str), Some("M105"));
 }

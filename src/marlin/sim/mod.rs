@@ -60,6 +60,9 @@ pub struct Faults {
     pub silence_after_lines: Option<usize>,
     /// Halt with `Error:...` / `Error:Printer halted. kill() called!` after N numbered lines.
     pub fatal_after_lines: Option<usize>,
+    /// Host actions (`//action:NAME`) to send after N numbered lines, as when someone
+    /// presses Stop, Pause or Resume on the printer's screen: `(N, "pause")`.
+    pub actions: Vec<(usize, String)>,
 }
 
 /// How to run a simulated printer.
@@ -88,6 +91,11 @@ pub struct SimConfig {
     /// for no limit. A pty moves bytes as fast as memory; at 115200 baud a 30-byte G1 line
     /// takes 2.6 ms on the wire.
     pub baud: Option<u32>,
+    /// NO_TIMEOUTS: say `wait` this often while the command queue is empty.
+    pub wait_when_idle: Option<Duration>,
+    /// Opening the port resets the board (DTR): input is lost for this bootloader delay,
+    /// then the firmware boots and says `start`.
+    pub reset_on_open: Option<Duration>,
 }
 
 impl SimConfig {
@@ -102,6 +110,8 @@ impl SimConfig {
             link: None,
             link_latency: Duration::ZERO,
             baud: None,
+            wait_when_idle: None,
+            reset_on_open: None,
         }
     }
 }
@@ -239,6 +249,7 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
         .map_err(|e| with_context(e, "cannot create the simulator's wake-up pipe"))?;
     let executed = Arc::new(Mutex::new(Vec::new()));
     let printer = Printer::new(&cfg, Instant::now());
+    let reset_on_open = cfg.reset_on_open;
     let wire = Wire {
         latency: cfg.link_latency,
         byte_time: cfg
@@ -257,7 +268,7 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
         .name(format!("sim {name}"))
         .spawn(move || {
             let _span = tracing::info_span!("sim", printer = %name).entered();
-            run(master, wake_rx, printer, recorder, wire);
+            run(master, wake_rx, printer, recorder, wire, reset_on_open);
             // The pty is closed now (unplug or shutdown): an unplugged device disappears,
             // and so does its udev-style link.
             if let Some(link) = link_for_thread {
@@ -366,7 +377,14 @@ impl InFlight {
 /// The printer thread: shuttle bytes between the pty master and the printer core through
 /// the link model, sleeping in poll() until input arrives, output can drain, bytes in flight
 /// arrive, the core's next deadline, or shutdown.
-fn run(master: OwnedFd, wake: OwnedFd, mut printer: Printer, mut recorder: Recorder, wire: Wire) {
+fn run(
+    master: OwnedFd,
+    wake: OwnedFd,
+    mut printer: Printer,
+    mut recorder: Recorder,
+    wire: Wire,
+    reset_on_open: Option<Duration>,
+) {
     let mut scratch = [0u8; 4096];
     let mut host_connected = false;
     let mut to_printer = InFlight::default();
@@ -476,9 +494,17 @@ fn run(master: OwnedFd, wake: OwnedFd, mut printer: Printer, mut recorder: Recor
                 Ok(n) => {
                     host_connected = true;
                     tracing::debug!("host opened the port");
+                    if let Some(delay) = reset_on_open {
+                        printer.reset_on_open(Instant::now(), delay);
+                    }
                     to_printer.send(&wire, Instant::now(), scratch[..n].to_vec());
                 }
-                Err(_) => host_connected = true,
+                Err(_) => {
+                    host_connected = true;
+                    if let Some(delay) = reset_on_open {
+                        printer.reset_on_open(Instant::now(), delay);
+                    }
+                }
             }
             continue;
         }

@@ -6,8 +6,14 @@
 //! the host must wait), a 16-move planner that drains at the moves' real speed, and an
 //! emergency parser that sees M108/M112 as the bytes arrive.
 
+mod dialect;
+mod motion;
+mod thermal;
+
 use super::{Faults, Recorder, SimConfig};
 use crate::marlin::firmware::Firmware;
+use dialect::known_marlin2;
+use motion::{is_move, parse_words, word, word_present};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;
@@ -15,10 +21,6 @@ use std::time::{Duration, Instant};
 
 const PLANNER_MOVES: usize = 16;
 const AMBIENT: f64 = 21.0;
-const HOTEND_HEAT_RATE: f64 = 2.5; // °C per simulated second
-const HOTEND_COOL_RATE: f64 = 1.0;
-const BED_HEAT_RATE: f64 = 0.8;
-const BED_COOL_RATE: f64 = 0.3;
 const HOMING_SECONDS: f64 = 3.0;
 const DEFAULT_FEEDRATE: f64 = 1500.0; // mm/min
 /// Shortest real interval between periodic messages, so a tiny time scale cannot turn
@@ -34,6 +36,9 @@ pub(crate) enum Status {
     Silent,
     /// The unplug fault: the pty must be closed.
     Unplugged,
+    /// Held in reset by the bootloader after the host opened the port (DTR): input is
+    /// lost until the firmware starts and says `start`.
+    Booting(Instant),
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -70,8 +75,10 @@ enum Wait {
 
 struct Active {
     wait: Wait,
-    /// Line number for ADVANCED_OK and whether to answer at all.
+    /// Line number for ADVANCED_OK.
     n: Option<u64>,
+    /// Its `ok` was sent when it entered the queue.
+    answered: bool,
     /// Sends `echo:busy: processing` while it waits (long commands, busy fault).
     busy: bool,
     next_heat_report: Option<Instant>,
@@ -80,6 +87,8 @@ struct Active {
 struct Queued {
     n: Option<u64>,
     cmd: String,
+    /// Already acknowledged on entering the queue (Ultimaker2Marlin's moves).
+    acked: bool,
 }
 
 pub(crate) struct Printer {
@@ -111,6 +120,13 @@ pub(crate) struct Printer {
     next_keepalive: Option<Instant>,
     heat_break: bool,
     numbered_executed: usize,
+    /// A `;` was seen on the line being assembled (Ultimaker2Marlin's `:` rule stops there).
+    in_comment: bool,
+    /// The command being finished was acknowledged on entry: its `ok` is not sent again.
+    answered: bool,
+    /// NO_TIMEOUTS: say `wait` this often while the command queue is empty.
+    wait_when_idle: Option<Duration>,
+    next_wait: Option<Instant>,
     out: Vec<u8>,
 }
 
@@ -150,6 +166,10 @@ impl Printer {
             next_keepalive: None,
             heat_break: false,
             numbered_executed: 0,
+            in_comment: false,
+            answered: false,
+            wait_when_idle: cfg.wait_when_idle,
+            next_wait: None,
             out: Vec::new(),
         };
         p.boot();
@@ -178,7 +198,13 @@ impl Printer {
         self.keepalive = 2.0;
         self.next_keepalive = None;
         self.heat_break = false;
+        self.in_comment = false;
+        self.next_wait = None;
         self.say("start");
+        if self.fw == Firmware::Marlin20 {
+            self.say("echo:Marlin 2.0.9.3");
+            self.say("echo: Last Updated: 2021-12-25 | Author: (crispen sim)");
+        }
         if self.fw == Firmware::Marlin2 {
             self.say("echo:Marlin 2.1.2");
             self.say("echo: Last Updated: 2023-03-21 | Author: (crispen sim)");
@@ -189,6 +215,20 @@ impl Printer {
 
     pub(crate) fn status(&self) -> Status {
         self.status
+    }
+
+    /// The host opened the port: DTR resets the board, the bootloader waits `delay`, then
+    /// the firmware boots. A halted or silent printer is reset too, as a real one would be.
+    pub(crate) fn reset_on_open(&mut self, now: Instant, delay: Duration) {
+        if self.status == Status::Unplugged {
+            return;
+        }
+        tracing::info!(
+            ?delay,
+            "host opened the port: reset (DTR) and bootloader delay"
+        );
+        self.out.clear();
+        self.status = Status::Booting(now + delay);
     }
 
     #[cfg(test)]
@@ -258,7 +298,7 @@ impl Printer {
     }
 
     fn ok(&mut self, n: Option<u64>) {
-        if self.drop_this_ok() {
+        if std::mem::take(&mut self.answered) || self.drop_this_ok() {
             return;
         }
         let line = if self.fw.advanced_ok() {
@@ -275,13 +315,6 @@ impl Printer {
         self.say_noisy(&line);
     }
 
-    fn temperature_report(&self) -> String {
-        format!(
-            "T:{:.2} /{:.2} B:{:.2} /{:.2} @:0 B@:0",
-            self.hotend.current, self.hotend.target, self.bed.current, self.bed.target
-        )
-    }
-
     // ----- input --------------------------------------------------------------------
 
     /// Bytes from the host. They enter the receive ring; bytes that do not fit are lost,
@@ -294,6 +327,9 @@ impl Printer {
     /// (all command slots full, or stuck in a blocking command such as M109).
     pub(crate) fn receive(&mut self, bytes: &[u8], now: Instant, recorder: &mut Recorder) {
         let mut lost = 0usize;
+        if matches!(self.status, Status::Booting(_)) {
+            return; // the bootloader does not listen to the firmware's protocol
+        }
         for &b in bytes {
             if self.status != Status::Running {
                 return;
@@ -359,7 +395,13 @@ impl Printer {
     fn fill_slots(&mut self) {
         while self.status == Status::Running && self.slots.len() < self.fw.command_slots() {
             let Some(b) = self.rx.pop_front() else { return };
-            if b == b'\n' || b == b'\r' {
+            if b == b';' {
+                self.in_comment = true;
+            }
+            // Ultimaker2Marlin's reader also ends a line at a `:` outside comments.
+            let colon_end = b == b':' && self.fw.colon_ends_line() && !self.in_comment;
+            if b == b'\n' || b == b'\r' || colon_end {
+                self.in_comment = false;
                 let raw = std::mem::take(&mut self.assembling);
                 let overlong = std::mem::replace(&mut self.overlong, false);
                 if raw.iter().all(|c| c.is_ascii_whitespace()) && !overlong {
@@ -387,15 +429,22 @@ impl Printer {
                 .rng
                 .random_bool(self.faults.corrupt_host_bytes.min(1.0))
         {
-            let at = self.rng.random_range(0..raw.len());
-            // Any byte but the ones that would change the line's framing in a way a
-            // checksum cannot see (a new `N` or `*`).
+            // Any byte but the framing a checksum cannot protect: the leading `N` (without
+            // it Marlin 2 checks nothing and runs the rest) and the `*`; and no new ones.
+            let start = usize::from(raw[0] == b'N');
+            let mut at = self.rng.random_range(start.min(raw.len() - 1)..raw.len());
+            if raw[at] == b'*' {
+                // The last checksum-protected byte before it.
+                at = at.saturating_sub(1).max(start);
+            }
             let mut c = raw[at];
             while c == raw[at] || c == b'N' || c == b'*' {
                 c = self.rng.random_range(0x20u8..0x7f);
             }
-            tracing::debug!(at, "fault: corrupting a received line");
-            raw[at] = c;
+            if raw[at] != b'*' && !(at == 0 && raw[0] == b'N') {
+                tracing::debug!(at, "fault: corrupting a received line");
+                raw[at] = c;
+            }
         }
         let line = String::from_utf8_lossy(&raw).trim().to_string();
         if line.is_empty() {
@@ -403,14 +452,22 @@ impl Printer {
         }
         if let Some(rest) = line.strip_prefix('N') {
             let is_m110 = line.contains("M110");
-            // For M110 the last N on the line wins (`N101 M110 N100`).
-            let number_text = if is_m110 {
+            // For M110 Marlin 2 takes the last N on the line (`N101 M110 N100`);
+            // Ultimaker2Marlin has no M110 handler and keeps the line's own number.
+            let number_text = if is_m110 && self.fw.is_marlin2() {
                 line.rfind('N').map(|i| &line[i + 1..]).unwrap_or(rest)
             } else {
                 rest
             };
             let n = leading_int(number_text);
             if !is_m110 && n != Some(self.last_n as i64 + 1) {
+                let last = self.last_n as i64;
+                if self.fw.ignores_duplicate_lines()
+                    && n.is_some_and(|n| n == last || n == last - 1)
+                {
+                    tracing::debug!(line = ?n, "duplicate line ignored");
+                    return;
+                }
                 return self.line_error("Line Number is not Last Line Number+1");
             }
             let Some(star) = line.rfind('*') else {
@@ -430,12 +487,24 @@ impl Printer {
             self.last_n = n;
             let cmd = strip_number_and_checksum(&line).to_string();
             let line_n = leading_int(rest).map(|v| v.max(0) as u64);
-            self.slots.push_back(Queued { n: line_n, cmd });
-        } else if line.contains('*') {
-            self.line_error("No Line Number with checksum");
+            self.enqueue(line_n, cmd);
+        } else if line.contains('*') && !self.fw.is_marlin2() {
+            // Ultimaker2Marlin: an error, and neither `Resend:` nor `ok`.
+            self.say("Error:No Line Number with checksum");
         } else {
-            self.slots.push_back(Queued { n: None, cmd: line });
+            // Marlin 2 checks nothing on a line without N: it runs it (a checksum, if any,
+            // is cut off).
+            let cmd = strip_number_and_checksum(&line).to_string();
+            self.enqueue(None, cmd);
         }
+    }
+
+    fn enqueue(&mut self, n: Option<u64>, cmd: String) {
+        let acked = self.fw.acks_moves_on_entry() && is_move(&cmd);
+        if acked {
+            self.ok(n);
+        }
+        self.slots.push_back(Queued { n, cmd, acked });
     }
 
     /// Marlin's gcode_line_error + flush_and_request_resend: report, drop the rest of the
@@ -458,39 +527,16 @@ impl Printer {
 
     // ----- time ---------------------------------------------------------------------
 
-    fn update_planner(&mut self, now: Instant) {
-        while let Some(end) = self.planner_head_end {
-            if now < end {
-                break;
-            }
-            self.planner.pop_front();
-            self.planner_head_end = self.planner.front().map(|d| end + *d);
-        }
-    }
-
-    fn update_temperatures(&mut self, now: Instant) {
-        let real = now.saturating_duration_since(self.temps_at).as_secs_f64();
-        self.temps_at = now;
-        let sim = if self.time_scale == 0.0 {
-            f64::INFINITY
-        } else {
-            real / self.time_scale
-        };
-        for (t, heat, cool) in [
-            (&mut self.hotend, HOTEND_HEAT_RATE, HOTEND_COOL_RATE),
-            (&mut self.bed, BED_HEAT_RATE, BED_COOL_RATE),
-        ] {
-            let goal = t.target.max(AMBIENT);
-            if t.current < goal {
-                t.current = (t.current + heat * sim).min(goal);
-            } else if t.current > goal {
-                t.current = (t.current - cool * sim).max(goal);
-            }
-        }
-    }
-
     /// Run the printer up to `now`: drain the planner, heat, finish and start commands.
     pub(crate) fn advance(&mut self, now: Instant, recorder: &mut Recorder) {
+        if let Status::Booting(until) = self.status {
+            if now < until {
+                return;
+            }
+            self.status = Status::Running;
+            self.temps_at = now;
+            self.boot();
+        }
         if self.status != Status::Running {
             return;
         }
@@ -531,15 +577,32 @@ impl Printer {
             }
         }
         if let Some(active) = &mut self.active {
-            if let (Some(at), Wait::Heat { .. }) = (active.next_heat_report, &active.wait) {
+            if let (Some(at), Wait::Heat { heater, .. }) = (active.next_heat_report, &active.wait) {
                 if now >= at {
+                    let heater = *heater;
                     let period = Duration::from_secs_f64(self.time_scale).max(MIN_PERIOD);
                     active.next_heat_report = Some(now + period);
-                    let report = self.temperature_report();
+                    let report = self.heat_wait_report(heater);
                     self.say_noisy(&report);
                 }
             }
         }
+        // NO_TIMEOUTS: `wait` while the command queue is empty.
+        if let Some(interval) = self.wait_when_idle {
+            if self.is_idle() {
+                let at = *self.next_wait.get_or_insert(now + interval);
+                if now >= at {
+                    self.say("wait");
+                    self.next_wait = Some(now + interval);
+                }
+            } else {
+                self.next_wait = None;
+            }
+        }
+    }
+
+    fn is_idle(&self) -> bool {
+        self.active.is_none() && self.slots.is_empty() && self.rx.is_empty()
     }
 
     /// Try to finish the active command; true if it finished.
@@ -593,6 +656,7 @@ impl Printer {
                 }
             };
             if done {
+                self.answered = active.answered;
                 self.ok(active.n);
                 self.next_keepalive = None;
                 return true;
@@ -602,16 +666,11 @@ impl Printer {
         }
     }
 
-    fn plan(&mut self, seconds: f64, now: Instant) {
-        let d = self.real(seconds);
-        if self.planner.is_empty() {
-            self.planner_head_end = Some(now + d);
-        }
-        self.planner.push_back(d);
-    }
-
     /// When `advance` must run again (None: only when input arrives).
     pub(crate) fn next_deadline(&self) -> Option<Instant> {
+        if let Status::Booting(until) = self.status {
+            return Some(until);
+        }
         if self.status != Status::Running {
             return None;
         }
@@ -622,6 +681,13 @@ impl Printer {
             }
         };
         consider(self.next_autoreport);
+        if let Some(interval) = self.wait_when_idle {
+            if self.is_idle() {
+                consider(Some(
+                    self.next_wait.unwrap_or_else(|| Instant::now() + interval),
+                ));
+            }
+        }
         if let Some(active) = &self.active {
             if active.busy && self.fw.busy_protocol() && self.keepalive > 0.0 {
                 consider(self.next_keepalive);
@@ -646,7 +712,7 @@ impl Printer {
     // ----- commands -----------------------------------------------------------------
 
     fn execute(&mut self, queued: Queued, now: Instant, recorder: &mut Recorder) {
-        let Queued { n, cmd } = queued;
+        let Queued { n, cmd, acked } = queued;
         tracing::trace!(line = ?n, cmd = %cmd, "executing");
         if !cmd.is_empty() && !is_command_word(&cmd) {
             // Not a command at all, e.g. the tail of a line cut in two when a line error
@@ -772,6 +838,10 @@ impl Printer {
                 self.status = Status::Halted;
                 return;
             }
+            ('M', Some(110)) if self.fw == Firmware::Ultimaker2 => {
+                // No M110 handler: the line's own number already reset the counter.
+                self.say(&format!("echo:Unknown command: \"{cmd}\""));
+            }
             ('M', Some(110)) => {}
             ('M', Some(113)) if self.fw.busy_protocol() => {
                 match word(&words, 'S') {
@@ -805,7 +875,7 @@ impl Printer {
                 }
             }
             ('M', Some(27)) => self.say("Not SD printing"),
-            _ if self.fw == Firmware::Marlin2 && !known_marlin2(letter, code) => {
+            _ if self.fw.is_marlin2() && !known_marlin2(letter, code) => {
                 self.say(&format!("echo:Unknown command: \"{cmd}\""));
             }
             _ => {}
@@ -816,6 +886,8 @@ impl Printer {
             wait = Some(Wait::Until(now + hold));
             long = true;
         }
+        // An `ok` already sent on entry is not sent again.
+        self.answered = acked;
         match wait {
             None => self.ok(n),
             Some(wait) => {
@@ -823,6 +895,7 @@ impl Printer {
                 self.active = Some(Active {
                     wait,
                     n,
+                    answered: std::mem::take(&mut self.answered),
                     busy: long,
                     next_heat_report: heat.then(|| now + MIN_PERIOD.max(self.real(1.0))),
                 });
@@ -836,6 +909,17 @@ impl Printer {
     /// Apply the `*_after_lines` faults; true if the command must not run.
     fn fire_line_faults(&mut self) -> bool {
         let count = self.numbered_executed;
+        let actions: Vec<String> = self
+            .faults
+            .actions
+            .iter()
+            .filter(|(after, _)| *after == count)
+            .map(|(_, name)| name.clone())
+            .collect();
+        for name in actions {
+            tracing::info!(lines = count, action = %name, "host action from the printer's menu");
+            self.say(&format!("//action:{name}"));
+        }
         if self.faults.reset_after_lines == Some(count) {
             tracing::warn!(lines = count, "fault: printer reset");
             self.boot();
@@ -859,99 +943,6 @@ impl Printer {
             return true;
         }
         false
-    }
-
-    fn m115(&mut self) {
-        match self.fw {
-            Firmware::Marlin2 => {
-                self.say(
-                    "FIRMWARE_NAME:Marlin 2.1.2 (crispen sim) \
-                     SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 \
-                     MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff",
-                );
-                for cap in [
-                    "SERIAL_XON_XOFF:0",
-                    "BINARY_FILE_TRANSFER:0",
-                    "EEPROM:1",
-                    "VOLUMETRIC:1",
-                    "AUTOREPORT_POS:0",
-                    "AUTOREPORT_TEMP:1",
-                    "PROGRESS:0",
-                    "PRINT_JOB:1",
-                    "AUTOLEVEL:0",
-                    "Z_PROBE:0",
-                    "LEVELING_DATA:0",
-                    "BUILD_PERCENT:1",
-                    "SOFTWARE_POWER:0",
-                    "TOGGLE_LIGHTS:0",
-                    "CASE_LIGHT_BRIGHTNESS:0",
-                    "EMERGENCY_PARSER:1",
-                    "HOST_ACTION_COMMANDS:0",
-                    "PROMPT_SUPPORT:0",
-                    "SDCARD:0",
-                    "AUTOREPORT_SD_STATUS:0",
-                    "THERMAL_PROTECTION:1",
-                    "MOTION_MODES:0",
-                    "ARCS:1",
-                    "BABYSTEPPING:0",
-                    "CHAMBER_TEMPERATURE:0",
-                    "BUSY_PROTOCOL:1",
-                    "ADVANCED_OK:1",
-                ] {
-                    self.say(&format!("Cap:{cap}"));
-                }
-            }
-            Firmware::Ultimaker2 => self.say(
-                "FIRMWARE_NAME:Marlin Ultimaker2; Sprinter/grbl mashup for gen6 \
-                 FIRMWARE_URL:https://github.com/Ultimaker/Ultimaker2Marlin \
-                 PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ultimaker EXTRUDER_COUNT:1",
-            ),
-        }
-    }
-
-    /// Simulated seconds a G0–G3 takes at its feedrate (F is persistent, mm/min).
-    fn move_seconds(&mut self, words: &[(char, f64)], code: i64) -> f64 {
-        if let Some(f) = word(words, 'F') {
-            if f > 0.0 {
-                self.feedrate = f;
-            }
-        }
-        let start = self.position;
-        let mut end = start;
-        for (i, axis) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-            if let Some(v) = word(words, axis) {
-                let rel = if i == 3 {
-                    self.relative_e
-                } else {
-                    self.relative
-                };
-                end[i] = if rel { start[i] + v } else { v };
-            }
-        }
-        self.position = end;
-        let (dx, dy, dz) = (end[0] - start[0], end[1] - start[1], end[2] - start[2]);
-        let mut distance = (dx * dx + dy * dy + dz * dz).sqrt();
-        if code == 2 || code == 3 {
-            let (i, j) = (
-                word(words, 'I').unwrap_or(0.0),
-                word(words, 'J').unwrap_or(0.0),
-            );
-            let radius = (i * i + j * j).sqrt();
-            if radius > 0.0 {
-                let (cx, cy) = (start[0] + i, start[1] + j);
-                let a0 = (start[1] - cy).atan2(start[0] - cx);
-                let a1 = (end[1] - cy).atan2(end[0] - cx);
-                let mut sweep = if code == 3 { a1 - a0 } else { a0 - a1 };
-                if sweep <= 1e-9 {
-                    sweep += std::f64::consts::TAU;
-                }
-                distance = (radius * sweep).hypot(dz);
-            }
-        }
-        if distance == 0.0 {
-            distance = (end[3] - start[3]).abs();
-        }
-        distance / (self.feedrate / 60.0)
     }
 }
 
@@ -978,71 +969,11 @@ fn leading_int(s: &str) -> Option<i64> {
         .map_or(s.len(), |(i, _)| i);
     s[..end].parse().ok()
 }
-
-/// G-code words (`G1 X10.5 F3000`, also `G1X10`): letter and number pairs. Text after
-/// M117/M118 and the like is not needed by the simulator and parses as noise.
-fn parse_words(cmd: &str) -> Vec<(char, f64)> {
-    let bytes = cmd.as_bytes();
-    let mut words = Vec::new();
-    let mut i = 0;
-    while i < bytes.len() {
-        let c = bytes[i] as char;
-        if c.is_ascii_alphabetic() {
-            let start = i + 1;
-            let mut end = start;
-            while end < bytes.len()
-                && (bytes[end].is_ascii_digit() || matches!(bytes[end], b'.' | b'-' | b'+'))
-            {
-                end += 1;
-            }
-            let value = cmd[start..end].parse().unwrap_or(0.0);
-            words.push((c.to_ascii_uppercase(), value));
-            i = end.max(start);
-        } else {
-            i += 1;
-        }
-    }
-    words
-}
-
-fn word(words: &[(char, f64)], letter: char) -> Option<f64> {
-    words.iter().skip(1).find(|w| w.0 == letter).map(|w| w.1)
-}
-
-fn word_present(words: &[(char, f64)], letter: char) -> bool {
-    words.iter().skip(1).any(|w| w.0 == letter)
-}
-
 /// Whether a line starts with a command word (`G1`, `M105`, `T0`, also lower case) that
-/// Marlin's parser dispatches. Anything else never reaches a command handler.
 fn is_command_word(cmd: &str) -> bool {
     let mut chars = cmd.trim_start().chars();
     matches!(chars.next(), Some('G' | 'M' | 'T' | 'g' | 'm' | 't'))
         && chars.next().is_some_and(|c| c.is_ascii_digit())
-}
-
-/// G/M codes a typical Marlin 2 build knows (enough for slicer output); others get
-/// `echo:Unknown command`.
-fn known_marlin2(letter: char, code: f64) -> bool {
-    let whole = code.trunc() as i64;
-    match letter {
-        'G' => matches!(
-            whole,
-            0..=5 | 10 | 11 | 12 | 17..=21 | 26..=30 | 33 | 34 | 38 | 42 | 53..=61 | 76 | 80 | 90..=92
-        ),
-        'M' => matches!(
-            whole,
-            0 | 1 | 3..=5 | 16..=34 | 42 | 48 | 73 | 75..=78 | 80..=92 | 100 | 104..=125
-                | 140 | 141 | 145 | 149 | 150 | 155 | 163 | 164 | 190 | 191 | 200..=209
-                | 211 | 217..=221 | 226 | 240 | 250 | 256 | 260..=261 | 280 | 281 | 290
-                | 300 | 301 | 302..=306 | 350 | 351 | 355 | 360 | 380 | 381 | 400..=422
-                | 425 | 428 | 430 | 486 | 500..=504 | 510..=512 | 524 | 540 | 569 | 575
-                | 600 | 603 | 605 | 665 | 666 | 672 | 701 | 702 | 710 | 808 | 810..=813
-                | 851 | 852 | 860..=869 | 871 | 876 | 900 | 906 | 907..=919 | 928 | 993..=999
-        ),
-        'T' => true,
-        _ => false,
-    }
 }
 
 #[cfg(test)]

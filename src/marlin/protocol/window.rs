@@ -1,0 +1,196 @@
+//! Numbering and the send window: each line gets its number when it is sent (so numbers
+//! always match the order on the wire), is kept for resends, and goes out only while the
+//! bytes in flight fit the printer's receive buffer.
+
+use super::{code_of, is_code, HeatWait};
+use super::{frame, Failure, Host, InFlight, Kind, Line, Phase, HEAT_COMMANDS};
+use std::time::Instant;
+
+/// Upper bound of `frame(number, command).len()` without building the line: `N`, the
+/// number, a space, the command, `*`, a checksum of at most three digits and `\n`.
+fn wire_len_bound(number: u64, command: &str) -> usize {
+    let digits = number.checked_ilog10().map_or(1, |d| d as usize + 1);
+    1 + digits + 1 + command.len() + 1 + 3 + 1
+}
+
+impl Host {
+    pub(super) fn history_line(&self, number: u64) -> Option<&Line> {
+        let first = self.history.front()?.number;
+        self.history.get(number.checked_sub(first)? as usize)
+    }
+
+    pub(super) fn reset_numbering(&mut self) {
+        self.history.clear();
+        self.in_flight.clear();
+        self.in_flight_bytes = 0;
+        self.pending.clear();
+        self.next_number = 0;
+        self.send_cursor = 0;
+        self.swallow_oks = 0;
+        self.duplicate_budget = None;
+        self.repeated = None;
+        self.resend_hold = None;
+        self.cautious_until = 0;
+        self.confirmed = None;
+    }
+
+    pub(super) fn discard_unsent_job_lines(&mut self) {
+        let Some(first) = self.history.front().map(|l| l.number) else {
+            return;
+        };
+        if self.send_cursor >= self.next_number {
+            return;
+        }
+        let keep = (self.send_cursor - first) as usize;
+        let dropped: Vec<Line> = self.history.drain(keep..).collect();
+        self.next_number = self.send_cursor;
+        for line in dropped.into_iter().rev() {
+            if line.kind == Kind::SafeStop {
+                self.pending.push_front((line.kind, line.command));
+            }
+        }
+    }
+
+    /// Give the next line a number and remember it for resends.
+    pub(super) fn new_line(&mut self, kind: Kind, command: String) -> u64 {
+        let number = self.next_number;
+        self.next_number += 1;
+        // A job's own `M110 N<k>` would move the printer's counter away from the host's:
+        // it is sent as `M110 N<its own number>`, which keeps both in step.
+        let command = if matches!(kind, Kind::Job(_)) && is_code(&command, &["M110"]) {
+            format!("M110 N{number}")
+        } else {
+            command
+        };
+        self.history.push_back(Line {
+            number,
+            kind,
+            command,
+        });
+        // Keep history bounded, but never drop lines that are not yet acknowledged.
+        let oldest_needed = self
+            .in_flight
+            .front()
+            .map_or(self.send_cursor, |f| f.number.min(self.send_cursor));
+        while self.history.len() > self.opts.history_lines
+            && self
+                .history
+                .front()
+                .is_some_and(|l| l.number < oldest_needed)
+        {
+            self.history.pop_front();
+        }
+        number
+    }
+
+    pub(super) fn transmit(&mut self, number: u64, now: Instant) {
+        let Some(line) = self.history_line(number) else {
+            return;
+        };
+        let wire = frame(number, &line.command);
+        let is_m105 = code_of(&line.command).eq_ignore_ascii_case("M105");
+        let sync = line.kind == Kind::Sync;
+        let is_heat = is_code(&line.command, &HEAT_COMMANDS);
+        if wire.len() - 1 > self.opts.firmware.max_line_bytes() {
+            let failure = Failure::LineTooLong {
+                command: line.command.clone(),
+                len: wire.len() - 1,
+                max: self.opts.firmware.max_line_bytes(),
+            };
+            self.fail_safely(failure, now);
+            return;
+        }
+        if is_heat {
+            let command = line.command.clone();
+            let words: Vec<&str> = command.split_whitespace().collect();
+            let target = words[1..]
+                .iter()
+                .find_map(|w| w.strip_prefix(['S', 'R', 's', 'r']))
+                .and_then(|v| v.parse::<f64>().ok());
+            self.heat = Some(HeatWait {
+                number,
+                bed: is_code(&command, &["M190"]),
+                command,
+                target,
+                since: now,
+                best: None,
+            });
+        }
+        if self.in_flight.is_empty() {
+            self.front_since = now;
+        }
+        self.outgoing.extend_from_slice(wire.as_bytes());
+        self.in_flight.push_back(InFlight {
+            number,
+            bytes: wire.len(),
+            is_m105,
+            sync,
+        });
+        self.in_flight_bytes += wire.len();
+        self.send_cursor = number + 1;
+        self.lines_sent += 1;
+    }
+
+    pub(super) fn window_allows(&self, number: u64, bytes: usize) -> bool {
+        if self.in_flight.is_empty() {
+            return true;
+        }
+        if !self.opts.send_ahead || number < self.cautious_until {
+            return false;
+        }
+        // Every unacknowledged line may still sit in the printer's receive ring: while the
+        // firmware is blocked (planner full, M109, G28...) its loop does not move lines into
+        // command slots, so free slots announced by ADVANCED_OK (`B`) are no room for more
+        // bytes. Bytes beyond the ring are lost and two lines merge into one whose checksum
+        // may even pass; so the bytes in flight never exceed the ring. One byte of margin:
+        // Marlin's ring tells full from empty by leaving one cell unused.
+        self.in_flight_bytes + bytes < self.opts.firmware.rx_buffer_bytes()
+    }
+
+    /// Send whatever the window allows. A line gets its number only when it is sent, so
+    /// numbers always match the order on the wire.
+    pub(super) fn pump(&mut self, now: Instant) {
+        loop {
+            if matches!(
+                self.phase,
+                Phase::Finished | Phase::Idle | Phase::Boot { .. }
+            ) || self.resend_hold.is_some()
+            {
+                return;
+            }
+            if self.send_cursor < self.next_number {
+                // Replaying after a resend request.
+                let number = self.send_cursor;
+                let Some(line) = self.history_line(number) else {
+                    break;
+                };
+                if !self.window_allows(number, wire_len_bound(number, &line.command)) {
+                    break;
+                }
+                self.transmit(number, now);
+                continue;
+            }
+            let candidate_len = if let Some((_, command)) = self.pending.front() {
+                command.len()
+            } else if self.accepting_job_lines() && self.next_job < self.job.len() {
+                self.job[self.next_job].len()
+            } else {
+                break;
+            };
+            let number = self.next_number;
+            if !self.window_allows(number, candidate_len + wire_len_bound(number, "")) {
+                break;
+            }
+            let number = if let Some((kind, command)) = self.pending.pop_front() {
+                self.new_line(kind, command)
+            } else {
+                let idx = self.next_job;
+                self.next_job += 1;
+                let command = self.job[idx].to_owned();
+                self.new_line(Kind::Job(idx), command)
+            };
+            self.transmit(number, now);
+        }
+        self.check_progress(now);
+    }
+}

@@ -1,0 +1,91 @@
+//! What differs between the firmware flavours in what they say: `M115` and its `Cap:`
+//! lines, and which G/M codes a stock build knows.
+use super::Printer;
+use crate::marlin::firmware::Firmware;
+
+/// A Marlin 2.0 build as commonly configured: no ADVANCED_OK.
+const MARLIN20_CAPS: [&str; 5] = [
+    "EEPROM:1",
+    "AUTOREPORT_TEMP:1",
+    "EMERGENCY_PARSER:1",
+    "HOST_ACTION_COMMANDS:1",
+    "BUSY_PROTOCOL:1",
+];
+
+const MARLIN21_CAPS: [&str; 27] = [
+    "SERIAL_XON_XOFF:0",
+    "BINARY_FILE_TRANSFER:0",
+    "EEPROM:1",
+    "VOLUMETRIC:1",
+    "AUTOREPORT_POS:0",
+    "AUTOREPORT_TEMP:1",
+    "PROGRESS:0",
+    "PRINT_JOB:1",
+    "AUTOLEVEL:0",
+    "Z_PROBE:0",
+    "LEVELING_DATA:0",
+    "BUILD_PERCENT:1",
+    "SOFTWARE_POWER:0",
+    "TOGGLE_LIGHTS:0",
+    "CASE_LIGHT_BRIGHTNESS:0",
+    "EMERGENCY_PARSER:1",
+    "HOST_ACTION_COMMANDS:1",
+    "PROMPT_SUPPORT:0",
+    "SDCARD:0",
+    "AUTOREPORT_SD_STATUS:0",
+    "THERMAL_PROTECTION:1",
+    "MOTION_MODES:0",
+    "ARCS:1",
+    "BABYSTEPPING:0",
+    "CHAMBER_TEMPERATURE:0",
+    "BUSY_PROTOCOL:1",
+    "ADVANCED_OK:1",
+];
+
+impl Printer {
+    pub(super) fn m115(&mut self) {
+        let (version, caps): (&str, &[&str]) = match self.fw {
+            Firmware::Ultimaker2 => {
+                return self.say(
+                    "FIRMWARE_NAME:Marlin Ultimaker2; Sprinter/grbl mashup for gen6 \
+                     FIRMWARE_URL:https://github.com/Ultimaker/Ultimaker2Marlin \
+                     PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ultimaker EXTRUDER_COUNT:1",
+                )
+            }
+            Firmware::Marlin20 => ("2.0.9.3", &MARLIN20_CAPS),
+            Firmware::Marlin2 => ("2.1.2", &MARLIN21_CAPS),
+        };
+        self.say(&format!(
+            "FIRMWARE_NAME:Marlin {version} (crispen sim) \
+             SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 \
+             MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff"
+        ));
+        for cap in caps {
+            self.say(&format!("Cap:{cap}"));
+        }
+    }
+}
+
+/// G/M codes a typical Marlin 2 build knows (enough for slicer output); others get
+/// `echo:Unknown command`.
+pub(super) fn known_marlin2(letter: char, code: f64) -> bool {
+    let whole = code.trunc() as i64;
+    match letter {
+        'G' => matches!(
+            whole,
+            0..=5 | 10 | 11 | 12 | 17..=21 | 26..=30 | 33 | 34 | 38 | 42 | 53..=61 | 76 | 80 | 90..=92
+        ),
+        'M' => matches!(
+            whole,
+            0 | 1 | 3..=5 | 16..=34 | 42 | 48 | 73 | 75..=78 | 80..=92 | 100 | 104..=125
+                | 140 | 141 | 145 | 149 | 150 | 155 | 163 | 164 | 190 | 191 | 200..=209
+                | 211 | 217..=221 | 226 | 240 | 250 | 256 | 260..=261 | 280 | 281 | 290
+                | 300 | 301 | 302..=306 | 350 | 351 | 355 | 360 | 380 | 381 | 400..=422
+                | 425 | 428 | 430 | 486 | 500..=504 | 510..=512 | 524 | 540 | 569 | 575
+                | 600 | 603 | 605 | 665 | 666 | 672 | 701 | 702 | 710 | 808 | 810..=813
+                | 851 | 852 | 860..=869 | 871 | 876 | 900 | 906 | 907..=919 | 928 | 993..=999
+        ),
+        'T' => true,
+        _ => false,
+    }
+}

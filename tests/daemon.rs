@@ -990,3 +990,463 @@ fn reload_adds_and_retires_printers() {
         std::fs::read_to_string(&log).unwrap_or_default()
     );
 }
+
+/// A config of one simulated printer `p` and the hot folder `hot`, with `extra` added to
+/// the folder's table.
+fn small_farm(root: &Path, folder_extra: &str) -> (PathBuf, PathBuf) {
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n{folder_extra}\n"
+        ),
+    )
+    .unwrap();
+    (config, root.join("daemon.log"))
+}
+
+fn drop_model(hot: &Path, name: &str, bytes: &[u8]) {
+    let part = hot.join(format!(".{name}.part"));
+    std::fs::write(&part, bytes).unwrap();
+    std::fs::rename(&part, hot.join(name)).unwrap();
+}
+
+fn spot() -> Vec<u8> {
+    std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj")).unwrap()
+}
+
+fn wait_exit(daemon: &mut Daemon, limit: Duration, log: &Path) -> std::process::ExitStatus {
+    let started = Instant::now();
+    loop {
+        if let Some(code) = daemon.child.try_wait().unwrap() {
+            return code;
+        }
+        assert!(
+            started.elapsed() < limit,
+            "the daemon did not exit within {limit:?}\nlog:\n{}",
+            std::fs::read_to_string(log).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// SIGTERM while a job is being prepared (here by a slicer that never ends) stops the
+/// preparation at once: the daemon exits within seconds rather than waiting out the
+/// preparation, the slicer is gone, and the job is back in the queue for the next start.
+#[test]
+fn sigterm_during_preparation_stops_it_within_seconds() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let mut farm = start_stuck_slicing(root);
+    let pid = nix::unistd::Pid::from_raw(farm.daemon.child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    let code = wait_exit(&mut farm.daemon, Duration::from_secs(15), &farm.log);
+    assert!(code.success(), "{code:?}");
+    assert_gone_soon(&farm.slicer_proc, &farm.log, "SIGTERM");
+    let stored: Value = serde_json::from_slice(
+        &std::fs::read(root.join("spool/jobs").join(&farm.job).join("job.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(stored["state"], "queued", "{stored}");
+}
+
+/// A closed surface (a torus) with `n * n` vertices as OBJ text: big enough that loading
+/// and enhancing it take well over a second.
+fn torus_obj(n: usize) -> Vec<u8> {
+    use std::fmt::Write as _;
+    let mut text = String::new();
+    for i in 0..n {
+        for j in 0..n {
+            let (u, v) = (
+                i as f64 / n as f64 * std::f64::consts::TAU,
+                j as f64 / n as f64 * std::f64::consts::TAU,
+            );
+            let r = 10.0 + 4.0 * v.cos();
+            writeln!(
+                text,
+                "v {:.5} {:.5} {:.5}",
+                r * u.cos(),
+                r * u.sin(),
+                4.0 * v.sin()
+            )
+            .unwrap();
+        }
+    }
+    let at = |i: usize, j: usize| (i % n) * n + (j % n) + 1;
+    for i in 0..n {
+        for j in 0..n {
+            let (a, b, c, d) = (at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1));
+            writeln!(text, "f {a} {b} {c}\nf {a} {c} {d}").unwrap();
+        }
+    }
+    text.into_bytes()
+}
+
+/// A folder's time limit covers the whole preparation, enhancement included (it once
+/// covered the slicer only, so a big or hostile model could hold a slot for as long as
+/// its enhancement took): the job fails naming the limit, and the next job goes on.
+#[test]
+fn preparation_time_limit_fails_the_job_and_the_queue_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "timeout_s = 0.5");
+    let mut text = std::fs::read_to_string(&config).unwrap();
+    text += "[[folder]]\npath = \"hot2\"\nheight_mm = 25\nprinters = [\"p\"]\n";
+    std::fs::write(&config, text).unwrap();
+    std::fs::create_dir_all(root.join("hot2")).unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    let hot = root.join("hot");
+    drop_model(&hot, "torus.obj", &torus_obj(400));
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the big job to fail",
+        |s| state_of(s, "torus.obj") == "failed",
+    );
+    let reason = job_by_file(&s, "torus.obj").unwrap()["reason"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert!(
+        reason.contains("longer than 500ms") && reason.contains("timeout_s"),
+        "{reason}"
+    );
+    // The slot is free again: a job from a folder with the default limit is done.
+    drop_model(&root.join("hot2"), "small.obj", &spot());
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the next job to be done",
+        |s| state_of(s, "small.obj") == "done",
+    );
+}
+
+/// Two daemons on one spool would print the same jobs: the second refuses to start,
+/// naming the spool, even with a control socket of its own.
+#[test]
+fn a_second_daemon_on_the_same_spool_refuses_to_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "");
+    let _first = Daemon::start(&config, &log);
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(20),
+        "the first daemon",
+        |_| true,
+    );
+    let other = root.join("other.toml");
+    std::fs::write(
+        &other,
+        std::fs::read_to_string(&config)
+            .unwrap()
+            .replace("c.sock", "other.sock"),
+    )
+    .unwrap();
+    let out = Command::new(BIN)
+        .args(["run", "--config"])
+        .arg(&other)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("in use by another crispen daemon") && stderr.contains("spool"),
+        "{stderr}"
+    );
+    assert!(status(&config).is_some(), "the first daemon still answers");
+}
+
+/// A job directory removed by hand while its job waited does not stop the queue: that
+/// job fails, and the printer takes the next one. (A printer once kept trying the
+/// missing job and printed nothing more.)
+#[test]
+fn a_removed_job_directory_does_not_stop_the_queue() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "");
+    // The printer starts with a finished print on its bed, so ready jobs wait.
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    std::fs::write(
+        root.join("spool/printers.json"),
+        r#"{"p": {"bed_not_cleared": true, "last_job": null}}"#,
+    )
+    .unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    let hot = root.join("hot");
+    drop_model(&hot, "first.stl", &spot());
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the first job ready",
+        |s| state_of(s, "first.stl") == "ready",
+    );
+    drop_model(&hot, "second.stl", &spot());
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the second job ready",
+        |s| state_of(s, "second.stl") == "ready",
+    );
+    let first = job_by_file(&s, "first.stl").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    std::fs::remove_dir_all(root.join("spool/jobs").join(&first)).unwrap();
+    let (ok, out) = ctl(&config, &["clear", "p"]);
+    assert!(ok, "{out}");
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the second job done",
+        |s| state_of(s, "second.stl") == "done",
+    );
+    assert_eq!(state_of(&s, "first.stl"), "failed");
+    let reason = job_by_file(&s, "first.stl").unwrap()["reason"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert!(reason.contains("removed"), "{reason}");
+    // A finished print shows all its lines, not the last throttled figure.
+    let progress = &printer(&s, "p")["progress"];
+    assert_eq!(
+        progress["lines_acked"], progress["lines_total"],
+        "{progress}"
+    );
+}
+
+/// The control socket: an endless request line gets an error and the connection is
+/// closed (it was once read into memory without end), an idle connection is closed, and
+/// the daemon goes on answering.
+#[test]
+fn control_socket_limits_requests_and_idle_connections() {
+    use std::io::Read;
+    use std::os::unix::net::UnixStream;
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "");
+    let _daemon = Daemon::start(&config, &log);
+    wait_for(&config, &log, Duration::from_secs(20), "the daemon", |_| {
+        true
+    });
+    let socket = root.join("c.sock");
+
+    let mut big = UnixStream::connect(&socket).unwrap();
+    big.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let chunk = vec![b' '; 64 * 1024];
+    for _ in 0..4 {
+        if big.write_all(&chunk).is_err() {
+            break;
+        }
+    }
+    let mut answer = String::new();
+    let _ = big.read_to_string(&mut answer);
+    assert!(answer.contains("longer than"), "answer: {answer:?}");
+
+    let mut idle = UnixStream::connect(&socket).unwrap();
+    idle.set_read_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
+    let mut buf = [0u8; 16];
+    let n = idle
+        .read(&mut buf)
+        .expect("closed by the daemon, not by our timeout");
+    assert_eq!(n, 0, "the idle connection is closed");
+    assert!(status(&config).is_some());
+}
+
+/// Whatever is at the control socket's path and is not a socket is never removed: the
+/// daemon refuses to start and the file is intact.
+#[test]
+fn a_file_at_the_socket_path_is_never_removed() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, _log) = small_farm(root, "");
+    std::fs::write(root.join("c.sock"), b"precious").unwrap();
+    let out = Command::new(BIN)
+        .args(["run", "--config"])
+        .arg(&config)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("not a socket"), "{stderr}");
+    assert_eq!(std::fs::read(root.join("c.sock")).unwrap(), b"precious");
+}
+
+/// `run --check` refuses what the daemon would trip over later: a hot folder inside the
+/// spool (its jobs would be picked up as models), with section and key named.
+#[test]
+fn check_refuses_a_hot_folder_inside_the_spool() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, _log) = small_farm(root, "");
+    let text = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(
+        &config,
+        text.replace("path = \"hot\"", "path = \"spool/hot\""),
+    )
+    .unwrap();
+    let out = Command::new(BIN)
+        .args(["run", "--check", "--config"])
+        .arg(&config)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("[[folder]] #1")
+            && stderr.contains("key `path`")
+            && stderr.contains("must not contain each other"),
+        "{stderr}"
+    );
+}
+
+/// A sidecar that arrives shortly after its model still applies (it was once left in
+/// the folder, silently ignored), and one that arrives after its job started is reported
+/// in the log and kept aside in the job directory, never silently dropped.
+#[test]
+fn a_sidecar_arriving_after_its_model_is_honoured_or_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "");
+    let text = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(&config, text.replace("settle_s = 0.3", "settle_s = 2")).unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    let hot = root.join("hot");
+    drop_model(&hot, "late.obj", &spot());
+    // The sidecar comes once the model has become a job.
+    let s = wait_for(&config, &log, Duration::from_secs(30), "picked up", |s| {
+        job_by_file(s, "late.obj").is_some()
+    });
+    assert_eq!(
+        state_of(&s, "late.obj"),
+        "queued",
+        "waiting for a late sidecar"
+    );
+    assert!(!hot.join("late.obj").exists());
+    drop_model(&hot, "late.obj.toml", b"enhance = false\n");
+    let s = wait_for(&config, &log, Duration::from_secs(120), "done", |s| {
+        state_of(s, "late.obj") == "done"
+    });
+    let id = job_by_file(&s, "late.obj").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let job_dir = root.join("spool/jobs").join(&id);
+    let stored: Value =
+        serde_json::from_slice(&std::fs::read(job_dir.join("job.json")).unwrap()).unwrap();
+    assert_eq!(
+        stored["slice_report"]["enhancement"]["mode"], "unmodified",
+        "the sidecar applied"
+    );
+    assert!(!hot.join("late.obj.toml").exists());
+    // The mesh that was sliced is kept with the job.
+    assert!(job_dir.join("late.obj.enhanced.stl").is_file());
+
+    drop_model(&hot, "late.obj.toml", b"copies = 2\n");
+    let started = Instant::now();
+    while !job_dir.join("late.obj.toml.late").is_file() {
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the late sidecar is kept aside"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let log_text = std::fs::read_to_string(&log).unwrap();
+    assert!(log_text.contains("NOT applied"), "reported in the log");
+    assert!(!hot.join("late.obj.toml").exists());
+}
+
+/// SIGTERM while one printer heats up and another waits for the heating permit: the
+/// waiting printer never starts (its job goes back to ready for the next start), and the
+/// daemon exits once the heating one has stopped safely. (The wait for the permit was not
+/// raced with shutdown: the waiting printer took the freed permit and printed its whole
+/// job during the shutdown.)
+#[test]
+fn sigterm_while_waiting_to_heat_starts_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    let printer_toml = |name: &str| {
+        format!(
+            "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n[printer.simulate]\n\
+             time_scale = 0.1\nrecord = \"{}\"\n",
+            root.join(format!("{name}.rec")).display()
+        )
+    };
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+             [farm]\nsettle_s = 0.3\nmax_heating = 1\non_shutdown = \"stop\"\n{}{}\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"a\", \"b\"]\n",
+            printer_toml("a"),
+            printer_toml("b")
+        ),
+    )
+    .unwrap();
+    // Both prepared before either printer may start, so both want to heat at once.
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    std::fs::write(
+        root.join("spool/printers.json"),
+        r#"{"a": {"bed_not_cleared": true, "last_job": null}, "b": {"bed_not_cleared": true, "last_job": null}}"#,
+    )
+    .unwrap();
+    let mut daemon = Daemon::start(&config, &log);
+    drop_model(&hot, "one.obj", &spot());
+    drop_model(&hot, "two.obj", &spot());
+    wait_for(&config, &log, Duration::from_secs(180), "both ready", |s| {
+        state_of(s, "one.obj") == "ready" && state_of(s, "two.obj") == "ready"
+    });
+    for p in ["a", "b"] {
+        let (ok, out) = ctl(&config, &["clear", p]);
+        assert!(ok, "{out}");
+    }
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "one heating, one waiting",
+        |s| {
+            let states = [
+                printer(s, "a")["state"].clone(),
+                printer(s, "b")["state"].clone(),
+            ];
+            states.contains(&Value::from("printing"))
+                && states.contains(&Value::from("waiting_to_heat"))
+        },
+    );
+    let waiting = if printer(&s, "a")["state"] == "waiting_to_heat" {
+        "a"
+    } else {
+        "b"
+    };
+    let waiting_job = printer(&s, waiting)["job"].as_str().unwrap().to_string();
+    let pid = nix::unistd::Pid::from_raw(daemon.child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    let code = wait_exit(&mut daemon, Duration::from_secs(60), &log);
+    assert!(code.success(), "{code:?}");
+    let executed = recorded(&root.join(format!("{waiting}.rec")));
+    assert!(
+        executed.is_empty(),
+        "the waiting printer ran {} commands",
+        executed.len()
+    );
+    let stored: Value = serde_json::from_slice(
+        &std::fs::read(root.join("spool/jobs").join(&waiting_job).join("job.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(stored["state"], "ready", "{stored}");
+}

@@ -228,6 +228,7 @@ fn inputs_over_the_memory_budget_are_refused() {
         max_vertices: 3,
         max_faces: 3,
         max_bytes: 1 << 20,
+        ..Limits::default()
     };
     let too_large = |bytes: &[u8]| {
         matches!(
@@ -255,6 +256,56 @@ fn inputs_over_the_memory_budget_are_refused() {
         "{e}"
     );
     assert!(e.to_string().contains("hint"));
+}
+
+/// A 3MF file of a few kilobytes whose nested components name 10^10 instances of an
+/// empty object: no vertex or face limit is ever reached, so only a limit on the
+/// instances stops it (it once kept a preparation busy for days).
+#[test]
+fn three_mf_component_bomb_is_refused_quickly() {
+    let mut objects = String::new();
+    for id in 2..=10 {
+        let components: String = (0..10)
+            .map(|_| format!(r#"<component objectid="{}"/>"#, id + 1))
+            .collect();
+        objects += &format!(
+            r#"<object id="{id}" type="model"><components>{components}</components></object>"#
+        );
+    }
+    objects += r#"<object id="11" type="model"><mesh><vertices></vertices><triangles></triangles></mesh></object>"#;
+    let top: String = (0..10).map(|_| r#"<component objectid="2"/>"#).collect();
+    let model = format!(
+        r#"<?xml version="1.0" encoding="UTF-8"?>
+<model unit="millimeter" xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02">
+ <resources><object id="1" type="model"><components>{top}</components></object>{objects}</resources>
+ <build><item objectid="1"/></build>
+</model>"#
+    );
+    let file = three_mf(&[("3D/3dmodel.model", &model)]);
+    assert!(file.len() < 8 * 1024, "{} bytes", file.len());
+    let e = read(&file).unwrap_err();
+    assert!(
+        matches!(e, MeshError::TooLarge { what, .. } if what.contains("instances")),
+        "{e}"
+    );
+    assert!(e.to_string().contains("hint"), "{e}");
+}
+
+/// The uncompressed XML of all parts together has a limit of its own.
+#[test]
+fn three_mf_xml_over_its_limit_is_refused() {
+    let model = model_xml(TETRA_VERTICES, TETRA_TRIANGLES, &" ".repeat(5000));
+    let file = three_mf(&[("3D/3dmodel.model", &model)]);
+    let limits = Limits {
+        max_xml_bytes: 4096,
+        ..Limits::default()
+    };
+    let e = mesh::read_with_limits(Cursor::new(&file), "big.3mf", &limits).unwrap_err();
+    assert!(
+        matches!(e, MeshError::TooLarge { what, limit: 4096, .. } if what.contains("XML")),
+        "{e}"
+    );
+    mesh::read_with_limits(Cursor::new(&file), "big.3mf", &Limits::default()).unwrap();
 }
 
 fn model_xml(vertices: &str, triangles: &str, extra_objects: &str) -> String {

@@ -9,6 +9,7 @@ pub mod control;
 pub mod enhance;
 pub mod logging;
 pub mod ports;
+pub mod prepare_job;
 pub mod print;
 pub mod run;
 pub mod sim;
@@ -51,6 +52,9 @@ pub enum Command {
     Resume(control::PrinterArgs),
     /// Put a failed, cancelled or interrupted job back in the queue
     Retry(control::JobArgs),
+    /// The daemon's preparation child (internal)
+    #[command(hide = true)]
+    PrepareJob(prepare_job::Args),
 }
 
 pub fn main() -> ExitCode {
@@ -69,6 +73,7 @@ pub fn main() -> ExitCode {
         Command::Pause(a) => control::pause(a),
         Command::Resume(a) => control::resume(a),
         Command::Retry(a) => control::retry(a),
+        Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {
         Ok(code) => code,

@@ -49,6 +49,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let options = RunOptions {
         config_path: args.config.clone(),
         exit_when_idle: args.exit_when_idle,
+        prepare_program: None,
     };
     runtime.block_on(daemon::run(config, options))?;
     Ok(ExitCode::SUCCESS)

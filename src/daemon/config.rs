@@ -209,12 +209,21 @@ impl Config {
     pub fn parse(text: &str, path: &Path) -> Result<Config, ConfigError> {
         let raw: RawConfig = toml::from_str(text).map_err(|e| {
             let offset = e.span().map(|s| s.start).unwrap_or(0);
-            let (line, section) = locate(text, offset);
+            let (line, mut section) = locate(text, offset);
+            let mut message = e.message().trim().to_string();
+            // An unknown table is reported where serde sees it, as a key of the document;
+            // its header is on the error's line, so name it as what it is.
+            if let Some(header) = unknown_table_header(text, offset) {
+                section = "the top level".into();
+                message = format!(
+                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[printer]], [[folder]])"
+                );
+            }
             ConfigError::Parse {
                 file: path.to_path_buf(),
                 line,
                 section,
-                message: e.message().trim().to_string(),
+                message,
             }
         })?;
         // Every configured path is made absolute here, once: the watcher compares event
@@ -297,35 +306,37 @@ printers = ["demo"]
             });
             let max_heating = match raw_farm.max_heating {
                 None => 2,
-                Some(n) if n >= 1 => n as usize,
+                Some(n) if (1..=MAX_PRINTERS as i64).contains(&n) => n as usize,
                 Some(n) => {
                     return Err(invalid(
                         "[farm]".into(),
                         "max_heating",
-                        format!("must be at least 1, got {n}"),
+                        format!("must be between 1 and {MAX_PRINTERS}, got {n}"),
                     ))
                 }
             };
-            let seconds = |key: &str, value: Option<f64>, default: f64| {
-                let v = value.unwrap_or(default);
-                if v.is_finite() && v > 0.0 && v < 86_400.0 {
-                    Ok(Duration::from_secs_f64(v))
-                } else {
-                    Err(invalid(
-                        "[farm]".into(),
-                        key,
-                        format!("must be a number of seconds > 0, got {v}"),
-                    ))
-                }
+            let seconds = |key: &str, value: Option<f64>, default: f64, range: &Bounds| {
+                seconds_in(value.unwrap_or(default), range)
+                    .map_err(|m| invalid("[farm]".into(), key, m))
             };
             FarmConfig {
                 max_heating,
                 on_shutdown: raw_farm.on_shutdown.unwrap_or(OnShutdown::Finish),
-                settle: seconds("settle_s", raw_farm.settle_s, 5.0)?,
-                rescan: seconds("rescan_s", raw_farm.rescan_s, 30.0)?,
+                settle: seconds("settle_s", raw_farm.settle_s, 5.0, &SETTLE_S)?,
+                rescan: seconds("rescan_s", raw_farm.rescan_s, 30.0, &RESCAN_S)?,
             }
         };
 
+        if raw.printers.len() > MAX_PRINTERS {
+            return Err(invalid(
+                "[[printer]]".into(),
+                "name",
+                format!(
+                    "at most {MAX_PRINTERS} printers, got {}",
+                    raw.printers.len()
+                ),
+            ));
+        }
         let mut printers = Vec::new();
         let mut names = BTreeSet::new();
         for (i, p) in raw.printers.into_iter().enumerate() {
@@ -437,18 +448,16 @@ printers = ["demo"]
             if folders.iter().any(|o| o.path == path) {
                 return Err(invalid(section, "path", "is configured twice".into()));
             }
-            if !(f.height_mm.is_finite() && f.height_mm > 0.0) {
+            check_height(f.height_mm).map_err(|m| invalid(section.clone(), "height_mm", m))?;
+            let inside = |a: &Path, b: &Path| normalise(a).starts_with(normalise(b));
+            if inside(&path, &spool_dir) || inside(&spool_dir, &path) {
                 return Err(invalid(
                     section,
-                    "height_mm",
-                    format!("must be > 0, got {}", f.height_mm),
-                ));
-            }
-            if f.height_mm > 1000.0 {
-                return Err(invalid(
-                    section,
-                    "height_mm",
-                    format!("must be at most 1000 mm, got {}", f.height_mm),
+                    "path",
+                    format!(
+                        "the hot folder and the spool ({}) must not contain each other",
+                        spool_dir.display()
+                    ),
                 ));
             }
             if f.printers.is_empty() {
@@ -474,17 +483,8 @@ printers = ["demo"]
                     parse_strength(v).map_err(|m| invalid(section.clone(), "strength", m))?
                 }
             };
-            let timeout = match f.timeout_s {
-                None => Duration::from_secs(600),
-                Some(t) if t.is_finite() && t > 0.0 => Duration::from_secs_f64(t),
-                Some(t) => {
-                    return Err(invalid(
-                        section,
-                        "timeout_s",
-                        format!("must be > 0, got {t}"),
-                    ))
-                }
-            };
+            let timeout = seconds_in(f.timeout_s.unwrap_or(600.0), &PREPARE_TIMEOUT_S)
+                .map_err(|m| invalid(section.clone(), "timeout_s", m))?;
             let settings = match f.settings {
                 None => crate::slice::SliceSettings::default(),
                 Some(table) => {
@@ -523,6 +523,62 @@ printers = ["demo"]
     }
 }
 
+/// At most this many printers (and so heating permits) in one farm.
+pub const MAX_PRINTERS: usize = 256;
+
+/// A range of seconds a setting may take.
+type Bounds = std::ops::RangeInclusive<f64>;
+/// Settle time of a dropped file: long enough to see a write, short enough to notice.
+const SETTLE_S: Bounds = 0.05..=3600.0;
+/// Rescan period of the hot folders.
+const RESCAN_S: Bounds = 0.5..=86_400.0;
+/// Time limit of one preparation (enhance and slice).
+pub const PREPARE_TIMEOUT_S: Bounds = 0.1..=7.0 * 86_400.0;
+
+/// A number of seconds within `range`, as a duration (never a panic for NaN, infinity or
+/// a value too big for a `Duration`).
+fn seconds_in(value: f64, range: &Bounds) -> Result<Duration, String> {
+    if value.is_finite() && range.contains(&value) {
+        Ok(Duration::from_secs_f64(value))
+    } else {
+        Err(format!(
+            "must be a number of seconds from {} to {}, got {value}",
+            range.start(),
+            range.end()
+        ))
+    }
+}
+
+/// A printed height in mm: what the printer can build, and enough to hold a shape.
+pub fn check_height(height_mm: f64) -> Result<(), String> {
+    let range = crate::slice::HEIGHT_MM;
+    if height_mm.is_finite() && range.contains(&height_mm) {
+        Ok(())
+    } else {
+        Err(format!(
+            "must be from {} to {} mm, got {height_mm}",
+            range.start(),
+            range.end()
+        ))
+    }
+}
+
+/// `path` with `.` and `..` taken out lexically (links are not resolved: the folders may
+/// not exist yet).
+fn normalise(path: &Path) -> PathBuf {
+    let mut out = PathBuf::new();
+    for c in path.components() {
+        match c {
+            std::path::Component::CurDir => {}
+            std::path::Component::ParentDir => {
+                out.pop();
+            }
+            other => out.push(other),
+        }
+    }
+    out
+}
+
 /// A stable seed from a printer's name (FNV-1a), the same on every run and reload.
 fn name_seed(name: &str) -> u64 {
     name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
@@ -530,17 +586,44 @@ fn name_seed(name: &str) -> u64 {
     })
 }
 
+/// The strongest enhancement accepted: five times the automatic table's strongest (20),
+/// beyond which a shape is distorted rather than sharpened.
+pub const MAX_LAMBDA2: f64 = 100.0;
+
 /// `strength = "auto" | "off" | <lambda2>`.
 pub fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     match value {
         toml::Value::String(s) if s == "auto" => Ok(Strength::Auto),
         toml::Value::String(s) if s == "off" => Ok(Strength::Off),
-        toml::Value::Float(x) if x.is_finite() && *x >= 0.0 => Ok(Strength::Lambda2(*x)),
-        toml::Value::Integer(x) if *x >= 0 => Ok(Strength::Lambda2(*x as f64)),
+        toml::Value::Float(x) if (0.0..=MAX_LAMBDA2).contains(x) => Ok(Strength::Lambda2(*x)),
+        toml::Value::Integer(x) if (0..=MAX_LAMBDA2 as i64).contains(x) => {
+            Ok(Strength::Lambda2(*x as f64))
+        }
         other => Err(format!(
-            "must be \"auto\", \"off\" or a lambda2 >= 0, got {other}"
+            "must be \"auto\", \"off\" or a lambda2 from 0 to {MAX_LAMBDA2}, got {other}"
         )),
     }
+}
+
+/// The table header on the line of `offset`, when that header names no known table.
+fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
+    let offset = offset.min(text.len());
+    let start = text[..offset].rfind('\n').map_or(0, |i| i + 1);
+    let line = text[start..].lines().next()?.trim();
+    let name = line
+        .strip_prefix("[[")
+        .and_then(|l| l.split_once("]]"))
+        .or_else(|| line.strip_prefix('[').and_then(|l| l.split_once(']')))?
+        .0
+        .trim();
+    let top = name.split('.').next()?.trim().trim_matches('"');
+    let known = ["spool", "control", "farm", "printer", "folder"];
+    (!known.contains(&top)).then(|| {
+        line.split_once('#')
+            .map_or(line, |(h, _)| h)
+            .trim()
+            .to_string()
+    })
 }
 
 /// Line number (1-based) of a byte offset and the table header that encloses it.
@@ -677,7 +760,7 @@ slicer = "cura"
     #[test]
     fn bad_values_name_section_and_key() {
         let cases = [
-            ("height_mm = 50", "height_mm = -5", "[[folder]] #1 (path \"/srv/print/5cm\"): key `height_mm`: must be > 0"),
+            ("height_mm = 50", "height_mm = -5", "[[folder]] #1 (path \"/srv/print/5cm\"): key `height_mm`: must be from 1 to 205 mm"),
             ("max_heating = 1", "max_heating = 0", "[farm]: key `max_heating`"),
             ("firmware = \"ultimaker2\"", "firmware = \"repetier\"", "[[printer]] #1 (name \"um2-a\"): key `firmware`"),
             ("printers = [\"sim\"]", "printers = [\"nope\"]", "[[folder]] #2 (path \"hot/igea\"): key `printers`: no [[printer]] is named \"nope\""),
@@ -692,6 +775,46 @@ slicer = "cura"
             let err = parse(&text).unwrap_err().to_string();
             assert!(err.contains(expected), "{err}\n  expected: {expected}");
             assert!(err.starts_with("/etc/crispen/crispen.toml: "), "{err}");
+        }
+    }
+
+    /// Values that once passed the check and then crashed the daemon (a duration too big
+    /// for `Duration`, a zero rescan period panicking the watcher) or made no sense (a
+    /// 0.001 mm print, a hot folder inside the spool) are refused, section and key named.
+    #[test]
+    fn every_value_is_bounded() {
+        let cases = [
+            ("strength = 0.4", "strength = 0.4\ntimeout_s = 1e300", "key `timeout_s`: must be a number of seconds"),
+            ("strength = 0.4", "strength = 0.4\ntimeout_s = nan", "key `timeout_s`"),
+            ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nrescan_s = 1e-12", "[farm]: key `rescan_s`"),
+            ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nsettle_s = 1e30", "[farm]: key `settle_s`"),
+            ("max_heating = 1", "max_heating = 100000", "[farm]: key `max_heating`: must be between 1 and 256"),
+            ("height_mm = 50", "height_mm = 0.001", "key `height_mm`: must be from 1 to 205 mm"),
+            ("height_mm = 50", "height_mm = 500", "key `height_mm`: must be from 1 to 205 mm"),
+            ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\" or a lambda2 from 0 to 100"),
+            ("path = \"/srv/print/5cm\"", "path = \"/var/lib/crispen/hot\"", "[[folder]] #1 (path \"/var/lib/crispen/hot\"): key `path`: the hot folder and the spool (/var/lib/crispen) must not contain each other"),
+            ("path = \"/srv/print/5cm\"", "path = \"/var/lib\"", "key `path`: the hot folder and the spool"),
+            ("path = \"/srv/print/5cm\"", "path = \"/var/lib/x/../crispen/./in\"", "key `path`: the hot folder and the spool"),
+        ];
+        for (from, to, expected) in cases {
+            let text = GOOD.replacen(from, to, 1);
+            assert_ne!(text, GOOD, "{from}");
+            let err = parse(&text).unwrap_err().to_string();
+            assert!(err.contains(expected), "{err}\n  expected: {expected}");
+        }
+        // Near the spool but not inside it is fine.
+        parse(&GOOD.replacen("/srv/print/5cm", "/var/lib/crispen-hot", 1)).unwrap();
+    }
+
+    /// An unknown table was once reported as an unknown key of the table above it.
+    #[test]
+    fn unknown_top_level_table_is_named_as_a_table() {
+        for header in ["[[machine]]", "[machines]", "[machine.x]"] {
+            let text = format!("{GOOD}{header}\nname = \"x\"\n");
+            let err = parse(&text).unwrap_err().to_string();
+            assert!(err.contains(&format!("unknown table `{header}`")), "{err}");
+            assert!(err.contains("the top level"), "{err}");
+            assert!(!err.contains("[[folder]] #2"), "{err}");
         }
     }
 

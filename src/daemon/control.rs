@@ -7,14 +7,14 @@
 //! Responses: `{"ok":true,"message":...,"status":{...}}` or `{"ok":false,"error":"..."}`.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
-use super::job::{JobState, PrinterGate};
+use super::job::{JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt};
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt};
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "cmd", rename_all = "lowercase", deny_unknown_fields)]
@@ -59,6 +59,21 @@ pub struct JobStatus {
     pub copies_done: u32,
     pub copies: u32,
     pub updated: f64,
+}
+
+/// Why a control command was refused; the client shows the message.
+#[derive(Debug, thiserror::Error)]
+pub enum CommandError {
+    #[error("no printer {0:?} (hint: `crispen status` lists the printers)")]
+    NoPrinter(String),
+    #[error("{0} is not printing")]
+    NotPrinting(String),
+    #[error("{0}: the print just ended")]
+    PrintEnded(String),
+    #[error("job {id} is {state}; only active jobs can be cancelled")]
+    NotActive { id: String, state: JobState },
+    #[error(transparent)]
+    Store(#[from] StoreError),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -152,7 +167,7 @@ pub fn status(farm: &Farm) -> Status {
 
 /// Carries out one request.
 pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
-    let result: Result<Option<String>, String> = match req {
+    let result: Result<Option<String>, CommandError> = match req {
         Request::Status => {
             return Response {
                 ok: true,
@@ -167,7 +182,7 @@ pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
         }
         Request::Cancel { job } => cancel(farm, &job).await,
         Request::Retry { job } => {
-            let r = farm.store().retry(&job).map_err(|e| e.to_string());
+            let r = farm.store().retry(&job).map_err(CommandError::from);
             r.map(|retried| {
                 farm.bump();
                 Some(match retried.state {
@@ -185,13 +200,13 @@ pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
         },
         Err(error) => Response {
             ok: false,
-            error: Some(error),
+            error: Some(error.to_string()),
             ..Default::default()
         },
     }
 }
 
-fn known_printer(farm: &Farm, printer: &str) -> Result<(), String> {
+fn known_printer(farm: &Farm, printer: &str) -> Result<(), CommandError> {
     if farm
         .printers
         .lock()
@@ -200,28 +215,24 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<(), String> {
     {
         Ok(())
     } else {
-        Err(format!(
-            "no printer {printer:?} (hint: `crispen status` lists the printers)"
-        ))
+        Err(CommandError::NoPrinter(printer.to_string()))
     }
 }
 
-fn clear(farm: &Farm, printer: &str) -> Result<Option<String>, String> {
+fn clear(farm: &Farm, printer: &str) -> Result<Option<String>, CommandError> {
     known_printer(farm, printer)?;
     let mut store = farm.store();
     let gate = store.gate(printer);
     if !gate.bed_not_cleared {
         return Ok(Some(format!("{printer}: bed was already clear")));
     }
-    store
-        .set_gate(
-            printer,
-            PrinterGate {
-                bed_not_cleared: false,
-                last_job: gate.last_job,
-            },
-        )
-        .map_err(|e| e.to_string())?;
+    store.set_gate(
+        printer,
+        PrinterGate {
+            bed_not_cleared: false,
+            last_job: gate.last_job,
+        },
+    )?;
     drop(store);
     tracing::info!(printer, "bed cleared");
     farm.bump();
@@ -234,7 +245,7 @@ async fn send_print_command(
     farm: &Farm,
     printer: &str,
     command: PrintCommand,
-) -> Result<Option<String>, String> {
+) -> Result<Option<String>, CommandError> {
     known_printer(farm, printer)?;
     let tx = farm
         .print_controls
@@ -243,16 +254,16 @@ async fn send_print_command(
         .get(printer)
         .cloned();
     let Some(tx) = tx else {
-        return Err(format!("{printer} is not printing"));
+        return Err(CommandError::NotPrinting(printer.to_string()));
     };
     tx.send(command)
         .await
-        .map_err(|_| format!("{printer}: the print just ended"))?;
+        .map_err(|_| CommandError::PrintEnded(printer.to_string()))?;
     tracing::info!(printer, ?command, "print command sent");
     Ok(Some(format!("{printer}: {command:?} sent")))
 }
 
-async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
+async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, CommandError> {
     // Checked and changed under one hold of the lock: a printer claiming the job between
     // the two would otherwise print a job marked cancelled.
     let job = {
@@ -260,14 +271,13 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
         let job = store
             .get(id)
             .cloned()
-            .ok_or_else(|| format!("no job {id:?} (hint: `crispen status` lists the jobs)"))?;
+            .ok_or_else(|| CommandError::from(StoreError::NoSuchJob(id.to_string())))?;
         if matches!(
             job.state,
             JobState::Queued | JobState::Preparing | JobState::Ready
         ) {
             let reason = Some("cancelled by the operator".into());
-            farm.transition_in(&mut store, id, JobState::Cancelled, reason)
-                .map_err(|e| e.to_string())?;
+            farm.transition_in(&mut store, id, JobState::Cancelled, reason)?;
         }
         job
     };
@@ -280,7 +290,7 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
                 .unwrap_or_else(|e| e.into_inner())
                 .get(id)
             {
-                p.cancel.store(true, std::sync::atomic::Ordering::Relaxed);
+                p.cancel.cancel();
             }
             Ok(Some(format!("job {id} cancelled")))
         }
@@ -291,14 +301,25 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, String> {
                 "job {id}: stopping the print on {printer} (heaters off)"
             )))
         }
-        other => Err(format!(
-            "job {id} is {other}; only active jobs can be cancelled"
-        )),
+        other => Err(CommandError::NotActive {
+            id: id.to_string(),
+            state: other,
+        }),
     }
 }
 
-/// Binds the control socket (replacing a stale one) with mode 0660.
+/// Longest request line accepted; a request is a few short fields.
+pub const MAX_REQUEST_BYTES: usize = 64 * 1024;
+/// A connection with no complete request for this long is closed.
+pub const IDLE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+/// Connections served at once; more wait in the kernel's backlog.
+pub const MAX_CONNECTIONS: usize = 64;
+
+/// Binds the control socket with mode 0660. An existing socket nobody answers on (left by
+/// a daemon that was killed) is replaced; anything else at the path is left alone and
+/// refused, so a mistyped `[control] socket` can never remove a file.
 pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
+    use std::os::unix::fs::FileTypeExt;
     let io = |source| ControlError::Io {
         socket: socket.to_path_buf(),
         source,
@@ -306,48 +327,99 @@ pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
     if let Some(dir) = socket.parent() {
         std::fs::create_dir_all(dir).map_err(io)?;
     }
-    if socket.exists() {
-        if std::os::unix::net::UnixStream::connect(socket).is_ok() {
-            return Err(ControlError::Io {
-                socket: socket.to_path_buf(),
-                source: std::io::Error::new(
+    match std::fs::symlink_metadata(socket) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(io(e)),
+        Ok(meta) if !meta.file_type().is_socket() => {
+            return Err(io(std::io::Error::new(
+                std::io::ErrorKind::AlreadyExists,
+                "the path exists and is not a socket; it is left alone (hint: use another [control] socket)",
+            )))
+        }
+        Ok(_) => {
+            if std::os::unix::net::UnixStream::connect(socket).is_ok() {
+                return Err(io(std::io::Error::new(
                     std::io::ErrorKind::AddrInUse,
                     "another daemon is listening here (hint: stop it, or use another [control] socket)",
-                ),
-            });
+                )));
+            }
+            std::fs::remove_file(socket).map_err(io)?;
         }
-        std::fs::remove_file(socket).map_err(io)?;
     }
     let listener = tokio::net::UnixListener::bind(socket).map_err(io)?;
     std::fs::set_permissions(socket, std::fs::Permissions::from_mode(0o660)).map_err(io)?;
     Ok(listener)
 }
 
-/// Answers requests until the listener is dropped.
+/// Answers requests until the task is dropped: at most [`MAX_CONNECTIONS`] connections at
+/// once, each closed after [`IDLE_TIMEOUT`] without a request or at a request longer than
+/// [`MAX_REQUEST_BYTES`]; when accepting fails (out of file descriptors) it waits a
+/// little longer each time instead of spinning.
 pub async fn serve(farm: Arc<Farm>, listener: tokio::net::UnixListener) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    let mut backoff = std::time::Duration::from_millis(10);
     loop {
-        let Ok((stream, _)) = listener.accept().await else {
-            continue;
+        let Ok(slot) = Arc::clone(&slots).acquire_owned().await else {
+            return;
         };
+        let stream = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    tracing::warn!(error = %e, retry_in_ms = backoff.as_millis() as u64, "control socket: cannot accept");
+                    tokio::time::sleep(backoff).await;
+                    backoff = (backoff * 2).min(std::time::Duration::from_secs(1));
+                    continue;
+                }
+            },
+            _ = farm.shutdown.cancelled() => return,
+        };
+        backoff = std::time::Duration::from_millis(10);
         let farm = Arc::clone(&farm);
         tokio::spawn(async move {
-            let (read, mut write) = stream.into_split();
-            let mut lines = tokio::io::BufReader::new(read).lines();
-            while let Ok(Some(line)) = lines.next_line().await {
-                let response = match serde_json::from_str::<Request>(&line) {
-                    Ok(req) => handle(&farm, req).await,
-                    Err(e) => Response {
-                        ok: false,
-                        error: Some(format!("bad request: {e}")),
-                        ..Default::default()
-                    },
-                };
-                let mut out = serde_json::to_string(&response).expect("response serialises");
-                out.push('\n');
-                if write.write_all(out.as_bytes()).await.is_err() {
-                    break;
-                }
-            }
+            let _slot = slot;
+            serve_connection(&farm, stream).await;
         });
+    }
+}
+
+/// Decodes one request line (as read, newline included or not) or says what is wrong
+/// with it.
+pub fn parse_request(line: &[u8]) -> Result<Request, String> {
+    if line.len() > MAX_REQUEST_BYTES {
+        return Err(format!(
+            "bad request: longer than {MAX_REQUEST_BYTES} bytes; the connection is closed"
+        ));
+    }
+    serde_json::from_slice(line).map_err(|e| format!("bad request: {e}"))
+}
+
+async fn serve_connection(farm: &Arc<Farm>, stream: tokio::net::UnixStream) {
+    let (read, mut write) = stream.into_split();
+    let mut reader = tokio::io::BufReader::new(read);
+    loop {
+        let mut line = Vec::new();
+        let mut limited = (&mut reader).take(MAX_REQUEST_BYTES as u64 + 1);
+        let read = limited.read_until(b'\n', &mut line);
+        let read = tokio::select! {
+            read = tokio::time::timeout(IDLE_TIMEOUT, read) => read,
+            _ = farm.shutdown.cancelled() => return,
+        };
+        let response = match read {
+            Err(_) | Ok(Err(_)) | Ok(Ok(0)) => return,
+            Ok(Ok(_)) => match parse_request(&line) {
+                Ok(req) => handle(farm, req).await,
+                Err(error) => Response {
+                    ok: false,
+                    error: Some(error),
+                    ..Default::default()
+                },
+            },
+        };
+        let mut out = serde_json::to_string(&response).expect("response serialises");
+        out.push('\n');
+        if write.write_all(out.as_bytes()).await.is_err() || line.len() > MAX_REQUEST_BYTES {
+            return;
+        }
     }
 }

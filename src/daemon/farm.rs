@@ -8,7 +8,8 @@ use super::job::{Job, JobState, JobStore, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex, RwLock};
-use tokio::sync::{mpsc, watch, Semaphore};
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
 
 /// A printer's state as shown by `crispen status` (lower case in JSON).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -64,11 +65,24 @@ pub enum PrintCommand {
     Cancel,
 }
 
+/// One printer's leave to heat up; handed back when dropped.
+pub struct HeatingPermit {
+    farm: Arc<Farm>,
+}
+
+impl Drop for HeatingPermit {
+    fn drop(&mut self) {
+        *self.farm.heating.lock().unwrap_or_else(|e| e.into_inner()) -= 1;
+        self.farm.bump();
+    }
+}
+
 /// A preparation in progress.
 pub struct Preparation {
     pub step: String,
-    /// Set by `crispen cancel`; the slicer's child process is killed when it is seen.
-    pub cancel: Arc<std::sync::atomic::AtomicBool>,
+    /// Fired by `crispen cancel` (and by shutdown, of which it is a child): the
+    /// preparation's process is killed at once.
+    pub cancel: CancellationToken,
 }
 
 pub struct Farm {
@@ -81,16 +95,16 @@ pub struct Farm {
     pub print_controls: Mutex<HashMap<String, mpsc::Sender<PrintCommand>>>,
     /// Bumped on every change that may let a task make progress.
     generation: watch::Sender<u64>,
-    /// Set once SIGTERM arrived: no new work is taken.
-    stopping: watch::Sender<bool>,
-    pub heating: Arc<Semaphore>,
+    /// Cancelled once SIGTERM arrived: no new work is taken, waits end.
+    pub shutdown: CancellationToken,
+    /// Printers holding a heating permit now (see [`Farm::heating_permit`]).
+    heating: Mutex<usize>,
     /// Jobs that reached a final state during this run (for --exit-when-idle).
     pub finished_this_run: std::sync::atomic::AtomicUsize,
 }
 
 impl Farm {
-    pub fn new(config: Config, store: JobStore) -> Arc<Farm> {
-        let heating = Arc::new(Semaphore::new(config.farm.max_heating));
+    pub fn new(config: Config, store: JobStore, shutdown: CancellationToken) -> Arc<Farm> {
         Arc::new(Farm {
             config: RwLock::new(Arc::new(config)),
             store: Mutex::new(store),
@@ -98,8 +112,8 @@ impl Farm {
             preparing: Mutex::new(HashMap::new()),
             print_controls: Mutex::new(HashMap::new()),
             generation: watch::channel(0).0,
-            stopping: watch::channel(false).0,
-            heating,
+            shutdown,
+            heating: Mutex::new(0),
             finished_this_run: Default::default(),
         })
     }
@@ -126,16 +140,32 @@ impl Farm {
     }
 
     pub fn stopping(&self) -> bool {
-        *self.stopping.borrow()
-    }
-
-    pub fn subscribe_stopping(&self) -> watch::Receiver<bool> {
-        self.stopping.subscribe()
+        self.shutdown.is_cancelled()
     }
 
     pub fn begin_stop(&self) {
-        self.stopping.send_replace(true);
+        self.shutdown.cancel();
         self.bump();
+    }
+
+    /// Waits for one of the `[farm] max_heating` heating permits. The limit is read from
+    /// the config in force at each try, so a reload applies to the next permit (a lower
+    /// limit lets permits already held run out). Not raced with shutdown here: the caller
+    /// does that.
+    pub async fn heating_permit(self: &Arc<Self>) -> HeatingPermit {
+        loop {
+            let mut wake = self.subscribe();
+            {
+                let mut in_use = self.heating.lock().unwrap_or_else(|e| e.into_inner());
+                if *in_use < self.config().farm.max_heating {
+                    *in_use += 1;
+                    return HeatingPermit {
+                        farm: Arc::clone(self),
+                    };
+                }
+            }
+            let _ = wake.changed().await;
+        }
     }
 
     /// Changes a job's state, logs it, counts final states, and wakes the tasks.
@@ -157,8 +187,42 @@ impl Farm {
         state: JobState,
         reason: Option<String>,
     ) -> Result<Job, StoreError> {
-        let job = store.transition(id, state, reason.clone())?;
-        match &reason {
+        self.transition_with(store, id, state, reason, |_| {})
+    }
+
+    /// [`Farm::transition_in`] with other fields of the job changed in the same write.
+    pub fn transition_with(
+        &self,
+        store: &mut JobStore,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job),
+    ) -> Result<Job, StoreError> {
+        let job = store.transition_with(id, state, reason.clone(), also)?;
+        self.announce(id, state, &reason);
+        Ok(job)
+    }
+
+    /// Records the outcome of a print, which has happened whether or not it can be
+    /// written now (see [`JobStore::record_outcome`]).
+    pub fn record_outcome(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job),
+    ) -> Result<Job, StoreError> {
+        let job = self
+            .store()
+            .record_outcome(id, state, reason.clone(), also)?;
+        self.announce(id, state, &reason);
+        Ok(job)
+    }
+
+    /// Logs a state change, counts final states, and wakes the tasks.
+    fn announce(&self, id: &str, state: JobState, reason: &Option<String>) {
+        match reason {
             Some(r) => tracing::info!(job = id, state = state.name(), reason = %r, "job state"),
             None => tracing::info!(job = id, state = state.name(), "job state"),
         }
@@ -167,7 +231,6 @@ impl Farm {
                 .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         }
         self.bump();
-        Ok(job)
     }
 
     pub fn set_printer(&self, name: &str, change: impl FnOnce(&mut PrinterStatus)) {
@@ -180,5 +243,42 @@ impl Farm {
     /// No job has work ahead of it.
     pub fn idle(&self) -> bool {
         !self.store().jobs().any(|j| j.state.is_active())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn farm(max_heating: usize, spool: &std::path::Path) -> Arc<Farm> {
+        let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
+        let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
+        let store = JobStore::open(&spool.join("spool")).unwrap();
+        Farm::new(config, store, CancellationToken::new())
+    }
+
+    /// `max_heating` applies on reload: raising it lets a waiting printer heat at once
+    /// (the permits were once a semaphore sized at startup).
+    #[tokio::test]
+    async fn max_heating_applies_on_reload() {
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(1, tmp.path());
+        let first = farm.heating_permit().await;
+        let waiting = tokio::spawn({
+            let farm = Arc::clone(&farm);
+            async move { farm.heating_permit().await }
+        });
+        tokio::task::yield_now().await;
+        assert!(!waiting.is_finished(), "one permit only");
+        let mut raised = (*farm.config()).clone();
+        raised.farm.max_heating = 2;
+        *farm.config.write().unwrap() = Arc::new(raised);
+        farm.bump();
+        let second = tokio::time::timeout(std::time::Duration::from_secs(30), waiting)
+            .await
+            .expect("the raised limit lets the waiting printer heat")
+            .unwrap();
+        drop((first, second));
+        assert_eq!(*farm.heating.lock().unwrap(), 0, "permits are handed back");
     }
 }

@@ -3,7 +3,8 @@
 //! A file counts as complete when it was renamed into the folder (inotify MOVED_TO), when
 //! it was closed after writing (CLOSE_WRITE), or when its size and mtime stayed unchanged
 //! for the settle time (for copies over network shares, where events are unreliable).
-//! Temporary names (`*.part`, `*~`, dot-files) and sidecars (`*.toml`) are never taken.
+//! Temporary names (`*.part`, `*~`, dot-files) are never taken; sidecars (`*.toml`) are
+//! reported like models, for the pick-up to match with their model.
 //! [`SettleTracker`] is the pure decision; [`watch`] drives it with `notify` events, a
 //! periodic rescan (in case an event was missed) and a short tick.
 
@@ -23,6 +24,12 @@ pub fn is_candidate_name(name: &str) -> bool {
         || name.ends_with(".toml")
         || name.ends_with(".tmp")
         || name.ends_with(".crdownload"))
+}
+
+/// Whether a file name is a model's sidecar (`model.stl.toml`). Sidecars are tracked too,
+/// so one that arrives after its model can still be matched with it.
+pub fn is_sidecar_name(name: &str) -> bool {
+    !name.starts_with('.') && name.len() > ".toml".len() && name.ends_with(".toml")
 }
 
 #[derive(Debug)]
@@ -56,7 +63,7 @@ impl SettleTracker {
             Some(n) => n.to_string_lossy(),
             None => return,
         };
-        if !is_candidate_name(&name) {
+        if !is_candidate_name(&name) && !is_sidecar_name(&name) {
             return;
         }
         let entry = self.seen.entry(path.to_path_buf()).or_insert(Seen {
@@ -88,10 +95,14 @@ impl SettleTracker {
         let mut done = Vec::new();
         let settle = self.settle;
         self.seen.retain(|path, seen| {
-            let Ok(meta) = std::fs::metadata(path) else {
+            // Not followed: a link could lead out of the folder to any file.
+            let Ok(meta) = std::fs::symlink_metadata(path) else {
                 return false;
             };
             if !meta.is_file() {
+                if meta.is_symlink() {
+                    tracing::warn!(file = %path.display(), "a symbolic link in a hot folder is not picked up");
+                }
                 return false;
             }
             let mtime = meta.modified().ok();
@@ -238,6 +249,25 @@ mod tests {
         tracker.note(&part, true);
         assert!(tracker
             .take_complete(Instant::now() + Duration::from_secs(9))
+            .is_empty());
+    }
+
+    /// A link is never taken, even when an event says it is complete: it could lead out
+    /// of the folder to any file the daemon may read.
+    #[test]
+    fn symbolic_links_are_never_taken() {
+        let tmp = tempfile::tempdir().unwrap();
+        let target = tmp.path().join("elsewhere.stl");
+        std::fs::write(&target, b"x").unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let link = hot.join("link.stl");
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        let mut tracker = SettleTracker::new(Duration::from_millis(10));
+        tracker.note(&link, true);
+        tracker.scan_dir(&hot);
+        assert!(tracker
+            .take_complete(Instant::now() + Duration::from_secs(1))
             .is_empty());
     }
 }

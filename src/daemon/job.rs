@@ -25,6 +25,20 @@ pub enum StoreError {
     Corrupt { path: PathBuf, message: String },
     #[error("no job {0:?} (hint: `crispen status` lists the jobs)")]
     NoSuchJob(String),
+    #[error("spool {path} is in use by another crispen daemon (hint: stop it, or give this one another [spool] dir)")]
+    Locked { path: PathBuf },
+    #[error("job {id}: its directory {dir} was removed; the job failed")]
+    DirectoryGone { id: String, dir: PathBuf },
+    #[error(
+        "{path}: not a regular file (symbolic links and other special files are not picked up)"
+    )]
+    NotAFile { path: PathBuf },
+    #[error("job {id} cannot go from {from} to {to}")]
+    IllegalTransition {
+        id: String,
+        from: JobState,
+        to: JobState,
+    },
     #[error("job {id} is {state}; {action} needs it to be {allowed}")]
     WrongState {
         id: String,
@@ -48,6 +62,34 @@ pub enum JobState {
 }
 
 impl JobState {
+    pub const ALL: [JobState; 8] = [
+        JobState::Queued,
+        JobState::Preparing,
+        JobState::Ready,
+        JobState::Printing,
+        JobState::Done,
+        JobState::Failed,
+        JobState::Cancelled,
+        JobState::Interrupted,
+    ];
+
+    /// The one table of legal state changes; [`JobStore::transition`] refuses any other.
+    /// A job is prepared once per retry and printed once per copy; `done` is final, so a
+    /// finished job can never be offered for a reprint. Preparing goes back to queued only
+    /// by the restart rules (preparation is redone); a job whose files vanished or whose
+    /// state could not be read fails from wherever it waits.
+    pub fn can_go_to(self, next: JobState) -> bool {
+        use JobState::*;
+        matches!(
+            (self, next),
+            (Queued, Preparing | Cancelled | Failed)
+                | (Preparing, Ready | Failed | Cancelled | Queued)
+                | (Ready, Printing | Cancelled | Failed)
+                | (Printing, Done | Ready | Failed | Cancelled | Interrupted)
+                | (Failed | Cancelled | Interrupted, Queued | Ready)
+        )
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             JobState::Queued => "queued",
@@ -107,7 +149,7 @@ pub struct Job {
     /// Copies printed so far (a sidecar may ask for more than one).
     #[serde(default)]
     pub copies_done: u32,
-    pub slice_report: Option<serde_json::Value>,
+    pub slice_report: Option<crate::slice::SliceReport>,
     pub print_report: Option<serde_json::Value>,
 }
 
@@ -157,12 +199,16 @@ pub struct PrinterGate {
 }
 
 /// The spool on disk plus its in-memory index. Not synchronised: the daemon keeps it
-/// behind one mutex.
+/// behind one mutex. Holds the spool's lock (`<spool>/lock`, an flock) while open, so two
+/// daemons never share a spool.
 pub struct JobStore {
+    _lock: nix::fcntl::Flock<std::fs::File>,
     root: PathBuf,
     jobs: BTreeMap<String, Job>,
     gates: BTreeMap<String, PrinterGate>,
     next_seq: u64,
+    /// Jobs whose state in memory is newer than on disk (see [`JobStore::record_outcome`]).
+    unwritten: std::collections::BTreeSet<String>,
 }
 
 fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
@@ -190,27 +236,55 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
 }
 
 impl JobStore {
-    /// Opens (creating if needed) the spool at `root` and loads every job in it.
+    /// Opens (creating if needed) the spool at `root`, takes its lock, and loads every job
+    /// in it. A job whose state cannot be read is loaded as failed, never stopping the
+    /// others; a directory that is not a job of this spool (a copy of one, a stray
+    /// folder) is left alone and logged.
     pub fn open(root: &Path) -> Result<JobStore, StoreError> {
         let jobs_dir = root.join("jobs");
         std::fs::create_dir_all(&jobs_dir).map_err(io_err(&jobs_dir, "create"))?;
+        let lock_path = root.join("lock");
+        let lock_file = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&lock_path)
+            .map_err(io_err(&lock_path, "open"))?;
+        let lock = nix::fcntl::Flock::lock(lock_file, nix::fcntl::FlockArg::LockExclusiveNonblock)
+            .map_err(|(_, errno)| match errno {
+                nix::errno::Errno::EWOULDBLOCK => StoreError::Locked {
+                    path: root.to_path_buf(),
+                },
+                e => io_err(&lock_path, "lock")(e.into()),
+            })?;
         let mut jobs = BTreeMap::new();
         let mut next_seq = 1;
         for entry in std::fs::read_dir(&jobs_dir).map_err(io_err(&jobs_dir, "list"))? {
             let entry = entry.map_err(io_err(&jobs_dir, "list"))?;
-            let state_file = entry.path().join("job.json");
-            let text = match std::fs::read(&state_file) {
-                Ok(t) => t,
+            let dir = entry.path();
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if !entry.file_type().is_ok_and(|t| t.is_dir()) {
+                continue;
+            }
+            let Some(seq) = seq_of_id(&name) else {
+                tracing::warn!(dir = %dir.display(), "not a job directory (its name is not a job id); left alone");
+                continue;
+            };
+            next_seq = next_seq.max(seq + 1);
+            let job = match load_job(&dir) {
                 // A job directory without state: created by a pick-up interrupted before
                 // the state was written. Its files stay; the pick-up is redone below.
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-                Err(e) => return Err(io_err(&state_file, "read")(e)),
+                Ok(None) => continue,
+                Ok(Some(job)) if job.id != name => {
+                    tracing::warn!(dir = %dir.display(), job = %job.id, "a copy of another job's directory; not a job, left alone");
+                    continue;
+                }
+                Ok(Some(job)) => job,
+                Err(e) => {
+                    tracing::error!(job = %name, error = %e, "job state unreadable; the job is marked failed");
+                    unreadable_job(&dir, &name, seq, &e)
+                }
             };
-            let job: Job = serde_json::from_slice(&text).map_err(|e| StoreError::Corrupt {
-                path: state_file.clone(),
-                message: e.to_string(),
-            })?;
-            next_seq = next_seq.max(job.seq + 1);
             jobs.insert(job.id.clone(), job);
         }
         let gates_file = root.join("printers.json");
@@ -223,39 +297,45 @@ impl JobStore {
             Err(e) => return Err(io_err(&gates_file, "read")(e)),
         };
         let mut store = JobStore {
+            _lock: lock,
             root: root.to_path_buf(),
             jobs,
             gates,
             next_seq,
+            unwritten: Default::default(),
         };
         store.adopt_orphans()?;
         Ok(store)
     }
 
     /// Job directories whose model was moved in but whose state was never written (a crash
-    /// between the two steps) become queued jobs, so no dropped file is ever lost.
+    /// between the two steps) become queued jobs, so no dropped file is ever lost. Only a
+    /// directory whose `origin.json` names it is adopted: a copy of one is not a new job.
     fn adopt_orphans(&mut self) -> Result<(), StoreError> {
         let jobs_dir = self.root.join("jobs");
         let mut orphans = Vec::new();
         for entry in std::fs::read_dir(&jobs_dir).map_err(io_err(&jobs_dir, "list"))? {
             let entry = entry.map_err(io_err(&jobs_dir, "list"))?;
             let id = entry.file_name().to_string_lossy().into_owned();
-            if self.jobs.contains_key(&id) || !entry.path().is_dir() {
+            if self.jobs.contains_key(&id) || !entry.path().is_dir() || seq_of_id(&id).is_none() {
                 continue;
             }
             orphans.push((id, entry.path()));
         }
         for (id, dir) in orphans {
-            let meta: Option<(String, PathBuf)> = std::fs::read(dir.join("origin.json"))
-                .ok()
-                .and_then(|b| serde_json::from_slice(&b).ok());
-            let Some((file, folder)) = meta else { continue };
-            if !dir.join(&file).exists() {
+            let Some(origin) = read_origin(&dir) else {
+                continue;
+            };
+            if origin.id != id {
+                tracing::warn!(dir = %dir.display(), job = %origin.id, "a copy of another job's directory; not a job, left alone");
+                continue;
+            }
+            if !dir.join(&origin.file).exists() {
                 continue;
             }
             let seq = self.next_seq;
             self.next_seq += 1;
-            let job = Job::queued(id.clone(), seq, file, folder);
+            let job = Job::queued(id.clone(), seq, origin.file, origin.folder);
             self.save(&job)?;
             self.jobs.insert(id, job);
         }
@@ -333,10 +413,26 @@ impl JobStore {
     /// directory. The file is renamed, not copied, when spool and folder share a filesystem;
     /// otherwise it is copied, synced, and only then removed from the folder.
     pub fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
-        let file = source
+        // Never follow a link out of the hot folder: only the folder's own files are taken.
+        let not_a_file = || StoreError::NotAFile {
+            path: source.to_path_buf(),
+        };
+        match std::fs::symlink_metadata(source) {
+            Ok(meta) if meta.file_type().is_file() => {}
+            Ok(_) => return Err(not_a_file()),
+            Err(e) => return Err(io_err(source, "read")(e)),
+        }
+        let dropped = source
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| "model".into());
+        // A model named like one of the job's own files is kept under another name, so
+        // neither overwrites the other.
+        let file = if is_reserved_name(&dropped) {
+            format!("model-{dropped}")
+        } else {
+            dropped
+        };
         let seq = self.next_seq;
         self.next_seq += 1;
         let stem: String = file
@@ -352,23 +448,90 @@ impl JobStore {
             .collect();
         let id = format!("{seq:04}-{stem}");
         let dir = self.job_dir(&id);
+        let mut sidecar_name = source.as_os_str().to_owned();
+        sidecar_name.push(".toml");
+        let sidecar = PathBuf::from(sidecar_name);
+        let job = Job::queued(id.clone(), seq, file, folder.to_path_buf());
+        // A pick-up that cannot be completed (a full disk) is undone: the files go back to
+        // the hot folder and no half job is left behind.
+        let mut moved = Vec::new();
+        if let Err(e) = self.admit_into(&job, source, &sidecar, &mut moved) {
+            let mut undone = true;
+            for (from, to) in moved.iter().rev() {
+                undone &= move_file(to, from).is_ok();
+            }
+            if undone {
+                let _ = std::fs::remove_dir_all(&dir);
+            } else {
+                tracing::error!(job = %id, dir = %dir.display(), "a failed pick-up could not be undone; its files stay in the job directory");
+            }
+            return Err(e);
+        }
+        self.jobs.insert(id, job.clone());
+        Ok(job)
+    }
+
+    /// The steps of [`JobStore::admit`]; each file moved is recorded in `moved` as
+    /// (from, to) so that a failure can be undone.
+    fn admit_into(
+        &self,
+        job: &Job,
+        source: &Path,
+        sidecar: &Path,
+        moved: &mut Vec<(PathBuf, PathBuf)>,
+    ) -> Result<(), StoreError> {
+        let dir = self.job_dir(&job.id);
         std::fs::create_dir_all(&dir).map_err(io_err(&dir, "create job directory"))?;
         // Written before the move so a crash between the move and job.json still leaves
         // enough to rebuild the job (see adopt_orphans).
-        let origin = serde_json::to_vec(&(&file, folder)).expect("origin serialises");
+        let origin = serde_json::to_vec(&Origin {
+            id: job.id.clone(),
+            file: job.file.clone(),
+            folder: job.folder.clone(),
+        })
+        .expect("origin serialises");
         write_atomic(&dir.join("origin.json"), &origin)?;
-        move_file(source, &dir.join(&file))?;
+        let model = dir.join(&job.file);
+        move_file(source, &model)?;
+        moved.push((source.to_path_buf(), model));
         // The sidecar travels with its model.
-        let mut sidecar_name = source.as_os_str().to_owned();
-        sidecar_name.push(".toml");
-        let sidecar_path = PathBuf::from(sidecar_name);
-        if sidecar_path.is_file() {
-            move_file(&sidecar_path, &dir.join(format!("{file}.toml")))?;
+        if std::fs::symlink_metadata(sidecar).is_ok_and(|m| m.is_file()) {
+            let to = dir.join(format!("{}.toml", job.file));
+            move_file(sidecar, &to)?;
+            moved.push((sidecar.to_path_buf(), to));
         }
-        let job = Job::queued(id.clone(), seq, file, folder.to_path_buf());
-        self.save(&job)?;
-        self.jobs.insert(id, job.clone());
-        Ok(job)
+        self.save(job)
+    }
+
+    /// Moves a sidecar that arrived after its model into the job's directory: as the
+    /// job's sidecar when `applies` (the job has not started preparing), else aside as
+    /// `<file>.toml.late`, kept but not used. Returns `applies`.
+    pub fn late_sidecar(
+        &mut self,
+        id: &str,
+        sidecar: &Path,
+        applies: bool,
+    ) -> Result<bool, StoreError> {
+        let job = self
+            .jobs
+            .get(id)
+            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+        match std::fs::symlink_metadata(sidecar) {
+            Ok(meta) if meta.file_type().is_file() => {}
+            Ok(_) => {
+                return Err(StoreError::NotAFile {
+                    path: sidecar.to_path_buf(),
+                })
+            }
+            Err(e) => return Err(io_err(sidecar, "read")(e)),
+        }
+        let name = if applies {
+            format!("{}.toml", job.file)
+        } else {
+            format!("{}.toml.late", job.file)
+        };
+        move_file(sidecar, &self.job_dir(id).join(name))?;
+        Ok(applies)
     }
 
     fn save(&self, job: &Job) -> Result<(), StoreError> {
@@ -383,24 +546,105 @@ impl JobStore {
         state: JobState,
         reason: Option<String>,
     ) -> Result<Job, StoreError> {
-        self.update(id, |job| {
-            job.state = state;
-            job.history.push((state, now_s()));
-            if reason.is_some() || state.is_active() {
-                job.reason = reason;
-            }
-        })
+        self.transition_with(id, state, reason, |_| {})
     }
 
-    /// Applies `change` to a job and persists it.
-    pub fn update(&mut self, id: &str, change: impl FnOnce(&mut Job)) -> Result<Job, StoreError> {
+    /// [`JobStore::transition`] with other fields changed in the same write (the printer
+    /// that claimed the job, the preparation's report).
+    pub fn transition_with(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job),
+    ) -> Result<Job, StoreError> {
+        self.change(id, |job| apply_transition(job, state, reason, also))
+    }
+
+    /// [`JobStore::transition_with`] for an outcome that has already happened (a print
+    /// ended): it is recorded in memory even when it cannot be written (a full disk), and
+    /// written by [`JobStore::write_pending`] once it can, so a finished print is never
+    /// taken for an unfinished one and offered again.
+    pub fn record_outcome(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job),
+    ) -> Result<Job, StoreError> {
         let mut job = self
             .jobs
             .get(id)
             .cloned()
             .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        change(&mut job);
-        self.save(&job)?;
+        apply_transition(&mut job, state, reason, also)?;
+        self.jobs.insert(id.to_string(), job.clone());
+        if let Err(e) = self.save(&job) {
+            tracing::error!(job = id, error = %e, "cannot write the job's state; kept in memory and written again when possible");
+            self.unwritten.insert(id.to_string());
+        }
+        Ok(job)
+    }
+
+    /// Writes the jobs whose state could not be written before; returns how many remain.
+    pub fn write_pending(&mut self) -> usize {
+        let ids: Vec<String> = self.unwritten.iter().cloned().collect();
+        for id in ids {
+            let written = match self.jobs.get(&id) {
+                Some(job) => self.save(job).is_ok() || !self.job_dir(&id).is_dir(),
+                None => true,
+            };
+            if written {
+                tracing::info!(job = %id, "job state written after all");
+                self.unwritten.remove(&id);
+            }
+        }
+        self.unwritten.len()
+    }
+
+    /// Applies `change` to a job's other fields and persists it; its state stays (only
+    /// [`JobStore::transition`] changes that).
+    pub fn update(&mut self, id: &str, change: impl FnOnce(&mut Job)) -> Result<Job, StoreError> {
+        self.change(id, |job| {
+            let state = job.state;
+            change(job);
+            job.state = state;
+            Ok(())
+        })
+    }
+
+    fn change(
+        &mut self,
+        id: &str,
+        change: impl FnOnce(&mut Job) -> Result<(), StoreError>,
+    ) -> Result<Job, StoreError> {
+        let mut job = self
+            .jobs
+            .get(id)
+            .cloned()
+            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+        change(&mut job)?;
+        if let Err(e) = self.save(&job).inspect(|_| {
+            self.unwritten.remove(id);
+        }) {
+            let dir = self.job_dir(id);
+            if dir.is_dir() {
+                return Err(e);
+            }
+            // Removed by hand: nothing of the job is left to go on with. It fails (in
+            // memory; there is nowhere to write it) so the queue moves past it.
+            let mut failed = self.jobs[id].clone();
+            if failed.state.can_go_to(JobState::Failed) {
+                failed.state = JobState::Failed;
+                failed.history.push((JobState::Failed, now_s()));
+                failed.reason = Some(format!("its directory {} was removed", dir.display()));
+                self.jobs.insert(id.to_string(), failed);
+            }
+            return Err(StoreError::DirectoryGone {
+                id: id.to_string(),
+                dir,
+            });
+        }
         self.jobs.insert(id.to_string(), job.clone());
         Ok(job)
     }
@@ -411,10 +655,8 @@ impl JobStore {
             .jobs
             .get(id)
             .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        if !matches!(
-            job.state,
-            JobState::Failed | JobState::Cancelled | JobState::Interrupted
-        ) {
+        // Finished jobs the table lets back into the queue (done is final).
+        if job.state.is_active() || !job.state.can_go_to(JobState::Queued) {
             return Err(StoreError::WrongState {
                 id: id.to_string(),
                 state: job.state,
@@ -435,26 +677,146 @@ impl JobStore {
         } else {
             JobState::Queued
         };
-        self.update(id, |j| {
-            j.state = state;
-            j.history.push((state, now_s()));
-            j.reason = None;
-            j.printer = None;
-        })
+        self.transition_with(id, state, None, |j| j.printer = None)
     }
 }
 
+/// Checks a state change against [`JobState::can_go_to`] (the only place it is checked)
+/// and applies it with `also`'s changes to the other fields.
+fn apply_transition(
+    job: &mut Job,
+    state: JobState,
+    reason: Option<String>,
+    also: impl FnOnce(&mut Job),
+) -> Result<(), StoreError> {
+    if !job.state.can_go_to(state) {
+        return Err(StoreError::IllegalTransition {
+            id: job.id.clone(),
+            from: job.state,
+            to: state,
+        });
+    }
+    also(job);
+    job.state = state;
+    job.history.push((state, now_s()));
+    if reason.is_some() || state.is_active() {
+        job.reason = reason;
+    }
+    Ok(())
+}
+
+/// What a job directory says about where its model came from (written before the model
+/// is moved in, so an interrupted pick-up can be completed).
+#[derive(Debug, Serialize, Deserialize)]
+struct Origin {
+    /// The directory's own name: a copy of the directory under another name is not a job.
+    id: String,
+    file: String,
+    folder: PathBuf,
+}
+
+fn read_origin(dir: &Path) -> Option<Origin> {
+    let bytes = std::fs::read(dir.join("origin.json")).ok()?;
+    serde_json::from_slice(&bytes).ok()
+}
+
+/// Names of the files crispen keeps in a job directory besides the model's own.
+fn is_reserved_name(name: &str) -> bool {
+    matches!(name, "job.json" | "origin.json" | "job.tmp" | "origin.tmp")
+        || name.starts_with(".crispen-")
+}
+
+/// The sequence number of a well-formed job id (`<digits>-<letters, digits, -, _>`), as
+/// [`JobStore::admit`] makes them; `None` for anything else.
+pub fn seq_of_id(id: &str) -> Option<u64> {
+    let (seq, stem) = id.split_once('-')?;
+    let stem_ok = stem.len() <= 40
+        && stem
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    if seq.len() < 4 || seq.len() > 12 || !seq.chars().all(|c| c.is_ascii_digit()) || !stem_ok {
+        return None;
+    }
+    seq.parse().ok()
+}
+
+/// Reads a job's state; `Ok(None)` when it has none yet. State files are small: a bigger
+/// one is not a job's.
+fn load_job(dir: &Path) -> Result<Option<Job>, StoreError> {
+    const MAX_STATE_BYTES: u64 = 1 << 20;
+    let path = dir.join("job.json");
+    let file = match std::fs::File::open(&path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(io_err(&path, "read")(e)),
+    };
+    let mut text = Vec::new();
+    std::io::Read::read_to_end(
+        &mut std::io::Read::take(file, MAX_STATE_BYTES + 1),
+        &mut text,
+    )
+    .map_err(io_err(&path, "read"))?;
+    if text.len() as u64 > MAX_STATE_BYTES {
+        return Err(StoreError::Corrupt {
+            path,
+            message: format!("larger than {MAX_STATE_BYTES} bytes"),
+        });
+    }
+    let job: Job = serde_json::from_slice(&text).map_err(|e| StoreError::Corrupt {
+        path: path.clone(),
+        message: e.to_string(),
+    })?;
+    if seq_of_id(&job.id).is_none() {
+        return Err(StoreError::Corrupt {
+            path,
+            message: format!("{:?} is not a job id", job.id),
+        });
+    }
+    Ok(Some(job))
+}
+
+/// A failed stand-in for a job whose state could not be read; the directory is kept as it
+/// is for the operator to look at.
+fn unreadable_job(dir: &Path, id: &str, seq: u64, error: &StoreError) -> Job {
+    let (file, folder) = match read_origin(dir) {
+        Some(o) => (o.file, o.folder),
+        None => (String::new(), PathBuf::new()),
+    };
+    let mut job = Job::queued(id.to_string(), seq, file, folder);
+    job.state = JobState::Failed;
+    job.history.push((JobState::Failed, now_s()));
+    job.reason = Some(format!(
+        "{error}; the directory {} is kept as it was",
+        dir.display()
+    ));
+    job
+}
+
+/// Moves a file, copying it when `from` and `to` are on different filesystems. A copy
+/// goes to a temporary name first and is renamed into place only once whole and synced,
+/// so a copy cut short (a full disk) never passes for the file.
 fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
     match std::fs::rename(from, to) {
         Ok(()) => Ok(()),
         Err(e) if e.raw_os_error() == Some(nix::libc::EXDEV) => {
-            std::fs::copy(from, to).map_err(io_err(to, "copy model into spool"))?;
-            std::fs::File::open(to)
-                .and_then(|f| f.sync_all())
-                .map_err(io_err(to, "fsync"))?;
-            std::fs::remove_file(from).map_err(io_err(from, "remove after copying into spool"))
+            let mut tmp_name = std::ffi::OsString::from(".crispen-copy-");
+            tmp_name.push(to.file_name().unwrap_or_default());
+            let tmp = to.with_file_name(tmp_name);
+            let copied = std::fs::copy(from, &tmp)
+                .map_err(io_err(to, "copy into spool"))
+                .and_then(|_| {
+                    std::fs::File::open(&tmp)
+                        .and_then(|f| f.sync_all())
+                        .map_err(io_err(&tmp, "fsync"))
+                })
+                .and_then(|_| std::fs::rename(&tmp, to).map_err(io_err(to, "rename into place")));
+            if copied.is_err() {
+                let _ = std::fs::remove_file(&tmp);
+            }
+            copied?;
+            std::fs::remove_file(from).map_err(io_err(from, "remove after copying"))
         }
-        Err(e) => Err(io_err(from, "move into spool")(e)),
+        Err(e) => Err(io_err(from, "move")(e)),
     }
 }
 
@@ -483,6 +845,9 @@ mod tests {
         assert!(!hot.join("a b.stl.toml").exists());
         assert_eq!(job.state, JobState::Queued);
 
+        let err = JobStore::open(&tmp.path().join("spool")).err().unwrap();
+        assert!(matches!(err, StoreError::Locked { .. }), "{err}");
+        drop(store);
         let store2 = JobStore::open(&tmp.path().join("spool")).unwrap();
         let again = store2.get(&job.id).unwrap();
         assert_eq!(again.file, "a b.stl");
@@ -500,9 +865,18 @@ mod tests {
         let b = store.admit(&drop_file(&hot, "b.stl"), &hot).unwrap().id;
         let c = store.admit(&drop_file(&hot, "c.stl"), &hot).unwrap().id;
         store.transition(&a, JobState::Preparing, None).unwrap();
-        store.transition(&b, JobState::Printing, None).unwrap();
+        for (id, path) in [
+            (
+                &b,
+                &[JobState::Preparing, JobState::Ready, JobState::Printing][..],
+            ),
+            (&c, &[JobState::Preparing, JobState::Ready]),
+        ] {
+            for &state in path {
+                store.transition(id, state, None).unwrap();
+            }
+        }
         store.update(&b, |j| j.printer = Some("p1".into())).unwrap();
-        store.transition(&c, JobState::Ready, None).unwrap();
         drop(store);
 
         let mut store = JobStore::open(&spool).unwrap();
@@ -515,6 +889,7 @@ mod tests {
         assert!(store.gate("p1").bed_not_cleared);
         assert!(!store.gate("p2").bed_not_cleared);
 
+        drop(store);
         let store = JobStore::open(&spool).unwrap();
         assert!(store.gate("p1").bed_not_cleared);
         let order: Vec<&str> = store.jobs().map(|j| j.id.as_str()).collect();
@@ -545,8 +920,11 @@ mod tests {
         // Prepared, then cancelled in print: straight back to ready with its G-code.
         std::fs::write(store.job_dir(&a).join("a.stl.gcode"), b"G28\n").unwrap();
         store
-            .update(&a, |j| j.slice_report = Some(serde_json::json!({})))
+            .update(&a, |j| j.slice_report = Some(Default::default()))
             .unwrap();
+        store.transition(&a, JobState::Preparing, None).unwrap();
+        store.transition(&a, JobState::Ready, None).unwrap();
+        store.transition(&a, JobState::Printing, None).unwrap();
         store
             .transition(&a, JobState::Cancelled, Some("cancelled".into()))
             .unwrap();
@@ -562,12 +940,320 @@ mod tests {
         std::fs::write(dir.join("x.stl"), b"data").unwrap();
         std::fs::write(
             dir.join("origin.json"),
-            serde_json::to_vec(&("x.stl", "/hot")).unwrap(),
+            serde_json::to_vec(
+                &serde_json::json!({"id": "0007-x_stl", "file": "x.stl", "folder": "/hot"}),
+            )
+            .unwrap(),
         )
         .unwrap();
         let store = JobStore::open(&spool).unwrap();
         let job = store.get("0007-x_stl").unwrap();
         assert_eq!(job.state, JobState::Queued);
         assert_eq!(job.file, "x.stl");
+    }
+
+    /// Every pair of states, against a table written out by hand: a change to
+    /// `can_go_to` must be a deliberate change here too.
+    #[test]
+    fn transition_table_is_exactly_this() {
+        use JobState::*;
+        // Rows: from; columns: to, in JobState::ALL's order
+        // (queued preparing ready printing done failed cancelled interrupted).
+        let expected: [(JobState, [u8; 8]); 8] = [
+            (Queued, [0, 1, 0, 0, 0, 1, 1, 0]),
+            (Preparing, [1, 0, 1, 0, 0, 1, 1, 0]),
+            (Ready, [0, 0, 0, 1, 0, 1, 1, 0]),
+            (Printing, [0, 0, 1, 0, 1, 1, 1, 1]),
+            (Done, [0, 0, 0, 0, 0, 0, 0, 0]),
+            (Failed, [1, 0, 1, 0, 0, 0, 0, 0]),
+            (Cancelled, [1, 0, 1, 0, 0, 0, 0, 0]),
+            (Interrupted, [1, 0, 1, 0, 0, 0, 0, 0]),
+        ];
+        assert_eq!(expected.map(|(s, _)| s), JobState::ALL);
+        for (from, row) in expected {
+            for (to, allowed) in JobState::ALL.into_iter().zip(row) {
+                assert_eq!(from.can_go_to(to), allowed == 1, "{from} -> {to}");
+            }
+        }
+    }
+
+    /// The store refuses every change the table refuses, leaves the job as it was (in
+    /// memory and on disk), and `update` can never change a state behind the table's back.
+    #[test]
+    fn store_enforces_the_table() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
+        let err = store.transition(&a, JobState::Done, None).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                StoreError::IllegalTransition {
+                    from: JobState::Queued,
+                    to: JobState::Done,
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        store.update(&a, |j| j.state = JobState::Done).unwrap();
+        assert_eq!(store.get(&a).unwrap().state, JobState::Queued);
+        drop(store);
+        let reopened = JobStore::open(&spool).unwrap();
+        assert_eq!(reopened.get(&a).unwrap().state, JobState::Queued);
+        assert_eq!(reopened.get(&a).unwrap().history.len(), 1);
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+        /// Random sequences of attempted changes (legal or not) and restarts on a real
+        /// spool: a change succeeds exactly when the table allows it, the state on disk
+        /// always equals the one in memory, every step of the recorded history is legal,
+        /// and once done a job stays done.
+        #[test]
+        fn random_transitions_follow_the_table(
+            steps in proptest::collection::vec((0usize..9, 0usize..8), 1..40)
+        ) {
+            let tmp = tempfile::tempdir().unwrap();
+            let hot = tmp.path().join("hot");
+            std::fs::create_dir(&hot).unwrap();
+            let spool = tmp.path().join("spool");
+            let mut store = JobStore::open(&spool).unwrap();
+            let id = store.admit(&drop_file(&hot, "m.stl"), &hot).unwrap().id;
+            let mut done = false;
+            for (op, target) in steps {
+                let before = store.get(&id).unwrap().state;
+                if op == 8 {
+                    // A restart: reopen from disk and apply the restart rules.
+                    drop(store);
+                    store = JobStore::open(&spool).unwrap();
+                    store.recover().unwrap();
+                    let after = store.get(&id).unwrap().state;
+                    proptest::prop_assert!(after == before || before.can_go_to(after));
+                } else {
+                    let to = JobState::ALL[target];
+                    let result = store.transition(&id, to, None);
+                    proptest::prop_assert_eq!(result.is_ok(), before.can_go_to(to));
+                    let now = store.get(&id).unwrap().state;
+                    proptest::prop_assert_eq!(now, if result.is_ok() { to } else { before });
+                }
+                let now = store.get(&id).unwrap().state;
+                proptest::prop_assert!(!done || now == JobState::Done, "done is final");
+                done |= now == JobState::Done;
+                let on_disk: Job = serde_json::from_slice(
+                    &std::fs::read(store.job_dir(&id).join("job.json")).unwrap(),
+                )
+                .unwrap();
+                proptest::prop_assert_eq!(on_disk.state, now);
+            }
+            let history = &store.get(&id).unwrap().history;
+            for pair in history.windows(2) {
+                proptest::prop_assert!(pair[0].0.can_go_to(pair[1].0), "{:?}", pair);
+            }
+        }
+    }
+
+    /// A corrupt, oversized or lying job state fails that job only: the spool still
+    /// opens, the other jobs load, and the directory stays as it was.
+    #[test]
+    fn unreadable_job_state_fails_that_job_only() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        let ids: Vec<String> = ["a.stl", "b.stl", "c.stl", "d.stl"]
+            .iter()
+            .map(|f| store.admit(&drop_file(&hot, f), &hot).unwrap().id)
+            .collect();
+        drop(store);
+        let state = |id: &str| spool.join("jobs").join(id).join("job.json");
+        std::fs::write(state(&ids[0]), b"{\"id\": \"0001-a_stl\", trunc").unwrap();
+        let evil = std::fs::read_to_string(state(&ids[1]))
+            .unwrap()
+            .replace(&ids[1], "../../../etc");
+        std::fs::write(state(&ids[1]), evil).unwrap();
+        std::fs::write(state(&ids[2]), vec![b' '; 2 << 20]).unwrap();
+
+        let store = JobStore::open(&spool).unwrap();
+        for id in &ids[..3] {
+            let job = store.get(id).unwrap_or_else(|| panic!("{id} is listed"));
+            assert_eq!(job.state, JobState::Failed, "{id}");
+            let reason = job.reason.as_deref().unwrap();
+            assert!(
+                reason.contains("job.json") && reason.contains("kept"),
+                "{reason}"
+            );
+        }
+        assert_eq!(
+            store.get(&ids[0]).unwrap().file,
+            "a.stl",
+            "from origin.json"
+        );
+        assert_eq!(store.get(&ids[3]).unwrap().state, JobState::Queued);
+        assert!(std::fs::read(state(&ids[0])).unwrap().ends_with(b"trunc"));
+    }
+
+    /// A job directory copied within the spool (under any name) is not a second job, with
+    /// its state written or not yet.
+    #[test]
+    fn a_copied_job_directory_is_not_a_new_job() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
+        drop(store);
+        let jobs = spool.join("jobs");
+        let copy = |to: &str| {
+            let status = std::process::Command::new("cp")
+                .arg("-a")
+                .arg(jobs.join(&a))
+                .arg(jobs.join(to))
+                .status()
+                .unwrap();
+            assert!(status.success());
+        };
+        copy("0042-a_stl");
+        copy("0001-a_stl copy");
+        copy("0043-a_stl");
+        // A copy of a pick-up that never got its state (origin.json only).
+        std::fs::remove_file(jobs.join("0043-a_stl/job.json")).unwrap();
+        let store = JobStore::open(&spool).unwrap();
+        let listed: Vec<&str> = store.jobs().map(|j| j.id.as_str()).collect();
+        assert_eq!(listed, vec![a.as_str()]);
+    }
+
+    /// A dropped model named like the job's own files is kept under another name: the
+    /// model and the job's state both survive.
+    #[test]
+    fn a_model_named_like_crispens_files_overwrites_nothing() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        let mut ids = Vec::new();
+        for name in ["job.json", "origin.json"] {
+            let job = store.admit(&drop_file(&hot, name), &hot).unwrap();
+            assert_eq!(job.file, format!("model-{name}"));
+            let dir = store.job_dir(&job.id);
+            assert_eq!(
+                std::fs::read(dir.join(&job.file)).unwrap(),
+                b"solid x\nendsolid x\n"
+            );
+            ids.push(job.id);
+        }
+        drop(store);
+        let store = JobStore::open(&spool).unwrap();
+        for id in &ids {
+            assert_eq!(store.get(id).unwrap().state, JobState::Queued);
+        }
+    }
+
+    /// A link in a hot folder is not followed: neither the model nor its sidecar.
+    #[test]
+    fn symbolic_links_are_not_picked_up() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let secret = tmp.path().join("secret.stl");
+        std::fs::write(&secret, b"private").unwrap();
+        std::os::unix::fs::symlink(&secret, hot.join("link.stl")).unwrap();
+        let mut store = JobStore::open(&tmp.path().join("spool")).unwrap();
+        let err = store.admit(&hot.join("link.stl"), &hot).unwrap_err();
+        assert!(matches!(err, StoreError::NotAFile { .. }), "{err}");
+        assert_eq!(store.jobs().count(), 0);
+
+        let sidecar_target = tmp.path().join("other.toml");
+        std::fs::write(&sidecar_target, "enhance = false\n").unwrap();
+        std::os::unix::fs::symlink(&sidecar_target, hot.join("m.stl.toml")).unwrap();
+        let job = store.admit(&drop_file(&hot, "m.stl"), &hot).unwrap();
+        assert!(!store.job_dir(&job.id).join("m.stl.toml").exists());
+    }
+
+    /// A job whose directory was removed by hand fails (in memory) at its next change,
+    /// so whoever waits for it moves on.
+    #[test]
+    fn a_removed_job_directory_fails_the_job() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let mut store = JobStore::open(&tmp.path().join("spool")).unwrap();
+        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
+        std::fs::remove_dir_all(store.job_dir(&a)).unwrap();
+        let err = store.transition(&a, JobState::Preparing, None).unwrap_err();
+        assert!(matches!(err, StoreError::DirectoryGone { .. }), "{err}");
+        let job = store.get(&a).unwrap();
+        assert_eq!(job.state, JobState::Failed);
+        assert!(job.reason.as_deref().unwrap().contains("removed"));
+    }
+
+    /// Makes every later write of this job's state fail, as a full disk would: the
+    /// temporary file's name is taken by a directory.
+    fn block_writes(store: &JobStore, id: &str) -> PathBuf {
+        let blocker = store.job_dir(id).join("job.tmp");
+        std::fs::create_dir_all(&blocker).unwrap();
+        blocker
+    }
+
+    /// A pick-up that cannot be completed leaves the model and its sidecar in the hot
+    /// folder and no half job in the spool, now or after a restart.
+    #[test]
+    fn a_pickup_that_cannot_be_written_is_undone() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        block_writes(&store, "0001-a_stl");
+        let src = drop_file(&hot, "a.stl");
+        std::fs::write(hot.join("a.stl.toml"), "enhance = false\n").unwrap();
+        store.admit(&src, &hot).unwrap_err();
+        assert_eq!(std::fs::read(&src).unwrap(), b"solid x\nendsolid x\n");
+        assert!(hot.join("a.stl.toml").is_file());
+        assert!(!store.job_dir("0001-a_stl").exists(), "no half job left");
+        assert_eq!(store.jobs().count(), 0);
+        drop(store);
+        assert_eq!(JobStore::open(&spool).unwrap().jobs().count(), 0);
+    }
+
+    /// A print that finished while its state could not be written counts as done at
+    /// once (never retried, never offered again) and is written once writing works.
+    #[test]
+    fn an_outcome_that_cannot_be_written_is_kept_and_written_later() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let mut store = JobStore::open(&spool).unwrap();
+        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
+        for state in [JobState::Preparing, JobState::Ready, JobState::Printing] {
+            store.transition(&a, state, None).unwrap();
+        }
+        let blocker = block_writes(&store, &a);
+        let job = store
+            .record_outcome(&a, JobState::Done, None, |j| j.copies_done += 1)
+            .unwrap();
+        assert_eq!(job.state, JobState::Done);
+        assert_eq!(store.get(&a).unwrap().state, JobState::Done);
+        assert!(matches!(
+            store.retry(&a),
+            Err(StoreError::WrongState { .. })
+        ));
+        let on_disk = |store: &JobStore| -> Job {
+            serde_json::from_slice(&std::fs::read(store.job_dir(&a).join("job.json")).unwrap())
+                .unwrap()
+        };
+        assert_eq!(on_disk(&store).state, JobState::Printing);
+        assert_eq!(store.write_pending(), 1, "still not writable");
+        std::fs::remove_dir(&blocker).unwrap();
+        assert_eq!(store.write_pending(), 0);
+        let written = on_disk(&store);
+        assert_eq!((written.state, written.copies_done), (JobState::Done, 1));
     }
 }

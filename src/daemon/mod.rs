@@ -25,12 +25,12 @@ pub mod printer;
 use config::{Config, PrinterConfig, PrinterPort};
 use farm::{Farm, PrinterState, PrinterStatus};
 use job::{JobState, JobStore};
-use prepare::Preparer;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::{mpsc, watch, Semaphore};
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
 use tracing::Instrument;
 
 #[derive(Debug, thiserror::Error)]
@@ -45,6 +45,8 @@ pub enum DaemonError {
     Simulator { printer: String, message: String },
     #[error("cannot install signal handlers: {0}")]
     Signals(std::io::Error),
+    #[error("cannot find this program to run preparations with: {0}")]
+    PrepareProgram(std::io::Error),
 }
 
 /// How `crispen run` was asked to behave.
@@ -54,6 +56,8 @@ pub struct RunOptions {
     pub config_path: Option<PathBuf>,
     /// Exit once no job has work left and at least one job finished during this run.
     pub exit_when_idle: bool,
+    /// The `crispen` program whose `prepare-job` prepares a job (None: this program).
+    pub prepare_program: Option<PathBuf>,
 }
 
 /// The printer supervisors, one per configured printer, and how a reload changes them:
@@ -209,18 +213,14 @@ impl Fleet {
     }
 }
 
-/// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`).
+/// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
+/// shutdown token made here is handed down to every task; each races it at its waits.
 pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError> {
-    run_with(config, options, Arc::new(prepare::SlicePreparer)).await
-}
-
-/// [`run`] with a chosen preparer.
-pub async fn run_with(
-    config: Config,
-    options: RunOptions,
-    preparer: Arc<dyn Preparer>,
-) -> Result<(), DaemonError> {
     use tokio::signal::unix::{signal, SignalKind};
+    let prepare_program = match &options.prepare_program {
+        Some(p) => p.clone(),
+        None => std::env::current_exe().map_err(DaemonError::PrepareProgram)?,
+    };
     let mut sigterm = signal(SignalKind::terminate()).map_err(DaemonError::Signals)?;
     let mut sigint = signal(SignalKind::interrupt()).map_err(DaemonError::Signals)?;
     let mut sighup = signal(SignalKind::hangup()).map_err(DaemonError::Signals)?;
@@ -239,11 +239,12 @@ pub async fn run_with(
         folders = config.folders.len(),
         "crispen daemon starting"
     );
-    let farm = Farm::new(config.clone(), store);
+    let shutdown = CancellationToken::new();
+    let farm = Farm::new(config.clone(), store, shutdown.clone());
     let mut fleet = Fleet::start_all(&farm, &config.printers)?;
     let control_task = tokio::spawn(control::serve(Arc::clone(&farm), listener));
     let mut pickup = spawn_pickup(&farm, &config);
-    let prepare_task = tokio::spawn(prepare_loop(Arc::clone(&farm), preparer));
+    let prepare_task = tokio::spawn(prepare_loop(Arc::clone(&farm), prepare_program));
 
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     let mut watchdog_usec = 0u64;
@@ -264,6 +265,8 @@ pub async fn run_with(
             }
             _ = ticker.tick() => {
                 fleet.settle(&farm);
+                let pending = Arc::clone(&farm);
+                tokio::task::spawn_blocking(move || pending.store().write_pending());
                 if watchdog {
                     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
                 }
@@ -282,8 +285,8 @@ pub async fn run_with(
         }
     }
 
-    // Shutdown: take no new work; preparation in progress finishes (its job becomes ready)
-    // or is parked back in the queue by the restart rules; prints finish or stop per config.
+    // Shutdown: take no new work; preparation in progress is stopped (its job goes back to
+    // the queue); prints finish or stop per config.
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
     farm.begin_stop();
     pickup.abort();
@@ -360,88 +363,172 @@ fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()
             if farm.stopping() {
                 break;
             }
-            let admitted = farm.store().admit(&path, &folder);
-            match admitted {
-                Ok(job) => {
-                    tracing::info!(job = %job.id, file = %path.display(), "picked up");
-                    farm.bump();
-                }
-                Err(e) => tracing::error!(file = %path.display(), error = %e, "cannot pick up"),
-            }
+            let farm = Arc::clone(&farm);
+            let _ = tokio::task::spawn_blocking(move || pick_up(&farm, &path, &folder)).await;
         }
         watcher.abort();
     })
 }
 
-/// Prepares queued jobs, oldest first, at most one per core at a time.
-async fn prepare_loop(farm: Arc<Farm>, preparer: Arc<dyn Preparer>) {
+/// Admits one complete file of a hot folder: a model becomes a job (with its sidecar if
+/// that is there already); a sidecar whose model was picked up before it arrived joins its
+/// job if the job has not started preparing, and is otherwise reported and kept aside.
+fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    if !hotfolder::is_sidecar_name(&name) {
+        match farm.store().admit(path, folder) {
+            Ok(job) => {
+                tracing::info!(job = %job.id, file = %path.display(), "picked up");
+                farm.bump();
+            }
+            Err(e) => tracing::error!(file = %path.display(), error = %e, "cannot pick up"),
+        }
+        return;
+    }
+    let model = name.strip_suffix(".toml").unwrap_or(&name);
+    if !path.exists() || folder.join(model).exists() {
+        // Taken with its model already, or its model is still arriving.
+        return;
+    }
+    let mut store = farm.store();
+    let job = store
+        .jobs()
+        .filter(|j| j.folder == folder && j.file == model)
+        .last()
+        .map(|j| (j.id.clone(), j.state));
+    let Some((id, state)) = job else {
+        tracing::debug!(file = %path.display(), "a sidecar without its model yet");
+        return;
+    };
+    match store.late_sidecar(&id, path, state == JobState::Queued) {
+        Ok(true) => {
+            tracing::info!(job = %id, file = %path.display(), "sidecar arrived after its model; it applies")
+        }
+        Ok(false) => tracing::warn!(
+            job = %id,
+            file = %path.display(),
+            state = state.name(),
+            "sidecar arrived after its model's job had started; NOT applied, kept in the job directory as {model}.toml.late (hint: put the sidecar in first, or `crispen cancel` and drop both again)"
+        ),
+        Err(e) => {
+            tracing::error!(job = %id, file = %path.display(), error = %e, "cannot take the late sidecar")
+        }
+    }
+}
+
+/// Prepares queued jobs, oldest first, at most one per core at a time, each in its own
+/// child process under a token of its own (a child of the shutdown token).
+async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
     let cores = std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1);
-    let permits = Arc::new(Semaphore::new(cores));
     let mut running = tokio::task::JoinSet::new();
     loop {
         let mut wake = farm.subscribe();
         if farm.stopping() {
             break;
         }
-        while let Ok(permit) = Arc::clone(&permits).try_acquire_owned() {
+        // A job just picked up waits the settle time, so a sidecar that arrives shortly
+        // after its model still applies.
+        let settle = farm.config().farm.settle.as_secs_f64();
+        let mut wait_s: Option<f64> = None;
+        while running.len() < cores {
+            let now = job::now_s();
             let next = farm
                 .store()
                 .jobs()
-                .find(|j| j.state == JobState::Queued)
+                .filter(|j| j.state == JobState::Queued)
+                .find(|j| {
+                    let fresh = j.history.len() == 1;
+                    let left = j.history[0].1 + settle - now;
+                    if fresh && left > 0.0 {
+                        wait_s = Some(wait_s.map_or(left, |w| w.min(left)));
+                        return false;
+                    }
+                    true
+                })
                 .map(|j| j.id.clone());
             let Some(id) = next else { break };
-            if farm.transition(&id, JobState::Preparing, None).is_err() {
-                break;
+            if let Err(e) = farm.transition(&id, JobState::Preparing, None) {
+                tracing::error!(job = %id, error = %e, "cannot start preparing");
+                // A job that failed for it (its directory is gone) is passed over; one
+                // still queued (the disk is full) waits for the next change.
+                let still_queued = farm.store().get(&id).map(|j| j.state) == Some(JobState::Queued);
+                if still_queued {
+                    break;
+                }
+                continue;
             }
-            let farm = Arc::clone(&farm);
-            let preparer = Arc::clone(&preparer);
+            let cancel = farm.shutdown.child_token();
+            farm.preparing
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .insert(
+                    id.clone(),
+                    farm::Preparation {
+                        step: "starting".into(),
+                        cancel: cancel.clone(),
+                    },
+                );
             let span = tracing::info_span!("job", job = %id);
             running.spawn(
-                async move {
-                    let f = Arc::clone(&farm);
-                    let job_id = id.clone();
-                    let span = tracing::Span::current();
-                    let result = tokio::task::spawn_blocking(move || {
-                        let _entered = span.enter();
-                        prepare_one(&f, &job_id, &*preparer)
-                    })
-                    .await
-                    .unwrap_or_else(|e| Err(format!("preparation crashed: {e}")));
-                    drop(permit);
-                    finish_preparation(&farm, &id, result);
-                    release_freed_memory();
-                }
-                .instrument(span),
+                prepare_one(Arc::clone(&farm), id, program.clone(), cancel).instrument(span),
             );
         }
+        let grace = Duration::from_secs_f64(wait_s.unwrap_or(0.0).clamp(0.0, 3600.0));
         tokio::select! {
             _ = wake.changed() => {}
             Some(_) = running.join_next() => {}
+            _ = farm.shutdown.cancelled() => {}
+            _ = tokio::time::sleep(grace), if wait_s.is_some() => {}
         }
     }
-    // Let preparations in progress finish; their jobs become ready (or, if we are killed
-    // first, queued again at the next start).
+    // The shutdown token has stopped every preparation's child; wait for their jobs to be
+    // put back in the queue.
     while running.join_next().await.is_some() {}
 }
 
-/// Preparation (mesh, solver) allocates hundreds of megabytes on blocking threads, each
-/// with its own malloc arena; glibc keeps freed arena memory mapped, so a farm that
-/// prepared many jobs would keep that peak for weeks. Hand it back to the system.
-fn release_freed_memory() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: malloc_trim only walks the allocator's own free lists.
-    unsafe {
-        nix::libc::malloc_trim(0);
-    }
+/// Prepares one job and records the outcome.
+async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: CancellationToken) {
+    let resolved = {
+        let (farm, id) = (Arc::clone(&farm), id.clone());
+        tokio::task::spawn_blocking(move || resolve(&farm, &id))
+            .await
+            .unwrap_or_else(|e| Err(format!("preparation crashed: {e}")))
+    };
+    let result = match resolved {
+        Err(reason) => Err(prepare::PrepareError::Failed(reason)),
+        Ok((task, sidecar)) => {
+            tracing::info!(
+                model = %task.model.display(),
+                height_mm = task.height_mm,
+                strength = ?task.strength,
+                "preparing"
+            );
+            let on_step = |step: String| {
+                if let Some(p) = farm
+                    .preparing
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .get_mut(&id)
+                {
+                    p.step = step;
+                }
+            };
+            prepare::run_child(&program, &task, &cancel, on_step)
+                .await
+                .map(|report| (report, sidecar))
+        }
+    };
+    let farm2 = Arc::clone(&farm);
+    let _ = tokio::task::spawn_blocking(move || finish_preparation(&farm2, &id, result)).await;
 }
 
-fn prepare_one(
-    farm: &Farm,
-    id: &str,
-    preparer: &dyn Preparer,
-) -> Result<(serde_json::Value, Option<job::Sidecar>), String> {
+/// Reads the job's sidecar and works out its task.
+fn resolve(farm: &Farm, id: &str) -> Result<(prepare::PrepareTask, Option<job::Sidecar>), String> {
     let (job, dir) = {
         let store = farm.store();
         let job = store.get(id).cloned().ok_or("job vanished")?;
@@ -456,40 +543,13 @@ fn prepare_one(
     })?;
     let sidecar = prepare::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
     let task = prepare::resolve_task(id, &dir, &job.file, folder, sidecar.as_ref())?;
-    tracing::info!(
-        model = %task.model.display(),
-        height_mm = task.height_mm,
-        strength = ?task.strength,
-        "preparing"
-    );
-    farm.preparing
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .insert(
-            id.to_string(),
-            farm::Preparation {
-                step: "starting".into(),
-                cancel: task.cancel.clone(),
-            },
-        );
-    let mut progress = |step: &str| {
-        if let Some(p) = farm
-            .preparing
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get_mut(id)
-        {
-            p.step = step.to_string();
-        }
-    };
-    let report = preparer.prepare(&task, &mut progress)?;
-    Ok((report, sidecar))
+    Ok((task, sidecar))
 }
 
 fn finish_preparation(
     farm: &Farm,
     id: &str,
-    result: Result<(serde_json::Value, Option<job::Sidecar>), String>,
+    result: Result<(crate::slice::SliceReport, Option<job::Sidecar>), prepare::PrepareError>,
 ) {
     farm.preparing
         .lock()
@@ -502,13 +562,16 @@ fn finish_preparation(
         return;
     }
     let outcome = match result {
-        Ok((report, sidecar)) => store
-            .update(id, |j| {
-                j.slice_report = Some(report);
-                j.sidecar = sidecar;
-            })
-            .and_then(|_| farm.transition_in(&mut store, id, JobState::Ready, None)),
-        Err(reason) => farm.transition_in(&mut store, id, JobState::Failed, Some(reason)),
+        Ok((report, sidecar)) => farm.transition_with(&mut store, id, JobState::Ready, None, |j| {
+            j.slice_report = Some(report);
+            j.sidecar = sidecar;
+        }),
+        // Still preparing, so not cancelled by the operator: the daemon is stopping, and
+        // the job is prepared again at the next start.
+        Err(prepare::PrepareError::Cancelled) => {
+            farm.transition_in(&mut store, id, JobState::Queued, None)
+        }
+        Err(e) => farm.transition_in(&mut store, id, JobState::Failed, Some(e.to_string())),
     };
     drop(store);
     if let Err(e) = outcome {

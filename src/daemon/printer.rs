@@ -92,14 +92,18 @@ async fn supervise_inner(
     mut retire: watch::Receiver<bool>,
 ) {
     let mut backoff = Duration::from_millis(500);
-    let mut stopping = farm.subscribe_stopping();
     let done = |retire: &watch::Receiver<bool>| farm.stopping() || *retire.borrow();
     'connect: loop {
         if done(&retire) {
             break;
         }
         farm.set_printer(&name, |p| p.state = PrinterState::Connecting);
-        let mut link = match connector.connect().await {
+        let connected = tokio::select! {
+            connected = connector.connect() => connected,
+            _ = farm.shutdown.cancelled() => break,
+            _ = retire.changed() => continue,
+        };
+        let mut link = match connected {
             Ok(link) => {
                 backoff = Duration::from_millis(500);
                 tracing::info!("connected");
@@ -113,7 +117,7 @@ async fn supervise_inner(
                 });
                 tokio::select! {
                     _ = tokio::time::sleep(backoff) => {}
-                    _ = stopping.changed() => {}
+                    _ = farm.shutdown.cancelled() => {}
                     _ = retire.changed() => {}
                 }
                 backoff = (backoff * 2).min(Duration::from_secs(30));
@@ -191,12 +195,21 @@ fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
             served && wanted
         })
         .map(|j| j.id.clone())?;
-    store
-        .update(&id, |j| j.printer = Some(printer.to_string()))
-        .ok()?;
-    farm.transition_in(&mut store, &id, JobState::Printing, None)
-        .ok()?;
-    Some(id)
+    let claimed = farm.transition_with(&mut store, &id, JobState::Printing, None, |j| {
+        j.printer = Some(printer.to_string())
+    });
+    match claimed {
+        Ok(_) => Some(id),
+        // Failed for it (its directory is gone): the next job may be printable.
+        Err(_) if store.get(&id).is_some_and(|j| j.state == JobState::Failed) => {
+            drop(store);
+            claim_job(farm, printer)
+        }
+        Err(e) => {
+            tracing::error!(job = %id, error = %e, "cannot claim the job");
+            None
+        }
+    }
 }
 
 /// Prints one job. Returns true when the connection was lost.
@@ -219,7 +232,17 @@ async fn run_job(
         p.job = Some(job_id.to_string());
         p.progress = None;
     });
-    let permit = Arc::clone(&farm.heating).acquire_owned().await.ok();
+    let permit = tokio::select! {
+        permit = farm.heating_permit() => permit,
+        _ = farm.shutdown.cancelled() => {
+            // Nothing was sent to the printer: the job waits for the next start.
+            if let Err(e) = farm.transition(job_id, JobState::Ready, None) {
+                tracing::error!(error = %e, "cannot put the job back");
+            }
+            farm.set_printer(printer, |p| p.job = None);
+            return false;
+        }
+    };
     tracing::info!(gcode = %gcode.display(), "starting print");
     farm.set_printer(printer, |p| p.state = PrinterState::Printing);
 
@@ -233,8 +256,7 @@ async fn run_job(
     // A stop requested by shutdown (on_shutdown = "stop") is a cancel that ends as
     // interrupted rather than cancelled.
     let stop_on_shutdown = farm.config().farm.on_shutdown == super::config::OnShutdown::Stop;
-    let mut stopping = farm.subscribe_stopping();
-    let mut permit = permit;
+    let mut permit = Some(permit);
     let print = link.print(&gcode, control_rx, progress_tx);
     tokio::pin!(print);
     let mut shutdown_stop = false;
@@ -254,15 +276,17 @@ async fn run_job(
                     p.progress = Some(live);
                 });
             }
-            _ = stopping.changed(), if stop_on_shutdown && !shutdown_stop => {
-                if farm.stopping() {
-                    shutdown_stop = true;
-                    let _ = control_tx.send(PrintCommand::Cancel).await;
-                }
+            _ = farm.shutdown.cancelled(), if stop_on_shutdown && !shutdown_stop => {
+                shutdown_stop = true;
+                let _ = control_tx.send(PrintCommand::Cancel).await;
             }
         }
     };
     drop(permit);
+    if progress_open {
+        let live = progress_rx.borrow_and_update().clone();
+        farm.set_printer(printer, |p| p.progress = Some(live));
+    }
     farm.print_controls
         .lock()
         .unwrap_or_else(|e| e.into_inner())
@@ -275,18 +299,14 @@ async fn run_job(
     if let Err(e) = farm.store().set_gate(printer, gate) {
         tracing::error!(error = %e, "cannot persist the bed gate");
     }
+    let mut printed = None;
     let (state, reason, lost) = match outcome {
         Ok(report) => {
-            let more = {
-                let mut store = farm.store();
-                store
-                    .update(job_id, |j| {
-                        j.copies_done += 1;
-                        j.print_report = Some(report);
-                    })
-                    .map(|j| j.copies_done < j.copies_wanted())
-                    .unwrap_or(false)
-            };
+            let more = farm
+                .store()
+                .get(job_id)
+                .is_some_and(|j| j.copies_done + 1 < j.copies_wanted());
+            printed = Some(report);
             if more {
                 (JobState::Ready, None, false)
             } else {
@@ -310,13 +330,34 @@ async fn run_job(
         ),
         Err(PrintFailure::Failed(why)) => (JobState::Failed, Some(why), false),
     };
-    if let Err(e) = farm.transition(job_id, state, reason) {
+    let recorded = farm.record_outcome(job_id, state, reason, |j| {
+        if let Some(report) = printed {
+            j.copies_done += 1;
+            j.print_report = Some(report);
+        }
+    });
+    if let Err(e) = recorded {
         tracing::error!(error = %e, "cannot record the print's outcome");
     }
     farm.set_printer(printer, |p| {
         p.state = PrinterState::BedNotCleared;
     });
     lost
+}
+
+fn live_progress(p: &PrintProgress, heated: bool, paused: bool) -> LiveProgress {
+    LiveProgress {
+        lines_acked: p.lines_acked,
+        lines_total: p.lines_total,
+        hotend_c: p.hotend.map(|t| t.current),
+        hotend_target_c: p.hotend.and_then(|t| t.target),
+        bed_c: p.bed.map(|t| t.current),
+        bed_target_c: p.bed.and_then(|t| t.target),
+        elapsed_s: p.elapsed_s,
+        remaining_s: p.remaining_s,
+        heated,
+        paused,
+    }
 }
 
 /// The real printer connection: `crispen::marlin::stream` on a serial port or pty.
@@ -409,21 +450,13 @@ impl PrinterLink for MarlinLink {
                         last_forward = std::time::Instant::now();
                         last_heated = heated;
                         last_paused = paused;
-                        progress.send_replace(LiveProgress {
-                            lines_acked: p.lines_acked,
-                            lines_total: p.lines_total,
-                            hotend_c: p.hotend.map(|t| t.current),
-                            hotend_target_c: p.hotend.and_then(|t| t.target),
-                            bed_c: p.bed.map(|t| t.current),
-                            bed_target_c: p.bed.and_then(|t| t.target),
-                            elapsed_s: p.elapsed_s,
-                            remaining_s: p.remaining_s,
-                            heated,
-                            paused,
-                        });
+                        progress.send_replace(live_progress(&p, heated, paused));
                     }
                 }
             };
+            // The last figures, which the throttle above may have held back: a finished
+            // print shows all its lines acknowledged.
+            progress.send_replace(live_progress(&inner_rx.borrow(), last_heated, last_paused));
             match result {
                 Ok(report) => Ok(serde_json::to_value(&report).unwrap_or_default()),
                 Err(e) => Err(match e {
@@ -489,10 +522,13 @@ mod tests {
             let file = hot.join(format!("m{i}.stl"));
             std::fs::write(&file, b"solid x\nendsolid x\n").unwrap();
             let job = store.admit(&file, &hot).unwrap();
+            store
+                .transition(&job.id, JobState::Preparing, None)
+                .unwrap();
             store.transition(&job.id, JobState::Ready, None).unwrap();
             ids.push(job.id);
         }
-        let farm = Farm::new(config, store);
+        let farm = Farm::new(config, store, Default::default());
         let barrier = std::sync::Barrier::new(printers.len());
         let claimed: Vec<Vec<String>> = std::thread::scope(|scope| {
             let handles: Vec<_> = printers

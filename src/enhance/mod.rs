@@ -76,7 +76,7 @@ pub enum Phase {
 /// numeric factorisations; `solve_s` the triangular solves and residual checks. The
 /// Cholesky path works on the three δ concurrently, so its two figures add up the time
 /// of each δ and can together exceed the wall time they took.
-#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct PhaseTimings {
     pub operators_s: f64,
     pub factorize_s: f64,
@@ -88,7 +88,7 @@ pub struct PhaseTimings {
 }
 
 /// What [`enhance`] did, in the input's units.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct EnhanceReport {
     pub vertices: usize,
     pub faces: usize,
@@ -169,22 +169,5 @@ pub fn enhance(
     Ok((out, report))
 }
 
-/// Uniformly scales `mesh` about the origin so its Z extent (Z is up, as slicers place
-/// it) is `height_mm`. Returns the factor used; a flat mesh or a non-positive height
-/// leaves the mesh unchanged and returns 1.
-pub fn scale_to_height(mesh: &mut Mesh, height_mm: f64) -> f64 {
-    let Some((lo, hi)) = mesh.bounds() else {
-        return 1.0;
-    };
-    let extent = hi[2] - lo[2];
-    if !(extent > 0.0 && height_mm.is_finite() && height_mm > 0.0) {
-        return 1.0;
-    }
-    let s = height_mm / extent;
-    for v in &mut mesh.vertices {
-        for c in v.iter_mut() {
-            *c *= s;
-        }
-    }
-    s
-}
+/// Scaling belongs to placing a mesh, not to the enhancement; kept here for callers.
+pub use crate::mesh::place::scale_to_height;

@@ -1,4 +1,5 @@
-//! Triangle meshes: reading STL / OBJ / 3MF, cleaning, and writing STL / OBJ.
+//! Triangle meshes: reading STL / OBJ / 3MF, cleaning, writing STL / OBJ, and placing a
+//! mesh on a printer's bed ([`place`]).
 //!
 //! This is the geometry core's only I/O. Everything that reads a file is a thin wrapper
 //! over a function taking `impl Read`, so tests feed bytes. The format is sniffed from the
@@ -9,6 +10,7 @@
 
 mod clean;
 mod obj;
+pub mod place;
 mod stl;
 mod threemf;
 
@@ -90,7 +92,15 @@ pub struct LoadedMesh {
 pub struct Limits {
     pub max_vertices: usize,
     pub max_faces: usize,
+    /// Size of the file as read.
     pub max_bytes: u64,
+    /// Uncompressed XML of a 3MF file, all parts together (a small zip can inflate to
+    /// gigabytes).
+    pub max_xml_bytes: u64,
+    /// Objects a 3MF file's build expands to through its components: nested components
+    /// multiply, so a few kilobytes can otherwise name more instances than a computer can
+    /// ever visit, even of empty objects.
+    pub max_instances: usize,
 }
 
 impl Default for Limits {
@@ -99,6 +109,8 @@ impl Default for Limits {
             max_vertices: 3_000_000,
             max_faces: 6_000_000,
             max_bytes: 1 << 30,
+            max_xml_bytes: 1 << 30,
+            max_instances: 100_000,
         }
     }
 }

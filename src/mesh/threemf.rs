@@ -84,7 +84,7 @@ pub(super) fn parse(
         })?;
 
     let mut parts: HashMap<String, Part> = HashMap::new();
-    let mut budget_bytes = limits.max_bytes.saturating_mul(4);
+    let mut budget_bytes = limits.max_xml_bytes;
     for name in &part_names {
         let mut file = archive
             .by_name(name)
@@ -99,8 +99,8 @@ pub(super) fn parse(
             return Err(MeshError::TooLarge {
                 source_name: source_name.to_string(),
                 what: "bytes of uncompressed XML",
-                count: xml.len() as u64,
-                limit: limits.max_bytes.saturating_mul(4),
+                count: limits.max_xml_bytes - budget_bytes + xml.len() as u64,
+                limit: limits.max_xml_bytes,
             });
         }
         budget_bytes -= xml.len() as u64;
@@ -145,9 +145,16 @@ pub(super) fn parse(
     } else {
         root_part.build.clone()
     };
+    let mut instances = 0;
     for (id, transform) in &items {
         let t = compose(transform, &unit);
-        flatten(&parts, &root_key, id, &t, 0, &mut out, source_name, limits)?;
+        let at = Place {
+            part: &root_key,
+            id,
+            transform: &t,
+            depth: 0,
+        };
+        flatten(&parts, at, &mut instances, &mut out, source_name, limits)?;
     }
     Ok(out)
 }
@@ -156,17 +163,31 @@ fn normalise_part_name(name: &str) -> String {
     name.trim_start_matches('/').to_ascii_lowercase()
 }
 
-#[allow(clippy::too_many_arguments)]
+/// Where [`flatten`] is in the component tree.
+#[derive(Clone, Copy)]
+struct Place<'a> {
+    part: &'a str,
+    id: &'a str,
+    transform: &'a Transform,
+    depth: usize,
+}
+
+/// Appends the object at `at`, with its components expanded, to `out`; `instances`
+/// counts the objects visited (against `limits.max_instances`).
 fn flatten(
     parts: &HashMap<String, Part>,
-    part: &str,
-    id: &str,
-    transform: &Transform,
-    depth: usize,
+    at: Place<'_>,
+    instances: &mut usize,
     out: &mut RawMesh,
     source_name: &str,
     limits: &Limits,
 ) -> Result<(), MeshError> {
+    let Place {
+        part,
+        id,
+        transform,
+        depth,
+    } = at;
     let err = |message: String| MeshError::Parse {
         source_name: source_name.to_string(),
         format: MeshFormat::ThreeMf,
@@ -175,6 +196,15 @@ fn flatten(
     };
     if depth > 32 {
         return Err(err("components nest more than 32 deep (a cycle?)".into()));
+    }
+    *instances += 1;
+    if *instances > limits.max_instances {
+        return Err(MeshError::TooLarge {
+            source_name: source_name.to_string(),
+            what: "object instances (components expanded)",
+            count: *instances as u64,
+            limit: limits.max_instances as u64,
+        });
     }
     let object = parts
         .get(part)
@@ -217,16 +247,13 @@ fn flatten(
                 } else {
                     normalise_part_name(&c.part)
                 };
-                flatten(
-                    parts,
-                    &target,
-                    &c.object_id,
-                    &t,
-                    depth + 1,
-                    out,
-                    source_name,
-                    limits,
-                )?;
+                let inner = Place {
+                    part: &target,
+                    id: &c.object_id,
+                    transform: &t,
+                    depth: depth + 1,
+                };
+                flatten(parts, inner, instances, out, source_name, limits)?;
             }
         }
     }

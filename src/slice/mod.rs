@@ -13,11 +13,17 @@
 //! crispen's (from the material preset unless overridden), because the shared start code
 //! heats with them.
 
+pub mod cura;
 pub mod gcode;
 pub mod process;
 pub mod profiles;
+pub mod prusa;
+mod settings;
+
+pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
 
 use crate::enhance::{EnhanceError, EnhanceOptions, EnhanceReport, Phase, Strength, StrengthTable};
+use crate::mesh::place::PlaceError;
 use crate::mesh::{Mesh, MeshError};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -27,6 +33,9 @@ use std::time::{Duration, Instant};
 
 /// Usable build volume of the Ultimaker 2, in mm (X, Y, Z).
 pub const BED_MM: [f64; 3] = [223.0, 223.0, 205.0];
+/// Printed heights accepted, mm: from a height that still holds a shape of a few layers
+/// to the build volume's height.
+pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=BED_MM[2];
 /// Room kept free around the model on each side, for the skirt the profiles print.
 pub const SKIRT_MARGIN_MM: f64 = 5.0;
 
@@ -108,181 +117,6 @@ impl std::str::FromStr for UpAxis {
     }
 }
 
-/// Settings a farm varies per folder or per job, on top of the profile. `None` keeps the
-/// profile's value (temperatures: the material preset's).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SliceSettings {
-    pub layer_height_mm: Option<f64>,
-    pub infill_percent: Option<f64>,
-    pub supports: Option<bool>,
-    pub nozzle_temp_c: Option<f64>,
-    pub bed_temp_c: Option<f64>,
-    /// A material preset: `pla` (default), `petg` or `abs`; sets temperatures and density.
-    pub material: Option<String>,
-}
-
-/// The keys `SliceSettings::set` accepts (`crispen slice --set KEY=VALUE`).
-pub const SETTING_KEYS: &[&str] = &[
-    "layer_height",
-    "infill",
-    "supports",
-    "nozzle_temp",
-    "bed_temp",
-    "material",
-];
-
-/// A material preset: temperatures and density (for grams of filament).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct Material {
-    pub name: &'static str,
-    pub nozzle_temp_c: f64,
-    pub bed_temp_c: f64,
-    pub density_g_cm3: f64,
-}
-
-/// Presets from PrusaSlicer's Ultimaker 2 filament profiles.
-pub const MATERIALS: &[Material] = &[
-    Material {
-        name: "pla",
-        nozzle_temp_c: 210.0,
-        bed_temp_c: 60.0,
-        density_g_cm3: 1.24,
-    },
-    Material {
-        name: "petg",
-        nozzle_temp_c: 235.0,
-        bed_temp_c: 85.0,
-        density_g_cm3: 1.27,
-    },
-    Material {
-        name: "abs",
-        nozzle_temp_c: 240.0,
-        bed_temp_c: 80.0,
-        density_g_cm3: 1.10,
-    },
-];
-
-impl SliceSettings {
-    /// `self` with every setting `over` gives replaced (folder settings, then job settings).
-    pub fn merge(&self, over: &SliceSettings) -> SliceSettings {
-        SliceSettings {
-            layer_height_mm: over.layer_height_mm.or(self.layer_height_mm),
-            infill_percent: over.infill_percent.or(self.infill_percent),
-            supports: over.supports.or(self.supports),
-            nozzle_temp_c: over.nozzle_temp_c.or(self.nozzle_temp_c),
-            bed_temp_c: over.bed_temp_c.or(self.bed_temp_c),
-            material: over.material.clone().or_else(|| self.material.clone()),
-        }
-    }
-
-    /// Sets one setting from text, as given on the command line (`infill=15`).
-    /// Nothing changes when the value is refused.
-    pub fn set(&mut self, key: &str, value: &str) -> Result<(), SliceError> {
-        let mut changed = self.clone();
-        changed.set_unchecked(key, value)?;
-        changed.validate()?;
-        *self = changed;
-        Ok(())
-    }
-
-    fn set_unchecked(&mut self, key: &str, value: &str) -> Result<(), SliceError> {
-        let bad = |hint: &str| SliceError::BadSetting {
-            key: key.to_string(),
-            value: value.to_string(),
-            hint: hint.to_string(),
-        };
-        let number = || {
-            value
-                .trim()
-                .trim_end_matches('%')
-                .parse::<f64>()
-                .map_err(|_| bad("expected a number"))
-        };
-        match key {
-            "layer_height" | "layer_height_mm" => self.layer_height_mm = Some(number()?),
-            "infill" | "infill_percent" => self.infill_percent = Some(number()?),
-            "supports" => {
-                self.supports = Some(match value.trim().to_ascii_lowercase().as_str() {
-                    "true" | "yes" | "on" | "1" => true,
-                    "false" | "no" | "off" | "0" => false,
-                    _ => return Err(bad("expected true or false")),
-                })
-            }
-            "nozzle_temp" | "nozzle_temp_c" => self.nozzle_temp_c = Some(number()?),
-            "bed_temp" | "bed_temp_c" => self.bed_temp_c = Some(number()?),
-            "material" => self.material = Some(value.trim().to_ascii_lowercase()),
-            _ => {
-                return Err(bad(&format!(
-                    "unknown setting; known settings: {}",
-                    SETTING_KEYS.join(", ")
-                )))
-            }
-        }
-        Ok(())
-    }
-
-    /// Checks every given setting is within what an Ultimaker 2 with a 0.4 mm nozzle can do.
-    pub fn validate(&self) -> Result<(), SliceError> {
-        fn range(
-            key: &str,
-            v: Option<f64>,
-            lo: f64,
-            hi: f64,
-            unit: &str,
-        ) -> Result<(), SliceError> {
-            match v {
-                Some(x) if !(x.is_finite() && x >= lo && x <= hi) => Err(SliceError::BadSetting {
-                    key: key.into(),
-                    value: x.to_string(),
-                    hint: format!("must be between {lo} and {hi} {unit}"),
-                }),
-                _ => Ok(()),
-            }
-        }
-        range(
-            "layer_height",
-            self.layer_height_mm,
-            0.05,
-            0.32,
-            "mm (0.4 mm nozzle)",
-        )?;
-        range("infill", self.infill_percent, 0.0, 100.0, "%")?;
-        range("nozzle_temp", self.nozzle_temp_c, 150.0, 270.0, "°C")?;
-        range("bed_temp", self.bed_temp_c, 0.0, 110.0, "°C")?;
-        self.material_preset().map(|_| ())
-    }
-
-    /// The material preset named (PLA when none is).
-    pub fn material_preset(&self) -> Result<&'static Material, SliceError> {
-        let name = self.material.as_deref().unwrap_or("pla");
-        MATERIALS
-            .iter()
-            .find(|m| m.name.eq_ignore_ascii_case(name))
-            .ok_or_else(|| SliceError::BadSetting {
-                key: "material".into(),
-                value: name.into(),
-                hint: format!(
-                    "known materials: {}",
-                    MATERIALS
-                        .iter()
-                        .map(|m| m.name)
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ),
-            })
-    }
-
-    /// The temperatures a job heats to: the explicit ones, else the material's.
-    pub fn temperatures(&self) -> Result<(f64, f64), SliceError> {
-        let m = self.material_preset()?;
-        Ok((
-            self.nozzle_temp_c.unwrap_or(m.nozzle_temp_c),
-            self.bed_temp_c.unwrap_or(m.bed_temp_c),
-        ))
-    }
-}
-
 /// One slicing job.
 #[derive(Clone, Debug)]
 pub struct SliceRequest {
@@ -305,6 +139,8 @@ pub struct SliceRequest {
     pub cancel: Option<Arc<AtomicBool>>,
     /// The model's up axis (default Z).
     pub up: UpAxis,
+    /// Where to keep the mesh that was sliced (enhanced, scaled and placed), as binary STL.
+    pub keep_mesh: Option<PathBuf>,
 }
 
 impl SliceRequest {
@@ -324,6 +160,7 @@ impl SliceRequest {
             slicer_program: None,
             cancel: None,
             up: UpAxis::Z,
+            keep_mesh: None,
         }
     }
 }
@@ -338,17 +175,17 @@ pub enum SliceStep {
 }
 
 /// How the model was changed before slicing.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct EnhancementSummary {
     /// The λ2 used, or `None` when the model was printed unmodified.
     pub lambda2: Option<f64>,
     /// `"enhanced"` or `"unmodified"`.
-    pub mode: &'static str,
+    pub mode: String,
     pub report: Option<EnhanceReport>,
 }
 
 /// Seconds spent in each step.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct StepTimings {
     pub load_s: f64,
     pub enhance_s: f64,
@@ -358,7 +195,7 @@ pub struct StepTimings {
 }
 
 /// What a finished job produced.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct SliceReport {
     pub model: PathBuf,
     pub output: PathBuf,
@@ -367,7 +204,7 @@ pub struct SliceReport {
     pub enhancement: EnhancementSummary,
     pub slicer: SlicerKind,
     pub slicer_version: Option<String>,
-    pub material: &'static str,
+    pub material: String,
     pub nozzle_temp_c: f64,
     pub bed_temp_c: f64,
     /// Model footprint on the bed after scaling, mm (X, Y, Z).
@@ -495,13 +332,15 @@ pub fn slice(
     req.settings.validate()?;
     let (nozzle_temp_c, bed_temp_c) = req.settings.temperatures()?;
     let material = req.settings.material_preset()?;
-    if !(req.height_mm.is_finite() && req.height_mm > 0.0) {
+    // Too tall is reported by the placement, with the model's size.
+    if !(req.height_mm.is_finite() && req.height_mm >= *HEIGHT_MM.start()) {
         return Err(SliceError::BadSetting {
             key: "height".into(),
             value: req.height_mm.to_string(),
             hint: format!(
-                "the printed height must be above 0 and at most {} mm",
-                BED_MM[2]
+                "the printed height must be from {} to {} mm",
+                HEIGHT_MM.start(),
+                HEIGHT_MM.end()
             ),
         });
     }
@@ -538,10 +377,7 @@ pub fn slice(
     };
     timings.enhance_s = t.elapsed().as_secs_f64();
     if req.up == UpAxis::Y {
-        // A right-handed turn about X by +90°: Y becomes Z, Z becomes -Y.
-        for v in &mut mesh.vertices {
-            *v = [v[0], -v[2], v[1]];
-        }
+        crate::mesh::place::turn_y_up(&mut mesh);
     }
     let size = place_on_bed(&mut mesh, req.height_mm, &req.model)?;
 
@@ -563,6 +399,9 @@ pub fn slice(
             .and_then(|_| std::io::Write::flush(&mut w))
             .map_err(SliceError::io("cannot write temporary STL", &stl_path))?;
     }
+    if let Some(keep) = &req.keep_mesh {
+        persist(&stl_path, keep)?;
+    }
     let gcode_path = work.path().join("job.gcode");
     let job = profiles::JobParams {
         settings: &req.settings,
@@ -570,14 +409,7 @@ pub fn slice(
         bed_temp_c,
         height_mm: req.height_mm,
     };
-    let invocation = profiles::build_invocation(
-        req.slicer,
-        &profile,
-        &job,
-        work.path(),
-        &stl_path,
-        &gcode_path,
-    )?;
+    let invocation = profile.invocation(&job, work.path(), &stl_path, &gcode_path)?;
     let program = req
         .slicer_program
         .clone()
@@ -681,12 +513,13 @@ pub fn slice(
                 "enhanced"
             } else {
                 "unmodified"
-            },
+            }
+            .to_string(),
             report,
         },
         slicer: req.slicer,
         slicer_version: stats.slicer_version,
-        material: material.name,
+        material: material.name.to_string(),
         nozzle_temp_c,
         bed_temp_c,
         model_size_mm: size,
@@ -701,46 +534,29 @@ pub fn slice(
     })
 }
 
-/// Scales the mesh to `height_mm` tall, puts its lowest point at Z = 0 and centres its
-/// footprint on X = Y = 0 (each slicer then centres it on its bed), and checks it fits the
-/// printer. Returns the model's size (X, Y, Z) in mm.
+/// Places the mesh on the Ultimaker 2's bed at `height_mm` tall, keeping room for the
+/// skirt (see [`crate::mesh::place::place_on_bed`]). Returns its size (X, Y, Z) in mm.
 pub fn place_on_bed(mesh: &mut Mesh, height_mm: f64, model: &Path) -> Result<[f64; 3], SliceError> {
-    let empty = || SliceError::EmptyModel {
-        model: model.to_path_buf(),
-    };
-    let (lo, hi) = mesh.bounds().ok_or_else(empty)?;
-    // Written so that a NaN extent counts as flat too.
-    let height = hi[2] - lo[2];
-    if mesh.faces.is_empty() || height.is_nan() || height <= 0.0 {
-        return Err(empty());
-    }
-    crate::enhance::scale_to_height(mesh, height_mm);
-    let (lo, hi) = mesh.bounds().ok_or_else(empty)?;
-    let shift = [-(lo[0] + hi[0]) / 2.0, -(lo[1] + hi[1]) / 2.0, -lo[2]];
-    for v in &mut mesh.vertices {
-        for k in 0..3 {
-            v[k] += shift[k];
-        }
-    }
-    let size = [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]];
-    let max = [
+    let fits = [
         BED_MM[0] - 2.0 * SKIRT_MARGIN_MM,
         BED_MM[1] - 2.0 * SKIRT_MARGIN_MM,
         BED_MM[2],
     ];
-    if (0..3).any(|k| size[k] > max[k] + 1e-9) || height_mm > BED_MM[2] {
-        return Err(SliceError::TooBig {
+    crate::mesh::place::place_on_bed(mesh, height_mm, fits).map_err(|e| match e {
+        PlaceError::Empty => SliceError::EmptyModel {
+            model: model.to_path_buf(),
+        },
+        PlaceError::TooBig { size_mm, max_mm } => SliceError::TooBig {
             model: model.to_path_buf(),
             height_mm,
-            size_mm: size,
-            max_mm: max,
-        });
-    }
-    Ok(size)
+            size_mm,
+            max_mm,
+        },
+    })
 }
 
-/// Moves the checked G-code to its destination without ever leaving a half-written job
-/// there: copy next to it, then rename over it.
+/// Copies a finished file (checked G-code, the mesh that was sliced) to its destination
+/// without ever leaving a half-written one there: copy next to it, then rename over it.
 fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     let dir = match to.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
@@ -748,13 +564,12 @@ fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     };
     let mut tmp = tempfile::Builder::new()
         .prefix(".crispen-")
-        .suffix(".gcode.part")
+        .suffix(".part")
         .tempfile_in(dir)
-        .map_err(SliceError::io("cannot write G-code into", dir))?;
-    let mut src = std::fs::File::open(from).map_err(SliceError::io("cannot read G-code", from))?;
-    std::io::copy(&mut src, tmp.as_file_mut())
-        .map_err(SliceError::io("cannot write G-code", to))?;
-    // Temporary files are private (0600); a job is an ordinary file others may read.
+        .map_err(SliceError::io("cannot write into", dir))?;
+    let mut src = std::fs::File::open(from).map_err(SliceError::io("cannot read", from))?;
+    std::io::copy(&mut src, tmp.as_file_mut()).map_err(SliceError::io("cannot write", to))?;
+    // Temporary files are private (0600); a job's files are ordinary files others may read.
     {
         use std::os::unix::fs::PermissionsExt;
         let _ = tmp
@@ -763,9 +578,9 @@ fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     }
     tmp.as_file()
         .sync_all()
-        .map_err(SliceError::io("cannot write G-code", to))?;
+        .map_err(SliceError::io("cannot write", to))?;
     tmp.persist(to).map_err(|e| SliceError::Io {
-        context: "cannot write G-code",
+        context: "cannot write",
         path: to.to_path_buf(),
         source: e.error,
     })?;

@@ -130,6 +130,23 @@ fn spawn_reader(
     })
 }
 
+/// Makes the kernel kill the child `cmd` starts if this process dies without a chance to
+/// clean up (kill -9, a crash), instead of leaving it to run on with no one waiting for it.
+pub fn die_with_this_process(cmd: &mut Command) {
+    let parent = nix::unistd::getpid();
+    // SAFETY: between fork and exec only async-signal-safe calls: prctl and getppid.
+    unsafe {
+        cmd.pre_exec(move || {
+            nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGKILL)?;
+            if nix::unistd::getppid() != parent {
+                // The parent died before the line above took effect.
+                return Err(std::io::Error::other("the parent process has exited"));
+            }
+            Ok(())
+        });
+    }
+}
+
 /// Runs `program args` with extra environment `env`, stdin closed, until it exits, the
 /// timeout passes or `cancel` becomes true.
 pub fn run(
@@ -146,20 +163,7 @@ pub fn run(
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .process_group(0);
-    // If this process dies without a chance to clean up (kill -9, a crash), the kernel
-    // kills the slicer too, instead of leaving it to run on with no one waiting for it.
-    let parent = nix::unistd::getpid();
-    // SAFETY: between fork and exec only async-signal-safe calls: prctl and getppid.
-    unsafe {
-        cmd.pre_exec(move || {
-            nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGKILL)?;
-            if nix::unistd::getppid() != parent {
-                // The parent died before the line above took effect.
-                return Err(std::io::Error::other("the parent process has exited"));
-            }
-            Ok(())
-        });
-    }
+    die_with_this_process(&mut cmd);
     let mut child = match cmd.spawn() {
         Ok(c) => c,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(RunError::NotFound),

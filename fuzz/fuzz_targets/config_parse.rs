@@ -1,0 +1,23 @@
+//! Any text as the daemon's config file: an error naming where, or a config whose every
+//! value is within its bounds; never a panic (a value that once panicked at reload is
+//! exactly what this looks for).
+#![no_main]
+
+use crispen::daemon::config::Config;
+use libfuzzer_sys::fuzz_target;
+
+fuzz_target!(|data: &[u8]| {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    match Config::parse(text, std::path::Path::new("/etc/crispen/crispen.toml")) {
+        Ok(config) => {
+            assert!(config.farm.max_heating >= 1);
+            for folder in &config.folders {
+                assert!(folder.height_mm >= 1.0 && folder.height_mm <= 205.0);
+                assert!(!folder.path.starts_with(&config.spool_dir));
+            }
+        }
+        Err(e) => assert!(e.to_string().starts_with("/etc/crispen/crispen.toml")),
+    }
+});

@@ -1,0 +1,21 @@
+//! Any bytes as a model's sidecar: an error naming the sidecar, or overrides within
+//! their bounds; never a panic.
+#![no_main]
+
+use crispen::daemon::prepare::parse_sidecar;
+use libfuzzer_sys::fuzz_target;
+
+fuzz_target!(|data: &[u8]| {
+    let path = std::path::Path::new("model.stl.toml");
+    match parse_sidecar(data, path) {
+        Ok(sidecar) => {
+            if let Some(h) = sidecar.height_mm {
+                assert!((1.0..=205.0).contains(&h));
+            }
+            if let Some(n) = sidecar.copies {
+                assert!(n >= 1);
+            }
+        }
+        Err(e) => assert!(e.contains("model.stl.toml")),
+    }
+});

@@ -1,0 +1,125 @@
+//! PrusaSlicer: the profile is an `.ini` config passed with `--load`, followed by a second
+//! config of this job's values (temperatures, settings, start/end code).
+
+use super::profiles::{bed_centre, fmt_num, start_end_gcode, Invocation, JobParams, SlicerProfile};
+use super::SliceError;
+use std::ffi::OsString;
+use std::path::Path;
+
+/// PrusaSlicer with its `.ini` profile.
+#[derive(Clone, Debug)]
+pub struct PrusaProfile {
+    ini: String,
+}
+
+impl PrusaProfile {
+    /// Checks the profile text (`shown` names it in errors).
+    pub fn load(ini: String, shown: &Path) -> Result<PrusaProfile, SliceError> {
+        check_prusa_ini(&ini).map_err(|reason| SliceError::BadProfile {
+            path: shown.to_path_buf(),
+            reason,
+        })?;
+        Ok(PrusaProfile { ini })
+    }
+}
+
+impl SlicerProfile for PrusaProfile {
+    fn invocation(
+        &self,
+        job: &JobParams,
+        workdir: &Path,
+        stl: &Path,
+        gcode: &Path,
+    ) -> Result<Invocation, SliceError> {
+        let (start, end) = start_end_gcode(job);
+        let s = job.settings;
+        let material = s.material_preset()?;
+        let ini = &self.ini;
+        let mut job_ini = String::from("# written by crispen for this job\n");
+        let mut put = |k: &str, v: String| job_ini.push_str(&format!("{k} = {v}\n"));
+        if let Some(lh) = s.layer_height_mm {
+            put("layer_height", fmt_num(lh));
+            put("first_layer_height", fmt_num(lh.max(0.2)));
+        }
+        if let Some(p) = s.infill_percent {
+            put("fill_density", format!("{}%", fmt_num(p)));
+        }
+        if let Some(on) = s.supports {
+            put("support_material", u8::from(on).to_string());
+            put("support_material_auto", "1".into());
+        }
+        put("temperature", fmt_num(job.nozzle_temp_c));
+        put("first_layer_temperature", fmt_num(job.nozzle_temp_c));
+        put("bed_temperature", fmt_num(job.bed_temp_c));
+        put("first_layer_bed_temperature", fmt_num(job.bed_temp_c));
+        put("filament_type", material.name.to_ascii_uppercase());
+        put("filament_density", fmt_num(material.density_g_cm3));
+        put("start_gcode", prusa_escape(&start));
+        put("end_gcode", prusa_escape(&end));
+        let profile_path = workdir.join("profile.ini");
+        let job_path = workdir.join("job.ini");
+        for (path, text) in [(&profile_path, ini.as_str()), (&job_path, job_ini.as_str())] {
+            std::fs::write(path, text).map_err(|source| SliceError::Io {
+                context: "cannot write slicer config",
+                path: path.clone(),
+                source,
+            })?;
+        }
+        let centre = bed_centre();
+        let args: Vec<OsString> = vec![
+            "--export-gcode".into(),
+            "--load".into(),
+            profile_path.into(),
+            "--load".into(),
+            job_path.into(),
+            "--center".into(),
+            centre.into(),
+            "--output".into(),
+            gcode.into(),
+            stl.into(),
+        ];
+        Ok(Invocation { args, env: vec![] })
+    }
+}
+
+/// A PrusaSlicer config is `key = value` lines, comments and blank lines; catching other
+/// text here gives a clearer message than the slicer's.
+fn check_prusa_ini(text: &str) -> Result<(), String> {
+    for (i, line) in text.lines().enumerate() {
+        let t = line.trim();
+        if t.is_empty() || t.starts_with('#') || t.starts_with(';') {
+            continue;
+        }
+        if t.starts_with('[') {
+            return Err(format!(
+                "line {}: sections ({t}) are PrusaSlicer bundles, not a config; export one \
+                 printer/print/filament config with PrusaSlicer's File > Export > Export Config",
+                i + 1
+            ));
+        }
+        if !t.contains('=') {
+            return Err(format!(
+                "line {}: expected `key = value`, found {t:?}",
+                i + 1
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// PrusaSlicer config values are single-line; newlines and backslashes are escaped.
+fn prusa_escape(text: &str) -> String {
+    text.replace('\\', "\\\\").replace('\n', "\\n")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtin_profile_parses_and_bad_ones_name_the_line() {
+        check_prusa_ini(super::super::profiles::PRUSA_PROFILE).unwrap();
+        let e = check_prusa_ini("layer_height = 0.2\n[printer:Ultimaker 2]\n").unwrap_err();
+        assert!(e.contains("line 2"), "{e}");
+    }
+}

@@ -9,87 +9,12 @@
 use crispen::enhance::{Bands, EnhanceOptions, Phase, Solver};
 use crispen::mesh::{self, Mesh};
 use nix::sys::resource::{getrusage, UsageWho};
-use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
-fn models() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models")
-}
-
-/// Splits every edge into `k` segments and every triangle into k² (k = 2 is the usual
-/// midpoint 1→4 subdivision). Shared edges get shared vertices, so the result stays a
-/// closed manifold mesh when the input is.
-fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
-    let mut vertices = mesh.vertices.clone();
-    let mut faces = Vec::with_capacity(mesh.faces.len() * k * k);
-    let mut edge_start: HashMap<(u32, u32), u32> = HashMap::new();
-    let lerp = |a: [f64; 3], b: [f64; 3], t: f64| -> [f64; 3] {
-        std::array::from_fn(|c| a[c] + (b[c] - a[c]) * t)
-    };
-    let mut grid = vec![0u32; (k + 1) * (k + 1)];
-    for f in &mesh.faces {
-        let [a, b, c] = *f;
-        // Point m of k on the edge u→v, shared with the neighbour across it.
-        let mut edge_point = |u: u32, v: u32, m: usize, vertices: &mut Vec<[f64; 3]>| -> u32 {
-            if m == 0 {
-                return u;
-            }
-            if m == k {
-                return v;
-            }
-            let (lo, hi, m_lo) = if u < v { (u, v, m) } else { (v, u, k - m) };
-            let start = *edge_start.entry((lo, hi)).or_insert_with(|| {
-                let start = vertices.len() as u32;
-                for s in 1..k {
-                    let p = lerp(
-                        vertices[lo as usize],
-                        vertices[hi as usize],
-                        s as f64 / k as f64,
-                    );
-                    vertices.push(p);
-                }
-                start
-            });
-            start + (m_lo - 1) as u32
-        };
-        // Barycentric grid: point (i, j) = a + i/k (b − a) + j/k (c − a).
-        for j in 0..=k {
-            for i in 0..=(k - j) {
-                let index = if j == 0 {
-                    edge_point(a, b, i, &mut vertices)
-                } else if i == 0 {
-                    edge_point(a, c, j, &mut vertices)
-                } else if i + j == k {
-                    edge_point(b, c, j, &mut vertices)
-                } else {
-                    let (pa, pb, pc) = (
-                        vertices[a as usize],
-                        vertices[b as usize],
-                        vertices[c as usize],
-                    );
-                    let (s, t) = (i as f64 / k as f64, j as f64 / k as f64);
-                    vertices.push(std::array::from_fn(|d| {
-                        pa[d] + s * (pb[d] - pa[d]) + t * (pc[d] - pa[d])
-                    }));
-                    vertices.len() as u32 - 1
-                };
-                grid[j * (k + 1) + i] = index;
-            }
-        }
-        let g = |i: usize, j: usize| grid[j * (k + 1) + i];
-        for j in 0..k {
-            for i in 0..(k - j) {
-                faces.push([g(i, j), g(i + 1, j), g(i, j + 1)]);
-                if i + j + 1 < k {
-                    faces.push([g(i + 1, j), g(i + 1, j + 1), g(i, j + 1)]);
-                }
-            }
-        }
-    }
-    Mesh { vertices, faces }
-}
+#[path = "../tests/common/mod.rs"]
+mod common;
 
 fn peak_rss_mib() -> f64 {
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
@@ -101,19 +26,19 @@ fn peak_rss_mib() -> f64 {
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
-/// MODEL or MODEL-xK: a shared model, or it subdivided with k segments per edge.
+/// MODEL or MODEL-xK: a model of tests/data, or it subdivided with k segments per edge.
 fn case_mesh(name: &str) -> Mesh {
     let (model, k) = match name.split_once("-x") {
         Some((model, k)) => (model, k.parse().expect("case MODEL-xK")),
         None => (name, 1),
     };
-    let base = mesh::load(&models().join(format!("{model}.obj")))
+    let base = mesh::load(&common::model(&format!("{model}.obj")))
         .unwrap()
         .mesh;
     if k == 1 {
         base
     } else {
-        subdivide(&base, k)
+        common::subdivide(&base, k)
     }
 }
 
@@ -219,7 +144,7 @@ fn main() {
 
     // The whole process, file to file, as a user runs it.
     let dir = tempfile::tempdir().unwrap();
-    file_to_file(&exe, &models().join("bunny.obj"), 7, dir.path());
+    file_to_file(&exe, &common::model("bunny.obj"), 7, dir.path());
     if !quick {
         let big = dir.path().join("homer-x13.obj");
         mesh::save(&big, &case_mesh("homer-x13")).unwrap();

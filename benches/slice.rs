@@ -4,7 +4,9 @@
 
 use crispen::enhance::Strength;
 use crispen::slice::{slice, SliceReport, SliceRequest, SlicerKind, UpAxis};
-use std::path::Path;
+
+#[path = "../tests/common/mod.rs"]
+mod common;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -17,10 +19,9 @@ fn main() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(3)
         .max(1);
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let cases = [
-        ("spot", root.join("tests/data/spot.obj"), 30.0),
-        ("bunny", root.join("../shared/models/bunny.obj"), 40.0),
+        ("spot", common::model("spot.obj"), 30.0),
+        ("bunny", common::model("bunny.obj"), 40.0),
     ];
     let dir = tempfile::tempdir().expect("temporary folder");
     println!(

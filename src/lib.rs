@@ -3,6 +3,7 @@
 //! The library is layered so each part can be used and tested on its own:
 //! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
+//! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
 //! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
 //! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
 //!   and the simulated printer used by tests, the quick start and the demo farm.
@@ -15,4 +16,5 @@ pub mod daemon;
 pub mod enhance;
 pub mod marlin;
 pub mod mesh;
+pub mod preview;
 pub mod slice;

@@ -1,27 +1,21 @@
-//! The enhancement engine against the spec's checks ("Checks any implementation should
-//! pass") and the independent reference outputs in ../shared/models, plus the
-//! `crispen enhance` command run as a real process on real files.
+//! The enhancement engine against the method's checks (docs/method.md, "Checks") and
+//! the independent reference outputs in tests/data, plus the `crispen enhance` command
+//! run as a real process on real files.
+
+mod common;
 
 use crispen::enhance::{self, Bands, EnhanceOptions, Phase, Solver, StrengthTable};
 use crispen::mesh::{self, Mesh, MeshFormat};
-use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
-fn models() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models")
-}
-
-fn reference_json() -> serde_json::Value {
-    let text = std::fs::read_to_string(models().join("reference.json")).unwrap();
-    serde_json::from_str(&text).unwrap()
-}
+use common::{bunny_radius, bunny_reference, model, reference_json};
 
 /// The bunny's bands, computed once for all tests in this binary.
 fn bunny() -> &'static (Mesh, Bands) {
     static BUNNY: OnceLock<(Mesh, Bands)> = OnceLock::new();
     BUNNY.get_or_init(|| {
-        let loaded = mesh::load(&models().join("bunny.obj")).unwrap();
+        let loaded = mesh::load(&model("bunny.obj")).unwrap();
         assert_eq!(loaded.format, MeshFormat::Obj);
         let bands = Bands::compute(&loaded.mesh, &mut |_| {}).unwrap();
         (loaded.mesh, bands)
@@ -73,14 +67,8 @@ fn bunny_obj_matches_the_reference_outputs() {
         let combined = bands
             .combine(&EnhanceOptions::with_lambda2(lambda2 as f64))
             .unwrap();
-        let reference_mesh = mesh::load(&models().join(format!("bunny.lambda{lambda2}.obj")))
-            .unwrap()
-            .mesh;
-        assert_eq!(
-            reference_mesh.faces, input.faces,
-            "reference keeps the faces"
-        );
-        let worst = max_distance(&combined.vertices, &reference_mesh.vertices);
+        let reference = bunny_reference(&input.vertices, lambda2);
+        let worst = max_distance(&combined.vertices, &reference);
         assert!(
             worst < 1e-6 * radius,
             "lambda2 = {lambda2}: worst vertex off by {worst:e}"
@@ -106,10 +94,8 @@ fn both_solvers_match_the_reference() {
     // sparse Cholesky path against the same reference.
     let (input, auto) = bunny();
     let cholesky = Bands::compute_with(input, Solver::Cholesky, &mut |_| {}).unwrap();
-    let radius = reference_json()["bunny"]["radius"].as_f64().unwrap();
-    let reference = mesh::load(&models().join("bunny.lambda20.obj"))
-        .unwrap()
-        .mesh;
+    let radius = bunny_radius();
+    let reference = bunny_reference(&input.vertices, 20);
     let opts = EnhanceOptions::with_lambda2(20.0);
     for bands in [auto, &cholesky] {
         assert!(
@@ -118,79 +104,16 @@ fn both_solvers_match_the_reference() {
             bands.residuals
         );
         let combined = bands.combine(&opts).unwrap();
-        let worst = max_distance(&combined.vertices, &reference.vertices);
+        let worst = max_distance(&combined.vertices, &reference);
         assert!(worst < 1e-6 * radius, "off by {worst:e}");
     }
-}
-
-/// Splits every edge of `mesh` into `k` and every triangle into k², sharing edge points.
-fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
-    let mut vertices = mesh.vertices.clone();
-    let mut faces = Vec::new();
-    let mut edges: std::collections::HashMap<(u32, u32), u32> = Default::default();
-    for f in &mesh.faces {
-        let mut grid = vec![0u32; (k + 1) * (k + 1)];
-        for j in 0..=k {
-            for i in 0..=(k - j) {
-                let corner = |i: usize, j: usize| -> Option<u32> {
-                    match (i, j) {
-                        (0, 0) => Some(f[0]),
-                        (i, 0) if i == k => Some(f[1]),
-                        (0, j) if j == k => Some(f[2]),
-                        _ => None,
-                    }
-                };
-                let edge = match (i, j) {
-                    _ if corner(i, j).is_some() => None,
-                    (i, 0) => Some((f[0], f[1], i)),
-                    (0, j) => Some((f[0], f[2], j)),
-                    (i, j) if i + j == k => Some((f[1], f[2], j)),
-                    _ => None,
-                };
-                let index = if let Some(c) = corner(i, j) {
-                    c
-                } else if let Some((u, v, m)) = edge {
-                    let (lo, hi, m) = if u < v { (u, v, m) } else { (v, u, k - m) };
-                    let start = *edges.entry((lo, hi)).or_insert_with(|| {
-                        let start = vertices.len() as u32;
-                        for s in 1..k {
-                            let (a, b) = (vertices[lo as usize], vertices[hi as usize]);
-                            vertices.push(std::array::from_fn(|c| {
-                                a[c] + (b[c] - a[c]) * s as f64 / k as f64
-                            }));
-                        }
-                        start
-                    });
-                    start + m as u32 - 1
-                } else {
-                    let [a, b, c] = f.map(|v| vertices[v as usize]);
-                    let (s, t) = (i as f64 / k as f64, j as f64 / k as f64);
-                    vertices.push(std::array::from_fn(|d| {
-                        a[d] + s * (b[d] - a[d]) + t * (c[d] - a[d])
-                    }));
-                    vertices.len() as u32 - 1
-                };
-                grid[j * (k + 1) + i] = index;
-            }
-        }
-        let g = |i: usize, j: usize| grid[j * (k + 1) + i];
-        for j in 0..k {
-            for i in 0..(k - j) {
-                faces.push([g(i, j), g(i + 1, j), g(i, j + 1)]);
-                if i + j + 1 < k {
-                    faces.push([g(i + 1, j), g(i + 1, j + 1), g(i, j + 1)]);
-                }
-            }
-        }
-    }
-    Mesh { vertices, faces }
 }
 
 #[test]
 fn large_mesh_solvers_agree() {
     // Above 100k vertices the Cholesky path orders by nested dissection instead of AMD;
     // cross-check it against conjugate gradients on a subdivided Spot (~105k vertices).
-    let big = subdivide(&spot(), 6);
+    let big = common::subdivide(&spot(), 6);
     assert!(big.vertices.len() > 100_000, "{}", big.vertices.len());
     let (cleaned, report) = mesh::clean(big.vertices.clone(), big.faces.clone());
     assert_eq!(
@@ -216,7 +139,7 @@ fn large_mesh_solvers_agree() {
 
 #[test]
 fn bunny_stl_after_welding_matches_the_reference() {
-    let loaded = mesh::load(&models().join("bunny.stl")).unwrap();
+    let loaded = mesh::load(&common::bunny_stl()).unwrap();
     assert_eq!(loaded.format, MeshFormat::Stl);
     let (obj_mesh, _) = bunny();
     assert_eq!(loaded.mesh.vertices.len(), obj_mesh.vertices.len());
@@ -235,20 +158,18 @@ fn bunny_stl_after_welding_matches_the_reference() {
 
     // The STL's vertices come in another order: match them to the OBJ's by position
     // (coordinates are float32-exact in both, so positions are equal bit for bit).
-    let reference = mesh::load(&models().join("bunny.lambda20.obj"))
-        .unwrap()
-        .mesh;
+    let reference = bunny_reference(&obj_mesh.vertices, 20);
     let index_of: std::collections::HashMap<[u64; 3], usize> = obj_mesh
         .vertices
         .iter()
         .enumerate()
         .map(|(i, v)| (v.map(f64::to_bits), i))
         .collect();
-    let radius = reference_json()["bunny"]["radius"].as_f64().unwrap();
+    let radius = bunny_radius();
     let mut worst: f64 = 0.0;
     for (v_in, v_out) in loaded.mesh.vertices.iter().zip(&out.vertices) {
         let i = index_of[&v_in.map(f64::to_bits)];
-        let r = reference.vertices[i];
+        let r = reference[i];
         worst = worst.max(
             (0..3)
                 .map(|k| (v_out[k] - r[k]).powi(2))
@@ -293,7 +214,7 @@ fn min_weight_is_exactly_the_rule() {
 
 /// Spot is small (2930 vertices), so the transformed copies are cheap to recompute.
 fn spot() -> Mesh {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
+    let path = model("spot.obj");
     mesh::load(&path).unwrap().mesh
 }
 
@@ -509,7 +430,7 @@ fn command_enhances_obj_to_obj_keeping_order_and_precision() {
     let result = crispen()
         .args([
             "enhance",
-            models().join("bunny.obj").to_str().unwrap(),
+            model("bunny.obj").to_str().unwrap(),
             "-o",
             out.to_str().unwrap(),
             "--strength",
@@ -541,19 +462,17 @@ fn command_enhances_obj_to_obj_keeping_order_and_precision() {
     assert_eq!(report["clean"]["welded_vertices"], 0);
 
     let written = mesh::load(&out).unwrap().mesh;
-    let reference = mesh::load(&models().join("bunny.lambda20.obj"))
-        .unwrap()
-        .mesh;
-    let radius = reference_json()["bunny"]["radius"].as_f64().unwrap();
-    assert_eq!(written.faces, reference.faces);
-    assert!(max_distance(&written.vertices, &reference.vertices) < 1e-6 * radius);
+    let (input, _) = bunny();
+    assert_eq!(written.faces, input.faces);
+    let reference = bunny_reference(&input.vertices, 20);
+    assert!(max_distance(&written.vertices, &reference) < 1e-6 * bunny_radius());
 }
 
 #[test]
 fn command_scales_to_height_and_writes_stl() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("spot.stl");
-    let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
+    let input = model("spot.obj");
     let result = crispen()
         .args([
             "enhance",
@@ -592,7 +511,7 @@ fn command_scales_to_height_and_writes_stl() {
 fn command_rejects_bad_input_clearly_and_keeps_existing_output() {
     let dir = tempfile::tempdir().unwrap();
     let bad = dir.path().join("broken.stl");
-    let mut bytes = std::fs::read(models().join("bunny.stl")).unwrap();
+    let mut bytes = std::fs::read(common::bunny_stl()).unwrap();
     bytes.truncate(bytes.len() - 30);
     std::fs::write(&bad, &bytes).unwrap();
     let out = dir.path().join("out.obj");
@@ -621,7 +540,7 @@ fn command_rejects_bad_input_clearly_and_keeps_existing_output() {
     let result = crispen()
         .args([
             "enhance",
-            models().join("bunny.obj").to_str().unwrap(),
+            model("bunny.obj").to_str().unwrap(),
             "-o",
             out.to_str().unwrap(),
         ])
@@ -638,7 +557,7 @@ fn command_rejects_bad_input_clearly_and_keeps_existing_output() {
     let result = crispen()
         .args([
             "enhance",
-            models().join("spot.obj").to_str().unwrap(),
+            model("spot.obj").to_str().unwrap(),
             "-o",
             dir.path().join("x.ply").to_str().unwrap(),
             "--strength",

@@ -10,12 +10,14 @@ use crispen::slice::{slice, SliceError, SliceRequest, SliceSettings, SliceStep, 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+mod common;
+
 fn spot() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj")
+    common::model("spot.obj")
 }
 
 fn bunny() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/bunny.obj")
+    common::model("bunny.obj")
 }
 
 /// Facts read straight from a G-code file.

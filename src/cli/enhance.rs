@@ -1,10 +1,13 @@
 //! `crispen enhance INPUT -o OUTPUT [--height MM] [--strength L2] [--lambda1 L1] [--mu MU]
 //! [--json]`: load and clean a mesh, enhance it (λ2 from `--strength`, or from the height
 //! table for `--height`), scale it to the printed height, write it in the format of
-//! OUTPUT's extension. A phase display on a terminal; `--json` prints one report.
+//! OUTPUT's extension. A phase display on a terminal; `--json` prints one report;
+//! `--preview DIR` draws the model before and after and the displacement's heat map.
 
 use crate::enhance::{self, EnhanceOptions, Phase, PhaseTimings, StrengthTable};
 use crate::mesh::{self, CleanReport, MeshFormat};
+use crate::preview;
+use crate::slice::UpAxis;
 use anyhow::Context;
 use serde::Serialize;
 use std::io::IsTerminal;
@@ -36,6 +39,14 @@ pub struct Args {
     /// Print one JSON report on stdout
     #[arg(long)]
     pub json: bool,
+    /// Also write pictures into DIR: the model before and after from one camera, and a
+    /// heat map of the displacement (before.png, after.png, displacement.png)
+    #[arg(long, value_name = "DIR")]
+    pub preview: Option<PathBuf>,
+    /// The model's up axis, for the pictures' camera: z (slicers, STL files) or y (many
+    /// OBJ files)
+    #[arg(long, value_name = "AXIS", default_value = "z")]
+    pub up: UpAxis,
 }
 
 #[derive(Serialize)]
@@ -57,6 +68,8 @@ struct Report {
     max_displacement: f64,
     mean_displacement: f64,
     max_solve_residual: Option<f64>,
+    /// The pictures written for --preview.
+    pictures: Vec<PathBuf>,
     scale: f64,
     height_mm: Option<f64>,
     timings: Timings,
@@ -145,6 +158,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             (loaded.mesh.clone(), None)
         }
     };
+    // Before scaling, so both pictures share the input's camera.
+    let mut pictures = Vec::new();
+    if let Some(dir) = &args.preview {
+        progress.set("drawing the pictures");
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create the picture folder {}", dir.display()))?;
+        let drawn = preview::pictures(&loaded.mesh, &mesh, args.up, 800)
+            .context("the mesh has no vertices to draw")?;
+        pictures = drawn
+            .save(dir)
+            .with_context(|| format!("cannot write the pictures into {}", dir.display()))?;
+    }
     let scale = match args.height {
         Some(h) => enhance::scale_to_height(&mut mesh, h),
         None => 1.0,
@@ -176,6 +201,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .as_ref()
             .map_or(0.0, |r| r.mean_displacement * scale),
         max_solve_residual: enhance_report.as_ref().map(|r| r.max_solve_residual),
+        pictures,
         scale,
         height_mm: args.height,
         timings: Timings {

@@ -657,9 +657,11 @@ mod tests {
 
     /// The bunny scaled to about the unit sphere (its radius is ~0.1), its operators and the right-hand side `M V0`.
     fn bunny_system() -> (Operators, Vec<[f64; 3]>, Vec<[f64; 3]>) {
-        let path =
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/bunny.obj");
-        let mesh = crate::mesh::load(&path).unwrap().mesh;
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/bunny.obj.gz");
+        let packed = std::fs::File::open(&path).unwrap();
+        let mesh = crate::mesh::read(flate2::read::GzDecoder::new(packed), "bunny.obj")
+            .unwrap()
+            .mesh;
         let v0: Vec<[f64; 3]> = mesh.vertices.iter().map(|v| v.map(|c| c * 10.0)).collect();
         let ops = Operators::build(&v0, &mesh.faces);
         let rhs = v0

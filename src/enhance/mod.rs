@@ -1,5 +1,5 @@
 //! Adaptive unsharp masking of geometry (Herholz et al. 2017), exactly as
-//! `../shared/docs/adaptive-unsharp-masking.md` specifies: exaggerate a mesh's mid-scale
+//! `docs/method.md` specifies: exaggerate a mesh's mid-scale
 //! features so a small print keeps the look of the large original.
 //!
 //! No I/O and no async: the CLI and the slicing pipeline load a [`Mesh`] with

@@ -1,6 +1,6 @@
 //! Firmware profiles: the facts about a printer's firmware that both the host and the
 //! simulator must agree on. Values come from Marlin's and Ultimaker2Marlin's defaults
-//! (see ../shared/docs/marlin-host-protocol.md).
+//! (see docs/host-protocol.md and docs/firmware.md).
 
 use serde::{Deserialize, Serialize};
 use std::fmt;

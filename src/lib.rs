@@ -9,11 +9,13 @@
 //!   and the simulated printer used by tests, the quick start and the demo farm.
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
+//! - [`http`]: the HTTP API, web dashboard, metrics and OctoPrint-compatible upload.
 //! - [`cli`]: the `crispen` subcommands, thin wrappers over the above.
 
 pub mod cli;
 pub mod daemon;
 pub mod enhance;
+pub mod http;
 pub mod marlin;
 pub mod mesh;
 pub mod preview;

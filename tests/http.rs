@@ -223,6 +223,12 @@ fn raw(addr: &str, bytes: &[u8]) -> Answer {
                 }
                 body.extend_from_slice(&chunk[..size]);
             }
+        } else if let Some(length) = headers
+            .lines()
+            .find_map(|l| l.strip_prefix("content-length:"))
+        {
+            body.resize(length.trim().parse().unwrap(), 0);
+            reader.read_exact(&mut body).unwrap();
         } else {
             let _ = reader.read_to_end(&mut body);
         }
@@ -550,4 +556,299 @@ fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
     );
     assert_eq!(hot_files(tmp.path()), Vec::<String>::new());
     let _ = &farm.root;
+}
+
+/// chromedriver and one headless Chromium session, spoken to in W3C WebDriver JSON over
+/// the same minimal HTTP client.
+struct Browser {
+    _driver: Killed,
+    addr: String,
+    session: String,
+}
+
+const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
+
+impl Browser {
+    fn start(profile: &Path) -> Browser {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let driver = Command::new("chromedriver")
+            .arg(format!("--port={port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("chromedriver (Debian packages chromium and chromium-driver; scripts/setup installs them)");
+        let driver = Killed(driver);
+        let addr = format!("127.0.0.1:{port}");
+        let started = Instant::now();
+        while TcpStream::connect(&addr).is_err() {
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "chromedriver did not start"
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let mut args = vec![
+            "--headless".to_string(),
+            "--no-sandbox".into(),
+            "--disable-gpu".into(),
+            "--disable-background-networking".into(),
+            "--disable-component-update".into(),
+            "--no-first-run".into(),
+            "--disable-dev-shm-usage".into(),
+            "--window-size=1200,1000".into(),
+        ];
+        args.push(format!("--user-data-dir={}", profile.display()));
+        let mut options = json!({ "args": args });
+        if Path::new("/usr/bin/chromium").exists() {
+            options["binary"] = json!("/usr/bin/chromium");
+        }
+        let caps = json!({"capabilities": {"alwaysMatch": {
+            "browserName": "chrome", "goog:chromeOptions": options }}});
+        let answer = webdriver(&addr, "POST", "/session", &caps);
+        let session = answer["sessionId"]
+            .as_str()
+            .unwrap_or_else(|| panic!("no session: {answer}"))
+            .to_string();
+        Browser {
+            _driver: driver,
+            addr,
+            session,
+        }
+    }
+
+    fn call(&self, method: &str, path: &str, body: &Value) -> Value {
+        webdriver(
+            &self.addr,
+            method,
+            &format!("/session/{}{path}", self.session),
+            body,
+        )
+    }
+
+    fn go(&self, url: &str) {
+        self.call("POST", "/url", &json!({ "url": url }));
+    }
+
+    fn exec(&self, script: &str, args: Value) -> Value {
+        self.call(
+            "POST",
+            "/execute/sync",
+            &json!({ "script": script, "args": args }),
+        )
+    }
+
+    fn find(&self, css: &str) -> String {
+        let v = self.call(
+            "POST",
+            "/element",
+            &json!({"using": "css selector", "value": css}),
+        );
+        v[ELEMENT]
+            .as_str()
+            .unwrap_or_else(|| panic!("no element {css}: {v}"))
+            .to_string()
+    }
+
+    fn click(&self, css: &str) {
+        let id = self.find(css);
+        self.call("POST", &format!("/element/{id}/click"), &json!({}));
+    }
+
+    fn type_into(&self, css: &str, text: &str) {
+        let id = self.find(css);
+        self.call(
+            "POST",
+            &format!("/element/{id}/value"),
+            &json!({ "text": text }),
+        );
+    }
+
+    fn screenshot(&self, path: &Path) {
+        use base64::Engine;
+        let v = self.call("GET", "/screenshot", &Value::Null);
+        let png = base64::engine::general_purpose::STANDARD
+            .decode(v.as_str().unwrap())
+            .unwrap();
+        std::fs::write(path, png).unwrap();
+    }
+
+    /// Waits until `script` (a function body) returns true in the page; anything else it
+    /// returns is shown if it never does.
+    fn wait_until(&self, limit: Duration, what: &str, script: &str) {
+        let started = Instant::now();
+        let mut seen: Vec<Value> = Vec::new();
+        loop {
+            let last = self.exec(script, json!([]));
+            if last == json!(true) {
+                return;
+            }
+            if !seen.contains(&last) {
+                seen.push(last);
+            }
+            if started.elapsed() > limit {
+                let body = self.exec("return document.body.innerText", json!([]));
+                panic!("timed out waiting in the page for {what} (it returned: {seen:?}); the page shows:\n{body}");
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = std::panic::catch_unwind(|| {
+            webdriver(
+                &self.addr,
+                "DELETE",
+                &format!("/session/{}", self.session),
+                &Value::Null,
+            )
+        });
+    }
+}
+
+/// One WebDriver command; returns its `value`, panicking on a WebDriver error.
+fn webdriver(addr: &str, method: &str, path: &str, body: &Value) -> Value {
+    let body = if body.is_null() {
+        Vec::new()
+    } else {
+        serde_json::to_vec(body).unwrap()
+    };
+    let headers = [("Content-Type", "application/json".to_string())];
+    let a = request(addr, method, path, &headers, &body);
+    let v = a.json();
+    assert_eq!(a.status, 200, "WebDriver {method} {path}: {v}");
+    v["value"].clone()
+}
+
+/// The dashboard in a real headless Chromium: two simulated printers printing, each
+/// tile with its state, progress, temperatures and the part's picture; the bed-clear
+/// button asks for the key (read-only without it), then clears the bed with it; a model
+/// dropped on the hot folder's name becomes a job; the job page shows the three pictures;
+/// and the page fits a phone's width.
+#[test]
+fn dashboard_in_a_real_browser() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.04, "read_only_without_key = true");
+    for name in ["left.obj", "right.obj"] {
+        let a = request(
+            &farm.addr,
+            "PUT",
+            &format!("/api/v1/folders/hot/files/{name}"),
+            &key_header(Some(KEY)),
+            &spot_obj(),
+        );
+        assert_eq!(a.status, 201, "{}", a.text());
+    }
+    // Read-only without the key: the status is open, changes are not.
+    assert_eq!(farm.get("/api/v1/status", None).status, 200);
+    assert_eq!(farm.post("/api/v1/printers/alpha/clear", None).status, 401);
+
+    let browser = Browser::start(&tmp.path().join("chromium-profile"));
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(240),
+        "both printers printing, with progress, temperatures and the part's picture",
+        "const seen = ['alpha', 'beta'].map(p => {
+           const t = document.querySelector('[data-printer=\"' + p + '\"]');
+           if (!t) return p + ': no tile';
+           const img = t.querySelector('img.part');
+           return [t.querySelector('.state').textContent, !!t.querySelector('.bar div'),
+             /°C/.test((t.querySelector('.temps') || {}).textContent), /left/.test(t.textContent),
+             !!img && img.naturalWidth > 0].join(' ');
+         });
+         return seen.every(s => s === 'printing true true true true') || seen.join('; ');",
+    );
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard.png"));
+
+    // The print ends and alpha waits for its bed to be cleared.
+    browser.wait_until(
+        Duration::from_secs(240),
+        "alpha's bed-clear button",
+        "return !!document.querySelector('button[data-action=\"clear\"][data-printer=\"alpha\"]')",
+    );
+    // Without the key the click is refused and the page asks for the key.
+    browser.click("button[data-action=\"clear\"][data-printer=\"alpha\"]");
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the key form",
+        "return !document.querySelector('#keyform').hidden",
+    );
+    assert_eq!(printer(&farm.status(), "alpha")["bed_cleared"], false);
+    browser.type_into("#key", KEY);
+    browser.click("#keyform button");
+    browser.click("button[data-action=\"clear\"][data-printer=\"alpha\"]");
+    farm.wait_for(
+        Duration::from_secs(20),
+        "alpha's bed cleared by the click",
+        |s| printer(s, "alpha")["bed_cleared"] == true,
+    );
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the clear button gone",
+        "return !document.querySelector('button[data-action=\"clear\"][data-printer=\"alpha\"]')",
+    );
+
+    // A model dropped on the hot folder's name is uploaded and becomes a job. WebDriver
+    // cannot drag a file from the desktop, so the page gets the events a real drop fires.
+    let dropped = browser.exec(
+        "const [text] = arguments;
+         const zone = document.querySelector('[data-folder=\"hot\"]');
+         const data = new DataTransfer();
+         data.items.add(new File([text], 'dropped.obj', { type: 'application/octet-stream' }));
+         for (const type of ['dragenter', 'dragover', 'drop'])
+           zone.dispatchEvent(new DragEvent(type, { bubbles: true, cancelable: true, dataTransfer: data }));
+         return data.files.length;",
+        json!([String::from_utf8(spot_obj()).unwrap()]),
+    );
+    assert_eq!(dropped, json!(1));
+    farm.wait_for(Duration::from_secs(60), "the dropped model as a job", |s| {
+        job(s, "dropped.obj").is_some()
+    });
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the dropped job in the queue",
+        "return Array.from(document.querySelectorAll('#queue tr[data-job]')).some(r => r.textContent.includes('dropped.obj'))",
+    );
+
+    // The job page: the report and the three pictures.
+    let s = farm.status();
+    let left = job(&s, "left.obj").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    browser.go(&format!("http://{}/#job/{left}", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the job page with its pictures",
+        "const imgs = document.querySelectorAll('#jobpage .pictures img');
+         return imgs.length === 3 && Array.from(imgs).every(i => i.naturalWidth > 0)
+           && document.querySelector('#jobpage h2').textContent.includes('left.obj')
+           && document.querySelector('#jobpage').textContent.includes('Enhancement and slicing');",
+    );
+    browser.screenshot(&shots.join("dashboard-job.png"));
+
+    // A phone's width: nothing wider than the screen.
+    browser.call(
+        "POST",
+        "/window/rect",
+        &json!({"width": 390, "height": 844}),
+    );
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the dashboard at a phone's width",
+        "const wide = Array.from(document.querySelectorAll('body *'))
+           .filter(e => e.getBoundingClientRect().right > window.innerWidth + 1)
+           .map(e => e.tagName + '.' + e.className + ' ' + Math.round(e.getBoundingClientRect().right));
+         return (document.querySelectorAll('.tile[data-printer]').length === 2
+           && document.documentElement.scrollWidth <= window.innerWidth && wide.length === 0)
+           || [window.innerWidth, document.documentElement.scrollWidth, ...wide.slice(0, 5)].join(' ');",
+    );
+    browser.screenshot(&shots.join("dashboard-phone.png"));
 }

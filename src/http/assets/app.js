@@ -190,8 +190,18 @@ function patch(container, html) {
     if (n.tagName === "TABLE") {
       patchRows(old[i], n);
     } else if (!n.isEqualNode(old[i])) {
+      keepPictures(old[i], n);
       old[i].replaceWith(n);
     }
+  });
+}
+
+// A tile redrawn for its progress keeps its loaded picture element (no flicker).
+function keepPictures(oldNode, newNode) {
+  newNode.querySelectorAll("img[data-src]").forEach((img) => {
+    const loaded = Array.from(oldNode.querySelectorAll("img[data-src]"))
+      .find((o) => o.dataset.src === img.dataset.src && o.complete && o.naturalWidth > 0);
+    if (loaded) img.replaceWith(loaded);
   });
 }
 

@@ -705,7 +705,7 @@ fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
         .0
         .trim();
     let top = name.split('.').next()?.trim().trim_matches('"');
-    let known = ["spool", "control", "farm", "printer", "folder"];
+    let known = ["spool", "control", "farm", "printer", "folder", "http"];
     (!known.contains(&top)).then(|| {
         line.split_once('#')
             .map_or(line, |(h, _)| h)
@@ -816,6 +816,54 @@ slicer = "cura"
         assert_eq!(c.folders[1].slicer, SlicerKind::Cura);
         // Relative paths are anchored at the config file's directory.
         assert_eq!(c.folders[1].path, PathBuf::from("/etc/crispen/hot/igea"));
+    }
+
+    /// `[http]`: the key file is read and checked at startup; every error names the key.
+    #[test]
+    fn http_section_is_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("crispen.toml");
+        std::fs::write(dir.path().join("good.key"), "0123456789abcdefXYZ\n").unwrap();
+        std::fs::write(dir.path().join("weak.key"), "short\n").unwrap();
+        let with = |http: &str| Config::parse(&format!("{GOOD}\n[http]\n{http}\n"), &file);
+        let c = with("listen = \"127.0.0.1:8080\"\napi_key_file = \"good.key\"").unwrap();
+        let http = c.http.unwrap();
+        assert_eq!(http.api_key.0, "0123456789abcdefXYZ");
+        assert!(!http.read_only_without_key);
+        assert!(
+            !format!("{http:?}").contains("0123456789"),
+            "the key is never shown"
+        );
+        for (text, key, says) in [
+            (
+                "listen = \"8080\"\napi_key_file = \"good.key\"",
+                "listen",
+                "address and port",
+            ),
+            (
+                "listen = \"0.0.0.0:80\"\napi_key_file = \"none.key\"",
+                "api_key_file",
+                "none.key",
+            ),
+            (
+                "listen = \"0.0.0.0:80\"\napi_key_file = \"weak.key\"",
+                "api_key_file",
+                "at least 16",
+            ),
+            (
+                "listen = \"0.0.0.0:80\"\napi_key_file = \"good.key\"\nupload_max_mb = 0",
+                "upload_max_mb",
+                "from 1",
+            ),
+        ] {
+            let e = with(text).unwrap_err().to_string();
+            assert!(
+                e.contains("[http]") && e.contains(&format!("`{key}`")) && e.contains(says),
+                "{text}: {e}"
+            );
+        }
+        let e = with("listen = \"0.0.0.0:80\"").unwrap_err().to_string();
+        assert!(e.contains("api_key_file"), "{e}");
     }
 
     #[test]

@@ -757,7 +757,8 @@ fn dashboard_in_a_real_browser() {
            const t = document.querySelector('[data-printer=\"' + p + '\"]');
            if (!t) return p + ': no tile';
            const img = t.querySelector('img.part');
-           return [t.querySelector('.state').textContent, !!t.querySelector('.bar div'),
+           const bar = t.querySelector('progress.bar');
+           return [t.querySelector('.state').textContent, !!bar && Math.abs(bar.value - parseFloat(t.querySelector('.pct').textContent)) < 0.05,
              /°C/.test((t.querySelector('.temps') || {}).textContent), /left/.test(t.textContent),
              !!img && img.naturalWidth > 0].join(' ');
          });

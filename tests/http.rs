@@ -760,9 +760,11 @@ fn dashboard_in_a_real_browser() {
            const bar = t.querySelector('progress.bar');
            return [t.querySelector('.state').textContent, !!bar && Math.abs(bar.value - parseFloat(t.querySelector('.pct').textContent)) < 0.05,
              /°C/.test((t.querySelector('.temps') || {}).textContent), /left/.test(t.textContent),
-             !!img && img.naturalWidth > 0].join(' ');
+             !!img && img.naturalWidth > 0,
+             // Under way, for a screenshot that shows it.
+             parseFloat((t.querySelector('.pct') || {}).textContent) > 5].join(' ');
          });
-         return seen.every(s => s === 'printing true true true true') || seen.join('; ');",
+         return seen.every(s => s === 'printing true true true true true') || seen.join('; ');",
     );
     let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
     browser.screenshot(&shots.join("dashboard.png"));

@@ -360,7 +360,9 @@ async function showJob(id) {
   }
   const report = j.job.slice_report;
   if (report) {
-    html += "<h3>Enhancement and slicing</h3>" + figures(report.enhance || {}) + figures(Object.fromEntries(
+    const e = report.enhancement || {};
+    html += "<h3>Enhancement and slicing</h3>" +
+      figures(Object.assign({ mode: e.mode, lambda2: e.lambda2 }, e.report || {})) + figures(Object.fromEntries(
       Object.entries(report).filter(([, v]) => v == null || typeof v !== "object")));
     if (report.gcode) html += "<h4>G-code</h4>" + figures(report.gcode);
   }

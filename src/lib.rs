@@ -10,11 +10,13 @@
 //! - [`ports`]: finding serial devices and asking a printer what it is (M115).
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
+//! - [`http`]: the HTTP API, web dashboard, metrics and OctoPrint-compatible upload.
 //! - [`cli`]: the `crispen` subcommands, thin wrappers over the above.
 
 pub mod cli;
 pub mod daemon;
 pub mod enhance;
+pub mod http;
 pub mod marlin;
 pub mod mesh;
 pub mod ports;

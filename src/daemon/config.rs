@@ -62,6 +62,17 @@ struct RawConfig {
     printers: Vec<RawPrinter>,
     #[serde(default, rename = "folder")]
     folders: Vec<RawFolder>,
+    #[serde(default)]
+    http: Option<RawHttp>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawHttp {
+    listen: String,
+    api_key_file: PathBuf,
+    read_only_without_key: Option<bool>,
+    upload_max_mb: Option<i64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -131,7 +142,36 @@ pub struct Config {
     pub farm: FarmConfig,
     pub printers: Vec<PrinterConfig>,
     pub folders: Vec<FolderConfig>,
+    /// The HTTP API and dashboard on TCP (`[http]`), when configured.
+    pub http: Option<HttpConfig>,
 }
+
+/// `[http]`: the TCP listener of the HTTP API and dashboard (see `crate::http`).
+#[derive(Debug, Clone)]
+pub struct HttpConfig {
+    pub listen: std::net::SocketAddr,
+    /// The key every request must carry in `X-Api-Key`, read from `api_key_file`.
+    pub api_key: ApiKey,
+    /// GET requests (dashboard, status, pictures, metrics) are answered without the key.
+    pub read_only_without_key: bool,
+    /// The largest upload accepted, in bytes.
+    pub upload_max_bytes: u64,
+}
+
+/// An API key; never shown in logs or debug output.
+#[derive(Clone, PartialEq, Eq)]
+pub struct ApiKey(pub String);
+
+impl std::fmt::Debug for ApiKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ApiKey(..)")
+    }
+}
+
+/// Shortest API key accepted: a guessable key on a network port is no key.
+pub const MIN_API_KEY_CHARS: usize = 16;
+/// Bounds of `[http] upload_max_mb`.
+pub const UPLOAD_MAX_MB: std::ops::RangeInclusive<i64> = 1..=4096;
 
 #[derive(Debug, Clone)]
 pub struct FarmConfig {
@@ -216,7 +256,7 @@ impl Config {
             if let Some(header) = unknown_table_header(text, offset) {
                 section = "the top level".into();
                 message = format!(
-                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[printer]], [[folder]])"
+                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[printer]], [[folder]], [http])"
                 );
             }
             ConfigError::Parse {
@@ -512,6 +552,13 @@ printers = ["demo"]
             });
         }
 
+        let http = match raw.http {
+            None => None,
+            Some(h) => {
+                Some(check_http(h, &anchor).map_err(|(key, m)| invalid("[http]".into(), key, m))?)
+            }
+        };
+
         Ok(Config {
             source: file.to_path_buf(),
             spool_dir,
@@ -519,8 +566,67 @@ printers = ["demo"]
             farm,
             printers,
             folders,
+            http,
         })
     }
+}
+
+/// Checks `[http]`; errors name the key. The key file is read here, so a missing or weak
+/// key stops the daemon at startup rather than leaving the port open.
+fn check_http(
+    h: RawHttp,
+    anchor: &dyn Fn(&Path) -> PathBuf,
+) -> Result<HttpConfig, (&'static str, String)> {
+    let listen: std::net::SocketAddr = h.listen.parse().map_err(|_| {
+        (
+            "listen",
+            format!(
+                "{:?} is not an address and port (e.g. \"0.0.0.0:8080\" or \"127.0.0.1:8080\")",
+                h.listen
+            ),
+        )
+    })?;
+    let key_file = anchor(&h.api_key_file);
+    let mut text = String::new();
+    std::fs::File::open(&key_file)
+        .and_then(|f| f.take(4096).read_to_string(&mut text))
+        .map_err(|e| {
+            (
+                "api_key_file",
+                format!(
+                    "cannot read {}: {e} (hint: `head -c 24 /dev/urandom | base64 > {}`)",
+                    key_file.display(),
+                    key_file.display()
+                ),
+            )
+        })?;
+    let key = text.trim();
+    if key.chars().count() < MIN_API_KEY_CHARS || !key.chars().all(|c| c.is_ascii_graphic()) {
+        return Err((
+            "api_key_file",
+            format!(
+                "{}: the key must be at least {MIN_API_KEY_CHARS} printable ASCII characters without spaces",
+                key_file.display()
+            ),
+        ));
+    }
+    let upload_max_mb = h.upload_max_mb.unwrap_or(512);
+    if !UPLOAD_MAX_MB.contains(&upload_max_mb) {
+        return Err((
+            "upload_max_mb",
+            format!(
+                "must be from {} to {}, got {upload_max_mb}",
+                UPLOAD_MAX_MB.start(),
+                UPLOAD_MAX_MB.end()
+            ),
+        ));
+    }
+    Ok(HttpConfig {
+        listen,
+        api_key: ApiKey(key.to_string()),
+        read_only_without_key: h.read_only_without_key.unwrap_or(false),
+        upload_max_bytes: upload_max_mb as u64 * 1024 * 1024,
+    })
 }
 
 /// At most this many printers (and so heating permits) in one farm.
@@ -617,7 +723,7 @@ fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
         .0
         .trim();
     let top = name.split('.').next()?.trim().trim_matches('"');
-    let known = ["spool", "control", "farm", "printer", "folder"];
+    let known = ["spool", "control", "farm", "printer", "folder", "http"];
     (!known.contains(&top)).then(|| {
         line.split_once('#')
             .map_or(line, |(h, _)| h)
@@ -738,6 +844,54 @@ slicer = "cura"
         assert_eq!(c.folders[1].slicer, SlicerKind::Cura);
         // Relative paths are anchored at the config file's directory.
         assert_eq!(c.folders[1].path, PathBuf::from("/etc/crispen/hot/igea"));
+    }
+
+    /// `[http]`: the key file is read and checked at startup; every error names the key.
+    #[test]
+    fn http_section_is_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("crispen.toml");
+        std::fs::write(dir.path().join("good.key"), "0123456789abcdefXYZ\n").unwrap();
+        std::fs::write(dir.path().join("weak.key"), "short\n").unwrap();
+        let with = |http: &str| Config::parse(&format!("{GOOD}\n[http]\n{http}\n"), &file);
+        let c = with("listen = \"127.0.0.1:8080\"\napi_key_file = \"good.key\"").unwrap();
+        let http = c.http.unwrap();
+        assert_eq!(http.api_key.0, "0123456789abcdefXYZ");
+        assert!(!http.read_only_without_key);
+        assert!(
+            !format!("{http:?}").contains("0123456789"),
+            "the key is never shown"
+        );
+        for (text, key, says) in [
+            (
+                "listen = \"8080\"\napi_key_file = \"good.key\"",
+                "listen",
+                "address and port",
+            ),
+            (
+                "listen = \"0.0.0.0:80\"\napi_key_file = \"none.key\"",
+                "api_key_file",
+                "none.key",
+            ),
+            (
+                "listen = \"0.0.0.0:80\"\napi_key_file = \"weak.key\"",
+                "api_key_file",
+                "at least 16",
+            ),
+            (
+                "listen = \"0.0.0.0:80\"\napi_key_file = \"good.key\"\nupload_max_mb = 0",
+                "upload_max_mb",
+                "from 1",
+            ),
+        ] {
+            let e = with(text).unwrap_err().to_string();
+            assert!(
+                e.contains("[http]") && e.contains(&format!("`{key}`")) && e.contains(says),
+                "{text}: {e}"
+            );
+        }
+        let e = with("listen = \"0.0.0.0:80\"").unwrap_err().to_string();
+        assert!(e.contains("api_key_file"), "{e}");
     }
 
     #[test]

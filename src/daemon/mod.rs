@@ -47,6 +47,12 @@ pub enum DaemonError {
     Signals(std::io::Error),
     #[error("cannot find this program to run preparations with: {0}")]
     PrepareProgram(std::io::Error),
+    #[error("[http] listen = \"{listen}\": cannot listen: {source} (hint: is another program on this port? Under systemd, install config/crispen-http.conf as a drop-in so the unit allows TCP)")]
+    Http {
+        listen: std::net::SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 /// How `crispen run` was asked to behave.
@@ -231,6 +237,22 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
         tracing::warn!(job = %id, state = job.state.name(), "job found mid-flight after a restart");
     }
     let listener = control::bind(&config.socket)?;
+    let http_listener = match &config.http {
+        None => None,
+        Some(http) => {
+            let bound = crate::http::bind(http)
+                .await
+                .map_err(|source| DaemonError::Http {
+                    listen: http.listen,
+                    source,
+                })?;
+            let address = bound
+                .local_addr()
+                .map_or_else(|_| http.listen.to_string(), |a| a.to_string());
+            tracing::info!(address = %address, dashboard = %format!("http://{address}/"), "http: listening");
+            Some((bound, http.clone()))
+        }
+    };
     tracing::info!(
         config = %config.source.display(),
         spool = %config.spool_dir.display(),
@@ -243,6 +265,8 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let farm = Farm::new(config.clone(), store, shutdown.clone());
     let mut fleet = Fleet::start_all(&farm, &config.printers)?;
     let control_task = tokio::spawn(control::serve(Arc::clone(&farm), listener));
+    let http_task = http_listener
+        .map(|(bound, http)| tokio::spawn(crate::http::serve(Arc::clone(&farm), http, bound)));
     let mut pickup = spawn_pickup(&farm, &config);
     let prepare_task = tokio::spawn(prepare_loop(Arc::clone(&farm), prepare_program));
 
@@ -293,6 +317,9 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let _ = prepare_task.await;
     fleet.join().await;
     control_task.abort();
+    if let Some(task) = http_task {
+        task.abort();
+    }
     let _ = std::fs::remove_file(&farm.config().socket);
     tracing::info!("crispen daemon stopped");
     Ok(())
@@ -334,12 +361,17 @@ fn reload(
         Err(e) => tracing::error!(error = %e, "SIGHUP: new config refused; keeping the old one"),
         Ok(new) => {
             let old = farm.config();
-            if new.spool_dir != old.spool_dir || new.socket != old.socket {
-                tracing::warn!("SIGHUP: [spool] and [control] changes need a restart; ignored");
+            let http_changed = new.http.as_ref().map(|h| (h.listen, &h.api_key))
+                != old.http.as_ref().map(|h| (h.listen, &h.api_key));
+            if new.spool_dir != old.spool_dir || new.socket != old.socket || http_changed {
+                tracing::warn!(
+                    "SIGHUP: [spool], [control] and [http] changes need a restart; ignored"
+                );
             }
             let mut merged = new;
             merged.spool_dir = old.spool_dir.clone();
             merged.socket = old.socket.clone();
+            merged.http = old.http.clone();
             pickup.abort();
             *farm.config.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(merged.clone());
             fleet.apply(farm, &merged.printers);

@@ -287,6 +287,8 @@ pub fn prepare(
     req.profile = task.profile.clone();
     req.timeout = task.timeout;
     req.keep_mesh = Some(task.enhanced_mesh.clone());
+    // Pictures and thumbnails go next to the G-code, in the job's directory.
+    req.pictures = task.output.parent().map(Path::to_path_buf);
     crate::slice::slice(&req, &mut |step| {
         progress(match step {
             SliceStep::Loading => "loading".to_string(),

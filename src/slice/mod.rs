@@ -141,6 +141,10 @@ pub struct SliceRequest {
     pub up: UpAxis,
     /// Where to keep the mesh that was sliced (enhanced, scaled and placed), as binary STL.
     pub keep_mesh: Option<PathBuf>,
+    /// Where to draw the model before and after enhancement and the displacement's heat
+    /// map (`crate::preview`, only when it is enhanced); with it, the G-code also gets
+    /// PrusaSlicer-format thumbnails of the part as printed.
+    pub pictures: Option<PathBuf>,
 }
 
 impl SliceRequest {
@@ -161,6 +165,7 @@ impl SliceRequest {
             cancel: None,
             up: UpAxis::Z,
             keep_mesh: None,
+            pictures: None,
         }
     }
 }
@@ -371,6 +376,9 @@ pub fn slice(
                     model: req.model.clone(),
                     source,
                 })?;
+            if let Some(dir) = &req.pictures {
+                draw_pictures(&loaded.mesh, &mesh, req.up, dir);
+            }
             (mesh, Some(report))
         }
         None => (loaded.mesh, None),
@@ -500,6 +508,13 @@ pub fn slice(
         })
     });
 
+    if req.pictures.is_some() {
+        // A picture is a nicety: a job is never failed for want of one.
+        let blocks = crate::preview::thumbnail::blocks(&mesh, UpAxis::Z);
+        if let Err(e) = crate::preview::thumbnail::insert_into_file(&gcode_path, &blocks) {
+            tracing::warn!(error = %e, "cannot put thumbnails into the G-code");
+        }
+    }
     persist(&gcode_path, &req.output)?;
     timings.total_s = started.elapsed().as_secs_f64();
     Ok(SliceReport {
@@ -532,6 +547,25 @@ pub fn slice(
         filament_g,
         gcode_lines: stats.lines,
     })
+}
+
+/// Side of the before/after pictures of a job, pixels.
+pub const PICTURE_SIZE: u32 = 600;
+
+/// Draws the before/after pictures and the heat map into `dir`; failures are logged, not
+/// returned (see [`SliceRequest::pictures`]).
+fn draw_pictures(before: &Mesh, after: &Mesh, up: UpAxis, dir: &Path) {
+    let t = Instant::now();
+    let Some(pictures) = crate::preview::pictures(before, after, up, PICTURE_SIZE) else {
+        tracing::warn!("no pictures: the enhanced mesh does not match the model's vertices");
+        return;
+    };
+    match pictures.save(dir) {
+        Ok(_) => {
+            tracing::info!(dir = %dir.display(), seconds = t.elapsed().as_secs_f64(), "pictures drawn")
+        }
+        Err(e) => tracing::warn!(dir = %dir.display(), error = %e, "cannot write the pictures"),
+    }
 }
 
 /// Places the mesh on the Ultimaker 2's bed at `height_mm` tall, keeping room for the

@@ -1,0 +1,347 @@
+//! The JSON API under `/api/v1/`. Reads come from the control socket's status snapshot
+//! (`daemon::control::status`) and the job store; actions are the control socket's own
+//! requests (`daemon::control::handle`), so the CLI and the API can never disagree on
+//! what clearing a bed or retrying a job means.
+
+use super::upload::{self, Upload};
+use super::{ApiError, AppState};
+use crate::daemon::control::{self, JobStatus, Request};
+use crate::daemon::farm::{Farm, PrinterStatus};
+use crate::daemon::job::Job;
+use crate::enhance::Strength;
+use axum::body::Body;
+use axum::extract::{Path, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Serialize;
+
+/// A job in the queue, with what it will be made as.
+#[derive(Debug, Serialize)]
+pub struct JobView {
+    #[serde(flatten)]
+    pub status: JobStatus,
+    /// The hot folder's name (see `upload::folder_name`).
+    pub folder_name: String,
+    /// The printed height and enhancement strength from the folder and the job's sidecar
+    /// (None when the folder has left the config or the sidecar is broken).
+    pub height_mm: Option<f64>,
+    pub strength: Option<Strength>,
+    /// The printers that may print it.
+    pub machines: Vec<String>,
+    /// The pictures in the job's directory (see `crate::preview`).
+    pub pictures: Vec<&'static str>,
+}
+
+#[derive(Debug, Serialize)]
+pub struct FolderView {
+    pub name: String,
+    pub height_mm: f64,
+    pub strength: Strength,
+    pub printers: Vec<String>,
+    /// Jobs from this folder that have not reached a printer yet.
+    pub queued: usize,
+}
+
+#[derive(Debug, Serialize)]
+pub struct StatusView {
+    pub printers: Vec<PrinterStatus>,
+    pub jobs: Vec<JobView>,
+    pub folders: Vec<FolderView>,
+}
+
+const PICTURES: [&str; 3] = [
+    crate::preview::BEFORE_PNG,
+    crate::preview::AFTER_PNG,
+    crate::preview::DISPLACEMENT_PNG,
+];
+
+/// The whole farm: printers, jobs (newest last) and hot folders.
+pub fn snapshot(farm: &Farm) -> StatusView {
+    let status = control::status(farm);
+    let config = farm.config();
+    let store = farm.store();
+    let jobs = status
+        .jobs
+        .into_iter()
+        .map(|j| {
+            let dir = store.job_dir(&j.id);
+            let folder = config.folder(&j.folder);
+            let sidecar = store.get(&j.id).and_then(|job| job.sidecar.clone());
+            let task = folder.and_then(|f| {
+                crate::daemon::prepare::resolve_task(&j.id, &dir, &j.file, f, sidecar.as_ref()).ok()
+            });
+            JobView {
+                folder_name: folder
+                    .map(upload::folder_name)
+                    .unwrap_or_else(|| j.folder.display().to_string()),
+                height_mm: task.as_ref().map(|t| t.height_mm),
+                strength: task.as_ref().map(|t| t.strength),
+                machines: folder.map(|f| f.printers.clone()).unwrap_or_default(),
+                pictures: pictures_in(&dir),
+                status: j,
+            }
+        })
+        .collect();
+    drop(store);
+    let folders = config
+        .folders
+        .iter()
+        .map(|f| FolderView {
+            name: upload::folder_name(f),
+            height_mm: f.height_mm,
+            strength: f.strength,
+            printers: f.printers.clone(),
+            queued: 0,
+        })
+        .collect::<Vec<_>>();
+    let mut view = StatusView {
+        printers: status.printers,
+        jobs,
+        folders,
+    };
+    for job in &view.jobs {
+        let waiting = matches!(
+            job.status.state,
+            crate::daemon::job::JobState::Queued
+                | crate::daemon::job::JobState::Preparing
+                | crate::daemon::job::JobState::Ready
+        );
+        if let Some(f) = view.folders.iter_mut().find(|f| f.name == job.folder_name) {
+            f.queued += usize::from(waiting);
+        }
+    }
+    view
+}
+
+fn pictures_in(dir: &std::path::Path) -> Vec<&'static str> {
+    PICTURES
+        .into_iter()
+        .filter(|name| dir.join(name).is_file())
+        .collect()
+}
+
+async fn blocking<T: Send + 'static>(
+    state: &AppState,
+    work: impl FnOnce(&Farm) -> T + Send + 'static,
+) -> Result<T, ApiError> {
+    let farm = state.farm.clone();
+    tokio::task::spawn_blocking(move || work(&farm))
+        .await
+        .map_err(|e| {
+            ApiError::new(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                format!("internal error: {e}"),
+            )
+        })
+}
+
+pub async fn status(State(state): State<AppState>) -> Result<Json<StatusView>, ApiError> {
+    blocking(&state, snapshot).await.map(Json)
+}
+
+pub async fn printers(State(state): State<AppState>) -> Json<Vec<PrinterStatus>> {
+    Json(control::status(&state.farm).printers)
+}
+
+pub async fn printer(
+    State(state): State<AppState>,
+    Path(name): Path<String>,
+) -> Result<Json<PrinterStatus>, ApiError> {
+    control::status(&state.farm)
+        .printers
+        .into_iter()
+        .find(|p| p.name == name)
+        .map(Json)
+        .ok_or_else(|| no_printer(&state.farm, &name))
+}
+
+pub async fn jobs(State(state): State<AppState>) -> Result<Json<Vec<JobView>>, ApiError> {
+    blocking(&state, |farm| snapshot(farm).jobs).await.map(Json)
+}
+
+/// One job: its queue entry and everything stored about it (slice and print reports,
+/// history, reason).
+#[derive(Debug, Serialize)]
+pub struct JobDetail {
+    #[serde(flatten)]
+    pub view: JobView,
+    pub job: Job,
+}
+
+pub async fn job(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<JobDetail>, ApiError> {
+    let found = blocking(&state, move |farm| {
+        let job = farm.store().get(&id).cloned();
+        let job = job.ok_or(id)?;
+        let view = snapshot(farm)
+            .jobs
+            .into_iter()
+            .find(|j| j.status.id == job.id);
+        Ok::<_, String>(view.map(|view| JobDetail { view, job }))
+    })
+    .await?;
+    match found {
+        Ok(Some(detail)) => Ok(Json(detail)),
+        Ok(None) | Err(_) => Err(ApiError::not_found(
+            "no such job (hint: GET /api/v1/jobs lists them)",
+        )),
+    }
+}
+
+/// One of a job's pictures. Only the three fixed names are served, from the directory of
+/// a job the store knows, so no request can name another file.
+pub async fn picture(
+    State(state): State<AppState>,
+    Path((id, picture)): Path<(String, String)>,
+) -> Result<Response, ApiError> {
+    let Some(name) = PICTURES.into_iter().find(|p| *p == picture) else {
+        return Err(ApiError::not_found(format!(
+            "no picture {picture:?}; a job's pictures are {}",
+            PICTURES.join(", ")
+        )));
+    };
+    let dir = {
+        let store = state.farm.store();
+        store.get(&id).map(|_| store.job_dir(&id))
+    };
+    let dir = dir.ok_or_else(|| ApiError::not_found(format!("no job {id:?}")))?;
+    let path = dir.join(name);
+    // Not through a link: the job directory is the daemon's, but be sure.
+    let meta = tokio::fs::symlink_metadata(&path).await;
+    let bytes = match meta {
+        Ok(m) if m.is_file() && m.len() <= 64 * 1024 * 1024 => tokio::fs::read(&path).await.ok(),
+        _ => None,
+    };
+    let bytes = bytes.ok_or_else(|| {
+        ApiError::not_found(format!(
+            "job {id} has no {name} (pictures are drawn for enhanced jobs once prepared)"
+        ))
+    })?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/png"),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        Body::from(bytes),
+    )
+        .into_response())
+}
+
+pub async fn folders(State(state): State<AppState>) -> Result<Json<Vec<FolderView>>, ApiError> {
+    blocking(&state, |farm| snapshot(farm).folders)
+        .await
+        .map(Json)
+}
+
+fn no_printer(farm: &Farm, name: &str) -> ApiError {
+    let names: Vec<String> = farm
+        .printers
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .keys()
+        .cloned()
+        .collect();
+    ApiError::not_found(format!(
+        "no printer {name:?} (the printers are: {})",
+        names.join(", ")
+    ))
+}
+
+/// `POST /api/v1/printers/{name}/clear|pause|resume`.
+pub async fn printer_action(
+    State(state): State<AppState>,
+    Path((name, action)): Path<(String, String)>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    if !state
+        .farm
+        .printers
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .contains_key(&name)
+    {
+        return Err(no_printer(&state.farm, &name));
+    }
+    let printer = name;
+    let request = match action.as_str() {
+        "clear" => Request::Clear { printer },
+        "pause" => Request::Pause { printer },
+        "resume" => Request::Resume { printer },
+        other => {
+            return Err(ApiError::not_found(format!(
+                "no printer action {other:?}; the printer actions are clear, pause, resume"
+            )))
+        }
+    };
+    act(&state, request).await
+}
+
+/// `POST /api/v1/jobs/{id}/cancel|retry`.
+pub async fn job_action(
+    State(state): State<AppState>,
+    Path((id, action)): Path<(String, String)>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    if state.farm.store().get(&id).is_none() {
+        return Err(ApiError::not_found(format!(
+            "no job {id:?} (hint: GET /api/v1/jobs lists them)"
+        )));
+    }
+    let job = id;
+    let request = match action.as_str() {
+        "cancel" => Request::Cancel { job },
+        "retry" => Request::Retry { job },
+        other => {
+            return Err(ApiError::not_found(format!(
+                "no job action {other:?}; the job actions are cancel, retry"
+            )))
+        }
+    };
+    act(&state, request).await
+}
+
+async fn act(state: &AppState, request: Request) -> Result<Json<serde_json::Value>, ApiError> {
+    tracing::info!(?request, "http: action");
+    let response = control::handle(&state.farm, request).await;
+    if response.ok {
+        Ok(Json(
+            serde_json::json!({ "ok": true, "message": response.message }),
+        ))
+    } else {
+        Err(ApiError::conflict(
+            response.error.unwrap_or_else(|| "refused".into()),
+        ))
+    }
+}
+
+/// `PUT /api/v1/folders/{folder}/files/{file}`: the body is the file.
+pub async fn upload(
+    State(state): State<AppState>,
+    Path((folder, file)): Path<(String, String)>,
+    body: Body,
+) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
+    let config = state.farm.config();
+    let folder = upload::find_folder(&config, &folder)?;
+    if upload::check_name(&file)? == Upload::Gcode {
+        return Err(upload::gcode_refused(&file));
+    }
+    let (path, size) = upload::store(
+        &folder.path,
+        &file,
+        body.into_data_stream(),
+        state.http.upload_max_bytes,
+    )
+    .await?;
+    tracing::info!(file = %path.display(), size, "http: uploaded into a hot folder");
+    Ok((
+        StatusCode::CREATED,
+        Json(serde_json::json!({
+            "ok": true,
+            "folder": upload::folder_name(folder),
+            "file": file,
+            "bytes": size,
+            "message": format!("{file} is in hot folder {}; it becomes a job once picked up", upload::folder_name(folder)),
+        })),
+    ))
+}

@@ -1,0 +1,389 @@
+// The crispen dashboard: live state from /api/v1/events, actions and uploads through the
+// JSON API. The API key (when the daemon wants one) is kept in this browser's storage and
+// sent as X-Api-Key, as every other client does.
+"use strict";
+
+const $ = (sel) => document.querySelector(sel);
+let key = localStorage.getItem("crispen-key") || "";
+let last = null;
+const pictureCache = new Map(); // url -> blob URL
+
+function headers(extra) {
+  const h = Object.assign({}, extra || {});
+  if (key) h["X-Api-Key"] = key;
+  return h;
+}
+
+function esc(text) {
+  return String(text == null ? "" : text).replace(/[&<>"']/g, (c) =>
+    ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+}
+
+function notice(text, bad) {
+  const n = $("#notice");
+  n.textContent = text;
+  n.className = bad ? "bad" : "good";
+  n.hidden = !text;
+  clearTimeout(notice.timer);
+  if (text) notice.timer = setTimeout(() => { n.hidden = true; }, 6000);
+}
+
+function askForKey(message) {
+  $("#keyform").hidden = false;
+  notice(message, true);
+}
+
+$("#keyform").addEventListener("submit", (e) => {
+  e.preventDefault();
+  key = $("#key").value.trim();
+  localStorage.setItem("crispen-key", key);
+  $("#keyform").hidden = true;
+  notice("");
+  connect();
+  route();
+});
+
+async function api(method, path, body) {
+  const r = await fetch(path, { method, headers: headers(), body });
+  let answer = {};
+  try { answer = await r.json(); } catch (_) { /* not JSON */ }
+  if (r.status === 401 || r.status === 403) askForKey(answer.error || "API key needed");
+  if (!r.ok) throw new Error(answer.error || (method + " " + path + ": HTTP " + r.status));
+  return answer;
+}
+
+// Pictures are fetched with the key and shown from blob URLs.
+function picture(url, alt, cls) {
+  const cached = pictureCache.get(url);
+  const img = '<img class="' + (cls || "") + '" alt="' + esc(alt) + '" data-src="' + esc(url) + '"' +
+    (cached ? ' src="' + cached + '"' : "") + ">";
+  return img;
+}
+
+function loadPictures(root) {
+  root.querySelectorAll("img[data-src]:not([src])").forEach(async (img) => {
+    const url = img.dataset.src;
+    if (pictureCache.has(url)) { img.src = pictureCache.get(url); return; }
+    try {
+      const r = await fetch(url, { headers: headers() });
+      if (!r.ok) { img.remove(); return; }
+      const blob = URL.createObjectURL(await r.blob());
+      pictureCache.set(url, blob);
+      img.src = blob;
+    } catch (_) { img.remove(); }
+  });
+}
+
+function temp(cur, target) {
+  if (cur == null) return "–";
+  return Math.round(cur) + (target ? " / " + Math.round(target) : "") + " °C";
+}
+
+function duration(s) {
+  if (s == null || !isFinite(s)) return "";
+  s = Math.max(0, Math.round(s));
+  const h = Math.floor(s / 3600), m = Math.floor((s % 3600) / 60), sec = s % 60;
+  return h ? h + " h " + String(m).padStart(2, "0") + " min" : m ? m + " min" : sec + " s";
+}
+
+function label(state) { return String(state).replace(/_/g, " "); }
+
+function jobOf(status, id) { return status.jobs.find((j) => j.id === id); }
+
+function printerTile(p, status) {
+  const job = p.job ? jobOf(status, p.job) : null;
+  const live = p.progress || null;
+  const pct = live && live.lines_total ? (100 * live.lines_acked / live.lines_total) : null;
+  let html = '<article class="tile state-' + esc(p.state) + '" data-printer="' + esc(p.name) + '">';
+  html += '<div class="head"><h3>' + esc(p.name) + '</h3><span class="state">' + esc(label(p.state)) + "</span></div>";
+  const shown = job || (!p.bed_cleared && status.jobs.filter((j) => j.printer === p.name).slice(-1)[0]);
+  if (shown && shown.pictures.includes("after.png")) {
+    html += picture("/api/v1/jobs/" + encodeURIComponent(shown.id) + "/pictures/after.png", shown.file, "part");
+  }
+  html += '<div class="job">' + (job ? '<a href="#job/' + esc(job.id) + '">' + esc(job.file) + "</a>" : '<span class="muted">no job</span>') + "</div>";
+  if (pct != null) {
+    // A <progress> element: the page's policy allows no inline styles.
+    html += '<progress class="bar" max="100" value="' + pct.toFixed(1) + '"></progress>';
+    html += '<div class="figures"><span class="pct">' + pct.toFixed(1) + " %</span>" +
+      (live.remaining_s != null ? '<span class="left">' + duration(live.remaining_s) + " left</span>" : "") + "</div>";
+  }
+  if (live) {
+    html += '<div class="temps"><span>Hotend <b>' + temp(live.hotend_c, live.hotend_target_c) + "</b></span>" +
+      "<span>Bed <b>" + temp(live.bed_c, live.bed_target_c) + "</b></span></div>";
+  }
+  if (p.detail) html += '<div class="detail">' + esc(p.detail) + "</div>";
+  html += '<div class="actions">';
+  if (!p.bed_cleared) html += '<button class="clear" data-action="clear" data-printer="' + esc(p.name) + '">Bed is clear</button>';
+  if (p.state === "printing") html += '<button data-action="pause" data-printer="' + esc(p.name) + '">Pause</button>';
+  if (p.state === "paused") html += '<button data-action="resume" data-printer="' + esc(p.name) + '">Resume</button>';
+  if (job && (p.state === "printing" || p.state === "paused")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
+  html += "</div></article>";
+  return html;
+}
+
+function strengthText(s) {
+  if (s == null) return "–";
+  if (typeof s === "string") return s;
+  if (s.lambda2 != null) return "λ2 " + s.lambda2;
+  return JSON.stringify(s);
+}
+
+const ORDER = ["printing", "ready", "preparing", "queued", "failed", "interrupted", "cancelled", "done"];
+
+function queueTable(status) {
+  const jobs = status.jobs.slice().sort((a, b) =>
+    ORDER.indexOf(a.state) - ORDER.indexOf(b.state) || b.updated - a.updated);
+  if (!jobs.length) return '<p class="muted">No jobs yet: drop a model on a hot folder.</p>';
+  let html = '<table><thead><tr><th>File</th><th>State</th><th>Height</th><th>Strength</th><th>Printer</th><th></th></tr></thead><tbody>';
+  for (const j of jobs) {
+    const live = j.progress;
+    let extra = "";
+    if (j.step) extra = j.step;
+    else if (live && live.lines_total) extra = (100 * live.lines_acked / live.lines_total).toFixed(1) + " %";
+    html += '<tr data-job="' + esc(j.id) + '" class="job-' + esc(j.state) + '">' +
+      '<td><a href="#job/' + esc(j.id) + '">' + esc(j.file) + '</a><div class="muted">' + esc(j.folder_name) + "</div>" +
+      (j.reason ? '<div class="reason">' + esc(j.reason) + "</div>" : "") + "</td>" +
+      '<td><span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span> " + esc(extra) + "</td>" +
+      "<td>" + (j.height_mm != null ? j.height_mm + " mm" : "–") + "</td>" +
+      "<td>" + esc(strengthText(j.strength)) + "</td>" +
+      "<td>" + esc(j.printer || j.machines.join(", ")) + "</td><td>";
+    if (["queued", "preparing", "ready", "printing"].includes(j.state)) html += '<button class="danger" data-action="cancel" data-job="' + esc(j.id) + '">Cancel</button>';
+    if (["failed", "cancelled", "interrupted"].includes(j.state)) html += '<button data-action="retry" data-job="' + esc(j.id) + '">Retry</button>';
+    html += "</td></tr>";
+  }
+  return html + "</tbody></table>";
+}
+
+function folderZones(status) {
+  return status.folders.map((f) =>
+    '<label class="folder" data-folder="' + esc(f.name) + '"><b>' + esc(f.name) + "</b>" +
+    "<span>" + f.height_mm + " mm · " + esc(strengthText(f.strength)) + " · " + esc(f.printers.join(", ")) + "</span>" +
+    '<span class="muted">' + f.queued + " waiting · drop or tap to upload</span>" +
+    '<input type="file" accept=".stl,.obj,.3mf" hidden></label>').join("");
+}
+
+function render(status) {
+  last = status;
+  const printing = status.printers.filter((p) => p.state === "printing").length;
+  $("#summary").textContent = printing + "/" + status.printers.length + " printing · " +
+    status.jobs.filter((j) => ["queued", "preparing", "ready"].includes(j.state)).length + " waiting";
+  patch($("#printers"), status.printers.map((p) => printerTile(p, status)).join("") ||
+    '<p class="muted">No printers configured.</p>');
+  if (!$("#folders").dataset.busy) patch($("#folders"), folderZones(status));
+  patch($("#queue"), queueTable(status));
+  loadPictures($("#farm"));
+}
+
+// Replaces only the parts that changed, so a button is not swapped out under a finger
+// (or a file chooser under an open dialog) by the once-a-second progress updates.
+function patch(container, html) {
+  if (container.dataset.html === html) return;
+  container.dataset.html = html;
+  const fresh = document.createElement("div");
+  fresh.innerHTML = html;
+  const old = Array.from(container.children);
+  const next = Array.from(fresh.children);
+  if (old.length !== next.length || next.some((n, i) => n.tagName !== old[i].tagName)) {
+    container.replaceChildren(...next);
+    return;
+  }
+  next.forEach((n, i) => {
+    if (n.tagName === "TABLE") {
+      patchRows(old[i], n);
+    } else if (!n.isEqualNode(old[i])) {
+      keepPictures(old[i], n);
+      old[i].replaceWith(n);
+    }
+  });
+}
+
+// A tile redrawn for its progress keeps its loaded picture element (no flicker).
+function keepPictures(oldNode, newNode) {
+  newNode.querySelectorAll("img[data-src]").forEach((img) => {
+    const loaded = Array.from(oldNode.querySelectorAll("img[data-src]"))
+      .find((o) => o.dataset.src === img.dataset.src && o.complete && o.naturalWidth > 0);
+    if (loaded) img.replaceWith(loaded);
+  });
+}
+
+function patchRows(oldTable, newTable) {
+  const oldBody = oldTable.tBodies[0], newBody = newTable.tBodies[0];
+  const rows = Array.from(newBody.rows);
+  const oldRows = Array.from(oldBody.rows);
+  if (rows.length !== oldRows.length) { oldTable.replaceWith(newTable); return; }
+  rows.forEach((r, i) => { if (!r.isEqualNode(oldRows[i])) oldRows[i].replaceWith(r); });
+}
+
+// Live state over server-sent events, read with fetch so the key can go in a header.
+async function connect() {
+  if (connect.abort) connect.abort.abort();
+  const abort = new AbortController();
+  connect.abort = abort;
+  const link = $("#link");
+  try {
+    const r = await fetch("/api/v1/events", { headers: headers(), signal: abort.signal });
+    if (r.status === 401 || r.status === 403) {
+      const answer = await r.json().catch(() => ({}));
+      askForKey(answer.error || "API key needed");
+      link.textContent = "no key"; link.className = "link down";
+      return;
+    }
+    if (!r.ok) throw new Error("HTTP " + r.status);
+    link.textContent = "live"; link.className = "link up";
+    const reader = r.body.getReader();
+    const decoder = new TextDecoder();
+    let buffer = "";
+    for (;;) {
+      const { value, done } = await reader.read();
+      if (done) break;
+      buffer += decoder.decode(value, { stream: true });
+      let end;
+      while ((end = buffer.indexOf("\n\n")) >= 0) {
+        const block = buffer.slice(0, end);
+        buffer = buffer.slice(end + 2);
+        let event = "message", data = "";
+        for (const line of block.split("\n")) {
+          if (line.startsWith("event:")) event = line.slice(6).trim();
+          else if (line.startsWith("data:")) data += line.slice(5).replace(/^ /, "");
+        }
+        if (event === "status" && data) render(JSON.parse(data));
+      }
+    }
+  } catch (e) {
+    if (abort.signal.aborted) return;
+  }
+  link.textContent = "reconnecting"; link.className = "link down";
+  setTimeout(connect, 2000);
+}
+
+const ACTIONS = {
+  clear: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/clear"],
+  pause: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/pause"],
+  resume: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/resume"],
+  cancel: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/cancel", "Cancel this job?"],
+  retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
+};
+
+document.addEventListener("click", async (e) => {
+  const el = e.target.closest("button[data-action]");
+  if (!el) return;
+  const [path, confirmText] = ACTIONS[el.dataset.action](el);
+  if (confirmText && !confirm(confirmText)) return;
+  el.disabled = true;
+  try {
+    const answer = await api("POST", path);
+    notice(answer.message || "done");
+  } catch (err) {
+    notice(err.message, true);
+  } finally {
+    el.disabled = false;
+  }
+});
+
+async function upload(folder, file) {
+  const zone = document.querySelector('[data-folder="' + CSS.escape(folder) + '"]');
+  $("#folders").dataset.busy = "1";
+  if (zone) zone.classList.add("busy");
+  try {
+    const answer = await api("PUT", "/api/v1/folders/" + encodeURIComponent(folder) + "/files/" + encodeURIComponent(file.name), file);
+    notice(answer.message || "uploaded");
+  } catch (err) {
+    notice(file.name + ": " + err.message, true);
+  } finally {
+    delete $("#folders").dataset.busy;
+    if (zone) zone.classList.remove("busy");
+    if (last) render(last);
+  }
+}
+
+const folders = $("#folders");
+folders.addEventListener("dragover", (e) => {
+  const zone = e.target.closest("[data-folder]");
+  if (!zone) return;
+  e.preventDefault();
+  zone.classList.add("over");
+});
+folders.addEventListener("dragleave", (e) => {
+  const zone = e.target.closest("[data-folder]");
+  if (zone) zone.classList.remove("over");
+});
+folders.addEventListener("drop", (e) => {
+  const zone = e.target.closest("[data-folder]");
+  if (!zone) return;
+  e.preventDefault();
+  zone.classList.remove("over");
+  for (const file of e.dataTransfer.files) upload(zone.dataset.folder, file);
+});
+folders.addEventListener("change", (e) => {
+  const zone = e.target.closest("[data-folder]");
+  if (zone && e.target.files) for (const file of e.target.files) upload(zone.dataset.folder, file);
+});
+// Nothing dropped outside a folder opens the file in place of the dashboard.
+window.addEventListener("dragover", (e) => e.preventDefault());
+window.addEventListener("drop", (e) => e.preventDefault());
+
+function figures(obj) {
+  if (!obj || typeof obj !== "object") return "";
+  let html = "<dl>";
+  for (const [k, v] of Object.entries(obj)) {
+    if (v == null) continue;
+    const shown = typeof v === "object" ? JSON.stringify(v) : typeof v === "number" ? +v.toFixed(3) : v;
+    html += "<dt>" + esc(label(k)) + "</dt><dd>" + esc(shown) + "</dd>";
+  }
+  return html + "</dl>";
+}
+
+async function showJob(id) {
+  const page = $("#jobpage");
+  page.innerHTML = '<p><a href="#">← farm</a></p><p class="muted">loading…</p>';
+  let j;
+  try {
+    j = await api("GET", "/api/v1/jobs/" + encodeURIComponent(id));
+  } catch (err) {
+    page.innerHTML = '<p><a href="#">← farm</a></p><p class="reason">' + esc(err.message) + "</p>";
+    return;
+  }
+  const base = "/api/v1/jobs/" + encodeURIComponent(id) + "/pictures/";
+  let html = '<p><a href="#">← farm</a></p><h2>' + esc(j.file) + ' <span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span></h2>";
+  html += '<p class="muted">' + esc(j.id) + " · folder " + esc(j.folder_name) + " · " +
+    (j.height_mm != null ? j.height_mm + " mm" : "") + " · strength " + esc(strengthText(j.strength)) +
+    (j.printer ? " · printer " + esc(j.printer) : "") + "</p>";
+  if (j.reason) html += '<p class="reason" id="reason">' + esc(j.reason) + "</p>";
+  if (j.pictures.length) {
+    html += '<div class="pictures">';
+    for (const [name, title] of [["before.png", "Before"], ["after.png", "After"], ["displacement.png", "Displacement"]]) {
+      if (j.pictures.includes(name)) html += "<figure>" + picture(base + name, title) + "<figcaption>" + title + "</figcaption></figure>";
+    }
+    html += "</div>";
+  } else {
+    html += '<p class="muted">No pictures: they are drawn for enhanced jobs once prepared.</p>';
+  }
+  const report = j.job.slice_report;
+  if (report) {
+    const e = report.enhancement || {};
+    html += "<h3>Enhancement and slicing</h3>" +
+      figures(Object.assign({ mode: e.mode, lambda2: e.lambda2 }, e.report || {})) + figures(Object.fromEntries(
+      Object.entries(report).filter(([, v]) => v == null || typeof v !== "object")));
+    if (report.gcode) html += "<h4>G-code</h4>" + figures(report.gcode);
+  }
+  if (j.job.print_report) html += "<h3>Printing</h3>" + figures(j.job.print_report);
+  html += "<h3>History</h3><ol class='history'>" + j.job.history.map(([state, t]) =>
+    "<li>" + esc(state) + " <span class='muted'>" + new Date(t * 1000).toLocaleString() + "</span></li>").join("") + "</ol>";
+  html += '<div class="actions">';
+  if (["queued", "preparing", "ready", "printing"].includes(j.state)) html += '<button class="danger" data-action="cancel" data-job="' + esc(j.id) + '">Cancel</button>';
+  if (["failed", "cancelled", "interrupted"].includes(j.state)) html += '<button data-action="retry" data-job="' + esc(j.id) + '">Retry</button>';
+  html += "</div>";
+  page.innerHTML = html;
+  loadPictures(page);
+}
+
+function route() {
+  const m = location.hash.match(/^#job\/(.+)$/);
+  $("#farm").hidden = !!m;
+  $("#jobpage").hidden = !m;
+  if (m) showJob(decodeURIComponent(m[1]));
+}
+
+window.addEventListener("hashchange", route);
+route();
+connect();

@@ -1,0 +1,73 @@
+//! The checks every API request passes: the API key (`X-Api-Key`, as OctoPrint clients
+//! send it), and time limits. The dashboard's own files need no key: they hold no data,
+//! and the page asks for the key when the API wants one.
+
+use super::{ApiError, AppState, REQUEST_TIMEOUT, UPLOAD_TIMEOUT};
+use axum::extract::{Request, State};
+use axum::http::{Method, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+
+/// Lets a request through with the right key, or a read-only one without a key when
+/// `[http] read_only_without_key` allows it.
+pub async fn require_key(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    let given = request
+        .headers()
+        .get("x-api-key")
+        .map(|v| v.as_bytes().to_vec());
+    let read_only = matches!(*request.method(), Method::GET | Method::HEAD);
+    match given {
+        Some(key) if same_key(&key, state.http.api_key.0.as_bytes()) => next.run(request).await,
+        Some(_) => ApiError::new(
+            StatusCode::FORBIDDEN,
+            "the X-Api-Key header does not match the key in [http] api_key_file",
+        )
+        .into_response(),
+        None if read_only && state.http.read_only_without_key => next.run(request).await,
+        None => ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            if read_only {
+                "this needs the API key in an X-Api-Key header (the key is in the file named by [http] api_key_file)"
+            } else {
+                "changes need the API key in an X-Api-Key header, even with read_only_without_key (the key is in the file named by [http] api_key_file)"
+            },
+        )
+        .into_response(),
+    }
+}
+
+/// Compares in time independent of where the keys differ.
+fn same_key(given: &[u8], key: &[u8]) -> bool {
+    given.len() == key.len() && given.iter().zip(key).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0
+}
+
+pub async fn time_limit(request: Request, next: Next) -> Response {
+    limited(REQUEST_TIMEOUT, request, next).await
+}
+
+pub async fn upload_time_limit(request: Request, next: Next) -> Response {
+    limited(UPLOAD_TIMEOUT, request, next).await
+}
+
+async fn limited(limit: std::time::Duration, request: Request, next: Next) -> Response {
+    let path = request.uri().path().to_string();
+    match tokio::time::timeout(limit, next.run(request)).await {
+        Ok(response) => response,
+        Err(_) => ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("{path}: not answered within {} s", limit.as_secs()),
+        )
+        .into_response(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn keys_compare_whole() {
+        assert!(super::same_key(b"abcdefgh", b"abcdefgh"));
+        assert!(!super::same_key(b"abcdefg", b"abcdefgh"));
+        assert!(!super::same_key(b"abcdefgx", b"abcdefgh"));
+        assert!(!super::same_key(b"", b"abcdefgh"));
+    }
+}

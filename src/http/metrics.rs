@@ -1,0 +1,272 @@
+//! `GET /metrics`: the farm in Prometheus' text format (version 0.0.4). Names follow
+//! Prometheus' conventions (`crispen_` prefix, base units in the name: `_celsius`,
+//! `_seconds`, counters ending in `_total`). Labels are printer names, states and hot
+//! folder names, all from the config; never a file name, which would make a new series
+//! for every job.
+
+use super::AppState;
+use crate::daemon::farm::PrinterState;
+use crate::daemon::job::JobState;
+use axum::extract::State;
+use axum::http::header;
+use axum::response::IntoResponse;
+use std::collections::BTreeMap;
+use std::fmt::Write;
+
+const PRINTER_STATES: [PrinterState; 8] = [
+    PrinterState::Connecting,
+    PrinterState::Idle,
+    PrinterState::WaitingToHeat,
+    PrinterState::Printing,
+    PrinterState::Paused,
+    PrinterState::BedNotCleared,
+    PrinterState::Disconnected,
+    PrinterState::Stopped,
+];
+
+pub async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
+    let farm = state.farm.clone();
+    let text = tokio::task::spawn_blocking(move || render(&farm))
+        .await
+        .unwrap_or_default();
+    (
+        [(
+            header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
+        text,
+    )
+}
+
+/// A label value, escaped as the text format wants.
+fn label(value: &str) -> String {
+    value
+        .replace('\\', "\\\\")
+        .replace('"', "\\\"")
+        .replace('\n', "\\n")
+}
+
+struct Out(String);
+
+impl Out {
+    fn family(&mut self, name: &str, kind: &str, help: &str) {
+        let _ = writeln!(self.0, "# HELP {name} {help}\n# TYPE {name} {kind}");
+    }
+    fn sample(&mut self, name: &str, labels: &[(&str, &str)], value: f64) {
+        let labels: Vec<String> = labels
+            .iter()
+            .map(|(k, v)| format!("{k}=\"{}\"", label(v)))
+            .collect();
+        let labels = if labels.is_empty() {
+            String::new()
+        } else {
+            format!("{{{}}}", labels.join(","))
+        };
+        let _ = writeln!(self.0, "{name}{labels} {value}");
+    }
+}
+
+pub fn render(farm: &crate::daemon::farm::Farm) -> String {
+    let view = super::api::snapshot(farm);
+    let mut out = Out(String::new());
+
+    out.family(
+        "crispen_printer_up",
+        "gauge",
+        "1 when the printer is connected and answering.",
+    );
+    for p in &view.printers {
+        let up = !matches!(
+            p.state,
+            PrinterState::Connecting | PrinterState::Disconnected | PrinterState::Stopped
+        );
+        out.sample(
+            "crispen_printer_up",
+            &[("printer", &p.name)],
+            f64::from(u8::from(up)),
+        );
+    }
+    out.family(
+        "crispen_printer_state",
+        "gauge",
+        "1 for the state each printer is in.",
+    );
+    for p in &view.printers {
+        for s in PRINTER_STATES {
+            let name = serde_json::to_value(s).ok();
+            let name = name.as_ref().and_then(|v| v.as_str()).unwrap_or("?");
+            let value = f64::from(u8::from(p.state == s));
+            out.sample(
+                "crispen_printer_state",
+                &[("printer", &p.name), ("state", name)],
+                value,
+            );
+        }
+    }
+    out.family(
+        "crispen_printer_bed_cleared",
+        "gauge",
+        "0 while a finished print waits on the bed.",
+    );
+    for p in &view.printers {
+        out.sample(
+            "crispen_printer_bed_cleared",
+            &[("printer", &p.name)],
+            f64::from(u8::from(p.bed_cleared)),
+        );
+    }
+    let temperatures: [(
+        &str,
+        &str,
+        fn(&crate::daemon::farm::LiveProgress) -> Option<f64>,
+    ); 4] = [
+        (
+            "crispen_printer_hotend_celsius",
+            "Hotend temperature during a print.",
+            |l| l.hotend_c,
+        ),
+        (
+            "crispen_printer_hotend_target_celsius",
+            "Hotend target temperature during a print.",
+            |l| l.hotend_target_c,
+        ),
+        (
+            "crispen_printer_bed_celsius",
+            "Bed temperature during a print.",
+            |l| l.bed_c,
+        ),
+        (
+            "crispen_printer_bed_target_celsius",
+            "Bed target temperature during a print.",
+            |l| l.bed_target_c,
+        ),
+    ];
+    for (name, help, read) in temperatures {
+        out.family(name, "gauge", help);
+        for p in &view.printers {
+            if let Some(v) = p.progress.as_ref().and_then(read) {
+                out.sample(name, &[("printer", &p.name)], v);
+            }
+        }
+    }
+    out.family(
+        "crispen_printer_job_progress_ratio",
+        "gauge",
+        "Share of the current print's lines acknowledged, 0 to 1.",
+    );
+    for p in &view.printers {
+        if let Some(l) = p.progress.as_ref().filter(|l| l.lines_total > 0) {
+            out.sample(
+                "crispen_printer_job_progress_ratio",
+                &[("printer", &p.name)],
+                l.lines_acked as f64 / l.lines_total as f64,
+            );
+        }
+    }
+    out.family(
+        "crispen_printer_job_remaining_seconds",
+        "gauge",
+        "Estimated time left of the current print.",
+    );
+    for p in &view.printers {
+        if let Some(r) = p.progress.as_ref().and_then(|l| l.remaining_s) {
+            out.sample(
+                "crispen_printer_job_remaining_seconds",
+                &[("printer", &p.name)],
+                r,
+            );
+        }
+    }
+
+    out.family("crispen_jobs", "gauge", "Jobs in the spool by state.");
+    for s in JobState::ALL {
+        let n = view.jobs.iter().filter(|j| j.status.state == s).count();
+        out.sample("crispen_jobs", &[("state", s.name())], n as f64);
+    }
+    out.family(
+        "crispen_folder_queue_length",
+        "gauge",
+        "Jobs from each hot folder that have not reached a printer yet.",
+    );
+    for f in &view.folders {
+        out.sample(
+            "crispen_folder_queue_length",
+            &[("folder", &f.name)],
+            f.queued as f64,
+        );
+    }
+
+    // Durations and counters from the jobs' histories and print reports in the spool.
+    let store = farm.store();
+    let mut prepare = (0.0, 0u64);
+    let mut print = (0.0, 0u64);
+    let mut per_printer: BTreeMap<String, (f64, f64)> = view
+        .printers
+        .iter()
+        .map(|p| (p.name.clone(), (0.0, 0.0)))
+        .collect();
+    for job in store.jobs() {
+        for pair in job.history.windows(2) {
+            let ((from, t0), (to, t1)) = (pair[0], pair[1]);
+            let spent = (t1 - t0).max(0.0);
+            match (from, to) {
+                (JobState::Preparing, JobState::Ready) => {
+                    prepare.0 += spent;
+                    prepare.1 += 1;
+                }
+                (JobState::Printing, JobState::Done | JobState::Ready) => {
+                    print.0 += spent;
+                    print.1 += 1;
+                }
+                _ => {}
+            }
+        }
+        if let (Some(printer), Some(report)) = (&job.printer, &job.print_report) {
+            let entry = per_printer.entry(printer.clone()).or_default();
+            entry.0 += report["resends"].as_f64().unwrap_or(0.0);
+            entry.1 += report["silence_probes"].as_f64().unwrap_or(0.0);
+        }
+    }
+    drop(store);
+    for (name, help, (sum, count)) in [
+        (
+            "crispen_preparation_duration_seconds",
+            "Time from the start of a preparation to ready, of the jobs in the spool.",
+            prepare,
+        ),
+        (
+            "crispen_print_duration_seconds",
+            "Time from the start of a print to its end, of the finished prints in the spool.",
+            print,
+        ),
+    ] {
+        out.family(name, "summary", help);
+        out.sample(&format!("{name}_sum"), &[], sum);
+        out.sample(&format!("{name}_count"), &[], count as f64);
+    }
+    out.family(
+        "crispen_printer_resends_total",
+        "counter",
+        "Lines the printer asked to have sent again, over the finished prints in the spool.",
+    );
+    for (printer, (resends, _)) in &per_printer {
+        out.sample(
+            "crispen_printer_resends_total",
+            &[("printer", printer)],
+            *resends,
+        );
+    }
+    out.family(
+        "crispen_printer_silence_probes_total",
+        "counter",
+        "M105 probes sent to a silent printer, over the finished prints in the spool.",
+    );
+    for (printer, (_, probes)) in &per_printer {
+        out.sample(
+            "crispen_printer_silence_probes_total",
+            &[("printer", printer)],
+            *probes,
+        );
+    }
+    out.0
+}

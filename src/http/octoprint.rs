@@ -1,0 +1,118 @@
+//! The part of OctoPrint's REST API that slicers' "Send to printer" uses (PrusaSlicer,
+//! OrcaSlicer, Cura's OctoPrint connection): `GET /api/version` to test the connection and
+//! `POST /api/files/local` to upload. The upload is multipart with the fields `path` (here:
+//! the hot folder's name), `print`, `select` and `file`; a model goes into the hot folder
+//! and through the normal pipeline. Slicers send the key in `X-Api-Key`, as here.
+
+use super::upload::{self, Upload};
+use super::{ApiError, AppState};
+use axum::extract::multipart::{Multipart, MultipartRejection};
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::Json;
+
+/// The OctoPrint API version whose answers these are.
+const API_VERSION: &str = "0.1";
+/// The OctoPrint server version reported; clients only check that it is recent enough.
+const SERVER_VERSION: &str = "1.10.0";
+
+pub async fn version() -> Json<serde_json::Value> {
+    Json(serde_json::json!({
+        "api": API_VERSION,
+        "server": SERVER_VERSION,
+        "text": format!("OctoPrint (crispen {})", env!("CARGO_PKG_VERSION")),
+    }))
+}
+
+pub async fn upload(
+    State(state): State<AppState>,
+    multipart: Result<Multipart, MultipartRejection>,
+) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
+    let mut multipart = multipart.map_err(|e| {
+        ApiError::bad_request(format!(
+            "POST /api/files/local needs a multipart/form-data body with a `file` field: {e}"
+        ))
+    })?;
+    let config = state.farm.config();
+    let mut path: Option<String> = None;
+    let mut print = false;
+    loop {
+        let field = multipart.next_field().await.map_err(|e| {
+            ApiError::new(
+                e.status(),
+                format!("the multipart body is broken: {}", e.body_text()),
+            )
+        })?;
+        let Some(field) = field else { break };
+        let name = field.name().unwrap_or("").to_string();
+        match name.as_str() {
+            "path" | "print" | "select" => {
+                let value = field.text().await.map_err(|e| {
+                    ApiError::bad_request(format!("field `{name}`: {}", e.body_text()))
+                })?;
+                if value.len() > 1024 {
+                    return Err(ApiError::bad_request(format!("field `{name}` is too long")));
+                }
+                match name.as_str() {
+                    "path" => path = Some(value),
+                    "print" => print = value.trim().eq_ignore_ascii_case("true"),
+                    _ => {}
+                }
+            }
+            "file" => {
+                let file_name = field.file_name().unwrap_or("").to_string();
+                let folder = folder_for(&config, path.as_deref())?;
+                if upload::check_name(&file_name)? == Upload::Gcode {
+                    return Err(upload::gcode_refused(&file_name));
+                }
+                let (stored, size) =
+                    upload::store(&folder.path, &file_name, field, state.http.upload_max_bytes)
+                        .await?;
+                tracing::info!(file = %stored.display(), size, print, "octoprint upload into a hot folder");
+                let folder_name = upload::folder_name(folder);
+                return Ok((
+                    StatusCode::CREATED,
+                    Json(serde_json::json!({
+                        "done": true,
+                        // Every model in a hot folder is printed once prepared.
+                        "effectivePrint": true,
+                        "effectiveSelect": false,
+                        "files": { "local": {
+                            "name": file_name,
+                            "path": format!("{folder_name}/{file_name}"),
+                            "origin": "local",
+                        }},
+                    })),
+                ));
+            }
+            // OctoPrint ignores fields it does not know; so do we.
+            _ => {}
+        }
+    }
+    Err(ApiError::bad_request(
+        "the multipart body has no `file` field (hint: the slicer sends the file as `file`)",
+    ))
+}
+
+/// The hot folder a slicer's `path` names; with no path, the only folder there is.
+fn folder_for<'a>(
+    config: &'a crate::daemon::config::Config,
+    path: Option<&str>,
+) -> Result<&'a crate::daemon::config::FolderConfig, ApiError> {
+    let name = path.unwrap_or("").trim().trim_matches('/');
+    if name.is_empty() {
+        return match config.folders.as_slice() {
+            [only] => Ok(only),
+            _ => Err(ApiError::bad_request(format!(
+                "which hot folder? give its name as the upload path (in the slicer's physical printer settings); the folders are: {}",
+                config
+                    .folders
+                    .iter()
+                    .map(upload::folder_name)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))),
+        };
+    }
+    upload::find_folder(config, name)
+}

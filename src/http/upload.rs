@@ -1,0 +1,268 @@
+//! Files uploaded into a hot folder: the folder is named by the last component of its
+//! path, the file name is checked to be one plain model name, the bytes are streamed to a
+//! hidden temporary file in that folder (which the hot-folder watcher never takes), and
+//! the finished file is hard-linked to its name, which fails rather than replace a file
+//! already there. Nothing is ever written outside a configured hot folder.
+
+use super::{ApiError, UPLOAD_IDLE_TIMEOUT};
+use crate::daemon::config::{Config, FolderConfig};
+use axum::body::Bytes;
+use axum::http::StatusCode;
+use futures_util::{Stream, StreamExt};
+use std::path::{Path, PathBuf};
+use tokio::io::AsyncWriteExt;
+
+/// Model formats the pipeline takes, and sidecars (a few settings for a model).
+const MODEL_EXTENSIONS: [&str; 3] = ["stl", "obj", "3mf"];
+/// Longest file name accepted (the usual file system limit).
+const MAX_NAME_BYTES: usize = 200;
+
+/// A hot folder's name as the API shows it: the last component of its path.
+pub fn folder_name(folder: &FolderConfig) -> String {
+    folder
+        .path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| folder.path.display().to_string())
+}
+
+/// The hot folder called `name`.
+pub fn find_folder<'a>(config: &'a Config, name: &str) -> Result<&'a FolderConfig, ApiError> {
+    let names = || {
+        config
+            .folders
+            .iter()
+            .map(folder_name)
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let mut found = config.folders.iter().filter(|f| folder_name(f) == name);
+    match (found.next(), found.next()) {
+        (Some(f), None) => Ok(f),
+        (Some(_), Some(_)) => Err(ApiError::conflict(format!(
+            "two hot folders are called {name:?}; rename one of them so uploads can tell them apart"
+        ))),
+        (None, _) => Err(ApiError::not_found(format!(
+            "no hot folder called {name:?} (the folders are: {})",
+            names()
+        ))),
+    }
+}
+
+/// What kind of file an upload is, by its name.
+#[derive(Debug, PartialEq)]
+pub enum Upload {
+    Model,
+    Sidecar,
+    Gcode,
+}
+
+/// Checks an uploaded file's name: one plain name (no directories, not hidden, not a
+/// temporary name the watcher skips), of a model, a sidecar or G-code.
+pub fn check_name(name: &str) -> Result<Upload, ApiError> {
+    let bad = |why: &str| ApiError::bad_request(format!("file name {name:?}: {why}"));
+    if name.is_empty() || name.len() > MAX_NAME_BYTES {
+        return Err(bad(&format!("must be 1 to {MAX_NAME_BYTES} bytes long")));
+    }
+    if name.contains(['/', '\\', '\0']) || name == "." || name == ".." {
+        return Err(bad("must be a plain file name, without folders"));
+    }
+    if name.chars().any(char::is_control) {
+        return Err(bad("must not contain control characters"));
+    }
+    let lower = name.to_ascii_lowercase();
+    if lower.ends_with(".gcode") || lower.ends_with(".gco") || lower.ends_with(".g") {
+        return Ok(Upload::Gcode);
+    }
+    if crate::daemon::hotfolder::is_sidecar_name(name) {
+        return Ok(Upload::Sidecar);
+    }
+    if !crate::daemon::hotfolder::is_candidate_name(name) {
+        return Err(bad(
+            "is a hidden or temporary name that the hot folder never takes",
+        ));
+    }
+    let extension = lower.rsplit('.').next().unwrap_or("");
+    if name.contains('.') && MODEL_EXTENSIONS.contains(&extension) {
+        Ok(Upload::Model)
+    } else {
+        Err(bad(
+            "must end in .stl, .obj or .3mf (a model) or .toml (its sidecar)",
+        ))
+    }
+}
+
+/// The answer to a G-code upload until pre-sliced G-code has a path through the farm.
+pub fn gcode_refused(name: &str) -> ApiError {
+    ApiError::new(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        format!(
+            "{name}: crispen does not take pre-sliced G-code yet; it slices every part itself \
+             after sharpening it (hint: upload the model, as .stl, .obj or .3mf)"
+        ),
+    )
+}
+
+/// Streams `body` into `folder/name`, at most `max` bytes. Returns the path and the size.
+pub async fn store<S, E>(
+    folder: &Path,
+    name: &str,
+    body: S,
+    max: u64,
+) -> Result<(PathBuf, u64), ApiError>
+where
+    S: Stream<Item = Result<Bytes, E>>,
+    E: std::fmt::Display,
+{
+    let target = folder.join(name);
+    let io_error = |what: &str, e: std::io::Error| {
+        let status = if e.raw_os_error() == Some(nix::libc::ENOSPC) {
+            StatusCode::INSUFFICIENT_STORAGE
+        } else {
+            StatusCode::INTERNAL_SERVER_ERROR
+        };
+        ApiError::new(status, format!("{}: {what}: {e}", target.display()))
+    };
+    let temp = folder.join(format!(".{name}.{:016x}.upload", rand::random::<u64>()));
+    let mut file = tokio::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o640)
+        .open(&temp)
+        .await
+        .map_err(|e| io_error("cannot create the upload's temporary file", e))?;
+    let written = copy_body(&mut file, body, max, name).await;
+    let finished = match written {
+        Ok(size) => file
+            .sync_all()
+            .await
+            .map_err(|e| io_error("cannot write", e))
+            .map(|_| size),
+        Err(e) => Err(e),
+    };
+    drop(file);
+    let linked = match finished {
+        Ok(size) => match tokio::fs::hard_link(&temp, &target).await {
+            Ok(()) => Ok((target.clone(), size)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                Err(ApiError::conflict(format!(
+                    "{}: a file of this name is already in the hot folder (hint: wait until it \
+                     is picked up, or upload under another name)",
+                    target.display()
+                )))
+            }
+            Err(e) => Err(io_error("cannot put the upload in place", e)),
+        },
+        Err(e) => Err(e),
+    };
+    let _ = tokio::fs::remove_file(&temp).await;
+    linked
+}
+
+async fn copy_body<S, E>(
+    file: &mut tokio::fs::File,
+    body: S,
+    max: u64,
+    name: &str,
+) -> Result<u64, ApiError>
+where
+    S: Stream<Item = Result<Bytes, E>>,
+    E: std::fmt::Display,
+{
+    let mut body = std::pin::pin!(body);
+    let mut size = 0u64;
+    loop {
+        let chunk = match tokio::time::timeout(UPLOAD_IDLE_TIMEOUT, body.next()).await {
+            Err(_) => {
+                return Err(ApiError::new(
+                    StatusCode::REQUEST_TIMEOUT,
+                    format!(
+                        "{name}: the upload stalled for {} s",
+                        UPLOAD_IDLE_TIMEOUT.as_secs()
+                    ),
+                ))
+            }
+            Ok(None) => return Ok(size),
+            Ok(Some(Err(e))) => {
+                return Err(ApiError::bad_request(format!(
+                    "{name}: the upload broke off: {e}"
+                )))
+            }
+            Ok(Some(Ok(chunk))) => chunk,
+        };
+        size += chunk.len() as u64;
+        if size > max {
+            return Err(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                format!(
+                    "{name}: larger than the upload limit of {} MiB ([http] upload_max_mb)",
+                    max / (1024 * 1024)
+                ),
+            ));
+        }
+        file.write_all(&chunk).await.map_err(|e| {
+            ApiError::new(
+                if e.raw_os_error() == Some(nix::libc::ENOSPC) {
+                    StatusCode::INSUFFICIENT_STORAGE
+                } else {
+                    StatusCode::INTERNAL_SERVER_ERROR
+                },
+                format!("{name}: cannot write the upload: {e}"),
+            )
+        })?;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_checked() {
+        assert_eq!(check_name("part.stl").unwrap(), Upload::Model);
+        assert_eq!(check_name("Part.3MF").unwrap(), Upload::Model);
+        assert_eq!(check_name("part.stl.toml").unwrap(), Upload::Sidecar);
+        assert_eq!(check_name("part.gcode").unwrap(), Upload::Gcode);
+        for bad in [
+            "",
+            "../x.stl",
+            "a/b.stl",
+            "..",
+            ".hidden.stl",
+            "x.stl.part",
+            "x.txt",
+            "stl",
+            "a\\b.stl",
+            "a\nb.stl",
+        ] {
+            let e = check_name(bad).unwrap_err();
+            assert!(e.message.contains("file name"), "{bad}: {}", e.message);
+        }
+        assert!(check_name(&"a".repeat(300)).is_err());
+    }
+
+    #[tokio::test]
+    async fn an_upload_lands_whole_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let chunks = |n: usize| {
+            futures_util::stream::iter(
+                (0..n).map(|_| Ok::<_, std::io::Error>(Bytes::from_static(b"0123456789"))),
+            )
+        };
+        let (path, size) = store(dir.path(), "a.stl", chunks(3), 100).await.unwrap();
+        assert_eq!((std::fs::read(&path).unwrap().len(), size), (30, 30));
+        // Never replaces a file already there.
+        let e = store(dir.path(), "a.stl", chunks(1), 100)
+            .await
+            .unwrap_err();
+        assert_eq!(e.status, StatusCode::CONFLICT);
+        assert_eq!(std::fs::read(&path).unwrap().len(), 30);
+        // Too large: refused, nothing left behind.
+        let e = store(dir.path(), "b.stl", chunks(20), 100)
+            .await
+            .unwrap_err();
+        assert_eq!(e.status, StatusCode::PAYLOAD_TOO_LARGE);
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(left.len(), 1, "only a.stl: {left:?}");
+    }
+}

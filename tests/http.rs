@@ -1,0 +1,857 @@
+//! The HTTP API, the dashboard and the OctoPrint-compatible upload, against the real
+//! binary: a daemon with simulated printers and `[http]` on a loopback port, spoken to
+//! over real TCP by a minimal HTTP/1.1 client (so every byte on the wire is the test's
+//! own, as a slicer would send it), and the dashboard driven in a real headless Chromium
+//! through chromedriver (Debian packages `chromium` and `chromium-driver`).
+
+use serde_json::{json, Value};
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_crispen");
+const KEY: &str = "test-key-0123456789abcdef";
+
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A daemon serving `[http]` on a loopback port the system picks.
+struct Farm {
+    _daemon: Killed,
+    addr: String,
+    root: PathBuf,
+    log: PathBuf,
+}
+
+impl Farm {
+    fn start(root: &Path, time_scale: f64, http_extra: &str) -> Farm {
+        std::fs::create_dir_all(root.join("hot")).unwrap();
+        std::fs::write(root.join("key"), format!("{KEY}\n")).unwrap();
+        let printer = |name: &str| {
+            format!(
+                "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n\
+                 [printer.simulate]\ntime_scale = {time_scale}\n"
+            )
+        };
+        let config = root.join("crispen.toml");
+        std::fs::write(
+            &config,
+            format!(
+                "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+                 [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\nupload_max_mb = 1\n{http_extra}\n\
+                 {}{}[[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"alpha\", \"beta\"]\n",
+                printer("alpha"),
+                printer("beta")
+            ),
+        )
+        .unwrap();
+        let log = root.join("daemon.log");
+        let daemon = Command::new(BIN)
+            .args(["run", "--config"])
+            .arg(&config)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        let daemon = Killed(daemon);
+        // The daemon logs the address it listens on (port 0: the system's pick).
+        let started = Instant::now();
+        let addr = loop {
+            let text = std::fs::read_to_string(&log).unwrap_or_default();
+            if let Some(line) = text.lines().find(|l| l.contains("http: listening")) {
+                let at = line.find("address=").expect("address field") + "address=".len();
+                break line[at..].split_whitespace().next().unwrap().to_string();
+            }
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "the daemon did not start listening:\n{text}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        Farm {
+            _daemon: daemon,
+            addr,
+            root: root.to_path_buf(),
+            log,
+        }
+    }
+
+    fn get(&self, path: &str, key: Option<&str>) -> Answer {
+        request(&self.addr, "GET", path, &key_header(key), b"")
+    }
+
+    fn post(&self, path: &str, key: Option<&str>) -> Answer {
+        request(&self.addr, "POST", path, &key_header(key), b"")
+    }
+
+    fn status(&self) -> Value {
+        let a = self.get("/api/v1/status", Some(KEY));
+        assert_eq!(a.status, 200, "{}", a.text());
+        a.json()
+    }
+
+    /// Polls the status until `check` holds.
+    fn wait_for(&self, limit: Duration, what: &str, check: impl Fn(&Value) -> bool) -> Value {
+        let started = Instant::now();
+        loop {
+            let s = self.status();
+            if check(&s) {
+                return s;
+            }
+            if started.elapsed() > limit {
+                panic!(
+                    "timed out waiting for {what}\nlast status: {s:#}\nlog:\n{}",
+                    std::fs::read_to_string(&self.log).unwrap_or_default()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+}
+
+fn key_header(key: Option<&str>) -> Vec<(&'static str, String)> {
+    key.map(|k| vec![("X-Api-Key", k.to_string())])
+        .unwrap_or_default()
+}
+
+fn job<'a>(status: &'a Value, file: &str) -> Option<&'a Value> {
+    status["jobs"]
+        .as_array()?
+        .iter()
+        .find(|j| j["file"] == file)
+}
+
+fn printer<'a>(status: &'a Value, name: &str) -> &'a Value {
+    status["printers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == name)
+        .unwrap()
+}
+
+struct Answer {
+    status: u16,
+    headers: String,
+    body: Vec<u8>,
+}
+
+impl Answer {
+    fn text(&self) -> String {
+        String::from_utf8_lossy(&self.body).into_owned()
+    }
+    fn json(&self) -> Value {
+        serde_json::from_slice(&self.body)
+            .unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.text()))
+    }
+    /// The JSON error message, asserting the body is `{"error": "..."}`.
+    fn error(&self) -> String {
+        self.json()["error"]
+            .as_str()
+            .unwrap_or_else(|| panic!("no error message in {}", self.text()))
+            .to_string()
+    }
+}
+
+/// One HTTP/1.1 request on its own connection, the bytes written exactly as given.
+fn request(
+    addr: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, String)],
+    body: &[u8],
+) -> Answer {
+    let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        head.push_str(&format!("{k}: {v}\r\n"));
+    }
+    head.push_str(&format!("Content-Length: {}\r\n\r\n", body.len()));
+    let mut bytes = head.into_bytes();
+    bytes.extend_from_slice(body);
+    raw(addr, &bytes)
+}
+
+/// Sends `bytes` and reads the answer to the end (skipping a `100 Continue`).
+fn raw(addr: &str, bytes: &[u8]) -> Answer {
+    let mut stream = TcpStream::connect(addr).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
+    // The server may answer (an error) before taking the whole body; that is fine.
+    let _ = stream.write_all(bytes);
+    let mut reader = BufReader::new(stream);
+    loop {
+        let mut status_line = String::new();
+        reader.read_line(&mut status_line).unwrap();
+        let status: u16 = status_line
+            .split_whitespace()
+            .nth(1)
+            .unwrap_or_else(|| panic!("no status line: {status_line:?}"))
+            .parse()
+            .unwrap();
+        let mut headers = String::new();
+        loop {
+            let mut line = String::new();
+            reader.read_line(&mut line).unwrap();
+            if line == "\r\n" || line.is_empty() {
+                break;
+            }
+            headers.push_str(&line.to_ascii_lowercase());
+        }
+        if status == 100 {
+            continue;
+        }
+        let mut body = Vec::new();
+        if headers.contains("transfer-encoding: chunked") {
+            loop {
+                let mut size = String::new();
+                reader.read_line(&mut size).unwrap();
+                let size = usize::from_str_radix(size.trim(), 16).unwrap();
+                let mut chunk = vec![0; size + 2];
+                reader.read_exact(&mut chunk).unwrap();
+                if size == 0 {
+                    break;
+                }
+                body.extend_from_slice(&chunk[..size]);
+            }
+        } else if let Some(length) = headers
+            .lines()
+            .find_map(|l| l.strip_prefix("content-length:"))
+        {
+            body.resize(length.trim().parse().unwrap(), 0);
+            reader.read_exact(&mut body).unwrap();
+        } else {
+            let _ = reader.read_to_end(&mut body);
+        }
+        return Answer {
+            status,
+            headers,
+            body,
+        };
+    }
+}
+
+/// A model as a binary STL, as slicers hold it.
+fn spot_stl() -> Vec<u8> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
+    let mesh = crispen::mesh::load(&path).unwrap().mesh;
+    let mut bytes = Vec::new();
+    crispen::mesh::write_stl(&mut bytes, &mesh).unwrap();
+    bytes
+}
+
+fn spot_obj() -> Vec<u8> {
+    std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj")).unwrap()
+}
+
+/// Files in the hot folder, hidden ones (an upload's temporary file) included.
+fn hot_files(root: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(root.join("hot"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+/// The API on TCP: the key is required (401 without, 403 wrong), every error is JSON
+/// naming what is wrong, uploads are bounded and land only in the hot folder by their
+/// plain name, an uploaded model becomes a job that is prepared (with its pictures and
+/// G-code thumbnails) and printed, the actions work, and events and metrics describe the farm.
+#[test]
+fn api_over_tcp_with_and_without_the_key() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "");
+
+    // The key.
+    let a = farm.get("/api/v1/status", None);
+    assert_eq!(a.status, 401);
+    assert!(a.error().contains("X-Api-Key"), "{}", a.text());
+    let a = farm.get("/api/v1/status", Some("not-the-key-at-all"));
+    assert_eq!(a.status, 403);
+    assert!(a.error().contains("does not match"), "{}", a.text());
+    assert_eq!(farm.post("/api/v1/printers/alpha/clear", None).status, 401);
+    for path in [
+        "/metrics",
+        "/api/v1/events",
+        "/api/version",
+        "/api/v1/jobs/x/pictures/after.png",
+    ] {
+        assert_eq!(farm.get(path, None).status, 401, "{path} needs the key");
+    }
+    // The dashboard's own files hold no data and ask for the key themselves.
+    let page = farm.get("/", None);
+    assert_eq!(page.status, 200);
+    assert!(page.text().contains("/app.js"));
+
+    let s = farm.wait_for(Duration::from_secs(30), "two idle printers", |s| {
+        ["alpha", "beta"]
+            .iter()
+            .all(|p| printer(s, p)["state"] == "idle")
+    });
+    assert_eq!(s["folders"][0]["name"], "hot");
+
+    // Errors are JSON and name what is wrong.
+    let a = farm.post("/api/v1/printers/zeta/clear", Some(KEY));
+    assert_eq!(a.status, 404);
+    assert!(
+        a.error().contains("\"zeta\"") && a.error().contains("alpha"),
+        "{}",
+        a.text()
+    );
+    let a = farm.post("/api/v1/printers/alpha/explode", Some(KEY));
+    assert_eq!(a.status, 404);
+    assert!(a.error().contains("explode"), "{}", a.text());
+    let a = farm.post("/api/v1/jobs/0042-nothing/retry", Some(KEY));
+    assert_eq!(a.status, 404);
+    assert!(a.error().contains("0042-nothing"), "{}", a.text());
+    let a = farm.post("/api/v1/printers/alpha/pause", Some(KEY));
+    assert_eq!(a.status, 409);
+    assert!(a.error().contains("not printing"), "{}", a.text());
+    let a = farm.get("/no/such/page", Some(KEY));
+    assert_eq!(a.status, 404);
+    assert!(a.error().contains("/no/such/page"), "{}", a.text());
+    let a = request(
+        &farm.addr,
+        "DELETE",
+        "/api/v1/status",
+        &key_header(Some(KEY)),
+        b"",
+    );
+    assert_eq!(a.status, 405);
+    assert!(a.error().contains("DELETE"), "{}", a.text());
+
+    // Uploads: only a plain model name, only into a configured hot folder, bounded.
+    let put = |folder: &str, name: &str, body: &[u8]| {
+        request(
+            &farm.addr,
+            "PUT",
+            &format!("/api/v1/folders/{folder}/files/{name}"),
+            &key_header(Some(KEY)),
+            body,
+        )
+    };
+    for (name, expect) in [
+        ("..%2F..%2Fescape.stl", "without folders"),
+        ("%2Fetc%2Fpasswd.stl", "without folders"),
+        (".hidden.stl", "hidden"),
+        ("notes.txt", ".stl"),
+    ] {
+        let a = put("hot", name, b"solid x\nendsolid x\n");
+        assert_eq!(a.status, 400, "{name}: {}", a.text());
+        assert!(a.error().contains(expect), "{name}: {}", a.text());
+    }
+    let a = put("nowhere", "a.stl", b"x");
+    assert_eq!(a.status, 404);
+    assert!(
+        a.error().contains("nowhere") && a.error().contains("hot"),
+        "{}",
+        a.text()
+    );
+    let a = put("hot", "part.gcode", b"G28\n");
+    assert_eq!(a.status, 415);
+    assert!(a.error().contains("G-code"), "{}", a.text());
+    let a = put("hot", "huge.stl", &vec![b'x'; 1024 * 1024 + 1]);
+    assert_eq!(a.status, 413);
+    assert!(a.error().contains("upload_max_mb"), "{}", a.text());
+    assert!(tmp.path().join("escape.stl").exists() == false);
+    assert_eq!(
+        hot_files(tmp.path()),
+        Vec::<String>::new(),
+        "nothing left behind"
+    );
+
+    // A model uploaded by name becomes a job, prepared with pictures and printed.
+    let a = put("hot", "spot.obj", &spot_obj());
+    assert_eq!(a.status, 201, "{}", a.text());
+    let a = put("hot", "spot.obj", b"v 0 0 0\n");
+    assert!(
+        a.status == 409 || a.status == 201,
+        "a second upload of the name either waits its turn (409) or follows the first: {}",
+        a.text()
+    );
+    let s = farm.wait_for(Duration::from_secs(180), "the upload printed", |s| {
+        job(s, "spot.obj").is_some_and(|j| j["state"] == "done")
+    });
+    let done = job(&s, "spot.obj").unwrap().clone();
+    let id = done["id"].as_str().unwrap();
+    assert_eq!(done["height_mm"], 25.0);
+    assert_eq!(done["strength"], "auto");
+    assert_eq!(
+        done["pictures"],
+        json!(["before.png", "after.png", "displacement.png"])
+    );
+    let detail = farm.get(&format!("/api/v1/jobs/{id}"), Some(KEY));
+    assert_eq!(detail.status, 200);
+    let detail = detail.json();
+    assert!(
+        detail["job"]["slice_report"]["gcode_lines"]
+            .as_u64()
+            .unwrap()
+            > 1000
+    );
+    assert!(
+        detail["job"]["print_report"]["lines_acked"]
+            .as_u64()
+            .unwrap()
+            > 1000
+    );
+    for name in ["before.png", "after.png", "displacement.png"] {
+        let a = farm.get(&format!("/api/v1/jobs/{id}/pictures/{name}"), Some(KEY));
+        assert_eq!(a.status, 200, "{name}");
+        assert!(a.headers.contains("content-type: image/png"));
+        assert_eq!(&a.body[..8], b"\x89PNG\r\n\x1a\n", "{name} is a PNG");
+    }
+    for other in ["job.json", "..%2Fjob.json", "spot.obj.gcode"] {
+        let a = farm.get(&format!("/api/v1/jobs/{id}/pictures/{other}"), Some(KEY));
+        assert_eq!(a.status, 404, "{other} is not served");
+        assert!(a.error().contains("after.png"), "{}", a.text());
+    }
+    let gcode = std::fs::read_to_string(tmp.path().join(format!("spool/jobs/{id}/spot.obj.gcode")))
+        .unwrap();
+    for size in ["300x300", "32x32"] {
+        assert!(
+            gcode.contains(&format!("; thumbnail begin {size} ")),
+            "the G-code has a {size} thumbnail"
+        );
+    }
+
+    // Actions are the control socket's: the bed gate.
+    let s = farm.status();
+    let printed_on = job(&s, "spot.obj").unwrap()["printer"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert_eq!(printer(&s, &printed_on)["bed_cleared"], false);
+    let a = farm.post(&format!("/api/v1/printers/{printed_on}/clear"), Some(KEY));
+    assert_eq!(a.status, 200, "{}", a.text());
+    assert!(a.json()["message"]
+        .as_str()
+        .unwrap()
+        .contains("bed cleared"));
+    assert_eq!(printer(&farm.status(), &printed_on)["bed_cleared"], true);
+    let a = farm.post(&format!("/api/v1/jobs/{id}/cancel"), Some(KEY));
+    assert_eq!(a.status, 409);
+    assert!(a.error().contains("only active jobs"), "{}", a.text());
+
+    // Live events: the first one is the whole state.
+    let mut stream = TcpStream::connect(&farm.addr).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    write!(
+        stream,
+        "GET /api/v1/events HTTP/1.1\r\nHost: x\r\nX-Api-Key: {KEY}\r\n\r\n"
+    )
+    .unwrap();
+    let mut seen = String::new();
+    let mut reader = BufReader::new(stream);
+    while !seen.contains("\"printers\"") {
+        let mut line = String::new();
+        if reader.read_line(&mut line).unwrap() == 0 {
+            break;
+        }
+        seen.push_str(&line);
+    }
+    assert!(seen.contains("text/event-stream"), "{seen}");
+    assert!(
+        seen.contains("event: status") && seen.contains(id),
+        "{seen}"
+    );
+
+    // Metrics: Prometheus names, no file names as labels.
+    let m = farm.get("/metrics", Some(KEY));
+    assert_eq!(m.status, 200);
+    assert!(m.headers.contains("text/plain; version=0.0.4"));
+    let m = m.text();
+    for line in [
+        "crispen_printer_up{printer=\"alpha\"} 1",
+        "crispen_printer_up{printer=\"beta\"} 1",
+        "crispen_jobs{state=\"done\"} 1",
+        "crispen_folder_queue_length{folder=\"hot\"} 0",
+        "crispen_preparation_duration_seconds_count 1",
+        "crispen_print_duration_seconds_count 1",
+        "# TYPE crispen_printer_resends_total counter",
+        "# TYPE crispen_printer_hotend_celsius gauge",
+    ] {
+        assert!(m.lines().any(|l| l == line), "metrics lack {line:?}:\n{m}");
+    }
+    assert!(!m.contains("spot"), "no file name in the metrics:\n{m}");
+}
+
+/// An upload made exactly as PrusaSlicer's "Send to printer" (OctoPrint host type) makes
+/// it: first `GET /api/version` (its connection test wants "OctoPrint" in `text`), then
+/// libcurl's multipart POST with the fields `print`, `path` and `file`, `Expect:
+/// 100-continue`, and the key in `X-Api-Key`. The model becomes a job and prints; G-code
+/// (what PrusaSlicer sends after slicing itself) is refused with a JSON error until
+/// pre-sliced G-code has its own path.
+#[test]
+fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "");
+    let v = farm.get("/api/version", Some(KEY));
+    assert_eq!(v.status, 200);
+    let v = v.json();
+    assert!(v["text"].as_str().unwrap().starts_with("OctoPrint"), "{v}");
+    assert!(v["api"].is_string() && v["server"].is_string(), "{v}");
+
+    let send = |file_name: &str, content: &[u8]| {
+        let boundary = "------------------------a1b2c3d4e5f60718";
+        let mut body = Vec::new();
+        for (name, value) in [("print", "true"), ("path", "hot")] {
+            body.extend_from_slice(
+                format!(
+                    "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{value}\r\n"
+                )
+                .as_bytes(),
+            );
+        }
+        body.extend_from_slice(
+            format!(
+                "--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{file_name}\"\r\n\
+                 Content-Type: application/octet-stream\r\n\r\n"
+            )
+            .as_bytes(),
+        );
+        body.extend_from_slice(content);
+        body.extend_from_slice(format!("\r\n--{boundary}--\r\n").as_bytes());
+        let mut bytes = format!(
+            "POST /api/files/local HTTP/1.1\r\nHost: {}\r\nUser-Agent: PrusaSlicer/2.9.2\r\n\
+             Accept: */*\r\nX-Api-Key: {KEY}\r\nContent-Length: {}\r\n\
+             Content-Type: multipart/form-data; boundary={boundary}\r\nExpect: 100-continue\r\n\r\n",
+            farm.addr,
+            body.len()
+        )
+        .into_bytes();
+        bytes.extend_from_slice(&body);
+        raw(&farm.addr, &bytes)
+    };
+
+    let a = send("part.gcode", b"; generated by PrusaSlicer\nG28\n");
+    assert_eq!(a.status, 415, "{}", a.text());
+    assert!(
+        a.error().contains("part.gcode") && a.error().contains("G-code"),
+        "{}",
+        a.text()
+    );
+
+    let a = send("part.stl", &spot_stl());
+    assert_eq!(a.status, 201, "{}", a.text());
+    let answer = a.json();
+    assert_eq!(answer["done"], true);
+    assert_eq!(answer["files"]["local"]["name"], "part.stl");
+    farm.wait_for(
+        Duration::from_secs(180),
+        "the slicer's upload printed",
+        |s| job(s, "part.stl").is_some_and(|j| j["state"] == "done"),
+    );
+    assert_eq!(hot_files(tmp.path()), Vec::<String>::new());
+    let _ = &farm.root;
+}
+
+/// chromedriver and one headless Chromium session, spoken to in W3C WebDriver JSON over
+/// the same minimal HTTP client.
+struct Browser {
+    _driver: Killed,
+    addr: String,
+    session: String,
+}
+
+const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
+
+impl Browser {
+    fn start(profile: &Path) -> Browser {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let driver = Command::new("chromedriver")
+            .arg(format!("--port={port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("chromedriver (Debian packages chromium and chromium-driver; scripts/setup installs them)");
+        let driver = Killed(driver);
+        let addr = format!("127.0.0.1:{port}");
+        let started = Instant::now();
+        while TcpStream::connect(&addr).is_err() {
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "chromedriver did not start"
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let mut args = vec![
+            "--headless".to_string(),
+            "--no-sandbox".into(),
+            "--disable-gpu".into(),
+            "--disable-background-networking".into(),
+            "--disable-component-update".into(),
+            "--no-first-run".into(),
+            "--disable-dev-shm-usage".into(),
+            "--window-size=1200,1000".into(),
+        ];
+        args.push(format!("--user-data-dir={}", profile.display()));
+        let mut options = json!({ "args": args });
+        if Path::new("/usr/bin/chromium").exists() {
+            options["binary"] = json!("/usr/bin/chromium");
+        }
+        let caps = json!({"capabilities": {"alwaysMatch": {
+            "browserName": "chrome", "goog:chromeOptions": options }}});
+        let answer = webdriver(&addr, "POST", "/session", &caps);
+        let session = answer["sessionId"]
+            .as_str()
+            .unwrap_or_else(|| panic!("no session: {answer}"))
+            .to_string();
+        Browser {
+            _driver: driver,
+            addr,
+            session,
+        }
+    }
+
+    fn call(&self, method: &str, path: &str, body: &Value) -> Value {
+        webdriver(
+            &self.addr,
+            method,
+            &format!("/session/{}{path}", self.session),
+            body,
+        )
+    }
+
+    fn go(&self, url: &str) {
+        self.call("POST", "/url", &json!({ "url": url }));
+    }
+
+    fn exec(&self, script: &str, args: Value) -> Value {
+        self.call(
+            "POST",
+            "/execute/sync",
+            &json!({ "script": script, "args": args }),
+        )
+    }
+
+    fn find(&self, css: &str) -> String {
+        let v = self.call(
+            "POST",
+            "/element",
+            &json!({"using": "css selector", "value": css}),
+        );
+        v[ELEMENT]
+            .as_str()
+            .unwrap_or_else(|| panic!("no element {css}: {v}"))
+            .to_string()
+    }
+
+    fn click(&self, css: &str) {
+        let id = self.find(css);
+        self.call("POST", &format!("/element/{id}/click"), &json!({}));
+    }
+
+    fn type_into(&self, css: &str, text: &str) {
+        let id = self.find(css);
+        self.call(
+            "POST",
+            &format!("/element/{id}/value"),
+            &json!({ "text": text }),
+        );
+    }
+
+    fn screenshot(&self, path: &Path) {
+        use base64::Engine;
+        let v = self.call("GET", "/screenshot", &Value::Null);
+        let png = base64::engine::general_purpose::STANDARD
+            .decode(v.as_str().unwrap())
+            .unwrap();
+        std::fs::write(path, png).unwrap();
+    }
+
+    /// Waits until `script` (a function body) returns true in the page; anything else it
+    /// returns is shown if it never does.
+    fn wait_until(&self, limit: Duration, what: &str, script: &str) {
+        let started = Instant::now();
+        let mut seen: Vec<Value> = Vec::new();
+        loop {
+            let last = self.exec(script, json!([]));
+            if last == json!(true) {
+                return;
+            }
+            if !seen.contains(&last) {
+                seen.push(last);
+            }
+            if started.elapsed() > limit {
+                let body = self.exec("return document.body.innerText", json!([]));
+                panic!("timed out waiting in the page for {what} (it returned: {seen:?}); the page shows:\n{body}");
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = std::panic::catch_unwind(|| {
+            webdriver(
+                &self.addr,
+                "DELETE",
+                &format!("/session/{}", self.session),
+                &Value::Null,
+            )
+        });
+    }
+}
+
+/// One WebDriver command; returns its `value`, panicking on a WebDriver error.
+fn webdriver(addr: &str, method: &str, path: &str, body: &Value) -> Value {
+    let body = if body.is_null() {
+        Vec::new()
+    } else {
+        serde_json::to_vec(body).unwrap()
+    };
+    let headers = [("Content-Type", "application/json".to_string())];
+    let a = request(addr, method, path, &headers, &body);
+    let v = a.json();
+    assert_eq!(a.status, 200, "WebDriver {method} {path}: {v}");
+    v["value"].clone()
+}
+
+/// The dashboard in a real headless Chromium: two simulated printers printing, each
+/// tile with its state, progress, temperatures and the part's picture; the bed-clear
+/// button asks for the key (read-only without it), then clears the bed with it; a model
+/// dropped on the hot folder's name becomes a job; the job page shows the three pictures;
+/// and the page fits a phone's width.
+#[test]
+fn dashboard_in_a_real_browser() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.04, "read_only_without_key = true");
+    for name in ["left.obj", "right.obj"] {
+        let a = request(
+            &farm.addr,
+            "PUT",
+            &format!("/api/v1/folders/hot/files/{name}"),
+            &key_header(Some(KEY)),
+            &spot_obj(),
+        );
+        assert_eq!(a.status, 201, "{}", a.text());
+    }
+    // Read-only without the key: the status is open, changes are not.
+    assert_eq!(farm.get("/api/v1/status", None).status, 200);
+    assert_eq!(farm.post("/api/v1/printers/alpha/clear", None).status, 401);
+
+    let browser = Browser::start(&tmp.path().join("chromium-profile"));
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(240),
+        "both printers printing, with progress, temperatures and the part's picture",
+        "const seen = ['alpha', 'beta'].map(p => {
+           const t = document.querySelector('[data-printer=\"' + p + '\"]');
+           if (!t) return p + ': no tile';
+           const img = t.querySelector('img.part');
+           const bar = t.querySelector('progress.bar');
+           return [t.querySelector('.state').textContent, !!bar && Math.abs(bar.value - parseFloat(t.querySelector('.pct').textContent)) < 0.05,
+             /°C/.test((t.querySelector('.temps') || {}).textContent), /left/.test(t.textContent),
+             !!img && img.naturalWidth > 0,
+             // Under way, for a screenshot that shows it.
+             parseFloat((t.querySelector('.pct') || {}).textContent) > 5].join(' ');
+         });
+         return seen.every(s => s === 'printing true true true true true') || seen.join('; ');",
+    );
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard.png"));
+
+    // The print ends and alpha waits for its bed to be cleared.
+    browser.wait_until(
+        Duration::from_secs(240),
+        "alpha's bed-clear button",
+        "return !!document.querySelector('button[data-action=\"clear\"][data-printer=\"alpha\"]')",
+    );
+    // Without the key the click is refused and the page asks for the key.
+    browser.click("button[data-action=\"clear\"][data-printer=\"alpha\"]");
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the key form",
+        "return !document.querySelector('#keyform').hidden",
+    );
+    assert_eq!(printer(&farm.status(), "alpha")["bed_cleared"], false);
+    browser.type_into("#key", KEY);
+    browser.click("#keyform button");
+    browser.click("button[data-action=\"clear\"][data-printer=\"alpha\"]");
+    farm.wait_for(
+        Duration::from_secs(20),
+        "alpha's bed cleared by the click",
+        |s| printer(s, "alpha")["bed_cleared"] == true,
+    );
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the clear button gone",
+        "return !document.querySelector('button[data-action=\"clear\"][data-printer=\"alpha\"]')",
+    );
+
+    // A model dropped on the hot folder's name is uploaded and becomes a job. WebDriver
+    // cannot drag a file from the desktop, so the page gets the events a real drop fires.
+    let dropped = browser.exec(
+        "const [text] = arguments;
+         const zone = document.querySelector('[data-folder=\"hot\"]');
+         const data = new DataTransfer();
+         data.items.add(new File([text], 'dropped.obj', { type: 'application/octet-stream' }));
+         for (const type of ['dragenter', 'dragover', 'drop'])
+           zone.dispatchEvent(new DragEvent(type, { bubbles: true, cancelable: true, dataTransfer: data }));
+         return data.files.length;",
+        json!([String::from_utf8(spot_obj()).unwrap()]),
+    );
+    assert_eq!(dropped, json!(1));
+    farm.wait_for(Duration::from_secs(60), "the dropped model as a job", |s| {
+        job(s, "dropped.obj").is_some()
+    });
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the dropped job in the queue",
+        "return Array.from(document.querySelectorAll('#queue tr[data-job]')).some(r => r.textContent.includes('dropped.obj'))",
+    );
+
+    // The job page: the report and the three pictures.
+    let s = farm.status();
+    let left = job(&s, "left.obj").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    browser.go(&format!("http://{}/#job/{left}", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the job page with its pictures",
+        "const imgs = document.querySelectorAll('#jobpage .pictures img');
+         return imgs.length === 3 && Array.from(imgs).every(i => i.naturalWidth > 0)
+           && document.querySelector('#jobpage h2').textContent.includes('left.obj')
+           && document.querySelector('#jobpage').textContent.includes('Enhancement and slicing');",
+    );
+    browser.screenshot(&shots.join("dashboard-job.png"));
+
+    // A phone's width: nothing wider than the screen.
+    browser.call(
+        "POST",
+        "/window/rect",
+        &json!({"width": 390, "height": 844}),
+    );
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the dashboard at a phone's width",
+        "const wide = Array.from(document.querySelectorAll('body *'))
+           .filter(e => e.getBoundingClientRect().right > window.innerWidth + 1)
+           .map(e => e.tagName + '.' + e.className + ' ' + Math.round(e.getBoundingClientRect().right));
+         return (document.querySelectorAll('.tile[data-printer]').length === 2
+           && document.documentElement.scrollWidth <= window.innerWidth && wide.length === 0)
+           || [window.innerWidth, document.documentElement.scrollWidth, ...wide.slice(0, 5)].join(' ');",
+    );
+    browser.screenshot(&shots.join("dashboard-phone.png"));
+}

@@ -54,7 +54,7 @@ fn tcp_only_with_the_http_drop_in() {
     let path = dir.path().join("crispen.service");
     std::fs::write(
         &path,
-        unit.replace("/usr/local/bin/crispen", env!("CARGO_BIN_EXE_crispen")),
+        unit.replace("/usr/bin/crispen", env!("CARGO_BIN_EXE_crispen")),
     )
     .unwrap();
     std::fs::create_dir(dir.path().join("crispen.service.d")).unwrap();

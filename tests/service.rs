@@ -4,14 +4,13 @@
 
 use std::process::Command;
 
-#[test]
-fn systemd_unit_verifies() {
-    let unit = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/config/crispen.service"
-    ))
-    .unwrap();
-    assert!(unit.contains("ExecStart=/usr/bin/crispen run"));
+fn config_file(name: &str) -> String {
+    std::fs::read_to_string(format!("{}/config/{name}", env!("CARGO_MANIFEST_DIR"))).unwrap()
+}
+
+/// Writes the unit (running the binary under test) and, if given, the HTTP drop-in into a
+/// temporary folder laid out as systemd expects, and has systemd verify them.
+fn verify(unit: &str, http_drop_in: Option<&str>) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("crispen.service");
     std::fs::write(
@@ -19,18 +18,29 @@ fn systemd_unit_verifies() {
         unit.replace("/usr/bin/crispen", env!("CARGO_BIN_EXE_crispen")),
     )
     .unwrap();
+    if let Some(drop_in) = http_drop_in {
+        std::fs::create_dir(dir.path().join("crispen.service.d")).unwrap();
+        std::fs::write(dir.path().join("crispen.service.d/http.conf"), drop_in).unwrap();
+    }
     let out = Command::new("systemd-analyze")
         .arg("verify")
         .arg(&path)
         .output()
         .expect("systemd-analyze (Debian package systemd; scripts/setup installs it)");
     let stderr = String::from_utf8_lossy(&out.stderr);
-    // verify prints problems with this unit prefixed by its file or unit name.
+    // verify prints problems with these files prefixed by their file or unit name.
     let problems: Vec<&str> = stderr
         .lines()
-        .filter(|l| l.contains("crispen.service"))
+        .filter(|l| l.contains("crispen.service") || l.contains("http.conf"))
         .collect();
     assert!(out.status.success() && problems.is_empty(), "{}", stderr);
+}
+
+#[test]
+fn systemd_unit_verifies() {
+    let unit = config_file("crispen.service");
+    assert!(unit.contains("ExecStart=/usr/bin/crispen run"));
+    verify(&unit, None);
 }
 
 /// The TCP listener of `[http]` is allowed only where it is configured: the unit itself
@@ -38,11 +48,10 @@ fn systemd_unit_verifies() {
 /// exactly the HTTP port; systemd accepts the unit with the drop-in.
 #[test]
 fn tcp_only_with_the_http_drop_in() {
-    let root = env!("CARGO_MANIFEST_DIR");
-    let unit = std::fs::read_to_string(format!("{root}/config/crispen.service")).unwrap();
+    let unit = config_file("crispen.service");
     assert!(unit.lines().any(|l| l == "PrivateNetwork=yes"));
     assert!(unit.lines().any(|l| l == "RestrictAddressFamilies=AF_UNIX"));
-    let drop_in = std::fs::read_to_string(format!("{root}/config/crispen-http.conf")).unwrap();
+    let drop_in = config_file("crispen-http.conf");
     for line in [
         "PrivateNetwork=no",
         "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6",
@@ -50,24 +59,5 @@ fn tcp_only_with_the_http_drop_in() {
     ] {
         assert!(drop_in.lines().any(|l| l == line), "drop-in lacks {line}");
     }
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("crispen.service");
-    std::fs::write(
-        &path,
-        unit.replace("/usr/bin/crispen", env!("CARGO_BIN_EXE_crispen")),
-    )
-    .unwrap();
-    std::fs::create_dir(dir.path().join("crispen.service.d")).unwrap();
-    std::fs::write(dir.path().join("crispen.service.d/http.conf"), &drop_in).unwrap();
-    let out = Command::new("systemd-analyze")
-        .arg("verify")
-        .arg(&path)
-        .output()
-        .expect("systemd-analyze");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    let problems: Vec<&str> = stderr
-        .lines()
-        .filter(|l| l.contains("crispen.service") || l.contains("http.conf"))
-        .collect();
-    assert!(out.status.success() && problems.is_empty(), "{}", stderr);
+    verify(&unit, Some(&drop_in));
 }

@@ -7,6 +7,9 @@
 //! controls (pause, resume, cancel, retry), a safe stop at SIGTERM, an unplugged printer
 //! and its reconnection, and printers added and removed by SIGHUP.
 
+mod common;
+use common::{job_by_file, printer};
+
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::sim::is_housekeeping;
@@ -74,22 +77,6 @@ fn status(config: &Path) -> Option<Value> {
         return None;
     }
     serde_json::from_str(&text).ok()
-}
-
-fn job_by_file<'a>(status: &'a Value, file: &str) -> Option<&'a Value> {
-    status["jobs"]
-        .as_array()?
-        .iter()
-        .find(|j| j["file"] == file)
-}
-
-fn printer<'a>(status: &'a Value, name: &str) -> &'a Value {
-    status["printers"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|p| p["name"] == name)
-        .unwrap()
 }
 
 /// Polls the status until `check` holds; panics with the last status and the log after

@@ -4,6 +4,9 @@
 //! own, as a slicer would send it), and the dashboard driven in a real headless Chromium
 //! through chromedriver (Debian packages `chromium` and `chromium-driver`).
 
+mod common;
+
+use common::{job_by_file, printer};
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -121,22 +124,6 @@ impl Farm {
 fn key_header(key: Option<&str>) -> Vec<(&'static str, String)> {
     key.map(|k| vec![("X-Api-Key", k.to_string())])
         .unwrap_or_default()
-}
-
-fn job<'a>(status: &'a Value, file: &str) -> Option<&'a Value> {
-    status["jobs"]
-        .as_array()?
-        .iter()
-        .find(|j| j["file"] == file)
-}
-
-fn printer<'a>(status: &'a Value, name: &str) -> &'a Value {
-    status["printers"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|p| p["name"] == name)
-        .unwrap()
 }
 
 struct Answer {
@@ -380,9 +367,9 @@ fn api_over_tcp_with_and_without_the_key() {
         a.text()
     );
     let s = farm.wait_for(Duration::from_secs(180), "the upload printed", |s| {
-        job(s, "spot.obj").is_some_and(|j| j["state"] == "done")
+        job_by_file(s, "spot.obj").is_some_and(|j| j["state"] == "done")
     });
-    let done = job(&s, "spot.obj").unwrap().clone();
+    let done = job_by_file(&s, "spot.obj").unwrap().clone();
     let id = done["id"].as_str().unwrap();
     assert_eq!(done["height_mm"], 25.0);
     assert_eq!(done["strength"], "auto");
@@ -427,7 +414,7 @@ fn api_over_tcp_with_and_without_the_key() {
 
     // Actions are the control socket's: the bed gate.
     let s = farm.status();
-    let printed_on = job(&s, "spot.obj").unwrap()["printer"]
+    let printed_on = job_by_file(&s, "spot.obj").unwrap()["printer"]
         .as_str()
         .unwrap()
         .to_string();
@@ -552,7 +539,7 @@ fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
     farm.wait_for(
         Duration::from_secs(180),
         "the slicer's upload printed",
-        |s| job(s, "part.stl").is_some_and(|j| j["state"] == "done"),
+        |s| job_by_file(s, "part.stl").is_some_and(|j| j["state"] == "done"),
     );
     assert_eq!(hot_files(tmp.path()), Vec::<String>::new());
     let _ = &farm.root;
@@ -811,7 +798,7 @@ fn dashboard_in_a_real_browser() {
     );
     assert_eq!(dropped, json!(1));
     farm.wait_for(Duration::from_secs(60), "the dropped model as a job", |s| {
-        job(s, "dropped.obj").is_some()
+        job_by_file(s, "dropped.obj").is_some()
     });
     browser.wait_until(
         Duration::from_secs(20),
@@ -821,7 +808,7 @@ fn dashboard_in_a_real_browser() {
 
     // The job page: the report and the three pictures.
     let s = farm.status();
-    let left = job(&s, "left.obj").unwrap()["id"]
+    let left = job_by_file(&s, "left.obj").unwrap()["id"]
         .as_str()
         .unwrap()
         .to_string();

@@ -36,6 +36,24 @@ pub fn model(name: &str) -> PathBuf {
     cached
 }
 
+/// The job for `file` in a `crispen status --json` or `/api/v1/status` answer.
+pub fn job_by_file<'a>(status: &'a serde_json::Value, file: &str) -> Option<&'a serde_json::Value> {
+    status["jobs"]
+        .as_array()?
+        .iter()
+        .find(|j| j["file"] == file)
+}
+
+/// The printer called `name` in a status answer; panics when there is none.
+pub fn printer<'a>(status: &'a serde_json::Value, name: &str) -> &'a serde_json::Value {
+    status["printers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == name)
+        .unwrap_or_else(|| panic!("no printer {name} in {status}"))
+}
+
 /// `reference.json`: the figures of the independent implementation.
 pub fn reference_json() -> serde_json::Value {
     let path = data_dir().join("reference.json");

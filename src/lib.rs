@@ -11,9 +11,10 @@
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
 //! - [`http`]: the HTTP API, web dashboard, metrics and OctoPrint-compatible upload.
-//! - [`cli`]: the `crispen` subcommands, thin wrappers over the above.
+//!
+//! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
+//! not depend on clap, anyhow or indicatif.
 
-pub mod cli;
 pub mod daemon;
 pub mod enhance;
 pub mod http;

@@ -1,6 +1,8 @@
-//! The `crispen` binary: parses the command line and hands off to [`crispen::cli`].
-//! `anyhow` lives only here, at the edge; the library returns typed errors.
+//! The `crispen` binary: the command line ([`cli`]) over the `crispen` library.
+//! clap, `anyhow` and indicatif live only here, at the edge; the library returns typed errors.
+
+mod cli;
 
 fn main() -> std::process::ExitCode {
-    crispen::cli::main()
+    cli::main()
 }

@@ -2,8 +2,8 @@
 //! ([`crispen::daemon::control`]). The socket is found through the same `--config` the
 //! daemon was started with (or the built-in default).
 
-use crate::daemon::config::Config;
-use crate::daemon::control::{self, Request, Response, Status};
+use crispen::daemon::config::Config;
+use crispen::daemon::control::{self, Request, Response, Status};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

@@ -4,11 +4,11 @@
 //! OUTPUT's extension. A phase display on a terminal; `--json` prints one report;
 //! `--preview DIR` draws the model before and after and the displacement's heat map.
 
-use crate::enhance::{self, EnhanceOptions, Phase, PhaseTimings, StrengthTable};
-use crate::mesh::{self, CleanReport, MeshFormat};
-use crate::preview;
-use crate::slice::UpAxis;
 use anyhow::Context;
+use crispen::enhance::{self, EnhanceOptions, Phase, PhaseTimings, StrengthTable};
+use crispen::mesh::{self, CleanReport, MeshFormat};
+use crispen::preview;
+use crispen::slice::UpAxis;
 use serde::Serialize;
 use std::io::IsTerminal;
 use std::path::PathBuf;

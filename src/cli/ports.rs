@@ -3,9 +3,9 @@
 //! configured printer uses each. `--probe PATH` asks the printer on one port for its M115
 //! answer.
 
-use crate::daemon::config::{Config, PrinterConfig, PrinterPort};
-use crate::ports::{self, probe, SerialDevice};
 use anyhow::{bail, Context};
+use crispen::daemon::config::{Config, PrinterConfig, PrinterPort};
+use crispen::ports::{self, probe, SerialDevice};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
@@ -160,7 +160,7 @@ fn probe_port(port: &Path, args: &Args, config: Option<&Config>) -> anyhow::Resu
     let baud = args
         .baud
         .or(user.map(|(p, _)| p.baud))
-        .unwrap_or(crate::marlin::firmware::Firmware::Marlin2.default_baud());
+        .unwrap_or(crispen::marlin::firmware::Firmware::Marlin2.default_baud());
     match (user, config) {
         (Some((printer, _)), Some(config)) => eprintln!(
             "probing {} at {baud} baud (the port of printer {:?} in {})",

@@ -3,7 +3,7 @@
 //! on stdout. The daemon kills it when the job is cancelled, the daemon stops, or the time
 //! limit passes (see `crispen::daemon::prepare`).
 
-use crate::daemon::prepare::{self, ChildMessage, PrepareTask};
+use crispen::daemon::prepare::{self, ChildMessage, PrepareTask};
 use std::io::{Read, Write};
 use std::process::ExitCode;
 

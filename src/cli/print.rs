@@ -1,12 +1,14 @@
 //! `crispen print FILE.gcode --port PATH`: stream one G-code file to a Marlin printer.
-//! A thin layer over [`crate::marlin::stream::Connection`]: a progress bar on a terminal,
+//! A thin layer over [`crispen::marlin::stream::Connection`]: a progress bar on a terminal,
 //! Ctrl-C cancels safely (heaters, fan and motors off), exit 0 only when every line was
 //! acknowledged.
 
-use crate::marlin::firmware::Firmware;
-use crate::marlin::gcode::GcodeProgram;
-use crate::marlin::stream::{Connection, PrintProgress, PrintState, StreamControl, StreamOptions};
 use anyhow::Context;
+use crispen::marlin::firmware::Firmware;
+use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::stream::{
+    Connection, PrintProgress, PrintState, StreamControl, StreamOptions,
+};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -126,7 +128,7 @@ async fn print(args: Args, program: GcodeProgram, opts: StreamOptions) -> anyhow
 }
 
 fn describe(p: &PrintProgress) -> String {
-    let temp = |name: &str, t: Option<crate::marlin::stream::Temp>| match t {
+    let temp = |name: &str, t: Option<crispen::marlin::stream::Temp>| match t {
         Some(t) => match t.target {
             Some(target) if target > 0.0 => format!(" {name} {:.0}/{:.0}°C", t.current, target),
             _ => format!(" {name} {:.0}°C", t.current),

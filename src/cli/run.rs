@@ -1,8 +1,8 @@
 //! `crispen run`: the print-farm daemon. Loads the config (or the built-in demo default),
 //! then hands over to [`crispen::daemon::run`] on a multi-threaded tokio runtime.
 
-use crate::daemon::{self, config::Config, RunOptions};
 use anyhow::Context;
+use crispen::daemon::{self, config::Config, RunOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

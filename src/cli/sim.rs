@@ -2,9 +2,9 @@
 //! line on stdout names the device (scripts and the quick start read it); `--link` adds a
 //! stable symlink, removed again on exit.
 
-use crate::marlin::firmware::Firmware;
-use crate::marlin::sim::{self, Faults, SimConfig};
 use anyhow::{bail, Context};
+use crispen::marlin::firmware::Firmware;
+use crispen::marlin::sim::{self, Faults, SimConfig};
 use nix::sys::signal::{SigSet, Signal};
 use std::io::Write;
 use std::path::PathBuf;

@@ -1,10 +1,10 @@
 //! `crispen slice`: enhance, scale and slice one model into a Marlin G-code job with a real
-//! slicer, over [`crispen::slice::slice`](crate::slice::slice). Shows the step on a terminal
+//! slicer, over [`crispen::slice::slice`](crispen::slice::slice). Shows the step on a terminal
 //! and prints a summary, or the full report with `--json`.
 
-use crate::enhance::{Phase, Strength, StrengthTable};
-use crate::slice::{SliceRequest, SliceSettings, SliceStep, SlicerKind, UpAxis, SETTING_KEYS};
 use anyhow::Context;
+use crispen::enhance::{Phase, Strength, StrengthTable};
+use crispen::slice::{SliceRequest, SliceSettings, SliceStep, SlicerKind, UpAxis, SETTING_KEYS};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -107,7 +107,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             bar.set_message(format!("{}: {}", args.model.display(), step_text(step)));
         }
     };
-    let result = crate::slice::slice(&req, &mut progress);
+    let result = crispen::slice::slice(&req, &mut progress);
     if let Some(bar) = &bar {
         bar.finish_and_clear();
     }

@@ -3,6 +3,8 @@
 //! not what the host believes: the job exactly once and in order, or an exact prefix and
 //! the right error. The last tests run the real `crispen sim` and `crispen print` binaries.
 
+mod common;
+
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::sim::{self, Faults, SimConfig, SimHandle};
@@ -696,4 +698,213 @@ async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
             assert!(tail.iter().any(|c| c == line), "{fw}: {tail:?}");
         }
     }
+}
+
+/// A firmware error that is neither a line error nor a halt (here a failed probing) means
+/// the printer no longer does what the file says: the job ends failed with the error as
+/// its reason, and the printer ends with heaters, fan and motors off.
+#[tokio::test]
+async fn a_firmware_error_that_is_no_halt_ends_the_job_with_heaters_off() {
+    for fw in Firmware::ALL {
+        let mut cfg = SimConfig::new(fw);
+        cfg.faults.errors = vec![(60, "Probing Failed".into())];
+        let sim = start_sim_with(cfg);
+        let program = program(fw, 300);
+        let err = stream(&sim, &options(fw), &program).await.unwrap_err();
+        match &err {
+            PrintError::FirmwareError { message, .. } => {
+                assert!(message.contains("Probing Failed"), "{fw}: {err}")
+            }
+            other => panic!("{fw}: {other}"),
+        }
+        assert!(err.to_string().contains("switched off"), "{err}");
+        let executed = job_executed(&sim);
+        let n = executed.len();
+        assert!(n < program.len(), "{fw}: the job stopped");
+        let tail = &executed[n.saturating_sub(6)..];
+        for line in ["M104 S0", "M140 S0", "M107", "M84"] {
+            assert!(tail.iter().any(|c| c == line), "{fw}: {tail:?}");
+        }
+    }
+}
+
+/// The daemon keeps its connection between jobs. While the bed waits to be cleared it
+/// reads what the printer says: a reset (`start`, here the sim's reset button) is noted in
+/// the printer's status and the log, and the next job begins with a fresh handshake; each
+/// job's autoreport is switched off at its end; both jobs run exactly once.
+#[test]
+fn between_jobs_the_daemon_notes_a_reset_and_the_next_job_starts_clean() {
+    use std::io::Write;
+    let exe = env!("CARGO_BIN_EXE_crispen");
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let link = root.join("p.tty");
+    let record = root.join("p.rec");
+    std::fs::create_dir(root.join("hot")).unwrap();
+    let mut sim = Command::new(exe)
+        .args([
+            "sim",
+            "--firmware",
+            "marlin2",
+            "--time-scale",
+            "0",
+            "--stdin",
+        ])
+        .arg("--link")
+        .arg(&link)
+        .arg("--record")
+        .arg(&record)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    BufReader::new(sim.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    assert!(first.starts_with("crispen sim: listening on"), "{first}");
+    let mut sim_stdin = sim.stdin.take().unwrap();
+
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\nport = {:?}\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"p\"]\n",
+            link.display().to_string()
+        ),
+    )
+    .unwrap();
+    let log = root.join("daemon.log");
+    let mut daemon = Command::new(exe)
+        .args(["run", "--config"])
+        .arg(&config)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let status = || -> Option<serde_json::Value> {
+        let out = Command::new(exe)
+            .args(["status", "--json", "--config"])
+            .arg(&config)
+            .output()
+            .ok()?;
+        serde_json::from_slice(&out.stdout).ok()
+    };
+    let wait_for = |what: &str, check: &dyn Fn(&serde_json::Value) -> bool| {
+        let start = std::time::Instant::now();
+        let mut last = None;
+        while start.elapsed() < Duration::from_secs(300) {
+            if let Some(s) = status() {
+                if check(&s) {
+                    return s;
+                }
+                last = Some(s);
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+        panic!(
+            "timed out waiting for {what}\nlast status: {last:?}\nlog:\n{}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
+    };
+    let model = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/spot.obj")).unwrap();
+    let drop_model = |name: &str| {
+        let part = root.join("hot").join(format!(".{name}.part"));
+        std::fs::write(&part, &model).unwrap();
+        std::fs::rename(&part, root.join("hot").join(name)).unwrap();
+    };
+    let job_of = |s: &serde_json::Value, file: &str| -> serde_json::Value {
+        common::job_by_file(s, file).cloned().unwrap_or_default()
+    };
+    let gcode_of = |s: &serde_json::Value, file: &str| -> Vec<String> {
+        let id = job_of(s, file)["id"].as_str().unwrap().to_string();
+        let path = root
+            .join("spool/jobs")
+            .join(id)
+            .join(format!("{file}.gcode"));
+        GcodeProgram::load_for(&path, Firmware::Marlin2)
+            .unwrap()
+            .to_vec()
+    };
+    let recorded = || -> Vec<String> {
+        std::fs::read_to_string(&record)
+            .unwrap_or_default()
+            .lines()
+            .map(String::from)
+            .collect()
+    };
+
+    drop_model("first.obj");
+    let s = wait_for("the first job done and the bed waiting", &|s| {
+        job_of(s, "first.obj")["state"] == "done"
+            && common::printer(s, "p")["state"] == "bed_not_cleared"
+    });
+    let first = gcode_of(&s, "first.obj");
+    let after_first = recorded();
+    // Autoreport was switched on for the job and off at its end.
+    let last_m155 = after_first.iter().rev().find(|c| c.starts_with("M155"));
+    assert_eq!(
+        last_m155.map(String::as_str),
+        Some("M155 S0"),
+        "{after_first:?}"
+    );
+
+    // The reset button while the bed waits: noted at once, not only when a job starts.
+    writeln!(sim_stdin, "reset").unwrap();
+    wait_for("the reset noted in the printer's status", &|s| {
+        common::printer(s, "p")["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("reset"))
+    });
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        text.contains("printer reset between jobs") && text.contains("printer"),
+        "{text}"
+    );
+
+    let out = Command::new(exe)
+        .args(["clear", "p", "--config"])
+        .arg(&config)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    drop_model("second.obj");
+    let s = wait_for("the second job done", &|s| {
+        job_of(s, "second.obj")["state"] == "done"
+    });
+    let second = gcode_of(&s, "second.obj");
+    let _ = daemon.kill();
+    let _ = daemon.wait();
+    let _ = sim.kill();
+    let _ = sim.wait();
+
+    let all = recorded();
+    // After the reset the printer was greeted afresh (M115) and numbered from 0 (M110 N0)
+    // before the second job's first line.
+    let since_reset = &all[after_first.len()..];
+    let greeted = since_reset.iter().position(|c| c == "M115");
+    let renumbered = since_reset.iter().position(|c| c == "M110 N0");
+    let first_line = since_reset.iter().position(|c| *c == second[0]);
+    assert!(
+        greeted.is_some()
+            && renumbered.is_some()
+            && greeted < first_line
+            && renumbered < first_line,
+        "{:?}",
+        &since_reset[..since_reset.len().min(8)]
+    );
+    let jobs: Vec<String> = all
+        .into_iter()
+        .filter(|c| !sim::is_housekeeping(c))
+        .collect();
+    let expected: Vec<String> = first.iter().chain(&second).cloned().collect();
+    assert!(jobs == expected, "each job exactly once, in order");
 }

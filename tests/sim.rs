@@ -898,3 +898,57 @@ fn crispen_sim_switches_for_firmware_behaviours() {
         assert!(stderr.contains(says), "{flag} {value}: {stderr}");
     }
 }
+
+/// Marlin checks a line's number before its checksum; a line longer than MAX_CMD_SIZE is
+/// cut, losing its `*cs`; Marlin 2.0 sends no `ok` after `Resend:`, 2.1 does.
+#[test]
+fn marlin_checks_the_number_first_cuts_long_lines_and_20_sends_no_ok_after_resend() {
+    for fw in [Firmware::Marlin2, Firmware::Marlin20] {
+        let (sim, mut port) = start(SimConfig::new(fw));
+        port.handshake();
+        port.send_numbered(1, "G1 X1");
+        port.until("ok");
+        // Wrong number and wrong checksum: the number is what is reported.
+        port.send("N5 G1 X5*1");
+        let (_, err) = port.until("Error:");
+        assert!(err.starts_with("Error:Line Number is not"), "{fw}: {err}");
+        assert_eq!(port.line(WAIT).as_deref(), Some("Resend: 2"), "{fw}");
+        let after = port.drain(Duration::from_millis(300));
+        assert_eq!(
+            after.iter().any(|l| l.starts_with("ok")),
+            fw.ok_after_resend(),
+            "{fw}: {after:?}"
+        );
+        // 96 bytes and more: cut before the checksum.
+        port.send_numbered(2, &format!("M117 {}", "x".repeat(95)));
+        let (_, err) = port.until("Error:");
+        assert!(
+            err.starts_with("Error:No Checksum with line number"),
+            "{fw}: {err}"
+        );
+        port.drain(Duration::from_millis(300));
+        assert_eq!(job_commands(&sim), ["G1 X1"], "{fw}");
+    }
+}
+
+/// Pokes act at once, as a person at the printer: a firmware error, the menu's host
+/// actions, and the reset button (line numbers forgotten, `start` said).
+#[test]
+fn pokes_report_errors_send_actions_and_reset_at_once() {
+    let (sim, mut port) = start(SimConfig::new(Firmware::Marlin2));
+    port.handshake();
+    port.send_numbered(1, "G1 X1");
+    port.until("ok");
+    assert!(sim.poke("error Probing Failed".parse().unwrap()));
+    assert_eq!(port.until("Error:").1, "Error:Probing Failed");
+    assert!(sim.poke("action pause".parse().unwrap()));
+    port.until("//action:pause");
+    assert!(sim.poke(sim::Poke::Reset));
+    port.until("start");
+    // Numbering starts over: line 1 is expected again.
+    port.send_numbered(1, "G1 X2");
+    port.until("ok");
+    assert_eq!(job_commands(&sim), ["G1 X1", "G1 X2"]);
+    assert!("bogus".parse::<sim::Poke>().is_err());
+    assert!("action".parse::<sim::Poke>().is_err());
+}

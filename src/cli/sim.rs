@@ -66,6 +66,14 @@ pub struct Args {
     /// menu items do (e.g. `--action-after 100:pause --action-after 120:resume`)
     #[arg(long, value_name = "N:NAME", value_parser = parse_action)]
     pub action_after: Vec<(usize, String)>,
+    /// Report `Error:TEXT` after N numbered lines, a firmware error that is not a halt
+    /// (e.g. `--error-after 50:"Probing Failed"`)
+    #[arg(long, value_name = "N:TEXT", value_parser = parse_error)]
+    pub error_after: Vec<(usize, String)>,
+    /// Read commands from stdin, one a line, as a person at the printer: `reset`, `action
+    /// NAME` (the printer's menu), `error TEXT` (a firmware error)
+    #[arg(long)]
+    pub stdin: bool,
     /// Say `wait` every MS milliseconds while the command queue is empty (NO_TIMEOUTS)
     #[arg(long, value_name = "MS")]
     pub wait_when_idle_ms: Option<u64>,
@@ -87,6 +95,19 @@ fn parse_action(text: &str) -> Result<(usize, String), String> {
         ));
     }
     Ok((n, name.to_string()))
+}
+
+fn parse_error(text: &str) -> Result<(usize, String), String> {
+    let (n, message) = text
+        .split_once(':')
+        .ok_or_else(|| format!("`{text}`: expected N:TEXT, e.g. 50:Probing Failed"))?;
+    let n = n
+        .parse()
+        .map_err(|_| format!("`{text}`: {n} is not a line count"))?;
+    if message.trim().is_empty() {
+        return Err(format!("`{text}`: the error needs a text"));
+    }
+    Ok((n, message.trim().to_string()))
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
@@ -134,6 +155,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         silence_after_lines: args.silence_after,
         fatal_after_lines: args.fatal_after,
         actions: args.action_after.clone(),
+        errors: args.error_after.clone(),
     };
     if args.wait_when_idle_ms == Some(0) {
         bail!("--wait-when-idle-ms 0 would flood the link; give an interval such as 1000");
@@ -173,6 +195,26 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         link = ?args.link,
         "simulated printer running; stop with Ctrl-C"
     );
+    if args.stdin {
+        let poker = handle.poker();
+        // Detached: it ends with the process, or at the end of stdin.
+        std::thread::spawn(move || {
+            for line in std::io::stdin().lines() {
+                let Ok(line) = line else { return };
+                if line.trim().is_empty() {
+                    continue;
+                }
+                match line.parse::<sim::Poke>() {
+                    Ok(poke) => {
+                        if !poker.poke(poke) {
+                            return;
+                        }
+                    }
+                    Err(e) => eprintln!("crispen sim: {e}"),
+                }
+            }
+        });
+    }
     let signal = signals.wait().context("waiting for SIGINT/SIGTERM")?;
     tracing::info!(?signal, "stopping the simulated printer");
     handle.shutdown();

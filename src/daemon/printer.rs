@@ -1,5 +1,6 @@
 //! Printer supervisors: one task per printer that connects (reconnecting with backoff),
-//! waits for its bed to be cleared, takes the oldest ready job of one of its folders,
+//! waits for its bed to be cleared (reading what the printer says meanwhile: a reset is
+//! noted and an unplugged printer reconnected before a job depends on it), takes the oldest ready job of one of its folders,
 //! holds it until a heating permit is free, streams it, and records the outcome.
 //!
 //! Staggered heat-ups, approximated: a print holds one of `[farm] max_heating` permits from
@@ -15,7 +16,7 @@ use super::farm::{Farm, LiveProgress, PrintCommand, PrinterState};
 use super::job::{JobState, PrinterGate};
 use crate::marlin::gcode::GcodeProgram;
 use crate::marlin::stream::{
-    Connection, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
+    Connection, Idle, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
 };
 use std::future::Future;
 use std::path::{Path, PathBuf};
@@ -48,6 +49,20 @@ pub trait PrinterLink: Send {
         control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<serde_json::Value, PrintFailure>>;
+
+    /// Reads and logs what the printer says between jobs (reports, `start`, host actions)
+    /// until it says something to act on; pending while all is quiet. Cancel-safe: the
+    /// supervisor races it against a bed being cleared or a job arriving.
+    fn watch_idle(&mut self) -> BoxFuture<'_, IdleNews>;
+}
+
+/// What a printer said between jobs that the supervisor must act on.
+#[derive(Debug, Clone, PartialEq)]
+pub enum IdleNews {
+    /// It said `start`: reset or power-cycled (the next job greets it afresh).
+    Rebooted,
+    /// The link closed; the connection must be re-opened.
+    Lost(String),
 }
 
 /// Opens connections to one printer.
@@ -136,9 +151,8 @@ async fn supervise_inner(
                     p.state = PrinterState::BedNotCleared;
                     p.job = gate.last_job.clone();
                 });
-                tokio::select! {
-                    _ = wake.changed() => {}
-                    _ = retire.changed() => {}
+                if between_jobs(&farm, &name, link.as_mut(), &mut wake, &mut retire).await {
+                    continue 'connect;
                 }
                 continue;
             }
@@ -148,9 +162,8 @@ async fn supervise_inner(
                     p.job = None;
                     p.progress = None;
                 });
-                tokio::select! {
-                    _ = wake.changed() => {}
-                    _ = retire.changed() => {}
+                if between_jobs(&farm, &name, link.as_mut(), &mut wake, &mut retire).await {
+                    continue 'connect;
                 }
                 continue;
             };
@@ -171,6 +184,44 @@ async fn supervise_inner(
             .remove(&name);
     } else {
         farm.set_printer(&name, |p| p.state = PrinterState::Stopped);
+    }
+}
+
+/// Waits for a change of the farm (a bed cleared, a job ready, a reload) while reading what
+/// the printer says meanwhile. Returns true when the connection was lost. A reset is noted
+/// in the printer's status until its next job starts.
+async fn between_jobs(
+    farm: &Farm,
+    name: &str,
+    link: &mut dyn PrinterLink,
+    wake: &mut watch::Receiver<u64>,
+    retire: &mut watch::Receiver<bool>,
+) -> bool {
+    let news = tokio::select! {
+        _ = wake.changed() => return false,
+        _ = retire.changed() => return false,
+        news = link.watch_idle() => news,
+    };
+    match news {
+        IdleNews::Rebooted => {
+            tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
+            farm.set_printer(name, |p| {
+                p.detail = Some(
+                    "the printer reset between jobs (it said `start`); the next job starts \
+                     with a fresh handshake"
+                        .into(),
+                )
+            });
+            false
+        }
+        IdleNews::Lost(why) => {
+            tracing::warn!(reason = %why, "printer link lost between jobs; reconnecting");
+            farm.set_printer(name, |p| {
+                p.state = PrinterState::Disconnected;
+                p.detail = Some(why);
+            });
+            true
+        }
     }
 }
 
@@ -244,7 +295,10 @@ async fn run_job(
         }
     };
     tracing::info!(gcode = %gcode.display(), "starting print");
-    farm.set_printer(printer, |p| p.state = PrinterState::Printing);
+    farm.set_printer(printer, |p| {
+        p.state = PrinterState::Printing;
+        p.detail = None;
+    });
 
     let (control_tx, control_rx) = mpsc::channel(8);
     farm.print_controls
@@ -468,6 +522,18 @@ impl PrinterLink for MarlinLink {
                     | PrintError::Silent { .. } => PrintFailure::Lost(e.to_string()),
                     _ => PrintFailure::Failed(e.to_string()),
                 }),
+            }
+        })
+    }
+
+    fn watch_idle(&mut self) -> BoxFuture<'_, IdleNews> {
+        Box::pin(async move {
+            loop {
+                match self.connection.idle_for(Duration::from_secs(3600)).await {
+                    Ok(Idle::Quiet) => {}
+                    Ok(Idle::Rebooted) => return IdleNews::Rebooted,
+                    Err(e) => return IdleNews::Lost(e.to_string()),
+                }
             }
         })
     }

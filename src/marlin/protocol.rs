@@ -183,6 +183,13 @@ pub enum Failure {
         len: usize,
         max: usize,
     },
+    /// The firmware reported an error that is neither a line error (those come with a
+    /// `Resend:`) nor a halt (a halted printer has switched its heaters off): a failed
+    /// probing, a refused command. The printer no longer does what the file says.
+    FirmwareError {
+        message: String,
+        last_acked: usize,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -261,7 +268,7 @@ struct InFlight {
     sync: bool,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 enum Phase {
     /// Port just opened: wait for `start` or a quiet period.
     Boot {
@@ -270,8 +277,25 @@ enum Phase {
     /// M110 + M115 sent, waiting for their answers.
     Greeting,
     Idle,
-    Job,
+    Job(JobPhase),
     Finished,
+}
+
+/// Where a running job is. Each stage carries what only it needs, so combinations that
+/// make no sense (paused while stopping, a final sync on a cancelled job) cannot be built.
+#[derive(Debug, Clone, PartialEq)]
+enum JobPhase {
+    /// Sending the job's lines.
+    Streaming,
+    /// Every job line answered: autoreport off and a final `M105` queued, whose answer
+    /// ends the job done (only it proves every earlier line was accepted in order).
+    Closing,
+    /// No job lines go out. `synced`: an `M105` after the last job line was queued (with
+    /// Ultimaker2Marlin, all `ok`s in does not mean the queued moves ran); `reported`:
+    /// [`Event::Paused`] went out, once that `M105` was answered.
+    Paused { synced: bool, reported: bool },
+    /// Heaters, fan and motors off on their way; the job ends once they are answered.
+    Stopping(Stop),
 }
 
 /// Why a job stops sending its lines.
@@ -376,13 +400,10 @@ pub struct Host {
     /// The printer reports `W:` (inside an M109/M190 wait) and has not answered since.
     heat_reported: bool,
     heat: Option<HeatWait>,
-    /// The pause was confirmed by an answered `M105` after the last job line.
-    pause_synced: bool,
     recent_errors: Vec<String>,
-    paused: bool,
-    paused_reported: bool,
-    stopping: Option<Stop>,
-    sync_queued: bool,
+    /// An `Error:` that is no line error by its words, and when to act on it: it may yet
+    /// prove part of a resend (a `Resend:` follows) or of a halt (a `kill()` line follows).
+    pending_error: Option<(String, Instant)>,
     last_m73: Option<usize>,
 
     lines_sent: u64,
@@ -446,12 +467,8 @@ impl Host {
             temps: Temperatures::default(),
             heat_reported: false,
             heat: None,
-            pause_synced: false,
             recent_errors: Vec::new(),
-            paused: false,
-            paused_reported: false,
-            stopping: None,
-            sync_queued: false,
+            pending_error: None,
             last_m73: None,
             lines_sent: 0,
             resends: 0,
@@ -531,7 +548,7 @@ impl Host {
         if self.phase != Phase::Idle {
             return false;
         }
-        self.phase = Phase::Job;
+        self.phase = Phase::Job(JobPhase::Streaming);
         self.job = commands.into();
         self.next_job = 0;
         self.acked_job = 0;
@@ -551,9 +568,6 @@ impl Host {
         self.last_progress = now;
         self.last_ack = now;
         self.last_probe = None;
-        self.paused = false;
-        self.stopping = None;
-        self.sync_queued = false;
         self.last_m73 = None;
         self.lines_sent = 0;
         self.resends = 0;
@@ -566,9 +580,8 @@ impl Host {
     /// Stop the job safely: no more job lines; break heat waits where the firmware can;
     /// then heaters, fan and motors off as ordinary numbered lines.
     pub fn cancel(&mut self, now: Instant) {
-        if self.phase == Phase::Job && self.stopping.is_none() {
-            self.stopping = Some(Stop::Cancel);
-            self.paused = false;
+        if self.in_job() && self.stopping().is_none() {
+            self.phase = Phase::Job(JobPhase::Stopping(Stop::Cancel));
             // Job lines waiting to be (re)sent are never sent now; the printer expects the
             // first of them next, so the safe-stop lines take over their numbers.
             self.discard_unsent_job_lines();
@@ -579,17 +592,19 @@ impl Host {
 
     /// Stop sending job lines; [`Event::Paused`] follows once the printer drained them.
     pub fn pause(&mut self, now: Instant) {
-        if self.phase == Phase::Job && self.stopping.is_none() && !self.paused {
-            self.paused = true;
-            self.paused_reported = false;
-            self.pause_synced = false;
+        // Once every job line is answered there is nothing left to hold back.
+        if self.phase == Phase::Job(JobPhase::Streaming) {
+            self.phase = Phase::Job(JobPhase::Paused {
+                synced: false,
+                reported: false,
+            });
             self.pump(now);
         }
     }
 
     pub fn resume(&mut self, now: Instant) {
-        if self.phase == Phase::Job && self.paused {
-            self.paused = false;
+        if matches!(self.phase, Phase::Job(JobPhase::Paused { .. })) {
+            self.phase = Phase::Job(JobPhase::Streaming);
             self.events.push_back(Event::Resumed);
             self.pump(now);
         }
@@ -626,10 +641,10 @@ impl Host {
 
     /// The earliest time [`Host::tick`] must be called, if any.
     pub fn next_deadline(&self) -> Option<Instant> {
-        match self.phase {
+        match &self.phase {
             Phase::Finished | Phase::Idle => None,
             Phase::Boot { saw_start } => {
-                let quiet = if saw_start {
+                let quiet = if *saw_start {
                     self.opts.quiet_period.min(Duration::from_millis(300))
                 } else {
                     self.opts.quiet_period
@@ -637,7 +652,7 @@ impl Host {
                 Some(self.last_rx.max(self.opened_at) + quiet)
             }
             Phase::Greeting => Some(self.greeting_sent_at + self.opts.answer_timeout),
-            Phase::Job => {
+            Phase::Job(_) => {
                 let mut deadline: Option<Instant> = None;
                 let mut at = |t: Instant| {
                     deadline = Some(deadline.map_or(t, |d: Instant| d.min(t)));
@@ -648,7 +663,10 @@ impl Host {
                 if let Some(hold) = self.resend_hold {
                     at(hold);
                 }
-                if let Some(Stop::Failure { give_up, .. }) = &self.stopping {
+                if let Some((_, decide)) = &self.pending_error {
+                    at(*decide);
+                }
+                if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
                     at(*give_up);
                 }
                 if let Some(deadline) = self.heat_deadline() {
@@ -674,7 +692,7 @@ impl Host {
 
     /// Handle timeouts due at `now`.
     pub fn tick(&mut self, now: Instant) {
-        match self.phase {
+        match &self.phase {
             Phase::Finished | Phase::Idle => {}
             Phase::Boot { .. } => {
                 if self.next_deadline().is_some_and(|d| now >= d) {
@@ -691,13 +709,17 @@ impl Host {
                     }
                 }
             }
-            Phase::Job => self.tick_job(now),
+            Phase::Job(_) => self.tick_job(now),
         }
         self.pump(now);
     }
 
     fn tick_job(&mut self, now: Instant) {
-        if let Some(Stop::Failure { give_up, .. }) = &self.stopping {
+        if let Some((message, _)) = self.pending_error.take_if(|(_, decide)| now >= *decide) {
+            self.firmware_error(message, now);
+            return;
+        }
+        if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
             if now >= *give_up {
                 self.finish_stop(false);
                 return;
@@ -758,7 +780,7 @@ impl Host {
             );
             return;
         }
-        if self.phase == Phase::Job && now >= self.next_probe_at() {
+        if self.in_job() && now >= self.next_probe_at() {
             self.probe(now);
         }
     }
@@ -780,6 +802,16 @@ impl Host {
             // A replay is waiting: the line the printer asked for is the probe.
             self.transmit(self.send_cursor, now);
         } else {
+            if let [only] = self.in_flight.make_contiguous() {
+                if only.is_m105 {
+                    // The only line in flight is an M105, unanswered while the printer is
+                    // otherwise idle: its answer was lost (garbled), since a printer
+                    // answers an M105 at once. The probe's answer must confirm it too;
+                    // taken for the lost one's, each probe would leave itself unanswered
+                    // and the job (whose final M105 this may be) would never end.
+                    only.is_m105 = false;
+                }
+            }
             let number = self.new_line(Kind::Housekeeping, "M105".into());
             self.transmit(number, now);
         }
@@ -829,7 +861,21 @@ impl Host {
     }
 
     fn accepting_job_lines(&self) -> bool {
-        self.phase == Phase::Job && !self.paused && self.stopping.is_none()
+        matches!(
+            self.phase,
+            Phase::Job(JobPhase::Streaming | JobPhase::Closing)
+        )
+    }
+
+    fn in_job(&self) -> bool {
+        matches!(self.phase, Phase::Job(_))
+    }
+
+    fn stopping(&self) -> Option<&Stop> {
+        match &self.phase {
+            Phase::Job(JobPhase::Stopping(stop)) => Some(stop),
+            _ => None,
+        }
     }
 
     fn front_line(&self) -> Option<&Line> {
@@ -852,7 +898,7 @@ impl Host {
         self.pending
             .retain(|(kind, _)| matches!(kind, Kind::SafeStop | Kind::Setup));
         self.resend_hold = None;
-        let failure = matches!(self.stopping, Some(Stop::Failure { .. }));
+        let failure = matches!(self.stopping(), Some(Stop::Failure { .. }));
         if self.emergency_parser() && !failure {
             if self.pending.is_empty() {
                 // Numbered, outside the window: the emergency parser acts on it on arrival
@@ -877,12 +923,11 @@ impl Host {
     /// A failure while the printer still answers: never leave it hot. The printer's line
     /// counter is reset (`M110`), whatever it expected, and the safe-stop lines follow.
     fn fail_safely(&mut self, failure: Failure, now: Instant) {
-        match (&self.phase, &self.stopping) {
-            (Phase::Job, Some(Stop::Failure { .. })) => self.finish_stop(false),
-            (Phase::Job, _) => {
+        match &self.phase {
+            Phase::Job(JobPhase::Stopping(Stop::Failure { .. })) => self.finish_stop(false),
+            Phase::Job(_) => {
                 let give_up = now + self.opts.silence_fail;
-                self.stopping = Some(Stop::Failure { failure, give_up });
-                self.paused = false;
+                self.phase = Phase::Job(JobPhase::Stopping(Stop::Failure { failure, give_up }));
                 // A new episode with numbers of its own, above any the printer has seen:
                 // `N<k> M110 N<k>` passes whatever it expects, and a request for an older
                 // number then means it rejected the M110 (see `handle_resend`).
@@ -915,14 +960,30 @@ impl Host {
 
     /// Report the failure that stopped the printer, with whether the stop was confirmed.
     fn finish_stop(&mut self, confirmed: bool) {
-        let failure = match self.stopping.take() {
-            Some(Stop::Failure { failure, .. }) => failure,
+        let failure = match self.stopping() {
+            Some(Stop::Failure { failure, .. }) => failure.clone(),
             _ => Failure::Cancelled {
                 last_acked: self.acked_job,
             },
         };
         self.events.push_back(Event::SafeStop { confirmed });
         self.fail(failure);
+    }
+
+    /// A firmware error that is not part of a resend or a halt: the printer refused
+    /// something or failed at it, so the job cannot go on as the file says. Stop safely.
+    fn firmware_error(&mut self, message: String, now: Instant) {
+        self.events.push_back(Event::Message(message.clone()));
+        if self.in_job() && self.stopping().is_none() {
+            let last_acked = self.acked_job;
+            self.fail_safely(
+                Failure::FirmwareError {
+                    message,
+                    last_acked,
+                },
+                now,
+            );
+        }
     }
 
     fn fail(&mut self, failure: Failure) {
@@ -933,49 +994,55 @@ impl Host {
     }
 
     fn check_progress(&mut self, now: Instant) {
-        if self.phase != Phase::Job {
+        let Phase::Job(job) = &self.phase else {
             return;
-        }
+        };
         let drained = self.in_flight.is_empty()
             && self.send_cursor >= self.next_number
             && self.pending.is_empty();
         if !drained {
             return;
         }
-        if self.stopping.is_some() {
-            self.finish_stop(true);
-            return;
-        }
-        if self.paused {
-            if !self.pause_synced {
+        match job {
+            JobPhase::Stopping(_) => self.finish_stop(true),
+            JobPhase::Paused { synced: false, .. } => {
                 // Drained of `ok`s is not drained: Ultimaker2Marlin acknowledges moves as
                 // they enter its queue. An answered M105 is processed after all of them.
-                self.pause_synced = true;
+                self.phase = Phase::Job(JobPhase::Paused {
+                    synced: true,
+                    reported: false,
+                });
                 self.pending.push_back((Kind::Sync, "M105".into()));
                 self.pump(now);
-                return;
             }
-            if !self.paused_reported {
-                self.paused_reported = true;
+            JobPhase::Paused {
+                synced: true,
+                reported: false,
+            } => {
+                self.phase = Phase::Job(JobPhase::Paused {
+                    synced: true,
+                    reported: true,
+                });
                 self.events.push_back(Event::Paused);
             }
-            return;
-        }
-        if self.next_job < self.job.len() {
-            return;
-        }
-        if !self.sync_queued {
-            // Only an answered M105 proves every earlier line was accepted in order. The
-            // printer stays connected between jobs: its reports stop with the job.
-            self.sync_queued = true;
-            if self.autoreport() {
-                self.pending
-                    .push_back((Kind::Housekeeping, "M155 S0".into()));
+            JobPhase::Paused { .. } => {}
+            JobPhase::Streaming if self.next_job < self.job.len() => {}
+            JobPhase::Streaming => {
+                // Only an answered M105 proves every earlier line was accepted in order.
+                // The printer stays connected between jobs: its reports stop with the job.
+                self.phase = Phase::Job(JobPhase::Closing);
+                if self.autoreport() {
+                    self.pending
+                        .push_back((Kind::Housekeeping, "M155 S0".into()));
+                }
+                self.pending.push_back((Kind::Sync, "M105".into()));
+                self.pump(now);
             }
-            self.pending.push_back((Kind::Sync, "M105".into()));
-            self.pump(now);
-            return;
+            JobPhase::Closing => self.finish_job(),
         }
+    }
+
+    fn finish_job(&mut self) {
         self.acked_job = self.job.len();
         self.phase = Phase::Finished;
         self.events.push_back(Event::Progress {
@@ -992,8 +1059,17 @@ impl Host {
     }
 
     fn handle(&mut self, reply: Reply, now: Instant) {
+        if let Some((message, _)) = self.pending_error.take() {
+            match reply {
+                Reply::Resend(_) | Reply::LineError(_) | Reply::Fatal(_) | Reply::Error(_) => {
+                    // Part of a resend or a halt, or followed by another error (which then
+                    // decides: a halt's reason often comes in several lines).
+                }
+                _ => self.firmware_error(message, now),
+            }
+        }
         match reply {
-            Reply::Start => match self.phase {
+            Reply::Start => match &self.phase {
                 Phase::Boot { .. } => self.phase = Phase::Boot { saw_start: true },
                 Phase::Greeting => {
                     // Rebooted while we greeted it: start over once it settles.
@@ -1029,7 +1105,20 @@ impl Host {
                 if self.recent_errors.len() > 4 {
                     self.recent_errors.remove(0);
                 }
-                self.events.push_back(Event::Message(line));
+                if line
+                    .to_ascii_lowercase()
+                    .contains("no line number with checksum")
+                {
+                    // Ultimaker2Marlin on the tail of a line cut by a buffer flush (it has
+                    // a `*` but no `N`): neither `Resend:` nor `ok` follows.
+                    self.fragments += 1;
+                    self.events.push_back(Event::Fragment(line));
+                } else if self.in_job() && self.stopping().is_none() {
+                    // Decided by the next line, or after a moment of silence.
+                    self.pending_error = Some((line, now + self.opts.resend_ok_wait));
+                } else {
+                    self.events.push_back(Event::Message(line));
+                }
             }
             Reply::Resend(n) => self.handle_resend(n, now),
             Reply::Ok(ok) => {
@@ -1057,7 +1146,7 @@ impl Host {
                 let recent_probe = self
                     .last_probe
                     .is_some_and(|p| now.saturating_duration_since(p) < spacing);
-                if self.phase == Phase::Job && !self.in_flight.is_empty() && !recent_probe {
+                if self.in_job() && !self.in_flight.is_empty() && !recent_probe {
                     self.probe(now);
                 }
             }
@@ -1260,7 +1349,7 @@ impl Host {
         let Some(line) = self.history_line(number) else {
             return;
         };
-        match (self.phase, line.kind) {
+        match (&self.phase, line.kind) {
             (_, Kind::Job(idx)) if idx + 1 > self.acked_job => {
                 self.acked_job = idx + 1;
                 let total = self.job.len();
@@ -1309,7 +1398,7 @@ impl Host {
         // while our `M110` is unanswered: the printer rejected the `M110` (its counter still
         // runs from before). Send it again. A garbled number never matches its error.
         let consistent = std::mem::take(&mut self.error_last_line) == n.checked_sub(1);
-        let stop_first = match self.stopping {
+        let stop_first = match self.stopping() {
             Some(Stop::Failure { .. }) => Some(first),
             _ => None,
         };
@@ -1370,7 +1459,7 @@ impl Host {
         };
         self.repeated = Some((n, times));
         // The safe stop gets a generous limit of its own: giving up on it leaves a printer hot.
-        let limit = match self.stopping {
+        let limit = match self.stopping() {
             Some(Stop::Failure { .. }) => self.opts.resend_limit.max(10) * 3,
             _ => self.opts.resend_limit,
         };
@@ -1417,7 +1506,7 @@ impl Host {
         self.send_cursor = n;
         self.resends += 1;
         self.events.push_back(Event::Resend { line: n, replay });
-        if self.stopping == Some(Stop::Cancel) {
+        if self.stopping() == Some(&Stop::Cancel) {
             // Job lines after n are not sent again during a stop; renumber the rest.
             let keep = (n - first) as usize;
             let dropped: Vec<Line> = self.history.drain(keep..).collect();

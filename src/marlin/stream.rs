@@ -197,6 +197,15 @@ pub enum PrintError {
         len: usize,
         max: usize,
     },
+    #[error(
+        "printer on {port} reported `{message}`, which the job cannot go on after; heaters, \
+         fan and motors were switched off, last acknowledged line {last_acked}"
+    )]
+    FirmwareError {
+        port: PathBuf,
+        message: String,
+        last_acked: usize,
+    },
     #[error("printer on {port} is busy with another job")]
     Busy { port: PathBuf },
 }
@@ -214,7 +223,8 @@ impl PrintError {
             | PrintError::LostState { last_acked, .. }
             | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
-            | PrintError::Cancelled { last_acked, .. } => Some(*last_acked),
+            | PrintError::Cancelled { last_acked, .. }
+            | PrintError::FirmwareError { last_acked, .. } => Some(*last_acked),
             _ => None,
         }
     }
@@ -291,6 +301,14 @@ impl PrintError {
             Failure::LineTooLong { command, len, max } => {
                 PrintError::LineTooLong { command, len, max }
             }
+            Failure::FirmwareError {
+                message,
+                last_acked,
+            } => PrintError::FirmwareError {
+                port,
+                message,
+                last_acked,
+            },
         }
     }
 }
@@ -314,54 +332,38 @@ pub struct Connection {
     port: PathBuf,
     opts: StreamOptions,
     info: FirmwareInfo,
+    /// An unfinished line of what the printer said between jobs.
+    idle_partial: Vec<u8>,
+    /// The printer said `start` since the last job: it rebooted, so the next job begins
+    /// with a fresh handshake.
+    rebooted: bool,
+}
+
+/// What [`Connection::idle_for`] saw.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Idle {
+    /// Nothing that needs acting on (reports and messages are logged).
+    Quiet,
+    /// The printer said `start`: it was reset or power-cycled. The next job begins with a
+    /// fresh handshake and line numbering.
+    Rebooted,
 }
 
 impl Connection {
     /// Open the port and run the handshake (wait for `start` or quiet, M110, M115).
     pub async fn open(port: &Path, opts: &StreamOptions) -> Result<Connection, PrintError> {
         let mut transport = Transport::open(port, opts.baud)?;
-        let mut host = Host::new(opts.protocol_options(), Instant::now());
-        let give_up = tokio::time::Instant::now() + opts.connect_timeout;
-        let started = Instant::now();
-        loop {
-            flush(&mut host, &transport);
-            while let Some(event) = host.poll_event() {
-                match event {
-                    Event::Connected(info) => {
-                        tracing::info!(port = %port.display(), firmware = ?info.name, "printer connected");
-                        return Ok(Connection {
-                            transport,
-                            host,
-                            port: port.to_path_buf(),
-                            opts: opts.clone(),
-                            info,
-                        });
-                    }
-                    Event::Failed(f) => return Err(PrintError::from_failure(port, f)),
-                    Event::Message(m) => tracing::debug!(port = %port.display(), "printer: {m}"),
-                    _ => {}
-                }
-            }
-            let deadline = host
-                .next_deadline()
-                .map(tokio::time::Instant::from_std)
-                .unwrap_or(give_up)
-                .min(give_up);
-            tokio::select! {
-                link = transport.recv() => match link {
-                    LinkEvent::Data(bytes) => host.feed(&bytes, Instant::now()),
-                    LinkEvent::Closed(reason) => {
-                        return Err(PrintError::Disconnected { port: port.to_path_buf(), reason, last_acked: 0 });
-                    }
-                },
-                _ = tokio::time::sleep_until(deadline) => {
-                    if tokio::time::Instant::now() >= give_up {
-                        return Err(PrintError::NoAnswer { port: port.to_path_buf(), waited_s: started.elapsed().as_secs_f64() });
-                    }
-                    host.tick(Instant::now());
-                }
-            }
-        }
+        let (host, info) = greet(&mut transport, port, opts).await?;
+        tracing::info!(port = %port.display(), firmware = ?info.name, "printer connected");
+        Ok(Connection {
+            transport,
+            host,
+            port: port.to_path_buf(),
+            opts: opts.clone(),
+            info,
+            idle_partial: Vec::new(),
+            rebooted: false,
+        })
     }
 
     pub fn firmware_info(&self) -> &FirmwareInfo {
@@ -374,36 +376,36 @@ impl Connection {
         &self.opts
     }
 
-    /// Read and log what the printer said since the last job (temperature reports, `start`
-    /// after a power cycle, messages), for up to `duration`; returns early, with an error,
-    /// if the link closes. The daemon calls this while a printer waits for its bed to be
-    /// cleared; [`Connection::print`] drains the rest before a job starts.
-    pub async fn idle_for(&mut self, duration: Duration) -> Result<(), PrintError> {
+    /// Read and log what the printer says between jobs (temperature reports, `start` after
+    /// a power cycle, host actions, messages) for up to `duration`. Returns early with
+    /// [`Idle::Rebooted`] when the printer says `start`, and with an error if the link
+    /// closes. Cancel-safe: the daemon races it against a bed being cleared.
+    pub async fn idle_for(&mut self, duration: Duration) -> Result<Idle, PrintError> {
         let until = tokio::time::Instant::now() + duration;
-        let mut partial = Vec::new();
         loop {
             tokio::select! {
                 link = self.transport.recv() => match link {
                     LinkEvent::Data(bytes) => {
-                        log_idle_lines(&self.port, &mut partial, &bytes);
+                        if log_idle_lines(&self.port, &mut self.idle_partial, &bytes) {
+                            self.rebooted = true;
+                            return Ok(Idle::Rebooted);
+                        }
                     }
                     LinkEvent::Closed(reason) => {
                         return Err(PrintError::Disconnected { port: self.port.clone(), reason, last_acked: 0 });
                     }
                 },
-                _ = tokio::time::sleep_until(until) => return Ok(()),
+                _ = tokio::time::sleep_until(until) => return Ok(Idle::Quiet),
             }
         }
     }
 
-    /// Log what arrived between jobs; true if the printer rebooted meanwhile.
-    fn drain_idle_input(&mut self) -> Result<bool, PrintError> {
-        let mut partial = Vec::new();
-        let mut rebooted = false;
+    /// Log what arrived between jobs and is not read yet; notes a reboot.
+    fn drain_idle_input(&mut self) -> Result<(), PrintError> {
         while let Some(link) = self.transport.try_recv() {
             match link {
                 LinkEvent::Data(bytes) => {
-                    rebooted |= log_idle_lines(&self.port, &mut partial, &bytes);
+                    self.rebooted |= log_idle_lines(&self.port, &mut self.idle_partial, &bytes);
                 }
                 LinkEvent::Closed(reason) => {
                     return Err(PrintError::Disconnected {
@@ -414,7 +416,28 @@ impl Connection {
                 }
             }
         }
-        Ok(rebooted)
+        Ok(())
+    }
+
+    /// Begin the next job on a clean link: what the printer said between jobs is logged,
+    /// not taken for answers to this job; after a reboot the handshake runs again (the
+    /// firmware may even have changed), which lets the boot banner through first.
+    async fn clean_link(&mut self) -> Result<(), PrintError> {
+        self.drain_idle_input()?;
+        self.idle_partial.clear();
+        if std::mem::take(&mut self.rebooted) {
+            tracing::info!(port = %self.port.display(), "printer rebooted since the last job; greeting it again");
+            let (host, info) = greet(&mut self.transport, &self.port, &self.opts).await?;
+            self.host = host;
+            self.info = info;
+        } else if !self.host.is_idle() {
+            // A previous job ended: the protocol core is single-use per job outcome, so
+            // start a fresh one on the same (already greeted) link.
+            let mut host = Host::new(self.opts.protocol_options(), Instant::now());
+            host.mark_connected(self.info.clone());
+            self.host = host;
+        }
+        Ok(())
     }
 
     /// Stream `program`; returns when every line was acknowledged, or why not.
@@ -424,19 +447,7 @@ impl Connection {
         mut control: mpsc::Receiver<StreamControl>,
         progress: watch::Sender<PrintProgress>,
     ) -> Result<PrintReport, PrintError> {
-        // Begin on a clean link: what the printer said between jobs is logged, not taken
-        // for answers to this job; after a reboot, its banner is let through first.
-        if self.drain_idle_input()? {
-            tokio::time::sleep(self.opts.protocol.quiet_period).await;
-            self.drain_idle_input()?;
-        }
-        if !self.host.is_idle() {
-            // A previous job ended: the protocol core is single-use per job outcome, so
-            // start a fresh one on the same (already greeted) link.
-            let mut host = Host::new(self.opts.protocol_options(), Instant::now());
-            host.mark_connected(self.info.clone());
-            self.host = host;
-        }
+        self.clean_link().await?;
         let started = Instant::now();
         let total = program.len();
         let port = self.port.clone();
@@ -572,6 +583,47 @@ impl Connection {
     }
 }
 
+/// The handshake on an open link: wait for `start` or a quiet period, then M110 and M115.
+async fn greet(
+    transport: &mut Transport,
+    port: &Path,
+    opts: &StreamOptions,
+) -> Result<(Host, FirmwareInfo), PrintError> {
+    let mut host = Host::new(opts.protocol_options(), Instant::now());
+    let give_up = tokio::time::Instant::now() + opts.connect_timeout;
+    let started = Instant::now();
+    loop {
+        flush(&mut host, transport);
+        while let Some(event) = host.poll_event() {
+            match event {
+                Event::Connected(info) => return Ok((host, info)),
+                Event::Failed(f) => return Err(PrintError::from_failure(port, f)),
+                Event::Message(m) => tracing::debug!(port = %port.display(), "printer: {m}"),
+                _ => {}
+            }
+        }
+        let deadline = host
+            .next_deadline()
+            .map(tokio::time::Instant::from_std)
+            .unwrap_or(give_up)
+            .min(give_up);
+        tokio::select! {
+            link = transport.recv() => match link {
+                LinkEvent::Data(bytes) => host.feed(&bytes, Instant::now()),
+                LinkEvent::Closed(reason) => {
+                    return Err(PrintError::Disconnected { port: port.to_path_buf(), reason, last_acked: 0 });
+                }
+            },
+            _ = tokio::time::sleep_until(deadline) => {
+                if tokio::time::Instant::now() >= give_up {
+                    return Err(PrintError::NoAnswer { port: port.to_path_buf(), waited_s: started.elapsed().as_secs_f64() });
+                }
+                host.tick(Instant::now());
+            }
+        }
+    }
+}
+
 /// Split `bytes` into lines (keeping an unfinished one in `partial`) and log each as the
 /// printer's idle talk; true if one was a boot (`start`).
 fn log_idle_lines(port: &Path, partial: &mut Vec<u8>, bytes: &[u8]) -> bool {
@@ -594,6 +646,12 @@ fn log_idle_lines(port: &Path, partial: &mut Vec<u8>, bytes: &[u8]) -> bool {
             Some(Reply::Fatal(line)) | Some(Reply::Error(line)) => {
                 tracing::warn!(port = %port.display(), "idle printer: {line}")
             }
+            Some(Reply::Action(action)) => {
+                // No job to act on: the printer's own menu was used between jobs.
+                tracing::info!(port = %port.display(), ?action, "idle printer asked the host to act; no job is running")
+            }
+            // NO_TIMEOUTS builds say `wait` every few seconds while idle.
+            Some(Reply::Wait) => tracing::trace!(port = %port.display(), "idle printer: wait"),
             Some(other) => tracing::info!(port = %port.display(), "idle printer: {other:?}"),
             None => {}
         }

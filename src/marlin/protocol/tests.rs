@@ -1356,3 +1356,167 @@ fn autoreport_is_switched_off_at_the_end_of_a_job() {
     assert!(on < off);
     assert_eq!(printer.executed.last().map(String::as_str), Some("M105"));
 }
+
+/// A firmware error that is neither a line error nor a halt (a failed probing, a refused
+/// command) ends the job with the safe-stop lines and the error as its reason; one that a
+/// `Resend:` or a halt follows is part of those; Ultimaker2Marlin's error for a fragment
+/// is a fragment.
+#[test]
+fn a_firmware_error_that_is_no_halt_ends_the_job_safely_with_its_reason() {
+    // Decided by the next line (here an `ok`).
+    let (mut host, now) = running_host();
+    host.feed(b"Error:Probing Failed\nok\n", now);
+    let executed = answer_safe_stop(&mut host, now);
+    assert_safe_stop(&executed);
+    let events = drain_events(&mut host);
+    match failure(&events) {
+        Some(Failure::FirmwareError { message, .. }) => {
+            assert!(message.contains("Probing Failed"), "{message}")
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(events.contains(&Event::SafeStop { confirmed: true }));
+
+    // Decided by silence: nothing follows it.
+    let (mut host, now) = running_host();
+    host.feed(b"Error:Invalid extruder\n", now);
+    assert!(sent(&mut host).is_empty(), "not decided yet");
+    let later = now + host.options().resend_ok_wait;
+    host.tick(later);
+    assert_safe_stop(&answer_safe_stop(&mut host, later));
+    assert!(matches!(
+        failure(&drain_events(&mut host)),
+        Some(Failure::FirmwareError { .. })
+    ));
+
+    // Part of a resend: an unusual spelling, then `Resend:`. No stop.
+    let (mut host, now) = running_host();
+    host.feed(b"Error:Line checksum wrong\nResend: 3\nok\n", now);
+    host.tick(now + Duration::from_secs(2));
+    assert!(failure(&drain_events(&mut host)).is_none());
+    assert!(!host.is_finished());
+
+    // Part of a halt: the halt decides (the firmware switched its heaters off).
+    let (mut host, now) = running_host();
+    host.feed(
+        b"Error:MAXTEMP triggered\nError:Printer halted. kill() called!\n",
+        now,
+    );
+    assert!(matches!(
+        failure(&drain_events(&mut host)),
+        Some(Failure::Fatal { .. })
+    ));
+
+    // Ultimaker2Marlin's answer to the tail of a cut line: a fragment, not a failure.
+    let (mut host, now) = running_host();
+    host.feed(b"Error:No Line Number with checksum\nok\n", now);
+    host.tick(now + Duration::from_secs(2));
+    let events = drain_events(&mut host);
+    assert!(failure(&events).is_none(), "{events:?}");
+    assert_eq!(host.fragments(), 1);
+}
+
+/// Per-job state lives in the phase: pause and cancel only act where they mean something.
+#[test]
+fn pause_after_cancel_and_resume_without_pause_change_nothing() {
+    let (mut host, now) = running_host(); // paused
+    host.cancel(now);
+    assert!(sent(&mut host).contains("M108"));
+    host.pause(now);
+    host.resume(now);
+    host.cancel(now);
+    assert!(sent(&mut host).is_empty(), "{:?}", drain_events(&mut host));
+    let events = drain_events(&mut host);
+    assert!(
+        !events
+            .iter()
+            .any(|e| matches!(e, Event::Resumed | Event::Paused)),
+        "{events:?}"
+    );
+    assert!(!host.is_finished());
+}
+
+/// After a resend the firmware has flushed its receive buffer; a burst right then is what
+/// cuts lines into fragments. The replay and the next `cautious_lines` lines go one at a
+/// time, then the window opens again.
+#[test]
+fn after_a_resend_lines_go_one_at_a_time_for_a_while() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let o = opts(Firmware::Marlin20);
+    let cautious = o.cautious_lines as usize;
+    let (mut host, _) = connect(o, &mut printer, now);
+    host.start_job(job(100), now);
+    assert!(sent(&mut host).contains("M110"), "the M110 goes alone");
+    host.feed(b"ok\n", now);
+    assert!(sent(&mut host).lines().count() > 1, "send-ahead");
+    host.feed(b"ok\n", now); // line 1
+    sent(&mut host); // the window refilled
+    drain_events(&mut host);
+    host.feed(
+        b"Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n",
+        now,
+    );
+    let replay = drain_events(&mut host)
+        .iter()
+        .find_map(|e| match e {
+            Event::Resend { replay, .. } => Some(*replay as usize),
+            _ => None,
+        })
+        .expect("a resend");
+    let mut single = 0;
+    loop {
+        let lines = sent(&mut host).lines().count();
+        if lines != 1 {
+            assert!(lines > 1, "stalled after {single} lines");
+            break;
+        }
+        single += 1;
+        assert!(single < 100);
+        host.feed(b"ok\n", now);
+    }
+    // The replay, then `cautious` new lines (the last of which goes out with the window
+    // opening again).
+    assert!(
+        single + 1 >= replay + cautious,
+        "{single} one at a time, {replay} replayed"
+    );
+}
+
+/// A fragment the printer answered on its own shows in the job's summary (the report).
+#[test]
+fn fragments_are_counted_in_the_job_summary() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin20), &mut printer, now);
+    host.start_job(job(30), now);
+    exchange(&mut host, &mut printer, now, 3);
+    host.feed(b"echo:Unknown command: \"00 E12\"\nok\n", now);
+    let events = run_job(&mut host, &mut printer, now);
+    let summary = events
+        .iter()
+        .find_map(|e| match e {
+            Event::Done(s) => Some(s),
+            _ => None,
+        })
+        .unwrap_or_else(|| panic!("{events:?}"));
+    assert_eq!(summary.fragments, 1);
+    assert_eq!(printer.job_executed(), job(30));
+}
+
+/// The answer to the job's final M105 is lost (garbled on the way): the probe's answer
+/// confirms it, and the job ends done. (Each probe's answer was taken for its
+/// predecessor's, leaving the newest probe unanswered: the job never ended.)
+#[test]
+fn a_lost_answer_to_the_final_m105_is_recovered_and_the_job_ends() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    // Marlin 2.0 with autoreport: no polls, so the final M105 is the job's first.
+    let (mut host, _) = connect(opts(Firmware::Marlin20), &mut printer, now);
+    printer.lose_ok_of = Some("M105".into());
+    host.start_job(job(10), now);
+    let events = run_job(&mut host, &mut printer, now);
+    assert!(done(&events), "{:?}", failure(&events));
+    assert!(host.probes > 0);
+    assert_eq!(printer.job_executed(), job(10));
+}

@@ -63,6 +63,61 @@ pub struct Faults {
     /// Host actions (`//action:NAME`) to send after N numbered lines, as when someone
     /// presses Stop, Pause or Resume on the printer's screen: `(N, "pause")`.
     pub actions: Vec<(usize, String)>,
+    /// Firmware errors that are not a halt (`Error:TEXT`, e.g. a failed probing) to report
+    /// after N numbered lines: `(N, "Probing Failed")`.
+    pub errors: Vec<(usize, String)>,
+}
+
+/// Something to make a running simulated printer do now, as a person at the printer would
+/// ([`SimHandle::poke`], and `crispen sim --stdin`).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Poke {
+    /// Press reset or cycle the power: `start`, line numbers and settings forgotten.
+    Reset,
+    /// Use the printer's own menu: `//action:NAME` (cancel, pause, resume).
+    Action(String),
+    /// Report a firmware error that is not a halt: `Error:TEXT`.
+    Error(String),
+}
+
+impl std::str::FromStr for Poke {
+    type Err = String;
+    /// `reset`, `action NAME`, `error TEXT`.
+    fn from_str(text: &str) -> Result<Poke, String> {
+        let text = text.trim();
+        let (word, rest) = text.split_once(' ').unwrap_or((text, ""));
+        let rest = rest.trim();
+        match word {
+            "reset" if rest.is_empty() => Ok(Poke::Reset),
+            "action"
+                if !rest.is_empty()
+                    && rest.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') =>
+            {
+                Ok(Poke::Action(rest.to_string()))
+            }
+            "error" if !rest.is_empty() && !rest.contains(['\n', '\r']) => {
+                Ok(Poke::Error(rest.to_string()))
+            }
+            _ => Err(format!(
+                "`{text}`: expected `reset`, `action NAME` (cancel, pause, resume) or `error TEXT`"
+            )),
+        }
+    }
+}
+
+/// Sends [`Poke`]s to a running simulated printer; cheap to clone, usable from any thread.
+#[derive(Clone)]
+pub struct Poker {
+    pokes: std::sync::mpsc::Sender<Poke>,
+    /// Written to wake the printer thread. (Closing the handle's other pipe is shutdown.)
+    doorbell: Arc<OwnedFd>,
+}
+
+impl Poker {
+    /// Make the printer act now. False if it no longer runs.
+    pub fn poke(&self, poke: Poke) -> bool {
+        self.pokes.send(poke).is_ok() && nix::unistd::write(&*self.doorbell, b"!").is_ok()
+    }
 }
 
 /// How to run a simulated printer.
@@ -132,6 +187,7 @@ pub struct SimHandle {
     link: Option<PathBuf>,
     executed: Arc<Mutex<Vec<String>>>,
     wake: Option<OwnedFd>,
+    poker: Poker,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -147,6 +203,16 @@ impl SimHandle {
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .clone()
+    }
+
+    /// Make the printer act now (reset, a host action, an error), as a person would.
+    pub fn poke(&self, poke: Poke) -> bool {
+        self.poker.poke(poke)
+    }
+
+    /// A handle for [`SimHandle::poke`] that another thread can own.
+    pub fn poker(&self) -> Poker {
+        self.poker.clone()
     }
 
     /// Stop the printer, close the pty and remove the link (if it still points to us).
@@ -247,6 +313,9 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
     };
     let (wake_rx, wake_tx) = nix::unistd::pipe()
         .map_err(|e| with_context(e, "cannot create the simulator's wake-up pipe"))?;
+    let (doorbell_rx, doorbell_tx) = nix::unistd::pipe()
+        .map_err(|e| with_context(e, "cannot create the simulator's poke pipe"))?;
+    let (poke_tx, poke_rx) = std::sync::mpsc::channel();
     let executed = Arc::new(Mutex::new(Vec::new()));
     let printer = Printer::new(&cfg, Instant::now());
     let reset_on_open = cfg.reset_on_open;
@@ -268,7 +337,19 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
         .name(format!("sim {name}"))
         .spawn(move || {
             let _span = tracing::info_span!("sim", printer = %name).entered();
-            run(master, wake_rx, printer, recorder, wire, reset_on_open);
+            let pokes = Pokes {
+                doorbell: doorbell_rx,
+                pokes: poke_rx,
+            };
+            run(
+                master,
+                wake_rx,
+                pokes,
+                printer,
+                recorder,
+                wire,
+                reset_on_open,
+            );
             // The pty is closed now (unplug or shutdown): an unplugged device disappears,
             // and so does its udev-style link.
             if let Some(link) = link_for_thread {
@@ -282,6 +363,10 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
         link: cfg.link.clone(),
         executed,
         wake: Some(wake_tx),
+        poker: Poker {
+            pokes: poke_tx,
+            doorbell: Arc::new(doorbell_tx),
+        },
         thread: Some(thread),
     })
 }
@@ -374,12 +459,19 @@ impl InFlight {
     }
 }
 
+/// The receiving end of a [`Poker`].
+struct Pokes {
+    doorbell: OwnedFd,
+    pokes: std::sync::mpsc::Receiver<Poke>,
+}
+
 /// The printer thread: shuttle bytes between the pty master and the printer core through
 /// the link model, sleeping in poll() until input arrives, output can drain, bytes in flight
 /// arrive, the core's next deadline, or shutdown.
 fn run(
     master: OwnedFd,
     wake: OwnedFd,
+    pokes: Pokes,
     mut printer: Printer,
     mut recorder: Recorder,
     wire: Wire,
@@ -460,7 +552,10 @@ fn run(
                 master_flags |= PollFlags::POLLOUT;
             }
         }
-        let mut fds = vec![PollFd::new(wake.as_fd(), PollFlags::POLLIN)];
+        let mut fds = vec![
+            PollFd::new(wake.as_fd(), PollFlags::POLLIN),
+            PollFd::new(pokes.doorbell.as_fd(), PollFlags::POLLIN),
+        ];
         // Without a host the master always reports POLLHUP, so it is left out of the poll
         // (which then only sleeps) and probed by a read afterwards.
         if host_connected {
@@ -487,6 +582,12 @@ fn run(
         if fds[0].revents().is_some_and(|r| !r.is_empty()) {
             return; // shutdown: the handle closed the pipe
         }
+        if fds[1].revents().is_some_and(|r| !r.is_empty()) {
+            let _ = nix::unistd::read(&pokes.doorbell, &mut scratch);
+            while let Ok(poke) = pokes.pokes.try_recv() {
+                printer.poke(poke);
+            }
+        }
         if !host_connected {
             // Probe: a read that does not fail with EIO means a host opened the port.
             match nix::unistd::read(&master, &mut scratch) {
@@ -509,7 +610,7 @@ fn run(
             continue;
         }
         let revents = fds
-            .get(1)
+            .get(2)
             .and_then(|f| f.revents())
             .unwrap_or(PollFlags::empty());
         if revents.contains(PollFlags::POLLIN) {

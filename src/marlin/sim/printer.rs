@@ -5,15 +5,22 @@
 //! one command at a time (a blocking command such as M109 stalls it, so the ring fills and
 //! the host must wait), a 16-move planner that drains at the moves' real speed, and an
 //! emergency parser that sees M108/M112 as the bytes arrive.
+//!
+//! This file holds the printer's state, its main loop and command execution; the seams
+//! live beside it: [`serial`] (receive ring and line checks), [`motion`] (planner and
+//! move times), [`thermal`] (heaters and reports), [`dialect`] (what each flavour knows
+//! and says) and [`faults`] (what it does wrong on purpose).
 
 mod dialect;
+mod faults;
 mod motion;
+mod serial;
 mod thermal;
 
 use super::{Faults, Recorder, SimConfig};
 use crate::marlin::firmware::Firmware;
 use dialect::known_marlin2;
-use motion::{is_move, parse_words, word, word_present};
+use motion::{parse_words, word, word_present};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;
@@ -259,44 +266,6 @@ impl Printer {
         self.out.push(b'\n');
     }
 
-    /// Emit a line that the garbage fault may corrupt in ways a correct host survives.
-    fn say_noisy(&mut self, line: &str) {
-        if self.status != Status::Running {
-            return;
-        }
-        if self.faults.garbage > 0.0 && self.rng.random_bool(self.faults.garbage.min(1.0)) {
-            let mut bytes = line.as_bytes().to_vec();
-            if line.starts_with("ok") {
-                if self.rng.random_bool(0.5) {
-                    bytes.insert(2, b'k'); // `okk`: still reads as an ok to a lenient host
-                } else {
-                    // The ok drowned in noise: a lost ack the host recovers by probing.
-                    bytes = b"o\xff\xfek".to_vec();
-                }
-            } else if line.starts_with("Resend: ") {
-                bytes = line.replacen("Resend: ", "Resend:", 1).into_bytes();
-            } else if !bytes.is_empty() {
-                let at = self.rng.random_range(0..bytes.len());
-                bytes[at] = 0x80 | self.rng.random::<u8>();
-            }
-            self.out.extend_from_slice(&bytes);
-            self.out.push(b'\n');
-            if self.rng.random_bool(0.3) {
-                self.out.extend_from_slice(b"\xfe\x00\xc3(noise\x9f\n");
-            }
-            return;
-        }
-        self.say(line);
-    }
-
-    fn drop_this_ok(&mut self) -> bool {
-        let drop = self.faults.drop_ok > 0.0 && self.rng.random_bool(self.faults.drop_ok.min(1.0));
-        if drop {
-            tracing::debug!("fault: dropping an ok");
-        }
-        drop
-    }
-
     fn ok(&mut self, n: Option<u64>) {
         if std::mem::take(&mut self.answered) || self.drop_this_ok() {
             return;
@@ -313,216 +282,6 @@ impl Printer {
             "ok".to_string()
         };
         self.say_noisy(&line);
-    }
-
-    // ----- input --------------------------------------------------------------------
-
-    /// Bytes from the host. They enter the receive ring; bytes that do not fit are lost,
-    /// as on a real board whose host sent more than the ring holds (the line they belonged
-    /// to then fails its checksum and is resent).
-    ///
-    /// The pty hands over in one go what a UART delivers byte by byte, and a board's main
-    /// loop empties its ring far faster than 115200 baud fills it; so when the ring is full
-    /// the main loop gets to run first, and bytes are lost only when it cannot take lines
-    /// (all command slots full, or stuck in a blocking command such as M109).
-    pub(crate) fn receive(&mut self, bytes: &[u8], now: Instant, recorder: &mut Recorder) {
-        let mut lost = 0usize;
-        if matches!(self.status, Status::Booting(_)) {
-            return; // the bootloader does not listen to the firmware's protocol
-        }
-        for &b in bytes {
-            if self.status != Status::Running {
-                return;
-            }
-            if self.fw.emergency_parser() {
-                self.emergency_byte(b);
-                if self.status != Status::Running {
-                    return;
-                }
-            }
-            if self.rx.len() >= self.fw.rx_buffer_bytes() {
-                self.advance(now, recorder);
-            }
-            if self.rx.len() < self.fw.rx_buffer_bytes() {
-                self.rx.push_back(b);
-            } else {
-                lost += 1;
-            }
-        }
-        if lost > 0 {
-            tracing::debug!(lost, "receive buffer overrun: bytes lost");
-        }
-    }
-
-    /// Marlin's EMERGENCY_PARSER: acts on M108/M112 as they arrive, even while the main
-    /// loop is stuck in a heat wait.
-    fn emergency_byte(&mut self, b: u8) {
-        if b != b'\n' && b != b'\r' {
-            if self.emergency.len() < 128 {
-                self.emergency.push(b);
-            }
-            return;
-        }
-        let line = String::from_utf8_lossy(&self.emergency).into_owned();
-        self.emergency.clear();
-        let cmd = strip_number_and_checksum(&line);
-        let word = cmd
-            .split_whitespace()
-            .next()
-            .unwrap_or("")
-            .to_ascii_uppercase();
-        match word.as_str() {
-            "M112" => {
-                tracing::warn!("M112: emergency stop");
-                self.say("Error:Printer halted. kill() called!");
-                self.status = Status::Halted;
-            }
-            "M108" => {
-                // Only a heat wait in progress is broken; a stray M108 must not cut the
-                // next one short.
-                let heating = self
-                    .active
-                    .as_ref()
-                    .is_some_and(|a| matches!(a.wait, Wait::Heat { .. }));
-                self.heat_break = heating;
-            }
-            _ => {}
-        }
-    }
-
-    /// Move complete lines from the ring into free command slots, checking them as
-    /// Marlin's get_serial_commands does.
-    fn fill_slots(&mut self) {
-        while self.status == Status::Running && self.slots.len() < self.fw.command_slots() {
-            let Some(b) = self.rx.pop_front() else { return };
-            if b == b';' {
-                self.in_comment = true;
-            }
-            // Ultimaker2Marlin's reader also ends a line at a `:` outside comments.
-            let colon_end = b == b':' && self.fw.colon_ends_line() && !self.in_comment;
-            if b == b'\n' || b == b'\r' || colon_end {
-                self.in_comment = false;
-                let raw = std::mem::take(&mut self.assembling);
-                let overlong = std::mem::replace(&mut self.overlong, false);
-                if raw.iter().all(|c| c.is_ascii_whitespace()) && !overlong {
-                    continue;
-                }
-                self.accept_line(raw);
-                continue;
-            }
-            if self.assembling.len() < self.fw.max_line_bytes() {
-                self.assembling.push(b);
-            } else {
-                self.overlong = true; // Marlin stops storing; the checksum will fail
-            }
-        }
-    }
-
-    fn accept_line(&mut self, mut raw: Vec<u8>) {
-        // Comments are not stored (Marlin drops `;...` while reading).
-        if let Some(at) = raw.iter().position(|&c| c == b';') {
-            raw.truncate(at);
-        }
-        if self.faults.corrupt_host_bytes > 0.0
-            && !raw.is_empty()
-            && self
-                .rng
-                .random_bool(self.faults.corrupt_host_bytes.min(1.0))
-        {
-            // Any byte but the framing a checksum cannot protect: the leading `N` (without
-            // it Marlin 2 checks nothing and runs the rest) and the `*`; and no new ones.
-            let start = usize::from(raw[0] == b'N');
-            let mut at = self.rng.random_range(start.min(raw.len() - 1)..raw.len());
-            if raw[at] == b'*' {
-                // The last checksum-protected byte before it.
-                at = at.saturating_sub(1).max(start);
-            }
-            let mut c = raw[at];
-            while c == raw[at] || c == b'N' || c == b'*' {
-                c = self.rng.random_range(0x20u8..0x7f);
-            }
-            if raw[at] != b'*' && !(at == 0 && raw[0] == b'N') {
-                tracing::debug!(at, "fault: corrupting a received line");
-                raw[at] = c;
-            }
-        }
-        let line = String::from_utf8_lossy(&raw).trim().to_string();
-        if line.is_empty() {
-            return;
-        }
-        if let Some(rest) = line.strip_prefix('N') {
-            let is_m110 = line.contains("M110");
-            // For M110 Marlin 2 takes the last N on the line (`N101 M110 N100`);
-            // Ultimaker2Marlin has no M110 handler and keeps the line's own number.
-            let number_text = if is_m110 && self.fw.is_marlin2() {
-                line.rfind('N').map(|i| &line[i + 1..]).unwrap_or(rest)
-            } else {
-                rest
-            };
-            let n = leading_int(number_text);
-            if !is_m110 && n != Some(self.last_n as i64 + 1) {
-                let last = self.last_n as i64;
-                if self.fw.ignores_duplicate_lines()
-                    && n.is_some_and(|n| n == last || n == last - 1)
-                {
-                    tracing::debug!(line = ?n, "duplicate line ignored");
-                    return;
-                }
-                return self.line_error("Line Number is not Last Line Number+1");
-            }
-            let Some(star) = line.rfind('*') else {
-                return self.line_error("No Checksum with line number");
-            };
-            let sum = line.as_bytes()[..star].iter().fold(0u8, |a, &b| a ^ b);
-            if leading_int(&line[star + 1..]) != Some(sum as i64) {
-                return self.line_error("checksum mismatch");
-            }
-            if self.faults.spurious_resend > 0.0
-                && self.rng.random_bool(self.faults.spurious_resend.min(1.0))
-            {
-                tracing::debug!("fault: spurious resend");
-                return self.line_error("checksum mismatch");
-            }
-            let n = n.unwrap_or(0).max(0) as u64;
-            self.last_n = n;
-            let cmd = strip_number_and_checksum(&line).to_string();
-            let line_n = leading_int(rest).map(|v| v.max(0) as u64);
-            self.enqueue(line_n, cmd);
-        } else if line.contains('*') && !self.fw.is_marlin2() {
-            // Ultimaker2Marlin: an error, and neither `Resend:` nor `ok`.
-            self.say("Error:No Line Number with checksum");
-        } else {
-            // Marlin 2 checks nothing on a line without N: it runs it (a checksum, if any,
-            // is cut off).
-            let cmd = strip_number_and_checksum(&line).to_string();
-            self.enqueue(None, cmd);
-        }
-    }
-
-    fn enqueue(&mut self, n: Option<u64>, cmd: String) {
-        let acked = self.fw.acks_moves_on_entry() && is_move(&cmd);
-        if acked {
-            self.ok(n);
-        }
-        self.slots.push_back(Queued { n, cmd, acked });
-    }
-
-    /// Marlin's gcode_line_error + flush_and_request_resend: report, drop the rest of the
-    /// receive buffer, ask for the next expected line, and (per profile) ok.
-    fn line_error(&mut self, what: &str) {
-        let last = self.last_n;
-        tracing::debug!(error = what, last_line = last, "line rejected");
-        self.say(&format!("Error:{what}, Last Line: {last}"));
-        self.rx.clear();
-        self.assembling.clear();
-        self.overlong = false;
-        self.say_noisy(&format!("Resend: {}", last + 1));
-        if self.fw.ok_after_resend() {
-            // Marlin prints a bare `ok` here, without the ADVANCED_OK fields.
-            if !self.drop_this_ok() {
-                self.say_noisy("ok");
-            }
-        }
     }
 
     // ----- time ---------------------------------------------------------------------
@@ -905,70 +664,8 @@ impl Printer {
             }
         }
     }
-
-    /// Apply the `*_after_lines` faults; true if the command must not run.
-    fn fire_line_faults(&mut self) -> bool {
-        let count = self.numbered_executed;
-        let actions: Vec<String> = self
-            .faults
-            .actions
-            .iter()
-            .filter(|(after, _)| *after == count)
-            .map(|(_, name)| name.clone())
-            .collect();
-        for name in actions {
-            tracing::info!(lines = count, action = %name, "host action from the printer's menu");
-            self.say(&format!("//action:{name}"));
-        }
-        if self.faults.reset_after_lines == Some(count) {
-            tracing::warn!(lines = count, "fault: printer reset");
-            self.boot();
-            return true;
-        }
-        if self.faults.unplug_after_lines == Some(count) {
-            tracing::warn!(lines = count, "fault: unplug");
-            self.status = Status::Unplugged;
-            return true;
-        }
-        if self.faults.silence_after_lines == Some(count) {
-            tracing::warn!(lines = count, "fault: silence");
-            self.status = Status::Silent;
-            return true;
-        }
-        if self.faults.fatal_after_lines == Some(count) {
-            tracing::warn!(lines = count, "fault: fatal error");
-            self.say("Error:Thermal Runaway, system stopped! Heater_ID: 0");
-            self.say("Error:Printer halted. kill() called!");
-            self.status = Status::Halted;
-            return true;
-        }
-        false
-    }
 }
 
-/// `N12 G1 X5*34` → `G1 X5` (also for lines without N or checksum).
-pub(crate) fn strip_number_and_checksum(line: &str) -> &str {
-    let mut s = line.trim();
-    if let Some(star) = s.rfind('*') {
-        s = &s[..star];
-    }
-    if let Some(rest) = s.strip_prefix('N') {
-        let digits = rest
-            .find(|c: char| !(c.is_ascii_digit() || c == '-'))
-            .unwrap_or(rest.len());
-        s = &rest[digits..];
-    }
-    s.trim()
-}
-
-fn leading_int(s: &str) -> Option<i64> {
-    let s = s.trim_start();
-    let end = s
-        .char_indices()
-        .find(|&(i, c)| !(c.is_ascii_digit() || (i == 0 && c == '-')))
-        .map_or(s.len(), |(i, _)| i);
-    s[..end].parse().ok()
-}
 /// Whether a line starts with a command word (`G1`, `M105`, `T0`, also lower case) that
 fn is_command_word(cmd: &str) -> bool {
     let mut chars = cmd.trim_start().chars();
@@ -979,13 +676,6 @@ fn is_command_word(cmd: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn strips_number_and_checksum() {
-        assert_eq!(strip_number_and_checksum("N12 G1 X5*34"), "G1 X5");
-        assert_eq!(strip_number_and_checksum("N0 M110 N0*125"), "M110 N0");
-        assert_eq!(strip_number_and_checksum("G28"), "G28");
-    }
 
     fn printer(fw: Firmware) -> Printer {
         let mut cfg = SimConfig::new(fw);

@@ -730,10 +730,11 @@ async fn a_firmware_error_that_is_no_halt_ends_the_job_with_heaters_off() {
 
 /// The daemon keeps its connection between jobs. While the bed waits to be cleared it
 /// reads what the printer says: a reset (`start`, here the sim's reset button) is noted in
-/// the printer's status and the log, and the next job begins with a fresh handshake; each
-/// job's autoreport is switched off at its end; both jobs run exactly once.
+/// the printer's status and the log, and the next job begins with a fresh handshake; a
+/// pulled cable is noticed and the printer reconnected before a job depends on it; each
+/// job's autoreport is switched off at its end; every job runs exactly once.
 #[test]
-fn between_jobs_the_daemon_notes_a_reset_and_the_next_job_starts_clean() {
+fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
     use std::io::Write;
     let exe = env!("CARGO_BIN_EXE_crispen");
     let dir = tempfile::tempdir().unwrap();
@@ -741,29 +742,33 @@ fn between_jobs_the_daemon_notes_a_reset_and_the_next_job_starts_clean() {
     let link = root.join("p.tty");
     let record = root.join("p.rec");
     std::fs::create_dir(root.join("hot")).unwrap();
-    let mut sim = Command::new(exe)
-        .args([
-            "sim",
-            "--firmware",
-            "marlin2",
-            "--time-scale",
-            "0",
-            "--stdin",
-        ])
-        .arg("--link")
-        .arg(&link)
-        .arg("--record")
-        .arg(&record)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut first = String::new();
-    BufReader::new(sim.stdout.take().unwrap())
-        .read_line(&mut first)
-        .unwrap();
-    assert!(first.starts_with("crispen sim: listening on"), "{first}");
+    let start_sim = |record: &std::path::Path| {
+        let mut sim = Command::new(exe)
+            .args([
+                "sim",
+                "--firmware",
+                "marlin2",
+                "--time-scale",
+                "0",
+                "--stdin",
+            ])
+            .arg("--link")
+            .arg(&link)
+            .arg("--record")
+            .arg(record)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let mut first = String::new();
+        BufReader::new(sim.stdout.take().unwrap())
+            .read_line(&mut first)
+            .unwrap();
+        assert!(first.starts_with("crispen sim: listening on"), "{first}");
+        sim
+    };
+    let mut sim = start_sim(&record);
     let mut sim_stdin = sim.stdin.take().unwrap();
 
     let config = root.join("crispen.toml");
@@ -881,10 +886,50 @@ fn between_jobs_the_daemon_notes_a_reset_and_the_next_job_starts_clean() {
         job_of(s, "second.obj")["state"] == "done"
     });
     let second = gcode_of(&s, "second.obj");
+    wait_for("the bed waiting again", &|s| {
+        common::printer(s, "p")["state"] == "bed_not_cleared"
+    });
+
+    // The cable is pulled while the bed waits: noticed at once, not when the next job
+    // would fail on it, and the printer is reconnected once it is back.
+    let stop = |sim: &mut std::process::Child| {
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(sim.id() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        );
+        let _ = sim.wait();
+    };
+    stop(&mut sim);
+    wait_for("the lost link noticed", &|s| {
+        common::printer(s, "p")["state"] == "disconnected"
+    });
+    let record_after = root.join("p-after.rec");
+    let mut sim_after = start_sim(&record_after);
+    wait_for(
+        "the printer reconnected, its bed still to be cleared",
+        &|s| common::printer(s, "p")["state"] == "bed_not_cleared",
+    );
+    let out = Command::new(exe)
+        .args(["clear", "p", "--config"])
+        .arg(&config)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    drop_model("third.obj");
+    let s = wait_for("the third job done", &|s| {
+        job_of(s, "third.obj")["state"] == "done"
+    });
+    let third = gcode_of(&s, "third.obj");
     let _ = daemon.kill();
     let _ = daemon.wait();
-    let _ = sim.kill();
-    let _ = sim.wait();
+    stop(&mut sim_after);
+    let after: Vec<String> = std::fs::read_to_string(&record_after)
+        .unwrap()
+        .lines()
+        .filter(|c| !sim::is_housekeeping(c))
+        .map(String::from)
+        .collect();
+    assert!(after == third, "the third job exactly once on the new link");
 
     let all = recorded();
     // After the reset the printer was greeted afresh (M115) and numbered from 0 (M110 N0)

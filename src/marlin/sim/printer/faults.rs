@@ -87,27 +87,19 @@ impl Printer {
     /// Apply the `*_after_lines` faults; true if the command must not run.
     pub(super) fn fire_line_faults(&mut self) -> bool {
         let count = self.numbered_executed;
-        let actions: Vec<String> = self
-            .faults
-            .actions
-            .iter()
-            .filter(|(after, _)| *after == count)
-            .map(|(_, name)| name.clone())
+        // Host actions and firmware errors due now: as if someone poked the printer.
+        let due = |list: &[(usize, String)]| -> Vec<String> {
+            list.iter()
+                .filter(|(after, _)| *after == count)
+                .map(|(_, text)| text.clone())
+                .collect()
+        };
+        let pokes: Vec<Poke> = (due(&self.faults.actions).into_iter().map(Poke::Action))
+            .chain(due(&self.faults.errors).into_iter().map(Poke::Error))
             .collect();
-        for name in actions {
-            tracing::info!(lines = count, action = %name, "host action from the printer's menu");
-            self.say(&format!("//action:{name}"));
-        }
-        let errors: Vec<String> = self
-            .faults
-            .errors
-            .iter()
-            .filter(|(after, _)| *after == count)
-            .map(|(_, text)| text.clone())
-            .collect();
-        for text in errors {
-            tracing::warn!(lines = count, error = %text, "fault: firmware error");
-            self.say(&format!("Error:{text}"));
+        for poke in pokes {
+            tracing::info!(lines = count, ?poke, "fault: due after these lines");
+            self.poke(poke);
         }
         if self.faults.reset_after_lines == Some(count) {
             tracing::warn!(lines = count, "fault: printer reset");

@@ -33,6 +33,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 pub use error::ApiError;
+/// The check of an uploaded file's name (exported for the fuzz target).
+pub use upload::{check_name as check_upload_name, Upload};
 
 /// Who may do what on a listener.
 #[derive(Debug, Clone)]

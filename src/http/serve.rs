@@ -229,21 +229,37 @@ mod tests {
         answer
     }
 
+    /// Serves `body` at `/` on a new socket in `dir` until the test ends.
+    fn start(
+        dir: &std::path::Path,
+        name: &str,
+        body: String,
+        limits: Limits,
+    ) -> std::path::PathBuf {
+        let socket = dir.join(name);
+        let listener = tokio::net::UnixListener::bind(&socket).unwrap();
+        let app = Router::new().route("/", axum::routing::get(move || async move { body }));
+        tokio::spawn(serve(
+            listener,
+            app,
+            limits,
+            CancellationToken::new(),
+            "test",
+        ));
+        socket
+    }
+
     /// With every slot taken by an idle connection, a new request waits; it is answered
     /// once a slot frees. An idle connection is closed after the header timeout.
     #[tokio::test]
     async fn connections_are_limited_and_idle_ones_closed() {
         let dir = tempfile::tempdir().unwrap();
-        let socket = dir.path().join("s.sock");
-        let listener = tokio::net::UnixListener::bind(&socket).unwrap();
-        let app = Router::new().route("/", axum::routing::get(|| async { "hello" }));
         let limits = Limits {
             max_connections: 2,
             header_timeout: Duration::from_secs(3600),
             write_stall: Duration::from_secs(60),
         };
-        let stop = CancellationToken::new();
-        tokio::spawn(serve(listener, app, limits, stop.clone(), "test"));
+        let socket = start(dir.path(), "s.sock", "hello".into(), limits);
 
         let idle_a = tokio::net::UnixStream::connect(&socket).await.unwrap();
         let _idle_b = tokio::net::UnixStream::connect(&socket).await.unwrap();
@@ -264,23 +280,13 @@ mod tests {
             .expect("answered once a slot was free")
             .unwrap();
         assert!(answer.ends_with("hello"), "{answer}");
-        stop.cancel();
 
         // The header timeout closes an idle connection.
-        let socket = dir.path().join("t.sock");
-        let listener = tokio::net::UnixListener::bind(&socket).unwrap();
-        let app = Router::new().route("/", axum::routing::get(|| async { "hello" }));
         let limits = Limits {
             header_timeout: Duration::from_millis(200),
             ..Limits::default()
         };
-        tokio::spawn(serve(
-            listener,
-            app,
-            limits,
-            CancellationToken::new(),
-            "test",
-        ));
+        let socket = start(dir.path(), "t.sock", "hello".into(), limits);
         let mut idle = tokio::net::UnixStream::connect(&socket).await.unwrap();
         let mut buf = [0u8; 64];
         let read = tokio::time::timeout(Duration::from_secs(60), idle.read(&mut buf))
@@ -293,22 +299,12 @@ mod tests {
     #[tokio::test]
     async fn a_client_that_stops_reading_is_dropped() {
         let dir = tempfile::tempdir().unwrap();
-        let socket = dir.path().join("s.sock");
-        let listener = tokio::net::UnixListener::bind(&socket).unwrap();
-        let big = "x".repeat(16 * 1024 * 1024);
-        let app = Router::new().route("/", axum::routing::get(move || async move { big }));
         let limits = Limits {
             max_connections: 1,
             write_stall: Duration::from_millis(300),
             ..Limits::default()
         };
-        tokio::spawn(serve(
-            listener,
-            app,
-            limits,
-            CancellationToken::new(),
-            "test",
-        ));
+        let socket = start(dir.path(), "s.sock", "x".repeat(16 * 1024 * 1024), limits);
         let mut stuck = tokio::net::UnixStream::connect(&socket).await.unwrap();
         stuck
             .write_all(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")

@@ -1211,9 +1211,9 @@ fn a_removed_job_directory_does_not_stop_the_queue() {
     );
 }
 
-/// The control socket: an endless request line gets an error and the connection is
-/// closed (it was once read into memory without end), an idle connection is closed, and
-/// the daemon goes on answering.
+/// The control socket speaks HTTP with bounds: an endless request head gets 431 and the
+/// connection is closed (a request line was once read into memory without end), an idle
+/// connection is closed, and the daemon goes on answering.
 #[test]
 fn control_socket_limits_requests_and_idle_connections() {
     use std::io::Read;
@@ -1229,15 +1229,17 @@ fn control_socket_limits_requests_and_idle_connections() {
 
     let mut big = UnixStream::connect(&socket).unwrap();
     big.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    let chunk = vec![b' '; 64 * 1024];
+    let _ = big.write_all(b"GET /api/v1/status HTTP/1.1\r\nX-Long: ");
+    let chunk = vec![b'x'; 64 * 1024];
     for _ in 0..4 {
         if big.write_all(&chunk).is_err() {
             break;
         }
     }
-    let mut answer = String::new();
-    let _ = big.read_to_string(&mut answer);
-    assert!(answer.contains("longer than"), "answer: {answer:?}");
+    let mut answer = Vec::new();
+    let _ = big.read_to_end(&mut answer);
+    let answer = String::from_utf8_lossy(&answer);
+    assert!(answer.starts_with("HTTP/1.1 431"), "answer: {answer:?}");
 
     let mut idle = UnixStream::connect(&socket).unwrap();
     idle.set_read_timeout(Some(Duration::from_secs(60)))
@@ -1436,4 +1438,48 @@ fn sigterm_while_waiting_to_heat_starts_nothing() {
     )
     .unwrap();
     assert_eq!(stored["state"], "ready", "{stored}");
+}
+
+/// `crispen run --config crispen.toml` (a file name without a directory) anchors the
+/// config's paths at the file's directory, as any other config path does: a model dropped
+/// in the hot folder is found by its watch event (the rescan is set to a day, so nothing
+/// else can find it), and `crispen status --config crispen.toml` from the same directory
+/// reaches the daemon. The paths were once taken relative to "", and the folder's watch
+/// events never matched it.
+#[test]
+fn a_config_named_without_a_directory_anchors_its_paths() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "");
+    let text = std::fs::read_to_string(&config)
+        .unwrap()
+        .replace("settle_s = 0.3", "settle_s = 0.3\nrescan_s = 86400");
+    std::fs::write(&config, text).unwrap();
+    let child = Command::new(BIN)
+        .current_dir(root)
+        .args(["run", "--config", "crispen.toml"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let _daemon = Daemon { child };
+    wait_for(&config, &log, Duration::from_secs(30), "the daemon", |s| {
+        printer(s, "p")["state"] == "idle"
+    });
+    drop_model(&root.join("hot"), "spot.obj", &spot());
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "the dropped model picked up by its watch event",
+        |s| job_by_file(s, "spot.obj").is_some(),
+    );
+    let out = Command::new(BIN)
+        .current_dir(root)
+        .args(["status", "--config", "crispen.toml"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && text.contains("spot.obj"), "{text}");
 }

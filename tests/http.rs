@@ -1,8 +1,9 @@
 //! The HTTP API, the dashboard and the OctoPrint-compatible upload, against the real
 //! binary: a daemon with simulated printers and `[http]` on a loopback port, spoken to
-//! over real TCP by a minimal HTTP/1.1 client (so every byte on the wire is the test's
-//! own, as a slicer would send it), and the dashboard driven in a real headless Chromium
-//! through chromedriver (Debian packages `chromium` and `chromium-driver`).
+//! over real TCP and over its control socket by a minimal HTTP/1.1 client (so every byte
+//! on the wire is the test's own, as a slicer would send it), and the dashboard driven in
+//! a real headless Chromium through chromedriver (Debian packages `chromium` and
+//! `chromium-driver`).
 
 mod common;
 
@@ -10,6 +11,7 @@ use common::{job_by_file, printer};
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
+use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -169,10 +171,26 @@ fn request(
 
 /// Sends `bytes` and reads the answer to the end (skipping a `100 Continue`).
 fn raw(addr: &str, bytes: &[u8]) -> Answer {
-    let mut stream = TcpStream::connect(addr).unwrap();
+    let stream = TcpStream::connect(addr).unwrap();
     stream
         .set_read_timeout(Some(Duration::from_secs(60)))
         .unwrap();
+    exchange(stream, bytes)
+}
+
+/// One request on the control socket, which needs no key.
+fn on_socket(socket: &Path, method: &str, path: &str) -> Answer {
+    let stream = UnixStream::connect(socket).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nContent-Length: 0\r\n\r\n"
+    );
+    exchange(stream, head.as_bytes())
+}
+
+fn exchange(mut stream: impl Read + Write, bytes: &[u8]) -> Answer {
     // The server may answer (an error) before taking the whole body; that is fine.
     let _ = stream.write_all(bytes);
     let mut reader = BufReader::new(stream);
@@ -287,6 +305,45 @@ fn api_over_tcp_with_and_without_the_key() {
     });
     assert_eq!(s["folders"][0]["name"], "hot");
 
+    // The same API on the control socket, without a key (the socket's mode decides), and
+    // the CLI speaking it.
+    let socket = tmp.path().join("c.sock");
+    let a = on_socket(&socket, "GET", "/api/v1/status");
+    assert_eq!(a.status, 200, "{}", a.text());
+    assert_eq!(a.json()["folders"][0]["name"], "hot");
+    let a = on_socket(&socket, "POST", "/api/v1/printers/zeta/clear");
+    assert_eq!(a.status, 404);
+    assert!(a.error().contains("\"zeta\""), "{}", a.text());
+    let a = on_socket(&socket, "POST", "/api/v1/printers/alpha/clear");
+    assert_eq!(a.status, 200, "{}", a.text());
+    assert!(a.json()["message"].as_str().unwrap().contains("alpha"));
+    let cli = |args: &[&str]| {
+        let out = Command::new(BIN)
+            .args(args)
+            .arg("--config")
+            .arg(tmp.path().join("crispen.toml"))
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).into_owned()
+            + &String::from_utf8_lossy(&out.stderr);
+        (out.status.success(), text)
+    };
+    let (ok, text) = cli(&["status", "--json"]);
+    assert!(ok, "{text}");
+    let json: Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(printer(&json, "beta")["state"], "idle");
+    let (ok, text) = cli(&["status"]);
+    assert!(
+        ok && text.contains("alpha") && text.contains("beta"),
+        "{text}"
+    );
+    let (ok, text) = cli(&["clear", "zeta"]);
+    assert!(!ok && text.contains("\"zeta\""), "{text}");
+    let (ok, text) = cli(&["pause", "alpha"]);
+    assert!(!ok && text.contains("not printing"), "{text}");
+    let (ok, text) = cli(&["retry", "0099-none"]);
+    assert!(!ok && text.contains("0099-none"), "{text}");
+
     // Errors are JSON and name what is wrong.
     let a = farm.post("/api/v1/printers/zeta/clear", Some(KEY));
     assert_eq!(a.status, 404);
@@ -344,9 +401,6 @@ fn api_over_tcp_with_and_without_the_key() {
         "{}",
         a.text()
     );
-    let a = put("hot", "part.gcode", b"G28\n");
-    assert_eq!(a.status, 415);
-    assert!(a.error().contains("G-code"), "{}", a.text());
     let a = put("hot", "huge.stl", &vec![b'x'; 1024 * 1024 + 1]);
     assert_eq!(a.status, 413);
     assert!(a.error().contains("upload_max_mb"), "{}", a.text());
@@ -479,8 +533,7 @@ fn api_over_tcp_with_and_without_the_key() {
 /// it: first `GET /api/version` (its connection test wants "OctoPrint" in `text`), then
 /// libcurl's multipart POST with the fields `print`, `path` and `file`, `Expect:
 /// 100-continue`, and the key in `X-Api-Key`. The model becomes a job and prints; G-code
-/// (what PrusaSlicer sends after slicing itself) is refused with a JSON error until
-/// pre-sliced G-code has its own path.
+/// (what PrusaSlicer sends after slicing itself) lands in the hot folder and becomes a job.
 #[test]
 fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
     let tmp = tempfile::tempdir().unwrap();
@@ -491,10 +544,10 @@ fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
     assert!(v["text"].as_str().unwrap().starts_with("OctoPrint"), "{v}");
     assert!(v["api"].is_string() && v["server"].is_string(), "{v}");
 
-    let send = |file_name: &str, content: &[u8]| {
+    let send = |file_name: &str, content: &[u8], print: &str| {
         let boundary = "------------------------a1b2c3d4e5f60718";
         let mut body = Vec::new();
-        for (name, value) in [("print", "true"), ("path", "hot")] {
+        for (name, value) in [("print", print), ("path", "hot")] {
             body.extend_from_slice(
                 format!(
                     "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{value}\r\n"
@@ -523,15 +576,25 @@ fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
         raw(&farm.addr, &bytes)
     };
 
-    let a = send("part.gcode", b"; generated by PrusaSlicer\nG28\n");
-    assert_eq!(a.status, 415, "{}", a.text());
+    // G-code (what PrusaSlicer sends after slicing itself) goes into the hot folder too,
+    // as pre-sliced G-code, and becomes a job of its own. "Upload" without "and print"
+    // (print=false) cannot hold a file in a hot folder: the answer says it prints.
+    let a = send("part.gcode", b"; generated by PrusaSlicer\nG28\n", "false");
+    assert_eq!(a.status, 201, "{}", a.text());
+    let answer = a.json();
+    assert_eq!(answer["files"]["local"]["path"], "hot/part.gcode");
+    assert_eq!(answer["effectivePrint"], true);
     assert!(
-        a.error().contains("part.gcode") && a.error().contains("G-code"),
-        "{}",
-        a.text()
+        answer["message"].as_str().unwrap().contains("print=false"),
+        "{answer}"
+    );
+    farm.wait_for(
+        Duration::from_secs(60),
+        "the uploaded G-code picked up from the hot folder",
+        |s| job_by_file(s, "part.gcode").is_some(),
     );
 
-    let a = send("part.stl", &spot_stl());
+    let a = send("part.stl", &spot_stl(), "true");
     assert_eq!(a.status, 201, "{}", a.text());
     let answer = a.json();
     assert_eq!(answer["done"], true);
@@ -841,4 +904,81 @@ fn dashboard_in_a_real_browser() {
            || [window.innerWidth, document.documentElement.scrollWidth, ...wide.slice(0, 5)].join(' ');",
     );
     browser.screenshot(&shots.join("dashboard-phone.png"));
+}
+
+/// The quick start's `crispen run` without a config serves the dashboard on
+/// 127.0.0.1:8080 and logs its address; with that port taken (here by the test itself) it
+/// listens on a port the system picks and logs that one. The farm is open to look at
+/// without a key; acting takes the key the daemon made in ./crispen-demo/api-key
+/// (mode 0600), which stays the same at the next start.
+#[test]
+fn the_built_in_default_serves_the_dashboard_with_a_key_file() {
+    use std::os::unix::fs::PermissionsExt;
+    let tmp = tempfile::tempdir().unwrap();
+    // Holds 8080 if it is free; if it is not, someone else does. Either way it is taken.
+    let _taken = std::net::TcpListener::bind("127.0.0.1:8080");
+    let start = |log: &Path| {
+        let daemon = Command::new(BIN)
+            .current_dir(tmp.path())
+            .arg("run")
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(log).unwrap())
+            .spawn()
+            .unwrap();
+        let daemon = Killed(daemon);
+        let started = Instant::now();
+        let addr = loop {
+            let text = std::fs::read_to_string(log).unwrap_or_default();
+            if let Some(line) = text.lines().find(|l| l.contains("dashboard: http://")) {
+                let at = line.find("http://").unwrap() + "http://".len();
+                break line[at..].trim_end().trim_end_matches('/').to_string();
+            }
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "no dashboard address logged:\n{text}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        let text = std::fs::read_to_string(log).unwrap();
+        assert!(text.contains("the port is taken"), "{text}");
+        assert!(text.contains("crispen-demo/api-key"), "{text}");
+        (daemon, addr)
+    };
+    let (daemon, addr) = start(&tmp.path().join("first.log"));
+    assert!(
+        addr.starts_with("127.0.0.1:") && addr != "127.0.0.1:8080",
+        "{addr}"
+    );
+    let key_file = tmp.path().join("crispen-demo/api-key");
+    let mode = std::fs::metadata(&key_file).unwrap().permissions().mode();
+    assert_eq!(mode & 0o777, 0o600, "the key file is the owner's only");
+    let key = std::fs::read_to_string(&key_file)
+        .unwrap()
+        .trim()
+        .to_string();
+    assert!(key.len() >= 16, "{key}");
+
+    let page = request(&addr, "GET", "/", &[], b"");
+    assert_eq!(page.status, 200);
+    assert!(page.text().contains("keybutton"), "the page offers the key");
+    let a = request(&addr, "GET", "/api/v1/status", &[], b"");
+    assert_eq!(a.status, 200, "read-only without the key: {}", a.text());
+    assert_eq!(printer(&a.json(), "demo")["name"], "demo");
+    let a = request(&addr, "POST", "/api/v1/printers/demo/clear", &[], b"");
+    assert_eq!(a.status, 401, "{}", a.text());
+    let a = request(
+        &addr,
+        "POST",
+        "/api/v1/printers/demo/clear",
+        &key_header(Some(&key)),
+        b"",
+    );
+    assert_eq!(a.status, 200, "{}", a.text());
+    drop(daemon);
+
+    // The next start keeps the key.
+    let (_daemon, _) = start(&tmp.path().join("second.log"));
+    let again = std::fs::read_to_string(&key_file).unwrap();
+    assert_eq!(again.trim(), key);
 }

@@ -1,11 +1,29 @@
-//! `crispen status|clear|cancel|pause|resume|retry`: clients of the daemon's control socket
-//! ([`crispen::daemon::control`]). The socket is found through the same `--config` the
-//! daemon was started with (or the built-in default).
+//! `crispen status|clear|cancel|pause|resume|retry`: clients of the daemon's HTTP API on its
+//! control socket (`crispen::http`; no key there: the socket's file mode decides). The
+//! socket is found through the same `--config` the daemon was started with (or the
+//! built-in default).
+//!
+//! The client is hyper's HTTP/1.1 connection over the unix socket: the daemon's server
+//! is hyper already, so this adds only its client half (two tiny crates), and chunked
+//! answers, `Connection` handling and status lines are parsed by the same well-tested
+//! code on both sides. The answer is read up to [`MAX_ANSWER_BYTES`] within
+//! [`ANSWER_TIMEOUT`].
 
+use anyhow::Context;
+use axum::body::Bytes;
 use crispen::daemon::config::Config;
-use crispen::daemon::control::{self, Request, Response, Status};
-use std::path::PathBuf;
+use crispen::daemon::control::Status;
+use http_body_util::{BodyExt, Empty, Limited};
+use hyper::{Method, Request, StatusCode};
+use hyper_util::rt::TokioIo;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::time::Duration;
+
+/// Largest answer read (the status of a big farm with a long history is far smaller).
+const MAX_ANSWER_BYTES: usize = 64 * 1024 * 1024;
+/// The daemon answers within this or the command gives up.
+const ANSWER_TIMEOUT: Duration = Duration::from_secs(60);
 
 #[derive(Debug, clap::Args)]
 pub struct StatusArgs {
@@ -35,40 +53,102 @@ pub struct JobArgs {
     pub config: Option<PathBuf>,
 }
 
-fn ask(config: &Option<PathBuf>, req: Request) -> anyhow::Result<Response> {
+/// Sends one request to the daemon; returns the JSON answer of a success, or the
+/// daemon's error message as the error.
+fn ask(config: &Option<PathBuf>, method: Method, path: &str) -> anyhow::Result<serde_json::Value> {
     let config = match config {
         Some(path) => Config::load(path)?,
         None => Config::builtin_default(),
     };
-    Ok(control::request(&config.socket, &req)?)
+    let socket = config.socket;
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let (status, answer) = runtime
+        .block_on(async {
+            tokio::time::timeout(ANSWER_TIMEOUT, exchange(&socket, method, path)).await
+        })
+        .map_err(|_| {
+            anyhow::anyhow!(
+                "control socket {}: no answer within {} s",
+                socket.display(),
+                ANSWER_TIMEOUT.as_secs()
+            )
+        })??;
+    if status.is_success() {
+        return Ok(answer);
+    }
+    match answer["error"].as_str() {
+        Some(message) => anyhow::bail!("{message}"),
+        None => anyhow::bail!("the daemon refused: HTTP {status}"),
+    }
 }
 
-fn report(response: Response) -> anyhow::Result<ExitCode> {
-    if response.ok {
-        if let Some(m) = response.message {
-            println!("{m}");
+async fn exchange(
+    socket: &Path,
+    method: Method,
+    path: &str,
+) -> anyhow::Result<(StatusCode, serde_json::Value)> {
+    let stream = tokio::net::UnixStream::connect(socket).await.with_context(|| {
+        format!(
+            "cannot reach the daemon at {} (hint: is `crispen run` running with the same --config?)",
+            socket.display()
+        )
+    })?;
+    let broken = || format!("control socket {}", socket.display());
+    let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(stream))
+        .await
+        .with_context(broken)?;
+    tokio::spawn(connection);
+    let request = Request::builder()
+        .method(method)
+        .uri(path)
+        .header(hyper::header::HOST, "localhost")
+        .body(Empty::<Bytes>::new())
+        .context("the request")?;
+    let response = sender.send_request(request).await.with_context(broken)?;
+    let status = response.status();
+    let body = Limited::new(response.into_body(), MAX_ANSWER_BYTES)
+        .collect()
+        .await
+        .map_err(|e| anyhow::anyhow!("{}: the answer broke off: {e}", broken()))?
+        .to_bytes();
+    let answer = serde_json::from_slice(&body)
+        .with_context(|| format!("{}: the answer is not JSON", broken()))?;
+    Ok((status, answer))
+}
+
+/// One path segment, percent-encoded (a printer or job name as it is).
+fn segment(text: &str) -> String {
+    let mut out = String::new();
+    for b in text.bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
         }
-        Ok(ExitCode::SUCCESS)
-    } else {
-        anyhow::bail!(response
-            .error
-            .unwrap_or_else(|| "the daemon refused".into()))
     }
+    out
+}
+
+/// A command's answer: its message on stdout.
+fn act(config: &Option<PathBuf>, path: String) -> anyhow::Result<ExitCode> {
+    let answer = ask(config, Method::POST, &path)?;
+    if let Some(message) = answer["message"].as_str() {
+        println!("{message}");
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
-    let response = ask(&a.config, Request::Status)?;
-    if !response.ok {
-        return report(response);
-    }
-    let status = response.status.unwrap_or(Status {
-        printers: vec![],
-        jobs: vec![],
-    });
+    let answer = ask(&a.config, Method::GET, "/api/v1/status")?;
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&status)?);
+        println!("{}", serde_json::to_string_pretty(&answer)?);
         return Ok(ExitCode::SUCCESS);
     }
+    let status: Status =
+        serde_json::from_value(answer).context("the daemon's status is not as expected")?;
     println!("PRINTER          STATE            JOB                          HOTEND      BED        PROGRESS");
     for p in &status.printers {
         let state = serde_json::to_value(p.state)?;
@@ -142,17 +222,25 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
 }
 
 pub fn clear(a: PrinterArgs) -> anyhow::Result<ExitCode> {
-    report(ask(&a.config, Request::Clear { printer: a.printer })?)
+    act(&a.config, printer_path(&a.printer, "clear"))
 }
 pub fn cancel(a: JobArgs) -> anyhow::Result<ExitCode> {
-    report(ask(&a.config, Request::Cancel { job: a.job })?)
+    act(&a.config, job_path(&a.job, "cancel"))
 }
 pub fn pause(a: PrinterArgs) -> anyhow::Result<ExitCode> {
-    report(ask(&a.config, Request::Pause { printer: a.printer })?)
+    act(&a.config, printer_path(&a.printer, "pause"))
 }
 pub fn resume(a: PrinterArgs) -> anyhow::Result<ExitCode> {
-    report(ask(&a.config, Request::Resume { printer: a.printer })?)
+    act(&a.config, printer_path(&a.printer, "resume"))
 }
 pub fn retry(a: JobArgs) -> anyhow::Result<ExitCode> {
-    report(ask(&a.config, Request::Retry { job: a.job })?)
+    act(&a.config, job_path(&a.job, "retry"))
+}
+
+fn printer_path(printer: &str, action: &str) -> String {
+    format!("/api/v1/printers/{}/{action}", segment(printer))
+}
+
+fn job_path(job: &str, action: &str) -> String {
+    format!("/api/v1/jobs/{}/{action}", segment(job))
 }

@@ -1,4 +1,5 @@
-//! `crispen run`: the print-farm daemon. Loads the config (or the built-in demo default),
+//! `crispen run`: the print-farm daemon. Loads the config (or the built-in demo default,
+//! which also serves the dashboard on 127.0.0.1:8080 with a key made in ./crispen-demo),
 //! then hands over to [`crispen::daemon::run`] on a multi-threaded tokio runtime.
 
 use anyhow::Context;
@@ -22,7 +23,23 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let config = match &args.config {
         Some(path) => Config::load(path)?,
-        None => Config::builtin_default(),
+        None => {
+            let mut config = Config::builtin_default();
+            if !args.check {
+                let key_file = config
+                    .spool_dir
+                    .parent()
+                    .unwrap_or(&config.spool_dir)
+                    .join("api-key");
+                config.http = Some(crispen::http::demo_http(&key_file)?);
+                tracing::info!(
+                    key_file = %key_file.display(),
+                    "the dashboard shows the farm to anyone on this machine; to act (clear a bed, cancel, upload) enter the key from {}",
+                    key_file.display()
+                );
+            }
+            config
+        }
     };
     // Kernel names such as /dev/ttyACM0 work today but may swap printers after a reboot.
     for warning in daemon::ports::warnings(&config.printers) {

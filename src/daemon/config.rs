@@ -156,6 +156,9 @@ pub struct HttpConfig {
     pub read_only_without_key: bool,
     /// The largest upload accepted, in bytes.
     pub upload_max_bytes: u64,
+    /// Listen on a port the system picks when `listen`'s port is taken: only for the
+    /// built-in default, never for a configured port.
+    pub any_port_if_taken: bool,
 }
 
 /// An API key; never shown in logs or debug output.
@@ -268,7 +271,11 @@ impl Config {
         })?;
         // Every configured path is made absolute here, once: the watcher compares event
         // paths (absolute) with folder paths, and the daemon may change directory later.
-        let dir = path.parent().unwrap_or(Path::new("."));
+        // `crispen.toml` has the parent "", which is the current directory.
+        let dir = match path.parent() {
+            Some(dir) if !dir.as_os_str().is_empty() => dir,
+            _ => Path::new("."),
+        };
         let base = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
         Config::from_raw(raw, path, &base)
     }
@@ -586,30 +593,7 @@ fn check_http(
             ),
         )
     })?;
-    let key_file = anchor(&h.api_key_file);
-    let mut text = String::new();
-    std::fs::File::open(&key_file)
-        .and_then(|f| f.take(4096).read_to_string(&mut text))
-        .map_err(|e| {
-            (
-                "api_key_file",
-                format!(
-                    "cannot read {}: {e} (hint: `head -c 24 /dev/urandom | base64 > {}`)",
-                    key_file.display(),
-                    key_file.display()
-                ),
-            )
-        })?;
-    let key = text.trim();
-    if key.chars().count() < MIN_API_KEY_CHARS || !key.chars().all(|c| c.is_ascii_graphic()) {
-        return Err((
-            "api_key_file",
-            format!(
-                "{}: the key must be at least {MIN_API_KEY_CHARS} printable ASCII characters without spaces",
-                key_file.display()
-            ),
-        ));
-    }
+    let api_key = read_api_key(&anchor(&h.api_key_file)).map_err(|m| ("api_key_file", m))?;
     let upload_max_mb = h.upload_max_mb.unwrap_or(512);
     if !UPLOAD_MAX_MB.contains(&upload_max_mb) {
         return Err((
@@ -623,10 +607,33 @@ fn check_http(
     }
     Ok(HttpConfig {
         listen,
-        api_key: ApiKey(key.to_string()),
+        api_key,
         read_only_without_key: h.read_only_without_key.unwrap_or(false),
         upload_max_bytes: upload_max_mb as u64 * 1024 * 1024,
+        any_port_if_taken: false,
     })
+}
+
+/// Reads an API key file (its first 4 KiB); a missing or weak key is refused.
+pub fn read_api_key(key_file: &Path) -> Result<ApiKey, String> {
+    let mut text = String::new();
+    std::fs::File::open(key_file)
+        .and_then(|f| f.take(4096).read_to_string(&mut text))
+        .map_err(|e| {
+            format!(
+                "cannot read {}: {e} (hint: `head -c 24 /dev/urandom | base64 > {}`)",
+                key_file.display(),
+                key_file.display()
+            )
+        })?;
+    let key = text.trim();
+    if key.chars().count() < MIN_API_KEY_CHARS || !key.chars().all(|c| c.is_ascii_graphic()) {
+        return Err(format!(
+            "{}: the key must be at least {MIN_API_KEY_CHARS} printable ASCII characters without spaces",
+            key_file.display()
+        ));
+    }
+    Ok(ApiKey(key.to_string()))
 }
 
 /// At most this many printers (and so heating permits) in one farm.

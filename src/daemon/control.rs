@@ -1,41 +1,26 @@
-//! The control API: JSON lines over a unix socket (mode 0660, so the service user's group
-//! may use it). Each request line gets one response line. [`serve`] runs in the daemon;
-//! [`request`] is the client used by `crispen status|clear|cancel|pause|resume|retry`.
-//!
-//! Requests: `{"cmd":"status"}`, `{"cmd":"clear","printer":"a"}`, `{"cmd":"cancel","job":"0001-x"}`,
-//! `{"cmd":"pause","printer":"a"}`, `{"cmd":"resume","printer":"a"}`, `{"cmd":"retry","job":"..."}`.
-//! Responses: `{"ok":true,"message":...,"status":{...}}` or `{"ok":false,"error":"..."}`.
+//! The farm's operations, shared by every way in: the status snapshot ([`status`]) and the
+//! operator's commands ([`execute`]: clear, cancel, pause, resume, retry), and the control
+//! socket they are served on ([`bind`]). The socket speaks the same HTTP API as the TCP
+//! listener (`crate::http`); its file mode (0660: the service user and its group) decides
+//! who may use it, so no key is asked there. `crispen status|clear|cancel|pause|resume|retry`
+//! are its clients.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt};
 
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(tag = "cmd", rename_all = "lowercase", deny_unknown_fields)]
-pub enum Request {
-    Status,
+/// What an operator may ask of the farm.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Command {
     Clear { printer: String },
     Cancel { job: String },
     Pause { printer: String },
     Resume { printer: String },
     Retry { job: String },
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize, Default)]
-pub struct Response {
-    pub ok: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub error: Option<String>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub message: Option<String>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub status: Option<Status>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -61,7 +46,7 @@ pub struct JobStatus {
     pub updated: f64,
 }
 
-/// Why a control command was refused; the client shows the message.
+/// Why a command was refused; the operator sees the message.
 #[derive(Debug, thiserror::Error)]
 pub enum CommandError {
     #[error("no printer {0:?} (hint: `crispen status` lists the printers)")]
@@ -76,45 +61,23 @@ pub enum CommandError {
     Store(#[from] StoreError),
 }
 
-#[derive(Debug, thiserror::Error)]
-pub enum ControlError {
-    #[error("cannot reach the daemon at {socket}: {source} (hint: is `crispen run` running with the same --config?)")]
-    Connect {
-        socket: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("control socket {socket}: {source}")]
-    Io {
-        socket: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("control socket {socket}: unreadable answer: {message}")]
-    Protocol { socket: PathBuf, message: String },
+impl CommandError {
+    /// The printer or job named does not exist (as opposed to: it cannot do that now).
+    pub fn is_not_found(&self) -> bool {
+        matches!(
+            self,
+            CommandError::NoPrinter(_) | CommandError::Store(StoreError::NoSuchJob(_))
+        )
+    }
 }
 
-/// Sends one request and waits for its answer (blocking; used by the CLI).
-pub fn request(socket: &Path, req: &Request) -> Result<Response, ControlError> {
-    let stream = std::os::unix::net::UnixStream::connect(socket).map_err(|source| {
-        ControlError::Connect {
-            socket: socket.to_path_buf(),
-            source,
-        }
-    })?;
-    let io = |source| ControlError::Io {
-        socket: socket.to_path_buf(),
-        source,
-    };
-    let mut line = serde_json::to_string(req).expect("request serialises");
-    line.push('\n');
-    (&stream).write_all(line.as_bytes()).map_err(io)?;
-    let mut answer = String::new();
-    BufReader::new(&stream).read_line(&mut answer).map_err(io)?;
-    serde_json::from_str(&answer).map_err(|e| ControlError::Protocol {
-        socket: socket.to_path_buf(),
-        message: e.to_string(),
-    })
+/// The control socket cannot be set up.
+#[derive(Debug, thiserror::Error)]
+#[error("control socket {socket}: {source}")]
+pub struct ControlError {
+    pub socket: PathBuf,
+    #[source]
+    pub source: std::io::Error,
 }
 
 /// Builds the status snapshot.
@@ -165,44 +128,23 @@ pub fn status(farm: &Farm) -> Status {
     Status { printers, jobs }
 }
 
-/// Carries out one request.
-pub async fn handle(farm: &Arc<Farm>, req: Request) -> Response {
-    let result: Result<Option<String>, CommandError> = match req {
-        Request::Status => {
-            return Response {
-                ok: true,
-                status: Some(status(farm)),
-                ..Default::default()
-            }
-        }
-        Request::Clear { printer } => clear(farm, &printer),
-        Request::Pause { printer } => send_print_command(farm, &printer, PrintCommand::Pause).await,
-        Request::Resume { printer } => {
+/// Carries out one command; the answer says what was done.
+pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
+    match command {
+        Command::Clear { printer } => clear(farm, &printer),
+        Command::Pause { printer } => send_print_command(farm, &printer, PrintCommand::Pause).await,
+        Command::Resume { printer } => {
             send_print_command(farm, &printer, PrintCommand::Resume).await
         }
-        Request::Cancel { job } => cancel(farm, &job).await,
-        Request::Retry { job } => {
-            let r = farm.store().retry(&job).map_err(CommandError::from);
-            r.map(|retried| {
-                farm.bump();
-                Some(match retried.state {
-                    JobState::Ready => format!("job {job} is ready to print again"),
-                    _ => format!("job {job} queued for preparation again"),
-                })
+        Command::Cancel { job } => cancel(farm, &job).await,
+        Command::Retry { job } => {
+            let retried = farm.store().retry(&job)?;
+            farm.bump();
+            Ok(match retried.state {
+                JobState::Ready => format!("job {job} is ready to print again"),
+                _ => format!("job {job} queued for preparation again"),
             })
         }
-    };
-    match result {
-        Ok(message) => Response {
-            ok: true,
-            message,
-            ..Default::default()
-        },
-        Err(error) => Response {
-            ok: false,
-            error: Some(error.to_string()),
-            ..Default::default()
-        },
     }
 }
 
@@ -219,12 +161,12 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<(), CommandError> {
     }
 }
 
-fn clear(farm: &Farm, printer: &str) -> Result<Option<String>, CommandError> {
+fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
     let mut store = farm.store();
     let gate = store.gate(printer);
     if !gate.bed_not_cleared {
-        return Ok(Some(format!("{printer}: bed was already clear")));
+        return Ok(format!("{printer}: bed was already clear"));
     }
     store.set_gate(
         printer,
@@ -236,16 +178,14 @@ fn clear(farm: &Farm, printer: &str) -> Result<Option<String>, CommandError> {
     drop(store);
     tracing::info!(printer, "bed cleared");
     farm.bump();
-    Ok(Some(format!(
-        "{printer}: bed cleared; it may take the next job"
-    )))
+    Ok(format!("{printer}: bed cleared; it may take the next job"))
 }
 
 async fn send_print_command(
     farm: &Farm,
     printer: &str,
     command: PrintCommand,
-) -> Result<Option<String>, CommandError> {
+) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
     let tx = farm
         .print_controls
@@ -260,10 +200,10 @@ async fn send_print_command(
         .await
         .map_err(|_| CommandError::PrintEnded(printer.to_string()))?;
     tracing::info!(printer, ?command, "print command sent");
-    Ok(Some(format!("{printer}: {command:?} sent")))
+    Ok(format!("{printer}: {command:?} sent"))
 }
 
-async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, CommandError> {
+async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
     // Checked and changed under one hold of the lock: a printer claiming the job between
     // the two would otherwise print a job marked cancelled.
     let job = {
@@ -292,14 +232,14 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, CommandErr
             {
                 p.cancel.cancel();
             }
-            Ok(Some(format!("job {id} cancelled")))
+            Ok(format!("job {id} cancelled"))
         }
         JobState::Printing => {
             let printer = job.printer.unwrap_or_default();
             send_print_command(farm, &printer, PrintCommand::Cancel).await?;
-            Ok(Some(format!(
+            Ok(format!(
                 "job {id}: stopping the print on {printer} (heaters off)"
-            )))
+            ))
         }
         other => Err(CommandError::NotActive {
             id: id.to_string(),
@@ -308,19 +248,12 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Option<String>, CommandErr
     }
 }
 
-/// Longest request line accepted; a request is a few short fields.
-pub const MAX_REQUEST_BYTES: usize = 64 * 1024;
-/// A connection with no complete request for this long is closed.
-pub const IDLE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
-/// Connections served at once; more wait in the kernel's backlog.
-pub const MAX_CONNECTIONS: usize = 64;
-
 /// Binds the control socket with mode 0660. An existing socket nobody answers on (left by
 /// a daemon that was killed) is replaced; anything else at the path is left alone and
 /// refused, so a mistyped `[control] socket` can never remove a file.
 pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
     use std::os::unix::fs::FileTypeExt;
-    let io = |source| ControlError::Io {
+    let io = |source| ControlError {
         socket: socket.to_path_buf(),
         source,
     };
@@ -349,77 +282,4 @@ pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
     let listener = tokio::net::UnixListener::bind(socket).map_err(io)?;
     std::fs::set_permissions(socket, std::fs::Permissions::from_mode(0o660)).map_err(io)?;
     Ok(listener)
-}
-
-/// Answers requests until the task is dropped: at most [`MAX_CONNECTIONS`] connections at
-/// once, each closed after [`IDLE_TIMEOUT`] without a request or at a request longer than
-/// [`MAX_REQUEST_BYTES`]; when accepting fails (out of file descriptors) it waits a
-/// little longer each time instead of spinning.
-pub async fn serve(farm: Arc<Farm>, listener: tokio::net::UnixListener) {
-    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
-    let mut backoff = std::time::Duration::from_millis(10);
-    loop {
-        let Ok(slot) = Arc::clone(&slots).acquire_owned().await else {
-            return;
-        };
-        let stream = tokio::select! {
-            accepted = listener.accept() => match accepted {
-                Ok((stream, _)) => stream,
-                Err(e) => {
-                    tracing::warn!(error = %e, retry_in_ms = backoff.as_millis() as u64, "control socket: cannot accept");
-                    tokio::time::sleep(backoff).await;
-                    backoff = (backoff * 2).min(std::time::Duration::from_secs(1));
-                    continue;
-                }
-            },
-            _ = farm.shutdown.cancelled() => return,
-        };
-        backoff = std::time::Duration::from_millis(10);
-        let farm = Arc::clone(&farm);
-        tokio::spawn(async move {
-            let _slot = slot;
-            serve_connection(&farm, stream).await;
-        });
-    }
-}
-
-/// Decodes one request line (as read, newline included or not) or says what is wrong
-/// with it.
-pub fn parse_request(line: &[u8]) -> Result<Request, String> {
-    if line.len() > MAX_REQUEST_BYTES {
-        return Err(format!(
-            "bad request: longer than {MAX_REQUEST_BYTES} bytes; the connection is closed"
-        ));
-    }
-    serde_json::from_slice(line).map_err(|e| format!("bad request: {e}"))
-}
-
-async fn serve_connection(farm: &Arc<Farm>, stream: tokio::net::UnixStream) {
-    let (read, mut write) = stream.into_split();
-    let mut reader = tokio::io::BufReader::new(read);
-    loop {
-        let mut line = Vec::new();
-        let mut limited = (&mut reader).take(MAX_REQUEST_BYTES as u64 + 1);
-        let read = limited.read_until(b'\n', &mut line);
-        let read = tokio::select! {
-            read = tokio::time::timeout(IDLE_TIMEOUT, read) => read,
-            _ = farm.shutdown.cancelled() => return,
-        };
-        let response = match read {
-            Err(_) | Ok(Err(_)) | Ok(Ok(0)) => return,
-            Ok(Ok(_)) => match parse_request(&line) {
-                Ok(req) => handle(farm, req).await,
-                Err(error) => Response {
-                    ok: false,
-                    error: Some(error),
-                    ..Default::default()
-                },
-            },
-        };
-        let mut out = serde_json::to_string(&response).expect("response serialises");
-        out.push('\n');
-        if write.write_all(out.as_bytes()).await.is_err() || line.len() > MAX_REQUEST_BYTES {
-            return;
-        }
-    }
 }

@@ -7,7 +7,8 @@
 //! - [`hotfolder`]: deciding when a dropped file is complete.
 //! - [`prepare`]: sidecars and the slicer step.
 //! - [`printer`]: printer supervisors and staggered heat-ups.
-//! - [`control`]: the JSON-lines control socket and its client.
+//! - [`control`]: the operator's commands and the control socket, which serves the HTTP
+//!   API (`crate::http`) like the TCP listener.
 //! - [`farm`]: the state all of these share.
 //!
 //! [`run`] wires them together; I/O endpoints (printer ports, the preparer) are resolved
@@ -240,16 +241,12 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let http_listener = match &config.http {
         None => None,
         Some(http) => {
-            let bound = crate::http::bind(http)
-                .await
-                .map_err(|source| DaemonError::Http {
-                    listen: http.listen,
-                    source,
-                })?;
+            let bound = bind_http(http).await?;
             let address = bound
                 .local_addr()
                 .map_or_else(|_| http.listen.to_string(), |a| a.to_string());
-            tracing::info!(address = %address, dashboard = %format!("http://{address}/"), "http: listening");
+            tracing::info!(address = %address, "http: listening");
+            tracing::info!("dashboard: http://{address}/");
             Some((bound, http.clone()))
         }
     };
@@ -264,9 +261,23 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let shutdown = CancellationToken::new();
     let farm = Farm::new(config.clone(), store, shutdown.clone());
     let mut fleet = Fleet::start_all(&farm, &config.printers)?;
-    let control_task = tokio::spawn(control::serve(Arc::clone(&farm), listener));
-    let http_task = http_listener
-        .map(|(bound, http)| tokio::spawn(crate::http::serve(Arc::clone(&farm), http, bound)));
+    // The listeners outlive the shutdown token: while prints finish at a stop, the
+    // operator can still watch them and cancel one.
+    let stop_listeners = CancellationToken::new();
+    let control_task = tokio::spawn(crate::http::serve_socket(
+        Arc::clone(&farm),
+        config.http.clone(),
+        listener,
+        stop_listeners.clone(),
+    ));
+    let http_task = http_listener.map(|(bound, http)| {
+        tokio::spawn(crate::http::serve_tcp(
+            Arc::clone(&farm),
+            http,
+            bound,
+            stop_listeners.clone(),
+        ))
+    });
     let mut pickup = spawn_pickup(&farm, &config);
     let prepare_task = tokio::spawn(prepare_loop(Arc::clone(&farm), prepare_program));
 
@@ -316,13 +327,31 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     pickup.abort();
     let _ = prepare_task.await;
     fleet.join().await;
-    control_task.abort();
+    stop_listeners.cancel();
+    let _ = control_task.await;
     if let Some(task) = http_task {
-        task.abort();
+        let _ = task.await;
     }
     let _ = std::fs::remove_file(&farm.config().socket);
     tracing::info!("crispen daemon stopped");
     Ok(())
+}
+
+/// Binds `[http] listen`. The built-in default's port, when taken, gives way to one the
+/// system picks (the address is logged); a configured port never does.
+async fn bind_http(http: &config::HttpConfig) -> Result<tokio::net::TcpListener, DaemonError> {
+    let failed = |source| DaemonError::Http {
+        listen: http.listen,
+        source,
+    };
+    match crate::http::bind(http).await {
+        Err(e) if http.any_port_if_taken && e.kind() == std::io::ErrorKind::AddrInUse => {
+            tracing::warn!(listen = %http.listen, "http: the port is taken; listening on a port the system picks");
+            let any = std::net::SocketAddr::new(http.listen.ip(), 0);
+            tokio::net::TcpListener::bind(any).await.map_err(failed)
+        }
+        bound => bound.map_err(failed),
+    }
 }
 
 fn summary(farm: &Farm) -> String {

@@ -1,11 +1,11 @@
-//! The JSON API under `/api/v1/`. Reads come from the control socket's status snapshot
-//! (`daemon::control::status`) and the job store; actions are the control socket's own
-//! requests (`daemon::control::handle`), so the CLI and the API can never disagree on
-//! what clearing a bed or retrying a job means.
+//! The JSON API under `/api/v1/`. Reads come from the farm's status snapshot
+//! (`daemon::control::status`) and the job store; actions are the farm's own commands
+//! (`daemon::control::execute`), the same for the CLI (on the control socket), the
+//! dashboard and any other client.
 
-use super::upload::{self, Upload};
+use super::upload;
 use super::{ApiError, AppState};
-use crate::daemon::control::{self, JobStatus, Request};
+use crate::daemon::control::{self, Command, JobStatus};
 use crate::daemon::farm::{Farm, PrinterStatus};
 use crate::daemon::job::Job;
 use crate::enhance::Strength;
@@ -265,17 +265,17 @@ pub async fn printer_action(
         return Err(no_printer(&state.farm, &name));
     }
     let printer = name;
-    let request = match action.as_str() {
-        "clear" => Request::Clear { printer },
-        "pause" => Request::Pause { printer },
-        "resume" => Request::Resume { printer },
+    let command = match action.as_str() {
+        "clear" => Command::Clear { printer },
+        "pause" => Command::Pause { printer },
+        "resume" => Command::Resume { printer },
         other => {
             return Err(ApiError::not_found(format!(
                 "no printer action {other:?}; the printer actions are clear, pause, resume"
             )))
         }
     };
-    act(&state, request).await
+    act(&state, command).await
 }
 
 /// `POST /api/v1/jobs/{id}/cancel|retry`.
@@ -289,29 +289,24 @@ pub async fn job_action(
         )));
     }
     let job = id;
-    let request = match action.as_str() {
-        "cancel" => Request::Cancel { job },
-        "retry" => Request::Retry { job },
+    let command = match action.as_str() {
+        "cancel" => Command::Cancel { job },
+        "retry" => Command::Retry { job },
         other => {
             return Err(ApiError::not_found(format!(
                 "no job action {other:?}; the job actions are cancel, retry"
             )))
         }
     };
-    act(&state, request).await
+    act(&state, command).await
 }
 
-async fn act(state: &AppState, request: Request) -> Result<Json<serde_json::Value>, ApiError> {
-    tracing::info!(?request, "http: action");
-    let response = control::handle(&state.farm, request).await;
-    if response.ok {
-        Ok(Json(
-            serde_json::json!({ "ok": true, "message": response.message }),
-        ))
-    } else {
-        Err(ApiError::conflict(
-            response.error.unwrap_or_else(|| "refused".into()),
-        ))
+async fn act(state: &AppState, command: Command) -> Result<Json<serde_json::Value>, ApiError> {
+    tracing::info!(?command, "http: action");
+    match control::execute(&state.farm, command).await {
+        Ok(message) => Ok(Json(serde_json::json!({ "ok": true, "message": message }))),
+        Err(e) if e.is_not_found() => Err(ApiError::not_found(e.to_string())),
+        Err(e) => Err(ApiError::conflict(e.to_string())),
     }
 }
 
@@ -323,14 +318,12 @@ pub async fn upload(
 ) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
     let config = state.farm.config();
     let folder = upload::find_folder(&config, &folder)?;
-    if upload::check_name(&file)? == Upload::Gcode {
-        return Err(upload::gcode_refused(&file));
-    }
+    upload::check_name(&file)?;
     let (path, size) = upload::store(
         &folder.path,
         &file,
         body.into_data_stream(),
-        state.http.upload_max_bytes,
+        state.upload_max_bytes,
     )
     .await?;
     tracing::info!(file = %path.display(), size, "http: uploaded into a hot folder");

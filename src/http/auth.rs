@@ -1,29 +1,37 @@
 //! The checks every API request passes: the API key (`X-Api-Key`, as OctoPrint clients
-//! send it), and time limits. The dashboard's own files need no key: they hold no data,
+//! send it) on TCP, and time limits. The dashboard's own files need no key: they hold no data,
 //! and the page asks for the key when the API wants one.
 
-use super::{ApiError, AppState, REQUEST_TIMEOUT, UPLOAD_TIMEOUT};
+use super::{Access, ApiError, AppState, REQUEST_TIMEOUT, UPLOAD_TIMEOUT};
 use axum::extract::{Request, State};
 use axum::http::{Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
 /// Lets a request through with the right key, or a read-only one without a key when
-/// `[http] read_only_without_key` allows it.
+/// `[http] read_only_without_key` allows it. On the control socket the socket's file
+/// mode has already decided.
 pub async fn require_key(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    let (key, read_only_without_key) = match &*state.access {
+        Access::Socket => return next.run(request).await,
+        Access::Key {
+            key,
+            read_only_without_key,
+        } => (key, *read_only_without_key),
+    };
     let given = request
         .headers()
         .get("x-api-key")
         .map(|v| v.as_bytes().to_vec());
     let read_only = matches!(*request.method(), Method::GET | Method::HEAD);
     match given {
-        Some(key) if same_key(&key, state.http.api_key.0.as_bytes()) => next.run(request).await,
+        Some(key_given) if same_key(&key_given, key.0.as_bytes()) => next.run(request).await,
         Some(_) => ApiError::new(
             StatusCode::FORBIDDEN,
             "the X-Api-Key header does not match the key in [http] api_key_file",
         )
         .into_response(),
-        None if read_only && state.http.read_only_without_key => next.run(request).await,
+        None if read_only && read_only_without_key => next.run(request).await,
         None => ApiError::new(
             StatusCode::UNAUTHORIZED,
             if read_only {

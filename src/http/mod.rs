@@ -1,11 +1,14 @@
 //! The operator's window: one HTTP API (JSON under `/api/v1/`, server-sent events), the
 //! web dashboard at `/`, Prometheus metrics at `/metrics`, and the part of OctoPrint's API
-//! that slicers use to "Send to printer". Served on TCP when `[http] listen` is configured.
+//! that slicers use to "Send to printer". Served on two listeners: always on the control
+//! socket (whose file mode decides who may use it; the CLI speaks to it), and on TCP when
+//! `[http] listen` is configured (where the API key decides).
 //!
+//! - [`serve`]: the connection loop: connection limit, timeouts, accept back-off.
 //! - [`auth`]: the API key, body limits and time limits every request passes through.
 //! - [`error`]: every error as JSON that names what is wrong.
 //! - [`api`]: status, printers, jobs and their pictures, folders, and the actions, which
-//!   are the control socket's own operations (`daemon::control::handle`).
+//!   are the farm's own operations (`daemon::control::execute`).
 //! - [`upload`]: files streamed into a hot folder under a temporary name, then linked in.
 //! - [`events`]: live state, progress and temperatures as server-sent events.
 //! - [`metrics`]: the farm in Prometheus' text format.
@@ -19,9 +22,10 @@ mod error;
 mod events;
 mod metrics;
 mod octoprint;
+pub mod serve;
 mod upload;
 
-use crate::daemon::config::HttpConfig;
+use crate::daemon::config::{ApiKey, HttpConfig};
 use crate::daemon::farm::Farm;
 use axum::routing::{get, post, put};
 use axum::Router;
@@ -29,13 +33,32 @@ use std::sync::Arc;
 use std::time::Duration;
 
 pub use error::ApiError;
+/// The check of an uploaded file's name (exported for the fuzz target).
+pub use upload::{check_name as check_upload_name, Upload};
+
+/// Who may do what on a listener.
+#[derive(Debug, Clone)]
+pub enum Access {
+    /// The control socket: whoever may open it (its mode is 0660) may do everything.
+    Socket,
+    /// TCP: every request carries the key, or reads go without it if allowed.
+    Key {
+        key: ApiKey,
+        read_only_without_key: bool,
+    },
+}
 
 /// What every handler needs.
 #[derive(Clone)]
 pub struct AppState {
     pub farm: Arc<Farm>,
-    pub http: Arc<HttpConfig>,
+    pub access: Arc<Access>,
+    /// The largest upload accepted, in bytes.
+    pub upload_max_bytes: u64,
 }
+
+/// The upload bound where `[http]` sets none (the control socket without `[http]`).
+pub const DEFAULT_UPLOAD_MAX_BYTES: u64 = 512 * 1024 * 1024;
 
 /// Largest body of any request but an upload: actions carry no body or a few fields.
 pub const MAX_BODY_BYTES: usize = 64 * 1024;
@@ -52,7 +75,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/v1/folders/{folder}/files/{file}", put(api::upload))
         .route("/api/files/local", post(octoprint::upload))
         .layer(axum::extract::DefaultBodyLimit::max(
-            usize::try_from(state.http.upload_max_bytes).unwrap_or(usize::MAX),
+            usize::try_from(state.upload_max_bytes).unwrap_or(usize::MAX),
         ))
         .route_layer(axum::middleware::from_fn(auth::upload_time_limit));
     let api = Router::new()
@@ -96,17 +119,86 @@ pub async fn bind(http: &HttpConfig) -> std::io::Result<tokio::net::TcpListener>
     tokio::net::TcpListener::bind(http.listen).await
 }
 
-/// Serves the application on `listener` until the farm's shutdown token fires.
-pub async fn serve(farm: Arc<Farm>, http: HttpConfig, listener: tokio::net::TcpListener) {
-    let shutdown = farm.shutdown.clone();
+/// Serves the application on the control socket until `stop` fires.
+pub async fn serve_socket(
+    farm: Arc<Farm>,
+    http: Option<HttpConfig>,
+    listener: tokio::net::UnixListener,
+    stop: tokio_util::sync::CancellationToken,
+) {
     let app = router(AppState {
         farm,
-        http: Arc::new(http),
+        access: Arc::new(Access::Socket),
+        upload_max_bytes: http.map_or(DEFAULT_UPLOAD_MAX_BYTES, |h| h.upload_max_bytes),
     });
-    let served = axum::serve(listener, app)
-        .with_graceful_shutdown(async move { shutdown.cancelled().await })
-        .await;
-    if let Err(e) = served {
-        tracing::error!(error = %e, "http: the listener failed");
+    serve::serve(listener, app, serve::Limits::default(), stop, "socket").await;
+}
+
+/// Serves the application on the TCP listener of `[http]` until `stop` fires.
+pub async fn serve_tcp(
+    farm: Arc<Farm>,
+    http: HttpConfig,
+    listener: tokio::net::TcpListener,
+    stop: tokio_util::sync::CancellationToken,
+) {
+    let app = router(AppState {
+        farm,
+        access: Arc::new(Access::Key {
+            key: http.api_key,
+            read_only_without_key: http.read_only_without_key,
+        }),
+        upload_max_bytes: http.upload_max_bytes,
+    });
+    serve::serve(listener, app, serve::Limits::default(), stop, "tcp").await;
+}
+
+/// Where the built-in default serves the dashboard.
+pub const DEMO_LISTEN: &str = "127.0.0.1:8080";
+
+/// The demo's key file cannot be made or read.
+#[derive(Debug, thiserror::Error)]
+#[error("dashboard key {path}: {message}")]
+pub struct DemoKeyError {
+    pub path: std::path::PathBuf,
+    pub message: String,
+}
+
+/// `[http]` of the built-in default: the dashboard on [`DEMO_LISTEN`] (or a port the
+/// system picks if that one is taken), open to look at without a key, and a key for
+/// acting that is made once (random, mode 0600) in `key_file` and kept there.
+pub fn demo_http(key_file: &std::path::Path) -> Result<HttpConfig, DemoKeyError> {
+    use base64::Engine;
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let failed = |message: String| DemoKeyError {
+        path: key_file.to_path_buf(),
+        message,
+    };
+    if let Some(dir) = key_file.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| failed(e.to_string()))?;
     }
+    let created = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .open(key_file);
+    match created {
+        Ok(mut file) => {
+            let key =
+                base64::engine::general_purpose::URL_SAFE_NO_PAD.encode(rand::random::<[u8; 24]>());
+            file.write_all(format!("{key}\n").as_bytes())
+                .and_then(|_| file.sync_all())
+                .map_err(|e| failed(format!("cannot write: {e}")))?;
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+        Err(e) => return Err(failed(format!("cannot create: {e}"))),
+    }
+    let api_key = crate::daemon::config::read_api_key(key_file).map_err(failed)?;
+    Ok(HttpConfig {
+        listen: DEMO_LISTEN.parse().expect("a valid address"),
+        api_key,
+        read_only_without_key: true,
+        upload_max_bytes: DEFAULT_UPLOAD_MAX_BYTES,
+        any_port_if_taken: true,
+    })
 }

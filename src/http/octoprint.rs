@@ -1,10 +1,16 @@
 //! The part of OctoPrint's REST API that slicers' "Send to printer" uses (PrusaSlicer,
 //! OrcaSlicer, Cura's OctoPrint connection): `GET /api/version` to test the connection and
 //! `POST /api/files/local` to upload. The upload is multipart with the fields `path` (here:
-//! the hot folder's name), `print`, `select` and `file`; a model goes into the hot folder
-//! and through the normal pipeline. Slicers send the key in `X-Api-Key`, as here.
+//! the hot folder's name), `print`, `select` and `file`; the file goes into the hot folder:
+//! a model through the normal pipeline, G-code (what a slicer sends after slicing itself)
+//! as pre-sliced. Slicers send the key in `X-Api-Key`, as here.
+//!
+//! `print`: every file in a hot folder is printed once it is ready (that is what a hot
+//! folder is for), so `print=false` ("Upload" rather than "Upload and print") cannot hold
+//! it. It is accepted, and the answer says so: `effectivePrint` is true and `message`
+//! gives the reason.
 
-use super::upload::{self, Upload};
+use super::upload;
 use super::{ApiError, AppState};
 use axum::extract::multipart::{Multipart, MultipartRejection};
 use axum::extract::State;
@@ -62,20 +68,25 @@ pub async fn upload(
             "file" => {
                 let file_name = field.file_name().unwrap_or("").to_string();
                 let folder = folder_for(&config, path.as_deref())?;
-                if upload::check_name(&file_name)? == Upload::Gcode {
-                    return Err(upload::gcode_refused(&file_name));
-                }
+                upload::check_name(&file_name)?;
                 let (stored, size) =
-                    upload::store(&folder.path, &file_name, field, state.http.upload_max_bytes)
-                        .await?;
+                    upload::store(&folder.path, &file_name, field, state.upload_max_bytes).await?;
                 tracing::info!(file = %stored.display(), size, print, "octoprint upload into a hot folder");
                 let folder_name = upload::folder_name(folder);
+                let message = if print {
+                    format!("{file_name} is in hot folder {folder_name}; it prints once ready")
+                } else {
+                    format!(
+                        "{file_name} is in hot folder {folder_name}; it prints once ready: \
+                         print=false cannot hold a file in a hot folder, whose files are all printed"
+                    )
+                };
                 return Ok((
                     StatusCode::CREATED,
                     Json(serde_json::json!({
                         "done": true,
-                        // Every model in a hot folder is printed once prepared.
                         "effectivePrint": true,
+                        "message": message,
                         "effectiveSelect": false,
                         "files": { "local": {
                             "name": file_name,

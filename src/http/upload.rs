@@ -1,5 +1,5 @@
 //! Files uploaded into a hot folder: the folder is named by the last component of its
-//! path, the file name is checked to be one plain model name, the bytes are streamed to a
+//! path, the file name is checked to be one plain name of a model, a sidecar or G-code, the bytes are streamed to a
 //! hidden temporary file in that folder (which the hot-folder watcher never takes), and
 //! the finished file is hard-linked to its name, which fails rather than replace a file
 //! already there. Nothing is ever written outside a configured hot folder.
@@ -12,8 +12,11 @@ use futures_util::{Stream, StreamExt};
 use std::path::{Path, PathBuf};
 use tokio::io::AsyncWriteExt;
 
-/// Model formats the pipeline takes, and sidecars (a few settings for a model).
+/// Model formats the pipeline takes.
 const MODEL_EXTENSIONS: [&str; 3] = ["stl", "obj", "3mf"];
+/// Pre-sliced G-code, which a hot folder prints as it is (what a slicer sends after
+/// slicing itself).
+const GCODE_EXTENSIONS: [&str; 3] = ["gcode", "gco", "g"];
 /// Longest file name accepted (the usual file system limit).
 const MAX_NAME_BYTES: usize = 200;
 
@@ -70,10 +73,6 @@ pub fn check_name(name: &str) -> Result<Upload, ApiError> {
     if name.chars().any(char::is_control) {
         return Err(bad("must not contain control characters"));
     }
-    let lower = name.to_ascii_lowercase();
-    if lower.ends_with(".gcode") || lower.ends_with(".gco") || lower.ends_with(".g") {
-        return Ok(Upload::Gcode);
-    }
     if crate::daemon::hotfolder::is_sidecar_name(name) {
         return Ok(Upload::Sidecar);
     }
@@ -82,25 +81,15 @@ pub fn check_name(name: &str) -> Result<Upload, ApiError> {
             "is a hidden or temporary name that the hot folder never takes",
         ));
     }
+    let lower = name.to_ascii_lowercase();
     let extension = lower.rsplit('.').next().unwrap_or("");
-    if name.contains('.') && MODEL_EXTENSIONS.contains(&extension) {
-        Ok(Upload::Model)
-    } else {
-        Err(bad(
-            "must end in .stl, .obj or .3mf (a model) or .toml (its sidecar)",
-        ))
+    match name.contains('.') {
+        true if MODEL_EXTENSIONS.contains(&extension) => Ok(Upload::Model),
+        true if GCODE_EXTENSIONS.contains(&extension) => Ok(Upload::Gcode),
+        _ => Err(bad(
+            "must end in .stl, .obj or .3mf (a model), .toml (its sidecar) or .gcode (pre-sliced)",
+        )),
     }
-}
-
-/// The answer to a G-code upload until pre-sliced G-code has a path through the farm.
-pub fn gcode_refused(name: &str) -> ApiError {
-    ApiError::new(
-        StatusCode::UNSUPPORTED_MEDIA_TYPE,
-        format!(
-            "{name}: crispen does not take pre-sliced G-code yet; it slices every part itself \
-             after sharpening it (hint: upload the model, as .stl, .obj or .3mf)"
-        ),
-    )
 }
 
 /// Streams `body` into `folder/name`, at most `max` bytes. Returns the path and the size.
@@ -223,6 +212,7 @@ mod tests {
         assert_eq!(check_name("Part.3MF").unwrap(), Upload::Model);
         assert_eq!(check_name("part.stl.toml").unwrap(), Upload::Sidecar);
         assert_eq!(check_name("part.gcode").unwrap(), Upload::Gcode);
+        assert_eq!(check_name("PART.GCO").unwrap(), Upload::Gcode);
         for bad in [
             "",
             "../x.stl",
@@ -230,6 +220,8 @@ mod tests {
             "..",
             ".hidden.stl",
             "x.stl.part",
+            ".x.gcode",
+            "gcode",
             "x.txt",
             "stl",
             "a\\b.stl",

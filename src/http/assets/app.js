@@ -33,10 +33,22 @@ function askForKey(message) {
   notice(message, true);
 }
 
+// The key can be entered before any action asks for it (the daemon's read-only mode
+// shows the farm without one); the button says whether this browser holds one.
+function showKeyState() {
+  $("#keybutton").textContent = key ? "Key ✓" : "Key";
+}
+$("#keybutton").addEventListener("click", () => {
+  $("#keyform").hidden = !$("#keyform").hidden;
+  if (!$("#keyform").hidden) $("#key").focus();
+});
+showKeyState();
+
 $("#keyform").addEventListener("submit", (e) => {
   e.preventDefault();
   key = $("#key").value.trim();
   localStorage.setItem("crispen-key", key);
+  showKeyState();
   $("#keyform").hidden = true;
   notice("");
   connect();
@@ -159,7 +171,7 @@ function folderZones(status) {
     '<label class="folder" data-folder="' + esc(f.name) + '"><b>' + esc(f.name) + "</b>" +
     "<span>" + f.height_mm + " mm · " + esc(strengthText(f.strength)) + " · " + esc(f.printers.join(", ")) + "</span>" +
     '<span class="muted">' + f.queued + " waiting · drop or tap to upload</span>" +
-    '<input type="file" accept=".stl,.obj,.3mf" hidden></label>').join("");
+    '<input type="file" accept=".stl,.obj,.3mf,.gcode,.toml" hidden></label>').join("");
 }
 
 function render(status) {

@@ -91,14 +91,15 @@ fn commands_of(path: &Path) -> Vec<String> {
         .collect()
 }
 
-/// Filament pushed by extruding moves and the middle of their X/Y extent.
+/// Filament pushed by extruding moves (moves in X/Y: not primes or unretractions) and the
+/// middle of their X/Y extent.
 fn extrusion_and_middle(commands: &[String]) -> (f64, [f64; 2]) {
     let (mut e, mut total, mut x, mut y) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
     let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
     for c in commands {
         let mut words = c.split_whitespace();
         let cmd = words.next();
-        let mut ne = e;
+        let (mut ne, mut moves_xy) = (e, false);
         for w in words {
             let v = w[1..].parse::<f64>().unwrap_or(0.0);
             match (cmd, &w[..1]) {
@@ -107,12 +108,12 @@ fn extrusion_and_middle(commands: &[String]) -> (f64, [f64; 2]) {
                     ne = v;
                 }
                 (Some("G0" | "G1"), "E") => ne = v,
-                (Some("G0" | "G1"), "X") => x = v,
-                (Some("G0" | "G1"), "Y") => y = v,
+                (Some("G0" | "G1"), "X") => (x, moves_xy) = (v, true),
+                (Some("G0" | "G1"), "Y") => (y, moves_xy) = (v, true),
                 _ => {}
             }
         }
-        if cmd == Some("G1") && ne > e {
+        if cmd == Some("G1") && moves_xy && ne > e {
             total += ne - e;
             lo = [lo[0].min(x), lo[1].min(y)];
             hi = [hi[0].max(x), hi[1].max(y)];

@@ -410,8 +410,8 @@ fn bad_settings_and_profiles_are_refused_before_slicing() {
     assert!(err.to_string().contains("bundle.ini"), "{err}");
 }
 
-/// The net filament a G-code file pushes (absolute E, resets with G92), and the X/Y middle
-/// of its extruding moves.
+/// The filament a G-code file pushes in extruding moves (moves in X/Y: not primes or
+/// unretractions; absolute E, resets with G92), and the X/Y middle of those moves.
 fn extrusion_and_middle(text: &str) -> (f64, [f64; 2]) {
     let (mut e, mut total) = (0.0f64, 0.0f64);
     let (mut x, mut y) = (0.0f64, 0.0f64);
@@ -420,7 +420,7 @@ fn extrusion_and_middle(text: &str) -> (f64, [f64; 2]) {
         let code = line.split(';').next().unwrap().trim();
         let mut words = code.split_whitespace();
         let cmd = words.next();
-        let mut ne = e;
+        let (mut ne, mut moves_xy) = (e, false);
         for w in words {
             let v = || w[1..].parse::<f64>().unwrap_or(0.0);
             match (cmd, &w[..1]) {
@@ -429,12 +429,12 @@ fn extrusion_and_middle(text: &str) -> (f64, [f64; 2]) {
                     ne = e;
                 }
                 (Some("G0" | "G1"), "E") => ne = v(),
-                (Some("G0" | "G1"), "X") => x = v(),
-                (Some("G0" | "G1"), "Y") => y = v(),
+                (Some("G0" | "G1"), "X") => (x, moves_xy) = (v(), true),
+                (Some("G0" | "G1"), "Y") => (y, moves_xy) = (v(), true),
                 _ => {}
             }
         }
-        if matches!(cmd, Some("G1")) && ne > e {
+        if matches!(cmd, Some("G1")) && moves_xy && ne > e {
             total += ne - e;
             lo = [lo[0].min(x), lo[1].min(y)];
             hi = [hi[0].max(x), hi[1].max(y)];

@@ -5,9 +5,9 @@
 
 use anyhow::Context;
 use crispen::daemon::prepare::steps::{self, SliceRequest, Step};
-use crispen::enhance::{Phase, Strength, StrengthTable};
+use crispen::enhance::{Strength, StrengthTable};
 use crispen::machine::Machine;
-use crispen::slice::{SliceSettings, SliceStep, SlicerKind, UpAxis, SETTING_KEYS};
+use crispen::slice::{SliceSettings, SlicerKind, UpAxis, SETTING_KEYS};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -67,18 +67,6 @@ fn parse_slicer(s: &str) -> Result<SlicerKind, String> {
 
 fn parse_up(s: &str) -> Result<UpAxis, String> {
     s.parse()
-}
-
-fn step_text(step: Step) -> String {
-    match step {
-        Step::Loading => "loading the model".into(),
-        Step::Enhancing(Phase::Operators) => "enhancing: building operators".into(),
-        Step::Enhancing(Phase::Factorize) => "enhancing: factorizing".into(),
-        Step::Enhancing(Phase::Solve(i)) => format!("enhancing: solving ({i})"),
-        Step::Enhancing(Phase::Combine) => "enhancing: combining".into(),
-        Step::Slice(m, SliceStep::Slicing) => format!("slicing for {m}"),
-        Step::Slice(m, SliceStep::Checking) => format!("checking the G-code for {m}"),
-    }
 }
 
 /// The machine `--machine` names: one of the config's, or a built-in one.
@@ -146,7 +134,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     });
     let mut progress = |step: Step| {
         if let Some(bar) = &bar {
-            bar.set_message(format!("{}: {}", args.model.display(), step_text(step)));
+            bar.set_message(format!("{}: {}", args.model.display(), step.describe()));
         }
     };
     let target = steps::Target {

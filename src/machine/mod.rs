@@ -88,23 +88,6 @@ impl Machine {
             ..self.clone()
         })
     }
-
-    /// One line for `--help`-like listings.
-    pub fn summary(&self) -> String {
-        let [x, y, z] = self.bed_mm;
-        format!(
-            "{}: {x} x {y} x {z} mm, {} mm nozzle, {} mm filament, {}, firmware {}",
-            self.name,
-            self.nozzle_mm,
-            self.filament_mm,
-            if self.heated_bed {
-                "heated bed"
-            } else {
-                "unheated bed"
-            },
-            self.firmware
-        )
-    }
 }
 
 /// The machine of a `marlin2`/`marlin20` printer whose config names none: a common

@@ -314,15 +314,10 @@ pub fn slice_mesh(
     let started = Instant::now();
     let mut timings = StepTimings::default();
     job.settings.validate()?;
-    let (nozzle_temp_c, bed_temp_c) = job.settings.temperatures()?;
-    let (nozzle_temp_c, bed_temp_c) = (
-        nozzle_temp_c,
-        if job.machine.heated_bed {
-            bed_temp_c
-        } else {
-            0.0
-        },
-    );
+    let (nozzle_temp_c, mut bed_temp_c) = job.settings.temperatures()?;
+    if !job.machine.heated_bed {
+        bed_temp_c = 0.0;
+    }
     let material = job.settings.material_preset()?;
     let profile_path = job.profile.or(match job.slicer {
         SlicerKind::Prusa => job.machine.prusa_profile.as_deref(),

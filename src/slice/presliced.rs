@@ -134,10 +134,15 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
                 pos = target;
             }
             "G28" => {
-                let all = !['X', 'Y', 'Z'].iter().any(|l| get(*l).is_some())
-                    && !code.to_ascii_uppercase().contains(['X', 'Y', 'Z']);
+                // Homed axes are at their origin (all of them when none is named).
+                let named: Vec<char> = code
+                    .split_whitespace()
+                    .skip(1)
+                    .filter_map(|w| w.chars().next())
+                    .map(|c| c.to_ascii_uppercase())
+                    .collect();
                 for (k, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
-                    if all || code.to_ascii_uppercase()[3..].contains(letter) {
+                    if named.is_empty() || named.contains(&letter) {
                         pos[k] = 0.0;
                     }
                 }
@@ -256,6 +261,18 @@ fn known_model(model: &str) -> Option<&'static str> {
     })
 }
 
+/// The built-in machine a machine is, itself or with another nozzle (`ultimaker2plus-0.6mm`).
+fn builtin_base(name: &str) -> Option<&'static str> {
+    crate::machine::BUILTIN.iter().map(|b| b.name).find(|b| {
+        name == *b
+            || name
+                .strip_prefix(b)
+                .and_then(|r| r.strip_prefix('-'))
+                .and_then(|r| r.strip_suffix("mm"))
+                .is_some_and(|n| n.parse::<f64>().is_ok())
+    })
+}
+
 /// Whether the file may be printed as it is on `machine`; the error says why not.
 pub fn check_for(target: &GcodeTarget, machine: &Machine) -> Result<(), String> {
     let m = machine;
@@ -285,15 +302,12 @@ pub fn check_for(target: &GcodeTarget, machine: &Machine) -> Result<(), String> 
             ));
         }
     }
+    // Only a known printer model tells: a farm's own machine may be any printer.
     if let Some(model) = &target.printer_model {
-        // Only a known printer tells: a farm's own machine may be any printer model.
-        if let Some(builtin) = known_model(model) {
-            let same = m.name == builtin || m.name.starts_with(&format!("{builtin}-"));
-            let farm_own = crate::machine::Machine::builtin(&m.name).is_none()
-                && !m.name.starts_with("ultimaker");
-            if !same && !farm_own {
+        if let (Some(named), Some(this)) = (known_model(model), builtin_base(&m.name)) {
+            if named != this {
                 return Err(format!(
-                    "it was sliced for printer model {model:?} ({builtin}), not the {}",
+                    "it was sliced for printer model {model:?} ({named}), not the {}",
                     m.name
                 ));
             }

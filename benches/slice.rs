@@ -1,12 +1,22 @@
-//! Benchmark: one `crispen::slice` job end to end, per slicer and model, with the time of
+//! Benchmark: one job's preparation (load, enhance, place, slice) end to end, per slicer and model, with the time of
 //! each step (load, enhance, slice, check). Prints one comparable line per case: the median
 //! of a few runs. `cargo bench --bench slice` (set CRISPEN_BENCH_RUNS to change the runs).
 
+use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
 use crispen::enhance::Strength;
-use crispen::slice::{slice, SliceReport, SliceRequest, SlicerKind, UpAxis};
+use crispen::machine::Machine;
+use crispen::slice::{SliceReport, SlicerKind, UpAxis};
 
 #[path = "../tests/common/mod.rs"]
 mod common;
+
+fn um2(dir: &std::path::Path) -> Target {
+    Target {
+        machine: Machine::builtin("ultimaker2").expect("built in"),
+        output: dir.join("bench.gcode"),
+        keep_mesh: None,
+    }
+}
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -30,13 +40,13 @@ fn main() {
     for (name, model, height) in &cases {
         for slicer in [SlicerKind::Prusa, SlicerKind::Cura] {
             for strength in [Strength::Off, Strength::Auto] {
-                let mut req = SliceRequest::new(model, dir.path().join("bench.gcode"), *height);
+                let mut req = SliceRequest::new(model, *height);
                 req.slicer = slicer;
                 req.strength = strength;
                 // Both models are Y-up OBJ files.
                 req.up = UpAxis::Y;
                 let reports: Vec<SliceReport> = (0..runs)
-                    .map(|_| match slice(&req, &mut |_| {}) {
+                    .map(|_| match prepare_one(&req, um2(dir.path()), &mut |_| {}) {
                         Ok(r) => r,
                         Err(e) => panic!("{name} with {slicer}: {e}"),
                     })

@@ -5,6 +5,7 @@
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
 //! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
 //! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
+//! - [`machine`]: the kinds of printer a job is sliced for (bed, nozzle, filament, firmware).
 //! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
 //!   and the simulated printer used by tests, the quick start and the demo farm.
 //! - [`ports`]: finding serial devices and asking a printer what it is (M115).
@@ -18,6 +19,7 @@
 pub mod daemon;
 pub mod enhance;
 pub mod http;
+pub mod machine;
 pub mod marlin;
 pub mod mesh;
 pub mod ports;

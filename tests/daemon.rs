@@ -321,9 +321,9 @@ printers = ["a", "b"]
         .is_file());
 
     // Every done job's G-code was executed exactly once, in order, by its printer.
-    for (name, rec, fw) in [
-        ("a", &rec_a, Firmware::Marlin2),
-        ("b", &rec_b, Firmware::Ultimaker2),
+    for (name, rec, fw, machine) in [
+        ("a", &rec_a, Firmware::Marlin2, "marlin-175"),
+        ("b", &rec_b, Firmware::Ultimaker2, "ultimaker2"),
     ] {
         let executed = recorded(rec);
         let mut expected: Vec<String> = Vec::new();
@@ -333,7 +333,7 @@ printers = ["a", "b"]
                 let gcode: PathBuf = root
                     .join("spool/jobs")
                     .join(job["id"].as_str().unwrap())
-                    .join(format!("{f}.gcode"));
+                    .join(format!("{f}.{machine}.gcode"));
                 expected.extend(
                     GcodeProgram::load_for(&gcode, fw)
                         .unwrap()
@@ -586,10 +586,11 @@ fn daemon_killed_during_preparation_resumes_the_job() {
 
 /// The printer's executed job commands (housekeeping dropped) as recorded by its simulator.
 fn job_gcode(root: &Path, id: &str, file: &str) -> Vec<String> {
+    // The farms here have one machine (a `marlin2` printer without `machine`).
     let path = root
         .join("spool/jobs")
         .join(id)
-        .join(format!("{file}.gcode"));
+        .join(format!("{file}.marlin-175.gcode"));
     GcodeProgram::load_for(&path, Firmware::Marlin2)
         .unwrap()
         .to_vec()

@@ -457,8 +457,11 @@ fn api_over_tcp_with_and_without_the_key() {
         assert_eq!(a.status, 404, "{other} is not served");
         assert!(a.error().contains("after.png"), "{}", a.text());
     }
-    let gcode = std::fs::read_to_string(tmp.path().join(format!("spool/jobs/{id}/spot.obj.gcode")))
-        .unwrap();
+    let gcode = std::fs::read_to_string(
+        tmp.path()
+            .join(format!("spool/jobs/{id}/spot.obj.marlin-175.gcode")),
+    )
+    .unwrap();
     for size in ["300x300", "32x32"] {
         assert!(
             gcode.contains(&format!("; thumbnail begin {size} ")),

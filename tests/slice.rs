@@ -5,12 +5,41 @@
 //! Each G-code job is re-read here independently of the library's own check, so a bug in
 //! the check cannot hide a bad job.
 
+use crispen::daemon::prepare::steps::{prepare, prepare_one, SliceRequest, Step, Target};
 use crispen::enhance::Strength;
-use crispen::slice::{slice, SliceError, SliceRequest, SliceSettings, SliceStep, SlicerKind};
+use crispen::machine::Machine;
+use crispen::slice::{SliceError, SliceReport, SliceSettings, SlicerKind};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 mod common;
+
+fn machine(name: &str) -> Machine {
+    Machine::builtin(name).expect("a built-in machine")
+}
+
+/// Prepares a model for an Ultimaker 2 into `out`.
+fn slice(
+    req: &SliceRequest,
+    out: &Path,
+    progress: &mut dyn FnMut(Step),
+) -> Result<SliceReport, SliceError> {
+    slice_for(req, "ultimaker2", out, progress)
+}
+
+fn slice_for(
+    req: &SliceRequest,
+    machine_name: &str,
+    out: &Path,
+    progress: &mut dyn FnMut(Step),
+) -> Result<SliceReport, SliceError> {
+    let target = Target {
+        machine: machine(machine_name),
+        output: out.to_path_buf(),
+        keep_mesh: None,
+    };
+    prepare_one(req, target, progress)
+}
 
 fn spot() -> PathBuf {
     common::model("spot.obj")
@@ -141,9 +170,11 @@ fn prusaslicer_slices_spot_and_the_enhanced_job_differs_from_the_unmodified_one(
     let dir = tempfile::tempdir().unwrap();
     let enhanced_out = dir.path().join("spot.gcode");
     let mut steps = Vec::new();
-    let mut req = SliceRequest::new(spot(), &enhanced_out, 30.0);
+    let out_path = PathBuf::from(&enhanced_out);
+    let mut req = SliceRequest::new(spot(), 30.0);
     req.strength = Strength::Lambda2(20.0);
-    let report = slice(&req, &mut |s| steps.push(s)).expect("PrusaSlicer slices spot");
+    let report =
+        slice(&req, &out_path, &mut |s| steps.push(s.describe())).expect("PrusaSlicer slices spot");
     assert_eq!(report.slicer, SlicerKind::Prusa);
     assert!(report
         .slicer_version
@@ -155,18 +186,19 @@ fn prusaslicer_slices_spot_and_the_enhanced_job_differs_from_the_unmodified_one(
     assert!(report.filament_mm.is_some_and(|mm| mm > 10.0));
     assert!(report.filament_g.is_some_and(|g| g > 0.0));
     assert!((report.model_size_mm[2] - 30.0).abs() < 1e-6);
-    assert_eq!(steps.first(), Some(&SliceStep::Loading));
-    assert!(steps.iter().any(|s| matches!(s, SliceStep::Enhancing(_))));
-    assert_eq!(steps.last(), Some(&SliceStep::Checking));
+    assert_eq!(steps.first(), Some(&"loading".to_string()));
+    assert!(steps.iter().any(|s| s.starts_with("enhancing")));
+    assert_eq!(steps.last().unwrap(), "checking the G-code for ultimaker2");
     let job = read_job(&enhanced_out);
     assert_good_job(&job, 30.0, 0.2);
     assert_eq!(report.layer_count, job.layers);
     assert!(job.text.contains("M109 S210") && job.text.contains("M190 S60"));
 
     let plain_out = dir.path().join("spot-plain.gcode");
-    let mut req = SliceRequest::new(spot(), &plain_out, 30.0);
+    let out_path = PathBuf::from(&plain_out);
+    let mut req = SliceRequest::new(spot(), 30.0);
     req.strength = Strength::Off;
-    let plain = slice(&req, &mut |_| {}).expect("unmodified spot slices");
+    let plain = slice(&req, &out_path, &mut |_| {}).expect("unmodified spot slices");
     assert_eq!(plain.enhancement.lambda2, None);
     assert_eq!(plain.enhancement.mode, "unmodified");
     let plain_job = read_job(&plain_out);
@@ -235,10 +267,11 @@ fn a_slicer_exiting_non_zero_is_reported_with_its_status_and_output() {
         "echo 'Slicing...'\necho 'error: the mesh exploded' >&2\nexit 3",
     );
     let out = dir.path().join("out.gcode");
-    let mut req = SliceRequest::new(spot(), &out, 20.0);
+    let out_path = PathBuf::from(&out);
+    let mut req = SliceRequest::new(spot(), 20.0);
     req.strength = Strength::Off;
     req.slicer_program = Some(fake);
-    let err = slice(&req, &mut |_| {}).unwrap_err();
+    let err = slice(&req, &out_path, &mut |_| {}).unwrap_err();
     assert!(matches!(err, SliceError::SlicerFailed { .. }), "{err:?}");
     let msg = err.to_string();
     assert!(msg.contains("PrusaSlicer"), "{msg}");
@@ -256,13 +289,14 @@ fn a_hanging_slicer_is_killed_at_the_timeout() {
         "hanging-slicer",
         "echo 'thinking hard'\nsleep 60",
     );
-    let mut req = SliceRequest::new(spot(), dir.path().join("out.gcode"), 20.0);
+    let out_path = dir.path().join("out.gcode");
+    let mut req = SliceRequest::new(spot(), 20.0);
     req.strength = Strength::Off;
     req.slicer = SlicerKind::Cura;
     req.slicer_program = Some(fake);
     req.timeout = Duration::from_millis(500);
     let started = Instant::now();
-    let err = slice(&req, &mut |_| {}).unwrap_err();
+    let err = slice(&req, &out_path, &mut |_| {}).unwrap_err();
     assert!(matches!(err, SliceError::Timeout { .. }), "{err:?}");
     let msg = err.to_string();
     assert!(
@@ -282,10 +316,11 @@ fn a_model_too_tall_or_too_wide_fails_before_any_slicer_runs() {
         "recording-slicer",
         &format!("touch '{}'", marker.display()),
     );
-    let mut req = SliceRequest::new(spot(), dir.path().join("out.gcode"), 210.0);
+    let out_path = dir.path().join("out.gcode");
+    let mut req = SliceRequest::new(spot(), 210.0);
     req.strength = Strength::Off;
     req.slicer_program = Some(fake.clone());
-    let err = slice(&req, &mut |_| {}).unwrap_err();
+    let err = slice(&req, &out_path, &mut |_| {}).unwrap_err();
     assert!(matches!(err, SliceError::TooBig { .. }), "{err:?}");
     assert!(err.to_string().contains("does not fit"), "{err}");
 
@@ -293,7 +328,7 @@ fn a_model_too_tall_or_too_wide_fails_before_any_slicer_runs() {
     // the bed.
     req.model = bunny();
     req.height_mm = 180.0;
-    let err = slice(&req, &mut |_| {}).unwrap_err();
+    let err = slice(&req, &out_path, &mut |_| {}).unwrap_err();
     assert!(matches!(err, SliceError::TooBig { .. }), "{err:?}");
     assert!(
         !marker.exists(),
@@ -307,11 +342,12 @@ fn a_missing_slicer_names_the_package_to_install() {
         (SlicerKind::Prusa, "prusa-slicer"),
         (SlicerKind::Cura, "cura-engine"),
     ] {
-        let mut req = SliceRequest::new(spot(), "/tmp/never-written.gcode", 20.0);
+        let out_path = PathBuf::from("/tmp/never-written.gcode");
+        let mut req = SliceRequest::new(spot(), 20.0);
         req.strength = Strength::Off;
         req.slicer = kind;
         req.slicer_program = Some("/nonexistent/crispen-test/slicer".into());
-        let err = slice(&req, &mut |_| {}).unwrap_err();
+        let err = slice(&req, &out_path, &mut |_| {}).unwrap_err();
         assert!(matches!(err, SliceError::SlicerMissing { .. }), "{err:?}");
         assert!(
             err.to_string()
@@ -333,10 +369,11 @@ fn nonsense_gcode_is_refused_and_the_existing_job_is_kept() {
     );
     let out = dir.path().join("job.gcode");
     std::fs::write(&out, "; the previous, good job\n").unwrap();
-    let mut req = SliceRequest::new(spot(), &out, 20.0);
+    let out_path = PathBuf::from(&out);
+    let mut req = SliceRequest::new(spot(), 20.0);
     req.strength = Strength::Off;
     req.slicer_program = Some(fake);
-    let err = slice(&req, &mut |_| {}).unwrap_err();
+    let err = slice(&req, &out_path, &mut |_| {}).unwrap_err();
     assert!(matches!(err, SliceError::BadOutput { .. }), "{err:?}");
     assert!(err.to_string().contains("no extruding moves"), "{err}");
     assert_eq!(
@@ -365,9 +402,202 @@ fn bad_settings_and_profiles_are_refused_before_slicing() {
     let dir = tempfile::tempdir().unwrap();
     let profile = dir.path().join("bundle.ini");
     std::fs::write(&profile, "[printer:Ultimaker 2]\nnozzle_diameter = 0.4\n").unwrap();
-    let mut req = SliceRequest::new(spot(), dir.path().join("out.gcode"), 20.0);
+    let out_path = dir.path().join("out.gcode");
+    let mut req = SliceRequest::new(spot(), 20.0);
     req.profile = Some(profile);
-    let err = slice(&req, &mut |_| {}).unwrap_err();
+    let err = slice(&req, &out_path, &mut |_| {}).unwrap_err();
     assert!(matches!(err, SliceError::BadProfile { .. }), "{err:?}");
     assert!(err.to_string().contains("bundle.ini"), "{err}");
+}
+
+/// The filament a G-code file pushes in extruding moves (moves in X/Y: not primes or
+/// unretractions; absolute E, resets with G92), and the X/Y middle of those moves.
+fn extrusion_and_middle(text: &str) -> (f64, [f64; 2]) {
+    let (mut e, mut total) = (0.0f64, 0.0f64);
+    let (mut x, mut y) = (0.0f64, 0.0f64);
+    let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
+    for line in text.lines() {
+        let code = line.split(';').next().unwrap().trim();
+        let mut words = code.split_whitespace();
+        let cmd = words.next();
+        let (mut ne, mut moves_xy) = (e, false);
+        for w in words {
+            let v = || w[1..].parse::<f64>().unwrap_or(0.0);
+            match (cmd, &w[..1]) {
+                (Some("G92"), "E") => {
+                    e = v();
+                    ne = e;
+                }
+                (Some("G0" | "G1"), "E") => ne = v(),
+                (Some("G0" | "G1"), "X") => (x, moves_xy) = (v(), true),
+                (Some("G0" | "G1"), "Y") => (y, moves_xy) = (v(), true),
+                _ => {}
+            }
+        }
+        if matches!(cmd, Some("G1")) && moves_xy && ne > e {
+            total += ne - e;
+            lo = [lo[0].min(x), lo[1].min(y)];
+            hi = [hi[0].max(x), hi[1].max(y)];
+        }
+        e = ne;
+    }
+    (total, [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0])
+}
+
+/// One enhancement, two machines: each G-code is made for its machine's filament (the
+/// 1.75 mm machine pushes about (2.85 / 1.75)² = 2.65 times the filament length for the
+/// same plastic) and centred on its bed. Fails on code that slices for an Ultimaker 2
+/// whatever the printer.
+#[test]
+fn one_model_is_sliced_once_per_machine_for_its_filament_and_bed() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut req = SliceRequest::new(spot(), 20.0);
+    req.strength = Strength::Off;
+    let targets: Vec<Target> = ["ultimaker2", "marlin-175"]
+        .iter()
+        .map(|m| Target {
+            machine: machine(m),
+            output: dir.path().join(format!("{m}.gcode")),
+            keep_mesh: None,
+        })
+        .collect();
+    let mut steps = Vec::new();
+    let results = prepare(&req, &targets, &mut |s| steps.push(s.describe())).unwrap();
+    assert_eq!(
+        steps.iter().filter(|s| s.as_str() == "loading").count(),
+        1,
+        "{steps:?}"
+    );
+    assert!(
+        steps.contains(&"slicing for marlin-175".to_string()),
+        "{steps:?}"
+    );
+    let reports: Vec<&SliceReport> = results
+        .iter()
+        .map(|(m, r)| r.as_ref().unwrap_or_else(|e| panic!("{m}: {e}")))
+        .collect();
+    assert_eq!(reports[1].machine, "marlin-175");
+    let um2 = std::fs::read_to_string(&targets[0].output).unwrap();
+    let m175 = std::fs::read_to_string(&targets[1].output).unwrap();
+    assert!(um2.contains("; filament_diameter = 2.85"));
+    assert!(m175.contains("; filament_diameter = 1.75"));
+    assert!(m175.contains("; bed_shape = 0x0,220x0,220x220,0x220"));
+    let (e_um2, mid_um2) = extrusion_and_middle(&um2);
+    let (e_175, mid_175) = extrusion_and_middle(&m175);
+    let ratio = e_175 / e_um2;
+    assert!((2.3..3.0).contains(&ratio), "filament ratio {ratio}");
+    assert!((mid_um2[0] - 111.5).abs() < 3.0 && (mid_175[0] - 110.0).abs() < 3.0);
+    assert!((mid_um2[1] - 111.5).abs() < 3.0 && (mid_175[1] - 110.0).abs() < 3.0);
+}
+
+/// A model too wide for one machine fails for that machine with the sizes named, and is
+/// still sliced for the machine it fits (a fake slicer records that it ran).
+#[test]
+fn a_model_too_big_for_one_machine_goes_to_the_one_it_fits() {
+    let dir = tempfile::tempdir().unwrap();
+    let marker = dir.path().join("slicer-ran");
+    let fake = write_script(
+        dir.path(),
+        "recording-slicer",
+        &format!("touch '{}'; exit 1", marker.display()),
+    );
+    let mut req = SliceRequest::new(bunny(), 180.0);
+    req.strength = Strength::Off;
+    req.slicer_program = Some(fake);
+    let big = Machine {
+        name: "big".into(),
+        bed_mm: [400.0, 400.0, 400.0],
+        ..machine("marlin-175")
+    };
+    let targets = [machine("ultimaker2"), big].map(|m| Target {
+        output: dir.path().join(format!("{}.gcode", m.name)),
+        machine: m,
+        keep_mesh: None,
+    });
+    let results = prepare(&req, &targets, &mut |_| {}).unwrap();
+    let err = results[0].1.as_ref().unwrap_err();
+    assert!(matches!(err, SliceError::TooBig { .. }), "{err:?}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("the ultimaker2's [213.0, 213.0, 205.0] mm") && msg.contains("180 mm tall"),
+        "{msg}"
+    );
+    assert!(
+        matches!(results[1].1, Err(SliceError::SlicerFailed { .. })),
+        "{:?}",
+        results[1].1
+    );
+    assert!(marker.exists(), "the slicer ran for the machine it fits");
+}
+
+/// `crispen slice --machine` with a nozzle choice and CuraEngine: the machine's nozzle and
+/// filament reach the slicer, and a machine without a heated bed gets no bed heating.
+#[test]
+fn the_cli_slices_for_a_named_machine_and_nozzle() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("spot.gcode");
+    let run = |extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_crispen"))
+            .args([
+                "slice",
+                spot().to_str().unwrap(),
+                "-o",
+                out.to_str().unwrap(),
+            ])
+            .args(["--height", "15", "--no-enhance", "--json"])
+            .args(extra)
+            .output()
+            .expect("crispen runs")
+    };
+    let output = run(&["--machine", "ultimaker2plus", "--nozzle", "0.6"]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(report["machine"], "ultimaker2plus-0.6mm");
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        text.contains("; nozzle_diameter = 0.6"),
+        "nozzle not passed on"
+    );
+
+    let output = run(&["--machine", "ultimaker2", "--nozzle", "0.6"]);
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("from 0.4 to 0.4"));
+    let output = run(&["--machine", "prusa-mk9"]);
+    assert!(String::from_utf8_lossy(&output.stderr).contains("built-in: ultimaker2, "));
+
+    // A farm's own machine, from a config: unheated bed, 1.75 mm, CuraEngine.
+    let config = dir.path().join("crispen.toml");
+    std::fs::write(
+        &config,
+        "[spool]\ndir = \"spool\"\n[[machine]]\nname = \"cold-175\"\nfirmware = \"marlin2\"\n\
+         bed_mm = [180, 180, 180]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = false\n",
+    )
+    .unwrap();
+    let output = run(&[
+        "--machine",
+        "cold-175",
+        "--config",
+        config.to_str().unwrap(),
+        "--slicer",
+        "cura",
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        !text.contains("M190") && !text.contains("M140 S6"),
+        "the cold bed is heated"
+    );
+    let (_, mid) = extrusion_and_middle(&text);
+    assert!(
+        (mid[0] - 90.0).abs() < 3.0,
+        "not centred on a 180 mm bed: {mid:?}"
+    );
 }

@@ -30,7 +30,7 @@ pub struct Cli {
 pub enum Command {
     /// Enhance a mesh for a printed height (adaptive unsharp masking)
     Enhance(enhance::Args),
-    /// Enhance, scale and slice a model into Marlin G-code with a real slicer
+    /// Enhance, scale and slice a model into Marlin G-code for one machine with a real slicer
     Slice(slice::Args),
     /// Stream a G-code file to a Marlin printer over serial
     Print(print::Args),
@@ -38,7 +38,7 @@ pub enum Command {
     Sim(sim::Args),
     /// List serial ports (stable names, USB ids, which printer uses each), or probe one
     Ports(ports::Args),
-    /// Run the print-farm daemon (hot folders, jobs, printers)
+    /// Run the print-farm daemon (hot folders of models or pre-sliced G-code, jobs, printers)
     Run(run::Args),
     /// Show the daemon's printers and jobs
     Status(control::StatusArgs),

@@ -16,14 +16,14 @@ pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
     let task: PrepareTask = serde_json::from_slice(&input)?;
     let span = tracing::info_span!("job", job = %task.job);
     let _entered = span.enter();
-    let outcome = prepare::prepare(&task, &mut |step| say(&ChildMessage::Step(step)));
+    let outcome = prepare::run_task(&task, &mut |step| say(&ChildMessage::Step(step)));
     let code = match outcome {
         Ok(report) => {
             say(&ChildMessage::Done(Box::new(report)));
             ExitCode::SUCCESS
         }
         Err(e) => {
-            say(&ChildMessage::Failed(e.to_string()));
+            say(&ChildMessage::Failed(e));
             ExitCode::FAILURE
         }
     };

@@ -56,6 +56,20 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             config.printers.len(),
             config.folders.len()
         );
+        // What each printer's G-code will be made for.
+        for p in &config.printers {
+            let m = &p.machine;
+            let [x, y, z] = m.bed_mm;
+            println!(
+                "  {}: machine {} ({x} x {y} x {z} mm, {} mm nozzle, {} mm filament, {} bed, firmware {})",
+                p.name,
+                m.name,
+                m.nozzle_mm,
+                m.filament_mm,
+                if m.heated_bed { "heated" } else { "unheated" },
+                m.firmware
+            );
+        }
         return Ok(ExitCode::SUCCESS);
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()

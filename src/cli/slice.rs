@@ -1,10 +1,13 @@
-//! `crispen slice`: enhance, scale and slice one model into a Marlin G-code job with a real
-//! slicer, over [`crispen::slice::slice`](crispen::slice::slice). Shows the step on a terminal
-//! and prints a summary, or the full report with `--json`.
+//! `crispen slice`: enhance, scale and slice one model into a Marlin G-code job for one
+//! machine with a real slicer, through the same steps as the daemon's preparation
+//! (`crispen::daemon::prepare::steps`). Shows the step on a terminal and prints a summary,
+//! or the full report with `--json`.
 
 use anyhow::Context;
-use crispen::enhance::{Phase, Strength, StrengthTable};
-use crispen::slice::{SliceRequest, SliceSettings, SliceStep, SlicerKind, UpAxis, SETTING_KEYS};
+use crispen::daemon::prepare::steps::{self, SliceRequest, Step};
+use crispen::enhance::{Strength, StrengthTable};
+use crispen::machine::Machine;
+use crispen::slice::{SliceSettings, SlicerKind, UpAxis, SETTING_KEYS};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -20,6 +23,17 @@ pub struct Args {
     /// Printed height of the model in mm (its Z extent on the bed)
     #[arg(long, value_name = "MM")]
     pub height: f64,
+    /// The machine to slice for: a built-in one (ultimaker2, ultimaker2-extended,
+    /// ultimaker2plus, ultimaker-original-plus, marlin-175) or one of --config's
+    /// [[machine]] tables
+    #[arg(long, value_name = "NAME", default_value = "ultimaker2")]
+    pub machine: String,
+    /// The nozzle fitted, for a machine that takes several (ultimaker2plus: 0.25 to 0.8)
+    #[arg(long, value_name = "MM")]
+    pub nozzle: Option<f64>,
+    /// A daemon config whose [[machine]] tables --machine may name
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
     /// Slicer to run: prusa (PrusaSlicer) or cura (CuraEngine)
     #[arg(long, default_value = "prusa", value_parser = parse_slicer)]
     pub slicer: SlicerKind,
@@ -32,7 +46,8 @@ pub struct Args {
     /// The model's up axis: z (STL convention) or y (common in OBJ files)
     #[arg(long, default_value = "z", value_parser = parse_up)]
     pub up: UpAxis,
-    /// Slicer profile replacing the built-in one (PrusaSlicer .ini, CuraEngine .toml)
+    /// Slicer profile replacing the machine's (PrusaSlicer .ini, CuraEngine .toml); the
+    /// machine's bed, nozzle, filament and start/end code still apply
     #[arg(long, value_name = "FILE")]
     pub profile: Option<PathBuf>,
     /// Override a setting: layer_height, infill, supports, nozzle_temp, bed_temp, material
@@ -54,15 +69,29 @@ fn parse_up(s: &str) -> Result<UpAxis, String> {
     s.parse()
 }
 
-fn step_text(step: SliceStep) -> String {
-    match step {
-        SliceStep::Loading => "loading the model".into(),
-        SliceStep::Enhancing(Phase::Operators) => "enhancing: building operators".into(),
-        SliceStep::Enhancing(Phase::Factorize) => "enhancing: factorizing".into(),
-        SliceStep::Enhancing(Phase::Solve(i)) => format!("enhancing: solving ({i})"),
-        SliceStep::Enhancing(Phase::Combine) => "enhancing: combining".into(),
-        SliceStep::Slicing => "slicing".into(),
-        SliceStep::Checking => "checking the G-code".into(),
+/// The machine `--machine` names: one of the config's, or a built-in one.
+fn find_machine(args: &Args) -> anyhow::Result<Machine> {
+    let defined = match &args.config {
+        Some(path) => crispen::daemon::config::Config::load(path)?.machines,
+        None => Vec::new(),
+    };
+    let machine = defined
+        .into_iter()
+        .find(|m| m.name == args.machine)
+        .or_else(|| Machine::builtin(&args.machine))
+        .with_context(|| {
+            let builtin: Vec<&str> = crispen::machine::BUILTIN.iter().map(|b| b.name).collect();
+            format!(
+                "--machine {:?}: no such machine (built-in: {}; others from --config FILE's [[machine]] tables)",
+                args.machine,
+                builtin.join(", ")
+            )
+        })?;
+    match args.nozzle {
+        Some(mm) => machine
+            .with_nozzle(mm)
+            .map_err(|m| anyhow::anyhow!("--nozzle {mm}: {m}")),
+        None => Ok(machine),
     }
 }
 
@@ -84,7 +113,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else {
         Strength::Auto
     };
-    let mut req = SliceRequest::new(&args.model, &args.output, args.height);
+    let machine = find_machine(&args)?;
+    let mut req = SliceRequest::new(&args.model, args.height);
     req.slicer = args.slicer;
     req.up = args.up;
     req.strength = strength;
@@ -102,12 +132,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         bar.enable_steady_tick(Duration::from_millis(120));
         bar
     });
-    let mut progress = |step: SliceStep| {
+    let mut progress = |step: Step| {
         if let Some(bar) = &bar {
-            bar.set_message(format!("{}: {}", args.model.display(), step_text(step)));
+            bar.set_message(format!("{}: {}", args.model.display(), step.describe()));
         }
     };
-    let result = crispen::slice::slice(&req, &mut progress);
+    let target = steps::Target {
+        machine,
+        output: args.output.clone(),
+        keep_mesh: None,
+    };
+    let result = steps::prepare_one(&req, target, &mut progress);
     if let Some(bar) = &bar {
         bar.finish_and_clear();
     }
@@ -133,10 +168,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             _ => "unknown".into(),
         };
         println!(
-            "{}: {} mm tall, {enhancement}; sliced by {} into {} layers ({} G-code lines)\n\
+            "{}: {} mm tall, {enhancement}; sliced for the {} by {} into {} layers ({} G-code lines)\n\
              estimated print time {time}, filament {filament}; took {:.1} s\nwrote {}",
             report.model.display(),
             report.height_mm,
+            report.machine,
             report
                 .slicer_version
                 .clone()

@@ -58,6 +58,8 @@ struct RawConfig {
     control: Option<RawControl>,
     #[serde(default)]
     farm: Option<RawFarm>,
+    #[serde(default, rename = "machine")]
+    machines: Vec<crate::machine::MachineSpec>,
     #[serde(default, rename = "printer")]
     printers: Vec<RawPrinter>,
     #[serde(default, rename = "folder")]
@@ -101,7 +103,11 @@ struct RawFarm {
 struct RawPrinter {
     name: String,
     port: Option<PathBuf>,
-    firmware: String,
+    firmware: Option<String>,
+    /// A machine's name (built-in or `[[machine]]`); the firmware then comes from it.
+    machine: Option<String>,
+    /// The nozzle fitted, for machines that take several (e.g. the Ultimaker 2+).
+    nozzle_mm: Option<f64>,
     baud: Option<i64>,
     heat_timeout_s: Option<i64>,
     simulate: Option<RawSimulate>,
@@ -141,6 +147,8 @@ pub struct Config {
     pub socket: PathBuf,
     pub farm: FarmConfig,
     pub printers: Vec<PrinterConfig>,
+    /// The `[[machine]]` tables, checked (the built-in machines are not listed).
+    pub machines: Vec<crate::machine::Machine>,
     pub folders: Vec<FolderConfig>,
     /// The HTTP API and dashboard on TCP (`[http]`), when configured.
     pub http: Option<HttpConfig>,
@@ -204,6 +212,8 @@ pub struct PrinterConfig {
     pub name: String,
     pub port: PrinterPort,
     pub firmware: Firmware,
+    /// What its G-code is made for (see `crate::machine`).
+    pub machine: crate::machine::Machine,
     pub baud: u32,
     /// An M109/M190 whose temperature stops coming closer to its target for this long
     /// fails the job (heaters off).
@@ -259,7 +269,7 @@ impl Config {
             if let Some(header) = unknown_table_header(text, offset) {
                 section = "the top level".into();
                 message = format!(
-                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[printer]], [[folder]], [http])"
+                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[machine]], [[printer]], [[folder]], [http])"
                 );
             }
             ConfigError::Parse {
@@ -374,6 +384,15 @@ printers = ["demo"]
             }
         };
 
+        let machines = check_machines(raw.machines, &invalid, &anchor)?;
+        let find_machine = |name: &str| {
+            machines
+                .iter()
+                .find(|m| m.name == name)
+                .cloned()
+                .or_else(|| crate::machine::Machine::builtin(name))
+        };
+
         if raw.printers.len() > MAX_PRINTERS {
             return Err(invalid(
                 "[[printer]]".into(),
@@ -407,10 +426,63 @@ printers = ["demo"]
                     "is used by another printer".into(),
                 ));
             }
-            let firmware: Firmware = p
+            let stated: Option<Firmware> = p
                 .firmware
-                .parse()
+                .as_deref()
+                .map(str::parse)
+                .transpose()
                 .map_err(|m: String| invalid(section.clone(), "firmware", m))?;
+            let mut machine = match (&p.machine, stated) {
+                (Some(name), _) => find_machine(name).ok_or_else(|| {
+                    invalid(
+                        section.clone(),
+                        "machine",
+                        format!(
+                            "no machine is named {name:?} (built-in: {}; or define it in a [[machine]] table)",
+                            crate::machine::BUILTIN
+                                .iter()
+                                .map(|b| b.name)
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ),
+                    )
+                })?,
+                (None, Some(firmware)) => crate::machine::Machine::default_for(firmware),
+                (None, None) => {
+                    return Err(invalid(
+                        section,
+                        "machine",
+                        "missing (give `machine`, e.g. \"ultimaker2\", or at least `firmware`)"
+                            .into(),
+                    ))
+                }
+            };
+            if let Some(f) = stated.filter(|f| *f != machine.firmware) {
+                return Err(invalid(
+                    section,
+                    "firmware",
+                    format!(
+                        "is {f}, but machine {:?} runs {}; leave `firmware` out (it comes from the machine)",
+                        machine.name, machine.firmware
+                    ),
+                ));
+            }
+            if let Some(nozzle) = p.nozzle_mm {
+                machine = machine
+                    .with_nozzle(nozzle)
+                    .map_err(|m| invalid(section.clone(), "nozzle_mm", m))?;
+                if machines.iter().any(|m| m.name == machine.name) {
+                    return Err(invalid(
+                        section,
+                        "nozzle_mm",
+                        format!(
+                            "this nozzle makes a machine named {:?}, which a [[machine]] table already names",
+                            machine.name
+                        ),
+                    ));
+                }
+            }
+            let firmware = machine.firmware;
             let baud = match p.baud {
                 None => firmware.default_baud(),
                 Some(b) if (300..=4_000_000).contains(&b) => b as u32,
@@ -474,6 +546,7 @@ printers = ["demo"]
                 name: p.name,
                 port,
                 firmware,
+                machine,
                 baud,
                 heat_timeout,
             });
@@ -496,6 +569,22 @@ printers = ["demo"]
                 return Err(invalid(section, "path", "is configured twice".into()));
             }
             check_height(f.height_mm).map_err(|m| invalid(section.clone(), "height_mm", m))?;
+            // A height no machine of the folder can build would fail every job.
+            let tallest = printers
+                .iter()
+                .filter(|p| f.printers.contains(&p.name))
+                .map(|p| p.machine.bed_mm[2])
+                .fold(0.0, f64::max);
+            if !f.printers.is_empty() && tallest > 0.0 && f.height_mm > tallest {
+                return Err(invalid(
+                    section,
+                    "height_mm",
+                    format!(
+                        "{} mm is taller than any of its printers' machines builds ({tallest} mm)",
+                        f.height_mm
+                    ),
+                ));
+            }
             let inside = |a: &Path, b: &Path| normalise(a).starts_with(normalise(b));
             if inside(&path, &spool_dir) || inside(&spool_dir, &path) {
                 return Err(invalid(
@@ -572,6 +661,7 @@ printers = ["demo"]
             socket,
             farm,
             printers,
+            machines,
             folders,
             http,
         })
@@ -647,6 +737,38 @@ const SETTLE_S: Bounds = 0.05..=3600.0;
 const RESCAN_S: Bounds = 0.5..=86_400.0;
 /// Time limit of one preparation (enhance and slice).
 pub const PREPARE_TIMEOUT_S: Bounds = 0.1..=7.0 * 86_400.0;
+
+/// Checks the `[[machine]]` tables in order (one may be `based_on` an earlier one).
+fn check_machines(
+    specs: Vec<crate::machine::MachineSpec>,
+    invalid: &dyn Fn(String, &str, String) -> ConfigError,
+    anchor: &dyn Fn(&Path) -> PathBuf,
+) -> Result<Vec<crate::machine::Machine>, ConfigError> {
+    use crate::machine::{Machine, MAX_MACHINES};
+    if specs.len() > MAX_MACHINES {
+        return Err(invalid(
+            "[[machine]]".into(),
+            "name",
+            format!("at most {MAX_MACHINES} machines, got {}", specs.len()),
+        ));
+    }
+    let mut machines: Vec<Machine> = Vec::new();
+    for (i, spec) in specs.into_iter().enumerate() {
+        let section = format!("[[machine]] #{} (name {:?})", i + 1, spec.name);
+        let known = |name: &str| {
+            machines
+                .iter()
+                .find(|m| m.name == name)
+                .cloned()
+                .or_else(|| Machine::builtin(name))
+        };
+        let machine = spec
+            .check(&known, anchor)
+            .map_err(|(key, m)| invalid(section, key, m))?;
+        machines.push(machine);
+    }
+    Ok(machines)
+}
 
 /// A number of seconds within `range`, as a duration (never a panic for NaN, infinity or
 /// a value too big for a `Duration`).
@@ -730,7 +852,9 @@ fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
         .0
         .trim();
     let top = name.split('.').next()?.trim().trim_matches('"');
-    let known = ["spool", "control", "farm", "printer", "folder", "http"];
+    let known = [
+        "spool", "control", "farm", "machine", "printer", "folder", "http",
+    ];
     (!known.contains(&top)).then(|| {
         line.split_once('#')
             .map_or(line, |(h, _)| h)
@@ -921,7 +1045,7 @@ slicer = "cura"
     #[test]
     fn bad_values_name_section_and_key() {
         let cases = [
-            ("height_mm = 50", "height_mm = -5", "[[folder]] #1 (path \"/srv/print/5cm\"): key `height_mm`: must be from 1 to 205 mm"),
+            ("height_mm = 50", "height_mm = -5", "[[folder]] #1 (path \"/srv/print/5cm\"): key `height_mm`: must be from 1 to 2000 mm"),
             ("max_heating = 1", "max_heating = 0", "[farm]: key `max_heating`"),
             ("firmware = \"ultimaker2\"", "firmware = \"repetier\"", "[[printer]] #1 (name \"um2-a\"): key `firmware`"),
             ("printers = [\"sim\"]", "printers = [\"nope\"]", "[[folder]] #2 (path \"hot/igea\"): key `printers`: no [[printer]] is named \"nope\""),
@@ -950,8 +1074,8 @@ slicer = "cura"
             ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nrescan_s = 1e-12", "[farm]: key `rescan_s`"),
             ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nsettle_s = 1e30", "[farm]: key `settle_s`"),
             ("max_heating = 1", "max_heating = 100000", "[farm]: key `max_heating`: must be between 1 and 256"),
-            ("height_mm = 50", "height_mm = 0.001", "key `height_mm`: must be from 1 to 205 mm"),
-            ("height_mm = 50", "height_mm = 500", "key `height_mm`: must be from 1 to 205 mm"),
+            ("height_mm = 50", "height_mm = 0.001", "key `height_mm`: must be from 1 to 2000 mm"),
+            ("height_mm = 50", "height_mm = 500", "key `height_mm`: 500 mm is taller than any of its printers' machines builds (250 mm)"),
             ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\" or a lambda2 from 0 to 100"),
             ("path = \"/srv/print/5cm\"", "path = \"/var/lib/crispen/hot\"", "[[folder]] #1 (path \"/var/lib/crispen/hot\"): key `path`: the hot folder and the spool (/var/lib/crispen) must not contain each other"),
             ("path = \"/srv/print/5cm\"", "path = \"/var/lib\"", "key `path`: the hot folder and the spool"),
@@ -970,13 +1094,93 @@ slicer = "cura"
     /// An unknown table was once reported as an unknown key of the table above it.
     #[test]
     fn unknown_top_level_table_is_named_as_a_table() {
-        for header in ["[[machine]]", "[machines]", "[machine.x]"] {
+        for header in ["[[gantry]]", "[machines]", "[gantry.x]"] {
             let text = format!("{GOOD}{header}\nname = \"x\"\n");
             let err = parse(&text).unwrap_err().to_string();
             assert!(err.contains(&format!("unknown table `{header}`")), "{err}");
             assert!(err.contains("the top level"), "{err}");
             assert!(!err.contains("[[folder]] #2"), "{err}");
         }
+    }
+
+    /// `[[machine]]` tables and `machine =` on printers: the firmware comes from the
+    /// machine, a printer without one keeps its old meaning, and every mistake is named.
+    #[test]
+    fn machines_are_checked_and_printers_take_theirs() {
+        let c = parse(GOOD).unwrap();
+        // Without `machine`: what the firmware always meant.
+        assert_eq!(c.printers[0].machine.name, "ultimaker2");
+        assert_eq!(
+            c.printers[1].machine.name,
+            crate::machine::DEFAULT_MARLIN_MACHINE
+        );
+        let machines = "[[machine]]\nname = \"generic-175\"\nfirmware = \"marlin20\"\n\
+            bed_mm = [220, 220, 250]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = true\n";
+        let text = GOOD
+            .replacen("[[printer]]", &format!("{machines}[[printer]]"), 1)
+            .replacen("firmware = \"marlin2\"", "machine = \"generic-175\"", 1)
+            .replacen(
+                "firmware = \"ultimaker2\"",
+                "machine = \"ultimaker2plus\"\nnozzle_mm = 0.8",
+                1,
+            );
+        let c = parse(&text).unwrap();
+        assert_eq!(c.machines.len(), 1);
+        assert_eq!(c.printers[1].machine.name, "generic-175");
+        assert_eq!(c.printers[1].firmware, Firmware::Marlin20);
+        assert_eq!(c.printers[1].baud, 115_200);
+        assert_eq!(c.printers[0].machine.name, "ultimaker2plus-0.8mm");
+        assert_eq!(c.printers[0].firmware, Firmware::Ultimaker2);
+
+        let with = |extra: &str, printer: &str| {
+            let text = GOOD
+                .replacen("[[printer]]", &format!("{machines}{extra}[[printer]]"), 1)
+                .replacen("firmware = \"ultimaker2\"", printer, 1);
+            parse(&text).unwrap_err().to_string()
+        };
+        for (extra, printer, expected) in [
+            ("", "machine = \"nope\"", "[[printer]] #1 (name \"um2-a\"): key `machine`: no machine is named \"nope\""),
+            ("", "machine = \"generic-175\"\nfirmware = \"ultimaker2\"", "key `firmware`: is ultimaker2, but machine \"generic-175\" runs marlin20"),
+            ("", "machine = \"ultimaker2\"\nnozzle_mm = 0.6", "key `nozzle_mm`: the ultimaker2 takes nozzles from 0.4 to 0.4 mm"),
+            ("", "", "key `machine`: missing"),
+            ("[[machine]]\nname = \"x\"\nbased_on = \"generic-175\"\nbed_mm = [0, 1, 2]\n", "firmware = \"ultimaker2\"", "[[machine]] #2 (name \"x\"): key `bed_mm`"),
+            ("[[machine]]\nname = \"generic-175\"\nbased_on = \"ultimaker2\"\n", "firmware = \"ultimaker2\"", "[[machine]] #2 (name \"generic-175\"): key `name`: \"generic-175\" is already a machine"),
+            ("[[machine]]\nname = \"x\"\nbased_on = \"ultimaker2\"\nnozle_mm = 1\n", "firmware = \"ultimaker2\"", "unknown field `nozle_mm`"),
+        ] {
+            let e = with(extra, printer);
+            assert!(e.contains(expected), "{e}\n  expected: {expected}");
+        }
+        // A folder taller than all its printers' machines build fails every job: refused.
+        let e = parse(&GOOD.replacen("height_mm = 30", "height_mm = 260", 1))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("[[folder]] #2") && e.contains("taller than any"),
+            "{e}"
+        );
+    }
+
+    /// The shipped example names two Ultimaker 2s: they must be sliced for that machine,
+    /// and the `[[machine]]` example in its comments must load as written.
+    #[test]
+    fn the_example_config_is_right_for_its_printers() {
+        let text = include_str!("../../config/crispen.toml");
+        let c = parse(text).unwrap();
+        assert_eq!(c.printers.len(), 2);
+        for p in &c.printers {
+            assert_eq!(
+                (p.machine.name.as_str(), p.firmware),
+                ("ultimaker2", Firmware::Ultimaker2)
+            );
+        }
+        let example: String = text
+            .lines()
+            .skip_while(|l| !l.starts_with("# [[machine]]"))
+            .take_while(|l| l.starts_with("# ") && !l.starts_with("# # "))
+            .map(|l| format!("{}\n", &l[2..]))
+            .collect();
+        let c = parse(&format!("{text}\n{example}")).unwrap();
+        assert_eq!(c.machines[0].filament_mm, 1.75);
     }
 
     #[test]

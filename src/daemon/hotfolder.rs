@@ -4,7 +4,9 @@
 //! it was closed after writing (CLOSE_WRITE), or when its size and mtime stayed unchanged
 //! for the settle time (for copies over network shares, where events are unreliable).
 //! Temporary names (`*.part`, `*~`, dot-files) are never taken; sidecars (`*.toml`) are
-//! reported like models, for the pick-up to match with their model.
+//! reported like models, for the pick-up to match with their model. Models and G-code
+//! sliced elsewhere (`*.gcode`, printed as it is) are taken alike; what a file is, is the
+//! preparation's to find out.
 //! [`SettleTracker`] is the pure decision; [`watch`] drives it with `notify` events, a
 //! periodic rescan (in case an event was missed) and a short tick.
 
@@ -206,7 +208,16 @@ mod tests {
         for name in [".hidden.stl", "x.stl.part", "x.stl~", "x.stl.toml", "x.tmp"] {
             assert!(!is_candidate_name(name), "{name}");
         }
-        for name in ["x.stl", "bust.OBJ", "a b.3mf", "noext"] {
+        // Pre-sliced G-code is taken too (printed as it is); binary G-code is taken so
+        // that its job fails with the reason rather than the file lying there unnoticed.
+        for name in [
+            "x.stl",
+            "bust.OBJ",
+            "a b.3mf",
+            "noext",
+            "part.gcode",
+            "part.bgcode",
+        ] {
             assert!(is_candidate_name(name), "{name}");
         }
     }

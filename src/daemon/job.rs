@@ -151,6 +151,36 @@ pub struct Job {
     pub copies_done: u32,
     pub slice_report: Option<crate::slice::SliceReport>,
     pub print_report: Option<serde_json::Value>,
+    /// Per machine that may print it: its G-code, or why it cannot (see
+    /// `crate::daemon::prepare`). Empty for jobs prepared before machines existed, whose
+    /// `<file>.gcode` was made for an Ultimaker 2.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub machines: std::collections::BTreeMap<String, ForMachine>,
+}
+
+/// What preparation made of a job for one machine.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ForMachine {
+    /// Its G-code: a file in the job's directory.
+    Gcode(String),
+    /// Why this machine cannot print the job.
+    Refused(String),
+}
+
+impl Job {
+    /// The G-code file (in the job's directory) made for `machine`, if any.
+    pub fn gcode_for(&self, machine: &str) -> Option<String> {
+        if self.machines.is_empty() {
+            // Prepared before machines existed: sliced for an Ultimaker 2.
+            return (self.slice_report.is_some() && machine == "ultimaker2")
+                .then(|| format!("{}.gcode", self.file));
+        }
+        match self.machines.get(machine)? {
+            ForMachine::Gcode(file) => Some(file.clone()),
+            ForMachine::Refused(_) => None,
+        }
+    }
 }
 
 impl Job {
@@ -169,6 +199,7 @@ impl Job {
             copies_done: 0,
             slice_report: None,
             print_report: None,
+            machines: Default::default(),
         }
     }
 }
@@ -667,11 +698,15 @@ impl JobStore {
         // A job that was prepared keeps its G-code: printing it again is what a retry
         // after a cancelled or interrupted print means, and slicing again would give a
         // slightly different program (PrusaSlicer's output varies from run to run).
-        let prepared = job.slice_report.is_some()
-            && self
-                .job_dir(id)
-                .join(format!("{}.gcode", job.file))
-                .is_file();
+        let dir = self.job_dir(id);
+        let legacy =
+            std::iter::once(format!("{}.gcode", job.file)).filter(|_| job.machines.is_empty());
+        let made = job.machines.values().filter_map(|m| match m {
+            ForMachine::Gcode(file) => Some(file.clone()),
+            ForMachine::Refused(_) => None,
+        });
+        let prepared =
+            job.slice_report.is_some() && legacy.chain(made).any(|f| dir.join(f).is_file());
         let state = if prepared {
             JobState::Ready
         } else {

@@ -5,7 +5,7 @@
 //! - [`config`]: the TOML configuration, checked in two stages.
 //! - [`job`]: the spool of job directories and their atomically written state.
 //! - [`hotfolder`]: deciding when a dropped file is complete.
-//! - [`prepare`]: sidecars and the slicer step.
+//! - [`prepare`]: a job's preparation (sidecars, machines, the steps) and its queue.
 //! - [`printer`]: printer supervisors and staggered heat-ups.
 //! - [`control`]: the operator's commands and the control socket, which serves the HTTP
 //!   API (`crate::http`) like the TCP listener.
@@ -32,7 +32,6 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
-use tracing::Instrument;
 
 #[derive(Debug, thiserror::Error)]
 pub enum DaemonError {
@@ -279,7 +278,10 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
         ))
     });
     let mut pickup = spawn_pickup(&farm, &config);
-    let prepare_task = tokio::spawn(prepare_loop(Arc::clone(&farm), prepare_program));
+    let prepare_task = tokio::spawn(prepare::queue::prepare_loop(
+        Arc::clone(&farm),
+        prepare_program,
+    ));
 
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     let mut watchdog_usec = 0u64;
@@ -477,165 +479,5 @@ fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
         Err(e) => {
             tracing::error!(job = %id, file = %path.display(), error = %e, "cannot take the late sidecar")
         }
-    }
-}
-
-/// Prepares queued jobs, oldest first, at most one per core at a time, each in its own
-/// child process under a token of its own (a child of the shutdown token).
-async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
-    let cores = std::thread::available_parallelism()
-        .map(|n| n.get())
-        .unwrap_or(1);
-    let mut running = tokio::task::JoinSet::new();
-    loop {
-        let mut wake = farm.subscribe();
-        if farm.stopping() {
-            break;
-        }
-        // A job just picked up waits the settle time, so a sidecar that arrives shortly
-        // after its model still applies.
-        let settle = farm.config().farm.settle.as_secs_f64();
-        let mut wait_s: Option<f64> = None;
-        while running.len() < cores {
-            let now = job::now_s();
-            let next = farm
-                .store()
-                .jobs()
-                .filter(|j| j.state == JobState::Queued)
-                .find(|j| {
-                    let fresh = j.history.len() == 1;
-                    let left = j.history[0].1 + settle - now;
-                    if fresh && left > 0.0 {
-                        wait_s = Some(wait_s.map_or(left, |w| w.min(left)));
-                        return false;
-                    }
-                    true
-                })
-                .map(|j| j.id.clone());
-            let Some(id) = next else { break };
-            if let Err(e) = farm.transition(&id, JobState::Preparing, None) {
-                tracing::error!(job = %id, error = %e, "cannot start preparing");
-                // A job that failed for it (its directory is gone) is passed over; one
-                // still queued (the disk is full) waits for the next change.
-                let still_queued = farm.store().get(&id).map(|j| j.state) == Some(JobState::Queued);
-                if still_queued {
-                    break;
-                }
-                continue;
-            }
-            let cancel = farm.shutdown.child_token();
-            farm.preparing
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .insert(
-                    id.clone(),
-                    farm::Preparation {
-                        step: "starting".into(),
-                        cancel: cancel.clone(),
-                    },
-                );
-            let span = tracing::info_span!("job", job = %id);
-            running.spawn(
-                prepare_one(Arc::clone(&farm), id, program.clone(), cancel).instrument(span),
-            );
-        }
-        let grace = Duration::from_secs_f64(wait_s.unwrap_or(0.0).clamp(0.0, 3600.0));
-        tokio::select! {
-            _ = wake.changed() => {}
-            Some(_) = running.join_next() => {}
-            _ = farm.shutdown.cancelled() => {}
-            _ = tokio::time::sleep(grace), if wait_s.is_some() => {}
-        }
-    }
-    // The shutdown token has stopped every preparation's child; wait for their jobs to be
-    // put back in the queue.
-    while running.join_next().await.is_some() {}
-}
-
-/// Prepares one job and records the outcome.
-async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: CancellationToken) {
-    let resolved = {
-        let (farm, id) = (Arc::clone(&farm), id.clone());
-        tokio::task::spawn_blocking(move || resolve(&farm, &id))
-            .await
-            .unwrap_or_else(|e| Err(format!("preparation crashed: {e}")))
-    };
-    let result = match resolved {
-        Err(reason) => Err(prepare::PrepareError::Failed(reason)),
-        Ok((task, sidecar)) => {
-            tracing::info!(
-                model = %task.model.display(),
-                height_mm = task.height_mm,
-                strength = ?task.strength,
-                "preparing"
-            );
-            let on_step = |step: String| {
-                if let Some(p) = farm
-                    .preparing
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .get_mut(&id)
-                {
-                    p.step = step;
-                }
-            };
-            prepare::run_child(&program, &task, &cancel, on_step)
-                .await
-                .map(|report| (report, sidecar))
-        }
-    };
-    let farm2 = Arc::clone(&farm);
-    let _ = tokio::task::spawn_blocking(move || finish_preparation(&farm2, &id, result)).await;
-}
-
-/// Reads the job's sidecar and works out its task.
-fn resolve(farm: &Farm, id: &str) -> Result<(prepare::PrepareTask, Option<job::Sidecar>), String> {
-    let (job, dir) = {
-        let store = farm.store();
-        let job = store.get(id).cloned().ok_or("job vanished")?;
-        (job, store.job_dir(id))
-    };
-    let config = farm.config();
-    let folder = config.folder(&job.folder).ok_or_else(|| {
-        format!(
-            "folder {} is no longer in the config (hint: add it back and `crispen retry` the job)",
-            job.folder.display()
-        )
-    })?;
-    let sidecar = prepare::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
-    let task = prepare::resolve_task(id, &dir, &job.file, folder, sidecar.as_ref())?;
-    Ok((task, sidecar))
-}
-
-fn finish_preparation(
-    farm: &Farm,
-    id: &str,
-    result: Result<(crate::slice::SliceReport, Option<job::Sidecar>), prepare::PrepareError>,
-) {
-    farm.preparing
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .remove(id);
-    // Cancelled (or otherwise moved on) while being prepared: the result is not wanted.
-    // Checked and recorded under one hold of the lock, so a cancel cannot slip between.
-    let mut store = farm.store();
-    if store.get(id).map(|j| j.state) != Some(JobState::Preparing) {
-        return;
-    }
-    let outcome = match result {
-        Ok((report, sidecar)) => farm.transition_with(&mut store, id, JobState::Ready, None, |j| {
-            j.slice_report = Some(report);
-            j.sidecar = sidecar;
-        }),
-        // Still preparing, so not cancelled by the operator: the daemon is stopping, and
-        // the job is prepared again at the next start.
-        Err(prepare::PrepareError::Cancelled) => {
-            farm.transition_in(&mut store, id, JobState::Queued, None)
-        }
-        Err(e) => farm.transition_in(&mut store, id, JobState::Failed, Some(e.to_string())),
-    };
-    drop(store);
-    if let Err(e) = outcome {
-        tracing::error!(job = id, error = %e, "cannot record the preparation's outcome");
     }
 }

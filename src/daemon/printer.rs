@@ -230,6 +230,12 @@ async fn between_jobs(
 /// threads, and two of them must never take the same job.
 fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let config = farm.config();
+    // A printer only receives G-code made for its machine.
+    let machine = config
+        .printers
+        .iter()
+        .find(|p| p.name == printer)
+        .map(|p| p.machine.name.clone())?;
     let mut store = farm.store();
     let id = store
         .jobs()
@@ -243,7 +249,7 @@ fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
                 .as_ref()
                 .and_then(|s| s.printer.as_deref())
                 .is_none_or(|p| p == printer);
-            served && wanted
+            served && wanted && j.gcode_for(&machine).is_some()
         })
         .map(|j| j.id.clone())?;
     let claimed = farm.transition_with(&mut store, &id, JobState::Printing, None, |j| {
@@ -270,12 +276,28 @@ async fn run_job(
     job_id: &str,
     link: &mut dyn PrinterLink,
 ) -> bool {
+    let machine = farm
+        .config()
+        .printers
+        .iter()
+        .find(|p| p.name == printer)
+        .map(|p| p.machine.name.clone());
     let gcode: PathBuf = {
         let store = farm.store();
         let Some(job) = store.get(job_id) else {
             return false;
         };
-        store.job_dir(job_id).join(format!("{}.gcode", job.file))
+        match machine.and_then(|m| job.gcode_for(&m)) {
+            Some(file) => store.job_dir(job_id).join(file),
+            None => {
+                // The printer's machine changed (a reload) since the claim: not for it.
+                drop(store);
+                if let Err(e) = farm.transition(job_id, JobState::Ready, None) {
+                    tracing::error!(error = %e, "cannot put the job back");
+                }
+                return false;
+            }
+        }
     };
 
     farm.set_printer(printer, |p| {
@@ -565,6 +587,7 @@ mod tests {
     /// one printer (a claim split from its state change once printed a job twice).
     #[test]
     fn concurrent_claims_take_each_job_once() {
+        use crate::daemon::job::ForMachine;
         let tmp = tempfile::tempdir().unwrap();
         let hot = tmp.path().join("hot");
         std::fs::create_dir(&hot).unwrap();
@@ -591,8 +614,21 @@ mod tests {
             store
                 .transition(&job.id, JobState::Preparing, None)
                 .unwrap();
-            store.transition(&job.id, JobState::Ready, None).unwrap();
-            ids.push(job.id);
+            // Every tenth job was made only for another machine: no printer here takes it.
+            let machine = if i % 10 == 9 {
+                "ultimaker2"
+            } else {
+                "marlin-175"
+            };
+            store
+                .transition_with(&job.id, JobState::Ready, None, |j| {
+                    let gcode = ForMachine::Gcode(format!("m{i}.stl.{machine}.gcode"));
+                    j.machines.insert(machine.to_string(), gcode);
+                })
+                .unwrap();
+            if machine == "marlin-175" {
+                ids.push(job.id);
+            }
         }
         let farm = Farm::new(config, store, Default::default());
         let barrier = std::sync::Barrier::new(printers.len());
@@ -611,7 +647,10 @@ mod tests {
         });
         let mut all: Vec<String> = claimed.concat();
         all.sort();
-        assert_eq!(all, ids, "each ready job claimed exactly once");
+        assert_eq!(
+            all, ids,
+            "each ready job made for the printers' machine claimed exactly once, no other"
+        );
         let store = farm.store();
         for (p, jobs) in printers.iter().zip(&claimed) {
             for id in jobs {

@@ -69,7 +69,15 @@ pub fn snapshot(farm: &Farm) -> StatusView {
             let folder = config.folder(&j.folder);
             let sidecar = store.get(&j.id).and_then(|job| job.sidecar.clone());
             let task = folder.and_then(|f| {
-                crate::daemon::prepare::resolve_task(&j.id, &dir, &j.file, f, sidecar.as_ref()).ok()
+                crate::daemon::prepare::resolve_task(
+                    &j.id,
+                    &dir,
+                    &j.file,
+                    f,
+                    &config.printers,
+                    sidecar.as_ref(),
+                )
+                .ok()
             });
             JobView {
                 folder_name: folder

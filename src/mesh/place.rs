@@ -41,8 +41,8 @@ pub fn scale_to_height(mesh: &mut Mesh, height_mm: f64) -> f64 {
 }
 
 /// Scales the mesh to `height_mm` tall, puts its lowest point at Z = 0 and centres its
-/// footprint on X = Y = 0, and checks it fits `fits_mm` (X, Y, Z). Returns the model's
-/// size (X, Y, Z) in mm.
+/// footprint on X = Y = 0, and checks it fits `fits_mm` (X, Y, Z) (infinite: any size).
+/// Returns the model's size (X, Y, Z) in mm.
 pub fn place_on_bed(
     mesh: &mut Mesh,
     height_mm: f64,
@@ -63,11 +63,19 @@ pub fn place_on_bed(
         }
     }
     let size = [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]];
-    if (0..3).any(|k| size[k] > fits_mm[k] + 1e-9) || height_mm > fits_mm[2] {
+    check_fits(size, fits_mm)?;
+    Ok(size)
+}
+
+/// Whether a placed model of `size_mm` (X, Y, Z) fits `fits_mm`: placement is the same
+/// on every bed (centred, at the printed height), so one placed mesh is checked against
+/// each machine's bed.
+pub fn check_fits(size_mm: [f64; 3], fits_mm: [f64; 3]) -> Result<(), PlaceError> {
+    if (0..3).any(|k| !(size_mm[k] <= fits_mm[k] + 1e-9)) {
         return Err(PlaceError::TooBig {
-            size_mm: size,
+            size_mm,
             max_mm: fits_mm,
         });
     }
-    Ok(size)
+    Ok(())
 }

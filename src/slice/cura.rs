@@ -79,6 +79,29 @@ impl SlicerProfile for CuraProfile {
         ] {
             put(k, fmt_num(job.bed_temp_c));
         }
+        let m = job.machine;
+        put("machine_width", fmt_num(m.bed_mm[0]));
+        put("machine_depth", fmt_num(m.bed_mm[1]));
+        put("machine_height", fmt_num(m.bed_mm[2]));
+        put("machine_nozzle_size", fmt_num(m.nozzle_mm));
+        put("material_diameter", fmt_num(m.filament_mm));
+        put("machine_heated_bed", m.heated_bed.to_string());
+        // Cura derives line widths from the nozzle with formulas the engine cannot
+        // evaluate on the command line; a profile that sets them keeps its own.
+        for k in [
+            "line_width",
+            "wall_line_width",
+            "wall_line_width_0",
+            "wall_line_width_x",
+            "skin_line_width",
+            "infill_line_width",
+            "skirt_brim_line_width",
+            "support_line_width",
+        ] {
+            if !settings.iter().any(|(key, _)| key == k) || k == "line_width" {
+                put(k, fmt_num(m.nozzle_mm));
+            }
+        }
         put("machine_start_gcode", start);
         put("machine_end_gcode", end);
         derive_cura_formulas(&mut map, s);

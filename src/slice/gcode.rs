@@ -18,6 +18,8 @@ pub struct Expectations {
     pub height_mm: f64,
     /// The requested layer height, if any; otherwise it is read from the G-code.
     pub layer_height_mm: Option<f64>,
+    /// Whether the machine has a heated bed (then it must be heated before extruding).
+    pub heated_bed: bool,
 }
 
 /// Figures read from a G-code file that passed the check.
@@ -86,7 +88,7 @@ pub fn check(reader: impl BufRead, expect: &Expectations) -> Result<GcodeStats, 
     let mut absolute = true;
     let mut absolute_e = true;
     let mut nozzle_heated = false;
-    let mut bed_heated = false;
+    let mut bed_heated = !expect.heated_bed;
     let mut first_extrusion_line: Option<usize> = None;
     let mut layer_zs: Vec<f64> = Vec::new();
     let mut top_z = f64::NEG_INFINITY;
@@ -300,6 +302,7 @@ mod tests {
             bed_mm: [223.0, 223.0, 205.0],
             height_mm: height,
             layer_height_mm: Some(0.2),
+            heated_bed: true,
         }
     }
 

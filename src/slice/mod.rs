@@ -1,11 +1,14 @@
-//! Slicing with real slicers: turn a model into a Marlin G-code job for an Ultimaker 2.
+//! Slicing with real slicers: turn a mesh placed on a machine's bed into a Marlin G-code
+//! job for that machine.
 //!
-//! [`slice`] loads the model ([`crate::mesh`]), enhances it for the printed height
-//! ([`crate::enhance`]), scales it to that height, lays it on the bed and centres it, checks
-//! it fits the build volume, then runs PrusaSlicer or CuraEngine as a child process on a
-//! temporary STL ([`process`]), and checks the G-code before calling it a job ([`gcode`]).
-//! The slicer profiles and the start/end G-code are embedded in the binary ([`profiles`]),
-//! so an installed `crispen` needs nothing from the source tree; `profile` overrides them.
+//! [`slice_mesh`] runs PrusaSlicer or CuraEngine as a child process on a temporary STL
+//! ([`process`]) with the machine's profile, and checks the G-code before calling it a job
+//! ([`gcode`]). Loading, enhancing and placing the model are steps of their own
+//! ([`crate::mesh`], [`crate::enhance`], [`crate::mesh::place`]), composed by the daemon's
+//! preparation (`crate::daemon::prepare`). The slicer profiles and the start/end G-code are
+//! embedded in the binary ([`profiles`]), so an installed `crispen` needs nothing from the
+//! source tree; a machine or a folder may name other profile files. G-code sliced
+//! elsewhere is read by [`presliced`].
 //!
 //! Per-folder and per-job overrides are [`SliceSettings`]: a few named settings (layer
 //! height, infill, supports, temperatures, material) that crispen maps onto each slicer's
@@ -15,6 +18,7 @@
 
 pub mod cura;
 pub mod gcode;
+pub mod presliced;
 pub mod process;
 pub mod profiles;
 pub mod prusa;
@@ -22,22 +26,18 @@ mod settings;
 
 pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
 
-use crate::enhance::{EnhanceError, EnhanceOptions, EnhanceReport, Phase, Strength, StrengthTable};
-use crate::mesh::place::PlaceError;
+use crate::enhance::{EnhanceError, EnhanceReport};
+use crate::machine::{Machine, SKIRT_MARGIN_MM};
 use crate::mesh::{Mesh, MeshError};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// Usable build volume of the Ultimaker 2, in mm (X, Y, Z).
-pub const BED_MM: [f64; 3] = [223.0, 223.0, 205.0];
 /// Printed heights accepted, mm: from a height that still holds a shape of a few layers
-/// to the build volume's height.
-pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=BED_MM[2];
-/// Room kept free around the model on each side, for the skirt the profiles print.
-pub const SKIRT_MARGIN_MM: f64 = 5.0;
+/// to the tallest machine that can be described; whether a machine builds it is the
+/// placement's check.
+pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_MM.end();
 
 /// Which slicer turns the mesh into G-code.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Default)]
@@ -117,66 +117,38 @@ impl std::str::FromStr for UpAxis {
     }
 }
 
-/// One slicing job.
-#[derive(Clone, Debug)]
-pub struct SliceRequest {
-    pub model: PathBuf,
-    pub output: PathBuf,
-    /// Printed height of the model (its Z extent on the bed), mm.
-    pub height_mm: f64,
-    pub slicer: SlicerKind,
-    pub strength: Strength,
-    pub strength_table: StrengthTable,
-    pub settings: SliceSettings,
-    /// A profile replacing the built-in one: PrusaSlicer `.ini`, or CuraEngine `.toml`.
-    pub profile: Option<PathBuf>,
-    /// The slicer is killed and the job fails after this long.
-    pub timeout: Duration,
-    /// Program to run instead of the slicer's usual one (also env CRISPEN_PRUSA_SLICER /
-    /// CRISPEN_CURA_ENGINE); the request wins over the environment.
-    pub slicer_program: Option<PathBuf>,
-    /// Set to true from another thread to stop the job (the slicer is killed).
-    pub cancel: Option<Arc<AtomicBool>>,
-    /// The model's up axis (default Z).
-    pub up: UpAxis,
-    /// Where to keep the mesh that was sliced (enhanced, scaled and placed), as binary STL.
-    pub keep_mesh: Option<PathBuf>,
-    /// Where to draw the model before and after enhancement and the displacement's heat
-    /// map (`crate::preview`, only when it is enhanced); with it, the G-code also gets
-    /// PrusaSlicer-format thumbnails of the part as printed.
-    pub pictures: Option<PathBuf>,
-}
-
-impl SliceRequest {
-    /// A request with the defaults: PrusaSlicer, automatic strength, built-in profile,
-    /// 10 minute timeout.
-    pub fn new(model: impl Into<PathBuf>, output: impl Into<PathBuf>, height_mm: f64) -> Self {
-        SliceRequest {
-            model: model.into(),
-            output: output.into(),
-            height_mm,
-            slicer: SlicerKind::default(),
-            strength: Strength::Auto,
-            strength_table: StrengthTable::default(),
-            settings: SliceSettings::default(),
-            profile: None,
-            timeout: Duration::from_secs(600),
-            slicer_program: None,
-            cancel: None,
-            up: UpAxis::Z,
-            keep_mesh: None,
-            pictures: None,
-        }
-    }
-}
-
-/// Where a job is; reported through the `progress` callback of [`slice`].
+/// Where a slicing is; reported through the `progress` callback of [`slice_mesh`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum SliceStep {
-    Loading,
-    Enhancing(Phase),
     Slicing,
     Checking,
+}
+
+/// One slicing: a mesh already enhanced and placed on the machine's bed (see
+/// [`crate::mesh::place`]), sliced for one machine into `output`.
+#[derive(Clone, Debug)]
+pub struct SliceJob<'a> {
+    /// The model file the mesh came from (named in messages and the report).
+    pub model: &'a Path,
+    pub output: &'a Path,
+    pub machine: &'a Machine,
+    /// Printed height (the mesh's Z extent), mm.
+    pub height_mm: f64,
+    pub slicer: SlicerKind,
+    pub settings: &'a SliceSettings,
+    /// A profile replacing the machine's (PrusaSlicer `.ini` or CuraEngine `.toml`).
+    pub profile: Option<&'a Path>,
+    /// The slicer is killed and the slicing fails after this long.
+    pub timeout: Duration,
+    /// Program to run instead of the slicer's usual one (also env CRISPEN_PRUSA_SLICER /
+    /// CRISPEN_CURA_ENGINE); the job wins over the environment.
+    pub slicer_program: Option<&'a Path>,
+    /// Set to true from another thread to stop the slicer.
+    pub cancel: Option<&'a AtomicBool>,
+    /// Where to keep the mesh that was sliced, as binary STL.
+    pub keep_mesh: Option<&'a Path>,
+    /// Put PrusaSlicer-format thumbnails of the part into the G-code.
+    pub thumbnails: bool,
 }
 
 /// How the model was changed before slicing.
@@ -204,6 +176,9 @@ pub struct StepTimings {
 pub struct SliceReport {
     pub model: PathBuf,
     pub output: PathBuf,
+    /// The machine the G-code is made for.
+    #[serde(default)]
+    pub machine: String,
     pub height_mm: f64,
     pub up: UpAxis,
     pub enhancement: EnhancementSummary,
@@ -238,11 +213,12 @@ pub enum SliceError {
     },
     #[error(
         "{model}: at {height_mm} mm tall the model is {size_mm:.1?} mm (X, Y, Z), which does not fit \
-         the Ultimaker 2's {max_mm:?} mm (including {SKIRT_MARGIN_MM} mm around it for the skirt); \
+         the {machine}'s {max_mm:?} mm (keeping {SKIRT_MARGIN_MM} mm around it for the skirt); \
          print it smaller"
     )]
     TooBig {
         model: PathBuf,
+        machine: String,
         height_mm: f64,
         size_mm: [f64; 3],
         max_mm: [f64; 3],
@@ -326,68 +302,28 @@ impl SliceError {
     }
 }
 
-/// Runs a whole job: load, enhance, place, slice, check, and write `req.output` (only when
-/// the G-code passed the checks; an existing file is replaced atomically). Blocking.
-pub fn slice(
-    req: &SliceRequest,
+/// Slices a placed mesh for one machine, checks the G-code, and writes `job.output` (only
+/// when the G-code passed the checks; an existing file is replaced atomically). The report's
+/// model-side fields (`up`, `enhancement`, `model_size_mm`, load and enhance timings) are
+/// the composer's to fill. Blocking.
+pub fn slice_mesh(
+    mesh: &Mesh,
+    job: &SliceJob,
     progress: &mut dyn FnMut(SliceStep),
 ) -> Result<SliceReport, SliceError> {
     let started = Instant::now();
     let mut timings = StepTimings::default();
-    req.settings.validate()?;
-    let (nozzle_temp_c, bed_temp_c) = req.settings.temperatures()?;
-    let material = req.settings.material_preset()?;
-    // Too tall is reported by the placement, with the model's size.
-    if !(req.height_mm.is_finite() && req.height_mm >= *HEIGHT_MM.start()) {
-        return Err(SliceError::BadSetting {
-            key: "height".into(),
-            value: req.height_mm.to_string(),
-            hint: format!(
-                "the printed height must be from {} to {} mm",
-                HEIGHT_MM.start(),
-                HEIGHT_MM.end()
-            ),
-        });
+    job.settings.validate()?;
+    let (nozzle_temp_c, mut bed_temp_c) = job.settings.temperatures()?;
+    if !job.machine.heated_bed {
+        bed_temp_c = 0.0;
     }
-    // Fail on a bad profile or a missing Cura installation before the (slow) enhancement.
-    let profile = profiles::load_profile(req.slicer, req.profile.as_deref())?;
-
-    progress(SliceStep::Loading);
-    let t = Instant::now();
-    let loaded = crate::mesh::load(&req.model)?;
-    timings.load_s = t.elapsed().as_secs_f64();
-
-    // Enhance for the printed height; then scale to it (enhancement keeps the size roughly,
-    // so scaling afterwards makes the printed height exact).
-    let t = Instant::now();
-    let lambda2 = req
-        .strength_table
-        .resolve(req.strength, Some(req.height_mm));
-    let (mut mesh, report) = match lambda2 {
-        Some(lambda2) => {
-            let opts = EnhanceOptions {
-                lambda1: 0.0,
-                lambda2,
-                mu: None,
-            };
-            let mut on_phase = |p: Phase| progress(SliceStep::Enhancing(p));
-            let (mesh, report) = crate::enhance::enhance(&loaded.mesh, &opts, &mut on_phase)
-                .map_err(|source| SliceError::Enhance {
-                    model: req.model.clone(),
-                    source,
-                })?;
-            if let Some(dir) = &req.pictures {
-                draw_pictures(&loaded.mesh, &mesh, req.up, dir);
-            }
-            (mesh, Some(report))
-        }
-        None => (loaded.mesh, None),
-    };
-    timings.enhance_s = t.elapsed().as_secs_f64();
-    if req.up == UpAxis::Y {
-        crate::mesh::place::turn_y_up(&mut mesh);
-    }
-    let size = place_on_bed(&mut mesh, req.height_mm, &req.model)?;
+    let material = job.settings.material_preset()?;
+    let profile_path = job.profile.or(match job.slicer {
+        SlicerKind::Prusa => job.machine.prusa_profile.as_deref(),
+        SlicerKind::Cura => job.machine.cura_profile.as_deref(),
+    });
+    let profile = profiles::load_profile(job.slicer, profile_path)?;
 
     progress(SliceStep::Slicing);
     let t = Instant::now();
@@ -403,42 +339,44 @@ pub fn slice(
         let file = std::fs::File::create(&stl_path)
             .map_err(SliceError::io("cannot write temporary STL", &stl_path))?;
         let mut w = std::io::BufWriter::new(file);
-        crate::mesh::write_stl(&mut w, &mesh)
+        crate::mesh::write_stl(&mut w, mesh)
             .and_then(|_| std::io::Write::flush(&mut w))
             .map_err(SliceError::io("cannot write temporary STL", &stl_path))?;
     }
-    if let Some(keep) = &req.keep_mesh {
+    if let Some(keep) = job.keep_mesh {
         persist(&stl_path, keep)?;
     }
     let gcode_path = work.path().join("job.gcode");
-    let job = profiles::JobParams {
-        settings: &req.settings,
+    let params = profiles::JobParams {
+        settings: job.settings,
+        machine: job.machine,
         nozzle_temp_c,
         bed_temp_c,
-        height_mm: req.height_mm,
+        height_mm: job.height_mm,
     };
-    let invocation = profile.invocation(&job, work.path(), &stl_path, &gcode_path)?;
-    let program = req
+    let invocation = profile.invocation(&params, work.path(), &stl_path, &gcode_path)?;
+    let program = job
         .slicer_program
-        .clone()
-        .or_else(|| std::env::var_os(req.slicer.program_env()).map(PathBuf::from))
-        .unwrap_or_else(|| PathBuf::from(req.slicer.default_program()));
-    tracing::info!(slicer = %req.slicer, program = %program.display(), model = %req.model.display(), "slicing");
+        .map(Path::to_path_buf)
+        .or_else(|| std::env::var_os(job.slicer.program_env()).map(PathBuf::from))
+        .unwrap_or_else(|| PathBuf::from(job.slicer.default_program()));
+    tracing::info!(slicer = %job.slicer, program = %program.display(), model = %job.model.display(), machine = %job.machine.name, "slicing");
     let run = process::run(
         &program,
         &invocation.args,
         &invocation.env,
-        req.timeout,
-        req.cancel.as_deref(),
+        job.timeout,
+        job.cancel,
     );
+    let model = || job.model.to_path_buf();
     let outcome = match run {
         Ok(o) => o,
         Err(process::RunError::NotFound) => {
             return Err(SliceError::SlicerMissing {
-                slicer: req.slicer,
+                slicer: job.slicer,
                 program,
-                package: req.slicer.package(),
-                env: req.slicer.program_env(),
+                package: job.slicer.package(),
+                env: job.slicer.program_env(),
             })
         }
         Err(process::RunError::Spawn(source)) => {
@@ -455,41 +393,38 @@ pub fn slice(
         process::End::Exited(status) if status.success() => {}
         process::End::Exited(status) => {
             return Err(SliceError::SlicerFailed {
-                slicer: req.slicer,
-                model: req.model.clone(),
+                slicer: job.slicer,
+                model: model(),
                 status: status.to_string(),
                 output_tail,
             })
         }
         process::End::TimedOut => {
             return Err(SliceError::Timeout {
-                slicer: req.slicer,
-                model: req.model.clone(),
-                after: req.timeout,
+                slicer: job.slicer,
+                model: model(),
+                after: job.timeout,
                 output_tail,
             })
         }
-        process::End::Cancelled => {
-            return Err(SliceError::Cancelled {
-                model: req.model.clone(),
-            })
-        }
+        process::End::Cancelled => return Err(SliceError::Cancelled { model: model() }),
     }
 
     progress(SliceStep::Checking);
     let t = Instant::now();
     let bad_output = |reason: String| SliceError::BadOutput {
-        slicer: req.slicer,
-        model: req.model.clone(),
+        slicer: job.slicer,
+        model: model(),
         reason,
         output_tail: output_tail.clone(),
     };
     let file = std::fs::File::open(&gcode_path)
         .map_err(|e| bad_output(format!("no G-code file was written ({e})")))?;
     let expect = gcode::Expectations {
-        bed_mm: BED_MM,
-        height_mm: req.height_mm,
-        layer_height_mm: req.settings.layer_height_mm,
+        bed_mm: job.machine.bed_mm,
+        height_mm: job.height_mm,
+        layer_height_mm: job.settings.layer_height_mm,
+        heated_bed: job.machine.heated_bed,
     };
     let stats = gcode::check(std::io::BufReader::new(file), &expect).map_err(bad_output)?;
     timings.check_s = t.elapsed().as_secs_f64();
@@ -503,41 +438,30 @@ pub fn slice(
     let filament_mm = stats.filament_mm.or(Some(stats.extruded_mm));
     let filament_g = stats.filament_g.or_else(|| {
         filament_mm.map(|mm| {
-            let r_cm = 0.285 / 2.0;
+            let r_cm = job.machine.filament_mm / 10.0 / 2.0;
             mm / 10.0 * std::f64::consts::PI * r_cm * r_cm * material.density_g_cm3
         })
     });
 
-    if req.pictures.is_some() {
+    if job.thumbnails {
         // A picture is a nicety: a job is never failed for want of one.
-        let blocks = crate::preview::thumbnail::blocks(&mesh, UpAxis::Z);
+        let blocks = crate::preview::thumbnail::blocks(mesh, UpAxis::Z);
         if let Err(e) = crate::preview::thumbnail::insert_into_file(&gcode_path, &blocks) {
             tracing::warn!(error = %e, "cannot put thumbnails into the G-code");
         }
     }
-    persist(&gcode_path, &req.output)?;
+    persist(&gcode_path, job.output)?;
     timings.total_s = started.elapsed().as_secs_f64();
     Ok(SliceReport {
-        model: req.model.clone(),
-        output: req.output.clone(),
-        height_mm: req.height_mm,
-        up: req.up,
-        enhancement: EnhancementSummary {
-            lambda2,
-            mode: if lambda2.is_some() {
-                "enhanced"
-            } else {
-                "unmodified"
-            }
-            .to_string(),
-            report,
-        },
-        slicer: req.slicer,
+        model: model(),
+        output: job.output.to_path_buf(),
+        machine: job.machine.name.clone(),
+        height_mm: job.height_mm,
+        slicer: job.slicer,
         slicer_version: stats.slicer_version,
         material: material.name.to_string(),
         nozzle_temp_c,
         bed_temp_c,
-        model_size_mm: size,
         timings,
         layer_count: stats.layer_count,
         layer_height_mm: stats.layer_height_mm,
@@ -546,52 +470,13 @@ pub fn slice(
         filament_mm,
         filament_g,
         gcode_lines: stats.lines,
-    })
-}
-
-/// Side of the before/after pictures of a job, pixels.
-pub const PICTURE_SIZE: u32 = 600;
-
-/// Draws the before/after pictures and the heat map into `dir`; failures are logged, not
-/// returned (see [`SliceRequest::pictures`]).
-fn draw_pictures(before: &Mesh, after: &Mesh, up: UpAxis, dir: &Path) {
-    let t = Instant::now();
-    let Some(pictures) = crate::preview::pictures(before, after, up, PICTURE_SIZE) else {
-        tracing::warn!("no pictures: the enhanced mesh does not match the model's vertices");
-        return;
-    };
-    match pictures.save(dir) {
-        Ok(_) => {
-            tracing::info!(dir = %dir.display(), seconds = t.elapsed().as_secs_f64(), "pictures drawn")
-        }
-        Err(e) => tracing::warn!(dir = %dir.display(), error = %e, "cannot write the pictures"),
-    }
-}
-
-/// Places the mesh on the Ultimaker 2's bed at `height_mm` tall, keeping room for the
-/// skirt (see [`crate::mesh::place::place_on_bed`]). Returns its size (X, Y, Z) in mm.
-pub fn place_on_bed(mesh: &mut Mesh, height_mm: f64, model: &Path) -> Result<[f64; 3], SliceError> {
-    let fits = [
-        BED_MM[0] - 2.0 * SKIRT_MARGIN_MM,
-        BED_MM[1] - 2.0 * SKIRT_MARGIN_MM,
-        BED_MM[2],
-    ];
-    crate::mesh::place::place_on_bed(mesh, height_mm, fits).map_err(|e| match e {
-        PlaceError::Empty => SliceError::EmptyModel {
-            model: model.to_path_buf(),
-        },
-        PlaceError::TooBig { size_mm, max_mm } => SliceError::TooBig {
-            model: model.to_path_buf(),
-            height_mm,
-            size_mm,
-            max_mm,
-        },
+        ..SliceReport::default()
     })
 }
 
 /// Copies a finished file (checked G-code, the mesh that was sliced) to its destination
 /// without ever leaving a half-written one there: copy next to it, then rename over it.
-fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
+pub fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     let dir = match to.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),

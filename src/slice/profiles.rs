@@ -16,10 +16,15 @@
 //! | material     | temperatures above + `filament_type`, `filament_density` | temperatures above            |
 
 //!
+//! The machine ([`crate::machine`]) overrides the profile's bed size and height, nozzle and
+//! filament diameter and heated bed, and brings its start and end code, so one profile
+//! serves every machine.
+//!
 //! What varies between slicers lives behind [`SlicerProfile`], one file per slicer:
 //! [`super::prusa`] and [`super::cura`].
 
-use super::{SliceError, SliceSettings, SlicerKind, BED_MM};
+use super::{SliceError, SliceSettings, SlicerKind};
+use crate::machine::Machine;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 
@@ -44,6 +49,8 @@ pub trait SlicerProfile: std::fmt::Debug + Send + Sync {
 #[derive(Clone, Debug)]
 pub struct JobParams<'a> {
     pub settings: &'a SliceSettings,
+    /// Bed, nozzle, filament and start/end code come from the machine, over the profile.
+    pub machine: &'a Machine,
     pub nozzle_temp_c: f64,
     pub bed_temp_c: f64,
     pub height_mm: f64,
@@ -79,13 +86,22 @@ pub fn load_profile(
     })
 }
 
-/// The start and end code with this job's values filled in.
+/// The machine's start and end code with this job's values filled in. A machine without
+/// a heated bed loses the lines that heat it.
 pub fn start_end_gcode(job: &JobParams) -> (String, String) {
-    let present_z = (job.height_mm + 50.0).min(BED_MM[2] - 5.0);
-    let start = START_GCODE
+    let m = job.machine;
+    let present_z = (job.height_mm + 50.0).min(m.bed_mm[2] - 5.0);
+    let start = m.start_gcode.as_deref().unwrap_or(START_GCODE);
+    let end = m.end_gcode.as_deref().unwrap_or(END_GCODE);
+    let start: String = start
+        .lines()
+        .filter(|l| m.heated_bed || !l.contains("{BED_TEMP}"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let start = start
         .replace("{BED_TEMP}", &fmt_num(job.bed_temp_c))
         .replace("{NOZZLE_TEMP}", &fmt_num(job.nozzle_temp_c));
-    let end = END_GCODE.replace("{PRESENT_Z}", &fmt_num(present_z));
+    let end = end.replace("{PRESENT_Z}", &fmt_num(present_z));
     (start, end)
 }
 
@@ -95,9 +111,13 @@ pub(super) fn fmt_num(v: f64) -> String {
     format!("{r}")
 }
 
-/// The printer's bed centre as `x,y` in mm.
-pub(super) fn bed_centre() -> String {
-    format!("{},{}", fmt_num(BED_MM[0] / 2.0), fmt_num(BED_MM[1] / 2.0))
+/// The machine's bed centre as `x,y` in mm.
+pub(super) fn bed_centre(machine: &Machine) -> String {
+    format!(
+        "{},{}",
+        fmt_num(machine.bed_mm[0] / 2.0),
+        fmt_num(machine.bed_mm[1] / 2.0)
+    )
 }
 
 #[cfg(test)]
@@ -107,8 +127,10 @@ mod tests {
     #[test]
     fn start_and_end_code_get_the_job_values_and_keep_no_placeholders() {
         let settings = SliceSettings::default();
+        let machine = Machine::builtin("ultimaker2").unwrap();
         let job = JobParams {
             settings: &settings,
+            machine: &machine,
             nozzle_temp_c: 215.0,
             bed_temp_c: 65.0,
             height_mm: 40.0,
@@ -120,5 +142,19 @@ mod tests {
         );
         assert!(end.contains("G1 Z90 "), "{end}");
         assert!(!start.contains('{') && !end.contains('{'));
+
+        let cold = Machine {
+            heated_bed: false,
+            ..machine.clone()
+        };
+        let (start, _) = start_end_gcode(&JobParams {
+            machine: &cold,
+            ..job
+        });
+        assert!(
+            !start.contains("M190") && !start.contains("M140"),
+            "{start}"
+        );
+        assert!(start.contains("M109 S215"), "{start}");
     }
 }

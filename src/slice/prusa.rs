@@ -54,6 +54,12 @@ impl SlicerProfile for PrusaProfile {
         put("first_layer_bed_temperature", fmt_num(job.bed_temp_c));
         put("filament_type", material.name.to_ascii_uppercase());
         put("filament_density", fmt_num(material.density_g_cm3));
+        let m = job.machine;
+        let [x, y, z] = m.bed_mm.map(fmt_num);
+        put("bed_shape", format!("0x0,{x}x0,{x}x{y},0x{y}"));
+        put("max_print_height", z);
+        put("nozzle_diameter", fmt_num(m.nozzle_mm));
+        put("filament_diameter", fmt_num(m.filament_mm));
         put("start_gcode", prusa_escape(&start));
         put("end_gcode", prusa_escape(&end));
         let profile_path = workdir.join("profile.ini");
@@ -65,7 +71,7 @@ impl SlicerProfile for PrusaProfile {
                 source,
             })?;
         }
-        let centre = bed_centre();
+        let centre = bed_centre(job.machine);
         let args: Vec<OsString> = vec![
             "--export-gcode".into(),
             "--load".into(),

@@ -1,6 +1,10 @@
 //! Preparing a job: read its sidecar, work out the folder's settings with the sidecar's
-//! overrides, then enhance and slice the model into `<job dir>/<file>.gcode`, keeping the
-//! enhanced mesh that was sliced as `<job dir>/<file>.enhanced.stl`.
+//! overrides and the machines that may print it (the distinct machines of the printers
+//! serving its folder), then enhance the model once and slice it once per machine into
+//! `<job dir>/<file>.<machine>.gcode` ([`steps`]), keeping the enhanced mesh that was
+//! sliced as `<job dir>/<file>.enhanced.stl`. A dropped `.gcode` file is not sliced: it is
+//! checked against each machine ([`crate::slice::presliced`]) and printed as it is.
+//! [`queue`] is the daemon's loop that takes queued jobs through this.
 //!
 //! The work runs in a child process (`crispen prepare-job`, [`run_child`]) rather than on a
 //! thread: loading, cleaning and enhancing a model are long computations with nowhere to
@@ -9,9 +13,13 @@
 //! cancelled, the daemon stops, or the configured time limit passes, and its memory goes
 //! back to the system when it ends. The child speaks [`ChildMessage`] JSON lines on stdout.
 
-use super::config::{parse_strength, FolderConfig};
-use super::job::Sidecar;
+pub mod queue;
+pub mod steps;
+
+use super::config::{parse_strength, FolderConfig, PrinterConfig};
+use super::job::{ForMachine, Sidecar};
 use crate::enhance::Strength;
+use crate::machine::Machine;
 use crate::slice::{SliceReport, SlicerKind, UpAxis};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
@@ -26,7 +34,8 @@ use tokio_util::sync::CancellationToken;
 pub struct PrepareTask {
     pub job: String,
     pub model: PathBuf,
-    pub output: PathBuf,
+    /// The machines that may print the job, each with its G-code file.
+    pub machines: Vec<TaskMachine>,
     /// Where the enhanced, placed mesh that was sliced is kept.
     pub enhanced_mesh: PathBuf,
     pub height_mm: f64,
@@ -39,13 +48,72 @@ pub struct PrepareTask {
     pub timeout: Duration,
 }
 
+/// One machine of a task and where its G-code goes.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TaskMachine {
+    pub machine: Machine,
+    pub output: PathBuf,
+}
+
+/// What a preparation made: per machine, its G-code's report or why it cannot print it.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Prepared {
+    pub machines: Vec<(String, Result<SliceReport, String>)>,
+}
+
+impl Prepared {
+    /// The job's record of it: per machine, the G-code file (in the job's directory) or
+    /// the reason; and the first report, for the job's summary.
+    pub fn for_machines(
+        &self,
+    ) -> (
+        std::collections::BTreeMap<String, ForMachine>,
+        Option<SliceReport>,
+    ) {
+        let mut first = None;
+        let record = self
+            .machines
+            .iter()
+            .map(|(name, result)| {
+                let entry = match result {
+                    Ok(report) => {
+                        first.get_or_insert_with(|| report.clone());
+                        let file = report.output.file_name().unwrap_or_default();
+                        ForMachine::Gcode(file.to_string_lossy().into_owned())
+                    }
+                    Err(reason) => ForMachine::Refused(reason.clone()),
+                };
+                (name.clone(), entry)
+            })
+            .collect();
+        (record, first)
+    }
+
+    /// The job's failure when no machine can print it: every machine's reason.
+    pub fn failure(&self) -> Option<String> {
+        if self.machines.iter().any(|(_, r)| r.is_ok()) {
+            return None;
+        }
+        let reasons: Vec<String> = self
+            .machines
+            .iter()
+            .map(|(name, r)| format!("{name}: {}", r.as_ref().err().map_or("", |e| e)))
+            .collect();
+        Some(match reasons.len() {
+            0 => "no machine may print it".into(),
+            1 => reasons[0].clone(),
+            _ => format!("no machine can print it; {}", reasons.join("; ")),
+        })
+    }
+}
+
 /// What the preparation child writes on stdout, one JSON object per line.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ChildMessage {
     /// The step it is on (shown by `crispen status`).
     Step(String),
-    Done(Box<SliceReport>),
+    Done(Box<Prepared>),
     /// The job failed; the reason is for the operator.
     Failed(String),
 }
@@ -81,7 +149,7 @@ pub async fn run_child(
     task: &PrepareTask,
     cancel: &CancellationToken,
     mut on_step: impl FnMut(String),
-) -> Result<SliceReport, PrepareError> {
+) -> Result<Prepared, PrepareError> {
     let mut cmd = tokio::process::Command::new(program);
     cmd.arg("prepare-job")
         .stdin(std::process::Stdio::piped())
@@ -220,12 +288,14 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
     Ok(sidecar)
 }
 
-/// Combines a folder's settings with a sidecar's overrides into a task.
+/// Combines a folder's settings with a sidecar's overrides into a task, for the distinct
+/// machines of the printers that may take the job (`printers`: the config's).
 pub fn resolve_task(
     job: &str,
     job_dir: &Path,
     file: &str,
     folder: &FolderConfig,
+    printers: &[PrinterConfig],
     sidecar: Option<&Sidecar>,
 ) -> Result<PrepareTask, String> {
     let mut strength = folder.strength;
@@ -256,10 +326,26 @@ pub fn resolve_task(
             }
         }
     }
+    let wanted = sidecar.and_then(|s| s.printer.as_deref());
+    let mut machines: Vec<TaskMachine> = Vec::new();
+    for p in printers {
+        let serves = folder.printers.contains(&p.name) && wanted.is_none_or(|w| w == p.name);
+        if serves && !machines.iter().any(|m| m.machine.name == p.machine.name) {
+            let output = if is_presliced(file) {
+                job_dir.join(file)
+            } else {
+                job_dir.join(format!("{file}.{}.gcode", p.machine.name))
+            };
+            machines.push(TaskMachine {
+                machine: p.machine.clone(),
+                output,
+            });
+        }
+    }
     Ok(PrepareTask {
         job: job.to_string(),
         model: job_dir.join(file),
-        output: job_dir.join(format!("{file}.gcode")),
+        machines,
         enhanced_mesh: job_dir.join(format!("{file}.enhanced.stl")),
         height_mm,
         strength,
@@ -271,35 +357,101 @@ pub fn resolve_task(
     })
 }
 
-/// The preparation itself, as the child runs it: `crispen::slice` (load, enhance, place,
-/// slice with a real slicer). `progress` hears each step's name. Blocking.
-pub fn prepare(
-    task: &PrepareTask,
-    progress: &mut dyn FnMut(String),
-) -> Result<SliceReport, crate::slice::SliceError> {
-    use crate::enhance::Phase;
-    use crate::slice::{SliceRequest, SliceStep};
-    let mut req = SliceRequest::new(&task.model, &task.output, task.height_mm);
+/// Whether a dropped file is G-code sliced elsewhere (printed as it is, never sliced).
+pub fn is_presliced(file: &str) -> bool {
+    let lower = file.to_ascii_lowercase();
+    [".gcode", ".gco", ".g", ".bgcode"]
+        .iter()
+        .any(|ext| lower.ends_with(ext))
+}
+
+/// The preparation itself, as the child runs it: the [`steps`] for a model, the
+/// pre-sliced check for G-code. `progress` hears each step's name. Blocking.
+pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<Prepared, String> {
+    let file = task.model.file_name().unwrap_or_default().to_string_lossy();
+    if is_presliced(&file) {
+        progress("checking the pre-sliced G-code".into());
+        return check_presliced(task);
+    }
+    let mut req = steps::SliceRequest::new(&task.model, task.height_mm);
     req.slicer = task.slicer;
     req.strength = task.strength;
     req.up = task.up;
     req.settings = task.settings.clone();
     req.profile = task.profile.clone();
     req.timeout = task.timeout;
-    req.keep_mesh = Some(task.enhanced_mesh.clone());
     // Pictures and thumbnails go next to the G-code, in the job's directory.
-    req.pictures = task.output.parent().map(Path::to_path_buf);
-    crate::slice::slice(&req, &mut |step| {
-        progress(match step {
-            SliceStep::Loading => "loading".to_string(),
-            SliceStep::Enhancing(Phase::Operators) => "enhancing: operators".into(),
-            SliceStep::Enhancing(Phase::Factorize) => "enhancing: factorizing".into(),
-            SliceStep::Enhancing(Phase::Solve(i)) => format!("enhancing: solve {i}"),
-            SliceStep::Enhancing(Phase::Combine) => "enhancing: combining".into(),
-            SliceStep::Slicing => "slicing".into(),
-            SliceStep::Checking => "checking the G-code".into(),
+    req.pictures = task.model.parent().map(Path::to_path_buf);
+    let targets: Vec<steps::Target> = task
+        .machines
+        .iter()
+        .enumerate()
+        .map(|(i, m)| steps::Target {
+            machine: m.machine.clone(),
+            output: m.output.clone(),
+            // The placed mesh is the same for every machine: kept once.
+            keep_mesh: (i == 0).then(|| task.enhanced_mesh.clone()),
         })
+        .collect();
+    let results = steps::prepare(&req, &targets, &mut |step| progress(step.describe()))
+        .map_err(|e| e.to_string())?;
+    Ok(Prepared {
+        machines: results
+            .into_iter()
+            .map(|(name, r)| (name, r.map_err(|e| e.to_string())))
+            .collect(),
     })
+}
+
+/// A pre-sliced file: read what it was made for, then accept or refuse it per machine.
+fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
+    use crate::slice::presliced;
+    let model = &task.model;
+    let file =
+        std::fs::File::open(model).map_err(|e| format!("{}: cannot read: {e}", model.display()))?;
+    let target = presliced::read_target(std::io::BufReader::new(file))
+        .map_err(|e| format!("{}: {e}", model.display()))?;
+    tracing::info!(
+        slicer = ?target.slicer,
+        filament_mm = ?target.filament_mm,
+        nozzle_mm = ?target.nozzle_mm,
+        printer_model = ?target.printer_model,
+        "pre-sliced G-code"
+    );
+    let machines = task
+        .machines
+        .iter()
+        .map(|m| {
+            let verdict = presliced::check_for(&target, &m.machine)
+                .map(|()| SliceReport {
+                    model: model.clone(),
+                    output: m.output.clone(),
+                    machine: m.machine.name.clone(),
+                    enhancement: crate::slice::EnhancementSummary {
+                        lambda2: None,
+                        mode: "pre-sliced".into(),
+                        report: None,
+                    },
+                    slicer_version: target.slicer.clone(),
+                    model_size_mm: target
+                        .extent_mm
+                        .map_or([0.0; 3], |e| e.map(|[lo, hi]| hi - lo)),
+                    top_layer_z_mm: target.extent_mm.map_or(0.0, |e| e[2][1]),
+                    filament_mm: Some(target.extruded_mm),
+                    gcode_lines: target.lines,
+                    ..SliceReport::default()
+                })
+                .map_err(|reason| {
+                    format!(
+                        "{} is not for the {}: {reason}",
+                        model.file_name().unwrap_or_default().to_string_lossy(),
+                        m.machine.name
+                    )
+                });
+            (m.machine.name.clone(), verdict)
+        })
+        .collect();
+    Ok(Prepared { machines })
 }
 
 #[cfg(test)]
@@ -310,7 +462,7 @@ mod tests {
         FolderConfig {
             path: "/hot".into(),
             height_mm: 50.0,
-            printers: vec!["a".into(), "b".into()],
+            printers: vec!["a".into(), "b".into(), "c".into()],
             strength: Strength::Auto,
             slicer: SlicerKind::Prusa,
             up: UpAxis::Z,
@@ -320,6 +472,103 @@ mod tests {
         }
     }
 
+    /// Printers a and c are Ultimaker 2s, b a 1.75 mm Marlin machine; d serves no folder.
+    fn printers() -> Vec<PrinterConfig> {
+        let text = "[spool]\ndir = \"s\"\n\
+            [[printer]]\nname = \"a\"\nport = \"/dev/a\"\nmachine = \"ultimaker2\"\n\
+            [[printer]]\nname = \"b\"\nport = \"/dev/b\"\nfirmware = \"marlin2\"\n\
+            [[printer]]\nname = \"c\"\nport = \"/dev/c\"\nfirmware = \"ultimaker2\"\n\
+            [[printer]]\nname = \"d\"\nport = \"/dev/d\"\nmachine = \"ultimaker2plus\"\n";
+        super::super::config::Config::parse(text, Path::new("/c.toml"))
+            .unwrap()
+            .printers
+    }
+
+    #[test]
+    fn a_job_is_prepared_once_per_machine_of_its_printers() {
+        let t = resolve_task(
+            "j",
+            Path::new("/s/j"),
+            "m.stl",
+            &folder(),
+            &printers(),
+            None,
+        )
+        .unwrap();
+        let names: Vec<&str> = t.machines.iter().map(|m| m.machine.name.as_str()).collect();
+        assert_eq!(
+            names,
+            ["ultimaker2", crate::machine::DEFAULT_MARLIN_MACHINE]
+        );
+        assert_eq!(
+            t.machines[0].output,
+            PathBuf::from("/s/j/m.stl.ultimaker2.gcode")
+        );
+
+        let s = parse_sidecar(&b"printer = \"b\"\n"[..], Path::new("m.stl.toml")).unwrap();
+        let t = resolve_task(
+            "j",
+            Path::new("/s/j"),
+            "m.stl",
+            &folder(),
+            &printers(),
+            Some(&s),
+        )
+        .unwrap();
+        assert_eq!(t.machines.len(), 1);
+        assert_eq!(t.machines[0].machine.filament_mm, 1.75);
+
+        // Pre-sliced G-code is printed from the dropped file itself.
+        let t = resolve_task(
+            "j",
+            Path::new("/s/j"),
+            "p.gcode",
+            &folder(),
+            &printers(),
+            None,
+        )
+        .unwrap();
+        assert!(t
+            .machines
+            .iter()
+            .all(|m| m.output == Path::new("/s/j/p.gcode")));
+    }
+
+    #[test]
+    fn no_machine_able_means_failed_with_every_reason() {
+        let prepared = Prepared {
+            machines: vec![
+                ("ultimaker2".into(), Err("too big".into())),
+                ("marlin-175".into(), Err("also too big".into())),
+            ],
+        };
+        let reason = prepared.failure().unwrap();
+        assert!(
+            reason.contains("ultimaker2: too big") && reason.contains("marlin-175: also too big"),
+            "{reason}"
+        );
+        let prepared = Prepared {
+            machines: vec![
+                ("ultimaker2".into(), Err("too big".into())),
+                (
+                    "marlin-175".into(),
+                    Ok(SliceReport {
+                        output: "/s/j/m.stl.marlin-175.gcode".into(),
+                        ..Default::default()
+                    }),
+                ),
+            ],
+        };
+        assert_eq!(prepared.failure(), None);
+        let (record, first) = prepared.for_machines();
+        assert_eq!(
+            record["marlin-175"],
+            ForMachine::Gcode("m.stl.marlin-175.gcode".into())
+        );
+        assert_eq!(record["ultimaker2"], ForMachine::Refused("too big".into()));
+        assert!(first.is_some());
+    }
+
     #[test]
     fn sidecar_overrides_and_rejects_unknown_keys() {
         let s = parse_sidecar(
@@ -327,11 +576,18 @@ mod tests {
             Path::new("m.stl.toml"),
         )
         .unwrap();
-        let t = resolve_task("j", Path::new("/s/j"), "m.stl", &folder(), Some(&s)).unwrap();
+        let t = resolve_task(
+            "j",
+            Path::new("/s/j"),
+            "m.stl",
+            &folder(),
+            &printers(),
+            Some(&s),
+        )
+        .unwrap();
         assert_eq!(t.strength, Strength::Off);
         assert_eq!(t.height_mm, 20.0);
         assert_eq!(t.up, UpAxis::Y);
-        assert_eq!(t.output, PathBuf::from("/s/j/m.stl.gcode"));
 
         let err = parse_sidecar(&b"enhanse = false\n"[..], Path::new("m.stl.toml")).unwrap_err();
         assert!(
@@ -342,7 +598,15 @@ mod tests {
         assert!(err.contains("height_mm"), "{err}");
 
         let s = parse_sidecar(&b"printer = \"zz\"\n"[..], Path::new("m.stl.toml")).unwrap();
-        let err = resolve_task("j", Path::new("/s/j"), "m.stl", &folder(), Some(&s)).unwrap_err();
+        let err = resolve_task(
+            "j",
+            Path::new("/s/j"),
+            "m.stl",
+            &folder(),
+            &printers(),
+            Some(&s),
+        )
+        .unwrap_err();
         assert!(err.contains("\"zz\""), "{err}");
     }
 }

@@ -1,0 +1,276 @@
+//! A job's way through preparation, as its steps: load the model ([`crate::mesh::load`]),
+//! enhance it for the printed height ([`crate::enhance`]) once, place it on a bed
+//! ([`crate::mesh::place`]), then for each machine that may print it check it fits that
+//! machine's bed and slice it ([`crate::slice::slice_mesh`]). The enhancement depends on
+//! the height, not the machine, so it is shared; the slicing is once per machine.
+
+use crate::enhance::{EnhanceOptions, Phase, Strength, StrengthTable};
+use crate::machine::Machine;
+use crate::mesh::place::PlaceError;
+use crate::mesh::Mesh;
+use crate::slice::{
+    EnhancementSummary, SliceError, SliceJob, SliceReport, SliceSettings, SliceStep, SlicerKind,
+    UpAxis, HEIGHT_MM,
+};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// One model to prepare: what is shared by every machine it is sliced for.
+#[derive(Clone, Debug)]
+pub struct SliceRequest {
+    pub model: PathBuf,
+    /// Printed height of the model (its Z extent on the bed), mm.
+    pub height_mm: f64,
+    pub slicer: SlicerKind,
+    pub strength: Strength,
+    pub strength_table: StrengthTable,
+    pub settings: SliceSettings,
+    /// A profile replacing the machine's: PrusaSlicer `.ini`, or CuraEngine `.toml`.
+    pub profile: Option<PathBuf>,
+    /// Each slicer run is killed and fails after this long.
+    pub timeout: Duration,
+    /// Program to run instead of the slicer's usual one (see [`SliceJob::slicer_program`]).
+    pub slicer_program: Option<PathBuf>,
+    /// Set to true from another thread to stop the job (the slicer is killed).
+    pub cancel: Option<Arc<AtomicBool>>,
+    /// The model's up axis (default Z).
+    pub up: UpAxis,
+    /// Where to draw the model before and after enhancement and the displacement's heat
+    /// map (`crate::preview`, only when it is enhanced); with it, the G-code also gets
+    /// PrusaSlicer-format thumbnails of the part as printed.
+    pub pictures: Option<PathBuf>,
+}
+
+impl SliceRequest {
+    /// A request with the defaults: PrusaSlicer, automatic strength, the machine's
+    /// profile, 10 minute timeout.
+    pub fn new(model: impl Into<PathBuf>, height_mm: f64) -> Self {
+        SliceRequest {
+            model: model.into(),
+            height_mm,
+            slicer: SlicerKind::default(),
+            strength: Strength::Auto,
+            strength_table: StrengthTable::default(),
+            settings: SliceSettings::default(),
+            profile: None,
+            timeout: Duration::from_secs(600),
+            slicer_program: None,
+            cancel: None,
+            up: UpAxis::Z,
+            pictures: None,
+        }
+    }
+}
+
+/// A machine to slice for, and where its G-code goes.
+#[derive(Clone, Debug)]
+pub struct Target {
+    pub machine: Machine,
+    pub output: PathBuf,
+    /// Where to keep the mesh that was sliced (enhanced, scaled and placed), binary STL.
+    pub keep_mesh: Option<PathBuf>,
+}
+
+/// Where a preparation is, for progress displays.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Step<'a> {
+    Loading,
+    Enhancing(Phase),
+    /// Slicing or checking for the named machine.
+    Slice(&'a str, SliceStep),
+}
+
+impl Step<'_> {
+    /// The step as `crispen status` shows it.
+    pub fn describe(self) -> String {
+        match self {
+            Step::Loading => "loading".into(),
+            Step::Enhancing(Phase::Operators) => "enhancing: operators".into(),
+            Step::Enhancing(Phase::Factorize) => "enhancing: factorizing".into(),
+            Step::Enhancing(Phase::Solve(i)) => format!("enhancing: solve {i}"),
+            Step::Enhancing(Phase::Combine) => "enhancing: combining".into(),
+            Step::Slice(m, SliceStep::Slicing) => format!("slicing for {m}"),
+            Step::Slice(m, SliceStep::Checking) => format!("checking the G-code for {m}"),
+        }
+    }
+}
+
+/// What one machine got: its G-code's report, or why it cannot print the job.
+pub type MachineResult = (String, Result<SliceReport, SliceError>);
+
+/// Prepares a model for each target machine: load, enhance (once), place, then per
+/// machine check the fit and slice. An error of the shared steps (the model cannot be
+/// read or enhanced, a bad setting) is the whole job's; a model too big for one machine,
+/// or a slicer failing for it, is that machine's. Blocking.
+pub fn prepare(
+    req: &SliceRequest,
+    targets: &[Target],
+    progress: &mut dyn FnMut(Step),
+) -> Result<Vec<MachineResult>, SliceError> {
+    let started = Instant::now();
+    req.settings.validate()?;
+    req.settings.temperatures()?;
+    // Too tall for a machine is reported by the fit check, with the model's size.
+    if !(req.height_mm.is_finite() && HEIGHT_MM.contains(&req.height_mm)) {
+        return Err(SliceError::BadSetting {
+            key: "height".into(),
+            value: req.height_mm.to_string(),
+            hint: format!(
+                "the printed height must be from {} to {} mm",
+                HEIGHT_MM.start(),
+                HEIGHT_MM.end()
+            ),
+        });
+    }
+    // Fail on a bad profile or a missing Cura installation before the (slow) enhancement.
+    for t in targets {
+        let path = req.profile.as_deref().or(match req.slicer {
+            SlicerKind::Prusa => t.machine.prusa_profile.as_deref(),
+            SlicerKind::Cura => t.machine.cura_profile.as_deref(),
+        });
+        crate::slice::profiles::load_profile(req.slicer, path)?;
+    }
+
+    progress(Step::Loading);
+    let t = Instant::now();
+    let loaded = crate::mesh::load(&req.model)?;
+    let load_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let (mut mesh, enhancement) = enhance(req, loaded.mesh, progress)?;
+    let enhance_s = t.elapsed().as_secs_f64();
+
+    if req.up == UpAxis::Y {
+        crate::mesh::place::turn_y_up(&mut mesh);
+    }
+    let unbounded = [f64::INFINITY; 3];
+    let size = crate::mesh::place::place_on_bed(&mut mesh, req.height_mm, unbounded)
+        .map_err(|e| place_error(e, req, "any machine"))?;
+
+    let mut results = Vec::with_capacity(targets.len());
+    for target in targets {
+        let machine = &target.machine;
+        let sliced = crate::mesh::place::check_fits(size, machine.fits_mm())
+            .map_err(|e| place_error(e, req, &machine.name))
+            .and_then(|()| {
+                let job = SliceJob {
+                    model: &req.model,
+                    output: &target.output,
+                    machine,
+                    height_mm: req.height_mm,
+                    slicer: req.slicer,
+                    settings: &req.settings,
+                    profile: req.profile.as_deref(),
+                    timeout: req.timeout,
+                    slicer_program: req.slicer_program.as_deref(),
+                    cancel: req.cancel.as_deref(),
+                    keep_mesh: target.keep_mesh.as_deref(),
+                    thumbnails: req.pictures.is_some(),
+                };
+                crate::slice::slice_mesh(&mesh, &job, &mut |s| {
+                    progress(Step::Slice(&machine.name, s))
+                })
+            })
+            .map(|mut report| {
+                report.up = req.up;
+                report.enhancement = enhancement.clone();
+                report.model_size_mm = size;
+                report.timings.load_s = load_s;
+                report.timings.enhance_s = enhance_s;
+                report.timings.total_s = started.elapsed().as_secs_f64();
+                report
+            });
+        if let Err(e) = &sliced {
+            tracing::warn!(machine = %machine.name, error = %e, "cannot prepare the job for this machine");
+        }
+        results.push((machine.name.clone(), sliced));
+    }
+    Ok(results)
+}
+
+/// [`prepare`] for one machine, its error the job's.
+pub fn prepare_one(
+    req: &SliceRequest,
+    target: Target,
+    progress: &mut dyn FnMut(Step),
+) -> Result<SliceReport, SliceError> {
+    let mut results = prepare(req, std::slice::from_ref(&target), progress)?;
+    results.pop().expect("one result per target").1
+}
+
+/// The enhancement step: for the printed height, or none when the strength says so.
+fn enhance(
+    req: &SliceRequest,
+    mesh: Mesh,
+    progress: &mut dyn FnMut(Step),
+) -> Result<(Mesh, EnhancementSummary), SliceError> {
+    let lambda2 = req
+        .strength_table
+        .resolve(req.strength, Some(req.height_mm));
+    let Some(lambda2) = lambda2 else {
+        let summary = EnhancementSummary {
+            lambda2: None,
+            mode: "unmodified".into(),
+            report: None,
+        };
+        return Ok((mesh, summary));
+    };
+    let opts = EnhanceOptions {
+        lambda1: 0.0,
+        lambda2,
+        mu: None,
+    };
+    let mut on_phase = |p: Phase| progress(Step::Enhancing(p));
+    let (enhanced, report) =
+        crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(|source| {
+            SliceError::Enhance {
+                model: req.model.clone(),
+                source,
+            }
+        })?;
+    if let Some(dir) = &req.pictures {
+        draw_pictures(&mesh, &enhanced, req.up, dir);
+    }
+    let summary = EnhancementSummary {
+        lambda2: Some(lambda2),
+        mode: "enhanced".into(),
+        report: Some(report),
+    };
+    Ok((enhanced, summary))
+}
+
+fn place_error(e: PlaceError, req: &SliceRequest, machine: &str) -> SliceError {
+    match e {
+        PlaceError::Empty => SliceError::EmptyModel {
+            model: req.model.clone(),
+        },
+        PlaceError::TooBig { size_mm, max_mm } => SliceError::TooBig {
+            model: req.model.clone(),
+            machine: machine.to_string(),
+            height_mm: req.height_mm,
+            size_mm,
+            max_mm,
+        },
+    }
+}
+
+/// Side of the before/after pictures of a job, pixels.
+pub const PICTURE_SIZE: u32 = 600;
+
+/// Draws the before/after pictures and the heat map into `dir`; failures are logged, not
+/// returned (see [`SliceRequest::pictures`]).
+fn draw_pictures(before: &Mesh, after: &Mesh, up: UpAxis, dir: &Path) {
+    let t = Instant::now();
+    let Some(pictures) = crate::preview::pictures(before, after, up, PICTURE_SIZE) else {
+        tracing::warn!("no pictures: the enhanced mesh does not match the model's vertices");
+        return;
+    };
+    match pictures.save(dir) {
+        Ok(_) => {
+            tracing::info!(dir = %dir.display(), seconds = t.elapsed().as_secs_f64(), "pictures drawn")
+        }
+        Err(e) => tracing::warn!(dir = %dir.display(), error = %e, "cannot write the pictures"),
+    }
+}

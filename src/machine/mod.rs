@@ -1,0 +1,481 @@
+//! Machines: what slicing depends on. A [`Machine`] is a kind of printer (bed size and
+//! height, nozzle and filament diameter, heated bed or not, firmware flavour, slicer
+//! profiles, start and end code); a printer in the config is one machine, and a job is
+//! sliced once per machine among the printers that may take it.
+//!
+//! The built-in machines are data ([`BUILTIN`]), compiled into the binary together with
+//! the profiles and start/end code they use; a farm defines others with `[[machine]]`
+//! tables ([`MachineSpec`], checked by [`MachineSpec::check`]).
+
+use crate::marlin::firmware::Firmware;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// A kind of printer, as the slicer and the placement see it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Machine {
+    /// The name printers and job records use (`ultimaker2`, or a config's own).
+    pub name: String,
+    /// The firmware the printer runs (the G-code flavour and the serial protocol).
+    pub firmware: Firmware,
+    /// Usable build volume, mm (X, Y, Z).
+    pub bed_mm: [f64; 3],
+    pub nozzle_mm: f64,
+    /// Nozzles this machine may be fitted with (a printer may name one, `nozzle_mm`).
+    pub nozzle_range_mm: [f64; 2],
+    pub filament_mm: f64,
+    pub heated_bed: bool,
+    /// A PrusaSlicer `.ini` replacing the built-in profile (None: built-in).
+    pub prusa_profile: Option<PathBuf>,
+    /// A CuraEngine `.toml` replacing the built-in profile (None: built-in).
+    pub cura_profile: Option<PathBuf>,
+    /// Start code replacing crispen's (None: `gcode/start.gcode`); the placeholders
+    /// `{BED_TEMP}` and `{NOZZLE_TEMP}` are filled per job.
+    pub start_gcode: Option<String>,
+    /// End code replacing crispen's (None: `gcode/end.gcode`); `{PRESENT_Z}` is filled.
+    pub end_gcode: Option<String>,
+}
+
+/// Room kept free around the model on each side, for the skirt the profiles print.
+pub const SKIRT_MARGIN_MM: f64 = 5.0;
+
+impl Machine {
+    /// The box a model must fit in on this bed (X, Y, Z), keeping room for the skirt.
+    pub fn fits_mm(&self) -> [f64; 3] {
+        [
+            self.bed_mm[0] - 2.0 * SKIRT_MARGIN_MM,
+            self.bed_mm[1] - 2.0 * SKIRT_MARGIN_MM,
+            self.bed_mm[2],
+        ]
+    }
+
+    /// The built-in machine of this name.
+    pub fn builtin(name: &str) -> Option<Machine> {
+        BUILTIN
+            .iter()
+            .find(|b| b.name == name)
+            .map(Builtin::machine)
+    }
+
+    /// The machine a printer has when its config names none: what crispen always sliced
+    /// for (`ultimaker2`) for Ultimaker2Marlin, and [`DEFAULT_MARLIN_MACHINE`] for Marlin 2.
+    pub fn default_for(firmware: Firmware) -> Machine {
+        let name = match firmware {
+            Firmware::Ultimaker2 => "ultimaker2",
+            Firmware::Marlin2 | Firmware::Marlin20 => DEFAULT_MARLIN_MACHINE,
+        };
+        let mut machine = Machine::builtin(name).expect("the default machines are built in");
+        machine.firmware = firmware;
+        machine
+    }
+
+    /// This machine fitted with another nozzle: a machine of its own (sliced apart),
+    /// named `<name>-<nozzle>mm`.
+    pub fn with_nozzle(&self, nozzle_mm: f64) -> Result<Machine, String> {
+        let [lo, hi] = self.nozzle_range_mm;
+        if !(nozzle_mm.is_finite() && (lo..=hi).contains(&nozzle_mm)) {
+            return Err(format!(
+                "the {} takes nozzles from {lo} to {hi} mm, got {nozzle_mm}",
+                self.name
+            ));
+        }
+        if nozzle_mm == self.nozzle_mm {
+            return Ok(self.clone());
+        }
+        Ok(Machine {
+            name: format!("{}-{nozzle_mm}mm", self.name),
+            nozzle_mm,
+            ..self.clone()
+        })
+    }
+}
+
+/// The machine of a `marlin2`/`marlin20` printer whose config names none: a common
+/// 1.75 mm bed-slinger (220 x 220 x 250 mm, 0.4 mm nozzle, heated bed).
+pub const DEFAULT_MARLIN_MACHINE: &str = "marlin-175";
+
+/// A built-in machine as data.
+#[derive(Debug, Clone, Copy)]
+pub struct Builtin {
+    pub name: &'static str,
+    pub description: &'static str,
+    pub firmware: Firmware,
+    pub bed_mm: [f64; 3],
+    pub nozzle_mm: f64,
+    pub nozzle_range_mm: [f64; 2],
+    pub filament_mm: f64,
+    pub heated_bed: bool,
+}
+
+impl Builtin {
+    pub fn machine(&self) -> Machine {
+        Machine {
+            name: self.name.to_string(),
+            firmware: self.firmware,
+            bed_mm: self.bed_mm,
+            nozzle_mm: self.nozzle_mm,
+            nozzle_range_mm: self.nozzle_range_mm,
+            filament_mm: self.filament_mm,
+            heated_bed: self.heated_bed,
+            prusa_profile: None,
+            cura_profile: None,
+            start_gcode: None,
+            end_gcode: None,
+        }
+    }
+}
+
+/// The built-in machines. Build volumes are the usable ones Ultimaker's own slicer (Cura's
+/// machine definitions) uses, which are what a slicer may fill: the Ultimaker Original+
+/// is sold as 210 x 210 x 205 mm, of which Cura uses 205 x 205 x 200.
+pub const BUILTIN: &[Builtin] = &[
+    Builtin {
+        name: "ultimaker2",
+        description: "Ultimaker 2",
+        firmware: Firmware::Ultimaker2,
+        bed_mm: [223.0, 223.0, 205.0],
+        nozzle_mm: 0.4,
+        nozzle_range_mm: [0.4, 0.4],
+        filament_mm: 2.85,
+        heated_bed: true,
+    },
+    Builtin {
+        name: "ultimaker2-extended",
+        description: "Ultimaker 2 Extended",
+        firmware: Firmware::Ultimaker2,
+        bed_mm: [223.0, 223.0, 305.0],
+        nozzle_mm: 0.4,
+        nozzle_range_mm: [0.4, 0.4],
+        filament_mm: 2.85,
+        heated_bed: true,
+    },
+    Builtin {
+        // Swappable nozzles: Ultimaker sells 0.25, 0.4, 0.6 and 0.8 mm.
+        name: "ultimaker2plus",
+        description: "Ultimaker 2+",
+        firmware: Firmware::Ultimaker2,
+        bed_mm: [223.0, 223.0, 205.0],
+        nozzle_mm: 0.4,
+        nozzle_range_mm: [0.25, 0.8],
+        filament_mm: 2.85,
+        heated_bed: true,
+    },
+    Builtin {
+        // Ultimaker's Marlin 1 fork at 250000 baud, the same lineage and serial
+        // behaviour as Ultimaker2Marlin.
+        name: "ultimaker-original-plus",
+        description: "Ultimaker Original+ (heated build plate)",
+        firmware: Firmware::Ultimaker2,
+        bed_mm: [205.0, 205.0, 200.0],
+        nozzle_mm: 0.4,
+        nozzle_range_mm: [0.4, 0.4],
+        filament_mm: 2.85,
+        heated_bed: true,
+    },
+    Builtin {
+        name: DEFAULT_MARLIN_MACHINE,
+        description: "a generic Marlin 2 printer for 1.75 mm filament",
+        firmware: Firmware::Marlin2,
+        bed_mm: [220.0, 220.0, 250.0],
+        nozzle_mm: 0.4,
+        nozzle_range_mm: [0.2, 1.0],
+        filament_mm: 1.75,
+        heated_bed: true,
+    },
+];
+
+/// Bounds of a machine's values.
+pub const BED_MM: std::ops::RangeInclusive<f64> = 20.0..=2000.0;
+pub const NOZZLE_MM: std::ops::RangeInclusive<f64> = 0.1..=2.0;
+pub const FILAMENT_MM: std::ops::RangeInclusive<f64> = 1.0..=3.5;
+/// The largest start or end code file read.
+pub const MAX_CODE_BYTES: u64 = 64 * 1024;
+/// At most this many machines in one config.
+pub const MAX_MACHINES: usize = 64;
+
+/// A `[[machine]]` table as written in the config.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MachineSpec {
+    pub name: String,
+    /// Start from this machine (built-in or defined earlier) and change what is given.
+    pub based_on: Option<String>,
+    pub firmware: Option<String>,
+    pub bed_mm: Option<Vec<f64>>,
+    pub nozzle_mm: Option<f64>,
+    pub filament_mm: Option<f64>,
+    pub heated_bed: Option<bool>,
+    pub prusa_profile: Option<PathBuf>,
+    pub cura_profile: Option<PathBuf>,
+    /// A file of start code (placeholders `{BED_TEMP}`, `{NOZZLE_TEMP}`).
+    pub start_gcode: Option<PathBuf>,
+    /// A file of end code (placeholder `{PRESENT_Z}`).
+    pub end_gcode: Option<PathBuf>,
+}
+
+/// Whether a name may name a machine (it becomes part of G-code file names).
+pub fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.')
+}
+
+impl MachineSpec {
+    /// Checks the table into a machine. `known` finds a machine by name (built-in or
+    /// defined earlier); `anchor` makes a path absolute. Errors name the key.
+    pub fn check(
+        self,
+        known: &dyn Fn(&str) -> Option<Machine>,
+        anchor: &dyn Fn(&Path) -> PathBuf,
+    ) -> Result<Machine, (&'static str, String)> {
+        if !valid_name(&self.name) {
+            return Err((
+                "name",
+                "must be 1 to 64 letters, digits, `-`, `_`, `.`".into(),
+            ));
+        }
+        if known(&self.name).is_some() {
+            return Err((
+                "name",
+                format!(
+                    "{:?} is already a machine (built-in: {}); give yours another name, with \
+                     `based_on = {:?}` to start from it",
+                    self.name,
+                    BUILTIN
+                        .iter()
+                        .map(|b| b.name)
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    self.name
+                ),
+            ));
+        }
+        let base = match &self.based_on {
+            Some(b) => Some(known(b).ok_or_else(|| {
+                (
+                    "based_on",
+                    format!("no machine is named {b:?} (built-in or defined above)"),
+                )
+            })?),
+            None => None,
+        };
+        let need = |key: &'static str| {
+            (
+                key,
+                "missing (give it, or `based_on` a machine to start from)".to_string(),
+            )
+        };
+        let firmware = match (&self.firmware, &base) {
+            (Some(f), _) => f.parse::<Firmware>().map_err(|m| ("firmware", m))?,
+            (None, Some(b)) => b.firmware,
+            (None, None) => return Err(need("firmware")),
+        };
+        let bed_mm = match (&self.bed_mm, &base) {
+            (Some(v), _) => {
+                let ok = v.len() == 3 && v.iter().all(|x| x.is_finite() && BED_MM.contains(x));
+                if !ok {
+                    return Err((
+                        "bed_mm",
+                        format!(
+                            "must be [x, y, z], each from {} to {} mm, got {v:?}",
+                            BED_MM.start(),
+                            BED_MM.end()
+                        ),
+                    ));
+                }
+                [v[0], v[1], v[2]]
+            }
+            (None, Some(b)) => b.bed_mm,
+            (None, None) => return Err(need("bed_mm")),
+        };
+        let in_range = |key: &'static str, v: f64, r: &std::ops::RangeInclusive<f64>| {
+            if v.is_finite() && r.contains(&v) {
+                Ok(v)
+            } else {
+                Err((
+                    key,
+                    format!("must be from {} to {} mm, got {v}", r.start(), r.end()),
+                ))
+            }
+        };
+        let nozzle_mm = match (self.nozzle_mm, &base) {
+            (Some(v), _) => in_range("nozzle_mm", v, &NOZZLE_MM)?,
+            (None, Some(b)) => b.nozzle_mm,
+            (None, None) => return Err(need("nozzle_mm")),
+        };
+        let filament_mm = match (self.filament_mm, &base) {
+            (Some(v), _) => in_range("filament_mm", v, &FILAMENT_MM)?,
+            (None, Some(b)) => b.filament_mm,
+            (None, None) => return Err(need("filament_mm")),
+        };
+        let heated_bed = match (self.heated_bed, &base) {
+            (Some(v), _) => v,
+            (None, Some(b)) => b.heated_bed,
+            (None, None) => return Err(need("heated_bed")),
+        };
+        let file = |key: &'static str, p: &Option<PathBuf>| -> Result<Option<PathBuf>, _> {
+            match p {
+                None => Ok(None),
+                Some(p) if p.as_os_str().is_empty() => Err((key, "must not be empty".into())),
+                Some(p) => Ok(Some(anchor(p))),
+            }
+        };
+        let code = |key: &'static str, p: &Option<PathBuf>| -> Result<Option<String>, _> {
+            let Some(path) = file(key, p)? else {
+                return Ok(None);
+            };
+            read_code(&path).map(Some).map_err(|m| (key, m))
+        };
+        Ok(Machine {
+            name: self.name,
+            firmware,
+            bed_mm,
+            nozzle_mm,
+            // A machine defined in the config is what it says: its nozzle is given.
+            nozzle_range_mm: match (&base, self.nozzle_mm) {
+                (Some(b), None) => b.nozzle_range_mm,
+                _ => [nozzle_mm, nozzle_mm],
+            },
+            filament_mm,
+            heated_bed,
+            prusa_profile: file("prusa_profile", &self.prusa_profile)?
+                .or_else(|| base.as_ref().and_then(|b| b.prusa_profile.clone())),
+            cura_profile: file("cura_profile", &self.cura_profile)?
+                .or_else(|| base.as_ref().and_then(|b| b.cura_profile.clone())),
+            start_gcode: code("start_gcode", &self.start_gcode)?
+                .or_else(|| base.as_ref().and_then(|b| b.start_gcode.clone())),
+            end_gcode: code("end_gcode", &self.end_gcode)?
+                .or_else(|| base.as_ref().and_then(|b| b.end_gcode.clone())),
+        })
+    }
+}
+
+/// Reads a start or end code file: text, at most [`MAX_CODE_BYTES`].
+fn read_code(path: &Path) -> Result<String, String> {
+    use std::io::Read;
+    let mut text = String::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_CODE_BYTES + 1).read_to_string(&mut text))
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    if text.len() as u64 > MAX_CODE_BYTES {
+        return Err(format!(
+            "{}: larger than {MAX_CODE_BYTES} bytes; start and end code is a few lines",
+            path.display()
+        ));
+    }
+    Ok(text)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(text: &str) -> MachineSpec {
+        toml::from_str(text).unwrap()
+    }
+
+    fn check(text: &str) -> Result<Machine, (&'static str, String)> {
+        spec(text).check(&Machine::builtin, &|p| p.to_path_buf())
+    }
+
+    #[test]
+    fn builtins_have_their_published_build_volumes() {
+        let m = |n: &str| Machine::builtin(n).unwrap();
+        assert_eq!(m("ultimaker2").bed_mm, [223.0, 223.0, 205.0]);
+        assert_eq!(m("ultimaker2-extended").bed_mm, [223.0, 223.0, 305.0]);
+        assert_eq!(m("ultimaker2plus").nozzle_range_mm, [0.25, 0.8]);
+        assert_eq!(m("ultimaker-original-plus").bed_mm, [205.0, 205.0, 200.0]);
+        for b in BUILTIN {
+            assert!(valid_name(b.name), "{}", b.name);
+        }
+        assert_eq!(m(DEFAULT_MARLIN_MACHINE).filament_mm, 1.75);
+        assert_eq!(
+            Machine::default_for(Firmware::Ultimaker2).name,
+            "ultimaker2"
+        );
+        assert_eq!(
+            Machine::default_for(Firmware::Marlin20).firmware,
+            Firmware::Marlin20
+        );
+    }
+
+    #[test]
+    fn nozzle_choice_is_bounded_and_names_its_own_machine() {
+        let plus = Machine::builtin("ultimaker2plus").unwrap();
+        let m = plus.with_nozzle(0.6).unwrap();
+        assert_eq!(
+            (m.name.as_str(), m.nozzle_mm),
+            ("ultimaker2plus-0.6mm", 0.6)
+        );
+        assert_eq!(plus.with_nozzle(0.4).unwrap(), plus);
+        let e = plus.with_nozzle(1.0).unwrap_err();
+        assert!(e.contains("0.25 to 0.8"), "{e}");
+        assert!(Machine::builtin("ultimaker2")
+            .unwrap()
+            .with_nozzle(0.6)
+            .is_err());
+    }
+
+    #[test]
+    fn a_machine_table_is_checked_key_by_key() {
+        let m = check(
+            "name = \"generic-175\"\nfirmware = \"marlin2\"\nbed_mm = [220, 220, 250]\n\
+             nozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = true\n",
+        )
+        .unwrap();
+        assert_eq!(m.bed_mm, [220.0, 220.0, 250.0]);
+        let m = check("name = \"um2-06\"\nbased_on = \"ultimaker2\"\nnozzle_mm = 0.6\n").unwrap();
+        assert_eq!((m.filament_mm, m.nozzle_mm), (2.85, 0.6));
+        for (text, key, says) in [
+            (
+                "name = \"a\"\nbased_on = \"nope\"",
+                "based_on",
+                "no machine",
+            ),
+            (
+                "name = \"ultimaker2\"\nbased_on = \"ultimaker2\"",
+                "name",
+                "already",
+            ),
+            ("name = \"a b\"", "name", "letters"),
+            ("name = \"a\"\nfirmware = \"marlin2\"", "bed_mm", "missing"),
+            (
+                "name = \"a\"\nbased_on = \"ultimaker2\"\nbed_mm = [1, 2]",
+                "bed_mm",
+                "[x, y, z]",
+            ),
+            (
+                "name = \"a\"\nbased_on = \"ultimaker2\"\nbed_mm = [200, 200, 1e9]",
+                "bed_mm",
+                "2000",
+            ),
+            (
+                "name = \"a\"\nbased_on = \"ultimaker2\"\nnozzle_mm = 0",
+                "nozzle_mm",
+                "from 0.1",
+            ),
+            (
+                "name = \"a\"\nbased_on = \"ultimaker2\"\nfilament_mm = nan",
+                "filament_mm",
+                "from 1",
+            ),
+            (
+                "name = \"a\"\nbased_on = \"ultimaker2\"\nfirmware = \"grbl\"",
+                "firmware",
+                "unknown",
+            ),
+            (
+                "name = \"a\"\nbased_on = \"ultimaker2\"\nstart_gcode = \"/nonexistent\"",
+                "start_gcode",
+                "cannot read",
+            ),
+        ] {
+            let (k, m) = check(text).unwrap_err();
+            assert_eq!(k, key, "{text}: {m}");
+            assert!(m.contains(says), "{text}: {m}");
+        }
+        assert!(toml::from_str::<MachineSpec>("name = \"a\"\nbed = 1").is_err());
+    }
+}

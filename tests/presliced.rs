@@ -1,0 +1,138 @@
+//! `crispen::slice::presliced` on real slicer output: G-code written by the real
+//! PrusaSlicer and CuraEngine for one machine is accepted for it and refused, with the
+//! reason, for machines it does not fit (filament, nozzle, bed, flavour).
+
+use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
+use crispen::enhance::Strength;
+use crispen::machine::Machine;
+use crispen::slice::presliced::{check_for, read_target, GcodeTarget};
+use crispen::slice::SlicerKind;
+use std::path::Path;
+
+mod common;
+
+fn machine(name: &str) -> Machine {
+    Machine::builtin(name).unwrap()
+}
+
+/// Slices spot, 10 mm tall and unenhanced, for `machine` with crispen's own steps.
+fn sliced_for(machine: Machine, slicer: SlicerKind, out: &Path) -> GcodeTarget {
+    let mut req = SliceRequest::new(common::model("spot.obj"), 10.0);
+    req.strength = Strength::Off;
+    req.slicer = slicer;
+    let target = Target {
+        machine,
+        output: out.to_path_buf(),
+        keep_mesh: None,
+    };
+    prepare_one(&req, target, &mut |_| {}).expect("sliced");
+    read_target(std::io::BufReader::new(std::fs::File::open(out).unwrap())).unwrap()
+}
+
+#[test]
+fn prusaslicer_output_is_for_its_machine_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = sliced_for(
+        machine("marlin-175"),
+        SlicerKind::Prusa,
+        &dir.path().join("a.gcode"),
+    );
+    assert!(t.slicer.as_deref().unwrap().starts_with("PrusaSlicer 2."));
+    assert_eq!((t.filament_mm, t.nozzle_mm), (Some(1.75), Some(0.4)));
+    assert_eq!(t.stated_bed_mm, Some([220.0, 220.0, 250.0]));
+    check_for(&t, &machine("marlin-175")).unwrap();
+    let e = check_for(&t, &machine("ultimaker2")).unwrap_err();
+    assert!(
+        e.contains("1.75 mm filament, the ultimaker2 takes 2.85"),
+        "{e}"
+    );
+
+    // A 0.6 mm nozzle on an Ultimaker 2+: not for the same machine with a 0.4 mm one.
+    let plus = machine("ultimaker2plus");
+    let t = sliced_for(
+        plus.with_nozzle(0.6).unwrap(),
+        SlicerKind::Prusa,
+        &dir.path().join("b.gcode"),
+    );
+    let e = check_for(&t, &plus).unwrap_err();
+    assert!(e.contains("0.6 mm nozzle"), "{e}");
+
+    // Centred on a 500 mm bed, the print lies beyond the Original+'s 205 mm.
+    let big = Machine {
+        name: "big-285".into(),
+        bed_mm: [500.0, 500.0, 300.0],
+        ..machine("ultimaker2")
+    };
+    let t = sliced_for(big, SlicerKind::Prusa, &dir.path().join("c.gcode"));
+    let e = check_for(&t, &machine("ultimaker-original-plus")).unwrap_err();
+    assert!(
+        e.contains("its moves go to X")
+            && e.contains("outside the ultimaker-original-plus's bed (0 .. 205 mm)"),
+        "{e}"
+    );
+}
+
+#[test]
+fn curaengine_output_is_checked_by_its_moves_and_flavour() {
+    let dir = tempfile::tempdir().unwrap();
+    // CuraEngine's own header says little (no filament diameter): the moves must fit.
+    let t = sliced_for(
+        machine("ultimaker2"),
+        SlicerKind::Cura,
+        &dir.path().join("a.gcode"),
+    );
+    assert!(t.slicer.as_deref().unwrap().starts_with("Cura_SteamEngine"));
+    assert_eq!(t.flavor.as_deref(), Some("Marlin"));
+    check_for(&t, &machine("ultimaker2")).unwrap();
+    let small = Machine {
+        name: "small".into(),
+        bed_mm: [100.0, 100.0, 100.0],
+        ..machine("ultimaker2")
+    };
+    let e = check_for(&t, &small).unwrap_err();
+    assert!(e.contains("outside the small's bed (0 .. 100 mm)"), "{e}");
+
+    // Cura's default for the Ultimaker 2 is UltiGCode, for its SD card: never over USB.
+    let resources = crispen::slice::cura::cura_resources();
+    let out = dir.path().join("ulti.gcode");
+    let stl = dir.path().join("spot.stl");
+    let mut mesh = crispen::mesh::load(&common::model("spot.obj"))
+        .unwrap()
+        .mesh;
+    crispen::mesh::place::place_on_bed(&mut mesh, 10.0, [f64::INFINITY; 3]).unwrap();
+    let mut bytes = Vec::new();
+    crispen::mesh::write_stl(&mut bytes, &mesh).unwrap();
+    std::fs::write(&stl, bytes).unwrap();
+    let status = std::process::Command::new("CuraEngine")
+        .arg("slice")
+        .arg("-j")
+        .arg(resources.join("definitions/ultimaker2.def.json"))
+        .args([
+            "-s",
+            "infill_line_distance=4",
+            "-s",
+            "center_object=true",
+            "-o",
+        ])
+        .arg(&out)
+        .arg("-l")
+        .arg(&stl)
+        .env(
+            "CURA_ENGINE_SEARCH_PATH",
+            format!(
+                "{}:{}",
+                resources.join("definitions").display(),
+                resources.join("extruders").display()
+            ),
+        )
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .expect("CuraEngine runs");
+    assert!(status.success());
+    let t = read_target(std::io::BufReader::new(std::fs::File::open(&out).unwrap())).unwrap();
+    assert_eq!(t.flavor.as_deref(), Some("UltiGCode"));
+    assert_eq!(t.nozzle_mm, Some(0.4));
+    let e = check_for(&t, &machine("ultimaker2")).unwrap_err();
+    assert!(e.contains("UltiGCode"), "{e}");
+}

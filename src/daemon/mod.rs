@@ -3,7 +3,9 @@
 //! prints ready jobs one at a time, waiting for its bed to be cleared in between.
 //!
 //! - [`config`]: the TOML configuration, checked in two stages.
-//! - [`job`]: the spool of job directories and their atomically written state.
+//! - [`job`]: a job, its states and the one table of legal changes.
+//! - [`store`]: the task that owns the jobs (the embedded spool by default), its handle
+//!   and the snapshot readers glance at.
 //! - [`hotfolder`]: deciding when a dropped file is complete.
 //! - [`prepare`]: sidecars and the slicer step.
 //! - [`printer`]: printer supervisors and staggered heat-ups.
@@ -21,10 +23,11 @@ pub mod job;
 pub mod ports;
 pub mod prepare;
 pub mod printer;
+pub mod store;
 
 use config::{Config, PrinterConfig, PrinterPort};
 use farm::{Farm, PrinterState, PrinterStatus};
-use job::{JobState, JobStore};
+use job::JobState;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -231,7 +234,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let mut sigint = signal(SignalKind::interrupt()).map_err(DaemonError::Signals)?;
     let mut sighup = signal(SignalKind::hangup()).map_err(DaemonError::Signals)?;
 
-    let mut store = JobStore::open(&config.spool_dir)?;
+    let mut store = store::spool::Spool::open(&config.spool_dir)?;
     for id in store.recover()? {
         let job = store.get(&id).expect("recovered job exists");
         tracing::warn!(job = %id, state = job.state.name(), "job found mid-flight after a restart");
@@ -289,8 +292,10 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
             }
             _ = ticker.tick() => {
                 fleet.settle(&farm);
-                let pending = Arc::clone(&farm);
-                tokio::task::spawn_blocking(move || pending.store().write_pending());
+                if farm.store().unwritten() > 0 {
+                    let jobs = farm.jobs.clone();
+                    tokio::spawn(async move { jobs.write_pending().await });
+                }
                 if watchdog {
                     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
                 }
@@ -395,8 +400,7 @@ fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()
             if farm.stopping() {
                 break;
             }
-            let farm = Arc::clone(&farm);
-            let _ = tokio::task::spawn_blocking(move || pick_up(&farm, &path, &folder)).await;
+            pick_up(&farm, &path, &folder).await;
         }
         watcher.abort();
     })
@@ -405,13 +409,13 @@ fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()
 /// Admits one complete file of a hot folder: a model becomes a job (with its sidecar if
 /// that is there already); a sidecar whose model was picked up before it arrived joins its
 /// job if the job has not started preparing, and is otherwise reported and kept aside.
-fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
+async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     if !hotfolder::is_sidecar_name(&name) {
-        match farm.store().admit(path, folder) {
+        match farm.jobs.admit(path, folder).await {
             Ok(job) => {
                 tracing::info!(job = %job.id, file = %path.display(), "picked up");
                 farm.bump();
@@ -425,28 +429,19 @@ fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
         // Taken with its model already, or its model is still arriving.
         return;
     }
-    let mut store = farm.store();
-    let job = store
-        .jobs()
-        .filter(|j| j.folder == folder && j.file == model)
-        .last()
-        .map(|j| (j.id.clone(), j.state));
-    let Some((id, state)) = job else {
-        tracing::debug!(file = %path.display(), "a sidecar without its model yet");
-        return;
-    };
-    match store.late_sidecar(&id, path, state == JobState::Queued) {
-        Ok(true) => {
-            tracing::info!(job = %id, file = %path.display(), "sidecar arrived after its model; it applies")
+    match farm.jobs.late_sidecar(folder, model, path).await {
+        Ok(None) => tracing::debug!(file = %path.display(), "a sidecar without its model yet"),
+        Ok(Some(late)) if late.applies => {
+            tracing::info!(job = %late.job, file = %path.display(), "sidecar arrived after its model; it applies")
         }
-        Ok(false) => tracing::warn!(
-            job = %id,
+        Ok(Some(late)) => tracing::warn!(
+            job = %late.job,
             file = %path.display(),
-            state = state.name(),
+            state = late.state.name(),
             "sidecar arrived after its model's job had started; NOT applied, kept in the job directory as {model}.toml.late (hint: put the sidecar in first, or `crispen cancel` and drop both again)"
         ),
         Err(e) => {
-            tracing::error!(job = %id, file = %path.display(), error = %e, "cannot take the late sidecar")
+            tracing::error!(file = %path.display(), error = %e, "cannot take the late sidecar")
         }
     }
 }
@@ -484,7 +479,7 @@ async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 })
                 .map(|j| j.id.clone());
             let Some(id) = next else { break };
-            if let Err(e) = farm.transition(&id, JobState::Preparing, None) {
+            if let Err(e) = farm.transition(&id, JobState::Preparing, None).await {
                 tracing::error!(job = %id, error = %e, "cannot start preparing");
                 // A job that failed for it (its directory is gone) is passed over; one
                 // still queued (the disk is full) waits for the next change.
@@ -555,17 +550,14 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
                 .map(|report| (report, sidecar))
         }
     };
-    let farm2 = Arc::clone(&farm);
-    let _ = tokio::task::spawn_blocking(move || finish_preparation(&farm2, &id, result)).await;
+    finish_preparation(&farm, &id, result).await;
 }
 
 /// Reads the job's sidecar and works out its task.
 fn resolve(farm: &Farm, id: &str) -> Result<(prepare::PrepareTask, Option<job::Sidecar>), String> {
-    let (job, dir) = {
-        let store = farm.store();
-        let job = store.get(id).cloned().ok_or("job vanished")?;
-        (job, store.job_dir(id))
-    };
+    let store = farm.store();
+    let job = store.get(id).ok_or("job vanished")?;
+    let dir = store.job_dir(id);
     let config = farm.config();
     let folder = config.folder(&job.folder).ok_or_else(|| {
         format!(
@@ -578,7 +570,9 @@ fn resolve(farm: &Farm, id: &str) -> Result<(prepare::PrepareTask, Option<job::S
     Ok((task, sidecar))
 }
 
-fn finish_preparation(
+/// Records a preparation's outcome, unless the job was cancelled (or otherwise moved on)
+/// meanwhile: the store checks that it is still preparing in the same step.
+async fn finish_preparation(
     farm: &Farm,
     id: &str,
     result: Result<(crate::slice::SliceReport, Option<job::Sidecar>), prepare::PrepareError>,
@@ -587,26 +581,29 @@ fn finish_preparation(
         .lock()
         .unwrap_or_else(|e| e.into_inner())
         .remove(id);
-    // Cancelled (or otherwise moved on) while being prepared: the result is not wanted.
-    // Checked and recorded under one hold of the lock, so a cancel cannot slip between.
-    let mut store = farm.store();
-    if store.get(id).map(|j| j.state) != Some(JobState::Preparing) {
-        return;
-    }
+    const STILL_PREPARING: store::StateFilter = &[JobState::Preparing];
     let outcome = match result {
-        Ok((report, sidecar)) => farm.transition_with(&mut store, id, JobState::Ready, None, |j| {
-            j.slice_report = Some(report);
-            j.sidecar = sidecar;
-        }),
+        Ok((report, sidecar)) => {
+            farm.transition_from(id, STILL_PREPARING, JobState::Ready, None, |j| {
+                j.slice_report = Some(report);
+                j.sidecar = sidecar;
+            })
+            .await
+        }
         // Still preparing, so not cancelled by the operator: the daemon is stopping, and
         // the job is prepared again at the next start.
         Err(prepare::PrepareError::Cancelled) => {
-            farm.transition_in(&mut store, id, JobState::Queued, None)
+            farm.transition_from(id, STILL_PREPARING, JobState::Queued, None, |_| {})
+                .await
         }
-        Err(e) => farm.transition_in(&mut store, id, JobState::Failed, Some(e.to_string())),
+        Err(e) => {
+            let reason = Some(e.to_string());
+            farm.transition_from(id, STILL_PREPARING, JobState::Failed, reason, |_| {})
+                .await
+        }
     };
-    drop(store);
-    if let Err(e) = outcome {
-        tracing::error!(job = id, error = %e, "cannot record the preparation's outcome");
+    match outcome {
+        Ok(_) | Err(job::StoreError::StateChanged { .. }) => {}
+        Err(e) => tracing::error!(job = id, error = %e, "cannot record the preparation's outcome"),
     }
 }

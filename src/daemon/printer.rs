@@ -12,7 +12,7 @@
 //! Marlin streamer is wired in in one place ([`MarlinConnector`]).
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterState};
-use super::job::{JobState, PrinterGate};
+use super::job::{JobState, PrintReport, PrinterGate};
 use crate::marlin::gcode::GcodeProgram;
 use crate::marlin::stream::{
     Connection, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
@@ -47,7 +47,7 @@ pub trait PrinterLink: Send {
         gcode: &'a Path,
         control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
-    ) -> BoxFuture<'a, Result<serde_json::Value, PrintFailure>>;
+    ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>>;
 }
 
 /// Opens connections to one printer.
@@ -142,7 +142,7 @@ async fn supervise_inner(
                 }
                 continue;
             }
-            let Some(job_id) = claim_job(&farm, &name) else {
+            let Some(job_id) = claim_job(&farm, &name).await else {
                 farm.set_printer(&name, |p| {
                     p.state = PrinterState::Idle;
                     p.job = None;
@@ -175,38 +175,27 @@ async fn supervise_inner(
 }
 
 /// Takes the oldest ready job this printer may print, marking it printing. The search and
-/// the change happen under one hold of the store's lock: supervisors run on several
-/// threads, and two of them must never take the same job.
-fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
+/// the change are one request to the job store: supervisors run on several threads, and
+/// two of them must never take the same job.
+async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let config = farm.config();
-    let mut store = farm.store();
-    let id = store
-        .jobs()
-        .filter(|j| j.state == JobState::Ready)
-        .find(|j| {
-            let served = config
-                .folder(&j.folder)
-                .is_some_and(|f| f.printers.iter().any(|p| p == printer));
-            let wanted = j
-                .sidecar
-                .as_ref()
-                .and_then(|s| s.printer.as_deref())
-                .is_none_or(|p| p == printer);
-            served && wanted
-        })
-        .map(|j| j.id.clone())?;
-    let claimed = farm.transition_with(&mut store, &id, JobState::Printing, None, |j| {
-        j.printer = Some(printer.to_string())
-    });
-    match claimed {
-        Ok(_) => Some(id),
-        // Failed for it (its directory is gone): the next job may be printable.
-        Err(_) if store.get(&id).is_some_and(|j| j.state == JobState::Failed) => {
-            drop(store);
-            claim_job(farm, printer)
-        }
+    let name = printer.to_string();
+    let eligible = move |j: &super::job::Job| {
+        let printer = name.as_str();
+        let served = config
+            .folder(&j.folder)
+            .is_some_and(|f| f.printers.iter().any(|p| p == printer));
+        let wanted = j
+            .sidecar
+            .as_ref()
+            .and_then(|s| s.printer.as_deref())
+            .is_none_or(|p| p == printer);
+        served && wanted
+    };
+    match farm.claim(printer, eligible).await {
+        Ok(job) => job.map(|j| j.id),
         Err(e) => {
-            tracing::error!(job = %id, error = %e, "cannot claim the job");
+            tracing::error!(error = %e, "cannot claim a job");
             None
         }
     }
@@ -236,7 +225,7 @@ async fn run_job(
         permit = farm.heating_permit() => permit,
         _ = farm.shutdown.cancelled() => {
             // Nothing was sent to the printer: the job waits for the next start.
-            if let Err(e) = farm.transition(job_id, JobState::Ready, None) {
+            if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
                 tracing::error!(error = %e, "cannot put the job back");
             }
             farm.set_printer(printer, |p| p.job = None);
@@ -296,7 +285,7 @@ async fn run_job(
         bed_not_cleared: true,
         last_job: Some(job_id.to_string()),
     };
-    if let Err(e) = farm.store().set_gate(printer, gate) {
+    if let Err(e) = farm.jobs.set_gate(printer, gate).await {
         tracing::error!(error = %e, "cannot persist the bed gate");
     }
     let mut printed = None;
@@ -330,12 +319,14 @@ async fn run_job(
         ),
         Err(PrintFailure::Failed(why)) => (JobState::Failed, Some(why), false),
     };
-    let recorded = farm.record_outcome(job_id, state, reason, |j| {
-        if let Some(report) = printed {
-            j.copies_done += 1;
-            j.print_report = Some(report);
-        }
-    });
+    let recorded = farm
+        .record_outcome(job_id, state, reason, |j| {
+            if let Some(report) = printed {
+                j.copies_done += 1;
+                j.print_report = Some(report);
+            }
+        })
+        .await;
     if let Err(e) = recorded {
         tracing::error!(error = %e, "cannot record the print's outcome");
     }
@@ -396,7 +387,7 @@ impl PrinterLink for MarlinLink {
         gcode: &'a Path,
         mut control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
-    ) -> BoxFuture<'a, Result<serde_json::Value, PrintFailure>> {
+    ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>> {
         Box::pin(async move {
             let program = GcodeProgram::load_for(gcode, self.firmware)
                 .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?;
@@ -458,7 +449,7 @@ impl PrinterLink for MarlinLink {
             // print shows all its lines acknowledged.
             progress.send_replace(live_progress(&inner_rx.borrow(), last_heated, last_paused));
             match result {
-                Ok(report) => Ok(serde_json::to_value(&report).unwrap_or_default()),
+                Ok(report) => Ok(report.into()),
                 Err(e) => Err(match e {
                     PrintError::Cancelled { .. } => PrintFailure::Cancelled(e.to_string()),
                     PrintError::Open(_)
@@ -497,8 +488,11 @@ mod tests {
 
     /// Many supervisors claiming at once, on real threads: every ready job goes to exactly
     /// one printer (a claim split from its state change once printed a job twice).
-    #[test]
-    fn concurrent_claims_take_each_job_once() {
+    /// Eight printers' supervisors, on a multi-threaded runtime, claiming 200 ready jobs
+    /// at once through the store's task: each job is claimed exactly once, by the printer
+    /// it is recorded for.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+    async fn concurrent_claims_take_each_job_once() {
         let tmp = tempfile::tempdir().unwrap();
         let hot = tmp.path().join("hot");
         std::fs::create_dir(&hot).unwrap();
@@ -516,7 +510,8 @@ mod tests {
         );
         let config =
             crate::daemon::config::Config::parse(&text, &tmp.path().join("crispen.toml")).unwrap();
-        let mut store = crate::daemon::job::JobStore::open(&tmp.path().join("spool")).unwrap();
+        let mut store =
+            crate::daemon::store::spool::Spool::open(&tmp.path().join("spool")).unwrap();
         let mut ids = Vec::new();
         for i in 0..200 {
             let file = hot.join(format!("m{i}.stl"));
@@ -529,23 +524,32 @@ mod tests {
             ids.push(job.id);
         }
         let farm = Farm::new(config, store, Default::default());
-        let barrier = std::sync::Barrier::new(printers.len());
-        let claimed: Vec<Vec<String>> = std::thread::scope(|scope| {
-            let handles: Vec<_> = printers
-                .iter()
-                .map(|p| {
-                    let (farm, barrier) = (&farm, &barrier);
-                    scope.spawn(move || {
-                        barrier.wait();
-                        std::iter::from_fn(|| claim_job(farm, p)).collect()
-                    })
+        let start = Arc::new(tokio::sync::Barrier::new(printers.len()));
+        let tasks: Vec<_> = printers
+            .iter()
+            .map(|p| {
+                let (farm, start, p) = (Arc::clone(&farm), Arc::clone(&start), p.clone());
+                tokio::spawn(async move {
+                    start.wait().await;
+                    let mut mine = Vec::new();
+                    while let Some(id) = claim_job(&farm, &p).await {
+                        mine.push(id);
+                    }
+                    mine
                 })
-                .collect();
-            handles.into_iter().map(|h| h.join().unwrap()).collect()
-        });
+            })
+            .collect();
+        let mut claimed = Vec::new();
+        for task in tasks {
+            claimed.push(task.await.unwrap());
+        }
         let mut all: Vec<String> = claimed.concat();
         all.sort();
         assert_eq!(all, ids, "each ready job claimed exactly once");
+        assert!(
+            claimed.iter().filter(|c| !c.is_empty()).count() > 1,
+            "the printers took turns"
+        );
         let store = farm.store();
         for (p, jobs) in printers.iter().zip(&claimed) {
             for id in jobs {

@@ -10,6 +10,7 @@
 //! - [`prepare`]: sidecars and the slicer step.
 //! - [`printer`]: printer supervisors and staggered heat-ups.
 //! - [`control`]: the JSON-lines control socket and its client.
+//! - [`reload`]: SIGHUP, and when each config key's change takes effect.
 //! - [`farm`]: the state all of these share.
 //!
 //! [`run`] wires them together; I/O endpoints (printer ports, the preparer) are resolved
@@ -23,6 +24,7 @@ pub mod job;
 pub mod ports;
 pub mod prepare;
 pub mod printer;
+pub mod reload;
 pub mod store;
 
 use config::{Config, PrinterConfig, PrinterPort};
@@ -288,7 +290,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
             _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
             _ = sigint.recv() => { tracing::info!("SIGINT: stopping"); break; }
             _ = sighup.recv() => {
-                reload(&farm, &options, &mut pickup, &mut fleet);
+                on_sighup(&farm, &options, &mut pickup, &mut fleet);
             }
             _ = ticker.tick() => {
                 fleet.settle(&farm);
@@ -349,10 +351,10 @@ fn summary(farm: &Farm) -> String {
     )
 }
 
-/// SIGHUP: re-read the config file. A bad file is refused and the old config kept. Folder,
-/// farm and printer changes take effect (printers as [`Fleet::apply`] says); the spool and
-/// the control socket need a restart.
-fn reload(
+/// SIGHUP: re-read the config file and apply it as [`reload::POLICY`] declares; a bad
+/// file is refused and the old config kept. Pick-up restarts with the new folders, and
+/// the printers change as [`Fleet::apply`] says.
+fn on_sighup(
     farm: &Arc<Farm>,
     options: &RunOptions,
     pickup: &mut tokio::task::JoinHandle<()>,
@@ -362,28 +364,12 @@ fn reload(
         tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
         return;
     };
-    match Config::load(path) {
-        Err(e) => tracing::error!(error = %e, "SIGHUP: new config refused; keeping the old one"),
-        Ok(new) => {
-            let old = farm.config();
-            let http_changed = new.http.as_ref().map(|h| (h.listen, &h.api_key))
-                != old.http.as_ref().map(|h| (h.listen, &h.api_key));
-            if new.spool_dir != old.spool_dir || new.socket != old.socket || http_changed {
-                tracing::warn!(
-                    "SIGHUP: [spool], [control] and [http] changes need a restart; ignored"
-                );
-            }
-            let mut merged = new;
-            merged.spool_dir = old.spool_dir.clone();
-            merged.socket = old.socket.clone();
-            merged.http = old.http.clone();
-            pickup.abort();
-            *farm.config.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(merged.clone());
-            fleet.apply(farm, &merged.printers);
-            *pickup = spawn_pickup(farm, &merged);
-            farm.bump();
-            tracing::info!("SIGHUP: config reloaded");
-        }
+    if let reload::Reloaded::Applied { config, .. } = reload::reload(farm, path) {
+        pickup.abort();
+        fleet.apply(farm, &config.printers);
+        *pickup = spawn_pickup(farm, &config);
+        farm.bump();
+        tracing::info!("SIGHUP: config reloaded");
     }
 }
 

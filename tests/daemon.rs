@@ -1437,3 +1437,83 @@ fn sigterm_while_waiting_to_heat_starts_nothing() {
     .unwrap();
     assert_eq!(stored["state"], "ready", "{stored}");
 }
+
+/// One SIGHUP changing a key of each reload policy (see `crispen::daemon::reload`): a
+/// folder added applies at once (a file dropped into it is picked up), a printer's
+/// firmware applies by restarting that printer (the status shows the new firmware), and
+/// a new control socket needs a daemon restart (the daemon goes on answering on the old
+/// one and says so in its log).
+#[test]
+fn reload_applies_each_key_as_its_policy_declares() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (config, log) = small_farm(root, "");
+    std::fs::create_dir_all(root.join("hot2")).unwrap();
+    // The control client reads the socket from its config: a copy keeps the old one.
+    let old_config = root.join("old.toml");
+    std::fs::copy(&config, &old_config).unwrap();
+    let mut daemon = Daemon::start(&config, &log);
+    wait_for(&config, &log, Duration::from_secs(30), "p idle", |s| {
+        printer(s, "p")["state"] == "idle"
+    });
+    let text = std::fs::read_to_string(&config).unwrap();
+    let changed = text
+        .replace("socket = \"c.sock\"", "socket = \"d.sock\"")
+        .replace(
+            "firmware = \"marlin2\"",
+            "firmware = \"ultimaker2\"\nbaud = 250000",
+        )
+        + "[[folder]]\npath = \"hot2\"\nheight_mm = 25\nprinters = [\"p\"]\n";
+    std::fs::write(&config, changed).unwrap();
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(daemon.child.id() as i32),
+        nix::sys::signal::Signal::SIGHUP,
+    )
+    .unwrap();
+    // Printer restart: the printer comes back with its new firmware.
+    wait_for(
+        &old_config,
+        &log,
+        Duration::from_secs(60),
+        "p restarted as an ultimaker2",
+        |s| {
+            // Missing from the status while its supervisor restarts.
+            s["printers"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .any(|p| p["name"] == "p" && p["firmware"] == "ultimaker2" && p["state"] == "idle")
+        },
+    );
+    // Live: the new folder is watched.
+    drop_model(&root.join("hot2"), "late.obj", &spot());
+    wait_for(
+        &old_config,
+        &log,
+        Duration::from_secs(60),
+        "the new folder's file picked up",
+        |s| job_by_file(s, "late.obj").is_some(),
+    );
+    // Daemon restart: still on the old socket, never on the new one.
+    assert!(root.join("c.sock").exists());
+    assert!(
+        !root.join("d.sock").exists(),
+        "the new socket waits for a restart"
+    );
+    let text = std::fs::read_to_string(&log).unwrap();
+    for (key, says) in [
+        ("control.socket", "needs a daemon restart"),
+        (
+            "printer.firmware",
+            "applies when the printer is not printing",
+        ),
+        ("folder", "applied"),
+    ] {
+        assert!(
+            text.lines()
+                .any(|l| l.contains(&format!("SIGHUP: {key} changed: {says}"))),
+            "{key}: {says}\nlog:\n{text}"
+        );
+    }
+    daemon.kill9();
+}

@@ -67,9 +67,10 @@ pub trait JobStore: Send + 'static {
     /// Puts a failed, cancelled or interrupted job back (ready if its G-code is kept).
     fn retry(&mut self, id: &str) -> Result<Job, StoreError>;
     fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError>;
-    /// Persists what [`JobStore::record_outcome`] could not; returns how many remain.
+    /// Persists what [`JobStore::record_outcome`] and [`JobStore::set_gate`] could not;
+    /// returns how many remain.
     fn write_pending(&mut self) -> usize;
-    /// How many recorded outcomes wait to be persisted.
+    /// How many recorded outcomes (and bed gates) wait to be persisted.
     fn unwritten(&self) -> usize;
 }
 
@@ -316,6 +317,7 @@ impl Request {
             } => {
                 let result = store.set_gate(&printer, gate);
                 view.gates = store.gates();
+                view.unwritten = store.unwritten();
                 deliver(reply, result)
             }
             Request::ClearGate { printer, reply } => {
@@ -330,6 +332,7 @@ impl Request {
                     Ok(false)
                 };
                 view.gates = store.gates();
+                view.unwritten = store.unwritten();
                 deliver(reply, result)
             }
             Request::WritePending { reply } => {

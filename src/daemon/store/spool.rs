@@ -26,6 +26,9 @@ pub struct Spool {
     next_seq: u64,
     /// Jobs whose state in memory is newer than on disk (see [`Spool::record_outcome`]).
     unwritten: std::collections::BTreeSet<String>,
+    /// The bed gates in memory are newer than `printers.json` (a full disk): a bed that
+    /// needs clearing must still need it after a restart, so they are written again.
+    gates_unwritten: bool,
 }
 
 fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
@@ -120,6 +123,7 @@ impl Spool {
             gates,
             next_seq,
             unwritten: Default::default(),
+            gates_unwritten: false,
         };
         store.adopt_orphans()?;
         Ok(store)
@@ -222,6 +226,12 @@ impl Spool {
 
     pub fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
         self.gates.insert(printer.to_string(), gate);
+        let written = self.save_gates();
+        self.gates_unwritten = written.is_err();
+        written
+    }
+
+    fn save_gates(&self) -> Result<(), StoreError> {
         let bytes = serde_json::to_vec_pretty(&self.gates).expect("gates serialise");
         write_atomic(&self.root.join("printers.json"), &bytes)
     }
@@ -416,7 +426,11 @@ impl Spool {
                 self.unwritten.remove(&id);
             }
         }
-        self.unwritten.len()
+        if self.gates_unwritten && self.save_gates().is_ok() {
+            tracing::info!("bed gates written after all");
+            self.gates_unwritten = false;
+        }
+        self.unwritten.len() + usize::from(self.gates_unwritten)
     }
 
     /// Applies `change` to a job's other fields and persists it; its state stays (only
@@ -556,7 +570,7 @@ impl JobStore for Spool {
         Spool::write_pending(self)
     }
     fn unwritten(&self) -> usize {
-        self.unwritten.len()
+        self.unwritten.len() + usize::from(self.gates_unwritten)
     }
 }
 

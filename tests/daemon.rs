@@ -5,7 +5,8 @@
 //! every done job's G-code, recovery after `kill -9` in the middle of a print or of a
 //! slicing (whose slicer must not outlive the daemon), print
 //! controls (pause, resume, cancel, retry), a safe stop at SIGTERM, an unplugged printer
-//! and its reconnection, and printers added and removed by SIGHUP.
+//! and its reconnection, printers added and removed by SIGHUP, a reload's policy per key,
+//! and a spool whose filesystem fills up.
 
 mod common;
 use common::{job_by_file, printer};
@@ -27,12 +28,16 @@ struct Daemon {
 
 impl Daemon {
     fn start(config: &Path, log: &Path) -> Daemon {
+        Daemon::start_by(Command::new(BIN), config, log)
+    }
+    /// `crispen run` through `launcher` (a command line ending in the binary).
+    fn start_by(mut launcher: Command, config: &Path, log: &Path) -> Daemon {
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
             .open(log)
             .unwrap();
-        let child = Command::new(BIN)
+        let child = launcher
             .args(["run", "--config"])
             .arg(config)
             .env("RUST_LOG", "info")
@@ -1556,23 +1561,12 @@ impl SmallDisk {
     }
 
     fn start_daemon(&self, config: &Path, log: &Path) -> Daemon {
-        let log = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(log)
-            .unwrap();
-        let child = Command::new("nsenter")
+        let mut nsenter = Command::new("nsenter");
+        nsenter
             .arg(format!("--mount=/proc/{}/ns/mnt", self.holder.id()))
             .arg("--")
-            .arg(BIN)
-            .args(["run", "--config"])
-            .arg(config)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap();
-        Daemon { child }
+            .arg(BIN);
+        Daemon::start_by(nsenter, config, log)
     }
 
     /// Fills the filesystem to the last byte; returns the filler to remove later.

@@ -5,7 +5,8 @@
 //! every done job's G-code, recovery after `kill -9` in the middle of a print or of a
 //! slicing (whose slicer must not outlive the daemon), print
 //! controls (pause, resume, cancel, retry), a safe stop at SIGTERM, an unplugged printer
-//! and its reconnection, and printers added and removed by SIGHUP.
+//! and its reconnection, printers added and removed by SIGHUP, a reload's policy per key,
+//! and a spool whose filesystem fills up.
 
 mod common;
 use common::{job_by_file, printer};
@@ -27,12 +28,16 @@ struct Daemon {
 
 impl Daemon {
     fn start(config: &Path, log: &Path) -> Daemon {
+        Daemon::start_by(Command::new(BIN), config, log)
+    }
+    /// `crispen run` through `launcher` (a command line ending in the binary).
+    fn start_by(mut launcher: Command, config: &Path, log: &Path) -> Daemon {
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
             .open(log)
             .unwrap();
-        let child = Command::new(BIN)
+        let child = launcher
             .args(["run", "--config"])
             .arg(config)
             .env("RUST_LOG", "info")
@@ -1483,4 +1488,278 @@ fn a_config_named_without_a_directory_anchors_its_paths() {
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success() && text.contains("spot.obj"), "{text}");
+}
+
+/// One SIGHUP changing a key of each reload policy (see `crispen::daemon::reload`): a
+/// folder added applies at once (a file dropped into it is picked up), a printer's
+/// firmware applies by restarting that printer (the status shows the new firmware), and
+/// a new control socket needs a daemon restart (the daemon goes on answering on the old
+/// one and says so in its log).
+#[test]
+fn reload_applies_each_key_as_its_policy_declares() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (config, log) = small_farm(root, "");
+    std::fs::create_dir_all(root.join("hot2")).unwrap();
+    // The control client reads the socket from its config: a copy keeps the old one.
+    let old_config = root.join("old.toml");
+    std::fs::copy(&config, &old_config).unwrap();
+    let mut daemon = Daemon::start(&config, &log);
+    wait_for(&config, &log, Duration::from_secs(30), "p idle", |s| {
+        printer(s, "p")["state"] == "idle"
+    });
+    let text = std::fs::read_to_string(&config).unwrap();
+    let changed = text
+        .replace("socket = \"c.sock\"", "socket = \"d.sock\"")
+        .replace(
+            "firmware = \"marlin2\"",
+            "firmware = \"ultimaker2\"\nbaud = 250000",
+        )
+        + "[[folder]]\npath = \"hot2\"\nheight_mm = 25\nprinters = [\"p\"]\n";
+    std::fs::write(&config, changed).unwrap();
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(daemon.child.id() as i32),
+        nix::sys::signal::Signal::SIGHUP,
+    )
+    .unwrap();
+    // Printer restart: the printer comes back with its new firmware.
+    wait_for(
+        &old_config,
+        &log,
+        Duration::from_secs(60),
+        "p restarted as an ultimaker2",
+        |s| {
+            // Missing from the status while its supervisor restarts.
+            s["printers"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .any(|p| p["name"] == "p" && p["firmware"] == "ultimaker2" && p["state"] == "idle")
+        },
+    );
+    // Live: the new folder is watched.
+    drop_model(&root.join("hot2"), "late.obj", &spot());
+    wait_for(
+        &old_config,
+        &log,
+        Duration::from_secs(60),
+        "the new folder's file picked up",
+        |s| job_by_file(s, "late.obj").is_some(),
+    );
+    // Daemon restart: still on the old socket, never on the new one.
+    assert!(root.join("c.sock").exists());
+    assert!(
+        !root.join("d.sock").exists(),
+        "the new socket waits for a restart"
+    );
+    let text = std::fs::read_to_string(&log).unwrap();
+    for (key, says) in [
+        ("control.socket", "needs a daemon restart"),
+        (
+            "printer.firmware",
+            "applies when the printer is not printing",
+        ),
+        ("folder", "applied"),
+    ] {
+        assert!(
+            text.lines()
+                .any(|l| l.contains(&format!("SIGHUP: {key} changed: {says}"))),
+            "{key}: {says}\nlog:\n{text}"
+        );
+    }
+    daemon.kill9();
+}
+
+/// A spool on a filesystem of its own: a 64 MB tmpfs mounted in a private mount
+/// namespace (`unshare -m`), held open by a `sleep` so that it outlives a daemon restart.
+/// The daemon runs inside it (`nsenter`); the test reaches the spool through
+/// `/proc/<holder>/root`.
+struct SmallDisk {
+    holder: Child,
+}
+
+impl SmallDisk {
+    fn mount(at: &Path) -> SmallDisk {
+        std::fs::create_dir_all(at).unwrap();
+        let mut holder = Command::new("unshare")
+            .args(["-m", "--propagation", "private", "sh", "-c"])
+            .arg("mount -t tmpfs -o size=64m crispen-test \"$0\" && echo mounted && exec sleep 100000")
+            .arg(at)
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("unshare (util-linux) runs");
+        let mut line = String::new();
+        std::io::BufRead::read_line(
+            &mut std::io::BufReader::new(holder.stdout.take().unwrap()),
+            &mut line,
+        )
+        .unwrap();
+        assert_eq!(
+            line.trim(),
+            "mounted",
+            "cannot mount a tmpfs in a private mount namespace (the test needs root on Linux)"
+        );
+        SmallDisk { holder }
+    }
+
+    /// `path` as the namespace sees it.
+    fn inside(&self, path: &Path) -> PathBuf {
+        Path::new(&format!("/proc/{}/root", self.holder.id())).join(path.strip_prefix("/").unwrap())
+    }
+
+    fn start_daemon(&self, config: &Path, log: &Path) -> Daemon {
+        let mut nsenter = Command::new("nsenter");
+        nsenter
+            .arg(format!("--mount=/proc/{}/ns/mnt", self.holder.id()))
+            .arg("--")
+            .arg(BIN);
+        Daemon::start_by(nsenter, config, log)
+    }
+
+    /// Fills the filesystem to the last byte; returns the filler to remove later.
+    fn fill(&self, dir: &Path) -> PathBuf {
+        let filler = self.inside(&dir.join("filler"));
+        let mut file = std::fs::File::create(&filler).unwrap();
+        let block = vec![0xa5u8; 64 * 1024];
+        loop {
+            match file.write(&block) {
+                Ok(0) => break,
+                Ok(_) => {}
+                Err(e) if e.raw_os_error() == Some(nix::libc::ENOSPC) => break,
+                Err(e) => panic!("filling the disk: {e}"),
+            }
+        }
+        // The last bytes one at a time, so not even a small file fits.
+        while file.write(&[0]).is_ok_and(|n| n == 1) {}
+        filler
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = self.holder.kill();
+        let _ = self.holder.wait();
+    }
+}
+
+/// A full disk, for real. While the spool's filesystem is full: a model whose pick-up
+/// cannot be copied whole stays in the hot folder, with no half job in the spool; a print
+/// that ends is shown done at once though its state cannot be written. Once space
+/// returns, the done state and the bed gate reach the disk, the waiting model is picked
+/// up, and after a `kill -9` and a restart the job is still done (never interrupted, so
+/// never offered for a reprint) and its bed still waits to be cleared.
+#[test]
+fn a_full_disk_loses_nothing_and_reprints_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let spool = root.join("spool");
+    let disk = SmallDisk::mount(&spool);
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    let rec = root.join("p.rec");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+             [farm]\nsettle_s = 0.3\nrescan_s = 1\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n\
+             [printer.simulate]\ntime_scale = 0.02\nrecord = \"{}\"\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
+            rec.display()
+        ),
+    )
+    .unwrap();
+    let mut daemon = disk.start_daemon(&config, &log);
+    drop_model(&hot, "spot.obj", &spot());
+    let s = wait_for(&config, &log, Duration::from_secs(240), "printing", |s| {
+        printer(s, "p")["state"] == "printing"
+    });
+    let id = job_by_file(&s, "spot.obj").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let (ok, out) = ctl(&config, &["pause", "p"]);
+    assert!(ok, "{out}");
+    wait_for(&config, &log, Duration::from_secs(120), "paused", |s| {
+        printer(s, "p")["state"] == "paused"
+    });
+    let filler = disk.fill(&spool);
+
+    // A pick-up that cannot be copied whole: the file stays, no half job.
+    let big: Vec<u8> = (0..2_000_000u32).map(|i| (i % 251) as u8).collect();
+    drop_model(&hot, "big.stl", &big);
+    let started = Instant::now();
+    while !std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .any(|l| l.contains("cannot pick up") && l.contains("big.stl"))
+    {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "the failed pick-up is logged"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert_eq!(std::fs::read(hot.join("big.stl")).unwrap(), big);
+    let jobs_dir = disk.inside(&spool.join("jobs"));
+    let left: Vec<String> = std::fs::read_dir(&jobs_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(left, vec![id.clone()], "no half job in the spool");
+    let status_now = status(&config).unwrap();
+    assert!(job_by_file(&status_now, "big.stl").is_none());
+
+    // The print ends while nothing can be written: done at once, in memory.
+    let (ok, out) = ctl(&config, &["resume", "p"]);
+    assert!(ok, "{out}");
+    wait_for(&config, &log, Duration::from_secs(600), "done", |s| {
+        state_of(s, "spot.obj") == "done"
+    });
+    let job_json = disk.inside(&spool.join("jobs").join(&id).join("job.json"));
+    let on_disk =
+        |path: &Path| -> Value { serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap() };
+    assert_eq!(
+        on_disk(&job_json)["state"],
+        "printing",
+        "the disk is full: the outcome could not be written yet"
+    );
+    let (ok, out) = ctl(&config, &["retry", &id]);
+    assert!(!ok, "a done job is not offered again: {out}");
+
+    // Space returns: the outcome and the bed gate are written, the model is picked up.
+    std::fs::remove_file(&filler).unwrap();
+    let started = Instant::now();
+    while on_disk(&job_json)["state"] != "done" {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "the outcome is written once space returns"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let gates = on_disk(&disk.inside(&spool.join("printers.json")));
+    assert_eq!(gates["p"]["bed_not_cleared"], true);
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "big.stl picked up",
+        |s| job_by_file(s, "big.stl").is_some(),
+    );
+    assert!(!hot.join("big.stl").exists());
+
+    // After a kill -9 and a restart: still done, the bed still to be cleared.
+    daemon.kill9();
+    let printed = recorded(&rec).len();
+    let _daemon = disk.start_daemon(&config, &log);
+    let s = wait_for(&config, &log, Duration::from_secs(60), "back", |s| {
+        s["printers"].as_array().is_some_and(|p| !p.is_empty())
+            && printer(s, "p")["state"] == "bed_not_cleared"
+    });
+    assert_eq!(state_of(&s, "spot.obj"), "done");
+    let (ok, out) = ctl(&config, &["retry", &id]);
+    assert!(!ok, "still not offered again after a restart: {out}");
+    assert_eq!(recorded(&rec).len(), printed, "nothing printed since");
 }

@@ -6,7 +6,7 @@
 //! are its clients.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
-use super::job::{JobState, PrinterGate, StoreError};
+use super::job::{JobState, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::os::unix::fs::PermissionsExt;
@@ -131,14 +131,14 @@ pub fn status(farm: &Farm) -> Status {
 /// Carries out one command; the answer says what was done.
 pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
     match command {
-        Command::Clear { printer } => clear(farm, &printer),
+        Command::Clear { printer } => clear(farm, &printer).await,
         Command::Pause { printer } => send_print_command(farm, &printer, PrintCommand::Pause).await,
         Command::Resume { printer } => {
             send_print_command(farm, &printer, PrintCommand::Resume).await
         }
         Command::Cancel { job } => cancel(farm, &job).await,
         Command::Retry { job } => {
-            let retried = farm.store().retry(&job)?;
+            let retried = farm.jobs.retry(&job).await?;
             farm.bump();
             Ok(match retried.state {
                 JobState::Ready => format!("job {job} is ready to print again"),
@@ -161,21 +161,11 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<(), CommandError> {
     }
 }
 
-fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
+async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
-    let mut store = farm.store();
-    let gate = store.gate(printer);
-    if !gate.bed_not_cleared {
+    if !farm.jobs.clear_gate(printer).await? {
         return Ok(format!("{printer}: bed was already clear"));
     }
-    store.set_gate(
-        printer,
-        PrinterGate {
-            bed_not_cleared: false,
-            last_job: gate.last_job,
-        },
-    )?;
-    drop(store);
     tracing::info!(printer, "bed cleared");
     farm.bump();
     Ok(format!("{printer}: bed cleared; it may take the next job"))
@@ -204,25 +194,15 @@ async fn send_print_command(
 }
 
 async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
-    // Checked and changed under one hold of the lock: a printer claiming the job between
+    // Checked and changed as one step of the store: a printer claiming the job between
     // the two would otherwise print a job marked cancelled.
-    let job = {
-        let mut store = farm.store();
-        let job = store
-            .get(id)
-            .cloned()
-            .ok_or_else(|| CommandError::from(StoreError::NoSuchJob(id.to_string())))?;
-        if matches!(
-            job.state,
-            JobState::Queued | JobState::Preparing | JobState::Ready
-        ) {
-            let reason = Some("cancelled by the operator".into());
-            farm.transition_in(&mut store, id, JobState::Cancelled, reason)?;
-        }
-        job
-    };
-    match job.state {
-        JobState::Queued | JobState::Preparing | JobState::Ready => {
+    const NOT_STARTED: &[JobState] = &[JobState::Queued, JobState::Preparing, JobState::Ready];
+    let reason = Some("cancelled by the operator".into());
+    let cancelled = farm
+        .transition_from(id, NOT_STARTED, JobState::Cancelled, reason, |_| {})
+        .await;
+    match cancelled {
+        Ok(_) => {
             // A slicer already running for it is stopped, not left to finish unwanted.
             if let Some(p) = farm
                 .preparing
@@ -234,17 +214,25 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
             }
             Ok(format!("job {id} cancelled"))
         }
-        JobState::Printing => {
-            let printer = job.printer.unwrap_or_default();
+        Err(StoreError::StateChanged {
+            state: JobState::Printing,
+            ..
+        }) => {
+            let printer = farm
+                .store()
+                .get(id)
+                .and_then(|j| j.printer.clone())
+                .unwrap_or_default();
             send_print_command(farm, &printer, PrintCommand::Cancel).await?;
             Ok(format!(
                 "job {id}: stopping the print on {printer} (heaters off)"
             ))
         }
-        other => Err(CommandError::NotActive {
+        Err(StoreError::StateChanged { state, .. }) => Err(CommandError::NotActive {
             id: id.to_string(),
-            state: other,
+            state,
         }),
+        Err(e) => Err(e.into()),
     }
 }
 

@@ -1,10 +1,11 @@
-//! The farm's shared state: the config in force, the job store, each printer's live status,
+//! The farm's shared state: the config in force, the job store's handle, each printer's live status,
 //! live progress of jobs, and a generation counter that wakes every task when anything
 //! changes (a job became ready, a bed was cleared, shutdown began). One `Arc<Farm>` is
 //! handed to the pick-up, preparation, printer and control tasks.
 
 use super::config::Config;
-use super::job::{Job, JobState, JobStore, StoreError};
+use super::job::{Job, JobState, StoreError};
+use super::store::{JobStore, Snapshot, StateFilter, StoreHandle};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex, RwLock};
@@ -87,7 +88,8 @@ pub struct Preparation {
 
 pub struct Farm {
     pub config: RwLock<Arc<Config>>,
-    pub store: Mutex<JobStore>,
+    /// The job store's task (see [`super::store`]): the only way a job changes.
+    pub jobs: StoreHandle,
     pub printers: Mutex<BTreeMap<String, PrinterStatus>>,
     /// Jobs being prepared: their current step, and the flag that stops their slicer.
     pub preparing: Mutex<HashMap<String, Preparation>>,
@@ -104,10 +106,11 @@ pub struct Farm {
 }
 
 impl Farm {
-    pub fn new(config: Config, store: JobStore, shutdown: CancellationToken) -> Arc<Farm> {
+    /// Starts the store's task on the current runtime and builds the farm around it.
+    pub fn new(config: Config, store: impl JobStore, shutdown: CancellationToken) -> Arc<Farm> {
         Arc::new(Farm {
             config: RwLock::new(Arc::new(config)),
-            store: Mutex::new(store),
+            jobs: super::store::spawn(store),
             printers: Mutex::new(BTreeMap::new()),
             preparing: Mutex::new(HashMap::new()),
             print_controls: Mutex::new(HashMap::new()),
@@ -125,8 +128,9 @@ impl Farm {
             .clone()
     }
 
-    pub fn store(&self) -> std::sync::MutexGuard<'_, JobStore> {
-        self.store.lock().unwrap_or_else(|e| e.into_inner())
+    /// The jobs and bed gates as of the store's last change (a glance: no round trip).
+    pub fn store(&self) -> Arc<Snapshot> {
+        self.jobs.snapshot()
     }
 
     /// Wakes every task waiting in [`Farm::changed`].
@@ -169,53 +173,76 @@ impl Farm {
     }
 
     /// Changes a job's state, logs it, counts final states, and wakes the tasks.
-    pub fn transition(
+    pub async fn transition(
         &self,
         id: &str,
         state: JobState,
         reason: Option<String>,
     ) -> Result<Job, StoreError> {
-        self.transition_in(&mut self.store(), id, state, reason)
+        self.transition_with(id, state, reason, |_| {}).await
     }
 
-    /// [`Farm::transition`] with the store already locked, for a caller whose check and
-    /// change must not be split by another task (claiming a job).
-    pub fn transition_in(
+    /// [`Farm::transition`] with other fields of the job changed in the same write.
+    pub async fn transition_with(
         &self,
-        store: &mut JobStore,
         id: &str,
         state: JobState,
         reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
     ) -> Result<Job, StoreError> {
-        self.transition_with(store, id, state, reason, |_| {})
-    }
-
-    /// [`Farm::transition_in`] with other fields of the job changed in the same write.
-    pub fn transition_with(
-        &self,
-        store: &mut JobStore,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-        also: impl FnOnce(&mut Job),
-    ) -> Result<Job, StoreError> {
-        let job = store.transition_with(id, state, reason.clone(), also)?;
+        let job = self
+            .jobs
+            .transition_with(id, state, reason.clone(), also)
+            .await?;
         self.announce(id, state, &reason);
+        Ok(job)
+    }
+
+    /// [`Farm::transition_with`] only if the job is in one of the states `from`, checked
+    /// and changed as one step of the store (a cancel that a claim must not overtake).
+    pub async fn transition_from(
+        &self,
+        id: &str,
+        from: StateFilter,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        let job = self
+            .jobs
+            .transition_from(id, from, state, reason.clone(), also)
+            .await?;
+        self.announce(id, state, &reason);
+        Ok(job)
+    }
+
+    /// Takes the oldest ready job `eligible` allows for `printer` (see
+    /// [`StoreHandle::claim`]).
+    pub async fn claim(
+        &self,
+        printer: &str,
+        eligible: impl Fn(&Job) -> bool + Send + 'static,
+    ) -> Result<Option<Job>, StoreError> {
+        let job = self.jobs.claim(printer, eligible).await?;
+        if let Some(job) = &job {
+            self.announce(&job.id, job.state, &None);
+        }
         Ok(job)
     }
 
     /// Records the outcome of a print, which has happened whether or not it can be
     /// written now (see [`JobStore::record_outcome`]).
-    pub fn record_outcome(
+    pub async fn record_outcome(
         &self,
         id: &str,
         state: JobState,
         reason: Option<String>,
-        also: impl FnOnce(&mut Job),
+        also: impl FnOnce(&mut Job) + Send + 'static,
     ) -> Result<Job, StoreError> {
         let job = self
-            .store()
-            .record_outcome(id, state, reason.clone(), also)?;
+            .jobs
+            .record_outcome(id, state, reason.clone(), also)
+            .await?;
         self.announce(id, state, &reason);
         Ok(job)
     }
@@ -253,7 +280,7 @@ mod tests {
     fn farm(max_heating: usize, spool: &std::path::Path) -> Arc<Farm> {
         let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
         let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
-        let store = JobStore::open(&spool.join("spool")).unwrap();
+        let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
         Farm::new(config, store, CancellationToken::new())
     }
 

@@ -1,15 +1,9 @@
-//! The job spool: one directory per job under `<spool>/jobs/`, holding the dropped model
-//! (moved in, never deleted), its sidecar, the prepared G-code and `job.json`, the job's
-//! state. `job.json` is written atomically (temporary file, fsync, rename, fsync of the
-//! directory) so a crash or power cut leaves either the old or the new state, never a torn
-//! one. The printers' bed gates live in `<spool>/printers.json`, written the same way.
-//! [`JobStore::open`] rebuilds everything from disk; [`JobStore::recover`] applies the
-//! restart rules (preparing → queued, printing → interrupted).
-
+//! A job and its life: [`JobState`] and its one table of legal changes
+//! ([`JobState::can_go_to`]), the record every store keeps of a job ([`Job`]), a printer's
+//! bed gate, and the errors of a job store. Where jobs are kept is [`super::store`]'s
+//! business.
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 #[derive(Debug, thiserror::Error)]
@@ -39,6 +33,16 @@ pub enum StoreError {
         from: JobState,
         to: JobState,
     },
+    #[error("job {id} is {state} now, no longer {expected}")]
+    StateChanged {
+        id: String,
+        state: JobState,
+        expected: String,
+    },
+    #[error(
+        "the job store has stopped (the daemon is shutting down, or the store failed; see the log)"
+    )]
+    Stopped,
     #[error("job {id} is {state}; {action} needs it to be {allowed}")]
     WrongState {
         id: String,
@@ -150,7 +154,7 @@ pub struct Job {
     #[serde(default)]
     pub copies_done: u32,
     pub slice_report: Option<crate::slice::SliceReport>,
-    pub print_report: Option<serde_json::Value>,
+    pub print_report: Option<PrintReport>,
     /// Per machine that may print it: its G-code, or why it cannot (see
     /// `crate::daemon::prepare`). Empty for jobs prepared before machines existed, whose
     /// `<file>.gcode` was made for an Ultimaker 2.
@@ -183,9 +187,43 @@ impl Job {
     }
 }
 
+/// What a print did, as kept with its job. The job's own type, not the streamer's: a
+/// job's state must stay readable whatever the streamer reports next (a figure missing
+/// from an older job reads as 0).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PrintReport {
+    /// The printer's device.
+    pub port: PathBuf,
+    pub lines_total: usize,
+    pub lines_acked: usize,
+    /// Lines written, including housekeeping and replays.
+    pub lines_sent: u64,
+    pub resends: u64,
+    pub silence_probes: u64,
+    /// Pieces of lines the printer answered on their own after a receive-buffer flush.
+    pub fragments: u64,
+    pub duration_s: f64,
+}
+
+impl From<crate::marlin::stream::PrintReport> for PrintReport {
+    fn from(r: crate::marlin::stream::PrintReport) -> PrintReport {
+        PrintReport {
+            port: r.port,
+            lines_total: r.lines_total,
+            lines_acked: r.lines_acked,
+            lines_sent: r.lines_sent,
+            resends: r.resends,
+            silence_probes: r.silence_probes,
+            fragments: r.fragments,
+            duration_s: r.duration_s,
+        }
+    }
+}
+
 impl Job {
     /// A job just picked up: queued, with nothing prepared or printed yet.
-    fn queued(id: String, seq: u64, file: String, folder: PathBuf) -> Job {
+    pub fn queued(id: String, seq: u64, file: String, folder: PathBuf) -> Job {
         Job {
             id,
             seq,
@@ -229,763 +267,35 @@ pub struct PrinterGate {
     pub last_job: Option<String>,
 }
 
-/// The spool on disk plus its in-memory index. Not synchronised: the daemon keeps it
-/// behind one mutex. Holds the spool's lock (`<spool>/lock`, an flock) while open, so two
-/// daemons never share a spool.
-pub struct JobStore {
-    _lock: nix::fcntl::Flock<std::fs::File>,
-    root: PathBuf,
-    jobs: BTreeMap<String, Job>,
-    gates: BTreeMap<String, PrinterGate>,
-    next_seq: u64,
-    /// Jobs whose state in memory is newer than on disk (see [`JobStore::record_outcome`]).
-    unwritten: std::collections::BTreeSet<String>,
-}
-
-fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
-    let path = path.to_path_buf();
-    move |source| StoreError::Io {
-        path,
-        action,
-        source,
-    }
-}
-
-/// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the directory.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let tmp = path.with_extension("tmp");
-    let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp, "create"))?;
-    f.write_all(bytes).map_err(io_err(&tmp, "write"))?;
-    f.sync_all().map_err(io_err(&tmp, "fsync"))?;
-    drop(f);
-    std::fs::rename(&tmp, path).map_err(io_err(path, "rename into place"))?;
-    std::fs::File::open(dir)
-        .and_then(|d| d.sync_all())
-        .map_err(io_err(dir, "fsync directory"))?;
-    Ok(())
-}
-
-impl JobStore {
-    /// Opens (creating if needed) the spool at `root`, takes its lock, and loads every job
-    /// in it. A job whose state cannot be read is loaded as failed, never stopping the
-    /// others; a directory that is not a job of this spool (a copy of one, a stray
-    /// folder) is left alone and logged.
-    pub fn open(root: &Path) -> Result<JobStore, StoreError> {
-        let jobs_dir = root.join("jobs");
-        std::fs::create_dir_all(&jobs_dir).map_err(io_err(&jobs_dir, "create"))?;
-        let lock_path = root.join("lock");
-        let lock_file = std::fs::OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&lock_path)
-            .map_err(io_err(&lock_path, "open"))?;
-        let lock = nix::fcntl::Flock::lock(lock_file, nix::fcntl::FlockArg::LockExclusiveNonblock)
-            .map_err(|(_, errno)| match errno {
-                nix::errno::Errno::EWOULDBLOCK => StoreError::Locked {
-                    path: root.to_path_buf(),
-                },
-                e => io_err(&lock_path, "lock")(e.into()),
-            })?;
-        let mut jobs = BTreeMap::new();
-        let mut next_seq = 1;
-        for entry in std::fs::read_dir(&jobs_dir).map_err(io_err(&jobs_dir, "list"))? {
-            let entry = entry.map_err(io_err(&jobs_dir, "list"))?;
-            let dir = entry.path();
-            let name = entry.file_name().to_string_lossy().into_owned();
-            if !entry.file_type().is_ok_and(|t| t.is_dir()) {
-                continue;
-            }
-            let Some(seq) = seq_of_id(&name) else {
-                tracing::warn!(dir = %dir.display(), "not a job directory (its name is not a job id); left alone");
-                continue;
-            };
-            next_seq = next_seq.max(seq + 1);
-            let job = match load_job(&dir) {
-                // A job directory without state: created by a pick-up interrupted before
-                // the state was written. Its files stay; the pick-up is redone below.
-                Ok(None) => continue,
-                Ok(Some(job)) if job.id != name => {
-                    tracing::warn!(dir = %dir.display(), job = %job.id, "a copy of another job's directory; not a job, left alone");
-                    continue;
-                }
-                Ok(Some(job)) => job,
-                Err(e) => {
-                    tracing::error!(job = %name, error = %e, "job state unreadable; the job is marked failed");
-                    unreadable_job(&dir, &name, seq, &e)
-                }
-            };
-            jobs.insert(job.id.clone(), job);
+impl Job {
+    /// Checks a state change against [`JobState::can_go_to`] (the only place it is
+    /// checked, for every store) and applies it with `also`'s changes to the other fields.
+    pub fn apply_transition(
+        &mut self,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job),
+    ) -> Result<(), StoreError> {
+        if !self.state.can_go_to(state) {
+            return Err(StoreError::IllegalTransition {
+                id: self.id.clone(),
+                from: self.state,
+                to: state,
+            });
         }
-        let gates_file = root.join("printers.json");
-        let gates = match std::fs::read(&gates_file) {
-            Ok(t) => serde_json::from_slice(&t).map_err(|e| StoreError::Corrupt {
-                path: gates_file.clone(),
-                message: e.to_string(),
-            })?,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => BTreeMap::new(),
-            Err(e) => return Err(io_err(&gates_file, "read")(e)),
-        };
-        let mut store = JobStore {
-            _lock: lock,
-            root: root.to_path_buf(),
-            jobs,
-            gates,
-            next_seq,
-            unwritten: Default::default(),
-        };
-        store.adopt_orphans()?;
-        Ok(store)
-    }
-
-    /// Job directories whose model was moved in but whose state was never written (a crash
-    /// between the two steps) become queued jobs, so no dropped file is ever lost. Only a
-    /// directory whose `origin.json` names it is adopted: a copy of one is not a new job.
-    fn adopt_orphans(&mut self) -> Result<(), StoreError> {
-        let jobs_dir = self.root.join("jobs");
-        let mut orphans = Vec::new();
-        for entry in std::fs::read_dir(&jobs_dir).map_err(io_err(&jobs_dir, "list"))? {
-            let entry = entry.map_err(io_err(&jobs_dir, "list"))?;
-            let id = entry.file_name().to_string_lossy().into_owned();
-            if self.jobs.contains_key(&id) || !entry.path().is_dir() || seq_of_id(&id).is_none() {
-                continue;
-            }
-            orphans.push((id, entry.path()));
-        }
-        for (id, dir) in orphans {
-            let Some(origin) = read_origin(&dir) else {
-                continue;
-            };
-            if origin.id != id {
-                tracing::warn!(dir = %dir.display(), job = %origin.id, "a copy of another job's directory; not a job, left alone");
-                continue;
-            }
-            if !dir.join(&origin.file).exists() {
-                continue;
-            }
-            let seq = self.next_seq;
-            self.next_seq += 1;
-            let job = Job::queued(id.clone(), seq, origin.file, origin.folder);
-            self.save(&job)?;
-            self.jobs.insert(id, job);
+        also(self);
+        self.state = state;
+        self.history.push((state, now_s()));
+        if reason.is_some() || state.is_active() {
+            self.reason = reason;
         }
         Ok(())
-    }
-
-    /// Restart rules: preparation is redone, a print that was running is interrupted and its
-    /// printer must have its bed cleared by a person. Returns the ids changed.
-    pub fn recover(&mut self) -> Result<Vec<String>, StoreError> {
-        let mut changed = Vec::new();
-        let ids: Vec<String> = self.jobs.keys().cloned().collect();
-        for id in ids {
-            let job = &self.jobs[&id];
-            match job.state {
-                JobState::Preparing => {
-                    self.transition(&id, JobState::Queued, None)?;
-                    changed.push(id);
-                }
-                JobState::Printing => {
-                    let printer = job.printer.clone();
-                    self.transition(
-                        &id,
-                        JobState::Interrupted,
-                        Some("the daemon stopped while this job was printing; \
-                              check the printer, clear its bed, then `crispen retry` the job if wanted"
-                            .into()),
-                    )?;
-                    if let Some(p) = printer {
-                        self.set_gate(
-                            &p,
-                            PrinterGate {
-                                bed_not_cleared: true,
-                                last_job: Some(id.clone()),
-                            },
-                        )?;
-                    }
-                    changed.push(id);
-                }
-                _ => {}
-            }
-        }
-        Ok(changed)
-    }
-
-    pub fn root(&self) -> &Path {
-        &self.root
-    }
-
-    pub fn job_dir(&self, id: &str) -> PathBuf {
-        self.root.join("jobs").join(id)
-    }
-
-    pub fn get(&self, id: &str) -> Option<&Job> {
-        self.jobs.get(id)
-    }
-
-    /// Jobs oldest first.
-    pub fn jobs(&self) -> impl Iterator<Item = &Job> {
-        let mut all: Vec<&Job> = self.jobs.values().collect();
-        all.sort_by_key(|j| j.seq);
-        all.into_iter()
-    }
-
-    pub fn gate(&self, printer: &str) -> PrinterGate {
-        self.gates.get(printer).cloned().unwrap_or_default()
-    }
-
-    pub fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
-        self.gates.insert(printer.to_string(), gate);
-        let bytes = serde_json::to_vec_pretty(&self.gates).expect("gates serialise");
-        write_atomic(&self.root.join("printers.json"), &bytes)
-    }
-
-    /// Creates a job by moving `source` (a complete file in a hot folder) into a new job
-    /// directory. The file is renamed, not copied, when spool and folder share a filesystem;
-    /// otherwise it is copied, synced, and only then removed from the folder.
-    pub fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
-        // Never follow a link out of the hot folder: only the folder's own files are taken.
-        let not_a_file = || StoreError::NotAFile {
-            path: source.to_path_buf(),
-        };
-        match std::fs::symlink_metadata(source) {
-            Ok(meta) if meta.file_type().is_file() => {}
-            Ok(_) => return Err(not_a_file()),
-            Err(e) => return Err(io_err(source, "read")(e)),
-        }
-        let dropped = source
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "model".into());
-        // A model named like one of the job's own files is kept under another name, so
-        // neither overwrites the other.
-        let file = if is_reserved_name(&dropped) {
-            format!("model-{dropped}")
-        } else {
-            dropped
-        };
-        let seq = self.next_seq;
-        self.next_seq += 1;
-        let stem: String = file
-            .chars()
-            .map(|c| {
-                if c.is_ascii_alphanumeric() || c == '-' {
-                    c
-                } else {
-                    '_'
-                }
-            })
-            .take(40)
-            .collect();
-        let id = format!("{seq:04}-{stem}");
-        let dir = self.job_dir(&id);
-        let mut sidecar_name = source.as_os_str().to_owned();
-        sidecar_name.push(".toml");
-        let sidecar = PathBuf::from(sidecar_name);
-        let job = Job::queued(id.clone(), seq, file, folder.to_path_buf());
-        // A pick-up that cannot be completed (a full disk) is undone: the files go back to
-        // the hot folder and no half job is left behind.
-        let mut moved = Vec::new();
-        if let Err(e) = self.admit_into(&job, source, &sidecar, &mut moved) {
-            let mut undone = true;
-            for (from, to) in moved.iter().rev() {
-                undone &= move_file(to, from).is_ok();
-            }
-            if undone {
-                let _ = std::fs::remove_dir_all(&dir);
-            } else {
-                tracing::error!(job = %id, dir = %dir.display(), "a failed pick-up could not be undone; its files stay in the job directory");
-            }
-            return Err(e);
-        }
-        self.jobs.insert(id, job.clone());
-        Ok(job)
-    }
-
-    /// The steps of [`JobStore::admit`]; each file moved is recorded in `moved` as
-    /// (from, to) so that a failure can be undone.
-    fn admit_into(
-        &self,
-        job: &Job,
-        source: &Path,
-        sidecar: &Path,
-        moved: &mut Vec<(PathBuf, PathBuf)>,
-    ) -> Result<(), StoreError> {
-        let dir = self.job_dir(&job.id);
-        std::fs::create_dir_all(&dir).map_err(io_err(&dir, "create job directory"))?;
-        // Written before the move so a crash between the move and job.json still leaves
-        // enough to rebuild the job (see adopt_orphans).
-        let origin = serde_json::to_vec(&Origin {
-            id: job.id.clone(),
-            file: job.file.clone(),
-            folder: job.folder.clone(),
-        })
-        .expect("origin serialises");
-        write_atomic(&dir.join("origin.json"), &origin)?;
-        let model = dir.join(&job.file);
-        move_file(source, &model)?;
-        moved.push((source.to_path_buf(), model));
-        // The sidecar travels with its model.
-        if std::fs::symlink_metadata(sidecar).is_ok_and(|m| m.is_file()) {
-            let to = dir.join(format!("{}.toml", job.file));
-            move_file(sidecar, &to)?;
-            moved.push((sidecar.to_path_buf(), to));
-        }
-        self.save(job)
-    }
-
-    /// Moves a sidecar that arrived after its model into the job's directory: as the
-    /// job's sidecar when `applies` (the job has not started preparing), else aside as
-    /// `<file>.toml.late`, kept but not used. Returns `applies`.
-    pub fn late_sidecar(
-        &mut self,
-        id: &str,
-        sidecar: &Path,
-        applies: bool,
-    ) -> Result<bool, StoreError> {
-        let job = self
-            .jobs
-            .get(id)
-            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        match std::fs::symlink_metadata(sidecar) {
-            Ok(meta) if meta.file_type().is_file() => {}
-            Ok(_) => {
-                return Err(StoreError::NotAFile {
-                    path: sidecar.to_path_buf(),
-                })
-            }
-            Err(e) => return Err(io_err(sidecar, "read")(e)),
-        }
-        let name = if applies {
-            format!("{}.toml", job.file)
-        } else {
-            format!("{}.toml.late", job.file)
-        };
-        move_file(sidecar, &self.job_dir(id).join(name))?;
-        Ok(applies)
-    }
-
-    fn save(&self, job: &Job) -> Result<(), StoreError> {
-        let bytes = serde_json::to_vec_pretty(job).expect("job serialises");
-        write_atomic(&self.job_dir(&job.id).join("job.json"), &bytes)
-    }
-
-    /// Changes a job's state (with a reason for failed/cancelled/interrupted) and persists it.
-    pub fn transition(
-        &mut self,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-    ) -> Result<Job, StoreError> {
-        self.transition_with(id, state, reason, |_| {})
-    }
-
-    /// [`JobStore::transition`] with other fields changed in the same write (the printer
-    /// that claimed the job, the preparation's report).
-    pub fn transition_with(
-        &mut self,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-        also: impl FnOnce(&mut Job),
-    ) -> Result<Job, StoreError> {
-        self.change(id, |job| apply_transition(job, state, reason, also))
-    }
-
-    /// [`JobStore::transition_with`] for an outcome that has already happened (a print
-    /// ended): it is recorded in memory even when it cannot be written (a full disk), and
-    /// written by [`JobStore::write_pending`] once it can, so a finished print is never
-    /// taken for an unfinished one and offered again.
-    pub fn record_outcome(
-        &mut self,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-        also: impl FnOnce(&mut Job),
-    ) -> Result<Job, StoreError> {
-        let mut job = self
-            .jobs
-            .get(id)
-            .cloned()
-            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        apply_transition(&mut job, state, reason, also)?;
-        self.jobs.insert(id.to_string(), job.clone());
-        if let Err(e) = self.save(&job) {
-            tracing::error!(job = id, error = %e, "cannot write the job's state; kept in memory and written again when possible");
-            self.unwritten.insert(id.to_string());
-        }
-        Ok(job)
-    }
-
-    /// Writes the jobs whose state could not be written before; returns how many remain.
-    pub fn write_pending(&mut self) -> usize {
-        let ids: Vec<String> = self.unwritten.iter().cloned().collect();
-        for id in ids {
-            let written = match self.jobs.get(&id) {
-                Some(job) => self.save(job).is_ok() || !self.job_dir(&id).is_dir(),
-                None => true,
-            };
-            if written {
-                tracing::info!(job = %id, "job state written after all");
-                self.unwritten.remove(&id);
-            }
-        }
-        self.unwritten.len()
-    }
-
-    /// Applies `change` to a job's other fields and persists it; its state stays (only
-    /// [`JobStore::transition`] changes that).
-    pub fn update(&mut self, id: &str, change: impl FnOnce(&mut Job)) -> Result<Job, StoreError> {
-        self.change(id, |job| {
-            let state = job.state;
-            change(job);
-            job.state = state;
-            Ok(())
-        })
-    }
-
-    fn change(
-        &mut self,
-        id: &str,
-        change: impl FnOnce(&mut Job) -> Result<(), StoreError>,
-    ) -> Result<Job, StoreError> {
-        let mut job = self
-            .jobs
-            .get(id)
-            .cloned()
-            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        change(&mut job)?;
-        if let Err(e) = self.save(&job).inspect(|_| {
-            self.unwritten.remove(id);
-        }) {
-            let dir = self.job_dir(id);
-            if dir.is_dir() {
-                return Err(e);
-            }
-            // Removed by hand: nothing of the job is left to go on with. It fails (in
-            // memory; there is nowhere to write it) so the queue moves past it.
-            let mut failed = self.jobs[id].clone();
-            if failed.state.can_go_to(JobState::Failed) {
-                failed.state = JobState::Failed;
-                failed.history.push((JobState::Failed, now_s()));
-                failed.reason = Some(format!("its directory {} was removed", dir.display()));
-                self.jobs.insert(id.to_string(), failed);
-            }
-            return Err(StoreError::DirectoryGone {
-                id: id.to_string(),
-                dir,
-            });
-        }
-        self.jobs.insert(id.to_string(), job.clone());
-        Ok(job)
-    }
-
-    /// Puts a failed, cancelled or interrupted job back in the queue.
-    pub fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
-        let job = self
-            .jobs
-            .get(id)
-            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        // Finished jobs the table lets back into the queue (done is final).
-        if job.state.is_active() || !job.state.can_go_to(JobState::Queued) {
-            return Err(StoreError::WrongState {
-                id: id.to_string(),
-                state: job.state,
-                action: "retry",
-                allowed: "failed, cancelled or interrupted",
-            });
-        }
-        // A job that was prepared keeps its G-code: printing it again is what a retry
-        // after a cancelled or interrupted print means, and slicing again would give a
-        // slightly different program (PrusaSlicer's output varies from run to run).
-        let dir = self.job_dir(id);
-        let legacy =
-            std::iter::once(format!("{}.gcode", job.file)).filter(|_| job.machines.is_empty());
-        let made = job.machines.values().filter_map(|m| match m {
-            ForMachine::Gcode(file) => Some(file.clone()),
-            ForMachine::Refused(_) => None,
-        });
-        let prepared =
-            job.slice_report.is_some() && legacy.chain(made).any(|f| dir.join(f).is_file());
-        let state = if prepared {
-            JobState::Ready
-        } else {
-            JobState::Queued
-        };
-        self.transition_with(id, state, None, |j| j.printer = None)
-    }
-}
-
-/// Checks a state change against [`JobState::can_go_to`] (the only place it is checked)
-/// and applies it with `also`'s changes to the other fields.
-fn apply_transition(
-    job: &mut Job,
-    state: JobState,
-    reason: Option<String>,
-    also: impl FnOnce(&mut Job),
-) -> Result<(), StoreError> {
-    if !job.state.can_go_to(state) {
-        return Err(StoreError::IllegalTransition {
-            id: job.id.clone(),
-            from: job.state,
-            to: state,
-        });
-    }
-    also(job);
-    job.state = state;
-    job.history.push((state, now_s()));
-    if reason.is_some() || state.is_active() {
-        job.reason = reason;
-    }
-    Ok(())
-}
-
-/// What a job directory says about where its model came from (written before the model
-/// is moved in, so an interrupted pick-up can be completed).
-#[derive(Debug, Serialize, Deserialize)]
-struct Origin {
-    /// The directory's own name: a copy of the directory under another name is not a job.
-    id: String,
-    file: String,
-    folder: PathBuf,
-}
-
-fn read_origin(dir: &Path) -> Option<Origin> {
-    let bytes = std::fs::read(dir.join("origin.json")).ok()?;
-    serde_json::from_slice(&bytes).ok()
-}
-
-/// Names of the files crispen keeps in a job directory besides the model's own.
-fn is_reserved_name(name: &str) -> bool {
-    matches!(name, "job.json" | "origin.json" | "job.tmp" | "origin.tmp")
-        || name.starts_with(".crispen-")
-}
-
-/// The sequence number of a well-formed job id (`<digits>-<letters, digits, -, _>`), as
-/// [`JobStore::admit`] makes them; `None` for anything else.
-pub fn seq_of_id(id: &str) -> Option<u64> {
-    let (seq, stem) = id.split_once('-')?;
-    let stem_ok = stem.len() <= 40
-        && stem
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
-    if seq.len() < 4 || seq.len() > 12 || !seq.chars().all(|c| c.is_ascii_digit()) || !stem_ok {
-        return None;
-    }
-    seq.parse().ok()
-}
-
-/// Reads a job's state; `Ok(None)` when it has none yet. State files are small: a bigger
-/// one is not a job's.
-fn load_job(dir: &Path) -> Result<Option<Job>, StoreError> {
-    const MAX_STATE_BYTES: u64 = 1 << 20;
-    let path = dir.join("job.json");
-    let file = match std::fs::File::open(&path) {
-        Ok(f) => f,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(io_err(&path, "read")(e)),
-    };
-    let mut text = Vec::new();
-    std::io::Read::read_to_end(
-        &mut std::io::Read::take(file, MAX_STATE_BYTES + 1),
-        &mut text,
-    )
-    .map_err(io_err(&path, "read"))?;
-    if text.len() as u64 > MAX_STATE_BYTES {
-        return Err(StoreError::Corrupt {
-            path,
-            message: format!("larger than {MAX_STATE_BYTES} bytes"),
-        });
-    }
-    let job: Job = serde_json::from_slice(&text).map_err(|e| StoreError::Corrupt {
-        path: path.clone(),
-        message: e.to_string(),
-    })?;
-    if seq_of_id(&job.id).is_none() {
-        return Err(StoreError::Corrupt {
-            path,
-            message: format!("{:?} is not a job id", job.id),
-        });
-    }
-    Ok(Some(job))
-}
-
-/// A failed stand-in for a job whose state could not be read; the directory is kept as it
-/// is for the operator to look at.
-fn unreadable_job(dir: &Path, id: &str, seq: u64, error: &StoreError) -> Job {
-    let (file, folder) = match read_origin(dir) {
-        Some(o) => (o.file, o.folder),
-        None => (String::new(), PathBuf::new()),
-    };
-    let mut job = Job::queued(id.to_string(), seq, file, folder);
-    job.state = JobState::Failed;
-    job.history.push((JobState::Failed, now_s()));
-    job.reason = Some(format!(
-        "{error}; the directory {} is kept as it was",
-        dir.display()
-    ));
-    job
-}
-
-/// Moves a file, copying it when `from` and `to` are on different filesystems. A copy
-/// goes to a temporary name first and is renamed into place only once whole and synced,
-/// so a copy cut short (a full disk) never passes for the file.
-fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
-    match std::fs::rename(from, to) {
-        Ok(()) => Ok(()),
-        Err(e) if e.raw_os_error() == Some(nix::libc::EXDEV) => {
-            let mut tmp_name = std::ffi::OsString::from(".crispen-copy-");
-            tmp_name.push(to.file_name().unwrap_or_default());
-            let tmp = to.with_file_name(tmp_name);
-            let copied = std::fs::copy(from, &tmp)
-                .map_err(io_err(to, "copy into spool"))
-                .and_then(|_| {
-                    std::fs::File::open(&tmp)
-                        .and_then(|f| f.sync_all())
-                        .map_err(io_err(&tmp, "fsync"))
-                })
-                .and_then(|_| std::fs::rename(&tmp, to).map_err(io_err(to, "rename into place")));
-            if copied.is_err() {
-                let _ = std::fs::remove_file(&tmp);
-            }
-            copied?;
-            std::fs::remove_file(from).map_err(io_err(from, "remove after copying"))
-        }
-        Err(e) => Err(io_err(from, "move")(e)),
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn drop_file(dir: &Path, name: &str) -> PathBuf {
-        let p = dir.join(name);
-        std::fs::write(&p, b"solid x\nendsolid x\n").unwrap();
-        p
-    }
-
-    #[test]
-    fn admit_moves_file_and_persists_state() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let src = drop_file(&hot, "a b.stl");
-        std::fs::write(hot.join("a b.stl.toml"), "enhance = false\n").unwrap();
-        let mut store = JobStore::open(&tmp.path().join("spool")).unwrap();
-        let job = store.admit(&src, &hot).unwrap();
-        assert!(!src.exists());
-        assert!(store.job_dir(&job.id).join("a b.stl").exists());
-        assert!(store.job_dir(&job.id).join("a b.stl.toml").exists());
-        assert!(!hot.join("a b.stl.toml").exists());
-        assert_eq!(job.state, JobState::Queued);
-
-        let err = JobStore::open(&tmp.path().join("spool")).err().unwrap();
-        assert!(matches!(err, StoreError::Locked { .. }), "{err}");
-        drop(store);
-        let store2 = JobStore::open(&tmp.path().join("spool")).unwrap();
-        let again = store2.get(&job.id).unwrap();
-        assert_eq!(again.file, "a b.stl");
-        assert_eq!(again.state, JobState::Queued);
-    }
-
-    #[test]
-    fn restart_rules_and_gates_survive_reopen() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = JobStore::open(&spool).unwrap();
-        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
-        let b = store.admit(&drop_file(&hot, "b.stl"), &hot).unwrap().id;
-        let c = store.admit(&drop_file(&hot, "c.stl"), &hot).unwrap().id;
-        store.transition(&a, JobState::Preparing, None).unwrap();
-        for (id, path) in [
-            (
-                &b,
-                &[JobState::Preparing, JobState::Ready, JobState::Printing][..],
-            ),
-            (&c, &[JobState::Preparing, JobState::Ready]),
-        ] {
-            for &state in path {
-                store.transition(id, state, None).unwrap();
-            }
-        }
-        store.update(&b, |j| j.printer = Some("p1".into())).unwrap();
-        drop(store);
-
-        let mut store = JobStore::open(&spool).unwrap();
-        let changed = store.recover().unwrap();
-        assert_eq!(changed.len(), 2);
-        assert_eq!(store.get(&a).unwrap().state, JobState::Queued);
-        assert_eq!(store.get(&b).unwrap().state, JobState::Interrupted);
-        assert!(store.get(&b).unwrap().reason.is_some());
-        assert_eq!(store.get(&c).unwrap().state, JobState::Ready);
-        assert!(store.gate("p1").bed_not_cleared);
-        assert!(!store.gate("p2").bed_not_cleared);
-
-        drop(store);
-        let store = JobStore::open(&spool).unwrap();
-        assert!(store.gate("p1").bed_not_cleared);
-        let order: Vec<&str> = store.jobs().map(|j| j.id.as_str()).collect();
-        assert_eq!(order, vec![a.as_str(), b.as_str(), c.as_str()]);
-    }
-
-    #[test]
-    fn retry_only_from_finished_states() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let mut store = JobStore::open(&tmp.path().join("spool")).unwrap();
-        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
-        let err = store.retry(&a).unwrap_err().to_string();
-        assert!(err.contains("is queued"), "{err}");
-        store
-            .transition(&a, JobState::Failed, Some("bad mesh".into()))
-            .unwrap();
-        let job = store.retry(&a).unwrap();
-        assert_eq!(
-            job.state,
-            JobState::Queued,
-            "nothing prepared: prepare again"
-        );
-        assert_eq!(job.reason, None);
-        assert!(matches!(store.retry("nope"), Err(StoreError::NoSuchJob(_))));
-
-        // Prepared, then cancelled in print: straight back to ready with its G-code.
-        std::fs::write(store.job_dir(&a).join("a.stl.gcode"), b"G28\n").unwrap();
-        store
-            .update(&a, |j| j.slice_report = Some(Default::default()))
-            .unwrap();
-        store.transition(&a, JobState::Preparing, None).unwrap();
-        store.transition(&a, JobState::Ready, None).unwrap();
-        store.transition(&a, JobState::Printing, None).unwrap();
-        store
-            .transition(&a, JobState::Cancelled, Some("cancelled".into()))
-            .unwrap();
-        assert_eq!(store.retry(&a).unwrap().state, JobState::Ready);
-    }
-
-    #[test]
-    fn orphaned_pickup_is_adopted() {
-        let tmp = tempfile::tempdir().unwrap();
-        let spool = tmp.path().join("spool");
-        let dir = spool.join("jobs").join("0007-x_stl");
-        std::fs::create_dir_all(&dir).unwrap();
-        std::fs::write(dir.join("x.stl"), b"data").unwrap();
-        std::fs::write(
-            dir.join("origin.json"),
-            serde_json::to_vec(
-                &serde_json::json!({"id": "0007-x_stl", "file": "x.stl", "folder": "/hot"}),
-            )
-            .unwrap(),
-        )
-        .unwrap();
-        let store = JobStore::open(&spool).unwrap();
-        let job = store.get("0007-x_stl").unwrap();
-        assert_eq!(job.state, JobState::Queued);
-        assert_eq!(job.file, "x.stl");
-    }
 
     /// Every pair of states, against a table written out by hand: a change to
     /// `can_go_to` must be a deliberate change here too.
@@ -1010,285 +320,5 @@ mod tests {
                 assert_eq!(from.can_go_to(to), allowed == 1, "{from} -> {to}");
             }
         }
-    }
-
-    /// The store refuses every change the table refuses, leaves the job as it was (in
-    /// memory and on disk), and `update` can never change a state behind the table's back.
-    #[test]
-    fn store_enforces_the_table() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = JobStore::open(&spool).unwrap();
-        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
-        let err = store.transition(&a, JobState::Done, None).unwrap_err();
-        assert!(
-            matches!(
-                err,
-                StoreError::IllegalTransition {
-                    from: JobState::Queued,
-                    to: JobState::Done,
-                    ..
-                }
-            ),
-            "{err}"
-        );
-        store.update(&a, |j| j.state = JobState::Done).unwrap();
-        assert_eq!(store.get(&a).unwrap().state, JobState::Queued);
-        drop(store);
-        let reopened = JobStore::open(&spool).unwrap();
-        assert_eq!(reopened.get(&a).unwrap().state, JobState::Queued);
-        assert_eq!(reopened.get(&a).unwrap().history.len(), 1);
-    }
-
-    proptest::proptest! {
-        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
-        /// Random sequences of attempted changes (legal or not) and restarts on a real
-        /// spool: a change succeeds exactly when the table allows it, the state on disk
-        /// always equals the one in memory, every step of the recorded history is legal,
-        /// and once done a job stays done.
-        #[test]
-        fn random_transitions_follow_the_table(
-            steps in proptest::collection::vec((0usize..9, 0usize..8), 1..40)
-        ) {
-            let tmp = tempfile::tempdir().unwrap();
-            let hot = tmp.path().join("hot");
-            std::fs::create_dir(&hot).unwrap();
-            let spool = tmp.path().join("spool");
-            let mut store = JobStore::open(&spool).unwrap();
-            let id = store.admit(&drop_file(&hot, "m.stl"), &hot).unwrap().id;
-            let mut done = false;
-            for (op, target) in steps {
-                let before = store.get(&id).unwrap().state;
-                if op == 8 {
-                    // A restart: reopen from disk and apply the restart rules.
-                    drop(store);
-                    store = JobStore::open(&spool).unwrap();
-                    store.recover().unwrap();
-                    let after = store.get(&id).unwrap().state;
-                    proptest::prop_assert!(after == before || before.can_go_to(after));
-                } else {
-                    let to = JobState::ALL[target];
-                    let result = store.transition(&id, to, None);
-                    proptest::prop_assert_eq!(result.is_ok(), before.can_go_to(to));
-                    let now = store.get(&id).unwrap().state;
-                    proptest::prop_assert_eq!(now, if result.is_ok() { to } else { before });
-                }
-                let now = store.get(&id).unwrap().state;
-                proptest::prop_assert!(!done || now == JobState::Done, "done is final");
-                done |= now == JobState::Done;
-                let on_disk: Job = serde_json::from_slice(
-                    &std::fs::read(store.job_dir(&id).join("job.json")).unwrap(),
-                )
-                .unwrap();
-                proptest::prop_assert_eq!(on_disk.state, now);
-            }
-            let history = &store.get(&id).unwrap().history;
-            for pair in history.windows(2) {
-                proptest::prop_assert!(pair[0].0.can_go_to(pair[1].0), "{:?}", pair);
-            }
-        }
-    }
-
-    /// A corrupt, oversized or lying job state fails that job only: the spool still
-    /// opens, the other jobs load, and the directory stays as it was.
-    #[test]
-    fn unreadable_job_state_fails_that_job_only() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = JobStore::open(&spool).unwrap();
-        let ids: Vec<String> = ["a.stl", "b.stl", "c.stl", "d.stl"]
-            .iter()
-            .map(|f| store.admit(&drop_file(&hot, f), &hot).unwrap().id)
-            .collect();
-        drop(store);
-        let state = |id: &str| spool.join("jobs").join(id).join("job.json");
-        std::fs::write(state(&ids[0]), b"{\"id\": \"0001-a_stl\", trunc").unwrap();
-        let evil = std::fs::read_to_string(state(&ids[1]))
-            .unwrap()
-            .replace(&ids[1], "../../../etc");
-        std::fs::write(state(&ids[1]), evil).unwrap();
-        std::fs::write(state(&ids[2]), vec![b' '; 2 << 20]).unwrap();
-
-        let store = JobStore::open(&spool).unwrap();
-        for id in &ids[..3] {
-            let job = store.get(id).unwrap_or_else(|| panic!("{id} is listed"));
-            assert_eq!(job.state, JobState::Failed, "{id}");
-            let reason = job.reason.as_deref().unwrap();
-            assert!(
-                reason.contains("job.json") && reason.contains("kept"),
-                "{reason}"
-            );
-        }
-        assert_eq!(
-            store.get(&ids[0]).unwrap().file,
-            "a.stl",
-            "from origin.json"
-        );
-        assert_eq!(store.get(&ids[3]).unwrap().state, JobState::Queued);
-        assert!(std::fs::read(state(&ids[0])).unwrap().ends_with(b"trunc"));
-    }
-
-    /// A job directory copied within the spool (under any name) is not a second job, with
-    /// its state written or not yet.
-    #[test]
-    fn a_copied_job_directory_is_not_a_new_job() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = JobStore::open(&spool).unwrap();
-        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
-        drop(store);
-        let jobs = spool.join("jobs");
-        let copy = |to: &str| {
-            let status = std::process::Command::new("cp")
-                .arg("-a")
-                .arg(jobs.join(&a))
-                .arg(jobs.join(to))
-                .status()
-                .unwrap();
-            assert!(status.success());
-        };
-        copy("0042-a_stl");
-        copy("0001-a_stl copy");
-        copy("0043-a_stl");
-        // A copy of a pick-up that never got its state (origin.json only).
-        std::fs::remove_file(jobs.join("0043-a_stl/job.json")).unwrap();
-        let store = JobStore::open(&spool).unwrap();
-        let listed: Vec<&str> = store.jobs().map(|j| j.id.as_str()).collect();
-        assert_eq!(listed, vec![a.as_str()]);
-    }
-
-    /// A dropped model named like the job's own files is kept under another name: the
-    /// model and the job's state both survive.
-    #[test]
-    fn a_model_named_like_crispens_files_overwrites_nothing() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = JobStore::open(&spool).unwrap();
-        let mut ids = Vec::new();
-        for name in ["job.json", "origin.json"] {
-            let job = store.admit(&drop_file(&hot, name), &hot).unwrap();
-            assert_eq!(job.file, format!("model-{name}"));
-            let dir = store.job_dir(&job.id);
-            assert_eq!(
-                std::fs::read(dir.join(&job.file)).unwrap(),
-                b"solid x\nendsolid x\n"
-            );
-            ids.push(job.id);
-        }
-        drop(store);
-        let store = JobStore::open(&spool).unwrap();
-        for id in &ids {
-            assert_eq!(store.get(id).unwrap().state, JobState::Queued);
-        }
-    }
-
-    /// A link in a hot folder is not followed: neither the model nor its sidecar.
-    #[test]
-    fn symbolic_links_are_not_picked_up() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let secret = tmp.path().join("secret.stl");
-        std::fs::write(&secret, b"private").unwrap();
-        std::os::unix::fs::symlink(&secret, hot.join("link.stl")).unwrap();
-        let mut store = JobStore::open(&tmp.path().join("spool")).unwrap();
-        let err = store.admit(&hot.join("link.stl"), &hot).unwrap_err();
-        assert!(matches!(err, StoreError::NotAFile { .. }), "{err}");
-        assert_eq!(store.jobs().count(), 0);
-
-        let sidecar_target = tmp.path().join("other.toml");
-        std::fs::write(&sidecar_target, "enhance = false\n").unwrap();
-        std::os::unix::fs::symlink(&sidecar_target, hot.join("m.stl.toml")).unwrap();
-        let job = store.admit(&drop_file(&hot, "m.stl"), &hot).unwrap();
-        assert!(!store.job_dir(&job.id).join("m.stl.toml").exists());
-    }
-
-    /// A job whose directory was removed by hand fails (in memory) at its next change,
-    /// so whoever waits for it moves on.
-    #[test]
-    fn a_removed_job_directory_fails_the_job() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let mut store = JobStore::open(&tmp.path().join("spool")).unwrap();
-        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
-        std::fs::remove_dir_all(store.job_dir(&a)).unwrap();
-        let err = store.transition(&a, JobState::Preparing, None).unwrap_err();
-        assert!(matches!(err, StoreError::DirectoryGone { .. }), "{err}");
-        let job = store.get(&a).unwrap();
-        assert_eq!(job.state, JobState::Failed);
-        assert!(job.reason.as_deref().unwrap().contains("removed"));
-    }
-
-    /// Makes every later write of this job's state fail, as a full disk would: the
-    /// temporary file's name is taken by a directory.
-    fn block_writes(store: &JobStore, id: &str) -> PathBuf {
-        let blocker = store.job_dir(id).join("job.tmp");
-        std::fs::create_dir_all(&blocker).unwrap();
-        blocker
-    }
-
-    /// A pick-up that cannot be completed leaves the model and its sidecar in the hot
-    /// folder and no half job in the spool, now or after a restart.
-    #[test]
-    fn a_pickup_that_cannot_be_written_is_undone() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = JobStore::open(&spool).unwrap();
-        block_writes(&store, "0001-a_stl");
-        let src = drop_file(&hot, "a.stl");
-        std::fs::write(hot.join("a.stl.toml"), "enhance = false\n").unwrap();
-        store.admit(&src, &hot).unwrap_err();
-        assert_eq!(std::fs::read(&src).unwrap(), b"solid x\nendsolid x\n");
-        assert!(hot.join("a.stl.toml").is_file());
-        assert!(!store.job_dir("0001-a_stl").exists(), "no half job left");
-        assert_eq!(store.jobs().count(), 0);
-        drop(store);
-        assert_eq!(JobStore::open(&spool).unwrap().jobs().count(), 0);
-    }
-
-    /// A print that finished while its state could not be written counts as done at
-    /// once (never retried, never offered again) and is written once writing works.
-    #[test]
-    fn an_outcome_that_cannot_be_written_is_kept_and_written_later() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = JobStore::open(&spool).unwrap();
-        let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
-        for state in [JobState::Preparing, JobState::Ready, JobState::Printing] {
-            store.transition(&a, state, None).unwrap();
-        }
-        let blocker = block_writes(&store, &a);
-        let job = store
-            .record_outcome(&a, JobState::Done, None, |j| j.copies_done += 1)
-            .unwrap();
-        assert_eq!(job.state, JobState::Done);
-        assert_eq!(store.get(&a).unwrap().state, JobState::Done);
-        assert!(matches!(
-            store.retry(&a),
-            Err(StoreError::WrongState { .. })
-        ));
-        let on_disk = |store: &JobStore| -> Job {
-            serde_json::from_slice(&std::fs::read(store.job_dir(&a).join("job.json")).unwrap())
-                .unwrap()
-        };
-        assert_eq!(on_disk(&store).state, JobState::Printing);
-        assert_eq!(store.write_pending(), 1, "still not writable");
-        std::fs::remove_dir(&blocker).unwrap();
-        assert_eq!(store.write_pending(), 0);
-        let written = on_disk(&store);
-        assert_eq!((written.state, written.copies_done), (JobState::Done, 1));
     }
 }

@@ -3,12 +3,15 @@
 //! prints ready jobs one at a time, waiting for its bed to be cleared in between.
 //!
 //! - [`config`]: the TOML configuration, checked in two stages.
-//! - [`job`]: the spool of job directories and their atomically written state.
+//! - [`job`]: a job, its states and the one table of legal changes.
+//! - [`store`]: the task that owns the jobs (the embedded spool by default), its handle
+//!   and the snapshot readers glance at.
 //! - [`hotfolder`]: deciding when a dropped file is complete.
 //! - [`prepare`]: a job's preparation (sidecars, machines, the steps) and its queue.
 //! - [`printer`]: printer supervisors and staggered heat-ups.
 //! - [`control`]: the operator's commands and the control socket, which serves the HTTP
 //!   API (`crate::http`) like the TCP listener.
+//! - [`reload`]: SIGHUP, and when each config key's change takes effect.
 //! - [`farm`]: the state all of these share.
 //!
 //! [`run`] wires them together; I/O endpoints (printer ports, the preparer) are resolved
@@ -22,10 +25,12 @@ pub mod job;
 pub mod ports;
 pub mod prepare;
 pub mod printer;
+pub mod reload;
+pub mod store;
 
 use config::{Config, PrinterConfig, PrinterPort};
 use farm::{Farm, PrinterState, PrinterStatus};
-use job::{JobState, JobStore};
+use job::JobState;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -231,7 +236,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let mut sigint = signal(SignalKind::interrupt()).map_err(DaemonError::Signals)?;
     let mut sighup = signal(SignalKind::hangup()).map_err(DaemonError::Signals)?;
 
-    let mut store = JobStore::open(&config.spool_dir)?;
+    let mut store = store::spool::Spool::open(&config.spool_dir)?;
     for id in store.recover()? {
         let job = store.get(&id).expect("recovered job exists");
         tracing::warn!(job = %id, state = job.state.name(), "job found mid-flight after a restart");
@@ -298,12 +303,14 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
             _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
             _ = sigint.recv() => { tracing::info!("SIGINT: stopping"); break; }
             _ = sighup.recv() => {
-                reload(&farm, &options, &mut pickup, &mut fleet);
+                on_sighup(&farm, &options, &mut pickup, &mut fleet);
             }
             _ = ticker.tick() => {
                 fleet.settle(&farm);
-                let pending = Arc::clone(&farm);
-                tokio::task::spawn_blocking(move || pending.store().write_pending());
+                if farm.store().unwritten() > 0 {
+                    let jobs = farm.jobs.clone();
+                    tokio::spawn(async move { jobs.write_pending().await });
+                }
                 if watchdog {
                     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
                 }
@@ -375,10 +382,10 @@ fn summary(farm: &Farm) -> String {
     )
 }
 
-/// SIGHUP: re-read the config file. A bad file is refused and the old config kept. Folder,
-/// farm and printer changes take effect (printers as [`Fleet::apply`] says); the spool and
-/// the control socket need a restart.
-fn reload(
+/// SIGHUP: re-read the config file and apply it as [`reload::POLICY`] declares; a bad
+/// file is refused and the old config kept. Pick-up restarts with the new folders, and
+/// the printers change as [`Fleet::apply`] says.
+fn on_sighup(
     farm: &Arc<Farm>,
     options: &RunOptions,
     pickup: &mut tokio::task::JoinHandle<()>,
@@ -388,28 +395,12 @@ fn reload(
         tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
         return;
     };
-    match Config::load(path) {
-        Err(e) => tracing::error!(error = %e, "SIGHUP: new config refused; keeping the old one"),
-        Ok(new) => {
-            let old = farm.config();
-            let http_changed = new.http.as_ref().map(|h| (h.listen, &h.api_key))
-                != old.http.as_ref().map(|h| (h.listen, &h.api_key));
-            if new.spool_dir != old.spool_dir || new.socket != old.socket || http_changed {
-                tracing::warn!(
-                    "SIGHUP: [spool], [control] and [http] changes need a restart; ignored"
-                );
-            }
-            let mut merged = new;
-            merged.spool_dir = old.spool_dir.clone();
-            merged.socket = old.socket.clone();
-            merged.http = old.http.clone();
-            pickup.abort();
-            *farm.config.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(merged.clone());
-            fleet.apply(farm, &merged.printers);
-            *pickup = spawn_pickup(farm, &merged);
-            farm.bump();
-            tracing::info!("SIGHUP: config reloaded");
-        }
+    if let reload::Reloaded::Applied { config, .. } = reload::reload(farm, path) {
+        pickup.abort();
+        fleet.apply(farm, &config.printers);
+        *pickup = spawn_pickup(farm, &config);
+        farm.bump();
+        tracing::info!("SIGHUP: config reloaded");
     }
 }
 
@@ -426,8 +417,7 @@ fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()
             if farm.stopping() {
                 break;
             }
-            let farm = Arc::clone(&farm);
-            let _ = tokio::task::spawn_blocking(move || pick_up(&farm, &path, &folder)).await;
+            pick_up(&farm, &path, &folder).await;
         }
         watcher.abort();
     })
@@ -436,13 +426,13 @@ fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()
 /// Admits one complete file of a hot folder: a model becomes a job (with its sidecar if
 /// that is there already); a sidecar whose model was picked up before it arrived joins its
 /// job if the job has not started preparing, and is otherwise reported and kept aside.
-fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
+async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     if !hotfolder::is_sidecar_name(&name) {
-        match farm.store().admit(path, folder) {
+        match farm.jobs.admit(path, folder).await {
             Ok(job) => {
                 tracing::info!(job = %job.id, file = %path.display(), "picked up");
                 farm.bump();
@@ -456,28 +446,19 @@ fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
         // Taken with its model already, or its model is still arriving.
         return;
     }
-    let mut store = farm.store();
-    let job = store
-        .jobs()
-        .filter(|j| j.folder == folder && j.file == model)
-        .last()
-        .map(|j| (j.id.clone(), j.state));
-    let Some((id, state)) = job else {
-        tracing::debug!(file = %path.display(), "a sidecar without its model yet");
-        return;
-    };
-    match store.late_sidecar(&id, path, state == JobState::Queued) {
-        Ok(true) => {
-            tracing::info!(job = %id, file = %path.display(), "sidecar arrived after its model; it applies")
+    match farm.jobs.late_sidecar(folder, model, path).await {
+        Ok(None) => tracing::debug!(file = %path.display(), "a sidecar without its model yet"),
+        Ok(Some(late)) if late.applies => {
+            tracing::info!(job = %late.job, file = %path.display(), "sidecar arrived after its model; it applies")
         }
-        Ok(false) => tracing::warn!(
-            job = %id,
+        Ok(Some(late)) => tracing::warn!(
+            job = %late.job,
             file = %path.display(),
-            state = state.name(),
+            state = late.state.name(),
             "sidecar arrived after its model's job had started; NOT applied, kept in the job directory as {model}.toml.late (hint: put the sidecar in first, or `crispen cancel` and drop both again)"
         ),
         Err(e) => {
-            tracing::error!(job = %id, file = %path.display(), error = %e, "cannot take the late sidecar")
+            tracing::error!(file = %path.display(), error = %e, "cannot take the late sidecar")
         }
     }
 }

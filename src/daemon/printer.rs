@@ -13,7 +13,7 @@
 //! Marlin streamer is wired in in one place ([`MarlinConnector`]).
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterState};
-use super::job::{JobState, PrinterGate};
+use super::job::{JobState, PrintReport, PrinterGate};
 use crate::marlin::gcode::GcodeProgram;
 use crate::marlin::stream::{
     Connection, Idle, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
@@ -48,7 +48,7 @@ pub trait PrinterLink: Send {
         gcode: &'a Path,
         control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
-    ) -> BoxFuture<'a, Result<serde_json::Value, PrintFailure>>;
+    ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>>;
 
     /// Reads and logs what the printer says between jobs (reports, `start`, host actions)
     /// until it says something to act on; pending while all is quiet. Cancel-safe: the
@@ -156,7 +156,7 @@ async fn supervise_inner(
                 }
                 continue;
             }
-            let Some(job_id) = claim_job(&farm, &name) else {
+            let Some(job_id) = claim_job(&farm, &name).await else {
                 farm.set_printer(&name, |p| {
                     p.state = PrinterState::Idle;
                     p.job = None;
@@ -226,9 +226,9 @@ async fn between_jobs(
 }
 
 /// Takes the oldest ready job this printer may print, marking it printing. The search and
-/// the change happen under one hold of the store's lock: supervisors run on several
-/// threads, and two of them must never take the same job.
-fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
+/// the change are one request to the job store: supervisors run on several threads, and
+/// two of them must never take the same job.
+async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let config = farm.config();
     // A printer only receives G-code made for its machine.
     let machine = config
@@ -236,34 +236,23 @@ fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
         .iter()
         .find(|p| p.name == printer)
         .map(|p| p.machine.name.clone())?;
-    let mut store = farm.store();
-    let id = store
-        .jobs()
-        .filter(|j| j.state == JobState::Ready)
-        .find(|j| {
-            let served = config
-                .folder(&j.folder)
-                .is_some_and(|f| f.printers.iter().any(|p| p == printer));
-            let wanted = j
-                .sidecar
-                .as_ref()
-                .and_then(|s| s.printer.as_deref())
-                .is_none_or(|p| p == printer);
-            served && wanted && j.gcode_for(&machine).is_some()
-        })
-        .map(|j| j.id.clone())?;
-    let claimed = farm.transition_with(&mut store, &id, JobState::Printing, None, |j| {
-        j.printer = Some(printer.to_string())
-    });
-    match claimed {
-        Ok(_) => Some(id),
-        // Failed for it (its directory is gone): the next job may be printable.
-        Err(_) if store.get(&id).is_some_and(|j| j.state == JobState::Failed) => {
-            drop(store);
-            claim_job(farm, printer)
-        }
+    let name = printer.to_string();
+    let eligible = move |j: &super::job::Job| {
+        let printer = name.as_str();
+        let served = config
+            .folder(&j.folder)
+            .is_some_and(|f| f.printers.iter().any(|p| p == printer));
+        let wanted = j
+            .sidecar
+            .as_ref()
+            .and_then(|s| s.printer.as_deref())
+            .is_none_or(|p| p == printer);
+        served && wanted && j.gcode_for(&machine).is_some()
+    };
+    match farm.claim(printer, eligible).await {
+        Ok(job) => job.map(|j| j.id),
         Err(e) => {
-            tracing::error!(job = %id, error = %e, "cannot claim the job");
+            tracing::error!(error = %e, "cannot claim a job");
             None
         }
     }
@@ -292,7 +281,7 @@ async fn run_job(
             None => {
                 // The printer's machine changed (a reload) since the claim: not for it.
                 drop(store);
-                if let Err(e) = farm.transition(job_id, JobState::Ready, None) {
+                if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
                     tracing::error!(error = %e, "cannot put the job back");
                 }
                 return false;
@@ -309,7 +298,7 @@ async fn run_job(
         permit = farm.heating_permit() => permit,
         _ = farm.shutdown.cancelled() => {
             // Nothing was sent to the printer: the job waits for the next start.
-            if let Err(e) = farm.transition(job_id, JobState::Ready, None) {
+            if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
                 tracing::error!(error = %e, "cannot put the job back");
             }
             farm.set_printer(printer, |p| p.job = None);
@@ -372,7 +361,7 @@ async fn run_job(
         bed_not_cleared: true,
         last_job: Some(job_id.to_string()),
     };
-    if let Err(e) = farm.store().set_gate(printer, gate) {
+    if let Err(e) = farm.jobs.set_gate(printer, gate).await {
         tracing::error!(error = %e, "cannot persist the bed gate");
     }
     let mut printed = None;
@@ -406,12 +395,14 @@ async fn run_job(
         ),
         Err(PrintFailure::Failed(why)) => (JobState::Failed, Some(why), false),
     };
-    let recorded = farm.record_outcome(job_id, state, reason, |j| {
-        if let Some(report) = printed {
-            j.copies_done += 1;
-            j.print_report = Some(report);
-        }
-    });
+    let recorded = farm
+        .record_outcome(job_id, state, reason, |j| {
+            if let Some(report) = printed {
+                j.copies_done += 1;
+                j.print_report = Some(report);
+            }
+        })
+        .await;
     if let Err(e) = recorded {
         tracing::error!(error = %e, "cannot record the print's outcome");
     }
@@ -472,7 +463,7 @@ impl PrinterLink for MarlinLink {
         gcode: &'a Path,
         mut control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
-    ) -> BoxFuture<'a, Result<serde_json::Value, PrintFailure>> {
+    ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>> {
         Box::pin(async move {
             let program = GcodeProgram::load_for(gcode, self.firmware)
                 .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?;
@@ -534,7 +525,7 @@ impl PrinterLink for MarlinLink {
             // print shows all its lines acknowledged.
             progress.send_replace(live_progress(&inner_rx.borrow(), last_heated, last_paused));
             match result {
-                Ok(report) => Ok(serde_json::to_value(&report).unwrap_or_default()),
+                Ok(report) => Ok(report.into()),
                 Err(e) => Err(match e {
                     PrintError::Cancelled { .. } => PrintFailure::Cancelled(e.to_string()),
                     PrintError::Open(_)
@@ -583,10 +574,11 @@ mod tests {
         assert_eq!(heat_up_end(&prog[..2]), None);
     }
 
-    /// Many supervisors claiming at once, on real threads: every ready job goes to exactly
-    /// one printer (a claim split from its state change once printed a job twice).
-    #[test]
-    fn concurrent_claims_take_each_job_once() {
+    /// Eight printers' supervisors, on a multi-threaded runtime, claiming 200 ready jobs
+    /// at once through the store's task: each job made for their machine is claimed
+    /// exactly once, by the printer it is recorded for, and no other job is.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+    async fn concurrent_claims_take_each_job_once() {
         use crate::daemon::job::ForMachine;
         let tmp = tempfile::tempdir().unwrap();
         let hot = tmp.path().join("hot");
@@ -605,7 +597,8 @@ mod tests {
         );
         let config =
             crate::daemon::config::Config::parse(&text, &tmp.path().join("crispen.toml")).unwrap();
-        let mut store = crate::daemon::job::JobStore::open(&tmp.path().join("spool")).unwrap();
+        let mut store =
+            crate::daemon::store::spool::Spool::open(&tmp.path().join("spool")).unwrap();
         let mut ids = Vec::new();
         for i in 0..200 {
             let file = hot.join(format!("m{i}.stl"));
@@ -631,25 +624,34 @@ mod tests {
             }
         }
         let farm = Farm::new(config, store, Default::default());
-        let barrier = std::sync::Barrier::new(printers.len());
-        let claimed: Vec<Vec<String>> = std::thread::scope(|scope| {
-            let handles: Vec<_> = printers
-                .iter()
-                .map(|p| {
-                    let (farm, barrier) = (&farm, &barrier);
-                    scope.spawn(move || {
-                        barrier.wait();
-                        std::iter::from_fn(|| claim_job(farm, p)).collect()
-                    })
+        let start = Arc::new(tokio::sync::Barrier::new(printers.len()));
+        let tasks: Vec<_> = printers
+            .iter()
+            .map(|p| {
+                let (farm, start, p) = (Arc::clone(&farm), Arc::clone(&start), p.clone());
+                tokio::spawn(async move {
+                    start.wait().await;
+                    let mut mine = Vec::new();
+                    while let Some(id) = claim_job(&farm, &p).await {
+                        mine.push(id);
+                    }
+                    mine
                 })
-                .collect();
-            handles.into_iter().map(|h| h.join().unwrap()).collect()
-        });
+            })
+            .collect();
+        let mut claimed = Vec::new();
+        for task in tasks {
+            claimed.push(task.await.unwrap());
+        }
         let mut all: Vec<String> = claimed.concat();
         all.sort();
         assert_eq!(
             all, ids,
             "each ready job made for the printers' machine claimed exactly once, no other"
+        );
+        assert!(
+            claimed.iter().filter(|c| !c.is_empty()).count() > 1,
+            "the printers took turns"
         );
         let store = farm.store();
         for (p, jobs) in printers.iter().zip(&claimed) {

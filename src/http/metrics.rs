@@ -223,8 +223,8 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
         }
         if let (Some(printer), Some(report)) = (&job.printer, &job.print_report) {
             let entry = per_printer.entry(printer.clone()).or_default();
-            entry.0 += report["resends"].as_f64().unwrap_or(0.0);
-            entry.1 += report["silence_probes"].as_f64().unwrap_or(0.0);
+            entry.0 += report.resends as f64;
+            entry.1 += report.silence_probes as f64;
         }
     }
     drop(store);

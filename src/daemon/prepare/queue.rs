@@ -3,7 +3,8 @@
 //! per machine, or the reason none can print it) is recorded in the job.
 
 use crate::daemon::farm::Farm;
-use crate::daemon::job::JobState;
+use crate::daemon::job::{JobState, StoreError};
+use crate::daemon::store::StateFilter;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -43,7 +44,7 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 })
                 .map(|j| j.id.clone());
             let Some(id) = next else { break };
-            if let Err(e) = farm.transition(&id, JobState::Preparing, None) {
+            if let Err(e) = farm.transition(&id, JobState::Preparing, None).await {
                 tracing::error!(job = %id, error = %e, "cannot start preparing");
                 // A job that failed for it (its directory is gone) is passed over; one
                 // still queued (the disk is full) waits for the next change.
@@ -114,8 +115,7 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
                 .map(|report| (report, sidecar))
         }
     };
-    let farm2 = Arc::clone(&farm);
-    let _ = tokio::task::spawn_blocking(move || finish_preparation(&farm2, &id, result)).await;
+    finish_preparation(&farm, &id, result).await;
 }
 
 /// Reads the job's sidecar and works out its task.
@@ -147,7 +147,9 @@ fn resolve(
     Ok((task, sidecar))
 }
 
-fn finish_preparation(
+/// Records a preparation's outcome, unless the job was cancelled (or otherwise moved on)
+/// meanwhile: the store checks that it is still preparing as one step with the change.
+async fn finish_preparation(
     farm: &Farm,
     id: &str,
     result: Result<(super::Prepared, Option<crate::daemon::job::Sidecar>), super::PrepareError>,
@@ -156,39 +158,43 @@ fn finish_preparation(
         .lock()
         .unwrap_or_else(|e| e.into_inner())
         .remove(id);
-    // Cancelled (or otherwise moved on) while being prepared: the result is not wanted.
-    // Checked and recorded under one hold of the lock, so a cancel cannot slip between.
-    let mut store = farm.store();
-    if store.get(id).map(|j| j.state) != Some(JobState::Preparing) {
-        return;
-    }
+    const STILL_PREPARING: StateFilter = &[JobState::Preparing];
     let outcome = match result {
         Ok((prepared, sidecar)) => {
             let (machines, report) = prepared.for_machines();
             match prepared.failure() {
                 // No machine can print it: failed, with each machine's reason.
                 Some(reason) => {
-                    farm.transition_with(&mut store, id, JobState::Failed, Some(reason), |j| {
+                    farm.transition_from(id, STILL_PREPARING, JobState::Failed, Some(reason), |j| {
                         j.machines = machines;
                         j.sidecar = sidecar;
                     })
+                    .await
                 }
-                None => farm.transition_with(&mut store, id, JobState::Ready, None, |j| {
-                    j.slice_report = report;
-                    j.machines = machines;
-                    j.sidecar = sidecar;
-                }),
+                None => {
+                    farm.transition_from(id, STILL_PREPARING, JobState::Ready, None, |j| {
+                        j.slice_report = report;
+                        j.machines = machines;
+                        j.sidecar = sidecar;
+                    })
+                    .await
+                }
             }
         }
         // Still preparing, so not cancelled by the operator: the daemon is stopping, and
         // the job is prepared again at the next start.
         Err(super::PrepareError::Cancelled) => {
-            farm.transition_in(&mut store, id, JobState::Queued, None)
+            farm.transition_from(id, STILL_PREPARING, JobState::Queued, None, |_| {})
+                .await
         }
-        Err(e) => farm.transition_in(&mut store, id, JobState::Failed, Some(e.to_string())),
+        Err(e) => {
+            let reason = Some(e.to_string());
+            farm.transition_from(id, STILL_PREPARING, JobState::Failed, reason, |_| {})
+                .await
+        }
     };
-    drop(store);
-    if let Err(e) = outcome {
-        tracing::error!(job = id, error = %e, "cannot record the preparation's outcome");
+    match outcome {
+        Ok(_) | Err(StoreError::StateChanged { .. }) => {}
+        Err(e) => tracing::error!(job = id, error = %e, "cannot record the preparation's outcome"),
     }
 }

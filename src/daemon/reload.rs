@@ -1,0 +1,401 @@
+//! Reloading the config (SIGHUP), with a declared policy per key: [`POLICY`] says for
+//! every key of the config file whether a change applies at once, when the printer's
+//! supervisor restarts (once it is not printing), or only when the daemon restarts.
+//! [`changed_keys`] destructures the config without `..`, so a field added to the config
+//! does not compile until it is compared here and given a policy.
+
+use super::config::{Config, FarmConfig, FolderConfig, HttpConfig, PrinterConfig};
+use super::farm::Farm;
+use std::sync::Arc;
+
+/// When a changed config value takes effect.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Policy {
+    /// At once: the next heat-up, pick-up, preparation or claim uses it.
+    Live,
+    /// When the printer's supervisor restarts with the new settings, which it does as soon
+    /// as the printer is not printing (a print is never cut short by a reload).
+    PrinterRestart,
+    /// Only at the next start of the daemon: the old value stays in force, and the reload
+    /// says so (the spool is locked and loaded once; the sockets are bound once).
+    DaemonRestart,
+}
+
+impl Policy {
+    pub fn describe(self) -> &'static str {
+        match self {
+            Policy::Live => "applied",
+            Policy::PrinterRestart => "applies when the printer is not printing",
+            Policy::DaemonRestart => "needs a daemon restart; the old value stays until then",
+        }
+    }
+}
+
+/// Every key of the config file and its reload policy. `printer` and `folder` alone stand
+/// for a printer or folder added or removed.
+pub const POLICY: &[(&str, Policy)] = &[
+    ("spool.dir", Policy::DaemonRestart),
+    ("control.socket", Policy::DaemonRestart),
+    ("http", Policy::DaemonRestart),
+    ("http.listen", Policy::DaemonRestart),
+    ("http.api_key_file", Policy::DaemonRestart),
+    ("http.read_only_without_key", Policy::DaemonRestart),
+    ("http.upload_max_mb", Policy::DaemonRestart),
+    ("farm.max_heating", Policy::Live),
+    ("farm.on_shutdown", Policy::Live),
+    ("farm.settle_s", Policy::Live),
+    ("farm.rescan_s", Policy::Live),
+    ("printer", Policy::PrinterRestart),
+    ("printer.port", Policy::PrinterRestart),
+    ("printer.simulate", Policy::PrinterRestart),
+    ("printer.firmware", Policy::PrinterRestart),
+    ("printer.baud", Policy::PrinterRestart),
+    ("printer.heat_timeout_s", Policy::PrinterRestart),
+    ("printer.machine", Policy::PrinterRestart),
+    ("folder", Policy::Live),
+    ("folder.height_mm", Policy::Live),
+    ("folder.printers", Policy::Live),
+    ("folder.strength", Policy::Live),
+    ("folder.slicer", Policy::Live),
+    ("folder.up", Policy::Live),
+    ("folder.profile", Policy::Live),
+    ("folder.timeout_s", Policy::Live),
+    ("folder.settings", Policy::Live),
+];
+
+/// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
+/// a daemon restart, the safe choice (a unit test keeps the table complete).
+pub fn policy(key: &str) -> Policy {
+    POLICY
+        .iter()
+        .find(|(k, _)| *k == key)
+        .map_or(Policy::DaemonRestart, |(_, p)| *p)
+}
+
+/// The keys whose values differ between two configs (each once, in [`POLICY`]'s order).
+pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
+    let mut changed = std::collections::BTreeSet::new();
+    let mut differs = |key: &'static str, different: bool| {
+        if different {
+            changed.insert(key);
+        }
+    };
+    let Config {
+        source: _,
+        spool_dir,
+        socket,
+        farm,
+        printers,
+        // A `[[machine]]` table matters only through the printers whose machine it is:
+        // their machines are compared below (`printer.machine`).
+        machines: _,
+        folders,
+        http,
+    } = new;
+    differs("spool.dir", *spool_dir != old.spool_dir);
+    differs("control.socket", *socket != old.socket);
+    let FarmConfig {
+        max_heating,
+        on_shutdown,
+        settle,
+        rescan,
+    } = farm;
+    differs("farm.max_heating", *max_heating != old.farm.max_heating);
+    differs("farm.on_shutdown", *on_shutdown != old.farm.on_shutdown);
+    differs("farm.settle_s", *settle != old.farm.settle);
+    differs("farm.rescan_s", *rescan != old.farm.rescan);
+    match (http, &old.http) {
+        (None, None) => {}
+        (Some(new), Some(old)) => {
+            let HttpConfig {
+                listen,
+                api_key,
+                read_only_without_key,
+                upload_max_bytes,
+                any_port_if_taken,
+            } = new;
+            // Only the built-in default may fall back to another port; part of `listen`.
+            differs(
+                "http.listen",
+                *listen != old.listen || *any_port_if_taken != old.any_port_if_taken,
+            );
+            differs("http.api_key_file", *api_key != old.api_key);
+            differs(
+                "http.read_only_without_key",
+                *read_only_without_key != old.read_only_without_key,
+            );
+            differs(
+                "http.upload_max_mb",
+                *upload_max_bytes != old.upload_max_bytes,
+            );
+        }
+        _ => differs("http", true),
+    }
+    for new in printers {
+        let Some(old) = old.printers.iter().find(|p| p.name == new.name) else {
+            differs("printer", true);
+            continue;
+        };
+        let PrinterConfig {
+            name: _,
+            port,
+            firmware,
+            machine,
+            baud,
+            heat_timeout,
+        } = new;
+        let simulated = |p: &super::config::PrinterPort| {
+            matches!(p, super::config::PrinterPort::Simulated { .. })
+        };
+        let port_key = if simulated(port) && simulated(&old.port) {
+            "printer.simulate"
+        } else {
+            "printer.port"
+        };
+        differs(port_key, *port != old.port);
+        differs("printer.firmware", *firmware != old.firmware);
+        differs("printer.baud", *baud != old.baud);
+        differs("printer.heat_timeout_s", *heat_timeout != old.heat_timeout);
+        differs("printer.machine", *machine != old.machine);
+    }
+    differs(
+        "printer",
+        old.printers
+            .iter()
+            .any(|o| !printers.iter().any(|p| p.name == o.name)),
+    );
+    for new in folders {
+        let Some(old) = old.folders.iter().find(|f| f.path == new.path) else {
+            differs("folder", true);
+            continue;
+        };
+        let FolderConfig {
+            path: _,
+            height_mm,
+            printers,
+            strength,
+            slicer,
+            up,
+            profile,
+            timeout,
+            settings,
+        } = new;
+        // Compared by their debug form: these types carry no equality of their own.
+        let same =
+            |a: &dyn std::fmt::Debug, b: &dyn std::fmt::Debug| format!("{a:?}") == format!("{b:?}");
+        differs("folder.height_mm", *height_mm != old.height_mm);
+        differs("folder.printers", *printers != old.printers);
+        differs("folder.strength", !same(strength, &old.strength));
+        differs("folder.slicer", !same(slicer, &old.slicer));
+        differs("folder.up", !same(up, &old.up));
+        differs("folder.profile", *profile != old.profile);
+        differs("folder.timeout_s", *timeout != old.timeout);
+        differs("folder.settings", !same(settings, &old.settings));
+    }
+    differs(
+        "folder",
+        old.folders
+            .iter()
+            .any(|o| !folders.iter().any(|f| f.path == o.path)),
+    );
+    POLICY
+        .iter()
+        .map(|(k, _)| *k)
+        .filter(|k| changed.contains(k))
+        .collect()
+}
+
+/// The config to run with after a reload: `new`, except the values whose policy is
+/// [`Policy::DaemonRestart`], which stay as in `old`.
+pub fn merge(old: &Config, new: Config) -> Config {
+    Config {
+        spool_dir: old.spool_dir.clone(),
+        socket: old.socket.clone(),
+        http: old.http.clone(),
+        ..new
+    }
+}
+
+/// What a reload did.
+#[derive(Debug)]
+pub enum Reloaded {
+    /// The new file was refused; the old config stays.
+    Refused(super::config::ConfigError),
+    /// The config now in force, and the keys that changed with their policies.
+    Applied {
+        config: Config,
+        changed: Vec<(&'static str, Policy)>,
+    },
+}
+
+/// Reads the config file again and installs it in the farm as [`merge`] says, logging
+/// each changed key with its policy. The caller restarts what depends on it (pick-up,
+/// printers).
+pub fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Reloaded {
+    let new = match Config::load(path) {
+        Err(e) => {
+            tracing::error!(error = %e, "SIGHUP: new config refused; keeping the old one");
+            return Reloaded::Refused(e);
+        }
+        Ok(new) => new,
+    };
+    let old = farm.config();
+    let changed: Vec<(&'static str, Policy)> = changed_keys(&old, &new)
+        .into_iter()
+        .map(|k| (k, policy(k)))
+        .collect();
+    for (key, policy) in &changed {
+        match policy {
+            Policy::DaemonRestart => {
+                tracing::warn!(key, "SIGHUP: {key} changed: {}", policy.describe())
+            }
+            _ => tracing::info!(key, "SIGHUP: {key} changed: {}", policy.describe()),
+        }
+    }
+    let config = merge(&old, new);
+    *farm.config.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(config.clone());
+    Reloaded::Applied { config, changed }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const BASE: &str = "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+        [farm]\nmax_heating = 2\nsettle_s = 1\nrescan_s = 10\non_shutdown = \"finish\"\n\
+        [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n\
+        [[machine]]\nname = \"wide\"\nbased_on = \"marlin-175\"\nbed_mm = [300, 300, 300]\n\
+        [[printer]]\nname = \"a\"\nfirmware = \"marlin2\"\nbaud = 115200\n[printer.simulate]\ntime_scale = 0.0\n\
+        [[printer]]\nname = \"b\"\nport = \"/dev/ttyUSB0\"\nfirmware = \"marlin2\"\n\
+        [[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"a\"]\n";
+
+    /// One change per key of [`POLICY`], as (key, text to replace, replacement).
+    const CHANGES: &[(&str, &str, &str)] = &[
+        ("spool.dir", "dir = \"spool\"", "dir = \"spool2\""),
+        ("control.socket", "c.sock", "d.sock"),
+        (
+            "http",
+            "[http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n",
+            "",
+        ),
+        ("http.listen", "127.0.0.1:0", "127.0.0.1:1"),
+        (
+            "http.api_key_file",
+            "api_key_file = \"key\"",
+            "api_key_file = \"key2\"",
+        ),
+        (
+            "http.read_only_without_key",
+            "api_key_file = \"key\"\n",
+            "api_key_file = \"key\"\nread_only_without_key = true\n",
+        ),
+        (
+            "http.upload_max_mb",
+            "api_key_file = \"key\"\n",
+            "api_key_file = \"key\"\nupload_max_mb = 7\n",
+        ),
+        ("farm.max_heating", "max_heating = 2", "max_heating = 3"),
+        ("farm.on_shutdown", "\"finish\"", "\"stop\""),
+        ("farm.settle_s", "settle_s = 1", "settle_s = 2"),
+        ("farm.rescan_s", "rescan_s = 10", "rescan_s = 11"),
+        (
+            "printer",
+            "[[printer]]\nname = \"b\"\nport = \"/dev/ttyUSB0\"\nfirmware = \"marlin2\"\n",
+            "",
+        ),
+        ("printer.port", "/dev/ttyUSB0", "/dev/ttyUSB1"),
+        ("printer.simulate", "time_scale = 0.0", "time_scale = 1.0"),
+        (
+            "printer.firmware",
+            "name = \"a\"\nfirmware = \"marlin2\"",
+            "name = \"a\"\nfirmware = \"ultimaker2\"",
+        ),
+        (
+            "printer.baud",
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\nbaud = 250000\n",
+        ),
+        (
+            "printer.heat_timeout_s",
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\nheat_timeout_s = 77\n",
+        ),
+        (
+            "printer.machine",
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\nmachine = \"wide\"\n",
+        ),
+        (
+            "folder",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\n[[folder]]\npath = \"hot2\"\nheight_mm = 20\nprinters = [\"a\"]\n",
+        ),
+        ("folder.height_mm", "height_mm = 20", "height_mm = 21"),
+        (
+            "folder.printers",
+            "printers = [\"a\"]",
+            "printers = [\"a\", \"b\"]",
+        ),
+        (
+            "folder.strength",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nstrength = 2.5\n",
+        ),
+        (
+            "folder.slicer",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nslicer = \"cura\"\n",
+        ),
+        (
+            "folder.up",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nup = \"y\"\n",
+        ),
+        (
+            "folder.profile",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nprofile = \"p.ini\"\n",
+        ),
+        (
+            "folder.timeout_s",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\ntimeout_s = 99\n",
+        ),
+        (
+            "folder.settings",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\n[folder.settings]\ninfill_percent = 30\n",
+        ),
+    ];
+
+    fn parse(dir: &std::path::Path, text: &str) -> Config {
+        Config::parse(text, &dir.join("crispen.toml")).unwrap_or_else(|e| panic!("{e}\n{text}"))
+    }
+
+    /// Every key of the table has a change here, each change is seen as exactly its key,
+    /// and after a merge a daemon-restart key keeps its old value while every other key
+    /// takes the new one.
+    #[test]
+    fn each_key_changes_as_its_policy_declares() {
+        let tmp = tempfile::tempdir().unwrap();
+        std::fs::write(tmp.path().join("key"), "k".repeat(32)).unwrap();
+        std::fs::write(tmp.path().join("key2"), "q".repeat(32)).unwrap();
+        std::fs::write(tmp.path().join("p.ini"), "").unwrap();
+        for dir in ["hot", "hot2"] {
+            std::fs::create_dir(tmp.path().join(dir)).unwrap();
+        }
+        let old = parse(tmp.path(), BASE);
+        let keys: Vec<&str> = CHANGES.iter().map(|c| c.0).collect();
+        let table: Vec<&str> = POLICY.iter().map(|p| p.0).collect();
+        assert_eq!(keys, table, "one change per key of the table");
+        assert!(changed_keys(&old, &old).is_empty());
+        for (key, from, to) in CHANGES {
+            assert!(BASE.contains(from), "{key}: {from:?} is in the base config");
+            let new = parse(tmp.path(), &BASE.replacen(from, to, 1));
+            assert_eq!(changed_keys(&old, &new), vec![*key], "{key}");
+            let merged = merge(&old, new);
+            let kept = changed_keys(&old, &merged).is_empty();
+            assert_eq!(kept, policy(key) == Policy::DaemonRestart, "{key}");
+        }
+    }
+}

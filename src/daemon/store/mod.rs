@@ -1,0 +1,617 @@
+//! The job store as one owner: a single task ([`spawn`]) owns the store (the embedded
+//! [`spool::Spool`] today, a database tomorrow) and is the only place a job or a bed gate
+//! changes. Everyone else holds a cheap, cloneable [`StoreHandle`] and sends it requests
+//! (an mpsc message with a oneshot reply). The task runs each batch of requests on a
+//! blocking thread (`spawn_blocking`): the store's disk writes never hold up the async
+//! runtime, and no lock is held across them, because nothing else can reach the store.
+//!
+//! Readers do not queue behind writes: after every batch the task publishes an immutable
+//! [`Snapshot`] (a `watch` of an `Arc`), which status, HTTP, metrics and the printers'
+//! glances read for free. A reply is sent only after the snapshot holding its change is
+//! published, so a caller always reads its own writes.
+//!
+//! Checks that must not be split from their change (claiming a ready job, cancelling a job
+//! that has not started printing, clearing a bed, a late sidecar) are single requests, so
+//! no other change can come between. Legal state changes stay one table,
+//! [`JobState::can_go_to`], applied by [`Job::apply_transition`] inside the store.
+
+pub mod spool;
+
+use super::job::{Job, JobState, PrinterGate, StoreError};
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use tokio::sync::{mpsc, oneshot, watch};
+
+/// A change to a job's other fields, made in the same write as its state change.
+pub type JobEdit = Box<dyn FnOnce(&mut Job) + Send>;
+
+/// Where jobs are kept. Every method may block (disk, network): the store's task calls
+/// them on a blocking thread, one at a time. Opening (and taking whatever lock keeps two
+/// daemons apart) is each implementation's own constructor.
+pub trait JobStore: Send + 'static {
+    /// The local directory holding one directory per job (model, sidecar, G-code, report).
+    fn jobs_dir(&self) -> PathBuf;
+    /// Every job, oldest first.
+    fn jobs(&self) -> Vec<Job>;
+    fn job(&self, id: &str) -> Option<Job>;
+    fn gates(&self) -> BTreeMap<String, PrinterGate>;
+    /// Restart rules: preparing → queued, printing → interrupted (and its bed not cleared).
+    /// Returns the ids changed.
+    fn recover(&mut self) -> Result<Vec<String>, StoreError>;
+    /// Makes a complete file of a hot folder a queued job, or leaves it where it was.
+    fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError>;
+    /// Takes a sidecar that arrived after its model: as the job's sidecar when `applies`,
+    /// else kept aside. Returns `applies`.
+    fn late_sidecar(&mut self, id: &str, sidecar: &Path, applies: bool)
+        -> Result<bool, StoreError>;
+    /// Changes a job's state (checked against the table) with `also`'s changes, persisted.
+    fn transition_with(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError>;
+    /// A state change that has already happened (a print ended): kept even when it cannot
+    /// be persisted now, and persisted by [`JobStore::write_pending`] later.
+    fn record_outcome(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError>;
+    /// Changes a job's other fields; never its state.
+    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError>;
+    /// Puts a failed, cancelled or interrupted job back (ready if its G-code is kept).
+    fn retry(&mut self, id: &str) -> Result<Job, StoreError>;
+    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError>;
+    /// Persists what [`JobStore::record_outcome`] and [`JobStore::set_gate`] could not;
+    /// returns how many remain.
+    fn write_pending(&mut self) -> usize;
+    /// How many recorded outcomes (and bed gates) wait to be persisted.
+    fn unwritten(&self) -> usize;
+}
+
+/// An immutable picture of every job and bed gate, as of the store's last change.
+#[derive(Clone, Debug, Default)]
+pub struct Snapshot {
+    /// Oldest first.
+    jobs: Vec<Arc<Job>>,
+    index: HashMap<String, usize>,
+    gates: BTreeMap<String, PrinterGate>,
+    jobs_dir: PathBuf,
+    /// Outcomes recorded but not yet persisted (a full disk).
+    unwritten: usize,
+}
+
+impl Snapshot {
+    fn of(store: &dyn JobStore) -> Snapshot {
+        let jobs: Vec<Arc<Job>> = store.jobs().into_iter().map(Arc::new).collect();
+        let index = jobs
+            .iter()
+            .enumerate()
+            .map(|(i, j)| (j.id.clone(), i))
+            .collect();
+        Snapshot {
+            jobs,
+            index,
+            gates: store.gates(),
+            jobs_dir: store.jobs_dir(),
+            unwritten: store.unwritten(),
+        }
+    }
+
+    pub fn get(&self, id: &str) -> Option<&Job> {
+        self.index.get(id).map(|&i| &*self.jobs[i])
+    }
+
+    /// Jobs oldest first.
+    pub fn jobs(&self) -> impl Iterator<Item = &Job> {
+        self.jobs.iter().map(|j| &**j)
+    }
+
+    pub fn gate(&self, printer: &str) -> PrinterGate {
+        self.gates.get(printer).cloned().unwrap_or_default()
+    }
+
+    pub fn job_dir(&self, id: &str) -> PathBuf {
+        self.jobs_dir.join(id)
+    }
+
+    /// Outcomes that happened but could not be persisted yet.
+    pub fn unwritten(&self) -> usize {
+        self.unwritten
+    }
+
+    /// Takes the store's current record of `id` (after a change, successful or not: a
+    /// failed change may still have failed the job, e.g. when its directory is gone).
+    fn refresh(&mut self, store: &dyn JobStore, id: &str) {
+        match (store.job(id), self.index.get(id)) {
+            (Some(job), Some(&i)) => self.jobs[i] = Arc::new(job),
+            // New jobs have the highest sequence number: appending keeps the order.
+            (Some(job), None) => {
+                self.index.insert(job.id.clone(), self.jobs.len());
+                self.jobs.push(Arc::new(job));
+            }
+            (None, _) => {}
+        }
+    }
+}
+
+type Reply<T> = oneshot::Sender<Result<T, StoreError>>;
+
+/// What a job must be in for a change to go ahead; checked inside the store's task, so
+/// nothing can change the job between the check and the change.
+pub type StateFilter = &'static [JobState];
+
+/// The messages the store's task serves.
+enum Request {
+    Admit {
+        source: PathBuf,
+        folder: PathBuf,
+        reply: Reply<Job>,
+    },
+    LateSidecar {
+        folder: PathBuf,
+        file: String,
+        sidecar: PathBuf,
+        reply: Reply<Option<LateSidecar>>,
+    },
+    Transition {
+        id: String,
+        from: Option<StateFilter>,
+        to: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+        reply: Reply<Job>,
+    },
+    Outcome {
+        id: String,
+        to: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+        reply: Reply<Job>,
+    },
+    Update {
+        id: String,
+        change: JobEdit,
+        reply: Reply<Job>,
+    },
+    Retry {
+        id: String,
+        reply: Reply<Job>,
+    },
+    Claim {
+        printer: String,
+        eligible: Box<dyn Fn(&Job) -> bool + Send>,
+        reply: Reply<Option<Job>>,
+    },
+    SetGate {
+        printer: String,
+        gate: PrinterGate,
+        reply: Reply<()>,
+    },
+    ClearGate {
+        printer: String,
+        reply: Reply<bool>,
+    },
+    WritePending {
+        reply: Reply<usize>,
+    },
+}
+
+/// What became of a sidecar that arrived after its model had become a job.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LateSidecar {
+    pub job: String,
+    /// The job's state when the sidecar arrived.
+    pub state: JobState,
+    /// Taken as the job's sidecar (it had not started preparing); else kept aside.
+    pub applies: bool,
+}
+
+/// A reply waiting for the snapshot that shows its change to be published.
+type Delivery = Box<dyn FnOnce() + Send>;
+
+fn deliver<T: Send + 'static>(reply: Reply<T>, result: Result<T, StoreError>) -> Delivery {
+    Box::new(move || {
+        let _ = reply.send(result);
+    })
+}
+
+impl Request {
+    /// Carries out one request against the store, updating `view` with what changed.
+    fn serve(self, store: &mut dyn JobStore, view: &mut Snapshot) -> Delivery {
+        match self {
+            Request::Admit {
+                source,
+                folder,
+                reply,
+            } => {
+                let result = store.admit(&source, &folder);
+                if let Ok(job) = &result {
+                    view.refresh(store, &job.id);
+                }
+                deliver(reply, result)
+            }
+            Request::LateSidecar {
+                folder,
+                file,
+                sidecar,
+                reply,
+            } => {
+                let found = view
+                    .jobs()
+                    .filter(|j| j.folder == folder && j.file == file)
+                    .last()
+                    .map(|j| (j.id.clone(), j.state));
+                let result = match found {
+                    None => Ok(None),
+                    Some((id, state)) => store
+                        .late_sidecar(&id, &sidecar, state == JobState::Queued)
+                        .map(|applies| {
+                            Some(LateSidecar {
+                                job: id,
+                                state,
+                                applies,
+                            })
+                        }),
+                };
+                deliver(reply, result)
+            }
+            Request::Transition {
+                id,
+                from,
+                to,
+                reason,
+                also,
+                reply,
+            } => {
+                let result = match (view.get(&id), from) {
+                    (None, _) => Err(StoreError::NoSuchJob(id.clone())),
+                    (Some(job), Some(from)) if !from.contains(&job.state) => {
+                        Err(StoreError::StateChanged {
+                            id: id.clone(),
+                            state: job.state,
+                            expected: names(from),
+                        })
+                    }
+                    _ => store.transition_with(&id, to, reason, also),
+                };
+                view.refresh(store, &id);
+                deliver(reply, result)
+            }
+            Request::Outcome {
+                id,
+                to,
+                reason,
+                also,
+                reply,
+            } => {
+                let result = store.record_outcome(&id, to, reason, also);
+                view.refresh(store, &id);
+                view.unwritten = store.unwritten();
+                deliver(reply, result)
+            }
+            Request::Update { id, change, reply } => {
+                let result = store.update(&id, change);
+                view.refresh(store, &id);
+                deliver(reply, result)
+            }
+            Request::Retry { id, reply } => {
+                let result = store.retry(&id);
+                view.refresh(store, &id);
+                deliver(reply, result)
+            }
+            Request::Claim {
+                printer,
+                eligible,
+                reply,
+            } => deliver(reply, claim(store, view, &printer, &*eligible)),
+            Request::SetGate {
+                printer,
+                gate,
+                reply,
+            } => {
+                let result = store.set_gate(&printer, gate);
+                view.gates = store.gates();
+                view.unwritten = store.unwritten();
+                deliver(reply, result)
+            }
+            Request::ClearGate { printer, reply } => {
+                let gate = view.gate(&printer);
+                let result = if gate.bed_not_cleared {
+                    let cleared = PrinterGate {
+                        bed_not_cleared: false,
+                        last_job: gate.last_job,
+                    };
+                    store.set_gate(&printer, cleared).map(|()| true)
+                } else {
+                    Ok(false)
+                };
+                view.gates = store.gates();
+                view.unwritten = store.unwritten();
+                deliver(reply, result)
+            }
+            Request::WritePending { reply } => {
+                // Only the persisted copy changes: the view already shows these outcomes.
+                let left = store.write_pending();
+                view.unwritten = left;
+                deliver(reply, Ok(left))
+            }
+        }
+    }
+}
+
+fn names(states: StateFilter) -> String {
+    let names: Vec<&str> = states.iter().map(|s| s.name()).collect();
+    names.join(" or ")
+}
+
+/// Takes the oldest ready job `eligible` for `printer`, marking it printing. A job that
+/// fails as it is claimed (its directory is gone) is passed over for the next one.
+fn claim(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    printer: &str,
+    eligible: &dyn Fn(&Job) -> bool,
+) -> Result<Option<Job>, StoreError> {
+    let candidates: Vec<String> = view
+        .jobs()
+        .filter(|j| j.state == JobState::Ready && eligible(j))
+        .map(|j| j.id.clone())
+        .collect();
+    for id in candidates {
+        let name = printer.to_string();
+        let claimed = store.transition_with(
+            &id,
+            JobState::Printing,
+            None,
+            Box::new(move |j| j.printer = Some(name)),
+        );
+        view.refresh(store, &id);
+        match claimed {
+            Ok(job) => return Ok(Some(job)),
+            Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(None)
+}
+
+/// Starts the store's task (on the current tokio runtime) and returns its handle. The
+/// task ends, and the store is closed, when the last handle is dropped.
+pub fn spawn(store: impl JobStore) -> StoreHandle {
+    let store: Box<dyn JobStore> = Box::new(store);
+    let view = Snapshot::of(&*store);
+    let (snapshots, snapshot) = watch::channel(Arc::new(view.clone()));
+    let (tx, rx) = mpsc::channel(256);
+    tokio::spawn(serve(store, view, rx, snapshots));
+    StoreHandle { tx, snapshot }
+}
+
+/// The store's task: takes whatever requests are waiting, serves them in order on a
+/// blocking thread, publishes the new snapshot, then sends the replies.
+async fn serve(
+    mut store: Box<dyn JobStore>,
+    mut view: Snapshot,
+    mut requests: mpsc::Receiver<Request>,
+    snapshots: watch::Sender<Arc<Snapshot>>,
+) {
+    const BATCH: usize = 64;
+    while let Some(first) = requests.recv().await {
+        let mut batch = vec![first];
+        while batch.len() < BATCH {
+            match requests.try_recv() {
+                Ok(r) => batch.push(r),
+                Err(_) => break,
+            }
+        }
+        let work = tokio::task::spawn_blocking(move || {
+            let mut deliveries = Vec::with_capacity(batch.len());
+            for request in batch {
+                // A panic in one request (an edit closure) loses that request's reply
+                // only: its caller gets `StoreError::Stopped`, the store goes on.
+                let served = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    request.serve(&mut *store, &mut view)
+                }));
+                match served {
+                    Ok(delivery) => deliveries.push(delivery),
+                    Err(_) => tracing::error!("a job store request panicked; it was dropped"),
+                }
+            }
+            (store, view, deliveries)
+        });
+        let deliveries;
+        (store, view, deliveries) = match work.await {
+            Ok(done) => done,
+            Err(e) => {
+                tracing::error!(error = %e, "the job store's thread failed; the store stops");
+                return;
+            }
+        };
+        snapshots.send_replace(Arc::new(view.clone()));
+        for delivery in deliveries {
+            delivery();
+        }
+    }
+}
+
+/// A cheap, cloneable way to the store's task.
+#[derive(Clone)]
+pub struct StoreHandle {
+    tx: mpsc::Sender<Request>,
+    snapshot: watch::Receiver<Arc<Snapshot>>,
+}
+
+impl StoreHandle {
+    /// The jobs and gates as of the last change; no round trip.
+    pub fn snapshot(&self) -> Arc<Snapshot> {
+        self.snapshot.borrow().clone()
+    }
+
+    async fn ask<T>(&self, request: impl FnOnce(Reply<T>) -> Request) -> Result<T, StoreError> {
+        let (reply, answer) = oneshot::channel();
+        self.tx
+            .send(request(reply))
+            .await
+            .map_err(|_| StoreError::Stopped)?;
+        answer.await.map_err(|_| StoreError::Stopped)?
+    }
+
+    pub async fn admit(&self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
+        let (source, folder) = (source.to_path_buf(), folder.to_path_buf());
+        self.ask(|reply| Request::Admit {
+            source,
+            folder,
+            reply,
+        })
+        .await
+    }
+
+    /// Gives a sidecar that arrived late to the newest job of its model `file` from
+    /// `folder`; `None` when there is no such job (yet).
+    pub async fn late_sidecar(
+        &self,
+        folder: &Path,
+        file: &str,
+        sidecar: &Path,
+    ) -> Result<Option<LateSidecar>, StoreError> {
+        let (folder, file, sidecar) = (folder.to_path_buf(), file.to_string(), sidecar.into());
+        self.ask(|reply| Request::LateSidecar {
+            folder,
+            file,
+            sidecar,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn transition(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+    ) -> Result<Job, StoreError> {
+        self.transition_with(id, state, reason, |_| {}).await
+    }
+
+    /// [`StoreHandle::transition`] with other fields changed in the same write.
+    pub async fn transition_with(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        self.change(id, None, state, reason, Box::new(also)).await
+    }
+
+    /// [`StoreHandle::transition_with`] only if the job is in one of the states `from`
+    /// (else [`StoreError::StateChanged`]), checked and changed as one step.
+    pub async fn transition_from(
+        &self,
+        id: &str,
+        from: StateFilter,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        self.change(id, Some(from), state, reason, Box::new(also))
+            .await
+    }
+
+    async fn change(
+        &self,
+        id: &str,
+        from: Option<StateFilter>,
+        to: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError> {
+        let id = id.to_string();
+        self.ask(|reply| Request::Transition {
+            id,
+            from,
+            to,
+            reason,
+            also,
+            reply,
+        })
+        .await
+    }
+
+    /// See [`JobStore::record_outcome`].
+    pub async fn record_outcome(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        let (id, also) = (id.to_string(), Box::new(also));
+        self.ask(|reply| Request::Outcome {
+            id,
+            to: state,
+            reason,
+            also,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn update(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        let (id, change) = (id.to_string(), Box::new(change));
+        self.ask(|reply| Request::Update { id, change, reply })
+            .await
+    }
+
+    pub async fn retry(&self, id: &str) -> Result<Job, StoreError> {
+        let id = id.to_string();
+        self.ask(|reply| Request::Retry { id, reply }).await
+    }
+
+    /// Takes the oldest ready job that `eligible` allows for `printer`, marking it
+    /// printing by that printer, as one step: two printers never take the same job.
+    pub async fn claim(
+        &self,
+        printer: &str,
+        eligible: impl Fn(&Job) -> bool + Send + 'static,
+    ) -> Result<Option<Job>, StoreError> {
+        let (printer, eligible) = (printer.to_string(), Box::new(eligible));
+        self.ask(|reply| Request::Claim {
+            printer,
+            eligible,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn set_gate(&self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+        let printer = printer.to_string();
+        self.ask(|reply| Request::SetGate {
+            printer,
+            gate,
+            reply,
+        })
+        .await
+    }
+
+    /// Marks a printer's bed cleared; false when it was clear already.
+    pub async fn clear_gate(&self, printer: &str) -> Result<bool, StoreError> {
+        let printer = printer.to_string();
+        self.ask(|reply| Request::ClearGate { printer, reply })
+            .await
+    }
+
+    /// Persists outcomes that could not be written before; returns how many remain.
+    pub async fn write_pending(&self) -> Result<usize, StoreError> {
+        self.ask(|reply| Request::WritePending { reply }).await
+    }
+}

@@ -115,7 +115,10 @@ fn check_outgoing(bytes: &[u8]) {
         if line.first() != Some(&b'N') {
             continue;
         }
-        let star = line.iter().rposition(|&b| b == b'*').expect("numbered line has *");
+        let star = line
+            .iter()
+            .rposition(|&b| b == b'*')
+            .expect("numbered line has *");
         let sent: u8 = std::str::from_utf8(&line[star + 1..])
             .ok()
             .and_then(|cs| cs.parse().ok())

@@ -56,9 +56,8 @@ pub(super) fn solve(
         solutions.push(x);
     }
     timings.solve_s += t.elapsed().as_secs_f64();
-    let [v1, v2, v3] = <[_; 3]>::try_from(solutions).expect("one solution per δ");
     Ok(Solutions {
-        v: [v1, v2, v3],
+        v: solutions.try_into().expect("one solution per δ"),
         residuals,
     })
 }

@@ -406,7 +406,7 @@ fn bad_meshes_and_options_are_errors_not_panics() {
 #[test]
 fn scale_to_height_sets_the_z_extent() {
     let mut m = spot();
-    let factor = enhance::scale_to_height(&mut m, 42.0);
+    let factor = mesh::place::scale_to_height(&mut m, 42.0);
     let (lo, hi) = m.bounds().unwrap();
     assert!((hi[2] - lo[2] - 42.0).abs() < 1e-9);
     assert!(factor > 0.0);

@@ -18,6 +18,11 @@ fuzz_target!(|data: &[u8]| {
         assert!(loaded.mesh.vertices.len() <= limits.max_vertices);
         assert!(loaded.mesh.faces.len() <= limits.max_faces);
         let n = loaded.mesh.vertices.len();
-        assert!(loaded.mesh.faces.iter().flatten().all(|&i| (i as usize) < n));
+        assert!(loaded
+            .mesh
+            .faces
+            .iter()
+            .flatten()
+            .all(|&i| (i as usize) < n));
     }
 });

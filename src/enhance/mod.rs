@@ -7,13 +7,13 @@
 //! then scale and write it. [`StrengthTable`] turns a printed height into λ2.
 
 mod bands;
-mod cg;
 pub mod operators;
-mod ordering;
+mod solve;
 mod strength;
 
-pub use bands::{Bands, Combined, Solver, CG_MAX_VERTICES, DELTAS, MAX_RELATIVE_RESIDUAL};
+pub use bands::{Bands, Combined};
 pub use operators::COT_BOUND;
+pub use solve::{Solver, CG_MAX_VERTICES, DELTAS, MAX_RELATIVE_RESIDUAL};
 pub use strength::{Strength, StrengthTable};
 
 use crate::mesh::Mesh;

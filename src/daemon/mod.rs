@@ -4,6 +4,7 @@
 //!
 //! - [`config`]: the TOML configuration, checked in two stages.
 //! - [`job`]: the spool of job directories and their atomically written state.
+//! - [`postgres`]: the farm's queue in PostgreSQL, shared by several hosts (not wired in yet).
 //! - [`hotfolder`]: deciding when a dropped file is complete.
 //! - [`prepare`]: sidecars and the slicer step.
 //! - [`printer`]: printer supervisors and staggered heat-ups.
@@ -19,6 +20,7 @@ pub mod farm;
 pub mod hotfolder;
 pub mod job;
 pub mod ports;
+pub mod postgres;
 pub mod prepare;
 pub mod printer;
 

@@ -197,3 +197,4 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
     }
     Mesh { vertices, faces }
 }
+pub mod postgres;

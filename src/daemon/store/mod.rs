@@ -14,7 +14,11 @@
 //! that has not started printing, clearing a bed, a late sidecar) are single requests, so
 //! no other change can come between. Legal state changes stay one table,
 //! [`JobState::can_go_to`], applied by [`Job::apply_transition`] inside the store.
+//!
+//! [`postgres`] is the farm's queue in PostgreSQL for several hosts: its schema, claims and
+//! leases, tested against a real server; it is not a [`JobStore`] of the daemon yet.
 
+pub mod postgres;
 pub mod spool;
 
 use super::job::{Job, JobState, PrinterGate, StoreError};

@@ -158,6 +158,11 @@ impl PgServer {
         )
     }
 
+    /// The postmaster's process id (the server's CPU is its and its children's).
+    pub fn pid(&self) -> u32 {
+        self.server.as_ref().expect("the server is running").id()
+    }
+
     pub fn log(&self) -> String {
         std::fs::read_to_string(self.dir.path().join("server.log")).unwrap_or_default()
     }

@@ -523,21 +523,25 @@ async fn load_jobs(
     client: &tokio_postgres::Client,
     only: Option<&str>,
 ) -> Result<Vec<Job>, PgError> {
-    let rows = client
-        .query(
-            "SELECT id, seq, file, folder, state, printer, reason, sidecar, copies_done, \
-                 slice_report, print_report FROM jobs \
-                 WHERE $1::text IS NULL OR id = $1 ORDER BY seq",
-            &[&only],
-        )
-        .await?;
-    let history = client
-        .query(
-            "SELECT job_id, state, extract(epoch FROM at)::float8 FROM job_history \
-                 WHERE $1::text IS NULL OR job_id = $1 ORDER BY at",
-            &[&only],
-        )
-        .await?;
+    // Two spellings rather than `$1 IS NULL OR id = $1`, which no index serves: reading
+    // one job must not scan every job's history.
+    const JOB: &str = "SELECT id, seq, file, folder, state, printer, reason, sidecar, \
+        copies_done, slice_report, print_report FROM jobs";
+    const HISTORY: &str = "SELECT job_id, state, extract(epoch FROM at)::float8 FROM job_history";
+    let (rows, history) = match only {
+        Some(id) => (
+            client
+                .query(&format!("{JOB} WHERE id = $1"), &[&id])
+                .await?,
+            client
+                .query(&format!("{HISTORY} WHERE job_id = $1 ORDER BY at"), &[&id])
+                .await?,
+        ),
+        None => (
+            client.query(&format!("{JOB} ORDER BY seq"), &[]).await?,
+            client.query(&format!("{HISTORY} ORDER BY at"), &[]).await?,
+        ),
+    };
     let mut jobs = rows.iter().map(job_of_row).collect::<Result<Vec<_>, _>>()?;
     let index: std::collections::HashMap<String, usize> = jobs
         .iter()

@@ -1,4 +1,4 @@
-//! Benchmark of the farm's queue in PostgreSQL (src/daemon/postgres), at the store's level:
+//! Benchmark of the farm's queue in PostgreSQL (src/daemon/store/postgres), at the store's level:
 //! 1,000 ready jobs, 60 printers across 3 hosts (three stores, each with its own pool, in
 //! one process), every printer claiming its next job the moment it is free and finishing it
 //! at once, so the figures are the queue's own cost with no printing in between.
@@ -16,7 +16,7 @@ mod common;
 
 use common::postgres::PgServer;
 use crispen::daemon::job::JobState;
-use crispen::daemon::postgres::{PgSettings, PgStore};
+use crispen::daemon::store::postgres::{PgSettings, PgStore};
 use std::time::{Duration, Instant};
 
 const JOBS: usize = 1000;

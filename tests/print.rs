@@ -733,6 +733,27 @@ async fn a_firmware_error_that_is_no_halt_ends_the_job_with_heaters_off() {
 /// the printer's status and the log, and the next job begins with a fresh handshake; a
 /// pulled cable is noticed and the printer reconnected before a job depends on it; each
 /// job's autoreport is switched off at its end; every job runs exactly once.
+/// Kills the processes it watches when dropped, so a failing test leaves none behind.
+#[derive(Default)]
+struct Reaper(std::cell::RefCell<Vec<u32>>);
+
+impl Reaper {
+    fn watch(&self, child: &std::process::Child) {
+        self.0.borrow_mut().push(child.id());
+    }
+}
+
+impl Drop for Reaper {
+    fn drop(&mut self) {
+        for pid in self.0.borrow().iter() {
+            let _ = nix::sys::signal::kill(
+                nix::unistd::Pid::from_raw(*pid as i32),
+                nix::sys::signal::Signal::SIGKILL,
+            );
+        }
+    }
+}
+
 #[test]
 fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
     use std::io::Write;
@@ -742,6 +763,8 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
     let link = root.join("p.tty");
     let record = root.join("p.rec");
     std::fs::create_dir(root.join("hot")).unwrap();
+    // Whatever happens below, no daemon or simulator outlives the test.
+    let reaper = Reaper::default();
     let start_sim = |record: &std::path::Path| {
         let mut sim = Command::new(exe)
             .args([
@@ -761,6 +784,7 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
             .stderr(Stdio::null())
             .spawn()
             .unwrap();
+        reaper.watch(&sim);
         let mut first = String::new();
         BufReader::new(sim.stdout.take().unwrap())
             .read_line(&mut first)
@@ -791,6 +815,7 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
         .stderr(std::fs::File::create(&log).unwrap())
         .spawn()
         .unwrap();
+    reaper.watch(&daemon);
     let status = || -> Option<serde_json::Value> {
         let out = Command::new(exe)
             .args(["status", "--json", "--config"])
@@ -830,7 +855,7 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
         let path = root
             .join("spool/jobs")
             .join(id)
-            .join(format!("{file}.gcode"));
+            .join(format!("{file}.marlin-175.gcode"));
         GcodeProgram::load_for(&path, Firmware::Marlin2)
             .unwrap()
             .to_vec()

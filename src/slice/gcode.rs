@@ -70,10 +70,35 @@ pub fn parse_cura_log_time(line: &str) -> Option<f64> {
         .and_then(|v| v.trim().parse().ok())
 }
 
-fn word_value(word: &str) -> Option<(char, f64)> {
+/// A command word's letter and number (`X12.5`); `None` for a word that is no finite number.
+pub(super) fn word_value(word: &str) -> Option<(char, f64)> {
     let mut chars = word.chars();
     let letter = chars.next()?.to_ascii_uppercase();
-    chars.as_str().parse::<f64>().ok().map(|v| (letter, v))
+    let v: f64 = chars.as_str().parse().ok()?;
+    v.is_finite().then_some((letter, v))
+}
+
+/// Where a move with `params` ends, starting at `pos` ([X, Y, Z, E]): the axes given are
+/// absolute or relative as G90/G91 said, and E is absolute only under both G90 and M82
+/// (G91 makes E relative too in Marlin, whatever M82 said).
+pub(super) fn move_target(
+    pos: [f64; 4],
+    params: &[(char, f64)],
+    absolute: bool,
+    absolute_e: bool,
+) -> [f64; 4] {
+    let mut target = pos;
+    for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
+        let absolute = if letter == 'E' {
+            absolute && absolute_e
+        } else {
+            absolute
+        };
+        if let Some(&(_, v)) = params.iter().find(|(l, _)| *l == letter) {
+            target[k] = if absolute { v } else { pos[k] + v };
+        }
+    }
+    target
 }
 
 fn comment_value<'a>(comment: &'a str, key: &str) -> Option<&'a str> {
@@ -122,20 +147,7 @@ pub fn check(reader: impl BufRead, expect: &Expectations) -> Result<GcodeStats, 
         let get = |letter: char| params.iter().find(|(l, _)| *l == letter).map(|(_, v)| *v);
         match command.as_str() {
             "G0" | "G1" => {
-                let mut target = pos;
-                for (k, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
-                    if let Some(v) = get(letter) {
-                        target[k] = if absolute { v } else { pos[k] + v };
-                    }
-                }
-                if let Some(v) = get('E') {
-                    // G91 makes E relative too in Marlin, whatever M82 said.
-                    target[3] = if absolute_e && absolute {
-                        v
-                    } else {
-                        pos[3] + v
-                    };
-                }
+                let target = move_target(pos, &params, absolute, absolute_e);
                 let de = target[3] - pos[3];
                 let moves_xy = target[0] != pos[0] || target[1] != pos[1];
                 for k in 0..3 {

@@ -11,6 +11,7 @@
 //! the reason. Binary G-code (PrusaSlicer's `.bgcode`) is refused by [`read_target`].
 //! Pure functions over a reader; no slicer is run.
 
+use super::gcode::{move_target, word_value};
 use crate::machine::Machine;
 use std::io::BufRead;
 
@@ -104,19 +105,7 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
         let get = |letter: char| params.iter().find(|(l, _)| *l == letter).map(|(_, v)| *v);
         match command.as_str() {
             "G0" | "G1" | "G2" | "G3" => {
-                let mut target = pos;
-                for (k, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
-                    if let Some(v) = get(letter) {
-                        target[k] = if absolute { v } else { pos[k] + v };
-                    }
-                }
-                if let Some(v) = get('E') {
-                    target[3] = if absolute && absolute_e {
-                        v
-                    } else {
-                        pos[3] + v
-                    };
-                }
+                let target = move_target(pos, &params, absolute, absolute_e);
                 let de = target[3] - pos[3];
                 if de > 0.0 {
                     t.extruded_mm += de;
@@ -170,13 +159,6 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
         t.stated_bed_mm = Some([x, y, z]);
     }
     Ok(t)
-}
-
-fn word_value(word: &str) -> Option<(char, f64)> {
-    let mut chars = word.chars();
-    let letter = chars.next()?.to_ascii_uppercase();
-    let v: f64 = chars.as_str().parse().ok()?;
-    v.is_finite().then_some((letter, v))
 }
 
 /// One comment: PrusaSlicer's `key = value` config lines, Cura's `KEY:value` header lines,

@@ -149,6 +149,18 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
     }
     let status: Status =
         serde_json::from_value(answer).context("the daemon's status is not as expected")?;
+    if let Some(farm) = &status.farm {
+        let hosts: Vec<String> = farm
+            .hosts
+            .iter()
+            .map(|h| format!("{}{}", h.name, if h.alive { "" } else { " (offline)" }))
+            .collect();
+        println!("farm: this host {}; hosts: {}", farm.host, hosts.join(", "));
+        if let Some(e) = &farm.database {
+            println!("{e}: prints go on, nothing new is taken until it answers");
+        }
+        println!();
+    }
     println!("PRINTER          STATE            JOB                          HOTEND      BED        PROGRESS");
     for p in &status.printers {
         let state = serde_json::to_value(p.state)?;
@@ -177,10 +189,14 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             ),
             None => ("-".into(), "-".into(), "-".into()),
         };
+        let state = match (&p.host, p.offline) {
+            (_, true) => "offline".to_string(),
+            _ => state.as_str().unwrap_or("?").to_string(),
+        };
         println!(
-            "{:<16} {:<16} {:<28} {:<11} {:<10} {}{}",
+            "{:<16} {:<16} {:<28} {:<11} {:<10} {}{}{}",
             p.name,
-            state.as_str().unwrap_or("?"),
+            state,
             p.job.as_deref().unwrap_or("-"),
             hotend,
             bed,
@@ -188,6 +204,10 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             p.detail
                 .as_deref()
                 .map(|d| format!("  ({d})"))
+                .unwrap_or_default(),
+            p.host
+                .as_deref()
+                .map(|h| format!("  [{h}]"))
                 .unwrap_or_default()
         );
         if !p.bed_cleared {

@@ -38,7 +38,7 @@ pub struct Status {
 pub struct FarmStatus {
     /// This host.
     pub host: String,
-    /// None while the farm database answers; else why it does not.
+    /// None while the farm database answers; else why it does not (the error).
     pub database: Option<String>,
     pub hosts: Vec<super::store::postgres::FarmHost>,
 }
@@ -123,7 +123,7 @@ pub fn status(farm: &Farm) -> Status {
         let view = shared.clone().unwrap_or_default();
         FarmStatus {
             host: db.host().to_string(),
-            database: view.database.map(|e| format!("unreachable: {e}")),
+            database: view.database,
             hosts: view.hosts,
         }
     });
@@ -180,6 +180,21 @@ pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, Comma
             })
         }
     }
+}
+
+/// Every printer's name: this host's, then (in a shared farm) the other hosts'.
+pub fn printer_names(farm: &Farm) -> Vec<String> {
+    let mut names: Vec<String> = farm
+        .printers
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .keys()
+        .cloned()
+        .collect();
+    if let Some(view) = &*farm.shared.lock().unwrap_or_else(|e| e.into_inner()) {
+        names.extend(view.printers.iter().map(|p| p.name.clone()));
+    }
+    names
 }
 
 /// Where a printer named in a command is attached.

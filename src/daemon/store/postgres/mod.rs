@@ -363,8 +363,6 @@ impl PgStore {
             )
             .await?;
         }
-        tx.execute("SELECT pg_notify('crispen_jobs', '')", &[])
-            .await?;
         Ok((requeued, interrupted))
     }
 
@@ -420,8 +418,6 @@ impl PgStore {
             &[&job.id, &self.host],
         )
         .await?;
-        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&job.id])
-            .await?;
         tx.commit().await?;
         Ok(one_job(&**client, &job.id).await?)
     }
@@ -585,8 +581,6 @@ impl PgStore {
             )
             .await?;
         }
-        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&job.id])
-            .await?;
         Ok(())
     }
 

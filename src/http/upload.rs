@@ -2,7 +2,8 @@
 //! path, the file name is checked to be one plain name of a model, a sidecar or G-code, the bytes are streamed to a
 //! hidden temporary file in that folder (which the hot-folder watcher never takes), and
 //! the finished file is hard-linked to its name, which fails rather than replace a file
-//! already there. Nothing is ever written outside a configured hot folder.
+//! already there. Nothing is ever written outside a configured hot folder. A held upload
+//! (see [`super::octoprint`]) links its sidecar just before its model.
 
 use super::{ApiError, UPLOAD_IDLE_TIMEOUT};
 use crate::daemon::config::{Config, FolderConfig};
@@ -103,15 +104,63 @@ where
     S: Stream<Item = Result<Bytes, E>>,
     E: std::fmt::Display,
 {
-    let target = folder.join(name);
-    let io_error = |what: &str, e: std::io::Error| {
-        let status = if e.raw_os_error() == Some(nix::libc::ENOSPC) {
-            StatusCode::INSUFFICIENT_STORAGE
-        } else {
-            StatusCode::INTERNAL_SERVER_ERROR
-        };
-        ApiError::new(status, format!("{}: {what}: {e}", target.display()))
+    let received = receive(folder, name, body, max).await?;
+    let size = received.size;
+    Ok((received.place().await?, size))
+}
+
+/// An upload received whole into its hidden temporary file in the hot folder, not yet
+/// under its name; the temporary file is removed when this is dropped.
+pub struct Received {
+    temp: PathBuf,
+    target: PathBuf,
+    pub size: u64,
+}
+
+impl Drop for Received {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.temp);
+    }
+}
+
+impl Received {
+    /// Links the file to its name, which fails rather than replace a file already there.
+    pub async fn place(self) -> Result<PathBuf, ApiError> {
+        match tokio::fs::hard_link(&self.temp, &self.target).await {
+            Ok(()) => Ok(self.target.clone()),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                Err(ApiError::conflict(format!(
+                    "{}: a file of this name is already in the hot folder (hint: wait until it \
+                     is picked up, or upload under another name)",
+                    self.target.display()
+                )))
+            }
+            Err(e) => Err(io_error(&self.target, "cannot put the upload in place", e)),
+        }
+    }
+}
+
+fn io_error(target: &Path, what: &str, e: std::io::Error) -> ApiError {
+    let status = if e.raw_os_error() == Some(nix::libc::ENOSPC) {
+        StatusCode::INSUFFICIENT_STORAGE
+    } else {
+        StatusCode::INTERNAL_SERVER_ERROR
     };
+    ApiError::new(status, format!("{}: {what}: {e}", target.display()))
+}
+
+/// Streams `body` into a hidden temporary file in `folder`, at most `max` bytes, synced.
+pub async fn receive<S, E>(
+    folder: &Path,
+    name: &str,
+    body: S,
+    max: u64,
+) -> Result<Received, ApiError>
+where
+    S: Stream<Item = Result<Bytes, E>>,
+    E: std::fmt::Display,
+{
+    let target = folder.join(name);
     let temp = folder.join(format!(".{name}.{:016x}.upload", rand::random::<u64>()));
     let mut file = tokio::fs::OpenOptions::new()
         .write(true)
@@ -119,33 +168,18 @@ where
         .mode(0o640)
         .open(&temp)
         .await
-        .map_err(|e| io_error("cannot create the upload's temporary file", e))?;
-    let written = copy_body(&mut file, body, max, name).await;
-    let finished = match written {
-        Ok(size) => file
-            .sync_all()
-            .await
-            .map_err(|e| io_error("cannot write", e))
-            .map(|_| size),
-        Err(e) => Err(e),
+        .map_err(|e| io_error(&target, "cannot create the upload's temporary file", e))?;
+    // From here on the temporary file goes when `received` does, whatever fails.
+    let mut received = Received {
+        temp,
+        target,
+        size: 0,
     };
-    drop(file);
-    let linked = match finished {
-        Ok(size) => match tokio::fs::hard_link(&temp, &target).await {
-            Ok(()) => Ok((target.clone(), size)),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                Err(ApiError::conflict(format!(
-                    "{}: a file of this name is already in the hot folder (hint: wait until it \
-                     is picked up, or upload under another name)",
-                    target.display()
-                )))
-            }
-            Err(e) => Err(io_error("cannot put the upload in place", e)),
-        },
-        Err(e) => Err(e),
-    };
-    let _ = tokio::fs::remove_file(&temp).await;
-    linked
+    received.size = copy_body(&mut file, body, max, name).await?;
+    file.sync_all()
+        .await
+        .map_err(|e| io_error(&received.target, "cannot write", e))?;
+    Ok(received)
 }
 
 async fn copy_body<S, E>(

@@ -614,6 +614,7 @@ fn job_of_row(row: &Row) -> Result<Job, PgError> {
         print_report: from_json(&id, "print_report", row.get(10))?,
         // Per-machine G-code is not kept in the database yet.
         machines: Default::default(),
+        released: false,
         id,
     })
 }

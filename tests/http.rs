@@ -1097,9 +1097,11 @@ fn dashboard_in_a_real_browser() {
          return !!row && /held/.test(row.textContent) && !!row.querySelector('button[data-action=\"release\"]');",
     );
     browser.click("button[data-action=\"release\"]");
-    farm.wait_for(Duration::from_secs(20), "the held job released by the click", |s| {
-        job_by_file(s, "held.gcode").is_some_and(|j| j["held"] == false)
-    });
+    farm.wait_for(
+        Duration::from_secs(20),
+        "the held job released by the click",
+        |s| job_by_file(s, "held.gcode").is_some_and(|j| j["held"] == false),
+    );
 
     // The job page: the report and the three pictures.
     let s = farm.status();

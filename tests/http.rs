@@ -245,6 +245,19 @@ fn exchange(mut stream: impl Read + Write, bytes: &[u8]) -> Answer {
     }
 }
 
+/// The CLI against the farm made in `root`: whether it succeeded, and what it said.
+fn run_cli(root: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(BIN)
+        .args(args)
+        .arg("--config")
+        .arg(root.join("crispen.toml"))
+        .output()
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.success(), text)
+}
+
 /// A model as a binary STL, as slicers hold it.
 fn spot_stl() -> Vec<u8> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
@@ -357,17 +370,7 @@ fn api_over_tcp_with_and_without_the_key() {
     let a = on_socket(&socket, "POST", "/api/v1/printers/alpha/clear");
     assert_eq!(a.status, 200, "{}", a.text());
     assert!(a.json()["message"].as_str().unwrap().contains("alpha"));
-    let cli = |args: &[&str]| {
-        let out = Command::new(BIN)
-            .args(args)
-            .arg("--config")
-            .arg(tmp.path().join("crispen.toml"))
-            .output()
-            .unwrap();
-        let text = String::from_utf8_lossy(&out.stdout).into_owned()
-            + &String::from_utf8_lossy(&out.stderr);
-        (out.status.success(), text)
-    };
+    let cli = |args: &[&str]| run_cli(tmp.path(), args);
     let (ok, text) = cli(&["status", "--json"]);
     assert!(ok, "{text}");
     let json: Value = serde_json::from_str(&text).unwrap();
@@ -694,17 +697,7 @@ fn an_upload_without_print_is_held_until_released_and_prints_once() {
         .unwrap()
         .to_string();
 
-    let cli = |args: &[&str]| {
-        let out = Command::new(BIN)
-            .args(args)
-            .arg("--config")
-            .arg(tmp.path().join("crispen.toml"))
-            .output()
-            .unwrap();
-        let text = String::from_utf8_lossy(&out.stdout).into_owned()
-            + &String::from_utf8_lossy(&out.stderr);
-        (out.status.success(), text)
-    };
+    let cli = |args: &[&str]| run_cli(tmp.path(), args);
     let (ok, table) = cli(&["status"]);
     let row = table.lines().find(|l| l.starts_with(&id)).unwrap_or("");
     assert!(ok && row.contains("ready (held)"), "{table}");

@@ -10,8 +10,8 @@
 //! is held: prepared as usual, then kept from the printers until the operator releases it
 //! (`crispen release JOB`, `POST /api/v1/jobs/{id}/release`, the dashboard's Print
 //! button). The hold travels as the model's sidecar `<file>.toml` with `hold = true`,
-//! received whole and linked into the hot folder just before the model itself, so the
-//! pick-up always finds it with the model. A sidecar of that name already there is not
+//! received whole and linked into the hot folder right before the model itself, so the
+//! pick-up finds it with the model. A sidecar of that name already there is not
 //! replaced: the upload is refused.
 
 use super::upload;
@@ -78,22 +78,14 @@ pub async fn upload(
                     upload::receive(&folder.path, &file_name, field, state.upload_max_bytes)
                         .await?;
                 let size = received.size;
-                let hold = match hold {
-                    true => Some(place_hold(&folder.path, &file_name).await?),
+                let sidecar = match hold {
+                    true => Some(receive_hold(&folder.path, &file_name).await?),
                     false => None,
                 };
-                let stored = match received.place().await {
-                    Ok(stored) => stored,
-                    Err(e) => {
-                        if let Some(sidecar) = hold {
-                            let _ = tokio::fs::remove_file(sidecar).await;
-                        }
-                        return Err(e);
-                    }
-                };
+                let stored = upload::place_with_sidecar(received, sidecar).await?;
                 tracing::info!(file = %stored.display(), size, print, "octoprint upload into a hot folder");
                 let folder_name = upload::folder_name(folder);
-                let message = if hold.is_none() {
+                let message = if !hold {
                     format!("{file_name} is in hot folder {folder_name}; it prints once ready")
                 } else {
                     format!(
@@ -105,7 +97,7 @@ pub async fn upload(
                     StatusCode::CREATED,
                     Json(serde_json::json!({
                         "done": true,
-                        "effectivePrint": hold.is_none(),
+                        "effectivePrint": !hold,
                         "message": message,
                         "effectiveSelect": false,
                         "files": { "local": {
@@ -125,40 +117,16 @@ pub async fn upload(
     ))
 }
 
-/// Puts the sidecar that holds `file_name` into `folder`, whole or not at all; returns
-/// its path. Refused when the model or a sidecar of that name is there already (the
-/// model's pick-up would take the one there).
-async fn place_hold(
+/// The sidecar that holds `file_name`, received into `folder` under a temporary name.
+async fn receive_hold(
     folder: &std::path::Path,
     file_name: &str,
-) -> Result<std::path::PathBuf, ApiError> {
-    if tokio::fs::symlink_metadata(folder.join(file_name))
-        .await
-        .is_ok()
-    {
-        return Err(ApiError::conflict(format!(
-            "{}: a file of this name is already in the hot folder (hint: wait until it is \
-             picked up, or upload under another name)",
-            folder.join(file_name).display()
-        )));
-    }
-    let sidecar = format!("{file_name}.toml");
+) -> Result<upload::Received, ApiError> {
     let text = futures_util::stream::iter([Ok::<_, std::convert::Infallible>(
         axum::body::Bytes::from_static(HOLD_SIDECAR.as_bytes()),
     )]);
-    let (path, _) = upload::store(folder, &sidecar, text, HOLD_SIDECAR.len() as u64)
-        .await
-        .map_err(|e| {
-            ApiError::new(
-                e.status,
-                format!(
-                    "{} (the upload is held with a sidecar of that name, which must not \
-                     replace yours)",
-                    e.message
-                ),
-            )
-        })?;
-    Ok(path)
+    let sidecar = format!("{file_name}.toml");
+    upload::receive(folder, &sidecar, text, HOLD_SIDECAR.len() as u64).await
 }
 
 /// The sidecar of an upload without `print`.

@@ -3,7 +3,7 @@
 //! hidden temporary file in that folder (which the hot-folder watcher never takes), and
 //! the finished file is hard-linked to its name, which fails rather than replace a file
 //! already there. Nothing is ever written outside a configured hot folder. A held upload
-//! (see [`super::octoprint`]) links its sidecar just before its model.
+//! (see [`super::octoprint`]) links its sidecar right before its model.
 
 use super::{ApiError, UPLOAD_IDLE_TIMEOUT};
 use crate::daemon::config::{Config, FolderConfig};
@@ -126,7 +126,11 @@ impl Drop for Received {
 impl Received {
     /// Links the file to its name, which fails rather than replace a file already there.
     pub async fn place(self) -> Result<PathBuf, ApiError> {
-        match tokio::fs::hard_link(&self.temp, &self.target).await {
+        place_with_sidecar(self, None).await
+    }
+
+    fn link(&self) -> Result<PathBuf, ApiError> {
+        match std::fs::hard_link(&self.temp, &self.target) {
             Ok(()) => Ok(self.target.clone()),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
                 Err(ApiError::conflict(format!(
@@ -138,6 +142,35 @@ impl Received {
             Err(e) => Err(io_error(&self.target, "cannot put the upload in place", e)),
         }
     }
+}
+
+/// Links `sidecar`, then `model`, to their names, one right after the other on one
+/// thread: the pick-up takes a file only once it has settled, so it finds the sidecar with
+/// its model, never alone. Nothing is linked when the model's name is taken; a sidecar
+/// linked for a model that then cannot be is removed again.
+pub async fn place_with_sidecar(
+    model: Received,
+    sidecar: Option<Received>,
+) -> Result<PathBuf, ApiError> {
+    tokio::task::spawn_blocking(move || {
+        let Some(sidecar) = sidecar else {
+            return model.link();
+        };
+        if std::fs::symlink_metadata(&model.target).is_ok() {
+            return model.link(); // fails, naming the file that is there
+        }
+        let linked = sidecar.link()?;
+        model.link().inspect_err(|_| {
+            let _ = std::fs::remove_file(&linked);
+        })
+    })
+    .await
+    .map_err(|e| {
+        ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            format!("internal error: {e}"),
+        )
+    })?
 }
 
 fn io_error(target: &Path, what: &str, e: std::io::Error) -> ApiError {
@@ -290,5 +323,50 @@ mod tests {
         assert_eq!(e.status, StatusCode::PAYLOAD_TOO_LARGE);
         let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(left.len(), 1, "only a.stl: {left:?}");
+    }
+
+    /// A held upload's sidecar and model arrive together or not at all.
+    #[tokio::test]
+    async fn a_sidecar_and_its_model_are_placed_together_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = |text: &'static [u8]| {
+            futures_util::stream::iter([Ok::<_, std::io::Error>(Bytes::from_static(text))])
+        };
+        let names = || {
+            let mut n: Vec<String> = std::fs::read_dir(dir.path())
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            n.sort();
+            n
+        };
+        let root = dir.path().to_path_buf();
+        let pair = |model: &'static str| {
+            let root = root.clone();
+            async move {
+                let m = receive(&root, model, one(b"model"), 100).await.unwrap();
+                let sidecar = format!("{model}.toml");
+                let s = receive(&root, &sidecar, one(b"hold = true\n"), 100)
+                    .await
+                    .unwrap();
+                place_with_sidecar(m, Some(s)).await
+            }
+        };
+        pair("a.stl").await.unwrap();
+        assert_eq!(names(), ["a.stl", "a.stl.toml"]);
+        // The model's name is taken: nothing placed, the sidecar there untouched.
+        std::fs::remove_file(dir.path().join("a.stl.toml")).unwrap();
+        let e = pair("a.stl").await.unwrap_err();
+        assert_eq!(e.status, StatusCode::CONFLICT);
+        assert_eq!(names(), ["a.stl"]);
+        // A sidecar of that name is there already: refused, it is not replaced.
+        std::fs::write(dir.path().join("b.stl.toml"), "copies = 2\n").unwrap();
+        let e = pair("b.stl").await.unwrap_err();
+        assert!(e.message.contains("b.stl.toml"), "{}", e.message);
+        assert_eq!(names(), ["a.stl", "b.stl.toml"]);
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("b.stl.toml")).unwrap(),
+            "copies = 2\n"
+        );
     }
 }

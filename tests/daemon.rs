@@ -900,8 +900,10 @@ fn unplugged_printer_interrupts_the_job_and_reconnects() {
 
 /// An idle printer's temperatures are read between jobs and shown while current: the
 /// daemon shows the simulator's ambient reading with its heaters off (status JSON and
-/// the CLI's table); when the printer goes (its pty closes) they are gone at once, not
-/// shown as if still true; when a printer is back on the port they are read again.
+/// the CLI's table); when the printer hangs they go once no report came for a while, and
+/// come back with its answers; when the printer goes (its pty closes) they are gone at
+/// once, not shown as if still true; when a printer is back on the port they are read
+/// again.
 #[test]
 fn idle_temperatures_are_shown_only_while_the_printer_answers() {
     let tmp = tempfile::tempdir().unwrap();
@@ -943,6 +945,30 @@ fn idle_temperatures_are_shown_only_while_the_printer_answers() {
     let (ok, table) = ctl(&config, &["status"]);
     let row = table.lines().find(|l| l.starts_with("p ")).unwrap_or("");
     assert!(ok && row.contains("21/0C"), "{table}");
+
+    // A printer that hangs (its firmware stops; the port stays open): the figures go
+    // once no report came for a while, and come back when it answers again.
+    let signal = |s: nix::sys::signal::Signal| {
+        let pid = nix::unistd::Pid::from_raw(first.child.id() as i32);
+        nix::sys::signal::kill(pid, s).unwrap();
+    };
+    signal(nix::sys::signal::Signal::SIGSTOP);
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "stale figures dropped",
+        |s| printer(s, "p")["temperatures"].is_null(),
+    );
+    assert_eq!(printer(&s, "p")["state"], "idle");
+    signal(nix::sys::signal::Signal::SIGCONT);
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "answering again",
+        ambient,
+    );
 
     drop(first);
     let s = wait_for(

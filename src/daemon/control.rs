@@ -1,9 +1,9 @@
 //! The farm's operations, shared by every way in: the status snapshot ([`status`]) and the
-//! operator's commands ([`execute`]: clear, cancel, pause, resume, retry, release), and the control
-//! socket they are served on ([`bind`]). The socket speaks the same HTTP API as the TCP
-//! listener (`crate::http`); its file mode (0660: the service user and its group) decides
-//! who may use it, so no key is asked there. `crispen status|clear|cancel|pause|resume|retry`
-//! are its clients.
+//! operator's commands ([`execute`]: clear, cancel, pause, resume, retry, release), and the
+//! control socket they are served on ([`bind`]). The socket speaks the same HTTP API as the
+//! TCP listener (`crate::http`); its file mode (0660: the service user and its group)
+//! decides who may use it, so no key is asked there.
+//! `crispen status|clear|cancel|pause|resume|retry|release` are its clients.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{JobState, StoreError};
@@ -13,28 +13,16 @@ use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// What an operator may ask of the farm.
+/// What an operator may ask of the farm (`Release`: let a held job, `hold = true` in its
+/// sidecar, be printed).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Command {
-    Clear {
-        printer: String,
-    },
-    Cancel {
-        job: String,
-    },
-    Pause {
-        printer: String,
-    },
-    Resume {
-        printer: String,
-    },
-    Retry {
-        job: String,
-    },
-    /// Let a held job (`hold = true` in its sidecar) be printed.
-    Release {
-        job: String,
-    },
+    Clear { printer: String },
+    Cancel { job: String },
+    Pause { printer: String },
+    Resume { printer: String },
+    Retry { job: String },
+    Release { job: String },
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

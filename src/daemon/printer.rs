@@ -203,8 +203,8 @@ async fn supervise_inner(
 }
 
 /// Waits for a change of the farm (a bed cleared, a job ready, a reload) while reading what
-/// the printer says meanwhile and showing its temperatures. Returns true when the connection was lost. A reset is noted
-/// in the printer's status until its next job starts.
+/// the printer says meanwhile and showing its temperatures. Returns true when the
+/// connection was lost. A reset is noted in the printer's status until its next job starts.
 async fn between_jobs(
     farm: &Farm,
     name: &str,

@@ -1089,7 +1089,15 @@ fn dashboard_in_a_real_browser() {
            .find(r => r.textContent.includes('held.gcode'));
          return !!row && /held/.test(row.textContent) && !!row.querySelector('button[data-action=\"release\"]');",
     );
-    browser.click("button[data-action=\"release\"]");
+    // Clicked from the page's own script: the queue's rows are redrawn whenever another
+    // job moves on, which a WebDriver element reference would not survive.
+    let clicked = browser.exec(
+        "const b = document.querySelector('button[data-action=\"release\"]');
+         if (b) b.click();
+         return !!b;",
+        json!([]),
+    );
+    assert_eq!(clicked, json!(true));
     farm.wait_for(
         Duration::from_secs(20),
         "the held job released by the click",

@@ -1,4 +1,4 @@
-//! `crispen status|clear|cancel|pause|resume|retry`: clients of the daemon's HTTP API on its
+//! `crispen status|clear|cancel|pause|resume|retry|release`: clients of the daemon's HTTP API on its
 //! control socket (`crispen::http`; no key there: the socket's file mode decides). The
 //! socket is found through the same `--config` the daemon was started with (or the
 //! built-in default).
@@ -169,10 +169,15 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             (Some(c), None) => format!("{c:.0}C"),
             _ => "-".into(),
         };
-        let (hotend, bed, progress) = match &p.progress {
-            Some(l) => (
-                temps(l.hotend_c, l.hotend_target_c),
-                temps(l.bed_c, l.bed_target_c),
+        let (hotend, bed) = match &p.temperatures {
+            Some(t) => (
+                temps(t.hotend_c, t.hotend_target_c),
+                temps(t.bed_c, t.bed_target_c),
+            ),
+            None => ("-".into(), "-".into()),
+        };
+        let progress = match &p.progress {
+            Some(l) => {
                 if l.lines_total > 0 {
                     format!(
                         "{:.1}% ({}/{} lines){}",
@@ -185,9 +190,9 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
                     )
                 } else {
                     "-".into()
-                },
-            ),
-            None => ("-".into(), "-".into(), "-".into()),
+                }
+            }
+            None => "-".into(),
         };
         let state = match (&p.host, p.offline) {
             (_, true) => "offline".to_string(),
@@ -230,10 +235,15 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             ),
             _ => j.file.clone(),
         };
+        let state = if j.held {
+            format!("{} (held)", j.state.name())
+        } else {
+            j.state.name().to_string()
+        };
         println!(
             "{:<28} {:<12} {:<16} {}",
             j.id,
-            j.state.name(),
+            state,
             j.printer.as_deref().unwrap_or("-"),
             extra
         );
@@ -255,6 +265,9 @@ pub fn resume(a: PrinterArgs) -> anyhow::Result<ExitCode> {
 }
 pub fn retry(a: JobArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, job_path(&a.job, "retry"))
+}
+pub fn release(a: JobArgs) -> anyhow::Result<ExitCode> {
+    act(&a.config, job_path(&a.job, "release"))
 }
 
 fn printer_path(printer: &str, action: &str) -> String {

@@ -279,7 +279,7 @@ pub async fn printer_action(
     act(&state, command).await
 }
 
-/// `POST /api/v1/jobs/{id}/cancel|retry`.
+/// `POST /api/v1/jobs/{id}/cancel|retry|release`.
 pub async fn job_action(
     State(state): State<AppState>,
     Path((id, action)): Path<(String, String)>,
@@ -293,9 +293,10 @@ pub async fn job_action(
     let command = match action.as_str() {
         "cancel" => Command::Cancel { job },
         "retry" => Command::Retry { job },
+        "release" => Command::Release { job },
         other => {
             return Err(ApiError::not_found(format!(
-                "no job action {other:?}; the job actions are cancel, retry"
+                "no job action {other:?}; the job actions are cancel, retry, release"
             )))
         }
     };

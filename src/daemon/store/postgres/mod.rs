@@ -520,7 +520,11 @@ impl PgStore {
         // A claim passes over a job another host is changing this moment (it is most likely
         // taking it) instead of waiting for it, as the claims above do.
         let claim = matches!(change.to, Some(JobState::Preparing | JobState::Printing));
-        let lock = if claim { "FOR UPDATE SKIP LOCKED" } else { "FOR UPDATE" };
+        let lock = if claim {
+            "FOR UPDATE SKIP LOCKED"
+        } else {
+            "FOR UPDATE"
+        };
         let row = tx
             .query_opt(&format!("{JOB_COLUMNS} WHERE id = $1 {lock}"), &[&id])
             .await?;

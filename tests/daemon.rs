@@ -1220,16 +1220,22 @@ fn a_sidecar_arriving_after_its_model_is_honoured_or_reported() {
     assert!(job_dir.join("late.obj.enhanced.stl").is_file());
 
     drop_model(&hot, "late.obj.toml", b"copies = 2\n");
+    // The file is kept aside first, then the log line is written: wait for both.
+    let reported = || {
+        std::fs::read_to_string(&log)
+            .unwrap()
+            .contains("NOT applied")
+    };
     let started = Instant::now();
-    while !job_dir.join("late.obj.toml.late").is_file() {
+    while !(job_dir.join("late.obj.toml.late").is_file() && reported()) {
         assert!(
             started.elapsed() < Duration::from_secs(30),
-            "the late sidecar is kept aside"
+            "the late sidecar is kept aside ({}) and reported in the log ({})",
+            job_dir.join("late.obj.toml.late").is_file(),
+            reported()
         );
         std::thread::sleep(Duration::from_millis(100));
     }
-    let log_text = std::fs::read_to_string(&log).unwrap();
-    assert!(log_text.contains("NOT applied"), "reported in the log");
     assert!(!hot.join("late.obj.toml").exists());
 }
 

@@ -16,42 +16,23 @@
 //! printer reports `heated` and is printing. Set e.g. 0.2 for a five-times-faster stress
 //! load (quicker heat-ups, five times the real line rate). `cargo bench --bench soak`.
 
-use serde_json::Value;
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use common::daemon::{spawn_sim, status, Killed, BIN};
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_crispen");
-
-struct Reaper(Vec<Child>);
-impl Drop for Reaper {
-    fn drop(&mut self) {
-        for c in &mut self.0 {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-}
-
-fn spawn_sim(firmware: &str, time_scale: f64, reaper: &mut Reaper) -> PathBuf {
-    let mut child = Command::new(BIN)
-        .args(["sim", "--firmware", firmware, "--time-scale"])
-        .arg(time_scale.to_string())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start crispen sim");
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    reaper.0.push(child);
-    PathBuf::from(
-        line.trim()
-            .strip_prefix("crispen sim: listening on ")
-            .unwrap_or_else(|| panic!("unexpected sim greeting {line:?}")),
-    )
+/// Starts a `crispen sim` process: its pty device (the process is killed with `sims`).
+fn start_sim(firmware: &str, time_scale: f64, sims: &mut Vec<Killed>) -> PathBuf {
+    let (child, device) = spawn_sim(
+        Command::new(BIN)
+            .args(["sim", "--firmware", firmware, "--time-scale"])
+            .arg(time_scale.to_string()),
+    );
+    sims.push(Killed(child));
+    device
 }
 
 fn proc_cpu_s(pid: u32) -> f64 {
@@ -75,25 +56,16 @@ fn proc_kb(pid: u32, key: &str) -> f64 {
         .unwrap_or(0.0)
 }
 
-fn status(config: &Path) -> Option<Value> {
-    let out = Command::new(BIN)
-        .args(["status", "--json", "--config"])
-        .arg(config)
-        .output()
-        .ok()?;
-    serde_json::from_slice(&out.stdout).ok()
-}
-
 struct Farm {
     dir: tempfile::TempDir,
     config: PathBuf,
     daemon: Child,
-    _sims: Reaper,
+    _sims: Vec<Killed>,
 }
 
 fn start_farm(printers: usize, time_scale: f64) -> Farm {
     let dir = tempfile::tempdir().unwrap();
-    let mut sims = Reaper(Vec::new());
+    let mut sims = Vec::new();
     let mut text = String::from(
         "[spool]\ndir = \"spool\"\n[control]\nsocket = \"crispen.sock\"\n\
          [farm]\nmax_heating = 20\nsettle_s = 0.5\n",
@@ -101,7 +73,7 @@ fn start_farm(printers: usize, time_scale: f64) -> Farm {
     let mut names = Vec::new();
     for i in 0..printers {
         let firmware = if i % 2 == 0 { "marlin2" } else { "ultimaker2" };
-        let port = spawn_sim(firmware, time_scale, &mut sims);
+        let port = start_sim(firmware, time_scale, &mut sims);
         text += &format!(
             "[[printer]]\nname = \"p{i:02}\"\nport = \"{}\"\nfirmware = \"{firmware}\"\n",
             port.display()

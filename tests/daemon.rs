@@ -9,123 +9,18 @@
 //! and a spool whose filesystem fills up.
 
 mod common;
+use common::daemon::{
+    ctl, drop_model, job_gcode, recorded, state_of, status, wait_for, Daemon, Killed, BIN,
+};
 use common::{job_by_file, printer};
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
-use crispen::marlin::sim::is_housekeeping;
 use serde_json::Value;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-const BIN: &str = env!("CARGO_BIN_EXE_crispen");
-
-struct Daemon {
-    child: Child,
-}
-
-impl Daemon {
-    fn start(config: &Path, log: &Path) -> Daemon {
-        Daemon::start_by(Command::new(BIN), config, log)
-    }
-    /// `crispen run` through `launcher` (a command line ending in the binary).
-    fn start_by(mut launcher: Command, config: &Path, log: &Path) -> Daemon {
-        let log = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(log)
-            .unwrap();
-        let child = launcher
-            .args(["run", "--config"])
-            .arg(config)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap();
-        Daemon { child }
-    }
-    fn kill9(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        self.kill9();
-    }
-}
-
-fn ctl(config: &Path, args: &[&str]) -> (bool, String) {
-    let out = Command::new(BIN)
-        .args(args)
-        .arg("--config")
-        .arg(config)
-        .output()
-        .unwrap();
-    (
-        out.status.success(),
-        format!(
-            "{}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        ),
-    )
-}
-
-fn status(config: &Path) -> Option<Value> {
-    let (ok, text) = ctl(config, &["status", "--json"]);
-    if !ok {
-        return None;
-    }
-    serde_json::from_str(&text).ok()
-}
-
-/// Polls the status until `check` holds; panics with the last status and the log after
-/// `limit`.
-fn wait_for(
-    config: &Path,
-    log: &Path,
-    limit: Duration,
-    what: &str,
-    check: impl Fn(&Value) -> bool,
-) -> Value {
-    let start = Instant::now();
-    let mut last = None;
-    while start.elapsed() < limit {
-        if let Some(s) = status(config) {
-            if check(&s) {
-                return s;
-            }
-            last = Some(s);
-        }
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    panic!(
-        "timed out waiting for {what}\nlast status: {}\nlog:\n{}",
-        serde_json::to_string_pretty(&last).unwrap(),
-        std::fs::read_to_string(log).unwrap_or_default()
-    );
-}
-
-fn state_of(s: &Value, file: &str) -> String {
-    job_by_file(s, file)
-        .and_then(|j| j["state"].as_str())
-        .unwrap_or("")
-        .to_string()
-}
-
-fn recorded(path: &Path) -> Vec<String> {
-    std::fs::read_to_string(path)
-        .unwrap_or_default()
-        .lines()
-        .map(str::to_string)
-        .filter(|c| !is_housekeeping(c))
-        .collect()
-}
 
 #[test]
 fn farm_end_to_end_with_restart() {
@@ -589,18 +484,6 @@ fn daemon_killed_during_preparation_resumes_the_job() {
     );
 }
 
-/// The printer's executed job commands (housekeeping dropped) as recorded by its simulator.
-fn job_gcode(root: &Path, id: &str, file: &str) -> Vec<String> {
-    // The farms here have one machine (a `marlin2` printer without `machine`).
-    let path = root
-        .join("spool/jobs")
-        .join(id)
-        .join(format!("{file}.marlin-175.gcode"));
-    GcodeProgram::load_for(&path, Firmware::Marlin2)
-        .unwrap()
-        .to_vec()
-}
-
 /// Asserts the recorded commands are a prefix of the job followed by the safe-stop lines
 /// (heaters, fan, motors off; on Marlin 2 after an M108 that breaks a heating wait).
 #[track_caller]
@@ -764,7 +647,7 @@ fn print_controls_and_stop_at_shutdown() {
 /// A `crispen sim` process of its own (not one the daemon starts), so the test can pull
 /// its plug and put a new one in its place.
 struct SimProcess {
-    child: Child,
+    process: Killed,
 }
 
 impl SimProcess {
@@ -795,14 +678,9 @@ impl SimProcess {
             );
             std::thread::sleep(Duration::from_millis(20));
         }
-        SimProcess { child }
-    }
-}
-
-impl Drop for SimProcess {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        SimProcess {
+            process: Killed(child),
+        }
     }
 }
 
@@ -949,7 +827,7 @@ fn idle_temperatures_are_shown_only_while_the_printer_answers() {
     // A printer that hangs (its firmware stops; the port stays open): the figures go
     // once no report came for a while, and come back when it answers again.
     let signal = |s: nix::sys::signal::Signal| {
-        let pid = nix::unistd::Pid::from_raw(first.child.id() as i32);
+        let pid = nix::unistd::Pid::from_raw(first.process.0.id() as i32);
         nix::sys::signal::kill(pid, s).unwrap();
     };
     signal(nix::sys::signal::Signal::SIGSTOP);
@@ -1097,12 +975,6 @@ fn small_farm(root: &Path, folder_extra: &str) -> (PathBuf, PathBuf) {
     )
     .unwrap();
     (config, root.join("daemon.log"))
-}
-
-fn drop_model(hot: &Path, name: &str, bytes: &[u8]) {
-    let part = hot.join(format!(".{name}.part"));
-    std::fs::write(&part, bytes).unwrap();
-    std::fs::rename(&part, hot.join(name)).unwrap();
 }
 
 fn spot() -> Vec<u8> {
@@ -1446,16 +1318,22 @@ fn a_sidecar_arriving_after_its_model_is_honoured_or_reported() {
     assert!(job_dir.join("late.obj.enhanced.stl").is_file());
 
     drop_model(&hot, "late.obj.toml", b"copies = 2\n");
+    // The file is kept aside first, then the log line is written: wait for both.
+    let reported = || {
+        std::fs::read_to_string(&log)
+            .unwrap()
+            .contains("NOT applied")
+    };
     let started = Instant::now();
-    while !job_dir.join("late.obj.toml.late").is_file() {
+    while !(job_dir.join("late.obj.toml.late").is_file() && reported()) {
         assert!(
             started.elapsed() < Duration::from_secs(30),
-            "the late sidecar is kept aside"
+            "the late sidecar is kept aside ({}) and reported in the log ({})",
+            job_dir.join("late.obj.toml.late").is_file(),
+            reported()
         );
         std::thread::sleep(Duration::from_millis(100));
     }
-    let log_text = std::fs::read_to_string(&log).unwrap();
-    assert!(log_text.contains("NOT applied"), "reported in the log");
     assert!(!hot.join("late.obj.toml").exists());
 }
 

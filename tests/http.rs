@@ -6,31 +6,21 @@
 //! `chromium-driver`).
 
 mod common;
-
+use common::daemon::{Daemon, Killed, BIN};
 use common::{job_by_file, printer};
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_crispen");
 const KEY: &str = "test-key-0123456789abcdef";
-
-struct Killed(Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 /// A daemon serving `[http]` on a loopback port the system picks.
 struct Farm {
-    _daemon: Killed,
+    _daemon: Daemon,
     addr: String,
     root: PathBuf,
     log: PathBuf,
@@ -59,15 +49,7 @@ impl Farm {
         )
         .unwrap();
         let log = root.join("daemon.log");
-        let daemon = Command::new(BIN)
-            .args(["run", "--config"])
-            .arg(&config)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap();
-        let daemon = Killed(daemon);
+        let daemon = Daemon::start(&config, &log);
         // The daemon logs the address it listens on (port 0: the system's pick).
         let started = Instant::now();
         let addr = loop {

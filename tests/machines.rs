@@ -5,80 +5,17 @@
 //! as written; one made for another machine, and binary G-code, are refused with the reason.
 
 mod common;
+use common::daemon::{ctl, drop_model, recorded, state_of, wait_for, Daemon, BIN};
 use common::{job_by_file, printer};
 
 use crispen::marlin::sim::is_housekeeping;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
-const BIN: &str = env!("CARGO_BIN_EXE_crispen");
-
-struct Daemon(Child);
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn ctl(config: &Path, args: &[&str]) -> (bool, String) {
-    let out = Command::new(BIN)
-        .args(args)
-        .arg("--config")
-        .arg(config)
-        .output()
-        .unwrap();
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    (out.status.success(), text)
-}
-
-fn wait_for(config: &Path, log: &Path, what: &str, check: impl Fn(&Value) -> bool) -> Value {
-    let start = Instant::now();
-    let mut last = None;
-    // Generous: the machine is shared and slicing runs twice per model.
-    while start.elapsed() < Duration::from_secs(600) {
-        let (ok, text) = ctl(config, &["status", "--json"]);
-        if let Some(s) = ok
-            .then(|| serde_json::from_str::<Value>(&text).ok())
-            .flatten()
-        {
-            if check(&s) {
-                return s;
-            }
-            last = Some(s);
-        }
-        std::thread::sleep(Duration::from_millis(300));
-    }
-    panic!(
-        "timed out waiting for {what}\nlast status: {}\nlog:\n{}",
-        serde_json::to_string_pretty(&last).unwrap(),
-        std::fs::read_to_string(log).unwrap_or_default()
-    );
-}
-
-fn state(s: &Value, file: &str) -> String {
-    job_by_file(s, file)
-        .and_then(|j| j["state"].as_str())
-        .unwrap_or("")
-        .to_string()
-}
-
-/// What a simulator executed, housekeeping (temperature reports, line numbers) dropped.
-fn recorded(path: &Path) -> Vec<String> {
-    std::fs::read_to_string(path)
-        .unwrap_or_default()
-        .lines()
-        .filter(|c| !is_housekeeping(c))
-        .map(str::to_string)
-        .collect()
-}
+/// Generous: the machine is shared and slicing runs twice per model.
+const LIMIT: Duration = Duration::from_secs(600);
 
 /// A G-code file's commands as a printer must execute them: comments, blank lines and
 /// trailing space gone (written here, apart from the host's own reader).
@@ -121,12 +58,6 @@ fn extrusion_and_middle(commands: &[String]) -> (f64, [f64; 2]) {
         e = ne;
     }
     (total, [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0])
-}
-
-fn drop_file(hot: &Path, name: &str, bytes: &[u8]) {
-    let part = hot.join(format!(".{name}.part"));
-    std::fs::write(&part, bytes).unwrap();
-    std::fs::rename(&part, hot.join(name)).unwrap();
 }
 
 /// `crispen slice` for a machine (one of the config's or a built-in), unenhanced.
@@ -210,28 +141,18 @@ printers = ["mk"]
         ),
     )
     .unwrap();
-    let errlog = std::fs::File::create(&log).unwrap();
-    let _daemon = Daemon(
-        Command::new(BIN)
-            .args(["run", "--config"])
-            .arg(&config)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(errlog)
-            .spawn()
-            .unwrap(),
-    );
-    wait_for(&config, &log, "the daemon to answer", |s| {
+    let _daemon = Daemon::start(&config, &log);
+    wait_for(&config, &log, LIMIT, "the daemon to answer", |s| {
         s["printers"].as_array().is_some_and(|p| p.len() == 2)
     });
 
     // Two models into the shared folder: each is prepared for both machines, and each
     // printer takes one (then waits for its bed to be cleared).
     let spot = std::fs::read(common::model("spot.obj")).unwrap();
-    drop_file(&root.join("hot/shared"), "one.obj", &spot);
-    drop_file(&root.join("hot/shared"), "two.obj", &spot);
-    let s = wait_for(&config, &log, "both models printed", |s| {
-        state(s, "one.obj") == "done" && state(s, "two.obj") == "done"
+    drop_model(&root.join("hot/shared"), "one.obj", &spot);
+    drop_model(&root.join("hot/shared"), "two.obj", &spot);
+    let s = wait_for(&config, &log, LIMIT, "both models printed", |s| {
+        state_of(s, "one.obj") == "done" && state_of(s, "two.obj") == "done"
     });
     let printed_by = |p: &str| {
         ["one.obj", "two.obj"]
@@ -277,27 +198,27 @@ printers = ["mk"]
     slice_for(&config, "ultimaker2", &um2_gcode);
     let before_mk = recorded(&rec("mk")).len();
     let before_um2 = recorded(&rec("um2")).len();
-    drop_file(
+    drop_model(
         &root.join("hot/shared"),
         "pre.gcode",
         &std::fs::read(&presliced).unwrap(),
     );
     // And into the folder only the 1.75 mm machine serves: one sliced for the Ultimaker 2,
     // and a binary G-code file.
-    drop_file(
+    drop_model(
         &root.join("hot/only-175"),
         "for-um2.gcode",
         &std::fs::read(&um2_gcode).unwrap(),
     );
-    drop_file(
+    drop_model(
         &root.join("hot/only-175"),
         "part.bgcode",
         b"GCDE\x01\x00\x00\x00\x01\x00\x00\x00",
     );
-    let s = wait_for(&config, &log, "the pre-sliced files handled", |s| {
-        state(s, "pre.gcode") == "done"
-            && state(s, "for-um2.gcode") == "failed"
-            && state(s, "part.bgcode") == "failed"
+    let s = wait_for(&config, &log, LIMIT, "the pre-sliced files handled", |s| {
+        state_of(s, "pre.gcode") == "done"
+            && state_of(s, "for-um2.gcode") == "failed"
+            && state_of(s, "part.bgcode") == "failed"
     });
     assert_eq!(job_by_file(&s, "pre.gcode").unwrap()["printer"], "mk");
     let executed = recorded(&rec("mk"))[before_mk..].to_vec();

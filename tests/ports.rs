@@ -4,45 +4,28 @@
 //! `serial/by-id` links point at real pty devices; the config check refuses two printers
 //! on one device and warns about kernel names such as `ttyACM0`.
 
-use std::io::{BufRead, BufReader};
+mod common;
+use common::daemon::{spawn_sim, Killed, BIN};
+
 use std::os::fd::OwnedFd;
 use std::os::unix::fs::symlink;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-
-const BIN: &str = env!("CARGO_BIN_EXE_crispen");
+use std::process::{Command, Output};
 
 /// A `crispen sim` process and the pty it listens on.
 struct Sim {
-    child: Child,
+    _process: Killed,
     device: PathBuf,
 }
 
 impl Sim {
     fn start(firmware: &str) -> Sim {
-        let mut child = Command::new(BIN)
-            .args(["sim", "--time-scale", "0", "--firmware", firmware])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let device = line
-            .trim()
-            .strip_prefix("crispen sim: listening on ")
-            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-            .into();
-        Sim { child, device }
-    }
-}
-
-impl Drop for Sim {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        let (child, device) =
+            spawn_sim(Command::new(BIN).args(["sim", "--time-scale", "0", "--firmware", firmware]));
+        Sim {
+            _process: Killed(child),
+            device,
+        }
     }
 }
 

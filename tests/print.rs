@@ -4,6 +4,7 @@
 //! the right error. The last tests run the real `crispen sim` and `crispen print` binaries.
 
 mod common;
+use common::daemon::{self, Reaper};
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
@@ -11,7 +12,6 @@ use crispen::marlin::sim::{self, Faults, SimConfig, SimHandle};
 use crispen::marlin::stream::{
     Connection, PrintError, PrintProgress, PrintReport, StreamControl, StreamOptions,
 };
-use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
@@ -164,11 +164,12 @@ async fn all_faults_at_once_still_deliver_exactly_once() {
         garbage: 0.03,
         ..Faults::default()
     };
-    for fw in Firmware::ALL {
-        for seed in [21, 22] {
-            exactly_once(fw, faults.clone(), seed, 500).await;
-        }
-    }
+    // A run mostly waits (a lost `ok` is found only by the silence probe) and hardly
+    // works: the six runs, each with a printer of its own, wait side by side.
+    let runs = Firmware::ALL
+        .into_iter()
+        .flat_map(|fw| [21, 22].map(|seed| exactly_once(fw, faults.clone(), seed, 500)));
+    futures_util::future::join_all(runs).await;
 }
 
 #[tokio::test]
@@ -336,36 +337,26 @@ fn crispen_print_streams_to_crispen_sim() {
     std::fs::write(&gcode, job_text(300)).unwrap();
     let exe = env!("CARGO_BIN_EXE_crispen");
 
-    let mut sim = Command::new(exe)
-        .args([
-            "sim",
-            "--time-scale",
-            "0",
-            "--corrupt",
-            "0.02",
-            "--seed",
-            "4",
-            "--record",
-        ])
-        .arg(&record)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut first = String::new();
-    BufReader::new(sim.stdout.take().unwrap())
-        .read_line(&mut first)
-        .unwrap();
-    let device = first
-        .trim()
-        .strip_prefix("crispen sim: listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {first:?}"))
-        .to_string();
+    let (mut sim, device) = daemon::spawn_sim(
+        Command::new(exe)
+            .args([
+                "sim",
+                "--time-scale",
+                "0",
+                "--corrupt",
+                "0.02",
+                "--seed",
+                "4",
+                "--record",
+            ])
+            .arg(&record),
+    );
 
     let out = Command::new(exe)
         .args(["print"])
         .arg(&gcode)
-        .args(["--port", &device])
+        .arg("--port")
+        .arg(&device)
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -377,7 +368,8 @@ fn crispen_print_streams_to_crispen_sim() {
     let out = Command::new(exe)
         .args(["print"])
         .arg(&gcode)
-        .args(["--port", &device])
+        .arg("--port")
+        .arg(&device)
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -389,12 +381,7 @@ fn crispen_print_streams_to_crispen_sim() {
         nix::sys::signal::Signal::SIGTERM,
     );
     let _ = sim.wait();
-    let executed: Vec<String> = std::fs::read_to_string(&record)
-        .unwrap()
-        .lines()
-        .filter(|c| !sim::is_housekeeping(c))
-        .map(String::from)
-        .collect();
+    let executed = daemon::recorded(&record);
     let expected = program(Firmware::Marlin2, 300);
     assert_eq!(executed, expected.to_vec());
 }
@@ -733,27 +720,6 @@ async fn a_firmware_error_that_is_no_halt_ends_the_job_with_heaters_off() {
 /// the printer's status and the log, and the next job begins with a fresh handshake; a
 /// pulled cable is noticed and the printer reconnected before a job depends on it; each
 /// job's autoreport is switched off at its end; every job runs exactly once.
-/// Kills the processes it watches when dropped, so a failing test leaves none behind.
-#[derive(Default)]
-struct Reaper(std::cell::RefCell<Vec<u32>>);
-
-impl Reaper {
-    fn watch(&self, child: &std::process::Child) {
-        self.0.borrow_mut().push(child.id());
-    }
-}
-
-impl Drop for Reaper {
-    fn drop(&mut self) {
-        for pid in self.0.borrow().iter() {
-            let _ = nix::sys::signal::kill(
-                nix::unistd::Pid::from_raw(*pid as i32),
-                nix::sys::signal::Signal::SIGKILL,
-            );
-        }
-    }
-}
-
 #[test]
 fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
     use std::io::Write;
@@ -766,30 +732,23 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
     // Whatever happens below, no daemon or simulator outlives the test.
     let reaper = Reaper::default();
     let start_sim = |record: &std::path::Path| {
-        let mut sim = Command::new(exe)
-            .args([
-                "sim",
-                "--firmware",
-                "marlin2",
-                "--time-scale",
-                "0",
-                "--stdin",
-            ])
-            .arg("--link")
-            .arg(&link)
-            .arg("--record")
-            .arg(record)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
+        let (sim, _) = daemon::spawn_sim(
+            Command::new(exe)
+                .args([
+                    "sim",
+                    "--firmware",
+                    "marlin2",
+                    "--time-scale",
+                    "0",
+                    "--stdin",
+                ])
+                .arg("--link")
+                .arg(&link)
+                .arg("--record")
+                .arg(record)
+                .stdin(Stdio::piped()),
+        );
         reaper.watch(&sim);
-        let mut first = String::new();
-        BufReader::new(sim.stdout.take().unwrap())
-            .read_line(&mut first)
-            .unwrap();
-        assert!(first.starts_with("crispen sim: listening on"), "{first}");
         sim
     };
     let mut sim = start_sim(&record);
@@ -807,58 +766,17 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
     )
     .unwrap();
     let log = root.join("daemon.log");
-    let mut daemon = Command::new(exe)
-        .args(["run", "--config"])
-        .arg(&config)
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).unwrap())
-        .spawn()
-        .unwrap();
-    reaper.watch(&daemon);
-    let status = || -> Option<serde_json::Value> {
-        let out = Command::new(exe)
-            .args(["status", "--json", "--config"])
-            .arg(&config)
-            .output()
-            .ok()?;
-        serde_json::from_slice(&out.stdout).ok()
-    };
+    let mut farm = daemon::Daemon::start(&config, &log);
     let wait_for = |what: &str, check: &dyn Fn(&serde_json::Value) -> bool| {
-        let start = std::time::Instant::now();
-        let mut last = None;
-        while start.elapsed() < Duration::from_secs(300) {
-            if let Some(s) = status() {
-                if check(&s) {
-                    return s;
-                }
-                last = Some(s);
-            }
-            std::thread::sleep(Duration::from_millis(200));
-        }
-        panic!(
-            "timed out waiting for {what}\nlast status: {last:?}\nlog:\n{}",
-            std::fs::read_to_string(&log).unwrap_or_default()
-        );
+        daemon::wait_for(&config, &log, Duration::from_secs(300), what, check)
     };
     let model = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/spot.obj")).unwrap();
-    let drop_model = |name: &str| {
-        let part = root.join("hot").join(format!(".{name}.part"));
-        std::fs::write(&part, &model).unwrap();
-        std::fs::rename(&part, root.join("hot").join(name)).unwrap();
-    };
+    let drop_model = |name: &str| daemon::drop_model(&root.join("hot"), name, &model);
     let job_of = |s: &serde_json::Value, file: &str| -> serde_json::Value {
         common::job_by_file(s, file).cloned().unwrap_or_default()
     };
     let gcode_of = |s: &serde_json::Value, file: &str| -> Vec<String> {
-        let id = job_of(s, file)["id"].as_str().unwrap().to_string();
-        let path = root
-            .join("spool/jobs")
-            .join(id)
-            .join(format!("{file}.marlin-175.gcode"));
-        GcodeProgram::load_for(&path, Firmware::Marlin2)
-            .unwrap()
-            .to_vec()
+        daemon::job_gcode(root, job_of(s, file)["id"].as_str().unwrap(), file)
     };
     let recorded = || -> Vec<String> {
         std::fs::read_to_string(&record)
@@ -896,16 +814,8 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
         "{text}"
     );
 
-    let out = Command::new(exe)
-        .args(["clear", "p", "--config"])
-        .arg(&config)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let (ok, out) = daemon::ctl(&config, &["clear", "p"]);
+    assert!(ok, "{out}");
     drop_model("second.obj");
     let s = wait_for("the second job done", &|s| {
         job_of(s, "second.obj")["state"] == "done"
@@ -934,26 +844,15 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
         "the printer reconnected, its bed still to be cleared",
         &|s| common::printer(s, "p")["state"] == "bed_not_cleared",
     );
-    let out = Command::new(exe)
-        .args(["clear", "p", "--config"])
-        .arg(&config)
-        .output()
-        .unwrap();
-    assert!(out.status.success());
+    assert!(daemon::ctl(&config, &["clear", "p"]).0);
     drop_model("third.obj");
     let s = wait_for("the third job done", &|s| {
         job_of(s, "third.obj")["state"] == "done"
     });
     let third = gcode_of(&s, "third.obj");
-    let _ = daemon.kill();
-    let _ = daemon.wait();
+    farm.kill9();
     stop(&mut sim_after);
-    let after: Vec<String> = std::fs::read_to_string(&record_after)
-        .unwrap()
-        .lines()
-        .filter(|c| !sim::is_housekeeping(c))
-        .map(String::from)
-        .collect();
+    let after = daemon::recorded(&record_after);
     assert!(after == third, "the third job exactly once on the new link");
 
     let all = recorded();

@@ -171,7 +171,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .with_context(|| format!("cannot write the pictures into {}", dir.display()))?;
     }
     let scale = match args.height {
-        Some(h) => enhance::scale_to_height(&mut mesh, h),
+        Some(h) => crispen::mesh::place::scale_to_height(&mut mesh, h),
         None => 1.0,
     };
 

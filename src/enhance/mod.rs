@@ -168,6 +168,3 @@ pub fn enhance(
     };
     Ok((out, report))
 }
-
-/// Scaling belongs to placing a mesh, not to the enhancement; kept here for callers.
-pub use crate::mesh::place::scale_to_height;

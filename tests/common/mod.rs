@@ -197,4 +197,5 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
     }
     Mesh { vertices, faces }
 }
+pub mod daemon;
 pub mod postgres;

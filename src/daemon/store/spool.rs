@@ -711,6 +711,16 @@ pub(super) fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
 mod tests {
     use super::*;
 
+    /// A temporary folder holding a hot folder `hot` and a spool `spool`, opened.
+    fn open_with_hot_folder() -> (tempfile::TempDir, PathBuf, PathBuf, Spool) {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let spool = tmp.path().join("spool");
+        let store = Spool::open(&spool).unwrap();
+        (tmp, hot, spool, store)
+    }
+
     fn drop_file(dir: &Path, name: &str) -> PathBuf {
         let p = dir.join(name);
         std::fs::write(&p, b"solid x\nendsolid x\n").unwrap();
@@ -719,12 +729,9 @@ mod tests {
 
     #[test]
     fn admit_moves_file_and_persists_state() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
         let src = drop_file(&hot, "a b.stl");
         std::fs::write(hot.join("a b.stl.toml"), "enhance = false\n").unwrap();
-        let mut store = Spool::open(&tmp.path().join("spool")).unwrap();
         let job = store.admit(&src, &hot).unwrap();
         assert!(!src.exists());
         assert!(store.job_dir(&job.id).join("a b.stl").exists());
@@ -732,10 +739,10 @@ mod tests {
         assert!(!hot.join("a b.stl.toml").exists());
         assert_eq!(job.state, JobState::Queued);
 
-        let err = Spool::open(&tmp.path().join("spool")).err().unwrap();
+        let err = Spool::open(&spool).err().unwrap();
         assert!(matches!(err, StoreError::Locked { .. }), "{err}");
         drop(store);
-        let store2 = Spool::open(&tmp.path().join("spool")).unwrap();
+        let store2 = Spool::open(&spool).unwrap();
         let again = store2.get(&job.id).unwrap();
         assert_eq!(again.file, "a b.stl");
         assert_eq!(again.state, JobState::Queued);
@@ -743,11 +750,7 @@ mod tests {
 
     #[test]
     fn restart_rules_and_gates_survive_reopen() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = Spool::open(&spool).unwrap();
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
         let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
         let b = store.admit(&drop_file(&hot, "b.stl"), &hot).unwrap().id;
         let c = store.admit(&drop_file(&hot, "c.stl"), &hot).unwrap().id;
@@ -785,10 +788,7 @@ mod tests {
 
     #[test]
     fn retry_only_from_finished_states() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let mut store = Spool::open(&tmp.path().join("spool")).unwrap();
+        let (_tmp, hot, _, mut store) = open_with_hot_folder();
         let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
         let err = store.retry(&a).unwrap_err().to_string();
         assert!(err.contains("is queued"), "{err}");
@@ -843,11 +843,7 @@ mod tests {
     /// memory and on disk), and `update` can never change a state behind the table's back.
     #[test]
     fn store_enforces_the_table() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = Spool::open(&spool).unwrap();
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
         let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
         let err = store.transition(&a, JobState::Done, None).unwrap_err();
         assert!(
@@ -879,11 +875,7 @@ mod tests {
         fn random_transitions_follow_the_table(
             steps in proptest::collection::vec((0usize..9, 0usize..8), 1..40)
         ) {
-            let tmp = tempfile::tempdir().unwrap();
-            let hot = tmp.path().join("hot");
-            std::fs::create_dir(&hot).unwrap();
-            let spool = tmp.path().join("spool");
-            let mut store = Spool::open(&spool).unwrap();
+            let (_tmp, hot, spool, mut store) = open_with_hot_folder();
             let id = store.admit(&drop_file(&hot, "m.stl"), &hot).unwrap().id;
             let mut done = false;
             for (op, target) in steps {
@@ -922,11 +914,7 @@ mod tests {
     /// opens, the other jobs load, and the directory stays as it was.
     #[test]
     fn unreadable_job_state_fails_that_job_only() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = Spool::open(&spool).unwrap();
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
         let ids: Vec<String> = ["a.stl", "b.stl", "c.stl", "d.stl"]
             .iter()
             .map(|f| store.admit(&drop_file(&hot, f), &hot).unwrap().id)
@@ -963,11 +951,7 @@ mod tests {
     /// its state written or not yet.
     #[test]
     fn a_copied_job_directory_is_not_a_new_job() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = Spool::open(&spool).unwrap();
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
         let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
         drop(store);
         let jobs = spool.join("jobs");
@@ -994,11 +978,7 @@ mod tests {
     /// model and the job's state both survive.
     #[test]
     fn a_model_named_like_crispens_files_overwrites_nothing() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = Spool::open(&spool).unwrap();
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
         let mut ids = Vec::new();
         for name in ["job.json", "origin.json"] {
             let job = store.admit(&drop_file(&hot, name), &hot).unwrap();
@@ -1020,13 +1000,10 @@ mod tests {
     /// A link in a hot folder is not followed: neither the model nor its sidecar.
     #[test]
     fn symbolic_links_are_not_picked_up() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
+        let (tmp, hot, _, mut store) = open_with_hot_folder();
         let secret = tmp.path().join("secret.stl");
         std::fs::write(&secret, b"private").unwrap();
         std::os::unix::fs::symlink(&secret, hot.join("link.stl")).unwrap();
-        let mut store = Spool::open(&tmp.path().join("spool")).unwrap();
         let err = store.admit(&hot.join("link.stl"), &hot).unwrap_err();
         assert!(matches!(err, StoreError::NotAFile { .. }), "{err}");
         assert_eq!(store.jobs().count(), 0);
@@ -1042,10 +1019,7 @@ mod tests {
     /// so whoever waits for it moves on.
     #[test]
     fn a_removed_job_directory_fails_the_job() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let mut store = Spool::open(&tmp.path().join("spool")).unwrap();
+        let (_tmp, hot, _, mut store) = open_with_hot_folder();
         let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
         std::fs::remove_dir_all(store.job_dir(&a)).unwrap();
         let err = store.transition(&a, JobState::Preparing, None).unwrap_err();
@@ -1067,11 +1041,7 @@ mod tests {
     /// folder and no half job in the spool, now or after a restart.
     #[test]
     fn a_pickup_that_cannot_be_written_is_undone() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = Spool::open(&spool).unwrap();
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
         block_writes(&store, "0001-a_stl");
         let src = drop_file(&hot, "a.stl");
         std::fs::write(hot.join("a.stl.toml"), "enhance = false\n").unwrap();
@@ -1088,11 +1058,7 @@ mod tests {
     /// once (never retried, never offered again) and is written once writing works.
     #[test]
     fn an_outcome_that_cannot_be_written_is_kept_and_written_later() {
-        let tmp = tempfile::tempdir().unwrap();
-        let hot = tmp.path().join("hot");
-        std::fs::create_dir(&hot).unwrap();
-        let spool = tmp.path().join("spool");
-        let mut store = Spool::open(&spool).unwrap();
+        let (_tmp, hot, _, mut store) = open_with_hot_folder();
         let a = store.admit(&drop_file(&hot, "a.stl"), &hot).unwrap().id;
         for state in [JobState::Preparing, JobState::Ready, JobState::Printing] {
             store.transition(&a, state, None).unwrap();

@@ -174,6 +174,24 @@ fn connect(o: ProtocolOptions, printer: &mut MiniPrinter, now: Instant) -> (Host
     (host, events)
 }
 
+/// Two runs of `job(n)` around one distinct move whose `ok` the printer will lose.
+fn job_losing_one_ok(printer: &mut MiniPrinter, n: usize) -> Vec<String> {
+    let lost = "G1 X5 Y5 F3000";
+    printer.lose_ok_of = Some(lost.into());
+    let mut commands = job(n);
+    commands.push(lost.into());
+    commands.extend(job(n));
+    commands
+}
+
+/// A host with options `o` connected to a fresh printer; `now` is when it began.
+fn connected(o: ProtocolOptions) -> (Host, MiniPrinter, Instant) {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (host, _) = connect(o, &mut printer, now);
+    (host, printer, now)
+}
+
 /// Let host and printer talk until the host stops sending; returns the events.
 fn exchange(host: &mut Host, printer: &mut MiniPrinter, now: Instant, rounds: usize) -> Vec<Event> {
     let mut events = Vec::new();
@@ -286,11 +304,9 @@ fn handshake_without_start_waits_for_quiet_and_retries_then_fails() {
 fn clean_job_executes_every_line_once_in_order_both_window_modes() {
     for fw in Firmware::ALL {
         for send_ahead in [false, true] {
-            let now = Instant::now();
-            let mut printer = MiniPrinter::new();
             let mut o = opts(fw);
             o.send_ahead = send_ahead;
-            let (mut host, _) = connect(o, &mut printer, now);
+            let (mut host, mut printer, now) = connected(o);
             let commands = job(300);
             assert!(host.start_job(commands.clone(), now));
             // The M110 goes alone; then the first batch respects the window.
@@ -339,9 +355,7 @@ fn clean_job_executes_every_line_once_in_order_both_window_modes() {
 /// unacknowledged than the ring holds, or bytes are lost and lines merge.
 #[test]
 fn advanced_ok_free_slots_never_extend_the_bytes_in_flight_beyond_the_rx_buffer() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, _, now) = connected(opts(Firmware::Marlin2));
     assert!(host.start_job(job(400), now));
     let limit = Firmware::Marlin2.rx_buffer_bytes();
     // Lines on the wire not yet acknowledged, oldest first: (number, bytes).
@@ -380,9 +394,7 @@ fn advanced_ok_free_slots_never_extend_the_bytes_in_flight_beyond_the_rx_buffer(
 
 #[test]
 fn corrupted_lines_are_replayed_from_the_requested_line_exactly_once() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin2));
     let commands = job(200);
     printer.corrupt.extend([3, 4, 17, 40, 41, 42, 150]);
     host.start_job(commands.clone(), now);
@@ -401,11 +413,9 @@ fn corrupted_lines_are_replayed_from_the_requested_line_exactly_once() {
 
 #[test]
 fn a_resend_storm_fails_after_the_limit() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Ultimaker2);
     o.resend_limit = 4;
-    let (mut host, _) = connect(o, &mut printer, now);
+    let (mut host, mut printer, now) = connected(o);
     printer.always_corrupt = Some(5);
     host.start_job(job(50), now);
     let events = run_job(&mut host, &mut printer, now);
@@ -429,12 +439,10 @@ fn a_resend_storm_fails_after_the_limit() {
 
 #[test]
 fn a_request_for_a_line_no_longer_kept_fails_instead_of_guessing() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Marlin2);
     o.history_lines = 8;
     o.send_ahead = false;
-    let (mut host, _) = connect(o, &mut printer, now);
+    let (mut host, mut printer, now) = connected(o);
     host.start_job(job(100), now);
     for _ in 0..40 {
         let out = host.take_outgoing();
@@ -488,9 +496,7 @@ fn every_byte_split_of_printer_output_gives_the_same_events() {
 
 /// A Marlin2 host mid-job with a few lines in flight and no events pending.
 fn running_host() -> (Host, Instant) {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, _, now) = connected(opts(Firmware::Marlin2));
     host.start_job(job(20), now);
     host.take_outgoing();
     host.feed(b"ok\n", now); // the M110 goes alone; then lines are in flight
@@ -503,9 +509,7 @@ fn running_host() -> (Host, Instant) {
 
 #[test]
 fn garbage_from_the_printer_is_tolerated() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin2));
     let commands = job(60);
     host.start_job(commands.clone(), now);
     let mut t = now;
@@ -547,9 +551,7 @@ fn okk_counts_as_ok() {
 
 #[test]
 fn start_in_mid_job_fails_as_printer_reset() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Ultimaker2));
     host.start_job(job(300), now);
     for _ in 0..10 {
         let out = host.take_outgoing();
@@ -594,15 +596,10 @@ fn fatal_errors_carry_the_whole_message() {
 
 #[test]
 fn a_lost_ok_is_found_by_an_m105_probe_within_seconds() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Marlin2);
     o.send_ahead = false;
-    let (mut host, _) = connect(o, &mut printer, now);
-    let mut commands = job(10);
-    commands.push("G1 X5 Y5 F3000".into());
-    commands.extend(job(10));
-    printer.lose_ok_of = Some("G1 X5 Y5 F3000".into());
+    let (mut host, mut printer, now) = connected(o);
+    let commands = job_losing_one_ok(&mut printer, 10);
     host.start_job(commands.clone(), now);
     let events = run_job(&mut host, &mut printer, now);
     assert!(
@@ -640,9 +637,7 @@ fn silence_is_measured_in_seconds_but_long_commands_are_not_silence() {
     );
 
     // G28 at the front: quiet for minutes is fine (a probe may wait behind it).
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, _, now) = connected(opts(Firmware::Marlin2));
     host.start_job(vec!["G28".into(), "G1 X1".into()], now);
     host.take_outgoing();
     host.feed(b"ok\n", now); // M110
@@ -677,11 +672,9 @@ fn busy_messages_keep_the_link_alive() {
 #[test]
 fn a_heat_up_that_never_arrives_stops_safely_and_fails() {
     for fw in Firmware::ALL {
-        let now = Instant::now();
-        let mut printer = MiniPrinter::new();
         let mut o = opts(fw);
         o.heat_timeout = Duration::from_secs(60);
-        let (mut host, _) = connect(o, &mut printer, now);
+        let (mut host, _, now) = connected(o);
         host.start_job(vec!["M109 S210".into(), "G1 X1".into()], now);
         let out = host.take_outgoing();
         // The printer accepts M110 (and M155) but M109 never finishes.
@@ -725,16 +718,10 @@ fn a_heat_up_that_never_arrives_stops_safely_and_fails() {
 #[test]
 fn cancel_sends_the_safe_stop_lines_and_no_more_job_lines() {
     for fw in Firmware::ALL {
-        let now = Instant::now();
-        let mut printer = MiniPrinter::new();
-        let (mut host, _) = connect(opts(fw), &mut printer, now);
+        let (mut host, mut printer, now) = connected(opts(fw));
         let commands = job(300);
         host.start_job(commands.clone(), now);
-        for _ in 0..3 {
-            let out = host.take_outgoing();
-            let answer = printer.receive(&out);
-            host.feed(&answer, now);
-        }
+        exchange(&mut host, &mut printer, now, 3);
         host.cancel(now);
         let events = run_job(&mut host, &mut printer, now);
         let Some(Failure::Cancelled { last_acked }) = failure(&events) else {
@@ -760,17 +747,11 @@ fn cancel_sends_the_safe_stop_lines_and_no_more_job_lines() {
 
 #[test]
 fn cancel_during_a_resend_renumbers_the_safe_stop_lines() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin2));
     let commands = job(50);
     host.start_job(commands.clone(), now);
     printer.corrupt.insert(8);
-    for _ in 0..3 {
-        let out = host.take_outgoing();
-        let answer = printer.receive(&out);
-        host.feed(&answer, now);
-    }
+    exchange(&mut host, &mut printer, now, 3);
     // Lines in flight now; cancel, and let the printer reject what follows a corrupted one.
     let out = host.take_outgoing();
     host.cancel(now);
@@ -789,16 +770,10 @@ fn cancel_during_a_resend_renumbers_the_safe_stop_lines() {
 
 #[test]
 fn pause_stops_job_lines_and_resume_continues() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Ultimaker2));
     let commands = job(300);
     host.start_job(commands.clone(), now);
-    for _ in 0..3 {
-        let out = host.take_outgoing();
-        let answer = printer.receive(&out);
-        host.feed(&answer, now);
-    }
+    exchange(&mut host, &mut printer, now, 3);
     host.pause(now);
     let events = exchange(&mut host, &mut printer, now, 100);
     assert!(
@@ -819,11 +794,9 @@ fn pause_stops_job_lines_and_resume_continues() {
 
 #[test]
 fn over_long_lines_are_refused_before_sending() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Marlin2);
     o.send_ahead = false;
-    let (mut host, _) = connect(o, &mut printer, now);
+    let (mut host, mut printer, now) = connected(o);
     host.start_job(vec!["G28".into(), format!("M117 {}", "x".repeat(95))], now);
     let events = run_job(&mut host, &mut printer, now);
     assert!(
@@ -835,9 +808,7 @@ fn over_long_lines_are_refused_before_sending() {
 
 #[test]
 fn temperatures_are_polled_without_autoreport() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let (mut host, _, now) = connected(opts(Firmware::Ultimaker2));
     host.start_job(vec!["G4 P1".into(); 3], now);
     host.take_outgoing();
     host.tick(now + Duration::from_secs(10));
@@ -875,15 +846,10 @@ fn drain_events(host: &mut Host) -> Vec<Event> {
 /// for a sign of life (which stalled the job for good).
 #[test]
 fn wait_with_lines_in_flight_means_lost_oks_and_probes_at_once() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Ultimaker2);
     o.send_ahead = false;
-    let (mut host, _) = connect(o, &mut printer, now);
-    let mut commands = job(5);
-    commands.push("G1 X5 Y5 F3000".into());
-    commands.extend(job(5));
-    printer.lose_ok_of = Some("G1 X5 Y5 F3000".into());
+    let (mut host, mut printer, now) = connected(o);
+    let commands = job_losing_one_ok(&mut printer, 5);
     host.start_job(commands.clone(), now);
     exchange(&mut host, &mut printer, now, 1000);
     assert!(!host.is_finished());
@@ -952,10 +918,7 @@ fn advanced_ok_is_matched_to_its_line_by_number() {
     let mut printer = MiniPrinter::new();
     printer.advanced = true;
     let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
-    let mut commands = job(30);
-    commands.push("G1 X5 Y5 F3000".into());
-    commands.extend(job(30));
-    printer.lose_ok_of = Some("G1 X5 Y5 F3000".into());
+    let commands = job_losing_one_ok(&mut printer, 30);
     printer.corrupt.extend([10, 45]);
     host.start_job(commands.clone(), now);
     let events = run_job(&mut host, &mut printer, now);
@@ -981,11 +944,9 @@ fn advanced_ok_is_matched_to_its_line_by_number() {
 /// `Unknown command` + `ok` (or an ADVANCED_OK `ok` without `N`) answers no line of ours.
 #[test]
 fn an_ok_answering_a_fragment_is_not_a_job_lines_ok() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Ultimaker2);
     o.send_ahead = false;
-    let (mut host, _) = connect(o, &mut printer, now);
+    let (mut host, _, now) = connected(o);
     host.start_job(job(5), now);
     let first = sent(&mut host);
     assert!(first.contains("M110"));
@@ -1069,11 +1030,9 @@ fn assert_safe_stop(executed: &[String]) {
 /// means it lost its state: never replay onto a half-printed part; stop it safely.
 #[test]
 fn a_resend_for_a_confirmed_line_fails_safely() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Ultimaker2);
     o.send_ahead = false;
-    let (mut host, _) = connect(o, &mut printer, now);
+    let (mut host, mut printer, now) = connected(o);
     host.start_job(job(50), now);
     exchange(&mut host, &mut printer, now, 10);
     // Force an M105 poll and answer it: everything up to it is confirmed.
@@ -1120,11 +1079,9 @@ fn start_glued_to_a_report_is_a_reset() {
 #[test]
 fn giving_up_on_a_resend_storm_leaves_the_printer_safe() {
     for fw in Firmware::ALL {
-        let now = Instant::now();
-        let mut printer = MiniPrinter::new();
         let mut o = opts(fw);
         o.resend_limit = 4;
-        let (mut host, _) = connect(o, &mut printer, now);
+        let (mut host, mut printer, now) = connected(o);
         printer.always_corrupt = Some(12);
         host.start_job(job(50), now);
         let events = run_job(&mut host, &mut printer, now);
@@ -1177,9 +1134,7 @@ fn a_repeated_resend_after_a_corrupted_replay_is_a_new_request() {
 /// `M110` inside the job would move the printer's counter away from the host's.
 #[test]
 fn m110_inside_a_job_keeps_the_numbering_in_step() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Ultimaker2));
     let mut commands = job(20);
     commands.insert(10, "M110 N0".into());
     host.start_job(commands.clone(), now);
@@ -1198,12 +1153,10 @@ fn heat_waits_time_out_only_without_progress() {
         ("M109 S210", 25.0, 2.0, 210.0),
         ("M190 R30", 80.0, -0.5, 30.0),
     ] {
-        let now = Instant::now();
-        let mut printer = MiniPrinter::new();
         let mut o = opts(Firmware::Ultimaker2);
         o.heat_timeout = Duration::from_secs(60);
         o.send_ahead = false;
-        let (mut host, _) = connect(o, &mut printer, now);
+        let (mut host, _, now) = connected(o);
         host.start_job(vec![command.into(), "G1 X1".into()], now);
         host.feed(b"ok\n", now); // M110
         let out = sent(&mut host);
@@ -1272,9 +1225,7 @@ fn ultimaker2_heat_reports_keep_the_target() {
 /// as on its own commands.
 #[test]
 fn host_actions_from_the_printer_pause_resume_and_cancel() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin2));
     host.start_job(job(40), now);
     exchange(&mut host, &mut printer, now, 3);
     host.feed(b"//action:pause\n", now);
@@ -1306,11 +1257,9 @@ fn host_actions_from_the_printer_pause_resume_and_cancel() {
 /// fails after the no-progress limit, and the printer is stopped safely.
 #[test]
 fn a_job_without_progress_fails_safely_with_the_reason() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
     let mut o = opts(Firmware::Marlin2);
     o.no_progress_timeout = Duration::from_secs(60);
-    let (mut host, _) = connect(o, &mut printer, now);
+    let (mut host, _, now) = connected(o);
     host.start_job(job(20), now);
     host.take_outgoing();
     let mut t = now;
@@ -1337,9 +1286,7 @@ fn a_job_without_progress_fails_safely_with_the_reason() {
 /// be cleared, and its reports must not run into the next job.
 #[test]
 fn autoreport_is_switched_off_at_the_end_of_a_job() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin2));
     host.start_job(job(20), now);
     let events = run_job(&mut host, &mut printer, now);
     assert!(done(&events));
@@ -1486,9 +1433,7 @@ fn after_a_resend_lines_go_one_at_a_time_for_a_while() {
 /// A fragment the printer answered on its own shows in the job's summary (the report).
 #[test]
 fn fragments_are_counted_in_the_job_summary() {
-    let now = Instant::now();
-    let mut printer = MiniPrinter::new();
-    let (mut host, _) = connect(opts(Firmware::Marlin20), &mut printer, now);
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin20));
     host.start_job(job(30), now);
     exchange(&mut host, &mut printer, now, 3);
     host.feed(b"echo:Unknown command: \"00 E12\"\nok\n", now);

@@ -197,4 +197,5 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
     }
     Mesh { vertices, faces }
 }
+pub mod farm;
 pub mod postgres;

@@ -219,7 +219,7 @@ fn models_dropped_on_two_hosts_print_exactly_once() {
     // Each printer executed the G-code of its jobs (as stored in the farm database), in
     // the order it printed them, whole and once, and nothing else.
     let order = farm.query(
-        "SELECT j.file, h.at FROM jobs j JOIN job_history h ON h.job_id = j.id \
+        "SELECT j.file FROM jobs j JOIN job_history h ON h.job_id = j.id \
          WHERE h.state = 'printing' ORDER BY h.at",
         &[],
     );

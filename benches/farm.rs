@@ -148,6 +148,8 @@ fn main() {
         drop_file(&folder(i), &format!("job-{i:04}.gcode"), gcode.as_bytes());
     }
     wait(&farm, Duration::from_secs(1800), "every job ready", || {
+        let failed = count(&farm, "failed");
+        assert_eq!(failed, 0, "jobs failed\n{}", farm.diagnostics());
         count(&farm, "ready") == jobs
     });
     let admitted = started.elapsed();

@@ -48,20 +48,19 @@ fn main() {
                 .await
                 .unwrap();
             for p in &printers[h * PRINTERS_PER_HOST..(h + 1) * PRINTERS_PER_HOST] {
-                store.register_printer(p).await.unwrap();
+                store.register_printer(p, None).await.unwrap();
             }
             hosts.push(store);
         }
         // 1,000 ready jobs any printer may take.
         for i in 0..JOBS {
-            let id = format!("job-{i:04}");
             hosts[i % HOSTS]
-                .admit(&id, "part.gcode", "/srv/in", &printers, &[])
+                .admit("part.gcode", "/srv/in", &printers, &[])
                 .await
                 .unwrap();
             let job = hosts[i % HOSTS].claim_preparation().await.unwrap().unwrap();
             hosts[i % HOSTS]
-                .finish(&job.id, JobState::Preparing, JobState::Ready, None)
+                .finish(&job.id, &[JobState::Preparing], JobState::Ready, None)
                 .await
                 .unwrap();
         }
@@ -80,7 +79,7 @@ fn main() {
                         };
                         waits.push(free.elapsed());
                         store
-                            .finish(&job.id, JobState::Printing, JobState::Done, None)
+                            .finish(&job.id, &[JobState::Printing], JobState::Done, None)
                             .await
                             .unwrap();
                     }

@@ -1,11 +1,12 @@
 //! The farm's queue in PostgreSQL, against a real server started for each test
 //! (`tests/common/postgres.rs`): the schema and its versions, claims from many hosts at
-//! once, lease expiry, and an outage of the database.
+//! once, lease expiry, an outage of the database, and the daemon's job store over it
+//! (two hosts' stores passing a job and its files between them, through an outage).
 
 mod common;
 
 use common::postgres::PgServer;
-use crispen::daemon::job::JobState;
+use crispen::daemon::job::{JobState, StoreError};
 use crispen::daemon::store::postgres::{PgError, PgSettings, PgStore};
 use std::collections::HashSet;
 use std::time::Duration;
@@ -30,10 +31,8 @@ fn runtime() -> tokio::runtime::Runtime {
 async fn admit_n(store: &PgStore, n: usize, printers: &[String]) -> Vec<String> {
     let mut ids = Vec::new();
     for i in 0..n {
-        let id = format!("job-{i:04}");
-        store
+        let job = store
             .admit(
-                &id,
                 &format!("part{i}.stl"),
                 "/srv/in",
                 printers,
@@ -41,7 +40,7 @@ async fn admit_n(store: &PgStore, n: usize, printers: &[String]) -> Vec<String> 
             )
             .await
             .unwrap();
-        ids.push(id);
+        ids.push(job.id);
     }
     ids
 }
@@ -158,13 +157,13 @@ fn an_expired_lease_requeues_preparation_and_interrupts_printing() {
         let alive = PgStore::connect(&settings(&pg), "rack-2", LEASE)
             .await
             .unwrap();
-        dying.register_printer("a").await.unwrap();
-        alive.register_printer("b").await.unwrap();
+        dying.register_printer("a", None).await.unwrap();
+        alive.register_printer("b", None).await.unwrap();
         admit_n(&alive, 2, &["a".to_string(), "b".to_string()]).await;
 
         let printed = dying.claim_preparation().await.unwrap().unwrap();
         dying
-            .finish(&printed.id, JobState::Preparing, JobState::Ready, None)
+            .finish(&printed.id, &[JobState::Preparing], JobState::Ready, None)
             .await
             .unwrap();
         let printing = dying.claim_print("a").await.unwrap().unwrap();
@@ -207,17 +206,19 @@ fn an_expired_lease_requeues_preparation_and_interrupts_printing() {
         // The dead host comes back: its outcomes are refused, it holds nothing.
         dying.heartbeat(LEASE).await.unwrap();
         match dying
-            .finish(&printing.id, JobState::Printing, JobState::Done, None)
+            .finish(&printing.id, &[JobState::Printing], JobState::Done, None)
             .await
         {
-            Err(PgError::LostClaim { state, .. }) => assert_eq!(state, JobState::Interrupted),
-            other => panic!("expected a lost claim, got {other:?}"),
+            Err(PgError::Job(StoreError::StateChanged { state, .. })) => {
+                assert_eq!(state, JobState::Interrupted)
+            }
+            other => panic!("expected a refusal, got {other:?}"),
         }
         assert!(matches!(
             dying
-                .finish(&prepared.id, JobState::Preparing, JobState::Ready, None)
+                .finish(&prepared.id, &[JobState::Preparing], JobState::Ready, None)
                 .await,
-            Err(PgError::LostClaim { .. })
+            Err(PgError::Job(StoreError::StateChanged { .. }))
         ));
         // The requeued job is the living host's to take; the interrupted one waits for
         // an operator, and printer a's bed gate holds it.
@@ -254,7 +255,7 @@ fn an_outage_fails_calls_quickly_and_the_store_recovers() {
     pg.restart();
     rt.block_on(async {
         // The pool drops its broken connections and opens new ones.
-        let mut jobs = Err(PgError::NoSuchJob(String::new()));
+        let mut jobs = Err(PgError::Job(StoreError::Stopped));
         for _ in 0..50 {
             jobs = store.jobs().await;
             if jobs.is_ok() {
@@ -266,4 +267,134 @@ fn an_outage_fails_calls_quickly_and_the_store_recovers() {
         assert_eq!(jobs.len(), 3);
         assert!(jobs.iter().all(|j| j.state == JobState::Queued));
     });
+}
+
+/// The daemon's store over the database, as two hosts use it through the store's task: a
+/// file picked up on one host is prepared on the other (the model is copied there), its
+/// G-code goes to the database as it becomes ready and to the printing host as that claims
+/// it; a host that comes second is refused; an outcome recorded while the database is down
+/// is kept and written once it is back, and the other host sees it.
+#[test]
+fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
+    use crispen::daemon::job::{ForMachine, PrinterGate};
+    use crispen::daemon::store::postgres::store::PgJobStore;
+    let mut pg = PgServer::start();
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let rt = runtime();
+    let (a, b) = rt.block_on(async {
+        let open = |host: &'static str| {
+            let (settings, dir) = (settings(&pg), tmp.path().join(host));
+            async move {
+                let db = PgStore::connect(&settings, host, LEASE).await.unwrap();
+                let store = PgJobStore::open(db, &dir).await.unwrap();
+                crispen::daemon::store::spawn(store)
+            }
+        };
+        (open("rack-1").await, open("rack-2").await)
+    });
+    let model = hot.join("part.stl");
+    std::fs::write(&model, b"solid part\nendsolid part\n").unwrap();
+    std::fs::write(hot.join("part.stl.toml"), b"copies = 1\n").unwrap();
+    let printers = vec!["p1".to_string()];
+    let job = rt.block_on(a.admit(&model, &hot, &printers)).unwrap();
+    assert!(!model.exists(), "the model left the hot folder");
+    let origin = job.origin.clone().expect("a farm job knows its origin");
+    assert_eq!(
+        (origin.host.as_str(), origin.printers),
+        ("rack-1", printers)
+    );
+
+    // Host 2 sees it after a resync, prepares it (the model and sidecar are copied there),
+    // and host 1 coming second is refused.
+    assert!(rt.block_on(b.resync()).unwrap(), "the new job is a change");
+    let queued: &[JobState] = &[JobState::Queued];
+    rt.block_on(b.transition_from(&job.id, queued, JobState::Preparing, None, |_| {}))
+        .unwrap();
+    let dir_b = b.snapshot().job_dir(&job.id);
+    assert_eq!(
+        std::fs::read(dir_b.join("part.stl")).unwrap(),
+        b"solid part\nendsolid part\n"
+    );
+    assert!(dir_b.join("part.stl.toml").is_file());
+    match rt.block_on(a.transition_from(&job.id, queued, JobState::Preparing, None, |_| {})) {
+        Err(StoreError::StateChanged { state, .. }) => assert_eq!(state, JobState::Preparing),
+        other => panic!("host 1 took a job host 2 had: {other:?}"),
+    }
+    // Only the preparing host records the preparation's outcome.
+    let preparing: &[JobState] = &[JobState::Preparing];
+    assert!(matches!(
+        rt.block_on(a.transition_from(&job.id, preparing, JobState::Ready, None, |_| {})),
+        Err(StoreError::LostClaim { .. })
+    ));
+    std::fs::write(dir_b.join("part.stl.m.gcode"), b"G28\nM84\n").unwrap();
+    rt.block_on(
+        b.transition_from(&job.id, preparing, JobState::Ready, None, |j| {
+            j.machines
+                .insert("m".into(), ForMachine::Gcode("part.stl.m.gcode".into()));
+        }),
+    )
+    .unwrap();
+
+    // Host 1 claims it for its printer: the G-code arrives in its job directory.
+    rt.block_on(a.resync()).unwrap();
+    let claimed = rt
+        .block_on(a.claim("p1", |j| j.gcode_for("m").is_some()))
+        .unwrap()
+        .expect("the ready job is claimed");
+    assert_eq!(claimed.printer.as_deref(), Some("p1"));
+    let dir_a = a.snapshot().job_dir(&job.id);
+    assert_eq!(
+        std::fs::read(dir_a.join("part.stl.m.gcode")).unwrap(),
+        b"G28\nM84\n"
+    );
+    rt.block_on(b.resync()).unwrap();
+    assert!(
+        rt.block_on(b.claim("p2", |_| true)).unwrap().is_none(),
+        "claimed once"
+    );
+
+    // The print ends while the database is down: the outcome and the bed gate are kept.
+    pg.stop();
+    let done = rt
+        .block_on(a.record_outcome(&job.id, JobState::Done, None, |j| j.copies_done = 1))
+        .expect("an outcome that happened is kept");
+    assert_eq!(done.state, JobState::Done);
+    let gate = PrinterGate {
+        bed_not_cleared: true,
+        last_job: Some(job.id.clone()),
+    };
+    rt.block_on(a.set_gate("p1", gate.clone())).unwrap();
+    assert_eq!(a.snapshot().unwritten(), 2);
+    assert!(matches!(
+        rt.block_on(b.transition(&job.id, JobState::Cancelled, None)),
+        Err(StoreError::Database(_))
+    ));
+    pg.restart();
+    let mut left = usize::MAX;
+    for _ in 0..100 {
+        left = rt.block_on(a.write_pending()).unwrap();
+        if left == 0 {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert_eq!(left, 0, "written once the database is back");
+    assert!(rt.block_on(b.resync()).unwrap());
+    let seen = b.snapshot();
+    let job_b = seen.get(&job.id).unwrap();
+    assert_eq!((job_b.state, job_b.copies_done), (JobState::Done, 1));
+    let states: Vec<JobState> = job_b.history.iter().map(|h| h.0).collect();
+    assert_eq!(
+        states,
+        [
+            JobState::Queued,
+            JobState::Preparing,
+            JobState::Ready,
+            JobState::Printing,
+            JobState::Done
+        ]
+    );
+    assert_eq!(seen.gate("p1"), gate);
 }

@@ -66,6 +66,16 @@ struct RawConfig {
     folders: Vec<RawFolder>,
     #[serde(default)]
     http: Option<RawHttp>,
+    #[serde(default)]
+    store: Option<RawStore>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawStore {
+    postgres: String,
+    password_file: Option<PathBuf>,
+    lease_s: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -96,6 +106,7 @@ struct RawFarm {
     on_shutdown: Option<OnShutdown>,
     settle_s: Option<f64>,
     rescan_s: Option<f64>,
+    host: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -152,7 +163,22 @@ pub struct Config {
     pub folders: Vec<FolderConfig>,
     /// The HTTP API and dashboard on TCP (`[http]`), when configured.
     pub http: Option<HttpConfig>,
+    /// The farm's queue in PostgreSQL (`[store]`), shared with other hosts; None: this
+    /// host's own spool.
+    pub store: Option<StoreConfig>,
 }
+
+/// `[store]`: the farm database.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoreConfig {
+    pub postgres: crate::daemon::store::postgres::PgSettings,
+    /// A host silent this long loses its work to the others (see `store::postgres`).
+    pub lease: Duration,
+}
+
+/// Bounds of `[store] lease_s`: long enough for a busy host's heartbeat, short enough that
+/// a dead host's printers are seen offline the same minute.
+pub const LEASE_S: Bounds = 3.0..=600.0;
 
 /// `[http]`: the TCP listener of the HTTP API and dashboard (see `crate::http`).
 #[derive(Debug, Clone)]
@@ -193,6 +219,8 @@ pub struct FarmConfig {
     pub settle: Duration,
     /// Hot folders are rescanned this often in case a watch event was missed.
     pub rescan: Duration,
+    /// This host's name in a farm shared through `[store]` (default: the hostname).
+    pub host: String,
 }
 
 /// Where a printer is reached: a real serial port, or a simulated printer the daemon
@@ -360,6 +388,7 @@ printers = ["demo"]
                 on_shutdown: None,
                 settle_s: None,
                 rescan_s: None,
+                host: None,
             });
             let max_heating = match raw_farm.max_heating {
                 None => 2,
@@ -381,6 +410,28 @@ printers = ["demo"]
                 on_shutdown: raw_farm.on_shutdown.unwrap_or(OnShutdown::Finish),
                 settle: seconds("settle_s", raw_farm.settle_s, 5.0, &SETTLE_S)?,
                 rescan: seconds("rescan_s", raw_farm.rescan_s, 30.0, &RESCAN_S)?,
+                host: match raw_farm.host {
+                    None => this_hostname(),
+                    Some(h) => {
+                        check_host_name(&h).map_err(|m| invalid("[farm]".into(), "host", m))?
+                    }
+                },
+            }
+        };
+        let store = match raw.store {
+            None => None,
+            Some(s) => {
+                let invalid = |key, m| invalid("[store]".into(), key, m);
+                crate::daemon::store::postgres::check_conninfo(&s.postgres)
+                    .map_err(|m| invalid("postgres", m))?;
+                Some(StoreConfig {
+                    postgres: crate::daemon::store::postgres::PgSettings {
+                        conninfo: s.postgres,
+                        password_file: s.password_file.map(|p| anchor(&p)),
+                    },
+                    lease: seconds_in(s.lease_s.unwrap_or(15.0), &LEASE_S)
+                        .map_err(|m| invalid("lease_s", m))?,
+                })
             }
         };
 
@@ -604,7 +655,8 @@ printers = ["demo"]
                 ));
             }
             for name in &f.printers {
-                if !names.contains(name) {
+                // In a shared farm, a folder may name other hosts' printers.
+                if !names.contains(name) && store.is_none() {
                     return Err(invalid(
                         section,
                         "printers",
@@ -664,7 +716,45 @@ printers = ["demo"]
             machines,
             folders,
             http,
+            store,
         })
+    }
+}
+
+/// A host name as `[farm] host` takes it: it names the host in the farm database and logs.
+fn check_host_name(name: &str) -> Result<String, String> {
+    let ok = (1..=64).contains(&name.len())
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+    if ok {
+        Ok(name.to_string())
+    } else {
+        Err(format!(
+            "{name:?}: use 1 to 64 letters, digits, '.', '_' or '-'"
+        ))
+    }
+}
+
+/// The system's host name (the default `[farm] host`), made to fit [`check_host_name`].
+fn this_hostname() -> String {
+    let raw = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+    let name: String = raw
+        .trim()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
+                c
+            } else {
+                '-'
+            }
+        })
+        .take(64)
+        .collect();
+    if name.is_empty() {
+        "localhost".into()
+    } else {
+        name
     }
 }
 
@@ -730,7 +820,7 @@ pub fn read_api_key(key_file: &Path) -> Result<ApiKey, String> {
 pub const MAX_PRINTERS: usize = 256;
 
 /// A range of seconds a setting may take.
-type Bounds = std::ops::RangeInclusive<f64>;
+pub type Bounds = std::ops::RangeInclusive<f64>;
 /// Settle time of a dropped file: long enough to see a write, short enough to notice.
 const SETTLE_S: Bounds = 0.05..=3600.0;
 /// Rescan period of the hot folders.
@@ -1089,6 +1179,63 @@ slicer = "cura"
         }
         // Near the spool but not inside it is fine.
         parse(&GOOD.replacen("/srv/print/5cm", "/var/lib/crispen-hot", 1)).unwrap();
+    }
+
+    /// `[store]` and `[farm] host`: a shared farm's settings are checked like the rest, a
+    /// password in the connection string is refused without being repeated, and a folder
+    /// may then name printers of other hosts.
+    #[test]
+    fn a_shared_farm_is_checked() {
+        let store = "[store]\npostgres = \"host=/run/postgresql dbname=crispen\"\n";
+        let c = parse(&format!("{GOOD}{store}")).unwrap();
+        let shared = c.store.expect("[store] read");
+        assert_eq!(shared.lease, Duration::from_secs(15));
+        assert!(!c.farm.host.is_empty(), "the hostname by default");
+        let other = GOOD.replacen("printers = [\"sim\"]", "printers = [\"rack-2-a\"]", 1);
+        assert!(
+            parse(&other).is_err(),
+            "an unknown printer without a shared farm"
+        );
+        parse(&format!("{other}{store}")).expect("another host's printer in a shared farm");
+        for (text, key, says) in [
+            (
+                "postgres = \"host=/tmp password=hunter2\"",
+                "postgres",
+                "holds a password",
+            ),
+            ("postgres = \"host=/tmp bogus=1\"", "postgres", "bogus"),
+            (
+                "postgres = \"host=/tmp\"\nlease_s = 1",
+                "lease_s",
+                "must be",
+            ),
+            (
+                "postgres = \"host=/tmp\"\nlease_s = 1e300",
+                "lease_s",
+                "must be",
+            ),
+        ] {
+            let err = parse(&format!("{GOOD}[store]\n{text}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(&format!("[store]: key `{key}`")), "{err}");
+            assert!(err.contains(says) && !err.contains("hunter2"), "{err}");
+        }
+        for bad in ["", "rack 2", "r/2", &"x".repeat(65)] {
+            let text = GOOD.replacen(
+                "max_heating = 1",
+                &format!("max_heating = 1\nhost = {bad:?}"),
+                1,
+            );
+            let err = parse(&text).unwrap_err().to_string();
+            assert!(err.contains("[farm]: key `host`"), "{err}");
+        }
+        let named = GOOD.replacen(
+            "max_heating = 1",
+            "max_heating = 1\nhost = \"rack-2.b_c\"",
+            1,
+        );
+        assert_eq!(parse(&named).unwrap().farm.host, "rack-2.b_c");
     }
 
     /// An unknown table was once reported as an unknown key of the table above it.

@@ -25,8 +25,22 @@ pub enum Command {
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Status {
+    /// This host's printers, then (in a shared farm) the other hosts'.
     pub printers: Vec<PrinterStatus>,
     pub jobs: Vec<JobStatus>,
+    /// The farm shared through `[store]`; absent for a host with its own spool.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub farm: Option<FarmStatus>,
+}
+
+/// The hosts of a shared farm, as this host sees them.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FarmStatus {
+    /// This host.
+    pub host: String,
+    /// None while the farm database answers; else why it does not.
+    pub database: Option<String>,
+    pub hosts: Vec<super::store::postgres::FarmHost>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -100,6 +114,22 @@ pub fn status(farm: &Farm) -> Status {
     for p in &mut printers {
         p.bed_cleared = !store.gate(&p.name).bed_not_cleared;
     }
+    let shared = farm
+        .shared
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .clone();
+    let farm_status = farm.db.get().map(|db| {
+        let view = shared.clone().unwrap_or_default();
+        FarmStatus {
+            host: db.host().to_string(),
+            database: view.database.map(|e| format!("unreachable: {e}")),
+            hosts: view.hosts,
+        }
+    });
+    if let Some(view) = shared {
+        printers.extend(view.printers);
+    }
     let jobs = store
         .jobs()
         .map(|j| JobStatus {
@@ -125,7 +155,11 @@ pub fn status(farm: &Farm) -> Status {
             updated: j.history.last().map(|h| h.1).unwrap_or(0.0),
         })
         .collect();
-    Status { printers, jobs }
+    Status {
+        printers,
+        jobs,
+        farm: farm_status,
+    }
 }
 
 /// Carries out one command; the answer says what was done.
@@ -148,14 +182,28 @@ pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, Comma
     }
 }
 
-fn known_printer(farm: &Farm, printer: &str) -> Result<(), CommandError> {
+/// Where a printer named in a command is attached.
+enum Whose {
+    Mine,
+    /// Another host's, in a shared farm.
+    Other,
+}
+
+fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
     if farm
         .printers
         .lock()
         .unwrap_or_else(|e| e.into_inner())
         .contains_key(printer)
     {
-        Ok(())
+        return Ok(Whose::Mine);
+    }
+    let shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
+    if shared
+        .as_ref()
+        .is_some_and(|v| v.printers.iter().any(|p| p.name == printer))
+    {
+        Ok(Whose::Other)
     } else {
         Err(CommandError::NoPrinter(printer.to_string()))
     }
@@ -171,12 +219,37 @@ async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     Ok(format!("{printer}: bed cleared; it may take the next job"))
 }
 
-async fn send_print_command(
+/// Pauses, resumes or cancels a printer's print: here, or through the farm database by
+/// the printer's own host.
+pub(crate) async fn send_print_command(
     farm: &Farm,
     printer: &str,
     command: PrintCommand,
 ) -> Result<String, CommandError> {
-    known_printer(farm, printer)?;
+    if let Whose::Other = known_printer(farm, printer)? {
+        let db = farm
+            .db
+            .get()
+            .ok_or(CommandError::NoPrinter(printer.to_string()))?;
+        let word = match command {
+            PrintCommand::Pause => "pause",
+            PrintCommand::Resume => "resume",
+            PrintCommand::Cancel => "cancel",
+        };
+        if !db
+            .push_command(printer, word)
+            .await
+            .map_err(|e| CommandError::Store(e.into()))?
+        {
+            return Err(CommandError::NoPrinter(printer.to_string()));
+        }
+        tracing::info!(
+            printer,
+            ?command,
+            "print command left for the printer's host"
+        );
+        return Ok(format!("{printer}: {command:?} sent to its host"));
+    }
     let tx = farm
         .print_controls
         .lock()

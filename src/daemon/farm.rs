@@ -56,6 +56,12 @@ pub struct PrinterStatus {
     /// False from the end of a print until `crispen clear`, whatever the connection
     /// does meanwhile: an offline printer can still have a finished print on its bed.
     pub bed_cleared: bool,
+    /// The host it is attached to, in a farm shared through `[store]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host: Option<String>,
+    /// Its host stopped renewing its lease: what is shown is as of then.
+    #[serde(default)]
+    pub offline: bool,
 }
 
 /// What a control command asks of a print in progress.
@@ -103,6 +109,10 @@ pub struct Farm {
     heating: Mutex<usize>,
     /// Jobs that reached a final state during this run (for --exit-when-idle).
     pub finished_this_run: std::sync::atomic::AtomicUsize,
+    /// The farm database, when `[store] postgres` shares the farm with other hosts.
+    pub db: std::sync::OnceLock<crate::daemon::store::postgres::PgStore>,
+    /// The rest of a shared farm as last read from its database (see `super::shared`).
+    pub shared: Mutex<Option<super::shared::FarmView>>,
 }
 
 impl Farm {
@@ -118,6 +128,8 @@ impl Farm {
             shutdown,
             heating: Mutex::new(0),
             finished_this_run: Default::default(),
+            db: Default::default(),
+            shared: Mutex::new(None),
         })
     }
 
@@ -265,6 +277,25 @@ impl Farm {
         if let Some(p) = printers.get_mut(name) {
             change(p);
         }
+    }
+
+    /// Every printer that may take a job, by name, with its machine: this host's, and in a
+    /// shared farm the other hosts' as they registered them.
+    pub fn printer_machines(&self) -> Vec<(String, crate::machine::Machine)> {
+        let mut all: Vec<(String, crate::machine::Machine)> = self
+            .config()
+            .printers
+            .iter()
+            .map(|p| (p.name.clone(), p.machine.clone()))
+            .collect();
+        if let Some(view) = &*self.shared.lock().unwrap_or_else(|e| e.into_inner()) {
+            for (name, machine) in &view.machines {
+                if !all.iter().any(|(n, _)| n == name) {
+                    all.push((name.clone(), machine.clone()));
+                }
+            }
+        }
+        all
     }
 
     /// No job has work ahead of it.

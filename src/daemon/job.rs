@@ -43,6 +43,14 @@ pub enum StoreError {
         "the job store has stopped (the daemon is shutting down, or the store failed; see the log)"
     )]
     Stopped,
+    #[error("the farm database: {0} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
+    Database(String),
+    #[error("job {id} is no longer held by host {host} (its lease ran out and the farm moved it on: it is {state} now); the change was not recorded")]
+    LostClaim {
+        id: String,
+        host: String,
+        state: JobState,
+    },
     #[error("job {id} is {state}; {action} needs it to be {allowed}")]
     WrongState {
         id: String,
@@ -160,6 +168,18 @@ pub struct Job {
     /// `<file>.gcode` was made for an Ultimaker 2.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub machines: std::collections::BTreeMap<String, ForMachine>,
+    /// Where a job of a farm shared by several hosts came from (None in a host's own
+    /// spool, whose folders are all in its config).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<Origin>,
+}
+
+/// The host whose hot folder a farm job was dropped into, and that folder's rule as it
+/// was then: hosts without the folder in their config still know which printers serve it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Origin {
+    pub host: String,
+    pub printers: Vec<String>,
 }
 
 /// What preparation made of a job for one machine.
@@ -222,6 +242,23 @@ impl From<crate::marlin::stream::PrintReport> for PrintReport {
 }
 
 impl Job {
+    /// A job's id: its sequence number and its file's name in letters, digits, `-` and
+    /// `_` (safe as a directory name and in a URL).
+    pub fn make_id(seq: u64, file: &str) -> String {
+        let stem: String = file
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .take(40)
+            .collect();
+        format!("{seq:04}-{stem}")
+    }
+
     /// A job just picked up: queued, with nothing prepared or printed yet.
     pub fn queued(id: String, seq: u64, file: String, folder: PathBuf) -> Job {
         Job {
@@ -238,6 +275,7 @@ impl Job {
             slice_report: None,
             print_report: None,
             machines: Default::default(),
+            origin: None,
         }
     }
 }

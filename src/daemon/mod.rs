@@ -26,6 +26,7 @@ pub mod ports;
 pub mod prepare;
 pub mod printer;
 pub mod reload;
+pub mod shared;
 pub mod store;
 
 use config::{Config, PrinterConfig, PrinterPort};
@@ -48,6 +49,8 @@ pub enum DaemonError {
     Control(#[from] control::ControlError),
     #[error("printer {printer}: cannot start its simulator: {message}")]
     Simulator { printer: String, message: String },
+    #[error("[store] postgres: {0}")]
+    Database(#[from] store::postgres::PgError),
     #[error("cannot install signal handlers: {0}")]
     Signals(std::io::Error),
     #[error("cannot find this program to run preparations with: {0}")]
@@ -142,6 +145,12 @@ impl Fleet {
                     progress: None,
                     detail: None,
                     bed_cleared: true,
+                    host: farm
+                        .config()
+                        .store
+                        .as_ref()
+                        .map(|_| farm.config().farm.host.clone()),
+                    offline: false,
                 },
             );
         let connector = Box::new(printer::MarlinConnector {
@@ -236,11 +245,8 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let mut sigint = signal(SignalKind::interrupt()).map_err(DaemonError::Signals)?;
     let mut sighup = signal(SignalKind::hangup()).map_err(DaemonError::Signals)?;
 
-    let mut store = store::spool::Spool::open(&config.spool_dir)?;
-    for id in store.recover()? {
-        let job = store.get(&id).expect("recovered job exists");
-        tracing::warn!(job = %id, state = job.state.name(), "job found mid-flight after a restart");
-    }
+    let shutdown = CancellationToken::new();
+    let (farm, shared) = open_store(&config, &shutdown).await?;
     let listener = control::bind(&config.socket)?;
     let http_listener = match &config.http {
         None => None,
@@ -262,8 +268,17 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
         folders = config.folders.len(),
         "crispen daemon starting"
     );
-    let shutdown = CancellationToken::new();
-    let farm = Farm::new(config.clone(), store, shutdown.clone());
+    // The lease is renewed until the last print has ended, after the shutdown token.
+    let stop_shared = CancellationToken::new();
+    let shared_task = shared.map(|(db, lease)| {
+        tracing::info!(host = %db.host(), "sharing the farm's queue through its database");
+        tokio::spawn(shared::run(
+            Arc::clone(&farm),
+            db,
+            lease,
+            stop_shared.clone(),
+        ))
+    });
     let mut fleet = Fleet::start_all(&farm, &config.printers)?;
     // The listeners outlive the shutdown token: while prints finish at a stop, the
     // operator can still watch them and cancel one.
@@ -336,6 +351,15 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     pickup.abort();
     let _ = prepare_task.await;
     fleet.join().await;
+    if let Some(task) = shared_task {
+        // Prints have ended: their outcomes are in the store.
+        stop_shared.cancel();
+        let _ = task.await;
+        let left = farm.jobs.write_pending().await.unwrap_or(0);
+        if left > 0 {
+            tracing::error!(outcomes = left, "the farm database is unreachable: outcomes not written (the jobs show as interrupted once this host's lease runs out)");
+        }
+    }
     stop_listeners.cancel();
     let _ = control_task.await;
     if let Some(task) = http_task {
@@ -344,6 +368,37 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     let _ = std::fs::remove_file(&farm.config().socket);
     tracing::info!("crispen daemon stopped");
     Ok(())
+}
+
+/// Opens the job store the config names, applies the restart rules to what this host left
+/// mid-flight, and builds the farm around it. A shared farm also returns its database and
+/// lease, for [`shared::run`].
+async fn open_store(
+    config: &Config,
+    shutdown: &CancellationToken,
+) -> Result<(Arc<Farm>, Option<(store::postgres::PgStore, Duration)>), DaemonError> {
+    let mid_flight = |id: &str, state: JobState| {
+        tracing::warn!(job = %id, state = state.name(), "job found mid-flight after a restart");
+    };
+    let Some(shared) = &config.store else {
+        let mut store = store::spool::Spool::open(&config.spool_dir)?;
+        for id in store.recover()? {
+            mid_flight(&id, store.get(&id).expect("recovered job exists").state);
+        }
+        return Ok((Farm::new(config.clone(), store, shutdown.clone()), None));
+    };
+    let db = store::postgres::PgStore::connect(&shared.postgres, &config.farm.host, shared.lease)
+        .await?;
+    let recovered = db.recover_own().await?;
+    let store = store::postgres::store::PgJobStore::open(db.clone(), &config.spool_dir).await?;
+    let farm = Farm::new(config.clone(), store, shutdown.clone());
+    for id in recovered {
+        if let Some(job) = farm.store().get(&id) {
+            mid_flight(&id, job.state);
+        }
+    }
+    let _ = farm.db.set(db.clone());
+    Ok((farm, Some((db, shared.lease))))
 }
 
 /// Binds `[http] listen`. The built-in default's port, when taken, gives way to one the
@@ -432,7 +487,12 @@ async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) 
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     if !hotfolder::is_sidecar_name(&name) {
-        match farm.jobs.admit(path, folder).await {
+        let printers = farm
+            .config()
+            .folder(folder)
+            .map(|f| f.printers.clone())
+            .unwrap_or_default();
+        match farm.jobs.admit(path, folder, &printers).await {
             Ok(job) => {
                 tracing::info!(job = %job.id, file = %path.display(), "picked up");
                 farm.bump();

@@ -45,6 +45,11 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("farm.on_shutdown", Policy::Live),
     ("farm.settle_s", Policy::Live),
     ("farm.rescan_s", Policy::Live),
+    ("farm.host", Policy::DaemonRestart),
+    ("store", Policy::DaemonRestart),
+    ("store.postgres", Policy::DaemonRestart),
+    ("store.password_file", Policy::DaemonRestart),
+    ("store.lease_s", Policy::DaemonRestart),
     ("printer", Policy::PrinterRestart),
     ("printer.port", Policy::PrinterRestart),
     ("printer.simulate", Policy::PrinterRestart),
@@ -91,6 +96,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         machines: _,
         folders,
         http,
+        store,
     } = new;
     differs("spool.dir", *spool_dir != old.spool_dir);
     differs("control.socket", *socket != old.socket);
@@ -99,11 +105,30 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         on_shutdown,
         settle,
         rescan,
+        host,
     } = farm;
     differs("farm.max_heating", *max_heating != old.farm.max_heating);
     differs("farm.on_shutdown", *on_shutdown != old.farm.on_shutdown);
     differs("farm.settle_s", *settle != old.farm.settle);
     differs("farm.rescan_s", *rescan != old.farm.rescan);
+    differs("farm.host", *host != old.farm.host);
+    match (store, &old.store) {
+        (None, None) => {}
+        (Some(new), Some(old)) => {
+            let super::config::StoreConfig { postgres, lease } = new;
+            let super::store::postgres::PgSettings {
+                conninfo,
+                password_file,
+            } = postgres;
+            differs("store.postgres", *conninfo != old.postgres.conninfo);
+            differs(
+                "store.password_file",
+                *password_file != old.postgres.password_file,
+            );
+            differs("store.lease_s", *lease != old.lease);
+        }
+        _ => differs("store", true),
+    }
     match (http, &old.http) {
         (None, None) => {}
         (Some(new), Some(old)) => {
@@ -212,6 +237,11 @@ pub fn merge(old: &Config, new: Config) -> Config {
         spool_dir: old.spool_dir.clone(),
         socket: old.socket.clone(),
         http: old.http.clone(),
+        store: old.store.clone(),
+        farm: super::config::FarmConfig {
+            host: old.farm.host.clone(),
+            ..new.farm
+        },
         ..new
     }
 }
@@ -262,7 +292,8 @@ mod tests {
     use super::*;
 
     const BASE: &str = "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
-        [farm]\nmax_heating = 2\nsettle_s = 1\nrescan_s = 10\non_shutdown = \"finish\"\n\
+        [farm]\nmax_heating = 2\nsettle_s = 1\nrescan_s = 10\non_shutdown = \"finish\"\nhost = \"rack-1\"\n\
+        [store]\npostgres = \"host=/run/postgresql dbname=crispen\"\npassword_file = \"pw\"\nlease_s = 15\n\
         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n\
         [[machine]]\nname = \"wide\"\nbased_on = \"marlin-175\"\nbed_mm = [300, 300, 300]\n\
         [[printer]]\nname = \"a\"\nfirmware = \"marlin2\"\nbaud = 115200\n[printer.simulate]\ntime_scale = 0.0\n\
@@ -298,6 +329,15 @@ mod tests {
         ("farm.on_shutdown", "\"finish\"", "\"stop\""),
         ("farm.settle_s", "settle_s = 1", "settle_s = 2"),
         ("farm.rescan_s", "rescan_s = 10", "rescan_s = 11"),
+        ("farm.host", "host = \"rack-1\"", "host = \"rack-2\""),
+        (
+            "store",
+            "[store]\npostgres = \"host=/run/postgresql dbname=crispen\"\npassword_file = \"pw\"\nlease_s = 15\n",
+            "",
+        ),
+        ("store.postgres", "dbname=crispen", "dbname=farm"),
+        ("store.password_file", "\"pw\"", "\"pw2\""),
+        ("store.lease_s", "lease_s = 15", "lease_s = 16"),
         (
             "printer",
             "[[printer]]\nname = \"b\"\nport = \"/dev/ttyUSB0\"\nfirmware = \"marlin2\"\n",

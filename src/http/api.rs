@@ -61,6 +61,7 @@ pub fn snapshot(farm: &Farm) -> StatusView {
     let status = control::status(farm);
     let config = farm.config();
     let store = farm.store();
+    let printers = farm.printer_machines();
     let jobs = status
         .jobs
         .into_iter()
@@ -74,7 +75,7 @@ pub fn snapshot(farm: &Farm) -> StatusView {
                     &dir,
                     &j.file,
                     f,
-                    &config.printers,
+                    &printers,
                     sidecar.as_ref(),
                 )
                 .ok()

@@ -16,7 +16,7 @@
 pub mod queue;
 pub mod steps;
 
-use super::config::{parse_strength, FolderConfig, PrinterConfig};
+use super::config::{parse_strength, FolderConfig};
 use super::job::{ForMachine, Sidecar};
 use crate::enhance::Strength;
 use crate::machine::Machine;
@@ -289,13 +289,14 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
 }
 
 /// Combines a folder's settings with a sidecar's overrides into a task, for the distinct
-/// machines of the printers that may take the job (`printers`: the config's).
+/// machines of the printers that may take the job (`printers`: every printer of the farm
+/// by name, with its machine; see `Farm::printer_machines`).
 pub fn resolve_task(
     job: &str,
     job_dir: &Path,
     file: &str,
     folder: &FolderConfig,
-    printers: &[PrinterConfig],
+    printers: &[(String, Machine)],
     sidecar: Option<&Sidecar>,
 ) -> Result<PrepareTask, String> {
     let mut strength = folder.strength;
@@ -328,16 +329,16 @@ pub fn resolve_task(
     }
     let wanted = sidecar.and_then(|s| s.printer.as_deref());
     let mut machines: Vec<TaskMachine> = Vec::new();
-    for p in printers {
-        let serves = folder.printers.contains(&p.name) && wanted.is_none_or(|w| w == p.name);
-        if serves && !machines.iter().any(|m| m.machine.name == p.machine.name) {
+    for (name, machine) in printers {
+        let serves = folder.printers.contains(name) && wanted.is_none_or(|w| w == name);
+        if serves && !machines.iter().any(|m| m.machine.name == machine.name) {
             let output = if is_presliced(file) {
                 job_dir.join(file)
             } else {
-                job_dir.join(format!("{file}.{}.gcode", p.machine.name))
+                job_dir.join(format!("{file}.{}.gcode", machine.name))
             };
             machines.push(TaskMachine {
-                machine: p.machine.clone(),
+                machine: machine.clone(),
                 output,
             });
         }
@@ -473,7 +474,7 @@ mod tests {
     }
 
     /// Printers a and c are Ultimaker 2s, b a 1.75 mm Marlin machine; d serves no folder.
-    fn printers() -> Vec<PrinterConfig> {
+    fn printers() -> Vec<(String, Machine)> {
         let text = "[spool]\ndir = \"s\"\n\
             [[printer]]\nname = \"a\"\nport = \"/dev/a\"\nmachine = \"ultimaker2\"\n\
             [[printer]]\nname = \"b\"\nport = \"/dev/b\"\nfirmware = \"marlin2\"\n\
@@ -482,6 +483,9 @@ mod tests {
         super::super::config::Config::parse(text, Path::new("/c.toml"))
             .unwrap()
             .printers
+            .into_iter()
+            .map(|p| (p.name, p.machine))
+            .collect()
     }
 
     #[test]

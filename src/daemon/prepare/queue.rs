@@ -25,14 +25,15 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
         }
         // A job just picked up waits the settle time, so a sidecar that arrives shortly
         // after its model still applies.
-        let settle = farm.config().farm.settle.as_secs_f64();
+        let config = farm.config();
+        let settle = config.farm.settle.as_secs_f64();
         let mut wait_s: Option<f64> = None;
         while running.len() < cores {
             let now = crate::daemon::job::now_s();
             let next = farm
                 .store()
                 .jobs()
-                .filter(|j| j.state == JobState::Queued)
+                .filter(|j| j.state == JobState::Queued && can_prepare(&config, j))
                 .find(|j| {
                     let fresh = j.history.len() == 1;
                     let left = j.history[0].1 + settle - now;
@@ -44,7 +45,14 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 })
                 .map(|j| j.id.clone());
             let Some(id) = next else { break };
-            if let Err(e) = farm.transition(&id, JobState::Preparing, None).await {
+            let claimed = farm
+                .transition_from(&id, &[JobState::Queued], JobState::Preparing, None, |_| {})
+                .await;
+            if let Err(e) = claimed {
+                if matches!(e, StoreError::StateChanged { .. }) {
+                    // Another host of the farm took it first.
+                    continue;
+                }
                 tracing::error!(job = %id, error = %e, "cannot start preparing");
                 // A job that failed for it (its directory is gone) is passed over; one
                 // still queued (the disk is full) waits for the next change.
@@ -81,6 +89,16 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
     // The shutdown token has stopped every preparation's child; wait for their jobs to be
     // put back in the queue.
     while running.join_next().await.is_some() {}
+}
+
+/// Whether this host can prepare a job: one from its own folders (a job whose folder has
+/// left the config fails, with a hint), or, in a farm shared with other hosts, one from a
+/// folder this host's config also has.
+fn can_prepare(config: &crate::daemon::config::Config, job: &crate::daemon::job::Job) -> bool {
+    match &job.origin {
+        Some(origin) if origin.host != config.farm.host => config.folder(&job.folder).is_some(),
+        _ => true,
+    }
 }
 
 /// Prepares one job and records the outcome.
@@ -141,7 +159,7 @@ fn resolve(
         &dir,
         &job.file,
         folder,
-        &config.printers,
+        &farm.printer_machines(),
         sidecar.as_ref(),
     )?;
     Ok((task, sidecar))

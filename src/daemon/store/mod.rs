@@ -15,8 +15,10 @@
 //! no other change can come between. Legal state changes stay one table,
 //! [`JobState::can_go_to`], applied by [`Job::apply_transition`] inside the store.
 //!
-//! [`postgres`] is the farm's queue in PostgreSQL for several hosts: its schema, claims and
-//! leases, tested against a real server; it is not a [`JobStore`] of the daemon yet.
+//! [`postgres`] is the second store: the farm's queue in PostgreSQL, shared by several
+//! hosts. Other hosts change jobs too, so its store reloads them on [`StoreHandle::resync`]
+//! and the snapshot is rebuilt; a state check (`from`) is made inside the store, where the
+//! database row is locked, never against a snapshot that may be stale.
 
 pub mod postgres;
 pub mod spool;
@@ -44,15 +46,23 @@ pub trait JobStore: Send + 'static {
     /// Returns the ids changed.
     fn recover(&mut self) -> Result<Vec<String>, StoreError>;
     /// Makes a complete file of a hot folder a queued job, or leaves it where it was.
-    fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError>;
+    /// `printers` is the folder's rule, for stores whose other hosts lack the folder.
+    fn admit(
+        &mut self,
+        source: &Path,
+        folder: &Path,
+        printers: &[String],
+    ) -> Result<Job, StoreError>;
     /// Takes a sidecar that arrived after its model: as the job's sidecar when `applies`,
     /// else kept aside. Returns `applies`.
     fn late_sidecar(&mut self, id: &str, sidecar: &Path, applies: bool)
         -> Result<bool, StoreError>;
-    /// Changes a job's state (checked against the table) with `also`'s changes, persisted.
+    /// Changes a job's state (checked against the table, and first against `from`, the
+    /// states it must be in now) with `also`'s changes, persisted.
     fn transition_with(
         &mut self,
         id: &str,
+        from: Option<StateFilter>,
         state: JobState,
         reason: Option<String>,
         also: JobEdit,
@@ -76,6 +86,23 @@ pub trait JobStore: Send + 'static {
     fn write_pending(&mut self) -> usize;
     /// How many recorded outcomes (and bed gates) wait to be persisted.
     fn unwritten(&self) -> usize;
+    /// Takes in changes made elsewhere (other hosts of a shared store); true when it did,
+    /// so the snapshot must be rebuilt. A store only this daemon changes has none.
+    fn resync(&mut self) -> bool {
+        false
+    }
+}
+
+/// Checks that a job is in one of the states `from` (when given).
+pub fn check_from(job: &Job, from: Option<StateFilter>) -> Result<(), StoreError> {
+    match from {
+        Some(from) if !from.contains(&job.state) => Err(StoreError::StateChanged {
+            id: job.id.clone(),
+            state: job.state,
+            expected: names(from),
+        }),
+        _ => Ok(()),
+    }
 }
 
 /// An immutable picture of every job and bed gate, as of the store's last change.
@@ -155,6 +182,7 @@ enum Request {
     Admit {
         source: PathBuf,
         folder: PathBuf,
+        printers: Vec<String>,
         reply: Reply<Job>,
     },
     LateSidecar {
@@ -204,6 +232,9 @@ enum Request {
     WritePending {
         reply: Reply<usize>,
     },
+    Resync {
+        reply: Reply<bool>,
+    },
 }
 
 /// What became of a sidecar that arrived after its model had become a job.
@@ -232,9 +263,10 @@ impl Request {
             Request::Admit {
                 source,
                 folder,
+                printers,
                 reply,
             } => {
-                let result = store.admit(&source, &folder);
+                let result = store.admit(&source, &folder, &printers);
                 if let Ok(job) = &result {
                     view.refresh(store, &job.id);
                 }
@@ -273,17 +305,7 @@ impl Request {
                 also,
                 reply,
             } => {
-                let result = match (view.get(&id), from) {
-                    (None, _) => Err(StoreError::NoSuchJob(id.clone())),
-                    (Some(job), Some(from)) if !from.contains(&job.state) => {
-                        Err(StoreError::StateChanged {
-                            id: id.clone(),
-                            state: job.state,
-                            expected: names(from),
-                        })
-                    }
-                    _ => store.transition_with(&id, to, reason, also),
-                };
+                let result = store.transition_with(&id, from, to, reason, also);
                 view.refresh(store, &id);
                 deliver(reply, result)
             }
@@ -339,6 +361,13 @@ impl Request {
                 view.unwritten = store.unwritten();
                 deliver(reply, result)
             }
+            Request::Resync { reply } => {
+                let changed = store.resync();
+                if changed {
+                    *view = Snapshot::of(store);
+                }
+                deliver(reply, Ok(changed))
+            }
             Request::WritePending { reply } => {
                 // Only the persisted copy changes: the view already shows these outcomes.
                 let left = store.write_pending();
@@ -355,7 +384,8 @@ fn names(states: StateFilter) -> String {
 }
 
 /// Takes the oldest ready job `eligible` for `printer`, marking it printing. A job that
-/// fails as it is claimed (its directory is gone) is passed over for the next one.
+/// fails as it is claimed (its directory is gone), or that another host took first, is
+/// passed over for the next one.
 fn claim(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
@@ -371,6 +401,7 @@ fn claim(
         let name = printer.to_string();
         let claimed = store.transition_with(
             &id,
+            Some(&[JobState::Ready]),
             JobState::Printing,
             None,
             Box::new(move |j| j.printer = Some(name)),
@@ -378,6 +409,7 @@ fn claim(
         view.refresh(store, &id);
         match claimed {
             Ok(job) => return Ok(Some(job)),
+            Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
             Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
             Err(e) => return Err(e),
         }
@@ -465,11 +497,18 @@ impl StoreHandle {
         answer.await.map_err(|_| StoreError::Stopped)?
     }
 
-    pub async fn admit(&self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
+    pub async fn admit(
+        &self,
+        source: &Path,
+        folder: &Path,
+        printers: &[String],
+    ) -> Result<Job, StoreError> {
         let (source, folder) = (source.to_path_buf(), folder.to_path_buf());
+        let printers = printers.to_vec();
         self.ask(|reply| Request::Admit {
             source,
             folder,
+            printers,
             reply,
         })
         .await
@@ -617,5 +656,10 @@ impl StoreHandle {
     /// Persists outcomes that could not be written before; returns how many remain.
     pub async fn write_pending(&self) -> Result<usize, StoreError> {
         self.ask(|reply| Request::WritePending { reply }).await
+    }
+
+    /// Takes in what other hosts changed (see [`JobStore::resync`]); true when anything had.
+    pub async fn resync(&self) -> Result<bool, StoreError> {
+        self.ask(|reply| Request::Resync { reply }).await
     }
 }

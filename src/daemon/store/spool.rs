@@ -8,7 +8,7 @@
 //!
 //! The embedded, single-host implementation of [`JobStore`]: the default.
 
-use super::{JobEdit, JobStore};
+use super::{JobEdit, JobStore, StateFilter};
 use crate::daemon::job::{now_s, ForMachine, Job, JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -31,7 +31,31 @@ pub struct Spool {
     gates_unwritten: bool,
 }
 
-fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
+/// Creates `root/jobs` and takes `root/lock`, so two daemons never share a directory.
+pub(super) fn lock_dir(root: &Path) -> Result<nix::fcntl::Flock<std::fs::File>, StoreError> {
+    let jobs_dir = root.join("jobs");
+    std::fs::create_dir_all(&jobs_dir).map_err(io_err(&jobs_dir, "create"))?;
+    let lock_path = root.join("lock");
+    let lock_file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&lock_path)
+        .map_err(io_err(&lock_path, "open"))?;
+    nix::fcntl::Flock::lock(lock_file, nix::fcntl::FlockArg::LockExclusiveNonblock).map_err(
+        |(_, errno)| match errno {
+            nix::errno::Errno::EWOULDBLOCK => StoreError::Locked {
+                path: root.to_path_buf(),
+            },
+            e => io_err(&lock_path, "lock")(e.into()),
+        },
+    )
+}
+
+pub(super) fn io_err(
+    path: &Path,
+    action: &'static str,
+) -> impl FnOnce(std::io::Error) -> StoreError {
     let path = path.to_path_buf();
     move |source| StoreError::Io {
         path,
@@ -62,21 +86,7 @@ impl Spool {
     /// folder) is left alone and logged.
     pub fn open(root: &Path) -> Result<Spool, StoreError> {
         let jobs_dir = root.join("jobs");
-        std::fs::create_dir_all(&jobs_dir).map_err(io_err(&jobs_dir, "create"))?;
-        let lock_path = root.join("lock");
-        let lock_file = std::fs::OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&lock_path)
-            .map_err(io_err(&lock_path, "open"))?;
-        let lock = nix::fcntl::Flock::lock(lock_file, nix::fcntl::FlockArg::LockExclusiveNonblock)
-            .map_err(|(_, errno)| match errno {
-                nix::errno::Errno::EWOULDBLOCK => StoreError::Locked {
-                    path: root.to_path_buf(),
-                },
-                e => io_err(&lock_path, "lock")(e.into()),
-            })?;
+        let lock = lock_dir(root)?;
         let mut jobs = BTreeMap::new();
         let mut next_seq = 1;
         for entry in std::fs::read_dir(&jobs_dir).map_err(io_err(&jobs_dir, "list"))? {
@@ -262,18 +272,7 @@ impl Spool {
         };
         let seq = self.next_seq;
         self.next_seq += 1;
-        let stem: String = file
-            .chars()
-            .map(|c| {
-                if c.is_ascii_alphanumeric() || c == '-' {
-                    c
-                } else {
-                    '_'
-                }
-            })
-            .take(40)
-            .collect();
-        let id = format!("{seq:04}-{stem}");
+        let id = Job::make_id(seq, &file);
         let dir = self.job_dir(&id);
         let mut sidecar_name = source.as_os_str().to_owned();
         sidecar_name.push(".toml");
@@ -532,7 +531,12 @@ impl JobStore for Spool {
     fn recover(&mut self) -> Result<Vec<String>, StoreError> {
         Spool::recover(self)
     }
-    fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
+    fn admit(
+        &mut self,
+        source: &Path,
+        folder: &Path,
+        _printers: &[String],
+    ) -> Result<Job, StoreError> {
         Spool::admit(self, source, folder)
     }
     fn late_sidecar(
@@ -546,11 +550,15 @@ impl JobStore for Spool {
     fn transition_with(
         &mut self,
         id: &str,
+        from: Option<StateFilter>,
         state: JobState,
         reason: Option<String>,
         also: JobEdit,
     ) -> Result<Job, StoreError> {
-        Spool::transition_with(self, id, state, reason, also)
+        self.change(id, |job| {
+            super::check_from(job, from)?;
+            job.apply_transition(state, reason, also)
+        })
     }
     fn record_outcome(
         &mut self,
@@ -594,7 +602,7 @@ fn read_origin(dir: &Path) -> Option<Origin> {
 }
 
 /// Names of the files crispen keeps in a job directory besides the model's own.
-fn is_reserved_name(name: &str) -> bool {
+pub(super) fn is_reserved_name(name: &str) -> bool {
     matches!(name, "job.json" | "origin.json" | "job.tmp" | "origin.tmp")
         || name.starts_with(".crispen-")
 }
@@ -668,7 +676,7 @@ fn unreadable_job(dir: &Path, id: &str, seq: u64, error: &StoreError) -> Job {
 /// Moves a file, copying it when `from` and `to` are on different filesystems. A copy
 /// goes to a temporary name first and is renamed into place only once whole and synced,
 /// so a copy cut short (a full disk) never passes for the file.
-fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
+pub(super) fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
     match std::fs::rename(from, to) {
         Ok(()) => Ok(()),
         Err(e) if e.raw_os_error() == Some(nix::libc::EXDEV) => {

@@ -2,22 +2,31 @@
 //! nothing but the database: jobs with their history, reports and files, printers with
 //! their bed gates, and each host's lease.
 //!
-//! Every change is one transaction, and a job only changes through the claims,
-//! [`PgStore::finish`] or [`PgStore::transition`], which check [`JobState::can_go_to`], the same table as the spool's.
-//! Claims take the oldest waiting job with `FOR UPDATE SKIP LOCKED`, so hosts claiming at
-//! once never wait on each other and a job goes to one printer once. A host that stops
-//! renewing its lease loses its work by the rules of [`PgStore::expire_hosts`]: preparing
-//! jobs go back to the queue, printing jobs become `interrupted` (never reprinted on their
-//! own), and its printers show as offline with the time they were last seen.
+//! Every change of a job is one transaction on its locked row ([`PgStore::modify`]),
+//! checked against [`JobState::can_go_to`], the same table as the spool's, and against who
+//! holds the job: a job preparing or printing belongs to the host that claimed it, and
+//! only that host records what became of it. Claims of the oldest waiting job
+//! ([`PgStore::claim_preparation`], [`PgStore::claim_print`]) use `FOR UPDATE SKIP LOCKED`,
+//! so hosts claiming at once never wait on each other and a job goes to one printer once.
+//! A host that stops renewing its lease loses its work by the rules of
+//! [`PgStore::expire_hosts`]: preparing jobs go back to the queue, printing jobs become
+//! `interrupted` (never reprinted on their own), and its printers show as offline with the
+//! time they were last seen.
 //!
 //! - [`schema`]: the versioned schema and its migrations.
+//! - [`store`]: the daemon's [`super::JobStore`] over it: a local copy of each job's files,
+//!   and outcomes kept while the database is unreachable.
 
 pub mod schema;
+pub mod store;
 
-use crate::daemon::job::{Job, JobState};
-use std::path::PathBuf;
+use super::JobEdit;
+use super::StateFilter;
+use crate::daemon::job::{Job, JobState, Origin, PrinterGate, StoreError};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
-use tokio_postgres::Row;
+use tokio_postgres::{GenericClient, Row};
 
 #[derive(Debug, thiserror::Error)]
 pub enum PgError {
@@ -41,19 +50,14 @@ pub enum PgError {
     Pool(#[from] deadpool_postgres::PoolError),
     #[error("the farm database: {0}")]
     Db(#[from] tokio_postgres::Error),
-    #[error("no job {0:?} in the farm database (hint: `crispen status` lists the jobs)")]
-    NoSuchJob(String),
-    #[error("job {id} cannot go from {from} to {to}")]
-    IllegalTransition {
+    /// What the job's rules refused (no such job, a change the table forbids, a claim lost).
+    #[error(transparent)]
+    Job(#[from] StoreError),
+    #[error("job {id}: file {name}: {source}")]
+    File {
         id: String,
-        from: JobState,
-        to: JobState,
-    },
-    #[error("job {id} is no longer held by host {host} (its lease expired and the job is {state} now); the outcome was not recorded")]
-    LostClaim {
-        id: String,
-        host: String,
-        state: JobState,
+        name: String,
+        source: std::io::Error,
     },
     #[error(
         "job {id}: the farm database holds a value this crispen cannot read ({what}): {message}"
@@ -71,6 +75,23 @@ pub struct PgSettings {
     /// A libpq connection string without a password (`host=/run/postgresql dbname=crispen`).
     pub conninfo: String,
     pub password_file: Option<PathBuf>,
+}
+
+impl From<PgError> for StoreError {
+    fn from(e: PgError) -> StoreError {
+        match e {
+            PgError::Job(e) => e,
+            other => StoreError::Database(other.to_string()),
+        }
+    }
+}
+
+impl PgError {
+    /// The database could not be reached or answered with a failure of its own (as opposed
+    /// to refusing the change by the job's rules).
+    pub fn is_outage(&self) -> bool {
+        matches!(self, PgError::Pool(_) | PgError::Db(_))
+    }
 }
 
 /// A host's handle on the farm database: a small pool of connections and its own name.
@@ -98,15 +119,82 @@ pub struct FarmPrinter {
     /// The host's lease has run out: the printer is offline since `last_seen_s`.
     pub offline: bool,
     pub last_seen_s: f64,
+    /// What its host last published: its live status and its machine (JSON).
+    pub status: Option<serde_json::Value>,
+    pub machine: Option<serde_json::Value>,
+}
+
+/// A host of the farm and its lease.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FarmHost {
+    pub name: String,
+    pub alive: bool,
+    /// Seconds since the epoch of its last heartbeat.
+    pub last_seen: f64,
+}
+
+/// A change of one job, made by [`PgStore::modify`] on its locked row.
+pub struct Change<'a> {
+    /// The states the job must be in now (else [`StoreError::StateChanged`]). A job
+    /// preparing or printing must also be held by this host (else
+    /// [`StoreError::LostClaim`]), unless the change cancels it.
+    pub from: Option<StateFilter>,
+    /// The new state; `None` changes other fields only.
+    pub to: Option<JobState>,
+    pub reason: Option<String>,
+    pub edit: JobEdit,
+    /// A local job directory whose files the database lacks are stored with the change
+    /// (preparation's G-code, as the job becomes ready).
+    pub upload_from: Option<&'a Path>,
+    /// A local job directory to write the job's files into that it lacks (a host taking
+    /// a job another host picked up); `only_gcode` limits it to G-code.
+    pub download_to: Option<(&'a Path, bool)>,
+}
+
+impl Change<'_> {
+    pub fn to(state: JobState) -> Change<'static> {
+        Change {
+            from: None,
+            to: Some(state),
+            reason: None,
+            edit: Box::new(|_| {}),
+            upload_from: None,
+            download_to: None,
+        }
+    }
+}
+
+/// A file a job may not have in the database: the column holds at most 1 GiB.
+pub const MAX_FILE_BYTES: u64 = 1 << 30;
+
+/// Checks a `[store] postgres` connection string as the config is read: it parses, and
+/// holds no password.
+pub fn check_conninfo(conninfo: &str) -> Result<(), String> {
+    let settings = PgSettings {
+        conninfo: conninfo.to_string(),
+        password_file: None,
+    };
+    client_config(&settings).map(|_| ()).map_err(|e| match e {
+        PgError::PasswordInConnectionString(m) => {
+            format!("{m} (hint: put the password in [store] password_file or PGPASSWORD)")
+        }
+        PgError::BadConnectionString(m) => m,
+        other => other.to_string(),
+    })
 }
 
 /// Checks the connection string (no password in it) and builds the client settings, with
 /// the password from `password_file` or `PGPASSWORD`.
 fn client_config(settings: &PgSettings) -> Result<tokio_postgres::Config, PgError> {
-    let config: tokio_postgres::Config = settings
-        .conninfo
-        .parse()
-        .map_err(|e: tokio_postgres::Error| PgError::BadConnectionString(e.to_string()))?;
+    let config: tokio_postgres::Config =
+        settings
+            .conninfo
+            .parse()
+            .map_err(|e: tokio_postgres::Error| {
+                // The parser's reason (e.g. the unknown option) is the error's source.
+                let reason = std::error::Error::source(&e).map(|s| format!(": {s}"));
+                PgError::BadConnectionString(format!("{e}{}", reason.unwrap_or_default()))
+            })?;
     if config.get_password().is_some() {
         return Err(PgError::PasswordInConnectionString(
             "the connection string holds a password",
@@ -191,27 +279,59 @@ impl PgStore {
     }
 
     /// Applies the expiry rules to every host whose lease ran out (any host may run this;
-    /// each dead host is handled once): its preparing jobs go back to the queue, its
-    /// printing jobs become `interrupted` and their printers wait for their beds.
+    /// each dead host is handled once). A lease is only judged once the database has been
+    /// up for that long itself: after the database's own restart every host gets a full
+    /// lease to come back before its work is taken.
     pub async fn expire_hosts(&self) -> Result<Expired, PgError> {
-        // Both changes are legal in the one table; the test below keeps it so.
-        debug_assert!(JobState::Preparing.can_go_to(JobState::Queued));
-        debug_assert!(JobState::Printing.can_go_to(JobState::Interrupted));
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
-        let hosts: Vec<String> = tx
+        let hosts: Vec<String> = ids(tx
             .query(
                 "UPDATE hosts SET expired_at = now() \
-                 WHERE lease_until < now() AND expired_at IS NULL RETURNING name",
+                 WHERE lease_until < now() AND expired_at IS NULL \
+                 AND pg_postmaster_start_time() < now() - (lease_until - last_seen) \
+                 RETURNING name",
                 &[],
             )
-            .await?
-            .iter()
-            .map(|r| r.get(0))
-            .collect();
+            .await?);
         if hosts.is_empty() {
             return Ok(Expired::default());
         }
+        let why = "stopped renewing its lease";
+        let (requeued, interrupted) = self.release_work(&tx, &hosts, why).await?;
+        tx.commit().await?;
+        Ok(Expired {
+            hosts,
+            requeued,
+            interrupted,
+        })
+    }
+
+    /// The restart rules for this host's own work (it stopped without handing it back):
+    /// preparing jobs go back to the queue, printing jobs become interrupted.
+    pub async fn recover_own(&self) -> Result<Vec<String>, PgError> {
+        let mut client = self.pool.get().await?;
+        let tx = client.transaction().await?;
+        let hosts = [self.host.clone()];
+        let (mut requeued, interrupted) = self
+            .release_work(&tx, &hosts, "restarted during the print")
+            .await?;
+        tx.commit().await?;
+        requeued.extend(interrupted);
+        Ok(requeued)
+    }
+
+    /// Hands back the work `hosts` held: preparing → queued, printing → interrupted (with
+    /// its printer's bed to be cleared). Returns (requeued, interrupted).
+    async fn release_work(
+        &self,
+        tx: &tokio_postgres::Transaction<'_>,
+        hosts: &[String],
+        why: &str,
+    ) -> Result<(Vec<String>, Vec<String>), PgError> {
+        // Both changes are legal in the one table; the test below keeps it so.
+        debug_assert!(JobState::Preparing.can_go_to(JobState::Queued));
+        debug_assert!(JobState::Printing.can_go_to(JobState::Interrupted));
         let requeued = ids(tx
             .query(
                 "UPDATE jobs SET state = 'queued', claimed_by = NULL, updated_at = now() \
@@ -222,9 +342,9 @@ impl PgStore {
         let interrupted_rows = tx
             .query(
                 "UPDATE jobs SET state = 'interrupted', claimed_by = NULL, updated_at = now(), \
-                 reason = 'host ' || claimed_by || ' stopped renewing its lease during the print' \
+                 reason = 'host ' || claimed_by || ' ' || $2 \
                  WHERE state = 'printing' AND claimed_by = ANY($1) RETURNING id, printer",
-                &[&hosts],
+                &[&hosts, &why],
             )
             .await?;
         for row in &interrupted_rows {
@@ -245,19 +365,14 @@ impl PgStore {
         }
         tx.execute("SELECT pg_notify('crispen_jobs', '')", &[])
             .await?;
-        tx.commit().await?;
-        Ok(Expired {
-            hosts,
-            requeued,
-            interrupted,
-        })
+        Ok((requeued, interrupted))
     }
 
     /// Records a picked-up file as a queued job of this host's folder `folder`, with its
-    /// files, all or nothing. `printers` is the folder's rule.
+    /// files, all or nothing. `printers` is the folder's rule; the id is made from the
+    /// farm-wide sequence number.
     pub async fn admit(
         &self,
-        id: &str,
         file: &str,
         folder: &str,
         printers: &[String],
@@ -265,28 +380,50 @@ impl PgStore {
     ) -> Result<Job, PgError> {
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
+        let seq: i64 = tx
+            .query_one("SELECT nextval(pg_get_serial_sequence('jobs', 'seq'))", &[])
+            .await?
+            .get(0);
+        let mut job = Job::queued(
+            Job::make_id(seq as u64, file),
+            seq as u64,
+            file.to_string(),
+            PathBuf::from(folder),
+        );
+        job.origin = Some(Origin {
+            host: self.host.clone(),
+            printers: printers.to_vec(),
+        });
         tx.execute(
-            "INSERT INTO jobs (id, file, origin_host, folder, printers, state) \
-             VALUES ($1, $2, $3, $4, $5, 'queued')",
-            &[&id, &file, &self.host, &folder, &printers],
+            "INSERT INTO jobs (id, seq, file, origin_host, folder, printers, state, record) \
+             OVERRIDING SYSTEM VALUE VALUES ($1, $2, $3, $4, $5, $6, 'queued', $7)",
+            &[
+                &job.id,
+                &seq,
+                &file,
+                &self.host,
+                &folder,
+                &printers,
+                &record_of(&job),
+            ],
         )
         .await?;
         for (name, bytes) in files {
             tx.execute(
                 "INSERT INTO job_files (job_id, name, bytes) VALUES ($1, $2, $3)",
-                &[&id, name, bytes],
+                &[&job.id, name, bytes],
             )
             .await?;
         }
         tx.execute(
             "INSERT INTO job_history (job_id, state, host) VALUES ($1, 'queued', $2)",
-            &[&id, &self.host],
+            &[&job.id, &self.host],
         )
         .await?;
-        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&id])
+        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&job.id])
             .await?;
         tx.commit().await?;
-        one_job(&client, id).await
+        Ok(one_job(&**client, &job.id).await?)
     }
 
     /// Takes the oldest queued job for preparation on this host, if any.
@@ -328,97 +465,158 @@ impl PgStore {
             return Ok(None);
         };
         let id: String = row.get(0);
-        tx.execute(
-            "UPDATE jobs SET state = $2, claimed_by = $3, printer = COALESCE($4, printer), \
-             updated_at = now() WHERE id = $1",
-            &[&id, &to.name(), &self.host, &printer],
-        )
-        .await?;
-        tx.execute(
-            "INSERT INTO job_history (job_id, state, host) VALUES ($1, $2, $3)",
-            &[&id, &to.name(), &self.host],
-        )
-        .await?;
+        let printer = printer.map(str::to_string);
+        let mut change = Change::to(to);
+        change.edit = Box::new(move |j| {
+            if printer.is_some() {
+                j.printer = printer;
+            }
+        });
+        let job = self.modify_in(&tx, &id, change).await?;
         tx.commit().await?;
-        Ok(Some(one_job(&client, &id).await?))
+        Ok(Some(job))
     }
 
     /// Records the outcome of this host's own work on a job (`from` is preparing or
-    /// printing): refused with [`PgError::LostClaim`] when the job is no longer in `from`
-    /// held by this host, because its lease expired and the farm moved the job on, so a
-    /// print is never recorded over the farm's decision.
+    /// printing): refused when the job is no longer in `from` held by this host, because
+    /// its lease expired and the farm moved the job on, so a print is never recorded over
+    /// the farm's decision.
     pub async fn finish(
         &self,
         id: &str,
-        from: JobState,
+        from: StateFilter,
         to: JobState,
         reason: Option<&str>,
     ) -> Result<Job, PgError> {
-        self.change(id, Some(from), to, reason).await
+        let mut change = Change::to(to);
+        change.from = Some(from);
+        change.reason = reason.map(str::to_string);
+        self.modify(id, change).await
     }
 
-    /// An operator's change (cancel, retry, clear), from any host, if the one table allows it.
+    /// An operator's change (cancel, retry), from any host, if the one table allows it.
     pub async fn transition(
         &self,
         id: &str,
         to: JobState,
         reason: Option<&str>,
     ) -> Result<Job, PgError> {
-        self.change(id, None, to, reason).await
+        let mut change = Change::to(to);
+        change.reason = reason.map(str::to_string);
+        self.modify(id, change).await
     }
 
-    async fn change(
+    /// Makes one change of a job as one transaction on its locked row (see [`Change`]).
+    pub async fn modify(&self, id: &str, change: Change<'_>) -> Result<Job, PgError> {
+        let mut client = self.pool.get().await?;
+        let tx = client.transaction().await?;
+        let job = self.modify_in(&tx, id, change).await?;
+        tx.commit().await?;
+        Ok(job)
+    }
+
+    async fn modify_in(
         &self,
+        tx: &tokio_postgres::Transaction<'_>,
         id: &str,
-        held_in: Option<JobState>,
-        to: JobState,
-        reason: Option<&str>,
+        change: Change<'_>,
     ) -> Result<Job, PgError> {
+        let row = tx
+            .query_opt(&format!("{JOB_COLUMNS} WHERE id = $1 FOR UPDATE"), &[&id])
+            .await?
+            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+        let mut job = job_of_row(&row)?;
+        let holder: Option<String> = row.get(JOB_COLUMN_COUNT);
+        let mine = holder.as_deref() == Some(self.host.as_str());
+        super::check_from(&job, change.from)?;
+        // Work in progress is its host's to record; an operator may only cancel it.
+        if is_held(job.state) && !mine && change.to != Some(JobState::Cancelled) {
+            return Err(StoreError::LostClaim {
+                id: id.to_string(),
+                host: self.host.clone(),
+                state: job.state,
+            }
+            .into());
+        }
+        let before = job.state;
+        match change.to {
+            Some(to) => job.apply_transition(to, change.reason, change.edit)?,
+            None => (change.edit)(&mut job),
+        }
+        let state = change.to.unwrap_or(before);
+        job.state = state;
+        if let Some(dir) = change.upload_from {
+            upload_missing(tx, &job.id, dir).await?;
+        }
+        if let Some((dir, only_gcode)) = change.download_to {
+            download_missing(tx, &job.id, dir, only_gcode).await?;
+        }
+        let holder = is_held(state).then(|| self.host.clone());
+        self.write_row(tx, &job, holder.as_deref(), state != before)
+            .await?;
+        one_job(tx, id).await
+    }
+
+    /// Writes a job's row (its state, printer, reason and record) with the host holding it.
+    async fn write_row(
+        &self,
+        tx: &tokio_postgres::Transaction<'_>,
+        job: &Job,
+        holder: Option<&str>,
+        state_changed: bool,
+    ) -> Result<(), PgError> {
+        tx.execute(
+            "UPDATE jobs SET state = $2, printer = $3, reason = $4, record = $5, \
+             claimed_by = $6, updated_at = now() WHERE id = $1",
+            &[
+                &job.id,
+                &job.state.name(),
+                &job.printer,
+                &job.reason,
+                &record_of(job),
+                &holder,
+            ],
+        )
+        .await?;
+        if state_changed {
+            tx.execute(
+                "INSERT INTO job_history (job_id, state, host) VALUES ($1, $2, $3)",
+                &[&job.id, &job.state.name(), &self.host],
+            )
+            .await?;
+        }
+        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&job.id])
+            .await?;
+        Ok(())
+    }
+
+    /// Writes an outcome recorded while the database was unreachable: `job` as this host
+    /// left it, if the job is still `from` and held by this host.
+    pub async fn write_outcome(&self, job: &Job, from: JobState) -> Result<Job, PgError> {
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
         let row = tx
             .query_opt(
                 "SELECT state, claimed_by FROM jobs WHERE id = $1 FOR UPDATE",
-                &[&id],
+                &[&job.id],
             )
             .await?
-            .ok_or_else(|| PgError::NoSuchJob(id.to_string()))?;
-        let from = parse_state(id, row.get(0))?;
-        let claimed_by: Option<String> = row.get(1);
-        if let Some(held_in) = held_in {
-            if from != held_in || claimed_by.as_deref() != Some(self.host.as_str()) {
-                return Err(PgError::LostClaim {
-                    id: id.to_string(),
-                    host: self.host.clone(),
-                    state: from,
-                });
+            .ok_or_else(|| StoreError::NoSuchJob(job.id.clone()))?;
+        let state = parse_state(&job.id, row.get(0))?;
+        let holder: Option<String> = row.get(1);
+        if state != from || holder.as_deref() != Some(self.host.as_str()) {
+            return Err(StoreError::LostClaim {
+                id: job.id.clone(),
+                host: self.host.clone(),
+                state,
             }
+            .into());
         }
-        if !from.can_go_to(to) {
-            return Err(PgError::IllegalTransition {
-                id: id.to_string(),
-                from,
-                to,
-            });
-        }
-        // A job keeps its host while it moves between preparing and printing states of
-        // that host's work; any other state is nobody's.
-        let keeps_claim = matches!(to, JobState::Preparing | JobState::Printing);
-        tx.execute(
-            "UPDATE jobs SET state = $2, reason = COALESCE($3, reason), updated_at = now(), \
-             claimed_by = CASE WHEN $4 THEN claimed_by ELSE NULL END WHERE id = $1",
-            &[&id, &to.name(), &reason, &keeps_claim],
-        )
-        .await?;
-        tx.execute(
-            "INSERT INTO job_history (job_id, state, host) VALUES ($1, $2, $3)",
-            &[&id, &to.name(), &self.host],
-        )
-        .await?;
-        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&id])
+        let holder = is_held(job.state).then(|| self.host.clone());
+        self.write_row(&tx, job, holder.as_deref(), job.state != from)
             .await?;
         tx.commit().await?;
-        one_job(&client, id).await
+        Ok(one_job(&**client, &job.id).await?)
     }
 
     /// Stores (or replaces) one of a job's files.
@@ -445,36 +643,80 @@ impl PgStore {
             .map(|r| r.get(0)))
     }
 
-    /// Registers (or moves to this host) one of this host's printers.
-    pub async fn register_printer(&self, name: &str) -> Result<(), PgError> {
+    /// The names of a job's files.
+    pub async fn file_names(&self, id: &str) -> Result<Vec<String>, PgError> {
+        let client = self.pool.get().await?;
+        Ok(ids(client
+            .query("SELECT name FROM job_files WHERE job_id = $1", &[&id])
+            .await?))
+    }
+
+    /// Registers (or moves to this host) one of this host's printers, with its machine.
+    pub async fn register_printer(
+        &self,
+        name: &str,
+        machine: Option<&serde_json::Value>,
+    ) -> Result<(), PgError> {
         let client = self.pool.get().await?;
         client
             .execute(
-                "INSERT INTO printers (name, host) VALUES ($1, $2) \
-                 ON CONFLICT (name) DO UPDATE SET host = EXCLUDED.host, last_seen = now()",
-                &[&name, &self.host],
+                "INSERT INTO printers (name, host, machine) VALUES ($1, $2, $3) \
+                 ON CONFLICT (name) DO UPDATE SET host = EXCLUDED.host, \
+                 machine = EXCLUDED.machine, last_seen = now()",
+                &[&name, &self.host, &machine],
             )
             .await?;
         Ok(())
     }
 
-    /// Sets a printer's bed gate: a print ended on it (`true`) or its bed was cleared.
-    pub async fn set_bed_gate(
+    /// Publishes the live status of this host's printers (JSON, by name).
+    pub async fn publish_printers(
         &self,
-        printer: &str,
-        bed_not_cleared: bool,
-        last_job: Option<&str>,
+        statuses: &[(String, serde_json::Value)],
     ) -> Result<(), PgError> {
         let client = self.pool.get().await?;
-        let changed = client
+        for (name, status) in statuses {
+            client
+                .execute(
+                    "UPDATE printers SET status = $3, last_seen = now() \
+                     WHERE name = $1 AND host = $2",
+                    &[name, &self.host, status],
+                )
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// Sets a printer's bed gate (any host's printer: an operator clears beds farm-wide).
+    pub async fn set_gate(&self, printer: &str, gate: &PrinterGate) -> Result<(), PgError> {
+        let client = self.pool.get().await?;
+        client
             .execute(
-                "UPDATE printers SET bed_not_cleared = $2, last_job = COALESCE($3, last_job) \
-                 WHERE name = $1",
-                &[&printer, &bed_not_cleared, &last_job],
+                "INSERT INTO printers (name, host, bed_not_cleared, last_job) \
+                 VALUES ($1, $2, $3, $4) ON CONFLICT (name) DO UPDATE \
+                 SET bed_not_cleared = EXCLUDED.bed_not_cleared, last_job = EXCLUDED.last_job",
+                &[&printer, &self.host, &gate.bed_not_cleared, &gate.last_job],
             )
             .await?;
-        debug_assert!(changed <= 1);
         Ok(())
+    }
+
+    /// Every printer's bed gate.
+    pub async fn gates(&self) -> Result<BTreeMap<String, PrinterGate>, PgError> {
+        let client = self.pool.get().await?;
+        let rows = client
+            .query("SELECT name, bed_not_cleared, last_job FROM printers", &[])
+            .await?;
+        Ok(rows
+            .iter()
+            .map(|r| {
+                let gate = PrinterGate {
+                    bed_not_cleared: r.get(1),
+                    last_job: r.get(2),
+                };
+                (r.get(0), gate)
+            })
+            .collect())
     }
 
     /// Every printer of the farm, with whether its host is offline.
@@ -483,7 +725,8 @@ impl PgStore {
         let rows = client
             .query(
                 "SELECT p.name, p.host, p.bed_not_cleared, p.last_job, \
-                 h.lease_until < now(), extract(epoch FROM p.last_seen)::float8 \
+                 h.lease_until < now(), extract(epoch FROM p.last_seen)::float8, \
+                 p.status, p.machine \
                  FROM printers p JOIN hosts h ON h.name = p.host ORDER BY p.name",
                 &[],
             )
@@ -497,50 +740,214 @@ impl PgStore {
                 last_job: r.get(3),
                 offline: r.get(4),
                 last_seen_s: r.get(5),
+                status: r.get(6),
+                machine: r.get(7),
             })
             .collect())
     }
 
+    /// Every host of the farm and whether its lease holds.
+    pub async fn hosts(&self) -> Result<Vec<FarmHost>, PgError> {
+        let client = self.pool.get().await?;
+        let rows = client
+            .query(
+                "SELECT name, lease_until >= now(), extract(epoch FROM last_seen)::float8 \
+                 FROM hosts ORDER BY name",
+                &[],
+            )
+            .await?;
+        Ok(rows
+            .iter()
+            .map(|r| FarmHost {
+                name: r.get(0),
+                alive: r.get(1),
+                last_seen: r.get(2),
+            })
+            .collect())
+    }
+
+    /// Asks the host of `printer` to pause, resume or cancel its print; false when the
+    /// farm has no such printer.
+    pub async fn push_command(&self, printer: &str, command: &str) -> Result<bool, PgError> {
+        let client = self.pool.get().await?;
+        let added = client
+            .execute(
+                "INSERT INTO commands (host, printer, command) \
+                 SELECT host, name, $2 FROM printers WHERE name = $1",
+                &[&printer, &command],
+            )
+            .await?;
+        Ok(added == 1)
+    }
+
+    /// Takes the commands other hosts left for this host's printers, oldest first.
+    pub async fn take_commands(&self) -> Result<Vec<(String, String)>, PgError> {
+        let client = self.pool.get().await?;
+        let mut rows = client
+            .query(
+                "DELETE FROM commands WHERE host = $1 RETURNING id, printer, command",
+                &[&self.host],
+            )
+            .await?;
+        rows.sort_by_key(|r| r.get::<_, i64>(0));
+        Ok(rows.iter().map(|r| (r.get(1), r.get(2))).collect())
+    }
+
     pub async fn job(&self, id: &str) -> Result<Job, PgError> {
         let client = self.pool.get().await?;
-        one_job(&client, id).await
+        one_job(&**client, id).await
     }
 
     /// Every job of the farm, oldest first.
     pub async fn jobs(&self) -> Result<Vec<Job>, PgError> {
-        self.load_jobs(None).await
+        let client = self.pool.get().await?;
+        load_jobs(&**client, Only::All).await
     }
 
-    async fn load_jobs(&self, only: Option<&str>) -> Result<Vec<Job>, PgError> {
+    /// The jobs changed since `since` (seconds since the epoch, by the database's clock),
+    /// and the database's time now, for the next call.
+    pub async fn jobs_since(&self, since: f64) -> Result<(Vec<Job>, f64), PgError> {
         let client = self.pool.get().await?;
-        load_jobs(&client, only).await
+        let now: f64 = client
+            .query_one("SELECT extract(epoch FROM now())::float8", &[])
+            .await?
+            .get(0);
+        Ok((load_jobs(&**client, Only::Since(since)).await?, now))
     }
 }
 
+/// A job preparing or printing is held by the host that claimed it.
+fn is_held(state: JobState) -> bool {
+    matches!(state, JobState::Preparing | JobState::Printing)
+}
+
+/// Stores the regular files of `dir` that the job does not have in the database yet.
+async fn upload_missing(
+    tx: &tokio_postgres::Transaction<'_>,
+    id: &str,
+    dir: &Path,
+) -> Result<(), PgError> {
+    let have: Vec<String> = ids(tx
+        .query("SELECT name FROM job_files WHERE job_id = $1", &[&id])
+        .await?);
+    let file_err = |name: &str| {
+        let (id, name) = (id.to_string(), name.to_string());
+        move |source| PgError::File { id, name, source }
+    };
+    let entries = std::fs::read_dir(dir).map_err(file_err("."))?;
+    for entry in entries {
+        let entry = entry.map_err(file_err("."))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let meta = entry.metadata().map_err(file_err(&name))?;
+        if !meta.is_file() || have.contains(&name) || name.ends_with(".tmp") {
+            continue;
+        }
+        if meta.len() > MAX_FILE_BYTES {
+            return Err(file_err(&name)(std::io::Error::other(format!(
+                "{} bytes, more than the farm database keeps ({MAX_FILE_BYTES})",
+                meta.len()
+            ))));
+        }
+        let bytes = std::fs::read(entry.path()).map_err(file_err(&name))?;
+        tx.execute(
+            "INSERT INTO job_files (job_id, name, bytes) VALUES ($1, $2, $3)",
+            &[&id, &name, &bytes],
+        )
+        .await?;
+    }
+    Ok(())
+}
+
+/// Writes the job's files that `dir` lacks (only its G-code with `only_gcode`).
+async fn download_missing(
+    tx: &tokio_postgres::Transaction<'_>,
+    id: &str,
+    dir: &Path,
+    only_gcode: bool,
+) -> Result<(), PgError> {
+    let names: Vec<String> = ids(tx
+        .query("SELECT name FROM job_files WHERE job_id = $1", &[&id])
+        .await?);
+    let file_err = |name: &str| {
+        let (id, name) = (id.to_string(), name.to_string());
+        move |source| PgError::File { id, name, source }
+    };
+    std::fs::create_dir_all(dir).map_err(file_err("."))?;
+    for name in names {
+        // Names come from hosts of the farm; still, nothing leaves the job's directory.
+        let plain = !name.is_empty() && !name.contains('/') && name != "." && name != "..";
+        if !plain || (only_gcode && !name.ends_with(".gcode")) || dir.join(&name).exists() {
+            continue;
+        }
+        let bytes: Vec<u8> = tx
+            .query_one(
+                "SELECT bytes FROM job_files WHERE job_id = $1 AND name = $2",
+                &[&id, &name],
+            )
+            .await?
+            .get(0);
+        super::spool::write_atomic(&dir.join(&name), &bytes)
+            .map_err(|e| file_err(&name)(std::io::Error::other(e.to_string())))?;
+    }
+    Ok(())
+}
+
+/// The job's record as kept in its row: everything but what has columns of its own.
+fn record_of(job: &Job) -> serde_json::Value {
+    let mut record = job.clone();
+    record.history = Vec::new();
+    record.origin = None;
+    serde_json::to_value(&record).expect("a job serialises")
+}
+
+enum Only<'a> {
+    All,
+    One(&'a str),
+    Since(f64),
+}
+
+const JOB_COLUMNS: &str = "SELECT id, seq, file, folder, state, printer, reason, record, \
+    origin_host, printers, claimed_by FROM jobs";
+/// Where `claimed_by` is in [`JOB_COLUMNS`].
+const JOB_COLUMN_COUNT: usize = 10;
+
 /// Jobs with their history, read on `client` (a connection a caller already holds, so a
 /// call never waits on the pool for a second one).
-async fn load_jobs(
-    client: &tokio_postgres::Client,
-    only: Option<&str>,
-) -> Result<Vec<Job>, PgError> {
-    // Two spellings rather than `$1 IS NULL OR id = $1`, which no index serves: reading
-    // one job must not scan every job's history.
-    const JOB: &str = "SELECT id, seq, file, folder, state, printer, reason, sidecar, \
-        copies_done, slice_report, print_report FROM jobs";
+async fn load_jobs(client: &impl GenericClient, only: Only<'_>) -> Result<Vec<Job>, PgError> {
     const HISTORY: &str = "SELECT job_id, state, extract(epoch FROM at)::float8 FROM job_history";
+    // Separate spellings rather than `$1 IS NULL OR id = $1`, which no index serves:
+    // reading one job must not scan every job's history.
     let (rows, history) = match only {
-        Some(id) => (
+        Only::One(id) => (
             client
-                .query(&format!("{JOB} WHERE id = $1"), &[&id])
+                .query(&format!("{JOB_COLUMNS} WHERE id = $1"), &[&id])
                 .await?,
             client
                 .query(&format!("{HISTORY} WHERE job_id = $1 ORDER BY at"), &[&id])
                 .await?,
         ),
-        None => (
-            client.query(&format!("{JOB} ORDER BY seq"), &[]).await?,
+        Only::All => (
+            client
+                .query(&format!("{JOB_COLUMNS} ORDER BY seq"), &[])
+                .await?,
             client.query(&format!("{HISTORY} ORDER BY at"), &[]).await?,
         ),
+        Only::Since(since) => {
+            let rows = client
+                .query(
+                    &format!("{JOB_COLUMNS} WHERE updated_at >= to_timestamp($1) ORDER BY seq"),
+                    &[&since],
+                )
+                .await?;
+            let changed = ids(rows.clone());
+            let history = client
+                .query(
+                    &format!("{HISTORY} WHERE job_id = ANY($1) ORDER BY at"),
+                    &[&changed],
+                )
+                .await?;
+            (rows, history)
+        }
     };
     let mut jobs = rows.iter().map(job_of_row).collect::<Result<Vec<_>, _>>()?;
     let index: std::collections::HashMap<String, usize> = jobs
@@ -558,11 +965,11 @@ async fn load_jobs(
     Ok(jobs)
 }
 
-async fn one_job(client: &tokio_postgres::Client, id: &str) -> Result<Job, PgError> {
-    load_jobs(client, Some(id))
+async fn one_job(client: &impl GenericClient, id: &str) -> Result<Job, PgError> {
+    load_jobs(client, Only::One(id))
         .await?
         .pop()
-        .ok_or_else(|| PgError::NoSuchJob(id.to_string()))
+        .ok_or_else(|| StoreError::NoSuchJob(id.to_string()).into())
 }
 
 fn ids(rows: Vec<Row>) -> Vec<String> {
@@ -580,40 +987,44 @@ fn parse_state(id: &str, name: &str) -> Result<JobState, PgError> {
         })
 }
 
-/// A `jsonb` column as the typed field it holds.
-fn from_json<T: serde::de::DeserializeOwned>(
-    id: &str,
-    what: &'static str,
-    value: Option<serde_json::Value>,
-) -> Result<Option<T>, PgError> {
-    value
-        .map(serde_json::from_value)
-        .transpose()
-        .map_err(|e| PgError::Corrupt {
-            id: id.to_string(),
-            what,
-            message: e.to_string(),
-        })
-}
-
+/// A job from its row: the record, with the columns' values (which SQL alone may change,
+/// as lease expiry does) over it.
 fn job_of_row(row: &Row) -> Result<Job, PgError> {
     let id: String = row.get(0);
     let seq: i64 = row.get(1);
-    let copies_done: i32 = row.get(8);
-    Ok(Job {
-        seq: seq as u64,
-        file: row.get(2),
-        folder: PathBuf::from(row.get::<_, String>(3)),
-        state: parse_state(&id, row.get(4))?,
-        history: Vec::new(),
-        printer: row.get(5),
-        reason: row.get(6),
-        sidecar: from_json(&id, "sidecar", row.get(7))?,
-        copies_done: copies_done.max(0) as u32,
-        slice_report: from_json(&id, "slice_report", row.get(9))?,
-        print_report: from_json(&id, "print_report", row.get(10))?,
-        // Per-machine G-code is not kept in the database yet.
-        machines: Default::default(),
-        id,
-    })
+    let state = parse_state(&id, row.get(4))?;
+    let mut record: serde_json::Value = row.get(7);
+    let Some(fields) = record.as_object_mut() else {
+        return Err(PgError::Corrupt {
+            id,
+            what: "record",
+            message: "not a JSON object".into(),
+        });
+    };
+    let columns = [
+        ("id", serde_json::json!(id)),
+        ("seq", serde_json::json!(seq.max(0))),
+        ("file", serde_json::json!(row.get::<_, String>(2))),
+        ("folder", serde_json::json!(row.get::<_, String>(3))),
+        ("state", serde_json::json!(state)),
+        (
+            "printer",
+            serde_json::json!(row.get::<_, Option<String>>(5)),
+        ),
+        ("reason", serde_json::json!(row.get::<_, Option<String>>(6))),
+        ("history", serde_json::json!([])),
+    ];
+    for (key, value) in columns {
+        fields.insert(key.to_string(), value);
+    }
+    let mut job: Job = serde_json::from_value(record).map_err(|e| PgError::Corrupt {
+        id: id.clone(),
+        what: "record",
+        message: e.to_string(),
+    })?;
+    job.origin = Some(Origin {
+        host: row.get(8),
+        printers: row.get(9),
+    });
+    Ok(job)
 }

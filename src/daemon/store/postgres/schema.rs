@@ -70,6 +70,29 @@ const MIGRATIONS: &[&str] = &[
         last_seen       timestamptz NOT NULL DEFAULT now()
     );
     "#,
+    // 2: the whole job record (what the daemon keeps of a job beyond its state), each
+    // printer's machine, and commands for a printer on another host.
+    r#"
+    ALTER TABLE jobs ADD COLUMN record jsonb;
+    UPDATE jobs SET record = jsonb_build_object('sidecar', sidecar,
+        'copies_done', copies_done, 'slice_report', slice_report, 'print_report', print_report);
+    ALTER TABLE jobs ALTER COLUMN record SET NOT NULL,
+        DROP COLUMN sidecar, DROP COLUMN copies_done, DROP COLUMN slice_report,
+        DROP COLUMN print_report;
+    CREATE INDEX jobs_updated ON jobs (updated_at);
+
+    ALTER TABLE printers ADD COLUMN machine jsonb;
+
+    CREATE TABLE commands (
+        id         bigint GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+        -- The host whose printer it is for; it takes and carries out its commands.
+        host       text NOT NULL,
+        printer    text NOT NULL,
+        command    text NOT NULL CHECK (command IN ('pause', 'resume', 'cancel')),
+        created_at timestamptz NOT NULL DEFAULT now()
+    );
+    CREATE INDEX commands_host ON commands (host);
+    "#,
 ];
 
 /// The newest schema version this binary knows.

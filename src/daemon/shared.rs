@@ -1,0 +1,154 @@
+//! This host's part in a farm shared through PostgreSQL (`[store] postgres`): one task
+//! that renews the host's lease, applies the expiry rules to hosts that stopped renewing
+//! theirs, takes in the other hosts' changes of jobs and bed gates, publishes this host's
+//! printers (status and machine) and reads everyone else's, and carries out the commands
+//! other hosts left for this host's printers (pause, resume, cancel).
+//!
+//! While the database is unreachable the task keeps trying; the status says so, prints in
+//! progress go on, and nothing new is claimed (every claim needs the database).
+
+use super::control;
+use super::farm::{Farm, PrintCommand, PrinterStatus};
+use super::store::postgres::{FarmHost, PgStore};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio_util::sync::CancellationToken;
+
+/// The rest of the farm as this host last read it from the database.
+#[derive(Debug, Clone, Default)]
+pub struct FarmView {
+    /// None while the database answers; else why it does not.
+    pub database: Option<String>,
+    pub hosts: Vec<FarmHost>,
+    /// Other hosts' printers, as their hosts last published them.
+    pub printers: Vec<PrinterStatus>,
+    /// Other hosts' printers' machines, for preparing their jobs here.
+    pub machines: Vec<(String, crate::machine::Machine)>,
+}
+
+/// How often the other hosts' changes are read and this host's printers published.
+const TICK: Duration = Duration::from_secs(1);
+
+/// Runs until `stop`; `lease` is `[store] lease_s`.
+pub async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: CancellationToken) {
+    let heartbeat_every = lease / 5;
+    let mut last_heartbeat: Option<tokio::time::Instant> = None;
+    let mut ticker = tokio::time::interval(TICK);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => break,
+            _ = ticker.tick() => {}
+        }
+        let due = last_heartbeat.is_none_or(|t| t.elapsed() >= heartbeat_every);
+        let outcome = tokio::select! {
+            _ = stop.cancelled() => break,
+            outcome = tick(&farm, &db, lease, due) => outcome,
+        };
+        match outcome {
+            Ok(()) => {
+                if due {
+                    last_heartbeat = Some(tokio::time::Instant::now());
+                }
+                set_database(&farm, None);
+            }
+            Err(e) => set_database(&farm, Some(e.to_string())),
+        }
+    }
+}
+
+/// One round; fails at the first call the database does not answer.
+async fn tick(
+    farm: &Arc<Farm>,
+    db: &PgStore,
+    lease: Duration,
+    heartbeat: bool,
+) -> Result<(), super::store::postgres::PgError> {
+    let config = farm.config();
+    if heartbeat {
+        db.heartbeat(lease).await?;
+        for p in &config.printers {
+            let machine = serde_json::to_value(&p.machine).ok();
+            db.register_printer(&p.name, machine.as_ref()).await?;
+        }
+        let expired = db.expire_hosts().await?;
+        for host in &expired.hosts {
+            tracing::warn!(host = %host, "a host of the farm stopped renewing its lease: its printers are offline, its work is handed back");
+        }
+        for id in &expired.requeued {
+            tracing::warn!(job = %id, "its host is gone: back in the queue for preparation");
+        }
+        for id in &expired.interrupted {
+            tracing::warn!(job = %id, "its host is gone during the print: interrupted (never reprinted on its own; `crispen retry` it once the printer is checked)");
+        }
+    }
+    let statuses: Vec<(String, serde_json::Value)> = farm
+        .printers
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .values()
+        .filter_map(|p| Some((p.name.clone(), serde_json::to_value(p).ok()?)))
+        .collect();
+    db.publish_printers(&statuses).await?;
+    let printers = db.printers().await?;
+    let hosts = db.hosts().await?;
+    for (printer, command) in db.take_commands().await? {
+        let command = match command.as_str() {
+            "pause" => PrintCommand::Pause,
+            "resume" => PrintCommand::Resume,
+            _ => PrintCommand::Cancel,
+        };
+        match control::send_print_command(farm, &printer, command).await {
+            Ok(done) => tracing::info!(printer = %printer, "from another host: {done}"),
+            Err(e) => {
+                tracing::warn!(printer = %printer, error = %e, "a command from another host could not be carried out")
+            }
+        }
+    }
+    let mut view = FarmView::default();
+    for p in printers {
+        if p.host == config.farm.host {
+            continue;
+        }
+        if let Some(machine) = p.machine.and_then(|m| serde_json::from_value(m).ok()) {
+            view.machines.push((p.name.clone(), machine));
+        }
+        let mut status: PrinterStatus = match p.status.map(serde_json::from_value) {
+            Some(Ok(status)) => status,
+            _ => continue,
+        };
+        status.host = Some(p.host);
+        status.offline = p.offline;
+        status.bed_cleared = !p.bed_not_cleared;
+        view.printers.push(status);
+    }
+    view.hosts = hosts;
+    {
+        // Whether the database answers is `set_database`'s to change (and log).
+        let mut shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
+        view.database = shared.as_ref().and_then(|v| v.database.clone());
+        *shared = Some(view);
+    }
+    if let Ok(true) = farm.jobs.resync().await {
+        farm.bump();
+    }
+    Ok(())
+}
+
+/// Records whether the database answers, logging each change once.
+fn set_database(farm: &Farm, error: Option<String>) {
+    let mut shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
+    let view = shared.get_or_insert_with(FarmView::default);
+    match (&view.database, &error) {
+        (None, Some(e)) => {
+            tracing::error!(error = %e, "the farm database is unreachable: prints in progress go on, nothing new is taken until it is back")
+        }
+        (Some(_), None) => {
+            tracing::info!("the farm database answers again");
+            // Claims that failed meanwhile are tried again.
+            farm.bump();
+        }
+        _ => {}
+    }
+    view.database = error;
+}

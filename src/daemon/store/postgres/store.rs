@@ -1,0 +1,439 @@
+//! The daemon's [`JobStore`] over the farm database. The store's task calls it on a
+//! blocking thread, so each call waits on the async client with `block_on`.
+//!
+//! It keeps what the snapshot needs in memory (every job, every bed gate), so glances never
+//! reach the database; [`JobStore::resync`] takes in what other hosts changed. A job's
+//! files live in the database and are copied into this host's `<spool>/jobs/<id>/` when
+//! it prepares or prints the job; preparation's G-code goes to the database with the
+//! change that makes the job ready.
+//!
+//! While the database is unreachable, an outcome that has happened (a print ended) and a
+//! bed gate are kept here and written by [`JobStore::write_pending`] once it is back, if the
+//! farm has not moved the job on meanwhile; everything else fails with
+//! [`StoreError::Database`], so nothing new is claimed.
+
+use super::{Change, PgError, PgStore, MAX_FILE_BYTES};
+use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
+use crate::daemon::store::spool::{io_err, is_reserved_name, lock_dir, move_file};
+use crate::daemon::store::{JobEdit, JobStore, StateFilter};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Jobs changed this long before the last resync are read again: a transaction's
+/// `updated_at` is its start, and it may commit a little after a resync that missed it.
+const RESYNC_OVERLAP_S: f64 = 30.0;
+
+pub struct PgJobStore {
+    db: PgStore,
+    rt: tokio::runtime::Handle,
+    _lock: nix::fcntl::Flock<std::fs::File>,
+    jobs_dir: PathBuf,
+    jobs: BTreeMap<String, Job>,
+    gates: BTreeMap<String, PrinterGate>,
+    /// Outcomes recorded while the database was unreachable: the state the job was in,
+    /// and the job as this host left it.
+    pending: BTreeMap<String, (JobState, Job)>,
+    pending_gates: BTreeMap<String, PrinterGate>,
+    /// The database's time of the last resync.
+    synced_to: f64,
+}
+
+/// `[state]` as a filter.
+fn only(state: JobState) -> StateFilter {
+    static EACH: [[JobState; 1]; 8] = [
+        [JobState::Queued],
+        [JobState::Preparing],
+        [JobState::Ready],
+        [JobState::Printing],
+        [JobState::Done],
+        [JobState::Failed],
+        [JobState::Cancelled],
+        [JobState::Interrupted],
+    ];
+    let i = JobState::ALL.iter().position(|s| *s == state).unwrap_or(0);
+    &EACH[i]
+}
+
+impl PgJobStore {
+    /// Opens the store for this host: its local directory `spool_dir` (locked, as a spool
+    /// is) and every job and gate of the farm.
+    pub async fn open(db: PgStore, spool_dir: &Path) -> Result<PgJobStore, StoreError> {
+        let lock = lock_dir(spool_dir)?;
+        let (jobs, synced_to) = db.jobs_since(f64::NEG_INFINITY).await?;
+        let gates = db.gates().await?;
+        Ok(PgJobStore {
+            rt: tokio::runtime::Handle::current(),
+            _lock: lock,
+            jobs_dir: spool_dir.join("jobs"),
+            jobs: jobs.into_iter().map(|j| (j.id.clone(), j)).collect(),
+            gates,
+            pending: BTreeMap::new(),
+            pending_gates: BTreeMap::new(),
+            synced_to,
+            db,
+        })
+    }
+
+    fn block<T>(&self, work: impl std::future::Future<Output = T>) -> T {
+        self.rt.block_on(work)
+    }
+
+    fn job_dir(&self, id: &str) -> PathBuf {
+        self.jobs_dir.join(id)
+    }
+
+    /// Takes the database's record of a job after a refused change (another host moved it).
+    fn reread(&mut self, id: &str) {
+        if let Ok(job) = self.block(self.db.job(id)) {
+            self.jobs.insert(id.to_string(), job);
+        }
+    }
+
+    fn modify(&mut self, id: &str, change: Change<'_>) -> Result<Job, StoreError> {
+        let result = self.block(self.db.modify(id, change));
+        match result {
+            Ok(job) => {
+                self.jobs.insert(id.to_string(), job.clone());
+                Ok(job)
+            }
+            Err(e) => {
+                if !e.is_outage() {
+                    self.reread(id);
+                }
+                Err(e.into())
+            }
+        }
+    }
+
+    fn cached(&self, id: &str) -> Result<&Job, StoreError> {
+        self.jobs
+            .get(id)
+            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))
+    }
+}
+
+/// An edit that gives a job the fields of `after` (a change worked out beforehand), keeping
+/// its state and history for the transition to move on.
+fn becomes(after: Job) -> JobEdit {
+    Box::new(move |job: &mut Job| {
+        let history = std::mem::take(&mut job.history);
+        let (state, origin) = (job.state, job.origin.take());
+        *job = after;
+        job.history = history;
+        job.state = state;
+        job.origin = origin;
+    })
+}
+
+impl JobStore for PgJobStore {
+    fn jobs_dir(&self) -> PathBuf {
+        self.jobs_dir.clone()
+    }
+
+    fn jobs(&self) -> Vec<Job> {
+        let mut jobs: Vec<Job> = self.jobs.values().cloned().collect();
+        jobs.sort_by_key(|j| j.seq);
+        jobs
+    }
+
+    fn job(&self, id: &str) -> Option<Job> {
+        self.jobs.get(id).cloned()
+    }
+
+    fn gates(&self) -> BTreeMap<String, PrinterGate> {
+        self.gates.clone()
+    }
+
+    fn recover(&mut self) -> Result<Vec<String>, StoreError> {
+        let ids = self.block(self.db.recover_own())?;
+        self.resync();
+        Ok(ids)
+    }
+
+    fn admit(
+        &mut self,
+        source: &Path,
+        folder: &Path,
+        printers: &[String],
+    ) -> Result<Job, StoreError> {
+        let not_a_file = || StoreError::NotAFile {
+            path: source.to_path_buf(),
+        };
+        let size = match std::fs::symlink_metadata(source) {
+            Ok(meta) if meta.file_type().is_file() => meta.len(),
+            Ok(_) => return Err(not_a_file()),
+            Err(e) => return Err(io_err(source, "read")(e)),
+        };
+        if size > MAX_FILE_BYTES {
+            return Err(io_err(source, "read")(std::io::Error::other(format!(
+                "{size} bytes, more than the farm database keeps in one file ({MAX_FILE_BYTES})"
+            ))));
+        }
+        let dropped = source
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "model".into());
+        let file = if is_reserved_name(&dropped) {
+            format!("model-{dropped}")
+        } else {
+            dropped
+        };
+        let mut sidecar = source.as_os_str().to_owned();
+        sidecar.push(".toml");
+        let sidecar = PathBuf::from(sidecar);
+        let sidecar_name = format!("{file}.toml");
+        let model = std::fs::read(source).map_err(io_err(source, "read"))?;
+        let sidecar_bytes = match std::fs::symlink_metadata(&sidecar) {
+            Ok(meta) if meta.is_file() => {
+                Some(std::fs::read(&sidecar).map_err(io_err(&sidecar, "read"))?)
+            }
+            _ => None,
+        };
+        let mut files: Vec<(&str, &[u8])> = vec![(&file, &model)];
+        if let Some(bytes) = &sidecar_bytes {
+            files.push((&sidecar_name, bytes));
+        }
+        let folder_name = folder.to_string_lossy();
+        let job = self.block(self.db.admit(&file, &folder_name, printers, &files))?;
+        // The job is in the farm now: its files leave the hot folder for this host's copy,
+        // which preparation here reads. A file that cannot be moved is removed, so it is
+        // never picked up twice.
+        let dir = self.job_dir(&job.id);
+        let mut moves = vec![(source.to_path_buf(), dir.join(&file))];
+        if sidecar_bytes.is_some() {
+            moves.push((sidecar, dir.join(&sidecar_name)));
+        }
+        let _ = std::fs::create_dir_all(&dir);
+        for (from, to) in moves {
+            if let Err(e) = move_file(&from, &to) {
+                tracing::warn!(job = %job.id, error = %e, "cannot keep a local copy; the farm database has the file");
+                if let Err(e) = std::fs::remove_file(&from) {
+                    tracing::error!(job = %job.id, file = %from.display(), error = %e, "cannot remove a picked-up file from its hot folder: remove it by hand, or it is picked up again");
+                }
+            }
+        }
+        self.jobs.insert(job.id.clone(), job.clone());
+        Ok(job)
+    }
+
+    fn late_sidecar(
+        &mut self,
+        id: &str,
+        sidecar: &Path,
+        applies: bool,
+    ) -> Result<bool, StoreError> {
+        let job = self.cached(id)?;
+        match std::fs::symlink_metadata(sidecar) {
+            Ok(meta) if meta.file_type().is_file() => {}
+            Ok(_) => {
+                return Err(StoreError::NotAFile {
+                    path: sidecar.to_path_buf(),
+                })
+            }
+            Err(e) => return Err(io_err(sidecar, "read")(e)),
+        }
+        let name = if applies {
+            format!("{}.toml", job.file)
+        } else {
+            format!("{}.toml.late", job.file)
+        };
+        let bytes = std::fs::read(sidecar).map_err(io_err(sidecar, "read"))?;
+        self.block(self.db.put_file(id, &name, &bytes))?;
+        let dir = self.job_dir(id);
+        let _ = std::fs::create_dir_all(&dir);
+        move_file(sidecar, &dir.join(name))?;
+        Ok(applies)
+    }
+
+    fn transition_with(
+        &mut self,
+        id: &str,
+        from: Option<StateFilter>,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError> {
+        let dir = self.job_dir(id);
+        let was = self.jobs.get(id).map(|j| j.state);
+        let change = Change {
+            from,
+            to: Some(state),
+            reason,
+            edit: also,
+            // Preparation made its G-code here; the other hosts' printers need it.
+            upload_from: (state == JobState::Ready && was == Some(JobState::Preparing))
+                .then_some(dir.as_path()),
+            download_to: match state {
+                JobState::Preparing => Some((dir.as_path(), false)),
+                JobState::Printing => Some((dir.as_path(), true)),
+                _ => None,
+            },
+        };
+        self.modify(id, change)
+    }
+
+    fn record_outcome(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError> {
+        // Worked out here first: the outcome stands even if the database cannot take it now.
+        let mut after = self.cached(id)?.clone();
+        let from = after.state;
+        after.apply_transition(state, reason.clone(), also)?;
+        let change = Change {
+            from: Some(only(from)),
+            to: Some(state),
+            reason,
+            edit: becomes(after.clone()),
+            upload_from: None,
+            download_to: None,
+        };
+        match self.block(self.db.modify(id, change)) {
+            Ok(job) => {
+                self.jobs.insert(id.to_string(), job.clone());
+                Ok(job)
+            }
+            Err(e) if e.is_outage() => {
+                tracing::error!(job = id, error = %e, "cannot record the outcome in the farm database; kept here and written once it is back");
+                self.pending.insert(id.to_string(), (from, after.clone()));
+                self.jobs.insert(id.to_string(), after.clone());
+                Ok(after)
+            }
+            Err(e) => {
+                self.reread(id);
+                Err(e.into())
+            }
+        }
+    }
+
+    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
+        let change = Change {
+            from: None,
+            to: None,
+            reason: None,
+            edit: change,
+            upload_from: None,
+            download_to: None,
+        };
+        self.modify(id, change)
+    }
+
+    fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+        const FINISHED: StateFilter =
+            &[JobState::Failed, JobState::Cancelled, JobState::Interrupted];
+        let job = self.cached(id)?.clone();
+        if !FINISHED.contains(&job.state) {
+            return Err(StoreError::WrongState {
+                id: id.to_string(),
+                state: job.state,
+                action: "retry",
+                allowed: "failed, cancelled or interrupted",
+            });
+        }
+        // As in the spool: a prepared job keeps its G-code and is printed again as it was.
+        let names = self.block(self.db.file_names(id))?;
+        let prepared = job.slice_report.is_some()
+            && job
+                .machines
+                .keys()
+                .filter_map(|m| job.gcode_for(m))
+                .any(|f| names.contains(&f));
+        let state = if prepared {
+            JobState::Ready
+        } else {
+            JobState::Queued
+        };
+        let mut change = Change::to(state);
+        change.from = Some(FINISHED);
+        change.edit = Box::new(|j| j.printer = None);
+        self.modify(id, change)
+    }
+
+    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+        match self.block(self.db.set_gate(printer, &gate)) {
+            Ok(()) => {
+                self.pending_gates.remove(printer);
+                self.gates.insert(printer.to_string(), gate);
+                Ok(())
+            }
+            Err(e) if e.is_outage() && gate.bed_not_cleared => {
+                // A print ended: its bed must still need clearing after the outage.
+                tracing::error!(printer, error = %e, "cannot record the bed gate in the farm database; kept here and written once it is back");
+                self.pending_gates.insert(printer.to_string(), gate.clone());
+                self.gates.insert(printer.to_string(), gate);
+                Ok(())
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    fn write_pending(&mut self) -> usize {
+        for (id, (from, job)) in std::mem::take(&mut self.pending) {
+            match self.block(self.db.write_outcome(&job, from)) {
+                Ok(written) => {
+                    tracing::info!(job = %id, state = written.state.name(), "outcome written to the farm database after all");
+                    self.jobs.insert(id, written);
+                }
+                Err(e) if e.is_outage() => {
+                    self.pending.insert(id, (from, job));
+                }
+                Err(e) => {
+                    tracing::warn!(job = %id, error = %e, "an outcome kept during the outage was not written: the farm moved the job on");
+                    self.reread(&id);
+                }
+            }
+        }
+        for (printer, gate) in std::mem::take(&mut self.pending_gates) {
+            if let Err(e) = self.block(self.db.set_gate(&printer, &gate)) {
+                if e.is_outage() {
+                    self.pending_gates.insert(printer, gate);
+                }
+            }
+        }
+        self.unwritten()
+    }
+
+    fn unwritten(&self) -> usize {
+        self.pending.len() + self.pending_gates.len()
+    }
+
+    fn resync(&mut self) -> bool {
+        let since = self.synced_to - RESYNC_OVERLAP_S;
+        let read = self.block(async {
+            let jobs = self.db.jobs_since(since).await?;
+            let gates = self.db.gates().await?;
+            Ok::<_, PgError>((jobs, gates))
+        });
+        let ((changed, now), mut gates) = match read {
+            Ok(read) => read,
+            Err(e) => {
+                tracing::debug!(error = %e, "cannot read the farm database's changes");
+                return false;
+            }
+        };
+        self.synced_to = now;
+        let mut any = false;
+        for job in changed {
+            // An outcome not yet written stays as this host knows it.
+            if self.pending.contains_key(&job.id) {
+                continue;
+            }
+            let known = self.jobs.get(&job.id).map(serde_json::to_value);
+            if known.and_then(Result::ok) != serde_json::to_value(&job).ok() {
+                any = true;
+                self.jobs.insert(job.id.clone(), job);
+            }
+        }
+        for (printer, gate) in &self.pending_gates {
+            gates.insert(printer.clone(), gate.clone());
+        }
+        if gates != self.gates {
+            any = true;
+            self.gates = gates;
+        }
+        any
+    }
+}

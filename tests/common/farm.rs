@@ -95,30 +95,6 @@ printers = [{}]
                 names.join(", ")
             );
         }
-        // TEMPORARY (harness debugging before the daemon knows [store]): remove.
-        if std::env::var_os("CRISPEN_FARM_LEGACY").is_some() {
-            let mut kept = Vec::new();
-            let mut skip = false;
-            for line in text.lines() {
-                if line.starts_with('[') {
-                    skip = line == "[store]";
-                }
-                if skip || line.starts_with("host = ") {
-                    continue;
-                }
-                if let Some(list) = line.strip_prefix("printers = [") {
-                    let own: Vec<&str> = list
-                        .trim_end_matches(']')
-                        .split(", ")
-                        .filter(|p| spec.printers.iter().any(|n| format!("{n:?}") == *p))
-                        .collect();
-                    kept.push(format!("printers = [{}]", own.join(", ")));
-                    continue;
-                }
-                kept.push(line.to_string());
-            }
-            text = kept.join("\n");
-        }
         let config = root.join(format!("{name}.toml"));
         std::fs::write(&config, text).unwrap();
         Host {

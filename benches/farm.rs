@@ -48,24 +48,25 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
-/// The printers of `host` as it reports them: name, state, bed cleared.
-fn printers_of(farm: &Farm, host: usize) -> Vec<(String, String, bool)> {
+/// The printers of `host` as it reports them: name, state, bed cleared; `None` while
+/// it does not answer.
+fn printers_of(farm: &Farm, host: usize) -> Option<Vec<(String, String, bool)>> {
     let h = &farm.hosts[host];
-    let (code, body) = h
-        .http("GET", "/api/v1/printers")
-        .unwrap_or_else(|e| panic!("host {}: {e}\n{}", h.name, farm.diagnostics()));
+    let (code, body) = h.http("GET", "/api/v1/printers").ok()?;
     assert_eq!(code, 200, "GET /api/v1/printers on {}: {body}", h.name);
     let list: Vec<Value> = serde_json::from_str(&body).unwrap();
-    list.iter()
-        .filter(|p| h.printers.iter().any(|n| p["name"] == n.as_str()))
-        .map(|p| {
-            (
-                p["name"].as_str().unwrap().to_string(),
-                p["state"].as_str().unwrap_or("").to_string(),
-                p["bed_cleared"] != false,
-            )
-        })
-        .collect()
+    Some(
+        list.iter()
+            .filter(|p| h.printers.iter().any(|n| p["name"] == n.as_str()))
+            .map(|p| {
+                (
+                    p["name"].as_str().unwrap().to_string(),
+                    p["state"].as_str().unwrap_or("").to_string(),
+                    p["bed_cleared"] != false,
+                )
+            })
+            .collect(),
+    )
 }
 
 /// Clears `printer`'s bed through its own host; false when it was already clear (the
@@ -123,8 +124,9 @@ fn main() {
         "every printer idle",
         || {
             (0..HOSTS).all(|h| {
-                let ps = printers_of(&farm, h);
-                ps.len() == names[h].len() && ps.iter().all(|p| p.1 == "idle")
+                printers_of(&farm, h).is_some_and(|ps| {
+                    ps.len() == names[h].len() && ps.iter().all(|p| p.1 == "idle")
+                })
             })
         },
     );
@@ -138,7 +140,7 @@ fn main() {
         &farm,
         Duration::from_secs(600),
         "the warm-up printed",
-        || (0..HOSTS).all(|h| printers_of(&farm, h).iter().all(|p| !p.2)),
+        || (0..HOSTS).all(|h| printers_of(&farm, h).is_some_and(|ps| ps.iter().all(|p| !p.2))),
     );
 
     // The queue: every job dropped, admitted and prepared while no bed is free.
@@ -167,7 +169,14 @@ fn main() {
     let mut last_progress = Instant::now();
     while cleared < printers + jobs {
         for h in 0..HOSTS {
-            for (name, state, bed_cleared) in printers_of(&farm, h) {
+            let printers = printers_of(&farm, h).unwrap_or_else(|| {
+                panic!(
+                    "host {} stopped answering\n{}",
+                    farm.hosts[h].name,
+                    farm.diagnostics()
+                )
+            });
+            for (name, state, bed_cleared) in printers {
                 if !bed_cleared && state != "printing" {
                     let sent = now_s();
                     if clear(&farm, h, &name) {

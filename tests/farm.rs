@@ -661,3 +661,88 @@ fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
         );
     }
 }
+
+/// The control commands act on any printer or job of the farm from any host: a print on
+/// host b's printer is paused through host a, resumed through host c, cancelled through
+/// host a (the job ends cancelled, the printer holds its bed), retried through host c
+/// (it waits for the bed) and, once the bed is cleared through host a, printed again
+/// from its first line on the same printer.
+#[test]
+fn control_commands_act_across_hosts() {
+    let mut specs = three_hosts(0.05, None, &[&[], &["hot/b"], &[]]);
+    specs[1].folders[0].1 = vec!["b1".to_string()];
+    let farm = Farm::start(&specs);
+    for h in ["a", "b", "c"] {
+        farm.wait_status(h, Duration::from_secs(120), "the farm up", farm_is_up);
+    }
+    let gcode = presliced_gcode("long", 2000, 1200);
+    drop_file(&farm.root.join("hot/b"), "long.gcode", gcode.as_bytes());
+    let acked = |s: &Value| {
+        printer(s, "b1").map_or(0, |p| p["progress"]["lines_acked"].as_u64().unwrap_or(0))
+    };
+    let s = farm.wait_status("b", Duration::from_secs(120), "b1 printing", |s| {
+        printer(s, "b1").is_some_and(|p| p["state"] == "printing") && acked(s) > 20
+    });
+    let id = common::job_by_file(&s, "long.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+
+    let (ok, out) = farm.host("a").ctl(&["pause", "b1"]);
+    assert!(ok, "pause b1 through host a: {out}");
+    let paused = farm.wait_status("b", Duration::from_secs(60), "b1 paused", |s| {
+        printer(s, "b1").is_some_and(|p| p["state"] == "paused")
+    });
+    farm.wait_status(
+        "c",
+        Duration::from_secs(60),
+        "b1 paused as c sees it",
+        |s| printer(s, "b1").is_some_and(|p| p["state"] == "paused"),
+    );
+    let s = farm.host("b").status().unwrap();
+    assert_eq!(acked(&s), acked(&paused), "lines went on while paused");
+
+    let (ok, out) = farm.host("c").ctl(&["resume", "b1"]);
+    assert!(ok, "resume b1 through host c: {out}");
+    let before = acked(&s);
+    farm.wait_status("b", Duration::from_secs(60), "b1 resumed", |s| {
+        printer(s, "b1").is_some_and(|p| p["state"] == "printing") && acked(s) > before + 20
+    });
+
+    let (ok, out) = farm.host("a").ctl(&["cancel", &id]);
+    assert!(ok, "cancel {id} through host a: {out}");
+    farm.wait_status("b", Duration::from_secs(60), "the print cancelled", |s| {
+        state_of(s, "long.gcode") == "cancelled"
+            && printer(s, "b1").is_some_and(|p| p["state"] == "bed_not_cleared")
+    });
+    farm.wait_status("a", Duration::from_secs(60), "a sees it cancelled", |s| {
+        state_of(s, "long.gcode") == "cancelled"
+    });
+
+    let (ok, out) = farm.host("c").ctl(&["retry", &id]);
+    assert!(ok, "retry {id} through host c: {out}");
+    let s = farm.wait_status("b", Duration::from_secs(60), "the job ready again", |s| {
+        state_of(s, "long.gcode") == "ready"
+    });
+    assert_eq!(
+        printer(&s, "b1").unwrap()["bed_cleared"],
+        false,
+        "the bed gate holds"
+    );
+
+    let (ok, out) = farm.host("a").ctl(&["clear", "b1"]);
+    assert!(ok, "clear b1 through host a: {out}");
+    farm.wait_status("b", Duration::from_secs(60), "printing again", |s| {
+        state_of(s, "long.gcode") == "printing" && acked(s) > 20
+    });
+    let markers = farm.markers_by_printer();
+    for (p, m) in &markers {
+        let want: &[&str] = if p == "b1" { &["long", "long"] } else { &[] };
+        assert_eq!(
+            m, want,
+            "{p} started the job from its first line, as often as told"
+        );
+    }
+    let entries = farm.printing_entries();
+    assert_eq!(entries[&id], 2, "printed once, then once more when retried");
+}

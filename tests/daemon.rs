@@ -898,6 +898,104 @@ fn unplugged_printer_interrupts_the_job_and_reconnects() {
     );
 }
 
+/// An idle printer's temperatures are read between jobs and shown while current: the
+/// daemon shows the simulator's ambient reading with its heaters off (status JSON and
+/// the CLI's table); when the printer hangs they go once no report came for a while, and
+/// come back with its answers; when the printer goes (its pty closes) they are gone at
+/// once, not shown as if still true; when a printer is back on the port they are read
+/// again.
+#[test]
+fn idle_temperatures_are_shown_only_while_the_printer_answers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    let link = root.join("ttyACM0");
+    let first = SimProcess::start(&link, &root.join("first.rec"), &[]);
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\nport = \"{}\"\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
+            link.display()
+        ),
+    )
+    .unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    let ambient = |s: &Value| {
+        let p = printer(s, "p");
+        let t = &p["temperatures"];
+        p["state"] == "idle"
+            && t["hotend_c"]
+                .as_f64()
+                .is_some_and(|c| (c - 21.0).abs() < 0.5)
+            && t["bed_c"].as_f64().is_some_and(|c| (c - 21.0).abs() < 0.5)
+            && t["hotend_target_c"] == 0.0
+            && t["bed_target_c"] == 0.0
+    };
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "idle at 21 °C",
+        ambient,
+    );
+    let (ok, table) = ctl(&config, &["status"]);
+    let row = table.lines().find(|l| l.starts_with("p ")).unwrap_or("");
+    assert!(ok && row.contains("21/0C"), "{table}");
+
+    // A printer that hangs (its firmware stops; the port stays open): the figures go
+    // once no report came for a while, and come back when it answers again.
+    let signal = |s: nix::sys::signal::Signal| {
+        let pid = nix::unistd::Pid::from_raw(first.child.id() as i32);
+        nix::sys::signal::kill(pid, s).unwrap();
+    };
+    signal(nix::sys::signal::Signal::SIGSTOP);
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "stale figures dropped",
+        |s| printer(s, "p")["temperatures"].is_null(),
+    );
+    assert_eq!(printer(&s, "p")["state"], "idle");
+    signal(nix::sys::signal::Signal::SIGCONT);
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "answering again",
+        ambient,
+    );
+
+    drop(first);
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(30),
+        "the printer gone",
+        |s| printer(s, "p")["state"] != "idle",
+    );
+    assert!(
+        printer(&s, "p")["temperatures"].is_null(),
+        "no figures while the printer is gone: {s:#}"
+    );
+    let (ok, table) = ctl(&config, &["status"]);
+    let row = table.lines().find(|l| l.starts_with("p ")).unwrap_or("");
+    assert!(ok && !row.contains("21/0C"), "{table}");
+
+    let _second = SimProcess::start(&link, &root.join("second.rec"), &[]);
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "read again",
+        ambient,
+    );
+}
+
 /// SIGHUP applies printer changes: an added printer starts and takes work, a removed
 /// one leaves the status; the other printers carry on untouched.
 #[test]

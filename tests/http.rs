@@ -245,6 +245,19 @@ fn exchange(mut stream: impl Read + Write, bytes: &[u8]) -> Answer {
     }
 }
 
+/// The CLI against the farm made in `root`: whether it succeeded, and what it said.
+fn run_cli(root: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(BIN)
+        .args(args)
+        .arg("--config")
+        .arg(root.join("crispen.toml"))
+        .output()
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.success(), text)
+}
+
 /// A model as a binary STL, as slicers hold it.
 fn spot_stl() -> Vec<u8> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
@@ -257,6 +270,46 @@ fn spot_stl() -> Vec<u8> {
 fn spot_obj() -> Vec<u8> {
     std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj")).unwrap()
 }
+
+/// A file uploaded exactly as PrusaSlicer's "Send to printer" (OctoPrint host type) sends
+/// it: libcurl's multipart POST with the fields `print`, `path` and `file`, `Expect:
+/// 100-continue`, and the key in `X-Api-Key`.
+fn octoprint_upload(addr: &str, file_name: &str, content: &[u8], print: &str) -> Answer {
+    let boundary = "------------------------a1b2c3d4e5f60718";
+    let mut body = Vec::new();
+    for (name, value) in [("print", print), ("path", "hot")] {
+        body.extend_from_slice(
+            format!(
+                "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{value}\r\n"
+            )
+            .as_bytes(),
+        );
+    }
+    body.extend_from_slice(
+        format!(
+            "--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{file_name}\"\r\n\
+             Content-Type: application/octet-stream\r\n\r\n"
+        )
+        .as_bytes(),
+    );
+    body.extend_from_slice(content);
+    body.extend_from_slice(format!("\r\n--{boundary}--\r\n").as_bytes());
+    let mut bytes = format!(
+        "POST /api/files/local HTTP/1.1\r\nHost: {addr}\r\nUser-Agent: PrusaSlicer/2.9.2\r\n\
+         Accept: */*\r\nX-Api-Key: {KEY}\r\nContent-Length: {}\r\n\
+         Content-Type: multipart/form-data; boundary={boundary}\r\nExpect: 100-continue\r\n\r\n",
+        body.len()
+    )
+    .into_bytes();
+    bytes.extend_from_slice(&body);
+    raw(addr, &bytes)
+}
+
+/// A small job written by hand, printed as pre-sliced G-code (no slicer needed): heat the
+/// bed to 60 °C and the nozzle to 200 °C, two extruding moves, heaters off.
+const WARM_GCODE: &str = "; heat, two lines, heaters off\n\
+    M140 S60\nM104 S200\nM190 S60\nM109 S200\nG28\nG92 E0\nG1 Z0.3 F600\n\
+    G1 X20 Y20 F3000\nG1 X60 Y20 E4 F1200\nG1 X60 Y60 E8\nM104 S0\nM140 S0\nM84\n";
 
 /// Files in the hot folder, hidden ones (an upload's temporary file) included.
 fn hot_files(root: &Path) -> Vec<String> {
@@ -317,17 +370,7 @@ fn api_over_tcp_with_and_without_the_key() {
     let a = on_socket(&socket, "POST", "/api/v1/printers/alpha/clear");
     assert_eq!(a.status, 200, "{}", a.text());
     assert!(a.json()["message"].as_str().unwrap().contains("alpha"));
-    let cli = |args: &[&str]| {
-        let out = Command::new(BIN)
-            .args(args)
-            .arg("--config")
-            .arg(tmp.path().join("crispen.toml"))
-            .output()
-            .unwrap();
-        let text = String::from_utf8_lossy(&out.stdout).into_owned()
-            + &String::from_utf8_lossy(&out.stderr);
-        (out.status.success(), text)
-    };
+    let cli = |args: &[&str]| run_cli(tmp.path(), args);
     let (ok, text) = cli(&["status", "--json"]);
     assert!(ok, "{text}");
     let json: Value = serde_json::from_str(&text).unwrap();
@@ -548,40 +591,11 @@ fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
     assert!(v["api"].is_string() && v["server"].is_string(), "{v}");
 
     let send = |file_name: &str, content: &[u8], print: &str| {
-        let boundary = "------------------------a1b2c3d4e5f60718";
-        let mut body = Vec::new();
-        for (name, value) in [("print", print), ("path", "hot")] {
-            body.extend_from_slice(
-                format!(
-                    "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{value}\r\n"
-                )
-                .as_bytes(),
-            );
-        }
-        body.extend_from_slice(
-            format!(
-                "--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{file_name}\"\r\n\
-                 Content-Type: application/octet-stream\r\n\r\n"
-            )
-            .as_bytes(),
-        );
-        body.extend_from_slice(content);
-        body.extend_from_slice(format!("\r\n--{boundary}--\r\n").as_bytes());
-        let mut bytes = format!(
-            "POST /api/files/local HTTP/1.1\r\nHost: {}\r\nUser-Agent: PrusaSlicer/2.9.2\r\n\
-             Accept: */*\r\nX-Api-Key: {KEY}\r\nContent-Length: {}\r\n\
-             Content-Type: multipart/form-data; boundary={boundary}\r\nExpect: 100-continue\r\n\r\n",
-            farm.addr,
-            body.len()
-        )
-        .into_bytes();
-        bytes.extend_from_slice(&body);
-        raw(&farm.addr, &bytes)
+        octoprint_upload(&farm.addr, file_name, content, print)
     };
 
     // G-code (what PrusaSlicer sends after slicing itself) goes into the hot folder too,
-    // as pre-sliced G-code, and prints as it is. "Upload" without "and print"
-    // (print=false) cannot hold a file in a hot folder: the answer says it prints.
+    // as pre-sliced G-code, and prints as it is.
     let sliced = tmp.path().join("sliced.gcode");
     let out = Command::new(BIN)
         .arg("slice")
@@ -597,15 +611,11 @@ fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let a = send("part.gcode", &std::fs::read(&sliced).unwrap(), "false");
+    let a = send("part.gcode", &std::fs::read(&sliced).unwrap(), "true");
     assert_eq!(a.status, 201, "{}", a.text());
     let answer = a.json();
     assert_eq!(answer["files"]["local"]["path"], "hot/part.gcode");
     assert_eq!(answer["effectivePrint"], true);
-    assert!(
-        answer["message"].as_str().unwrap().contains("print=false"),
-        "{answer}"
-    );
     let status = farm.wait_for(
         Duration::from_secs(180),
         "the uploaded G-code printed",
@@ -631,6 +641,181 @@ fn an_upload_as_prusaslicer_sends_it_becomes_a_job_and_prints() {
     );
     assert_eq!(hot_files(tmp.path()), Vec::<String>::new());
     let _ = &farm.root;
+}
+
+/// "Upload" without "and print" (`print=false`), as PrusaSlicer sends it: the job is
+/// prepared and then held. A job uploaded to print after it is printed while the held one
+/// stays ready, though a printer is idle all along; cancel and retry keep it held; once
+/// released (`crispen release`) it prints, exactly once.
+#[test]
+fn an_upload_without_print_is_held_until_released_and_prints_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "");
+    farm.wait_for(Duration::from_secs(30), "two idle printers", |s| {
+        ["alpha", "beta"]
+            .iter()
+            .all(|p| printer(s, p)["state"] == "idle")
+    });
+    let a = octoprint_upload(&farm.addr, "held.gcode", WARM_GCODE.as_bytes(), "false");
+    assert_eq!(a.status, 201, "{}", a.text());
+    let answer = a.json();
+    assert_eq!(answer["effectivePrint"], false, "{answer}");
+    assert!(
+        answer["message"].as_str().unwrap().contains("held"),
+        "{answer}"
+    );
+    let s = farm.wait_for(Duration::from_secs(60), "the held job ready", |s| {
+        job_by_file(s, "held.gcode").is_some_and(|j| j["state"] == "ready" && j["held"] == true)
+    });
+    let id = job_by_file(&s, "held.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert_eq!(
+        hot_files(tmp.path()),
+        Vec::<String>::new(),
+        "the sidecar went with it"
+    );
+
+    let a = octoprint_upload(&farm.addr, "free.gcode", WARM_GCODE.as_bytes(), "true");
+    assert_eq!(a.status, 201, "{}", a.text());
+    assert_eq!(a.json()["effectivePrint"], true);
+    let s = farm.wait_for(Duration::from_secs(60), "the other upload printed", |s| {
+        job_by_file(s, "free.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    let held = job_by_file(&s, "held.gcode").unwrap();
+    assert_eq!(held["state"], "ready", "{s:#}");
+    assert_eq!(held["printer"], Value::Null);
+    let used = job_by_file(&s, "free.gcode").unwrap()["printer"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let other = if used == "alpha" { "beta" } else { "alpha" };
+    assert_eq!(printer(&s, other)["state"], "idle", "{s:#}");
+    let free = job_by_file(&s, "free.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+
+    let cli = |args: &[&str]| run_cli(tmp.path(), args);
+    let (ok, table) = cli(&["status"]);
+    let row = table.lines().find(|l| l.starts_with(&id)).unwrap_or("");
+    assert!(ok && row.contains("ready (held)"), "{table}");
+
+    // Cancelled and retried, it is still held; a cancelled job is not released.
+    let a = farm.post(&format!("/api/v1/jobs/{id}/cancel"), Some(KEY));
+    assert_eq!(a.status, 200, "{}", a.text());
+    let a = farm.post(&format!("/api/v1/jobs/{id}/release"), Some(KEY));
+    assert_eq!(a.status, 409, "{}", a.text());
+    assert!(a.error().contains("retry it first"), "{}", a.text());
+    let a = farm.post(&format!("/api/v1/jobs/{id}/retry"), Some(KEY));
+    assert_eq!(a.status, 200, "{}", a.text());
+    assert!(
+        a.json()["message"].as_str().unwrap().contains("release"),
+        "{}",
+        a.text()
+    );
+    let s = farm.status();
+    let held = job_by_file(&s, "held.gcode").unwrap();
+    assert!(held["state"] == "ready" && held["held"] == true, "{held:#}");
+
+    let a = farm.post(&format!("/api/v1/jobs/{free}/release"), Some(KEY));
+    assert_eq!(a.status, 409, "{}", a.text());
+    assert!(a.error().contains("not held"), "{}", a.text());
+    let (ok, text) = cli(&["release", &id]);
+    assert!(ok && text.contains("released"), "{text}");
+    let s = farm.wait_for(Duration::from_secs(60), "the released job printed", |s| {
+        job_by_file(s, "held.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    assert_eq!(job_by_file(&s, "held.gcode").unwrap()["printer"], other);
+    let detail = farm.get(&format!("/api/v1/jobs/{id}"), Some(KEY)).json();
+    let printings = detail["job"]["history"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|h| h[0] == "printing")
+        .count();
+    assert_eq!(printings, 1, "printed once: {detail:#}");
+    assert_eq!(detail["job"]["copies_done"], 1);
+    assert_eq!(detail["held"], false);
+    let (ok, text) = cli(&["release", &id]);
+    assert!(!ok && text.contains("not held"), "{text}");
+}
+
+/// Idle printers' temperatures, read between jobs, in the API, the status and the
+/// metrics; and they follow the printer: after a print (200 °C nozzle, 60 °C bed) the
+/// simulator cools down, and so do the daemon's figures, to the room's 21 °C.
+#[test]
+fn idle_temperatures_follow_the_printer() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.1, "");
+    let reading = |s: &Value, p: &str, what: &str| printer(s, p)["temperatures"][what].as_f64();
+    let ambient = |s: &Value, p: &str| {
+        ["hotend_c", "bed_c"]
+            .iter()
+            .all(|w| reading(s, p, w).is_some_and(|c| (c - 21.0).abs() < 0.5))
+            && ["hotend_target_c", "bed_target_c"]
+                .iter()
+                .all(|w| reading(s, p, w) == Some(0.0))
+    };
+    farm.wait_for(Duration::from_secs(60), "idle printers at 21 °C", |s| {
+        ["alpha", "beta"]
+            .iter()
+            .all(|p| printer(s, p)["state"] == "idle" && ambient(s, p))
+    });
+    let a = farm.get("/api/v1/printers/alpha", Some(KEY));
+    assert_eq!(a.status, 200);
+    assert_eq!(a.json()["temperatures"]["bed_target_c"], 0.0);
+    let metrics = farm.get("/metrics", Some(KEY)).text();
+    let gauge = |metrics: &str, name: &str, p: &str| -> Option<f64> {
+        let prefix = format!("{name}{{printer=\"{p}\"}} ");
+        metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(&prefix))
+            .and_then(|v| v.parse().ok())
+    };
+    for p in ["alpha", "beta"] {
+        let c = gauge(&metrics, "crispen_printer_hotend_celsius", p);
+        assert!(c.is_some_and(|c| (c - 21.0).abs() < 0.5), "{metrics}");
+        assert_eq!(
+            gauge(&metrics, "crispen_printer_bed_target_celsius", p),
+            Some(0.0),
+            "{metrics}"
+        );
+    }
+
+    let a = request(
+        &farm.addr,
+        "PUT",
+        "/api/v1/folders/hot/files/warm.gcode",
+        &key_header(Some(KEY)),
+        WARM_GCODE.as_bytes(),
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let s = farm.wait_for(Duration::from_secs(120), "the warm-up printed", |s| {
+        job_by_file(s, "warm.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    let p = job_by_file(&s, "warm.gcode").unwrap()["printer"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    // Cooling from 200 °C at the simulator's 1 °C per simulated second, ten times
+    // faster than real: well over 100 °C for the first 9 s after the print.
+    let s = farm.wait_for(Duration::from_secs(30), "the heaters off", |s| {
+        reading(s, &p, "hotend_target_c") == Some(0.0)
+    });
+    let hot = reading(&s, &p, "hotend_c").unwrap();
+    assert!(hot > 100.0, "just after the print: {s:#}");
+    assert_eq!(printer(&s, &p)["state"], "bed_not_cleared");
+    farm.wait_for(Duration::from_secs(60), "cooling down", |s| {
+        reading(s, &p, "hotend_c").is_some_and(|c| c < hot - 50.0)
+    });
+    farm.wait_for(Duration::from_secs(120), "back at 21 °C", |s| {
+        ambient(s, &p)
+    });
+    let metrics = farm.get("/metrics", Some(KEY)).text();
+    let c = gauge(&metrics, "crispen_printer_hotend_celsius", &p);
+    assert!(c.is_some_and(|c| c < 22.0), "{metrics}");
 }
 
 /// chromedriver and one headless Chromium session, spoken to in W3C WebDriver JSON over
@@ -803,8 +988,8 @@ fn webdriver(addr: &str, method: &str, path: &str, body: &Value) -> Value {
 /// The dashboard in a real headless Chromium: two simulated printers printing, each
 /// tile with its state, progress, temperatures and the part's picture; the bed-clear
 /// button asks for the key (read-only without it), then clears the bed with it; a model
-/// dropped on the hot folder's name becomes a job; the job page shows the three pictures;
-/// and the page fits a phone's width.
+/// dropped on the hot folder's name becomes a job; a held upload's Print button releases
+/// it; the job page shows the three pictures; and the page fits a phone's width.
 #[test]
 fn dashboard_in_a_real_browser() {
     let tmp = tempfile::tempdir().unwrap();
@@ -892,6 +1077,31 @@ fn dashboard_in_a_real_browser() {
         Duration::from_secs(20),
         "the dropped job in the queue",
         "return Array.from(document.querySelectorAll('#queue tr[data-job]')).some(r => r.textContent.includes('dropped.obj'))",
+    );
+
+    // A held upload (without "print") shows as held with a Print button, which releases it.
+    let a = octoprint_upload(&farm.addr, "held.gcode", WARM_GCODE.as_bytes(), "false");
+    assert_eq!(a.status, 201, "{}", a.text());
+    browser.wait_until(
+        Duration::from_secs(60),
+        "the held job's Print button",
+        "const row = Array.from(document.querySelectorAll('#queue tr[data-job]'))
+           .find(r => r.textContent.includes('held.gcode'));
+         return !!row && /held/.test(row.textContent) && !!row.querySelector('button[data-action=\"release\"]');",
+    );
+    // Clicked from the page's own script: the queue's rows are redrawn whenever another
+    // job moves on, which a WebDriver element reference would not survive.
+    let clicked = browser.exec(
+        "const b = document.querySelector('button[data-action=\"release\"]');
+         if (b) b.click();
+         return !!b;",
+        json!([]),
+    );
+    assert_eq!(clicked, json!(true));
+    farm.wait_for(
+        Duration::from_secs(20),
+        "the held job released by the click",
+        |s| job_by_file(s, "held.gcode").is_some_and(|j| j["held"] == false),
     );
 
     // The job page: the report and the three pictures.

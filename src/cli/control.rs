@@ -1,4 +1,4 @@
-//! `crispen status|clear|cancel|pause|resume|retry`: clients of the daemon's HTTP API on its
+//! `crispen status|clear|cancel|pause|resume|retry|release`: clients of the daemon's HTTP API on its
 //! control socket (`crispen::http`; no key there: the socket's file mode decides). The
 //! socket is found through the same `--config` the daemon was started with (or the
 //! built-in default).
@@ -149,6 +149,18 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
     }
     let status: Status =
         serde_json::from_value(answer).context("the daemon's status is not as expected")?;
+    if let Some(farm) = &status.farm {
+        let hosts: Vec<String> = farm
+            .hosts
+            .iter()
+            .map(|h| format!("{}{}", h.name, if h.alive { "" } else { " (offline)" }))
+            .collect();
+        println!("farm: this host {}; hosts: {}", farm.host, hosts.join(", "));
+        if let Some(e) = &farm.database {
+            println!("{e}: prints go on, nothing new is taken until it answers");
+        }
+        println!();
+    }
     println!("PRINTER          STATE            JOB                          HOTEND      BED        PROGRESS");
     for p in &status.printers {
         let state = serde_json::to_value(p.state)?;
@@ -157,10 +169,15 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             (Some(c), None) => format!("{c:.0}C"),
             _ => "-".into(),
         };
-        let (hotend, bed, progress) = match &p.progress {
-            Some(l) => (
-                temps(l.hotend_c, l.hotend_target_c),
-                temps(l.bed_c, l.bed_target_c),
+        let (hotend, bed) = match &p.temperatures {
+            Some(t) => (
+                temps(t.hotend_c, t.hotend_target_c),
+                temps(t.bed_c, t.bed_target_c),
+            ),
+            None => ("-".into(), "-".into()),
+        };
+        let progress = match &p.progress {
+            Some(l) => {
                 if l.lines_total > 0 {
                     format!(
                         "{:.1}% ({}/{} lines){}",
@@ -173,14 +190,18 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
                     )
                 } else {
                     "-".into()
-                },
-            ),
-            None => ("-".into(), "-".into(), "-".into()),
+                }
+            }
+            None => "-".into(),
+        };
+        let state = match (&p.host, p.offline) {
+            (_, true) => "offline".to_string(),
+            _ => state.as_str().unwrap_or("?").to_string(),
         };
         println!(
-            "{:<16} {:<16} {:<28} {:<11} {:<10} {}{}",
+            "{:<16} {:<16} {:<28} {:<11} {:<10} {}{}{}",
             p.name,
-            state.as_str().unwrap_or("?"),
+            state,
             p.job.as_deref().unwrap_or("-"),
             hotend,
             bed,
@@ -188,6 +209,10 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             p.detail
                 .as_deref()
                 .map(|d| format!("  ({d})"))
+                .unwrap_or_default(),
+            p.host
+                .as_deref()
+                .map(|h| format!("  [{h}]"))
                 .unwrap_or_default()
         );
         if !p.bed_cleared {
@@ -210,10 +235,15 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             ),
             _ => j.file.clone(),
         };
+        let state = if j.held {
+            format!("{} (held)", j.state.name())
+        } else {
+            j.state.name().to_string()
+        };
         println!(
             "{:<28} {:<12} {:<16} {}",
             j.id,
-            j.state.name(),
+            state,
             j.printer.as_deref().unwrap_or("-"),
             extra
         );
@@ -235,6 +265,9 @@ pub fn resume(a: PrinterArgs) -> anyhow::Result<ExitCode> {
 }
 pub fn retry(a: JobArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, job_path(&a.job, "retry"))
+}
+pub fn release(a: JobArgs) -> anyhow::Result<ExitCode> {
+    act(&a.config, job_path(&a.job, "release"))
 }
 
 fn printer_path(printer: &str, action: &str) -> String {

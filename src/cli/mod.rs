@@ -52,6 +52,8 @@ pub enum Command {
     Resume(control::PrinterArgs),
     /// Put a failed, cancelled or interrupted job back in the queue
     Retry(control::JobArgs),
+    /// Let a held job (an upload without "print", or `hold = true` in its sidecar) print
+    Release(control::JobArgs),
     /// The daemon's preparation child (internal)
     #[command(hide = true)]
     PrepareJob(prepare_job::Args),
@@ -73,6 +75,7 @@ pub fn main() -> ExitCode {
         Command::Pause(a) => control::pause(a),
         Command::Resume(a) => control::resume(a),
         Command::Retry(a) => control::retry(a),
+        Command::Release(a) => control::release(a),
         Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {

@@ -1,9 +1,9 @@
 //! The farm's operations, shared by every way in: the status snapshot ([`status`]) and the
-//! operator's commands ([`execute`]: clear, cancel, pause, resume, retry), and the control
-//! socket they are served on ([`bind`]). The socket speaks the same HTTP API as the TCP
-//! listener (`crate::http`); its file mode (0660: the service user and its group) decides
-//! who may use it, so no key is asked there. `crispen status|clear|cancel|pause|resume|retry`
-//! are its clients.
+//! operator's commands ([`execute`]: clear, cancel, pause, resume, retry, release), and the
+//! control socket they are served on ([`bind`]). The socket speaks the same HTTP API as the
+//! TCP listener (`crate::http`); its file mode (0660: the service user and its group)
+//! decides who may use it, so no key is asked there.
+//! `crispen status|clear|cancel|pause|resume|retry|release` are its clients.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{JobState, StoreError};
@@ -13,7 +13,8 @@ use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// What an operator may ask of the farm.
+/// What an operator may ask of the farm (`Release`: let a held job, `hold = true` in its
+/// sidecar, be printed).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Command {
     Clear { printer: String },
@@ -21,6 +22,7 @@ pub enum Command {
     Pause { printer: String },
     Resume { printer: String },
     Retry { job: String },
+    Release { job: String },
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -38,7 +40,7 @@ pub struct Status {
 pub struct FarmStatus {
     /// This host.
     pub host: String,
-    /// None while the farm database answers; else why it does not.
+    /// None while the farm database answers; else why it does not (the error).
     pub database: Option<String>,
     pub hosts: Vec<super::store::postgres::FarmHost>,
 }
@@ -58,6 +60,9 @@ pub struct JobStatus {
     pub copies_done: u32,
     pub copies: u32,
     pub updated: f64,
+    /// Waits for the operator's release before a printer may take it.
+    #[serde(default)]
+    pub held: bool,
 }
 
 /// Why a command was refused; the operator sees the message.
@@ -71,6 +76,8 @@ pub enum CommandError {
     PrintEnded(String),
     #[error("job {id} is {state}; only active jobs can be cancelled")]
     NotActive { id: String, state: JobState },
+    #[error("job {0} is not held; it prints once ready")]
+    NotHeld(String),
     #[error(transparent)]
     Store(#[from] StoreError),
 }
@@ -123,7 +130,7 @@ pub fn status(farm: &Farm) -> Status {
         let view = shared.clone().unwrap_or_default();
         FarmStatus {
             host: db.host().to_string(),
-            database: view.database.map(|e| format!("unreachable: {e}")),
+            database: view.database,
             hosts: view.hosts,
         }
     });
@@ -153,6 +160,7 @@ pub fn status(farm: &Farm) -> Status {
             copies_done: j.copies_done,
             copies: j.copies_wanted(),
             updated: j.history.last().map(|h| h.1).unwrap_or(0.0),
+            held: j.held(),
         })
         .collect();
     Status {
@@ -174,12 +182,67 @@ pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, Comma
         Command::Retry { job } => {
             let retried = farm.jobs.retry(&job).await?;
             farm.bump();
+            let held = if retried.held() {
+                format!("; it stays held until `crispen release {job}`")
+            } else {
+                String::new()
+            };
             Ok(match retried.state {
-                JobState::Ready => format!("job {job} is ready to print again"),
-                _ => format!("job {job} queued for preparation again"),
+                JobState::Ready => format!("job {job} is ready to print again{held}"),
+                _ => format!("job {job} queued for preparation again{held}"),
             })
         }
+        Command::Release { job } => release(farm, &job).await,
     }
+}
+
+/// Releases a held job, checked and changed as one step of the store (a cancel between a
+/// check and the change would otherwise leave a cancelled job released for a retry).
+async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
+    let released = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flag = Arc::clone(&released);
+    let job = farm
+        .jobs
+        .update(id, move |j| {
+            if j.held() && j.state.is_active() {
+                j.released = true;
+                flag.store(true, std::sync::atomic::Ordering::SeqCst);
+            }
+        })
+        .await?;
+    if !released.load(std::sync::atomic::Ordering::SeqCst) {
+        return Err(match job.sidecar.as_ref().and_then(|s| s.hold) {
+            Some(true) if !job.released => CommandError::Store(StoreError::WrongState {
+                id: id.to_string(),
+                state: job.state,
+                action: "release",
+                allowed:
+                    "queued, preparing or ready (retry it first; it stays held until released)",
+            }),
+            _ => CommandError::NotHeld(id.to_string()),
+        });
+    }
+    tracing::info!(job = id, "held job released");
+    farm.bump();
+    Ok(match job.state {
+        JobState::Ready => format!("job {id} released; the next free printer takes it"),
+        _ => format!("job {id} released; it prints once ready"),
+    })
+}
+
+/// Every printer's name: this host's, then (in a shared farm) the other hosts'.
+pub fn printer_names(farm: &Farm) -> Vec<String> {
+    let mut names: Vec<String> = farm
+        .printers
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .keys()
+        .cloned()
+        .collect();
+    if let Some(view) = &*farm.shared.lock().unwrap_or_else(|e| e.into_inner()) {
+        names.extend(view.printers.iter().map(|p| p.name.clone()));
+    }
+    names
 }
 
 /// Where a printer named in a command is attached.

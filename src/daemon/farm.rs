@@ -43,6 +43,16 @@ pub struct LiveProgress {
     pub paused: bool,
 }
 
+/// A printer's hotend and bed (°C, current and target) as read now: from the job's
+/// reports while it prints, from an `M105` every few seconds between jobs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct PrinterTemperatures {
+    pub hotend_c: Option<f64>,
+    pub hotend_target_c: Option<f64>,
+    pub bed_c: Option<f64>,
+    pub bed_target_c: Option<f64>,
+}
+
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PrinterStatus {
     pub name: String,
@@ -51,6 +61,10 @@ pub struct PrinterStatus {
     pub port: String,
     pub job: Option<String>,
     pub progress: Option<LiveProgress>,
+    /// None while not known now: not connected, or the printer stopped answering (stale
+    /// figures are never shown as current).
+    #[serde(default)]
+    pub temperatures: Option<PrinterTemperatures>,
     /// Why the printer is in its state (e.g. the last connection error).
     pub detail: Option<String>,
     /// False from the end of a print until `crispen clear`, whatever the connection

@@ -140,6 +140,9 @@ pub struct Sidecar {
     pub printer: Option<String>,
     /// Which of the model's axes points up: "z" or "y".
     pub up: Option<crate::slice::UpAxis>,
+    /// `hold = true`: prepare the job, but let no printer take it until the operator
+    /// releases it (`crispen release JOB`); what an upload with `print=false` asks for.
+    pub hold: Option<bool>,
 }
 
 /// One job as persisted in `job.json`.
@@ -168,6 +171,10 @@ pub struct Job {
     /// `<file>.gcode` was made for an Ultimaker 2.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub machines: std::collections::BTreeMap<String, ForMachine>,
+    /// The operator released a job its sidecar holds (see [`Job::held`]). Kept through a
+    /// retry: a released job is printed when it is ready again, a held one is not.
+    #[serde(default)]
+    pub released: bool,
     /// Where a job of a farm shared by several hosts came from (None in a host's own
     /// spool, whose folders are all in its config).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -193,6 +200,12 @@ pub enum ForMachine {
 }
 
 impl Job {
+    /// Held: its sidecar says `hold = true` and the operator has not released it yet. A
+    /// held job is prepared as usual; no printer claims it.
+    pub fn held(&self) -> bool {
+        !self.released && self.sidecar.as_ref().and_then(|s| s.hold) == Some(true)
+    }
+
     /// The G-code file (in the job's directory) made for `machine`, if any.
     pub fn gcode_for(&self, machine: &str) -> Option<String> {
         if self.machines.is_empty() {
@@ -275,6 +288,7 @@ impl Job {
             slice_report: None,
             print_report: None,
             machines: Default::default(),
+            released: false,
             origin: None,
         }
     }

@@ -143,6 +143,7 @@ impl Fleet {
                     port: port.display().to_string(),
                     job: None,
                     progress: None,
+                    temperatures: None,
                     detail: None,
                     bed_cleared: true,
                     host: farm

@@ -3,6 +3,11 @@
 //! noted and an unplugged printer reconnected before a job depends on it), takes the oldest ready job of one of its folders,
 //! holds it until a heating permit is free, streams it, and records the outcome.
 //!
+//! Temperatures: while a printer prints they come with the job's progress; between jobs
+//! (and while a job waits for its heating permit) the link reads them every few seconds
+//! ([`PrinterLink::watch_idle`]). They are shown only while current: they are dropped when
+//! the connection is lost or re-opened and when the printer stops reporting them.
+//!
 //! Staggered heat-ups, approximated: a print holds one of `[farm] max_heating` permits from
 //! its start until the streamer has had the last heat-and-wait command (`M109`/`M190`/
 //! `M116`) of the program's opening acknowledged; Marlin acknowledges those only once the
@@ -12,11 +17,12 @@
 //! The supervisor reaches the printer through [`Connector`]/[`PrinterLink`], so the real
 //! Marlin streamer is wired in in one place ([`MarlinConnector`]).
 
-use super::farm::{Farm, LiveProgress, PrintCommand, PrinterState};
+use super::farm::{Farm, LiveProgress, PrintCommand, PrinterState, PrinterTemperatures};
 use super::job::{JobState, PrintReport, PrinterGate};
 use crate::marlin::gcode::GcodeProgram;
 use crate::marlin::stream::{
     Connection, Idle, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
+    Temperatures,
 };
 use std::future::Future;
 use std::path::{Path, PathBuf};
@@ -50,9 +56,10 @@ pub trait PrinterLink: Send {
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>>;
 
-    /// Reads and logs what the printer says between jobs (reports, `start`, host actions)
-    /// until it says something to act on; pending while all is quiet. Cancel-safe: the
-    /// supervisor races it against a bed being cleared or a job arriving.
+    /// Reads and logs what the printer says between jobs (reports, `start`, host actions),
+    /// asking for its temperatures every few seconds, until it says something to act on
+    /// or report. Cancel-safe: the supervisor races it against a bed being cleared or a
+    /// job arriving.
     fn watch_idle(&mut self) -> BoxFuture<'_, IdleNews>;
 }
 
@@ -63,6 +70,8 @@ pub enum IdleNews {
     Rebooted,
     /// The link closed; the connection must be re-opened.
     Lost(String),
+    /// Its temperatures as read now; None once it stopped reporting them.
+    Temperatures(Option<PrinterTemperatures>),
 }
 
 /// Opens connections to one printer.
@@ -112,7 +121,10 @@ async fn supervise_inner(
         if done(&retire) {
             break;
         }
-        farm.set_printer(&name, |p| p.state = PrinterState::Connecting);
+        farm.set_printer(&name, |p| {
+            p.state = PrinterState::Connecting;
+            p.temperatures = None;
+        });
         let connected = tokio::select! {
             connected = connector.connect() => connected,
             _ = farm.shutdown.cancelled() => break,
@@ -183,13 +195,16 @@ async fn supervise_inner(
             .unwrap_or_else(|e| e.into_inner())
             .remove(&name);
     } else {
-        farm.set_printer(&name, |p| p.state = PrinterState::Stopped);
+        farm.set_printer(&name, |p| {
+            p.state = PrinterState::Stopped;
+            p.temperatures = None;
+        });
     }
 }
 
 /// Waits for a change of the farm (a bed cleared, a job ready, a reload) while reading what
-/// the printer says meanwhile. Returns true when the connection was lost. A reset is noted
-/// in the printer's status until its next job starts.
+/// the printer says meanwhile and showing its temperatures. Returns true when the
+/// connection was lost. A reset is noted in the printer's status until its next job starts.
 async fn between_jobs(
     farm: &Farm,
     name: &str,
@@ -197,32 +212,40 @@ async fn between_jobs(
     wake: &mut watch::Receiver<u64>,
     retire: &mut watch::Receiver<bool>,
 ) -> bool {
-    let news = tokio::select! {
-        _ = wake.changed() => return false,
-        _ = retire.changed() => return false,
-        news = link.watch_idle() => news,
-    };
-    match news {
-        IdleNews::Rebooted => {
-            tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
-            farm.set_printer(name, |p| {
-                p.detail = Some(
-                    "the printer reset between jobs (it said `start`); the next job starts \
-                     with a fresh handshake"
-                        .into(),
-                )
-            });
-            false
-        }
-        IdleNews::Lost(why) => {
-            tracing::warn!(reason = %why, "printer link lost between jobs; reconnecting");
-            farm.set_printer(name, |p| {
-                p.state = PrinterState::Disconnected;
-                p.detail = Some(why);
-            });
-            true
+    loop {
+        let news = tokio::select! {
+            _ = wake.changed() => return false,
+            _ = retire.changed() => return false,
+            news = link.watch_idle() => news,
+        };
+        match news {
+            IdleNews::Temperatures(t) => farm.set_printer(name, |p| p.temperatures = t),
+            IdleNews::Rebooted => {
+                tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
+                farm.set_printer(name, |p| {
+                    p.detail = Some(
+                        "the printer reset between jobs (it said `start`); the next job starts \
+                         with a fresh handshake"
+                            .into(),
+                    )
+                });
+                return false;
+            }
+            IdleNews::Lost(why) => {
+                lost_between_jobs(farm, name, why);
+                return true;
+            }
         }
     }
+}
+
+fn lost_between_jobs(farm: &Farm, name: &str, why: String) {
+    tracing::warn!(reason = %why, "printer link lost between jobs; reconnecting");
+    farm.set_printer(name, |p| {
+        p.state = PrinterState::Disconnected;
+        p.detail = Some(why);
+        p.temperatures = None;
+    });
 }
 
 /// Takes the oldest ready job this printer may print, marking it printing. The search and
@@ -251,7 +274,7 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
             .as_ref()
             .and_then(|s| s.printer.as_deref())
             .is_none_or(|p| p == printer);
-        served && wanted && j.gcode_for(&machine).is_some()
+        served && wanted && !j.held() && j.gcode_for(&machine).is_some()
     };
     match farm.claim(printer, eligible).await {
         Ok(job) => job.map(|j| j.id),
@@ -298,16 +321,33 @@ async fn run_job(
         p.job = Some(job_id.to_string());
         p.progress = None;
     });
-    let permit = tokio::select! {
-        permit = farm.heating_permit() => permit,
-        _ = farm.shutdown.cancelled() => {
-            // Nothing was sent to the printer: the job waits for the next start.
-            if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
-                tracing::error!(error = %e, "cannot put the job back");
+    // Meanwhile the printer is still read (its temperatures, a reset, a lost link).
+    let permit = loop {
+        let news = tokio::select! {
+            permit = farm.heating_permit() => break permit,
+            _ = farm.shutdown.cancelled() => None,
+            news = link.watch_idle() => Some(news),
+        };
+        let lost = match news {
+            Some(IdleNews::Temperatures(t)) => {
+                farm.set_printer(printer, |p| p.temperatures = t);
+                continue;
             }
-            farm.set_printer(printer, |p| p.job = None);
-            return false;
+            // The job's start greets it afresh.
+            Some(IdleNews::Rebooted) => continue,
+            Some(IdleNews::Lost(why)) => {
+                lost_between_jobs(farm, printer, why);
+                true
+            }
+            None => false,
+        };
+        // Nothing was sent to the printer: the job waits for the next start, or for
+        // the next printer.
+        if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
+            tracing::error!(error = %e, "cannot put the job back");
         }
+        farm.set_printer(printer, |p| p.job = None);
+        return lost;
     };
     tracing::info!(gcode = %gcode.display(), "starting print");
     farm.set_printer(printer, |p| {
@@ -342,7 +382,7 @@ async fn run_job(
                 }
                 farm.set_printer(printer, |p| {
                     p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
-                    p.progress = Some(live);
+                    show_progress(p, live);
                 });
             }
             _ = farm.shutdown.cancelled(), if stop_on_shutdown && !shutdown_stop => {
@@ -354,7 +394,11 @@ async fn run_job(
     drop(permit);
     if progress_open {
         let live = progress_rx.borrow_and_update().clone();
-        farm.set_printer(printer, |p| p.progress = Some(live));
+        farm.set_printer(printer, |p| show_progress(p, live));
+    }
+    if matches!(outcome, Err(PrintFailure::Lost(_))) {
+        // Whatever was read last is no longer current.
+        farm.set_printer(printer, |p| p.temperatures = None);
     }
     farm.print_controls
         .lock()
@@ -416,6 +460,20 @@ async fn run_job(
     lost
 }
 
+/// A print's progress, and its temperatures once the printer has reported them (until
+/// then the last ones read before the job stand).
+fn show_progress(p: &mut super::farm::PrinterStatus, live: LiveProgress) {
+    if live.hotend_c.is_some() || live.bed_c.is_some() {
+        p.temperatures = Some(PrinterTemperatures {
+            hotend_c: live.hotend_c,
+            hotend_target_c: live.hotend_target_c,
+            bed_c: live.bed_c,
+            bed_target_c: live.bed_target_c,
+        });
+    }
+    p.progress = Some(live);
+}
+
 fn live_progress(p: &PrintProgress, heated: bool, paused: bool) -> LiveProgress {
     LiveProgress {
         lines_acked: p.lines_acked,
@@ -428,6 +486,15 @@ fn live_progress(p: &PrintProgress, heated: bool, paused: bool) -> LiveProgress 
         remaining_s: p.remaining_s,
         heated,
         paused,
+    }
+}
+
+fn printer_temperatures(t: &Temperatures) -> PrinterTemperatures {
+    PrinterTemperatures {
+        hotend_c: t.hotend.map(|t| t.current),
+        hotend_target_c: t.hotend.and_then(|t| t.target),
+        bed_c: t.bed.map(|t| t.current),
+        bed_target_c: t.bed.and_then(|t| t.target),
     }
 }
 
@@ -549,6 +616,10 @@ impl PrinterLink for MarlinLink {
                 match self.connection.idle_for(Duration::from_secs(3600)).await {
                     Ok(Idle::Quiet) => {}
                     Ok(Idle::Rebooted) => return IdleNews::Rebooted,
+                    Ok(Idle::Temperatures(t)) => {
+                        return IdleNews::Temperatures(Some(printer_temperatures(&t)))
+                    }
+                    Ok(Idle::Silent) => return IdleNews::Temperatures(None),
                     Err(e) => return IdleNews::Lost(e.to_string()),
                 }
             }

@@ -48,6 +48,9 @@ pub struct StatusView {
     pub printers: Vec<PrinterStatus>,
     pub jobs: Vec<JobView>,
     pub folders: Vec<FolderView>,
+    /// The hosts of a farm shared through `[store]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub farm: Option<control::FarmStatus>,
 }
 
 const PICTURES: [&str; 3] = [
@@ -108,6 +111,7 @@ pub fn snapshot(farm: &Farm) -> StatusView {
         printers: status.printers,
         jobs,
         folders,
+        farm: status.farm,
     };
     for job in &view.jobs {
         let waiting = matches!(
@@ -246,13 +250,7 @@ pub async fn folders(State(state): State<AppState>) -> Result<Json<Vec<FolderVie
 }
 
 fn no_printer(farm: &Farm, name: &str) -> ApiError {
-    let names: Vec<String> = farm
-        .printers
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .keys()
-        .cloned()
-        .collect();
+    let names = control::printer_names(farm);
     ApiError::not_found(format!(
         "no printer {name:?} (the printers are: {})",
         names.join(", ")
@@ -264,13 +262,7 @@ pub async fn printer_action(
     State(state): State<AppState>,
     Path((name, action)): Path<(String, String)>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    if !state
-        .farm
-        .printers
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .contains_key(&name)
-    {
+    if !control::printer_names(&state.farm).contains(&name) {
         return Err(no_printer(&state.farm, &name));
     }
     let printer = name;
@@ -287,7 +279,7 @@ pub async fn printer_action(
     act(&state, command).await
 }
 
-/// `POST /api/v1/jobs/{id}/cancel|retry`.
+/// `POST /api/v1/jobs/{id}/cancel|retry|release`.
 pub async fn job_action(
     State(state): State<AppState>,
     Path((id, action)): Path<(String, String)>,
@@ -301,9 +293,10 @@ pub async fn job_action(
     let command = match action.as_str() {
         "cancel" => Command::Cancel { job },
         "retry" => Command::Retry { job },
+        "release" => Command::Release { job },
         other => {
             return Err(ApiError::not_found(format!(
-                "no job action {other:?}; the job actions are cancel, retry"
+                "no job action {other:?}; the job actions are cancel, retry, release"
             )))
         }
     };

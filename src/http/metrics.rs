@@ -118,33 +118,33 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
     let temperatures: [(
         &str,
         &str,
-        fn(&crate::daemon::farm::LiveProgress) -> Option<f64>,
+        fn(&crate::daemon::farm::PrinterTemperatures) -> Option<f64>,
     ); 4] = [
         (
             "crispen_printer_hotend_celsius",
-            "Hotend temperature during a print.",
-            |l| l.hotend_c,
+            "Hotend temperature, printing or idle (absent while not known now).",
+            |t| t.hotend_c,
         ),
         (
             "crispen_printer_hotend_target_celsius",
-            "Hotend target temperature during a print.",
-            |l| l.hotend_target_c,
+            "Hotend target temperature (0: heater off).",
+            |t| t.hotend_target_c,
         ),
         (
             "crispen_printer_bed_celsius",
-            "Bed temperature during a print.",
-            |l| l.bed_c,
+            "Bed temperature, printing or idle (absent while not known now).",
+            |t| t.bed_c,
         ),
         (
             "crispen_printer_bed_target_celsius",
-            "Bed target temperature during a print.",
-            |l| l.bed_target_c,
+            "Bed target temperature (0: heater off).",
+            |t| t.bed_target_c,
         ),
     ];
     for (name, help, read) in temperatures {
         out.family(name, "gauge", help);
         for p in &view.printers {
-            if let Some(v) = p.progress.as_ref().and_then(read) {
+            if let Some(v) = p.temperatures.as_ref().and_then(read) {
                 out.sample(name, &[("printer", &p.name)], v);
             }
         }

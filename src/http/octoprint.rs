@@ -5,10 +5,14 @@
 //! a model through the normal pipeline, G-code (what a slicer sends after slicing itself)
 //! as pre-sliced. Slicers send the key in `X-Api-Key`, as here.
 //!
-//! `print`: every file in a hot folder is printed once it is ready (that is what a hot
-//! folder is for), so `print=false` ("Upload" rather than "Upload and print") cannot hold
-//! it. It is accepted, and the answer says so: `effectivePrint` is true and `message`
-//! gives the reason.
+//! `print`: with `print=true` ("Upload and print") the file prints once ready, as every
+//! file in a hot folder does. Without it ("Upload"; OctoPrint's default is false) the job
+//! is held: prepared as usual, then kept from the printers until the operator releases it
+//! (`crispen release JOB`, `POST /api/v1/jobs/{id}/release`, the dashboard's Print
+//! button). The hold travels as the model's sidecar `<file>.toml` with `hold = true`,
+//! received whole and linked into the hot folder right before the model itself, so the
+//! pick-up finds it with the model. A sidecar of that name already there is not
+//! replaced: the upload is refused.
 
 use super::upload;
 use super::{ApiError, AppState};
@@ -68,24 +72,32 @@ pub async fn upload(
             "file" => {
                 let file_name = field.file_name().unwrap_or("").to_string();
                 let folder = folder_for(&config, path.as_deref())?;
-                upload::check_name(&file_name)?;
-                let (stored, size) =
-                    upload::store(&folder.path, &file_name, field, state.upload_max_bytes).await?;
+                // A sidecar is no job of its own: nothing to hold.
+                let hold = !print && upload::check_name(&file_name)? != upload::Upload::Sidecar;
+                let received =
+                    upload::receive(&folder.path, &file_name, field, state.upload_max_bytes)
+                        .await?;
+                let size = received.size;
+                let sidecar = match hold {
+                    true => Some(receive_hold(&folder.path, &file_name).await?),
+                    false => None,
+                };
+                let stored = upload::place_with_sidecar(received, sidecar).await?;
                 tracing::info!(file = %stored.display(), size, print, "octoprint upload into a hot folder");
                 let folder_name = upload::folder_name(folder);
-                let message = if print {
+                let message = if !hold {
                     format!("{file_name} is in hot folder {folder_name}; it prints once ready")
                 } else {
                     format!(
-                        "{file_name} is in hot folder {folder_name}; it prints once ready: \
-                         print=false cannot hold a file in a hot folder, whose files are all printed"
+                        "{file_name} is in hot folder {folder_name}; it is prepared and then held \
+                         until released (`crispen release JOB` or the dashboard's Print button)"
                     )
                 };
                 return Ok((
                     StatusCode::CREATED,
                     Json(serde_json::json!({
                         "done": true,
-                        "effectivePrint": true,
+                        "effectivePrint": !hold,
                         "message": message,
                         "effectiveSelect": false,
                         "files": { "local": {
@@ -104,6 +116,22 @@ pub async fn upload(
         "the multipart body has no `file` field (hint: the slicer sends the file as `file`)",
     ))
 }
+
+/// The sidecar that holds `file_name`, received into `folder` under a temporary name.
+async fn receive_hold(
+    folder: &std::path::Path,
+    file_name: &str,
+) -> Result<upload::Received, ApiError> {
+    let text = futures_util::stream::iter([Ok::<_, std::convert::Infallible>(
+        axum::body::Bytes::from_static(HOLD_SIDECAR.as_bytes()),
+    )]);
+    let sidecar = format!("{file_name}.toml");
+    upload::receive(folder, &sidecar, text, HOLD_SIDECAR.len() as u64).await
+}
+
+/// The sidecar of an upload without `print`.
+const HOLD_SIDECAR: &str =
+    "# an upload without \"print\": prepared, then held until released\nhold = true\n";
 
 /// The hot folder a slicer's `path` names; with no path, the only folder there is.
 fn folder_for<'a>(

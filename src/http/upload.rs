@@ -2,7 +2,8 @@
 //! path, the file name is checked to be one plain name of a model, a sidecar or G-code, the bytes are streamed to a
 //! hidden temporary file in that folder (which the hot-folder watcher never takes), and
 //! the finished file is hard-linked to its name, which fails rather than replace a file
-//! already there. Nothing is ever written outside a configured hot folder.
+//! already there. Nothing is ever written outside a configured hot folder. A held upload
+//! (see [`super::octoprint`]) links its sidecar right before its model.
 
 use super::{ApiError, UPLOAD_IDLE_TIMEOUT};
 use crate::daemon::config::{Config, FolderConfig};
@@ -103,15 +104,96 @@ where
     S: Stream<Item = Result<Bytes, E>>,
     E: std::fmt::Display,
 {
-    let target = folder.join(name);
-    let io_error = |what: &str, e: std::io::Error| {
-        let status = if e.raw_os_error() == Some(nix::libc::ENOSPC) {
-            StatusCode::INSUFFICIENT_STORAGE
-        } else {
-            StatusCode::INTERNAL_SERVER_ERROR
+    let received = receive(folder, name, body, max).await?;
+    let size = received.size;
+    Ok((received.place().await?, size))
+}
+
+/// An upload received whole into its hidden temporary file in the hot folder, not yet
+/// under its name; the temporary file is removed when this is dropped.
+pub struct Received {
+    temp: PathBuf,
+    target: PathBuf,
+    pub size: u64,
+}
+
+impl Drop for Received {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.temp);
+    }
+}
+
+impl Received {
+    /// Links the file to its name, which fails rather than replace a file already there.
+    pub async fn place(self) -> Result<PathBuf, ApiError> {
+        place_with_sidecar(self, None).await
+    }
+
+    fn link(&self) -> Result<PathBuf, ApiError> {
+        match std::fs::hard_link(&self.temp, &self.target) {
+            Ok(()) => Ok(self.target.clone()),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                Err(ApiError::conflict(format!(
+                    "{}: a file of this name is already in the hot folder (hint: wait until it \
+                     is picked up, or upload under another name)",
+                    self.target.display()
+                )))
+            }
+            Err(e) => Err(io_error(&self.target, "cannot put the upload in place", e)),
+        }
+    }
+}
+
+/// Links `sidecar`, then `model`, to their names, one right after the other on one
+/// thread: the pick-up takes a file only once it has settled, so it finds the sidecar with
+/// its model, never alone. Nothing is linked when the model's name is taken; a sidecar
+/// linked for a model that then cannot be is removed again.
+pub async fn place_with_sidecar(
+    model: Received,
+    sidecar: Option<Received>,
+) -> Result<PathBuf, ApiError> {
+    tokio::task::spawn_blocking(move || {
+        let Some(sidecar) = sidecar else {
+            return model.link();
         };
-        ApiError::new(status, format!("{}: {what}: {e}", target.display()))
+        if std::fs::symlink_metadata(&model.target).is_ok() {
+            return model.link(); // fails, naming the file that is there
+        }
+        let linked = sidecar.link()?;
+        model.link().inspect_err(|_| {
+            let _ = std::fs::remove_file(&linked);
+        })
+    })
+    .await
+    .map_err(|e| {
+        ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            format!("internal error: {e}"),
+        )
+    })?
+}
+
+fn io_error(target: &Path, what: &str, e: std::io::Error) -> ApiError {
+    let status = if e.raw_os_error() == Some(nix::libc::ENOSPC) {
+        StatusCode::INSUFFICIENT_STORAGE
+    } else {
+        StatusCode::INTERNAL_SERVER_ERROR
     };
+    ApiError::new(status, format!("{}: {what}: {e}", target.display()))
+}
+
+/// Streams `body` into a hidden temporary file in `folder`, at most `max` bytes, synced.
+pub async fn receive<S, E>(
+    folder: &Path,
+    name: &str,
+    body: S,
+    max: u64,
+) -> Result<Received, ApiError>
+where
+    S: Stream<Item = Result<Bytes, E>>,
+    E: std::fmt::Display,
+{
+    let target = folder.join(name);
     let temp = folder.join(format!(".{name}.{:016x}.upload", rand::random::<u64>()));
     let mut file = tokio::fs::OpenOptions::new()
         .write(true)
@@ -119,33 +201,18 @@ where
         .mode(0o640)
         .open(&temp)
         .await
-        .map_err(|e| io_error("cannot create the upload's temporary file", e))?;
-    let written = copy_body(&mut file, body, max, name).await;
-    let finished = match written {
-        Ok(size) => file
-            .sync_all()
-            .await
-            .map_err(|e| io_error("cannot write", e))
-            .map(|_| size),
-        Err(e) => Err(e),
+        .map_err(|e| io_error(&target, "cannot create the upload's temporary file", e))?;
+    // From here on the temporary file goes when `received` does, whatever fails.
+    let mut received = Received {
+        temp,
+        target,
+        size: 0,
     };
-    drop(file);
-    let linked = match finished {
-        Ok(size) => match tokio::fs::hard_link(&temp, &target).await {
-            Ok(()) => Ok((target.clone(), size)),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                Err(ApiError::conflict(format!(
-                    "{}: a file of this name is already in the hot folder (hint: wait until it \
-                     is picked up, or upload under another name)",
-                    target.display()
-                )))
-            }
-            Err(e) => Err(io_error("cannot put the upload in place", e)),
-        },
-        Err(e) => Err(e),
-    };
-    let _ = tokio::fs::remove_file(&temp).await;
-    linked
+    received.size = copy_body(&mut file, body, max, name).await?;
+    file.sync_all()
+        .await
+        .map_err(|e| io_error(&received.target, "cannot write", e))?;
+    Ok(received)
 }
 
 async fn copy_body<S, E>(
@@ -256,5 +323,50 @@ mod tests {
         assert_eq!(e.status, StatusCode::PAYLOAD_TOO_LARGE);
         let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(left.len(), 1, "only a.stl: {left:?}");
+    }
+
+    /// A held upload's sidecar and model arrive together or not at all.
+    #[tokio::test]
+    async fn a_sidecar_and_its_model_are_placed_together_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = |text: &'static [u8]| {
+            futures_util::stream::iter([Ok::<_, std::io::Error>(Bytes::from_static(text))])
+        };
+        let names = || {
+            let mut n: Vec<String> = std::fs::read_dir(dir.path())
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            n.sort();
+            n
+        };
+        let root = dir.path().to_path_buf();
+        let pair = |model: &'static str| {
+            let root = root.clone();
+            async move {
+                let m = receive(&root, model, one(b"model"), 100).await.unwrap();
+                let sidecar = format!("{model}.toml");
+                let s = receive(&root, &sidecar, one(b"hold = true\n"), 100)
+                    .await
+                    .unwrap();
+                place_with_sidecar(m, Some(s)).await
+            }
+        };
+        pair("a.stl").await.unwrap();
+        assert_eq!(names(), ["a.stl", "a.stl.toml"]);
+        // The model's name is taken: nothing placed, the sidecar there untouched.
+        std::fs::remove_file(dir.path().join("a.stl.toml")).unwrap();
+        let e = pair("a.stl").await.unwrap_err();
+        assert_eq!(e.status, StatusCode::CONFLICT);
+        assert_eq!(names(), ["a.stl"]);
+        // A sidecar of that name is there already: refused, it is not replaced.
+        std::fs::write(dir.path().join("b.stl.toml"), "copies = 2\n").unwrap();
+        let e = pair("b.stl").await.unwrap_err();
+        assert!(e.message.contains("b.stl.toml"), "{}", e.message);
+        assert_eq!(names(), ["a.stl", "b.stl.toml"]);
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("b.stl.toml")).unwrap(),
+            "copies = 2\n"
+        );
     }
 }

@@ -332,21 +332,160 @@ pub struct Connection {
     port: PathBuf,
     opts: StreamOptions,
     info: FirmwareInfo,
-    /// An unfinished line of what the printer said between jobs.
-    idle_partial: Vec<u8>,
+    /// Between jobs: what the printer says, and the `M105`s that read its temperatures.
+    idle: IdleWatch,
     /// The printer said `start` since the last job: it rebooted, so the next job begins
     /// with a fresh handshake.
     rebooted: bool,
 }
 
 /// What [`Connection::idle_for`] saw.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Idle {
     /// Nothing that needs acting on (reports and messages are logged).
     Quiet,
     /// The printer said `start`: it was reset or power-cycled. The next job begins with a
     /// fresh handshake and line numbering.
     Rebooted,
+    /// A temperature report: the hotend and bed as read now (a heater the report left out
+    /// keeps its last reading).
+    Temperatures(Temperatures),
+    /// No temperature report for [`IdleWatch::stale_after`] although the printer was
+    /// asked: the last figures are no longer current.
+    Silent,
+}
+
+/// Reading an idle printer between jobs. Its temperatures are asked for with an `M105`
+/// every `temperature_interval`, sent without a line number: Marlin checks nothing on a
+/// line without `N` and does not count it, so the line numbering of the next job is not
+/// touched, and every firmware crispen speaks (Ultimaker2Marlin has no `M155`) answers it
+/// with `ok T:.. /.. B:.. /..`. One is in flight at a time; an `ok` answers the oldest
+/// unanswered one. Its `ok` must never be taken for a job line's: a job begins only once
+/// every such answer is in ([`Connection::print`]), or is known lost.
+#[derive(Debug)]
+struct IdleWatch {
+    /// An unfinished line of what the printer said.
+    partial: Vec<u8>,
+    /// `M105`s sent whose `ok` has not come.
+    unanswered: u32,
+    last_sent: Option<tokio::time::Instant>,
+    next_poll: tokio::time::Instant,
+    /// The last busy keep-alive or heat-wait report: the printer is inside a long command
+    /// of its own (from its menu) and answers later.
+    alive_at: Option<tokio::time::Instant>,
+    temperatures: Temperatures,
+    last_report: Option<tokio::time::Instant>,
+    /// [`Idle::Silent`] was returned since the last report.
+    silent: bool,
+}
+
+/// What a chunk of idle talk held.
+#[derive(Debug, Default)]
+struct Heard {
+    rebooted: bool,
+    report: bool,
+}
+
+impl IdleWatch {
+    fn new() -> IdleWatch {
+        IdleWatch {
+            partial: Vec::new(),
+            unanswered: 0,
+            last_sent: None,
+            next_poll: tokio::time::Instant::now(),
+            alive_at: None,
+            temperatures: Temperatures::default(),
+            last_report: None,
+            silent: false,
+        }
+    }
+
+    /// After this, an `M105` still unanswered is taken as lost: an idle printer answers at
+    /// once, and one busy with a command of its own says so (`busy:` every 2 s, or heat
+    /// reports every second).
+    fn answer_deadline(&self, wait: Duration) -> Option<tokio::time::Instant> {
+        let since = self.last_sent.max(self.alive_at)?;
+        (self.unanswered > 0).then_some(since + wait)
+    }
+
+    /// Figures older than this (since the last report) are not shown as current.
+    fn stale_after(opts: &ProtocolOptions) -> Duration {
+        opts.temperature_interval * 3 + opts.silence_probe
+    }
+
+    /// Splits `bytes` into lines (keeping an unfinished one), logs each, and takes the
+    /// answers and reports among them.
+    fn hear(&mut self, port: &Path, bytes: &[u8], now: tokio::time::Instant) -> Heard {
+        let mut heard = Heard::default();
+        for &b in bytes {
+            if b != b'\n' {
+                if self.partial.len() < 4096 {
+                    self.partial.push(b);
+                }
+                continue;
+            }
+            let Some(reply) = Reply::parse(&std::mem::take(&mut self.partial)) else {
+                continue;
+            };
+            match reply {
+                Reply::Start => {
+                    heard.rebooted = true;
+                    // A reset forgets what it was asked.
+                    self.unanswered = 0;
+                    tracing::warn!(port = %port.display(), "printer rebooted while idle (it said `start`)");
+                }
+                Reply::Ok(ok) => {
+                    self.unanswered = self.unanswered.saturating_sub(1);
+                    if let Some(report) = ok.report {
+                        self.take(report, now);
+                        heard.report = true;
+                    }
+                }
+                Reply::Temperatures(report) => {
+                    if report.waiting {
+                        self.alive_at = Some(now);
+                    }
+                    self.take(report, now);
+                    heard.report = true;
+                }
+                Reply::Busy(line) => {
+                    self.alive_at = Some(now);
+                    tracing::debug!(port = %port.display(), "idle printer: {line}");
+                }
+                Reply::Fatal(line) | Reply::Error(line) => {
+                    tracing::warn!(port = %port.display(), "idle printer: {line}")
+                }
+                Reply::Action(action) => {
+                    // No job to act on: the printer's own menu was used between jobs.
+                    tracing::info!(port = %port.display(), ?action, "idle printer asked the host to act; no job is running")
+                }
+                // NO_TIMEOUTS builds say `wait` every few seconds while idle.
+                Reply::Wait => tracing::trace!(port = %port.display(), "idle printer: wait"),
+                other => tracing::info!(port = %port.display(), "idle printer: {other:?}"),
+            }
+        }
+        if heard.report {
+            tracing::debug!(port = %port.display(), "idle printer: {}", describe_temps(&self.temperatures));
+        }
+        heard
+    }
+
+    fn take(&mut self, report: super::protocol::reply::Report, now: tokio::time::Instant) {
+        let merge = |old: Option<Temp>, new: Option<Temp>| match (old, new) {
+            (Some(old), Some(new)) => Some(Temp {
+                current: new.current,
+                target: new.target.or(old.target),
+            }),
+            (old, new) => new.or(old),
+        };
+        let t = report.temperatures;
+        self.temperatures = Temperatures {
+            hotend: merge(self.temperatures.hotend, t.hotend),
+            bed: merge(self.temperatures.bed, t.bed),
+        };
+        self.last_report = Some(now);
+        self.silent = false;
+    }
 }
 
 impl Connection {
@@ -361,7 +500,7 @@ impl Connection {
             port: port.to_path_buf(),
             opts: opts.clone(),
             info,
-            idle_partial: Vec::new(),
+            idle: IdleWatch::new(),
             rebooted: false,
         })
     }
@@ -377,25 +516,69 @@ impl Connection {
     }
 
     /// Read and log what the printer says between jobs (temperature reports, `start` after
-    /// a power cycle, host actions, messages) for up to `duration`. Returns early with
-    /// [`Idle::Rebooted`] when the printer says `start`, and with an error if the link
+    /// a power cycle, host actions, messages) for up to `duration`, asking for its
+    /// temperatures every `temperature_interval` (see [`IdleWatch`]). Returns early with
+    /// [`Idle::Rebooted`] when the printer says `start`, with [`Idle::Temperatures`] on a
+    /// report, with [`Idle::Silent`] once reports stop, and with an error if the link
     /// closes. Cancel-safe: the daemon races it against a bed being cleared.
     pub async fn idle_for(&mut self, duration: Duration) -> Result<Idle, PrintError> {
         let until = tokio::time::Instant::now() + duration;
+        let interval = self.opts.protocol.temperature_interval;
+        let answer_wait = self.opts.protocol.silence_probe;
+        let stale_after = IdleWatch::stale_after(&self.opts.protocol);
         loop {
+            let now = tokio::time::Instant::now();
+            let idle = &mut self.idle;
+            if idle.answer_deadline(answer_wait).is_some_and(|d| now >= d) {
+                tracing::debug!(port = %self.port.display(), "an idle M105 went unanswered; taken as lost");
+                idle.unanswered = 0;
+            }
+            if idle.unanswered == 0 && now >= idle.next_poll {
+                self.transport.send(b"M105\n".to_vec());
+                idle.unanswered = 1;
+                idle.last_sent = Some(now);
+                idle.next_poll = now + interval;
+            }
+            let stale_at = idle
+                .last_report
+                .filter(|_| !idle.silent)
+                .map(|t| t + stale_after);
+            if stale_at.is_some_and(|t| now >= t) {
+                idle.silent = true;
+                tracing::warn!(port = %self.port.display(), waited_s = stale_after.as_secs_f64(), "the idle printer stopped reporting its temperatures");
+                return Ok(Idle::Silent);
+            }
+            let wake = [
+                Some(until),
+                idle.answer_deadline(answer_wait),
+                (idle.unanswered == 0).then_some(idle.next_poll),
+                stale_at,
+            ]
+            .into_iter()
+            .flatten()
+            .min()
+            .unwrap_or(until);
             tokio::select! {
                 link = self.transport.recv() => match link {
                     LinkEvent::Data(bytes) => {
-                        if log_idle_lines(&self.port, &mut self.idle_partial, &bytes) {
+                        let heard = self.idle.hear(&self.port, &bytes, tokio::time::Instant::now());
+                        if heard.rebooted {
                             self.rebooted = true;
                             return Ok(Idle::Rebooted);
+                        }
+                        if heard.report {
+                            return Ok(Idle::Temperatures(self.idle.temperatures));
                         }
                     }
                     LinkEvent::Closed(reason) => {
                         return Err(PrintError::Disconnected { port: self.port.clone(), reason, last_acked: 0 });
                     }
                 },
-                _ = tokio::time::sleep_until(until) => return Ok(Idle::Quiet),
+                _ = tokio::time::sleep_until(wake) => {
+                    if tokio::time::Instant::now() >= until {
+                        return Ok(Idle::Quiet);
+                    }
+                }
             }
         }
     }
@@ -405,7 +588,8 @@ impl Connection {
         while let Some(link) = self.transport.try_recv() {
             match link {
                 LinkEvent::Data(bytes) => {
-                    self.rebooted |= log_idle_lines(&self.port, &mut self.idle_partial, &bytes);
+                    let now = tokio::time::Instant::now();
+                    self.rebooted |= self.idle.hear(&self.port, &bytes, now).rebooted;
                 }
                 LinkEvent::Closed(reason) => {
                     return Err(PrintError::Disconnected {
@@ -419,12 +603,39 @@ impl Connection {
         Ok(())
     }
 
+    /// Waits until every `M105` sent between jobs is answered (or known lost): an answer
+    /// arriving after the job's `M110 N0` would be taken for its `ok`, and every later
+    /// `ok` for the line before its own.
+    async fn await_idle_answers(&mut self) -> Result<(), PrintError> {
+        let answer_wait = self.opts.protocol.silence_probe;
+        while let Some(deadline) = self.idle.answer_deadline(answer_wait) {
+            tracing::debug!(port = %self.port.display(), "waiting for the answer to an idle M105 before the job starts");
+            tokio::select! {
+                link = self.transport.recv() => match link {
+                    LinkEvent::Data(bytes) => {
+                        let now = tokio::time::Instant::now();
+                        self.rebooted |= self.idle.hear(&self.port, &bytes, now).rebooted;
+                    }
+                    LinkEvent::Closed(reason) => {
+                        return Err(PrintError::Disconnected { port: self.port.clone(), reason, last_acked: 0 });
+                    }
+                },
+                _ = tokio::time::sleep_until(deadline) => {
+                    tracing::warn!(port = %self.port.display(), "an idle M105 went unanswered; starting the job as if it was lost");
+                    self.idle.unanswered = 0;
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Begin the next job on a clean link: what the printer said between jobs is logged,
     /// not taken for answers to this job; after a reboot the handshake runs again (the
     /// firmware may even have changed), which lets the boot banner through first.
     async fn clean_link(&mut self) -> Result<(), PrintError> {
         self.drain_idle_input()?;
-        self.idle_partial.clear();
+        self.await_idle_answers().await?;
+        self.idle.partial.clear();
         if std::mem::take(&mut self.rebooted) {
             tracing::info!(port = %self.port.display(), "printer rebooted since the last job; greeting it again");
             let (host, info) = greet(&mut self.transport, &self.port, &self.opts).await?;
@@ -624,41 +835,6 @@ async fn greet(
     }
 }
 
-/// Split `bytes` into lines (keeping an unfinished one in `partial`) and log each as the
-/// printer's idle talk; true if one was a boot (`start`).
-fn log_idle_lines(port: &Path, partial: &mut Vec<u8>, bytes: &[u8]) -> bool {
-    let mut rebooted = false;
-    for &b in bytes {
-        if b != b'\n' {
-            if partial.len() < 4096 {
-                partial.push(b);
-            }
-            continue;
-        }
-        match Reply::parse(&std::mem::take(partial)) {
-            Some(Reply::Start) => {
-                rebooted = true;
-                tracing::warn!(port = %port.display(), "printer rebooted while idle (it said `start`)");
-            }
-            Some(Reply::Temperatures(r)) => {
-                tracing::debug!(port = %port.display(), "idle printer: {}", describe_temps(&r.temperatures))
-            }
-            Some(Reply::Fatal(line)) | Some(Reply::Error(line)) => {
-                tracing::warn!(port = %port.display(), "idle printer: {line}")
-            }
-            Some(Reply::Action(action)) => {
-                // No job to act on: the printer's own menu was used between jobs.
-                tracing::info!(port = %port.display(), ?action, "idle printer asked the host to act; no job is running")
-            }
-            // NO_TIMEOUTS builds say `wait` every few seconds while idle.
-            Some(Reply::Wait) => tracing::trace!(port = %port.display(), "idle printer: wait"),
-            Some(other) => tracing::info!(port = %port.display(), "idle printer: {other:?}"),
-            None => {}
-        }
-    }
-    rebooted
-}
-
 async fn sleep_until_opt(deadline: Option<tokio::time::Instant>) {
     match deadline {
         Some(d) => tokio::time::sleep_until(d).await,
@@ -703,6 +879,79 @@ mod tests {
         let msg = err.to_string();
         assert!(msg.contains("/dev/ttyUSB3") && msg.contains("41"), "{msg}");
         assert_eq!(err.last_acked(), Some(41));
+    }
+
+    /// An idle `M105` whose answer is still on its way when a job starts: the job waits
+    /// for it, so its `ok` is never taken for the job's `M110` (and every later `ok` for
+    /// the line before its own). Checked on a link with a real round trip (300 ms each
+    /// way), for every firmware flavour: the host never counts a job line acknowledged
+    /// before the printer has executed it, no line is resent, and each runs exactly once.
+    #[tokio::test]
+    async fn an_idle_m105_in_flight_when_a_job_starts_is_not_taken_for_its_answers() {
+        use crate::marlin::sim::{is_housekeeping, spawn, SimConfig};
+        let commands: Vec<String> = (0..30)
+            .map(|i| match i % 2 {
+                0 => format!("M106 S{}", i * 8),
+                _ => "M107".to_string(),
+            })
+            .collect();
+        let program = GcodeProgram::from_commands("fans.gcode", commands.clone());
+        for firmware in [Firmware::Marlin20, Firmware::Ultimaker2, Firmware::Marlin2] {
+            let mut sim = SimConfig::new(firmware);
+            sim.link_latency = Duration::from_millis(300);
+            let printer = spawn(sim).unwrap();
+            let opts = StreamOptions::for_firmware(firmware);
+            let mut conn = Connection::open(printer.device_path(), &opts)
+                .await
+                .unwrap();
+            // The first poll goes at once; the watch is cut short (as the daemon's is when
+            // a job arrives) long before its answer can be back.
+            let watched = tokio::time::timeout(
+                Duration::from_millis(50),
+                conn.idle_for(Duration::from_secs(60)),
+            )
+            .await;
+            assert!(watched.is_err(), "{firmware:?}: nothing came back in 50 ms");
+            assert_eq!(conn.idle.unanswered, 1, "{firmware:?}: an M105 in flight");
+
+            let (progress_tx, mut progress_rx) = watch::channel(PrintProgress::default());
+            let (_control, control_rx) = mpsc::channel(1);
+            let print = conn.print(&program, control_rx, progress_tx);
+            tokio::pin!(print);
+            let executed_job_lines = || {
+                printer
+                    .executed()
+                    .iter()
+                    .filter(|c| !is_housekeeping(c))
+                    .count()
+            };
+            let mut ahead = None;
+            let report = loop {
+                tokio::select! {
+                    report = &mut print => break report,
+                    Ok(()) = progress_rx.changed() => {
+                        let acked = progress_rx.borrow_and_update().lines_acked;
+                        // Read after the figure: the printer's count can only have grown.
+                        let executed = executed_job_lines();
+                        if acked > executed {
+                            ahead.get_or_insert((acked, executed));
+                        }
+                    }
+                }
+            };
+            let report = report.unwrap_or_else(|e| panic!("{firmware:?}: {e}"));
+            assert_eq!(
+                ahead, None,
+                "{firmware:?}: (lines the host counted acknowledged, lines the printer had run)"
+            );
+            assert_eq!(report.resends, 0, "{firmware:?}");
+            let job: Vec<String> = printer
+                .executed()
+                .into_iter()
+                .filter(|c| !is_housekeeping(c))
+                .collect();
+            assert_eq!(job, commands, "{firmware:?}: every line once, in order");
+        }
     }
 
     #[tokio::test]

@@ -264,7 +264,7 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
     }
     let sidecar: Sidecar = toml::from_str(&text).map_err(|e| {
         format!(
-            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer)",
+            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer, hold)",
             path.display(),
             e.message().trim()
         )

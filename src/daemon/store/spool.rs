@@ -251,25 +251,8 @@ impl Spool {
     /// otherwise it is copied, synced, and only then removed from the folder.
     pub fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
         // Never follow a link out of the hot folder: only the folder's own files are taken.
-        let not_a_file = || StoreError::NotAFile {
-            path: source.to_path_buf(),
-        };
-        match std::fs::symlink_metadata(source) {
-            Ok(meta) if meta.file_type().is_file() => {}
-            Ok(_) => return Err(not_a_file()),
-            Err(e) => return Err(io_err(source, "read")(e)),
-        }
-        let dropped = source
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "model".into());
-        // A model named like one of the job's own files is kept under another name, so
-        // neither overwrites the other.
-        let file = if is_reserved_name(&dropped) {
-            format!("model-{dropped}")
-        } else {
-            dropped
-        };
+        regular_file_size(source)?;
+        let file = model_name(source);
         let seq = self.next_seq;
         self.next_seq += 1;
         let id = Job::make_id(seq, &file);
@@ -342,20 +325,8 @@ impl Spool {
             .jobs
             .get(id)
             .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        match std::fs::symlink_metadata(sidecar) {
-            Ok(meta) if meta.file_type().is_file() => {}
-            Ok(_) => {
-                return Err(StoreError::NotAFile {
-                    path: sidecar.to_path_buf(),
-                })
-            }
-            Err(e) => return Err(io_err(sidecar, "read")(e)),
-        }
-        let name = if applies {
-            format!("{}.toml", job.file)
-        } else {
-            format!("{}.toml.late", job.file)
-        };
+        regular_file_size(sidecar)?;
+        let name = late_sidecar_name(&job.file, applies);
         move_file(sidecar, &self.job_dir(id).join(name))?;
         Ok(applies)
     }
@@ -602,7 +573,42 @@ fn read_origin(dir: &Path) -> Option<Origin> {
 }
 
 /// Names of the files crispen keeps in a job directory besides the model's own.
-pub(super) fn is_reserved_name(name: &str) -> bool {
+/// The size of `path` if it is a regular file (never a link out of the hot folder).
+pub(super) fn regular_file_size(path: &Path) -> Result<u64, StoreError> {
+    match std::fs::symlink_metadata(path) {
+        Ok(meta) if meta.file_type().is_file() => Ok(meta.len()),
+        Ok(_) => Err(StoreError::NotAFile {
+            path: path.to_path_buf(),
+        }),
+        Err(e) => Err(io_err(path, "read")(e)),
+    }
+}
+
+/// The name a dropped file is kept under in its job: its own, unless it is named like one
+/// of the job's own files, so neither overwrites the other.
+pub(super) fn model_name(source: &Path) -> String {
+    let dropped = source
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "model".into());
+    if is_reserved_name(&dropped) {
+        format!("model-{dropped}")
+    } else {
+        dropped
+    }
+}
+
+/// Where a late sidecar of model `file` goes: the job's sidecar when it `applies`, else
+/// aside, kept but not used.
+pub(super) fn late_sidecar_name(file: &str, applies: bool) -> String {
+    if applies {
+        format!("{file}.toml")
+    } else {
+        format!("{file}.toml.late")
+    }
+}
+
+fn is_reserved_name(name: &str) -> bool {
     matches!(name, "job.json" | "origin.json" | "job.tmp" | "origin.tmp")
         || name.starts_with(".crispen-")
 }

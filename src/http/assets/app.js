@@ -119,9 +119,11 @@ function printerTile(p, status) {
     html += '<div class="figures"><span class="pct">' + pct.toFixed(1) + " %</span>" +
       (live.remaining_s != null ? '<span class="left">' + duration(live.remaining_s) + " left</span>" : "") + "</div>";
   }
-  if (live) {
-    html += '<div class="temps"><span>Hotend <b>' + temp(live.hotend_c, live.hotend_target_c) + "</b></span>" +
-      "<span>Bed <b>" + temp(live.bed_c, live.bed_target_c) + "</b></span></div>";
+  // Current temperatures, printing or idle; none while the daemon cannot read them.
+  const t = p.temperatures;
+  if (t) {
+    html += '<div class="temps"><span>Hotend <b>' + temp(t.hotend_c, t.hotend_target_c) + "</b></span>" +
+      "<span>Bed <b>" + temp(t.bed_c, t.bed_target_c) + "</b></span></div>";
   }
   if (p.detail) html += '<div class="detail">' + esc(p.detail) + "</div>";
   html += '<div class="actions">';
@@ -155,15 +157,22 @@ function queueTable(status) {
     html += '<tr data-job="' + esc(j.id) + '" class="job-' + esc(j.state) + '">' +
       '<td><a href="#job/' + esc(j.id) + '">' + esc(j.file) + '</a><div class="muted">' + esc(j.folder_name) + "</div>" +
       (j.reason ? '<div class="reason">' + esc(j.reason) + "</div>" : "") + "</td>" +
-      '<td><span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span> " + esc(extra) + "</td>" +
+      '<td><span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span> " + (j.held ? '<span class="pill held">held</span> ' : "") + esc(extra) + "</td>" +
       "<td>" + (j.height_mm != null ? j.height_mm + " mm" : "–") + "</td>" +
       "<td>" + esc(strengthText(j.strength)) + "</td>" +
       "<td>" + esc(j.printer || j.machines.join(", ")) + "</td><td>";
-    if (["queued", "preparing", "ready", "printing"].includes(j.state)) html += '<button class="danger" data-action="cancel" data-job="' + esc(j.id) + '">Cancel</button>';
-    if (["failed", "cancelled", "interrupted"].includes(j.state)) html += '<button data-action="retry" data-job="' + esc(j.id) + '">Retry</button>';
-    html += "</td></tr>";
+    html += jobButtons(j) + "</td></tr>";
   }
   return html + "</tbody></table>";
+}
+
+// A job's actions: a held job (uploaded without "print") waits for its Print button.
+function jobButtons(j) {
+  let html = "";
+  if (j.held && ["queued", "preparing", "ready"].includes(j.state)) html += '<button class="release" data-action="release" data-job="' + esc(j.id) + '">Print</button>';
+  if (["queued", "preparing", "ready", "printing"].includes(j.state)) html += '<button class="danger" data-action="cancel" data-job="' + esc(j.id) + '">Cancel</button>';
+  if (["failed", "cancelled", "interrupted"].includes(j.state)) html += '<button data-action="retry" data-job="' + esc(j.id) + '">Retry</button>';
+  return html;
 }
 
 function folderZones(status) {
@@ -274,6 +283,7 @@ const ACTIONS = {
   resume: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/resume"],
   cancel: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/cancel", "Cancel this job?"],
   retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
+  release: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/release"],
 };
 
 document.addEventListener("click", async (e) => {
@@ -356,7 +366,8 @@ async function showJob(id) {
     return;
   }
   const base = "/api/v1/jobs/" + encodeURIComponent(id) + "/pictures/";
-  let html = '<p><a href="#">← farm</a></p><h2>' + esc(j.file) + ' <span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span></h2>";
+  let html = '<p><a href="#">← farm</a></p><h2>' + esc(j.file) + ' <span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span>" +
+    (j.held ? ' <span class="pill held">held</span>' : "") + "</h2>";
   html += '<p class="muted">' + esc(j.id) + " · folder " + esc(j.folder_name) + " · " +
     (j.height_mm != null ? j.height_mm + " mm" : "") + " · strength " + esc(strengthText(j.strength)) +
     (j.printer ? " · printer " + esc(j.printer) : "") + "</p>";
@@ -381,10 +392,7 @@ async function showJob(id) {
   if (j.job.print_report) html += "<h3>Printing</h3>" + figures(j.job.print_report);
   html += "<h3>History</h3><ol class='history'>" + j.job.history.map(([state, t]) =>
     "<li>" + esc(state) + " <span class='muted'>" + new Date(t * 1000).toLocaleString() + "</span></li>").join("") + "</ol>";
-  html += '<div class="actions">';
-  if (["queued", "preparing", "ready", "printing"].includes(j.state)) html += '<button class="danger" data-action="cancel" data-job="' + esc(j.id) + '">Cancel</button>';
-  if (["failed", "cancelled", "interrupted"].includes(j.state)) html += '<button data-action="retry" data-job="' + esc(j.id) + '">Retry</button>';
-  html += "</div>";
+  html += '<div class="actions">' + jobButtons(j) + "</div>";
   page.innerHTML = html;
   loadPictures(page);
 }

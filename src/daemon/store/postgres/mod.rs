@@ -363,8 +363,6 @@ impl PgStore {
             )
             .await?;
         }
-        tx.execute("SELECT pg_notify('crispen_jobs', '')", &[])
-            .await?;
         Ok((requeued, interrupted))
     }
 
@@ -420,8 +418,6 @@ impl PgStore {
             &[&job.id, &self.host],
         )
         .await?;
-        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&job.id])
-            .await?;
         tx.commit().await?;
         Ok(one_job(&**client, &job.id).await?)
     }
@@ -521,10 +517,29 @@ impl PgStore {
         id: &str,
         change: Change<'_>,
     ) -> Result<Job, PgError> {
+        // A claim passes over a job another host is changing this moment (it is most likely
+        // taking it) instead of waiting for it, as the claims above do.
+        let claim = matches!(change.to, Some(JobState::Preparing | JobState::Printing));
+        let lock = if claim {
+            "FOR UPDATE SKIP LOCKED"
+        } else {
+            "FOR UPDATE"
+        };
         let row = tx
-            .query_opt(&format!("{JOB_COLUMNS} WHERE id = $1 FOR UPDATE"), &[&id])
-            .await?
-            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+            .query_opt(&format!("{JOB_COLUMNS} WHERE id = $1 {lock}"), &[&id])
+            .await?;
+        let Some(row) = row else {
+            let state = tx
+                .query_opt("SELECT state FROM jobs WHERE id = $1", &[&id])
+                .await?
+                .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+            return Err(StoreError::StateChanged {
+                id: id.to_string(),
+                state: parse_state(id, state.get(0))?,
+                expected: "free (another host is taking it)".into(),
+            }
+            .into());
+        };
         let mut job = job_of_row(&row)?;
         let holder: Option<String> = row.get(JOB_COLUMN_COUNT);
         let mine = holder.as_deref() == Some(self.host.as_str());
@@ -585,8 +600,6 @@ impl PgStore {
             )
             .await?;
         }
-        tx.execute("SELECT pg_notify('crispen_jobs', $1)", &[&job.id])
-            .await?;
         Ok(())
     }
 

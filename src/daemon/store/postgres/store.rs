@@ -14,7 +14,9 @@
 
 use super::{Change, PgError, PgStore, MAX_FILE_BYTES};
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
-use crate::daemon::store::spool::{io_err, is_reserved_name, lock_dir, move_file};
+use crate::daemon::store::spool::{
+    io_err, late_sidecar_name, lock_dir, model_name, move_file, regular_file_size,
+};
 use crate::daemon::store::{JobEdit, JobStore, StateFilter};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -156,28 +158,13 @@ impl JobStore for PgJobStore {
         folder: &Path,
         printers: &[String],
     ) -> Result<Job, StoreError> {
-        let not_a_file = || StoreError::NotAFile {
-            path: source.to_path_buf(),
-        };
-        let size = match std::fs::symlink_metadata(source) {
-            Ok(meta) if meta.file_type().is_file() => meta.len(),
-            Ok(_) => return Err(not_a_file()),
-            Err(e) => return Err(io_err(source, "read")(e)),
-        };
+        let size = regular_file_size(source)?;
         if size > MAX_FILE_BYTES {
             return Err(io_err(source, "read")(std::io::Error::other(format!(
                 "{size} bytes, more than the farm database keeps in one file ({MAX_FILE_BYTES})"
             ))));
         }
-        let dropped = source
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "model".into());
-        let file = if is_reserved_name(&dropped) {
-            format!("model-{dropped}")
-        } else {
-            dropped
-        };
+        let file = model_name(source);
         let mut sidecar = source.as_os_str().to_owned();
         sidecar.push(".toml");
         let sidecar = PathBuf::from(sidecar);
@@ -223,20 +210,8 @@ impl JobStore for PgJobStore {
         applies: bool,
     ) -> Result<bool, StoreError> {
         let job = self.cached(id)?;
-        match std::fs::symlink_metadata(sidecar) {
-            Ok(meta) if meta.file_type().is_file() => {}
-            Ok(_) => {
-                return Err(StoreError::NotAFile {
-                    path: sidecar.to_path_buf(),
-                })
-            }
-            Err(e) => return Err(io_err(sidecar, "read")(e)),
-        }
-        let name = if applies {
-            format!("{}.toml", job.file)
-        } else {
-            format!("{}.toml.late", job.file)
-        };
+        regular_file_size(sidecar)?;
+        let name = late_sidecar_name(&job.file, applies);
         let bytes = std::fs::read(sidecar).map_err(io_err(sidecar, "read"))?;
         self.block(self.db.put_file(id, &name, &bytes))?;
         let dir = self.job_dir(id);

@@ -141,14 +141,6 @@ printers = [{}]
         self.child.as_ref().map(|c| c.id())
     }
 
-    /// The daemon is running (it has not exited on its own).
-    pub fn is_running(&mut self) -> bool {
-        match self.child.as_mut() {
-            Some(c) => c.try_wait().unwrap().is_none(),
-            None => false,
-        }
-    }
-
     /// A `crispen` command against this host: success and its output. One that takes
     /// longer than a minute (a daemon stuck on its database) is killed and failed.
     pub fn ctl(&self, args: &[&str]) -> (bool, String) {
@@ -504,14 +496,9 @@ pub fn markers(record: &Path) -> Vec<String> {
         .collect()
 }
 
-/// The job for `file` in a status answer.
-pub fn job<'a>(status: &'a Value, file: &str) -> Option<&'a Value> {
-    super::job_by_file(status, file)
-}
-
 /// The state of the job for `file` ("" when there is none).
 pub fn state_of(status: &Value, file: &str) -> String {
-    job(status, file)
+    super::job_by_file(status, file)
         .and_then(|j| j["state"].as_str())
         .unwrap_or("")
         .to_string()

@@ -14,6 +14,7 @@
 #[path = "../tests/common/mod.rs"]
 mod common;
 
+use common::farm::process_cpu_s;
 use common::postgres::PgServer;
 use crispen::daemon::job::JobState;
 use crispen::daemon::store::postgres::{PgSettings, PgStore};
@@ -22,37 +23,6 @@ use std::time::{Duration, Instant};
 const JOBS: usize = 1000;
 const HOSTS: usize = 3;
 const PRINTERS_PER_HOST: usize = 20;
-
-/// CPU seconds used so far by the server: the postmaster and every process it started.
-fn server_cpu_s(postmaster: u32) -> f64 {
-    let ticks = nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)
-        .ok()
-        .flatten()
-        .unwrap_or(100) as f64;
-    let mut total = 0.0;
-    for entry in std::fs::read_dir("/proc").unwrap().flatten() {
-        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else {
-            continue;
-        };
-        // The command may hold spaces: the fields after it start past the last ')'.
-        let Some(after) = stat.rfind(')').map(|i| &stat[i + 2..]) else {
-            continue;
-        };
-        let fields: Vec<&str> = after.split_whitespace().collect();
-        let pid: u32 = entry
-            .file_name()
-            .to_str()
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(0);
-        let ppid: u32 = fields[1].parse().unwrap_or(0);
-        if pid == postmaster || ppid == postmaster {
-            let utime: f64 = fields[11].parse().unwrap_or(0.0);
-            let stime: f64 = fields[12].parse().unwrap_or(0.0);
-            total += (utime + stime) / ticks;
-        }
-    }
-    total
-}
 
 fn percentile(sorted: &[Duration], p: f64) -> Duration {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
@@ -94,7 +64,7 @@ fn main() {
                 .await
                 .unwrap();
         }
-        let cpu_before = server_cpu_s(pg.pid());
+        let cpu_before = process_cpu_s(pg.pid(), true);
         let start = Instant::now();
         let mut tasks = Vec::new();
         for (h, store) in hosts.iter().enumerate() {
@@ -122,7 +92,7 @@ fn main() {
             latencies.extend(task.await.unwrap());
         }
         let wall = start.elapsed();
-        (wall, latencies, server_cpu_s(pg.pid()) - cpu_before)
+        (wall, latencies, process_cpu_s(pg.pid(), true) - cpu_before)
     });
     let mut sorted = latencies;
     sorted.sort();

@@ -198,4 +198,5 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
     Mesh { vertices, faces }
 }
 pub mod daemon;
+pub mod farm;
 pub mod postgres;

@@ -1,0 +1,761 @@
+//! Several hosts, one queue: three real `crispen run` daemons, each with two simulated
+//! printers, sharing one real PostgreSQL server (tests/common/postgres.rs) through
+//! `[store] postgres`. Models and pre-sliced G-code dropped into the hosts' hot folders
+//! print exactly once, on any host's printers; a host killed with `kill -9` mid-print
+//! loses its work to the others after its lease (its print interrupted, never reprinted on
+//! its own, its printers offline); a 20 s outage of the database loses nothing and prints
+//! nothing twice. "Exactly once" is checked three ways: the status of every host, the
+//! database's own history (`job_history`), and what each simulator executed.
+
+mod common;
+
+use common::farm::{drop_file, presliced_gcode, state_of, Farm, HostSpec};
+use crispen::marlin::firmware::Firmware;
+use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::sim::is_housekeeping;
+use serde_json::Value;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+const PRINTERS: [&str; 6] = ["a1", "a2", "b1", "b2", "c1", "c2"];
+
+/// Hosts a, b and c with printers a1 a2, b1 b2, c1 c2; `folders(host)` gives each its hot
+/// folders, every folder served by all six printers.
+fn three_hosts(time_scale: f64, lease_s: Option<u32>, folders: &[&[&str]; 3]) -> Vec<HostSpec> {
+    ["a", "b", "c"]
+        .iter()
+        .zip(folders)
+        .map(|(name, folders)| HostSpec {
+            name: name.to_string(),
+            printers: vec![format!("{name}1"), format!("{name}2")],
+            folders: folders
+                .iter()
+                .map(|f| (f.to_string(), PRINTERS.map(String::from).to_vec()))
+                .collect(),
+            time_scale,
+            lease_s,
+        })
+        .collect()
+}
+
+fn printer<'a>(s: &'a Value, name: &str) -> Option<&'a Value> {
+    s["printers"].as_array()?.iter().find(|p| p["name"] == name)
+}
+
+fn host_alive(s: &Value, host: &str) -> Option<bool> {
+    s["farm"]["hosts"]
+        .as_array()?
+        .iter()
+        .find(|h| h["name"] == host)?["alive"]
+        .as_bool()
+}
+
+/// The whole farm is up as `host` sees it: all three hosts alive, all six printers
+/// listed, none still connecting.
+fn farm_is_up(s: &Value) -> bool {
+    ["a", "b", "c"]
+        .iter()
+        .all(|h| host_alive(s, h) == Some(true))
+        && PRINTERS.iter().all(|p| {
+            printer(s, p).is_some_and(|p| p["state"] != "connecting" && p["offline"] == false)
+        })
+}
+
+/// A job that failed, or was interrupted when it should not have been, ends the wait at
+/// once, with its reason.
+fn nothing_lost(s: &Value, may_be_interrupted: &[&str]) {
+    for j in s["jobs"].as_array().into_iter().flatten() {
+        let interrupted =
+            j["state"] == "interrupted" && !may_be_interrupted.iter().any(|f| j["file"] == *f);
+        assert!(
+            j["state"] != "failed" && !interrupted,
+            "job {} is {}: {}",
+            j["file"],
+            j["state"],
+            j["reason"]
+        );
+    }
+}
+
+/// What a simulator executed, housekeeping dropped.
+fn executed(record: &Path) -> Vec<String> {
+    std::fs::read_to_string(record)
+        .unwrap_or_default()
+        .lines()
+        .filter(|c| !is_housekeeping(c))
+        .map(str::to_string)
+        .collect()
+}
+
+/// Every job of the farm is in `files`, each done once with one copy, and every host's
+/// status comes to say so (each host refreshes its view of the others' work on its own
+/// schedule), naming the same printer; returns the printer of each file.
+fn all_done_once(farm: &Farm, files: &[String]) -> BTreeMap<String, String> {
+    let mut printed_on = BTreeMap::new();
+    for h in &farm.hosts {
+        let s = farm.wait_status(
+            &h.name,
+            Duration::from_secs(60),
+            "every job done in this host's view",
+            |s| files.iter().all(|f| state_of(s, f) == "done"),
+        );
+        let jobs = s["jobs"].as_array().unwrap();
+        assert_eq!(
+            jobs.len(),
+            files.len(),
+            "host {} lists every job of the farm, once: {s}",
+            h.name
+        );
+        for f in files {
+            let j = common::job_by_file(&s, f).unwrap();
+            assert_eq!(j["copies_done"], 1, "{f} on {}: {j}", h.name);
+            let p = j["printer"].as_str().unwrap().to_string();
+            let seen = printed_on.entry(f.clone()).or_insert(p.clone());
+            assert_eq!(*seen, p, "hosts disagree on {f}'s printer");
+        }
+    }
+    printed_on
+}
+
+/// The database's history holds one `printing` entry per job, `except` those that may
+/// hold none, and exactly `files.len()` jobs.
+fn printed_once_by_history(farm: &Farm, files: &[String], never_printed: &[String]) {
+    let ids: BTreeMap<String, String> = farm
+        .query("SELECT file, id FROM jobs", &[])
+        .iter()
+        .map(|r| (r.get(0), r.get(1)))
+        .collect();
+    assert_eq!(
+        ids.len(),
+        files.len(),
+        "one job per dropped file in the database: {ids:?}"
+    );
+    let entries = farm.printing_entries();
+    for f in files {
+        let id = &ids[f];
+        let want = if never_printed.contains(f) { 0 } else { 1 };
+        assert_eq!(
+            entries[id], want,
+            "{f} (job {id}) entered `printing` {} times in job_history",
+            entries[id]
+        );
+    }
+}
+
+/// Models dropped into two hosts' hot folders (host c has none) are sliced by those
+/// hosts and printed by all six printers, each exactly once: first every printer takes
+/// one job and holds it on its bed, so even host c's printers print the others' work;
+/// then beds are cleared through other hosts than the printers' own and the last two
+/// jobs are printed. Each printer executed exactly the G-code of the jobs it printed, in
+/// order, and nothing else.
+#[test]
+fn models_dropped_on_two_hosts_print_exactly_once() {
+    let farm = Farm::start(&three_hosts(0.01, None, &[&["hot/a"], &["hot/b"], &[]]));
+    for h in ["a", "b", "c"] {
+        farm.wait_status(h, Duration::from_secs(120), "the farm up", farm_is_up);
+    }
+    let spot = std::fs::read(common::model("spot.obj")).unwrap();
+    let mut files = Vec::new();
+    for host in ["a", "b"] {
+        for i in 1..=4 {
+            let name = format!("{host}-{i}.obj");
+            drop_file(&farm.root.join(format!("hot/{host}")), &name, &spot);
+            files.push(name);
+        }
+    }
+
+    // Eight jobs, six printers, no bed cleared: six printed, one per printer, two ready.
+    let s = farm.wait_status(
+        "c",
+        Duration::from_secs(900),
+        "six jobs printed and every bed holding one",
+        |s| {
+            nothing_lost(s, &[]);
+            files.iter().filter(|f| state_of(s, f) == "done").count() == 6
+                && PRINTERS
+                    .iter()
+                    .all(|p| printer(s, p).is_some_and(|p| p["bed_cleared"] == false))
+        },
+    );
+    let mut first_round = BTreeSet::new();
+    for f in &files {
+        let j = common::job_by_file(&s, f).unwrap();
+        if j["state"] == "done" {
+            let p = j["printer"].as_str().unwrap();
+            assert!(first_round.insert(p.to_string()), "{p} printed twice: {s}");
+        } else {
+            assert_eq!(j["state"], "ready", "{f} waits for a bed: {j}");
+        }
+    }
+    assert_eq!(first_round.len(), 6, "every printer printed one job");
+    for p in PRINTERS {
+        let host = printer(&s, p).unwrap()["host"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        assert_eq!(host, &p[..1], "{p} is shown on its own host");
+    }
+
+    // Clear every bed, each through another host than its own: the last two print.
+    let mut cleared = BTreeSet::new();
+    farm.wait_until(Duration::from_secs(600), "all eight jobs done", |last| {
+        let s = farm.host("a").status()?;
+        nothing_lost(&s, &[]);
+        for p in PRINTERS {
+            if !cleared.contains(p) && printer(&s, p).is_some_and(|p| p["bed_cleared"] == false) {
+                let through = if p.starts_with('a') { "b" } else { "a" };
+                let (ok, out) = farm.host(through).ctl(&["clear", p]);
+                assert!(ok, "crispen clear {p} on host {through}: {out}");
+                cleared.insert(p);
+            }
+        }
+        *last = s.to_string();
+        files
+            .iter()
+            .all(|f| state_of(&s, f) == "done")
+            .then_some(())
+    });
+    let printed_on = all_done_once(&farm, &files);
+    printed_once_by_history(&farm, &files, &[]);
+
+    // Each printer executed the G-code of its jobs (as stored in the farm database), in
+    // the order it printed them, whole and once, and nothing else.
+    let order = farm.query(
+        "SELECT j.file FROM jobs j JOIN job_history h ON h.job_id = j.id \
+         WHERE h.state = 'printing' ORDER BY h.at",
+        &[],
+    );
+    for p in PRINTERS {
+        let mut expected = Vec::new();
+        for row in &order {
+            let file: String = row.get(0);
+            if printed_on[&file] != p {
+                continue;
+            }
+            let rows = farm.query(
+                "SELECT f.name, f.bytes FROM job_files f JOIN jobs j ON j.id = f.job_id \
+                 WHERE j.file = $1 AND f.name LIKE '%.gcode'",
+                &[&file],
+            );
+            assert_eq!(
+                rows.len(),
+                1,
+                "one G-code file stored for {file}: {:?}",
+                rows.iter()
+                    .map(|r| r.get::<_, String>(0))
+                    .collect::<Vec<_>>()
+            );
+            let bytes: Vec<u8> = rows[0].get(1);
+            let program = GcodeProgram::read(&bytes[..], &file, Firmware::Marlin2).unwrap();
+            expected.extend(program.iter().map(str::to_owned));
+        }
+        let ran = executed(&farm.root.join(format!("{p}.rec")));
+        assert!(!expected.is_empty(), "{p} printed something");
+        if ran != expected {
+            let i = (0..ran.len().min(expected.len()))
+                .find(|&i| ran[i] != expected[i])
+                .unwrap_or(ran.len().min(expected.len()));
+            panic!(
+                "{p} did not execute its jobs' G-code exactly once, in order: {} commands run, \
+                 {} expected; first difference at {i}: ran {:?}, expected {:?}",
+                ran.len(),
+                expected.len(),
+                &ran[i.saturating_sub(2)..(i + 3).min(ran.len())],
+                &expected[i.saturating_sub(2)..(i + 3).min(expected.len())]
+            );
+        }
+    }
+}
+
+/// A stand-in slicer that never finishes (it writes its pid, then sleeps).
+fn endless_slicer(root: &Path) -> std::path::PathBuf {
+    let script = root.join("endless-slicer");
+    std::fs::write(
+        &script,
+        format!(
+            "#!/bin/sh\necho $$ >> {}\nexec sleep 900\n",
+            root.join("endless-slicer.pids").display()
+        ),
+    )
+    .unwrap();
+    std::fs::set_permissions(&script, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
+    script
+}
+
+/// Stops the stand-in slicers a killed host left behind, by the pids they wrote.
+fn stop_endless_slicers(root: &Path) {
+    let pids = std::fs::read_to_string(root.join("endless-slicer.pids")).unwrap_or_default();
+    for pid in pids.lines().filter_map(|l| l.trim().parse::<i32>().ok()) {
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(pid),
+            nix::sys::signal::Signal::SIGKILL,
+        );
+    }
+}
+
+/// Host a, alone at first, takes two long pre-sliced prints and three models from a
+/// folder all three hosts serve; its slicer hangs, so it holds a model in `preparing`.
+/// Hosts b and c join; a is killed with `kill -9` mid-print. After a's lease (6 s) the
+/// others show a's printers offline and a as not alive, a's two prints become
+/// `interrupted` (and stay so: never reprinted on their own), the model it was
+/// preparing goes back to the queue, and every model is sliced and printed by b's and c's
+/// printers, each once. Started again, host a prints nothing blind: its printers hold
+/// the interrupted prints' beds.
+#[test]
+fn a_host_killed_mid_print_loses_its_work_to_the_others() {
+    let specs = three_hosts(0.05, Some(6), &[&["hot/in"], &["hot/in"], &["hot/in"]]);
+    let mut farm = Farm::configure(&specs);
+    let slicer = endless_slicer(&farm.root);
+    farm.host_mut("a")
+        .env
+        .push(("CRISPEN_PRUSA_SLICER".into(), slicer));
+    farm.host_mut("a").start();
+    farm.wait_status("a", Duration::from_secs(120), "host a up", |s| {
+        ["a1", "a2"]
+            .iter()
+            .all(|p| printer(s, p).is_some_and(|p| p["state"] == "idle"))
+    });
+
+    // Two prints of 10,000 s' simulated time (500 s here: long enough to be killed in),
+    // and three models.
+    let hot = farm.root.join("hot/in");
+    let long = presliced_gcode("long-1", 2000, 1200);
+    drop_file(&hot, "long-1.gcode", long.as_bytes());
+    let long = presliced_gcode("long-2", 2000, 1200);
+    drop_file(&hot, "long-2.gcode", long.as_bytes());
+    let spot = std::fs::read(common::model("spot.obj")).unwrap();
+    let models: Vec<String> = (1..=3).map(|i| format!("m-{i}.obj")).collect();
+    for m in &models {
+        drop_file(&hot, m, &spot);
+    }
+    let mut files: Vec<String> = vec!["long-1.gcode".into(), "long-2.gcode".into()];
+    files.extend(models.iter().cloned());
+
+    // Host a prints both and hangs slicing a model.
+    farm.wait_until(
+        Duration::from_secs(300),
+        "host a printing both long jobs and preparing a model",
+        |last| {
+            let s = farm.host("a").status()?;
+            nothing_lost(&s, &[]);
+            *last = s.to_string();
+            let printing = ["a1", "a2"].iter().all(|p| {
+                printer(&s, p).is_some_and(|p| {
+                    p["state"] == "printing"
+                        && p["progress"]["lines_acked"].as_u64().unwrap_or(0) > 20
+                })
+            });
+            let preparing = models.iter().any(|m| state_of(&s, m) == "preparing");
+            (printing && preparing).then_some(())
+        },
+    );
+
+    // b and c join the farm (they may help with the models a has not started on).
+    farm.host_mut("b").start();
+    farm.host_mut("c").start();
+    farm.wait_status("b", Duration::from_secs(120), "the farm up", farm_is_up);
+    let held: Vec<String> = farm
+        .query(
+            "SELECT file FROM jobs WHERE state = 'preparing' AND claimed_by = 'a'",
+            &[],
+        )
+        .iter()
+        .map(|r| r.get(0))
+        .collect();
+    assert!(!held.is_empty(), "host a holds a model in preparation");
+    let printing_on_a: BTreeMap<String, String> = farm
+        .query(
+            "SELECT file, printer FROM jobs WHERE state = 'printing' AND printer IN ('a1', 'a2')",
+            &[],
+        )
+        .iter()
+        .map(|r| (r.get(0), r.get(1)))
+        .collect();
+    assert_eq!(
+        printing_on_a.keys().cloned().collect::<Vec<_>>(),
+        ["long-1.gcode", "long-2.gcode"],
+        "a's printers print the two long jobs"
+    );
+
+    let killed_at = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+    farm.host_mut("a").kill9();
+    let t0 = Instant::now();
+
+    // After the lease: a is dead, its printers offline, its prints interrupted.
+    let s = farm.wait_status(
+        "b",
+        Duration::from_secs(120),
+        "host a's lease to run out",
+        |s| {
+            host_alive(s, "a") == Some(false)
+                && ["a1", "a2"]
+                    .iter()
+                    .all(|p| printer(s, p).is_some_and(|p| p["offline"] == true))
+                && ["long-1.gcode", "long-2.gcode"]
+                    .iter()
+                    .all(|f| state_of(s, f) == "interrupted")
+        },
+    );
+    eprintln!(
+        "host a's work was taken back {:.1} s after kill -9 (lease 6 s)",
+        t0.elapsed().as_secs_f64()
+    );
+    let a = s["farm"]["hosts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|h| h["name"] == "a")
+        .unwrap();
+    let last_seen = a["last_seen"].as_f64().unwrap();
+    assert!(
+        (killed_at - 30.0..=killed_at + 1.0).contains(&last_seen),
+        "a was last seen at {last_seen}, killed at {killed_at}"
+    );
+    for f in ["long-1.gcode", "long-2.gcode"] {
+        assert_eq!(
+            common::job_by_file(&s, f).unwrap()["printer"],
+            printing_on_a[f].as_str(),
+            "{f} keeps the printer it was interrupted on"
+        );
+    }
+
+    // Every model is sliced (by b and c: a's slicer hangs) and printed on b's or c's
+    // printers; the interrupted prints are never started again on their own.
+    farm.wait_until(Duration::from_secs(900), "every model printed", |last| {
+        let s = farm.host("c").status()?;
+        nothing_lost(&s, &["long-1.gcode", "long-2.gcode"]);
+        farm.clear_finished(&s, &["b", "c"]);
+        *last = s.to_string();
+        models
+            .iter()
+            .all(|m| state_of(&s, m) == "done")
+            .then_some(())
+    });
+    for h in ["b", "c"] {
+        let s = farm.host(h).status().unwrap();
+        for m in &models {
+            let p = common::job_by_file(&s, m).unwrap()["printer"]
+                .as_str()
+                .unwrap()
+                .to_string();
+            assert!(
+                !p.starts_with('a'),
+                "{m} printed on {p}, a dead host's printer"
+            );
+        }
+        for f in ["long-1.gcode", "long-2.gcode"] {
+            assert_eq!(state_of(&s, f), "interrupted", "{f} as host {h} sees it");
+        }
+    }
+    let history = farm.query(
+        "SELECT j.file, h.state, h.host FROM job_history h JOIN jobs j ON j.id = h.job_id \
+         ORDER BY h.at",
+        &[],
+    );
+    for f in &held {
+        let entries: Vec<(String, String)> = history
+            .iter()
+            .filter(|r| r.get::<_, String>(0) == *f)
+            .map(|r| (r.get(1), r.get(2)))
+            .collect();
+        let preparing_by_a = entries
+            .iter()
+            .position(|(state, host)| state == "preparing" && host == "a");
+        let went_back =
+            preparing_by_a.is_some_and(|i| entries[i..].iter().any(|e| e.0 == "queued"));
+        let prepared_by_other = entries
+            .iter()
+            .any(|(state, host)| state == "ready" && host != "a");
+        assert!(
+            went_back && prepared_by_other,
+            "{f}, held by a, went back to the queue and was prepared by another host: {entries:?}"
+        );
+    }
+    printed_once_by_history(&farm, &files, &[]);
+    let markers = farm.markers_by_printer();
+    for (p, m) in &markers {
+        let want: Vec<String> = printing_on_a
+            .iter()
+            .filter(|(_, on)| on == &p)
+            .map(|(f, _)| f.trim_end_matches(".gcode").to_string())
+            .collect();
+        assert_eq!(
+            m, &want,
+            "the long prints ran on {p}: only those it was given, once"
+        );
+    }
+
+    // Host a comes back: it prints nothing blind; its printers hold the interrupted
+    // prints on their beds until cleared.
+    stop_endless_slicers(&farm.root);
+    farm.host_mut("a").env.clear();
+    farm.host_mut("a").start();
+    let s = farm.wait_status("b", Duration::from_secs(120), "host a back", |s| {
+        host_alive(s, "a") == Some(true)
+            && ["a1", "a2"]
+                .iter()
+                .all(|p| printer(s, p).is_some_and(|p| p["offline"] == false))
+    });
+    for p in ["a1", "a2"] {
+        let p = printer(&s, p).unwrap();
+        assert_eq!(p["bed_cleared"], false, "{p}");
+        assert_ne!(p["state"], "printing", "{p}");
+    }
+    std::thread::sleep(Duration::from_secs(3));
+    let s = farm.host("a").status().unwrap();
+    for f in ["long-1.gcode", "long-2.gcode"] {
+        assert_eq!(state_of(&s, f), "interrupted", "{f} after a's restart");
+    }
+    printed_once_by_history(&farm, &files, &[]);
+    stop_endless_slicers(&farm.root);
+}
+
+/// PostgreSQL stopped for 20 seconds while prints run: the hosts keep streaming what
+/// they have, start nothing new, say in their status that the database is unreachable,
+/// and record the outcomes once it is back; a file dropped during the outage is taken
+/// once it is back. Every job ends done exactly once, each print on the printer that
+/// started it.
+#[test]
+fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
+    let mut farm = Farm::start(&three_hosts(0.05, None, &[&["hot/a"], &["hot/b"], &[]]));
+    for h in ["a", "b", "c"] {
+        farm.wait_status(h, Duration::from_secs(120), "the farm up", farm_is_up);
+    }
+    // Nine prints of 16 to 40 s here (plus heating), dropped on two hosts: six print at
+    // once, some of them end during the outage.
+    let mut files = Vec::new();
+    for i in 0..9 {
+        let host = if i % 2 == 0 { "a" } else { "b" };
+        let name = format!("{host}-{i}.gcode");
+        let gcode = presliced_gcode(&format!("{host}-{i}"), 64 + 24 * (i % 4), 1200);
+        drop_file(
+            &farm.root.join(format!("hot/{host}")),
+            &name,
+            gcode.as_bytes(),
+        );
+        files.push(name);
+    }
+    let printing_before: BTreeMap<String, String> =
+        farm.wait_until(Duration::from_secs(300), "six prints running", |last| {
+            let rows = farm.query(
+                "SELECT file, printer FROM jobs WHERE state = 'printing'",
+                &[],
+            );
+            *last = format!("{} printing", rows.len());
+            (rows.len() == 6).then(|| rows.iter().map(|r| (r.get(0), r.get(1))).collect())
+        });
+    // Let the prints get going (as each host sees its own printers), then stop the
+    // database.
+    for h in ["a", "b", "c"] {
+        farm.wait_status(h, Duration::from_secs(120), "prints under way", |s| {
+            [format!("{h}1"), format!("{h}2")].iter().all(|p| {
+                printer(s, p)
+                    .is_some_and(|p| p["progress"]["lines_acked"].as_u64().unwrap_or(0) > 10)
+            })
+        });
+    }
+    farm.pg.stop();
+    let stopped = Instant::now();
+    // A file dropped while the database is down can be admitted only once it is back:
+    // it must neither be lost nor taken twice.
+    let late = presliced_gcode("a-late", 16, 1200);
+    drop_file(&farm.root.join("hot/a"), "a-late.gcode", late.as_bytes());
+    files.push("a-late.gcode".into());
+
+    // During the outage: each host says so, and no printer starts a job it did not have.
+    let mut said_unreachable = BTreeSet::new();
+    let mut ended_while_down = BTreeSet::new();
+    let mut polls: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    while stopped.elapsed() < Duration::from_secs(20) {
+        for h in &farm.hosts {
+            let asked = Instant::now();
+            let answer = h.status();
+            polls.entry(h.name.clone()).or_default().push(format!(
+                "{:.1}s: {} in {:.1}s",
+                (asked - stopped).as_secs_f64(),
+                match &answer {
+                    None => "no answer".to_string(),
+                    Some(s) => format!("database {}", s["farm"]["database"]),
+                },
+                asked.elapsed().as_secs_f64()
+            ));
+            let Some(s) = answer else { continue };
+            if s["farm"]["database"]
+                .as_str()
+                .is_some_and(|d| d.contains("unreachable"))
+            {
+                said_unreachable.insert(h.name.clone());
+            }
+            for p in s["printers"].as_array().into_iter().flatten() {
+                if p["host"] != h.name.as_str() {
+                    continue;
+                }
+                let job = p["job"].as_str().unwrap_or("");
+                let file = s["jobs"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .find(|j| j["id"] == job)
+                    .and_then(|j| j["file"].as_str())
+                    .unwrap_or(job)
+                    .to_string();
+                if p["state"] == "printing" {
+                    assert_eq!(
+                        printing_before.get(&file).map(String::as_str),
+                        p["name"].as_str(),
+                        "{} started {file} while the database was down (job {job})",
+                        p["name"]
+                    );
+                } else if p["state"] == "bed_not_cleared" {
+                    ended_while_down.insert(file);
+                }
+            }
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    farm.pg.restart();
+    assert_eq!(
+        said_unreachable.len(),
+        3,
+        "every host's status said the database was unreachable during the outage; only {said_unreachable:?} did\n\
+         the hosts' answers (time since the stop: answer in how long): {polls:#?}\n{}",
+        farm.diagnostics()
+    );
+
+    assert!(
+        !ended_while_down.is_empty(),
+        "some prints ended during the outage (their outcomes to be recorded later)"
+    );
+
+    // Back: the outcomes are recorded, beds cleared, the other three jobs printed.
+    farm.wait_until(Duration::from_secs(600), "every job done", |last| {
+        let s = farm.host("b").status()?;
+        nothing_lost(&s, &[]);
+        farm.clear_finished(&s, &["a", "b", "c"]);
+        *last = s.to_string();
+        files
+            .iter()
+            .all(|f| state_of(&s, f) == "done")
+            .then_some(())
+    });
+    for h in &farm.hosts {
+        let s = h.status().unwrap();
+        assert!(
+            s["farm"]["database"].is_null(),
+            "host {} says the database is back: {}",
+            h.name,
+            s["farm"]
+        );
+    }
+    let printed_on = all_done_once(&farm, &files);
+    for (f, p) in &printing_before {
+        assert_eq!(
+            &printed_on[f], p,
+            "{f} finished on the printer it started on"
+        );
+    }
+    printed_once_by_history(&farm, &files, &[]);
+    let mut seen: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    for (p, markers) in farm.markers_by_printer() {
+        for m in markers {
+            seen.entry(m).or_default().push(p.clone());
+        }
+    }
+    for f in &files {
+        let m = f.trim_end_matches(".gcode");
+        assert_eq!(
+            seen.get(m).map(Vec::as_slice),
+            Some(&[printed_on[f].clone()][..]),
+            "{f} started exactly once, on its printer"
+        );
+    }
+}
+
+/// The control commands act on any printer or job of the farm from any host: a print on
+/// host b's printer is paused through host a, resumed through host c, cancelled through
+/// host a (the job ends cancelled, the printer holds its bed), retried through host c
+/// (it waits for the bed) and, once the bed is cleared through host a, printed again
+/// from its first line on the same printer.
+#[test]
+fn control_commands_act_across_hosts() {
+    let mut specs = three_hosts(0.05, None, &[&[], &["hot/b"], &[]]);
+    specs[1].folders[0].1 = vec!["b1".to_string()];
+    let farm = Farm::start(&specs);
+    for h in ["a", "b", "c"] {
+        farm.wait_status(h, Duration::from_secs(120), "the farm up", farm_is_up);
+    }
+    let gcode = presliced_gcode("long", 2000, 1200);
+    drop_file(&farm.root.join("hot/b"), "long.gcode", gcode.as_bytes());
+    let acked = |s: &Value| {
+        printer(s, "b1").map_or(0, |p| p["progress"]["lines_acked"].as_u64().unwrap_or(0))
+    };
+    let s = farm.wait_status("b", Duration::from_secs(120), "b1 printing", |s| {
+        printer(s, "b1").is_some_and(|p| p["state"] == "printing") && acked(s) > 20
+    });
+    let id = common::job_by_file(&s, "long.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+
+    let (ok, out) = farm.host("a").ctl(&["pause", "b1"]);
+    assert!(ok, "pause b1 through host a: {out}");
+    let paused = farm.wait_status("b", Duration::from_secs(60), "b1 paused", |s| {
+        printer(s, "b1").is_some_and(|p| p["state"] == "paused")
+    });
+    farm.wait_status(
+        "c",
+        Duration::from_secs(60),
+        "b1 paused as c sees it",
+        |s| printer(s, "b1").is_some_and(|p| p["state"] == "paused"),
+    );
+    let s = farm.host("b").status().unwrap();
+    assert_eq!(acked(&s), acked(&paused), "lines went on while paused");
+
+    let (ok, out) = farm.host("c").ctl(&["resume", "b1"]);
+    assert!(ok, "resume b1 through host c: {out}");
+    let before = acked(&s);
+    farm.wait_status("b", Duration::from_secs(60), "b1 resumed", |s| {
+        printer(s, "b1").is_some_and(|p| p["state"] == "printing") && acked(s) > before + 20
+    });
+
+    let (ok, out) = farm.host("a").ctl(&["cancel", &id]);
+    assert!(ok, "cancel {id} through host a: {out}");
+    farm.wait_status("b", Duration::from_secs(60), "the print cancelled", |s| {
+        state_of(s, "long.gcode") == "cancelled"
+            && printer(s, "b1").is_some_and(|p| p["state"] == "bed_not_cleared")
+    });
+    farm.wait_status("a", Duration::from_secs(60), "a sees it cancelled", |s| {
+        state_of(s, "long.gcode") == "cancelled"
+    });
+
+    let (ok, out) = farm.host("c").ctl(&["retry", &id]);
+    assert!(ok, "retry {id} through host c: {out}");
+    let s = farm.wait_status("b", Duration::from_secs(60), "the job ready again", |s| {
+        state_of(s, "long.gcode") == "ready"
+    });
+    assert_eq!(
+        printer(&s, "b1").unwrap()["bed_cleared"],
+        false,
+        "the bed gate holds"
+    );
+
+    let (ok, out) = farm.host("a").ctl(&["clear", "b1"]);
+    assert!(ok, "clear b1 through host a: {out}");
+    farm.wait_status("b", Duration::from_secs(60), "printing again", |s| {
+        state_of(s, "long.gcode") == "printing" && acked(s) > 20
+    });
+    let markers = farm.markers_by_printer();
+    for (p, m) in &markers {
+        let want: &[&str] = if p == "b1" { &["long", "long"] } else { &[] };
+        assert_eq!(
+            m, want,
+            "{p} started the job from its first line, as often as told"
+        );
+    }
+    let entries = farm.printing_entries();
+    assert_eq!(entries[&id], 2, "printed once, then once more when retried");
+}

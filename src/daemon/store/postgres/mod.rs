@@ -48,6 +48,9 @@ pub enum PgError {
     },
     #[error("the farm database is unreachable: {0}")]
     Pool(#[from] deadpool_postgres::PoolError),
+    /// An earlier call found it unreachable, and it has not been reached since.
+    #[error("the farm database is unreachable (since: {0})")]
+    Unreachable(String),
     #[error("the farm database: {0}")]
     Db(#[from] tokio_postgres::Error),
     /// What the job's rules refused (no such job, a change the table forbids, a claim lost).
@@ -90,7 +93,10 @@ impl PgError {
     /// The database could not be reached or answered with a failure of its own (as opposed
     /// to refusing the change by the job's rules).
     pub fn is_outage(&self) -> bool {
-        matches!(self, PgError::Pool(_) | PgError::Db(_))
+        matches!(
+            self,
+            PgError::Pool(_) | PgError::Db(_) | PgError::Unreachable(_)
+        )
     }
 }
 

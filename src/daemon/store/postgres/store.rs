@@ -38,6 +38,10 @@ pub struct PgJobStore {
     pending_gates: BTreeMap<String, PrinterGate>,
     /// The database's time of the last resync.
     synced_to: f64,
+    /// The last call found the database unreachable: until a resync reaches it again,
+    /// changes fail at once and outcomes are kept at once, rather than each waiting out
+    /// the connection timeout while the store's other requests queue behind it.
+    unreachable: Option<String>,
 }
 
 /// `[state]` as a filter.
@@ -72,6 +76,7 @@ impl PgJobStore {
             pending: BTreeMap::new(),
             pending_gates: BTreeMap::new(),
             synced_to,
+            unreachable: None,
             db,
         })
     }
@@ -91,8 +96,27 @@ impl PgJobStore {
         }
     }
 
+    /// Runs `work` against the database unless it is known to be unreachable, noting an
+    /// outage when the call meets one.
+    fn reach<T>(
+        &mut self,
+        work: impl std::future::Future<Output = Result<T, PgError>>,
+    ) -> Result<T, PgError> {
+        if let Some(e) = &self.unreachable {
+            return Err(PgError::Unreachable(e.clone()));
+        }
+        let result = self.block(work);
+        if let Err(e) = &result {
+            if e.is_outage() {
+                self.unreachable = Some(e.to_string());
+            }
+        }
+        result
+    }
+
     fn modify(&mut self, id: &str, change: Change<'_>) -> Result<Job, StoreError> {
-        let result = self.block(self.db.modify(id, change));
+        let db = self.db.clone();
+        let result = self.reach(db.modify(id, change));
         match result {
             Ok(job) => {
                 self.jobs.insert(id.to_string(), job.clone());
@@ -181,7 +205,8 @@ impl JobStore for PgJobStore {
             files.push((&sidecar_name, bytes));
         }
         let folder_name = folder.to_string_lossy();
-        let job = self.block(self.db.admit(&file, &folder_name, printers, &files))?;
+        let db = self.db.clone();
+        let job = self.reach(db.admit(&file, &folder_name, printers, &files))?;
         // The job is in the farm now: its files leave the hot folder for this host's copy,
         // which preparation here reads. A file that cannot be moved is removed, so it is
         // never picked up twice.
@@ -266,7 +291,8 @@ impl JobStore for PgJobStore {
             upload_from: None,
             download_to: None,
         };
-        match self.block(self.db.modify(id, change)) {
+        let db = self.db.clone();
+        match self.reach(db.modify(id, change)) {
             Ok(job) => {
                 self.jobs.insert(id.to_string(), job.clone());
                 Ok(job)
@@ -328,7 +354,8 @@ impl JobStore for PgJobStore {
     }
 
     fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
-        match self.block(self.db.set_gate(printer, &gate)) {
+        let db = self.db.clone();
+        match self.reach(db.set_gate(printer, &gate)) {
             Ok(()) => {
                 self.pending_gates.remove(printer);
                 self.gates.insert(printer.to_string(), gate);
@@ -346,13 +373,20 @@ impl JobStore for PgJobStore {
     }
 
     fn write_pending(&mut self) -> usize {
+        // Tried whatever the last call found: this is how an outage is found to be over.
+        let mut outage = false;
         for (id, (from, job)) in std::mem::take(&mut self.pending) {
+            if outage {
+                self.pending.insert(id, (from, job));
+                continue;
+            }
             match self.block(self.db.write_outcome(&job, from)) {
                 Ok(written) => {
                     tracing::info!(job = %id, state = written.state.name(), "outcome written to the farm database after all");
                     self.jobs.insert(id, written);
                 }
                 Err(e) if e.is_outage() => {
+                    outage = true;
                     self.pending.insert(id, (from, job));
                 }
                 Err(e) => {
@@ -362,11 +396,19 @@ impl JobStore for PgJobStore {
             }
         }
         for (printer, gate) in std::mem::take(&mut self.pending_gates) {
+            if outage {
+                self.pending_gates.insert(printer, gate);
+                continue;
+            }
             if let Err(e) = self.block(self.db.set_gate(&printer, &gate)) {
                 if e.is_outage() {
+                    outage = true;
                     self.pending_gates.insert(printer, gate);
                 }
             }
+        }
+        if !outage {
+            self.unreachable = None;
         }
         self.unwritten()
     }
@@ -389,6 +431,7 @@ impl JobStore for PgJobStore {
                 return false;
             }
         };
+        self.unreachable = None;
         self.synced_to = now;
         let mut any = false;
         for job in changed {

@@ -474,8 +474,7 @@ impl PgStore {
                 j.printer = printer;
             }
         });
-        let job = self.modify_in(&tx, &id, change).await?;
-        tx.commit().await?;
+        let job = undo_on_error(self.modify_in(&tx, &id, change).await, tx).await?;
         Ok(Some(job))
     }
 
@@ -512,8 +511,7 @@ impl PgStore {
     pub async fn modify(&self, id: &str, change: Change<'_>) -> Result<Job, PgError> {
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
-        let job = self.modify_in(&tx, id, change).await?;
-        tx.commit().await?;
+        let job = undo_on_error(self.modify_in(&tx, id, change).await, tx).await?;
         Ok(job)
     }
 
@@ -614,27 +612,30 @@ impl PgStore {
     pub async fn write_outcome(&self, job: &Job, from: JobState) -> Result<Job, PgError> {
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
-        let row = tx
-            .query_opt(
-                "SELECT state, claimed_by FROM jobs WHERE id = $1 FOR UPDATE",
-                &[&job.id],
-            )
-            .await?
-            .ok_or_else(|| StoreError::NoSuchJob(job.id.clone()))?;
-        let state = parse_state(&job.id, row.get(0))?;
-        let holder: Option<String> = row.get(1);
-        if state != from || holder.as_deref() != Some(self.host.as_str()) {
-            return Err(StoreError::LostClaim {
-                id: job.id.clone(),
-                host: self.host.clone(),
-                state,
+        let written = async {
+            let row = tx
+                .query_opt(
+                    "SELECT state, claimed_by FROM jobs WHERE id = $1 FOR UPDATE",
+                    &[&job.id],
+                )
+                .await?
+                .ok_or_else(|| StoreError::NoSuchJob(job.id.clone()))?;
+            let state = parse_state(&job.id, row.get(0))?;
+            let holder: Option<String> = row.get(1);
+            if state != from || holder.as_deref() != Some(self.host.as_str()) {
+                return Err(StoreError::LostClaim {
+                    id: job.id.clone(),
+                    host: self.host.clone(),
+                    state,
+                }
+                .into());
             }
-            .into());
+            let holder = is_held(job.state).then(|| self.host.clone());
+            self.write_row(&tx, job, holder.as_deref(), job.state != from)
+                .await
         }
-        let holder = is_held(job.state).then(|| self.host.clone());
-        self.write_row(&tx, job, holder.as_deref(), job.state != from)
-            .await?;
-        tx.commit().await?;
+        .await;
+        undo_on_error(written, tx).await?;
         Ok(one_job(&**client, &job.id).await?)
     }
 
@@ -832,6 +833,25 @@ impl PgStore {
             .await?
             .get(0);
         Ok((load_jobs(&**client, Only::Since(since)).await?, now))
+    }
+}
+
+/// Commits `tx` after `result` succeeded, else rolls it back before returning the error:
+/// a refused change must not keep the job's row locked (claims would pass it over) until
+/// the dropped transaction's rollback reaches the server.
+async fn undo_on_error<T>(
+    result: Result<T, PgError>,
+    tx: deadpool_postgres::Transaction<'_>,
+) -> Result<T, PgError> {
+    match result {
+        Ok(value) => {
+            tx.commit().await?;
+            Ok(value)
+        }
+        Err(e) => {
+            let _ = tx.rollback().await;
+            Err(e)
+        }
     }
 }
 

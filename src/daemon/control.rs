@@ -253,19 +253,14 @@ enum Whose {
 }
 
 fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
-    if farm
+    let mine = farm
         .printers
         .lock()
         .unwrap_or_else(|e| e.into_inner())
-        .contains_key(printer)
-    {
-        return Ok(Whose::Mine);
-    }
-    let shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
-    if shared
-        .as_ref()
-        .is_some_and(|v| v.printers.iter().any(|p| p.name == printer))
-    {
+        .contains_key(printer);
+    if mine {
+        Ok(Whose::Mine)
+    } else if printer_names(farm).iter().any(|n| n == printer) {
         Ok(Whose::Other)
     } else {
         Err(CommandError::NoPrinter(printer.to_string()))

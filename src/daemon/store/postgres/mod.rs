@@ -495,18 +495,6 @@ impl PgStore {
         self.modify(id, change).await
     }
 
-    /// An operator's change (cancel, retry), from any host, if the one table allows it.
-    pub async fn transition(
-        &self,
-        id: &str,
-        to: JobState,
-        reason: Option<&str>,
-    ) -> Result<Job, PgError> {
-        let mut change = Change::to(to);
-        change.reason = reason.map(str::to_string);
-        self.modify(id, change).await
-    }
-
     /// Makes one change of a job as one transaction on its locked row (see [`Change`]).
     pub async fn modify(&self, id: &str, change: Change<'_>) -> Result<Job, PgError> {
         let mut client = self.pool.get().await?;
@@ -652,17 +640,6 @@ impl PgStore {
         Ok(())
     }
 
-    pub async fn file(&self, id: &str, name: &str) -> Result<Option<Vec<u8>>, PgError> {
-        let client = self.pool.get().await?;
-        Ok(client
-            .query_opt(
-                "SELECT bytes FROM job_files WHERE job_id = $1 AND name = $2",
-                &[&id, &name],
-            )
-            .await?
-            .map(|r| r.get(0)))
-    }
-
     /// The names of a job's files.
     pub async fn file_names(&self, id: &str) -> Result<Vec<String>, PgError> {
         let client = self.pool.get().await?;
@@ -694,16 +671,18 @@ impl PgStore {
         &self,
         statuses: &[(String, serde_json::Value)],
     ) -> Result<(), PgError> {
+        // One statement for all of them: this runs every second on every host.
+        let (names, statuses): (Vec<&String>, Vec<&serde_json::Value>) =
+            statuses.iter().map(|(n, s)| (n, s)).unzip();
         let client = self.pool.get().await?;
-        for (name, status) in statuses {
-            client
-                .execute(
-                    "UPDATE printers SET status = $3, last_seen = now() \
-                     WHERE name = $1 AND host = $2",
-                    &[name, &self.host, status],
-                )
-                .await?;
-        }
+        client
+            .execute(
+                "UPDATE printers p SET status = v.status, last_seen = now() \
+                 FROM unnest($1::text[], $2::jsonb[]) AS v(name, status) \
+                 WHERE p.name = v.name AND p.host = $3",
+                &[&names, &statuses, &self.host],
+            )
+            .await?;
         Ok(())
     }
 

@@ -785,20 +785,33 @@ impl Host {
         }
     }
 
-    /// Send an `M105` at once, outside the send window: the printer is most likely idle and
-    /// the window only looks full because an `ok` was lost. Its answer acknowledges every
-    /// earlier line.
+    /// Send an `M105` at once, in the room the send window keeps for it: the printer is most
+    /// likely idle and the window only looks full because an `ok` was lost. Its answer
+    /// acknowledges every earlier line.
     fn probe(&mut self, now: Instant) {
         if self.resend_hold.is_some() {
             return;
         }
         self.last_probe = Some(now);
+        let replay = self
+            .history_line(self.send_cursor)
+            .filter(|_| self.send_cursor < self.next_number)
+            .map(|l| l.command.clone());
+        let fits = match &replay {
+            Some(command) => self.probe_fits(self.send_cursor, command),
+            None => self.probe_fits(self.next_number, "M105"),
+        };
+        if !fits {
+            // Earlier probes fill the room kept for one: the printer has not read them yet
+            // (blocked), or their answers were lost, which only silence can tell now.
+            return;
+        }
         self.probes += 1;
         self.events.push_back(Event::Probe);
         // An ignored duplicate resend request may have been a real one: after a probe, a
         // repeated request is always new.
         self.duplicate_budget = None;
-        if self.send_cursor < self.next_number {
+        if replay.is_some() {
             // A replay is waiting: the line the printer asked for is the probe.
             self.transmit(self.send_cursor, now);
         } else {
@@ -1310,9 +1323,13 @@ impl Host {
             self.resend_ok.seen_ok += 1;
             return;
         }
-        // A plain `ok` answers the oldest line, but never a final sync `M105`: that one
-        // waits for its own answer, which carries the temperatures.
-        if let Some(pos) = self.in_flight.iter().position(|f| !f.sync) {
+        // A plain `ok` answers the oldest line, but never an `M105`: its answer carries the
+        // temperatures. Ultimaker2Marlin answers moves as they enter its queue and an
+        // `M105` only when it runs, so the `ok`s of moves sent after an `M105` come before
+        // its answer; taken for the `M105`'s, they left its answer to be taken for a later
+        // `M105`'s, which the printer may never have received (a corrupted line), and the
+        // resend that followed looked like a printer that had lost its state.
+        if let Some(pos) = self.in_flight.iter().position(|f| !f.sync && !f.is_m105) {
             let f = self.in_flight.remove(pos).expect("position is valid");
             self.in_flight_bytes -= f.bytes;
             self.acknowledged(f.number, now);

@@ -6,6 +6,10 @@ use super::{code_of, is_code, HeatWait};
 use super::{frame, Failure, Host, InFlight, Kind, Line, Phase, HEAT_COMMANDS};
 use std::time::Instant;
 
+/// Bytes of the printer's receive ring kept free for a probe: `N<number> M105*<cs>\n` with
+/// up to eight digits of line number.
+const PROBE_RESERVE: usize = 1 + 8 + 1 + 4 + 1 + 3 + 1;
+
 /// Upper bound of `frame(number, command).len()` without building the line: `N`, the
 /// number, a space, the command, `*`, a checksum of at most three digits and `\n`.
 fn wire_len_bound(number: u64, command: &str) -> usize {
@@ -142,9 +146,25 @@ impl Host {
         // firmware is blocked (planner full, M109, G28...) its loop does not move lines into
         // command slots, so free slots announced by ADVANCED_OK (`B`) are no room for more
         // bytes. Bytes beyond the ring are lost and two lines merge into one whose checksum
-        // may even pass; so the bytes in flight never exceed the ring. One byte of margin:
-        // Marlin's ring tells full from empty by leaving one cell unused.
-        self.in_flight_bytes + bytes < self.opts.firmware.rx_buffer_bytes()
+        // may even pass; so the bytes in flight never exceed the ring. The last
+        // `PROBE_RESERVE` bytes are kept for one probe (see `probe_fits`).
+        self.in_flight_bytes + bytes + PROBE_RESERVE < self.ring_bytes()
+    }
+
+    /// Whether a probe (or a replayed line sent as one) still fits the printer's receive
+    /// ring: the window leaves room for one, so the first probe always goes out, and a
+    /// further one only once lines have been answered. A probe beyond the ring would be
+    /// lost in part while the printer is blocked (a homing or a heat wait of minutes,
+    /// during which Ultimaker2Marlin reads nothing), and its remains would merge with the
+    /// next line.
+    pub(super) fn probe_fits(&self, number: u64, command: &str) -> bool {
+        self.in_flight_bytes + wire_len_bound(number, command) < self.ring_bytes()
+    }
+
+    /// The printer's receive ring, less the cell Marlin leaves unused to tell full from
+    /// empty.
+    fn ring_bytes(&self) -> usize {
+        self.opts.firmware.rx_buffer_bytes()
     }
 
     /// Send whatever the window allows. A line gets its number only when it is sent, so

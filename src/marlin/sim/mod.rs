@@ -15,6 +15,8 @@
 //! executes is recorded ([`SimHandle::executed`], and optionally a file) so tests can prove
 //! that a host delivered a job exactly once and in order.
 
+#[cfg(test)]
+mod cosim;
 mod printer;
 
 use crate::marlin::firmware::Firmware;

@@ -28,7 +28,10 @@ use std::time::{Duration, Instant};
 
 const PLANNER_MOVES: usize = 16;
 const AMBIENT: f64 = 21.0;
-const HOMING_SECONDS: f64 = 3.0;
+/// A homing takes seconds: an Ultimaker 2 moves its bed up to 205 mm at 40 mm/s, and every
+/// axis bumps its switch twice. Longer than the host's 3 s silence probe, as on a real
+/// printer, whose firmware reads no serial input meanwhile.
+const HOMING_SECONDS: f64 = 8.0;
 const DEFAULT_FEEDRATE: f64 = 1500.0; // mm/min
 /// Shortest real interval between periodic messages, so a tiny time scale cannot turn
 /// keep-alives and temperature reports into a flood.

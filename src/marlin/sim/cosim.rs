@@ -1,0 +1,209 @@
+//! The host's protocol core against the simulated firmware, both on one virtual clock: real
+//! timing (homing, heat-up, moves at their feed rates) without waiting for it, and the same
+//! run every time. The pty tests show the bytes really cross a serial device; these show
+//! what minutes of real printing do to the host's rules, in milliseconds.
+//!
+//! `CRISPEN_COSIM_TRACE=1` prints the bytes each way with their virtual time;
+//! `CRISPEN_COSIM_ONLY=Ultimaker2:7` runs one firmware and seed of the noise test.
+
+use super::printer::Printer;
+use super::{is_housekeeping, Recorder, SimConfig};
+use crate::marlin::firmware::Firmware;
+use crate::marlin::protocol::{Event, Failure, Host, JobSummary, ProtocolOptions};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// What one co-simulated job ended with.
+struct Run {
+    outcome: Result<JobSummary, Failure>,
+    /// Commands the printer executed, in order.
+    executed: Vec<String>,
+}
+
+/// Connect a host to a fresh printer and stream `job`, moving the clock from one deadline
+/// (the host's or the printer's) to the next. Gives up after `limit` of virtual time.
+fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
+    let trace = std::env::var_os("CRISPEN_COSIM_TRACE").is_some();
+    let start = Instant::now();
+    let mut now = start;
+    let executed = Arc::new(Mutex::new(Vec::new()));
+    let mut recorder = Recorder {
+        executed: executed.clone(),
+        file: None,
+    };
+    let mut printer = Printer::new(&cfg, now);
+    let mut host = Host::new(ProtocolOptions::for_firmware(cfg.firmware), now);
+    let mut started = false;
+    let outcome = loop {
+        assert!(
+            now - start < limit,
+            "no end after {limit:?} of virtual time"
+        );
+        let at = (now - start).as_secs_f64();
+        printer.advance(now, &mut recorder);
+        let answer = printer.take_output();
+        if !answer.is_empty() {
+            if trace {
+                eprintln!("{at:>9.3} < {:?}", String::from_utf8_lossy(&answer));
+            }
+            host.feed(&answer, now);
+        }
+        if host.next_deadline().is_some_and(|d| d <= now) {
+            host.tick(now);
+        }
+        let mut end = None;
+        while let Some(event) = host.poll_event() {
+            match event {
+                Event::Done(summary) => end = Some(Ok(summary)),
+                Event::Failed(failure) => end = Some(Err(failure)),
+                _ => {}
+            }
+        }
+        if let Some(end) = end {
+            break end;
+        }
+        if !started && host.is_idle() {
+            started = host.start_job(job.to_vec(), now);
+        }
+        let sent = host.take_outgoing();
+        if !sent.is_empty() {
+            if trace {
+                eprintln!("{at:>9.3} > {:?}", String::from_utf8_lossy(&sent));
+            }
+            printer.receive(&sent, now, &mut recorder);
+            continue;
+        }
+        if !answer.is_empty() {
+            continue;
+        }
+        // Both quiet: on to the next moment either side waits for.
+        let next = [host.next_deadline(), printer.next_deadline()]
+            .into_iter()
+            .flatten()
+            .min()
+            .expect("a job in progress always waits for something");
+        now = next.max(now + Duration::from_micros(100));
+    };
+    // The printer works off what it has queued (Ultimaker2Marlin answers moves when they
+    // enter its planner, so the job's last `ok` comes before its last moves run).
+    for _ in 0..10_000 {
+        let Some(next) = printer.next_deadline() else {
+            break;
+        };
+        now = next.max(now);
+        printer.advance(now, &mut recorder);
+        printer.take_output();
+    }
+    let executed = executed.lock().unwrap().clone();
+    Run { outcome, executed }
+}
+
+/// What PrusaSlicer writes for crispen's start code (gcode/start.gcode: heaters on, homing,
+/// both heat waits, a prime) and the first layer's opening, then `moves` short moves.
+fn sliced_job(moves: usize) -> Vec<String> {
+    let mut job: Vec<String> = [
+        "M107",
+        "G21",
+        "G90",
+        "M82",
+        "M107",
+        "M140 S60",
+        "M104 S210",
+        "G28",
+        "G1 X15 Y5 Z15 F6000",
+        "M190 S60",
+        "M109 S210",
+        "G92 E0",
+        "G1 F200 E10",
+        "G92 E0",
+        "M117 Printing...",
+        "G21",
+        "G90",
+        "M82",
+        "G92 E0",
+        "M107",
+        "G1 E-6 F3000",
+        "G92 E0",
+        "G1 Z.2 F9000",
+        "G1 X102.928 Y91.235",
+        "G1 E6 F3000",
+        "G1 F900",
+    ]
+    .map(String::from)
+    .to_vec();
+    job.extend((0..moves).map(|i| {
+        let x = 103.0 + (i % 20) as f64 * 0.9;
+        let y = 91.0 + (i % 7) as f64 * 3.7;
+        format!("G1 X{x:.3} Y{y:.3} E{:.5}", 6.0 + i as f64 * 0.0173)
+    }));
+    job
+}
+
+/// Found by the soak benchmark: on Ultimaker2Marlin, which reads nothing while it homes or
+/// heats, the host's silence probes went out beyond the receive ring; their remains merged
+/// with the next line, and the resend that followed asked for a line an earlier probe's
+/// answer seemed to confirm, failing the job as a printer that lost its state.
+#[test]
+fn every_firmware_at_real_speed_homes_heats_and_prints_every_line_once() {
+    let job = sliced_job(300);
+    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    for fw in Firmware::ALL {
+        let mut cfg = SimConfig::new(fw);
+        cfg.time_scale = 1.0;
+        let run = run(cfg, &job, Duration::from_secs(1800));
+        let summary = run
+            .outcome
+            .unwrap_or_else(|f| panic!("{fw:?}: job failed: {f:?}"));
+        assert_eq!(summary.resends, 0, "{fw:?}: a clean link needs no resend");
+        let executed: Vec<&String> = run
+            .executed
+            .iter()
+            .filter(|c| !is_housekeeping(c))
+            .collect();
+        assert_eq!(executed, expected, "{fw:?}");
+    }
+}
+
+/// Line noise at real timing, over many seeds: 3 % corrupted lines, 1 % lost `ok`s, 2 %
+/// garbled answers, 2 % spurious resend requests and 1 % busy periods, through homing, both
+/// heat waits and the moves. Every seed must deliver every job line exactly once. (At first,
+/// 7 of 40 seeds failed on Ultimaker2Marlin: see `Host::handle_ok`.)
+#[test]
+fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
+    let job = sliced_job(400);
+    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let only = std::env::var("CRISPEN_COSIM_ONLY").ok();
+    let mut failures = Vec::new();
+    for fw in Firmware::ALL {
+        for seed in 0..40 {
+            if only
+                .as_ref()
+                .is_some_and(|o| *o != format!("{fw:?}:{seed}"))
+            {
+                continue;
+            }
+            let mut cfg = SimConfig::new(fw);
+            cfg.time_scale = 1.0;
+            cfg.seed = seed;
+            cfg.faults.corrupt_host_bytes = 0.03;
+            cfg.faults.drop_ok = 0.01;
+            cfg.faults.garbage = 0.02;
+            cfg.faults.spurious_resend = 0.02;
+            cfg.faults.busy = 0.01;
+            let run = run(cfg, &job, Duration::from_secs(3600));
+            let executed: Vec<&String> = run
+                .executed
+                .iter()
+                .filter(|c| !is_housekeeping(c))
+                .collect();
+            match run.outcome {
+                Err(f) => failures.push(format!("{fw:?} seed {seed}: failed: {f:?}")),
+                Ok(_) if executed != expected => {
+                    failures.push(format!("{fw:?} seed {seed}: executed differs"))
+                }
+                Ok(_) => {}
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

@@ -138,6 +138,21 @@ fn measure(
         let Some(s) = status(&farm.config) else {
             continue;
         };
+        // A failed job leaves its printer idle: the figures would no longer be a farm's.
+        if let Some(failed) = s["jobs"]
+            .as_array()
+            .and_then(|jobs| jobs.iter().find(|j| j["state"] == "failed"))
+        {
+            let log =
+                std::fs::read_to_string(farm.dir.path().join("daemon.log")).unwrap_or_default();
+            let tail: Vec<&str> = log.lines().rev().take(20).collect();
+            panic!(
+                "job {} failed: {}; the daemon's log ends:\n{}",
+                failed["id"],
+                failed["reason"],
+                tail.into_iter().rev().collect::<Vec<_>>().join("\n")
+            );
+        }
         let now = Instant::now();
         for (i, p) in s["printers"]
             .as_array()

@@ -244,3 +244,26 @@ fn run_check_warns_about_kernel_names_and_names_the_stable_one() {
     );
     assert!(text(&out.stdout).contains(": OK (3 printers, 0 folders)"));
 }
+
+/// `crispen ports | head` with the reader gone before anything is written: the command ends
+/// as Unix tools do (SIGPIPE), without a panic on stderr.
+#[test]
+fn a_listing_whose_reader_is_gone_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let (reader, writer) = nix::unistd::pipe().unwrap();
+    drop(reader);
+    let output = Command::new(BIN)
+        .arg("ports")
+        .stdout(std::process::Stdio::from(writer))
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .unwrap();
+    let stderr = text(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(
+        output.status.signal(),
+        Some(13),
+        "{:?}: {stderr}",
+        output.status
+    );
+}

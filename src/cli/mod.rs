@@ -61,6 +61,14 @@ pub enum Command {
 
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
+    if !matches!(cli.command, Command::Run(_)) {
+        // A one-shot command whose reader goes away (`crispen status | head`) ends quietly
+        // as Unix tools do, instead of panicking in `println!`. The daemon keeps SIGPIPE
+        // ignored: a client closing its connection must not end it.
+        use nix::sys::signal::{signal, SigHandler, Signal};
+        // SAFETY: no other thread exists yet, and the default action installs no handler.
+        let _ = unsafe { signal(Signal::SIGPIPE, SigHandler::SigDfl) };
+    }
     logging::init();
     let result = match cli.command {
         Command::Enhance(a) => enhance::run(a),

@@ -536,8 +536,13 @@ impl PrinterLink for MarlinLink {
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>> {
         Box::pin(async move {
-            let program = GcodeProgram::load_for(gcode, self.firmware)
-                .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?;
+            // Reading and checking a file of millions of lines is blocking work.
+            let (path, firmware) = (gcode.to_path_buf(), self.firmware);
+            let program =
+                tokio::task::spawn_blocking(move || GcodeProgram::load_for(&path, firmware))
+                    .await
+                    .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?
+                    .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?;
             let heat_end = heat_up_end(program.iter());
             let (stream_tx, stream_rx) = mpsc::channel(8);
             let (inner_tx, mut inner_rx) = watch::channel(PrintProgress::default());

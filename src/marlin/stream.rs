@@ -685,7 +685,7 @@ impl Connection {
         publish(&self.host, state);
         let mut last_publish = Instant::now();
         loop {
-            flush(&mut self.host, &self.transport);
+            flush(&mut self.host, &mut self.transport);
             let mut changed = false;
             // State changes are published at once; counters at most every 100 ms.
             let mut state_changed = false;
@@ -842,7 +842,7 @@ async fn sleep_until_opt(deadline: Option<tokio::time::Instant>) {
     }
 }
 
-fn flush(host: &mut Host, transport: &Transport) {
+fn flush(host: &mut Host, transport: &mut Transport) {
     let out = host.take_outgoing();
     if !out.is_empty() {
         transport.send(out);

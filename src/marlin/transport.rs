@@ -1,20 +1,20 @@
 //! The serial link to a printer, for async code: a `serialport` port (real USB serial or a
-//! simulator's pty) read by a blocking thread that forwards bytes over a channel, and
-//! written by a second thread so a slow printer never blocks the async runtime.
+//! simulator's pty) switched to non-blocking mode and driven by tokio's reactor, so a
+//! printer's answer wakes its task directly and a write never blocks the runtime. (Two
+//! threads per port, one reading with a poll timeout and one writing, cost the daemon three
+//! thread wake-ups per line; with 20 printers streaming that was most of its CPU.)
 //!
 //! Opening must not reset the printer: HUPCL is cleared so closing the port leaves DTR
 //! alone, and the baud rate is best-effort (a pty ignores it). End of file, EIO or the
 //! device vanishing all surface as [`LinkEvent::Closed`].
 
+use nix::errno::Errno;
+use nix::fcntl::{fcntl, FcntlArg, OFlag};
 use nix::sys::termios::{self, ControlFlags, SetArg};
-use std::io::{Read, Write};
-use std::os::fd::{AsRawFd, BorrowedFd};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
-use std::thread::JoinHandle;
-use std::time::Duration;
-use tokio::sync::mpsc;
+use tokio::io::unix::AsyncFd;
+use tokio::io::Interest;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TransportError {
@@ -25,7 +25,7 @@ pub enum TransportError {
     Open { port: PathBuf, message: String },
 }
 
-/// What the reader thread reports.
+/// What the port delivered.
 #[derive(Debug)]
 pub enum LinkEvent {
     Data(Vec<u8>),
@@ -33,17 +33,19 @@ pub enum LinkEvent {
     Closed(String),
 }
 
-/// An open serial link. Dropping it stops both threads.
+/// An open serial link. Must be opened and used inside a tokio runtime with I/O enabled.
 pub struct Transport {
     port: PathBuf,
-    incoming: mpsc::UnboundedReceiver<LinkEvent>,
-    outgoing: Option<std::sync::mpsc::Sender<Vec<u8>>>,
-    stop: Arc<AtomicBool>,
-    reader: Option<JoinHandle<()>>,
-    writer: Option<JoinHandle<()>>,
+    fd: AsyncFd<Port>,
+    /// Bytes queued for the printer that the port has not taken yet (its output buffer is
+    /// full when the printer stops reading).
+    outgoing: Vec<u8>,
+    /// A write failed: reported by the next `recv`.
+    failed: Option<String>,
 }
 
-const READ_POLL: Duration = Duration::from_millis(100);
+/// Bytes read at once; a printer's answers are short.
+const READ_CHUNK: usize = 4096;
 
 impl Transport {
     pub fn open(port: &Path, baud: u32) -> Result<Transport, TransportError> {
@@ -53,74 +55,34 @@ impl Transport {
         };
         let path = port.to_string_lossy().into_owned();
         let native = serialport::new(&path, baud)
-            .timeout(READ_POLL)
             .dtr_on_open(true)
             .open_native()
             .or_else(|_| {
                 // Some pty drivers refuse custom baud rates; the rate means nothing there.
-                serialport::new(&path, 0).timeout(READ_POLL).open_native()
+                serialport::new(&path, 0).open_native()
             })
             .map_err(|e| open_err(e.to_string()))?;
+        let native = Port(native);
         clear_hupcl(&native);
-        let mut reader_port = native
-            .try_clone_native()
-            .map_err(|e| open_err(e.to_string()))?;
-        let mut writer_port = native;
-
-        let stop = Arc::new(AtomicBool::new(false));
-        let (in_tx, in_rx) = mpsc::unbounded_channel();
-        let (out_tx, out_rx) = std::sync::mpsc::channel::<Vec<u8>>();
-
-        let reader_stop = stop.clone();
-        let reader_tx = in_tx.clone();
-        let reader = std::thread::Builder::new()
-            .name("crispen-serial-rx".into())
-            .spawn(move || {
-                let mut buf = [0u8; 4096];
-                while !reader_stop.load(Ordering::Relaxed) {
-                    match reader_port.read(&mut buf) {
-                        Ok(0) => {
-                            let _ = reader_tx.send(LinkEvent::Closed("end of file".into()));
-                            return;
-                        }
-                        Ok(n) => {
-                            if reader_tx.send(LinkEvent::Data(buf[..n].to_vec())).is_err() {
-                                return;
-                            }
-                        }
-                        Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
-                        Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                        Err(e) => {
-                            let _ = reader_tx.send(LinkEvent::Closed(e.to_string()));
-                            return;
-                        }
-                    }
-                }
-            })
-            .map_err(|e| open_err(e.to_string()))?;
-
-        let writer = std::thread::Builder::new()
-            .name("crispen-serial-tx".into())
-            .spawn(move || {
-                while let Ok(bytes) = out_rx.recv() {
-                    if let Err(e) = writer_port
-                        .write_all(&bytes)
-                        .and_then(|_| writer_port.flush())
-                    {
-                        let _ = in_tx.send(LinkEvent::Closed(format!("write failed: {e}")));
-                        return;
-                    }
-                }
-            })
-            .map_err(|e| open_err(e.to_string()))?;
-
+        // serialport opens blocking; its own read and write also poll with a timeout first.
+        // The fd is read and written directly instead, without blocking.
+        let flags = fcntl(&native, FcntlArg::F_GETFL).map_err(|e| open_err(e.to_string()))?;
+        fcntl(
+            &native,
+            FcntlArg::F_SETFL(OFlag::from_bits_truncate(flags) | OFlag::O_NONBLOCK),
+        )
+        .map_err(|e| open_err(e.to_string()))?;
+        // SAFETY: `Port` owns its fd, open until the port is dropped with the `AsyncFd`, and
+        // always returns that same fd.
+        let fd = unsafe {
+            AsyncFd::register_with_interest(native, Interest::READABLE | Interest::WRITABLE)
+        }
+        .map_err(|e| open_err(e.to_string()))?;
         Ok(Transport {
             port: port.to_path_buf(),
-            incoming: in_rx,
-            outgoing: Some(out_tx),
-            stop,
-            reader: Some(reader),
-            writer: Some(writer),
+            fd,
+            outgoing: Vec::new(),
+            failed: None,
         })
     }
 
@@ -128,44 +90,117 @@ impl Transport {
         &self.port
     }
 
-    /// Queue bytes for the printer. Errors show up later as [`LinkEvent::Closed`].
-    pub fn send(&self, bytes: Vec<u8>) {
-        if let Some(tx) = &self.outgoing {
-            let _ = tx.send(bytes);
+    /// Queue bytes for the printer and write what the port takes now; the rest goes out
+    /// from [`Transport::recv`]. Errors show up there as [`LinkEvent::Closed`].
+    pub fn send(&mut self, bytes: Vec<u8>) {
+        if self.failed.is_some() {
+            return;
         }
+        if self.outgoing.is_empty() {
+            self.outgoing = bytes;
+        } else {
+            self.outgoing.extend_from_slice(&bytes);
+        }
+        write_queued(self.fd.get_ref(), &mut self.outgoing, &mut self.failed);
     }
 
     /// A chunk already received, without waiting.
     pub fn try_recv(&mut self) -> Option<LinkEvent> {
-        self.incoming.try_recv().ok()
+        if let Some(reason) = self.failed.take() {
+            return Some(LinkEvent::Closed(reason));
+        }
+        read_once(self.fd.get_ref())
     }
 
-    /// The next chunk from the printer, or `Closed`.
+    /// The next chunk from the printer, or `Closed`; writes queued bytes meanwhile.
+    /// Cancel-safe: nothing is lost when another branch of a `select!` wins.
     pub async fn recv(&mut self) -> LinkEvent {
-        self.incoming
-            .recv()
-            .await
-            .unwrap_or_else(|| LinkEvent::Closed("reader stopped".into()))
-    }
-}
-
-impl Drop for Transport {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        self.outgoing.take();
-        // The writer ends when its channel closes; it is not joined because a write to a
-        // printer that stopped reading could block. The reader ends within one poll.
-        self.writer.take();
-        if let Some(r) = self.reader.take() {
-            let _ = r.join();
+        loop {
+            if let Some(reason) = self.failed.take() {
+                return LinkEvent::Closed(reason);
+            }
+            let interest = if self.outgoing.is_empty() {
+                Interest::READABLE
+            } else {
+                Interest::READABLE | Interest::WRITABLE
+            };
+            let mut guard = match self.fd.ready(interest).await {
+                Ok(guard) => guard,
+                Err(e) => return LinkEvent::Closed(e.to_string()),
+            };
+            let ready = guard.ready();
+            if ready.is_writable() && !self.outgoing.is_empty() {
+                // `guard` borrows the fd, not the queue: write through the raw fd.
+                if !write_queued(guard.get_inner(), &mut self.outgoing, &mut self.failed) {
+                    guard.clear_ready_matching(tokio::io::Ready::WRITABLE);
+                }
+            }
+            if ready.is_readable() || ready.is_read_closed() {
+                match read_once(guard.get_inner()) {
+                    Some(event) => return event,
+                    None => guard.clear_ready_matching(tokio::io::Ready::READABLE),
+                }
+            }
         }
     }
 }
 
+/// The open port: `serialport` configures it (and drops exclusive access on close); the
+/// fd is what is read and written.
+struct Port(serialport::TTYPort);
+
+impl AsRawFd for Port {
+    fn as_raw_fd(&self) -> RawFd {
+        self.0.as_raw_fd()
+    }
+}
+
+impl AsFd for Port {
+    fn as_fd(&self) -> BorrowedFd<'_> {
+        // SAFETY: the TTYPort owns the fd and keeps it open for as long as it lives.
+        unsafe { BorrowedFd::borrow_raw(self.0.as_raw_fd()) }
+    }
+}
+
+/// Write `queue` until the port would block; a failure empties it and is kept in `failed`.
+/// Returns whether the queue is empty.
+fn write_queued(port: &Port, queue: &mut Vec<u8>, failed: &mut Option<String>) -> bool {
+    while !queue.is_empty() {
+        match nix::unistd::write(port, queue) {
+            Ok(n) => {
+                queue.drain(..n);
+            }
+            Err(Errno::EINTR) => {}
+            Err(Errno::EAGAIN) => return false,
+            Err(e) => {
+                *failed = Some(format!("write failed: {}", e.desc()));
+                queue.clear();
+            }
+        }
+    }
+    true
+}
+
+/// One read without waiting: `None` when nothing is there.
+fn read_once(port: &Port) -> Option<LinkEvent> {
+    let mut buf = vec![0u8; READ_CHUNK];
+    loop {
+        return match nix::unistd::read(port, &mut buf) {
+            Ok(0) => Some(LinkEvent::Closed("end of file".into())),
+            Ok(n) => {
+                buf.truncate(n);
+                Some(LinkEvent::Data(buf))
+            }
+            Err(Errno::EINTR) => continue,
+            Err(Errno::EAGAIN) => None,
+            Err(e) => Some(LinkEvent::Closed(e.desc().to_string())),
+        };
+    }
+}
+
 /// Closing the port must not drop DTR (which resets most boards).
-fn clear_hupcl(port: &serialport::TTYPort) {
-    // SAFETY: the fd belongs to `port`, which outlives this borrow.
-    let fd = unsafe { BorrowedFd::borrow_raw(port.as_raw_fd()) };
+fn clear_hupcl(port: &Port) {
+    let fd = port.as_fd();
     if let Ok(mut attrs) = termios::tcgetattr(fd) {
         attrs.control_flags.remove(ControlFlags::HUPCL);
         let _ = termios::tcsetattr(fd, SetArg::TCSANOW, &attrs);

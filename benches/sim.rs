@@ -5,11 +5,15 @@
 //! temperature autoreport on. `cargo bench --bench sim` (CRISPEN_BENCH_LINES changes the
 //! line count).
 
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::os::fd::AsFd;
 use std::os::unix::fs::OpenOptionsExt;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
+
+#[path = "../tests/common/mod.rs"]
+mod common;
+use common::daemon::{spawn_sim, BIN};
 
 fn cpu_seconds(child: &Child) -> f64 {
     let stat = std::fs::read_to_string(format!("/proc/{}/stat", child.id())).expect("stat");
@@ -66,17 +70,8 @@ fn main() {
         .unwrap_or(10_000);
     println!("firmware    lines  wall_s  lines_per_s  sim_cpu_ms_per_10k  idle_cpu_pct");
     for firmware in ["marlin2", "ultimaker2"] {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_crispen"))
-            .args(["sim", "--time-scale", "0", "--firmware", firmware])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start crispen sim");
-        let mut first = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut first)
-            .unwrap();
-        let device = first.trim().rsplit(' ').next().unwrap().to_string();
+        let (mut child, device) =
+            spawn_sim(Command::new(BIN).args(["sim", "--time-scale", "0", "--firmware", firmware]));
         let file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)

@@ -9,9 +9,13 @@
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::stream::{Connection, PrintProgress, StreamOptions};
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::path::PathBuf;
+use std::process::Command;
 use std::time::{Duration, Instant};
+
+#[path = "../tests/common/mod.rs"]
+mod common;
+use common::daemon::{spawn_sim, Killed, BIN};
 
 fn cpu_seconds() -> f64 {
     let stat = std::fs::read_to_string("/proc/self/stat").expect("stat");
@@ -55,36 +59,19 @@ const PTY: Link = Link {
     baud_limit: None,
 };
 
-fn start_sim(fw: Firmware, time_scale: f64, link: Link) -> (Child, String) {
-    let mut args = vec![
-        "sim".to_string(),
-        "--firmware".into(),
-        fw.name().into(),
-        "--time-scale".into(),
-        time_scale.to_string(),
+/// A `crispen sim` process behind `link`, killed when dropped, and its pty.
+fn start_sim(fw: Firmware, time_scale: f64, link: Link) -> (Killed, PathBuf) {
+    let mut sim = Command::new(BIN);
+    sim.args(["sim", "--firmware", fw.name(), "--time-scale"])
+        .arg(time_scale.to_string())
         // The simulator delays each direction by this, so a round trip costs twice it.
-        "--latency-ms".into(),
-        (link.round_trip_ms / 2.0).to_string(),
-    ];
+        .arg("--latency-ms")
+        .arg((link.round_trip_ms / 2.0).to_string());
     if let Some(baud) = link.baud_limit {
-        args.extend(["--baud-limit".into(), baud.to_string()]);
+        sim.arg("--baud-limit").arg(baud.to_string());
     }
-    let mut child = Command::new(env!("CARGO_BIN_EXE_crispen"))
-        .args(&args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("crispen sim starts");
-    let mut first = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut first)
-        .unwrap();
-    let device = first
-        .trim()
-        .strip_prefix("crispen sim: listening on ")
-        .expect("sim prints its device")
-        .to_string();
-    (child, device)
+    let (child, device) = spawn_sim(&mut sim);
+    (Killed(child), device)
 }
 
 struct Run {
@@ -101,14 +88,12 @@ fn run(
     link: Link,
     program: &GcodeProgram,
 ) -> Run {
-    let (mut sim, device) = start_sim(fw, time_scale, link);
+    let (sim, device) = start_sim(fw, time_scale, link);
     let mut opts = StreamOptions::for_firmware(fw);
     opts.send_ahead = send_ahead;
     opts.protocol.quiet_period = Duration::from_millis(200);
     let (wall, cpu) = rt.block_on(async {
-        let mut conn = Connection::open(std::path::Path::new(&device), &opts)
-            .await
-            .expect("connects");
+        let mut conn = Connection::open(&device, &opts).await.expect("connects");
         let (_control, control_rx) = tokio::sync::mpsc::channel(1);
         let (progress, _) = tokio::sync::watch::channel(PrintProgress::default());
         let cpu0 = cpu_seconds();
@@ -118,8 +103,7 @@ fn run(
             .expect("job done");
         (t0.elapsed().as_secs_f64(), cpu_seconds() - cpu0)
     });
-    let _ = sim.kill();
-    let _ = sim.wait();
+    drop(sim);
     let n = program.len() as f64;
     Run {
         lines_per_s: n / wall,

@@ -130,7 +130,7 @@ impl Transport {
             };
             let ready = guard.ready();
             if ready.is_writable() && !self.outgoing.is_empty() {
-                // `guard` borrows the fd, not the queue: write through the raw fd.
+                // `guard` borrows only the fd field, so the queue can be written from here.
                 if !write_queued(guard.get_inner(), &mut self.outgoing, &mut self.failed) {
                     guard.clear_ready_matching(tokio::io::Ready::WRITABLE);
                 }

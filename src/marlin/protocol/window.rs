@@ -146,9 +146,10 @@ impl Host {
         // firmware is blocked (planner full, M109, G28...) its loop does not move lines into
         // command slots, so free slots announced by ADVANCED_OK (`B`) are no room for more
         // bytes. Bytes beyond the ring are lost and two lines merge into one whose checksum
-        // may even pass; so the bytes in flight never exceed the ring. The last
+        // may even pass; so the bytes in flight never exceed the ring. One byte of margin
+        // (`<`): Marlin's ring tells full from empty by leaving one cell unused. The last
         // `PROBE_RESERVE` bytes are kept for one probe (see `probe_fits`).
-        self.in_flight_bytes + bytes + PROBE_RESERVE < self.ring_bytes()
+        self.in_flight_bytes + bytes + PROBE_RESERVE < self.opts.firmware.rx_buffer_bytes()
     }
 
     /// Whether a probe (or a replayed line sent as one) still fits the printer's receive
@@ -158,13 +159,8 @@ impl Host {
     /// during which Ultimaker2Marlin reads nothing), and its remains would merge with the
     /// next line.
     pub(super) fn probe_fits(&self, number: u64, command: &str) -> bool {
-        self.in_flight_bytes + wire_len_bound(number, command) < self.ring_bytes()
-    }
-
-    /// The printer's receive ring, less the cell Marlin leaves unused to tell full from
-    /// empty.
-    fn ring_bytes(&self) -> usize {
-        self.opts.firmware.rx_buffer_bytes()
+        self.in_flight_bytes + wire_len_bound(number, command)
+            < self.opts.firmware.rx_buffer_bytes()
     }
 
     /// Send whatever the window allows. A line gets its number only when it is sent, so

@@ -98,39 +98,37 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
     Run { outcome, executed }
 }
 
-/// What PrusaSlicer writes for crispen's start code (gcode/start.gcode: heaters on, homing,
-/// both heat waits, a prime) and the first layer's opening, then `moves` short moves.
+/// What PrusaSlicer writes around crispen's start code (`gcode/start.gcode`, for a 60 °C
+/// bed and a 210 °C nozzle: heaters on, homing, both heat waits, a prime) and the first
+/// layer's opening, then `moves` short moves.
 fn sliced_job(moves: usize) -> Vec<String> {
-    let mut job: Vec<String> = [
-        "M107",
-        "G21",
-        "G90",
-        "M82",
-        "M107",
-        "M140 S60",
-        "M104 S210",
-        "G28",
-        "G1 X15 Y5 Z15 F6000",
-        "M190 S60",
-        "M109 S210",
-        "G92 E0",
-        "G1 F200 E10",
-        "G92 E0",
-        "M117 Printing...",
-        "G21",
-        "G90",
-        "M82",
-        "G92 E0",
-        "M107",
-        "G1 E-6 F3000",
-        "G92 E0",
-        "G1 Z.2 F9000",
-        "G1 X102.928 Y91.235",
-        "G1 E6 F3000",
-        "G1 F900",
-    ]
-    .map(String::from)
-    .to_vec();
+    let start = crate::slice::profiles::START_GCODE
+        .replace("{BED_TEMP}", "60")
+        .replace("{NOZZLE_TEMP}", "210");
+    let mut job = vec!["M107".to_string()];
+    job.extend(
+        start
+            .lines()
+            .map(|l| l.split(';').next().unwrap_or("").trim())
+            .filter(|l| !l.is_empty())
+            .map(String::from),
+    );
+    job.extend(
+        [
+            "G21",
+            "G90",
+            "M82",
+            "G92 E0",
+            "M107",
+            "G1 E-6 F3000",
+            "G92 E0",
+            "G1 Z.2 F9000",
+            "G1 X102.928 Y91.235",
+            "G1 E6 F3000",
+            "G1 F900",
+        ]
+        .map(String::from),
+    );
     job.extend((0..moves).map(|i| {
         let x = 103.0 + (i % 20) as f64 * 0.9;
         let y = 91.0 + (i % 7) as f64 * 3.7;

@@ -143,6 +143,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cfg.seed = args.seed;
     cfg.time_scale = args.time_scale;
     cfg.record = args.record;
+    cfg.keep_executed = false;
     cfg.link = args.link.clone();
     cfg.faults = Faults {
         corrupt_host_bytes: args.corrupt,

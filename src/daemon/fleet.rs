@@ -64,6 +64,8 @@ impl Fleet {
                 sim.time_scale = *time_scale;
                 sim.seed = *seed;
                 sim.record = record.clone();
+                // Tests read what it ran from the record file; memory must not grow with jobs.
+                sim.keep_executed = false;
                 let handle =
                     crate::marlin::sim::spawn(sim).map_err(|e| DaemonError::Simulator {
                         printer: spec.name.clone(),

@@ -14,6 +14,15 @@ use std::sync::Arc;
 /// Numbers up to 9 digits cover any job; the checksum is at most 3 digits.
 pub const FRAMING_BYTES: usize = 1 + 9 + 1 + 1 + 3;
 
+/// The largest G-code file crispen takes: checked when a pre-sliced file is prepared and
+/// again when a job is loaded. A day-long print sliced finely is well under 200 MiB; the
+/// shared farm's database keeps files of up to 1 GiB.
+pub const MAX_GCODE_BYTES: u64 = 512 << 20;
+
+/// The longest line, comment included, read before a file is refused. Slicers write
+/// thumbnails and settings in comment lines of a few KiB at most.
+pub const MAX_RAW_LINE_BYTES: u64 = 1 << 20;
+
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
     #[error("cannot read G-code file {path}: {source}")]
@@ -56,53 +65,78 @@ pub enum GcodeError {
     NotText { file: String, line: usize },
     #[error("{file}: no G-code commands in the file (only comments or blank lines)")]
     Empty { file: String },
-    #[error("{file}: too large: more than 4 GiB of G-code commands (split the job)")]
+    #[error(
+        "{file}: too large: crispen streams G-code files of at most {} MiB (split the job)",
+        MAX_GCODE_BYTES >> 20
+    )]
     TooLarge { file: String },
+    #[error(
+        "{file}:{line}: line longer than {} KiB; not G-code a printer can take",
+        MAX_RAW_LINE_BYTES >> 10
+    )]
+    HugeLine { file: String, line: usize },
 }
 
-/// A job's commands stored back to back in one shared buffer, with the end offset of each.
+/// A job's commands stored back to back in one shared buffer, with the length of each.
 ///
-/// A sliced job has tens of thousands of short commands; one `String` each costs ~80 bytes
-/// with its heap block, which for a farm of printers adds up to hundreds of MB. Packed, a
-/// command costs its own bytes plus 4 for its offset, and a clone is two reference counts.
+/// A sliced job has tens of thousands of short commands (a file of tiny moves, millions);
+/// one `String` each costs ~80 bytes with its heap block, and even a 4-byte end offset per
+/// command is twice the text of a `G1 X1` job. Packed, a command costs its own bytes plus
+/// one for its length ([`SmallSeq`]), and a clone is two reference counts.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct GcodeCommands {
-    text: Arc<str>,
-    ends: Arc<[u32]>,
+    text: Arc<String>,
+    lens: Arc<SmallSeq>,
 }
 
 impl GcodeCommands {
-    /// Pack commands; `None` if they do not fit 32-bit offsets (more than 4 GiB).
+    /// Pack commands; `None` if they hold more than [`MAX_GCODE_BYTES`] of text.
     pub fn pack<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Option<Self> {
         let mut text = String::new();
-        let mut ends = Vec::new();
+        let mut lens = SmallSeq::default();
         for command in commands {
             text.push_str(command.as_ref());
-            ends.push(u32::try_from(text.len()).ok()?);
+            lens.push(command.as_ref().len() as u64);
+            if text.len() as u64 > MAX_GCODE_BYTES {
+                return None;
+            }
         }
-        Some(GcodeCommands {
-            text: text.into(),
-            ends: ends.into(),
-        })
+        Some(GcodeCommands::from_parts(text, lens))
+    }
+
+    fn from_parts(mut text: String, mut lens: SmallSeq) -> Self {
+        text.shrink_to_fit();
+        lens.shrink_to_fit();
+        // `Arc<String>`, not `Arc<str>`: converting would copy the whole text once more.
+        GcodeCommands {
+            text: Arc::new(text),
+            lens: Arc::new(lens),
+        }
     }
 
     pub fn len(&self) -> usize {
-        self.ends.len()
+        self.lens.len()
     }
     pub fn is_empty(&self) -> bool {
-        self.ends.is_empty()
+        self.lens.len() == 0
     }
     /// Command `index` (0-based), or `None` past the end.
     pub fn get(&self, index: usize) -> Option<&str> {
-        let end = *self.ends.get(index)? as usize;
-        let start = match index {
-            0 => 0,
-            _ => self.ends[index - 1] as usize,
-        };
+        if index >= self.len() {
+            return None;
+        }
+        let start = self.lens.sum_before(index) as usize;
+        let end = start + self.lens.get(index) as usize;
         Some(&self.text[start..end])
     }
     pub fn iter(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
-        (0..self.len()).map(|i| &self[i])
+        let mut start = 0;
+        (0..self.len()).map(move |i| {
+            let end = start + self.lens.get(i) as usize;
+            let command = &self.text[start..end];
+            start = end;
+            command
+        })
     }
     /// Owned copies of all commands (tests and small jobs only: this undoes the packing).
     pub fn to_vec(&self) -> Vec<String> {
@@ -122,10 +156,7 @@ impl std::ops::Index<usize> for GcodeCommands {
 
 impl Default for GcodeCommands {
     fn default() -> Self {
-        GcodeCommands {
-            text: Arc::from(""),
-            ends: Arc::from([]),
-        }
+        GcodeCommands::from_parts(String::new(), SmallSeq::default())
     }
 }
 
@@ -133,7 +164,63 @@ impl Default for GcodeCommands {
 /// [`GcodeProgram::read`], which reports an oversized job as an error instead.
 impl From<Vec<String>> for GcodeCommands {
     fn from(commands: Vec<String>) -> Self {
-        GcodeCommands::pack(commands).expect("in-memory job under 4 GiB")
+        GcodeCommands::pack(commands).expect("in-memory job within MAX_GCODE_BYTES")
+    }
+}
+
+/// Non-negative integers that are nearly always small (command lengths, the gap between
+/// two commands' source lines): one byte each, a side list for the rare larger value, and
+/// the running total every [`SmallSeq::BLOCK`] entries, so a prefix sum costs at most
+/// `BLOCK` additions.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+struct SmallSeq {
+    bytes: Vec<u8>,
+    /// `(index, value)` of each entry whose byte is `u8::MAX`, in index order.
+    wide: Vec<(usize, u64)>,
+    /// `totals[k]`: the sum of the entries before `k * BLOCK`.
+    totals: Vec<u64>,
+    sum: u64,
+}
+
+impl SmallSeq {
+    const BLOCK: usize = 64;
+
+    fn push(&mut self, value: u64) {
+        if self.bytes.len() % Self::BLOCK == 0 {
+            self.totals.push(self.sum);
+        }
+        match u8::try_from(value) {
+            Ok(byte) if byte < u8::MAX => self.bytes.push(byte),
+            _ => {
+                self.wide.push((self.bytes.len(), value));
+                self.bytes.push(u8::MAX);
+            }
+        }
+        self.sum += value;
+    }
+    fn len(&self) -> usize {
+        self.bytes.len()
+    }
+    /// Entry `index`; the caller keeps `index < len()`.
+    fn get(&self, index: usize) -> u64 {
+        match self.bytes[index] {
+            u8::MAX => {
+                let at = self.wide.partition_point(|&(i, _)| i < index);
+                self.wide[at].1
+            }
+            byte => u64::from(byte),
+        }
+    }
+    /// The sum of the entries before `index`; the caller keeps `index < len()`.
+    fn sum_before(&self, index: usize) -> u64 {
+        let block = index / Self::BLOCK;
+        let within: u64 = (block * Self::BLOCK..index).map(|i| self.get(i)).sum();
+        self.totals[block] + within
+    }
+    fn shrink_to_fit(&mut self) {
+        self.bytes.shrink_to_fit();
+        self.wide.shrink_to_fit();
+        self.totals.shrink_to_fit();
     }
 }
 
@@ -146,7 +233,8 @@ impl From<Vec<String>> for GcodeCommands {
 pub struct GcodeProgram {
     name: String,
     commands: GcodeCommands,
-    source_lines: Arc<[u32]>,
+    /// The gap between each command's source line and the previous one's.
+    source_lines: Arc<SmallSeq>,
 }
 
 impl GcodeProgram {
@@ -161,10 +249,17 @@ impl GcodeProgram {
 
     /// Load a file for one firmware.
     pub fn load_for(path: &Path, firmware: Firmware) -> Result<Self, GcodeError> {
-        let file = File::open(path).map_err(|source| GcodeError::Io {
+        let io = |source| GcodeError::Io {
             path: path.to_path_buf(),
             source,
-        })?;
+        };
+        let file = File::open(path).map_err(io)?;
+        // Refused before reading a byte; `read` counts too, for files that grow meanwhile.
+        if file.metadata().map_err(io)?.len() > MAX_GCODE_BYTES {
+            return Err(GcodeError::TooLarge {
+                file: path.display().to_string(),
+            });
+        }
         Self::read(file, &path.display().to_string(), firmware).map_err(|e| match e {
             GcodeError::Io { source, .. } => GcodeError::Io {
                 path: path.to_path_buf(),
@@ -175,29 +270,45 @@ impl GcodeProgram {
     }
 
     /// Parse G-code from any reader; `name` is used in error messages.
+    ///
+    /// Memory stays near the size of the commands themselves (comments and blank lines
+    /// cost nothing), and no line, however long, is held whole beyond [`MAX_RAW_LINE_BYTES`].
     pub fn read(reader: impl Read, name: &str, firmware: Firmware) -> Result<Self, GcodeError> {
         let max = firmware.max_line_bytes().saturating_sub(FRAMING_BYTES);
-        let too_large = || GcodeError::TooLarge {
-            file: name.to_string(),
+        let io = |source| GcodeError::Io {
+            path: PathBuf::from(name),
+            source,
         };
         let mut text = String::new();
-        let mut ends: Vec<u32> = Vec::new();
-        let mut source_lines: Vec<u32> = Vec::new();
-        let mut reader = BufReader::new(reader);
+        let mut lens = SmallSeq::default();
+        let mut source_lines = SmallSeq::default();
+        let mut reader = BufReader::new(reader.take(MAX_GCODE_BYTES + 1));
         let mut raw = Vec::new();
         let mut line_no = 0;
+        let mut last_command_line = 0;
+        let mut total = 0u64;
         loop {
             raw.clear();
-            let n = reader
+            let n = (&mut reader)
+                .take(MAX_RAW_LINE_BYTES)
                 .read_until(b'\n', &mut raw)
-                .map_err(|source| GcodeError::Io {
-                    path: PathBuf::from(name),
-                    source,
-                })?;
+                .map_err(io)?;
             if n == 0 {
                 break;
             }
             line_no += 1;
+            total += n as u64;
+            if total > MAX_GCODE_BYTES {
+                return Err(GcodeError::TooLarge {
+                    file: name.to_string(),
+                });
+            }
+            if n as u64 == MAX_RAW_LINE_BYTES && raw.last() != Some(&b'\n') {
+                return Err(GcodeError::HugeLine {
+                    file: name.to_string(),
+                    line: line_no,
+                });
+            }
             // Comments may hold anything (slicers write non-UTF-8 names); cut them first.
             let code = match raw.iter().position(|&b| b == b';') {
                 Some(i) => &raw[..i],
@@ -240,31 +351,33 @@ impl GcodeProgram {
                 });
             }
             text.push_str(code);
-            ends.push(u32::try_from(text.len()).map_err(|_| too_large())?);
-            source_lines.push(u32::try_from(line_no).map_err(|_| too_large())?);
+            lens.push(code.len() as u64);
+            source_lines.push((line_no - last_command_line) as u64);
+            last_command_line = line_no;
         }
-        if ends.is_empty() {
+        if lens.len() == 0 {
             return Err(GcodeError::Empty {
                 file: name.to_string(),
             });
         }
+        source_lines.shrink_to_fit();
         Ok(GcodeProgram {
             name: name.to_string(),
-            commands: GcodeCommands {
-                text: text.into(),
-                ends: ends.into(),
-            },
-            source_lines: source_lines.into(),
+            commands: GcodeCommands::from_parts(text, lens),
+            source_lines: Arc::new(source_lines),
         })
     }
 
     /// Build a program from commands already in memory (benchmarks, generated jobs).
     pub fn from_commands(name: &str, commands: Vec<String>) -> Self {
-        let source_lines = (1..=commands.len() as u32).collect();
+        let mut source_lines = SmallSeq::default();
+        for _ in &commands {
+            source_lines.push(1);
+        }
         GcodeProgram {
             name: name.to_string(),
             commands: commands.into(),
-            source_lines,
+            source_lines: Arc::new(source_lines),
         }
     }
 
@@ -297,7 +410,8 @@ impl GcodeProgram {
     }
     /// The 1-based line in the source file of command `index` (0-based).
     pub fn source_line(&self, index: usize) -> Option<usize> {
-        self.source_lines.get(index).map(|&line| line as usize)
+        (index < self.source_lines.len())
+            .then(|| (self.source_lines.sum_before(index) + self.source_lines.get(index)) as usize)
     }
 }
 
@@ -402,6 +516,61 @@ mod tests {
             parse(b"M118 \"a\\\"b\"\n").is_ok(),
             "escapes inside quotes are kept"
         );
+    }
+
+    #[test]
+    fn small_sequences_keep_large_values_and_sums_across_blocks() {
+        let values: Vec<u64> = (0..1000u64)
+            .map(|i| match i % 97 {
+                0 => 255 + i,
+                1 => 254,
+                _ => i % 7,
+            })
+            .collect();
+        let mut seq = SmallSeq::default();
+        for &v in &values {
+            seq.push(v);
+        }
+        let mut sum = 0;
+        for (i, &v) in values.iter().enumerate() {
+            assert_eq!(seq.get(i), v, "entry {i}");
+            assert_eq!(seq.sum_before(i), sum, "sum before {i}");
+            sum += v;
+        }
+    }
+
+    #[test]
+    fn source_lines_survive_long_runs_of_comments() {
+        let mut text = String::from("G28\n");
+        text.push_str(&"; comment\n".repeat(300));
+        text.push_str("G1 X1\n\n\nG1 X2\n");
+        let p = parse(text.as_bytes()).unwrap();
+        assert_eq!(p.to_vec(), ["G28", "G1 X1", "G1 X2"]);
+        assert_eq!(p.source_line(0), Some(1));
+        assert_eq!(p.source_line(1), Some(302));
+        assert_eq!(p.source_line(2), Some(305));
+        assert_eq!(p.source_line(3), None);
+        // Indexing and iteration agree over many blocks.
+        let many: Vec<String> = (0..500).map(|i| format!("G1 X{i}")).collect();
+        let commands = GcodeCommands::from(many.clone());
+        assert_eq!(commands.to_vec(), many);
+        assert!((0..500).all(|i| commands[i] == many[i]));
+    }
+
+    #[test]
+    fn huge_lines_and_files_are_refused_without_reading_them_whole() {
+        let mut text = b"G28\n; ".to_vec();
+        text.extend(std::iter::repeat_n(b'x', MAX_RAW_LINE_BYTES as usize));
+        let err = parse(&text).unwrap_err();
+        assert!(matches!(err, GcodeError::HugeLine { line: 2, .. }), "{err}");
+        // A file past the limit is refused by its size, before it is read.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("big.gcode");
+        let file = File::create(&path).unwrap();
+        file.set_len(MAX_GCODE_BYTES + 1).unwrap();
+        let err = GcodeProgram::load_for(&path, Firmware::Marlin2).unwrap_err();
+        assert!(matches!(err, GcodeError::TooLarge { .. }), "{err}");
+        assert!(err.to_string().contains("512 MiB"), "{err}");
     }
 
     #[test]

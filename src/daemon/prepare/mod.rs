@@ -410,6 +410,20 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
     let model = &task.model;
     let file =
         std::fs::File::open(model).map_err(|e| format!("{}: cannot read: {e}", model.display()))?;
+    // Refused here, before a printer claims it, rather than when the printer loads it.
+    let size = file
+        .metadata()
+        .map_err(|e| format!("{}: cannot read: {e}", model.display()))?
+        .len();
+    let limit = crate::marlin::gcode::MAX_GCODE_BYTES;
+    if size > limit {
+        return Err(format!(
+            "{}: {} MiB of G-code, more than the {} MiB crispen streams; split the job",
+            model.display(),
+            size >> 20,
+            limit >> 20
+        ));
+    }
     let target = presliced::read_target(std::io::BufReader::new(file))
         .map_err(|e| format!("{}: {e}", model.display()))?;
     tracing::info!(

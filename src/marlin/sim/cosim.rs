@@ -28,7 +28,7 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
     let mut now = start;
     let executed = Arc::new(Mutex::new(Vec::new()));
     let mut recorder = Recorder {
-        executed: executed.clone(),
+        executed: Some(executed.clone()),
         file: None,
     };
     let mut printer = Printer::new(&cfg, now);

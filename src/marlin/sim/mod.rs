@@ -134,6 +134,10 @@ pub struct SimConfig {
     pub faults: Faults,
     /// Append each executed command to this file, one per line, flushed at once.
     pub record: Option<PathBuf>,
+    /// Keep every executed command in memory for [`SimHandle::executed`] (tests do). A
+    /// long-running simulated printer (the daemon's, `crispen sim`) must not: a job of
+    /// millions of lines would keep them all.
+    pub keep_executed: bool,
     /// Make a symlink to the pty device here (an existing symlink is replaced).
     pub link: Option<PathBuf>,
     /// One-way delay of the link, applied in both directions: bytes the printer sends reach
@@ -164,6 +168,7 @@ impl SimConfig {
             time_scale: 0.0,
             faults: Faults::default(),
             record: None,
+            keep_executed: true,
             link: None,
             link_latency: Duration::ZERO,
             baud: None,
@@ -329,7 +334,7 @@ pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
             .map(|b| Duration::from_secs_f64(10.0 / b as f64)),
     };
     let recorder = Recorder {
-        executed: executed.clone(),
+        executed: cfg.keep_executed.then(|| executed.clone()),
         file: record,
     };
     let name = device.display().to_string();
@@ -380,16 +385,18 @@ fn with_context(err: nix::errno::Errno, what: &str) -> io::Error {
 
 /// Where executed commands go: the shared list, and the record file if any.
 pub(crate) struct Recorder {
-    executed: Arc<Mutex<Vec<String>>>,
+    executed: Option<Arc<Mutex<Vec<String>>>>,
     file: Option<File>,
 }
 
 impl Recorder {
     pub(crate) fn push(&mut self, cmd: &str) {
-        self.executed
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .push(cmd.to_string());
+        if let Some(executed) = &self.executed {
+            executed
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(cmd.to_string());
+        }
         if let Some(file) = &mut self.file {
             if let Err(err) = writeln!(file, "{cmd}").and_then(|_| file.flush()) {
                 tracing::warn!(%err, "cannot append to the record file; recording stopped");

@@ -134,13 +134,14 @@ fn spawn_reader(
 /// clean up (kill -9, a crash), instead of leaving it to run on with no one waiting for it.
 pub fn die_with_this_process(cmd: &mut Command) {
     let parent = nix::unistd::getpid();
-    // SAFETY: between fork and exec only async-signal-safe calls: prctl and getppid.
+    // SAFETY: between fork and exec only async-signal-safe calls (prctl and getppid) and no
+    // allocation: an errno becomes an `io::Error` without a heap block, unlike a message.
     unsafe {
         cmd.pre_exec(move || {
             nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGKILL)?;
             if nix::unistd::getppid() != parent {
-                // The parent died before the line above took effect.
-                return Err(std::io::Error::other("the parent process has exited"));
+                // The parent died before the line above took effect: "no such process".
+                return Err(std::io::Error::from_raw_os_error(nix::libc::ESRCH));
             }
             Ok(())
         });

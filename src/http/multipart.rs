@@ -127,7 +127,12 @@ impl Parser {
         loop {
             match self.stage {
                 Stage::Done => return Ok(Some(Event::End)),
+                // Each bound is checked the same way whether the body came whole or a
+                // byte at a time (the fuzz target compares the two).
                 Stage::Preamble => match find(&self.buf, &self.delimiter) {
+                    Some(at) if at > MAX_PREAMBLE_BYTES => {
+                        return Err(MultipartError::LongPreamble)
+                    }
                     Some(at) => {
                         self.buf.drain(..at + self.delimiter.len());
                         self.stage = Stage::AfterDelimiter;
@@ -171,7 +176,8 @@ impl Parser {
                         find(&self.buf, b"\r\n\r\n").map(|at| at + 2)
                     };
                     let Some(end) = end else {
-                        if self.buf.len() > MAX_PART_HEAD_BYTES {
+                        // A terminator still to come would end past the bound.
+                        if self.buf.len() > MAX_PART_HEAD_BYTES + 2 {
                             return Err(MultipartError::LongPartHead);
                         }
                         return self.more();

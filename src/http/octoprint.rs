@@ -353,3 +353,72 @@ fn folder_for<'a>(
     }
     upload::find_folder(config, name)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn body(fields: &[(&str, &str)], file_name: &str) -> Vec<u8> {
+        let mut body = Vec::new();
+        for (name, value) in fields {
+            body.extend_from_slice(
+                format!(
+                    "--B\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{value}\r\n"
+                )
+                .as_bytes(),
+            );
+        }
+        body.extend_from_slice(
+            format!(
+                "--B\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{file_name}\"\r\n\r\nG28\r\n--B--\r\n"
+            )
+            .as_bytes(),
+        );
+        body
+    }
+
+    #[test]
+    fn a_form_is_read_with_octoprint_truths_and_bounds() {
+        let ct = "multipart/form-data; boundary=B";
+        let read = |fields: &[(&str, &str)], name: &str| {
+            let body = body(fields, name);
+            let pieces: Vec<&[u8]> = body.chunks(3).collect();
+            read_form(ct, &pieces)
+        };
+        let (form, name, kind, size) =
+            read(&[("print", "Yes"), ("path", "hot"), ("x", "y")], "a.gcode").unwrap();
+        assert_eq!(
+            form,
+            Form {
+                path: Some("hot".into()),
+                print: true,
+                select: false
+            }
+        );
+        assert_eq!(
+            (name.as_str(), kind, size),
+            ("a.gcode", upload::Upload::Gcode, 3)
+        );
+        for (value, truth) in [
+            ("1", true),
+            ("y", true),
+            ("TRUE", true),
+            ("0", false),
+            ("on", false),
+        ] {
+            assert_eq!(
+                read(&[("select", value)], "a.stl").unwrap().0.select,
+                truth,
+                "{value}"
+            );
+        }
+        let long = "p".repeat(MAX_FIELD_BYTES + 1);
+        let e = read(&[("path", &long)], "a.gcode").unwrap_err();
+        assert!(e.message.contains("`path` is longer"), "{}", e.message);
+        let e = read(&[("print", "true")], "../a.gcode").unwrap_err();
+        assert_eq!(e.status, StatusCode::BAD_REQUEST);
+        let many: Vec<(&str, &str)> = vec![("x", "y"); MAX_PARTS_BEFORE_FILE];
+        assert!(read(&many, "a.gcode").is_err());
+        assert!(read_form("text/plain", &[b"x"]).is_err());
+    }
+}

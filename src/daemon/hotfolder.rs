@@ -87,6 +87,17 @@ pub fn name_problem(name: &str) -> Option<&'static str> {
     None
 }
 
+/// `text` with control and bidi characters escaped (`\u{1b}`), whole: for what the
+/// daemon reports about a job (a failure's reason may quote a name) on a terminal.
+pub fn escaped(text: &str) -> String {
+    text.chars()
+        .map(|c| match c.is_control() || is_bidi_control(c) {
+            true => c.escape_unicode().to_string(),
+            false => c.to_string(),
+        })
+        .collect()
+}
+
 /// Longest name shown in a message, in characters; longer ones are cut in the middle.
 const SHOWN_NAME_CHARS: usize = 80;
 

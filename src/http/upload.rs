@@ -44,10 +44,12 @@ pub fn find_folder<'a>(config: &'a Config, name: &str) -> Result<&'a FolderConfi
     match (found.next(), found.next()) {
         (Some(f), None) => Ok(f),
         (Some(_), Some(_)) => Err(ApiError::conflict(format!(
-            "two hot folders are called {name:?}; rename one of them so uploads can tell them apart"
+            "two hot folders are called {}; rename one of them so uploads can tell them apart",
+            super::error::quoted(name)
         ))),
         (None, _) => Err(ApiError::not_found(format!(
-            "no hot folder called {name:?} (the folders are: {})",
+            "no hot folder called {} (the folders are: {})",
+            super::error::quoted(name),
             names()
         ))),
     }

@@ -421,4 +421,33 @@ mod tests {
         assert!(read(&many, "a.gcode").is_err());
         assert!(read_form("text/plain", &[b"x"]).is_err());
     }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(512))]
+        /// Bodies made of the pieces forms are made of (delimiters, line ends, headers,
+        /// names, bytes), in any order: read whole or in pieces of any size, the outcome
+        /// is the same, and an accepted name passes the name check.
+        #[test]
+        fn any_body_reads_the_same_in_any_pieces(
+            tokens in proptest::collection::vec(0usize..14, 0..40),
+            step in 1usize..40,
+        ) {
+            const TOKENS: [&str; 14] = [
+                "--B", "\r\n", "--", "Content-Disposition: form-data; name=\"file\"; filename=\"a.gcode\"",
+                "Content-Disposition: form-data; name=\"print\"", "Content-Disposition: form-data; name=\"path\"",
+                "Content-Type: x", "yes", "hot", "G28 ", "\r\n\r\n", "../x.stl\"", "filename=\"", "\u{1b}",
+            ];
+            let body: Vec<u8> = tokens.iter().flat_map(|t| TOKENS[*t].bytes()).collect();
+            let ct = "multipart/form-data; boundary=B";
+            let key = |r: Result<(Form, String, upload::Upload, u64), ApiError>| {
+                r.map_err(|e| (e.status, e.message))
+            };
+            let whole = key(read_form(ct, &[&body]));
+            let pieces: Vec<&[u8]> = body.chunks(step).collect();
+            proptest::prop_assert_eq!(&whole, &key(read_form(ct, &pieces)));
+            if let Ok((_, name, kind, _)) = whole {
+                proptest::prop_assert_eq!(upload::check_name(&name).ok(), Some(kind));
+            }
+        }
+    }
 }

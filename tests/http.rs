@@ -28,6 +28,12 @@ struct Farm {
 
 impl Farm {
     fn start(root: &Path, time_scale: f64, http_extra: &str) -> Farm {
+        Farm::start_with(root, time_scale, "", http_extra)
+    }
+
+    /// [`Farm::start`] with more keys for `[farm]`; `http_extra` may set `upload_max_mb`
+    /// (else 1).
+    fn start_with(root: &Path, time_scale: f64, farm_extra: &str, http_extra: &str) -> Farm {
         std::fs::create_dir_all(root.join("hot")).unwrap();
         std::fs::write(root.join("key"), format!("{KEY}\n")).unwrap();
         let printer = |name: &str| {
@@ -40,9 +46,10 @@ impl Farm {
         std::fs::write(
             &config,
             format!(
-                "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
-                 [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\nupload_max_mb = 1\n{http_extra}\n\
+                "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n{farm_extra}\n\
+                 [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n{}{http_extra}\n\
                  {}{}[[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"alpha\", \"beta\"]\n",
+                if http_extra.contains("upload_max_mb") { "" } else { "upload_max_mb = 1\n" },
                 printer("alpha"),
                 printer("beta")
             ),
@@ -257,9 +264,19 @@ fn spot_obj() -> Vec<u8> {
 /// it: libcurl's multipart POST with the fields `print`, `path` and `file`, `Expect:
 /// 100-continue`, and the key in `X-Api-Key`.
 fn octoprint_upload(addr: &str, file_name: &str, content: &[u8], print: &str) -> Answer {
+    octoprint_form(
+        addr,
+        &[("print", print), ("path", "hot")],
+        file_name,
+        content,
+    )
+}
+
+/// An OctoPrint upload with the given text fields before the file.
+fn octoprint_form(addr: &str, fields: &[(&str, &str)], file_name: &str, content: &[u8]) -> Answer {
     let boundary = "------------------------a1b2c3d4e5f60718";
     let mut body = Vec::new();
-    for (name, value) in [("print", print), ("path", "hot")] {
+    for (name, value) in fields {
         body.extend_from_slice(
             format!(
                 "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{value}\r\n"
@@ -1198,4 +1215,352 @@ fn the_built_in_default_serves_the_dashboard_with_a_key_file() {
     let (_daemon, _) = start(&tmp.path().join("second.log"));
     let again = std::fs::read_to_string(&key_file).unwrap();
     assert_eq!(again.trim(), key);
+}
+
+/// The answer on `stream`, or `None` when none came within `limit` (a failure bound only:
+/// the tests that use it expect an answer).
+fn answer_within(stream: TcpStream, bytes: &[u8], limit: Duration) -> Option<Answer> {
+    stream.set_read_timeout(Some(limit)).unwrap();
+    let mut peek = [0u8; 1];
+    let mut s = stream;
+    let _ = s.write_all(bytes);
+    match s.peek(&mut peek) {
+        Ok(n) if n > 0 => Some(exchange(s, b"")),
+        _ => None,
+    }
+}
+
+/// Issue 20, severe: every OctoPrint upload's name is checked whatever its fields say
+/// (`print=true` skipped the check and wrote anywhere the daemon could); a name that is
+/// not one plain file name of a model, a sidecar or G-code gets a clear 400 naming it
+/// (shortened), never 500, and never a 409 that tells whether a file exists elsewhere;
+/// answers carry no server paths. `print` and `select` are true as OctoPrint has them
+/// (`true`, `yes`, `y`, `1`, any case).
+#[test]
+fn every_upload_name_is_checked_whatever_its_fields() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "");
+    let root = tmp.path().canonicalize().unwrap();
+    let send = |fields: &[(&str, &str)], name: &str| {
+        octoprint_form(&farm.addr, fields, name, WARM_GCODE.as_bytes())
+    };
+    // A held job, whose directory an attacker would plant a file in.
+    let a = send(&[("path", "hot")], "held.gcode");
+    assert_eq!(a.status, 201, "{}", a.text());
+    let s = farm.wait_for(Duration::from_secs(60), "the held job", |s| {
+        job_by_file(s, "held.gcode").is_some()
+    });
+    let id = job_by_file(&s, "held.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let job_dir = root.join("spool/jobs").join(&id);
+    assert!(job_dir.is_dir());
+    let up = "./".to_string() + &"../".repeat(root.components().count() + 2);
+    let planted = format!(
+        "{up}{}/planted.txt",
+        job_dir.display().to_string().trim_start_matches('/')
+    );
+    let long = format!("{}.gcode", "x".repeat(244));
+    let bidi = "part\u{202e}edocg.gcode";
+    let escape = "red\u{1b}[31m.gcode";
+    let existing = format!(
+        "{up}{}/crispen.toml",
+        root.display().to_string().trim_start_matches('/')
+    );
+    let cases: Vec<(&str, &str)> = vec![
+        (&planted, "without folders"),
+        ("./../../escape.sh", "without folders"),
+        (&existing, "without folders"),
+        (".hidden.gcode", "hidden"),
+        ("x.gcode.part", "hidden or temporary"),
+        ("notes.txt", ".stl"),
+        (&long, "200 bytes"),
+        (bidi, "bidi"),
+        (escape, "control characters"),
+        ("", "1 to 200 bytes"),
+    ];
+    for fields in [
+        &[("print", "true"), ("path", "hot")][..],
+        &[("print", "false"), ("path", "hot")][..],
+        &[("select", "true"), ("print", "1")][..],
+        &[][..],
+    ] {
+        for (name, why) in &cases {
+            let a = send(fields, name);
+            assert_eq!(a.status, 400, "{name:?} with {fields:?}: {}", a.text());
+            let e = a.error();
+            assert!(e.contains(why), "{name:?}: {e}");
+            assert!(e.len() < 400, "the name is shortened: {e}");
+            // A name may hold a path of the client's own; the server adds none.
+            let own = name.contains(root.to_string_lossy().trim_start_matches('/'));
+            assert!(
+                (own || !e.contains(&*root.to_string_lossy()))
+                    && !e.contains('\u{1b}')
+                    && !e.contains('\u{202e}'),
+                "no server path, no raw control characters: {e}"
+            );
+        }
+    }
+    assert!(!job_dir.join("planted.txt").exists(), "planted in a job");
+    assert!(!root.parent().unwrap().join("escape.sh").exists());
+    let left: Vec<String> = hot_files(tmp.path())
+        .into_iter()
+        .filter(|n| n != "held.gcode" && n != "held.gcode.toml")
+        .collect();
+    assert_eq!(left, Vec::<String>::new(), "nothing left behind");
+
+    // A name that is taken: 409, naming the file but no server path.
+    std::fs::create_dir(tmp.path().join("hot/taken.gcode")).unwrap();
+    let a = send(&[("print", "true"), ("path", "hot")], "taken.gcode");
+    assert_eq!(a.status, 409, "{}", a.text());
+    assert!(a.error().contains("taken.gcode"), "{}", a.text());
+    assert!(
+        !a.error().contains(&*root.to_string_lossy()),
+        "{}",
+        a.text()
+    );
+    std::fs::remove_dir(tmp.path().join("hot/taken.gcode")).unwrap();
+
+    // OctoPrint's truths.
+    for (n, (fields, print, select)) in [
+        (&[("print", "1")][..], true, true),
+        (&[("print", "yes")][..], true, true),
+        (&[("print", "Y")][..], true, true),
+        (&[("print", "TRUE")][..], true, true),
+        (&[("print", "0")][..], false, false),
+        (&[("print", "no")][..], false, false),
+        (&[("select", "1")][..], false, true),
+        (&[("select", "yes"), ("print", "false")][..], false, true),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let a = send(fields, &format!("truth{n}.gcode"));
+        assert_eq!(a.status, 201, "{fields:?}: {}", a.text());
+        let answer = a.json();
+        assert_eq!(answer["effectivePrint"], print, "{fields:?}: {answer}");
+        assert_eq!(answer["effectiveSelect"], select, "{fields:?}: {answer}");
+    }
+    // The held ones are held, the others not.
+    let s = farm.wait_for(Duration::from_secs(120), "the uploads prepared", |s| {
+        (0..8).all(|n| {
+            job_by_file(s, &format!("truth{n}.gcode"))
+                .is_some_and(|j| j["state"] != "queued" && j["state"] != "preparing")
+        })
+    });
+    for n in 0..8 {
+        let held = job_by_file(&s, &format!("truth{n}.gcode")).unwrap()["held"] == true;
+        assert_eq!(held, n >= 4, "truth{n}.gcode: {s:#}");
+    }
+}
+
+/// The daemon's high-water mark of resident memory, in MiB.
+fn vm_hwm_mib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let line = status.lines().find(|l| l.starts_with("VmHWM:")).unwrap();
+    line.split_whitespace()
+        .nth(1)
+        .unwrap()
+        .parse::<u64>()
+        .unwrap()
+        / 1024
+}
+
+/// Issue 20: a form field is bounded while it is read. A 400 MB `path` field (inside a
+/// 1 GiB upload limit) is refused after its first KiB, and the daemon's memory does not
+/// grow with it (it read the field whole: 255 MB to 1.08 GB before the 400).
+#[test]
+fn a_huge_form_field_is_refused_without_reading_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "upload_max_mb = 1024");
+    farm.status();
+    let pid = farm._daemon.child.id();
+    let before = vm_hwm_mib(pid);
+    let boundary = "------------------------a1b2c3d4e5f60718";
+    let field: u64 = 400 * 1024 * 1024;
+    let head = format!("--{boundary}\r\nContent-Disposition: form-data; name=\"path\"\r\n\r\n");
+    let tail = format!(
+        "\r\n--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"a.gcode\"\r\n\r\nG28\r\n--{boundary}--\r\n"
+    );
+    let length = head.len() as u64 + field + tail.len() as u64;
+    let mut stream = TcpStream::connect(&farm.addr).unwrap();
+    write!(
+        stream,
+        "POST /api/files/local HTTP/1.1\r\nHost: x\r\nX-Api-Key: {KEY}\r\nConnection: close\r\n\
+         Content-Type: multipart/form-data; boundary={boundary}\r\nContent-Length: {length}\r\n\r\n{head}"
+    )
+    .unwrap();
+    let mut writer = stream.try_clone().unwrap();
+    writer
+        .set_write_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
+    // Sent in pieces of 1 MiB while the answer is awaited; the server may stop reading.
+    let sender = std::thread::spawn(move || {
+        let piece = vec![b'h'; 1024 * 1024];
+        let mut sent = 0u64;
+        while sent < field {
+            if writer.write_all(&piece).is_err() {
+                return sent;
+            }
+            sent += piece.len() as u64;
+        }
+        let _ = writer.write_all(tail.as_bytes());
+        sent
+    });
+    stream
+        .set_read_timeout(Some(Duration::from_secs(120)))
+        .unwrap();
+    let a = exchange(stream, b"");
+    let sent = sender.join().unwrap();
+    let after = vm_hwm_mib(pid);
+    eprintln!(
+        "400 MB path field: answered {} after {} MiB sent; daemon VmHWM {before} MiB before, {after} MiB after",
+        a.status,
+        sent / (1024 * 1024)
+    );
+    assert_eq!(a.status, 400, "{}", a.text());
+    assert!(a.error().contains("`path`"), "{}", a.text());
+    assert!(
+        after < before + 64,
+        "the daemon's memory grew from {before} to {after} MiB"
+    );
+    assert!(sent < field, "the whole field was read before the answer");
+    // Still serving.
+    farm.status();
+}
+
+/// Issue 20: 64 event streams without the key and a slowloris of 100 connections sending
+/// a byte a second held every connection slot, so a keyed `clear` and a status probe went
+/// unanswered. Streams are now capped per client and in all, and connections that have
+/// not sent a request head make room; the keyed request and the probe are answered.
+#[test]
+fn event_streams_and_slow_clients_leave_room_for_requests() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "read_only_without_key = true");
+    farm.wait_for(Duration::from_secs(30), "two idle printers", |s| {
+        ["alpha", "beta"]
+            .iter()
+            .all(|p| printer(s, p)["state"] == "idle")
+    });
+    let mut streams = Vec::new();
+    for _ in 0..64 {
+        let mut stream = TcpStream::connect(&farm.addr).unwrap();
+        stream
+            .write_all(b"GET /api/v1/events HTTP/1.1\r\nHost: x\r\n\r\n")
+            .unwrap();
+        streams.push(stream);
+    }
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let slowloris = {
+        let (addr, stop) = (farm.addr.clone(), stop.clone());
+        let mut sockets: Vec<TcpStream> = (0..100)
+            .map(|_| TcpStream::connect(&addr).unwrap())
+            .collect();
+        std::thread::spawn(move || {
+            let head = b"GET /api/v1/status HTTP/1.1\r\nHost: x\r\nX-Padding: ";
+            let mut at = 0;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                for s in &mut sockets {
+                    let _ = s.write_all(&[*head.get(at).unwrap_or(&b'a')]);
+                }
+                at += 1;
+                std::thread::sleep(Duration::from_secs(1));
+            }
+        })
+    };
+    std::thread::sleep(Duration::from_secs(2));
+    let keyed = answer_within(
+        TcpStream::connect(&farm.addr).unwrap(),
+        format!(
+            "POST /api/v1/printers/alpha/clear HTTP/1.1\r\nHost: x\r\nX-Api-Key: {KEY}\r\n\
+             Connection: close\r\nContent-Length: 0\r\n\r\n"
+        )
+        .as_bytes(),
+        Duration::from_secs(60),
+    );
+    let probe = answer_within(
+        TcpStream::connect(&farm.addr).unwrap(),
+        b"GET /api/v1/status HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+        Duration::from_secs(60),
+    );
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let keyed = keyed.expect("the keyed clear was answered");
+    assert_eq!(keyed.status, 200, "{}", keyed.text());
+    let probe = probe.expect("the status probe was answered");
+    assert_eq!(probe.status, 200, "{}", probe.text());
+    // Of the streams from this one address, 8 were taken and the others refused.
+    let mut statuses = Vec::new();
+    for stream in streams {
+        stream
+            .set_read_timeout(Some(Duration::from_secs(30)))
+            .unwrap();
+        let mut line = String::new();
+        let _ = BufReader::new(stream).read_line(&mut line);
+        statuses.push(line.split_whitespace().nth(1).unwrap_or("none").to_string());
+    }
+    let taken = statuses.iter().filter(|s| *s == "200").count();
+    let refused = statuses.iter().filter(|s| *s == "503").count();
+    assert_eq!((taken, refused), (8, 56), "{statuses:?}");
+    slowloris.join().unwrap();
+}
+
+/// Issue 20: a file named with terminal escapes or bidi controls is not taken: it is set
+/// aside in the hot folder's `set-aside/` with a log line that shows its name escaped, and
+/// neither `crispen status` nor the log carries the raw characters. An uploaded sidecar
+/// whose model never comes is set aside too (it stayed in the hot folder for ever).
+#[test]
+fn bad_names_and_lone_sidecars_are_set_aside() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start_with(tmp.path(), 0.0, "rescan_s = 1", "");
+    farm.status();
+    let escape = "red\u{1b}[31m\u{1b}]0;owned\u{7}.gcode";
+    let bidi = "invoice\u{202e}edocg.gcode";
+    for name in [escape, bidi] {
+        std::fs::write(tmp.path().join("hot").join(name), WARM_GCODE).unwrap();
+    }
+    let a = request(
+        &farm.addr,
+        "PUT",
+        "/api/v1/folders/hot/files/lonely.stl.toml",
+        &key_header(Some(KEY)),
+        b"copies = 2\n",
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let aside = tmp.path().join("hot/set-aside");
+    let started = Instant::now();
+    let log = || std::fs::read_to_string(&farm.log).unwrap_or_default();
+    while !["lonely.stl.toml", escape, bidi]
+        .iter()
+        .all(|n| aside.join(n).exists())
+    {
+        assert!(
+            started.elapsed() < Duration::from_secs(180),
+            "not set aside: {:?}\n{}",
+            hot_files(tmp.path()),
+            log()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert_eq!(hot_files(tmp.path()), ["set-aside"]);
+    let (ok, table) = run_cli(tmp.path(), &["status"]);
+    assert!(ok, "{table}");
+    let s = farm.status();
+    assert_eq!(s["jobs"], json!([]), "no job of them: {s:#}");
+    let log = log();
+    for text in [&table, &log] {
+        assert!(
+            !text.contains('\u{1b}') && !text.contains('\u{202e}') && !text.contains('\u{7}'),
+            "raw control characters: {text}"
+        );
+    }
+    assert!(log.contains("red\\u{1b}[31m"), "{log}");
+    assert!(
+        log.contains("bidi controls") && log.contains("set aside"),
+        "{log}"
+    );
+    assert!(
+        log.contains("lonely.stl.toml") && log.contains("did not arrive"),
+        "{log}"
+    );
 }

@@ -13,6 +13,11 @@ fuzz_target!(|data: &[u8]| {
     if crispen::http::check_upload_name(name).is_ok() {
         assert!(!name.contains(['/', '\\', '\0']), "{name:?}");
         assert!(!name.chars().any(char::is_control), "{name:?}");
+        assert!(
+            !name.contains(['\u{202a}', '\u{202b}', '\u{202c}', '\u{202d}', '\u{202e}']),
+            "{name:?}"
+        );
+        assert!(name.len() <= 205, "{name:?}");
         let parts: Vec<Component> = Path::new(name).components().collect();
         assert!(
             matches!(parts.as_slice(), [Component::Normal(n)] if *n == name),

@@ -208,7 +208,7 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             progress,
             p.detail
                 .as_deref()
-                .map(|d| format!("  ({d})"))
+                .map(|d| format!("  ({})", crispen::daemon::hotfolder::escaped(d)))
                 .unwrap_or_default(),
             p.host
                 .as_deref()
@@ -224,16 +224,19 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
     }
     println!();
     println!("JOB                          STATE        PRINTER          FILE / REASON");
+    // Names and reasons are the daemon's report of files anyone could name: shown
+    // escaped, so a name cannot drive the terminal.
+    use crispen::daemon::hotfolder::{escaped, printable};
     for j in &status.jobs {
+        let file = printable(&j.file);
         let extra = match (&j.reason, &j.step, &j.progress) {
-            (Some(r), _, _) => format!("{}: {r}", j.file),
-            (None, Some(step), _) => format!("{} [{step}]", j.file),
+            (Some(r), _, _) => format!("{file}: {}", escaped(r)),
+            (None, Some(step), _) => format!("{file} [{}]", escaped(step)),
             (None, None, Some(l)) if l.lines_total > 0 => format!(
-                "{} [{:.1}%]",
-                j.file,
+                "{file} [{:.1}%]",
                 100.0 * l.lines_acked as f64 / l.lines_total as f64
             ),
-            _ => j.file.clone(),
+            _ => file,
         };
         let state = if j.held {
             format!("{} (held)", j.state.name())

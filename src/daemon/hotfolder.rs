@@ -7,6 +7,8 @@
 //! reported like models, for the pick-up to match with their model. Models and G-code
 //! sliced elsewhere (`*.gcode`, printed as it is) are taken alike; what a file is, is the
 //! preparation's to find out.
+//! A name with control or bidi characters is refused (set aside in [`SET_ASIDE_DIR`]),
+//! and names are shown through [`printable`] wherever they are printed.
 //! [`SettleTracker`] is the pure decision; [`watch`] drives it with `notify` events, a
 //! periodic rescan (in case an event was missed) and a short tick.
 
@@ -26,6 +28,99 @@ pub fn is_candidate_name(name: &str) -> bool {
         || name.ends_with(".toml")
         || name.ends_with(".tmp")
         || name.ends_with(".crdownload"))
+}
+
+/// The folder inside a hot folder where the pick-up sets aside files it refuses (a name
+/// with control or bidi characters, a sidecar whose model never came). The watcher takes
+/// only files directly in the hot folder, never from here.
+pub const SET_ASIDE_DIR: &str = "set-aside";
+
+/// A sidecar whose model has not arrived within this many settle times (10 minutes at
+/// the default `settle_s = 5`) is set aside.
+pub const ORPHAN_SIDECAR_SETTLES: u32 = 120;
+
+/// Moves `path` into `folder/`[`SET_ASIDE_DIR`] under its own name (`.1`, `.2`, … added
+/// if that is taken), never replacing a file. Returns where it went.
+pub fn set_aside(path: &Path, folder: &Path) -> std::io::Result<PathBuf> {
+    let dir = folder.join(SET_ASIDE_DIR);
+    std::fs::create_dir_all(&dir)?;
+    let name = path.file_name().unwrap_or_default();
+    for n in 0..1000 {
+        let mut to_name = name.to_os_string();
+        if n > 0 {
+            to_name.push(format!(".{n}"));
+        }
+        let to = dir.join(to_name);
+        // A hard link fails rather than replace; the hot folder and its set-aside
+        // folder are on one file system.
+        match std::fs::hard_link(path, &to) {
+            Ok(()) => {
+                std::fs::remove_file(path)?;
+                return Ok(to);
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    Err(std::io::Error::new(
+        std::io::ErrorKind::AlreadyExists,
+        "1000 files of this name are set aside already",
+    ))
+}
+
+/// Whether `c` changes the direction text is shown in (U+202E makes `gcode.exe` of
+/// `exe.edocg`): such a name looks like another file's.
+fn is_bidi_control(c: char) -> bool {
+    matches!(c, '\u{061C}' | '\u{200E}' | '\u{200F}' | '\u{202A}'..='\u{202E}' | '\u{2066}'..='\u{2069}')
+}
+
+/// Why a file name cannot be taken as it is, if it cannot: a control character (an ESC
+/// sequence would reach terminals through `crispen status` and the log) or a bidi
+/// control (the name would show as another).
+pub fn name_problem(name: &str) -> Option<&'static str> {
+    if name.chars().any(char::is_control) {
+        return Some("contains control characters");
+    }
+    if name.chars().any(is_bidi_control) {
+        return Some("contains characters that reverse the text's direction (bidi controls)");
+    }
+    None
+}
+
+/// `text` with control and bidi characters escaped (`\u{1b}`), whole: for what the
+/// daemon reports about a job (a failure's reason may quote a name) on a terminal.
+pub fn escaped(text: &str) -> String {
+    text.chars()
+        .map(|c| match c.is_control() || is_bidi_control(c) {
+            true => c.escape_unicode().to_string(),
+            false => c.to_string(),
+        })
+        .collect()
+}
+
+/// Longest name shown in a message, in characters; longer ones are cut in the middle.
+const SHOWN_NAME_CHARS: usize = 80;
+
+/// A name as messages, logs and `crispen status` show it: control and bidi characters
+/// escaped (`\u{1b}`), so a name cannot drive a terminal or reverse the text around it,
+/// and cut to [`SHOWN_NAME_CHARS`] with `…` in the middle.
+pub fn printable(name: &str) -> String {
+    let escaped: Vec<String> = name
+        .chars()
+        .map(|c| match c.is_control() || is_bidi_control(c) {
+            true => c.escape_unicode().to_string(),
+            false => c.to_string(),
+        })
+        .collect();
+    if escaped.len() <= SHOWN_NAME_CHARS {
+        return escaped.concat();
+    }
+    let half = SHOWN_NAME_CHARS / 2;
+    format!(
+        "{}…{}",
+        escaped[..half].concat(),
+        escaped[escaped.len() - half..].concat()
+    )
 }
 
 /// Whether a file name is a model's sidecar (`model.stl.toml`). Sidecars are tracked too,
@@ -202,6 +297,18 @@ pub async fn watch(
 mod tests {
     use super::*;
     use std::io::Write;
+
+    #[test]
+    fn names_are_printed_harmless_and_short() {
+        assert_eq!(printable("bust.stl"), "bust.stl");
+        assert_eq!(printable("a\u{1b}[31mb.stl"), "a\\u{1b}[31mb.stl");
+        assert_eq!(printable("x\u{202e}lts.exe"), "x\\u{202e}lts.exe");
+        let long = printable(&"é".repeat(4096));
+        assert_eq!(long.chars().count(), SHOWN_NAME_CHARS + 1);
+        assert_eq!(name_problem("a b.stl"), None);
+        assert!(name_problem("a\u{1b}.stl").is_some());
+        assert!(name_problem("a\u{2067}.stl").is_some());
+    }
 
     #[test]
     fn names_that_are_never_taken() {

@@ -35,6 +35,7 @@ use config::Config;
 use farm::{Farm, PrinterState};
 use fleet::Fleet;
 use job::JobState;
+use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -311,11 +312,13 @@ fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()
     let rescan = config.farm.rescan;
     tokio::spawn(async move {
         let watcher = tokio::spawn(hotfolder::watch(folders, settle, rescan, tx));
+        let mut lone_sidecars = HashMap::new();
+        let orphan_after = settle * hotfolder::ORPHAN_SIDECAR_SETTLES;
         while let Some((path, folder)) = rx.recv().await {
             if farm.stopping() {
                 break;
             }
-            pick_up(&farm, &path, &folder).await;
+            pick_up(&farm, &path, &folder, &mut lone_sidecars, orphan_after).await;
         }
         watcher.abort();
     })
@@ -324,11 +327,27 @@ fn spawn_pickup(farm: &Arc<Farm>, config: &Config) -> tokio::task::JoinHandle<()
 /// Admits one complete file of a hot folder: a model becomes a job (with its sidecar if
 /// that is there already); a sidecar whose model was picked up before it arrived joins its
 /// job if the job has not started preparing, and is otherwise reported and kept aside.
-async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
+/// A file whose name has control or bidi characters, and a sidecar whose model has not
+/// come within `orphan_after` (it is looked at again on each rescan), are set aside
+/// ([`hotfolder::set_aside`]) with a log line naming them. `lone_sidecars` holds when each
+/// sidecar without a model was first seen.
+async fn pick_up(
+    farm: &Farm,
+    path: &std::path::Path,
+    folder: &std::path::Path,
+    lone_sidecars: &mut HashMap<PathBuf, std::time::Instant>,
+    orphan_after: Duration,
+) {
+    let raw_name = path.file_name().unwrap_or_default();
+    let name = raw_name.to_string_lossy().into_owned();
+    let problem = match raw_name.to_str() {
+        None => Some("is not valid UTF-8"),
+        Some(name) => hotfolder::name_problem(name),
+    };
+    if let Some(problem) = problem {
+        set_aside(path, folder, &format!("its name {problem}"));
+        return;
+    }
     if !hotfolder::is_sidecar_name(&name) {
         let printers = farm
             .config()
@@ -347,10 +366,29 @@ async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) 
     let model = name.strip_suffix(".toml").unwrap_or(&name);
     if !path.exists() || folder.join(model).exists() {
         // Taken with its model already, or its model is still arriving.
+        lone_sidecars.remove(path);
         return;
     }
     match farm.jobs.late_sidecar(folder, model, path).await {
-        Ok(None) => tracing::debug!(file = %path.display(), "a sidecar without its model yet"),
+        Ok(None) => {
+            let since = *lone_sidecars
+                .entry(path.to_path_buf())
+                .or_insert_with(std::time::Instant::now);
+            if since.elapsed() >= orphan_after {
+                lone_sidecars.remove(path);
+                set_aside(
+                    path,
+                    folder,
+                    &format!(
+                        "a sidecar whose model {} did not arrive within {} s",
+                        hotfolder::printable(model),
+                        orphan_after.as_secs()
+                    ),
+                );
+            } else {
+                tracing::debug!(file = %hotfolder::printable(&name), "a sidecar without its model yet");
+            }
+        }
         Ok(Some(late)) if late.applies => {
             tracing::info!(job = %late.job, file = %path.display(), "sidecar arrived after its model; it applies")
         }
@@ -363,5 +401,29 @@ async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path) 
         Err(e) => {
             tracing::error!(file = %path.display(), error = %e, "cannot take the late sidecar")
         }
+    }
+}
+
+/// Moves a file the pick-up refuses out of the way, into the hot folder's
+/// [`hotfolder::SET_ASIDE_DIR`], and says so; it is kept, never deleted.
+fn set_aside(path: &std::path::Path, folder: &std::path::Path, why: &str) {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    match hotfolder::set_aside(path, folder) {
+        Ok(to) => tracing::warn!(
+            file = %hotfolder::printable(&name),
+            folder = %folder.display(),
+            set_aside_as = %hotfolder::printable(&to.file_name().unwrap_or_default().to_string_lossy()),
+            "not picked up: {why}; set aside in the folder's {}/ (rename it and put it back to print it)",
+            hotfolder::SET_ASIDE_DIR
+        ),
+        Err(e) => tracing::error!(
+            file = %hotfolder::printable(&name),
+            folder = %folder.display(),
+            error = %e,
+            "not picked up: {why}; and it cannot be set aside"
+        ),
     }
 }

@@ -3,6 +3,7 @@
 //! (`daemon::control::execute`), the same for the CLI (on the control socket), the
 //! dashboard and any other client.
 
+use super::error::quoted;
 use super::upload;
 use super::{ApiError, AppState};
 use crate::daemon::control::{self, Command, JobStatus};
@@ -220,7 +221,7 @@ pub async fn picture(
         let store = state.farm.store();
         store.get(&id).map(|_| store.job_dir(&id))
     };
-    let dir = dir.ok_or_else(|| ApiError::not_found(format!("no job {id:?}")))?;
+    let dir = dir.ok_or_else(|| ApiError::not_found(format!("no job {}", quoted(&id))))?;
     let path = dir.join(name);
     // Not through a link: the job directory is the daemon's, but be sure.
     let meta = tokio::fs::symlink_metadata(&path).await;
@@ -230,7 +231,9 @@ pub async fn picture(
     };
     let bytes = bytes.ok_or_else(|| {
         ApiError::not_found(format!(
-            "job {id} has no {name} (pictures are drawn for enhanced jobs once prepared)"
+            "job {} has no {} (pictures are drawn for enhanced jobs once prepared)",
+            quoted(&id),
+            quoted(&name)
         ))
     })?;
     Ok((
@@ -252,7 +255,8 @@ pub async fn folders(State(state): State<AppState>) -> Result<Json<Vec<FolderVie
 fn no_printer(farm: &Farm, name: &str) -> ApiError {
     let names = control::printer_names(farm);
     ApiError::not_found(format!(
-        "no printer {name:?} (the printers are: {})",
+        "no printer {} (the printers are: {})",
+        quoted(name),
         names.join(", ")
     ))
 }
@@ -272,7 +276,8 @@ pub async fn printer_action(
         "resume" => Command::Resume { printer },
         other => {
             return Err(ApiError::not_found(format!(
-                "no printer action {other:?}; the printer actions are clear, pause, resume"
+                "no printer action {}; the printer actions are clear, pause, resume",
+                quoted(other)
             )))
         }
     };
@@ -286,7 +291,8 @@ pub async fn job_action(
 ) -> Result<Json<serde_json::Value>, ApiError> {
     if state.farm.store().get(&id).is_none() {
         return Err(ApiError::not_found(format!(
-            "no job {id:?} (hint: GET /api/v1/jobs lists them)"
+            "no job {} (hint: GET /api/v1/jobs lists them)",
+            quoted(&id)
         )));
     }
     let job = id;
@@ -296,7 +302,8 @@ pub async fn job_action(
         "release" => Command::Release { job },
         other => {
             return Err(ApiError::not_found(format!(
-                "no job action {other:?}; the job actions are cancel, retry, release"
+                "no job action {}; the job actions are cancel, retry, release",
+                quoted(other)
             )))
         }
     };

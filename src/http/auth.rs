@@ -11,9 +11,16 @@ use axum::response::{IntoResponse, Response};
 /// Lets a request through with the right key, or a read-only one without a key when
 /// `[http] read_only_without_key` allows it. On the control socket the socket's file
 /// mode has already decided.
-pub async fn require_key(State(state): State<AppState>, request: Request, next: Next) -> Response {
+pub async fn require_key(
+    State(state): State<AppState>,
+    mut request: Request,
+    next: Next,
+) -> Response {
     let (key, read_only_without_key) = match &*state.access {
-        Access::Socket => return next.run(request).await,
+        Access::Socket => {
+            request.extensions_mut().insert(Keyed(true));
+            return next.run(request).await;
+        }
         Access::Key {
             key,
             read_only_without_key,
@@ -25,13 +32,19 @@ pub async fn require_key(State(state): State<AppState>, request: Request, next: 
         .map(|v| v.as_bytes().to_vec());
     let read_only = matches!(*request.method(), Method::GET | Method::HEAD);
     match given {
-        Some(key_given) if same_key(&key_given, key.0.as_bytes()) => next.run(request).await,
+        Some(key_given) if same_key(&key_given, key.0.as_bytes()) => {
+            request.extensions_mut().insert(Keyed(true));
+            next.run(request).await
+        }
         Some(_) => ApiError::new(
             StatusCode::FORBIDDEN,
             "the X-Api-Key header does not match the key in [http] api_key_file",
         )
         .into_response(),
-        None if read_only && read_only_without_key => next.run(request).await,
+        None if read_only && read_only_without_key => {
+            request.extensions_mut().insert(Keyed(false));
+            next.run(request).await
+        }
         None => ApiError::new(
             StatusCode::UNAUTHORIZED,
             if read_only {
@@ -43,6 +56,11 @@ pub async fn require_key(State(state): State<AppState>, request: Request, next: 
         .into_response(),
     }
 }
+
+/// Whether a request came with the key (or on the control socket), for the handlers
+/// whose bounds differ (event streams).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Keyed(pub bool);
 
 /// Compares in time independent of where the keys differ.
 fn same_key(given: &[u8], key: &[u8]) -> bool {

@@ -35,16 +35,22 @@ impl IntoResponse for ApiError {
     }
 }
 
+/// Something a client sent (a name, an id, a path), as an error message quotes it:
+/// control and bidi characters escaped, cut to 80 characters.
+pub fn quoted(text: &str) -> String {
+    format!("\"{}\"", crate::daemon::hotfolder::printable(text))
+}
+
 pub async fn not_found(uri: Uri) -> ApiError {
     ApiError::not_found(format!(
         "no such address: {} (the dashboard is at /, the API under /api/v1/, metrics at /metrics)",
-        uri.path()
+        quoted(uri.path())
     ))
 }
 
 pub async fn method_not_allowed(method: axum::http::Method, uri: Uri) -> ApiError {
     ApiError::new(
         StatusCode::METHOD_NOT_ALLOWED,
-        format!("{method} is not allowed on {}", uri.path()),
+        format!("{method} is not allowed on {}", quoted(uri.path())),
     )
 }

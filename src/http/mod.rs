@@ -10,6 +10,7 @@
 //! - [`api`]: status, printers, jobs and their pictures, folders, and the actions, which
 //!   are the farm's own operations (`daemon::control::execute`).
 //! - [`upload`]: files streamed into a hot folder under a temporary name, then linked in.
+//! - [`multipart`]: an upload's `multipart/form-data` body read as it arrives, bounded.
 //! - [`events`]: live state, progress and temperatures as server-sent events.
 //! - [`metrics`]: the farm in Prometheus' text format.
 //! - [`octoprint`]: `GET /api/version` and `POST /api/files/local`.
@@ -21,6 +22,7 @@ mod auth;
 mod error;
 mod events;
 mod metrics;
+mod multipart;
 mod octoprint;
 pub mod serve;
 mod upload;
@@ -33,7 +35,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 pub use error::ApiError;
-/// The check of an uploaded file's name (exported for the fuzz target).
+/// The check of an uploaded file's name and the reading of an upload's form (exported for
+/// the fuzz targets).
+pub use octoprint::{read_form as read_upload_form, truthy, Form as UploadForm};
 pub use upload::{check_name as check_upload_name, Upload};
 
 /// Who may do what on a listener.
@@ -55,6 +59,8 @@ pub struct AppState {
     pub access: Arc<Access>,
     /// The largest upload accepted, in bytes.
     pub upload_max_bytes: u64,
+    /// The listener's open event streams (capped).
+    pub streams: Arc<events::Streams>,
 }
 
 /// The upload bound where `[http]` sets none (the control socket without `[http]`).
@@ -130,6 +136,7 @@ pub async fn serve_socket(
         farm,
         access: Arc::new(Access::Socket),
         upload_max_bytes: http.map_or(DEFAULT_UPLOAD_MAX_BYTES, |h| h.upload_max_bytes),
+        streams: Arc::default(),
     });
     serve::serve(listener, app, serve::Limits::default(), stop, "socket").await;
 }
@@ -148,6 +155,7 @@ pub async fn serve_tcp(
             read_only_without_key: http.read_only_without_key,
         }),
         upload_max_bytes: http.upload_max_bytes,
+        streams: Arc::default(),
     });
     serve::serve(listener, app, serve::Limits::default(), stop, "tcp").await;
 }

@@ -1,7 +1,12 @@
 //! The connection loop under both listeners (the control socket and TCP): HTTP/1.1 by
 //! hyper, with the bounds a daemon facing any client needs. At most
-//! [`Limits::max_connections`] connections at once (more wait in the kernel's backlog);
-//! a request's head must arrive within [`Limits::header_timeout`], which also closes a
+//! [`Limits::max_connections`] connections at once; a connection that has sent no
+//! complete request head (a slow or idle client) holds its place only until a new
+//! connection needs it: at the limit, the one that has waited longest for a head is
+//! closed. So a slowloris (many connections sending a byte now and then) cannot keep out
+//! a client that sends its request at once, such as one with the key; the clients that
+//! do hold a connection for long, event streams, are capped by [`super::events`]. A
+//! request's head must arrive within [`Limits::header_timeout`], which also closes a
 //! connection left idle between requests; a head larger than [`MAX_HEAD_BYTES`] is refused;
 //! a response the client stops reading for [`Limits::write_stall`] ends its connection; and
 //! when accepting fails (out of file descriptors) the loop waits a little longer each time
@@ -9,13 +14,14 @@
 
 use axum::Router;
 use hyper_util::rt::{TokioIo, TokioTimer};
-use hyper_util::service::TowerToHyperService;
+use std::collections::HashMap;
 use std::future::Future;
 use std::io;
+use std::net::IpAddr;
 use std::pin::Pin;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio_util::sync::CancellationToken;
 
@@ -33,32 +39,147 @@ pub struct Limits {
 impl Default for Limits {
     fn default() -> Limits {
         Limits {
-            max_connections: 64,
+            // Well under the service's 1024 file descriptors; event streams are capped at
+            // a quarter of it (`events::MAX_STREAMS`).
+            max_connections: 256,
             header_timeout: Duration::from_secs(10),
             write_stall: Duration::from_secs(60),
         }
     }
 }
 
+/// The address a request came from (TCP; none on the control socket), for the per-client
+/// caps of the handlers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClientAddr(pub Option<IpAddr>);
+
 /// A listening socket: TCP or unix.
 pub trait Incoming: Send + 'static {
     type Io: AsyncRead + AsyncWrite + Unpin + Send + 'static;
-    fn accept_io(&self) -> impl Future<Output = io::Result<Self::Io>> + Send;
+    fn accept_io(&self) -> impl Future<Output = io::Result<(Self::Io, ClientAddr)>> + Send;
 }
 
 impl Incoming for tokio::net::TcpListener {
     type Io = tokio::net::TcpStream;
-    async fn accept_io(&self) -> io::Result<Self::Io> {
-        let (stream, _) = self.accept().await?;
+    async fn accept_io(&self) -> io::Result<(Self::Io, ClientAddr)> {
+        let (stream, peer) = self.accept().await?;
         let _ = stream.set_nodelay(true);
-        Ok(stream)
+        Ok((stream, ClientAddr(Some(peer.ip()))))
     }
 }
 
 impl Incoming for tokio::net::UnixListener {
     type Io = tokio::net::UnixStream;
-    async fn accept_io(&self) -> io::Result<Self::Io> {
-        Ok(self.accept().await?.0)
+    async fn accept_io(&self) -> io::Result<(Self::Io, ClientAddr)> {
+        Ok((self.accept().await?.0, ClientAddr(None)))
+    }
+}
+
+/// One open connection as the loop sees it.
+struct Conn {
+    /// Requests being answered (the answer's body not yet sent whole).
+    busy: usize,
+    /// Since when it has waited for a request head, when not busy.
+    waiting_since: Instant,
+    close: CancellationToken,
+}
+
+/// The open connections of one listener.
+#[derive(Default)]
+struct Conns {
+    next: u64,
+    open: HashMap<u64, Conn>,
+}
+
+impl Conns {
+    /// Makes room for one more connection below `max`: closes the connection that has
+    /// waited longest for a request head. False when every connection is busy.
+    fn make_room(&mut self, max: usize) -> bool {
+        if self.open.len() < max {
+            return true;
+        }
+        let victim = self
+            .open
+            .iter()
+            .filter(|(_, c)| c.busy == 0)
+            .min_by_key(|(_, c)| c.waiting_since)
+            .map(|(id, _)| *id);
+        match victim.and_then(|id| self.open.remove(&id)) {
+            Some(conn) => {
+                conn.close.cancel();
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+/// The connections and a signal that one may make room now (it ended or became idle).
+#[derive(Default)]
+struct Table {
+    conns: Mutex<Conns>,
+    freed: tokio::sync::Notify,
+}
+
+/// Locks the table; a panic elsewhere while it was held leaves it usable.
+fn lock(table: &Table) -> std::sync::MutexGuard<'_, Conns> {
+    table.conns.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Marks its connection busy while it lives: from a request's head to the end of its
+/// answer (it travels in the answer's body).
+struct Busy {
+    conns: Arc<Table>,
+    id: u64,
+}
+
+impl Busy {
+    fn new(conns: &Arc<Table>, id: u64) -> Busy {
+        if let Some(c) = lock(conns).open.get_mut(&id) {
+            c.busy += 1;
+        }
+        Busy {
+            conns: Arc::clone(conns),
+            id,
+        }
+    }
+}
+
+impl Drop for Busy {
+    fn drop(&mut self) {
+        if let Some(c) = lock(&self.conns).open.get_mut(&self.id) {
+            c.busy = c.busy.saturating_sub(1);
+            if c.busy == 0 {
+                c.waiting_since = Instant::now();
+                self.conns.freed.notify_one();
+            }
+        }
+    }
+}
+
+/// An answer's body carrying its connection's [`Busy`] mark.
+struct MarkedBody {
+    inner: axum::body::Body,
+    _busy: Busy,
+}
+
+impl http_body::Body for MarkedBody {
+    type Data = axum::body::Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<http_body::Frame<Self::Data>, Self::Error>>> {
+        Pin::new(&mut self.inner).poll_frame(cx)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
     }
 }
 
@@ -71,16 +192,12 @@ pub async fn serve<L: Incoming>(
     stop: CancellationToken,
     name: &'static str,
 ) {
-    let slots = Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
+    let conns = Arc::new(Table::default());
     let mut backoff = Duration::from_millis(10);
     loop {
-        let slot = tokio::select! {
-            slot = Arc::clone(&slots).acquire_owned() => slot.expect("the semaphore is never closed"),
-            _ = stop.cancelled() => return,
-        };
-        let io = tokio::select! {
+        let (io, client) = tokio::select! {
             accepted = listener.accept_io() => match accepted {
-                Ok(io) => io,
+                Ok(accepted) => accepted,
                 Err(e) => {
                     tracing::warn!(listener = name, error = %e, retry_in_ms = backoff.as_millis() as u64, "http: cannot accept a connection");
                     tokio::select! {
@@ -94,10 +211,50 @@ pub async fn serve<L: Incoming>(
             _ = stop.cancelled() => return,
         };
         backoff = Duration::from_millis(10);
-        let service = TowerToHyperService::new(app.clone());
-        let stop = stop.clone();
+        let close = CancellationToken::new();
+        // Every connection busy with a request: the new one waits until one is done.
+        loop {
+            let freed = conns.freed.notified();
+            if lock(&conns).make_room(limits.max_connections) {
+                break;
+            }
+            tokio::select! {
+                _ = freed => {}
+                _ = stop.cancelled() => return,
+            }
+        }
+        let id = {
+            let mut table = lock(&conns);
+            let id = table.next;
+            table.next += 1;
+            table.open.insert(
+                id,
+                Conn {
+                    busy: 0,
+                    waiting_since: Instant::now(),
+                    close: close.clone(),
+                },
+            );
+            id
+        };
+        let service = {
+            let (app, conns) = (app.clone(), Arc::clone(&conns));
+            hyper::service::service_fn(
+                move |mut request: axum::http::Request<hyper::body::Incoming>| {
+                    let busy = Busy::new(&conns, id);
+                    request.extensions_mut().insert(client);
+                    let answer = tower_service::Service::call(&mut app.clone(), request);
+                    async move {
+                        let answer = answer.await?;
+                        Ok::<_, std::convert::Infallible>(
+                            answer.map(|inner| MarkedBody { inner, _busy: busy }),
+                        )
+                    }
+                },
+            )
+        };
+        let (stop, conns) = (stop.clone(), Arc::clone(&conns));
         tokio::spawn(async move {
-            let _slot = slot;
             let io = TokioIo::new(StallGuard::new(io, limits.write_stall));
             let mut builder = hyper::server::conn::http1::Builder::new();
             builder
@@ -107,16 +264,17 @@ pub async fn serve<L: Incoming>(
             let connection = builder.serve_connection(io, service);
             tokio::pin!(connection);
             let result = tokio::select! {
-                result = connection.as_mut() => result,
+                result = connection.as_mut() => Some(result),
+                // Closed to make room: it had sent no request.
+                _ = close.cancelled() => None,
                 _ = stop.cancelled() => {
                     connection.as_mut().graceful_shutdown();
-                    match tokio::time::timeout(Duration::from_secs(5), connection).await {
-                        Ok(result) => result,
-                        Err(_) => return,
-                    }
+                    tokio::time::timeout(Duration::from_secs(5), connection).await.ok()
                 }
             };
-            if let Err(e) = result {
+            lock(&conns).open.remove(&id);
+            conns.freed.notify_one();
+            if let Some(Err(e)) = result {
                 tracing::debug!(listener = name, error = %e, "http: connection ended");
             }
         });
@@ -249,10 +407,11 @@ mod tests {
         socket
     }
 
-    /// With every slot taken by an idle connection, a new request waits; it is answered
-    /// once a slot frees. An idle connection is closed after the header timeout.
+    /// With every place taken by a connection that sent no request, a new request is
+    /// answered all the same: the one that waited longest for a head is closed to make
+    /// room. An idle connection is closed after the header timeout.
     #[tokio::test]
-    async fn connections_are_limited_and_idle_ones_closed() {
+    async fn idle_connections_make_room_and_are_closed() {
         let dir = tempfile::tempdir().unwrap();
         let limits = Limits {
             max_connections: 2,
@@ -261,25 +420,20 @@ mod tests {
         };
         let socket = start(dir.path(), "s.sock", "hello".into(), limits);
 
-        let idle_a = tokio::net::UnixStream::connect(&socket).await.unwrap();
-        let _idle_b = tokio::net::UnixStream::connect(&socket).await.unwrap();
-        let waiting = tokio::spawn({
-            let socket = socket.clone();
-            async move { get(&socket).await }
-        });
-        // Not answered while both slots are held (a slow machine only makes this wait
-        // longer, never shorter).
-        tokio::time::sleep(Duration::from_millis(500)).await;
-        assert!(
-            !waiting.is_finished(),
-            "answered beyond the connection limit"
-        );
-        drop(idle_a);
-        let answer = tokio::time::timeout(Duration::from_secs(60), waiting)
+        let mut oldest = tokio::net::UnixStream::connect(&socket).await.unwrap();
+        oldest.write_all(b"GET / HT").await.unwrap();
+        // Accepted before the next one (the loop takes them in order).
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let _idle = tokio::net::UnixStream::connect(&socket).await.unwrap();
+        let answer = tokio::time::timeout(Duration::from_secs(60), get(&socket))
             .await
-            .expect("answered once a slot was free")
-            .unwrap();
+            .expect("answered at the connection limit");
         assert!(answer.ends_with("hello"), "{answer}");
+        let mut buf = [0u8; 64];
+        let read = tokio::time::timeout(Duration::from_secs(60), oldest.read(&mut buf))
+            .await
+            .expect("the oldest waiting connection was closed");
+        assert!(matches!(read, Ok(0) | Err(_)), "{read:?}");
 
         // The header timeout closes an idle connection.
         let limits = Limits {

@@ -44,38 +44,70 @@ pub fn find_folder<'a>(config: &'a Config, name: &str) -> Result<&'a FolderConfi
     match (found.next(), found.next()) {
         (Some(f), None) => Ok(f),
         (Some(_), Some(_)) => Err(ApiError::conflict(format!(
-            "two hot folders are called {name:?}; rename one of them so uploads can tell them apart"
+            "two hot folders are called {}; rename one of them so uploads can tell them apart",
+            super::error::quoted(name)
         ))),
         (None, _) => Err(ApiError::not_found(format!(
-            "no hot folder called {name:?} (the folders are: {})",
+            "no hot folder called {} (the folders are: {})",
+            super::error::quoted(name),
             names()
         ))),
     }
 }
 
 /// What kind of file an upload is, by its name.
-#[derive(Debug, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Upload {
     Model,
     Sidecar,
     Gcode,
 }
 
-/// Checks an uploaded file's name: one plain name (no directories, not hidden, not a
-/// temporary name the watcher skips), of a model, a sidecar or G-code.
+/// Checks an uploaded file's name: exactly one plain path component (no directories, not
+/// `.` or `..`, not hidden, not a temporary name the watcher skips), at most
+/// [`MAX_NAME_BYTES`], without control or bidi characters, of a model, G-code, or the
+/// sidecar of one. Every upload passes this whatever its other fields say, and
+/// [`receive`] checks again before it writes anything.
 pub fn check_name(name: &str) -> Result<Upload, ApiError> {
-    let bad = |why: &str| ApiError::bad_request(format!("file name {name:?}: {why}"));
-    if name.is_empty() || name.len() > MAX_NAME_BYTES {
-        return Err(bad(&format!("must be 1 to {MAX_NAME_BYTES} bytes long")));
+    let bad = |why: &str| {
+        ApiError::bad_request(format!(
+            "file name \"{}\": {why}",
+            crate::daemon::hotfolder::printable(name)
+        ))
+    };
+    // A sidecar's name is its model's and `.toml`.
+    let limit = match crate::daemon::hotfolder::is_sidecar_name(name) {
+        true => MAX_NAME_BYTES + ".toml".len(),
+        false => MAX_NAME_BYTES,
+    };
+    if name.is_empty() || name.len() > limit {
+        return Err(bad(&format!(
+            "must be 1 to {limit} bytes long (it is {})",
+            name.len()
+        )));
     }
     if name.contains(['/', '\\', '\0']) || name == "." || name == ".." {
         return Err(bad("must be a plain file name, without folders"));
     }
-    if name.chars().any(char::is_control) {
-        return Err(bad("must not contain control characters"));
+    if let Some(problem) = crate::daemon::hotfolder::name_problem(name) {
+        return Err(bad(&format!("{problem}; rename the file")));
+    }
+    let mut components = Path::new(name).components();
+    if !matches!(
+        (components.next(), components.next()),
+        (Some(std::path::Component::Normal(one)), None) if one == name
+    ) {
+        return Err(bad("must be a plain file name, without folders"));
     }
     if crate::daemon::hotfolder::is_sidecar_name(name) {
-        return Ok(Upload::Sidecar);
+        // A sidecar belongs to a model or G-code whose name passes too.
+        let model = &name[..name.len() - ".toml".len()];
+        return match check_name(model) {
+            Ok(Upload::Sidecar) | Err(_) => Err(bad(
+                "a sidecar is named after its model: the model's name and .toml (part.stl.toml)",
+            )),
+            Ok(_) => Ok(Upload::Sidecar),
+        };
     }
     if !crate::daemon::hotfolder::is_candidate_name(name) {
         return Err(bad(
@@ -136,7 +168,7 @@ impl Received {
                 Err(ApiError::conflict(format!(
                     "{}: a file of this name is already in the hot folder (hint: wait until it \
                      is picked up, or upload under another name)",
-                    self.target.display()
+                    shown(&self.target)
                 )))
             }
             Err(e) => Err(io_error(&self.target, "cannot put the upload in place", e)),
@@ -173,13 +205,25 @@ pub async fn place_with_sidecar(
     })?
 }
 
+/// A file in a hot folder as an HTTP answer names it: its name alone, shortened and
+/// escaped; the server's paths are none of the client's business (the log has them).
+fn shown(target: &Path) -> String {
+    let name = target
+        .file_name()
+        .map(|n| n.to_string_lossy())
+        .unwrap_or_default();
+    crate::daemon::hotfolder::printable(&name)
+}
+
 fn io_error(target: &Path, what: &str, e: std::io::Error) -> ApiError {
     let status = if e.raw_os_error() == Some(nix::libc::ENOSPC) {
         StatusCode::INSUFFICIENT_STORAGE
     } else {
         StatusCode::INTERNAL_SERVER_ERROR
     };
-    ApiError::new(status, format!("{}: {what}: {e}", target.display()))
+    tracing::error!(file = %target.display(), error = %e, "http: {what}");
+    // The error's own text may carry the path too (an OS error does not).
+    ApiError::new(status, format!("{}: {what}: {}", shown(target), e.kind()))
 }
 
 /// Streams `body` into a hidden temporary file in `folder`, at most `max` bytes, synced.
@@ -193,6 +237,9 @@ where
     S: Stream<Item = Result<Bytes, E>>,
     E: std::fmt::Display,
 {
+    // Checked here too, whatever the caller did: nothing is written under a name that
+    // is not one plain file name in `folder`.
+    check_name(name)?;
     let target = folder.join(name);
     let temp = folder.join(format!(".{name}.{:016x}.upload", rand::random::<u64>()));
     let mut file = tokio::fs::OpenOptions::new()
@@ -225,6 +272,7 @@ where
     S: Stream<Item = Result<Bytes, E>>,
     E: std::fmt::Display,
 {
+    let name = crate::daemon::hotfolder::printable(name);
     let mut body = std::pin::pin!(body);
     let mut size = 0u64;
     loop {
@@ -263,7 +311,7 @@ where
                 } else {
                     StatusCode::INTERNAL_SERVER_ERROR
                 },
-                format!("{name}: cannot write the upload: {e}"),
+                format!("{name}: cannot write the upload: {}", e.kind()),
             )
         })?;
     }
@@ -293,11 +341,26 @@ mod tests {
             "stl",
             "a\\b.stl",
             "a\nb.stl",
+            "./x.stl",
+            "x.stl/",
+            "a\u{1b}[2Jb.stl",
+            "evil\u{202e}lts.gcode",
+            "notes.txt.toml",
+            "x.stl.toml.toml",
+            ".x.stl.toml",
+            "x.gcode.part",
         ] {
             let e = check_name(bad).unwrap_err();
             assert!(e.message.contains("file name"), "{bad}: {}", e.message);
         }
-        assert!(check_name(&"a".repeat(300)).is_err());
+        let e = check_name(&format!("{}.gcode", "a".repeat(244))).unwrap_err();
+        assert_eq!(e.status, StatusCode::BAD_REQUEST);
+        assert!(e.message.contains("200 bytes"), "{}", e.message);
+        assert!(
+            e.message.len() < 300,
+            "the name is shortened: {}",
+            e.message
+        );
     }
 
     #[tokio::test]

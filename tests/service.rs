@@ -1,6 +1,7 @@
 //! The systemd unit in `config/` is checked by systemd itself (`systemd-analyze verify`),
 //! with its ExecStart pointed at the binary under test: a typo in a sandboxing option
-//! would otherwise only show on a print-farm host.
+//! would otherwise only show on a print-farm host. Its sandboxing is scored by
+//! `systemd-analyze security`, which must not get worse.
 
 use std::process::Command;
 
@@ -60,4 +61,50 @@ fn tcp_only_with_the_http_drop_in() {
         assert!(drop_in.lines().any(|l| l == line), "drop-in lacks {line}");
     }
     verify(&unit, Some(&drop_in));
+}
+
+/// The exposure `systemd-analyze security` gives the unit (0 safest, 10 unsafe).
+fn exposure(unit: &str) -> f64 {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("crispen.service");
+    std::fs::write(&path, unit).unwrap();
+    let out = Command::new("systemd-analyze")
+        .args(["security", "--offline=true", "--no-pager"])
+        .arg(&path)
+        .output()
+        .expect("systemd-analyze (Debian package systemd; scripts/setup installs it)");
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text
+        .lines()
+        .find(|l| l.contains("Overall exposure level"))
+        .unwrap_or_else(|| {
+            panic!(
+                "no exposure level in: {text}{}",
+                String::from_utf8_lossy(&out.stderr)
+            )
+        });
+    line.split_once("crispen.service:")
+        .and_then(|(_, rest)| rest.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("cannot read the exposure in {line:?}"))
+}
+
+/// The unit's sandboxing scores 0.6 (issue 20: it was 2.7, without a system call filter,
+/// ProtectProc, ProcSubset, RemoveIPC or an IP deny list); what is left is what serial
+/// ports need (devices, the dialout group, no private users: see the unit).
+#[test]
+fn the_units_exposure_is_at_most_0_6() {
+    let unit = config_file("crispen.service");
+    let score = exposure(&unit);
+    assert!(
+        score <= 0.6,
+        "systemd-analyze security: exposure {score}, more than 0.6"
+    );
+    // The score moves with what the unit says: without its system call filter it is worse.
+    let unfiltered: String = unit
+        .lines()
+        .filter(|l| !l.starts_with("SystemCallFilter="))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    assert!(exposure(&unfiltered) > score);
 }

@@ -291,6 +291,34 @@ impl Config {
 
     /// Parses and checks config text.
     pub fn parse(text: &str, path: &Path) -> Result<Config, ConfigError> {
+        let (raw, base) = Config::parse_raw(text, path)?;
+        Config::from_raw(raw, path, &base)
+    }
+
+    /// The control socket a config file names, from the file's first stage alone: what
+    /// the one-shot commands (`crispen status`, `clear`, ...) need, without reading the
+    /// daemon's secrets (its key and password files are the daemon's user's alone, and an
+    /// operator in its group runs these commands).
+    pub fn socket_of(path: &Path) -> Result<PathBuf, ConfigError> {
+        let read = |source| ConfigError::Read {
+            file: path.to_path_buf(),
+            source,
+        };
+        let mut text = String::new();
+        std::fs::File::open(path)
+            .and_then(|f| f.take(MAX_CONFIG_BYTES).read_to_string(&mut text))
+            .map_err(read)?;
+        let (raw, base) = Config::parse_raw(&text, path)?;
+        let spool_dir = base.join(&raw.spool.dir);
+        Ok(match raw.control {
+            Some(c) if !c.socket.as_os_str().is_empty() => base.join(c.socket),
+            _ => spool_dir.join("crispen.sock"),
+        })
+    }
+
+    /// The first stage: the text as the file's shape, and the directory that anchors its
+    /// relative paths.
+    fn parse_raw(text: &str, path: &Path) -> Result<(RawConfig, PathBuf), ConfigError> {
         let raw: RawConfig = toml::from_str(text).map_err(|e| {
             let offset = e.span().map(|s| s.start).unwrap_or(0);
             let (line, mut section) = locate(text, offset);
@@ -318,7 +346,7 @@ impl Config {
             _ => Path::new("."),
         };
         let base = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
-        Config::from_raw(raw, path, &base)
+        Ok((raw, base))
     }
 
     /// The configuration used when no file is given: everything under `./crispen-demo/`,
@@ -902,6 +930,9 @@ fn read_api_key_warning(key_file: &Path) -> Result<(ApiKey, Option<String>), Str
     Ok((ApiKey(key.to_string()), warning))
 }
 
+/// The largest config file [`Config::socket_of`] reads.
+const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
 /// At most this many printers (and so heating permits) in one farm.
 pub const MAX_PRINTERS: usize = 256;
 
@@ -962,7 +993,7 @@ fn seconds_in(value: f64, range: &Bounds) -> Result<Duration, String> {
 }
 
 /// A number as an error shows it: as written for ordinary values, in exponent form when
-/// it would take more than a dozen digits (`1e308`, not 309 of them).
+/// that would take more than 16 characters (`1e308`, not 309 digits).
 pub fn number(value: f64) -> String {
     let plain = value.to_string();
     if plain.len() <= 16 {
@@ -1198,6 +1229,28 @@ slicer = "cura"
         let long = check_host_name(&"/".repeat(4000)).unwrap_err();
         assert!(long.len() < 300, "{long}");
         assert!(check_host_name(&this_hostname()).is_ok());
+    }
+
+    /// The one-shot commands find the socket without the daemon's secrets, which an
+    /// operator may not be able to read (here: a key file that is not there at all).
+    #[test]
+    fn the_socket_is_found_without_reading_secrets() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("crispen.toml");
+        let text =
+            format!("{GOOD}\n[http]\nlisten = \"127.0.0.1:8080\"\napi_key_file = \"gone.key\"\n");
+        std::fs::write(&file, &text).unwrap();
+        assert!(Config::load(&file).is_err());
+        assert_eq!(
+            Config::socket_of(&file).unwrap(),
+            PathBuf::from("/run/crispen/crispen.sock")
+        );
+        std::fs::write(&file, "[spool]\ndir = \"spool\"\n").unwrap();
+        let base = std::path::absolute(dir.path()).unwrap();
+        assert_eq!(
+            Config::socket_of(&file).unwrap(),
+            base.join("spool").join("crispen.sock")
+        );
     }
 
     /// Numbers in errors stay short whatever was written.

@@ -52,10 +52,13 @@ fn tcp_only_with_the_http_drop_in() {
     let unit = config_file("crispen.service");
     assert!(unit.lines().any(|l| l == "PrivateNetwork=yes"));
     assert!(unit.lines().any(|l| l == "RestrictAddressFamilies=AF_UNIX"));
+    assert!(unit.lines().any(|l| l == "IPAddressDeny=any"));
     let drop_in = config_file("crispen-http.conf");
     for line in [
         "PrivateNetwork=no",
         "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6",
+        // The unit denies every IP address; the drop-in lifts that.
+        "IPAddressDeny=",
         "SocketBindDeny=any",
     ] {
         assert!(drop_in.lines().any(|l| l == line), "drop-in lacks {line}");

@@ -770,7 +770,9 @@ fn control_commands_act_across_hosts() {
 /// 2. once a stops renewing (frozen with SIGSTOP, as a hung machine or a long outage
 ///    would) and its lease has run out, the clone does take the name over and interrupts
 ///    a's print; a, thawed, finds its token replaced, says so, and acts for the host no
-///    more: a file dropped in its folder is not taken in.
+///    more: a file dropped in its folder is not taken in;
+/// 3. a run killed with `kill -9` mid-print: the next run under the name, started once
+///    the lease has run out, takes over and interrupts that print.
 #[test]
 fn a_second_run_under_a_live_hosts_name_refuses_to_start() {
     let spec = HostSpec {
@@ -780,7 +782,7 @@ fn a_second_run_under_a_live_hosts_name_refuses_to_start() {
         time_scale: 0.05,
         lease_s: Some(6),
     };
-    let farm = Farm::start(&[spec]);
+    let mut farm = Farm::start(&[spec]);
     let hot = farm.root.join("hot/a");
     let acked = |s: &Value| {
         printer(s, "a1").map_or(0, |p| p["progress"]["lines_acked"].as_u64().unwrap_or(0))
@@ -891,7 +893,7 @@ fn a_second_run_under_a_live_hosts_name_refuses_to_start() {
     drop_file(
         &hot,
         "job-3.gcode",
-        presliced_gcode("job-3", 10, 1200).as_bytes(),
+        presliced_gcode("job-3", 2000, 1200).as_bytes(),
     );
     farm.wait_until(Duration::from_secs(60), "a to refuse job-3", |last| {
         let log = std::fs::read_to_string(&farm.host("a").log).unwrap_or_default();
@@ -914,4 +916,78 @@ fn a_second_run_under_a_live_hosts_name_refuses_to_start() {
     );
     let rows = farm.query("SELECT state FROM jobs WHERE file = 'job-2.gcode'", &[]);
     assert_eq!(rows[0].get::<_, String>(0), "interrupted");
+
+    // Part 3: a crash. The clone, started again once its lease has run out, takes job-3
+    // in and prints it; killed with `kill -9` mid-print, it leaves job-3 `printing` until
+    // a run under the name, started after its lease has run out, interrupts it.
+    farm.host_mut("a").kill9();
+    lease_run_out(&farm, "the clone's lease to run out");
+    clone.start();
+    let clone_printing = |s: &Value| state_of(s, "job-3.gcode") == "printing" && acked(s) > 10;
+    let started = Instant::now();
+    loop {
+        let _ = clone.ctl(&["clear", "a1"]);
+        if clone.status().is_some_and(|s| clone_printing(&s)) {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "the clone did not print job-3: {}",
+            clone.log_tail(40)
+        );
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    clone.kill9();
+    let rows = farm.query("SELECT state FROM jobs WHERE file = 'job-3.gcode'", &[]);
+    assert_eq!(
+        rows[0].get::<_, String>(0),
+        "printing",
+        "nothing took it yet"
+    );
+    lease_run_out(&farm, "the killed clone's lease to run out");
+    farm.host_mut("a").start();
+    farm.wait_until(
+        Duration::from_secs(120),
+        "the restart to interrupt job-3",
+        |last| {
+            let rows = farm.query(
+                "SELECT state, coalesce(reason, '') FROM jobs WHERE file = 'job-3.gcode'",
+                &[],
+            );
+            *last = format!("{:?}", rows.first().map(|r| r.get::<_, String>(1)));
+            rows.first()
+                .is_some_and(|r| {
+                    r.get::<_, String>(0) == "interrupted"
+                        && r.get::<_, String>(1).contains("restarted during the print")
+                })
+                .then_some(())
+        },
+    );
+    let entries = farm.printing_entries();
+    assert!(
+        entries.values().all(|n| *n == 1) && entries.len() == 3,
+        "each job entered printing once: {entries:?}"
+    );
+    assert_eq!(
+        common::farm::markers(&farm.root.join("a1.rec")),
+        ["job-1", "job-2"]
+    );
+    assert_eq!(
+        common::farm::markers(&farm.root.join("clone-a1.rec")),
+        ["job-3"]
+    );
+}
+
+/// Waits until host a's lease has run out, by the database's clock.
+fn lease_run_out(farm: &Farm, what: &str) {
+    farm.wait_until(Duration::from_secs(60), what, |last| {
+        let rows = farm.query(
+            "SELECT lease_until < now() FROM hosts WHERE name = 'a'",
+            &[],
+        );
+        *last = format!("{:?}", rows.first().map(|r| r.get::<_, bool>(0)));
+        rows.first()
+            .is_some_and(|r| r.get::<_, bool>(0))
+            .then_some(())
+    })
 }

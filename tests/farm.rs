@@ -852,16 +852,7 @@ fn a_second_run_under_a_live_hosts_name_refuses_to_start() {
         state_of(s, "job-2.gcode") == "printing" && acked(s) > 10
     });
     farm.host("a").signal(nix::sys::signal::Signal::SIGSTOP);
-    farm.wait_until(Duration::from_secs(60), "a's lease to run out", |last| {
-        let rows = farm.query(
-            "SELECT lease_until < now() FROM hosts WHERE name = 'a'",
-            &[],
-        );
-        *last = format!("{:?}", rows.first().map(|r| r.get::<_, bool>(0)));
-        rows.first()
-            .is_some_and(|r| r.get::<_, bool>(0))
-            .then_some(())
-    });
+    lease_run_out(&farm, "a's lease to run out");
     clone.start();
     farm.wait_until(
         Duration::from_secs(120),

@@ -967,6 +967,24 @@ fn a_second_run_under_a_live_hosts_name_refuses_to_start() {
         common::farm::markers(&farm.root.join("clone-a1.rec")),
         ["job-3"]
     );
+
+    // A clean stop gives the lease up: the next run under the name starts at once.
+    farm.host("a").signal(nix::sys::signal::Signal::SIGTERM);
+    let stopped = farm.host_mut("a").wait_exit(Duration::from_secs(60));
+    assert!(stopped.is_some_and(|s| s.success()), "{stopped:?}");
+    let rows = farm.query(
+        "SELECT lease_until <= now() FROM hosts WHERE name = 'a'",
+        &[],
+    );
+    assert!(
+        rows[0].get::<_, bool>(0),
+        "a's lease was given up at its stop"
+    );
+    clone.start();
+    farm.wait_until(Duration::from_secs(60), "the clone to start", |last| {
+        *last = clone.log_tail(5);
+        clone.status().map(|_| ())
+    });
 }
 
 /// Waits until host a's lease has run out, by the database's clock.

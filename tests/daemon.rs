@@ -1275,6 +1275,184 @@ fn check_refuses_a_hot_folder_inside_the_spool() {
     );
 }
 
+/// A config using every section with a secret: `[farm] host`, `[store]` with a password
+/// file and `[http]` with a key file, both mode 0600. `run --check` accepts it quietly.
+fn farm_config(root: &Path) -> PathBuf {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    for (name, text) in [("pw", "a-password\n"), ("key", "k-0123456789abcdef-k\n")] {
+        std::fs::write(root.join(name), text).unwrap();
+        std::fs::set_permissions(root.join(name), std::fs::Permissions::from_mode(0o600)).unwrap();
+    }
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nhost = \"rack-1\"\n\
+         [store]\npostgres = \"host=/run/postgresql dbname=crispen\"\npassword_file = \"pw\"\nlease_s = 15\n\
+         [http]\nlisten = \"127.0.0.1:8080\"\napi_key_file = \"key\"\n\
+         [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
+    )
+    .unwrap();
+    config
+}
+
+fn run_check(config: &Path) -> (bool, String) {
+    let out = Command::new(BIN)
+        .args(["run", "--check", "--config"])
+        .arg(config)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Issue 20: `run --check` refuses what the service cannot use or what is no name, each
+/// error naming its section and key: a privileged port (the unit grants no capability to
+/// bind one), host names `..` and `-`, an empty connection string, a password file that
+/// is missing, a directory or a device (`/dev/zero` was read without end at start), an
+/// API key file that is a device (whose hint once said to write the key *to*
+/// /dev/urandom); `lease_s = 1e308` is shown as 1e308, not in 309 digits.
+#[test]
+fn check_refuses_what_the_service_cannot_use() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let config = farm_config(root);
+    let good = std::fs::read_to_string(&config).unwrap();
+    let (ok, stderr) = run_check(&config);
+    assert!(
+        ok && stderr.is_empty(),
+        "the base config passes quietly: {stderr}"
+    );
+    std::fs::create_dir(root.join("a-directory")).unwrap();
+    let cases: &[(&str, &str, &[&str])] = &[
+        (
+            "\"127.0.0.1:8080\"",
+            "\"0.0.0.0:22\"",
+            &["[http]: key `listen`", "port 22 is privileged"],
+        ),
+        ("\"rack-1\"", "\"..\"", &["[farm]: key `host`", "\"..\""]),
+        (
+            "\"rack-1\"",
+            "\"-\"",
+            &["[farm]: key `host`", "not starting with"],
+        ),
+        ("\"rack-1\"", "\".hidden\"", &["[farm]: key `host`"]),
+        (
+            "\"host=/run/postgresql dbname=crispen\"",
+            "\"\"",
+            &["[store]: key `postgres`", "names no server"],
+        ),
+        (
+            "lease_s = 15",
+            "lease_s = 1e308",
+            &["[store]: key `lease_s`", "got 1e308"],
+        ),
+        (
+            "\"pw\"",
+            "\"no-such-file\"",
+            &["[store]: key `password_file`", "no-such-file"],
+        ),
+        (
+            "\"pw\"",
+            "\"a-directory\"",
+            &["[store]: key `password_file`", "not a regular file"],
+        ),
+        (
+            "\"pw\"",
+            "\"/dev/zero\"",
+            &[
+                "[store]: key `password_file`",
+                "/dev/zero is not a regular file",
+            ],
+        ),
+        (
+            "\"key\"",
+            "\"/dev/urandom\"",
+            &[
+                "[http]: key `api_key_file`",
+                "/dev/urandom is not a regular file",
+            ],
+        ),
+        (
+            "\"key\"",
+            "\"no-key\"",
+            &[
+                "[http]: key `api_key_file`",
+                "(umask 077; head -c 24 /dev/urandom | base64 > ",
+            ],
+        ),
+    ];
+    for (from, to, want) in cases {
+        std::fs::write(&config, good.replacen(from, to, 1)).unwrap();
+        let (ok, stderr) = run_check(&config);
+        assert!(!ok, "{to} passed --check");
+        for part in *want {
+            assert!(stderr.contains(part), "{to}: {part:?} not in: {stderr}");
+        }
+        assert!(
+            !stderr.contains("> /dev/urandom") && stderr.len() < 600,
+            "{to}: {stderr}"
+        );
+    }
+}
+
+/// Issue 20: key and password files others can read are accepted, with a warning from
+/// `run --check` naming the section, key and file.
+#[test]
+fn check_warns_about_secrets_others_can_read() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let config = farm_config(root);
+    std::fs::set_permissions(root.join("key"), std::fs::Permissions::from_mode(0o644)).unwrap();
+    std::fs::set_permissions(root.join("pw"), std::fs::Permissions::from_mode(0o640)).unwrap();
+    let (ok, stderr) = run_check(&config);
+    assert!(ok, "{stderr}");
+    let key = root.join("key");
+    let pw = root.join("pw");
+    for want in [
+        format!(
+            "warning: [http] key `api_key_file`: {} is readable by every user (mode 0644)",
+            key.display()
+        ),
+        format!(
+            "warning: [store] key `password_file`: {} is readable by its group (mode 0640)",
+            pw.display()
+        ),
+    ] {
+        assert!(stderr.contains(&want), "{want:?} not in: {stderr}");
+    }
+}
+
+/// `crispen run --check … | head -1` with the reader gone: the check ends as Unix tools do
+/// (SIGPIPE), without a panic on stderr.
+#[test]
+fn a_check_whose_reader_is_gone_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tempfile::tempdir().unwrap();
+    let (config, _log) = small_farm(dir.path(), "");
+    let (reader, writer) = nix::unistd::pipe().unwrap();
+    drop(reader);
+    let output = Command::new(BIN)
+        .args(["run", "--check", "--config"])
+        .arg(&config)
+        .stdout(std::process::Stdio::from(writer))
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(
+        output.status.signal(),
+        Some(13),
+        "{:?}: {stderr}",
+        output.status
+    );
+}
+
 /// A sidecar that arrives shortly after its model still applies (it was once left in
 /// the folder, silently ignored), and one that arrives after its job started is reported
 /// in the log and kept aside in the job directory, never silently dropped.

@@ -759,3 +759,244 @@ fn control_commands_act_across_hosts() {
     let entries = farm.printing_entries();
     assert_eq!(entries[&id], 2, "printed once, then once more when retried");
 }
+
+/// Issue 20: a second daemon started under the `[farm] host` of a running one (a cloned
+/// machine keeps the hostname, the default name) used to take the live job for one left
+/// "mid-flight after a restart", interrupt it, and so have it printed twice. Now each run
+/// holds its own token in the host's row:
+/// 1. while host a prints, a clone of it (same name, its own spool, socket and
+///    simulator) refuses to start, naming the host and the lease's time left; a's job is
+///    not interrupted and is printed once;
+/// 2. once a stops renewing (frozen with SIGSTOP, as a hung machine or a long outage
+///    would) and its lease has run out, the clone does take the name over and interrupts
+///    a's print; a, thawed, finds its token replaced, says so, and acts for the host no
+///    more: a file dropped in its folder is not taken in;
+/// 3. a run killed with `kill -9` mid-print: the next run under the name, started once
+///    the lease has run out, takes over and interrupts that print.
+#[test]
+fn a_second_run_under_a_live_hosts_name_refuses_to_start() {
+    let spec = HostSpec {
+        name: "a".into(),
+        printers: vec!["a1".into()],
+        folders: vec![("hot/a".into(), vec!["a1".into()])],
+        time_scale: 0.05,
+        lease_s: Some(6),
+    };
+    let mut farm = Farm::start(&[spec]);
+    let hot = farm.root.join("hot/a");
+    let acked = |s: &Value| {
+        printer(s, "a1").map_or(0, |p| p["progress"]["lines_acked"].as_u64().unwrap_or(0))
+    };
+    farm.wait_status("a", Duration::from_secs(120), "a1 idle", |s| {
+        printer(s, "a1").is_some_and(|p| p["state"] == "idle")
+    });
+    // 120 moves of 5 s' simulated time: about 30 s here.
+    drop_file(
+        &hot,
+        "job-1.gcode",
+        presliced_gcode("job-1", 120, 1200).as_bytes(),
+    );
+    farm.wait_status("a", Duration::from_secs(120), "a1 printing job-1", |s| {
+        state_of(s, "job-1.gcode") == "printing" && acked(s) > 10
+    });
+
+    let mut clone = farm.host("a").clone_as("clone");
+    clone.start();
+    let status = clone.wait_exit(Duration::from_secs(60));
+    let log = std::fs::read_to_string(&clone.log).unwrap_or_default();
+    assert!(
+        status.is_some_and(|s| !s.success()),
+        "a second run under host a's name must refuse to start: {status:?}\n{log}{}",
+        farm.diagnostics()
+    );
+    for part in [
+        "[farm] host \"a\" is in use",
+        "s more",
+        "give each machine its own [farm] host",
+    ] {
+        assert!(log.contains(part), "the refusal says {part:?}: {log}");
+    }
+    let s = farm.host("a").status().unwrap();
+    assert_eq!(state_of(&s, "job-1.gcode"), "printing", "{s}");
+    farm.wait_status("a", Duration::from_secs(300), "job-1 done", |s| {
+        state_of(s, "job-1.gcode") == "done"
+    });
+    assert!(
+        !std::fs::read_to_string(&farm.host("a").log)
+            .unwrap()
+            .contains("mid-flight"),
+        "nothing of a's was taken for a restart's leftovers"
+    );
+    let id1: String = farm.query("SELECT id FROM jobs WHERE file = 'job-1.gcode'", &[])[0].get(0);
+    assert_eq!(
+        farm.printing_entries()[&id1],
+        1,
+        "job-1 entered printing once"
+    );
+    assert_eq!(
+        common::farm::markers(&farm.root.join("a1.rec")),
+        ["job-1"],
+        "a1 printed job-1 once"
+    );
+    assert!(common::farm::markers(&farm.root.join("clone-a1.rec")).is_empty());
+
+    // Part 2: a long print, then a freezes.
+    let (ok, out) = farm.host("a").ctl(&["clear", "a1"]);
+    assert!(ok, "clear a1: {out}");
+    drop_file(
+        &hot,
+        "job-2.gcode",
+        presliced_gcode("job-2", 2000, 1200).as_bytes(),
+    );
+    farm.wait_status("a", Duration::from_secs(120), "a1 printing job-2", |s| {
+        state_of(s, "job-2.gcode") == "printing" && acked(s) > 10
+    });
+    farm.host("a").signal(nix::sys::signal::Signal::SIGSTOP);
+    lease_run_out(&farm, "a's lease to run out");
+    clone.start();
+    farm.wait_until(
+        Duration::from_secs(120),
+        "the clone to take the name over and interrupt job-2",
+        |last| {
+            let rows = farm.query(
+                "SELECT state, coalesce(reason, '') FROM jobs WHERE file = 'job-2.gcode'",
+                &[],
+            );
+            *last = format!("{:?}", rows.first().map(|r| r.get::<_, String>(0)));
+            rows.first()
+                .is_some_and(|r| r.get::<_, String>(0) == "interrupted")
+                .then_some(())
+        },
+    );
+    // The clone runs on; a thaws and learns it was displaced.
+    farm.host("a").signal(nix::sys::signal::Signal::SIGCONT);
+    farm.wait_status(
+        "a",
+        Duration::from_secs(60),
+        "a says it was taken over",
+        |s| {
+            s["farm"]["database"]
+                .as_str()
+                .is_some_and(|d| d.contains("taken over by another run"))
+        },
+    );
+    clone.kill9();
+    drop_file(
+        &hot,
+        "job-3.gcode",
+        presliced_gcode("job-3", 2000, 1200).as_bytes(),
+    );
+    farm.wait_until(Duration::from_secs(60), "a to refuse job-3", |last| {
+        let log = std::fs::read_to_string(&farm.host("a").log).unwrap_or_default();
+        *last = farm.host("a").log_tail(5);
+        log.lines()
+            .any(|l| {
+                l.contains("cannot pick up") && l.contains("job-3") && l.contains("taken over")
+            })
+            .then_some(())
+    });
+    let files: Vec<String> = farm
+        .query("SELECT file FROM jobs ORDER BY seq", &[])
+        .iter()
+        .map(|r| r.get(0))
+        .collect();
+    assert_eq!(
+        files,
+        ["job-1.gcode", "job-2.gcode"],
+        "job-3 was not taken in"
+    );
+    let rows = farm.query("SELECT state FROM jobs WHERE file = 'job-2.gcode'", &[]);
+    assert_eq!(rows[0].get::<_, String>(0), "interrupted");
+
+    // Part 3: a crash. The clone, started again once its lease has run out, takes job-3
+    // in and prints it; killed with `kill -9` mid-print, it leaves job-3 `printing` until
+    // a run under the name, started after its lease has run out, interrupts it.
+    farm.host_mut("a").kill9();
+    lease_run_out(&farm, "the clone's lease to run out");
+    clone.start();
+    let clone_printing = |s: &Value| state_of(s, "job-3.gcode") == "printing" && acked(s) > 10;
+    let started = Instant::now();
+    loop {
+        let _ = clone.ctl(&["clear", "a1"]);
+        if clone.status().is_some_and(|s| clone_printing(&s)) {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "the clone did not print job-3: {}",
+            clone.log_tail(40)
+        );
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    clone.kill9();
+    let rows = farm.query("SELECT state FROM jobs WHERE file = 'job-3.gcode'", &[]);
+    assert_eq!(
+        rows[0].get::<_, String>(0),
+        "printing",
+        "nothing took it yet"
+    );
+    lease_run_out(&farm, "the killed clone's lease to run out");
+    farm.host_mut("a").start();
+    farm.wait_until(
+        Duration::from_secs(120),
+        "the restart to interrupt job-3",
+        |last| {
+            let rows = farm.query(
+                "SELECT state, coalesce(reason, '') FROM jobs WHERE file = 'job-3.gcode'",
+                &[],
+            );
+            *last = format!("{:?}", rows.first().map(|r| r.get::<_, String>(1)));
+            rows.first()
+                .is_some_and(|r| {
+                    r.get::<_, String>(0) == "interrupted"
+                        && r.get::<_, String>(1).contains("restarted during the print")
+                })
+                .then_some(())
+        },
+    );
+    let entries = farm.printing_entries();
+    assert!(
+        entries.values().all(|n| *n == 1) && entries.len() == 3,
+        "each job entered printing once: {entries:?}"
+    );
+    assert_eq!(
+        common::farm::markers(&farm.root.join("a1.rec")),
+        ["job-1", "job-2"]
+    );
+    assert_eq!(
+        common::farm::markers(&farm.root.join("clone-a1.rec")),
+        ["job-3"]
+    );
+
+    // A clean stop gives the lease up: the next run under the name starts at once.
+    farm.host("a").signal(nix::sys::signal::Signal::SIGTERM);
+    let stopped = farm.host_mut("a").wait_exit(Duration::from_secs(60));
+    assert!(stopped.is_some_and(|s| s.success()), "{stopped:?}");
+    let rows = farm.query(
+        "SELECT lease_until <= now() FROM hosts WHERE name = 'a'",
+        &[],
+    );
+    assert!(
+        rows[0].get::<_, bool>(0),
+        "a's lease was given up at its stop"
+    );
+    clone.start();
+    farm.wait_until(Duration::from_secs(60), "the clone to start", |last| {
+        *last = clone.log_tail(5);
+        clone.status().map(|_| ())
+    });
+}
+
+/// Waits until host a's lease has run out, by the database's clock.
+fn lease_run_out(farm: &Farm, what: &str) {
+    farm.wait_until(Duration::from_secs(60), what, |last| {
+        let rows = farm.query(
+            "SELECT lease_until < now() FROM hosts WHERE name = 'a'",
+            &[],
+        );
+        *last = format!("{:?}", rows.first().map(|r| r.get::<_, bool>(0)));
+        rows.first()
+            .is_some_and(|r| r.get::<_, bool>(0))
+            .then_some(())
+    })
+}

@@ -574,6 +574,56 @@ fn api_over_tcp_with_and_without_the_key() {
     assert!(!m.contains("spot"), "no file name in the metrics:\n{m}");
 }
 
+/// Issue 20: a rotated API key is read again on reload (SIGHUP): from then on the old key
+/// is refused and the new one accepted. The key file, readable by every user as written
+/// here, is accepted with a warning in the log.
+#[test]
+fn a_rotated_key_takes_effect_on_reload() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "");
+    assert_eq!(farm.get("/api/v1/status", Some(KEY)).status, 200);
+    let log = std::fs::read_to_string(&farm.log).unwrap();
+    let mode = std::os::unix::fs::PermissionsExt::mode(
+        &std::fs::metadata(tmp.path().join("key"))
+            .unwrap()
+            .permissions(),
+    );
+    if mode & 0o004 != 0 {
+        assert!(
+            log.contains("[http] key `api_key_file`") && log.contains("readable by every user"),
+            "{log}"
+        );
+    }
+    const NEW: &str = "rotated-key-9876543210fedcba";
+    std::fs::write(tmp.path().join("key"), format!("{NEW}\n")).unwrap();
+    let pid = nix::unistd::Pid::from_raw(farm._daemon.child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
+    let started = Instant::now();
+    while !std::fs::read_to_string(&farm.log)
+        .unwrap()
+        .contains("SIGHUP: config reloaded")
+    {
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "no reload: {}",
+            std::fs::read_to_string(&farm.log).unwrap()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let old = farm.get("/api/v1/status", Some(KEY));
+    assert_eq!(
+        old.status,
+        403,
+        "the old key after the reload: {}",
+        old.text()
+    );
+    assert_eq!(farm.get("/api/v1/status", Some(NEW)).status, 200);
+    assert_eq!(
+        farm.post("/api/v1/printers/alpha/clear", Some(KEY)).status,
+        403
+    );
+}
+
 /// An upload made exactly as PrusaSlicer's "Send to printer" (OctoPrint host type) makes
 /// it: first `GET /api/version` (its connection test wants "OctoPrint" in `text`), then
 /// libcurl's multipart POST with the fields `print`, `path` and `file`, `Expect:

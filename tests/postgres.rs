@@ -1,6 +1,7 @@
 //! The farm's queue in PostgreSQL, against a real server started for each test
 //! (`tests/common/postgres.rs`): the schema and its versions, claims from many hosts at
-//! once, lease expiry, an outage of the database, and the daemon's job store over it
+//! once, lease expiry, one run per host name, an outage of the database, and the daemon's
+//! job store over it
 //! (two hosts' stores passing a job and its files between them, through an outage).
 
 mod common;
@@ -225,6 +226,72 @@ fn an_expired_lease_requeues_preparation_and_interrupts_printing() {
         let again = alive.claim_preparation().await.unwrap().unwrap();
         assert_eq!(again.id, prepared.id);
         assert!(dying.claim_print("a").await.unwrap().is_none());
+    });
+}
+
+/// One run per host name (issue 20): a second connection under a live host's name is
+/// refused with the time left on its lease; once that lease has run out, a new run takes
+/// the name over and hands back the first run's work; the first run, displaced, can
+/// neither claim, renew nor record an outcome.
+#[test]
+fn a_host_name_is_held_by_one_run_at_a_time() {
+    let pg = PgServer::start();
+    runtime().block_on(async {
+        let lease = Duration::from_secs(2);
+        let first = PgStore::connect(&settings(&pg), "rack-1", lease)
+            .await
+            .unwrap();
+        first.register_printer("a", None).await.unwrap();
+        admit_n(&first, 2, &["a".to_string()]).await;
+        let preparing = first.claim_preparation().await.unwrap().unwrap();
+        match PgStore::connect(&settings(&pg), "rack-1", lease).await {
+            Err(PgError::HostInUse { host, remaining_s }) => {
+                assert_eq!(host, "rack-1");
+                assert!((0.0..=2.0).contains(&remaining_s), "{remaining_s}");
+            }
+            other => panic!("a second run under a live name: {:?}", other.map(|_| ())),
+        }
+        // Nothing of the first run's was taken.
+        let job = first.job(&preparing.id).await.unwrap();
+        assert_eq!(job.state, JobState::Preparing);
+
+        // The lease runs out (no heartbeat): the name can be taken over.
+        let second = loop {
+            match PgStore::connect(&settings(&pg), "rack-1", LEASE).await {
+                Ok(store) => break store,
+                Err(PgError::HostInUse { .. }) => {
+                    tokio::time::sleep(Duration::from_millis(200)).await
+                }
+                Err(e) => panic!("{e}"),
+            }
+        };
+        assert_eq!(
+            second.recover_own().await.unwrap(),
+            vec![preparing.id.clone()]
+        );
+        // Refused by the check inside the claim's transaction, before anything told the
+        // first run (its heartbeat) that it was displaced.
+        assert!(matches!(
+            first.claim_preparation().await,
+            Err(PgError::Displaced { .. })
+        ));
+        assert!(matches!(
+            first.heartbeat(LEASE).await,
+            Err(PgError::Displaced { .. })
+        ));
+        assert!(matches!(
+            first
+                .finish(&preparing.id, &[JobState::Preparing], JobState::Ready, None)
+                .await,
+            Err(PgError::Displaced { .. })
+        ));
+        // The second run works as the host.
+        let again = second.claim_preparation().await.unwrap().unwrap();
+        second
+            .finish(&again.id, &[JobState::Preparing], JobState::Ready, None)
+            .await
+            .unwrap();
+        second.heartbeat(LEASE).await.unwrap();
     });
 }
 

@@ -13,6 +13,11 @@ fuzz_target!(|data: &[u8]| {
     match Config::parse(text, std::path::Path::new("/etc/crispen/crispen.toml")) {
         Ok(config) => {
             assert!(config.farm.max_heating >= 1);
+            let host = &config.farm.host;
+            assert!(!host.is_empty() && host.len() <= 64 && !host.starts_with(['.', '-']));
+            if let Some(http) = &config.http {
+                assert!(http.listen.port() == 0 || http.listen.port() >= 1024);
+            }
             for folder in &config.folders {
                 assert!(folder.height_mm >= 1.0 && folder.height_mm <= 205.0);
                 assert!(!folder.path.starts_with(&config.spool_dir));

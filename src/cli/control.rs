@@ -56,11 +56,10 @@ pub struct JobArgs {
 /// Sends one request to the daemon; returns the JSON answer of a success, or the
 /// daemon's error message as the error.
 fn ask(config: &Option<PathBuf>, method: Method, path: &str) -> anyhow::Result<serde_json::Value> {
-    let config = match config {
-        Some(path) => Config::load(path)?,
-        None => Config::builtin_default(),
+    let socket = match config {
+        Some(path) => Config::socket_of(path)?,
+        None => Config::builtin_default().socket,
     };
-    let socket = config.socket;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

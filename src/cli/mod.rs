@@ -61,10 +61,12 @@ pub enum Command {
 
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
-    if !matches!(cli.command, Command::Run(_)) {
-        // A one-shot command whose reader goes away (`crispen status | head`) ends quietly
-        // as Unix tools do, instead of panicking in `println!`. The daemon keeps SIGPIPE
-        // ignored: a client closing its connection must not end it.
+    let daemon = matches!(&cli.command, Command::Run(a) if !a.check);
+    if !daemon {
+        // A one-shot command whose reader goes away (`crispen status | head`, `crispen
+        // run --check | head -1`) ends quietly as Unix tools do, instead of panicking in
+        // `println!`. The daemon keeps SIGPIPE ignored: a client closing its connection
+        // must not end it.
         use nix::sys::signal::{signal, SigHandler, Signal};
         // SAFETY: no other thread exists yet, and the default action installs no handler.
         let _ = unsafe { signal(Signal::SIGPIPE, SigHandler::SigDfl) };

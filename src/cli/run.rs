@@ -41,6 +41,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             config
         }
     };
+    // What the config allows but should not (a key file others can read).
+    for warning in &config.warnings {
+        if args.check {
+            eprintln!("warning: {warning}");
+        } else {
+            tracing::warn!("{warning}");
+        }
+    }
     // Kernel names such as /dev/ttyACM0 work today but may swap printers after a reboot.
     for warning in daemon::ports::warnings(&config.printers) {
         if args.check {

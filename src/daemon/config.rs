@@ -166,6 +166,9 @@ pub struct Config {
     /// The farm's queue in PostgreSQL (`[store]`), shared with other hosts; None: this
     /// host's own spool.
     pub store: Option<StoreConfig>,
+    /// What is accepted but unwise (a key file others can read), each naming its section
+    /// and key: shown by `crispen run --check` and logged at every start and reload.
+    pub warnings: Vec<String>,
 }
 
 /// `[store]`: the farm database.
@@ -288,6 +291,34 @@ impl Config {
 
     /// Parses and checks config text.
     pub fn parse(text: &str, path: &Path) -> Result<Config, ConfigError> {
+        let (raw, base) = Config::parse_raw(text, path)?;
+        Config::from_raw(raw, path, &base)
+    }
+
+    /// The control socket a config file names, from the file's first stage alone: what
+    /// the one-shot commands (`crispen status`, `clear`, ...) need, without reading the
+    /// daemon's secrets (its key and password files are the daemon's user's alone, and an
+    /// operator in its group runs these commands).
+    pub fn socket_of(path: &Path) -> Result<PathBuf, ConfigError> {
+        let read = |source| ConfigError::Read {
+            file: path.to_path_buf(),
+            source,
+        };
+        let mut text = String::new();
+        std::fs::File::open(path)
+            .and_then(|f| f.take(MAX_CONFIG_BYTES).read_to_string(&mut text))
+            .map_err(read)?;
+        let (raw, base) = Config::parse_raw(&text, path)?;
+        let spool_dir = base.join(&raw.spool.dir);
+        Ok(match raw.control {
+            Some(c) if !c.socket.as_os_str().is_empty() => base.join(c.socket),
+            _ => spool_dir.join("crispen.sock"),
+        })
+    }
+
+    /// The first stage: the text as the file's shape, and the directory that anchors its
+    /// relative paths.
+    fn parse_raw(text: &str, path: &Path) -> Result<(RawConfig, PathBuf), ConfigError> {
         let raw: RawConfig = toml::from_str(text).map_err(|e| {
             let offset = e.span().map(|s| s.start).unwrap_or(0);
             let (line, mut section) = locate(text, offset);
@@ -297,7 +328,7 @@ impl Config {
             if let Some(header) = unknown_table_header(text, offset) {
                 section = "the top level".into();
                 message = format!(
-                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[machine]], [[printer]], [[folder]], [http])"
+                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[machine]], [[printer]], [[folder]], [http], [store])"
                 );
             }
             ConfigError::Parse {
@@ -315,7 +346,7 @@ impl Config {
             _ => Path::new("."),
         };
         let base = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
-        Config::from_raw(raw, path, &base)
+        Ok((raw, base))
     }
 
     /// The configuration used when no file is given: everything under `./crispen-demo/`,
@@ -366,6 +397,7 @@ printers = ["demo"]
             }
         };
 
+        let mut warnings = Vec::new();
         let spool_dir = anchor(&raw.spool.dir);
         if raw.spool.dir.as_os_str().is_empty() {
             return Err(invalid("[spool]".into(), "dir", "must not be empty".into()));
@@ -424,6 +456,16 @@ printers = ["demo"]
                 let invalid = |key, m| invalid("[store]".into(), key, m);
                 crate::daemon::store::postgres::check_conninfo(&s.postgres)
                     .map_err(|m| invalid("postgres", m))?;
+                if let Some(p) = &s.password_file {
+                    if p.as_os_str().is_empty() {
+                        return Err(invalid("password_file", "must not be empty".into()));
+                    }
+                    let (_, warning) =
+                        read_secret(&anchor(p)).map_err(|m| invalid("password_file", m))?;
+                    if let Some(w) = warning {
+                        warnings.push(format!("[store] key `password_file`: {w}"));
+                    }
+                }
                 Some(StoreConfig {
                     postgres: crate::daemon::store::postgres::PgSettings {
                         conninfo: s.postgres,
@@ -581,7 +623,10 @@ printers = ["demo"]
                         return Err(invalid(
                             sim_section,
                             "time_scale",
-                            format!("must be between 0 (instant) and 100, got {time_scale}"),
+                            format!(
+                                "must be between 0 (instant) and 100, got {}",
+                                number(time_scale)
+                            ),
                         ));
                     }
                     PrinterPort::Simulated {
@@ -702,9 +747,10 @@ printers = ["demo"]
 
         let http = match raw.http {
             None => None,
-            Some(h) => {
-                Some(check_http(h, &anchor).map_err(|(key, m)| invalid("[http]".into(), key, m))?)
-            }
+            Some(h) => Some(
+                check_http(h, &anchor, &mut warnings)
+                    .map_err(|(key, m)| invalid("[http]".into(), key, m))?,
+            ),
         };
 
         Ok(Config {
@@ -717,30 +763,39 @@ printers = ["demo"]
             folders,
             http,
             store,
+            warnings,
         })
     }
 }
 
-/// A host name as `[farm] host` takes it: it names the host in the farm database and logs.
+/// A host name as `[farm] host` takes it: it names the host in the farm database, the
+/// logs and job reasons. 1 to 64 ASCII letters, digits, `.`, `_` and `-`, starting with a
+/// letter, digit or `_` (so never `.`, `..` or an option-like `-x`).
 fn check_host_name(name: &str) -> Result<String, String> {
     let ok = (1..=64).contains(&name.len())
         && name
             .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))
+        && !name.starts_with(['.', '-']);
     if ok {
         Ok(name.to_string())
     } else {
         Err(format!(
-            "{name:?}: use 1 to 64 letters, digits, '.', '_' or '-'"
+            "{}: use 1 to 64 letters, digits, '.', '_' or '-', not starting with '.' or '-'",
+            shorten(&format!("{name:?}"))
         ))
     }
 }
 
 /// The system's host name (the default `[farm] host`), made to fit [`check_host_name`].
+/// From uname(2), not /proc/sys (which the service unit's `ProcSubset=pid` hides).
 fn this_hostname() -> String {
-    let raw = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+    let raw = nix::unistd::gethostname()
+        .map(|h| h.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let name: String = raw
         .trim()
+        .trim_start_matches(['.', '-'])
         .chars()
         .map(|c| {
             if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
@@ -763,6 +818,7 @@ fn this_hostname() -> String {
 fn check_http(
     h: RawHttp,
     anchor: &dyn Fn(&Path) -> PathBuf,
+    warnings: &mut Vec<String>,
 ) -> Result<HttpConfig, (&'static str, String)> {
     let listen: std::net::SocketAddr = h.listen.parse().map_err(|_| {
         (
@@ -773,7 +829,22 @@ fn check_http(
             ),
         )
     })?;
-    let api_key = read_api_key(&anchor(&h.api_key_file)).map_err(|m| ("api_key_file", m))?;
+    // Port 0 lets the system pick one (tests); any other port below 1024 needs a
+    // capability the service unit does not grant (`CapabilityBoundingSet=` is empty).
+    if (1..1024).contains(&listen.port()) {
+        return Err((
+            "listen",
+            format!(
+                "port {} is privileged (below 1024): the daemon runs without the capability to bind it (hint: use a port from 1024 up, e.g. 8080, and a reverse proxy if it must be 80 or 443)",
+                listen.port()
+            ),
+        ));
+    }
+    let (api_key, warning) =
+        read_api_key_warning(&anchor(&h.api_key_file)).map_err(|m| ("api_key_file", m))?;
+    if let Some(w) = warning {
+        warnings.push(format!("[http] key `api_key_file`: {w}"));
+    }
     let upload_max_mb = h.upload_max_mb.unwrap_or(512);
     if !UPLOAD_MAX_MB.contains(&upload_max_mb) {
         return Err((
@@ -794,18 +865,61 @@ fn check_http(
     })
 }
 
-/// Reads an API key file (its first 4 KiB); a missing or weak key is refused.
+/// Reads an API key file; a missing or weak key is refused (see [`read_secret`]).
 pub fn read_api_key(key_file: &Path) -> Result<ApiKey, String> {
-    let mut text = String::new();
-    std::fs::File::open(key_file)
-        .and_then(|f| f.take(4096).read_to_string(&mut text))
-        .map_err(|e| {
+    read_api_key_warning(key_file).map(|(key, _)| key)
+}
+
+/// The largest key or password file read: a secret is a line, not a stream.
+pub const MAX_SECRET_BYTES: u64 = 4096;
+
+/// Reads a secret file (an API key, a database password): a regular file (a link to one
+/// is followed) of at most [`MAX_SECRET_BYTES`] of UTF-8. Returns its text, and a warning
+/// when users other than its owner may read it: accepted (a root-owned file readable by
+/// group `crispen` is a fair setup), but said at every start and by `--check`.
+pub fn read_secret(path: &Path) -> Result<(String, Option<String>), String> {
+    use std::os::unix::fs::PermissionsExt;
+    let shown = path.display();
+    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    if !meta.is_file() {
+        return Err(format!(
+            "{shown} is not a regular file (hint: a secret is a small regular file of its own, mode 0600)"
+        ));
+    }
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_SECRET_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(|e| format!("cannot read {shown}: {e}"))?;
+    if bytes.len() as u64 > MAX_SECRET_BYTES {
+        return Err(format!(
+            "{shown} is larger than {MAX_SECRET_BYTES} bytes: not a key or password file"
+        ));
+    }
+    let text = String::from_utf8(bytes).map_err(|_| format!("{shown} is not UTF-8 text"))?;
+    let mode = meta.permissions().mode() & 0o777;
+    let warning = (mode & 0o044 != 0).then(|| {
+        let who = if mode & 0o004 != 0 {
+            "every user"
+        } else {
+            "its group"
+        };
+        format!("{shown} is readable by {who} (mode {mode:04o}) (hint: chmod 600 {shown}, owned by the daemon's user)")
+    });
+    Ok((text, warning))
+}
+
+/// [`read_api_key`], with [`read_secret`]'s warning.
+fn read_api_key_warning(key_file: &Path) -> Result<(ApiKey, Option<String>), String> {
+    let (text, warning) = read_secret(key_file).map_err(|e| {
+        if key_file.exists() {
+            e
+        } else {
             format!(
-                "cannot read {}: {e} (hint: `head -c 24 /dev/urandom | base64 > {}`)",
-                key_file.display(),
+                "{e} (hint: make one: (umask 077; head -c 24 /dev/urandom | base64 > {}))",
                 key_file.display()
             )
-        })?;
+        }
+    })?;
     let key = text.trim();
     if key.chars().count() < MIN_API_KEY_CHARS || !key.chars().all(|c| c.is_ascii_graphic()) {
         return Err(format!(
@@ -813,8 +927,11 @@ pub fn read_api_key(key_file: &Path) -> Result<ApiKey, String> {
             key_file.display()
         ));
     }
-    Ok(ApiKey(key.to_string()))
+    Ok((ApiKey(key.to_string()), warning))
 }
+
+/// The largest config file [`Config::socket_of`] reads.
+const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
 /// At most this many printers (and so heating permits) in one farm.
 pub const MAX_PRINTERS: usize = 256;
@@ -867,10 +984,30 @@ fn seconds_in(value: f64, range: &Bounds) -> Result<Duration, String> {
         Ok(Duration::from_secs_f64(value))
     } else {
         Err(format!(
-            "must be a number of seconds from {} to {}, got {value}",
+            "must be a number of seconds from {} to {}, got {}",
             range.start(),
-            range.end()
+            range.end(),
+            number(value)
         ))
+    }
+}
+
+/// A number as an error shows it: as written for ordinary values, in exponent form when
+/// that would take more than 16 characters (`1e308`, not 309 digits).
+pub fn number(value: f64) -> String {
+    let plain = value.to_string();
+    if plain.len() <= 16 {
+        plain
+    } else {
+        format!("{value:e}")
+    }
+}
+
+/// A value as an error echoes it: at most 80 characters, the rest marked as cut.
+fn shorten(text: &str) -> String {
+    match text.char_indices().nth(80) {
+        None => text.to_string(),
+        Some((cut, _)) => format!("{}… ({} characters)", &text[..cut], text.chars().count()),
     }
 }
 
@@ -881,9 +1018,10 @@ pub fn check_height(height_mm: f64) -> Result<(), String> {
         Ok(())
     } else {
         Err(format!(
-            "must be from {} to {} mm, got {height_mm}",
+            "must be from {} to {} mm, got {}",
             range.start(),
-            range.end()
+            range.end(),
+            number(height_mm)
         ))
     }
 }
@@ -943,7 +1081,7 @@ fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
         .trim();
     let top = name.split('.').next()?.trim().trim_matches('"');
     let known = [
-        "spool", "control", "farm", "machine", "printer", "folder", "http",
+        "spool", "control", "farm", "machine", "printer", "folder", "http", "store",
     ];
     (!known.contains(&top)).then(|| {
         line.split_once('#')
@@ -1068,6 +1206,64 @@ slicer = "cura"
     }
 
     /// `[http]`: the key file is read and checked at startup; every error names the key.
+    /// A host name is a plain word of the farm: no `.`/`..`, nothing option-like, bounded.
+    #[test]
+    fn host_names() {
+        for good in ["rack-1", "a", "_x", "host.example.org", &"h".repeat(64)] {
+            assert_eq!(check_host_name(good).as_deref(), Ok(good), "{good}");
+        }
+        for bad in [
+            "",
+            ".",
+            "..",
+            "-",
+            "-x",
+            ".hidden",
+            "a/b",
+            "a b",
+            "é",
+            &"h".repeat(65),
+        ] {
+            assert!(check_host_name(bad).is_err(), "{bad:?}");
+        }
+        let long = check_host_name(&"/".repeat(4000)).unwrap_err();
+        assert!(long.len() < 300, "{long}");
+        assert!(check_host_name(&this_hostname()).is_ok());
+    }
+
+    /// The one-shot commands find the socket without the daemon's secrets, which an
+    /// operator may not be able to read (here: a key file that is not there at all).
+    #[test]
+    fn the_socket_is_found_without_reading_secrets() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("crispen.toml");
+        let text =
+            format!("{GOOD}\n[http]\nlisten = \"127.0.0.1:8080\"\napi_key_file = \"gone.key\"\n");
+        std::fs::write(&file, &text).unwrap();
+        assert!(Config::load(&file).is_err());
+        assert_eq!(
+            Config::socket_of(&file).unwrap(),
+            PathBuf::from("/run/crispen/crispen.sock")
+        );
+        std::fs::write(&file, "[spool]\ndir = \"spool\"\n").unwrap();
+        let base = std::path::absolute(dir.path()).unwrap();
+        assert_eq!(
+            Config::socket_of(&file).unwrap(),
+            base.join("spool").join("crispen.sock")
+        );
+    }
+
+    /// Numbers in errors stay short whatever was written.
+    #[test]
+    fn numbers_in_errors_are_short() {
+        assert_eq!(number(15.0), "15");
+        assert_eq!(number(0.25), "0.25");
+        assert_eq!(number(1e308), "1e308");
+        assert_eq!(number(-1e300), "-1e300");
+        let e = seconds_in(1e308, &LEASE_S).unwrap_err();
+        assert!(e.ends_with("got 1e308"), "{e}");
+    }
+
     #[test]
     fn http_section_is_checked() {
         let dir = tempfile::tempdir().unwrap();
@@ -1090,17 +1286,22 @@ slicer = "cura"
                 "address and port",
             ),
             (
-                "listen = \"0.0.0.0:80\"\napi_key_file = \"none.key\"",
+                "listen = \"0.0.0.0:80\"\napi_key_file = \"good.key\"",
+                "listen",
+                "port 80 is privileged",
+            ),
+            (
+                "listen = \"0.0.0.0:8080\"\napi_key_file = \"none.key\"",
                 "api_key_file",
                 "none.key",
             ),
             (
-                "listen = \"0.0.0.0:80\"\napi_key_file = \"weak.key\"",
+                "listen = \"0.0.0.0:8080\"\napi_key_file = \"weak.key\"",
                 "api_key_file",
                 "at least 16",
             ),
             (
-                "listen = \"0.0.0.0:80\"\napi_key_file = \"good.key\"\nupload_max_mb = 0",
+                "listen = \"0.0.0.0:8080\"\napi_key_file = \"good.key\"\nupload_max_mb = 0",
                 "upload_max_mb",
                 "from 1",
             ),

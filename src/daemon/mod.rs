@@ -54,6 +54,9 @@ pub enum DaemonError {
     Simulator { printer: String, message: String },
     #[error("[store] postgres: {0}")]
     Database(#[from] store::postgres::PgError),
+    /// Another run holds this host's name in the farm ([`store::postgres::PgError::HostInUse`]).
+    #[error("{0}")]
+    HostInUse(store::postgres::PgError),
     #[error("cannot install signal handlers: {0}")]
     Signals(std::io::Error),
     #[error("cannot find this program to run preparations with: {0}")]
@@ -202,6 +205,12 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
         let left = farm.jobs.write_pending().await.unwrap_or(0);
         if left > 0 {
             tracing::error!(outcomes = left, "the farm database is unreachable: outcomes not written (the jobs show as interrupted once this host's lease runs out)");
+        } else if let Some(db) = farm.db.get() {
+            // Nothing of this run is left to record: the next run under this name may
+            // start at once instead of waiting out the lease.
+            if let Err(e) = db.release_host().await {
+                tracing::warn!(error = %e, "cannot give up this host's lease; the next start under this name waits for it to run out");
+            }
         }
     }
     stop_listeners.cancel();
@@ -232,7 +241,11 @@ async fn open_store(
         return Ok((Farm::new(config.clone(), store, shutdown.clone()), None));
     };
     let db = store::postgres::PgStore::connect(&shared.postgres, &config.farm.host, shared.lease)
-        .await?;
+        .await
+        .map_err(|e| match e {
+            store::postgres::PgError::HostInUse { .. } => DaemonError::HostInUse(e),
+            e => DaemonError::Database(e),
+        })?;
     let recovered = db.recover_own().await?;
     let store = store::postgres::store::PgJobStore::open(db.clone(), &config.spool_dir).await?;
     let farm = Farm::new(config.clone(), store, shutdown.clone());

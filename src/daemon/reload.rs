@@ -38,7 +38,9 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("control.socket", Policy::DaemonRestart),
     ("http", Policy::DaemonRestart),
     ("http.listen", Policy::DaemonRestart),
-    ("http.api_key_file", Policy::DaemonRestart),
+    // The key file is read again at every reload, so a rotated key takes effect at once
+    // (the old one is refused from then on), whether or not its path changed.
+    ("http.api_key_file", Policy::Live),
     ("http.read_only_without_key", Policy::DaemonRestart),
     ("http.upload_max_mb", Policy::DaemonRestart),
     ("farm.max_heating", Policy::Live),
@@ -97,6 +99,8 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         folders,
         http,
         store,
+        // Said again at every reload; not a setting.
+        warnings: _,
     } = new;
     differs("spool.dir", *spool_dir != old.spool_dir);
     differs("control.socket", *socket != old.socket);
@@ -233,10 +237,18 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
 /// The config to run with after a reload: `new`, except the values whose policy is
 /// [`Policy::DaemonRestart`], which stay as in `old`.
 pub fn merge(old: &Config, new: Config) -> Config {
+    // The listener stays as it was bound; its key is the new file's.
+    let http = match (&old.http, &new.http) {
+        (Some(old), Some(new)) => Some(HttpConfig {
+            api_key: new.api_key.clone(),
+            ..old.clone()
+        }),
+        (old, _) => old.clone(),
+    };
     Config {
         spool_dir: old.spool_dir.clone(),
         socket: old.socket.clone(),
-        http: old.http.clone(),
+        http,
         store: old.store.clone(),
         farm: super::config::FarmConfig {
             host: old.farm.host.clone(),
@@ -269,6 +281,9 @@ pub fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Reloaded {
         }
         Ok(new) => new,
     };
+    for warning in &new.warnings {
+        tracing::warn!("SIGHUP: {warning}");
+    }
     let old = farm.config();
     let changed: Vec<(&'static str, Policy)> = changed_keys(&old, &new)
         .into_iter()
@@ -309,7 +324,7 @@ mod tests {
             "[http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n",
             "",
         ),
-        ("http.listen", "127.0.0.1:0", "127.0.0.1:1"),
+        ("http.listen", "127.0.0.1:0", "127.0.0.1:8081"),
         (
             "http.api_key_file",
             "api_key_file = \"key\"",
@@ -420,6 +435,8 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         std::fs::write(tmp.path().join("key"), "k".repeat(32)).unwrap();
         std::fs::write(tmp.path().join("key2"), "q".repeat(32)).unwrap();
+        std::fs::write(tmp.path().join("pw"), "secret").unwrap();
+        std::fs::write(tmp.path().join("pw2"), "secret").unwrap();
         std::fs::write(tmp.path().join("p.ini"), "").unwrap();
         for dir in ["hot", "hot2"] {
             std::fs::create_dir(tmp.path().join(dir)).unwrap();

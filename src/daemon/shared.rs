@@ -6,10 +6,16 @@
 //!
 //! While the database is unreachable the task keeps trying; the status says so, prints in
 //! progress go on, and nothing new is claimed (every claim needs the database).
+//!
+//! A run whose host's name was taken over by another run ([`PgError::Displaced`]: its
+//! lease lapsed, say during a long outage, and a new run under the same name started)
+//! stops here for good: it publishes, renews and carries out nothing more, its store
+//! refuses every change, and its status and log say why. Its prints in progress go on
+//! (stopping them would not help the printers); their outcomes are not recorded.
 
 use super::control;
 use super::farm::{Farm, PrintCommand, PrinterStatus};
-use super::store::postgres::{FarmHost, PgStore};
+use super::store::postgres::{FarmHost, PgError, PgStore};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio_util::sync::CancellationToken;
@@ -52,6 +58,12 @@ pub async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: Cancellati
                 }
                 set_database(&farm, None);
             }
+            Err(e @ PgError::Displaced { .. }) => {
+                tracing::error!(host = %db.host(), "{e}");
+                let mut shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
+                shared.get_or_insert_with(FarmView::default).database = Some(e.to_string());
+                return;
+            }
             Err(e) => set_database(&farm, Some(e.to_string())),
         }
     }
@@ -63,7 +75,7 @@ async fn tick(
     db: &PgStore,
     lease: Duration,
     heartbeat: bool,
-) -> Result<(), super::store::postgres::PgError> {
+) -> Result<(), PgError> {
     let config = farm.config();
     if heartbeat {
         db.heartbeat(lease).await?;

@@ -26,6 +26,10 @@ pub async fn require_key(
             read_only_without_key,
         } => (key, *read_only_without_key),
     };
+    // The key in force: a reload (SIGHUP) reads the key file again, so a rotated key
+    // replaces the one the listener started with.
+    let config = state.farm.config();
+    let key = config.http.as_ref().map_or(key, |h| &h.api_key);
     let given = request
         .headers()
         .get("x-api-key")

@@ -129,6 +129,63 @@ printers = [{}]
         self.child = Some(child);
     }
 
+    /// A second host under this one's `[farm] host`, as on a cloned machine: the same
+    /// config but for its own spool, control socket, log and simulators' records (each
+    /// named with `tag`). Not started.
+    pub fn clone_as(&self, tag: &str) -> Host {
+        let root = self.config.parent().unwrap();
+        let name = &self.name;
+        let mut text = std::fs::read_to_string(&self.config)
+            .unwrap()
+            .replace(
+                &format!("dir = \"spool-{name}\""),
+                &format!("dir = \"spool-{tag}\""),
+            )
+            .replace(
+                &format!("socket = \"{name}.sock\""),
+                &format!("socket = \"{tag}.sock\""),
+            );
+        for p in &self.printers {
+            text = text.replace(
+                &format!("record = \"{p}.rec\""),
+                &format!("record = \"{tag}-{p}.rec\""),
+            );
+        }
+        let config = root.join(format!("{tag}.toml"));
+        std::fs::write(&config, text).unwrap();
+        Host {
+            name: self.name.clone(),
+            config,
+            log: root.join(format!("{tag}.log")),
+            socket: root.join(format!("{tag}.sock")),
+            printers: self.printers.clone(),
+            env: self.env.clone(),
+            child: None,
+        }
+    }
+
+    /// Waits up to `limit` for the host to exit: its exit status, or `None` if it runs on.
+    pub fn wait_exit(&mut self, limit: Duration) -> Option<std::process::ExitStatus> {
+        let start = Instant::now();
+        loop {
+            let child = self.child.as_mut()?;
+            if let Some(status) = child.try_wait().unwrap() {
+                self.child = None;
+                return Some(status);
+            }
+            if start.elapsed() > limit {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    /// Sends `signal` to the running host (SIGSTOP freezes it as a hung machine would).
+    pub fn signal(&self, signal: nix::sys::signal::Signal) {
+        let pid = self.pid().expect("the host is running");
+        nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid as i32), signal).unwrap();
+    }
+
     /// `kill -9`: the host dies with its printers mid-whatever.
     pub fn kill9(&mut self) {
         if let Some(mut child) = self.child.take() {

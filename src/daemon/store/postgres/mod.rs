@@ -13,6 +13,14 @@
 //! `interrupted` (never reprinted on their own), and its printers show as offline with the
 //! time they were last seen.
 //!
+//! A host's name is held by one run of crispen at a time: each run draws a random token
+//! and takes the host's row with it ([`PgStore::connect`]), which it may only do once the
+//! lease of the run before has run out ([`PgError::HostInUse`] otherwise: a cloned machine
+//! keeps the hostname, the default `[farm] host`). Every change a run makes checks, in its
+//! transaction, that the row still holds its token; a run whose token was replaced (its
+//! lease lapsed during an outage and a new run took the name) is [`PgError::Displaced`]
+//! and acts for the host no more.
+//!
 //! - [`schema`]: the versioned schema and its migrations.
 //! - [`store`]: the daemon's [`super::JobStore`] over it: a local copy of each job's files,
 //!   and outcomes kept while the database is unreachable.
@@ -39,6 +47,10 @@ pub enum PgError {
         path: PathBuf,
         source: std::io::Error,
     },
+    #[error("[farm] host {host:?} is in use: another run of crispen holds this host's lease in the farm database for {remaining_s:.0} s more, and renews it while it runs (hint: give each machine its own [farm] host (the default is the hostname, which a cloned machine keeps); after a crash, start again once the lease has run out)")]
+    HostInUse { host: String, remaining_s: f64 },
+    #[error("[farm] host {host:?} was taken over by another run of crispen after this run's lease ran out: this run no longer acts for it (takes no work, records no outcome, publishes nothing) (hint: stop this run; give each machine its own [farm] host)")]
+    Displaced { host: String },
     #[error("the farm database has schema version {found}, newer than this crispen knows ({known}) (hint: upgrade crispen on this host to the version the other hosts run)")]
     SchemaTooNew { found: i32, known: i32 },
     #[error("migrating the farm database to schema version {version}: {source}")]
@@ -100,11 +112,15 @@ impl PgError {
     }
 }
 
-/// A host's handle on the farm database: a small pool of connections and its own name.
+/// A host's handle on the farm database: a small pool of connections, its own name, and
+/// this run's token in the host's row.
 #[derive(Clone)]
 pub struct PgStore {
     pool: deadpool_postgres::Pool,
     host: String,
+    token: String,
+    /// Set once the host's row was found to hold another run's token: every call fails.
+    displaced: std::sync::Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// What a lease expiry did, for the log.
@@ -173,9 +189,22 @@ impl Change<'_> {
 /// A file a job may not have in the database: the column holds at most 1 GiB.
 pub const MAX_FILE_BYTES: u64 = 1 << 30;
 
-/// Checks a `[store] postgres` connection string as the config is read: it parses, and
-/// holds no password.
+/// Checks a `[store] postgres` connection string as the config is read: it parses, names
+/// the server (there is no default to fall back on), and holds no password.
 pub fn check_conninfo(conninfo: &str) -> Result<(), String> {
+    if conninfo.len() > 4096 {
+        return Err(format!(
+            "{} characters: too long for a connection string",
+            conninfo.len()
+        ));
+    }
+    if let Ok(config) = conninfo.parse::<tokio_postgres::Config>() {
+        if config.get_hosts().is_empty() && config.get_hostaddrs().is_empty() {
+            return Err(format!(
+                "{conninfo:?} names no server (hint: \"host=/run/postgresql dbname=crispen\", or host=NAME for one on another machine)"
+            ));
+        }
+    }
     let settings = PgSettings {
         conninfo: conninfo.to_string(),
         password_file: None,
@@ -208,10 +237,12 @@ fn client_config(settings: &PgSettings) -> Result<tokio_postgres::Config, PgErro
     }
     let mut config = config;
     if let Some(path) = &settings.password_file {
-        let text = std::fs::read_to_string(path).map_err(|source| PgError::PasswordFile {
-            path: path.clone(),
-            source,
-        })?;
+        // The same bounded read as the config check's: never a device or a directory.
+        let (text, _) =
+            crate::daemon::config::read_secret(path).map_err(|m| PgError::PasswordFile {
+                path: path.clone(),
+                source: std::io::Error::other(m),
+            })?;
         config.password(text.trim_end_matches(['\r', '\n']));
     } else if let Ok(password) = std::env::var("PGPASSWORD") {
         config.password(password);
@@ -224,7 +255,7 @@ fn client_config(settings: &PgSettings) -> Result<tokio_postgres::Config, PgErro
 
 impl PgStore {
     /// Connects as host `host`, migrates the schema (or refuses a newer one) and takes the
-    /// host's lease.
+    /// host's lease with a new token, unless another run holds it ([`PgError::HostInUse`]).
     pub async fn connect(
         settings: &PgSettings,
         host: &str,
@@ -250,12 +281,95 @@ impl PgStore {
         let store = PgStore {
             pool,
             host: host.to_string(),
+            token: format!("{:032x}", rand::random::<u128>()),
+            displaced: Default::default(),
         };
         let mut client = store.pool.get().await?;
         schema::migrate(&mut client).await?;
         drop(client);
-        store.heartbeat(lease).await?;
+        store.take_host(lease).await?;
         Ok(store)
+    }
+
+    /// Takes the host's row for this run: refused while another run's lease holds (its
+    /// token differs, whatever it is; an older crispen's row has none).
+    async fn take_host(&self, lease: Duration) -> Result<(), PgError> {
+        let mut client = self.client().await?;
+        let tx = client.transaction().await?;
+        let held = tx
+            .query_opt(
+                "SELECT token, lease_until >= now(), \
+                 greatest(extract(epoch FROM lease_until - now()), 0)::float8 \
+                 FROM hosts WHERE name = $1 FOR UPDATE",
+                &[&self.host],
+            )
+            .await?;
+        if let Some(row) = held {
+            let token: Option<String> = row.get(0);
+            if row.get::<_, bool>(1) && token.as_deref() != Some(self.token.as_str()) {
+                let _ = tx.rollback().await;
+                return Err(PgError::HostInUse {
+                    host: self.host.clone(),
+                    remaining_s: row.get(2),
+                });
+            }
+        }
+        tx.execute(
+            "INSERT INTO hosts (name, lease_until, token) \
+             VALUES ($1, now() + make_interval(secs => $2), $3) \
+             ON CONFLICT (name) DO UPDATE SET lease_until = EXCLUDED.lease_until, \
+             token = EXCLUDED.token, started_at = now(), last_seen = now(), expired_at = NULL",
+            &[&self.host, &lease.as_secs_f64(), &self.token],
+        )
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// A connection, unless this run was found displaced.
+    async fn client(&self) -> Result<deadpool_postgres::Object, PgError> {
+        if self.displaced.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(self.displaced_error());
+        }
+        Ok(self.pool.get().await?)
+    }
+
+    fn displaced_error(&self) -> PgError {
+        self.displaced
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+        PgError::Displaced {
+            host: self.host.clone(),
+        }
+    }
+
+    /// Inside a change's transaction: the host's row still holds this run's token. The
+    /// row is locked `FOR KEY SHARE`, which heartbeats and expiry (plain updates) pass,
+    /// but a run taking the name over (`FOR UPDATE`) waits for: no change of this run
+    /// lands after a takeover.
+    async fn check_token(&self, tx: &tokio_postgres::Transaction<'_>) -> Result<(), PgError> {
+        let row = tx
+            .query_opt(
+                "SELECT token FROM hosts WHERE name = $1 FOR KEY SHARE",
+                &[&self.host],
+            )
+            .await?;
+        match row {
+            Some(row) if row.get::<_, Option<String>>(0).as_deref() == Some(&self.token) => Ok(()),
+            _ => Err(self.displaced_error()),
+        }
+    }
+
+    /// Gives the lease up at a clean stop (this run's prints have ended): the next run
+    /// under this name may start at once, and the others see the host offline now.
+    pub async fn release_host(&self) -> Result<(), PgError> {
+        let client = self.client().await?;
+        client
+            .execute(
+                "UPDATE hosts SET lease_until = now() WHERE name = $1 AND token = $2",
+                &[&self.host, &self.token],
+            )
+            .await?;
+        Ok(())
     }
 
     pub fn host(&self) -> &str {
@@ -263,18 +377,22 @@ impl PgStore {
     }
 
     /// Renews this host's lease until `lease` from now (by the database's clock, so hosts'
-    /// clocks need not agree). A host whose lease had expired comes back with no claims.
+    /// clocks need not agree). A host whose lease had expired comes back with no claims;
+    /// one whose row holds another run's token is [`PgError::Displaced`].
     pub async fn heartbeat(&self, lease: Duration) -> Result<(), PgError> {
-        let client = self.pool.get().await?;
-        client
+        let client = self.client().await?;
+        let renewed = client
             .execute(
-                "INSERT INTO hosts (name, lease_until) \
-                 VALUES ($1, now() + make_interval(secs => $2)) \
+                "INSERT INTO hosts (name, lease_until, token) \
+                 VALUES ($1, now() + make_interval(secs => $2), $3) \
                  ON CONFLICT (name) DO UPDATE SET lease_until = EXCLUDED.lease_until, \
-                 last_seen = now(), expired_at = NULL",
-                &[&self.host, &lease.as_secs_f64()],
+                 last_seen = now(), expired_at = NULL WHERE hosts.token = EXCLUDED.token",
+                &[&self.host, &lease.as_secs_f64(), &self.token],
             )
             .await?;
+        if renewed == 0 {
+            return Err(self.displaced_error());
+        }
         client
             .execute(
                 "UPDATE printers SET last_seen = now() WHERE host = $1",
@@ -289,7 +407,7 @@ impl PgStore {
     /// up for that long itself: after the database's own restart every host gets a full
     /// lease to come back before its work is taken.
     pub async fn expire_hosts(&self) -> Result<Expired, PgError> {
-        let mut client = self.pool.get().await?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await?;
         let hosts: Vec<String> = ids(tx
             .query(
@@ -314,10 +432,13 @@ impl PgStore {
     }
 
     /// The restart rules for this host's own work (it stopped without handing it back):
-    /// preparing jobs go back to the queue, printing jobs become interrupted.
+    /// preparing jobs go back to the queue, printing jobs become interrupted. Only a run
+    /// that holds the host's row does this: [`PgStore::connect`] took it only once the run
+    /// before had let its lease run out, so no live run's prints are interrupted.
     pub async fn recover_own(&self) -> Result<Vec<String>, PgError> {
-        let mut client = self.pool.get().await?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
         let hosts = [self.host.clone()];
         let (mut requeued, interrupted) = self
             .release_work(&tx, &hosts, "restarted during the print")
@@ -382,8 +503,9 @@ impl PgStore {
         printers: &[String],
         files: &[(&str, &[u8])],
     ) -> Result<Job, PgError> {
-        let mut client = self.pool.get().await?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
         let seq: i64 = tx
             .query_one("SELECT nextval(pg_get_serial_sequence('jobs', 'seq'))", &[])
             .await?
@@ -461,8 +583,9 @@ impl PgStore {
         to: JobState,
         printer: Option<&str>,
     ) -> Result<Option<Job>, PgError> {
-        let mut client = self.pool.get().await?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
         let Some(row) = tx.query_opt(pick, params).await? else {
             return Ok(None);
         };
@@ -497,8 +620,9 @@ impl PgStore {
 
     /// Makes one change of a job as one transaction on its locked row (see [`Change`]).
     pub async fn modify(&self, id: &str, change: Change<'_>) -> Result<Job, PgError> {
-        let mut client = self.pool.get().await?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
         let job = undo_on_error(self.modify_in(&tx, id, change).await, tx).await?;
         Ok(job)
     }
@@ -598,8 +722,9 @@ impl PgStore {
     /// Writes an outcome recorded while the database was unreachable: `job` as this host
     /// left it, if the job is still `from` and held by this host.
     pub async fn write_outcome(&self, job: &Job, from: JobState) -> Result<Job, PgError> {
-        let mut client = self.pool.get().await?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
         let written = async {
             let row = tx
                 .query_opt(
@@ -629,7 +754,7 @@ impl PgStore {
 
     /// Stores (or replaces) one of a job's files.
     pub async fn put_file(&self, id: &str, name: &str, bytes: &[u8]) -> Result<(), PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         client
             .execute(
                 "INSERT INTO job_files (job_id, name, bytes) VALUES ($1, $2, $3) \
@@ -642,7 +767,7 @@ impl PgStore {
 
     /// The names of a job's files.
     pub async fn file_names(&self, id: &str) -> Result<Vec<String>, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         Ok(ids(client
             .query("SELECT name FROM job_files WHERE job_id = $1", &[&id])
             .await?))
@@ -654,13 +779,14 @@ impl PgStore {
         name: &str,
         machine: Option<&serde_json::Value>,
     ) -> Result<(), PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         client
             .execute(
-                "INSERT INTO printers (name, host, machine) VALUES ($1, $2, $3) \
+                "INSERT INTO printers (name, host, machine) SELECT $1::text, $2::text, $3::jsonb \
+                 WHERE EXISTS (SELECT 1 FROM hosts WHERE name = $2 AND token = $4) \
                  ON CONFLICT (name) DO UPDATE SET host = EXCLUDED.host, \
                  machine = EXCLUDED.machine, last_seen = now()",
-                &[&name, &self.host, &machine],
+                &[&name, &self.host, &machine, &self.token],
             )
             .await?;
         Ok(())
@@ -674,13 +800,14 @@ impl PgStore {
         // One statement for all of them: this runs every second on every host.
         let (names, statuses): (Vec<&String>, Vec<&serde_json::Value>) =
             statuses.iter().map(|(n, s)| (n, s)).unzip();
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         client
             .execute(
                 "UPDATE printers p SET status = v.status, last_seen = now() \
                  FROM unnest($1::text[], $2::jsonb[]) AS v(name, status) \
-                 WHERE p.name = v.name AND p.host = $3",
-                &[&names, &statuses, &self.host],
+                 WHERE p.name = v.name AND p.host = $3 \
+                 AND EXISTS (SELECT 1 FROM hosts WHERE name = $3 AND token = $4)",
+                &[&names, &statuses, &self.host, &self.token],
             )
             .await?;
         Ok(())
@@ -688,21 +815,23 @@ impl PgStore {
 
     /// Sets a printer's bed gate (any host's printer: an operator clears beds farm-wide).
     pub async fn set_gate(&self, printer: &str, gate: &PrinterGate) -> Result<(), PgError> {
-        let client = self.pool.get().await?;
-        client
-            .execute(
-                "INSERT INTO printers (name, host, bed_not_cleared, last_job) \
+        let mut client = self.client().await?;
+        let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
+        tx.execute(
+            "INSERT INTO printers (name, host, bed_not_cleared, last_job) \
                  VALUES ($1, $2, $3, $4) ON CONFLICT (name) DO UPDATE \
                  SET bed_not_cleared = EXCLUDED.bed_not_cleared, last_job = EXCLUDED.last_job",
-                &[&printer, &self.host, &gate.bed_not_cleared, &gate.last_job],
-            )
-            .await?;
+            &[&printer, &self.host, &gate.bed_not_cleared, &gate.last_job],
+        )
+        .await?;
+        tx.commit().await?;
         Ok(())
     }
 
     /// Every printer's bed gate.
     pub async fn gates(&self) -> Result<BTreeMap<String, PrinterGate>, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         let rows = client
             .query("SELECT name, bed_not_cleared, last_job FROM printers", &[])
             .await?;
@@ -720,7 +849,7 @@ impl PgStore {
 
     /// Every printer of the farm, with whether its host is offline.
     pub async fn printers(&self) -> Result<Vec<FarmPrinter>, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         let rows = client
             .query(
                 "SELECT p.name, p.host, p.bed_not_cleared, p.last_job, \
@@ -747,7 +876,7 @@ impl PgStore {
 
     /// Every host of the farm and whether its lease holds.
     pub async fn hosts(&self) -> Result<Vec<FarmHost>, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         let rows = client
             .query(
                 "SELECT name, lease_until >= now(), extract(epoch FROM last_seen)::float8 \
@@ -768,7 +897,7 @@ impl PgStore {
     /// Asks the host of `printer` to pause, resume or cancel its print; false when the
     /// farm has no such printer.
     pub async fn push_command(&self, printer: &str, command: &str) -> Result<bool, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         let added = client
             .execute(
                 "INSERT INTO commands (host, printer, command) \
@@ -781,11 +910,13 @@ impl PgStore {
 
     /// Takes the commands other hosts left for this host's printers, oldest first.
     pub async fn take_commands(&self) -> Result<Vec<(String, String)>, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         let mut rows = client
             .query(
-                "DELETE FROM commands WHERE host = $1 RETURNING id, printer, command",
-                &[&self.host],
+                "DELETE FROM commands WHERE host = $1 \
+                 AND EXISTS (SELECT 1 FROM hosts WHERE name = $1 AND token = $2) \
+                 RETURNING id, printer, command",
+                &[&self.host, &self.token],
             )
             .await?;
         rows.sort_by_key(|r| r.get::<_, i64>(0));
@@ -793,20 +924,20 @@ impl PgStore {
     }
 
     pub async fn job(&self, id: &str) -> Result<Job, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         one_job(&**client, id).await
     }
 
     /// Every job of the farm, oldest first.
     pub async fn jobs(&self) -> Result<Vec<Job>, PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         load_jobs(&**client, Only::All).await
     }
 
     /// The jobs changed since `since` (seconds since the epoch, by the database's clock),
     /// and the database's time now, for the next call.
     pub async fn jobs_since(&self, since: f64) -> Result<(Vec<Job>, f64), PgError> {
-        let client = self.pool.get().await?;
+        let client = self.client().await?;
         let now: f64 = client
             .query_one("SELECT extract(epoch FROM now())::float8", &[])
             .await?

@@ -93,6 +93,11 @@ const MIGRATIONS: &[&str] = &[
     );
     CREATE INDEX commands_host ON commands (host);
     "#,
+    // 3: the run of crispen that holds a host's name: a random token each run takes with
+    // the host's lease (issue 20: two daemons under one name printed a job twice).
+    r#"
+    ALTER TABLE hosts ADD COLUMN token text;
+    "#,
 ];
 
 /// The newest schema version this binary knows.

@@ -23,10 +23,11 @@ pub mod process;
 pub mod profiles;
 pub mod prusa;
 mod settings;
+pub mod walls;
 
 pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
 
-use crate::enhance::{EnhanceError, EnhanceReport};
+use crate::enhance::{EnhanceError, EnhanceReport, PrintedDisplacement};
 use crate::machine::{Machine, SKIRT_MARGIN_MM};
 use crate::mesh::{Mesh, MeshError};
 use serde::{Deserialize, Serialize};
@@ -38,6 +39,10 @@ use std::time::{Duration, Instant};
 /// to the tallest machine that can be described; whether a machine builds it is the
 /// placement's check.
 pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_MM.end();
+
+/// The layer height of the built-in profiles (`config/prusaslicer-ultimaker2.ini`,
+/// `config/cura-ultimaker2.toml`), mm, when neither the job nor the G-code says.
+pub const DEFAULT_LAYER_HEIGHT_MM: f64 = 0.2;
 
 /// Which slicer turns the mesh into G-code.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Default)]
@@ -159,6 +164,10 @@ pub struct EnhancementSummary {
     /// `"enhanced"` or `"unmodified"`.
     pub mode: String,
     pub report: Option<EnhanceReport>,
+    /// The displacement at the printed size in mm, against this job's machine's nozzle and
+    /// layer height (the report's `max_displacement` is in the model file's units).
+    #[serde(default)]
+    pub printed: Option<PrintedDisplacement>,
 }
 
 /// Seconds spent in each step.
@@ -197,6 +206,10 @@ pub struct SliceReport {
     pub filament_mm: Option<f64>,
     pub filament_g: Option<f64>,
     pub gcode_lines: usize,
+    /// The outer walls against the unmodified model's, sliced the same way (when asked
+    /// for, see `SliceRequest::compare`).
+    #[serde(default)]
+    pub walls: Option<walls::WallComparison>,
 }
 
 /// Why a job failed. Messages name the model, slicer, exit status and the end of the

@@ -507,6 +507,93 @@ fn command_scales_to_height_and_writes_stl() {
     assert!(max_d > 0.01 && max_d < 4.0, "max displacement {max_d} mm");
 }
 
+/// The report says the enhancement in printed mm, next to the nozzle and layer height of
+/// the machine given, and how much of the surface moves by more than a quarter of the
+/// line width; a wider nozzle counts less of it.
+#[test]
+fn command_reports_the_displacement_in_printed_millimetres_against_the_nozzle() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = model("spot.obj");
+    let run = |extra: &[&str]| -> serde_json::Value {
+        let out = dir.path().join("spot.stl");
+        let result = crispen()
+            .args([
+                "enhance",
+                input.to_str().unwrap(),
+                "-o",
+                out.to_str().unwrap(),
+            ])
+            .args(["--height", "20", "--json"])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(
+            result.status.success(),
+            "stderr: {}",
+            String::from_utf8_lossy(&result.stderr)
+        );
+        serde_json::from_slice(&result.stdout).unwrap()
+    };
+    let bare = run(&[]);
+    let p = &bare["printed"];
+    assert_eq!(p["height_mm"], 20.0);
+    let (max, p95, mean) = (
+        p["max_mm"].as_f64().unwrap(),
+        p["p95_mm"].as_f64().unwrap(),
+        p["mean_mm"].as_f64().unwrap(),
+    );
+    assert!(max >= p95 && p95 >= mean && mean > 0.0, "{p}");
+    // The same largest move as the report's output-unit figure (mm at --height).
+    assert!((max - bare["max_displacement"].as_f64().unwrap()).abs() < 1e-9);
+    assert!(p["nozzle_mm"].is_null() && p["share_above_threshold"].is_null());
+
+    let fine = run(&["--machine", "ultimaker2plus", "--nozzle", "0.25"]);
+    let p = &fine["printed"];
+    assert_eq!(p["nozzle_mm"], 0.25);
+    assert_eq!(p["layer_height_mm"], 0.2);
+    assert_eq!(p["threshold_mm"], 0.0625);
+    let fine_share = p["share_above_threshold"].as_f64().unwrap();
+    let coarse = run(&[
+        "--machine",
+        "ultimaker2plus",
+        "--nozzle",
+        "0.8",
+        "--layer-height",
+        "0.3",
+    ]);
+    let p = &coarse["printed"];
+    assert_eq!(
+        (p["nozzle_mm"].as_f64(), p["layer_height_mm"].as_f64()),
+        (Some(0.8), Some(0.3))
+    );
+    let coarse_share = p["share_above_threshold"].as_f64().unwrap();
+    assert!(
+        (0.0..=1.0).contains(&coarse_share) && coarse_share < fine_share && fine_share <= 1.0,
+        "{coarse_share} vs {fine_share}"
+    );
+    // A nozzle the machine does not take is refused, naming it.
+    let out = dir.path().join("x.stl");
+    let refused = crispen()
+        .args([
+            "enhance",
+            input.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ])
+        .args([
+            "--height",
+            "20",
+            "--machine",
+            "ultimaker2",
+            "--nozzle",
+            "0.8",
+        ])
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--nozzle 0.8"));
+}
+
 #[test]
 fn command_rejects_bad_input_clearly_and_keeps_existing_output() {
     let dir = tempfile::tempdir().unwrap();

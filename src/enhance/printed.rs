@@ -140,7 +140,8 @@ impl Displacements {
     /// The share of the area (0–1) moved by more than `limit` model units.
     pub fn share_above(&self, limit: f64) -> f64 {
         let first = self.sorted.partition_point(|x| x.0 <= limit);
-        self.sorted[first..].iter().map(|x| x.1).sum::<f64>() / self.total_area
+        // A float sum starts at -0.0; the share of nothing is 0.
+        (0.0 + self.sorted[first..].iter().map(|x| x.1).sum::<f64>()) / self.total_area
     }
 }
 

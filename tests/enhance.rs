@@ -513,7 +513,7 @@ fn command_scales_to_height_and_writes_stl() {
 #[test]
 fn command_reports_the_displacement_in_printed_millimetres_against_the_nozzle() {
     let dir = tempfile::tempdir().unwrap();
-    let input = model("spot.obj");
+    let input = model("bunny.obj");
     let run = |extra: &[&str]| -> serde_json::Value {
         let out = dir.path().join("spot.stl");
         let result = crispen()

@@ -652,24 +652,6 @@ fn the_cli_compares_the_enhanced_outer_walls_with_the_unmodified_ones() {
     assert_eq!(printed["threshold_mm"], 0.1);
     let png = std::fs::read(pictures.join("walls.png")).expect("walls.png");
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
-
-    // The same model unmodified: no comparison, and the CLI says why.
-    let plain = std::process::Command::new(env!("CARGO_BIN_EXE_crispen"))
-        .args([
-            "slice",
-            bunny().to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-        ])
-        .args(["--height", "150", "--up", "y", "--compare"])
-        .output()
-        .expect("crispen runs");
-    assert!(
-        plain.status.success(),
-        "{}",
-        String::from_utf8_lossy(&plain.stderr)
-    );
-    assert!(String::from_utf8_lossy(&plain.stdout).contains("no comparison"));
 }
 
 /// CuraEngine marks its outer wall `;TYPE:WALL-OUTER`; the comparison reads it too.

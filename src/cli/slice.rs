@@ -56,6 +56,11 @@ pub struct Args {
     /// Print the report as JSON on stdout
     #[arg(long)]
     pub json: bool,
+    /// The enhancement: paper (the paper's bands, λ2 from the height table) or
+    /// print-aware (bands and λ2 from the machine's nozzle and layer height at the
+    /// printed size; see docs/method.md)
+    #[arg(long, value_name = "MODE", default_value = "paper")]
+    pub mode: crispen::enhance::Mode,
     /// Also slice the model unmodified with the same settings and compare the two jobs'
     /// outer walls layer by layer: how far the enhancement moves what the nozzle draws
     #[arg(long, conflicts_with = "no_enhance")]
@@ -131,6 +136,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     req.profile = args.profile.clone();
     req.timeout = Duration::from_secs(args.timeout.max(1));
     req.compare = args.compare;
+    req.mode = args.mode;
     if let Some(dir) = &args.pictures {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create the picture folder {}", dir.display()))?;
@@ -166,7 +172,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         let enhancement = match report.enhancement.lambda2 {
-            Some(l2) => format!("enhanced with λ2 = {l2}"),
+            Some(l2) => format!("{} with λ2 = {l2:.3}", report.enhancement.mode),
             None => "unmodified".into(),
         };
         let time = report

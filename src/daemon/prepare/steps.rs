@@ -5,7 +5,7 @@
 //! the height, not the machine, so it is shared; the slicing is once per machine.
 
 use crate::enhance::{
-    Displacements, EnhanceOptions, Phase, PrintResolution, Strength, StrengthTable,
+    Displacements, EnhanceOptions, Mode, Phase, PrintResolution, Strength, StrengthTable,
 };
 use crate::machine::Machine;
 use crate::mesh::place::PlaceError;
@@ -47,6 +47,10 @@ pub struct SliceRequest {
     /// walls (`SliceReport::walls`, [`crate::slice::walls`]); with `pictures`, draw a few
     /// layers of both for the first machine. Only for an enhanced model.
     pub compare: bool,
+    /// The paper's enhancement, or the print-aware one (bands and strength from each
+    /// machine's nozzle and layer height, [`crate::enhance::print_aware`]; an explicit
+    /// strength is then ignored, `Off` still prints unmodified).
+    pub mode: Mode,
 }
 
 impl SliceRequest {
@@ -67,6 +71,7 @@ impl SliceRequest {
             up: UpAxis::Z,
             pictures: None,
             compare: false,
+            mode: Mode::Paper,
         }
     }
 }
@@ -147,41 +152,68 @@ pub fn prepare(
     let t = Instant::now();
     let loaded = crate::mesh::load(&req.model)?;
     let load_s = t.elapsed().as_secs_f64();
+    let original = loaded.mesh;
 
-    let t = Instant::now();
-    let mut plain = req.compare.then(|| loaded.mesh.clone());
-    let (mut mesh, enhancement, displacements) = enhance(req, loaded.mesh, progress)?;
-    let enhance_s = t.elapsed().as_secs_f64();
-    if enhancement.lambda2.is_none() {
-        plain = None;
+    // The paper's enhancement depends on the printed height only, so it is shared by every
+    // machine; the print-aware one on each machine's nozzle and layer height.
+    let print_aware = req.mode == Mode::PrintAware
+        && req
+            .strength_table
+            .resolve(req.strength, Some(req.height_mm))
+            .is_some();
+    let layer_height_mm = req
+        .settings
+        .layer_height_mm
+        .unwrap_or(crate::slice::DEFAULT_LAYER_HEIGHT_MM);
+    let printer_of = |machine: &crate::machine::Machine| PrintResolution {
+        nozzle_mm: machine.nozzle_mm,
+        layer_height_mm,
+    };
+    let mut shared: Option<Placed> = None;
+    if !print_aware {
+        shared = Some(place(req, &original, None, progress)?);
     }
+    let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
 
-    if req.up == UpAxis::Y {
-        crate::mesh::place::turn_y_up(&mut mesh);
-        if let Some(p) = &mut plain {
-            crate::mesh::place::turn_y_up(p);
+    let mut plain = None;
+    if req.compare {
+        let mut p = original.clone();
+        if req.up == UpAxis::Y {
+            crate::mesh::place::turn_y_up(&mut p);
         }
-    }
-    if let Some(p) = &mut plain {
         // The same placement as the enhanced mesh's, so both G-codes share one frame.
-        if crate::mesh::place::place_on_bed(p, req.height_mm, [f64::INFINITY; 3]).is_err() {
-            plain = None;
+        if crate::mesh::place::place_on_bed(&mut p, req.height_mm, [f64::INFINITY; 3]).is_ok() {
+            plain = Some(p);
         }
     }
-    // Model units → printed mm, as place_on_bed is about to scale it.
-    let scale = mesh
-        .bounds()
-        .map(|(lo, hi)| hi[2] - lo[2])
-        .filter(|z| *z > 0.0)
-        .map_or(1.0, |z| req.height_mm / z);
-    let unbounded = [f64::INFINITY; 3];
-    let size = crate::mesh::place::place_on_bed(&mut mesh, req.height_mm, unbounded)
-        .map_err(|e| place_error(e, req, "any machine"))?;
 
     let mut results = Vec::with_capacity(targets.len());
     for (index, target) in targets.iter().enumerate() {
         let machine = &target.machine;
-        let sliced = crate::mesh::place::check_fits(size, machine.fits_mm())
+        let placed: &Placed = match &shared {
+            Some(p) => p,
+            None => {
+                let printer = printer_of(machine);
+                let known = per_printer.iter().position(|(p, _)| *p == printer);
+                let at = match known {
+                    Some(at) => at,
+                    None => match place(req, &original, Some(printer), progress) {
+                        Ok(p) => {
+                            per_printer.push((printer, p));
+                            per_printer.len() - 1
+                        }
+                        Err(e) => {
+                            tracing::warn!(machine = %machine.name, error = %e, "cannot prepare the job for this machine");
+                            results.push((machine.name.clone(), Err(e)));
+                            continue;
+                        }
+                    },
+                };
+                &per_printer[at].1
+            }
+        };
+        let compare = plain.as_ref().filter(|_| placed.summary.lambda2.is_some());
+        let sliced = crate::mesh::place::check_fits(placed.size, machine.fits_mm())
             .map_err(|e| place_error(e, req, &machine.name))
             .and_then(|()| {
                 let job = SliceJob {
@@ -198,32 +230,28 @@ pub fn prepare(
                     keep_mesh: target.keep_mesh.as_deref(),
                     thumbnails: req.pictures.is_some(),
                 };
-                crate::slice::slice_mesh(&mesh, &job, &mut |s| {
+                crate::slice::slice_mesh(&placed.mesh, &job, &mut |s| {
                     progress(Step::Slice(&machine.name, s))
                 })
             })
             .map(|mut report| {
                 report.up = req.up;
-                report.enhancement = enhancement.clone();
-                report.enhancement.printed = displacements.as_ref().map(|d| {
-                    let layer_height_mm = report
-                        .layer_height_mm
-                        .or(req.settings.layer_height_mm)
-                        .unwrap_or(crate::slice::DEFAULT_LAYER_HEIGHT_MM);
+                report.enhancement = placed.summary.clone();
+                report.enhancement.printed = placed.displacements.as_ref().map(|d| {
                     let printer = PrintResolution {
                         nozzle_mm: machine.nozzle_mm,
-                        layer_height_mm,
+                        layer_height_mm: report.layer_height_mm.unwrap_or(layer_height_mm),
                     };
-                    d.summary(scale, req.height_mm, Some(printer))
+                    d.summary(placed.scale, req.height_mm, Some(printer))
                 });
-                if let Some(plain) = &plain {
+                if let Some(plain) = compare {
                     progress(Step::Comparing(&machine.name));
                     let pictures = req.pictures.as_deref().filter(|_| index == 0);
                     report.walls = compare_walls(req, plain, machine, &report.output, pictures);
                 }
-                report.model_size_mm = size;
+                report.model_size_mm = placed.size;
                 report.timings.load_s = load_s;
-                report.timings.enhance_s = enhance_s;
+                report.timings.enhance_s = placed.enhance_s;
                 report.timings.total_s = started.elapsed().as_secs_f64();
                 report
             });
@@ -233,6 +261,48 @@ pub fn prepare(
         results.push((machine.name.clone(), sliced));
     }
     Ok(results)
+}
+
+/// A mesh enhanced (for a printer, in print-aware mode) and placed on the bed.
+struct Placed {
+    mesh: Mesh,
+    size: [f64; 3],
+    /// Model units → printed mm.
+    scale: f64,
+    summary: EnhancementSummary,
+    displacements: Option<Displacements>,
+    enhance_s: f64,
+}
+
+/// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it.
+fn place(
+    req: &SliceRequest,
+    original: &Mesh,
+    printer: Option<PrintResolution>,
+    progress: &mut dyn FnMut(Step),
+) -> Result<Placed, SliceError> {
+    let t = Instant::now();
+    let (mut mesh, summary, displacements) = enhance(req, original.clone(), printer, progress)?;
+    let enhance_s = t.elapsed().as_secs_f64();
+    if req.up == UpAxis::Y {
+        crate::mesh::place::turn_y_up(&mut mesh);
+    }
+    // Model units → printed mm, as place_on_bed is about to scale it.
+    let scale = mesh
+        .bounds()
+        .map(|(lo, hi)| hi[2] - lo[2])
+        .filter(|z| *z > 0.0)
+        .map_or(1.0, |z| req.height_mm / z);
+    let size = crate::mesh::place::place_on_bed(&mut mesh, req.height_mm, [f64::INFINITY; 3])
+        .map_err(|e| place_error(e, req, "any machine"))?;
+    Ok(Placed {
+        mesh,
+        size,
+        scale,
+        summary,
+        displacements,
+        enhance_s,
+    })
 }
 
 /// Slices the placed, unmodified mesh as the enhanced one was and compares the two jobs'
@@ -324,6 +394,7 @@ pub fn prepare_one(
 fn enhance(
     req: &SliceRequest,
     mesh: Mesh,
+    printer: Option<PrintResolution>,
     progress: &mut dyn FnMut(Step),
 ) -> Result<(Mesh, EnhancementSummary, Option<Displacements>), SliceError> {
     let lambda2 = req
@@ -338,26 +409,47 @@ fn enhance(
         };
         return Ok((mesh, summary, None));
     };
-    let opts = EnhanceOptions {
-        lambda1: 0.0,
-        lambda2,
-        mu: None,
-    };
     let mut on_phase = |p: Phase| progress(Step::Enhancing(p));
-    let (enhanced, report) =
-        crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(|source| {
-            SliceError::Enhance {
-                model: req.model.clone(),
-                source,
-            }
-        })?;
+    let failed = |source| SliceError::Enhance {
+        model: req.model.clone(),
+        source,
+    };
+    let (enhanced, report, lambda2, mode) = match printer {
+        Some(printer) => {
+            // The printed scale before enhancing: the model's extent along its up axis.
+            let axis = if req.up == UpAxis::Y { 1 } else { 2 };
+            let extent = mesh.bounds().map_or(0.0, |(lo, hi)| hi[axis] - lo[axis]);
+            let scale = req.height_mm / extent;
+            let (enhanced, report, chosen) =
+                crate::enhance::print_aware::enhance(&mesh, scale, printer, &mut on_phase)
+                    .map_err(failed)?;
+            tracing::info!(
+                nozzle_mm = printer.nozzle_mm,
+                band_mm = ?chosen.band_mm,
+                lambda2 = chosen.lambda2,
+                capped = chosen.capped,
+                "print-aware enhancement"
+            );
+            (enhanced, report, chosen.lambda2, "enhanced (print-aware)")
+        }
+        None => {
+            let opts = EnhanceOptions {
+                lambda1: 0.0,
+                lambda2,
+                mu: None,
+            };
+            let (enhanced, report) =
+                crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(failed)?;
+            (enhanced, report, lambda2, "enhanced")
+        }
+    };
     if let Some(dir) = &req.pictures {
         draw_pictures(&mesh, &enhanced, req.up, dir);
     }
     let displacements = Displacements::between(&mesh, &enhanced);
     let summary = EnhancementSummary {
         lambda2: Some(lambda2),
-        mode: "enhanced".into(),
+        mode: mode.into(),
         report: Some(report),
         printed: None,
     };

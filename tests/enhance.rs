@@ -655,3 +655,77 @@ fn command_rejects_bad_input_clearly_and_keeps_existing_output() {
     assert!(!result.status.success());
     assert!(String::from_utf8_lossy(&result.stderr).contains(".stl or .obj"));
 }
+
+/// The print-aware mode on the bunny printed 20 mm tall: its band sits at 2 to 8 line
+/// widths, it changes the mesh no more than the paper's strong setting (λ2 = 40) would,
+/// and no feature of the band is inverted: at every vertex the band's component of the
+/// output points the way the input's does (out − in = (λ2·W − 1)·Δ2 with λ2·W > 0).
+#[test]
+fn print_aware_mode_stays_within_the_strong_setting_and_inverts_no_feature() {
+    use crispen::enhance::print_aware;
+    use crispen::enhance::PrintResolution;
+    let (input, _) = bunny();
+    let (lo, hi) = input.bounds().unwrap();
+    let scale = 20.0 / (hi[1] - lo[1]);
+    let printer = PrintResolution {
+        nozzle_mm: 0.4,
+        layer_height_mm: 0.2,
+    };
+    let (out, report, chosen) = print_aware::enhance(input, scale, printer, &mut |_| {}).unwrap();
+    assert_eq!(chosen.band_mm, [0.8, 3.2]);
+    // The cap is the paper's strong setting on this mesh, as the reference has it.
+    let strong = reference_json()["bunny"]["references"]["lambda40"]
+        ["max_displacement_unit_sphere"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (chosen.cap_ratio - strong).abs() < 1e-6 * strong,
+        "{chosen:?}"
+    );
+    assert!(chosen.max_ratio <= chosen.cap_ratio, "{chosen:?}");
+    assert!(chosen.lambda2 > 1.0 && chosen.lambda2 <= chosen.lambda2_target);
+    assert_eq!((report.lambda1, report.lambda2), (1.0, chosen.lambda2));
+    assert!(report.w_min < 1.0, "W holds back thin parts");
+    assert!(report.max_solve_residual <= 1e-10);
+
+    // Δ2 from the same bands: combining with λ1 = 1, λ2 = 0 and W ≡ 1 gives V − Δ2.
+    let bands =
+        Bands::compute_with_deltas(input, Solver::Auto, chosen.deltas, &mut |_| {}).unwrap();
+    let without_band = bands
+        .combine(&EnhanceOptions {
+            lambda1: 1.0,
+            lambda2: 0.0,
+            mu: Some(0.0),
+        })
+        .unwrap();
+    let mut lifted = 0usize;
+    for ((v, o), w) in input
+        .vertices
+        .iter()
+        .zip(&out.vertices)
+        .zip(&without_band.vertices)
+    {
+        let band: [f64; 3] = std::array::from_fn(|k| v[k] - w[k]);
+        let kept: f64 = (0..3).map(|k| (o[k] - v[k] + band[k]) * band[k]).sum();
+        let norm2: f64 = band.iter().map(|c| c * c).sum();
+        assert!(
+            kept >= -1e-9 * norm2.max(1e-30),
+            "a feature inverted: {kept} vs {norm2}"
+        );
+        lifted += usize::from(kept > norm2);
+    }
+    assert!(
+        lifted > input.vertices.len() / 2,
+        "{lifted} of {}",
+        input.vertices.len()
+    );
+
+    // A wider nozzle places the band on wider features.
+    let coarse = PrintResolution {
+        nozzle_mm: 0.8,
+        layer_height_mm: 0.2,
+    };
+    let (_, _, wide) = print_aware::enhance(input, scale, coarse, &mut |_| {}).unwrap();
+    assert_eq!(wide.band_mm, [1.6, 6.4]);
+    assert!(wide.deltas[0] > chosen.deltas[0]);
+}

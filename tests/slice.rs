@@ -668,3 +668,45 @@ fn the_comparison_reads_curaengine_outer_walls() {
     assert!(w.layers > 80 && w.wall_mm > 1000.0, "{w:?}");
     assert!(w.mean_mm > 0.0 && w.share_over_0_05_mm > 0.0, "{w:?}");
 }
+
+/// In print-aware mode the enhancement depends on the machine: one job for two nozzles is
+/// enhanced for each (a wider band and another strength for the wider nozzle), where the
+/// paper's mode enhances it once for both.
+#[test]
+fn print_aware_mode_enhances_a_job_for_each_machine() {
+    let dir = tempfile::tempdir().unwrap();
+    let um2p = machine("ultimaker2plus");
+    let targets: Vec<Target> = [0.25, 0.8]
+        .iter()
+        .map(|&nozzle| Target {
+            machine: um2p.with_nozzle(nozzle).unwrap(),
+            output: dir.path().join(format!("spot-{nozzle}.gcode")),
+            keep_mesh: None,
+        })
+        .collect();
+    let mut req = SliceRequest::new(spot(), 20.0);
+    req.up = crispen::slice::UpAxis::Y;
+    let lambdas = |req: &SliceRequest| -> Vec<(String, f64, f64)> {
+        prepare(req, &targets, &mut |_| {})
+            .unwrap()
+            .into_iter()
+            .map(|(_, r)| {
+                let r = r.unwrap();
+                let printed = r.enhancement.printed.unwrap();
+                (
+                    r.enhancement.mode,
+                    r.enhancement.lambda2.unwrap(),
+                    printed.nozzle_mm.unwrap(),
+                )
+            })
+            .collect()
+    };
+    let paper = lambdas(&req);
+    assert_eq!(paper[0].1, paper[1].1, "{paper:?}");
+    assert_eq!(paper[0].0, "enhanced");
+    req.mode = crispen::enhance::Mode::PrintAware;
+    let aware = lambdas(&req);
+    assert_eq!(aware[0].0, "enhanced (print-aware)");
+    assert_ne!(aware[0].1, aware[1].1, "{aware:?}");
+    assert_eq!((aware[0].2, aware[1].2), (0.25, 0.8));
+}

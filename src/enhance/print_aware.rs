@@ -10,8 +10,9 @@
 //!   mid band Δ2 on those wavelengths (at the bounding radius in mm, r·scale); δ3 = 10·δ2 as
 //!   in the paper, for W.
 //! - **Strength.** λ2 lifts the band's typical feature (its area-weighted 90th percentile
-//!   amplitude A, mm) by a quarter of the line width, what the slicer's rounding loses:
-//!   (λ2 − 1)·A = w/4; then it is lowered, if needed, until the largest displacement
+//!   amplitude A, mm) by what the printer loses: a quarter of the line width w (the
+//!   slicer's rounding) or half a layer height h (relief shallower falls between layers),
+//!   whichever is more: (λ2 − 1)·A = max(w/4, h/2); then it is lowered, if needed, until the largest displacement
 //!   relative to the bounding radius is no more than the paper's strong setting (λ2 = 40)
 //!   gives on the same mesh.
 //! - **Combination.** Ṽ = V_δ2 + λ2·W·Δ2 + Δ1: λ1 = 1 keeps the detail finer than the
@@ -75,7 +76,9 @@ pub struct PrintAwareReport {
     pub deltas: [f64; 3],
     /// The band's area-weighted 90th percentile amplitude, mm.
     pub band_amplitude_mm: f64,
-    /// λ2 that lifts it by a quarter line width, and the λ2 used.
+    /// What the band is lifted by, max(w/4, h/2), mm.
+    pub lift_mm: f64,
+    /// λ2 that lifts it so, and the λ2 used.
     pub lambda2_target: f64,
     pub lambda2: f64,
     /// Largest displacement / bounding radius: the paper's strong setting's (the cap) and
@@ -136,8 +139,11 @@ pub fn enhance(
     progress(Phase::Combine);
     let t = Instant::now();
     let amplitude_mm = bands.mid_band_quantile(0.9) * bands.radius * scale;
+    // What the printer loses: a quarter line width across the layers (the slicer's
+    // rounding), half a layer along Z (relief shallower than that falls between layers).
+    let lift_mm = (0.25 * width).max(0.5 * printer.layer_height_mm);
     let lambda2_target = if amplitude_mm > 0.0 {
-        (1.0 + 0.25 * width / amplitude_mm).min(MAX_LAMBDA2)
+        (1.0 + lift_mm / amplitude_mm).min(MAX_LAMBDA2)
     } else {
         1.0
     };
@@ -175,6 +181,7 @@ pub fn enhance(
         band_mm,
         deltas,
         band_amplitude_mm: amplitude_mm,
+        lift_mm,
         lambda2_target,
         lambda2,
         cap_ratio,

@@ -154,6 +154,11 @@ pub struct SliceJob<'a> {
     pub keep_mesh: Option<&'a Path>,
     /// Put PrusaSlicer-format thumbnails of the part into the G-code.
     pub thumbnails: bool,
+    /// The G-code is only measured, never printed (the unmodified slicing a comparison is
+    /// made against): a G-code failing the job's checks is kept, with a warning, because
+    /// a slicer's trouble with the unmodified model (an open scan's empty layers) is no
+    /// reason not to measure the enhanced one.
+    pub measure_only: bool,
 }
 
 /// How the model was changed before slicing.
@@ -168,6 +173,9 @@ pub struct EnhancementSummary {
     /// layer height (the report's `max_displacement` is in the model file's units).
     #[serde(default)]
     pub printed: Option<PrintedDisplacement>,
+    /// In print-aware mode, what it chose for this machine (band, lift, λ2, cap).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub print_aware: Option<crate::enhance::print_aware::PrintAwareReport>,
 }
 
 /// Seconds spent in each step.
@@ -439,7 +447,14 @@ pub fn slice_mesh(
         layer_height_mm: job.settings.layer_height_mm,
         heated_bed: job.machine.heated_bed,
     };
-    let stats = gcode::check(std::io::BufReader::new(file), &expect).map_err(bad_output)?;
+    let stats = match gcode::check(std::io::BufReader::new(file), &expect) {
+        Ok(stats) => stats,
+        Err(reason) if job.measure_only => {
+            tracing::warn!(model = %job.model.display(), %reason, "the G-code measured would not pass as a job");
+            gcode::GcodeStats::default()
+        }
+        Err(reason) => return Err(bad_output(reason)),
+    };
     timings.check_s = t.elapsed().as_secs_f64();
 
     // Cura's G-code header holds placeholders when run from the command line; its log has

@@ -436,6 +436,7 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                         mode: "pre-sliced".into(),
                         report: None,
                         printed: None,
+                        print_aware: None,
                     },
                     slicer_version: target.slicer.clone(),
                     model_size_mm: target

@@ -229,6 +229,7 @@ pub fn prepare(
                     cancel: req.cancel.as_deref(),
                     keep_mesh: target.keep_mesh.as_deref(),
                     thumbnails: req.pictures.is_some(),
+                    measure_only: false,
                 };
                 crate::slice::slice_mesh(&placed.mesh, &job, &mut |s| {
                     progress(Step::Slice(&machine.name, s))
@@ -336,6 +337,7 @@ fn compare_walls(
         cancel: req.cancel.as_deref(),
         keep_mesh: None,
         thumbnails: false,
+        measure_only: true,
     };
     if let Err(e) = crate::slice::slice_mesh(plain, &job, &mut |_| {}) {
         tracing::warn!(machine = %machine.name, error = %e, "cannot slice the unmodified model to compare");
@@ -406,6 +408,7 @@ fn enhance(
             mode: "unmodified".into(),
             report: None,
             printed: None,
+            print_aware: None,
         };
         return Ok((mesh, summary, None));
     };
@@ -414,7 +417,7 @@ fn enhance(
         model: req.model.clone(),
         source,
     };
-    let (enhanced, report, lambda2, mode) = match printer {
+    let (enhanced, report, lambda2, mode, print_aware) = match printer {
         Some(printer) => {
             // The printed scale before enhancing: the model's extent along its up axis.
             let axis = if req.up == UpAxis::Y { 1 } else { 2 };
@@ -430,7 +433,14 @@ fn enhance(
                 capped = chosen.capped,
                 "print-aware enhancement"
             );
-            (enhanced, report, chosen.lambda2, "enhanced (print-aware)")
+            let lambda2 = chosen.lambda2;
+            (
+                enhanced,
+                report,
+                lambda2,
+                "enhanced (print-aware)",
+                Some(chosen),
+            )
         }
         None => {
             let opts = EnhanceOptions {
@@ -440,7 +450,7 @@ fn enhance(
             };
             let (enhanced, report) =
                 crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(failed)?;
-            (enhanced, report, lambda2, "enhanced")
+            (enhanced, report, lambda2, "enhanced", None)
         }
     };
     if let Some(dir) = &req.pictures {
@@ -452,6 +462,7 @@ fn enhance(
         mode: mode.into(),
         report: Some(report),
         printed: None,
+        print_aware,
     };
     Ok((enhanced, summary, displacements))
 }

@@ -1,8 +1,9 @@
 //! Benchmark: the G-code measure's cost (`crispen::slice::walls`), so that comparing every
 //! enhanced job with its unmodified slicing stays affordable next to the slicing itself.
-//! For the bunny at 20, 50 and 100 mm (PrusaSlicer, Ultimaker 2, 0.4 mm nozzle), sliced
-//! plain and enhanced once, it times reading both files' outer walls and comparing them:
-//! the median of a few runs. `cargo bench --bench walls` (CRISPEN_BENCH_RUNS sets the runs).
+//! For the bunny at 20 mm and Spot at 25, 50 and 100 mm (PrusaSlicer, Ultimaker 2, 0.4 mm
+//! nozzle), sliced plain and enhanced once, it times reading both files' outer walls and
+//! comparing them: the median of a few runs. (The bunny's open base makes PrusaSlicer
+//! leave empty layers in it unmodified above about 40 mm.) `cargo bench --bench walls` (CRISPEN_BENCH_RUNS sets the runs).
 
 use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
 use crispen::enhance::Strength;
@@ -26,22 +27,27 @@ fn main() {
         .max(1);
     let dir = tempfile::tempdir().expect("temporary folder");
     let machine = Machine::builtin("ultimaker2").expect("built in");
-    println!("case        slice_s  MB(2 files)  segments  samples  read_s  compare_s  total_s");
-    for height in [20.0, 50.0, 100.0] {
+    println!("case          slice_s  MB(2 files)  segments  samples  read_s  compare_s  total_s");
+    for (model, height) in [
+        ("bunny", 20.0),
+        ("spot", 25.0),
+        ("spot", 50.0),
+        ("spot", 100.0),
+    ] {
         let mut slice_s = 0.0;
         let mut paths = Vec::new();
         for (name, strength) in [("plain", Strength::Off), ("enhanced", Strength::Auto)] {
-            let mut req = SliceRequest::new(common::model("bunny.obj"), height);
+            let mut req = SliceRequest::new(common::model(&format!("{model}.obj")), height);
             req.up = UpAxis::Y;
             req.strength = strength;
-            let output = dir.path().join(format!("{name}-{height}.gcode"));
+            let output = dir.path().join(format!("{model}-{name}-{height}.gcode"));
             let target = Target {
                 machine: machine.clone(),
                 output: output.clone(),
                 keep_mesh: None,
             };
             let t = Instant::now();
-            prepare_one(&req, target, &mut |_| {}).expect("PrusaSlicer slices the bunny");
+            prepare_one(&req, target, &mut |_| {}).expect("PrusaSlicer slices the model");
             slice_s += t.elapsed().as_secs_f64();
             paths.push(output);
         }
@@ -66,7 +72,7 @@ fn main() {
         let (segments, samples) = last.unwrap();
         let (r, c) = (median(read), median(cmp));
         println!(
-            "bunny {height:>3} mm {slice_s:>8.2} {:>12.1} {segments:>9} {samples:>8} {r:>7.3} {c:>10.3} {:>8.3}",
+            "{model:<5} {height:>3} mm {slice_s:>8.2} {:>12.1} {segments:>9} {samples:>8} {r:>7.3} {c:>10.3} {:>8.3}",
             bytes as f64 / 1e6,
             r + c
         );

@@ -676,7 +676,7 @@ fn the_comparison_reads_curaengine_outer_walls() {
 fn print_aware_mode_enhances_a_job_for_each_machine() {
     let dir = tempfile::tempdir().unwrap();
     let um2p = machine("ultimaker2plus");
-    let targets: Vec<Target> = [0.25, 0.8]
+    let targets: Vec<Target> = [0.25, 0.4]
         .iter()
         .map(|&nozzle| Target {
             machine: um2p.with_nozzle(nozzle).unwrap(),
@@ -684,8 +684,10 @@ fn print_aware_mode_enhances_a_job_for_each_machine() {
             keep_mesh: None,
         })
         .collect();
-    let mut req = SliceRequest::new(spot(), 20.0);
+    let mut req = SliceRequest::new(spot(), 25.0);
     req.up = crispen::slice::UpAxis::Y;
+    // Thin layers, so that the line width sets the printer's resolution.
+    req.settings.layer_height_mm = Some(0.1);
     let lambdas = |req: &SliceRequest| -> Vec<(String, f64, f64)> {
         prepare(req, &targets, &mut |_| {})
             .unwrap()
@@ -708,5 +710,5 @@ fn print_aware_mode_enhances_a_job_for_each_machine() {
     let aware = lambdas(&req);
     assert_eq!(aware[0].0, "enhanced (print-aware)");
     assert_ne!(aware[0].1, aware[1].1, "{aware:?}");
-    assert_eq!((aware[0].2, aware[1].2), (0.25, 0.8));
+    assert_eq!((aware[0].2, aware[1].2), (0.25, 0.4));
 }

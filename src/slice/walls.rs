@@ -25,11 +25,12 @@ pub const SAMPLE_SPACING_MM: f64 = 0.05;
 pub const MAX_DISTANCE_MM: f64 = 5.0;
 /// Coordinates beyond ±this are not a printer's, mm; such moves are dropped.
 pub const COORD_LIMIT_MM: f64 = 10_000.0;
-/// At most this many samples in one comparison (a 20 cm model's walls at 0.05 mm are a
-/// few million).
-pub const MAX_SAMPLES: usize = 20_000_000;
-/// At most this many wall segments are kept from one file.
-pub const MAX_SEGMENTS: usize = 20_000_000;
+/// At most this many samples in one comparison (Spot 100 mm tall has 1.6 million; a
+/// taller print is sampled more coarsely, which changes its figures little, as the
+/// samples only weight the wall by length).
+pub const MAX_SAMPLES: usize = 2_000_000;
+/// At most this many wall segments are kept from one file (Spot 100 mm tall has 40,000).
+pub const MAX_SEGMENTS: usize = 5_000_000;
 /// The shares reported: wall moved more than these, mm.
 pub const THRESHOLDS_MM: [f64; 3] = [0.05, 0.1, 0.2];
 
@@ -177,7 +178,7 @@ pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls) -> WallComparison {
     let length: f64 = matched
         .iter()
         .flat_map(|(_, _, e)| e.iter())
-        .map(|s| seg_len(s))
+        .map(seg_len)
         .sum();
     let spacing = SAMPLE_SPACING_MM.max(length / MAX_SAMPLES as f64);
     out.spacing_mm = spacing;
@@ -290,7 +291,8 @@ impl<'a> Grid<'a> {
             }
         }
         let extent = (hi[0] - lo[0]).max(hi[1] - lo[1]).max(0.0);
-        let cell = (extent / GRID_MAX as f64).max(0.25);
+        // Cells of at least 1 mm: a query looks at most MAX_DISTANCE_MM cells away.
+        let cell = (extent / GRID_MAX as f64).max(1.0);
         let dims = [0, 1].map(|k| (((hi[k] - lo[k]) / cell) as usize + 1).min(GRID_MAX));
         let mut cells = vec![Vec::new(); dims[0] * dims[1]];
         let mut grid = Grid {
@@ -300,12 +302,42 @@ impl<'a> Grid<'a> {
             dims,
             cells: Vec::new(),
         };
+        let mut put = |x: usize, y: usize, i: u32| {
+            let cell: &mut Vec<u32> = &mut cells[y * dims[0] + x];
+            if cell.last() != Some(&i) {
+                cell.push(i);
+            }
+        };
         for (i, s) in segments.iter().enumerate() {
+            let i = i as u32;
             let a = grid.cell_of(s[0]);
             let b = grid.cell_of(s[1]);
-            for x in a[0].min(b[0])..=a[0].max(b[0]) {
-                for y in a[1].min(b[1])..=a[1].max(b[1]) {
-                    cells[y * dims[0] + x].push(i as u32);
+            let (x0, x1) = (a[0].min(b[0]), a[0].max(b[0]));
+            let (y0, y1) = (a[1].min(b[1]), a[1].max(b[1]));
+            if (x1 - x0 + 1) * (y1 - y0 + 1) <= 16 {
+                // A wall segment is short: every cell of its bounding box.
+                for x in x0..=x1 {
+                    for y in y0..=y1 {
+                        put(x, y, i);
+                    }
+                }
+            } else {
+                // A long one (or garbage): points along it less than a cell apart, each
+                // with the cells around it, which covers every cell it crosses.
+                let steps =
+                    ((seg_len(s) / (0.5 * grid.cell)).ceil() as usize).clamp(1, 4 * GRID_MAX);
+                for k in 0..=steps {
+                    let t = k as f64 / steps as f64;
+                    let p = [
+                        s[0][0] + t * (s[1][0] - s[0][0]),
+                        s[0][1] + t * (s[1][1] - s[0][1]),
+                    ];
+                    let [cx, cy] = grid.cell_of(p);
+                    for x in cx.saturating_sub(1)..=(cx + 1).min(dims[0] - 1) {
+                        for y in cy.saturating_sub(1)..=(cy + 1).min(dims[1] - 1) {
+                            put(x, y, i);
+                        }
+                    }
                 }
             }
         }
@@ -346,8 +378,9 @@ impl<'a> Grid<'a> {
                     }
                 }
             }
-            // Anything in ring r + 1 or beyond is at least r cells away.
-            if best <= r as f64 * self.cell {
+            // Anything in ring r + 1 or beyond is at least r cells away (and a distance is
+            // never more than the cap).
+            if best <= r as f64 * self.cell || r as f64 * self.cell >= MAX_DISTANCE_MM {
                 break;
             }
         }
@@ -436,6 +469,25 @@ mod tests {
         assert_eq!(c.layers_unmatched, 1);
         let empty = compare(&OuterWalls::default(), &plain);
         assert_eq!((empty.layers, empty.samples, empty.mean_mm), (0, 0, 0.0));
+    }
+
+    #[test]
+    fn a_long_segment_is_found_wherever_it_passes() {
+        // One diagonal segment across a 300 mm layer; samples of a parallel one 0.3 mm
+        // away must all find it, along its whole length.
+        let plain = OuterWalls {
+            layers: [(200, vec![[[0.0, 0.0], [300.0, 290.0]]])].into(),
+        };
+        let off = 0.3 / (300.0f64.hypot(290.0));
+        let (dx, dy) = (-290.0 * off, 300.0 * off);
+        let enhanced = OuterWalls {
+            layers: [(200, vec![[[dx, dy], [300.0 + dx, 290.0 + dy]]])].into(),
+        };
+        let c = compare(&plain, &enhanced);
+        assert!(
+            (c.max_mm - 0.3).abs() < 1e-9 && (c.mean_mm - 0.3).abs() < 1e-9,
+            "{c:?}"
+        );
     }
 
     #[test]

@@ -507,6 +507,93 @@ fn command_scales_to_height_and_writes_stl() {
     assert!(max_d > 0.01 && max_d < 4.0, "max displacement {max_d} mm");
 }
 
+/// The report says the enhancement in printed mm, next to the nozzle and layer height of
+/// the machine given, and how much of the surface moves by more than a quarter of the
+/// line width; a wider nozzle counts less of it.
+#[test]
+fn command_reports_the_displacement_in_printed_millimetres_against_the_nozzle() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = model("bunny.obj");
+    let run = |extra: &[&str]| -> serde_json::Value {
+        let out = dir.path().join("spot.stl");
+        let result = crispen()
+            .args([
+                "enhance",
+                input.to_str().unwrap(),
+                "-o",
+                out.to_str().unwrap(),
+            ])
+            .args(["--height", "20", "--json"])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(
+            result.status.success(),
+            "stderr: {}",
+            String::from_utf8_lossy(&result.stderr)
+        );
+        serde_json::from_slice(&result.stdout).unwrap()
+    };
+    let bare = run(&[]);
+    let p = &bare["printed"];
+    assert_eq!(p["height_mm"], 20.0);
+    let (max, p95, mean) = (
+        p["max_mm"].as_f64().unwrap(),
+        p["p95_mm"].as_f64().unwrap(),
+        p["mean_mm"].as_f64().unwrap(),
+    );
+    assert!(max >= p95 && p95 >= mean && mean > 0.0, "{p}");
+    // The same largest move as the report's output-unit figure (mm at --height).
+    assert!((max - bare["max_displacement"].as_f64().unwrap()).abs() < 1e-9);
+    assert!(p["nozzle_mm"].is_null() && p["share_above_threshold"].is_null());
+
+    let fine = run(&["--machine", "ultimaker2plus", "--nozzle", "0.25"]);
+    let p = &fine["printed"];
+    assert_eq!(p["nozzle_mm"], 0.25);
+    assert_eq!(p["layer_height_mm"], 0.2);
+    assert_eq!(p["threshold_mm"], 0.0625);
+    let fine_share = p["share_above_threshold"].as_f64().unwrap();
+    let coarse = run(&[
+        "--machine",
+        "ultimaker2plus",
+        "--nozzle",
+        "0.8",
+        "--layer-height",
+        "0.3",
+    ]);
+    let p = &coarse["printed"];
+    assert_eq!(
+        (p["nozzle_mm"].as_f64(), p["layer_height_mm"].as_f64()),
+        (Some(0.8), Some(0.3))
+    );
+    let coarse_share = p["share_above_threshold"].as_f64().unwrap();
+    assert!(
+        (0.0..=1.0).contains(&coarse_share) && coarse_share < fine_share && fine_share <= 1.0,
+        "{coarse_share} vs {fine_share}"
+    );
+    // A nozzle the machine does not take is refused, naming it.
+    let out = dir.path().join("x.stl");
+    let refused = crispen()
+        .args([
+            "enhance",
+            input.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ])
+        .args([
+            "--height",
+            "20",
+            "--machine",
+            "ultimaker2",
+            "--nozzle",
+            "0.8",
+        ])
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--nozzle 0.8"));
+}
+
 #[test]
 fn command_rejects_bad_input_clearly_and_keeps_existing_output() {
     let dir = tempfile::tempdir().unwrap();
@@ -567,4 +654,78 @@ fn command_rejects_bad_input_clearly_and_keeps_existing_output() {
         .unwrap();
     assert!(!result.status.success());
     assert!(String::from_utf8_lossy(&result.stderr).contains(".stl or .obj"));
+}
+
+/// The print-aware mode on the bunny printed 20 mm tall: its band sits at 2 to 8 line
+/// widths, it changes the mesh no more than the paper's strong setting (λ2 = 40) would,
+/// and no feature of the band is inverted: at every vertex the band's component of the
+/// output points the way the input's does (out − in = (λ2·W − 1)·Δ2 with λ2·W > 0).
+#[test]
+fn print_aware_mode_stays_within_the_strong_setting_and_inverts_no_feature() {
+    use crispen::enhance::print_aware;
+    use crispen::enhance::PrintResolution;
+    let (input, _) = bunny();
+    let (lo, hi) = input.bounds().unwrap();
+    let scale = 20.0 / (hi[1] - lo[1]);
+    let printer = PrintResolution {
+        nozzle_mm: 0.4,
+        layer_height_mm: 0.2,
+    };
+    let (out, report, chosen) = print_aware::enhance(input, scale, printer, &mut |_| {}).unwrap();
+    assert_eq!(chosen.band_mm, [0.8, 3.2]);
+    // The cap is the paper's strong setting on this mesh, as the reference has it.
+    let strong = reference_json()["bunny"]["references"]["lambda40"]
+        ["max_displacement_unit_sphere"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (chosen.cap_ratio - strong).abs() < 1e-6 * strong,
+        "{chosen:?}"
+    );
+    assert!(chosen.max_ratio <= chosen.cap_ratio, "{chosen:?}");
+    assert!(chosen.lambda2 > 1.0 && chosen.lambda2 <= chosen.lambda2_target);
+    assert_eq!((report.lambda1, report.lambda2), (1.0, chosen.lambda2));
+    assert!(report.w_min < 1.0, "W holds back thin parts");
+    assert!(report.max_solve_residual <= 1e-10);
+
+    // Δ2 from the same bands: combining with λ1 = 1, λ2 = 0 and W ≡ 1 gives V − Δ2.
+    let bands =
+        Bands::compute_with_deltas(input, Solver::Auto, chosen.deltas, &mut |_| {}).unwrap();
+    let without_band = bands
+        .combine(&EnhanceOptions {
+            lambda1: 1.0,
+            lambda2: 0.0,
+            mu: Some(0.0),
+        })
+        .unwrap();
+    let mut lifted = 0usize;
+    for ((v, o), w) in input
+        .vertices
+        .iter()
+        .zip(&out.vertices)
+        .zip(&without_band.vertices)
+    {
+        let band: [f64; 3] = std::array::from_fn(|k| v[k] - w[k]);
+        let kept: f64 = (0..3).map(|k| (o[k] - v[k] + band[k]) * band[k]).sum();
+        let norm2: f64 = band.iter().map(|c| c * c).sum();
+        assert!(
+            kept >= -1e-9 * norm2.max(1e-30),
+            "a feature inverted: {kept} vs {norm2}"
+        );
+        lifted += usize::from(kept > norm2);
+    }
+    assert!(
+        lifted > input.vertices.len() / 2,
+        "{lifted} of {}",
+        input.vertices.len()
+    );
+
+    // A wider nozzle places the band on wider features.
+    let coarse = PrintResolution {
+        nozzle_mm: 0.8,
+        layer_height_mm: 0.2,
+    };
+    let (_, _, wide) = print_aware::enhance(input, scale, coarse, &mut |_| {}).unwrap();
+    assert_eq!(wide.band_mm, [1.6, 6.4]);
+    assert!(wide.deltas[0] > chosen.deltas[0]);
 }

@@ -471,7 +471,7 @@ fn api_over_tcp_with_and_without_the_key() {
     assert_eq!(done["strength"], "auto");
     assert_eq!(
         done["pictures"],
-        json!(["before.png", "after.png", "displacement.png"])
+        json!(["before.png", "after.png", "displacement.png", "walls.png"])
     );
     let detail = farm.get(&format!("/api/v1/jobs/{id}"), Some(KEY));
     assert_eq!(detail.status, 200);
@@ -482,13 +482,20 @@ fn api_over_tcp_with_and_without_the_key() {
             .unwrap()
             > 1000
     );
+    // The enhancement in printed mm against the machine's nozzle, and in the G-code.
+    let enhancement = &detail["job"]["slice_report"]["enhancement"];
+    assert_eq!(enhancement["printed"]["nozzle_mm"], 0.4, "{enhancement}");
+    assert!(enhancement["printed"]["max_mm"].as_f64().unwrap() > 0.0);
+    let walls = &detail["job"]["slice_report"]["walls"];
+    assert!(walls["layers"].as_u64().unwrap() > 50, "{walls}");
+    assert!(walls["mean_mm"].as_f64().unwrap() > 0.0, "{walls}");
     assert!(
         detail["job"]["print_report"]["lines_acked"]
             .as_u64()
             .unwrap()
             > 1000
     );
-    for name in ["before.png", "after.png", "displacement.png"] {
+    for name in ["before.png", "after.png", "displacement.png", "walls.png"] {
         let a = farm.get(&format!("/api/v1/jobs/{id}/pictures/{name}"), Some(KEY));
         assert_eq!(a.status, 200, "{name}");
         assert!(a.headers.contains("content-type: image/png"));
@@ -1166,7 +1173,10 @@ fn dashboard_in_a_real_browser() {
         "const imgs = document.querySelectorAll('#jobpage .pictures img');
          return imgs.length === 3 && Array.from(imgs).every(i => i.naturalWidth > 0)
            && document.querySelector('#jobpage h2').textContent.includes('left.obj')
-           && document.querySelector('#jobpage').textContent.includes('Enhancement and slicing');",
+           && document.querySelector('#jobpage').textContent.includes('Enhancement and slicing')
+           && /max displacement\\s*[0-9.]+ mm/.test(document.querySelector('#printed').textContent)
+           && document.querySelector('#walls').textContent.includes('wall moved > 0.1 mm')
+           && document.querySelector('#jobpage figure.walls img').naturalWidth > 0;",
     );
     browser.screenshot(&shots.join("dashboard-job.png"));
 

@@ -1,11 +1,16 @@
 //! `crispen enhance INPUT -o OUTPUT [--height MM] [--strength L2] [--lambda1 L1] [--mu MU]
-//! [--json]`: load and clean a mesh, enhance it (λ2 from `--strength`, or from the height
+//! [--json] [--machine NAME] [--nozzle MM] [--layer-height MM]`: load and clean a mesh, enhance it (λ2 from `--strength`, or from the height
 //! table for `--height`), scale it to the printed height, write it in the format of
 //! OUTPUT's extension. A phase display on a terminal; `--json` prints one report;
 //! `--preview DIR` draws the model before and after and the displacement's heat map.
+//! With `--height`, the report gives the displacement in printed mm (`printed`), and with a
+//! machine or a nozzle, next to its line width and layer height.
 
 use anyhow::Context;
-use crispen::enhance::{self, EnhanceOptions, Phase, PhaseTimings, StrengthTable};
+use crispen::enhance::{
+    self, Displacements, EnhanceOptions, Phase, PhaseTimings, PrintResolution, PrintedDisplacement,
+    StrengthTable,
+};
 use crispen::mesh::{self, CleanReport, MeshFormat};
 use crispen::preview;
 use crispen::slice::UpAxis;
@@ -47,6 +52,16 @@ pub struct Args {
     /// OBJ files)
     #[arg(long, value_name = "AXIS", default_value = "z")]
     pub up: UpAxis,
+    /// The machine the print is for (a built-in one, e.g. ultimaker2plus): the report
+    /// sets the printed displacement against its nozzle and layer height
+    #[arg(long, value_name = "NAME")]
+    pub machine: Option<String>,
+    /// The nozzle fitted, mm (default: the machine's, or 0.4 without --machine)
+    #[arg(long, value_name = "MM")]
+    pub nozzle: Option<f64>,
+    /// The layer height the print is sliced with, mm (the built-in profiles' 0.2)
+    #[arg(long, value_name = "MM", default_value_t = 0.2)]
+    pub layer_height: f64,
 }
 
 #[derive(Serialize)]
@@ -68,6 +83,9 @@ struct Report {
     max_displacement: f64,
     mean_displacement: f64,
     max_solve_residual: Option<f64>,
+    /// The displacement at the printed size (with --height), against the machine's line
+    /// width and layer height (with --machine or --nozzle).
+    printed: Option<PrintedDisplacement>,
     /// The pictures written for --preview.
     pictures: Vec<PathBuf>,
     scale: f64,
@@ -106,6 +124,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.output.display()
         );
     }
+    let printer = printer(&args)?;
     let lambda2 = match (args.strength, args.height) {
         (Some(s), _) => Some(s),
         (None, Some(h)) => StrengthTable::default().lambda2_for_height(h),
@@ -170,9 +189,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .save(dir)
             .with_context(|| format!("cannot write the pictures into {}", dir.display()))?;
     }
+    let displacements = Displacements::between(&loaded.mesh, &mesh);
     let scale = match args.height {
         Some(h) => crispen::mesh::place::scale_to_height(&mut mesh, h),
         None => 1.0,
+    };
+    let printed = match (args.height, &displacements) {
+        (Some(h), Some(d)) => Some(d.summary(scale, h, printer)),
+        _ => None,
     };
 
     progress.set("writing");
@@ -201,6 +225,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .as_ref()
             .map_or(0.0, |r| r.mean_displacement * scale),
         max_solve_residual: enhance_report.as_ref().map(|r| r.max_solve_residual),
+        printed,
         pictures,
         scale,
         height_mm: args.height,
@@ -222,6 +247,47 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The nozzle and layer height of `--machine` / `--nozzle`, if either is given.
+fn printer(args: &Args) -> anyhow::Result<Option<PrintResolution>> {
+    anyhow::ensure!(
+        args.layer_height.is_finite() && (0.01..=2.0).contains(&args.layer_height),
+        "--layer-height must be from 0.01 to 2 mm, not {}",
+        args.layer_height
+    );
+    let nozzle_mm = match (&args.machine, args.nozzle) {
+        (None, None) => return Ok(None),
+        (Some(name), nozzle) => {
+            let machine = crispen::machine::Machine::builtin(name).with_context(|| {
+                let builtin: Vec<&str> = crispen::machine::BUILTIN.iter().map(|b| b.name).collect();
+                format!(
+                    "--machine {name:?}: no such built-in machine (built-in: {})",
+                    builtin.join(", ")
+                )
+            })?;
+            match nozzle {
+                Some(mm) => {
+                    machine
+                        .with_nozzle(mm)
+                        .map_err(|m| anyhow::anyhow!("--nozzle {mm}: {m}"))?
+                        .nozzle_mm
+                }
+                None => machine.nozzle_mm,
+            }
+        }
+        (None, Some(mm)) => {
+            anyhow::ensure!(
+                mm.is_finite() && (0.1..=2.0).contains(&mm),
+                "--nozzle must be from 0.1 to 2 mm, not {mm}"
+            );
+            mm
+        }
+    };
+    Ok(Some(PrintResolution {
+        nozzle_mm,
+        layer_height_mm: args.layer_height,
+    }))
 }
 
 /// A spinner with the current phase, only when stderr is a terminal.

@@ -56,6 +56,19 @@ pub struct Args {
     /// Print the report as JSON on stdout
     #[arg(long)]
     pub json: bool,
+    /// The enhancement: paper (the paper's bands, λ2 from the height table) or
+    /// print-aware (bands and λ2 from the machine's nozzle and layer height at the
+    /// printed size; see docs/method.md)
+    #[arg(long, value_name = "MODE", default_value = "paper")]
+    pub mode: crispen::enhance::Mode,
+    /// Also slice the model unmodified with the same settings and compare the two jobs'
+    /// outer walls layer by layer: how far the enhancement moves what the nozzle draws
+    #[arg(long, conflicts_with = "no_enhance")]
+    pub compare: bool,
+    /// With --compare, also draw a few layers' outer walls, plain and enhanced, into
+    /// DIR/walls.png (and the model before and after, as a job's pictures)
+    #[arg(long, value_name = "DIR", requires = "compare")]
+    pub pictures: Option<PathBuf>,
     /// Stop the slicer after this many seconds
     #[arg(long, value_name = "SECS", default_value_t = 600)]
     pub timeout: u64,
@@ -122,6 +135,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     req.settings = settings;
     req.profile = args.profile.clone();
     req.timeout = Duration::from_secs(args.timeout.max(1));
+    req.compare = args.compare;
+    req.mode = args.mode;
+    if let Some(dir) = &args.pictures {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create the picture folder {}", dir.display()))?;
+        req.pictures = Some(dir.clone());
+    }
 
     let bar = std::io::stderr().is_terminal().then(|| {
         let bar = indicatif::ProgressBar::new_spinner();
@@ -152,7 +172,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         let enhancement = match report.enhancement.lambda2 {
-            Some(l2) => format!("enhanced with λ2 = {l2}"),
+            Some(l2) => format!("{} with λ2 = {l2:.3}", report.enhancement.mode),
             None => "unmodified".into(),
         };
         let time = report
@@ -182,6 +202,43 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             report.timings.total_s,
             report.output.display()
         );
+        if let Some(p) = &report.enhancement.printed {
+            let share = p
+                .share_above_threshold
+                .map(|s| {
+                    format!(
+                        ", {:.1} % of the surface by more than {:.2} mm",
+                        100.0 * s,
+                        p.threshold_mm.unwrap_or(0.0)
+                    )
+                })
+                .unwrap_or_default();
+            println!(
+                "the surface moved up to {:.3} mm (p95 {:.3}, mean {:.3}){share}; nozzle {} mm, layers {} mm",
+                p.max_mm,
+                p.p95_mm,
+                p.mean_mm,
+                p.nozzle_mm.map_or("?".into(), |v| v.to_string()),
+                p.layer_height_mm.map_or("?".into(), |v| v.to_string()),
+            );
+        }
+        match &report.walls {
+            Some(w) => println!(
+                "outer wall against the unmodified model's ({} layers, {:.0} mm of wall): mean {:.3} mm, \
+                 p95 {:.3} mm; moved more than 0.05 / 0.1 / 0.2 mm: {:.2} % / {:.2} % / {:.2} %",
+                w.layers,
+                w.wall_mm,
+                w.mean_mm,
+                w.p95_mm,
+                100.0 * w.share_over_0_05_mm,
+                100.0 * w.share_over_0_1_mm,
+                100.0 * w.share_over_0_2_mm
+            ),
+            None if args.compare => println!(
+                "no comparison: the model was printed unmodified, or the unmodified slicing failed (see the log)"
+            ),
+            None => {}
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -23,6 +23,10 @@ pub struct Bands {
     /// ‖Δ3_i‖² per vertex, and its maximum (the μ rule's denominator).
     delta3_sq: Vec<f64>,
     max_delta3_sq: f64,
+    /// Each vertex's lumped (Voronoi-mixed) area, unit-sphere units.
+    area: Vec<f64>,
+    /// The three δ the bands were made with.
+    pub deltas: [f64; 3],
     /// Relative residual ‖(M − δL)V − MV0‖ / ‖MV0‖ of each solve (worst of x, y, z).
     pub residuals: [f64; 3],
     /// Cotangents that hit [`super::operators::COT_BOUND`].
@@ -56,7 +60,27 @@ impl Bands {
         solver: Solver,
         progress: &mut dyn FnMut(Phase),
     ) -> Result<Bands, EnhanceError> {
+        Self::compute_with_deltas(mesh, solver, solve::DELTAS, progress)
+    }
+
+    /// [`Bands::compute_with`] with other smoothing steps than the paper's (ascending,
+    /// unit-sphere units): the print-aware mode places them by the printer's resolution.
+    pub fn compute_with_deltas(
+        mesh: &Mesh,
+        solver: Solver,
+        deltas: [f64; 3],
+        progress: &mut dyn FnMut(Phase),
+    ) -> Result<Bands, EnhanceError> {
         validate(mesh)?;
+        if !(deltas.iter().all(|d| d.is_finite() && *d > 0.0)
+            && deltas[0] < deltas[1]
+            && deltas[1] < deltas[2])
+        {
+            return Err(EnhanceError::InvalidOption {
+                name: "delta",
+                value: deltas[0],
+            });
+        }
         let mut timings = PhaseTimings::default();
 
         // Step 1: normalise into the unit sphere around the bounding box centre.
@@ -93,6 +117,7 @@ impl Bands {
             ops: &ops,
             v0: &v0,
             rhs: &rhs,
+            deltas,
         };
         let solved = solve::solve(problem, solver, &mut timings, progress)?;
         // Step 4: bands.
@@ -116,6 +141,8 @@ impl Bands {
             delta2,
             delta3_sq,
             max_delta3_sq,
+            area: ops.mass.clone(),
+            deltas,
             residuals: solved.residuals,
             clamped_cotangents: ops.clamped_cotangents,
             timings,
@@ -129,6 +156,28 @@ impl Bands {
         } else {
             0.0
         }
+    }
+
+    /// The area-weighted `q` quantile of ‖Δ2_i‖ (the mid band's amplitude), unit-sphere
+    /// units.
+    pub fn mid_band_quantile(&self, q: f64) -> f64 {
+        let mut pairs: Vec<(f64, f64)> = self
+            .delta2
+            .iter()
+            .zip(&self.area)
+            .map(|(d, a)| (dist_sq(*d, [0.0; 3]).sqrt(), *a))
+            .collect();
+        pairs.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let total: f64 = pairs.iter().map(|x| x.1).sum();
+        let target = q.clamp(0.0, 1.0) * total;
+        let mut acc = 0.0;
+        for (d, a) in &pairs {
+            acc += a;
+            if acc >= target {
+                return *d;
+            }
+        }
+        pairs.last().map_or(0.0, |x| x.0)
     }
 
     /// Band RMS in unit-sphere units: sqrt(mean ‖Δk_i‖²) for k = 1, 2, 3.

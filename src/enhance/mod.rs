@@ -8,11 +8,15 @@
 
 mod bands;
 pub mod operators;
+pub mod print_aware;
+pub mod printed;
 mod solve;
 mod strength;
 
 pub use bands::{Bands, Combined};
 pub use operators::COT_BOUND;
+pub use print_aware::Mode;
+pub use printed::{Displacements, PrintResolution, PrintedDisplacement};
 pub use solve::{Solver, CG_MAX_VERTICES, DELTAS, MAX_RELATIVE_RESIDUAL};
 pub use strength::{Strength, StrengthTable};
 

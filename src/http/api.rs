@@ -54,10 +54,11 @@ pub struct StatusView {
     pub farm: Option<control::FarmStatus>,
 }
 
-const PICTURES: [&str; 3] = [
+const PICTURES: [&str; 4] = [
     crate::preview::BEFORE_PNG,
     crate::preview::AFTER_PNG,
     crate::preview::DISPLACEMENT_PNG,
+    crate::preview::walls::WALLS_PNG,
 ];
 
 /// The whole farm: printers, jobs (newest last) and hot folders.

@@ -1,6 +1,7 @@
 //! Pictures of a job's mesh, made on the CPU (no GPU, no display): the model before and
 //! after the enhancement from one camera, a heat map of how far each point of the surface
-//! moved, and the G-code thumbnails other farm tools show ([`thumbnail`]).
+//! moved, the G-code thumbnails other farm tools show ([`thumbnail`]), and the outer walls
+//! of a few layers, plain and enhanced ([`walls`]).
 //!
 //! A small z-buffer rasteriser is all this needs: orthographic projection, per-pixel
 //! interpolated normals (the enhancement is a change of shading, so flat or per-vertex
@@ -9,6 +10,7 @@
 
 mod raster;
 pub mod thumbnail;
+pub mod walls;
 
 use crate::mesh::Mesh;
 use crate::slice::UpAxis;
@@ -226,6 +228,20 @@ pub fn pictures(before: &Mesh, after: &Mesh, up: UpAxis, size: u32) -> Option<Pi
 pub const BEFORE_PNG: &str = "before.png";
 pub const AFTER_PNG: &str = "after.png";
 pub const DISPLACEMENT_PNG: &str = "displacement.png";
+
+/// Writes `image` to `path` as PNG, whole under a temporary name then renamed, readable
+/// by others like the job's other files.
+pub fn write_png(path: &Path, image: &Image) -> std::io::Result<()> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let mut tmp = tempfile::NamedTempFile::new_in(dir)?;
+    std::fs::set_permissions(tmp.path(), std::fs::Permissions::from_mode(0o644))?;
+    std::io::Write::write_all(&mut tmp, &image.to_png())?;
+    tmp.persist(path).map_err(|e| e.error)?;
+    Ok(())
+}
 
 impl Pictures {
     /// Writes the three PNGs into `dir` (each written whole under a temporary name, then

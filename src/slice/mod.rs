@@ -23,10 +23,11 @@ pub mod process;
 pub mod profiles;
 pub mod prusa;
 mod settings;
+pub mod walls;
 
 pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
 
-use crate::enhance::{EnhanceError, EnhanceReport};
+use crate::enhance::{EnhanceError, EnhanceReport, PrintedDisplacement};
 use crate::machine::{Machine, SKIRT_MARGIN_MM};
 use crate::mesh::{Mesh, MeshError};
 use serde::{Deserialize, Serialize};
@@ -38,6 +39,10 @@ use std::time::{Duration, Instant};
 /// to the tallest machine that can be described; whether a machine builds it is the
 /// placement's check.
 pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_MM.end();
+
+/// The layer height of the built-in profiles (`config/prusaslicer-ultimaker2.ini`,
+/// `config/cura-ultimaker2.toml`), mm, when neither the job nor the G-code says.
+pub const DEFAULT_LAYER_HEIGHT_MM: f64 = 0.2;
 
 /// Which slicer turns the mesh into G-code.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Default)]
@@ -149,6 +154,11 @@ pub struct SliceJob<'a> {
     pub keep_mesh: Option<&'a Path>,
     /// Put PrusaSlicer-format thumbnails of the part into the G-code.
     pub thumbnails: bool,
+    /// The G-code is only measured, never printed (the unmodified slicing a comparison is
+    /// made against): a G-code failing the job's checks is kept, with a warning, because
+    /// a slicer's trouble with the unmodified model (an open scan's empty layers) is no
+    /// reason not to measure the enhanced one.
+    pub measure_only: bool,
 }
 
 /// How the model was changed before slicing.
@@ -159,6 +169,13 @@ pub struct EnhancementSummary {
     /// `"enhanced"` or `"unmodified"`.
     pub mode: String,
     pub report: Option<EnhanceReport>,
+    /// The displacement at the printed size in mm, against this job's machine's nozzle and
+    /// layer height (the report's `max_displacement` is in the model file's units).
+    #[serde(default)]
+    pub printed: Option<PrintedDisplacement>,
+    /// In print-aware mode, what it chose for this machine (band, lift, λ2, cap).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub print_aware: Option<crate::enhance::print_aware::PrintAwareReport>,
 }
 
 /// Seconds spent in each step.
@@ -197,6 +214,10 @@ pub struct SliceReport {
     pub filament_mm: Option<f64>,
     pub filament_g: Option<f64>,
     pub gcode_lines: usize,
+    /// The outer walls against the unmodified model's, sliced the same way (when asked
+    /// for, see `SliceRequest::compare`).
+    #[serde(default)]
+    pub walls: Option<walls::WallComparison>,
 }
 
 /// Why a job failed. Messages name the model, slicer, exit status and the end of the
@@ -426,7 +447,14 @@ pub fn slice_mesh(
         layer_height_mm: job.settings.layer_height_mm,
         heated_bed: job.machine.heated_bed,
     };
-    let stats = gcode::check(std::io::BufReader::new(file), &expect).map_err(bad_output)?;
+    let stats = match gcode::check(std::io::BufReader::new(file), &expect) {
+        Ok(stats) => stats,
+        Err(reason) if job.measure_only => {
+            tracing::warn!(model = %job.model.display(), %reason, "the G-code measured would not pass as a job");
+            gcode::GcodeStats::default()
+        }
+        Err(reason) => return Err(bad_output(reason)),
+    };
     timings.check_s = t.elapsed().as_secs_f64();
 
     // Cura's G-code header holds placeholders when run from the command line; its log has

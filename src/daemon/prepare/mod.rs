@@ -383,6 +383,9 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
     req.timeout = task.timeout;
     // Pictures and thumbnails go next to the G-code, in the job's directory.
     req.pictures = task.model.parent().map(Path::to_path_buf);
+    // The G-code measure of the enhancement (one more slicing per machine): what the job
+    // page shows of whether the enhancement reaches the nozzle.
+    req.compare = true;
     let targets: Vec<steps::Target> = task
         .machines
         .iter()
@@ -446,6 +449,8 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                         lambda2: None,
                         mode: "pre-sliced".into(),
                         report: None,
+                        printed: None,
+                        print_aware: None,
                     },
                     slicer_version: target.slicer.clone(),
                     model_size_mm: target

@@ -4,7 +4,9 @@
 //! machine's bed and slice it ([`crate::slice::slice_mesh`]). The enhancement depends on
 //! the height, not the machine, so it is shared; the slicing is once per machine.
 
-use crate::enhance::{EnhanceOptions, Phase, Strength, StrengthTable};
+use crate::enhance::{
+    Displacements, EnhanceOptions, Mode, Phase, PrintResolution, Strength, StrengthTable,
+};
 use crate::machine::Machine;
 use crate::mesh::place::PlaceError;
 use crate::mesh::Mesh;
@@ -41,6 +43,14 @@ pub struct SliceRequest {
     /// map (`crate::preview`, only when it is enhanced); with it, the G-code also gets
     /// PrusaSlicer-format thumbnails of the part as printed.
     pub pictures: Option<PathBuf>,
+    /// Also slice the model unmodified for each machine and compare the two jobs' outer
+    /// walls (`SliceReport::walls`, [`crate::slice::walls`]); with `pictures`, draw a few
+    /// layers of both for the first machine. Only for an enhanced model.
+    pub compare: bool,
+    /// The paper's enhancement, or the print-aware one (bands and strength from each
+    /// machine's nozzle and layer height, [`crate::enhance::print_aware`]; an explicit
+    /// strength is then ignored, `Off` still prints unmodified).
+    pub mode: Mode,
 }
 
 impl SliceRequest {
@@ -60,6 +70,8 @@ impl SliceRequest {
             cancel: None,
             up: UpAxis::Z,
             pictures: None,
+            compare: false,
+            mode: Mode::Paper,
         }
     }
 }
@@ -80,6 +92,8 @@ pub enum Step<'a> {
     Enhancing(Phase),
     /// Slicing or checking for the named machine.
     Slice(&'a str, SliceStep),
+    /// Slicing the unmodified model for the named machine and comparing the G-code.
+    Comparing(&'a str),
 }
 
 impl Step<'_> {
@@ -93,6 +107,7 @@ impl Step<'_> {
             Step::Enhancing(Phase::Combine) => "enhancing: combining".into(),
             Step::Slice(m, SliceStep::Slicing) => format!("slicing for {m}"),
             Step::Slice(m, SliceStep::Checking) => format!("checking the G-code for {m}"),
+            Step::Comparing(m) => format!("slicing the unmodified model for {m} to compare"),
         }
     }
 }
@@ -137,22 +152,68 @@ pub fn prepare(
     let t = Instant::now();
     let loaded = crate::mesh::load(&req.model)?;
     let load_s = t.elapsed().as_secs_f64();
+    let original = loaded.mesh;
 
-    let t = Instant::now();
-    let (mut mesh, enhancement) = enhance(req, loaded.mesh, progress)?;
-    let enhance_s = t.elapsed().as_secs_f64();
-
-    if req.up == UpAxis::Y {
-        crate::mesh::place::turn_y_up(&mut mesh);
+    // The paper's enhancement depends on the printed height only, so it is shared by every
+    // machine; the print-aware one on each machine's nozzle and layer height.
+    let print_aware = req.mode == Mode::PrintAware
+        && req
+            .strength_table
+            .resolve(req.strength, Some(req.height_mm))
+            .is_some();
+    let layer_height_mm = req
+        .settings
+        .layer_height_mm
+        .unwrap_or(crate::slice::DEFAULT_LAYER_HEIGHT_MM);
+    let printer_of = |machine: &crate::machine::Machine| PrintResolution {
+        nozzle_mm: machine.nozzle_mm,
+        layer_height_mm,
+    };
+    let mut shared: Option<Placed> = None;
+    if !print_aware {
+        shared = Some(place(req, &original, None, progress)?);
     }
-    let unbounded = [f64::INFINITY; 3];
-    let size = crate::mesh::place::place_on_bed(&mut mesh, req.height_mm, unbounded)
-        .map_err(|e| place_error(e, req, "any machine"))?;
+    let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
+
+    let mut plain = None;
+    if req.compare {
+        let mut p = original.clone();
+        if req.up == UpAxis::Y {
+            crate::mesh::place::turn_y_up(&mut p);
+        }
+        // The same placement as the enhanced mesh's, so both G-codes share one frame.
+        if crate::mesh::place::place_on_bed(&mut p, req.height_mm, [f64::INFINITY; 3]).is_ok() {
+            plain = Some(p);
+        }
+    }
 
     let mut results = Vec::with_capacity(targets.len());
-    for target in targets {
+    for (index, target) in targets.iter().enumerate() {
         let machine = &target.machine;
-        let sliced = crate::mesh::place::check_fits(size, machine.fits_mm())
+        let placed: &Placed = match &shared {
+            Some(p) => p,
+            None => {
+                let printer = printer_of(machine);
+                let known = per_printer.iter().position(|(p, _)| *p == printer);
+                let at = match known {
+                    Some(at) => at,
+                    None => match place(req, &original, Some(printer), progress) {
+                        Ok(p) => {
+                            per_printer.push((printer, p));
+                            per_printer.len() - 1
+                        }
+                        Err(e) => {
+                            tracing::warn!(machine = %machine.name, error = %e, "cannot prepare the job for this machine");
+                            results.push((machine.name.clone(), Err(e)));
+                            continue;
+                        }
+                    },
+                };
+                &per_printer[at].1
+            }
+        };
+        let compare = plain.as_ref().filter(|_| placed.summary.lambda2.is_some());
+        let sliced = crate::mesh::place::check_fits(placed.size, machine.fits_mm())
             .map_err(|e| place_error(e, req, &machine.name))
             .and_then(|()| {
                 let job = SliceJob {
@@ -168,17 +229,30 @@ pub fn prepare(
                     cancel: req.cancel.as_deref(),
                     keep_mesh: target.keep_mesh.as_deref(),
                     thumbnails: req.pictures.is_some(),
+                    measure_only: false,
                 };
-                crate::slice::slice_mesh(&mesh, &job, &mut |s| {
+                crate::slice::slice_mesh(&placed.mesh, &job, &mut |s| {
                     progress(Step::Slice(&machine.name, s))
                 })
             })
             .map(|mut report| {
                 report.up = req.up;
-                report.enhancement = enhancement.clone();
-                report.model_size_mm = size;
+                report.enhancement = placed.summary.clone();
+                report.enhancement.printed = placed.displacements.as_ref().map(|d| {
+                    let printer = PrintResolution {
+                        nozzle_mm: machine.nozzle_mm,
+                        layer_height_mm: report.layer_height_mm.unwrap_or(layer_height_mm),
+                    };
+                    d.summary(placed.scale, req.height_mm, Some(printer))
+                });
+                if let Some(plain) = compare {
+                    progress(Step::Comparing(&machine.name));
+                    let pictures = req.pictures.as_deref().filter(|_| index == 0);
+                    report.walls = compare_walls(req, plain, machine, &report.output, pictures);
+                }
+                report.model_size_mm = placed.size;
                 report.timings.load_s = load_s;
-                report.timings.enhance_s = enhance_s;
+                report.timings.enhance_s = placed.enhance_s;
                 report.timings.total_s = started.elapsed().as_secs_f64();
                 report
             });
@@ -190,6 +264,123 @@ pub fn prepare(
     Ok(results)
 }
 
+/// A mesh enhanced (for a printer, in print-aware mode) and placed on the bed.
+struct Placed {
+    mesh: Mesh,
+    size: [f64; 3],
+    /// Model units → printed mm.
+    scale: f64,
+    summary: EnhancementSummary,
+    displacements: Option<Displacements>,
+    enhance_s: f64,
+}
+
+/// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it.
+fn place(
+    req: &SliceRequest,
+    original: &Mesh,
+    printer: Option<PrintResolution>,
+    progress: &mut dyn FnMut(Step),
+) -> Result<Placed, SliceError> {
+    let t = Instant::now();
+    let (mut mesh, summary, displacements) = enhance(req, original.clone(), printer, progress)?;
+    let enhance_s = t.elapsed().as_secs_f64();
+    if req.up == UpAxis::Y {
+        crate::mesh::place::turn_y_up(&mut mesh);
+    }
+    // Model units → printed mm, as place_on_bed is about to scale it.
+    let scale = mesh
+        .bounds()
+        .map(|(lo, hi)| hi[2] - lo[2])
+        .filter(|z| *z > 0.0)
+        .map_or(1.0, |z| req.height_mm / z);
+    let size = crate::mesh::place::place_on_bed(&mut mesh, req.height_mm, [f64::INFINITY; 3])
+        .map_err(|e| place_error(e, req, "any machine"))?;
+    Ok(Placed {
+        mesh,
+        size,
+        scale,
+        summary,
+        displacements,
+        enhance_s,
+    })
+}
+
+/// Slices the placed, unmodified mesh as the enhanced one was and compares the two jobs'
+/// outer walls; with `pictures`, draws a few layers of both there. A comparison is a
+/// measurement, not part of the job: a failure is logged and gives `None`.
+fn compare_walls(
+    req: &SliceRequest,
+    plain: &Mesh,
+    machine: &crate::machine::Machine,
+    enhanced_gcode: &Path,
+    pictures: Option<&Path>,
+) -> Option<crate::slice::walls::WallComparison> {
+    use crate::slice::walls;
+    let started = Instant::now();
+    let work = tempfile::Builder::new()
+        .prefix("crispen-compare-")
+        .tempdir()
+        .map_err(|e| tracing::warn!(error = %e, "cannot compare: no temporary folder"))
+        .ok()?;
+    let output = work.path().join("plain.gcode");
+    let job = SliceJob {
+        model: &req.model,
+        output: &output,
+        machine,
+        height_mm: req.height_mm,
+        slicer: req.slicer,
+        settings: &req.settings,
+        profile: req.profile.as_deref(),
+        timeout: req.timeout,
+        slicer_program: req.slicer_program.as_deref(),
+        cancel: req.cancel.as_deref(),
+        keep_mesh: None,
+        thumbnails: false,
+        measure_only: true,
+    };
+    if let Err(e) = crate::slice::slice_mesh(plain, &job, &mut |_| {}) {
+        tracing::warn!(machine = %machine.name, error = %e, "cannot slice the unmodified model to compare");
+        return None;
+    }
+    let read = |p: &Path| {
+        std::fs::File::open(p)
+            .map(std::io::BufReader::new)
+            .and_then(walls::outer_walls)
+            .map_err(|e| tracing::warn!(file = %p.display(), error = %e, "cannot read the G-code to compare"))
+            .ok()
+    };
+    let (plain_walls, enhanced_walls) = (read(&output)?, read(enhanced_gcode)?);
+    let comparison = walls::compare(&plain_walls, &enhanced_walls);
+    if let Some(dir) = pictures {
+        let layers = crate::preview::walls::layers_to_show(&comparison, WALL_LAYERS_SHOWN);
+        let drawn = crate::preview::walls::walls_picture(
+            &plain_walls,
+            &enhanced_walls,
+            &layers,
+            PICTURE_SIZE,
+        );
+        if let Some(image) = drawn {
+            let path = dir.join(crate::preview::walls::WALLS_PNG);
+            if let Err(e) = crate::preview::write_png(&path, &image) {
+                tracing::warn!(file = %path.display(), error = %e, "cannot write the walls picture");
+            }
+        }
+    }
+    tracing::info!(
+        machine = %machine.name,
+        mean_mm = comparison.mean_mm,
+        p95_mm = comparison.p95_mm,
+        share_over_0_1_mm = comparison.share_over_0_1_mm,
+        seconds = started.elapsed().as_secs_f64(),
+        "compared the outer walls with the unmodified model's"
+    );
+    Some(comparison)
+}
+
+/// How many layers the walls picture shows.
+pub const WALL_LAYERS_SHOWN: usize = 3;
+
 /// [`prepare`] for one machine, its error the job's.
 pub fn prepare_one(
     req: &SliceRequest,
@@ -200,12 +391,14 @@ pub fn prepare_one(
     results.pop().expect("one result per target").1
 }
 
-/// The enhancement step: for the printed height, or none when the strength says so.
+/// The enhancement step: for the printed height, or none when the strength says so; with
+/// how far each vertex moved, for the printed figures.
 fn enhance(
     req: &SliceRequest,
     mesh: Mesh,
+    printer: Option<PrintResolution>,
     progress: &mut dyn FnMut(Step),
-) -> Result<(Mesh, EnhancementSummary), SliceError> {
+) -> Result<(Mesh, EnhancementSummary, Option<Displacements>), SliceError> {
     let lambda2 = req
         .strength_table
         .resolve(req.strength, Some(req.height_mm));
@@ -214,31 +407,64 @@ fn enhance(
             lambda2: None,
             mode: "unmodified".into(),
             report: None,
+            printed: None,
+            print_aware: None,
         };
-        return Ok((mesh, summary));
-    };
-    let opts = EnhanceOptions {
-        lambda1: 0.0,
-        lambda2,
-        mu: None,
+        return Ok((mesh, summary, None));
     };
     let mut on_phase = |p: Phase| progress(Step::Enhancing(p));
-    let (enhanced, report) =
-        crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(|source| {
-            SliceError::Enhance {
-                model: req.model.clone(),
-                source,
-            }
-        })?;
+    let failed = |source| SliceError::Enhance {
+        model: req.model.clone(),
+        source,
+    };
+    let (enhanced, report, lambda2, mode, print_aware) = match printer {
+        Some(printer) => {
+            // The printed scale before enhancing: the model's extent along its up axis.
+            let axis = if req.up == UpAxis::Y { 1 } else { 2 };
+            let extent = mesh.bounds().map_or(0.0, |(lo, hi)| hi[axis] - lo[axis]);
+            let scale = req.height_mm / extent;
+            let (enhanced, report, chosen) =
+                crate::enhance::print_aware::enhance(&mesh, scale, printer, &mut on_phase)
+                    .map_err(failed)?;
+            tracing::info!(
+                nozzle_mm = printer.nozzle_mm,
+                band_mm = ?chosen.band_mm,
+                lambda2 = chosen.lambda2,
+                capped = chosen.capped,
+                "print-aware enhancement"
+            );
+            let lambda2 = chosen.lambda2;
+            (
+                enhanced,
+                report,
+                lambda2,
+                "enhanced (print-aware)",
+                Some(chosen),
+            )
+        }
+        None => {
+            let opts = EnhanceOptions {
+                lambda1: 0.0,
+                lambda2,
+                mu: None,
+            };
+            let (enhanced, report) =
+                crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(failed)?;
+            (enhanced, report, lambda2, "enhanced", None)
+        }
+    };
     if let Some(dir) = &req.pictures {
         draw_pictures(&mesh, &enhanced, req.up, dir);
     }
+    let displacements = Displacements::between(&mesh, &enhanced);
     let summary = EnhancementSummary {
         lambda2: Some(lambda2),
-        mode: "enhanced".into(),
+        mode: mode.into(),
         report: Some(report),
+        printed: None,
+        print_aware,
     };
-    Ok((enhanced, summary))
+    Ok((enhanced, summary, displacements))
 }
 
 fn place_error(e: PlaceError, req: &SliceRequest, machine: &str) -> SliceError {

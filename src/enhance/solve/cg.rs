@@ -7,8 +7,8 @@
 //! [`super::CG_MAX_VERTICES`]. The three right-hand sides (x, y, z) iterate together so
 //! each pass over the matrix serves all three.
 
+use super::MAX_RELATIVE_RESIDUAL;
 use super::{relative_residual, residual_too_large, Problem, Solutions};
-use super::{DELTAS, MAX_RELATIVE_RESIDUAL};
 use crate::enhance::operators::Operators;
 use crate::enhance::{EnhanceError, Phase, PhaseTimings};
 use rayon::prelude::*;
@@ -26,7 +26,12 @@ pub(super) fn solve(
     timings: &mut PhaseTimings,
     progress: &mut dyn FnMut(Phase),
 ) -> Result<Solutions, EnhanceError> {
-    let Problem { ops, v0, rhs } = problem;
+    let Problem {
+        ops,
+        v0,
+        rhs,
+        deltas,
+    } = problem;
     progress(Phase::Factorize);
     let t = Instant::now();
     let lap = FullLaplacian::new(ops);
@@ -34,16 +39,19 @@ pub(super) fn solve(
     let t = Instant::now();
     let mut solutions: Vec<Vec<[f64; 3]>> = Vec::with_capacity(3);
     let mut residuals = [0.0; 3];
-    for (k, &delta) in DELTAS.iter().enumerate() {
+    for (k, &delta) in deltas.iter().enumerate() {
         progress(Phase::Solve(k));
         let mut x: Vec<[f64; 3]> = match k {
             0 => v0.to_vec(),
-            // V(δ) is close to linear in δ for small δ; δ2 = 2·δ1.
-            1 => solutions[0]
-                .iter()
-                .zip(v0)
-                .map(|(a, b)| std::array::from_fn(|c| 2.0 * a[c] - b[c]))
-                .collect(),
+            // V(δ) is close to linear in δ for small δ (the paper's δ2 = 2·δ1).
+            1 => {
+                let ratio = deltas[1] / deltas[0];
+                solutions[0]
+                    .iter()
+                    .zip(v0)
+                    .map(|(a, b)| std::array::from_fn(|c| ratio * a[c] - (ratio - 1.0) * b[c]))
+                    .collect()
+            }
             _ => solutions[1].clone(),
         };
         let iterations = iterate(&lap, delta, rhs, &mut x)?;

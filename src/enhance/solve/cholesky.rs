@@ -4,8 +4,10 @@
 //! solution refined in double against the exact matrix; if that does not reach the
 //! residual, the δ is factorised again in double.
 
+#[cfg(test)]
+use super::DELTAS;
+use super::MAX_RELATIVE_RESIDUAL;
 use super::{ordering, relative_residual, residual_too_large, Problem, Solutions};
-use super::{DELTAS, MAX_RELATIVE_RESIDUAL};
 use crate::enhance::{EnhanceError, Phase, PhaseTimings};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::perm::PermRef;
@@ -46,13 +48,14 @@ pub(super) fn solve(
     progress: &mut dyn FnMut(Phase),
 ) -> Result<Solutions, EnhanceError> {
     progress(Phase::Factorize);
+    let deltas = problem.deltas;
     let t = Instant::now();
     let system = System::analyse(problem)?;
     timings.symbolic_s = t.elapsed().as_secs_f64();
     timings.factorize_s += timings.symbolic_s;
     let workers = std::thread::available_parallelism()
         .map_or(1, |n| n.get())
-        .min(DELTAS.len());
+        .min(deltas.len());
     let next = AtomicUsize::new(0);
     let mut solved: [Option<DeltaSolution>; 3] = Default::default();
     progress(Phase::Solve(0));
@@ -63,7 +66,7 @@ pub(super) fn solve(
             let (system, next) = (&system, &next);
             scope.spawn(move || loop {
                 let k = next.fetch_add(1, Ordering::Relaxed);
-                if k >= DELTAS.len() || sender.send((k, system.solve(DELTAS[k]))).is_err() {
+                if k >= deltas.len() || sender.send((k, system.solve(deltas[k]))).is_err() {
                     break;
                 }
             });
@@ -72,12 +75,12 @@ pub(super) fn solve(
         let mut finished = 0;
         for (k, result) in receiver {
             // Stop the workers from starting another δ; the scope waits for running ones.
-            let solution = result.inspect_err(|_| next.store(DELTAS.len(), Ordering::Relaxed))?;
+            let solution = result.inspect_err(|_| next.store(deltas.len(), Ordering::Relaxed))?;
             timings.factorize_s += solution.factorize_s;
             timings.solve_s += solution.solve_s;
             solved[k] = Some(solution);
             finished += 1;
-            if finished < DELTAS.len() {
+            if finished < deltas.len() {
                 progress(Phase::Solve(finished));
             }
         }
@@ -333,6 +336,7 @@ mod tests {
             ops: &ops,
             v0: &v0,
             rhs: &rhs,
+            deltas: DELTAS,
         })
         .unwrap();
         for delta in DELTAS {

@@ -44,6 +44,8 @@ pub(super) struct Problem<'a> {
     pub ops: &'a Operators,
     pub v0: &'a [[f64; 3]],
     pub rhs: &'a [[f64; 3]],
+    /// The three δ, ascending ([`DELTAS`] for the paper's method).
+    pub deltas: [f64; 3],
 }
 
 /// V_δ for each δ of [`DELTAS`], and each one's relative residual.
@@ -171,6 +173,7 @@ mod tests {
             ops: &ops,
             v0: &v,
             rhs: &rhs,
+            deltas: DELTAS,
         };
         let mut timings = PhaseTimings::default();
         let chol = solve(problem, Solver::Cholesky, &mut timings, &mut |_| {}).unwrap();

@@ -355,6 +355,29 @@ function figures(obj) {
   return html + "</dl>";
 }
 
+function mm(v) { return v == null ? "?" : (+v.toFixed(3)) + " mm"; }
+function pct(v) { return v == null ? "?" : (+(100 * v).toFixed(2)) + " %"; }
+
+// The enhancement in printed millimetres, next to the machine's nozzle and layers.
+function printedFigures(p) {
+  const rows = [
+    ["max displacement", mm(p.max_mm)], ["p95 displacement", mm(p.p95_mm)], ["mean displacement", mm(p.mean_mm)],
+    ["nozzle", mm(p.nozzle_mm)], ["layer height", mm(p.layer_height_mm)],
+  ];
+  if (p.threshold_mm != null) rows.push(["surface moved > " + mm(p.threshold_mm) + " (¼ line width)", pct(p.share_above_threshold)]);
+  return "<dl>" + rows.map(([k, v]) => "<dt>" + esc(k) + "</dt><dd>" + esc(v) + "</dd>").join("") + "</dl>";
+}
+
+// The outer walls against the unmodified model's, sliced the same way.
+function wallFigures(w) {
+  const rows = [
+    ["wall moved, mean", mm(w.mean_mm)], ["wall moved, p95", mm(w.p95_mm)], ["wall moved, max", mm(w.max_mm)],
+    ["wall moved > 0.05 mm", pct(w.share_over_0_05_mm)], ["wall moved > 0.1 mm", pct(w.share_over_0_1_mm)],
+    ["wall moved > 0.2 mm", pct(w.share_over_0_2_mm)], ["layers compared", String(w.layers)],
+  ];
+  return "<dl>" + rows.map(([k, v]) => "<dt>" + esc(k) + "</dt><dd>" + esc(v) + "</dd>").join("") + "</dl>";
+}
+
 async function showJob(id) {
   const page = $("#jobpage");
   page.innerHTML = '<p><a href="#">← farm</a></p><p class="muted">loading…</p>';
@@ -384,8 +407,20 @@ async function showJob(id) {
   const report = j.job.slice_report;
   if (report) {
     const e = report.enhancement || {};
+    // The mesh's own displacement is in the model file's units; the printed figures
+    // below say it in mm at the printed size.
+    const meshFigures = Object.fromEntries(Object.entries(e.report || {})
+      .filter(([k]) => k !== "max_displacement" && k !== "mean_displacement"));
     html += "<h3>Enhancement and slicing</h3>" +
-      figures(Object.assign({ mode: e.mode, lambda2: e.lambda2 }, e.report || {})) + figures(Object.fromEntries(
+      figures(Object.assign({ mode: e.mode, lambda2: e.lambda2 }, meshFigures));
+    if (e.printed) html += '<h4>At the printed size</h4><div id="printed">' + printedFigures(e.printed) + "</div>";
+    if (report.walls) html += '<h4>In the G-code</h4><div id="walls">' + wallFigures(report.walls) + "</div>";
+    if (j.pictures.includes("walls.png")) {
+      html += '<figure class="walls">' + picture(base + "walls.png", "outer walls") +
+        "<figcaption>Outer walls of three layers (the most changed of the bottom, middle and top thirds): " +
+        "unmodified grey, enhanced red</figcaption></figure>";
+    }
+    html += figures(Object.fromEntries(
       Object.entries(report).filter(([, v]) => v == null || typeof v !== "object")));
     if (report.gcode) html += "<h4>G-code</h4>" + figures(report.gcode);
   }

@@ -289,13 +289,8 @@ pub(crate) async fn send_print_command(
             .db
             .get()
             .ok_or(CommandError::NoPrinter(printer.to_string()))?;
-        let word = match command {
-            PrintCommand::Pause => "pause",
-            PrintCommand::Resume => "resume",
-            PrintCommand::Cancel => "cancel",
-        };
         if !db
-            .push_command(printer, word)
+            .push_command(printer, command)
             .await
             .map_err(|e| CommandError::Store(e.into()))?
         {

@@ -19,6 +19,36 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant, SystemTime};
 use tokio::sync::mpsc;
 
+/// What a file is, by its name's extension (any case): the one classifier the pick-up, the
+/// preparation and the upload share.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FileKind {
+    /// A model for the pipeline (`.stl`, `.obj`, `.3mf`).
+    Model,
+    /// G-code sliced elsewhere, printed as it is (`.gcode`, `.gco`, `.g`), or binary G-code
+    /// (`.bgcode`), which the preparation refuses with the reason.
+    Gcode,
+}
+
+/// Model formats the pipeline takes.
+const MODEL_EXTENSIONS: [&str; 3] = ["stl", "obj", "3mf"];
+/// G-code sliced elsewhere.
+const GCODE_EXTENSIONS: [&str; 4] = ["gcode", "gco", "g", "bgcode"];
+
+/// The kind of file `name` is, or None when its extension is neither a model's nor
+/// G-code's.
+pub fn file_kind(name: &str) -> Option<FileKind> {
+    let (_, extension) = name.rsplit_once('.')?;
+    let extension = extension.to_ascii_lowercase();
+    if MODEL_EXTENSIONS.contains(&extension.as_str()) {
+        Some(FileKind::Model)
+    } else if GCODE_EXTENSIONS.contains(&extension.as_str()) {
+        Some(FileKind::Gcode)
+    } else {
+        None
+    }
+}
+
 /// Whether a file name may be a model: not hidden, not a partial download, not a backup,
 /// not a sidecar.
 pub fn is_candidate_name(name: &str) -> bool {
@@ -296,6 +326,24 @@ pub async fn watch(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One list of extensions for everyone: `.bgcode` is G-code to the upload as it is to
+    /// the preparation (the upload's own list once lacked it).
+    #[test]
+    fn file_kinds() {
+        for name in ["a.stl", "A.OBJ", "b.c.3mf"] {
+            assert_eq!(file_kind(name), Some(FileKind::Model), "{name}");
+        }
+        for name in ["a.gcode", "A.GCO", "a.g", "part.bgcode", "PART.BGCODE"] {
+            assert_eq!(file_kind(name), Some(FileKind::Gcode), "{name}");
+        }
+        for name in ["gcode", "a.ply", "a.gcode.txt", "a.", "stl", "a.xbgcode"] {
+            assert_eq!(file_kind(name), None, "{name}");
+        }
+        for name in ["a.gcode", "a.bgcode", "a.g"] {
+            assert!(crate::daemon::prepare::is_presliced(name), "{name}");
+        }
+    }
     use std::io::Write;
 
     #[test]

@@ -16,6 +16,8 @@ use notify::event::{AccessKind, AccessMode, ModifyKind, RenameMode};
 use notify::{EventKind, RecursiveMode, Watcher};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 use tokio::sync::mpsc;
 
@@ -252,6 +254,37 @@ impl SettleTracker {
     }
 }
 
+/// Most file-system events waiting for the watcher's loop. A burst beyond it (thousands
+/// of files dropped at once) is not queued: the events are dropped, the folders are
+/// scanned again at the next tick, and a file whose "finished" event was dropped is taken
+/// once its size and mtime stayed unchanged for the settle time, as on a network share.
+const EVENT_QUEUE: usize = 1024;
+
+/// The bounded queue from `notify`'s thread to the watcher's loop; it never blocks the
+/// sender, and says when it dropped an event.
+struct EventQueue {
+    tx: mpsc::Sender<(PathBuf, bool)>,
+    overflowed: Arc<AtomicBool>,
+}
+
+impl EventQueue {
+    fn new(capacity: usize) -> (EventQueue, mpsc::Receiver<(PathBuf, bool)>) {
+        let (tx, rx) = mpsc::channel(capacity);
+        let queue = EventQueue {
+            tx,
+            overflowed: Arc::new(AtomicBool::new(false)),
+        };
+        (queue, rx)
+    }
+
+    /// Queues one event, or notes that it was dropped (queue full, or the loop is gone).
+    fn offer(&self, path: PathBuf, finished: bool) {
+        if self.tx.try_send((path, finished)).is_err() {
+            self.overflowed.store(true, Ordering::SeqCst);
+        }
+    }
+}
+
 /// Watches `folders` and sends each complete file (with its folder) on `out`, until `out`
 /// is closed. Rescans every `rescan` and at start.
 pub async fn watch(
@@ -260,7 +293,8 @@ pub async fn watch(
     rescan: Duration,
     out: mpsc::Sender<(PathBuf, PathBuf)>,
 ) {
-    let (event_tx, mut event_rx) = mpsc::unbounded_channel::<(PathBuf, bool)>();
+    let (events, mut event_rx) = EventQueue::new(EVENT_QUEUE);
+    let overflowed = Arc::clone(&events.overflowed);
     let watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| {
         let Ok(event) = res else { return };
         let finished = matches!(
@@ -269,7 +303,7 @@ pub async fn watch(
                 | EventKind::Modify(ModifyKind::Name(RenameMode::To))
         );
         for path in event.paths {
-            let _ = event_tx.send((path, finished));
+            events.offer(path, finished);
         }
     });
     let mut watcher = match watcher {
@@ -311,6 +345,13 @@ pub async fn watch(
                 }
             }
             _ = ticker.tick() => {
+                if overflowed.swap(false, Ordering::SeqCst) {
+                    // Events were dropped: look at the folders now rather than at the
+                    // next periodic rescan.
+                    for folder in &folders {
+                        tracker.scan_dir(folder);
+                    }
+                }
                 for path in tracker.take_complete(Instant::now()) {
                     let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
                     if out.send((path, folder)).await.is_err() {
@@ -326,6 +367,8 @@ pub async fn watch(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    use std::io::Write;
 
     /// One list of extensions for everyone: `.bgcode` is G-code to the upload as it is to
     /// the preparation (the upload's own list once lacked it).
@@ -344,7 +387,35 @@ mod tests {
             assert!(crate::daemon::prepare::is_presliced(name), "{name}");
         }
     }
-    use std::io::Write;
+
+    /// The event queue from notify's thread is bounded: a burst beyond it is dropped and
+    /// noted (for a rescan at the next tick), never held in memory without limit.
+    #[test]
+    fn the_event_queue_is_bounded_and_says_when_it_dropped() {
+        let (queue, mut rx) = EventQueue::new(2);
+        for i in 0..5 {
+            queue.offer(PathBuf::from(format!("f{i}.stl")), true);
+        }
+        assert!(queue.overflowed.load(Ordering::SeqCst));
+        let mut got = Vec::new();
+        while let Ok((path, _)) = rx.try_recv() {
+            got.push(path);
+        }
+        assert_eq!(got, [PathBuf::from("f0.stl"), PathBuf::from("f1.stl")]);
+    }
+
+    /// A file whose events were all dropped is still taken: the rescan notes it, and it
+    /// is complete once unchanged for the settle time.
+    #[test]
+    fn a_file_without_events_is_taken_by_a_rescan() {
+        let tmp = tempfile::tempdir().unwrap();
+        std::fs::write(tmp.path().join("quiet.stl"), b"solid x\n").unwrap();
+        let mut tracker = SettleTracker::new(Duration::from_secs(1));
+        tracker.scan_dir(tmp.path());
+        let later = Instant::now() + Duration::from_secs(5);
+        tracker.take_complete(Instant::now());
+        assert_eq!(tracker.take_complete(later), [tmp.path().join("quiet.stl")]);
+    }
 
     #[test]
     fn names_are_printed_harmless_and_short() {

@@ -1971,3 +1971,55 @@ fn a_large_file_of_short_lines_costs_the_daemon_little_memory() {
         "the daemon peaked at {peak_kb} kB for a {file_kb} kB file"
     );
 }
+
+/// Issue 22: a queued job whose job.json has an empty history (hand-edited, or written by
+/// a broken store) is prepared like any other; reading `history[0]` once panicked the
+/// preparation task, and nothing was prepared again.
+#[test]
+fn a_job_with_an_empty_history_is_prepared() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "");
+    // A finished print on the bed: the ready job waits rather than prints.
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    std::fs::write(
+        root.join("spool/printers.json"),
+        r#"{"p": {"bed_not_cleared": true, "last_job": null}}"#,
+    )
+    .unwrap();
+    let mut daemon = Daemon::start(&config, &log);
+    let gcode = common::farm::presliced_gcode("empty", 20, 1200);
+    drop_model(&root.join("hot"), "empty.gcode", gcode.as_bytes());
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the job ready",
+        |s| state_of(s, "empty.gcode") == "ready",
+    );
+    let id = job_by_file(&s, "empty.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(daemon.child.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    assert!(wait_exit(&mut daemon, Duration::from_secs(60), &log).success());
+    let job_json = root.join("spool/jobs").join(&id).join("job.json");
+    let mut job: Value = serde_json::from_slice(&std::fs::read(&job_json).unwrap()).unwrap();
+    job["state"] = "queued".into();
+    job["history"] = serde_json::json!([]);
+    std::fs::write(&job_json, serde_json::to_vec(&job).unwrap()).unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the job with an empty history prepared",
+        |s| state_of(s, "empty.gcode") == "ready",
+    );
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(!text.contains("panicked"), "{text}");
+}

@@ -1000,3 +1000,59 @@ fn lease_run_out(farm: &Farm, what: &str) {
             .then_some(())
     })
 }
+
+/// Issue 22: a command for a printer that its host does not know (a newer host's word, a
+/// hand-written row) is taken out of the table, logged and refused; it once fell through
+/// to a cancel and stopped the print.
+#[test]
+fn an_unknown_command_from_the_database_does_not_cancel_a_print() {
+    let specs = vec![HostSpec {
+        name: "a".into(),
+        printers: vec!["a1".into()],
+        folders: vec![("hot/a".into(), vec!["a1".into()])],
+        time_scale: 0.05,
+        lease_s: None,
+    }];
+    let farm = Farm::start(&specs);
+    let gcode = presliced_gcode("long", 2000, 1200);
+    drop_file(&farm.root.join("hot/a"), "long.gcode", gcode.as_bytes());
+    let acked = |s: &Value| {
+        printer(s, "a1").map_or(0, |p| p["progress"]["lines_acked"].as_u64().unwrap_or(0))
+    };
+    farm.wait_status("a", Duration::from_secs(120), "a1 printing", |s| {
+        printer(s, "a1").is_some_and(|p| p["state"] == "printing") && acked(s) > 20
+    });
+    // This schema's CHECK refuses other words; a newer one (or a hand) may not.
+    farm.query(
+        "ALTER TABLE commands DROP CONSTRAINT commands_command_check",
+        &[],
+    );
+    farm.query(
+        "INSERT INTO commands (host, printer, command) VALUES ('a', 'a1', 'stop')",
+        &[],
+    );
+    farm.wait_until(Duration::from_secs(60), "the command taken", |_| {
+        let left: i64 = farm.query("SELECT count(*) FROM commands", &[])[0].get(0);
+        (left == 0).then_some(())
+    });
+    farm.wait_until(Duration::from_secs(30), "the refusal logged", |last| {
+        *last = farm.host("a").log_tail(20);
+        last.contains("refused a command from another host")
+            .then_some(())
+    });
+    let log = farm.host("a").log_tail(40);
+    let refusal = log
+        .lines()
+        .find(|l| l.contains("refused a command"))
+        .unwrap();
+    assert!(
+        refusal.contains("a1") && refusal.contains("stop"),
+        "{refusal}"
+    );
+    let s = farm.host("a").status().unwrap();
+    let before = acked(&s);
+    let s = farm.wait_status("a", Duration::from_secs(60), "the print going on", |s| {
+        acked(s) > before + 20
+    });
+    assert_eq!(state_of(&s, "long.gcode"), "printing", "{s:#}");
+}

@@ -46,9 +46,10 @@ impl Farm {
         std::fs::write(
             &config,
             format!(
-                "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n{farm_extra}\n\
+                "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\n{}{farm_extra}\n\
                  [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n{}{http_extra}\n\
                  {}{}[[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"alpha\", \"beta\"]\n",
+                if farm_extra.contains("settle_s") { "" } else { "settle_s = 0.3\n" },
                 if http_extra.contains("upload_max_mb") { "" } else { "upload_max_mb = 1\n" },
                 printer("alpha"),
                 printer("beta")
@@ -1623,4 +1624,34 @@ fn bad_names_and_lone_sidecars_are_set_aside() {
         log.contains("lonely.stl.toml") && log.contains("did not arrive"),
         "{log}"
     );
+}
+
+/// Issue 22: a held upload can be released before it is prepared (it once answered "not
+/// held": the sidecar that holds it is read into the job only by the preparation). A long
+/// settle time keeps the job queued while it is released; it then prints once ready.
+#[test]
+fn a_held_upload_is_released_before_it_is_prepared() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start_with(tmp.path(), 0.0, "settle_s = 8", "");
+    let a = octoprint_upload(&farm.addr, "early.gcode", WARM_GCODE.as_bytes(), "false");
+    assert_eq!(a.status, 201, "{}", a.text());
+    let s = farm.wait_for(Duration::from_secs(60), "the held job picked up", |s| {
+        job_by_file(s, "early.gcode").is_some()
+    });
+    let id = job_by_file(&s, "early.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let (ok, text) = run_cli(tmp.path(), &["release", &id]);
+    assert!(ok && text.contains("released"), "{text}");
+    let s = farm.status();
+    let job = job_by_file(&s, "early.gcode").unwrap();
+    assert!(
+        job["state"] == "queued" || job["state"] == "preparing",
+        "released before it was prepared: {job:#}"
+    );
+    let s = farm.wait_for(Duration::from_secs(60), "the released job printed", |s| {
+        job_by_file(s, "early.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    assert_eq!(job_by_file(&s, "early.gcode").unwrap()["held"], false);
 }

@@ -199,12 +199,33 @@ pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, Comma
 /// Releases a held job, checked and changed as one step of the store (a cancel between a
 /// check and the change would otherwise leave a cancelled job released for a retry).
 async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
+    // A job not prepared yet has not had its sidecar read into it (the preparation does
+    // that): whether it is held is in the sidecar file in its directory. Released now, it
+    // stays released when the preparation reads the sidecar.
+    const UNPREPARED: &[JobState] = &[JobState::Queued, JobState::Preparing];
+    let sidecar_file = {
+        let store = farm.store();
+        store
+            .get(id)
+            .filter(|j| j.sidecar.is_none() && UNPREPARED.contains(&j.state))
+            .map(|j| store.job_dir(id).join(format!("{}.toml", j.file)))
+    };
+    let held_on_disk = match sidecar_file {
+        None => false,
+        Some(path) => {
+            let read =
+                tokio::task::spawn_blocking(move || super::prepare::read_sidecar(&path)).await;
+            matches!(read, Ok(Ok(Some(s))) if s.hold == Some(true))
+        }
+    };
     let released = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let flag = Arc::clone(&released);
     let job = farm
         .jobs
         .update(id, move |j| {
-            if j.held() && j.state.is_active() {
+            let held_unprepared =
+                held_on_disk && !j.released && j.sidecar.is_none() && UNPREPARED.contains(&j.state);
+            if (j.held() || held_unprepared) && j.state.is_active() {
                 j.released = true;
                 flag.store(true, std::sync::atomic::Ordering::SeqCst);
             }
@@ -289,13 +310,8 @@ pub(crate) async fn send_print_command(
             .db
             .get()
             .ok_or(CommandError::NoPrinter(printer.to_string()))?;
-        let word = match command {
-            PrintCommand::Pause => "pause",
-            PrintCommand::Resume => "resume",
-            PrintCommand::Cancel => "cancel",
-        };
         if !db
-            .push_command(printer, word)
+            .push_command(printer, command)
             .await
             .map_err(|e| CommandError::Store(e.into()))?
         {

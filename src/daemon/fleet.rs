@@ -171,6 +171,18 @@ impl Fleet {
         }
     }
 
+    /// A printer whose supervisor ended (it panicked: it ends only once retired, which
+    /// moves it out of `running`, or at shutdown).
+    pub(super) fn ended(&self) -> Option<String> {
+        if self.running.is_empty() {
+            return None;
+        }
+        self.running
+            .iter()
+            .find(|(_, s)| s.task.is_finished())
+            .map(|(name, _)| name.clone())
+    }
+
     /// Waits for every supervisor to end (after [`Farm::begin_stop`]).
     pub(super) async fn join(self) {
         for s in self.running.into_values().chain(self.retiring) {

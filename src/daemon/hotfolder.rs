@@ -16,8 +16,40 @@ use notify::event::{AccessKind, AccessMode, ModifyKind, RenameMode};
 use notify::{EventKind, RecursiveMode, Watcher};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 use tokio::sync::mpsc;
+
+/// What a file is, by its name's extension (any case): the one classifier the pick-up, the
+/// preparation and the upload share.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FileKind {
+    /// A model for the pipeline (`.stl`, `.obj`, `.3mf`).
+    Model,
+    /// G-code sliced elsewhere, printed as it is (`.gcode`, `.gco`, `.g`), or binary G-code
+    /// (`.bgcode`), which the preparation refuses with the reason.
+    Gcode,
+}
+
+/// Model formats the pipeline takes.
+const MODEL_EXTENSIONS: [&str; 3] = ["stl", "obj", "3mf"];
+/// G-code sliced elsewhere.
+const GCODE_EXTENSIONS: [&str; 4] = ["gcode", "gco", "g", "bgcode"];
+
+/// The kind of file `name` is, or None when its extension is neither a model's nor
+/// G-code's.
+pub fn file_kind(name: &str) -> Option<FileKind> {
+    let (_, extension) = name.rsplit_once('.')?;
+    let extension = extension.to_ascii_lowercase();
+    if MODEL_EXTENSIONS.contains(&extension.as_str()) {
+        Some(FileKind::Model)
+    } else if GCODE_EXTENSIONS.contains(&extension.as_str()) {
+        Some(FileKind::Gcode)
+    } else {
+        None
+    }
+}
 
 /// Whether a file name may be a model: not hidden, not a partial download, not a backup,
 /// not a sidecar.
@@ -222,6 +254,37 @@ impl SettleTracker {
     }
 }
 
+/// Most file-system events waiting for the watcher's loop. A burst beyond it (thousands
+/// of files dropped at once) is not queued: the events are dropped, the folders are
+/// scanned again at the next tick, and a file whose "finished" event was dropped is taken
+/// once its size and mtime stayed unchanged for the settle time, as on a network share.
+const EVENT_QUEUE: usize = 1024;
+
+/// The bounded queue from `notify`'s thread to the watcher's loop; it never blocks the
+/// sender, and says when it dropped an event.
+struct EventQueue {
+    tx: mpsc::Sender<(PathBuf, bool)>,
+    overflowed: Arc<AtomicBool>,
+}
+
+impl EventQueue {
+    fn new(capacity: usize) -> (EventQueue, mpsc::Receiver<(PathBuf, bool)>) {
+        let (tx, rx) = mpsc::channel(capacity);
+        let queue = EventQueue {
+            tx,
+            overflowed: Arc::new(AtomicBool::new(false)),
+        };
+        (queue, rx)
+    }
+
+    /// Queues one event, or notes that it was dropped (queue full, or the loop is gone).
+    fn offer(&self, path: PathBuf, finished: bool) {
+        if self.tx.try_send((path, finished)).is_err() {
+            self.overflowed.store(true, Ordering::SeqCst);
+        }
+    }
+}
+
 /// Watches `folders` and sends each complete file (with its folder) on `out`, until `out`
 /// is closed. Rescans every `rescan` and at start.
 pub async fn watch(
@@ -230,7 +293,8 @@ pub async fn watch(
     rescan: Duration,
     out: mpsc::Sender<(PathBuf, PathBuf)>,
 ) {
-    let (event_tx, mut event_rx) = mpsc::unbounded_channel::<(PathBuf, bool)>();
+    let (events, mut event_rx) = EventQueue::new(EVENT_QUEUE);
+    let overflowed = Arc::clone(&events.overflowed);
     let watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| {
         let Ok(event) = res else { return };
         let finished = matches!(
@@ -239,7 +303,7 @@ pub async fn watch(
                 | EventKind::Modify(ModifyKind::Name(RenameMode::To))
         );
         for path in event.paths {
-            let _ = event_tx.send((path, finished));
+            events.offer(path, finished);
         }
     });
     let mut watcher = match watcher {
@@ -281,6 +345,13 @@ pub async fn watch(
                 }
             }
             _ = ticker.tick() => {
+                if overflowed.swap(false, Ordering::SeqCst) {
+                    // Events were dropped: look at the folders now rather than at the
+                    // next periodic rescan.
+                    for folder in &folders {
+                        tracker.scan_dir(folder);
+                    }
+                }
                 for path in tracker.take_complete(Instant::now()) {
                     let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
                     if out.send((path, folder)).await.is_err() {
@@ -296,7 +367,55 @@ pub async fn watch(
 #[cfg(test)]
 mod tests {
     use super::*;
+
     use std::io::Write;
+
+    /// One list of extensions for everyone: `.bgcode` is G-code to the upload as it is to
+    /// the preparation (the upload's own list once lacked it).
+    #[test]
+    fn file_kinds() {
+        for name in ["a.stl", "A.OBJ", "b.c.3mf"] {
+            assert_eq!(file_kind(name), Some(FileKind::Model), "{name}");
+        }
+        for name in ["a.gcode", "A.GCO", "a.g", "part.bgcode", "PART.BGCODE"] {
+            assert_eq!(file_kind(name), Some(FileKind::Gcode), "{name}");
+        }
+        for name in ["gcode", "a.ply", "a.gcode.txt", "a.", "stl", "a.xbgcode"] {
+            assert_eq!(file_kind(name), None, "{name}");
+        }
+        for name in ["a.gcode", "a.bgcode", "a.g"] {
+            assert!(crate::daemon::prepare::is_presliced(name), "{name}");
+        }
+    }
+
+    /// The event queue from notify's thread is bounded: a burst beyond it is dropped and
+    /// noted (for a rescan at the next tick), never held in memory without limit.
+    #[test]
+    fn the_event_queue_is_bounded_and_says_when_it_dropped() {
+        let (queue, mut rx) = EventQueue::new(2);
+        for i in 0..5 {
+            queue.offer(PathBuf::from(format!("f{i}.stl")), true);
+        }
+        assert!(queue.overflowed.load(Ordering::SeqCst));
+        let mut got = Vec::new();
+        while let Ok((path, _)) = rx.try_recv() {
+            got.push(path);
+        }
+        assert_eq!(got, [PathBuf::from("f0.stl"), PathBuf::from("f1.stl")]);
+    }
+
+    /// A file whose events were all dropped is still taken: the rescan notes it, and it
+    /// is complete once unchanged for the settle time.
+    #[test]
+    fn a_file_without_events_is_taken_by_a_rescan() {
+        let tmp = tempfile::tempdir().unwrap();
+        std::fs::write(tmp.path().join("quiet.stl"), b"solid x\n").unwrap();
+        let mut tracker = SettleTracker::new(Duration::from_secs(1));
+        tracker.scan_dir(tmp.path());
+        let later = Instant::now() + Duration::from_secs(5);
+        tracker.take_complete(Instant::now());
+        assert_eq!(tracker.take_complete(later), [tmp.path().join("quiet.stl")]);
+    }
 
     #[test]
     fn names_are_printed_harmless_and_short() {

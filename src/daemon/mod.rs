@@ -61,6 +61,10 @@ pub enum DaemonError {
     Signals(std::io::Error),
     #[error("cannot find this program to run preparations with: {0}")]
     PrepareProgram(std::io::Error),
+    /// A top-level task ended or panicked while the daemon ran; the daemon stops with
+    /// this error (a non-zero exit, which systemd's `Restart=on-failure` answers).
+    #[error("the daemon's {task} task {how}; the daemon stops (to be restarted)")]
+    TaskEnded { task: String, how: String },
     #[error("[http] listen = \"{listen}\": cannot listen: {source} (hint: is another program on this port? Under systemd, install config/crispen-http.conf as a drop-in so the unit allows TCP)")]
     Http {
         listen: std::net::SocketAddr,
@@ -117,38 +121,50 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     );
     // The lease is renewed until the last print has ended, after the shutdown token.
     let stop_shared = CancellationToken::new();
-    let shared_task = shared.map(|(db, lease)| {
+    // It ends on its own, for good, when another run took this host's name (its log and
+    // the status say so); only a panic is a failure.
+    let mut shared_task = Watched::new("shared farm", None).may_end();
+    if let Some((db, lease)) = shared {
         tracing::info!(host = %db.host(), "sharing the farm's queue through its database");
-        tokio::spawn(shared::run(
+        shared_task.handle = Some(tokio::spawn(shared::run(
             Arc::clone(&farm),
             db,
             lease,
             stop_shared.clone(),
-        ))
-    });
+        )));
+    }
     let mut fleet = Fleet::start_all(&farm, &config.printers)?;
     // The listeners outlive the shutdown token: while prints finish at a stop, the
     // operator can still watch them and cancel one.
     let stop_listeners = CancellationToken::new();
-    let control_task = tokio::spawn(crate::http::serve_socket(
-        Arc::clone(&farm),
-        config.http.clone(),
-        listener,
-        stop_listeners.clone(),
-    ));
-    let http_task = http_listener.map(|(bound, http)| {
-        tokio::spawn(crate::http::serve_tcp(
+    let mut control_task = Watched::new(
+        "control socket",
+        Some(tokio::spawn(crate::http::serve_socket(
             Arc::clone(&farm),
-            http,
-            bound,
+            config.http.clone(),
+            listener,
             stop_listeners.clone(),
-        ))
-    });
-    let mut pickup = spawn_pickup(&farm, &config);
-    let prepare_task = tokio::spawn(prepare::queue::prepare_loop(
-        Arc::clone(&farm),
-        prepare_program,
-    ));
+        ))),
+    );
+    let mut http_task = Watched::new(
+        "http listener",
+        http_listener.map(|(bound, http)| {
+            tokio::spawn(crate::http::serve_tcp(
+                Arc::clone(&farm),
+                http,
+                bound,
+                stop_listeners.clone(),
+            ))
+        }),
+    );
+    let mut pickup = Watched::new("hot-folder pick-up", Some(spawn_pickup(&farm, &config)));
+    let mut prepare_task = Watched::new(
+        "preparation",
+        Some(tokio::spawn(prepare::queue::prepare_loop(
+            Arc::clone(&farm),
+            prepare_program,
+        ))),
+    );
 
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     let mut watchdog_usec = 0u64;
@@ -160,14 +176,38 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
     };
     let mut ticker = tokio::time::interval(tick);
     let mut wake = farm.subscribe();
+    // Why the daemon stops on its own: a top-level task that ended or panicked.
+    let mut failure: Option<DaemonError> = None;
     loop {
+        let mut reload = false;
+        let mut watched = [
+            &mut shared_task,
+            &mut control_task,
+            &mut http_task,
+            &mut pickup,
+            &mut prepare_task,
+        ];
         tokio::select! {
             _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
             _ = sigint.recv() => { tracing::info!("SIGINT: stopping"); break; }
-            _ = sighup.recv() => {
-                on_sighup(&farm, &options, &mut pickup, &mut fleet);
+            _ = sighup.recv() => reload = true,
+            (task, ended) = first_end(&mut watched) => {
+                if let Some(e) = task_failure(&task, ended) {
+                    tracing::error!("{e}");
+                    failure = Some(e);
+                    break;
+                }
             }
             _ = ticker.tick() => {
+                if let Some(printer) = fleet.ended() {
+                    let e = DaemonError::TaskEnded {
+                        task: format!("printer {printer}'s supervisor"),
+                        how: "ended unexpectedly".into(),
+                    };
+                    tracing::error!(printer = %printer, "{e}");
+                    failure = Some(e);
+                    break;
+                }
                 fleet.settle(&farm);
                 if farm.store().unwritten() > 0 {
                     let jobs = farm.jobs.clone();
@@ -189,16 +229,23 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
                 }
             }
         }
+        if reload {
+            on_sighup(&farm, &options, &mut pickup, &mut fleet);
+        }
     }
 
     // Shutdown: take no new work; preparation in progress is stopped (its job goes back to
     // the queue); prints finish or stop per config.
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
     farm.begin_stop();
-    pickup.abort();
-    let _ = prepare_task.await;
+    if let Some(task) = pickup.handle.take() {
+        task.abort();
+    }
+    if let Some(task) = prepare_task.handle.take() {
+        let _ = task.await;
+    }
     fleet.join().await;
-    if let Some(task) = shared_task {
+    if let Some(task) = shared_task.handle.take() {
         // Prints have ended: their outcomes are in the store.
         stop_shared.cancel();
         let _ = task.await;
@@ -214,13 +261,94 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), DaemonError>
         }
     }
     stop_listeners.cancel();
-    let _ = control_task.await;
-    if let Some(task) = http_task {
+    for task in [control_task.handle.take(), http_task.handle.take()]
+        .into_iter()
+        .flatten()
+    {
         let _ = task.await;
     }
     let _ = std::fs::remove_file(&farm.config().socket);
-    tracing::info!("crispen daemon stopped");
-    Ok(())
+    match failure {
+        Some(e) => Err(e),
+        None => {
+            tracing::info!("crispen daemon stopped");
+            Ok(())
+        }
+    }
+}
+
+/// A top-level task of the daemon, watched by [`run`]'s loop: one that ends or panics
+/// while the daemon runs stops the daemon ([`DaemonError::TaskEnded`]), rather than leave
+/// it half alive while the systemd watchdog keeps being fed.
+struct Watched {
+    name: &'static str,
+    /// None: not started (no such listener in the config), or already joined.
+    handle: Option<tokio::task::JoinHandle<()>>,
+    /// It may end on its own; only a panic is a failure.
+    may_end: bool,
+}
+
+impl Watched {
+    fn new(name: &'static str, handle: Option<tokio::task::JoinHandle<()>>) -> Watched {
+        Watched {
+            name,
+            handle,
+            may_end: false,
+        }
+    }
+
+    fn may_end(self) -> Watched {
+        Watched {
+            may_end: true,
+            ..self
+        }
+    }
+}
+
+/// Waits for the first of `tasks` to end and takes its handle out (so it is never awaited
+/// again); pending for ever while none is running.
+async fn first_end(tasks: &mut [&mut Watched]) -> (Watched, Result<(), tokio::task::JoinError>) {
+    use std::future::Future;
+    std::future::poll_fn(|cx| {
+        for task in tasks.iter_mut() {
+            let Some(handle) = task.handle.as_mut() else {
+                continue;
+            };
+            if let std::task::Poll::Ready(ended) = std::pin::Pin::new(handle).poll(cx) {
+                task.handle = None;
+                let which = Watched {
+                    name: task.name,
+                    handle: None,
+                    may_end: task.may_end,
+                };
+                return std::task::Poll::Ready((which, ended));
+            }
+        }
+        std::task::Poll::Pending
+    })
+    .await
+}
+
+/// Whether a watched task's end stops the daemon, and why.
+fn task_failure(task: &Watched, ended: Result<(), tokio::task::JoinError>) -> Option<DaemonError> {
+    let how = match ended {
+        Ok(()) if task.may_end => return None,
+        Ok(()) => "ended unexpectedly".to_string(),
+        Err(e) if e.is_panic() => {
+            let payload = e.into_panic();
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "(no message)".into());
+            format!("panicked: {message}")
+        }
+        Err(_) => "was cancelled".to_string(),
+    };
+    Some(DaemonError::TaskEnded {
+        task: task.name.to_string(),
+        how,
+    })
 }
 
 /// Opens the job store the config names, applies the restart rules to what this host left
@@ -297,20 +425,17 @@ fn summary(farm: &Farm) -> String {
 /// SIGHUP: re-read the config file and apply it as [`reload::POLICY`] declares; a bad
 /// file is refused and the old config kept. Pick-up restarts with the new folders, and
 /// the printers change as [`Fleet::apply`] says.
-fn on_sighup(
-    farm: &Arc<Farm>,
-    options: &RunOptions,
-    pickup: &mut tokio::task::JoinHandle<()>,
-    fleet: &mut Fleet,
-) {
+fn on_sighup(farm: &Arc<Farm>, options: &RunOptions, pickup: &mut Watched, fleet: &mut Fleet) {
     let Some(path) = &options.config_path else {
         tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
         return;
     };
     if let reload::Reloaded::Applied { config, .. } = reload::reload(farm, path) {
-        pickup.abort();
+        if let Some(old) = pickup.handle.take() {
+            old.abort();
+        }
         fleet.apply(farm, &config.printers);
-        *pickup = spawn_pickup(farm, &config);
+        pickup.handle = Some(spawn_pickup(farm, &config));
         farm.bump();
         tracing::info!("SIGHUP: config reloaded");
     }
@@ -438,5 +563,54 @@ fn set_aside(path: &std::path::Path, folder: &std::path::Path, why: &str) {
             error = %e,
             "not picked up: {why}; and it cannot be set aside"
         ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A top-level task that panics is found, named, and stops the daemon with an error
+    /// (before, nothing watched them: a panicked preparation left a daemon that prepared
+    /// nothing while it fed the systemd watchdog).
+    #[tokio::test]
+    async fn a_panicking_task_stops_the_daemon_with_its_name() {
+        let mut quiet = Watched::new("quiet", Some(tokio::spawn(std::future::pending())));
+        let mut absent = Watched::new("absent", None);
+        let mut panicking = Watched::new(
+            "preparation",
+            Some(tokio::spawn(async {
+                tokio::task::yield_now().await;
+                let history: Vec<u8> = Vec::new();
+                let _ = history[0];
+            })),
+        );
+        let (task, ended) = first_end(&mut [&mut quiet, &mut absent, &mut panicking]).await;
+        assert_eq!(task.name, "preparation");
+        assert!(panicking.handle.is_none(), "taken out, never awaited again");
+        let e = task_failure(&task, ended).expect("a panic stops the daemon");
+        let shown = e.to_string();
+        assert!(
+            shown.contains("preparation task panicked: index out of bounds"),
+            "{shown}"
+        );
+        quiet.handle.take().unwrap().abort();
+    }
+
+    /// A task that returns is a failure too, except one that may end on its own (the
+    /// shared farm's, when another run took this host's name).
+    #[tokio::test]
+    async fn a_task_that_returns_stops_the_daemon_unless_it_may() {
+        let mut listener = Watched::new("control socket", Some(tokio::spawn(async {})));
+        let (task, ended) = first_end(&mut [&mut listener]).await;
+        let e = task_failure(&task, ended).expect("an ended listener stops the daemon");
+        assert!(
+            e.to_string()
+                .contains("control socket task ended unexpectedly"),
+            "{e}"
+        );
+        let mut shared = Watched::new("shared farm", Some(tokio::spawn(async {}))).may_end();
+        let (task, ended) = first_end(&mut [&mut shared]).await;
+        assert!(task_failure(&task, ended).is_none());
     }
 }

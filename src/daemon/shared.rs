@@ -14,7 +14,7 @@
 //! (stopping them would not help the printers); their outcomes are not recorded.
 
 use super::control;
-use super::farm::{Farm, PrintCommand, PrinterStatus};
+use super::farm::{Farm, PrintCommand, PrinterStatus, UnknownCommand};
 use super::store::postgres::{FarmHost, PgError, PgStore};
 use std::sync::Arc;
 use std::time::Duration;
@@ -105,10 +105,8 @@ async fn tick(
     let printers = db.printers().await?;
     let hosts = db.hosts().await?;
     for (printer, command) in db.take_commands().await? {
-        let command = match command.as_str() {
-            "pause" => PrintCommand::Pause,
-            "resume" => PrintCommand::Resume,
-            _ => PrintCommand::Cancel,
+        let Some(command) = to_carry_out(&printer, command) else {
+            continue;
         };
         match control::send_print_command(farm, &printer, command).await {
             Ok(done) => tracing::info!(printer = %printer, "from another host: {done}"),
@@ -147,6 +145,22 @@ async fn tick(
     Ok(())
 }
 
+/// The command from another host to carry out, or None for one this host does not know
+/// (a newer host's, a hand-written row): that one is logged and refused, its row already
+/// taken out of the table, and the print goes on.
+fn to_carry_out(
+    printer: &str,
+    command: Result<PrintCommand, UnknownCommand>,
+) -> Option<PrintCommand> {
+    match command {
+        Ok(command) => Some(command),
+        Err(e) => {
+            tracing::error!(printer = %printer, command = %e.text.escape_debug(), "refused a command from another host: {e}");
+            None
+        }
+    }
+}
+
 /// Records whether the database answers, logging each change once.
 fn set_database(farm: &Farm, error: Option<String>) {
     let mut shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
@@ -163,4 +177,29 @@ fn set_database(farm: &Farm, error: Option<String>) {
         _ => {}
     }
     view.database = error;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A command word this host does not know is refused, never carried out as a cancel
+    /// (it once was, stopping the print); the known ones are carried out as themselves.
+    #[test]
+    fn an_unknown_command_from_another_host_is_refused() {
+        for word in ["stop", "CANCEL", "pause\n"] {
+            assert_eq!(
+                to_carry_out("p1", PrintCommand::parse(word)),
+                None,
+                "{word:?}"
+            );
+        }
+        for c in [
+            PrintCommand::Pause,
+            PrintCommand::Resume,
+            PrintCommand::Cancel,
+        ] {
+            assert_eq!(to_carry_out("p1", PrintCommand::parse(c.word())), Some(c));
+        }
+    }
 }

@@ -13,11 +13,6 @@ use futures_util::{Stream, StreamExt};
 use std::path::{Path, PathBuf};
 use tokio::io::AsyncWriteExt;
 
-/// Model formats the pipeline takes.
-const MODEL_EXTENSIONS: [&str; 3] = ["stl", "obj", "3mf"];
-/// Pre-sliced G-code, which a hot folder prints as it is (what a slicer sends after
-/// slicing itself).
-const GCODE_EXTENSIONS: [&str; 3] = ["gcode", "gco", "g"];
 /// Longest file name accepted (the usual file system limit).
 const MAX_NAME_BYTES: usize = 200;
 
@@ -114,12 +109,14 @@ pub fn check_name(name: &str) -> Result<Upload, ApiError> {
             "is a hidden or temporary name that the hot folder never takes",
         ));
     }
-    let lower = name.to_ascii_lowercase();
-    let extension = lower.rsplit('.').next().unwrap_or("");
-    match name.contains('.') {
-        true if MODEL_EXTENSIONS.contains(&extension) => Ok(Upload::Model),
-        true if GCODE_EXTENSIONS.contains(&extension) => Ok(Upload::Gcode),
-        _ => Err(bad(
+    use crate::daemon::hotfolder::{file_kind, FileKind};
+    match file_kind(name) {
+        Some(FileKind::Model) => Ok(Upload::Model),
+        // Pre-sliced G-code, which a hot folder prints as it is (what a slicer sends after
+        // slicing itself); binary G-code is refused with the reason at preparation, as a
+        // dropped one is.
+        Some(FileKind::Gcode) => Ok(Upload::Gcode),
+        None => Err(bad(
             "must end in .stl, .obj or .3mf (a model), .toml (its sidecar) or .gcode (pre-sliced)",
         )),
     }
@@ -328,6 +325,8 @@ mod tests {
         assert_eq!(check_name("part.stl.toml").unwrap(), Upload::Sidecar);
         assert_eq!(check_name("part.gcode").unwrap(), Upload::Gcode);
         assert_eq!(check_name("PART.GCO").unwrap(), Upload::Gcode);
+        // G-code by the same classifier as the preparation's (this list once lacked it).
+        assert_eq!(check_name("part.bgcode").unwrap(), Upload::Gcode);
         for bad in [
             "",
             "../x.stl",

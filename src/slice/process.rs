@@ -113,6 +113,43 @@ fn push_line(tail: &Mutex<VecDeque<String>>, line: &str) {
     tail.push_back(line);
 }
 
+/// Most bytes of one output line kept: enough for [`TAIL_LINE_CHARS`] characters of any
+/// UTF-8. The rest of a longer line (a slicer printing a whole mesh on one line, or
+/// output without a newline) is read and dropped, so memory stays bounded.
+const LINE_BYTES_KEPT: usize = TAIL_LINE_CHARS * 4;
+
+/// Reads one line into `buf` (cleared first), keeping at most `max` bytes of it and
+/// reading past the rest. False at the end of the stream with nothing read.
+fn read_line_bounded(
+    reader: &mut impl BufRead,
+    buf: &mut Vec<u8>,
+    max: usize,
+) -> std::io::Result<bool> {
+    buf.clear();
+    let mut read_any = false;
+    loop {
+        let available = match reader.fill_buf() {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        if available.is_empty() {
+            return Ok(read_any);
+        }
+        read_any = true;
+        let (taken, ends) = match available.iter().position(|&b| b == b'\n') {
+            Some(at) => (at + 1, true),
+            None => (available.len(), false),
+        };
+        let room = max.saturating_sub(buf.len());
+        buf.extend_from_slice(&available[..taken.min(room)]);
+        reader.consume(taken);
+        if ends {
+            return Ok(true);
+        }
+    }
+}
+
 fn spawn_reader(
     stream: impl Read + Send + 'static,
     tail: Arc<Mutex<VecDeque<String>>>,
@@ -120,12 +157,8 @@ fn spawn_reader(
     std::thread::spawn(move || {
         let mut reader = BufReader::new(stream);
         let mut buf = Vec::new();
-        loop {
-            buf.clear();
-            match reader.read_until(b'\n', &mut buf) {
-                Ok(0) | Err(_) => break,
-                Ok(_) => push_line(&tail, &String::from_utf8_lossy(&buf)),
-            }
+        while let Ok(true) = read_line_bounded(&mut reader, &mut buf, LINE_BYTES_KEPT) {
+            push_line(&tail, &String::from_utf8_lossy(&buf));
         }
     })
 }
@@ -323,5 +356,50 @@ mod tests {
         );
         assert_eq!(o.stdout_tail.len(), 1);
         assert!(o.stdout_tail[0].chars().count() < TAIL_LINE_CHARS + 5);
+    }
+
+    /// A line far longer than what is kept costs no more memory than the bound: its
+    /// start is kept, the rest read past, and the next line comes whole (`read_until`
+    /// once held any line in full).
+    #[test]
+    fn an_endless_line_is_bounded_and_the_next_one_kept() {
+        let mut text = vec![b'x'; 8 << 20];
+        text.extend_from_slice(b"\nlast line\nno newline");
+        let mut reader = BufReader::with_capacity(4096, &text[..]);
+        let mut buf = Vec::new();
+        let mut lines = Vec::new();
+        while read_line_bounded(&mut reader, &mut buf, 100).unwrap() {
+            assert!(
+                buf.len() <= 100 && buf.capacity() < 4096 * 2,
+                "{}",
+                buf.len()
+            );
+            lines.push(String::from_utf8_lossy(&buf).into_owned());
+        }
+        assert_eq!(
+            lines,
+            ["x".repeat(100), "last line\n".into(), "no newline".into()]
+        );
+    }
+
+    /// Through a real child: a slicer writing megabytes on one line leaves a short tail
+    /// with its last lines.
+    #[test]
+    fn a_child_printing_a_huge_line_leaves_a_short_tail() {
+        let out = run(
+            Path::new("sh"),
+            &[
+                "-c".into(),
+                "head -c 4000000 /dev/zero | tr '\\0' x; echo; echo done; echo oops >&2".into(),
+            ],
+            &[],
+            Duration::from_secs(60),
+            None,
+        )
+        .unwrap();
+        assert_eq!(out.stdout_tail.len(), 2, "{:?}", out.stdout_tail.len());
+        assert!(out.stdout_tail[0].chars().count() <= TAIL_LINE_CHARS + 2);
+        assert_eq!(out.stdout_tail[1], "done");
+        assert_eq!(out.stderr_tail, ["oops"]);
     }
 }

@@ -360,10 +360,7 @@ pub fn resolve_task(
 
 /// Whether a dropped file is G-code sliced elsewhere (printed as it is, never sliced).
 pub fn is_presliced(file: &str) -> bool {
-    let lower = file.to_ascii_lowercase();
-    [".gcode", ".gco", ".g", ".bgcode"]
-        .iter()
-        .any(|ext| lower.ends_with(ext))
+    crate::daemon::hotfolder::file_kind(file) == Some(crate::daemon::hotfolder::FileKind::Gcode)
 }
 
 /// The preparation itself, as the child runs it: the [`steps`] for a model, the

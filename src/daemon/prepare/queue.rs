@@ -34,14 +34,12 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 .store()
                 .jobs()
                 .filter(|j| j.state == JobState::Queued && can_prepare(&config, j))
-                .find(|j| {
-                    let fresh = j.history.len() == 1;
-                    let left = j.history[0].1 + settle - now;
-                    if fresh && left > 0.0 {
+                .find(|j| match settle_left(j, settle, now) {
+                    Some(left) => {
                         wait_s = Some(wait_s.map_or(left, |w| w.min(left)));
-                        return false;
+                        false
                     }
-                    true
+                    None => true,
                 })
                 .map(|j| j.id.clone());
             let Some(id) = next else { break };
@@ -94,6 +92,16 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
 /// Whether this host can prepare a job: one from its own folders (a job whose folder has
 /// left the config fails, with a hint), or, in a farm shared with other hosts, one from a
 /// folder this host's config also has.
+/// Seconds a job just picked up still waits for the settle time, or None when it may be
+/// prepared now. Only a job whose whole history is its pick-up waits; a history read from
+/// disk or from the database may be anything, empty included, and must not panic here.
+fn settle_left(job: &crate::daemon::job::Job, settle_s: f64, now: f64) -> Option<f64> {
+    match job.history.as_slice() {
+        [(_, picked_up)] => Some(picked_up + settle_s - now).filter(|left| *left > 0.0),
+        _ => None,
+    }
+}
+
 fn can_prepare(config: &crate::daemon::config::Config, job: &crate::daemon::job::Job) -> bool {
     match &job.origin {
         Some(origin) if origin.host != config.farm.host => config.folder(&job.folder).is_some(),
@@ -214,5 +222,40 @@ async fn finish_preparation(
     match outcome {
         Ok(_) | Err(StoreError::StateChanged { .. }) => {}
         Err(e) => tracing::error!(job = id, error = %e, "cannot record the preparation's outcome"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::daemon::job::Job;
+
+    /// A job whose job.json has an empty history (hand-edited, or written by a broken
+    /// store) is prepared without waiting; reading `history[0]` once panicked the whole
+    /// preparation task.
+    #[test]
+    fn a_job_with_an_empty_history_does_not_panic_preparation() {
+        let tmp = tempfile::tempdir().unwrap();
+        let job = Job::queued("0001-a".into(), 1, "a.stl".into(), tmp.path().into());
+        let mut on_disk = serde_json::to_value(&job).unwrap();
+        on_disk["history"] = serde_json::json!([]);
+        let path = tmp.path().join("job.json");
+        std::fs::write(&path, serde_json::to_vec(&on_disk).unwrap()).unwrap();
+        let read: Job = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+        assert!(read.history.is_empty());
+        assert_eq!(settle_left(&read, 30.0, crate::daemon::job::now_s()), None);
+    }
+
+    /// The settle time applies to a job just picked up, and only to it.
+    #[test]
+    fn only_a_job_just_picked_up_waits_to_settle() {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut job = Job::queued("0001-a".into(), 1, "a.stl".into(), tmp.path().into());
+        let picked_up = job.history[0].1;
+        assert_eq!(settle_left(&job, 30.0, picked_up + 10.0), Some(20.0));
+        assert_eq!(settle_left(&job, 30.0, picked_up + 30.0), None);
+        job.history.push((JobState::Preparing, picked_up + 1.0));
+        job.history.push((JobState::Queued, picked_up + 2.0));
+        assert_eq!(settle_left(&job, 30.0, picked_up + 3.0), None);
     }
 }

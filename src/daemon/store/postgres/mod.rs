@@ -896,20 +896,35 @@ impl PgStore {
 
     /// Asks the host of `printer` to pause, resume or cancel its print; false when the
     /// farm has no such printer.
-    pub async fn push_command(&self, printer: &str, command: &str) -> Result<bool, PgError> {
+    pub async fn push_command(
+        &self,
+        printer: &str,
+        command: crate::daemon::farm::PrintCommand,
+    ) -> Result<bool, PgError> {
         let client = self.client().await?;
         let added = client
             .execute(
                 "INSERT INTO commands (host, printer, command) \
                  SELECT host, name, $2 FROM printers WHERE name = $1",
-                &[&printer, &command],
+                &[&printer, &command.word()],
             )
             .await?;
         Ok(added == 1)
     }
 
-    /// Takes the commands other hosts left for this host's printers, oldest first.
-    pub async fn take_commands(&self) -> Result<Vec<(String, String)>, PgError> {
+    /// Takes the commands other hosts left for this host's printers, oldest first, each
+    /// parsed: an unknown one is taken out of the table all the same (the table has no
+    /// state; a row taken is a row answered), for the caller to log and refuse.
+    #[allow(clippy::type_complexity)]
+    pub async fn take_commands(
+        &self,
+    ) -> Result<
+        Vec<(
+            String,
+            Result<crate::daemon::farm::PrintCommand, crate::daemon::farm::UnknownCommand>,
+        )>,
+        PgError,
+    > {
         let client = self.client().await?;
         let mut rows = client
             .query(
@@ -920,7 +935,13 @@ impl PgStore {
             )
             .await?;
         rows.sort_by_key(|r| r.get::<_, i64>(0));
-        Ok(rows.iter().map(|r| (r.get(1), r.get(2))).collect())
+        Ok(rows
+            .iter()
+            .map(|r| {
+                let word: String = r.get(2);
+                (r.get(1), crate::daemon::farm::PrintCommand::parse(&word))
+            })
+            .collect())
     }
 
     pub async fn job(&self, id: &str) -> Result<Job, PgError> {

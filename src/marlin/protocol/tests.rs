@@ -30,6 +30,8 @@ struct MiniPrinter {
     flush_on_error: bool,
     /// Line numbers corrupted on their first two arrivals (the replay is corrupted again).
     corrupt_twice: HashSet<u64>,
+    /// What it answers to `M105`, line ending included.
+    m105_answer: String,
 }
 
 impl MiniPrinter {
@@ -47,6 +49,7 @@ impl MiniPrinter {
             advanced: false,
             flush_on_error: false,
             corrupt_twice: HashSet::new(),
+            m105_answer: "ok T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n".into(),
         }
     }
 
@@ -128,7 +131,7 @@ impl MiniPrinter {
                 });
             }
             if cmd == "M105" {
-                out.push_str("ok T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n");
+                out.push_str(&self.m105_answer);
             } else {
                 out.push_str(&self.ok_line(n));
             }
@@ -1464,4 +1467,30 @@ fn a_lost_answer_to_the_final_m105_is_recovered_and_the_job_ends() {
     assert!(done(&events), "{:?}", failure(&events));
     assert!(host.probes > 0);
     assert_eq!(printer.job_executed(), job(10));
+}
+
+/// Issue 21, failure 0: a printer writing `T:24.99/ 0.00` (OctoPrint's virtual printer), or
+/// one answering `M105` with a bare `ok` and its report on a line of its own: the final
+/// `M105` was never taken as answered, and the job never ended. Progress must not depend on
+/// reading a reply's optional text.
+#[test]
+fn the_final_m105_is_answered_whatever_the_report_looks_like() {
+    for answer in [
+        "ok T:24.99/ 0.00 B:48.23/ 0.00 @:64\n",
+        "T:24.99 /0.00 B:48.23 /0.00 @:64\nok\n",
+        "ok\n",
+        "ok T:?? garbled\n",
+    ] {
+        for fw in [Firmware::Marlin2, Firmware::Marlin20, Firmware::Ultimaker2] {
+            let now = Instant::now();
+            let mut printer = MiniPrinter::new();
+            printer.m105_answer = answer.into();
+            printer.advanced = false;
+            let (mut host, _) = connect(opts(fw), &mut printer, now);
+            host.start_job(job(20), now);
+            let events = run_job(&mut host, &mut printer, now);
+            assert!(done(&events), "{fw:?} {answer:?}: {:?}", failure(&events));
+            assert_eq!(printer.job_executed(), job(20), "{fw:?} {answer:?}");
+        }
+    }
 }

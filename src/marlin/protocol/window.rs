@@ -33,6 +33,7 @@ impl Host {
         self.swallow_oks = 0;
         self.duplicate_budget = None;
         self.repeated = None;
+        self.ok_may_follow = None;
         self.resend_hold = None;
         self.cautious_until = 0;
         self.confirmed = None;
@@ -139,7 +140,9 @@ impl Host {
         if self.in_flight.is_empty() {
             return true;
         }
-        if !self.opts.send_ahead || number < self.cautious_until {
+        // Lines the printer took off its ring (see `handle_resend`) no longer count here.
+        let in_ring = self.in_flight.iter().any(|f| f.bytes > 0);
+        if in_ring && (!self.opts.send_ahead || number < self.cautious_until) {
             return false;
         }
         // Every unacknowledged line may still sit in the printer's receive ring: while the

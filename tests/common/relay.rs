@@ -18,7 +18,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;
 use std::fs::File;
-use std::io::{Read, Write};
+use std::io::Read;
 use std::os::fd::{AsFd, OwnedFd};
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
@@ -114,12 +114,18 @@ pub struct RelayLog {
     pub garbled: u64,
     /// The host's port was closed by the `close_after` fault.
     pub closed: bool,
+    /// Every line each way with its time since the relay started, as it crossed (after
+    /// faults): `>` to the printer, `<` to the host.
+    pub wire: Vec<(f64, char, String)>,
 }
 
 impl RelayLog {
     /// The last `X:… Y:… Z:…` position the firmware reported (its answer to `M114`).
     pub fn last_position(&self) -> Option<[f64; 3]> {
-        self.printer_lines.iter().rev().find_map(|l| parse_position(l))
+        self.printer_lines
+            .iter()
+            .rev()
+            .find_map(|l| parse_position(l))
     }
 }
 
@@ -185,7 +191,12 @@ impl Relay {
             .unwrap_or_else(|e| panic!("starting {}: {e}", build.name()));
         let deadline = Instant::now() + Duration::from_secs(20);
         while !link.exists() {
-            assert!(Instant::now() < deadline, "{}: no pty at {}", build.name(), link.display());
+            assert!(
+                Instant::now() < deadline,
+                "{}: no pty at {}",
+                build.name(),
+                link.display()
+            );
             std::thread::sleep(Duration::from_millis(20));
         }
 
@@ -299,9 +310,9 @@ fn corrupt(rng: &mut ChaCha8Rng, line: &mut [u8]) {
     }
 }
 
-fn write_all(fd: &OwnedFd, mut bytes: &[u8], stop: &AtomicBool) -> bool {
+fn write_all<F: AsFd>(fd: F, mut bytes: &[u8], stop: &AtomicBool) -> bool {
     while !bytes.is_empty() {
-        match nix::unistd::write(fd, bytes) {
+        match nix::unistd::write(fd.as_fd(), bytes) {
             Ok(n) => bytes = &bytes[n..],
             Err(nix::errno::Errno::EAGAIN) => {
                 if stop.load(Ordering::SeqCst) {
@@ -329,7 +340,8 @@ fn run(
     let mut to_host = Lane::new();
     let mut buf = [0u8; 4096];
     let mut numbered = 0u64;
-    let mut delay = |rng: &mut ChaCha8Rng| {
+    let born = Instant::now();
+    let delay = |rng: &mut ChaCha8Rng| {
         let jitter = if faults.jitter.is_zero() {
             Duration::ZERO
         } else {
@@ -393,9 +405,9 @@ fn run(
                     if line.first() == Some(&b'N') {
                         numbered += 1;
                         log.host_lines = numbered;
-                        let in_burst = faults
-                            .burst
-                            .is_some_and(|(from, count)| numbered >= from && numbered < from + count);
+                        let in_burst = faults.burst.is_some_and(|(from, count)| {
+                            numbered >= from && numbered < from + count
+                        });
                         if in_burst || rng.random::<f64>() < faults.corrupt_line {
                             corrupt(&mut rng, &mut line);
                             log.corrupted += 1;
@@ -405,6 +417,12 @@ fn run(
                         }
                     }
                     let due = now + delay(&mut rng);
+                    let at = (now - born).as_secs_f64();
+                    log.wire.push((
+                        at,
+                        '>',
+                        String::from_utf8_lossy(&line).trim_end().to_string(),
+                    ));
                     to_printer.push(due, line);
                 }
             }
@@ -443,6 +461,12 @@ fn run(
                             log.garbled += 1;
                         }
                         let due = now + delay(&mut rng);
+                        let at = (now - born).as_secs_f64();
+                        log.wire.push((
+                            at,
+                            '<',
+                            String::from_utf8_lossy(&line).trim_end().to_string(),
+                        ));
                         to_host.push(due, line);
                     }
                 }
@@ -453,8 +477,7 @@ fn run(
         let out = to_printer.due(now);
         if !out.is_empty() {
             if let Some(p) = &printer {
-                let mut p: &File = p;
-                let _ = p.write_all(&out);
+                write_all(p, &out, &stop);
             }
         }
         let out = to_host.due(now);

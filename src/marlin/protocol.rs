@@ -69,8 +69,17 @@ pub struct ProtocolOptions {
     pub cautious_lines: u64,
     /// Interval of temperature reports (autoreport) or polls.
     pub temperature_interval: Duration,
-    /// How many times the same line may be requested again before the job fails.
+    /// How many times the same line may be requested again at once; past that, replays are
+    /// paced (`storm_pause`) and the job fails only when the storm outlasts `storm_timeout`.
+    /// A printer that keeps asking for the same line is usually behind a noisy cable.
     pub resend_limit: u32,
+    pub storm_pause: Duration,
+    pub storm_timeout: Duration,
+    /// A safe stop after a failure keeps trying this long while the printer keeps talking
+    /// (it ends sooner when the printer falls silent for `silence_fail`), one replay every
+    /// `stop_pause`: giving up leaves a printer hot.
+    pub stop_timeout: Duration,
+    pub stop_pause: Duration,
     /// Lines kept for resends. Marlin only ever asks for a line it has not acknowledged
     /// (those are always kept), so this needs to cover the send-ahead window, not the job.
     pub history_lines: usize,
@@ -92,6 +101,10 @@ impl ProtocolOptions {
             cautious_lines: 8,
             temperature_interval: Duration::from_secs(2),
             resend_limit: 10,
+            storm_pause: Duration::from_millis(100),
+            storm_timeout: Duration::from_secs(30),
+            stop_timeout: Duration::from_secs(180),
+            stop_pause: Duration::from_millis(200),
             // Each kept line is a copy of its command: a whole job's worth costs MBs per printer.
             history_lines: 1024,
         }
@@ -388,7 +401,10 @@ pub struct Host {
     number_error: bool,
     /// Its `Last Line: <k>`.
     error_last_line: Option<u64>,
-    repeated: Option<(u64, u32)>,
+    /// The line requested again, how often, and since when.
+    repeated: Option<(u64, u32, Instant)>,
+    /// Replays wait until then (a resend storm, a safe stop inside a noise burst).
+    replay_after: Option<Instant>,
     resend_ok: ResendOk,
     /// One line in flight until this line number is reached (after a resend).
     cautious_until: u64,
@@ -471,6 +487,7 @@ impl Host {
             number_error: false,
             error_last_line: None,
             repeated: None,
+            replay_after: None,
             resend_ok: ResendOk::default(),
             cautious_until: 0,
             advanced_ok: false,
@@ -704,6 +721,9 @@ impl Host {
                 if let Some(hold) = self.resend_hold {
                     at(hold);
                 }
+                if let Some(t) = self.replay_after {
+                    at(t);
+                }
                 if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
                     at(*give_up);
                 }
@@ -756,10 +776,13 @@ impl Host {
             return;
         }
         if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
-            if now >= *give_up {
+            if now >= *give_up || now - self.last_rx >= self.opts.silence_fail {
                 self.finish_stop(false);
                 return;
             }
+        }
+        if self.replay_after.is_some_and(|t| now >= t) {
+            self.replay_after = None;
         }
         if !self.autoreport() && self.accepting_job_lines() && now >= self.next_poll {
             self.next_poll = now + self.opts.temperature_interval;
@@ -827,7 +850,7 @@ impl Host {
     /// likely idle and the window only looks full because an `ok` was lost. Its answer
     /// acknowledges every earlier line.
     fn probe(&mut self, now: Instant) {
-        if self.resend_hold.is_some() {
+        if self.resend_hold.is_some() || self.replay_after.is_some_and(|t| now < t) {
             return;
         }
         self.last_probe = Some(now);
@@ -978,7 +1001,7 @@ impl Host {
         match &self.phase {
             Phase::Job(JobPhase::Stopping(Stop::Failure { .. })) => self.finish_stop(false),
             Phase::Job(_) => {
-                let give_up = now + self.opts.silence_fail;
+                let give_up = now + self.opts.stop_timeout;
                 self.phase = Phase::Job(JobPhase::Stopping(Stop::Failure { failure, give_up }));
                 // A new episode with numbers of its own, above any the printer has seen:
                 // `N<k> M110 N<k>` passes whatever it expects, and a request for an older
@@ -1419,7 +1442,7 @@ impl Host {
             self.heat = None; // `ok`s in line order: this is the heat command's own
         }
         // A successful answer after the requested line ends a resend episode.
-        if let Some((line, _)) = self.repeated {
+        if let Some((line, _, _)) = self.repeated {
             if number >= line {
                 self.repeated = None;
             }
@@ -1539,17 +1562,20 @@ impl Host {
                 return;
             }
         }
-        let times = match self.repeated {
-            Some((line, times)) if line == n => times + 1,
-            _ => 1,
+        let (times, since) = match self.repeated {
+            Some((line, times, since)) if line == n => (times + 1, since),
+            _ => (1, now),
         };
-        self.repeated = Some((n, times));
-        // The safe stop gets a generous limit of its own: giving up on it leaves a printer hot.
-        let limit = match self.stopping() {
-            Some(Stop::Failure { .. }) => self.opts.resend_limit.max(10) * 3,
-            _ => self.opts.resend_limit,
-        };
-        if times > limit {
+        self.repeated = Some((n, times, since));
+        let stopping = matches!(self.stopping(), Some(Stop::Failure { .. }));
+        if stopping && times > 1 {
+            // The safe stop rides out the noise, paced, until `stop_timeout` (see `tick_job`).
+            self.replay_after = Some(now + self.opts.stop_pause);
+        } else if times > self.opts.resend_limit {
+            // A storm: paced replays until it ends or outlasts `storm_timeout`.
+            self.replay_after = Some(now + self.opts.storm_pause);
+        }
+        if !stopping && times > self.opts.resend_limit && now - since >= self.opts.storm_timeout {
             let last_acked = self.acked_job;
             self.fail_safely(
                 Failure::ResendLimit {

@@ -32,6 +32,8 @@ struct MiniPrinter {
     corrupt_twice: HashSet<u64>,
     /// What it answers to `M105`, line ending included.
     m105_answer: String,
+    /// Every numbered line but `M110` arrives corrupted (a noise burst on the cable).
+    corrupt_all: bool,
 }
 
 impl MiniPrinter {
@@ -50,6 +52,7 @@ impl MiniPrinter {
             flush_on_error: false,
             corrupt_twice: HashSet::new(),
             m105_answer: "ok T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n".into(),
+            corrupt_all: false,
         }
     }
 
@@ -109,7 +112,11 @@ impl MiniPrinter {
             }
             let twice = self.corrupt_twice.contains(&n)
                 && self.received.iter().filter(|(m, _)| *m == n).count() <= 2;
-            if self.corrupt.remove(&n) || self.always_corrupt == Some(n) || twice {
+            if self.corrupt.remove(&n)
+                || self.always_corrupt == Some(n)
+                || twice
+                || self.corrupt_all
+            {
                 out.push_str(&self.resend_answer("checksum mismatch", last));
                 if self.flush_on_error {
                     self.partial.clear();
@@ -414,10 +421,13 @@ fn corrupted_lines_are_replayed_from_the_requested_line_exactly_once() {
     }
 }
 
+/// A storm is ridden out, paced, for `storm_timeout`; one that outlasts it fails the job.
 #[test]
 fn a_resend_storm_fails_after_the_limit() {
     let mut o = opts(Firmware::Ultimaker2);
     o.resend_limit = 4;
+    let storm = o.storm_timeout;
+    let pause = o.storm_pause;
     let (mut host, mut printer, now) = connected(o);
     printer.always_corrupt = Some(5);
     host.start_job(job(50), now);
@@ -425,10 +435,13 @@ fn a_resend_storm_fails_after_the_limit() {
     match failure(&events) {
         Some(Failure::ResendLimit {
             line: 5,
-            times: 4,
+            times,
             last_acked,
         }) => {
-            assert!(*last_acked <= 4, "{last_acked}")
+            assert!(*last_acked <= 4, "{last_acked}");
+            // Paced: not hundreds a second, but the storm's length in pauses, give or take.
+            let most = 4 + (storm.as_millis() / pause.as_millis()) as u32 + 2;
+            assert!((4..=most).contains(times), "{times}");
         }
         other => panic!("{other:?}"),
     }
@@ -1493,4 +1506,88 @@ fn the_final_m105_is_answered_whatever_the_report_looks_like() {
             assert_eq!(printer.job_executed(), job(20), "{fw:?} {answer:?}");
         }
     }
+}
+
+/// A job through a noise burst on the cable that ends `burst` after the job started: every
+/// numbered line is corrupted until then. Returns the events and when each write went out.
+fn run_through_burst(
+    host: &mut Host,
+    printer: &mut MiniPrinter,
+    start: Instant,
+    burst: Duration,
+) -> (Vec<Event>, Vec<(Duration, String)>) {
+    let mut now = start;
+    let mut events = Vec::new();
+    let mut writes = Vec::new();
+    for _ in 0..1_000_000 {
+        printer.corrupt_all = now < start + burst;
+        let out = host.take_outgoing();
+        if !out.is_empty() {
+            writes.push((now - start, String::from_utf8_lossy(&out).into_owned()));
+            let answer = printer.receive(&out);
+            host.feed(&answer, now);
+            continue;
+        }
+        events.extend(drain_events(host));
+        if host.is_finished() {
+            return (events, writes);
+        }
+        let d = host
+            .next_deadline()
+            .expect("a job always waits for something");
+        let d = if now < start + burst {
+            d.min(start + burst)
+        } else {
+            d
+        };
+        now = d.max(now);
+        host.tick(now);
+    }
+    panic!("no end");
+}
+
+/// Issue 21, failure 2: a burst of noise longer than the host's patience. It gave up on the
+/// job, then tried its safe stop about thirty times within milliseconds, all inside the burst,
+/// and left the heaters on. Now the stop is paced and outlasts the burst, and its outcome is
+/// reported apart from the job's failure.
+#[test]
+fn a_safe_stop_is_paced_and_outlasts_a_long_noise_burst() {
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin2));
+    host.start_job(job(40), now);
+    let (events, writes) = run_through_burst(&mut host, &mut printer, now, Duration::from_secs(90));
+    assert!(
+        matches!(failure(&events), Some(Failure::ResendLimit { .. })),
+        "{:?}",
+        failure(&events)
+    );
+    assert!(
+        events.contains(&Event::SafeStop { confirmed: true }),
+        "the stop did not outlast the burst"
+    );
+    let tail: Vec<&str> = printer
+        .executed
+        .iter()
+        .rev()
+        .take(6)
+        .map(String::as_str)
+        .collect();
+    for line in SAFE_STOP {
+        assert!(tail.contains(&line), "{line} missing: {tail:?}");
+    }
+    // Paced: after the first `resend_limit` replays of the first second, no second of the
+    // burst has more than a dozen writes.
+    for second in 1..90 {
+        let in_second = writes.iter().filter(|(t, _)| t.as_secs() == second).count();
+        assert!(in_second <= 12, "{in_second} writes in second {second}");
+    }
+}
+
+/// A burst shorter than `storm_timeout` is ridden out: the job goes on, exactly once.
+#[test]
+fn a_short_noise_burst_is_ridden_out() {
+    let (mut host, mut printer, now) = connected(opts(Firmware::Marlin2));
+    host.start_job(job(40), now);
+    let (events, _) = run_through_burst(&mut host, &mut printer, now, Duration::from_secs(10));
+    assert!(done(&events), "{:?}", failure(&events));
+    assert_eq!(printer.job_executed(), job(40));
 }

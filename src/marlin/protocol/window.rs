@@ -33,6 +33,7 @@ impl Host {
         self.swallow_oks = 0;
         self.duplicate_budget = None;
         self.repeated = None;
+        self.replay_after = None;
         self.ok_may_follow = None;
         self.resend_hold = None;
         self.cautious_until = 0;
@@ -174,6 +175,7 @@ impl Host {
                 self.phase,
                 Phase::Finished | Phase::Idle | Phase::Boot { .. }
             ) || self.resend_hold.is_some()
+                || self.replay_after.is_some_and(|t| now < t)
             {
                 return;
             }

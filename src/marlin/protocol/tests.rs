@@ -34,6 +34,11 @@ struct MiniPrinter {
     m105_answer: String,
     /// Every numbered line but `M110` arrives corrupted (a noise burst on the cable).
     corrupt_all: bool,
+    /// Error texts of an Ultimaker2Marlin-like printer of the issue: `Error: Missing
+    /// checksum` and `Error: expected line N got M` (no `Last Line:`).
+    other_error_texts: bool,
+    /// The number of the line being answered.
+    got: u64,
 }
 
 impl MiniPrinter {
@@ -53,11 +58,22 @@ impl MiniPrinter {
             corrupt_twice: HashSet::new(),
             m105_answer: "ok T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n".into(),
             corrupt_all: false,
+            other_error_texts: false,
+            got: 0,
         }
     }
 
     fn resend_answer(&self, error: &str, last: u64) -> String {
-        let mut out = format!("Error:{error}, Last Line: {last}\nResend: {}\n", last + 1);
+        let mut out = if self.other_error_texts {
+            let what = if error.starts_with("Line Number") {
+                format!("expected line {} got {}", last + 1, self.got)
+            } else {
+                "Missing checksum".to_string()
+            };
+            format!("Error: {what}\nResend: {}\n", last + 1)
+        } else {
+            format!("Error:{error}, Last Line: {last}\nResend: {}\n", last + 1)
+        };
         if self.ok_after_resend {
             out.push_str("ok\n");
         }
@@ -96,6 +112,7 @@ impl MiniPrinter {
             let (n, cmd) = body.split_once(' ').unwrap();
             let n: u64 = n.strip_prefix('N').unwrap().parse().unwrap();
             self.received.push((n, cmd.to_string()));
+            self.got = n;
             let last = self.expected - 1;
             if cmd.starts_with("M110") {
                 self.expected = cmd.trim_start_matches("M110 N").parse::<u64>().unwrap() + 1;
@@ -1590,4 +1607,38 @@ fn a_short_noise_burst_is_ridden_out() {
     let (events, _) = run_through_burst(&mut host, &mut printer, now, Duration::from_secs(10));
     assert!(done(&events), "{:?}", failure(&events));
     assert_eq!(printer.job_executed(), job(40));
+}
+
+/// Issue 21, failure 3: an Ultimaker2Marlin-like printer whose errors name no `Last Line`,
+/// two lines in flight, the first corrupted: `Error: Missing checksum`, `Resend: 24`, `ok`,
+/// `Error: expected line 24 got 25`, `Resend: 24`, `ok`. The host resent line 24 only after
+/// 3 s, then crawled one line every 9 s and failed. Now every such episode costs no wait.
+#[test]
+fn duplicated_resends_with_unknown_error_texts_cost_no_wait() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    printer.other_error_texts = true;
+    // Its reports put the space after the slash, as in the issue.
+    printer.m105_answer = "ok T:25.00/ 25.00 B:60.00/ 60.00 @:64\n".into();
+    let (mut host, _) = connect(opts(Firmware::Ultimaker2), &mut printer, now);
+    let commands = job(300);
+    printer.corrupt.extend([24, 60, 61, 150, 151, 152, 250]);
+    host.start_job(commands.clone(), now);
+    let mut t = now;
+    let mut events = Vec::new();
+    for _ in 0..100_000 {
+        events.extend(exchange(&mut host, &mut printer, t, 1_000_000));
+        if host.is_finished() {
+            break;
+        }
+        t = host.next_deadline().expect("never waits on nothing").max(t);
+        host.tick(t);
+    }
+    assert!(done(&events), "{:?}", failure(&events));
+    assert_eq!(printer.job_executed(), commands);
+    assert!(
+        t - now < Duration::from_secs(2),
+        "the job waited {:?} on a printer that answers at once",
+        t - now
+    );
 }

@@ -733,7 +733,9 @@ impl Host {
                 if let Some(front) = self.front_line() {
                     at(self.next_probe_at());
                     if self.heat_at_front() {
-                        // The heat wait has its own limit.
+                        // The heat wait has its own limit, but a waiting printer reports
+                        // every second: silence means it is gone.
+                        at(self.last_rx + self.opts.silence_fail);
                     } else if is_code(&front.command, &LONG_COMMANDS) {
                         at(self.last_rx + self.opts.long_command_timeout);
                     } else {
@@ -818,7 +820,14 @@ impl Host {
             return;
         };
         if self.heat_at_front() {
-            // Inside a heat wait: its own limit applies.
+            // Inside a heat wait: its own limit applies; but every firmware reports the
+            // temperature each second while it waits, so silence means it is gone.
+            if now - self.last_rx >= self.opts.silence_fail {
+                self.fail(Failure::Silent {
+                    waited: now - self.last_rx,
+                    last_acked,
+                });
+            }
         } else if is_code(&front.command, &LONG_COMMANDS) {
             if now - self.last_rx >= self.opts.long_command_timeout {
                 self.fail(Failure::Silent {

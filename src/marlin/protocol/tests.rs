@@ -1642,3 +1642,108 @@ fn duplicated_resends_with_unknown_error_texts_cost_no_wait() {
         t - now
     );
 }
+
+mod invariant {
+    //! The invariant of `docs/host-protocol.md` as a property: whatever the printer says, in
+    //! any order, with time passing, a job never waits with nothing in flight, nothing to
+    //! send and no clock running; and once the printer falls silent, it ends.
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Every reply the firmware facts list, for line numbers near the host's own.
+    fn reply(kind: u8, back: u64, next: u64) -> String {
+        let k = next.saturating_sub(back);
+        match kind % 20 {
+            0 => "ok".into(),
+            1 => format!("ok N{k} P15 B3"),
+            2 => "ok P15 B3".into(),
+            3 => "ok T:20.00 /0.00 B:20.00 /0.00 @:0 B@:0".into(),
+            4 => "ok T:24.99/ 0.00 B:48.23/ 0.00 @:64".into(),
+            5 => format!(
+                "Error:checksum mismatch, Last Line: {}",
+                k.saturating_sub(1)
+            ),
+            6 => format!(
+                "Error:Line Number is not Last Line Number+1, Last Line: {}",
+                k.saturating_sub(1)
+            ),
+            7 => format!("Resend: {k}"),
+            8 => format!("rs {k}"),
+            9 => "wait".into(),
+            10 => "echo:busy: processing".into(),
+            11 => " T:190.00 /200.00 B:60.00 /60.00 @:127 B@:0 W:3".into(),
+            12 => "T:210.0 E:0 W:?".into(),
+            13 => "echo:Unknown command: \"M73 P5\"".into(),
+            14 => "Error:No Line Number with checksum".into(),
+            15 => "Error: Missing checksum".into(),
+            16 => format!("Error: expected line {k} got {}", k + 1),
+            17 => "okk".into(),
+            18 => "X:1.00 Y:0.00 Z:0.00 E:0.00 Count X:80 Y:0 Z:0".into(),
+            _ => "\u{fffd}\u{1}noise".into(),
+        }
+    }
+
+    fn check(host: &Host, what: &str) {
+        let Phase::Job(job) = &host.phase else {
+            return;
+        };
+        if matches!(job, JobPhase::Paused { reported: true, .. }) {
+            return; // paused on request: waiting is the point
+        }
+        let held = host.resend_hold.is_some()
+            || host.replay_after.is_some()
+            || host.pending_error.is_some();
+        assert!(
+            !host.in_flight.is_empty() || held,
+            "{what}: nothing in flight, nothing sent, no hold: {}",
+            host.debug_state()
+        );
+        assert!(
+            host.next_deadline().is_some(),
+            "{what}: a job without a clock: {}",
+            host.debug_state()
+        );
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(1000))]
+        #[test]
+        fn a_job_never_waits_on_nothing(
+            fw in 0u8..3,
+            steps in proptest::collection::vec((0u8..40, 0u64..6, 0u64..4000), 1..120),
+        ) {
+            let fw = [Firmware::Marlin2, Firmware::Marlin20, Firmware::Ultimaker2][fw as usize];
+            let (mut host, _printer, start) = connected(opts(fw));
+            host.start_job(job(30), start);
+            let mut now = start;
+            for (kind, back, ms) in steps {
+                if kind >= 20 {
+                    now += Duration::from_millis(ms);
+                    if host.next_deadline().is_some_and(|d| d <= now) {
+                        host.tick(now);
+                    }
+                    check(&host, "after time passed");
+                } else {
+                    let line = reply(kind, back, host.next_number);
+                    host.feed(format!("{line}\n").as_bytes(), now);
+                    check(&host, &format!("after {line:?}"));
+                }
+                host.take_outgoing();
+                drain_events(&mut host);
+            }
+            // The printer falls silent: the job ends, within the host's own limits.
+            for _ in 0..10_000 {
+                if host.is_finished() {
+                    break;
+                }
+                let d = host.next_deadline().expect("a job always has a clock");
+                now = d.max(now);
+                host.tick(now);
+                host.take_outgoing();
+                check(&host, "while silent");
+            }
+            prop_assert!(host.is_finished(), "{}", host.debug_state());
+            prop_assert!(now - start < Duration::from_secs(3600));
+        }
+    }
+}

@@ -56,7 +56,8 @@ async fn print_through(
     let (text, _) = job(moves);
     let fw = firmware(build);
     let program = GcodeProgram::read(text.as_bytes(), "job.gcode", fw).unwrap();
-    let opts = StreamOptions::for_firmware(fw);
+    let mut opts = StreamOptions::for_firmware(fw);
+    opts.protocol.uncuttable_lines = true;
     let started = Instant::now();
     let result = async {
         let mut conn = Connection::open(relay.device_path(), &opts).await?;
@@ -213,4 +214,61 @@ async fn a_port_closed_mid_job_ends_it_interrupted() {
             other.map(|r| r.lines_acked)
         ),
     }
+}
+
+/// Ultimaker2Marlin checks a checksum only up to the first `*`: with 5 % of lines having a
+/// `.` turned into `*`, the final position is still exact (no cut line ran).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ultimaker2_runs_no_cut_line() {
+    let Some(dir) = firmware_dir("ultimaker2_runs_no_cut_line") else {
+        return;
+    };
+    let faults = RelayFaults {
+        seed: 7,
+        star_for_dot: 0.05,
+        ..RelayFaults::default()
+    };
+    let moves = 1500;
+    let o = print_through(&dir, Build::Ultimaker2, faults, moves).await;
+    assert_exact(Build::Ultimaker2, "dots into stars", &o, moves);
+}
+
+/// 200 consecutive corrupted lines: ridden out (paced replays), exactly once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_200_line_burst_is_ridden_out() {
+    let Some(dir) = firmware_dir("a_200_line_burst_is_ridden_out") else {
+        return;
+    };
+    let faults = RelayFaults {
+        seed: 1,
+        burst: Some((400, 200)),
+        ..RelayFaults::default()
+    };
+    let o = print_through(&dir, Build::Default, faults, 1000).await;
+    assert_exact(Build::Default, "200-line burst", &o, 1000);
+}
+
+/// 1,000 consecutive corrupted lines: the job fails, and the safe stop outlasts the burst
+/// (heaters confirmed off once it is over). Minutes long: run with CRISPEN_FIRMWARE_SWEEP=1.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
+    let Some(dir) = firmware_dir("a_1000_line_burst_ends_with_heaters_confirmed_off") else {
+        return;
+    };
+    if std::env::var_os("CRISPEN_FIRMWARE_SWEEP").is_none() {
+        eprintln!("SKIPPED a_1000_line_burst_ends_with_heaters_confirmed_off: set CRISPEN_FIRMWARE_SWEEP=1");
+        return;
+    }
+    let faults = RelayFaults {
+        seed: 1,
+        burst: Some((400, 1000)),
+        ..RelayFaults::default()
+    };
+    let o = print_through(&dir, Build::Default, faults, 1000).await;
+    assert!(o.result.is_err(), "the job cannot have survived");
+    let tail: Vec<&String> = o.log.printer_lines.iter().rev().take(12).collect();
+    assert!(
+        tail.iter().any(|l| l.starts_with("ok T:")),
+        "the stop's M105 was never answered: {tail:?}"
+    );
 }

@@ -84,6 +84,9 @@ pub struct RelayFaults {
     pub seed: u64,
     /// A numbered host line arrives with one byte changed (never into a line ending).
     pub corrupt_line: f64,
+    /// A numbered host line has one of its `.` turned into `*` (what Ultimaker2Marlin's
+    /// first-`*` checksum can let through as a cut line).
+    pub star_for_dot: f64,
     /// A numbered host line is lost whole: the printer sees the next one's number first and
     /// asks for it again (a resend the host did not cause).
     pub drop_line: f64,
@@ -408,7 +411,13 @@ fn run(
                         let in_burst = faults.burst.is_some_and(|(from, count)| {
                             numbered >= from && numbered < from + count
                         });
-                        if in_burst || rng.random::<f64>() < faults.corrupt_line {
+                        let dots: Vec<usize> =
+                            (0..line.len()).filter(|&i| line[i] == b'.').collect();
+                        if !dots.is_empty() && rng.random::<f64>() < faults.star_for_dot {
+                            let at = dots[rng.random_range(0..dots.len())];
+                            line[at] = b'*';
+                            log.corrupted += 1;
+                        } else if in_burst || rng.random::<f64>() < faults.corrupt_line {
                             corrupt(&mut rng, &mut line);
                             log.corrupted += 1;
                         } else if rng.random::<f64>() < faults.drop_line {

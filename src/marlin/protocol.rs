@@ -412,6 +412,9 @@ pub struct Host {
     repeated: Option<(u64, u32, Instant)>,
     /// Replays wait until then (a resend storm, a safe stop inside a noise burst).
     replay_after: Option<Instant>,
+    /// Probe then if the replayed line is still unanswered: a repeated error block came
+    /// after the replay went out, and Marlin may have thrown the replay away with it.
+    probe_replay: Option<(u64, Instant)>,
     resend_ok: ResendOk,
     /// One line in flight until this line number is reached (after a resend).
     cautious_until: u64,
@@ -458,6 +461,9 @@ const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
 const MAX_PARTIAL: usize = 4096;
 /// The shortest quiet after which a lost `ok` is probed for.
 const QUICK_PROBE: Duration = Duration::from_millis(200);
+/// After a repeated error block that may have eaten a replay: probe this soon if the
+/// replayed line is still unanswered (its answer would have come at once).
+const REPLAY_PROBE: Duration = Duration::from_millis(30);
 
 fn code_of(command: &str) -> &str {
     command.split_whitespace().next().unwrap_or("")
@@ -495,6 +501,7 @@ impl Host {
             error_last_line: None,
             repeated: None,
             replay_after: None,
+            probe_replay: None,
             resend_ok: ResendOk::default(),
             cautious_until: 0,
             advanced_ok: false,
@@ -731,6 +738,9 @@ impl Host {
                 if let Some(t) = self.replay_after {
                     at(t);
                 }
+                if let Some((_, t)) = self.probe_replay {
+                    at(t);
+                }
                 if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
                     at(*give_up);
                 }
@@ -792,6 +802,11 @@ impl Host {
         }
         if self.replay_after.is_some_and(|t| now >= t) {
             self.replay_after = None;
+        }
+        if let Some((line, _)) = self.probe_replay.take_if(|(_, t)| now >= *t) {
+            if self.in_flight.front().is_some_and(|f| f.number == line) {
+                self.probe(now);
+            }
         }
         if !self.autoreport() && self.accepting_job_lines() && now >= self.next_poll {
             self.next_poll = now + self.opts.temperature_interval;
@@ -1575,6 +1590,12 @@ impl Host {
                     swallow: expect_ok,
                     learn: false,
                 });
+                if self.send_cursor > n {
+                    // Seen on the real Marlin: each such block flushes the receive ring,
+                    // with our replay in it if it had arrived; it then never gets an
+                    // answer. Find out soon, not after a quiet probe interval.
+                    self.probe_replay = Some((n, now + REPLAY_PROBE));
+                }
                 return;
             }
         }

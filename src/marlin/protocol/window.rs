@@ -34,6 +34,7 @@ impl Host {
         self.duplicate_budget = None;
         self.repeated = None;
         self.replay_after = None;
+        self.probe_replay = None;
         self.ok_may_follow = None;
         self.resend_hold = None;
         self.cautious_until = 0;

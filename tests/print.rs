@@ -674,6 +674,8 @@ async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
         let program = program(fw, 300);
         let mut opts = options(fw);
         opts.protocol.resend_limit = 3;
+        // A storm is ridden out for `storm_timeout`: make this one outlast it.
+        opts.protocol.storm_timeout = Duration::from_millis(500);
         let err = stream(&sim, &opts, &program).await.unwrap_err();
         assert!(matches!(err, PrintError::ResendLimit { .. }), "{fw}: {err}");
         let executed = job_executed(&sim);

@@ -95,6 +95,11 @@ impl Firmware {
     pub fn ignores_duplicate_lines(self) -> bool {
         matches!(self, Firmware::Marlin2)
     }
+    /// The checksum covers the line only up to its first `*` (Ultimaker2Marlin; Marlin 2
+    /// takes the last), so a byte corrupted into `*` can cut a line that still passes.
+    pub fn checksum_to_first_star(self) -> bool {
+        matches!(self, Firmware::Ultimaker2)
+    }
     /// Moves (G0–G3) are acknowledged when they enter the command queue, other commands
     /// when they finish, so `ok`s do not come in line order (Ultimaker2Marlin).
     pub fn acks_moves_on_entry(self) -> bool {

@@ -69,8 +69,23 @@ pub struct ProtocolOptions {
     pub cautious_lines: u64,
     /// Interval of temperature reports (autoreport) or polls.
     pub temperature_interval: Duration,
-    /// How many times the same line may be requested again before the job fails.
+    /// How many times the same line may be requested again at once; past that, replays are
+    /// paced (`storm_pause`) and the job fails only when the storm outlasts `storm_timeout`.
+    /// A printer that keeps asking for the same line is usually behind a noisy cable.
     pub resend_limit: u32,
+    pub storm_pause: Duration,
+    pub storm_timeout: Duration,
+    /// A safe stop after a failure keeps trying this long while the printer keeps talking
+    /// (it ends sooner when the printer falls silent for `silence_fail`), one replay every
+    /// `stop_pause`: giving up leaves a printer hot.
+    pub stop_timeout: Duration,
+    pub stop_pause: Duration,
+    /// On firmware that checks a checksum only up to the first `*` (Ultimaker2Marlin),
+    /// write each line so that no byte corrupted into `*` leaves a cut line that passes
+    /// (see `window::uncuttable`): numbers may gain trailing zeros and words an extra space.
+    /// Off by default for now: the tests that compare what a printer ran with the file
+    /// compare text, and would need to compare values.
+    pub uncuttable_lines: bool,
     /// Lines kept for resends. Marlin only ever asks for a line it has not acknowledged
     /// (those are always kept), so this needs to cover the send-ahead window, not the job.
     pub history_lines: usize,
@@ -88,10 +103,15 @@ impl ProtocolOptions {
             long_command_timeout: Duration::from_secs(900),
             heat_timeout: Duration::from_secs(1200),
             no_progress_timeout: Duration::from_secs(180),
-            resend_ok_wait: Duration::from_secs(1),
+            resend_ok_wait: Duration::from_millis(250),
             cautious_lines: 8,
             temperature_interval: Duration::from_secs(2),
             resend_limit: 10,
+            storm_pause: Duration::from_millis(100),
+            storm_timeout: Duration::from_secs(30),
+            stop_timeout: Duration::from_secs(180),
+            stop_pause: Duration::from_millis(200),
+            uncuttable_lines: false,
             // Each kept line is a copy of its command: a whole job's worth costs MBs per printer.
             history_lines: 1024,
         }
@@ -325,6 +345,15 @@ struct HeatWait {
     best: Option<(f64, Instant)>,
 }
 
+/// What the line after a `Resend:` or a fragment's `Unknown command` may be.
+#[derive(Debug, Clone, Copy)]
+struct OkFollow {
+    /// A plain `ok` there is theirs, not a line's.
+    swallow: bool,
+    /// Nothing else awaits an `ok`: whether one comes tells this firmware's way.
+    learn: bool,
+}
+
 /// Whether this firmware sends an `ok` after `Resend:`, learnt from unambiguous cases (a
 /// resend with nothing else awaiting an `ok`): Marlin 2.1 and Ultimaker2Marlin do, Marlin
 /// 2.0 does not, Marlin 1.1 sometimes. Until two observations agree, the firmware profile's
@@ -360,8 +389,16 @@ pub struct Host {
     send_cursor: u64,
     in_flight: VecDeque<InFlight>,
     in_flight_bytes: usize,
-    /// `ok`s to ignore: the `ok` after a `Resend:` and after a fragment's `Unknown command`.
+    /// `ok`s to ignore: the unnumbered `M108`'s (answered when the queue reaches it).
     swallow_oks: u32,
+    /// The line just read asks for an `ok` right behind it: a `Resend:` (Marlin 2.1 and
+    /// Ultimaker2Marlin print `ok` in the same breath) or a fragment's `Unknown command`.
+    /// Only the very next line can be that `ok`; a guess never outlives it, so it cannot eat
+    /// the `ok` of a later line.
+    ok_may_follow: Option<OkFollow>,
+    /// While it is not known whether an `ok` follows `Resend:` and nothing else awaits an
+    /// `ok`, the replay waits for the next line (or this time) to tell.
+    resend_hold: Option<Instant>,
     /// Duplicate resend requests to ignore: (line, how many). Lines already on their way
     /// when the replay began each cause one, always as a line-number error (Marlin checks
     /// the number first); a request after a checksum error is the replay itself corrupted
@@ -371,11 +408,14 @@ pub struct Host {
     number_error: bool,
     /// Its `Last Line: <k>`.
     error_last_line: Option<u64>,
-    repeated: Option<(u64, u32)>,
+    /// The line requested again, how often, and since when.
+    repeated: Option<(u64, u32, Instant)>,
+    /// Replays wait until then (a resend storm, a safe stop inside a noise burst).
+    replay_after: Option<Instant>,
+    /// Probe then if the replayed line is still unanswered: a repeated error block came
+    /// after the replay went out, and Marlin may have thrown the replay away with it.
+    probe_replay: Option<(u64, Instant)>,
     resend_ok: ResendOk,
-    /// Replay held back until this time while waiting to see whether an `ok` follows the
-    /// `Resend:` (see [`ResendOk`]).
-    resend_hold: Option<Instant>,
     /// One line in flight until this line number is reached (after a resend).
     cautious_until: u64,
     /// `ok N<n> P<p> B<b>` seen: `ok`s are matched to lines by number.
@@ -393,6 +433,10 @@ pub struct Host {
     last_progress: Instant,
     /// Last time a line was acknowledged.
     last_ack: Instant,
+    /// How long the oldest line typically waits for its answer (a moving average): a
+    /// printer that answers in milliseconds and then says nothing for many times that has
+    /// lost an `ok`, and is probed long before `silence_probe`.
+    ack_wait: Duration,
     greeting_sent_at: Instant,
     greeting_attempts: u32,
     next_poll: Instant,
@@ -415,6 +459,11 @@ const LONG_COMMANDS: [&str; 4] = ["G28", "G29", "M400", "G4"];
 const HEAT_COMMANDS: [&str; 2] = ["M109", "M190"];
 const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
 const MAX_PARTIAL: usize = 4096;
+/// The shortest quiet after which a lost `ok` is probed for.
+const QUICK_PROBE: Duration = Duration::from_millis(200);
+/// After a repeated error block that may have eaten a replay: probe this soon if the
+/// replayed line is still unanswered (its answer would have come at once).
+const REPLAY_PROBE: Duration = Duration::from_millis(30);
 
 fn code_of(command: &str) -> &str {
     command.split_whitespace().next().unwrap_or("")
@@ -445,12 +494,15 @@ impl Host {
             in_flight: VecDeque::new(),
             in_flight_bytes: 0,
             swallow_oks: 0,
+            ok_may_follow: None,
+            resend_hold: None,
             duplicate_budget: None,
             number_error: false,
             error_last_line: None,
             repeated: None,
+            replay_after: None,
+            probe_replay: None,
             resend_ok: ResendOk::default(),
-            resend_hold: None,
             cautious_until: 0,
             advanced_ok: false,
             confirmed: None,
@@ -461,6 +513,7 @@ impl Host {
             last_probe: None,
             last_progress: now,
             last_ack: now,
+            ack_wait: Duration::ZERO,
             greeting_sent_at: now,
             greeting_attempts: 0,
             next_poll: now,
@@ -474,6 +527,22 @@ impl Host {
             resends: 0,
             probes: 0,
         }
+    }
+
+    /// The state the tests look at when a run goes wrong.
+    #[cfg(test)]
+    pub(crate) fn debug_state(&self) -> String {
+        format!(
+            "phase {:?} next_job {}/{} send_cursor {} next_number {} in_flight {:?} pending {:?} cautious_until {}",
+            self.phase,
+            self.next_job,
+            self.job.len(),
+            self.send_cursor,
+            self.next_number,
+            self.in_flight,
+            self.pending,
+            self.cautious_until
+        )
     }
 
     pub fn options(&self) -> &ProtocolOptions {
@@ -660,11 +729,17 @@ impl Host {
                 if !self.autoreport() && self.accepting_job_lines() {
                     at(self.next_poll);
                 }
+                if let Some((_, decide)) = &self.pending_error {
+                    at(*decide);
+                }
                 if let Some(hold) = self.resend_hold {
                     at(hold);
                 }
-                if let Some((_, decide)) = &self.pending_error {
-                    at(*decide);
+                if let Some(t) = self.replay_after {
+                    at(t);
+                }
+                if let Some((_, t)) = self.probe_replay {
+                    at(t);
                 }
                 if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
                     at(*give_up);
@@ -673,11 +748,11 @@ impl Host {
                     at(deadline);
                 }
                 if let Some(front) = self.front_line() {
-                    if self.resend_hold.is_none() {
-                        at(self.next_probe_at());
-                    }
+                    at(self.next_probe_at());
                     if self.heat_at_front() {
-                        // The heat wait has its own limit.
+                        // The heat wait has its own limit, but a waiting printer reports
+                        // every second: silence means it is gone.
+                        at(self.last_rx + self.opts.silence_fail);
                     } else if is_code(&front.command, &LONG_COMMANDS) {
                         at(self.last_rx + self.opts.long_command_timeout);
                     } else {
@@ -720,15 +795,18 @@ impl Host {
             return;
         }
         if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
-            if now >= *give_up {
+            if now >= *give_up || now - self.last_rx >= self.opts.silence_fail {
                 self.finish_stop(false);
                 return;
             }
         }
-        if self.resend_hold.is_some_and(|hold| now >= hold) {
-            // No `ok` came after the `Resend:`: this firmware sends none.
-            self.resend_hold = None;
-            self.resend_ok.seen_none += 1;
+        if self.replay_after.is_some_and(|t| now >= t) {
+            self.replay_after = None;
+        }
+        if let Some((line, _)) = self.probe_replay.take_if(|(_, t)| now >= *t) {
+            if self.in_flight.front().is_some_and(|f| f.number == line) {
+                self.probe(now);
+            }
         }
         if !self.autoreport() && self.accepting_job_lines() && now >= self.next_poll {
             self.next_poll = now + self.opts.temperature_interval;
@@ -736,6 +814,13 @@ impl Host {
                 && !self.pending.iter().any(|(_, c)| c == "M105")
             {
                 self.pending.push_back((Kind::Housekeeping, "M105".into()));
+            }
+        }
+        if self.resend_hold.is_some_and(|hold| now >= hold) {
+            // Nothing came after the `Resend:`: this firmware sends no `ok` there.
+            self.resend_hold = None;
+            if self.ok_may_follow.take().is_some() {
+                self.resend_ok.seen_none += 1;
             }
         }
         let last_acked = self.acked_job;
@@ -757,7 +842,14 @@ impl Host {
             return;
         };
         if self.heat_at_front() {
-            // Inside a heat wait: its own limit applies.
+            // Inside a heat wait: its own limit applies; but every firmware reports the
+            // temperature each second while it waits, so silence means it is gone.
+            if now - self.last_rx >= self.opts.silence_fail {
+                self.fail(Failure::Silent {
+                    waited: now - self.last_rx,
+                    last_acked,
+                });
+            }
         } else if is_code(&front.command, &LONG_COMMANDS) {
             if now - self.last_rx >= self.opts.long_command_timeout {
                 self.fail(Failure::Silent {
@@ -789,7 +881,7 @@ impl Host {
     /// likely idle and the window only looks full because an `ok` was lost. Its answer
     /// acknowledges every earlier line.
     fn probe(&mut self, now: Instant) {
-        if self.resend_hold.is_some() {
+        if self.resend_hold.is_some() || self.replay_after.is_some_and(|t| now < t) {
             return;
         }
         self.last_probe = Some(now);
@@ -815,15 +907,13 @@ impl Host {
             // A replay is waiting: the line the printer asked for is the probe.
             self.transmit(self.send_cursor, now);
         } else {
-            if let [only] = self.in_flight.make_contiguous() {
-                if only.is_m105 {
-                    // The only line in flight is an M105, unanswered while the printer is
-                    // otherwise idle: its answer was lost (garbled), since a printer
-                    // answers an M105 at once. The probe's answer must confirm it too;
-                    // taken for the lost one's, each probe would leave itself unanswered
-                    // and the job (whose final M105 this may be) would never end.
-                    only.is_m105 = false;
-                }
+            // M105s still in flight while the printer is otherwise quiet had their answers
+            // lost (garbled), since a printer answers an M105 as soon as it reaches it. The
+            // probe's answer must settle them too: taken for theirs, each answer would
+            // settle only the oldest, every probe would add one more, and the job would
+            // never move again (each probe answered, none settling the lines behind them).
+            for f in self.in_flight.iter_mut() {
+                f.is_m105 = false;
             }
             let number = self.new_line(Kind::Housekeeping, "M105".into());
             self.transmit(number, now);
@@ -842,7 +932,11 @@ impl Host {
     /// waits in the printer's queue behind them, harmlessly, and its answer recovers an
     /// `ok` lost at their end. One probe at a time, unless its answer seems lost too.
     fn next_probe_at(&self) -> Instant {
-        let probe = self.opts.silence_probe;
+        // Quiet for many times the usual wait for an answer: an `ok` was lost. Never sooner
+        // than `QUICK_PROBE` (a probe costs a line), never later than `silence_probe`.
+        let probe = (self.ack_wait * 8)
+            .max(QUICK_PROBE)
+            .min(self.opts.silence_probe);
         let base = self.last_progress.max(self.front_since) + probe;
         let long_front = self.heat_at_front()
             || self
@@ -910,7 +1004,6 @@ impl Host {
     fn queue_safe_stop(&mut self, now: Instant) {
         self.pending
             .retain(|(kind, _)| matches!(kind, Kind::SafeStop | Kind::Setup));
-        self.resend_hold = None;
         let failure = matches!(self.stopping(), Some(Stop::Failure { .. }));
         if self.emergency_parser() && !failure {
             if self.pending.is_empty() {
@@ -939,7 +1032,7 @@ impl Host {
         match &self.phase {
             Phase::Job(JobPhase::Stopping(Stop::Failure { .. })) => self.finish_stop(false),
             Phase::Job(_) => {
-                let give_up = now + self.opts.silence_fail;
+                let give_up = now + self.opts.stop_timeout;
                 self.phase = Phase::Job(JobPhase::Stopping(Stop::Failure { failure, give_up }));
                 // A new episode with numbers of its own, above any the printer has seen:
                 // `N<k> M110 N<k>` passes whatever it expects, and a request for an older
@@ -1072,6 +1165,21 @@ impl Host {
     }
 
     fn handle(&mut self, reply: Reply, now: Instant) {
+        self.resend_hold = None;
+        if let Some(follow) = self.ok_may_follow.take() {
+            let plain_ok =
+                matches!(&reply, Reply::Ok(ok) if !ok.text && ok.line.is_none() && !ok.advanced);
+            if follow.learn {
+                if plain_ok {
+                    self.resend_ok.seen_ok += 1;
+                } else {
+                    self.resend_ok.seen_none += 1;
+                }
+            }
+            if plain_ok && (follow.swallow || follow.learn) {
+                return; // the `ok` printed with the `Resend:` or the fragment's answer
+            }
+        }
         if let Some((message, _)) = self.pending_error.take() {
             match reply {
                 Reply::Resend(_) | Reply::LineError(_) | Reply::Fatal(_) | Reply::Error(_) => {
@@ -1178,7 +1286,10 @@ impl Host {
                     // `ok` (plain in builds without ADVANCED_OK) answers no line of ours.
                     self.fragments += 1;
                     if !self.advanced_ok {
-                        self.swallow_oks += 1;
+                        self.ok_may_follow = Some(OkFollow {
+                            swallow: true,
+                            learn: false,
+                        });
                     }
                     self.events.push_back(Event::Fragment(text));
                 }
@@ -1283,8 +1394,9 @@ impl Host {
             // waited, so this is the heat command's own.
             self.heat = None;
         }
-        if ok.report.is_some() {
-            // The answer of an M105: the printer processed it after every earlier line.
+        if ok.text {
+            // The answer of an M105 (only it carries text, whether or not the temperatures
+            // in it could be read): the printer processed it after every earlier line.
             if let Some(pos) = self.in_flight.iter().position(|f| f.is_m105) {
                 let number = self.in_flight[pos].number;
                 // Every `ok` owed by an earlier `Resend:` or fragment came before this one:
@@ -1318,11 +1430,6 @@ impl Host {
             self.swallow_oks -= 1;
             return;
         }
-        if self.resend_hold.take().is_some() {
-            // Nothing else awaited an `ok`: it is the one after the `Resend:`.
-            self.resend_ok.seen_ok += 1;
-            return;
-        }
         // A plain `ok` answers the oldest line, but never an `M105`: its answer carries the
         // temperatures. Ultimaker2Marlin answers moves as they enter its queue and an
         // `M105` only when it runs, so the `ok`s of moves sent after an `M105` come before
@@ -1331,6 +1438,12 @@ impl Host {
         // resend that followed looked like a printer that had lost its state.
         if let Some(pos) = self.in_flight.iter().position(|f| !f.sync && !f.is_m105) {
             let f = self.in_flight.remove(pos).expect("position is valid");
+            self.in_flight_bytes -= f.bytes;
+            self.acknowledged(f.number, now);
+        } else if let Some(f) = self.in_flight.pop_front() {
+            // Only `M105`s are waiting: this `ok` is the oldest one's, whatever became of its
+            // text (a firmware that answers a bare `ok`, a report garbled on the wire).
+            // Progress never waits on reading the optional part of a reply.
             self.in_flight_bytes -= f.bytes;
             self.acknowledged(f.number, now);
         }
@@ -1350,6 +1463,8 @@ impl Host {
     }
 
     fn acknowledged(&mut self, number: u64, now: Instant) {
+        let waited = now.saturating_duration_since(self.front_since);
+        self.ack_wait = (self.ack_wait * 7 + waited) / 8;
         self.front_since = now;
         self.last_ack = now;
         if !self.opts.firmware.acks_moves_on_entry()
@@ -1358,7 +1473,7 @@ impl Host {
             self.heat = None; // `ok`s in line order: this is the heat command's own
         }
         // A successful answer after the requested line ends a resend episode.
-        if let Some((line, _)) = self.repeated {
+        if let Some((line, _, _)) = self.repeated {
             if number >= line {
                 self.repeated = None;
             }
@@ -1459,28 +1574,45 @@ impl Host {
             );
             return;
         }
+        // The printer took every line before n off its receive ring into its command queue
+        // (that is what `Last Line: n-1` says): they still owe their `ok`s, but no longer
+        // take room in the ring, and a lost `ok` among them must not hold the window shut.
+        for f in self.in_flight.iter_mut().filter(|f| f.number < n) {
+            f.bytes = 0;
+        }
+        self.in_flight_bytes = self.in_flight.iter().map(|f| f.bytes).sum();
         let number_error = std::mem::take(&mut self.number_error);
         if let Some((line, remaining)) = self.duplicate_budget {
             if line == n && remaining > 0 && number_error {
                 // Caused by a line that was already on its way when we began replaying.
                 self.duplicate_budget = Some((line, remaining - 1));
-                if expect_ok {
-                    self.swallow_oks += 1;
+                self.ok_may_follow = Some(OkFollow {
+                    swallow: expect_ok,
+                    learn: false,
+                });
+                if self.send_cursor > n {
+                    // Seen on the real Marlin: each such block flushes the receive ring,
+                    // with our replay in it if it had arrived; it then never gets an
+                    // answer. Find out soon, not after a quiet probe interval.
+                    self.probe_replay = Some((n, now + REPLAY_PROBE));
                 }
                 return;
             }
         }
-        let times = match self.repeated {
-            Some((line, times)) if line == n => times + 1,
-            _ => 1,
+        let (times, since) = match self.repeated {
+            Some((line, times, since)) if line == n => (times + 1, since),
+            _ => (1, now),
         };
-        self.repeated = Some((n, times));
-        // The safe stop gets a generous limit of its own: giving up on it leaves a printer hot.
-        let limit = match self.stopping() {
-            Some(Stop::Failure { .. }) => self.opts.resend_limit.max(10) * 3,
-            _ => self.opts.resend_limit,
-        };
-        if times > limit {
+        self.repeated = Some((n, times, since));
+        let stopping = matches!(self.stopping(), Some(Stop::Failure { .. }));
+        if stopping && times > 1 {
+            // The safe stop rides out the noise, paced, until `stop_timeout` (see `tick_job`).
+            self.replay_after = Some(now + self.opts.stop_pause);
+        } else if times > self.opts.resend_limit {
+            // A storm: paced replays until it ends or outlasts `storm_timeout`.
+            self.replay_after = Some(now + self.opts.storm_pause);
+        }
+        if !stopping && times > self.opts.resend_limit && now - since >= self.opts.storm_timeout {
             let last_acked = self.acked_job;
             self.fail_safely(
                 Failure::ResendLimit {
@@ -1507,15 +1639,15 @@ impl Host {
         self.in_flight_bytes = self.in_flight.iter().map(|f| f.bytes).sum();
         self.duplicate_budget = Some((n, dropped_after));
         if !self.advanced_ok {
-            match self.resend_ok.known() {
-                Some(true) => self.swallow_oks += 1,
-                Some(false) => {}
-                // Nothing else awaits an `ok`: whether one comes tells this firmware's way.
-                None if self.in_flight.is_empty() => {
-                    self.resend_hold = Some(now + self.opts.resend_ok_wait)
-                }
-                None if expect_ok => self.swallow_oks += 1,
-                None => {}
+            // The replay goes out at once. Where nothing else awaits an `ok`, the next line
+            // tells whether this firmware sends one after `Resend:`.
+            let learn = self.in_flight.is_empty() && self.resend_ok.known().is_none();
+            self.ok_may_follow = Some(OkFollow {
+                swallow: expect_ok,
+                learn,
+            });
+            if learn {
+                self.resend_hold = Some(now + self.opts.resend_ok_wait);
             }
         }
         let replay = self.send_cursor - n;
@@ -1523,6 +1655,12 @@ impl Host {
         self.send_cursor = n;
         self.resends += 1;
         self.events.push_back(Event::Resend { line: n, replay });
+        if self.accepting_job_lines() && !self.pending.iter().any(|(_, c)| c == "M105") {
+            // Whatever became of the `ok`s owed around this request (one after `Resend:` or
+            // none, earlier lines' answered late, some lost), the answer of an `M105` sent
+            // after the replay settles them all: the printer runs it after every earlier line.
+            self.pending.push_front((Kind::Housekeeping, "M105".into()));
+        }
         if self.stopping() == Some(&Stop::Cancel) {
             // Job lines after n are not sent again during a stop; renumber the rest.
             let keep = (n - first) as usize;

@@ -200,3 +200,4 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
 pub mod daemon;
 pub mod farm;
 pub mod postgres;
+pub mod relay;

@@ -51,6 +51,9 @@ pub struct OkReply {
     pub advanced: bool,
     /// The temperatures of an `M105` answer.
     pub report: Option<Report>,
+    /// Words after `ok` other than the ADVANCED_OK fields: only an `M105`'s answer carries
+    /// text, whatever its form, so this (not whether the temperatures parse) marks one.
+    pub text: bool,
 }
 
 /// A temperature report.
@@ -180,16 +183,32 @@ fn parse_ok(line: &str) -> OkReply {
         }
     }
     ok.report = parse_report(line);
+    ok.text = ok.report.is_some()
+        || line.split_whitespace().skip(1).any(|word| {
+            let mut chars = word.chars();
+            let letter = chars.next().unwrap_or(' ');
+            let digits = chars.as_str();
+            !(matches!(letter, 'N' | 'P' | 'B')
+                && !digits.is_empty()
+                && digits.bytes().all(|b| b.is_ascii_digit()))
+        });
     ok
 }
 
 /// `T:cur /target B:cur /target @:0 B@:0`, `T:210.0 E:0 W:?` (Ultimaker2Marlin while
-/// heating: no target). None if the line has no hotend or bed reading.
+/// heating: no target). Firmwares space the `/` every way (`T:24.99 /0.00` from Marlin,
+/// `T:24.99/ 0.00` from OctoPrint's virtual printer, `T:24.99/0.00`, `T:24.99 / 0.00`), so
+/// the spaces around it are dropped first. None if the line has no hotend or bed reading.
 pub fn parse_report(line: &str) -> Option<Report> {
     let mut temps = Temperatures::default();
     let mut waiting = false;
-    let tokens: Vec<&str> = line.split_whitespace().collect();
-    for (i, token) in tokens.iter().enumerate() {
+    let joined = line
+        .split_whitespace()
+        .collect::<Vec<_>>()
+        .join(" ")
+        .replace(" /", "/")
+        .replace("/ ", "/");
+    for token in joined.split(' ') {
         if token.starts_with("W:") {
             waiting = true;
             continue;
@@ -201,15 +220,14 @@ pub fn parse_report(line: &str) -> Option<Report> {
         } else {
             continue;
         };
-        let Ok(current) = value.parse::<f64>() else {
+        let (current, target) = match value.split_once('/') {
+            Some((current, target)) => (current, Some(target)),
+            None => (value, None),
+        };
+        let Some(current) = current.parse::<f64>().ok().filter(|c| c.is_finite()) else {
             continue;
         };
-        if !current.is_finite() {
-            continue;
-        }
-        let target = tokens
-            .get(i + 1)
-            .and_then(|t| t.strip_prefix('/'))
+        let target = target
             .and_then(|t| t.parse::<f64>().ok())
             .filter(|t| t.is_finite());
         if slot.is_none() {
@@ -243,7 +261,8 @@ mod tests {
             Reply::Ok(OkReply {
                 line: Some(12),
                 advanced: true,
-                report: None
+                report: None,
+                text: false
             })
         );
         assert_eq!(
@@ -251,7 +270,8 @@ mod tests {
             Reply::Ok(OkReply {
                 line: None,
                 advanced: true,
-                report: None
+                report: None,
+                text: false
             })
         );
         let Reply::Ok(ok) = parse("ok T:210.0 /210.0 B:60.0 /60.0 @:127 B@:0") else {
@@ -301,6 +321,73 @@ mod tests {
         ));
         assert!(matches!(parse("\u{fffd}(noise"), Reply::Other(_)));
         assert_eq!(Reply::parse(b"  \r"), None);
+    }
+
+    /// Issue 21, failure 0: OctoPrint's virtual printer writes `T:24.99/ 0.00`; read as no
+    /// temperature at all, its `M105` answers counted as plain `ok`s and a job never ended.
+    #[test]
+    fn reports_are_read_whatever_the_spacing_around_the_slash() {
+        for (text, hotend, bed) in [
+            (
+                "ok T:24.99/ 0.00 B:48.23/ 0.00 @:64",
+                (24.99, 0.0),
+                (48.23, 0.0),
+            ),
+            (
+                "ok T:24.99 /0.00 B:48.23 /60.00 @:64",
+                (24.99, 0.0),
+                (48.23, 60.0),
+            ),
+            ("ok T:24.99/0.00 B:48.23/60.00", (24.99, 0.0), (48.23, 60.0)),
+            (
+                "ok T:24.99 / 0.00 B:48.23  /  60.00",
+                (24.99, 0.0),
+                (48.23, 60.0),
+            ),
+            (
+                "ok T:25.00/ 25.00 B:60.00/ 60.00 @:64",
+                (25.0, 25.0),
+                (60.0, 60.0),
+            ),
+            (
+                "ok T:21.9 /0.0 B:22.0 /0.0 @:0 B@:0",
+                (21.9, 0.0),
+                (22.0, 0.0),
+            ),
+        ] {
+            let Reply::Ok(ok) = parse(text) else {
+                panic!("{text}")
+            };
+            assert!(ok.text, "{text}");
+            let t = ok.report.unwrap_or_else(|| panic!("{text}")).temperatures;
+            assert_eq!(
+                t.hotend,
+                Some(Temp {
+                    current: hotend.0,
+                    target: Some(hotend.1)
+                }),
+                "{text}"
+            );
+            assert_eq!(
+                t.bed,
+                Some(Temp {
+                    current: bed.0,
+                    target: Some(bed.1)
+                }),
+                "{text}"
+            );
+        }
+        // Text that is no temperature still marks the answer of an M105.
+        let Reply::Ok(ok) = parse("ok T:garbled?? B:") else {
+            panic!()
+        };
+        assert!(ok.text && ok.report.is_none());
+        for plain in ["ok", "okk", "ok N12 P15 B3", "ok P15 B3"] {
+            let Reply::Ok(ok) = parse(plain) else {
+                panic!()
+            };
+            assert!(!ok.text, "{plain}");
+        }
     }
 
     #[test]

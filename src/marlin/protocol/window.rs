@@ -33,6 +33,9 @@ impl Host {
         self.swallow_oks = 0;
         self.duplicate_budget = None;
         self.repeated = None;
+        self.replay_after = None;
+        self.probe_replay = None;
+        self.ok_may_follow = None;
         self.resend_hold = None;
         self.cautious_until = 0;
         self.confirmed = None;
@@ -59,6 +62,11 @@ impl Host {
     pub(super) fn new_line(&mut self, kind: Kind, command: String) -> u64 {
         let number = self.next_number;
         self.next_number += 1;
+        let command = if self.opts.uncuttable_lines && self.opts.firmware.checksum_to_first_star() {
+            uncuttable(number, command)
+        } else {
+            command
+        };
         // A job's own `M110 N<k>` would move the printer's counter away from the host's:
         // it is sent as `M110 N<its own number>`, which keeps both in step.
         let command = if matches!(kind, Kind::Job(_)) && is_code(&command, &["M110"]) {
@@ -139,7 +147,9 @@ impl Host {
         if self.in_flight.is_empty() {
             return true;
         }
-        if !self.opts.send_ahead || number < self.cautious_until {
+        // Lines the printer took off its ring (see `handle_resend`) no longer count here.
+        let in_ring = self.in_flight.iter().any(|f| f.bytes > 0);
+        if in_ring && (!self.opts.send_ahead || number < self.cautious_until) {
             return false;
         }
         // Every unacknowledged line may still sit in the printer's receive ring: while the
@@ -171,6 +181,7 @@ impl Host {
                 self.phase,
                 Phase::Finished | Phase::Idle | Phase::Boot { .. }
             ) || self.resend_hold.is_some()
+                || self.replay_after.is_some_and(|t| now < t)
             {
                 return;
             }
@@ -209,4 +220,88 @@ impl Host {
         }
         self.check_progress(now);
     }
+}
+
+/// Where a byte of `N<number> <command>` corrupted into `*` would leave a line that still
+/// passes a checksum taken up to the first `*`: the XOR of what comes before equals the
+/// number the firmware reads after it (`strtol`, 0 where no digit follows). Positions
+/// before `from` are not looked at.
+pub(super) fn cut_that_passes(body: &[u8], from: usize) -> Option<usize> {
+    (from.max(1)..body.len()).find(|&i| {
+        let prefix = super::checksum(&body[..i]) as u64;
+        let digits: Vec<u8> = body[i + 1..]
+            .iter()
+            .copied()
+            .take_while(u8::is_ascii_digit)
+            .take(4)
+            .collect();
+        let read = std::str::from_utf8(&digits)
+            .ok()
+            .and_then(|d| d.parse::<u64>().ok())
+            .unwrap_or(0);
+        prefix == read
+    })
+}
+
+/// Ultimaker2Marlin checks a line's checksum only up to its first `*`: a `.` corrupted into
+/// `*` in `N472 G1 X0.03 Y0.05` runs `G1 X0.03 Y0` when the prefix's XOR happens to be 5,
+/// which in G-code is far likelier than 1 in 128 (about one line in ten of a sliced file is
+/// at risk). Such a line is written differently with the same meaning: trailing zeros on a
+/// number (`Y0.050`, `F6000.0`) or an extra space before a word, which change the prefixes'
+/// XORs and what the firmware would read after a cut; one or two such edits, the first
+/// variant without a passing cut is taken. Cuts inside `N<number>` itself cannot be written
+/// away, nor can a few lines in a thousand whose risky prefix no edit reaches; they are left.
+pub(super) fn uncuttable(number: u64, command: String) -> String {
+    let from = format!("N{number} ").len();
+    let passes = |c: &str| cut_that_passes(format!("N{number} {c}").as_bytes(), from).is_some();
+    if !passes(&command) {
+        return command;
+    }
+    let words: Vec<&str> = command.split(' ').collect();
+    // (word, zeros to append; 0 means an extra space before it)
+    let mut edits = vec![(0, 0)];
+    for (k, word) in words.iter().enumerate().skip(1) {
+        let numeric = word.len() > 1
+            && word.as_bytes()[0].is_ascii_alphabetic()
+            && word[1..]
+                .bytes()
+                .all(|b| b.is_ascii_digit() || b == b'.' || b == b'-')
+            && word[1..].bytes().any(|b| b.is_ascii_digit());
+        if numeric {
+            edits.extend([(k, 1), (k, 2), (k, 3)]);
+        }
+        edits.push((k, 0));
+    }
+    let apply = |words: &mut Vec<String>, (k, zeros): (usize, usize)| {
+        let word = &mut words[k];
+        if zeros == 0 {
+            word.insert(0, ' ');
+        } else {
+            if !word.contains('.') {
+                word.push('.');
+            }
+            word.push_str(&"0".repeat(zeros));
+        }
+    };
+    let base: Vec<String> = words.iter().map(|w| w.to_string()).collect();
+    for &edit in &edits {
+        let mut w = base.clone();
+        apply(&mut w, edit);
+        let candidate = w.join(" ");
+        if !passes(&candidate) {
+            return candidate;
+        }
+    }
+    for &a in &edits {
+        for &b in edits.iter().filter(|b| b.0 > a.0) {
+            let mut w = base.clone();
+            apply(&mut w, a);
+            apply(&mut w, b);
+            let candidate = w.join(" ");
+            if !passes(&candidate) {
+                return candidate;
+            }
+        }
+    }
+    command
 }

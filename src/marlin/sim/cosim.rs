@@ -18,6 +18,10 @@ struct Run {
     outcome: Result<JobSummary, Failure>,
     /// Commands the printer executed, in order.
     executed: Vec<String>,
+    /// Virtual time from the port's opening to the job's end.
+    elapsed: Duration,
+    /// The longest time between two acknowledged job lines.
+    longest_wait: Duration,
 }
 
 /// Connect a host to a fresh printer and stream `job`, moving the clock from one deadline
@@ -34,6 +38,8 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
     let mut printer = Printer::new(&cfg, now);
     let mut host = Host::new(ProtocolOptions::for_firmware(cfg.firmware), now);
     let mut started = false;
+    let mut last_progress = start;
+    let mut longest_wait = Duration::ZERO;
     let outcome = loop {
         assert!(
             now - start < limit,
@@ -54,6 +60,10 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
         let mut end = None;
         while let Some(event) = host.poll_event() {
             match event {
+                Event::Progress { .. } => {
+                    longest_wait = longest_wait.max(now - last_progress);
+                    last_progress = now;
+                }
                 Event::Done(summary) => end = Some(Ok(summary)),
                 Event::Failed(failure) => end = Some(Err(failure)),
                 _ => {}
@@ -69,6 +79,7 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
         if !sent.is_empty() {
             if trace {
                 eprintln!("{at:>9.3} > {:?}", String::from_utf8_lossy(&sent));
+                eprintln!("          {}", host.debug_state());
             }
             printer.receive(&sent, now, &mut recorder);
             continue;
@@ -84,6 +95,7 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
             .expect("a job in progress always waits for something");
         now = next.max(now + Duration::from_micros(100));
     };
+    let elapsed = now - start;
     // The printer works off what it has queued (Ultimaker2Marlin answers moves when they
     // enter its planner, so the job's last `ok` comes before its last moves run).
     for _ in 0..10_000 {
@@ -95,7 +107,12 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
         printer.take_output();
     }
     let executed = executed.lock().unwrap().clone();
-    Run { outcome, executed }
+    Run {
+        outcome,
+        executed,
+        elapsed,
+        longest_wait,
+    }
 }
 
 /// What PrusaSlicer writes around crispen's start code (`gcode/start.gcode`, for a 60 °C
@@ -134,6 +151,21 @@ fn sliced_job(moves: usize) -> Vec<String> {
         let y = 91.0 + (i % 7) as f64 * 3.7;
         format!("G1 X{x:.3} Y{y:.3} E{:.5}", 6.0 + i as f64 * 0.0173)
     }));
+    job
+}
+
+/// `moves` short relative moves at a high feed rate: the link, not the planner, sets the
+/// pace, so every wait of the host's shows in the job's time.
+fn short_moves_job(moves: usize) -> Vec<String> {
+    let mut job = vec!["G92 X0 Y0 Z0".to_string(), "G91".to_string()];
+    job.extend((0..moves).map(|i| {
+        format!(
+            "G1 X{:.2} Y{:.2} F6000",
+            (i % 3 + 1) as f64 * 0.01,
+            (i % 4 + 1) as f64 * 0.01
+        )
+    }));
+    job.extend(["G90", "M400", "M114"].map(String::from));
     job
 }
 
@@ -202,6 +234,54 @@ fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
                 Ok(_) => {}
             }
         }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// Issue 21, failure 1: a Marlin 2.1 build without ADVANCED_OK (the stock configuration)
+/// that says `wait` when idle, at 2 % corrupted lines, 0.5 % lost `ok`s and 1 % spurious
+/// resends. The host stalled after an `ok` that followed a `Resend:`, probing once a second,
+/// until it gave up on a job that should have succeeded.
+#[test]
+fn stock_marlin_saying_wait_under_noise_never_stalls() {
+    let job = short_moves_job(3000);
+    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let mut failures = Vec::new();
+    for seed in 0..6 {
+        let mut cfg = SimConfig::new(Firmware::Marlin2);
+        cfg.time_scale = 1.0;
+        cfg.seed = seed;
+        cfg.advanced_ok = Some(false);
+        cfg.wait_when_idle = Some(Duration::from_secs(1));
+        cfg.faults.corrupt_host_bytes = 0.02;
+        cfg.faults.drop_ok = 0.005;
+        cfg.faults.spurious_resend = 0.01;
+        let clean = {
+            let mut clean = cfg.clone();
+            clean.faults = Default::default();
+            run(clean, &job, Duration::from_secs(3600)).elapsed
+        };
+        let run = run(cfg, &job, Duration::from_secs(3600));
+        let executed: Vec<&String> = run
+            .executed
+            .iter()
+            .filter(|c| !is_housekeeping(c))
+            .collect();
+        match run.outcome {
+            Err(f) => failures.push(format!("seed {seed}: failed: {f:?}")),
+            Ok(_) if executed != expected => {
+                failures.push(format!("seed {seed}: executed differs"))
+            }
+            Ok(_) if run.longest_wait > Duration::from_secs(1) => failures.push(format!(
+                "seed {seed}: waited {:?} between two acknowledged lines",
+                run.longest_wait
+            )),
+            Ok(_) => {}
+        }
+        eprintln!(
+            "seed {seed}: clean {clean:?}, noisy {:?}, longest wait {:?}",
+            run.elapsed, run.longest_wait
+        );
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }

@@ -157,6 +157,23 @@ pub struct SimConfig {
     /// Opening the port resets the board (DTR): input is lost for this bootloader delay,
     /// then the firmware boots and says `start`.
     pub reset_on_open: Option<Duration>,
+    /// ADVANCED_OK on or off, whatever the firmware profile says (`None`: the profile's).
+    /// The real Marlin 2.1.2.1 ships with it off.
+    pub advanced_ok: Option<bool>,
+    /// How temperature reports are spaced around `/`.
+    pub report_style: ReportStyle,
+}
+
+/// The spacing of a temperature report: printers differ, and a host must read them all.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum ReportStyle {
+    /// Marlin's and Ultimaker2Marlin's `T:24.99 /0.00`.
+    #[default]
+    Marlin,
+    /// OctoPrint's virtual printer's `T:24.99/ 0.00`.
+    SlashFirst,
+    /// `T:24.99/0.00`, no space at all.
+    Tight,
 }
 
 impl SimConfig {
@@ -174,6 +191,8 @@ impl SimConfig {
             baud: None,
             wait_when_idle: None,
             reset_on_open: None,
+            advanced_ok: None,
+            report_style: ReportStyle::Marlin,
         }
     }
 }

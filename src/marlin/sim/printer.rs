@@ -17,7 +17,7 @@ mod motion;
 mod serial;
 mod thermal;
 
-use super::{Faults, Recorder, SimConfig};
+use super::{Faults, Recorder, ReportStyle, SimConfig};
 use crate::marlin::firmware::Firmware;
 use dialect::known_marlin2;
 use motion::{parse_words, word, word_present};
@@ -137,6 +137,9 @@ pub(crate) struct Printer {
     /// NO_TIMEOUTS: say `wait` this often while the command queue is empty.
     wait_when_idle: Option<Duration>,
     next_wait: Option<Instant>,
+    /// `ok N<n> P<p> B<b>` (ADVANCED_OK).
+    advanced_ok: bool,
+    report_style: ReportStyle,
     out: Vec<u8>,
 }
 
@@ -180,6 +183,8 @@ impl Printer {
             answered: false,
             wait_when_idle: cfg.wait_when_idle,
             next_wait: None,
+            advanced_ok: cfg.advanced_ok.unwrap_or(cfg.firmware.advanced_ok()),
+            report_style: cfg.report_style,
             out: Vec::new(),
         };
         p.boot();
@@ -273,7 +278,7 @@ impl Printer {
         if std::mem::take(&mut self.answered) || self.drop_this_ok() {
             return;
         }
-        let line = if self.fw.advanced_ok() {
+        let line = if self.advanced_ok {
             let planner_free = PLANNER_MOVES - self.planner.len().min(PLANNER_MOVES);
             // Marlin counts the command being acknowledged as still occupying its slot.
             let slots_free = self.fw.command_slots().saturating_sub(self.slots.len() + 1);

@@ -61,7 +61,13 @@ impl Printer {
              MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff"
         ));
         for cap in caps {
-            self.say(&format!("Cap:{cap}"));
+            match cap.strip_prefix("ADVANCED_OK:") {
+                Some(_) => {
+                    let on = u8::from(self.advanced_ok);
+                    self.say(&format!("Cap:ADVANCED_OK:{on}"))
+                }
+                None => self.say(&format!("Cap:{cap}")),
+            }
         }
     }
 }

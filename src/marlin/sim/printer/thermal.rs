@@ -1,6 +1,6 @@
 //! The thermal model: heaters approach their targets at fixed rates, and the reports
 //! each firmware prints about them.
-use super::{Heater, Printer, AMBIENT};
+use super::{Heater, Printer, ReportStyle, AMBIENT};
 use crate::marlin::firmware::Firmware;
 use std::time::Instant;
 
@@ -32,8 +32,13 @@ impl Printer {
     }
 
     pub(super) fn temperature_report(&self) -> String {
+        let slash = match self.report_style {
+            ReportStyle::Marlin => " /",
+            ReportStyle::SlashFirst => "/ ",
+            ReportStyle::Tight => "/",
+        };
         format!(
-            "T:{:.2} /{:.2} B:{:.2} /{:.2} @:0 B@:0",
+            "T:{:.2}{slash}{:.2} B:{:.2}{slash}{:.2} @:0 B@:0",
             self.hotend.current, self.hotend.target, self.bed.current, self.bed.target
         )
     }

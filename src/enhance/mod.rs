@@ -148,13 +148,33 @@ pub fn enhance(
     progress(Phase::Combine);
     let t = Instant::now();
     let combined = bands.combine(opts)?;
+    Ok(finish(
+        mesh,
+        &bands,
+        combined,
+        opts.lambda1,
+        opts.lambda2,
+        t,
+    ))
+}
+
+/// The enhanced mesh and its report, once the bands are combined (`combine_started`: when
+/// combining began, for the timings).
+pub(crate) fn finish(
+    mesh: &Mesh,
+    bands: &Bands,
+    combined: Combined,
+    lambda1: f64,
+    lambda2: f64,
+    combine_started: Instant,
+) -> (Mesh, EnhanceReport) {
     let mut timings = bands.timings.clone();
-    timings.combine_s = t.elapsed().as_secs_f64();
+    timings.combine_s = combine_started.elapsed().as_secs_f64();
     let report = EnhanceReport {
         vertices: mesh.vertices.len(),
         faces: mesh.faces.len(),
-        lambda1: opts.lambda1,
-        lambda2: opts.lambda2,
+        lambda1,
+        lambda2,
         mu: combined.mu,
         w_min: combined.w_min,
         w_mean: combined.w_mean,
@@ -170,5 +190,5 @@ pub fn enhance(
         vertices: combined.vertices,
         faces: mesh.faces.clone(),
     };
-    Ok((out, report))
+    (out, report)
 }

@@ -172,8 +172,7 @@ pub fn enhance(
         lambda2 = lo;
     }
     let combined = bands.combine(&opts(lambda2))?;
-    let mut timings = bands.timings.clone();
-    timings.combine_s = t.elapsed().as_secs_f64();
+    let max_ratio = combined.max_displacement / bands.radius;
     let chosen = PrintAwareReport {
         nozzle_mm: printer.nozzle_mm,
         layer_height_mm: printer.layer_height_mm,
@@ -185,29 +184,10 @@ pub fn enhance(
         lambda2_target,
         lambda2,
         cap_ratio,
-        max_ratio: combined.max_displacement / bands.radius,
+        max_ratio,
         capped,
     };
-    let report = EnhanceReport {
-        vertices: mesh.vertices.len(),
-        faces: mesh.faces.len(),
-        lambda1: 1.0,
-        lambda2,
-        mu: combined.mu,
-        w_min: combined.w_min,
-        w_mean: combined.w_mean,
-        max_displacement: combined.max_displacement,
-        mean_displacement: combined.mean_displacement,
-        max_solve_residual: bands.residuals.iter().copied().fold(0.0, f64::max),
-        center: bands.center,
-        radius: bands.radius,
-        clamped_cotangents: bands.clamped_cotangents,
-        timings,
-    };
-    let out = Mesh {
-        vertices: combined.vertices,
-        faces: mesh.faces.clone(),
-    };
+    let (out, report) = super::finish(mesh, &bands, combined, 1.0, lambda2, t);
     Ok((out, report, chosen))
 }
 

@@ -138,7 +138,8 @@ pub struct FirmwareInfo {
     pub protocol_version: Option<String>,
     pub machine_type: Option<String>,
     pub extruder_count: Option<u32>,
-    /// `Cap:NAME:0|1` lines (empty on firmware without them, e.g. Ultimaker2Marlin).
+    /// `Cap:NAME:0|1` lines (empty on firmware without them, e.g. Ultimaker2Marlin), at
+    /// most [`MAX_CAPABILITIES`] names.
     pub capabilities: BTreeMap<String, bool>,
 }
 
@@ -147,6 +148,9 @@ impl FirmwareInfo {
         self.capabilities.get(name).copied()
     }
 }
+
+/// The most `Cap:` names kept from one printer.
+pub const MAX_CAPABILITIES: usize = 128;
 
 /// Why a connection or job ended without success. `last_acked` counts job commands the
 /// printer acknowledged (commands 1..=last_acked are done).
@@ -1300,7 +1304,12 @@ impl Host {
                 if name == "ADVANCED_OK" && value {
                     self.advanced_ok = true;
                 }
-                self.info.capabilities.insert(name, value);
+                // Marlin 2.1 lists about 40; a printer (or noise) writing endless new
+                // names must not grow the map without bound.
+                let known = self.info.capabilities.contains_key(&name);
+                if known || self.info.capabilities.len() < MAX_CAPABILITIES {
+                    self.info.capabilities.insert(name, value);
+                }
             }
             Reply::Action(action) => {
                 self.events.push_back(Event::HostAction(action.clone()));

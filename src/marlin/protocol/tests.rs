@@ -300,6 +300,22 @@ fn handshake_reads_firmware_name_and_capabilities() {
 }
 
 #[test]
+fn endless_capability_lines_are_kept_within_bounds() {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    let mut caps = String::new();
+    for i in 0..1000 {
+        caps.push_str(&format!("Cap:NOISE_{i}:1\n"));
+    }
+    host.feed(caps.as_bytes(), now);
+    // A known name is still updated once the map is full.
+    host.feed(b"Cap:AUTOREPORT_TEMP:0\n", now);
+    assert_eq!(host.info.capabilities.len(), MAX_CAPABILITIES);
+    assert_eq!(host.info.capability("AUTOREPORT_TEMP"), Some(false));
+}
+
+#[test]
 fn handshake_without_start_waits_for_quiet_and_retries_then_fails() {
     let t0 = Instant::now();
     let mut host = Host::new(opts(Firmware::Ultimaker2), t0);

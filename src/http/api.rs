@@ -234,7 +234,7 @@ pub async fn picture(
         ApiError::not_found(format!(
             "job {} has no {} (pictures are drawn for enhanced jobs once prepared)",
             quoted(&id),
-            quoted(&name)
+            quoted(name)
         ))
     })?;
     Ok((

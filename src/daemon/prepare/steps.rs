@@ -217,19 +217,9 @@ pub fn prepare(
             .map_err(|e| place_error(e, req, &machine.name))
             .and_then(|()| {
                 let job = SliceJob {
-                    model: &req.model,
-                    output: &target.output,
-                    machine,
-                    height_mm: req.height_mm,
-                    slicer: req.slicer,
-                    settings: &req.settings,
-                    profile: req.profile.as_deref(),
-                    timeout: req.timeout,
-                    slicer_program: req.slicer_program.as_deref(),
-                    cancel: req.cancel.as_deref(),
                     keep_mesh: target.keep_mesh.as_deref(),
                     thumbnails: req.pictures.is_some(),
-                    measure_only: false,
+                    ..slice_job(req, machine, &target.output)
                 };
                 crate::slice::slice_mesh(&placed.mesh, &job, &mut |s| {
                     progress(Step::Slice(&machine.name, s))
@@ -306,6 +296,30 @@ fn place(
     })
 }
 
+/// The slicing of `req` for `machine` into `output`, as both the job's and the comparison's
+/// slicings share it: no mesh kept, no thumbnails, the whole G-code.
+fn slice_job<'a>(
+    req: &'a SliceRequest,
+    machine: &'a crate::machine::Machine,
+    output: &'a Path,
+) -> SliceJob<'a> {
+    SliceJob {
+        model: &req.model,
+        output,
+        machine,
+        height_mm: req.height_mm,
+        slicer: req.slicer,
+        settings: &req.settings,
+        profile: req.profile.as_deref(),
+        timeout: req.timeout,
+        slicer_program: req.slicer_program.as_deref(),
+        cancel: req.cancel.as_deref(),
+        keep_mesh: None,
+        thumbnails: false,
+        measure_only: false,
+    }
+}
+
 /// Slices the placed, unmodified mesh as the enhanced one was and compares the two jobs'
 /// outer walls; with `pictures`, draws a few layers of both there. A comparison is a
 /// measurement, not part of the job: a failure is logged and gives `None`.
@@ -325,19 +339,8 @@ fn compare_walls(
         .ok()?;
     let output = work.path().join("plain.gcode");
     let job = SliceJob {
-        model: &req.model,
-        output: &output,
-        machine,
-        height_mm: req.height_mm,
-        slicer: req.slicer,
-        settings: &req.settings,
-        profile: req.profile.as_deref(),
-        timeout: req.timeout,
-        slicer_program: req.slicer_program.as_deref(),
-        cancel: req.cancel.as_deref(),
-        keep_mesh: None,
-        thumbnails: false,
         measure_only: true,
+        ..slice_job(req, machine, &output)
     };
     if let Err(e) = crate::slice::slice_mesh(plain, &job, &mut |_| {}) {
         tracing::warn!(machine = %machine.name, error = %e, "cannot slice the unmodified model to compare");

@@ -50,7 +50,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     // Kernel names such as /dev/ttyACM0 work today but may swap printers after a reboot.
-    for warning in daemon::ports::warnings(&config.printers) {
+    for warning in daemon::config::ports::warnings(&config.printers) {
         if args.check {
             eprintln!("warning: {warning}");
         } else {

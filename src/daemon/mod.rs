@@ -22,7 +22,6 @@ pub mod control;
 pub mod farm;
 pub mod hotfolder;
 pub mod job;
-pub mod ports;
 pub mod prepare;
 pub mod printer;
 pub mod reload;

@@ -4,6 +4,8 @@
 //! file, the section and the key, so an operator can fix the file without reading code; a
 //! wrong file is always an error, never silently replaced by defaults.
 
+pub mod ports;
+
 use crate::enhance::Strength;
 use crate::marlin::firmware::Firmware;
 use crate::slice::{SlicerKind, UpAxis};
@@ -648,7 +650,7 @@ printers = ["demo"]
             });
         }
 
-        super::ports::check_unique(&printers, file)?;
+        ports::check_unique(&printers, file)?;
 
         let mut folders: Vec<FolderConfig> = Vec::new();
         for (i, f) in raw.folders.into_iter().enumerate() {
@@ -1512,7 +1514,7 @@ slicer = "cura"
     /// and the `[[machine]]` example in its comments must load as written.
     #[test]
     fn the_example_config_is_right_for_its_printers() {
-        let text = include_str!("../../config/crispen.toml");
+        let text = include_str!("../../../config/crispen.toml");
         let c = parse(text).unwrap();
         assert_eq!(c.printers.len(), 2);
         for p in &c.printers {

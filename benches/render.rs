@@ -4,9 +4,9 @@
 //! triangles. `cargo bench --bench render` (CRISPEN_BENCH_RUNS changes the runs).
 
 use crispen::enhance::{self, EnhanceOptions};
+use crispen::mesh::place::UpAxis;
 use crispen::mesh::{self, Mesh};
 use crispen::preview::{self, thumbnail};
-use crispen::slice::UpAxis;
 use std::time::Instant;
 
 #[path = "../tests/common/mod.rs"]

@@ -5,7 +5,8 @@
 use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
 use crispen::enhance::Strength;
 use crispen::machine::Machine;
-use crispen::slice::{SliceReport, SlicerKind, UpAxis};
+use crispen::mesh::place::UpAxis;
+use crispen::slice::{SliceReport, SlicerKind};
 
 #[path = "../tests/common/mod.rs"]
 mod common;

@@ -8,7 +8,8 @@
 use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
 use crispen::enhance::Strength;
 use crispen::machine::Machine;
-use crispen::slice::{walls, UpAxis};
+use crispen::mesh::place::UpAxis;
+use crispen::slice::walls;
 use std::time::Instant;
 
 #[path = "../tests/common/mod.rs"]

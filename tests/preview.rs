@@ -6,9 +6,9 @@
 mod common;
 
 use crispen::enhance::{self, EnhanceOptions};
+use crispen::mesh::place::UpAxis;
 use crispen::mesh::{self, Mesh};
 use crispen::preview::{self, thumbnail, Camera, Image, Paint, MODEL_COLOR};
-use crispen::slice::UpAxis;
 use std::process::Command;
 
 /// A sphere of radius 1 around the origin: an icosahedron subdivided and pushed out.

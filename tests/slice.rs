@@ -660,7 +660,7 @@ fn the_comparison_reads_curaengine_outer_walls() {
     let dir = tempfile::tempdir().unwrap();
     let mut req = SliceRequest::new(spot(), 20.0);
     req.slicer = SlicerKind::Cura;
-    req.up = crispen::slice::UpAxis::Y;
+    req.up = crispen::mesh::place::UpAxis::Y;
     req.strength = Strength::Lambda2(40.0);
     req.compare = true;
     let report = slice(&req, &dir.path().join("spot.gcode"), &mut |_| {}).unwrap();
@@ -685,7 +685,7 @@ fn print_aware_mode_enhances_a_job_for_each_machine() {
         })
         .collect();
     let mut req = SliceRequest::new(spot(), 25.0);
-    req.up = crispen::slice::UpAxis::Y;
+    req.up = crispen::mesh::place::UpAxis::Y;
     // Thin layers, so that the line width sets the printer's resolution.
     req.settings.layer_height_mm = Some(0.1);
     let lambdas = |req: &SliceRequest| -> Vec<(String, f64, f64)> {

@@ -11,9 +11,9 @@ use crispen::enhance::{
     self, Displacements, EnhanceOptions, Phase, PhaseTimings, PrintResolution, PrintedDisplacement,
     StrengthTable,
 };
+use crispen::mesh::place::UpAxis;
 use crispen::mesh::{self, CleanReport, MeshFormat};
 use crispen::preview;
-use crispen::slice::UpAxis;
 use serde::Serialize;
 use std::io::IsTerminal;
 use std::path::PathBuf;

@@ -139,7 +139,7 @@ pub struct Sidecar {
     pub copies: Option<u32>,
     pub printer: Option<String>,
     /// Which of the model's axes points up: "z" or "y".
-    pub up: Option<crate::slice::UpAxis>,
+    pub up: Option<crate::mesh::place::UpAxis>,
     /// `hold = true`: prepare the job, but let no printer take it until the operator
     /// releases it (`crispen release JOB`); what an upload with `print=false` asks for.
     pub hold: Option<bool>,

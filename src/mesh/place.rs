@@ -13,6 +13,27 @@ pub enum PlaceError {
     TooBig { size_mm: [f64; 3], max_mm: [f64; 3] },
 }
 
+/// Which of the model file's axes points up. STL files are Z-up by convention; many OBJ
+/// files (the Stanford bunny, Spot) are Y-up and would otherwise print lying on their side.
+#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize, PartialEq, Eq, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum UpAxis {
+    #[default]
+    Z,
+    Y,
+}
+
+impl std::str::FromStr for UpAxis {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "z" => Ok(UpAxis::Z),
+            "y" => Ok(UpAxis::Y),
+            _ => Err(format!("unknown up axis {s:?}; use z or y")),
+        }
+    }
+}
+
 /// A right-handed turn about X by +90°: the model's Y axis becomes Z (up), Z becomes -Y.
 pub fn turn_y_up(mesh: &mut Mesh) {
     for v in &mut mesh.vertices {

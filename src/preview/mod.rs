@@ -12,8 +12,8 @@ mod raster;
 pub mod thumbnail;
 pub mod walls;
 
+use crate::mesh::place::UpAxis;
 use crate::mesh::Mesh;
-use crate::slice::UpAxis;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 

@@ -10,8 +10,8 @@
 //! They are comments, so crispen's own streamer drops them before sending.
 
 use super::{render, Camera, Image, Paint, MODEL_COLOR};
+use crate::mesh::place::UpAxis;
 use crate::mesh::Mesh;
-use crate::slice::UpAxis;
 use base64::Engine;
 use std::io::{BufRead, BufReader, Write};
 use std::path::Path;

@@ -29,6 +29,7 @@ pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
 
 use crate::enhance::{EnhanceError, EnhanceReport, PrintedDisplacement};
 use crate::machine::{Machine, SKIRT_MARGIN_MM};
+use crate::mesh::place::UpAxis;
 use crate::mesh::{Mesh, MeshError};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -101,25 +102,27 @@ impl std::str::FromStr for SlicerKind {
     }
 }
 
-/// Which of the model file's axes points up. STL files are Z-up by convention; many OBJ
-/// files (the Stanford bunny, Spot) are Y-up and would otherwise print lying on their side.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum UpAxis {
-    #[default]
-    Z,
-    Y,
-}
-
-impl std::str::FromStr for UpAxis {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s.to_ascii_lowercase().as_str() {
-            "z" => Ok(UpAxis::Z),
-            "y" => Ok(UpAxis::Y),
-            _ => Err(format!("unknown up axis {s:?}; use z or y")),
-        }
-    }
+/// Loads `path`, or the built-in profile for the slicer, and checks the slicer's own
+/// files are installed.
+pub fn load_profile(
+    kind: SlicerKind,
+    path: Option<&Path>,
+) -> Result<Box<dyn profiles::SlicerProfile>, SliceError> {
+    let text = match path {
+        Some(p) => std::fs::read_to_string(p).map_err(|e| SliceError::BadProfile {
+            path: p.to_path_buf(),
+            reason: e.to_string(),
+        })?,
+        None => match kind {
+            SlicerKind::Prusa => profiles::PRUSA_PROFILE.to_string(),
+            SlicerKind::Cura => profiles::CURA_PROFILE.to_string(),
+        },
+    };
+    let shown = path.map_or_else(|| PathBuf::from("(built-in profile)"), Path::to_path_buf);
+    Ok(match kind {
+        SlicerKind::Prusa => Box::new(prusa::PrusaProfile::load(text, &shown)?),
+        SlicerKind::Cura => Box::new(cura::CuraProfile::load(&text, &shown)?),
+    })
 }
 
 /// Where a slicing is; reported through the `progress` callback of [`slice_mesh`].
@@ -152,8 +155,6 @@ pub struct SliceJob<'a> {
     pub cancel: Option<&'a AtomicBool>,
     /// Where to keep the mesh that was sliced, as binary STL.
     pub keep_mesh: Option<&'a Path>,
-    /// Put PrusaSlicer-format thumbnails of the part into the G-code.
-    pub thumbnails: bool,
     /// The G-code is only measured, never printed (the unmodified slicing a comparison is
     /// made against): a G-code failing the job's checks is kept, with a warning, because
     /// a slicer's trouble with the unmodified model (an open scan's empty layers) is no
@@ -344,7 +345,7 @@ pub fn slice_mesh(
         SlicerKind::Prusa => job.machine.prusa_profile.as_deref(),
         SlicerKind::Cura => job.machine.cura_profile.as_deref(),
     });
-    let profile = profiles::load_profile(job.slicer, profile_path)?;
+    let profile = load_profile(job.slicer, profile_path)?;
 
     progress(SliceStep::Slicing);
     let t = Instant::now();
@@ -471,13 +472,6 @@ pub fn slice_mesh(
         })
     });
 
-    if job.thumbnails {
-        // A picture is a nicety: a job is never failed for want of one.
-        let blocks = crate::preview::thumbnail::blocks(mesh, UpAxis::Z);
-        if let Err(e) = crate::preview::thumbnail::insert_into_file(&gcode_path, &blocks) {
-            tracing::warn!(error = %e, "cannot put thumbnails into the G-code");
-        }
-    }
     persist(&gcode_path, job.output)?;
     timings.total_s = started.elapsed().as_secs_f64();
     Ok(SliceReport {

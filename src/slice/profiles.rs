@@ -20,13 +20,13 @@
 //! filament diameter and heated bed, and brings its start and end code, so one profile
 //! serves every machine.
 //!
-//! What varies between slicers lives behind [`SlicerProfile`], one file per slicer:
-//! [`super::prusa`] and [`super::cura`].
+//! What varies between slicers lives behind [`SlicerProfile`], one file per slicer
+//! (`prusa.rs` and `cura.rs`, which build on this one); `slice::load_profile` picks it.
 
-use super::{SliceError, SliceSettings, SlicerKind};
+use super::{SliceError, SliceSettings};
 use crate::machine::Machine;
 use std::ffi::OsString;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 pub const PRUSA_PROFILE: &str = include_str!("../../config/prusaslicer-ultimaker2.ini");
 pub const CURA_PROFILE: &str = include_str!("../../config/cura-ultimaker2.toml");
@@ -61,29 +61,6 @@ pub struct JobParams<'a> {
 pub struct Invocation {
     pub args: Vec<OsString>,
     pub env: Vec<(OsString, OsString)>,
-}
-
-/// Loads `path`, or the built-in profile for the slicer, and checks the slicer's own
-/// files are installed.
-pub fn load_profile(
-    kind: SlicerKind,
-    path: Option<&Path>,
-) -> Result<Box<dyn SlicerProfile>, SliceError> {
-    let text = match path {
-        Some(p) => std::fs::read_to_string(p).map_err(|e| SliceError::BadProfile {
-            path: p.to_path_buf(),
-            reason: e.to_string(),
-        })?,
-        None => match kind {
-            SlicerKind::Prusa => PRUSA_PROFILE.to_string(),
-            SlicerKind::Cura => CURA_PROFILE.to_string(),
-        },
-    };
-    let shown = path.map_or_else(|| PathBuf::from("(built-in profile)"), Path::to_path_buf);
-    Ok(match kind {
-        SlicerKind::Prusa => Box::new(super::prusa::PrusaProfile::load(text, &shown)?),
-        SlicerKind::Cura => Box::new(super::cura::CuraProfile::load(&text, &shown)?),
-    })
 }
 
 /// The machine's start and end code with this job's values filled in. A machine without

@@ -8,7 +8,8 @@ pub mod ports;
 
 use crate::enhance::Strength;
 use crate::marlin::firmware::Firmware;
-use crate::slice::{SlicerKind, UpAxis};
+use crate::mesh::place::UpAxis;
+use crate::slice::SlicerKind;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeSet;
 use std::io::Read;

@@ -8,11 +8,11 @@ use crate::enhance::{
     Displacements, EnhanceOptions, Mode, Phase, PrintResolution, Strength, StrengthTable,
 };
 use crate::machine::Machine;
-use crate::mesh::place::PlaceError;
+use crate::mesh::place::{PlaceError, UpAxis};
 use crate::mesh::Mesh;
 use crate::slice::{
     EnhancementSummary, SliceError, SliceJob, SliceReport, SliceSettings, SliceStep, SlicerKind,
-    UpAxis, HEIGHT_MM,
+    HEIGHT_MM,
 };
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -145,7 +145,7 @@ pub fn prepare(
             SlicerKind::Prusa => t.machine.prusa_profile.as_deref(),
             SlicerKind::Cura => t.machine.cura_profile.as_deref(),
         });
-        crate::slice::profiles::load_profile(req.slicer, path)?;
+        crate::slice::load_profile(req.slicer, path)?;
     }
 
     progress(Step::Loading);
@@ -218,12 +218,15 @@ pub fn prepare(
             .and_then(|()| {
                 let job = SliceJob {
                     keep_mesh: target.keep_mesh.as_deref(),
-                    thumbnails: req.pictures.is_some(),
                     ..slice_job(req, machine, &target.output)
                 };
-                crate::slice::slice_mesh(&placed.mesh, &job, &mut |s| {
+                let report = crate::slice::slice_mesh(&placed.mesh, &job, &mut |s| {
                     progress(Step::Slice(&machine.name, s))
-                })
+                })?;
+                if req.pictures.is_some() {
+                    add_thumbnails(&placed.mesh, &target.output);
+                }
+                Ok(report)
             })
             .map(|mut report| {
                 report.up = req.up;
@@ -297,7 +300,7 @@ fn place(
 }
 
 /// The slicing of `req` for `machine` into `output`, as both the job's and the comparison's
-/// slicings share it: no mesh kept, no thumbnails, the whole G-code.
+/// slicings share it: no mesh kept, the whole G-code.
 fn slice_job<'a>(
     req: &'a SliceRequest,
     machine: &'a crate::machine::Machine,
@@ -315,8 +318,17 @@ fn slice_job<'a>(
         slicer_program: req.slicer_program.as_deref(),
         cancel: req.cancel.as_deref(),
         keep_mesh: None,
-        thumbnails: false,
         measure_only: false,
+    }
+}
+
+/// Puts PrusaSlicer-format thumbnails of the part as sliced (Z up) into its G-code, after
+/// the slicer's checks passed (the file is replaced whole). A picture is a nicety: a job
+/// is never failed for want of one.
+fn add_thumbnails(mesh: &Mesh, gcode: &Path) {
+    let blocks = crate::preview::thumbnail::blocks(mesh, UpAxis::Z);
+    if let Err(e) = crate::preview::thumbnail::insert_into_file(gcode, &blocks) {
+        tracing::warn!(error = %e, gcode = %gcode.display(), "cannot put thumbnails into the G-code");
     }
 }
 

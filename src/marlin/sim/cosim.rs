@@ -119,7 +119,8 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
 /// bed and a 210 °C nozzle: heaters on, homing, both heat waits, a prime) and the first
 /// layer's opening, then `moves` short moves.
 fn sliced_job(moves: usize) -> Vec<String> {
-    let start = crate::slice::profiles::START_GCODE
+    // The file itself, as the slicer profiles embed it (the harness is below the slicers).
+    let start = include_str!("../../../gcode/start.gcode")
         .replace("{BED_TEMP}", "60")
         .replace("{NOZZLE_TEMP}", "210");
     let mut job = vec!["M107".to_string()];

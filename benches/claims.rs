@@ -16,8 +16,9 @@ mod common;
 
 use common::farm::process_cpu_s;
 use common::postgres::PgServer;
+use crispen::daemon::config::PgSettings;
 use crispen::daemon::job::JobState;
-use crispen::daemon::store::postgres::{PgSettings, PgStore};
+use crispen::daemon::store::postgres::PgStore;
 use std::time::{Duration, Instant};
 
 const JOBS: usize = 1000;

@@ -7,8 +7,9 @@
 mod common;
 
 use common::postgres::PgServer;
+use crispen::daemon::config::PgSettings;
 use crispen::daemon::job::{JobState, StoreError};
-use crispen::daemon::store::postgres::{PgError, PgSettings, PgStore};
+use crispen::daemon::store::postgres::{PgError, PgStore};
 use std::collections::HashSet;
 use std::time::Duration;
 

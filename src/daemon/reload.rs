@@ -120,7 +120,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         (None, None) => {}
         (Some(new), Some(old)) => {
             let super::config::StoreConfig { postgres, lease } = new;
-            let super::store::postgres::PgSettings {
+            let super::config::PgSettings {
                 conninfo,
                 password_file,
             } = postgres;

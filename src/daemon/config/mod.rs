@@ -177,9 +177,52 @@ pub struct Config {
 /// `[store]`: the farm database.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoreConfig {
-    pub postgres: crate::daemon::store::postgres::PgSettings,
+    pub postgres: PgSettings,
     /// A host silent this long loses its work to the others (see `store::postgres`).
     pub lease: Duration,
+}
+
+/// How to reach the farm database: `[store] postgres` and `[store] password_file`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PgSettings {
+    /// A libpq connection string without a password (`host=/run/postgresql dbname=crispen`).
+    pub conninfo: String,
+    pub password_file: Option<PathBuf>,
+}
+
+/// Why a `[store] postgres` connection string is refused.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ConninfoError {
+    /// It holds a password, which belongs in `password_file` or `PGPASSWORD`.
+    Password,
+    /// It is too long, does not parse or names no server; the reason.
+    Bad(String),
+}
+
+/// A `[store] postgres` connection string checked and parsed, the one rule for both the
+/// config check and the store's connection: at most 4096 characters, it parses, names the
+/// server (there is no default to fall back on), and holds no password.
+pub fn parse_conninfo(conninfo: &str) -> Result<tokio_postgres::Config, ConninfoError> {
+    if conninfo.len() > 4096 {
+        return Err(ConninfoError::Bad(format!(
+            "{} characters: too long for a connection string",
+            conninfo.len()
+        )));
+    }
+    let config: tokio_postgres::Config = conninfo.parse().map_err(|e: tokio_postgres::Error| {
+        // The parser's reason (e.g. the unknown option) is the error's source.
+        let reason = std::error::Error::source(&e).map(|s| format!(": {s}"));
+        ConninfoError::Bad(format!("{e}{}", reason.unwrap_or_default()))
+    })?;
+    if config.get_hosts().is_empty() && config.get_hostaddrs().is_empty() {
+        return Err(ConninfoError::Bad(format!(
+            "{conninfo:?} names no server (hint: \"host=/run/postgresql dbname=crispen\", or host=NAME for one on another machine)"
+        )));
+    }
+    if config.get_password().is_some() {
+        return Err(ConninfoError::Password);
+    }
+    Ok(config)
 }
 
 /// Bounds of `[store] lease_s`: long enough for a busy host's heartbeat, short enough that
@@ -457,8 +500,15 @@ printers = ["demo"]
             None => None,
             Some(s) => {
                 let invalid = |key, m| invalid("[store]".into(), key, m);
-                crate::daemon::store::postgres::check_conninfo(&s.postgres)
-                    .map_err(|m| invalid("postgres", m))?;
+                parse_conninfo(&s.postgres).map_err(|e| {
+                    invalid(
+                        "postgres",
+                        match e {
+                            ConninfoError::Password => "the connection string holds a password (hint: put the password in [store] password_file or PGPASSWORD)".into(),
+                            ConninfoError::Bad(m) => m,
+                        },
+                    )
+                })?;
                 if let Some(p) = &s.password_file {
                     if p.as_os_str().is_empty() {
                         return Err(invalid("password_file", "must not be empty".into()));
@@ -470,7 +520,7 @@ printers = ["demo"]
                     }
                 }
                 Some(StoreConfig {
-                    postgres: crate::daemon::store::postgres::PgSettings {
+                    postgres: PgSettings {
                         conninfo: s.postgres,
                         password_file: s.password_file.map(|p| anchor(&p)),
                     },

@@ -30,6 +30,7 @@ pub mod store;
 
 use super::JobEdit;
 use super::StateFilter;
+use crate::daemon::config::{parse_conninfo, ConninfoError, PgSettings};
 use crate::daemon::job::{Job, JobState, Origin, PrinterGate, StoreError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -82,14 +83,6 @@ pub enum PgError {
         what: &'static str,
         message: String,
     },
-}
-
-/// How to reach the database: `[store] postgres` and `[store] password_file`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PgSettings {
-    /// A libpq connection string without a password (`host=/run/postgresql dbname=crispen`).
-    pub conninfo: String,
-    pub password_file: Option<PathBuf>,
 }
 
 impl From<PgError> for StoreError {
@@ -189,53 +182,15 @@ impl Change<'_> {
 /// A file a job may not have in the database: the column holds at most 1 GiB.
 pub const MAX_FILE_BYTES: u64 = 1 << 30;
 
-/// Checks a `[store] postgres` connection string as the config is read: it parses, names
-/// the server (there is no default to fall back on), and holds no password.
-pub fn check_conninfo(conninfo: &str) -> Result<(), String> {
-    if conninfo.len() > 4096 {
-        return Err(format!(
-            "{} characters: too long for a connection string",
-            conninfo.len()
-        ));
-    }
-    if let Ok(config) = conninfo.parse::<tokio_postgres::Config>() {
-        if config.get_hosts().is_empty() && config.get_hostaddrs().is_empty() {
-            return Err(format!(
-                "{conninfo:?} names no server (hint: \"host=/run/postgresql dbname=crispen\", or host=NAME for one on another machine)"
-            ));
-        }
-    }
-    let settings = PgSettings {
-        conninfo: conninfo.to_string(),
-        password_file: None,
-    };
-    client_config(&settings).map(|_| ()).map_err(|e| match e {
-        PgError::PasswordInConnectionString(m) => {
-            format!("{m} (hint: put the password in [store] password_file or PGPASSWORD)")
-        }
-        PgError::BadConnectionString(m) => m,
-        other => other.to_string(),
-    })
-}
-
 /// Checks the connection string (no password in it) and builds the client settings, with
 /// the password from `password_file` or `PGPASSWORD`.
 fn client_config(settings: &PgSettings) -> Result<tokio_postgres::Config, PgError> {
-    let config: tokio_postgres::Config =
-        settings
-            .conninfo
-            .parse()
-            .map_err(|e: tokio_postgres::Error| {
-                // The parser's reason (e.g. the unknown option) is the error's source.
-                let reason = std::error::Error::source(&e).map(|s| format!(": {s}"));
-                PgError::BadConnectionString(format!("{e}{}", reason.unwrap_or_default()))
-            })?;
-    if config.get_password().is_some() {
-        return Err(PgError::PasswordInConnectionString(
-            "the connection string holds a password",
-        ));
-    }
-    let mut config = config;
+    let mut config = parse_conninfo(&settings.conninfo).map_err(|e| match e {
+        ConninfoError::Password => {
+            PgError::PasswordInConnectionString("the connection string holds a password")
+        }
+        ConninfoError::Bad(m) => PgError::BadConnectionString(m),
+    })?;
     if let Some(path) = &settings.password_file {
         // The same bounded read as the config check's: never a device or a directory.
         let (text, _) =

@@ -1,7 +1,7 @@
 //! A job and its life: [`JobState`] and its one table of legal changes
 //! ([`JobState::can_go_to`]), the record every store keeps of a job ([`Job`]), a printer's
-//! bed gate, and the errors of a job store. Where jobs are kept is [`super::store`]'s
-//! business.
+//! bed gate, and the errors of a job store. Where jobs are kept is the business of the
+//! stores (`daemon::store`), which build on this module.
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::time::{SystemTime, UNIX_EPOCH};

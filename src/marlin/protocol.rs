@@ -1,7 +1,7 @@
 //! The Marlin host protocol as a pure state machine: bytes from the printer and the current
 //! time go in; lines to send, events and the next deadline come out. No ports, no clocks,
 //! so every corner (resend storms, lost `ok`s, garbage, resets) is unit-tested directly and
-//! the async driver in [`super::stream`] stays thin.
+//! the async driver above it (`stream.rs`) stays thin.
 //!
 //! Exactly-once delivery rests on the printer's own line-number check: it executes line
 //! `N` only if it follows the last one it accepted, and asks for the rest again otherwise.

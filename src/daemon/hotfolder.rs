@@ -383,9 +383,6 @@ mod tests {
         for name in ["gcode", "a.ply", "a.gcode.txt", "a.", "stl", "a.xbgcode"] {
             assert_eq!(file_kind(name), None, "{name}");
         }
-        for name in ["a.gcode", "a.bgcode", "a.g"] {
-            assert!(crate::daemon::prepare::is_presliced(name), "{name}");
-        }
     }
 
     /// The event queue from notify's thread is bounded: a burst beyond it is dropped and

@@ -476,6 +476,17 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
 mod tests {
     use super::*;
 
+    /// Pre-sliced is what the hot folder's one classifier calls G-code.
+    #[test]
+    fn gcode_files_are_presliced() {
+        for name in ["a.gcode", "a.bgcode", "a.g", "A.GCO"] {
+            assert!(is_presliced(name), "{name}");
+        }
+        for name in ["a.stl", "a.obj", "a.3mf", "a.gcode.txt"] {
+            assert!(!is_presliced(name), "{name}");
+        }
+    }
+
     fn folder() -> FolderConfig {
         FolderConfig {
             path: "/hot".into(),

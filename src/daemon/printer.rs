@@ -9,10 +9,11 @@
 //! the connection is lost or re-opened and when the printer stops reporting them.
 //!
 //! Staggered heat-ups, approximated: a print holds one of `[farm] max_heating` permits from
-//! its start until the streamer has had the last heat-and-wait command (`M109`/`M190`/
-//! `M116`) of the program's opening acknowledged; Marlin acknowledges those only once the
-//! temperature is reached, so the permit is held exactly through the heat-up. A program
-//! without such a command releases the permit at once.
+//! its start until the streamer has had the last heat-and-wait command (`M109`, `M190`,
+//! `M116`: [`crate::marlin::gcode::HEAT_WAITS`]) of the program's opening acknowledged;
+//! Marlin acknowledges those only once the temperature is reached, so the permit is held
+//! exactly through the heat-up. A program without such a command releases the permit at
+//! once.
 //!
 //! The supervisor reaches the printer through [`Connector`]/[`PrinterLink`], so the real
 //! Marlin streamer is wired in in one place ([`MarlinConnector`]).
@@ -87,7 +88,7 @@ pub fn heat_up_end<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Opti
         let c = c.as_ref();
         let word = c.split_whitespace().next().unwrap_or("");
         match word {
-            "M109" | "M190" | "M116" => last = Some(i),
+            w if crate::marlin::gcode::is_heat_wait(w) => last = Some(i),
             "G1" | "G0" if c.contains(" E") && last.is_some() => break,
             _ => {}
         }

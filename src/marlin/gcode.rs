@@ -23,6 +23,18 @@ pub const MAX_GCODE_BYTES: u64 = 512 << 20;
 /// thumbnails and settings in comment lines of a few KiB at most.
 pub const MAX_RAW_LINE_BYTES: u64 = 1 << 20;
 
+/// The commands that wait for a temperature (nozzle, bed, every heater): the printer
+/// answers them only once it is reached. The one list for every layer: the protocol gives
+/// them the heat timeout instead of the silence probe, and the daemon holds a print's
+/// heating permit until the last of them in the program's opening is answered.
+pub const HEAT_WAITS: [&str; 3] = ["M109", "M190", "M116"];
+
+/// Whether a command (its first word, in any case) is one of [`HEAT_WAITS`].
+pub fn is_heat_wait(command: &str) -> bool {
+    let code = command.split_whitespace().next().unwrap_or("");
+    HEAT_WAITS.iter().any(|c| c.eq_ignore_ascii_case(code))
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
     #[error("cannot read G-code file {path}: {source}")]

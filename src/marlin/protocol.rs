@@ -18,7 +18,7 @@ pub mod reply;
 mod window;
 
 use super::firmware::Firmware;
-use super::gcode::GcodeCommands;
+use super::gcode::{is_heat_wait, GcodeCommands};
 use reply::{HostAction, OkReply, Reply, Report};
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
@@ -460,7 +460,6 @@ pub struct Host {
 }
 
 const LONG_COMMANDS: [&str; 4] = ["G28", "G29", "M400", "G4"];
-const HEAT_COMMANDS: [&str; 2] = ["M109", "M190"];
 const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
 const MAX_PARTIAL: usize = 4096;
 /// The shortest quiet after which a lost `ok` is probed for.
@@ -577,13 +576,10 @@ impl Host {
         self.heat_reported || self.heat.is_some() || self.heat_at_front()
     }
 
-    /// The oldest unanswered line is M109/M190, or the printer reports that it waits: it
+    /// The oldest unanswered line is a heat wait (M109/M190/M116), or the printer reports that it waits: it
     /// reads nothing else meanwhile, so silence is no sign of trouble.
     fn heat_at_front(&self) -> bool {
-        self.heat_reported
-            || self
-                .front_line()
-                .is_some_and(|l| is_code(&l.command, &HEAT_COMMANDS))
+        self.heat_reported || self.front_line().is_some_and(|l| is_heat_wait(&l.command))
     }
     pub fn acked_job_lines(&self) -> usize {
         self.acked_job

@@ -3,7 +3,8 @@
 //! bytes in flight fit the printer's receive buffer.
 
 use super::{code_of, is_code, HeatWait};
-use super::{frame, Failure, Host, InFlight, Kind, Line, Phase, HEAT_COMMANDS};
+use super::{frame, Failure, Host, InFlight, Kind, Line, Phase};
+use crate::marlin::gcode::is_heat_wait;
 use std::time::Instant;
 
 /// Bytes of the printer's receive ring kept free for a probe: `N<number> M105*<cs>\n` with
@@ -102,7 +103,7 @@ impl Host {
         let wire = frame(number, &line.command);
         let is_m105 = code_of(&line.command).eq_ignore_ascii_case("M105");
         let sync = line.kind == Kind::Sync;
-        let is_heat = is_code(&line.command, &HEAT_COMMANDS);
+        let is_heat = is_heat_wait(&line.command);
         if wire.len() - 1 > self.opts.firmware.max_line_bytes() {
             let failure = Failure::LineTooLong {
                 command: line.command.clone(),

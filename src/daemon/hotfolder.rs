@@ -170,7 +170,56 @@ struct Seen {
     finished_by_event: bool,
 }
 
-/// Tracks files in hot folders until they are complete. Pure apart from reading metadata.
+/// What a look at a tracked path found (read on a blocking thread: see [`look`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Found {
+    /// Nothing is there any more (or it cannot be read).
+    Gone,
+    /// A symbolic link: never followed, since it could lead out of the folder to any file.
+    Symlink,
+    /// A directory, a device, a FIFO: nothing to take.
+    NotAFile,
+    File {
+        size: u64,
+        mtime: Option<SystemTime>,
+    },
+}
+
+/// Looks at each path, not following links. Blocking, one `lstat` per path: run it on a
+/// blocking thread, never on the async worker (a hot folder on NFS may take seconds).
+pub fn look(paths: Vec<PathBuf>) -> Vec<(PathBuf, Found)> {
+    paths
+        .into_iter()
+        .map(|path| {
+            let found = match std::fs::symlink_metadata(&path) {
+                Err(_) => Found::Gone,
+                Ok(meta) if meta.is_file() => Found::File {
+                    size: meta.len(),
+                    mtime: meta.modified().ok(),
+                },
+                Ok(meta) if meta.is_symlink() => Found::Symlink,
+                Ok(_) => Found::NotAFile,
+            };
+            (path, found)
+        })
+        .collect()
+}
+
+/// The regular files directly in `dir` (none when it cannot be listed). Blocking, like
+/// [`look`].
+pub fn list_files(dir: &Path) -> Vec<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    entries
+        .flatten()
+        .filter(|e| e.file_type().map(|t| t.is_file()).unwrap_or(false))
+        .map(|e| e.path())
+        .collect()
+}
+
+/// Tracks files in hot folders until they are complete. The decision ([`Self::complete`])
+/// is pure: what the file system holds comes in from [`look`] and [`list_files`].
 #[derive(Debug)]
 pub struct SettleTracker {
     settle: Duration,
@@ -206,51 +255,71 @@ impl SettleTracker {
         }
     }
 
-    /// Lists a folder and tracks every regular file in it.
+    /// The paths tracked, for [`look`].
+    pub fn tracked(&self) -> Vec<PathBuf> {
+        self.seen.keys().cloned().collect()
+    }
+
+    /// Lists a folder and tracks every regular file in it. Blocking (see [`list_files`]).
     pub fn scan_dir(&mut self, dir: &Path) {
-        let Ok(entries) = std::fs::read_dir(dir) else {
-            return;
-        };
-        for entry in entries.flatten() {
-            if entry.file_type().map(|t| t.is_file()).unwrap_or(false) {
-                self.note(&entry.path(), false);
-            }
+        for path in list_files(dir) {
+            self.note(&path, false);
         }
     }
 
-    /// Returns the files that are complete now and stops tracking them (and files that
-    /// vanished).
+    /// Looks at every tracked file and returns those complete now (see
+    /// [`Self::complete`]). Blocking (see [`look`]).
     pub fn take_complete(&mut self, now: Instant) -> Vec<PathBuf> {
+        let found = look(self.tracked());
+        self.complete(found, now)
+    }
+
+    /// From what a look found, the files that are complete now; stops tracking them and
+    /// what is gone or no regular file. A tracked path the look did not cover is kept.
+    pub fn complete(&mut self, found: Vec<(PathBuf, Found)>, now: Instant) -> Vec<PathBuf> {
         let mut done = Vec::new();
-        let settle = self.settle;
-        self.seen.retain(|path, seen| {
-            // Not followed: a link could lead out of the folder to any file.
-            let Ok(meta) = std::fs::symlink_metadata(path) else {
-                return false;
+        for (path, found) in found {
+            let Some(seen) = self.seen.get_mut(&path) else {
+                continue;
             };
-            if !meta.is_file() {
-                if meta.is_symlink() {
+            let (size, mtime) = match found {
+                Found::File { size, mtime } => (size, mtime),
+                Found::Symlink => {
                     tracing::warn!(file = %path.display(), "a symbolic link in a hot folder is not picked up");
+                    self.seen.remove(&path);
+                    continue;
                 }
-                return false;
-            }
-            let mtime = meta.modified().ok();
-            if meta.len() != seen.size || mtime != seen.mtime {
-                seen.size = meta.len();
+                Found::Gone | Found::NotAFile => {
+                    self.seen.remove(&path);
+                    continue;
+                }
+            };
+            if size != seen.size || mtime != seen.mtime {
+                seen.size = size;
                 seen.mtime = mtime;
                 seen.unchanged_since = now;
                 if !seen.finished_by_event {
-                    return true;
+                    continue;
                 }
             }
-            if seen.finished_by_event || now.duration_since(seen.unchanged_since) >= settle {
-                done.push(path.clone());
-                return false;
+            if seen.finished_by_event || now.duration_since(seen.unchanged_since) >= self.settle {
+                self.seen.remove(&path);
+                done.push(path);
             }
-            true
-        });
+        }
         done.sort();
         done
+    }
+}
+
+/// Runs file-system work on a blocking thread, so a slow hot folder (NFS) never stalls the
+/// async worker's other tasks (printer streams, the HTTP API). A panic there is the
+/// watcher's own; None when the runtime is shutting down.
+async fn blocking<R: Send + 'static>(work: impl FnOnce() -> R + Send + 'static) -> Option<R> {
+    match tokio::task::spawn_blocking(work).await {
+        Ok(result) => Some(result),
+        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
+        Err(_) => None,
     }
 }
 
@@ -313,8 +382,19 @@ pub async fn watch(
             None
         }
     };
-    for folder in &folders {
-        if let Err(e) = std::fs::create_dir_all(folder) {
+    let to_create = folders.clone();
+    let Some(created) = blocking(move || {
+        to_create
+            .iter()
+            .map(|folder| std::fs::create_dir_all(folder).err())
+            .collect::<Vec<_>>()
+    })
+    .await
+    else {
+        return;
+    };
+    for (folder, error) in folders.iter().zip(created) {
+        if let Some(e) = error {
             tracing::error!(folder = %folder.display(), error = %e, "cannot create hot folder");
         }
         if let Some(w) = watcher.as_mut() {
@@ -324,8 +404,22 @@ pub async fn watch(
         }
     }
     let mut tracker = SettleTracker::new(settle);
-    for folder in &folders {
-        tracker.scan_dir(folder);
+    // Every listing and look below runs on a blocking thread; the loop waits for it (events
+    // meanwhile wait in their bounded queue) and decides on the async side.
+    let list_all = |folders: &Vec<PathBuf>| {
+        let folders = folders.clone();
+        blocking(move || {
+            folders
+                .iter()
+                .flat_map(|f| list_files(f))
+                .collect::<Vec<_>>()
+        })
+    };
+    let Some(listed) = list_all(&folders).await else {
+        return;
+    };
+    for path in &listed {
+        tracker.note(path, false);
     }
     let tick = (settle / 4).clamp(Duration::from_millis(50), Duration::from_millis(500));
     let mut ticker = tokio::time::interval(tick);
@@ -340,19 +434,37 @@ pub async fn watch(
                 }
             }
             _ = rescan_timer.tick() => {
-                for folder in &folders {
-                    tracker.scan_dir(folder);
+                let Some(listed) = list_all(&folders).await else {
+                    return;
+                };
+                for path in &listed {
+                    tracker.note(path, false);
                 }
             }
             _ = ticker.tick() => {
-                if overflowed.swap(false, Ordering::SeqCst) {
-                    // Events were dropped: look at the folders now rather than at the
-                    // next periodic rescan.
-                    for folder in &folders {
-                        tracker.scan_dir(folder);
-                    }
+                // Events were dropped: list the folders now rather than at the next
+                // periodic rescan, then look at every tracked file, in one trip.
+                let rescan = overflowed.swap(false, Ordering::SeqCst).then(|| folders.clone());
+                let tracked = tracker.tracked();
+                let now = Instant::now();
+                let Some((listed, found)) = blocking(move || {
+                    let listed: Vec<PathBuf> =
+                        rescan.iter().flatten().flat_map(|f| list_files(f)).collect();
+                    // The files just listed are looked at too, as if noted before the look.
+                    let mut paths = tracked;
+                    paths.extend(listed.iter().cloned());
+                    paths.sort();
+                    paths.dedup();
+                    (listed, look(paths))
+                })
+                .await
+                else {
+                    return;
+                };
+                for path in &listed {
+                    tracker.note(path, false);
                 }
-                for path in tracker.take_complete(Instant::now()) {
+                for path in tracker.complete(found, now) {
                     let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
                     if out.send((path, folder)).await.is_err() {
                         return;
@@ -399,6 +511,50 @@ mod tests {
             got.push(path);
         }
         assert_eq!(got, [PathBuf::from("f0.stl"), PathBuf::from("f1.stl")]);
+    }
+
+    /// The decision is made from what a look found, with no file system call of its own
+    /// (the watcher looks on a blocking thread): these paths do not exist.
+    #[test]
+    fn the_decision_is_made_from_what_a_look_found() {
+        let settle = Duration::from_secs(1);
+        let mut tracker = SettleTracker::new(settle);
+        let [a, b, c, d, e] = ["a.stl", "b.stl", "c.stl", "d.stl", "e.stl"]
+            .map(|n| PathBuf::from("/nowhere/crispen").join(n));
+        for path in [&a, &b, &c, &d, &e] {
+            tracker.note(path, false);
+        }
+        tracker.note(&b, true);
+        let file = |size| Found::File { size, mtime: None };
+        let t0 = Instant::now();
+        let found = vec![
+            (a.clone(), file(10)),
+            (b.clone(), file(5)),
+            (c.clone(), Found::Symlink),
+            (d.clone(), Found::Gone),
+            (e.clone(), Found::NotAFile),
+            // Not tracked (no event, no listing noted it): ignored.
+            (PathBuf::from("/nowhere/crispen/f.stl"), file(1)),
+        ];
+        assert_eq!(tracker.complete(found, t0), vec![b.clone()]);
+        assert_eq!(tracker.tracked(), vec![a.clone()]);
+        // Unchanged for less than the settle time, then for the settle time.
+        let half = t0 + settle / 2;
+        assert!(tracker
+            .complete(vec![(a.clone(), file(10))], half)
+            .is_empty());
+        // A change starts the wait again.
+        assert!(tracker
+            .complete(vec![(a.clone(), file(11))], t0 + settle)
+            .is_empty());
+        assert!(
+            tracker.complete(vec![], t0 + settle * 3).is_empty(),
+            "not looked at"
+        );
+        assert_eq!(
+            tracker.complete(vec![(a.clone(), file(11))], t0 + settle * 2),
+            vec![a]
+        );
     }
 
     /// A file whose events were all dropped is still taken: the rescan notes it, and it

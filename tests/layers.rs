@@ -30,7 +30,18 @@ use std::path::{Path, PathBuf};
 /// store's history). Each entry is (from, to) as the report names them. They are allowed
 /// here only so the suite passes until that work is merged; the list is then emptied. An
 /// entry that no longer matches an edge fails the test, so it cannot outlive its cycle.
-const ALLOWED: &[(&str, &str)] = &[];
+const ALLOWED: &[(&str, &str)] = &[
+    // The service module decides how `daemon` and `http` meet (`state`): today
+    // daemon/mod.rs starts the listeners and http reaches into daemon's parts.
+    ("daemon", "http"),
+    // Farm state owners (`state`): farm → shared → farm, and through control.
+    ("daemon::farm", "daemon::shared"),
+    // The job store and the farm (`history` and `state`): store → farm → store.
+    ("daemon::store", "daemon::farm"),
+    // Inside http (`state`): events ↔ serve, octoprint ↔ upload.
+    ("http::events", "http::serve"),
+    ("http::upload", "http::octoprint"),
+];
 
 #[test]
 fn src_has_no_module_cycle() {
@@ -85,12 +96,12 @@ fn the_checker_reports_a_cycle_with_each_edges_place() {
     assert_eq!(report.cycles.len(), 1, "{}", report.text);
     let cycle = &report.cycles[0];
     for place in ["a/mod.rs:3", "c.rs:1"] {
-        assert!(
-            cycle.contains(place),
-            "{place} is not named in:\n{cycle}"
-        );
+        assert!(cycle.contains(place), "{place} is not named in:\n{cycle}");
     }
-    assert!(cycle.contains("a → c") && cycle.contains("c → a"), "{cycle}");
+    assert!(
+        cycle.contains("a → c") && cycle.contains("c → a"),
+        "{cycle}"
+    );
     assert!(!report.text.contains("b → a"), "{}", report.text);
 
     // Allowing one edge of the cycle breaks it; allowing an edge that is not there is stale.
@@ -212,8 +223,7 @@ impl Graph {
             let module = module_of(rel);
             let text = std::fs::read_to_string(file)
                 .map_err(|e| format!("{}: cannot read: {e}", file.display()))?;
-            let (tokens, docs) =
-                lex(&text).map_err(|e| format!("{}: {e}", file.display()))?;
+            let (tokens, docs) = lex(&text).map_err(|e| format!("{}: {e}", file.display()))?;
             modules.insert(module.clone());
             sources.push(Source {
                 module,
@@ -229,8 +239,7 @@ impl Graph {
         for (source, (uses, _, _)) in sources.iter().zip(&parsed) {
             for u in uses.iter().filter(|u| u.public && u.scope == source.module) {
                 if let Some(name) = &u.name {
-                    if let Some(abs) = absolute(&modules, &u.scope, &u.segments, &BTreeMap::new())
-                    {
+                    if let Some(abs) = absolute(&modules, &u.scope, &u.segments, &BTreeMap::new()) {
                         reexports
                             .entry(source.module.clone())
                             .or_default()
@@ -263,8 +272,7 @@ impl Graph {
             for u in uses {
                 let target = resolver.resolve(&u.scope, &u.segments, &BTreeMap::new());
                 if let (Some(name), Some(t)) = (&u.name, &target) {
-                    if let Some(abs) = absolute(&modules, &u.scope, &u.segments, &BTreeMap::new())
-                    {
+                    if let Some(abs) = absolute(&modules, &u.scope, &u.segments, &BTreeMap::new()) {
                         if modules.contains(&abs) {
                             aliases.insert(name.clone(), t.clone());
                         }
@@ -343,7 +351,7 @@ impl Graph {
                 level_edges.len() - kept.len(),
                 found.len()
             );
-            for cycle in found {
+            for cycle in &found {
                 let mut shown = format!("cycle in `{}`: {}", name(level), cycle.join(" → "));
                 shown += &format!(" → {}\n", cycle[0]);
                 for (i, from) in cycle.iter().enumerate() {
@@ -354,11 +362,17 @@ impl Graph {
                 text += &shown;
                 cycles.push(shown);
             }
-            for ((from, to), places) in level_edges
-                .iter()
-                .filter(|(e, _)| !kept.contains_key(e))
-            {
+            for ((from, to), places) in level_edges.iter().filter(|(e, _)| !kept.contains_key(e)) {
                 text += &format!("  allowed: {from} → {to}: {}\n", list(places));
+            }
+            // The cycles the allowed edges close, so the report shows what is left to do.
+            let all = find_cycles(level_edges.keys().map(|e| (e.0.as_str(), e.1.as_str())));
+            for cycle in all.iter().filter(|c| !found.contains(c)) {
+                text += &format!(
+                    "  known cycle (allowed): {} → {}\n",
+                    cycle.join(" → "),
+                    cycle[0]
+                );
             }
         }
         let stale = allowed
@@ -628,7 +642,11 @@ impl Source {
 
 /// Expands a use tree (the tokens between `use` and `;`) into full paths, each with the
 /// name it binds (None for a glob) and the line of its last segment.
-fn expand_use(t: &[Token], prefix: Vec<String>, out: &mut Vec<(Vec<String>, Option<String>, usize)>) {
+fn expand_use(
+    t: &[Token],
+    prefix: Vec<String>,
+    out: &mut Vec<(Vec<String>, Option<String>, usize)>,
+) {
     // Split the top level at commas (for the inside of braces).
     let mut start = 0;
     let mut depth = 0;
@@ -663,7 +681,8 @@ fn expand_use(t: &[Token], prefix: Vec<String>, out: &mut Vec<(Vec<String>, Opti
                 }
                 Tok::PathSep => {}
                 Tok::Punct('{') => {
-                    let close = part.len() - 1 - part.iter().rev().position(|t| t.is('}')).unwrap_or(0);
+                    let close =
+                        part.len() - 1 - part.iter().rev().position(|t| t.is('}')).unwrap_or(0);
                     expand_use(&part[k + 1..close], path.clone(), out);
                     done = true;
                     break;
@@ -788,7 +807,8 @@ fn lex(text: &str) -> Result<(Vec<Token>, Vec<(usize, String)>), String> {
         } else if ch == '/' && next == Some('/') {
             let end = (i..c.len()).find(|&k| c[k] == '\n').unwrap_or(c.len());
             let body: String = c[i + 2..end].iter().collect();
-            let is_doc = (body.starts_with('/') && !body.starts_with("//")) || body.starts_with('!');
+            let is_doc =
+                (body.starts_with('/') && !body.starts_with("//")) || body.starts_with('!');
             if is_doc {
                 docs.push((line, body[1..].to_string()));
             }
@@ -824,7 +844,9 @@ fn lex(text: &str) -> Result<(Vec<Token>, Vec<(usize, String)>), String> {
         } else if ch == '\'' {
             // A character literal, or a lifetime / label.
             if next == Some('\\') {
-                let end = (i + 2..c.len()).find(|&k| c[k] == '\'').ok_or("open char")?;
+                let end = (i + 2..c.len())
+                    .find(|&k| c[k] == '\'')
+                    .ok_or("open char")?;
                 i = end + 1;
             } else if c.get(i + 2) == Some(&'\'') {
                 i += 3;
@@ -855,8 +877,7 @@ fn lex(text: &str) -> Result<(Vec<Token>, Vec<(usize, String)>), String> {
                             if k >= c.len() {
                                 return Err("open raw string".into());
                             }
-                            if c[k] == '"' && (0..hashes).all(|h| c.get(k + 1 + h) == Some(&'#'))
-                            {
+                            if c[k] == '"' && (0..hashes).all(|h| c.get(k + 1 + h) == Some(&'#')) {
                                 break;
                             }
                             k += 1;
@@ -879,7 +900,9 @@ fn lex(text: &str) -> Result<(Vec<Token>, Vec<(usize, String)>), String> {
                 }
                 ("b", Some('\'')) => {
                     let end = if c.get(i + 1) == Some(&'\\') {
-                        (i + 2..c.len()).find(|&k| c[k] == '\'').ok_or("open byte")?
+                        (i + 2..c.len())
+                            .find(|&k| c[k] == '\'')
+                            .ok_or("open byte")?
                     } else {
                         i + 2
                     };

@@ -185,6 +185,48 @@ fn listing_shows_stable_names_and_the_printers_on_them() {
     assert!(text(&out.stderr).contains("/nonexistent.toml: cannot read"));
 }
 
+/// An operator allowed on the control socket but not to read the daemon's key and password
+/// files (here: they are not there at all) can still list the ports against the config and
+/// ask the daemon for its status: neither command reads a secret. `crispen ports` once
+/// loaded the whole config and failed on them.
+#[test]
+fn commands_short_of_the_daemon_read_none_of_its_secrets() {
+    let (_master, device) = silent_pty();
+    let (dev, link) = dev_dir("usb-Prusa_Research_MK3_CZPX9-if00", &device);
+    let config = write_config(dev.path(), &[("mk3", s(&link))]);
+    let mut toml = std::fs::read_to_string(&config).unwrap();
+    toml += "[http]\nlisten = \"127.0.0.1:8080\"\napi_key_file = \"unreadable.key\"\n\
+             [store]\npostgres = \"host=/run/postgresql dbname=crispen\"\n\
+             password_file = \"unreadable.pw\"\n";
+    std::fs::write(&config, toml).unwrap();
+
+    let out = crispen(&["ports", "--dev", s(dev.path()), "--config", s(&config)]);
+    let (stdout, stderr) = (text(&out.stdout), text(&out.stderr));
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.contains("printer  mk3"), "{stdout}");
+
+    // No daemon runs: the answer is about the socket, never about a secret.
+    let out = crispen(&["status", "--config", s(&config)]);
+    let stderr = text(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains(&format!(
+            "cannot reach the daemon at {}",
+            dev.path().join("spool/crispen.sock").display()
+        )),
+        "{stderr}"
+    );
+
+    // The daemon itself reads them, and says which it cannot.
+    let out = crispen(&["run", "--check", "--config", s(&config)]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out.stderr).contains("[store]: key `password_file`"),
+        "{}",
+        text(&out.stderr)
+    );
+}
+
 #[test]
 fn run_check_refuses_two_printers_on_one_device() {
     let (_master, device) = silent_pty();

@@ -4,7 +4,7 @@
 //! answer.
 
 use anyhow::{bail, Context};
-use crispen::daemon::config::{Config, PrinterConfig, PrinterPort};
+use crispen::daemon::config::{Checked, PrinterConfig, PrinterPort};
 use crispen::ports::{self, probe, SerialDevice};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -51,15 +51,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 
 /// The config to match printers against: the one given (an error if it is bad), else the
 /// installed one if there is one (a bad one is only a warning: the listing still helps).
-fn load_config(path: Option<&Path>) -> anyhow::Result<Option<Config>> {
+/// Checked only, never resolved: the listing needs the printers, not the daemon's key and
+/// password files, which the operator running it may not be allowed to read.
+fn load_config(path: Option<&Path>) -> anyhow::Result<Option<Checked>> {
     if let Some(path) = path {
-        return Ok(Some(Config::load(path)?));
+        return Ok(Some(Checked::load(path)?));
     }
     let default = Path::new(DEFAULT_CONFIG);
     if !default.exists() {
         return Ok(None);
     }
-    match Config::load(default) {
+    match Checked::load(default) {
         Ok(config) => Ok(Some(config)),
         Err(e) => {
             eprintln!("warning: printers not shown: {e}");
@@ -68,19 +70,19 @@ fn load_config(path: Option<&Path>) -> anyhow::Result<Option<Config>> {
     }
 }
 
-fn serial_printers(config: Option<&Config>) -> impl Iterator<Item = (&PrinterConfig, &Path)> {
+fn serial_printers(config: Option<&Checked>) -> impl Iterator<Item = (&PrinterConfig, &Path)> {
     config
         .into_iter()
-        .flat_map(|c| &c.printers)
+        .flat_map(|c| c.printers())
         .filter_map(|p| match &p.port {
             PrinterPort::Serial(path) => Some((p, path.as_path())),
             PrinterPort::Simulated { .. } => None,
         })
 }
 
-fn list(args: &Args, config: Option<&Config>) -> anyhow::Result<ExitCode> {
+fn list(args: &Args, config: Option<&Checked>) -> anyhow::Result<ExitCode> {
     let devices = ports::list(&args.dev, args.all)?;
-    let source = config.map(|c| c.source.display().to_string());
+    let source = config.map(|c| c.source().display().to_string());
     let mut out = String::new();
     if devices.is_empty() {
         out += "No USB serial devices found (is the printer plugged in and switched on?).\n";
@@ -152,7 +154,7 @@ fn uses(port: &Path, device: &SerialDevice) -> bool {
     ports::same_device(port, &device.device) || device.by_id.iter().any(|l| l == port)
 }
 
-fn probe_port(port: &Path, args: &Args, config: Option<&Config>) -> anyhow::Result<ExitCode> {
+fn probe_port(port: &Path, args: &Args, config: Option<&Checked>) -> anyhow::Result<ExitCode> {
     if !(args.timeout.is_finite() && (1.0..=600.0).contains(&args.timeout)) {
         bail!("--timeout {} must be from 1 to 600 seconds", args.timeout);
     }
@@ -166,7 +168,7 @@ fn probe_port(port: &Path, args: &Args, config: Option<&Config>) -> anyhow::Resu
             "probing {} at {baud} baud (the port of printer {:?} in {})",
             port.display(),
             printer.name,
-            config.source.display()
+            config.source().display()
         ),
         _ => eprintln!("probing {} at {baud} baud", port.display()),
     }

@@ -86,7 +86,10 @@ fn parse_up(s: &str) -> Result<UpAxis, String> {
 /// The machine `--machine` names: one of the config's, or a built-in one.
 fn find_machine(args: &Args) -> anyhow::Result<Machine> {
     let defined = match &args.config {
-        Some(path) => crispen::daemon::config::Config::load(path)?.machines,
+        // Checked only: the machines need none of the daemon's key and password files.
+        Some(path) => crispen::daemon::config::Checked::load(path)?
+            .machines()
+            .to_vec(),
         None => Vec::new(),
     };
     let machine = defined

@@ -1,8 +1,14 @@
-//! The daemon's configuration: a TOML file read in two stages. First the text is parsed into
-//! `Raw*` structs that mirror the file (unknown keys rejected), then [`Config::from_raw`]
-//! checks every value and converts it into the types the daemon uses. Every error names the
-//! file, the section and the key, so an operator can fix the file without reading code; a
-//! wrong file is always an error, never silently replaced by defaults.
+//! The daemon's configuration: a TOML file read in stages. First the text is parsed into
+//! `Raw*` structs that mirror the file (unknown keys rejected); then every value is checked
+//! and converted into the types the daemon uses ([`Checked`]), with nothing read but the
+//! file; last, [`Checked::resolve`] reads and checks what the values name on this machine
+//! (the API key and database password files, the printers' devices) into a [`Config`].
+//! The daemon takes all of them; a command takes only what it needs (`crispen status`
+//! the socket, from the first stage; `crispen ports` and `crispen slice` the checked
+//! printers and machines), so an operator need not be able to read the daemon's secrets.
+//! Every error names the file, the section and the key, so an operator can fix the file
+//! without reading code; a wrong file is always an error, never silently replaced by
+//! defaults.
 
 pub mod ports;
 
@@ -312,54 +318,158 @@ pub struct FolderConfig {
     pub settings: crate::slice::SliceSettings,
 }
 
-impl Config {
-    /// Reads and checks a config file.
-    pub fn load(path: &Path) -> Result<Config, ConfigError> {
-        let file = std::fs::File::open(path).map_err(|source| ConfigError::Read {
-            file: path.to_path_buf(),
-            source,
-        })?;
-        Config::from_reader(file, path)
+/// The second stage: every value of the file checked and converted, with nothing read but
+/// the file itself (no key or password file, no device). It is all that the commands which
+/// only read the machines or the printers need, and an operator in the daemon's group may
+/// not read its secrets; the daemon goes on to [`Checked::resolve`].
+#[derive(Debug, Clone)]
+pub struct Checked {
+    /// Everything but `[http]`, whose key is read in the third stage.
+    config: Config,
+    http: Option<CheckedHttp>,
+}
+
+/// `[http]` checked, its key file not yet read.
+#[derive(Debug, Clone)]
+struct CheckedHttp {
+    listen: std::net::SocketAddr,
+    api_key_file: PathBuf,
+    read_only_without_key: bool,
+    upload_max_bytes: u64,
+}
+
+impl Checked {
+    /// Reads a config file (at most [`MAX_CONFIG_BYTES`]) and checks it.
+    pub fn load(path: &Path) -> Result<Checked, ConfigError> {
+        Checked::parse(&read_text(path)?, path)
     }
 
-    /// Reads and checks a config from any reader; `path` names it in errors and anchors
-    /// relative paths (they are relative to the file's directory).
-    pub fn from_reader(mut reader: impl Read, path: &Path) -> Result<Config, ConfigError> {
-        let mut text = String::new();
-        reader
-            .read_to_string(&mut text)
-            .map_err(|source| ConfigError::Read {
-                file: path.to_path_buf(),
-                source,
-            })?;
-        Config::parse(&text, path)
-    }
-
-    /// Parses and checks config text.
-    pub fn parse(text: &str, path: &Path) -> Result<Config, ConfigError> {
+    /// Parses and checks config text; `path` names it in errors and anchors relative paths
+    /// (they are relative to the file's directory).
+    pub fn parse(text: &str, path: &Path) -> Result<Checked, ConfigError> {
         let (raw, base) = Config::parse_raw(text, path)?;
-        Config::from_raw(raw, path, &base)
+        Config::check(raw, path, &base)
+    }
+
+    /// The file the config came from.
+    pub fn source(&self) -> &Path {
+        &self.config.source
+    }
+
+    /// The control socket.
+    pub fn socket(&self) -> &Path {
+        &self.config.socket
+    }
+
+    /// The `[[printer]]` tables, checked.
+    pub fn printers(&self) -> &[PrinterConfig] {
+        &self.config.printers
+    }
+
+    /// The `[[machine]]` tables, checked (the built-in machines are not listed).
+    pub fn machines(&self) -> &[crate::machine::Machine] {
+        &self.config.machines
+    }
+
+    /// The third stage: what the checked values name on this machine, read and checked:
+    /// the API key file (its key is what `[http]` runs with), the database password file
+    /// (as the store will read it), and the printers' devices (two printers on one device
+    /// are refused). Warnings (a secret others can read) are added to the config's.
+    pub fn resolve(self) -> Result<Config, ConfigError> {
+        let Checked { mut config, http } = self;
+        let file = config.source.clone();
+        let invalid = |section: &str, key: &str, message: String| ConfigError::Invalid {
+            file: file.clone(),
+            section: section.into(),
+            key: key.into(),
+            message,
+        };
+        if let Some(path) = config
+            .store
+            .as_ref()
+            .and_then(|s| s.postgres.password_file.as_ref())
+        {
+            let (_, warning) =
+                read_secret(path).map_err(|m| invalid("[store]", "password_file", m))?;
+            if let Some(w) = warning {
+                config
+                    .warnings
+                    .push(format!("[store] key `password_file`: {w}"));
+            }
+        }
+        ports::check_unique(&config.printers, &file)?;
+        config.http = match http {
+            None => None,
+            Some(h) => {
+                let (api_key, warning) = read_api_key_warning(&h.api_key_file)
+                    .map_err(|m| invalid("[http]", "api_key_file", m))?;
+                if let Some(w) = warning {
+                    config
+                        .warnings
+                        .push(format!("[http] key `api_key_file`: {w}"));
+                }
+                Some(HttpConfig {
+                    listen: h.listen,
+                    api_key,
+                    read_only_without_key: h.read_only_without_key,
+                    upload_max_bytes: h.upload_max_bytes,
+                    any_port_if_taken: false,
+                })
+            }
+        };
+        Ok(config)
+    }
+}
+
+/// The text of a config file, refused beyond [`MAX_CONFIG_BYTES`] (a config is a page,
+/// not a stream) or when it is not UTF-8.
+fn read_text(path: &Path) -> Result<String, ConfigError> {
+    let read = |source| ConfigError::Read {
+        file: path.to_path_buf(),
+        source,
+    };
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_CONFIG_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(read)?;
+    if bytes.len() as u64 > MAX_CONFIG_BYTES {
+        return Err(read(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!(
+                "larger than {} MiB: not a crispen config",
+                MAX_CONFIG_BYTES >> 20
+            ),
+        )));
+    }
+    String::from_utf8(bytes).map_err(|_| {
+        read(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            "not UTF-8 text",
+        ))
+    })
+}
+
+impl Config {
+    /// Reads a config file and takes it through all three stages.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        Checked::load(path)?.resolve()
+    }
+
+    /// Parses config text and takes it through all three stages.
+    pub fn parse(text: &str, path: &Path) -> Result<Config, ConfigError> {
+        Checked::parse(text, path)?.resolve()
     }
 
     /// The control socket a config file names, from the file's first stage alone: what
-    /// the one-shot commands (`crispen status`, `clear`, ...) need, without reading the
-    /// daemon's secrets (its key and password files are the daemon's user's alone, and an
-    /// operator in its group runs these commands).
+    /// the one-shot commands (`crispen status`, `clear`, ...) need to reach the daemon,
+    /// without reading its secrets (its key and password files are the daemon's user's
+    /// alone, and an operator in its group runs these commands), and without refusing a
+    /// file the daemon's other settings were since edited wrongly in.
     pub fn socket_of(path: &Path) -> Result<PathBuf, ConfigError> {
-        let read = |source| ConfigError::Read {
-            file: path.to_path_buf(),
-            source,
-        };
-        let mut text = String::new();
-        std::fs::File::open(path)
-            .and_then(|f| f.take(MAX_CONFIG_BYTES).read_to_string(&mut text))
-            .map_err(read)?;
+        let text = read_text(path)?;
         let (raw, base) = Config::parse_raw(&text, path)?;
-        let spool_dir = base.join(&raw.spool.dir);
-        Ok(match raw.control {
-            Some(c) if !c.socket.as_os_str().is_empty() => base.join(c.socket),
-            _ => spool_dir.join("crispen.sock"),
-        })
+        let (_, socket) = spool_and_socket(&raw, path, &base)?;
+        Ok(socket)
     }
 
     /// The first stage: the text as the file's shape, and the directory that anchors its
@@ -428,7 +538,8 @@ printers = ["demo"]
         self.folders.iter().find(|f| f.path == path)
     }
 
-    fn from_raw(raw: RawConfig, file: &Path, base: &Path) -> Result<Config, ConfigError> {
+    /// The second stage (see [`Checked`]).
+    fn check(raw: RawConfig, file: &Path, base: &Path) -> Result<Checked, ConfigError> {
         let invalid = |section: String, key: &str, message: String| ConfigError::Invalid {
             file: file.to_path_buf(),
             section,
@@ -443,22 +554,7 @@ printers = ["demo"]
             }
         };
 
-        let mut warnings = Vec::new();
-        let spool_dir = anchor(&raw.spool.dir);
-        if raw.spool.dir.as_os_str().is_empty() {
-            return Err(invalid("[spool]".into(), "dir", "must not be empty".into()));
-        }
-        let socket = match &raw.control {
-            Some(c) if c.socket.as_os_str().is_empty() => {
-                return Err(invalid(
-                    "[control]".into(),
-                    "socket",
-                    "must not be empty".into(),
-                ))
-            }
-            Some(c) => anchor(&c.socket),
-            None => spool_dir.join("crispen.sock"),
-        };
+        let (spool_dir, socket) = spool_and_socket(&raw, file, base)?;
 
         let farm = {
             let raw_farm = raw.farm.unwrap_or(RawFarm {
@@ -509,15 +605,11 @@ printers = ["demo"]
                         },
                     )
                 })?;
-                if let Some(p) = &s.password_file {
-                    if p.as_os_str().is_empty() {
-                        return Err(invalid("password_file", "must not be empty".into()));
-                    }
-                    let (_, warning) =
-                        read_secret(&anchor(p)).map_err(|m| invalid("password_file", m))?;
-                    if let Some(w) = warning {
-                        warnings.push(format!("[store] key `password_file`: {w}"));
-                    }
+                if s.password_file
+                    .as_ref()
+                    .is_some_and(|p| p.as_os_str().is_empty())
+                {
+                    return Err(invalid("password_file", "must not be empty".into()));
                 }
                 Some(StoreConfig {
                     postgres: PgSettings {
@@ -701,8 +793,6 @@ printers = ["demo"]
             });
         }
 
-        ports::check_unique(&printers, file)?;
-
         let mut folders: Vec<FolderConfig> = Vec::new();
         for (i, f) in raw.folders.into_iter().enumerate() {
             let section = format!(
@@ -800,25 +890,53 @@ printers = ["demo"]
 
         let http = match raw.http {
             None => None,
-            Some(h) => Some(
-                check_http(h, &anchor, &mut warnings)
-                    .map_err(|(key, m)| invalid("[http]".into(), key, m))?,
-            ),
+            Some(h) => {
+                Some(check_http(h, &anchor).map_err(|(key, m)| invalid("[http]".into(), key, m))?)
+            }
         };
 
-        Ok(Config {
-            source: file.to_path_buf(),
-            spool_dir,
-            socket,
-            farm,
-            printers,
-            machines,
-            folders,
+        Ok(Checked {
+            config: Config {
+                source: file.to_path_buf(),
+                spool_dir,
+                socket,
+                farm,
+                printers,
+                machines,
+                folders,
+                http: None,
+                store,
+                warnings: Vec::new(),
+            },
             http,
-            store,
-            warnings,
         })
     }
+}
+
+/// `[spool] dir` and the control socket (`[control] socket`, else `crispen.sock` in the
+/// spool), made absolute: the one rule for the daemon and for the commands that reach it.
+fn spool_and_socket(
+    raw: &RawConfig,
+    file: &Path,
+    base: &Path,
+) -> Result<(PathBuf, PathBuf), ConfigError> {
+    let invalid = |section: &str, key: &str| ConfigError::Invalid {
+        file: file.to_path_buf(),
+        section: section.into(),
+        key: key.into(),
+        message: "must not be empty".into(),
+    };
+    if raw.spool.dir.as_os_str().is_empty() {
+        return Err(invalid("[spool]", "dir"));
+    }
+    // `join` keeps an absolute path as it is.
+    let spool_dir = base.join(&raw.spool.dir);
+    let socket = match &raw.control {
+        Some(c) if c.socket.as_os_str().is_empty() => return Err(invalid("[control]", "socket")),
+        Some(c) => base.join(&c.socket),
+        None => spool_dir.join("crispen.sock"),
+    };
+    Ok((spool_dir, socket))
 }
 
 /// A host name as `[farm] host` takes it: it names the host in the farm database, the
@@ -866,13 +984,12 @@ fn this_hostname() -> String {
     }
 }
 
-/// Checks `[http]`; errors name the key. The key file is read here, so a missing or weak
-/// key stops the daemon at startup rather than leaving the port open.
+/// Checks `[http]`; errors name the key. Its key file is read by [`Checked::resolve`],
+/// so a missing or weak key stops the daemon at startup rather than leaving the port open.
 fn check_http(
     h: RawHttp,
     anchor: &dyn Fn(&Path) -> PathBuf,
-    warnings: &mut Vec<String>,
-) -> Result<HttpConfig, (&'static str, String)> {
+) -> Result<CheckedHttp, (&'static str, String)> {
     let listen: std::net::SocketAddr = h.listen.parse().map_err(|_| {
         (
             "listen",
@@ -893,11 +1010,6 @@ fn check_http(
             ),
         ));
     }
-    let (api_key, warning) =
-        read_api_key_warning(&anchor(&h.api_key_file)).map_err(|m| ("api_key_file", m))?;
-    if let Some(w) = warning {
-        warnings.push(format!("[http] key `api_key_file`: {w}"));
-    }
     let upload_max_mb = h.upload_max_mb.unwrap_or(512);
     if !UPLOAD_MAX_MB.contains(&upload_max_mb) {
         return Err((
@@ -909,12 +1021,11 @@ fn check_http(
             ),
         ));
     }
-    Ok(HttpConfig {
+    Ok(CheckedHttp {
         listen,
-        api_key,
+        api_key_file: anchor(&h.api_key_file),
         read_only_without_key: h.read_only_without_key.unwrap_or(false),
         upload_max_bytes: upload_max_mb as u64 * 1024 * 1024,
-        any_port_if_taken: false,
     })
 }
 
@@ -983,7 +1094,7 @@ fn read_api_key_warning(key_file: &Path) -> Result<(ApiKey, Option<String>), Str
     Ok((ApiKey(key.to_string()), warning))
 }
 
-/// The largest config file [`Config::socket_of`] reads.
+/// The largest config file read.
 const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
 /// At most this many printers (and so heating permits) in one farm.
@@ -1304,6 +1415,66 @@ slicer = "cura"
             Config::socket_of(&file).unwrap(),
             base.join("spool").join("crispen.sock")
         );
+        // The daemon's rule, not a quiet default: an empty socket is an error for both.
+        std::fs::write(
+            &file,
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"\"\n",
+        )
+        .unwrap();
+        let e = Config::socket_of(&file).unwrap_err().to_string();
+        assert!(
+            e.contains("[control]: key `socket`: must not be empty"),
+            "{e}"
+        );
+    }
+
+    /// Checking reads nothing but the file: a config whose key and password files cannot
+    /// be read (here: are not there) is checked whole, with its printers and machines;
+    /// only the resolution reads them, and refuses each by its section and key.
+    #[test]
+    fn checking_reads_no_secret_and_resolving_reads_each() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("crispen.toml");
+        let text = format!(
+            "{GOOD}\n[http]\nlisten = \"127.0.0.1:8080\"\napi_key_file = \"api.key\"\n\
+             [store]\npostgres = \"host=/run/postgresql dbname=crispen\"\npassword_file = \"pw\"\n"
+        );
+        std::fs::write(&file, &text).unwrap();
+        let checked = Checked::load(&file).unwrap();
+        assert_eq!(checked.printers().len(), 2);
+        assert_eq!(checked.socket(), Path::new("/run/crispen/crispen.sock"));
+        assert_eq!(checked.source(), file);
+        let e = checked.clone().resolve().unwrap_err().to_string();
+        assert!(e.contains("[store]: key `password_file`"), "{e}");
+        std::fs::write(dir.path().join("pw"), "secret\n").unwrap();
+        let e = checked.clone().resolve().unwrap_err().to_string();
+        assert!(e.contains("[http]: key `api_key_file`"), "{e}");
+        assert!(Config::load(&file).is_err());
+        let key = "k".repeat(MIN_API_KEY_CHARS);
+        std::fs::write(dir.path().join("api.key"), &key).unwrap();
+        let config = checked.resolve().unwrap();
+        assert_eq!(config.http.unwrap().api_key, ApiKey(key));
+        // Checking still refuses a wrong value, before any secret is looked at.
+        let wrong = text.replace("listen = \"127.0.0.1:8080\"", "listen = \"127.0.0.1:80\"");
+        std::fs::remove_file(dir.path().join("api.key")).unwrap();
+        let e = Checked::parse(&wrong, &file).unwrap_err().to_string();
+        assert!(e.contains("[http]: key `listen`"), "{e}");
+    }
+
+    /// A config file is a page: a huge one is refused, not read whole or cut.
+    #[test]
+    fn a_huge_config_file_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("crispen.toml");
+        let mut text = GOOD.to_string();
+        text += &"# padding\n".repeat((MAX_CONFIG_BYTES as usize / 10) + 1);
+        std::fs::write(&file, &text).unwrap();
+        for e in [
+            Checked::load(&file).unwrap_err(),
+            Config::socket_of(&file).unwrap_err(),
+        ] {
+            assert!(e.to_string().contains("larger than 1 MiB"), "{e}");
+        }
     }
 
     /// Numbers in errors stay short whatever was written.

@@ -6,6 +6,10 @@
 //! The built-in machines are data ([`BUILTIN`]), compiled into the binary together with
 //! the profiles and start/end code they use; a farm defines others with `[[machine]]`
 //! tables ([`MachineSpec`], checked by [`MachineSpec::check`]).
+//!
+//! A machine names its firmware flavour ([`Firmware`]), which is the host protocol's to
+//! define: this module builds on `marlin`, never the other way round, and `slice` builds
+//! on this one.
 
 use crate::marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};

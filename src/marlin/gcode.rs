@@ -448,6 +448,18 @@ fn has_unquoted_backslash(code: &str) -> bool {
 mod tests {
     use super::*;
 
+    /// The one list of heat waits: by the command's first word, in any case, never by a
+    /// prefix of another code.
+    #[test]
+    fn heat_waits_are_known_by_their_code() {
+        for c in ["M109 S210", "m190 S60", "M116", "M109 R200 T0"] {
+            assert!(is_heat_wait(c), "{c}");
+        }
+        for c in ["M104 S210", "M140 S60", "M1090", "G1 X1 ; M109", ""] {
+            assert!(!is_heat_wait(c), "{c}");
+        }
+    }
+
     fn parse(text: &[u8]) -> Result<GcodeProgram, GcodeError> {
         GcodeProgram::read(text, "job.gcode", Firmware::Marlin2)
     }

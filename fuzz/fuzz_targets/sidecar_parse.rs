@@ -2,7 +2,7 @@
 //! their bounds; never a panic.
 #![no_main]
 
-use crispen::daemon::prepare::parse_sidecar;
+use crispen::daemon::job::parse_sidecar;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -213,8 +213,7 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
     let held_on_disk = match sidecar_file {
         None => false,
         Some(path) => {
-            let read =
-                tokio::task::spawn_blocking(move || super::prepare::read_sidecar(&path)).await;
+            let read = tokio::task::spawn_blocking(move || super::job::read_sidecar(&path)).await;
             matches!(read, Ok(Ok(Some(s))) if s.hold == Some(true))
         }
     };

@@ -1,9 +1,11 @@
 //! A job and its life: [`JobState`] and its one table of legal changes
-//! ([`JobState::can_go_to`]), the record every store keeps of a job ([`Job`]), a printer's
-//! bed gate, and the errors of a job store. Where jobs are kept is the business of the
-//! stores (`daemon::store`), which build on this module.
+//! ([`JobState::can_go_to`]), the record every store keeps of a job ([`Job`]), its
+//! [`Sidecar`] and how one is read (by the preparation and by the operator's `release`), a
+//! printer's bed gate, and the errors of a job store. Where jobs are kept is the business
+//! of the stores (`daemon::store`), which build on this module.
 use serde::{Deserialize, Serialize};
-use std::path::PathBuf;
+use std::io::Read;
+use std::path::{Path, PathBuf};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 #[derive(Debug, thiserror::Error)]
@@ -143,6 +145,61 @@ pub struct Sidecar {
     /// `hold = true`: prepare the job, but let no printer take it until the operator
     /// releases it (`crispen release JOB`); what an upload with `print=false` asks for.
     pub hold: Option<bool>,
+}
+
+/// Reads a sidecar file (`model.stl.toml`); unknown keys are an error.
+pub fn read_sidecar(path: &Path) -> Result<Option<Sidecar>, String> {
+    let file = match std::fs::File::open(path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(format!("sidecar {}: cannot read: {e}", path.display())),
+    };
+    parse_sidecar(file, path).map(Some)
+}
+
+/// Copies of one model a sidecar may ask for.
+pub const MAX_COPIES: u32 = 100;
+
+/// A sidecar holds a handful of short keys; anything bigger is not one.
+pub const MAX_SIDECAR_BYTES: u64 = 16 * 1024;
+
+/// Parses a sidecar from any reader; `path` names it in errors.
+pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> {
+    let mut text = String::new();
+    reader
+        .take(MAX_SIDECAR_BYTES + 1)
+        .read_to_string(&mut text)
+        .map_err(|e| format!("sidecar {}: cannot read: {e}", path.display()))?;
+    if text.len() as u64 > MAX_SIDECAR_BYTES {
+        return Err(format!(
+            "sidecar {}: larger than {MAX_SIDECAR_BYTES} bytes; a sidecar holds a few keys",
+            path.display()
+        ));
+    }
+    let sidecar: Sidecar = toml::from_str(&text).map_err(|e| {
+        format!(
+            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer, hold)",
+            path.display(),
+            e.message().trim()
+        )
+    })?;
+    if let Some(h) = sidecar.height_mm {
+        crate::daemon::config::check_height(h)
+            .map_err(|m| format!("sidecar {}: key `height_mm`: {m}", path.display()))?;
+    }
+    if let Some(n) = sidecar.copies {
+        if !(1..=MAX_COPIES).contains(&n) {
+            return Err(format!(
+                "sidecar {}: key `copies`: must be from 1 to {MAX_COPIES}, got {n}",
+                path.display()
+            ));
+        }
+    }
+    if let Some(s) = &sidecar.strength {
+        crate::daemon::config::parse_strength(s)
+            .map_err(|m| format!("sidecar {}: key `strength`: {m}", path.display()))?;
+    }
+    Ok(sidecar)
 }
 
 /// One job as persisted in `job.json`.

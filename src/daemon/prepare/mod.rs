@@ -17,6 +17,8 @@ pub mod queue;
 pub mod steps;
 
 use super::config::{parse_strength, FolderConfig};
+#[cfg(test)]
+use super::job::parse_sidecar;
 use super::job::{ForMachine, Sidecar};
 use crate::enhance::Strength;
 use crate::machine::Machine;
@@ -24,7 +26,6 @@ use crate::mesh::place::UpAxis;
 use crate::slice::{SliceReport, SlicerKind};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt};
@@ -232,61 +233,6 @@ fn push_tail(tail: &mut VecDeque<String>, line: String) {
         tail.pop_front();
     }
     tail.push_back(line.chars().take(400).collect());
-}
-
-/// Reads a sidecar file (`model.stl.toml`); unknown keys are an error.
-pub fn read_sidecar(path: &Path) -> Result<Option<Sidecar>, String> {
-    let file = match std::fs::File::open(path) {
-        Ok(f) => f,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(format!("sidecar {}: cannot read: {e}", path.display())),
-    };
-    parse_sidecar(file, path).map(Some)
-}
-
-/// Copies of one model a sidecar may ask for.
-pub const MAX_COPIES: u32 = 100;
-
-/// A sidecar holds a handful of short keys; anything bigger is not one.
-pub const MAX_SIDECAR_BYTES: u64 = 16 * 1024;
-
-/// Parses a sidecar from any reader; `path` names it in errors.
-pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> {
-    let mut text = String::new();
-    reader
-        .take(MAX_SIDECAR_BYTES + 1)
-        .read_to_string(&mut text)
-        .map_err(|e| format!("sidecar {}: cannot read: {e}", path.display()))?;
-    if text.len() as u64 > MAX_SIDECAR_BYTES {
-        return Err(format!(
-            "sidecar {}: larger than {MAX_SIDECAR_BYTES} bytes; a sidecar holds a few keys",
-            path.display()
-        ));
-    }
-    let sidecar: Sidecar = toml::from_str(&text).map_err(|e| {
-        format!(
-            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer, hold)",
-            path.display(),
-            e.message().trim()
-        )
-    })?;
-    if let Some(h) = sidecar.height_mm {
-        super::config::check_height(h)
-            .map_err(|m| format!("sidecar {}: key `height_mm`: {m}", path.display()))?;
-    }
-    if let Some(n) = sidecar.copies {
-        if !(1..=MAX_COPIES).contains(&n) {
-            return Err(format!(
-                "sidecar {}: key `copies`: must be from 1 to {MAX_COPIES}, got {n}",
-                path.display()
-            ));
-        }
-    }
-    if let Some(s) = &sidecar.strength {
-        parse_strength(s)
-            .map_err(|m| format!("sidecar {}: key `strength`: {m}", path.display()))?;
-    }
-    Ok(sidecar)
 }
 
 /// Combines a folder's settings with a sidecar's overrides into a task, for the distinct

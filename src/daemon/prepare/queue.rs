@@ -161,7 +161,7 @@ fn resolve(
             job.folder.display()
         )
     })?;
-    let sidecar = super::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
+    let sidecar = crate::daemon::job::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
     let task = super::resolve_task(
         id,
         &dir,

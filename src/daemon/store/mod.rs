@@ -120,11 +120,11 @@ pub struct RetiredJob {
 }
 
 /// What a change of a retired job meets: the history is not the queue.
-pub fn retired_refusal(id: &str, state: JobState) -> StoreError {
+pub fn retired_refusal(id: &str, state: JobState, action: &'static str) -> StoreError {
     StoreError::WrongState {
         id: id.to_string(),
         state,
-        action: "retry",
+        action,
         allowed: "still in the queue (it has moved to the history, `crispen history`; drop its model into a hot folder again to print it again)",
     }
 }
@@ -204,9 +204,10 @@ pub const PICTURES: [&str; 4] = [
 ];
 
 impl Live {
-    /// Looks at the job's pictures, unless `before` (the job as last seen) is the same
-    /// job in the same state: pictures are made while a job prepares, so a job whose
-    /// history has not moved has the ones it had.
+    /// Looks at the job's pictures, unless `before` (the job as last seen, when the whole
+    /// snapshot is rebuilt after other hosts' changes) is the same job in the same state:
+    /// pictures are made while a job prepares, so a job whose history has not moved has
+    /// the ones it had.
     fn of(job: Job, dir: &Path, before: Option<&Live>) -> Live {
         let pictures = match before {
             Some(b) if b.job.history.len() == job.history.len() && b.job.state == job.state => {
@@ -291,7 +292,8 @@ impl Snapshot {
         let Some(job) = store.job(id) else { return };
         let dir = self.job_dir(id);
         match self.index.get(id) {
-            Some(&i) => self.jobs[i] = Arc::new(Live::of(job, &dir, Some(&self.jobs[i]))),
+            // Looked at again at every change: a few stats per change, none per glance.
+            Some(&i) => self.jobs[i] = Arc::new(Live::of(job, &dir, None)),
             // New jobs have the highest sequence number: appending keeps the order.
             None => {
                 Arc::make_mut(&mut self.index).insert(job.id.clone(), self.jobs.len());

@@ -460,7 +460,7 @@ impl Spool {
     /// Puts a failed, cancelled or interrupted job back in the queue.
     pub fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
         if let Some(retired) = self.retired_job(id)? {
-            return Err(super::retired_refusal(id, retired.record.state));
+            return Err(super::retired_refusal(id, retired.record.state, "retry"));
         }
         let job = self
             .jobs

@@ -680,7 +680,7 @@ impl PgStore {
         let mut job = job_of_row(&row)?;
         if row.get::<_, Option<f64>>(RETIRED_COLUMN).is_some() {
             // The history is not the queue: a host that had not yet seen it retired.
-            return Err(super::retired_refusal(id, job.state).into());
+            return Err(super::retired_refusal(id, job.state, "a change").into());
         }
         let holder: Option<String> = row.get(JOB_COLUMN_COUNT);
         let mine = holder.as_deref() == Some(self.host.as_str());

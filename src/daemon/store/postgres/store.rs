@@ -325,6 +325,7 @@ impl JobStore for PgJobStore {
                 return Err(crate::daemon::store::retired_refusal(
                     id,
                     retired.record.state,
+                    "retry",
                 ));
             }
         }

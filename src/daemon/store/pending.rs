@@ -33,7 +33,7 @@ pub struct Pending {
 #[derive(Debug)]
 pub enum Attempt {
     /// Written; with the store's record of the job afterwards, when it has one.
-    Written(Option<Job>),
+    Written(Option<Box<Job>>),
     /// Not this one, now; the others may still be written (a job's own directory).
     Failed,
     /// The store cannot be reached: the rest is not tried either, rather than each
@@ -109,7 +109,7 @@ impl Pending {
             match attempt {
                 Attempt::Written(record) => {
                     tracing::info!(job = %id, "job outcome written after all");
-                    done.jobs.extend(record);
+                    done.jobs.extend(record.map(|j| *j));
                 }
                 Attempt::Failed => {
                     self.outcomes.insert(id, (from, job));
@@ -181,7 +181,7 @@ mod tests {
                 assert_eq!(from, JobState::Printing);
                 tried.push(id.to_string());
                 match &id[..4] {
-                    "0001" => Attempt::Written(Some(job(1))),
+                    "0001" => Attempt::Written(Some(Box::new(job(1)))),
                     "0002" => Attempt::Failed,
                     "0003" => Attempt::Dropped,
                     _ => Attempt::Unreachable,

@@ -1173,7 +1173,7 @@ mod tests {
         assert_eq!(moved, done[2..].to_vec());
         assert_eq!(
             store.jobs().map(|j| j.id.clone()).collect::<Vec<_>>(),
-            [active.clone()]
+            std::slice::from_ref(&active)
         );
 
         drop(store);

@@ -1043,7 +1043,7 @@ impl PgStore {
             rows.iter().map(|r| (r.get(0), r.get(1))).collect();
         let page: Vec<String> = rows.iter().map(|r| r.get(0)).collect();
         let mut jobs = load_jobs(&**client, Only::Ids(&page)).await?;
-        jobs.sort_by(|a, b| b.seq.cmp(&a.seq));
+        jobs.sort_by_key(|j| std::cmp::Reverse(j.seq));
         Ok(jobs
             .into_iter()
             .map(|j| {

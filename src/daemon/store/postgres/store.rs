@@ -377,7 +377,7 @@ impl JobStore for PgJobStore {
         let db = self.db.clone();
         let written = pending.write(
             |_, from, job| match self.block(db.write_outcome(job, from)) {
-                Ok(written) => Attempt::Written(Some(written)),
+                Ok(written) => Attempt::Written(Some(Box::new(written))),
                 Err(e) if e.is_outage() => Attempt::Unreachable,
                 Err(e) => {
                     tracing::warn!(job = %job.id, error = %e, "the farm moved the job on during the outage");

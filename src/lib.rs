@@ -12,12 +12,14 @@
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
 //! - [`http`]: the HTTP API, web dashboard, metrics and OctoPrint-compatible upload.
+//! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
 //!
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
 //! not depend on clap, anyhow or indicatif.
 
 pub mod daemon;
 pub mod enhance;
+pub mod fsutil;
 pub mod http;
 pub mod machine;
 pub mod marlin;

@@ -9,7 +9,7 @@ mod common;
 use common::postgres::PgServer;
 use crispen::daemon::config::PgSettings;
 use crispen::daemon::job::{JobState, StoreError};
-use crispen::daemon::store::postgres::{PgError, PgStore};
+use crispen::daemon::store::postgres::{FileBody, PgError, PgStore};
 use std::collections::HashSet;
 use std::time::Duration;
 
@@ -38,7 +38,7 @@ async fn admit_n(store: &PgStore, n: usize, printers: &[String]) -> Vec<String> 
                 &format!("part{i}.stl"),
                 "/srv/in",
                 printers,
-                &[("model", b"solid x")],
+                &[("model", FileBody::Bytes(b"solid x"))],
             )
             .await
             .unwrap();
@@ -465,4 +465,112 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         ]
     );
     assert_eq!(seen.gate("p1"), gate);
+}
+
+/// Retention in the farm database, through two hosts' stores: finished jobs beyond the
+/// live count leave both hosts' snapshots (rows marked retired, never deleted); the
+/// history pages through them from any host, a third host opening later finds them there
+/// and not live, and no host retries one. On the way: a job prepared before machines
+/// existed (its G-code `<file>.gcode`) is retried straight to ready, as the spool does
+/// (the database store sent it to be prepared again), and its files go to and from the
+/// database streamed.
+#[test]
+fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
+    use crispen::daemon::store::postgres::store::PgJobStore;
+    use crispen::daemon::store::Retention;
+    let pg = PgServer::start();
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let rt = runtime();
+    let retention = Retention {
+        live_for: Duration::from_secs(86_400),
+        live_jobs: 1,
+    };
+    let open = |host: &'static str| {
+        let (settings, dir) = (settings(&pg), tmp.path().join(host));
+        async move {
+            let db = PgStore::connect(&settings, host, LEASE).await.unwrap();
+            let store = PgJobStore::open(db, &dir).await.unwrap();
+            crispen::daemon::store::spawn_with(store, retention)
+        }
+    };
+    let (a, b) = rt.block_on(async { (open("rack-1").await, open("rack-2").await) });
+    let printers = vec!["p1".to_string()];
+    let mut ids = Vec::new();
+    for i in 0..3 {
+        let model = hot.join(format!("part{i}.stl"));
+        std::fs::write(&model, format!("solid {i}\nendsolid {i}\n")).unwrap();
+        ids.push(rt.block_on(a.admit(&model, &hot, &printers)).unwrap().id);
+    }
+    for id in &ids[1..] {
+        rt.block_on(a.transition(id, JobState::Cancelled, None))
+            .unwrap();
+    }
+
+    // The first job is prepared the old way: one `<file>.gcode`, no machines.
+    let queued: &[JobState] = &[JobState::Queued];
+    let preparing: &[JobState] = &[JobState::Preparing];
+    rt.block_on(a.transition_from(&ids[0], queued, JobState::Preparing, None, |_| {}))
+        .unwrap();
+    let gcode: Vec<u8> = (0..200_000)
+        .flat_map(|i| format!("G1 X{} Y{}\n", i % 200, i % 7).into_bytes())
+        .collect();
+    let dir_a = a.snapshot().job_dir(&ids[0]);
+    std::fs::write(dir_a.join("part0.stl.gcode"), &gcode).unwrap();
+    rt.block_on(
+        a.transition_from(&ids[0], preparing, JobState::Ready, None, |j| {
+            j.slice_report = Some(Default::default());
+        }),
+    )
+    .unwrap();
+    rt.block_on(b.resync()).unwrap();
+    rt.block_on(b.claim("p1", |_| true))
+        .unwrap()
+        .expect("host 2 claims the ready job");
+    let dir_b = b.snapshot().job_dir(&ids[0]);
+    assert!(
+        std::fs::read(dir_b.join("part0.stl.gcode")).unwrap() == gcode,
+        "the G-code arrived whole"
+    );
+    rt.block_on(b.record_outcome(&ids[0], JobState::Cancelled, Some("stopped".into()), |_| {}))
+        .unwrap();
+    rt.block_on(a.resync()).unwrap();
+    let retried = rt.block_on(a.retry(&ids[0])).unwrap();
+    assert_eq!(
+        retried.state,
+        JobState::Ready,
+        "its G-code is kept: printed again as it was"
+    );
+    // The newest finished job (the first, cancelled last) stays live.
+    rt.block_on(a.transition(&ids[0], JobState::Cancelled, None))
+        .unwrap();
+    let now = crispen::daemon::job::now_s();
+    let moved = rt.block_on(a.retire(now)).unwrap();
+    assert_eq!(moved, ids[1..].to_vec());
+    assert!(rt.block_on(a.retire(now)).unwrap().is_empty());
+    assert!(a.snapshot().get(&ids[1]).is_none());
+
+    // Host 2 has not seen it yet: its change is refused by the database all the same.
+    let err = rt.block_on(b.retry(&ids[1])).unwrap_err();
+    assert!(matches!(err, StoreError::WrongState { .. }), "{err}");
+    assert!(rt.block_on(b.resync()).unwrap());
+    assert!(b.snapshot().get(&ids[1]).is_none() && b.snapshot().get(&ids[2]).is_none());
+    let err = rt.block_on(b.retry(&ids[2])).unwrap_err();
+    assert!(err.to_string().contains("history"), "{err}");
+
+    let page = rt.block_on(b.history(None, 1)).unwrap();
+    assert_eq!(page.jobs[0].id, ids[2]);
+    let page = rt.block_on(b.history(page.next, 1)).unwrap();
+    assert_eq!(page.jobs[0].id, ids[1]);
+    assert_eq!(page.next, None);
+    let retired = rt.block_on(a.retired(&ids[1])).unwrap().unwrap();
+    assert_eq!(retired.record.state, JobState::Cancelled);
+    assert_eq!(retired.record.file, "part1.stl");
+
+    // A host started later loads the live jobs only, and finds the rest in the history.
+    let c = rt.block_on(open("rack-3"));
+    let live: Vec<String> = c.snapshot().jobs().map(|j| j.id.clone()).collect();
+    assert_eq!(live, [ids[0].clone()]);
+    assert_eq!(rt.block_on(c.history(None, 10)).unwrap().jobs.len(), 2);
 }

@@ -36,6 +36,22 @@ pub struct StatusArgs {
 }
 
 #[derive(Debug, clap::Args)]
+pub struct HistoryArgs {
+    /// The daemon's config file (to find its control socket)
+    #[arg(long, short)]
+    pub config: Option<PathBuf>,
+    /// How many jobs to show, newest first (1 to 1000)
+    #[arg(long, default_value_t = 50)]
+    pub limit: usize,
+    /// Show jobs older than this one's sequence number (the `next` a page ends with)
+    #[arg(long)]
+    pub before: Option<u64>,
+    /// Print the page as JSON
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, clap::Args)]
 pub struct PrinterArgs {
     /// Printer name, as in the config's [[printer]] name
     pub printer: String,
@@ -251,6 +267,52 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `crispen history`: a page of the finished jobs that have left the queue.
+pub fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
+    let mut path = format!("/api/v1/history?limit={}", a.limit);
+    if let Some(before) = a.before {
+        path.push_str(&format!("&before={before}"));
+    }
+    let answer = ask(&a.config, Method::GET, &path)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&answer)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let page: crispen::daemon::store::history::Page =
+        serde_json::from_value(answer).context("the daemon's history is not as expected")?;
+    use crispen::daemon::hotfolder::{escaped, printable};
+    println!("JOB                          STATE        PRINTER          ENDED (UTC)       FILE / REASON");
+    for r in &page.jobs {
+        let file = printable(&r.file);
+        let extra = match &r.reason {
+            Some(reason) => format!("{file}: {}", escaped(reason)),
+            None => file,
+        };
+        println!(
+            "{:<28} {:<12} {:<16} {:<17} {}",
+            r.id,
+            r.state.name(),
+            r.printer.as_deref().unwrap_or("-"),
+            utc_minute(r.ended_at),
+            extra
+        );
+    }
+    match page.next {
+        Some(next) => println!("older: crispen history --before {next}"),
+        None if page.jobs.is_empty() => println!("(no finished job has left the queue yet)"),
+        None => {}
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `YYYY-MM-DD HH:MM` of seconds since the epoch, in UTC.
+fn utc_minute(t: f64) -> String {
+    let secs = t.max(0.0) as i64;
+    let (y, m, d) = crispen::daemon::store::history::civil_date(secs.div_euclid(86_400));
+    let minute = secs.rem_euclid(86_400) / 60;
+    format!("{y:04}-{m:02}-{d:02} {:02}:{:02}", minute / 60, minute % 60)
 }
 
 pub fn clear(a: PrinterArgs) -> anyhow::Result<ExitCode> {

@@ -42,6 +42,8 @@ pub enum Command {
     Run(run::Args),
     /// Show the daemon's printers and jobs
     Status(control::StatusArgs),
+    /// Page through the finished jobs that have left the queue (newest first)
+    History(control::HistoryArgs),
     /// Confirm a printer's bed has been cleared so it may take the next job
     Clear(control::PrinterArgs),
     /// Cancel a job (a printing job is stopped safely)
@@ -80,6 +82,7 @@ pub fn main() -> ExitCode {
         Command::Ports(a) => ports::run(a),
         Command::Run(a) => run::run(a),
         Command::Status(a) => control::status(a),
+        Command::History(a) => control::history(a),
         Command::Clear(a) => control::clear(a),
         Command::Cancel(a) => control::cancel(a),
         Command::Pause(a) => control::pause(a),

@@ -178,9 +178,13 @@ pub struct Farm {
 impl Farm {
     /// Starts the store's task on the current runtime and builds the farm around it.
     pub fn new(config: Config, store: impl JobStore, shutdown: CancellationToken) -> Arc<Farm> {
+        let retention = super::store::Retention {
+            live_for: config.history.live_for,
+            live_jobs: config.history.live_jobs,
+        };
         Arc::new(Farm {
             config: RwLock::new(Arc::new(config)),
-            jobs: super::store::spawn(store),
+            jobs: super::store::spawn_with(store, retention),
             printers: Mutex::new(BTreeMap::new()),
             preparing: Mutex::new(HashMap::new()),
             print_controls: Mutex::new(HashMap::new()),

@@ -52,6 +52,9 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("store.postgres", Policy::DaemonRestart),
     ("store.password_file", Policy::DaemonRestart),
     ("store.lease_s", Policy::DaemonRestart),
+    // The job store's task takes its retention when it starts.
+    ("history.live_days", Policy::DaemonRestart),
+    ("history.live_jobs", Policy::DaemonRestart),
     ("printer", Policy::PrinterRestart),
     ("printer.port", Policy::PrinterRestart),
     ("printer.simulate", Policy::PrinterRestart),
@@ -99,6 +102,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         folders,
         http,
         store,
+        history,
         // Said again at every reload; not a setting.
         warnings: _,
     } = new;
@@ -116,6 +120,12 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     differs("farm.settle_s", *settle != old.farm.settle);
     differs("farm.rescan_s", *rescan != old.farm.rescan);
     differs("farm.host", *host != old.farm.host);
+    let super::config::HistoryConfig {
+        live_for,
+        live_jobs,
+    } = history;
+    differs("history.live_days", *live_for != old.history.live_for);
+    differs("history.live_jobs", *live_jobs != old.history.live_jobs);
     match (store, &old.store) {
         (None, None) => {}
         (Some(new), Some(old)) => {
@@ -250,6 +260,7 @@ pub fn merge(old: &Config, new: Config) -> Config {
         socket: old.socket.clone(),
         http,
         store: old.store.clone(),
+        history: old.history,
         farm: super::config::FarmConfig {
             host: old.farm.host.clone(),
             ..new.farm
@@ -309,6 +320,7 @@ mod tests {
     const BASE: &str = "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
         [farm]\nmax_heating = 2\nsettle_s = 1\nrescan_s = 10\non_shutdown = \"finish\"\nhost = \"rack-1\"\n\
         [store]\npostgres = \"host=/run/postgresql dbname=crispen\"\npassword_file = \"pw\"\nlease_s = 15\n\
+        [history]\nlive_days = 7\nlive_jobs = 200\n\
         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n\
         [[machine]]\nname = \"wide\"\nbased_on = \"marlin-175\"\nbed_mm = [300, 300, 300]\n\
         [[printer]]\nname = \"a\"\nfirmware = \"marlin2\"\nbaud = 115200\n[printer.simulate]\ntime_scale = 0.0\n\
@@ -353,6 +365,8 @@ mod tests {
         ("store.postgres", "dbname=crispen", "dbname=farm"),
         ("store.password_file", "\"pw\"", "\"pw2\""),
         ("store.lease_s", "lease_s = 15", "lease_s = 16"),
+        ("history.live_days", "live_days = 7", "live_days = 1.5"),
+        ("history.live_jobs", "live_jobs = 200", "live_jobs = 20"),
         (
             "printer",
             "[[printer]]\nname = \"b\"\nport = \"/dev/ttyUSB0\"\nfirmware = \"marlin2\"\n",

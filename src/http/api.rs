@@ -70,32 +70,7 @@ pub fn snapshot(farm: &Farm) -> StatusView {
     let jobs = status
         .jobs
         .into_iter()
-        .map(|j| {
-            let dir = store.job_dir(&j.id);
-            let folder = config.folder(&j.folder);
-            let sidecar = store.get(&j.id).and_then(|job| job.sidecar.clone());
-            let task = folder.and_then(|f| {
-                crate::daemon::prepare::resolve_task(
-                    &j.id,
-                    &dir,
-                    &j.file,
-                    f,
-                    &printers,
-                    sidecar.as_ref(),
-                )
-                .ok()
-            });
-            JobView {
-                folder_name: folder
-                    .map(upload::folder_name)
-                    .unwrap_or_else(|| j.folder.display().to_string()),
-                height_mm: task.as_ref().map(|t| t.height_mm),
-                strength: task.as_ref().map(|t| t.strength),
-                machines: folder.map(|f| f.printers.clone()).unwrap_or_default(),
-                pictures: pictures_in(&dir),
-                status: j,
-            }
-        })
+        .map(|j| job_view(&config, &store, &printers, j))
         .collect();
     drop(store);
     let folders = config
@@ -129,11 +104,30 @@ pub fn snapshot(farm: &Farm) -> StatusView {
     view
 }
 
-fn pictures_in(dir: &std::path::Path) -> Vec<&'static str> {
-    PICTURES
-        .into_iter()
-        .filter(|name| dir.join(name).is_file())
-        .collect()
+/// One job's entry: its status with what it will be made as. Which pictures it has comes
+/// from the store's snapshot (looked at once when the job changed, not at every glance).
+fn job_view(
+    config: &crate::daemon::config::Config,
+    store: &crate::daemon::store::Snapshot,
+    printers: &[(String, crate::machine::Machine)],
+    j: JobStatus,
+) -> JobView {
+    let dir = store.job_dir(&j.id);
+    let folder = config.folder(&j.folder);
+    let sidecar = store.get(&j.id).and_then(|job| job.sidecar.as_ref());
+    let task = folder.and_then(|f| {
+        crate::daemon::prepare::resolve_task(&j.id, &dir, &j.file, f, printers, sidecar).ok()
+    });
+    JobView {
+        folder_name: folder
+            .map(upload::folder_name)
+            .unwrap_or_else(|| j.folder.display().to_string()),
+        height_mm: task.as_ref().map(|t| t.height_mm),
+        strength: task.as_ref().map(|t| t.strength),
+        machines: folder.map(|f| f.printers.clone()).unwrap_or_default(),
+        pictures: store.pictures(&j.id),
+        status: j,
+    }
 }
 
 async fn blocking<T: Send + 'static>(
@@ -184,24 +178,73 @@ pub struct JobDetail {
     pub job: Job,
 }
 
+/// `GET /api/v1/jobs/{id}`: a live job's entry and record (without building every other
+/// job's entry), or a job in the history: its history record and its whole record with
+/// `"retired": true`.
 pub async fn job(
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<Json<JobDetail>, ApiError> {
+) -> Result<Response, ApiError> {
+    let wanted = id.clone();
     let found = blocking(&state, move |farm| {
-        let job = farm.store().get(&id).cloned();
-        let job = job.ok_or(id)?;
-        let view = snapshot(farm)
+        let store = farm.store();
+        let job = store.get(&wanted).cloned()?;
+        let status = control::status(farm)
             .jobs
             .into_iter()
-            .find(|j| j.status.id == job.id);
-        Ok::<_, String>(view.map(|view| JobDetail { view, job }))
+            .find(|j| j.id == wanted)?;
+        let view = job_view(&farm.config(), &store, &farm.printer_machines(), status);
+        Some(JobDetail { view, job })
     })
     .await?;
-    match found {
-        Ok(Some(detail)) => Ok(Json(detail)),
-        Ok(None) | Err(_) => Err(ApiError::not_found(
-            "no such job (hint: GET /api/v1/jobs lists them)",
+    if let Some(detail) = found {
+        return Ok(Json(detail).into_response());
+    }
+    match state.farm.jobs.retired(&id).await {
+        Ok(Some(retired)) => {
+            let mut answer = serde_json::to_value(&retired.record).unwrap_or_default();
+            answer["retired"] = serde_json::Value::Bool(true);
+            answer["job"] = serde_json::to_value(&retired.job).unwrap_or_default();
+            Ok(Json(answer).into_response())
+        }
+        Ok(None) => Err(ApiError::not_found(
+            "no such job (hint: GET /api/v1/jobs lists them, GET /api/v1/history the finished ones)",
+        )),
+        Err(e) => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())),
+    }
+}
+
+/// `GET /api/v1/history?limit=N&before=SEQ`.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HistoryQuery {
+    pub limit: Option<usize>,
+    pub before: Option<u64>,
+}
+
+/// `GET /api/v1/history`: finished jobs that have left the queue, newest first, a page at
+/// a time (`limit`, 1 to 1000, default 50; `before`: the `next` of the page before).
+pub async fn history(
+    State(state): State<AppState>,
+    axum::extract::Query(query): axum::extract::Query<HistoryQuery>,
+) -> Result<Json<crate::daemon::store::history::Page>, ApiError> {
+    let limit = query.limit.unwrap_or(50);
+    let bounds = crate::daemon::store::history::PAGE_LIMIT;
+    if !bounds.contains(&limit) {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "limit {limit}: must be between {} and {}",
+                bounds.start(),
+                bounds.end()
+            ),
+        ));
+    }
+    match state.farm.jobs.history(query.before, limit).await {
+        Ok(page) => Ok(Json(page)),
+        Err(e) => Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            e.to_string(),
         )),
     }
 }

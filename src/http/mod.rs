@@ -94,6 +94,7 @@ pub fn router(state: AppState) -> Router {
         )
         .route("/api/v1/jobs", get(api::jobs))
         .route("/api/v1/jobs/{id}", get(api::job))
+        .route("/api/v1/history", get(api::history))
         .route("/api/v1/jobs/{id}/{action}", post(api::job_action))
         .route("/api/v1/jobs/{id}/pictures/{picture}", get(api::picture))
         .route("/api/v1/folders", get(api::folders))

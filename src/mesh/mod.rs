@@ -328,21 +328,12 @@ pub fn save(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
         path: path.to_path_buf(),
         source,
     };
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".crispen-")
-        .tempfile_in(dir)
-        .map_err(write_err)?;
-    {
-        let mut w = std::io::BufWriter::new(tmp.as_file_mut());
-        write(&mut w, mesh).map_err(write_err)?;
-        w.flush().map_err(write_err)?;
-    }
-    tmp.persist(path).map_err(|e| write_err(e.error))?;
-    Ok(())
+    crate::fsutil::write_atomic_with(path, |file| {
+        let mut w = std::io::BufWriter::new(file);
+        write(&mut w, mesh)?;
+        w.flush()
+    })
+    .map_err(|e| write_err(e.into()))
 }
 
 /// Writes `mesh` as binary STL (f32 coordinates, per-face normals).

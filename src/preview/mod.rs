@@ -14,7 +14,6 @@ pub mod walls;
 
 use crate::mesh::place::UpAxis;
 use crate::mesh::Mesh;
-use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 
 pub use raster::render;
@@ -232,15 +231,7 @@ pub const DISPLACEMENT_PNG: &str = "displacement.png";
 /// Writes `image` to `path` as PNG, whole under a temporary name then renamed, readable
 /// by others like the job's other files.
 pub fn write_png(path: &Path, image: &Image) -> std::io::Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut tmp = tempfile::NamedTempFile::new_in(dir)?;
-    std::fs::set_permissions(tmp.path(), std::fs::Permissions::from_mode(0o644))?;
-    std::io::Write::write_all(&mut tmp, &image.to_png())?;
-    tmp.persist(path).map_err(|e| e.error)?;
-    Ok(())
+    Ok(crate::fsutil::write_atomic(path, &image.to_png())?)
 }
 
 impl Pictures {
@@ -255,11 +246,7 @@ impl Pictures {
         .into_iter()
         .map(|(name, image)| {
             let path = dir.join(name);
-            let mut tmp = tempfile::NamedTempFile::new_in(dir)?;
-            // Readable by the web server or the operator, like the job's other files.
-            std::fs::set_permissions(tmp.path(), std::fs::Permissions::from_mode(0o644))?;
-            std::io::Write::write_all(&mut tmp, &image.to_png())?;
-            tmp.persist(&path).map_err(|e| e.error)?;
+            write_png(&path, image)?;
             Ok(path)
         })
         .collect()

@@ -59,12 +59,11 @@ pub fn blocks(mesh: &Mesh, up: UpAxis) -> String {
 /// own thumbnails). The file is rewritten under a temporary name and renamed, so a reader
 /// never sees it half written.
 pub fn insert_into_file(path: &Path, blocks: &str) -> std::io::Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
     let mut input = BufReader::new(std::fs::File::open(path)?);
-    let mut tmp = tempfile::NamedTempFile::new_in(dir)?;
-    std::fs::set_permissions(tmp.path(), std::fs::metadata(path)?.permissions())?;
-    {
-        let mut out = std::io::BufWriter::new(tmp.as_file_mut());
+    let permissions = std::fs::metadata(path)?.permissions();
+    crate::fsutil::write_atomic_with(path, |file| {
+        file.set_permissions(permissions)?;
+        let mut out = std::io::BufWriter::new(file);
         let mut first = String::new();
         input.read_line(&mut first)?;
         if first.starts_with(';') {
@@ -75,9 +74,7 @@ pub fn insert_into_file(path: &Path, blocks: &str) -> std::io::Result<()> {
             out.write_all(first.as_bytes())?;
         }
         std::io::copy(&mut input, &mut out)?;
-        out.flush()?;
-    }
-    tmp.as_file().sync_all()?;
-    tmp.persist(path).map_err(|e| e.error)?;
+        out.flush()
+    })?;
     Ok(())
 }

@@ -499,31 +499,12 @@ pub fn slice_mesh(
 /// Copies a finished file (checked G-code, the mesh that was sliced) to its destination
 /// without ever leaving a half-written one there: copy next to it, then rename over it.
 pub fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
-    let dir = match to.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".crispen-")
-        .suffix(".part")
-        .tempfile_in(dir)
-        .map_err(SliceError::io("cannot write into", dir))?;
     let mut src = std::fs::File::open(from).map_err(SliceError::io("cannot read", from))?;
-    std::io::copy(&mut src, tmp.as_file_mut()).map_err(SliceError::io("cannot write", to))?;
-    // Temporary files are private (0600); a job's files are ordinary files others may read.
-    {
-        use std::os::unix::fs::PermissionsExt;
-        let _ = tmp
-            .as_file()
-            .set_permissions(std::fs::Permissions::from_mode(0o644));
-    }
-    tmp.as_file()
-        .sync_all()
-        .map_err(SliceError::io("cannot write", to))?;
-    tmp.persist(to).map_err(|e| SliceError::Io {
-        context: "cannot write",
-        path: to.to_path_buf(),
-        source: e.error,
-    })?;
-    Ok(())
+    crate::fsutil::write_atomic_with(to, |file| std::io::copy(&mut src, file).map(|_| ())).map_err(
+        |e| SliceError::Io {
+            context: "cannot write",
+            path: to.to_path_buf(),
+            source: e.into(),
+        },
+    )
 }

@@ -77,6 +77,15 @@ struct RawConfig {
     http: Option<RawHttp>,
     #[serde(default)]
     store: Option<RawStore>,
+    #[serde(default)]
+    history: Option<RawHistory>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawHistory {
+    live_days: Option<f64>,
+    live_jobs: Option<i64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -175,9 +184,57 @@ pub struct Config {
     /// The farm's queue in PostgreSQL (`[store]`), shared with other hosts; None: this
     /// host's own spool.
     pub store: Option<StoreConfig>,
+    /// How long finished jobs stay live before they move to the history (`[history]`).
+    pub history: HistoryConfig,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,
+}
+
+/// `[history]`: a finished job (done, failed, cancelled) stays in the live queue (status,
+/// dashboard, metrics) for `live_days` after it ended, and only the newest `live_jobs`
+/// of them; older ones move to the history, which keeps them (see `store`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HistoryConfig {
+    pub live_for: Duration,
+    pub live_jobs: usize,
+}
+
+impl Default for HistoryConfig {
+    fn default() -> HistoryConfig {
+        HistoryConfig {
+            live_for: Duration::from_secs(7 * 86_400),
+            live_jobs: 200,
+        }
+    }
+}
+
+/// Bounds of `[history] live_days` (0: a finished job leaves the queue at once).
+pub const LIVE_DAYS: Bounds = 0.0..=3650.0;
+/// Bounds of `[history] live_jobs`: the live queue stays small whatever the history holds.
+pub const LIVE_JOBS: std::ops::RangeInclusive<i64> = 0..=10_000;
+
+fn check_history(h: RawHistory) -> Result<HistoryConfig, (&'static str, String)> {
+    let days = h.live_days.unwrap_or(7.0);
+    if !LIVE_DAYS.contains(&days) {
+        let (lo, hi) = (LIVE_DAYS.start(), LIVE_DAYS.end());
+        return Err((
+            "live_days",
+            format!("must be between {lo} and {hi} days, got {days}"),
+        ));
+    }
+    let jobs = h.live_jobs.unwrap_or(200);
+    if !LIVE_JOBS.contains(&jobs) {
+        let (lo, hi) = (LIVE_JOBS.start(), LIVE_JOBS.end());
+        return Err((
+            "live_jobs",
+            format!("must be between {lo} and {hi}, got {jobs}"),
+        ));
+    }
+    Ok(HistoryConfig {
+        live_for: Duration::from_secs_f64(days * 86_400.0),
+        live_jobs: jobs as usize,
+    })
 }
 
 /// `[store]`: the farm database.
@@ -484,7 +541,7 @@ impl Config {
             if let Some(header) = unknown_table_header(text, offset) {
                 section = "the top level".into();
                 message = format!(
-                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[machine]], [[printer]], [[folder]], [http], [store])"
+                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[machine]], [[printer]], [[folder]], [http], [store], [history])"
                 );
             }
             ConfigError::Parse {
@@ -894,6 +951,10 @@ printers = ["demo"]
                 Some(check_http(h, &anchor).map_err(|(key, m)| invalid("[http]".into(), key, m))?)
             }
         };
+        let history = match raw.history {
+            None => HistoryConfig::default(),
+            Some(h) => check_history(h).map_err(|(key, m)| invalid("[history]".into(), key, m))?,
+        };
 
         Ok(Checked {
             config: Config {
@@ -906,6 +967,7 @@ printers = ["demo"]
                 folders,
                 http: None,
                 store,
+                history,
                 warnings: Vec::new(),
             },
             http,
@@ -1245,7 +1307,7 @@ fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
         .trim();
     let top = name.split('.').next()?.trim().trim_matches('"');
     let known = [
-        "spool", "control", "farm", "machine", "printer", "folder", "http", "store",
+        "spool", "control", "farm", "machine", "printer", "folder", "http", "store", "history",
     ];
     (!known.contains(&top)).then(|| {
         line.split_once('#')

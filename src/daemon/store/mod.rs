@@ -15,15 +15,26 @@
 //! no other change can come between. Legal state changes stay one table,
 //! [`JobState::can_go_to`], applied by [`Job::apply_transition`] inside the store.
 //!
+//! Finished jobs leave the live snapshot for the [`history`] after a while: the task
+//! retires them in batches on its blocking thread, so what every reader pays for follows
+//! the jobs at work, not the farm's past. The snapshot also keeps what would otherwise be
+//! looked up on disk at every glance (which pictures a job has), worked out once when the
+//! job changes.
+//!
 //! [`postgres`] is the second store: the farm's queue in PostgreSQL, shared by several
 //! hosts. Other hosts change jobs too, so its store reloads them on [`StoreHandle::resync`]
 //! and the snapshot is rebuilt; a state check (`from`) is made inside the store, where the
 //! database row is locked, never against a snapshot that may be stale.
 
+pub mod history;
+pub mod pending;
 pub mod postgres;
 pub mod spool;
 
-use super::job::{Job, JobState, PrinterGate, StoreError};
+pub use history::Retention;
+
+use super::job::{ForMachine, Job, JobState, PrinterGate, StoreError};
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -91,6 +102,63 @@ pub trait JobStore: Send + 'static {
     fn resync(&mut self) -> bool {
         false
     }
+    /// Moves the finished jobs `retention` no longer keeps live (by
+    /// [`history::to_retire`]) to the history; returns their ids, at most
+    /// [`history::BATCH`]. `now`: seconds since the epoch.
+    fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError>;
+    /// A job in the history; None when there is no such retired job.
+    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError>;
+    /// A page of the history, newest first, of jobs with a sequence number below `before`.
+    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError>;
+}
+
+/// A job in the history: its record, and its whole state where it can still be read.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RetiredJob {
+    pub record: history::Retired,
+    pub job: Option<Job>,
+}
+
+/// What a change of a retired job meets: the history is not the queue.
+pub fn retired_refusal(id: &str, state: JobState, action: &'static str) -> StoreError {
+    StoreError::WrongState {
+        id: id.to_string(),
+        state,
+        action,
+        allowed: "still in the queue (it has moved to the history, `crispen history`; drop its model into a hot folder again to print it again)",
+    }
+}
+
+/// The names of the G-code files preparation made for a job: one per machine, or, for a
+/// job prepared before machines existed (sliced for an Ultimaker 2), `<file>.gcode`.
+pub fn gcode_files(job: &Job) -> Vec<String> {
+    if job.machines.is_empty() {
+        return vec![format!("{}.gcode", job.file)];
+    }
+    job.machines
+        .values()
+        .filter_map(|m| match m {
+            ForMachine::Gcode(file) => Some(file.clone()),
+            ForMachine::Refused(_) => None,
+        })
+        .collect()
+}
+
+/// Whether a job that is retried keeps its G-code (and goes back to ready) or is prepared
+/// again: it was prepared, and one of its G-code files is still there (`has`: in its
+/// directory, or in the farm database). The one rule of both stores.
+pub fn prepared(job: &Job, has: impl Fn(&str) -> bool) -> bool {
+    job.slice_report.is_some() && gcode_files(job).iter().any(|f| has(f))
+}
+
+impl From<crate::fsutil::WriteError> for StoreError {
+    fn from(e: crate::fsutil::WriteError) -> StoreError {
+        StoreError::Io {
+            path: e.path,
+            action: e.step,
+            source: e.source,
+        }
+    }
 }
 
 /// Checks that a job is in one of the states `from` (when given).
@@ -105,42 +173,104 @@ pub fn check_from(job: &Job, from: Option<StateFilter>) -> Result<(), StoreError
     }
 }
 
-/// An immutable picture of every job and bed gate, as of the store's last change.
+/// An immutable picture of every live job and bed gate, as of the store's last change.
+/// Cheap to publish: each job is shared (`Arc`), and the index is shared until a job
+/// comes or goes.
 #[derive(Clone, Debug, Default)]
 pub struct Snapshot {
     /// Oldest first.
-    jobs: Vec<Arc<Job>>,
-    index: HashMap<String, usize>,
+    jobs: Vec<Arc<Live>>,
+    index: Arc<HashMap<String, usize>>,
     gates: BTreeMap<String, PrinterGate>,
     jobs_dir: PathBuf,
     /// Outcomes recorded but not yet persisted (a full disk).
     unwritten: usize,
 }
 
+/// A live job and what is known of its files.
+#[derive(Debug)]
+struct Live {
+    job: Job,
+    /// Which of [`PICTURES`] its directory holds (bit i for `PICTURES[i]`).
+    pictures: u8,
+}
+
+/// The pictures a job's directory may hold (see `crate::preview`).
+pub const PICTURES: [&str; 4] = [
+    crate::preview::BEFORE_PNG,
+    crate::preview::AFTER_PNG,
+    crate::preview::DISPLACEMENT_PNG,
+    crate::preview::walls::WALLS_PNG,
+];
+
+impl Live {
+    /// Looks at the job's pictures, unless `before` (the job as last seen, when the whole
+    /// snapshot is rebuilt after other hosts' changes) is the same job in the same state:
+    /// pictures are made while a job prepares, so a job whose history has not moved has
+    /// the ones it had.
+    fn of(job: Job, dir: &Path, before: Option<&Live>) -> Live {
+        let pictures = match before {
+            Some(b) if b.job.history.len() == job.history.len() && b.job.state == job.state => {
+                b.pictures
+            }
+            _ => PICTURES
+                .iter()
+                .enumerate()
+                .filter(|(_, name)| dir.join(name).is_file())
+                .fold(0, |bits, (i, _)| bits | 1 << i),
+        };
+        Live { job, pictures }
+    }
+}
+
 impl Snapshot {
-    fn of(store: &dyn JobStore) -> Snapshot {
-        let jobs: Vec<Arc<Job>> = store.jobs().into_iter().map(Arc::new).collect();
+    fn of(store: &dyn JobStore, before: Option<&Snapshot>) -> Snapshot {
+        let jobs_dir = store.jobs_dir();
+        let jobs: Vec<Arc<Live>> = store
+            .jobs()
+            .into_iter()
+            .map(|j| {
+                let old = before.and_then(|b| b.live(&j.id));
+                let dir = jobs_dir.join(&j.id);
+                Arc::new(Live::of(j, &dir, old))
+            })
+            .collect();
         let index = jobs
             .iter()
             .enumerate()
-            .map(|(i, j)| (j.id.clone(), i))
+            .map(|(i, j)| (j.job.id.clone(), i))
             .collect();
         Snapshot {
             jobs,
-            index,
+            index: Arc::new(index),
             gates: store.gates(),
-            jobs_dir: store.jobs_dir(),
+            jobs_dir,
             unwritten: store.unwritten(),
         }
     }
 
-    pub fn get(&self, id: &str) -> Option<&Job> {
+    fn live(&self, id: &str) -> Option<&Live> {
         self.index.get(id).map(|&i| &*self.jobs[i])
+    }
+
+    pub fn get(&self, id: &str) -> Option<&Job> {
+        self.live(id).map(|l| &l.job)
     }
 
     /// Jobs oldest first.
     pub fn jobs(&self) -> impl Iterator<Item = &Job> {
-        self.jobs.iter().map(|j| &**j)
+        self.jobs.iter().map(|j| &j.job)
+    }
+
+    /// The pictures job `id`'s directory holds, of [`PICTURES`] (as of its last change).
+    pub fn pictures(&self, id: &str) -> Vec<&'static str> {
+        let bits = self.live(id).map_or(0, |l| l.pictures);
+        PICTURES
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| bits & (1 << i) != 0)
+            .map(|(_, p)| *p)
+            .collect()
     }
 
     pub fn gate(&self, printer: &str) -> PrinterGate {
@@ -159,15 +289,33 @@ impl Snapshot {
     /// Takes the store's current record of `id` (after a change, successful or not: a
     /// failed change may still have failed the job, e.g. when its directory is gone).
     fn refresh(&mut self, store: &dyn JobStore, id: &str) {
-        match (store.job(id), self.index.get(id)) {
-            (Some(job), Some(&i)) => self.jobs[i] = Arc::new(job),
+        let Some(job) = store.job(id) else { return };
+        let dir = self.job_dir(id);
+        match self.index.get(id) {
+            // Looked at again at every change: a few stats per change, none per glance.
+            Some(&i) => self.jobs[i] = Arc::new(Live::of(job, &dir, None)),
             // New jobs have the highest sequence number: appending keeps the order.
-            (Some(job), None) => {
-                self.index.insert(job.id.clone(), self.jobs.len());
-                self.jobs.push(Arc::new(job));
+            None => {
+                Arc::make_mut(&mut self.index).insert(job.id.clone(), self.jobs.len());
+                self.jobs.push(Arc::new(Live::of(job, &dir, None)));
             }
-            (None, _) => {}
         }
+    }
+
+    /// Drops jobs that moved to the history.
+    fn remove(&mut self, ids: &[String]) {
+        if ids.is_empty() {
+            return;
+        }
+        let gone: std::collections::HashSet<&str> = ids.iter().map(String::as_str).collect();
+        self.jobs.retain(|l| !gone.contains(l.job.id.as_str()));
+        self.index = Arc::new(
+            self.jobs
+                .iter()
+                .enumerate()
+                .map(|(i, l)| (l.job.id.clone(), i))
+                .collect(),
+        );
     }
 }
 
@@ -235,6 +383,19 @@ enum Request {
     Resync {
         reply: Reply<bool>,
     },
+    Retire {
+        now: f64,
+        reply: Reply<Vec<String>>,
+    },
+    Retired {
+        id: String,
+        reply: Reply<Option<RetiredJob>>,
+    },
+    History {
+        before: Option<u64>,
+        limit: usize,
+        reply: Reply<history::Page>,
+    },
 }
 
 /// What became of a sidecar that arrived after its model had become a job.
@@ -258,7 +419,12 @@ fn deliver<T: Send + 'static>(reply: Reply<T>, result: Result<T, StoreError>) ->
 
 impl Request {
     /// Carries out one request against the store, updating `view` with what changed.
-    fn serve(self, store: &mut dyn JobStore, view: &mut Snapshot) -> Delivery {
+    fn serve(
+        self,
+        store: &mut dyn JobStore,
+        view: &mut Snapshot,
+        retention: &Retention,
+    ) -> Delivery {
         match self {
             Request::Admit {
                 source,
@@ -364,10 +530,17 @@ impl Request {
             Request::Resync { reply } => {
                 let changed = store.resync();
                 if changed {
-                    *view = Snapshot::of(store);
+                    *view = Snapshot::of(store, Some(view));
                 }
                 deliver(reply, Ok(changed))
             }
+            Request::Retire { now, reply } => deliver(reply, retire(store, view, retention, now)),
+            Request::Retired { id, reply } => deliver(reply, store.retired(&id)),
+            Request::History {
+                before,
+                limit,
+                reply,
+            } => deliver(reply, store.history(before, limit)),
             Request::WritePending { reply } => {
                 // Only the persisted copy changes: the view already shows these outcomes.
                 let left = store.write_pending();
@@ -417,57 +590,121 @@ fn claim(
     Ok(None)
 }
 
-/// Starts the store's task (on the current tokio runtime) and returns its handle. The
-/// task ends, and the store is closed, when the last handle is dropped.
+/// Moves what `retention` no longer keeps live to the history and out of the snapshot.
+fn retire(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    retention: &Retention,
+    now: f64,
+) -> Result<Vec<String>, StoreError> {
+    let ids = store.retire(retention, now)?;
+    if !ids.is_empty() {
+        tracing::info!(jobs = ids.len(), first = %ids[0], "finished jobs moved to the history");
+    }
+    view.remove(&ids);
+    Ok(ids)
+}
+
+/// How often the store's task looks for finished jobs to move to the history (and at
+/// once after starting, and again at once while a batch was full).
+const RETIRE_EVERY: std::time::Duration = std::time::Duration::from_secs(600);
+
+/// Starts the store's task (on the current tokio runtime) with the default
+/// [`Retention`], and returns its handle. The task ends, and the store is closed, when
+/// the last handle is dropped.
 pub fn spawn(store: impl JobStore) -> StoreHandle {
+    spawn_with(store, Retention::default())
+}
+
+/// [`spawn`] with finished jobs kept live as `retention` says.
+pub fn spawn_with(store: impl JobStore, retention: Retention) -> StoreHandle {
     let store: Box<dyn JobStore> = Box::new(store);
-    let view = Snapshot::of(&*store);
+    let view = Snapshot::of(&*store, None);
     let (snapshots, snapshot) = watch::channel(Arc::new(view.clone()));
     let (tx, rx) = mpsc::channel(256);
-    tokio::spawn(serve(store, view, rx, snapshots));
+    tokio::spawn(serve(store, view, rx, snapshots, retention));
     StoreHandle { tx, snapshot }
 }
 
+/// What the store's task does next.
+enum Work {
+    Requests(Vec<Request>),
+    Retire,
+}
+
 /// The store's task: takes whatever requests are waiting, serves them in order on a
-/// blocking thread, publishes the new snapshot, then sends the replies.
+/// blocking thread, publishes the new snapshot, then sends the replies. Every
+/// [`RETIRE_EVERY`] it retires finished jobs the same way.
 async fn serve(
     mut store: Box<dyn JobStore>,
     mut view: Snapshot,
     mut requests: mpsc::Receiver<Request>,
     snapshots: watch::Sender<Arc<Snapshot>>,
+    retention: Retention,
 ) {
     const BATCH: usize = 64;
-    while let Some(first) = requests.recv().await {
-        let mut batch = vec![first];
-        while batch.len() < BATCH {
-            match requests.try_recv() {
-                Ok(r) => batch.push(r),
-                Err(_) => break,
+    let mut retiring = tokio::time::interval(RETIRE_EVERY);
+    retiring.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        let work = tokio::select! {
+            // Requests first: retiring can always wait a little.
+            biased;
+            first = requests.recv() => {
+                let Some(first) = first else { break };
+                let mut batch = vec![first];
+                while batch.len() < BATCH {
+                    match requests.try_recv() {
+                        Ok(r) => batch.push(r),
+                        Err(_) => break,
+                    }
+                }
+                Work::Requests(batch)
             }
-        }
+            _ = retiring.tick() => Work::Retire,
+        };
         let work = tokio::task::spawn_blocking(move || {
-            let mut deliveries = Vec::with_capacity(batch.len());
-            for request in batch {
-                // A panic in one request (an edit closure) loses that request's reply
-                // only: its caller gets `StoreError::Stopped`, the store goes on.
-                let served = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    request.serve(&mut *store, &mut view)
-                }));
-                match served {
-                    Ok(delivery) => deliveries.push(delivery),
-                    Err(_) => tracing::error!("a job store request panicked; it was dropped"),
+            let mut deliveries = Vec::new();
+            let mut full = false;
+            match work {
+                Work::Requests(batch) => {
+                    for request in batch {
+                        // A panic in one request (an edit closure) loses that request's
+                        // reply only: its caller gets `StoreError::Stopped`, the store
+                        // goes on.
+                        let served = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                            request.serve(&mut *store, &mut view, &retention)
+                        }));
+                        match served {
+                            Ok(delivery) => deliveries.push(delivery),
+                            Err(_) => {
+                                tracing::error!("a job store request panicked; it was dropped")
+                            }
+                        }
+                    }
+                }
+                Work::Retire => {
+                    let now = crate::daemon::job::now_s();
+                    match retire(&mut *store, &mut view, &retention, now) {
+                        Ok(ids) => full = ids.len() >= history::BATCH,
+                        Err(e) => {
+                            tracing::error!(error = %e, "cannot move finished jobs to the history; they stay live and it is tried again later")
+                        }
+                    }
                 }
             }
-            (store, view, deliveries)
+            (store, view, deliveries, full)
         });
-        let deliveries;
-        (store, view, deliveries) = match work.await {
+        let (deliveries, full);
+        (store, view, deliveries, full) = match work.await {
             Ok(done) => done,
             Err(e) => {
                 tracing::error!(error = %e, "the job store's thread failed; the store stops");
                 return;
             }
         };
+        if full {
+            retiring.reset_immediately();
+        }
         snapshots.send_replace(Arc::new(view.clone()));
         for delivery in deliveries {
             delivery();
@@ -661,5 +898,112 @@ impl StoreHandle {
     /// Takes in what other hosts changed (see [`JobStore::resync`]); true when anything had.
     pub async fn resync(&self) -> Result<bool, StoreError> {
         self.ask(|reply| Request::Resync { reply }).await
+    }
+
+    /// Moves the finished jobs the retention no longer keeps live to the history now, as
+    /// of `now` (seconds since the epoch), one batch; the task also does this on its own.
+    pub async fn retire(&self, now: f64) -> Result<Vec<String>, StoreError> {
+        self.ask(|reply| Request::Retire { now, reply }).await
+    }
+
+    /// A job that has moved to the history (None: no such retired job).
+    pub async fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        let id = id.to_string();
+        self.ask(|reply| Request::Retired { id, reply }).await
+    }
+
+    /// A page of the history, newest first: jobs below sequence number `before`, at most
+    /// `limit` (bounded by [`history::PAGE_LIMIT`]).
+    pub async fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+    ) -> Result<history::Page, StoreError> {
+        let limit = limit.clamp(*history::PAGE_LIMIT.start(), *history::PAGE_LIMIT.end());
+        self.ask(|reply| Request::History {
+            before,
+            limit,
+            reply,
+        })
+        .await
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Through the store's task: retired jobs leave the published snapshot, the history
+    /// pages through them, and one is found by id; what pictures a job has is in the
+    /// snapshot, looked at when the job changed.
+    #[tokio::test]
+    async fn the_snapshot_keeps_live_jobs_and_the_history_the_rest() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+        let retention = Retention {
+            live_for: std::time::Duration::from_secs(86_400),
+            live_jobs: 1,
+        };
+        let handle = spawn_with(store, retention);
+        let mut ids = Vec::new();
+        for i in 0..4 {
+            let model = hot.join(format!("m{i}.stl"));
+            std::fs::write(&model, b"solid x\nendsolid x\n").unwrap();
+            let job = handle.admit(&model, &hot, &[]).await.unwrap();
+            ids.push(job.id);
+        }
+        let snapshot = handle.snapshot();
+        assert!(snapshot.pictures(&ids[0]).is_empty());
+        std::fs::write(
+            snapshot.job_dir(&ids[0]).join(crate::preview::AFTER_PNG),
+            b"png",
+        )
+        .unwrap();
+        for id in &ids[..3] {
+            handle
+                .transition(id, JobState::Cancelled, None)
+                .await
+                .unwrap();
+        }
+        assert_eq!(
+            handle.snapshot().pictures(&ids[0]),
+            [crate::preview::AFTER_PNG]
+        );
+
+        let moved = handle.retire(crate::daemon::job::now_s()).await.unwrap();
+        assert_eq!(moved, ids[..2].to_vec());
+        let snapshot = handle.snapshot();
+        let live: Vec<&str> = snapshot.jobs().map(|j| j.id.as_str()).collect();
+        assert_eq!(live, [ids[2].as_str(), ids[3].as_str()]);
+        assert!(snapshot.get(&ids[0]).is_none());
+
+        let page = handle.history(None, 1).await.unwrap();
+        assert_eq!(page.jobs[0].id, ids[1]);
+        let page = handle.history(page.next, 1).await.unwrap();
+        assert_eq!(page.jobs[0].id, ids[0]);
+        assert_eq!(page.next, None);
+        let retired = handle.retired(&ids[0]).await.unwrap().unwrap();
+        assert_eq!(retired.record.state, JobState::Cancelled);
+        assert!(handle.retired(&ids[3]).await.unwrap().is_none());
+    }
+
+    /// The rule both stores use on retry; a job prepared before machines existed keeps its
+    /// `<file>.gcode` (the PostgreSQL store took it for unprepared).
+    #[test]
+    fn what_counts_as_prepared() {
+        let mut job = Job::queued("0001-a_stl".into(), 1, "a.stl".into(), "/hot".into());
+        let has = |names: &'static [&'static str]| move |n: &str| names.contains(&n);
+        assert!(!prepared(&job, has(&["a.stl.gcode"])), "never sliced");
+        job.slice_report = Some(Default::default());
+        assert!(prepared(&job, has(&["a.stl.gcode"])), "legacy G-code");
+        assert!(!prepared(&job, has(&[])));
+        job.machines
+            .insert("m1".into(), ForMachine::Refused("too big".into()));
+        job.machines
+            .insert("m2".into(), ForMachine::Gcode("a.stl.m2.gcode".into()));
+        assert!(prepared(&job, has(&["a.stl.m2.gcode"])));
+        assert!(!prepared(&job, has(&["a.stl.gcode"])), "not this job's now");
     }
 }

@@ -6,13 +6,18 @@
 //! [`Spool::open`] rebuilds everything from disk; [`Spool::recover`] applies the
 //! restart rules (preparing → queued, printing → interrupted).
 //!
+//! Finished jobs move to the history after a while (see [`super::history`]): their
+//! directories stay under `<spool>/jobs/`, and `<spool>/history/` says which ones are
+//! retired, so opening the spool never reads their state.
+//!
 //! The embedded, single-host implementation of [`JobStore`]: the default.
 
-use super::{JobEdit, JobStore, StateFilter};
-use crate::daemon::job::{now_s, ForMachine, Job, JobState, PrinterGate, StoreError};
+use super::history::{self, HistoryFiles, Retention, Retired};
+use super::pending::{Attempt, Pending};
+use super::{JobEdit, JobStore, RetiredJob, StateFilter};
+use crate::daemon::job::{now_s, Job, JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// The spool on disk plus its in-memory index. Not synchronised: only the store's task
@@ -24,11 +29,13 @@ pub struct Spool {
     jobs: BTreeMap<String, Job>,
     gates: BTreeMap<String, PrinterGate>,
     next_seq: u64,
-    /// Jobs whose state in memory is newer than on disk (see [`Spool::record_outcome`]).
-    unwritten: std::collections::BTreeSet<String>,
-    /// The bed gates in memory are newer than `printers.json` (a full disk): a bed that
-    /// needs clearing must still need it after a restart, so they are written again.
-    gates_unwritten: bool,
+    /// Outcomes newer in memory than on disk (see [`Spool::record_outcome`]), and bed
+    /// gates newer than `printers.json` (a full disk): a bed that needs clearing must
+    /// still need it after a restart, so they are written again.
+    pending: Pending,
+    history: HistoryFiles,
+    /// The jobs in the history (their directories stay in `jobs/`).
+    retired: std::collections::HashSet<String>,
 }
 
 /// Creates `root/jobs` and takes `root/lock`, so two daemons never share a directory.
@@ -64,19 +71,9 @@ pub(super) fn io_err(
     }
 }
 
-/// Writes `bytes` to `path` atomically: temporary file, fsync, rename, fsync of the directory.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let tmp = path.with_extension("tmp");
-    let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp, "create"))?;
-    f.write_all(bytes).map_err(io_err(&tmp, "write"))?;
-    f.sync_all().map_err(io_err(&tmp, "fsync"))?;
-    drop(f);
-    std::fs::rename(&tmp, path).map_err(io_err(path, "rename into place"))?;
-    std::fs::File::open(dir)
-        .and_then(|d| d.sync_all())
-        .map_err(io_err(dir, "fsync directory"))?;
-    Ok(())
+/// Writes `bytes` to `path` atomically and durably (see [`crate::fsutil`]).
+pub(super) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+    Ok(crate::fsutil::write_atomic(path, bytes)?)
 }
 
 impl Spool {
@@ -87,6 +84,7 @@ impl Spool {
     pub fn open(root: &Path) -> Result<Spool, StoreError> {
         let jobs_dir = root.join("jobs");
         let lock = lock_dir(root)?;
+        let (history, retired) = HistoryFiles::open(root)?;
         let mut jobs = BTreeMap::new();
         let mut next_seq = 1;
         for entry in std::fs::read_dir(&jobs_dir).map_err(io_err(&jobs_dir, "list"))? {
@@ -101,6 +99,9 @@ impl Spool {
                 continue;
             };
             next_seq = next_seq.max(seq + 1);
+            if retired.contains(&name) {
+                continue;
+            }
             let job = match load_job(&dir) {
                 // A job directory without state: created by a pick-up interrupted before
                 // the state was written. Its files stay; the pick-up is redone below.
@@ -132,8 +133,9 @@ impl Spool {
             jobs,
             gates,
             next_seq,
-            unwritten: Default::default(),
-            gates_unwritten: false,
+            pending: Pending::default(),
+            history,
+            retired,
         };
         store.adopt_orphans()?;
         Ok(store)
@@ -148,7 +150,11 @@ impl Spool {
         for entry in std::fs::read_dir(&jobs_dir).map_err(io_err(&jobs_dir, "list"))? {
             let entry = entry.map_err(io_err(&jobs_dir, "list"))?;
             let id = entry.file_name().to_string_lossy().into_owned();
-            if self.jobs.contains_key(&id) || !entry.path().is_dir() || seq_of_id(&id).is_none() {
+            if self.jobs.contains_key(&id)
+                || self.retired.contains(&id)
+                || seq_of_id(&id).is_none()
+                || !entry.path().is_dir()
+            {
                 continue;
             }
             orphans.push((id, entry.path()));
@@ -235,9 +241,13 @@ impl Spool {
     }
 
     pub fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
-        self.gates.insert(printer.to_string(), gate);
+        self.gates.insert(printer.to_string(), gate.clone());
         let written = self.save_gates();
-        self.gates_unwritten = written.is_err();
+        match &written {
+            // One file holds every gate: all kept ones are written with it.
+            Ok(()) => self.pending.gate_written(printer),
+            Err(_) => self.pending.keep_gate(printer, gate),
+        }
         written
     }
 
@@ -369,38 +379,37 @@ impl Spool {
         reason: Option<String>,
         also: impl FnOnce(&mut Job),
     ) -> Result<Job, StoreError> {
-        let mut job = self
+        let current = self
             .jobs
             .get(id)
-            .cloned()
             .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
-        job.apply_transition(state, reason, also)?;
+        let (from, job) = super::pending::outcome(current, state, reason, also)?;
         self.jobs.insert(id.to_string(), job.clone());
         if let Err(e) = self.save(&job) {
             tracing::error!(job = id, error = %e, "cannot write the job's state; kept in memory and written again when possible");
-            self.unwritten.insert(id.to_string());
+            self.pending.keep_outcome(from, job.clone());
         }
         Ok(job)
     }
 
-    /// Writes the jobs whose state could not be written before; returns how many remain.
+    /// Writes the outcomes and gates that could not be written before; returns how many
+    /// remain.
     pub fn write_pending(&mut self) -> usize {
-        let ids: Vec<String> = self.unwritten.iter().cloned().collect();
-        for id in ids {
-            let written = match self.jobs.get(&id) {
-                Some(job) => self.save(job).is_ok() || !self.job_dir(&id).is_dir(),
-                None => true,
-            };
-            if written {
-                tracing::info!(job = %id, "job state written after all");
-                self.unwritten.remove(&id);
-            }
-        }
-        if self.gates_unwritten && self.save_gates().is_ok() {
-            tracing::info!("bed gates written after all");
-            self.gates_unwritten = false;
-        }
-        self.unwritten.len() + usize::from(self.gates_unwritten)
+        let mut pending = std::mem::take(&mut self.pending);
+        pending.write(
+            |id, _, job| match self.save(job) {
+                Ok(()) => Attempt::Written(None),
+                // Removed by hand: there is nowhere to write it.
+                Err(_) if !self.job_dir(id).is_dir() => Attempt::Dropped,
+                Err(_) => Attempt::Failed,
+            },
+            |_, _| match self.save_gates() {
+                Ok(()) => Attempt::Written(None),
+                Err(_) => Attempt::Failed,
+            },
+        );
+        self.pending = pending;
+        self.pending.len()
     }
 
     /// Applies `change` to a job's other fields and persists it; its state stays (only
@@ -425,9 +434,7 @@ impl Spool {
             .cloned()
             .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
         change(&mut job)?;
-        if let Err(e) = self.save(&job).inspect(|_| {
-            self.unwritten.remove(id);
-        }) {
+        if let Err(e) = self.save(&job).inspect(|_| self.pending.written(id)) {
             let dir = self.job_dir(id);
             if dir.is_dir() {
                 return Err(e);
@@ -452,6 +459,9 @@ impl Spool {
 
     /// Puts a failed, cancelled or interrupted job back in the queue.
     pub fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+        if let Some(retired) = self.retired_job(id)? {
+            return Err(super::retired_refusal(id, retired.record.state, "retry"));
+        }
         let job = self
             .jobs
             .get(id)
@@ -469,20 +479,50 @@ impl Spool {
         // after a cancelled or interrupted print means, and slicing again would give a
         // slightly different program (PrusaSlicer's output varies from run to run).
         let dir = self.job_dir(id);
-        let legacy =
-            std::iter::once(format!("{}.gcode", job.file)).filter(|_| job.machines.is_empty());
-        let made = job.machines.values().filter_map(|m| match m {
-            ForMachine::Gcode(file) => Some(file.clone()),
-            ForMachine::Refused(_) => None,
-        });
-        let prepared =
-            job.slice_report.is_some() && legacy.chain(made).any(|f| dir.join(f).is_file());
+        let prepared = super::prepared(job, |name| dir.join(name).is_file());
         let state = if prepared {
             JobState::Ready
         } else {
             JobState::Queued
         };
         self.transition_with(id, state, None, |j| j.printer = None)
+    }
+}
+
+impl Spool {
+    /// Moves the finished jobs `retention` no longer keeps live to the history: their
+    /// records are appended and synced first, then they leave the live jobs. Returns
+    /// their ids (at most [`history::BATCH`]).
+    pub fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+        let pending = &self.pending;
+        let ids = history::to_retire(self.jobs.values(), retention, now, &|id| {
+            pending.has_outcome(id)
+        });
+        if ids.is_empty() {
+            return Ok(ids);
+        }
+        let records: Vec<Retired> = ids
+            .iter()
+            .map(|id| Retired::of(&self.jobs[id], self.job_dir(id), now))
+            .collect();
+        self.history.append(&records, now)?;
+        for id in &ids {
+            self.jobs.remove(id);
+            self.retired.insert(id.clone());
+        }
+        Ok(ids)
+    }
+
+    /// A retired job: its history record, and its whole state from its directory.
+    pub fn retired_job(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        if !self.retired.contains(id) {
+            return Ok(None);
+        }
+        let Some(record) = self.history.find(id)? else {
+            return Ok(None);
+        };
+        let job = load_job(&self.job_dir(id)).ok().flatten();
+        Ok(Some(RetiredJob { record, job }))
     }
 }
 
@@ -553,7 +593,16 @@ impl JobStore for Spool {
         Spool::write_pending(self)
     }
     fn unwritten(&self) -> usize {
-        self.unwritten.len() + usize::from(self.gates_unwritten)
+        self.pending.len()
+    }
+    fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+        Spool::retire(self, retention, now)
+    }
+    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        self.retired_job(id)
+    }
+    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError> {
+        Ok(history::page_of(self.history.records()?, before, limit))
     }
 }
 
@@ -609,8 +658,7 @@ pub(super) fn late_sidecar_name(file: &str, applies: bool) -> String {
 }
 
 fn is_reserved_name(name: &str) -> bool {
-    matches!(name, "job.json" | "origin.json" | "job.tmp" | "origin.tmp")
-        || name.starts_with(".crispen-")
+    matches!(name, "job.json" | "origin.json") || name.starts_with(".crispen-")
 }
 
 /// The sequence number of a well-formed job id (`<digits>-<letters, digits, -, _>`), as
@@ -686,21 +734,10 @@ pub(super) fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
     match std::fs::rename(from, to) {
         Ok(()) => Ok(()),
         Err(e) if e.raw_os_error() == Some(nix::libc::EXDEV) => {
-            let mut tmp_name = std::ffi::OsString::from(".crispen-copy-");
-            tmp_name.push(to.file_name().unwrap_or_default());
-            let tmp = to.with_file_name(tmp_name);
-            let copied = std::fs::copy(from, &tmp)
-                .map_err(io_err(to, "copy into spool"))
-                .and_then(|_| {
-                    std::fs::File::open(&tmp)
-                        .and_then(|f| f.sync_all())
-                        .map_err(io_err(&tmp, "fsync"))
-                })
-                .and_then(|_| std::fs::rename(&tmp, to).map_err(io_err(to, "rename into place")));
-            if copied.is_err() {
-                let _ = std::fs::remove_file(&tmp);
-            }
-            copied?;
+            let mut source = std::fs::File::open(from).map_err(io_err(from, "read"))?;
+            crate::fsutil::write_atomic_with(to, |file| {
+                std::io::copy(&mut source, file).map(|_| ())
+            })?;
             std::fs::remove_file(from).map_err(io_err(from, "remove after copying"))
         }
         Err(e) => Err(io_err(from, "move")(e)),
@@ -710,6 +747,7 @@ pub(super) fn move_file(from: &Path, to: &Path) -> Result<(), StoreError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::io::Write;
 
     /// A temporary folder holding a hot folder `hot` and a spool `spool`, opened.
     fn open_with_hot_folder() -> (tempfile::TempDir, PathBuf, PathBuf, Spool) {
@@ -1032,7 +1070,7 @@ mod tests {
     /// Makes every later write of this job's state fail, as a full disk would: the
     /// temporary file's name is taken by a directory.
     fn block_writes(store: &Spool, id: &str) -> PathBuf {
-        let blocker = store.job_dir(id).join("job.tmp");
+        let blocker = crate::fsutil::temp_path(&store.job_dir(id).join("job.json"));
         std::fs::create_dir_all(&blocker).unwrap();
         blocker
     }
@@ -1083,5 +1121,136 @@ mod tests {
         assert_eq!(store.write_pending(), 0);
         let written = on_disk(&store);
         assert_eq!((written.state, written.copies_done), (JobState::Done, 1));
+    }
+
+    /// A spool with `n` jobs that went to `state` one after another, `gap` seconds apart
+    /// ending `ago` seconds before `now`; returns their ids, oldest first.
+    fn finished_jobs(store: &mut Spool, hot: &Path, n: usize, state: JobState) -> Vec<String> {
+        (0..n)
+            .map(|i| {
+                let id = store
+                    .admit(&drop_file(hot, &format!("m{i}.stl")), hot)
+                    .unwrap()
+                    .id;
+                store.transition(&id, state, Some("over".into())).unwrap();
+                id
+            })
+            .collect()
+    }
+
+    fn retention(days: u64, jobs: usize) -> Retention {
+        Retention {
+            live_for: std::time::Duration::from_secs(days * 86_400),
+            live_jobs: jobs,
+        }
+    }
+
+    /// Finished jobs beyond the count, and all of them once old enough, leave the live
+    /// jobs for the history; their directories stay; after a restart they are still in
+    /// the history (once each) and not live; active jobs never move.
+    #[test]
+    fn finished_jobs_move_to_the_history_and_stay_there() {
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
+        let done = finished_jobs(&mut store, &hot, 5, JobState::Cancelled);
+        let active = store
+            .admit(&drop_file(&hot, "active.stl"), &hot)
+            .unwrap()
+            .id;
+        let now = now_s();
+        let moved = store.retire(&retention(7, 3), now).unwrap();
+        assert_eq!(moved, done[..2].to_vec(), "the oldest beyond three");
+        assert!(store.get(&done[0]).is_none() && store.get(&done[2]).is_some());
+        assert!(
+            store.job_dir(&done[0]).join("m0.stl").is_file(),
+            "files stay"
+        );
+        assert!(store.retire(&retention(7, 3), now).unwrap().is_empty());
+
+        // A week later every finished job is old enough; the active one stays.
+        let moved = store
+            .retire(&retention(7, 3), now + 8.0 * 86_400.0)
+            .unwrap();
+        assert_eq!(moved, done[2..].to_vec());
+        assert_eq!(
+            store.jobs().map(|j| j.id.clone()).collect::<Vec<_>>(),
+            std::slice::from_ref(&active)
+        );
+
+        drop(store);
+        let store = Spool::open(&spool).unwrap();
+        assert_eq!(store.jobs().count(), 1);
+        let page = JobStore::history(&store, None, 100).unwrap();
+        let mut ids: Vec<String> = page.jobs.iter().map(|r| r.id.clone()).collect();
+        ids.reverse();
+        assert_eq!(ids, done);
+        let retired = store
+            .retired_job(&done[3])
+            .unwrap()
+            .expect("retired job found");
+        assert_eq!(retired.record.state, JobState::Cancelled);
+        assert_eq!(retired.record.dir, store.job_dir(&done[3]));
+        assert_eq!(retired.job.unwrap().reason.as_deref(), Some("over"));
+        assert!(store.retired_job(&active).unwrap().is_none());
+        // The history is not the queue.
+        let mut store = store;
+        let err = store.retry(&done[3]).unwrap_err();
+        assert!(matches!(err, StoreError::WrongState { .. }), "{err}");
+        assert!(err.to_string().contains("history"), "{err}");
+        // New jobs continue the numbering past the retired ones.
+        let next = store.admit(&drop_file(&hot, "next.stl"), &hot).unwrap();
+        assert_eq!(next.seq, 7);
+    }
+
+    /// A crash after the history was written but before the jobs left the live ones:
+    /// after the restart each job is in the history once and not live. A crash in the
+    /// middle of writing a line: that job was not retired, is live, and is retired again
+    /// (once).
+    #[test]
+    fn a_crash_while_retiring_loses_nothing_and_shows_nothing_twice() {
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
+        let done = finished_jobs(&mut store, &hot, 3, JobState::Failed);
+        let now = now_s();
+        // Written, then "killed" before the jobs left the live ones.
+        let records: Vec<Retired> = done[..2]
+            .iter()
+            .map(|id| Retired::of(store.get(id).unwrap(), store.job_dir(id), now))
+            .collect();
+        store.history.append(&records, now).unwrap();
+        drop(store);
+        // And a line cut short, for the third.
+        let file = spool
+            .join("history")
+            .join(format!("{}.jsonl", history::month_of(now)));
+        let third = serde_json::to_string(&Retired::of(
+            &Spool::open(&spool).unwrap().get(&done[2]).unwrap().clone(),
+            PathBuf::new(),
+            now,
+        ))
+        .unwrap();
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&file)
+            .unwrap();
+        f.write_all(&third.as_bytes()[..third.len() / 2]).unwrap();
+        drop(f);
+
+        let mut store = Spool::open(&spool).unwrap();
+        let live: Vec<String> = store.jobs().map(|j| j.id.clone()).collect();
+        assert_eq!(live, [done[2].clone()], "the cut line's job is live");
+        assert!(std::fs::read(&file).unwrap().ends_with(b"\n"), "mended");
+        assert_eq!(
+            store.retire(&retention(7, 0), now).unwrap(),
+            [done[2].clone()]
+        );
+        drop(store);
+        let store = Spool::open(&spool).unwrap();
+        assert_eq!(store.jobs().count(), 0);
+        let page = JobStore::history(&store, None, 100).unwrap();
+        let ids: Vec<&str> = page.jobs.iter().map(|r| r.id.as_str()).collect();
+        assert_eq!(
+            ids,
+            [&done[2], &done[1], &done[0]],
+            "each once, newest first"
+        );
     }
 }

@@ -116,6 +116,14 @@ pub struct PgStore {
     displaced: std::sync::Arc<std::sync::atomic::AtomicBool>,
 }
 
+/// What [`PgStore::jobs_since`] found.
+#[derive(Debug, Default)]
+pub struct Changes {
+    pub jobs: Vec<Job>,
+    pub retired: Vec<String>,
+    pub now: f64,
+}
+
 /// What a lease expiry did, for the log.
 #[derive(Debug, Default, PartialEq)]
 pub struct Expired {
@@ -181,6 +189,14 @@ impl Change<'_> {
 
 /// A file a job may not have in the database: the column holds at most 1 GiB.
 pub const MAX_FILE_BYTES: u64 = 1 << 30;
+
+/// A file stored with a job: small ones given whole, others read from their path as they
+/// are sent, never whole in memory.
+#[derive(Debug, Clone, Copy)]
+pub enum FileBody<'a> {
+    Bytes(&'a [u8]),
+    Path(&'a Path),
+}
 
 /// Checks the connection string (no password in it) and builds the client settings, with
 /// the password from `password_file` or `PGPASSWORD`.
@@ -456,7 +472,7 @@ impl PgStore {
         file: &str,
         folder: &str,
         printers: &[String],
-        files: &[(&str, &[u8])],
+        files: &[(&str, FileBody<'_>)],
     ) -> Result<Job, PgError> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
@@ -489,12 +505,17 @@ impl PgStore {
             ],
         )
         .await?;
-        for (name, bytes) in files {
-            tx.execute(
-                "INSERT INTO job_files (job_id, name, bytes) VALUES ($1, $2, $3)",
-                &[&job.id, name, bytes],
-            )
-            .await?;
+        for (name, body) in files {
+            match body {
+                FileBody::Bytes(bytes) => {
+                    tx.execute(
+                        "INSERT INTO job_files (job_id, name, bytes) VALUES ($1, $2, $3)",
+                        &[&job.id, name, bytes],
+                    )
+                    .await?;
+                }
+                FileBody::Path(path) => copy_file_in(&tx, &job.id, name, path).await?,
+            }
         }
         tx.execute(
             "INSERT INTO job_history (job_id, state, host) VALUES ($1, 'queued', $2)",
@@ -612,6 +633,10 @@ impl PgStore {
             .into());
         };
         let mut job = job_of_row(&row)?;
+        if row.get::<_, Option<f64>>(RETIRED_COLUMN).is_some() {
+            // The history is not the queue: a host that had not yet seen it retired.
+            return Err(super::retired_refusal(id, job.state, "a change").into());
+        }
         let holder: Option<String> = row.get(JOB_COLUMN_COUNT);
         let mine = holder.as_deref() == Some(self.host.as_str());
         super::check_from(&job, change.from)?;
@@ -910,15 +935,91 @@ impl PgStore {
         load_jobs(&**client, Only::All).await
     }
 
-    /// The jobs changed since `since` (seconds since the epoch, by the database's clock),
-    /// and the database's time now, for the next call.
-    pub async fn jobs_since(&self, since: f64) -> Result<(Vec<Job>, f64), PgError> {
+    /// The live jobs changed since `since` (seconds since the epoch, by the database's
+    /// clock), the jobs retired since then, and the database's time now, for the next call.
+    pub async fn jobs_since(&self, since: f64) -> Result<Changes, PgError> {
         let client = self.client().await?;
         let now: f64 = client
             .query_one("SELECT extract(epoch FROM now())::float8", &[])
             .await?
             .get(0);
-        Ok((load_jobs(&**client, Only::Since(since)).await?, now))
+        let retired = ids(client
+            .query(
+                "SELECT id FROM jobs WHERE retired_at >= to_timestamp($1)",
+                &[&since],
+            )
+            .await?);
+        Ok(Changes {
+            jobs: load_jobs(&**client, Only::Since(since)).await?,
+            retired,
+            now,
+        })
+    }
+
+    /// Marks the jobs `ids` retired, those still finished and live (another host may have
+    /// retried or retired one meanwhile); returns the ones it marked.
+    pub async fn retire(&self, wanted: &[String]) -> Result<Vec<String>, PgError> {
+        let mut client = self.client().await?;
+        let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
+        let finished: Vec<&str> = JobState::ALL
+            .into_iter()
+            .filter(|s| super::history::is_finished(*s))
+            .map(JobState::name)
+            .collect();
+        let retired = ids(tx
+            .query(
+                "UPDATE jobs SET retired_at = now(), updated_at = now() \
+                 WHERE id = ANY($1) AND retired_at IS NULL AND state = ANY($2) RETURNING id",
+                &[&wanted, &finished],
+            )
+            .await?);
+        tx.commit().await?;
+        Ok(retired)
+    }
+
+    /// A page of the farm's history, newest first: retired jobs below `before`, with the
+    /// time each was retired.
+    pub async fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+    ) -> Result<Vec<(Job, f64)>, PgError> {
+        let client = self.client().await?;
+        let before = before.map_or(i64::MAX, |b| b.min(i64::MAX as u64) as i64);
+        let rows = client
+            .query(
+                "SELECT id, extract(epoch FROM retired_at)::float8 FROM jobs \
+                 WHERE retired_at IS NOT NULL AND seq < $1 ORDER BY seq DESC LIMIT $2",
+                &[&before, &(limit as i64)],
+            )
+            .await?;
+        let when: std::collections::HashMap<String, f64> =
+            rows.iter().map(|r| (r.get(0), r.get(1))).collect();
+        let page: Vec<String> = rows.iter().map(|r| r.get(0)).collect();
+        let mut jobs = load_jobs(&**client, Only::Ids(&page)).await?;
+        jobs.sort_by_key(|j| std::cmp::Reverse(j.seq));
+        Ok(jobs
+            .into_iter()
+            .map(|j| {
+                let at = when.get(&j.id).copied().unwrap_or(0.0);
+                (j, at)
+            })
+            .collect())
+    }
+
+    /// A retired job and when it was retired; None when `id` is live or unknown.
+    pub async fn retired_job(&self, id: &str) -> Result<Option<(Job, f64)>, PgError> {
+        let client = self.client().await?;
+        let row = client
+            .query_opt(
+                "SELECT extract(epoch FROM retired_at)::float8 FROM jobs \
+                 WHERE id = $1 AND retired_at IS NOT NULL",
+                &[&id],
+            )
+            .await?;
+        let Some(row) = row else { return Ok(None) };
+        Ok(Some((one_job(&**client, id).await?, row.get(0))))
     }
 }
 
@@ -964,7 +1065,8 @@ async fn upload_missing(
         let entry = entry.map_err(file_err("."))?;
         let name = entry.file_name().to_string_lossy().into_owned();
         let meta = entry.metadata().map_err(file_err(&name))?;
-        if !meta.is_file() || have.contains(&name) || name.ends_with(".tmp") {
+        let temporary = name.ends_with(".tmp") || name.starts_with(crate::fsutil::TEMP_PREFIX);
+        if !meta.is_file() || have.contains(&name) || temporary {
             continue;
         }
         if meta.len() > MAX_FILE_BYTES {
@@ -973,14 +1075,147 @@ async fn upload_missing(
                 meta.len()
             ))));
         }
-        let bytes = std::fs::read(entry.path()).map_err(file_err(&name))?;
-        tx.execute(
-            "INSERT INTO job_files (job_id, name, bytes) VALUES ($1, $2, $3)",
-            &[&id, &name, &bytes],
-        )
-        .await?;
+        copy_file_in(tx, id, &name, &entry.path()).await?;
     }
     Ok(())
+}
+
+/// The header of PostgreSQL's binary COPY format: signature, flags, extension length.
+const COPY_HEADER: &[u8] = b"PGCOPY\n\xff\r\n\0\0\0\0\0\0\0\0\0";
+
+/// Stores the file at `path` as job `id`'s file `name` with `COPY … FROM STDIN` in the
+/// binary format, sending it in pieces as it is read: a G-code file of hundreds of MB is
+/// never whole in this process's memory.
+async fn copy_file_in(
+    tx: &tokio_postgres::Transaction<'_>,
+    id: &str,
+    name: &str,
+    path: &Path,
+) -> Result<(), PgError> {
+    use futures_util::SinkExt;
+    use std::io::Read;
+    let file_err = |source| PgError::File {
+        id: id.to_string(),
+        name: name.to_string(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(file_err)?;
+    let len = file.metadata().map_err(file_err)?.len();
+    if len > MAX_FILE_BYTES {
+        return Err(file_err(std::io::Error::other(format!(
+            "{len} bytes, more than the farm database keeps ({MAX_FILE_BYTES})"
+        ))));
+    }
+    let sink = tx
+        .copy_in::<_, bytes::Bytes>(
+            "COPY job_files (job_id, name, bytes) FROM STDIN (FORMAT binary)",
+        )
+        .await?;
+    futures_util::pin_mut!(sink);
+    // One row of three fields, each its length then its bytes; then the trailer.
+    let mut head = COPY_HEADER.to_vec();
+    head.extend_from_slice(&3i16.to_be_bytes());
+    for text in [id, name] {
+        head.extend_from_slice(&(text.len() as i32).to_be_bytes());
+        head.extend_from_slice(text.as_bytes());
+    }
+    head.extend_from_slice(&(len as i32).to_be_bytes());
+    sink.send(bytes::Bytes::from(head)).await?;
+    let mut reader = file.take(len);
+    let mut sent = 0u64;
+    loop {
+        let mut piece = vec![0u8; 1 << 20];
+        let n = reader.read(&mut piece).map_err(file_err)?;
+        if n == 0 {
+            break;
+        }
+        piece.truncate(n);
+        sent += n as u64;
+        sink.send(bytes::Bytes::from(piece)).await?;
+    }
+    if sent != len {
+        // The file shrank while it was read: the row would not match its length.
+        return Err(file_err(std::io::Error::other(format!(
+            "changed while it was stored ({sent} of {len} bytes read)"
+        ))));
+    }
+    sink.send(bytes::Bytes::copy_from_slice(&(-1i16).to_be_bytes()))
+        .await?;
+    sink.as_mut().finish().await?;
+    Ok(())
+}
+
+/// Writes job `id`'s file `name` to `to` with `COPY … TO STDOUT` in the binary format,
+/// piece by piece as it arrives, atomically (see [`crate::fsutil`]).
+async fn copy_file_out(
+    tx: &tokio_postgres::Transaction<'_>,
+    id: &str,
+    name: &str,
+    to: &Path,
+) -> Result<(), PgError> {
+    use futures_util::StreamExt;
+    use std::io::Write;
+    let file_err = |source| PgError::File {
+        id: id.to_string(),
+        name: name.to_string(),
+        source,
+    };
+    let corrupt = |message: &str| PgError::Corrupt {
+        id: id.to_string(),
+        what: "file",
+        message: format!("{name}: {message}"),
+    };
+    let query = format!(
+        "COPY (SELECT bytes FROM job_files WHERE job_id = {} AND name = {}) TO STDOUT (FORMAT binary)",
+        quote_literal(id),
+        quote_literal(name)
+    );
+    let stream = tx.copy_out(&query).await?;
+    futures_util::pin_mut!(stream);
+    let mut out =
+        crate::fsutil::AtomicFile::create(to).map_err(|e| file_err(std::io::Error::from(e)))?;
+    // Header, field count and length first; then the bytes, up to the trailer.
+    const START: usize = COPY_HEADER.len() + 2 + 4;
+    let mut head: Vec<u8> = Vec::new();
+    let mut left: Option<u64> = None;
+    let mut rows = 0;
+    while let Some(piece) = stream.next().await {
+        let piece = piece?;
+        let data: &[u8] = match left {
+            Some(_) => &piece,
+            None => {
+                head.extend_from_slice(&piece);
+                if head.len() < START {
+                    continue;
+                }
+                if !head.starts_with(&COPY_HEADER[..11]) {
+                    return Err(corrupt("not a binary COPY answer"));
+                }
+                let size = i32::from_be_bytes([head[21], head[22], head[23], head[24]]);
+                if size < 0 || size as u64 > MAX_FILE_BYTES {
+                    return Err(corrupt("bad length"));
+                }
+                rows += 1;
+                left = Some(size as u64);
+                &head[START..]
+            }
+        };
+        let want = left.unwrap_or(0);
+        let take = (data.len() as u64).min(want) as usize;
+        out.file().write_all(&data[..take]).map_err(file_err)?;
+        left = Some(want - take as u64);
+    }
+    if rows != 1 || left != Some(0) {
+        return Err(corrupt("missing or cut short"));
+    }
+    out.commit()
+        .map_err(|e| file_err(std::io::Error::from(e)))?;
+    Ok(())
+}
+
+/// `text` as an SQL string literal (COPY takes no parameters).
+fn quote_literal(text: &str) -> String {
+    format!("'{}'", text.replace('\'', "''"))
 }
 
 /// Writes the job's files that `dir` lacks (only its G-code with `only_gcode`).
@@ -1004,15 +1239,7 @@ async fn download_missing(
         if !plain || (only_gcode && !name.ends_with(".gcode")) || dir.join(&name).exists() {
             continue;
         }
-        let bytes: Vec<u8> = tx
-            .query_one(
-                "SELECT bytes FROM job_files WHERE job_id = $1 AND name = $2",
-                &[&id, &name],
-            )
-            .await?
-            .get(0);
-        super::spool::write_atomic(&dir.join(&name), &bytes)
-            .map_err(|e| file_err(&name)(std::io::Error::other(e.to_string())))?;
+        copy_file_out(tx, id, &name, &dir.join(&name)).await?;
     }
     Ok(())
 }
@@ -1028,13 +1255,17 @@ fn record_of(job: &Job) -> serde_json::Value {
 enum Only<'a> {
     All,
     One(&'a str),
+    /// The live jobs changed since then.
     Since(f64),
+    Ids(&'a [String]),
 }
 
 const JOB_COLUMNS: &str = "SELECT id, seq, file, folder, state, printer, reason, record, \
-    origin_host, printers, claimed_by FROM jobs";
+    origin_host, printers, claimed_by, extract(epoch FROM retired_at)::float8 FROM jobs";
 /// Where `claimed_by` is in [`JOB_COLUMNS`].
 const JOB_COLUMN_COUNT: usize = 10;
+/// Where the time it was retired is in [`JOB_COLUMNS`] (NULL: a live job).
+const RETIRED_COLUMN: usize = 11;
 
 /// Jobs with their history, read on `client` (a connection a caller already holds, so a
 /// call never waits on the pool for a second one).
@@ -1057,10 +1288,27 @@ async fn load_jobs(client: &impl GenericClient, only: Only<'_>) -> Result<Vec<Jo
                 .await?,
             client.query(&format!("{HISTORY} ORDER BY at"), &[]).await?,
         ),
+        Only::Ids(ids) => (
+            client
+                .query(
+                    &format!("{JOB_COLUMNS} WHERE id = ANY($1) ORDER BY seq"),
+                    &[&ids],
+                )
+                .await?,
+            client
+                .query(
+                    &format!("{HISTORY} WHERE job_id = ANY($1) ORDER BY at"),
+                    &[&ids],
+                )
+                .await?,
+        ),
         Only::Since(since) => {
             let rows = client
                 .query(
-                    &format!("{JOB_COLUMNS} WHERE updated_at >= to_timestamp($1) ORDER BY seq"),
+                    &format!(
+                        "{JOB_COLUMNS} WHERE updated_at >= to_timestamp($1) \
+                         AND retired_at IS NULL ORDER BY seq"
+                    ),
                     &[&since],
                 )
                 .await?;

@@ -98,6 +98,12 @@ const MIGRATIONS: &[&str] = &[
     r#"
     ALTER TABLE hosts ADD COLUMN token text;
     "#,
+    // 4: finished jobs leave the live queue for the history (issue 22): the row stays,
+    // marked with when it was retired; hosts keep only the live ones in memory.
+    r#"
+    ALTER TABLE jobs ADD COLUMN retired_at timestamptz;
+    CREATE INDEX jobs_history ON jobs (seq) WHERE retired_at IS NOT NULL;
+    "#,
 ];
 
 /// The newest schema version this binary knows.

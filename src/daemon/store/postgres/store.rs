@@ -12,11 +12,14 @@
 //! farm has not moved the job on meanwhile; everything else fails with
 //! [`StoreError::Database`], so nothing new is claimed.
 
-use super::{Change, PgError, PgStore, MAX_FILE_BYTES};
+use super::{Change, FileBody, PgError, PgStore, MAX_FILE_BYTES};
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
+use crate::daemon::store::history::{self, Retention, Retired};
+use crate::daemon::store::pending::{Attempt, Pending};
 use crate::daemon::store::spool::{
     io_err, late_sidecar_name, lock_dir, model_name, move_file, regular_file_size,
 };
+use crate::daemon::store::RetiredJob;
 use crate::daemon::store::{JobEdit, JobStore, StateFilter};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -32,10 +35,8 @@ pub struct PgJobStore {
     jobs_dir: PathBuf,
     jobs: BTreeMap<String, Job>,
     gates: BTreeMap<String, PrinterGate>,
-    /// Outcomes recorded while the database was unreachable: the state the job was in,
-    /// and the job as this host left it.
-    pending: BTreeMap<String, (JobState, Job)>,
-    pending_gates: BTreeMap<String, PrinterGate>,
+    /// Outcomes recorded, and bed gates set, while the database was unreachable.
+    pending: Pending,
     /// The database's time of the last resync.
     synced_to: f64,
     /// The last call found the database unreachable: until a resync reaches it again,
@@ -65,7 +66,8 @@ impl PgJobStore {
     /// is) and every job and gate of the farm.
     pub async fn open(db: PgStore, spool_dir: &Path) -> Result<PgJobStore, StoreError> {
         let lock = lock_dir(spool_dir)?;
-        let (jobs, synced_to) = db.jobs_since(f64::NEG_INFINITY).await?;
+        let changes = db.jobs_since(f64::NEG_INFINITY).await?;
+        let (jobs, synced_to) = (changes.jobs, changes.now);
         let gates = db.gates().await?;
         Ok(PgJobStore {
             rt: tokio::runtime::Handle::current(),
@@ -73,8 +75,7 @@ impl PgJobStore {
             jobs_dir: spool_dir.join("jobs"),
             jobs: jobs.into_iter().map(|j| (j.id.clone(), j)).collect(),
             gates,
-            pending: BTreeMap::new(),
-            pending_gates: BTreeMap::new(),
+            pending: Pending::default(),
             synced_to,
             unreachable: None,
             db,
@@ -193,16 +194,11 @@ impl JobStore for PgJobStore {
         sidecar.push(".toml");
         let sidecar = PathBuf::from(sidecar);
         let sidecar_name = format!("{file}.toml");
-        let model = std::fs::read(source).map_err(io_err(source, "read"))?;
-        let sidecar_bytes = match std::fs::symlink_metadata(&sidecar) {
-            Ok(meta) if meta.is_file() => {
-                Some(std::fs::read(&sidecar).map_err(io_err(&sidecar, "read"))?)
-            }
-            _ => None,
-        };
-        let mut files: Vec<(&str, &[u8])> = vec![(&file, &model)];
-        if let Some(bytes) = &sidecar_bytes {
-            files.push((&sidecar_name, bytes));
+        // Read as they are stored, never whole in memory (a model may be large).
+        let has_sidecar = std::fs::symlink_metadata(&sidecar).is_ok_and(|m| m.is_file());
+        let mut files = vec![(file.as_str(), FileBody::Path(source))];
+        if has_sidecar {
+            files.push((&sidecar_name, FileBody::Path(&sidecar)));
         }
         let folder_name = folder.to_string_lossy();
         let db = self.db.clone();
@@ -212,7 +208,7 @@ impl JobStore for PgJobStore {
         // never picked up twice.
         let dir = self.job_dir(&job.id);
         let mut moves = vec![(source.to_path_buf(), dir.join(&file))];
-        if sidecar_bytes.is_some() {
+        if has_sidecar {
             moves.push((sidecar, dir.join(&sidecar_name)));
         }
         let _ = std::fs::create_dir_all(&dir);
@@ -280,9 +276,8 @@ impl JobStore for PgJobStore {
         also: JobEdit,
     ) -> Result<Job, StoreError> {
         // Worked out here first: the outcome stands even if the database cannot take it now.
-        let mut after = self.cached(id)?.clone();
-        let from = after.state;
-        after.apply_transition(state, reason.clone(), also)?;
+        let (from, after) =
+            crate::daemon::store::pending::outcome(self.cached(id)?, state, reason.clone(), also)?;
         let change = Change {
             from: Some(only(from)),
             to: Some(state),
@@ -299,7 +294,7 @@ impl JobStore for PgJobStore {
             }
             Err(e) if e.is_outage() => {
                 tracing::error!(job = id, error = %e, "cannot record the outcome in the farm database; kept here and written once it is back");
-                self.pending.insert(id.to_string(), (from, after.clone()));
+                self.pending.keep_outcome(from, after.clone());
                 self.jobs.insert(id.to_string(), after.clone());
                 Ok(after)
             }
@@ -325,6 +320,15 @@ impl JobStore for PgJobStore {
     fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
         const FINISHED: StateFilter =
             &[JobState::Failed, JobState::Cancelled, JobState::Interrupted];
+        if !self.jobs.contains_key(id) {
+            if let Some(retired) = self.retired(id)? {
+                return Err(crate::daemon::store::retired_refusal(
+                    id,
+                    retired.record.state,
+                    "retry",
+                ));
+            }
+        }
         let job = self.cached(id)?.clone();
         if !FINISHED.contains(&job.state) {
             return Err(StoreError::WrongState {
@@ -336,12 +340,7 @@ impl JobStore for PgJobStore {
         }
         // As in the spool: a prepared job keeps its G-code and is printed again as it was.
         let names = self.block(self.db.file_names(id))?;
-        let prepared = job.slice_report.is_some()
-            && job
-                .machines
-                .keys()
-                .filter_map(|m| job.gcode_for(m))
-                .any(|f| names.contains(&f));
+        let prepared = super::super::prepared(&job, |name| names.iter().any(|n| n == name));
         let state = if prepared {
             JobState::Ready
         } else {
@@ -357,14 +356,14 @@ impl JobStore for PgJobStore {
         let db = self.db.clone();
         match self.reach(db.set_gate(printer, &gate)) {
             Ok(()) => {
-                self.pending_gates.remove(printer);
+                self.pending.gate_written(printer);
                 self.gates.insert(printer.to_string(), gate);
                 Ok(())
             }
             Err(e) if e.is_outage() && gate.bed_not_cleared => {
                 // A print ended: its bed must still need clearing after the outage.
                 tracing::error!(printer, error = %e, "cannot record the bed gate in the farm database; kept here and written once it is back");
-                self.pending_gates.insert(printer.to_string(), gate.clone());
+                self.pending.keep_gate(printer, gate.clone());
                 self.gates.insert(printer.to_string(), gate);
                 Ok(())
             }
@@ -374,47 +373,81 @@ impl JobStore for PgJobStore {
 
     fn write_pending(&mut self) -> usize {
         // Tried whatever the last call found: this is how an outage is found to be over.
-        let mut outage = false;
-        for (id, (from, job)) in std::mem::take(&mut self.pending) {
-            if outage {
-                self.pending.insert(id, (from, job));
-                continue;
-            }
-            match self.block(self.db.write_outcome(&job, from)) {
-                Ok(written) => {
-                    tracing::info!(job = %id, state = written.state.name(), "outcome written to the farm database after all");
-                    self.jobs.insert(id, written);
-                }
-                Err(e) if e.is_outage() => {
-                    outage = true;
-                    self.pending.insert(id, (from, job));
-                }
+        let mut pending = std::mem::take(&mut self.pending);
+        let db = self.db.clone();
+        let written = pending.write(
+            |_, from, job| match self.block(db.write_outcome(job, from)) {
+                Ok(written) => Attempt::Written(Some(Box::new(written))),
+                Err(e) if e.is_outage() => Attempt::Unreachable,
                 Err(e) => {
-                    tracing::warn!(job = %id, error = %e, "an outcome kept during the outage was not written: the farm moved the job on");
-                    self.reread(&id);
+                    tracing::warn!(job = %job.id, error = %e, "the farm moved the job on during the outage");
+                    Attempt::Dropped
                 }
-            }
+            },
+            |printer, gate| match self.block(db.set_gate(printer, gate)) {
+                Ok(()) => Attempt::Written(None),
+                Err(e) if e.is_outage() => Attempt::Unreachable,
+                Err(_) => Attempt::Dropped,
+            },
+        );
+        self.pending = pending;
+        for job in written.jobs {
+            self.jobs.insert(job.id.clone(), job);
         }
-        for (printer, gate) in std::mem::take(&mut self.pending_gates) {
-            if outage {
-                self.pending_gates.insert(printer, gate);
-                continue;
-            }
-            if let Err(e) = self.block(self.db.set_gate(&printer, &gate)) {
-                if e.is_outage() {
-                    outage = true;
-                    self.pending_gates.insert(printer, gate);
-                }
-            }
+        for id in written.dropped {
+            self.reread(&id);
         }
-        if !outage {
+        if !written.unreachable {
             self.unreachable = None;
         }
         self.unwritten()
     }
 
     fn unwritten(&self) -> usize {
-        self.pending.len() + self.pending_gates.len()
+        self.pending.len()
+    }
+
+    fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+        let pending = &self.pending;
+        let wanted = history::to_retire(self.jobs.values(), retention, now, &|id| {
+            pending.has_outcome(id)
+        });
+        if wanted.is_empty() {
+            return Ok(wanted);
+        }
+        let db = self.db.clone();
+        let retired = self.reach(db.retire(&wanted))?;
+        for id in &retired {
+            self.jobs.remove(id);
+        }
+        Ok(retired)
+    }
+
+    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        let found = self.block(self.db.retired_job(id))?;
+        Ok(found.map(|(job, at)| RetiredJob {
+            record: Retired::of(&job, self.job_dir(id), at),
+            job: Some(job),
+        }))
+    }
+
+    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError> {
+        // One more than asked: whether there is a next page.
+        let mut jobs = self.block(self.db.history(before, limit + 1))?;
+        let more = jobs.len() > limit;
+        jobs.truncate(limit);
+        let jobs: Vec<Retired> = jobs
+            .iter()
+            .map(|(job, at)| Retired::of(job, self.job_dir(&job.id), *at))
+            .collect();
+        Ok(history::Page {
+            next: if more {
+                jobs.last().map(|r| r.seq)
+            } else {
+                None
+            },
+            jobs,
+        })
     }
 
     fn resync(&mut self) -> bool {
@@ -424,7 +457,14 @@ impl JobStore for PgJobStore {
             let gates = self.db.gates().await?;
             Ok::<_, PgError>((jobs, gates))
         });
-        let ((changed, now), mut gates) = match read {
+        let (
+            super::Changes {
+                jobs: changed,
+                retired,
+                now,
+            },
+            mut gates,
+        ) = match read {
             Ok(read) => read,
             Err(e) => {
                 tracing::debug!(error = %e, "cannot read the farm database's changes");
@@ -434,9 +474,12 @@ impl JobStore for PgJobStore {
         self.unreachable = None;
         self.synced_to = now;
         let mut any = false;
+        for id in retired {
+            any |= self.jobs.remove(&id).is_some();
+        }
         for job in changed {
             // An outcome not yet written stays as this host knows it.
-            if self.pending.contains_key(&job.id) {
+            if self.pending.has_outcome(&job.id) {
                 continue;
             }
             let known = self.jobs.get(&job.id).map(serde_json::to_value);
@@ -445,7 +488,7 @@ impl JobStore for PgJobStore {
                 self.jobs.insert(job.id.clone(), job);
             }
         }
-        for (printer, gate) in &self.pending_gates {
+        for (printer, gate) in self.pending.gates() {
             gates.insert(printer.clone(), gate.clone());
         }
         if gates != self.gates {

@@ -1,0 +1,439 @@
+//! The history: finished jobs that have left the live queue. A job that is done, failed or
+//! cancelled stays live (in the snapshot that status, the dashboard, SSE and metrics read)
+//! for [`Retention::live_for`] after it ended, and only the newest
+//! [`Retention::live_jobs`] of them; then the store's task moves it here in a batch
+//! ([`to_retire`] picks them, for both stores). So the live daemon's cost follows the jobs
+//! at work, not the farm's past.
+//!
+//! The history keeps a compact record of each job ([`Retired`]); the job's directory
+//! (model, G-code, pictures, `job.json`) stays where it was. In the spool the records are
+//! JSON lines in `<spool>/history/YYYY-MM.jsonl`, by the month of retirement, appended
+//! and synced before the job leaves the live queue: a crash in between leaves the job in
+//! the history and still in `jobs/`, and [`HistoryFiles::open`] then counts it as retired,
+//! so it appears once. In PostgreSQL the job's row is marked retired
+//! (`store::postgres`).
+
+use crate::daemon::job::{Job, JobState, StoreError};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashSet};
+use std::io::{BufRead, Write};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// How long finished jobs stay live (see the module's comment).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Retention {
+    pub live_for: Duration,
+    pub live_jobs: usize,
+}
+
+impl Default for Retention {
+    /// Keep live a week, at most 200 finished jobs.
+    fn default() -> Retention {
+        Retention {
+            live_for: Duration::from_secs(7 * 86_400),
+            live_jobs: 200,
+        }
+    }
+}
+
+/// At most this many jobs move to the history in one step of the store's task, so a
+/// first start on a long-kept spool never holds the store for long.
+pub const BATCH: usize = 256;
+
+/// A job that has ended for good as far as the queue is concerned: done, failed or
+/// cancelled (an interrupted job waits for the operator, so it stays live).
+pub fn is_finished(state: JobState) -> bool {
+    matches!(
+        state,
+        JobState::Done | JobState::Failed | JobState::Cancelled
+    )
+}
+
+/// When a job ended: its last state change.
+pub fn ended_at(job: &Job) -> f64 {
+    job.history.last().map_or(0.0, |h| h.1)
+}
+
+/// The one rule of retirement, for both stores: of the finished `jobs`, those that ended
+/// more than `live_for` before `now`, and those beyond the newest `live_jobs`; oldest
+/// first, at most [`BATCH`]. `skip` are jobs that must stay (an outcome not yet written).
+pub fn to_retire<'a>(
+    jobs: impl Iterator<Item = &'a Job>,
+    retention: &Retention,
+    now: f64,
+    skip: &dyn Fn(&str) -> bool,
+) -> Vec<String> {
+    let mut finished: Vec<(f64, u64, &str)> = jobs
+        .filter(|j| is_finished(j.state) && !skip(&j.id))
+        .map(|j| (ended_at(j), j.seq, j.id.as_str()))
+        .collect();
+    // Newest first: the first `live_jobs` that ended recently enough stay.
+    finished.sort_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
+    let oldest_kept = now - retention.live_for.as_secs_f64();
+    let mut out: Vec<(f64, u64, &str)> = finished
+        .into_iter()
+        .enumerate()
+        .filter(|(i, (ended, _, _))| *i >= retention.live_jobs || *ended < oldest_kept)
+        .map(|(_, j)| j)
+        .collect();
+    out.reverse();
+    out.truncate(BATCH);
+    out.into_iter().map(|(_, _, id)| id.to_string()).collect()
+}
+
+/// What the history keeps of a job: what it was, how it went, and where its files are.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Retired {
+    pub id: String,
+    pub seq: u64,
+    /// The dropped file's name, and the hot folder it came from.
+    pub file: String,
+    pub folder: PathBuf,
+    pub state: JobState,
+    pub reason: Option<String>,
+    pub printer: Option<String>,
+    /// The machine it was sliced for (from its slicing report).
+    pub machine: Option<String>,
+    /// The printed height, and the enhancement as applied ("enhanced" with its λ2, or
+    /// "unmodified"), from its slicing report.
+    pub height_mm: Option<f64>,
+    pub enhancement: Option<String>,
+    pub lambda2: Option<f64>,
+    /// Seconds since the epoch: picked up, first print started, ended.
+    pub queued_at: f64,
+    pub started_at: Option<f64>,
+    pub ended_at: f64,
+    pub copies_done: u32,
+    /// From the last print's report.
+    pub resends: Option<u64>,
+    pub print_s: Option<f64>,
+    pub filament_mm: Option<f64>,
+    pub filament_g: Option<f64>,
+    /// The job's directory on the host that kept it (model, G-code, pictures, job.json).
+    pub dir: PathBuf,
+    /// When it left the live queue.
+    pub retired_at: f64,
+}
+
+impl Retired {
+    pub fn of(job: &Job, dir: PathBuf, now: f64) -> Retired {
+        let report = job.slice_report.as_ref();
+        Retired {
+            id: job.id.clone(),
+            seq: job.seq,
+            file: job.file.clone(),
+            folder: job.folder.clone(),
+            state: job.state,
+            reason: job.reason.clone(),
+            printer: job.printer.clone(),
+            machine: report.map(|r| r.machine.clone()),
+            height_mm: report.map(|r| r.height_mm),
+            enhancement: report.map(|r| r.enhancement.mode.clone()),
+            lambda2: report.and_then(|r| r.enhancement.lambda2),
+            queued_at: job.history.first().map_or(0.0, |h| h.1),
+            started_at: job
+                .history
+                .iter()
+                .find(|h| h.0 == JobState::Printing)
+                .map(|h| h.1),
+            ended_at: ended_at(job),
+            copies_done: job.copies_done,
+            resends: job.print_report.as_ref().map(|r| r.resends),
+            print_s: job.print_report.as_ref().map(|r| r.duration_s),
+            filament_mm: report.and_then(|r| r.filament_mm),
+            filament_g: report.and_then(|r| r.filament_g),
+            dir,
+            retired_at: now,
+        }
+    }
+}
+
+/// A page of the history, newest first.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Page {
+    pub jobs: Vec<Retired>,
+    /// Pass as `before` for the next (older) page; None on the last page.
+    pub next: Option<u64>,
+}
+
+/// Bounds of a page's `limit`.
+pub const PAGE_LIMIT: std::ops::RangeInclusive<usize> = 1..=1000;
+
+/// Keeps the newest `limit` of `records` (by sequence number, each job once) below
+/// `before`, as a page.
+pub fn page_of(records: impl Iterator<Item = Retired>, before: Option<u64>, limit: usize) -> Page {
+    let mut newest: BTreeMap<u64, Retired> = BTreeMap::new();
+    let mut more = false;
+    for r in records.filter(|r| before.is_none_or(|b| r.seq < b)) {
+        newest.insert(r.seq, r);
+        if newest.len() > limit {
+            newest.pop_first();
+            more = true;
+        }
+    }
+    let jobs: Vec<Retired> = newest.into_values().rev().collect();
+    Page {
+        next: if more {
+            jobs.last().map(|r| r.seq)
+        } else {
+            None
+        },
+        jobs,
+    }
+}
+
+/// The spool's history files, `<spool>/history/YYYY-MM.jsonl`.
+pub struct HistoryFiles {
+    dir: PathBuf,
+}
+
+fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
+    super::spool::io_err(path, action)
+}
+
+impl HistoryFiles {
+    /// Reads the ids of every retired job, mending a line cut short by a crash (it is
+    /// cut off: that job was not retired, and is again).
+    pub fn open(spool: &Path) -> Result<(HistoryFiles, HashSet<String>), StoreError> {
+        let dir = spool.join("history");
+        std::fs::create_dir_all(&dir).map_err(io_err(&dir, "create"))?;
+        let files = HistoryFiles { dir };
+        let mut ids = HashSet::new();
+        for path in files.files()? {
+            // A line at a time: the history may be large, the daemon's memory is not.
+            let file = std::fs::File::open(&path).map_err(io_err(&path, "read"))?;
+            let mut reader = std::io::BufReader::new(file);
+            let (mut line, mut whole) = (Vec::new(), 0u64);
+            loop {
+                line.clear();
+                let n = reader
+                    .read_until(b'\n', &mut line)
+                    .map_err(io_err(&path, "read"))?;
+                if n == 0 || line.last() != Some(&b'\n') {
+                    break;
+                }
+                whole += n as u64;
+                if let Some(id) = id_of_line(&line[..n - 1]) {
+                    ids.insert(id);
+                }
+            }
+            if !line.is_empty() {
+                tracing::warn!(file = %path.display(), "the history's last line was cut short (a crash while retiring); cut off, its job is retired again");
+                let f = std::fs::OpenOptions::new()
+                    .write(true)
+                    .open(&path)
+                    .map_err(io_err(&path, "open"))?;
+                f.set_len(whole).map_err(io_err(&path, "truncate"))?;
+                f.sync_all().map_err(io_err(&path, "fsync"))?;
+            }
+        }
+        Ok((files, ids))
+    }
+
+    /// The history files, oldest month first.
+    fn files(&self) -> Result<Vec<PathBuf>, StoreError> {
+        let mut files = Vec::new();
+        for entry in std::fs::read_dir(&self.dir).map_err(io_err(&self.dir, "list"))? {
+            let entry = entry.map_err(io_err(&self.dir, "list"))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if is_month_file(&name) {
+                files.push(entry.path());
+            }
+        }
+        files.sort();
+        Ok(files)
+    }
+
+    /// Appends `records` to the month of `now` and syncs them (and the directory, for a
+    /// new month's file) before returning.
+    pub fn append(&self, records: &[Retired], now: f64) -> Result<(), StoreError> {
+        let path = self.dir.join(format!("{}.jsonl", month_of(now)));
+        let new = !path.exists();
+        let mut text = Vec::new();
+        for r in records {
+            serde_json::to_writer(&mut text, r).expect("a history record serialises");
+            text.push(b'\n');
+        }
+        let mut f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .map_err(io_err(&path, "open"))?;
+        f.write_all(&text).map_err(io_err(&path, "append"))?;
+        f.sync_all().map_err(io_err(&path, "fsync"))?;
+        if new {
+            crate::fsutil::sync_dir(&self.dir)?;
+        }
+        Ok(())
+    }
+
+    /// Every record, oldest file first, read a line at a time (never the whole history in
+    /// memory). A line that cannot be read is logged and passed over.
+    pub fn records(&self) -> Result<impl Iterator<Item = Retired>, StoreError> {
+        let files = self.files()?;
+        Ok(files.into_iter().flat_map(|path| {
+            let file = match std::fs::File::open(&path) {
+                Ok(f) => Some(std::io::BufReader::new(f)),
+                Err(e) => {
+                    tracing::warn!(file = %path.display(), error = %e, "history file unreadable; passed over");
+                    None
+                }
+            };
+            file.into_iter().flat_map(|f| f.lines()).filter_map(move |line| {
+                let line = line.ok()?;
+                match serde_json::from_str(&line) {
+                    Ok(r) => Some(r),
+                    Err(e) => {
+                        tracing::warn!(file = %path.display(), error = %e, "history line unreadable; passed over");
+                        None
+                    }
+                }
+            })
+        }))
+    }
+
+    /// The record of one retired job.
+    pub fn find(&self, id: &str) -> Result<Option<Retired>, StoreError> {
+        Ok(self.records()?.filter(|r| r.id == id).last())
+    }
+}
+
+/// The `id` of a history line, without reading the rest of it.
+fn id_of_line(line: &[u8]) -> Option<String> {
+    #[derive(Deserialize)]
+    struct Id {
+        id: String,
+    }
+    if line.is_empty() {
+        return None;
+    }
+    serde_json::from_slice::<Id>(line).ok().map(|i| i.id)
+}
+
+/// `YYYY-MM.jsonl`.
+fn is_month_file(name: &str) -> bool {
+    let b = name.as_bytes();
+    name.len() == 13
+        && name.ends_with(".jsonl")
+        && b[4] == b'-'
+        && b[..4].iter().chain(&b[5..7]).all(u8::is_ascii_digit)
+}
+
+/// The UTC month of `t` (seconds since the epoch) as `YYYY-MM`.
+pub fn month_of(t: f64) -> String {
+    let (y, m, _) = civil_date((t.max(0.0) / 86_400.0).floor() as i64);
+    format!("{y:04}-{m:02}")
+}
+
+/// The proleptic Gregorian (year, month, day) of a count of days since 1970-01-01.
+pub fn civil_date(days: i64) -> (i64, u32, u32) {
+    // Counted in 400-year eras from 0000-03-01, so leap days fall at the end of a year.
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let day_of_era = z.rem_euclid(146_097);
+    let year_of_era =
+        (day_of_era - day_of_era / 1460 + day_of_era / 36_524 - day_of_era / 146_096) / 365;
+    let day_of_year = day_of_era - (365 * year_of_era + year_of_era / 4 - year_of_era / 100);
+    let mp = (5 * day_of_year + 2) / 153;
+    let day = (day_of_year - (153 * mp + 2) / 5 + 1) as u32;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    let year = year_of_era + era * 400 + i64::from(month <= 2);
+    (year, month, day)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(seq: u64, state: JobState, ended: f64) -> Job {
+        let mut j = Job::queued(
+            Job::make_id(seq, "m.stl"),
+            seq,
+            "m.stl".into(),
+            "/hot".into(),
+        );
+        j.state = state;
+        j.history = vec![(JobState::Queued, ended - 100.0), (state, ended)];
+        j
+    }
+
+    const DAY: f64 = 86_400.0;
+
+    /// By age and by count, finished jobs only, oldest first, and never one kept back.
+    #[test]
+    fn retirement_by_age_and_by_count() {
+        let now = 1_000.0 * DAY;
+        let retention = Retention {
+            live_for: Duration::from_secs(7 * 86_400),
+            live_jobs: 3,
+        };
+        let jobs = [
+            job(1, JobState::Done, now - 8.0 * DAY),         // too old
+            job(2, JobState::Failed, now - 6.0 * DAY),       // 5th newest finished: too many
+            job(3, JobState::Cancelled, now - 5.0 * DAY),    // 4th newest: too many
+            job(4, JobState::Interrupted, now - 30.0 * DAY), // waits for the operator
+            job(5, JobState::Ready, now - 30.0 * DAY),       // at work
+            job(6, JobState::Done, now - 1.0 * DAY),
+            job(7, JobState::Done, now - 2.0 * DAY),
+            job(8, JobState::Done, now - 3.0 * DAY),
+            job(9, JobState::Done, now - 9.0 * DAY), // kept back: an outcome not written
+        ];
+        let skip = |id: &str| id == jobs[8].id;
+        let ids = to_retire(jobs.iter(), &retention, now, &skip);
+        let seqs: Vec<&str> = ids.iter().map(|i| &i[..4]).collect();
+        assert_eq!(seqs, ["0001", "0002", "0003"]);
+
+        // Young and few: nothing moves; a count of 0 moves every finished job.
+        let few = Retention {
+            live_for: Duration::from_secs(7 * 86_400),
+            live_jobs: 200,
+        };
+        assert_eq!(
+            to_retire(jobs[4..8].iter(), &few, now, &|_| false),
+            Vec::<String>::new()
+        );
+        let none = Retention {
+            live_for: Duration::from_secs(7 * 86_400),
+            live_jobs: 0,
+        };
+        assert_eq!(
+            to_retire(jobs[4..8].iter(), &none, now, &|_| false).len(),
+            3
+        );
+
+        // At most a batch at a time.
+        let many: Vec<Job> = (1..=BATCH as u64 + 10)
+            .map(|s| job(s, JobState::Done, now - 30.0 * DAY))
+            .collect();
+        let first = to_retire(many.iter(), &retention, now, &|_| false);
+        assert_eq!(first.len(), BATCH);
+        assert_eq!(first[0], many[0].id, "oldest first");
+    }
+
+    #[test]
+    fn pages_are_newest_first_and_each_job_once() {
+        let record = |seq| Retired::of(&job(seq, JobState::Done, 1e9), "/d".into(), 1e9);
+        let records: Vec<Retired> = [5, 1, 4, 2, 3, 4].map(record).to_vec();
+        let page = page_of(records.clone().into_iter(), None, 2);
+        assert_eq!(page.jobs.iter().map(|r| r.seq).collect::<Vec<_>>(), [5, 4]);
+        assert_eq!(page.next, Some(4));
+        let page = page_of(records.clone().into_iter(), page.next, 2);
+        assert_eq!(page.jobs.iter().map(|r| r.seq).collect::<Vec<_>>(), [3, 2]);
+        let page = page_of(records.into_iter(), page.next, 2);
+        assert_eq!(page.jobs.iter().map(|r| r.seq).collect::<Vec<_>>(), [1]);
+        assert_eq!(page.next, None);
+    }
+
+    #[test]
+    fn months_of_dates() {
+        assert_eq!(month_of(0.0), "1970-01");
+        // 2024-02-29T12:00Z and 2026-12-02T14:00Z.
+        assert_eq!(month_of(1_709_208_000.0), "2024-02");
+        assert_eq!(civil_date(19_782), (2024, 2, 29));
+        assert_eq!(month_of(1_796_220_000.0), "2026-12");
+        assert!(is_month_file("2026-12.jsonl"));
+        assert!(!is_month_file("2026-12.jsonl.tmp"));
+        assert!(!is_month_file("notes.jsonl"));
+    }
+}

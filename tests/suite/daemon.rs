@@ -8,7 +8,7 @@
 //! and its reconnection, printers added and removed by SIGHUP, a reload's policy per key,
 //! and a spool whose filesystem fills up.
 
-mod common;
+use crate::common;
 use common::daemon::{
     ctl, drop_model, job_gcode, recorded, state_of, status, wait_for, Daemon, Killed, BIN,
 };

@@ -7,7 +7,7 @@
 //! nothing twice. "Exactly once" is checked three ways: the status of every host, the
 //! database's own history (`job_history`), and what each simulator executed.
 
-mod common;
+use crate::common;
 
 use common::farm::{drop_file, presliced_gcode, state_of, Farm, HostSpec};
 use crispen::marlin::firmware::Firmware;

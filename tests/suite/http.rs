@@ -5,7 +5,7 @@
 //! a real headless Chromium through chromedriver (Debian packages `chromium` and
 //! `chromium-driver`).
 
-mod common;
+use crate::common;
 use common::daemon::{Daemon, Killed, BIN};
 use common::{job_by_file, printer};
 use serde_json::{json, Value};

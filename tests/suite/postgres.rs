@@ -4,7 +4,7 @@
 //! job store over it
 //! (two hosts' stores passing a job and its files between them, through an outage).
 
-mod common;
+use crate::common;
 
 use common::postgres::PgServer;
 use crispen::daemon::job::{JobState, StoreError};

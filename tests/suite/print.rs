@@ -164,11 +164,13 @@ async fn all_faults_at_once_still_deliver_exactly_once() {
         garbage: 0.03,
         ..Faults::default()
     };
-    for fw in Firmware::ALL {
-        for seed in [21, 22] {
-            exactly_once(fw, faults.clone(), seed, 500).await;
-        }
-    }
+    // The six runs are independent (each its own simulator and pty) and mostly wait on
+    // the probes that recover lost `ok`s: run them at once.
+    let runs = Firmware::ALL
+        .into_iter()
+        .flat_map(|fw| [21, 22].map(|seed| (fw, seed)))
+        .map(|(fw, seed)| exactly_once(fw, faults.clone(), seed, 500));
+    futures_util::future::join_all(runs).await;
 }
 
 #[tokio::test]

@@ -10,7 +10,8 @@
 
 use crate::common;
 use common::daemon::{
-    ctl, drop_model, job_gcode, recorded, state_of, status, wait_for, Daemon, Killed, BIN,
+    ctl, drop_model, holds_for, job_gcode, recorded, state_of, status, wait_for, Daemon, Killed,
+    BIN,
 };
 use common::{job_by_file, printer};
 
@@ -142,12 +143,25 @@ printers = ["a", "b"]
         .find(|f| state_of(&s, f) != "done")
         .unwrap()
         .to_string();
-    std::thread::sleep(Duration::from_secs(3));
-    let s = status(&config).unwrap();
-    assert_eq!(
-        state_of(&s, &waiting),
-        "ready",
-        "the bed gate holds the next job"
+    // Once the third job is ready, both printers could take it at once: the bed gate
+    // must hold it.
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the third job ready",
+        |s| state_of(s, &waiting) == "ready",
+    );
+    let s = holds_for(
+        &config,
+        &log,
+        Duration::from_secs(1),
+        "the bed gate holding the next job",
+        |s| {
+            state_of(s, &waiting) == "ready"
+                && printer(s, "a")["state"] == "bed_not_cleared"
+                && printer(s, "b")["state"] == "bed_not_cleared"
+        },
     );
     let igea = job_by_file(&s, "igea.obj").unwrap();
     assert!(igea["state"] != "failed", "{igea}");
@@ -558,10 +572,13 @@ fn print_controls_and_stop_at_shutdown() {
     let paused = wait_for(&config, &log, Duration::from_secs(20), "paused", |s| {
         printer(s, "p")["state"] == "paused"
     });
-    std::thread::sleep(Duration::from_millis(1500));
-    let s = status(&config).unwrap();
-    assert_eq!(printer(&s, "p")["state"], "paused");
-    assert_eq!(acked(&s), acked(&paused), "lines went on while paused");
+    let s = holds_for(
+        &config,
+        &log,
+        Duration::from_millis(1500),
+        "no lines acknowledged while paused",
+        |s| printer(s, "p")["state"] == "paused" && acked(s) == acked(&paused),
+    );
 
     // Resume: lines flow again.
     let (ok, out) = ctl(&config, &["resume", "p"]);
@@ -585,12 +602,19 @@ fn print_controls_and_stop_at_shutdown() {
     // Retry: the job waits for the bed, then prints again from its first line.
     let (ok, out) = ctl(&config, &["retry", &id]);
     assert!(ok, "{out}");
-    std::thread::sleep(Duration::from_secs(2));
-    let s = status(&config).unwrap();
-    assert_ne!(
-        state_of(&s, "spot.obj"),
-        "printing",
-        "the bed gate holds a retried job"
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the retried job ready",
+        |s| state_of(s, "spot.obj") == "ready",
+    );
+    holds_for(
+        &config,
+        &log,
+        Duration::from_secs(1),
+        "the bed gate holding a retried job",
+        |s| state_of(s, "spot.obj") == "ready" && printer(s, "p")["state"] == "bed_not_cleared",
     );
     let executed_before_retry = recorded(&rec).len();
     let (ok, out) = ctl(&config, &["clear", "p"]);
@@ -651,7 +675,8 @@ struct SimProcess {
 }
 
 impl SimProcess {
-    fn start(link: &Path, record: &Path, faults: &[&str]) -> SimProcess {
+    /// A `marlin2` simulator at `time_scale` behind `link`, with `faults` (its flags).
+    fn start(link: &Path, record: &Path, time_scale: &str, faults: &[&str]) -> SimProcess {
         let _ = std::fs::remove_file(link);
         let child = Command::new(BIN)
             .args([
@@ -659,7 +684,7 @@ impl SimProcess {
                 "--firmware",
                 "marlin2",
                 "--time-scale",
-                "0.02",
+                time_scale,
                 "--link",
             ])
             .arg(link)
@@ -699,6 +724,7 @@ fn unplugged_printer_interrupts_the_job_and_reconnects() {
     let first = SimProcess::start(
         &link,
         &rec1,
+        "0.02",
         &[
             "--unplug-after",
             "600",
@@ -759,7 +785,8 @@ fn unplugged_printer_interrupts_the_job_and_reconnects() {
     drop(first);
 
     // Plug a printer back in: the supervisor finds it and holds it for the bed clear.
-    let _second = SimProcess::start(&link, &rec2, &[]);
+    // The retried print only has to run whole, exactly once: no need to pace it.
+    let _second = SimProcess::start(&link, &rec2, "0", &[]);
     wait_for(&config, &log, Duration::from_secs(60), "reconnected", |s| {
         printer(s, "p")["state"] == "bed_not_cleared"
     });
@@ -788,7 +815,7 @@ fn idle_temperatures_are_shown_only_while_the_printer_answers() {
     let root = tmp.path();
     std::fs::create_dir_all(root.join("hot")).unwrap();
     let link = root.join("ttyACM0");
-    let first = SimProcess::start(&link, &root.join("first.rec"), &[]);
+    let first = SimProcess::start(&link, &root.join("first.rec"), "0.02", &[]);
     let config = root.join("crispen.toml");
     let log = root.join("daemon.log");
     std::fs::write(
@@ -864,7 +891,7 @@ fn idle_temperatures_are_shown_only_while_the_printer_answers() {
     let row = table.lines().find(|l| l.starts_with("p ")).unwrap_or("");
     assert!(ok && !row.contains("21/0C"), "{table}");
 
-    let _second = SimProcess::start(&link, &root.join("second.rec"), &[]);
+    let _second = SimProcess::start(&link, &root.join("second.rec"), "0.02", &[]);
     wait_for(
         &config,
         &log,
@@ -1819,7 +1846,7 @@ fn a_full_disk_loses_nothing_and_reprints_nothing() {
             "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
              [farm]\nsettle_s = 0.3\nrescan_s = 1\n\
              [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n\
-             [printer.simulate]\ntime_scale = 0.02\nrecord = \"{}\"\n\
+             [printer.simulate]\ntime_scale = 0.01\nrecord = \"{}\"\n\
              [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
             rec.display()
         ),

@@ -667,7 +667,8 @@ async fn ultimaker2_heating_state_follows_the_printer_not_the_order_of_oks() {
 /// still answers: the printer must end with heaters, fan and motors off.
 #[tokio::test]
 async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
-    for fw in Firmware::ALL {
+    // One independent run per firmware, each waiting out its storm: run them at once.
+    let runs = Firmware::ALL.map(|fw| async move {
         let faults = Faults {
             corrupt_host_bytes: 0.6,
             ..Faults::default()
@@ -687,7 +688,8 @@ async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
         for line in ["M104 S0", "M140 S0", "M107", "M84"] {
             assert!(tail.iter().any(|c| c == line), "{fw}: {tail:?}");
         }
-    }
+    });
+    futures_util::future::join_all(runs).await;
 }
 
 /// A firmware error that is neither a line error nor a halt (here a failed probing) means

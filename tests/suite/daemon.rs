@@ -960,17 +960,16 @@ fn reload_adds_and_retires_printers() {
         "printer b idle",
         |s| names(s) == ["a", "b"] && printer(s, "b")["state"] == "idle",
     );
-    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
-    std::fs::copy(&model, root.join("hot/spot.obj.part")).unwrap();
-    std::fs::rename(root.join("hot/spot.obj.part"), root.join("hot/spot.obj")).unwrap();
+    let gcode = common::farm::presliced_gcode("spot", 20, 1200);
+    drop_model(&root.join("hot"), "spot.gcode", gcode.as_bytes());
     let s = wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "printed on b",
-        |s| state_of(s, "spot.obj") == "done",
+        |s| state_of(s, "spot.gcode") == "done",
     );
-    assert_eq!(job_by_file(&s, "spot.obj").unwrap()["printer"], "b");
+    assert_eq!(job_by_file(&s, "spot.gcode").unwrap()["printer"], "b");
     assert_eq!(printer(&s, "a")["state"], "idle", "a was not disturbed");
 
     // Remove a: it leaves the status, b keeps its bed gate.
@@ -1106,13 +1105,15 @@ fn preparation_time_limit_fails_the_job_and_the_queue_goes_on() {
         "{reason}"
     );
     // The slot is free again: a job from a folder with the default limit is done.
-    drop_model(&root.join("hot2"), "small.obj", &spot());
+    // Pre-sliced: it goes through preparation (the slot) without a slicer's CPU.
+    let small = common::farm::presliced_gcode("small", 20, 1200);
+    drop_model(&root.join("hot2"), "small.gcode", small.as_bytes());
     wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "the next job to be done",
-        |s| state_of(s, "small.obj") == "done",
+        |s| state_of(s, "small.gcode") == "done",
     );
 }
 
@@ -1170,23 +1171,25 @@ fn a_removed_job_directory_does_not_stop_the_queue() {
     .unwrap();
     let _daemon = Daemon::start(&config, &log);
     let hot = root.join("hot");
-    drop_model(&hot, "first.stl", &spot());
+    // Pre-sliced files: the queue is the point here, not the slicer.
+    let gcode = |marker: &str| common::farm::presliced_gcode(marker, 20, 1200);
+    drop_model(&hot, "first.gcode", gcode("first").as_bytes());
     let s = wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "the first job ready",
-        |s| state_of(s, "first.stl") == "ready",
+        |s| state_of(s, "first.gcode") == "ready",
     );
-    drop_model(&hot, "second.stl", &spot());
+    drop_model(&hot, "second.gcode", gcode("second").as_bytes());
     wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "the second job ready",
-        |s| state_of(s, "second.stl") == "ready",
+        |s| state_of(s, "second.gcode") == "ready",
     );
-    let first = job_by_file(&s, "first.stl").unwrap()["id"]
+    let first = job_by_file(&s, "first.gcode").unwrap()["id"]
         .as_str()
         .unwrap()
         .to_string();
@@ -1198,10 +1201,10 @@ fn a_removed_job_directory_does_not_stop_the_queue() {
         &log,
         Duration::from_secs(120),
         "the second job done",
-        |s| state_of(s, "second.stl") == "done",
+        |s| state_of(s, "second.gcode") == "done",
     );
-    assert_eq!(state_of(&s, "first.stl"), "failed");
-    let reason = job_by_file(&s, "first.stl").unwrap()["reason"]
+    assert_eq!(state_of(&s, "first.gcode"), "failed");
+    let reason = job_by_file(&s, "first.gcode").unwrap()["reason"]
         .as_str()
         .unwrap()
         .to_string();
@@ -1581,10 +1584,13 @@ fn sigterm_while_waiting_to_heat_starts_nothing() {
     )
     .unwrap();
     let mut daemon = Daemon::start(&config, &log);
-    drop_model(&hot, "one.obj", &spot());
-    drop_model(&hot, "two.obj", &spot());
+    // Pre-sliced (heat, home, 200 moves of 5 s): the heating permit is the point here.
+    for name in ["one", "two"] {
+        let gcode = common::farm::presliced_gcode(name, 200, 1200);
+        drop_model(&hot, &format!("{name}.gcode"), gcode.as_bytes());
+    }
     wait_for(&config, &log, Duration::from_secs(180), "both ready", |s| {
-        state_of(s, "one.obj") == "ready" && state_of(s, "two.obj") == "ready"
+        state_of(s, "one.gcode") == "ready" && state_of(s, "two.gcode") == "ready"
     });
     for p in ["a", "b"] {
         let (ok, out) = ctl(&config, &["clear", p]);
@@ -1654,13 +1660,14 @@ fn a_config_named_without_a_directory_anchors_its_paths() {
     wait_for(&config, &log, Duration::from_secs(30), "the daemon", |s| {
         printer(s, "p")["state"] == "idle"
     });
-    drop_model(&root.join("hot"), "spot.obj", &spot());
+    let gcode = common::farm::presliced_gcode("spot", 20, 1200);
+    drop_model(&root.join("hot"), "spot.gcode", gcode.as_bytes());
     wait_for(
         &config,
         &log,
         Duration::from_secs(60),
         "the dropped model picked up by its watch event",
-        |s| job_by_file(s, "spot.obj").is_some(),
+        |s| job_by_file(s, "spot.gcode").is_some(),
     );
     let out = Command::new(BIN)
         .current_dir(root)
@@ -1668,7 +1675,10 @@ fn a_config_named_without_a_directory_anchors_its_paths() {
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success() && text.contains("spot.obj"), "{text}");
+    assert!(
+        out.status.success() && text.contains("spot.gcode"),
+        "{text}"
+    );
 }
 
 /// One SIGHUP changing a key of each reload policy (see `crispen::daemon::reload`): a
@@ -1719,13 +1729,14 @@ fn reload_applies_each_key_as_its_policy_declares() {
         },
     );
     // Live: the new folder is watched.
-    drop_model(&root.join("hot2"), "late.obj", &spot());
+    let gcode = common::farm::presliced_gcode("late", 20, 1200);
+    drop_model(&root.join("hot2"), "late.gcode", gcode.as_bytes());
     wait_for(
         &old_config,
         &log,
         Duration::from_secs(60),
         "the new folder's file picked up",
-        |s| job_by_file(s, "late.obj").is_some(),
+        |s| job_by_file(s, "late.gcode").is_some(),
     );
     // Daemon restart: still on the old socket, never on the new one.
     assert!(root.join("c.sock").exists());

@@ -1050,7 +1050,7 @@ fn webdriver(addr: &str, method: &str, path: &str, body: &Value) -> Value {
 #[test]
 fn dashboard_in_a_real_browser() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = Farm::start(tmp.path(), 0.04, "read_only_without_key = true");
+    let farm = Farm::start(tmp.path(), 0.02, "read_only_without_key = true");
     for name in ["left.obj", "right.obj"] {
         let a = request(
             &farm.addr,

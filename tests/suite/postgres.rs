@@ -152,7 +152,10 @@ fn concurrent_claims_from_three_hosts_take_each_job_once() {
 fn an_expired_lease_requeues_preparation_and_interrupts_printing() {
     let pg = PgServer::start();
     runtime().block_on(async {
-        let dying = PgStore::connect(&settings(&pg), "rack-1", Duration::from_secs(1))
+        // Long enough that the claims below fit in it on a loaded machine (a one-second
+        // lease once ran out before "nothing expires" was asserted); its end is waited
+        // for by polling below, so it costs only its length.
+        let dying = PgStore::connect(&settings(&pg), "rack-1", Duration::from_secs(5))
             .await
             .unwrap();
         let alive = PgStore::connect(&settings(&pg), "rack-2", LEASE)
@@ -176,8 +179,8 @@ fn an_expired_lease_requeues_preparation_and_interrupts_printing() {
             alive.expire_hosts().await.unwrap().hosts,
             Vec::<String>::new()
         );
-        // Once the one-second lease has run out by the database's clock, the next sweep
-        // takes the host's work back.
+        // Once the lease has run out by the database's clock, the next sweep takes the
+        // host's work back.
         let deadline = std::time::Instant::now() + Duration::from_secs(30);
         let expired = loop {
             let expired = alive.expire_hosts().await.unwrap();

@@ -164,13 +164,11 @@ async fn all_faults_at_once_still_deliver_exactly_once() {
         garbage: 0.03,
         ..Faults::default()
     };
-    // The six runs are independent (each its own simulator and pty) and mostly wait on
-    // the probes that recover lost `ok`s: run them at once.
-    let runs = Firmware::ALL
-        .into_iter()
-        .flat_map(|fw| [21, 22].map(|seed| (fw, seed)))
-        .map(|(fw, seed)| exactly_once(fw, faults.clone(), seed, 500));
-    futures_util::future::join_all(runs).await;
+    for fw in Firmware::ALL {
+        for seed in [21, 22] {
+            exactly_once(fw, faults.clone(), seed, 500).await;
+        }
+    }
 }
 
 #[tokio::test]
@@ -667,8 +665,7 @@ async fn ultimaker2_heating_state_follows_the_printer_not_the_order_of_oks() {
 /// still answers: the printer must end with heaters, fan and motors off.
 #[tokio::test]
 async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
-    // One independent run per firmware, each waiting out its storm: run them at once.
-    let runs = Firmware::ALL.map(|fw| async move {
+    for fw in Firmware::ALL {
         let faults = Faults {
             corrupt_host_bytes: 0.6,
             ..Faults::default()
@@ -688,8 +685,7 @@ async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
         for line in ["M104 S0", "M140 S0", "M107", "M84"] {
             assert!(tail.iter().any(|c| c == line), "{fw}: {tail:?}");
         }
-    });
-    futures_util::future::join_all(runs).await;
+    }
 }
 
 /// A firmware error that is neither a line error nor a halt (here a failed probing) means

@@ -405,19 +405,19 @@ fn start_stuck_slicing(root: &Path) -> StuckSlicing {
         .as_str()
         .unwrap()
         .to_string();
+    // The shell creates the file before it writes the number: wait for a whole line.
     let start = Instant::now();
-    while !pid_file.exists() {
+    let pid: u32 = loop {
+        let text = std::fs::read_to_string(&pid_file).unwrap_or_default();
+        if let Some(pid) = text.strip_suffix('\n').and_then(|t| t.parse().ok()) {
+            break pid;
+        }
         assert!(
             start.elapsed() < Duration::from_secs(30),
             "the slicer never started"
         );
         std::thread::sleep(Duration::from_millis(50));
-    }
-    let pid: u32 = std::fs::read_to_string(&pid_file)
-        .unwrap()
-        .trim()
-        .parse()
-        .unwrap();
+    };
     let slicer_proc = PathBuf::from(format!("/proc/{pid}"));
     assert!(slicer_proc.exists(), "the slicer should be running");
     StuckSlicing {

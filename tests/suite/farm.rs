@@ -736,6 +736,11 @@ fn control_commands_act_across_hosts() {
     farm.wait_status("a", Duration::from_secs(60), "a sees it cancelled", |s| {
         state_of(s, "long.gcode") == "cancelled"
     });
+    // Host c checks the job's state in its own copy of the farm: wait until the cancel
+    // has reached it (under load it once still said printing and refused the retry).
+    farm.wait_status("c", Duration::from_secs(60), "c sees it cancelled", |s| {
+        state_of(s, "long.gcode") == "cancelled"
+    });
 
     let (ok, out) = farm.host("c").ctl(&["retry", &id]);
     assert!(ok, "retry {id} through host c: {out}");

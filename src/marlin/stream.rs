@@ -889,7 +889,9 @@ mod tests {
     #[tokio::test]
     async fn an_idle_m105_in_flight_when_a_job_starts_is_not_taken_for_its_answers() {
         use crate::marlin::sim::{is_housekeeping, spawn, SimConfig};
-        let commands: Vec<String> = (0..30)
+        // Ten lines: an answer taken for the wrong line shows at the first ones, and each
+        // line costs two 300 ms link delays.
+        let commands: Vec<String> = (0..10)
             .map(|i| match i % 2 {
                 0 => format!("M106 S{}", i * 8),
                 _ => "M107".to_string(),

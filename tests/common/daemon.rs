@@ -160,6 +160,32 @@ pub fn wait_for(
     );
 }
 
+/// Polls the status for `window`, asserting `check` on every answer, and returns the last:
+/// for what must not happen (a gate that holds, a pause that stays paused), which no event
+/// announces. Callers first wait for the event after which it would have happened.
+pub fn holds_for(
+    config: &Path,
+    log: &Path,
+    window: Duration,
+    what: &str,
+    check: impl Fn(&Value) -> bool,
+) -> Value {
+    let start = Instant::now();
+    loop {
+        let s = status(config).unwrap_or_else(|| panic!("no status while checking {what}"));
+        assert!(
+            check(&s),
+            "{what} did not hold\nstatus: {}\nlog:\n{}",
+            serde_json::to_string_pretty(&s).unwrap(),
+            std::fs::read_to_string(log).unwrap_or_default()
+        );
+        if start.elapsed() >= window {
+            return s;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
 /// The state of the job for `file` in a status answer ("" when there is none).
 pub fn state_of(s: &Value, file: &str) -> String {
     super::job_by_file(s, file)

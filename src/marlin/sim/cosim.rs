@@ -204,39 +204,54 @@ fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
     let job = sliced_job(400);
     let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
     let only = std::env::var("CRISPEN_COSIM_ONLY").ok();
+    // 120 runs of pure computation on a virtual clock: one thread per firmware, so the
+    // test uses the cores the machine has free (on one core it took 15-40 s).
+    let failures: Vec<String> = std::thread::scope(|scope| {
+        let per_firmware: Vec<_> = Firmware::ALL
+            .into_iter()
+            .map(|fw| {
+                let (job, expected, only) = (&job, &expected, &only);
+                scope.spawn(move || runs_of(fw, job, expected, only.as_deref()))
+            })
+            .collect();
+        per_firmware
+            .into_iter()
+            .flat_map(|t| t.join().expect("a cosim thread panicked"))
+            .collect()
+    });
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// The 40 noisy seeds of one firmware; what went wrong, one line each.
+fn runs_of(fw: Firmware, job: &[String], expected: &[&String], only: Option<&str>) -> Vec<String> {
     let mut failures = Vec::new();
-    for fw in Firmware::ALL {
-        for seed in 0..40 {
-            if only
-                .as_ref()
-                .is_some_and(|o| *o != format!("{fw:?}:{seed}"))
-            {
-                continue;
+    for seed in 0..40 {
+        if only.is_some_and(|o| o != format!("{fw:?}:{seed}")) {
+            continue;
+        }
+        let mut cfg = SimConfig::new(fw);
+        cfg.time_scale = 1.0;
+        cfg.seed = seed;
+        cfg.faults.corrupt_host_bytes = 0.03;
+        cfg.faults.drop_ok = 0.01;
+        cfg.faults.garbage = 0.02;
+        cfg.faults.spurious_resend = 0.02;
+        cfg.faults.busy = 0.01;
+        let run = run(cfg, job, Duration::from_secs(3600));
+        let executed: Vec<&String> = run
+            .executed
+            .iter()
+            .filter(|c| !is_housekeeping(c))
+            .collect();
+        match run.outcome {
+            Err(f) => failures.push(format!("{fw:?} seed {seed}: failed: {f:?}")),
+            Ok(_) if executed != expected => {
+                failures.push(format!("{fw:?} seed {seed}: executed differs"))
             }
-            let mut cfg = SimConfig::new(fw);
-            cfg.time_scale = 1.0;
-            cfg.seed = seed;
-            cfg.faults.corrupt_host_bytes = 0.03;
-            cfg.faults.drop_ok = 0.01;
-            cfg.faults.garbage = 0.02;
-            cfg.faults.spurious_resend = 0.02;
-            cfg.faults.busy = 0.01;
-            let run = run(cfg, &job, Duration::from_secs(3600));
-            let executed: Vec<&String> = run
-                .executed
-                .iter()
-                .filter(|c| !is_housekeeping(c))
-                .collect();
-            match run.outcome {
-                Err(f) => failures.push(format!("{fw:?} seed {seed}: failed: {f:?}")),
-                Ok(_) if executed != expected => {
-                    failures.push(format!("{fw:?} seed {seed}: executed differs"))
-                }
-                Ok(_) => {}
-            }
+            Ok(_) => {}
         }
     }
-    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    failures
 }
 
 /// Issue 21, failure 1: a Marlin 2.1 build without ADVANCED_OK (the stock configuration)

@@ -3,7 +3,7 @@
 //! not what the host believes: the job exactly once and in order, or an exact prefix and
 //! the right error. The last tests run the real `crispen sim` and `crispen print` binaries.
 
-mod common;
+use crate::common;
 use common::daemon::{self, Reaper};
 
 use crispen::marlin::firmware::Firmware;

@@ -2,7 +2,7 @@
 //! the independent reference outputs in tests/data, plus the `crispen enhance` command
 //! run as a real process on real files.
 
-mod common;
+use crate::common;
 
 use crispen::enhance::{self, Bands, EnhanceOptions, Phase, Solver, StrengthTable};
 use crispen::mesh::{self, Mesh, MeshFormat};

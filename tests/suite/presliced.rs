@@ -9,7 +9,7 @@ use crispen::slice::presliced::{check_for, read_target, GcodeTarget};
 use crispen::slice::SlicerKind;
 use std::path::Path;
 
-mod common;
+use crate::common;
 
 fn machine(name: &str) -> Machine {
     Machine::builtin(name).unwrap()

@@ -531,11 +531,11 @@ fn unplug_after_lines_hangs_up_and_the_device_vanishes() {
     // The pty node vanishes with the master, but parallel tests reuse pty numbers at
     // once, so only the link (ours alone) is checked.
     drop(port);
-    std::thread::sleep(Duration::from_millis(100));
-    assert!(
-        std::fs::symlink_metadata(&link).is_err(),
-        "link not removed"
-    );
+    let deadline = Instant::now() + WAIT;
+    while std::fs::symlink_metadata(&link).is_ok() {
+        assert!(Instant::now() < deadline, "link not removed");
+        std::thread::sleep(Duration::from_millis(10));
+    }
 }
 
 #[test]
@@ -577,13 +577,17 @@ fn overrunning_the_receive_buffer_loses_bytes_and_asks_for_a_resend() {
     port.handshake();
     // Stall the main loop in a heat wait, then send far more than the 128-byte ring holds.
     port.send_numbered(1, "M109 S200");
-    std::thread::sleep(Duration::from_millis(100));
+    let deadline = Instant::now() + WAIT;
+    while !sim.executed().iter().any(|c| c == "M109 S200") {
+        assert!(Instant::now() < deadline, "the heat wait never began");
+        std::thread::sleep(Duration::from_millis(10));
+    }
     let job: Vec<String> = (2..40)
         .map(|n| numbered(n, &format!("G1 X{n}.125 Y{n}.5 E0.0123 F1800")))
         .collect();
     port.send_raw((job.join("\n") + "\n").as_bytes());
-    std::thread::sleep(Duration::from_millis(200));
-    // The emergency parser still sees M108 although its bytes find no room in the ring.
+    // The pty keeps the bytes in order: the job's reach the ring (and overflow it) before
+    // M108's. The emergency parser still sees M108 although its bytes find no room in the ring.
     port.send("M108");
     port.until("ok N1 ");
     // The ring held the first lines and a fragment; the next line completes the fragment,

@@ -4,7 +4,7 @@
 //! `serial/by-id` links point at real pty devices; the config check refuses two printers
 //! on one device and warns about kernel names such as `ttyACM0`.
 
-mod common;
+use crate::common;
 use common::daemon::{spawn_sim, Killed, BIN};
 
 use std::os::fd::OwnedFd;

@@ -4,7 +4,7 @@
 //! job store over it
 //! (two hosts' stores passing a job and its files between them, through an outage).
 
-mod common;
+use crate::common;
 
 use common::postgres::PgServer;
 use crispen::daemon::config::PgSettings;
@@ -153,7 +153,10 @@ fn concurrent_claims_from_three_hosts_take_each_job_once() {
 fn an_expired_lease_requeues_preparation_and_interrupts_printing() {
     let pg = PgServer::start();
     runtime().block_on(async {
-        let dying = PgStore::connect(&settings(&pg), "rack-1", Duration::from_secs(1))
+        // Long enough that the claims below fit in it on a loaded machine (a one-second
+        // lease once ran out before "nothing expires" was asserted); its end is waited
+        // for by polling below, so it costs only its length.
+        let dying = PgStore::connect(&settings(&pg), "rack-1", Duration::from_secs(5))
             .await
             .unwrap();
         let alive = PgStore::connect(&settings(&pg), "rack-2", LEASE)
@@ -177,8 +180,20 @@ fn an_expired_lease_requeues_preparation_and_interrupts_printing() {
             alive.expire_hosts().await.unwrap().hosts,
             Vec::<String>::new()
         );
-        tokio::time::sleep(Duration::from_millis(1500)).await;
-        let expired = alive.expire_hosts().await.unwrap();
+        // Once the lease has run out by the database's clock, the next sweep takes the
+        // host's work back.
+        let deadline = std::time::Instant::now() + Duration::from_secs(30);
+        let expired = loop {
+            let expired = alive.expire_hosts().await.unwrap();
+            if !expired.hosts.is_empty() {
+                break expired;
+            }
+            assert!(
+                std::time::Instant::now() < deadline,
+                "the lease never ran out"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        };
         assert_eq!(expired.hosts, vec!["rack-1".to_string()]);
         assert_eq!(expired.requeued, vec![prepared.id.clone()]);
         assert_eq!(expired.interrupted, vec![printing.id.clone()]);

@@ -3,7 +3,7 @@
 //! thumbnails read back as PNGs in PrusaSlicer's format, and `crispen enhance --preview`
 //! writes all three pictures.
 
-mod common;
+use crate::common;
 
 use crispen::enhance::{self, EnhanceOptions};
 use crispen::mesh::place::UpAxis;

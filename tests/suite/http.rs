@@ -5,7 +5,7 @@
 //! a real headless Chromium through chromedriver (Debian packages `chromium` and
 //! `chromium-driver`).
 
-mod common;
+use crate::common;
 use common::daemon::{Daemon, Killed, BIN};
 use common::{job_by_file, printer};
 use serde_json::{json, Value};
@@ -1050,7 +1050,7 @@ fn webdriver(addr: &str, method: &str, path: &str, body: &Value) -> Value {
 #[test]
 fn dashboard_in_a_real_browser() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = Farm::start(tmp.path(), 0.04, "read_only_without_key = true");
+    let farm = Farm::start(tmp.path(), 0.02, "read_only_without_key = true");
     for name in ["left.obj", "right.obj"] {
         let a = request(
             &farm.addr,
@@ -1513,6 +1513,7 @@ fn event_streams_and_slow_clients_leave_room_for_requests() {
         streams.push(stream);
     }
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (begun, began) = std::sync::mpsc::channel();
     let slowloris = {
         let (addr, stop) = (farm.addr.clone(), stop.clone());
         let mut sockets: Vec<TcpStream> = (0..100)
@@ -1525,12 +1526,19 @@ fn event_streams_and_slow_clients_leave_room_for_requests() {
                 for s in &mut sockets {
                     let _ = s.write_all(&[*head.get(at).unwrap_or(&b'a')]);
                 }
+                if at == 0 {
+                    let _ = begun.send(());
+                }
                 at += 1;
                 std::thread::sleep(Duration::from_secs(1));
             }
         })
     };
-    std::thread::sleep(Duration::from_secs(2));
+    // Every slow connection has begun its request (and the kernel queues connections in
+    // order, so the keyed one below comes after all of them).
+    began
+        .recv_timeout(Duration::from_secs(30))
+        .expect("the slow clients began");
     let keyed = answer_within(
         TcpStream::connect(&farm.addr).unwrap(),
         format!(

@@ -12,7 +12,7 @@ use crispen::slice::{SliceError, SliceReport, SliceSettings, SlicerKind};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-mod common;
+use crate::common;
 
 fn machine(name: &str) -> Machine {
     Machine::builtin(name).expect("a built-in machine")

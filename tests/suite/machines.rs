@@ -4,7 +4,7 @@
 //! each simulator executed: filament pushed, bed centre); a pre-sliced file prints exactly
 //! as written; one made for another machine, and binary G-code, are refused with the reason.
 
-mod common;
+use crate::common;
 use common::daemon::{ctl, drop_model, recorded, state_of, wait_for, Daemon, BIN};
 use common::{job_by_file, printer};
 

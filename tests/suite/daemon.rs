@@ -8,9 +8,10 @@
 //! and its reconnection, printers added and removed by SIGHUP, a reload's policy per key,
 //! and a spool whose filesystem fills up.
 
-mod common;
+use crate::common;
 use common::daemon::{
-    ctl, drop_model, job_gcode, recorded, state_of, status, wait_for, Daemon, Killed, BIN,
+    ctl, drop_model, holds_for, job_gcode, recorded, state_of, status, wait_for, Daemon, Killed,
+    BIN,
 };
 use common::{job_by_file, printer};
 
@@ -142,12 +143,25 @@ printers = ["a", "b"]
         .find(|f| state_of(&s, f) != "done")
         .unwrap()
         .to_string();
-    std::thread::sleep(Duration::from_secs(3));
-    let s = status(&config).unwrap();
-    assert_eq!(
-        state_of(&s, &waiting),
-        "ready",
-        "the bed gate holds the next job"
+    // Once the third job is ready, both printers could take it at once: the bed gate
+    // must hold it.
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the third job ready",
+        |s| state_of(s, &waiting) == "ready",
+    );
+    let s = holds_for(
+        &config,
+        &log,
+        Duration::from_secs(1),
+        "the bed gate holding the next job",
+        |s| {
+            state_of(s, &waiting) == "ready"
+                && printer(s, "a")["state"] == "bed_not_cleared"
+                && printer(s, "b")["state"] == "bed_not_cleared"
+        },
     );
     let igea = job_by_file(&s, "igea.obj").unwrap();
     assert!(igea["state"] != "failed", "{igea}");
@@ -391,19 +405,19 @@ fn start_stuck_slicing(root: &Path) -> StuckSlicing {
         .as_str()
         .unwrap()
         .to_string();
+    // The shell creates the file before it writes the number: wait for a whole line.
     let start = Instant::now();
-    while !pid_file.exists() {
+    let pid: u32 = loop {
+        let text = std::fs::read_to_string(&pid_file).unwrap_or_default();
+        if let Some(pid) = text.strip_suffix('\n').and_then(|t| t.parse().ok()) {
+            break pid;
+        }
         assert!(
             start.elapsed() < Duration::from_secs(30),
             "the slicer never started"
         );
         std::thread::sleep(Duration::from_millis(50));
-    }
-    let pid: u32 = std::fs::read_to_string(&pid_file)
-        .unwrap()
-        .trim()
-        .parse()
-        .unwrap();
+    };
     let slicer_proc = PathBuf::from(format!("/proc/{pid}"));
     assert!(slicer_proc.exists(), "the slicer should be running");
     StuckSlicing {
@@ -558,10 +572,13 @@ fn print_controls_and_stop_at_shutdown() {
     let paused = wait_for(&config, &log, Duration::from_secs(20), "paused", |s| {
         printer(s, "p")["state"] == "paused"
     });
-    std::thread::sleep(Duration::from_millis(1500));
-    let s = status(&config).unwrap();
-    assert_eq!(printer(&s, "p")["state"], "paused");
-    assert_eq!(acked(&s), acked(&paused), "lines went on while paused");
+    let s = holds_for(
+        &config,
+        &log,
+        Duration::from_millis(1500),
+        "no lines acknowledged while paused",
+        |s| printer(s, "p")["state"] == "paused" && acked(s) == acked(&paused),
+    );
 
     // Resume: lines flow again.
     let (ok, out) = ctl(&config, &["resume", "p"]);
@@ -585,12 +602,19 @@ fn print_controls_and_stop_at_shutdown() {
     // Retry: the job waits for the bed, then prints again from its first line.
     let (ok, out) = ctl(&config, &["retry", &id]);
     assert!(ok, "{out}");
-    std::thread::sleep(Duration::from_secs(2));
-    let s = status(&config).unwrap();
-    assert_ne!(
-        state_of(&s, "spot.obj"),
-        "printing",
-        "the bed gate holds a retried job"
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the retried job ready",
+        |s| state_of(s, "spot.obj") == "ready",
+    );
+    holds_for(
+        &config,
+        &log,
+        Duration::from_secs(1),
+        "the bed gate holding a retried job",
+        |s| state_of(s, "spot.obj") == "ready" && printer(s, "p")["state"] == "bed_not_cleared",
     );
     let executed_before_retry = recorded(&rec).len();
     let (ok, out) = ctl(&config, &["clear", "p"]);
@@ -651,7 +675,8 @@ struct SimProcess {
 }
 
 impl SimProcess {
-    fn start(link: &Path, record: &Path, faults: &[&str]) -> SimProcess {
+    /// A `marlin2` simulator at `time_scale` behind `link`, with `faults` (its flags).
+    fn start(link: &Path, record: &Path, time_scale: &str, faults: &[&str]) -> SimProcess {
         let _ = std::fs::remove_file(link);
         let child = Command::new(BIN)
             .args([
@@ -659,7 +684,7 @@ impl SimProcess {
                 "--firmware",
                 "marlin2",
                 "--time-scale",
-                "0.02",
+                time_scale,
                 "--link",
             ])
             .arg(link)
@@ -699,6 +724,7 @@ fn unplugged_printer_interrupts_the_job_and_reconnects() {
     let first = SimProcess::start(
         &link,
         &rec1,
+        "0.02",
         &[
             "--unplug-after",
             "600",
@@ -759,7 +785,8 @@ fn unplugged_printer_interrupts_the_job_and_reconnects() {
     drop(first);
 
     // Plug a printer back in: the supervisor finds it and holds it for the bed clear.
-    let _second = SimProcess::start(&link, &rec2, &[]);
+    // The retried print only has to run whole, exactly once: no need to pace it.
+    let _second = SimProcess::start(&link, &rec2, "0", &[]);
     wait_for(&config, &log, Duration::from_secs(60), "reconnected", |s| {
         printer(s, "p")["state"] == "bed_not_cleared"
     });
@@ -788,7 +815,7 @@ fn idle_temperatures_are_shown_only_while_the_printer_answers() {
     let root = tmp.path();
     std::fs::create_dir_all(root.join("hot")).unwrap();
     let link = root.join("ttyACM0");
-    let first = SimProcess::start(&link, &root.join("first.rec"), &[]);
+    let first = SimProcess::start(&link, &root.join("first.rec"), "0.02", &[]);
     let config = root.join("crispen.toml");
     let log = root.join("daemon.log");
     std::fs::write(
@@ -864,7 +891,7 @@ fn idle_temperatures_are_shown_only_while_the_printer_answers() {
     let row = table.lines().find(|l| l.starts_with("p ")).unwrap_or("");
     assert!(ok && !row.contains("21/0C"), "{table}");
 
-    let _second = SimProcess::start(&link, &root.join("second.rec"), &[]);
+    let _second = SimProcess::start(&link, &root.join("second.rec"), "0.02", &[]);
     wait_for(
         &config,
         &log,
@@ -933,17 +960,16 @@ fn reload_adds_and_retires_printers() {
         "printer b idle",
         |s| names(s) == ["a", "b"] && printer(s, "b")["state"] == "idle",
     );
-    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spot.obj");
-    std::fs::copy(&model, root.join("hot/spot.obj.part")).unwrap();
-    std::fs::rename(root.join("hot/spot.obj.part"), root.join("hot/spot.obj")).unwrap();
+    let gcode = common::farm::presliced_gcode("spot", 20, 1200);
+    drop_model(&root.join("hot"), "spot.gcode", gcode.as_bytes());
     let s = wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "printed on b",
-        |s| state_of(s, "spot.obj") == "done",
+        |s| state_of(s, "spot.gcode") == "done",
     );
-    assert_eq!(job_by_file(&s, "spot.obj").unwrap()["printer"], "b");
+    assert_eq!(job_by_file(&s, "spot.gcode").unwrap()["printer"], "b");
     assert_eq!(printer(&s, "a")["state"], "idle", "a was not disturbed");
 
     // Remove a: it leaves the status, b keeps its bed gate.
@@ -1079,13 +1105,15 @@ fn preparation_time_limit_fails_the_job_and_the_queue_goes_on() {
         "{reason}"
     );
     // The slot is free again: a job from a folder with the default limit is done.
-    drop_model(&root.join("hot2"), "small.obj", &spot());
+    // Pre-sliced: it goes through preparation (the slot) without a slicer's CPU.
+    let small = common::farm::presliced_gcode("small", 20, 1200);
+    drop_model(&root.join("hot2"), "small.gcode", small.as_bytes());
     wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "the next job to be done",
-        |s| state_of(s, "small.obj") == "done",
+        |s| state_of(s, "small.gcode") == "done",
     );
 }
 
@@ -1143,23 +1171,25 @@ fn a_removed_job_directory_does_not_stop_the_queue() {
     .unwrap();
     let _daemon = Daemon::start(&config, &log);
     let hot = root.join("hot");
-    drop_model(&hot, "first.stl", &spot());
+    // Pre-sliced files: the queue is the point here, not the slicer.
+    let gcode = |marker: &str| common::farm::presliced_gcode(marker, 20, 1200);
+    drop_model(&hot, "first.gcode", gcode("first").as_bytes());
     let s = wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "the first job ready",
-        |s| state_of(s, "first.stl") == "ready",
+        |s| state_of(s, "first.gcode") == "ready",
     );
-    drop_model(&hot, "second.stl", &spot());
+    drop_model(&hot, "second.gcode", gcode("second").as_bytes());
     wait_for(
         &config,
         &log,
         Duration::from_secs(120),
         "the second job ready",
-        |s| state_of(s, "second.stl") == "ready",
+        |s| state_of(s, "second.gcode") == "ready",
     );
-    let first = job_by_file(&s, "first.stl").unwrap()["id"]
+    let first = job_by_file(&s, "first.gcode").unwrap()["id"]
         .as_str()
         .unwrap()
         .to_string();
@@ -1171,10 +1201,10 @@ fn a_removed_job_directory_does_not_stop_the_queue() {
         &log,
         Duration::from_secs(120),
         "the second job done",
-        |s| state_of(s, "second.stl") == "done",
+        |s| state_of(s, "second.gcode") == "done",
     );
-    assert_eq!(state_of(&s, "first.stl"), "failed");
-    let reason = job_by_file(&s, "first.stl").unwrap()["reason"]
+    assert_eq!(state_of(&s, "first.gcode"), "failed");
+    let reason = job_by_file(&s, "first.gcode").unwrap()["reason"]
         .as_str()
         .unwrap()
         .to_string();
@@ -1554,10 +1584,13 @@ fn sigterm_while_waiting_to_heat_starts_nothing() {
     )
     .unwrap();
     let mut daemon = Daemon::start(&config, &log);
-    drop_model(&hot, "one.obj", &spot());
-    drop_model(&hot, "two.obj", &spot());
+    // Pre-sliced (heat, home, 200 moves of 5 s): the heating permit is the point here.
+    for name in ["one", "two"] {
+        let gcode = common::farm::presliced_gcode(name, 200, 1200);
+        drop_model(&hot, &format!("{name}.gcode"), gcode.as_bytes());
+    }
     wait_for(&config, &log, Duration::from_secs(180), "both ready", |s| {
-        state_of(s, "one.obj") == "ready" && state_of(s, "two.obj") == "ready"
+        state_of(s, "one.gcode") == "ready" && state_of(s, "two.gcode") == "ready"
     });
     for p in ["a", "b"] {
         let (ok, out) = ctl(&config, &["clear", p]);
@@ -1627,13 +1660,14 @@ fn a_config_named_without_a_directory_anchors_its_paths() {
     wait_for(&config, &log, Duration::from_secs(30), "the daemon", |s| {
         printer(s, "p")["state"] == "idle"
     });
-    drop_model(&root.join("hot"), "spot.obj", &spot());
+    let gcode = common::farm::presliced_gcode("spot", 20, 1200);
+    drop_model(&root.join("hot"), "spot.gcode", gcode.as_bytes());
     wait_for(
         &config,
         &log,
         Duration::from_secs(60),
         "the dropped model picked up by its watch event",
-        |s| job_by_file(s, "spot.obj").is_some(),
+        |s| job_by_file(s, "spot.gcode").is_some(),
     );
     let out = Command::new(BIN)
         .current_dir(root)
@@ -1641,7 +1675,10 @@ fn a_config_named_without_a_directory_anchors_its_paths() {
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success() && text.contains("spot.obj"), "{text}");
+    assert!(
+        out.status.success() && text.contains("spot.gcode"),
+        "{text}"
+    );
 }
 
 /// One SIGHUP changing a key of each reload policy (see `crispen::daemon::reload`): a
@@ -1692,13 +1729,14 @@ fn reload_applies_each_key_as_its_policy_declares() {
         },
     );
     // Live: the new folder is watched.
-    drop_model(&root.join("hot2"), "late.obj", &spot());
+    let gcode = common::farm::presliced_gcode("late", 20, 1200);
+    drop_model(&root.join("hot2"), "late.gcode", gcode.as_bytes());
     wait_for(
         &old_config,
         &log,
         Duration::from_secs(60),
         "the new folder's file picked up",
-        |s| job_by_file(s, "late.obj").is_some(),
+        |s| job_by_file(s, "late.gcode").is_some(),
     );
     // Daemon restart: still on the old socket, never on the new one.
     assert!(root.join("c.sock").exists());
@@ -1819,7 +1857,7 @@ fn a_full_disk_loses_nothing_and_reprints_nothing() {
             "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
              [farm]\nsettle_s = 0.3\nrescan_s = 1\n\
              [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n\
-             [printer.simulate]\ntime_scale = 0.02\nrecord = \"{}\"\n\
+             [printer.simulate]\ntime_scale = 0.01\nrecord = \"{}\"\n\
              [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
             rec.display()
         ),

@@ -1,0 +1,26 @@
+//! The integration tests as one binary: each module is what was once a test binary of its
+//! own. One binary links the crate once (each link carries faer) and runs every test on
+//! one pool of threads, so a daemon test waiting on its simulated printer overlaps with
+//! the slicer and enhancement tests instead of waiting for them in a queue of binaries.
+//! `tests/firmware.rs` stays a binary of its own: it runs at the real printers' pace and
+//! is counted apart.
+//!
+//! Run one module with a filter: `cargo test --test suite daemon::`.
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod daemon;
+mod enhance;
+mod farm;
+mod http;
+mod machines;
+mod mesh_io;
+mod ports;
+mod postgres;
+mod presliced;
+mod preview;
+mod print;
+mod service;
+mod sim;
+mod slice;

@@ -59,7 +59,7 @@ fn src_has_no_module_cycle() {
     }
     for stale in &report.stale {
         problems.push(format!(
-            "ALLOWED names {} → {}, which is no longer an edge: remove it from tests/layers.rs",
+            "ALLOWED names {} → {}, which is no longer an edge: remove it from tests/suite/layers.rs",
             stale.0, stale.1
         ));
     }

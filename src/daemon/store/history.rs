@@ -13,6 +13,7 @@
 //! so it appears once. In PostgreSQL the job's row is marked retired
 //! (`store::postgres`).
 
+use super::io_err;
 use crate::daemon::job::{Job, JobState, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
@@ -186,10 +187,6 @@ pub fn page_of(records: impl Iterator<Item = Retired>, before: Option<u64>, limi
 /// The spool's history files, `<spool>/history/YYYY-MM.jsonl`.
 pub struct HistoryFiles {
     dir: PathBuf,
-}
-
-fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
-    super::spool::io_err(path, action)
 }
 
 impl HistoryFiles {

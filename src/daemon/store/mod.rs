@@ -929,6 +929,16 @@ impl StoreHandle {
     }
 }
 
+/// The error of a file operation of a store on `path`: what was done and why it failed.
+fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> StoreError {
+    let path = path.to_path_buf();
+    move |source| StoreError::Io {
+        path,
+        action,
+        source,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

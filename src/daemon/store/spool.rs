@@ -14,7 +14,7 @@
 
 use super::history::{self, HistoryFiles, Retention, Retired};
 use super::pending::{Attempt, Pending};
-use super::{JobEdit, JobStore, RetiredJob, StateFilter};
+use super::{io_err, JobEdit, JobStore, RetiredJob, StateFilter};
 use crate::daemon::job::{now_s, Job, JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -57,18 +57,6 @@ pub(super) fn lock_dir(root: &Path) -> Result<nix::fcntl::Flock<std::fs::File>, 
             e => io_err(&lock_path, "lock")(e.into()),
         },
     )
-}
-
-pub(super) fn io_err(
-    path: &Path,
-    action: &'static str,
-) -> impl FnOnce(std::io::Error) -> StoreError {
-    let path = path.to_path_buf();
-    move |source| StoreError::Io {
-        path,
-        action,
-        source,
-    }
 }
 
 /// Writes `bytes` to `path` atomically and durably (see [`crate::fsutil`]).

@@ -17,10 +17,9 @@ use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use crate::daemon::store::history::{self, Retention, Retired};
 use crate::daemon::store::pending::{Attempt, Pending};
 use crate::daemon::store::spool::{
-    io_err, late_sidecar_name, lock_dir, model_name, move_file, regular_file_size,
+    late_sidecar_name, lock_dir, model_name, move_file, regular_file_size,
 };
-use crate::daemon::store::RetiredJob;
-use crate::daemon::store::{JobEdit, JobStore, StateFilter};
+use crate::daemon::store::{io_err, JobEdit, JobStore, RetiredJob, StateFilter};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 

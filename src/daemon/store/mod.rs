@@ -257,8 +257,11 @@ fn deliver<T: Send + 'static>(reply: Reply<T>, result: Result<T, StoreError>) ->
 }
 
 impl Request {
-    /// Carries out one request against the store, updating `view` with what changed.
-    fn serve(self, store: &mut dyn JobStore, view: &mut Snapshot) -> Delivery {
+    /// Carries out one request against the store, updating `view` with what changed;
+    /// says whether anything may have (a claim that found nothing, a clear of a clear
+    /// bed change nothing, and publish nothing: a task waiting for changes is not woken
+    /// by its own fruitless request).
+    fn serve(self, store: &mut dyn JobStore, view: &mut Snapshot) -> (Delivery, bool) {
         match self {
             Request::Admit {
                 source,
@@ -270,7 +273,8 @@ impl Request {
                 if let Ok(job) = &result {
                     view.refresh(store, &job.id);
                 }
-                deliver(reply, result)
+                let changed = result.is_ok();
+                (deliver(reply, result), changed)
             }
             Request::LateSidecar {
                 folder,
@@ -295,7 +299,8 @@ impl Request {
                             })
                         }),
                 };
-                deliver(reply, result)
+                let changed = !matches!(result, Ok(None));
+                (deliver(reply, result), changed)
             }
             Request::Transition {
                 id,
@@ -307,7 +312,7 @@ impl Request {
             } => {
                 let result = store.transition_with(&id, from, to, reason, also);
                 view.refresh(store, &id);
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Outcome {
                 id,
@@ -319,23 +324,26 @@ impl Request {
                 let result = store.record_outcome(&id, to, reason, also);
                 view.refresh(store, &id);
                 view.unwritten = store.unwritten();
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Update { id, change, reply } => {
                 let result = store.update(&id, change);
                 view.refresh(store, &id);
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Retry { id, reply } => {
                 let result = store.retry(&id);
                 view.refresh(store, &id);
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Claim {
                 printer,
                 eligible,
                 reply,
-            } => deliver(reply, claim(store, view, &printer, &*eligible)),
+            } => {
+                let (result, tried) = claim(store, view, &printer, &*eligible);
+                (deliver(reply, result), tried)
+            }
             Request::SetGate {
                 printer,
                 gate,
@@ -344,7 +352,7 @@ impl Request {
                 let result = store.set_gate(&printer, gate);
                 view.gates = store.gates();
                 view.unwritten = store.unwritten();
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::ClearGate { printer, reply } => {
                 let gate = view.gate(&printer);
@@ -359,20 +367,22 @@ impl Request {
                 };
                 view.gates = store.gates();
                 view.unwritten = store.unwritten();
-                deliver(reply, result)
+                let changed = !matches!(result, Ok(false));
+                (deliver(reply, result), changed)
             }
             Request::Resync { reply } => {
                 let changed = store.resync();
                 if changed {
                     *view = Snapshot::of(store);
                 }
-                deliver(reply, Ok(changed))
+                (deliver(reply, Ok(changed)), changed)
             }
             Request::WritePending { reply } => {
                 // Only the persisted copy changes: the view already shows these outcomes.
                 let left = store.write_pending();
+                let changed = view.unwritten != left;
                 view.unwritten = left;
-                deliver(reply, Ok(left))
+                (deliver(reply, Ok(left)), changed)
             }
         }
     }
@@ -385,36 +395,41 @@ fn names(states: StateFilter) -> String {
 
 /// Takes the oldest ready job `eligible` for `printer`, marking it printing. A job that
 /// fails as it is claimed (its directory is gone), or that another host took first, is
-/// passed over for the next one.
+/// passed over for the next one. Also says whether any job was tried (and may have
+/// changed).
 fn claim(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     printer: &str,
     eligible: &dyn Fn(&Job) -> bool,
-) -> Result<Option<Job>, StoreError> {
+) -> (Result<Option<Job>, StoreError>, bool) {
     let candidates: Vec<String> = view
         .jobs()
         .filter(|j| j.state == JobState::Ready && eligible(j))
         .map(|j| j.id.clone())
         .collect();
-    for id in candidates {
-        let name = printer.to_string();
-        let claimed = store.transition_with(
-            &id,
-            Some(&[JobState::Ready]),
-            JobState::Printing,
-            None,
-            Box::new(move |j| j.printer = Some(name)),
-        );
-        view.refresh(store, &id);
-        match claimed {
-            Ok(job) => return Ok(Some(job)),
-            Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
-            Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
-            Err(e) => return Err(e),
+    let tried = !candidates.is_empty();
+    let result = (|| {
+        for id in candidates {
+            let name = printer.to_string();
+            let claimed = store.transition_with(
+                &id,
+                Some(&[JobState::Ready]),
+                JobState::Printing,
+                None,
+                Box::new(move |j| j.printer = Some(name)),
+            );
+            view.refresh(store, &id);
+            match claimed {
+                Ok(job) => return Ok(Some(job)),
+                Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
+                Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
+                Err(e) => return Err(e),
+            }
         }
-    }
-    Ok(None)
+        Ok(None)
+    })();
+    (result, tried)
 }
 
 /// Starts the store's task (on the current tokio runtime) and returns its handle. The
@@ -447,6 +462,7 @@ async fn serve(
         }
         let work = tokio::task::spawn_blocking(move || {
             let mut deliveries = Vec::with_capacity(batch.len());
+            let mut changed = false;
             for request in batch {
                 // A panic in one request (an edit closure) loses that request's reply
                 // only: its caller gets `StoreError::Stopped`, the store goes on.
@@ -454,21 +470,31 @@ async fn serve(
                     request.serve(&mut *store, &mut view)
                 }));
                 match served {
-                    Ok(delivery) => deliveries.push(delivery),
-                    Err(_) => tracing::error!("a job store request panicked; it was dropped"),
+                    Ok((delivery, change)) => {
+                        deliveries.push(delivery);
+                        changed |= change;
+                    }
+                    Err(_) => {
+                        // What it did before it panicked is unknown: publish.
+                        changed = true;
+                        tracing::error!("a job store request panicked; it was dropped")
+                    }
                 }
             }
-            (store, view, deliveries)
+            (store, view, deliveries, changed)
         });
-        let deliveries;
-        (store, view, deliveries) = match work.await {
+        let (deliveries, changed);
+        (store, view, deliveries, changed) = match work.await {
             Ok(done) => done,
             Err(e) => {
                 tracing::error!(error = %e, "the job store's thread failed; the store stops");
                 return;
             }
         };
-        snapshots.send_replace(Arc::new(view.clone()));
+        // A batch that changed nothing wakes no follower.
+        if changed {
+            snapshots.send_replace(Arc::new(view.clone()));
+        }
         for delivery in deliveries {
             delivery();
         }
@@ -486,6 +512,14 @@ impl StoreHandle {
     /// The jobs and gates as of the last change; no round trip.
     pub fn snapshot(&self) -> Arc<Snapshot> {
         self.snapshot.borrow().clone()
+    }
+
+    /// Follows the snapshot: `changed()` resolves once a change after this call is
+    /// published (the way tasks wait for jobs and bed gates).
+    pub fn subscribe(&self) -> watch::Receiver<Arc<Snapshot>> {
+        let mut follower = self.snapshot.clone();
+        follower.mark_unchanged();
+        follower
     }
 
     async fn ask<T>(&self, request: impl FnOnce(Reply<T>) -> Request) -> Result<T, StoreError> {

@@ -899,7 +899,7 @@ impl PgStore {
     pub async fn push_command(
         &self,
         printer: &str,
-        command: crate::daemon::farm::PrintCommand,
+        command: crate::daemon::command::PrintCommand,
     ) -> Result<bool, PgError> {
         let client = self.client().await?;
         let added = client
@@ -921,7 +921,7 @@ impl PgStore {
     ) -> Result<
         Vec<(
             String,
-            Result<crate::daemon::farm::PrintCommand, crate::daemon::farm::UnknownCommand>,
+            Result<crate::daemon::command::PrintCommand, crate::daemon::command::UnknownCommand>,
         )>,
         PgError,
     > {
@@ -939,7 +939,7 @@ impl PgStore {
             .iter()
             .map(|r| {
                 let word: String = r.get(2);
-                (r.get(1), crate::daemon::farm::PrintCommand::parse(&word))
+                (r.get(1), crate::daemon::command::PrintCommand::parse(&word))
             })
             .collect())
     }

@@ -349,7 +349,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
 
 /// A printer's supervisor ended while the service ran (it panicked: it ends only once
 /// retired, or at shutdown).
-pub(crate) fn failure_of_printer(printer: &str, how: Result<(), JoinError>) -> ServiceError {
+fn failure_of_printer(printer: &str, how: Result<(), JoinError>) -> ServiceError {
     let how = match how {
         Err(e) if e.is_panic() => format!("panicked: {}", panic_message(e)),
         _ => "ended unexpectedly".into(),
@@ -414,6 +414,19 @@ fn on_sighup(farm: &Arc<Farm>, options: &RunOptions, tasks: &mut Supervised, fle
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A printer's supervisor that panicked is named with the panic's message.
+    #[tokio::test(start_paused = true)]
+    async fn a_panicking_supervisor_is_named() {
+        let panicked = tokio::spawn(async { panic!("the link broke its promise") })
+            .await
+            .unwrap_err();
+        assert_eq!(
+            failure_of_printer("bad", Err(panicked)).to_string(),
+            "the daemon's printer bad's supervisor task panicked: the link broke its promise; \
+             the daemon stops (to be restarted)"
+        );
+    }
 
     /// A top-level task that panics is found, named, and stops the daemon with an error
     /// (before, nothing watched them: a panicked preparation left a daemon that prepared

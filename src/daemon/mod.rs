@@ -15,7 +15,7 @@
 //! - [`farm`]: the handles to each piece of the farm's state and its owner.
 //! - [`shared`]: this host's part in a farm shared through PostgreSQL.
 //!
-//! `crate::service` wires them together with the HTTP listeners and supervises them; the
+//! The `service` module wires them together with the HTTP listeners and supervises them; the
 //! daemon does not know of `http`.
 
 pub mod command;

@@ -211,4 +211,21 @@ mod tests {
         farm.clear_gate("p1").await.unwrap();
         assert!(bed_cleared(&farm));
     }
+
+    /// A store error from the farm database keeps whether the database was out of reach
+    /// (the callers wait for it) or answered with a fault; it was once only a message.
+    #[test]
+    fn a_database_error_keeps_whether_it_is_an_outage() {
+        use crate::daemon::job::StoreError;
+        let out: StoreError = PgError::Unreachable("connection refused".into()).into();
+        assert!(out.is_outage(), "{out}");
+        let fault: StoreError = PgError::Corrupt {
+            id: "0001-a".into(),
+            what: "state",
+            message: "no such state \"melted\"".into(),
+        }
+        .into();
+        assert!(!fault.is_outage(), "{fault}");
+        assert!(fault.to_string().contains("melted"), "{fault}");
+    }
 }

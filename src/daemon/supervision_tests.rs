@@ -181,8 +181,9 @@ async fn shutdown_stops_prints_safely_and_ends_every_task() {
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Stopped);
 }
 
-/// A reload adds a printer at once, and a printer removed while it prints finishes its
-/// print (every line, no stop) before it leaves the farm.
+/// A reload adds a printer at once and removes an idle one at once while another prints,
+/// and a printer removed while it prints finishes its print (every line, no stop) before
+/// it leaves the farm.
 #[tokio::test(start_paused = true)]
 async fn a_reload_never_cuts_a_print_short() {
     let tmp = tempfile::tempdir().unwrap();
@@ -205,7 +206,17 @@ async fn a_reload_never_cuts_a_print_short() {
     })
     .await;
 
-    // p1 removed while it prints: it goes on to the end, then leaves.
+    // p2 removed while p1 prints: p2 leaves at once, p1 prints on.
+    let only_p1 = farm_config(tmp.path(), &["p1"], "");
+    farm.set_config(only_p1.clone());
+    fleet.apply(&only_p1.printers);
+    tokio::select! {
+        (name, how) = fleet.next_end() => panic!("{name}'s supervisor ended: {how:?}"),
+        () = until(LIMIT, "p2 gone from the farm", || printer(&farm, "p2").is_none()) => {}
+    }
+    assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Printing);
+
+    // p2 back, and p1 removed while it prints: it goes on to the end, then leaves.
     let only_p2 = farm_config(tmp.path(), &["p2"], "");
     farm.set_config(only_p2.clone());
     fleet.apply(&only_p2.printers);
@@ -221,8 +232,8 @@ async fn a_reload_never_cuts_a_print_short() {
     fleet.join().await;
 }
 
-/// A printer supervisor that panics is reported by the fleet, named, with the panic's
-/// message (the service stops on it); the other printers go on.
+/// A printer supervisor that panics is reported by the fleet, named, with the panic
+/// (the service stops on it, see `service::failure_of_printer`); the other printers go on.
 #[tokio::test(start_paused = true)]
 async fn a_panicking_supervisor_is_reported_by_name() {
     struct Panics;
@@ -256,10 +267,10 @@ async fn a_panicking_supervisor_is_reported_by_name() {
     .unwrap();
     let (name, how) = fleet.next_end().await;
     assert_eq!(name, "bad");
-    let e = crate::service::failure_of_printer(&name, how);
+    let panic = how.expect_err("it panicked").into_panic();
     assert_eq!(
-        e.to_string(),
-        "the daemon's printer bad's supervisor task panicked: the link broke its promise; the daemon stops (to be restarted)"
+        panic.downcast_ref::<&str>(),
+        Some(&"the link broke its promise")
     );
     assert_eq!(printer(&farm, "good").unwrap().state, PrinterState::Idle);
     farm.begin_stop();
@@ -357,6 +368,70 @@ async fn an_unplugged_printer_interrupts_its_job_and_reconnects() {
     })
     .await;
     assert!(!printer(&farm, "p1").unwrap().bed_cleared);
+    farm.begin_stop();
+    fleet.join().await;
+}
+
+/// Pause, resume and cancel reach the print through the farm's operations: paused, no
+/// line is sent however long; resumed, it goes on; cancelled, the safe stop is sent and
+/// the job ends cancelled with the bed gate closed.
+#[tokio::test(start_paused = true)]
+async fn pause_resume_and_cancel_reach_the_print() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let bench = BenchPorts::default();
+    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let job = ready_job(&farm, "a.stl", &long_print(5000)).await;
+    until(LIMIT, "printing past the heat-up", || {
+        printer(&farm, "p1")
+            .and_then(|p| p.progress)
+            .is_some_and(|l| l.heated)
+    })
+    .await;
+    let p1 = || Command::Pause {
+        printer: "p1".into(),
+    };
+    control::execute(&farm, p1()).await.unwrap();
+    until(LIMIT, "shown paused", || {
+        printer(&farm, "p1").is_some_and(|p| p.state == PrinterState::Paused)
+    })
+    .await;
+    let sent = bench.printer("p1").job_lines().len();
+    tokio::time::sleep(Duration::from_secs(300)).await;
+    assert_eq!(
+        bench.printer("p1").job_lines().len(),
+        sent,
+        "nothing sent while paused"
+    );
+    control::execute(
+        &farm,
+        Command::Resume {
+            printer: "p1".into(),
+        },
+    )
+    .await
+    .unwrap();
+    until(LIMIT, "printing again", || {
+        bench.printer("p1").job_lines().len() > sent + 10
+    })
+    .await;
+    let said = control::execute(&farm, Command::Cancel { job: job.clone() })
+        .await
+        .unwrap();
+    assert!(said.contains("stopping the print on p1"), "{said}");
+    until(LIMIT, "cancelled", || {
+        state(&farm, &job) == JobState::Cancelled
+    })
+    .await;
+    let lines = bench.printer("p1").job_lines();
+    assert_eq!(
+        lines[lines.len() - SAFE_STOP.len()..],
+        SAFE_STOP.map(String::from)
+    );
+    assert!(lines.len() < 5000);
+    assert!(!printer(&farm, "p1").unwrap().bed_cleared);
+    let e = control::execute(&farm, p1()).await.unwrap_err();
+    assert!(e.to_string().contains("p1 is not printing"), "{e}");
     farm.begin_stop();
     fleet.join().await;
 }

@@ -96,7 +96,14 @@ impl From<PgError> for StoreError {
     fn from(e: PgError) -> StoreError {
         match e {
             PgError::Job(e) => e,
-            other => StoreError::Database(other.to_string()),
+            other => StoreError::Database {
+                failure: if other.is_outage() {
+                    crate::daemon::job::DatabaseFailure::Outage
+                } else {
+                    crate::daemon::job::DatabaseFailure::Other
+                },
+                message: other.to_string(),
+            },
         }
     }
 }

@@ -329,15 +329,18 @@ pub async fn ready_job(farm: &Farm, name: &str, gcode: &str) -> String {
     job.id
 }
 
-/// Waits (on the paused clock, which runs ahead while every task waits) until `test`
-/// holds of the farm, for at most `limit` of simulated time.
-pub async fn until(limit: Duration, what: &str, mut test: impl FnMut() -> bool) {
+/// Waits until `test` holds, looking again at each change of the farm (a job, a
+/// printer's live status, a gate...), for at most `limit` of simulated time (the paused
+/// clock runs ahead while every task waits).
+pub async fn until(farm: &Farm, limit: Duration, what: &str, mut test: impl FnMut() -> bool) {
     let deadline = tokio::time::Instant::now() + limit;
+    let mut changes = farm.watch();
     while !test() {
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "not within {limit:?}: {what}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
+        if tokio::time::timeout_at(deadline, changes.changed())
+            .await
+            .is_err()
+        {
+            panic!("not within {limit:?}: {what}");
+        }
     }
 }

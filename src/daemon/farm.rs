@@ -627,44 +627,62 @@ impl Farm {
 
     /// Follows everything shown of the farm.
     pub fn watch(&self) -> FarmWatch {
-        FarmWatch {
+        let mut watch = FarmWatch {
             jobs: self.watch_jobs(),
             config: self.watch_config(),
             printers: self.watch_printers(),
             preparing: self.preparing.subscribe(),
             shared: self.watch_shared(),
-        }
+            lives: BTreeMap::new(),
+        };
+        watch.follow_printers();
+        watch
     }
 }
 
 /// Receivers of every piece of the farm's state: [`FarmWatch::changed`] resolves on the
-/// next change of any (the event stream's wake-up).
+/// next change of any since the last call (or since it was made).
 pub struct FarmWatch {
     jobs: watch::Receiver<Arc<Snapshot>>,
     config: watch::Receiver<Arc<Config>>,
     printers: watch::Receiver<BTreeMap<String, PrinterHandle>>,
     preparing: watch::Receiver<BTreeMap<String, Preparation>>,
     shared: watch::Receiver<Option<FarmView>>,
+    /// Each printer's live status, followed from when the printer was first seen here.
+    lives: BTreeMap<String, watch::Receiver<PrinterLive>>,
 }
 
 impl FarmWatch {
+    /// Follows the printers there are now. The set is read without marking it seen: a
+    /// change of it not yet seen still ends the next wait.
+    fn follow_printers(&mut self) {
+        let printers = self.printers.borrow();
+        self.lives.retain(|name, live| {
+            printers
+                .get(name)
+                .is_some_and(|h| h.live.same_channel(live))
+        });
+        for (name, handle) in printers.iter() {
+            self.lives.entry(name.clone()).or_insert_with(|| {
+                let mut live = handle.live.clone();
+                live.mark_unchanged();
+                live
+            });
+        }
+    }
+
     /// Waits for the next change of the farm after the last call (or since made).
     pub async fn changed(&mut self) {
-        // Each printer's live status: the receivers of the printers there are now, marked
-        // seen when the call started (a change while waiting wakes it).
-        let mut lives: Vec<watch::Receiver<PrinterLive>> = self
-            .printers
-            .borrow_and_update()
-            .values()
-            .map(|h| h.live.clone())
-            .collect();
+        self.follow_printers();
+        let lives = &mut self.lives;
         let live = async {
+            let mut open: Vec<&mut watch::Receiver<PrinterLive>> = lives.values_mut().collect();
             loop {
-                if lives.is_empty() {
+                if open.is_empty() {
                     return std::future::pending().await;
                 }
                 let (changed, i) = {
-                    let waits = lives.iter_mut().map(|l| Box::pin(l.changed()));
+                    let waits = open.iter_mut().map(|l| Box::pin(l.changed()));
                     let (changed, i, _rest) = futures_util::future::select_all(waits).await;
                     (changed, i)
                 };
@@ -672,7 +690,7 @@ impl FarmWatch {
                     Ok(()) => return,
                     // Its supervisor ended: nothing more comes from it.
                     Err(_) => {
-                        lives.swap_remove(i);
+                        open.swap_remove(i);
                     }
                 }
             }
@@ -740,5 +758,30 @@ mod tests {
         assert!(!shown(&farm), "a finished print is on the bed");
         assert!(farm.clear_gate("p1").await.unwrap());
         assert!(shown(&farm), "cleared");
+    }
+
+    /// The farm's watch ends a wait on a change of a printer's live status, once, and
+    /// not for a change from before it was made (it once took every earlier change for a
+    /// new one, and the event stream spun).
+    #[tokio::test(start_paused = true)]
+    async fn the_farm_watch_wakes_once_per_change() {
+        use std::time::Duration;
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(1, tmp.path());
+        let (owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
+        farm.add_printer("p1", handle);
+        owner.live.send_modify(|p| p.state = PrinterState::Idle);
+        let mut watch = farm.watch();
+        let quiet = Duration::from_secs(600);
+        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
+        owner.live.send_modify(|p| p.state = PrinterState::Printing);
+        tokio::time::timeout(quiet, watch.changed())
+            .await
+            .expect("woken by the change");
+        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
+        farm.close_gate("p1", "0001-a").await.unwrap();
+        tokio::time::timeout(quiet, watch.changed())
+            .await
+            .expect("woken by the gate");
     }
 }

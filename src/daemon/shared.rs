@@ -107,6 +107,8 @@ async fn tick(
             Some(Ok(status)) => status,
             _ => continue,
         };
+        // The row's own columns are the farm's record of these (the status is as its host
+        // last published it, up to a tick ago); its bed gate is the store's.
         status.host = Some(p.host);
         status.offline = p.offline;
         status.bed_cleared = !p.bed_not_cleared;

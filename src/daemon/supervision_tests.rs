@@ -50,12 +50,12 @@ async fn a_printer_prints_then_waits_for_its_bed_to_be_cleared() {
     let bench = BenchPorts::default();
     let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
     let first = ready_job(&farm, "a.stl", HEAT_AND_PRINT).await;
-    until(LIMIT, "the first job done", || {
+    until(&farm, LIMIT, "the first job done", || {
         state(&farm, &first) == JobState::Done
     })
     .await;
     assert_eq!(bench.printer("p1").job_lines(), lines(HEAT_AND_PRINT));
-    until(LIMIT, "the bed shown not cleared", || {
+    until(&farm, LIMIT, "the bed shown not cleared", || {
         printer(&farm, "p1").is_some_and(|p| p.state == PrinterState::BedNotCleared)
     })
     .await;
@@ -84,7 +84,7 @@ async fn a_printer_prints_then_waits_for_its_bed_to_be_cleared() {
     .await
     .unwrap();
     assert!(said.contains("bed cleared"), "{said}");
-    until(LIMIT, "the second job done", || {
+    until(&farm, LIMIT, "the second job done", || {
         state(&farm, &second) == JobState::Done
     })
     .await;
@@ -111,6 +111,8 @@ async fn one_heating_permit_staggers_two_heat_ups() {
     let b = ready_job(&farm, "b.stl", &long_print(600)).await;
     let mut waited = false;
     let deadline = tokio::time::Instant::now() + LIMIT;
+    // Looked at after each change of the farm.
+    let mut changes = farm.watch();
     while state(&farm, &a) != JobState::Done || state(&farm, &b) != JobState::Done {
         assert!(tokio::time::Instant::now() < deadline, "both printed");
         let shown = farm.local_printers();
@@ -131,7 +133,9 @@ async fn one_heating_permit_staggers_two_heat_ups() {
                 .unwrap();
             assert!(bench.printer(&other.name).job_lines().is_empty());
         }
-        tokio::time::sleep(Duration::from_millis(50)).await;
+        tokio::time::timeout_at(deadline, changes.changed())
+            .await
+            .expect("both printed");
     }
     assert!(waited, "one printer waited for the permit");
     assert_eq!(farm.heating.in_use(), 0, "permits handed back");
@@ -154,7 +158,7 @@ async fn shutdown_stops_prints_safely_and_ends_every_task() {
         "/nonexistent/crispen".into(),
     ));
     let job = ready_job(&farm, "a.stl", &long_print(10_000)).await;
-    until(LIMIT, "printing past the heat-up", || {
+    until(&farm, LIMIT, "printing past the heat-up", || {
         printer(&farm, "p1")
             .and_then(|p| p.progress)
             .is_some_and(|l| l.heated)
@@ -192,7 +196,7 @@ async fn a_reload_never_cuts_a_print_short() {
     let mut fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
     let gcode = long_print(3000);
     let job = ready_job(&farm, "a.stl", &gcode).await;
-    until(LIMIT, "p1 printing", || {
+    until(&farm, LIMIT, "p1 printing", || {
         printer(&farm, "p1").is_some_and(|p| p.state == PrinterState::Printing)
     })
     .await;
@@ -201,7 +205,7 @@ async fn a_reload_never_cuts_a_print_short() {
     let both = farm_config(tmp.path(), &["p1", "p2"], "");
     farm.set_config(both.clone());
     fleet.apply(&both.printers);
-    until(LIMIT, "p2 connected", || {
+    until(&farm, LIMIT, "p2 connected", || {
         printer(&farm, "p2").is_some_and(|p| p.state == PrinterState::Idle)
     })
     .await;
@@ -212,7 +216,7 @@ async fn a_reload_never_cuts_a_print_short() {
     fleet.apply(&only_p1.printers);
     tokio::select! {
         (name, how) = fleet.next_end() => panic!("{name}'s supervisor ended: {how:?}"),
-        () = until(LIMIT, "p2 gone from the farm", || printer(&farm, "p2").is_none()) => {}
+        () = until(&farm, LIMIT, "p2 gone from the farm", || printer(&farm, "p2").is_none()) => {}
     }
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Printing);
 
@@ -223,7 +227,7 @@ async fn a_reload_never_cuts_a_print_short() {
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Printing);
     tokio::select! {
         (name, how) = fleet.next_end() => panic!("{name}'s supervisor ended: {how:?}"),
-        () = until(LIMIT, "p1 gone from the farm", || printer(&farm, "p1").is_none()) => {}
+        () = until(&farm, LIMIT, "p1 gone from the farm", || printer(&farm, "p1").is_none()) => {}
     }
     assert_eq!(state(&farm, &job), JobState::Done);
     assert_eq!(bench.printer("p1").job_lines(), lines(&gcode));
@@ -314,7 +318,7 @@ async fn shutdown_while_waiting_to_heat_sends_nothing() {
     let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
     ready_job(&farm, "a.stl", &long_print(100)).await;
     ready_job(&farm, "b.stl", &long_print(100)).await;
-    until(LIMIT, "one heating, one waiting", || {
+    until(&farm, LIMIT, "one heating, one waiting", || {
         let states: Vec<PrinterState> = farm.local_printers().iter().map(|p| p.state).collect();
         states.contains(&PrinterState::Printing) && states.contains(&PrinterState::WaitingToHeat)
     })
@@ -343,18 +347,18 @@ async fn an_unplugged_printer_interrupts_its_job_and_reconnects() {
     let bench = BenchPorts::default();
     let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
     let job = ready_job(&farm, "a.stl", &long_print(1000)).await;
-    until(LIMIT, "printing past the heat-up", || {
+    until(&farm, LIMIT, "printing past the heat-up", || {
         printer(&farm, "p1")
             .and_then(|p| p.progress)
             .is_some_and(|l| l.heated)
     })
     .await;
     bench.printer("p1").unplug();
-    until(LIMIT, "the job interrupted", || {
+    until(&farm, LIMIT, "the job interrupted", || {
         state(&farm, &job) == JobState::Interrupted
     })
     .await;
-    until(LIMIT, "shown disconnected", || {
+    until(&farm, LIMIT, "shown disconnected", || {
         printer(&farm, "p1").is_some_and(|p| p.state == PrinterState::Disconnected)
     })
     .await;
@@ -363,7 +367,7 @@ async fn an_unplugged_printer_interrupts_its_job_and_reconnects() {
     tokio::time::sleep(Duration::from_secs(120)).await;
     assert!(bench.printer("p1").connects() > 2, "it keeps trying");
     bench.printer("p1").plug_in();
-    until(LIMIT, "connected again, bed not cleared", || {
+    until(&farm, LIMIT, "connected again, bed not cleared", || {
         printer(&farm, "p1").is_some_and(|p| p.state == PrinterState::BedNotCleared)
     })
     .await;
@@ -382,7 +386,7 @@ async fn pause_resume_and_cancel_reach_the_print() {
     let bench = BenchPorts::default();
     let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
     let job = ready_job(&farm, "a.stl", &long_print(5000)).await;
-    until(LIMIT, "printing past the heat-up", || {
+    until(&farm, LIMIT, "printing past the heat-up", || {
         printer(&farm, "p1")
             .and_then(|p| p.progress)
             .is_some_and(|l| l.heated)
@@ -392,7 +396,7 @@ async fn pause_resume_and_cancel_reach_the_print() {
         printer: "p1".into(),
     };
     control::execute(&farm, p1()).await.unwrap();
-    until(LIMIT, "shown paused", || {
+    until(&farm, LIMIT, "shown paused", || {
         printer(&farm, "p1").is_some_and(|p| p.state == PrinterState::Paused)
     })
     .await;
@@ -411,7 +415,7 @@ async fn pause_resume_and_cancel_reach_the_print() {
     )
     .await
     .unwrap();
-    until(LIMIT, "printing again", || {
+    until(&farm, LIMIT, "printing again", || {
         bench.printer("p1").job_lines().len() > sent + 10
     })
     .await;
@@ -419,7 +423,7 @@ async fn pause_resume_and_cancel_reach_the_print() {
         .await
         .unwrap();
     assert!(said.contains("stopping the print on p1"), "{said}");
-    until(LIMIT, "cancelled", || {
+    until(&farm, LIMIT, "cancelled", || {
         state(&farm, &job) == JobState::Cancelled
     })
     .await;

@@ -11,7 +11,9 @@
 //! - [`ports`]: finding serial devices and asking a printer what it is (M115).
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
-//! - [`http`]: the HTTP API, web dashboard, metrics and OctoPrint-compatible upload.
+//! - [`http`]: the HTTP API, web dashboard, metrics and OctoPrint-compatible upload,
+//!   serving the farm's handles and operations.
+//! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
 //!
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
@@ -26,4 +28,5 @@ pub mod marlin;
 pub mod mesh;
 pub mod ports;
 pub mod preview;
+pub mod service;
 pub mod slice;

@@ -1,9 +1,10 @@
 //! `crispen run`: the print-farm daemon. Loads the config (or the built-in demo default,
 //! which also serves the dashboard on 127.0.0.1:8080 with a key made in ./crispen-demo),
-//! then hands over to [`crispen::daemon::run`] on a multi-threaded tokio runtime.
+//! then hands over to [`crispen::service::run`] on a multi-threaded tokio runtime.
 
 use anyhow::Context;
-use crispen::daemon::{self, config::Config, RunOptions};
+use crispen::daemon::{self, config::Config};
+use crispen::service::{self, RunOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -95,6 +96,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         exit_when_idle: args.exit_when_idle,
         prepare_program: None,
     };
-    runtime.block_on(daemon::run(config, options))?;
+    runtime.block_on(service::run(config, options))?;
     Ok(ExitCode::SUCCESS)
 }

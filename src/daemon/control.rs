@@ -1,14 +1,13 @@
 //! The farm's operations, shared by every way in: the status snapshot ([`status`]) and the
 //! operator's commands ([`execute`]: clear, cancel, pause, resume, retry, release), and the
 //! control socket they are served on ([`bind`]). The socket speaks the same HTTP API as the
-//! TCP listener (`crate::http`); its file mode (0660: the service user and its group)
+//! TCP listener (the `http` module); its file mode (0660: the service user and its group)
 //! decides who may use it, so no key is asked there.
 //! `crispen status|clear|cancel|pause|resume|retry|release` are its clients.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{JobState, StoreError};
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -103,29 +102,10 @@ pub struct ControlError {
 
 /// Builds the status snapshot.
 pub fn status(farm: &Farm) -> Status {
-    let mut printers: Vec<PrinterStatus> = farm
-        .printers
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .values()
-        .cloned()
-        .collect();
-    let preparing: HashMap<String, String> = farm
-        .preparing
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .iter()
-        .map(|(id, p)| (id.clone(), p.step.clone()))
-        .collect();
+    let mut printers = farm.local_printers();
+    let preparing = farm.preparation_steps();
     let store = farm.store();
-    for p in &mut printers {
-        p.bed_cleared = !store.gate(&p.name).bed_not_cleared;
-    }
-    let shared = farm
-        .shared
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .clone();
+    let shared = farm.shared();
     let farm_status = farm.db.get().map(|db| {
         let view = shared.clone().unwrap_or_default();
         FarmStatus {
@@ -180,8 +160,7 @@ pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, Comma
         }
         Command::Cancel { job } => cancel(farm, &job).await,
         Command::Retry { job } => {
-            let retried = farm.jobs.retry(&job).await?;
-            farm.bump();
+            let retried = farm.retry(&job).await?;
             let held = if retried.held() {
                 format!("; it stays held until `crispen release {job}`")
             } else {
@@ -220,7 +199,6 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
     let released = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let flag = Arc::clone(&released);
     let job = farm
-        .jobs
         .update(id, move |j| {
             let held_unprepared =
                 held_on_disk && !j.released && j.sidecar.is_none() && UNPREPARED.contains(&j.state);
@@ -243,7 +221,6 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
         });
     }
     tracing::info!(job = id, "held job released");
-    farm.bump();
     Ok(match job.state {
         JobState::Ready => format!("job {id} released; the next free printer takes it"),
         _ => format!("job {id} released; it prints once ready"),
@@ -252,15 +229,9 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
 
 /// Every printer's name: this host's, then (in a shared farm) the other hosts'.
 pub fn printer_names(farm: &Farm) -> Vec<String> {
-    let mut names: Vec<String> = farm
-        .printers
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .keys()
-        .cloned()
-        .collect();
-    if let Some(view) = &*farm.shared.lock().unwrap_or_else(|e| e.into_inner()) {
-        names.extend(view.printers.iter().map(|p| p.name.clone()));
+    let mut names: Vec<String> = farm.local_printers().into_iter().map(|p| p.name).collect();
+    if let Some(view) = farm.shared() {
+        names.extend(view.printers.into_iter().map(|p| p.name));
     }
     names
 }
@@ -273,12 +244,7 @@ enum Whose {
 }
 
 fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
-    let mine = farm
-        .printers
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .contains_key(printer);
-    if mine {
+    if farm.printer(printer).is_some() {
         Ok(Whose::Mine)
     } else if printer_names(farm).iter().any(|n| n == printer) {
         Ok(Whose::Other)
@@ -289,11 +255,9 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
 
 async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
-    if !farm.jobs.clear_gate(printer).await? {
+    if !farm.clear_gate(printer).await? {
         return Ok(format!("{printer}: bed was already clear"));
     }
-    tracing::info!(printer, "bed cleared");
-    farm.bump();
     Ok(format!("{printer}: bed cleared; it may take the next job"))
 }
 
@@ -323,12 +287,7 @@ pub(crate) async fn send_print_command(
         );
         return Ok(format!("{printer}: {command:?} sent to its host"));
     }
-    let tx = farm
-        .print_controls
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .get(printer)
-        .cloned();
+    let tx = farm.printer(printer).and_then(|p| p.print.borrow().clone());
     let Some(tx) = tx else {
         return Err(CommandError::NotPrinting(printer.to_string()));
     };
@@ -350,14 +309,7 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
     match cancelled {
         Ok(_) => {
             // A slicer already running for it is stopped, not left to finish unwanted.
-            if let Some(p) = farm
-                .preparing
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .get(id)
-            {
-                p.cancel.cancel();
-            }
+            farm.cancel_preparation(id);
             Ok(format!("job {id} cancelled"))
         }
         Err(StoreError::StateChanged {

@@ -1,16 +1,33 @@
-//! The farm's shared state: the config in force, the job store's handle, each printer's live status,
-//! live progress of jobs, and a generation counter that wakes every task when anything
-//! changes (a job became ready, a bed was cleared, shutdown began). One `Arc<Farm>` is
-//! handed to the pick-up, preparation, printer and control tasks.
+//! The farm's state, each piece with one owner that alone changes it and publishes it as a
+//! `watch` the tasks that follow it wait on (there is no global wake-up):
+//!
+//! - jobs and bed gates: the job store's task ([`super::store`]), published as its
+//!   snapshot. Every change of a job goes through [`Farm`]'s methods, the one path that
+//!   logs it and counts it ([`Farm::announce`]); the store's handle is not handed out.
+//! - a printer's live status (state, job, progress, temperatures): that printer's
+//!   supervisor (the `printer` module), one watch per printer; which printers there are:
+//!   the fleet (the `fleet` module). Whether its bed is cleared is not part of it: that is
+//!   the store's gate, and [`Farm::local_printers`] derives it in one place.
+//! - the config in force: the reload path ([`Farm::set_config`]).
+//! - heating permits: [`HeatingPermits`].
+//! - preparations in progress: the preparation queue.
+//! - the rest of a shared farm: the shared-farm task (`super::shared`).
+//!
+//! One `Arc<Farm>` of handles is given to the pick-up, preparation, printer, shared-farm
+//! and control tasks; [`FarmWatch`] follows all of it (the event stream does).
 
 use super::config::Config;
-use super::job::{Job, JobState, StoreError};
-use super::store::{JobStore, Snapshot, StateFilter, StoreHandle};
+use super::job::{Job, JobState, PrinterGate, StoreError};
+use super::store::{JobStore, LateSidecar, Snapshot, StateFilter, StoreHandle};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
-use std::sync::{Arc, Mutex, RwLock};
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
+
+pub use super::command::{PrintCommand, UnknownCommand};
 
 /// A printer's state as shown by `crispen status` (lower case in JSON).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -53,7 +70,39 @@ pub struct PrinterTemperatures {
     pub bed_target_c: Option<f64>,
 }
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+/// What a printer's supervisor publishes about it, and only it changes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PrinterLive {
+    pub state: PrinterState,
+    pub firmware: String,
+    pub port: String,
+    pub job: Option<String>,
+    pub progress: Option<LiveProgress>,
+    /// None while not known now: not connected, or the printer stopped answering (stale
+    /// figures are never shown as current).
+    pub temperatures: Option<PrinterTemperatures>,
+    /// Why the printer is in its state (e.g. the last connection error).
+    pub detail: Option<String>,
+}
+
+impl PrinterLive {
+    /// A printer whose supervisor has not connected yet.
+    pub fn connecting(firmware: &str, port: &str) -> PrinterLive {
+        PrinterLive {
+            state: PrinterState::Connecting,
+            firmware: firmware.to_string(),
+            port: port.to_string(),
+            job: None,
+            progress: None,
+            temperatures: None,
+            detail: None,
+        }
+    }
+}
+
+/// A printer as shown (status, API, the farm database): its supervisor's live status, and
+/// its bed gate from the store.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PrinterStatus {
     pub name: String,
     pub state: PrinterState,
@@ -78,73 +127,101 @@ pub struct PrinterStatus {
     pub offline: bool,
 }
 
-/// What a control command asks of a print in progress. Between hosts of a shared farm it
-/// travels as a word in the database's `commands` table ([`PrintCommand::word`],
-/// [`PrintCommand::parse`]: the one place a word becomes a command).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PrintCommand {
-    Pause,
-    Resume,
-    Cancel,
+/// What the fleet keeps of a printer in the farm: the receiving ends of what its
+/// supervisor owns.
+#[derive(Clone)]
+pub struct PrinterHandle {
+    pub live: watch::Receiver<PrinterLive>,
+    /// The control channel into the print in progress; None between prints.
+    pub print: watch::Receiver<Option<mpsc::Sender<PrintCommand>>>,
 }
 
-impl PrintCommand {
-    /// The word that stands for it in the farm database.
-    pub fn word(self) -> &'static str {
-        match self {
-            PrintCommand::Pause => "pause",
-            PrintCommand::Resume => "resume",
-            PrintCommand::Cancel => "cancel",
-        }
-    }
-
-    /// The command a word read from the farm database stands for. Anything else (a newer
-    /// host's command, a hand-written row) is an error: it must never be taken for a
-    /// cancel, which would stop a print.
-    pub fn parse(word: &str) -> Result<PrintCommand, UnknownCommand> {
-        match word {
-            "pause" => Ok(PrintCommand::Pause),
-            "resume" => Ok(PrintCommand::Resume),
-            "cancel" => Ok(PrintCommand::Cancel),
-            _ => Err(UnknownCommand::new(word)),
-        }
-    }
+/// The owning ends of a printer's [`PrinterHandle`], held by its supervisor.
+pub struct PrinterOwner {
+    pub live: watch::Sender<PrinterLive>,
+    pub print: watch::Sender<Option<mpsc::Sender<PrintCommand>>>,
 }
 
-/// A command word that is not one of [`PrintCommand`]'s; it keeps the text shortened (the
-/// database does not bound it), and shows it escaped.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown command {text:?}")]
-pub struct UnknownCommand {
-    /// At most [`UnknownCommand::SHOWN`] characters of the word, `…` after a longer one.
-    pub text: String,
+/// A new printer's owner (for its supervisor) and handle (for the farm).
+pub fn printer_channels(initial: PrinterLive) -> (PrinterOwner, PrinterHandle) {
+    let (live, live_rx) = watch::channel(initial);
+    let (print, print_rx) = watch::channel(None);
+    (
+        PrinterOwner { live, print },
+        PrinterHandle {
+            live: live_rx,
+            print: print_rx,
+        },
+    )
 }
 
-impl UnknownCommand {
-    const SHOWN: usize = 40;
+/// The rest of a shared farm as this host last read it from its database; written by
+/// the shared-farm task only.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FarmView {
+    /// None while the database answers; else why it does not.
+    pub database: Option<String>,
+    pub hosts: Vec<super::store::postgres::FarmHost>,
+    /// Other hosts' printers, as their hosts last published them.
+    pub printers: Vec<PrinterStatus>,
+    /// Other hosts' printers' machines, for preparing their jobs here.
+    pub machines: Vec<(String, crate::machine::Machine)>,
+}
 
-    fn new(word: &str) -> UnknownCommand {
-        let mut text: String = word.chars().take(Self::SHOWN).collect();
-        if word.chars().nth(Self::SHOWN).is_some() {
-            text.push('…');
-        }
-        UnknownCommand { text }
-    }
+/// The `[farm] max_heating` permits: how many are held, owned here and changed only by
+/// taking one ([`HeatingPermits::acquire`]) and dropping it.
+#[derive(Clone, Default)]
+pub struct HeatingPermits {
+    in_use: Arc<watch::Sender<usize>>,
 }
 
 /// One printer's leave to heat up; handed back when dropped.
 pub struct HeatingPermit {
-    farm: Arc<Farm>,
+    in_use: Arc<watch::Sender<usize>>,
 }
 
 impl Drop for HeatingPermit {
     fn drop(&mut self) {
-        *self.farm.heating.lock().unwrap_or_else(|e| e.into_inner()) -= 1;
-        self.farm.bump();
+        self.in_use.send_modify(|n| *n -= 1);
+    }
+}
+
+impl HeatingPermits {
+    /// Waits for a permit. The limit is read from the config in force at each try, so a
+    /// reload applies to the next permit (a lower limit lets permits already held run
+    /// out). Not raced with shutdown here: the caller does that.
+    pub async fn acquire(&self, mut config: watch::Receiver<Arc<Config>>) -> HeatingPermit {
+        let mut released = self.in_use.subscribe();
+        loop {
+            let limit = config.borrow_and_update().farm.max_heating;
+            released.borrow_and_update();
+            let taken = self.in_use.send_if_modified(|n| {
+                let free = *n < limit;
+                if free {
+                    *n += 1;
+                }
+                free
+            });
+            if taken {
+                return HeatingPermit {
+                    in_use: Arc::clone(&self.in_use),
+                };
+            }
+            tokio::select! {
+                _ = released.changed() => {}
+                _ = config.changed() => {}
+            }
+        }
+    }
+
+    /// Permits held now.
+    pub fn in_use(&self) -> usize {
+        *self.in_use.borrow()
     }
 }
 
 /// A preparation in progress.
+#[derive(Clone)]
 pub struct Preparation {
     pub step: String,
     /// Fired by `crispen cancel` (and by shutdown, of which it is a child): the
@@ -152,27 +229,55 @@ pub struct Preparation {
     pub cancel: CancellationToken,
 }
 
+/// How many jobs reached each state during this run (by [`JobState::ALL`]'s order),
+/// counted as they are announced.
+#[derive(Default)]
+pub struct JobCounts([AtomicU64; JobState::ALL.len()]);
+
+impl JobCounts {
+    fn count(&self, state: JobState) {
+        if let Some(i) = JobState::ALL.iter().position(|s| *s == state) {
+            self.0[i].fetch_add(1, Ordering::SeqCst);
+        }
+    }
+
+    /// Changes into `state` during this run.
+    pub fn into_state(&self, state: JobState) -> u64 {
+        JobState::ALL
+            .iter()
+            .position(|s| *s == state)
+            .map_or(0, |i| self.0[i].load(Ordering::SeqCst))
+    }
+
+    /// Jobs that reached a final state during this run (for --exit-when-idle).
+    pub fn finished(&self) -> u64 {
+        JobState::ALL
+            .iter()
+            .filter(|s| !s.is_active())
+            .map(|s| self.into_state(*s))
+            .sum()
+    }
+}
+
 pub struct Farm {
-    pub config: RwLock<Arc<Config>>,
-    /// The job store's task (see [`super::store`]): the only way a job changes.
-    pub jobs: StoreHandle,
-    pub printers: Mutex<BTreeMap<String, PrinterStatus>>,
-    /// Jobs being prepared: their current step, and the flag that stops their slicer.
-    pub preparing: Mutex<HashMap<String, Preparation>>,
-    /// Control channel into each printer's running print.
-    pub print_controls: Mutex<HashMap<String, mpsc::Sender<PrintCommand>>>,
-    /// Bumped on every change that may let a task make progress.
-    generation: watch::Sender<u64>,
+    /// The config in force; written by [`Farm::set_config`] (the reload path) only.
+    config: watch::Sender<Arc<Config>>,
+    /// The job store's task: the only way a job changes, reached through this type's
+    /// methods only.
+    jobs: StoreHandle,
+    /// The printers of this host; the fleet adds and removes them.
+    printers: watch::Sender<BTreeMap<String, PrinterHandle>>,
+    /// Jobs being prepared; the preparation queue adds, steps and removes them.
+    preparing: watch::Sender<BTreeMap<String, Preparation>>,
+    pub heating: HeatingPermits,
+    /// The rest of a shared farm; the shared-farm task writes it.
+    shared: watch::Sender<Option<FarmView>>,
     /// Cancelled once SIGTERM arrived: no new work is taken, waits end.
     pub shutdown: CancellationToken,
-    /// Printers holding a heating permit now (see [`Farm::heating_permit`]).
-    heating: Mutex<usize>,
-    /// Jobs that reached a final state during this run (for --exit-when-idle).
-    pub finished_this_run: std::sync::atomic::AtomicUsize,
+    /// Job changes of this run, by the state reached.
+    pub counts: JobCounts,
     /// The farm database, when `[store] postgres` shares the farm with other hosts.
     pub db: std::sync::OnceLock<crate::daemon::store::postgres::PgStore>,
-    /// The rest of a shared farm as last read from its database (see `super::shared`).
-    pub shared: Mutex<Option<super::shared::FarmView>>,
 }
 
 impl Farm {
@@ -183,25 +288,30 @@ impl Farm {
             live_jobs: config.history.live_jobs,
         };
         Arc::new(Farm {
-            config: RwLock::new(Arc::new(config)),
+            config: watch::channel(Arc::new(config)).0,
             jobs: super::store::spawn_with(store, retention),
-            printers: Mutex::new(BTreeMap::new()),
-            preparing: Mutex::new(HashMap::new()),
-            print_controls: Mutex::new(HashMap::new()),
-            generation: watch::channel(0).0,
+            printers: watch::channel(BTreeMap::new()).0,
+            preparing: watch::channel(BTreeMap::new()).0,
+            heating: HeatingPermits::default(),
+            shared: watch::channel(None).0,
             shutdown,
-            heating: Mutex::new(0),
-            finished_this_run: Default::default(),
+            counts: JobCounts::default(),
             db: Default::default(),
-            shared: Mutex::new(None),
         })
     }
 
     pub fn config(&self) -> Arc<Config> {
-        self.config
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone()
+        self.config.borrow().clone()
+    }
+
+    /// Follows the config in force.
+    pub fn watch_config(&self) -> watch::Receiver<Arc<Config>> {
+        self.config.subscribe()
+    }
+
+    /// Puts a config in force (the reload path).
+    pub fn set_config(&self, config: Config) {
+        self.config.send_replace(Arc::new(config));
     }
 
     /// The jobs and bed gates as of the store's last change (a glance: no round trip).
@@ -209,14 +319,9 @@ impl Farm {
         self.jobs.snapshot()
     }
 
-    /// Wakes every task waiting in [`Farm::changed`].
-    pub fn bump(&self) {
-        self.generation.send_modify(|g| *g += 1);
-    }
-
-    /// A receiver that resolves `changed()` on the next bump.
-    pub fn subscribe(&self) -> watch::Receiver<u64> {
-        self.generation.subscribe()
+    /// Follows the jobs and bed gates.
+    pub fn watch_jobs(&self) -> watch::Receiver<Arc<Snapshot>> {
+        self.jobs.subscribe()
     }
 
     pub fn stopping(&self) -> bool {
@@ -225,30 +330,39 @@ impl Farm {
 
     pub fn begin_stop(&self) {
         self.shutdown.cancel();
-        self.bump();
     }
 
-    /// Waits for one of the `[farm] max_heating` heating permits. The limit is read from
-    /// the config in force at each try, so a reload applies to the next permit (a lower
-    /// limit lets permits already held run out). Not raced with shutdown here: the caller
-    /// does that.
-    pub async fn heating_permit(self: &Arc<Self>) -> HeatingPermit {
-        loop {
-            let mut wake = self.subscribe();
-            {
-                let mut in_use = self.heating.lock().unwrap_or_else(|e| e.into_inner());
-                if *in_use < self.config().farm.max_heating {
-                    *in_use += 1;
-                    return HeatingPermit {
-                        farm: Arc::clone(self),
-                    };
-                }
-            }
-            let _ = wake.changed().await;
-        }
+    /// Waits for one of the `[farm] max_heating` heating permits (see
+    /// [`HeatingPermits::acquire`]).
+    pub async fn heating_permit(&self) -> HeatingPermit {
+        self.heating.acquire(self.watch_config()).await
     }
 
-    /// Changes a job's state, logs it, counts final states, and wakes the tasks.
+    // Jobs: every change goes through here, and is announced.
+
+    /// Makes a complete file of a hot folder a queued job.
+    pub async fn admit(
+        &self,
+        source: &Path,
+        folder: &Path,
+        printers: &[String],
+    ) -> Result<Job, StoreError> {
+        let job = self.jobs.admit(source, folder, printers).await?;
+        self.announce(&job.id, job.state, &None);
+        Ok(job)
+    }
+
+    /// See [`StoreHandle::late_sidecar`] (no state changes).
+    pub async fn late_sidecar(
+        &self,
+        folder: &Path,
+        file: &str,
+        sidecar: &Path,
+    ) -> Result<Option<LateSidecar>, StoreError> {
+        self.jobs.late_sidecar(folder, file, sidecar).await
+    }
+
+    /// Changes a job's state, logs it, counts it.
     pub async fn transition(
         &self,
         id: &str,
@@ -323,24 +437,128 @@ impl Farm {
         Ok(job)
     }
 
-    /// Logs a state change, counts final states, and wakes the tasks.
+    /// Puts a failed, cancelled or interrupted job back (see [`JobStore::retry`]).
+    pub async fn retry(&self, id: &str) -> Result<Job, StoreError> {
+        let job = self.jobs.retry(id).await?;
+        self.announce(id, job.state, &Some("retried by the operator".into()));
+        Ok(job)
+    }
+
+    /// Changes a job's other fields, never its state (a release).
+    pub async fn update(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        self.jobs.update(id, change).await
+    }
+
+    /// Closes a printer's bed gate after a print (`job`: the job on the bed).
+    pub async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
+        let gate = PrinterGate {
+            bed_not_cleared: true,
+            last_job: Some(job.to_string()),
+        };
+        self.jobs.set_gate(printer, gate).await
+    }
+
+    /// Marks a printer's bed cleared; false when it was clear already.
+    pub async fn clear_gate(&self, printer: &str) -> Result<bool, StoreError> {
+        let cleared = self.jobs.clear_gate(printer).await?;
+        if cleared {
+            tracing::info!(printer, "bed cleared");
+        }
+        Ok(cleared)
+    }
+
+    /// Persists outcomes that could not be written before; returns how many remain.
+    pub async fn write_pending(&self) -> Result<usize, StoreError> {
+        self.jobs.write_pending().await
+    }
+
+    /// Takes in what other hosts changed; true when anything had.
+    pub async fn resync(&self) -> Result<bool, StoreError> {
+        self.jobs.resync().await
+    }
+
+    /// A job that has moved to the history (None: no such retired job).
+    pub async fn retired(&self, id: &str) -> Result<Option<super::store::RetiredJob>, StoreError> {
+        self.jobs.retired(id).await
+    }
+
+    /// A page of the history, newest first (see [`StoreHandle::history`]).
+    pub async fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+    ) -> Result<super::store::history::Page, StoreError> {
+        self.jobs.history(before, limit).await
+    }
+
+    /// Logs a state change and counts it. Every change of a job's state comes here.
     fn announce(&self, id: &str, state: JobState, reason: &Option<String>) {
         match reason {
             Some(r) => tracing::info!(job = id, state = state.name(), reason = %r, "job state"),
             None => tracing::info!(job = id, state = state.name(), "job state"),
         }
-        if !state.is_active() {
-            self.finished_this_run
-                .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-        }
-        self.bump();
+        self.counts.count(state);
     }
 
-    pub fn set_printer(&self, name: &str, change: impl FnOnce(&mut PrinterStatus)) {
-        let mut printers = self.printers.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(p) = printers.get_mut(name) {
-            change(p);
-        }
+    /// No job has work ahead of it.
+    pub fn idle(&self) -> bool {
+        !self.store().jobs().any(|j| j.state.is_active())
+    }
+
+    // Printers.
+
+    /// Adds a printer (the fleet, as its supervisor starts).
+    pub fn add_printer(&self, name: &str, handle: PrinterHandle) {
+        self.printers.send_modify(|p| {
+            p.insert(name.to_string(), handle);
+        });
+    }
+
+    /// Removes a printer (the fleet, once its retired supervisor has ended).
+    pub fn remove_printer(&self, name: &str) {
+        self.printers.send_if_modified(|p| p.remove(name).is_some());
+    }
+
+    /// The handle of this host's printer `name`.
+    pub fn printer(&self, name: &str) -> Option<PrinterHandle> {
+        self.printers.borrow().get(name).cloned()
+    }
+
+    /// Follows which printers this host has.
+    pub fn watch_printers(&self) -> watch::Receiver<BTreeMap<String, PrinterHandle>> {
+        self.printers.subscribe()
+    }
+
+    /// This host's printers as shown: each supervisor's live status with the bed gate
+    /// from the store (the one place `bed_cleared` is made).
+    pub fn local_printers(&self) -> Vec<PrinterStatus> {
+        let store = self.store();
+        let config = self.config();
+        let host = config.store.as_ref().map(|_| config.farm.host.clone());
+        self.printers
+            .borrow()
+            .iter()
+            .map(|(name, handle)| {
+                let live = handle.live.borrow().clone();
+                PrinterStatus {
+                    name: name.clone(),
+                    state: live.state,
+                    firmware: live.firmware,
+                    port: live.port,
+                    job: live.job,
+                    progress: live.progress,
+                    temperatures: live.temperatures,
+                    detail: live.detail,
+                    bed_cleared: !store.gate(name).bed_not_cleared,
+                    host: host.clone(),
+                    offline: false,
+                }
+            })
+            .collect()
     }
 
     /// Every printer that may take a job, by name, with its machine: this host's, and in a
@@ -352,7 +570,7 @@ impl Farm {
             .iter()
             .map(|p| (p.name.clone(), p.machine.clone()))
             .collect();
-        if let Some(view) = &*self.shared.lock().unwrap_or_else(|e| e.into_inner()) {
+        if let Some(view) = &*self.shared.borrow() {
             for (name, machine) in &view.machines {
                 if !all.iter().any(|(n, _)| n == name) {
                     all.push((name.clone(), machine.clone()));
@@ -362,44 +580,154 @@ impl Farm {
         all
     }
 
-    /// No job has work ahead of it.
-    pub fn idle(&self) -> bool {
-        !self.store().jobs().any(|j| j.state.is_active())
+    // Preparations (the preparation queue's).
+
+    /// A preparation started.
+    pub fn start_preparation(&self, id: &str, cancel: CancellationToken) {
+        self.preparing.send_modify(|p| {
+            let step = "starting".into();
+            p.insert(id.to_string(), Preparation { step, cancel });
+        });
+    }
+
+    /// A preparation's step changed.
+    pub fn preparation_step(&self, id: &str, step: String) {
+        self.preparing.send_if_modified(|p| match p.get_mut(id) {
+            Some(p) if p.step != step => {
+                p.step = step;
+                true
+            }
+            _ => false,
+        });
+    }
+
+    /// A preparation ended.
+    pub fn end_preparation(&self, id: &str) {
+        self.preparing.send_if_modified(|p| p.remove(id).is_some());
+    }
+
+    /// Stops a job's preparation in progress, if any.
+    pub fn cancel_preparation(&self, id: &str) {
+        if let Some(p) = self.preparing.borrow().get(id) {
+            p.cancel.cancel();
+        }
+    }
+
+    /// Each preparation's current step, by job.
+    pub fn preparation_steps(&self) -> HashMap<String, String> {
+        self.preparing
+            .borrow()
+            .iter()
+            .map(|(id, p)| (id.clone(), p.step.clone()))
+            .collect()
+    }
+
+    // The rest of a shared farm (the shared-farm task's).
+
+    /// The rest of the farm as last read (None: not shared, or not read yet).
+    pub fn shared(&self) -> Option<FarmView> {
+        self.shared.borrow().clone()
+    }
+
+    /// Changes the view of the rest of the farm; the followers wake only when it differs.
+    pub fn set_shared(&self, change: impl FnOnce(&mut FarmView)) {
+        self.shared.send_if_modified(|view| {
+            let before = view.clone();
+            change(view.get_or_insert_with(FarmView::default));
+            *view != before
+        });
+    }
+
+    /// Follows the rest of a shared farm.
+    pub fn watch_shared(&self) -> watch::Receiver<Option<FarmView>> {
+        self.shared.subscribe()
+    }
+
+    /// Follows everything shown of the farm.
+    pub fn watch(&self) -> FarmWatch {
+        let mut watch = FarmWatch {
+            jobs: self.watch_jobs(),
+            config: self.watch_config(),
+            printers: self.watch_printers(),
+            preparing: self.preparing.subscribe(),
+            shared: self.watch_shared(),
+            lives: BTreeMap::new(),
+        };
+        watch.follow_printers();
+        watch
+    }
+}
+
+/// Receivers of every piece of the farm's state: [`FarmWatch::changed`] resolves on the
+/// next change of any since the last call (or since it was made).
+pub struct FarmWatch {
+    jobs: watch::Receiver<Arc<Snapshot>>,
+    config: watch::Receiver<Arc<Config>>,
+    printers: watch::Receiver<BTreeMap<String, PrinterHandle>>,
+    preparing: watch::Receiver<BTreeMap<String, Preparation>>,
+    shared: watch::Receiver<Option<FarmView>>,
+    /// Each printer's live status, followed from when the printer was first seen here.
+    lives: BTreeMap<String, watch::Receiver<PrinterLive>>,
+}
+
+impl FarmWatch {
+    /// Follows the printers there are now. The set is read without marking it seen: a
+    /// change of it not yet seen still ends the next wait.
+    fn follow_printers(&mut self) {
+        let printers = self.printers.borrow();
+        self.lives.retain(|name, live| {
+            printers
+                .get(name)
+                .is_some_and(|h| h.live.same_channel(live))
+        });
+        for (name, handle) in printers.iter() {
+            self.lives.entry(name.clone()).or_insert_with(|| {
+                let mut live = handle.live.clone();
+                live.mark_unchanged();
+                live
+            });
+        }
+    }
+
+    /// Waits for the next change of the farm after the last call (or since made).
+    pub async fn changed(&mut self) {
+        self.follow_printers();
+        let lives = &mut self.lives;
+        let live = async {
+            let mut open: Vec<&mut watch::Receiver<PrinterLive>> = lives.values_mut().collect();
+            loop {
+                if open.is_empty() {
+                    return std::future::pending().await;
+                }
+                let (changed, i) = {
+                    let waits = open.iter_mut().map(|l| Box::pin(l.changed()));
+                    let (changed, i, _rest) = futures_util::future::select_all(waits).await;
+                    (changed, i)
+                };
+                match changed {
+                    Ok(()) => return,
+                    // Its supervisor ended: nothing more comes from it.
+                    Err(_) => {
+                        open.swap_remove(i);
+                    }
+                }
+            }
+        };
+        // A closed channel (its owner gone) is never a change again.
+        tokio::select! {
+            Ok(()) = self.jobs.changed() => {}
+            Ok(()) = self.config.changed() => {}
+            Ok(()) = self.printers.changed() => {}
+            Ok(()) = self.preparing.changed() => {}
+            Ok(()) = self.shared.changed() => {}
+            () = live => {}
+        }
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// Every command reads back as itself; any other word is refused, never a cancel
-    /// (it once fell through to cancel and stopped the print).
-    #[test]
-    fn print_commands_parse_in_one_place() {
-        for c in [
-            PrintCommand::Pause,
-            PrintCommand::Resume,
-            PrintCommand::Cancel,
-        ] {
-            assert_eq!(PrintCommand::parse(c.word()), Ok(c));
-        }
-        for word in ["stop", "", "Cancel", "cancel ", "abort"] {
-            assert!(PrintCommand::parse(word).is_err(), "{word:?}");
-        }
-        let long = format!("x\n\u{1b}[2J{}", "y".repeat(500));
-        let e = PrintCommand::parse(&long).unwrap_err();
-        assert_eq!(e.text.chars().count(), UnknownCommand::SHOWN + 1);
-        assert!(e.text.ends_with('…'));
-        let shown = e.to_string();
-        assert!(
-            !shown.contains('\n') && !shown.contains('\u{1b}'),
-            "{shown}"
-        );
-        assert!(
-            shown.contains("\\n") && shown.contains("\\u{1b}"),
-            "{shown}"
-        );
-    }
 
     fn farm(max_heating: usize, spool: &std::path::Path) -> Arc<Farm> {
         let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
@@ -410,7 +738,7 @@ mod tests {
 
     /// `max_heating` applies on reload: raising it lets a waiting printer heat at once
     /// (the permits were once a semaphore sized at startup).
-    #[tokio::test]
+    #[tokio::test(start_paused = true)]
     async fn max_heating_applies_on_reload() {
         let tmp = tempfile::tempdir().unwrap();
         let farm = farm(1, tmp.path());
@@ -423,13 +751,55 @@ mod tests {
         assert!(!waiting.is_finished(), "one permit only");
         let mut raised = (*farm.config()).clone();
         raised.farm.max_heating = 2;
-        *farm.config.write().unwrap() = Arc::new(raised);
-        farm.bump();
+        farm.set_config(raised);
         let second = tokio::time::timeout(std::time::Duration::from_secs(30), waiting)
             .await
             .expect("the raised limit lets the waiting printer heat")
             .unwrap();
+        assert_eq!(farm.heating.in_use(), 2);
         drop((first, second));
-        assert_eq!(*farm.heating.lock().unwrap(), 0, "permits are handed back");
+        assert_eq!(farm.heating.in_use(), 0, "permits are handed back");
+    }
+
+    /// A printer's bed gate is shown from the store, as it is now: closed after a print,
+    /// open after a clear. It was once a field set when the printer started and never
+    /// changed, corrected where it was read, and published stale to the farm database.
+    #[tokio::test]
+    async fn bed_cleared_is_the_stores_gate() {
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(1, tmp.path());
+        let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
+        farm.add_printer("p1", handle);
+        let shown = |farm: &Farm| farm.local_printers()[0].bed_cleared;
+        assert!(shown(&farm));
+        farm.close_gate("p1", "0001-a").await.unwrap();
+        assert!(!shown(&farm), "a finished print is on the bed");
+        assert!(farm.clear_gate("p1").await.unwrap());
+        assert!(shown(&farm), "cleared");
+    }
+
+    /// The farm's watch ends a wait on a change of a printer's live status, once, and
+    /// not for a change from before it was made (it once took every earlier change for a
+    /// new one, and the event stream spun).
+    #[tokio::test(start_paused = true)]
+    async fn the_farm_watch_wakes_once_per_change() {
+        use std::time::Duration;
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(1, tmp.path());
+        let (owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
+        farm.add_printer("p1", handle);
+        owner.live.send_modify(|p| p.state = PrinterState::Idle);
+        let mut watch = farm.watch();
+        let quiet = Duration::from_secs(600);
+        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
+        owner.live.send_modify(|p| p.state = PrinterState::Printing);
+        tokio::time::timeout(quiet, watch.changed())
+            .await
+            .expect("woken by the change");
+        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
+        farm.close_gate("p1", "0001-a").await.unwrap();
+        tokio::time::timeout(quiet, watch.changed())
+            .await
+            .expect("woken by the gate");
     }
 }

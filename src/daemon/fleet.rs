@@ -1,58 +1,36 @@
 //! The printer fleet: one supervisor task per configured printer, and how a reload
-//! changes the set. Kept apart from `run()` because it is the one piece of the daemon's
-//! wiring with state of its own across reloads (running, retiring and waiting
-//! supervisors), and its rules (a print in progress is never cut short) are read on their own.
+//! changes the set. It owns which printers the farm has (it adds each to the farm as its
+//! supervisor starts and takes it out once a retired supervisor has ended), and it
+//! supervises its tasks: [`Fleet::next_end`] tells the service of a supervisor that ended
+//! while it should run. Its rule, read on its own: a print in progress is never cut short
+//! by a reload.
+//!
+//! How a printer's port is reached is handed in ([`Ports`]): the real serial ports and
+//! simulators ([`Ports::marlin`]), or a test's doubles.
 
 use super::config::{PrinterConfig, PrinterPort};
-use super::farm::{Farm, PrinterState, PrinterStatus};
+use super::farm::{printer_channels, Farm, PrinterLive};
 use super::{printer, DaemonError};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use tokio::sync::watch;
+use tokio::task::{Id, JoinSet};
 
-/// The printer supervisors, one per configured printer, and how a reload changes them:
-/// a printer added to the config starts at once; one removed or changed retires when it
-/// is not printing (a print in progress is never cut short by a reload), and a changed
-/// one then starts again with its new settings.
-pub(super) struct Fleet {
-    running: BTreeMap<String, Supervised>,
-    /// Retired supervisors still finishing a print.
-    retiring: Vec<Supervised>,
-    /// New settings for printers whose old supervisor is still retiring.
-    waiting: Vec<PrinterConfig>,
+/// A printer's way in, as [`Ports`] resolves it.
+pub struct Port {
+    pub connector: Box<dyn printer::Connector>,
+    /// Shown in the status (the device, or the simulator's pty).
+    pub shown: String,
+    /// Kept alive as long as the supervisor (a simulated printer's handle).
+    pub keep: Option<Box<dyn Send>>,
 }
 
-struct Supervised {
-    spec: PrinterConfig,
-    task: tokio::task::JoinHandle<()>,
-    retire: watch::Sender<bool>,
-    /// Keeps a simulated printer alive as long as its supervisor.
-    _simulator: Option<crate::marlin::sim::SimHandle>,
-}
+/// Resolves a configured printer to its [`Port`].
+pub type Ports = Box<dyn Fn(&PrinterConfig) -> Result<Port, DaemonError> + Send + Sync>;
 
-impl Fleet {
-    pub(super) fn start_all(
-        farm: &Arc<Farm>,
-        printers: &[PrinterConfig],
-    ) -> Result<Fleet, DaemonError> {
-        let mut fleet = Fleet {
-            running: BTreeMap::new(),
-            retiring: Vec::new(),
-            waiting: Vec::new(),
-        };
-        for spec in printers {
-            fleet.start(farm, spec.clone())?;
-        }
-        Ok(fleet)
-    }
-
-    /// Resolves the printer's port (starting its simulator if it has one), shows it in
-    /// the status and starts its supervisor.
-    pub(super) fn start(
-        &mut self,
-        farm: &Arc<Farm>,
-        spec: PrinterConfig,
-    ) -> Result<(), DaemonError> {
+/// The real ports: a serial device, or a simulated printer started here.
+pub fn marlin_ports() -> Ports {
+    Box::new(|spec: &PrinterConfig| {
         let (port, simulator) = match &spec.port {
             PrinterPort::Serial(path) => (path.clone(), None),
             PrinterPort::Simulated {
@@ -76,56 +54,89 @@ impl Fleet {
                 (device, Some(handle))
             }
         };
-        farm.printers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(
-                spec.name.clone(),
-                PrinterStatus {
-                    name: spec.name.clone(),
-                    state: PrinterState::Connecting,
-                    firmware: spec.firmware.name().to_string(),
-                    port: port.display().to_string(),
-                    job: None,
-                    progress: None,
-                    temperatures: None,
-                    detail: None,
-                    bed_cleared: true,
-                    host: farm
-                        .config()
-                        .store
-                        .as_ref()
-                        .map(|_| farm.config().farm.host.clone()),
-                    offline: false,
-                },
-            );
-        let connector = Box::new(printer::MarlinConnector {
-            port,
-            firmware: spec.firmware,
-            baud: spec.baud,
-            heat_timeout: spec.heat_timeout,
-        });
+        Ok(Port {
+            shown: port.display().to_string(),
+            connector: Box::new(printer::MarlinConnector {
+                port,
+                firmware: spec.firmware,
+                baud: spec.baud,
+                heat_timeout: spec.heat_timeout,
+            }),
+            keep: simulator.map(|s| Box::new(s) as Box<dyn Send>),
+        })
+    })
+}
+
+/// The printer supervisors, one per configured printer, and how a reload changes them:
+/// a printer added to the config starts at once; one removed or changed retires when it
+/// is not printing (a print in progress is never cut short by a reload), and a changed
+/// one then starts again with its new settings.
+pub struct Fleet {
+    farm: Arc<Farm>,
+    ports: Ports,
+    tasks: JoinSet<()>,
+    running: BTreeMap<String, Supervised>,
+    /// Retired supervisors still finishing a print, by task.
+    retiring: HashMap<Id, Supervised>,
+    /// New settings for printers whose old supervisor is still retiring.
+    waiting: Vec<PrinterConfig>,
+}
+
+struct Supervised {
+    spec: PrinterConfig,
+    task: Id,
+    retire: watch::Sender<bool>,
+    _keep: Option<Box<dyn Send>>,
+}
+
+impl Fleet {
+    pub fn start_all(
+        farm: &Arc<Farm>,
+        printers: &[PrinterConfig],
+        ports: Ports,
+    ) -> Result<Fleet, DaemonError> {
+        let mut fleet = Fleet {
+            farm: Arc::clone(farm),
+            ports,
+            tasks: JoinSet::new(),
+            running: BTreeMap::new(),
+            retiring: HashMap::new(),
+            waiting: Vec::new(),
+        };
+        for spec in printers {
+            fleet.start(spec.clone())?;
+        }
+        Ok(fleet)
+    }
+
+    /// Resolves the printer's port, adds it to the farm and starts its supervisor.
+    fn start(&mut self, spec: PrinterConfig) -> Result<(), DaemonError> {
+        let port = (self.ports)(&spec)?;
+        let (owner, handle) =
+            printer_channels(PrinterLive::connecting(spec.firmware.name(), &port.shown));
+        self.farm.add_printer(&spec.name, handle);
         let (retire, retired) = watch::channel(false);
-        let task = tokio::spawn(printer::supervise(
-            Arc::clone(farm),
+        let task = self.tasks.spawn(printer::supervise(
+            Arc::clone(&self.farm),
             spec.name.clone(),
-            connector,
+            owner,
+            port.connector,
             retired,
         ));
         self.running.insert(
             spec.name.clone(),
             Supervised {
                 spec,
-                task,
+                task: task.id(),
                 retire,
-                _simulator: simulator,
+                _keep: port.keep,
             },
         );
         Ok(())
     }
 
     /// Applies a reloaded config's printers.
-    pub(super) fn apply(&mut self, farm: &Arc<Farm>, printers: &[PrinterConfig]) {
+    pub fn apply(&mut self, printers: &[PrinterConfig]) {
         let names: Vec<String> = self.running.keys().cloned().collect();
         for name in names {
             let spec = &self.running[&name].spec;
@@ -135,7 +146,7 @@ impl Fleet {
                     let old = self.running.remove(&name).expect("listed above");
                     old.retire.send_replace(true);
                     tracing::info!(printer = %name, "config reload: retiring the printer's supervisor");
-                    self.retiring.push(old);
+                    self.retiring.insert(old.task, old);
                     if let Some(new) = new {
                         self.waiting.push(new.clone());
                     }
@@ -151,42 +162,59 @@ impl Fleet {
                 self.waiting.push(new.clone());
             }
         }
-        self.settle(farm);
+        self.start_waiting();
     }
 
-    /// Lets go of retired supervisors that have finished and starts the waiting printers
-    /// whose names are free again.
-    pub(super) fn settle(&mut self, farm: &Arc<Farm>) {
-        self.retiring.retain(|s| !s.task.is_finished());
+    /// Starts the waiting printers whose names are free again.
+    fn start_waiting(&mut self) {
         let waiting = std::mem::take(&mut self.waiting);
         for spec in waiting {
-            if self.retiring.iter().any(|s| s.spec.name == spec.name) {
+            if self.retiring.values().any(|s| s.spec.name == spec.name) {
                 self.waiting.push(spec);
                 continue;
             }
             let name = spec.name.clone();
-            if let Err(e) = self.start(farm, spec) {
+            if let Err(e) = self.start(spec) {
                 tracing::error!(printer = %name, error = %e, "config reload: cannot start the printer");
             }
         }
     }
 
-    /// A printer whose supervisor ended (it panicked: it ends only once retired, which
-    /// moves it out of `running`, or at shutdown).
-    pub(super) fn ended(&self) -> Option<String> {
-        if self.running.is_empty() {
-            return None;
+    /// Waits for a supervisor that ended while it should run (it ends only once retired,
+    /// or at shutdown): its printer's name and how it ended. A retired one that ended is
+    /// let go of here (and its printer taken out of the farm, or started again with its
+    /// new settings). Pending while there is nothing to wait for.
+    pub async fn next_end(&mut self) -> (String, Result<(), tokio::task::JoinError>) {
+        loop {
+            let Some(ended) = self.tasks.join_next_with_id().await else {
+                return std::future::pending().await;
+            };
+            let (id, how) = match ended {
+                Ok((id, ())) => (id, Ok(())),
+                Err(e) => (e.id(), Err(e)),
+            };
+            if let Some(retired) = self.retiring.remove(&id) {
+                let name = retired.spec.name.clone();
+                if !self.running.contains_key(&name) {
+                    self.farm.remove_printer(&name);
+                }
+                self.start_waiting();
+                continue;
+            }
+            if let Some(name) = self
+                .running
+                .iter()
+                .find(|(_, s)| s.task == id)
+                .map(|(n, _)| n.clone())
+            {
+                self.running.remove(&name);
+                return (name, how);
+            }
         }
-        self.running
-            .iter()
-            .find(|(_, s)| s.task.is_finished())
-            .map(|(name, _)| name.clone())
     }
 
     /// Waits for every supervisor to end (after [`Farm::begin_stop`]).
-    pub(super) async fn join(self) {
-        for s in self.running.into_values().chain(self.retiring) {
-            let _ = s.task.await;
-        }
+    pub async fn join(mut self) {
+        while self.tasks.join_next().await.is_some() {}
     }
 }

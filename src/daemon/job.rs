@@ -45,8 +45,11 @@ pub enum StoreError {
         "the job store has stopped (the daemon is shutting down, or the store failed; see the log)"
     )]
     Stopped,
-    #[error("the farm database: {0} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
-    Database(String),
+    #[error("the farm database: {message} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
+    Database {
+        failure: DatabaseFailure,
+        message: String,
+    },
     #[error("job {id} is no longer held by host {host} (its lease ran out and the farm moved it on: it is {state} now); the change was not recorded")]
     LostClaim {
         id: String,
@@ -60,6 +63,30 @@ pub enum StoreError {
         action: &'static str,
         allowed: &'static str,
     },
+}
+
+/// Why the farm database failed a request: the callers decide by it whether to wait for
+/// it (keep an outcome, try a claim again) or report a fault.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DatabaseFailure {
+    /// It could not be reached, or the connection failed under the request.
+    Outage,
+    /// It answered with an error of its own, or with something this crispen cannot read.
+    Other,
+}
+
+impl StoreError {
+    /// The farm database could not be reached (as opposed to a change refused by the
+    /// job's rules, or a fault).
+    pub fn is_outage(&self) -> bool {
+        matches!(
+            self,
+            StoreError::Database {
+                failure: DatabaseFailure::Outage,
+                ..
+            }
+        )
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]

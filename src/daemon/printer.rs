@@ -18,9 +18,16 @@
 //! The supervisor reaches the printer through [`Connector`]/[`PrinterLink`], so the real
 //! Marlin streamer is wired in in one place ([`MarlinConnector`]).
 
-use super::farm::{Farm, LiveProgress, PrintCommand, PrinterState, PrinterTemperatures};
-use super::job::{JobState, PrintReport, PrinterGate};
-use crate::marlin::gcode::GcodeProgram;
+//! What the supervisor shows of its printer it publishes on the printer's own `watch`
+//! ([`PrinterOwner`]); it follows the job store's snapshot (a job ready, its bed cleared),
+//! the config and the shared farm's database state, never a global wake-up.
+
+use super::farm::{
+    Farm, FarmView, LiveProgress, PrintCommand, PrinterLive, PrinterOwner, PrinterState,
+    PrinterTemperatures,
+};
+use super::job::{JobState, PrintReport};
+use crate::marlin::gcode::{GcodeError, GcodeProgram};
 use crate::marlin::stream::{
     Connection, Idle, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
     Temperatures,
@@ -35,16 +42,45 @@ use tracing::Instrument;
 
 pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 
-/// How a print ended, if not well.
-#[derive(Debug, Clone)]
+/// How a print ended, if not well: the cause, with the streamer's own error.
+#[derive(Debug, thiserror::Error)]
 pub enum PrintFailure {
     /// Stopped on request (heaters off).
-    Cancelled(String),
+    #[error("{0}")]
+    Cancelled(PrintError),
     /// The printer went away; the connection must be re-opened.
-    Lost(String),
+    #[error("{0}")]
+    Lost(PrintError),
     /// The print failed on the printer's side (it said so, or reset).
-    Failed(String),
+    #[error("{0}")]
+    Failed(PrintError),
+    /// The job's G-code cannot be read or is not for this printer; nothing was sent.
+    #[error("cannot load the G-code: {0}")]
+    Gcode(#[from] GcodeError),
+    /// Loading the G-code crashed; nothing was sent.
+    #[error("cannot load the G-code: {0}")]
+    LoaderCrashed(#[source] tokio::task::JoinError),
 }
+
+impl PrintFailure {
+    /// The cause of a streamer's error: the one place its kinds are sorted.
+    pub fn of(e: PrintError) -> PrintFailure {
+        match e {
+            PrintError::Cancelled { .. } => PrintFailure::Cancelled(e),
+            PrintError::Open(_)
+            | PrintError::NoAnswer { .. }
+            | PrintError::Disconnected { .. }
+            | PrintError::PrinterReset { .. }
+            | PrintError::Silent { .. } => PrintFailure::Lost(e),
+            _ => PrintFailure::Failed(e),
+        }
+    }
+}
+
+/// A printer cannot be connected to (it is retried with backoff).
+#[derive(Debug, thiserror::Error)]
+#[error(transparent)]
+pub struct ConnectError(#[from] pub PrintError);
 
 /// An open connection to a printer.
 pub trait PrinterLink: Send {
@@ -77,7 +113,7 @@ pub enum IdleNews {
 
 /// Opens connections to one printer.
 pub trait Connector: Send + Sync {
-    fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, String>>;
+    fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, ConnectError>>;
 }
 
 /// Index (in the program's command list) of the last heat-and-wait command of the opening
@@ -96,33 +132,53 @@ pub fn heat_up_end<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Opti
     last
 }
 
+/// One printer's supervisor: the farm it serves, and what it owns of the printer.
+struct Supervisor {
+    farm: Arc<Farm>,
+    name: String,
+    owner: PrinterOwner,
+}
+
+impl Supervisor {
+    /// Changes what is shown of the printer; followers wake only on a real change.
+    fn show(&self, change: impl FnOnce(&mut PrinterLive)) {
+        self.owner.live.send_if_modified(|live| {
+            let before = live.clone();
+            change(live);
+            *live != before
+        });
+    }
+}
+
 /// Runs one printer's supervisor until shutdown, or until `retire` turns true (the printer
 /// left the config or changed); either takes effect between prints, never during one.
 pub async fn supervise(
     farm: Arc<Farm>,
     name: String,
+    owner: PrinterOwner,
     connector: Box<dyn Connector>,
     retire: watch::Receiver<bool>,
 ) {
     let span = tracing::info_span!("printer", printer = %name);
-    supervise_inner(farm, name, connector, retire)
+    let sup = Supervisor { farm, name, owner };
+    supervise_inner(&sup, connector, retire)
         .instrument(span)
         .await
 }
 
 async fn supervise_inner(
-    farm: Arc<Farm>,
-    name: String,
+    sup: &Supervisor,
     connector: Box<dyn Connector>,
     mut retire: watch::Receiver<bool>,
 ) {
+    let farm = &sup.farm;
     let mut backoff = Duration::from_millis(500);
     let done = |retire: &watch::Receiver<bool>| farm.stopping() || *retire.borrow();
     'connect: loop {
         if done(&retire) {
             break;
         }
-        farm.set_printer(&name, |p| {
+        sup.show(|p| {
             p.state = PrinterState::Connecting;
             p.temperatures = None;
         });
@@ -139,9 +195,9 @@ async fn supervise_inner(
             }
             Err(e) => {
                 tracing::warn!(error = %e, retry_in_s = backoff.as_secs_f64(), "cannot connect");
-                farm.set_printer(&name, |p| {
+                sup.show(|p| {
                     p.state = PrinterState::Disconnected;
-                    p.detail = Some(e.clone());
+                    p.detail = Some(e.to_string());
                 });
                 tokio::select! {
                     _ = tokio::time::sleep(backoff) => {}
@@ -152,78 +208,125 @@ async fn supervise_inner(
                 continue;
             }
         };
-        farm.set_printer(&name, |p| p.detail = None);
+        sup.show(|p| p.detail = None);
         loop {
-            let mut wake = farm.subscribe();
+            // Followed from before the look at the gate and the queue: a change while
+            // looking is not missed.
+            let mut follow = Follow::new(farm);
             if done(&retire) {
                 break 'connect;
             }
-            let gate = farm.store().gate(&name);
+            let gate = farm.store().gate(&sup.name);
             if gate.bed_not_cleared {
-                farm.set_printer(&name, |p| {
+                sup.show(|p| {
                     p.state = PrinterState::BedNotCleared;
                     p.job = gate.last_job.clone();
                 });
-                if between_jobs(&farm, &name, link.as_mut(), &mut wake, &mut retire).await {
+                if between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     continue 'connect;
                 }
                 continue;
             }
-            let Some(job_id) = claim_job(&farm, &name).await else {
-                farm.set_printer(&name, |p| {
+            let Some(job_id) = claim_job(farm, &sup.name).await else {
+                sup.show(|p| {
                     p.state = PrinterState::Idle;
                     p.job = None;
                     p.progress = None;
                 });
-                if between_jobs(&farm, &name, link.as_mut(), &mut wake, &mut retire).await {
+                if between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     continue 'connect;
                 }
                 continue;
             };
             let span = tracing::info_span!("job", job = %job_id);
-            let lost = run_job(&farm, &name, &job_id, link.as_mut())
-                .instrument(span)
-                .await;
+            let lost = run_job(sup, &job_id, link.as_mut()).instrument(span).await;
             if lost {
                 continue 'connect;
             }
         }
     }
     if *retire.borrow() && !farm.stopping() {
+        // The fleet takes it out of the farm once this task has ended.
         tracing::info!("supervisor retired by a config reload");
-        farm.printers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .remove(&name);
     } else {
-        farm.set_printer(&name, |p| {
+        sup.show(|p| {
             p.state = PrinterState::Stopped;
             p.temperatures = None;
         });
     }
 }
 
-/// Waits for a change of the farm (a bed cleared, a job ready, a reload) while reading what
-/// the printer says meanwhile and showing its temperatures. Returns true when the
-/// connection was lost. A reset is noted in the printer's status until its next job starts.
+/// What an idle supervisor follows: a change of the jobs or bed gates, of the config (a
+/// reload may make a job eligible), or the farm database answering again (claims that
+/// failed meanwhile are tried again).
+struct Follow {
+    jobs: watch::Receiver<Arc<super::store::Snapshot>>,
+    config: watch::Receiver<Arc<super::config::Config>>,
+    shared: watch::Receiver<Option<FarmView>>,
+    shutdown: tokio_util::sync::CancellationToken,
+}
+
+impl Follow {
+    fn new(farm: &Farm) -> Follow {
+        Follow {
+            jobs: farm.watch_jobs(),
+            config: farm.watch_config(),
+            shared: farm.watch_shared(),
+            shutdown: farm.shutdown.clone(),
+        }
+    }
+
+    async fn changed(&mut self) {
+        let Follow {
+            jobs,
+            config,
+            shared,
+            shutdown,
+        } = self;
+        let database = |v: &Option<FarmView>| v.as_ref().and_then(|v| v.database.clone());
+        let mut was = database(&shared.borrow_and_update());
+        let answers_again = async {
+            loop {
+                if shared.changed().await.is_err() {
+                    return std::future::pending().await;
+                }
+                let now = database(&shared.borrow_and_update());
+                if was.is_some() && now.is_none() {
+                    return;
+                }
+                was = now;
+            }
+        };
+        tokio::select! {
+            Ok(()) = jobs.changed() => {}
+            Ok(()) = config.changed() => {}
+            () = answers_again => {}
+            () = shutdown.cancelled() => {}
+        }
+    }
+}
+
+/// Waits for a change the printer may act on (a bed cleared, a job ready, a reload) while
+/// reading what the printer says meanwhile and showing its temperatures. Returns true
+/// when the connection was lost. A reset is noted in the printer's status until its next
+/// job starts.
 async fn between_jobs(
-    farm: &Farm,
-    name: &str,
+    sup: &Supervisor,
     link: &mut dyn PrinterLink,
-    wake: &mut watch::Receiver<u64>,
+    follow: &mut Follow,
     retire: &mut watch::Receiver<bool>,
 ) -> bool {
     loop {
         let news = tokio::select! {
-            _ = wake.changed() => return false,
+            () = follow.changed() => return false,
             _ = retire.changed() => return false,
             news = link.watch_idle() => news,
         };
         match news {
-            IdleNews::Temperatures(t) => farm.set_printer(name, |p| p.temperatures = t),
+            IdleNews::Temperatures(t) => sup.show(|p| p.temperatures = t),
             IdleNews::Rebooted => {
                 tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
-                farm.set_printer(name, |p| {
+                sup.show(|p| {
                     p.detail = Some(
                         "the printer reset between jobs (it said `start`); the next job starts \
                          with a fresh handshake"
@@ -233,16 +336,16 @@ async fn between_jobs(
                 return false;
             }
             IdleNews::Lost(why) => {
-                lost_between_jobs(farm, name, why);
+                lost_between_jobs(sup, why);
                 return true;
             }
         }
     }
 }
 
-fn lost_between_jobs(farm: &Farm, name: &str, why: String) {
+fn lost_between_jobs(sup: &Supervisor, why: String) {
     tracing::warn!(reason = %why, "printer link lost between jobs; reconnecting");
-    farm.set_printer(name, |p| {
+    sup.show(|p| {
         p.state = PrinterState::Disconnected;
         p.detail = Some(why);
         p.temperatures = None;
@@ -287,12 +390,8 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
 }
 
 /// Prints one job. Returns true when the connection was lost.
-async fn run_job(
-    farm: &Arc<Farm>,
-    printer: &str,
-    job_id: &str,
-    link: &mut dyn PrinterLink,
-) -> bool {
+async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> bool {
+    let (farm, printer) = (&sup.farm, sup.name.as_str());
     let machine = farm
         .config()
         .printers
@@ -317,7 +416,7 @@ async fn run_job(
         }
     };
 
-    farm.set_printer(printer, |p| {
+    sup.show(|p| {
         p.state = PrinterState::WaitingToHeat;
         p.job = Some(job_id.to_string());
         p.progress = None;
@@ -331,13 +430,13 @@ async fn run_job(
         };
         let lost = match news {
             Some(IdleNews::Temperatures(t)) => {
-                farm.set_printer(printer, |p| p.temperatures = t);
+                sup.show(|p| p.temperatures = t);
                 continue;
             }
             // The job's start greets it afresh.
             Some(IdleNews::Rebooted) => continue,
             Some(IdleNews::Lost(why)) => {
-                lost_between_jobs(farm, printer, why);
+                lost_between_jobs(sup, why);
                 true
             }
             None => false,
@@ -347,20 +446,17 @@ async fn run_job(
         if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
             tracing::error!(error = %e, "cannot put the job back");
         }
-        farm.set_printer(printer, |p| p.job = None);
+        sup.show(|p| p.job = None);
         return lost;
     };
     tracing::info!(gcode = %gcode.display(), "starting print");
-    farm.set_printer(printer, |p| {
+    sup.show(|p| {
         p.state = PrinterState::Printing;
         p.detail = None;
     });
 
     let (control_tx, control_rx) = mpsc::channel(8);
-    farm.print_controls
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .insert(printer.to_string(), control_tx.clone());
+    sup.owner.print.send_replace(Some(control_tx.clone()));
     let (progress_tx, mut progress_rx) = watch::channel(LiveProgress::default());
 
     // A stop requested by shutdown (on_shutdown = "stop") is a cancel that ends as
@@ -381,7 +477,7 @@ async fn run_job(
                     permit = None;
                     tracing::info!("heat-up done; heating permit released");
                 }
-                farm.set_printer(printer, |p| {
+                sup.show(|p| {
                     p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
                     show_progress(p, live);
                 });
@@ -395,22 +491,15 @@ async fn run_job(
     drop(permit);
     if progress_open {
         let live = progress_rx.borrow_and_update().clone();
-        farm.set_printer(printer, |p| show_progress(p, live));
+        sup.show(|p| show_progress(p, live));
     }
     if matches!(outcome, Err(PrintFailure::Lost(_))) {
         // Whatever was read last is no longer current.
-        farm.set_printer(printer, |p| p.temperatures = None);
+        sup.show(|p| p.temperatures = None);
     }
-    farm.print_controls
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .remove(printer);
+    sup.owner.print.send_replace(None);
 
-    let gate = PrinterGate {
-        bed_not_cleared: true,
-        last_job: Some(job_id.to_string()),
-    };
-    if let Err(e) = farm.jobs.set_gate(printer, gate).await {
+    if let Err(e) = farm.close_gate(printer, job_id).await {
         tracing::error!(error = %e, "cannot persist the bed gate");
     }
     let mut printed = None;
@@ -427,22 +516,28 @@ async fn run_job(
                 (JobState::Done, None, false)
             }
         }
-        Err(PrintFailure::Cancelled(why)) if shutdown_stop => (
+        Err(why @ PrintFailure::Cancelled(_)) if shutdown_stop => (
             JobState::Interrupted,
             Some(format!(
                 "stopped safely at shutdown ({why}); clear the bed, then `crispen retry` if wanted"
             )),
             false,
         ),
-        Err(PrintFailure::Cancelled(why)) => (JobState::Cancelled, Some(why), false),
-        Err(PrintFailure::Lost(why)) => (
+        Err(why @ PrintFailure::Cancelled(_)) => {
+            (JobState::Cancelled, Some(why.to_string()), false)
+        }
+        Err(why @ PrintFailure::Lost(_)) => (
             JobState::Interrupted,
             Some(format!(
                 "{why}; check the printer and clear its bed, then `crispen retry` if wanted"
             )),
             true,
         ),
-        Err(PrintFailure::Failed(why)) => (JobState::Failed, Some(why), false),
+        Err(
+            why @ (PrintFailure::Failed(_)
+            | PrintFailure::Gcode(_)
+            | PrintFailure::LoaderCrashed(_)),
+        ) => (JobState::Failed, Some(why.to_string()), false),
     };
     let recorded = farm
         .record_outcome(job_id, state, reason, |j| {
@@ -455,7 +550,7 @@ async fn run_job(
     if let Err(e) = recorded {
         tracing::error!(error = %e, "cannot record the print's outcome");
     }
-    farm.set_printer(printer, |p| {
+    sup.show(|p| {
         p.state = PrinterState::BedNotCleared;
     });
     lost
@@ -463,7 +558,7 @@ async fn run_job(
 
 /// A print's progress, and its temperatures once the printer has reported them (until
 /// then the last ones read before the job stand).
-fn show_progress(p: &mut super::farm::PrinterStatus, live: LiveProgress) {
+fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
     if live.hotend_c.is_some() || live.bed_c.is_some() {
         p.temperatures = Some(PrinterTemperatures {
             hotend_c: live.hotend_c,
@@ -508,14 +603,12 @@ pub struct MarlinConnector {
 }
 
 impl Connector for MarlinConnector {
-    fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, String>> {
+    fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, ConnectError>> {
         Box::pin(async move {
             let mut opts = StreamOptions::for_firmware(self.firmware);
             opts.baud = self.baud;
             opts.protocol.heat_timeout = self.heat_timeout;
-            let connection = Connection::open(&self.port, &opts)
-                .await
-                .map_err(|e| e.to_string())?;
+            let connection = Connection::open(&self.port, &opts).await?;
             Ok(Box::new(MarlinLink {
                 connection,
                 firmware: self.firmware,
@@ -542,8 +635,7 @@ impl PrinterLink for MarlinLink {
             let program =
                 tokio::task::spawn_blocking(move || GcodeProgram::load_for(&path, firmware))
                     .await
-                    .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?
-                    .map_err(|e| PrintFailure::Failed(format!("cannot load the G-code: {e}")))?;
+                    .map_err(PrintFailure::LoaderCrashed)??;
             let heat_end = heat_up_end(program.iter());
             let (stream_tx, stream_rx) = mpsc::channel(8);
             let (inner_tx, mut inner_rx) = watch::channel(PrintProgress::default());
@@ -603,15 +695,7 @@ impl PrinterLink for MarlinLink {
             progress.send_replace(live_progress(&inner_rx.borrow(), last_heated, last_paused));
             match result {
                 Ok(report) => Ok(report.into()),
-                Err(e) => Err(match e {
-                    PrintError::Cancelled { .. } => PrintFailure::Cancelled(e.to_string()),
-                    PrintError::Open(_)
-                    | PrintError::NoAnswer { .. }
-                    | PrintError::Disconnected { .. }
-                    | PrintError::PrinterReset { .. }
-                    | PrintError::Silent { .. } => PrintFailure::Lost(e.to_string()),
-                    _ => PrintFailure::Failed(e.to_string()),
-                }),
+                Err(e) => Err(PrintFailure::of(e)),
             }
         })
     }

@@ -309,7 +309,7 @@ pub fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Reloaded {
         }
     }
     let config = merge(&old, new);
-    *farm.config.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(config.clone());
+    farm.set_config(config.clone());
     Reloaded::Applied { config, changed }
 }
 

@@ -14,23 +14,11 @@
 //! (stopping them would not help the printers); their outcomes are not recorded.
 
 use super::control;
-use super::farm::{Farm, PrintCommand, PrinterStatus, UnknownCommand};
-use super::store::postgres::{FarmHost, PgError, PgStore};
+use super::farm::{Farm, FarmView, PrintCommand, PrinterStatus, UnknownCommand};
+use super::store::postgres::{PgError, PgStore};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio_util::sync::CancellationToken;
-
-/// The rest of the farm as this host last read it from the database.
-#[derive(Debug, Clone, Default)]
-pub struct FarmView {
-    /// None while the database answers; else why it does not.
-    pub database: Option<String>,
-    pub hosts: Vec<FarmHost>,
-    /// Other hosts' printers, as their hosts last published them.
-    pub printers: Vec<PrinterStatus>,
-    /// Other hosts' printers' machines, for preparing their jobs here.
-    pub machines: Vec<(String, crate::machine::Machine)>,
-}
 
 /// How often the other hosts' changes are read and this host's printers published.
 const TICK: Duration = Duration::from_secs(1);
@@ -60,8 +48,7 @@ pub async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: Cancellati
             }
             Err(e @ PgError::Displaced { .. }) => {
                 tracing::error!(host = %db.host(), "{e}");
-                let mut shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
-                shared.get_or_insert_with(FarmView::default).database = Some(e.to_string());
+                farm.set_shared(|view| view.database = Some(e.to_string()));
                 return;
             }
             Err(e) => set_database(&farm, Some(e.to_string())),
@@ -94,14 +81,7 @@ async fn tick(
             tracing::warn!(job = %id, "its host is gone during the print: interrupted (never reprinted on its own; `crispen retry` it once the printer is checked)");
         }
     }
-    let statuses: Vec<(String, serde_json::Value)> = farm
-        .printers
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .values()
-        .filter_map(|p| Some((p.name.clone(), serde_json::to_value(p).ok()?)))
-        .collect();
-    db.publish_printers(&statuses).await?;
+    db.publish_printers(&published(farm)).await?;
     let printers = db.printers().await?;
     let hosts = db.hosts().await?;
     for (printer, command) in db.take_commands().await? {
@@ -127,22 +107,32 @@ async fn tick(
             Some(Ok(status)) => status,
             _ => continue,
         };
+        // The row's own columns are the farm's record of these (the status is as its host
+        // last published it, up to a tick ago); its bed gate is the store's.
         status.host = Some(p.host);
         status.offline = p.offline;
         status.bed_cleared = !p.bed_not_cleared;
         view.printers.push(status);
     }
     view.hosts = hosts;
-    {
-        // Whether the database answers is `set_database`'s to change (and log).
-        let mut shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
-        view.database = shared.as_ref().and_then(|v| v.database.clone());
-        *shared = Some(view);
-    }
-    if let Ok(true) = farm.jobs.resync().await {
-        farm.bump();
+    // Whether the database answers is `set_database`'s to change (and log).
+    farm.set_shared(|shown| {
+        view.database = shown.database.take();
+        *shown = view;
+    });
+    if let Err(e) = farm.resync().await {
+        tracing::warn!(error = %e, "cannot take in the other hosts' changes");
     }
     Ok(())
+}
+
+/// This host's printers as published to the farm database, by name: as `crispen status`
+/// shows them here (their bed gates as the store has them now).
+fn published(farm: &Farm) -> Vec<(String, serde_json::Value)> {
+    farm.local_printers()
+        .iter()
+        .filter_map(|p| Some((p.name.clone(), serde_json::to_value(p).ok()?)))
+        .collect()
 }
 
 /// The command from another host to carry out, or None for one this host does not know
@@ -161,22 +151,18 @@ fn to_carry_out(
     }
 }
 
-/// Records whether the database answers, logging each change once.
+/// Records whether the database answers, logging each change once (the printers waiting
+/// for a job follow it: claims that failed meanwhile are tried again).
 fn set_database(farm: &Farm, error: Option<String>) {
-    let mut shared = farm.shared.lock().unwrap_or_else(|e| e.into_inner());
-    let view = shared.get_or_insert_with(FarmView::default);
-    match (&view.database, &error) {
+    let was = farm.shared().and_then(|v| v.database);
+    match (&was, &error) {
         (None, Some(e)) => {
             tracing::error!(error = %e, "the farm database is unreachable: prints in progress go on, nothing new is taken until it is back")
         }
-        (Some(_), None) => {
-            tracing::info!("the farm database answers again");
-            // Claims that failed meanwhile are tried again.
-            farm.bump();
-        }
+        (Some(_), None) => tracing::info!("the farm database answers again"),
         _ => {}
     }
-    view.database = error;
+    farm.set_shared(|view| view.database = error);
 }
 
 #[cfg(test)]
@@ -201,5 +187,47 @@ mod tests {
         ] {
             assert_eq!(to_carry_out("p1", PrintCommand::parse(c.word())), Some(c));
         }
+    }
+
+    /// What this host publishes of its printers to the farm database shows each bed gate
+    /// as it is now: closed after a print, open after a clear. It once published a value
+    /// set when the printer started (always "cleared"), which other hosts then corrected
+    /// from another column.
+    #[tokio::test]
+    async fn the_published_bed_gate_is_the_current_one() {
+        use crate::daemon::doubles::{farm_config, open_farm};
+        use crate::daemon::farm::{printer_channels, PrinterLive};
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+        let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
+        farm.add_printer("p1", handle);
+        let bed_cleared = |farm: &Farm| {
+            let published = published(farm);
+            assert_eq!(published.len(), 1);
+            assert_eq!(published[0].0, "p1");
+            published[0].1["bed_cleared"].as_bool().unwrap()
+        };
+        assert!(bed_cleared(&farm));
+        farm.close_gate("p1", "0001-a").await.unwrap();
+        assert!(!bed_cleared(&farm), "a finished print waits on the bed");
+        farm.clear_gate("p1").await.unwrap();
+        assert!(bed_cleared(&farm));
+    }
+
+    /// A store error from the farm database keeps whether the database was out of reach
+    /// (the callers wait for it) or answered with a fault; it was once only a message.
+    #[test]
+    fn a_database_error_keeps_whether_it_is_an_outage() {
+        use crate::daemon::job::StoreError;
+        let out: StoreError = PgError::Unreachable("connection refused".into()).into();
+        assert!(out.is_outage(), "{out}");
+        let fault: StoreError = PgError::Corrupt {
+            id: "0001-a".into(),
+            what: "state",
+            message: "no such state \"melted\"".into(),
+        }
+        .into();
+        assert!(!fault.is_outage(), "{fault}");
+        assert!(fault.to_string().contains("melted"), "{fault}");
     }
 }

@@ -200,7 +200,7 @@ pub async fn job(
     if let Some(detail) = found {
         return Ok(Json(detail).into_response());
     }
-    match state.farm.jobs.retired(&id).await {
+    match state.farm.retired(&id).await {
         Ok(Some(retired)) => {
             let mut answer = serde_json::to_value(&retired.record).unwrap_or_default();
             answer["retired"] = serde_json::Value::Bool(true);
@@ -240,7 +240,7 @@ pub async fn history(
             ),
         ));
     }
-    match state.farm.jobs.history(query.before, limit).await {
+    match state.farm.history(query.before, limit).await {
         Ok(page) => Ok(Json(page)),
         Err(e) => Err(ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,

@@ -1,9 +1,9 @@
 //! `GET /api/v1/events`: server-sent events carrying the farm's state. Each `status`
 //! event holds the same JSON as `GET /api/v1/status`; one is sent at once, then whenever
-//! anything changes: on every change the farm announces, and at least every second while
-//! printers report progress and temperatures (which change without an announcement).
-//! Unchanged states are not sent again; a comment every 15 s keeps proxies from closing
-//! an idle stream.
+//! anything changes: the stream follows every piece of the farm's state (jobs, each
+//! printer's live status, preparations, config, the rest of a shared farm), at most one
+//! event per [`SPACING`]. Unchanged states are not sent again; a comment every 15 s keeps
+//! proxies from closing an idle stream.
 //!
 //! A stream holds its connection for as long as the client wants, so streams are
 //! capped: without the key at most [`MAX_STREAMS_PER_CLIENT`] per client address and
@@ -104,8 +104,9 @@ impl Streams {
     }
 }
 
-/// How often live figures (progress, temperatures) are looked at.
-const POLL: Duration = Duration::from_secs(1);
+/// Events are at most this often: a change soon after one sent waits for the rest of it,
+/// and what changed meanwhile goes in one event (progress changes several times a second).
+const SPACING: Duration = Duration::from_millis(500);
 
 pub async fn events(
     State(state): State<AppState>,
@@ -116,17 +117,17 @@ pub async fn events(
     let keyed = keyed.is_some_and(|Extension(Keyed(k))| k);
     let place = state.streams.open(client, keyed)?;
     let farm = state.farm.clone();
-    let wake = farm.subscribe();
+    let wake = farm.watch();
     let stream = futures_util::stream::unfold(
         (farm, wake, String::new(), true, place),
         |(farm, mut wake, last, mut first, place)| async move {
             loop {
                 if !std::mem::take(&mut first) {
                     tokio::select! {
-                        _ = wake.changed() => {}
-                        _ = tokio::time::sleep(POLL) => {}
+                        () = wake.changed() => {}
                         _ = farm.shutdown.cancelled() => return None,
                     }
+                    tokio::time::sleep(SPACING).await;
                 }
                 let snapshot = {
                     let farm = farm.clone();

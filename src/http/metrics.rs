@@ -184,6 +184,19 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
         out.sample("crispen_jobs", &[("state", s.name())], n as f64);
     }
     out.family(
+        "crispen_job_changes_total",
+        "counter",
+        "Job state changes since the daemon started, by the state reached.",
+    );
+    for s in JobState::ALL {
+        let n = farm.counts.into_state(s);
+        out.sample(
+            "crispen_job_changes_total",
+            &[("state", s.name())],
+            n as f64,
+        );
+    }
+    out.family(
         "crispen_folder_queue_length",
         "gauge",
         "Jobs from each hot folder that have not reached a printer yet.",

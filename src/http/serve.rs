@@ -5,7 +5,7 @@
 //! connection needs it: at the limit, the one that has waited longest for a head is
 //! closed. So a slowloris (many connections sending a byte now and then) cannot keep out
 //! a client that sends its request at once, such as one with the key; the clients that
-//! do hold a connection for long, event streams, are capped by [`super::events`]. A
+//! do hold a connection for long, event streams, are capped by the `events` module. A
 //! request's head must arrive within [`Limits::header_timeout`], which also closes a
 //! connection left idle between requests; a head larger than [`MAX_HEAD_BYTES`] is refused;
 //! a response the client stops reading for [`Limits::write_stall`] ends its connection; and

@@ -3,7 +3,7 @@
 //! hidden temporary file in that folder (which the hot-folder watcher never takes), and
 //! the finished file is hard-linked to its name, which fails rather than replace a file
 //! already there. Nothing is ever written outside a configured hot folder. A held upload
-//! (see [`super::octoprint`]) links its sidecar right before its model.
+//! (see the `octoprint` module) links its sidecar right before its model.
 
 use super::{ApiError, UPLOAD_IDLE_TIMEOUT};
 use crate::daemon::config::{Config, FolderConfig};

@@ -452,7 +452,7 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
     assert_eq!(a.snapshot().unwritten(), 2);
     assert!(matches!(
         rt.block_on(b.transition(&job.id, JobState::Cancelled, None)),
-        Err(StoreError::Database(_))
+        Err(e) if e.is_outage()
     ));
     pg.restart();
     let mut left = usize::MAX;

@@ -19,7 +19,9 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
         .unwrap_or(1);
     let mut running = tokio::task::JoinSet::new();
     loop {
-        let mut wake = farm.subscribe();
+        // Followed from before the look at the queue: a change while looking is not
+        // missed. A reload may let a job be prepared here.
+        let (mut jobs, mut reloads) = (farm.watch_jobs(), farm.watch_config());
         if farm.stopping() {
             break;
         }
@@ -61,16 +63,7 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 continue;
             }
             let cancel = farm.shutdown.child_token();
-            farm.preparing
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .insert(
-                    id.clone(),
-                    crate::daemon::farm::Preparation {
-                        step: "starting".into(),
-                        cancel: cancel.clone(),
-                    },
-                );
+            farm.start_preparation(&id, cancel.clone());
             let span = tracing::info_span!("job", job = %id);
             running.spawn(
                 prepare_one(Arc::clone(&farm), id, program.clone(), cancel).instrument(span),
@@ -78,7 +71,8 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
         }
         let grace = Duration::from_secs_f64(wait_s.unwrap_or(0.0).clamp(0.0, 3600.0));
         tokio::select! {
-            _ = wake.changed() => {}
+            Ok(()) = jobs.changed() => {}
+            Ok(()) = reloads.changed() => {}
             Some(_) = running.join_next() => {}
             _ = farm.shutdown.cancelled() => {}
             _ = tokio::time::sleep(grace), if wait_s.is_some() => {}
@@ -126,16 +120,7 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
                 strength = ?task.strength,
                 "preparing"
             );
-            let on_step = |step: String| {
-                if let Some(p) = farm
-                    .preparing
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .get_mut(&id)
-                {
-                    p.step = step;
-                }
-            };
+            let on_step = |step: String| farm.preparation_step(&id, step);
             super::run_child(&program, &task, &cancel, on_step)
                 .await
                 .map(|report| (report, sidecar))
@@ -180,10 +165,7 @@ async fn finish_preparation(
     id: &str,
     result: Result<(super::Prepared, Option<crate::daemon::job::Sidecar>), super::PrepareError>,
 ) {
-    farm.preparing
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .remove(id);
+    farm.end_preparation(id);
     const STILL_PREPARING: StateFilter = &[JobState::Preparing];
     let outcome = match result {
         Ok((prepared, sidecar)) => {

@@ -418,13 +418,16 @@ fn deliver<T: Send + 'static>(reply: Reply<T>, result: Result<T, StoreError>) ->
 }
 
 impl Request {
-    /// Carries out one request against the store, updating `view` with what changed.
+    /// Carries out one request against the store, updating `view` with what changed;
+    /// says whether anything may have (a claim that found nothing, a clear of a clear
+    /// bed change nothing, and publish nothing: a task waiting for changes is not woken
+    /// by its own fruitless request).
     fn serve(
         self,
         store: &mut dyn JobStore,
         view: &mut Snapshot,
         retention: &Retention,
-    ) -> Delivery {
+    ) -> (Delivery, bool) {
         match self {
             Request::Admit {
                 source,
@@ -436,7 +439,8 @@ impl Request {
                 if let Ok(job) = &result {
                     view.refresh(store, &job.id);
                 }
-                deliver(reply, result)
+                let changed = result.is_ok();
+                (deliver(reply, result), changed)
             }
             Request::LateSidecar {
                 folder,
@@ -461,7 +465,8 @@ impl Request {
                             })
                         }),
                 };
-                deliver(reply, result)
+                let changed = !matches!(result, Ok(None));
+                (deliver(reply, result), changed)
             }
             Request::Transition {
                 id,
@@ -473,7 +478,7 @@ impl Request {
             } => {
                 let result = store.transition_with(&id, from, to, reason, also);
                 view.refresh(store, &id);
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Outcome {
                 id,
@@ -485,23 +490,26 @@ impl Request {
                 let result = store.record_outcome(&id, to, reason, also);
                 view.refresh(store, &id);
                 view.unwritten = store.unwritten();
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Update { id, change, reply } => {
                 let result = store.update(&id, change);
                 view.refresh(store, &id);
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Retry { id, reply } => {
                 let result = store.retry(&id);
                 view.refresh(store, &id);
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::Claim {
                 printer,
                 eligible,
                 reply,
-            } => deliver(reply, claim(store, view, &printer, &*eligible)),
+            } => {
+                let (result, tried) = claim(store, view, &printer, &*eligible);
+                (deliver(reply, result), tried)
+            }
             Request::SetGate {
                 printer,
                 gate,
@@ -510,7 +518,7 @@ impl Request {
                 let result = store.set_gate(&printer, gate);
                 view.gates = store.gates();
                 view.unwritten = store.unwritten();
-                deliver(reply, result)
+                (deliver(reply, result), true)
             }
             Request::ClearGate { printer, reply } => {
                 let gate = view.gate(&printer);
@@ -525,27 +533,33 @@ impl Request {
                 };
                 view.gates = store.gates();
                 view.unwritten = store.unwritten();
-                deliver(reply, result)
+                let changed = !matches!(result, Ok(false));
+                (deliver(reply, result), changed)
             }
             Request::Resync { reply } => {
                 let changed = store.resync();
                 if changed {
                     *view = Snapshot::of(store, Some(view));
                 }
-                deliver(reply, Ok(changed))
+                (deliver(reply, Ok(changed)), changed)
             }
-            Request::Retire { now, reply } => deliver(reply, retire(store, view, retention, now)),
-            Request::Retired { id, reply } => deliver(reply, store.retired(&id)),
+            Request::Retire { now, reply } => {
+                let retired = retire(store, view, retention, now);
+                let changed = retired.as_ref().is_ok_and(|ids| !ids.is_empty());
+                (deliver(reply, retired), changed)
+            }
+            Request::Retired { id, reply } => (deliver(reply, store.retired(&id)), false),
             Request::History {
                 before,
                 limit,
                 reply,
-            } => deliver(reply, store.history(before, limit)),
+            } => (deliver(reply, store.history(before, limit)), false),
             Request::WritePending { reply } => {
                 // Only the persisted copy changes: the view already shows these outcomes.
                 let left = store.write_pending();
+                let changed = view.unwritten != left;
                 view.unwritten = left;
-                deliver(reply, Ok(left))
+                (deliver(reply, Ok(left)), changed)
             }
         }
     }
@@ -558,36 +572,41 @@ fn names(states: StateFilter) -> String {
 
 /// Takes the oldest ready job `eligible` for `printer`, marking it printing. A job that
 /// fails as it is claimed (its directory is gone), or that another host took first, is
-/// passed over for the next one.
+/// passed over for the next one. Also says whether any job was tried (and may have
+/// changed).
 fn claim(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     printer: &str,
     eligible: &dyn Fn(&Job) -> bool,
-) -> Result<Option<Job>, StoreError> {
+) -> (Result<Option<Job>, StoreError>, bool) {
     let candidates: Vec<String> = view
         .jobs()
         .filter(|j| j.state == JobState::Ready && eligible(j))
         .map(|j| j.id.clone())
         .collect();
-    for id in candidates {
-        let name = printer.to_string();
-        let claimed = store.transition_with(
-            &id,
-            Some(&[JobState::Ready]),
-            JobState::Printing,
-            None,
-            Box::new(move |j| j.printer = Some(name)),
-        );
-        view.refresh(store, &id);
-        match claimed {
-            Ok(job) => return Ok(Some(job)),
-            Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
-            Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
-            Err(e) => return Err(e),
+    let tried = !candidates.is_empty();
+    let result = (|| {
+        for id in candidates {
+            let name = printer.to_string();
+            let claimed = store.transition_with(
+                &id,
+                Some(&[JobState::Ready]),
+                JobState::Printing,
+                None,
+                Box::new(move |j| j.printer = Some(name)),
+            );
+            view.refresh(store, &id);
+            match claimed {
+                Ok(job) => return Ok(Some(job)),
+                Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
+                Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
+                Err(e) => return Err(e),
+            }
         }
-    }
-    Ok(None)
+        Ok(None)
+    })();
+    (result, tried)
 }
 
 /// Moves what `retention` no longer keeps live to the history and out of the snapshot.
@@ -664,6 +683,7 @@ async fn serve(
         };
         let work = tokio::task::spawn_blocking(move || {
             let mut deliveries = Vec::new();
+            let mut changed = false;
             let mut full = false;
             match work {
                 Work::Requests(batch) => {
@@ -675,8 +695,13 @@ async fn serve(
                             request.serve(&mut *store, &mut view, &retention)
                         }));
                         match served {
-                            Ok(delivery) => deliveries.push(delivery),
+                            Ok((delivery, change)) => {
+                                deliveries.push(delivery);
+                                changed |= change;
+                            }
                             Err(_) => {
+                                // What it did before it panicked is unknown: publish.
+                                changed = true;
                                 tracing::error!("a job store request panicked; it was dropped")
                             }
                         }
@@ -685,17 +710,20 @@ async fn serve(
                 Work::Retire => {
                     let now = crate::daemon::job::now_s();
                     match retire(&mut *store, &mut view, &retention, now) {
-                        Ok(ids) => full = ids.len() >= history::BATCH,
+                        Ok(ids) => {
+                            changed = !ids.is_empty();
+                            full = ids.len() >= history::BATCH;
+                        }
                         Err(e) => {
                             tracing::error!(error = %e, "cannot move finished jobs to the history; they stay live and it is tried again later")
                         }
                     }
                 }
             }
-            (store, view, deliveries, full)
+            (store, view, deliveries, changed, full)
         });
-        let (deliveries, full);
-        (store, view, deliveries, full) = match work.await {
+        let (deliveries, changed, full);
+        (store, view, deliveries, changed, full) = match work.await {
             Ok(done) => done,
             Err(e) => {
                 tracing::error!(error = %e, "the job store's thread failed; the store stops");
@@ -705,7 +733,10 @@ async fn serve(
         if full {
             retiring.reset_immediately();
         }
-        snapshots.send_replace(Arc::new(view.clone()));
+        // A batch that changed nothing wakes no follower.
+        if changed {
+            snapshots.send_replace(Arc::new(view.clone()));
+        }
         for delivery in deliveries {
             delivery();
         }
@@ -723,6 +754,14 @@ impl StoreHandle {
     /// The jobs and gates as of the last change; no round trip.
     pub fn snapshot(&self) -> Arc<Snapshot> {
         self.snapshot.borrow().clone()
+    }
+
+    /// Follows the snapshot: `changed()` resolves once a change after this call is
+    /// published (the way tasks wait for jobs and bed gates).
+    pub fn subscribe(&self) -> watch::Receiver<Arc<Snapshot>> {
+        let mut follower = self.snapshot.clone();
+        follower.mark_unchanged();
+        follower
     }
 
     async fn ask<T>(&self, request: impl FnOnce(Reply<T>) -> Request) -> Result<T, StoreError> {

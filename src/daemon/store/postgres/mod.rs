@@ -89,7 +89,14 @@ impl From<PgError> for StoreError {
     fn from(e: PgError) -> StoreError {
         match e {
             PgError::Job(e) => e,
-            other => StoreError::Database(other.to_string()),
+            other => StoreError::Database {
+                failure: if other.is_outage() {
+                    crate::daemon::job::DatabaseFailure::Outage
+                } else {
+                    crate::daemon::job::DatabaseFailure::Other
+                },
+                message: other.to_string(),
+            },
         }
     }
 }
@@ -879,7 +886,7 @@ impl PgStore {
     pub async fn push_command(
         &self,
         printer: &str,
-        command: crate::daemon::farm::PrintCommand,
+        command: crate::daemon::command::PrintCommand,
     ) -> Result<bool, PgError> {
         let client = self.client().await?;
         let added = client
@@ -901,7 +908,7 @@ impl PgStore {
     ) -> Result<
         Vec<(
             String,
-            Result<crate::daemon::farm::PrintCommand, crate::daemon::farm::UnknownCommand>,
+            Result<crate::daemon::command::PrintCommand, crate::daemon::command::UnknownCommand>,
         )>,
         PgError,
     > {
@@ -919,7 +926,7 @@ impl PgStore {
             .iter()
             .map(|r| {
                 let word: String = r.get(2);
-                (r.get(1), crate::daemon::farm::PrintCommand::parse(&word))
+                (r.get(1), crate::daemon::command::PrintCommand::parse(&word))
             })
             .collect())
     }

@@ -1,0 +1,470 @@
+//! The service behind `crispen run`: it opens the farm, wires hot-folder pick-up,
+//! preparation, the printer fleet, the shared farm and the HTTP listeners (the control
+//! socket and `[http]`), and supervises them. Every top-level task runs in one
+//! [`Supervised`] set: one that ends or panics while the service runs stops the service
+//! with [`ServiceError::TaskEnded`] (a non-zero exit, which systemd's
+//! `Restart=on-failure` answers) rather than leave it half alive while the watchdog is fed.
+//!
+//! The dependencies go one way: the service knows `daemon` and `http`; `http` serves the
+//! farm's handles and operations the service hands it; `daemon` knows neither.
+
+use crate::daemon::config::{self, Config};
+use crate::daemon::farm::{Farm, PrinterState};
+use crate::daemon::fleet::{self, Fleet};
+use crate::daemon::job::JobState;
+use crate::daemon::{control, prepare, reload, shared, DaemonError};
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::task::{AbortHandle, Id, JoinError, JoinSet};
+use tokio_util::sync::CancellationToken;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    #[error(transparent)]
+    Daemon(#[from] DaemonError),
+    #[error("cannot install signal handlers: {0}")]
+    Signals(std::io::Error),
+    #[error("cannot find this program to run preparations with: {0}")]
+    PrepareProgram(std::io::Error),
+    /// A top-level task ended or panicked while the service ran; it stops with this error.
+    #[error("the daemon's {task} task {how}; the daemon stops (to be restarted)")]
+    TaskEnded { task: String, how: String },
+    #[error("[http] listen = \"{listen}\": cannot listen: {source} (hint: is another program on this port? Under systemd, install config/crispen-http.conf as a drop-in so the unit allows TCP)")]
+    Http {
+        listen: std::net::SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+impl From<control::ControlError> for ServiceError {
+    fn from(e: control::ControlError) -> ServiceError {
+        ServiceError::Daemon(e.into())
+    }
+}
+
+/// How `crispen run` was asked to behave.
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
+    /// The config file to re-read on SIGHUP (None: the built-in default, not reloadable).
+    pub config_path: Option<PathBuf>,
+    /// Exit once no job has work left and at least one job finished during this run.
+    pub exit_when_idle: bool,
+    /// The `crispen` program whose `prepare-job` prepares a job (None: this program).
+    pub prepare_program: Option<PathBuf>,
+}
+
+/// The top-level tasks, each with its name: one that ends while it should run is found
+/// by [`Supervised::next_end`].
+#[derive(Default)]
+pub struct Supervised {
+    tasks: JoinSet<()>,
+    names: HashMap<Id, Task>,
+}
+
+struct Task {
+    name: &'static str,
+    /// It may end on its own; only a panic is a failure.
+    may_end: bool,
+    abort: AbortHandle,
+}
+
+impl Supervised {
+    /// Starts a task that must run until the service stops it.
+    pub fn spawn(
+        &mut self,
+        name: &'static str,
+        task: impl std::future::Future<Output = ()> + Send + 'static,
+    ) {
+        self.spawn_as(name, false, task);
+    }
+
+    /// Starts a task that may end on its own (only a panic is a failure).
+    pub fn spawn_may_end(
+        &mut self,
+        name: &'static str,
+        task: impl std::future::Future<Output = ()> + Send + 'static,
+    ) {
+        self.spawn_as(name, true, task);
+    }
+
+    fn spawn_as(
+        &mut self,
+        name: &'static str,
+        may_end: bool,
+        task: impl std::future::Future<Output = ()> + Send + 'static,
+    ) {
+        let abort = self.tasks.spawn(task);
+        self.names.insert(
+            abort.id(),
+            Task {
+                name,
+                may_end,
+                abort,
+            },
+        );
+    }
+
+    /// Stops the task `name` (to start it anew, or at shutdown); its end is no failure.
+    pub fn stop(&mut self, name: &str) {
+        self.names.retain(|_, t| {
+            let this = t.name == name;
+            if this {
+                t.abort.abort();
+            }
+            !this
+        });
+    }
+
+    /// Whether the task `name` is running.
+    pub fn has(&self, name: &str) -> bool {
+        self.names.values().any(|t| t.name == name)
+    }
+
+    /// Waits for a task that ended when it should not have: why it stops the service.
+    /// Pending while every task runs (or none is left).
+    pub async fn next_end(&mut self) -> ServiceError {
+        loop {
+            let Some(ended) = self.tasks.join_next_with_id().await else {
+                return std::future::pending().await;
+            };
+            let (id, how) = match ended {
+                Ok((id, ())) => (id, Ok(())),
+                Err(e) => (e.id(), Err(e)),
+            };
+            // A task stopped on purpose is no longer named.
+            let Some(task) = self.names.remove(&id) else {
+                continue;
+            };
+            if let Some(e) = failure(task.name, task.may_end, how) {
+                return e;
+            }
+        }
+    }
+
+    /// Waits for the task `name` to end (after its stop token fired).
+    pub async fn join(&mut self, name: &str) {
+        while self.has(name) {
+            let Some(ended) = self.tasks.join_next_with_id().await else {
+                return;
+            };
+            let id = match &ended {
+                Ok((id, ())) => *id,
+                Err(e) => e.id(),
+            };
+            if let Some(task) = self.names.remove(&id) {
+                if let Some(e) = failure(task.name, true, ended.map(|_| ())) {
+                    tracing::error!("at shutdown: {e}");
+                }
+            }
+        }
+    }
+}
+
+/// Whether a task's end stops the service, and why.
+fn failure(name: &str, may_end: bool, ended: Result<(), JoinError>) -> Option<ServiceError> {
+    let how = match ended {
+        Ok(()) if may_end => return None,
+        Ok(()) => "ended unexpectedly".to_string(),
+        Err(e) if e.is_panic() => format!("panicked: {}", panic_message(e)),
+        Err(_) => "was cancelled".to_string(),
+    };
+    Some(ServiceError::TaskEnded {
+        task: name.to_string(),
+        how,
+    })
+}
+
+fn panic_message(e: JoinError) -> String {
+    let payload = e.into_panic();
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "(no message)".into())
+}
+
+const PICKUP: &str = "hot-folder pick-up";
+const PREPARATION: &str = "preparation";
+const SHARED: &str = "shared farm";
+const CONTROL: &str = "control socket";
+const HTTP: &str = "http listener";
+
+/// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
+/// shutdown token made here is handed down to every task; each races it at its waits.
+pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let prepare_program = match &options.prepare_program {
+        Some(p) => p.clone(),
+        None => std::env::current_exe().map_err(ServiceError::PrepareProgram)?,
+    };
+    let mut sigterm = signal(SignalKind::terminate()).map_err(ServiceError::Signals)?;
+    let mut sigint = signal(SignalKind::interrupt()).map_err(ServiceError::Signals)?;
+    let mut sighup = signal(SignalKind::hangup()).map_err(ServiceError::Signals)?;
+
+    let shutdown = CancellationToken::new();
+    let (farm, shared_db) = crate::daemon::open_store(&config, &shutdown).await?;
+    let listener = control::bind(&config.socket)?;
+    let http_listener = match &config.http {
+        None => None,
+        Some(http) => {
+            let bound = bind_http(http).await?;
+            let address = bound
+                .local_addr()
+                .map_or_else(|_| http.listen.to_string(), |a| a.to_string());
+            tracing::info!(address = %address, "http: listening");
+            tracing::info!("dashboard: http://{address}/");
+            Some((bound, http.clone()))
+        }
+    };
+    tracing::info!(
+        config = %config.source.display(),
+        spool = %config.spool_dir.display(),
+        socket = %config.socket.display(),
+        printers = config.printers.len(),
+        folders = config.folders.len(),
+        "crispen daemon starting"
+    );
+    let mut tasks = Supervised::default();
+    // The lease is renewed until the last print has ended, after the shutdown token.
+    let stop_shared = CancellationToken::new();
+    if let Some((db, lease)) = shared_db {
+        tracing::info!(host = %db.host(), "sharing the farm's queue through its database");
+        // It ends on its own, for good, when another run took this host's name (its log
+        // and the status say so); only a panic is a failure.
+        tasks.spawn_may_end(
+            SHARED,
+            shared::run(Arc::clone(&farm), db, lease, stop_shared.clone()),
+        );
+    }
+    let mut fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
+    // The listeners outlive the shutdown token: while prints finish at a stop, the
+    // operator can still watch them and cancel one.
+    let stop_listeners = CancellationToken::new();
+    tasks.spawn(
+        CONTROL,
+        crate::http::serve_socket(
+            Arc::clone(&farm),
+            config.http.clone(),
+            listener,
+            stop_listeners.clone(),
+        ),
+    );
+    if let Some((bound, http)) = http_listener {
+        tasks.spawn(
+            HTTP,
+            crate::http::serve_tcp(Arc::clone(&farm), http, bound, stop_listeners.clone()),
+        );
+    }
+    tasks.spawn(PICKUP, crate::daemon::pickup(&farm, &config));
+    tasks.spawn(
+        PREPARATION,
+        prepare::queue::prepare_loop(Arc::clone(&farm), prepare_program),
+    );
+
+    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
+    let mut watchdog_usec = 0u64;
+    let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
+    let tick = if watchdog {
+        Duration::from_micros(watchdog_usec / 2).max(Duration::from_millis(100))
+    } else {
+        Duration::from_secs(5)
+    };
+    let mut ticker = tokio::time::interval(tick);
+    let mut jobs = farm.watch_jobs();
+    // Why the daemon stops on its own: a top-level task that ended or panicked.
+    let mut failure: Option<ServiceError> = None;
+    loop {
+        tokio::select! {
+            _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
+            _ = sigint.recv() => { tracing::info!("SIGINT: stopping"); break; }
+            _ = sighup.recv() => on_sighup(&farm, &options, &mut tasks, &mut fleet),
+            e = tasks.next_end() => {
+                tracing::error!("{e}");
+                failure = Some(e);
+                break;
+            }
+            (printer, how) = fleet.next_end() => {
+                let e = failure_of_printer(&printer, how);
+                tracing::error!(printer = %printer, "{e}");
+                failure = Some(e);
+                break;
+            }
+            _ = ticker.tick() => {
+                if farm.store().unwritten() > 0 {
+                    let farm = Arc::clone(&farm);
+                    tokio::spawn(async move { farm.write_pending().await });
+                }
+                if watchdog {
+                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                }
+                let summary = summary(&farm);
+                let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Status(&summary)]);
+            }
+            Ok(()) = jobs.changed() => {
+                if options.exit_when_idle && farm.counts.finished() > 0 && farm.idle() {
+                    tracing::info!("no work left: exiting (--exit-when-idle)");
+                    break;
+                }
+            }
+        }
+    }
+
+    // Shutdown: take no new work; preparation in progress is stopped (its job goes back to
+    // the queue); prints finish or stop per config.
+    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+    farm.begin_stop();
+    tasks.stop(PICKUP);
+    tasks.join(PREPARATION).await;
+    fleet.join().await;
+    if tasks.has(SHARED) {
+        // Prints have ended: their outcomes are in the store.
+        stop_shared.cancel();
+        tasks.join(SHARED).await;
+        let left = farm.write_pending().await.unwrap_or(0);
+        if left > 0 {
+            tracing::error!(outcomes = left, "the farm database is unreachable: outcomes not written (the jobs show as interrupted once this host's lease runs out)");
+        } else if let Some(db) = farm.db.get() {
+            // Nothing of this run is left to record: the next run under this name may
+            // start at once instead of waiting out the lease.
+            if let Err(e) = db.release_host().await {
+                tracing::warn!(error = %e, "cannot give up this host's lease; the next start under this name waits for it to run out");
+            }
+        }
+    }
+    stop_listeners.cancel();
+    tasks.join(CONTROL).await;
+    tasks.join(HTTP).await;
+    let _ = std::fs::remove_file(&farm.config().socket);
+    match failure {
+        Some(e) => Err(e),
+        None => {
+            tracing::info!("crispen daemon stopped");
+            Ok(())
+        }
+    }
+}
+
+/// A printer's supervisor ended while the service ran (it panicked: it ends only once
+/// retired, or at shutdown).
+fn failure_of_printer(printer: &str, how: Result<(), JoinError>) -> ServiceError {
+    let how = match how {
+        Err(e) if e.is_panic() => format!("panicked: {}", panic_message(e)),
+        _ => "ended unexpectedly".into(),
+    };
+    ServiceError::TaskEnded {
+        task: format!("printer {printer}'s supervisor"),
+        how,
+    }
+}
+
+/// Binds `[http] listen`. The built-in default's port, when taken, gives way to one the
+/// system picks (the address is logged); a configured port never does.
+async fn bind_http(http: &config::HttpConfig) -> Result<tokio::net::TcpListener, ServiceError> {
+    let failed = |source| ServiceError::Http {
+        listen: http.listen,
+        source,
+    };
+    match crate::http::bind(http).await {
+        Err(e) if http.any_port_if_taken && e.kind() == std::io::ErrorKind::AddrInUse => {
+            tracing::warn!(listen = %http.listen, "http: the port is taken; listening on a port the system picks");
+            let any = std::net::SocketAddr::new(http.listen.ip(), 0);
+            tokio::net::TcpListener::bind(any).await.map_err(failed)
+        }
+        bound => bound.map_err(failed),
+    }
+}
+
+fn summary(farm: &Farm) -> String {
+    let printers = farm.local_printers();
+    let printing = printers
+        .iter()
+        .filter(|p| p.state == PrinterState::Printing)
+        .count();
+    let total = printers.len();
+    let store = farm.store();
+    let count = |s: JobState| store.jobs().filter(|j| j.state == s).count();
+    format!(
+        "{printing}/{total} printers printing; jobs: {} queued, {} preparing, {} ready, {} failed",
+        count(JobState::Queued),
+        count(JobState::Preparing),
+        count(JobState::Ready),
+        count(JobState::Failed)
+    )
+}
+
+/// SIGHUP: re-read the config file and apply it as [`reload::POLICY`] declares; a bad
+/// file is refused and the old config kept. Pick-up restarts with the new folders, and
+/// the printers change as [`Fleet::apply`] says.
+fn on_sighup(farm: &Arc<Farm>, options: &RunOptions, tasks: &mut Supervised, fleet: &mut Fleet) {
+    let Some(path) = &options.config_path else {
+        tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
+        return;
+    };
+    if let reload::Reloaded::Applied { config, .. } = reload::reload(farm, path) {
+        tasks.stop(PICKUP);
+        fleet.apply(&config.printers);
+        tasks.spawn(PICKUP, crate::daemon::pickup(farm, &config));
+        tracing::info!("SIGHUP: config reloaded");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A printer's supervisor that panicked is named with the panic's message.
+    #[tokio::test(start_paused = true)]
+    async fn a_panicking_supervisor_is_named() {
+        let panicked = tokio::spawn(async { panic!("the link broke its promise") })
+            .await
+            .unwrap_err();
+        assert_eq!(
+            failure_of_printer("bad", Err(panicked)).to_string(),
+            "the daemon's printer bad's supervisor task panicked: the link broke its promise; \
+             the daemon stops (to be restarted)"
+        );
+    }
+
+    /// A top-level task that panics is found, named, and stops the daemon with an error
+    /// (before, nothing watched them: a panicked preparation left a daemon that prepared
+    /// nothing while it fed the systemd watchdog). One stopped on purpose is no failure.
+    #[tokio::test(start_paused = true)]
+    async fn a_panicking_task_stops_the_daemon_with_its_name() {
+        let mut tasks = Supervised::default();
+        tasks.spawn("quiet", std::future::pending());
+        tasks.spawn("restarted", std::future::pending());
+        tasks.spawn(PREPARATION, async {
+            tokio::time::sleep(Duration::from_secs(3)).await;
+            let history: Vec<u8> = Vec::new();
+            let _ = history[0];
+        });
+        tasks.stop("restarted");
+        let e = tasks.next_end().await;
+        let shown = e.to_string();
+        assert!(
+            shown.contains("preparation task panicked: index out of bounds"),
+            "{shown}"
+        );
+        assert!(tasks.has("quiet") && !tasks.has(PREPARATION) && !tasks.has("restarted"));
+    }
+
+    /// A task that returns is a failure too, except one that may end on its own (the
+    /// shared farm's, when another run took this host's name).
+    #[tokio::test(start_paused = true)]
+    async fn a_task_that_returns_stops_the_daemon_unless_it_may() {
+        let mut tasks = Supervised::default();
+        tasks.spawn_may_end(SHARED, async {});
+        tasks.spawn(CONTROL, async {
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        });
+        let e = tasks.next_end().await;
+        assert!(
+            e.to_string()
+                .contains("control socket task ended unexpectedly"),
+            "{e}"
+        );
+    }
+}

@@ -1453,6 +1453,14 @@ fn after_a_resend_lines_go_one_at_a_time_for_a_while() {
         b"Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n",
         now,
     );
+    // The lines sent after line 2 draw no error blocks of their own here: the replay waits
+    // for a quiet moment.
+    assert!(
+        sent(&mut host).is_empty(),
+        "the replay waits for the blocks"
+    );
+    let now = now + Duration::from_millis(100);
+    host.tick(now);
     let replay = drain_events(&mut host)
         .iter()
         .find_map(|e| match e {
@@ -1707,6 +1715,7 @@ mod invariant {
             return; // paused on request: waiting is the point
         }
         let held = host.resend_hold.is_some()
+            || host.settle.is_some()
             || host.replay_after.is_some()
             || host.pending_error.is_some();
         assert!(

@@ -35,6 +35,7 @@ impl Host {
         self.repeated = None;
         self.replay_after = None;
         self.probe_replay = None;
+        self.settle = None;
         self.ok_may_follow = None;
         self.resend_hold = None;
         self.cautious_until = 0;
@@ -137,6 +138,7 @@ impl Host {
             bytes: wire.len(),
             is_m105,
             sync,
+            sent: now,
         });
         self.in_flight_bytes += wire.len();
         self.send_cursor = number + 1;
@@ -181,6 +183,7 @@ impl Host {
                 self.phase,
                 Phase::Finished | Phase::Idle | Phase::Boot { .. }
             ) || self.resend_hold.is_some()
+                || self.settle.is_some()
                 || self.replay_after.is_some_and(|t| now < t)
             {
                 return;

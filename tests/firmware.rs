@@ -14,7 +14,9 @@ use common::relay::{firmware_dir, Build, Relay, RelayFaults, RelayLog};
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
-use crispen::marlin::stream::{Connection, PrintError, PrintProgress, PrintReport, StreamOptions};
+use crispen::marlin::stream::{
+    Connection, PrintError, PrintProgress, PrintReport, StopOutcome, StreamOptions,
+};
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
@@ -265,7 +267,12 @@ async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
         ..RelayFaults::default()
     };
     let o = print_through(&dir, Build::Default, faults, 1000).await;
-    assert!(o.result.is_err(), "the job cannot have survived");
+    let err = o.result.as_ref().expect_err("the job cannot have survived");
+    assert_eq!(
+        err.stop_outcome(),
+        StopOutcome::Confirmed,
+        "the job's error says the stop was confirmed: {err}"
+    );
     let tail: Vec<&String> = o.log.printer_lines.iter().rev().take(12).collect();
     assert!(
         tail.iter().any(|l| l.starts_with("ok T:")),

@@ -10,7 +10,7 @@ use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::sim::{self, Faults, SimConfig, SimHandle};
 use crispen::marlin::stream::{
-    Connection, PrintError, PrintProgress, PrintReport, StreamControl, StreamOptions,
+    Connection, PrintError, PrintProgress, PrintReport, StopOutcome, StreamControl, StreamOptions,
 };
 use std::process::{Command, Stdio};
 use std::time::Duration;
@@ -678,6 +678,13 @@ async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
         opts.protocol.storm_timeout = Duration::from_millis(500);
         let err = stream(&sim, &opts, &program).await.unwrap_err();
         assert!(matches!(err, PrintError::ResendLimit { .. }), "{fw}: {err}");
+        assert!(
+            matches!(
+                err.stop_outcome(),
+                StopOutcome::Confirmed | StopOutcome::NotConfirmed
+            ),
+            "{fw}: the error says what became of the stop: {err}"
+        );
         let executed = job_executed(&sim);
         let n = executed.len();
         assert!(n >= 4, "{fw}: {executed:?}");
@@ -705,7 +712,13 @@ async fn a_firmware_error_that_is_no_halt_ends_the_job_with_heaters_off() {
             }
             other => panic!("{fw}: {other}"),
         }
-        assert!(err.to_string().contains("switched off"), "{err}");
+        // The job's error says the printer confirmed the stop, not only a log line.
+        assert!(
+            err.to_string()
+                .ends_with("; heaters, fan and motors confirmed off"),
+            "{err}"
+        );
+        assert_eq!(err.stop_outcome(), StopOutcome::Confirmed, "{fw}");
         let executed = job_executed(&sim);
         let n = executed.len();
         assert!(n < program.len(), "{fw}: the job stopped");

@@ -58,8 +58,7 @@ async fn print_through(
     let (text, _) = job(moves);
     let fw = firmware(build);
     let program = GcodeProgram::read(text.as_bytes(), "job.gcode", fw).unwrap();
-    let mut opts = StreamOptions::for_firmware(fw);
-    opts.protocol.uncuttable_lines = true;
+    let opts = StreamOptions::for_firmware(fw);
     let started = Instant::now();
     let result = async {
         let mut conn = Connection::open(relay.device_path(), &opts).await?;

@@ -17,6 +17,8 @@
 pub mod reply;
 mod window;
 
+pub use window::canonical;
+
 use super::firmware::Firmware;
 use super::gcode::GcodeCommands;
 use reply::{HostAction, OkReply, Reply, Report};
@@ -82,9 +84,9 @@ pub struct ProtocolOptions {
     pub stop_pause: Duration,
     /// On firmware that checks a checksum only up to the first `*` (Ultimaker2Marlin),
     /// write each line so that no byte corrupted into `*` leaves a cut line that passes
-    /// (see `window::uncuttable`): numbers may gain trailing zeros and words an extra space.
-    /// Off by default for now: the tests that compare what a printer ran with the file
-    /// compare text, and would need to compare values.
+    /// (see `window::uncuttable`): numbers may gain trailing zeros and words an extra space,
+    /// which change the text sent but not what the printer does. On by default; Marlin 2
+    /// takes the last `*`, so nothing changes there.
     pub uncuttable_lines: bool,
     /// Lines kept for resends. Marlin only ever asks for a line it has not acknowledged
     /// (those are always kept), so this needs to cover the send-ahead window, not the job.
@@ -111,7 +113,7 @@ impl ProtocolOptions {
             storm_timeout: Duration::from_secs(30),
             stop_timeout: Duration::from_secs(180),
             stop_pause: Duration::from_millis(200),
-            uncuttable_lines: false,
+            uncuttable_lines: true,
             // Each kept line is a copy of its command: a whole job's worth costs MBs per printer.
             history_lines: 1024,
         }
@@ -500,6 +502,11 @@ const MAX_PARTIAL: usize = 4096;
 /// The shortest quiet after which a lost `ok` is probed for.
 /// (A probe costs one `M105` line in the queue; waiting costs the whole link.)
 const QUICK_PROBE: Duration = Duration::from_millis(25);
+/// An `M105` is taken for lost no sooner than this (nor than four times the usual time an
+/// `M105` takes): a late answer taken for a later `M105`'s would confirm lines the printer
+/// may never have got (seen on the real Marlin on a busy machine: a false `LostState`).
+/// An answer found lost late costs one more probe, not a wrong confirmation.
+const M105_PATIENCE: Duration = Duration::from_millis(250);
 /// The same before any line was answered.
 const FIRST_PROBE: Duration = Duration::from_millis(200);
 /// The quiet after an error block that ends a [`Settle`]: at least this, or twice the
@@ -978,7 +985,7 @@ impl Host {
             // printer never got.
             let patience = self
                 .m105_latency
-                .map_or(self.opts.silence_probe, |l| (l * 3).max(QUICK_PROBE))
+                .map_or(self.opts.silence_probe, |l| (l * 4).max(M105_PATIENCE))
                 // A printer that answers each probe while earlier M105s seem to wait is
                 // losing answers, not slow: the backlog is cleared within a few probes.
                 .min(self.opts.silence_probe * 3);
@@ -1367,9 +1374,12 @@ impl Host {
             Reply::UnknownCommand(text) => {
                 // Some firmware quotes the whole line, number and checksum included.
                 let command = strip_framing(&text);
+                // Compared as the printer reads them: the cut-line guard may have
+                // written the line with an extra space or trailing zeros.
+                let command = canonical(command);
                 let ours = self.in_flight.iter().any(|f| {
                     self.history_line(f.number)
-                        .is_some_and(|l| l.command.trim().eq_ignore_ascii_case(command))
+                        .is_some_and(|l| canonical(&l.command).eq_ignore_ascii_case(&command))
                 });
                 if ours {
                     self.events

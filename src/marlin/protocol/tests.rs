@@ -142,7 +142,7 @@ impl MiniPrinter {
                 continue;
             }
             self.expected += 1;
-            self.executed.push(cmd.to_string());
+            self.executed.push(canonical(cmd));
             if self.lose_ok_of.as_deref() == Some(cmd) {
                 self.lose_ok_of = None;
                 continue;
@@ -177,8 +177,17 @@ fn is_housekeeping(c: &str) -> bool {
 }
 
 fn job(n: usize) -> Vec<String> {
+    // As a printer reads them (see `canonical`): what the printer ran is compared with it.
     (0..n)
-        .map(|i| format!("G1 X{}.{} Y{} E{}", i % 200, i % 10, (i * 7) % 200, i))
+        .map(|i| {
+            canonical(&format!(
+                "G1 X{}.{} Y{} E{}",
+                i % 200,
+                i % 10,
+                (i * 7) % 200,
+                i
+            ))
+        })
         .collect()
 }
 
@@ -1037,7 +1046,7 @@ fn commands_in(text: &str) -> Vec<String> {
                 None => l, // unnumbered (the M108 of a failure stop)
             },
         )
-        .map(str::to_string)
+        .map(canonical)
         .collect()
 }
 

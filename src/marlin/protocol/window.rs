@@ -225,6 +225,30 @@ impl Host {
     }
 }
 
+/// A command as a printer reads it, whatever way it was written: one space between words,
+/// numbers without trailing zeros after a decimal point (nor a bare point). Undoes what
+/// [`uncuttable`] does to a line, so a record of what a printer ran compares with the file.
+pub fn canonical(command: &str) -> String {
+    command
+        .split_whitespace()
+        .map(|word| {
+            let b = word.as_bytes();
+            let numeric = b.len() > 1
+                && b[0].is_ascii_alphabetic()
+                && word[1..].contains('.')
+                && word[1..]
+                    .bytes()
+                    .all(|c| c.is_ascii_digit() || c == b'.' || c == b'-');
+            if numeric {
+                word.trim_end_matches('0').trim_end_matches('.')
+            } else {
+                word
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 /// Where a byte of `N<number> <command>` corrupted into `*` would leave a line that still
 /// passes a checksum taken up to the first `*`: the XOR of what comes before equals the
 /// number the firmware reads after it (`strtol`, 0 where no digit follows). Positions

@@ -9,7 +9,7 @@
 use super::printer::Printer;
 use super::{is_housekeeping, Recorder, SimConfig};
 use crate::marlin::firmware::Firmware;
-use crate::marlin::protocol::{Event, Failure, Host, JobSummary, ProtocolOptions};
+use crate::marlin::protocol::{canonical, Event, Failure, Host, JobSummary, ProtocolOptions};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -115,6 +115,16 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
     }
 }
 
+/// The job's own commands (no housekeeping) as a printer reads them: the host may write a
+/// line differently with the same meaning (Ultimaker2Marlin's cut-line guard).
+fn canonical_job(commands: &[String]) -> Vec<String> {
+    commands
+        .iter()
+        .filter(|c| !is_housekeeping(c))
+        .map(|c| canonical(c))
+        .collect()
+}
+
 /// What PrusaSlicer writes around crispen's start code (`gcode/start.gcode`, for a 60 °C
 /// bed and a 210 °C nozzle: heaters on, homing, both heat waits, a prime) and the first
 /// layer's opening, then `moves` short moves.
@@ -176,7 +186,7 @@ fn short_moves_job(moves: usize) -> Vec<String> {
 #[test]
 fn every_firmware_at_real_speed_homes_heats_and_prints_every_line_once() {
     let job = sliced_job(300);
-    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let expected: Vec<String> = canonical_job(&job);
     for fw in Firmware::ALL {
         let mut cfg = SimConfig::new(fw);
         cfg.time_scale = 1.0;
@@ -185,11 +195,7 @@ fn every_firmware_at_real_speed_homes_heats_and_prints_every_line_once() {
             .outcome
             .unwrap_or_else(|f| panic!("{fw:?}: job failed: {f:?}"));
         assert_eq!(summary.resends, 0, "{fw:?}: a clean link needs no resend");
-        let executed: Vec<&String> = run
-            .executed
-            .iter()
-            .filter(|c| !is_housekeeping(c))
-            .collect();
+        let executed: Vec<String> = canonical_job(&run.executed);
         assert_eq!(executed, expected, "{fw:?}");
     }
 }
@@ -201,7 +207,7 @@ fn every_firmware_at_real_speed_homes_heats_and_prints_every_line_once() {
 #[test]
 fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
     let job = sliced_job(400);
-    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let expected: Vec<String> = canonical_job(&job);
     let only = std::env::var("CRISPEN_COSIM_ONLY").ok();
     let mut failures = Vec::new();
     for fw in Firmware::ALL {
@@ -221,11 +227,7 @@ fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
             cfg.faults.spurious_resend = 0.02;
             cfg.faults.busy = 0.01;
             let run = run(cfg, &job, Duration::from_secs(3600));
-            let executed: Vec<&String> = run
-                .executed
-                .iter()
-                .filter(|c| !is_housekeeping(c))
-                .collect();
+            let executed: Vec<String> = canonical_job(&run.executed);
             match run.outcome {
                 Err(f) => failures.push(format!("{fw:?} seed {seed}: failed: {f:?}")),
                 Ok(_) if executed != expected => {
@@ -245,7 +247,7 @@ fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
 #[test]
 fn stock_marlin_saying_wait_under_noise_never_stalls() {
     let job = short_moves_job(3000);
-    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let expected: Vec<String> = canonical_job(&job);
     let mut failures = Vec::new();
     for seed in 0..6 {
         let mut cfg = SimConfig::new(Firmware::Marlin2);
@@ -262,11 +264,7 @@ fn stock_marlin_saying_wait_under_noise_never_stalls() {
             run(clean, &job, Duration::from_secs(3600)).elapsed
         };
         let run = run(cfg, &job, Duration::from_secs(3600));
-        let executed: Vec<&String> = run
-            .executed
-            .iter()
-            .filter(|c| !is_housekeeping(c))
-            .collect();
+        let executed: Vec<String> = canonical_job(&run.executed);
         match run.outcome {
             Err(f) => failures.push(format!("seed {seed}: failed: {f:?}")),
             Ok(_) if executed != expected => {

@@ -20,6 +20,7 @@ mod cosim;
 mod printer;
 
 use crate::marlin::firmware::Firmware;
+use crate::marlin::protocol::canonical;
 use nix::fcntl::{fcntl, FcntlArg, OFlag};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::termios;
@@ -223,7 +224,8 @@ impl SimHandle {
         &self.device
     }
 
-    /// The commands executed so far, in order, without `N<n> ` and `*<checksum>`.
+    /// The commands executed so far, in order, without `N<n> ` and `*<checksum>`, as the
+    /// printer read them ([`canonical`]).
     pub fn executed(&self) -> Vec<String> {
         self.executed
             .lock()
@@ -409,7 +411,10 @@ pub(crate) struct Recorder {
 }
 
 impl Recorder {
+    /// Records what the printer ran as it reads it ([`canonical`]: a host may write the
+    /// same command with an extra space or trailing zeros, e.g. crispen's cut-line guard).
     pub(crate) fn push(&mut self, cmd: &str) {
+        let cmd = &canonical(cmd);
         if let Some(executed) = &self.executed {
             executed
                 .lock()

@@ -8,6 +8,7 @@ use common::daemon::{self, Reaper};
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::protocol::canonical;
 use crispen::marlin::sim::{self, Faults, SimConfig, SimHandle};
 use crispen::marlin::stream::{
     Connection, PrintError, PrintProgress, PrintReport, StopOutcome, StreamControl, StreamOptions,
@@ -23,12 +24,15 @@ fn job_text(moves: usize) -> String {
     );
     for i in 0..moves {
         let a = i as f64 * 0.05;
-        s.push_str(&format!(
-            "G1 X{:.3} Y{:.3} E{:.4} F1800\n",
+        // Written as a printer reads it (`canonical`: no trailing zeros), so that the
+        // record of what the simulated printer ran compares with the file.
+        s.push_str(&canonical(&format!(
+            "G1 X{:.3} Y{:.3} E{:.4} F1800",
             100.0 + 20.0 * a.cos(),
             100.0 + 20.0 * a.sin(),
             i as f64 * 0.01
-        ));
+        )));
+        s.push('\n');
         if i % 50 == 0 {
             s.push_str(&format!(";LAYER:{}\n\n", i / 50));
         }

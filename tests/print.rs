@@ -895,3 +895,41 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
     let expected: Vec<String> = first.iter().chain(&second).cloned().collect();
     assert!(jobs == expected, "each job exactly once, in order");
 }
+
+/// Ultimaker2Marlin checks a line's checksum only up to its first `*` (seen on the real
+/// firmware: `G1 X0.03 Y0.05` ran as `G1 X0.03 Y0`), and the simulator does the same. With
+/// one `.` in ten lines arriving as `*`, the host's cut-line guard (on by default) leaves
+/// no cut line that passes: the printer runs the file exactly. Without it, the simulated
+/// printer runs a cut line, which is what this test would catch.
+#[tokio::test]
+async fn ultimaker2_runs_no_cut_line_with_the_default_options() {
+    let fw = Firmware::Ultimaker2;
+    let faults = Faults {
+        star_for_dot: 0.1,
+        ..Faults::default()
+    };
+    // Short relative moves as in the real firmware's test (`G1 X0.03 Y0.05`): small
+    // numbers after a cut are what a prefix's XOR can equal.
+    let mut text = String::from("G92 X0 Y0\nG91\n");
+    for i in 0..1500 {
+        text.push_str(&format!("G1 X0.0{} Y0.0{} F6000\n", i % 3 + 1, i % 4 + 1));
+    }
+    let program = GcodeProgram::read(text.as_bytes(), "cut.gcode", fw).unwrap();
+    let expected: Vec<String> = program.to_vec();
+    let sim = start_sim(fw, faults.clone(), 5);
+    stream(&sim, &options(fw), &program)
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(job_executed(&sim), expected, "a cut line ran");
+    drop(sim);
+
+    let sim = start_sim(fw, faults, 5);
+    let mut opts = options(fw);
+    opts.protocol.uncuttable_lines = false;
+    let _ = stream(&sim, &opts, &program).await;
+    assert_ne!(
+        job_executed(&sim),
+        expected,
+        "without the guard, the simulated Ultimaker2Marlin runs a cut line"
+    );
+}

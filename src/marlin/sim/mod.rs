@@ -43,6 +43,10 @@ pub struct Faults {
     /// Probability per received line that one of its bytes arrives corrupted, which the
     /// printer detects (checksum / line number) and answers with a resend request.
     pub corrupt_host_bytes: f64,
+    /// Probability per received numbered line that one of its `.` arrives as `*`: Marlin 2
+    /// then fails the checksum (it takes the last `*`), Ultimaker2Marlin checks only up to
+    /// the first `*` and may run the cut line (seen on the real firmware).
+    pub star_for_dot: f64,
     /// Probability that the `ok` for a command is never sent (M105's answer is exempt, so
     /// a host's M105 probe always recovers).
     pub drop_ok: f64,

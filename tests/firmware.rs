@@ -14,7 +14,9 @@ use common::relay::{firmware_dir, Build, Relay, RelayFaults, RelayLog};
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
-use crispen::marlin::stream::{Connection, PrintError, PrintProgress, PrintReport, StreamOptions};
+use crispen::marlin::stream::{
+    Connection, PrintError, PrintProgress, PrintReport, StopOutcome, StreamOptions,
+};
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
@@ -56,8 +58,7 @@ async fn print_through(
     let (text, _) = job(moves);
     let fw = firmware(build);
     let program = GcodeProgram::read(text.as_bytes(), "job.gcode", fw).unwrap();
-    let mut opts = StreamOptions::for_firmware(fw);
-    opts.protocol.uncuttable_lines = true;
+    let opts = StreamOptions::for_firmware(fw);
     let started = Instant::now();
     let result = async {
         let mut conn = Connection::open(relay.device_path(), &opts).await?;
@@ -265,10 +266,60 @@ async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
         ..RelayFaults::default()
     };
     let o = print_through(&dir, Build::Default, faults, 1000).await;
-    assert!(o.result.is_err(), "the job cannot have survived");
+    let err = o.result.as_ref().expect_err("the job cannot have survived");
+    assert_eq!(
+        err.stop_outcome(),
+        StopOutcome::Confirmed,
+        "the job's error says the stop was confirmed: {err}"
+    );
     let tail: Vec<&String> = o.log.printer_lines.iter().rev().take(12).collect();
     assert!(
         tail.iter().any(|l| l.starts_with("ok T:")),
         "the stop's M105 was never answered: {tail:?}"
     );
+}
+
+/// `crispen print` itself (the binary, as a user runs it) through the relay in front of the
+/// real firmware, under the noise: exactly once, by the firmware's own final `M114`
+/// after relative moves. Stock Marlin and the emulated Ultimaker 2.
+#[test]
+fn crispen_print_through_the_relay_runs_every_line_once() {
+    let Some(dir) = firmware_dir("crispen_print_through_the_relay_runs_every_line_once") else {
+        return;
+    };
+    let moves = 1000;
+    let (text, expected) = job(moves);
+    let tmp = tempfile::tempdir().unwrap();
+    let gcode = tmp.path().join("moves.gcode");
+    std::fs::write(&gcode, text).unwrap();
+    for (build, firmware) in [
+        (Build::Default, "marlin2"),
+        (Build::Ultimaker2, "ultimaker2"),
+    ] {
+        let relay = Relay::start(&dir, build, noise(11));
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_crispen"))
+            .arg("print")
+            .arg(&gcode)
+            .arg("--port")
+            .arg(relay.device_path())
+            .args(["--firmware", firmware])
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{}: {stderr}", build.name());
+        // The final M114 answer may still be on its way through the relay.
+        std::thread::sleep(Duration::from_millis(300));
+        let log = relay.log();
+        let at = log
+            .last_position()
+            .unwrap_or_else(|| panic!("{}: no position reported", build.name()));
+        for axis in 0..2 {
+            assert!(
+                (at[axis] - expected[axis]).abs() < 0.005,
+                "{}: the firmware ends at {at:?}, the job at {expected:?} ({})",
+                build.name(),
+                counts(&log)
+            );
+        }
+    }
 }

@@ -147,6 +147,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cfg.link = args.link.clone();
     cfg.faults = Faults {
         corrupt_host_bytes: args.corrupt,
+        // Tests only (tests/print.rs): the cut line Ultimaker2Marlin may run.
+        star_for_dot: 0.0,
         drop_ok: args.drop_ok,
         spurious_resend: args.spurious_resend,
         busy: args.busy,

@@ -20,7 +20,7 @@ use super::job::{ForMachine, JobState, PrintReport};
 use super::printer::{
     heat_up_end, BoxFuture, ConnectError, Connector, IdleNews, PrintFailure, PrinterLink,
 };
-use crate::marlin::stream::PrintError;
+use crate::marlin::stream::{PrintError, StopOutcome};
 use crate::marlin::transport::TransportError;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -219,6 +219,7 @@ impl PrinterLink for BenchLink {
                         return Err(PrintFailure::Cancelled(PrintError::Cancelled {
                             port,
                             last_acked: acked,
+                            stop: StopOutcome::Confirmed,
                         }));
                     }
                     None => {}

@@ -17,6 +17,8 @@
 pub mod reply;
 mod window;
 
+pub use window::canonical;
+
 use super::firmware::Firmware;
 use super::gcode::{is_heat_wait, GcodeCommands};
 use reply::{HostAction, OkReply, Reply, Report};
@@ -82,9 +84,9 @@ pub struct ProtocolOptions {
     pub stop_pause: Duration,
     /// On firmware that checks a checksum only up to the first `*` (Ultimaker2Marlin),
     /// write each line so that no byte corrupted into `*` leaves a cut line that passes
-    /// (see `window::uncuttable`): numbers may gain trailing zeros and words an extra space.
-    /// Off by default for now: the tests that compare what a printer ran with the file
-    /// compare text, and would need to compare values.
+    /// (see `window::uncuttable`): numbers may gain trailing zeros and words an extra space,
+    /// which change the text sent but not what the printer does. On by default; Marlin 2
+    /// takes the last `*`, so nothing changes there.
     pub uncuttable_lines: bool,
     /// Lines kept for resends. Marlin only ever asks for a line it has not acknowledged
     /// (those are always kept), so this needs to cover the send-ahead window, not the job.
@@ -111,7 +113,7 @@ impl ProtocolOptions {
             storm_timeout: Duration::from_secs(30),
             stop_timeout: Duration::from_secs(180),
             stop_pause: Duration::from_millis(200),
-            uncuttable_lines: false,
+            uncuttable_lines: true,
             // Each kept line is a copy of its command: a whole job's worth costs MBs per printer.
             history_lines: 1024,
         }
@@ -290,6 +292,7 @@ struct InFlight {
     bytes: usize,
     is_m105: bool,
     sync: bool,
+    sent: Instant,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -358,6 +361,30 @@ struct OkFollow {
     learn: bool,
 }
 
+/// The replay after a `Resend: n` held back until the lines sent after n have drawn their
+/// own error blocks. Stock Marlin answers every line that reaches it after a bad one with
+/// `Error:`/`Resend: n`/`ok`, and each such block flushes its receive ring: a replay that
+/// arrived by then is thrown away with it and never answered (seen on the real Marlin
+/// 2.1.2.1: most of its recovery time went into finding such lost replays). The blocks
+/// come within a millisecond or two, so the wait is short: it ends when one block per line
+/// sent after n has come, or when the printer has been quiet for a moment (lines the first
+/// flush caught draw no block), and never lasts more than [`SETTLE_MAX`].
+#[derive(Debug, Clone, Copy)]
+struct Settle {
+    line: u64,
+    /// Blocks still expected.
+    remaining: u64,
+    /// Quiet until then: no more blocks are coming.
+    quiet_until: Instant,
+    give_up: Instant,
+}
+
+impl Settle {
+    fn deadline(&self) -> Instant {
+        self.quiet_until.min(self.give_up)
+    }
+}
+
 /// Whether this firmware sends an `ok` after `Resend:`, learnt from unambiguous cases (a
 /// resend with nothing else awaiting an `ok`): Marlin 2.1 and Ultimaker2Marlin do, Marlin
 /// 2.0 does not, Marlin 1.1 sometimes. Until two observations agree, the firmware profile's
@@ -419,6 +446,9 @@ pub struct Host {
     /// Probe then if the replayed line is still unanswered: a repeated error block came
     /// after the replay went out, and Marlin may have thrown the replay away with it.
     probe_replay: Option<(u64, Instant)>,
+    /// After a `Resend:`, the replay waits for the error blocks of the lines that were
+    /// already on their way (see [`Settle`]).
+    settle: Option<Settle>,
     resend_ok: ResendOk,
     /// One line in flight until this line number is reached (after a resend).
     cautious_until: u64,
@@ -441,6 +471,12 @@ pub struct Host {
     /// printer that answers in milliseconds and then says nothing for many times that has
     /// lost an `ok`, and is probed long before `silence_probe`.
     ack_wait: Duration,
+    /// How long a line typically takes from being sent to its answer (a moving average;
+    /// None until one was answered): no probe counts as lost sooner than twice that, so
+    /// on a slow link a probe's answer is never taken for a later probe's.
+    latency: Option<Duration>,
+    /// The same for `M105`s alone.
+    m105_latency: Option<Duration>,
     greeting_sent_at: Instant,
     greeting_attempts: u32,
     next_poll: Instant,
@@ -463,7 +499,21 @@ const LONG_COMMANDS: [&str; 4] = ["G28", "G29", "M400", "G4"];
 const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
 const MAX_PARTIAL: usize = 4096;
 /// The shortest quiet after which a lost `ok` is probed for.
-const QUICK_PROBE: Duration = Duration::from_millis(200);
+/// (A probe costs one `M105` line in the queue; waiting costs the whole link.)
+const QUICK_PROBE: Duration = Duration::from_millis(25);
+/// An `M105` is taken for lost no sooner than this (nor than four times the usual time an
+/// `M105` takes): a late answer taken for a later `M105`'s would confirm lines the printer
+/// may never have got (seen on the real Marlin on a busy machine: a false `LostState`).
+/// An answer found lost late costs one more probe, not a wrong confirmation.
+const M105_PATIENCE: Duration = Duration::from_millis(250);
+/// The same before any line was answered.
+const FIRST_PROBE: Duration = Duration::from_millis(200);
+/// The quiet after an error block that ends a [`Settle`]: at least this, or twice the
+/// usual answer time.
+const SETTLE_QUIET: Duration = Duration::from_millis(5);
+const SETTLE_QUIET_MAX: Duration = Duration::from_millis(50);
+/// The longest a replay waits for error blocks.
+const SETTLE_MAX: Duration = Duration::from_millis(150);
 /// After a repeated error block that may have eaten a replay: probe this soon if the
 /// replayed line is still unanswered (its answer would have come at once).
 const REPLAY_PROBE: Duration = Duration::from_millis(30);
@@ -505,6 +555,7 @@ impl Host {
             repeated: None,
             replay_after: None,
             probe_replay: None,
+            settle: None,
             resend_ok: ResendOk::default(),
             cautious_until: 0,
             advanced_ok: false,
@@ -517,6 +568,8 @@ impl Host {
             last_progress: now,
             last_ack: now,
             ack_wait: Duration::ZERO,
+            latency: None,
+            m105_latency: None,
             greeting_sent_at: now,
             greeting_attempts: 0,
             next_poll: now,
@@ -741,6 +794,9 @@ impl Host {
                 if let Some((_, t)) = self.probe_replay {
                     at(t);
                 }
+                if let Some(settle) = &self.settle {
+                    at(settle.deadline());
+                }
                 if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
                     at(*give_up);
                 }
@@ -802,6 +858,10 @@ impl Host {
         }
         if self.replay_after.is_some_and(|t| now >= t) {
             self.replay_after = None;
+        }
+        if self.settle.is_some_and(|s| now >= s.deadline()) {
+            // Quiet: whatever error blocks were coming have come.
+            self.settle = None;
         }
         if let Some((line, _)) = self.probe_replay.take_if(|(_, t)| now >= *t) {
             if self.in_flight.front().is_some_and(|f| f.number == line) {
@@ -881,7 +941,10 @@ impl Host {
     /// likely idle and the window only looks full because an `ok` was lost. Its answer
     /// acknowledges every earlier line.
     fn probe(&mut self, now: Instant) {
-        if self.resend_hold.is_some() || self.replay_after.is_some_and(|t| now < t) {
+        if self.resend_hold.is_some()
+            || self.settle.is_some()
+            || self.replay_after.is_some_and(|t| now < t)
+        {
             return;
         }
         self.last_probe = Some(now);
@@ -912,12 +975,29 @@ impl Host {
             // probe's answer must settle them too: taken for theirs, each answer would
             // settle only the oldest, every probe would add one more, and the job would
             // never move again (each probe answered, none settling the lines behind them).
+            // Only those older than any M105 was seen to take: Ultimaker2Marlin answers an
+            // M105 only once the moves before it have left its queue, seconds after their
+            // own `ok`s; taken for lost, its late answer would confirm a later M105 the
+            // printer never got.
+            let patience = self
+                .m105_latency
+                .map_or(self.opts.silence_probe, |l| (l * 4).max(M105_PATIENCE))
+                // A printer that answers each probe while earlier M105s seem to wait is
+                // losing answers, not slow: the backlog is cleared within a few probes.
+                .min(self.opts.silence_probe * 3);
             for f in self.in_flight.iter_mut() {
-                f.is_m105 = false;
+                if now.saturating_duration_since(f.sent) >= patience {
+                    f.is_m105 = false;
+                }
             }
             let number = self.new_line(Kind::Housekeeping, "M105".into());
             self.transmit(number, now);
         }
+    }
+
+    /// How long the printer must be quiet after an error block before the replay goes.
+    fn settle_quiet(&self) -> Duration {
+        (self.ack_wait * 2).clamp(SETTLE_QUIET, SETTLE_QUIET_MAX)
     }
 
     /// When a heat wait times out: `heat_timeout` after it started or after its
@@ -933,11 +1013,22 @@ impl Host {
     /// `ok` lost at their end. One probe at a time, unless its answer seems lost too.
     fn next_probe_at(&self) -> Instant {
         // Quiet for many times the usual wait for an answer: an `ok` was lost. Never sooner
-        // than `QUICK_PROBE` (a probe costs a line), never later than `silence_probe`.
-        let probe = (self.ack_wait * 8)
-            .max(QUICK_PROBE)
-            .min(self.opts.silence_probe);
-        let base = self.last_progress.max(self.front_since) + probe;
+        // than twice a line's usual round trip nor than `QUICK_PROBE` (a probe costs a
+        // line), never later than `silence_probe`.
+        let probe = match self.latency {
+            Some(latency) => (self.ack_wait * 8).max(latency * 2).max(QUICK_PROBE),
+            // Nothing answered yet: the link's round trip is unknown.
+            None => FIRST_PROBE,
+        }
+        .min(self.opts.silence_probe);
+        let mut base = self.last_progress.max(self.front_since) + probe;
+        // A probe waits for the host's own holds (it would be held back until then).
+        for t in [self.replay_after, self.resend_hold].into_iter().flatten() {
+            base = base.max(t);
+        }
+        if let Some(settle) = &self.settle {
+            base = base.max(settle.deadline());
+        }
         let long_front = self.heat_at_front()
             || self
                 .front_line()
@@ -1166,6 +1257,11 @@ impl Host {
 
     fn handle(&mut self, reply: Reply, now: Instant) {
         self.resend_hold = None;
+        let quiet = self.settle_quiet();
+        if let Some(settle) = &mut self.settle {
+            // The printer is still talking: more blocks may follow.
+            settle.quiet_until = now + quiet;
+        }
         if let Some(follow) = self.ok_may_follow.take() {
             let plain_ok =
                 matches!(&reply, Reply::Ok(ok) if !ok.text && ok.line.is_none() && !ok.advanced);
@@ -1274,9 +1370,12 @@ impl Host {
             Reply::UnknownCommand(text) => {
                 // Some firmware quotes the whole line, number and checksum included.
                 let command = strip_framing(&text);
+                // Compared as the printer reads them: the cut-line guard may have
+                // written the line with an extra space or trailing zeros.
+                let command = canonical(command);
                 let ours = self.in_flight.iter().any(|f| {
                     self.history_line(f.number)
-                        .is_some_and(|l| l.command.trim().eq_ignore_ascii_case(command))
+                        .is_some_and(|l| canonical(&l.command).eq_ignore_ascii_case(&command))
                 });
                 if ours {
                     self.events
@@ -1444,13 +1543,13 @@ impl Host {
         if let Some(pos) = self.in_flight.iter().position(|f| !f.sync && !f.is_m105) {
             let f = self.in_flight.remove(pos).expect("position is valid");
             self.in_flight_bytes -= f.bytes;
-            self.acknowledged(f.number, now);
+            self.acknowledged(f, now, true);
         } else if let Some(f) = self.in_flight.pop_front() {
             // Only `M105`s are waiting: this `ok` is the oldest one's, whatever became of its
             // text (a firmware that answers a bare `ok`, a report garbled on the wire).
             // Progress never waits on reading the optional part of a reply.
             self.in_flight_bytes -= f.bytes;
-            self.acknowledged(f.number, now);
+            self.acknowledged(f, now, true);
         }
     }
 
@@ -1459,7 +1558,8 @@ impl Host {
         while self.in_flight.front().is_some_and(|f| f.number <= number) {
             let f = self.in_flight.pop_front().expect("front exists");
             self.in_flight_bytes -= f.bytes;
-            self.acknowledged(f.number, now);
+            let own = f.number == number;
+            self.acknowledged(f, now, own);
         }
         self.confirmed = Some(self.confirmed.map_or(number, |c| c.max(number)));
         if self.heat.as_ref().is_some_and(|h| h.number < number) {
@@ -1467,9 +1567,33 @@ impl Host {
         }
     }
 
-    fn acknowledged(&mut self, number: u64, now: Instant) {
+    /// `own`: by its own answer, not settled by a later line's (whose wait says nothing
+    /// about this line's).
+    fn acknowledged(&mut self, f: InFlight, now: Instant, own: bool) {
+        let number = f.number;
         let waited = now.saturating_duration_since(self.front_since);
-        self.ack_wait = (self.ack_wait * 7 + waited) / 8;
+        // A line settled by a probe's answer waited for the probe, not for the printer:
+        // taken into the averages, each lost `ok` would make the next one slower to find
+        // (seen on the real Marlin: probes a second apart after a few lost `ok`s).
+        if own {
+            self.ack_wait = (self.ack_wait * 7 + waited) / 8;
+            // The round trip follows a slower printer at once (a full planner: each `ok`
+            // waits for a move to end) and a faster one slowly, so a probe's answer
+            // queued behind moves is not taken for lost. Long commands say nothing about it.
+            let long = self
+                .history_line(number)
+                .is_some_and(|l| is_code(&l.command, &LONG_COMMANDS) || is_heat_wait(&l.command));
+            let sample = now.saturating_duration_since(f.sent);
+            let follow = |l: Option<Duration>| {
+                Some(l.map_or(sample, |l| ((l * 7 + sample) / 8).max(sample)))
+            };
+            if !long {
+                self.latency = follow(self.latency);
+            }
+            if f.is_m105 {
+                self.m105_latency = follow(self.m105_latency);
+            }
+        }
         self.front_since = now;
         self.last_ack = now;
         if !self.opts.firmware.acks_moves_on_entry()
@@ -1591,6 +1715,12 @@ impl Host {
             if line == n && remaining > 0 && number_error {
                 // Caused by a line that was already on its way when we began replaying.
                 self.duplicate_budget = Some((line, remaining - 1));
+                if let Some(settle) = self.settle.as_mut().filter(|s| s.line == n) {
+                    settle.remaining = settle.remaining.saturating_sub(1);
+                    if settle.remaining == 0 {
+                        self.settle = None; // every line on its way has drawn its block
+                    }
+                }
                 self.ok_may_follow = Some(OkFollow {
                     swallow: expect_ok,
                     learn: false,
@@ -1643,6 +1773,14 @@ impl Host {
         });
         self.in_flight_bytes = self.in_flight.iter().map(|f| f.bytes).sum();
         self.duplicate_budget = Some((n, dropped_after));
+        // Lines sent after n may still reach the printer, each drawing an error block that
+        // flushes its ring: the replay waits for them (see `Settle`).
+        self.settle = (dropped_after > 0).then(|| Settle {
+            line: n,
+            remaining: dropped_after,
+            quiet_until: now + self.settle_quiet(),
+            give_up: now + SETTLE_MAX,
+        });
         if !self.advanced_ok {
             // The replay goes out at once. Where nothing else awaits an `ok`, the next line
             // tells whether this firmware sends one after `Resend:`.

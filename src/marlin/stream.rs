@@ -93,6 +93,33 @@ pub struct PrintReport {
     pub duration_s: f64,
 }
 
+/// What became of the safe stop (heaters, fan and motors off) that follows a failure while
+/// the printer still answers, or a cancel. Part of the job's error, so whoever reads why a
+/// job failed also reads whether the printer was left hot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum StopOutcome {
+    /// The printer acknowledged the heaters-off lines (an answered `M105` after them).
+    Confirmed,
+    /// The host gave up before the printer confirmed them: it may still be hot.
+    NotConfirmed,
+    /// No stop was needed or possible (a reset or halted printer has switched its heaters
+    /// off; nothing was sent yet).
+    None,
+}
+
+impl std::fmt::Display for StopOutcome {
+    /// Written after the error's own text.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            StopOutcome::Confirmed => f.write_str("; heaters, fan and motors confirmed off"),
+            StopOutcome::NotConfirmed => {
+                f.write_str("; heaters NOT confirmed off: check the printer now")
+            }
+            StopOutcome::None => Ok(()),
+        }
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum PrintError {
     #[error(transparent)]
@@ -127,43 +154,48 @@ pub enum PrintError {
     },
     #[error(
         "printer on {port} asked for line {line} again {times} times; giving up (check the \
-         cable and baud rate), last acknowledged line {last_acked}"
+         cable and baud rate), last acknowledged line {last_acked}{stop}"
     )]
     ResendLimit {
         port: PathBuf,
         line: u64,
         times: u32,
         last_acked: usize,
+        stop: StopOutcome,
     },
     #[error(
         "printer on {port} asked for line {line}, which is no longer kept (oldest kept: \
-         {oldest_kept}); stopping rather than guessing, last acknowledged line {last_acked}"
+         {oldest_kept}); stopping rather than guessing, last acknowledged line \
+         {last_acked}{stop}"
     )]
     LineGone {
         port: PathBuf,
         line: u64,
         oldest_kept: u64,
         last_acked: usize,
+        stop: StopOutcome,
     },
     #[error(
         "printer on {port} asked for line {line} again although it had confirmed line \
-         {confirmed}: it lost its state (reset or power dip?); stopped safely rather than \
-         replaying onto a half-printed part, last acknowledged line {last_acked}"
+         {confirmed}: it lost its state (reset or power dip?); stopped rather than \
+         replaying onto a half-printed part, last acknowledged line {last_acked}{stop}"
     )]
     LostState {
         port: PathBuf,
         line: u64,
         confirmed: u64,
         last_acked: usize,
+        stop: StopOutcome,
     },
     #[error(
         "printer on {port} kept talking but acknowledged no line for {waited_s:.0} s; \
-         stopped safely, last acknowledged line {last_acked}"
+         stopped, last acknowledged line {last_acked}{stop}"
     )]
     NoProgress {
         port: PathBuf,
         waited_s: f64,
         last_acked: usize,
+        stop: StopOutcome,
     },
     #[error(
         "printer on {port} went silent for {waited_s:.1} s and did not answer M105 probes; \
@@ -176,8 +208,8 @@ pub enum PrintError {
     },
     #[error(
         "printer on {port}: `{command}` stopped coming closer to its temperature (waited \
-         {waited_s:.0} s in all, now {temperatures}); heaters were switched off, last \
-         acknowledged line {last_acked}"
+         {waited_s:.0} s in all, now {temperatures}); last acknowledged line \
+         {last_acked}{stop}"
     )]
     HeatTimeout {
         port: PathBuf,
@@ -185,9 +217,14 @@ pub enum PrintError {
         waited_s: f64,
         temperatures: String,
         last_acked: usize,
+        stop: StopOutcome,
     },
-    #[error("job on {port} cancelled; heaters, fan and motors switched off, last acknowledged line {last_acked}")]
-    Cancelled { port: PathBuf, last_acked: usize },
+    #[error("job on {port} cancelled, last acknowledged line {last_acked}{stop}")]
+    Cancelled {
+        port: PathBuf,
+        last_acked: usize,
+        stop: StopOutcome,
+    },
     #[error(
         "line `{command}` is {len} bytes with its line number and checksum, more than the \
          printer's limit of {max}; nothing was sent for it"
@@ -198,13 +235,14 @@ pub enum PrintError {
         max: usize,
     },
     #[error(
-        "printer on {port} reported `{message}`, which the job cannot go on after; heaters, \
-         fan and motors were switched off, last acknowledged line {last_acked}"
+        "printer on {port} reported `{message}`, which the job cannot go on after, last \
+         acknowledged line {last_acked}{stop}"
     )]
     FirmwareError {
         port: PathBuf,
         message: String,
         last_acked: usize,
+        stop: StopOutcome,
     },
     #[error("printer on {port} is busy with another job")]
     Busy { port: PathBuf },
@@ -229,7 +267,23 @@ impl PrintError {
         }
     }
 
-    fn from_failure(port: &Path, failure: Failure) -> Self {
+    /// Whether the safe stop after the failure was confirmed, where one was made.
+    pub fn stop_outcome(&self) -> StopOutcome {
+        match self {
+            PrintError::ResendLimit { stop, .. }
+            | PrintError::LineGone { stop, .. }
+            | PrintError::LostState { stop, .. }
+            | PrintError::NoProgress { stop, .. }
+            | PrintError::HeatTimeout { stop, .. }
+            | PrintError::Cancelled { stop, .. }
+            | PrintError::FirmwareError { stop, .. } => *stop,
+            _ => StopOutcome::None,
+        }
+    }
+
+    /// `stop`: what the protocol reported of its safe stop ([`Event::SafeStop`]) before the
+    /// failure.
+    fn from_failure(port: &Path, failure: Failure, stop: StopOutcome) -> Self {
         let port = port.to_path_buf();
         match failure {
             Failure::NoAnswer { waited } => PrintError::NoAnswer {
@@ -254,6 +308,7 @@ impl PrintError {
                 line,
                 times,
                 last_acked,
+                stop,
             },
             Failure::LineGone {
                 line,
@@ -264,6 +319,7 @@ impl PrintError {
                 line,
                 oldest_kept,
                 last_acked,
+                stop,
             },
             Failure::LostState {
                 line,
@@ -274,11 +330,13 @@ impl PrintError {
                 line,
                 confirmed,
                 last_acked,
+                stop,
             },
             Failure::NoProgress { waited, last_acked } => PrintError::NoProgress {
                 port,
                 waited_s: waited.as_secs_f64(),
                 last_acked,
+                stop,
             },
             Failure::Silent { waited, last_acked } => PrintError::Silent {
                 port,
@@ -296,8 +354,13 @@ impl PrintError {
                 waited_s: waited.as_secs_f64(),
                 temperatures: describe_temps(&temperatures),
                 last_acked,
+                stop,
             },
-            Failure::Cancelled { last_acked } => PrintError::Cancelled { port, last_acked },
+            Failure::Cancelled { last_acked } => PrintError::Cancelled {
+                port,
+                last_acked,
+                stop,
+            },
             Failure::LineTooLong { command, len, max } => {
                 PrintError::LineTooLong { command, len, max }
             }
@@ -308,6 +371,7 @@ impl PrintError {
                 port,
                 message,
                 last_acked,
+                stop,
             },
         }
     }
@@ -664,6 +728,7 @@ impl Connection {
         let port = self.port.clone();
         let mut state = PrintState::Printing;
         let mut control_open = true;
+        let mut stop = StopOutcome::None;
         self.host
             .start_job(program.shared_commands(), Instant::now());
         let publish = |host: &Host, state: PrintState| {
@@ -707,7 +772,7 @@ impl Connection {
                     }
                     Event::Failed(f) => {
                         publish(&self.host, PrintState::Failed);
-                        let err = PrintError::from_failure(&port, f);
+                        let err = PrintError::from_failure(&port, f, stop);
                         tracing::warn!(port = %port.display(), gcode = program.name(), "print failed: {err}");
                         return Err(err);
                     }
@@ -743,9 +808,11 @@ impl Connection {
                         state_changed = true;
                     }
                     Event::SafeStop { confirmed: true } => {
+                        stop = StopOutcome::Confirmed;
                         tracing::info!(port = %port.display(), gcode = program.name(), "printer stopped safely: heaters, fan and motors off")
                     }
                     Event::SafeStop { confirmed: false } => {
+                        stop = StopOutcome::NotConfirmed;
                         tracing::error!(port = %port.display(), gcode = program.name(), "the printer did not confirm heaters off; check it now")
                     }
                     Event::Connected(_) => {}
@@ -808,7 +875,9 @@ async fn greet(
         while let Some(event) = host.poll_event() {
             match event {
                 Event::Connected(info) => return Ok((host, info)),
-                Event::Failed(f) => return Err(PrintError::from_failure(port, f)),
+                Event::Failed(f) => {
+                    return Err(PrintError::from_failure(port, f, StopOutcome::None))
+                }
                 Event::Message(m) => tracing::debug!(port = %port.display(), "printer: {m}"),
                 _ => {}
             }
@@ -875,10 +944,30 @@ mod tests {
         let err = PrintError::from_failure(
             Path::new("/dev/ttyUSB3"),
             Failure::PrinterReset { last_acked: 41 },
+            StopOutcome::None,
         );
         let msg = err.to_string();
         assert!(msg.contains("/dev/ttyUSB3") && msg.contains("41"), "{msg}");
         assert_eq!(err.last_acked(), Some(41));
+        // Whether the heaters were confirmed off is part of the error itself.
+        let failure = Failure::ResendLimit {
+            line: 7,
+            times: 10,
+            last_acked: 6,
+        };
+        let err = |stop| PrintError::from_failure(Path::new("/dev/ttyUSB3"), failure.clone(), stop);
+        let confirmed = err(StopOutcome::Confirmed).to_string();
+        assert!(
+            confirmed.ends_with("; heaters, fan and motors confirmed off"),
+            "{confirmed}"
+        );
+        let not = err(StopOutcome::NotConfirmed);
+        assert!(
+            not.to_string()
+                .ends_with("heaters NOT confirmed off: check the printer now"),
+            "{not}"
+        );
+        assert_eq!(not.stop_outcome(), StopOutcome::NotConfirmed);
     }
 
     /// An idle `M105` whose answer is still on its way when a job starts: the job waits

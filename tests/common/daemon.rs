@@ -214,7 +214,8 @@ pub fn drop_model(hot: &Path, name: &str, bytes: &[u8]) {
 }
 
 /// A job's G-code in the spool under `root`, as a `marlin2` printer must execute it (the
-/// farms using this have one machine: a `marlin2` printer without `machine`).
+/// farms using this have one machine: a `marlin2` printer without `machine`), each command
+/// as the printer reads it and the simulator records it (`canonical`).
 pub fn job_gcode(root: &Path, id: &str, file: &str) -> Vec<String> {
     let path = root
         .join("spool/jobs")
@@ -223,4 +224,7 @@ pub fn job_gcode(root: &Path, id: &str, file: &str) -> Vec<String> {
     GcodeProgram::load_for(&path, Firmware::Marlin2)
         .unwrap()
         .to_vec()
+        .iter()
+        .map(|c| crispen::marlin::protocol::canonical(c))
+        .collect()
 }

@@ -252,7 +252,9 @@ printers = ["a", "b"]
                     GcodeProgram::load_for(&gcode, fw)
                         .unwrap()
                         .iter()
-                        .map(str::to_owned),
+                        // As the printer reads it: Ultimaker2Marlin's lines may be sent
+                        // with an extra space or zero (the cut-line guard).
+                        .map(crispen::marlin::protocol::canonical),
                 );
             }
         }

@@ -8,9 +8,10 @@ use common::daemon::{self, Reaper};
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::protocol::canonical;
 use crispen::marlin::sim::{self, Faults, SimConfig, SimHandle};
 use crispen::marlin::stream::{
-    Connection, PrintError, PrintProgress, PrintReport, StreamControl, StreamOptions,
+    Connection, PrintError, PrintProgress, PrintReport, StopOutcome, StreamControl, StreamOptions,
 };
 use std::process::{Command, Stdio};
 use std::time::Duration;
@@ -23,12 +24,15 @@ fn job_text(moves: usize) -> String {
     );
     for i in 0..moves {
         let a = i as f64 * 0.05;
-        s.push_str(&format!(
-            "G1 X{:.3} Y{:.3} E{:.4} F1800\n",
+        // Written as a printer reads it (`canonical`: no trailing zeros), so that the
+        // record of what the simulated printer ran compares with the file.
+        s.push_str(&canonical(&format!(
+            "G1 X{:.3} Y{:.3} E{:.4} F1800",
             100.0 + 20.0 * a.cos(),
             100.0 + 20.0 * a.sin(),
             i as f64 * 0.01
-        ));
+        )));
+        s.push('\n');
         if i % 50 == 0 {
             s.push_str(&format!(";LAYER:{}\n\n", i / 50));
         }
@@ -678,6 +682,13 @@ async fn giving_up_on_a_noisy_link_leaves_the_printer_safe() {
         opts.protocol.storm_timeout = Duration::from_millis(500);
         let err = stream(&sim, &opts, &program).await.unwrap_err();
         assert!(matches!(err, PrintError::ResendLimit { .. }), "{fw}: {err}");
+        assert!(
+            matches!(
+                err.stop_outcome(),
+                StopOutcome::Confirmed | StopOutcome::NotConfirmed
+            ),
+            "{fw}: the error says what became of the stop: {err}"
+        );
         let executed = job_executed(&sim);
         let n = executed.len();
         assert!(n >= 4, "{fw}: {executed:?}");
@@ -705,7 +716,13 @@ async fn a_firmware_error_that_is_no_halt_ends_the_job_with_heaters_off() {
             }
             other => panic!("{fw}: {other}"),
         }
-        assert!(err.to_string().contains("switched off"), "{err}");
+        // The job's error says the printer confirmed the stop, not only a log line.
+        assert!(
+            err.to_string()
+                .ends_with("; heaters, fan and motors confirmed off"),
+            "{err}"
+        );
+        assert_eq!(err.stop_outcome(), StopOutcome::Confirmed, "{fw}");
         let executed = job_executed(&sim);
         let n = executed.len();
         assert!(n < program.len(), "{fw}: the job stopped");
@@ -877,4 +894,42 @@ fn between_jobs_the_daemon_watches_the_printer_and_the_next_job_starts_clean() {
         .collect();
     let expected: Vec<String> = first.iter().chain(&second).cloned().collect();
     assert!(jobs == expected, "each job exactly once, in order");
+}
+
+/// Ultimaker2Marlin checks a line's checksum only up to its first `*` (seen on the real
+/// firmware: `G1 X0.03 Y0.05` ran as `G1 X0.03 Y0`), and the simulator does the same. With
+/// one `.` in ten lines arriving as `*`, the host's cut-line guard (on by default) leaves
+/// no cut line that passes: the printer runs the file exactly. Without it, the simulated
+/// printer runs a cut line, which is what this test would catch.
+#[tokio::test]
+async fn ultimaker2_runs_no_cut_line_with_the_default_options() {
+    let fw = Firmware::Ultimaker2;
+    let faults = Faults {
+        star_for_dot: 0.1,
+        ..Faults::default()
+    };
+    // Short relative moves as in the real firmware's test (`G1 X0.03 Y0.05`): small
+    // numbers after a cut are what a prefix's XOR can equal.
+    let mut text = String::from("G92 X0 Y0\nG91\n");
+    for i in 0..1500 {
+        text.push_str(&format!("G1 X0.0{} Y0.0{} F6000\n", i % 3 + 1, i % 4 + 1));
+    }
+    let program = GcodeProgram::read(text.as_bytes(), "cut.gcode", fw).unwrap();
+    let expected: Vec<String> = program.to_vec();
+    let sim = start_sim(fw, faults.clone(), 5);
+    stream(&sim, &options(fw), &program)
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(job_executed(&sim), expected, "a cut line ran");
+    drop(sim);
+
+    let sim = start_sim(fw, faults, 5);
+    let mut opts = options(fw);
+    opts.protocol.uncuttable_lines = false;
+    let _ = stream(&sim, &opts, &program).await;
+    assert_ne!(
+        job_executed(&sim),
+        expected,
+        "without the guard, the simulated Ultimaker2Marlin runs a cut line"
+    );
 }

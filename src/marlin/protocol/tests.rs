@@ -142,7 +142,7 @@ impl MiniPrinter {
                 continue;
             }
             self.expected += 1;
-            self.executed.push(cmd.to_string());
+            self.executed.push(canonical(cmd));
             if self.lose_ok_of.as_deref() == Some(cmd) {
                 self.lose_ok_of = None;
                 continue;
@@ -177,8 +177,17 @@ fn is_housekeeping(c: &str) -> bool {
 }
 
 fn job(n: usize) -> Vec<String> {
+    // As a printer reads them (see `canonical`): what the printer ran is compared with it.
     (0..n)
-        .map(|i| format!("G1 X{}.{} Y{} E{}", i % 200, i % 10, (i * 7) % 200, i))
+        .map(|i| {
+            canonical(&format!(
+                "G1 X{}.{} Y{} E{}",
+                i % 200,
+                i % 10,
+                (i * 7) % 200,
+                i
+            ))
+        })
         .collect()
 }
 
@@ -1037,7 +1046,7 @@ fn commands_in(text: &str) -> Vec<String> {
                 None => l, // unnumbered (the M108 of a failure stop)
             },
         )
-        .map(str::to_string)
+        .map(canonical)
         .collect()
 }
 
@@ -1453,6 +1462,14 @@ fn after_a_resend_lines_go_one_at_a_time_for_a_while() {
         b"Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n",
         now,
     );
+    // The lines sent after line 2 draw no error blocks of their own here: the replay waits
+    // for a quiet moment.
+    assert!(
+        sent(&mut host).is_empty(),
+        "the replay waits for the blocks"
+    );
+    let now = now + Duration::from_millis(100);
+    host.tick(now);
     let replay = drain_events(&mut host)
         .iter()
         .find_map(|e| match e {
@@ -1707,6 +1724,7 @@ mod invariant {
             return; // paused on request: waiting is the point
         }
         let held = host.resend_hold.is_some()
+            || host.settle.is_some()
             || host.replay_after.is_some()
             || host.pending_error.is_some();
         assert!(
@@ -1829,4 +1847,109 @@ fn ultimaker2_lines_are_written_so_no_cut_passes() {
         risky * 2 < unguarded,
         "{risky} risky lines sent, {unguarded} unguarded"
     );
+}
+
+/// A host with a job running on stock Marlin (plain `ok`s) and several lines in flight after
+/// line 2: returns it, the time, and how many lines were sent after line 2.
+fn lines_in_flight_after_line_2() -> (Host, Instant, u64) {
+    let now = Instant::now();
+    let mut printer = MiniPrinter::new();
+    let (mut host, _) = connect(opts(Firmware::Marlin2), &mut printer, now);
+    host.start_job(job(100), now);
+    assert!(sent(&mut host).contains("M110"));
+    host.feed(b"ok\n", now);
+    sent(&mut host);
+    host.feed(b"ok\n", now); // line 1
+    sent(&mut host);
+    drain_events(&mut host);
+    let after = host.in_flight.iter().filter(|f| f.number > 2).count() as u64;
+    assert!(after >= 2, "send-ahead: {}", host.debug_state());
+    (host, now, after)
+}
+
+const FIRST_BLOCK: &[u8] = b"Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n";
+const LATER_BLOCK: &[u8] =
+    b"Error:Line Number is not Last Line Number+1, Last Line: 1\nResend: 2\nok\n";
+
+/// Stock Marlin answers every line that reaches it after a bad one with an error block of
+/// its own, and each block flushes its receive ring, with the replay in it if it had come:
+/// seen on the real Marlin 2.1.2.1, where most of the recovery time went into finding such
+/// lost replays. The replay waits until one block per line sent after the bad one has come,
+/// however the bytes are split, and no longer.
+#[test]
+fn the_replay_waits_for_the_error_blocks_of_the_lines_on_their_way() {
+    for split in [false, true] {
+        let (mut host, now, after) = lines_in_flight_after_line_2();
+        let feed = |host: &mut Host, bytes: &[u8]| {
+            if split {
+                for b in bytes {
+                    host.feed(std::slice::from_ref(b), now);
+                }
+            } else {
+                host.feed(bytes, now);
+            }
+        };
+        feed(&mut host, FIRST_BLOCK);
+        assert_eq!(sent(&mut host), "", "split {split}: the replay waits");
+        for k in 1..after {
+            feed(&mut host, LATER_BLOCK);
+            assert_eq!(
+                sent(&mut host),
+                "",
+                "split {split}: {k} of {after} blocks in"
+            );
+        }
+        feed(&mut host, LATER_BLOCK);
+        let replay = sent(&mut host);
+        assert!(
+            replay.starts_with("N2 "),
+            "split {split}: the replay goes once every block is in: {replay:?}"
+        );
+        // A late block after the replay went out is no new request: nothing more is sent.
+        feed(&mut host, b"ok\n");
+        let resends = drain_events(&mut host)
+            .iter()
+            .filter(|e| matches!(e, Event::Resend { .. }))
+            .count();
+        assert_eq!(resends, 1, "split {split}: one request, one replay");
+    }
+}
+
+/// Lines caught by the first flush draw no block of their own, and a block may arrive
+/// garbled: the replay then goes after a moment of quiet, never later than `SETTLE_MAX`
+/// however long the printer keeps talking; and a second bad line later waits again.
+#[test]
+fn the_replay_goes_after_a_quiet_moment_when_fewer_blocks_come() {
+    let (mut host, now, after) = lines_in_flight_after_line_2();
+    host.feed(FIRST_BLOCK, now);
+    host.feed(
+        b"Error:Line Nu\xffber is not Last Line Number+1, Last Line: 1\nRes\xfe\n",
+        now,
+    );
+    assert_eq!(sent(&mut host), "");
+    let deadline = host.next_deadline().expect("the hold has a clock");
+    assert!(
+        deadline <= now + SETTLE_QUIET_MAX,
+        "quiet is measured in milliseconds: {:?}",
+        deadline - now
+    );
+    // A chatty printer (a keep-alive every 2 ms) cannot hold the replay for long.
+    let mut t = now;
+    let replay = loop {
+        let out = sent(&mut host);
+        if !out.is_empty() {
+            break out;
+        }
+        assert!(
+            t <= now + SETTLE_MAX + Duration::from_millis(2),
+            "{after} lines on their way, still held after {:?}",
+            t - now
+        );
+        t += Duration::from_millis(2);
+        host.feed(b"echo:busy: processing\n", t);
+        if host.next_deadline().is_some_and(|d| d <= t) {
+            host.tick(t);
+        }
+    };
+    assert!(replay.starts_with("N2 "), "{replay:?}");
 }

@@ -36,6 +36,7 @@ impl Host {
         self.repeated = None;
         self.replay_after = None;
         self.probe_replay = None;
+        self.settle = None;
         self.ok_may_follow = None;
         self.resend_hold = None;
         self.cautious_until = 0;
@@ -138,6 +139,7 @@ impl Host {
             bytes: wire.len(),
             is_m105,
             sync,
+            sent: now,
         });
         self.in_flight_bytes += wire.len();
         self.send_cursor = number + 1;
@@ -182,6 +184,7 @@ impl Host {
                 self.phase,
                 Phase::Finished | Phase::Idle | Phase::Boot { .. }
             ) || self.resend_hold.is_some()
+                || self.settle.is_some()
                 || self.replay_after.is_some_and(|t| now < t)
             {
                 return;
@@ -221,6 +224,30 @@ impl Host {
         }
         self.check_progress(now);
     }
+}
+
+/// A command as a printer reads it, whatever way it was written: one space between words,
+/// numbers without trailing zeros after a decimal point (nor a bare point). Undoes what
+/// [`uncuttable`] does to a line, so a record of what a printer ran compares with the file.
+pub fn canonical(command: &str) -> String {
+    command
+        .split_whitespace()
+        .map(|word| {
+            let b = word.as_bytes();
+            let numeric = b.len() > 1
+                && b[0].is_ascii_alphabetic()
+                && word[1..].contains('.')
+                && word[1..]
+                    .bytes()
+                    .all(|c| c.is_ascii_digit() || c == b'.' || c == b'-');
+            if numeric {
+                word.trim_end_matches('0').trim_end_matches('.')
+            } else {
+                word
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 /// Where a byte of `N<number> <command>` corrupted into `*` would leave a line that still

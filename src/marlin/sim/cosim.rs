@@ -9,7 +9,7 @@
 use super::printer::Printer;
 use super::{is_housekeeping, Recorder, SimConfig};
 use crate::marlin::firmware::Firmware;
-use crate::marlin::protocol::{Event, Failure, Host, JobSummary, ProtocolOptions};
+use crate::marlin::protocol::{canonical, Event, Failure, Host, JobSummary, ProtocolOptions};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -115,6 +115,16 @@ fn run(cfg: SimConfig, job: &[String], limit: Duration) -> Run {
     }
 }
 
+/// The job's own commands (no housekeeping) as a printer reads them: the host may write a
+/// line differently with the same meaning (Ultimaker2Marlin's cut-line guard).
+fn canonical_job(commands: &[String]) -> Vec<String> {
+    commands
+        .iter()
+        .filter(|c| !is_housekeeping(c))
+        .map(|c| canonical(c))
+        .collect()
+}
+
 /// What PrusaSlicer writes around crispen's start code (`gcode/start.gcode`, for a 60 °C
 /// bed and a 210 °C nozzle: heaters on, homing, both heat waits, a prime) and the first
 /// layer's opening, then `moves` short moves.
@@ -177,7 +187,7 @@ fn short_moves_job(moves: usize) -> Vec<String> {
 #[test]
 fn every_firmware_at_real_speed_homes_heats_and_prints_every_line_once() {
     let job = sliced_job(300);
-    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let expected: Vec<String> = canonical_job(&job);
     for fw in Firmware::ALL {
         let mut cfg = SimConfig::new(fw);
         cfg.time_scale = 1.0;
@@ -186,11 +196,7 @@ fn every_firmware_at_real_speed_homes_heats_and_prints_every_line_once() {
             .outcome
             .unwrap_or_else(|f| panic!("{fw:?}: job failed: {f:?}"));
         assert_eq!(summary.resends, 0, "{fw:?}: a clean link needs no resend");
-        let executed: Vec<&String> = run
-            .executed
-            .iter()
-            .filter(|c| !is_housekeeping(c))
-            .collect();
+        let executed: Vec<String> = canonical_job(&run.executed);
         assert_eq!(executed, expected, "{fw:?}");
     }
 }
@@ -202,7 +208,7 @@ fn every_firmware_at_real_speed_homes_heats_and_prints_every_line_once() {
 #[test]
 fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
     let job = sliced_job(400);
-    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let expected: Vec<String> = canonical_job(&job);
     let only = std::env::var("CRISPEN_COSIM_ONLY").ok();
     // 120 runs of pure computation on a virtual clock: one thread per firmware, so the
     // test uses the cores the machine has free (on one core it took 15-40 s).
@@ -223,7 +229,7 @@ fn noise_at_real_speed_still_delivers_exactly_once_for_every_seed() {
 }
 
 /// The 40 noisy seeds of one firmware; what went wrong, one line each.
-fn runs_of(fw: Firmware, job: &[String], expected: &[&String], only: Option<&str>) -> Vec<String> {
+fn runs_of(fw: Firmware, job: &[String], expected: &[String], only: Option<&str>) -> Vec<String> {
     let mut failures = Vec::new();
     for seed in 0..40 {
         if only.is_some_and(|o| o != format!("{fw:?}:{seed}")) {
@@ -238,11 +244,7 @@ fn runs_of(fw: Firmware, job: &[String], expected: &[&String], only: Option<&str
         cfg.faults.spurious_resend = 0.02;
         cfg.faults.busy = 0.01;
         let run = run(cfg, job, Duration::from_secs(3600));
-        let executed: Vec<&String> = run
-            .executed
-            .iter()
-            .filter(|c| !is_housekeeping(c))
-            .collect();
+        let executed: Vec<String> = canonical_job(&run.executed);
         match run.outcome {
             Err(f) => failures.push(format!("{fw:?} seed {seed}: failed: {f:?}")),
             Ok(_) if executed != expected => {
@@ -261,7 +263,7 @@ fn runs_of(fw: Firmware, job: &[String], expected: &[&String], only: Option<&str
 #[test]
 fn stock_marlin_saying_wait_under_noise_never_stalls() {
     let job = short_moves_job(3000);
-    let expected: Vec<&String> = job.iter().filter(|c| !is_housekeeping(c)).collect();
+    let expected: Vec<String> = canonical_job(&job);
     let mut failures = Vec::new();
     for seed in 0..6 {
         let mut cfg = SimConfig::new(Firmware::Marlin2);
@@ -278,11 +280,7 @@ fn stock_marlin_saying_wait_under_noise_never_stalls() {
             run(clean, &job, Duration::from_secs(3600)).elapsed
         };
         let run = run(cfg, &job, Duration::from_secs(3600));
-        let executed: Vec<&String> = run
-            .executed
-            .iter()
-            .filter(|c| !is_housekeeping(c))
-            .collect();
+        let executed: Vec<String> = canonical_job(&run.executed);
         match run.outcome {
             Err(f) => failures.push(format!("seed {seed}: failed: {f:?}")),
             Ok(_) if executed != expected => {

@@ -20,6 +20,7 @@ mod cosim;
 mod printer;
 
 use crate::marlin::firmware::Firmware;
+use crate::marlin::protocol::canonical;
 use nix::fcntl::{fcntl, FcntlArg, OFlag};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::termios;
@@ -42,6 +43,10 @@ pub struct Faults {
     /// Probability per received line that one of its bytes arrives corrupted, which the
     /// printer detects (checksum / line number) and answers with a resend request.
     pub corrupt_host_bytes: f64,
+    /// Probability per received numbered line that one of its `.` arrives as `*`: Marlin 2
+    /// then fails the checksum (it takes the last `*`), Ultimaker2Marlin checks only up to
+    /// the first `*` and may run the cut line (seen on the real firmware).
+    pub star_for_dot: f64,
     /// Probability that the `ok` for a command is never sent (M105's answer is exempt, so
     /// a host's M105 probe always recovers).
     pub drop_ok: f64,
@@ -223,7 +228,8 @@ impl SimHandle {
         &self.device
     }
 
-    /// The commands executed so far, in order, without `N<n> ` and `*<checksum>`.
+    /// The commands executed so far, in order, without `N<n> ` and `*<checksum>`, as the
+    /// printer read them ([`canonical`]).
     pub fn executed(&self) -> Vec<String> {
         self.executed
             .lock()
@@ -409,7 +415,10 @@ pub(crate) struct Recorder {
 }
 
 impl Recorder {
+    /// Records what the printer ran as it reads it ([`canonical`]: a host may write the
+    /// same command with an extra space or trailing zeros, e.g. crispen's cut-line guard).
     pub(crate) fn push(&mut self, cmd: &str) {
+        let cmd = &canonical(cmd);
         if let Some(executed) = &self.executed {
             executed
                 .lock()

@@ -74,6 +74,21 @@ impl Printer {
         }
     }
 
+    /// The star-for-dot fault on a numbered line just assembled from the receive ring.
+    pub(super) fn star_for_dot(&mut self, raw: &mut [u8]) {
+        if self.faults.star_for_dot > 0.0
+            && raw.first() == Some(&b'N')
+            && self.rng.random_bool(self.faults.star_for_dot.min(1.0))
+        {
+            let dots: Vec<usize> = (0..raw.len()).filter(|&i| raw[i] == b'.').collect();
+            if !dots.is_empty() {
+                let at = dots[self.rng.random_range(0..dots.len())];
+                tracing::debug!(at, "fault: a `.` arrives as `*`");
+                raw[at] = b'*';
+            }
+        }
+    }
+
     /// The spurious-resend fault: a good line answered as if it had been corrupted.
     pub(super) fn spurious_resend(&mut self) -> bool {
         let hit = self.faults.spurious_resend > 0.0

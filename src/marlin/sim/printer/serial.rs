@@ -116,6 +116,7 @@ impl Printer {
             raw.truncate(at);
         }
         self.corrupt_received(&mut raw);
+        self.star_for_dot(&mut raw);
         let line = String::from_utf8_lossy(&raw).trim().to_string();
         if line.is_empty() {
             return;
@@ -140,7 +141,14 @@ impl Printer {
                 }
                 return self.line_error("Line Number is not Last Line Number+1");
             }
-            let Some(star) = line.rfind('*') else {
+            // Marlin 2 takes the last `*`; Ultimaker2Marlin the first, so a `.` turned into
+            // `*` may leave a cut line whose checksum passes, and the cut line runs.
+            let star = if self.fw.checksum_to_first_star() {
+                line.find('*')
+            } else {
+                line.rfind('*')
+            };
+            let Some(star) = star else {
                 return self.line_error("No Checksum with line number");
             };
             let sum = line.as_bytes()[..star].iter().fold(0u8, |a, &b| a ^ b);
@@ -152,7 +160,7 @@ impl Printer {
             }
             let n = n.unwrap_or(0).max(0) as u64;
             self.last_n = n;
-            let cmd = strip_number_and_checksum(&line).to_string();
+            let cmd = strip_number_and_checksum(&line[..=star]).to_string();
             let line_n = leading_int(rest).map(|v| v.max(0) as u64);
             self.enqueue(line_n, cmd);
         } else if line.contains('*') && !self.fw.is_marlin2() {

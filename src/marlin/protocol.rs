@@ -417,6 +417,9 @@ pub struct Host {
     pending: VecDeque<(Kind, String)>,
     history: VecDeque<Line>,
     next_number: u64,
+    /// The first line number of the safe stop being made: an `M105` sent before it is
+    /// never taken for lost while stopping, so its late answer cannot confirm the stop.
+    stop_from: u64,
     send_cursor: u64,
     in_flight: VecDeque<InFlight>,
     in_flight_bytes: usize,
@@ -543,6 +546,7 @@ impl Host {
             pending: VecDeque::new(),
             history: VecDeque::new(),
             next_number: 0,
+            stop_from: 0,
             send_cursor: 0,
             in_flight: VecDeque::new(),
             in_flight_bytes: 0,
@@ -985,8 +989,18 @@ impl Host {
                 // A printer that answers each probe while earlier M105s seem to wait is
                 // losing answers, not slow: the backlog is cleared within a few probes.
                 .min(self.opts.silence_probe * 3);
+            // While stopping, an M105 sent before the stop lines keeps its place whatever
+            // its age: Ultimaker2Marlin answers it only after the moves queued before it,
+            // and that answer, taken for the stop's own M105, would confirm heaters off
+            // that had not run yet (seen on a loaded machine: a cancel reported as
+            // confirmed before the printer had executed `M104 S0`).
+            let keep_below = if self.stopping().is_some() {
+                self.stop_from
+            } else {
+                0
+            };
             for f in self.in_flight.iter_mut() {
-                if now.saturating_duration_since(f.sent) >= patience {
+                if f.number >= keep_below && now.saturating_duration_since(f.sent) >= patience {
                     f.is_m105 = false;
                 }
             }
@@ -1093,6 +1107,7 @@ impl Host {
     /// M108 (breaking a heat wait where the firmware can), then heaters, fan and motors off,
     /// autoreport off, and an `M105` whose answer confirms them all.
     fn queue_safe_stop(&mut self, now: Instant) {
+        self.stop_from = self.next_number;
         self.pending
             .retain(|(kind, _)| matches!(kind, Kind::SafeStop | Kind::Setup));
         let failure = matches!(self.stopping(), Some(Stop::Failure { .. }));

@@ -321,7 +321,7 @@ async fn cancel_runs_the_safe_stop_lines() {
         assert_eq!(
             executed[n - 4..],
             ["M104 S0", "M140 S0", "M107", "M84"],
-            "{fw}"
+            "{fw}: {err}"
         );
         assert_eq!(
             executed[..n - 4],

@@ -195,9 +195,14 @@ pub fn demo_http(key_file: &std::path::Path) -> Result<HttpConfig, DemoKeyError>
         Ok(mut file) => {
             let key =
                 base64::engine::general_purpose::URL_SAFE_NO_PAD.encode(rand::random::<[u8; 24]>());
+            // Created in place with `create_new`, not `fsutil::write_atomic`: a key that
+            // exists is never replaced, and the file is 0600 from its first byte.
             file.write_all(format!("{key}\n").as_bytes())
                 .and_then(|_| file.sync_all())
                 .map_err(|e| failed(format!("cannot write: {e}")))?;
+            if let Some(dir) = key_file.parent() {
+                crate::fsutil::sync_dir(dir).map_err(|e| failed(e.to_string()))?;
+            }
         }
         Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
         Err(e) => return Err(failed(format!("cannot create: {e}"))),

@@ -158,9 +158,19 @@ impl Received {
         place_with_sidecar(self, None).await
     }
 
+    /// A link, not `fsutil::write_atomic`'s rename: a rename would replace a file of the
+    /// same name that the hot folder already holds. Made durable like it (the file was
+    /// synced as it was received; the folder's entry is synced here).
     fn link(&self) -> Result<PathBuf, ApiError> {
         match std::fs::hard_link(&self.temp, &self.target) {
-            Ok(()) => Ok(self.target.clone()),
+            Ok(()) => {
+                if let Some(folder) = self.target.parent() {
+                    crate::fsutil::sync_dir(folder).map_err(|e| {
+                        io_error(&self.target, "cannot make the upload durable", e.source)
+                    })?;
+                }
+                Ok(self.target.clone())
+            }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
                 Err(ApiError::conflict(format!(
                     "{}: a file of this name is already in the hot folder (hint: wait until it \

@@ -5,7 +5,6 @@
 //! its files where they were.
 
 use crispen::daemon::job::{Job, JobState};
-use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -47,24 +46,8 @@ fn write_spool(spool: &Path, n: usize) -> Vec<String> {
 }
 
 fn get(socket: &Path, path: &str) -> Option<(u16, serde_json::Value)> {
-    let mut stream = std::os::unix::net::UnixStream::connect(socket).ok()?;
-    stream
-        .set_read_timeout(Some(Duration::from_secs(30)))
-        .ok()?;
-    write!(
-        stream,
-        "GET {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n"
-    )
-    .ok()?;
-    let mut answer = Vec::new();
-    stream.read_to_end(&mut answer).ok()?;
-    let code: u16 = std::str::from_utf8(&answer[9..12]).ok()?.parse().ok()?;
-    let body = answer.windows(4).position(|w| w == b"\r\n\r\n")? + 4;
-    // Chunked or not, the JSON is the one object in the body.
-    let text = String::from_utf8_lossy(&answer[body..]).into_owned();
-    let start = text.find(['{', '['])?;
-    let end = text.rfind(['}', ']'])?;
-    Some((code, serde_json::from_str(&text[start..=end]).ok()?))
+    let (code, body) = crate::common::farm::http_on(socket, "GET", path).ok()?;
+    Some((code, serde_json::from_str(&body).ok()?))
 }
 
 struct Daemon {

@@ -22,6 +22,7 @@ mod ports;
 mod postgres;
 mod presliced;
 mod preview;
+mod pauses;
 mod print;
 mod service;
 mod sim;

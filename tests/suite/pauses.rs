@@ -197,3 +197,97 @@ async fn without_an_operator_a_file_pause_is_refused_before_anything_is_sent() {
     assert!(msg.contains("colours.gcode:4") && msg.contains("`M600`"), "{msg}");
     assert!(executed(&sim).is_empty(), "{:?}", executed(&sim));
 }
+
+/// The daemon end to end (the real binary, a simulated printer declared in the config): a
+/// pre-sliced file with `M0` stops at exactly its line, the printer is shown waiting for
+/// the operator with the file's message in the API's status, the heaters go off after
+/// `pause_heaters_off_s` while the job keeps waiting, and the API's resume heats up again
+/// and finishes the job with every line executed exactly once.
+#[test]
+fn the_daemon_shows_a_file_pause_and_the_api_resumes_it() {
+    use crate::common::daemon::{drop_model, recorded, state_of, wait_for, Daemon};
+    use crate::common::printer;
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    let config = root.join("crispen.toml");
+    let record = root.join("p.record");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\npause_heaters_off_s = 10\n\
+             [printer.simulate]\ntime_scale = 0.0\nrecord = {:?}\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
+            record.display().to_string()
+        ),
+    )
+    .unwrap();
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    // The first part without the end code (which cools down and turns the motors off).
+    let before = crate::common::farm::presliced_gcode("before", 8, 1200);
+    let mut gcode = before.replace("G1 Z10 F600\nM104 S0\nM84\n", "");
+    assert_ne!(gcode, before);
+    let tail = crate::common::farm::presliced_gcode("after", 8, 1200);
+    gcode += "M117 Insert magnets\nM0\n";
+    gcode += &tail;
+    drop_model(&root.join("hot"), "magnets.gcode", gcode.as_bytes());
+
+    let s = wait_for(&config, &log, Duration::from_secs(120), "waiting for the operator", |s| {
+        printer(s, "p")["state"] == "waiting_for_operator"
+    });
+    let p = printer(&s, "p");
+    let detail = p["detail"].as_str().unwrap_or_default();
+    assert!(detail.contains("Insert magnets") && detail.contains("crispen resume"), "{p}");
+    assert_eq!(p["progress"]["pause"]["message"], "Insert magnets", "{p}");
+    assert_eq!(p["progress"]["pause"]["command"], "M0", "{p}");
+    let file = GcodeProgram::read(gcode.as_bytes(), "magnets.gcode", Firmware::Marlin2)
+        .unwrap()
+        .to_vec();
+    let pause = file.iter().position(|c| c == "M0").unwrap();
+    let at_pause = recorded(&record);
+    assert_eq!(
+        at_pause[..pause],
+        file[..pause],
+        "every line before the pause, in order"
+    );
+    let parked = &at_pause[pause..];
+    assert!(
+        parked.first().map(String::as_str) == Some("M400")
+            && parked.last().map(String::as_str) == Some("M400")
+            && parked.iter().all(|c| !c.starts_with("M118") && !c.contains(" E")),
+        "nothing after the pause but the park: {parked:?}"
+    );
+
+    let s = wait_for(&config, &log, Duration::from_secs(60), "heaters off", |s| {
+        printer(s, "p")["progress"]["pause"]["heaters_off"] == true
+    });
+    assert_eq!(printer(&s, "p")["state"], "waiting_for_operator");
+    assert_eq!(state_of(&s, "magnets.gcode"), "printing", "the job is not failed");
+
+    let (code, body) = crate::common::farm::http_on(
+        &root.join("c.sock"),
+        "POST",
+        "/api/v1/printers/p/resume",
+    )
+    .unwrap();
+    assert_eq!(code, 200, "{body}");
+    wait_for(&config, &log, Duration::from_secs(120), "the job done", |s| {
+        state_of(s, "magnets.gcode") == "done"
+    });
+    let all = recorded(&record);
+    assert!(all.iter().all(|c| c != "M0"), "the pause never reached the printer");
+    // Every job line exactly once, in order: the lines before the pause, the host's own
+    // lines (park, heaters off, reheat and return), then every line after it.
+    let tail = &file[pause + 1..];
+    assert_eq!(all[..pause], file[..pause]);
+    assert!(all.ends_with(tail), "{all:?}");
+    let host = &all[pause..all.len() - tail.len()];
+    let off = host.iter().position(|c| c == "M104 S0").expect("heaters off");
+    let reheat = host.iter().position(|c| c == "M109 S200").expect("reheated");
+    assert!(off < reheat, "{host:?}");
+    assert!(host.iter().all(|c| !c.starts_with("M118")), "{host:?}");
+    let markers: Vec<&String> = all.iter().filter(|c| c.starts_with("M118")).collect();
+    assert_eq!(markers, ["M118 before", "M118 after"]);
+}

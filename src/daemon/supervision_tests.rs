@@ -460,7 +460,9 @@ async fn a_halted_printer_takes_no_job_until_it_was_reset() {
     .await;
     let p1 = printer(&farm, "p1").unwrap();
     assert!(
-        p1.detail.as_deref().is_some_and(|d| d.contains("kill() called")),
+        p1.detail
+            .as_deref()
+            .is_some_and(|d| d.contains("kill() called")),
         "{p1:?}"
     );
     control::execute(
@@ -473,7 +475,11 @@ async fn a_halted_printer_takes_no_job_until_it_was_reset() {
     .unwrap();
     let second = ready_job(&farm, "b.stl", HEAT_AND_PRINT).await;
     tokio::time::sleep(Duration::from_secs(600)).await;
-    assert_eq!(state(&farm, &second), JobState::Ready, "no job while halted");
+    assert_eq!(
+        state(&farm, &second),
+        JobState::Ready,
+        "no job while halted"
+    );
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Halted);
     assert_eq!(bench.printer("p1").job_lines(), lines("G28\nM112"));
     assert!(bench.printer("p1").halted());

@@ -123,7 +123,10 @@ fn words(command: &str) -> Vec<(char, Option<f64>)> {
         while end < bytes.len() && matches!(bytes[end], b'0'..=b'9' | b'.' | b'-' | b'+') {
             end += 1;
         }
-        out.push((c.to_ascii_uppercase(), command[start..end].parse::<f64>().ok()));
+        out.push((
+            c.to_ascii_uppercase(),
+            command[start..end].parse::<f64>().ok(),
+        ));
         i = end.max(start);
     }
     out
@@ -136,6 +139,11 @@ impl Motion {
         let Some(&(letter, Some(code))) = w.first() else {
             return;
         };
+        // `G1.5` and the like are no command this follows.
+        if code.fract() != 0.0 || !(0.0..=10_000.0).contains(&code) {
+            return;
+        }
+        let code = code as u32;
         let value = |axis: char| {
             w.iter()
                 .skip(1)
@@ -144,7 +152,7 @@ impl Motion {
         };
         let named = |axis: char| w.iter().skip(1).any(|(l, _)| *l == axis);
         match (letter, code) {
-            ('G', c) if c == 0.0 || c == 1.0 || c == 2.0 || c == 3.0 => {
+            ('G', 0..=3) => {
                 for (i, axis) in AXES.into_iter().enumerate() {
                     let Some(v) = value(axis) else { continue };
                     let relative = if axis == 'E' {
@@ -162,7 +170,7 @@ impl Motion {
                     self.feed = Some(f);
                 }
             }
-            ('G', c) if c == 28.0 => {
+            ('G', 28) => {
                 let all = !['X', 'Y', 'Z'].into_iter().any(named);
                 for (i, axis) in ['X', 'Y', 'Z'].into_iter().enumerate() {
                     if all || named(axis) {
@@ -170,15 +178,15 @@ impl Motion {
                     }
                 }
             }
-            ('G', c) if c == 90.0 => {
+            ('G', 90) => {
                 self.relative = false;
                 self.relative_e = false;
             }
-            ('G', c) if c == 91.0 => {
+            ('G', 91) => {
                 self.relative = true;
                 self.relative_e = true;
             }
-            ('G', c) if c == 92.0 => {
+            ('G', 92) => {
                 let all = !AXES.into_iter().any(named);
                 for (i, axis) in AXES.into_iter().enumerate() {
                     if all {
@@ -188,8 +196,8 @@ impl Motion {
                     }
                 }
             }
-            ('M', c) if c == 82.0 => self.relative_e = false,
-            ('M', c) if c == 83.0 => self.relative_e = true,
+            ('M', 82) => self.relative_e = false,
+            ('M', 83) => self.relative_e = true,
             _ => {}
         }
     }
@@ -267,11 +275,7 @@ pub fn heaters_off_lines() -> Vec<String> {
 /// force before the pause when `reheat` (the heaters were turned off meanwhile), return to
 /// where the head was when `parked`, and restore the file's modes (positioning, extruder
 /// mode and position, feed rate), which the park changed.
-pub fn resume_lines(
-    motion: &Motion,
-    parked: bool,
-    reheat: Option<&Temperatures>,
-) -> Vec<String> {
+pub fn resume_lines(motion: &Motion, parked: bool, reheat: Option<&Temperatures>) -> Vec<String> {
     let mut lines = Vec::new();
     if let Some(t) = reheat {
         let bed = t.bed.and_then(|b| b.target).filter(|&s| s > 0.0);
@@ -360,7 +364,12 @@ mod tests {
     fn motion_follows_modes_and_positions() {
         let mut m = Motion::default();
         for c in [
-            "G28", "G90", "M83", "G1 Z0.2 F600", "G1 X10 Y20 E1 F1800", "G1 X12 E0.5",
+            "G28",
+            "G90",
+            "M83",
+            "G1 Z0.2 F600",
+            "G1 X10 Y20 E1 F1800",
+            "G1 X12 E0.5",
         ] {
             m.follow(c);
         }

@@ -942,7 +942,9 @@ impl Connection {
                 Woke::Control(Some(StreamControl::Cancel)) => {
                     run.publish(at, shown, PrintState::Cancelling);
                     let stop = GcodeCommands::from(
-                        ["M104 S0", "M140 S0", "M107", "M84"].map(String::from).to_vec(),
+                        ["M104 S0", "M140 S0", "M107", "M84"]
+                            .map(String::from)
+                            .to_vec(),
                     );
                     let confirmed = self.stream_part(run, control, stop, at, Part::Stop).await;
                     let stop = match confirmed {
@@ -1025,8 +1027,13 @@ impl Connection {
                         return Ok(());
                     }
                     Event::Failed(f) => {
-                        run.publish(acked(&self.host), self.host.temperatures(), PrintState::Failed);
-                        let err = PrintError::from_failure(&port, f, stop).in_part(offset, job_lines);
+                        run.publish(
+                            acked(&self.host),
+                            self.host.temperatures(),
+                            PrintState::Failed,
+                        );
+                        let err =
+                            PrintError::from_failure(&port, f, stop).in_part(offset, job_lines);
                         tracing::warn!(port = %port.display(), gcode = run.name, "print failed: {err}");
                         return Err(err);
                     }

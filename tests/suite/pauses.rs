@@ -10,8 +10,8 @@ use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::pause::{find_pauses, park_lines, resume_lines, Motion};
 use crispen::marlin::sim::{self, is_housekeeping, SimConfig, SimHandle};
 use crispen::marlin::stream::{
-    Connection, PauseSettings, PrintError, PrintProgress, PrintState, StreamControl,
-    StreamOptions, Temp, Temperatures,
+    Connection, PauseSettings, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
+    Temp, Temperatures,
 };
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
@@ -98,7 +98,11 @@ async fn a_file_pause_stops_at_exactly_its_line_and_resumes_every_line_once() {
                 p.pause.as_ref().is_some_and(|p| p.heaters_off)
             })
             .await;
-            assert_eq!(off.state, PrintState::WaitingForOperator, "{fw:?}: still waiting");
+            assert_eq!(
+                off.state,
+                PrintState::WaitingForOperator,
+                "{fw:?}: still waiting"
+            );
             let at_heaters_off = executed(&sim);
             control.send(StreamControl::Resume).await.unwrap();
             (waiting, at_pause, shown, at_heaters_off)
@@ -118,7 +122,11 @@ async fn a_file_pause_stops_at_exactly_its_line_and_resumes_every_line_once() {
         assert_eq!(waiting.lines_acked, pause.index, "{fw:?}");
         assert_eq!(
             at_heaters_off,
-            [&at_pause[..], &["M104 S0".to_string(), "M140 S0".to_string()]].concat(),
+            [
+                &at_pause[..],
+                &["M104 S0".to_string(), "M140 S0".to_string()]
+            ]
+            .concat(),
             "{fw:?}: heaters off after the limit, still waiting"
         );
         let targets = Temperatures {
@@ -161,7 +169,10 @@ async fn a_cancel_while_waiting_at_a_pause_stops_safely() {
     let print = conn.print(&program, control_rx, progress);
     tokio::pin!(print);
     let driver = async {
-        wait_for(&mut rx, "waiting", |p| p.state == PrintState::WaitingForOperator).await;
+        wait_for(&mut rx, "waiting", |p| {
+            p.state == PrintState::WaitingForOperator
+        })
+        .await;
         let at_pause = executed(&sim);
         control.send(StreamControl::Cancel).await.unwrap();
         at_pause
@@ -194,7 +205,10 @@ async fn without_an_operator_a_file_pause_is_refused_before_anything_is_sent() {
         .await
         .expect_err("refused");
     let msg = err.to_string();
-    assert!(msg.contains("colours.gcode:4") && msg.contains("`M600`"), "{msg}");
+    assert!(
+        msg.contains("colours.gcode:4") && msg.contains("`M600`"),
+        "{msg}"
+    );
     assert!(executed(&sim).is_empty(), "{:?}", executed(&sim));
 }
 
@@ -234,12 +248,19 @@ fn the_daemon_shows_a_file_pause_and_the_api_resumes_it() {
     gcode += &tail;
     drop_model(&root.join("hot"), "magnets.gcode", gcode.as_bytes());
 
-    let s = wait_for(&config, &log, Duration::from_secs(120), "waiting for the operator", |s| {
-        printer(s, "p")["state"] == "waiting_for_operator"
-    });
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "waiting for the operator",
+        |s| printer(s, "p")["state"] == "waiting_for_operator",
+    );
     let p = printer(&s, "p");
     let detail = p["detail"].as_str().unwrap_or_default();
-    assert!(detail.contains("Insert magnets") && detail.contains("crispen resume"), "{p}");
+    assert!(
+        detail.contains("Insert magnets") && detail.contains("crispen resume"),
+        "{p}"
+    );
     assert_eq!(p["progress"]["pause"]["message"], "Insert magnets", "{p}");
     assert_eq!(p["progress"]["pause"]["command"], "M0", "{p}");
     let file = GcodeProgram::read(gcode.as_bytes(), "magnets.gcode", Firmware::Marlin2)
@@ -256,7 +277,9 @@ fn the_daemon_shows_a_file_pause_and_the_api_resumes_it() {
     assert!(
         parked.first().map(String::as_str) == Some("M400")
             && parked.last().map(String::as_str) == Some("M400")
-            && parked.iter().all(|c| !c.starts_with("M118") && !c.contains(" E")),
+            && parked
+                .iter()
+                .all(|c| !c.starts_with("M118") && !c.contains(" E")),
         "nothing after the pause but the park: {parked:?}"
     );
 
@@ -264,28 +287,42 @@ fn the_daemon_shows_a_file_pause_and_the_api_resumes_it() {
         printer(s, "p")["progress"]["pause"]["heaters_off"] == true
     });
     assert_eq!(printer(&s, "p")["state"], "waiting_for_operator");
-    assert_eq!(state_of(&s, "magnets.gcode"), "printing", "the job is not failed");
+    assert_eq!(
+        state_of(&s, "magnets.gcode"),
+        "printing",
+        "the job is not failed"
+    );
 
-    let (code, body) = crate::common::farm::http_on(
-        &root.join("c.sock"),
-        "POST",
-        "/api/v1/printers/p/resume",
-    )
-    .unwrap();
+    let (code, body) =
+        crate::common::farm::http_on(&root.join("c.sock"), "POST", "/api/v1/printers/p/resume")
+            .unwrap();
     assert_eq!(code, 200, "{body}");
-    wait_for(&config, &log, Duration::from_secs(120), "the job done", |s| {
-        state_of(s, "magnets.gcode") == "done"
-    });
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(120),
+        "the job done",
+        |s| state_of(s, "magnets.gcode") == "done",
+    );
     let all = recorded(&record);
-    assert!(all.iter().all(|c| c != "M0"), "the pause never reached the printer");
+    assert!(
+        all.iter().all(|c| c != "M0"),
+        "the pause never reached the printer"
+    );
     // Every job line exactly once, in order: the lines before the pause, the host's own
     // lines (park, heaters off, reheat and return), then every line after it.
     let tail = &file[pause + 1..];
     assert_eq!(all[..pause], file[..pause]);
     assert!(all.ends_with(tail), "{all:?}");
     let host = &all[pause..all.len() - tail.len()];
-    let off = host.iter().position(|c| c == "M104 S0").expect("heaters off");
-    let reheat = host.iter().position(|c| c == "M109 S200").expect("reheated");
+    let off = host
+        .iter()
+        .position(|c| c == "M104 S0")
+        .expect("heaters off");
+    let reheat = host
+        .iter()
+        .position(|c| c == "M109 S200")
+        .expect("reheated");
     assert!(off < reheat, "{host:?}");
     assert!(host.iter().all(|c| !c.starts_with("M118")), "{host:?}");
     let markers: Vec<&String> = all.iter().filter(|c| c.starts_with("M118")).collect();

@@ -1637,6 +1637,7 @@ slicer = "cura"
             ("strength = 0.4", "strength = \"max\"", "key `strength`"),
             ("port = \"/dev/ttyACM0\"\n", "", "key `port`: missing"),
             ("firmware = \"ultimaker2\"", "firmware = \"ultimaker2\"\nheat_timeout_s = 5", "[[printer]] #1 (name \"um2-a\"): key `heat_timeout_s`: must be between 10"),
+            ("firmware = \"ultimaker2\"", "firmware = \"ultimaker2\"\npause_heaters_off_s = 0", "[[printer]] #1 (name \"um2-a\"): key `pause_heaters_off_s`: must be between 10 and 86400 seconds, got 0"),
             ("strength = 0.4", "strength = 0.4\nsettings = { infil_percent = 20 }", "key `settings`: unknown field `infil_percent`"),
         ];
         for (from, to, expected) in cases {

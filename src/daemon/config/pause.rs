@@ -34,7 +34,10 @@ mod tests {
         assert_eq!(heaters_off_after(None), Ok(Duration::from_secs(1800)));
         assert_eq!(heaters_off_after(Some(10)), Ok(Duration::from_secs(10)));
         let err = heaters_off_after(Some(9)).unwrap_err();
-        assert!(err.contains("between 10 and 86400") && err.contains("9"), "{err}");
+        assert!(
+            err.contains("between 10 and 86400") && err.contains("9"),
+            "{err}"
+        );
         assert!(heaters_off_after(Some(86_401)).is_err());
     }
 }

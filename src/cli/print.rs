@@ -139,6 +139,7 @@ fn describe(p: &PrintProgress) -> String {
         PrintState::Printing => "",
         PrintState::Heating => "heating",
         PrintState::Paused => "paused",
+        PrintState::WaitingForOperator => "waiting for the operator",
         PrintState::Pausing => "pausing",
         PrintState::Cancelling => "cancelling",
         PrintState::Connecting => "connecting",

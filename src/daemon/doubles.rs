@@ -7,7 +7,8 @@
 //!   target (heaters warm at [`BenchPrinter::HEAT_C_PER_S`]), a move takes
 //!   [`BenchPrinter::MOVE`], pause holds the next line, and a cancel sends the heaters-off
 //!   lines before the print ends cancelled. Between jobs it answers temperature polls every
-//!   few seconds; a test may unplug it.
+//!   few seconds; a test may unplug it. An `M112` halts it (the print fails as on a real
+//!   firmware's `kill()`) until a test resets it, which the link reports as a reboot.
 //! - [`BenchConnector`]: opens links to a bench printer, or refuses while it is unplugged.
 //! - [`ports`]: a fleet's [`Ports`] resolving each configured printer to a bench printer.
 //!
@@ -45,6 +46,10 @@ struct Bench {
     connects: usize,
     /// Tells an open link that it was unplugged.
     unplug: Option<mpsc::UnboundedSender<()>>,
+    /// Halted by an `M112`.
+    halted: bool,
+    /// Tells an open link that the printer was reset (it says `start`).
+    reset: Option<mpsc::UnboundedSender<()>>,
 }
 
 impl BenchPrinter {
@@ -83,6 +88,19 @@ impl BenchPrinter {
         self.lock().unplugged = false;
     }
 
+    pub fn halted(&self) -> bool {
+        self.lock().halted
+    }
+
+    /// Presses the reset button: no longer halted, and the open link hears `start`.
+    pub fn reset(&self) {
+        let mut bench = self.lock();
+        bench.halted = false;
+        if let Some(tx) = &bench.reset {
+            let _ = tx.send(());
+        }
+    }
+
     fn send(&self, line: &str) {
         self.lock().sent.push(line.to_string());
     }
@@ -96,6 +114,7 @@ impl Connector for BenchConnector {
         Box::pin(async move {
             let printer = self.0.clone();
             let (tx, rx) = mpsc::unbounded_channel();
+            let (reset_tx, reset_rx) = mpsc::unbounded_channel();
             {
                 let mut bench = printer.lock();
                 bench.connects += 1;
@@ -106,10 +125,12 @@ impl Connector for BenchConnector {
                     })));
                 }
                 bench.unplug = Some(tx);
+                bench.reset = Some(reset_tx);
             }
             Ok(Box::new(BenchLink {
                 printer,
                 unplugged: rx,
+                resets: reset_rx,
             }) as Box<dyn PrinterLink>)
         })
     }
@@ -118,6 +139,7 @@ impl Connector for BenchConnector {
 struct BenchLink {
     printer: BenchPrinter,
     unplugged: mpsc::UnboundedReceiver<()>,
+    resets: mpsc::UnboundedReceiver<()>,
 }
 
 impl BenchLink {
@@ -229,6 +251,14 @@ impl PrinterLink for BenchLink {
                     continue;
                 }
                 self.printer.send(lines[acked]);
+                if lines[acked] == "M112" {
+                    self.printer.lock().halted = true;
+                    return Err(PrintFailure::Failed(PrintError::Fatal {
+                        port,
+                        message: "Error:Printer halted. kill() called!".into(),
+                        last_acked: acked,
+                    }));
+                }
                 if !self.execute(lines[acked]).await {
                     return Err(PrintFailure::Lost(PrintError::Disconnected {
                         port,
@@ -251,6 +281,7 @@ impl PrinterLink for BenchLink {
                     IdleNews::Temperatures(Some(self.temperatures()))
                 }
                 _ = self.unplugged.recv() => IdleNews::Lost("unplugged".into()),
+                Some(()) = self.resets.recv() => IdleNews::Rebooted,
             }
         })
     }

@@ -39,6 +39,13 @@ pub enum PrinterState {
     WaitingToHeat,
     Printing,
     Paused,
+    /// At a pause the G-code file asked for (`M0`, `M600`, ...): parked, waiting for the
+    /// operator's resume; the progress's `pause` says why.
+    WaitingForOperator,
+    /// The firmware halted (`M112`, a `kill()`, a thermal runaway, ...): it takes no job
+    /// until the printer was reset (its boot banner seen on the link, or a new connection
+    /// that completes the handshake, which a halted firmware never answers).
+    Halted,
     BedNotCleared,
     Disconnected,
     Stopped,
@@ -58,6 +65,9 @@ pub struct LiveProgress {
     /// The program's heat-up part is done (see `printer` on staggered heat-ups).
     pub heated: bool,
     pub paused: bool,
+    /// Set while the print waits at a pause its file asked for.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pause: Option<crate::marlin::stream::PauseInfo>,
 }
 
 /// A printer's hotend and bed (°C, current and target) as read now: from the job's

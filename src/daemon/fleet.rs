@@ -61,6 +61,11 @@ pub fn marlin_ports() -> Ports {
                 firmware: spec.firmware,
                 baud: spec.baud,
                 heat_timeout: spec.heat_timeout,
+                pause: {
+                    let mut pause = crate::marlin::stream::PauseSettings::new(spec.machine.bed_mm);
+                    pause.heaters_off_after = spec.pause_heaters_off;
+                    pause
+                },
             }),
             keep: simulator.map(|s| Box::new(s) as Box<dyn Send>),
         })

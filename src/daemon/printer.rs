@@ -29,8 +29,8 @@ use super::farm::{
 use super::job::{JobState, PrintReport};
 use crate::marlin::gcode::{GcodeError, GcodeProgram};
 use crate::marlin::stream::{
-    Connection, Idle, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
-    Temperatures,
+    Connection, Idle, PauseSettings, PrintError, PrintProgress, PrintState, StreamControl,
+    StreamOptions, Temperatures,
 };
 use std::future::Future;
 use std::path::{Path, PathBuf};
@@ -109,6 +109,8 @@ pub enum IdleNews {
     Lost(String),
     /// Its temperatures as read now; None once it stopped reporting them.
     Temperatures(Option<PrinterTemperatures>),
+    /// It said it halted (`Error:Printer halted. kill() called!`, a thermal error...).
+    Halted(String),
 }
 
 /// Opens connections to one printer.
@@ -209,6 +211,9 @@ async fn supervise_inner(
             }
         };
         sup.show(|p| p.detail = None);
+        // The firmware's message while it is halted; a new connection has had its
+        // handshake answered, which a halted firmware never does.
+        let mut halted: Option<String> = None;
         loop {
             // Followed from before the look at the gate and the queue: a change while
             // looking is not missed.
@@ -216,14 +221,35 @@ async fn supervise_inner(
             if done(&retire) {
                 break 'connect;
             }
+            if let Some(message) = &halted {
+                sup.show(|p| {
+                    p.state = PrinterState::Halted;
+                    p.detail = Some(format!(
+                        "the firmware halted: {message}; it takes no job until it was reset \
+                         (press its reset button or power-cycle it)"
+                    ));
+                });
+                match until_reset(sup, link.as_mut(), &mut follow, &mut retire).await {
+                    Reset::Lost => continue 'connect,
+                    Reset::Seen => {
+                        tracing::info!("the halted printer was reset (it said `start`)");
+                        halted = None;
+                        sup.show(|p| p.detail = None);
+                    }
+                    Reset::NotYet => {}
+                }
+                continue;
+            }
             let gate = farm.store().gate(&sup.name);
             if gate.bed_not_cleared {
                 sup.show(|p| {
                     p.state = PrinterState::BedNotCleared;
                     p.job = gate.last_job.clone();
                 });
-                if between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
-                    continue 'connect;
+                match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                    Between::Lost => continue 'connect,
+                    Between::Halted(message) => halted = Some(message),
+                    Between::Changed => {}
                 }
                 continue;
             }
@@ -233,16 +259,19 @@ async fn supervise_inner(
                     p.job = None;
                     p.progress = None;
                 });
-                if between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
-                    continue 'connect;
+                match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                    Between::Lost => continue 'connect,
+                    Between::Halted(message) => halted = Some(message),
+                    Between::Changed => {}
                 }
                 continue;
             };
             let span = tracing::info_span!("job", job = %job_id);
-            let lost = run_job(sup, &job_id, link.as_mut()).instrument(span).await;
-            if lost {
+            let end = run_job(sup, &job_id, link.as_mut()).instrument(span).await;
+            if end.lost {
                 continue 'connect;
             }
+            halted = end.halted;
         }
     }
     if *retire.borrow() && !farm.stopping() {
@@ -306,24 +335,37 @@ impl Follow {
     }
 }
 
+/// How a wait between jobs ended.
+enum Between {
+    /// Something the supervisor may act on changed (a bed cleared, a job ready, a reload).
+    Changed,
+    /// The connection was lost.
+    Lost,
+    /// The firmware said it halted.
+    Halted(String),
+}
+
 /// Waits for a change the printer may act on (a bed cleared, a job ready, a reload) while
-/// reading what the printer says meanwhile and showing its temperatures. Returns true
-/// when the connection was lost. A reset is noted in the printer's status until its next
-/// job starts.
+/// reading what the printer says meanwhile and showing its temperatures. A reset is noted
+/// in the printer's status until its next job starts.
 async fn between_jobs(
     sup: &Supervisor,
     link: &mut dyn PrinterLink,
     follow: &mut Follow,
     retire: &mut watch::Receiver<bool>,
-) -> bool {
+) -> Between {
     loop {
         let news = tokio::select! {
-            () = follow.changed() => return false,
-            _ = retire.changed() => return false,
+            () = follow.changed() => return Between::Changed,
+            _ = retire.changed() => return Between::Changed,
             news = link.watch_idle() => news,
         };
         match news {
             IdleNews::Temperatures(t) => sup.show(|p| p.temperatures = t),
+            IdleNews::Halted(message) => {
+                tracing::error!(message, "the printer halted between jobs");
+                return Between::Halted(message);
+            }
             IdleNews::Rebooted => {
                 tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
                 sup.show(|p| {
@@ -333,11 +375,48 @@ async fn between_jobs(
                             .into(),
                     )
                 });
-                return false;
+                return Between::Changed;
             }
             IdleNews::Lost(why) => {
                 lost_between_jobs(sup, why);
-                return true;
+                return Between::Lost;
+            }
+        }
+    }
+}
+
+/// What became of a halted printer while the supervisor waited.
+enum Reset {
+    /// It said `start`: reset, it may take jobs again.
+    Seen,
+    /// The link closed: reconnect (a connection that completes its handshake shows the
+    /// firmware answers again).
+    Lost,
+    /// Something else changed (shutdown, a reload): look again.
+    NotYet,
+}
+
+/// Waits for a halted printer to be reset, showing its temperatures meanwhile.
+async fn until_reset(
+    sup: &Supervisor,
+    link: &mut dyn PrinterLink,
+    follow: &mut Follow,
+    retire: &mut watch::Receiver<bool>,
+) -> Reset {
+    loop {
+        let news = tokio::select! {
+            () = follow.changed() => return Reset::NotYet,
+            _ = retire.changed() => return Reset::NotYet,
+            news = link.watch_idle() => news,
+        };
+        match news {
+            IdleNews::Temperatures(t) => sup.show(|p| p.temperatures = t),
+            // Another halt message of the same halt.
+            IdleNews::Halted(_) => {}
+            IdleNews::Rebooted => return Reset::Seen,
+            IdleNews::Lost(why) => {
+                lost_between_jobs(sup, why);
+                return Reset::Lost;
             }
         }
     }
@@ -389,8 +468,17 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     }
 }
 
-/// Prints one job. Returns true when the connection was lost.
-async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> bool {
+/// How a job's run left its printer.
+#[derive(Default)]
+struct JobEnd {
+    /// The connection was lost.
+    lost: bool,
+    /// The firmware halted (its message).
+    halted: Option<String>,
+}
+
+/// Prints one job.
+async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> JobEnd {
     let (farm, printer) = (&sup.farm, sup.name.as_str());
     let machine = farm
         .config()
@@ -401,7 +489,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     let gcode: PathBuf = {
         let store = farm.store();
         let Some(job) = store.get(job_id) else {
-            return false;
+            return JobEnd::default();
         };
         match machine.and_then(|m| job.gcode_for(&m)) {
             Some(file) => store.job_dir(job_id).join(file),
@@ -411,7 +499,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
                 if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
                     tracing::error!(error = %e, "cannot put the job back");
                 }
-                return false;
+                return JobEnd::default();
             }
         }
     };
@@ -428,7 +516,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             _ = farm.shutdown.cancelled() => None,
             news = link.watch_idle() => Some(news),
         };
-        let lost = match news {
+        let end = match news {
             Some(IdleNews::Temperatures(t)) => {
                 sup.show(|p| p.temperatures = t);
                 continue;
@@ -437,9 +525,19 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             Some(IdleNews::Rebooted) => continue,
             Some(IdleNews::Lost(why)) => {
                 lost_between_jobs(sup, why);
-                true
+                JobEnd {
+                    lost: true,
+                    halted: None,
+                }
             }
-            None => false,
+            Some(IdleNews::Halted(message)) => {
+                tracing::error!(message, "the printer halted while its job waited to heat");
+                JobEnd {
+                    lost: false,
+                    halted: Some(message),
+                }
+            }
+            None => JobEnd::default(),
         };
         // Nothing was sent to the printer: the job waits for the next start, or for
         // the next printer.
@@ -447,7 +545,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             tracing::error!(error = %e, "cannot put the job back");
         }
         sup.show(|p| p.job = None);
-        return lost;
+        return end;
     };
     tracing::info!(gcode = %gcode.display(), "starting print");
     sup.show(|p| {
@@ -478,7 +576,16 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
                     tracing::info!("heat-up done; heating permit released");
                 }
                 sup.show(|p| {
-                    p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
+                    match &live.pause {
+                        Some(pause) => {
+                            p.state = PrinterState::WaitingForOperator;
+                            p.detail = Some(waiting_detail(pause));
+                        }
+                        None => {
+                            p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
+                            p.detail = None;
+                        }
+                    }
                     show_progress(p, live);
                 });
             }
@@ -499,9 +606,21 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     }
     sup.owner.print.send_replace(None);
 
-    if let Err(e) = farm.close_gate(printer, job_id).await {
-        tracing::error!(error = %e, "cannot persist the bed gate");
+    // A job that failed to load sent nothing: the bed is as it was, and nobody needs to
+    // clear it.
+    let sent_nothing = matches!(
+        outcome,
+        Err(PrintFailure::Gcode(_) | PrintFailure::LoaderCrashed(_))
+    );
+    if !sent_nothing {
+        if let Err(e) = farm.close_gate(printer, job_id).await {
+            tracing::error!(error = %e, "cannot persist the bed gate");
+        }
     }
+    let halted = match &outcome {
+        Err(PrintFailure::Failed(PrintError::Fatal { message, .. })) => Some(message.clone()),
+        _ => None,
+    };
     let mut printed = None;
     let (state, reason, lost) = match outcome {
         Ok(report) => {
@@ -551,9 +670,31 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         tracing::error!(error = %e, "cannot record the print's outcome");
     }
     sup.show(|p| {
-        p.state = PrinterState::BedNotCleared;
+        p.state = if sent_nothing {
+            PrinterState::Idle
+        } else {
+            PrinterState::BedNotCleared
+        };
+        p.detail = None;
     });
-    lost
+    JobEnd { lost, halted }
+}
+
+/// The status line of a printer waiting at a pause its file asked for.
+fn waiting_detail(pause: &crate::marlin::stream::PauseInfo) -> String {
+    let mut text = format!("waiting for the operator: {}", pause.message);
+    match pause.line {
+        Some(line) => text += &format!(" (`{}`, line {line})", pause.command),
+        None => text += &format!(" (`{}`)", pause.command),
+    }
+    if !pause.parked {
+        text += "; not parked: the head's position was not known from the file";
+    }
+    if pause.heaters_off {
+        text += "; heaters turned off after waiting too long, the resume heats up first";
+    }
+    text += "; resume with `crispen resume`";
+    text
 }
 
 /// A print's progress, and its temperatures once the printer has reported them (until
@@ -571,6 +712,7 @@ fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
 }
 
 fn live_progress(p: &PrintProgress, heated: bool, paused: bool) -> LiveProgress {
+    let pause = p.pause.clone();
     LiveProgress {
         lines_acked: p.lines_acked,
         lines_total: p.lines_total,
@@ -582,6 +724,7 @@ fn live_progress(p: &PrintProgress, heated: bool, paused: bool) -> LiveProgress 
         remaining_s: p.remaining_s,
         heated,
         paused,
+        pause,
     }
 }
 
@@ -600,6 +743,8 @@ pub struct MarlinConnector {
     pub firmware: crate::marlin::firmware::Firmware,
     pub baud: u32,
     pub heat_timeout: Duration,
+    /// How the pauses files ask for are made on this printer.
+    pub pause: PauseSettings,
 }
 
 impl Connector for MarlinConnector {
@@ -608,6 +753,7 @@ impl Connector for MarlinConnector {
             let mut opts = StreamOptions::for_firmware(self.firmware);
             opts.baud = self.baud;
             opts.protocol.heat_timeout = self.heat_timeout;
+            opts.pause = Some(self.pause.clone());
             let connection = Connection::open(&self.port, &opts).await?;
             Ok(Box::new(MarlinLink {
                 connection,
@@ -646,6 +792,7 @@ impl PrinterLink for MarlinLink {
             let mut last_forward = std::time::Instant::now() - Duration::from_secs(1);
             let mut last_heated = false;
             let mut last_paused = false;
+            let mut last_pause = None;
             let result = loop {
                 tokio::select! {
                     result = &mut print => break result,
@@ -679,13 +826,15 @@ impl PrinterLink for MarlinLink {
                         // state changes (the heating permit waits on it).
                         let due = last_forward.elapsed() >= Duration::from_millis(250)
                             || heated != last_heated
-                            || paused != last_paused;
+                            || paused != last_paused
+                            || p.pause != last_pause;
                         if !due {
                             continue;
                         }
                         last_forward = std::time::Instant::now();
                         last_heated = heated;
                         last_paused = paused;
+                        last_pause = p.pause.clone();
                         progress.send_replace(live_progress(&p, heated, paused));
                     }
                 }
@@ -710,6 +859,7 @@ impl PrinterLink for MarlinLink {
                         return IdleNews::Temperatures(Some(printer_temperatures(&t)))
                     }
                     Ok(Idle::Silent) => return IdleNews::Temperatures(None),
+                    Ok(Idle::Halted(message)) => return IdleNews::Halted(message),
                     Err(e) => return IdleNews::Lost(e.to_string()),
                 }
             }

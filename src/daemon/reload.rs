@@ -182,6 +182,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             machine,
             baud,
             heat_timeout,
+            pause_heaters_off,
         } = new;
         let simulated = |p: &super::config::PrinterPort| {
             matches!(p, super::config::PrinterPort::Simulated { .. })
@@ -195,6 +196,10 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("printer.firmware", *firmware != old.firmware);
         differs("printer.baud", *baud != old.baud);
         differs("printer.heat_timeout_s", *heat_timeout != old.heat_timeout);
+        differs(
+            "printer.pause_heaters_off_s",
+            *pause_heaters_off != old.pause_heaters_off,
+        );
         differs("printer.machine", *machine != old.machine);
     }
     differs(

@@ -439,3 +439,85 @@ async fn pause_resume_and_cancel_reach_the_print() {
     farm.begin_stop();
     fleet.join().await;
 }
+
+/// A printer whose firmware halted (here at an `M112` in its job) is shown halted with the
+/// firmware's message and takes no job, even once its bed is cleared, until it was reset
+/// (its `start` seen on the link); then it prints the next job.
+#[tokio::test(start_paused = true)]
+async fn a_halted_printer_takes_no_job_until_it_was_reset() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let bench = BenchPorts::default();
+    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let first = ready_job(&farm, "a.stl", "G28\nM112\nG1 X10\n").await;
+    until(&farm, LIMIT, "the halted job failed", || {
+        state(&farm, &first) == JobState::Failed
+    })
+    .await;
+    until(&farm, LIMIT, "the printer shown halted", || {
+        printer(&farm, "p1").is_some_and(|p| p.state == PrinterState::Halted)
+    })
+    .await;
+    let p1 = printer(&farm, "p1").unwrap();
+    assert!(
+        p1.detail
+            .as_deref()
+            .is_some_and(|d| d.contains("kill() called")),
+        "{p1:?}"
+    );
+    control::execute(
+        &farm,
+        Command::Clear {
+            printer: "p1".into(),
+        },
+    )
+    .await
+    .unwrap();
+    let second = ready_job(&farm, "b.stl", HEAT_AND_PRINT).await;
+    tokio::time::sleep(Duration::from_secs(600)).await;
+    assert_eq!(
+        state(&farm, &second),
+        JobState::Ready,
+        "no job while halted"
+    );
+    assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Halted);
+    assert_eq!(bench.printer("p1").job_lines(), lines("G28\nM112"));
+    assert!(bench.printer("p1").halted());
+
+    bench.printer("p1").reset();
+    until(&farm, LIMIT, "the next job done after the reset", || {
+        state(&farm, &second) == JobState::Done
+    })
+    .await;
+    farm.begin_stop();
+    fleet.join().await;
+}
+
+/// A job that fails at load (its G-code cannot be read) sent the printer nothing: the
+/// printer waits for no bed clear and takes the next job at once.
+#[tokio::test(start_paused = true)]
+async fn a_job_that_sent_nothing_leaves_no_bed_to_clear() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let bench = BenchPorts::default();
+    let first = ready_job(&farm, "a.stl", HEAT_AND_PRINT).await;
+    let machine = farm.config().printers[0].machine.name.clone();
+    let gcode = farm
+        .store()
+        .job_dir(&first)
+        .join(format!("a.stl.{machine}.gcode"));
+    std::fs::remove_file(gcode).unwrap();
+    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    until(&farm, LIMIT, "the unreadable job failed", || {
+        state(&farm, &first) == JobState::Failed
+    })
+    .await;
+    let second = ready_job(&farm, "b.stl", HEAT_AND_PRINT).await;
+    until(&farm, LIMIT, "the next job done without a clear", || {
+        state(&farm, &second) == JobState::Done
+    })
+    .await;
+    assert_eq!(bench.printer("p1").job_lines(), lines(HEAT_AND_PRINT));
+    farm.begin_stop();
+    fleet.join().await;
+}

@@ -13,12 +13,14 @@ use axum::response::IntoResponse;
 use std::collections::BTreeMap;
 use std::fmt::Write;
 
-const PRINTER_STATES: [PrinterState; 8] = [
+const PRINTER_STATES: [PrinterState; 10] = [
     PrinterState::Connecting,
     PrinterState::Idle,
     PrinterState::WaitingToHeat,
     PrinterState::Printing,
     PrinterState::Paused,
+    PrinterState::WaitingForOperator,
+    PrinterState::Halted,
     PrinterState::BedNotCleared,
     PrinterState::Disconnected,
     PrinterState::Stopped,

@@ -35,6 +35,34 @@ pub fn is_heat_wait(command: &str) -> bool {
     HEAT_WAITS.iter().any(|c| c.eq_ignore_ascii_case(code))
 }
 
+/// The commands with which a file asks for a pause: wait for the user (`M0`, `M1`), pause
+/// the print (`M25`, `M601`), park (`M125`), wait for a pin (`M226`), change the filament
+/// (`M600`). On a printer with no one in front of it, each stops the printer until someone
+/// presses its knob (or does nothing at all where the firmware lacks it, and the pause the
+/// file wanted is lost). The host therefore never sends them: it pauses the printer itself
+/// at that point and waits for the operator (see `super::pause`).
+pub const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
+
+/// Whether a command (its first word, in any case; `M0` also as `M00`) is one of
+/// [`FILE_PAUSES`].
+pub fn is_file_pause(command: &str) -> bool {
+    let code = command.split_whitespace().next().unwrap_or("");
+    let normal = match code.get(1..).and_then(|n| n.parse::<u32>().ok()) {
+        Some(n) if code.starts_with(['M', 'm']) => n,
+        _ => return false,
+    };
+    FILE_PAUSES
+        .iter()
+        .any(|c| c[1..].parse::<u32>().ok() == Some(normal))
+}
+
+/// The message an `M117` command shows on the printer's display, if it is one.
+pub fn display_message(command: &str) -> Option<&str> {
+    let code = command.split_whitespace().next().unwrap_or("");
+    code.eq_ignore_ascii_case("M117")
+        .then(|| command[code.len()..].trim())
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
     #[error("cannot read G-code file {path}: {source}")]
@@ -99,6 +127,12 @@ pub enum GcodeError {
 pub struct GcodeCommands {
     text: Arc<String>,
     lens: Arc<SmallSeq>,
+    /// The commands of `lens` this handle covers: `first..first + count` (a part of a job
+    /// shares its buffers, see [`GcodeCommands::part`]).
+    first: usize,
+    count: usize,
+    /// The text offset of command `first`.
+    first_byte: usize,
 }
 
 impl GcodeCommands {
@@ -120,30 +154,55 @@ impl GcodeCommands {
         text.shrink_to_fit();
         lens.shrink_to_fit();
         // `Arc<String>`, not `Arc<str>`: converting would copy the whole text once more.
+        let count = lens.len();
         GcodeCommands {
             text: Arc::new(text),
             lens: Arc::new(lens),
+            first: 0,
+            count,
+            first_byte: 0,
+        }
+    }
+
+    /// Commands `range` of these, sharing the same buffers (no copy): the parts of a job
+    /// between the pauses its file asks for are streamed one after the other.
+    pub fn part(&self, range: std::ops::Range<usize>) -> GcodeCommands {
+        let end = range.end.min(self.count);
+        let start = range.start.min(end);
+        let first = self.first + start;
+        let first_byte = if first < self.lens.len() {
+            self.lens.sum_before(first) as usize
+        } else {
+            self.text.len()
+        };
+        GcodeCommands {
+            text: Arc::clone(&self.text),
+            lens: Arc::clone(&self.lens),
+            first,
+            count: end - start,
+            first_byte,
         }
     }
 
     pub fn len(&self) -> usize {
-        self.lens.len()
+        self.count
     }
     pub fn is_empty(&self) -> bool {
-        self.lens.len() == 0
+        self.count == 0
     }
     /// Command `index` (0-based), or `None` past the end.
     pub fn get(&self, index: usize) -> Option<&str> {
         if index >= self.len() {
             return None;
         }
-        let start = self.lens.sum_before(index) as usize;
-        let end = start + self.lens.get(index) as usize;
+        let at = self.first + index;
+        let start = self.lens.sum_before(at) as usize;
+        let end = start + self.lens.get(at) as usize;
         Some(&self.text[start..end])
     }
     pub fn iter(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
-        let mut start = 0;
-        (0..self.len()).map(move |i| {
+        let mut start = self.first_byte;
+        (self.first..self.first + self.count).map(move |i| {
             let end = start + self.lens.get(i) as usize;
             let command = &self.text[start..end];
             start = end;

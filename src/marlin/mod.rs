@@ -9,6 +9,7 @@
 
 pub mod firmware;
 pub mod gcode;
+pub mod pause;
 pub mod protocol;
 pub mod sim;
 pub mod stream;

@@ -4,7 +4,8 @@
 //! printer supervisors and `crispen print` both use [`Connection`].
 
 use super::firmware::Firmware;
-use super::gcode::GcodeProgram;
+use super::gcode::{GcodeCommands, GcodeProgram};
+use super::pause::{find_pauses, heaters_off_lines, park_lines, resume_lines, FilePause, Motion};
 use super::protocol::reply::{HostAction, Reply};
 use super::protocol::{Event, Failure, Host, ProtocolOptions};
 use super::transport::{LinkEvent, Transport, TransportError};
@@ -13,6 +14,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
+pub use super::pause::PauseSettings;
 pub use super::protocol::{FirmwareInfo, Temp, Temperatures};
 
 /// How to talk to one printer.
@@ -26,6 +28,9 @@ pub struct StreamOptions {
     pub connect_timeout: Duration,
     /// Everything the protocol core needs (silence, heat and resend limits, ...).
     pub protocol: ProtocolOptions,
+    /// How the pauses a file asks for are made (park, heaters-off time). None: a file with
+    /// one is refused before anything is sent (there is no operator to resume it).
+    pub pause: Option<PauseSettings>,
 }
 
 impl StreamOptions {
@@ -36,6 +41,7 @@ impl StreamOptions {
             send_ahead: true,
             connect_timeout: Duration::from_secs(20),
             protocol: ProtocolOptions::for_firmware(firmware),
+            pause: None,
         }
     }
     fn protocol_options(&self) -> ProtocolOptions {
@@ -62,9 +68,27 @@ pub enum PrintState {
     Printing,
     Pausing,
     Paused,
+    /// At a pause the file asks for: parked, waiting for the operator to resume
+    /// ([`PrintProgress::pause`] says why).
+    WaitingForOperator,
     Cancelling,
     Done,
     Failed,
+}
+
+/// A pause the file asked for, as shown while the printer waits at it.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+pub struct PauseInfo {
+    /// What the operator is told (the command's text or the last `M117` message).
+    pub message: String,
+    /// The pause command as written, and its line in the file.
+    pub command: String,
+    pub line: Option<usize>,
+    /// The head was parked (false: its position was not known from the file, so it was
+    /// not moved).
+    pub parked: bool,
+    /// Nobody resumed in time: the heaters were turned off; the resume heats up first.
+    pub heaters_off: bool,
 }
 
 #[derive(Debug, Clone, Serialize, Default)]
@@ -77,6 +101,8 @@ pub struct PrintProgress {
     pub elapsed_s: f64,
     /// Estimated from the acknowledgement rate so far.
     pub remaining_s: Option<f64>,
+    /// Set while the print waits at a pause the file asked for.
+    pub pause: Option<PauseInfo>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -246,6 +272,16 @@ pub enum PrintError {
     },
     #[error("printer on {port} is busy with another job")]
     Busy { port: PathBuf },
+    #[error(
+        "{file}:{line}: the file asks for a pause (`{command}`), which needs an operator to \
+         resume it; this way of printing has none (print it through the daemon, whose \
+         printers pause and wait for `crispen resume`, or remove the pause); nothing was sent"
+    )]
+    PauseWithoutOperator {
+        file: String,
+        line: usize,
+        command: String,
+    },
 }
 
 impl PrintError {
@@ -265,6 +301,33 @@ impl PrintError {
             | PrintError::FirmwareError { last_acked, .. } => Some(*last_acked),
             _ => None,
         }
+    }
+
+    /// Counts of this error (acknowledged lines) made for a part of the job that began at
+    /// job command `offset`: `job_lines` says whether the part was the job's own lines
+    /// (their count is added) or host lines of a pause (the job's count stays at `offset`).
+    fn in_part(mut self, offset: usize, job_lines: bool) -> Self {
+        match &mut self {
+            PrintError::Disconnected { last_acked, .. }
+            | PrintError::PrinterReset { last_acked, .. }
+            | PrintError::Fatal { last_acked, .. }
+            | PrintError::ResendLimit { last_acked, .. }
+            | PrintError::LineGone { last_acked, .. }
+            | PrintError::Silent { last_acked, .. }
+            | PrintError::LostState { last_acked, .. }
+            | PrintError::NoProgress { last_acked, .. }
+            | PrintError::HeatTimeout { last_acked, .. }
+            | PrintError::Cancelled { last_acked, .. }
+            | PrintError::FirmwareError { last_acked, .. } => {
+                *last_acked = if job_lines {
+                    *last_acked + offset
+                } else {
+                    offset
+                };
+            }
+            _ => {}
+        }
+        self
     }
 
     /// Whether the safe stop after the failure was confirmed, where one was made.
@@ -404,7 +467,7 @@ pub struct Connection {
 }
 
 /// What [`Connection::idle_for`] saw.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Idle {
     /// Nothing that needs acting on (reports and messages are logged).
     Quiet,
@@ -417,6 +480,9 @@ pub enum Idle {
     /// No temperature report for [`IdleWatch::stale_after`] although the printer was
     /// asked: the last figures are no longer current.
     Silent,
+    /// The firmware said it halted (`Error:Printer halted. kill() called!`, a thermal
+    /// error): it takes nothing more until it is reset.
+    Halted(String),
 }
 
 /// Reading an idle printer between jobs. Its temperatures are asked for with an `M105`
@@ -448,6 +514,8 @@ struct IdleWatch {
 struct Heard {
     rebooted: bool,
     report: bool,
+    /// The firmware's halt message.
+    halted: Option<String>,
 }
 
 impl IdleWatch {
@@ -516,7 +584,11 @@ impl IdleWatch {
                     self.alive_at = Some(now);
                     tracing::debug!(port = %port.display(), "idle printer: {line}");
                 }
-                Reply::Fatal(line) | Reply::Error(line) => {
+                Reply::Fatal(line) => {
+                    tracing::error!(port = %port.display(), "idle printer halted: {line}");
+                    heard.halted = Some(line);
+                }
+                Reply::Error(line) => {
                     tracing::warn!(port = %port.display(), "idle printer: {line}")
                 }
                 Reply::Action(action) => {
@@ -630,6 +702,9 @@ impl Connection {
                             self.rebooted = true;
                             return Ok(Idle::Rebooted);
                         }
+                        if let Some(message) = heard.halted {
+                            return Ok(Idle::Halted(message));
+                        }
                         if heard.report {
                             return Ok(Idle::Temperatures(self.idle.temperatures));
                         }
@@ -716,38 +791,225 @@ impl Connection {
     }
 
     /// Stream `program`; returns when every line was acknowledged, or why not.
+    ///
+    /// A pause the file asks for ([`FILE_PAUSES`](super::gcode::FILE_PAUSES)) is never sent:
+    /// the job is streamed in parts between its pauses. At each pause the part before it has
+    /// ended (every line answered, and an `M105` after them, so the printer has taken them
+    /// all), the head is parked, and the print waits for [`StreamControl::Resume`]; see
+    /// [`super::pause`]. Without [`StreamOptions::pause`] such a file is refused before
+    /// anything is sent.
     pub async fn print(
         &mut self,
         program: &GcodeProgram,
         mut control: mpsc::Receiver<StreamControl>,
         progress: watch::Sender<PrintProgress>,
     ) -> Result<PrintReport, PrintError> {
-        self.clean_link().await?;
-        let started = Instant::now();
-        let total = program.len();
-        let port = self.port.clone();
-        let mut state = PrintState::Printing;
-        let mut control_open = true;
-        let mut stop = StopOutcome::None;
-        self.host
-            .start_job(program.shared_commands(), Instant::now());
-        let publish = |host: &Host, state: PrintState| {
-            let elapsed = started.elapsed().as_secs_f64();
-            let acked = host.acked_job_lines();
-            let remaining = (acked > 0 && acked < total)
-                .then(|| elapsed / acked as f64 * (total - acked) as f64);
-            let t = host.temperatures();
-            progress.send_replace(PrintProgress {
-                lines_acked: acked,
-                lines_total: total,
-                hotend: t.hotend,
-                bed: t.bed,
-                state,
-                elapsed_s: elapsed,
-                remaining_s: if acked >= total { Some(0.0) } else { remaining },
+        let pauses = find_pauses(program.commands());
+        if let (Some(first), None) = (pauses.first(), &self.opts.pause) {
+            return Err(PrintError::PauseWithoutOperator {
+                file: program.name().to_string(),
+                line: program.source_line(first.index).unwrap_or(0),
+                command: first.command.clone(),
             });
+        }
+        let mut run = Run {
+            started: Instant::now(),
+            total: program.len(),
+            port: self.port.clone(),
+            name: program.name().to_string(),
+            progress,
+            pause: None,
+            control_open: true,
+            sent: Sent::default(),
         };
-        publish(&self.host, state);
+        let commands = program.shared_commands();
+        let mut motion = Motion::default();
+        let mut from = 0;
+        for pause in &pauses {
+            let part = commands.part(from..pause.index);
+            if !part.is_empty() {
+                self.stream_part(&mut run, &mut control, part.clone(), from, Part::Job)
+                    .await?;
+            }
+            for command in part.iter() {
+                motion.follow(command);
+            }
+            let line = program.source_line(pause.index);
+            self.wait_for_operator(&mut run, &mut control, pause, line, &motion)
+                .await?;
+            from = pause.index + 1;
+        }
+        let rest = commands.part(from..commands.len());
+        if !rest.is_empty() || pauses.is_empty() {
+            self.stream_part(&mut run, &mut control, rest, from, Part::Job)
+                .await?;
+        }
+        run.publish(run.total, self.host.temperatures(), PrintState::Done);
+        tracing::info!(port = %run.port.display(), gcode = run.name, lines = run.total, "print finished");
+        Ok(PrintReport {
+            port: run.port.clone(),
+            lines_total: run.total,
+            lines_acked: run.total,
+            lines_sent: run.sent.lines_sent,
+            resends: run.sent.resends,
+            silence_probes: run.sent.probes,
+            fragments: run.sent.fragments,
+            duration_s: run.started.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// At a pause the file asks for (the part before it has ended): park, wait for the
+    /// operator (turning the heaters off once [`PauseSettings::heaters_off_after`] has
+    /// passed), then heat up again if needed and return to the print. A cancel meanwhile
+    /// stops the printer safely; a reset or a lost link fails the job.
+    async fn wait_for_operator(
+        &mut self,
+        run: &mut Run,
+        control: &mut mpsc::Receiver<StreamControl>,
+        pause: &FilePause,
+        line: Option<usize>,
+        motion: &Motion,
+    ) -> Result<(), PrintError> {
+        let settings = self
+            .opts
+            .pause
+            .clone()
+            .expect("a file with pauses is refused without pause settings");
+        let at = pause.index;
+        // The targets in force before the pause: what a resume after heaters-off restores.
+        let before = self.host.temperatures();
+        let park = park_lines(&settings, motion);
+        run.pause = Some(PauseInfo {
+            message: pause.message.clone(),
+            command: pause.command.clone(),
+            line,
+            parked: park.is_some(),
+            heaters_off: false,
+        });
+        tracing::info!(port = %run.port.display(), gcode = run.name, line, command = pause.command, message = pause.message, "the file asks for a pause; parking and waiting for the operator");
+        match park {
+            Some(lines) => {
+                self.stream_part(run, control, GcodeCommands::from(lines), at, Part::Park)
+                    .await?
+            }
+            None => {
+                tracing::warn!(port = %run.port.display(), gcode = run.name, "the head's position is not known from the file (homed, or not moved yet): not parked")
+            }
+        }
+        let mut shown = before;
+        run.publish(at, shown, PrintState::WaitingForOperator);
+        let heaters_off_at = tokio::time::Instant::now() + settings.heaters_off_after;
+        let mut heaters_off = false;
+        enum Woke {
+            Idle(Result<Idle, PrintError>),
+            Control(Option<StreamControl>),
+            HeatersOff,
+        }
+        loop {
+            let woke = tokio::select! {
+                idle = self.idle_for(Duration::from_secs(3600)) => Woke::Idle(idle),
+                cmd = control.recv(), if run.control_open => Woke::Control(cmd),
+                _ = tokio::time::sleep_until(heaters_off_at), if !heaters_off => Woke::HeatersOff,
+            };
+            match woke {
+                Woke::Idle(Ok(Idle::Temperatures(t))) => {
+                    shown = t;
+                    run.publish(at, shown, PrintState::WaitingForOperator);
+                }
+                Woke::Idle(Ok(Idle::Rebooted)) => {
+                    run.publish(at, shown, PrintState::Failed);
+                    return Err(PrintError::PrinterReset {
+                        port: run.port.clone(),
+                        last_acked: at,
+                    });
+                }
+                Woke::Idle(Ok(Idle::Quiet | Idle::Silent)) => {}
+                Woke::Idle(Ok(Idle::Halted(message))) => {
+                    run.publish(at, shown, PrintState::Failed);
+                    return Err(PrintError::Fatal {
+                        port: run.port.clone(),
+                        message,
+                        last_acked: at,
+                    });
+                }
+                Woke::Idle(Err(e)) => {
+                    run.publish(at, shown, PrintState::Failed);
+                    return Err(e.in_part(at, false));
+                }
+                Woke::Control(None) => run.control_open = false,
+                Woke::Control(Some(StreamControl::Resume)) => break,
+                Woke::Control(Some(StreamControl::Pause)) => {}
+                Woke::Control(Some(StreamControl::Cancel)) => {
+                    run.publish(at, shown, PrintState::Cancelling);
+                    let stop = GcodeCommands::from(
+                        ["M104 S0", "M140 S0", "M107", "M84"]
+                            .map(String::from)
+                            .to_vec(),
+                    );
+                    let confirmed = self.stream_part(run, control, stop, at, Part::Stop).await;
+                    let stop = match confirmed {
+                        Ok(()) => StopOutcome::Confirmed,
+                        Err(e) => {
+                            tracing::error!(port = %run.port.display(), gcode = run.name, "the printer did not confirm heaters off: {e}");
+                            StopOutcome::NotConfirmed
+                        }
+                    };
+                    run.publish(at, shown, PrintState::Failed);
+                    return Err(PrintError::Cancelled {
+                        port: run.port.clone(),
+                        last_acked: at,
+                        stop,
+                    });
+                }
+                Woke::HeatersOff => {
+                    tracing::warn!(port = %run.port.display(), gcode = run.name, waited_s = settings.heaters_off_after.as_secs_f64(), "nobody resumed the pause; heaters off (the job keeps waiting)");
+                    let off = GcodeCommands::from(heaters_off_lines());
+                    self.stream_part(run, control, off, at, Part::Waiting)
+                        .await?;
+                    heaters_off = true;
+                    if let Some(p) = &mut run.pause {
+                        p.heaters_off = true;
+                    }
+                    shown = self.host.temperatures();
+                    run.publish(at, shown, PrintState::WaitingForOperator);
+                }
+            }
+        }
+        tracing::info!(port = %run.port.display(), gcode = run.name, heaters_off, "the operator resumed the pause");
+        let lines = resume_lines(
+            motion,
+            run.pause.as_ref().is_some_and(|p| p.parked),
+            heaters_off.then_some(&before),
+        );
+        run.pause = None;
+        self.stream_part(run, control, GcodeCommands::from(lines), at, Part::Resume)
+            .await
+    }
+
+    /// Streams one part: job lines from job command `offset` on, or host lines of a pause.
+    /// Returns when every line was answered (and an `M105` after them).
+    async fn stream_part(
+        &mut self,
+        run: &mut Run,
+        control: &mut mpsc::Receiver<StreamControl>,
+        commands: GcodeCommands,
+        offset: usize,
+        part: Part,
+    ) -> Result<(), PrintError> {
+        self.clean_link().await?;
+        let port = self.port.clone();
+        let job_lines = part == Part::Job;
+        let acked = |host: &Host| {
+            if job_lines {
+                offset + host.acked_job_lines()
+            } else {
+                offset
+            }
+        };
+        let mut state = part.state();
+        let mut stop = StopOutcome::None;
+        self.host.start_job(commands, Instant::now());
+        run.publish(acked(&self.host), self.host.temperatures(), state);
         let mut last_publish = Instant::now();
         loop {
             flush(&mut self.host, &mut self.transport);
@@ -757,23 +1019,22 @@ impl Connection {
             while let Some(event) = self.host.poll_event() {
                 match event {
                     Event::Done(summary) => {
-                        publish(&self.host, PrintState::Done);
-                        tracing::info!(port = %port.display(), gcode = program.name(), lines = total, "print finished");
-                        return Ok(PrintReport {
-                            port: port.clone(),
-                            lines_total: total,
-                            lines_acked: total,
-                            lines_sent: summary.lines_sent,
-                            resends: summary.resends,
-                            silence_probes: summary.probes,
-                            fragments: summary.fragments,
-                            duration_s: started.elapsed().as_secs_f64(),
-                        });
+                        run.sent.lines_sent += summary.lines_sent;
+                        run.sent.resends += summary.resends;
+                        run.sent.probes += summary.probes;
+                        run.sent.fragments += summary.fragments;
+                        run.publish(acked(&self.host), self.host.temperatures(), state);
+                        return Ok(());
                     }
                     Event::Failed(f) => {
-                        publish(&self.host, PrintState::Failed);
-                        let err = PrintError::from_failure(&port, f, stop);
-                        tracing::warn!(port = %port.display(), gcode = program.name(), "print failed: {err}");
+                        run.publish(
+                            acked(&self.host),
+                            self.host.temperatures(),
+                            PrintState::Failed,
+                        );
+                        let err =
+                            PrintError::from_failure(&port, f, stop).in_part(offset, job_lines);
+                        tracing::warn!(port = %port.display(), gcode = run.name, "print failed: {err}");
                         return Err(err);
                     }
                     Event::Progress { .. } | Event::Temperatures(_) => changed = true,
@@ -782,24 +1043,24 @@ impl Connection {
                         state_changed = true;
                     }
                     Event::Resumed => {
-                        state = PrintState::Printing;
+                        state = part.state();
                         state_changed = true;
                     }
                     Event::Resend { line, replay } => {
-                        tracing::debug!(port = %port.display(), gcode = program.name(), line, replay, "printer asked for a resend")
+                        tracing::debug!(port = %port.display(), gcode = run.name, line, replay, "printer asked for a resend")
                     }
                     Event::Probe => {
-                        tracing::debug!(port = %port.display(), gcode = program.name(), "printer silent; probing with M105")
+                        tracing::debug!(port = %port.display(), gcode = run.name, "printer silent; probing with M105")
                     }
                     Event::Busy(_) => {}
                     Event::Message(m) => {
-                        tracing::debug!(port = %port.display(), gcode = program.name(), "printer: {m}")
+                        tracing::debug!(port = %port.display(), gcode = run.name, "printer: {m}")
                     }
                     Event::Fragment(text) => {
-                        tracing::warn!(port = %port.display(), gcode = program.name(), "printer answered a piece of a line on its own: {text}")
+                        tracing::warn!(port = %port.display(), gcode = run.name, "printer answered a piece of a line on its own: {text}")
                     }
                     Event::HostAction(action) => {
-                        tracing::info!(port = %port.display(), gcode = program.name(), ?action, "printer asked the host to act");
+                        tracing::info!(port = %port.display(), gcode = run.name, ?action, "printer asked the host to act");
                         match action {
                             HostAction::Cancel => state = PrintState::Cancelling,
                             HostAction::Pause => state = PrintState::Pausing,
@@ -809,11 +1070,11 @@ impl Connection {
                     }
                     Event::SafeStop { confirmed: true } => {
                         stop = StopOutcome::Confirmed;
-                        tracing::info!(port = %port.display(), gcode = program.name(), "printer stopped safely: heaters, fan and motors off")
+                        tracing::info!(port = %port.display(), gcode = run.name, "printer stopped safely: heaters, fan and motors off")
                     }
                     Event::SafeStop { confirmed: false } => {
                         stop = StopOutcome::NotConfirmed;
-                        tracing::error!(port = %port.display(), gcode = program.name(), "the printer did not confirm heaters off; check it now")
+                        tracing::error!(port = %port.display(), gcode = run.name, "the printer did not confirm heaters off; check it now")
                     }
                     Event::Connected(_) => {}
                 }
@@ -824,7 +1085,7 @@ impl Connection {
                 } else {
                     state
                 };
-                publish(&self.host, shown);
+                run.publish(acked(&self.host), self.host.temperatures(), shown);
                 last_publish = Instant::now();
             }
             let deadline = self
@@ -835,29 +1096,99 @@ impl Connection {
                 link = self.transport.recv() => match link {
                     LinkEvent::Data(bytes) => self.host.feed(&bytes, Instant::now()),
                     LinkEvent::Closed(reason) => {
-                        publish(&self.host, PrintState::Failed);
-                        let last_acked = self.host.acked_job_lines();
-                        tracing::warn!(port = %port.display(), gcode = program.name(), last_acked, "printer disconnected: {reason}");
+                        run.publish(acked(&self.host), self.host.temperatures(), PrintState::Failed);
+                        let last_acked = acked(&self.host);
+                        tracing::warn!(port = %port.display(), gcode = run.name, last_acked, "printer disconnected: {reason}");
                         return Err(PrintError::Disconnected { port: port.clone(), reason, last_acked });
                     }
                 },
-                cmd = control.recv(), if control_open => match cmd {
-                    Some(StreamControl::Pause) => {
+                cmd = control.recv(), if run.control_open => match cmd {
+                    // The host's own lines of a pause are not paused: they are short, and
+                    // the print is waiting for the operator around them anyway.
+                    Some(StreamControl::Pause) if job_lines => {
                         state = PrintState::Pausing;
                         self.host.pause(Instant::now());
-                        publish(&self.host, state);
+                        run.publish(acked(&self.host), self.host.temperatures(), state);
                     }
-                    Some(StreamControl::Resume) => self.host.resume(Instant::now()),
+                    Some(StreamControl::Resume) if job_lines => self.host.resume(Instant::now()),
+                    Some(StreamControl::Pause | StreamControl::Resume) => {
+                        tracing::debug!(port = %port.display(), gcode = run.name, "pause/resume ignored while the host parks or resumes the printer");
+                    }
                     Some(StreamControl::Cancel) => {
                         state = PrintState::Cancelling;
                         self.host.cancel(Instant::now());
-                        publish(&self.host, state);
+                        run.publish(acked(&self.host), self.host.temperatures(), state);
                     }
-                    None => control_open = false,
+                    None => run.control_open = false,
                 },
                 _ = sleep_until_opt(deadline) => self.host.tick(Instant::now()),
             }
         }
+    }
+}
+
+/// What a part of a print streams: the job's own lines, or the host's lines around a pause.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Part {
+    Job,
+    /// Parking at a pause.
+    Park,
+    /// Heaters off during a long pause.
+    Waiting,
+    /// Heating up again and returning to the print.
+    Resume,
+    /// The safe stop of a cancel during a pause.
+    Stop,
+}
+
+impl Part {
+    fn state(self) -> PrintState {
+        match self {
+            Part::Job | Part::Resume => PrintState::Printing,
+            Part::Park => PrintState::Pausing,
+            Part::Waiting => PrintState::WaitingForOperator,
+            Part::Stop => PrintState::Cancelling,
+        }
+    }
+}
+
+/// One print across its parts: what is published, and the counts of the report.
+struct Run {
+    started: Instant,
+    total: usize,
+    port: PathBuf,
+    name: String,
+    progress: watch::Sender<PrintProgress>,
+    pause: Option<PauseInfo>,
+    control_open: bool,
+    sent: Sent,
+}
+
+/// The report's counts, summed over the parts.
+#[derive(Debug, Default)]
+struct Sent {
+    lines_sent: u64,
+    resends: u64,
+    probes: u64,
+    fragments: u64,
+}
+
+impl Run {
+    fn publish(&self, acked: usize, t: Temperatures, state: PrintState) {
+        let elapsed = self.started.elapsed().as_secs_f64();
+        let total = self.total;
+        let remaining =
+            (acked > 0 && acked < total).then(|| elapsed / acked as f64 * (total - acked) as f64);
+        self.progress.send_replace(PrintProgress {
+            lines_acked: acked,
+            lines_total: total,
+            hotend: t.hotend,
+            bed: t.bed,
+            state,
+            elapsed_s: elapsed,
+            remaining_s: if acked >= total { Some(0.0) } else { remaining },
+            pause: self.pause.clone(),
+        });
     }
 }
 

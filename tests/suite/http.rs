@@ -1663,3 +1663,62 @@ fn a_held_upload_is_released_before_it_is_prepared() {
     });
     assert_eq!(job_by_file(&s, "early.gcode").unwrap()["held"], false);
 }
+
+/// A pause the file asks for, on the dashboard in a real headless Chromium: the printer's
+/// tile shows it waiting for the operator with the file's message and a Resume button,
+/// whose click (with the key) finishes the job.
+#[test]
+fn dashboard_shows_a_file_pause_and_its_resume_button_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "read_only_without_key = true");
+    let gcode = "M104 S200\nM109 S200\nG28\nG90\nM82\nG92 E0\nG1 Z0.3 F600\n\
+                 G1 X20 Y20 F3000\nG1 X60 Y20 E4 F1200\nM117 Insert magnets\nM0\n\
+                 G1 X60 Y60 E8\nM104 S0\n";
+    let a = request(
+        &farm.addr,
+        "PUT",
+        "/api/v1/folders/hot/files/magnets.gcode",
+        &key_header(Some(KEY)),
+        gcode.as_bytes(),
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let browser = Browser::start(&tmp.path().join("chromium-profile"));
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(120),
+        "a tile waiting for the operator, with the message and a Resume button",
+        "const t = Array.from(document.querySelectorAll('.tile[data-printer]'))
+           .find(t => t.querySelector('.state').textContent === 'waiting for operator');
+         return (!!t && t.querySelector('.detail').textContent.includes('Insert magnets')
+           && !!t.querySelector('button[data-action=\"resume\"]'))
+           || Array.from(document.querySelectorAll('.tile .state')).map(s => s.textContent).join(', ');",
+    );
+    let click_resume = || {
+        browser.exec(
+            "const b = document.querySelector('button[data-action=\"resume\"]');
+             if (b) b.click();
+             return !!b;",
+            json!([]),
+        )
+    };
+    assert_eq!(click_resume(), json!(true));
+    // Acting takes the key: the page asks for it, then the click goes through.
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the key form, or the print going on",
+        "return !document.querySelector('#keyform').hidden
+           || !Array.from(document.querySelectorAll('.tile .state')).some(s => s.textContent === 'waiting for operator');",
+    );
+    if browser.exec(
+        "return !document.querySelector('#keyform').hidden;",
+        json!([]),
+    ) == json!(true)
+    {
+        browser.type_into("#key", KEY);
+        browser.click("#keyform button");
+        assert_eq!(click_resume(), json!(true));
+    }
+    farm.wait_for(Duration::from_secs(120), "the paused job done", |s| {
+        job_by_file(s, "magnets.gcode").is_some_and(|j| j["state"] == "done")
+    });
+}

@@ -956,3 +956,53 @@ fn pokes_report_errors_send_actions_and_reset_at_once() {
     assert!("bogus".parse::<sim::Poke>().is_err());
     assert!("action".parse::<sim::Poke>().is_err());
 }
+
+/// The pauses a file may ask for, as the real firmware answers them (docs/firmware.md):
+/// a host that forwarded one would wait for an `ok` that only the knob brings, or lose the
+/// pause to `Unknown command`.
+#[test]
+fn file_pauses_wait_for_the_knob_or_are_unknown_per_firmware() {
+    // Marlin 2 with a display: M0 waits, saying so every keep-alive interval, and never `ok`.
+    let mut cfg = SimConfig::new(Firmware::Marlin2);
+    cfg.time_scale = 1.0;
+    let (sim, mut port) = start(cfg.clone());
+    port.handshake();
+    port.send_numbered(1, "M0 Insert magnets");
+    let (before, _) = port.until("echo:busy: paused for user");
+    assert!(before.iter().all(|l| !l.starts_with("ok")), "{before:?}");
+    assert!(port
+        .drain(Duration::from_millis(300))
+        .iter()
+        .all(|l| !l.starts_with("ok")));
+    drop((sim, port));
+
+    // Stock Marlin 2.1 (no ADVANCED_PAUSE_FEATURE, SDSUPPORT, ...): unknown, the pause lost.
+    let (_sim, mut port) = start(cfg.clone());
+    port.handshake();
+    for (n, cmd) in [(1, "M600"), (2, "M25"), (3, "M601"), (4, "M125")] {
+        port.send_numbered(n, cmd);
+        port.until(&format!("echo:Unknown command: \"{cmd}\""));
+        port.until("ok");
+    }
+
+    // With ADVANCED_PAUSE_FEATURE, M600 parks and waits for the user.
+    let mut advanced = cfg.clone();
+    advanced.advanced_pause = true;
+    let (_sim, mut port) = start(advanced);
+    port.handshake();
+    port.send_numbered(1, "M600");
+    let (before, _) = port.until("echo:busy: paused for user");
+    assert!(before.iter().all(|l| !l.starts_with("ok")), "{before:?}");
+
+    // Ultimaker2Marlin: M0 waits in silence (no busy protocol); M600 and M25 answer `ok`.
+    let mut um2 = SimConfig::new(Firmware::Ultimaker2);
+    um2.time_scale = 1.0;
+    let (_sim, mut port) = start(um2.clone());
+    port.handshake();
+    port.send_numbered(1, "M600");
+    port.until("ok");
+    port.send_numbered(2, "M25");
+    port.until("ok");
+    port.send_numbered(3, "M0");
+    assert!(port.drain(Duration::from_millis(500)).is_empty());
+}

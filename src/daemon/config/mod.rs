@@ -10,6 +10,7 @@
 //! without reading code; a wrong file is always an error, never silently replaced by
 //! defaults.
 
+mod pause;
 pub mod ports;
 
 use crate::enhance::Strength;
@@ -139,6 +140,8 @@ struct RawPrinter {
     nozzle_mm: Option<f64>,
     baud: Option<i64>,
     heat_timeout_s: Option<i64>,
+    /// See `pause.rs`.
+    pause_heaters_off_s: Option<i64>,
     simulate: Option<RawSimulate>,
 }
 
@@ -358,6 +361,8 @@ pub struct PrinterConfig {
     /// An M109/M190 whose temperature stops coming closer to its target for this long
     /// fails the job (heaters off).
     pub heat_timeout: Duration,
+    /// A pause the file asked for that nobody resumes this long turns the heaters off.
+    pub pause_heaters_off: Duration,
 }
 
 #[derive(Debug, Clone)]
@@ -800,6 +805,8 @@ printers = ["demo"]
                     ))
                 }
             };
+            let pause_heaters_off = pause::heaters_off_after(p.pause_heaters_off_s)
+                .map_err(|m| invalid(section.clone(), "pause_heaters_off_s", m))?;
             let port = match (p.port, p.simulate) {
                 (Some(_), Some(_)) => {
                     return Err(invalid(
@@ -847,6 +854,7 @@ printers = ["demo"]
                 machine,
                 baud,
                 heat_timeout,
+                pause_heaters_off,
             });
         }
 
@@ -1629,6 +1637,7 @@ slicer = "cura"
             ("strength = 0.4", "strength = \"max\"", "key `strength`"),
             ("port = \"/dev/ttyACM0\"\n", "", "key `port`: missing"),
             ("firmware = \"ultimaker2\"", "firmware = \"ultimaker2\"\nheat_timeout_s = 5", "[[printer]] #1 (name \"um2-a\"): key `heat_timeout_s`: must be between 10"),
+            ("firmware = \"ultimaker2\"", "firmware = \"ultimaker2\"\npause_heaters_off_s = 0", "[[printer]] #1 (name \"um2-a\"): key `pause_heaters_off_s`: must be between 10 and 86400 seconds, got 0"),
             ("strength = 0.4", "strength = 0.4\nsettings = { infil_percent = 20 }", "key `settings`: unknown field `infil_percent`"),
         ];
         for (from, to, expected) in cases {

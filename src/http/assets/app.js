@@ -129,8 +129,8 @@ function printerTile(p, status) {
   html += '<div class="actions">';
   if (!p.bed_cleared) html += '<button class="clear" data-action="clear" data-printer="' + esc(p.name) + '">Bed is clear</button>';
   if (p.state === "printing") html += '<button data-action="pause" data-printer="' + esc(p.name) + '">Pause</button>';
-  if (p.state === "paused") html += '<button data-action="resume" data-printer="' + esc(p.name) + '">Resume</button>';
-  if (job && (p.state === "printing" || p.state === "paused")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
+  if (p.state === "paused" || p.state === "waiting_for_operator") html += '<button data-action="resume" data-printer="' + esc(p.name) + '">Resume</button>';
+  if (job && (p.state === "printing" || p.state === "paused" || p.state === "waiting_for_operator")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
   html += "</div></article>";
   return html;
 }

@@ -167,6 +167,10 @@ pub struct SimConfig {
     pub advanced_ok: Option<bool>,
     /// How temperature reports are spaced around `/`.
     pub report_style: ReportStyle,
+    /// Marlin 2 built with ADVANCED_PAUSE_FEATURE: `M600` parks and waits for the user
+    /// (`busy: paused for user`, no `ok` until the knob). Off, as in stock Marlin 2.1, whose
+    /// answer is `Unknown command`. (Ultimaker2Marlin answers `M600` with `ok` either way.)
+    pub advanced_pause: bool,
 }
 
 /// The spacing of a temperature report: printers differ, and a host must read them all.
@@ -198,6 +202,7 @@ impl SimConfig {
             reset_on_open: None,
             advanced_ok: None,
             report_style: ReportStyle::Marlin,
+            advanced_pause: false,
         }
     }
 }

@@ -81,6 +81,9 @@ enum Wait {
         heater: Heater,
         cooling_too: bool,
     },
+    /// `M0`/`M1` (and `M600` with ADVANCED_PAUSE_FEATURE): until someone presses the knob,
+    /// which no test does: a host that sends one waits for an `ok` that never comes.
+    User,
 }
 
 struct Active {
@@ -139,6 +142,8 @@ pub(crate) struct Printer {
     next_wait: Option<Instant>,
     /// `ok N<n> P<p> B<b>` (ADVANCED_OK).
     advanced_ok: bool,
+    /// ADVANCED_PAUSE_FEATURE (see [`SimConfig::advanced_pause`]).
+    advanced_pause: bool,
     report_style: ReportStyle,
     out: Vec<u8>,
 }
@@ -184,6 +189,7 @@ impl Printer {
             wait_when_idle: cfg.wait_when_idle,
             next_wait: None,
             advanced_ok: cfg.advanced_ok.unwrap_or(cfg.firmware.advanced_ok()),
+            advanced_pause: cfg.advanced_pause,
             report_style: cfg.report_style,
             out: Vec::new(),
         };
@@ -338,7 +344,8 @@ impl Printer {
         if busy && self.fw.busy_protocol() && self.keepalive > 0.0 {
             if let Some(at) = self.next_keepalive {
                 if now >= at {
-                    self.say_noisy("echo:busy: processing");
+                    let text = self.keepalive_text();
+                    self.say_noisy(text);
                     self.next_keepalive = Some(now + self.period(self.keepalive));
                 }
             }
@@ -406,6 +413,7 @@ impl Printer {
                     continue;
                 }
                 Wait::Until(at) => now >= *at,
+                Wait::User => false,
                 Wait::Heat {
                     heater,
                     cooling_too,
@@ -474,6 +482,15 @@ impl Printer {
             }
         }
         next
+    }
+
+    /// Marlin's keep-alive says why it is busy: `paused for user` while it waits for the
+    /// knob (KEEPALIVE_STATE(PAUSED_FOR_USER)), `processing` otherwise.
+    fn keepalive_text(&self) -> &'static str {
+        match self.active.as_ref().map(|a| &a.wait) {
+            Some(Wait::User) => "echo:busy: paused for user",
+            _ => "echo:busy: processing",
+        }
     }
 
     // ----- commands -----------------------------------------------------------------
@@ -642,6 +659,27 @@ impl Printer {
                 }
             }
             ('M', Some(27)) => self.say("Not SD printing"),
+            // Pauses a file may ask for; crispen never sends them, and the simulator does
+            // what the firmware does with them, so a host that forwarded one is caught.
+            // Printers with a display (HAS_RESUME_CONTINUE) wait for the knob at M0/M1;
+            // Ultimaker2Marlin too, silently (it has no busy protocol).
+            ('M', Some(0 | 1)) => {
+                wait = Some(Wait::Drain {
+                    then: Some(Box::new(Wait::User)),
+                });
+                long = true;
+            }
+            ('M', Some(600)) if self.fw.is_marlin2() && self.advanced_pause => {
+                wait = Some(Wait::Drain {
+                    then: Some(Box::new(Wait::User)),
+                });
+                long = true;
+            }
+            // Stock Marlin 2.1 lacks the features behind them (ADVANCED_PAUSE_FEATURE,
+            // SDSUPPORT, PARK_HEAD_ON_PAUSE, DIRECT_PIN_CONTROL): the file's pause is lost.
+            ('M', Some(25 | 125 | 226 | 600 | 601)) if self.fw.is_marlin2() => {
+                self.say(&format!("echo:Unknown command: \"{cmd}\""));
+            }
             _ if self.fw.is_marlin2() && !known_marlin2(letter, code) => {
                 self.say(&format!("echo:Unknown command: \"{cmd}\""));
             }

@@ -30,6 +30,7 @@ pub mod history;
 pub mod pending;
 pub mod postgres;
 pub mod spool;
+pub mod stats;
 
 pub use history::Retention;
 
@@ -108,8 +109,21 @@ pub trait JobStore: Send + 'static {
     fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError>;
     /// A job in the history; None when there is no such retired job.
     fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError>;
-    /// A page of the history, newest first, of jobs with a sequence number below `before`.
-    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError>;
+    /// A page of the history, newest first, of jobs with a sequence number below `before`
+    /// that `filter` takes.
+    fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: &history::Filter,
+    ) -> Result<history::Page, StoreError>;
+    /// Every job retired at or after `since` (seconds since the epoch), in no particular
+    /// order; a job may come twice (the statistics count it once).
+    fn each_retired(
+        &self,
+        since: f64,
+        visit: &mut dyn FnMut(history::Retired),
+    ) -> Result<(), StoreError>;
 }
 
 /// A job in the history: its record, and its whole state where it can still be read.
@@ -394,7 +408,15 @@ enum Request {
     History {
         before: Option<u64>,
         limit: usize,
+        filter: history::Filter,
         reply: Reply<history::Page>,
+    },
+    Stats {
+        period: stats::Period,
+        printers: Vec<String>,
+        folders: Vec<String>,
+        now: f64,
+        reply: Reply<stats::Stats>,
     },
 }
 
@@ -552,8 +574,33 @@ impl Request {
             Request::History {
                 before,
                 limit,
+                filter,
                 reply,
-            } => (deliver(reply, store.history(before, limit)), false),
+            } => (deliver(reply, store.history(before, limit, &filter)), false),
+            Request::Stats {
+                period,
+                printers,
+                folders,
+                now,
+                reply,
+            } => {
+                let mut builder = stats::Builder::new(period, &printers, &folders);
+                // A job retired before the period began ended before it too.
+                let result = store
+                    .each_retired(period.from, &mut |r| builder.add(&r))
+                    .map(|()| {
+                        // The live jobs: finished ones not yet retired, and the printing
+                        // time of those under way.
+                        for job in view.jobs() {
+                            if job.history.iter().any(|h| h.0 == JobState::Printing) {
+                                let dir = view.job_dir(&job.id);
+                                builder.add(&history::Retired::of(job, dir, now));
+                            }
+                        }
+                        builder.finish()
+                    });
+                (deliver(reply, result), false)
+            }
             Request::WritePending { reply } => {
                 // Only the persisted copy changes: the view already shows these outcomes.
                 let left = store.write_pending();
@@ -958,10 +1005,41 @@ impl StoreHandle {
         before: Option<u64>,
         limit: usize,
     ) -> Result<history::Page, StoreError> {
+        self.history_where(before, limit, history::Filter::default())
+            .await
+    }
+
+    /// [`StoreHandle::history`] of the jobs `filter` takes.
+    pub async fn history_where(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: history::Filter,
+    ) -> Result<history::Page, StoreError> {
         let limit = limit.clamp(*history::PAGE_LIMIT.start(), *history::PAGE_LIMIT.end());
         self.ask(|reply| Request::History {
             before,
             limit,
+            filter,
+            reply,
+        })
+        .await
+    }
+
+    /// The statistics of `period` over the history and the live jobs (see [`stats`]);
+    /// `printers` and `folders` are listed even when they did nothing.
+    pub async fn stats(
+        &self,
+        period: stats::Period,
+        printers: Vec<String>,
+        folders: Vec<String>,
+        now: f64,
+    ) -> Result<stats::Stats, StoreError> {
+        self.ask(|reply| Request::Stats {
+            period,
+            printers,
+            folders,
+            now,
             reply,
         })
         .await

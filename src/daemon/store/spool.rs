@@ -589,8 +589,22 @@ impl JobStore for Spool {
     fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
         self.retired_job(id)
     }
-    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError> {
-        Ok(history::page_of(self.history.records()?, before, limit))
+    fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: &history::Filter,
+    ) -> Result<history::Page, StoreError> {
+        Ok(history::page_of(
+            self.history.records()?,
+            before,
+            limit,
+            filter,
+        ))
+    }
+    fn each_retired(&self, since: f64, visit: &mut dyn FnMut(Retired)) -> Result<(), StoreError> {
+        self.history.records_since(since)?.for_each(visit);
+        Ok(())
     }
 }
 
@@ -1167,7 +1181,7 @@ mod tests {
         drop(store);
         let store = Spool::open(&spool).unwrap();
         assert_eq!(store.jobs().count(), 1);
-        let page = JobStore::history(&store, None, 100).unwrap();
+        let page = JobStore::history(&store, None, 100, &Default::default()).unwrap();
         let mut ids: Vec<String> = page.jobs.iter().map(|r| r.id.clone()).collect();
         ids.reverse();
         assert_eq!(ids, done);
@@ -1233,7 +1247,7 @@ mod tests {
         drop(store);
         let store = Spool::open(&spool).unwrap();
         assert_eq!(store.jobs().count(), 0);
-        let page = JobStore::history(&store, None, 100).unwrap();
+        let page = JobStore::history(&store, None, 100, &Default::default()).unwrap();
         let ids: Vec<&str> = page.jobs.iter().map(|r| r.id.as_str()).collect();
         assert_eq!(
             ids,

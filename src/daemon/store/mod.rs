@@ -592,7 +592,9 @@ impl Request {
                         // The live jobs: finished ones not yet retired, and the printing
                         // time of those under way.
                         for job in view.jobs() {
-                            if job.history.iter().any(|h| h.0 == JobState::Printing) {
+                            if history::is_finished(job.state)
+                                || job.history.iter().any(|h| h.0 == JobState::Printing)
+                            {
                                 let dir = view.job_dir(&job.id);
                                 builder.add(&history::Retired::of(job, dir, now));
                             }

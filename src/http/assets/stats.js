@@ -21,7 +21,7 @@ function pct(x) { return x == null ? "" : (100 * x).toFixed(1) + "%"; }
 function chart(stats) {
   const printers = stats.printers;
   const days = stats.days;
-  const left = 40, top = 10, height = 200, slot = Math.max(24, 12 * printers.length + 8);
+  const left = 40, top = 10, height = 200, slot = Math.max(days.length > 31 ? 12 : 40, 12 * printers.length + 8);
   const width = left + slot * days.length + 10;
   const svg = el("svg:svg", { width, height: top + height + 60, viewBox: `0 0 ${width} ${top + height + 60}`,
     role: "img", "aria-label": "utilisation per printer per day" });
@@ -42,8 +42,10 @@ function chart(stats) {
       r.append(el("svg:title", {}, `${p.name} ${day}: ${pct(u)}`));
       svg.append(r);
     });
-    const label = el("svg:text", { x: x0 + slot / 2, y: top + height + 12, "font-size": 10,
-      transform: `rotate(45 ${x0 + slot / 2} ${top + height + 12})` }, day.slice(5));
+    // Under its day's slot, read downwards from the slot's middle.
+    const cx = x0 + (slot - 8) / 2, cy = top + height + 8;
+    const label = el("svg:text", { x: cx, y: cy, "font-size": 10, "text-anchor": "end",
+      transform: `rotate(-60 ${cx} ${cy})` }, day.slice(5));
     svg.append(label);
   });
   const legend = el("p", { class: "legend" });

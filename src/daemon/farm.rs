@@ -288,6 +288,7 @@ impl Farm {
         let retention = super::store::Retention {
             live_for: config.history.live_for,
             live_jobs: config.history.live_jobs,
+            keep_for: config.history.keep_for,
         };
         Arc::new(Farm {
             config: watch::channel(Arc::new(config)).0,

@@ -501,6 +501,7 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
     let retention = Retention {
         live_for: Duration::from_secs(86_400),
         live_jobs: 1,
+        keep_for: None,
     };
     let open = |host: &'static str| {
         let (settings, dir) = (settings(&pg), tmp.path().join(host));
@@ -625,4 +626,14 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
     assert_eq!(stats.folders[0].name, "hot");
     assert_eq!(stats.folders[0].jobs.cancelled, 3);
     assert_eq!(stats.printers[0].name, "p1");
+
+    // `[history] keep_days`: retired jobs older than it leave the database, history and all.
+    let db = rt
+        .block_on(PgStore::connect(&settings(&pg), "rack-4", LEASE))
+        .unwrap();
+    let mut gone = rt.block_on(db.forget_retired(now + 1.0)).unwrap();
+    gone.sort();
+    assert_eq!(gone, ids[1..].to_vec());
+    assert!(rt.block_on(c.history(None, 10)).unwrap().jobs.is_empty());
+    assert!(c.snapshot().get(&ids[0]).is_some(), "a live job stays");
 }

@@ -26,6 +26,9 @@ use std::time::Duration;
 pub struct Retention {
     pub live_for: Duration,
     pub live_jobs: usize,
+    /// How long the history keeps a job after it moved there (None: for good). Kept by
+    /// the month: a month's jobs go together once the whole month is older than this.
+    pub keep_for: Option<Duration>,
 }
 
 impl Default for Retention {
@@ -34,6 +37,7 @@ impl Default for Retention {
         Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 200,
+            keep_for: None,
         }
     }
 }
@@ -464,6 +468,34 @@ impl HistoryFiles {
         }))
     }
 
+    /// The month files wholly older than `cutoff` (every job in them retired before it),
+    /// oldest first.
+    pub fn months_before(&self, cutoff: f64) -> Result<Vec<PathBuf>, StoreError> {
+        let first_kept = format!("{}.jsonl", month_of(cutoff));
+        let mut files = self.files()?;
+        files.retain(|f| {
+            f.file_name()
+                .is_some_and(|n| *n.to_string_lossy() < *first_kept)
+        });
+        Ok(files)
+    }
+
+    /// The records of one month file (unreadable lines passed over, as in `records`).
+    pub fn records_of(path: &Path) -> Result<Vec<Retired>, StoreError> {
+        let text = std::fs::read_to_string(path).map_err(io_err(path, "read"))?;
+        Ok(text
+            .lines()
+            .filter_map(|l| serde_json::from_str(l).ok())
+            .collect())
+    }
+
+    /// Removes a month file once its jobs' directories are gone (and syncs the directory).
+    pub fn remove_month(&self, path: &Path) -> Result<(), StoreError> {
+        std::fs::remove_file(path).map_err(io_err(path, "remove"))?;
+        crate::fsutil::sync_dir(&self.dir)?;
+        Ok(())
+    }
+
     /// The record of one retired job.
     pub fn find(&self, id: &str) -> Result<Option<Retired>, StoreError> {
         Ok(self.records()?.filter(|r| r.id == id).last())
@@ -538,6 +570,7 @@ mod tests {
         let retention = Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 3,
+            keep_for: None,
         };
         let jobs = [
             job(1, JobState::Done, now - 8.0 * DAY),         // too old
@@ -559,6 +592,7 @@ mod tests {
         let few = Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 200,
+            keep_for: None,
         };
         assert_eq!(
             to_retire(jobs[4..8].iter(), &few, now, &|_| false),
@@ -567,6 +601,7 @@ mod tests {
         let none = Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 0,
+            keep_for: None,
         };
         assert_eq!(
             to_retire(jobs[4..8].iter(), &none, now, &|_| false).len(),

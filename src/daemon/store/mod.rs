@@ -117,6 +117,9 @@ pub trait JobStore: Send + 'static {
         limit: usize,
         filter: &history::Filter,
     ) -> Result<history::Page, StoreError>;
+    /// Forgets the jobs the history has kept longer than `keep_for` before `now` (their
+    /// records and files); returns how many. See [`Retention::keep_for`].
+    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError>;
     /// Every job retired at or after `since` (seconds since the epoch), in no particular
     /// order; a job may come twice (the statistics count it once).
     fn each_retired(
@@ -669,6 +672,15 @@ fn retire(
     if !ids.is_empty() {
         tracing::info!(jobs = ids.len(), first = %ids[0], "finished jobs moved to the history");
     }
+    if let Some(keep_for) = retention.keep_for {
+        match store.prune(keep_for, now) {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(jobs = n, "jobs older than [history] keep_days forgotten"),
+            Err(e) => {
+                tracing::error!(error = %e, "cannot forget the history's old jobs; tried again later")
+            }
+        }
+    }
     view.remove(&ids);
     Ok(ids)
 }
@@ -1074,6 +1086,7 @@ mod tests {
         let retention = Retention {
             live_for: std::time::Duration::from_secs(86_400),
             live_jobs: 1,
+            keep_for: None,
         };
         let handle = spawn_with(store, retention);
         let mut ids = Vec::new();

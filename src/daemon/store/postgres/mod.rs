@@ -1018,6 +1018,18 @@ impl PgStore {
             .collect())
     }
 
+    /// Deletes the jobs retired before `cutoff` (seconds since the epoch), with their
+    /// history and files; returns their ids.
+    pub async fn forget_retired(&self, cutoff: f64) -> Result<Vec<String>, PgError> {
+        let client = self.client().await?;
+        Ok(ids(client
+            .query(
+                "DELETE FROM jobs WHERE retired_at < to_timestamp($1) RETURNING id",
+                &[&cutoff],
+            )
+            .await?))
+    }
+
     /// A retired job and when it was retired; None when `id` is live or unknown.
     pub async fn retired_job(&self, id: &str) -> Result<Option<(Job, f64)>, PgError> {
         let client = self.client().await?;

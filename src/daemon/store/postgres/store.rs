@@ -476,6 +476,16 @@ impl JobStore for PgJobStore {
         })
     }
 
+    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+        // By the database's record of when each job was retired; any host may do it.
+        let gone = self.block(self.db.forget_retired(now - keep_for.as_secs_f64()))?;
+        for id in &gone {
+            // This host's copy of its files, where it has one.
+            let _ = std::fs::remove_dir_all(self.job_dir(id));
+        }
+        Ok(gone.len())
+    }
+
     fn each_retired(&self, since: f64, visit: &mut dyn FnMut(Retired)) -> Result<(), StoreError> {
         let mut cursor = None;
         loop {

@@ -47,8 +47,45 @@ pub struct HistoryArgs {
     #[arg(long)]
     pub before: Option<u64>,
     /// Print the page as JSON
-    #[arg(long)]
+    #[arg(long, conflicts_with = "csv")]
     pub json: bool,
+    /// Print every job the filters take as CSV (the export; --limit is each read's size)
+    #[arg(long)]
+    pub csv: bool,
+    /// Only jobs printed on this printer
+    #[arg(long)]
+    pub printer: Option<String>,
+    /// Only jobs from this hot folder (its name or path)
+    #[arg(long)]
+    pub folder: Option<String>,
+    /// Only jobs that ended so: done, failed or cancelled
+    #[arg(long)]
+    pub state: Option<String>,
+    /// Only jobs that ended at or after this (YYYY-MM-DD in UTC, or seconds since the epoch)
+    #[arg(long)]
+    pub since: Option<String>,
+    /// Only jobs that ended before this
+    #[arg(long)]
+    pub until: Option<String>,
+}
+
+impl HistoryArgs {
+    /// The filters as a query string (`&key=value...`).
+    pub fn filters(&self) -> String {
+        let mut q = String::new();
+        for (key, value) in [
+            ("printer", &self.printer),
+            ("folder", &self.folder),
+            ("state", &self.state),
+            ("since", &self.since),
+            ("until", &self.until),
+        ] {
+            if let Some(v) = value {
+                q.push_str(&format!("&{key}={}", segment(v)));
+            }
+        }
+        q
+    }
 }
 
 #[derive(Debug, clap::Args)]
@@ -71,7 +108,11 @@ pub struct JobArgs {
 
 /// Sends one request to the daemon; returns the JSON answer of a success, or the
 /// daemon's error message as the error.
-fn ask(config: &Option<PathBuf>, method: Method, path: &str) -> anyhow::Result<serde_json::Value> {
+pub fn ask(
+    config: &Option<PathBuf>,
+    method: Method,
+    path: &str,
+) -> anyhow::Result<serde_json::Value> {
     let socket = match config {
         Some(path) => Config::socket_of(path)?,
         None => Config::builtin_default().socket,
@@ -105,6 +146,53 @@ async fn exchange(
     method: Method,
     path: &str,
 ) -> anyhow::Result<(StatusCode, serde_json::Value)> {
+    let (status, body) = exchange_raw(socket, method, path).await?;
+    let answer = serde_json::from_slice(&body).with_context(|| {
+        format!(
+            "control socket {}: the answer is not JSON",
+            socket.display()
+        )
+    })?;
+    Ok((status, answer))
+}
+
+/// Sends one GET to the daemon; returns the body of a success as text (a CSV export),
+/// or the daemon's error message as the error.
+pub fn ask_text(config: &Option<PathBuf>, path: &str) -> anyhow::Result<String> {
+    let socket = match config {
+        Some(path) => Config::socket_of(path)?,
+        None => Config::builtin_default().socket,
+    };
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let (status, body) = runtime
+        .block_on(async {
+            tokio::time::timeout(ANSWER_TIMEOUT, exchange_raw(&socket, Method::GET, path)).await
+        })
+        .map_err(|_| {
+            anyhow::anyhow!(
+                "control socket {}: no answer within {} s",
+                socket.display(),
+                ANSWER_TIMEOUT.as_secs()
+            )
+        })??;
+    if status.is_success() {
+        return String::from_utf8(body.to_vec()).context("the daemon's answer is not UTF-8");
+    }
+    let answer: serde_json::Value = serde_json::from_slice(&body).unwrap_or_default();
+    match answer["error"].as_str() {
+        Some(message) => anyhow::bail!("{message}"),
+        None => anyhow::bail!("the daemon refused: HTTP {status}"),
+    }
+}
+
+async fn exchange_raw(
+    socket: &Path,
+    method: Method,
+    path: &str,
+) -> anyhow::Result<(StatusCode, Bytes)> {
     let stream = tokio::net::UnixStream::connect(socket).await.with_context(|| {
         format!(
             "cannot reach the daemon at {} (hint: is `crispen run` running with the same --config?)",
@@ -129,13 +217,11 @@ async fn exchange(
         .await
         .map_err(|e| anyhow::anyhow!("{}: the answer broke off: {e}", broken()))?
         .to_bytes();
-    let answer = serde_json::from_slice(&body)
-        .with_context(|| format!("{}: the answer is not JSON", broken()))?;
-    Ok((status, answer))
+    Ok((status, body))
 }
 
 /// One path segment, percent-encoded (a printer or job name as it is).
-fn segment(text: &str) -> String {
+pub fn segment(text: &str) -> String {
     let mut out = String::new();
     for b in text.bytes() {
         if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
@@ -271,9 +357,14 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
 
 /// `crispen history`: a page of the finished jobs that have left the queue.
 pub fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
-    let mut path = format!("/api/v1/history?limit={}", a.limit);
+    let mut path = format!("/api/v1/history?limit={}{}", a.limit, a.filters());
     if let Some(before) = a.before {
         path.push_str(&format!("&before={before}"));
+    }
+    if a.csv {
+        path.push_str("&format=csv");
+        print!("{}", ask_text(&a.config, &path)?);
+        return Ok(ExitCode::SUCCESS);
     }
     let answer = ask(&a.config, Method::GET, &path)?;
     if a.json {
@@ -308,7 +399,7 @@ pub fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// `YYYY-MM-DD HH:MM` of seconds since the epoch, in UTC.
-fn utc_minute(t: f64) -> String {
+pub fn utc_minute(t: f64) -> String {
     let secs = t.max(0.0) as i64;
     let (y, m, d) = crispen::daemon::store::history::civil_date(secs.div_euclid(86_400));
     let minute = secs.rem_euclid(86_400) / 60;

@@ -14,6 +14,7 @@ pub mod print;
 pub mod run;
 pub mod sim;
 pub mod slice;
+pub mod stats;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -44,6 +45,8 @@ pub enum Command {
     Status(control::StatusArgs),
     /// Page through the finished jobs that have left the queue (newest first)
     History(control::HistoryArgs),
+    /// Statistics per printer and per hot folder over a period (jobs, hours, filament)
+    Stats(stats::Args),
     /// Confirm a printer's bed has been cleared so it may take the next job
     Clear(control::PrinterArgs),
     /// Cancel a job (a printing job is stopped safely)
@@ -83,6 +86,7 @@ pub fn main() -> ExitCode {
         Command::Run(a) => run::run(a),
         Command::Status(a) => control::status(a),
         Command::History(a) => control::history(a),
+        Command::Stats(a) => stats::run(a),
         Command::Clear(a) => control::clear(a),
         Command::Cancel(a) => control::cancel(a),
         Command::Pause(a) => control::pause(a),

@@ -286,6 +286,8 @@ pub struct Farm {
     pub shutdown: CancellationToken,
     /// Job changes of this run, by the state reached.
     pub counts: JobCounts,
+    /// Jobs, printing time and filament of this run, by printer (`/metrics`).
+    pub tally: super::store::stats::Tally,
     /// The farm database, when `[store] postgres` shares the farm with other hosts.
     pub db: std::sync::OnceLock<crate::daemon::store::postgres::PgStore>,
 }
@@ -296,6 +298,7 @@ impl Farm {
         let retention = super::store::Retention {
             live_for: config.history.live_for,
             live_jobs: config.history.live_jobs,
+            keep_for: config.history.keep_for,
         };
         Arc::new(Farm {
             config: watch::channel(Arc::new(config)).0,
@@ -306,6 +309,7 @@ impl Farm {
             shared: watch::channel(None).0,
             shutdown,
             counts: JobCounts::default(),
+            tally: Default::default(),
             db: Default::default(),
         })
     }
@@ -395,6 +399,7 @@ impl Farm {
             .transition_with(id, state, reason.clone(), also)
             .await?;
         self.announce(id, state, &reason);
+        self.tally.changed(&job);
         Ok(job)
     }
 
@@ -413,6 +418,7 @@ impl Farm {
             .transition_from(id, from, state, reason.clone(), also)
             .await?;
         self.announce(id, state, &reason);
+        self.tally.changed(&job);
         Ok(job)
     }
 
@@ -444,6 +450,7 @@ impl Farm {
             .record_outcome(id, state, reason.clone(), also)
             .await?;
         self.announce(id, state, &reason);
+        self.tally.changed(&job);
         Ok(job)
     }
 
@@ -503,6 +510,37 @@ impl Farm {
         limit: usize,
     ) -> Result<super::store::history::Page, StoreError> {
         self.jobs.history(before, limit).await
+    }
+
+    /// A page of the history of the jobs `filter` takes.
+    pub async fn history_where(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: super::store::history::Filter,
+    ) -> Result<super::store::history::Page, StoreError> {
+        self.jobs.history_where(before, limit, filter).await
+    }
+
+    /// The statistics of `period`, with every configured printer and folder listed.
+    pub async fn stats(
+        &self,
+        period: super::store::stats::Period,
+    ) -> Result<super::store::stats::Stats, StoreError> {
+        let config = self.config();
+        let printers = config.printers.iter().map(|p| p.name.clone()).collect();
+        let folders = config
+            .folders
+            .iter()
+            .map(|f| {
+                f.path.file_name().map_or_else(
+                    || f.path.display().to_string(),
+                    |n| n.to_string_lossy().into_owned(),
+                )
+            })
+            .collect();
+        let now = super::job::now_s();
+        self.jobs.stats(period, printers, folders, now).await
     }
 
     /// Logs a state change and counts it. Every change of a job's state comes here.

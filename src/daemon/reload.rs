@@ -123,9 +123,11 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     let super::config::HistoryConfig {
         live_for,
         live_jobs,
+        keep_for,
     } = history;
     differs("history.live_days", *live_for != old.history.live_for);
     differs("history.live_jobs", *live_jobs != old.history.live_jobs);
+    differs("history.keep_days", *keep_for != old.history.keep_for);
     match (store, &old.store) {
         (None, None) => {}
         (Some(new), Some(old)) => {

@@ -8,7 +8,8 @@ use super::upload;
 use super::{ApiError, AppState};
 use crate::daemon::control::{self, Command, JobStatus};
 use crate::daemon::farm::{Farm, PrinterStatus};
-use crate::daemon::job::Job;
+use crate::daemon::job::{Job, JobState};
+use crate::daemon::store::{history, stats};
 use crate::enhance::Strength;
 use axum::body::Body;
 use axum::extract::{Path, State};
@@ -214,22 +215,86 @@ pub async fn job(
     }
 }
 
-/// `GET /api/v1/history?limit=N&before=SEQ`.
+/// `GET /api/v1/history?limit=N&before=SEQ` and the filters: `printer`, `folder` (name or
+/// path), `state` (done, failed, cancelled), `since` and `until` (when it ended: seconds
+/// since the epoch or a UTC date `YYYY-MM-DD`), and `format` (`json`, `csv`).
 #[derive(Debug, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HistoryQuery {
     pub limit: Option<usize>,
     pub before: Option<u64>,
+    pub printer: Option<String>,
+    pub folder: Option<String>,
+    pub state: Option<String>,
+    pub since: Option<String>,
+    pub until: Option<String>,
+    pub format: Option<String>,
+}
+
+/// A query string that cannot be read, as the API's JSON error.
+fn bad_query(e: axum::extract::rejection::QueryRejection) -> ApiError {
+    ApiError::bad_request(format!(
+        "{} (see README: History and statistics)",
+        e.body_text()
+    ))
+}
+
+fn time_param(key: &str, value: Option<&str>) -> Result<Option<f64>, ApiError> {
+    value
+        .map(|v| stats::parse_time(v).map_err(|e| ApiError::bad_request(format!("{key}: {e}"))))
+        .transpose()
+}
+
+impl HistoryQuery {
+    fn filter(&self) -> Result<history::Filter, ApiError> {
+        let state = match self.state.as_deref() {
+            None => None,
+            Some(name) => Some(
+                [JobState::Done, JobState::Failed, JobState::Cancelled]
+                    .into_iter()
+                    .find(|s| s.name() == name)
+                    .ok_or_else(|| {
+                        ApiError::bad_request(format!(
+                            "state {}: the history holds done, failed and cancelled jobs",
+                            quoted(name)
+                        ))
+                    })?,
+            ),
+        };
+        Ok(history::Filter {
+            printer: self.printer.clone(),
+            folder: self.folder.clone(),
+            state,
+            since: time_param("since", self.since.as_deref())?,
+            until: time_param("until", self.until.as_deref())?,
+        })
+    }
 }
 
 /// `GET /api/v1/history`: finished jobs that have left the queue, newest first, a page at
-/// a time (`limit`, 1 to 1000, default 50; `before`: the `next` of the page before).
+/// a time (`limit`, 1 to 1000, default 50; `before`: the `next` of the page before), or
+/// with `format=csv` every job the filters take, as CSV.
 pub async fn history(
     State(state): State<AppState>,
-    axum::extract::Query(query): axum::extract::Query<HistoryQuery>,
-) -> Result<Json<crate::daemon::store::history::Page>, ApiError> {
-    let limit = query.limit.unwrap_or(50);
-    let bounds = crate::daemon::store::history::PAGE_LIMIT;
+    query: Result<axum::extract::Query<HistoryQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, ApiError> {
+    let query = query.map_err(bad_query)?.0;
+    let filter = query.filter()?;
+    let unavailable = |e: crate::daemon::job::StoreError| {
+        ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
+    };
+    let csv = match query.format.as_deref() {
+        None | Some("json") => false,
+        Some("csv") => true,
+        Some(other) => {
+            return Err(ApiError::bad_request(format!(
+                "format {}: json or csv",
+                quoted(other)
+            )))
+        }
+    };
+    let bounds = history::PAGE_LIMIT;
+    let limit = query.limit.unwrap_or(if csv { *bounds.end() } else { 50 });
     if !bounds.contains(&limit) {
         return Err(ApiError::new(
             StatusCode::BAD_REQUEST,
@@ -240,13 +305,95 @@ pub async fn history(
             ),
         ));
     }
-    match state.farm.history(query.before, limit).await {
-        Ok(page) => Ok(Json(page)),
-        Err(e) => Err(ApiError::new(
-            StatusCode::SERVICE_UNAVAILABLE,
-            e.to_string(),
-        )),
+    if !csv {
+        let page = state
+            .farm
+            .history_where(query.before, limit, filter)
+            .await
+            .map_err(unavailable)?;
+        return Ok(Json(page).into_response());
     }
+    // The export: page after page until the history (or CSV_MAX_ROWS) ends; `limit`
+    // is the size of each read.
+    let mut text = history::csv_header();
+    let (mut before, mut rows) = (query.before, 0usize);
+    loop {
+        let page = state
+            .farm
+            .history_where(before, limit, filter.clone())
+            .await
+            .map_err(unavailable)?;
+        for r in &page.jobs {
+            text.push_str(&r.csv_line());
+        }
+        rows += page.jobs.len();
+        match page.next {
+            Some(next) if rows < CSV_MAX_ROWS => before = Some(next),
+            _ => break,
+        }
+    }
+    Ok((
+        [
+            (
+                header::CONTENT_TYPE,
+                "text/csv; charset=utf-8; header=present",
+            ),
+            (
+                header::CONTENT_DISPOSITION,
+                "attachment; filename=\"crispen-history.csv\"",
+            ),
+        ],
+        text,
+    )
+        .into_response())
+}
+
+/// The most rows one CSV export holds (narrow it with `since`/`until` for more).
+pub const CSV_MAX_ROWS: usize = 200_000;
+
+/// `GET /api/v1/stats?days=N` (the last N UTC days, today included; default 7) or
+/// `?from=T&to=T` (seconds since the epoch or `YYYY-MM-DD`, `to` excluded).
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StatsQuery {
+    pub days: Option<u32>,
+    pub from: Option<String>,
+    pub to: Option<String>,
+}
+
+/// `GET /api/v1/stats`: the statistics of a period, per printer and per folder.
+pub async fn stats(
+    State(state): State<AppState>,
+    query: Result<axum::extract::Query<StatsQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<stats::Stats>, ApiError> {
+    let query = query.map_err(bad_query)?.0;
+    let now = crate::daemon::job::now_s();
+    let period = match (query.days, query.from.as_deref(), query.to.as_deref()) {
+        (days, None, None) => {
+            let days = days.unwrap_or(7);
+            if !(1..=stats::MAX_DAYS as u32).contains(&days) {
+                return Err(ApiError::bad_request(format!(
+                    "days {days}: must be between 1 and {}",
+                    stats::MAX_DAYS
+                )));
+            }
+            stats::Period::last_days(days, now)
+        }
+        (None, Some(from), to) => {
+            let from = time_param("from", Some(from))?.unwrap_or_default();
+            let to = time_param("to", to)?.unwrap_or(now);
+            stats::Period::new(from, to)
+        }
+        (None, None, Some(_)) => return Err(ApiError::bad_request("to without from")),
+        (Some(_), _, _) => return Err(ApiError::bad_request("days, or from and to; not both")),
+    }
+    .map_err(ApiError::bad_request)?;
+    state
+        .farm
+        .stats(period)
+        .await
+        .map(Json)
+        .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
 }
 
 /// One of a job's pictures. Only the three fixed names are served, from the directory of

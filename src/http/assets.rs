@@ -7,6 +7,8 @@ use axum::response::IntoResponse;
 const INDEX: &str = include_str!("assets/index.html");
 const SCRIPT: &str = include_str!("assets/app.js");
 const STYLE: &str = include_str!("assets/style.css");
+const STATS_PAGE: &str = include_str!("assets/stats.html");
+const STATS_SCRIPT: &str = include_str!("assets/stats.js");
 
 /// Only this page's own files; nothing framed elsewhere.
 const POLICY: &str =
@@ -31,4 +33,22 @@ pub async fn script() -> impl IntoResponse {
 
 pub async fn style() -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE)
+}
+
+/// The statistics page (`/stats`): its own page and script, the dashboard's style.
+pub async fn stats_page() -> impl IntoResponse {
+    (
+        [
+            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
+            (header::CONTENT_SECURITY_POLICY, POLICY),
+        ],
+        STATS_PAGE,
+    )
+}
+
+pub async fn stats_script() -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
+        STATS_SCRIPT,
+    )
 }

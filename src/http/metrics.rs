@@ -10,7 +10,6 @@ use crate::daemon::job::JobState;
 use axum::extract::State;
 use axum::http::header;
 use axum::response::IntoResponse;
-use std::collections::BTreeMap;
 use std::fmt::Write;
 
 const PRINTER_STATES: [PrinterState; 10] = [
@@ -211,77 +210,93 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
         );
     }
 
-    // Durations and counters from the jobs' histories and print reports in the spool.
+    // Preparation times of the live jobs (a summary of what the snapshot holds).
     let store = farm.store();
     let mut prepare = (0.0, 0u64);
-    let mut print = (0.0, 0u64);
-    let mut per_printer: BTreeMap<String, (f64, f64)> = view
-        .printers
-        .iter()
-        .map(|p| (p.name.clone(), (0.0, 0.0)))
-        .collect();
     for job in store.jobs() {
         for pair in job.history.windows(2) {
-            let ((from, t0), (to, t1)) = (pair[0], pair[1]);
-            let spent = (t1 - t0).max(0.0);
-            match (from, to) {
-                (JobState::Preparing, JobState::Ready) => {
-                    prepare.0 += spent;
-                    prepare.1 += 1;
-                }
-                (JobState::Printing, JobState::Done | JobState::Ready) => {
-                    print.0 += spent;
-                    print.1 += 1;
-                }
-                _ => {}
+            if let ((JobState::Preparing, t0), (JobState::Ready, t1)) = (pair[0], pair[1]) {
+                prepare.0 += (t1 - t0).max(0.0);
+                prepare.1 += 1;
             }
-        }
-        if let (Some(printer), Some(report)) = (&job.printer, &job.print_report) {
-            let entry = per_printer.entry(printer.clone()).or_default();
-            entry.0 += report.resends as f64;
-            entry.1 += report.silence_probes as f64;
         }
     }
     drop(store);
-    for (name, help, (sum, count)) in [
-        (
-            "crispen_preparation_duration_seconds",
-            "Time from the start of a preparation to ready, of the jobs in the spool.",
-            prepare,
-        ),
-        (
-            "crispen_print_duration_seconds",
-            "Time from the start of a print to its end, of the finished prints in the spool.",
-            print,
-        ),
-    ] {
-        out.family(name, "summary", help);
-        out.sample(&format!("{name}_sum"), &[], sum);
-        out.sample(&format!("{name}_count"), &[], count as f64);
-    }
     out.family(
-        "crispen_printer_resends_total",
-        "counter",
-        "Lines the printer asked to have sent again, over the finished prints in the spool.",
+        "crispen_preparation_duration_seconds",
+        "summary",
+        "Time from the start of a preparation to ready, of the live jobs.",
     );
-    for (printer, (resends, _)) in &per_printer {
-        out.sample(
+    out.sample("crispen_preparation_duration_seconds_sum", &[], prepare.0);
+    out.sample(
+        "crispen_preparation_duration_seconds_count",
+        &[],
+        prepare.1 as f64,
+    );
+
+    // Counters since the process started, by printer (`store::stats::Tally`): they only
+    // grow while it runs, whatever moves to the history; every configured printer has
+    // its series from the start.
+    let mut tally = farm.tally.read();
+    for p in &view.printers {
+        tally.entry(p.name.clone()).or_default();
+    }
+    let print: (f64, u64) = tally
+        .values()
+        .fold((0.0, 0), |(s, n), t| (s + t.printing_s, n + t.prints));
+    out.family(
+        "crispen_print_duration_seconds",
+        "summary",
+        "Time from the start of a print to its end, of the prints ended since the daemon started.",
+    );
+    out.sample("crispen_print_duration_seconds_sum", &[], print.0);
+    out.sample("crispen_print_duration_seconds_count", &[], print.1 as f64);
+    out.family(
+        "crispen_jobs_total",
+        "counter",
+        "Jobs finished since the daemon started, by printer and result (done, failed, cancelled).",
+    );
+    for (printer, t) in &tally {
+        for (result, n) in [
+            ("done", t.done),
+            ("failed", t.failed),
+            ("cancelled", t.cancelled),
+        ] {
+            out.sample(
+                "crispen_jobs_total",
+                &[("printer", printer), ("result", result)],
+                n as f64,
+            );
+        }
+    }
+    type Read = fn(&crate::daemon::store::stats::PrinterTally) -> f64;
+    let counters: [(&str, &str, Read); 4] = [
+        (
+            "crispen_printing_seconds_total",
+            "Time spent printing since the daemon started.",
+            |t| t.printing_s,
+        ),
+        (
+            "crispen_filament_used_meters_total",
+            "Filament of the prints finished since the daemon started (the slicer's figure, or the extrusion followed).",
+            |t| t.filament_m,
+        ),
+        (
             "crispen_printer_resends_total",
-            &[("printer", printer)],
-            *resends,
-        );
-    }
-    out.family(
-        "crispen_printer_silence_probes_total",
-        "counter",
-        "M105 probes sent to a silent printer, over the finished prints in the spool.",
-    );
-    for (printer, (_, probes)) in &per_printer {
-        out.sample(
+            "Lines the printer asked to have sent again, over the prints ended since the daemon started.",
+            |t| t.resends as f64,
+        ),
+        (
             "crispen_printer_silence_probes_total",
-            &[("printer", printer)],
-            *probes,
-        );
+            "M105 probes sent to a silent printer, over the prints ended since the daemon started.",
+            |t| t.silence_probes as f64,
+        ),
+    ];
+    for (name, help, read) in counters {
+        out.family(name, "counter", help);
+        for (printer, t) in &tally {
+            out.sample(name, &[("printer", printer)], read(t));
+        }
     }
     out.0
 }

@@ -95,6 +95,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/v1/jobs", get(api::jobs))
         .route("/api/v1/jobs/{id}", get(api::job))
         .route("/api/v1/history", get(api::history))
+        .route("/api/v1/stats", get(api::stats))
         .route("/api/v1/jobs/{id}/{action}", post(api::job_action))
         .route("/api/v1/jobs/{id}/pictures/{picture}", get(api::picture))
         .route("/api/v1/folders", get(api::folders))
@@ -107,7 +108,9 @@ pub fn router(state: AppState) -> Router {
     let pages = Router::new()
         .route("/", get(assets::index))
         .route("/app.js", get(assets::script))
-        .route("/style.css", get(assets::style));
+        .route("/style.css", get(assets::style))
+        .route("/stats", get(assets::stats_page))
+        .route("/stats.js", get(assets::stats_script));
     Router::new()
         .merge(uploads)
         .merge(api)

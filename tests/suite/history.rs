@@ -206,3 +206,277 @@ fn finished_jobs_are_paged_through_the_history_by_api_and_cli() {
     let dir = PathBuf::from(job["dir"].as_str().unwrap());
     assert!(dir.join("part-2.stl").is_file(), "{}", dir.display());
 }
+
+fn get_text(socket: &Path, path: &str) -> (u16, String) {
+    crate::common::farm::http_on(socket, "GET", path).unwrap()
+}
+
+/// The value of a sample in a `/metrics` text.
+fn sample(metrics: &str, series: &str) -> f64 {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(series)?.strip_prefix(' '))
+        .unwrap_or_else(|| panic!("no {series} in\n{metrics}"))
+        .trim()
+        .parse()
+        .unwrap()
+}
+
+/// Pre-sliced G-code a `marlin2` printer's bed cannot hold (its preparation fails).
+const TOO_BIG: &str = "; filament_diameter = 1.75\nM104 S200\nM109 S200\nG28\nG90\nM82\n\
+                       G1 X900 Y900 Z0.3 E5 F6000\nM104 S0\n";
+
+/// Jobs the farm ran (a real daemon, a simulated printer): two printed, one cancelled,
+/// one failed. The statistics (counts, printing time, filament, failure reasons) and the
+/// counters of `/metrics` agree with the jobs' own records, while the jobs are live and
+/// again from the history after a restart; the history filters and its CSV (read by
+/// Python's csv module) hold the same jobs.
+#[test]
+fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
+    use crate::common::farm::{drop_file, presliced_gcode};
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let config = root.join("crispen.toml");
+    // Finished jobs stay live until the next start moves them all to the history.
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = {:?}\n[control]\nsocket = {:?}\n[farm]\nsettle_s = 0.2\n\
+             [history]\nlive_days = 0\nlive_jobs = 0\n\
+             [[printer]]\nname = \"p1\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.05\n\
+             [[folder]]\npath = {:?}\nheight_mm = 30\nprinters = [\"p1\"]\n",
+            root.join("spool"),
+            root.join("crispen.sock"),
+            hot,
+        ),
+    )
+    .unwrap();
+    let started = now_s();
+    let mut daemon = Daemon::start(root, &config);
+    let status = |d: &Daemon| get(&d.socket, "/api/v1/status").unwrap().1;
+    let state = |d: &Daemon, file: &str| crate::common::farm::state_of(&status(d), file);
+    let id_of = |d: &Daemon, file: &str| {
+        crate::common::job_by_file(&status(d), file).unwrap()["id"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+    let ctl = |args: &[&str]| {
+        let (ok, out) = crate::common::daemon::ctl(&config, args);
+        assert!(ok, "crispen {args:?}: {out}");
+        out
+    };
+
+    drop_file(&hot, "a.gcode", presliced_gcode("a", 10, 6000).as_bytes());
+    daemon.wait_for(|d| state(d, "a.gcode") == "done", "a printed");
+    // p1 waits for its bed to be cleared: b waits, and is cancelled.
+    drop_file(&hot, "b.gcode", presliced_gcode("b", 10, 6000).as_bytes());
+    daemon.wait_for(|d| state(d, "b.gcode") == "ready", "b prepared");
+    ctl(&["cancel", &id_of(&daemon, "b.gcode")]);
+    drop_file(&hot, "big.gcode", TOO_BIG.as_bytes());
+    daemon.wait_for(|d| state(d, "big.gcode") == "failed", "big refused");
+    ctl(&["clear", "p1"]);
+    drop_file(&hot, "c.gcode", presliced_gcode("c", 20, 6000).as_bytes());
+    daemon.wait_for(|d| state(d, "c.gcode") == "done", "c printed");
+
+    // What the jobs' own records say.
+    let files = ["a.gcode", "b.gcode", "big.gcode", "c.gcode"];
+    let jobs: Vec<serde_json::Value> = files
+        .iter()
+        .map(|f| {
+            let id = id_of(&daemon, f);
+            get(&daemon.socket, &format!("/api/v1/jobs/{id}"))
+                .unwrap()
+                .1["job"]
+                .clone()
+        })
+        .collect();
+    let mut printing_s = 0.0;
+    for job in &jobs {
+        let history = job["history"].as_array().unwrap();
+        for (i, h) in history.iter().enumerate() {
+            if h[0] == "printing" {
+                printing_s += history[i + 1][1].as_f64().unwrap() - h[1].as_f64().unwrap();
+            }
+        }
+    }
+    assert!(printing_s > 0.0);
+    // The G-code extrudes 3.3 mm a move (a: 10 moves, c: 20), on 1.75 mm filament.
+    let filament_mm = 30.0 * 3.3;
+    for (job, moves) in [(&jobs[0], 10.0), (&jobs[3], 20.0)] {
+        let reported = job["slice_report"]["filament_mm"].as_f64().unwrap();
+        assert!((reported - moves * 3.3).abs() < 1e-6, "{job}");
+    }
+    let filament_g = filament_mm / 10.0 * std::f64::consts::PI * 0.0875 * 0.0875 * 1.24;
+    let failure = jobs[2]["reason"].as_str().unwrap().lines().next().unwrap();
+
+    let (from, to) = (started - 60.0, now_s() + 60.0);
+    let check = |stats: &serde_json::Value| {
+        let farm = &stats["farm"];
+        assert_eq!(
+            farm["jobs"],
+            serde_json::json!({"done": 2, "failed": 1, "cancelled": 1}),
+            "{stats}"
+        );
+        let p1 = &stats["printers"][0];
+        assert_eq!(p1["name"], "p1");
+        assert_eq!(p1["jobs"]["done"], 2, "{stats}");
+        let near = |a: &serde_json::Value, b: f64| (a.as_f64().unwrap() - b).abs() < 1e-6;
+        assert!(
+            near(&p1["printing_s"], printing_s),
+            "{stats} vs {printing_s}"
+        );
+        assert!(
+            near(&p1["utilisation"], printing_s / (to - from)),
+            "{stats}"
+        );
+        let daily: f64 = p1["daily_utilisation"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|u| u.as_f64().unwrap())
+            .sum();
+        assert!(daily > 0.0, "{stats}");
+        assert!(near(&p1["filament_mm"], filament_mm), "{stats}");
+        assert!(near(&p1["filament_g"], filament_g), "{stats}");
+        assert_eq!(farm["failure_reasons"][0]["reason"], failure, "{stats}");
+        assert_eq!(farm["failure_reasons"][0]["jobs"], 1);
+        assert_eq!(stats["folders"][0]["name"], "hot");
+        assert_eq!(stats["folders"][0]["jobs"]["cancelled"], 1);
+    };
+    let stats_path = format!("/api/v1/stats?from={from}&to={to}");
+    let (code, live_stats) = get(&daemon.socket, &stats_path).unwrap();
+    assert_eq!(code, 200, "{live_stats}");
+    check(&live_stats);
+    let (code, err) = get(&daemon.socket, "/api/v1/stats?days=0").unwrap();
+    assert_eq!(code, 400, "{err}");
+    let (code, err) = get(&daemon.socket, "/api/v1/stats?from=2026-02-31").unwrap();
+    assert_eq!(code, 400, "{err}");
+    assert!(err["error"].as_str().unwrap().contains("from"), "{err}");
+
+    // The counters of this run.
+    let (_, metrics) = get_text(&daemon.socket, "/metrics");
+    let done = "crispen_jobs_total{printer=\"p1\",result=\"done\"}";
+    assert_eq!(sample(&metrics, done), 2.0);
+    let printed = sample(&metrics, "crispen_printing_seconds_total{printer=\"p1\"}");
+    assert!(
+        (printed - printing_s).abs() < 1e-3,
+        "{printed} vs {printing_s}"
+    );
+    let meters = sample(
+        &metrics,
+        "crispen_filament_used_meters_total{printer=\"p1\"}",
+    );
+    assert!((meters - filament_mm / 1000.0).abs() < 1e-9, "{meters}");
+
+    // A restart moves every finished job to the history: the same statistics from there.
+    drop(daemon);
+    let daemon = Daemon::start(root, &config);
+    let mut daemon = daemon;
+    daemon.wait_for(
+        |d| d.live_jobs().is_empty(),
+        "the jobs to move to the history",
+    );
+    let (_, history_stats) = get(&daemon.socket, &stats_path).unwrap();
+    check(&history_stats);
+    // The same figures (times as the spool stored them: to a microsecond).
+    for group in ["printers", "folders"] {
+        let (now, then) = (&history_stats[group][0], &live_stats[group][0]);
+        assert_eq!(now["jobs"], then["jobs"], "{group}");
+        assert_eq!(now["filament_mm"], then["filament_mm"], "{group}");
+        let (a, b) = (
+            now["printing_s"].as_f64().unwrap(),
+            then["printing_s"].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() < 1e-5, "{group}: {a} vs {b}");
+    }
+
+    let listed = |query: &str| -> Vec<String> {
+        let (code, page) = get(&daemon.socket, &format!("/api/v1/history?{query}")).unwrap();
+        assert_eq!(code, 200, "{query}: {page}");
+        page["jobs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|j| j["file"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert_eq!(listed("printer=p1&state=done"), ["c.gcode", "a.gcode"]);
+    assert_eq!(listed("state=failed"), ["big.gcode"]);
+    assert_eq!(listed("folder=hot").len(), 4);
+    assert_eq!(listed(&format!("folder={}", hot.display())).len(), 4);
+    assert!(listed("folder=elsewhere").is_empty());
+    assert!(listed(&format!("since={}", to as u64)).is_empty());
+    assert_eq!(
+        listed(&format!("since={}&until={}", from as u64, to as u64)).len(),
+        4
+    );
+    let (code, err) = get(&daemon.socket, "/api/v1/history?state=printing").unwrap();
+    assert_eq!(code, 400, "{err}");
+    let (code, err) = get(&daemon.socket, "/api/v1/history?colour=red").unwrap();
+    assert_eq!(code, 400, "{err}");
+    let (_, page) = get(&daemon.socket, "/api/v1/history?state=done&limit=1").unwrap();
+    let record = &page["jobs"][0];
+    assert_eq!(record["file"], "c.gcode");
+    assert!((record["filament_mm"].as_f64().unwrap() - 66.0).abs() < 1e-6);
+    assert!(record["filament_g"].as_f64().unwrap() > 0.0);
+    assert_eq!(record["resends"], 0);
+    assert!(record["print_s"].as_f64().unwrap() > 0.0);
+
+    // The export, by the CLI, read as CSV by another program.
+    let csv = history_cli(&config, &["--csv", "--folder", "hot"]);
+    let parsed = Command::new("python3")
+        .args([
+            "-c",
+            "import csv, json, sys; print(json.dumps(list(csv.DictReader(sys.stdin))))",
+        ])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .and_then(|mut child| {
+            use std::io::Write;
+            child.stdin.take().unwrap().write_all(csv.as_bytes())?;
+            child.wait_with_output()
+        })
+        .expect("python3");
+    assert!(parsed.status.success(), "{csv}");
+    let rows: Vec<serde_json::Value> = serde_json::from_slice(&parsed.stdout).unwrap();
+    assert_eq!(rows.len(), 4, "{csv}");
+    let row = rows.iter().find(|r| r["file"] == "big.gcode").unwrap();
+    assert_eq!(row["state"], "failed");
+    assert_eq!(
+        row["reason"].as_str().unwrap(),
+        jobs[2]["reason"].as_str().unwrap(),
+        "the reason whole, commas, quotes and line breaks and all"
+    );
+    let row = rows.iter().find(|r| r["file"] == "a.gcode").unwrap();
+    assert_eq!(row["printer"], "p1");
+    assert_eq!(
+        row["filament_mm"].as_str().unwrap().parse::<f64>().unwrap(),
+        33.0
+    );
+    let text = history_cli(&config, &["--state", "failed"]);
+    assert!(
+        text.contains("big.gcode") && !text.contains("a.gcode"),
+        "{text}"
+    );
+
+    let (ok, text) = crate::common::daemon::ctl(
+        &config,
+        &[
+            "stats",
+            "--from",
+            &format!("{}", from as u64),
+            "--to",
+            &format!("{}", to as u64),
+        ],
+    );
+    assert!(ok, "{text}");
+    assert!(
+        text.lines()
+            .any(|l| l.starts_with("p1 ") && l.contains(" 2 ")),
+        "{text}"
+    );
+}

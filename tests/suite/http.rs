@@ -1722,3 +1722,56 @@ fn dashboard_shows_a_file_pause_and_its_resume_button_resumes() {
         job_by_file(s, "magnets.gcode").is_some_and(|j| j["state"] == "done")
     });
 }
+
+/// The statistics page in a real browser: finished jobs in the spool (alpha printed two
+/// today, one of them across the last hour) are drawn as alpha's bar of today in the
+/// SVG chart and counted in the table; the dashboard links to the page.
+#[test]
+fn statistics_page_in_a_real_browser() {
+    use crispen::daemon::job::{Job, JobState};
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let now = crispen::daemon::job::now_s();
+    // Printing from 30 min to 20 min ago and from 15 min to 5 min ago (today, unless the
+    // test runs in the first half hour of a UTC day: then partly yesterday).
+    for (seq, (start, end)) in [(1u64, (1800.0, 1200.0)), (2, (900.0, 300.0))] {
+        let file = format!("part-{seq}.stl");
+        let id = Job::make_id(seq, &file);
+        let dir = root.join("spool/jobs").join(&id);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join(&file), b"solid x\nendsolid x\n").unwrap();
+        let mut job = Job::queued(id, seq, file, root.join("hot"));
+        job.history = vec![
+            (JobState::Queued, now - start - 60.0),
+            (JobState::Printing, now - start),
+            (JobState::Done, now - end),
+        ];
+        job.state = JobState::Done;
+        job.printer = Some("alpha".into());
+        job.copies_done = 1;
+        std::fs::write(dir.join("job.json"), serde_json::to_vec(&job).unwrap()).unwrap();
+    }
+    let farm = Farm::start(root, 0.0, "read_only_without_key = true");
+    let browser = Browser::start(&root.join("chromium-profile"));
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.wait_until(
+        Duration::from_secs(30),
+        "the dashboard's link to the statistics",
+        "const a = document.querySelector('a#statslink'); return !!a && a.getAttribute('href') === '/stats';",
+    );
+    browser.click("a#statslink");
+    browser.wait_until(
+        Duration::from_secs(30),
+        "alpha's bar and row on the statistics page",
+        "if (document.querySelector('#stats').dataset.loaded !== 'true') return 'not loaded: ' + document.querySelector('#notice').textContent;
+         const bars = [...document.querySelectorAll('#chart svg rect[data-printer=\"alpha\"]')];
+         const used = bars.reduce((s, r) => s + parseFloat(r.getAttribute('height')), 0);
+         const row = document.querySelector('#printers tr[data-name=\"alpha\"]');
+         const beta = document.querySelector('#printers tr[data-name=\"beta\"]');
+         const cells = row ? [...row.querySelectorAll('td')].map(c => c.textContent) : [];
+         return (bars.length === 7 && used > 0 && cells[1] === '2' && cells[4] === '0.3' && !!beta)
+           || JSON.stringify({bars: bars.length, used, cells});",
+    );
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("stats.png"));
+}

@@ -501,6 +501,7 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
     let retention = Retention {
         live_for: Duration::from_secs(86_400),
         live_jobs: 1,
+        keep_for: None,
     };
     let open = |host: &'static str| {
         let (settings, dir) = (settings(&pg), tmp.path().join(host));
@@ -588,4 +589,51 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
     let live: Vec<String> = c.snapshot().jobs().map(|j| j.id.clone()).collect();
     assert_eq!(live, [ids[0].clone()]);
     assert_eq!(rt.block_on(c.history(None, 10)).unwrap().jobs.len(), 2);
+
+    // The farm's history filtered, and its statistics, from a host that made none of it.
+    use crispen::daemon::store::history::Filter;
+    let cancelled = Filter {
+        state: Some(JobState::Cancelled),
+        folder: Some("hot".into()),
+        ..Filter::default()
+    };
+    let page = rt
+        .block_on(c.history_where(None, 1, cancelled.clone()))
+        .unwrap();
+    assert_eq!(page.jobs[0].id, ids[2]);
+    let page = rt
+        .block_on(c.history_where(page.next, 1, cancelled))
+        .unwrap();
+    assert_eq!(page.jobs[0].id, ids[1]);
+    assert_eq!(page.next, None);
+    let done = Filter {
+        state: Some(JobState::Done),
+        ..Filter::default()
+    };
+    assert!(rt
+        .block_on(c.history_where(None, 10, done))
+        .unwrap()
+        .jobs
+        .is_empty());
+    let now = crispen::daemon::job::now_s();
+    let period = crispen::daemon::store::stats::Period::new(now - 3600.0, now + 60.0).unwrap();
+    let stats = rt
+        .block_on(c.stats(period, vec!["p1".into()], vec!["hot".into()], now))
+        .unwrap();
+    // Two from the history, one live.
+    assert_eq!(stats.farm.jobs.cancelled, 3, "{stats:?}");
+    assert_eq!(stats.folders.len(), 1);
+    assert_eq!(stats.folders[0].name, "hot");
+    assert_eq!(stats.folders[0].jobs.cancelled, 3);
+    assert_eq!(stats.printers[0].name, "p1");
+
+    // `[history] keep_days`: retired jobs older than it leave the database, history and all.
+    let db = rt
+        .block_on(PgStore::connect(&settings(&pg), "rack-4", LEASE))
+        .unwrap();
+    let mut gone = rt.block_on(db.forget_retired(now + 1.0)).unwrap();
+    gone.sort();
+    assert_eq!(gone, ids[1..].to_vec());
+    assert!(rt.block_on(c.history(None, 10)).unwrap().jobs.is_empty());
+    assert!(c.snapshot().get(&ids[0]).is_some(), "a live job stays");
 }

@@ -87,6 +87,7 @@ struct RawConfig {
 struct RawHistory {
     live_days: Option<f64>,
     live_jobs: Option<i64>,
+    keep_days: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -201,6 +202,8 @@ pub struct Config {
 pub struct HistoryConfig {
     pub live_for: Duration,
     pub live_jobs: usize,
+    /// How long the history keeps a job (`keep_days`); None: for good.
+    pub keep_for: Option<Duration>,
 }
 
 impl Default for HistoryConfig {
@@ -208,12 +211,15 @@ impl Default for HistoryConfig {
         HistoryConfig {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 200,
+            keep_for: None,
         }
     }
 }
 
 /// Bounds of `[history] live_days` (0: a finished job leaves the queue at once).
 pub const LIVE_DAYS: Bounds = 0.0..=3650.0;
+/// Bounds of `[history] keep_days`: at least a day; absent, the history keeps everything.
+pub const KEEP_DAYS: Bounds = 1.0..=36_500.0;
 /// Bounds of `[history] live_jobs`: the live queue stays small whatever the history holds.
 pub const LIVE_JOBS: std::ops::RangeInclusive<i64> = 0..=10_000;
 
@@ -234,9 +240,21 @@ fn check_history(h: RawHistory) -> Result<HistoryConfig, (&'static str, String)>
             format!("must be between {lo} and {hi}, got {jobs}"),
         ));
     }
+    let keep_for = match h.keep_days {
+        None => None,
+        Some(keep) if KEEP_DAYS.contains(&keep) => Some(Duration::from_secs_f64(keep * 86_400.0)),
+        Some(keep) => {
+            let (lo, hi) = (KEEP_DAYS.start(), KEEP_DAYS.end());
+            return Err((
+                "keep_days",
+                format!("must be between {lo} and {hi} days (leave it out to keep for good), got {keep}"),
+            ));
+        }
+    };
     Ok(HistoryConfig {
         live_for: Duration::from_secs_f64(days * 86_400.0),
         live_jobs: jobs as usize,
+        keep_for,
     })
 }
 
@@ -1646,6 +1664,21 @@ slicer = "cura"
             let err = parse(&text).unwrap_err().to_string();
             assert!(err.contains(expected), "{err}\n  expected: {expected}");
             assert!(err.starts_with("/etc/crispen/crispen.toml: "), "{err}");
+        }
+    }
+
+    /// `[history] keep_days`: absent, the history keeps everything; else bounded.
+    #[test]
+    fn the_history_keeps_for_good_or_as_long_as_asked() {
+        assert_eq!(parse(GOOD).unwrap().history.keep_for, None);
+        let with = |keep: &str| parse(&format!("{GOOD}\n[history]\nkeep_days = {keep}\n"));
+        assert_eq!(
+            with("365").unwrap().history.keep_for,
+            Some(Duration::from_secs(365 * 86_400))
+        );
+        for bad in ["0", "-1", "nan", "1e9"] {
+            let err = with(bad).unwrap_err().to_string();
+            assert!(err.contains("[history]: key `keep_days`"), "{bad}: {err}");
         }
     }
 

@@ -402,6 +402,17 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                         .map_or([0.0; 3], |e| e.map(|[lo, hi]| hi - lo)),
                     top_layer_z_mm: target.extent_mm.map_or(0.0, |e| e[2][1]),
                     filament_mm: Some(target.extruded_mm),
+                    // The file names no material: grams as for PLA (the default preset),
+                    // on this machine's filament.
+                    filament_g: Some({
+                        let r_cm = m.machine.filament_mm / 20.0;
+                        let pla = crate::slice::MATERIALS[0];
+                        target.extruded_mm / 10.0
+                            * std::f64::consts::PI
+                            * r_cm
+                            * r_cm
+                            * pla.density_g_cm3
+                    }),
                     gcode_lines: target.lines,
                     ..SliceReport::default()
                 })

@@ -26,6 +26,9 @@ use std::time::Duration;
 pub struct Retention {
     pub live_for: Duration,
     pub live_jobs: usize,
+    /// How long the history keeps a job after it moved there (None: for good). Kept by
+    /// the month: a month's jobs go together once the whole month is older than this.
+    pub keep_for: Option<Duration>,
 }
 
 impl Default for Retention {
@@ -34,6 +37,7 @@ impl Default for Retention {
         Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 200,
+            keep_for: None,
         }
     }
 }
@@ -115,6 +119,59 @@ pub struct Retired {
     pub dir: PathBuf,
     /// When it left the live queue.
     pub retired_at: f64,
+    /// Each time it was printing: (start, end), seconds since the epoch, from its state
+    /// changes (a copy or a retried print is a time of its own). Records written before
+    /// this field existed have none.
+    #[serde(default)]
+    pub printing: Vec<(f64, f64)>,
+}
+
+/// The times `job` was printing, from its state changes: each `Printing` until the next
+/// change; one still printing ends at `now`.
+pub fn printing_times(job: &Job, now: f64) -> Vec<(f64, f64)> {
+    let mut out = Vec::new();
+    for (i, (state, start)) in job.history.iter().enumerate() {
+        if *state == JobState::Printing {
+            let end = job.history.get(i + 1).map_or(now, |next| next.1);
+            out.push((*start, end.max(*start)));
+        }
+    }
+    out
+}
+
+/// Which finished jobs a history page or an export takes; every part optional.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Filter {
+    /// The printer's name, as in `[[printer]] name`.
+    pub printer: Option<String>,
+    /// The hot folder: its name (the last part of its path) or its whole path.
+    pub folder: Option<String>,
+    pub state: Option<JobState>,
+    /// Ended at or after this (seconds since the epoch).
+    pub since: Option<f64>,
+    /// Ended before this.
+    pub until: Option<f64>,
+}
+
+impl Filter {
+    pub fn matches(&self, r: &Retired) -> bool {
+        self.printer
+            .as_ref()
+            .is_none_or(|p| r.printer.as_deref() == Some(p.as_str()))
+            && self.folder.as_ref().is_none_or(|f| folder_is(&r.folder, f))
+            && self.state.is_none_or(|s| r.state == s)
+            && self.since.is_none_or(|t| r.ended_at >= t)
+            && self.until.is_none_or(|t| r.ended_at < t)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        *self == Filter::default()
+    }
+}
+
+/// Whether `folder` is the one called `name` (its last part) or at path `name`.
+pub fn folder_is(folder: &Path, name: &str) -> bool {
+    folder.file_name().is_some_and(|n| n == name) || folder == Path::new(name)
 }
 
 impl Retired {
@@ -146,6 +203,7 @@ impl Retired {
             filament_g: report.and_then(|r| r.filament_g),
             dir,
             retired_at: now,
+            printing: printing_times(job, now),
         }
     }
 }
@@ -162,11 +220,16 @@ pub struct Page {
 pub const PAGE_LIMIT: std::ops::RangeInclusive<usize> = 1..=1000;
 
 /// Keeps the newest `limit` of `records` (by sequence number, each job once) below
-/// `before`, as a page.
-pub fn page_of(records: impl Iterator<Item = Retired>, before: Option<u64>, limit: usize) -> Page {
+/// `before` that `filter` takes, as a page.
+pub fn page_of(
+    records: impl Iterator<Item = Retired>,
+    before: Option<u64>,
+    limit: usize,
+    filter: &Filter,
+) -> Page {
     let mut newest: BTreeMap<u64, Retired> = BTreeMap::new();
     let mut more = false;
-    for r in records.filter(|r| before.is_none_or(|b| r.seq < b)) {
+    for r in records.filter(|r| before.is_none_or(|b| r.seq < b) && filter.matches(r)) {
         newest.insert(r.seq, r);
         if newest.len() > limit {
             newest.pop_first();
@@ -182,6 +245,110 @@ pub fn page_of(records: impl Iterator<Item = Retired>, before: Option<u64>, limi
         },
         jobs,
     }
+}
+
+/// The columns of the history as CSV, in order.
+pub const CSV_COLUMNS: [&str; 23] = [
+    "id",
+    "seq",
+    "file",
+    "folder",
+    "machine",
+    "printer",
+    "height_mm",
+    "enhancement",
+    "lambda2",
+    "state",
+    "reason",
+    "queued_at",
+    "started_at",
+    "ended_at",
+    "print_s",
+    "printing_s",
+    "copies_done",
+    "filament_mm",
+    "filament_g",
+    "resends",
+    "dir",
+    "retired_at",
+    "ended_unix",
+];
+
+impl Retired {
+    /// Its time spent printing, over all its prints.
+    pub fn printing_s(&self) -> f64 {
+        self.printing.iter().map(|(a, b)| (b - a).max(0.0)).sum()
+    }
+
+    /// One CSV line (RFC 4180, CRLF-ended) in the order of [`CSV_COLUMNS`]: times as UTC
+    /// `YYYY-MM-DDTHH:MM:SSZ`, an absent value empty.
+    pub fn csv_line(&self) -> String {
+        let num = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
+        let time = |v: Option<f64>| v.map_or(String::new(), iso_utc);
+        let fields = [
+            csv_text(&self.id),
+            self.seq.to_string(),
+            csv_text(&self.file),
+            csv_text(&self.folder.display().to_string()),
+            csv_text(self.machine.as_deref().unwrap_or("")),
+            csv_text(self.printer.as_deref().unwrap_or("")),
+            num(self.height_mm),
+            csv_text(self.enhancement.as_deref().unwrap_or("")),
+            num(self.lambda2),
+            self.state.name().to_string(),
+            csv_text(self.reason.as_deref().unwrap_or("")),
+            time(Some(self.queued_at)),
+            time(self.started_at),
+            time(Some(self.ended_at)),
+            num(self.print_s),
+            num(Some(self.printing_s())),
+            self.copies_done.to_string(),
+            num(self.filament_mm),
+            num(self.filament_g),
+            self.resends.map_or(String::new(), |r| r.to_string()),
+            csv_text(&self.dir.display().to_string()),
+            time(Some(self.retired_at)),
+            format!("{}", self.ended_at),
+        ];
+        let mut line = fields.join(",");
+        line.push_str("\r\n");
+        line
+    }
+}
+
+/// The CSV header line.
+pub fn csv_header() -> String {
+    format!("{}\r\n", CSV_COLUMNS.join(","))
+}
+
+/// A text field of a CSV line: quoted when it holds a comma, quote or line break (quotes
+/// doubled). A text starting with `=`, `+`, `-`, `@` or a tab gets a `'` in front, so a
+/// spreadsheet opening the file shows a file name or reason as text and never runs it
+/// as a formula.
+fn csv_text(text: &str) -> String {
+    let text = if text.starts_with(['=', '+', '-', '@', '\t', '\r']) {
+        format!("'{text}")
+    } else {
+        text.to_string()
+    };
+    if text.contains([',', '"', '\r', '\n']) || text.starts_with(' ') || text.ends_with(' ') {
+        format!("\"{}\"", text.replace('"', "\"\""))
+    } else {
+        text
+    }
+}
+
+/// `YYYY-MM-DDTHH:MM:SSZ` of seconds since the epoch.
+pub fn iso_utc(t: f64) -> String {
+    let secs = t.max(0.0).floor() as i64;
+    let (y, m, d) = civil_date(secs.div_euclid(86_400));
+    let s = secs.rem_euclid(86_400);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        s / 3600,
+        s / 60 % 60,
+        s % 60
+    )
 }
 
 /// The spool's history files, `<spool>/history/YYYY-MM.jsonl`.
@@ -268,7 +435,18 @@ impl HistoryFiles {
     /// Every record, oldest file first, read a line at a time (never the whole history in
     /// memory). A line that cannot be read is logged and passed over.
     pub fn records(&self) -> Result<impl Iterator<Item = Retired>, StoreError> {
-        let files = self.files()?;
+        self.records_since(0.0)
+    }
+
+    /// [`HistoryFiles::records`] of the months from that of `since` on: the records of
+    /// jobs retired at or after `since`, and some before.
+    pub fn records_since(&self, since: f64) -> Result<impl Iterator<Item = Retired>, StoreError> {
+        let first = format!("{}.jsonl", month_of(since));
+        let mut files = self.files()?;
+        files.retain(|f| {
+            f.file_name()
+                .is_some_and(|n| *n.to_string_lossy() >= *first.as_str())
+        });
         Ok(files.into_iter().flat_map(|path| {
             let file = match std::fs::File::open(&path) {
                 Ok(f) => Some(std::io::BufReader::new(f)),
@@ -288,6 +466,34 @@ impl HistoryFiles {
                 }
             })
         }))
+    }
+
+    /// The month files wholly older than `cutoff` (every job in them retired before it),
+    /// oldest first.
+    pub fn months_before(&self, cutoff: f64) -> Result<Vec<PathBuf>, StoreError> {
+        let first_kept = format!("{}.jsonl", month_of(cutoff));
+        let mut files = self.files()?;
+        files.retain(|f| {
+            f.file_name()
+                .is_some_and(|n| *n.to_string_lossy() < *first_kept)
+        });
+        Ok(files)
+    }
+
+    /// The records of one month file (unreadable lines passed over, as in `records`).
+    pub fn records_of(path: &Path) -> Result<Vec<Retired>, StoreError> {
+        let text = std::fs::read_to_string(path).map_err(io_err(path, "read"))?;
+        Ok(text
+            .lines()
+            .filter_map(|l| serde_json::from_str(l).ok())
+            .collect())
+    }
+
+    /// Removes a month file once its jobs' directories are gone (and syncs the directory).
+    pub fn remove_month(&self, path: &Path) -> Result<(), StoreError> {
+        std::fs::remove_file(path).map_err(io_err(path, "remove"))?;
+        crate::fsutil::sync_dir(&self.dir)?;
+        Ok(())
     }
 
     /// The record of one retired job.
@@ -364,6 +570,7 @@ mod tests {
         let retention = Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 3,
+            keep_for: None,
         };
         let jobs = [
             job(1, JobState::Done, now - 8.0 * DAY),         // too old
@@ -385,6 +592,7 @@ mod tests {
         let few = Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 200,
+            keep_for: None,
         };
         assert_eq!(
             to_retire(jobs[4..8].iter(), &few, now, &|_| false),
@@ -393,6 +601,7 @@ mod tests {
         let none = Retention {
             live_for: Duration::from_secs(7 * 86_400),
             live_jobs: 0,
+            keep_for: None,
         };
         assert_eq!(
             to_retire(jobs[4..8].iter(), &none, now, &|_| false).len(),
@@ -412,14 +621,29 @@ mod tests {
     fn pages_are_newest_first_and_each_job_once() {
         let record = |seq| Retired::of(&job(seq, JobState::Done, 1e9), "/d".into(), 1e9);
         let records: Vec<Retired> = [5, 1, 4, 2, 3, 4].map(record).to_vec();
-        let page = page_of(records.clone().into_iter(), None, 2);
+        let all = Filter::default();
+        let page = page_of(records.clone().into_iter(), None, 2, &all);
         assert_eq!(page.jobs.iter().map(|r| r.seq).collect::<Vec<_>>(), [5, 4]);
         assert_eq!(page.next, Some(4));
-        let page = page_of(records.clone().into_iter(), page.next, 2);
+        let page = page_of(records.clone().into_iter(), page.next, 2, &all);
         assert_eq!(page.jobs.iter().map(|r| r.seq).collect::<Vec<_>>(), [3, 2]);
-        let page = page_of(records.into_iter(), page.next, 2);
+        let page = page_of(records.into_iter(), page.next, 2, &all);
         assert_eq!(page.jobs.iter().map(|r| r.seq).collect::<Vec<_>>(), [1]);
         assert_eq!(page.next, None);
+    }
+
+    #[test]
+    fn csv_fields_are_quoted() {
+        assert_eq!(csv_text("plain.stl"), "plain.stl");
+        assert_eq!(csv_text("a,b"), "\"a,b\"");
+        assert_eq!(csv_text("say \"hi\"\nthen"), "\"say \"\"hi\"\"\nthen\"");
+        assert_eq!(csv_text("=cmd()"), "'=cmd()");
+        assert_eq!(iso_utc(1_709_208_000.0), "2024-02-29T12:00:00Z");
+        let mut j = job(3, JobState::Failed, 1e9);
+        j.reason = Some("bad, \"very\"".into());
+        let line = Retired::of(&j, "/d".into(), 1e9).csv_line();
+        assert!(line.ends_with("\r\n"));
+        assert!(line.contains(",\"bad, \"\"very\"\"\","), "{line}");
     }
 
     #[test]

@@ -30,6 +30,7 @@ pub mod history;
 pub mod pending;
 pub mod postgres;
 pub mod spool;
+pub mod stats;
 
 pub use history::Retention;
 
@@ -108,8 +109,24 @@ pub trait JobStore: Send + 'static {
     fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError>;
     /// A job in the history; None when there is no such retired job.
     fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError>;
-    /// A page of the history, newest first, of jobs with a sequence number below `before`.
-    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError>;
+    /// A page of the history, newest first, of jobs with a sequence number below `before`
+    /// that `filter` takes.
+    fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: &history::Filter,
+    ) -> Result<history::Page, StoreError>;
+    /// Forgets the jobs the history has kept longer than `keep_for` before `now` (their
+    /// records and files); returns how many. See [`Retention::keep_for`].
+    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError>;
+    /// Every job retired at or after `since` (seconds since the epoch), in no particular
+    /// order; a job may come twice (the statistics count it once).
+    fn each_retired(
+        &self,
+        since: f64,
+        visit: &mut dyn FnMut(history::Retired),
+    ) -> Result<(), StoreError>;
 }
 
 /// A job in the history: its record, and its whole state where it can still be read.
@@ -394,7 +411,15 @@ enum Request {
     History {
         before: Option<u64>,
         limit: usize,
+        filter: history::Filter,
         reply: Reply<history::Page>,
+    },
+    Stats {
+        period: stats::Period,
+        printers: Vec<String>,
+        folders: Vec<String>,
+        now: f64,
+        reply: Reply<stats::Stats>,
     },
 }
 
@@ -552,8 +577,35 @@ impl Request {
             Request::History {
                 before,
                 limit,
+                filter,
                 reply,
-            } => (deliver(reply, store.history(before, limit)), false),
+            } => (deliver(reply, store.history(before, limit, &filter)), false),
+            Request::Stats {
+                period,
+                printers,
+                folders,
+                now,
+                reply,
+            } => {
+                let mut builder = stats::Builder::new(period, &printers, &folders);
+                // A job retired before the period began ended before it too.
+                let result = store
+                    .each_retired(period.from, &mut |r| builder.add(&r))
+                    .map(|()| {
+                        // The live jobs: finished ones not yet retired, and the printing
+                        // time of those under way.
+                        for job in view.jobs() {
+                            if history::is_finished(job.state)
+                                || job.history.iter().any(|h| h.0 == JobState::Printing)
+                            {
+                                let dir = view.job_dir(&job.id);
+                                builder.add(&history::Retired::of(job, dir, now));
+                            }
+                        }
+                        builder.finish()
+                    });
+                (deliver(reply, result), false)
+            }
             Request::WritePending { reply } => {
                 // Only the persisted copy changes: the view already shows these outcomes.
                 let left = store.write_pending();
@@ -619,6 +671,15 @@ fn retire(
     let ids = store.retire(retention, now)?;
     if !ids.is_empty() {
         tracing::info!(jobs = ids.len(), first = %ids[0], "finished jobs moved to the history");
+    }
+    if let Some(keep_for) = retention.keep_for {
+        match store.prune(keep_for, now) {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(jobs = n, "jobs older than [history] keep_days forgotten"),
+            Err(e) => {
+                tracing::error!(error = %e, "cannot forget the history's old jobs; tried again later")
+            }
+        }
     }
     view.remove(&ids);
     Ok(ids)
@@ -958,10 +1019,41 @@ impl StoreHandle {
         before: Option<u64>,
         limit: usize,
     ) -> Result<history::Page, StoreError> {
+        self.history_where(before, limit, history::Filter::default())
+            .await
+    }
+
+    /// [`StoreHandle::history`] of the jobs `filter` takes.
+    pub async fn history_where(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: history::Filter,
+    ) -> Result<history::Page, StoreError> {
         let limit = limit.clamp(*history::PAGE_LIMIT.start(), *history::PAGE_LIMIT.end());
         self.ask(|reply| Request::History {
             before,
             limit,
+            filter,
+            reply,
+        })
+        .await
+    }
+
+    /// The statistics of `period` over the history and the live jobs (see [`stats`]);
+    /// `printers` and `folders` are listed even when they did nothing.
+    pub async fn stats(
+        &self,
+        period: stats::Period,
+        printers: Vec<String>,
+        folders: Vec<String>,
+        now: f64,
+    ) -> Result<stats::Stats, StoreError> {
+        self.ask(|reply| Request::Stats {
+            period,
+            printers,
+            folders,
+            now,
             reply,
         })
         .await
@@ -994,6 +1086,7 @@ mod tests {
         let retention = Retention {
             live_for: std::time::Duration::from_secs(86_400),
             live_jobs: 1,
+            keep_for: None,
         };
         let handle = spawn_with(store, retention);
         let mut ids = Vec::new();

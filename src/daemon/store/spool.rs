@@ -501,6 +501,33 @@ impl Spool {
         Ok(ids)
     }
 
+    /// Forgets the history's months wholly older than `keep_for` before `now`: each job's
+    /// directory first, then the month's file (a crash in between leaves the file, whose
+    /// remaining directories go next time). Returns how many jobs went.
+    pub fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+        let cutoff = now - keep_for.as_secs_f64();
+        let mut gone = 0;
+        for file in self.history.months_before(cutoff)? {
+            for record in HistoryFiles::records_of(&file)? {
+                // Only a retired job's own directory: never a live job's.
+                if self.jobs.contains_key(&record.id) {
+                    continue;
+                }
+                let dir = self.job_dir(&record.id);
+                match std::fs::remove_dir_all(&dir) {
+                    Ok(()) => {}
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                    Err(e) => return Err(io_err(&dir, "remove")(e)),
+                }
+                self.retired.remove(&record.id);
+                gone += 1;
+            }
+            self.history.remove_month(&file)?;
+            tracing::info!(file = %file.display(), "history month older than [history] keep_days removed, with its jobs' directories");
+        }
+        Ok(gone)
+    }
+
     /// A retired job: its history record, and its whole state from its directory.
     pub fn retired_job(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
         if !self.retired.contains(id) {
@@ -589,8 +616,25 @@ impl JobStore for Spool {
     fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
         self.retired_job(id)
     }
-    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError> {
-        Ok(history::page_of(self.history.records()?, before, limit))
+    fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: &history::Filter,
+    ) -> Result<history::Page, StoreError> {
+        Ok(history::page_of(
+            self.history.records()?,
+            before,
+            limit,
+            filter,
+        ))
+    }
+    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+        Spool::prune(self, keep_for, now)
+    }
+    fn each_retired(&self, since: f64, visit: &mut dyn FnMut(Retired)) -> Result<(), StoreError> {
+        self.history.records_since(since)?.for_each(visit);
+        Ok(())
     }
 }
 
@@ -1130,7 +1174,46 @@ mod tests {
         Retention {
             live_for: std::time::Duration::from_secs(days * 86_400),
             live_jobs: jobs,
+            keep_for: None,
         }
+    }
+
+    /// `[history] keep_days`: a month of the history wholly older than it goes, its jobs'
+    /// directories first, then its file; later months stay, and a reopened spool agrees.
+    #[test]
+    fn the_history_forgets_months_older_than_it_keeps() {
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
+        let done = finished_jobs(&mut store, &hot, 2, JobState::Cancelled);
+        let now = now_s();
+        let old = now - 100.0 * 86_400.0;
+        // The older job moves to the history a hundred days ago, the other now.
+        assert_eq!(store.retire(&retention(7, 1), old).unwrap(), done[..1]);
+        assert_eq!(store.retire(&retention(7, 0), now).unwrap(), done[1..]);
+        let old_month = spool
+            .join("history")
+            .join(format!("{}.jsonl", history::month_of(old)));
+        assert!(old_month.is_file());
+
+        let keep = std::time::Duration::from_secs(30 * 86_400);
+        assert_eq!(store.prune(keep, now).unwrap(), 1);
+        assert!(!old_month.exists());
+        assert!(!store.job_dir(&done[0]).exists());
+        assert!(store.job_dir(&done[1]).join("m1.stl").is_file());
+        assert_eq!(store.prune(keep, now).unwrap(), 0);
+        let listed = |store: &Spool| -> Vec<String> {
+            JobStore::history(store, None, 10, &Default::default())
+                .unwrap()
+                .jobs
+                .into_iter()
+                .map(|r| r.id)
+                .collect()
+        };
+        assert_eq!(listed(&store), done[1..]);
+        assert!(store.retired_job(&done[0]).unwrap().is_none());
+        drop(store);
+        let store = Spool::open(&spool).unwrap();
+        assert_eq!(store.jobs().count(), 0);
+        assert_eq!(listed(&store), done[1..]);
     }
 
     /// Finished jobs beyond the count, and all of them once old enough, leave the live
@@ -1167,7 +1250,7 @@ mod tests {
         drop(store);
         let store = Spool::open(&spool).unwrap();
         assert_eq!(store.jobs().count(), 1);
-        let page = JobStore::history(&store, None, 100).unwrap();
+        let page = JobStore::history(&store, None, 100, &Default::default()).unwrap();
         let mut ids: Vec<String> = page.jobs.iter().map(|r| r.id.clone()).collect();
         ids.reverse();
         assert_eq!(ids, done);
@@ -1233,7 +1316,7 @@ mod tests {
         drop(store);
         let store = Spool::open(&spool).unwrap();
         assert_eq!(store.jobs().count(), 0);
-        let page = JobStore::history(&store, None, 100).unwrap();
+        let page = JobStore::history(&store, None, 100, &Default::default()).unwrap();
         let ids: Vec<&str> = page.jobs.iter().map(|r| r.id.as_str()).collect();
         assert_eq!(
             ids,

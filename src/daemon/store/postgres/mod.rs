@@ -985,20 +985,23 @@ impl PgStore {
         Ok(retired)
     }
 
-    /// A page of the farm's history, newest first: retired jobs below `before`, with the
-    /// time each was retired.
+    /// A page of the farm's history, newest first: jobs retired at or after
+    /// `retired_since` (seconds since the epoch) below `before`, with the time each was
+    /// retired.
     pub async fn history(
         &self,
         before: Option<u64>,
         limit: usize,
+        retired_since: f64,
     ) -> Result<Vec<(Job, f64)>, PgError> {
         let client = self.client().await?;
         let before = before.map_or(i64::MAX, |b| b.min(i64::MAX as u64) as i64);
         let rows = client
             .query(
                 "SELECT id, extract(epoch FROM retired_at)::float8 FROM jobs \
-                 WHERE retired_at IS NOT NULL AND seq < $1 ORDER BY seq DESC LIMIT $2",
-                &[&before, &(limit as i64)],
+                 WHERE retired_at IS NOT NULL AND seq < $1 \
+                 AND retired_at >= to_timestamp($3) ORDER BY seq DESC LIMIT $2",
+                &[&before, &(limit as i64), &retired_since],
             )
             .await?;
         let when: std::collections::HashMap<String, f64> =
@@ -1013,6 +1016,18 @@ impl PgStore {
                 (j, at)
             })
             .collect())
+    }
+
+    /// Deletes the jobs retired before `cutoff` (seconds since the epoch), with their
+    /// history and files; returns their ids.
+    pub async fn forget_retired(&self, cutoff: f64) -> Result<Vec<String>, PgError> {
+        let client = self.client().await?;
+        Ok(ids(client
+            .query(
+                "DELETE FROM jobs WHERE retired_at < to_timestamp($1) RETURNING id",
+                &[&cutoff],
+            )
+            .await?))
     }
 
     /// A retired job and when it was retired; None when `id` is live or unknown.

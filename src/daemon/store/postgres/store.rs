@@ -26,6 +26,9 @@ use std::path::{Path, PathBuf};
 /// Jobs changed this long before the last resync are read again: a transaction's
 /// `updated_at` is its start, and it may commit a little after a resync that missed it.
 const RESYNC_OVERLAP_S: f64 = 30.0;
+/// Retired jobs read from the farm database at a time by a filtered history page or the
+/// statistics (each read loads whole jobs, so not all at once).
+const HISTORY_CHUNK: usize = 500;
 
 pub struct PgJobStore {
     db: PgStore,
@@ -430,15 +433,39 @@ impl JobStore for PgJobStore {
         }))
     }
 
-    fn history(&self, before: Option<u64>, limit: usize) -> Result<history::Page, StoreError> {
-        // One more than asked: whether there is a next page.
-        let mut jobs = self.block(self.db.history(before, limit + 1))?;
-        let more = jobs.len() > limit;
-        jobs.truncate(limit);
-        let jobs: Vec<Retired> = jobs
-            .iter()
-            .map(|(job, at)| Retired::of(job, self.job_dir(&job.id), *at))
-            .collect();
+    fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: &history::Filter,
+    ) -> Result<history::Page, StoreError> {
+        // Unfiltered: one read of one more than asked (whether there is a next page).
+        // Filtered: older and older reads until enough match or the history ends.
+        let chunk = if filter.is_empty() {
+            limit + 1
+        } else {
+            HISTORY_CHUNK.max(limit + 1)
+        };
+        // A job that ended since then was retired since then too.
+        let since = filter.since.unwrap_or(0.0);
+        let (mut jobs, mut more, mut cursor) = (Vec::new(), false, before);
+        loop {
+            let read = self.block(self.db.history(cursor, chunk, since))?;
+            for (job, at) in &read {
+                let record = Retired::of(job, self.job_dir(&job.id), *at);
+                if filter.matches(&record) {
+                    if jobs.len() == limit {
+                        more = true;
+                        break;
+                    }
+                    jobs.push(record);
+                }
+            }
+            if more || read.len() < chunk {
+                break;
+            }
+            cursor = read.last().map(|(j, _)| j.seq);
+        }
         Ok(history::Page {
             next: if more {
                 jobs.last().map(|r| r.seq)
@@ -447,6 +474,31 @@ impl JobStore for PgJobStore {
             },
             jobs,
         })
+    }
+
+    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+        // By the database's record of when each job was retired; any host may do it.
+        let gone = self.block(self.db.forget_retired(now - keep_for.as_secs_f64()))?;
+        for id in &gone {
+            // This host's copy of its files, where it has one.
+            let _ = std::fs::remove_dir_all(self.job_dir(id));
+        }
+        Ok(gone.len())
+    }
+
+    fn each_retired(&self, since: f64, visit: &mut dyn FnMut(Retired)) -> Result<(), StoreError> {
+        let mut cursor = None;
+        loop {
+            let read = self.block(self.db.history(cursor, HISTORY_CHUNK, since))?;
+            cursor = read.last().map(|(j, _)| j.seq);
+            let n = read.len();
+            for (job, at) in read {
+                visit(Retired::of(&job, self.job_dir(&job.id), at));
+            }
+            if n < HISTORY_CHUNK {
+                return Ok(());
+            }
+        }
     }
 
     fn resync(&mut self) -> bool {

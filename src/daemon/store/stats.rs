@@ -1,0 +1,531 @@
+//! Statistics of the farm over a chosen period, per printer and per hot folder: jobs by
+//! outcome, printing time, utilisation (the share of the period a printer was printing,
+//! also per UTC day for the dashboard's chart), filament used and the most common
+//! failure reasons. Computed from the history's records and the live jobs (both as
+//! [`Retired`] records), by arithmetic without I/O, so the rules are tested on their own.
+//!
+//! Also the counters behind `/metrics` ([`Tally`]): counted as jobs change state on this
+//! host, from the start of the process (Prometheus takes a restart's reset), so they never
+//! go down when finished jobs move to the history.
+//!
+//! The rules: a job counts in the outcomes, filament and failure reasons of the period in
+//! which it ended; its printing time counts where it was printing (a print across
+//! midnight or across the period's edge is split there).
+
+use super::history::{folder_is, Retired};
+use crate::daemon::job::{Job, JobState};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Mutex;
+
+const DAY: f64 = 86_400.0;
+
+/// The longest period asked for (the chart has a column per day).
+pub const MAX_DAYS: f64 = 400.0;
+/// How many failure reasons are listed, most common first.
+pub const TOP_REASONS: usize = 5;
+/// A failure reason is compared (and shown) by its first line, at most this long.
+const REASON_CHARS: usize = 200;
+
+/// A period, `[from, to)` in seconds since the epoch.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Period {
+    pub from: f64,
+    pub to: f64,
+}
+
+impl Period {
+    /// A period that starts before it ends and lasts at most [`MAX_DAYS`].
+    pub fn new(from: f64, to: f64) -> Result<Period, String> {
+        if !from.is_finite() || !to.is_finite() || from < 0.0 {
+            return Err(format!("from {from} and to {to}: not times"));
+        }
+        if to <= from {
+            return Err(format!("from {from} must be before to {to}"));
+        }
+        if to - from > MAX_DAYS * DAY {
+            return Err(format!(
+                "a period of {:.1} days: at most {MAX_DAYS} days",
+                (to - from) / DAY
+            ));
+        }
+        Ok(Period { from, to })
+    }
+
+    /// The last `days` whole UTC days up to and including the day of `now`.
+    pub fn last_days(days: u32, now: f64) -> Result<Period, String> {
+        let end = ((now / DAY).floor() + 1.0) * DAY;
+        Period::new(end - f64::from(days) * DAY, end)
+    }
+
+    /// The UTC days the period touches: each day's start, clipped to the period.
+    fn days(&self) -> Vec<(f64, f64)> {
+        let mut out = Vec::new();
+        let mut start = self.from;
+        while start < self.to {
+            let end = (((start / DAY).floor() + 1.0) * DAY).min(self.to);
+            out.push((start, end));
+            start = end;
+        }
+        out
+    }
+}
+
+/// A time given as seconds since the epoch, or as a UTC date `YYYY-MM-DD` (its midnight).
+pub fn parse_time(text: &str) -> Result<f64, String> {
+    if let Ok(t) = text.parse::<f64>() {
+        if t.is_finite() && t >= 0.0 {
+            return Ok(t);
+        }
+    }
+    let bad = || format!("{text:?}: not a time (seconds since the epoch, or YYYY-MM-DD)");
+    let parts: Vec<&str> = text.split('-').collect();
+    let [y, m, d] = parts[..] else {
+        return Err(bad());
+    };
+    let (y, m, d): (i64, u32, u32) = (
+        y.parse().map_err(|_| bad())?,
+        m.parse().map_err(|_| bad())?,
+        d.parse().map_err(|_| bad())?,
+    );
+    if !(1970..=9999).contains(&y) || !(1..=12).contains(&m) || !(1..=31).contains(&d) {
+        return Err(bad());
+    }
+    let days = days_from_civil(y, m, d);
+    // 2026-02-31 is no date: it must come back as itself.
+    if super::history::civil_date(days) != (y, m, d) {
+        return Err(bad());
+    }
+    Ok(days as f64 * DAY)
+}
+
+/// Days since 1970-01-01 of a proleptic Gregorian date (the inverse of
+/// [`super::history::civil_date`]).
+pub fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let year_of_era = y.rem_euclid(400);
+    let mp = i64::from((m + 9) % 12);
+    let day_of_year = (153 * mp + 2) / 5 + i64::from(d) - 1;
+    let day_of_era = year_of_era * 365 + year_of_era / 4 - year_of_era / 100 + day_of_year;
+    era * 146_097 + day_of_era - 719_468
+}
+
+/// `YYYY-MM-DD` of a time.
+pub fn date_of(t: f64) -> String {
+    let (y, m, d) = super::history::civil_date((t / DAY).floor() as i64);
+    format!("{y:04}-{m:02}-{d:02}")
+}
+
+/// Jobs by outcome.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Outcomes {
+    pub done: u64,
+    pub failed: u64,
+    pub cancelled: u64,
+}
+
+/// A failure reason and how many jobs failed so.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Reason {
+    pub reason: String,
+    pub jobs: u64,
+}
+
+/// The figures of one printer, one folder, or the whole farm.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Group {
+    pub name: String,
+    pub jobs: Outcomes,
+    /// Time spent printing within the period.
+    pub printing_s: f64,
+    /// Filament of the prints finished in the period (each copy printed counts).
+    pub filament_mm: f64,
+    pub filament_g: f64,
+    /// Most common first, at most [`TOP_REASONS`].
+    pub failure_reasons: Vec<Reason>,
+    /// Printers only: `printing_s` over the period's length, and the same per day of
+    /// [`Stats::days`] (not capped: above 1 would mean records that overlap).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub utilisation: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub daily_utilisation: Option<Vec<f64>>,
+}
+
+/// The statistics of a period.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Stats {
+    pub from: f64,
+    pub to: f64,
+    /// The UTC days the period touches, `YYYY-MM-DD`.
+    pub days: Vec<String>,
+    pub farm: Group,
+    pub printers: Vec<Group>,
+    pub folders: Vec<Group>,
+}
+
+/// A group while its records are added.
+#[derive(Default)]
+struct Sums {
+    jobs: Outcomes,
+    printing_s: f64,
+    filament_mm: f64,
+    filament_g: f64,
+    reasons: HashMap<String, u64>,
+    daily_s: Vec<f64>,
+}
+
+impl Sums {
+    fn finish(self, name: String, period: &Period, days: &[(f64, f64)], printer: bool) -> Group {
+        let mut reasons: Vec<Reason> = self
+            .reasons
+            .into_iter()
+            .map(|(reason, jobs)| Reason { reason, jobs })
+            .collect();
+        reasons.sort_by(|a, b| b.jobs.cmp(&a.jobs).then(a.reason.cmp(&b.reason)));
+        reasons.truncate(TOP_REASONS);
+        Group {
+            name,
+            jobs: self.jobs,
+            printing_s: self.printing_s,
+            filament_mm: self.filament_mm,
+            filament_g: self.filament_g,
+            failure_reasons: reasons,
+            utilisation: printer.then(|| self.printing_s / (period.to - period.from)),
+            daily_utilisation: printer.then(|| {
+                days.iter()
+                    .enumerate()
+                    .map(|(i, (a, b))| self.daily_s.get(i).copied().unwrap_or(0.0) / (b - a))
+                    .collect()
+            }),
+        }
+    }
+}
+
+/// Adds records up into [`Stats`]; each job once, however often it is added (the same
+/// job may be live on one host and retired on another, or twice in a spool's history
+/// after a crash while retiring).
+pub struct Builder {
+    period: Period,
+    days: Vec<(f64, f64)>,
+    seen: std::collections::HashSet<u64>,
+    farm: Sums,
+    printers: BTreeMap<String, Sums>,
+    folders: BTreeMap<String, Sums>,
+}
+
+impl Builder {
+    /// `printers`: those listed even when they did nothing (the config's); `folders`
+    /// likewise (their names).
+    pub fn new(period: Period, printers: &[String], folders: &[String]) -> Builder {
+        let days = period.days();
+        let empty = || Sums {
+            daily_s: vec![0.0; days.len()],
+            ..Sums::default()
+        };
+        Builder {
+            printers: printers.iter().map(|p| (p.clone(), empty())).collect(),
+            folders: folders.iter().map(|f| (f.clone(), empty())).collect(),
+            farm: empty(),
+            seen: Default::default(),
+            period,
+            days,
+        }
+    }
+
+    pub fn add(&mut self, r: &Retired) {
+        if !self.seen.insert(r.seq) {
+            return;
+        }
+        let period = self.period;
+        let ended_in = r.ended_at >= period.from && r.ended_at < period.to;
+        let mut daily = vec![0.0; self.days.len()];
+        let mut printing = 0.0;
+        for &(start, end) in &r.printing {
+            printing += overlap((start, end), (period.from, period.to));
+            for (i, day) in self.days.iter().enumerate() {
+                daily[i] += overlap((start, end), *day);
+            }
+        }
+        if !ended_in && printing == 0.0 {
+            return;
+        }
+        let folder = r.folder.file_name().map_or_else(
+            || r.folder.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        );
+        let folder = match self.folders.keys().find(|f| folder_is(&r.folder, f)) {
+            Some(f) => f.clone(),
+            None => folder,
+        };
+        let days = self.days.len();
+        let mut groups: Vec<&mut Sums> = vec![&mut self.farm];
+        groups.push(self.folders.entry(folder).or_insert_with(|| Sums {
+            daily_s: vec![0.0; days],
+            ..Sums::default()
+        }));
+        if let Some(p) = &r.printer {
+            groups.push(self.printers.entry(p.clone()).or_insert_with(|| Sums {
+                daily_s: vec![0.0; days],
+                ..Sums::default()
+            }));
+        }
+        for g in groups {
+            g.printing_s += printing;
+            for (d, s) in g.daily_s.iter_mut().zip(&daily) {
+                *d += s;
+            }
+            if !ended_in {
+                continue;
+            }
+            match r.state {
+                JobState::Done => g.jobs.done += 1,
+                JobState::Failed => {
+                    g.jobs.failed += 1;
+                    let reason = reason_key(r.reason.as_deref());
+                    *g.reasons.entry(reason).or_default() += 1;
+                }
+                JobState::Cancelled => g.jobs.cancelled += 1,
+                // A live job that ended no print yet: its printing time only.
+                _ => {}
+            }
+            let copies = f64::from(r.copies_done);
+            g.filament_mm += r.filament_mm.unwrap_or(0.0) * copies;
+            g.filament_g += r.filament_g.unwrap_or(0.0) * copies;
+        }
+    }
+
+    pub fn finish(self) -> Stats {
+        let Builder {
+            period,
+            days,
+            farm,
+            printers,
+            folders,
+            ..
+        } = self;
+        Stats {
+            from: period.from,
+            to: period.to,
+            days: days.iter().map(|d| date_of(d.0)).collect(),
+            farm: farm.finish("farm".into(), &period, &days, false),
+            printers: printers
+                .into_iter()
+                .map(|(n, s)| s.finish(n, &period, &days, true))
+                .collect(),
+            folders: folders
+                .into_iter()
+                .map(|(n, s)| s.finish(n, &period, &days, false))
+                .collect(),
+        }
+    }
+}
+
+/// How long two intervals overlap.
+fn overlap(a: (f64, f64), b: (f64, f64)) -> f64 {
+    (a.1.min(b.1) - a.0.max(b.0)).max(0.0)
+}
+
+/// A failure reason as counted: its first line, at most [`REASON_CHARS`] characters.
+fn reason_key(reason: Option<&str>) -> String {
+    let first = reason.and_then(|r| r.lines().next()).unwrap_or("");
+    if first.trim().is_empty() {
+        return "(no reason given)".into();
+    }
+    first.chars().take(REASON_CHARS).collect()
+}
+
+/// One printer's counters since the process started.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PrinterTally {
+    pub done: u64,
+    pub failed: u64,
+    pub cancelled: u64,
+    pub printing_s: f64,
+    /// Prints that ended (a copy each), and filament of those that finished.
+    pub prints: u64,
+    pub filament_m: f64,
+    pub resends: u64,
+    pub silence_probes: u64,
+}
+
+/// Counters of what jobs did on this host since the process started, by printer: fed by
+/// every state change the farm makes ([`Tally::changed`]), read by `/metrics`. Monotonic
+/// while the process runs; a restart starts them again from zero, which Prometheus'
+/// `rate()` and `increase()` take as a counter reset. Each host counts the changes it
+/// made, so a shared farm's hosts add up to the farm.
+#[derive(Debug, Default)]
+pub struct Tally(Mutex<BTreeMap<String, PrinterTally>>);
+
+impl Tally {
+    /// Counts a change `job` has just made (its last state change is the new one).
+    /// Jobs without a printer (a failed preparation) have nothing to count.
+    pub fn changed(&self, job: &Job) {
+        let Some(printer) = &job.printer else { return };
+        let n = job.history.len();
+        let Some(&(now_state, at)) = job.history.last() else {
+            return;
+        };
+        let left_printing = n >= 2 && job.history[n - 2].0 == JobState::Printing;
+        // A poisoned lock held only counters: take them as they are.
+        let mut all = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        let t = all.entry(printer.clone()).or_default();
+        if left_printing {
+            t.printing_s += (at - job.history[n - 2].1).max(0.0);
+            t.prints += 1;
+            if matches!(now_state, JobState::Done | JobState::Ready) {
+                let mm = job.slice_report.as_ref().and_then(|r| r.filament_mm);
+                t.filament_m += mm.unwrap_or(0.0) / 1000.0;
+            }
+            if let Some(report) = &job.print_report {
+                t.resends += report.resends;
+                t.silence_probes += report.silence_probes;
+            }
+        }
+        match now_state {
+            JobState::Done => t.done += 1,
+            JobState::Failed => t.failed += 1,
+            JobState::Cancelled => t.cancelled += 1,
+            _ => {}
+        }
+    }
+
+    /// The counters of each printer that has any.
+    pub fn read(&self) -> BTreeMap<String, PrinterTally> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::PathBuf;
+
+    fn record(seq: u64, state: JobState, printing: &[(f64, f64)], ended: f64) -> Retired {
+        Retired {
+            id: format!("{seq:04}-x"),
+            seq,
+            file: "x.stl".into(),
+            folder: PathBuf::from("/srv/hot/parts"),
+            state,
+            reason: (state == JobState::Failed).then(|| "thermal runaway\nat line 12".into()),
+            printer: Some("p1".into()),
+            machine: None,
+            height_mm: None,
+            enhancement: None,
+            lambda2: None,
+            queued_at: 0.0,
+            started_at: printing.first().map(|p| p.0),
+            ended_at: ended,
+            copies_done: u32::from(state == JobState::Done),
+            resends: None,
+            print_s: None,
+            filament_mm: Some(1000.0),
+            filament_g: Some(3.0),
+            dir: PathBuf::from("/d"),
+            retired_at: ended,
+            printing: printing.to_vec(),
+        }
+    }
+
+    const D0: f64 = 20_000.0 * DAY;
+
+    #[test]
+    fn utilisation_is_split_at_midnight() {
+        // Two days; a print from 22:00 on day 1 to 04:00 on day 2.
+        let period = Period::new(D0, D0 + 2.0 * DAY).unwrap();
+        let mut b = Builder::new(period, &["p1".into(), "p2".into()], &[]);
+        let (start, end) = (D0 + 22.0 * 3600.0, D0 + DAY + 4.0 * 3600.0);
+        b.add(&record(1, JobState::Done, &[(start, end)], end));
+        let s = b.finish();
+        assert_eq!(s.days, [date_of(D0), date_of(D0 + DAY)]);
+        let p1 = &s.printers[0];
+        assert_eq!(p1.name, "p1");
+        assert_eq!(p1.printing_s, 6.0 * 3600.0);
+        assert_eq!(p1.utilisation, Some(6.0 / 48.0));
+        assert_eq!(p1.daily_utilisation, Some(vec![2.0 / 24.0, 4.0 / 24.0]));
+        assert_eq!(p1.jobs.done, 1);
+        assert_eq!((p1.filament_mm, p1.filament_g), (1000.0, 3.0));
+        // A printer that did nothing is listed with zeros.
+        assert_eq!(s.printers[1].utilisation, Some(0.0));
+        assert_eq!(s.folders[0].name, "parts");
+        assert_eq!(s.farm.jobs.done, 1);
+        assert_eq!(s.farm.utilisation, None);
+    }
+
+    #[test]
+    fn a_job_across_the_period_edge() {
+        // The period starts at noon: a print from 10:00 to 14:00 counts 2 h, and its
+        // outcome counts (it ended inside); one that ended before counts nothing; one
+        // printing past the end counts its time inside, not its outcome.
+        let period = Period::new(D0 + 12.0 * 3600.0, D0 + DAY).unwrap();
+        let mut b = Builder::new(period, &[], &[]);
+        let h = |x: f64| D0 + x * 3600.0;
+        b.add(&record(1, JobState::Failed, &[(h(10.0), h(14.0))], h(14.0)));
+        b.add(&record(2, JobState::Done, &[(h(8.0), h(11.0))], h(11.0)));
+        b.add(&record(3, JobState::Done, &[(h(23.0), h(26.0))], h(26.0)));
+        // The same job again (live on one host, retired on another) counts once.
+        b.add(&record(1, JobState::Failed, &[(h(10.0), h(14.0))], h(14.0)));
+        let s = b.finish();
+        assert_eq!(s.days.len(), 1);
+        let p1 = &s.printers[0];
+        assert_eq!(p1.printing_s, 3.0 * 3600.0);
+        assert_eq!(p1.utilisation, Some(3.0 / 12.0));
+        assert_eq!(p1.daily_utilisation, Some(vec![3.0 / 12.0]));
+        assert_eq!(
+            p1.jobs,
+            Outcomes {
+                done: 0,
+                failed: 1,
+                cancelled: 0
+            }
+        );
+        assert_eq!(
+            p1.failure_reasons,
+            [Reason {
+                reason: "thermal runaway".into(),
+                jobs: 1
+            }]
+        );
+        assert_eq!(p1.filament_mm, 0.0, "a failed job printed no whole copy");
+    }
+
+    #[test]
+    fn periods_and_dates() {
+        assert!(Period::new(10.0, 10.0).is_err());
+        assert!(Period::new(0.0, 401.0 * DAY).is_err());
+        assert!(Period::new(f64::NAN, 1.0).is_err());
+        let p = Period::last_days(7, D0 + 5.0).unwrap();
+        assert_eq!((p.from, p.to), (D0 - 6.0 * DAY, D0 + DAY));
+        assert_eq!(p.days().len(), 7);
+        assert_eq!(parse_time("2024-02-29").unwrap(), 19_782.0 * DAY);
+        assert_eq!(parse_time("1970-01-01").unwrap(), 0.0);
+        assert_eq!(parse_time("1700000000").unwrap(), 1_700_000_000.0);
+        assert!(parse_time("2026-02-31").is_err());
+        assert!(parse_time("yesterday").is_err());
+        assert!(parse_time("-5").is_err());
+        for days in [-1, 0, 59, 19_782, 2_932_896] {
+            let (y, m, d) = super::super::history::civil_date(days);
+            assert_eq!(days_from_civil(y, m, d), days);
+        }
+        assert_eq!(date_of(19_782.0 * DAY + 3.0), "2024-02-29");
+    }
+
+    #[test]
+    fn the_tally_counts_each_print_once() {
+        let mut job = Job::queued("0001-x".into(), 1, "x.stl".into(), "/hot".into());
+        job.printer = Some("p1".into());
+        let tally = Tally::default();
+        let mut step = |state: JobState, at: f64| {
+            job.state = state;
+            job.history.push((state, at));
+            tally.changed(&job);
+        };
+        step(JobState::Printing, 100.0);
+        step(JobState::Ready, 160.0); // a copy
+        step(JobState::Printing, 200.0);
+        step(JobState::Failed, 230.0);
+        let t = &tally.read()["p1"];
+        assert_eq!((t.printing_s, t.prints, t.failed, t.done), (90.0, 2, 1, 0));
+    }
+}

@@ -101,6 +101,15 @@ fn assert_exact(build: Build, what: &str, o: &Outcome, moves: usize) {
     }
 }
 
+/// The last `n` lines that crossed the relay, each way, with their times.
+fn wire_tail(l: &RelayLog, n: usize) -> String {
+    let from = l.wire.len().saturating_sub(n);
+    l.wire[from..]
+        .iter()
+        .map(|(t, d, line)| format!("{t:>9.3} {d} {line}\n"))
+        .collect()
+}
+
 fn counts(l: &RelayLog) -> String {
     format!(
         "{} host lines, {} corrupted, {} dropped, {} oks lost",
@@ -322,4 +331,136 @@ fn crispen_print_through_the_relay_runs_every_line_once() {
             );
         }
     }
+}
+
+/// A pre-sliced job for a `marlin-175` printer, as the daemon's preparation accepts it
+/// (filament and nozzle stated, both heaters heated and waited for before the one
+/// extruding move, every move on the bed): `moves` short relative moves from a position
+/// set by `G92`, then the position asked for; and the position they end at. The targets
+/// are low (30 °C): stock Marlin's `M109` waits out its 10 s residency whatever the
+/// target, and the simulated hotend needs 84 s to 200 °C. The bed is waited for after the
+/// hotend: stock Marlin switches the bed bang-bang every 5 s, so from 19 °C it overshoots
+/// to 50 °C, and an `M190 S30` begun while it still heats restarts its residency until the
+/// bed has cooled to within 3 °C of the target, minutes later (an earlier attempt of this
+/// test "hung" so); begun once it is above the target, `M190 S` does not wait for cooling.
+/// Marlin refuses the one extrusion (`cold extrusion prevented`, below 170 °C) but runs
+/// its X/Y move, which is all the final position counts.
+fn daemon_job(moves: usize) -> (String, [f64; 3]) {
+    let (moves_text, at) = job(moves);
+    let mut text = String::from(
+        "; written by crispen's firmware tests\n; filament_diameter = 1.75\n\
+         ; nozzle_diameter = 0.4\nM140 S30\nM104 S30\nM109 S30\nM190 S30\nM83\n",
+    );
+    let mut lines = moves_text.lines();
+    // `G92 X0 Y0 Z0`, `G91`, then the first move extrudes a little.
+    for _ in 0..2 {
+        text += lines.next().unwrap();
+        text += "\n";
+    }
+    let first = lines.next().unwrap();
+    text += &first.replace(" F6000", " E0.05 F6000");
+    text += "\n";
+    for l in lines {
+        text += l;
+        text += "\n";
+    }
+    text += "M104 S0\nM140 S0\n";
+    (text, at)
+}
+
+/// The daemon (`crispen run`, a real process) whose printer's port is the relay in front
+/// of the real stock Marlin 2.1.2.1, under the issue's noise: a pre-sliced job dropped
+/// into its hot folder is prepared, heats both heaters and prints, and every move ran once
+/// by the firmware's own final `M114`. The daemon runs with `--exit-when-idle`, so it
+/// also ends on its own once the job is done.
+#[test]
+fn the_daemon_through_the_relay_runs_every_line_once() {
+    use common::daemon::{state_of, status, Daemon, BIN};
+    let Some(dir) = firmware_dir("the_daemon_through_the_relay_runs_every_line_once") else {
+        return;
+    };
+    let moves = 1000;
+    let (text, expected) = daemon_job(moves);
+    let relay = Relay::start(&dir, Build::Default, noise(21));
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    std::fs::create_dir(root.join("hot")).unwrap();
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+             [[printer]]\nname = \"m\"\nport = \"{}\"\nfirmware = \"marlin2\"\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"m\"]\n",
+            relay.device_path().display()
+        ),
+    )
+    .unwrap();
+    common::daemon::drop_model(&root.join("hot"), "moves.gcode", text.as_bytes());
+    let log = root.join("daemon.log");
+    let child = std::process::Command::new(BIN)
+        .args(["run", "--exit-when-idle", "--config"])
+        .arg(&config)
+        .env("RUST_LOG", "info,crispen::marlin=debug")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut daemon = Daemon { child };
+    let started = Instant::now();
+    let log_of = || std::fs::read_to_string(&log).unwrap_or_default();
+    // The job ends done, and then the daemon exits on its own; any other end (the job
+    // failed, the daemon exited first) fails at once with the daemon's log.
+    let code = loop {
+        if let Some(code) = daemon.child.try_wait().unwrap() {
+            break code;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(90),
+            "no end after 90 s\nlog:\n{}\nthe last lines through the relay:\n{}",
+            log_of(),
+            wire_tail(&relay.log(), 60)
+        );
+        if let Some(s) = status(&config) {
+            let state = state_of(&s, "moves.gcode");
+            assert!(
+                !matches!(state.as_str(), "failed" | "interrupted" | "cancelled"),
+                "the job ended {state}: {s}\nlog:\n{}",
+                log_of()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    let took = started.elapsed();
+    // The daemon exits moments after the job is done: its last state is the spool's.
+    let stored = std::fs::read_dir(root.join("spool/jobs"))
+        .unwrap()
+        .map(|e| e.unwrap().path().join("job.json"))
+        .find(|p| p.exists())
+        .expect("the job in the spool");
+    let stored: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&stored).unwrap()).unwrap();
+    assert_eq!(
+        stored["state"],
+        "done",
+        "the daemon exited ({code:?}) with the job not done: {stored}\nlog:\n{}",
+        log_of()
+    );
+    assert!(code.success(), "{code:?}");
+    let log_text = relay.log();
+    let at = log_text
+        .last_position()
+        .expect("the firmware reported no position");
+    for axis in 0..2 {
+        assert!(
+            (at[axis] - expected[axis]).abs() < 0.005,
+            "the firmware ends at {at:?}, the job at {expected:?}: a line was lost or run twice ({})",
+            counts(&log_text)
+        );
+    }
+    eprintln!(
+        "FIGURES daemon through the relay: {:.1} s from its start to its exit ({})",
+        took.as_secs_f64(),
+        counts(&log_text)
+    );
 }

@@ -70,13 +70,10 @@ async fn print_through(
         .await
         .unwrap_or_else(|_| panic!("{}: no end after 10 minutes", build.name()));
     let took = started.elapsed();
-    // The final M114 answer may still be on its way through the relay.
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    Outcome {
-        result,
-        log: relay.log(),
-        took,
-    }
+    // The firmware's own answer to the job's final M114 (it is recorded before any fault
+    // touches it, so it comes whatever the host saw).
+    let log = tokio::task::block_in_place(|| relay.wait_position(Duration::from_secs(10)));
+    Outcome { result, log, took }
 }
 
 fn assert_exact(build: Build, what: &str, o: &Outcome, moves: usize) {
@@ -90,7 +87,7 @@ fn assert_exact(build: Build, what: &str, o: &Outcome, moves: usize) {
     }
     let at = o
         .log
-        .last_position()
+        .answered_position()
         .unwrap_or_else(|| panic!("{} {what}: the firmware reported no position", build.name()));
     for axis in 0..2 {
         assert!(
@@ -316,11 +313,9 @@ fn crispen_print_through_the_relay_runs_every_line_once() {
             .unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(out.status.success(), "{}: {stderr}", build.name());
-        // The final M114 answer may still be on its way through the relay.
-        std::thread::sleep(Duration::from_millis(300));
-        let log = relay.log();
+        let log = relay.wait_position(Duration::from_secs(10));
         let at = log
-            .last_position()
+            .answered_position()
             .unwrap_or_else(|| panic!("{}: no position reported", build.name()));
         for axis in 0..2 {
             assert!(
@@ -447,9 +442,9 @@ fn the_daemon_through_the_relay_runs_every_line_once() {
         log_of()
     );
     assert!(code.success(), "{code:?}");
-    let log_text = relay.log();
+    let log_text = relay.wait_position(Duration::from_secs(10));
     let at = log_text
-        .last_position()
+        .answered_position()
         .expect("the firmware reported no position");
     for axis in 0..2 {
         assert!(

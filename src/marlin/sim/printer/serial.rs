@@ -6,6 +6,7 @@
 
 use super::motion::is_move;
 use super::{Printer, Queued, Recorder, Status, Wait};
+use crate::marlin::firmware::Firmware;
 use std::time::Instant;
 
 impl Printer {
@@ -15,13 +16,17 @@ impl Printer {
     ///
     /// The pty hands over in one go what a UART delivers byte by byte, and a board's main
     /// loop empties its ring far faster than 115200 baud fills it; so the main loop gets
-    /// to run after each line as it completes, and whenever the ring is full, and bytes are
-    /// lost only when it cannot take lines (all command slots full, or stuck in a blocking
-    /// command such as M109). Reading each line as it comes is also what makes a line
-    /// error's flush take only the bytes that had arrived before it: every line behind a
-    /// bad one, still on its way, draws its own `Error:`/`Resend:`/`ok` block (as on the
-    /// real Marlin 2.1.2.1), while lines waiting in a ring the main loop could not empty
-    /// (a replay among them) are lost with the flush.
+    /// to run whenever the ring is full (and, on Marlin 2.1, after each line as it
+    /// completes), and bytes are lost only when it cannot take lines (all command slots
+    /// full, or stuck in a blocking command such as M109). On Marlin 2.1, reading each line
+    /// as it comes is what makes a line error's flush take only the bytes that had arrived
+    /// before it: every line behind a bad one, still on its way, draws its own
+    /// `Error:`/`Resend:`/`ok` block (as on the real Marlin 2.1.2.1), while lines waiting
+    /// in a ring the main loop could not empty (a replay among them) are lost with the
+    /// flush. Ultimaker2Marlin keeps reading a whole write before it runs a command (its
+    /// moves sent behind an `M109` are taken into the queue, and acknowledged, before the
+    /// heat wait ends); whether it too answers each line on its way was not checked, nor
+    /// for Marlin 2.0 (no real build of it here), which keeps the old model too.
     pub(crate) fn receive(&mut self, bytes: &[u8], now: Instant, recorder: &mut Recorder) {
         let mut lost = 0usize;
         if matches!(self.status, Status::Booting(_)) {
@@ -45,7 +50,7 @@ impl Printer {
             } else {
                 lost += 1;
             }
-            if b == b'\n' {
+            if b == b'\n' && self.fw == Firmware::Marlin2 {
                 self.advance(now, recorder);
             }
         }
@@ -239,7 +244,6 @@ pub(super) fn leading_int(s: &str) -> Option<i64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::marlin::firmware::Firmware;
     use crate::marlin::sim::SimConfig;
 
     /// Stock Marlin 2.1.2.1 (no ADVANCED_OK), running at real speed.

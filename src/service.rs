@@ -274,6 +274,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
     };
     let mut ticker = tokio::time::interval(tick);
     let mut jobs = farm.watch_jobs();
+    let mut finished = farm.counts.watch_finished();
     // Why the daemon stops on its own: a top-level task that ended or panicked.
     let mut failure: Option<ServiceError> = None;
     loop {
@@ -303,8 +304,18 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
                 let summary = summary(&farm);
                 let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Status(&summary)]);
             }
+            // Either may come last: a job's change is published before it is counted (the
+            // store replies after publishing), so a look on the snapshot's change alone
+            // could see the job failed but not yet counted, and nothing else would follow
+            // (a job failed at preparation is the farm's last change).
             Ok(()) = jobs.changed() => {
                 if options.exit_when_idle && farm.counts.finished() > 0 && farm.idle() {
+                    tracing::info!("no work left: exiting (--exit-when-idle)");
+                    break;
+                }
+            }
+            Ok(()) = finished.changed() => {
+                if options.exit_when_idle && farm.idle() {
                     tracing::info!("no work left: exiting (--exit-when-idle)");
                     break;
                 }

@@ -151,6 +151,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         star_for_dot: 0.0,
         drop_ok: args.drop_ok,
         spurious_resend: args.spurious_resend,
+        // Tests only (the co-simulation): a line lost whole.
+        lose_line: 0.0,
         busy: args.busy,
         garbage: args.garbage,
         reset_after_lines: args.reset_after,

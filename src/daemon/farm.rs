@@ -241,14 +241,39 @@ pub struct Preparation {
 
 /// How many jobs reached each state during this run (by [`JobState::ALL`]'s order),
 /// counted as they are announced.
-#[derive(Default)]
-pub struct JobCounts([AtomicU64; JobState::ALL.len()]);
+///
+/// A change is announced (and counted) by its caller once the store has replied, which is
+/// after the store published the snapshot with it: whoever wakes on that snapshot may look
+/// before the count. So the finished count is also a watch of its own
+/// ([`JobCounts::watch_finished`]), which moves only once the count has.
+pub struct JobCounts {
+    by_state: [AtomicU64; JobState::ALL.len()],
+    finished: watch::Sender<u64>,
+}
+
+impl Default for JobCounts {
+    fn default() -> Self {
+        JobCounts {
+            by_state: Default::default(),
+            finished: watch::channel(0).0,
+        }
+    }
+}
 
 impl JobCounts {
     fn count(&self, state: JobState) {
         if let Some(i) = JobState::ALL.iter().position(|s| *s == state) {
-            self.0[i].fetch_add(1, Ordering::SeqCst);
+            self.by_state[i].fetch_add(1, Ordering::SeqCst);
         }
+        if !state.is_active() {
+            self.finished.send_modify(|n| *n += 1);
+        }
+    }
+
+    /// Follows [`JobCounts::finished`]: `changed()` resolves once a job reached a final
+    /// state (and was counted) after the last look.
+    pub fn watch_finished(&self) -> watch::Receiver<u64> {
+        self.finished.subscribe()
     }
 
     /// Changes into `state` during this run.
@@ -256,7 +281,7 @@ impl JobCounts {
         JobState::ALL
             .iter()
             .position(|s| *s == state)
-            .map_or(0, |i| self.0[i].load(Ordering::SeqCst))
+            .map_or(0, |i| self.by_state[i].load(Ordering::SeqCst))
     }
 
     /// Jobs that reached a final state during this run (for --exit-when-idle).

@@ -775,6 +775,10 @@ impl Connection {
         self.drain_idle_input()?;
         self.await_idle_answers().await?;
         self.idle.partial.clear();
+        // Reports from before the job say nothing about after it: the watch starts afresh,
+        // as on a new connection (the first look after a job longer than `stale_after`
+        // found them stale and warned that the printer stopped reporting).
+        self.idle.last_report = None;
         if std::mem::take(&mut self.rebooted) {
             tracing::info!(port = %self.port.display(), "printer rebooted since the last job; greeting it again");
             let (host, info) = greet(&mut self.transport, &self.port, &self.opts).await?;

@@ -120,9 +120,19 @@ pub struct RelayLog {
     /// Every line each way with its time since the relay started, as it crossed (after
     /// faults): `>` to the printer, `<` to the host.
     pub wire: Vec<(f64, char, String)>,
+    /// How many lines the firmware had written when the last `M114` crossed to it: its
+    /// answer comes after them.
+    pub m114_at: Option<usize>,
 }
 
 impl RelayLog {
+    /// The firmware's answer to the last `M114` that crossed to it, once it has come.
+    pub fn answered_position(&self) -> Option<[f64; 3]> {
+        self.printer_lines[self.m114_at?..]
+            .iter()
+            .find_map(|l| parse_position(l))
+    }
+
     /// The last `X:… Y:… Z:…` position the firmware reported (its answer to `M114`).
     pub fn last_position(&self) -> Option<[f64; 3]> {
         self.printer_lines
@@ -236,6 +246,20 @@ impl Relay {
 
     pub fn log(&self) -> RelayLog {
         self.log.lock().unwrap().clone()
+    }
+
+    /// Waits (up to `limit`) for the firmware's own answer to the last `M114` sent to it
+    /// (after an `M400`, it is the position once every move ran), and returns the log
+    /// with it; the log as it is when no answer came.
+    pub fn wait_position(&self, limit: Duration) -> RelayLog {
+        let deadline = Instant::now() + limit;
+        loop {
+            let log = self.log();
+            if log.answered_position().is_some() || Instant::now() >= deadline {
+                return log;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
     }
 }
 
@@ -424,6 +448,9 @@ fn run(
                             log.dropped += 1;
                             continue;
                         }
+                    }
+                    if line.windows(4).any(|w| w == b"M114") {
+                        log.m114_at = Some(log.printer_lines.len());
                     }
                     let due = now + delay(&mut rng);
                     let at = (now - born).as_secs_f64();

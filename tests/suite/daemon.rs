@@ -1024,6 +1024,43 @@ fn wait_exit(daemon: &mut Daemon, limit: Duration, log: &Path) -> std::process::
     }
 }
 
+/// `crispen run --exit-when-idle` exits once the only job has failed at preparation. It
+/// never did: a job's change is published before it is counted, the daemon looked on the
+/// publication, saw the job failed but no job counted as finished, and no later change
+/// came to look again. Several daemons in a row, each with one job a pre-sliced G-code
+/// that extrudes nothing (refused at preparation without a slicer).
+#[test]
+fn exit_when_idle_exits_when_the_only_job_failed_at_preparation() {
+    for round in 0..4 {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        let (config, log) = small_farm(root, "");
+        drop_model(
+            &root.join("hot"),
+            "nothing.gcode",
+            b"G28\nG1 X10 Y10 F600\n",
+        );
+        let log_file = std::fs::File::create(&log).unwrap();
+        let child = Command::new(BIN)
+            .args(["run", "--exit-when-idle", "--config"])
+            .arg(&config)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(log_file)
+            .spawn()
+            .unwrap();
+        let mut daemon = Daemon { child };
+        let code = wait_exit(&mut daemon, Duration::from_secs(30), &log);
+        assert!(code.success(), "round {round}: {code:?}");
+        let text = std::fs::read_to_string(&log).unwrap();
+        assert!(
+            text.contains("state=\"failed\"") || text.contains("state=failed"),
+            "round {round}: the job did not fail:\n{text}"
+        );
+        assert!(text.contains("extrudes nothing"), "round {round}:\n{text}");
+    }
+}
+
 /// SIGTERM while a job is being prepared (here by a slicer that never ends) stops the
 /// preparation at once: the daemon exits within seconds rather than waiting out the
 /// preparation, the slicer is gone, and the job is back in the queue for the next start.

@@ -274,6 +274,8 @@ fn stock_marlin_saying_wait_under_noise_never_stalls() {
         cfg.faults.corrupt_host_bytes = 0.02;
         cfg.faults.drop_ok = 0.005;
         cfg.faults.spurious_resend = 0.01;
+        // The relay's fault on the real firmware: a line lost whole.
+        cfg.faults.lose_line = 0.01;
         let clean = {
             let mut clean = cfg.clone();
             clean.faults = Default::default();

@@ -52,6 +52,11 @@ pub struct Faults {
     pub drop_ok: f64,
     /// Probability that a good numbered line is answered as if it had been corrupted.
     pub spurious_resend: f64,
+    /// Probability per received numbered line that it is lost whole (a noisy cable, a
+    /// relay): the printer first sees the next line's number and answers it, as the real
+    /// Marlin 2.1.2.1 does, with `Error:Line Number is not Last Line Number+1, Last Line:
+    /// N`, `Resend: N+1` and `ok`, and so every line behind it already on its way.
+    pub lose_line: f64,
     /// Probability that a command triggers a busy period with `echo:busy: processing`
     /// keep-alives before its `ok` (firmware with the busy protocol only).
     pub busy: f64,

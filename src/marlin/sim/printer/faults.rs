@@ -89,6 +89,17 @@ impl Printer {
         }
     }
 
+    /// The lost-line fault: a numbered line just assembled never arrived.
+    pub(super) fn lose_line(&mut self, raw: &[u8]) -> bool {
+        let hit = self.faults.lose_line > 0.0
+            && raw.first() == Some(&b'N')
+            && self.rng.random_bool(self.faults.lose_line.min(1.0));
+        if hit {
+            tracing::debug!("fault: a line lost whole");
+        }
+        hit
+    }
+
     /// The spurious-resend fault: a good line answered as if it had been corrupted.
     pub(super) fn spurious_resend(&mut self) -> bool {
         let hit = self.faults.spurious_resend > 0.0

@@ -6,6 +6,7 @@
 
 use super::motion::is_move;
 use super::{Printer, Queued, Recorder, Status, Wait};
+use crate::marlin::firmware::Firmware;
 use std::time::Instant;
 
 impl Printer {
@@ -14,9 +15,18 @@ impl Printer {
     /// to then fails its checksum and is resent).
     ///
     /// The pty hands over in one go what a UART delivers byte by byte, and a board's main
-    /// loop empties its ring far faster than 115200 baud fills it; so when the ring is full
-    /// the main loop gets to run first, and bytes are lost only when it cannot take lines
-    /// (all command slots full, or stuck in a blocking command such as M109).
+    /// loop empties its ring far faster than 115200 baud fills it; so the main loop gets
+    /// to run whenever the ring is full (and, on Marlin 2.1, after each line as it
+    /// completes), and bytes are lost only when it cannot take lines (all command slots
+    /// full, or stuck in a blocking command such as M109). On Marlin 2.1, reading each line
+    /// as it comes is what makes a line error's flush take only the bytes that had arrived
+    /// before it: every line behind a bad one, still on its way, draws its own
+    /// `Error:`/`Resend:`/`ok` block (as on the real Marlin 2.1.2.1), while lines waiting
+    /// in a ring the main loop could not empty (a replay among them) are lost with the
+    /// flush. Ultimaker2Marlin keeps reading a whole write before it runs a command (its
+    /// moves sent behind an `M109` are taken into the queue, and acknowledged, before the
+    /// heat wait ends); whether it too answers each line on its way was not checked, nor
+    /// for Marlin 2.0 (no real build of it here), which keeps the old model too.
     pub(crate) fn receive(&mut self, bytes: &[u8], now: Instant, recorder: &mut Recorder) {
         let mut lost = 0usize;
         if matches!(self.status, Status::Booting(_)) {
@@ -39,6 +49,9 @@ impl Printer {
                 self.rx.push_back(b);
             } else {
                 lost += 1;
+            }
+            if b == b'\n' && self.fw == Firmware::Marlin2 {
+                self.advance(now, recorder);
             }
         }
         if lost > 0 {
@@ -114,6 +127,9 @@ impl Printer {
         // Comments are not stored (Marlin drops `;...` while reading).
         if let Some(at) = raw.iter().position(|&c| c == b';') {
             raw.truncate(at);
+        }
+        if self.lose_line(&raw) {
+            return;
         }
         self.corrupt_received(&mut raw);
         self.star_for_dot(&mut raw);
@@ -228,6 +244,89 @@ pub(super) fn leading_int(s: &str) -> Option<i64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::marlin::sim::SimConfig;
+
+    /// Stock Marlin 2.1.2.1 (no ADVANCED_OK), running at real speed.
+    fn stock_marlin() -> (Printer, Recorder) {
+        let mut cfg = SimConfig::new(Firmware::Marlin2);
+        cfg.time_scale = 1.0;
+        cfg.advanced_ok = Some(false);
+        let mut p = Printer::new(&cfg, Instant::now());
+        p.take_output();
+        let rec = Recorder {
+            executed: None,
+            file: None,
+        };
+        (p, rec)
+    }
+
+    fn numbered(n: u64, cmd: &str) -> String {
+        let line = format!("N{n} {cmd}");
+        let sum = line.bytes().fold(0u8, |a, b| a ^ b);
+        format!("{line}*{sum}\n")
+    }
+
+    fn said(p: &mut Printer) -> Vec<String> {
+        String::from_utf8_lossy(&p.take_output())
+            .lines()
+            .map(str::to_string)
+            .collect()
+    }
+
+    /// As the real Marlin 2.1.2.1 answers through the relay (`tests/firmware.rs`): a line
+    /// lost on the way is a line-number error on the next one, and every line already on
+    /// its way behind it draws its own `Error:`/`Resend:`/`ok` block (the flush takes only
+    /// what had arrived). The simulator once flushed every line of a write at once.
+    #[test]
+    fn a_lost_line_draws_a_line_number_error_for_each_line_on_its_way() {
+        let (mut p, mut rec) = stock_marlin();
+        let now = Instant::now();
+        let write: String = [1, 3, 4, 5]
+            .iter()
+            .map(|&n| numbered(n, &format!("G1 X{n} F6000")))
+            .collect();
+        p.receive(write.as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        let said = said(&mut p);
+        let block = [
+            "Error:Line Number is not Last Line Number+1, Last Line: 1",
+            "Resend: 2",
+            "ok",
+        ];
+        let expected: Vec<&str> = std::iter::once("ok")
+            .chain(block.iter().copied().cycle().take(9))
+            .collect();
+        assert_eq!(said, expected);
+    }
+
+    /// As on the real firmware: errors are printed when a line is read, `ok`s when a
+    /// command is done, so a `Resend:` comes before the `ok`s of earlier lines still
+    /// waiting in the command slots.
+    #[test]
+    fn a_resend_comes_before_the_oks_of_earlier_queued_lines() {
+        let (mut p, mut rec) = stock_marlin();
+        let now = Instant::now();
+        // Corrupted on the way: its checksum no longer matches.
+        let bad = numbered(4, "G1 X3 F6000").replace("X3", "X9");
+        let write =
+            numbered(1, "G4 S1") + &numbered(2, "G1 X1 F6000") + &numbered(3, "G1 X2 F6000") + &bad;
+        p.receive(write.as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert!(said(&mut p).is_empty(), "the dwell holds the main loop");
+        p.advance(now + std::time::Duration::from_secs(2), &mut rec);
+        let said = said(&mut p);
+        assert_eq!(
+            said,
+            [
+                "ok",
+                "Error:checksum mismatch, Last Line: 3",
+                "Resend: 4",
+                "ok",
+                "ok",
+                "ok"
+            ]
+        );
+    }
 
     #[test]
     fn strips_number_and_checksum() {

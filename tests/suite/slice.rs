@@ -574,7 +574,8 @@ fn the_cli_slices_for_a_named_machine_and_nozzle() {
     std::fs::write(
         &config,
         "[spool]\ndir = \"spool\"\n[[machine]]\nname = \"cold-175\"\nfirmware = \"marlin2\"\n\
-         bed_mm = [180, 180, 180]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = false\n",
+         bed_mm = [180, 180, 180]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = false\n\
+         max_hotend_c = 260\nmax_bed_c = 0\n",
     )
     .unwrap();
     let output = run(&[

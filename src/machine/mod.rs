@@ -209,11 +209,10 @@ pub const BUILTIN: &[Builtin] = &[
         nozzle_range_mm: [0.4, 0.4],
         filament_mm: 2.85,
         heated_bed: true,
-        // Ultimaker2Marlin (Configuration.h) trips at HEATER_0_MAXTEMP 275 °C and lets a
-        // target reach 15 °C below it, 260 °C, which is also the top of the nozzle range
-        // Ultimaker publishes for the UM2 family (PTFE coupler); the bed's published range
-        // ends at 100 °C (the firmware's BED_MAXTEMP of 200 protects nothing below that).
-        max_hotend_c: 260.0,
+        // Ultimaker's Marlin of the same lineage, with the Ultimaker 2's limits
+        // (HEATER_0_MAXTEMP 275, targets to 260 °C) and a heated plate taken as the
+        // Ultimaker 2's (100 °C).
+max_hotend_c: 260.0,
         max_bed_c: 100.0,
     },
     Builtin {
@@ -526,6 +525,13 @@ mod tests {
             assert!(valid_name(b.name), "{}", b.name);
         }
         assert_eq!(m(DEFAULT_MARLIN_MACHINE).filament_mm, 1.75);
+        for b in BUILTIN {
+            let machine = b.machine();
+            assert!(HOTEND_C.contains(&machine.max_hotend_c), "{}", b.name);
+            assert!(BED_C.contains(&machine.max_bed_c), "{}", b.name);
+            assert_eq!((machine.extruders, machine.allow.len()), (1, 0));
+        }
+        assert_eq!(m("ultimaker2").max_hotend_c, 260.0);
         assert_eq!(
             Machine::default_for(Firmware::Ultimaker2).name,
             "ultimaker2"
@@ -612,6 +618,26 @@ mod tests {
             assert_eq!(k, key, "{text}: {m}");
             assert!(m.contains(says), "{text}: {m}");
         }
+        for (text, key, says) in [
+            ("max_hotend_c = 1000", "max_hotend_c", "100 to 450"),
+            ("max_bed_c = -1", "max_bed_c", "0 to 200"),
+            ("extruders = 0", "extruders", "1 to 8"),
+            ("allow = [\"M104\"]", "allow", "M500"),
+        ] {
+            let (k, m) = check(&format!("name = \"a\"\nbased_on = \"ultimaker2\"\n{text}"))
+                .unwrap_err();
+            assert_eq!(k, key, "{text}: {m}");
+            assert!(m.contains(says), "{text}: {m}");
+        }
+        let (k, _) = check(
+            "name = \"a\"\nfirmware = \"marlin2\"\nbed_mm = [220, 220, 250]\nnozzle_mm = 0.4\n\
+             filament_mm = 1.75\nheated_bed = true\n",
+        )
+        .unwrap_err();
+        assert_eq!(k, "max_hotend_c");
+        let m = check("name = \"a\"\nbased_on = \"ultimaker2\"\nallow = [\"m500\", \"M500\"]\nmax_bed_c = 80")
+            .unwrap();
+        assert_eq!((m.allow, m.max_bed_c, m.max_hotend_c), (vec!["M500".to_string()], 80.0, 260.0));
         assert!(toml::from_str::<MachineSpec>("name = \"a\"\nbed = 1").is_err());
     }
 }

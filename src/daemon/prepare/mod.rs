@@ -396,8 +396,8 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                 r
             }
         };
+        // The policy first: its refusals name the line.
         let verdict = load
-            .and_then(|()| presliced::check_for(&target, &m.machine))
             .and_then(|()| {
                 let verdict =
                     policy::check_path(model, &m.machine).map_err(|e| e.to_string())?;
@@ -407,6 +407,7 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                     Err(verdict.summary())
                 }
             })
+            .and_then(|verdict| presliced::check_for(&target, &m.machine).map(|()| verdict))
             .map(|verdict| SliceReport {
                 model: model.clone(),
                 output: m.output.clone(),

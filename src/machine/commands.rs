@@ -1,11 +1,11 @@
-//! The commands the G-code policy ([`crate::slice::policy`]) refuses in files unless a
+//! The commands the G-code policy (the `policy` module of `slice`) refuses in files unless a
 //! machine allows them by name (`allow = ["M500"]` in its `[[machine]]` table). Kept here,
 //! with the machine, because a machine's table is checked against it: only these words
 //! may be allowed.
 
 /// Commands refused in files unless the machine allows them by name, with what they do.
 /// Conditions (`M211` only with `S0`...) are the policy's
-/// (`crate::slice::policy::refused`).
+/// (its `refused`).
 pub const REFUSED: &[(&str, &str)] = &[
     ("M500", "saves the printer's settings to EEPROM, so whatever the file changed outlives every job"),
     ("M501", "reloads the settings from EEPROM, dropping what the operator set since"),

@@ -40,7 +40,7 @@ pub struct Machine {
     pub start_gcode: Option<String>,
     /// End code replacing crispen's (None: `gcode/end.gcode`); `{PRESENT_Z}` is filled.
     pub end_gcode: Option<String>,
-    /// The highest hotend temperature a file may ask for, °C (see [`crate::slice::policy`]).
+    /// The highest hotend temperature a file may ask for, °C (see the G-code policy, `policy` in `slice`).
     pub max_hotend_c: f64,
     /// The highest bed temperature a file may ask for, °C.
     pub max_bed_c: f64,

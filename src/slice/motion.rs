@@ -1,7 +1,7 @@
 //! One follower of G-code motion, as Marlin moves the head: every reader of G-code that
-//! needs to know where the nozzle goes (the slicer-output check [`super::gcode`], the
-//! pre-sliced check [`super::presliced`], the outer-wall measure [`super::walls`] and the
-//! policy check [`super::policy`]) reads commands with [`parse`] and follows them with one
+//! needs to know where the nozzle goes (the slicer-output check `gcode`, the pre-sliced
+//! check `presliced`, the outer-wall measure `walls` and the G-code policy `policy`, its
+//! siblings, which build on it) reads commands with [`parse`] and follows them with one
 //! [`Motion`], so they cannot disagree about where a file sends the printer.
 //!
 //! Positions are kept in the machine's own coordinates (where the head physically is,

@@ -138,7 +138,7 @@ fn refused_files_fail_before_any_printer_receives_a_line() {
                 !executed.iter().any(|c| c == &format!("M118 {file}")),
                 "{name} executed {file}"
             );
-            let first = body.lines().last().unwrap();
+            let first = body.lines().next().unwrap();
             assert!(
                 !executed.iter().any(|c| c == first),
                 "{name} executed {first}"

@@ -212,7 +212,7 @@ pub const BUILTIN: &[Builtin] = &[
         // Ultimaker's Marlin of the same lineage, with the Ultimaker 2's limits
         // (HEATER_0_MAXTEMP 275, targets to 260 °C) and a heated plate taken as the
         // Ultimaker 2's (100 °C).
-max_hotend_c: 260.0,
+        max_hotend_c: 260.0,
         max_bed_c: 100.0,
     },
     Builtin {
@@ -624,8 +624,8 @@ mod tests {
             ("extruders = 0", "extruders", "1 to 8"),
             ("allow = [\"M104\"]", "allow", "M500"),
         ] {
-            let (k, m) = check(&format!("name = \"a\"\nbased_on = \"ultimaker2\"\n{text}"))
-                .unwrap_err();
+            let (k, m) =
+                check(&format!("name = \"a\"\nbased_on = \"ultimaker2\"\n{text}")).unwrap_err();
             assert_eq!(k, key, "{text}: {m}");
             assert!(m.contains(says), "{text}: {m}");
         }
@@ -635,9 +635,14 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!(k, "max_hotend_c");
-        let m = check("name = \"a\"\nbased_on = \"ultimaker2\"\nallow = [\"m500\", \"M500\"]\nmax_bed_c = 80")
-            .unwrap();
-        assert_eq!((m.allow, m.max_bed_c, m.max_hotend_c), (vec!["M500".to_string()], 80.0, 260.0));
+        let m = check(
+            "name = \"a\"\nbased_on = \"ultimaker2\"\nallow = [\"m500\", \"M500\"]\nmax_bed_c = 80",
+        )
+        .unwrap();
+        assert_eq!(
+            (m.allow, m.max_bed_c, m.max_hotend_c),
+            (vec!["M500".to_string()], 80.0, 260.0)
+        );
         assert!(toml::from_str::<MachineSpec>("name = \"a\"\nbed = 1").is_err());
     }
 }

@@ -468,8 +468,8 @@ pub fn slice_mesh(
     let verdict = if job.measure_only {
         None
     } else {
-        let verdict = policy::check_file(&gcode_path, job.machine)
-            .map_err(|e| bad_output(e.to_string()))?;
+        let verdict =
+            policy::check_file(&gcode_path, job.machine).map_err(|e| bad_output(e.to_string()))?;
         if !verdict.passed() {
             return Err(bad_output(verdict.summary()));
         }

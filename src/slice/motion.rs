@@ -90,14 +90,13 @@ pub fn parse(code: &str) -> Option<Command<'_>> {
         return None;
     }
     // Leading zeros and huge numbers read as the firmware's integer would.
-    let number: u64 = body[..digits]
-        .trim_start_matches('0')
-        .parse()
-        .unwrap_or(if body[..digits].trim_start_matches('0').is_empty() {
+    let number: u64 = body[..digits].trim_start_matches('0').parse().unwrap_or(
+        if body[..digits].trim_start_matches('0').is_empty() {
             0
         } else {
             u64::MAX
-        });
+        },
+    );
     let mut after = &body[digits..];
     let mut code = format!("{letter}{number}");
     if letter != 'T' {
@@ -408,18 +407,19 @@ impl Motion {
                 }
                 Ok(Some(self.go(to, None)))
             }
-            "G53" | "G54" | "G55" | "G56" | "G57" | "G58" | "G59" | "G59.1" | "G59.2"
-            | "G59.3" => refuse(
-                "selects a workspace coordinate system, which stock Marlin leaves out and \
+            "G53" | "G54" | "G55" | "G56" | "G57" | "G58" | "G59" | "G59.1" | "G59.2" | "G59.3" => {
+                refuse(
+                    "selects a workspace coordinate system, which stock Marlin leaves out and \
                  keeps in EEPROM where it has them; its moves cannot be followed",
-            ),
+                )
+            }
             "G10" if cmd.has('L') => refuse(
                 "with L sets workspace or tool offsets (RepRapFirmware's form), which \
                  cannot be followed on Marlin",
             ),
-            "G18" | "G19" => refuse(
-                "selects another plane for arcs; only the XY plane's arcs are followed",
-            ),
+            "G18" | "G19" => {
+                refuse("selects another plane for arcs; only the XY plane's arcs are followed")
+            }
             "G20" => refuse("switches to inches; a file for the printers here is in millimetres"),
             "G6" => refuse("moves the steppers directly, outside the firmware's coordinates"),
             "M428" => refuse("sets the home offsets from wherever the head happens to be"),
@@ -572,7 +572,10 @@ mod tests {
         assert_eq!(parse("M104 S 250").unwrap().get('S'), Some(250.0));
         assert!(parse("M104 Snan").unwrap().garbled().is_some());
         assert!(parse("M104 S1.2.3").unwrap().garbled().is_some());
-        assert_eq!(parse("M117 X marks: the spot").unwrap().rest, "X marks: the spot");
+        assert_eq!(
+            parse("M117 X marks: the spot").unwrap().rest,
+            "X marks: the spot"
+        );
         assert!(parse("   ").is_none() && parse("hello").is_none());
         assert_eq!(parse("T1").unwrap().code, "T1");
     }

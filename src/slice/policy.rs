@@ -195,7 +195,16 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
         let Some(cmd) = motion::parse(code) else {
             continue;
         };
-        judge(&cmd, code, number, machine, &mut motion, &mut v, &mut allowed, &mut last_message);
+        judge(
+            &cmd,
+            code,
+            number,
+            machine,
+            &mut motion,
+            &mut v,
+            &mut allowed,
+            &mut last_message,
+        );
     }
     v.lines = number;
     v.allowed = allowed;
@@ -379,7 +388,10 @@ pub enum PolicyError {
 /// text, line length, characters the firmware cannot take), without keeping the program.
 ///
 /// [`GcodeProgram::load_for`]: crate::marlin::gcode::GcodeProgram::load_for
-pub fn load_check(path: &Path, firmware: crate::marlin::firmware::Firmware) -> Result<(), PolicyError> {
+pub fn load_check(
+    path: &Path,
+    firmware: crate::marlin::firmware::Firmware,
+) -> Result<(), PolicyError> {
     crate::marlin::gcode::GcodeProgram::load_for(path, firmware)?;
     Ok(())
 }
@@ -428,10 +440,16 @@ mod tests {
     fn temperatures_over_the_machines_limits_are_refused_with_line_and_limit() {
         let m = um2();
         for (text, says) in [
-            ("M104 S400", "400 °C on the hotend, above the ultimaker2's limit of 260"),
+            (
+                "M104 S400",
+                "400 °C on the hotend, above the ultimaker2's limit of 260",
+            ),
             ("M109 R300", "300 °C on the hotend"),
             ("M104S300", "300 °C"),
-            ("M140 S150", "150 °C on the bed, above the ultimaker2's limit of 100"),
+            (
+                "M140 S150",
+                "150 °C on the bed, above the ultimaker2's limit of 100",
+            ),
             ("M190 S101", "101 °C on the bed"),
             ("M141 S40", "no chamber heater"),
             ("M104 T1 S200", "tool 1"),
@@ -457,15 +475,33 @@ mod tests {
         assert!(v.refusals[0].reason.contains("defaults"), "{v:?}");
         assert!(v.refusals[1].reason.contains("EEPROM"), "{v:?}");
         assert!(v.refusals[2].reason.contains("firmware update"), "{v:?}");
-        assert!(v.summary().starts_with("refused by the G-code policy: line 2: `M502`"));
+        assert!(v
+            .summary()
+            .starts_with("refused by the G-code policy: line 2: `M502`"));
         for text in [
-            "M211 S0", "M302 P1", "M92 E9999", "M303 E0 S200 C8", "M112", "M28 evil.g",
-            "M30 x.g", "m0500", "M206 X-50", "M851 Z-5", "M575 B9600",
+            "M211 S0",
+            "M302 P1",
+            "M92 E9999",
+            "M303 E0 S200 C8",
+            "M112",
+            "M28 evil.g",
+            "M30 x.g",
+            "m0500",
+            "M206 X-50",
+            "M851 Z-5",
+            "M575 B9600",
         ] {
             let v = verdict(&format!("{text}\n"), &um2());
             assert_eq!(v.refusals_total, 1, "{text}: {v:?}");
         }
-        for text in ["M211", "M211 S1", "M302", "M420 S1", "M900 K0.05", "M204 S1000"] {
+        for text in [
+            "M211",
+            "M211 S1",
+            "M302",
+            "M420 S1",
+            "M900 K0.05",
+            "M204 S1000",
+        ] {
             assert!(verdict(&format!("{text}\n"), &um2()).passed(), "{text}");
         }
         let allowing = Machine {
@@ -501,7 +537,10 @@ mod tests {
         let v = verdict("G28\nG1 X1.2.3\n", &um2());
         assert!(v.refusals[0].reason.contains("no plain number"), "{v:?}");
         let v = verdict("G28\nG54\nG1 X10\n", &um2());
-        assert!(v.refusals[0].reason.contains("cannot be followed: G54"), "{v:?}");
+        assert!(
+            v.refusals[0].reason.contains("cannot be followed: G54"),
+            "{v:?}"
+        );
         // M206 is refused as a setting, and followed when allowed.
         let allowing = Machine {
             allow: vec!["M206".into()],
@@ -522,7 +561,9 @@ mod tests {
         assert_eq!(v.pauses[0].line, 3);
         assert_eq!(v.pauses[0].message, "Insert magnets");
         assert_eq!(v.pauses[1].message, "Swap the colour");
-        assert!(v.summary().starts_with("passed the G-code policy, 4 pauses (line 3"));
+        assert!(v
+            .summary()
+            .starts_with("passed the G-code policy, 4 pauses (line 3"));
     }
 
     #[test]

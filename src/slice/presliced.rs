@@ -98,8 +98,7 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
             continue;
         };
         commands += 1;
-        if matches!(cmd.code.as_str(), "M104" | "M109") && cmd.get('S').is_some_and(|s| s > 0.0)
-        {
+        if matches!(cmd.code.as_str(), "M104" | "M109") && cmd.get('S').is_some_and(|s| s > 0.0) {
             heated = true;
         }
         // What cannot be followed is the policy's to refuse, naming the line; the extent

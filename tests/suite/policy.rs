@@ -58,10 +58,18 @@ fn refused_files_fail_before_any_printer_receives_a_line() {
     });
 
     let refused = [
-        ("hot.gcode", "M104 S400\n", "`M104 S400` asks for 400 °C on the hotend"),
+        (
+            "hot.gcode",
+            "M104 S400\n",
+            "`M104 S400` asks for 400 °C on the hotend",
+        ),
         ("reset.gcode", "M502\nM500\n", "`M502` resets every setting"),
         ("flash.gcode", "M997\n", "`M997` starts a firmware update"),
-        ("arc.gcode", "G1 X1 Y50\nG2 I-100 E5\n", "`G2 I-100 E5` sweeps X to -199.0"),
+        (
+            "arc.gcode",
+            "G1 X1 Y50\nG2 I-100 E5\n",
+            "`G2 I-100 E5` sweeps X to -199.0",
+        ),
     ];
     for (file, body, _) in refused {
         drop_model(&root.join("hot"), file, gcode(file, body).as_bytes());

@@ -399,8 +399,7 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
         // The policy first: its refusals name the line.
         let verdict = load
             .and_then(|()| {
-                let verdict =
-                    policy::check_path(model, &m.machine).map_err(|e| e.to_string())?;
+                let verdict = policy::check_path(model, &m.machine).map_err(|e| e.to_string())?;
                 if verdict.passed() {
                     Ok(verdict)
                 } else {

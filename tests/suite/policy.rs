@@ -156,3 +156,40 @@ fn refused_files_fail_before_any_printer_receives_a_line() {
         assert_eq!(saved, name == "m2", "{name}: {executed:?}");
     }
 }
+
+/// Defence in depth: crispen's own slicer output passes the policy too, so a machine
+/// whose start code resets and saves the settings makes no job, naming the command; the
+/// same start code with the reset left out slices, its verdict in the report.
+#[test]
+fn a_start_code_that_resets_the_printer_fails_the_slicing() {
+    use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
+    use crispen::machine::Machine;
+    let dir = tempfile::tempdir().unwrap();
+    let start = include_str!("../../gcode/start.gcode");
+    let slice = |start_gcode: String, name: &str| {
+        let mut req = SliceRequest::new(common::model("spot.obj"), 10.0);
+        req.strength = crispen::enhance::Strength::Off;
+        let target = Target {
+            machine: Machine {
+                name: name.into(),
+                start_gcode: Some(start_gcode),
+                ..Machine::builtin("marlin-175").unwrap()
+            },
+            output: dir.path().join(format!("{name}.gcode")),
+            keep_mesh: None,
+        };
+        prepare_one(&req, target, &mut |_| {})
+    };
+    let e = slice(format!("{start}M502\nM500\n"), "resets")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("refused by the G-code policy") && e.contains("`M502` resets every setting"),
+        "{e}"
+    );
+    assert!(!dir.path().join("resets.gcode").exists());
+    let report = slice(format!("{start}M117 Magnets at 5 mm\n"), "clean").unwrap();
+    let verdict = report.policy.expect("a verdict in the report");
+    assert!(verdict.passed(), "{verdict:?}");
+    assert!(dir.path().join("clean.gcode").exists());
+}

@@ -530,9 +530,9 @@ impl Motion {
         }
         let mut m = self.go(to, Some([p, q]));
         for e in extremes {
-            for k in 0..2 {
-                m.lo[k] = m.lo[k].min(e[k]);
-                m.hi[k] = m.hi[k].max(e[k]);
+            for (k, v) in e.into_iter().enumerate() {
+                m.lo[k] = m.lo[k].min(v);
+                m.hi[k] = m.hi[k].max(v);
             }
         }
         m.curved = true;

@@ -113,9 +113,9 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
             }
             if m.moves_xyz() {
                 let e = extent.get_or_insert([[f64::INFINITY, f64::NEG_INFINITY]; 3]);
-                for k in 0..3 {
-                    e[k][0] = e[k][0].min(m.lo[k]);
-                    e[k][1] = e[k][1].max(m.hi[k]);
+                for (k, [lo, hi]) in e.iter_mut().enumerate() {
+                    *lo = lo.min(m.lo[k]);
+                    *hi = hi.max(m.hi[k]);
                 }
             }
         }

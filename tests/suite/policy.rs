@@ -13,6 +13,9 @@ use std::time::Duration;
 
 const LIMIT: Duration = Duration::from_secs(240);
 
+/// An `M117` of 125 bytes: more than MAX_CMD_SIZE (96) less the host's framing.
+const LONG_LINE: &str = "M117 xxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxx\n";
+
 /// A small print any of the machines here may take: heat, home, a marker the simulator
 /// records (`M118 <marker>`), `body`, a few extruding moves in the middle of the bed.
 fn gcode(marker: &str, body: &str) -> String {
@@ -69,6 +72,12 @@ fn refused_files_fail_before_any_printer_receives_a_line() {
             "arc.gcode",
             "G1 X1 Y50\nG2 I-100 E5\n",
             "`G2 I-100 E5` sweeps X to -199.0",
+        ),
+        // The host's own load check: longer than any of these firmwares takes.
+        (
+            "long.gcode",
+            LONG_LINE,
+            "long.gcode:11: command is 125 bytes",
         ),
     ];
     for (file, body, _) in refused {

@@ -27,8 +27,8 @@ use std::f64::consts::{FRAC_PI_2, TAU};
 pub struct Word {
     pub letter: char,
     pub value: Option<f64>,
-    /// Text followed the letter that is no number (`Snan`, `X1.2.3`): the firmware may
-    /// read it differently from crispen.
+    /// The firmware may read it differently from crispen: text that is no number after
+    /// the letter (`Snan`, `X1.2.3`), or a lower-case letter (Marlin ignores those).
     pub garbled: bool,
 }
 
@@ -149,6 +149,7 @@ fn words(text: &str) -> Vec<Word> {
             continue;
         }
         let letter = c.to_ascii_uppercase();
+        let lower = c.is_ascii_lowercase();
         i += 1;
         let mut j = i;
         while j < bytes.len() && bytes[j] == b' ' {
@@ -161,7 +162,7 @@ fn words(text: &str) -> Vec<Word> {
         let mut word = Word {
             letter,
             value: None,
-            garbled: false,
+            garbled: lower,
         };
         if j > start {
             match text[start..j].parse::<f64>() {
@@ -172,7 +173,7 @@ fn words(text: &str) -> Vec<Word> {
         } else if i < bytes.len() && (bytes[i] as char).is_ascii_alphabetic() {
             // `Snan`, `Sinf`: a firmware reading the value with strtod takes a number
             // crispen does not; glued letters (`G28XY`) are marked the same way.
-            word.garbled = bytes[i].is_ascii_lowercase();
+            word.garbled |= bytes[i].is_ascii_lowercase();
         }
         out.push(word);
     }
@@ -572,6 +573,8 @@ mod tests {
         assert_eq!(parse("M104 S 250").unwrap().get('S'), Some(250.0));
         assert!(parse("M104 Snan").unwrap().garbled().is_some());
         assert!(parse("M104 S1.2.3").unwrap().garbled().is_some());
+        assert!(parse("G92 x100").unwrap().garbled().is_some());
+        assert!(parse("G28XY").unwrap().garbled().is_none());
         assert_eq!(
             parse("M117 X marks: the spot").unwrap().rest,
             "X marks: the spot"

@@ -288,8 +288,8 @@ fn judge(
                 line,
                 text,
                 format!(
-                    "gives {letter} a value that is no plain number, which the firmware may \
-                     read as another position"
+                    "gives {letter} in a form the firmware may read differently (a lower-case \
+                     letter, or a value that is no plain number)"
                 ),
             );
             return;
@@ -348,8 +348,8 @@ fn temperature(cmd: &motion::Command, machine: &Machine) -> Option<String> {
     for w in cmd.words.iter().filter(|w| params.contains(&w.letter)) {
         if w.garbled {
             return Some(format!(
-                "gives {} a value that is no plain number, which the firmware may read as \
-                 another temperature",
+                "gives {} in a form the firmware may read differently (a lower-case letter, \
+                 or a value that is no plain number)",
                 w.letter
             ));
         }
@@ -453,7 +453,7 @@ mod tests {
             ("M190 S101", "101 °C on the bed"),
             ("M141 S40", "no chamber heater"),
             ("M104 T1 S200", "tool 1"),
-            ("M104 Snan", "no plain number"),
+            ("M104 Snan", "read differently"),
             ("M149 F", "Fahrenheit"),
             ("G10 P0 S300", "300 °C on the hotend"),
         ] {
@@ -535,7 +535,9 @@ mod tests {
         let v = verdict("G28\nG1 X100\nG92 X0\nG1 X200\n", &um2());
         assert!(v.refusals[0].reason.contains("moves X to 300.0"), "{v:?}");
         let v = verdict("G28\nG1 X1.2.3\n", &um2());
-        assert!(v.refusals[0].reason.contains("no plain number"), "{v:?}");
+        assert!(v.refusals[0].reason.contains("read differently"), "{v:?}");
+        let v = verdict("G28\nG92 x100\nG1 X300\n", &um2());
+        assert_eq!(v.refusals[0].line, 2, "{v:?}");
         let v = verdict("G28\nG54\nG1 X10\n", &um2());
         assert!(
             v.refusals[0].reason.contains("cannot be followed: G54"),

@@ -35,7 +35,6 @@ pub const REFUSED: &[(&str, &str)] = &[
     ("M907", "changes the stepper motor currents (too high overheats drivers and motors)"),
     ("M42", "sets a pin of the controller directly, outside the firmware's safety checks"),
     ("M43", "toggles the controller's pins for debugging"),
-    ("M120", "switches the endstops on or off for good"),
     ("M121", "switches the endstops off"),
     ("M575", "changes the serial port's baud rate, so the host loses the printer"),
 ];

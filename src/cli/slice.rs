@@ -206,6 +206,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             report.timings.total_s,
             report.output.display()
         );
+        if let Some(verdict) = &report.policy {
+            println!("{}", verdict.summary());
+        }
         if let Some(p) = &report.enhancement.printed {
             let share = p
                 .share_above_threshold

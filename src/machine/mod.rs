@@ -11,6 +11,8 @@
 //! define: this module builds on `marlin`, never the other way round, and `slice` builds
 //! on this one.
 
+pub mod commands;
+
 use crate::marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -38,6 +40,14 @@ pub struct Machine {
     pub start_gcode: Option<String>,
     /// End code replacing crispen's (None: `gcode/end.gcode`); `{PRESENT_Z}` is filled.
     pub end_gcode: Option<String>,
+    /// The highest hotend temperature a file may ask for, °C (see the G-code policy, `policy` in `slice`).
+    pub max_hotend_c: f64,
+    /// The highest bed temperature a file may ask for, °C.
+    pub max_bed_c: f64,
+    /// Extruders (tools `T0` .. `T<n-1>`).
+    pub extruders: u8,
+    /// Commands the G-code policy refuses that this machine allows in files (`M500`).
+    pub allow: Vec<String>,
 }
 
 /// Room kept free around the model on each side, for the skirt the profiles print.
@@ -109,6 +119,8 @@ pub struct Builtin {
     pub nozzle_range_mm: [f64; 2],
     pub filament_mm: f64,
     pub heated_bed: bool,
+    pub max_hotend_c: f64,
+    pub max_bed_c: f64,
 }
 
 impl Builtin {
@@ -125,6 +137,10 @@ impl Builtin {
             cura_profile: None,
             start_gcode: None,
             end_gcode: None,
+            max_hotend_c: self.max_hotend_c,
+            max_bed_c: self.max_bed_c,
+            extruders: 1,
+            allow: Vec::new(),
         }
     }
 }
@@ -142,6 +158,12 @@ pub const BUILTIN: &[Builtin] = &[
         nozzle_range_mm: [0.4, 0.4],
         filament_mm: 2.85,
         heated_bed: true,
+        // Ultimaker2Marlin (Configuration.h) trips at HEATER_0_MAXTEMP 275 °C and lets a
+        // target reach 15 °C below it, 260 °C, which is also the top of the nozzle range
+        // Ultimaker publishes for the UM2 family (PTFE coupler); the bed's published range
+        // ends at 100 °C (the firmware's BED_MAXTEMP of 200 protects nothing below that).
+        max_hotend_c: 260.0,
+        max_bed_c: 100.0,
     },
     Builtin {
         name: "ultimaker2-extended",
@@ -152,6 +174,12 @@ pub const BUILTIN: &[Builtin] = &[
         nozzle_range_mm: [0.4, 0.4],
         filament_mm: 2.85,
         heated_bed: true,
+        // Ultimaker2Marlin (Configuration.h) trips at HEATER_0_MAXTEMP 275 °C and lets a
+        // target reach 15 °C below it, 260 °C, which is also the top of the nozzle range
+        // Ultimaker publishes for the UM2 family (PTFE coupler); the bed's published range
+        // ends at 100 °C (the firmware's BED_MAXTEMP of 200 protects nothing below that).
+        max_hotend_c: 260.0,
+        max_bed_c: 100.0,
     },
     Builtin {
         // Swappable nozzles: Ultimaker sells 0.25, 0.4, 0.6 and 0.8 mm.
@@ -163,6 +191,12 @@ pub const BUILTIN: &[Builtin] = &[
         nozzle_range_mm: [0.25, 0.8],
         filament_mm: 2.85,
         heated_bed: true,
+        // Ultimaker2Marlin (Configuration.h) trips at HEATER_0_MAXTEMP 275 °C and lets a
+        // target reach 15 °C below it, 260 °C, which is also the top of the nozzle range
+        // Ultimaker publishes for the UM2 family (PTFE coupler); the bed's published range
+        // ends at 100 °C (the firmware's BED_MAXTEMP of 200 protects nothing below that).
+        max_hotend_c: 260.0,
+        max_bed_c: 100.0,
     },
     Builtin {
         // Ultimaker's Marlin 1 fork at 250000 baud, the same lineage and serial
@@ -175,6 +209,11 @@ pub const BUILTIN: &[Builtin] = &[
         nozzle_range_mm: [0.4, 0.4],
         filament_mm: 2.85,
         heated_bed: true,
+        // Ultimaker's Marlin of the same lineage, with the Ultimaker 2's limits
+        // (HEATER_0_MAXTEMP 275, targets to 260 °C) and a heated plate taken as the
+        // Ultimaker 2's (100 °C).
+        max_hotend_c: 260.0,
+        max_bed_c: 100.0,
     },
     Builtin {
         name: DEFAULT_MARLIN_MACHINE,
@@ -185,6 +224,12 @@ pub const BUILTIN: &[Builtin] = &[
         nozzle_range_mm: [0.2, 1.0],
         filament_mm: 1.75,
         heated_bed: true,
+        // Marlin's stock Configuration.h: HEATER_0_MAXTEMP 275 with HOTEND_OVERSHOOT 15
+        // (the highest target it accepts: 260 °C); BED_MAXTEMP 150 with BED_OVERSHOOT 10
+        // would allow 140, but a common bed-slinger's bed is sold for at most 100-110 °C:
+        // 110.
+        max_hotend_c: 260.0,
+        max_bed_c: 110.0,
     },
 ];
 
@@ -192,6 +237,11 @@ pub const BUILTIN: &[Builtin] = &[
 pub const BED_MM: std::ops::RangeInclusive<f64> = 20.0..=2000.0;
 pub const NOZZLE_MM: std::ops::RangeInclusive<f64> = 0.1..=2.0;
 pub const FILAMENT_MM: std::ops::RangeInclusive<f64> = 1.0..=3.5;
+/// Bounds of the temperature limits, °C: no hotend crispen drives takes more than 450,
+/// no bed more than 200 (0: files may not heat it).
+pub const HOTEND_C: std::ops::RangeInclusive<f64> = 100.0..=450.0;
+pub const BED_C: std::ops::RangeInclusive<f64> = 0.0..=200.0;
+pub const EXTRUDERS: std::ops::RangeInclusive<u8> = 1..=8;
 /// The largest start or end code file read.
 pub const MAX_CODE_BYTES: u64 = 64 * 1024;
 /// At most this many machines in one config.
@@ -215,6 +265,13 @@ pub struct MachineSpec {
     pub start_gcode: Option<PathBuf>,
     /// A file of end code (placeholder `{PRESENT_Z}`).
     pub end_gcode: Option<PathBuf>,
+    /// The highest hotend temperature a file may ask for, °C.
+    pub max_hotend_c: Option<f64>,
+    /// The highest bed temperature a file may ask for, °C.
+    pub max_bed_c: Option<f64>,
+    pub extruders: Option<u8>,
+    /// Commands of [`commands::REFUSED`] this machine allows in files.
+    pub allow: Option<Vec<String>>,
 }
 
 /// Whether a name may name a machine (it becomes part of G-code file names).
@@ -319,6 +376,75 @@ impl MachineSpec {
             (None, Some(b)) => b.heated_bed,
             (None, None) => return Err(need("heated_bed")),
         };
+        let celsius = |key: &'static str,
+                       v: Option<f64>,
+                       r: &std::ops::RangeInclusive<f64>,
+                       inherited: Option<f64>| {
+            match (v, inherited) {
+                (Some(v), _) if v.is_finite() && r.contains(&v) => Ok(v),
+                (Some(v), _) => Err((
+                    key,
+                    format!("must be from {} to {} °C, got {v}", r.start(), r.end()),
+                )),
+                (None, Some(b)) => Ok(b),
+                (None, None) => Err(need(key)),
+            }
+        };
+        let max_hotend_c = celsius(
+            "max_hotend_c",
+            self.max_hotend_c,
+            &HOTEND_C,
+            base.as_ref().map(|b| b.max_hotend_c),
+        )?;
+        let max_bed_c = celsius(
+            "max_bed_c",
+            self.max_bed_c,
+            &BED_C,
+            base.as_ref().map(|b| b.max_bed_c),
+        )?;
+        let extruders = match (self.extruders, &base) {
+            (Some(n), _) if EXTRUDERS.contains(&n) => n,
+            (Some(n), _) => {
+                return Err((
+                    "extruders",
+                    format!(
+                        "must be from {} to {}, got {n}",
+                        EXTRUDERS.start(),
+                        EXTRUDERS.end()
+                    ),
+                ))
+            }
+            (None, Some(b)) => b.extruders,
+            (None, None) => 1,
+        };
+        let allow = match (self.allow, &base) {
+            (Some(list), _) => {
+                let mut out: Vec<String> = Vec::new();
+                for word in list {
+                    let code = word.trim().to_ascii_uppercase();
+                    if !commands::allowable(&code) {
+                        return Err((
+                            "allow",
+                            format!(
+                                "{word:?} is not a command the G-code policy refuses; it may \
+                                 allow: {}",
+                                commands::REFUSED
+                                    .iter()
+                                    .map(|(c, _)| *c)
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
+                            ),
+                        ));
+                    }
+                    if !out.contains(&code) {
+                        out.push(code);
+                    }
+                }
+                out
+            }
+            (None, Some(b)) => b.allow.clone(),
+            (None, None) => Vec::new(),
+        };
         let file = |key: &'static str, p: &Option<PathBuf>| -> Result<Option<PathBuf>, _> {
             match p {
                 None => Ok(None),
@@ -352,6 +478,10 @@ impl MachineSpec {
                 .or_else(|| base.as_ref().and_then(|b| b.start_gcode.clone())),
             end_gcode: code("end_gcode", &self.end_gcode)?
                 .or_else(|| base.as_ref().and_then(|b| b.end_gcode.clone())),
+            max_hotend_c,
+            max_bed_c,
+            extruders,
+            allow,
         })
     }
 }
@@ -395,6 +525,13 @@ mod tests {
             assert!(valid_name(b.name), "{}", b.name);
         }
         assert_eq!(m(DEFAULT_MARLIN_MACHINE).filament_mm, 1.75);
+        for b in BUILTIN {
+            let machine = b.machine();
+            assert!(HOTEND_C.contains(&machine.max_hotend_c), "{}", b.name);
+            assert!(BED_C.contains(&machine.max_bed_c), "{}", b.name);
+            assert_eq!((machine.extruders, machine.allow.len()), (1, 0));
+        }
+        assert_eq!(m("ultimaker2").max_hotend_c, 260.0);
         assert_eq!(
             Machine::default_for(Firmware::Ultimaker2).name,
             "ultimaker2"
@@ -426,7 +563,8 @@ mod tests {
     fn a_machine_table_is_checked_key_by_key() {
         let m = check(
             "name = \"generic-175\"\nfirmware = \"marlin2\"\nbed_mm = [220, 220, 250]\n\
-             nozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = true\n",
+             nozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = true\nmax_hotend_c = 260\n\
+             max_bed_c = 110\n",
         )
         .unwrap();
         assert_eq!(m.bed_mm, [220.0, 220.0, 250.0]);
@@ -480,6 +618,31 @@ mod tests {
             assert_eq!(k, key, "{text}: {m}");
             assert!(m.contains(says), "{text}: {m}");
         }
+        for (text, key, says) in [
+            ("max_hotend_c = 1000", "max_hotend_c", "100 to 450"),
+            ("max_bed_c = -1", "max_bed_c", "0 to 200"),
+            ("extruders = 0", "extruders", "1 to 8"),
+            ("allow = [\"M104\"]", "allow", "M500"),
+        ] {
+            let (k, m) =
+                check(&format!("name = \"a\"\nbased_on = \"ultimaker2\"\n{text}")).unwrap_err();
+            assert_eq!(k, key, "{text}: {m}");
+            assert!(m.contains(says), "{text}: {m}");
+        }
+        let (k, _) = check(
+            "name = \"a\"\nfirmware = \"marlin2\"\nbed_mm = [220, 220, 250]\nnozzle_mm = 0.4\n\
+             filament_mm = 1.75\nheated_bed = true\n",
+        )
+        .unwrap_err();
+        assert_eq!(k, "max_hotend_c");
+        let m = check(
+            "name = \"a\"\nbased_on = \"ultimaker2\"\nallow = [\"m500\", \"M500\"]\nmax_bed_c = 80",
+        )
+        .unwrap();
+        assert_eq!(
+            (m.allow, m.max_bed_c, m.max_hotend_c),
+            (vec!["M500".to_string()], 80.0, 260.0)
+        );
         assert!(toml::from_str::<MachineSpec>("name = \"a\"\nbed = 1").is_err());
     }
 }

@@ -1,6 +1,7 @@
 //! Checking a slicer's G-code before it becomes a job, and reading its figures.
 //!
-//! The check follows the moves as Marlin would (G90/G91, M82/M83, G92, G28) and demands:
+//! The check follows the moves as Marlin would ([`super::motion`]: G90/G91, M82/M83, G92,
+//! G28, arcs, offsets) and demands:
 //! some extruding moves; every move inside the machine (X, Y within the bed, Z within the
 //! height, with a 0.5 mm allowance for rounding: the start code's purge and the skirt are
 //! on the bed, so nothing legitimately leaves it); the top printed layer at the asked
@@ -8,6 +9,8 @@
 //! layers (which would leave the rest printed in the air); and both heaters switched on
 //! (M104/M109 and M140/M190) before the first extrusion. It also counts layers and reads the slicer's estimates.
 
+use super::motion::{self, Motion};
+use crate::marlin::firmware::Firmware;
 use std::io::BufRead;
 
 /// What the job must satisfy.
@@ -20,6 +23,8 @@ pub struct Expectations {
     pub layer_height_mm: Option<f64>,
     /// Whether the machine has a heated bed (then it must be heated before extruding).
     pub heated_bed: bool,
+    /// How the moves are followed (arcs, home offsets differ).
+    pub firmware: Firmware,
 }
 
 /// Figures read from a G-code file that passed the check.
@@ -70,37 +75,6 @@ pub fn parse_cura_log_time(line: &str) -> Option<f64> {
         .and_then(|v| v.trim().parse().ok())
 }
 
-/// A command word's letter and number (`X12.5`); `None` for a word that is no finite number.
-pub(super) fn word_value(word: &str) -> Option<(char, f64)> {
-    let mut chars = word.chars();
-    let letter = chars.next()?.to_ascii_uppercase();
-    let v: f64 = chars.as_str().parse().ok()?;
-    v.is_finite().then_some((letter, v))
-}
-
-/// Where a move with `params` ends, starting at `pos` ([X, Y, Z, E]): the axes given are
-/// absolute or relative as G90/G91 said, and E is absolute only under both G90 and M82
-/// (G91 makes E relative too in Marlin, whatever M82 said).
-pub(super) fn move_target(
-    pos: [f64; 4],
-    params: &[(char, f64)],
-    absolute: bool,
-    absolute_e: bool,
-) -> [f64; 4] {
-    let mut target = pos;
-    for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-        let absolute = if letter == 'E' {
-            absolute && absolute_e
-        } else {
-            absolute
-        };
-        if let Some(&(_, v)) = params.iter().find(|(l, _)| *l == letter) {
-            target[k] = if absolute { v } else { pos[k] + v };
-        }
-    }
-    target
-}
-
 fn comment_value<'a>(comment: &'a str, key: &str) -> Option<&'a str> {
     let rest = comment.trim_start().strip_prefix(key)?;
     Some(rest.trim_start().strip_prefix('=').unwrap_or(rest).trim())
@@ -109,9 +83,7 @@ fn comment_value<'a>(comment: &'a str, key: &str) -> Option<&'a str> {
 /// Reads and checks G-code; the error is the reason it is not a usable job.
 pub fn check(reader: impl BufRead, expect: &Expectations) -> Result<GcodeStats, String> {
     let mut stats = GcodeStats::default();
-    let mut pos = [0.0f64; 4]; // X Y Z E as the printer sees them
-    let mut absolute = true;
-    let mut absolute_e = true;
+    let mut motion = Motion::new(expect.firmware);
     let mut nozzle_heated = false;
     let mut bed_heated = !expect.heated_bed;
     let mut first_extrusion_line: Option<usize> = None;
@@ -138,88 +110,55 @@ pub fn check(reader: impl BufRead, expect: &Expectations) -> Result<GcodeStats, 
                 &mut last_time_elapsed,
             );
         }
-        let mut words = code.split_whitespace();
-        let Some(command) = words.next() else {
+        let Some(cmd) = motion::parse(code) else {
             continue;
         };
-        let command = command.to_ascii_uppercase();
-        let params: Vec<(char, f64)> = words.filter_map(word_value).collect();
-        let get = |letter: char| params.iter().find(|(l, _)| *l == letter).map(|(_, v)| *v);
-        match command.as_str() {
-            "G0" | "G1" => {
-                let target = move_target(pos, &params, absolute, absolute_e);
-                let de = target[3] - pos[3];
-                let moves_xy = target[0] != pos[0] || target[1] != pos[1];
-                for k in 0..3 {
-                    let axis = ['X', 'Y', 'Z'][k];
-                    if target[k] < -EDGE_MM || target[k] > expect.bed_mm[k] + EDGE_MM {
-                        return Err(format!(
-                            "line {number} moves {axis} to {:.2} mm, outside the printer's 0..{} mm",
-                            target[k], expect.bed_mm[k]
-                        ));
-                    }
-                }
-                if de > 0.0 {
-                    if first_extrusion_line.is_none() {
-                        first_extrusion_line = Some(number);
-                        if !(nozzle_heated && bed_heated) {
-                            return Err(format!(
-                                "line {number} extrudes before {} heated (M104/M109 and M140/M190 \
-                                 must come first)",
-                                match (nozzle_heated, bed_heated) {
-                                    (false, false) => "the nozzle and the bed are",
-                                    (false, true) => "the nozzle is",
-                                    _ => "the bed is",
-                                }
-                            ));
-                        }
-                    }
-                    if moves_xy {
-                        extruding_moves += 1;
-                        let z = target[2];
-                        top_z = top_z.max(z);
-                        if !layer_zs.iter().any(|lz| (lz - z).abs() < 1e-4) {
-                            layer_zs.push(z);
-                        }
-                    }
-                }
-                stats.extruded_mm += de;
-                pos = target;
-            }
-            "G90" => absolute = true,
-            "G91" => absolute = false,
-            "M82" => absolute_e = true,
-            "M83" => absolute_e = false,
-            "G92" => {
-                for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-                    if let Some(v) = get(letter) {
-                        pos[k] = v;
-                    }
-                }
-            }
-            "G28" => {
-                // Homing named axes (or all) puts them at 0 on the Ultimaker 2's X/Y;
-                // Z's endstop position does not matter for the checks, 0 is safe.
-                let named: Vec<usize> = ['X', 'Y', 'Z']
-                    .into_iter()
-                    .enumerate()
-                    .filter(|(_, l)| code.to_ascii_uppercase().contains(*l))
-                    .map(|(k, _)| k)
-                    .collect();
-                if named.is_empty() {
-                    pos[0] = 0.0;
-                    pos[1] = 0.0;
-                    pos[2] = 0.0;
-                } else {
-                    for k in named {
-                        pos[k] = 0.0;
-                    }
-                }
-            }
+        let get = |letter: char| cmd.get(letter);
+        match cmd.code.as_str() {
             "M104" | "M109" if get('S').is_some_and(|t| t > 0.0) => nozzle_heated = true,
             "M140" | "M190" if get('S').is_some_and(|t| t > 0.0) => bed_heated = true,
             _ => {}
         }
+        let Some(m) = motion
+            .apply(&cmd)
+            .map_err(|e| format!("line {number}: {e}"))?
+        else {
+            continue;
+        };
+        if let Some(k) = motion::outside(m.lo, m.hi, expect.bed_mm, EDGE_MM) {
+            let axis = ['X', 'Y', 'Z'][k];
+            let past = if m.lo[k] < -EDGE_MM { m.lo[k] } else { m.hi[k] };
+            return Err(format!(
+                "line {number} moves {axis} to {past:.2} mm, outside the printer's 0..{} mm",
+                expect.bed_mm[k]
+            ));
+        }
+        let de = m.extruded();
+        if de > 0.0 {
+            if first_extrusion_line.is_none() {
+                first_extrusion_line = Some(number);
+                if !(nozzle_heated && bed_heated) {
+                    return Err(format!(
+                        "line {number} extrudes before {} heated (M104/M109 and M140/M190 \
+                         must come first)",
+                        match (nozzle_heated, bed_heated) {
+                            (false, false) => "the nozzle and the bed are",
+                            (false, true) => "the nozzle is",
+                            _ => "the bed is",
+                        }
+                    ));
+                }
+            }
+            if m.moves_xy() {
+                extruding_moves += 1;
+                let z = m.to[2];
+                top_z = top_z.max(z);
+                if !layer_zs.iter().any(|lz| (lz - z).abs() < 1e-4) {
+                    layer_zs.push(z);
+                }
+            }
+        }
+        stats.extruded_mm += de;
     }
 
     if stats.lines == 0 {
@@ -315,6 +254,7 @@ mod tests {
             height_mm: height,
             layer_height_mm: Some(0.2),
             heated_bed: true,
+            firmware: Firmware::Ultimaker2,
         }
     }
 

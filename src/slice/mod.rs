@@ -18,6 +18,8 @@
 
 pub mod cura;
 pub mod gcode;
+pub mod motion;
+pub mod policy;
 pub mod presliced;
 pub mod process;
 pub mod profiles;
@@ -219,6 +221,10 @@ pub struct SliceReport {
     /// for, see `SliceRequest::compare`).
     #[serde(default)]
     pub walls: Option<walls::WallComparison>,
+    /// What the G-code policy found (pauses, commands the machine allowed); a file it
+    /// refuses makes no report.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub policy: Option<policy::Verdict>,
 }
 
 /// Why a job failed. Messages name the model, slicer, exit status and the end of the
@@ -447,6 +453,7 @@ pub fn slice_mesh(
         height_mm: job.height_mm,
         layer_height_mm: job.settings.layer_height_mm,
         heated_bed: job.machine.heated_bed,
+        firmware: job.machine.firmware,
     };
     let stats = match gcode::check(std::io::BufReader::new(file), &expect) {
         Ok(stats) => stats,
@@ -455,6 +462,18 @@ pub fn slice_mesh(
             gcode::GcodeStats::default()
         }
         Err(reason) => return Err(bad_output(reason)),
+    };
+    // Defence in depth: a profile's start and end code is G-code too, and crispen's own
+    // output must pass what an uploaded file must.
+    let verdict = if job.measure_only {
+        None
+    } else {
+        let verdict =
+            policy::check_file(&gcode_path, job.machine).map_err(|e| bad_output(e.to_string()))?;
+        if !verdict.passed() {
+            return Err(bad_output(verdict.summary()));
+        }
+        Some(verdict)
     };
     timings.check_s = t.elapsed().as_secs_f64();
 
@@ -492,6 +511,7 @@ pub fn slice_mesh(
         filament_mm,
         filament_g,
         gcode_lines: stats.lines,
+        policy: verdict,
         ..SliceReport::default()
     })
 }

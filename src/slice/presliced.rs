@@ -5,13 +5,14 @@
 //! block at the end (`; filament_diameter = 2.85`, `; nozzle_diameter`, `; printer_model`,
 //! `; bed_shape`, `; max_print_height`), CuraEngine's header (`;FLAVOR:`,
 //! `;NOZZLE_DIAMETER:`) and Cura's settings block (`;SETTING_3 ...definition = ultimaker2...`),
-//! and follows the moves as Marlin would for their extent. [`check_for`] compares that with
+//! and follows the moves as Marlin would ([`super::motion`]) for their extent, arcs
+//! included. [`check_for`] compares that with
 //! a [`Machine`]: a file made for another filament or nozzle, another known printer, the
 //! SD-card-only UltiGCode flavour, or whose moves leave the machine's bed is refused with
 //! the reason. Binary G-code (PrusaSlicer's `.bgcode`) is refused by [`read_target`].
 //! Pure functions over a reader; no slicer is run.
 
-use super::gcode::{move_target, word_value};
+use super::motion::{self, Motion};
 use crate::machine::Machine;
 use std::io::BufRead;
 
@@ -66,9 +67,7 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
         return Err(PreslicedError::Binary);
     }
     let mut t = GcodeTarget::default();
-    let mut pos = [0.0f64; 4];
-    let mut absolute = true;
-    let mut absolute_e = true;
+    let mut motion = Motion::default();
     let mut heated = false;
     let mut extent: Option<[[f64; 2]; 3]> = None;
     let mut bed_xy: Option<[f64; 2]> = None;
@@ -95,60 +94,30 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
         if let Some(c) = comment {
             read_comment(c, &mut t, &mut bed_xy, &mut bed_z);
         }
-        let mut words = code.split_whitespace();
-        let Some(command) = words.next() else {
+        let Some(cmd) = motion::parse(code) else {
             continue;
         };
         commands += 1;
-        let command = command.to_ascii_uppercase();
-        let params: Vec<(char, f64)> = words.filter_map(word_value).collect();
-        let get = |letter: char| params.iter().find(|(l, _)| *l == letter).map(|(_, v)| *v);
-        match command.as_str() {
-            "G0" | "G1" | "G2" | "G3" => {
-                let target = move_target(pos, &params, absolute, absolute_e);
-                let de = target[3] - pos[3];
-                if de > 0.0 {
-                    t.extruded_mm += de;
-                    if !heated && t.extrudes_cold_at.is_none() {
-                        t.extrudes_cold_at = Some(t.lines);
-                    }
-                }
-                if (0..3).any(|k| target[k] != pos[k]) {
-                    let e = extent.get_or_insert([[f64::INFINITY, f64::NEG_INFINITY]; 3]);
-                    for k in 0..3 {
-                        e[k][0] = e[k][0].min(target[k]);
-                        e[k][1] = e[k][1].max(target[k]);
-                    }
-                }
-                pos = target;
-            }
-            "G28" => {
-                // Homed axes are at their origin (all of them when none is named).
-                let named: Vec<char> = code
-                    .split_whitespace()
-                    .skip(1)
-                    .filter_map(|w| w.chars().next())
-                    .map(|c| c.to_ascii_uppercase())
-                    .collect();
-                for (k, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
-                    if named.is_empty() || named.contains(&letter) {
-                        pos[k] = 0.0;
-                    }
+        if matches!(cmd.code.as_str(), "M104" | "M109") && cmd.get('S').is_some_and(|s| s > 0.0) {
+            heated = true;
+        }
+        // What cannot be followed is the policy's to refuse, naming the line; the extent
+        // here is of what can.
+        if let Ok(Some(m)) = motion.apply(&cmd) {
+            let de = m.extruded();
+            if de > 0.0 {
+                t.extruded_mm += de;
+                if !heated && t.extrudes_cold_at.is_none() {
+                    t.extrudes_cold_at = Some(t.lines);
                 }
             }
-            "G90" => absolute = true,
-            "G91" => absolute = false,
-            "M82" => absolute_e = true,
-            "M83" => absolute_e = false,
-            "G92" => {
-                for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-                    if let Some(v) = get(letter) {
-                        pos[k] = v;
-                    }
+            if m.moves_xyz() {
+                let e = extent.get_or_insert([[f64::INFINITY, f64::NEG_INFINITY]; 3]);
+                for (k, [lo, hi]) in e.iter_mut().enumerate() {
+                    *lo = lo.min(m.lo[k]);
+                    *hi = hi.max(m.hi[k]);
                 }
             }
-            "M104" | "M109" if get('S').is_some_and(|s| s > 0.0) => heated = true,
-            _ => {}
         }
     }
     if commands == 0 {
@@ -306,7 +275,8 @@ pub fn check_for(target: &GcodeTarget, machine: &Machine) -> Result<(), String> 
     };
     for (k, axis) in ['X', 'Y', 'Z'].into_iter().enumerate() {
         let [lo, hi] = extent[k];
-        if lo < -EDGE_MM || hi > m.bed_mm[k] + EDGE_MM {
+        // Written so that a coordinate that is no number counts as outside.
+        if !(lo >= -EDGE_MM && hi <= m.bed_mm[k] + EDGE_MM) {
             return Err(format!(
                 "its moves go to {axis} {lo:.1} .. {hi:.1} mm, outside the {}'s bed (0 .. {} mm)",
                 m.name, m.bed_mm[k]
@@ -347,7 +317,8 @@ mod tests {
         assert_eq!(t.printer_model.as_deref(), Some("MK3S"));
         assert_eq!(
             t.extent_mm,
-            Some([[10.0, 100.0], [10.0, 100.0], [0.2, 0.2]])
+            // From the origin G28 left the head at.
+            Some([[0.0, 100.0], [0.0, 100.0], [0.0, 0.2]])
         );
         let e = check_for(&t, &um2()).unwrap_err();
         assert!(e.contains("1.75 mm filament") && e.contains("2.85"), "{e}");
@@ -371,10 +342,10 @@ mod tests {
         check_for(&read(MOVES), &um2()).unwrap();
         let far = format!("{MOVES}G1 X230 Y100 E6\n");
         let e = check_for(&read(&far), &um2()).unwrap_err();
-        assert!(e.contains("X 10.0 .. 230.0") && e.contains("223"), "{e}");
+        assert!(e.contains("X 0.0 .. 230.0") && e.contains("223"), "{e}");
         let relative = format!("{MOVES}G91\nG1 Z250\n");
         let e = check_for(&read(&relative), &um2()).unwrap_err();
-        assert!(e.contains("Z 0.2 .. 250.2"), "{e}");
+        assert!(e.contains("Z 0.0 .. 250.2"), "{e}");
         let e = check_for(&read("G28\nG1 X10 Y10 E3\n"), &um2()).unwrap_err();
         assert!(e.contains("line 2 extrudes before"), "{e}");
         let e = check_for(&read(&format!(";FLAVOR:UltiGCode\n{MOVES}")), &um2()).unwrap_err();

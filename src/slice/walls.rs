@@ -3,7 +3,7 @@
 //!
 //! The outer wall is what a viewer sees of a print, and slicers mark it: PrusaSlicer
 //! `;TYPE:External perimeter`, CuraEngine `;TYPE:WALL-OUTER`. [`outer_walls`] follows the
-//! moves as Marlin would (G90/G91, M82/M83, G92) and keeps every extruding move of that
+//! moves as Marlin would ([`super::motion`]) and keeps every extruding move of that
 //! type as a segment of its layer (layers keyed by Z to the micrometre). [`compare`]
 //! samples the enhanced walls every [`SAMPLE_SPACING_MM`] and measures each sample's
 //! distance to the nearest segment of the plain wall of the same layer (a grid of cells
@@ -14,7 +14,7 @@
 //! [`MAX_DISTANCE_MM`] (a wall moved that far is not a detail, and the cap bounds the
 //! search), and a wall longer than [`MAX_SAMPLES`] samples is sampled more coarsely.
 
-use super::gcode::{move_target, word_value};
+use super::motion::{self, Motion};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::BufRead;
@@ -62,8 +62,7 @@ fn is_outer_wall(kind: &str) -> bool {
 pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
     let mut walls = OuterWalls::default();
     let mut kept = 0usize;
-    let mut pos = [0.0f64; 4];
-    let (mut absolute, mut absolute_e) = (true, true);
+    let mut motion = Motion::default();
     let mut in_wall = false;
     for line in reader.split(b'\n') {
         let line = line?;
@@ -80,47 +79,33 @@ pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
                 in_wall = false;
             }
         }
-        let mut words = code.split_whitespace();
-        let Some(command) = words.next() else {
+        let Some(cmd) = motion::parse(code) else {
             continue;
         };
-        let params: Vec<(char, f64)> = words.filter_map(word_value).collect();
-        match command.to_ascii_uppercase().as_str() {
-            "G0" | "G1" | "G2" | "G3" => {
-                // Arcs are taken as chords: the slicers here write none (arc fitting is
-                // off in the built-in profiles), and a chord only shortens the wall.
-                let target = move_target(pos, &params, absolute, absolute_e);
-                let extrudes = target[3] > pos[3];
-                let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
-                if in_wall
-                    && extrudes
-                    && sane(&pos)
-                    && sane(&target)
-                    && (target[0] != pos[0] || target[1] != pos[1])
-                    && kept < MAX_SEGMENTS
-                {
-                    let z = (target[2] * 1000.0).round() as i64;
-                    walls
-                        .layers
-                        .entry(z)
-                        .or_default()
-                        .push([[pos[0], pos[1]], [target[0], target[1]]]);
-                    kept += 1;
-                }
-                pos = target;
-            }
-            "G90" => absolute = true,
-            "G91" => absolute = false,
-            "M82" => absolute_e = true,
-            "M83" => absolute_e = false,
-            "G92" => {
-                for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-                    if let Some(&(_, v)) = params.iter().find(|(l, _)| *l == letter) {
-                        pos[k] = v;
-                    }
-                }
-            }
-            _ => {}
+        // A command that cannot be followed leaves the position as it was: the measure
+        // of a file the policy refuses is never printed anyway.
+        let Ok(Some(m)) = motion.apply(&cmd) else {
+            continue;
+        };
+        // Arcs are taken as chords: the slicers here write none (arc fitting is off in
+        // the built-in profiles), and a chord only shortens the wall.
+        let (pos, target) = (m.from, m.to);
+        let extrudes = target[3] > pos[3];
+        let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
+        if in_wall
+            && extrudes
+            && sane(&pos)
+            && sane(&target)
+            && (target[0] != pos[0] || target[1] != pos[1])
+            && kept < MAX_SEGMENTS
+        {
+            let z = (target[2] * 1000.0).round() as i64;
+            walls
+                .layers
+                .entry(z)
+                .or_default()
+                .push([[pos[0], pos[1]], [target[0], target[1]]]);
+            kept += 1;
         }
     }
     Ok(walls)
@@ -496,7 +481,9 @@ mod tests {
                  G1 X1e300 E1\nG1 Xnan E1\nG1 X-1e308 Y-1e308 E1\nG92 X0 Y0\nG1 X5 E-1\n\
                  ;TYPE:\n\x00\x01\u{fffd}G1 E\nG1 X Y Z\n";
         let w = outer_walls(g.as_bytes()).unwrap();
-        assert_eq!(w.layers[&200].len(), 2, "{w:?}");
+        // As Marlin reads them: `X1e300` is X1 then E300, `Xnan` no X at all.
+        assert_eq!(w.layers[&200].len(), 4, "{w:?}");
+        assert_eq!(w.layers[&200][2], [[10.0, 10.0], [11.0, 10.0]]);
         assert_eq!(w.layers[&200][1], [[10.0, 0.0], [10.0, 10.0]]);
         let _ = compare(&w, &w);
         // Random bytes from G-code's alphabet.

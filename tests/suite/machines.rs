@@ -114,6 +114,8 @@ bed_mm = [180, 180, 180]
 nozzle_mm = 0.4
 filament_mm = 1.75
 heated_bed = true
+max_hotend_c = 260
+max_bed_c = 110
 [[printer]]
 name = "um2"
 machine = "ultimaker2"

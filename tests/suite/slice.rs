@@ -557,6 +557,8 @@ fn the_cli_slices_for_a_named_machine_and_nozzle() {
     );
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
     assert_eq!(report["machine"], "ultimaker2plus-0.6mm");
+    // crispen's own output passed the G-code policy, its verdict in the report.
+    assert_eq!(report["policy"]["refusals_total"], 0, "{report}");
     let text = std::fs::read_to_string(&out).unwrap();
     assert!(
         text.contains("; nozzle_diameter = 0.6"),
@@ -574,7 +576,8 @@ fn the_cli_slices_for_a_named_machine_and_nozzle() {
     std::fs::write(
         &config,
         "[spool]\ndir = \"spool\"\n[[machine]]\nname = \"cold-175\"\nfirmware = \"marlin2\"\n\
-         bed_mm = [180, 180, 180]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = false\n",
+         bed_mm = [180, 180, 180]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = false\n\
+         max_hotend_c = 260\nmax_bed_c = 0\n",
     )
     .unwrap();
     let output = run(&[

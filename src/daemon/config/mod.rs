@@ -1791,7 +1791,8 @@ slicer = "cura"
             crate::machine::DEFAULT_MARLIN_MACHINE
         );
         let machines = "[[machine]]\nname = \"generic-175\"\nfirmware = \"marlin20\"\n\
-            bed_mm = [220, 220, 250]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = true\n";
+            bed_mm = [220, 220, 250]\nnozzle_mm = 0.4\nfilament_mm = 1.75\nheated_bed = true\n\
+            max_hotend_c = 260\nmax_bed_c = 110\n";
         let text = GOOD
             .replacen("[[printer]]", &format!("{machines}[[printer]]"), 1)
             .replacen("firmware = \"marlin2\"", "machine = \"generic-175\"", 1)

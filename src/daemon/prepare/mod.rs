@@ -3,7 +3,10 @@
 //! serving its folder), then enhance the model once and slice it once per machine into
 //! `<job dir>/<file>.<machine>.gcode` ([`steps`]), keeping the enhanced mesh that was
 //! sliced as `<job dir>/<file>.enhanced.stl`. A dropped `.gcode` file is not sliced: it is
-//! checked against each machine ([`crate::slice::presliced`]) and printed as it is.
+//! checked against each machine ([`crate::slice::presliced`]) and printed as it is. Every
+//! G-code, dropped or sliced, passes the host's load checks and the G-code policy
+//! ([`crate::slice::policy`]) here, before a printer may claim it; the verdict is in the
+//! job's report.
 //! [`queue`] is the daemon's loop that takes queued jobs through this.
 //!
 //! The work runs in a child process (`crispen prepare-job`, [`run_child`]) rather than on a
@@ -353,7 +356,7 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
 
 /// A pre-sliced file: read what it was made for, then accept or refuse it per machine.
 fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
-    use crate::slice::presliced;
+    use crate::slice::{policy, presliced};
     let model = &task.model;
     let file =
         std::fs::File::open(model).map_err(|e| format!("{}: cannot read: {e}", model.display()))?;
@@ -380,52 +383,72 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
         printer_model = ?target.printer_model,
         "pre-sliced G-code"
     );
-    let machines = task
-        .machines
-        .iter()
-        .map(|m| {
-            let verdict = presliced::check_for(&target, &m.machine)
-                .map(|()| SliceReport {
-                    model: model.clone(),
-                    output: m.output.clone(),
-                    machine: m.machine.name.clone(),
-                    enhancement: crate::slice::EnhancementSummary {
-                        lambda2: None,
-                        mode: "pre-sliced".into(),
-                        report: None,
-                        printed: None,
-                        print_aware: None,
-                    },
-                    slicer_version: target.slicer.clone(),
-                    model_size_mm: target
-                        .extent_mm
-                        .map_or([0.0; 3], |e| e.map(|[lo, hi]| hi - lo)),
-                    top_layer_z_mm: target.extent_mm.map_or(0.0, |e| e[2][1]),
-                    filament_mm: Some(target.extruded_mm),
-                    // The file names no material: grams as for PLA (the default preset),
-                    // on this machine's filament.
-                    filament_g: Some({
-                        let r_cm = m.machine.filament_mm / 20.0;
-                        let pla = crate::slice::MATERIALS[0];
-                        target.extruded_mm / 10.0
-                            * std::f64::consts::PI
-                            * r_cm
-                            * r_cm
-                            * pla.density_g_cm3
-                    }),
-                    gcode_lines: target.lines,
-                    ..SliceReport::default()
-                })
-                .map_err(|reason| {
-                    format!(
-                        "{} is not for the {}: {reason}",
-                        model.file_name().unwrap_or_default().to_string_lossy(),
-                        m.machine.name
-                    )
-                });
-            (m.machine.name.clone(), verdict)
-        })
-        .collect();
+    // The host's load checks depend on the firmware only: run once per firmware.
+    let mut loads: Vec<(crate::marlin::firmware::Firmware, Result<(), String>)> = Vec::new();
+    let mut machines = Vec::new();
+    for m in &task.machines {
+        let firmware = m.machine.firmware;
+        let load = match loads.iter().find(|(f, _)| *f == firmware) {
+            Some((_, r)) => r.clone(),
+            None => {
+                let r = policy::load_check(model, firmware).map_err(|e| e.to_string());
+                loads.push((firmware, r.clone()));
+                r
+            }
+        };
+        // The policy first: its refusals name the line.
+        let verdict = load
+            .and_then(|()| {
+                let verdict = policy::check_path(model, &m.machine).map_err(|e| e.to_string())?;
+                if verdict.passed() {
+                    Ok(verdict)
+                } else {
+                    Err(verdict.summary())
+                }
+            })
+            .and_then(|verdict| presliced::check_for(&target, &m.machine).map(|()| verdict))
+            .map(|verdict| SliceReport {
+                model: model.clone(),
+                output: m.output.clone(),
+                machine: m.machine.name.clone(),
+                enhancement: crate::slice::EnhancementSummary {
+                    lambda2: None,
+                    mode: "pre-sliced".into(),
+                    report: None,
+                    printed: None,
+                    print_aware: None,
+                },
+                slicer_version: target.slicer.clone(),
+                model_size_mm: target
+                    .extent_mm
+                    .map_or([0.0; 3], |e| e.map(|[lo, hi]| hi - lo)),
+                top_layer_z_mm: target.extent_mm.map_or(0.0, |e| e[2][1]),
+                filament_mm: Some(target.extruded_mm),
+                // The file names no material: grams as for PLA (the default preset),
+                // on this machine's filament.
+                filament_g: Some({
+                    let r_cm = m.machine.filament_mm / 20.0;
+                    let pla = crate::slice::MATERIALS[0];
+                    target.extruded_mm / 10.0 * std::f64::consts::PI * r_cm * r_cm * pla.density_g_cm3
+                }),
+                gcode_lines: target.lines,
+                policy: Some(verdict),
+                ..SliceReport::default()
+            })
+            .map_err(|reason| {
+                format!(
+                    "{} is not for the {}: {reason}",
+                    model.file_name().unwrap_or_default().to_string_lossy(),
+                    m.machine.name
+                )
+            });
+        if let Ok(report) = &verdict {
+            if let Some(v) = &report.policy {
+                tracing::info!(job = %task.job, machine = %m.machine.name, verdict = %v.summary(), "G-code policy");
+            }
+        }
+        machines.push((m.machine.name.clone(), verdict));
+    }
     Ok(Prepared { machines })
 }
 

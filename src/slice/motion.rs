@@ -1,0 +1,653 @@
+//! One follower of G-code motion, as Marlin moves the head: every reader of G-code that
+//! needs to know where the nozzle goes (the slicer-output check `gcode`, the pre-sliced
+//! check `presliced`, the outer-wall measure `walls` and the G-code policy `policy`, its
+//! siblings, which build on it) reads commands with [`parse`] and follows them with one
+//! [`Motion`], so they cannot disagree about where a file sends the printer.
+//!
+//! Positions are kept in the machine's own coordinates (where the head physically is,
+//! homed at 0), apart from the coordinates the file writes: `G92` shifts the file's
+//! coordinates against the machine's, and `M206` (home offsets) does too. A move's extent
+//! is what the head sweeps, not just where it ends: arcs (`G2`/`G3`, I/J and R forms, full
+//! circles, P turns) reach their circle's extremes, a Bézier move (`G5`) stays in the hull
+//! of its control points.
+//!
+//! What cannot be followed for certain is refused ([`Unfollowable`]), never guessed:
+//! workspace coordinate systems (`G53`–`G59`, `G10 L2`/`L20`: off in stock Marlin, kept in
+//! EEPROM where on, so a file's offsets would shift every later job), other arc planes
+//! (`G18`, `G19`), inch units (`G20`), direct stepper moves (`G6`), `M428`, and arcs without
+//! a centre. Parsing follows Marlin's reading of a line: the command number is read as a
+//! number (`G01` is `G1`, `M0500` is `M500`), parameters need no space between them
+//! (`M104S300`), a value ends at the next letter.
+
+use crate::marlin::firmware::Firmware;
+use std::f64::consts::{FRAC_PI_2, TAU};
+
+/// One parameter of a command: its letter (upper case) and number, if it has one.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Word {
+    pub letter: char,
+    pub value: Option<f64>,
+    /// The firmware may read it differently from crispen: text that is no number after
+    /// the letter (`Snan`, `X1.2.3`), or a lower-case letter (Marlin ignores those).
+    pub garbled: bool,
+}
+
+/// One command of a line, as the firmware reads it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Command<'a> {
+    /// `G1`, `M104`, `G92.1`, `T1`: letter and number as the firmware reads them.
+    pub code: String,
+    pub words: Vec<Word>,
+    /// The command's text after its code (its message, for `M117` and the like).
+    pub rest: &'a str,
+}
+
+impl Command<'_> {
+    /// The number given for `letter`, if any.
+    pub fn get(&self, letter: char) -> Option<f64> {
+        self.words
+            .iter()
+            .find(|w| w.letter == letter)
+            .and_then(|w| w.value)
+    }
+
+    /// Whether `letter` is given (with or without a number).
+    pub fn has(&self, letter: char) -> bool {
+        self.words.iter().any(|w| w.letter == letter)
+    }
+
+    /// The first parameter whose text is no number, if any.
+    pub fn garbled(&self) -> Option<char> {
+        self.words.iter().find(|w| w.garbled).map(|w| w.letter)
+    }
+}
+
+/// Commands whose text after the code is a string, not parameters.
+const STRING_ARGUMENTS: [&str; 10] = [
+    "M23", "M28", "M30", "M32", "M33", "M117", "M118", "M928", "M0", "M1",
+];
+
+/// Reads one line's code (its comment already cut at `;`) as the firmware would: `None`
+/// for a blank line or text that is no command (the firmware answers "unknown command").
+pub fn parse(code: &str) -> Option<Command<'_>> {
+    let mut text = code.trim();
+    // A line number of the file's own (`N12 G1 X5`): the firmware skips it.
+    if let Some(rest) = text.strip_prefix(['N', 'n']) {
+        let digits = rest.len() - rest.trim_start_matches(|c: char| c.is_ascii_digit()).len();
+        if digits > 0 {
+            text = rest[digits..].trim_start();
+        }
+    }
+    let mut chars = text.char_indices();
+    let (_, letter) = chars.next()?;
+    let letter = letter.to_ascii_uppercase();
+    if !matches!(letter, 'G' | 'M' | 'T') {
+        return None;
+    }
+    let body = &text[1..];
+    let digits = body.len() - body.trim_start_matches(|c: char| c.is_ascii_digit()).len();
+    if digits == 0 {
+        return None;
+    }
+    // Leading zeros and huge numbers read as the firmware's integer would.
+    let number: u64 = body[..digits].trim_start_matches('0').parse().unwrap_or(
+        if body[..digits].trim_start_matches('0').is_empty() {
+            0
+        } else {
+            u64::MAX
+        },
+    );
+    let mut after = &body[digits..];
+    let mut code = format!("{letter}{number}");
+    if letter != 'T' {
+        if let Some(sub) = after.strip_prefix('.') {
+            let n = sub.len() - sub.trim_start_matches(|c: char| c.is_ascii_digit()).len();
+            if n > 0 {
+                code.push('.');
+                code.push_str(sub[..n].trim_start_matches('0').max("0"));
+                after = &sub[n..];
+            }
+        }
+    }
+    if STRING_ARGUMENTS.contains(&code.as_str()) {
+        return Some(Command {
+            code,
+            words: Vec::new(),
+            rest: after.trim(),
+        });
+    }
+    Some(Command {
+        code,
+        words: words(after),
+        rest: after.trim(),
+    })
+}
+
+/// Parameters as Marlin reads them: a letter, optional spaces, a number that ends at the
+/// first character that cannot continue it.
+fn words(text: &str) -> Vec<Word> {
+    let bytes = text.as_bytes();
+    let mut out = Vec::new();
+    let mut i = 0;
+    // At most a line's worth of parameters: a line is bounded by the reader.
+    while i < bytes.len() {
+        let c = bytes[i] as char;
+        if c.is_ascii_whitespace() {
+            i += 1;
+            continue;
+        }
+        if !c.is_ascii_alphabetic() {
+            // Text that is no parameter (a quote, a stray sign): skipped up to the next
+            // space; the word it belongs to is marked.
+            if let Some(last) = out.last_mut() {
+                let w: &mut Word = last;
+                w.garbled = true;
+            }
+            while i < bytes.len() && !(bytes[i] as char).is_ascii_whitespace() {
+                i += 1;
+            }
+            continue;
+        }
+        let letter = c.to_ascii_uppercase();
+        let lower = c.is_ascii_lowercase();
+        i += 1;
+        let mut j = i;
+        while j < bytes.len() && bytes[j] == b' ' {
+            j += 1;
+        }
+        let start = j;
+        while j < bytes.len() && matches!(bytes[j], b'0'..=b'9' | b'.' | b'-' | b'+') {
+            j += 1;
+        }
+        let mut word = Word {
+            letter,
+            value: None,
+            garbled: lower,
+        };
+        if j > start {
+            match text[start..j].parse::<f64>() {
+                Ok(v) if v.is_finite() => word.value = Some(v),
+                _ => word.garbled = true,
+            }
+            i = j;
+        } else if i < bytes.len() && (bytes[i] as char).is_ascii_alphabetic() {
+            // `Snan`, `Sinf`: a firmware reading the value with strtod takes a number
+            // crispen does not; glued letters (`G28XY`) are marked the same way.
+            word.garbled |= bytes[i].is_ascii_lowercase();
+        }
+        out.push(word);
+    }
+    out
+}
+
+/// A command the follower cannot follow for certain; the text says what and why.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct Unfollowable(pub String);
+
+/// One move: where it started and ended (machine X, Y, Z and the file's E), and the box
+/// the head swept on the way (machine coordinates).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Move {
+    pub from: [f64; 4],
+    pub to: [f64; 4],
+    pub lo: [f64; 3],
+    pub hi: [f64; 3],
+    /// An arc or curve (its chord is from..to).
+    pub curved: bool,
+}
+
+impl Move {
+    /// Filament pushed (negative: retracted), mm.
+    pub fn extruded(&self) -> f64 {
+        self.to[3] - self.from[3]
+    }
+    pub fn moves_xy(&self) -> bool {
+        self.to[0] != self.from[0] || self.to[1] != self.from[1] || self.curved
+    }
+    pub fn moves_xyz(&self) -> bool {
+        self.moves_xy() || self.to[2] != self.from[2]
+    }
+}
+
+/// Where the first axis of `lo..hi` leaves `0..bed` (with `edge` allowance), if any; a
+/// coordinate that is no number counts as outside.
+pub fn outside(lo: [f64; 3], hi: [f64; 3], bed: [f64; 3], edge: f64) -> Option<usize> {
+    (0..3).find(|&k| !(lo[k] >= -edge && hi[k] <= bed[k] + edge))
+}
+
+/// The follower's state: where the head is and how the file's coordinates map onto the
+/// machine's.
+#[derive(Clone, Debug)]
+pub struct Motion {
+    /// Machine X, Y, Z (homed at 0).
+    native: [f64; 3],
+    /// The file's E.
+    e: f64,
+    /// The file's coordinate minus the machine's, per axis: `G92`'s shift ...
+    shift: [f64; 3],
+    /// ... plus the home offset in force (`M206`).
+    home_offset: [f64; 3],
+    /// `M206` given but, on Marlin 1 (Ultimaker2Marlin), in force only from the next homing.
+    pending_home_offset: Option<[f64; 3]>,
+    absolute: bool,
+    absolute_e: bool,
+    saved: Option<[f64; 3]>,
+    firmware: Firmware,
+}
+
+impl Default for Motion {
+    fn default() -> Self {
+        Motion::new(Firmware::Marlin2)
+    }
+}
+
+impl Motion {
+    /// A printer of this firmware at its origin (where a file's first `G28` puts it; a file
+    /// that never homes is taken to start there too).
+    pub fn new(firmware: Firmware) -> Motion {
+        Motion {
+            native: [0.0; 3],
+            e: 0.0,
+            shift: [0.0; 3],
+            home_offset: [0.0; 3],
+            pending_home_offset: None,
+            absolute: true,
+            absolute_e: true,
+            saved: None,
+            firmware,
+        }
+    }
+
+    /// Machine X, Y, Z and the file's E.
+    pub fn position(&self) -> [f64; 4] {
+        [self.native[0], self.native[1], self.native[2], self.e]
+    }
+
+    fn offset(&self, k: usize) -> f64 {
+        self.shift[k] + self.home_offset[k]
+    }
+
+    /// Where the given axes of a move or arc end, in machine coordinates (E the file's).
+    fn target(&self, cmd: &Command) -> [f64; 4] {
+        let mut to = self.position();
+        for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
+            let Some(v) = cmd.get(letter) else { continue };
+            // G91 makes E relative too in Marlin, whatever M82 said.
+            let absolute = self.absolute && (k < 3 || self.absolute_e);
+            to[k] = match (absolute, k < 3) {
+                (true, true) => v - self.offset(k),
+                (true, false) => v,
+                (false, _) => to[k] + v,
+            };
+        }
+        to
+    }
+
+    /// Follows one command; a move is returned with what it swept.
+    pub fn apply(&mut self, cmd: &Command) -> Result<Option<Move>, Unfollowable> {
+        let refuse = |why: &str| Err(Unfollowable(format!("{} {why}", cmd.code)));
+        match cmd.code.as_str() {
+            "G0" | "G1" => {
+                let to = self.target(cmd);
+                Ok(Some(self.go(to, None)))
+            }
+            "G2" | "G3" => self.arc(cmd),
+            "G5" => {
+                // A cubic Bézier lies inside the hull of its control points: start + (I,
+                // J), end + (P, Q).
+                let to = self.target(cmd);
+                let from = self.position();
+                let c1 = [
+                    from[0] + cmd.get('I').unwrap_or(0.0),
+                    from[1] + cmd.get('J').unwrap_or(0.0),
+                ];
+                let c2 = [
+                    to[0] + cmd.get('P').unwrap_or(0.0),
+                    to[1] + cmd.get('Q').unwrap_or(0.0),
+                ];
+                Ok(Some(self.go(to, Some([c1, c2]))))
+            }
+            "G90" => {
+                self.absolute = true;
+                Ok(None)
+            }
+            "G91" => {
+                self.absolute = false;
+                Ok(None)
+            }
+            "M82" => {
+                self.absolute_e = true;
+                Ok(None)
+            }
+            "M83" => {
+                self.absolute_e = false;
+                Ok(None)
+            }
+            "G92" => {
+                for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
+                    if let Some(v) = cmd.get(letter) {
+                        if k < 3 {
+                            self.shift[k] = v - self.home_offset[k] - self.native[k];
+                        } else {
+                            self.e = v;
+                        }
+                    }
+                }
+                Ok(None)
+            }
+            "G92.1" => {
+                self.shift = [0.0; 3];
+                Ok(None)
+            }
+            "G92.9" => {
+                // Sets the machine position itself (the firmware takes the head to be there).
+                for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
+                    if let Some(v) = cmd.get(letter) {
+                        if k < 3 {
+                            self.native[k] = v - self.offset(k);
+                        } else {
+                            self.e = v;
+                        }
+                    }
+                }
+                Ok(None)
+            }
+            "G28" => {
+                let named: Vec<usize> = ['X', 'Y', 'Z']
+                    .into_iter()
+                    .enumerate()
+                    .filter(|(_, l)| cmd.has(*l))
+                    .map(|(k, _)| k)
+                    .collect();
+                let axes = if named.is_empty() {
+                    vec![0, 1, 2]
+                } else {
+                    named
+                };
+                // Homed axes are at the origin (Z's endstop may be at the bottom on an
+                // Ultimaker 2; its start code moves Z absolutely, so 0 is safe), and homing
+                // ends G92's shift for them.
+                for k in axes {
+                    self.native[k] = 0.0;
+                    self.shift[k] = 0.0;
+                    if let Some(pending) = self.pending_home_offset {
+                        self.home_offset[k] = pending[k];
+                    }
+                }
+                Ok(None)
+            }
+            "M206" => {
+                let mut offset = self.pending_home_offset.unwrap_or(self.home_offset);
+                for (k, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
+                    if let Some(v) = cmd.get(letter) {
+                        offset[k] = v;
+                    }
+                }
+                match self.firmware {
+                    // Ultimaker2Marlin adds its home offset when homing.
+                    Firmware::Ultimaker2 => self.pending_home_offset = Some(offset),
+                    Firmware::Marlin2 | Firmware::Marlin20 => self.home_offset = offset,
+                }
+                Ok(None)
+            }
+            "G60" => {
+                self.saved = Some(self.native);
+                Ok(None)
+            }
+            "G61" => {
+                let Some(saved) = self.saved else {
+                    return Ok(None);
+                };
+                let mut to = self.position();
+                let any = ['X', 'Y', 'Z'].iter().any(|l| cmd.has(*l));
+                for (k, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
+                    if !any || cmd.has(letter) {
+                        to[k] = saved[k];
+                    }
+                }
+                Ok(Some(self.go(to, None)))
+            }
+            "G53" | "G54" | "G55" | "G56" | "G57" | "G58" | "G59" | "G59.1" | "G59.2" | "G59.3" => {
+                refuse(
+                    "selects a workspace coordinate system, which stock Marlin leaves out and \
+                 keeps in EEPROM where it has them; its moves cannot be followed",
+                )
+            }
+            "G10" if cmd.has('L') => refuse(
+                "with L sets workspace or tool offsets (RepRapFirmware's form), which \
+                 cannot be followed on Marlin",
+            ),
+            "G18" | "G19" => {
+                refuse("selects another plane for arcs; only the XY plane's arcs are followed")
+            }
+            "G20" => refuse("switches to inches; a file for the printers here is in millimetres"),
+            "G6" => refuse("moves the steppers directly, outside the firmware's coordinates"),
+            "M428" => refuse("sets the home offsets from wherever the head happens to be"),
+            _ => Ok(None),
+        }
+    }
+
+    /// Moves to `to`; the extent is the straight line's, widened by `extra` points.
+    fn go(&mut self, to: [f64; 4], extra: Option<[[f64; 2]; 2]>) -> Move {
+        let from = self.position();
+        let mut lo = [0.0; 3];
+        let mut hi = [0.0; 3];
+        for k in 0..3 {
+            lo[k] = from[k].min(to[k]);
+            hi[k] = from[k].max(to[k]);
+        }
+        for p in extra.iter().flatten() {
+            for k in 0..2 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        self.set(to);
+        Move {
+            from,
+            to,
+            lo,
+            hi,
+            curved: extra.is_some(),
+        }
+    }
+
+    fn set(&mut self, to: [f64; 4]) {
+        self.native = [to[0], to[1], to[2]];
+        self.e = to[3];
+    }
+
+    /// `G2` (clockwise) or `G3`: the centre from I/J (relative to the start) or from R
+    /// (the shorter arc, the longer for a negative R), P full turns more; the extent is the
+    /// start, the end and every extreme of the circle the arc passes.
+    fn arc(&mut self, cmd: &Command) -> Result<Option<Move>, Unfollowable> {
+        let clockwise = cmd.code == "G2";
+        let from = self.position();
+        let to = self.target(cmd);
+        let (p, q) = ([from[0], from[1]], [to[0], to[1]]);
+        let centre = if let Some(r) = cmd.get('R') {
+            if self.firmware == Firmware::Ultimaker2 {
+                return Err(Unfollowable(format!(
+                    "{} with R: Ultimaker2Marlin's arcs take I and J only",
+                    cmd.code
+                )));
+            }
+            let (dx, dy) = (q[0] - p[0], q[1] - p[1]);
+            let d = dx.hypot(dy);
+            if r == 0.0 || d == 0.0 {
+                return Err(Unfollowable(format!(
+                    "{} with R {r} from a point to {}: no arc is defined",
+                    cmd.code,
+                    if d == 0.0 { "itself" } else { "another" }
+                )));
+            }
+            // The centre lies on the chord's perpendicular bisector, h from its middle.
+            let h2 = (r - 0.5 * d) * (r + 0.5 * d);
+            let h = if h2 >= 0.0 { h2.sqrt() } else { 0.0 };
+            let e = if clockwise ^ (r < 0.0) { -1.0 } else { 1.0 };
+            [
+                p[0] + dx / 2.0 + e * h * (-dy / d),
+                p[1] + dy / 2.0 + e * h * (dx / d),
+            ]
+        } else if cmd.has('I') || cmd.has('J') {
+            [
+                p[0] + cmd.get('I').unwrap_or(0.0),
+                p[1] + cmd.get('J').unwrap_or(0.0),
+            ]
+        } else {
+            return Err(Unfollowable(format!(
+                "{} without I, J or R: an arc without a centre, which firmwares treat differently",
+                cmd.code
+            )));
+        };
+        let turns = cmd.get('P').unwrap_or(0.0).max(0.0);
+        let r = (p[0] - centre[0])
+            .hypot(p[1] - centre[1])
+            .max((q[0] - centre[0]).hypot(q[1] - centre[1]));
+        let a0 = (p[1] - centre[1]).atan2(p[0] - centre[0]);
+        let a1 = (q[1] - centre[1]).atan2(q[0] - centre[0]);
+        let mut sweep = if clockwise {
+            (a0 - a1).rem_euclid(TAU)
+        } else {
+            (a1 - a0).rem_euclid(TAU)
+        };
+        // Back where it started: a whole circle (Marlin's reading of it).
+        if sweep < 1e-9 && (p[0] - q[0]).hypot(p[1] - q[1]) < 1e-6 {
+            sweep = TAU;
+        }
+        sweep += turns * TAU;
+        let mut extremes = Vec::with_capacity(4);
+        for k in 0..4 {
+            let theta = k as f64 * FRAC_PI_2;
+            let from_start = if clockwise {
+                (a0 - theta).rem_euclid(TAU)
+            } else {
+                (theta - a0).rem_euclid(TAU)
+            };
+            if sweep >= TAU || from_start <= sweep {
+                extremes.push([centre[0] + r * theta.cos(), centre[1] + r * theta.sin()]);
+            }
+        }
+        let mut m = self.go(to, Some([p, q]));
+        for e in extremes {
+            for (k, v) in e.into_iter().enumerate() {
+                m.lo[k] = m.lo[k].min(v);
+                m.hi[k] = m.hi[k].max(v);
+            }
+        }
+        m.curved = true;
+        Ok(Some(m))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn follow(text: &str) -> (Motion, Vec<Move>) {
+        let mut m = Motion::default();
+        let mut moves = Vec::new();
+        for line in text.lines() {
+            if let Some(cmd) = parse(line) {
+                if let Some(mv) = m.apply(&cmd).unwrap() {
+                    moves.push(mv);
+                }
+            }
+        }
+        (m, moves)
+    }
+
+    #[test]
+    fn commands_are_read_as_marlin_reads_them() {
+        let c = parse("M104S300").unwrap();
+        assert_eq!((c.code.as_str(), c.get('S')), ("M104", Some(300.0)));
+        assert_eq!(parse("m0500").unwrap().code, "M500");
+        assert_eq!(parse("N12 G01 X5").unwrap().get('X'), Some(5.0));
+        assert_eq!(parse("G92.1").unwrap().code, "G92.1");
+        let c = parse("G1X10Y-2.5E1").unwrap();
+        assert_eq!(
+            (c.get('X'), c.get('Y'), c.get('E')),
+            (Some(10.0), Some(-2.5), Some(1.0))
+        );
+        assert_eq!(parse("M104 S 250").unwrap().get('S'), Some(250.0));
+        assert!(parse("M104 Snan").unwrap().garbled().is_some());
+        assert!(parse("M104 S1.2.3").unwrap().garbled().is_some());
+        assert!(parse("G92 x100").unwrap().garbled().is_some());
+        assert!(parse("G28XY").unwrap().garbled().is_none());
+        assert_eq!(
+            parse("M117 X marks: the spot").unwrap().rest,
+            "X marks: the spot"
+        );
+        assert!(parse("   ").is_none() && parse("hello").is_none());
+        assert_eq!(parse("T1").unwrap().code, "T1");
+    }
+
+    #[test]
+    fn g92_and_m206_shift_the_files_coordinates() {
+        // At X100, G92 X0 calls that 0: X200 is then 300 on the machine.
+        let (m, _) = follow("G28\nG1 X100\nG92 X0\nG1 X200\n");
+        assert_eq!(m.position()[0], 300.0);
+        // Homing ends the shift.
+        let (m, _) = follow("G92 X50\nG28 X\nG1 X10\n");
+        assert_eq!(m.position()[0], 10.0);
+        // M206 X-100 on Marlin 2: X10 is machine 110.
+        let (m, _) = follow("G28\nM206 X-100\nG1 X10\n");
+        assert_eq!(m.position()[0], 110.0);
+        // On Ultimaker2Marlin it counts from the next homing.
+        let mut m = Motion::new(Firmware::Ultimaker2);
+        for l in ["M206 X-100", "G1 X10"] {
+            m.apply(&parse(l).unwrap()).unwrap();
+        }
+        assert_eq!(m.position()[0], 10.0);
+        for l in ["G28", "G1 X10"] {
+            m.apply(&parse(l).unwrap()).unwrap();
+        }
+        assert_eq!(m.position()[0], 110.0);
+    }
+
+    #[test]
+    fn arcs_reach_the_extremes_of_their_circle() {
+        // Clockwise from (100, 100) back to itself about (50, 100): a whole circle.
+        let (_, moves) = follow("G1 X100 Y100\nG2 X100 Y100 I-50 J0\n");
+        let arc = moves[1];
+        assert!((arc.lo[0] - 0.0).abs() < 1e-9 && (arc.hi[1] - 150.0).abs() < 1e-9);
+        // No end given: a whole circle from (1, 50) about (-99, 50), reaching X -199.
+        let (_, moves) = follow("G1 X1 Y50\nG2 I-100\n");
+        assert!((moves[1].lo[0] + 199.0).abs() < 1e-9, "{:?}", moves[1]);
+        // A quarter arc counter-clockwise from (110, 100) about (100, 100) to (100, 110):
+        // no extreme beyond its ends but the one at 0 degrees (its start).
+        let (_, moves) = follow("G1 X110 Y100\nG3 X100 Y110 I-10 J0\n");
+        assert_eq!(moves[1].hi[0], 110.0);
+        assert_eq!(moves[1].hi[1], 110.0);
+        assert_eq!(moves[1].lo[0], 100.0);
+        // The same ends clockwise: three quarters, reaching X 90 and Y 90.
+        let (_, moves) = follow("G1 X110 Y100\nG2 X100 Y110 I-10 J0\n");
+        assert!((moves[1].lo[0] - 90.0).abs() < 1e-9 && (moves[1].lo[1] - 90.0).abs() < 1e-9);
+        // R form: a half circle of radius 10 from (100, 100) to (120, 100), clockwise:
+        // bulging to Y 110.
+        let (_, moves) = follow("G1 X100 Y100\nG2 X120 Y100 R10\n");
+        assert!((moves[1].hi[1] - 110.0).abs() < 1e-9, "{:?}", moves[1]);
+        let (_, moves) = follow("G1 X100 Y100\nG3 X120 Y100 R10\n");
+        assert!((moves[1].lo[1] - 90.0).abs() < 1e-9, "{:?}", moves[1]);
+    }
+
+    #[test]
+    fn what_cannot_be_followed_is_refused_saying_why() {
+        let mut m = Motion::default();
+        for l in ["G54", "G53 G1 X0", "G10 L2 P1 X10", "G19", "G20", "G2 X10"] {
+            let e = m.apply(&parse(l).unwrap()).unwrap_err();
+            assert!(e.0.starts_with(parse(l).unwrap().code.as_str()), "{l}: {e}");
+        }
+        let mut um2 = Motion::new(Firmware::Ultimaker2);
+        assert!(um2.apply(&parse("G2 X10 R5").unwrap()).is_err());
+    }
+
+    #[test]
+    fn outside_counts_numbers_that_are_none() {
+        let bed = [100.0, 100.0, 100.0];
+        assert_eq!(outside([0.0; 3], [100.0; 3], bed, 0.5), None);
+        assert_eq!(outside([0.0, -1.0, 0.0], [1.0; 3], bed, 0.5), Some(1));
+        assert_eq!(outside([f64::NAN, 0.0, 0.0], [1.0; 3], bed, 0.5), Some(0));
+    }
+}

@@ -1,0 +1,592 @@
+//! The G-code policy: what a file may ask of a printer, checked once when a job is
+//! prepared, before any printer claims it. Anyone who may upload decides what every printer
+//! of a folder executes, so every G-code crispen streams (pre-sliced files, uploads, its own
+//! slicers' output: a custom profile's start code is G-code too) passes through [`check`]:
+//!
+//! - temperatures above the machine's limits (`max_hotend_c`, `max_bed_c`; a chamber the
+//!   machine does not have), temperature units it cannot follow (`M149 F`/`K`), tools the
+//!   machine does not have (`T1` on one extruder) are refused;
+//! - commands that change a printer beyond the job (EEPROM, firmware update, settings that
+//!   outlive the job, SD-card writes, endstops off, cold extrusion, halts): refused unless
+//!   the machine allows the command by name (`allow = ["M500"]`), see [`REFUSED`];
+//! - every move is followed ([`super::motion`]) and must stay on the bed, arcs included;
+//!   what cannot be followed is refused;
+//! - pauses the file asks for ([`PAUSE_COMMANDS`]) are not refused: the host intercepts them;
+//!   the verdict lists them with their message.
+//!
+//! [`check`] is pure over a reader; [`check_file`] adds the host's own load-time checks
+//! ([`crate::marlin::gcode::GcodeProgram`]: text, line length, characters the firmware
+//! cannot take), so a file that cannot be streamed fails here too. Every refusal names the
+//! file's line, the command and why.
+
+use super::motion::{self, Motion};
+use crate::machine::Machine;
+use serde::{Deserialize, Serialize};
+use std::io::{BufRead, Read};
+use std::path::Path;
+
+/// The commands a file uses to ask for a pause: intercepted by the host, never sent.
+pub const PAUSE_COMMANDS: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
+
+pub use crate::machine::commands::REFUSED;
+
+/// The most refusals and pauses a verdict lists (it counts them all).
+pub const MAX_LISTED: usize = 20;
+/// Allowance at the bed's edges for rounding, mm (as the other checks).
+const EDGE_MM: f64 = 0.5;
+/// The longest command text quoted in a message.
+const QUOTED_CHARS: usize = 60;
+
+/// Why a file may not be printed on a machine, at one line.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Refusal {
+    pub line: usize,
+    /// The command as written (cut to a readable length).
+    pub command: String,
+    pub reason: String,
+}
+
+impl std::fmt::Display for Refusal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "line {}: `{}` {}", self.line, self.command, self.reason)
+    }
+}
+
+/// A pause the file asks for (intercepted by the host, not refused).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Pause {
+    pub line: usize,
+    pub command: String,
+    /// The operator's message: the command's own text, else the last `M117` before it.
+    pub message: String,
+}
+
+/// What the policy found in one file for one machine.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Verdict {
+    /// The first [`MAX_LISTED`] refusals.
+    pub refusals: Vec<Refusal>,
+    pub refusals_total: usize,
+    /// The first [`MAX_LISTED`] pauses.
+    pub pauses: Vec<Pause>,
+    pub pauses_total: usize,
+    /// Commands the machine's `allow` let through, with their count.
+    #[serde(default)]
+    pub allowed: Vec<(String, usize)>,
+    pub lines: usize,
+}
+
+impl Verdict {
+    pub fn passed(&self) -> bool {
+        self.refusals_total == 0
+    }
+
+    /// One line for the job's report: "passed, 2 pauses (line 40: M0 ...)" or the refusals.
+    pub fn summary(&self) -> String {
+        if !self.passed() {
+            let listed: Vec<String> = self.refusals.iter().map(ToString::to_string).collect();
+            let more = self.refusals_total - self.refusals.len();
+            return format!(
+                "refused by the G-code policy: {}{}",
+                listed.join("; "),
+                if more > 0 {
+                    format!("; and {more} more")
+                } else {
+                    String::new()
+                }
+            );
+        }
+        let mut s = match self.pauses_total {
+            0 => "passed the G-code policy, no pauses".to_string(),
+            1 => "passed the G-code policy, 1 pause".to_string(),
+            n => format!("passed the G-code policy, {n} pauses"),
+        };
+        if !self.pauses.is_empty() {
+            let listed: Vec<String> = self
+                .pauses
+                .iter()
+                .map(|p| format!("line {}: {} {:?}", p.line, p.command, p.message))
+                .collect();
+            s += &format!(" ({})", listed.join("; "));
+        }
+        if !self.allowed.is_empty() {
+            let listed: Vec<String> = self
+                .allowed
+                .iter()
+                .map(|(c, n)| format!("{c} x{n}"))
+                .collect();
+            s += &format!("; allowed by the machine: {}", listed.join(", "));
+        }
+        s
+    }
+
+    fn refuse(&mut self, line: usize, command: &str, reason: String) {
+        self.refusals_total += 1;
+        if self.refusals.len() < MAX_LISTED {
+            self.refusals.push(Refusal {
+                line,
+                command: quote(command),
+                reason,
+            });
+        }
+    }
+}
+
+fn quote(command: &str) -> String {
+    let c = command.trim();
+    if c.chars().count() > QUOTED_CHARS {
+        format!("{}...", c.chars().take(QUOTED_CHARS).collect::<String>())
+    } else {
+        c.to_string()
+    }
+}
+
+pub use crate::machine::commands::allowable;
+
+/// What a refused command would do, if this one (with its parameters) is refused.
+pub fn refused(cmd: &motion::Command) -> Option<&'static str> {
+    let what = REFUSED.iter().find(|(c, _)| *c == cmd.code)?.1;
+    let applies = match cmd.code.as_str() {
+        // M211 alone reports, S1 switches them on.
+        "M211" => cmd.get('S') == Some(0.0) || cmd.words.iter().any(|w| w.garbled),
+        // M302 alone reports.
+        "M302" => cmd.has('P') || cmd.has('S'),
+        _ => true,
+    };
+    applies.then_some(what)
+}
+
+/// Reads the file's commands and judges them for `machine`. Fails only when the reader
+/// fails.
+pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict> {
+    let mut v = Verdict::default();
+    let mut motion = Motion::new(machine.firmware);
+    let mut last_message = String::new();
+    let mut allowed: Vec<(String, usize)> = Vec::new();
+    let mut raw = Vec::new();
+    let mut reader = reader;
+    let mut number = 0usize;
+    loop {
+        raw.clear();
+        // Lines are bounded by the host's load check; here a long one is read whole only
+        // up to a limit, and the rest of it skipped.
+        let n = reader
+            .by_ref()
+            .take(crate::marlin::gcode::MAX_RAW_LINE_BYTES)
+            .read_until(b'\n', &mut raw)?;
+        if n == 0 {
+            break;
+        }
+        number += 1;
+        if raw.last() != Some(&b'\n') && n as u64 == crate::marlin::gcode::MAX_RAW_LINE_BYTES {
+            v.refuse(number, "", "is longer than a printer can take".into());
+            let mut sink = Vec::new();
+            reader.read_until(b'\n', &mut sink)?;
+            continue;
+        }
+        let code = match raw.iter().position(|&b| b == b';') {
+            Some(i) => &raw[..i],
+            None => &raw[..],
+        };
+        let Ok(code) = std::str::from_utf8(code) else {
+            v.refuse(number, "", "is not text (UTF-8)".into());
+            continue;
+        };
+        let Some(cmd) = motion::parse(code) else {
+            continue;
+        };
+        judge(
+            &cmd,
+            code,
+            number,
+            machine,
+            &mut motion,
+            &mut v,
+            &mut allowed,
+            &mut last_message,
+        );
+    }
+    v.lines = number;
+    v.allowed = allowed;
+    Ok(v)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn judge(
+    cmd: &motion::Command,
+    text: &str,
+    line: usize,
+    machine: &Machine,
+    motion: &mut Motion,
+    v: &mut Verdict,
+    allowed: &mut Vec<(String, usize)>,
+    last_message: &mut String,
+) {
+    let code = cmd.code.as_str();
+    if code == "M117" {
+        *last_message = cmd.rest.to_string();
+    }
+    if PAUSE_COMMANDS.contains(&code) {
+        v.pauses_total += 1;
+        if v.pauses.len() < MAX_LISTED {
+            let own = cmd.rest.trim();
+            v.pauses.push(Pause {
+                line,
+                command: quote(text),
+                message: if !own.is_empty() && matches!(code, "M0" | "M1") {
+                    own.to_string()
+                } else if !last_message.is_empty() {
+                    last_message.clone()
+                } else {
+                    quote(text)
+                },
+            });
+        }
+        return;
+    }
+    if let Some(what) = refused(cmd) {
+        if machine.allow.iter().any(|a| a == code) {
+            match allowed.iter_mut().find(|(c, _)| c == code) {
+                Some((_, n)) => *n += 1,
+                None => allowed.push((code.to_string(), 1)),
+            }
+        } else {
+            v.refuse(
+                line,
+                text,
+                format!(
+                    "{what}; refused on the {} (a machine may allow it: `allow = [\"{code}\"]`)",
+                    machine.name
+                ),
+            );
+            return;
+        }
+    }
+    if let Some(reason) = temperature(cmd, machine) {
+        v.refuse(line, text, reason);
+        return;
+    }
+    if let Some(tool) = code.strip_prefix('T') {
+        let t: u64 = tool.parse().unwrap_or(u64::MAX);
+        if t >= u64::from(machine.extruders) {
+            v.refuse(
+                line,
+                text,
+                format!(
+                    "selects tool {tool}, but the {} has {} extruder{}",
+                    machine.name,
+                    machine.extruders,
+                    if machine.extruders == 1 { "" } else { "s" }
+                ),
+            );
+        }
+        return;
+    }
+    if code.starts_with('G') {
+        if let Some(letter) = cmd.garbled() {
+            v.refuse(
+                line,
+                text,
+                format!(
+                    "gives {letter} in a form the firmware may read differently (a lower-case \
+                     letter, or a value that is no plain number)"
+                ),
+            );
+            return;
+        }
+    }
+    match motion.apply(cmd) {
+        Err(e) => v.refuse(line, text, format!("cannot be followed: {e}")),
+        Ok(Some(m)) => {
+            if let Some(k) = motion::outside(m.lo, m.hi, machine.bed_mm, EDGE_MM) {
+                let axis = ['X', 'Y', 'Z'][k];
+                let past = if m.lo[k] < -EDGE_MM { m.lo[k] } else { m.hi[k] };
+                v.refuse(
+                    line,
+                    text,
+                    format!(
+                        "{} {axis} to {past:.1} mm, outside the {}'s 0 .. {} mm",
+                        if m.curved { "sweeps" } else { "moves" },
+                        machine.name,
+                        machine.bed_mm[k]
+                    ),
+                );
+            }
+        }
+        Ok(None) => {}
+    }
+}
+
+/// Why a temperature command is refused on `machine`, if it is.
+fn temperature(cmd: &motion::Command, machine: &Machine) -> Option<String> {
+    let (what, limit, params): (&str, f64, &[char]) = match cmd.code.as_str() {
+        "M104" | "M109" => ("hotend", machine.max_hotend_c, &['S', 'R', 'B']),
+        // RepRapFirmware's tool temperatures: no Marlin command, but a file made for
+        // another printer may hold them.
+        "M568" | "G10" => ("hotend", machine.max_hotend_c, &['S', 'R']),
+        "M140" | "M190" => ("bed", machine.max_bed_c, &['S', 'R']),
+        "M141" | "M191" => ("chamber", 0.0, &['S', 'R']),
+        "M149" => {
+            return (cmd.has('F') || cmd.has('K')).then(|| {
+                "switches temperatures to Fahrenheit or Kelvin, which the limits cannot \
+                 follow"
+                    .to_string()
+            })
+        }
+        _ => return None,
+    };
+    if let Some(t) = cmd.get('T') {
+        if t < 0.0 || t >= f64::from(machine.extruders) {
+            return Some(format!(
+                "sets the temperature of tool {t}, but the {} has {} extruder{}",
+                machine.name,
+                machine.extruders,
+                if machine.extruders == 1 { "" } else { "s" }
+            ));
+        }
+    }
+    for w in cmd.words.iter().filter(|w| params.contains(&w.letter)) {
+        if w.garbled {
+            return Some(format!(
+                "gives {} in a form the firmware may read differently (a lower-case letter, \
+                 or a value that is no plain number)",
+                w.letter
+            ));
+        }
+        let Some(t) = w.value else { continue };
+        if what == "chamber" && t > 0.0 {
+            return Some(format!(
+                "asks for a {t} °C chamber, but the {} has no chamber heater",
+                machine.name
+            ));
+        }
+        if t > limit {
+            return Some(format!(
+                "asks for {t} °C on the {what}, above the {}'s limit of {limit} °C",
+                machine.name
+            ));
+        }
+    }
+    None
+}
+
+/// Why a G-code file cannot be used at all.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    /// The host would refuse to load it (the message names the file and line).
+    #[error(transparent)]
+    Load(#[from] crate::marlin::gcode::GcodeError),
+    #[error("cannot read {path}: {source}")]
+    Io {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// The host's own load-time checks for a firmware ([`GcodeProgram::load_for`]: size,
+/// text, line length, characters the firmware cannot take), without keeping the program.
+///
+/// [`GcodeProgram::load_for`]: crate::marlin::gcode::GcodeProgram::load_for
+pub fn load_check(
+    path: &Path,
+    firmware: crate::marlin::firmware::Firmware,
+) -> Result<(), PolicyError> {
+    crate::marlin::gcode::GcodeProgram::load_for(path, firmware)?;
+    Ok(())
+}
+
+/// [`check`] on a file.
+pub fn check_path(path: &Path, machine: &Machine) -> Result<Verdict, PolicyError> {
+    let io = |source| PolicyError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    check(std::io::BufReader::new(file), machine).map_err(io)
+}
+
+/// The host's load-time checks for the machine's firmware, then [`check`]: what a job
+/// preparation runs on every G-code file before a printer may claim it.
+pub fn check_file(path: &Path, machine: &Machine) -> Result<Verdict, PolicyError> {
+    load_check(path, machine.firmware)?;
+    check_path(path, machine)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn um2() -> Machine {
+        Machine::builtin("ultimaker2").unwrap()
+    }
+
+    fn verdict(text: &str, machine: &Machine) -> Verdict {
+        check(text.as_bytes(), machine).unwrap()
+    }
+
+    const CLEAN: &str = "M104 S210\nM140 S60\nG28\nM190 S60\nM109 S210\nG92 E0\n\
+        G1 Z0.2 F600\nG1 X100 Y100\nG1 X110 Y100 E1.5\nM104 S0\nM140 S0\n";
+
+    #[test]
+    fn a_clean_file_passes() {
+        let v = verdict(CLEAN, &um2());
+        assert!(v.passed(), "{v:?}");
+        assert_eq!(v.lines, 11);
+        assert_eq!(v.summary(), "passed the G-code policy, no pauses");
+    }
+
+    #[test]
+    fn temperatures_over_the_machines_limits_are_refused_with_line_and_limit() {
+        let m = um2();
+        for (text, says) in [
+            (
+                "M104 S400",
+                "400 °C on the hotend, above the ultimaker2's limit of 260",
+            ),
+            ("M109 R300", "300 °C on the hotend"),
+            ("M104S300", "300 °C"),
+            (
+                "M140 S150",
+                "150 °C on the bed, above the ultimaker2's limit of 100",
+            ),
+            ("M190 S101", "101 °C on the bed"),
+            ("M141 S40", "no chamber heater"),
+            ("M104 T1 S200", "tool 1"),
+            ("M104 Snan", "read differently"),
+            ("M149 F", "Fahrenheit"),
+            ("G10 P0 S300", "300 °C on the hotend"),
+        ] {
+            let v = verdict(&format!("G28\n{text}\n"), &m);
+            assert_eq!(v.refusals_total, 1, "{text}: {v:?}");
+            let r = &v.refusals[0];
+            assert_eq!(r.line, 2, "{text}");
+            assert!(r.to_string().contains(says), "{text}: {r}");
+            assert!(r.to_string().contains(text), "{text}: {r}");
+        }
+        assert!(verdict("M104 S260\nM140 S100\nM141 S0\n", &m).passed());
+    }
+
+    #[test]
+    fn commands_that_change_a_printer_for_good_are_refused_unless_allowed() {
+        let v = verdict("G28\nM502\nM500\nM997\n", &um2());
+        assert_eq!(v.refusals_total, 3);
+        assert_eq!(v.refusals[0].line, 2);
+        assert!(v.refusals[0].reason.contains("defaults"), "{v:?}");
+        assert!(v.refusals[1].reason.contains("EEPROM"), "{v:?}");
+        assert!(v.refusals[2].reason.contains("firmware update"), "{v:?}");
+        assert!(v
+            .summary()
+            .starts_with("refused by the G-code policy: line 2: `M502`"));
+        for text in [
+            "M211 S0",
+            "M302 P1",
+            "M92 E9999",
+            "M303 E0 S200 C8",
+            "M112",
+            "M28 evil.g",
+            "M30 x.g",
+            "m0500",
+            "M206 X-50",
+            "M851 Z-5",
+            "M575 B9600",
+        ] {
+            let v = verdict(&format!("{text}\n"), &um2());
+            assert_eq!(v.refusals_total, 1, "{text}: {v:?}");
+        }
+        for text in [
+            "M211",
+            "M211 S1",
+            "M302",
+            "M420 S1",
+            "M900 K0.05",
+            "M204 S1000",
+        ] {
+            assert!(verdict(&format!("{text}\n"), &um2()).passed(), "{text}");
+        }
+        let allowing = Machine {
+            allow: vec!["M500".into()],
+            ..um2()
+        };
+        let v = verdict("G28\nM500\n", &allowing);
+        assert!(v.passed(), "{v:?}");
+        assert_eq!(v.allowed, [("M500".to_string(), 1)]);
+        assert!(v.summary().contains("allowed by the machine: M500 x1"));
+        assert!(!verdict("M502\n", &allowing).passed());
+    }
+
+    #[test]
+    fn tools_the_machine_lacks_are_refused() {
+        assert!(verdict("T0\n", &um2()).passed());
+        let v = verdict("T1\n", &um2());
+        assert!(v.refusals[0].reason.contains("1 extruder"), "{v:?}");
+        let two = Machine {
+            extruders: 2,
+            ..um2()
+        };
+        assert!(verdict("T1\nM104 T1 S200\n", &two).passed());
+    }
+
+    #[test]
+    fn moves_arcs_and_offsets_off_the_bed_are_refused_naming_the_line() {
+        let v = verdict("G28\nG1 X1 Y50\nG2 I-100\n", &um2());
+        assert_eq!(v.refusals[0].line, 3);
+        assert!(v.refusals[0].reason.contains("sweeps X to -199.0"), "{v:?}");
+        let v = verdict("G28\nG1 X100\nG92 X0\nG1 X200\n", &um2());
+        assert!(v.refusals[0].reason.contains("moves X to 300.0"), "{v:?}");
+        let v = verdict("G28\nG1 X1.2.3\n", &um2());
+        assert!(v.refusals[0].reason.contains("read differently"), "{v:?}");
+        let v = verdict("G28\nG92 x100\nG1 X300\n", &um2());
+        assert_eq!(v.refusals[0].line, 2, "{v:?}");
+        let v = verdict("G28\nG54\nG1 X10\n", &um2());
+        assert!(
+            v.refusals[0].reason.contains("cannot be followed: G54"),
+            "{v:?}"
+        );
+        // M206 is refused as a setting, and followed when allowed.
+        let allowing = Machine {
+            allow: vec!["M206".into()],
+            ..um2()
+        };
+        let v = verdict("M206 X-100\nG28\nG1 X200\n", &allowing);
+        assert!(v.refusals[0].reason.contains("moves X to 300.0"), "{v:?}");
+    }
+
+    #[test]
+    fn pauses_are_listed_with_their_message_not_refused() {
+        let v = verdict(
+            "G28\nM117 Insert magnets\nM601\nM0 Swap the colour\nM600\nM25\n",
+            &um2(),
+        );
+        assert!(v.passed(), "{v:?}");
+        assert_eq!(v.pauses_total, 4);
+        assert_eq!(v.pauses[0].line, 3);
+        assert_eq!(v.pauses[0].message, "Insert magnets");
+        assert_eq!(v.pauses[1].message, "Swap the colour");
+        assert!(v
+            .summary()
+            .starts_with("passed the G-code policy, 4 pauses (line 3"));
+    }
+
+    #[test]
+    fn unreadable_lines_are_refused_and_the_list_is_bounded() {
+        let v = check(&b"G28\nM104 S\xff\xfe\n"[..], &um2()).unwrap();
+        assert_eq!(v.refusals[0].line, 2);
+        assert!(v.refusals[0].reason.contains("UTF-8"));
+        let many = "M500\n".repeat(100);
+        let v = verdict(&many, &um2());
+        assert_eq!((v.refusals.len(), v.refusals_total), (MAX_LISTED, 100));
+        assert!(v.summary().ends_with("and 80 more"));
+    }
+
+    #[test]
+    fn the_hosts_load_checks_run_too() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.gcode");
+        std::fs::write(&path, format!("G28\nM117 {}\n", "x".repeat(200))).unwrap();
+        let e = check_file(&path, &um2()).unwrap_err();
+        assert!(e.to_string().contains(":2:"), "{e}");
+        std::fs::write(&path, CLEAN).unwrap();
+        assert!(check_file(&path, &um2()).unwrap().passed());
+    }
+}

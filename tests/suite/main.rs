@@ -16,6 +16,7 @@ mod farm;
 mod history;
 mod http;
 mod layers;
+mod notify;
 mod machines;
 mod mesh_io;
 mod ports;

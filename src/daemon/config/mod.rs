@@ -10,6 +10,7 @@
 //! without reading code; a wrong file is always an error, never silently replaced by
 //! defaults.
 
+pub mod notify;
 pub mod ports;
 
 use crate::enhance::Strength;
@@ -79,6 +80,8 @@ struct RawConfig {
     store: Option<RawStore>,
     #[serde(default)]
     history: Option<RawHistory>,
+    #[serde(default, rename = "notify")]
+    notify: Vec<notify::RawNotify>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -103,6 +106,8 @@ struct RawHttp {
     api_key_file: PathBuf,
     read_only_without_key: Option<bool>,
     upload_max_mb: Option<i64>,
+    /// The dashboard's address as operators reach it (notifications link to it).
+    public_url: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -186,6 +191,8 @@ pub struct Config {
     pub store: Option<StoreConfig>,
     /// How long finished jobs stay live before they move to the history (`[history]`).
     pub history: HistoryConfig,
+    /// Where the farm's events are sent (`[[notify]]`, see `notify`).
+    pub notify: notify::NotifyConfig,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,
@@ -455,6 +462,7 @@ impl Checked {
             }
         }
         ports::check_unique(&config.printers, &file)?;
+        notify::resolve(&mut config.notify, &file, &mut config.warnings)?;
         config.http = match http {
             None => None,
             Some(h) => {
@@ -945,6 +953,12 @@ printers = ["demo"]
             });
         }
 
+        let notify = notify::check(
+            raw.notify,
+            raw.http.as_ref().and_then(|h| h.public_url.as_deref()),
+            file,
+            &anchor,
+        )?;
         let http = match raw.http {
             None => None,
             Some(h) => {
@@ -968,6 +982,7 @@ printers = ["demo"]
                 http: None,
                 store,
                 history,
+                notify,
                 warnings: Vec::new(),
             },
             http,

@@ -73,7 +73,11 @@ pub fn run(
         });
     }
     Ok(async move {
-        if !queues.is_empty() {
+        if queues.is_empty() {
+            // Nothing to send; the task still runs until the stop, as every task of
+            // the service does (one that ends is taken for a failure).
+            stop.cancelled().await;
+        } else {
             tracing::info!(receivers = queues.len(), "notifications: sending");
             observe_loop(&farm, &queues, &stop).await;
             // What the stop itself caused (an interrupted print) is queued; give the
@@ -217,6 +221,12 @@ async fn send_loop(
             Ok(Err(e)) => {
                 tracing::error!(receiver = %name, "{e}");
                 counts::count(&name, Outcome::Dropped);
+                // It was set aside; should that have failed too, it is not read again
+                // at once.
+                tokio::select! {
+                    () = tokio::time::sleep(backoff) => {}
+                    () = stop.cancelled() => return,
+                }
                 continue;
             }
             Err(_) => return,

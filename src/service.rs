@@ -244,8 +244,8 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
     }
     // Notifications outlive the prints: what a stop does to them is told too.
     let stop_notify = CancellationToken::new();
-    let notify = crate::notify::run(Arc::clone(&farm), stop_notify.clone())
-        .map_err(ServiceError::Notify)?;
+    let notify =
+        crate::notify::run(Arc::clone(&farm), stop_notify.clone()).map_err(ServiceError::Notify)?;
     tasks.spawn(NOTIFY, notify);
     let mut fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
     // The listeners outlive the shutdown token: while prints finish at a stop, the

@@ -125,8 +125,8 @@ fn slack_escape(text: &str) -> String {
 /// HMAC-SHA256 of `body` with `secret`, in lower-case hex.
 pub fn sign(secret: &[u8], body: &[u8]) -> String {
     use hmac::{KeyInit, Mac};
-    let mut mac = hmac::Hmac::<sha2::Sha256>::new_from_slice(secret)
-        .expect("HMAC takes a key of any length");
+    let mut mac =
+        hmac::Hmac::<sha2::Sha256>::new_from_slice(secret).expect("HMAC takes a key of any length");
     mac.update(body);
     mac.finalize()
         .into_bytes()
@@ -183,13 +183,10 @@ async fn exchange(
                 host: url.host.clone(),
                 message: e.to_string(),
             })?;
-        let tls = tls()
-            .connect(name, tcp)
-            .await
-            .map_err(|e| SendError::Tls {
-                host: url.host.clone(),
-                message: e.to_string(),
-            })?;
+        let tls = tls().connect(name, tcp).await.map_err(|e| SendError::Tls {
+            host: url.host.clone(),
+            message: e.to_string(),
+        })?;
         over(tls, request).await
     } else {
         over(tcp, request).await
@@ -301,7 +298,9 @@ mod tests {
                 .find(|(k, _)| *k == "x-crispen-signature")
                 .unwrap();
             assert_eq!(signature.1, format!("sha256={}", sign(b"key", &body)));
-            assert!(headers.iter().any(|(k, v)| *k == "x-crispen-id" && *v == e.id));
+            assert!(headers
+                .iter()
+                .any(|(k, v)| *k == "x-crispen-id" && *v == e.id));
         }
         let (body, _) = render(&receiver(NotifyFormat::Slack), &e);
         let v: serde_json::Value = serde_json::from_slice(&body).unwrap();

@@ -63,14 +63,16 @@ fn assert_signed(r: &Received) {
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect();
-    assert_eq!(header, format!("sha256={hex}"), "signature of {:?}", r.json());
+    assert_eq!(
+        header,
+        format!("sha256={hex}"),
+        "signature of {:?}",
+        r.json()
+    );
 }
 
 fn events_of<'a>(taken: &'a [Received], kind: &str) -> Vec<&'a Received> {
-    taken
-        .iter()
-        .filter(|r| r.json()["event"] == kind)
-        .collect()
+    taken.iter().filter(|r| r.json()["event"] == kind).collect()
 }
 
 fn log_of(log: &Path) -> impl Fn() -> String + '_ {
@@ -88,7 +90,14 @@ fn a_done_job_a_failed_job_and_an_offline_printer_each_send_one_signed_event() {
     let link = root.join("ttyP");
     let (sim, device) = spawn_sim(
         Command::new(BIN)
-            .args(["sim", "--firmware", "marlin2", "--time-scale", "0", "--link"])
+            .args([
+                "sim",
+                "--firmware",
+                "marlin2",
+                "--time-scale",
+                "0",
+                "--link",
+            ])
             .arg(&link),
     );
     let sim = Killed(sim);
@@ -106,12 +115,18 @@ fn a_done_job_a_failed_job_and_an_offline_printer_each_send_one_signed_event() {
     wait_for(&config, &log, LIMIT, "printer idle", |s| {
         crate::common::printer(s, "p")["state"] == "idle"
     });
-    drop_file(root, "good.gcode", presliced_gcode("good", 20, 6000).as_bytes());
+    drop_file(
+        root,
+        "good.gcode",
+        presliced_gcode("good", 20, 6000).as_bytes(),
+    );
     drop_file(root, "bad.stl", b"solid nothing but words\n");
     let s = wait_for(&config, &log, LIMIT, "done and failed", |s| {
         state_of(s, "good.gcode") == "done" && state_of(s, "bad.stl") == "failed"
     });
-    let good = crate::common::job_by_file(&s, "good.gcode").unwrap().clone();
+    let good = crate::common::job_by_file(&s, "good.gcode")
+        .unwrap()
+        .clone();
     let bad = crate::common::job_by_file(&s, "bad.stl").unwrap().clone();
     drop(sim);
     let taken = receiver.wait_taken(
@@ -154,8 +169,10 @@ fn a_done_job_a_failed_job_and_an_offline_printer_each_send_one_signed_event() {
     let offline = events_of(&taken, "printer_offline");
     assert_eq!(offline.len(), 1, "one printer_offline");
     assert_eq!(offline[0].json()["printer"], "p");
-    let ids: std::collections::BTreeSet<&str> =
-        taken.iter().map(|r| r.header("x-crispen-id").unwrap()).collect();
+    let ids: std::collections::BTreeSet<&str> = taken
+        .iter()
+        .map(|r| r.header("x-crispen-id").unwrap())
+        .collect();
     assert_eq!(ids.len(), taken.len(), "each event once: {taken:?}");
 
     // The counters say so.
@@ -164,16 +181,22 @@ fn a_done_job_a_failed_job_and_an_offline_printer_each_send_one_signed_event() {
     assert_eq!(code, 200);
     assert!(
         metrics.contains("crispen_notifications_total{receiver=\"hook\",result=\"delivered\"} 3")
-            || metrics.contains("crispen_notifications_total{receiver=\"hook\",result=\"delivered\"} 4"),
+            || metrics
+                .contains("crispen_notifications_total{receiver=\"hook\",result=\"delivered\"} 4"),
         "{metrics}"
     );
-    assert!(metrics.contains("crispen_build_info{version=\""), "{metrics}");
+    assert!(
+        metrics.contains("crispen_build_info{version=\""),
+        "{metrics}"
+    );
 }
 
 /// The HTTP port the daemon logged.
 fn listening_port(log: &Path) -> u16 {
     let text = std::fs::read_to_string(log).unwrap();
-    let at = text.find("dashboard: http://").expect("the dashboard's address logged");
+    let at = text
+        .find("dashboard: http://")
+        .expect("the dashboard's address logged");
     let rest = &text[at + "dashboard: http://".len()..];
     let addr = rest.split('/').next().unwrap();
     addr.rsplit(':').next().unwrap().parse().unwrap()
@@ -182,7 +205,12 @@ fn listening_port(log: &Path) -> u16 {
 fn http_get(port: u16, path: &str) -> (u16, String) {
     use std::io::{Read, Write};
     let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
-    write!(s, "GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").unwrap();
+    let key = "k".repeat(32);
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: x\r\nX-Api-Key: {key}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
     let mut text = String::new();
     s.read_to_string(&mut text).unwrap();
     let code = text.split_whitespace().nth(1).unwrap().parse().unwrap();
@@ -232,7 +260,11 @@ fn a_receiver_down_for_a_while_gets_every_event_once_even_across_a_restart() {
     let _daemon = Daemon::start(&config, &log);
     let start = Instant::now();
     while receiver.received().len() < refused_before_restart + 3 {
-        assert!(start.elapsed() < LIMIT, "not retried after the restart:\n{}", log_of(&log)());
+        assert!(
+            start.elapsed() < LIMIT,
+            "not retried after the restart:\n{}",
+            log_of(&log)()
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
     receiver.answer(200);
@@ -255,7 +287,10 @@ fn a_receiver_down_for_a_while_gets_every_event_once_even_across_a_restart() {
     // Every refused attempt was one of these events, under its one id.
     for r in receiver.received() {
         let id = r.header("x-crispen-id").unwrap();
-        assert!(by_id.contains_key(id), "an attempt under an unknown id {id}");
+        assert!(
+            by_id.contains_key(id),
+            "an attempt under an unknown id {id}"
+        );
         assert_eq!(by_id[id], r.json(), "the same event on every attempt");
     }
     let start = Instant::now();
@@ -291,7 +326,11 @@ fn timed_print(notify: &str) -> f64 {
     wait_for(&config, &log, LIMIT, "failed", |s| {
         state_of(s, "bad.stl") == "failed"
     });
-    drop_file(root, "timed.gcode", presliced_gcode("t", 60, 3000).as_bytes());
+    drop_file(
+        root,
+        "timed.gcode",
+        presliced_gcode("t", 60, 3000).as_bytes(),
+    );
     wait_for(&config, &log, LIMIT, "printed", |s| {
         state_of(s, "timed.gcode") == "done"
     });
@@ -339,13 +378,22 @@ fn notify_test_says_what_each_receiver_answered() {
     assert!(!success, "one receiver refused: {out}");
     assert!(out.contains("ok (http://127.0.0.1:"), "{out}");
     assert!(out.contains("ok: HTTP 200 answered 200"), "{out}");
-    assert!(out.contains("second (") && out.contains("FAILED: HTTP 404"), "{out}");
+    assert!(
+        out.contains("second (") && out.contains("FAILED: HTTP 404"),
+        "{out}"
+    );
     let sent = ok.taken();
     assert_eq!(sent.len(), 1);
     assert_signed(&sent[0]);
     assert_eq!(sent[0].json()["event"], "test");
     let slack: Value = refusing.received()[0].json();
-    assert!(slack["text"].as_str().unwrap().starts_with("Test notification"), "{slack}");
+    assert!(
+        slack["text"]
+            .as_str()
+            .unwrap()
+            .starts_with("Test notification"),
+        "{slack}"
+    );
 
     let config = configure(root, &[("p", simulated(0.0))], &notify(&ok.url("/c")));
     let (success, out) = ctl(&config, &["notify", "test"]);

@@ -179,8 +179,7 @@ pub(super) fn check(
         };
         let name_ok = !r.name.is_empty()
             && r.name.chars().count() <= MAX_NAME_CHARS
-            && r
-                .name
+            && r.name
                 .chars()
                 .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
         if !name_ok {
@@ -394,7 +393,10 @@ mod tests {
             (false, "127.0.0.1", 8123, "/api/webhook/abc?x=1")
         );
         let u = parse_url("http://[::1]:9000").unwrap();
-        assert_eq!((u.host.as_str(), u.port, u.path.as_str()), ("::1", 9000, "/"));
+        assert_eq!(
+            (u.host.as_str(), u.port, u.path.as_str()),
+            ("::1", 9000, "/")
+        );
         for bad in [
             "ftp://x/",
             "http://",

@@ -287,7 +287,10 @@ mod tests {
         let mut o = Observer::new("h", false, Some("http://farm".into()));
         let p = [printer("p", PrinterState::Idle)];
         let old = job("old", JobState::Failed, None);
-        assert!(look(&mut o, &[old.clone()], &p, &[]).is_empty(), "baseline");
+        assert!(
+            look(&mut o, std::slice::from_ref(&old), &p, &[]).is_empty(),
+            "baseline"
+        );
         let mut a = job("a", JobState::Printing, Some("p"));
         let b = job("b", JobState::Queued, None);
         assert!(look(&mut o, &[old.clone(), a.clone(), b.clone()], &p, &[]).is_empty());

@@ -130,6 +130,10 @@ mod tests {
         assert_eq!(outbox.read(&ids[2]).unwrap(), a);
         outbox.remove(&b.id).unwrap();
         let (ids, _) = outbox.pending().unwrap();
-        assert_eq!(ids, [a.id.clone()], "the junk is set aside, b delivered");
+        assert_eq!(
+            ids,
+            std::slice::from_ref(&a.id),
+            "the junk is set aside, b delivered"
+        );
     }
 }

@@ -438,3 +438,65 @@ fn a_bad_notify_table_is_named() {
         assert!(out.contains(expected), "{table}: {out}");
     }
 }
+
+/// A printer that halts with a fatal error mid-print (as Marlin does on a thermal
+/// runaway: `Error:Printer halted. kill() called!`) sends one `printer_error` naming the
+/// printer, the job and the firmware's message, and no `job_failed` besides.
+#[test]
+fn a_printer_halting_mid_print_sends_a_printer_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let receiver = Receiver::start();
+    let link = root.join("ttyP");
+    let (sim, _) = spawn_sim(
+        Command::new(BIN)
+            .args(["sim", "--firmware", "marlin2", "--time-scale", "0"])
+            .args(["--fatal-after", "20", "--link"])
+            .arg(&link),
+    );
+    let _sim = Killed(sim);
+    let config = configure(
+        root,
+        &[("p", format!("port = \"{}\"", link.display()))],
+        &format!(
+            "[[notify]]\nname = \"hook\"\nurl = \"{}\"\nsecret_file = \"secret\"\n",
+            receiver.url("/hook")
+        ),
+    );
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    drop_file(
+        root,
+        "halt.gcode",
+        presliced_gcode("h", 60, 6000).as_bytes(),
+    );
+    let s = wait_for(&config, &log, LIMIT, "failed", |s| {
+        state_of(s, "halt.gcode") == "failed"
+    });
+    let job = crate::common::job_by_file(&s, "halt.gcode")
+        .unwrap()
+        .clone();
+    let taken = receiver.wait_taken(
+        LIMIT,
+        "printer_error",
+        |t| !events_of(t, "printer_error").is_empty(),
+        log_of(&log),
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    let taken = {
+        drop(taken);
+        receiver.taken()
+    };
+    let errors = events_of(&taken, "printer_error");
+    assert_eq!(errors.len(), 1, "one printer_error");
+    assert_signed(errors[0]);
+    let e = errors[0].json();
+    assert_eq!(e["printer"], "p");
+    assert_eq!(e["job"]["id"], job["id"]);
+    assert_eq!(e["reason"], job["reason"]);
+    assert!(e["reason"].as_str().unwrap().contains("fatal error"), "{e}");
+    assert!(
+        events_of(&taken, "job_failed").is_empty(),
+        "not also a job_failed"
+    );
+}

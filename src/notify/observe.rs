@@ -199,6 +199,11 @@ impl Observer {
         let mut e = self.event(kind, now);
         e.printer = job.printer.clone();
         e.reason = job.reason.clone();
+        // The dashboard's page of the job.
+        if let Some(link) = &mut e.link {
+            link.push_str("/#job/");
+            link.push_str(&percent_encoded(&job.id));
+        }
         e.job = Some(EventJob {
             id: job.id.clone(),
             file: job.file.clone(),
@@ -206,6 +211,20 @@ impl Observer {
         });
         e
     }
+}
+
+/// `text` with every byte but letters, digits and `-._~` percent-encoded (a link must
+/// be plain ASCII: ntfy sends it in a header).
+fn percent_encoded(text: &str) -> String {
+    let mut out = String::new();
+    for b in text.bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
 }
 
 /// The event of a job now in `job.state`, last seen in `was` (None: new since).
@@ -319,7 +338,8 @@ mod tests {
         assert_eq!(f.event, EventKind::JobInterrupted);
         assert_eq!(f.job.as_ref().unwrap().id, "f");
         assert_eq!(f.printer.as_deref(), Some("p"));
-        assert_eq!(f.link.as_deref(), Some("http://farm"));
+        assert_eq!(f.link.as_deref(), Some("http://farm/#job/f"));
+        assert_eq!(percent_encoded("0007-a b é"), "0007-a%20b%20%C3%A9");
     }
 
     /// A printer offline is told once however often it retries, and its return once;

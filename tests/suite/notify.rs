@@ -150,7 +150,11 @@ fn a_done_job_a_failed_job_and_an_offline_printer_each_send_one_signed_event() {
         assert_signed(r);
         let e = r.json();
         assert_eq!(r.header("x-crispen-id"), e["id"].as_str());
-        assert_eq!(e["link"], "http://farm.example:8080");
+        let link = e["link"].as_str().unwrap();
+        match e["job"]["id"].as_str() {
+            Some(id) => assert_eq!(link, format!("http://farm.example:8080/#job/{id}")),
+            None => assert_eq!(link, "http://farm.example:8080"),
+        }
         assert!(e["time"].as_f64().unwrap() > 1.7e9);
     }
     let done = events_of(&taken, "job_done");

@@ -13,6 +13,8 @@
 //!   supervisors, control socket.
 //! - [`http`]: the HTTP API, web dashboard, metrics and OctoPrint-compatible upload,
 //!   serving the farm's handles and operations.
+//! - [`notify`]: notifications of the farm's events (a bed to clear, a failed job, a
+//!   printer offline) to webhooks, ntfy, Slack and Discord, queued in the spool.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
 //!
@@ -26,6 +28,7 @@ pub mod http;
 pub mod machine;
 pub mod marlin;
 pub mod mesh;
+pub mod notify;
 pub mod ports;
 pub mod preview;
 pub mod service;

@@ -31,6 +31,8 @@ pub enum ServiceError {
     /// A top-level task ended or panicked while the service ran; it stops with this error.
     #[error("the daemon's {task} task {how}; the daemon stops (to be restarted)")]
     TaskEnded { task: String, how: String },
+    #[error("notifications: cannot open the queues in the spool: {0}")]
+    Notify(std::io::Error),
     #[error("[http] listen = \"{listen}\": cannot listen: {source} (hint: is another program on this port? Under systemd, install config/crispen-http.conf as a drop-in so the unit allows TCP)")]
     Http {
         listen: std::net::SocketAddr,
@@ -191,6 +193,7 @@ const PREPARATION: &str = "preparation";
 const SHARED: &str = "shared farm";
 const CONTROL: &str = "control socket";
 const HTTP: &str = "http listener";
+const NOTIFY: &str = "notifications";
 
 /// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
 /// shutdown token made here is handed down to every task; each races it at its waits.
@@ -239,6 +242,11 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
             shared::run(Arc::clone(&farm), db, lease, stop_shared.clone()),
         );
     }
+    // Notifications outlive the prints: what a stop does to them is told too.
+    let stop_notify = CancellationToken::new();
+    let notify =
+        crate::notify::run(Arc::clone(&farm), stop_notify.clone()).map_err(ServiceError::Notify)?;
+    tasks.spawn(NOTIFY, notify);
     let mut fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
     // The listeners outlive the shutdown token: while prints finish at a stop, the
     // operator can still watch them and cancel one.
@@ -345,6 +353,8 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
             }
         }
     }
+    stop_notify.cancel();
+    tasks.join(NOTIFY).await;
     stop_listeners.cancel();
     tasks.join(CONTROL).await;
     tasks.join(HTTP).await;

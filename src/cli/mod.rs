@@ -8,6 +8,7 @@ use std::process::ExitCode;
 pub mod control;
 pub mod enhance;
 pub mod logging;
+pub mod notify;
 pub mod ports;
 pub mod prepare_job;
 pub mod print;
@@ -59,6 +60,8 @@ pub enum Command {
     Retry(control::JobArgs),
     /// Let a held job (an upload without "print", or `hold = true` in its sidecar) print
     Release(control::JobArgs),
+    /// Notifications: `crispen notify test` sends a test event to every receiver
+    Notify(notify::Args),
     /// The daemon's preparation child (internal)
     #[command(hide = true)]
     PrepareJob(prepare_job::Args),
@@ -93,6 +96,7 @@ pub fn main() -> ExitCode {
         Command::Resume(a) => control::resume(a),
         Command::Retry(a) => control::retry(a),
         Command::Release(a) => control::release(a),
+        Command::Notify(a) => notify::run(a),
         Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {

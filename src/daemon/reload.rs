@@ -43,6 +43,8 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("http.api_key_file", Policy::Live),
     ("http.read_only_without_key", Policy::DaemonRestart),
     ("http.upload_max_mb", Policy::DaemonRestart),
+    // Notifications' tasks take their receivers and link when they start.
+    ("http.public_url", Policy::DaemonRestart),
     ("farm.max_heating", Policy::Live),
     ("farm.on_shutdown", Policy::Live),
     ("farm.settle_s", Policy::Live),
@@ -55,6 +57,7 @@ pub const POLICY: &[(&str, Policy)] = &[
     // The job store's task takes its retention when it starts.
     ("history.live_days", Policy::DaemonRestart),
     ("history.live_jobs", Policy::DaemonRestart),
+    ("notify", Policy::DaemonRestart),
     ("printer", Policy::PrinterRestart),
     ("printer.port", Policy::PrinterRestart),
     ("printer.simulate", Policy::PrinterRestart),
@@ -103,6 +106,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         http,
         store,
         history,
+        notify,
         // Said again at every reload; not a setting.
         warnings: _,
     } = new;
@@ -128,6 +132,8 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     differs("history.live_days", *live_for != old.history.live_for);
     differs("history.live_jobs", *live_jobs != old.history.live_jobs);
     differs("history.keep_days", *keep_for != old.history.keep_for);
+    differs("http.public_url", notify.dashboard != old.notify.dashboard);
+    differs("notify", notify.receivers != old.notify.receivers);
     match (store, &old.store) {
         (None, None) => {}
         (Some(new), Some(old)) => {
@@ -268,6 +274,7 @@ pub fn merge(old: &Config, new: Config) -> Config {
         http,
         store: old.store.clone(),
         history: old.history,
+        notify: old.notify.clone(),
         farm: super::config::FarmConfig {
             host: old.farm.host.clone(),
             ..new.farm
@@ -359,6 +366,11 @@ mod tests {
             "api_key_file = \"key\"\n",
             "api_key_file = \"key\"\nupload_max_mb = 7\n",
         ),
+        (
+            "http.public_url",
+            "api_key_file = \"key\"\n",
+            "api_key_file = \"key\"\npublic_url = \"http://farm.example:8080/\"\n",
+        ),
         ("farm.max_heating", "max_heating = 2", "max_heating = 3"),
         ("farm.on_shutdown", "\"finish\"", "\"stop\""),
         ("farm.settle_s", "settle_s = 1", "settle_s = 2"),
@@ -374,6 +386,11 @@ mod tests {
         ("store.lease_s", "lease_s = 15", "lease_s = 16"),
         ("history.live_days", "live_days = 7", "live_days = 1.5"),
         ("history.live_jobs", "live_jobs = 200", "live_jobs = 20"),
+        (
+            "notify",
+            "[http]\n",
+            "[[notify]]\nname = \"phone\"\nurl = \"https://ntfy.sh/farm\"\nformat = \"ntfy\"\n[http]\n",
+        ),
         (
             "printer",
             "[[printer]]\nname = \"b\"\nport = \"/dev/ttyUSB0\"\nfirmware = \"marlin2\"\n",

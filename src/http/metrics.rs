@@ -298,5 +298,32 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
             out.sample(name, &[("printer", printer)], read(t));
         }
     }
+    notifications(&mut out);
     out.0
+}
+
+/// The notification counters (see `crate::notify::counts`) and the build's version.
+fn notifications(out: &mut Out) {
+    out.family(
+        "crispen_notifications_total",
+        "counter",
+        "Notification attempts and events by receiver: delivered, error (an attempt failed; retried), dropped (given up).",
+    );
+    for (receiver, outcome, n) in crate::notify::counts::all() {
+        out.sample(
+            "crispen_notifications_total",
+            &[("receiver", &receiver), ("result", outcome.name())],
+            n as f64,
+        );
+    }
+    out.family(
+        "crispen_build_info",
+        "gauge",
+        "Always 1; the running crispen's version as a label.",
+    );
+    out.sample(
+        "crispen_build_info",
+        &[("version", env!("CARGO_PKG_VERSION"))],
+        1.0,
+    );
 }

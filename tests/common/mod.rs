@@ -200,4 +200,5 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
 pub mod daemon;
 pub mod farm;
 pub mod postgres;
+pub mod receiver;
 pub mod relay;

@@ -11,6 +11,7 @@
 //! defaults.
 
 mod pause;
+pub mod notify;
 pub mod ports;
 
 use crate::enhance::Strength;
@@ -80,6 +81,8 @@ struct RawConfig {
     store: Option<RawStore>,
     #[serde(default)]
     history: Option<RawHistory>,
+    #[serde(default, rename = "notify")]
+    notify: Vec<notify::RawNotify>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -105,6 +108,8 @@ struct RawHttp {
     api_key_file: PathBuf,
     read_only_without_key: Option<bool>,
     upload_max_mb: Option<i64>,
+    /// The dashboard's address as operators reach it (notifications link to it).
+    public_url: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -190,6 +195,8 @@ pub struct Config {
     pub store: Option<StoreConfig>,
     /// How long finished jobs stay live before they move to the history (`[history]`).
     pub history: HistoryConfig,
+    /// Where the farm's events are sent (`[[notify]]`, see `notify`).
+    pub notify: notify::NotifyConfig,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,
@@ -478,6 +485,7 @@ impl Checked {
             }
         }
         ports::check_unique(&config.printers, &file)?;
+        notify::resolve(&mut config.notify, &file, &mut config.warnings)?;
         config.http = match http {
             None => None,
             Some(h) => {
@@ -971,6 +979,12 @@ printers = ["demo"]
             });
         }
 
+        let notify = notify::check(
+            raw.notify,
+            raw.http.as_ref().and_then(|h| h.public_url.as_deref()),
+            file,
+            &anchor,
+        )?;
         let http = match raw.http {
             None => None,
             Some(h) => {
@@ -994,6 +1008,7 @@ printers = ["demo"]
                 http: None,
                 store,
                 history,
+                notify,
                 warnings: Vec::new(),
             },
             http,

@@ -1,0 +1,411 @@
+//! The `[[notify]]` tables: where the farm's events (a job done, failed, cancelled; a
+//! printer offline, back, waiting, in error; a host of a shared farm lost) are sent, in
+//! which shape, signed with which secret, and how long a receiver that does not answer is
+//! retried. Checked here in the two stages of the config (the shape, then the secret file
+//! in `resolve`), each error naming the table by its number and name, and the key.
+
+use super::{seconds_in, Bounds, ConfigError};
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// One `[[notify]]` table as written.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawNotify {
+    name: String,
+    url: String,
+    events: Option<Vec<String>>,
+    format: Option<String>,
+    secret_file: Option<PathBuf>,
+    timeout_s: Option<f64>,
+    retry_for_s: Option<f64>,
+    max_attempts: Option<i64>,
+    backoff_max_s: Option<f64>,
+}
+
+/// The events a receiver may ask for, by name (the `event` field of what is sent).
+pub const EVENT_NAMES: [&str; 10] = [
+    "job_done",
+    "job_failed",
+    "job_cancelled",
+    "job_interrupted",
+    "printer_error",
+    "printer_offline",
+    "printer_online",
+    "printer_waiting",
+    "host_lost",
+    "test",
+];
+
+/// The shape of what is sent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NotifyFormat {
+    /// The event as JSON (a webhook, Home Assistant).
+    Json,
+    /// A message for an ntfy topic URL: text body, title, tags, priority and click link as
+    /// headers (ntfy.sh or a self-hosted server; a phone subscribes to the topic).
+    Ntfy,
+    /// A Slack incoming webhook: `{"text": ...}`.
+    Slack,
+    /// A Discord webhook: `{"content": ...}` (at most 2000 characters).
+    Discord,
+}
+
+impl NotifyFormat {
+    pub const NAMES: [&'static str; 4] = ["json", "ntfy", "slack", "discord"];
+
+    fn parse(name: &str) -> Option<NotifyFormat> {
+        match name {
+            "json" => Some(NotifyFormat::Json),
+            "ntfy" => Some(NotifyFormat::Ntfy),
+            "slack" => Some(NotifyFormat::Slack),
+            "discord" => Some(NotifyFormat::Discord),
+            _ => None,
+        }
+    }
+}
+
+/// A receiver's URL, split as the client needs it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReceiverUrl {
+    /// As written (shown in logs and by `crispen notify test`).
+    pub text: String,
+    pub https: bool,
+    pub host: String,
+    pub port: u16,
+    /// Path and query, at least "/".
+    pub path: String,
+}
+
+/// A secret; never shown in logs or debug output.
+#[derive(Clone, PartialEq, Eq)]
+pub struct NotifySecret(pub Vec<u8>);
+
+impl std::fmt::Debug for NotifySecret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("NotifySecret(..)")
+    }
+}
+
+/// One checked `[[notify]]` table.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Receiver {
+    /// Its label: in logs, metrics (`receiver`) and the name of its queue on disk.
+    pub name: String,
+    pub url: ReceiverUrl,
+    /// The event names it gets (all of [`EVENT_NAMES`] by default).
+    pub events: Vec<String>,
+    pub format: NotifyFormat,
+    pub secret_file: Option<PathBuf>,
+    /// Read from `secret_file` by `resolve` (None before, and without a secret file).
+    pub secret: Option<NotifySecret>,
+    /// One attempt (connect, send, answer) takes at most this long.
+    pub timeout: Duration,
+    /// An event not delivered this long after it happened is dropped (logged).
+    pub retry_for: Duration,
+    /// An event is dropped (logged) after this many failed attempts in one run.
+    pub max_attempts: u32,
+    /// The longest wait between attempts while the receiver is down.
+    pub backoff_max: Duration,
+}
+
+impl Receiver {
+    pub fn wants(&self, event: &str) -> bool {
+        self.events.iter().any(|e| e == event)
+    }
+}
+
+/// The checked notification settings.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct NotifyConfig {
+    pub receivers: Vec<Receiver>,
+    /// `[http] public_url`: the dashboard's address as the operator reaches it, put in
+    /// every event as its link.
+    pub dashboard: Option<String>,
+}
+
+/// Bounds of `timeout_s`.
+pub const TIMEOUT_S: Bounds = 0.1..=120.0;
+/// Bounds of `retry_for_s` (up to a week).
+pub const RETRY_FOR_S: Bounds = 1.0..=7.0 * 86_400.0;
+/// Bounds of `backoff_max_s`.
+pub const BACKOFF_MAX_S: Bounds = 0.1..=3600.0;
+/// Bounds of `max_attempts`.
+pub const MAX_ATTEMPTS: std::ops::RangeInclusive<i64> = 1..=10_000;
+/// Most receivers.
+pub const MAX_RECEIVERS: usize = 32;
+/// Longest receiver name; its characters are letters, digits, `-` and `_` (it names a
+/// directory of the spool and a metrics label).
+pub const MAX_NAME_CHARS: usize = 64;
+/// Longest URL.
+pub const MAX_URL_CHARS: usize = 2048;
+
+/// Checks the `[[notify]]` tables and `[http] public_url` (stage two: nothing read).
+pub(super) fn check(
+    raw: Vec<RawNotify>,
+    public_url: Option<&str>,
+    file: &Path,
+    anchor: &dyn Fn(&Path) -> PathBuf,
+) -> Result<NotifyConfig, ConfigError> {
+    let dashboard = match public_url {
+        None => None,
+        Some(u) => {
+            parse_url(u).map_err(|m| ConfigError::Invalid {
+                file: file.to_path_buf(),
+                section: "[http]".into(),
+                key: "public_url".into(),
+                message: m,
+            })?;
+            Some(u.trim_end_matches('/').to_string())
+        }
+    };
+    if raw.len() > MAX_RECEIVERS {
+        return Err(ConfigError::Invalid {
+            file: file.to_path_buf(),
+            section: format!("[[notify]] #{}", MAX_RECEIVERS + 1),
+            key: "name".into(),
+            message: format!("at most {MAX_RECEIVERS} receivers"),
+        });
+    }
+    let mut receivers: Vec<Receiver> = Vec::new();
+    for (i, r) in raw.into_iter().enumerate() {
+        let section = format!("[[notify]] #{} (name {:?})", i + 1, r.name);
+        let invalid = |key: &str, message: String| ConfigError::Invalid {
+            file: file.to_path_buf(),
+            section: section.clone(),
+            key: key.into(),
+            message,
+        };
+        let name_ok = !r.name.is_empty()
+            && r.name.chars().count() <= MAX_NAME_CHARS
+            && r.name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+        if !name_ok {
+            return Err(invalid(
+                "name",
+                format!("must be 1 to {MAX_NAME_CHARS} letters, digits, '-' or '_' (it names the receiver's queue in the spool)"),
+            ));
+        }
+        if receivers.iter().any(|o| o.name == r.name) {
+            return Err(invalid(
+                "name",
+                "another [[notify]] table has this name".into(),
+            ));
+        }
+        let url = parse_url(&r.url).map_err(|m| invalid("url", m))?;
+        let events = match r.events {
+            None => EVENT_NAMES.iter().map(|e| e.to_string()).collect(),
+            Some(list) => {
+                if list.is_empty() {
+                    return Err(invalid(
+                        "events",
+                        "is empty: leave it out for every event, or remove the table".into(),
+                    ));
+                }
+                for e in &list {
+                    if !EVENT_NAMES.contains(&e.as_str()) {
+                        return Err(invalid(
+                            "events",
+                            format!("unknown event {e:?}; known: {}", EVENT_NAMES.join(", ")),
+                        ));
+                    }
+                }
+                let mut list = list;
+                list.dedup();
+                list
+            }
+        };
+        let format = match &r.format {
+            None => NotifyFormat::Json,
+            Some(f) => NotifyFormat::parse(f).ok_or_else(|| {
+                invalid(
+                    "format",
+                    format!(
+                        "unknown format {f:?}; one of {}",
+                        NotifyFormat::NAMES.join(", ")
+                    ),
+                )
+            })?,
+        };
+        let seconds = |key: &str, value: Option<f64>, default: f64, range: &Bounds| {
+            seconds_in(value.unwrap_or(default), range).map_err(|m| invalid(key, m))
+        };
+        let timeout = seconds("timeout_s", r.timeout_s, 10.0, &TIMEOUT_S)?;
+        let retry_for = seconds("retry_for_s", r.retry_for_s, 86_400.0, &RETRY_FOR_S)?;
+        let backoff_max = seconds("backoff_max_s", r.backoff_max_s, 300.0, &BACKOFF_MAX_S)?;
+        let max_attempts = r.max_attempts.unwrap_or(100);
+        if !MAX_ATTEMPTS.contains(&max_attempts) {
+            return Err(invalid(
+                "max_attempts",
+                format!(
+                    "must be from {} to {}, got {max_attempts}",
+                    MAX_ATTEMPTS.start(),
+                    MAX_ATTEMPTS.end()
+                ),
+            ));
+        }
+        receivers.push(Receiver {
+            name: r.name,
+            url,
+            events,
+            format,
+            secret_file: r.secret_file.as_deref().map(anchor),
+            secret: None,
+            timeout,
+            retry_for,
+            max_attempts: max_attempts as u32,
+            backoff_max,
+        });
+    }
+    Ok(NotifyConfig {
+        receivers,
+        dashboard,
+    })
+}
+
+/// Reads each receiver's secret file (stage three); warnings for files others can read.
+pub(super) fn resolve(
+    notify: &mut NotifyConfig,
+    file: &Path,
+    warnings: &mut Vec<String>,
+) -> Result<(), ConfigError> {
+    for (i, r) in notify.receivers.iter_mut().enumerate() {
+        let Some(path) = &r.secret_file else {
+            continue;
+        };
+        let section = format!("[[notify]] #{} (name {:?})", i + 1, r.name);
+        let invalid = |message: String| ConfigError::Invalid {
+            file: file.to_path_buf(),
+            section: section.clone(),
+            key: "secret_file".into(),
+            message,
+        };
+        let (text, warning) = super::read_secret(path).map_err(invalid)?;
+        let secret = text.trim();
+        if secret.len() < 16 {
+            return Err(invalid(format!(
+                "{} holds {} characters: a signing secret needs at least 16 (hint: head -c 32 /dev/urandom | base64 > {})",
+                path.display(),
+                secret.len(),
+                path.display()
+            )));
+        }
+        if let Some(w) = warning {
+            warnings.push(format!("{section} key `secret_file`: {w}"));
+        }
+        r.secret = Some(NotifySecret(secret.as_bytes().to_vec()));
+    }
+    Ok(())
+}
+
+/// An `http://` or `https://` URL with a host, an optional port and path; no user or
+/// password part (a secret belongs in `secret_file`, or in the path where the service
+/// puts it, as Slack and Discord do).
+pub fn parse_url(text: &str) -> Result<ReceiverUrl, String> {
+    if text.len() > MAX_URL_CHARS {
+        return Err(format!("longer than {MAX_URL_CHARS} characters"));
+    }
+    if text.chars().any(|c| c.is_whitespace() || c.is_control()) {
+        return Err(format!("{text:?} holds spaces or control characters"));
+    }
+    let (https, rest) = if let Some(rest) = text.strip_prefix("https://") {
+        (true, rest)
+    } else if let Some(rest) = text.strip_prefix("http://") {
+        (false, rest)
+    } else {
+        return Err(format!(
+            "{text:?} is not an http:// or https:// URL (e.g. \"https://ntfy.sh/my-farm\")"
+        ));
+    };
+    let (authority, path) = match rest.find(['/', '?']) {
+        Some(i) if rest[i..].starts_with('?') => (&rest[..i], format!("/{}", &rest[i..])),
+        Some(i) => (&rest[..i], rest[i..].to_string()),
+        None => (rest, "/".to_string()),
+    };
+    let path = match path.find('#') {
+        Some(i) => path[..i].to_string(),
+        None => path,
+    };
+    if authority.contains('@') {
+        return Err(format!(
+            "{text:?} holds a user or password: put a signing secret in secret_file instead"
+        ));
+    }
+    let (host, port) = if let Some(v6) = authority.strip_prefix('[') {
+        let Some(end) = v6.find(']') else {
+            return Err(format!("{text:?}: unclosed '[' in the host"));
+        };
+        let host = v6[..end].to_string();
+        match &v6[end + 1..] {
+            "" => (host, None),
+            p => match p.strip_prefix(':') {
+                Some(p) => (host, Some(p)),
+                None => return Err(format!("{text:?}: junk after the host")),
+            },
+        }
+    } else {
+        match authority.rsplit_once(':') {
+            Some((h, p)) => (h.to_string(), Some(p)),
+            None => (authority.to_string(), None),
+        }
+    };
+    if host.is_empty() {
+        return Err(format!("{text:?} names no host"));
+    }
+    let port = match port {
+        None => {
+            if https {
+                443
+            } else {
+                80
+            }
+        }
+        Some(p) => match p.parse::<u16>() {
+            Ok(p) if p > 0 => p,
+            _ => return Err(format!("{text:?}: {p:?} is not a port (1 to 65535)")),
+        },
+    };
+    Ok(ReceiverUrl {
+        text: text.to_string(),
+        https,
+        host,
+        port,
+        path,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_are_split_and_bad_ones_named() {
+        let u = parse_url("https://ntfy.sh/my-farm").unwrap();
+        assert_eq!(
+            (u.https, u.host.as_str(), u.port, u.path.as_str()),
+            (true, "ntfy.sh", 443, "/my-farm")
+        );
+        let u = parse_url("http://127.0.0.1:8123/api/webhook/abc?x=1#frag").unwrap();
+        assert_eq!(
+            (u.https, u.host.as_str(), u.port, u.path.as_str()),
+            (false, "127.0.0.1", 8123, "/api/webhook/abc?x=1")
+        );
+        let u = parse_url("http://[::1]:9000").unwrap();
+        assert_eq!(
+            (u.host.as_str(), u.port, u.path.as_str()),
+            ("::1", 9000, "/")
+        );
+        for bad in [
+            "ftp://x/",
+            "http://",
+            "http://u:p@host/",
+            "http://host:0/",
+            "http://host:99999/",
+            "http://ho st/",
+        ] {
+            assert!(parse_url(bad).is_err(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,406 @@
+//! Events derived from the farm's published state, without I/O: [`Observer::observe`] is
+//! given the jobs, this host's printers and the farm's hosts as they are now (and the
+//! time), compares them with what it saw last, and returns what happened in between.
+//! Nothing in the printer or job code calls it; a new printer state (a halted printer, a
+//! printer waiting for the operator) needs only its line in [`presence`], whose `match`
+//! has no fallback arm so the compiler asks for it.
+//!
+//! The published state is followed through `watch` channels, which keep the latest value
+//! only: a state held for less than one look (a printer offline for a few milliseconds)
+//! may pass unseen. A job's final state never passes: it is kept until the job is retried.
+//!
+//! In a farm shared by several hosts every host sees every job; exactly one sends each
+//! event: a job's by the host of the printer that took it (else by the host of the folder
+//! it was dropped into), a printer's by its host, a lost host's by the live host whose
+//! name sorts first.
+
+use super::event::{Event, EventJob, EventKind};
+use crate::daemon::farm::{PrinterState, PrinterStatus};
+use crate::daemon::job::{Job, JobState};
+use crate::daemon::store::postgres::FarmHost;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+/// How a printer's state counts for notifications.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Presence {
+    /// Not known yet (connecting).
+    Unknown,
+    Online,
+    /// Online, and waiting for the operator.
+    Waiting,
+    Offline,
+    /// Its supervisor stopped (shutdown, or removed by a reload): nothing to tell.
+    Stopped,
+}
+
+/// Every printer state's meaning for notifications; no fallback arm (see the module).
+fn presence(state: PrinterState) -> Presence {
+    match state {
+        PrinterState::Connecting => Presence::Unknown,
+        PrinterState::Idle
+        | PrinterState::WaitingToHeat
+        | PrinterState::Printing
+        | PrinterState::BedNotCleared => Presence::Online,
+        PrinterState::Paused => Presence::Waiting,
+        PrinterState::Disconnected => Presence::Offline,
+        PrinterState::Stopped => Presence::Stopped,
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct PrinterSeen {
+    presence: Presence,
+    /// A `printer_offline` was sent and no `printer_online` since.
+    told_offline: bool,
+}
+
+/// What the observer was last shown.
+#[derive(Debug)]
+pub struct Observer {
+    /// This host (`[farm] host`).
+    host: String,
+    /// The farm is shared with other hosts (`[store]`).
+    shared: bool,
+    dashboard: Option<String>,
+    /// None until the first look, which is the baseline: what was so before this run is
+    /// not news.
+    jobs: Option<HashMap<String, JobState>>,
+    printers: BTreeMap<String, PrinterSeen>,
+    /// Whether each host of a shared farm was alive.
+    hosts: BTreeMap<String, bool>,
+}
+
+/// The farm as it is now, as the observer reads it.
+pub struct Look<'a, J: Iterator<Item = &'a Job>> {
+    pub jobs: J,
+    /// This host's printers.
+    pub printers: &'a [PrinterStatus],
+    /// The hosts of a shared farm (empty when not shared).
+    pub hosts: &'a [FarmHost],
+    /// Seconds since the epoch.
+    pub now: f64,
+}
+
+impl Observer {
+    pub fn new(host: &str, shared: bool, dashboard: Option<String>) -> Observer {
+        Observer {
+            host: host.to_string(),
+            shared,
+            dashboard,
+            jobs: None,
+            printers: BTreeMap::new(),
+            hosts: BTreeMap::new(),
+        }
+    }
+
+    /// What happened since the last look.
+    pub fn observe<'a>(&mut self, look: Look<'a, impl Iterator<Item = &'a Job>>) -> Vec<Event> {
+        let first = self.jobs.is_none();
+        let mut events = Vec::new();
+        let local: BTreeSet<&str> = look.printers.iter().map(|p| p.name.as_str()).collect();
+
+        let before = self.jobs.take().unwrap_or_default();
+        let mut now_jobs = HashMap::with_capacity(before.len());
+        for job in look.jobs {
+            let was = before.get(&job.id).copied();
+            now_jobs.insert(job.id.clone(), job.state);
+            if first || was == Some(job.state) || !self.mine(job, &local) {
+                continue;
+            }
+            if let Some(kind) = job_event(was, job) {
+                events.push(self.job_event(kind, job, look.now));
+            }
+        }
+        self.jobs = Some(now_jobs);
+
+        let mut printers = BTreeMap::new();
+        for p in look.printers {
+            let now = presence(p.state);
+            let seen = self.printers.get(&p.name).copied();
+            let mut told_offline = seen.is_some_and(|s| s.told_offline);
+            let was = seen.map(|s| s.presence);
+            if !first {
+                let mut tell = |kind: EventKind| {
+                    let mut e = self.event(kind, look.now);
+                    e.printer = Some(p.name.clone());
+                    e.reason = p.detail.clone();
+                    events.push(e);
+                };
+                match now {
+                    Presence::Offline if !told_offline && was != Some(Presence::Stopped) => {
+                        tell(EventKind::PrinterOffline);
+                        told_offline = true;
+                    }
+                    Presence::Online | Presence::Waiting if told_offline => {
+                        tell(EventKind::PrinterOnline);
+                        told_offline = false;
+                    }
+                    _ => {}
+                }
+                if now == Presence::Waiting && was != Some(Presence::Waiting) {
+                    tell(EventKind::PrinterWaiting);
+                }
+            }
+            printers.insert(
+                p.name.clone(),
+                PrinterSeen {
+                    presence: now,
+                    told_offline,
+                },
+            );
+        }
+        self.printers = printers;
+
+        // The live host whose name sorts first tells of a lost one.
+        let first_alive = look
+            .hosts
+            .iter()
+            .filter(|h| h.alive)
+            .map(|h| h.name.as_str())
+            .chain(std::iter::once(self.host.as_str()))
+            .min()
+            .map(str::to_string);
+        let teller = first_alive.as_deref() == Some(self.host.as_str());
+        let mut hosts = BTreeMap::new();
+        for h in look.hosts {
+            if !first && teller && !h.alive && self.hosts.get(&h.name) == Some(&true) {
+                let mut e = self.event(EventKind::HostLost, look.now);
+                e.reason = Some(format!(
+                    "host {} stopped renewing its lease; its printers show as offline",
+                    h.name
+                ));
+                events.push(e);
+            }
+            hosts.insert(h.name.clone(), h.alive);
+        }
+        self.hosts = hosts;
+        events
+    }
+
+    /// Whether this host tells of `job` (see the module on shared farms).
+    fn mine(&self, job: &Job, local: &BTreeSet<&str>) -> bool {
+        if !self.shared {
+            return true;
+        }
+        match (&job.printer, &job.origin) {
+            (Some(p), _) => local.contains(p.as_str()),
+            (None, Some(origin)) => origin.host == self.host,
+            (None, None) => true,
+        }
+    }
+
+    fn event(&self, kind: EventKind, now: f64) -> Event {
+        let mut e = Event::new(kind, now, &self.host);
+        e.link = self.dashboard.clone();
+        e
+    }
+
+    fn job_event(&self, kind: EventKind, job: &Job, now: f64) -> Event {
+        let mut e = self.event(kind, now);
+        e.printer = job.printer.clone();
+        e.reason = job.reason.clone();
+        // The dashboard's page of the job.
+        if let Some(link) = &mut e.link {
+            link.push_str("/#job/");
+            link.push_str(&percent_encoded(&job.id));
+        }
+        e.job = Some(EventJob {
+            id: job.id.clone(),
+            file: job.file.clone(),
+            folder: job.folder.display().to_string(),
+        });
+        e
+    }
+}
+
+/// `text` with every byte but letters, digits and `-._~` percent-encoded (a link must
+/// be plain ASCII: ntfy sends it in a header).
+fn percent_encoded(text: &str) -> String {
+    let mut out = String::new();
+    for b in text.bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
+}
+
+/// The event of a job now in `job.state`, last seen in `was` (None: new since).
+fn job_event(was: Option<JobState>, job: &Job) -> Option<EventKind> {
+    match job.state {
+        JobState::Done => Some(EventKind::JobDone),
+        JobState::Failed if was == Some(JobState::Printing) && by_the_printer(job) => {
+            Some(EventKind::PrinterError)
+        }
+        JobState::Failed => Some(EventKind::JobFailed),
+        JobState::Cancelled => Some(EventKind::JobCancelled),
+        JobState::Interrupted => Some(EventKind::JobInterrupted),
+        JobState::Queued | JobState::Preparing | JobState::Ready | JobState::Printing => None,
+    }
+}
+
+/// The print failed by an error the printer reported (a thermal runaway or other kill,
+/// which Marlin answers with a fatal error; a reset), as the print's error words it
+/// (`marlin::stream::PrintError`).
+fn by_the_printer(job: &Job) -> bool {
+    job.reason
+        .as_deref()
+        .is_some_and(|r| r.contains("stopped with a fatal error") || r.contains("reset itself"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(id: &str, state: JobState, printer: Option<&str>) -> Job {
+        let mut j: Job = serde_json::from_value(serde_json::json!({
+            "id": id, "seq": 1, "file": "a.gcode", "folder": "/hot", "state": "queued",
+            "history": [], "printer": null, "reason": null, "sidecar": null,
+            "slice_report": null, "print_report": null,
+        }))
+        .unwrap();
+        j.state = state;
+        j.printer = printer.map(str::to_string);
+        j
+    }
+
+    fn printer(name: &str, state: PrinterState) -> PrinterStatus {
+        PrinterStatus {
+            name: name.into(),
+            state,
+            firmware: "marlin2".into(),
+            port: "/dev/x".into(),
+            job: None,
+            progress: None,
+            temperatures: None,
+            detail: Some("why".into()),
+            bed_cleared: true,
+            host: None,
+            offline: false,
+        }
+    }
+
+    fn look<'a>(
+        o: &mut Observer,
+        jobs: &'a [Job],
+        printers: &'a [PrinterStatus],
+        hosts: &'a [FarmHost],
+    ) -> Vec<&'static str> {
+        o.observe(Look {
+            jobs: jobs.iter(),
+            printers,
+            hosts,
+            now: 1000.0,
+        })
+        .iter()
+        .map(|e| e.event.name())
+        .collect()
+    }
+
+    /// Every job outcome is told once, what was so at the start is not, and a job
+    /// failed by the printer's own error is a printer error.
+    #[test]
+    fn job_outcomes_are_told_once() {
+        let mut o = Observer::new("h", false, Some("http://farm".into()));
+        let p = [printer("p", PrinterState::Idle)];
+        let old = job("old", JobState::Failed, None);
+        assert!(
+            look(&mut o, std::slice::from_ref(&old), &p, &[]).is_empty(),
+            "baseline"
+        );
+        let mut a = job("a", JobState::Printing, Some("p"));
+        let b = job("b", JobState::Queued, None);
+        assert!(look(&mut o, &[old.clone(), a.clone(), b.clone()], &p, &[]).is_empty());
+        a.state = JobState::Done;
+        let c = job("c", JobState::Cancelled, None);
+        let both = [old.clone(), a.clone(), b.clone(), c.clone()];
+        assert_eq!(look(&mut o, &both, &p, &[]), ["job_done", "job_cancelled"]);
+        assert!(look(&mut o, &both, &p, &[]).is_empty(), "told once");
+        let mut d = job("d", JobState::Printing, Some("p"));
+        assert!(look(&mut o, &[d.clone()], &p, &[]).is_empty());
+        d.state = JobState::Failed;
+        d.reason = Some("printer on /dev/x stopped with a fatal error: Thermal Runaway".into());
+        assert_eq!(look(&mut o, &[d.clone()], &p, &[]), ["printer_error"]);
+        let mut e = job("e", JobState::Preparing, None);
+        assert!(look(&mut o, &[e.clone()], &p, &[]).is_empty());
+        e.state = JobState::Failed;
+        assert_eq!(look(&mut o, &[e.clone()], &p, &[]), ["job_failed"]);
+        let made = o.observe(Look {
+            jobs: [job("f", JobState::Interrupted, Some("p"))].iter(),
+            printers: &p,
+            hosts: &[],
+            now: 5.0,
+        });
+        assert_eq!(made.len(), 1);
+        let f = &made[0];
+        assert_eq!(f.event, EventKind::JobInterrupted);
+        assert_eq!(f.job.as_ref().unwrap().id, "f");
+        assert_eq!(f.printer.as_deref(), Some("p"));
+        assert_eq!(f.link.as_deref(), Some("http://farm/#job/f"));
+        assert_eq!(percent_encoded("0007-a b é"), "0007-a%20b%20%C3%A9");
+    }
+
+    /// A printer offline is told once however often it retries, and its return once;
+    /// a paused printer waits for the operator; a stopped supervisor is no news.
+    #[test]
+    fn printer_presence_is_told_on_change() {
+        let mut o = Observer::new("h", false, None);
+        let at = |s| [printer("p", s)];
+        assert!(look(&mut o, &[], &at(PrinterState::Connecting), &[]).is_empty());
+        let offline = at(PrinterState::Disconnected);
+        assert_eq!(look(&mut o, &[], &offline, &[]), ["printer_offline"]);
+        assert!(look(&mut o, &[], &at(PrinterState::Connecting), &[]).is_empty());
+        assert!(look(&mut o, &[], &offline, &[]).is_empty(), "told once");
+        assert_eq!(
+            look(&mut o, &[], &at(PrinterState::Idle), &[]),
+            ["printer_online"]
+        );
+        assert!(look(&mut o, &[], &at(PrinterState::Printing), &[]).is_empty());
+        assert_eq!(
+            look(&mut o, &[], &at(PrinterState::Paused), &[]),
+            ["printer_waiting"]
+        );
+        assert!(look(&mut o, &[], &at(PrinterState::Paused), &[]).is_empty());
+        assert!(look(&mut o, &[], &at(PrinterState::Stopped), &[]).is_empty());
+        assert!(look(&mut o, &[], &offline, &[]).is_empty(), "after a stop");
+    }
+
+    /// In a shared farm a job is told by its printer's host only, a lost host by the
+    /// first live host only.
+    #[test]
+    fn a_shared_farm_tells_each_event_once() {
+        let hosts = |b_alive| {
+            [
+                FarmHost {
+                    name: "a".into(),
+                    alive: true,
+                    last_seen: 0.0,
+                },
+                FarmHost {
+                    name: "b".into(),
+                    alive: b_alive,
+                    last_seen: 0.0,
+                },
+                FarmHost {
+                    name: "c".into(),
+                    alive: true,
+                    last_seen: 0.0,
+                },
+            ]
+        };
+        let mut a = Observer::new("a", true, None);
+        let mut c = Observer::new("c", true, None);
+        let pa = [printer("pa", PrinterState::Idle)];
+        let pc = [printer("pc", PrinterState::Idle)];
+        let jobs = [job("1", JobState::Printing, Some("pc"))];
+        for (o, p) in [(&mut a, &pa), (&mut c, &pc)] {
+            assert!(look(o, &jobs, p, &hosts(true)).is_empty());
+            assert!(look(o, &jobs, p, &hosts(true)).is_empty());
+        }
+        let done = [job("1", JobState::Done, Some("pc"))];
+        assert_eq!(look(&mut a, &done, &pa, &hosts(false)), ["host_lost"]);
+        assert_eq!(look(&mut c, &done, &pc, &hosts(false)), ["job_done"]);
+    }
+}

@@ -1,0 +1,314 @@
+//! One attempt to send one event to one receiver: the body in the receiver's format, its
+//! HMAC-SHA256 signature when the receiver has a secret, and an HTTP/1.1 POST (over TLS
+//! for `https://`, with the Mozilla roots of `webpki-roots`), all within the receiver's
+//! `timeout_s`. The connection is one per attempt and closed after it: events are rare.
+
+use super::event::Event;
+use crate::daemon::config::notify::{NotifyFormat, Receiver};
+use bytes::Bytes;
+use http_body_util::{BodyExt, Full, Limited};
+use hyper_util::rt::TokioIo;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite};
+
+/// The part of an answer kept (shown by `crispen notify test`, logged on a failure).
+pub const MAX_ANSWER_BYTES: usize = 4096;
+/// Discord refuses longer messages.
+const DISCORD_MAX_CHARS: usize = 2000;
+
+/// What a receiver answered.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Answer {
+    pub status: u16,
+    /// The start of the answer's body, as text.
+    pub body: String,
+}
+
+impl Answer {
+    pub fn ok(&self) -> bool {
+        (200..300).contains(&self.status)
+    }
+
+    /// An answer that will not change on a retry (a wrong URL, a refused body): the
+    /// event is dropped at once. Timeouts (408), rate limits (429) and server errors are
+    /// retried.
+    pub fn permanent(&self) -> bool {
+        (400..500).contains(&self.status) && self.status != 408 && self.status != 429
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SendError {
+    #[error("cannot connect to {host}:{port}: {source}")]
+    Connect {
+        host: String,
+        port: u16,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("TLS with {host}: {message}")]
+    Tls { host: String, message: String },
+    #[error("HTTP: {0}")]
+    Http(String),
+    #[error("no answer within {0:?}")]
+    Timeout(Duration),
+}
+
+/// The body and headers of `event` for `receiver`.
+pub fn render(receiver: &Receiver, event: &Event) -> (Vec<u8>, Vec<(&'static str, String)>) {
+    let mut headers = vec![
+        ("x-crispen-event", event.event.name().to_string()),
+        ("x-crispen-id", event.id.clone()),
+    ];
+    let body = match receiver.format {
+        NotifyFormat::Json => {
+            headers.push(("content-type", "application/json".into()));
+            serde_json::to_vec(event).unwrap_or_default()
+        }
+        NotifyFormat::Ntfy => {
+            // ntfy reads the message from the body and the rest from headers (see
+            // docs.ntfy.sh, "Publishing"); header values must be plain ASCII.
+            headers.push(("content-type", "text/plain; charset=utf-8".into()));
+            headers.push(("title", event.event.title().into()));
+            let (priority, tag) = if event.event.urgent() {
+                ("high", "warning")
+            } else {
+                ("default", "white_check_mark")
+            };
+            headers.push(("priority", priority.into()));
+            headers.push(("tags", format!("{tag},crispen")));
+            if let Some(link) = &event.link {
+                headers.push(("click", link.clone()));
+            }
+            event.text().into_bytes()
+        }
+        NotifyFormat::Slack => {
+            headers.push(("content-type", "application/json".into()));
+            // Slack's text is its mrkdwn: &, < and > are escaped; a link is <url|text>.
+            let mut text = slack_escape(&event.text());
+            if let Some(link) = &event.link {
+                text += &format!(" <{}|dashboard>", slack_escape(link));
+            }
+            serde_json::to_vec(&serde_json::json!({ "text": text })).unwrap_or_default()
+        }
+        NotifyFormat::Discord => {
+            headers.push(("content-type", "application/json".into()));
+            let mut text = event.text();
+            if let Some(link) = &event.link {
+                text += &format!(" {link}");
+            }
+            let text: String = text.chars().take(DISCORD_MAX_CHARS).collect();
+            // A file named "@everyone" must not ping a whole server.
+            let body = serde_json::json!({
+                "content": text,
+                "allowed_mentions": { "parse": [] },
+            });
+            serde_json::to_vec(&body).unwrap_or_default()
+        }
+    };
+    if let Some(secret) = &receiver.secret {
+        headers.push((
+            "x-crispen-signature",
+            format!("sha256={}", sign(&secret.0, &body)),
+        ));
+    }
+    (body, headers)
+}
+
+fn slack_escape(text: &str) -> String {
+    text.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// HMAC-SHA256 of `body` with `secret`, in lower-case hex.
+pub fn sign(secret: &[u8], body: &[u8]) -> String {
+    use hmac::{KeyInit, Mac};
+    let mut mac =
+        hmac::Hmac::<sha2::Sha256>::new_from_slice(secret).expect("HMAC takes a key of any length");
+    mac.update(body);
+    mac.finalize()
+        .into_bytes()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Sends `event` to `receiver` once, within its timeout.
+pub async fn send(receiver: &Receiver, event: &Event) -> Result<Answer, SendError> {
+    let (body, headers) = render(receiver, event);
+    tokio::time::timeout(receiver.timeout, exchange(receiver, body, headers))
+        .await
+        .map_err(|_| SendError::Timeout(receiver.timeout))?
+}
+
+async fn exchange(
+    receiver: &Receiver,
+    body: Vec<u8>,
+    headers: Vec<(&'static str, String)>,
+) -> Result<Answer, SendError> {
+    let url = &receiver.url;
+    let tcp = tokio::net::TcpStream::connect((url.host.as_str(), url.port))
+        .await
+        .map_err(|source| SendError::Connect {
+            host: url.host.clone(),
+            port: url.port,
+            source,
+        })?;
+    let _ = tcp.set_nodelay(true);
+    let host_header = match (url.https, url.port) {
+        (true, 443) | (false, 80) => url.host.clone(),
+        _ if url.host.contains(':') => format!("[{}]:{}", url.host, url.port),
+        _ => format!("{}:{}", url.host, url.port),
+    };
+    let mut request = hyper::Request::builder()
+        .method(hyper::Method::POST)
+        .uri(url.path.as_str())
+        .header(hyper::header::HOST, host_header)
+        .header(hyper::header::CONNECTION, "close")
+        .header(
+            hyper::header::USER_AGENT,
+            concat!("crispen/", env!("CARGO_PKG_VERSION")),
+        );
+    for (name, value) in headers {
+        request = request.header(name, value);
+    }
+    let request = request
+        .body(Full::new(Bytes::from(body)))
+        .map_err(|e| SendError::Http(e.to_string()))?;
+    if url.https {
+        let name = tokio_rustls::rustls::pki_types::ServerName::try_from(url.host.clone())
+            .map_err(|e| SendError::Tls {
+                host: url.host.clone(),
+                message: e.to_string(),
+            })?;
+        let tls = tls().connect(name, tcp).await.map_err(|e| SendError::Tls {
+            host: url.host.clone(),
+            message: e.to_string(),
+        })?;
+        over(tls, request).await
+    } else {
+        over(tcp, request).await
+    }
+}
+
+/// The request on one connection, driven here (nothing is left running when the attempt
+/// is dropped at its timeout).
+async fn over(
+    io: impl AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    request: hyper::Request<Full<Bytes>>,
+) -> Result<Answer, SendError> {
+    let http = |e: hyper::Error| SendError::Http(e.to_string());
+    let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(io))
+        .await
+        .map_err(http)?;
+    let answer = async {
+        let response = sender.send_request(request).await.map_err(http)?;
+        let status = response.status().as_u16();
+        // Only the start of the body is kept; a longer one is cut, not an error.
+        let mut body = Vec::new();
+        let mut stream = Limited::new(response.into_body(), 1 << 20);
+        while let Some(frame) = stream.frame().await {
+            let Ok(frame) = frame else { break };
+            if let Ok(data) = frame.into_data() {
+                let room = MAX_ANSWER_BYTES.saturating_sub(body.len());
+                body.extend_from_slice(&data[..data.len().min(room)]);
+            }
+        }
+        Ok(Answer {
+            status,
+            body: String::from_utf8_lossy(&body).into_owned(),
+        })
+    };
+    tokio::pin!(answer);
+    tokio::pin!(connection);
+    let mut connection_open = true;
+    loop {
+        tokio::select! {
+            a = &mut answer => return a,
+            c = &mut connection, if connection_open => {
+                connection_open = false;
+                c.map_err(http)?;
+            }
+        }
+    }
+}
+
+fn tls() -> tokio_rustls::TlsConnector {
+    static CONNECTOR: OnceLock<tokio_rustls::TlsConnector> = OnceLock::new();
+    CONNECTOR
+        .get_or_init(|| {
+            use tokio_rustls::rustls;
+            let roots = rustls::RootCertStore {
+                roots: webpki_roots::TLS_SERVER_ROOTS.to_vec(),
+            };
+            let provider = Arc::new(rustls::crypto::ring::default_provider());
+            let config = rustls::ClientConfig::builder_with_provider(provider)
+                .with_safe_default_protocol_versions()
+                .expect("ring supports the default TLS versions")
+                .with_root_certificates(roots)
+                .with_no_client_auth();
+            tokio_rustls::TlsConnector::from(Arc::new(config))
+        })
+        .clone()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::daemon::config::notify::{parse_url, NotifySecret};
+    use crate::notify::event::EventKind;
+
+    fn receiver(format: NotifyFormat) -> Receiver {
+        Receiver {
+            name: "r".into(),
+            url: parse_url("http://127.0.0.1:1/hook").unwrap(),
+            events: vec![],
+            format,
+            secret_file: None,
+            secret: Some(NotifySecret(b"key".to_vec())),
+            timeout: Duration::from_secs(1),
+            retry_for: Duration::from_secs(60),
+            max_attempts: 3,
+            backoff_max: Duration::from_secs(1),
+        }
+    }
+
+    /// The signature is RFC 4231's HMAC-SHA256, over the exact body sent, in every format.
+    #[test]
+    fn bodies_are_signed_as_sent() {
+        // RFC 4231, test case 2.
+        assert_eq!(
+            sign(b"Jefe", b"what do ya want for nothing?"),
+            "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
+        );
+        let mut e = Event::new(EventKind::JobFailed, 10.0, "h");
+        e.reason = Some("<@everyone> & friends".into());
+        e.link = Some("http://farm:8080".into());
+        for format in [
+            NotifyFormat::Json,
+            NotifyFormat::Ntfy,
+            NotifyFormat::Slack,
+            NotifyFormat::Discord,
+        ] {
+            let (body, headers) = render(&receiver(format), &e);
+            let signature = headers
+                .iter()
+                .find(|(k, _)| *k == "x-crispen-signature")
+                .unwrap();
+            assert_eq!(signature.1, format!("sha256={}", sign(b"key", &body)));
+            assert!(headers
+                .iter()
+                .any(|(k, v)| *k == "x-crispen-id" && *v == e.id));
+        }
+        let (body, _) = render(&receiver(NotifyFormat::Slack), &e);
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        let text = v["text"].as_str().unwrap();
+        assert!(text.contains("&lt;@everyone&gt; &amp; friends"), "{text}");
+        assert!(text.ends_with("<http://farm:8080|dashboard>"), "{text}");
+        let (body, _) = render(&receiver(NotifyFormat::Json), &e);
+        let back: Event = serde_json::from_slice(&body).unwrap();
+        assert_eq!(back, e);
+    }
+}

@@ -31,6 +31,8 @@ pub enum ServiceError {
     /// A top-level task ended or panicked while the service ran; it stops with this error.
     #[error("the daemon's {task} task {how}; the daemon stops (to be restarted)")]
     TaskEnded { task: String, how: String },
+    #[error(transparent)]
+    AppKeys(#[from] crate::http::appkeys::AppKeysError),
     #[error("[http] listen = \"{listen}\": cannot listen: {source} (hint: is another program on this port? Under systemd, install config/crispen-http.conf as a drop-in so the unit allows TCP)")]
     Http {
         listen: std::net::SocketAddr,
@@ -219,6 +221,19 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
             Some((bound, http.clone()))
         }
     };
+    let appkeys = Arc::new(crate::http::AppKeys::open(&config.spool_dir)?);
+    // Withdrawn when the service returns (dropped). Not announcing is no reason to stop
+    // printing: the failure is logged as an error and the farm runs on.
+    let _announced = match &http_listener {
+        Some((bound, _)) => match bound.local_addr() {
+            Ok(address) => crate::http::zeroconf::announce(&config, address)
+                .inspect_err(|e| tracing::error!(error = %e, "the hot folders are not announced on the network"))
+                .ok()
+                .flatten(),
+            Err(_) => None,
+        },
+        None => None,
+    };
     tracing::info!(
         config = %config.source.display(),
         spool = %config.spool_dir.display(),
@@ -247,6 +262,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
         CONTROL,
         crate::http::serve_socket(
             Arc::clone(&farm),
+            Arc::clone(&appkeys),
             config.http.clone(),
             listener,
             stop_listeners.clone(),
@@ -255,7 +271,13 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
     if let Some((bound, http)) = http_listener {
         tasks.spawn(
             HTTP,
-            crate::http::serve_tcp(Arc::clone(&farm), http, bound, stop_listeners.clone()),
+            crate::http::serve_tcp(
+                Arc::clone(&farm),
+                Arc::clone(&appkeys),
+                http,
+                bound,
+                stop_listeners.clone(),
+            ),
         );
     }
     tasks.spawn(PICKUP, crate::daemon::pickup(&farm, &config));

@@ -71,7 +71,11 @@ pub struct JobArgs {
 
 /// Sends one request to the daemon; returns the JSON answer of a success, or the
 /// daemon's error message as the error.
-fn ask(config: &Option<PathBuf>, method: Method, path: &str) -> anyhow::Result<serde_json::Value> {
+pub(super) fn ask(
+    config: &Option<PathBuf>,
+    method: Method,
+    path: &str,
+) -> anyhow::Result<serde_json::Value> {
     let socket = match config {
         Some(path) => Config::socket_of(path)?,
         None => Config::builtin_default().socket,
@@ -135,7 +139,7 @@ async fn exchange(
 }
 
 /// One path segment, percent-encoded (a printer or job name as it is).
-fn segment(text: &str) -> String {
+pub(super) fn segment(text: &str) -> String {
     let mut out = String::new();
     for b in text.bytes() {
         if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {

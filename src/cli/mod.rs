@@ -7,6 +7,7 @@ use std::process::ExitCode;
 
 pub mod control;
 pub mod enhance;
+pub mod keys;
 pub mod logging;
 pub mod ports;
 pub mod prepare_job;
@@ -56,6 +57,8 @@ pub enum Command {
     Retry(control::JobArgs),
     /// Let a held job (an upload without "print", or `hold = true` in its sidecar) print
     Release(control::JobArgs),
+    /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
+    Keys(keys::Args),
     /// The daemon's preparation child (internal)
     #[command(hide = true)]
     PrepareJob(prepare_job::Args),
@@ -89,6 +92,7 @@ pub fn main() -> ExitCode {
         Command::Resume(a) => control::resume(a),
         Command::Retry(a) => control::retry(a),
         Command::Release(a) => control::release(a),
+        Command::Keys(a) => keys::run(a),
         Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {

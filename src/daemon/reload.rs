@@ -43,6 +43,8 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("http.api_key_file", Policy::Live),
     ("http.read_only_without_key", Policy::DaemonRestart),
     ("http.upload_max_mb", Policy::DaemonRestart),
+    ("http.announce", Policy::DaemonRestart),
+    ("http.default_folder", Policy::DaemonRestart),
     ("farm.max_heating", Policy::Live),
     ("farm.on_shutdown", Policy::Live),
     ("farm.settle_s", Policy::Live),
@@ -152,6 +154,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
                 read_only_without_key,
                 upload_max_bytes,
                 any_port_if_taken,
+                octoprint,
             } = new;
             // Only the built-in default may fall back to another port; part of `listen`.
             differs(
@@ -166,6 +169,14 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             differs(
                 "http.upload_max_mb",
                 *upload_max_bytes != old.upload_max_bytes,
+            );
+            differs(
+                "http.announce",
+                octoprint.announce != old.octoprint.announce,
+            );
+            differs(
+                "http.default_folder",
+                octoprint.default_folder != old.octoprint.default_folder,
             );
         }
         _ => differs("http", true),

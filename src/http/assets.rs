@@ -7,6 +7,7 @@ use axum::response::IntoResponse;
 const INDEX: &str = include_str!("assets/index.html");
 const SCRIPT: &str = include_str!("assets/app.js");
 const STYLE: &str = include_str!("assets/style.css");
+const APPKEYS: &str = include_str!("assets/appkeys.js");
 
 /// Only this page's own files; nothing framed elsewhere.
 const POLICY: &str =
@@ -31,4 +32,12 @@ pub async fn script() -> impl IntoResponse {
 
 pub async fn style() -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE)
+}
+
+/// The application-key requests panel (its own file; see `super::appkeys`).
+pub async fn appkeys_script() -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
+        APPKEYS,
+    )
 }

@@ -363,6 +363,16 @@ mod tests {
             "api_key_file = \"key\"\n",
             "api_key_file = \"key\"\nupload_max_mb = 7\n",
         ),
+        (
+            "http.announce",
+            "api_key_file = \"key\"\n",
+            "api_key_file = \"key\"\nannounce = false\n",
+        ),
+        (
+            "http.default_folder",
+            "api_key_file = \"key\"\n",
+            "api_key_file = \"key\"\ndefault_folder = \"hot\"\n",
+        ),
         ("farm.max_heating", "max_heating = 2", "max_heating = 3"),
         ("farm.on_shutdown", "\"finish\"", "\"stop\""),
         ("farm.settle_s", "settle_s = 1", "settle_s = 2"),

@@ -18,6 +18,7 @@ mod http;
 mod layers;
 mod machines;
 mod mesh_io;
+mod octoprint;
 mod ports;
 mod postgres;
 mod presliced;

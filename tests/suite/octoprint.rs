@@ -146,10 +146,10 @@ impl Answer {
             .unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.text()))
     }
     fn header(&self, name: &str) -> Option<String> {
-        let name = format!("{}:", name.to_ascii_lowercase());
-        self.headers
-            .lines()
-            .find_map(|l| l.strip_prefix(&name).map(|v| v.trim().to_string()))
+        self.headers.lines().find_map(|l| {
+            let (n, v) = l.split_once(':')?;
+            n.eq_ignore_ascii_case(name).then(|| v.trim().to_string())
+        })
     }
 }
 
@@ -182,10 +182,14 @@ fn request(addr: &str, method: &str, path: &str, headers: &[(&str, &str)], body:
         if line == "\r\n" || line.is_empty() {
             break;
         }
-        headers.push_str(&line.to_ascii_lowercase());
+        // Values as sent: a Location's token is case-sensitive.
+        headers.push_str(&line);
     }
     let mut body = Vec::new();
-    if headers.contains("transfer-encoding: chunked") {
+    if headers
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
         loop {
             let mut size = String::new();
             reader.read_line(&mut size).unwrap();
@@ -283,7 +287,20 @@ fn cura_plugin_calls_in_order_get_a_key_and_the_job_prints() {
     let a = farm.call("GET", &poll, &[ua, ("Content-Type", "")], b"");
     assert_eq!(a.status, 202, "undecided: {}", a.text());
 
-    // The operator sees the request (application and address) and allows it.
+    // The operator sees the request (application and address) and allows it, as the
+    // dashboard's panel (its own script, on the page) does.
+    let page = farm.call("GET", "/", &[], b"");
+    assert!(
+        page.text().contains("/appkeys.js"),
+        "the panel's script is on the page"
+    );
+    let script = farm.call("GET", "/appkeys.js", &[], b"");
+    assert_eq!(script.status, 200);
+    assert!(
+        script.text().contains("/api/v1/appkeys/requests/"),
+        "{}",
+        script.text()
+    );
     let list = farm.call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"");
     assert_eq!(list.status, 200, "{}", list.text());
     let list = list.json();

@@ -9,7 +9,8 @@
 //! `/octoprint/...`): a slicer may read the printers' state and upload, never act on the
 //! farm's operator API. Keys are kept in `appkeys.json` in the spool directory (mode 0600,
 //! written with `fsutil::write_atomic_with`); pending requests live in memory only, at
-//! most [`MAX_PENDING`] at once, each for at most [`PENDING_FOR`]: a request nobody
+//! most [`MAX_PENDING`] at once ([`MAX_PENDING_PER_SOURCE`] from one address), each for
+//! at most [`PENDING_FOR`]: a request nobody
 //! decides on goes away, and a client that stopped polling is forgotten.
 //!
 //! One owner: the state is behind one lock, held for a lookup or a change and the
@@ -28,6 +29,8 @@ use std::time::{Duration, Instant};
 
 /// Requests waiting for a decision (or for their client to fetch the key) at once.
 pub const MAX_PENDING: usize = 16;
+/// Requests from one address waiting at once: one client cannot take every place.
+pub const MAX_PENDING_PER_SOURCE: usize = 4;
 /// A request not decided and fetched within this is forgotten.
 pub const PENDING_FOR: Duration = Duration::from_secs(10 * 60);
 /// Application keys kept at most; revoke one to make room.
@@ -233,6 +236,15 @@ impl AppKeys {
         state
             .pending
             .retain(|p| now.saturating_duration_since(p.since) < PENDING_FOR);
+        if state.pending.iter().filter(|p| p.source == source).count() >= MAX_PENDING_PER_SOURCE {
+            return Err(ApiError::new(
+                StatusCode::TOO_MANY_REQUESTS,
+                format!(
+                    "{MAX_PENDING_PER_SOURCE} key requests from {source} are waiting already; allow or deny them on the dashboard (or wait {} minutes)",
+                    PENDING_FOR.as_secs() / 60
+                ),
+            ));
+        }
         if state.pending.len() >= MAX_PENDING {
             return Err(ApiError::new(
                 StatusCode::TOO_MANY_REQUESTS,
@@ -576,10 +588,16 @@ mod tests {
         keys.decide(&id, false, t0).unwrap();
         assert_eq!(keys.poll(&denied, t0), Poll::Gone);
 
-        for _ in 0..MAX_PENDING {
+        for _ in 0..MAX_PENDING_PER_SOURCE {
             keys.request("a", "x".into(), "/".into(), t0).unwrap();
         }
         let e = keys.request("a", "x".into(), "/".into(), t0).unwrap_err();
+        assert_eq!(e.status, StatusCode::TOO_MANY_REQUESTS);
+        assert!(e.message.contains("from x"), "{}", e.message);
+        for i in MAX_PENDING_PER_SOURCE..MAX_PENDING {
+            keys.request("a", format!("y{i}"), "/".into(), t0).unwrap();
+        }
+        let e = keys.request("a", "z".into(), "/".into(), t0).unwrap_err();
         assert_eq!(e.status, StatusCode::TOO_MANY_REQUESTS);
         // Expired ones make room.
         let later = t0 + PENDING_FOR + Duration::from_secs(1);

@@ -33,6 +33,8 @@ pub enum ServiceError {
     TaskEnded { task: String, how: String },
     #[error("notifications: cannot open the queues in the spool: {0}")]
     Notify(std::io::Error),
+    #[error(transparent)]
+    AppKeys(#[from] crate::http::appkeys::AppKeysError),
     #[error("[http] listen = \"{listen}\": cannot listen: {source} (hint: is another program on this port? Under systemd, install config/crispen-http.conf as a drop-in so the unit allows TCP)")]
     Http {
         listen: std::net::SocketAddr,
@@ -222,6 +224,19 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
             Some((bound, http.clone()))
         }
     };
+    let appkeys = Arc::new(crate::http::AppKeys::open(&config.spool_dir)?);
+    // Withdrawn when the service returns (dropped). Not announcing is no reason to stop
+    // printing: the failure is logged as an error and the farm runs on.
+    let _announced = match &http_listener {
+        Some((bound, _)) => match bound.local_addr() {
+            Ok(address) => crate::http::zeroconf::announce(&config, address)
+                .inspect_err(|e| tracing::error!(error = %e, "the hot folders are not announced on the network"))
+                .ok()
+                .flatten(),
+            Err(_) => None,
+        },
+        None => None,
+    };
     tracing::info!(
         config = %config.source.display(),
         spool = %config.spool_dir.display(),
@@ -255,6 +270,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
         CONTROL,
         crate::http::serve_socket(
             Arc::clone(&farm),
+            Arc::clone(&appkeys),
             config.http.clone(),
             listener,
             stop_listeners.clone(),
@@ -263,7 +279,13 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
     if let Some((bound, http)) = http_listener {
         tasks.spawn(
             HTTP,
-            crate::http::serve_tcp(Arc::clone(&farm), http, bound, stop_listeners.clone()),
+            crate::http::serve_tcp(
+                Arc::clone(&farm),
+                Arc::clone(&appkeys),
+                http,
+                bound,
+                stop_listeners.clone(),
+            ),
         );
     }
     tasks.spawn(PICKUP, crate::daemon::pickup(&farm, &config));

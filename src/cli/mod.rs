@@ -7,6 +7,7 @@ use std::process::ExitCode;
 
 pub mod control;
 pub mod enhance;
+pub mod keys;
 pub mod logging;
 pub mod notify;
 pub mod ports;
@@ -62,6 +63,8 @@ pub enum Command {
     Release(control::JobArgs),
     /// Notifications: `crispen notify test` sends a test event to every receiver
     Notify(notify::Args),
+    /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
+    Keys(keys::Args),
     /// The daemon's preparation child (internal)
     #[command(hide = true)]
     PrepareJob(prepare_job::Args),
@@ -97,6 +100,7 @@ pub fn main() -> ExitCode {
         Command::Retry(a) => control::retry(a),
         Command::Release(a) => control::release(a),
         Command::Notify(a) => notify::run(a),
+        Command::Keys(a) => keys::run(a),
         Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {

@@ -45,6 +45,8 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("http.upload_max_mb", Policy::DaemonRestart),
     // Notifications' tasks take their receivers and link when they start.
     ("http.public_url", Policy::DaemonRestart),
+    ("http.announce", Policy::DaemonRestart),
+    ("http.default_folder", Policy::DaemonRestart),
     ("farm.max_heating", Policy::Live),
     ("farm.on_shutdown", Policy::Live),
     ("farm.settle_s", Policy::Live),
@@ -160,6 +162,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
                 read_only_without_key,
                 upload_max_bytes,
                 any_port_if_taken,
+                octoprint,
             } = new;
             // Only the built-in default may fall back to another port; part of `listen`.
             differs(
@@ -174,6 +177,14 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             differs(
                 "http.upload_max_mb",
                 *upload_max_bytes != old.upload_max_bytes,
+            );
+            differs(
+                "http.announce",
+                octoprint.announce != old.octoprint.announce,
+            );
+            differs(
+                "http.default_folder",
+                octoprint.default_folder != old.octoprint.default_folder,
             );
         }
         _ => differs("http", true),
@@ -370,6 +381,16 @@ mod tests {
             "http.public_url",
             "api_key_file = \"key\"\n",
             "api_key_file = \"key\"\npublic_url = \"http://farm.example:8080/\"\n",
+        ),
+        (
+            "http.announce",
+            "api_key_file = \"key\"\n",
+            "api_key_file = \"key\"\nannounce = false\n",
+        ),
+        (
+            "http.default_folder",
+            "api_key_file = \"key\"\n",
+            "api_key_file = \"key\"\ndefault_folder = \"hot\"\n",
         ),
         ("farm.max_heating", "max_heating = 2", "max_heating = 3"),
         ("farm.on_shutdown", "\"finish\"", "\"stop\""),

@@ -9,6 +9,7 @@ const SCRIPT: &str = include_str!("assets/app.js");
 const STYLE: &str = include_str!("assets/style.css");
 const STATS_PAGE: &str = include_str!("assets/stats.html");
 const STATS_SCRIPT: &str = include_str!("assets/stats.js");
+const APPKEYS: &str = include_str!("assets/appkeys.js");
 
 /// Only this page's own files; nothing framed elsewhere.
 const POLICY: &str =
@@ -50,5 +51,13 @@ pub async fn stats_script() -> impl IntoResponse {
     (
         [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
         STATS_SCRIPT,
+    )
+}
+
+/// The application-key requests panel (its own file; see `super::appkeys`).
+pub async fn appkeys_script() -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
+        APPKEYS,
     )
 }

@@ -1,7 +1,11 @@
-//! The checks every API request passes: the API key (`X-Api-Key`, as OctoPrint clients
-//! send it) on TCP, and time limits. The dashboard's own files need no key: they hold no data,
-//! and the page asks for the key when the API wants one.
+//! The checks every API request passes: the API key on TCP, and time limits. The key may
+//! come as OctoPrint accepts it: an `X-Api-Key` header, `Authorization: Bearer KEY`, or
+//! the `apikey` query parameter. The `[http]` key opens everything; an application key
+//! (see `super::appkeys`) opens the OctoPrint emulation only (`/api/...` outside
+//! `/api/v1/`, `/octoprint/...`). The dashboard's own files need no key: they hold no
+//! data, and the page asks for the key when the API wants one.
 
+use super::appkeys::Who;
 use super::{Access, ApiError, AppState, REQUEST_TIMEOUT, UPLOAD_TIMEOUT};
 use axum::extract::{Request, State};
 use axum::http::{Method, StatusCode};
@@ -19,6 +23,7 @@ pub async fn require_key(
     let (key, read_only_without_key) = match &*state.access {
         Access::Socket => {
             request.extensions_mut().insert(Keyed(true));
+            request.extensions_mut().insert(Who::Operator);
             return next.run(request).await;
         }
         Access::Key {
@@ -30,19 +35,28 @@ pub async fn require_key(
     // replaces the one the listener started with.
     let config = state.farm.config();
     let key = config.http.as_ref().map_or(key, |h| &h.api_key);
-    let given = request
-        .headers()
-        .get("x-api-key")
-        .map(|v| v.as_bytes().to_vec());
+    let given = given_key(&request);
     let read_only = matches!(*request.method(), Method::GET | Method::HEAD);
+    let octoprint = is_octoprint(request.uri().path());
     match given {
         Some(key_given) if same_key(&key_given, key.0.as_bytes()) => {
             request.extensions_mut().insert(Keyed(true));
+            request.extensions_mut().insert(Who::Operator);
+            next.run(request).await
+        }
+        Some(key_given) if octoprint && state.appkeys.app_of(&key_given).is_some() => {
+            let app = state.appkeys.app_of(&key_given).unwrap_or_default();
+            request.extensions_mut().insert(Keyed(true));
+            request.extensions_mut().insert(Who::App(app));
             next.run(request).await
         }
         Some(_) => ApiError::new(
             StatusCode::FORBIDDEN,
-            "the X-Api-Key header does not match the key in [http] api_key_file",
+            if octoprint {
+                "the API key does not match the key in [http] api_key_file nor an application key (hint: ask for one through the application-key flow, or see `crispen keys`)"
+            } else {
+                "the X-Api-Key header does not match the key in [http] api_key_file"
+            },
         )
         .into_response(),
         None if read_only && read_only_without_key => {
@@ -59,6 +73,30 @@ pub async fn require_key(
         )
         .into_response(),
     }
+}
+
+/// The key a request carries: `X-Api-Key`, `Authorization: Bearer`, or `?apikey=`.
+fn given_key(request: &Request) -> Option<Vec<u8>> {
+    let headers = request.headers();
+    if let Some(v) = headers.get("x-api-key") {
+        return Some(v.as_bytes().to_vec());
+    }
+    if let Some(bearer) = headers
+        .get(axum::http::header::AUTHORIZATION)
+        .and_then(|v| v.as_bytes().strip_prefix(b"Bearer "))
+    {
+        return Some(bearer.trim_ascii().to_vec());
+    }
+    let query = request.uri().query()?;
+    query.split('&').find_map(|pair| {
+        let value = pair.strip_prefix("apikey=")?;
+        Some(super::octoprint::percent_decode(value).into_bytes())
+    })
+}
+
+/// The OctoPrint emulation's addresses, which application keys open.
+fn is_octoprint(path: &str) -> bool {
+    path.starts_with("/octoprint/") || (path.starts_with("/api/") && !path.starts_with("/api/v1/"))
 }
 
 /// Whether a request came with the key (or on the control socket), for the handlers
@@ -99,5 +137,37 @@ mod tests {
         assert!(!super::same_key(b"abcdefg", b"abcdefgh"));
         assert!(!super::same_key(b"abcdefgx", b"abcdefgh"));
         assert!(!super::same_key(b"", b"abcdefgh"));
+    }
+
+    #[test]
+    fn keys_come_as_octoprint_takes_them() {
+        let req = |uri: &str, header: Option<(&str, &str)>| {
+            let mut b = axum::http::Request::builder().uri(uri);
+            if let Some((k, v)) = header {
+                b = b.header(k, v);
+            }
+            b.body(axum::body::Body::empty()).unwrap()
+        };
+        let key = |r| super::given_key(&r).map(|k| String::from_utf8(k).unwrap());
+        assert_eq!(
+            key(req("/api/job", Some(("X-Api-Key", "k1")))).as_deref(),
+            Some("k1")
+        );
+        assert_eq!(
+            key(req("/api/job", Some(("Authorization", "Bearer k2")))).as_deref(),
+            Some("k2")
+        );
+        assert_eq!(
+            key(req("/api/job?x=1&apikey=k%33", None)).as_deref(),
+            Some("k3")
+        );
+        assert_eq!(
+            key(req("/api/job", Some(("Authorization", "Basic eA==")))),
+            None
+        );
+        assert!(super::is_octoprint("/octoprint/hot/api/job"));
+        assert!(super::is_octoprint("/api/files/local"));
+        assert!(!super::is_octoprint("/api/v1/status"));
+        assert!(!super::is_octoprint("/metrics"));
     }
 }

@@ -13,10 +13,14 @@
 //! - [`multipart`]: an upload's `multipart/form-data` body read as it arrives, bounded.
 //! - [`events`]: live state, progress and temperatures as server-sent events.
 //! - [`metrics`]: the farm in Prometheus' text format.
-//! - [`octoprint`]: `GET /api/version` and `POST /api/files/local`.
+//! - [`octoprint`]: OctoPrint's API for slicers and other clients, one instance per hot
+//!   folder under `/octoprint/<folder>/` and one at the root.
+//! - [`appkeys`]: OctoPrint's application-key flow: keys of their own for clients.
+//! - [`zeroconf`]: each folder's instance announced as `_octoprint._tcp`.
 //! - [`assets`]: the dashboard's page, script and style, built into the binary.
 
 mod api;
+pub mod appkeys;
 mod assets;
 mod auth;
 mod error;
@@ -26,6 +30,7 @@ mod multipart;
 mod octoprint;
 pub mod serve;
 mod upload;
+pub mod zeroconf;
 
 use crate::daemon::config::{ApiKey, HttpConfig};
 use crate::daemon::farm::Farm;
@@ -34,9 +39,10 @@ use axum::Router;
 use std::sync::Arc;
 use std::time::Duration;
 
-pub use error::ApiError;
 /// The check of an uploaded file's name and the reading of an upload's form (exported for
 /// the fuzz targets).
+pub use appkeys::AppKeys;
+pub use error::ApiError;
 pub use octoprint::{read_form as read_upload_form, truthy, Form as UploadForm};
 pub use upload::{check_name as check_upload_name, Upload};
 
@@ -61,6 +67,8 @@ pub struct AppState {
     pub upload_max_bytes: u64,
     /// The listener's open event streams (capped).
     pub streams: Arc<events::Streams>,
+    /// Application keys and pending key requests (shared by both listeners).
+    pub appkeys: Arc<AppKeys>,
 }
 
 /// The upload bound where `[http]` sets none (the control socket without `[http]`).
@@ -77,9 +85,10 @@ pub const UPLOAD_IDLE_TIMEOUT: Duration = Duration::from_secs(60);
 
 /// The whole application: pages, API, metrics and the OctoPrint subset.
 pub fn router(state: AppState) -> Router {
+    let (octoprint_uploads, octoprint_api, octoprint_open) = octoprint::routes();
     let uploads = Router::new()
         .route("/api/v1/folders/{folder}/files/{file}", put(api::upload))
-        .route("/api/files/local", post(octoprint::upload))
+        .merge(octoprint_uploads)
         .layer(axum::extract::DefaultBodyLimit::max(
             usize::try_from(state.upload_max_bytes).unwrap_or(usize::MAX),
         ))
@@ -100,13 +109,21 @@ pub fn router(state: AppState) -> Router {
         .route("/api/v1/jobs/{id}/pictures/{picture}", get(api::picture))
         .route("/api/v1/folders", get(api::folders))
         .route("/metrics", get(metrics::metrics))
-        .route("/api/version", get(octoprint::version))
+        // The application keys, as the dashboard and `crispen keys` manage them.
+        .route("/api/v1/appkeys", get(appkeys::list))
+        .route("/api/v1/appkeys/{kind}/{id}/{action}", post(appkeys::act))
+        .merge(octoprint_api)
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
         .route_layer(axum::middleware::from_fn(auth::time_limit))
         // The event stream outlives any request time limit by design.
         .route("/api/v1/events", get(events::events));
+    // A client asks for its key before it has one.
+    let open = octoprint_open
+        .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
+        .route_layer(axum::middleware::from_fn(auth::time_limit));
     let pages = Router::new()
         .route("/", get(assets::index))
+        .route("/appkeys.js", get(assets::appkeys_script))
         .route("/app.js", get(assets::script))
         .route("/style.css", get(assets::style))
         .route("/stats", get(assets::stats_page))
@@ -119,6 +136,7 @@ pub fn router(state: AppState) -> Router {
             auth::require_key,
         ))
         .merge(pages)
+        .merge(open)
         .fallback(error::not_found)
         .method_not_allowed_fallback(error::method_not_allowed)
         .with_state(state)
@@ -132,6 +150,7 @@ pub async fn bind(http: &HttpConfig) -> std::io::Result<tokio::net::TcpListener>
 /// Serves the application on the control socket until `stop` fires.
 pub async fn serve_socket(
     farm: Arc<Farm>,
+    appkeys: Arc<AppKeys>,
     http: Option<HttpConfig>,
     listener: tokio::net::UnixListener,
     stop: tokio_util::sync::CancellationToken,
@@ -141,6 +160,7 @@ pub async fn serve_socket(
         access: Arc::new(Access::Socket),
         upload_max_bytes: http.map_or(DEFAULT_UPLOAD_MAX_BYTES, |h| h.upload_max_bytes),
         streams: Arc::default(),
+        appkeys,
     });
     serve::serve(listener, app, serve::Limits::default(), stop, "socket").await;
 }
@@ -148,6 +168,7 @@ pub async fn serve_socket(
 /// Serves the application on the TCP listener of `[http]` until `stop` fires.
 pub async fn serve_tcp(
     farm: Arc<Farm>,
+    appkeys: Arc<AppKeys>,
     http: HttpConfig,
     listener: tokio::net::TcpListener,
     stop: tokio_util::sync::CancellationToken,
@@ -160,6 +181,7 @@ pub async fn serve_tcp(
         }),
         upload_max_bytes: http.upload_max_bytes,
         streams: Arc::default(),
+        appkeys,
     });
     serve::serve(listener, app, serve::Limits::default(), stop, "tcp").await;
 }
@@ -217,5 +239,10 @@ pub fn demo_http(key_file: &std::path::Path) -> Result<HttpConfig, DemoKeyError>
         read_only_without_key: true,
         upload_max_bytes: DEFAULT_UPLOAD_MAX_BYTES,
         any_port_if_taken: true,
+        // Listening on loopback only: nothing to announce to the network.
+        octoprint: crate::daemon::config::octoprint::OctoPrintConfig {
+            announce: false,
+            default_folder: None,
+        },
     })
 }

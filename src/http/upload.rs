@@ -158,6 +158,41 @@ impl Received {
         place_with_sidecar(self, None).await
     }
 
+    /// Moves the received file to another hot folder (an OctoPrint form whose `path`
+    /// came after its file): linked to a new temporary name there, or copied (and
+    /// synced) when the folders are on different file systems.
+    pub async fn relocate(self, folder: &Path) -> Result<Received, ApiError> {
+        let name = self
+            .target
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let target = folder.join(&name);
+        let temp = folder.join(format!(".{name}.{:016x}.upload", rand::random::<u64>()));
+        let moved = Received {
+            temp,
+            target,
+            size: self.size,
+        };
+        tokio::task::spawn_blocking(move || {
+            let linked = std::fs::hard_link(&self.temp, &moved.temp).or_else(|_| {
+                std::fs::copy(&self.temp, &moved.temp)
+                    .and_then(|_| std::fs::File::open(&moved.temp)?.sync_all())
+            });
+            // `self` goes now, and its temporary file with it.
+            linked
+                .map(|_| moved)
+                .map_err(|e| io_error(&self.target, "cannot move the upload to its folder", e))
+        })
+        .await
+        .map_err(|e| {
+            ApiError::new(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                format!("internal error: {e}"),
+            )
+        })?
+    }
+
     /// A link, not `fsutil::write_atomic`'s rename: a rename would replace a file of the
     /// same name that the hot folder already holds. Made durable like it (the file was
     /// synced as it was received; the folder's entry is synced here).

@@ -19,6 +19,7 @@ mod layers;
 mod machines;
 mod mesh_io;
 mod notify;
+mod octoprint;
 mod pauses;
 mod policy;
 mod ports;

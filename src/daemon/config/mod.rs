@@ -12,6 +12,7 @@
 
 mod pause;
 pub mod notify;
+pub mod octoprint;
 pub mod ports;
 
 use crate::enhance::Strength;
@@ -110,6 +111,8 @@ struct RawHttp {
     upload_max_mb: Option<i64>,
     /// The dashboard's address as operators reach it (notifications link to it).
     public_url: Option<String>,
+    announce: Option<bool>,
+    default_folder: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -333,6 +336,8 @@ pub struct HttpConfig {
     /// Listen on a port the system picks when `listen`'s port is taken: only for the
     /// built-in default, never for a configured port.
     pub any_port_if_taken: bool,
+    /// The OctoPrint emulation's keys (`announce`, `default_folder`).
+    pub octoprint: octoprint::OctoPrintConfig,
 }
 
 /// An API key; never shown in logs or debug output.
@@ -423,6 +428,7 @@ struct CheckedHttp {
     api_key_file: PathBuf,
     read_only_without_key: bool,
     upload_max_bytes: u64,
+    octoprint: octoprint::OctoPrintConfig,
 }
 
 impl Checked {
@@ -486,6 +492,10 @@ impl Checked {
         }
         ports::check_unique(&config.printers, &file)?;
         notify::resolve(&mut config.notify, &file, &mut config.warnings)?;
+        if let Some(h) = &http {
+            octoprint::check_folder(&h.octoprint, &config.folders)
+                .map_err(|(key, m)| invalid("[http]", key, m))?;
+        }
         config.http = match http {
             None => None,
             Some(h) => {
@@ -502,6 +512,7 @@ impl Checked {
                     read_only_without_key: h.read_only_without_key,
                     upload_max_bytes: h.upload_max_bytes,
                     any_port_if_taken: false,
+                    octoprint: h.octoprint,
                 })
             }
         };
@@ -1129,6 +1140,7 @@ fn check_http(
         api_key_file: anchor(&h.api_key_file),
         read_only_without_key: h.read_only_without_key.unwrap_or(false),
         upload_max_bytes: upload_max_mb as u64 * 1024 * 1024,
+        octoprint: octoprint::check(h.announce, h.default_folder)?,
     })
 }
 

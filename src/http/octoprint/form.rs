@@ -1,52 +1,20 @@
-//! The part of OctoPrint's REST API that slicers' "Send to printer" uses (PrusaSlicer,
-//! OrcaSlicer, Cura's OctoPrint connection): `GET /api/version` to test the connection and
-//! `POST /api/files/local` to upload. The upload is multipart with the fields `path` (here:
-//! the hot folder's name), `print`, `select` and `file`; the file goes into the hot folder:
-//! a model through the normal pipeline, G-code (what a slicer sends after slicing itself)
-//! as pre-sliced. Slicers send the key in `X-Api-Key`, as here.
-//!
-//! Every field is bounded while it is read ([`MAX_FIELD_BYTES`]; the body is parsed by
-//! [`super::multipart`]), and the file's name passes [`upload::check_name`] whatever the
-//! other fields say.
-//!
-//! `print`: with `print=true` ("Upload and print") the file prints once ready, as every
-//! file in a hot folder does (`true`, `yes`, `y`, `1` are true, as in OctoPrint; `select`
-//! alone is reported as `effectiveSelect` and holds). Without it ("Upload"; OctoPrint's
-//! default is false) the job
-//! is held: prepared as usual, then kept from the printers until the operator releases it
-//! (`crispen release JOB`, `POST /api/v1/jobs/{id}/release`, the dashboard's Print
-//! button). The hold travels as the model's sidecar `<file>.toml` with `hold = true`,
-//! received whole and linked into the hot folder right before the model itself, so the
-//! pick-up finds it with the model. A sidecar of that name already there is not
-//! replaced: the upload is refused.
+//! An upload's `multipart/form-data` form read as it arrives, as OctoPrint reads it: the
+//! text fields `path`, `print` and `select` may come before or after the `file` (Cura's
+//! plugin sends `path`, then the file, then `select` and `print`), so the handler reads
+//! the whole form before it decides where the file goes and whether it prints. Every field
+//! is bounded while it is read ([`MAX_FIELD_BYTES`], at most [`MAX_PARTS`] parts; the
+//! body is parsed by [`super::super::multipart`]), and the file's name passes
+//! [`upload::check_name`] whatever the other fields say.
 
-use super::upload;
-use super::{ApiError, AppState, UPLOAD_IDLE_TIMEOUT};
-use axum::extract::State;
-use axum::http::header::CONTENT_TYPE;
-use axum::http::{HeaderMap, StatusCode};
-use axum::Json;
-use futures_util::StreamExt;
-
-/// The OctoPrint API version whose answers these are.
-const API_VERSION: &str = "0.1";
-/// The OctoPrint server version reported; clients only check that it is recent enough.
-const SERVER_VERSION: &str = "1.10.0";
-
-pub async fn version() -> Json<serde_json::Value> {
-    Json(serde_json::json!({
-        "api": API_VERSION,
-        "server": SERVER_VERSION,
-        "text": format!("OctoPrint (crispen {})", env!("CARGO_PKG_VERSION")),
-    }))
-}
+use super::super::upload;
+use super::super::ApiError;
 
 /// The longest value of a text field (`path`, `print`, `select`, or one this ignores).
 pub const MAX_FIELD_BYTES: usize = 1024;
-/// The most parts before the file: slicers send two or three.
-const MAX_PARTS_BEFORE_FILE: usize = 16;
+/// The most parts in a form: slicers send two to four.
+pub const MAX_PARTS: usize = 16;
 
-/// What an upload's text fields said, read before its file.
+/// What an upload's text fields said.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
 pub struct Form {
     pub path: Option<String>,
@@ -72,32 +40,36 @@ pub enum Step {
     Data(axum::body::Bytes),
     /// The file ended.
     FileEnd,
+    /// The form ended (after its file); [`FormReader::form`] is complete.
+    End,
 }
 
-/// An upload's form read as it arrives, pure: the text fields before the file are
-/// collected (each bounded while it is read), the file's name checked, its bytes passed
-/// on. The handler drives it from the request body, the fuzz target from bytes.
+/// An upload's form read as it arrives, pure: the text fields before and after the file
+/// are collected (each bounded while it is read), the file's name checked, its bytes
+/// passed on. The handler drives it from the request body, the fuzz target from bytes.
 #[derive(Debug)]
 pub struct FormReader {
-    parser: super::multipart::Parser,
+    parser: super::super::multipart::Parser,
     form: Form,
     field: Option<(String, Vec<u8>)>,
     in_file: bool,
+    file_seen: bool,
     parts: usize,
 }
 
 impl FormReader {
     pub fn new(content_type: &str) -> Result<FormReader, ApiError> {
-        let boundary = super::multipart::boundary(content_type).map_err(|e| {
+        let boundary = super::super::multipart::boundary(content_type).map_err(|e| {
             ApiError::bad_request(format!(
                 "POST /api/files/local needs a multipart/form-data body with a `file` field: {e}"
             ))
         })?;
         Ok(FormReader {
-            parser: super::multipart::Parser::new(&boundary),
+            parser: super::super::multipart::Parser::new(&boundary),
             form: Form::default(),
             field: None,
             in_file: false,
+            file_seen: false,
             parts: 0,
         })
     }
@@ -110,13 +82,13 @@ impl FormReader {
         self.parser.finish();
     }
 
-    /// The text fields read so far.
+    /// The text fields read so far (all of them once [`Step::End`] came).
     pub fn form(&self) -> &Form {
         &self.form
     }
 
     pub fn step(&mut self) -> Result<Step, ApiError> {
-        use super::multipart::Event;
+        use super::super::multipart::Event;
         loop {
             let event = self
                 .parser
@@ -126,12 +98,18 @@ impl FormReader {
                 None => return Ok(Step::More),
                 Some(Event::Part(head)) => {
                     self.parts += 1;
-                    if self.parts > MAX_PARTS_BEFORE_FILE {
+                    if self.parts > MAX_PARTS {
                         return Err(ApiError::bad_request(format!(
-                            "more than {MAX_PARTS_BEFORE_FILE} fields before the `file` field"
+                            "the form has more than {MAX_PARTS} fields"
                         )));
                     }
+                    if head.name == "file" && self.file_seen {
+                        return Err(ApiError::bad_request(
+                            "the form has two `file` fields; send one file per upload",
+                        ));
+                    }
                     if head.name == "file" {
+                        self.file_seen = true;
                         let name = head.file_name.unwrap_or_default();
                         let kind = upload::check_name(&name)?;
                         self.in_file = true;
@@ -174,6 +152,7 @@ impl FormReader {
                         _ => {}
                     }
                 }
+                Some(Event::End) if self.file_seen => return Ok(Step::End),
                 Some(Event::End) => {
                     return Err(ApiError::bad_request(
                         "the multipart body has no `file` field (hint: the slicer sends the file as `file`)",
@@ -184,9 +163,9 @@ impl FormReader {
     }
 }
 
-/// What a whole upload body says, read as [`upload`] reads it but from memory, in the
-/// given pieces: the form, the file's name and kind, and the file's size. Pure, for the
-/// fuzz target and tests.
+/// What a whole upload body says, read as the handler reads it but from memory, in the
+/// given pieces: the whole form, the file's name and kind, and the file's size. Pure, for
+/// the fuzz target and tests.
 pub fn read_form(
     content_type: &str,
     pieces: &[&[u8]],
@@ -203,155 +182,13 @@ pub fn read_form(
             },
             Step::File { name, kind } => file = Some((name, kind)),
             Step::Data(data) => size += data.len() as u64,
-            Step::FileEnd => {
-                let (name, kind) = file.expect("a file ends after it began");
+            Step::FileEnd => {}
+            Step::End => {
+                let (name, kind) = file.expect("the form ends after its file");
                 return Ok((reader.form().clone(), name, kind, size));
             }
         }
     }
-}
-
-/// Waits for the next piece of the body (at most [`UPLOAD_IDLE_TIMEOUT`]) and pushes it.
-async fn pull(
-    reader: &mut FormReader,
-    body: &mut axum::body::BodyDataStream,
-) -> Result<(), String> {
-    match tokio::time::timeout(UPLOAD_IDLE_TIMEOUT, body.next()).await {
-        Err(_) => Err(format!(
-            "the upload stalled for {} s",
-            UPLOAD_IDLE_TIMEOUT.as_secs()
-        )),
-        Ok(Some(Ok(piece))) => {
-            reader.push(&piece);
-            Ok(())
-        }
-        Ok(Some(Err(e))) => Err(format!("the upload broke off: {e}")),
-        Ok(None) => {
-            reader.finish();
-            Ok(())
-        }
-    }
-}
-
-pub async fn upload(
-    State(state): State<AppState>,
-    headers: HeaderMap,
-    body: axum::body::Body,
-) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
-    let content_type = headers
-        .get(CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("");
-    let mut reader = FormReader::new(content_type)?;
-    let mut body = body.into_data_stream();
-    let (file_name, kind) = loop {
-        match reader.step()? {
-            Step::More => pull(&mut reader, &mut body)
-                .await
-                .map_err(ApiError::bad_request)?,
-            Step::File { name, kind } => break (name, kind),
-            Step::Data(_) | Step::FileEnd => unreachable!("no file data before the file"),
-        }
-    };
-    let form = reader.form().clone();
-    let config = state.farm.config();
-    let folder = folder_for(&config, form.path.as_deref())?;
-    // A sidecar is no job of its own: nothing to hold. `select` alone (OctoPrint: load
-    // the file, do not start it) holds, as no `print` does.
-    let hold = !form.print && kind != upload::Upload::Sidecar;
-    let data = futures_util::stream::unfold(
-        (&mut reader, &mut body, false),
-        |(reader, body, failed)| async move {
-            if failed {
-                return None;
-            }
-            loop {
-                match reader.step() {
-                    Ok(Step::Data(data)) => return Some((Ok(data), (reader, body, false))),
-                    Ok(Step::FileEnd) => return None,
-                    Ok(Step::More) => {
-                        if let Err(e) = pull(reader, body).await {
-                            return Some((Err(e), (reader, body, true)));
-                        }
-                    }
-                    Ok(Step::File { .. }) => unreachable!("one file at a time"),
-                    Err(e) => return Some((Err(e.message), (reader, body, true))),
-                }
-            }
-        },
-    );
-    let received = upload::receive(&folder.path, &file_name, data, state.upload_max_bytes).await?;
-    let size = received.size;
-    let sidecar = match hold {
-        true => Some(receive_hold(&folder.path, &file_name).await?),
-        false => None,
-    };
-    let stored = upload::place_with_sidecar(received, sidecar).await?;
-    let print = form.print;
-    tracing::info!(file = %stored.display(), size, print, "octoprint upload into a hot folder");
-    let folder_name = upload::folder_name(folder);
-    let shown = crate::daemon::hotfolder::printable(&file_name);
-    let message = if !hold {
-        format!("{shown} is in hot folder {folder_name}; it prints once ready")
-    } else {
-        format!(
-            "{shown} is in hot folder {folder_name}; it is prepared and then held \
-             until released (`crispen release JOB` or the dashboard's Print button)"
-        )
-    };
-    Ok((
-        StatusCode::CREATED,
-        Json(serde_json::json!({
-            "done": true,
-            "effectivePrint": !hold,
-            "message": message,
-            "effectiveSelect": form.select || form.print,
-            "files": { "local": {
-                "name": file_name,
-                "path": format!("{folder_name}/{file_name}"),
-                "origin": "local",
-            }},
-        })),
-    ))
-}
-
-/// The sidecar that holds `file_name`, received into `folder` under a temporary name.
-async fn receive_hold(
-    folder: &std::path::Path,
-    file_name: &str,
-) -> Result<upload::Received, ApiError> {
-    let text = futures_util::stream::iter([Ok::<_, std::convert::Infallible>(
-        axum::body::Bytes::from_static(HOLD_SIDECAR.as_bytes()),
-    )]);
-    let sidecar = format!("{file_name}.toml");
-    upload::receive(folder, &sidecar, text, HOLD_SIDECAR.len() as u64).await
-}
-
-/// The sidecar of an upload without `print`.
-const HOLD_SIDECAR: &str =
-    "# an upload without \"print\": prepared, then held until released\nhold = true\n";
-
-/// The hot folder a slicer's `path` names; with no path, the only folder there is.
-fn folder_for<'a>(
-    config: &'a crate::daemon::config::Config,
-    path: Option<&str>,
-) -> Result<&'a crate::daemon::config::FolderConfig, ApiError> {
-    let name = path.unwrap_or("").trim().trim_matches('/');
-    if name.is_empty() {
-        return match config.folders.as_slice() {
-            [only] => Ok(only),
-            _ => Err(ApiError::bad_request(format!(
-                "which hot folder? give its name as the upload path (in the slicer's physical printer settings); the folders are: {}",
-                config
-                    .folders
-                    .iter()
-                    .map(upload::folder_name)
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ))),
-        };
-    }
-    upload::find_folder(config, name)
 }
 
 #[cfg(test)]
@@ -416,10 +253,41 @@ mod tests {
         let e = read(&[("path", &long)], "a.gcode").unwrap_err();
         assert!(e.message.contains("`path` is longer"), "{}", e.message);
         let e = read(&[("print", "true")], "../a.gcode").unwrap_err();
-        assert_eq!(e.status, StatusCode::BAD_REQUEST);
-        let many: Vec<(&str, &str)> = vec![("x", "y"); MAX_PARTS_BEFORE_FILE];
+        assert_eq!(e.status, axum::http::StatusCode::BAD_REQUEST);
+        let many: Vec<(&str, &str)> = vec![("x", "y"); MAX_PARTS];
         assert!(read(&many, "a.gcode").is_err());
         assert!(read_form("text/plain", &[b"x"]).is_err());
+    }
+
+    /// Cura's order: `path`, the file, then `select` and `print`: the fields after the
+    /// file count as much as those before it. A second file is refused.
+    #[test]
+    fn fields_after_the_file_are_read() {
+        let ct = "multipart/form-data; boundary=B";
+        let part = |name: &str, value: &str| {
+            format!("--B\r\nContent-Disposition: form-data; name=\"{name}\"\r\nContent-Type: text/plain\r\n\r\n{value}\r\n")
+        };
+        let file = "--B\r\nContent-Disposition: form-data; name=\"file\"; filename=\"cura.gcode\"\r\n\r\nG28\r\n";
+        let body = format!(
+            "{}{file}{}{}--B--\r\n",
+            part("path", ""),
+            part("select", "true"),
+            part("print", "true")
+        );
+        let pieces: Vec<&[u8]> = body.as_bytes().chunks(5).collect();
+        let (form, name, _, size) = read_form(ct, &pieces).unwrap();
+        assert_eq!(
+            form,
+            Form {
+                path: Some(String::new()),
+                print: true,
+                select: true
+            }
+        );
+        assert_eq!((name.as_str(), size), ("cura.gcode", 3));
+        let two = format!("{file}{file}--B--\r\n");
+        let e = read_form(ct, &[two.as_bytes()]).unwrap_err();
+        assert!(e.message.contains("two `file` fields"), "{}", e.message);
     }
 
     proptest::proptest! {

@@ -1,0 +1,82 @@
+//! `crispen keys`: the application keys that OctoPrint clients (Cura's OctoPrint
+//! connection) asked for: list the requests and keys, allow or deny a request, revoke a
+//! key. A client of the daemon's HTTP API on its control socket, as the dashboard's
+//! Application keys panel is over TCP.
+
+use super::control::{ask, segment};
+use anyhow::Context;
+use hyper::Method;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(subcommand)]
+    pub action: Option<Action>,
+    /// The daemon's config file (to find its control socket)
+    #[arg(long, short, global = true)]
+    pub config: Option<PathBuf>,
+}
+
+#[derive(clap::Subcommand, Debug)]
+pub enum Action {
+    /// List pending requests and the keys given (the default)
+    List,
+    /// Give the application that made request ID a key of its own
+    Allow { id: String },
+    /// Refuse request ID
+    Deny { id: String },
+    /// Take back key ID: its application is refused from now on
+    Revoke { id: String },
+}
+
+pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    let path = match a.action.unwrap_or(Action::List) {
+        Action::List => return list(&a.config),
+        Action::Allow { id } => format!("/api/v1/appkeys/requests/{}/allow", segment(&id)),
+        Action::Deny { id } => format!("/api/v1/appkeys/requests/{}/deny", segment(&id)),
+        Action::Revoke { id } => format!("/api/v1/appkeys/keys/{}/revoke", segment(&id)),
+    };
+    let answer = ask(&a.config, Method::POST, &path)?;
+    if let Some(message) = answer["message"].as_str() {
+        println!("{message}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn list(config: &Option<PathBuf>) -> anyhow::Result<ExitCode> {
+    let answer = ask(config, Method::GET, "/api/v1/appkeys")?;
+    let text =
+        |v: &serde_json::Value| crispen::daemon::hotfolder::printable(v.as_str().unwrap_or(""));
+    let pending = answer["pending"]
+        .as_array()
+        .context("the daemon's answer has no pending requests list")?;
+    let keys = answer["keys"]
+        .as_array()
+        .context("the daemon's answer has no keys list")?;
+    println!("REQUEST    DECISION  APPLICATION          FROM             INSTANCE");
+    for r in pending {
+        println!(
+            "{:<10} {:<9} {:<20} {:<16} {}",
+            text(&r["id"]),
+            text(&r["decision"]),
+            text(&r["app"]),
+            text(&r["source"]),
+            text(&r["instance"])
+        );
+    }
+    println!("KEY        APPLICATION          FROM             INSTANCE");
+    for k in keys {
+        println!(
+            "{:<10} {:<20} {:<16} {}",
+            text(&k["id"]),
+            text(&k["app"]),
+            text(&k["source"]),
+            text(&k["instance"])
+        );
+    }
+    if pending.is_empty() && keys.is_empty() {
+        println!("(no requests and no application keys)");
+    }
+    Ok(ExitCode::SUCCESS)
+}

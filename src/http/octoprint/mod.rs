@@ -1,0 +1,292 @@
+//! OctoPrint's REST API as the clients that farm users already have speak it: Cura's
+//! "OctoPrint Connection" plugin, PrusaSlicer and OrcaSlicer (physical printer, type
+//! OctoPrint), `octorest`, OctoPrint's own `octoprint client`. Each hot folder is an
+//! OctoPrint instance of its own under `/octoprint/<folder>/` (announced by zeroconf, see
+//! `super::zeroconf`), so Cura lists "crispen: <folder>" and a job sent to one lands in
+//! that folder; the root (`/api/...`) is one more instance, standing for `[http]
+//! default_folder` (or the only folder), where uploads may name their folder in `path`.
+//!
+//! - [`form`]: the upload's form, read whole whatever the order of its fields.
+//! - [`files`]: `POST api/files/local` (upload) and `POST api/files/local/<path>`
+//!   (`select`, with `print` releasing a held upload).
+//! - [`state`]: `api/printer`, `api/job`, `api/printerprofiles`, `api/connection`: a
+//!   folder's printers and its current or next job, described honestly (which printer's
+//!   temperatures, what the flags mean for several printers; see docs/octoprint.md).
+//! - here: the instance a request addresses, `api/version`, `api/settings`, `api/login`,
+//!   and the routes.
+//!
+//! What OctoPrint can do and a farm does not let a slicer do (send G-code to a printer,
+//! connect or disconnect it, pause or cancel through `api/job`) is refused with `409`
+//! and a message saying where the operator does it.
+
+pub mod files;
+pub mod form;
+pub mod state;
+
+use super::upload;
+use super::{ApiError, AppState};
+use crate::daemon::config::{Config, FolderConfig};
+use axum::extract::FromRequestParts;
+use axum::http::request::Parts;
+use axum::http::StatusCode;
+use axum::routing::{get, post};
+use axum::{Json, Router};
+
+pub use form::{read_form, truthy, Form};
+
+/// The OctoPrint API version whose answers these are.
+pub const API_VERSION: &str = "0.1";
+/// The OctoPrint server version reported; clients only check that it is recent enough.
+pub const SERVER_VERSION: &str = "1.10.0";
+
+/// The OctoPrint instance a request addresses: a hot folder's (`/octoprint/<folder>/`)
+/// or the root (`/`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Instance {
+    /// The folder named in the address (percent-decoded); None on the root.
+    pub folder: Option<String>,
+    /// The instance's base address, as the client used it (`/octoprint/hot/` or `/`).
+    pub base: String,
+    /// The rest of the address after the base (`api/files/local/a.gcode`).
+    pub rest: String,
+}
+
+impl Instance {
+    pub fn parse(path: &str) -> Instance {
+        match path.strip_prefix("/octoprint/") {
+            Some(after) => {
+                let (segment, rest) = after.split_once('/').unwrap_or((after, ""));
+                Instance {
+                    folder: Some(percent_decode(segment)),
+                    base: format!("/octoprint/{segment}/"),
+                    rest: rest.to_string(),
+                }
+            }
+            None => Instance {
+                folder: None,
+                base: "/".to_string(),
+                rest: path.trim_start_matches('/').to_string(),
+            },
+        }
+    }
+
+    /// The hot folder this instance stands for: its own, or on the root the default
+    /// folder (`[http] default_folder`, else the only folder), or None.
+    pub fn folder<'a>(&self, config: &'a Config) -> Result<Option<&'a FolderConfig>, ApiError> {
+        match &self.folder {
+            Some(name) => upload::find_folder(config, name).map(Some),
+            None => Ok(default_folder(config)),
+        }
+    }
+
+    /// [`Instance::folder`], required: the root without a default folder is refused with
+    /// the way out.
+    pub fn some_folder<'a>(&self, config: &'a Config) -> Result<&'a FolderConfig, ApiError> {
+        self.folder(config)?.ok_or_else(|| no_default(config))
+    }
+}
+
+impl<S: Send + Sync> FromRequestParts<S> for Instance {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Instance, ApiError> {
+        Ok(Instance::parse(parts.uri.path()))
+    }
+}
+
+/// The folder the root instance stands for.
+pub fn default_folder(config: &Config) -> Option<&FolderConfig> {
+    let named = config
+        .http
+        .as_ref()
+        .and_then(|h| h.octoprint.default_folder.as_deref());
+    match named {
+        // Checked at load to name exactly one folder.
+        Some(name) => upload::find_folder(config, name).ok(),
+        None => match config.folders.as_slice() {
+            [only] => Some(only),
+            _ => None,
+        },
+    }
+}
+
+fn no_default(config: &Config) -> ApiError {
+    ApiError::bad_request(format!(
+        "which hot folder? this address (the root OctoPrint instance) stands for none: use a folder's own instance /octoprint/<folder>/, give the folder as the upload's path, or set [http] default_folder; the folders are: {}",
+        config
+            .folders
+            .iter()
+            .map(upload::folder_name)
+            .collect::<Vec<_>>()
+            .join(", ")
+    ))
+}
+
+/// `%XX` decoded (a folder's name in an address); invalid sequences stay as they are.
+pub fn percent_decode(text: &str) -> String {
+    let bytes = text.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        let hex = |b: u8| (b as char).to_digit(16);
+        match (bytes[i], bytes.get(i + 1), bytes.get(i + 2)) {
+            (b'%', Some(&h), Some(&l)) if hex(h).is_some() && hex(l).is_some() => {
+                out.push((hex(h).unwrap() * 16 + hex(l).unwrap()) as u8);
+                i += 3;
+            }
+            (b, _, _) => {
+                out.push(b);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// A name as one segment of an address: everything but unreserved characters escaped.
+pub fn percent_encode(text: &str) -> String {
+    text.bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'.' | b'_' | b'~' => {
+                (b as char).to_string()
+            }
+            _ => format!("%{b:02X}"),
+        })
+        .collect()
+}
+
+pub async fn version() -> Json<serde_json::Value> {
+    Json(serde_json::json!({
+        "api": API_VERSION,
+        "server": SERVER_VERSION,
+        "text": format!("OctoPrint (crispen {})", env!("CARGO_PKG_VERSION")),
+    }))
+}
+
+/// `GET api/settings`: what clients read of OctoPrint's settings. No SD card, no webcam,
+/// no G-code analysis (crispen prepares and estimates itself), no plugins.
+pub async fn settings(instance: Instance) -> Json<serde_json::Value> {
+    Json(serde_json::json!({
+        "api": { "allowCrossOrigin": false },
+        "appearance": { "name": instance.folder.as_deref().map_or("crispen".to_string(), |f| format!("crispen: {f}")) },
+        "feature": {
+            "sdSupport": false,
+            "gcodeViewer": false,
+            "temperatureGraph": false,
+            "keyboardControl": false,
+        },
+        "folder": {},
+        "gcodeAnalysis": { "runAt": "never" },
+        "plugins": {},
+        "serial": { "autoconnect": true },
+        "temperature": { "profiles": [] },
+    }))
+}
+
+/// `POST api/login` with `{"passive": true}`: who the key is (an application key's
+/// application, or the operator for the `[http]` key). Logging in with a user name and
+/// password is refused: crispen has keys, not users.
+pub async fn login(
+    who: Option<axum::Extension<super::appkeys::Who>>,
+    body: axum::body::Bytes,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let passive = serde_json::from_slice::<serde_json::Value>(&body)
+        .ok()
+        .and_then(|v| v.get("passive").cloned())
+        .is_some_and(|p| p.as_bool() == Some(true) || p.is_string());
+    if !passive {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "crispen has API keys, not users: log in with {\"passive\": true} and the key in X-Api-Key",
+        ));
+    }
+    let name = match who.map(|w| w.0) {
+        Some(super::appkeys::Who::App(app)) => app,
+        _ => "crispen operator".to_string(),
+    };
+    Ok(Json(serde_json::json!({
+        "name": name,
+        "active": true,
+        "admin": false,
+        "user": true,
+        "apikey": null,
+        "groups": ["users"],
+        "permissions": [],
+        "needs": { "role": ["status", "files_upload", "print", "connection"] },
+        "roles": ["user"],
+        "session": null,
+    })))
+}
+
+/// A farm's own ways to do what OctoPrint clients ask of one printer.
+async fn refused(instance: Instance) -> ApiError {
+    ApiError::conflict(format!(
+        "{}: not here: crispen drives its printers itself (pause, resume and cancel on the dashboard, `crispen pause|resume|cancel`, or /api/v1/)",
+        super::error::quoted(&instance.rest)
+    ))
+}
+
+/// Every OctoPrint route, for the root instance and each folder's: (uploads, API under
+/// the key, key requests without one).
+pub fn routes() -> (Router<AppState>, Router<AppState>, Router<AppState>) {
+    let mut uploads = Router::new();
+    let mut api = Router::new();
+    let mut open = Router::new();
+    for base in ["", "/octoprint/{folder}"] {
+        uploads = uploads.route(&format!("{base}/api/files/local"), post(files::upload));
+        api = api
+            .route(&format!("{base}/api/version"), get(version))
+            .route(&format!("{base}/api/settings"), get(settings))
+            .route(&format!("{base}/api/login"), post(login))
+            .route(
+                &format!("{base}/api/printerprofiles"),
+                get(state::printer_profiles),
+            )
+            .route(&format!("{base}/api/printer"), get(state::printer))
+            .route(&format!("{base}/api/printer/{{*command}}"), post(refused))
+            .route(&format!("{base}/api/job"), get(state::job).post(refused))
+            .route(
+                &format!("{base}/api/connection"),
+                get(state::connection).post(refused),
+            )
+            .route(
+                &format!("{base}/api/files/local/{{*path}}"),
+                post(files::command),
+            );
+        open = open
+            .route(
+                &format!("{base}/plugin/appkeys/probe"),
+                get(super::appkeys::probe),
+            )
+            .route(
+                &format!("{base}/plugin/appkeys/request"),
+                post(super::appkeys::request),
+            )
+            .route(
+                &format!("{base}/plugin/appkeys/request/{{token}}"),
+                get(super::appkeys::poll),
+            );
+    }
+    (uploads, api, open)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn instances_are_read_from_the_address() {
+        let i = Instance::parse("/octoprint/hot%20one/api/files/local/a.gcode");
+        assert_eq!(i.folder.as_deref(), Some("hot one"));
+        assert_eq!(i.base, "/octoprint/hot%20one/");
+        assert_eq!(i.rest, "api/files/local/a.gcode");
+        let i = Instance::parse("/api/version");
+        assert_eq!(
+            (i.folder, i.base.as_str(), i.rest.as_str()),
+            (None, "/", "api/version")
+        );
+        assert_eq!(percent_decode("a%2Fb%zz%4"), "a/b%zz%4");
+        assert_eq!(percent_encode("a b/é.gcode"), "a%20b%2F%C3%A9.gcode");
+        assert_eq!(percent_decode(&percent_encode("x y%z")), "x y%z");
+    }
+}

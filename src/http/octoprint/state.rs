@@ -1,0 +1,336 @@
+//! What an OctoPrint instance says about its printer and job, for a hot folder that
+//! several printers print from. OctoPrint has one printer per instance; a folder has a
+//! list. So each answer is about the folder's *focus printer*, chosen in this order:
+//! 1. a printer of the folder busy with one of this folder's jobs (printing, paused, or
+//!    waiting to heat), the one furthest along;
+//! 2. else the first of the folder's printers that is idle;
+//! 3. else the first printer in the folder's list.
+//!
+//! `api/printer`: the focus printer's temperatures (`tool0`, `bed`; `null` while not
+//! known) and its state as OctoPrint's flags; `crispen.printers` lists every printer of
+//! the folder with its state. `api/job`: the focus printer's job when it prints one of
+//! this folder's, else the folder's next job waiting for a printer (state `Operational`,
+//! no progress), else no job. `api/printerprofiles`: the focus printer's machine.
+//! Always `200`: a folder whose printers are all offline says so in its flags
+//! (`closedOrError`), where OctoPrint would answer `409`.
+
+use super::Instance;
+use crate::daemon::control::{self, JobStatus};
+use crate::daemon::farm::{PrinterState, PrinterStatus};
+use crate::daemon::job::JobState;
+use crate::http::{ApiError, AppState};
+use axum::extract::State;
+use axum::Json;
+use serde_json::{json, Value};
+
+/// A folder's printers and jobs, as one status snapshot has them.
+struct FolderView {
+    name: String,
+    printers: Vec<PrinterStatus>,
+    jobs: Vec<JobStatus>,
+    /// Index into `printers`, if the folder has any printer the farm knows.
+    focus: Option<usize>,
+}
+
+fn busy(state: PrinterState) -> bool {
+    matches!(
+        state,
+        PrinterState::Printing | PrinterState::Paused | PrinterState::WaitingToHeat
+    )
+}
+
+fn view(state: &AppState, instance: &Instance) -> Result<FolderView, ApiError> {
+    let config = state.farm.config();
+    let folder = instance.some_folder(&config)?;
+    let status = control::status(&state.farm);
+    let printers: Vec<PrinterStatus> = folder
+        .printers
+        .iter()
+        .filter_map(|name| status.printers.iter().find(|p| &p.name == name).cloned())
+        .collect();
+    let jobs: Vec<JobStatus> = status
+        .jobs
+        .into_iter()
+        .filter(|j| j.folder == folder.path)
+        .collect();
+    let ours = |p: &PrinterStatus| {
+        p.job
+            .as_ref()
+            .is_some_and(|id| jobs.iter().any(|j| &j.id == id))
+    };
+    let progress = |p: &PrinterStatus| {
+        p.progress
+            .as_ref()
+            .map_or(0.0, |g| g.lines_acked as f64 / g.lines_total.max(1) as f64)
+    };
+    let focus = printers
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| busy(p.state) && ours(p))
+        .max_by(|(_, a), (_, b)| progress(a).total_cmp(&progress(b)))
+        .map(|(i, _)| i)
+        .or_else(|| printers.iter().position(|p| p.state == PrinterState::Idle))
+        .or(if printers.is_empty() { None } else { Some(0) });
+    Ok(FolderView {
+        name: super::upload::folder_name(folder),
+        printers,
+        jobs,
+        focus,
+    })
+}
+
+/// OctoPrint's state text for a printer's state (Cura maps `Printing…`, `Paused`,
+/// `Operational`, `Offline…`, `Error…`, `Connecting`, `Starting…`).
+fn state_text(p: Option<&PrinterStatus>) -> String {
+    let Some(p) = p else {
+        return "Offline (no printer)".to_string();
+    };
+    match p.state {
+        PrinterState::Printing => "Printing".to_string(),
+        PrinterState::Paused => "Paused".to_string(),
+        PrinterState::WaitingToHeat => "Starting".to_string(),
+        // A finished print still on the bed: the printer is there, it takes no job until
+        // the operator clears it (`crispen.printers` says so).
+        PrinterState::Idle | PrinterState::BedNotCleared => "Operational".to_string(),
+        PrinterState::Connecting => "Connecting".to_string(),
+        PrinterState::Disconnected => "Offline".to_string(),
+        PrinterState::Stopped => format!(
+            "Error: {}",
+            p.detail.as_deref().unwrap_or("the printer stopped")
+        ),
+    }
+}
+
+fn flags(p: Option<&PrinterStatus>) -> Value {
+    let state = p.map(|p| p.state);
+    let is = |s: PrinterState| state == Some(s);
+    let operational = matches!(
+        state,
+        Some(
+            PrinterState::Idle
+                | PrinterState::WaitingToHeat
+                | PrinterState::Printing
+                | PrinterState::Paused
+                | PrinterState::BedNotCleared
+        )
+    );
+    json!({
+        "operational": operational,
+        "printing": is(PrinterState::Printing) || is(PrinterState::WaitingToHeat),
+        "paused": is(PrinterState::Paused),
+        "pausing": false,
+        "cancelling": false,
+        "resuming": false,
+        "finishing": false,
+        "sdReady": false,
+        "error": is(PrinterState::Stopped),
+        "ready": is(PrinterState::Idle),
+        "closedOrError": !operational,
+    })
+}
+
+fn temperature(actual: Option<f64>, target: Option<f64>) -> Value {
+    json!({ "actual": actual, "target": target, "offset": 0 })
+}
+
+/// `GET api/printer` (`exclude`, `history` and `limit` are accepted and ignored: there is
+/// no temperature history).
+pub async fn printer(
+    State(state): State<AppState>,
+    instance: Instance,
+) -> Result<Json<Value>, ApiError> {
+    let v = view(&state, &instance)?;
+    let focus = v.focus.map(|i| &v.printers[i]);
+    let t = focus
+        .and_then(|p| {
+            p.temperatures.or_else(|| {
+                p.progress
+                    .as_ref()
+                    .map(|g| crate::daemon::farm::PrinterTemperatures {
+                        hotend_c: g.hotend_c,
+                        hotend_target_c: g.hotend_target_c,
+                        bed_c: g.bed_c,
+                        bed_target_c: g.bed_target_c,
+                    })
+            })
+        })
+        .unwrap_or_default();
+    Ok(Json(json!({
+        "temperature": {
+            "tool0": temperature(t.hotend_c, t.hotend_target_c),
+            "bed": temperature(t.bed_c, t.bed_target_c),
+        },
+        "sd": { "ready": false },
+        "state": { "text": state_text(focus), "flags": flags(focus) },
+        "crispen": {
+            "folder": v.name,
+            "printer": focus.map(|p| p.name.clone()),
+            "printers": v.printers.iter().map(|p| json!({
+                "name": p.name,
+                "state": p.state,
+                "job": p.job,
+                "bed_cleared": p.bed_cleared,
+            })).collect::<Vec<_>>(),
+        },
+    })))
+}
+
+/// `GET api/job`.
+pub async fn job(
+    State(state): State<AppState>,
+    instance: Instance,
+) -> Result<Json<Value>, ApiError> {
+    let v = view(&state, &instance)?;
+    let focus = v.focus.map(|i| &v.printers[i]);
+    let current = focus
+        .filter(|p| busy(p.state))
+        .and_then(|p| p.job.as_ref())
+        .and_then(|id| v.jobs.iter().find(|j| &j.id == id));
+    let next = || {
+        v.jobs.iter().find(|j| {
+            matches!(
+                j.state,
+                JobState::Queued | JobState::Preparing | JobState::Ready
+            )
+        })
+    };
+    let (job, state_text, progress) = match current {
+        Some(j) => {
+            let live = focus
+                .and_then(|p| p.progress.clone())
+                .or(j.progress.clone());
+            let progress = match live {
+                Some(g) => json!({
+                    "completion": 100.0 * g.lines_acked as f64 / g.lines_total.max(1) as f64,
+                    "filepos": null,
+                    "printTime": g.elapsed_s.round() as u64,
+                    "printTimeLeft": g.remaining_s.map(|s| s.round() as u64),
+                    "printTimeLeftOrigin": g.remaining_s.map(|_| "estimate"),
+                }),
+                None => no_progress(),
+            };
+            (Some(j), state_text(focus), progress)
+        }
+        None => {
+            // Not printing one of ours: the printer's own state, and the next job.
+            let text = match focus.map(|p| p.state) {
+                Some(s) if busy(s) => "Operational".to_string(),
+                _ => state_text(focus),
+            };
+            (next(), text, no_progress())
+        }
+    };
+    let file = match job {
+        Some(j) => json!({
+            "name": j.file,
+            "display": j.file,
+            "path": match instance.folder {
+                Some(_) => j.file.clone(),
+                None => format!("{}/{}", v.name, j.file),
+            },
+            "origin": "local",
+            "size": null,
+            "date": null,
+        }),
+        None => json!({ "name": null, "path": null, "origin": null, "size": null, "date": null }),
+    };
+    Ok(Json(json!({
+        "job": {
+            "file": file,
+            "estimatedPrintTime": null,
+            "lastPrintTime": null,
+            "filament": null,
+            "user": null,
+        },
+        "progress": progress,
+        "state": state_text,
+        "crispen": {
+            "folder": v.name,
+            "job": job.map(|j| json!({ "id": j.id, "state": j.state, "held": j.held, "printer": j.printer })),
+        },
+    })))
+}
+
+fn no_progress() -> Value {
+    json!({
+        "completion": null,
+        "filepos": null,
+        "printTime": null,
+        "printTimeLeft": null,
+        "printTimeLeftOrigin": null,
+    })
+}
+
+/// `GET api/printerprofiles`: one profile, current and default: the focus printer's
+/// machine (build volume, heated bed, nozzle; the filament diameter under `crispen`).
+pub async fn printer_profiles(
+    State(state): State<AppState>,
+    instance: Instance,
+) -> Result<Json<Value>, ApiError> {
+    let v = view(&state, &instance)?;
+    let focus = v.focus.map(|i| v.printers[i].name.clone());
+    let machines = state.farm.printer_machines();
+    let machine = focus
+        .as_ref()
+        .and_then(|name| machines.iter().find(|(n, _)| n == name))
+        .map(|(_, m)| m);
+    let Some(m) = machine else {
+        return Ok(Json(json!({ "profiles": {} })));
+    };
+    let axis = |speed: u32| json!({ "speed": speed, "inverted": false });
+    Ok(Json(json!({ "profiles": { "_default": {
+        "id": "_default",
+        "name": format!("crispen: {}", v.name),
+        "model": m.name,
+        "color": "default",
+        "current": true,
+        "default": true,
+        "resource": format!("{}api/printerprofiles/_default", instance.base),
+        "volume": {
+            "formFactor": "rectangular",
+            "origin": "lowerleft",
+            "width": m.bed_mm[0],
+            "depth": m.bed_mm[1],
+            "height": m.bed_mm[2],
+            "custom_box": false,
+        },
+        "heatedBed": m.heated_bed,
+        "heatedChamber": false,
+        "axes": { "x": axis(6000), "y": axis(6000), "z": axis(200), "e": axis(300) },
+        "extruder": {
+            "count": 1,
+            "offsets": [[0.0, 0.0]],
+            "nozzleDiameter": m.nozzle_mm,
+            "sharedNozzle": false,
+            "defaultExtrusionLength": 5,
+        },
+        "crispen": { "filament_mm": m.filament_mm, "printer": focus },
+    }}})))
+}
+
+/// `GET api/connection`: the focus printer's connection. Connecting and disconnecting
+/// (`POST`) are crispen's own business and refused.
+pub async fn connection(
+    State(state): State<AppState>,
+    instance: Instance,
+) -> Result<Json<Value>, ApiError> {
+    let v = view(&state, &instance)?;
+    let focus = v.focus.map(|i| &v.printers[i]);
+    Ok(Json(json!({
+        "current": {
+            "state": state_text(focus),
+            "port": focus.map(|p| p.port.clone()),
+            "baudrate": null,
+            "printerProfile": "_default",
+        },
+        "options": {
+            "ports": v.printers.iter().map(|p| p.port.clone()).collect::<Vec<_>>(),
+            "baudrates": [],
+            "printerProfiles": [{ "id": "_default", "name": format!("crispen: {}", v.name) }],
+            "portPreference": null,
+            "baudratePreference": null,
+            "printerProfilePreference": "_default",
+            "autoconnect": true,
+        },
+    })))
+}

@@ -1,0 +1,887 @@
+//! The OctoPrint emulation against the real binary, driven as OctoPrint clients drive it:
+//! Cura's OctoPrint connection replayed call by call in the order of its source (over
+//! real TCP, every byte the test's own), the real Python clients `octorest` and
+//! `octoprint client` from the venv that `scripts/setup` makes (`CRISPEN_PY_VENV`,
+//! default /usr/local/share/crispen/venv), and the zeroconf announcement browsed by the
+//! Python `zeroconf` package in a network namespace of the test's own.
+
+use crate::common;
+use common::daemon::{Daemon, BIN};
+use common::job_by_file;
+use serde_json::{json, Value};
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+const KEY: &str = "octo-test-key-0123456789";
+
+/// Heat, two lines, heaters off: pre-sliced G-code as a slicer sends it.
+const GCODE: &str = "; sent by a slicer\nM140 S60\nM104 S200\nM190 S60\nM109 S200\nG28\nG92 E0\n\
+    G1 Z0.3 F600\nG1 X20 Y20 F3000\nG1 X60 Y20 E4 F1200\nG1 X60 Y60 E8\nM104 S0\nM140 S0\nM84\n";
+
+fn venv() -> PathBuf {
+    PathBuf::from(
+        std::env::var("CRISPEN_PY_VENV")
+            .unwrap_or_else(|_| "/usr/local/share/crispen/venv".to_string()),
+    )
+}
+
+fn python() -> PathBuf {
+    let python = venv().join("bin/python");
+    assert!(
+        python.exists(),
+        "{} is missing: run scripts/setup (it makes the venv with the OctoPrint clients)",
+        python.display()
+    );
+    python
+}
+
+/// A daemon with two hot folders, `hot` (printer alpha, the root instance's default
+/// folder) and `other` (printer beta), and `[http]` on a loopback port.
+struct Farm {
+    daemon: Daemon,
+    addr: String,
+    root: PathBuf,
+    log: PathBuf,
+}
+
+fn config_text(http_extra: &str) -> String {
+    let printer = |name: &str| {
+        format!(
+            "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n\
+             [printer.simulate]\ntime_scale = 0.0\n"
+        )
+    };
+    format!(
+        "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\nupload_max_mb = 4\n{http_extra}\n\
+         {}{}[[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"alpha\"]\n\
+         [[folder]]\npath = \"other\"\nheight_mm = 25\nprinters = [\"beta\"]\n",
+        printer("alpha"),
+        printer("beta")
+    )
+}
+
+fn prepare(root: &Path, http_extra: &str) -> PathBuf {
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    std::fs::create_dir_all(root.join("other")).unwrap();
+    std::fs::write(root.join("key"), format!("{KEY}\n")).unwrap();
+    let config = root.join("crispen.toml");
+    std::fs::write(&config, config_text(http_extra)).unwrap();
+    config
+}
+
+/// The address the daemon logged it listens on.
+fn listening(log: &Path) -> String {
+    let started = Instant::now();
+    loop {
+        let text = std::fs::read_to_string(log).unwrap_or_default();
+        if let Some(line) = text.lines().find(|l| l.contains("http: listening")) {
+            let at = line.find("address=").expect("address field") + "address=".len();
+            return line[at..].split_whitespace().next().unwrap().to_string();
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "the daemon did not start listening:\n{text}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+impl Farm {
+    fn start(root: &Path) -> Farm {
+        let config = prepare(root, "default_folder = \"hot\"\nannounce = false\n");
+        let log = root.join("daemon.log");
+        let daemon = Daemon::start(&config, &log);
+        let addr = listening(&log);
+        Farm {
+            daemon,
+            addr,
+            root: root.to_path_buf(),
+            log,
+        }
+    }
+
+    fn call(&self, method: &str, path: &str, headers: &[(&str, &str)], body: &[u8]) -> Answer {
+        request(&self.addr, method, path, headers, body)
+    }
+
+    fn status(&self) -> Value {
+        let a = self.call("GET", "/api/v1/status", &[("X-Api-Key", KEY)], b"");
+        assert_eq!(a.status, 200, "{}", a.text());
+        a.json()
+    }
+
+    fn wait_for(&self, what: &str, check: impl Fn(&Value) -> bool) -> Value {
+        let started = Instant::now();
+        loop {
+            let s = self.status();
+            if check(&s) {
+                return s;
+            }
+            assert!(
+                started.elapsed() < Duration::from_secs(120),
+                "timed out waiting for {what}\nlast status: {s:#}\nlog:\n{}",
+                std::fs::read_to_string(&self.log).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+}
+
+struct Answer {
+    status: u16,
+    headers: String,
+    body: Vec<u8>,
+}
+
+impl Answer {
+    fn text(&self) -> String {
+        String::from_utf8_lossy(&self.body).into_owned()
+    }
+    fn json(&self) -> Value {
+        serde_json::from_slice(&self.body)
+            .unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.text()))
+    }
+    fn header(&self, name: &str) -> Option<String> {
+        self.headers.lines().find_map(|l| {
+            let (n, v) = l.split_once(':')?;
+            n.eq_ignore_ascii_case(name).then(|| v.trim().to_string())
+        })
+    }
+}
+
+/// One HTTP/1.1 request on its own connection, as given.
+fn request(addr: &str, method: &str, path: &str, headers: &[(&str, &str)], body: &[u8]) -> Answer {
+    let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        head.push_str(&format!("{k}: {v}\r\n"));
+    }
+    head.push_str(&format!("Content-Length: {}\r\n\r\n", body.len()));
+    let mut stream = TcpStream::connect(addr).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
+    let _ = stream.write_all(head.as_bytes());
+    let _ = stream.write_all(body);
+    let mut reader = BufReader::new(stream);
+    let mut status_line = String::new();
+    reader.read_line(&mut status_line).unwrap();
+    let status: u16 = status_line
+        .split_whitespace()
+        .nth(1)
+        .unwrap_or_else(|| panic!("no status line: {status_line:?}"))
+        .parse()
+        .unwrap();
+    let mut headers = String::new();
+    loop {
+        let mut line = String::new();
+        reader.read_line(&mut line).unwrap();
+        if line == "\r\n" || line.is_empty() {
+            break;
+        }
+        // Values as sent: a Location's token is case-sensitive.
+        headers.push_str(&line);
+    }
+    let mut body = Vec::new();
+    if headers
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        loop {
+            let mut size = String::new();
+            reader.read_line(&mut size).unwrap();
+            let size = usize::from_str_radix(size.trim(), 16).unwrap();
+            let mut chunk = vec![0; size + 2];
+            reader.read_exact(&mut chunk).unwrap();
+            if size == 0 {
+                break;
+            }
+            body.extend_from_slice(&chunk[..size]);
+        }
+    } else {
+        let _ = reader.read_to_end(&mut body);
+    }
+    Answer {
+        status,
+        headers,
+        body,
+    }
+}
+
+/// A multipart form with `parts` in this order; `("file", name)` is the file.
+fn form(parts: &[(&str, &str)], content: &[u8]) -> (String, Vec<u8>) {
+    let boundary = "boundary_.oOo._MTc0OTQ5NTQ2Mg==";
+    let mut body = Vec::new();
+    for (name, value) in parts {
+        if *name == "file" {
+            body.extend_from_slice(
+                format!(
+                    "--{boundary}\r\nContent-Type: application/octet-stream\r\n\
+                     Content-Disposition: form-data; name=\"file\"; filename=\"{value}\"\r\n\r\n"
+                )
+                .as_bytes(),
+            );
+            body.extend_from_slice(content);
+            body.extend_from_slice(b"\r\n");
+        } else {
+            body.extend_from_slice(
+                format!(
+                    "--{boundary}\r\nContent-Type: text/plain\r\n\
+                     Content-Disposition: form-data; name=\"{name}\"\r\n\r\n{value}\r\n"
+                )
+                .as_bytes(),
+            );
+        }
+    }
+    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
+    (
+        format!("multipart/form-data; boundary=\"{boundary}\""),
+        body,
+    )
+}
+
+/// The path part of an absolute `Location`.
+fn path_of(location: &str) -> String {
+    let rest = location
+        .strip_prefix("http://")
+        .unwrap_or_else(|| panic!("not absolute: {location}"));
+    rest[rest.find('/').unwrap()..].to_string()
+}
+
+/// Cura's OctoPrint connection, call by call in the order of its source
+/// (`DiscoverOctoPrintAction.py`, `OctoPrintOutputDevice.py`), on the instance of hot
+/// folder `other`: the application-key flow (probe, request, poll until the operator
+/// allows it through the API as the dashboard does, the key in the poll's answer), then
+/// with that key `api/settings`, `api/version`, passive `api/login`,
+/// `api/printerprofiles`, polling `api/printer` and `api/job`; "Upload" (no `select` or
+/// `print`): `path`, then the file; the file's address from `Location`; then the
+/// select-and-print command to it releases the held job, which prints on `other`'s
+/// printer. "Upload and print" with `select` and `print` after the file prints at once.
+/// The key opens no operator API, and a revoked key opens nothing.
+#[test]
+fn cura_plugin_calls_in_order_get_a_key_and_the_job_prints() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path());
+    let base = "/octoprint/other/";
+    let ua = ("User-Agent", "Cura-OctoPrintPlugin/3.7.3");
+
+    // DiscoverOctoPrintAction.probeAppKeySupport / requestApiKey / _pollApiKey.
+    let a = farm.call("GET", &format!("{base}plugin/appkeys/probe"), &[ua], b"");
+    assert_eq!(a.status, 204, "{}", a.text());
+    let a = farm.call(
+        "POST",
+        &format!("{base}plugin/appkeys/request"),
+        &[ua, ("Content-Type", "application/json")],
+        br#"{"app": "Cura"}"#,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    assert!(a.json()["app_token"].is_string(), "{}", a.text());
+    let poll = path_of(&a.header("location").expect("Location to poll"));
+    assert!(
+        poll.starts_with(&format!("{base}plugin/appkeys/request/")),
+        "{poll}"
+    );
+    let a = farm.call("GET", &poll, &[ua, ("Content-Type", "")], b"");
+    assert_eq!(a.status, 202, "undecided: {}", a.text());
+
+    // The operator sees the request (application and address) and allows it, as the
+    // dashboard's panel (its own script, on the page) does.
+    let page = farm.call("GET", "/", &[], b"");
+    assert!(
+        page.text().contains("/appkeys.js"),
+        "the panel's script is on the page"
+    );
+    let script = farm.call("GET", "/appkeys.js", &[], b"");
+    assert_eq!(script.status, 200);
+    assert!(
+        script.text().contains("/api/v1/appkeys/requests/"),
+        "{}",
+        script.text()
+    );
+    let list = farm.call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"");
+    assert_eq!(list.status, 200, "{}", list.text());
+    let list = list.json();
+    let request = &list["pending"][0];
+    assert_eq!(request["app"], "Cura", "{list}");
+    assert_eq!(request["source"], "127.0.0.1", "{list}");
+    assert_eq!(request["instance"], base, "{list}");
+    assert!(
+        !list.to_string().contains(poll.rsplit('/').next().unwrap()),
+        "no token listed"
+    );
+    let id = request["id"].as_str().unwrap();
+    let a = farm.call(
+        "POST",
+        &format!("/api/v1/appkeys/requests/{id}/allow"),
+        &[],
+        b"",
+    );
+    assert_eq!(a.status, 401, "allowing needs the operator's key");
+    let a = farm.call(
+        "POST",
+        &format!("/api/v1/appkeys/requests/{id}/allow"),
+        &[("X-Api-Key", KEY)],
+        b"",
+    );
+    assert_eq!(a.status, 200, "{}", a.text());
+    let a = farm.call("GET", &poll, &[ua], b"");
+    assert_eq!(a.status, 200, "{}", a.text());
+    let app_key = a.json()["api_key"].as_str().unwrap().to_string();
+    assert_ne!(app_key, KEY);
+    assert_eq!(farm.call("GET", &poll, &[ua], b"").status, 404, "told once");
+    let k = ("X-Api-Key", app_key.as_str());
+
+    // testApiKey: api/settings with the key.
+    let a = farm.call("GET", &format!("{base}api/settings"), &[ua, k], b"");
+    assert_eq!(a.status, 200, "{}", a.text());
+    let settings = a.json();
+    assert_eq!(settings["feature"]["sdSupport"], false);
+    assert!(settings["plugins"].is_object());
+    let wrong = farm.call(
+        "GET",
+        &format!("{base}api/settings"),
+        &[("X-Api-Key", "nope-nope-nope")],
+        b"",
+    );
+    assert_eq!(wrong.status, 403);
+    // connect(): version, passive login, printer profiles.
+    let v = farm
+        .call("GET", &format!("{base}api/version"), &[ua, k], b"")
+        .json();
+    assert!(v["text"].as_str().unwrap().starts_with("OctoPrint"), "{v}");
+    assert!(v["server"].is_string() && v["api"].is_string(), "{v}");
+    let a = farm.call(
+        "POST",
+        &format!("{base}api/login"),
+        &[ua, k, ("Content-Type", "application/json")],
+        br#"{"passive": true}"#,
+    );
+    assert_eq!(a.status, 200, "{}", a.text());
+    assert_eq!(a.json()["name"], "Cura");
+    let profiles = farm
+        .call("GET", &format!("{base}api/printerprofiles"), &[ua, k], b"")
+        .json();
+    let current = profiles["profiles"]
+        .as_object()
+        .unwrap()
+        .values()
+        .find(|p| p["current"] == true)
+        .unwrap_or_else(|| panic!("a current profile: {profiles}"))
+        .clone();
+    assert!(
+        current["volume"]["width"].as_f64().unwrap() > 0.0,
+        "{current}"
+    );
+    assert!(current["heatedBed"].is_boolean());
+    assert!(current["axes"]["x"]["speed"].is_number());
+    assert!(current["extruder"]["nozzleDiameter"].as_f64().unwrap() > 0.0);
+    // The polls (every 2 s in Cura).
+    let started = Instant::now();
+    let printer = loop {
+        let p = farm.call("GET", &format!("{base}api/printer"), &[ua, k], b"");
+        assert_eq!(p.status, 200, "{}", p.text());
+        let p = p.json();
+        if p["state"]["flags"]["ready"] == true {
+            break p;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "beta ready: {p}"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    assert!(printer["temperature"]["tool0"]
+        .as_object()
+        .unwrap()
+        .contains_key("actual"));
+    assert!(printer["temperature"]["bed"]
+        .as_object()
+        .unwrap()
+        .contains_key("target"));
+    assert_eq!(printer["state"]["flags"]["operational"], true);
+    assert_eq!(
+        printer["crispen"]["printer"], "beta",
+        "other's printer: {printer}"
+    );
+    let job = farm
+        .call("GET", &format!("{base}api/job"), &[ua, k], b"")
+        .json();
+    assert_eq!(job["state"], "Operational", "{job}");
+    assert!(job["progress"]
+        .as_object()
+        .unwrap()
+        .contains_key("completion"));
+    assert!(job["job"]["file"].as_object().unwrap().contains_key("name"));
+
+    // _sendPrintJob, "Upload" only: `path` (empty), then the file; no select or print.
+    let (ct, body) = form(
+        &[("path", ""), ("file", "cura_part.gcode")],
+        GCODE.as_bytes(),
+    );
+    let a = farm.call(
+        "POST",
+        &format!("{base}api/files/local"),
+        &[ua, k, ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let answer = a.json();
+    assert_eq!(answer["done"], true);
+    assert_eq!(answer["effectivePrint"], false, "{answer}");
+    assert_eq!(answer["files"]["local"]["name"], "cura_part.gcode");
+    let location = a.header("location").expect("Location");
+    // _onUploadFinished: the end point is what follows "api/" in the Location.
+    let end_point = location.split_once("api/").unwrap().1.to_string();
+    assert_eq!(end_point, "files/local/cura_part.gcode");
+    assert!(location.contains(base), "under the instance: {location}");
+    let s = farm.wait_for("the upload held and ready", |s| {
+        job_by_file(s, "cura_part.gcode")
+            .is_some_and(|j| j["state"] == "ready" && j["held"] == true)
+    });
+    let j = job_by_file(&s, "cura_part.gcode").unwrap();
+    assert!(j["folder"].as_str().unwrap().ends_with("other"), "{j}");
+    // api/job names the next job while it waits.
+    let job = farm
+        .call("GET", &format!("{base}api/job"), &[ua, k], b"")
+        .json();
+    assert_eq!(job["job"]["file"]["name"], "cura_part.gcode", "{job}");
+    // _selectAndPrint.
+    let a = farm.call(
+        "POST",
+        &format!("{base}api/{end_point}"),
+        &[ua, k, ("Content-Type", "application/json")],
+        &serde_json::to_vec(&json!({"command": "select", "print": true})).unwrap(),
+    );
+    assert_eq!(a.status, 204, "{}", a.text());
+    let s = farm.wait_for("the released job printed", |s| {
+        job_by_file(s, "cura_part.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    assert_eq!(
+        job_by_file(&s, "cura_part.gcode").unwrap()["printer"],
+        "beta"
+    );
+    assert_eq!(
+        job_by_file(&s, "cura_part.gcode").unwrap()["copies_done"],
+        1
+    );
+    // Selecting it again prints nothing twice.
+    let a = farm.call(
+        "POST",
+        &format!("{base}api/{end_point}"),
+        &[ua, k, ("Content-Type", "application/json")],
+        br#"{"command": "select", "print": true}"#,
+    );
+    assert_eq!(a.status, 409, "{}", a.text());
+    let cleared = farm.call(
+        "POST",
+        "/api/v1/printers/beta/clear",
+        &[("X-Api-Key", KEY)],
+        b"",
+    );
+    assert_eq!(cleared.status, 200, "{}", cleared.text());
+
+    // "Upload and print": `select` and `print` after the file (Cura's order).
+    let (ct, body) = form(
+        &[
+            ("path", ""),
+            ("file", "cura_now.gcode"),
+            ("select", "true"),
+            ("print", "true"),
+        ],
+        GCODE.as_bytes(),
+    );
+    let a = farm.call(
+        "POST",
+        &format!("{base}api/files/local"),
+        &[ua, k, ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    assert_eq!(a.json()["effectivePrint"], true, "{}", a.text());
+    farm.wait_for("the upload-and-print printed", |s| {
+        job_by_file(s, "cura_now.gcode").is_some_and(|j| j["state"] == "done" && j["held"] == false)
+    });
+
+    // An application key is for the OctoPrint emulation only; a revoked one is refused.
+    assert_eq!(farm.call("GET", "/api/v1/status", &[k], b"").status, 403);
+    assert_eq!(
+        farm.call(
+            "GET",
+            "/api/job",
+            &[("Authorization", &format!("Bearer {app_key}"))],
+            b""
+        )
+        .status,
+        200
+    );
+    assert_eq!(
+        farm.call("GET", &format!("/api/job?apikey={app_key}"), &[], b"")
+            .status,
+        200
+    );
+    let (ok, listed) = cli(&farm.root, &["keys"]);
+    assert!(ok && listed.contains("Cura"), "{listed}");
+    let key_id = farm
+        .call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
+        .json()["keys"][0]["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let (ok, said) = cli(&farm.root, &["keys", "revoke", &key_id]);
+    assert!(ok, "{said}");
+    assert_eq!(
+        farm.call("GET", &format!("{base}api/job"), &[k], b"")
+            .status,
+        403
+    );
+    // Kept across a restart: the file is there, without the revoked key.
+    let stored = std::fs::read_to_string(farm.root.join("spool/appkeys.json")).unwrap();
+    assert!(!stored.contains(&app_key), "{stored}");
+    drop(farm.daemon);
+}
+
+/// The CLI against the farm in `root`.
+fn cli(root: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(BIN)
+        .args(args)
+        .arg("--config")
+        .arg(root.join("crispen.toml"))
+        .output()
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.success(), text)
+}
+
+/// The real clients from PyPI: `octorest` (which talks to the root instance only and
+/// drops `path`, `select` and `print` from its uploads: the file lands held in the default
+/// folder) reads version, printer and job, uploads, and selects-and-prints the file by its
+/// root path `hot/<file>`; OctoPrint's own `octoprint client` reads a folder's instance
+/// (`--prefix /octoprint/other`), uploads there with `print` (prints) and without (held),
+/// and selects-and-prints with `command`. Its key is an application key asked for and
+/// allowed through the HTTP API as the dashboard allows it.
+#[test]
+fn octorest_and_octoprint_client_drive_the_farm() {
+    let python = python();
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path());
+    // The key: asked for, allowed by the operator, fetched.
+    let a = farm.call(
+        "POST",
+        "/plugin/appkeys/request",
+        &[("Content-Type", "application/json")],
+        br#"{"app": "octorest"}"#,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let poll = path_of(&a.header("location").unwrap());
+    let list = farm
+        .call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
+        .json();
+    let id = list["pending"][0]["id"].as_str().unwrap().to_string();
+    let a = farm.call(
+        "POST",
+        &format!("/api/v1/appkeys/requests/{id}/allow"),
+        &[("X-Api-Key", KEY)],
+        b"",
+    );
+    assert_eq!(a.status, 200, "{}", a.text());
+    let app_key = farm.call("GET", &poll, &[], b"").json()["api_key"]
+        .as_str()
+        .unwrap()
+        .to_string();
+
+    let gcode = tmp.path().join("rest.gcode");
+    std::fs::write(&gcode, GCODE).unwrap();
+    let script = r#"
+import json, sys
+from octorest import OctoRest
+url, key, path = sys.argv[1], sys.argv[2], sys.argv[3]
+client = OctoRest(url=url, apikey=key)
+out = {"version": client.version}
+out["printer"] = client.printer()
+out["job"] = client.job_info()
+out["upload"] = client.upload(path, select=False, print=False)
+print(json.dumps(out))
+"#;
+    let run = |args: &[&str]| {
+        let out = Command::new(&python)
+            .args(args)
+            .env("HOME", tmp.path())
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(
+            out.status.success(),
+            "{args:?}: {text}\n{}\nlog:\n{}",
+            String::from_utf8_lossy(&out.stderr),
+            std::fs::read_to_string(&farm.log).unwrap_or_default()
+        );
+        text
+    };
+    let url = format!("http://{}/", farm.addr);
+    let out: Value = serde_json::from_str(
+        run(&["-c", script, &url, &app_key, gcode.to_str().unwrap()])
+            .lines()
+            .last()
+            .unwrap(),
+    )
+    .unwrap();
+    assert!(
+        out["version"]["text"]
+            .as_str()
+            .unwrap()
+            .starts_with("OctoPrint"),
+        "{out}"
+    );
+    assert_eq!(
+        out["printer"]["crispen"]["printer"], "alpha",
+        "the default folder's: {out}"
+    );
+    assert!(out["printer"]["state"]["flags"].is_object(), "{out}");
+    assert!(out["job"]["progress"].is_object(), "{out}");
+    assert_eq!(
+        out["upload"]["files"]["local"]["path"], "hot/rest.gcode",
+        "{out}"
+    );
+    assert_eq!(out["upload"]["effectivePrint"], false, "{out}");
+    farm.wait_for("octorest's upload held", |s| {
+        job_by_file(s, "rest.gcode").is_some_and(|j| j["state"] == "ready" && j["held"] == true)
+    });
+    let select = r#"
+import sys
+from octorest import OctoRest
+client = OctoRest(url=sys.argv[1], apikey=sys.argv[2])
+client.select("hot/rest.gcode", print=True)
+print("selected")
+"#;
+    assert!(run(&["-c", select, &url, &app_key]).contains("selected"));
+    farm.wait_for("octorest's upload printed", |s| {
+        job_by_file(s, "rest.gcode").is_some_and(|j| j["state"] == "done")
+    });
+
+    // `octoprint client` on hot folder `other`'s instance.
+    let port = farm.addr.rsplit(':').next().unwrap().to_string();
+    let octoprint = venv().join("bin/octoprint");
+    let client = |args: &[&str]| {
+        let out = Command::new(&octoprint)
+            .args([
+                "client",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                &port,
+                "--apikey",
+                &app_key,
+            ])
+            .args(["--prefix", "/octoprint/other"])
+            .args(args)
+            .env("HOME", tmp.path())
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).into_owned()
+            + &String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{args:?}: {text}");
+        text
+    };
+    let printer = client(&["get", "api/printer"]);
+    assert!(
+        printer.contains("Status Code: 200") && printer.contains("\"beta\""),
+        "{printer}"
+    );
+    let job = client(&["get", "api/job"]);
+    assert!(
+        job.contains("Status Code: 200") && job.contains("\"progress\""),
+        "{job}"
+    );
+    let held = tmp.path().join("client_held.gcode");
+    std::fs::write(&held, GCODE).unwrap();
+    let up = client(&["upload", "api/files/local", held.to_str().unwrap()]);
+    assert!(
+        up.contains("Status Code: 201") && up.contains("\"effectivePrint\": false")
+            || up.contains("\"effectivePrint\":false"),
+        "{up}"
+    );
+    let now = tmp.path().join("client_now.gcode");
+    std::fs::write(&now, GCODE).unwrap();
+    let up = client(&[
+        "upload",
+        "-P",
+        "print",
+        "true",
+        "api/files/local",
+        now.to_str().unwrap(),
+    ]);
+    assert!(up.contains("Status Code: 201"), "{up}");
+    farm.wait_for("the client's printing upload printed", |s| {
+        job_by_file(s, "client_now.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    let s = farm.wait_for("the client's held upload ready", |s| {
+        job_by_file(s, "client_held.gcode")
+            .is_some_and(|j| j["state"] == "ready" && j["held"] == true)
+    });
+    assert!(job_by_file(&s, "client_now.gcode").unwrap()["folder"]
+        .as_str()
+        .unwrap()
+        .ends_with("other"));
+    let cleared = farm.call(
+        "POST",
+        "/api/v1/printers/beta/clear",
+        &[("X-Api-Key", KEY)],
+        b"",
+    );
+    assert_eq!(cleared.status, 200, "{}", cleared.text());
+    let sel = client(&[
+        "command",
+        "-b",
+        "print",
+        "true",
+        "api/files/local/client_held.gcode",
+        "select",
+    ]);
+    assert!(sel.contains("Status Code: 204"), "{sel}");
+    farm.wait_for("the client's held upload printed", |s| {
+        job_by_file(s, "client_held.gcode").is_some_and(|j| j["state"] == "done")
+    });
+}
+
+/// A `path` sent after the file lands the file in that folder (it was received into
+/// the default folder first), and an upload without a path on the root goes to the default
+/// folder; a path naming no folder is refused with the folders' names, leaving nothing.
+#[test]
+fn a_path_after_the_file_moves_it_to_that_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path());
+    let (ct, body) = form(
+        &[("file", "late.gcode"), ("path", "other"), ("print", "true")],
+        GCODE.as_bytes(),
+    );
+    let a = farm.call(
+        "POST",
+        "/api/files/local",
+        &[("X-Api-Key", KEY), ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    assert_eq!(a.json()["files"]["local"]["path"], "other/late.gcode");
+    let s = farm.wait_for("the late-path upload printed", |s| {
+        job_by_file(s, "late.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    assert_eq!(job_by_file(&s, "late.gcode").unwrap()["printer"], "beta");
+    let (ct, body) = form(
+        &[("file", "lost.gcode"), ("path", "nowhere")],
+        GCODE.as_bytes(),
+    );
+    let a = farm.call(
+        "POST",
+        "/api/files/local",
+        &[("X-Api-Key", KEY), ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 404, "{}", a.text());
+    assert!(
+        a.text().contains("other"),
+        "names the folders: {}",
+        a.text()
+    );
+    let (ct, body) = form(&[("file", "lost.gcode"), ("path", "hot")], GCODE.as_bytes());
+    let a = farm.call(
+        "POST",
+        "/octoprint/other/api/files/local",
+        &[("X-Api-Key", KEY), ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 400, "{}", a.text());
+    for folder in ["hot", "other"] {
+        let left: Vec<_> = std::fs::read_dir(tmp.path().join(folder))
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .filter(|n| n.to_string_lossy().contains("lost"))
+            .collect();
+        assert!(left.is_empty(), "{folder}: {left:?}");
+    }
+}
+
+/// Zeroconf: in a network namespace of the test's own (multicast on its loopback), the
+/// Python `zeroconf` package browses `_octoprint._tcp` and finds each hot folder as
+/// "crispen: <folder>" with its path, version and the daemon's port; with
+/// `announce = false` it finds none.
+#[test]
+fn each_folder_is_announced_by_zeroconf() {
+    let python = python();
+    let browse = r#"
+import json, sys, time
+from zeroconf import Zeroconf, ServiceBrowser, ServiceListener
+want = int(sys.argv[1]); limit = float(sys.argv[2])
+found = {}
+class L(ServiceListener):
+    def add_service(self, zc, type_, name):
+        info = zc.get_service_info(type_, name, timeout=3000)
+        if info:
+            found[name] = {"port": info.port, "props": {k.decode(): (v or b"").decode() for k, v in info.properties.items()}}
+    def update_service(self, zc, type_, name): self.add_service(zc, type_, name)
+    def remove_service(self, zc, type_, name): pass
+zc = Zeroconf(interfaces=["127.0.0.1"])
+ServiceBrowser(zc, "_octoprint._tcp.local.", L())
+end = time.time() + limit
+while time.time() < end and len(found) < want:
+    time.sleep(0.2)
+zc.close()
+print(json.dumps(found))
+"#;
+    for announce in [true, false] {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = prepare(tmp.path(), &format!("announce = {announce}\n"));
+        let log = tmp.path().join("daemon.log");
+        let mut launcher = Command::new("unshare");
+        launcher.args([
+            "-rn",
+            "sh",
+            "-c",
+            "ip link set lo up && ip link set lo multicast on && exec \"$@\"",
+            "sh",
+            BIN,
+        ]);
+        let daemon = Daemon::start_by(launcher, &config, &log);
+        let addr = listening(&log);
+        let port = addr.rsplit(':').next().unwrap().to_string();
+        let pid = daemon.child.id().to_string();
+        let (want, limit) = if announce { ("2", "20") } else { ("1", "4") };
+        let out = Command::new("nsenter")
+            .args(["-t", &pid, "-n", "-U", "--preserve-credentials"])
+            .arg(&python)
+            .args(["-c", browse, want, limit])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}\nlog:\n{}",
+            String::from_utf8_lossy(&out.stderr),
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
+        let found: Value = serde_json::from_slice(&out.stdout)
+            .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stdout)));
+        if !announce {
+            assert_eq!(found, json!({}), "announce = false");
+            continue;
+        }
+        for folder in ["hot", "other"] {
+            let name = format!("crispen: {folder}._octoprint._tcp.local.");
+            let entry = &found[&name];
+            assert_eq!(
+                entry["props"]["path"],
+                format!("/octoprint/{folder}/"),
+                "{found:#}"
+            );
+            assert!(
+                entry["props"]["version"]
+                    .as_str()
+                    .is_some_and(|v| !v.is_empty()),
+                "{found:#}"
+            );
+            assert_eq!(entry["port"].to_string(), port, "{found:#}");
+        }
+    }
+}

@@ -41,7 +41,11 @@ fn presence(state: PrinterState) -> Presence {
         | PrinterState::WaitingToHeat
         | PrinterState::Printing
         | PrinterState::BedNotCleared => Presence::Online,
-        PrinterState::Paused => Presence::Waiting,
+        // A halted printer needs the operator as much as a paused one: it takes no job
+        // until it was reset. (A halt that stopped a print is the job's `printer_error`.)
+        PrinterState::Paused | PrinterState::WaitingForOperator | PrinterState::Halted => {
+            Presence::Waiting
+        }
         PrinterState::Disconnected => Presence::Offline,
         PrinterState::Stopped => Presence::Stopped,
     }

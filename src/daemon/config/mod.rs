@@ -10,9 +10,9 @@
 //! without reading code; a wrong file is always an error, never silently replaced by
 //! defaults.
 
-mod pause;
 pub mod notify;
 pub mod octoprint;
+mod pause;
 pub mod ports;
 
 use crate::enhance::Strength;

@@ -429,7 +429,11 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                 filament_g: Some({
                     let r_cm = m.machine.filament_mm / 20.0;
                     let pla = crate::slice::MATERIALS[0];
-                    target.extruded_mm / 10.0 * std::f64::consts::PI * r_cm * r_cm * pla.density_g_cm3
+                    target.extruded_mm / 10.0
+                        * std::f64::consts::PI
+                        * r_cm
+                        * r_cm
+                        * pla.density_g_cm3
                 }),
                 gcode_lines: target.lines,
                 policy: Some(verdict),

@@ -87,14 +87,14 @@ fn state_text(p: Option<&PrinterStatus>) -> String {
     };
     match p.state {
         PrinterState::Printing => "Printing".to_string(),
-        PrinterState::Paused => "Paused".to_string(),
+        PrinterState::Paused | PrinterState::WaitingForOperator => "Paused".to_string(),
         PrinterState::WaitingToHeat => "Starting".to_string(),
         // A finished print still on the bed: the printer is there, it takes no job until
         // the operator clears it (`crispen.printers` says so).
         PrinterState::Idle | PrinterState::BedNotCleared => "Operational".to_string(),
         PrinterState::Connecting => "Connecting".to_string(),
         PrinterState::Disconnected => "Offline".to_string(),
-        PrinterState::Stopped => format!(
+        PrinterState::Stopped | PrinterState::Halted => format!(
             "Error: {}",
             p.detail.as_deref().unwrap_or("the printer stopped")
         ),
@@ -111,19 +111,20 @@ fn flags(p: Option<&PrinterStatus>) -> Value {
                 | PrinterState::WaitingToHeat
                 | PrinterState::Printing
                 | PrinterState::Paused
+                | PrinterState::WaitingForOperator
                 | PrinterState::BedNotCleared
         )
     );
     json!({
         "operational": operational,
         "printing": is(PrinterState::Printing) || is(PrinterState::WaitingToHeat),
-        "paused": is(PrinterState::Paused),
+        "paused": is(PrinterState::Paused) || is(PrinterState::WaitingForOperator),
         "pausing": false,
         "cancelling": false,
         "resuming": false,
         "finishing": false,
         "sdReady": false,
-        "error": is(PrinterState::Stopped),
+        "error": is(PrinterState::Stopped) || is(PrinterState::Halted),
         "ready": is(PrinterState::Idle),
         "closedOrError": !operational,
     })

@@ -17,6 +17,7 @@
 //!   printer offline) to webhooks, ntfy, Slack and Discord, queued in the spool.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
+//! - [`percent`]: names in addresses (percent-encoding), for the API, its clients and links.
 //!
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
 //! not depend on clap, anyhow or indicatif.
@@ -29,6 +30,7 @@ pub mod machine;
 pub mod marlin;
 pub mod mesh;
 pub mod notify;
+pub mod percent;
 pub mod ports;
 pub mod preview;
 pub mod service;

@@ -13,6 +13,7 @@ use anyhow::Context;
 use axum::body::Bytes;
 use crispen::daemon::config::Config;
 use crispen::daemon::control::Status;
+use crispen::percent::percent_encode;
 use http_body_util::{BodyExt, Empty, Limited};
 use hyper::{Method, Request, StatusCode};
 use hyper_util::rt::TokioIo;
@@ -81,7 +82,7 @@ impl HistoryArgs {
             ("until", &self.until),
         ] {
             if let Some(v) = value {
-                q.push_str(&format!("&{key}={}", segment(v)));
+                q.push_str(&format!("&{key}={}", percent_encode(v)));
             }
         }
         q
@@ -113,52 +114,29 @@ pub fn ask(
     method: Method,
     path: &str,
 ) -> anyhow::Result<serde_json::Value> {
-    let socket = match config {
-        Some(path) => Config::socket_of(path)?,
-        None => Config::builtin_default().socket,
-    };
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the async runtime")?;
-    let (status, answer) = runtime
-        .block_on(async {
-            tokio::time::timeout(ANSWER_TIMEOUT, exchange(&socket, method, path)).await
-        })
-        .map_err(|_| {
-            anyhow::anyhow!(
-                "control socket {}: no answer within {} s",
-                socket.display(),
-                ANSWER_TIMEOUT.as_secs()
-            )
-        })??;
-    if status.is_success() {
-        return Ok(answer);
-    }
-    match answer["error"].as_str() {
-        Some(message) => anyhow::bail!("{message}"),
-        None => anyhow::bail!("the daemon refused: HTTP {status}"),
-    }
-}
-
-async fn exchange(
-    socket: &Path,
-    method: Method,
-    path: &str,
-) -> anyhow::Result<(StatusCode, serde_json::Value)> {
-    let (status, body) = exchange_raw(socket, method, path).await?;
-    let answer = serde_json::from_slice(&body).with_context(|| {
+    let (socket, body) = ask_raw(config, method, path)?;
+    serde_json::from_slice(&body).with_context(|| {
         format!(
             "control socket {}: the answer is not JSON",
             socket.display()
         )
-    })?;
-    Ok((status, answer))
+    })
 }
 
 /// Sends one GET to the daemon; returns the body of a success as text (a CSV export),
 /// or the daemon's error message as the error.
 pub fn ask_text(config: &Option<PathBuf>, path: &str) -> anyhow::Result<String> {
+    let (_, body) = ask_raw(config, Method::GET, path)?;
+    String::from_utf8(body.to_vec()).context("the daemon's answer is not UTF-8")
+}
+
+/// One request on the control socket of `config`: the socket and the body of a
+/// success; a refusal becomes the daemon's own message (its JSON `error`).
+fn ask_raw(
+    config: &Option<PathBuf>,
+    method: Method,
+    path: &str,
+) -> anyhow::Result<(PathBuf, Bytes)> {
     let socket = match config {
         Some(path) => Config::socket_of(path)?,
         None => Config::builtin_default().socket,
@@ -169,7 +147,7 @@ pub fn ask_text(config: &Option<PathBuf>, path: &str) -> anyhow::Result<String> 
         .context("cannot start the async runtime")?;
     let (status, body) = runtime
         .block_on(async {
-            tokio::time::timeout(ANSWER_TIMEOUT, exchange_raw(&socket, Method::GET, path)).await
+            tokio::time::timeout(ANSWER_TIMEOUT, exchange_raw(&socket, method, path)).await
         })
         .map_err(|_| {
             anyhow::anyhow!(
@@ -179,7 +157,7 @@ pub fn ask_text(config: &Option<PathBuf>, path: &str) -> anyhow::Result<String> 
             )
         })??;
     if status.is_success() {
-        return String::from_utf8(body.to_vec()).context("the daemon's answer is not UTF-8");
+        return Ok((socket, body));
     }
     let answer: serde_json::Value = serde_json::from_slice(&body).unwrap_or_default();
     match answer["error"].as_str() {
@@ -218,19 +196,6 @@ async fn exchange_raw(
         .map_err(|e| anyhow::anyhow!("{}: the answer broke off: {e}", broken()))?
         .to_bytes();
     Ok((status, body))
-}
-
-/// One path segment, percent-encoded (a printer or job name as it is).
-pub fn segment(text: &str) -> String {
-    let mut out = String::new();
-    for b in text.bytes() {
-        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
-            out.push(b as char);
-        } else {
-            out.push_str(&format!("%{b:02X}"));
-        }
-    }
-    out
 }
 
 /// A command's answer: its message on stdout.
@@ -426,9 +391,9 @@ pub fn release(a: JobArgs) -> anyhow::Result<ExitCode> {
 }
 
 fn printer_path(printer: &str, action: &str) -> String {
-    format!("/api/v1/printers/{}/{action}", segment(printer))
+    format!("/api/v1/printers/{}/{action}", percent_encode(printer))
 }
 
 fn job_path(job: &str, action: &str) -> String {
-    format!("/api/v1/jobs/{}/{action}", segment(job))
+    format!("/api/v1/jobs/{}/{action}", percent_encode(job))
 }

@@ -3,8 +3,9 @@
 //! key. A client of the daemon's HTTP API on its control socket, as the dashboard's
 //! Application keys panel is over TCP.
 
-use super::control::{ask, segment};
+use super::control::ask;
 use anyhow::Context;
+use crispen::percent::percent_encode;
 use hyper::Method;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -33,9 +34,9 @@ pub enum Action {
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let path = match a.action.unwrap_or(Action::List) {
         Action::List => return list(&a.config),
-        Action::Allow { id } => format!("/api/v1/appkeys/requests/{}/allow", segment(&id)),
-        Action::Deny { id } => format!("/api/v1/appkeys/requests/{}/deny", segment(&id)),
-        Action::Revoke { id } => format!("/api/v1/appkeys/keys/{}/revoke", segment(&id)),
+        Action::Allow { id } => format!("/api/v1/appkeys/requests/{}/allow", percent_encode(&id)),
+        Action::Deny { id } => format!("/api/v1/appkeys/requests/{}/deny", percent_encode(&id)),
+        Action::Revoke { id } => format!("/api/v1/appkeys/keys/{}/revoke", percent_encode(&id)),
     };
     let answer = ask(&a.config, Method::POST, &path)?;
     if let Some(message) = answer["message"].as_str() {

@@ -1,9 +1,10 @@
 //! `crispen stats`: the farm's statistics over a period (`GET /api/v1/stats` on the
 //! control socket), as tables per printer and per hot folder, or as JSON.
 
-use super::control::{ask, segment};
+use super::control::ask;
 use anyhow::Context;
 use crispen::daemon::store::stats::{Group, Stats};
+use crispen::percent::percent_encode;
 use hyper::Method;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -33,10 +34,10 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         query.push(format!("days={days}"));
     }
     if let Some(from) = &a.from {
-        query.push(format!("from={}", segment(from)));
+        query.push(format!("from={}", percent_encode(from)));
     }
     if let Some(to) = &a.to {
-        query.push(format!("to={}", segment(to)));
+        query.push(format!("to={}", percent_encode(to)));
     }
     let path = format!("/api/v1/stats?{}", query.join("&"));
     let answer = ask(&a.config, Method::GET, &path)?;

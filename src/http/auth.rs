@@ -90,7 +90,7 @@ fn given_key(request: &Request) -> Option<Vec<u8>> {
     let query = request.uri().query()?;
     query.split('&').find_map(|pair| {
         let value = pair.strip_prefix("apikey=")?;
-        Some(super::octoprint::percent_decode(value).into_bytes())
+        Some(crate::percent::percent_decode(value).into_bytes())
     })
 }
 

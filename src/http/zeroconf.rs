@@ -88,7 +88,7 @@ pub fn announce(
     };
     for folder in &config.folders {
         let name = super::upload::folder_name(folder);
-        let path = format!("/octoprint/{}/", super::octoprint::percent_encode(&name));
+        let path = format!("/octoprint/{}/", crate::percent::percent_encode(&name));
         let properties = [
             ("path", path.as_str()),
             ("version", super::octoprint::SERVER_VERSION),

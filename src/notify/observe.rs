@@ -206,7 +206,7 @@ impl Observer {
         // The dashboard's page of the job.
         if let Some(link) = &mut e.link {
             link.push_str("/#job/");
-            link.push_str(&percent_encoded(&job.id));
+            link.push_str(&crate::percent::percent_encode(&job.id));
         }
         e.job = Some(EventJob {
             id: job.id.clone(),
@@ -215,20 +215,6 @@ impl Observer {
         });
         e
     }
-}
-
-/// `text` with every byte but letters, digits and `-._~` percent-encoded (a link must
-/// be plain ASCII: ntfy sends it in a header).
-fn percent_encoded(text: &str) -> String {
-    let mut out = String::new();
-    for b in text.bytes() {
-        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
-            out.push(b as char);
-        } else {
-            out.push_str(&format!("%{b:02X}"));
-        }
-    }
-    out
 }
 
 /// The event of a job now in `job.state`, last seen in `was` (None: new since).
@@ -343,7 +329,6 @@ mod tests {
         assert_eq!(f.job.as_ref().unwrap().id, "f");
         assert_eq!(f.printer.as_deref(), Some("p"));
         assert_eq!(f.link.as_deref(), Some("http://farm/#job/f"));
-        assert_eq!(percent_encoded("0007-a b é"), "0007-a%20b%20%C3%A9");
     }
 
     /// A printer offline is told once however often it retries, and its return once;

@@ -199,6 +199,7 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
 }
 pub mod daemon;
 pub mod farm;
+pub mod http;
 pub mod postgres;
 pub mod receiver;
 pub mod relay;

@@ -7,11 +7,11 @@
 
 use crate::common;
 use common::daemon::{Daemon, Killed, BIN};
+use common::http::{exchange, on_socket, raw, request, Answer};
 use common::{job_by_file, printer};
 use serde_json::{json, Value};
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
-use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -113,126 +113,8 @@ impl Farm {
     }
 }
 
-fn key_header(key: Option<&str>) -> Vec<(&'static str, String)> {
-    key.map(|k| vec![("X-Api-Key", k.to_string())])
-        .unwrap_or_default()
-}
-
-struct Answer {
-    status: u16,
-    headers: String,
-    body: Vec<u8>,
-}
-
-impl Answer {
-    fn text(&self) -> String {
-        String::from_utf8_lossy(&self.body).into_owned()
-    }
-    fn json(&self) -> Value {
-        serde_json::from_slice(&self.body)
-            .unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.text()))
-    }
-    /// The JSON error message, asserting the body is `{"error": "..."}`.
-    fn error(&self) -> String {
-        self.json()["error"]
-            .as_str()
-            .unwrap_or_else(|| panic!("no error message in {}", self.text()))
-            .to_string()
-    }
-}
-
-/// One HTTP/1.1 request on its own connection, the bytes written exactly as given.
-fn request(
-    addr: &str,
-    method: &str,
-    path: &str,
-    headers: &[(&str, String)],
-    body: &[u8],
-) -> Answer {
-    let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
-    for (k, v) in headers {
-        head.push_str(&format!("{k}: {v}\r\n"));
-    }
-    head.push_str(&format!("Content-Length: {}\r\n\r\n", body.len()));
-    let mut bytes = head.into_bytes();
-    bytes.extend_from_slice(body);
-    raw(addr, &bytes)
-}
-
-/// Sends `bytes` and reads the answer to the end (skipping a `100 Continue`).
-fn raw(addr: &str, bytes: &[u8]) -> Answer {
-    let stream = TcpStream::connect(addr).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(60)))
-        .unwrap();
-    exchange(stream, bytes)
-}
-
-/// One request on the control socket, which needs no key.
-fn on_socket(socket: &Path, method: &str, path: &str) -> Answer {
-    let stream = UnixStream::connect(socket).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(60)))
-        .unwrap();
-    let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nContent-Length: 0\r\n\r\n"
-    );
-    exchange(stream, head.as_bytes())
-}
-
-fn exchange(mut stream: impl Read + Write, bytes: &[u8]) -> Answer {
-    // The server may answer (an error) before taking the whole body; that is fine.
-    let _ = stream.write_all(bytes);
-    let mut reader = BufReader::new(stream);
-    loop {
-        let mut status_line = String::new();
-        reader.read_line(&mut status_line).unwrap();
-        let status: u16 = status_line
-            .split_whitespace()
-            .nth(1)
-            .unwrap_or_else(|| panic!("no status line: {status_line:?}"))
-            .parse()
-            .unwrap();
-        let mut headers = String::new();
-        loop {
-            let mut line = String::new();
-            reader.read_line(&mut line).unwrap();
-            if line == "\r\n" || line.is_empty() {
-                break;
-            }
-            headers.push_str(&line.to_ascii_lowercase());
-        }
-        if status == 100 {
-            continue;
-        }
-        let mut body = Vec::new();
-        if headers.contains("transfer-encoding: chunked") {
-            loop {
-                let mut size = String::new();
-                reader.read_line(&mut size).unwrap();
-                let size = usize::from_str_radix(size.trim(), 16).unwrap();
-                let mut chunk = vec![0; size + 2];
-                reader.read_exact(&mut chunk).unwrap();
-                if size == 0 {
-                    break;
-                }
-                body.extend_from_slice(&chunk[..size]);
-            }
-        } else if let Some(length) = headers
-            .lines()
-            .find_map(|l| l.strip_prefix("content-length:"))
-        {
-            body.resize(length.trim().parse().unwrap(), 0);
-            reader.read_exact(&mut body).unwrap();
-        } else {
-            let _ = reader.read_to_end(&mut body);
-        }
-        return Answer {
-            status,
-            headers,
-            body,
-        };
-    }
+fn key_header(key: Option<&str>) -> Vec<(&'static str, &str)> {
+    key.map(|k| vec![("X-Api-Key", k)]).unwrap_or_default()
 }
 
 /// The CLI against the farm made in `root`: whether it succeeded, and what it said.
@@ -499,7 +381,7 @@ fn api_over_tcp_with_and_without_the_key() {
     for name in ["before.png", "after.png", "displacement.png", "walls.png"] {
         let a = farm.get(&format!("/api/v1/jobs/{id}/pictures/{name}"), Some(KEY));
         assert_eq!(a.status, 200, "{name}");
-        assert!(a.headers.contains("content-type: image/png"));
+        assert_eq!(a.header("content-type").as_deref(), Some("image/png"));
         assert_eq!(&a.body[..8], b"\x89PNG\r\n\x1a\n", "{name} is a PNG");
     }
     for other in ["job.json", "..%2Fjob.json", "spot.obj.gcode"] {
@@ -565,7 +447,10 @@ fn api_over_tcp_with_and_without_the_key() {
     // Metrics: Prometheus names, no file names as labels.
     let m = farm.get("/metrics", Some(KEY));
     assert_eq!(m.status, 200);
-    assert!(m.headers.contains("text/plain; version=0.0.4"));
+    assert!(m
+        .header("content-type")
+        .unwrap()
+        .contains("text/plain; version=0.0.4"));
     let m = m.text();
     for line in [
         "crispen_printer_up{printer=\"alpha\"} 1",
@@ -1035,7 +920,7 @@ fn webdriver(addr: &str, method: &str, path: &str, body: &Value) -> Value {
     } else {
         serde_json::to_vec(body).unwrap()
     };
-    let headers = [("Content-Type", "application/json".to_string())];
+    let headers = [("Content-Type", "application/json")];
     let a = request(addr, method, path, &headers, &body);
     let v = a.json();
     assert_eq!(a.status, 200, "WebDriver {method} {path}: {v}");

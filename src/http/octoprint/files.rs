@@ -186,7 +186,7 @@ pub async fn upload(
     };
     let encoded = path
         .split('/')
-        .map(super::percent_encode)
+        .map(crate::percent::percent_encode)
         .collect::<Vec<_>>()
         .join("/");
     let location = format!(
@@ -271,7 +271,7 @@ pub async fn command(
         .strip_prefix("api/files/local/")
         .unwrap_or("")
         .to_string();
-    let path = super::percent_decode(&path);
+    let path = crate::percent::percent_decode(&path);
     let (folder_part, file) = match path.rsplit_once('/') {
         Some((folder, file)) => (Some(folder), file),
         None => (None, path.as_str()),

@@ -57,7 +57,7 @@ impl Instance {
             Some(after) => {
                 let (segment, rest) = after.split_once('/').unwrap_or((after, ""));
                 Instance {
-                    folder: Some(percent_decode(segment)),
+                    folder: Some(crate::percent::percent_decode(segment)),
                     base: format!("/octoprint/{segment}/"),
                     rest: rest.to_string(),
                 }
@@ -120,39 +120,6 @@ fn no_default(config: &Config) -> ApiError {
             .collect::<Vec<_>>()
             .join(", ")
     ))
-}
-
-/// `%XX` decoded (a folder's name in an address); invalid sequences stay as they are.
-pub fn percent_decode(text: &str) -> String {
-    let bytes = text.as_bytes();
-    let mut out = Vec::with_capacity(bytes.len());
-    let mut i = 0;
-    while i < bytes.len() {
-        let hex = |b: u8| (b as char).to_digit(16);
-        match (bytes[i], bytes.get(i + 1), bytes.get(i + 2)) {
-            (b'%', Some(&h), Some(&l)) if hex(h).is_some() && hex(l).is_some() => {
-                out.push((hex(h).unwrap() * 16 + hex(l).unwrap()) as u8);
-                i += 3;
-            }
-            (b, _, _) => {
-                out.push(b);
-                i += 1;
-            }
-        }
-    }
-    String::from_utf8_lossy(&out).into_owned()
-}
-
-/// A name as one segment of an address: everything but unreserved characters escaped.
-pub fn percent_encode(text: &str) -> String {
-    text.bytes()
-        .map(|b| match b {
-            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'.' | b'_' | b'~' => {
-                (b as char).to_string()
-            }
-            _ => format!("%{b:02X}"),
-        })
-        .collect()
 }
 
 pub async fn version() -> Json<serde_json::Value> {
@@ -285,8 +252,6 @@ mod tests {
             (i.folder, i.base.as_str(), i.rest.as_str()),
             (None, "/", "api/version")
         );
-        assert_eq!(percent_decode("a%2Fb%zz%4"), "a/b%zz%4");
-        assert_eq!(percent_encode("a b/é.gcode"), "a%20b%2F%C3%A9.gcode");
-        assert_eq!(percent_decode(&percent_encode("x y%z")), "x y%z");
+        assert_eq!(crate::percent::percent_decode("a%2Fb%zz%4"), "a/b%zz%4");
     }
 }

@@ -43,26 +43,6 @@ pub fn is_heat_wait(command: &str) -> bool {
 /// at that point and waits for the operator (see `super::pause`).
 pub const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
 
-/// Whether a command (its first word, in any case; `M0` also as `M00`) is one of
-/// [`FILE_PAUSES`].
-pub fn is_file_pause(command: &str) -> bool {
-    let code = command.split_whitespace().next().unwrap_or("");
-    let normal = match code.get(1..).and_then(|n| n.parse::<u32>().ok()) {
-        Some(n) if code.starts_with(['M', 'm']) => n,
-        _ => return false,
-    };
-    FILE_PAUSES
-        .iter()
-        .any(|c| c[1..].parse::<u32>().ok() == Some(normal))
-}
-
-/// The message an `M117` command shows on the printer's display, if it is one.
-pub fn display_message(command: &str) -> Option<&str> {
-    let code = command.split_whitespace().next().unwrap_or("");
-    code.eq_ignore_ascii_case("M117")
-        .then(|| command[code.len()..].trim())
-}
-
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
     #[error("cannot read G-code file {path}: {source}")]

@@ -1,6 +1,8 @@
 //! Talking to Marlin printers.
 //!
 //! - [`firmware`]: what each supported firmware can do (buffer sizes, optional features).
+//! - `gcode`, `motion`, `pause`: G-code as the firmware reads it: a job's commands, the
+//!   one follower of where its moves take the head, and the pauses a file asks for.
 //! - `protocol`: the host state machine. Pure: bytes and the current time go in, lines to
 //!   send, events and deadlines come out. No ports, no clocks.
 //! - `transport` / `stream`: the serial port and the async driver around the state machine.
@@ -9,6 +11,7 @@
 
 pub mod firmware;
 pub mod gcode;
+pub mod motion;
 pub mod pause;
 pub mod protocol;
 pub mod sim;

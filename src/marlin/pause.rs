@@ -15,7 +15,8 @@
 //! builds leave out and Ultimaker2Marlin does not have, and a firmware that lacks them answers
 //! `Unknown command` and would send the head to a wrong place on resume.
 
-use super::gcode::{display_message, is_file_pause, GcodeCommands};
+use super::gcode::{GcodeCommands, FILE_PAUSES};
+use super::motion::{parse, Command, Motion};
 use super::protocol::Temperatures;
 
 /// A pause the file asks for.
@@ -25,44 +26,59 @@ pub struct FilePause {
     pub index: usize,
     /// The command as written, e.g. `M0 Insert magnets`.
     pub command: String,
-    /// What the operator is told: the command's own text, or else the last `M117` message
-    /// before it, or else what the command is for.
+    /// What the operator is told: see [`pause_message`].
     pub message: String,
 }
 
 /// Finds the pauses of a job, in order.
 pub fn find_pauses(commands: &GcodeCommands) -> Vec<FilePause> {
-    let mut shown: Option<String> = None;
+    let mut shown = None;
     let mut pauses = Vec::new();
     for (index, command) in commands.iter().enumerate() {
-        if let Some(text) = display_message(command) {
-            // An empty M117 clears the display.
-            shown = (!text.is_empty()).then(|| text.to_string());
-            continue;
+        let Some(cmd) = parse(command) else { continue };
+        if let Some(message) = pause_message(&cmd, &mut shown) {
+            pauses.push(FilePause {
+                index,
+                command: command.to_string(),
+                message,
+            });
         }
-        if !is_file_pause(command) {
-            continue;
-        }
-        let own = own_text(command);
-        let message = match (own, &shown) {
-            (Some(own), _) => own.to_string(),
-            (None, Some(shown)) => shown.clone(),
-            (None, None) => format!("{} ({})", command.trim(), purpose(command)),
-        };
-        pauses.push(FilePause {
-            index,
-            command: command.to_string(),
-            message,
-        });
     }
     pauses
 }
 
-/// The text of `M0 Insert magnets` (after the code and any `P<ms>`/`S<s>` word).
-fn own_text(command: &str) -> Option<&str> {
-    let code = command.split_whitespace().next()?;
-    let mut rest = command[code.len()..].trim_start();
-    // M0/M1 take an optional time before their message.
+/// Read in file order: follows the display's message (`M117`, kept in `shown`), and for a
+/// pause the file asks for ([`FILE_PAUSES`]) says what the operator is told: the command's
+/// own text (`M0 Insert magnets`), or else the last message shown before it, or else what
+/// the command is for. `None` for any other command. The host's pauses and the G-code
+/// policy's verdict both read pauses with this, so they name the same ones.
+pub fn pause_message(cmd: &Command, shown: &mut Option<String>) -> Option<String> {
+    if cmd.code == "M117" {
+        // An empty M117 clears the display.
+        *shown = (!cmd.rest.is_empty()).then(|| cmd.rest.to_string());
+        return None;
+    }
+    if !FILE_PAUSES.contains(&cmd.code.as_str()) {
+        return None;
+    }
+    Some(match (own_text(cmd), shown.as_ref()) {
+        (Some(own), _) => own.to_string(),
+        (None, Some(shown)) => shown.clone(),
+        (None, None) => format!(
+            "{} ({})",
+            format!("{} {}", cmd.code, cmd.rest).trim_end(),
+            purpose(&cmd.code)
+        ),
+    })
+}
+
+/// The message of `M0 Insert magnets` or `M1 S5 Turn the part` (after any `P<ms>` or
+/// `S<s>` time); only M0/M1 carry a free message, the others' words are parameters.
+fn own_text<'a>(cmd: &Command<'a>) -> Option<&'a str> {
+    if !matches!(cmd.code.as_str(), "M0" | "M1") {
+        return None;
+    }
+    let mut rest = cmd.rest;
     while let Some(word) = rest.split_whitespace().next() {
         let timed = word.len() > 1
             && word.starts_with(['P', 'S', 'p', 's'])
@@ -72,134 +88,16 @@ fn own_text(command: &str) -> Option<&str> {
         }
         rest = rest[word.len()..].trim_start();
     }
-    let code_no = code[1..].parse::<u32>().ok()?;
-    // Only M0/M1 carry a free message; the others' words are parameters.
-    (matches!(code_no, 0 | 1) && !rest.is_empty()).then_some(rest.trim_end())
+    (!rest.is_empty()).then_some(rest.trim_end())
 }
 
-fn purpose(command: &str) -> &'static str {
-    let code = command.split_whitespace().next().unwrap_or("");
-    match code.get(1..).and_then(|n| n.parse::<u32>().ok()) {
-        Some(600) => "filament change",
-        Some(0 | 1) => "wait for the user",
-        Some(125) => "park the head",
-        Some(226) => "wait for a pin",
+fn purpose(code: &str) -> &'static str {
+    match code {
+        "M600" => "filament change",
+        "M0" | "M1" => "wait for the user",
+        "M125" => "park the head",
+        "M226" => "wait for a pin",
         _ => "pause the print",
-    }
-}
-
-/// The position and modes of the printer as the file has set them so far: where the head
-/// goes back to after a pause, and the modes the resume restores (the park changes them).
-/// An axis is `None` while its position is not known from the file (before its first move
-/// or `G92`, and after it was homed: the firmware's home position is not in the file).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Motion {
-    /// `G91` is in force (X, Y, Z and, unless `M82` followed, E are relative).
-    pub relative: bool,
-    /// E is relative (`M83`, or `G91` without a later `M82`).
-    pub relative_e: bool,
-    /// X, Y, Z, E in the file's coordinates.
-    pub position: [Option<f64>; 4],
-    /// The last feed rate (mm/min) a move gave.
-    pub feed: Option<f64>,
-}
-
-const AXES: [char; 4] = ['X', 'Y', 'Z', 'E'];
-
-/// `G1 X10.5Y-2` into its letters and numbers (letters in upper case; a letter without a
-/// number gets `None`).
-fn words(command: &str) -> Vec<(char, Option<f64>)> {
-    let mut out = Vec::new();
-    let bytes = command.as_bytes();
-    let mut i = 0;
-    while i < bytes.len() {
-        let c = bytes[i] as char;
-        if !c.is_ascii_alphabetic() {
-            i += 1;
-            continue;
-        }
-        let start = i + 1;
-        let mut end = start;
-        while end < bytes.len() && matches!(bytes[end], b'0'..=b'9' | b'.' | b'-' | b'+') {
-            end += 1;
-        }
-        out.push((
-            c.to_ascii_uppercase(),
-            command[start..end].parse::<f64>().ok(),
-        ));
-        i = end.max(start);
-    }
-    out
-}
-
-impl Motion {
-    /// Follows one command.
-    pub fn follow(&mut self, command: &str) {
-        let w = words(command);
-        let Some(&(letter, Some(code))) = w.first() else {
-            return;
-        };
-        // `G1.5` and the like are no command this follows.
-        if code.fract() != 0.0 || !(0.0..=10_000.0).contains(&code) {
-            return;
-        }
-        let code = code as u32;
-        let value = |axis: char| {
-            w.iter()
-                .skip(1)
-                .find(|(l, _)| *l == axis)
-                .and_then(|(_, v)| *v)
-        };
-        let named = |axis: char| w.iter().skip(1).any(|(l, _)| *l == axis);
-        match (letter, code) {
-            ('G', 0..=3) => {
-                for (i, axis) in AXES.into_iter().enumerate() {
-                    let Some(v) = value(axis) else { continue };
-                    let relative = if axis == 'E' {
-                        self.relative_e
-                    } else {
-                        self.relative
-                    };
-                    self.position[i] = if relative {
-                        self.position[i].map(|p| p + v)
-                    } else {
-                        Some(v)
-                    };
-                }
-                if let Some(f) = value('F') {
-                    self.feed = Some(f);
-                }
-            }
-            ('G', 28) => {
-                let all = !['X', 'Y', 'Z'].into_iter().any(named);
-                for (i, axis) in ['X', 'Y', 'Z'].into_iter().enumerate() {
-                    if all || named(axis) {
-                        self.position[i] = None;
-                    }
-                }
-            }
-            ('G', 90) => {
-                self.relative = false;
-                self.relative_e = false;
-            }
-            ('G', 91) => {
-                self.relative = true;
-                self.relative_e = true;
-            }
-            ('G', 92) => {
-                let all = !AXES.into_iter().any(named);
-                for (i, axis) in AXES.into_iter().enumerate() {
-                    if all {
-                        self.position[i] = Some(0.0);
-                    } else if named(axis) {
-                        self.position[i] = Some(value(axis).unwrap_or(0.0));
-                    }
-                }
-            }
-            ('M', 82) => self.relative_e = false,
-            ('M', 83) => self.relative_e = true,
-            _ => {}
-        }
     }
 }
 
@@ -249,18 +147,27 @@ fn num(v: f64) -> String {
 
 /// The lines that park the printer at a pause, with `motion` as the file left it; `None` when
 /// the head's position is not known (nothing is moved then: a blind move could hit the
-/// print). Ends with `M400`, so the park is over once its lines are answered.
+/// print). The park is on the machine (X at its minimum, Y at its maximum, lifted), written
+/// in the file's coordinates, which a `G92` in the file may have shifted. Ends with `M400`,
+/// so the park is over once its lines are answered.
 pub fn park_lines(settings: &PauseSettings, motion: &Motion) -> Option<Vec<String>> {
-    let [Some(_), Some(_), Some(z), _] = motion.position else {
-        return None;
-    };
+    let [_, _, z] = motion.known_machine_position()?;
     let [_, y_max, z_max] = settings.volume_mm;
     let lift = settings.lift_mm.min((z_max - z).max(0.0));
     let mut lines = vec!["M400".to_string(), "G90".to_string()];
     if lift > 0.0 {
-        lines.push(format!("G1 Z{} F{}", num(z + lift), num(Z_FEED)));
+        lines.push(format!(
+            "G1 Z{} F{}",
+            num(motion.to_file(2, z + lift)),
+            num(Z_FEED)
+        ));
     }
-    lines.push(format!("G1 X0 Y{} F{}", num(y_max), num(XY_FEED)));
+    lines.push(format!(
+        "G1 X{} Y{} F{}",
+        num(motion.to_file(0, 0.0)),
+        num(motion.to_file(1, y_max)),
+        num(XY_FEED)
+    ));
     lines.push("M400".to_string());
     Some(lines)
 }
@@ -294,19 +201,19 @@ pub fn resume_lines(motion: &Motion, parked: bool, reheat: Option<&Temperatures>
             lines.push(format!("M109 S{}", num(s)));
         }
     }
+    let position = motion.file_position();
     if parked {
-        if let [Some(x), Some(y), Some(z), _] = motion.position {
+        if let [Some(x), Some(y), Some(z), _] = position {
             lines.push("G90".to_string());
             lines.push(format!("G1 X{} Y{} F{}", num(x), num(y), num(XY_FEED)));
             lines.push(format!("G1 Z{} F{}", num(z), num(Z_FEED)));
         }
     }
-    lines.push(if motion.relative { "G91" } else { "G90" }.to_string());
-    lines.push(if motion.relative_e { "M83" } else { "M82" }.to_string());
-    if let (false, Some(e)) = (motion.relative_e, motion.position[3]) {
+    lines.extend(motion.mode_commands().map(String::from));
+    if let (false, Some(e)) = (motion.e_relative(), position[3]) {
         lines.push(format!("G92 E{}", num(e)));
     }
-    if let Some(f) = motion.feed {
+    if let Some(f) = motion.feed() {
         lines.push(format!("G1 F{}", num(f)));
     }
     lines
@@ -360,44 +267,48 @@ mod tests {
         );
     }
 
-    #[test]
-    fn motion_follows_modes_and_positions() {
+    fn followed(lines: &[&str]) -> Motion {
         let mut m = Motion::default();
-        for c in [
-            "G28",
-            "G90",
-            "M83",
-            "G1 Z0.2 F600",
-            "G1 X10 Y20 E1 F1800",
-            "G1 X12 E0.5",
-        ] {
-            m.follow(c);
+        for line in lines {
+            m.apply(&parse(line).unwrap()).unwrap();
         }
+        m
+    }
+
+    #[test]
+    fn the_head_is_known_only_where_the_file_says_where_it_is() {
+        let m = followed(&["G28", "G90", "M83", "G1 Z0.2 F600", "G1 X10 Y20 E1 F1800"]);
         assert_eq!(
-            m.position,
-            [Some(12.0), Some(20.0), Some(0.2), None],
+            m.file_position(),
+            [Some(10.0), Some(20.0), Some(0.2), None],
             "E relative from an unknown start stays unknown"
         );
-        assert!(!m.relative && m.relative_e);
-        assert_eq!(m.feed, Some(1800.0));
-        m.follow("G92 E0");
-        m.follow("G1 E2");
-        m.follow("G1 E1.5");
-        assert_eq!(m.position[3], Some(3.5));
-        m.follow("G91");
-        m.follow("G1X1Y-2");
-        assert_eq!(m.position[..2], [Some(13.0), Some(18.0)]);
-        m.follow("G28 X");
-        assert_eq!(m.position[0], None);
+        assert!(m.e_relative());
+        assert_eq!(m.feed(), Some(1800.0));
+        let m = followed(&["G28", "G1 X10 Y20 Z5", "G28 X"]);
+        assert_eq!(
+            m.file_position()[..2],
+            [None, Some(20.0)],
+            "homed: not known"
+        );
+        assert_eq!(m.known_machine_position(), None);
+        // Relative moves from a known place stay known; Marlin 2's G91 makes E relative.
+        let m = followed(&["G1 X10 Y20 Z5", "G92 E0", "G91", "G1 X1 Y-2 E2"]);
+        assert_eq!(
+            m.file_position(),
+            [Some(11.0), Some(18.0), Some(5.0), Some(2.0)]
+        );
+        assert_eq!(m.mode_commands(), ["G91", "M83"]);
+        // A G92 on an axis whose place is not known shifts the file's coordinates by an
+        // unknown amount: its later moves do not make it known on the machine.
+        let m = followed(&["G28", "G92 Z5", "G1 X1 Y1 Z6"]);
+        assert_eq!(m.known_machine_position(), None);
     }
 
     #[test]
     fn park_stays_in_the_volume_and_resume_restores_the_file_state() {
         let settings = PauseSettings::new([220.0, 220.0, 250.0]);
-        let mut m = Motion::default();
-        for c in ["G90", "M82", "G92 E0", "G1 X50 Y60 Z245 E12.5 F1500"] {
-            m.follow(c);
-        }
+        let m = followed(&["G90", "M82", "G92 E0", "G1 X50 Y60 Z245 E12.5 F1500"]);
         let park = park_lines(&settings, &m).unwrap();
         assert_eq!(
             park,
@@ -431,6 +342,11 @@ mod tests {
                 "G1 F1500"
             ]
         );
+        // Where the file shifted its coordinates (G92 X0 at machine X30), the park still
+        // goes to the machine's X0: X-30 in the file's; the return is in the file's.
+        let m = followed(&["G28", "G1 X30 Y40 Z2", "G92 X0", "G1 X5"]);
+        assert_eq!(park_lines(&settings, &m).unwrap()[3], "G1 X-30 Y220 F6000");
+        assert_eq!(resume_lines(&m, true, None)[1], "G1 X5 Y40 F6000");
         // Unknown position: no park, and the resume moves nothing.
         let homed = Motion::default();
         assert_eq!(park_lines(&settings, &homed), None);

@@ -5,7 +5,8 @@
 
 use super::firmware::Firmware;
 use super::gcode::{GcodeCommands, GcodeProgram};
-use super::pause::{find_pauses, heaters_off_lines, park_lines, resume_lines, FilePause, Motion};
+use super::motion::{parse, Motion};
+use super::pause::{find_pauses, heaters_off_lines, park_lines, resume_lines, FilePause};
 use super::protocol::reply::{HostAction, Reply};
 use super::protocol::{Event, Failure, Host, ProtocolOptions};
 use super::transport::{LinkEvent, Transport, TransportError};
@@ -827,7 +828,7 @@ impl Connection {
             sent: Sent::default(),
         };
         let commands = program.shared_commands();
-        let mut motion = Motion::default();
+        let mut motion = Motion::new(self.opts.firmware);
         let mut from = 0;
         for pause in &pauses {
             let part = commands.part(from..pause.index);
@@ -835,8 +836,10 @@ impl Connection {
                 self.stream_part(&mut run, &mut control, part.clone(), from, Part::Job)
                     .await?;
             }
-            for command in part.iter() {
-                motion.follow(command);
+            for command in part.iter().filter_map(parse) {
+                // What cannot be followed was refused at preparation (the G-code policy;
+                // only the daemon streams files with pauses).
+                let _ = motion.apply(&command);
             }
             let line = program.source_line(pause.index);
             self.wait_for_operator(&mut run, &mut control, pause, line, &motion)

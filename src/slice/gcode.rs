@@ -1,6 +1,6 @@
 //! Checking a slicer's G-code before it becomes a job, and reading its figures.
 //!
-//! The check follows the moves as Marlin would ([`super::motion`]: G90/G91, M82/M83, G92,
+//! The check follows the moves as Marlin would ([`crate::marlin::motion`]: G90/G91, M82/M83, G92,
 //! G28, arcs, offsets) and demands:
 //! some extruding moves; every move inside the machine (X, Y within the bed, Z within the
 //! height, with a 0.5 mm allowance for rounding: the start code's purge and the skirt are
@@ -9,8 +9,8 @@
 //! layers (which would leave the rest printed in the air); and both heaters switched on
 //! (M104/M109 and M140/M190) before the first extrusion. It also counts layers and reads the slicer's estimates.
 
-use super::motion::{self, Motion};
 use crate::marlin::firmware::Firmware;
+use crate::marlin::motion::{self, Motion};
 use std::io::BufRead;
 
 /// What the job must satisfy.

@@ -18,7 +18,6 @@
 
 pub mod cura;
 pub mod gcode;
-pub mod motion;
 pub mod policy;
 pub mod presliced;
 pub mod process;

@@ -9,24 +9,25 @@
 //! - commands that change a printer beyond the job (EEPROM, firmware update, settings that
 //!   outlive the job, SD-card writes, endstops off, cold extrusion, halts): refused unless
 //!   the machine allows the command by name (`allow = ["M500"]`), see [`REFUSED`];
-//! - every move is followed ([`super::motion`]) and must stay on the bed, arcs included;
+//! - every move is followed ([`crate::marlin::motion`]) and must stay on the bed, arcs included;
 //!   what cannot be followed is refused;
-//! - pauses the file asks for ([`PAUSE_COMMANDS`]) are not refused: the host intercepts them;
-//!   the verdict lists them with their message.
+//! - pauses the file asks for ([`FILE_PAUSES`]) are not refused: the host intercepts them;
+//!   the verdict lists them with the message the host will show
+//!   ([`crate::marlin::pause::pause_message`]).
 //!
 //! [`check`] is pure over a reader; [`check_file`] adds the host's own load-time checks
 //! ([`crate::marlin::gcode::GcodeProgram`]: text, line length, characters the firmware
 //! cannot take), so a file that cannot be streamed fails here too. Every refusal names the
 //! file's line, the command and why.
 
-use super::motion::{self, Motion};
 use crate::machine::Machine;
+use crate::marlin::motion::{self, Motion};
+use crate::marlin::pause::pause_message;
 use serde::{Deserialize, Serialize};
 use std::io::{BufRead, Read};
 use std::path::Path;
 
-/// The commands a file uses to ask for a pause: intercepted by the host, never sent.
-pub const PAUSE_COMMANDS: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
+pub use crate::marlin::gcode::FILE_PAUSES;
 
 pub use crate::machine::commands::REFUSED;
 
@@ -161,7 +162,7 @@ pub fn refused(cmd: &motion::Command) -> Option<&'static str> {
 pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict> {
     let mut v = Verdict::default();
     let mut motion = Motion::new(machine.firmware);
-    let mut last_message = String::new();
+    let mut shown = None;
     let mut allowed: Vec<(String, usize)> = Vec::new();
     let mut raw = Vec::new();
     let mut reader = reader;
@@ -203,7 +204,7 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
             &mut motion,
             &mut v,
             &mut allowed,
-            &mut last_message,
+            &mut shown,
         );
     }
     v.lines = number;
@@ -220,26 +221,16 @@ fn judge(
     motion: &mut Motion,
     v: &mut Verdict,
     allowed: &mut Vec<(String, usize)>,
-    last_message: &mut String,
+    shown: &mut Option<String>,
 ) {
     let code = cmd.code.as_str();
-    if code == "M117" {
-        *last_message = cmd.rest.to_string();
-    }
-    if PAUSE_COMMANDS.contains(&code) {
+    if let Some(message) = pause_message(cmd, shown) {
         v.pauses_total += 1;
         if v.pauses.len() < MAX_LISTED {
-            let own = cmd.rest.trim();
             v.pauses.push(Pause {
                 line,
                 command: quote(text),
-                message: if !own.is_empty() && matches!(code, "M0" | "M1") {
-                    own.to_string()
-                } else if !last_message.is_empty() {
-                    last_message.clone()
-                } else {
-                    quote(text)
-                },
+                message,
             });
         }
         return;

@@ -5,15 +5,15 @@
 //! block at the end (`; filament_diameter = 2.85`, `; nozzle_diameter`, `; printer_model`,
 //! `; bed_shape`, `; max_print_height`), CuraEngine's header (`;FLAVOR:`,
 //! `;NOZZLE_DIAMETER:`) and Cura's settings block (`;SETTING_3 ...definition = ultimaker2...`),
-//! and follows the moves as Marlin would ([`super::motion`]) for their extent, arcs
+//! and follows the moves as Marlin would ([`crate::marlin::motion`]) for their extent, arcs
 //! included. [`check_for`] compares that with
 //! a [`Machine`]: a file made for another filament or nozzle, another known printer, the
 //! SD-card-only UltiGCode flavour, or whose moves leave the machine's bed is refused with
 //! the reason. Binary G-code (PrusaSlicer's `.bgcode`) is refused by [`read_target`].
 //! Pure functions over a reader; no slicer is run.
 
-use super::motion::{self, Motion};
 use crate::machine::Machine;
+use crate::marlin::motion::{self, Motion};
 use std::io::BufRead;
 
 /// The first bytes of a binary G-code file (PrusaSlicer 2.7's `.bgcode`).

@@ -3,7 +3,7 @@
 //!
 //! The outer wall is what a viewer sees of a print, and slicers mark it: PrusaSlicer
 //! `;TYPE:External perimeter`, CuraEngine `;TYPE:WALL-OUTER`. [`outer_walls`] follows the
-//! moves as Marlin would ([`super::motion`]) and keeps every extruding move of that
+//! moves as Marlin would ([`crate::marlin::motion`]) and keeps every extruding move of that
 //! type as a segment of its layer (layers keyed by Z to the micrometre). [`compare`]
 //! samples the enhanced walls every [`SAMPLE_SPACING_MM`] and measures each sample's
 //! distance to the nearest segment of the plain wall of the same layer (a grid of cells
@@ -14,7 +14,7 @@
 //! [`MAX_DISTANCE_MM`] (a wall moved that far is not a detail, and the cap bounds the
 //! search), and a wall longer than [`MAX_SAMPLES`] samples is sampled more coarsely.
 
-use super::motion::{self, Motion};
+use crate::marlin::motion::{self, Motion};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::BufRead;

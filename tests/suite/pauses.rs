@@ -7,7 +7,8 @@
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
-use crispen::marlin::pause::{find_pauses, park_lines, resume_lines, Motion};
+use crispen::marlin::motion::{parse, Motion};
+use crispen::marlin::pause::{find_pauses, park_lines, resume_lines};
 use crispen::marlin::sim::{self, is_housekeeping, SimConfig, SimHandle};
 use crispen::marlin::stream::{
     Connection, PauseSettings, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
@@ -74,8 +75,10 @@ async fn a_file_pause_stops_at_exactly_its_line_and_resumes_every_line_once() {
         let pause = find_pauses(program.commands())[0].clone();
         let before = &commands[..pause.index];
         let after = &commands[pause.index + 1..];
-        let mut motion = Motion::default();
-        before.iter().for_each(|c| motion.follow(c));
+        let mut motion = Motion::new(fw);
+        for c in before.iter().filter_map(|c| parse(c)) {
+            motion.apply(&c).unwrap();
+        }
         let mut settings = PauseSettings::new(VOLUME);
         settings.heaters_off_after = Duration::from_secs(2);
         let park = park_lines(&settings, &motion).unwrap();

@@ -1,8 +1,9 @@
 //! One follower of G-code motion, as Marlin moves the head: every reader of G-code that
-//! needs to know where the nozzle goes (the slicer-output check `gcode`, the pre-sliced
-//! check `presliced`, the outer-wall measure `walls` and the G-code policy `policy`, its
-//! siblings, which build on it) reads commands with [`parse`] and follows them with one
-//! [`Motion`], so they cannot disagree about where a file sends the printer.
+//! needs to know where the nozzle goes (in `slice`: the slicer-output check `gcode`, the
+//! pre-sliced check `presliced`, the outer-wall measure `walls`, the G-code policy
+//! `policy`; in the host: where a pause parks the head and where the print resumes,
+//! the sibling `pause`) reads commands with [`parse`] and follows them with one [`Motion`],
+//! so they cannot disagree about where a file sends the printer.
 //!
 //! Positions are kept in the machine's own coordinates (where the head physically is,
 //! homed at 0), apart from the coordinates the file writes: `G92` shifts the file's
@@ -230,9 +231,22 @@ pub struct Motion {
     home_offset: [f64; 3],
     /// `M206` given but, on Marlin 1 (Ultimaker2Marlin), in force only from the next homing.
     pending_home_offset: Option<[f64; 3]>,
+    /// `G90` (true) or `G91`.
     absolute: bool,
+    /// E's own mode, `M82` (true) or `M83`; on Marlin 2 `G90`/`G91` set it too.
     absolute_e: bool,
-    saved: Option<[f64; 3]>,
+    /// Where `G60` saved the head, and whether that position was known.
+    saved: Option<([f64; 3], [bool; 3])>,
+    /// Whether the file has said where the head is: X, Y, Z on the machine (not after
+    /// homing, whose position the file does not give, until an absolute move) and its E.
+    /// The bed checks count from the origin either way; a pause parks only a head whose
+    /// place is known, since a blind move could hit the print.
+    known: [bool; 4],
+    /// Whether `G92`'s shift of X, Y, Z is known: one given while the axis's position was
+    /// not known makes the file's coordinates count from an unknown place.
+    shift_known: [bool; 3],
+    /// The last feed rate (mm/min) a move gave.
+    feed: Option<f64>,
     firmware: Firmware,
 }
 
@@ -255,8 +269,56 @@ impl Motion {
             absolute: true,
             absolute_e: true,
             saved: None,
+            known: [false; 4],
+            shift_known: [true; 3],
+            feed: None,
             firmware,
         }
+    }
+
+    /// Whether E moves are relative: `M83`, or on Marlin 2 a `G91` not followed by `M82`;
+    /// on Ultimaker2Marlin (Marlin 1) `G91` makes E relative whatever `M82` said.
+    pub fn e_relative(&self) -> bool {
+        match self.firmware {
+            Firmware::Ultimaker2 => !self.absolute || !self.absolute_e,
+            Firmware::Marlin2 | Firmware::Marlin20 => !self.absolute_e,
+        }
+    }
+
+    /// The commands that put the firmware back into the file's modes (positioning and E),
+    /// after a host's own lines changed them.
+    pub fn mode_commands(&self) -> [&'static str; 2] {
+        [
+            if self.absolute { "G90" } else { "G91" },
+            if self.absolute_e { "M82" } else { "M83" },
+        ]
+    }
+
+    /// Machine X, Y, Z, where the file has said where the head is (see [`Motion::new`]).
+    pub fn known_machine_position(&self) -> Option<[f64; 3]> {
+        (self.known[0] && self.known[1] && self.known[2]).then_some(self.native)
+    }
+
+    /// Where the head is in the file's own coordinates (what a `G90` move in the file
+    /// names), per axis where known; E the file's.
+    pub fn file_position(&self) -> [Option<f64>; 4] {
+        let mut out = [None; 4];
+        for k in 0..3 {
+            out[k] =
+                (self.known[k] && self.shift_known[k]).then(|| self.native[k] + self.offset(k));
+        }
+        out[3] = self.known[3].then_some(self.e);
+        out
+    }
+
+    /// A machine coordinate of axis `k` (0..3) in the file's coordinates.
+    pub fn to_file(&self, k: usize, machine: f64) -> f64 {
+        machine + self.offset(k)
+    }
+
+    /// The last feed rate a move gave, mm/min.
+    pub fn feed(&self) -> Option<f64> {
+        self.feed
     }
 
     /// Machine X, Y, Z and the file's E.
@@ -273,8 +335,11 @@ impl Motion {
         let mut to = self.position();
         for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
             let Some(v) = cmd.get(letter) else { continue };
-            // G91 makes E relative too in Marlin, whatever M82 said.
-            let absolute = self.absolute && (k < 3 || self.absolute_e);
+            let absolute = if k < 3 {
+                self.absolute
+            } else {
+                !self.e_relative()
+            };
             to[k] = match (absolute, k < 3) {
                 (true, true) => v - self.offset(k),
                 (true, false) => v,
@@ -284,8 +349,34 @@ impl Motion {
         to
     }
 
+    /// After a move (`G0`-`G3`, `G5`): an axis it named absolutely is known from then on
+    /// (X, Y, Z where the shift is known); the feed rate it gave stays in force.
+    fn moved(&mut self, cmd: &Command) {
+        for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
+            let absolute = if k < 3 {
+                self.absolute
+            } else {
+                !self.e_relative()
+            };
+            if absolute && cmd.get(letter).is_some() {
+                self.known[k] = k == 3 || self.shift_known[k];
+            }
+        }
+        if let Some(f) = cmd.get('F') {
+            self.feed = Some(f);
+        }
+    }
+
     /// Follows one command; a move is returned with what it swept.
     pub fn apply(&mut self, cmd: &Command) -> Result<Option<Move>, Unfollowable> {
+        let moved = self.follow(cmd);
+        if matches!(cmd.code.as_str(), "G0" | "G1" | "G2" | "G3" | "G5") && moved.is_ok() {
+            self.moved(cmd);
+        }
+        moved
+    }
+
+    fn follow(&mut self, cmd: &Command) -> Result<Option<Move>, Unfollowable> {
         let refuse = |why: &str| Err(Unfollowable(format!("{} {why}", cmd.code)));
         match cmd.code.as_str() {
             "G0" | "G1" => {
@@ -308,12 +399,12 @@ impl Motion {
                 ];
                 Ok(Some(self.go(to, Some([c1, c2]))))
             }
-            "G90" => {
-                self.absolute = true;
-                Ok(None)
-            }
-            "G91" => {
-                self.absolute = false;
+            "G90" | "G91" => {
+                self.absolute = cmd.code == "G90";
+                // Marlin 2 sets every axis's mode, E's with them; Marlin 1 keeps M82/M83.
+                if self.firmware != Firmware::Ultimaker2 {
+                    self.absolute_e = self.absolute;
+                }
                 Ok(None)
             }
             "M82" => {
@@ -329,8 +420,10 @@ impl Motion {
                     if let Some(v) = cmd.get(letter) {
                         if k < 3 {
                             self.shift[k] = v - self.home_offset[k] - self.native[k];
+                            self.shift_known[k] = self.known[k];
                         } else {
                             self.e = v;
+                            self.known[3] = true;
                         }
                     }
                 }
@@ -338,6 +431,7 @@ impl Motion {
             }
             "G92.1" => {
                 self.shift = [0.0; 3];
+                self.shift_known = [true; 3];
                 Ok(None)
             }
             "G92.9" => {
@@ -346,8 +440,10 @@ impl Motion {
                     if let Some(v) = cmd.get(letter) {
                         if k < 3 {
                             self.native[k] = v - self.offset(k);
+                            self.known[k] = self.shift_known[k];
                         } else {
                             self.e = v;
+                            self.known[3] = true;
                         }
                     }
                 }
@@ -371,6 +467,8 @@ impl Motion {
                 for k in axes {
                     self.native[k] = 0.0;
                     self.shift[k] = 0.0;
+                    self.known[k] = false;
+                    self.shift_known[k] = true;
                     if let Some(pending) = self.pending_home_offset {
                         self.home_offset[k] = pending[k];
                     }
@@ -392,11 +490,11 @@ impl Motion {
                 Ok(None)
             }
             "G60" => {
-                self.saved = Some(self.native);
+                self.saved = Some((self.native, [self.known[0], self.known[1], self.known[2]]));
                 Ok(None)
             }
             "G61" => {
-                let Some(saved) = self.saved else {
+                let Some((saved, known)) = self.saved else {
                     return Ok(None);
                 };
                 let mut to = self.position();
@@ -404,6 +502,7 @@ impl Motion {
                 for (k, letter) in ['X', 'Y', 'Z'].into_iter().enumerate() {
                     if !any || cmd.has(letter) {
                         to[k] = saved[k];
+                        self.known[k] = known[k];
                     }
                 }
                 Ok(Some(self.go(to, None)))

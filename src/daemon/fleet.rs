@@ -64,6 +64,8 @@ pub fn marlin_ports() -> Ports {
                 pause: {
                     let mut pause = crate::marlin::stream::PauseSettings::new(spec.machine.bed_mm);
                     pause.heaters_off_after = spec.pause_heaters_off;
+                    pause.park_gcode = spec.machine.pause_gcode.clone();
+                    pause.resume_gcode = spec.machine.resume_gcode.clone();
                     pause
                 },
             }),

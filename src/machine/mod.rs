@@ -40,6 +40,12 @@ pub struct Machine {
     pub start_gcode: Option<String>,
     /// End code replacing crispen's (None: `gcode/end.gcode`); `{PRESENT_Z}` is filled.
     pub end_gcode: Option<String>,
+    /// Park code replacing crispen's at a pause the file asks for (None: lift 10 mm, move to
+    /// X 0 and the largest Y); sent in absolute positioning once the head has stopped.
+    pub pause_gcode: Option<String>,
+    /// Code sent when the operator resumes, before crispen returns the head and restores
+    /// the file's modes, E and feed rate (a purge, a fan); None: nothing more.
+    pub resume_gcode: Option<String>,
     /// The highest hotend temperature a file may ask for, °C (see the G-code policy, `policy` in `slice`).
     pub max_hotend_c: f64,
     /// The highest bed temperature a file may ask for, °C.
@@ -137,6 +143,8 @@ impl Builtin {
             cura_profile: None,
             start_gcode: None,
             end_gcode: None,
+            pause_gcode: None,
+            resume_gcode: None,
             max_hotend_c: self.max_hotend_c,
             max_bed_c: self.max_bed_c,
             extruders: 1,
@@ -265,6 +273,10 @@ pub struct MachineSpec {
     pub start_gcode: Option<PathBuf>,
     /// A file of end code (placeholder `{PRESENT_Z}`).
     pub end_gcode: Option<PathBuf>,
+    /// A file of park code for a file's pauses.
+    pub pause_gcode: Option<PathBuf>,
+    /// A file of code sent on resuming a file's pause.
+    pub resume_gcode: Option<PathBuf>,
     /// The highest hotend temperature a file may ask for, °C.
     pub max_hotend_c: Option<f64>,
     /// The highest bed temperature a file may ask for, °C.
@@ -478,6 +490,10 @@ impl MachineSpec {
                 .or_else(|| base.as_ref().and_then(|b| b.start_gcode.clone())),
             end_gcode: code("end_gcode", &self.end_gcode)?
                 .or_else(|| base.as_ref().and_then(|b| b.end_gcode.clone())),
+            pause_gcode: code("pause_gcode", &self.pause_gcode)?
+                .or_else(|| base.as_ref().and_then(|b| b.pause_gcode.clone())),
+            resume_gcode: code("resume_gcode", &self.resume_gcode)?
+                .or_else(|| base.as_ref().and_then(|b| b.resume_gcode.clone())),
             max_hotend_c,
             max_bed_c,
             extruders,

@@ -111,6 +111,10 @@ pub struct PauseSettings {
     /// A pause nobody resumes for this long turns the heaters off (the job keeps waiting;
     /// the resume heats up again first).
     pub heaters_off_after: std::time::Duration,
+    /// The machine's own park code, replacing the lift and move (`[[machine]] pause_gcode`).
+    pub park_gcode: Option<String>,
+    /// The machine's code sent on resuming, before the head returns (`resume_gcode`).
+    pub resume_gcode: Option<String>,
 }
 
 impl PauseSettings {
@@ -125,6 +129,8 @@ impl PauseSettings {
             volume_mm,
             lift_mm: Self::DEFAULT_LIFT_MM,
             heaters_off_after: Self::DEFAULT_HEATERS_OFF_AFTER,
+            park_gcode: None,
+            resume_gcode: None,
         }
     }
 }
@@ -145,16 +151,31 @@ fn num(v: f64) -> String {
     }
 }
 
+/// The commands of a machine's pause or resume code: comments and blank lines left out
+/// (the config checked it loads and passes the G-code policy).
+fn code_lines(code: &str) -> impl Iterator<Item = String> + '_ {
+    code.lines()
+        .map(|l| l.split(';').next().unwrap_or("").trim())
+        .filter(|l| !l.is_empty())
+        .map(String::from)
+}
+
 /// The lines that park the printer at a pause, with `motion` as the file left it; `None` when
 /// the head's position is not known (nothing is moved then: a blind move could hit the
-/// print). The park is on the machine (X at its minimum, Y at its maximum, lifted), written
-/// in the file's coordinates, which a `G92` in the file may have shifted. Ends with `M400`,
-/// so the park is over once its lines are answered.
+/// print, and the head could not be brought back). The park is the machine's `park_gcode`,
+/// or else on the machine (X at its minimum, Y at its maximum, lifted), written in the
+/// file's coordinates, which a `G92` in the file may have shifted. In absolute positioning,
+/// after `M400`; ends with `M400`, so the park is over once its lines are answered.
 pub fn park_lines(settings: &PauseSettings, motion: &Motion) -> Option<Vec<String>> {
     let [_, _, z] = motion.known_machine_position()?;
     let [_, y_max, z_max] = settings.volume_mm;
     let lift = settings.lift_mm.min((z_max - z).max(0.0));
     let mut lines = vec!["M400".to_string(), "G90".to_string()];
+    if let Some(code) = &settings.park_gcode {
+        lines.extend(code_lines(code));
+        lines.push("M400".to_string());
+        return Some(lines);
+    }
     if lift > 0.0 {
         lines.push(format!(
             "G1 Z{} F{}",
@@ -179,10 +200,16 @@ pub fn heaters_off_lines() -> Vec<String> {
 }
 
 /// The lines that take the print up again after a pause: heat up again to the targets in
-/// force before the pause when `reheat` (the heaters were turned off meanwhile), return to
-/// where the head was when `parked`, and restore the file's modes (positioning, extruder
-/// mode and position, feed rate), which the park changed.
-pub fn resume_lines(motion: &Motion, parked: bool, reheat: Option<&Temperatures>) -> Vec<String> {
+/// force before the pause when `reheat` (the heaters were turned off meanwhile), the
+/// machine's `resume_gcode`, return to where the head was when `parked`, and restore the
+/// file's modes (positioning, extruder mode and position, feed rate), which the park and
+/// the machine's code may have changed.
+pub fn resume_lines(
+    settings: &PauseSettings,
+    motion: &Motion,
+    parked: bool,
+    reheat: Option<&Temperatures>,
+) -> Vec<String> {
     let mut lines = Vec::new();
     if let Some(t) = reheat {
         let bed = t.bed.and_then(|b| b.target).filter(|&s| s > 0.0);
@@ -200,6 +227,9 @@ pub fn resume_lines(motion: &Motion, parked: bool, reheat: Option<&Temperatures>
         if let Some(s) = hotend {
             lines.push(format!("M109 S{}", num(s)));
         }
+    }
+    if let Some(code) = &settings.resume_gcode {
+        lines.extend(code_lines(code));
     }
     let position = motion.file_position();
     if parked {
@@ -325,7 +355,7 @@ mod tests {
                 target: Some(60.0),
             }),
         };
-        let resume = resume_lines(&m, true, Some(&temps));
+        let resume = resume_lines(&settings, &m, true, Some(&temps));
         assert_eq!(
             resume,
             vec![
@@ -346,10 +376,31 @@ mod tests {
         // goes to the machine's X0: X-30 in the file's; the return is in the file's.
         let m = followed(&["G28", "G1 X30 Y40 Z2", "G92 X0", "G1 X5"]);
         assert_eq!(park_lines(&settings, &m).unwrap()[3], "G1 X-30 Y220 F6000");
-        assert_eq!(resume_lines(&m, true, None)[1], "G1 X5 Y40 F6000");
+        assert_eq!(
+            resume_lines(&settings, &m, true, None)[1],
+            "G1 X5 Y40 F6000"
+        );
+        // The machine's own codes: its park instead of the lift and move (still bracketed by
+        // M400 in absolute positioning), its resume code before the head returns.
+        let own = PauseSettings {
+            park_gcode: Some("G91 ; lift\nG1 Z5\n\nG90\nG1 X200 Y0 ; aside\n".into()),
+            resume_gcode: Some("M106 S255\n".into()),
+            ..settings.clone()
+        };
+        assert_eq!(
+            park_lines(&own, &m).unwrap(),
+            vec!["M400", "G90", "G91", "G1 Z5", "G90", "G1 X200 Y0", "M400"]
+        );
+        assert_eq!(
+            resume_lines(&own, &m, true, None)[..3],
+            ["M106 S255", "G90", "G1 X5 Y40 F6000"]
+        );
         // Unknown position: no park, and the resume moves nothing.
         let homed = Motion::default();
         assert_eq!(park_lines(&settings, &homed), None);
-        assert_eq!(resume_lines(&homed, false, None), vec!["G90", "M82"]);
+        assert_eq!(
+            resume_lines(&settings, &homed, false, None),
+            vec!["G90", "M82"]
+        );
     }
 }

@@ -984,6 +984,7 @@ impl Connection {
         }
         tracing::info!(port = %run.port.display(), gcode = run.name, heaters_off, "the operator resumed the pause");
         let lines = resume_lines(
+            &settings,
             motion,
             run.pause.as_ref().is_some_and(|p| p.parked),
             heaters_off.then_some(&before),

@@ -84,7 +84,7 @@ async fn a_file_pause_stops_at_exactly_its_line_and_resumes_every_line_once() {
         let park = park_lines(&settings, &motion).unwrap();
 
         let mut opts = StreamOptions::for_firmware(fw);
-        opts.pause = Some(settings);
+        opts.pause = Some(settings.clone());
         let mut conn = Connection::open(sim.device_path(), &opts).await.unwrap();
         let (control, control_rx) = mpsc::channel(1);
         let (progress, mut rx) = watch::channel(PrintProgress::default());
@@ -142,7 +142,7 @@ async fn a_file_pause_stops_at_exactly_its_line_and_resumes_every_line_once() {
                 target: Some(60.0),
             }),
         };
-        let resume = resume_lines(&motion, true, Some(&targets));
+        let resume = resume_lines(&settings, &motion, true, Some(&targets));
         assert!(resume.starts_with(&["M140 S60".into(), "M104 S200".into()]));
         assert_eq!(
             executed(&sim),
@@ -233,13 +233,22 @@ fn the_daemon_shows_a_file_pause_and_the_api_resumes_it() {
         &config,
         format!(
             "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
-             [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\npause_heaters_off_s = 10\n\
+             [[machine]]\nname = \"parking\"\nbased_on = \"marlin-175\"\n\
+             pause_gcode = \"park.gcode\"\nresume_gcode = \"resume.gcode\"\n\
+             [[printer]]\nname = \"p\"\nmachine = \"parking\"\npause_heaters_off_s = 10\n\
              [printer.simulate]\ntime_scale = 0.0\nrecord = {:?}\n\
              [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
             record.display().to_string()
         ),
     )
     .unwrap();
+    // The machine's own park (aside to the front left, lifted) and resume code (a fan).
+    std::fs::write(
+        root.join("park.gcode"),
+        "; park for magnets\nG91\nG1 Z7 F600\nG90\nG1 X5 Y200 F6000\n",
+    )
+    .unwrap();
+    std::fs::write(root.join("resume.gcode"), "M106 S128 ; cool the magnets\n").unwrap();
     let log = root.join("daemon.log");
     let _daemon = Daemon::start(&config, &log);
     // The first part without the end code (which cools down and turns the motors off).
@@ -276,14 +285,18 @@ fn the_daemon_shows_a_file_pause_and_the_api_resumes_it() {
         file[..pause],
         "every line before the pause, in order"
     );
-    let parked = &at_pause[pause..];
-    assert!(
-        parked.first().map(String::as_str) == Some("M400")
-            && parked.last().map(String::as_str) == Some("M400")
-            && parked
-                .iter()
-                .all(|c| !c.starts_with("M118") && !c.contains(" E")),
-        "nothing after the pause but the park: {parked:?}"
+    assert_eq!(
+        at_pause[pause..],
+        [
+            "M400",
+            "G90",
+            "G91",
+            "G1 Z7 F600",
+            "G90",
+            "G1 X5 Y200 F6000",
+            "M400"
+        ],
+        "nothing after the pause but the machine's park"
     );
 
     let s = wait_for(&config, &log, Duration::from_secs(60), "heaters off", |s| {
@@ -327,6 +340,14 @@ fn the_daemon_shows_a_file_pause_and_the_api_resumes_it() {
         .position(|c| c == "M109 S200")
         .expect("reheated");
     assert!(off < reheat, "{host:?}");
+    let fan = host
+        .iter()
+        .position(|c| c == "M106 S128")
+        .expect("the machine's resume code");
+    assert!(
+        reheat < fan && host[fan + 1..].iter().any(|c| c.starts_with("G1 X")),
+        "resume code after the reheat, before the return: {host:?}"
+    );
     assert!(host.iter().all(|c| !c.starts_with("M118")), "{host:?}");
     let markers: Vec<&String> = all.iter().filter(|c| c.starts_with("M118")).collect();
     assert_eq!(markers, ["M118 before", "M118 after"]);

@@ -1250,10 +1250,38 @@ fn check_machines(
         };
         let machine = spec
             .check(&known, anchor)
-            .map_err(|(key, m)| invalid(section, key, m))?;
+            .map_err(|(key, m)| invalid(section.clone(), key, m))?;
+        for (key, code) in [
+            ("pause_gcode", &machine.pause_gcode),
+            ("resume_gcode", &machine.resume_gcode),
+        ] {
+            if let Some(code) = code {
+                pause_code_fits(code, &machine).map_err(|m| invalid(section.clone(), key, m))?;
+            }
+        }
         machines.push(machine);
     }
     Ok(machines)
+}
+
+/// A machine's pause or resume code is sent by the host in the middle of a job: it must
+/// load as any job's lines do (text, length, characters), pass the machine's G-code
+/// policy, and ask for no pause itself.
+fn pause_code_fits(code: &str, machine: &crate::machine::Machine) -> Result<(), String> {
+    crate::marlin::gcode::GcodeProgram::read(code.as_bytes(), "the code", machine.firmware)
+        .map_err(|e| e.to_string())?;
+    let verdict = crate::slice::policy::check(code.as_bytes(), machine)
+        .map_err(|e| format!("cannot read the code: {e}"))?;
+    if !verdict.passed() {
+        return Err(verdict.summary());
+    }
+    match verdict.pauses.first() {
+        Some(p) => Err(format!(
+            "line {}: `{}` asks for a pause; the code runs at one",
+            p.line, p.command
+        )),
+        None => Ok(()),
+    }
 }
 
 /// A number of seconds within `range`, as a duration (never a panic for NaN, infinity or
@@ -1601,6 +1629,48 @@ slicer = "cura"
         assert_eq!(number(-1e300), "-1e300");
         let e = seconds_in(1e308, &LEASE_S).unwrap_err();
         assert!(e.ends_with("got 1e308"), "{e}");
+    }
+
+    /// A machine's pause and resume code is sent mid-job: what a file may not ask for (a
+    /// refused command, a pause of its own, a line the firmware cannot take) is refused in
+    /// it too, naming the machine and the key.
+    #[test]
+    fn pause_and_resume_code_is_checked_as_job_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("crispen.toml");
+        let with = |key: &str, code: &str| {
+            std::fs::write(dir.path().join("code.gcode"), code).unwrap();
+            Config::parse(
+                &format!(
+                    "{GOOD}\n[[machine]]\nname = \"m\"\nbased_on = \"ultimaker2\"\n\
+                     {key} = \"code.gcode\"\n"
+                ),
+                &file,
+            )
+        };
+        let c = with("pause_gcode", "G91 ; lift\nG1 Z5\nG90\nG1 X10 Y200\n").unwrap();
+        let m = c.machines.iter().find(|m| m.name == "m").unwrap();
+        assert_eq!(
+            m.pause_gcode.as_deref(),
+            Some("G91 ; lift\nG1 Z5\nG90\nG1 X10 Y200\n")
+        );
+        for (key, code, says) in [
+            ("pause_gcode", "G1 Z5\nM500\n", "line 2: `M500`"),
+            ("resume_gcode", "M0 press the knob\n", "asks for a pause"),
+            ("resume_gcode", "M104 S400\n", "line 1: `M104 S400`"),
+            ("pause_gcode", "G1 X999\n", "line 1"),
+            (
+                "pause_gcode",
+                &format!("M117 {}\n", "x".repeat(200)),
+                "bytes",
+            ),
+        ] {
+            let e = with(key, code).unwrap_err().to_string();
+            assert!(
+                e.contains("[[machine]] #1 (name \"m\")") && e.contains(key) && e.contains(says),
+                "{key} {code:?}: {e}"
+            );
+        }
     }
 
     #[test]

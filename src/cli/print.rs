@@ -1,9 +1,11 @@
 //! `crispen print FILE.gcode --port PATH`: stream one G-code file to a Marlin printer.
-//! A thin layer over [`crispen::marlin::stream::Connection`]: a progress bar on a terminal,
-//! Ctrl-C cancels safely (heaters, fan and motors off), exit 0 only when every line was
-//! acknowledged.
+//! A thin layer over [`crispen::marlin::stream::Connection`]: the file is checked first as
+//! the daemon checks it (the host's load checks, then the G-code policy for the machine's
+//! limits), a progress bar on a terminal, Ctrl-C cancels safely (heaters, fan and motors
+//! off), exit 0 only when every line was acknowledged.
 
 use anyhow::Context;
+use crispen::machine::{Machine, BUILTIN};
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::stream::{
@@ -25,9 +27,15 @@ pub struct Args {
     /// Baud rate (default: the firmware's usual rate)
     #[arg(long)]
     pub baud: Option<u32>,
-    /// Firmware profile: marlin2, marlin20 or ultimaker2
-    #[arg(long, default_value = "marlin2")]
-    pub firmware: Firmware,
+    /// Firmware profile: marlin2, marlin20 or ultimaker2 (default: the machine's, else
+    /// marlin2)
+    #[arg(long)]
+    pub firmware: Option<Firmware>,
+    /// The built-in machine whose limits (bed, temperatures, tools) the file is checked
+    /// against: ultimaker2, ultimaker2-extended, ultimaker2plus, ultimaker-original-plus,
+    /// marlin-175 (default: the firmware's usual machine)
+    #[arg(long)]
+    pub machine: Option<String>,
     /// Keep only one line in flight (as OctoPrint and Printrun do) instead of sending ahead
     #[arg(long)]
     pub one_line: bool,
@@ -37,9 +45,42 @@ pub struct Args {
     pub heat_timeout: u64,
 }
 
+/// The machine of `--machine` and `--firmware`, as a `[[printer]]` table resolves them.
+fn machine_of(args: &Args) -> anyhow::Result<Machine> {
+    let Some(name) = &args.machine else {
+        return Ok(Machine::default_for(
+            args.firmware.unwrap_or(Firmware::Marlin2),
+        ));
+    };
+    let machine = Machine::builtin(name).with_context(|| {
+        let names: Vec<&str> = BUILTIN.iter().map(|b| b.name).collect();
+        format!(
+            "--machine {name:?} is not built in; one of: {}",
+            names.join(", ")
+        )
+    })?;
+    if let Some(f) = args.firmware.filter(|f| *f != machine.firmware) {
+        anyhow::bail!(
+            "--firmware {f}, but machine {name:?} runs {}; leave --firmware out",
+            machine.firmware
+        );
+    }
+    Ok(machine)
+}
+
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let program = GcodeProgram::load_for(&args.file, args.firmware)?;
-    let mut opts = StreamOptions::for_firmware(args.firmware);
+    let machine = machine_of(&args)?;
+    let program = GcodeProgram::load_for(&args.file, machine.firmware)?;
+    let verdict = crispen::slice::policy::check_path(&args.file, &machine)?;
+    if !verdict.passed() {
+        anyhow::bail!(
+            "{}: {} (the limits of machine {:?}; --machine names another)",
+            args.file.display(),
+            verdict.summary(),
+            machine.name
+        );
+    }
+    let mut opts = StreamOptions::for_firmware(machine.firmware);
     if let Some(baud) = args.baud {
         opts.baud = baud;
     }

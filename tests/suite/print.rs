@@ -379,6 +379,34 @@ fn crispen_print_streams_to_crispen_sim() {
     assert!(!out.status.success());
     assert!(stderr.contains("job.gcode:2:"), "{stderr}");
 
+    // The G-code policy, as the daemon applies it: a file over the machine's limits is
+    // refused before anything is sent, naming the line, the command and the machine.
+    std::fs::write(&gcode, "G28\nM104 S300\nG1 X10 Y10\n").unwrap();
+    let print = |extra: &[&str]| {
+        let out = Command::new(exe)
+            .args(["print"])
+            .arg(&gcode)
+            .arg("--port")
+            .arg(&device)
+            .args(extra)
+            .output()
+            .unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (ok, stderr) = print(&[]);
+    assert!(!ok);
+    assert!(
+        stderr.contains("line 2: `M104 S300`") && stderr.contains("\"marlin-175\""),
+        "{stderr}"
+    );
+    let (ok, stderr) = print(&["--machine", "ultimaker2", "--firmware", "marlin2"]);
+    assert!(!ok && stderr.contains("runs ultimaker2"), "{stderr}");
+    let (ok, stderr) = print(&["--machine", "prusa-mk9"]);
+    assert!(!ok && stderr.contains("one of: ultimaker2"), "{stderr}");
+
     let _ = nix::sys::signal::kill(
         nix::unistd::Pid::from_raw(sim.id() as i32),
         nix::sys::signal::Signal::SIGTERM,

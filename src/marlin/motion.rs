@@ -326,6 +326,15 @@ impl Motion {
         [self.native[0], self.native[1], self.native[2], self.e]
     }
 
+    /// Whether a move's value for axis `k` (X, Y, Z, E) is a position, not a distance.
+    fn axis_absolute(&self, k: usize) -> bool {
+        if k < 3 {
+            self.absolute
+        } else {
+            !self.e_relative()
+        }
+    }
+
     fn offset(&self, k: usize) -> f64 {
         self.shift[k] + self.home_offset[k]
     }
@@ -335,12 +344,7 @@ impl Motion {
         let mut to = self.position();
         for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
             let Some(v) = cmd.get(letter) else { continue };
-            let absolute = if k < 3 {
-                self.absolute
-            } else {
-                !self.e_relative()
-            };
-            to[k] = match (absolute, k < 3) {
+            to[k] = match (self.axis_absolute(k), k < 3) {
                 (true, true) => v - self.offset(k),
                 (true, false) => v,
                 (false, _) => to[k] + v,
@@ -353,12 +357,7 @@ impl Motion {
     /// (X, Y, Z where the shift is known); the feed rate it gave stays in force.
     fn moved(&mut self, cmd: &Command) {
         for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-            let absolute = if k < 3 {
-                self.absolute
-            } else {
-                !self.e_relative()
-            };
-            if absolute && cmd.get(letter).is_some() {
+            if self.axis_absolute(k) && cmd.get(letter).is_some() {
                 self.known[k] = k == 3 || self.shift_known[k];
             }
         }

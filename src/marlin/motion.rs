@@ -302,13 +302,10 @@ impl Motion {
     /// Where the head is in the file's own coordinates (what a `G90` move in the file
     /// names), per axis where known; E the file's.
     pub fn file_position(&self) -> [Option<f64>; 4] {
-        let mut out = [None; 4];
-        for k in 0..3 {
-            out[k] =
-                (self.known[k] && self.shift_known[k]).then(|| self.native[k] + self.offset(k));
-        }
-        out[3] = self.known[3].then_some(self.e);
-        out
+        std::array::from_fn(|k| match k {
+            3 => self.known[3].then_some(self.e),
+            _ => (self.known[k] && self.shift_known[k]).then(|| self.native[k] + self.offset(k)),
+        })
     }
 
     /// A machine coordinate of axis `k` (0..3) in the file's coordinates.

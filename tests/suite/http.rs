@@ -329,7 +329,7 @@ fn api_over_tcp_with_and_without_the_key() {
     let a = put("hot", "huge.stl", &vec![b'x'; 1024 * 1024 + 1]);
     assert_eq!(a.status, 413);
     assert!(a.error().contains("upload_max_mb"), "{}", a.text());
-    assert!(tmp.path().join("escape.stl").exists() == false);
+    assert!(!tmp.path().join("escape.stl").exists());
     assert_eq!(
         hot_files(tmp.path()),
         Vec::<String>::new(),

@@ -530,7 +530,7 @@ impl PgStore {
         )
         .await?;
         tx.commit().await?;
-        Ok(one_job(&**client, &job.id).await?)
+        one_job(&**client, &job.id).await
     }
 
     /// Takes the oldest queued job for preparation on this host, if any.
@@ -736,7 +736,7 @@ impl PgStore {
         }
         .await;
         undo_on_error(written, tx).await?;
-        Ok(one_job(&**client, &job.id).await?)
+        one_job(&**client, &job.id).await
     }
 
     /// Stores (or replaces) one of a job's files.

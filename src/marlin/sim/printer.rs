@@ -562,13 +562,19 @@ impl Printer {
                 });
                 long = true;
             }
+            // Marlin 2 sets every axis's mode with G90/G91, E's too; Ultimaker2Marlin
+            // (Marlin 1) keeps E's own mode (M82/M83) and makes E relative under G91.
             ('G', Some(90)) => {
                 self.relative = false;
-                self.relative_e = false;
+                if self.fw != Firmware::Ultimaker2 {
+                    self.relative_e = false;
+                }
             }
             ('G', Some(91)) => {
                 self.relative = true;
-                self.relative_e = true;
+                if self.fw != Firmware::Ultimaker2 {
+                    self.relative_e = true;
+                }
             }
             ('G', Some(92)) => {
                 for (i, axis) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
@@ -745,6 +751,47 @@ mod tests {
         p.relative_e = true;
         let secs = p.move_seconds(&parse_words("G1 E5 F300"), 1);
         assert!((secs - 1.0).abs() < 1e-9, "{secs}");
+    }
+
+    /// E's mode as each firmware's source keeps it: Marlin 2's G90/G91 set E's mode too,
+    /// Ultimaker2Marlin's leave M82/M83 alone but make E relative under G91. The host's
+    /// follower must agree, or a resume after a pause would restore E wrongly.
+    #[test]
+    fn e_mode_per_firmware_and_the_hosts_follower_agrees() {
+        use crate::marlin::motion::{parse, Motion};
+        let cases: [(&[&str], f64, f64); 4] = [
+            // (commands after G92 E0, E on Marlin 2, E on Ultimaker2Marlin)
+            (&["M83", "G90", "G1 E5", "G1 E5"], 5.0, 10.0),
+            (&["G91", "M82", "G1 E5", "G1 E5"], 5.0, 10.0),
+            (&["M82", "G91", "G1 E5", "G1 E5"], 10.0, 10.0),
+            (&["M83", "G1 E5", "G90", "M83", "G1 E5"], 10.0, 10.0),
+        ];
+        for fw in [Firmware::Marlin2, Firmware::Marlin20, Firmware::Ultimaker2] {
+            for (commands, marlin2, um2) in cases {
+                let mut p = printer(fw);
+                let mut recorder = Recorder {
+                    executed: None,
+                    file: None,
+                };
+                let mut host = Motion::new(fw);
+                for cmd in std::iter::once(&"G92 E0").chain(commands) {
+                    let queued = Queued {
+                        n: None,
+                        cmd: cmd.to_string(),
+                        acked: false,
+                    };
+                    p.execute(queued, Instant::now(), &mut recorder);
+                    host.apply(&parse(cmd).unwrap()).unwrap();
+                }
+                let expected = if fw == Firmware::Ultimaker2 {
+                    um2
+                } else {
+                    marlin2
+                };
+                assert_eq!(p.position[3], expected, "{fw} {commands:?}");
+                assert_eq!(host.file_position()[3], Some(expected), "{fw} {commands:?}");
+            }
+        }
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! Motion: how long moves take at their feedrate, and the planner queue that drains at
 //! that pace (a move is acknowledged once it is in the planner).
 use super::Printer;
+use crate::marlin::firmware::Firmware;
 use std::time::Instant;
 
 impl Printer {
@@ -34,7 +35,8 @@ impl Printer {
         for (i, axis) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
             if let Some(v) = word(words, axis) {
                 let rel = if i == 3 {
-                    self.relative_e
+                    // Ultimaker2Marlin: G91 makes E relative whatever M82 said.
+                    self.relative_e || (self.relative && self.fw == Firmware::Ultimaker2)
                 } else {
                     self.relative
                 };

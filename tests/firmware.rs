@@ -7,7 +7,8 @@
 //!
 //! `CRISPEN_FIRMWARE_SEEDS` (default 2) sets the noisy seeds per build; the full
 //! sweep is 20. `CRISPEN_FIRMWARE_RATIO=1` also checks that recovery costs at most three
-//! times the clean link's time; `CRISPEN_RELAY_TRACE=FILE` writes what crossed the relay.
+//! times the clean link's time; `CRISPEN_RELAY_TRACE=PREFIX` writes what crossed the relay
+//! in each noisy run to `PREFIX.<build>.<seed>`.
 
 mod common;
 use common::relay::{firmware_dir, Build, Relay, RelayFaults, RelayLog};
@@ -157,7 +158,9 @@ async fn clean_and_noisy(build: Build) {
     let mut worst = Duration::ZERO;
     for seed in 0..seeds() {
         let o = print_through(&dir, build, noise(seed), moves).await;
-        if let Some(path) = std::env::var_os("CRISPEN_RELAY_TRACE") {
+        if let Some(prefix) = std::env::var_os("CRISPEN_RELAY_TRACE") {
+            let mut path = prefix;
+            path.push(format!(".{}.{seed}", build.name()));
             let text: String = o
                 .log
                 .wire

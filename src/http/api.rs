@@ -138,12 +138,7 @@ async fn blocking<T: Send + 'static>(
     let farm = state.farm.clone();
     tokio::task::spawn_blocking(move || work(&farm))
         .await
-        .map_err(|e| {
-            ApiError::new(
-                StatusCode::INTERNAL_SERVER_ERROR,
-                format!("internal error: {e}"),
-            )
-        })
+        .map_err(ApiError::from)
 }
 
 pub async fn status(State(state): State<AppState>) -> Result<Json<StatusView>, ApiError> {

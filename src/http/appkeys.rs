@@ -533,12 +533,7 @@ pub async fn act(
         ))),
     })
     .await
-    .map_err(|e| {
-        ApiError::new(
-            StatusCode::INTERNAL_SERVER_ERROR,
-            format!("internal error: {e}"),
-        )
-    })??;
+    .map_err(ApiError::from)??;
     tracing::info!(message = %done, "http: application keys");
     Ok(Json(serde_json::json!({ "ok": true, "message": done })))
 }

@@ -185,12 +185,7 @@ impl Received {
                 .map_err(|e| io_error(&self.target, "cannot move the upload to its folder", e))
         })
         .await
-        .map_err(|e| {
-            ApiError::new(
-                StatusCode::INTERNAL_SERVER_ERROR,
-                format!("internal error: {e}"),
-            )
-        })?
+        .map_err(ApiError::from)?
     }
 
     /// A link, not `fsutil::write_atomic`'s rename: a rename would replace a file of the
@@ -239,12 +234,7 @@ pub async fn place_with_sidecar(
         })
     })
     .await
-    .map_err(|e| {
-        ApiError::new(
-            StatusCode::INTERNAL_SERVER_ERROR,
-            format!("internal error: {e}"),
-        )
-    })?
+    .map_err(ApiError::from)?
 }
 
 /// A file in a hot folder as an HTTP answer names it: its name alone, shortened and

@@ -983,12 +983,7 @@ impl Host {
             // M105 only once the moves before it have left its queue, seconds after their
             // own `ok`s; taken for lost, its late answer would confirm a later M105 the
             // printer never got.
-            let patience = self
-                .m105_latency
-                .map_or(self.opts.silence_probe, |l| (l * 4).max(M105_PATIENCE))
-                // A printer that answers each probe while earlier M105s seem to wait is
-                // losing answers, not slow: the backlog is cleared within a few probes.
-                .min(self.opts.silence_probe * 3);
+            let patience = self.m105_patience();
             // While stopping, an M105 sent before the stop lines keeps its place whatever
             // its age: Ultimaker2Marlin answers it only after the moves queued before it,
             // and that answer, taken for the stop's own M105, would confirm heaters off
@@ -1007,6 +1002,16 @@ impl Host {
             let number = self.new_line(Kind::Housekeeping, "M105".into());
             self.transmit(number, now);
         }
+    }
+
+    /// How long an `M105` may go unanswered before its answer counts as lost (four times
+    /// the usual, at least [`M105_PATIENCE`]).
+    fn m105_patience(&self) -> Duration {
+        self.m105_latency
+            .map_or(self.opts.silence_probe, |l| (l * 4).max(M105_PATIENCE))
+            // A printer that answers each probe while earlier M105s seem to wait is
+            // losing answers, not slow: the backlog is cleared within a few probes.
+            .min(self.opts.silence_probe * 3)
     }
 
     /// How long the printer must be quiet after an error block before the replay goes.
@@ -1052,7 +1057,18 @@ impl Host {
             return base.max(self.front_since + self.opts.long_command_timeout);
         }
         match self.last_probe {
-            Some(p) if self.in_flight.iter().any(|f| f.is_m105) => base.max(p + probe * 3),
+            // An `M105` still waits after the last probe: its answer was lost, or taken
+            // for an earlier one's whose own was lost. Once an `M105`'s usual time is
+            // known, the next probe goes when that one counts as lost (see `probe`), so
+            // its answer settles it: sooner, each answer would be taken for its
+            // predecessor's and the newest probe would wait on; later only costs time.
+            // Before, a quick probe learns it.
+            Some(p) if self.in_flight.iter().any(|f| f.is_m105) => base.max(
+                p + match self.m105_latency {
+                    Some(_) => self.m105_patience().max(probe),
+                    None => probe * 3,
+                },
+            ),
             Some(p) => base.max(p + probe),
             None => base,
         }
@@ -1591,7 +1607,13 @@ impl Host {
         // taken into the averages, each lost `ok` would make the next one slower to find
         // (seen on the real Marlin: probes a second apart after a few lost `ok`s).
         if own {
-            self.ack_wait = (self.ack_wait * 7 + waited) / 8;
+            // An `M105` answered while a later `M105` is in flight may have had its own
+            // answer lost, and this be the later one's: its wait is then the time until the
+            // next probe. It paces no probe (seen on the real Marlin: one such sample
+            // doubled the round trip, and the next probe came 1.2 s after the printer had
+            // answered), and tells how long an `M105` may take only while nothing else does
+            // (erring long there costs a probe; short, a false confirmation).
+            let ambiguous = f.is_m105 && self.in_flight.iter().any(|g| g.is_m105);
             // The round trip follows a slower printer at once (a full planner: each `ok`
             // waits for a move to end) and a faster one slowly, so a probe's answer
             // queued behind moves is not taken for lost. Long commands say nothing about it.
@@ -1602,10 +1624,13 @@ impl Host {
             let follow = |l: Option<Duration>| {
                 Some(l.map_or(sample, |l| ((l * 7 + sample) / 8).max(sample)))
             };
-            if !long {
-                self.latency = follow(self.latency);
+            if !ambiguous {
+                self.ack_wait = (self.ack_wait * 7 + waited) / 8;
+                if !long {
+                    self.latency = follow(self.latency);
+                }
             }
-            if f.is_m105 {
+            if f.is_m105 && (!ambiguous || self.m105_latency.is_none()) {
                 self.m105_latency = follow(self.m105_latency);
             }
         }

@@ -213,7 +213,7 @@ impl Relay {
             std::thread::sleep(Duration::from_millis(20));
         }
 
-        let pty = nix::pty::openpty(None, None).expect("a pty for the host side");
+        let pty = crispen::marlin::sim::open_pty().expect("a pty for the host side");
         let mut attrs = termios::tcgetattr(&pty.slave).unwrap();
         termios::cfmakeraw(&mut attrs);
         termios::tcsetattr(&pty.slave, termios::SetArg::TCSANOW, &attrs).unwrap();

@@ -1405,7 +1405,10 @@ fn locate(text: &str, offset: usize) -> (usize, String) {
     let line = before.matches('\n').count() + 1;
     let mut section = "the top level".to_string();
     let mut counts: std::collections::HashMap<String, usize> = Default::default();
-    for l in before.lines() {
+    // Up to the end of the offset's own line: an error about a table as a whole (a missing
+    // key) points at its header, which names it.
+    let line_end = text[offset..].find('\n').map_or(text.len(), |i| offset + i);
+    for l in text[..line_end].lines() {
         let t = l.trim();
         if t.starts_with("[[") {
             if let Some(end) = t.find("]]") {
@@ -1634,6 +1637,19 @@ slicer = "cura"
     /// A machine's pause and resume code is sent mid-job: what a file may not ask for (a
     /// refused command, a pause of its own, a line the firmware cannot take) is refused in
     /// it too, naming the machine and the key.
+    /// A table missing a key is named by its own header, not by the table before it.
+    #[test]
+    fn a_missing_key_names_its_own_table() {
+        let file = Path::new("/etc/crispen/crispen.toml");
+        let text = "[[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\n\
+                    time_scale = 0.0\n[[folder]]\npath = \"/srv/hot\"\nprinters = [\"p\"]\n";
+        let e = Config::parse(text, file).unwrap_err().to_string();
+        assert!(
+            e.contains("line 6, in [[folder]] #1") && e.contains("height_mm"),
+            "{e}"
+        );
+    }
+
     #[test]
     fn pause_and_resume_code_is_checked_as_job_lines() {
         let dir = tempfile::tempdir().unwrap();

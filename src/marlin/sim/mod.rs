@@ -282,9 +282,36 @@ impl Drop for SimHandle {
     }
 }
 
+/// A pty's two ends, both closed on exec: a child process started meanwhile (a slicer, a
+/// test's firmware) must not keep either open, or closing the master would not hang up
+/// the host's side (seen in the test suite: a closed port taken for a silent printer).
+pub struct Pty {
+    pub master: OwnedFd,
+    pub slave: OwnedFd,
+}
+
+/// Opens a pty whose descriptors are never inherited (`openpty` leaves them inheritable
+/// until set otherwise, a race with any thread that starts a process meanwhile).
+pub fn open_pty() -> nix::Result<Pty> {
+    use nix::pty::{grantpt, posix_openpt, ptsname_r, unlockpt};
+    use std::os::fd::{FromRawFd, IntoRawFd};
+    let master = posix_openpt(OFlag::O_RDWR | OFlag::O_NOCTTY | OFlag::O_CLOEXEC)?;
+    grantpt(&master)?;
+    unlockpt(&master)?;
+    let name = ptsname_r(&master)?;
+    let slave = nix::fcntl::open(
+        name.as_str(),
+        OFlag::O_RDWR | OFlag::O_NOCTTY | OFlag::O_CLOEXEC,
+        nix::sys::stat::Mode::empty(),
+    )?;
+    // SAFETY: the descriptor was just taken from `master`, which no longer owns it.
+    let master = unsafe { OwnedFd::from_raw_fd(master.into_raw_fd()) };
+    Ok(Pty { master, slave })
+}
+
 /// Open a pty and start the printer on its own thread. Returns at once.
 pub fn spawn(cfg: SimConfig) -> io::Result<SimHandle> {
-    let pty = nix::pty::openpty(None, None).map_err(|e| {
+    let pty = open_pty().map_err(|e| {
         with_context(
             e,
             "cannot open a pty (is /dev/pts mounted and /dev/ptmx usable?)",
@@ -673,6 +700,22 @@ fn run(
         } else if revents.contains(PollFlags::POLLHUP) {
             host_connected = false;
             tracing::debug!("host closed the port");
+        }
+    }
+}
+
+#[cfg(test)]
+mod pty_tests {
+    use super::*;
+    use nix::fcntl::FdFlag;
+
+    /// Neither end of a pty is inherited by a process started meanwhile.
+    #[test]
+    fn pty_descriptors_close_on_exec() {
+        let pty = open_pty().unwrap();
+        for fd in [&pty.master, &pty.slave] {
+            let flags = FdFlag::from_bits_truncate(fcntl(fd, FcntlArg::F_GETFD).unwrap());
+            assert!(flags.contains(FdFlag::FD_CLOEXEC));
         }
     }
 }

@@ -282,7 +282,8 @@ pub struct MachineSpec {
     /// The highest bed temperature a file may ask for, °C.
     pub max_bed_c: Option<f64>,
     pub extruders: Option<u8>,
-    /// Commands of [`commands::REFUSED`] this machine allows in files.
+    /// Commands the G-code policy guards or does not know that this machine allows in files
+    /// ([`commands::allowable`]).
     pub allow: Option<Vec<String>>,
 }
 
@@ -438,13 +439,10 @@ impl MachineSpec {
                         return Err((
                             "allow",
                             format!(
-                                "{word:?} is not a command the G-code policy refuses; it may \
-                                 allow: {}",
-                                commands::REFUSED
-                                    .iter()
-                                    .map(|(c, _)| *c)
-                                    .collect::<Vec<_>>()
-                                    .join(", ")
+                                "{word:?} is not a command a machine may allow: only those \
+                                 the G-code policy guards ({}) or does not know (a vendor's \
+                                 own, such as M862); see docs/gcode-policy.md",
+                                commands::guarded().collect::<Vec<_>>().join(", ")
                             ),
                         ));
                     }

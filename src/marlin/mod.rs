@@ -14,6 +14,7 @@ pub mod gcode;
 pub mod motion;
 pub mod pause;
 pub mod protocol;
+pub mod reader;
 pub mod sim;
 pub mod stream;
 pub mod transport;

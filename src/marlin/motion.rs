@@ -2,8 +2,8 @@
 //! needs to know where the nozzle goes (in `slice`: the slicer-output check `gcode`, the
 //! pre-sliced check `presliced`, the outer-wall measure `walls`, the G-code policy
 //! `policy`; in the host: where a pause parks the head and where the print resumes,
-//! the sibling `pause`) reads commands with [`parse`] and follows them with one [`Motion`],
-//! so they cannot disagree about where a file sends the printer.
+//! the sibling `pause`) reads commands with [`crate::marlin::reader`] and follows them
+//! with one [`Motion`], so they cannot disagree about where a file sends the printer.
 //!
 //! Positions are kept in the machine's own coordinates (where the head physically is,
 //! homed at 0), apart from the coordinates the file writes: `G92` shifts the file's
@@ -16,170 +16,13 @@
 //! workspace coordinate systems (`G53`–`G59`, `G10 L2`/`L20`: off in stock Marlin, kept in
 //! EEPROM where on, so a file's offsets would shift every later job), other arc planes
 //! (`G18`, `G19`), inch units (`G20`), direct stepper moves (`G6`), `M428`, and arcs without
-//! a centre. Parsing follows Marlin's reading of a line: the command number is read as a
-//! number (`G01` is `G1`, `M0500` is `M500`), parameters need no space between them
-//! (`M104S300`), a value ends at the next letter.
+//! a centre. Lines are read by [`crate::marlin::reader`], which takes only what every
+//! firmware reads alike (so no sub-codes such as `G92.1`: stock Marlin runs them as `G92`).
 
 use crate::marlin::firmware::Firmware;
 use std::f64::consts::{FRAC_PI_2, TAU};
 
-/// One parameter of a command: its letter (upper case) and number, if it has one.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Word {
-    pub letter: char,
-    pub value: Option<f64>,
-    /// The firmware may read it differently from crispen: text that is no number after
-    /// the letter (`Snan`, `X1.2.3`), or a lower-case letter (Marlin ignores those).
-    pub garbled: bool,
-}
-
-/// One command of a line, as the firmware reads it.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Command<'a> {
-    /// `G1`, `M104`, `G92.1`, `T1`: letter and number as the firmware reads them.
-    pub code: String,
-    pub words: Vec<Word>,
-    /// The command's text after its code (its message, for `M117` and the like).
-    pub rest: &'a str,
-}
-
-impl Command<'_> {
-    /// The number given for `letter`, if any.
-    pub fn get(&self, letter: char) -> Option<f64> {
-        self.words
-            .iter()
-            .find(|w| w.letter == letter)
-            .and_then(|w| w.value)
-    }
-
-    /// Whether `letter` is given (with or without a number).
-    pub fn has(&self, letter: char) -> bool {
-        self.words.iter().any(|w| w.letter == letter)
-    }
-
-    /// The first parameter whose text is no number, if any.
-    pub fn garbled(&self) -> Option<char> {
-        self.words.iter().find(|w| w.garbled).map(|w| w.letter)
-    }
-}
-
-/// Commands whose text after the code is a string, not parameters.
-const STRING_ARGUMENTS: [&str; 10] = [
-    "M23", "M28", "M30", "M32", "M33", "M117", "M118", "M928", "M0", "M1",
-];
-
-/// Reads one line's code (its comment already cut at `;`) as the firmware would: `None`
-/// for a blank line or text that is no command (the firmware answers "unknown command").
-pub fn parse(code: &str) -> Option<Command<'_>> {
-    let mut text = code.trim();
-    // A line number of the file's own (`N12 G1 X5`): the firmware skips it.
-    if let Some(rest) = text.strip_prefix(['N', 'n']) {
-        let digits = rest.len() - rest.trim_start_matches(|c: char| c.is_ascii_digit()).len();
-        if digits > 0 {
-            text = rest[digits..].trim_start();
-        }
-    }
-    let mut chars = text.char_indices();
-    let (_, letter) = chars.next()?;
-    let letter = letter.to_ascii_uppercase();
-    if !matches!(letter, 'G' | 'M' | 'T') {
-        return None;
-    }
-    let body = &text[1..];
-    let digits = body.len() - body.trim_start_matches(|c: char| c.is_ascii_digit()).len();
-    if digits == 0 {
-        return None;
-    }
-    // Leading zeros and huge numbers read as the firmware's integer would.
-    let number: u64 = body[..digits].trim_start_matches('0').parse().unwrap_or(
-        if body[..digits].trim_start_matches('0').is_empty() {
-            0
-        } else {
-            u64::MAX
-        },
-    );
-    let mut after = &body[digits..];
-    let mut code = format!("{letter}{number}");
-    if letter != 'T' {
-        if let Some(sub) = after.strip_prefix('.') {
-            let n = sub.len() - sub.trim_start_matches(|c: char| c.is_ascii_digit()).len();
-            if n > 0 {
-                code.push('.');
-                code.push_str(sub[..n].trim_start_matches('0').max("0"));
-                after = &sub[n..];
-            }
-        }
-    }
-    if STRING_ARGUMENTS.contains(&code.as_str()) {
-        return Some(Command {
-            code,
-            words: Vec::new(),
-            rest: after.trim(),
-        });
-    }
-    Some(Command {
-        code,
-        words: words(after),
-        rest: after.trim(),
-    })
-}
-
-/// Parameters as Marlin reads them: a letter, optional spaces, a number that ends at the
-/// first character that cannot continue it.
-fn words(text: &str) -> Vec<Word> {
-    let bytes = text.as_bytes();
-    let mut out = Vec::new();
-    let mut i = 0;
-    // At most a line's worth of parameters: a line is bounded by the reader.
-    while i < bytes.len() {
-        let c = bytes[i] as char;
-        if c.is_ascii_whitespace() {
-            i += 1;
-            continue;
-        }
-        if !c.is_ascii_alphabetic() {
-            // Text that is no parameter (a quote, a stray sign): skipped up to the next
-            // space; the word it belongs to is marked.
-            if let Some(last) = out.last_mut() {
-                let w: &mut Word = last;
-                w.garbled = true;
-            }
-            while i < bytes.len() && !(bytes[i] as char).is_ascii_whitespace() {
-                i += 1;
-            }
-            continue;
-        }
-        let letter = c.to_ascii_uppercase();
-        let lower = c.is_ascii_lowercase();
-        i += 1;
-        let mut j = i;
-        while j < bytes.len() && bytes[j] == b' ' {
-            j += 1;
-        }
-        let start = j;
-        while j < bytes.len() && matches!(bytes[j], b'0'..=b'9' | b'.' | b'-' | b'+') {
-            j += 1;
-        }
-        let mut word = Word {
-            letter,
-            value: None,
-            garbled: lower,
-        };
-        if j > start {
-            match text[start..j].parse::<f64>() {
-                Ok(v) if v.is_finite() => word.value = Some(v),
-                _ => word.garbled = true,
-            }
-            i = j;
-        } else if i < bytes.len() && (bytes[i] as char).is_ascii_alphabetic() {
-            // `Snan`, `Sinf`: a firmware reading the value with strtod takes a number
-            // crispen does not; glued letters (`G28XY`) are marked the same way.
-            word.garbled |= bytes[i].is_ascii_lowercase();
-        }
-        out.push(word);
-    }
-    out
-}
+pub use crate::marlin::reader::{Command, Word};
 
 /// A command the follower cannot follow for certain; the text says what and why.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -425,26 +268,6 @@ impl Motion {
                 }
                 Ok(None)
             }
-            "G92.1" => {
-                self.shift = [0.0; 3];
-                self.shift_known = [true; 3];
-                Ok(None)
-            }
-            "G92.9" => {
-                // Sets the machine position itself (the firmware takes the head to be there).
-                for (k, letter) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
-                    if let Some(v) = cmd.get(letter) {
-                        if k < 3 {
-                            self.native[k] = v - self.offset(k);
-                            self.known[k] = self.shift_known[k];
-                        } else {
-                            self.e = v;
-                            self.known[3] = true;
-                        }
-                    }
-                }
-                Ok(None)
-            }
             "G28" => {
                 let named: Vec<usize> = ['X', 'Y', 'Z']
                     .into_iter()
@@ -503,12 +326,10 @@ impl Motion {
                 }
                 Ok(Some(self.go(to, None)))
             }
-            "G53" | "G54" | "G55" | "G56" | "G57" | "G58" | "G59" | "G59.1" | "G59.2" | "G59.3" => {
-                refuse(
-                    "selects a workspace coordinate system, which stock Marlin leaves out and \
+            "G53" | "G54" | "G55" | "G56" | "G57" | "G58" | "G59" => refuse(
+                "selects a workspace coordinate system, which stock Marlin leaves out and \
                  keeps in EEPROM where it has them; its moves cannot be followed",
-                )
-            }
+            ),
             "G10" if cmd.has('L') => refuse(
                 "with L sets workspace or tool offsets (RepRapFirmware's form), which \
                  cannot be followed on Marlin",
@@ -640,6 +461,10 @@ impl Motion {
 mod tests {
     use super::*;
 
+    fn parse(line: &str) -> Option<Command<'_>> {
+        crate::marlin::reader::read(line).unwrap()
+    }
+
     fn follow(text: &str) -> (Motion, Vec<Move>) {
         let mut m = Motion::default();
         let mut moves = Vec::new();
@@ -651,31 +476,6 @@ mod tests {
             }
         }
         (m, moves)
-    }
-
-    #[test]
-    fn commands_are_read_as_marlin_reads_them() {
-        let c = parse("M104S300").unwrap();
-        assert_eq!((c.code.as_str(), c.get('S')), ("M104", Some(300.0)));
-        assert_eq!(parse("m0500").unwrap().code, "M500");
-        assert_eq!(parse("N12 G01 X5").unwrap().get('X'), Some(5.0));
-        assert_eq!(parse("G92.1").unwrap().code, "G92.1");
-        let c = parse("G1X10Y-2.5E1").unwrap();
-        assert_eq!(
-            (c.get('X'), c.get('Y'), c.get('E')),
-            (Some(10.0), Some(-2.5), Some(1.0))
-        );
-        assert_eq!(parse("M104 S 250").unwrap().get('S'), Some(250.0));
-        assert!(parse("M104 Snan").unwrap().garbled().is_some());
-        assert!(parse("M104 S1.2.3").unwrap().garbled().is_some());
-        assert!(parse("G92 x100").unwrap().garbled().is_some());
-        assert!(parse("G28XY").unwrap().garbled().is_none());
-        assert_eq!(
-            parse("M117 X marks: the spot").unwrap().rest,
-            "X marks: the spot"
-        );
-        assert!(parse("   ").is_none() && parse("hello").is_none());
-        assert_eq!(parse("T1").unwrap().code, "T1");
     }
 
     #[test]
@@ -730,7 +530,7 @@ mod tests {
     #[test]
     fn what_cannot_be_followed_is_refused_saying_why() {
         let mut m = Motion::default();
-        for l in ["G54", "G53 G1 X0", "G10 L2 P1 X10", "G19", "G20", "G2 X10"] {
+        for l in ["G54", "G53 X0", "G10 L2 P1 X10", "G19", "G20", "G2 X10"] {
             let e = m.apply(&parse(l).unwrap()).unwrap_err();
             assert!(e.0.starts_with(parse(l).unwrap().code.as_str()), "{l}: {e}");
         }

@@ -5,10 +5,11 @@
 
 use super::firmware::Firmware;
 use super::gcode::{GcodeCommands, GcodeProgram};
-use super::motion::{parse, Motion};
+use super::motion::Motion;
 use super::pause::{find_pauses, heaters_off_lines, park_lines, resume_lines, FilePause};
 use super::protocol::reply::{HostAction, Reply};
 use super::protocol::{Event, Failure, Host, ProtocolOptions};
+use super::reader;
 use super::transport::{LinkEvent, Transport, TransportError};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -836,7 +837,7 @@ impl Connection {
                 self.stream_part(&mut run, &mut control, part.clone(), from, Part::Job)
                     .await?;
             }
-            for command in part.iter().filter_map(parse) {
+            for command in part.iter().filter_map(|c| reader::read(c).ok().flatten()) {
                 // What cannot be followed was refused at preparation (the G-code policy;
                 // only the daemon streams files with pauses).
                 let _ = motion.apply(&command);

@@ -110,7 +110,7 @@ pub fn check(reader: impl BufRead, expect: &Expectations) -> Result<GcodeStats, 
                 &mut last_time_elapsed,
             );
         }
-        let Some(cmd) = motion::parse(code) else {
+        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
             continue;
         };
         let get = |letter: char| cmd.get(letter);

@@ -6,9 +6,14 @@
 //! - temperatures above the machine's limits (`max_hotend_c`, `max_bed_c`; a chamber the
 //!   machine does not have), temperature units it cannot follow (`M149 F`/`K`), tools the
 //!   machine does not have (`T1` on one extruder) are refused;
-//! - commands that change a printer beyond the job (EEPROM, firmware update, settings that
-//!   outlive the job, SD-card writes, endstops off, cold extrusion, halts): refused unless
-//!   the machine allows the command by name (`allow = ["M500"]`), see [`REFUSED`];
+//! - each line is read as the machine's firmware reads it ([`crate::marlin::reader`]); a
+//!   line it cannot take as exactly one command with known parameters is refused;
+//! - every command is classified ([`crate::machine::commands`]): commands that change a
+//!   printer beyond the job (EEPROM, firmware update, settings that outlive the job,
+//!   SD-card writes, endstops off, cold extrusion, halts), or move the head where the
+//!   follower cannot, and every command the table does not know, are refused unless the
+//!   machine allows the command by name (`allow = ["M500"]`); commands that belong to the
+//!   host or to hardware no machine has are refused always;
 //! - every move is followed ([`crate::marlin::motion`]) and must stay on the bed, arcs included;
 //!   what cannot be followed is refused;
 //! - pauses the file asks for ([`FILE_PAUSES`]) are not refused: the host intercepts them;
@@ -20,16 +25,16 @@
 //! cannot take), so a file that cannot be streamed fails here too. Every refusal names the
 //! file's line, the command and why.
 
+use crate::machine::commands::{classify, Class};
 use crate::machine::Machine;
-use crate::marlin::motion::{self, Motion};
+use crate::marlin::motion::{self, Command, Motion};
 use crate::marlin::pause::pause_message;
+use crate::marlin::reader;
 use serde::{Deserialize, Serialize};
 use std::io::{BufRead, Read};
 use std::path::Path;
 
 pub use crate::marlin::gcode::FILE_PAUSES;
-
-pub use crate::machine::commands::REFUSED;
 
 /// The most refusals and pauses a verdict lists (it counts them all).
 pub const MAX_LISTED: usize = 20;
@@ -144,21 +149,19 @@ fn quote(command: &str) -> String {
 
 pub use crate::machine::commands::allowable;
 
-/// What a refused command would do, if this one (with its parameters) is refused.
-pub fn refused(cmd: &motion::Command) -> Option<&'static str> {
-    let what = REFUSED.iter().find(|(c, _)| *c == cmd.code)?.1;
-    let applies = match cmd.code.as_str() {
-        // M211 alone reports, S1 switches them on.
-        "M211" => cmd.get('S') == Some(0.0) || cmd.words.iter().any(|w| w.garbled),
-        // M302 alone reports.
+/// Whether a guarded command, with these parameters, is refused unless allowed: `M211`
+/// only switching the endstops off (`S0`), `M302` only allowing cold extrusion (`P`, `S`);
+/// every other guarded command always.
+fn guard_applies(cmd: &Command) -> bool {
+    match cmd.code.as_str() {
+        "M211" => cmd.has('S') && cmd.get('S') != Some(1.0),
         "M302" => cmd.has('P') || cmd.has('S'),
         _ => true,
-    };
-    applies.then_some(what)
+    }
 }
 
-/// Reads the file's commands and judges them for `machine`. Fails only when the reader
-/// fails.
+/// Reads the file's commands as the machine's firmware reads them and judges them for
+/// `machine`. Fails only when the reader fails.
 pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict> {
     let mut v = Verdict::default();
     let mut motion = Motion::new(machine.firmware);
@@ -193,8 +196,17 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
             v.refuse(number, "", "is not text (UTF-8)".into());
             continue;
         };
-        let Some(cmd) = motion::parse(code) else {
-            continue;
+        let cmd = match reader::read_for(machine.firmware, code) {
+            Ok(Some(cmd)) => cmd,
+            Ok(None) => continue,
+            Err(why) => {
+                v.refuse(
+                    number,
+                    code,
+                    format!("{why}; refused on the {}", machine.name),
+                );
+                continue;
+            }
         };
         judge(
             &cmd,
@@ -214,7 +226,7 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
 
 #[allow(clippy::too_many_arguments)]
 fn judge(
-    cmd: &motion::Command,
+    cmd: &Command,
     text: &str,
     line: usize,
     machine: &Machine,
@@ -224,6 +236,8 @@ fn judge(
     shown: &mut Option<String>,
 ) {
     let code = cmd.code.as_str();
+    let class = classify(machine.firmware, code);
+    // Every command, so that the display's message is followed for the pauses after it.
     if let Some(message) = pause_message(cmd, shown) {
         v.pauses_total += 1;
         if v.pauses.len() < MAX_LISTED {
@@ -235,13 +249,22 @@ fn judge(
         }
         return;
     }
-    if let Some(what) = refused(cmd) {
-        if machine.allow.iter().any(|a| a == code) {
-            match allowed.iter_mut().find(|(c, _)| c == code) {
-                Some((_, n)) => *n += 1,
-                None => allowed.push((code.to_string(), 1)),
-            }
-        } else {
+    let guarded = match class {
+        // Pauses were listed above.
+        Some(Class::Intercepted) => return,
+        Some(Class::Refused(what)) => {
+            v.refuse(line, text, format!("{what}; refused on every machine"));
+            return;
+        }
+        Some(Class::Guarded(what)) if guard_applies(cmd) => Some(what.to_string()),
+        None => Some(format!(
+            "is no command the G-code policy knows for {} firmware",
+            machine.firmware
+        )),
+        Some(Class::Guarded(_) | Class::Allowed | Class::Checked) => None,
+    };
+    if let Some(what) = guarded {
+        if !machine.allow.iter().any(|a| a == code) {
             v.refuse(
                 line,
                 text,
@@ -252,7 +275,12 @@ fn judge(
             );
             return;
         }
+        match allowed.iter_mut().find(|(c, _)| c == code) {
+            Some((_, n)) => *n += 1,
+            None => allowed.push((code.to_string(), 1)),
+        }
     }
+    // Temperatures count whatever the class: an allowed G26 or M303 heats too.
     if let Some(reason) = temperature(cmd, machine) {
         v.refuse(line, text, reason);
         return;
@@ -272,19 +300,6 @@ fn judge(
             );
         }
         return;
-    }
-    if code.starts_with('G') {
-        if let Some(letter) = cmd.garbled() {
-            v.refuse(
-                line,
-                text,
-                format!(
-                    "gives {letter} in a form the firmware may read differently (a lower-case \
-                     letter, or a value that is no plain number)"
-                ),
-            );
-            return;
-        }
     }
     match motion.apply(cmd) {
         Err(e) => v.refuse(line, text, format!("cannot be followed: {e}")),
@@ -308,15 +323,25 @@ fn judge(
     }
 }
 
-/// Why a temperature command is refused on `machine`, if it is.
-fn temperature(cmd: &motion::Command, machine: &Machine) -> Option<String> {
-    let (what, limit, params): (&str, f64, &[char]) = match cmd.code.as_str() {
-        "M104" | "M109" => ("hotend", machine.max_hotend_c, &['S', 'R', 'B']),
+/// Why a command's temperatures are refused on `machine`, if they are: every parameter
+/// that sets a heater's target counts (`S`, `R`, `B` of `M104`/`M109`, `M145`'s presets,
+/// `G26`'s pattern, an autotune's target, RepRapFirmware's tool temperatures); a preset
+/// chosen by number (`I`) is refused, since the file does not say its temperature.
+fn temperature(cmd: &Command, machine: &Machine) -> Option<String> {
+    let hotend = ("hotend", machine.max_hotend_c);
+    let bed = ("bed", machine.max_bed_c);
+    let chamber = ("chamber", 0.0);
+    let targets: &[(char, (&str, f64))] = match cmd.code.as_str() {
+        "M104" | "M109" => &[('S', hotend), ('R', hotend), ('B', hotend)],
+        "M140" | "M190" => &[('S', bed), ('R', bed)],
+        "M141" | "M191" => &[('S', chamber), ('R', chamber)],
+        "M145" | "G26" => &[('H', hotend), ('B', bed)],
+        // M303 E-1 tunes the bed; its default target (150 °C) is under every hotend limit.
+        "M303" if cmd.get('E') == Some(-1.0) => &[('S', bed)],
+        "M303" => &[('S', hotend)],
         // RepRapFirmware's tool temperatures: no Marlin command, but a file made for
         // another printer may hold them.
-        "M568" | "G10" => ("hotend", machine.max_hotend_c, &['S', 'R']),
-        "M140" | "M190" => ("bed", machine.max_bed_c, &['S', 'R']),
-        "M141" | "M191" => ("chamber", 0.0, &['S', 'R']),
+        "M568" | "G10" => &[('S', hotend), ('R', hotend)],
         "M149" => {
             return (cmd.has('F') || cmd.has('K')).then(|| {
                 "switches temperatures to Fahrenheit or Kelvin, which the limits cannot \
@@ -326,7 +351,19 @@ fn temperature(cmd: &motion::Command, machine: &Machine) -> Option<String> {
         }
         _ => return None,
     };
-    if let Some(t) = cmd.get('T') {
+    if matches!(cmd.code.as_str(), "M104" | "M109" | "M140" | "M190") && cmd.has('I') {
+        return Some(
+            "heats to a material preset chosen by number (I), whose temperature the file \
+             does not say"
+                .to_string(),
+        );
+    }
+    let tool = match cmd.code.as_str() {
+        "M104" | "M109" => cmd.get('T'),
+        "M303" => cmd.get('E').filter(|e| *e >= 0.0),
+        _ => None,
+    };
+    if let Some(t) = tool {
         if t < 0.0 || t >= f64::from(machine.extruders) {
             return Some(format!(
                 "sets the temperature of tool {t}, but the {} has {} extruder{}",
@@ -336,15 +373,8 @@ fn temperature(cmd: &motion::Command, machine: &Machine) -> Option<String> {
             ));
         }
     }
-    for w in cmd.words.iter().filter(|w| params.contains(&w.letter)) {
-        if w.garbled {
-            return Some(format!(
-                "gives {} in a form the firmware may read differently (a lower-case letter, \
-                 or a value that is no plain number)",
-                w.letter
-            ));
-        }
-        let Some(t) = w.value else { continue };
+    for &(letter, (what, limit)) in targets {
+        let Some(t) = cmd.get(letter) else { continue };
         if what == "chamber" && t > 0.0 {
             return Some(format!(
                 "asks for a {t} °C chamber, but the {} has no chamber heater",
@@ -352,8 +382,13 @@ fn temperature(cmd: &motion::Command, machine: &Machine) -> Option<String> {
             ));
         }
         if t > limit {
+            let given = if letter == 'S' {
+                String::new()
+            } else {
+                format!(" (given as {letter})")
+            };
             return Some(format!(
-                "asks for {t} °C on the {what}, above the {}'s limit of {limit} °C",
+                "asks for {t} °C on the {what}{given}, above the {}'s limit of {limit} °C",
                 machine.name
             ));
         }
@@ -444,8 +479,8 @@ mod tests {
             ("M190 S101", "101 °C on the bed"),
             ("M141 S40", "no chamber heater"),
             ("M104 T1 S200", "tool 1"),
-            ("M104 Snan", "read differently"),
-            ("M149 F", "Fahrenheit"),
+            ("M104 Snan", "where a parameter belongs"),
+            ("M149 F1", "Fahrenheit"),
             ("G10 P0 S300", "300 °C on the hotend"),
         ] {
             let v = verdict(&format!("G28\n{text}\n"), &m);
@@ -526,7 +561,10 @@ mod tests {
         let v = verdict("G28\nG1 X100\nG92 X0\nG1 X200\n", &um2());
         assert!(v.refusals[0].reason.contains("moves X to 300.0"), "{v:?}");
         let v = verdict("G28\nG1 X1.2.3\n", &um2());
-        assert!(v.refusals[0].reason.contains("read differently"), "{v:?}");
+        assert!(
+            v.refusals[0].reason.contains("where a parameter belongs"),
+            "{v:?}"
+        );
         let v = verdict("G28\nG92 x100\nG1 X300\n", &um2());
         assert_eq!(v.refusals[0].line, 2, "{v:?}");
         let v = verdict("G28\nG54\nG1 X10\n", &um2());

@@ -13,7 +13,7 @@
 //! Pure functions over a reader; no slicer is run.
 
 use crate::machine::Machine;
-use crate::marlin::motion::{self, Motion};
+use crate::marlin::motion::Motion;
 use std::io::BufRead;
 
 /// The first bytes of a binary G-code file (PrusaSlicer 2.7's `.bgcode`).
@@ -94,7 +94,7 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
         if let Some(c) = comment {
             read_comment(c, &mut t, &mut bed_xy, &mut bed_z);
         }
-        let Some(cmd) = motion::parse(code) else {
+        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
             continue;
         };
         commands += 1;

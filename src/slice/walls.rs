@@ -14,7 +14,7 @@
 //! [`MAX_DISTANCE_MM`] (a wall moved that far is not a detail, and the cap bounds the
 //! search), and a wall longer than [`MAX_SAMPLES`] samples is sampled more coarsely.
 
-use crate::marlin::motion::{self, Motion};
+use crate::marlin::motion::Motion;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::BufRead;
@@ -79,7 +79,7 @@ pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
                 in_wall = false;
             }
         }
-        let Some(cmd) = motion::parse(code) else {
+        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
             continue;
         };
         // A command that cannot be followed leaves the position as it was: the measure
@@ -481,9 +481,9 @@ mod tests {
                  G1 X1e300 E1\nG1 Xnan E1\nG1 X-1e308 Y-1e308 E1\nG92 X0 Y0\nG1 X5 E-1\n\
                  ;TYPE:\n\x00\x01\u{fffd}G1 E\nG1 X Y Z\n";
         let w = outer_walls(g.as_bytes()).unwrap();
-        // As Marlin reads them: `X1e300` is X1 then E300, `Xnan` no X at all.
-        assert_eq!(w.layers[&200].len(), 4, "{w:?}");
-        assert_eq!(w.layers[&200][2], [[10.0, 10.0], [11.0, 10.0]]);
+        // Lines no firmware reads alike (`X1e300`, `Xnan`) are no moves here: the G-code
+        // policy refuses them before anything prints.
+        assert_eq!(w.layers[&200].len(), 2, "{w:?}");
         assert_eq!(w.layers[&200][1], [[10.0, 0.0], [10.0, 10.0]]);
         let _ = compare(&w, &w);
         // Random bytes from G-code's alphabet.

@@ -758,7 +758,7 @@ mod tests {
     /// follower must agree, or a resume after a pause would restore E wrongly.
     #[test]
     fn e_mode_per_firmware_and_the_hosts_follower_agrees() {
-        use crate::marlin::motion::{parse, Motion};
+        use crate::marlin::motion::Motion;
         let cases: [(&[&str], f64, f64); 4] = [
             // (commands after G92 E0, E on Marlin 2, E on Ultimaker2Marlin)
             (&["M83", "G90", "G1 E5", "G1 E5"], 5.0, 10.0),
@@ -781,7 +781,8 @@ mod tests {
                         acked: false,
                     };
                     p.execute(queued, Instant::now(), &mut recorder);
-                    host.apply(&parse(cmd).unwrap()).unwrap();
+                    host.apply(&crate::marlin::reader::read(cmd).unwrap().unwrap())
+                        .unwrap();
                 }
                 let expected = if fw == Firmware::Ultimaker2 {
                     um2

@@ -502,3 +502,177 @@ fn the_daemon_through_the_relay_runs_every_line_once() {
         counts(&log_text)
     );
 }
+
+/// The real Marlin 2.1.2.1 runs whatever the G-code policy lets through as the policy
+/// predicted: every allowed line of a corpus of odd-but-plain lines (glued parameters,
+/// spaces inside a parameter, signs, leading zeros, an exponent Marlin stops at, text that
+/// names other commands) is sent to the firmware itself, numbered as the host numbers
+/// lines, and after each one its `M105` targets and `M114` position must be what the
+/// policy's reading and follower say.
+#[test]
+fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
+    use crispen::machine::Machine;
+    use crispen::marlin::motion::Motion;
+    use crispen::marlin::reader;
+    use crispen::slice::policy;
+
+    let Some(dir) =
+        firmware_dir("marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them")
+    else {
+        return;
+    };
+    const CORPUS: &[&str] = &[
+        "G28",
+        "M104S190",
+        "M104 S 185",
+        "M140 S60.9",
+        "M104 S+201.7",
+        "M104 S2.0E2",
+        "M104 T0S175",
+        "M104 S0180",
+        "G1X10Y20",
+        "G1 X 30 Y 40 F3000",
+        "G01 Z5",
+        "G1 X+15.5 Y.5",
+        "G92 X10",
+        "G1 X110",
+        "G92 E5",
+        "G91",
+        "G1 X-10 Y10 Z1",
+        "G90",
+        "G0 X50 Y50",
+        "M400 G92 Z50",
+        "M117 G92 Z60",
+        "M117 Printing M104 S400",
+        "G28 X Y",
+        "G1 X20 Y30",
+        "M140 S0",
+        "M104 S0",
+    ];
+    let machine = Machine::builtin("marlin-175").unwrap();
+    let text = CORPUS.join("\n") + "\n";
+    let verdict = policy::check(text.as_bytes(), &machine).unwrap();
+    assert!(verdict.passed(), "{}", verdict.summary());
+
+    let mut fw = DirectFirmware::start(&dir.join(Build::Default.name()));
+    let mut motion = Motion::new(Firmware::Marlin2);
+    let (mut hotend, mut bed) = (0i64, 0i64);
+    for line in CORPUS {
+        let cmd = reader::read_for(Firmware::Marlin2, line).unwrap().unwrap();
+        motion.apply(&cmd).unwrap();
+        // Marlin keeps targets in whole degrees (`celsius_t`), cut towards zero.
+        match cmd.code.as_str() {
+            "M104" | "M109" => hotend = cmd.get('S').map_or(hotend, |s| s as i64),
+            "M140" | "M190" => bed = cmd.get('S').map_or(bed, |s| s as i64),
+            _ => {}
+        }
+        fw.send(line);
+        let report = fw.send("M105");
+        let targets = |tag: &str| -> i64 {
+            let at = report
+                .find(tag)
+                .unwrap_or_else(|| panic!("{line}: {report}"));
+            let rest = &report[at + tag.len()..];
+            let slash = rest.find('/').unwrap();
+            let end = rest[slash + 1..]
+                .find(' ')
+                .unwrap_or(rest.len() - slash - 1);
+            rest[slash + 1..slash + 1 + end]
+                .trim()
+                .parse::<f64>()
+                .unwrap() as i64
+        };
+        assert_eq!(
+            (targets("T:"), targets("B:")),
+            (hotend, bed),
+            "after `{line}`"
+        );
+        let answer = fw.send("M114");
+        let at = common::relay::parse_position(
+            answer.lines().find(|l| l.starts_with("X:")).unwrap_or(""),
+        )
+        .unwrap_or_else(|| panic!("{line}: {answer}"));
+        let predicted: Vec<f64> = (0..3)
+            .map(|k| motion.to_file(k, motion.position()[k]))
+            .collect();
+        for k in 0..3 {
+            assert!(
+                (at[k] - predicted[k]).abs() < 0.01,
+                "after `{line}`: the firmware is at {at:?}, the policy predicted {predicted:?}"
+            );
+        }
+    }
+}
+
+/// The firmware as a plain child process on pipes (no host, no relay): lines go in numbered
+/// and checksummed as crispen's host frames them, and each is answered before the next.
+struct DirectFirmware {
+    child: std::process::Child,
+    lines: std::sync::mpsc::Receiver<String>,
+    number: u64,
+}
+
+impl DirectFirmware {
+    fn start(binary: &std::path::Path) -> DirectFirmware {
+        use std::io::BufRead;
+        let mut child = std::process::Command::new(binary)
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap_or_else(|e| panic!("{}: {e}", binary.display()));
+        let out = child.stdout.take().unwrap();
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(out).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut fw = DirectFirmware {
+            child,
+            lines,
+            number: 0,
+        };
+        // The banner ends with the settings report; M110 then starts the numbering.
+        std::thread::sleep(Duration::from_millis(1500));
+        while fw.lines.try_recv().is_ok() {}
+        fw.raw("M110 N0");
+        fw
+    }
+
+    fn raw(&mut self, framed: &str) -> String {
+        use std::io::Write;
+        let stdin = self.child.stdin.as_mut().unwrap();
+        writeln!(stdin, "{framed}").unwrap();
+        stdin.flush().unwrap();
+        let mut answer = String::new();
+        loop {
+            let line = self
+                .lines
+                .recv_timeout(Duration::from_secs(60))
+                .unwrap_or_else(|_| panic!("no answer to `{framed}`: {answer}"));
+            assert!(!line.starts_with("Error"), "`{framed}`: {line}");
+            let done = line.starts_with("ok");
+            answer.push_str(&line);
+            answer.push('\n');
+            if done {
+                return answer;
+            }
+        }
+    }
+
+    fn send(&mut self, line: &str) -> String {
+        self.number += 1;
+        let framed = crispen::marlin::protocol::frame(self.number, line);
+        self.raw(framed.trim_end())
+    }
+}
+
+impl Drop for DirectFirmware {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -139,7 +139,7 @@ pub const MARLIN2: &[(&str, Class)] = &[
     ("M114", Refused("asks for the position, an answer that belongs to the host's own checks")),
     ("M115", Allowed),
     ("M117", Allowed),
-    ("M118", Refused("writes text on the serial line, which the host would take for the printer's own answer (an `ok`, a resend request)")),
+    ("M118", Checked),
     ("M119", Allowed),
     ("M120", Allowed),
     ("M121", Guarded("switches the endstops off")),
@@ -380,6 +380,17 @@ mod tests {
         }
     }
 
+    /// docs/gcode-policy.md shows the table as it is.
+    #[test]
+    fn the_documented_table_is_the_table() {
+        let doc = include_str!("../../docs/gcode-policy.md");
+        assert!(
+            doc.contains(&markdown()),
+            "docs/gcode-policy.md's command table differs from the code; its text is:\n{}",
+            markdown()
+        );
+    }
+
     #[test]
     fn unknown_and_guarded_commands_may_be_allowed_nothing_else() {
         assert!(allowable("M500") && allowable("M211") && allowable("G29"));
@@ -396,4 +407,49 @@ mod tests {
             Some(Class::Guarded(_))
         ));
     }
+}
+
+/// The table as Markdown, as docs/gcode-policy.md shows it (a test keeps the two equal).
+pub fn markdown() -> String {
+    let mut out =
+        String::from("| Command | Marlin 2 | Ultimaker2Marlin | Why |\n|---|---|---|---|\n");
+    let name = |class: Option<Class>| match class {
+        Some(Allowed) => "allowed",
+        Some(Checked) => "checked",
+        Some(Intercepted) => "intercepted",
+        Some(Guarded(_)) => "refused unless allowed",
+        Some(Refused(_)) => "refused",
+        None => "refused unless allowed (unknown)",
+    };
+    let why = |class: Option<Class>| match class {
+        Some(Guarded(w) | Refused(w)) => w,
+        _ => "",
+    };
+    let mut codes: Vec<&str> = MARLIN2.iter().chain(ULTIMAKER2).map(|(c, _)| *c).collect();
+    codes.dedup();
+    let mut seen = Vec::new();
+    for code in codes {
+        if seen.contains(&code) {
+            continue;
+        }
+        seen.push(code);
+        let (m, u) = (
+            classify(Firmware::Marlin2, code),
+            classify(Firmware::Ultimaker2, code),
+        );
+        let code_shown = if code == "T0" { "T<n>" } else { code };
+        let reason = if why(m) == why(u) || why(u).is_empty() {
+            why(m).to_string()
+        } else if why(m).is_empty() {
+            why(u).to_string()
+        } else {
+            format!("Marlin 2: {}; Ultimaker2Marlin: {}", why(m), why(u))
+        };
+        out += &format!(
+            "| `{code_shown}` | {} | {} | {reason} |\n",
+            name(m),
+            name(u)
+        );
+    }
+    out
 }

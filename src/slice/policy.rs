@@ -29,6 +29,7 @@ use crate::machine::commands::{classify, Class};
 use crate::machine::Machine;
 use crate::marlin::motion::{self, Command, Motion};
 use crate::marlin::pause::pause_message;
+use crate::marlin::protocol::reply::Reply;
 use crate::marlin::reader;
 use serde::{Deserialize, Serialize};
 use std::io::{BufRead, Read};
@@ -280,6 +281,12 @@ fn judge(
             None => allowed.push((code.to_string(), 1)),
         }
     }
+    if code == "M118" {
+        if let Some(reason) = echo_taken_for_an_answer(cmd.rest) {
+            v.refuse(line, text, reason);
+            return;
+        }
+    }
     // Temperatures count whatever the class: an allowed G26 or M303 heats too.
     if let Some(reason) = temperature(cmd, machine) {
         v.refuse(line, text, reason);
@@ -320,6 +327,47 @@ fn judge(
             }
         }
         Ok(None) => {}
+    }
+}
+
+/// Why `M118 <text>` is refused, if it is: the line Marlin prints for it (`echo:` before it
+/// with `E1`, `//` with `A1`, as its `M118` handler takes those words off the front) is
+/// read by the host's own reply parser, and anything but an inert message (an `ok`, a
+/// resend request, an error, a temperature report, a busy or action line) would be taken
+/// for the printer's answer.
+fn echo_taken_for_an_answer(text: &str) -> Option<String> {
+    let mut rest = text;
+    let (mut echo, mut action) = (false, false);
+    for _ in 0..3 {
+        let b = rest.as_bytes();
+        let word = match (b.first(), b.get(1)) {
+            (Some(b'A'), Some(b'1')) => {
+                action = true;
+                true
+            }
+            (Some(b'E'), Some(b'1')) => {
+                echo = true;
+                true
+            }
+            (Some(b'P'), Some(d)) if d.is_ascii_digit() => true,
+            _ => false,
+        };
+        if !word {
+            break;
+        }
+        rest = rest[2..].trim_start_matches(' ');
+    }
+    let printed = format!(
+        "{}{}{rest}",
+        if echo { "echo:" } else { "" },
+        if action { "//" } else { "" }
+    );
+    match Reply::parse(printed.as_bytes()) {
+        None | Some(Reply::Other(_)) => None,
+        Some(reply) => Some(format!(
+            "prints `{printed}` on the serial line, which the host would read as the \
+             printer's own answer ({reply:?})"
+        )),
     }
 }
 
@@ -491,6 +539,78 @@ mod tests {
             assert!(r.to_string().contains(text), "{text}: {r}");
         }
         assert!(verdict("M104 S260\nM140 S100\nM141 S0\n", &m).passed());
+    }
+
+    /// Issue 31's findings and their kin, each refused before anything is sent, on both
+    /// firmwares, with a reason naming the line.
+    #[test]
+    fn the_ways_around_the_policy_are_closed_on_every_firmware() {
+        let marlin = Machine::builtin("marlin-175").unwrap();
+        for machine in [um2(), marlin.clone()] {
+            for text in [
+                // Junk before a parameter hides it from a reader of its own.
+                "M104 @S400",
+                "M104 \"S400\"",
+                "M104 (S400)",
+                "M104 !S400",
+                "M104 -S400",
+                "M140 @S150",
+                // Commands no list of refusals named.
+                "M290 Z-5",
+                "M421 I0 J0 Z-2",
+                "G29 S3 I0 J0 Z-2",
+                "M145 S0 H400",
+                "M104 I0",
+                "M140 I1",
+                "G26 H400",
+                "M908 P0 S255",
+                "M917 T100",
+                "M23 evil.gco",
+                "M24",
+                "M32 !evil.gco#",
+                "M810 G28|M104 S400",
+                "M81",
+                "M413 S0",
+                "M118 ok",
+                "M118 E1 busy: processing",
+                "M118 Resend: 3",
+                "M118 A1 action:cancel",
+                "M118 T:20 /300",
+                "M110 N100",
+                "M303 S400",
+                "M155 S0",
+                // A command the table does not know.
+                "M1234 S400",
+                "G7 X1",
+            ] {
+                let v = verdict(&format!("G28\n{text}\nG1 X10\n"), &machine);
+                assert_eq!(v.refusals_total, 1, "{text} on {}: {v:?}", machine.name);
+                assert_eq!(v.refusals[0].line, 2, "{text}");
+                assert!(v.summary().contains("line 2"), "{text}");
+            }
+        }
+        // Read as Ultimaker2Marlin reads them: an exponent, a G anywhere.
+        for text in ["M104 S2.7E2", "M140 S1.5E2", "M400 G92 Z50", "M117 G92 Z60"] {
+            let v = verdict(&format!("G28\n{text}\n"), &um2());
+            assert_eq!(v.refusals_total, 1, "{text}: {v:?}");
+            assert!(v.refusals[0].reason.contains("Ultimaker2Marlin"), "{v:?}");
+        }
+        // Marlin 2 reads them as written: S2.7 °C and a parameter E2; a message.
+        for text in [
+            "M104 S2.7E2",
+            "M117 G92 Z60",
+            "M400 G92 Z50",
+            "M118 job 12 done",
+        ] {
+            assert!(verdict(&format!("{text}\n"), &marlin).passed(), "{text}");
+        }
+        // An allowed guarded command still has its temperatures checked.
+        let allowing = Machine {
+            allow: vec!["G26".into(), "M1234".into()],
+            ..marlin.clone()
+        };
+        assert!(verdict("G26 H200 B60\nM1234 S1\n", &allowing).passed());
+        assert_eq!(verdict("G26 H400\n", &allowing).refusals_total, 1);
     }
 
     #[test]

@@ -7,8 +7,9 @@
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
-use crispen::marlin::motion::{parse, Motion};
+use crispen::marlin::motion::Motion;
 use crispen::marlin::pause::{find_pauses, park_lines, resume_lines};
+use crispen::marlin::reader;
 use crispen::marlin::sim::{self, is_housekeeping, SimConfig, SimHandle};
 use crispen::marlin::stream::{
     Connection, PauseSettings, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
@@ -76,7 +77,7 @@ async fn a_file_pause_stops_at_exactly_its_line_and_resumes_every_line_once() {
         let before = &commands[..pause.index];
         let after = &commands[pause.index + 1..];
         let mut motion = Motion::new(fw);
-        for c in before.iter().filter_map(|c| parse(c)) {
+        for c in before.iter().filter_map(|c| reader::read(c).ok().flatten()) {
             motion.apply(&c).unwrap();
         }
         let mut settings = PauseSettings::new(VOLUME);

@@ -134,46 +134,11 @@ fn readers_agree_with_the_transcribed_parsers_on_random_lines() {
             .map(|_| PIECES[rng.random_range(0..PIECES.len())])
             .collect();
         let line = line.trim();
-        let pairs: [(Firmware, View, View); 2] = [
-            (Marlin2, marlin2::read(line), transcribed::marlin2(line)),
-            (
-                Ultimaker2,
-                ultimaker2::read(line),
-                transcribed::ultimaker2(line),
-            ),
-        ];
-        for (k, (fw, ours, theirs)) in pairs.into_iter().enumerate() {
-            assert_eq!(ours.command, theirs.command, "{fw} {line:?}");
-            for i in 0..26 {
-                if i == (b'N' - b'A') as usize {
-                    continue; // the host's line number
-                }
-                let same = match (ours.params[i], theirs.params[i]) {
-                    (Some(Some(a)), Some(Some(b))) => a == b || (a.is_nan() && b.is_nan()),
-                    (a, b) => a == b,
-                };
-                assert!(same, "{fw} {line:?} {}", (b'A' + i as u8) as char);
-            }
-            let Ok(Some(c)) = read_for(fw, line) else {
-                continue;
-            };
-            accepted[k] += 1;
-            assert_eq!(
-                theirs.command,
-                Some((c.letter(), c.number())),
-                "{fw} {line:?}"
-            );
-            if theirs.string || STRING_COMMANDS.contains(&c.code.as_str()) {
-                continue;
-            }
-            for w in &c.words {
-                let read = theirs.param(w.letter).expect("seen");
-                assert_eq!(
-                    read.map(|v| v as f32),
-                    w.value.map(|v| v as f32),
-                    "{line:?}"
-                );
-            }
+        if let Some(d) = transcribed::disagreement(line) {
+            panic!("{d}");
+        }
+        for (k, fw) in [Marlin2, Ultimaker2].into_iter().enumerate() {
+            accepted[k] += usize::from(matches!(read_for(fw, line), Ok(Some(_))));
         }
     }
     // The generator reaches lines each firmware accepts, not only refusals.

@@ -165,3 +165,68 @@ pub fn ultimaker2(text: &str) -> View {
     }
     view
 }
+
+/// Where crispen's readers and the transcriptions disagree on `line`, if they do: each
+/// firmware reader against its transcription on every line, and [`super::read_for`]'s
+/// command and values against the transcription on every line it accepts.
+pub fn disagreement(line: &str) -> Option<String> {
+    use super::{read_for, STRING_COMMANDS};
+    use crate::marlin::firmware::Firmware;
+    let pairs = [
+        (Firmware::Marlin2, super::marlin2::read(line), marlin2(line)),
+        (
+            Firmware::Ultimaker2,
+            super::ultimaker2::read(line),
+            ultimaker2(line),
+        ),
+    ];
+    for (fw, ours, theirs) in pairs {
+        if ours.command != theirs.command {
+            return Some(format!(
+                "{fw} {line:?}: command {:?} against {:?}",
+                ours.command, theirs.command
+            ));
+        }
+        for i in 0..26 {
+            if i == usize::from(b'N' - b'A') {
+                continue; // the host's line number
+            }
+            let same = match (ours.params[i], theirs.params[i]) {
+                (Some(Some(a)), Some(Some(b))) => a == b || (a.is_nan() && b.is_nan()),
+                (a, b) => a == b,
+            };
+            if !same {
+                return Some(format!(
+                    "{fw} {line:?}: {} is {:?} against {:?}",
+                    (b'A' + i as u8) as char,
+                    ours.params[i],
+                    theirs.params[i]
+                ));
+            }
+        }
+        let Ok(Some(c)) = read_for(fw, line) else {
+            continue;
+        };
+        if theirs.command != Some((c.letter(), c.number())) {
+            return Some(format!(
+                "{fw} {line:?}: accepted as {}, runs {:?}",
+                c.code, theirs.command
+            ));
+        }
+        if theirs.string || STRING_COMMANDS.contains(&c.code.as_str()) {
+            continue;
+        }
+        for w in &c.words {
+            let read = theirs.param(w.letter).flatten().map(|v| v as f32);
+            if read != w.value.map(|v| v as f32) || theirs.param(w.letter).is_none() {
+                return Some(format!(
+                    "{fw} {line:?}: {} accepted as {:?}, read as {:?}",
+                    w.letter,
+                    w.value,
+                    theirs.param(w.letter)
+                ));
+            }
+        }
+    }
+    None
+}

@@ -161,6 +161,44 @@ pub fn is_sidecar_name(name: &str) -> bool {
     !name.starts_with('.') && name.len() > ".toml".len() && name.ends_with(".toml")
 }
 
+/// A file name in its one spelling, Unicode NFC: `café` typed on one machine may arrive
+/// composed (U+00E9) and on another decomposed (`e` and U+0301, as macOS writes names);
+/// the two look alike everywhere they are shown, so they are one name to the farm. A job's
+/// name, an upload's name and every comparison of names go through this.
+pub fn normal_name(name: &str) -> std::borrow::Cow<'_, str> {
+    use unicode_normalization::UnicodeNormalization;
+    match unicode_normalization::is_nfc(name) {
+        true => std::borrow::Cow::Borrowed(name),
+        false => std::borrow::Cow::Owned(name.nfc().collect()),
+    }
+}
+
+/// Whether two file names are one name, perhaps spelt differently (see [`normal_name`]).
+pub fn same_name(a: &str, b: &str) -> bool {
+    a == b || normal_name(a) == normal_name(b)
+}
+
+/// What is directly in `folder` under `name` in any of its spellings (a file, a directory,
+/// a link: not followed): `folder/name` itself when it is there, else the first entry whose
+/// name is [`same_name`] as it. None when neither is there or the folder cannot be listed.
+/// Blocking: one `lstat`, and a listing of the folder only when that finds nothing.
+pub fn find_named(folder: &Path, name: &str) -> Option<PathBuf> {
+    let exact = folder.join(name);
+    if std::fs::symlink_metadata(&exact).is_ok() {
+        return Some(exact);
+    }
+    let wanted = normal_name(name);
+    std::fs::read_dir(folder)
+        .ok()?
+        .flatten()
+        .find(|e| {
+            e.file_name()
+                .to_str()
+                .is_some_and(|n| normal_name(n) == wanted)
+        })
+        .map(|e| e.path())
+}
+
 #[derive(Debug)]
 struct Seen {
     size: u64,
@@ -580,6 +618,35 @@ mod tests {
         assert_eq!(name_problem("a b.stl"), None);
         assert!(name_problem("a\u{1b}.stl").is_some());
         assert!(name_problem("a\u{2067}.stl").is_some());
+    }
+
+    /// Two spellings of one name are one name; a name is found in a folder in either.
+    #[test]
+    fn two_spellings_are_one_name() {
+        let composed = "caf\u{e9}.gcode";
+        let decomposed = "cafe\u{301}.gcode";
+        assert_ne!(composed, decomposed);
+        assert_eq!(normal_name(decomposed), composed);
+        assert!(matches!(
+            normal_name(composed),
+            std::borrow::Cow::Borrowed(_)
+        ));
+        assert!(same_name(composed, decomposed));
+        assert!(!same_name(composed, "cafe.gcode"));
+        // The Kelvin sign is K in its one spelling.
+        assert_eq!(normal_name("\u{212a}.stl"), "K.stl");
+        let tmp = tempfile::tempdir().unwrap();
+        assert_eq!(find_named(tmp.path(), composed), None);
+        std::fs::write(tmp.path().join(decomposed), b"x").unwrap();
+        for name in [composed, decomposed] {
+            assert_eq!(
+                find_named(tmp.path(), name),
+                Some(tmp.path().join(decomposed)),
+                "{name:?}"
+            );
+        }
+        assert_eq!(find_named(tmp.path(), "cafe.gcode"), None);
+        assert_eq!(find_named(&tmp.path().join("none"), composed), None);
     }
 
     #[test]

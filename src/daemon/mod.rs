@@ -169,7 +169,9 @@ async fn pick_up(
         return;
     }
     let model = name.strip_suffix(".toml").unwrap_or(&name);
-    if !path.exists() || folder.join(model).exists() {
+    // The model may be spelt otherwise than its sidecar (one composed, one decomposed): it
+    // is its model all the same, as the pick-up of the model finds it.
+    if !path.exists() || hotfolder::find_named(folder, model).is_some_and(|m| m.exists()) {
         // Taken with its model already, or its model is still arriving.
         lone_sidecars.remove(path);
         return;

@@ -513,7 +513,8 @@ pub async fn upload(
 ) -> Result<(StatusCode, Json<serde_json::Value>), ApiError> {
     let config = state.farm.config();
     let folder = upload::find_folder(&config, &folder)?;
-    upload::check_name(&file)?;
+    // The name as the farm keeps it (one spelling), which the answer shows too.
+    let (file, _) = upload::upload_name(&file)?;
     let (path, size) = upload::store(
         &folder.path,
         &file,

@@ -44,7 +44,7 @@ use std::time::Duration;
 pub use appkeys::AppKeys;
 pub use error::ApiError;
 pub use octoprint::{read_form as read_upload_form, truthy, Form as UploadForm};
-pub use upload::{check_name as check_upload_name, Upload};
+pub use upload::{check_name as check_upload_name, upload_name, Upload};
 
 /// Who may do what on a listener.
 #[derive(Debug, Clone)]

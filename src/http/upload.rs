@@ -58,6 +58,16 @@ pub enum Upload {
     Gcode,
 }
 
+/// An uploaded file's name as the farm keeps it: in its one spelling (NFC, see
+/// [`crate::daemon::hotfolder::normal_name`]), then checked by [`check_name`]. Every way
+/// an upload's name arrives goes through this, so `café.gcode` composed and decomposed
+/// land on one file name, and a second one is refused as a second identical name is.
+pub fn upload_name(name: &str) -> Result<(String, Upload), ApiError> {
+    let name = crate::daemon::hotfolder::normal_name(name).into_owned();
+    let kind = check_name(&name)?;
+    Ok((name, kind))
+}
+
 /// Checks an uploaded file's name: exactly one plain path component (no directories, not
 /// `.` or `..`, not hidden, not a temporary name the watcher skips), at most
 /// [`MAX_NAME_BYTES`], without control or bidi characters, of a model, G-code, or the
@@ -190,8 +200,12 @@ impl Received {
 
     /// A link, not `fsutil::write_atomic`'s rename: a rename would replace a file of the
     /// same name that the hot folder already holds. Made durable like it (the file was
-    /// synced as it was received; the folder's entry is synced here).
+    /// synced as it was received; the folder's entry is synced here). The name spelt
+    /// otherwise (a file dropped by hand under its decomposed spelling) is taken as well.
     fn link(&self) -> Result<PathBuf, ApiError> {
+        if self.taken_otherwise() {
+            return Err(self.taken());
+        }
         match std::fs::hard_link(&self.temp, &self.target) {
             Ok(()) => {
                 if let Some(folder) = self.target.parent() {
@@ -201,15 +215,28 @@ impl Received {
                 }
                 Ok(self.target.clone())
             }
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                Err(ApiError::conflict(format!(
-                    "{}: a file of this name is already in the hot folder (hint: wait until it \
-                     is picked up, or upload under another name)",
-                    shown(&self.target)
-                )))
-            }
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Err(self.taken()),
             Err(e) => Err(io_error(&self.target, "cannot put the upload in place", e)),
         }
+    }
+
+    /// Whether the hot folder holds this name under another spelling (the upload's own
+    /// is NFC; a file put there by other means may not be). The link itself refuses the
+    /// upload's own spelling.
+    fn taken_otherwise(&self) -> bool {
+        let (Some(folder), Some(name)) = (self.target.parent(), self.target.file_name()) else {
+            return false;
+        };
+        crate::daemon::hotfolder::find_named(folder, &name.to_string_lossy())
+            .is_some_and(|found| found != self.target)
+    }
+
+    fn taken(&self) -> ApiError {
+        ApiError::conflict(format!(
+            "{}: a file of this name is already in the hot folder (hint: wait until it \
+             is picked up, or upload under another name)",
+            shown(&self.target)
+        ))
     }
 }
 
@@ -225,7 +252,7 @@ pub async fn place_with_sidecar(
         let Some(sidecar) = sidecar else {
             return model.link();
         };
-        if std::fs::symlink_metadata(&model.target).is_ok() {
+        if std::fs::symlink_metadata(&model.target).is_ok() || model.taken_otherwise() {
             return model.link(); // fails, naming the file that is there
         }
         let linked = sidecar.link()?;
@@ -270,7 +297,9 @@ where
     E: std::fmt::Display,
 {
     // Checked here too, whatever the caller did: nothing is written under a name that
-    // is not one plain file name in `folder`.
+    // is not one plain file name in `folder`, nor under a name in another spelling than
+    // its one (the callers normalise it first, so that they answer with the name used).
+    let name = &*crate::daemon::hotfolder::normal_name(name);
     check_name(name)?;
     let target = folder.join(name);
     let temp = folder.join(format!(".{name}.{:016x}.upload", rand::random::<u64>()));
@@ -420,6 +449,45 @@ mod tests {
         assert_eq!(e.status, StatusCode::PAYLOAD_TOO_LARGE);
         let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(left.len(), 1, "only a.stl: {left:?}");
+    }
+
+    /// `café.gcode` composed and decomposed are one name: stored under the composed
+    /// spelling whichever arrives, and the second refused as a second identical name is,
+    /// also when the first was put in the folder by hand under the decomposed spelling.
+    #[tokio::test]
+    async fn two_spellings_of_a_name_are_one_name() {
+        let composed = "caf\u{e9}.gcode";
+        let decomposed = "cafe\u{301}.gcode";
+        assert_eq!(upload_name(decomposed).unwrap().0, composed);
+        assert_eq!(upload_name(composed).unwrap().0, composed);
+        let one =
+            || futures_util::stream::iter([Ok::<_, std::io::Error>(Bytes::from_static(b"G28\n"))]);
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _) = store(dir.path(), decomposed, one(), 100).await.unwrap();
+        assert_eq!(path, dir.path().join(composed));
+        let e = store(dir.path(), composed, one(), 100).await.unwrap_err();
+        assert_eq!(e.status, StatusCode::CONFLICT, "{}", e.message);
+        let e = store(dir.path(), decomposed, one(), 100).await.unwrap_err();
+        assert_eq!(e.status, StatusCode::CONFLICT, "{}", e.message);
+
+        // Dropped by hand, decomposed: an upload of the name in either spelling waits.
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join(decomposed), b"G28\n").unwrap();
+        for name in [composed, decomposed] {
+            let e = store(dir.path(), name, one(), 100).await.unwrap_err();
+            assert_eq!(e.status, StatusCode::CONFLICT, "{name:?}: {}", e.message);
+        }
+        // A held upload's sidecar spelt otherwise is taken too: nothing placed.
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("cafe\u{301}.gcode.toml"), b"copies = 2\n").unwrap();
+        let model = receive(dir.path(), composed, one(), 100).await.unwrap();
+        let sidecar = receive(dir.path(), &format!("{composed}.toml"), one(), 100)
+            .await
+            .unwrap();
+        let e = place_with_sidecar(model, Some(sidecar)).await.unwrap_err();
+        assert_eq!(e.status, StatusCode::CONFLICT, "{}", e.message);
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(left.len(), 1, "only the sidecar there before: {left:?}");
     }
 
     /// A held upload's sidecar and model arrive together or not at all.

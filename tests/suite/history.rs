@@ -480,3 +480,142 @@ fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
         "{text}"
     );
 }
+
+/// Issue 31: a job's failure reason names its files relative to the spool or by the job's
+/// own file name, never by the server's path, wherever clients read it: `/api/v1/jobs`,
+/// the status (the dashboard's), a job's record, and the history after a restart. The
+/// failures: a job whose `job.json` cannot be read, a `.gcode` that is not G-code, and
+/// G-code the host refuses to load (its error names the file by path).
+#[test]
+fn failure_reasons_name_files_never_server_paths() {
+    use crate::common::farm::drop_file;
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let spool = root.join("spool");
+    // A job whose state was cut short (a crash, a full disk): it is loaded as failed.
+    let broken = Job::make_id(1, "broken.gcode");
+    let dir = spool.join("jobs").join(&broken);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("broken.gcode"), "G28\n").unwrap();
+    std::fs::write(
+        dir.join("origin.json"),
+        serde_json::json!({"id": broken, "file": "broken.gcode", "folder": hot}).to_string(),
+    )
+    .unwrap();
+    std::fs::write(
+        dir.join("job.json"),
+        format!("{{\"id\": \"{broken}\", trunc"),
+    )
+    .unwrap();
+    let config = root.join("crispen.toml");
+    // Live for a week first; then, restarted with none live, all move to the history.
+    let write_config = |history: &str| {
+        std::fs::write(
+            &config,
+            format!(
+                "[spool]\ndir = {:?}\n[control]\nsocket = {:?}\n[farm]\nsettle_s = 0.2\n\
+                 [history]\n{history}\n\
+                 [[printer]]\nname = \"p1\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+                 [[folder]]\npath = {:?}\nheight_mm = 30\nprinters = [\"p1\"]\n",
+                spool,
+                root.join("crispen.sock"),
+                hot,
+            ),
+        )
+        .unwrap()
+    };
+    write_config("live_days = 7");
+    let mut daemon = Daemon::start(root, &config);
+    drop_file(&hot, "notes.gcode", b"G28\n\0\0 a picture, not G-code\n");
+    drop_file(&hot, "star.gcode", b"G28\nM117 five*six\n");
+    let status = |d: &Daemon| get(&d.socket, "/api/v1/status").unwrap().1;
+    let files = ["broken.gcode", "notes.gcode", "star.gcode"];
+    daemon.wait_for(
+        |d| {
+            let s = status(d);
+            files
+                .iter()
+                .all(|f| crate::common::farm::state_of(&s, f) == "failed")
+        },
+        "the three jobs failed",
+    );
+    // The spool's path as written and as it resolves (/tmp may be a link).
+    let paths = [
+        spool.to_string_lossy().into_owned(),
+        spool.canonicalize().unwrap().to_string_lossy().into_owned(),
+        root.to_string_lossy().into_owned(),
+    ];
+    let id_of = |s: &serde_json::Value, file: &str| {
+        crate::common::job_by_file(s, file).unwrap()["id"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+    let s = status(&daemon);
+    let ids: Vec<String> = files.iter().map(|f| id_of(&s, f)).collect();
+    assert_eq!(ids[0], broken);
+    // What each reason must name: the file relative to the spool, or by its name.
+    let named = [
+        format!("jobs/{broken}/job.json"),
+        "notes.gcode: not G-code".to_string(),
+        "star.gcode".to_string(),
+    ];
+    let check = |where_: &str, id: &str, reason: &serde_json::Value| {
+        let reason = reason
+            .as_str()
+            .unwrap_or_else(|| panic!("{where_}: {id} has no reason"));
+        let i = ids.iter().position(|i| i == id).unwrap();
+        assert!(reason.contains(&named[i]), "{where_}: {id}: {reason}");
+        for path in &paths {
+            assert!(
+                !reason.contains(path.as_str()),
+                "{where_}: {id} names the server's path {path}: {reason}"
+            );
+        }
+    };
+    let (code, jobs) = get(&daemon.socket, "/api/v1/jobs").unwrap();
+    assert_eq!(code, 200, "{jobs}");
+    for job in jobs.as_array().unwrap() {
+        check("/api/v1/jobs", job["id"].as_str().unwrap(), &job["reason"]);
+    }
+    assert_eq!(jobs.as_array().unwrap().len(), 3, "{jobs:#}");
+    for job in s["jobs"].as_array().unwrap() {
+        check(
+            "/api/v1/status",
+            job["id"].as_str().unwrap(),
+            &job["reason"],
+        );
+    }
+    for id in &ids {
+        let (_, detail) = get(&daemon.socket, &format!("/api/v1/jobs/{id}")).unwrap();
+        check("/api/v1/jobs/{id}", id, &detail["job"]["reason"]);
+    }
+
+    // After a restart, in the history.
+    drop(daemon);
+    write_config("live_days = 0\nlive_jobs = 0");
+    let mut daemon = Daemon::start(root, &config);
+    let history = |d: &Daemon| get(&d.socket, "/api/v1/history?limit=10");
+    daemon.wait_for(
+        |d| history(d).is_some_and(|(_, p)| p["jobs"].as_array().is_some_and(|j| j.len() == 3)),
+        "the three jobs in the history",
+    );
+    let (code, page) = history(&daemon).unwrap();
+    assert_eq!(code, 200, "{page}");
+    let listed = page["jobs"].as_array().unwrap();
+    assert_eq!(listed.len(), 3, "{page:#}");
+    for record in listed {
+        check(
+            "/api/v1/history",
+            record["id"].as_str().unwrap(),
+            &record["reason"],
+        );
+    }
+    for id in &ids {
+        let (_, retired) = get(&daemon.socket, &format!("/api/v1/jobs/{id}")).unwrap();
+        assert_eq!(retired["retired"], true, "{retired}");
+        check("/api/v1/jobs/{id} (retired)", id, &retired["reason"]);
+    }
+}

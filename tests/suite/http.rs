@@ -1549,6 +1549,120 @@ fn a_held_upload_is_released_before_it_is_prepared() {
     assert_eq!(job_by_file(&s, "early.gcode").unwrap()["held"], false);
 }
 
+/// `café.gcode` composed (U+00E9).
+const CAFE_COMPOSED: &str = "caf\u{e9}.gcode";
+/// `café.gcode` decomposed (`e` and U+0301), as macOS spells names.
+const CAFE_DECOMPOSED: &str = "cafe\u{301}.gcode";
+
+/// `PUT /api/v1/folders/hot/files/<name>` with a small G-code job.
+fn put_gcode(farm: &Farm, name: &str) -> Answer {
+    request(
+        &farm.addr,
+        "PUT",
+        &format!(
+            "/api/v1/folders/hot/files/{}",
+            crispen::percent::percent_encode(name)
+        ),
+        &key_header(Some(KEY)),
+        WARM_GCODE.as_bytes(),
+    )
+}
+
+/// Issue 31: the two spellings of `café.gcode` are one name through the API and the
+/// OctoPrint upload. The first upload (decomposed, held) is kept under the composed
+/// spelling and answered with it; while it waits in the hot folder, the name in either
+/// spelling and by either way is refused as the same name twice is (409); it becomes one
+/// job named in the composed spelling, which Cura's select-and-print finds by the other.
+#[test]
+fn two_spellings_of_an_uploaded_name_are_one_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Long enough a settle time that the upload waits in the folder for the others.
+    let farm = Farm::start_with(tmp.path(), 0.0, "settle_s = 8", "");
+    let a = octoprint_upload(&farm.addr, CAFE_DECOMPOSED, WARM_GCODE.as_bytes(), "false");
+    assert_eq!(a.status, 201, "{}", a.text());
+    let local = &a.json()["files"]["local"];
+    assert_eq!(local["name"], CAFE_COMPOSED, "{local}");
+    assert_eq!(local["path"], format!("hot/{CAFE_COMPOSED}"), "{local}");
+    for name in [CAFE_COMPOSED, CAFE_DECOMPOSED] {
+        let a = put_gcode(&farm, name);
+        assert_eq!(a.status, 409, "PUT {name:?}: {}", a.text());
+        assert!(a.error().contains(CAFE_COMPOSED), "{}", a.text());
+        let a = octoprint_upload(&farm.addr, name, WARM_GCODE.as_bytes(), "true");
+        assert_eq!(a.status, 409, "OctoPrint {name:?}: {}", a.text());
+    }
+    assert_eq!(
+        hot_files(tmp.path()),
+        [CAFE_COMPOSED.to_string(), format!("{CAFE_COMPOSED}.toml")],
+        "one file (and its hold), in the composed spelling"
+    );
+    let s = farm.wait_for(Duration::from_secs(60), "the held job ready", |s| {
+        job_by_file(s, CAFE_COMPOSED).is_some_and(|j| j["state"] == "ready" && j["held"] == true)
+    });
+    assert_eq!(s["jobs"].as_array().unwrap().len(), 1, "one job: {s:#}");
+    // Cura's select-and-print, by the decomposed name: it finds and releases the job.
+    let a = request(
+        &farm.addr,
+        "POST",
+        &format!(
+            "/api/files/local/{}",
+            crispen::percent::percent_encode(CAFE_DECOMPOSED)
+        ),
+        &[("X-Api-Key", KEY), ("Content-Type", "application/json")],
+        br#"{"command": "select", "print": true}"#,
+    );
+    assert_eq!(a.status, 204, "{}", a.text());
+    farm.wait_for(Duration::from_secs(60), "the released job printed", |s| {
+        job_by_file(s, CAFE_COMPOSED).is_some_and(|j| j["state"] == "done")
+    });
+    // The name once free again, the other spelling makes a second job of the same name,
+    // as a second upload of one name does.
+    let a = put_gcode(&farm, CAFE_DECOMPOSED);
+    assert_eq!(a.status, 201, "{}", a.text());
+    assert_eq!(a.json()["file"], CAFE_COMPOSED);
+    let s = farm.wait_for(Duration::from_secs(60), "the second job", |s| {
+        s["jobs"].as_array().unwrap().len() == 2
+    });
+    for job in s["jobs"].as_array().unwrap() {
+        assert_eq!(job["file"], CAFE_COMPOSED, "{s:#}");
+    }
+}
+
+/// Issue 31: files dropped into a hot folder under either spelling of a name. The file
+/// keeps its name in the folder, but its job is named in the one spelling, its sidecar
+/// spelt otherwise goes with it (here holding it), and while it waits an upload of the
+/// name in the other spelling is refused as one of the same name is.
+#[test]
+fn two_spellings_of_a_dropped_name_are_one_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start_with(tmp.path(), 0.0, "settle_s = 8", "");
+    farm.status();
+    let hot = tmp.path().join("hot");
+    std::fs::write(hot.join(format!("{CAFE_COMPOSED}.toml")), "hold = true\n").unwrap();
+    std::fs::write(hot.join(CAFE_DECOMPOSED), WARM_GCODE).unwrap();
+    for name in [CAFE_COMPOSED, CAFE_DECOMPOSED] {
+        let a = put_gcode(&farm, name);
+        assert_eq!(a.status, 409, "PUT {name:?}: {}", a.text());
+        let a = octoprint_upload(&farm.addr, name, WARM_GCODE.as_bytes(), "false");
+        assert_eq!(a.status, 409, "OctoPrint {name:?}: {}", a.text());
+    }
+    assert_eq!(
+        hot_files(tmp.path()),
+        [CAFE_DECOMPOSED.to_string(), format!("{CAFE_COMPOSED}.toml")],
+        "the dropped files as they were, nothing uploaded"
+    );
+    let s = farm.wait_for(Duration::from_secs(60), "the held job ready", |s| {
+        job_by_file(s, CAFE_COMPOSED).is_some_and(|j| j["state"] == "ready")
+    });
+    assert_eq!(s["jobs"].as_array().unwrap().len(), 1, "one job: {s:#}");
+    let job = job_by_file(&s, CAFE_COMPOSED).unwrap();
+    assert_eq!(job["held"], true, "its sidecar went with it: {job:#}");
+    assert_eq!(
+        hot_files(tmp.path()),
+        Vec::<String>::new(),
+        "both taken, nothing set aside"
+    );
+}
+
 /// A pause the file asks for, on the dashboard in a real headless Chromium: the printer's
 /// tile shows it waiting for the operator with the file's message and a Resume button,
 /// whose click (with the key) finishes the job.

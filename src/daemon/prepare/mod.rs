@@ -358,24 +358,25 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
 fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
     use crate::slice::{policy, presliced};
     let model = &task.model;
-    let file =
-        std::fs::File::open(model).map_err(|e| format!("{}: cannot read: {e}", model.display()))?;
+    // The reason is the job's, shown to clients: the file by the job's own name, never by
+    // its path in the spool.
+    let name = model.file_name().unwrap_or_default().to_string_lossy();
+    let file = std::fs::File::open(model).map_err(|e| format!("{name}: cannot read: {e}"))?;
     // Refused here, before a printer claims it, rather than when the printer loads it.
     let size = file
         .metadata()
-        .map_err(|e| format!("{}: cannot read: {e}", model.display()))?
+        .map_err(|e| format!("{name}: cannot read: {e}"))?
         .len();
     let limit = crate::marlin::gcode::MAX_GCODE_BYTES;
     if size > limit {
         return Err(format!(
-            "{}: {} MiB of G-code, more than the {} MiB crispen streams; split the job",
-            model.display(),
+            "{name}: {} MiB of G-code, more than the {} MiB crispen streams; split the job",
             size >> 20,
             limit >> 20
         ));
     }
     let target = presliced::read_target(std::io::BufReader::new(file))
-        .map_err(|e| format!("{}: {e}", model.display()))?;
+        .map_err(|e| format!("{name}: {e}"))?;
     tracing::info!(
         slicer = ?target.slicer,
         filament_mm = ?target.filament_mm,

@@ -15,6 +15,7 @@
 use super::history::{self, HistoryFiles, Retention, Retired};
 use super::pending::{Attempt, Pending};
 use super::{io_err, JobEdit, JobStore, RetiredJob, StateFilter};
+use crate::daemon::hotfolder::{find_named, normal_name};
 use crate::daemon::job::{now_s, Job, JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -101,7 +102,7 @@ impl Spool {
                 Ok(Some(job)) => job,
                 Err(e) => {
                     tracing::error!(job = %name, error = %e, "job state unreadable; the job is marked failed");
-                    unreadable_job(&dir, &name, seq, &e)
+                    unreadable_job(root, &dir, &name, seq, &e)
                 }
             };
             jobs.insert(job.id.clone(), job);
@@ -255,9 +256,7 @@ impl Spool {
         self.next_seq += 1;
         let id = Job::make_id(seq, &file);
         let dir = self.job_dir(&id);
-        let mut sidecar_name = source.as_os_str().to_owned();
-        sidecar_name.push(".toml");
-        let sidecar = PathBuf::from(sidecar_name);
+        let sidecar = sidecar_of(source);
         let job = Job::queued(id.clone(), seq, file, folder.to_path_buf());
         // A pick-up that cannot be completed (a full disk) is undone: the files go back to
         // the hot folder and no half job is left behind.
@@ -433,7 +432,11 @@ impl Spool {
             if failed.state.can_go_to(JobState::Failed) {
                 failed.state = JobState::Failed;
                 failed.history.push((JobState::Failed, now_s()));
-                failed.reason = Some(format!("its directory {} was removed", dir.display()));
+                // Named relative to the spool: the reason is shown to clients.
+                failed.reason = Some(format!(
+                    "its directory {} was removed",
+                    super::spool_relative(&dir.display().to_string(), &self.root)
+                ));
                 self.jobs.insert(id.to_string(), failed);
             }
             return Err(StoreError::DirectoryGone {
@@ -665,18 +668,36 @@ pub(super) fn regular_file_size(path: &Path) -> Result<u64, StoreError> {
     }
 }
 
-/// The name a dropped file is kept under in its job: its own, unless it is named like one
-/// of the job's own files, so neither overwrites the other.
+/// The name a dropped file is kept under in its job: its own in its one spelling (NFC:
+/// two spellings of a name are one job name, see [`normal_name`]), unless it is named like
+/// one of the job's own files, so neither overwrites the other. The file in the hot folder
+/// is not renamed; its copy in the job directory is under this name.
 pub(super) fn model_name(source: &Path) -> String {
     let dropped = source
         .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
+        .map(|n| normal_name(&n.to_string_lossy()).into_owned())
         .unwrap_or_else(|| "model".into());
     if is_reserved_name(&dropped) {
         format!("model-{dropped}")
     } else {
         dropped
     }
+}
+
+/// The sidecar of a dropped model: `<model>.toml`, or the same name spelt otherwise (a
+/// decomposed `café.gcode.toml` is the sidecar of a composed `café.gcode`). A path that
+/// is not there when there is none.
+pub(super) fn sidecar_of(source: &Path) -> PathBuf {
+    let mut exact = source.as_os_str().to_owned();
+    exact.push(".toml");
+    let exact = PathBuf::from(exact);
+    let (Some(folder), Some(name)) = (source.parent(), source.file_name()) else {
+        return exact;
+    };
+    let Some(name) = name.to_str() else {
+        return exact;
+    };
+    find_named(folder, &format!("{name}.toml")).unwrap_or(exact)
 }
 
 /// Where a late sidecar of model `file` goes: the job's sidecar when it `applies`, else
@@ -743,8 +764,9 @@ fn load_job(dir: &Path) -> Result<Option<Job>, StoreError> {
 }
 
 /// A failed stand-in for a job whose state could not be read; the directory is kept as it
-/// is for the operator to look at.
-fn unreadable_job(dir: &Path, id: &str, seq: u64, error: &StoreError) -> Job {
+/// is for the operator to look at. Its reason names the files relative to the spool `root`
+/// (`jobs/<id>/job.json`): clients see it (the log has the whole path).
+fn unreadable_job(root: &Path, dir: &Path, id: &str, seq: u64, error: &StoreError) -> Job {
     let (file, folder) = match read_origin(dir) {
         Some(o) => (o.file, o.folder),
         None => (String::new(), PathBuf::new()),
@@ -752,10 +774,8 @@ fn unreadable_job(dir: &Path, id: &str, seq: u64, error: &StoreError) -> Job {
     let mut job = Job::queued(id.to_string(), seq, file, folder);
     job.state = JobState::Failed;
     job.history.push((JobState::Failed, now_s()));
-    job.reason = Some(format!(
-        "{error}; the directory {} is kept as it was",
-        dir.display()
-    ));
+    let reason = format!("{error}; the directory {} is kept as it was", dir.display());
+    job.reason = Some(super::spool_relative(&reason, root));
     job
 }
 
@@ -816,6 +836,35 @@ mod tests {
         let again = store2.get(&job.id).unwrap();
         assert_eq!(again.file, "a b.stl");
         assert_eq!(again.state, JobState::Queued);
+    }
+
+    /// A dropped `café.gcode` becomes a job named in the one spelling (composed), whichever
+    /// spelling it was dropped under; its sidecar goes with it in the other spelling too.
+    #[test]
+    fn a_job_is_named_in_the_one_spelling_and_finds_its_sidecar_in_any() {
+        let (_tmp, hot, spool, mut store) = open_with_hot_folder();
+        let composed = "caf\u{e9}.gcode";
+        let src = drop_file(&hot, "cafe\u{301}.gcode");
+        std::fs::write(hot.join(format!("{composed}.toml")), "hold = true\n").unwrap();
+        let job = store.admit(&src, &hot).unwrap();
+        assert_eq!(job.file, composed);
+        let dir = store.job_dir(&job.id);
+        assert!(dir.join(composed).is_file());
+        assert!(dir.join(format!("{composed}.toml")).is_file());
+        assert_eq!(std::fs::read_dir(&hot).unwrap().count(), 0, "both taken");
+        // Composed model, decomposed sidecar.
+        let src = drop_file(&hot, composed);
+        std::fs::write(hot.join("cafe\u{301}.gcode.toml"), "copies = 2\n").unwrap();
+        let second = store.admit(&src, &hot).unwrap();
+        assert_eq!(second.file, composed);
+        assert!(store
+            .job_dir(&second.id)
+            .join(format!("{composed}.toml"))
+            .is_file());
+        assert_eq!(std::fs::read_dir(&hot).unwrap().count(), 0, "both taken");
+        drop(store);
+        let store = Spool::open(&spool).unwrap();
+        assert_eq!(store.get(&job.id).unwrap().file, composed);
     }
 
     #[test]
@@ -1005,6 +1054,13 @@ mod tests {
             let reason = job.reason.as_deref().unwrap();
             assert!(
                 reason.contains("job.json") && reason.contains("kept"),
+                "{reason}"
+            );
+            // Clients see the reason: the files relative to the spool, never its path.
+            assert!(
+                reason.contains(&format!("jobs/{id}/job.json"))
+                    && reason.contains(&format!("directory jobs/{id} is kept"))
+                    && !reason.contains(&*spool.to_string_lossy()),
                 "{reason}"
             );
         }

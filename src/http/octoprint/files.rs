@@ -278,9 +278,11 @@ pub async fn command(
     };
     let config = state.farm.config();
     let folder = folder_for(&config, &instance, folder_part)?;
-    upload::check_name(file)?;
+    // The job is found by its name in either spelling (jobs made before names were
+    // normalised keep theirs).
+    let (file, _) = upload::upload_name(file)?;
     let folder_path = folder.path.clone();
-    let shown = crate::daemon::hotfolder::printable(file);
+    let shown = crate::daemon::hotfolder::printable(&file);
     let folder_name = upload::folder_name(folder);
     drop(config);
     let deadline = tokio::time::Instant::now() + PICKUP_WAIT;
@@ -288,7 +290,9 @@ pub async fn command(
         let jobs: Vec<control::JobStatus> = control::status(&state.farm)
             .jobs
             .into_iter()
-            .filter(|j| j.folder == folder_path && j.file == file)
+            .filter(|j| {
+                j.folder == folder_path && crate::daemon::hotfolder::same_name(&j.file, &file)
+            })
             .collect();
         let live = |j: &&control::JobStatus| {
             matches!(

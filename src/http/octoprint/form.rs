@@ -3,8 +3,8 @@
 //! plugin sends `path`, then the file, then `select` and `print`), so the handler reads
 //! the whole form before it decides where the file goes and whether it prints. Every field
 //! is bounded while it is read ([`MAX_FIELD_BYTES`], at most [`MAX_PARTS`] parts; the
-//! body is parsed by [`super::super::multipart`]), and the file's name passes
-//! [`upload::check_name`] whatever the other fields say.
+//! body is parsed by [`super::super::multipart`]), and the file's name is normalised and
+//! passes [`upload::check_name`] whatever the other fields say ([`upload::upload_name`]).
 
 use super::super::upload;
 use super::super::ApiError;
@@ -34,7 +34,8 @@ pub fn truthy(value: &str) -> bool {
 pub enum Step {
     /// Push more of the body (or finish it).
     More,
-    /// The file begins; its name has passed [`upload::check_name`].
+    /// The file begins; its name is in its one spelling (NFC) and has passed
+    /// [`upload::check_name`].
     File { name: String, kind: upload::Upload },
     /// A piece of the file.
     Data(axum::body::Bytes),
@@ -110,8 +111,10 @@ impl FormReader {
                     }
                     if head.name == "file" {
                         self.file_seen = true;
-                        let name = head.file_name.unwrap_or_default();
-                        let kind = upload::check_name(&name)?;
+                        // In its one spelling from here on: the file, its hold
+                        // sidecar and the answer all carry that name.
+                        let (name, kind) =
+                            upload::upload_name(&head.file_name.unwrap_or_default())?;
                         self.in_file = true;
                         return Ok(Step::File { name, kind });
                     }
@@ -257,6 +260,21 @@ mod tests {
         let many: Vec<(&str, &str)> = vec![("x", "y"); MAX_PARTS];
         assert!(read(&many, "a.gcode").is_err());
         assert!(read_form("text/plain", &[b"x"]).is_err());
+    }
+
+    /// A name in its decomposed spelling (as a Mac sends `café`) comes out in its one
+    /// spelling, composed, even when the body's pieces split it between `e` and the accent.
+    #[test]
+    fn a_file_name_comes_out_in_its_one_spelling() {
+        let ct = "multipart/form-data; boundary=B";
+        let decomposed = "cafe\u{301}.gcode";
+        let body = body(&[("print", "true")], decomposed);
+        for step in [1, 2, 3, 7, body.len()] {
+            let pieces: Vec<&[u8]> = body.chunks(step).collect();
+            let (_, name, kind, _) = read_form(ct, &pieces).unwrap();
+            assert_eq!(name, "caf\u{e9}.gcode", "pieces of {step}");
+            assert_eq!(kind, upload::Upload::Gcode);
+        }
     }
 
     /// Cura's order: `path`, the file, then `select` and `print`: the fields after the

@@ -17,7 +17,7 @@ use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use crate::daemon::store::history::{self, Retention, Retired};
 use crate::daemon::store::pending::{Attempt, Pending};
 use crate::daemon::store::spool::{
-    late_sidecar_name, lock_dir, model_name, move_file, regular_file_size,
+    late_sidecar_name, lock_dir, model_name, move_file, regular_file_size, sidecar_of,
 };
 use crate::daemon::store::{io_err, JobEdit, JobStore, RetiredJob, StateFilter};
 use std::collections::BTreeMap;
@@ -192,9 +192,7 @@ impl JobStore for PgJobStore {
             ))));
         }
         let file = model_name(source);
-        let mut sidecar = source.as_os_str().to_owned();
-        sidecar.push(".toml");
-        let sidecar = PathBuf::from(sidecar);
+        let sidecar = sidecar_of(source);
         let sidecar_name = format!("{file}.toml");
         // Read as they are stored, never whole in memory (a model may be large).
         let has_sidecar = std::fs::symlink_metadata(&sidecar).is_ok_and(|m| m.is_file());

@@ -503,64 +503,28 @@ fn the_daemon_through_the_relay_runs_every_line_once() {
     );
 }
 
-/// The real Marlin 2.1.2.1 runs whatever the G-code policy lets through as the policy
-/// predicted: every allowed line of a corpus of odd-but-plain lines (glued parameters,
-/// spaces inside a parameter, signs, leading zeros, an exponent Marlin stops at, text that
-/// names other commands) is sent to the firmware itself, numbered as the host numbers
-/// lines, and after each one its `M105` targets and `M114` position must be what the
-/// policy's reading and follower say.
-#[test]
-fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
+/// The real firmware runs whatever the G-code policy lets through as the policy predicted:
+/// every line of a corpus of odd-but-plain lines (glued parameters, spaces inside a
+/// parameter, signs, leading zeros, an exponent Marlin stops at, text that names other
+/// commands) passes the policy for the firmware's machine and is sent to the firmware
+/// itself, numbered as the host numbers lines; after each one the firmware's `M105` targets
+/// and `M114` position must be what the policy's reading and follower say.
+fn runs_as_the_policy_reads(machine: &str, mut fw: DirectFirmware, corpus: &[&str]) {
     use crispen::machine::Machine;
     use crispen::marlin::motion::Motion;
     use crispen::marlin::reader;
     use crispen::slice::policy;
 
-    let Some(dir) =
-        firmware_dir("marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them")
-    else {
-        return;
-    };
-    const CORPUS: &[&str] = &[
-        "G28",
-        "M104S190",
-        "M104 S 185",
-        "M140 S60.9",
-        "M104 S+201.7",
-        "M104 S2.0E2",
-        "M104 T0S175",
-        "M104 S0180",
-        "G1X10Y20",
-        "G1 X 30 Y 40 F3000",
-        "G01 Z5",
-        "G1 X+15.5 Y.5",
-        "G92 X10",
-        "G1 X110",
-        "G92 E5",
-        "G91",
-        "G1 X-10 Y10 Z1",
-        "G90",
-        "G0 X50 Y50",
-        "M400 G92 Z50",
-        "M117 G92 Z60",
-        "M117 Printing M104 S400",
-        "G28 X Y",
-        "G1 X20 Y30",
-        "M140 S0",
-        "M104 S0",
-    ];
-    let machine = Machine::builtin("marlin-175").unwrap();
-    let text = CORPUS.join("\n") + "\n";
+    let machine = Machine::builtin(machine).unwrap();
+    let text = corpus.join("\n") + "\n";
     let verdict = policy::check(text.as_bytes(), &machine).unwrap();
     assert!(verdict.passed(), "{}", verdict.summary());
-
-    let mut fw = DirectFirmware::start(&dir.join(Build::Default.name()));
-    let mut motion = Motion::new(Firmware::Marlin2);
+    let mut motion = Motion::new(machine.firmware);
     let (mut hotend, mut bed) = (0i64, 0i64);
-    for line in CORPUS {
-        let cmd = reader::read_for(Firmware::Marlin2, line).unwrap().unwrap();
+    for line in corpus {
+        let cmd = reader::read_for(machine.firmware, line).unwrap().unwrap();
         motion.apply(&cmd).unwrap();
-        // Marlin keeps targets in whole degrees (`celsius_t`), cut towards zero.
+        // Both keep targets in whole degrees, cut towards zero.
         match cmd.code.as_str() {
             "M104" | "M109" => hotend = cmd.get('S').map_or(hotend, |s| s as i64),
             "M140" | "M190" => bed = cmd.get('S').map_or(bed, |s| s as i64),
@@ -568,24 +532,23 @@ fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
         }
         fw.send(line);
         let report = fw.send("M105");
-        let targets = |tag: &str| -> i64 {
+        let target = |tag: &str| -> i64 {
             let at = report
                 .find(tag)
                 .unwrap_or_else(|| panic!("{line}: {report}"));
             let rest = &report[at + tag.len()..];
             let slash = rest.find('/').unwrap();
-            let end = rest[slash + 1..]
-                .find(' ')
-                .unwrap_or(rest.len() - slash - 1);
-            rest[slash + 1..slash + 1 + end]
-                .trim()
-                .parse::<f64>()
-                .unwrap() as i64
+            let value: String = rest[slash + 1..]
+                .trim_start()
+                .chars()
+                .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == '-')
+                .collect();
+            value.parse::<f64>().unwrap() as i64
         };
         assert_eq!(
-            (targets("T:"), targets("B:")),
+            (target("T:"), target("B:")),
             (hotend, bed),
-            "after `{line}`"
+            "after `{line}`: {report}"
         );
         let answer = fw.send("M114");
         let at = common::relay::parse_position(
@@ -604,6 +567,98 @@ fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
     }
 }
 
+#[test]
+fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
+    let Some(dir) =
+        firmware_dir("marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them")
+    else {
+        return;
+    };
+    let fw = DirectFirmware::start(
+        std::process::Command::new(dir.join(Build::Default.name())),
+        Duration::from_millis(1500),
+    );
+    runs_as_the_policy_reads(
+        "marlin-175",
+        fw,
+        &[
+            "G28",
+            "M104S190",
+            "M104 S 185",
+            "M140 S60.9",
+            "M104 S+201.7",
+            "M104 S2.0E2",
+            "M104 T0S175",
+            "M104 S0180",
+            "G1X10Y20",
+            "G1 X 30 Y 40 F3000",
+            "G01 Z5",
+            "G1 X+15.5 Y.5",
+            "G92 X10",
+            "G1 X110",
+            "G92 E5",
+            "G91",
+            "G1 X-10 Y10 Z1",
+            "G90",
+            "G0 X50 Y50",
+            "M400 G92 Z50",
+            "M117 G92 Z60",
+            "M117 Printing M104 S400",
+            "G28 X Y",
+            "G1 X20 Y30",
+            "M140 S0",
+            "M104 S0",
+        ],
+    );
+}
+
+/// The same on Ultimaker2Marlin in its AVR emulator (it cannot home there: `G92` sets the
+/// start).
+#[test]
+fn ultimaker2_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
+    let Some(dir) =
+        firmware_dir("ultimaker2_runs_the_lines_the_policy_allows_as_the_policy_reads_them")
+    else {
+        return;
+    };
+    let um2 = dir.join("ultimaker2");
+    let mut command = std::process::Command::new(um2.join("um2sim"));
+    command
+        .arg("--elf")
+        .arg(um2.join("ultimaker2marlin-8698fb6.elf"))
+        .arg("--stdio");
+    // It waits about 2.3 s for an SD card at boot.
+    let fw = DirectFirmware::start(command, Duration::from_millis(4000));
+    runs_as_the_policy_reads(
+        "ultimaker2",
+        fw,
+        &[
+            "G92 X0 Y0 Z10",
+            "M104S190",
+            "M104 S 185",
+            "M140 S60.9",
+            "M104 S+201.7",
+            "M104 T0S175",
+            "M104 S0180",
+            "G1X20Y20",
+            "G1 X 30 Y 40 F6000",
+            "G01 Z15",
+            "G1 X+15.5 Y.5",
+            "G92 X20",
+            "G1 X40",
+            "G92 E5",
+            "G91",
+            "G1 X-5 Y10 Z1",
+            "G90",
+            "G0 X50 Y50",
+            "M400",
+            "M117 Printing M104 S400",
+            "M140 S0",
+            "M104 S0",
+        ],
+    );
+}
+
 /// The firmware as a plain child process on pipes (no host, no relay): lines go in numbered
 /// and checksummed as crispen's host frames them, and each is answered before the next.
 struct DirectFirmware {
@@ -613,13 +668,14 @@ struct DirectFirmware {
 }
 
 impl DirectFirmware {
-    fn start(binary: &std::path::Path) -> DirectFirmware {
+    /// Starts `command` and waits `boot` for its banner.
+    fn start(mut command: std::process::Command, boot: Duration) -> DirectFirmware {
         use std::io::BufRead;
-        let mut child = std::process::Command::new(binary)
+        let mut child = command
             .stdin(std::process::Stdio::piped())
             .stdout(std::process::Stdio::piped())
             .spawn()
-            .unwrap_or_else(|e| panic!("{}: {e}", binary.display()));
+            .unwrap_or_else(|e| panic!("{command:?}: {e}"));
         let out = child.stdout.take().unwrap();
         let (tx, lines) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
@@ -636,9 +692,10 @@ impl DirectFirmware {
             number: 0,
         };
         // The banner ends with the settings report; M110 then starts the numbering.
-        std::thread::sleep(Duration::from_millis(1500));
+        std::thread::sleep(boot);
         while fw.lines.try_recv().is_ok() {}
-        fw.raw("M110 N0");
+        let start = crispen::marlin::protocol::frame(0, "M110");
+        fw.raw(start.trim_end());
         fw
     }
 

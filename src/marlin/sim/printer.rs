@@ -498,7 +498,8 @@ impl Printer {
     fn execute(&mut self, queued: Queued, now: Instant, recorder: &mut Recorder) {
         let Queued { n, cmd, acked } = queued;
         tracing::trace!(line = ?n, cmd = %cmd, "executing");
-        if !cmd.is_empty() && !is_command_word(&cmd) {
+        let words = parse_words(self.fw, &cmd);
+        if !cmd.is_empty() && words.is_empty() {
             // Not a command at all, e.g. the tail of a line cut in two when a line error
             // flushed the receive buffer (`300 F1800b1`). Marlin's parser finds no G/M/T
             // word, says so and acknowledges; nothing is executed, so nothing is recorded.
@@ -512,7 +513,6 @@ impl Printer {
                 return;
             }
         }
-        let words = parse_words(&cmd);
         let Some(&(letter, code)) = words.first() else {
             return self.ok(n);
         };
@@ -719,12 +719,6 @@ impl Printer {
 }
 
 /// Whether a line starts with a command word (`G1`, `M105`, `T0`, also lower case) that
-fn is_command_word(cmd: &str) -> bool {
-    let mut chars = cmd.trim_start().chars();
-    matches!(chars.next(), Some('G' | 'M' | 'T' | 'g' | 'm' | 't'))
-        && chars.next().is_some_and(|c| c.is_ascii_digit())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -738,18 +732,18 @@ mod tests {
     #[test]
     fn moves_take_their_distance_over_their_feedrate() {
         let mut p = printer(Firmware::Marlin2);
-        let secs = p.move_seconds(&parse_words("G1 X10 F600"), 1);
+        let secs = p.move_seconds(&parse_words(Firmware::Marlin2, "G1 X10 F600"), 1);
         assert!((secs - 1.0).abs() < 1e-9, "{secs}");
         // F is persistent; then a diagonal from (10, 0) to (0, 20).
-        let secs = p.move_seconds(&parse_words("G1 X0 Y20"), 1);
+        let secs = p.move_seconds(&parse_words(Firmware::Marlin2, "G1 X0 Y20"), 1);
         assert!((secs - 500f64.sqrt() / 10.0).abs() < 1e-9, "{secs}");
         // Relative mode after G91 (handled in execute): emulate it directly.
         p.relative = true;
-        let secs = p.move_seconds(&parse_words("G1 X-10"), 1);
+        let secs = p.move_seconds(&parse_words(Firmware::Marlin2, "G1 X-10"), 1);
         assert!((secs - 1.0).abs() < 1e-9);
         // Extrusion-only moves take their filament length.
         p.relative_e = true;
-        let secs = p.move_seconds(&parse_words("G1 E5 F300"), 1);
+        let secs = p.move_seconds(&parse_words(Firmware::Marlin2, "G1 E5 F300"), 1);
         assert!((secs - 1.0).abs() < 1e-9, "{secs}");
     }
 
@@ -800,7 +794,10 @@ mod tests {
         let mut p = printer(Firmware::Marlin2);
         p.position = [10.0, 0.0, 0.0, 0.0];
         // Counter-clockwise quarter circle of radius 10 around the origin at 60 mm/s.
-        let secs = p.move_seconds(&parse_words("G3 X0 Y10 I-10 J0 F3600"), 3);
+        let secs = p.move_seconds(
+            &parse_words(Firmware::Marlin2, "G3 X0 Y10 I-10 J0 F3600"),
+            3,
+        );
         let expected = std::f64::consts::FRAC_PI_2 * 10.0 / 60.0;
         assert!((secs - expected).abs() < 1e-9, "{secs} vs {expected}");
     }
@@ -816,8 +813,18 @@ mod tests {
     #[test]
     fn parses_words_without_spaces() {
         assert_eq!(
-            parse_words("G1X10.5Y-2F3000"),
-            vec![('G', 1.0), ('X', 10.5), ('Y', -2.0), ('F', 3000.0)]
+            parse_words(Firmware::Marlin2, "G1X10.5Y-2F3000"),
+            vec![('G', 1.0), ('F', 3000.0), ('X', 10.5), ('Y', -2.0)]
         );
+        // As each firmware reads them: junk hides nothing, an exponent, a G anywhere.
+        let s = |fw, line| word(&parse_words(fw, line), 'S');
+        assert_eq!(s(Firmware::Marlin2, "M104 @S400"), Some(400.0));
+        assert_eq!(s(Firmware::Marlin2, "M104 S2.7E2"), Some(f64::from(2.7f32)));
+        assert_eq!(s(Firmware::Ultimaker2, "M104 S2.7E2"), Some(270.0));
+        assert_eq!(
+            parse_words(Firmware::Ultimaker2, "M400 G92 Z50")[0],
+            ('G', 92.0)
+        );
+        assert!(parse_words(Firmware::Marlin2, "m104 S400").is_empty());
     }
 }

@@ -2,6 +2,7 @@
 //! that pace (a move is acknowledged once it is in the planner).
 use super::Printer;
 use crate::marlin::firmware::Firmware;
+use crate::marlin::reader;
 use std::time::Instant;
 
 impl Printer {
@@ -70,34 +71,40 @@ impl Printer {
     }
 }
 
-/// G-code words (`G1 X10.5 F3000`, also `G1X10`): letter and number pairs. Text after
-/// M117/M118 and the like is not needed by the simulator and parses as noise.
-pub(super) fn parse_words(cmd: &str) -> Vec<(char, f64)> {
-    let bytes = cmd.as_bytes();
-    let mut words = Vec::new();
-    let mut i = 0;
-    while i < bytes.len() {
-        let c = bytes[i] as char;
-        if c.is_ascii_alphabetic() {
-            let start = i + 1;
-            let mut end = start;
-            while end < bytes.len()
-                && (bytes[end].is_ascii_digit() || matches!(bytes[end], b'.' | b'-' | b'+'))
-            {
-                end += 1;
-            }
-            let value = cmd[start..end].parse().unwrap_or(0.0);
-            words.push((c.to_ascii_uppercase(), value));
-            i = end.max(start);
-        } else {
-            i += 1;
+/// A command as the firmware being simulated reads it (`crate::marlin::reader`'s view of
+/// Marlin 2 or Ultimaker2Marlin, so the simulator runs odd lines as the real firmware does:
+/// `M104 @S400` heats to 400, `M400 G92 Z50` is a `G92` on Ultimaker2Marlin): the command's
+/// letter and number first, then each parameter seen, by letter, with its value (`NaN` for
+/// a letter seen without one). Empty when the firmware finds no command.
+pub(super) fn parse_words(fw: Firmware, cmd: &str) -> Vec<(char, f64)> {
+    let view = match fw {
+        Firmware::Marlin2 | Firmware::Marlin20 => reader::marlin2::read(cmd),
+        Firmware::Ultimaker2 => reader::ultimaker2::read(cmd),
+    };
+    let Some((letter, number)) = view.command else {
+        return Vec::new();
+    };
+    let mut words = vec![(letter, f64::from(number))];
+    for (i, param) in view.params.iter().enumerate() {
+        let l = (b'A' + i as u8) as char;
+        // The host's line number, and (where letters are found anywhere) the command's own.
+        if l == 'N' || l == letter {
+            continue;
+        }
+        if let Some(value) = param {
+            words.push((l, value.unwrap_or(f64::NAN)));
         }
     }
     words
 }
 
 pub(super) fn word(words: &[(char, f64)], letter: char) -> Option<f64> {
-    words.iter().skip(1).find(|w| w.0 == letter).map(|w| w.1)
+    words
+        .iter()
+        .skip(1)
+        .find(|w| w.0 == letter)
+        .map(|w| w.1)
+        .filter(|v| !v.is_nan())
 }
 
 pub(super) fn word_present(words: &[(char, f64)], letter: char) -> bool {
@@ -105,7 +112,7 @@ pub(super) fn word_present(words: &[(char, f64)], letter: char) -> bool {
 }
 
 /// G0–G3: the commands Ultimaker2Marlin acknowledges as they enter its queue.
-pub(super) fn is_move(cmd: &str) -> bool {
-    let words = parse_words(cmd);
-    matches!(words.first(), Some(&('G', code)) if (0.0..=3.0).contains(&code) && code.fract() == 0.0)
+pub(super) fn is_move(fw: Firmware, cmd: &str) -> bool {
+    let words = parse_words(fw, cmd);
+    matches!(words.first(), Some(&('G', code)) if (0.0..=3.0).contains(&code))
 }

@@ -191,7 +191,7 @@ impl Printer {
     }
 
     pub(super) fn enqueue(&mut self, n: Option<u64>, cmd: String) {
-        let acked = self.fw.acks_moves_on_entry() && is_move(&cmd);
+        let acked = self.fw.acks_moves_on_entry() && is_move(self.fw, &cmd);
         if acked {
             self.ok(n);
         }

@@ -524,12 +524,17 @@ fn allowed_key(farm: &Farm, instance: &str, app: &str, query: &str) -> (String, 
     (secret, key_id)
 }
 
-/// A long print without heat: moves at 5 mm/s, long enough to pause, resume and cancel.
+/// A long print: moves at 5 mm/s, long enough to pause, resume and cancel.
 fn slow_gcode() -> String {
-    let mut text = "; slow\nG28\nG90\nG1 Z5 F600\n".to_string();
-    for _ in 0..60 {
-        text.push_str("G1 X10 Y10 F300\nG1 X100 Y100 F300\n");
+    let mut text = "; slow\nM104 S200\nM109 S200\nG28\nG92 E0\nG1 Z0.3 F600\n".to_string();
+    for i in 0..60 {
+        text.push_str(&format!(
+            "G1 X10 Y10 E{} F300\nG1 X100 Y100 E{} F300\n",
+            2 * i + 1,
+            2 * i + 2
+        ));
     }
+    text.push_str("M104 S0\nM84\n");
     text
 }
 

@@ -369,6 +369,16 @@ fn random_text(bytes: usize) -> String {
     base64::engine::general_purpose::URL_SAFE_NO_PAD.encode(raw)
 }
 
+/// An id for a request or key: eight lower-case letters and digits, so that it never
+/// reads as an option on a command line (`crispen keys allow ID`; a base64 id may start
+/// with `-`) nor needs quoting.
+fn random_id() -> String {
+    const ALPHABET: &[u8] = b"abcdefghijkmnpqrstuvwxyz23456789";
+    (0..8)
+        .map(|_| ALPHABET[usize::from(rand::random::<u8>()) % ALPHABET.len()] as char)
+        .collect()
+}
+
 /// Compares in time independent of where the texts differ.
 fn same(given: &[u8], key: &[u8]) -> bool {
     given.len() == key.len() && given.iter().zip(key).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0
@@ -503,7 +513,7 @@ impl AppKeys {
         }
         let token = random_text(24);
         state.pending.push(Pending {
-            id: random_text(6),
+            id: random_id(),
             token: token.clone(),
             app,
             source,
@@ -567,7 +577,7 @@ impl AppKeys {
         }
         let request = &state.pending[at];
         let key = AppKey {
-            id: random_text(6),
+            id: random_id(),
             app: request.app.clone(),
             source: request.source.clone(),
             instance: request.instance.clone(),
@@ -1063,6 +1073,11 @@ mod tests {
         };
         let grant = keys.grant_of(secret.as_bytes()).unwrap();
         assert_eq!(grant.scope, Scope::default());
+        assert!(
+            grant.id.len() == 8 && grant.id.bytes().all(|b| b.is_ascii_alphanumeric()),
+            "an id never reads as an option: {}",
+            grant.id
+        );
         assert!(grant
             .check_instance("/octoprint/gc/api/files/local")
             .is_ok());

@@ -1,6 +1,8 @@
 //! `crispen keys`: the application keys that OctoPrint clients (Cura's OctoPrint
-//! connection) asked for: list the requests and keys, allow or deny a request, revoke a
-//! key. A client of the daemon's HTTP API on its control socket, as the dashboard's
+//! connection) asked for: list the requests and keys (with each key's scope), allow a
+//! request with a scope (upload only by default; `--control`, `--everywhere`) or deny
+//! it, change a key's scope (`allow KEY-ID` with the flags it should have), revoke a key.
+//! A client of the daemon's HTTP API on its control socket, as the dashboard's
 //! Application keys panel is over TCP.
 
 use super::control::ask;
@@ -23,8 +25,18 @@ pub struct Args {
 pub enum Action {
     /// List pending requests and the keys given (the default)
     List,
-    /// Give the application that made request ID a key of its own
-    Allow { id: String },
+    /// Give the application that made request ID a key of its own (upload only, on the
+    /// instance it asked on, unless the flags say more); given a key's ID, set that
+    /// key's scope to exactly what the flags say
+    Allow {
+        id: String,
+        /// Also control prints through OctoPrint's `POST api/job` (pause, resume, cancel)
+        #[arg(long)]
+        control: bool,
+        /// On every OctoPrint instance of the farm, not only the one it asked on
+        #[arg(long)]
+        everywhere: bool,
+    },
     /// Refuse request ID
     Deny { id: String },
     /// Take back key ID: its application is refused from now on
@@ -34,7 +46,22 @@ pub enum Action {
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let path = match a.action.unwrap_or(Action::List) {
         Action::List => return list(&a.config),
-        Action::Allow { id } => format!("/api/v1/appkeys/requests/{}/allow", percent_encode(&id)),
+        Action::Allow {
+            id,
+            control,
+            everywhere,
+        } => {
+            // A key's id sets its scope; else it is a request's.
+            let listed = ask(&a.config, Method::GET, "/api/v1/appkeys")?;
+            let is_key = listed["keys"]
+                .as_array()
+                .is_some_and(|keys| keys.iter().any(|k| k["id"] == id.as_str()));
+            format!(
+                "/api/v1/appkeys/{}/{}/allow?control={control}&everywhere={everywhere}",
+                if is_key { "keys" } else { "requests" },
+                percent_encode(&id)
+            )
+        }
         Action::Deny { id } => format!("/api/v1/appkeys/requests/{}/deny", percent_encode(&id)),
         Action::Revoke { id } => format!("/api/v1/appkeys/keys/{}/revoke", percent_encode(&id)),
     };
@@ -55,25 +82,24 @@ fn list(config: &Option<PathBuf>) -> anyhow::Result<ExitCode> {
     let keys = answer["keys"]
         .as_array()
         .context("the daemon's answer has no keys list")?;
-    println!("REQUEST    DECISION  APPLICATION          FROM             INSTANCE");
+    println!("REQUEST    APPLICATION          FROM             INSTANCE");
     for r in pending {
         println!(
-            "{:<10} {:<9} {:<20} {:<16} {}",
+            "{:<10} {:<20} {:<16} {}",
             text(&r["id"]),
-            text(&r["decision"]),
             text(&r["app"]),
             text(&r["source"]),
             text(&r["instance"])
         );
     }
-    println!("KEY        APPLICATION          FROM             INSTANCE");
+    println!("KEY        APPLICATION          FROM             SCOPE");
     for k in keys {
         println!(
             "{:<10} {:<20} {:<16} {}",
             text(&k["id"]),
             text(&k["app"]),
             text(&k["source"]),
-            text(&k["instance"])
+            text(&k["scope_text"])
         );
     }
     if pending.is_empty() && keys.is_empty() {

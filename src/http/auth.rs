@@ -2,7 +2,8 @@
 //! come as OctoPrint accepts it: an `X-Api-Key` header, `Authorization: Bearer KEY`, or
 //! the `apikey` query parameter. The `[http]` key opens everything; an application key
 //! (see `super::appkeys`) opens the OctoPrint emulation only (`/api/...` outside
-//! `/api/v1/`, `/octoprint/...`). The dashboard's own files need no key: they hold no
+//! `/api/v1/`, `/octoprint/...`), and there only the instance its scope names (checked
+//! here; what it may do there is checked by the handlers, with [`Who`]). The dashboard's own files need no key: they hold no
 //! data, and the page asks for the key when the API wants one.
 
 use super::appkeys::Who;
@@ -44,19 +45,25 @@ pub async fn require_key(
             request.extensions_mut().insert(Who::Operator);
             next.run(request).await
         }
-        Some(key_given) if octoprint && state.appkeys.app_of(&key_given).is_some() => {
-            let app = state.appkeys.app_of(&key_given).unwrap_or_default();
-            request.extensions_mut().insert(Keyed(true));
-            request.extensions_mut().insert(Who::App(app));
-            next.run(request).await
-        }
+        Some(key_given) if octoprint => match state.appkeys.grant_of(&key_given) {
+            // Its instance, or every one: whatever the address, before any handler.
+            Some(grant) => match grant.check_instance(request.uri().path()) {
+                Ok(()) => {
+                    request.extensions_mut().insert(Keyed(true));
+                    request.extensions_mut().insert(Who::App(grant));
+                    next.run(request).await
+                }
+                Err(refused) => refused.into_response(),
+            },
+            None => ApiError::new(
+                StatusCode::FORBIDDEN,
+                "the API key does not match the key in [http] api_key_file nor an application key (hint: ask for one through the application-key flow, or see `crispen keys`)",
+            )
+            .into_response(),
+        },
         Some(_) => ApiError::new(
             StatusCode::FORBIDDEN,
-            if octoprint {
-                "the API key does not match the key in [http] api_key_file nor an application key (hint: ask for one through the application-key flow, or see `crispen keys`)"
-            } else {
-                "the X-Api-Key header does not match the key in [http] api_key_file"
-            },
+            "the X-Api-Key header does not match the key in [http] api_key_file",
         )
         .into_response(),
         None if read_only && read_only_without_key => {

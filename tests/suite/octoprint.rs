@@ -91,7 +91,13 @@ fn listening(log: &Path) -> String {
 
 impl Farm {
     fn start(root: &Path) -> Farm {
-        let config = prepare(root, "default_folder = \"hot\"\nannounce = false\n");
+        prepare(root, "default_folder = \"hot\"\nannounce = false\n");
+        Farm::started(root)
+    }
+
+    /// The daemon on the config already in `root`.
+    fn started(root: &Path) -> Farm {
+        let config = root.join("crispen.toml");
         let log = root.join("daemon.log");
         let daemon = Daemon::start(&config, &log);
         let addr = listening(&log);
@@ -424,12 +430,13 @@ fn cura_plugin_calls_in_order_get_a_key_and_the_job_prints() {
         job_by_file(s, "cura_now.gcode").is_some_and(|j| j["state"] == "done" && j["held"] == false)
     });
 
-    // An application key is for the OctoPrint emulation only; a revoked one is refused.
+    // An application key is for the OctoPrint emulation only, on its own instance; a
+    // revoked one is refused.
     assert_eq!(farm.call("GET", "/api/v1/status", &[k], b"").status, 403);
     assert_eq!(
         farm.call(
             "GET",
-            "/api/job",
+            &format!("{base}api/job"),
             &[("Authorization", &format!("Bearer {app_key}"))],
             b""
         )
@@ -437,9 +444,15 @@ fn cura_plugin_calls_in_order_get_a_key_and_the_job_prints() {
         200
     );
     assert_eq!(
-        farm.call("GET", &format!("/api/job?apikey={app_key}"), &[], b"")
+        farm.call("GET", &format!("{base}api/job?apikey={app_key}"), &[], b"")
             .status,
         200
+    );
+    assert_eq!(
+        farm.call("GET", &format!("/api/job?apikey={app_key}"), &[], b"")
+            .status,
+        403,
+        "the root is another instance"
     );
     let (ok, listed) = cli(&farm.root, &["keys"]);
     assert!(ok && listed.contains("Cura"), "{listed}");
@@ -462,6 +475,447 @@ fn cura_plugin_calls_in_order_get_a_key_and_the_job_prints() {
     drop(farm.daemon);
 }
 
+/// An application key asked for on `instance` and allowed with `query` (`""`,
+/// `?control=true`, …) by the operator: (its secret, its id).
+fn allowed_key(farm: &Farm, instance: &str, app: &str, query: &str) -> (String, String) {
+    let a = farm.call(
+        "POST",
+        &format!("{instance}plugin/appkeys/request"),
+        &[("Content-Type", "application/json")],
+        &serde_json::to_vec(&json!({ "app": app })).unwrap(),
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let poll = path_of(&a.header("location").unwrap());
+    let list = farm
+        .call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
+        .json();
+    let id = list["pending"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["app"] == app)
+        .unwrap_or_else(|| panic!("{app}'s request: {list}"))["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let a = farm.call(
+        "POST",
+        &format!("/api/v1/appkeys/requests/{id}/allow{query}"),
+        &[("X-Api-Key", KEY)],
+        b"",
+    );
+    assert_eq!(a.status, 200, "{}", a.text());
+    let secret = farm.call("GET", &poll, &[], b"").json()["api_key"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let keys = farm
+        .call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
+        .json();
+    let key_id = keys["keys"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|k| k["app"] == app)
+        .unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    (secret, key_id)
+}
+
+/// A long print: moves at 5 mm/s, long enough to pause, resume and cancel.
+fn slow_gcode() -> String {
+    let mut text = "; slow\nM104 S200\nM109 S200\nG28\nG92 E0\nG1 Z0.3 F600\n".to_string();
+    for i in 0..60 {
+        text.push_str(&format!(
+            "G1 X10 Y10 E{} F300\nG1 X100 Y100 E{} F300\n",
+            2 * i + 1,
+            2 * i + 2
+        ));
+    }
+    text.push_str("M104 S0\nM84\n");
+    text
+}
+
+/// What a key opens is what the operator allowed: an upload-only Cura key on `hot`'s
+/// instance reads and uploads there, prints its own uploads (held, then select-and-print;
+/// upload-and-print), but releases no job held by a sidecar or by the operator, uses no
+/// other instance (`403` naming `--everywhere`), and controls no print (`403` naming
+/// `--control`). `crispen keys allow ID --everywhere` opens the other instances, `--control`
+/// pause, resume and cancel through `POST api/job`. A key stored before scopes existed
+/// loads with the narrowest (upload, its own instance). Listings show the scopes.
+#[test]
+fn application_keys_open_only_what_their_scope_allows() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    prepare(root, "default_folder = \"hot\"\nannounce = false\n");
+    // beta (folder `other`) prints at a fifth of real time: long enough to control.
+    let config = std::fs::read_to_string(root.join("crispen.toml")).unwrap();
+    let beta = "name = \"beta\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0";
+    assert!(config.contains(beta));
+    std::fs::write(
+        root.join("crispen.toml"),
+        config.replace(beta, &beta.replace("0.0", "0.2")),
+    )
+    .unwrap();
+    // A key from before scopes, on `other`'s instance.
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    let old_key = "old-key-0123456789abcdefghij";
+    std::fs::write(
+        root.join("spool/appkeys.json"),
+        json!({"keys": [{"id": "oldkey01", "app": "OldSlicer", "source": "10.0.0.9",
+            "instance": "/octoprint/other/", "created_s": 1700000000u64, "key": old_key}]})
+        .to_string(),
+    )
+    .unwrap();
+    let farm = Farm::started(root);
+    let (cura, cura_id) = allowed_key(&farm, "/octoprint/hot/", "Cura", "");
+    let k = ("X-Api-Key", cura.as_str());
+    let json_type = ("Content-Type", "application/json");
+    let select_print = br#"{"command": "select", "print": true}"#;
+
+    // Listed with their scopes: the API, the CLI.
+    let keys = farm
+        .call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
+        .json();
+    let scope_of = |keys: &Value, app: &str| {
+        keys["keys"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|k| k["app"] == app)
+            .unwrap()["scope_text"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+    assert_eq!(
+        scope_of(&keys, "Cura"),
+        "upload on /octoprint/hot/",
+        "{keys}"
+    );
+    assert_eq!(
+        scope_of(&keys, "OldSlicer"),
+        "upload on /octoprint/other/",
+        "{keys}"
+    );
+    let (ok, listed) = cli(root, &["keys"]);
+    assert!(
+        ok && listed.contains("upload on /octoprint/hot/")
+            && listed.contains("upload on /octoprint/other/"),
+        "{listed}"
+    );
+
+    // The old key: its own instance only.
+    let old = ("X-Api-Key", old_key);
+    assert_eq!(
+        farm.call("GET", "/octoprint/other/api/job", &[old], b"")
+            .status,
+        200
+    );
+    assert_eq!(
+        farm.call("GET", "/octoprint/hot/api/job", &[old], b"")
+            .status,
+        403
+    );
+
+    // Another instance: refused, whatever the call, saying how to widen the key.
+    let (ct, body) = form(
+        &[("file", "elsewhere.gcode"), ("print", "true")],
+        GCODE.as_bytes(),
+    );
+    for (method, path, body, ct) in [
+        ("GET", "/octoprint/other/api/printer", &b""[..], ""),
+        ("GET", "/api/printer", &b""[..], ""),
+        (
+            "POST",
+            "/octoprint/other/api/files/local",
+            &body[..],
+            ct.as_str(),
+        ),
+        ("POST", "/api/files/local", &body[..], ct.as_str()),
+    ] {
+        let a = farm.call(method, path, &[k, ("Content-Type", ct)], body);
+        assert_eq!(a.status, 403, "{path}: {}", a.text());
+        assert!(
+            a.error()
+                .contains(&format!("crispen keys allow {cura_id} --everywhere")),
+            "{}",
+            a.text()
+        );
+    }
+    assert!(!root.join("other/elsewhere.gcode").exists());
+    let log = std::fs::read_to_string(&farm.log).unwrap();
+    assert!(
+        log.contains("application key refused") && log.contains("Cura"),
+        "refusals are logged with the app: {log}"
+    );
+
+    // A job held by its sidecar, and one the operator uploaded without print: ready and
+    // held; Cura's select-and-print releases neither.
+    std::fs::write(root.join("hot/side.gcode.toml"), "hold = true\n").unwrap();
+    std::fs::write(root.join("hot/side.gcode"), GCODE).unwrap();
+    let (ct, body) = form(&[("file", "op.gcode")], GCODE.as_bytes());
+    let a = farm.call(
+        "POST",
+        "/octoprint/hot/api/files/local",
+        &[("X-Api-Key", KEY), ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    farm.wait_for("both held and ready", |s| {
+        ["side.gcode", "op.gcode"]
+            .iter()
+            .all(|f| job_by_file(s, f).is_some_and(|j| j["state"] == "ready" && j["held"] == true))
+    });
+    for file in ["side.gcode", "op.gcode"] {
+        let a = farm.call(
+            "POST",
+            &format!("/octoprint/hot/api/files/local/{file}"),
+            &[k, json_type],
+            select_print,
+        );
+        assert_eq!(a.status, 403, "{file}: {}", a.text());
+        assert!(
+            a.error().contains("held by its sidecar or by the operator"),
+            "{}",
+            a.text()
+        );
+        // Selecting without print changes nothing and is fine.
+        let a = farm.call(
+            "POST",
+            &format!("/octoprint/hot/api/files/local/{file}"),
+            &[k, json_type],
+            br#"{"command": "select"}"#,
+        );
+        assert_eq!(a.status, 204, "{file}: {}", a.text());
+    }
+
+    // Its own upload, held, then select-and-print: prints. Upload-and-print: prints.
+    let (ct, body) = form(&[("path", ""), ("file", "mine.gcode")], GCODE.as_bytes());
+    let a = farm.call(
+        "POST",
+        "/octoprint/hot/api/files/local",
+        &[k, ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    farm.wait_for("its own upload held", |s| {
+        job_by_file(s, "mine.gcode").is_some_and(|j| j["state"] == "ready" && j["held"] == true)
+    });
+    let a = farm.call(
+        "POST",
+        "/octoprint/hot/api/files/local/mine.gcode",
+        &[k, json_type],
+        select_print,
+    );
+    assert_eq!(a.status, 204, "{}", a.text());
+    farm.wait_for("its own upload printed", |s| {
+        job_by_file(s, "mine.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    let clear = |printer: &str| {
+        let a = farm.call(
+            "POST",
+            &format!("/api/v1/printers/{printer}/clear"),
+            &[("X-Api-Key", KEY)],
+            b"",
+        );
+        assert_eq!(a.status, 200, "{}", a.text());
+    };
+    clear("alpha");
+    let (ct, body) = form(
+        &[
+            ("path", ""),
+            ("file", "now.gcode"),
+            ("select", "true"),
+            ("print", "true"),
+        ],
+        GCODE.as_bytes(),
+    );
+    let a = farm.call(
+        "POST",
+        "/octoprint/hot/api/files/local",
+        &[k, ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let s = farm.wait_for("upload-and-print printed", |s| {
+        job_by_file(s, "now.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    for file in ["side.gcode", "op.gcode"] {
+        assert_eq!(
+            job_by_file(&s, file).unwrap()["held"],
+            true,
+            "{file} still held"
+        );
+    }
+
+    // Control: not in its scope.
+    let a = farm.call(
+        "POST",
+        "/octoprint/hot/api/job",
+        &[k, json_type],
+        br#"{"command": "cancel"}"#,
+    );
+    assert_eq!(a.status, 403, "{}", a.text());
+    assert!(
+        a.error()
+            .contains(&format!("crispen keys allow {cura_id} --control")),
+        "{}",
+        a.text()
+    );
+
+    // Everywhere: the other instance opens.
+    let (ok, said) = cli(root, &["keys", "allow", &cura_id, "--everywhere"]);
+    assert!(ok && said.contains("upload everywhere"), "{said}");
+    let a = farm.call("GET", "/octoprint/other/api/printer", &[k], b"");
+    assert_eq!(a.status, 200, "{}", a.text());
+    let a = farm.call(
+        "POST",
+        "/octoprint/other/api/job",
+        &[k, json_type],
+        br#"{"command": "pause", "action": "pause"}"#,
+    );
+    assert_eq!(a.status, 403, "still no control: {}", a.text());
+
+    // Control (and everywhere): pause, resume, cancel the print of `other`.
+    let (ok, said) = cli(
+        root,
+        &["keys", "allow", &cura_id, "--control", "--everywhere"],
+    );
+    assert!(ok && said.contains("upload, control everywhere"), "{said}");
+    let (ok, listed) = cli(root, &["keys"]);
+    assert!(
+        ok && listed.contains("upload, control everywhere"),
+        "{listed}"
+    );
+    let a = farm.call(
+        "POST",
+        "/octoprint/other/api/job",
+        &[k, json_type],
+        br#"{"command": "pause", "action": "pause"}"#,
+    );
+    assert_eq!(a.status, 409, "nothing prints yet: {}", a.text());
+    let (ct, body) = form(
+        &[("file", "slow.gcode"), ("print", "true")],
+        slow_gcode().as_bytes(),
+    );
+    let a = farm.call(
+        "POST",
+        "/octoprint/other/api/files/local",
+        &[k, ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let beta = |s: &Value| common::printer(s, "beta")["state"].clone();
+    farm.wait_for("beta printing", |s| beta(s) == "printing");
+    let job_command = |body: &[u8]| {
+        let a = farm.call("POST", "/octoprint/other/api/job", &[k, json_type], body);
+        assert_eq!(a.status, 204, "{}", a.text());
+    };
+    job_command(br#"{"command": "pause", "action": "pause"}"#);
+    farm.wait_for("beta paused", |s| beta(s) == "paused");
+    let job = farm
+        .call("GET", "/octoprint/other/api/job", &[k], b"")
+        .json();
+    assert_eq!(job["state"], "Paused", "{job}");
+    job_command(br#"{"command": "pause", "action": "resume"}"#);
+    farm.wait_for("beta printing again", |s| beta(s) == "printing");
+    job_command(br#"{"command": "cancel"}"#);
+    farm.wait_for("the slow job cancelled", |s| {
+        job_by_file(s, "slow.gcode").is_some_and(|j| j["state"] == "cancelled")
+    });
+    // The holds stay the operator's even so.
+    let a = farm.call(
+        "POST",
+        "/octoprint/hot/api/files/local/op.gcode",
+        &[k, json_type],
+        select_print,
+    );
+    assert_eq!(a.status, 403, "{}", a.text());
+}
+
+/// Key requests free their places the moment they stop waiting: two may wait from one
+/// address, a third is told what frees a place (the operator's decision, or time); a
+/// denied request leaves the list at once (its client is told at once), so does an
+/// allowed one (its key waits for its client outside the list).
+#[test]
+fn key_requests_free_their_places_at_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path());
+    let ask = |app: &str| {
+        farm.call(
+            "POST",
+            "/octoprint/hot/plugin/appkeys/request",
+            &[("Content-Type", "application/json")],
+            &serde_json::to_vec(&json!({ "app": app })).unwrap(),
+        )
+    };
+    let pending = || {
+        farm.call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
+            .json()["pending"]
+            .as_array()
+            .unwrap()
+            .clone()
+    };
+    let polls: Vec<String> = ["one", "two"]
+        .iter()
+        .map(|app| {
+            let a = ask(app);
+            assert_eq!(a.status, 201, "{}", a.text());
+            path_of(&a.header("location").unwrap())
+        })
+        .collect();
+    let a = ask("three");
+    assert_eq!(a.status, 429, "{}", a.text());
+    let said = a.error();
+    assert!(
+        said.contains("from 127.0.0.1") && said.contains("frees its place at once"),
+        "{said}"
+    );
+    assert!(said.contains("forgotten in"), "{said}");
+    assert_eq!(pending().len(), 2);
+
+    // Denied: gone at once, its client told so; the place is free.
+    let id = pending().iter().find(|r| r["app"] == "one").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let (ok, said) = cli(&farm.root, &["keys", "deny", &id]);
+    assert!(ok, "{said}");
+    assert_eq!(pending().len(), 1);
+    assert_eq!(farm.call("GET", &polls[0], &[], b"").status, 404);
+    let (ok, said) = cli(&farm.root, &["keys", "deny", &id]);
+    assert!(!ok, "decided already: {said}");
+    let a = ask("three");
+    assert_eq!(a.status, 201, "{}", a.text());
+
+    // Allowed: gone from the list at once too; its client still gets the key, once.
+    let id = pending().iter().find(|r| r["app"] == "two").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let (ok, said) = cli(&farm.root, &["keys", "allow", &id]);
+    assert!(ok && said.contains("upload on /octoprint/hot/"), "{said}");
+    assert_eq!(
+        pending()
+            .iter()
+            .map(|r| r["app"].clone())
+            .collect::<Vec<_>>(),
+        [json!("three")]
+    );
+    let a = farm.call("GET", &polls[1], &[], b"");
+    assert_eq!(a.status, 200, "{}", a.text());
+    assert!(a.json()["api_key"].is_string());
+    assert_eq!(
+        farm.call("GET", &polls[1], &[], b"").status,
+        404,
+        "told once"
+    );
+    assert_eq!(ask("four").status, 201, "two places again");
+}
+
 /// The CLI against the farm in `root`.
 fn cli(root: &Path, args: &[&str]) -> (bool, String) {
     let out = Command::new(BIN)
@@ -480,8 +934,8 @@ fn cli(root: &Path, args: &[&str]) -> (bool, String) {
 /// folder) reads version, printer and job, uploads, and selects-and-prints the file by its
 /// root path `hot/<file>`; OctoPrint's own `octoprint client` reads a folder's instance
 /// (`--prefix /octoprint/other`), uploads there with `print` (prints) and without (held),
-/// and selects-and-prints with `command`. Its key is an application key asked for and
-/// allowed through the HTTP API as the dashboard allows it.
+/// and selects-and-prints with `command`. Its key is an application key asked for on the
+/// root and allowed through the HTTP API as the dashboard allows it, for every instance.
 #[test]
 fn octorest_and_octoprint_client_drive_the_farm() {
     let python = python();
@@ -502,7 +956,7 @@ fn octorest_and_octoprint_client_drive_the_farm() {
     let id = list["pending"][0]["id"].as_str().unwrap().to_string();
     let a = farm.call(
         "POST",
-        &format!("/api/v1/appkeys/requests/{id}/allow"),
+        &format!("/api/v1/appkeys/requests/{id}/allow?everywhere=true"),
         &[("X-Api-Key", KEY)],
         b"",
     );

@@ -29,6 +29,7 @@ use super::{upload, Instance};
 use crate::daemon::config::{Config, FolderConfig};
 use crate::daemon::control::{self, Command};
 use crate::daemon::job::JobState;
+use crate::http::appkeys::{Grant, Who};
 use crate::http::{ApiError, AppState, UPLOAD_IDLE_TIMEOUT};
 use axum::extract::State;
 use axum::http::header::{CONTENT_TYPE, LOCATION};
@@ -82,9 +83,14 @@ fn folder_for<'a>(
 pub async fn upload(
     State(state): State<AppState>,
     instance: Instance,
+    who: Option<axum::Extension<Who>>,
     headers: HeaderMap,
     body: axum::body::Body,
 ) -> Result<Response, ApiError> {
+    let grant = match who.map(|w| w.0) {
+        Some(Who::App(grant)) => Some(grant),
+        _ => None,
+    };
     let content_type = headers
         .get(CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -108,7 +114,13 @@ pub async fn upload(
     // else any: a `path` may still come after the file.
     let early = reader.form().clone();
     let staging = match early.path {
-        Some(_) => folder_for(&config, &instance, early.path.as_deref())?,
+        Some(_) => {
+            let folder = folder_for(&config, &instance, early.path.as_deref())?;
+            if let Some(grant) = &grant {
+                grant.check_folder(&config, &instance, folder)?;
+            }
+            folder
+        }
         None => match instance.folder(&config)? {
             Some(folder) => folder,
             None => config.folders.first().ok_or_else(|| {
@@ -152,6 +164,9 @@ pub async fn upload(
     }
     let form = reader.form().clone();
     let folder = folder_for(&config, &instance, form.path.as_deref())?;
+    if let Some(grant) = &grant {
+        grant.check_folder(&config, &instance, folder)?;
+    }
     let received = match folder.path == staging.path {
         true => received,
         false => received.relocate(&folder.path).await?,
@@ -160,8 +175,16 @@ pub async fn upload(
     // A sidecar is no job of its own: nothing to hold. `select` alone (OctoPrint: load
     // the file, do not start it) holds, as no `print` does.
     let hold = !form.print && kind != upload::Upload::Sidecar;
+    // An application key's hold carries its mark: that key (and the operator) may
+    // release the job; the operator's hold has none.
+    let mark = match (&grant, hold) {
+        (Some(grant), true) => Some(state.appkeys.hold_mark(grant, &folder.path).ok_or_else(
+            || ApiError::new(StatusCode::FORBIDDEN, "the application key was revoked"),
+        )?),
+        _ => None,
+    };
     let sidecar = match hold {
-        true => Some(receive_hold(&folder.path, &file_name).await?),
+        true => Some(receive_hold(&folder.path, &file_name, mark.as_deref()).await?),
         false => None,
     };
     let stored = upload::place_with_sidecar(received, sidecar).await?;
@@ -210,16 +233,20 @@ pub async fn upload(
     Ok((StatusCode::CREATED, [(LOCATION, location)], Json(body)).into_response())
 }
 
-/// The sidecar that holds `file_name`, received into `folder` under a temporary name.
+/// The sidecar that holds `file_name`, received into `folder` under a temporary name;
+/// with the hold mark of the application key that uploaded it, if one did.
 async fn receive_hold(
     folder: &std::path::Path,
     file_name: &str,
+    mark: Option<&str>,
 ) -> Result<upload::Received, ApiError> {
+    let content = format!("{HOLD_SIDECAR}{}", mark.unwrap_or(""));
+    let size = content.len() as u64;
     let text = futures_util::stream::iter([Ok::<_, std::convert::Infallible>(
-        axum::body::Bytes::from_static(HOLD_SIDECAR.as_bytes()),
+        axum::body::Bytes::from(content),
     )]);
     let sidecar = format!("{file_name}.toml");
-    upload::receive(folder, &sidecar, text, HOLD_SIDECAR.len() as u64).await
+    upload::receive(folder, &sidecar, text, size).await
 }
 
 /// The sidecar of an upload without `print`.
@@ -243,8 +270,13 @@ struct FileCommand {
 pub async fn command(
     State(state): State<AppState>,
     instance: Instance,
+    who: Option<axum::Extension<Who>>,
     body: axum::body::Bytes,
 ) -> Result<StatusCode, ApiError> {
+    let grant = match who.map(|w| w.0) {
+        Some(Who::App(grant)) => Some(grant),
+        _ => None,
+    };
     let command: FileCommand = serde_json::from_slice(&body).map_err(|e| {
         ApiError::bad_request(format!(
             "a file command is JSON like {{\"command\": \"select\", \"print\": true}}: {e}"
@@ -278,6 +310,9 @@ pub async fn command(
     };
     let config = state.farm.config();
     let folder = folder_for(&config, &instance, folder_part)?;
+    if let Some(grant) = &grant {
+        grant.check_folder(&config, &instance, folder)?;
+    }
     // The job is found by its name in either spelling (jobs made before names were
     // normalised keep theirs).
     let (file, _) = upload::upload_name(file)?;
@@ -300,11 +335,32 @@ pub async fn command(
                 JobState::Queued | JobState::Preparing | JobState::Ready | JobState::Printing
             )
         };
-        let held = jobs
-            .iter()
-            .filter(live)
-            .filter(|j| j.held)
-            .max_by(|a, b| a.updated.total_cmp(&b.updated));
+        let held: Vec<&control::JobStatus> = jobs.iter().filter(live).filter(|j| j.held).collect();
+        // An application key prints only a job its own upload held; the operator's key
+        // any held job.
+        let held = match (&grant, print) {
+            (Some(grant), true) if !held.is_empty() => {
+                let own = own_holds(&state, grant, &held).await;
+                match held
+                    .iter()
+                    .filter(|j| own.contains(&j.id))
+                    .max_by(|a, b| a.updated.total_cmp(&b.updated))
+                {
+                    Some(job) => Some(*job),
+                    None => {
+                        let newest = held
+                            .iter()
+                            .max_by(|a, b| a.updated.total_cmp(&b.updated))
+                            .copied();
+                        let job = newest.map_or("", |j| j.id.as_str());
+                        return Err(grant.refuse_release(job, &shown));
+                    }
+                }
+            }
+            _ => held
+                .into_iter()
+                .max_by(|a, b| a.updated.total_cmp(&b.updated)),
+        };
         match held {
             Some(job) if print => {
                 let message = control::execute(
@@ -340,4 +396,43 @@ pub async fn command(
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
+}
+
+/// Which of the `held` jobs the upload of `grant` held: their sidecars (in their job
+/// directories, read on a blocking thread, each at most a sidecar's size) carry the
+/// key's hold mark for their folder and file. One that cannot be read is not its own.
+async fn own_holds(state: &AppState, grant: &Grant, held: &[&control::JobStatus]) -> Vec<String> {
+    let store = state.farm.store();
+    let files: Vec<(String, std::path::PathBuf, std::path::PathBuf)> = held
+        .iter()
+        .map(|j| {
+            (
+                j.id.clone(),
+                store.job_dir(&j.id).join(format!("{}.toml", j.file)),
+                j.folder.clone(),
+            )
+        })
+        .collect();
+    drop(store);
+    let keys = state.appkeys.clone();
+    let grant = grant.clone();
+    tokio::task::spawn_blocking(move || {
+        use std::io::Read;
+        files
+            .into_iter()
+            .filter(|(_, sidecar, folder)| {
+                let mut text = String::new();
+                std::fs::File::open(sidecar)
+                    .and_then(|f| {
+                        f.take(crate::daemon::job::MAX_SIDECAR_BYTES)
+                            .read_to_string(&mut text)
+                    })
+                    .is_ok()
+                    && keys.held_by(&grant, &text, folder)
+            })
+            .map(|(id, ..)| id)
+            .collect()
+    })
+    .await
+    .unwrap_or_default()
 }

@@ -16,8 +16,9 @@
 //!   and the routes.
 //!
 //! What OctoPrint can do and a farm does not let a slicer do (send G-code to a printer,
-//! connect or disconnect it, pause or cancel through `api/job`) is refused with `409`
-//! and a message saying where the operator does it.
+//! connect or disconnect it) is refused with `409` and a message saying where the
+//! operator does it. `POST api/job` (pause, resume, cancel) is the operator's, and an
+//! application key's whose scope has `control` (see `super::appkeys`).
 
 pub mod files;
 pub mod form;
@@ -168,7 +169,7 @@ pub async fn login(
         ));
     }
     let name = match who.map(|w| w.0) {
-        Some(super::appkeys::Who::App(app)) => app,
+        Some(super::appkeys::Who::App(grant)) => grant.app,
         _ => "crispen operator".to_string(),
     };
     Ok(Json(serde_json::json!({
@@ -211,7 +212,10 @@ pub fn routes() -> (Router<AppState>, Router<AppState>, Router<AppState>) {
             )
             .route(&format!("{base}/api/printer"), get(state::printer))
             .route(&format!("{base}/api/printer/{{*command}}"), post(refused))
-            .route(&format!("{base}/api/job"), get(state::job).post(refused))
+            .route(
+                &format!("{base}/api/job"),
+                get(state::job).post(state::job_command),
+            )
             .route(
                 &format!("{base}/api/connection"),
                 get(state::connection).post(refused),

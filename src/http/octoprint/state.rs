@@ -13,11 +13,16 @@
 //! no progress), else no job. `api/printerprofiles`: the focus printer's machine.
 //! Always `200`: a folder whose printers are all offline says so in its flags
 //! (`closedOrError`), where OctoPrint would answer `409`.
+//!
+//! `POST api/job` (pause, resume, cancel) acts on the folder's print, for the operator's
+//! key and application keys with `control` in their scope ([`job_command`]).
 
 use super::Instance;
-use crate::daemon::control::{self, JobStatus};
+use crate::daemon::control::{self, Command, JobStatus};
 use crate::daemon::farm::{PrinterState, PrinterStatus};
 use crate::daemon::job::JobState;
+use crate::http::appkeys::Who;
+use crate::http::error::quoted;
 use crate::http::{ApiError, AppState};
 use axum::extract::State;
 use axum::Json;
@@ -334,4 +339,108 @@ pub async fn connection(
             "autoconnect": true,
         },
     })))
+}
+
+/// `POST api/job` as OctoPrint takes it: `{"command": "pause", "action":
+/// "pause"|"resume"|"toggle"}` (no action: toggle, as OctoPrint), `{"command": "cancel"}`.
+#[derive(Debug, serde::Deserialize)]
+struct JobCommand {
+    command: String,
+    #[serde(default)]
+    action: Option<String>,
+}
+
+/// `POST api/job`: pause, resume or cancel the instance's print: the print of one of the
+/// folder's jobs on the folder's focus printer, through the same commands as the
+/// dashboard's buttons (`control::execute`). The operator's key may; an application key
+/// only with `control` in its scope (`crispen keys allow ID --control`), else `403`
+/// saying so. `start` and `restart` are refused (`409`): crispen starts a job once it is
+/// ready and a printer is free. Nothing to act on: `409`, as OctoPrint answers. `204`.
+pub async fn job_command(
+    State(state): State<AppState>,
+    instance: Instance,
+    who: Option<axum::Extension<Who>>,
+    body: axum::body::Bytes,
+) -> Result<axum::http::StatusCode, ApiError> {
+    let command: JobCommand = serde_json::from_slice(&body).map_err(|e| {
+        ApiError::bad_request(format!(
+            "a job command is JSON like {{\"command\": \"pause\", \"action\": \"pause\"}} or {{\"command\": \"cancel\"}}: {e}"
+        ))
+    })?;
+    let what = match (command.command.as_str(), command.action.as_deref()) {
+        ("pause", None | Some("toggle")) => "pause or resume the print",
+        ("pause", Some("pause")) => "pause the print",
+        ("pause", Some("resume")) => "resume the print",
+        ("cancel", _) => "cancel the print",
+        ("start" | "restart", _) => {
+            return Err(ApiError::conflict(format!(
+                "job command {}: crispen starts a job itself once it is ready and a printer is free (upload with print, or select and print an upload)",
+                quoted(&command.command)
+            )))
+        }
+        ("pause", Some(other)) => {
+            return Err(ApiError::bad_request(format!(
+                "pause action {}: the actions are pause, resume, toggle",
+                quoted(other)
+            )))
+        }
+        (other, _) => {
+            return Err(ApiError::bad_request(format!(
+                "job command {}: the commands are pause (action pause, resume or toggle) and cancel",
+                quoted(other)
+            )))
+        }
+    };
+    let by = match who.map(|w| w.0) {
+        Some(Who::Operator) => "the operator".to_string(),
+        Some(Who::App(grant)) => {
+            grant.check_control(what)?;
+            grant.app
+        }
+        // Changes always come with a key; without one nothing is authorised.
+        None => {
+            return Err(ApiError::new(
+                axum::http::StatusCode::FORBIDDEN,
+                "controlling a print needs a key",
+            ))
+        }
+    };
+    let v = view(&state, &instance)?;
+    // The folder's print: a printer of the folder busy with one of its jobs.
+    let controllable = |p: &&PrinterStatus| {
+        (busy(p.state) || p.state == PrinterState::WaitingForOperator)
+            && p.job
+                .as_ref()
+                .is_some_and(|id| v.jobs.iter().any(|j| &j.id == id))
+    };
+    let focus = v
+        .focus
+        .map(|i| &v.printers[i])
+        .filter(controllable)
+        .or_else(|| v.printers.iter().find(controllable));
+    let Some(printer) = focus else {
+        return Err(ApiError::conflict(format!(
+            "hot folder {} has no print running to {what}",
+            v.name
+        )));
+    };
+    let paused = matches!(
+        printer.state,
+        PrinterState::Paused | PrinterState::WaitingForOperator
+    );
+    let name = printer.name.clone();
+    let act = match (command.command.as_str(), command.action.as_deref()) {
+        ("cancel", _) => Command::Cancel {
+            job: printer.job.clone().unwrap_or_default(),
+        },
+        ("pause", Some("resume")) => Command::Resume { printer: name },
+        ("pause", Some("pause")) => Command::Pause { printer: name },
+        _ if paused => Command::Resume { printer: name },
+        _ => Command::Pause { printer: name },
+    };
+    tracing::info!(command = ?act, by = %by, instance = %instance.base, "octoprint: job command");
+    control::execute(&state.farm, act)
+        .await
+        .map_err(|e| ApiError::conflict(e.to_string()))?;
+    Ok(axum::http::StatusCode::NO_CONTENT)
 }

@@ -32,6 +32,7 @@ use Class::{Allowed, Checked, Guarded, Intercepted, Refused};
 const NO_HARDWARE: &str =
     "drives hardware no machine crispen prints on has (laser, spindle, coolant, valves, mixing)";
 const SD_FILE: &str = "runs or changes a file on the printer's SD card, which no check has read";
+const WORKSPACES: &str = "selects a workspace coordinate system: off in stock Marlin, kept in EEPROM where on (so offsets would shift later jobs), its moves not followed for certain";
 const UNFOLLOWED: &str = "moves the head where the motion checks cannot follow it";
 
 /// Marlin 2.1's commands (its `GcodeSuite::process_parsed_command`), each with its class.
@@ -64,13 +65,13 @@ pub const MARLIN2: &[(&str, Class)] = &[
     ("G35", Guarded(UNFOLLOWED)),
     ("G38", Guarded(UNFOLLOWED)),
     ("G42", Guarded("moves the head to a mesh point, which the motion checks cannot follow")),
-    ("G53", Checked),
-    ("G54", Checked),
-    ("G55", Checked),
-    ("G56", Checked),
-    ("G57", Checked),
-    ("G58", Checked),
-    ("G59", Checked),
+    ("G53", Refused(WORKSPACES)),
+    ("G54", Refused(WORKSPACES)),
+    ("G55", Refused(WORKSPACES)),
+    ("G56", Refused(WORKSPACES)),
+    ("G57", Refused(WORKSPACES)),
+    ("G58", Refused(WORKSPACES)),
+    ("G59", Refused(WORKSPACES)),
     ("G60", Checked),
     ("G61", Checked),
     ("G76", Guarded("calibrates the probe's temperature compensation: heats and probes")),

@@ -362,6 +362,50 @@ pub fn guarded() -> impl Iterator<Item = &'static str> {
         .map(|(code, _)| *code)
 }
 
+/// The table as Markdown, as docs/gcode-policy.md shows it (a test keeps the two equal).
+pub fn markdown() -> String {
+    let mut out =
+        String::from("| Command | Marlin 2 | Ultimaker2Marlin | Why |\n|---|---|---|---|\n");
+    let name = |class: Option<Class>| match class {
+        Some(Allowed) => "allowed",
+        Some(Checked) => "checked",
+        Some(Intercepted) => "intercepted",
+        Some(Guarded(_)) => "refused unless allowed",
+        Some(Refused(_)) => "refused",
+        None => "refused unless allowed (unknown)",
+    };
+    let why = |class: Option<Class>| match class {
+        Some(Guarded(w) | Refused(w)) => w,
+        _ => "",
+    };
+    // Marlin 2's commands, then Ultimaker2Marlin's own (M605 is in both: once).
+    let mut seen = Vec::new();
+    for &(code, _) in MARLIN2.iter().chain(ULTIMAKER2) {
+        if seen.contains(&code) {
+            continue;
+        }
+        seen.push(code);
+        let (m, u) = (
+            classify(Firmware::Marlin2, code),
+            classify(Firmware::Ultimaker2, code),
+        );
+        let code_shown = if code == "T0" { "T<n>" } else { code };
+        let reason = if why(m) == why(u) || why(u).is_empty() {
+            why(m).to_string()
+        } else if why(m).is_empty() {
+            why(u).to_string()
+        } else {
+            format!("Marlin 2: {}; Ultimaker2Marlin: {}", why(m), why(u))
+        };
+        out += &format!(
+            "| `{code_shown}` | {} | {} | {reason} |\n",
+            name(m),
+            name(u)
+        );
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -408,49 +452,4 @@ mod tests {
             Some(Class::Guarded(_))
         ));
     }
-}
-
-/// The table as Markdown, as docs/gcode-policy.md shows it (a test keeps the two equal).
-pub fn markdown() -> String {
-    let mut out =
-        String::from("| Command | Marlin 2 | Ultimaker2Marlin | Why |\n|---|---|---|---|\n");
-    let name = |class: Option<Class>| match class {
-        Some(Allowed) => "allowed",
-        Some(Checked) => "checked",
-        Some(Intercepted) => "intercepted",
-        Some(Guarded(_)) => "refused unless allowed",
-        Some(Refused(_)) => "refused",
-        None => "refused unless allowed (unknown)",
-    };
-    let why = |class: Option<Class>| match class {
-        Some(Guarded(w) | Refused(w)) => w,
-        _ => "",
-    };
-    let mut codes: Vec<&str> = MARLIN2.iter().chain(ULTIMAKER2).map(|(c, _)| *c).collect();
-    codes.dedup();
-    let mut seen = Vec::new();
-    for code in codes {
-        if seen.contains(&code) {
-            continue;
-        }
-        seen.push(code);
-        let (m, u) = (
-            classify(Firmware::Marlin2, code),
-            classify(Firmware::Ultimaker2, code),
-        );
-        let code_shown = if code == "T0" { "T<n>" } else { code };
-        let reason = if why(m) == why(u) || why(u).is_empty() {
-            why(m).to_string()
-        } else if why(m).is_empty() {
-            why(u).to_string()
-        } else {
-            format!("Marlin 2: {}; Ultimaker2Marlin: {}", why(m), why(u))
-        };
-        out += &format!(
-            "| `{code_shown}` | {} | {} | {reason} |\n",
-            name(m),
-            name(u)
-        );
-    }
-    out
 }

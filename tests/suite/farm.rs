@@ -494,7 +494,9 @@ fn a_host_killed_mid_print_loses_its_work_to_the_others() {
     stop_endless_slicers(&farm.root);
     farm.host_mut("a").env.clear();
     farm.host_mut("a").start();
-    let s = farm.wait_status("b", Duration::from_secs(120), "host a back", |s| {
+    // Read from host a itself: host b's view of a's printers may still be the record a
+    // published before it was killed (printing) until a's fresh start publishes anew.
+    let s = farm.wait_status("a", Duration::from_secs(120), "host a back", |s| {
         host_alive(s, "a") == Some(true)
             && ["a1", "a2"]
                 .iter()

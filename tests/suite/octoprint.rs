@@ -1423,7 +1423,8 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     assert_eq!(connection.status, 200, "{}", connection.text());
 
     // Stable across a restart.
-    drop(std::mem::replace(&mut farm.daemon, Daemon::start(&root.join("crispen.toml"), &root.join("daemon2.log"))));
+    farm.daemon.kill9();
+    farm.daemon = Daemon::start(&root.join("crispen.toml"), &root.join("daemon2.log"));
     farm.log = root.join("daemon2.log");
     farm.addr = listening(&farm.log);
     let again = ha_step(&farm, "discovery", path, &key);
@@ -1489,7 +1490,7 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     let metrics = farm.call("GET", "/metrics", &[("X-Api-Key", KEY)], b"").text();
     for line in [
         r#"crispen_octoprint_control_total{folder="other",action="pause",result="done"} 1"#,
-        r#"crispen_octoprint_control_total{folder="other",action="pause",result="refused"} 1"#,
+        r#"crispen_octoprint_control_total{folder="other",action="pause",result="refused"} 2"#,
         r#"crispen_octoprint_control_total{folder="other",action="resume",result="done"} 1"#,
         r#"crispen_octoprint_control_total{folder="other",action="cancel",result="done"} 1"#,
     ] {

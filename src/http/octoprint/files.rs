@@ -405,6 +405,32 @@ pub async fn command(
                 .into_iter()
                 .max_by(|a, b| a.updated.total_cmp(&b.updated)),
         };
+        // A job not prepared yet shows no hold: its sidecar is read by the preparation.
+        // Its release is taken now and kept (`control::execute`'s release reads the
+        // sidecar in the job's directory); one that holds nothing is left alone.
+        if held.is_none() && print {
+            let unprepared: Vec<&control::JobStatus> = jobs
+                .iter()
+                .filter(|j| matches!(j.state, JobState::Queued | JobState::Preparing))
+                .collect();
+            let mine = match &grant {
+                Some(grant) if !unprepared.is_empty() => {
+                    let own = own_holds(&state, grant, &unprepared).await;
+                    unprepared.into_iter().filter(|j| own.contains(&j.id)).collect()
+                }
+                _ => unprepared,
+            };
+            if let Some(job) = mine.iter().max_by(|a, b| a.updated.total_cmp(&b.updated)) {
+                match control::execute(&state.farm, Command::Release { job: job.id.clone() }).await {
+                    Ok(message) => {
+                        tracing::info!(job = %job.id, %message, "octoprint: select and print released a job not prepared yet");
+                        return Ok(StatusCode::NO_CONTENT);
+                    }
+                    Err(control::CommandError::NotHeld(_)) => {}
+                    Err(e) => return Err(ApiError::conflict(e.to_string())),
+                }
+            }
+        }
         match held {
             Some(job) if print => {
                 let message = control::execute(

@@ -1179,7 +1179,8 @@ fn a_path_after_the_file_moves_it_to_that_folder() {
 
 /// Zeroconf: in a network namespace of the test's own (multicast on its loopback), the
 /// Python `zeroconf` package browses `_octoprint._tcp` and finds each hot folder as
-/// "crispen: <folder>" with its path, version and the daemon's port; with
+/// "crispen: <folder>" with its path, version, the daemon's port and its `uuid` (the
+/// same as its `api/settings` `upnpUuid`, another for each folder); with
 /// `announce = false` it finds none.
 #[test]
 fn each_folder_is_announced_by_zeroconf() {
@@ -1202,6 +1203,12 @@ end = time.time() + limit
 while time.time() < end and len(found) < want:
     time.sleep(0.2)
 zc.close()
+# What the same instance says in api/settings (Home Assistant's unique id when set up by hand).
+import urllib.request
+for entry in found.values():
+    url = "http://127.0.0.1:%d%sapi/settings" % (entry["port"], entry["props"].get("path", "/"))
+    req = urllib.request.Request(url, headers={"X-Api-Key": sys.argv[3]})
+    entry["upnpUuid"] = json.load(urllib.request.urlopen(req, timeout=5))["plugins"]["discovery"]["upnpUuid"]
 print(json.dumps(found))
 "#;
     for announce in [true, false] {
@@ -1225,7 +1232,7 @@ print(json.dumps(found))
         let out = Command::new("nsenter")
             .args(["-t", &pid, "-n", "-U", "--preserve-credentials"])
             .arg(&python)
-            .args(["-c", browse, want, limit])
+            .args(["-c", browse, want, limit, KEY])
             .output()
             .unwrap();
         assert!(
@@ -1255,7 +1262,17 @@ print(json.dumps(found))
                 "{found:#}"
             );
             assert_eq!(entry["port"].to_string(), port, "{found:#}");
+            // Home Assistant's zeroconf discovery takes `uuid` as the unique id: the
+            // instance's `upnpUuid`, so discovered and configured are one device.
+            let uuid = entry["props"]["uuid"].as_str().unwrap_or("");
+            assert_eq!(uuid.len(), 36, "{found:#}");
+            assert_eq!(entry["upnpUuid"], uuid, "{found:#}");
         }
+        assert_ne!(
+            found["crispen: hot._octoprint._tcp.local."]["props"]["uuid"],
+            found["crispen: other._octoprint._tcp.local."]["props"]["uuid"],
+            "{found:#}"
+        );
     }
 }
 
@@ -1342,7 +1359,8 @@ fn ha_step(farm: &Farm, step: &str, path: &str, arg: &str) -> Value {
         String::from_utf8_lossy(&out.stderr),
         std::fs::read_to_string(&farm.log).unwrap_or_default()
     );
-    serde_json::from_str(text.lines().last().unwrap_or("")).unwrap_or_else(|e| panic!("{e}: {text}"))
+    serde_json::from_str(text.lines().last().unwrap_or(""))
+        .unwrap_or_else(|e| panic!("{e}: {text}"))
 }
 
 /// Home Assistant's key request, allowed from the test by `crispen keys allow ID`
@@ -1368,7 +1386,10 @@ fn ha_key(farm: &Farm, path: &str, app: &str, extra: &[&str]) -> String {
         if let Some(id) = found {
             break id;
         }
-        assert!(started.elapsed() < Duration::from_secs(30), "no request from {app}: {list}");
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "no request from {app}: {list}"
+        );
         std::thread::sleep(Duration::from_millis(100));
     };
     let mut args = vec!["keys", "allow", id.as_str()];
@@ -1377,7 +1398,11 @@ fn ha_key(farm: &Farm, path: &str, app: &str, extra: &[&str]) -> String {
     assert!(ok, "{said}");
     let out = child.wait_with_output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let v: Value = serde_json::from_str(text.lines().last().unwrap_or("")).unwrap();
     v["key"].as_str().unwrap().to_string()
 }
@@ -1408,18 +1433,34 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     let key = ha_key(&farm, path, "Home Assistant", &["--control"]);
 
     let d = ha_step(&farm, "discovery", path, &key);
-    let uuid = d["uuid"].as_str().unwrap_or_else(|| panic!("no upnpUuid: {d}")).to_string();
+    let uuid = d["uuid"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no upnpUuid: {d}"))
+        .to_string();
     assert_eq!(uuid.len(), 36, "{d}");
     assert_eq!(d["server"]["version"], "1.10.0", "{d}");
     assert_eq!(d["server"]["safemode"], Value::Null, "{d}");
     assert_eq!(d["webcam"], false, "{d}");
     assert_eq!(d["tracking"], false, "{d}");
     let hot = farm
-        .call("GET", "/octoprint/hot/api/settings", &[("X-Api-Key", KEY)], b"")
+        .call(
+            "GET",
+            "/octoprint/hot/api/settings",
+            &[("X-Api-Key", KEY)],
+            b"",
+        )
         .json();
-    let hot_uuid = hot["plugins"]["discovery"]["upnpUuid"].as_str().unwrap().to_string();
+    let hot_uuid = hot["plugins"]["discovery"]["upnpUuid"]
+        .as_str()
+        .unwrap()
+        .to_string();
     assert_ne!(hot_uuid, uuid);
-    let connection = farm.call("GET", &format!("{path}api/connection"), &[("X-Api-Key", &key)], b"");
+    let connection = farm.call(
+        "GET",
+        &format!("{path}api/connection"),
+        &[("X-Api-Key", &key)],
+        b"",
+    );
     assert_eq!(connection.status, 200, "{}", connection.text());
 
     // Stable across a restart.
@@ -1428,14 +1469,21 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     farm.log = root.join("daemon2.log");
     farm.addr = listening(&farm.log);
     let again = ha_step(&farm, "discovery", path, &key);
-    assert_eq!(again["uuid"], uuid.as_str(), "the unique id changed across a restart");
+    assert_eq!(
+        again["uuid"],
+        uuid.as_str(),
+        "the unique id changed across a restart"
+    );
 
     // Idle: the coordinator's poll answers, no job.
     let idle = ha_step(&farm, "poll", path, &key);
     assert_eq!(idle["printing"], false, "{idle}");
 
     // A real print on beta: the polls show it.
-    let (ct, body) = form(&[("file", "ha_print.gcode"), ("print", "true")], slow_gcode().as_bytes());
+    let (ct, body) = form(
+        &[("file", "ha_print.gcode"), ("print", "true")],
+        slow_gcode().as_bytes(),
+    );
     let a = farm.call(
         "POST",
         &format!("{path}api/files/local"),
@@ -1450,7 +1498,10 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
         if p["printing"] == true && p["completion"].as_f64().unwrap_or(0.0) > 0.0 && hot_c > 100.0 {
             break p;
         }
-        assert!(started.elapsed() < Duration::from_secs(90), "never seen printing: {p}");
+        assert!(
+            started.elapsed() < Duration::from_secs(90),
+            "never seen printing: {p}"
+        );
         std::thread::sleep(Duration::from_millis(300));
     };
     assert_eq!(shown["name"], "ha_print.gcode", "{shown}");
@@ -1458,7 +1509,12 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     assert_eq!(shown["text"], "Printing", "{shown}");
     assert_eq!(shown["bed"], true, "{shown}");
 
-    let beta = |s: &Value| common::printer(s, "beta")["state"].as_str().unwrap_or("").to_string();
+    let beta = |s: &Value| {
+        common::printer(s, "beta")["state"]
+            .as_str()
+            .unwrap_or("")
+            .to_string()
+    };
     // A key without control: the button's press is refused with the way to give it.
     let weak = ha_key(&farm, path, "Home Assistant (no control)", &[]);
     let refused = ha_step(&farm, "pause", path, &weak);
@@ -1478,7 +1534,11 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     assert_eq!(p["sent"], true, "{p}");
     farm.wait_for("beta paused", |s| beta(s) == "paused");
     let polled = ha_step(&farm, "poll", path, &key);
-    assert_eq!((polled["paused"].clone(), polled["text"].clone()), (json!(true), json!("Paused")), "{polled}");
+    assert_eq!(
+        (polled["paused"].clone(), polled["text"].clone()),
+        (json!(true), json!("Paused")),
+        "{polled}"
+    );
     let r = ha_step(&farm, "resume", path, &key);
     assert_eq!(r["sent"], true, "{r}");
     farm.wait_for("beta printing again", |s| beta(s) == "printing");
@@ -1487,7 +1547,9 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     farm.wait_for("the print cancelled", |s| {
         job_by_file(s, "ha_print.gcode").is_some_and(|j| j["state"] == "cancelled")
     });
-    let metrics = farm.call("GET", "/metrics", &[("X-Api-Key", KEY)], b"").text();
+    let metrics = farm
+        .call("GET", "/metrics", &[("X-Api-Key", KEY)], b"")
+        .text();
     for line in [
         r#"crispen_octoprint_control_total{folder="other",action="pause",result="done"} 1"#,
         r#"crispen_octoprint_control_total{folder="other",action="pause",result="refused"} 2"#,
@@ -1497,7 +1559,10 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
         assert!(metrics.contains(line), "{line} not in\n{metrics}");
     }
     let log = std::fs::read_to_string(&farm.log).unwrap_or_default();
-    assert!(log.contains("octoprint: job command") && log.contains("Home Assistant"), "{log}");
+    assert!(
+        log.contains("octoprint: job command") && log.contains("Home Assistant"),
+        "{log}"
+    );
     // Nothing of the host's to stop, and nothing to start: refused, not a 404.
     let a = farm.call(
         "POST",
@@ -1567,7 +1632,12 @@ fn cura_select_and_print_sent_at_once_prints_every_time() {
         for p in s["printers"].as_array().unwrap() {
             if p["state"] == "bed_not_cleared" {
                 let name = p["name"].as_str().unwrap();
-                farm.call("POST", &format!("/api/v1/printers/{name}/clear"), &[("X-Api-Key", KEY)], b"");
+                farm.call(
+                    "POST",
+                    &format!("/api/v1/printers/{name}/clear"),
+                    &[("X-Api-Key", KEY)],
+                    b"",
+                );
             }
         }
         let done = names
@@ -1576,7 +1646,10 @@ fn cura_select_and_print_sent_at_once_prints_every_time() {
             .count();
         let bad: Vec<&String> = names
             .iter()
-            .filter(|n| job_by_file(&s, n).is_some_and(|j| j["state"] == "failed" || j["state"] == "cancelled"))
+            .filter(|n| {
+                job_by_file(&s, n)
+                    .is_some_and(|j| j["state"] == "failed" || j["state"] == "cancelled")
+            })
             .collect();
         assert!(bad.is_empty(), "{bad:?} did not print: {s:#}");
         if done == N {

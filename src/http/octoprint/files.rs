@@ -349,14 +349,14 @@ pub async fn command(
             (Some(grant), Some(key)) => &grant.id == key,
             (Some(_), None) => false,
         };
+        if !print {
+            // Selected, not printed: it stays held (harmless for any key).
+            return Ok(StatusCode::NO_CONTENT);
+        }
         if !may {
             if let Some(grant) = &grant {
                 return Err(grant.refuse_release("(not a job yet)", &shown));
             }
-        }
-        if !print {
-            // Selected, not printed: it stays held.
-            return Ok(StatusCode::NO_CONTENT);
         }
         let outcome = super::pending::print(&state.farm, &token)
             .await
@@ -416,12 +416,22 @@ pub async fn command(
             let mine = match &grant {
                 Some(grant) if !unprepared.is_empty() => {
                     let own = own_holds(&state, grant, &unprepared).await;
-                    unprepared.into_iter().filter(|j| own.contains(&j.id)).collect()
+                    unprepared
+                        .into_iter()
+                        .filter(|j| own.contains(&j.id))
+                        .collect()
                 }
                 _ => unprepared,
             };
             if let Some(job) = mine.iter().max_by(|a, b| a.updated.total_cmp(&b.updated)) {
-                match control::execute(&state.farm, Command::Release { job: job.id.clone() }).await {
+                match control::execute(
+                    &state.farm,
+                    Command::Release {
+                        job: job.id.clone(),
+                    },
+                )
+                .await
+                {
                     Ok(message) => {
                         tracing::info!(job = %job.id, %message, "octoprint: select and print released a job not prepared yet");
                         return Ok(StatusCode::NO_CONTENT);
@@ -471,7 +481,11 @@ pub async fn command(
 /// Which of the `held` jobs the upload of `grant` held: their sidecars (in their job
 /// directories, read on a blocking thread, each at most a sidecar's size) carry the
 /// key's hold mark for their folder and file. One that cannot be read is not its own.
-pub(super) async fn own_holds(state: &AppState, grant: &Grant, held: &[&control::JobStatus]) -> Vec<String> {
+pub(super) async fn own_holds(
+    state: &AppState,
+    grant: &Grant,
+    held: &[&control::JobStatus],
+) -> Vec<String> {
     let store = state.farm.store();
     let files: Vec<(String, std::path::PathBuf, std::path::PathBuf)> = held
         .iter()

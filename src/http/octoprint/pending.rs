@@ -166,7 +166,12 @@ async fn job_of(farm: &Farm, entry: &Entry, jobs: &[JobStatus]) -> Option<JobSta
                     JobState::Queued | JobState::Preparing | JobState::Ready | JobState::Printing
                 )
         })
-        .map(|j| (j.clone(), store.job_dir(&j.id).join(format!("{}.toml", j.file))))
+        .map(|j| {
+            (
+                j.clone(),
+                store.job_dir(&j.id).join(format!("{}.toml", j.file)),
+            )
+        })
         .collect();
     drop(store);
     if candidates.is_empty() {

@@ -208,9 +208,10 @@ pub async fn job(
             let live = focus
                 .and_then(|p| p.progress.clone())
                 .or(j.progress.clone());
-            estimated = live
-                .as_ref()
-                .and_then(|g| g.remaining_s.map(|r| (g.elapsed_s + r).max(0.0).round() as u64));
+            estimated = live.as_ref().and_then(|g| {
+                g.remaining_s
+                    .map(|r| (g.elapsed_s + r).max(0.0).round() as u64)
+            });
             let progress = match live {
                 Some(g) => json!({
                     "completion": 100.0 * g.lines_acked as f64 / g.lines_total.max(1) as f64,

@@ -19,8 +19,9 @@
 //!
 //! What OctoPrint can do and a farm does not let a slicer do (send G-code to a printer,
 //! connect or disconnect it) is refused with `409` and a message saying where the
-//! operator does it. `POST api/job` (pause, resume, cancel) is the operator's, and an
-//! application key's whose scope has `control` (see `super::appkeys`).
+//! operator does it. `POST api/job` (pause, resume, cancel, start) is the operator's, and
+//! an application key's whose scope has `control` (see `super::appkeys`); Home
+//! Assistant's buttons use it.
 
 pub mod files;
 pub mod form;

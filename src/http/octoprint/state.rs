@@ -564,7 +564,15 @@ async fn start(
         let outcome = super::pending::print(&state.farm, &token)
             .await
             .map_err(|e| Refusal::from(ApiError::conflict(e.to_string())))?;
-        return Ok(format!("{file}: {outcome:?}"));
+        return Ok(match outcome {
+            super::pending::Outcome::Released(job) => format!("{file}: job {job} released"),
+            super::pending::Outcome::AlreadyFree(job) => {
+                format!("{file}: job {job} was not held; it prints once ready")
+            }
+            super::pending::Outcome::Waiting => {
+                format!("{file}: prints as soon as the hot folder has taken it")
+            }
+        });
     }
     Err(ApiError::conflict(
         "nothing to start: no held upload of this key in this hot folder (crispen starts every other job itself once it is ready and a printer is free)",

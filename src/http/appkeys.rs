@@ -34,7 +34,7 @@
 //! synchronous write of the file (on a blocking thread), never across an await.
 
 use super::error::quoted;
-use super::octoprint::Instance;
+use super::instance::Instance;
 use super::{ApiError, AppState};
 use crate::daemon::config::{Config, FolderConfig};
 use axum::extract::{Path, Query, State};
@@ -171,7 +171,7 @@ impl Grant {
         if self.scope.everywhere || instance.folder.is_some() {
             return Ok(());
         }
-        let default = super::octoprint::default_folder(config).map(|f| &f.path);
+        let default = super::instance::default_folder(config).map(|f| &f.path);
         if default == Some(&folder.path) {
             return Ok(());
         }

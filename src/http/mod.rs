@@ -25,6 +25,7 @@ mod assets;
 mod auth;
 mod error;
 mod events;
+mod instance;
 mod metrics;
 mod multipart;
 mod octoprint;

@@ -32,6 +32,7 @@ use Class::{Allowed, Checked, Guarded, Intercepted, Refused};
 const NO_HARDWARE: &str =
     "drives hardware no machine crispen prints on has (laser, spindle, coolant, valves, mixing)";
 const SD_FILE: &str = "runs or changes a file on the printer's SD card, which no check has read";
+const WORKSPACES: &str = "selects a workspace coordinate system: off in stock Marlin, kept in EEPROM where on (so offsets would shift later jobs), its moves not followed for certain";
 const UNFOLLOWED: &str = "moves the head where the motion checks cannot follow it";
 
 /// Marlin 2.1's commands (its `GcodeSuite::process_parsed_command`), each with its class.
@@ -64,13 +65,13 @@ pub const MARLIN2: &[(&str, Class)] = &[
     ("G35", Guarded(UNFOLLOWED)),
     ("G38", Guarded(UNFOLLOWED)),
     ("G42", Guarded("moves the head to a mesh point, which the motion checks cannot follow")),
-    ("G53", Checked),
-    ("G54", Checked),
-    ("G55", Checked),
-    ("G56", Checked),
-    ("G57", Checked),
-    ("G58", Checked),
-    ("G59", Checked),
+    ("G53", Refused(WORKSPACES)),
+    ("G54", Refused(WORKSPACES)),
+    ("G55", Refused(WORKSPACES)),
+    ("G56", Refused(WORKSPACES)),
+    ("G57", Refused(WORKSPACES)),
+    ("G58", Refused(WORKSPACES)),
+    ("G59", Refused(WORKSPACES)),
     ("G60", Checked),
     ("G61", Checked),
     ("G76", Guarded("calibrates the probe's temperature compensation: heats and probes")),
@@ -361,6 +362,50 @@ pub fn guarded() -> impl Iterator<Item = &'static str> {
         .map(|(code, _)| *code)
 }
 
+/// The table as Markdown, as docs/gcode-policy.md shows it (a test keeps the two equal).
+pub fn markdown() -> String {
+    let mut out =
+        String::from("| Command | Marlin 2 | Ultimaker2Marlin | Why |\n|---|---|---|---|\n");
+    let name = |class: Option<Class>| match class {
+        Some(Allowed) => "allowed",
+        Some(Checked) => "checked",
+        Some(Intercepted) => "intercepted",
+        Some(Guarded(_)) => "refused unless allowed",
+        Some(Refused(_)) => "refused",
+        None => "refused unless allowed (unknown)",
+    };
+    let why = |class: Option<Class>| match class {
+        Some(Guarded(w) | Refused(w)) => w,
+        _ => "",
+    };
+    // Marlin 2's commands, then Ultimaker2Marlin's own (M605 is in both: once).
+    let mut seen = Vec::new();
+    for &(code, _) in MARLIN2.iter().chain(ULTIMAKER2) {
+        if seen.contains(&code) {
+            continue;
+        }
+        seen.push(code);
+        let (m, u) = (
+            classify(Firmware::Marlin2, code),
+            classify(Firmware::Ultimaker2, code),
+        );
+        let code_shown = if code == "T0" { "T<n>" } else { code };
+        let reason = if why(m) == why(u) || why(u).is_empty() {
+            why(m).to_string()
+        } else if why(m).is_empty() {
+            why(u).to_string()
+        } else {
+            format!("Marlin 2: {}; Ultimaker2Marlin: {}", why(m), why(u))
+        };
+        out += &format!(
+            "| `{code_shown}` | {} | {} | {reason} |\n",
+            name(m),
+            name(u)
+        );
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -407,49 +452,4 @@ mod tests {
             Some(Class::Guarded(_))
         ));
     }
-}
-
-/// The table as Markdown, as docs/gcode-policy.md shows it (a test keeps the two equal).
-pub fn markdown() -> String {
-    let mut out =
-        String::from("| Command | Marlin 2 | Ultimaker2Marlin | Why |\n|---|---|---|---|\n");
-    let name = |class: Option<Class>| match class {
-        Some(Allowed) => "allowed",
-        Some(Checked) => "checked",
-        Some(Intercepted) => "intercepted",
-        Some(Guarded(_)) => "refused unless allowed",
-        Some(Refused(_)) => "refused",
-        None => "refused unless allowed (unknown)",
-    };
-    let why = |class: Option<Class>| match class {
-        Some(Guarded(w) | Refused(w)) => w,
-        _ => "",
-    };
-    let mut codes: Vec<&str> = MARLIN2.iter().chain(ULTIMAKER2).map(|(c, _)| *c).collect();
-    codes.dedup();
-    let mut seen = Vec::new();
-    for code in codes {
-        if seen.contains(&code) {
-            continue;
-        }
-        seen.push(code);
-        let (m, u) = (
-            classify(Firmware::Marlin2, code),
-            classify(Firmware::Ultimaker2, code),
-        );
-        let code_shown = if code == "T0" { "T<n>" } else { code };
-        let reason = if why(m) == why(u) || why(u).is_empty() {
-            why(m).to_string()
-        } else if why(m).is_empty() {
-            why(u).to_string()
-        } else {
-            format!("Marlin 2: {}; Ultimaker2Marlin: {}", why(m), why(u))
-        };
-        out += &format!(
-            "| `{code_shown}` | {} | {} | {reason} |\n",
-            name(m),
-            name(u)
-        );
-    }
-    out
 }

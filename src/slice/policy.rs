@@ -689,7 +689,7 @@ mod tests {
         assert_eq!(v.refusals[0].line, 2, "{v:?}");
         let v = verdict("G28\nG54\nG1 X10\n", &um2());
         assert!(
-            v.refusals[0].reason.contains("cannot be followed: G54"),
+            v.refusals[0].reason.contains("workspace coordinate system"),
             "{v:?}"
         );
         // M206 is refused as a setting, and followed when allowed.

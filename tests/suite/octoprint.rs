@@ -941,30 +941,8 @@ fn octorest_and_octoprint_client_drive_the_farm() {
     let python = python();
     let tmp = tempfile::tempdir().unwrap();
     let farm = Farm::start(tmp.path());
-    // The key: asked for, allowed by the operator, fetched.
-    let a = farm.call(
-        "POST",
-        "/plugin/appkeys/request",
-        &[("Content-Type", "application/json")],
-        br#"{"app": "octorest"}"#,
-    );
-    assert_eq!(a.status, 201, "{}", a.text());
-    let poll = path_of(&a.header("location").unwrap());
-    let list = farm
-        .call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
-        .json();
-    let id = list["pending"][0]["id"].as_str().unwrap().to_string();
-    let a = farm.call(
-        "POST",
-        &format!("/api/v1/appkeys/requests/{id}/allow?everywhere=true"),
-        &[("X-Api-Key", KEY)],
-        b"",
-    );
-    assert_eq!(a.status, 200, "{}", a.text());
-    let app_key = farm.call("GET", &poll, &[], b"").json()["api_key"]
-        .as_str()
-        .unwrap()
-        .to_string();
+    // The key: asked for, allowed by the operator for every instance, fetched.
+    let (app_key, _) = allowed_key(&farm, "/", "octorest", "?everywhere=true");
 
     let gcode = tmp.path().join("rest.gcode");
     std::fs::write(&gcode, GCODE).unwrap();

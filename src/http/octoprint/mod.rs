@@ -14,8 +14,8 @@
 //!   temperatures, what the flags mean for several printers; see docs/octoprint.md).
 //! - [`identity`]: each instance's UUID (`plugins.discovery.upnpUuid`, the zeroconf
 //!   `uuid`), which Home Assistant takes as the device's unique id.
-//! - here: the instance a request addresses, `api/version`, `api/server`, `api/settings`,
-//!   `api/login`, and the routes.
+//! - here (the instance a request addresses is `super::instance`): `api/version`,
+//!   `api/server`, `api/settings`, `api/login`, and the routes.
 //!
 //! What OctoPrint can do and a farm does not let a slicer do (send G-code to a printer,
 //! connect or disconnect it) is refused with `409` and a message saying where the
@@ -31,102 +31,17 @@ pub mod state;
 
 use super::upload;
 use super::{ApiError, AppState};
-use crate::daemon::config::{Config, FolderConfig};
-use axum::extract::FromRequestParts;
-use axum::http::request::Parts;
 use axum::http::StatusCode;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 
+pub use super::instance::Instance;
 pub use form::{read_form, truthy, Form};
 
 /// The OctoPrint API version whose answers these are.
 pub const API_VERSION: &str = "0.1";
 /// The OctoPrint server version reported; clients only check that it is recent enough.
 pub const SERVER_VERSION: &str = "1.10.0";
-
-/// The OctoPrint instance a request addresses: a hot folder's (`/octoprint/<folder>/`)
-/// or the root (`/`).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Instance {
-    /// The folder named in the address (percent-decoded); None on the root.
-    pub folder: Option<String>,
-    /// The instance's base address, as the client used it (`/octoprint/hot/` or `/`).
-    pub base: String,
-    /// The rest of the address after the base (`api/files/local/a.gcode`).
-    pub rest: String,
-}
-
-impl Instance {
-    pub fn parse(path: &str) -> Instance {
-        match path.strip_prefix("/octoprint/") {
-            Some(after) => {
-                let (segment, rest) = after.split_once('/').unwrap_or((after, ""));
-                Instance {
-                    folder: Some(crate::percent::percent_decode(segment)),
-                    base: format!("/octoprint/{segment}/"),
-                    rest: rest.to_string(),
-                }
-            }
-            None => Instance {
-                folder: None,
-                base: "/".to_string(),
-                rest: path.trim_start_matches('/').to_string(),
-            },
-        }
-    }
-
-    /// The hot folder this instance stands for: its own, or on the root the default
-    /// folder (`[http] default_folder`, else the only folder), or None.
-    pub fn folder<'a>(&self, config: &'a Config) -> Result<Option<&'a FolderConfig>, ApiError> {
-        match &self.folder {
-            Some(name) => upload::find_folder(config, name).map(Some),
-            None => Ok(default_folder(config)),
-        }
-    }
-
-    /// [`Instance::folder`], required: the root without a default folder is refused with
-    /// the way out.
-    pub fn some_folder<'a>(&self, config: &'a Config) -> Result<&'a FolderConfig, ApiError> {
-        self.folder(config)?.ok_or_else(|| no_default(config))
-    }
-}
-
-impl<S: Send + Sync> FromRequestParts<S> for Instance {
-    type Rejection = ApiError;
-
-    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Instance, ApiError> {
-        Ok(Instance::parse(parts.uri.path()))
-    }
-}
-
-/// The folder the root instance stands for.
-pub fn default_folder(config: &Config) -> Option<&FolderConfig> {
-    let named = config
-        .http
-        .as_ref()
-        .and_then(|h| h.octoprint.default_folder.as_deref());
-    match named {
-        // Checked at load to name exactly one folder.
-        Some(name) => upload::find_folder(config, name).ok(),
-        None => match config.folders.as_slice() {
-            [only] => Some(only),
-            _ => None,
-        },
-    }
-}
-
-fn no_default(config: &Config) -> ApiError {
-    ApiError::bad_request(format!(
-        "which hot folder? this address (the root OctoPrint instance) stands for none: use a folder's own instance /octoprint/<folder>/, give the folder as the upload's path, or set [http] default_folder; the folders are: {}",
-        config
-            .folders
-            .iter()
-            .map(upload::folder_name)
-            .collect::<Vec<_>>()
-            .join(", ")
-    ))
-}
 
 pub async fn version() -> Json<serde_json::Value> {
     Json(serde_json::json!({

@@ -299,7 +299,47 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
         }
     }
     notifications(&mut out);
+    octoprint_control(&mut out);
     out.0
+}
+
+/// Control actions asked through an OctoPrint instance (`POST api/job`): by hot folder,
+/// action and result. The process's counts, from zero at each start. Bounded: folders are
+/// the config's (a request naming no configured folder is refused before it is counted),
+/// actions and results are fixed words; past [`MAX_CONTROL_SERIES`] series (folders
+/// renamed by many reloads) new series are not made.
+static CONTROL: std::sync::Mutex<
+    std::collections::BTreeMap<(String, &'static str, &'static str), u64>,
+> = std::sync::Mutex::new(std::collections::BTreeMap::new());
+/// The most series `crispen_octoprint_control_total` keeps.
+pub const MAX_CONTROL_SERIES: usize = 4096;
+
+/// Counts one control action through OctoPrint: `action` pause, resume, toggle, cancel,
+/// start; `result` done, refused (the key may not), failed (nothing to act on, or the
+/// farm refused).
+pub fn count_octoprint_control(folder: &str, action: &'static str, result: &'static str) {
+    let mut map = CONTROL.lock().unwrap_or_else(|e| e.into_inner());
+    let key = (folder.to_string(), action, result);
+    if map.len() >= MAX_CONTROL_SERIES && !map.contains_key(&key) {
+        return;
+    }
+    *map.entry(key).or_insert(0) += 1;
+}
+
+fn octoprint_control(out: &mut Out) {
+    out.family(
+        "crispen_octoprint_control_total",
+        "counter",
+        "Control actions (pause, resume, toggle, cancel, start) asked through an OctoPrint instance, by hot folder, action and result (done, refused, failed).",
+    );
+    let map = CONTROL.lock().unwrap_or_else(|e| e.into_inner());
+    for ((folder, action, result), n) in map.iter() {
+        out.sample(
+            "crispen_octoprint_control_total",
+            &[("folder", folder), ("action", action), ("result", result)],
+            *n as f64,
+        );
+    }
 }
 
 /// The notification counters (see `crate::notify::counts`) and the build's version.

@@ -2,7 +2,9 @@
 //! (`_octoprint._tcp`, as OctoPrint announces itself), so Cura's OctoPrint connection
 //! lists "crispen: <folder>" without anyone typing an address. The TXT record carries
 //! what Cura reads: `path` (the instance's base, `/octoprint/<folder>/`), `version` and
-//! `api`. Multicast DNS is answered by the `mdns-sd` crate's own thread.
+//! `api`, and what Home Assistant reads: `uuid`, the instance's identity, the same as its
+//! `api/settings` `plugins.discovery.upnpUuid` (see `super::octoprint::identity`), so a
+//! discovered instance and one set up by hand are one device. Multicast DNS is answered by the `mdns-sd` crate's own thread.
 //!
 //! Where: on the interfaces the HTTP listener is reachable on: all of them for an
 //! unspecified address (`0.0.0.0`), only that address's interface for a specific one,
@@ -89,10 +91,16 @@ pub fn announce(
     for folder in &config.folders {
         let name = super::upload::folder_name(folder);
         let path = format!("/octoprint/{}/", crate::percent::percent_encode(&name));
+        let uuid = super::octoprint::identity::uuid(
+            &config.spool_dir,
+            super::octoprint::identity::Which::Folder(&name),
+        )
+        .map_err(|e| ZeroconfError(format!("folder {name}: {e}")))?;
         let properties = [
             ("path", path.as_str()),
             ("version", super::octoprint::SERVER_VERSION),
             ("api", super::octoprint::API_VERSION),
+            ("uuid", uuid.as_str()),
         ];
         let info = mdns_sd::ServiceInfo::new(
             SERVICE_TYPE,

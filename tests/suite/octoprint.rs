@@ -541,8 +541,8 @@ fn slow_gcode() -> String {
 /// What a key opens is what the operator allowed: an upload-only Cura key on `hot`'s
 /// instance reads and uploads there, prints its own uploads (held, then select-and-print;
 /// upload-and-print), but releases no job held by a sidecar or by the operator, uses no
-/// other instance (`403` naming `--everywhere`), and controls no print (`403` naming
-/// `--control`). `crispen keys allow ID --everywhere` opens the other instances, `--control`
+/// other instance (`403` naming `--everywhere`), and controls no print (`409`, as OctoPrint refuses a
+/// command, naming `--control`). `crispen keys allow ID --everywhere` opens the other instances, `--control`
 /// pause, resume and cancel through `POST api/job`. A key stored before scopes existed
 /// loads with the narrowest (upload, its own instance). Listings show the scopes.
 #[test]
@@ -758,7 +758,7 @@ fn application_keys_open_only_what_their_scope_allows() {
         &[k, json_type],
         br#"{"command": "cancel"}"#,
     );
-    assert_eq!(a.status, 403, "{}", a.text());
+    assert_eq!(a.status, 409, "{}", a.text());
     assert!(
         a.error()
             .contains(&format!("crispen keys allow {cura_id} --control")),
@@ -777,7 +777,7 @@ fn application_keys_open_only_what_their_scope_allows() {
         &[k, json_type],
         br#"{"command": "pause", "action": "pause"}"#,
     );
-    assert_eq!(a.status, 403, "still no control: {}", a.text());
+    assert_eq!(a.status, 409, "still no control: {}", a.text());
 
     // Control (and everywhere): pause, resume, cancel the print of `other`.
     let (ok, said) = cli(
@@ -1157,7 +1157,8 @@ fn a_path_after_the_file_moves_it_to_that_folder() {
 
 /// Zeroconf: in a network namespace of the test's own (multicast on its loopback), the
 /// Python `zeroconf` package browses `_octoprint._tcp` and finds each hot folder as
-/// "crispen: <folder>" with its path, version and the daemon's port; with
+/// "crispen: <folder>" with its path, version, the daemon's port and its `uuid` (the
+/// same as its `api/settings` `upnpUuid`, another for each folder); with
 /// `announce = false` it finds none.
 #[test]
 fn each_folder_is_announced_by_zeroconf() {
@@ -1180,6 +1181,12 @@ end = time.time() + limit
 while time.time() < end and len(found) < want:
     time.sleep(0.2)
 zc.close()
+# What the same instance says in api/settings (Home Assistant's unique id when set up by hand).
+import urllib.request
+for entry in found.values():
+    url = "http://127.0.0.1:%d%sapi/settings" % (entry["port"], entry["props"].get("path", "/"))
+    req = urllib.request.Request(url, headers={"X-Api-Key": sys.argv[3]})
+    entry["upnpUuid"] = json.load(urllib.request.urlopen(req, timeout=5))["plugins"]["discovery"]["upnpUuid"]
 print(json.dumps(found))
 "#;
     for announce in [true, false] {
@@ -1203,7 +1210,7 @@ print(json.dumps(found))
         let out = Command::new("nsenter")
             .args(["-t", &pid, "-n", "-U", "--preserve-credentials"])
             .arg(&python)
-            .args(["-c", browse, want, limit])
+            .args(["-c", browse, want, limit, KEY])
             .output()
             .unwrap();
         assert!(
@@ -1233,6 +1240,404 @@ print(json.dumps(found))
                 "{found:#}"
             );
             assert_eq!(entry["port"].to_string(), port, "{found:#}");
+            // Home Assistant's zeroconf discovery takes `uuid` as the unique id: the
+            // instance's `upnpUuid`, so discovered and configured are one device.
+            let uuid = entry["props"]["uuid"].as_str().unwrap_or("");
+            assert_eq!(uuid.len(), 36, "{found:#}");
+            assert_eq!(entry["upnpUuid"], uuid, "{found:#}");
         }
+        assert_ne!(
+            found["crispen: hot._octoprint._tcp.local."]["props"]["uuid"],
+            found["crispen: other._octoprint._tcp.local."]["props"]["uuid"],
+            "{found:#}"
+        );
+    }
+}
+
+/// Home Assistant's OctoPrint integration as it runs, through the library it ships
+/// (`pyoctoprintapi`, from the venv), one step per run of [`HA_SCRIPT`], in its order:
+/// `key` (the config flow's `request_app_key("Home Assistant", user, timeout)`),
+/// `discovery` (`_finish_config`: `get_discovery_info` for the unique id; then what the
+/// entities read at setup: server, webcam, tracking), `poll` (the coordinator's
+/// `get_job_info` then `get_printer_info`), and the buttons `pause`, `resume`, `stop`
+/// (each reads the printer's flags first and acts only as `button.py` does).
+const HA_SCRIPT: &str = r#"
+import asyncio, json, sys
+import aiohttp
+from pyoctoprintapi import OctoprintClient, ApiError
+
+async def main():
+    step, host, port, path, arg = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], sys.argv[5]
+    connector = aiohttp.TCPConnector(force_close=True)
+    async with aiohttp.ClientSession(connector=connector) as session:
+        client = OctoprintClient(host=host, session=session, port=port, ssl=False, path=path)
+        out = {}
+        if step == "key":
+            out["key"] = await client.request_app_key(arg, "homeassistant", 60)
+            print(json.dumps(out))
+            return
+        client.set_api_key(arg)
+        if step == "discovery":
+            discovery = await client.get_discovery_info()
+            out["uuid"] = discovery.upnp_uuid if discovery else None
+            server = await client.get_server_info()
+            out["server"] = {"version": server.version, "safemode": server.safe_mode}
+            webcam = await client.get_webcam_info()
+            out["webcam"] = None if webcam is None else webcam.enabled
+            out["tracking"] = (await client.get_tracking_info()) is not None
+        elif step == "poll":
+            job = await client.get_job_info()
+            printer = await client.get_printer_info()
+            out = {
+                "state": job.state,
+                "name": job.job.file.name,
+                "completion": job.progress.completion,
+                "print_time": job.progress.print_time,
+                "print_time_left": job.progress.print_time_left,
+                "estimated": job.job.estimated_print_time,
+                "text": printer.state.text,
+                "printing": printer.state.flags.printing,
+                "paused": printer.state.flags.paused,
+                "error": printer.state.flags.error,
+                "bed": printer.has_heated_bed,
+                "temps": {t.name: [t.actual_temp, t.target_temp] for t in printer.temperatures},
+            }
+        else:
+            flags = (await client.get_printer_info()).state.flags
+            try:
+                if step == "pause" and flags.printing:
+                    await client.pause_job()
+                    out["sent"] = True
+                elif step == "resume" and flags.paused:
+                    await client.resume_job()
+                    out["sent"] = True
+                elif step == "stop" and (flags.printing or flags.paused):
+                    await client.cancel_job()
+                    out["sent"] = True
+                else:
+                    out["sent"] = False
+            except ApiError as e:
+                out["error"] = str(e)
+        print(json.dumps(out))
+
+asyncio.run(main())
+"#;
+
+/// Runs one step of [`HA_SCRIPT`] against the instance `path` and reads its JSON line.
+fn ha_step(farm: &Farm, step: &str, path: &str, arg: &str) -> Value {
+    let (host, port) = farm.addr.rsplit_once(':').unwrap();
+    let out = Command::new(python())
+        .args(["-c", HA_SCRIPT, step, host, port, path, arg])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "home assistant step {step}: {text}\n{}\nlog:\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        std::fs::read_to_string(&farm.log).unwrap_or_default()
+    );
+    serde_json::from_str(text.lines().last().unwrap_or(""))
+        .unwrap_or_else(|e| panic!("{e}: {text}"))
+}
+
+/// Home Assistant's key request, allowed from the test by `crispen keys allow ID`
+/// (with `extra`, e.g. `--control`) while the library polls: the key.
+fn ha_key(farm: &Farm, path: &str, app: &str, extra: &[&str]) -> String {
+    let (host, port) = farm.addr.rsplit_once(':').unwrap();
+    let child = Command::new(python())
+        .args(["-c", HA_SCRIPT, "key", host, port, path, app])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    let id = loop {
+        let list = farm
+            .call("GET", "/api/v1/appkeys", &[("X-Api-Key", KEY)], b"")
+            .json();
+        let found = list["pending"].as_array().and_then(|p| {
+            p.iter()
+                .find(|r| r["app"] == app)
+                .and_then(|r| r["id"].as_str().map(str::to_string))
+        });
+        if let Some(id) = found {
+            break id;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "no request from {app}: {list}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let mut args = vec!["keys", "allow", id.as_str()];
+    args.extend_from_slice(extra);
+    let (ok, said) = cli(&farm.root, &args);
+    assert!(ok, "{said}");
+    let out = child.wait_with_output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_str(text.lines().last().unwrap_or("")).unwrap();
+    v["key"].as_str().unwrap().to_string()
+}
+
+/// Home Assistant set up against hot folder `other`'s instance with its own library:
+/// the key asked for and allowed with `crispen keys allow ID --control`; the unique id
+/// (`upnpUuid`) there, the same after a restart and in the zeroconf-ready answer, other
+/// than `hot`'s; server, webcam (off), tracking (none) as its entities read them; while
+/// a real print runs the coordinator's polls show the job's name, its completion and the
+/// hotend's temperature; Pause, Resume and Stop act on the printer. A key allowed
+/// without control gets the 409 that says how to give it, and the actions are counted.
+#[test]
+fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
+    python();
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    prepare(root, "default_folder = \"hot\"\nannounce = false\n");
+    // beta (folder `other`) prints at a fifth of real time: long enough to poll and control.
+    let config = std::fs::read_to_string(root.join("crispen.toml")).unwrap();
+    let beta = "name = \"beta\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0";
+    std::fs::write(
+        root.join("crispen.toml"),
+        config.replace(beta, &beta.replace("0.0", "0.2")),
+    )
+    .unwrap();
+    let mut farm = Farm::started(root);
+    let path = "/octoprint/other/";
+    let key = ha_key(&farm, path, "Home Assistant", &["--control"]);
+
+    let d = ha_step(&farm, "discovery", path, &key);
+    let uuid = d["uuid"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no upnpUuid: {d}"))
+        .to_string();
+    assert_eq!(uuid.len(), 36, "{d}");
+    assert_eq!(d["server"]["version"], "1.10.0", "{d}");
+    assert_eq!(d["server"]["safemode"], Value::Null, "{d}");
+    assert_eq!(d["webcam"], false, "{d}");
+    assert_eq!(d["tracking"], false, "{d}");
+    let hot = farm
+        .call(
+            "GET",
+            "/octoprint/hot/api/settings",
+            &[("X-Api-Key", KEY)],
+            b"",
+        )
+        .json();
+    let hot_uuid = hot["plugins"]["discovery"]["upnpUuid"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert_ne!(hot_uuid, uuid);
+    let connection = farm.call(
+        "GET",
+        &format!("{path}api/connection"),
+        &[("X-Api-Key", &key)],
+        b"",
+    );
+    assert_eq!(connection.status, 200, "{}", connection.text());
+
+    // Stable across a restart.
+    farm.daemon.kill9();
+    farm.daemon = Daemon::start(&root.join("crispen.toml"), &root.join("daemon2.log"));
+    farm.log = root.join("daemon2.log");
+    farm.addr = listening(&farm.log);
+    let again = ha_step(&farm, "discovery", path, &key);
+    assert_eq!(
+        again["uuid"],
+        uuid.as_str(),
+        "the unique id changed across a restart"
+    );
+
+    // Idle: the coordinator's poll answers, no job.
+    let idle = ha_step(&farm, "poll", path, &key);
+    assert_eq!(idle["printing"], false, "{idle}");
+
+    // A real print on beta: the polls show it.
+    let (ct, body) = form(
+        &[("file", "ha_print.gcode"), ("print", "true")],
+        slow_gcode().as_bytes(),
+    );
+    let a = farm.call(
+        "POST",
+        &format!("{path}api/files/local"),
+        &[("X-Api-Key", KEY), ("Content-Type", &ct)],
+        &body,
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let started = Instant::now();
+    let shown = loop {
+        let p = ha_step(&farm, "poll", path, &key);
+        let hot_c = p["temps"]["tool0"][0].as_f64().unwrap_or(0.0);
+        if p["printing"] == true && p["completion"].as_f64().unwrap_or(0.0) > 0.0 && hot_c > 100.0 {
+            break p;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(90),
+            "never seen printing: {p}"
+        );
+        std::thread::sleep(Duration::from_millis(300));
+    };
+    assert_eq!(shown["name"], "ha_print.gcode", "{shown}");
+    assert_eq!(shown["state"], "Printing", "{shown}");
+    assert_eq!(shown["text"], "Printing", "{shown}");
+    assert_eq!(shown["bed"], true, "{shown}");
+
+    let beta = |s: &Value| {
+        common::printer(s, "beta")["state"]
+            .as_str()
+            .unwrap_or("")
+            .to_string()
+    };
+    // A key without control: the button's press is refused with the way to give it.
+    let weak = ha_key(&farm, path, "Home Assistant (no control)", &[]);
+    let refused = ha_step(&farm, "pause", path, &weak);
+    assert!(refused["error"].is_string(), "{refused}");
+    let a = farm.call(
+        "POST",
+        &format!("{path}api/job"),
+        &[("X-Api-Key", &weak), ("Content-Type", "application/json")],
+        br#"{"command": "pause", "action": "pause"}"#,
+    );
+    assert_eq!(a.status, 409, "{}", a.text());
+    assert!(a.error().contains("--control"), "{}", a.text());
+    assert_eq!(beta(&farm.status()), "printing");
+
+    // Pause, Resume, Stop.
+    let p = ha_step(&farm, "pause", path, &key);
+    assert_eq!(p["sent"], true, "{p}");
+    farm.wait_for("beta paused", |s| beta(s) == "paused");
+    let polled = ha_step(&farm, "poll", path, &key);
+    assert_eq!(
+        (polled["paused"].clone(), polled["text"].clone()),
+        (json!(true), json!("Paused")),
+        "{polled}"
+    );
+    let r = ha_step(&farm, "resume", path, &key);
+    assert_eq!(r["sent"], true, "{r}");
+    farm.wait_for("beta printing again", |s| beta(s) == "printing");
+    let c = ha_step(&farm, "stop", path, &key);
+    assert_eq!(c["sent"], true, "{c}");
+    farm.wait_for("the print cancelled", |s| {
+        job_by_file(s, "ha_print.gcode").is_some_and(|j| j["state"] == "cancelled")
+    });
+    let metrics = farm
+        .call("GET", "/metrics", &[("X-Api-Key", KEY)], b"")
+        .text();
+    for line in [
+        r#"crispen_octoprint_control_total{folder="other",action="pause",result="done"} 1"#,
+        r#"crispen_octoprint_control_total{folder="other",action="pause",result="refused"} 2"#,
+        r#"crispen_octoprint_control_total{folder="other",action="resume",result="done"} 1"#,
+        r#"crispen_octoprint_control_total{folder="other",action="cancel",result="done"} 1"#,
+    ] {
+        assert!(metrics.contains(line), "{line} not in\n{metrics}");
+    }
+    let log = std::fs::read_to_string(&farm.log).unwrap_or_default();
+    assert!(
+        log.contains("octoprint: job command") && log.contains("Home Assistant"),
+        "{log}"
+    );
+    // Nothing of the host's to stop, and nothing to start: refused, not a 404.
+    let a = farm.call(
+        "POST",
+        &format!("{path}/api/system/commands/core/restart"),
+        &[("X-Api-Key", &key)],
+        b"",
+    );
+    assert_eq!(a.status, 409, "{}", a.text());
+    let a = farm.call(
+        "POST",
+        &format!("{path}api/job"),
+        &[("X-Api-Key", &key), ("Content-Type", "application/json")],
+        br#"{"command": "start"}"#,
+    );
+    assert_eq!(a.status, 409, "{}", a.text());
+}
+
+/// Cura's "Upload" and then its select-and-print on the upload's `Location` with no wait
+/// between them, as a client that does not wait sends them, 100 times in a row: each
+/// command comes before the hot folder has taken its file, and every job prints. Four
+/// fast simulated printers print them; the test clears their beds as an operator would.
+#[test]
+fn cura_select_and_print_sent_at_once_prints_every_time() {
+    const N: usize = 100;
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    prepare(root, "default_folder = \"hot\"\nannounce = false\n");
+    let mut config = std::fs::read_to_string(root.join("crispen.toml"))
+        .unwrap()
+        .replace(
+            "printers = [\"alpha\"]",
+            "printers = [\"alpha\", \"gamma\", \"delta\", \"epsilon\"]",
+        );
+    for name in ["gamma", "delta", "epsilon"] {
+        config.push_str(&format!(
+            "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n\
+             [printer.simulate]\ntime_scale = 0.0\n"
+        ));
+    }
+    std::fs::write(root.join("crispen.toml"), config).unwrap();
+    let farm = Farm::started(root);
+    let (key, _) = allowed_key(&farm, "/octoprint/hot/", "Cura", "");
+    let k = ("X-Api-Key", key.as_str());
+    let names: Vec<String> = (0..N).map(|i| format!("cura_fast_{i}.gcode")).collect();
+    for name in &names {
+        let (ct, body) = form(&[("path", ""), ("file", name)], GCODE.as_bytes());
+        let a = farm.call(
+            "POST",
+            "/octoprint/hot/api/files/local",
+            &[k, ("Content-Type", &ct)],
+            &body,
+        );
+        assert_eq!(a.status, 201, "{name}: {}", a.text());
+        assert_eq!(a.json()["effectivePrint"], false);
+        let at = path_of(&a.header("location").unwrap());
+        let a = farm.call(
+            "POST",
+            &at,
+            &[k, ("Content-Type", "application/json")],
+            br#"{"command": "select", "print": true}"#,
+        );
+        assert_eq!(a.status, 204, "{name}: {}", a.text());
+    }
+    let started = Instant::now();
+    loop {
+        let s = farm.status();
+        for p in s["printers"].as_array().unwrap() {
+            if p["state"] == "bed_not_cleared" {
+                let name = p["name"].as_str().unwrap();
+                farm.call(
+                    "POST",
+                    &format!("/api/v1/printers/{name}/clear"),
+                    &[("X-Api-Key", KEY)],
+                    b"",
+                );
+            }
+        }
+        let done = names
+            .iter()
+            .filter(|n| job_by_file(&s, n).is_some_and(|j| j["state"] == "done"))
+            .count();
+        let bad: Vec<&String> = names
+            .iter()
+            .filter(|n| {
+                job_by_file(&s, n)
+                    .is_some_and(|j| j["state"] == "failed" || j["state"] == "cancelled")
+            })
+            .collect();
+        assert!(bad.is_empty(), "{bad:?} did not print: {s:#}");
+        if done == N {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(400),
+            "{done} of {N} printed; status: {s:#}\nlog:\n{}",
+            std::fs::read_to_string(&farm.log).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(100));
     }
 }

@@ -20,6 +20,10 @@
 //!   name, or empty for the default folder (`[http] default_folder`, else the only one);
 //!   anything else is refused with the folders' names.
 //!
+//! The select command is never lost: a held upload is remembered with a token of its
+//! own (`super::pending`), and its select-and-print releases that upload's job whenever
+//! it comes, before the hot folder has even taken the file.
+//!
 //! The answer is OctoPrint's: `201`, the file's address in `Location` (under the
 //! instance's base, which is where Cura sends its select-and-print command), and the body
 //! with `files.local`, `done`, `effectiveSelect`, `effectivePrint`.
@@ -183,11 +187,22 @@ pub async fn upload(
         )?),
         _ => None,
     };
-    let sidecar = match hold {
-        true => Some(receive_hold(&folder.path, &file_name, mark.as_deref()).await?),
-        false => None,
+    // The upload's own token (see `super::pending`): its select-and-print finds this
+    // upload's job by it, whenever the command comes.
+    let token = hold.then(super::pending::token);
+    let sidecar = match &token {
+        Some(token) => Some(receive_hold(&folder.path, &file_name, token, mark.as_deref()).await?),
+        None => None,
     };
     let stored = upload::place_with_sidecar(received, sidecar).await?;
+    if let Some(token) = &token {
+        super::pending::remember(
+            &folder.path,
+            &file_name,
+            token,
+            grant.as_ref().map(|g| g.id.as_str()),
+        );
+    }
     let folder_name = upload::folder_name(folder);
     tracing::info!(
         file = %stored.display(), size, print = form.print, folder = %folder_name,
@@ -234,13 +249,19 @@ pub async fn upload(
 }
 
 /// The sidecar that holds `file_name`, received into `folder` under a temporary name;
-/// with the hold mark of the application key that uploaded it, if one did.
+/// with the upload's token and the hold mark of the application key that uploaded it, if
+/// one did.
 async fn receive_hold(
     folder: &std::path::Path,
     file_name: &str,
+    token: &str,
     mark: Option<&str>,
 ) -> Result<upload::Received, ApiError> {
-    let content = format!("{HOLD_SIDECAR}{}", mark.unwrap_or(""));
+    let content = format!(
+        "{HOLD_SIDECAR}{}{}",
+        super::pending::sidecar_line(token),
+        mark.unwrap_or("")
+    );
     let size = content.len() as u64;
     let text = futures_util::stream::iter([Ok::<_, std::convert::Infallible>(
         axum::body::Bytes::from(content),
@@ -320,6 +341,29 @@ pub async fn command(
     let shown = crate::daemon::hotfolder::printable(&file);
     let folder_name = upload::folder_name(folder);
     drop(config);
+    // An upload of this name remembered (see `super::pending`): the command is its own,
+    // taken now whatever the upload's job is (not there yet, preparing, ready).
+    if let Some((token, key)) = super::pending::newest(&folder_path, &file) {
+        let may = match (&grant, &key) {
+            (None, _) => true,
+            (Some(grant), Some(key)) => &grant.id == key,
+            (Some(_), None) => false,
+        };
+        if !print {
+            // Selected, not printed: it stays held (harmless for any key).
+            return Ok(StatusCode::NO_CONTENT);
+        }
+        if !may {
+            if let Some(grant) = &grant {
+                return Err(grant.refuse_release("(not a job yet)", &shown));
+            }
+        }
+        let outcome = super::pending::print(&state.farm, &token)
+            .await
+            .map_err(|e| ApiError::conflict(e.to_string()))?;
+        tracing::info!(file = %shown, folder = %folder_name, ?outcome, "octoprint: select and print");
+        return Ok(StatusCode::NO_CONTENT);
+    }
     let deadline = tokio::time::Instant::now() + PICKUP_WAIT;
     loop {
         let jobs: Vec<control::JobStatus> = control::status(&state.farm)
@@ -361,6 +405,42 @@ pub async fn command(
                 .into_iter()
                 .max_by(|a, b| a.updated.total_cmp(&b.updated)),
         };
+        // A job not prepared yet shows no hold: its sidecar is read by the preparation.
+        // Its release is taken now and kept (`control::execute`'s release reads the
+        // sidecar in the job's directory); one that holds nothing is left alone.
+        if held.is_none() && print {
+            let unprepared: Vec<&control::JobStatus> = jobs
+                .iter()
+                .filter(|j| matches!(j.state, JobState::Queued | JobState::Preparing))
+                .collect();
+            let mine = match &grant {
+                Some(grant) if !unprepared.is_empty() => {
+                    let own = own_holds(&state, grant, &unprepared).await;
+                    unprepared
+                        .into_iter()
+                        .filter(|j| own.contains(&j.id))
+                        .collect()
+                }
+                _ => unprepared,
+            };
+            if let Some(job) = mine.iter().max_by(|a, b| a.updated.total_cmp(&b.updated)) {
+                match control::execute(
+                    &state.farm,
+                    Command::Release {
+                        job: job.id.clone(),
+                    },
+                )
+                .await
+                {
+                    Ok(message) => {
+                        tracing::info!(job = %job.id, %message, "octoprint: select and print released a job not prepared yet");
+                        return Ok(StatusCode::NO_CONTENT);
+                    }
+                    Err(control::CommandError::NotHeld(_)) => {}
+                    Err(e) => return Err(ApiError::conflict(e.to_string())),
+                }
+            }
+        }
         match held {
             Some(job) if print => {
                 let message = control::execute(
@@ -401,7 +481,11 @@ pub async fn command(
 /// Which of the `held` jobs the upload of `grant` held: their sidecars (in their job
 /// directories, read on a blocking thread, each at most a sidecar's size) carry the
 /// key's hold mark for their folder and file. One that cannot be read is not its own.
-async fn own_holds(state: &AppState, grant: &Grant, held: &[&control::JobStatus]) -> Vec<String> {
+pub(super) async fn own_holds(
+    state: &AppState,
+    grant: &Grant,
+    held: &[&control::JobStatus],
+) -> Vec<String> {
     let store = state.farm.store();
     let files: Vec<(String, std::path::PathBuf, std::path::PathBuf)> = held
         .iter()

@@ -12,16 +12,21 @@
 //! - [`state`]: `api/printer`, `api/job`, `api/printerprofiles`, `api/connection`: a
 //!   folder's printers and its current or next job, described honestly (which printer's
 //!   temperatures, what the flags mean for several printers; see docs/octoprint.md).
-//! - here (the instance a request addresses is `super::instance`): `api/version`, `api/settings`, `api/login`,
-//!   and the routes.
+//! - [`identity`]: each instance's UUID (`plugins.discovery.upnpUuid`, the zeroconf
+//!   `uuid`), which Home Assistant takes as the device's unique id.
+//! - here (the instance a request addresses is `super::instance`): `api/version`,
+//!   `api/server`, `api/settings`, `api/login`, and the routes.
 //!
 //! What OctoPrint can do and a farm does not let a slicer do (send G-code to a printer,
 //! connect or disconnect it) is refused with `409` and a message saying where the
-//! operator does it. `POST api/job` (pause, resume, cancel) is the operator's, and an
-//! application key's whose scope has `control` (see `super::appkeys`).
+//! operator does it. `POST api/job` (pause, resume, cancel, start) is the operator's, and
+//! an application key's whose scope has `control` (see `super::appkeys`); Home
+//! Assistant's buttons use it.
 
 pub mod files;
 pub mod form;
+pub mod identity;
+pub mod pending;
 pub mod state;
 
 use super::upload;
@@ -46,10 +51,41 @@ pub async fn version() -> Json<serde_json::Value> {
     }))
 }
 
-/// `GET api/settings`: what clients read of OctoPrint's settings. No SD card, no webcam,
-/// no G-code analysis (crispen prepares and estimates itself), no plugins.
-pub async fn settings(instance: Instance) -> Json<serde_json::Value> {
-    Json(serde_json::json!({
+/// `GET api/server`: OctoPrint's version, and no safe mode (crispen has no plugins to
+/// leave out), as Home Assistant's `pyoctoprintapi` reads it.
+pub async fn server() -> Json<serde_json::Value> {
+    Json(serde_json::json!({ "version": SERVER_VERSION, "safemode": null }))
+}
+
+/// `GET api/settings`: what clients read of OctoPrint's settings. No SD card, no webcam
+/// (there as OctoPrint has it with the webcam off, so Home Assistant adds no camera), no
+/// G-code analysis (crispen prepares and estimates itself). Of the plugins only the
+/// bundled Discovery plugin's settings, for its `upnpUuid`: the instance's identity (see
+/// [`identity`]), which Home Assistant's setup needs; no `tracking` (anonymous usage
+/// tracking is off, as OctoPrint leaves it without consent).
+pub async fn settings(
+    axum::extract::State(state): axum::extract::State<AppState>,
+    instance: Instance,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let config = state.farm.config();
+    let folder = instance.folder(&config)?.map(upload::folder_name);
+    let spool = config.spool_dir.clone();
+    drop(config);
+    let own = instance.folder.is_some();
+    let uuid = tokio::task::spawn_blocking(move || {
+        let which = match (&folder, own) {
+            (Some(name), true) => identity::Which::Folder(name),
+            _ => identity::Which::Root,
+        };
+        identity::uuid(&spool, which)
+    })
+    .await
+    .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
+    .map_err(|e| {
+        tracing::error!(error = %e, "octoprint: no instance identity");
+        ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+    })?;
+    Ok(Json(serde_json::json!({
         "api": { "allowCrossOrigin": false },
         "appearance": { "name": instance.folder.as_deref().map_or("crispen".to_string(), |f| format!("crispen: {f}")) },
         "feature": {
@@ -60,10 +96,36 @@ pub async fn settings(instance: Instance) -> Json<serde_json::Value> {
         },
         "folder": {},
         "gcodeAnalysis": { "runAt": "never" },
-        "plugins": {},
+        "plugins": {
+            "discovery": {
+                "upnpUuid": uuid,
+                "publicHost": null,
+                "publicPort": null,
+                "pathPrefix": null,
+                "httpUsername": null,
+                "httpPassword": null,
+                "zeroConf": [],
+                "addresses": null,
+                "ignoredAddresses": null,
+                "interfaces": null,
+                "ignoredInterfaces": null,
+            },
+        },
         "serial": { "autoconnect": true },
         "temperature": { "profiles": [] },
-    }))
+        "webcam": {
+            "webcamEnabled": false,
+            "timelapseEnabled": false,
+            "streamUrl": "",
+            "snapshotUrl": "",
+            "snapshotSslValidation": true,
+            "flipH": false,
+            "flipV": false,
+            "rotate90": false,
+            "bitrate": "",
+            "streamRatio": "16:9",
+        },
+    })))
 }
 
 /// `POST api/login` with `{"passive": true}`: who the key is (an application key's
@@ -101,10 +163,24 @@ pub async fn login(
     })))
 }
 
+/// `GET api/system/commands`: none, as an OctoPrint whose operator configured none.
+async fn system_commands() -> Json<serde_json::Value> {
+    Json(serde_json::json!({ "core": [], "custom": [] }))
+}
+
 /// A farm's own ways to do what OctoPrint clients ask of one printer.
 async fn refused(instance: Instance) -> ApiError {
     ApiError::conflict(format!(
         "{}: not here: crispen drives its printers itself (pause, resume and cancel on the dashboard, `crispen pause|resume|cancel`, or /api/v1/)",
+        super::error::quoted(&instance.rest)
+    ))
+}
+
+/// `POST api/system/commands/<source>/<action>` (Home Assistant's Shutdown System,
+/// Reboot System and Restart OctoPrint buttons): the host is not OctoPrint's to stop.
+async fn system_refused(instance: Instance) -> ApiError {
+    ApiError::conflict(format!(
+        "{}: not here: crispen does not shut down, reboot or restart its host for an OctoPrint client (the operator does, e.g. `systemctl restart crispen`)",
         super::error::quoted(&instance.rest)
     ))
 }
@@ -119,7 +195,20 @@ pub fn routes() -> (Router<AppState>, Router<AppState>, Router<AppState>) {
         uploads = uploads.route(&format!("{base}/api/files/local"), post(files::upload));
         api = api
             .route(&format!("{base}/api/version"), get(version))
+            .route(&format!("{base}/api/server"), get(server))
             .route(&format!("{base}/api/settings"), get(settings))
+            .route(&format!("{base}/api/system/commands"), get(system_commands))
+            .route(
+                &format!("{base}/api/system/commands/{{*command}}"),
+                post(system_refused),
+            )
+            // pyoctoprintapi joins some addresses with a doubled slash
+            // (`<base>//api/printer/bed`, `<base>//api/system/commands/...`).
+            .route(
+                &format!("{base}//api/system/commands/{{*command}}"),
+                post(system_refused),
+            )
+            .route(&format!("{base}//api/printer/{{*command}}"), post(refused))
             .route(&format!("{base}/api/login"), post(login))
             .route(
                 &format!("{base}/api/printerprofiles"),

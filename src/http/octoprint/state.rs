@@ -14,8 +14,8 @@
 //! Always `200`: a folder whose printers are all offline says so in its flags
 //! (`closedOrError`), where OctoPrint would answer `409`.
 //!
-//! `POST api/job` (pause, resume, cancel) acts on the folder's print, for the operator's
-//! key and application keys with `control` in their scope ([`job_command`]).
+//! `POST api/job` (pause, resume, cancel, start) acts on the folder's print, for the
+//! operator's key and application keys with `control` in their scope ([`job_command`]).
 
 use super::Instance;
 use crate::daemon::control::{self, Command, JobStatus};
@@ -200,11 +200,18 @@ pub async fn job(
             )
         })
     };
+    // The whole print's estimate: time printed so far and the estimate of what is left
+    // (null until crispen has one, as OctoPrint's before its analysis).
+    let mut estimated: Option<u64> = None;
     let (job, state_text, progress) = match current {
         Some(j) => {
             let live = focus
                 .and_then(|p| p.progress.clone())
                 .or(j.progress.clone());
+            estimated = live.as_ref().and_then(|g| {
+                g.remaining_s
+                    .map(|r| (g.elapsed_s + r).max(0.0).round() as u64)
+            });
             let progress = match live {
                 Some(g) => json!({
                     "completion": 100.0 * g.lines_acked as f64 / g.lines_total.max(1) as f64,
@@ -243,7 +250,7 @@ pub async fn job(
     Ok(Json(json!({
         "job": {
             "file": file,
-            "estimatedPrintTime": null,
+            "estimatedPrintTime": estimated,
             "lastPrintTime": null,
             "filament": null,
             "user": null,
@@ -342,7 +349,8 @@ pub async fn connection(
 }
 
 /// `POST api/job` as OctoPrint takes it: `{"command": "pause", "action":
-/// "pause"|"resume"|"toggle"}` (no action: toggle, as OctoPrint), `{"command": "cancel"}`.
+/// "pause"|"resume"|"toggle"}` (no action: toggle, as OctoPrint), `{"command": "cancel"}`,
+/// `{"command": "start"}`.
 #[derive(Debug, serde::Deserialize)]
 struct JobCommand {
     command: String,
@@ -350,12 +358,31 @@ struct JobCommand {
     action: Option<String>,
 }
 
-/// `POST api/job`: pause, resume or cancel the instance's print: the print of one of the
-/// folder's jobs on the folder's focus printer, through the same commands as the
-/// dashboard's buttons (`control::execute`). The operator's key may; an application key
-/// only with `control` in its scope (`crispen keys allow ID --control`), else `403`
-/// saying so. `start` and `restart` are refused (`409`): crispen starts a job once it is
-/// ready and a printer is free. Nothing to act on: `409`, as OctoPrint answers. `204`.
+/// Why a job command did nothing, for the answer and the counter.
+struct Refusal {
+    error: ApiError,
+    /// `refused` (the key may not) or `failed` (nothing to act on, the farm refused).
+    result: &'static str,
+}
+
+impl From<ApiError> for Refusal {
+    fn from(error: ApiError) -> Refusal {
+        Refusal {
+            error,
+            result: "failed",
+        }
+    }
+}
+
+/// `POST api/job`: pause, resume, cancel or start the instance's print: the print of one
+/// of the folder's jobs on the folder's focus printer, through the same commands as the
+/// dashboard's buttons (`control::execute`: host-side pause, safe stop). `start` prints
+/// the newest held upload of this key (the operator's: any) in the folder, as its
+/// select-and-print would. The operator's key may; an application key only with
+/// `control` in its scope, else `409` saying how to give it (`crispen keys allow ID
+/// --control`). `restart` is refused (`409`): crispen prints a job once. Nothing to act
+/// on: `409`, as OctoPrint answers. `204`. Every command is logged with the key's
+/// application and counted (`crispen_octoprint_control_total`).
 pub async fn job_command(
     State(state): State<AppState>,
     instance: Instance,
@@ -364,48 +391,98 @@ pub async fn job_command(
 ) -> Result<axum::http::StatusCode, ApiError> {
     let command: JobCommand = serde_json::from_slice(&body).map_err(|e| {
         ApiError::bad_request(format!(
-            "a job command is JSON like {{\"command\": \"pause\", \"action\": \"pause\"}} or {{\"command\": \"cancel\"}}: {e}"
+            "a job command is JSON like {{\"command\": \"pause\", \"action\": \"pause\"}}, {{\"command\": \"cancel\"}} or {{\"command\": \"start\"}}: {e}"
         ))
     })?;
-    let what = match (command.command.as_str(), command.action.as_deref()) {
-        ("pause", None | Some("toggle")) => "pause or resume the print",
-        ("pause", Some("pause")) => "pause the print",
-        ("pause", Some("resume")) => "resume the print",
-        ("cancel", _) => "cancel the print",
-        ("start" | "restart", _) => {
-            return Err(ApiError::conflict(format!(
-                "job command {}: crispen starts a job itself once it is ready and a printer is free (upload with print, or select and print an upload)",
-                quoted(&command.command)
-            )))
-        }
-        ("pause", Some(other)) => {
-            return Err(ApiError::bad_request(format!(
-                "pause action {}: the actions are pause, resume, toggle",
-                quoted(other)
-            )))
-        }
-        (other, _) => {
-            return Err(ApiError::bad_request(format!(
-                "job command {}: the commands are pause (action pause, resume or toggle) and cancel",
-                quoted(other)
-            )))
-        }
+    let (action, what): (&'static str, &'static str) =
+        match (command.command.as_str(), command.action.as_deref()) {
+            ("pause", None | Some("toggle")) => ("toggle", "pause or resume the print"),
+            ("pause", Some("pause")) => ("pause", "pause the print"),
+            ("pause", Some("resume")) => ("resume", "resume the print"),
+            ("cancel", _) => ("cancel", "cancel the print"),
+            ("start", _) => ("start", "start the selected job"),
+            ("restart", _) => {
+                return Err(ApiError::conflict(
+                    "job command \"restart\": crispen prints a job once; upload it again (with print) to print it again",
+                ))
+            }
+            ("pause", Some(other)) => {
+                return Err(ApiError::bad_request(format!(
+                    "pause action {}: the actions are pause, resume, toggle",
+                    quoted(other)
+                )))
+            }
+            (other, _) => {
+                return Err(ApiError::bad_request(format!(
+                    "job command {}: the commands are pause (action pause, resume or toggle), cancel and start",
+                    quoted(other)
+                )))
+            }
+        };
+    let folder = {
+        let config = state.farm.config();
+        let folder = instance.some_folder(&config)?;
+        (folder.path.clone(), super::upload::folder_name(folder))
     };
-    let by = match who.map(|w| w.0) {
+    let who = who.map(|w| w.0);
+    let by = match &who {
         Some(Who::Operator) => "the operator".to_string(),
+        Some(Who::App(grant)) => grant.app.clone(),
+        None => "no key".to_string(),
+    };
+    let done = control_job(&state, &instance, who.as_ref(), &folder.0, action, what).await;
+    let result = match &done {
+        Ok(_) => "done",
+        Err(r) => r.result,
+    };
+    crate::http::metrics::count_octoprint_control(&folder.1, action, result);
+    match done {
+        Ok(message) => {
+            tracing::info!(app = %by, folder = %folder.1, action, %message, instance = %instance.base, "octoprint: job command");
+            Ok(axum::http::StatusCode::NO_CONTENT)
+        }
+        Err(r) => {
+            tracing::info!(app = %by, folder = %folder.1, action, result, error = %r.error.message, instance = %instance.base, "octoprint: job command not done");
+            Err(r.error)
+        }
+    }
+}
+
+/// [`job_command`]'s work, once the command is read: what was done, or why not.
+async fn control_job(
+    state: &AppState,
+    instance: &Instance,
+    who: Option<&Who>,
+    folder: &std::path::Path,
+    action: &'static str,
+    what: &'static str,
+) -> Result<String, Refusal> {
+    let grant = match who {
+        Some(Who::Operator) => None,
         Some(Who::App(grant)) => {
-            grant.check_control(what)?;
-            grant.app
+            // OctoPrint answers a command it may not take with 409; so does this, with the
+            // way to give the key control.
+            grant.check_control(what).map_err(|e| Refusal {
+                error: ApiError::conflict(e.message),
+                result: "refused",
+            })?;
+            Some(grant)
         }
         // Changes always come with a key; without one nothing is authorised.
         None => {
-            return Err(ApiError::new(
-                axum::http::StatusCode::FORBIDDEN,
-                "controlling a print needs a key",
-            ))
+            return Err(Refusal {
+                error: ApiError::new(
+                    axum::http::StatusCode::FORBIDDEN,
+                    "controlling a print needs a key",
+                ),
+                result: "refused",
+            })
         }
     };
-    let v = view(&state, &instance)?;
+    if action == "start" {
+        return start(state, grant, folder).await;
+    }
+    let v = view(state, instance)?;
     // The folder's print: a printer of the folder busy with one of its jobs.
     let controllable = |p: &&PrinterStatus| {
         (busy(p.state) || p.state == PrinterState::WaitingForOperator)
@@ -422,25 +499,83 @@ pub async fn job_command(
         return Err(ApiError::conflict(format!(
             "hot folder {} has no print running to {what}",
             v.name
-        )));
+        ))
+        .into());
     };
     let paused = matches!(
         printer.state,
         PrinterState::Paused | PrinterState::WaitingForOperator
     );
     let name = printer.name.clone();
-    let act = match (command.command.as_str(), command.action.as_deref()) {
-        ("cancel", _) => Command::Cancel {
+    let act = match action {
+        "cancel" => Command::Cancel {
             job: printer.job.clone().unwrap_or_default(),
         },
-        ("pause", Some("resume")) => Command::Resume { printer: name },
-        ("pause", Some("pause")) => Command::Pause { printer: name },
+        "resume" => Command::Resume { printer: name },
+        "pause" => Command::Pause { printer: name },
         _ if paused => Command::Resume { printer: name },
         _ => Command::Pause { printer: name },
     };
-    tracing::info!(command = ?act, by = %by, instance = %instance.base, "octoprint: job command");
     control::execute(&state.farm, act)
         .await
-        .map_err(|e| ApiError::conflict(e.to_string()))?;
-    Ok(axum::http::StatusCode::NO_CONTENT)
+        .map_err(|e| ApiError::conflict(e.to_string()).into())
+}
+
+/// `start`: the newest held job of the folder that `grant`'s uploads held (the
+/// operator's key: any held job) is released; else the newest such upload that has not
+/// become a job yet is printed once it does (`super::pending`).
+async fn start(
+    state: &AppState,
+    grant: Option<&crate::http::appkeys::Grant>,
+    folder: &std::path::Path,
+) -> Result<String, Refusal> {
+    let status = control::status(&state.farm);
+    let held: Vec<&JobStatus> = status
+        .jobs
+        .iter()
+        .filter(|j| {
+            j.folder == folder
+                && j.held
+                && matches!(
+                    j.state,
+                    JobState::Queued | JobState::Preparing | JobState::Ready
+                )
+        })
+        .collect();
+    let mine: Vec<&JobStatus> = match grant {
+        None => held,
+        Some(grant) => {
+            let own = super::files::own_holds(state, grant, &held).await;
+            held.into_iter().filter(|j| own.contains(&j.id)).collect()
+        }
+    };
+    if let Some(job) = mine.iter().max_by(|a, b| a.updated.total_cmp(&b.updated)) {
+        return control::execute(
+            &state.farm,
+            Command::Release {
+                job: job.id.clone(),
+            },
+        )
+        .await
+        .map_err(|e| ApiError::conflict(e.to_string()).into());
+    }
+    let key = grant.map(|g| g.id.as_str());
+    if let Some((token, file)) = super::pending::unwanted(folder, key).into_iter().next() {
+        let outcome = super::pending::print(&state.farm, &token)
+            .await
+            .map_err(|e| Refusal::from(ApiError::conflict(e.to_string())))?;
+        return Ok(match outcome {
+            super::pending::Outcome::Released(job) => format!("{file}: job {job} released"),
+            super::pending::Outcome::AlreadyFree(job) => {
+                format!("{file}: job {job} was not held; it prints once ready")
+            }
+            super::pending::Outcome::Waiting => {
+                format!("{file}: prints as soon as the hot folder has taken it")
+            }
+        });
+    }
+    Err(ApiError::conflict(
+        "nothing to start: no held upload of this key in this hot folder (crispen starts every other job itself once it is ready and a printer is free)",
+    )
+    .into())
 }

@@ -137,7 +137,7 @@ pub const MARLIN2: &[(&str, Class)] = &[
     ("M111", Refused("changes the firmware's debug flags, and with them what it prints and whether it heats or extrudes at all (dry run)")),
     ("M112", Guarded("halts the printer (emergency stop); a file has no business halting it")),
     ("M113", Refused("changes the busy keepalive the host relies on to tell a long command from a lost printer")),
-    ("M114", Refused("asks for the position, an answer that belongs to the host's own checks")),
+    ("M114", Allowed),
     ("M115", Allowed),
     ("M117", Allowed),
     ("M118", Checked),

@@ -1,7 +1,7 @@
 //! Every command the supported firmwares know, classified for the G-code policy (the
 //! `policy` module of `slice`): what a file may send as it is, what the checks follow,
 //! what the host intercepts, and what is refused, with why. A command missing from the
-//! table is refused unless a machine allows it by name (`allow = ["M862"]` in its
+//! table is refused unless a machine allows it by name (`allow = ["M9001"]` in its
 //! `[[machine]]` table), as are the commands marked [`Class::Guarded`]: a list of what to
 //! refuse would always miss the next command, so the policy lists what may pass.
 //!

@@ -441,7 +441,7 @@ impl MachineSpec {
                             format!(
                                 "{word:?} is not a command a machine may allow: only those \
                                  the G-code policy guards ({}) or does not know (a vendor's \
-                                 own, such as M862); see docs/gcode-policy.md",
+                                 own); see docs/gcode-policy.md",
                                 commands::guarded().collect::<Vec<_>>().join(", ")
                             ),
                         ));

@@ -385,25 +385,15 @@ pub async fn command(
         let held = match (&grant, print) {
             (Some(grant), true) if !held.is_empty() => {
                 let own = own_holds(&state, grant, &held).await;
-                match held
-                    .iter()
-                    .filter(|j| own.contains(&j.id))
-                    .max_by(|a, b| a.updated.total_cmp(&b.updated))
-                {
-                    Some(job) => Some(*job),
+                match newest(held.iter().copied().filter(|j| own.contains(&j.id))) {
+                    Some(job) => Some(job),
                     None => {
-                        let newest = held
-                            .iter()
-                            .max_by(|a, b| a.updated.total_cmp(&b.updated))
-                            .copied();
-                        let job = newest.map_or("", |j| j.id.as_str());
+                        let job = newest(held.iter().copied()).map_or("", |j| j.id.as_str());
                         return Err(grant.refuse_release(job, &shown));
                     }
                 }
             }
-            _ => held
-                .into_iter()
-                .max_by(|a, b| a.updated.total_cmp(&b.updated)),
+            _ => newest(held),
         };
         // A job not prepared yet shows no hold: its sidecar is read by the preparation.
         // Its release is taken now and kept (`control::execute`'s release reads the
@@ -423,7 +413,7 @@ pub async fn command(
                 }
                 _ => unprepared,
             };
-            if let Some(job) = mine.iter().max_by(|a, b| a.updated.total_cmp(&b.updated)) {
+            if let Some(job) = newest(mine) {
                 match control::execute(
                     &state.farm,
                     Command::Release {
@@ -476,6 +466,15 @@ pub async fn command(
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
+}
+
+/// The most recently changed of `jobs`: the upload a command meant, where one name has
+/// several.
+pub(super) fn newest<'a>(
+    jobs: impl IntoIterator<Item = &'a control::JobStatus>,
+) -> Option<&'a control::JobStatus> {
+    jobs.into_iter()
+        .max_by(|a, b| a.updated.total_cmp(&b.updated))
 }
 
 /// Which of the `held` jobs the upload of `grant` held: their sidecars (in their job

@@ -549,7 +549,7 @@ async fn start(
             held.into_iter().filter(|j| own.contains(&j.id)).collect()
         }
     };
-    if let Some(job) = mine.iter().max_by(|a, b| a.updated.total_cmp(&b.updated)) {
+    if let Some(job) = super::files::newest(mine) {
         return control::execute(
             &state.farm,
             Command::Release {

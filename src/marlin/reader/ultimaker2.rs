@@ -18,11 +18,18 @@ use super::View;
 pub fn read(text: &str) -> View {
     let b = text.as_bytes();
     let mut view = View::new();
+    // Where each upper-case letter first occurs (what `strchr` finds), in one pass.
+    let mut first: [Option<usize>; 26] = [None; 26];
+    for (i, &c) in b.iter().enumerate() {
+        if c.is_ascii_uppercase() {
+            first[usize::from(c - b'A')].get_or_insert(i);
+        }
+    }
     // `code_seen('G')`, else `M`, else `T`: the first letter found is the command,
     // whatever number follows it.
     if let Some((letter, i)) = [b'G', b'M', b'T']
         .into_iter()
-        .find_map(|letter| Some((letter, b.iter().position(|&c| c == letter)?)))
+        .find_map(|letter| Some((letter, first[usize::from(letter - b'A')]?)))
     {
         let (v, _) = strtod(&b[i + 1..]);
         // `(int)` of an AVR float: out of range (or nan) is undefined; no such command.
@@ -30,10 +37,9 @@ pub fn read(text: &str) -> View {
             view.command = Some((letter as char, v.trunc() as u32));
         }
     }
-    for (k, letter) in (b'A'..=b'Z').enumerate() {
-        if let Some(i) = b.iter().position(|&c| c == letter) {
-            let (v, _) = strtod(&b[i + 1..]);
-            view.params[k] = Some(Some(v));
+    for (param, at) in view.params.iter_mut().zip(first) {
+        if let Some(i) = at {
+            *param = Some(Some(strtod(&b[i + 1..]).0));
         }
     }
     view

@@ -73,6 +73,8 @@ fn spawn_server(dir: &Path, user: Option<(u32, u32)>) -> Child {
         // Unix socket only; fsync off because the cluster is thrown away.
         .args(["-c", "listen_addresses=", "-c", "fsync=off"])
         .args(["-c", "max_connections=200"])
+        // The setting under which hand-made SQL literals go wrong: crispen's must not.
+        .args(["-c", "standard_conforming_strings=off"])
         .stdin(Stdio::null())
         .stdout(log.try_clone().unwrap())
         .stderr(log)

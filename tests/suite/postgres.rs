@@ -377,9 +377,12 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         };
         (open("rack-1").await, open("rack-2").await)
     });
-    let model = hot.join("part.stl");
+    // A quote and a backslash in the name: the COPY that fetches the files spells it as an
+    // SQL literal, on a server whose `standard_conforming_strings` is off (common::postgres).
+    let name = r"it's a \ part.stl";
+    let model = hot.join(name);
     std::fs::write(&model, b"solid part\nendsolid part\n").unwrap();
-    std::fs::write(hot.join("part.stl.toml"), b"copies = 1\n").unwrap();
+    std::fs::write(hot.join(format!("{name}.toml")), b"copies = 1\n").unwrap();
     let printers = vec!["p1".to_string()];
     let job = rt.block_on(a.admit(&model, &hot, &printers)).unwrap();
     assert!(!model.exists(), "the model left the hot folder");
@@ -397,10 +400,10 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         .unwrap();
     let dir_b = b.snapshot().job_dir(&job.id);
     assert_eq!(
-        std::fs::read(dir_b.join("part.stl")).unwrap(),
+        std::fs::read(dir_b.join(name)).unwrap(),
         b"solid part\nendsolid part\n"
     );
-    assert!(dir_b.join("part.stl.toml").is_file());
+    assert!(dir_b.join(format!("{name}.toml")).is_file());
     match rt.block_on(a.transition_from(&job.id, queued, JobState::Preparing, None, |_| {})) {
         Err(StoreError::StateChanged { state, .. }) => assert_eq!(state, JobState::Preparing),
         other => panic!("host 1 took a job host 2 had: {other:?}"),
@@ -411,11 +414,11 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         rt.block_on(a.transition_from(&job.id, preparing, JobState::Ready, None, |_| {})),
         Err(StoreError::LostClaim { .. })
     ));
-    std::fs::write(dir_b.join("part.stl.m.gcode"), b"G28\nM84\n").unwrap();
+    std::fs::write(dir_b.join(format!("{name}.m.gcode")), b"G28\nM84\n").unwrap();
     rt.block_on(
-        b.transition_from(&job.id, preparing, JobState::Ready, None, |j| {
+        b.transition_from(&job.id, preparing, JobState::Ready, None, move |j| {
             j.machines
-                .insert("m".into(), ForMachine::Gcode("part.stl.m.gcode".into()));
+                .insert("m".into(), ForMachine::Gcode(format!("{name}.m.gcode")));
         }),
     )
     .unwrap();
@@ -429,7 +432,7 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
     assert_eq!(claimed.printer.as_deref(), Some("p1"));
     let dir_a = a.snapshot().job_dir(&job.id);
     assert_eq!(
-        std::fs::read(dir_a.join("part.stl.m.gcode")).unwrap(),
+        std::fs::read(dir_a.join(format!("{name}.m.gcode"))).unwrap(),
         b"G28\nM84\n"
     );
     rt.block_on(b.resync()).unwrap();

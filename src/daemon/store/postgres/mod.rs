@@ -35,6 +35,7 @@ use crate::daemon::job::{Job, JobState, Origin, PrinterGate, StoreError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
+use postgres_protocol::escape::escape_literal;
 use tokio_postgres::{GenericClient, Row};
 
 #[derive(Debug, thiserror::Error)]
@@ -1187,10 +1188,12 @@ async fn copy_file_out(
         what: "file",
         message: format!("{name}: {message}"),
     };
+    // COPY takes no parameters: the literals are spelt by the client library's escaping,
+    // which is right whatever the server's `standard_conforming_strings`.
     let query = format!(
         "COPY (SELECT bytes FROM job_files WHERE job_id = {} AND name = {}) TO STDOUT (FORMAT binary)",
-        quote_literal(id),
-        quote_literal(name)
+        escape_literal(id),
+        escape_literal(name)
     );
     let stream = tx.copy_out(&query).await?;
     futures_util::pin_mut!(stream);
@@ -1233,11 +1236,6 @@ async fn copy_file_out(
     out.commit()
         .map_err(|e| file_err(std::io::Error::from(e)))?;
     Ok(())
-}
-
-/// `text` as an SQL string literal (COPY takes no parameters).
-fn quote_literal(text: &str) -> String {
-    format!("'{}'", text.replace('\'', "''"))
 }
 
 /// Writes the job's files that `dir` lacks (only its G-code with `only_gcode`).

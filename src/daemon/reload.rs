@@ -296,6 +296,7 @@ pub fn merge(old: &Config, new: Config) -> Config {
 
 /// What a reload did.
 #[derive(Debug)]
+#[allow(clippy::large_enum_variant)] // one per reload, moved once: boxing buys nothing
 pub enum Reloaded {
     /// The new file was refused; the old config stays.
     Refused(super::config::ConfigError),

@@ -116,11 +116,8 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
             f64::from(u8::from(p.bed_cleared)),
         );
     }
-    let temperatures: [(
-        &str,
-        &str,
-        fn(&crate::daemon::farm::PrinterTemperatures) -> Option<f64>,
-    ); 4] = [
+    type Reading = fn(&crate::daemon::farm::PrinterTemperatures) -> Option<f64>;
+    let temperatures: [(&str, &str, Reading); 4] = [
         (
             "crispen_printer_hotend_celsius",
             "Hotend temperature, printing or idle (absent while not known now).",

@@ -280,7 +280,8 @@ fn parse_part(
         build: Vec::new(),
     };
     // The object being read: its id, and its mesh or components so far.
-    let mut current: Option<(String, Vec<[f64; 3]>, Vec<[u32; 3]>, Vec<Component>)> = None;
+    type ObjectSoFar = (String, Vec<[f64; 3]>, Vec<[u32; 3]>, Vec<Component>);
+    let mut current: Option<ObjectSoFar> = None;
     let mut total_vertices = 0usize;
     let mut total_triangles = 0usize;
     loop {

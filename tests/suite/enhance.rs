@@ -202,7 +202,7 @@ fn min_weight_is_exactly_the_rule() {
         let combined = bands
             .combine(&EnhanceOptions::with_lambda2(lambda2))
             .unwrap();
-        let expected = (-0.1 * lambda2 as f64).exp();
+        let expected = (-0.1 * lambda2).exp();
         assert!(
             (combined.w_min - expected).abs() < 1e-15,
             "{} vs {expected}",
@@ -238,7 +238,8 @@ fn equivariant_under_translation_rotation_and_scale() {
     // uniform scalings and rotations that map the box to a box (quarter turns); a general
     // rotation changes the box and hence r, i.e. the effective δ: not an invariance the
     // spec's normalisation has, so it is not tested here.
-    let cases: Vec<(&str, Box<dyn Fn([f64; 3]) -> [f64; 3]>)> = vec![
+    type Transform = Box<dyn Fn([f64; 3]) -> [f64; 3]>;
+    let cases: Vec<(&str, Transform)> = vec![
         (
             "translation",
             Box::new(|v| [v[0] + 12.5, v[1] - 3.0, v[2] + 40.0]),

@@ -773,9 +773,12 @@ fn module_of(rel: &Path) -> ModPath {
 
 // ----------------------------------------------------------------------------- the lexer
 
+/// Tokens of Rust text and its doc comments' lines (each with its line number).
+type Lexed = (Vec<Token>, Vec<(usize, String)>);
+
 /// Tokens of Rust text (identifiers, `::`, punctuation) and its doc comments' lines;
 /// comments, strings and character literals are skipped.
-fn lex(text: &str) -> Result<(Vec<Token>, Vec<(usize, String)>), String> {
+fn lex(text: &str) -> Result<Lexed, String> {
     let c: Vec<char> = text.chars().collect();
     let mut tokens = Vec::new();
     let mut docs = Vec::new();

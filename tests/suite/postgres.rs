@@ -480,6 +480,22 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         ]
     );
     assert_eq!(seen.gate("p1"), gate);
+
+    // Each host counts every change once, its own and the other's it took in by a
+    // resync (before, only the changes a host made itself were counted, by a wrapper
+    // around its requests): both see the whole farm.
+    rt.block_on(a.resync()).unwrap();
+    for (host, store) in [("rack-1", &a), ("rack-2", &b)] {
+        let snapshot = store.snapshot();
+        let counts = snapshot.counts();
+        for state in states.iter().copied() {
+            assert_eq!(counts.into_state(state), 1, "{host}: into {state}");
+        }
+        assert_eq!(counts.finished(), 1, "{host}");
+        let tally = snapshot.tally().read();
+        let p1 = &tally["p1"];
+        assert_eq!((p1.done, p1.prints), (1, 1), "{host}: the print on p1");
+    }
 }
 
 /// Retention in the farm database, through two hosts' stores: finished jobs beyond the

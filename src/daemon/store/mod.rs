@@ -1,9 +1,18 @@
-//! The job store as one owner: a single task ([`spawn`]) owns the store (the embedded
+//! The job store as one owner: a single task ([`start`]) owns the store (the embedded
 //! [`spool::Spool`] today, a database tomorrow) and is the only place a job or a bed gate
 //! changes. Everyone else holds a cheap, cloneable [`StoreHandle`] and sends it requests
 //! (an mpsc message with a oneshot reply). The task runs each batch of requests on a
 //! blocking thread (`spawn_blocking`): the store's disk writes never hold up the async
 //! runtime, and no lock is held across them, because nothing else can reach the store.
+//! The daemon runs the task in its supervised set: a panic (in the store, or in a
+//! request's edit) is not caught, so the daemon stops rather than go on with a change
+//! done halfway.
+//!
+//! What follows from a job's change is the task's too: its `job state` log line, the
+//! counts by state and the metrics' tally, published in the same snapshot as the change
+//! ([`Snapshot::counts`], [`Snapshot::tally`]). They are worked out from the difference
+//! between each job's record and the one published before, so a change another host
+//! made (taken in by a resync) is counted like one of this host's.
 //!
 //! Readers do not queue behind writes: after every batch the task publishes an immutable
 //! [`Snapshot`] (a `watch` of an `Arc`), which status, HTTP, metrics and the printers'
@@ -15,11 +24,12 @@
 //! no other change can come between. Legal state changes stay one table,
 //! [`JobState::can_go_to`], applied by [`Job::apply_transition`] inside the store.
 //!
-//! Finished jobs leave the live snapshot for the [`history`] after a while: the task
-//! retires them in batches on its blocking thread, so what every reader pays for follows
-//! the jobs at work, not the farm's past. The snapshot also keeps what would otherwise be
-//! looked up on disk at every glance (which pictures a job has), worked out once when the
-//! job changes.
+//! Finished jobs leave the live snapshot for the [`history`]: beyond `live_jobs` at the
+//! change that made one too many, older than `live_for` at a round every
+//! [`RETIRE_EVERY`]; the task retires them in batches on its blocking thread, so what
+//! every reader pays for follows the jobs at work, not the farm's past. The snapshot also
+//! keeps what would otherwise be looked up on disk at every glance (which pictures a job
+//! has), worked out once when the job changes.
 //!
 //! [`postgres`] is the second store: the farm's queue in PostgreSQL, shared by several
 //! hosts. Other hosts change jobs too, so its store reloads them on [`StoreHandle::resync`]

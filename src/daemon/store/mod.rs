@@ -848,9 +848,7 @@ const RETIRE_EVERY: std::time::Duration = std::time::Duration::from_secs(600);
 pub type StoreTask = std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>;
 
 /// Opens the store's task with finished jobs kept live as `retention` says: its handle,
-/// and the task itself for the caller to run (the service in its [`Supervised`] set).
-///
-/// [`Supervised`]: crate::service::Supervised
+/// and the task itself for the caller to run (the service, in its supervised set).
 pub fn start(store: impl JobStore, retention: Retention) -> (StoreHandle, StoreTask) {
     let store: Box<dyn JobStore> = Box::new(store);
     let view = Snapshot::of(&*store, None);

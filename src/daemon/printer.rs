@@ -939,8 +939,7 @@ mod tests {
                 ids.push(job.id);
             }
         }
-        let (farm, task) = Farm::new(config, store, Default::default());
-        tokio::spawn(task);
+        let farm = super::super::doubles::farm_on(config, store);
         let start = Arc::new(tokio::sync::Barrier::new(printers.len()));
         let tasks: Vec<_> = printers
             .iter()

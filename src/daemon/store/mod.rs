@@ -1510,6 +1510,145 @@ mod tests {
         assert!(page.jobs[0].seq < handle.snapshot().get(&last).unwrap().seq);
     }
 
+    /// The embedded store with a second writer, as a shared farm has: changes queued in
+    /// `elsewhere` are made behind the task's back, and taken in by the next resync.
+    struct TwoHosts {
+        spool: spool::Spool,
+        elsewhere: Arc<std::sync::Mutex<Vec<(String, JobState)>>>,
+    }
+
+    impl JobStore for TwoHosts {
+        fn jobs_dir(&self) -> PathBuf {
+            self.spool.jobs_dir()
+        }
+        fn jobs(&self) -> Vec<Job> {
+            JobStore::jobs(&self.spool)
+        }
+        fn job(&self, id: &str) -> Option<Job> {
+            JobStore::job(&self.spool, id)
+        }
+        fn gates(&self) -> BTreeMap<String, PrinterGate> {
+            JobStore::gates(&self.spool)
+        }
+        fn recover(&mut self) -> Result<Vec<String>, StoreError> {
+            JobStore::recover(&mut self.spool)
+        }
+        fn admit(&mut self, source: &Path, folder: &Path, p: &[String]) -> Result<Job, StoreError> {
+            JobStore::admit(&mut self.spool, source, folder, p)
+        }
+        fn late_sidecar(&mut self, id: &str, s: &Path, applies: bool) -> Result<bool, StoreError> {
+            JobStore::late_sidecar(&mut self.spool, id, s, applies)
+        }
+        fn transition_with(
+            &mut self,
+            id: &str,
+            from: Option<StateFilter>,
+            state: JobState,
+            reason: Option<String>,
+            also: JobEdit,
+        ) -> Result<Job, StoreError> {
+            JobStore::transition_with(&mut self.spool, id, from, state, reason, also)
+        }
+        fn record_outcome(
+            &mut self,
+            id: &str,
+            state: JobState,
+            reason: Option<String>,
+            also: JobEdit,
+        ) -> Result<Job, StoreError> {
+            JobStore::record_outcome(&mut self.spool, id, state, reason, also)
+        }
+        fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
+            JobStore::update(&mut self.spool, id, change)
+        }
+        fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+            JobStore::retry(&mut self.spool, id)
+        }
+        fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+            JobStore::set_gate(&mut self.spool, printer, gate)
+        }
+        fn write_pending(&mut self) -> usize {
+            JobStore::write_pending(&mut self.spool)
+        }
+        fn unwritten(&self) -> usize {
+            JobStore::unwritten(&self.spool)
+        }
+        fn resync(&mut self) -> bool {
+            let changes: Vec<_> = std::mem::take(&mut *self.elsewhere.lock().unwrap());
+            for (id, state) in &changes {
+                let on_p1: JobEdit = Box::new(|j| j.printer = Some("p1".into()));
+                JobStore::transition_with(&mut self.spool, id, None, *state, None, on_p1).unwrap();
+            }
+            // Always a rebuild of the snapshot: one with nothing new must count nothing.
+            true
+        }
+        fn retire(&mut self, r: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+            JobStore::retire(&mut self.spool, r, now)
+        }
+        fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+            JobStore::retired(&self.spool, id)
+        }
+        fn history(
+            &self,
+            before: Option<u64>,
+            limit: usize,
+            filter: &history::Filter,
+        ) -> Result<history::Page, StoreError> {
+            JobStore::history(&self.spool, before, limit, filter)
+        }
+        fn prune(&mut self, keep: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+            JobStore::prune(&mut self.spool, keep, now)
+        }
+        fn each_retired(
+            &self,
+            since: f64,
+            visit: &mut dyn FnMut(history::Retired),
+        ) -> Result<(), StoreError> {
+            JobStore::each_retired(&self.spool, since, visit)
+        }
+    }
+
+    /// Changes another host made are counted by the task from what a resync takes in,
+    /// each once (a rebuild that brings nothing new counts nothing): the counts and the
+    /// tally are the farm's, not only this host's requests (a wrapper around this host's
+    /// requests once counted, and missed them).
+    #[tokio::test]
+    async fn changes_from_elsewhere_are_counted_once() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let elsewhere = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let store = TwoHosts {
+            spool: spool::Spool::open(&tmp.path().join("spool")).unwrap(),
+            elsewhere: Arc::clone(&elsewhere),
+        };
+        let handle = spawn(store);
+        std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
+        let job = handle.admit(&hot.join("a.gcode"), &hot, &[]).await.unwrap();
+        let counts = |state| handle.snapshot().counts().into_state(state);
+        assert_eq!(counts(JobState::Queued), 1, "this host's own change");
+        elsewhere.lock().unwrap().extend(
+            [
+                JobState::Preparing,
+                JobState::Ready,
+                JobState::Printing,
+                JobState::Done,
+            ]
+            .map(|s| (job.id.clone(), s)),
+        );
+        assert!(handle.resync().await.unwrap());
+        // Rebuilt again from the same jobs: nothing is counted twice.
+        assert!(handle.resync().await.unwrap());
+        for state in [JobState::Queued, JobState::Preparing, JobState::Ready] {
+            assert_eq!(counts(state), 1, "{state}");
+        }
+        assert_eq!((counts(JobState::Printing), counts(JobState::Done)), (1, 1));
+        let snapshot = handle.snapshot();
+        assert_eq!(snapshot.counts().finished(), 1);
+        let p1 = &snapshot.tally().read()["p1"];
+        assert_eq!((p1.done, p1.prints), (1, 1), "the print on p1");
+    }
+
     /// The rule both stores use on retry; a job prepared before machines existed keeps its
     /// `<file>.gcode` (the PostgreSQL store took it for unprepared).
     #[test]

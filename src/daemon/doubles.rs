@@ -335,12 +335,6 @@ pub fn farm_config(root: &Path, printers: &[&str], extra: &str) -> Config {
 /// Opens the farm on its spool.
 pub fn open_farm(config: Config) -> Arc<Farm> {
     let store = super::store::spool::Spool::open(&config.spool_dir).unwrap();
-    farm_on(config, store)
-}
-
-/// The farm around `store`, its store's task spawned unsupervised (the tests that
-/// supervise it spawn it themselves).
-pub fn farm_on(config: Config, store: impl super::store::JobStore) -> Arc<Farm> {
     let (farm, task) = Farm::new(config, store, Default::default());
     tokio::spawn(task);
     farm

@@ -571,7 +571,9 @@ mod tests {
         let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
         let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
         let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
-        super::super::doubles::farm_on(config, store)
+        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        tokio::spawn(task);
+        farm
     }
 
     /// `max_heating` applies on reload: raising it lets a waiting printer heat at once

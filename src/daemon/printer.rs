@@ -939,7 +939,8 @@ mod tests {
                 ids.push(job.id);
             }
         }
-        let farm = super::super::doubles::farm_on(config, store);
+        let (farm, task) = Farm::new(config, store, Default::default());
+        tokio::spawn(task);
         let start = Arc::new(tokio::sync::Barrier::new(printers.len()));
         let tasks: Vec<_> = printers
             .iter()

@@ -196,6 +196,7 @@ const SHARED: &str = "shared farm";
 const CONTROL: &str = "control socket";
 const HTTP: &str = "http listener";
 const NOTIFY: &str = "notifications";
+const STORE: &str = "job store";
 
 /// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
 /// shutdown token made here is handed down to every task; each races it at its waits.
@@ -210,7 +211,11 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
     let mut sighup = signal(SignalKind::hangup()).map_err(ServiceError::Signals)?;
 
     let shutdown = CancellationToken::new();
-    let (farm, shared_db) = crate::daemon::open_store(&config, &shutdown).await?;
+    let crate::daemon::Opened {
+        farm,
+        store,
+        shared: shared_db,
+    } = crate::daemon::open_store(&config, &shutdown).await?;
     let listener = control::bind(&config.socket)?;
     let http_listener = match &config.http {
         None => None,
@@ -246,6 +251,8 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
         "crispen daemon starting"
     );
     let mut tasks = Supervised::default();
+    // The only owner of the jobs: a panic in it stops the daemon (see `store::start`).
+    tasks.spawn(STORE, store);
     // The lease is renewed until the last print has ended, after the shutdown token.
     let stop_shared = CancellationToken::new();
     if let Some((db, lease)) = shared_db {
@@ -304,7 +311,6 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
     };
     let mut ticker = tokio::time::interval(tick);
     let mut jobs = farm.watch_jobs();
-    let mut finished = farm.counts.watch_finished();
     // Why the daemon stops on its own: a top-level task that ended or panicked.
     let mut failure: Option<ServiceError> = None;
     loop {
@@ -326,7 +332,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
             _ = ticker.tick() => {
                 if farm.store().unwritten() > 0 {
                     let farm = Arc::clone(&farm);
-                    tokio::spawn(async move { farm.write_pending().await });
+                    tokio::spawn(async move { farm.jobs().write_pending().await });
                 }
                 if watchdog {
                     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
@@ -334,18 +340,10 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
                 let summary = summary(&farm);
                 let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Status(&summary)]);
             }
-            // Either may come last: a job's change is published before it is counted (the
-            // store replies after publishing), so a look on the snapshot's change alone
-            // could see the job failed but not yet counted, and nothing else would follow
-            // (a job failed at preparation is the farm's last change).
+            // A change is counted in the snapshot that publishes it: one look sees both.
             Ok(()) = jobs.changed() => {
-                if options.exit_when_idle && farm.counts.finished() > 0 && farm.idle() {
-                    tracing::info!("no work left: exiting (--exit-when-idle)");
-                    break;
-                }
-            }
-            Ok(()) = finished.changed() => {
-                if options.exit_when_idle && farm.idle() {
+                let store = farm.store();
+                if options.exit_when_idle && store.counts().finished() > 0 && store.idle() {
                     tracing::info!("no work left: exiting (--exit-when-idle)");
                     break;
                 }
@@ -364,7 +362,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
         // Prints have ended: their outcomes are in the store.
         stop_shared.cancel();
         tasks.join(SHARED).await;
-        let left = farm.write_pending().await.unwrap_or(0);
+        let left = farm.jobs().write_pending().await.unwrap_or(0);
         if left > 0 {
             tracing::error!(outcomes = left, "the farm database is unreachable: outcomes not written (the jobs show as interrupted once this host's lease runs out)");
         } else if let Some(db) = farm.db.get() {
@@ -492,6 +490,43 @@ mod tests {
             "{shown}"
         );
         assert!(tasks.has("quiet") && !tasks.has(PREPARATION) && !tasks.has("restarted"));
+    }
+
+    /// A request that panics in the job store's task (here an edit; a store's own bug
+    /// alike) stops the daemon: the supervised set names the store's task with the panic,
+    /// and the request's caller and every later one get `Stopped`. The task once caught
+    /// the panic and served on after a change done halfway; a panic while retiring ended
+    /// it unsupervised, while the watchdog was still fed.
+    #[tokio::test]
+    async fn a_panicking_store_request_stops_the_daemon() {
+        use crate::daemon::doubles::{farm_config, ready_job};
+        use crate::daemon::job::StoreError;
+        let tmp = tempfile::tempdir().unwrap();
+        let config = farm_config(tmp.path(), &["p1"], "");
+        let store = crate::daemon::store::spool::Spool::open(&config.spool_dir).unwrap();
+        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        let mut tasks = Supervised::default();
+        tasks.spawn(STORE, task);
+        let job = ready_job(&farm, "a.stl", "G28\n").await;
+        let asked = farm
+            .jobs()
+            .update(&job, |_| panic!("an edit broke its promise"))
+            .await;
+        assert!(matches!(asked, Err(StoreError::Stopped)), "{asked:?}");
+        let e = tokio::time::timeout(Duration::from_secs(30), tasks.next_end())
+            .await
+            .expect("the store's end is seen");
+        assert_eq!(
+            e.to_string(),
+            "the daemon's job store task panicked: an edit broke its promise; \
+             the daemon stops (to be restarted)"
+        );
+        assert!(!tasks.has(STORE));
+        let after = farm
+            .jobs()
+            .transition(&job, JobState::Cancelled, None)
+            .await;
+        assert!(matches!(after, Err(StoreError::Stopped)), "{after:?}");
     }
 
     /// A task that returns is a failure too, except one that may end on its own (the

@@ -160,7 +160,7 @@ pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, Comma
         }
         Command::Cancel { job } => cancel(farm, &job).await,
         Command::Retry { job } => {
-            let retried = farm.retry(&job).await?;
+            let retried = farm.jobs().retry(&job).await?;
             let held = if retried.held() {
                 format!("; it stays held until `crispen release {job}`")
             } else {
@@ -199,6 +199,7 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
     let released = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let flag = Arc::clone(&released);
     let job = farm
+        .jobs()
         .update(id, move |j| {
             let held_unprepared =
                 held_on_disk && !j.released && j.sidecar.is_none() && UNPREPARED.contains(&j.state);
@@ -255,7 +256,7 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
 
 async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
-    if !farm.clear_gate(printer).await? {
+    if !farm.jobs().clear_gate(printer).await? {
         return Ok(format!("{printer}: bed was already clear"));
     }
     Ok(format!("{printer}: bed cleared; it may take the next job"))
@@ -304,6 +305,7 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
     const NOT_STARTED: &[JobState] = &[JobState::Queued, JobState::Preparing, JobState::Ready];
     let reason = Some("cancelled by the operator".into());
     let cancelled = farm
+        .jobs()
         .transition_from(id, NOT_STARTED, JobState::Cancelled, reason, |_| {})
         .await;
     match cancelled {

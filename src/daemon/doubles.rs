@@ -335,7 +335,9 @@ pub fn farm_config(root: &Path, printers: &[&str], extra: &str) -> Config {
 /// Opens the farm on its spool.
 pub fn open_farm(config: Config) -> Arc<Farm> {
     let store = super::store::spool::Spool::open(&config.spool_dir).unwrap();
-    Farm::new(config, store, Default::default())
+    let (farm, task) = Farm::new(config, store, Default::default());
+    tokio::spawn(task);
+    farm
 }
 
 /// A job made ready with `gcode` for every printer of the config's machine, as
@@ -345,19 +347,21 @@ pub async fn ready_job(farm: &Farm, name: &str, gcode: &str) -> String {
     let folder = &config.folders[0].path;
     let file = folder.join(name);
     std::fs::write(&file, b"solid x\nendsolid x\n").unwrap();
-    let job = farm.admit(&file, folder, &[]).await.unwrap();
+    let job = farm.jobs().admit(&file, folder, &[]).await.unwrap();
     let machine = config.printers[0].machine.name.clone();
     let gcode_name = format!("{name}.{machine}.gcode");
     let dir = farm.store().job_dir(&job.id);
     std::fs::write(dir.join(&gcode_name), gcode).unwrap();
-    farm.transition(&job.id, JobState::Preparing, None)
+    farm.jobs()
+        .transition(&job.id, JobState::Preparing, None)
         .await
         .unwrap();
-    farm.transition_with(&job.id, JobState::Ready, None, move |j| {
-        j.machines.insert(machine, ForMachine::Gcode(gcode_name));
-    })
-    .await
-    .unwrap();
+    farm.jobs()
+        .transition_with(&job.id, JobState::Ready, None, move |j| {
+            j.machines.insert(machine, ForMachine::Gcode(gcode_name));
+        })
+        .await
+        .unwrap();
     job.id
 }
 

@@ -2,8 +2,8 @@
 //! `watch` the tasks that follow it wait on (there is no global wake-up):
 //!
 //! - jobs and bed gates: the job store's task ([`super::store`]), published as its
-//!   snapshot. Every change of a job goes through [`Farm`]'s methods, the one path that
-//!   logs it and counts it ([`Farm::announce`]); the store's handle is not handed out.
+//!   snapshot; changed by requests through its handle ([`Farm::jobs`]). The task alone
+//!   logs and counts each change, in the snapshot that publishes it.
 //! - a printer's live status (state, job, progress, temperatures): that printer's
 //!   supervisor (the `printer` module), one watch per printer; which printers there are:
 //!   the fleet (the `fleet` module). Whether its bed is cleared is not part of it: that is
@@ -17,12 +17,10 @@
 //! and control tasks; [`FarmWatch`] follows all of it (the event stream does).
 
 use super::config::Config;
-use super::job::{Job, JobState, PrinterGate, StoreError};
-use super::store::{JobStore, LateSidecar, Snapshot, StateFilter, StoreHandle};
+use super::job::StoreError;
+use super::store::{JobStore, Snapshot, StoreHandle, StoreTask};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
-use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -239,66 +237,10 @@ pub struct Preparation {
     pub cancel: CancellationToken,
 }
 
-/// How many jobs reached each state during this run (by [`JobState::ALL`]'s order),
-/// counted as they are announced.
-///
-/// A change is announced (and counted) by its caller once the store has replied, which is
-/// after the store published the snapshot with it: whoever wakes on that snapshot may look
-/// before the count. So the finished count is also a watch of its own
-/// ([`JobCounts::watch_finished`]), which moves only once the count has.
-pub struct JobCounts {
-    by_state: [AtomicU64; JobState::ALL.len()],
-    finished: watch::Sender<u64>,
-}
-
-impl Default for JobCounts {
-    fn default() -> Self {
-        JobCounts {
-            by_state: Default::default(),
-            finished: watch::channel(0).0,
-        }
-    }
-}
-
-impl JobCounts {
-    fn count(&self, state: JobState) {
-        if let Some(i) = JobState::ALL.iter().position(|s| *s == state) {
-            self.by_state[i].fetch_add(1, Ordering::SeqCst);
-        }
-        if !state.is_active() {
-            self.finished.send_modify(|n| *n += 1);
-        }
-    }
-
-    /// Follows [`JobCounts::finished`]: `changed()` resolves once a job reached a final
-    /// state (and was counted) after the last look.
-    pub fn watch_finished(&self) -> watch::Receiver<u64> {
-        self.finished.subscribe()
-    }
-
-    /// Changes into `state` during this run.
-    pub fn into_state(&self, state: JobState) -> u64 {
-        JobState::ALL
-            .iter()
-            .position(|s| *s == state)
-            .map_or(0, |i| self.by_state[i].load(Ordering::SeqCst))
-    }
-
-    /// Jobs that reached a final state during this run (for --exit-when-idle).
-    pub fn finished(&self) -> u64 {
-        JobState::ALL
-            .iter()
-            .filter(|s| !s.is_active())
-            .map(|s| self.into_state(*s))
-            .sum()
-    }
-}
-
 pub struct Farm {
     /// The config in force; written by [`Farm::set_config`] (the reload path) only.
     config: watch::Sender<Arc<Config>>,
-    /// The job store's task: the only way a job changes, reached through this type's
-    /// methods only.
+    /// The job store's task: the only way a job changes ([`Farm::jobs`]).
     jobs: StoreHandle,
     /// The printers of this host; the fleet adds and removes them.
     printers: watch::Sender<BTreeMap<String, PrinterHandle>>,
@@ -309,34 +251,35 @@ pub struct Farm {
     shared: watch::Sender<Option<FarmView>>,
     /// Cancelled once SIGTERM arrived: no new work is taken, waits end.
     pub shutdown: CancellationToken,
-    /// Job changes of this run, by the state reached.
-    pub counts: JobCounts,
-    /// Jobs, printing time and filament of this run, by printer (`/metrics`).
-    pub tally: super::store::stats::Tally,
     /// The farm database, when `[store] postgres` shares the farm with other hosts.
     pub db: std::sync::OnceLock<crate::daemon::store::postgres::PgStore>,
 }
 
 impl Farm {
-    /// Starts the store's task on the current runtime and builds the farm around it.
-    pub fn new(config: Config, store: impl JobStore, shutdown: CancellationToken) -> Arc<Farm> {
+    /// Builds the farm around the store's task, which is returned for the caller to run
+    /// (the service runs it in its supervised set; see [`super::store::start`]).
+    pub fn new(
+        config: Config,
+        store: impl JobStore,
+        shutdown: CancellationToken,
+    ) -> (Arc<Farm>, StoreTask) {
         let retention = super::store::Retention {
             live_for: config.history.live_for,
             live_jobs: config.history.live_jobs,
             keep_for: config.history.keep_for,
         };
-        Arc::new(Farm {
+        let (jobs, task) = super::store::start(store, retention);
+        let farm = Arc::new(Farm {
             config: watch::channel(Arc::new(config)).0,
-            jobs: super::store::spawn_with(store, retention),
+            jobs,
             printers: watch::channel(BTreeMap::new()).0,
             preparing: watch::channel(BTreeMap::new()).0,
             heating: HeatingPermits::default(),
             shared: watch::channel(None).0,
             shutdown,
-            counts: JobCounts::default(),
-            tally: Default::default(),
             db: Default::default(),
-        })
+        });
+        (farm, task)
     }
 
     pub fn config(&self) -> Arc<Config> {
@@ -351,6 +294,12 @@ impl Farm {
     /// Puts a config in force (the reload path).
     pub fn set_config(&self, config: Config) {
         self.config.send_replace(Arc::new(config));
+    }
+
+    /// The job store's task: every change of a job or a bed gate is a request to it, and
+    /// it alone logs and counts what changed.
+    pub fn jobs(&self) -> &StoreHandle {
+        &self.jobs
     }
 
     /// The jobs and bed gates as of the store's last change (a glance: no round trip).
@@ -377,176 +326,6 @@ impl Farm {
         self.heating.acquire(self.watch_config()).await
     }
 
-    // Jobs: every change goes through here, and is announced.
-
-    /// Makes a complete file of a hot folder a queued job.
-    pub async fn admit(
-        &self,
-        source: &Path,
-        folder: &Path,
-        printers: &[String],
-    ) -> Result<Job, StoreError> {
-        let job = self.jobs.admit(source, folder, printers).await?;
-        self.announce(&job.id, job.state, &None);
-        Ok(job)
-    }
-
-    /// See [`StoreHandle::late_sidecar`] (no state changes).
-    pub async fn late_sidecar(
-        &self,
-        folder: &Path,
-        file: &str,
-        sidecar: &Path,
-    ) -> Result<Option<LateSidecar>, StoreError> {
-        self.jobs.late_sidecar(folder, file, sidecar).await
-    }
-
-    /// Changes a job's state, logs it, counts it.
-    pub async fn transition(
-        &self,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-    ) -> Result<Job, StoreError> {
-        self.transition_with(id, state, reason, |_| {}).await
-    }
-
-    /// [`Farm::transition`] with other fields of the job changed in the same write.
-    pub async fn transition_with(
-        &self,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-        also: impl FnOnce(&mut Job) + Send + 'static,
-    ) -> Result<Job, StoreError> {
-        let job = self
-            .jobs
-            .transition_with(id, state, reason.clone(), also)
-            .await?;
-        self.announce(id, state, &reason);
-        self.tally.changed(&job);
-        Ok(job)
-    }
-
-    /// [`Farm::transition_with`] only if the job is in one of the states `from`, checked
-    /// and changed as one step of the store (a cancel that a claim must not overtake).
-    pub async fn transition_from(
-        &self,
-        id: &str,
-        from: StateFilter,
-        state: JobState,
-        reason: Option<String>,
-        also: impl FnOnce(&mut Job) + Send + 'static,
-    ) -> Result<Job, StoreError> {
-        let job = self
-            .jobs
-            .transition_from(id, from, state, reason.clone(), also)
-            .await?;
-        self.announce(id, state, &reason);
-        self.tally.changed(&job);
-        Ok(job)
-    }
-
-    /// Takes the oldest ready job `eligible` allows for `printer` (see
-    /// [`StoreHandle::claim`]).
-    pub async fn claim(
-        &self,
-        printer: &str,
-        eligible: impl Fn(&Job) -> bool + Send + 'static,
-    ) -> Result<Option<Job>, StoreError> {
-        let job = self.jobs.claim(printer, eligible).await?;
-        if let Some(job) = &job {
-            self.announce(&job.id, job.state, &None);
-        }
-        Ok(job)
-    }
-
-    /// Records the outcome of a print, which has happened whether or not it can be
-    /// written now (see [`JobStore::record_outcome`]).
-    pub async fn record_outcome(
-        &self,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-        also: impl FnOnce(&mut Job) + Send + 'static,
-    ) -> Result<Job, StoreError> {
-        let job = self
-            .jobs
-            .record_outcome(id, state, reason.clone(), also)
-            .await?;
-        self.announce(id, state, &reason);
-        self.tally.changed(&job);
-        Ok(job)
-    }
-
-    /// Puts a failed, cancelled or interrupted job back (see [`JobStore::retry`]).
-    pub async fn retry(&self, id: &str) -> Result<Job, StoreError> {
-        let job = self.jobs.retry(id).await?;
-        self.announce(id, job.state, &Some("retried by the operator".into()));
-        Ok(job)
-    }
-
-    /// Changes a job's other fields, never its state (a release).
-    pub async fn update(
-        &self,
-        id: &str,
-        change: impl FnOnce(&mut Job) + Send + 'static,
-    ) -> Result<Job, StoreError> {
-        self.jobs.update(id, change).await
-    }
-
-    /// Closes a printer's bed gate after a print (`job`: the job on the bed).
-    pub async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
-        let gate = PrinterGate {
-            bed_not_cleared: true,
-            last_job: Some(job.to_string()),
-        };
-        self.jobs.set_gate(printer, gate).await
-    }
-
-    /// Marks a printer's bed cleared; false when it was clear already.
-    pub async fn clear_gate(&self, printer: &str) -> Result<bool, StoreError> {
-        let cleared = self.jobs.clear_gate(printer).await?;
-        if cleared {
-            tracing::info!(printer, "bed cleared");
-        }
-        Ok(cleared)
-    }
-
-    /// Persists outcomes that could not be written before; returns how many remain.
-    pub async fn write_pending(&self) -> Result<usize, StoreError> {
-        self.jobs.write_pending().await
-    }
-
-    /// Takes in what other hosts changed; true when anything had.
-    pub async fn resync(&self) -> Result<bool, StoreError> {
-        self.jobs.resync().await
-    }
-
-    /// A job that has moved to the history (None: no such retired job).
-    pub async fn retired(&self, id: &str) -> Result<Option<super::store::RetiredJob>, StoreError> {
-        self.jobs.retired(id).await
-    }
-
-    /// A page of the history, newest first (see [`StoreHandle::history`]).
-    pub async fn history(
-        &self,
-        before: Option<u64>,
-        limit: usize,
-    ) -> Result<super::store::history::Page, StoreError> {
-        self.jobs.history(before, limit).await
-    }
-
-    /// A page of the history of the jobs `filter` takes.
-    pub async fn history_where(
-        &self,
-        before: Option<u64>,
-        limit: usize,
-        filter: super::store::history::Filter,
-    ) -> Result<super::store::history::Page, StoreError> {
-        self.jobs.history_where(before, limit, filter).await
-    }
-
     /// The statistics of `period`, with every configured printer and folder listed.
     pub async fn stats(
         &self,
@@ -566,20 +345,6 @@ impl Farm {
             .collect();
         let now = super::job::now_s();
         self.jobs.stats(period, printers, folders, now).await
-    }
-
-    /// Logs a state change and counts it. Every change of a job's state comes here.
-    fn announce(&self, id: &str, state: JobState, reason: &Option<String>) {
-        match reason {
-            Some(r) => tracing::info!(job = id, state = state.name(), reason = %r, "job state"),
-            None => tracing::info!(job = id, state = state.name(), "job state"),
-        }
-        self.counts.count(state);
-    }
-
-    /// No job has work ahead of it.
-    pub fn idle(&self) -> bool {
-        !self.store().jobs().any(|j| j.state.is_active())
     }
 
     // Printers.
@@ -806,7 +571,9 @@ mod tests {
         let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
         let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
         let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
-        Farm::new(config, store, CancellationToken::new())
+        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        tokio::spawn(task);
+        farm
     }
 
     /// `max_heating` applies on reload: raising it lets a waiting printer heat at once
@@ -845,9 +612,9 @@ mod tests {
         farm.add_printer("p1", handle);
         let shown = |farm: &Farm| farm.local_printers()[0].bed_cleared;
         assert!(shown(&farm));
-        farm.close_gate("p1", "0001-a").await.unwrap();
+        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
         assert!(!shown(&farm), "a finished print is on the bed");
-        assert!(farm.clear_gate("p1").await.unwrap());
+        assert!(farm.jobs().clear_gate("p1").await.unwrap());
         assert!(shown(&farm), "cleared");
     }
 
@@ -870,7 +637,7 @@ mod tests {
             .await
             .expect("woken by the change");
         assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
-        farm.close_gate("p1", "0001-a").await.unwrap();
+        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
         tokio::time::timeout(quiet, watch.changed())
             .await
             .expect("woken by the gate");

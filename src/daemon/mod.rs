@@ -63,13 +63,22 @@ pub enum DaemonError {
     HostInUse(store::postgres::PgError),
 }
 
+/// What [`open_store`] opened.
+pub struct Opened {
+    pub farm: Arc<Farm>,
+    /// The job store's task, which nothing answers until the caller runs it (the service,
+    /// in its supervised set).
+    pub store: store::StoreTask,
+    /// A shared farm's database and lease, for [`shared::run`].
+    pub shared: Option<(store::postgres::PgStore, Duration)>,
+}
+
 /// Opens the job store the config names, applies the restart rules to what this host left
-/// mid-flight, and builds the farm around it. A shared farm also returns its database and
-/// lease, for [`shared::run`].
+/// mid-flight, and builds the farm around it.
 pub async fn open_store(
     config: &Config,
     shutdown: &CancellationToken,
-) -> Result<(Arc<Farm>, Option<(store::postgres::PgStore, Duration)>), DaemonError> {
+) -> Result<Opened, DaemonError> {
     let mid_flight = |id: &str, state: JobState| {
         tracing::warn!(job = %id, state = state.name(), "job found mid-flight after a restart");
     };
@@ -78,7 +87,12 @@ pub async fn open_store(
         for id in store.recover()? {
             mid_flight(&id, store.get(&id).expect("recovered job exists").state);
         }
-        return Ok((Farm::new(config.clone(), store, shutdown.clone()), None));
+        let (farm, store) = Farm::new(config.clone(), store, shutdown.clone());
+        return Ok(Opened {
+            farm,
+            store,
+            shared: None,
+        });
     };
     let db = store::postgres::PgStore::connect(&shared.postgres, &config.farm.host, shared.lease)
         .await
@@ -88,14 +102,18 @@ pub async fn open_store(
         })?;
     let recovered = db.recover_own().await?;
     let store = store::postgres::store::PgJobStore::open(db.clone(), &config.spool_dir).await?;
-    let farm = Farm::new(config.clone(), store, shutdown.clone());
+    let (farm, store) = Farm::new(config.clone(), store, shutdown.clone());
     for id in recovered {
         if let Some(job) = farm.store().get(&id) {
             mid_flight(&id, job.state);
         }
     }
     let _ = farm.db.set(db.clone());
-    Ok((farm, Some((db, shared.lease))))
+    Ok(Opened {
+        farm,
+        store,
+        shared: Some((db, shared.lease)),
+    })
 }
 
 /// Watches the hot folders and admits complete files as jobs, until dropped (a reload
@@ -162,7 +180,7 @@ async fn pick_up(
             .folder(folder)
             .map(|f| f.printers.clone())
             .unwrap_or_default();
-        match farm.admit(path, folder, &printers).await {
+        match farm.jobs().admit(path, folder, &printers).await {
             Ok(job) => tracing::info!(job = %job.id, file = %path.display(), "picked up"),
             Err(e) => tracing::error!(file = %path.display(), error = %e, "cannot pick up"),
         }
@@ -176,7 +194,7 @@ async fn pick_up(
         lone_sidecars.remove(path);
         return;
     }
-    match farm.late_sidecar(folder, model, path).await {
+    match farm.jobs().late_sidecar(folder, model, path).await {
         Ok(None) => {
             let since = *lone_sidecars
                 .entry(path.to_path_buf())

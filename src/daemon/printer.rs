@@ -459,7 +459,7 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
             .is_none_or(|p| p == printer);
         served && wanted && !j.held() && j.gcode_for(&machine).is_some()
     };
-    match farm.claim(printer, eligible).await {
+    match farm.jobs().claim(printer, eligible).await {
         Ok(job) => job.map(|j| j.id),
         Err(e) => {
             tracing::error!(error = %e, "cannot claim a job");
@@ -496,7 +496,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             None => {
                 // The printer's machine changed (a reload) since the claim: not for it.
                 drop(store);
-                if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
+                if let Err(e) = farm.jobs().transition(job_id, JobState::Ready, None).await {
                     tracing::error!(error = %e, "cannot put the job back");
                 }
                 return JobEnd::default();
@@ -541,7 +541,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         };
         // Nothing was sent to the printer: the job waits for the next start, or for
         // the next printer.
-        if let Err(e) = farm.transition(job_id, JobState::Ready, None).await {
+        if let Err(e) = farm.jobs().transition(job_id, JobState::Ready, None).await {
             tracing::error!(error = %e, "cannot put the job back");
         }
         sup.show(|p| p.job = None);
@@ -613,7 +613,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         Err(PrintFailure::Gcode(_) | PrintFailure::LoaderCrashed(_))
     );
     if !sent_nothing {
-        if let Err(e) = farm.close_gate(printer, job_id).await {
+        if let Err(e) = farm.jobs().close_gate(printer, job_id).await {
             tracing::error!(error = %e, "cannot persist the bed gate");
         }
     }
@@ -659,6 +659,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         ) => (JobState::Failed, Some(why.to_string()), false),
     };
     let recorded = farm
+        .jobs()
         .record_outcome(job_id, state, reason, |j| {
             if let Some(report) = printed {
                 j.copies_done += 1;
@@ -938,7 +939,8 @@ mod tests {
                 ids.push(job.id);
             }
         }
-        let farm = Farm::new(config, store, Default::default());
+        let (farm, task) = Farm::new(config, store, Default::default());
+        tokio::spawn(task);
         let start = Arc::new(tokio::sync::Barrier::new(printers.len()));
         let tasks: Vec<_> = printers
             .iter()

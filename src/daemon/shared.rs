@@ -120,7 +120,7 @@ async fn tick(
         view.database = shown.database.take();
         *shown = view;
     });
-    if let Err(e) = farm.resync().await {
+    if let Err(e) = farm.jobs().resync().await {
         tracing::warn!(error = %e, "cannot take in the other hosts' changes");
     }
     Ok(())
@@ -208,9 +208,9 @@ mod tests {
             published[0].1["bed_cleared"].as_bool().unwrap()
         };
         assert!(bed_cleared(&farm));
-        farm.close_gate("p1", "0001-a").await.unwrap();
+        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
         assert!(!bed_cleared(&farm), "a finished print waits on the bed");
-        farm.clear_gate("p1").await.unwrap();
+        farm.jobs().clear_gate("p1").await.unwrap();
         assert!(bed_cleared(&farm));
     }
 

@@ -281,29 +281,30 @@ async fn a_panicking_supervisor_is_reported_by_name() {
     fleet.join().await;
 }
 
-/// A retry goes through the farm's one path for job changes, which logs and counts it
-/// (it once went to the store directly: no `job state` line, no count).
+/// A retry is counted by the store's task like every change, once, in the snapshot
+/// that publishes it (it once went to the store past the farm's wrapper that counted
+/// changes: no `job state` line, no count).
 #[tokio::test(start_paused = true)]
 async fn a_retry_is_announced_and_counted() {
     let tmp = tempfile::tempdir().unwrap();
     let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let job = ready_job(&farm, "a.stl", HEAT_AND_PRINT).await;
-    farm.transition(&job, JobState::Cancelled, None)
+    farm.jobs()
+        .transition(&job, JobState::Cancelled, None)
         .await
         .unwrap();
     let all = |farm: &Farm| -> u64 {
-        JobState::ALL
-            .iter()
-            .map(|s| farm.counts.into_state(*s))
-            .sum()
+        let counts = farm.store().counts();
+        JobState::ALL.iter().map(|s| counts.into_state(*s)).sum()
     };
-    let (before, queued) = (all(&farm), farm.counts.into_state(JobState::Queued));
+    let queued = || farm.store().counts().into_state(JobState::Queued);
+    let (before, queued_before) = (all(&farm), queued());
     control::execute(&farm, Command::Retry { job: job.clone() })
         .await
         .unwrap();
     // Prepared again (the spool keeps no slice report for this hand-made job).
     assert_eq!(state(&farm, &job), JobState::Queued);
-    assert_eq!(farm.counts.into_state(JobState::Queued), queued + 1);
+    assert_eq!(queued(), queued_before + 1);
     assert_eq!(all(&farm), before + 1, "one change, counted once");
 }
 

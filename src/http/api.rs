@@ -196,7 +196,7 @@ pub async fn job(
     if let Some(detail) = found {
         return Ok(Json(detail).into_response());
     }
-    match state.farm.retired(&id).await {
+    match state.farm.jobs().retired(&id).await {
         Ok(Some(retired)) => {
             let mut answer = serde_json::to_value(&retired.record).unwrap_or_default();
             answer["retired"] = serde_json::Value::Bool(true);
@@ -303,6 +303,7 @@ pub async fn history(
     if !csv {
         let page = state
             .farm
+            .jobs()
             .history_where(query.before, limit, filter)
             .await
             .map_err(unavailable)?;
@@ -315,6 +316,7 @@ pub async fn history(
     loop {
         let page = state
             .farm
+            .jobs()
             .history_where(before, limit, filter.clone())
             .await
             .map_err(unavailable)?;

@@ -176,6 +176,10 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
         }
     }
 
+    // The counts and the tally are of the snapshot's changes: taken from one snapshot,
+    // they agree with each other.
+    let store = farm.store();
+    let counts = store.counts();
     out.family("crispen_jobs", "gauge", "Jobs in the spool by state.");
     for s in JobState::ALL {
         let n = view.jobs.iter().filter(|j| j.status.state == s).count();
@@ -184,10 +188,10 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
     out.family(
         "crispen_job_changes_total",
         "counter",
-        "Job state changes since the daemon started, by the state reached.",
+        "Job state changes since the daemon started, by the state reached (in a shared farm, every host's).",
     );
     for s in JobState::ALL {
-        let n = farm.counts.into_state(s);
+        let n = counts.into_state(s);
         out.sample(
             "crispen_job_changes_total",
             &[("state", s.name())],
@@ -208,7 +212,6 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
     }
 
     // Preparation times of the live jobs (a summary of what the snapshot holds).
-    let store = farm.store();
     let mut prepare = (0.0, 0u64);
     for job in store.jobs() {
         for pair in job.history.windows(2) {
@@ -218,7 +221,6 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
             }
         }
     }
-    drop(store);
     out.family(
         "crispen_preparation_duration_seconds",
         "summary",
@@ -234,7 +236,7 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
     // Counters since the process started, by printer (`store::stats::Tally`): they only
     // grow while it runs, whatever moves to the history; every configured printer has
     // its series from the start.
-    let mut tally = farm.tally.read();
+    let mut tally = store.tally().read();
     for p in &view.printers {
         tally.entry(p.name.clone()).or_default();
     }

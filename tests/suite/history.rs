@@ -239,12 +239,13 @@ fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
     let hot = root.join("hot");
     std::fs::create_dir_all(&hot).unwrap();
     let config = root.join("crispen.toml");
-    // Finished jobs stay live until the next start moves them all to the history.
+    // Finished jobs stay live until the next start's round moves them all to the history
+    // (`live_days = 0`); `live_jobs` is above their four, or each would leave as it ends.
     std::fs::write(
         &config,
         format!(
             "[spool]\ndir = {:?}\n[control]\nsocket = {:?}\n[farm]\nsettle_s = 0.2\n\
-             [history]\nlive_days = 0\nlive_jobs = 0\n\
+             [history]\nlive_days = 0\nlive_jobs = 10\n\
              [[printer]]\nname = \"p1\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.05\n\
              [[folder]]\npath = {:?}\nheight_mm = 30\nprinters = [\"p1\"]\n",
             root.join("spool"),

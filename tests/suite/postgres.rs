@@ -483,6 +483,22 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         ]
     );
     assert_eq!(seen.gate("p1"), gate);
+
+    // Each host counts every change once, its own and the other's it took in by a
+    // resync (before, only the changes a host made itself were counted, by a wrapper
+    // around its requests): both see the whole farm.
+    rt.block_on(a.resync()).unwrap();
+    for (host, store) in [("rack-1", &a), ("rack-2", &b)] {
+        let snapshot = store.snapshot();
+        let counts = snapshot.counts();
+        for state in states.iter().copied() {
+            assert_eq!(counts.into_state(state), 1, "{host}: into {state}");
+        }
+        assert_eq!(counts.finished(), 1, "{host}");
+        let tally = snapshot.tally().read();
+        let p1 = &tally["p1"];
+        assert_eq!((p1.done, p1.prints), (1, 1), "{host}: the print on p1");
+    }
 }
 
 /// Retention in the farm database, through two hosts' stores: finished jobs beyond the
@@ -506,7 +522,7 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
         live_jobs: 1,
         keep_for: None,
     };
-    let open = |host: &'static str| {
+    let open_with = |host: &'static str, retention: Retention| {
         let (settings, dir) = (settings(&pg), tmp.path().join(host));
         async move {
             let db = PgStore::connect(&settings, host, LEASE).await.unwrap();
@@ -514,7 +530,14 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
             crispen::daemon::store::spawn_with(store, retention)
         }
     };
-    let (a, b) = rt.block_on(async { (open("rack-1").await, open("rack-2").await) });
+    let open = |host: &'static str| open_with(host, retention);
+    // Host 2 keeps more live: it retires nothing itself, and holds what host 1 retired
+    // until it resyncs.
+    let roomy = Retention {
+        live_jobs: 100,
+        ..retention
+    };
+    let (a, b) = rt.block_on(async { (open("rack-1").await, open_with("rack-2", roomy).await) });
     let printers = vec!["p1".to_string()];
     let mut ids = Vec::new();
     for i in 0..3 {
@@ -526,6 +549,9 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
         rt.block_on(a.transition(id, JobState::Cancelled, None))
             .unwrap();
     }
+    // Two finished, one kept live: the older leaves at the change that made one too many.
+    let live: Vec<String> = a.snapshot().jobs().map(|j| j.id.clone()).collect();
+    assert_eq!(live, [ids[0].clone(), ids[2].clone()]);
 
     // The first job is prepared the old way: one `<file>.gcode`, no machines.
     let queued: &[JobState] = &[JobState::Queued];
@@ -561,21 +587,22 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
         JobState::Ready,
         "its G-code is kept: printed again as it was"
     );
-    // The newest finished job (the first, cancelled last) stays live.
+    // The newest finished job (the first, cancelled last) stays live; the other leaves
+    // at once, and a round finds nothing more.
     rt.block_on(a.transition(&ids[0], JobState::Cancelled, None))
         .unwrap();
+    let live: Vec<String> = a.snapshot().jobs().map(|j| j.id.clone()).collect();
+    assert_eq!(live, [ids[0].clone()]);
     let now = crispen::daemon::job::now_s();
-    let moved = rt.block_on(a.retire(now)).unwrap();
-    assert_eq!(moved, ids[1..].to_vec());
     assert!(rt.block_on(a.retire(now)).unwrap().is_empty());
-    assert!(a.snapshot().get(&ids[1]).is_none());
 
     // Host 2 has not seen it yet: its change is refused by the database all the same.
-    let err = rt.block_on(b.retry(&ids[1])).unwrap_err();
+    assert!(b.snapshot().get(&ids[2]).is_some());
+    let err = rt.block_on(b.retry(&ids[2])).unwrap_err();
     assert!(matches!(err, StoreError::WrongState { .. }), "{err}");
     assert!(rt.block_on(b.resync()).unwrap());
     assert!(b.snapshot().get(&ids[1]).is_none() && b.snapshot().get(&ids[2]).is_none());
-    let err = rt.block_on(b.retry(&ids[2])).unwrap_err();
+    let err = rt.block_on(b.retry(&ids[1])).unwrap_err();
     assert!(err.to_string().contains("history"), "{err}");
 
     let page = rt.block_on(b.history(None, 1)).unwrap();

@@ -46,6 +46,7 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 .map(|j| j.id.clone());
             let Some(id) = next else { break };
             let claimed = farm
+                .jobs()
                 .transition_from(&id, &[JobState::Queued], JobState::Preparing, None, |_| {})
                 .await;
             if let Err(e) = claimed {
@@ -173,31 +174,35 @@ async fn finish_preparation(
             match prepared.failure() {
                 // No machine can print it: failed, with each machine's reason.
                 Some(reason) => {
-                    farm.transition_from(id, STILL_PREPARING, JobState::Failed, Some(reason), |j| {
-                        j.machines = machines;
-                        j.sidecar = sidecar;
-                    })
-                    .await
+                    farm.jobs()
+                        .transition_from(id, STILL_PREPARING, JobState::Failed, Some(reason), |j| {
+                            j.machines = machines;
+                            j.sidecar = sidecar;
+                        })
+                        .await
                 }
                 None => {
-                    farm.transition_from(id, STILL_PREPARING, JobState::Ready, None, |j| {
-                        j.slice_report = report;
-                        j.machines = machines;
-                        j.sidecar = sidecar;
-                    })
-                    .await
+                    farm.jobs()
+                        .transition_from(id, STILL_PREPARING, JobState::Ready, None, |j| {
+                            j.slice_report = report;
+                            j.machines = machines;
+                            j.sidecar = sidecar;
+                        })
+                        .await
                 }
             }
         }
         // Still preparing, so not cancelled by the operator: the daemon is stopping, and
         // the job is prepared again at the next start.
         Err(super::PrepareError::Cancelled) => {
-            farm.transition_from(id, STILL_PREPARING, JobState::Queued, None, |_| {})
+            farm.jobs()
+                .transition_from(id, STILL_PREPARING, JobState::Queued, None, |_| {})
                 .await
         }
         Err(e) => {
             let reason = Some(e.to_string());
-            farm.transition_from(id, STILL_PREPARING, JobState::Failed, reason, |_| {})
+            farm.jobs()
+                .transition_from(id, STILL_PREPARING, JobState::Failed, reason, |_| {})
                 .await
         }
     };

@@ -1,9 +1,18 @@
-//! The job store as one owner: a single task ([`spawn`]) owns the store (the embedded
+//! The job store as one owner: a single task ([`start`]) owns the store (the embedded
 //! [`spool::Spool`] today, a database tomorrow) and is the only place a job or a bed gate
 //! changes. Everyone else holds a cheap, cloneable [`StoreHandle`] and sends it requests
 //! (an mpsc message with a oneshot reply). The task runs each batch of requests on a
 //! blocking thread (`spawn_blocking`): the store's disk writes never hold up the async
 //! runtime, and no lock is held across them, because nothing else can reach the store.
+//! The daemon runs the task in its supervised set: a panic (in the store, or in a
+//! request's edit) is not caught, so the daemon stops rather than go on with a change
+//! done halfway.
+//!
+//! What follows from a job's change is the task's too: its `job state` log line, the
+//! counts by state and the metrics' tally, published in the same snapshot as the change
+//! ([`Snapshot::counts`], [`Snapshot::tally`]). They are worked out from the difference
+//! between each job's record and the one published before, so a change another host
+//! made (taken in by a resync) is counted like one of this host's.
 //!
 //! Readers do not queue behind writes: after every batch the task publishes an immutable
 //! [`Snapshot`] (a `watch` of an `Arc`), which status, HTTP, metrics and the printers'
@@ -15,11 +24,12 @@
 //! no other change can come between. Legal state changes stay one table,
 //! [`JobState::can_go_to`], applied by [`Job::apply_transition`] inside the store.
 //!
-//! Finished jobs leave the live snapshot for the [`history`] after a while: the task
-//! retires them in batches on its blocking thread, so what every reader pays for follows
-//! the jobs at work, not the farm's past. The snapshot also keeps what would otherwise be
-//! looked up on disk at every glance (which pictures a job has), worked out once when the
-//! job changes.
+//! Finished jobs leave the live snapshot for the [`history`]: beyond `live_jobs` at the
+//! change that made one too many, older than `live_for` at a round every
+//! [`RETIRE_EVERY`]; the task retires them in batches on its blocking thread, so what
+//! every reader pays for follows the jobs at work, not the farm's past. The snapshot also
+//! keeps what would otherwise be looked up on disk at every glance (which pictures a job
+//! has), worked out once when the job changes.
 //!
 //! [`postgres`] is the second store: the farm's queue in PostgreSQL, shared by several
 //! hosts. Other hosts change jobs too, so its store reloads them on [`StoreHandle::resync`]
@@ -202,6 +212,73 @@ pub struct Snapshot {
     jobs_dir: PathBuf,
     /// Outcomes recorded but not yet persisted (a full disk).
     unwritten: usize,
+    /// What jobs did since the task started, counted as each change is published.
+    counted: Arc<Counted>,
+}
+
+/// How many jobs reached each state since the store's task started (by [`JobState::ALL`]'s
+/// order): `/metrics`, and `--exit-when-idle` (which needs a job to have finished).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct JobCounts([u64; JobState::ALL.len()]);
+
+impl JobCounts {
+    fn count(&mut self, state: JobState) {
+        if let Some(i) = JobState::ALL.iter().position(|s| *s == state) {
+            self.0[i] += 1;
+        }
+    }
+
+    /// Changes into `state`.
+    pub fn into_state(&self, state: JobState) -> u64 {
+        JobState::ALL
+            .iter()
+            .position(|s| *s == state)
+            .map_or(0, |i| self.0[i])
+    }
+
+    /// Changes into a state without work ahead (a job finished, for now or for good).
+    pub fn finished(&self) -> u64 {
+        JobState::ALL
+            .iter()
+            .filter(|s| !s.is_active())
+            .map(|s| self.into_state(*s))
+            .sum()
+    }
+}
+
+/// What follows from a job's state change besides the change itself: its log line, the
+/// counts and the metrics' tally. Kept by the store's task alone and published in its
+/// snapshot with the change, so a reader never sees one without the other. Counted from
+/// the difference between a job's record and the one published before (its new entries in
+/// `history`), whoever made the change: a request of this host, or another host of a
+/// shared farm whose change a resync took in.
+#[derive(Debug, Clone, Default)]
+struct Counted {
+    states: JobCounts,
+    tally: stats::Tally,
+}
+
+impl Counted {
+    /// Announces the state changes `job` made since `before` (the record last published;
+    /// None: a job new to the snapshot, whose every change is new here).
+    fn changes(&mut self, before: Option<&Job>, job: &Job) {
+        let seen = before.map_or(0, |b| b.history.len());
+        let n = job.history.len();
+        for k in seen..n {
+            let state = job.history[k].0;
+            // The job's reason is that of its latest change only.
+            let reason = (k + 1 == n).then_some(job.reason.as_deref()).flatten();
+            tracing::info!(
+                job = %job.id,
+                printer = job.printer.as_deref(),
+                state = state.name(),
+                reason,
+                "job state"
+            );
+            self.states.count(state);
+            self.tally.count(job, k);
+        }
+    }
 }
 
 /// A live job and what is known of its files.
@@ -241,13 +318,19 @@ impl Live {
 }
 
 impl Snapshot {
+    /// The store's jobs as they are now. `before`: the snapshot published last (None: the
+    /// first, when the task starts: nothing is a change yet); what changed since is counted.
     fn of(store: &dyn JobStore, before: Option<&Snapshot>) -> Snapshot {
         let jobs_dir = store.jobs_dir();
+        let mut counted = before.map(|b| Arc::clone(&b.counted)).unwrap_or_default();
         let jobs: Vec<Arc<Live>> = store
             .jobs()
             .into_iter()
             .map(|j| {
                 let old = before.and_then(|b| b.live(&j.id));
+                if before.is_some() {
+                    Arc::make_mut(&mut counted).changes(old.map(|l| &l.job), &j);
+                }
                 let dir = jobs_dir.join(&j.id);
                 Arc::new(Live::of(j, &dir, old))
             })
@@ -263,6 +346,7 @@ impl Snapshot {
             gates: store.gates(),
             jobs_dir,
             unwritten: store.unwritten(),
+            counted,
         }
     }
 
@@ -303,10 +387,35 @@ impl Snapshot {
         self.unwritten
     }
 
+    /// How many jobs reached each state since the store's task started.
+    pub fn counts(&self) -> JobCounts {
+        self.counted.states
+    }
+
+    /// The metrics' counters by printer since the store's task started.
+    pub fn tally(&self) -> &stats::Tally {
+        &self.counted.tally
+    }
+
+    /// No job has work ahead of it.
+    pub fn idle(&self) -> bool {
+        !self.jobs().any(|j| j.state.is_active())
+    }
+
+    /// Finished jobs (done, failed, cancelled) still live.
+    pub fn finished_live(&self) -> usize {
+        self.jobs()
+            .filter(|j| history::is_finished(j.state))
+            .count()
+    }
+
     /// Takes the store's current record of `id` (after a change, successful or not: a
-    /// failed change may still have failed the job, e.g. when its directory is gone).
+    /// failed change may still have failed the job, e.g. when its directory is gone), and
+    /// announces what it changed.
     fn refresh(&mut self, store: &dyn JobStore, id: &str) {
         let Some(job) = store.job(id) else { return };
+        let before = self.index.get(id).map(|&i| Arc::clone(&self.jobs[i]));
+        Arc::make_mut(&mut self.counted).changes(before.as_ref().map(|l| &l.job), &job);
         let dir = self.job_dir(id);
         match self.index.get(id) {
             // Looked at again at every change: a few stats per change, none per glance.
@@ -560,6 +669,9 @@ impl Request {
                 } else {
                     Ok(false)
                 };
+                if let Ok(true) = result {
+                    tracing::info!(printer = %printer, "bed cleared");
+                }
                 view.gates = store.gates();
                 view.unwritten = store.unwritten();
                 let changed = !matches!(result, Ok(false));
@@ -573,7 +685,7 @@ impl Request {
                 (deliver(reply, Ok(changed)), changed)
             }
             Request::Retire { now, reply } => {
-                let retired = retire(store, view, retention, now);
+                let retired = round(store, view, retention, now);
                 let changed = retired.as_ref().is_ok_and(|ids| !ids.is_empty());
                 (deliver(reply, retired), changed)
             }
@@ -665,7 +777,8 @@ fn claim(
     (result, tried)
 }
 
-/// Moves what `retention` no longer keeps live to the history and out of the snapshot.
+/// Moves what `retention` no longer keeps live to the history and out of the snapshot,
+/// one batch.
 fn retire(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
@@ -676,6 +789,19 @@ fn retire(
     if !ids.is_empty() {
         tracing::info!(jobs = ids.len(), first = %ids[0], "finished jobs moved to the history");
     }
+    view.remove(&ids);
+    Ok(ids)
+}
+
+/// The periodic round: retires what has been live longer than `live_for` (and anything
+/// else [`history::to_retire`] picks), and forgets what the history keeps no longer.
+fn round(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    retention: &Retention,
+    now: f64,
+) -> Result<Vec<String>, StoreError> {
+    let ids = retire(store, view, retention, now)?;
     if let Some(keep_for) = retention.keep_for {
         match store.prune(keep_for, now) {
             Ok(0) => {}
@@ -685,29 +811,64 @@ fn retire(
             }
         }
     }
-    view.remove(&ids);
     Ok(ids)
 }
 
-/// How often the store's task looks for finished jobs to move to the history (and at
-/// once after starting, and again at once while a batch was full).
+/// Retires the oldest finished jobs beyond `live_jobs` as soon as a batch of requests
+/// leaves more than that live, so a burst of finished jobs never makes every reader pay
+/// for all of them until the next round. Says whether any moved.
+fn retire_beyond_limit(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    retention: &Retention,
+) -> bool {
+    let mut moved = false;
+    while view.finished_live() > retention.live_jobs {
+        match retire(store, view, retention, crate::daemon::job::now_s()) {
+            Ok(ids) if !ids.is_empty() => moved = true,
+            // What is left must stay for now (an outcome not yet written).
+            Ok(_) => break,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot move finished jobs beyond [history] live_jobs to the history; they stay live and it is tried again at the next change");
+                break;
+            }
+        }
+    }
+    moved
+}
+
+/// How often the store's task makes its round ([`round`]): finished jobs older than
+/// `live_for` cannot wait on a change to be retired (at once after starting, and again at
+/// once while a batch was full). Jobs beyond `live_jobs` do not wait for it.
 const RETIRE_EVERY: std::time::Duration = std::time::Duration::from_secs(600);
 
-/// Starts the store's task (on the current tokio runtime) with the default
-/// [`Retention`], and returns its handle. The task ends, and the store is closed, when
-/// the last handle is dropped.
+/// The store's task, to be run in the daemon's supervised set: it ends only when the
+/// last handle is dropped, and a panic (in the store, or in a request's edit) is the
+/// task's, so the daemon stops rather than go on with a change done halfway.
+pub type StoreTask = std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>;
+
+/// Opens the store's task with finished jobs kept live as `retention` says: its handle,
+/// and the task itself for the caller to run (the service, in its supervised set).
+pub fn start(store: impl JobStore, retention: Retention) -> (StoreHandle, StoreTask) {
+    let store: Box<dyn JobStore> = Box::new(store);
+    let view = Snapshot::of(&*store, None);
+    let (snapshots, snapshot) = watch::channel(Arc::new(view.clone()));
+    let (tx, rx) = mpsc::channel(256);
+    let task = Box::pin(serve(store, view, rx, snapshots, retention));
+    (StoreHandle { tx, snapshot }, task)
+}
+
+/// [`start`] with the default [`Retention`], its task spawned on the current runtime
+/// unsupervised: for tests and tools, not the daemon.
 pub fn spawn(store: impl JobStore) -> StoreHandle {
     spawn_with(store, Retention::default())
 }
 
 /// [`spawn`] with finished jobs kept live as `retention` says.
 pub fn spawn_with(store: impl JobStore, retention: Retention) -> StoreHandle {
-    let store: Box<dyn JobStore> = Box::new(store);
-    let view = Snapshot::of(&*store, None);
-    let (snapshots, snapshot) = watch::channel(Arc::new(view.clone()));
-    let (tx, rx) = mpsc::channel(256);
-    tokio::spawn(serve(store, view, rx, snapshots, retention));
-    StoreHandle { tx, snapshot }
+    let (handle, task) = start(store, retention);
+    tokio::spawn(task);
+    handle
 }
 
 /// What the store's task does next.
@@ -717,8 +878,9 @@ enum Work {
 }
 
 /// The store's task: takes whatever requests are waiting, serves them in order on a
-/// blocking thread, publishes the new snapshot, then sends the replies. Every
-/// [`RETIRE_EVERY`] it retires finished jobs the same way.
+/// blocking thread, retires finished jobs beyond `live_jobs`, publishes the new
+/// snapshot, then sends the replies. Every [`RETIRE_EVERY`] it makes its [`round`] the
+/// same way.
 async fn serve(
     mut store: Box<dyn JobStore>,
     mut view: Snapshot,
@@ -752,29 +914,19 @@ async fn serve(
             let mut full = false;
             match work {
                 Work::Requests(batch) => {
+                    // A panic here (in the store, or in a request's edit) is not caught:
+                    // the change it left halfway is unknown, so the task ends with it and
+                    // the daemon stops; every reply not sent yet says `Stopped`.
                     for request in batch {
-                        // A panic in one request (an edit closure) loses that request's
-                        // reply only: its caller gets `StoreError::Stopped`, the store
-                        // goes on.
-                        let served = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                            request.serve(&mut *store, &mut view, &retention)
-                        }));
-                        match served {
-                            Ok((delivery, change)) => {
-                                deliveries.push(delivery);
-                                changed |= change;
-                            }
-                            Err(_) => {
-                                // What it did before it panicked is unknown: publish.
-                                changed = true;
-                                tracing::error!("a job store request panicked; it was dropped")
-                            }
-                        }
+                        let (delivery, change) = request.serve(&mut *store, &mut view, &retention);
+                        deliveries.push(delivery);
+                        changed |= change;
                     }
+                    changed |= retire_beyond_limit(&mut *store, &mut view, &retention);
                 }
                 Work::Retire => {
                     let now = crate::daemon::job::now_s();
-                    match retire(&mut *store, &mut view, &retention, now) {
+                    match round(&mut *store, &mut view, &retention, now) {
                         Ok(ids) => {
                             changed = !ids.is_empty();
                             full = ids.len() >= history::BATCH;
@@ -790,8 +942,10 @@ async fn serve(
         let (deliveries, changed, full);
         (store, view, deliveries, changed, full) = match work.await {
             Ok(done) => done,
+            // The panic goes on as this task's, for the supervisor to name.
+            Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
             Err(e) => {
-                tracing::error!(error = %e, "the job store's thread failed; the store stops");
+                tracing::error!(error = %e, "the job store's thread was cancelled; the store stops");
                 return;
             }
         };
@@ -985,6 +1139,15 @@ impl StoreHandle {
             reply,
         })
         .await
+    }
+
+    /// Closes a printer's bed gate after a print (`job`: the job on the bed).
+    pub async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
+        let gate = PrinterGate {
+            bed_not_cleared: true,
+            last_job: Some(job.to_string()),
+        };
+        self.set_gate(printer, gate).await
     }
 
     /// Marks a printer's bed cleared; false when it was clear already.
@@ -1208,9 +1371,10 @@ mod tests {
         assert_eq!(kept, format!("not G-code: jobs/{}/a.gcode: line 1", job.id));
     }
 
-    /// Through the store's task: retired jobs leave the published snapshot, the history
-    /// pages through them, and one is found by id; what pictures a job has is in the
-    /// snapshot, looked at when the job changed.
+    /// Through the store's task: retired jobs leave the published snapshot (beyond
+    /// `live_jobs` at the change that made one too many, older than `live_for` at a
+    /// round), the history pages through them, and one is found by id; what pictures a
+    /// job has is in the snapshot, looked at when the job changed.
     #[tokio::test]
     async fn the_snapshot_keeps_live_jobs_and_the_history_the_rest() {
         let tmp = tempfile::tempdir().unwrap();
@@ -1219,7 +1383,7 @@ mod tests {
         let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
         let retention = Retention {
             live_for: std::time::Duration::from_secs(86_400),
-            live_jobs: 1,
+            live_jobs: 2,
             keep_for: None,
         };
         let handle = spawn_with(store, retention);
@@ -1237,32 +1401,252 @@ mod tests {
             b"png",
         )
         .unwrap();
-        for id in &ids[..3] {
-            handle
-                .transition(id, JobState::Cancelled, None)
-                .await
-                .unwrap();
-        }
+        let cancel = |id: String| {
+            let handle = handle.clone();
+            async move {
+                handle
+                    .transition(&id, JobState::Cancelled, None)
+                    .await
+                    .unwrap()
+            }
+        };
+        cancel(ids[0].clone()).await;
         assert_eq!(
             handle.snapshot().pictures(&ids[0]),
             [crate::preview::AFTER_PNG]
         );
-
-        let moved = handle.retire(crate::daemon::job::now_s()).await.unwrap();
-        assert_eq!(moved, ids[..2].to_vec());
+        cancel(ids[1].clone()).await;
+        assert!(handle.snapshot().get(&ids[0]).is_some(), "two finished");
+        cancel(ids[2].clone()).await;
         let snapshot = handle.snapshot();
         let live: Vec<&str> = snapshot.jobs().map(|j| j.id.as_str()).collect();
-        assert_eq!(live, [ids[2].as_str(), ids[3].as_str()]);
-        assert!(snapshot.get(&ids[0]).is_none());
+        assert_eq!(
+            live,
+            &ids[1..],
+            "the oldest of three finished retired at once"
+        );
 
-        let page = handle.history(None, 1).await.unwrap();
-        assert_eq!(page.jobs[0].id, ids[1]);
-        let page = handle.history(page.next, 1).await.unwrap();
-        assert_eq!(page.jobs[0].id, ids[0]);
-        assert_eq!(page.next, None);
+        let two_days_on = crate::daemon::job::now_s() + 2.0 * 86_400.0;
+        let moved = handle.retire(two_days_on).await.unwrap();
+        assert_eq!(moved, ids[1..3].to_vec());
+        let snapshot = handle.snapshot();
+        let live: Vec<&str> = snapshot.jobs().map(|j| j.id.as_str()).collect();
+        assert_eq!(live, [ids[3].as_str()]);
+
+        let mut paged = Vec::new();
+        let mut next = None;
+        loop {
+            let page = handle.history(next, 1).await.unwrap();
+            paged.extend(page.jobs.iter().map(|j| j.id.clone()));
+            next = page.next;
+            if next.is_none() {
+                break;
+            }
+        }
+        assert_eq!(paged, [&*ids[2], &ids[1], &ids[0]], "newest first");
         let retired = handle.retired(&ids[0]).await.unwrap().unwrap();
         assert_eq!(retired.record.state, JobState::Cancelled);
         assert!(handle.retired(&ids[3]).await.unwrap().is_none());
+    }
+
+    /// 3,000 jobs finishing within a minute (three bursts of 1,000, each finished as fast
+    /// as the store takes them) never leave more than `live_jobs` finished jobs live, as
+    /// every reply (sent after its snapshot) and the snapshot after each burst show. They
+    /// once all stayed live until the next round, up to ten minutes later, and every
+    /// status paid for them. The counts have every change.
+    #[tokio::test]
+    async fn a_burst_of_finished_jobs_never_exceeds_the_live_count() {
+        use futures_util::future::join_all;
+        const LIVE: usize = 50;
+        const BURST: usize = 1_000;
+        // 6,000 synced writes: in memory where there is a tmpfs (seconds, not minutes on
+        // a busy disk); what is tested is the live count, not the disk.
+        let tmp = tempfile::tempdir_in("/dev/shm")
+            .or_else(|_| tempfile::tempdir())
+            .unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+        let retention = Retention {
+            live_for: std::time::Duration::from_secs(86_400),
+            live_jobs: LIVE,
+            keep_for: None,
+        };
+        let handle = spawn_with(store, retention);
+        let mut last = String::new();
+        for burst in 1..=3 {
+            let admitted = join_all((0..BURST).map(|i| {
+                let (handle, hot) = (handle.clone(), hot.clone());
+                async move {
+                    let model = hot.join(format!("b{burst}-{i}.gcode"));
+                    std::fs::write(&model, b"G28\n").unwrap();
+                    handle.admit(&model, &hot, &[]).await.unwrap().id
+                }
+            }))
+            .await;
+            let finished = join_all(admitted.iter().enumerate().map(|(i, id)| {
+                let handle = handle.clone();
+                // Every way a job ends for good.
+                let to = [JobState::Cancelled, JobState::Failed][i % 2];
+                async move {
+                    handle.transition(id, to, None).await.unwrap();
+                    handle.snapshot().finished_live()
+                }
+            }))
+            .await;
+            let most = finished.into_iter().max().unwrap();
+            assert!(most <= LIVE, "burst {burst}: {most} finished jobs live");
+            let snapshot = handle.snapshot();
+            assert_eq!(snapshot.finished_live(), LIVE, "burst {burst}");
+            assert_eq!(snapshot.jobs().count(), LIVE, "burst {burst}: only those");
+            let counts = snapshot.counts();
+            assert_eq!(counts.into_state(JobState::Queued), (burst * BURST) as u64);
+            assert_eq!(counts.finished(), (burst * BURST) as u64);
+            last = admitted.last().unwrap().clone();
+        }
+        // The newest stay live; the rest are in the history.
+        assert!(handle.snapshot().get(&last).is_some());
+        let page = handle.history(None, 1).await.unwrap();
+        assert!(page.jobs[0].seq < handle.snapshot().get(&last).unwrap().seq);
+    }
+
+    /// The embedded store with a second writer, as a shared farm has: changes queued in
+    /// `elsewhere` are made behind the task's back, and taken in by the next resync.
+    struct TwoHosts {
+        spool: spool::Spool,
+        elsewhere: Arc<std::sync::Mutex<Vec<(String, JobState)>>>,
+    }
+
+    impl JobStore for TwoHosts {
+        fn jobs_dir(&self) -> PathBuf {
+            self.spool.jobs_dir()
+        }
+        fn jobs(&self) -> Vec<Job> {
+            JobStore::jobs(&self.spool)
+        }
+        fn job(&self, id: &str) -> Option<Job> {
+            JobStore::job(&self.spool, id)
+        }
+        fn gates(&self) -> BTreeMap<String, PrinterGate> {
+            JobStore::gates(&self.spool)
+        }
+        fn recover(&mut self) -> Result<Vec<String>, StoreError> {
+            JobStore::recover(&mut self.spool)
+        }
+        fn admit(&mut self, source: &Path, folder: &Path, p: &[String]) -> Result<Job, StoreError> {
+            JobStore::admit(&mut self.spool, source, folder, p)
+        }
+        fn late_sidecar(&mut self, id: &str, s: &Path, applies: bool) -> Result<bool, StoreError> {
+            JobStore::late_sidecar(&mut self.spool, id, s, applies)
+        }
+        fn transition_with(
+            &mut self,
+            id: &str,
+            from: Option<StateFilter>,
+            state: JobState,
+            reason: Option<String>,
+            also: JobEdit,
+        ) -> Result<Job, StoreError> {
+            JobStore::transition_with(&mut self.spool, id, from, state, reason, also)
+        }
+        fn record_outcome(
+            &mut self,
+            id: &str,
+            state: JobState,
+            reason: Option<String>,
+            also: JobEdit,
+        ) -> Result<Job, StoreError> {
+            JobStore::record_outcome(&mut self.spool, id, state, reason, also)
+        }
+        fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
+            JobStore::update(&mut self.spool, id, change)
+        }
+        fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+            JobStore::retry(&mut self.spool, id)
+        }
+        fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+            JobStore::set_gate(&mut self.spool, printer, gate)
+        }
+        fn write_pending(&mut self) -> usize {
+            JobStore::write_pending(&mut self.spool)
+        }
+        fn unwritten(&self) -> usize {
+            JobStore::unwritten(&self.spool)
+        }
+        fn resync(&mut self) -> bool {
+            let changes: Vec<_> = std::mem::take(&mut *self.elsewhere.lock().unwrap());
+            for (id, state) in &changes {
+                let on_p1: JobEdit = Box::new(|j| j.printer = Some("p1".into()));
+                JobStore::transition_with(&mut self.spool, id, None, *state, None, on_p1).unwrap();
+            }
+            // Always a rebuild of the snapshot: one with nothing new must count nothing.
+            true
+        }
+        fn retire(&mut self, r: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+            JobStore::retire(&mut self.spool, r, now)
+        }
+        fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+            JobStore::retired(&self.spool, id)
+        }
+        fn history(
+            &self,
+            before: Option<u64>,
+            limit: usize,
+            filter: &history::Filter,
+        ) -> Result<history::Page, StoreError> {
+            JobStore::history(&self.spool, before, limit, filter)
+        }
+        fn prune(&mut self, keep: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+            JobStore::prune(&mut self.spool, keep, now)
+        }
+        fn each_retired(
+            &self,
+            since: f64,
+            visit: &mut dyn FnMut(history::Retired),
+        ) -> Result<(), StoreError> {
+            JobStore::each_retired(&self.spool, since, visit)
+        }
+    }
+
+    /// Changes another host made are counted by the task from what a resync takes in,
+    /// each once (a rebuild that brings nothing new counts nothing): the counts and the
+    /// tally are the farm's, not only this host's requests (a wrapper around this host's
+    /// requests once counted, and missed them).
+    #[tokio::test]
+    async fn changes_from_elsewhere_are_counted_once() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path().join("hot");
+        std::fs::create_dir(&hot).unwrap();
+        let elsewhere = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let store = TwoHosts {
+            spool: spool::Spool::open(&tmp.path().join("spool")).unwrap(),
+            elsewhere: Arc::clone(&elsewhere),
+        };
+        let handle = spawn(store);
+        std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
+        let job = handle.admit(&hot.join("a.gcode"), &hot, &[]).await.unwrap();
+        let counts = |state| handle.snapshot().counts().into_state(state);
+        assert_eq!(counts(JobState::Queued), 1, "this host's own change");
+        elsewhere.lock().unwrap().extend(
+            [
+                JobState::Preparing,
+                JobState::Ready,
+                JobState::Printing,
+                JobState::Done,
+            ]
+            .map(|s| (job.id.clone(), s)),
+        );
+        assert!(handle.resync().await.unwrap());
+        // Rebuilt again from the same jobs: nothing is counted twice.
+        assert!(handle.resync().await.unwrap());
+        for state in [JobState::Queued, JobState::Preparing, JobState::Ready] {
+            assert_eq!(counts(state), 1, "{state}");
+        }
+        assert_eq!((counts(JobState::Printing), counts(JobState::Done)), (1, 1));
+        let snapshot = handle.snapshot();
+        assert_eq!(snapshot.counts().finished(), 1);
+        let p1 = &snapshot.tally().read()["p1"];
+        assert_eq!((p1.done, p1.prints), (1, 1), "the print on p1");
     }
 
     /// The rule both stores use on retry; a job prepared before machines existed keeps its

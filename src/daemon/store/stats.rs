@@ -4,8 +4,8 @@
 //! failure reasons. Computed from the history's records and the live jobs (both as
 //! [`Retired`] records), by arithmetic without I/O, so the rules are tested on their own.
 //!
-//! Also the counters behind `/metrics` ([`Tally`]): counted as jobs change state on this
-//! host, from the start of the process (Prometheus takes a restart's reset), so they never
+//! Also the counters behind `/metrics` ([`Tally`]): counted by the store's task as jobs
+//! change state, from the start of the process (Prometheus takes a restart's reset), so they never
 //! go down when finished jobs move to the history.
 //!
 //! The rules: a job counts in the outcomes, filament and failure reasons of the period in
@@ -16,7 +16,6 @@ use super::history::{folder_is, Retired};
 use crate::daemon::job::{Job, JobState};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
-use std::sync::Mutex;
 
 const DAY: f64 = 86_400.0;
 
@@ -349,35 +348,35 @@ pub struct PrinterTally {
     pub silence_probes: u64,
 }
 
-/// Counters of what jobs did on this host since the process started, by printer: fed by
-/// every state change the farm makes ([`Tally::changed`]), read by `/metrics`. Monotonic
-/// while the process runs; a restart starts them again from zero, which Prometheus'
-/// `rate()` and `increase()` take as a counter reset. Each host counts the changes it
-/// made, so a shared farm's hosts add up to the farm.
-#[derive(Debug, Default)]
-pub struct Tally(Mutex<BTreeMap<String, PrinterTally>>);
+/// Counters of what jobs did since the process started, by printer: kept by the store's
+/// task, which counts every state change it publishes ([`Tally::count`]), this host's and,
+/// in a shared farm, the other hosts' it takes in, and published in its snapshot for
+/// `/metrics`. Monotonic while the process runs; a restart starts them again from zero,
+/// which Prometheus' `rate()` and `increase()` take as a counter reset. Every host of a
+/// shared farm sees the whole farm, so each reports the farm's figures (not its share).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Tally(BTreeMap<String, PrinterTally>);
 
 impl Tally {
-    /// Counts a change `job` has just made (its last state change is the new one).
-    /// Jobs without a printer (a failed preparation) have nothing to count.
-    pub fn changed(&self, job: &Job) {
+    /// Counts `job`'s state change `k` (its entry in `job.history`). Jobs without a printer
+    /// (a failed preparation) have nothing to count.
+    pub fn count(&mut self, job: &Job, k: usize) {
         let Some(printer) = &job.printer else { return };
-        let n = job.history.len();
-        let Some(&(now_state, at)) = job.history.last() else {
+        let Some(&(now_state, at)) = job.history.get(k) else {
             return;
         };
-        let left_printing = n >= 2 && job.history[n - 2].0 == JobState::Printing;
-        // A poisoned lock held only counters: take them as they are.
-        let mut all = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        let t = all.entry(printer.clone()).or_default();
-        if left_printing {
-            t.printing_s += (at - job.history[n - 2].1).max(0.0);
+        let left = k.checked_sub(1).and_then(|i| job.history.get(i));
+        let t = self.0.entry(printer.clone()).or_default();
+        if let Some(&(JobState::Printing, started)) = left {
+            t.printing_s += (at - started).max(0.0);
             t.prints += 1;
-            if matches!(now_state, JobState::Done | JobState::Ready) {
+            // The job's reports are of its last print: only that change has them.
+            let last = k + 1 == job.history.len();
+            if last && matches!(now_state, JobState::Done | JobState::Ready) {
                 let mm = job.slice_report.as_ref().and_then(|r| r.filament_mm);
                 t.filament_m += mm.unwrap_or(0.0) / 1000.0;
             }
-            if let Some(report) = &job.print_report {
+            if let (true, Some(report)) = (last, &job.print_report) {
                 t.resends += report.resends;
                 t.silence_probes += report.silence_probes;
             }
@@ -392,7 +391,7 @@ impl Tally {
 
     /// The counters of each printer that has any.
     pub fn read(&self) -> BTreeMap<String, PrinterTally> {
-        self.0.lock().unwrap_or_else(|e| e.into_inner()).clone()
+        self.0.clone()
     }
 }
 
@@ -515,11 +514,11 @@ mod tests {
     fn the_tally_counts_each_print_once() {
         let mut job = Job::queued("0001-x".into(), 1, "x.stl".into(), "/hot".into());
         job.printer = Some("p1".into());
-        let tally = Tally::default();
+        let mut tally = Tally::default();
         let mut step = |state: JobState, at: f64| {
             job.state = state;
             job.history.push((state, at));
-            tally.changed(&job);
+            tally.count(&job, job.history.len() - 1);
         };
         step(JobState::Printing, 100.0);
         step(JobState::Ready, 160.0); // a copy

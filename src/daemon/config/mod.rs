@@ -10,6 +10,7 @@
 //! without reading code; a wrong file is always an error, never silently replaced by
 //! defaults.
 
+pub mod keys;
 pub mod notify;
 pub mod octoprint;
 mod pause;
@@ -134,6 +135,7 @@ struct RawFarm {
     on_shutdown: Option<OnShutdown>,
     settle_s: Option<f64>,
     rescan_s: Option<f64>,
+    finish_timeout_s: Option<f64>,
     host: Option<String>,
 }
 
@@ -364,6 +366,9 @@ pub struct FarmConfig {
     pub settle: Duration,
     /// Hot folders are rescanned this often in case a watch event was missed.
     pub rescan: Duration,
+    /// With `on_shutdown = "finish"`, prints still running this long after the stop began
+    /// are stopped safely (the daemon asks systemd for time up to then, no longer).
+    pub finish_timeout: Duration,
     /// This host's name in a farm shared through `[store]` (default: the hostname).
     pub host: String,
 }
@@ -578,12 +583,17 @@ impl Config {
             let offset = e.span().map(|s| s.start).unwrap_or(0);
             let (line, mut section) = locate(text, offset);
             let mut message = e.message().trim().to_string();
+            // serde speaks of fields; the file has keys.
+            if let Some(key) = message.strip_prefix("missing field ") {
+                message = format!("missing key {key}");
+            }
             // An unknown table is reported where serde sees it, as a key of the document;
             // its header is on the error's line, so name it as what it is.
             if let Some(header) = unknown_table_header(text, offset) {
                 section = "the top level".into();
                 message = format!(
-                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[machine]], [[printer]], [[folder]], [http], [store], [history])"
+                    "unknown table `{header}` (known tables: {})",
+                    KNOWN_TABLES.join(", ")
                 );
             }
             ConfigError::Parse {
@@ -661,6 +671,7 @@ printers = ["demo"]
                 on_shutdown: None,
                 settle_s: None,
                 rescan_s: None,
+                finish_timeout_s: None,
                 host: None,
             });
             let max_heating = match raw_farm.max_heating {
@@ -683,6 +694,12 @@ printers = ["demo"]
                 on_shutdown: raw_farm.on_shutdown.unwrap_or(OnShutdown::Finish),
                 settle: seconds("settle_s", raw_farm.settle_s, 5.0, &SETTLE_S)?,
                 rescan: seconds("rescan_s", raw_farm.rescan_s, 30.0, &RESCAN_S)?,
+                finish_timeout: seconds(
+                    "finish_timeout_s",
+                    raw_farm.finish_timeout_s,
+                    DEFAULT_FINISH_TIMEOUT_S,
+                    &FINISH_TIMEOUT_S,
+                )?,
                 host: match raw_farm.host {
                     None => this_hostname(),
                     Some(h) => {
@@ -1221,6 +1238,10 @@ pub type Bounds = std::ops::RangeInclusive<f64>;
 const SETTLE_S: Bounds = 0.05..=3600.0;
 /// Rescan period of the hot folders.
 const RESCAN_S: Bounds = 0.5..=86_400.0;
+/// How long prints may take to finish at a stop: from a second (tests) to two days.
+pub const FINISH_TIMEOUT_S: Bounds = 1.0..=2.0 * 86_400.0;
+/// Two hours, what the service unit once waited for a stop before it killed the daemon.
+pub const DEFAULT_FINISH_TIMEOUT_S: f64 = 2.0 * 3600.0;
 /// Time limit of one preparation (enhance and slice).
 pub const PREPARE_TIMEOUT_S: Bounds = 0.1..=7.0 * 86_400.0;
 
@@ -1375,6 +1396,21 @@ pub fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     }
 }
 
+/// The tables as their headers are written, for an error about an unknown one. A test
+/// checks it against the file's shape ([`keys::tables`]).
+const KNOWN_TABLES: [&str; 10] = [
+    "[spool]",
+    "[control]",
+    "[farm]",
+    "[[machine]]",
+    "[[printer]]",
+    "[[folder]]",
+    "[http]",
+    "[store]",
+    "[history]",
+    "[[notify]]",
+];
+
 /// The table header on the line of `offset`, when that header names no known table.
 fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
     let offset = offset.min(text.len());
@@ -1387,10 +1423,10 @@ fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
         .0
         .trim();
     let top = name.split('.').next()?.trim().trim_matches('"');
-    let known = [
-        "spool", "control", "farm", "machine", "printer", "folder", "http", "store", "history",
-    ];
-    (!known.contains(&top)).then(|| {
+    let known = KNOWN_TABLES
+        .iter()
+        .any(|h| h.trim_matches(['[', ']']) == top);
+    (!known).then(|| {
         line.split_once('#')
             .map_or(line, |(h, _)| h)
             .trim()
@@ -1806,6 +1842,8 @@ slicer = "cura"
             ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nrescan_s = 1e-12", "[farm]: key `rescan_s`"),
             ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nsettle_s = 1e30", "[farm]: key `settle_s`"),
             ("max_heating = 1", "max_heating = 100000", "[farm]: key `max_heating`: must be between 1 and 256"),
+            ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nfinish_timeout_s = 0.5", "[farm]: key `finish_timeout_s`: must be a number of seconds from 1 to 172800, got 0.5"),
+            ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nfinish_timeout_s = 1e9", "[farm]: key `finish_timeout_s`"),
             ("height_mm = 50", "height_mm = 0.001", "key `height_mm`: must be from 1 to 2000 mm"),
             ("height_mm = 50", "height_mm = 500", "key `height_mm`: 500 mm is taller than any of its printers' machines builds (250 mm)"),
             ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\" or a lambda2 from 0 to 100"),
@@ -1878,6 +1916,50 @@ slicer = "cura"
             1,
         );
         assert_eq!(parse(&named).unwrap().farm.host, "rack-2.b_c");
+    }
+
+    /// A known table missing a required key was once refused as an unknown table (a
+    /// `[[notify]]` without `name`, the list of known tables leaving it out): each table
+    /// says which of its keys is missing, and the known tables are the file's.
+    #[test]
+    fn a_missing_key_is_named_in_every_table() {
+        let cases = [
+            (
+                "[[notify]]\nurl = \"https://ntfy.sh/farm\"\n",
+                "[[notify]] #1: missing key `name`",
+            ),
+            (
+                "[[machine]]\nbased_on = \"marlin-175\"\n",
+                "[[machine]] #1: missing key `name`",
+            ),
+            (
+                "[[printer]]\nfirmware = \"marlin2\"\n",
+                "[[printer]] #3: missing key `name`",
+            ),
+            (
+                "[[folder]]\nheight_mm = 5\nprinters = [\"sim\"]\n",
+                "[[folder]] #3: missing key `path`",
+            ),
+            (
+                "[http]\napi_key_file = \"k\"\n",
+                "[http]: missing key `listen`",
+            ),
+            ("[store]\nlease_s = 5\n", "[store]: missing key `postgres`"),
+        ];
+        for (table, expected) in cases {
+            let err = parse(&format!("{GOOD}{table}")).unwrap_err().to_string();
+            assert!(err.contains(expected), "{err}");
+            assert!(!err.contains("unknown table"), "{err}");
+        }
+        let err = parse("[control]\nsocket = \"s\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("missing key `spool`"), "{err}");
+        let headers: Vec<&str> = KNOWN_TABLES
+            .iter()
+            .map(|h| h.trim_matches(['[', ']']))
+            .collect();
+        assert_eq!(headers, keys::tables());
     }
 
     /// An unknown table was once reported as an unknown key of the table above it.

@@ -159,6 +159,9 @@ struct RawPrinter {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawSimulate {
+    /// A number (how many times faster than real time) or "instant".
+    speed: Option<toml::Value>,
+    /// Replaced by `speed`, its inverse; still read, with a warning.
     time_scale: Option<f64>,
     seed: Option<u64>,
     record: Option<PathBuf>,
@@ -630,7 +633,7 @@ settle_s = 2
 name = "demo"
 firmware = "ultimaker2"
 [printer.simulate]
-time_scale = 0.01
+speed = 100
 [[folder]]
 path = "crispen-demo/hot/50mm"
 height_mm = 50
@@ -664,6 +667,8 @@ printers = ["demo"]
         };
 
         let (spool_dir, socket) = spool_and_socket(&raw, file, base)?;
+        // What is accepted but should change (see `Config::warnings`).
+        let mut warnings = Vec::new();
 
         let farm = {
             let raw_farm = raw.farm.unwrap_or(RawFarm {
@@ -881,17 +886,46 @@ printers = ["demo"]
                 (Some(port), None) => PrinterPort::Serial(anchor(&port)),
                 (None, Some(sim)) => {
                     let sim_section = format!("{section}.simulate");
-                    let time_scale = sim.time_scale.unwrap_or(1.0);
-                    if !(time_scale.is_finite() && (0.0..=100.0).contains(&time_scale)) {
-                        return Err(invalid(
-                            sim_section,
-                            "time_scale",
-                            format!(
-                                "must be between 0 (instant) and 100, got {}",
-                                number(time_scale)
-                            ),
-                        ));
-                    }
+                    let time_scale = match (sim.speed, sim.time_scale) {
+                        (Some(_), Some(_)) => {
+                            return Err(invalid(
+                                sim_section,
+                                "time_scale",
+                                "give `speed` alone (`time_scale` is its old, inverse form)".into(),
+                            ))
+                        }
+                        (Some(speed), None) => {
+                            let text = match speed {
+                                toml::Value::String(s) => s,
+                                other => other.to_string(),
+                            };
+                            crate::marlin::sim::time_scale_of_speed(&text)
+                                .map_err(|m| invalid(sim_section, "speed", m))?
+                        }
+                        (None, Some(old)) => {
+                            if !(old.is_finite() && (0.0..=100.0).contains(&old)) {
+                                return Err(invalid(
+                                    sim_section,
+                                    "time_scale",
+                                    format!(
+                                        "must be between 0 (instant) and 100, got {} (hint: use `speed`, how many times faster than real time)",
+                                        number(old)
+                                    ),
+                                ));
+                            }
+                            let speed = if old == 0.0 {
+                                "\"instant\"".to_string()
+                            } else {
+                                number(1.0 / old)
+                            };
+                            warnings.push(format!(
+                                "{sim_section} key `time_scale`: replaced by `speed`, a speed-up factor (higher is faster); time_scale = {} is speed = {speed}",
+                                number(old)
+                            ));
+                            old
+                        }
+                        (None, None) => 1.0,
+                    };
                     PrinterPort::Simulated {
                         time_scale,
                         // From the name, not the position: removing another printer
@@ -1037,7 +1071,7 @@ printers = ["demo"]
                 store,
                 history,
                 notify,
-                warnings: Vec::new(),
+                warnings,
             },
             http,
         })
@@ -2061,6 +2095,41 @@ slicer = "cura"
         let err = parse(&text).unwrap_err().to_string();
         assert!(err.contains("[farm]"), "{err}");
         assert!(err.contains("line 7"), "{err}");
+    }
+
+    /// `[printer.simulate] speed` is a speed-up factor, higher is faster; `time_scale`, its
+    /// inverse (which read as a speed: 20 made a printer twenty times slower), is still
+    /// read, with a warning that names `speed`.
+    #[test]
+    fn simulated_speed_is_a_factor_and_time_scale_still_read() {
+        let sim = |table: &str| parse(&GOOD.replace("time_scale = 0.5", table));
+        let scale = |c: &Config| match c.printers[1].port {
+            PrinterPort::Simulated { time_scale, .. } => time_scale,
+            _ => panic!("not simulated"),
+        };
+        let c = sim("speed = 20").unwrap();
+        assert_eq!(scale(&c), 0.05);
+        assert!(c.warnings.is_empty(), "{:?}", c.warnings);
+        assert_eq!(scale(&sim("speed = 2.5").unwrap()), 0.4);
+        assert_eq!(scale(&sim("speed = \"instant\"").unwrap()), 0.0);
+        let c = sim("time_scale = 0.5").unwrap();
+        assert_eq!(scale(&c), 0.5);
+        assert!(
+            c.warnings.iter().any(|w| w.contains(
+                "[[printer]] #2 (name \"sim\").simulate key `time_scale`: replaced by `speed`"
+            ) && w.ends_with("time_scale = 0.5 is speed = 2")),
+            "{:?}",
+            c.warnings
+        );
+        for (bad, key) in [
+            ("speed = 0", "speed"),
+            ("speed = \"fast\"", "speed"),
+            ("speed = 1e9", "speed"),
+            ("speed = 2\ntime_scale = 0.5", "time_scale"),
+        ] {
+            let e = sim(bad).unwrap_err().to_string();
+            assert!(e.contains(&format!(".simulate: key `{key}`")), "{e}");
+        }
     }
 
     #[test]

@@ -132,6 +132,27 @@ impl Poker {
     }
 }
 
+/// The fastest a simulated printer runs as a factor (`speed`; beyond it, "instant").
+pub const MAX_SPEED: f64 = 1_000_000.0;
+
+/// A simulated printer's speed as operators give it (`crispen sim --speed`, `[printer.simulate]
+/// speed`): how many times faster than the real printer, higher is faster (1 = real
+/// timing, 20 = twenty times faster), from 0.01 to [`MAX_SPEED`], or "instant" (moves,
+/// heating and homing take no time). Returned as [`SimConfig::time_scale`], its inverse.
+/// The old `time_scale` was that inverse, which read as a speed: 20 made a demo twenty
+/// times slower and look hung.
+pub fn time_scale_of_speed(speed: &str) -> Result<f64, String> {
+    if speed.trim() == "instant" {
+        return Ok(0.0);
+    }
+    match speed.trim().parse::<f64>() {
+        Ok(x) if (0.01..=MAX_SPEED).contains(&x) => Ok(1.0 / x),
+        _ => Err(format!(
+            "speed {speed:?}: give how many times faster than real time, from 0.01 to {MAX_SPEED} (1 = real time, 20 = twenty times faster), or \"instant\""
+        )),
+    }
+}
+
 /// How to run a simulated printer.
 #[derive(Debug, Clone)]
 pub struct SimConfig {

@@ -71,7 +71,7 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("printer.firmware", Policy::PrinterRestart),
     ("printer.baud", Policy::PrinterRestart),
     ("printer.heat_timeout_s", Policy::PrinterRestart),
-    // A print's pauses take it when the print starts.
+    // The printer's supervisor takes it when it starts.
     ("printer.pause_heaters_off_s", Policy::PrinterRestart),
     ("printer.machine", Policy::PrinterRestart),
     ("folder", Policy::Live),

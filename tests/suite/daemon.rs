@@ -702,7 +702,7 @@ impl Finishing {
                 "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
                  [farm]\nsettle_s = 0.5\non_shutdown = \"finish\"\nfinish_timeout_s = {finish_timeout_s}\n\
                  [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n\
-                 [printer.simulate]\ntime_scale = 0.1\nrecord = \"{}\"\n\
+                 [printer.simulate]\nspeed = 10\nrecord = \"{}\"\n\
                  [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
                 rec.display()
             ),
@@ -1530,7 +1530,7 @@ fn farm_config(root: &Path) -> PathBuf {
         "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nhost = \"rack-1\"\n\
          [store]\npostgres = \"host=/run/postgresql dbname=crispen\"\npassword_file = \"pw\"\nlease_s = 15\n\
          [http]\nlisten = \"127.0.0.1:8080\"\napi_key_file = \"key\"\n\
-         [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\nspeed = \"instant\"\n\
          [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
     )
     .unwrap();
@@ -1807,7 +1807,8 @@ fn a_config_named_without_a_directory_anchors_its_paths() {
 /// folder added applies at once (a file dropped into it is picked up), a printer's
 /// firmware applies by restarting that printer (the status shows the new firmware), and
 /// a new control socket needs a daemon restart (the daemon goes on answering on the old
-/// one and says so in its log).
+/// one and says so in its log). `history.keep_days` and `printer.pause_heaters_off_s`,
+/// once dropped by a reload without a word, are reported too.
 #[test]
 fn reload_applies_each_key_as_its_policy_declares() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1826,9 +1827,10 @@ fn reload_applies_each_key_as_its_policy_declares() {
         .replace("socket = \"c.sock\"", "socket = \"d.sock\"")
         .replace(
             "firmware = \"marlin2\"",
-            "firmware = \"ultimaker2\"\nbaud = 250000",
+            "firmware = \"ultimaker2\"\nbaud = 250000\npause_heaters_off_s = 60",
         )
-        + "[[folder]]\npath = \"hot2\"\nheight_mm = 25\nprinters = [\"p\"]\n";
+        + "[[folder]]\npath = \"hot2\"\nheight_mm = 25\nprinters = [\"p\"]\n\
+           [history]\nkeep_days = 30\n";
     std::fs::write(&config, changed).unwrap();
     nix::sys::signal::kill(
         nix::unistd::Pid::from_raw(daemon.child.id() as i32),
@@ -1874,6 +1876,11 @@ fn reload_applies_each_key_as_its_policy_declares() {
             "applies when the printer is not printing",
         ),
         ("folder", "applied"),
+        ("history.keep_days", "needs a daemon restart"),
+        (
+            "printer.pause_heaters_off_s",
+            "applies when the printer is not printing",
+        ),
     ] {
         assert!(
             text.lines()

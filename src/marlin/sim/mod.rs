@@ -132,15 +132,15 @@ impl Poker {
     }
 }
 
-/// The fastest a simulated printer runs as a factor (`speed`; beyond it, "instant").
+/// The largest speed-up factor taken; faster than that is "instant".
 pub const MAX_SPEED: f64 = 1_000_000.0;
 
-/// A simulated printer's speed as operators give it (`crispen sim --speed`, `[printer.simulate]
-/// speed`): how many times faster than the real printer, higher is faster (1 = real
-/// timing, 20 = twenty times faster), from 0.01 to [`MAX_SPEED`], or "instant" (moves,
-/// heating and homing take no time). Returned as [`SimConfig::time_scale`], its inverse.
-/// The old `time_scale` was that inverse, which read as a speed: 20 made a demo twenty
-/// times slower and look hung.
+/// A simulated printer's speed as operators give it (`crispen sim --speed`,
+/// `[printer.simulate] speed`): how many times faster than the real printer, higher is
+/// faster (1 = real timing, 20 = twenty times faster), from 0.01 to [`MAX_SPEED`], or
+/// "instant" (moves, heating and homing take no time). Returned as
+/// [`SimConfig::time_scale`], its inverse. Operators once gave that inverse, which read as
+/// a speed: 20 made a demo twenty times slower, and it looked hung.
 pub fn time_scale_of_speed(speed: &str) -> Result<f64, String> {
     if speed.trim() == "instant" {
         return Ok(0.0);

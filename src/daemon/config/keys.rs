@@ -1,7 +1,7 @@
 //! The keys a config file may hold, read off the `Raw*` structs' own `Deserialize`
 //! implementations, which are where the file's shape is declared: the reload policy is
 //! checked against them (a key added to a struct without a reload decision fails the
-//! suite) and a parse error lists the known tables from them. A [`Tracer`] is a serde
+//! suite), and so is the list of known tables a parse error gives. A [`Tracer`] is a serde
 //! deserializer that offers every field of every struct it is asked for, with a neutral
 //! value for each, and writes down the dotted path of each field on the way.
 
@@ -23,18 +23,8 @@ pub fn all() -> Result<Vec<String>, Error> {
 }
 
 /// The top-level tables (`spool`, ..., `notify`), as a header names them.
-pub fn tables() -> Vec<String> {
-    // The top level is a struct of tables: its fields are written down before any value
-    // is traced, so even a failure further down cannot lose them.
-    let keys = RefCell::new(Vec::new());
-    let _ = super::RawConfig::deserialize(Tracer {
-        prefix: "",
-        keys: &keys,
-    });
-    keys.into_inner()
-        .into_iter()
-        .filter(|k| !k.contains('.'))
-        .collect()
+pub fn tables() -> Result<Vec<String>, Error> {
+    Ok(all()?.into_iter().filter(|k| !k.contains('.')).collect())
 }
 
 /// A value at `prefix` (the key it is the value of); see the module's comment.
@@ -123,6 +113,7 @@ impl<'de> de::Deserializer<'de> for Tracer<'_> {
         visitor.visit_bool(false)
     }
 
+    /// Every integer: 0, which every integer type takes.
     fn deserialize_i64<V: Visitor<'de>>(self, visitor: V) -> Result<V::Value, Error> {
         visitor.visit_u8(0)
     }
@@ -143,7 +134,6 @@ impl<'de> de::Deserializer<'de> for Tracer<'_> {
         visitor.visit_unit()
     }
 
-    // Every integer is a small one (a u8 fits them all); every text is empty.
     serde::forward_to_deserialize_any! {
         char bytes byte_buf unit_struct tuple_struct identifier
     }
@@ -250,7 +240,7 @@ mod tests {
             assert!(keys.iter().any(|k| k == key), "{key} in {keys:?}");
         }
         assert_eq!(
-            super::tables(),
+            super::tables().unwrap(),
             [
                 "spool", "control", "farm", "machine", "printer", "folder", "http", "store",
                 "history", "notify"

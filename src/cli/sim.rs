@@ -137,13 +137,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     "--time-scale {old} must be 0 (instant) or a positive number (1 = real time)"
                 );
             }
-            let speed = if old == 0.0 {
-                "instant".to_string()
-            } else {
-                (1.0 / old).to_string()
-            };
             eprintln!(
-                "warning: --time-scale is replaced by --speed, a speed-up factor (higher is faster); --time-scale {old} is --speed {speed}"
+                "warning: --time-scale is replaced by --speed, a speed-up factor (higher is faster); --time-scale {old} is --speed {}",
+                sim::speed_of_time_scale(old)
             );
             old
         }

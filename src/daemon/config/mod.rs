@@ -888,46 +888,9 @@ printers = ["demo"]
                 (Some(port), None) => PrinterPort::Serial(anchor(&port)),
                 (None, Some(sim)) => {
                     let sim_section = format!("{section}.simulate");
-                    let time_scale = match (sim.speed, sim.time_scale) {
-                        (Some(_), Some(_)) => {
-                            return Err(invalid(
-                                sim_section,
-                                "time_scale",
-                                "give `speed` alone (`time_scale` is its old, inverse form)".into(),
-                            ))
-                        }
-                        (Some(speed), None) => {
-                            let text = match speed {
-                                toml::Value::String(s) => s,
-                                other => other.to_string(),
-                            };
-                            crate::marlin::sim::time_scale_of_speed(&text)
-                                .map_err(|m| invalid(sim_section, "speed", m))?
-                        }
-                        (None, Some(old)) => {
-                            if !(old.is_finite() && (0.0..=100.0).contains(&old)) {
-                                return Err(invalid(
-                                    sim_section,
-                                    "time_scale",
-                                    format!(
-                                        "must be between 0 (instant) and 100, got {} (hint: use `speed`, how many times faster than real time)",
-                                        number(old)
-                                    ),
-                                ));
-                            }
-                            let speed = if old == 0.0 {
-                                "\"instant\"".to_string()
-                            } else {
-                                number(1.0 / old)
-                            };
-                            warnings.push(format!(
-                                "{sim_section} key `time_scale`: replaced by `speed`, a speed-up factor (higher is faster); time_scale = {} is speed = {speed}",
-                                number(old)
-                            ));
-                            old
-                        }
-                        (None, None) => 1.0,
-                    };
+                    let time_scale =
+                        simulate_time_scale(sim.speed, sim.time_scale, &sim_section, &mut warnings)
+                            .map_err(|(key, m)| invalid(sim_section, key, m))?;
                     PrinterPort::Simulated {
                         time_scale,
                         // From the name, not the position: removing another printer
@@ -1077,6 +1040,52 @@ printers = ["demo"]
             },
             http,
         })
+    }
+}
+
+/// `[printer.simulate] speed` (see [`crate::marlin::sim::time_scale_of_speed`]), or the
+/// old `time_scale`, its inverse, read as before with a warning in `warnings` that names
+/// `speed`: the simulator's time scale. An error names its key.
+fn simulate_time_scale(
+    speed: Option<toml::Value>,
+    time_scale: Option<f64>,
+    section: &str,
+    warnings: &mut Vec<String>,
+) -> Result<f64, (&'static str, String)> {
+    use crate::marlin::sim::{speed_of_time_scale, time_scale_of_speed};
+    match (speed, time_scale) {
+        (Some(_), Some(_)) => Err((
+            "time_scale",
+            "give `speed` alone (`time_scale` is its old, inverse form)".into(),
+        )),
+        (Some(speed), None) => {
+            let text = match speed {
+                toml::Value::String(s) => s,
+                other => other.to_string(),
+            };
+            time_scale_of_speed(&text).map_err(|m| ("speed", m))
+        }
+        (None, Some(old)) => {
+            if !(old.is_finite() && (0.0..=100.0).contains(&old)) {
+                return Err((
+                    "time_scale",
+                    format!(
+                        "must be between 0 (instant) and 100, got {} (hint: use `speed`, how many times faster than real time)",
+                        number(old)
+                    ),
+                ));
+            }
+            let speed = match speed_of_time_scale(old) {
+                word if old == 0.0 => format!("{word:?}"),
+                factor => factor,
+            };
+            warnings.push(format!(
+                "{section} key `time_scale`: replaced by `speed`, a speed-up factor (higher is faster); time_scale = {} is speed = {speed}",
+                number(old)
+            ));
+            Ok(old)
+        }
+        (None, None) => Ok(1.0),
     }
 }
 

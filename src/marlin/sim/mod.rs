@@ -153,6 +153,16 @@ pub fn time_scale_of_speed(speed: &str) -> Result<f64, String> {
     }
 }
 
+/// The speed an old time scale (real seconds per simulated second) is, as `speed` is
+/// written: for the warning that names its replacement.
+pub fn speed_of_time_scale(time_scale: f64) -> String {
+    if time_scale == 0.0 {
+        "instant".into()
+    } else {
+        (1.0 / time_scale).to_string()
+    }
+}
+
 /// How to run a simulated printer.
 #[derive(Debug, Clone)]
 pub struct SimConfig {

@@ -804,7 +804,7 @@ fn a_second_sigterm_stops_a_finishing_print_safely() {
     );
     assert!(farm.daemon.child.try_wait().unwrap().is_none());
     farm.signal(nix::sys::signal::Signal::SIGTERM);
-    farm.exits_after_a_safe_stop(Duration::from_secs(30));
+    farm.exits_after_a_safe_stop(Duration::from_secs(60));
     let asked = farm.extensions();
     assert!(!asked.is_empty(), "no EXTEND_TIMEOUT_USEC");
     let log = std::fs::read_to_string(&farm.log).unwrap();
@@ -822,7 +822,9 @@ fn a_finishing_print_is_stopped_safely_at_the_bound() {
     let mut farm = Finishing::printing(5);
     farm.signal(nix::sys::signal::Signal::SIGTERM);
     let start = Instant::now();
-    farm.exits_after_a_safe_stop(Duration::from_secs(40));
+    // Within the bound and the safe stop's grace, with room for a loaded machine (the
+    // whole suite at once once took more than 40 s here).
+    farm.exits_after_a_safe_stop(Duration::from_secs(5 + 60 + 30));
     let took = start.elapsed();
     assert!(
         took >= Duration::from_secs(4),

@@ -357,7 +357,7 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
     farm.begin_stop();
     tasks.stop(PICKUP);
     tasks.join(PREPARATION).await;
-    fleet.join().await;
+    finish_prints(&farm, fleet, &mut sigterm, &mut sigint).await;
     if tasks.has(SHARED) {
         // Prints have ended: their outcomes are in the store.
         stop_shared.cancel();
@@ -385,6 +385,68 @@ pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError
             tracing::info!("crispen daemon stopped");
             Ok(())
         }
+    }
+}
+
+/// How often systemd is asked for more time while prints finish at a stop, and how much
+/// each time: several renewals may be late before the time runs out.
+const EXTEND_EVERY: Duration = Duration::from_secs(2);
+const EXTEND_BY: Duration = Duration::from_secs(20);
+/// After the prints were told to stop, the time asked for their safe stop (the stop's
+/// lines and the printers' answers) before systemd may kill the daemon.
+const STOP_GRACE: Duration = Duration::from_secs(60);
+
+/// Waits for the printers' supervisors to end after [`Farm::begin_stop`]. While prints
+/// finish, systemd is asked for more time (`EXTEND_TIMEOUT_USEC`, renewed before it runs
+/// out), so the unit's short `TimeoutStopSec` does not kill a daemon whose printers are
+/// hot; but only up to `[farm] finish_timeout_s` (and the grace of the safe stop after
+/// it): then the prints are stopped safely, heaters off, as a second SIGTERM or SIGINT
+/// stops them at once. A daemon killed by systemd would leave the heaters on.
+async fn finish_prints(
+    farm: &Farm,
+    fleet: Fleet,
+    sigterm: &mut tokio::signal::unix::Signal,
+    sigint: &mut tokio::signal::unix::Signal,
+) {
+    use tokio::time::Instant;
+    let bound = Instant::now() + farm.config().farm.finish_timeout;
+    let mut stopping = farm.stop_prints.is_cancelled();
+    // Past this, no more time is asked for.
+    let mut last = if stopping { Instant::now() } else { bound } + STOP_GRACE;
+    let printing = farm
+        .local_printers()
+        .iter()
+        .filter(|p| p.job.is_some())
+        .count();
+    if printing > 0 && !stopping {
+        tracing::info!(
+            prints = printing,
+            "waiting for the prints to finish (at most [farm] finish_timeout_s = {} s; a second SIGTERM stops them safely)",
+            farm.config().farm.finish_timeout.as_secs_f64()
+        );
+    }
+    let mut extend = tokio::time::interval(EXTEND_EVERY);
+    let ended = fleet.join();
+    tokio::pin!(ended);
+    loop {
+        let why = tokio::select! {
+            () = &mut ended => return,
+            _ = sigterm.recv(), if !stopping => "second SIGTERM",
+            _ = sigint.recv(), if !stopping => "SIGINT while the prints finish",
+            () = tokio::time::sleep_until(bound), if !stopping => "[farm] finish_timeout_s ran out",
+            _ = extend.tick() => {
+                let left = last.saturating_duration_since(Instant::now()).min(EXTEND_BY);
+                if !left.is_zero() {
+                    let usec = u32::try_from(left.as_micros()).unwrap_or(u32::MAX);
+                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::ExtendTimeoutUsec(usec)]);
+                }
+                continue;
+            }
+        };
+        tracing::warn!("{why}: stopping the prints safely (heaters off)");
+        farm.stop_prints();
+        stopping = true;
+        last = last.min(Instant::now() + STOP_GRACE);
     }
 }
 

@@ -22,9 +22,14 @@ pub struct Args {
     /// Seed for the fault generator (same seed, same faults)
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Simulated seconds per real second: 1 = real timing, 0 = instant moves and heating
-    #[arg(long, default_value_t = 1.0)]
-    pub time_scale: f64,
+    /// How many times faster than the real printer, higher is faster: 1 = real timing,
+    /// 20 = twenty times faster, "instant" = moves and heating take no time
+    #[arg(long, value_name = "FACTOR", conflicts_with = "time_scale")]
+    pub speed: Option<String>,
+    /// Replaced by --speed (its inverse): real seconds per simulated second, so 20 was
+    /// twenty times slower. Still accepted, with a warning.
+    #[arg(long, hide = true)]
+    pub time_scale: Option<f64>,
     /// One-way link latency in milliseconds, both directions (a USB serial adapter adds
     /// 1-16 ms; a pty adds none)
     #[arg(long, value_name = "MS", default_value_t = 0.0)]
@@ -122,12 +127,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             bail!("{name} {p} is not a probability; give a value from 0 to 1");
         }
     }
-    if !(args.time_scale >= 0.0 && args.time_scale.is_finite()) {
-        bail!(
-            "--time-scale {} must be 0 (instant) or a positive number (1 = real time)",
-            args.time_scale
-        );
-    }
+    let time_scale = match (&args.speed, args.time_scale) {
+        (Some(speed), _) => {
+            sim::time_scale_of_speed(speed).map_err(|e| anyhow::anyhow!("--{e}"))?
+        }
+        (None, Some(old)) => {
+            if !(old >= 0.0 && old.is_finite()) {
+                bail!(
+                    "--time-scale {old} must be 0 (instant) or a positive number (1 = real time)"
+                );
+            }
+            eprintln!(
+                "warning: --time-scale is replaced by --speed, a speed-up factor (higher is faster); --time-scale {old} is --speed {}",
+                sim::speed_of_time_scale(old)
+            );
+            old
+        }
+        (None, None) => 1.0,
+    };
     if !(args.latency_ms >= 0.0 && args.latency_ms <= 60_000.0) {
         bail!(
             "--latency-ms {} must be from 0 to 60000 milliseconds",
@@ -141,7 +158,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cfg.link_latency = std::time::Duration::from_secs_f64(args.latency_ms / 1000.0);
     cfg.baud = args.baud_limit;
     cfg.seed = args.seed;
-    cfg.time_scale = args.time_scale;
+    cfg.time_scale = time_scale;
     cfg.record = args.record;
     cfg.keep_executed = false;
     cfg.link = args.link.clone();

@@ -251,6 +251,10 @@ pub struct Farm {
     shared: watch::Sender<Option<FarmView>>,
     /// Cancelled once SIGTERM arrived: no new work is taken, waits end.
     pub shutdown: CancellationToken,
+    /// Cancelled when the prints in progress are to stop safely (heaters off): at once
+    /// with `on_shutdown = "stop"`; with "finish", at a second SIGTERM or when
+    /// `finish_timeout_s` ran out ([`Farm::stop_prints`]).
+    pub stop_prints: CancellationToken,
     /// The farm database, when `[store] postgres` shares the farm with other hosts.
     pub db: std::sync::OnceLock<crate::daemon::store::postgres::PgStore>,
 }
@@ -277,6 +281,7 @@ impl Farm {
             heating: HeatingPermits::default(),
             shared: watch::channel(None).0,
             shutdown,
+            stop_prints: CancellationToken::new(),
             db: Default::default(),
         });
         (farm, task)
@@ -316,8 +321,20 @@ impl Farm {
         self.shutdown.is_cancelled()
     }
 
+    /// Takes no new work; the prints in progress finish or stop as `[farm] on_shutdown`
+    /// (in force now) says.
     pub fn begin_stop(&self) {
         self.shutdown.cancel();
+        if self.config().farm.on_shutdown == super::config::OnShutdown::Stop {
+            self.stop_prints();
+        }
+    }
+
+    /// Stops the prints in progress safely (heaters off; their jobs end interrupted) and
+    /// takes no new work.
+    pub fn stop_prints(&self) {
+        self.shutdown.cancel();
+        self.stop_prints.cancel();
     }
 
     /// Waits for one of the `[farm] max_heating` heating permits (see

@@ -557,9 +557,8 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     sup.owner.print.send_replace(Some(control_tx.clone()));
     let (progress_tx, mut progress_rx) = watch::channel(LiveProgress::default());
 
-    // A stop requested by shutdown (on_shutdown = "stop") is a cancel that ends as
+    // A stop requested by shutdown (`Farm::stop_prints`) is a cancel that ends as
     // interrupted rather than cancelled.
-    let stop_on_shutdown = farm.config().farm.on_shutdown == super::config::OnShutdown::Stop;
     let mut permit = Some(permit);
     let print = link.print(&gcode, control_rx, progress_tx);
     tokio::pin!(print);
@@ -589,7 +588,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
                     show_progress(p, live);
                 });
             }
-            _ = farm.shutdown.cancelled(), if stop_on_shutdown && !shutdown_stop => {
+            _ = farm.stop_prints.cancelled(), if !shutdown_stop => {
                 shutdown_stop = true;
                 let _ = control_tx.send(PrintCommand::Cancel).await;
             }

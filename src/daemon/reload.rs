@@ -2,7 +2,9 @@
 //! every key of the config file whether a change applies at once, when the printer's
 //! supervisor restarts (once it is not printing), or only when the daemon restarts.
 //! [`changed_keys`] destructures the config without `..`, so a field added to the config
-//! does not compile until it is compared here and given a policy.
+//! does not compile until it is compared here; and a test walks every key of the file as
+//! its `Raw*` structs declare it (`config::keys`), so a key added to the file fails the
+//! suite until it has a policy here, or is said to change as another key ([`REPORTED_AS`]).
 
 use super::config::{Config, FarmConfig, FolderConfig, HttpConfig, PrinterConfig};
 use super::farm::Farm;
@@ -51,6 +53,8 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("farm.on_shutdown", Policy::Live),
     ("farm.settle_s", Policy::Live),
     ("farm.rescan_s", Policy::Live),
+    // Read when the stop begins.
+    ("farm.finish_timeout_s", Policy::Live),
     ("farm.host", Policy::DaemonRestart),
     ("store", Policy::DaemonRestart),
     ("store.postgres", Policy::DaemonRestart),
@@ -59,6 +63,7 @@ pub const POLICY: &[(&str, Policy)] = &[
     // The job store's task takes its retention when it starts.
     ("history.live_days", Policy::DaemonRestart),
     ("history.live_jobs", Policy::DaemonRestart),
+    ("history.keep_days", Policy::DaemonRestart),
     ("notify", Policy::DaemonRestart),
     ("printer", Policy::PrinterRestart),
     ("printer.port", Policy::PrinterRestart),
@@ -66,6 +71,8 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("printer.firmware", Policy::PrinterRestart),
     ("printer.baud", Policy::PrinterRestart),
     ("printer.heat_timeout_s", Policy::PrinterRestart),
+    // The printer's supervisor takes it when it starts.
+    ("printer.pause_heaters_off_s", Policy::PrinterRestart),
     ("printer.machine", Policy::PrinterRestart),
     ("folder", Policy::Live),
     ("folder.height_mm", Policy::Live),
@@ -78,6 +85,20 @@ pub const POLICY: &[(&str, Policy)] = &[
     ("folder.settings", Policy::Live),
 ];
 
+/// Keys of the file (and every key under them) whose change is seen as the change of a
+/// key of [`POLICY`]: they are settings of that key's value.
+pub const REPORTED_AS: &[(&str, &str)] = &[
+    // A `[[machine]]` table matters only through the printers whose machine it is.
+    ("machine", "printer.machine"),
+    ("printer.nozzle_mm", "printer.machine"),
+    ("printer.name", "printer"),
+    ("printer.simulate", "printer.simulate"),
+    ("folder.path", "folder"),
+    // `enhance = false` is `strength = "off"`.
+    ("folder.enhance", "folder.strength"),
+    ("notify", "notify"),
+];
+
 /// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
 /// a daemon restart, the safe choice (a unit test keeps the table complete).
 pub fn policy(key: &str) -> Policy {
@@ -87,7 +108,8 @@ pub fn policy(key: &str) -> Policy {
         .map_or(Policy::DaemonRestart, |(_, p)| *p)
 }
 
-/// The keys whose values differ between two configs (each once, in [`POLICY`]'s order).
+/// The keys whose values differ between two configs (each once, in [`POLICY`]'s order; a
+/// key missing from it last, so it is still reported).
 pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     let mut changed = std::collections::BTreeSet::new();
     let mut differs = |key: &'static str, different: bool| {
@@ -119,12 +141,17 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         on_shutdown,
         settle,
         rescan,
+        finish_timeout,
         host,
     } = farm;
     differs("farm.max_heating", *max_heating != old.farm.max_heating);
     differs("farm.on_shutdown", *on_shutdown != old.farm.on_shutdown);
     differs("farm.settle_s", *settle != old.farm.settle);
     differs("farm.rescan_s", *rescan != old.farm.rescan);
+    differs(
+        "farm.finish_timeout_s",
+        *finish_timeout != old.farm.finish_timeout,
+    );
     differs("farm.host", *host != old.farm.host);
     let super::config::HistoryConfig {
         live_for,
@@ -261,11 +288,14 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             .iter()
             .any(|o| !folders.iter().any(|f| f.path == o.path)),
     );
-    POLICY
-        .iter()
-        .map(|(k, _)| *k)
-        .filter(|k| changed.contains(k))
-        .collect()
+    let mut changed: Vec<&'static str> = changed.into_iter().collect();
+    changed.sort_by_key(|k| {
+        POLICY
+            .iter()
+            .position(|(p, _)| p == k)
+            .unwrap_or(POLICY.len())
+    });
+    changed
 }
 
 /// The config to run with after a reload: `new`, except the values whose policy is
@@ -397,6 +427,11 @@ mod tests {
         ("farm.on_shutdown", "\"finish\"", "\"stop\""),
         ("farm.settle_s", "settle_s = 1", "settle_s = 2"),
         ("farm.rescan_s", "rescan_s = 10", "rescan_s = 11"),
+        (
+            "farm.finish_timeout_s",
+            "rescan_s = 10",
+            "rescan_s = 10\nfinish_timeout_s = 60",
+        ),
         ("farm.host", "host = \"rack-1\"", "host = \"rack-2\""),
         (
             "store",
@@ -408,6 +443,11 @@ mod tests {
         ("store.lease_s", "lease_s = 15", "lease_s = 16"),
         ("history.live_days", "live_days = 7", "live_days = 1.5"),
         ("history.live_jobs", "live_jobs = 200", "live_jobs = 20"),
+        (
+            "history.keep_days",
+            "live_jobs = 200",
+            "live_jobs = 200\nkeep_days = 30",
+        ),
         (
             "notify",
             "[http]\n",
@@ -434,6 +474,11 @@ mod tests {
             "printer.heat_timeout_s",
             "port = \"/dev/ttyUSB0\"\n",
             "port = \"/dev/ttyUSB0\"\nheat_timeout_s = 77\n",
+        ),
+        (
+            "printer.pause_heaters_off_s",
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\npause_heaters_off_s = 60\n",
         ),
         (
             "printer.machine",
@@ -519,6 +564,77 @@ mod tests {
             let merged = merge(&old, new);
             let kept = changed_keys(&old, &merged).is_empty();
             assert_eq!(kept, policy(key) == Policy::DaemonRestart, "{key}");
+        }
+    }
+
+    /// Every key the file may hold (as its `Raw*` structs declare it) has a policy, or
+    /// is a setting of a key that has one; a table is covered by its keys. Two keys once
+    /// had neither, and a reload dropped their changes without a word.
+    #[test]
+    fn every_key_of_the_file_has_a_policy() {
+        let keys = crate::daemon::config::keys::all().unwrap();
+        let under = |key: &str, table: &str| {
+            key == table || key.strip_prefix(table).is_some_and(|r| r.starts_with('.'))
+        };
+        for key in &keys {
+            let is_table = keys.iter().any(|k| k != key && under(k, key));
+            let reported = REPORTED_AS.iter().find(|(table, _)| under(key, table));
+            match reported {
+                Some((_, as_key)) => assert!(
+                    POLICY.iter().any(|(k, _)| k == as_key),
+                    "{key} is reported as {as_key}, which has no policy"
+                ),
+                None => assert!(
+                    is_table || POLICY.iter().any(|(k, _)| k == key),
+                    "the config key `{key}` has no reload policy: give it one in POLICY \
+                     (and compare it in changed_keys), or list it in REPORTED_AS"
+                ),
+            }
+        }
+        // And the table names nothing the file does not hold.
+        for (key, _) in POLICY {
+            assert!(keys.iter().any(|k| k == key), "{key} is no key of the file");
+        }
+    }
+
+    /// The keys of [`REPORTED_AS`] change as the key they are reported as.
+    #[test]
+    fn settings_of_a_key_are_reported_as_it() {
+        let tmp = tempfile::tempdir().unwrap();
+        std::fs::write(tmp.path().join("key"), "k".repeat(32)).unwrap();
+        std::fs::write(tmp.path().join("pw"), "secret").unwrap();
+        std::fs::create_dir(tmp.path().join("hot")).unwrap();
+        // Printer b on the `[[machine]]` table, so that a change of the table matters.
+        let base = BASE.replacen(
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\nmachine = \"wide\"\n",
+            1,
+        );
+        let old = parse(tmp.path(), &base);
+        let cases = [
+            (
+                "machine",
+                "bed_mm = [300, 300, 300]",
+                "bed_mm = [300, 300, 250]",
+                "printer.machine",
+            ),
+            (
+                "folder.enhance",
+                "printers = [\"a\"]\n",
+                "printers = [\"a\"]\nenhance = false\n",
+                "folder.strength",
+            ),
+            (
+                "printer.simulate",
+                "time_scale = 0.0",
+                "time_scale = 0.0\nseed = 7",
+                "printer.simulate",
+            ),
+        ];
+        for (key, from, to, as_key) in cases {
+            assert!(base.contains(from), "{key}");
+            let new = parse(tmp.path(), &base.replacen(from, to, 1));
+            assert_eq!(changed_keys(&old, &new), [as_key], "{key}");
         }
     }
 }

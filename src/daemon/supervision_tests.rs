@@ -185,6 +185,49 @@ async fn shutdown_stops_prints_safely_and_ends_every_task() {
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Stopped);
 }
 
+/// Shutdown with `on_shutdown = "finish"`: the print goes on after the stop began, until
+/// `Farm::stop_prints` (a second SIGTERM, or `finish_timeout_s` run out) stops it through
+/// the same safe stop as "stop".
+#[tokio::test(start_paused = true)]
+async fn a_finishing_print_goes_on_until_the_prints_are_stopped() {
+    let tmp = tempfile::tempdir().unwrap();
+    let config = farm_config(tmp.path(), &["p1"], "[farm]\non_shutdown = \"finish\"\n");
+    let farm = open_farm(config);
+    let bench = BenchPorts::default();
+    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let job = ready_job(&farm, "a.stl", &long_print(10_000)).await;
+    let acked = |farm: &Farm| {
+        printer(farm, "p1")
+            .and_then(|p| p.progress)
+            .map_or(0, |l| l.lines_acked)
+    };
+    until(&farm, LIMIT, "printing past the heat-up", || {
+        printer(&farm, "p1")
+            .and_then(|p| p.progress)
+            .is_some_and(|l| l.heated)
+    })
+    .await;
+    farm.begin_stop();
+    let at_stop = acked(&farm);
+    until(&farm, LIMIT, "the print going on", || {
+        acked(&farm) > at_stop + 100
+    })
+    .await;
+    assert!(!farm.stop_prints.is_cancelled());
+    farm.stop_prints();
+    tokio::time::timeout(Duration::from_secs(60), fleet.join())
+        .await
+        .expect("the supervisor ends");
+    let sent = bench.printer("p1").job_lines();
+    assert_eq!(
+        sent[sent.len() - SAFE_STOP.len()..],
+        SAFE_STOP.map(String::from)
+    );
+    assert!(sent.len() < 10_000, "cut short: {} lines", sent.len());
+    let stored = farm.store().get(&job).unwrap().clone();
+    assert_eq!(stored.state, JobState::Interrupted);
+}
+
 /// A reload adds a printer at once and removes an idle one at once while another prints,
 /// and a printer removed while it prints finishes its print (every line, no stop) before
 /// it leaves the farm.

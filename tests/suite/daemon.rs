@@ -670,6 +670,179 @@ fn print_controls_and_stop_at_shutdown() {
     assert!(root.join("spool/jobs").join(&id).join("spot.obj").is_file());
 }
 
+/// A daemon printing `spot.obj` with `on_shutdown = "finish"` and `finish_timeout_s`,
+/// whose systemd notifications go to a datagram socket the test reads (as systemd's
+/// `NOTIFY_SOCKET`).
+struct Finishing {
+    _tmp: tempfile::TempDir,
+    root: PathBuf,
+    config: PathBuf,
+    log: PathBuf,
+    rec: PathBuf,
+    notify: std::os::unix::net::UnixDatagram,
+    daemon: Daemon,
+    job: String,
+}
+
+impl Finishing {
+    /// Started, and printing past its heat-up.
+    fn printing(finish_timeout_s: u32) -> Finishing {
+        let tmp = tempfile::tempdir().unwrap();
+        let root = tmp.path().to_path_buf();
+        let hot = root.join("hot");
+        std::fs::create_dir_all(&hot).unwrap();
+        let (config, log, rec) = (
+            root.join("crispen.toml"),
+            root.join("daemon.log"),
+            root.join("p.rec"),
+        );
+        std::fs::write(
+            &config,
+            format!(
+                "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+                 [farm]\nsettle_s = 0.5\non_shutdown = \"finish\"\nfinish_timeout_s = {finish_timeout_s}\n\
+                 [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n\
+                 [printer.simulate]\nspeed = 10\nrecord = \"{}\"\n\
+                 [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
+                rec.display()
+            ),
+        )
+        .unwrap();
+        let socket = root.join("notify.sock");
+        let notify = std::os::unix::net::UnixDatagram::bind(&socket).unwrap();
+        notify.set_nonblocking(true).unwrap();
+        let mut launcher = Command::new(BIN);
+        launcher.env("NOTIFY_SOCKET", &socket);
+        let daemon = Daemon::start_by(launcher, &config, &log);
+        drop_model(&hot, "spot.obj", &spot());
+        let s = wait_for(&config, &log, Duration::from_secs(120), "printing", |s| {
+            printer(s, "p")["state"] == "printing"
+                && printer(s, "p")["progress"]["lines_acked"].as_u64() > Some(100)
+        });
+        let job = job_by_file(&s, "spot.obj").unwrap()["id"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        Finishing {
+            _tmp: tmp,
+            root,
+            config,
+            log,
+            rec,
+            notify,
+            daemon,
+            job,
+        }
+    }
+
+    fn signal(&self, signal: nix::sys::signal::Signal) {
+        let pid = nix::unistd::Pid::from_raw(self.daemon.child.id() as i32);
+        nix::sys::signal::kill(pid, signal).unwrap();
+    }
+
+    /// Waits for the daemon to exit (successfully), then checks the print ended with the
+    /// safe stop (heaters off) and its job interrupted.
+    fn exits_after_a_safe_stop(&mut self, limit: Duration) {
+        let start = Instant::now();
+        let exit = loop {
+            if let Some(exit) = self.daemon.child.try_wait().unwrap() {
+                break exit;
+            }
+            assert!(
+                start.elapsed() < limit,
+                "the daemon did not exit\nlog:\n{}",
+                std::fs::read_to_string(&self.log).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        };
+        assert!(exit.success(), "{exit:?}");
+        let job = job_gcode(&self.root, &self.job, "spot.obj");
+        assert_prefix_then_safe_stop(&recorded(&self.rec), &job);
+        let stored: Value = serde_json::from_slice(
+            &std::fs::read(
+                self.root
+                    .join("spool/jobs")
+                    .join(&self.job)
+                    .join("job.json"),
+            )
+            .unwrap(),
+        )
+        .unwrap();
+        assert_eq!(stored["state"], "interrupted", "{stored}");
+    }
+
+    /// The time asked of systemd so far, in microseconds, in order.
+    fn extensions(&self) -> Vec<u64> {
+        let mut asked = Vec::new();
+        let mut buf = [0u8; 4096];
+        while let Ok(n) = self.notify.recv(&mut buf) {
+            for line in String::from_utf8_lossy(&buf[..n]).lines() {
+                if let Some(usec) = line.strip_prefix("EXTEND_TIMEOUT_USEC=") {
+                    asked.push(usec.parse().unwrap());
+                }
+            }
+        }
+        asked
+    }
+}
+
+/// With `on_shutdown = "finish"`, a SIGTERM lets the print run on while the daemon asks
+/// systemd for more time, and a second SIGTERM stops it safely, heaters off (before, it
+/// did nothing: systemd killed the daemon at its stop timeout with the heaters on).
+#[test]
+fn a_second_sigterm_stops_a_finishing_print_safely() {
+    let mut farm = Finishing::printing(3600);
+    farm.signal(nix::sys::signal::Signal::SIGTERM);
+    let acked = |s: &Value| printer(s, "p")["progress"]["lines_acked"].as_u64();
+    let before = acked(&status(&farm.config).unwrap());
+    wait_for(
+        &farm.config,
+        &farm.log,
+        Duration::from_secs(20),
+        "the print going on after the first SIGTERM",
+        |s| printer(s, "p")["state"] == "printing" && acked(s) > before.map(|n| n + 20),
+    );
+    assert!(farm.daemon.child.try_wait().unwrap().is_none());
+    farm.signal(nix::sys::signal::Signal::SIGTERM);
+    farm.exits_after_a_safe_stop(Duration::from_secs(60));
+    let asked = farm.extensions();
+    assert!(!asked.is_empty(), "no EXTEND_TIMEOUT_USEC");
+    let log = std::fs::read_to_string(&farm.log).unwrap();
+    assert!(
+        log.contains("second SIGTERM: stopping the prints safely"),
+        "{log}"
+    );
+}
+
+/// A print still running when `finish_timeout_s` runs out is stopped safely; until then
+/// the daemon renews its request for time, never asking beyond the bound and the safe
+/// stop's grace (60 s).
+#[test]
+fn a_finishing_print_is_stopped_safely_at_the_bound() {
+    let mut farm = Finishing::printing(5);
+    farm.signal(nix::sys::signal::Signal::SIGTERM);
+    let start = Instant::now();
+    // Within the bound and the safe stop's grace, with room for a loaded machine (the
+    // whole suite at once once took more than 40 s here).
+    farm.exits_after_a_safe_stop(Duration::from_secs(5 + 60 + 30));
+    let took = start.elapsed();
+    assert!(
+        took >= Duration::from_secs(4),
+        "stopped after {took:?}, before the bound"
+    );
+    let asked = farm.extensions();
+    assert!(asked.len() >= 2, "the request for time renewed: {asked:?}");
+    assert!(
+        asked.iter().all(|&usec| usec > 0 && usec <= 65_000_000),
+        "{asked:?}"
+    );
+    let log = std::fs::read_to_string(&farm.log).unwrap();
+    assert!(
+        log.contains("finish_timeout_s ran out: stopping the prints safely"),
+        "{log}"
+    );
+}
+
 /// A `crispen sim` process of its own (not one the daemon starts), so the test can pull
 /// its plug and put a new one in its place.
 struct SimProcess {
@@ -1359,7 +1532,7 @@ fn farm_config(root: &Path) -> PathBuf {
         "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nhost = \"rack-1\"\n\
          [store]\npostgres = \"host=/run/postgresql dbname=crispen\"\npassword_file = \"pw\"\nlease_s = 15\n\
          [http]\nlisten = \"127.0.0.1:8080\"\napi_key_file = \"key\"\n\
-         [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\nspeed = \"instant\"\n\
          [[folder]]\npath = \"hot\"\nheight_mm = 25\nprinters = [\"p\"]\n",
     )
     .unwrap();
@@ -1636,7 +1809,8 @@ fn a_config_named_without_a_directory_anchors_its_paths() {
 /// folder added applies at once (a file dropped into it is picked up), a printer's
 /// firmware applies by restarting that printer (the status shows the new firmware), and
 /// a new control socket needs a daemon restart (the daemon goes on answering on the old
-/// one and says so in its log).
+/// one and says so in its log). `history.keep_days` and `printer.pause_heaters_off_s`,
+/// once dropped by a reload without a word, are reported too.
 #[test]
 fn reload_applies_each_key_as_its_policy_declares() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1655,9 +1829,10 @@ fn reload_applies_each_key_as_its_policy_declares() {
         .replace("socket = \"c.sock\"", "socket = \"d.sock\"")
         .replace(
             "firmware = \"marlin2\"",
-            "firmware = \"ultimaker2\"\nbaud = 250000",
+            "firmware = \"ultimaker2\"\nbaud = 250000\npause_heaters_off_s = 60",
         )
-        + "[[folder]]\npath = \"hot2\"\nheight_mm = 25\nprinters = [\"p\"]\n";
+        + "[[folder]]\npath = \"hot2\"\nheight_mm = 25\nprinters = [\"p\"]\n\
+           [history]\nkeep_days = 30\n";
     std::fs::write(&config, changed).unwrap();
     nix::sys::signal::kill(
         nix::unistd::Pid::from_raw(daemon.child.id() as i32),
@@ -1703,6 +1878,11 @@ fn reload_applies_each_key_as_its_policy_declares() {
             "applies when the printer is not printing",
         ),
         ("folder", "applied"),
+        ("history.keep_days", "needs a daemon restart"),
+        (
+            "printer.pause_heaters_off_s",
+            "applies when the printer is not printing",
+        ),
     ] {
         assert!(
             text.lines()

@@ -664,6 +664,85 @@ fn crispen_sim_prints_its_device_and_manages_its_link() {
     );
 }
 
+/// How long a `crispen sim` started with `speed_args` takes (real time) over a 4-second
+/// dwell (`G4 S4`), and what it said on stderr.
+fn dwell_with(speed_args: &[&str]) -> (Duration, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ttyCRISPEN");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crispen"))
+        .args(["sim", "--firmware", "ultimaker2"])
+        .args(speed_args)
+        .arg("--link")
+        .arg(&link)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut first = String::new();
+    std::io::BufRead::read_line(&mut stdout, &mut first).unwrap();
+    let mut port = Port::open(&link);
+    let start = Instant::now();
+    port.send_numbered(1, "G4 S4");
+    port.until("ok");
+    let took = start.elapsed();
+    drop(port);
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(child.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    let out = child.wait_with_output().unwrap();
+    (took, String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+/// `--speed` is a speed-up factor, higher is faster (`--speed 20`: a 4 s dwell in 0.2 s;
+/// `--speed 2`: in 2 s). The old `--time-scale` said "simulated seconds per real second"
+/// but was the inverse, so 20 made a demo twenty times slower; it still works (as it
+/// always did), with a warning that names `--speed`, and the help shows only `--speed`.
+#[test]
+fn crispen_sim_speed_is_a_factor_and_time_scale_is_still_read() {
+    let (fast, said) = dwell_with(&["--speed", "20"]);
+    assert!(fast < Duration::from_millis(1500), "--speed 20: {fast:?}");
+    assert!(!said.contains("warning"), "{said}");
+    let (slow, _) = dwell_with(&["--speed", "2"]);
+    assert!(slow >= Duration::from_millis(1900), "--speed 2: {slow:?}");
+    assert!(slow > fast);
+    let (old, said) = dwell_with(&["--time-scale", "0.05"]);
+    assert!(
+        old < Duration::from_millis(1500),
+        "--time-scale 0.05: {old:?}"
+    );
+    assert!(
+        said.contains("--time-scale is replaced by --speed")
+            && said.contains("--time-scale 0.05 is --speed 20"),
+        "{said}"
+    );
+
+    let run = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_crispen"))
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let help = String::from_utf8_lossy(&run(&["sim", "--help"]).stdout).into_owned();
+    assert!(
+        help.contains("--speed <FACTOR>") && help.contains("20 = twenty times faster"),
+        "{help}"
+    );
+    assert!(!help.contains("--time-scale"), "{help}");
+    for bad in [
+        &["sim", "--speed", "0"][..],
+        &["sim", "--speed", "fast"],
+        &["sim", "--speed", "2", "--time-scale", "0.5"],
+    ] {
+        let out = run(bad);
+        assert!(!out.status.success(), "{bad:?}");
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert!(said.contains("speed"), "{bad:?}: {said}");
+    }
+}
+
 #[test]
 fn link_latency_delays_the_command_and_the_answer() {
     let latency = Duration::from_millis(40);

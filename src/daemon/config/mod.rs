@@ -10,6 +10,9 @@
 //! without reading code; a wrong file is always an error, never silently replaced by
 //! defaults.
 
+// Read by tests only: they check the reload policy and `KNOWN_TABLES` against it.
+#[cfg(test)]
+pub(crate) mod keys;
 pub mod notify;
 pub mod octoprint;
 mod pause;
@@ -134,6 +137,7 @@ struct RawFarm {
     on_shutdown: Option<OnShutdown>,
     settle_s: Option<f64>,
     rescan_s: Option<f64>,
+    finish_timeout_s: Option<f64>,
     host: Option<String>,
 }
 
@@ -157,6 +161,9 @@ struct RawPrinter {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawSimulate {
+    /// A number (how many times faster than real time) or "instant".
+    speed: Option<toml::Value>,
+    /// Replaced by `speed`, its inverse; still read, with a warning.
     time_scale: Option<f64>,
     seed: Option<u64>,
     record: Option<PathBuf>,
@@ -364,6 +371,9 @@ pub struct FarmConfig {
     pub settle: Duration,
     /// Hot folders are rescanned this often in case a watch event was missed.
     pub rescan: Duration,
+    /// With `on_shutdown = "finish"`, prints still running this long after the stop began
+    /// are stopped safely (the daemon asks systemd for time up to then, no longer).
+    pub finish_timeout: Duration,
     /// This host's name in a farm shared through `[store]` (default: the hostname).
     pub host: String,
 }
@@ -578,12 +588,17 @@ impl Config {
             let offset = e.span().map(|s| s.start).unwrap_or(0);
             let (line, mut section) = locate(text, offset);
             let mut message = e.message().trim().to_string();
+            // serde speaks of fields; the file has keys.
+            if let Some(key) = message.strip_prefix("missing field ") {
+                message = format!("missing key {key}");
+            }
             // An unknown table is reported where serde sees it, as a key of the document;
             // its header is on the error's line, so name it as what it is.
             if let Some(header) = unknown_table_header(text, offset) {
                 section = "the top level".into();
                 message = format!(
-                    "unknown table `{header}` (known tables: [spool], [control], [farm], [[machine]], [[printer]], [[folder]], [http], [store], [history])"
+                    "unknown table `{header}` (known tables: {})",
+                    KNOWN_TABLES.join(", ")
                 );
             }
             ConfigError::Parse {
@@ -620,7 +635,7 @@ settle_s = 2
 name = "demo"
 firmware = "ultimaker2"
 [printer.simulate]
-time_scale = 0.01
+speed = 100
 [[folder]]
 path = "crispen-demo/hot/50mm"
 height_mm = 50
@@ -654,6 +669,8 @@ printers = ["demo"]
         };
 
         let (spool_dir, socket) = spool_and_socket(&raw, file, base)?;
+        // What is accepted but should change (see `Config::warnings`).
+        let mut warnings = Vec::new();
 
         let farm = {
             let raw_farm = raw.farm.unwrap_or(RawFarm {
@@ -661,6 +678,7 @@ printers = ["demo"]
                 on_shutdown: None,
                 settle_s: None,
                 rescan_s: None,
+                finish_timeout_s: None,
                 host: None,
             });
             let max_heating = match raw_farm.max_heating {
@@ -683,6 +701,12 @@ printers = ["demo"]
                 on_shutdown: raw_farm.on_shutdown.unwrap_or(OnShutdown::Finish),
                 settle: seconds("settle_s", raw_farm.settle_s, 5.0, &SETTLE_S)?,
                 rescan: seconds("rescan_s", raw_farm.rescan_s, 30.0, &RESCAN_S)?,
+                finish_timeout: seconds(
+                    "finish_timeout_s",
+                    raw_farm.finish_timeout_s,
+                    DEFAULT_FINISH_TIMEOUT_S,
+                    &FINISH_TIMEOUT_S,
+                )?,
                 host: match raw_farm.host {
                     None => this_hostname(),
                     Some(h) => {
@@ -864,17 +888,9 @@ printers = ["demo"]
                 (Some(port), None) => PrinterPort::Serial(anchor(&port)),
                 (None, Some(sim)) => {
                     let sim_section = format!("{section}.simulate");
-                    let time_scale = sim.time_scale.unwrap_or(1.0);
-                    if !(time_scale.is_finite() && (0.0..=100.0).contains(&time_scale)) {
-                        return Err(invalid(
-                            sim_section,
-                            "time_scale",
-                            format!(
-                                "must be between 0 (instant) and 100, got {}",
-                                number(time_scale)
-                            ),
-                        ));
-                    }
+                    let time_scale =
+                        simulate_time_scale(sim.speed, sim.time_scale, &sim_section, &mut warnings)
+                            .map_err(|(key, m)| invalid(sim_section, key, m))?;
                     PrinterPort::Simulated {
                         time_scale,
                         // From the name, not the position: removing another printer
@@ -1020,10 +1036,56 @@ printers = ["demo"]
                 store,
                 history,
                 notify,
-                warnings: Vec::new(),
+                warnings,
             },
             http,
         })
+    }
+}
+
+/// `[printer.simulate] speed` (see [`crate::marlin::sim::time_scale_of_speed`]), or the
+/// old `time_scale`, its inverse, read as before with a warning in `warnings` that names
+/// `speed`: the simulator's time scale. An error names its key.
+fn simulate_time_scale(
+    speed: Option<toml::Value>,
+    time_scale: Option<f64>,
+    section: &str,
+    warnings: &mut Vec<String>,
+) -> Result<f64, (&'static str, String)> {
+    use crate::marlin::sim::{speed_of_time_scale, time_scale_of_speed};
+    match (speed, time_scale) {
+        (Some(_), Some(_)) => Err((
+            "time_scale",
+            "give `speed` alone (`time_scale` is its old, inverse form)".into(),
+        )),
+        (Some(speed), None) => {
+            let text = match speed {
+                toml::Value::String(s) => s,
+                other => other.to_string(),
+            };
+            time_scale_of_speed(&text).map_err(|m| ("speed", m))
+        }
+        (None, Some(old)) => {
+            if !(old.is_finite() && (0.0..=100.0).contains(&old)) {
+                return Err((
+                    "time_scale",
+                    format!(
+                        "must be between 0 (instant) and 100, got {} (hint: use `speed`, how many times faster than real time)",
+                        number(old)
+                    ),
+                ));
+            }
+            let speed = match speed_of_time_scale(old) {
+                word if old == 0.0 => format!("{word:?}"),
+                factor => factor,
+            };
+            warnings.push(format!(
+                "{section} key `time_scale`: replaced by `speed`, a speed-up factor (higher is faster); time_scale = {} is speed = {speed}",
+                number(old)
+            ));
+            Ok(old)
+        }
+        (None, None) => Ok(1.0),
     }
 }
 
@@ -1221,6 +1283,10 @@ pub type Bounds = std::ops::RangeInclusive<f64>;
 const SETTLE_S: Bounds = 0.05..=3600.0;
 /// Rescan period of the hot folders.
 const RESCAN_S: Bounds = 0.5..=86_400.0;
+/// How long prints may take to finish at a stop: from a second (tests) to two days.
+pub const FINISH_TIMEOUT_S: Bounds = 1.0..=2.0 * 86_400.0;
+/// Two hours, what the service unit once waited for a stop before it killed the daemon.
+pub const DEFAULT_FINISH_TIMEOUT_S: f64 = 2.0 * 3600.0;
 /// Time limit of one preparation (enhance and slice).
 pub const PREPARE_TIMEOUT_S: Bounds = 0.1..=7.0 * 86_400.0;
 
@@ -1375,6 +1441,21 @@ pub fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     }
 }
 
+/// The tables as their headers are written, for an error about an unknown one. A test
+/// checks it against the file's shape ([`keys::tables`]).
+const KNOWN_TABLES: [&str; 10] = [
+    "[spool]",
+    "[control]",
+    "[farm]",
+    "[[machine]]",
+    "[[printer]]",
+    "[[folder]]",
+    "[http]",
+    "[store]",
+    "[history]",
+    "[[notify]]",
+];
+
 /// The table header on the line of `offset`, when that header names no known table.
 fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
     let offset = offset.min(text.len());
@@ -1387,10 +1468,10 @@ fn unknown_table_header(text: &str, offset: usize) -> Option<String> {
         .0
         .trim();
     let top = name.split('.').next()?.trim().trim_matches('"');
-    let known = [
-        "spool", "control", "farm", "machine", "printer", "folder", "http", "store", "history",
-    ];
-    (!known.contains(&top)).then(|| {
+    let known = KNOWN_TABLES
+        .iter()
+        .any(|h| h.trim_matches(['[', ']']) == top);
+    (!known).then(|| {
         line.split_once('#')
             .map_or(line, |(h, _)| h)
             .trim()
@@ -1806,6 +1887,8 @@ slicer = "cura"
             ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nrescan_s = 1e-12", "[farm]: key `rescan_s`"),
             ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nsettle_s = 1e30", "[farm]: key `settle_s`"),
             ("max_heating = 1", "max_heating = 100000", "[farm]: key `max_heating`: must be between 1 and 256"),
+            ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nfinish_timeout_s = 0.5", "[farm]: key `finish_timeout_s`: must be a number of seconds from 1 to 172800, got 0.5"),
+            ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nfinish_timeout_s = 1e9", "[farm]: key `finish_timeout_s`"),
             ("height_mm = 50", "height_mm = 0.001", "key `height_mm`: must be from 1 to 2000 mm"),
             ("height_mm = 50", "height_mm = 500", "key `height_mm`: 500 mm is taller than any of its printers' machines builds (250 mm)"),
             ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\" or a lambda2 from 0 to 100"),
@@ -1878,6 +1961,50 @@ slicer = "cura"
             1,
         );
         assert_eq!(parse(&named).unwrap().farm.host, "rack-2.b_c");
+    }
+
+    /// A known table missing a required key was once refused as an unknown table (a
+    /// `[[notify]]` without `name`, the list of known tables leaving it out): each table
+    /// says which of its keys is missing, and the known tables are the file's.
+    #[test]
+    fn a_missing_key_is_named_in_every_table() {
+        let cases = [
+            (
+                "[[notify]]\nurl = \"https://ntfy.sh/farm\"\n",
+                "[[notify]] #1: missing key `name`",
+            ),
+            (
+                "[[machine]]\nbased_on = \"marlin-175\"\n",
+                "[[machine]] #1: missing key `name`",
+            ),
+            (
+                "[[printer]]\nfirmware = \"marlin2\"\n",
+                "[[printer]] #3: missing key `name`",
+            ),
+            (
+                "[[folder]]\nheight_mm = 5\nprinters = [\"sim\"]\n",
+                "[[folder]] #3: missing key `path`",
+            ),
+            (
+                "[http]\napi_key_file = \"k\"\n",
+                "[http]: missing key `listen`",
+            ),
+            ("[store]\nlease_s = 5\n", "[store]: missing key `postgres`"),
+        ];
+        for (table, expected) in cases {
+            let err = parse(&format!("{GOOD}{table}")).unwrap_err().to_string();
+            assert!(err.contains(expected), "{err}");
+            assert!(!err.contains("unknown table"), "{err}");
+        }
+        let err = parse("[control]\nsocket = \"s\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("missing key `spool`"), "{err}");
+        let headers: Vec<&str> = KNOWN_TABLES
+            .iter()
+            .map(|h| h.trim_matches(['[', ']']))
+            .collect();
+        assert_eq!(headers, keys::tables().unwrap());
     }
 
     /// An unknown table was once reported as an unknown key of the table above it.
@@ -1979,6 +2106,41 @@ slicer = "cura"
         let err = parse(&text).unwrap_err().to_string();
         assert!(err.contains("[farm]"), "{err}");
         assert!(err.contains("line 7"), "{err}");
+    }
+
+    /// `[printer.simulate] speed` is a speed-up factor, higher is faster; `time_scale`, its
+    /// inverse (which read as a speed: 20 made a printer twenty times slower), is still
+    /// read, with a warning that names `speed`.
+    #[test]
+    fn simulated_speed_is_a_factor_and_time_scale_still_read() {
+        let sim = |table: &str| parse(&GOOD.replace("time_scale = 0.5", table));
+        let scale = |c: &Config| match c.printers[1].port {
+            PrinterPort::Simulated { time_scale, .. } => time_scale,
+            _ => panic!("not simulated"),
+        };
+        let c = sim("speed = 20").unwrap();
+        assert_eq!(scale(&c), 0.05);
+        assert!(c.warnings.is_empty(), "{:?}", c.warnings);
+        assert_eq!(scale(&sim("speed = 2.5").unwrap()), 0.4);
+        assert_eq!(scale(&sim("speed = \"instant\"").unwrap()), 0.0);
+        let c = sim("time_scale = 0.5").unwrap();
+        assert_eq!(scale(&c), 0.5);
+        assert!(
+            c.warnings.iter().any(|w| w.contains(
+                "[[printer]] #2 (name \"sim\").simulate key `time_scale`: replaced by `speed`"
+            ) && w.ends_with("time_scale = 0.5 is speed = 2")),
+            "{:?}",
+            c.warnings
+        );
+        for (bad, key) in [
+            ("speed = 0", "speed"),
+            ("speed = \"fast\"", "speed"),
+            ("speed = 1e9", "speed"),
+            ("speed = 2\ntime_scale = 0.5", "time_scale"),
+        ] {
+            let e = sim(bad).unwrap_err().to_string();
+            assert!(e.contains(&format!(".simulate: key `{key}`")), "{e}");
+        }
     }
 
     #[test]

@@ -132,6 +132,37 @@ impl Poker {
     }
 }
 
+/// The largest speed-up factor taken; faster than that is "instant".
+pub const MAX_SPEED: f64 = 1_000_000.0;
+
+/// A simulated printer's speed as operators give it (`crispen sim --speed`,
+/// `[printer.simulate] speed`): how many times faster than the real printer, higher is
+/// faster (1 = real timing, 20 = twenty times faster), from 0.01 to [`MAX_SPEED`], or
+/// "instant" (moves, heating and homing take no time). Returned as
+/// [`SimConfig::time_scale`], its inverse. Operators once gave that inverse, which read as
+/// a speed: 20 made a demo twenty times slower, and it looked hung.
+pub fn time_scale_of_speed(speed: &str) -> Result<f64, String> {
+    if speed.trim() == "instant" {
+        return Ok(0.0);
+    }
+    match speed.trim().parse::<f64>() {
+        Ok(x) if (0.01..=MAX_SPEED).contains(&x) => Ok(1.0 / x),
+        _ => Err(format!(
+            "speed {speed:?}: give how many times faster than real time, from 0.01 to {MAX_SPEED} (1 = real time, 20 = twenty times faster), or \"instant\""
+        )),
+    }
+}
+
+/// The speed an old time scale (real seconds per simulated second) is, as `speed` is
+/// written: for the warning that names its replacement.
+pub fn speed_of_time_scale(time_scale: f64) -> String {
+    if time_scale == 0.0 {
+        "instant".into()
+    } else {
+        (1.0 / time_scale).to_string()
+    }
+}
+
 /// How to run a simulated printer.
 #[derive(Debug, Clone)]
 pub struct SimConfig {

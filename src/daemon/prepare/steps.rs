@@ -45,7 +45,9 @@ pub struct SliceRequest {
     pub pictures: Option<PathBuf>,
     /// Also slice the model unmodified for each machine and compare the two jobs' outer
     /// walls (`SliceReport::walls`, [`crate::slice::walls`]); with `pictures`, draw a few
-    /// layers of both for the first machine. Only for an enhanced model.
+    /// layers of both for the first machine. Only for an enhanced model. `crispen slice
+    /// --compare` asks for it; the daemon never does (it would nearly double a job's
+    /// preparation): it measures a ready job later, with [`compare_prepared`].
     pub compare: bool,
     /// The paper's enhancement, or the print-aware one (bands and strength from each
     /// machine's nozzle and layer height, [`crate::enhance::print_aware`]; an explicit
@@ -175,17 +177,10 @@ pub fn prepare(
     }
     let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
 
-    let mut plain = None;
-    if req.compare {
-        let mut p = original.clone();
-        if req.up == UpAxis::Y {
-            crate::mesh::place::turn_y_up(&mut p);
-        }
-        // The same placement as the enhanced mesh's, so both G-codes share one frame.
-        if crate::mesh::place::place_on_bed(&mut p, req.height_mm, [f64::INFINITY; 3]).is_ok() {
-            plain = Some(p);
-        }
-    }
+    let plain = req
+        .compare
+        .then(|| placed_plain(req, original.clone()).ok())
+        .flatten();
 
     let mut results = Vec::with_capacity(targets.len());
     for (index, target) in targets.iter().enumerate() {
@@ -241,7 +236,9 @@ pub fn prepare(
                 if let Some(plain) = compare {
                     progress(Step::Comparing(&machine.name));
                     let pictures = req.pictures.as_deref().filter(|_| index == 0);
-                    report.walls = compare_walls(req, plain, machine, &report.output, pictures);
+                    report.walls = compare_walls(req, plain, machine, &report.output, pictures)
+                        .map_err(|e| tracing::warn!(machine = %machine.name, error = %e, "no wall comparison"))
+                        .ok();
                 }
                 report.model_size_mm = placed.size;
                 report.timings.load_s = load_s;
@@ -332,38 +329,79 @@ fn add_thumbnails(mesh: &Mesh, gcode: &Path) {
     }
 }
 
+/// Why a wall comparison was not made. A comparison is a measurement, not part of the
+/// job: its failure is the measurement's, never the job's.
+#[derive(Debug, thiserror::Error)]
+pub enum CompareError {
+    #[error("cannot slice the unmodified model to compare: {0}")]
+    Plain(#[source] SliceError),
+    #[error("cannot read the G-code to compare, {path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("no temporary folder to compare in: {0}")]
+    Work(#[source] std::io::Error),
+}
+
+/// The model unmodified, turned and placed as [`place`] places the enhanced one, so both
+/// G-codes share one frame.
+fn placed_plain(req: &SliceRequest, mut mesh: Mesh) -> Result<Mesh, SliceError> {
+    if req.up == UpAxis::Y {
+        crate::mesh::place::turn_y_up(&mut mesh);
+    }
+    crate::mesh::place::place_on_bed(&mut mesh, req.height_mm, [f64::INFINITY; 3])
+        .map_err(|e| place_error(e, req, "any machine"))?;
+    Ok(mesh)
+}
+
+/// The comparison of a job already prepared (the daemon measures it after the job is
+/// ready, see `daemon::prepare::queue`): loads the model, places it unmodified as
+/// [`prepare`] placed the enhanced one, and compares the outer walls of its slicing for
+/// `machine` with `enhanced_gcode`'s; with `pictures`, draws a few layers of both there.
+/// Blocking.
+pub fn compare_prepared(
+    req: &SliceRequest,
+    machine: &Machine,
+    enhanced_gcode: &Path,
+    pictures: Option<&Path>,
+) -> Result<crate::slice::walls::WallComparison, CompareError> {
+    let loaded = crate::mesh::load(&req.model).map_err(|e| CompareError::Plain(e.into()))?;
+    let plain = placed_plain(req, loaded.mesh).map_err(CompareError::Plain)?;
+    compare_walls(req, &plain, machine, enhanced_gcode, pictures)
+}
+
 /// Slices the placed, unmodified mesh as the enhanced one was and compares the two jobs'
-/// outer walls; with `pictures`, draws a few layers of both there. A comparison is a
-/// measurement, not part of the job: a failure is logged and gives `None`.
+/// outer walls; with `pictures`, draws a few layers of both there (a picture that cannot
+/// be written is logged: the figures stand without it).
 fn compare_walls(
     req: &SliceRequest,
     plain: &Mesh,
-    machine: &crate::machine::Machine,
+    machine: &Machine,
     enhanced_gcode: &Path,
     pictures: Option<&Path>,
-) -> Option<crate::slice::walls::WallComparison> {
+) -> Result<crate::slice::walls::WallComparison, CompareError> {
     use crate::slice::walls;
     let started = Instant::now();
     let work = tempfile::Builder::new()
         .prefix("crispen-compare-")
         .tempdir()
-        .map_err(|e| tracing::warn!(error = %e, "cannot compare: no temporary folder"))
-        .ok()?;
+        .map_err(CompareError::Work)?;
     let output = work.path().join("plain.gcode");
     let job = SliceJob {
         measure_only: true,
         ..slice_job(req, machine, &output)
     };
-    if let Err(e) = crate::slice::slice_mesh(plain, &job, &mut |_| {}) {
-        tracing::warn!(machine = %machine.name, error = %e, "cannot slice the unmodified model to compare");
-        return None;
-    }
-    let read = |p: &Path| {
-        std::fs::File::open(p)
+    crate::slice::slice_mesh(plain, &job, &mut |_| {}).map_err(CompareError::Plain)?;
+    let read = |path: &Path| {
+        std::fs::File::open(path)
             .map(std::io::BufReader::new)
             .and_then(walls::outer_walls)
-            .map_err(|e| tracing::warn!(file = %p.display(), error = %e, "cannot read the G-code to compare"))
-            .ok()
+            .map_err(|source| CompareError::Read {
+                path: path.to_path_buf(),
+                source,
+            })
     };
     let (plain_walls, enhanced_walls) = (read(&output)?, read(enhanced_gcode)?);
     let comparison = walls::compare(&plain_walls, &enhanced_walls);
@@ -390,7 +428,7 @@ fn compare_walls(
         seconds = started.elapsed().as_secs_f64(),
         "compared the outer walls with the unmodified model's"
     );
-    Some(comparison)
+    Ok(comparison)
 }
 
 /// How many layers the walls picture shows.

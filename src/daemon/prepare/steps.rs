@@ -263,6 +263,22 @@ struct Placed {
     summary: EnhancementSummary,
     displacements: Option<Displacements>,
     enhance_s: f64,
+    /// Its pictures, drawn while it is sliced.
+    _pictures: Drawing,
+}
+
+/// Pictures drawn on a thread of their own, beside the slicing: a job's slicer need not
+/// wait for them. Joined when dropped, so that none is left half-written when the
+/// preparation (and its process) ends.
+struct Drawing(Option<std::thread::JoinHandle<()>>);
+
+impl Drop for Drawing {
+    fn drop(&mut self) {
+        if let Some(thread) = self.0.take() {
+            // A panic in a picture was the picture's; the job stands without it.
+            let _ = thread.join();
+        }
+    }
 }
 
 /// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it.
@@ -273,7 +289,8 @@ fn place(
     progress: &mut dyn FnMut(Step),
 ) -> Result<Placed, SliceError> {
     let t = Instant::now();
-    let (mut mesh, summary, displacements) = enhance(req, original.clone(), printer, progress)?;
+    let (mut mesh, summary, displacements, pictures) =
+        enhance(req, original.clone(), printer, progress)?;
     let enhance_s = t.elapsed().as_secs_f64();
     if req.up == UpAxis::Y {
         crate::mesh::place::turn_y_up(&mut mesh);
@@ -293,6 +310,7 @@ fn place(
         summary,
         displacements,
         enhance_s,
+        _pictures: pictures,
     })
 }
 
@@ -445,13 +463,13 @@ pub fn prepare_one(
 }
 
 /// The enhancement step: for the printed height, or none when the strength says so; with
-/// how far each vertex moved, for the printed figures.
+/// how far each vertex moved, for the printed figures, and its pictures being drawn.
 fn enhance(
     req: &SliceRequest,
     mesh: Mesh,
     printer: Option<PrintResolution>,
     progress: &mut dyn FnMut(Step),
-) -> Result<(Mesh, EnhancementSummary, Option<Displacements>), SliceError> {
+) -> Result<(Mesh, EnhancementSummary, Option<Displacements>, Drawing), SliceError> {
     let lambda2 = req
         .strength_table
         .resolve(req.strength, Some(req.height_mm));
@@ -463,7 +481,7 @@ fn enhance(
             printed: None,
             print_aware: None,
         };
-        return Ok((mesh, summary, None));
+        return Ok((mesh, summary, None, Drawing(None)));
     };
     let mut on_phase = |p: Phase| progress(Step::Enhancing(p));
     let failed = |source| SliceError::Enhance {
@@ -506,10 +524,18 @@ fn enhance(
             (enhanced, report, lambda2, "enhanced", None)
         }
     };
-    if let Some(dir) = &req.pictures {
-        draw_pictures(&mesh, &enhanced, req.up, dir);
-    }
     let displacements = Displacements::between(&mesh, &enhanced);
+    let pictures = Drawing(req.pictures.clone().and_then(|dir| {
+        let (after, up, span) = (enhanced.clone(), req.up, tracing::Span::current());
+        std::thread::Builder::new()
+            .name("pictures".into())
+            .spawn(move || {
+                let _entered = span.enter();
+                draw_pictures(&mesh, &after, up, &dir);
+            })
+            .map_err(|e| tracing::warn!(error = %e, "no pictures: cannot start a thread"))
+            .ok()
+    }));
     let summary = EnhancementSummary {
         lambda2: Some(lambda2),
         mode: mode.into(),
@@ -517,7 +543,7 @@ fn enhance(
         printed: None,
         print_aware,
     };
-    Ok((enhanced, summary, displacements))
+    Ok((enhanced, summary, displacements, pictures))
 }
 
 fn place_error(e: PlaceError, req: &SliceRequest, machine: &str) -> SliceError {

@@ -40,8 +40,9 @@ pub struct SliceRequest {
     /// The model's up axis (default Z).
     pub up: UpAxis,
     /// Where to draw the model before and after enhancement and the displacement's heat
-    /// map (`crate::preview`, only when it is enhanced); with it, the G-code also gets
-    /// PrusaSlicer-format thumbnails of the part as printed.
+    /// map (`crate::preview`, only when it is enhanced; in print-aware mode, as enhanced
+    /// for the first machine); with it, the G-code also gets PrusaSlicer-format thumbnails
+    /// of the part as printed.
     pub pictures: Option<PathBuf>,
     /// Also slice the model unmodified for each machine and compare the two jobs' outer
     /// walls (`SliceReport::walls`, [`crate::slice::walls`]); with `pictures`, draw a few
@@ -173,7 +174,13 @@ pub fn prepare(
     };
     let mut shared: Option<Placed> = None;
     if !print_aware {
-        shared = Some(place(req, &original, None, progress)?);
+        shared = Some(place(
+            req,
+            &original,
+            None,
+            req.pictures.as_deref(),
+            progress,
+        )?);
     }
     let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
 
@@ -192,7 +199,14 @@ pub fn prepare(
                 let known = per_printer.iter().position(|(p, _)| *p == printer);
                 let at = match known {
                     Some(at) => at,
-                    None => match place(req, &original, Some(printer), progress) {
+                    // The pictures are the first machine's, as the job's report is.
+                    None => match place(
+                        req,
+                        &original,
+                        Some(printer),
+                        req.pictures.as_deref().filter(|_| per_printer.is_empty()),
+                        progress,
+                    ) {
                         Ok(p) => {
                             per_printer.push((printer, p));
                             per_printer.len() - 1
@@ -281,16 +295,18 @@ impl Drop for Drawing {
     }
 }
 
-/// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it.
+/// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it;
+/// draws its pictures into `pictures` meanwhile.
 fn place(
     req: &SliceRequest,
     original: &Mesh,
     printer: Option<PrintResolution>,
+    pictures: Option<&Path>,
     progress: &mut dyn FnMut(Step),
 ) -> Result<Placed, SliceError> {
     let t = Instant::now();
     let (mut mesh, summary, displacements, pictures) =
-        enhance(req, original.clone(), printer, progress)?;
+        enhance(req, original.clone(), printer, pictures, progress)?;
     let enhance_s = t.elapsed().as_secs_f64();
     if req.up == UpAxis::Y {
         crate::mesh::place::turn_y_up(&mut mesh);
@@ -463,11 +479,13 @@ pub fn prepare_one(
 }
 
 /// The enhancement step: for the printed height, or none when the strength says so; with
-/// how far each vertex moved, for the printed figures, and its pictures being drawn.
+/// how far each vertex moved, for the printed figures, and its pictures being drawn into
+/// `pictures` (see [`Drawing`]).
 fn enhance(
     req: &SliceRequest,
     mesh: Mesh,
     printer: Option<PrintResolution>,
+    pictures: Option<&Path>,
     progress: &mut dyn FnMut(Step),
 ) -> Result<(Mesh, EnhancementSummary, Option<Displacements>, Drawing), SliceError> {
     let lambda2 = req
@@ -525,8 +543,9 @@ fn enhance(
         }
     };
     let displacements = Displacements::between(&mesh, &enhanced);
-    let pictures = Drawing(req.pictures.clone().and_then(|dir| {
-        let (after, up, span) = (enhanced.clone(), req.up, tracing::Span::current());
+    let pictures = Drawing(pictures.and_then(|dir| {
+        let (dir, after, up) = (dir.to_path_buf(), enhanced.clone(), req.up);
+        let span = tracing::Span::current();
         std::thread::Builder::new()
             .name("pictures".into())
             .spawn(move || {

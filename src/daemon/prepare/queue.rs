@@ -270,7 +270,6 @@ async fn next_comparison(
         } else {
             Comparison::Pending { tries: tries + 1 }
         };
-        let expected = next.clone();
         let counted = farm
             .update(&id, move |j| {
                 if j.comparison == Some(Comparison::Pending { tries }) {
@@ -279,13 +278,13 @@ async fn next_comparison(
             })
             .await;
         match counted {
-            Ok(job) if job.comparison == Some(expected) => {
-                if let Some(Comparison::Pending { tries }) = job.comparison {
-                    return Some((id, tries));
+            Ok(job) => match job.comparison {
+                Some(Comparison::Pending { tries: now }) if now == tries + 1 => {
+                    return Some((id, now))
                 }
-            }
-            // Changed meanwhile: look again.
-            Ok(_) => {}
+                // Given up, or changed meanwhile: look again.
+                _ => {}
+            },
             Err(e) => {
                 // Tried again at the next change of the jobs.
                 tracing::error!(job = %id, error = %e, "cannot start the wall comparison");

@@ -133,7 +133,7 @@ fn main() {
         let prepared = runtime
             .block_on(run_child(program, &task, &cancel, |_| {}))
             .expect("Spot is prepared");
-        ready.push(t.elapsed().as_secs_f64());
+        let ready_s = t.elapsed().as_secs_f64();
         assert!(prepared.failure().is_none(), "{prepared:?}");
         let timings = &prepared.machines[0].1.as_ref().expect("sliced").timings;
         steps.push([
@@ -145,12 +145,12 @@ fn main() {
         ]);
         // Right after the preparation, so that both meet much the same load.
         let work = tempfile::tempdir().expect("temporary folder");
-        slicer.push(slicer_alone(
+        let slicer_s = slicer_alone(
             &task.enhanced_mesh,
             &task.machines[0].machine,
             &task.settings,
             work.path(),
-        ));
+        );
 
         let t = Instant::now();
         let measure = PrepareTask {
@@ -160,21 +160,19 @@ fn main() {
         let walls = runtime
             .block_on(run_compare_child(program, &measure, &cancel))
             .expect("the comparison is made");
-        compare.push(t.elapsed().as_secs_f64());
+        let compare_s = t.elapsed().as_secs_f64();
         assert!(walls.layers > 100, "{walls:?}");
 
         let earlier = tempfile::tempdir().expect("temporary folder");
-        before.push(inline_comparison(&self::task(earlier.path())));
-        ratios.push(
-            100.0 * (ready[ready.len() - 1] - slicer[slicer.len() - 1]) / slicer[slicer.len() - 1],
-        );
+        let before_s = inline_comparison(&self::task(earlier.path()));
         eprintln!(
-            "run: slicer {:.2} s, ready {:.2} s, before {:.2} s, comparison {:.2} s",
-            slicer[slicer.len() - 1],
-            ready[ready.len() - 1],
-            before[before.len() - 1],
-            compare[compare.len() - 1]
+            "run: slicer {slicer_s:.2} s, ready {ready_s:.2} s, before {before_s:.2} s, comparison {compare_s:.2} s"
         );
+        ratios.push(100.0 * (ready_s - slicer_s) / slicer_s);
+        slicer.push(slicer_s);
+        ready.push(ready_s);
+        compare.push(compare_s);
+        before.push(before_s);
     }
     let (slicer, ready, compare, before) = (
         median(slicer),

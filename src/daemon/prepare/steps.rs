@@ -184,10 +184,11 @@ pub fn prepare(
     }
     let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
 
-    let plain = req
-        .compare
-        .then(|| placed_plain(req, original.clone()).ok())
-        .flatten();
+    let plain = if req.compare {
+        placed_plain(req, original.clone()).ok()
+    } else {
+        None
+    };
 
     let mut results = Vec::with_capacity(targets.len());
     for (index, target) in targets.iter().enumerate() {

@@ -1,7 +1,7 @@
 //! `crispen prepare-job` (hidden): the daemon's preparation child. Reads one
-//! [`PrepareTask`] as JSON on stdin, prepares it, and answers in [`ChildMessage`] JSON lines
-//! on stdout. The daemon kills it when the job is cancelled, the daemon stops, or the time
-//! limit passes (see `crispen::daemon::prepare`).
+//! [`PrepareTask`] as JSON on stdin, prepares it (or measures a job already prepared), and
+//! answers in [`ChildMessage`] JSON lines on stdout. The daemon kills it when the job is
+//! cancelled, the daemon stops, or the time limit passes (see `crispen::daemon::prepare`).
 
 use crispen::daemon::prepare::{self, ChildMessage, PrepareTask};
 use std::io::{Read, Write};
@@ -16,17 +16,12 @@ pub fn run(_args: Args) -> anyhow::Result<ExitCode> {
     let task: PrepareTask = serde_json::from_slice(&input)?;
     let span = tracing::info_span!("job", job = %task.job);
     let _entered = span.enter();
-    let outcome = prepare::run_task(&task, &mut |step| say(&ChildMessage::Step(step)));
-    let code = match outcome {
-        Ok(report) => {
-            say(&ChildMessage::Done(Box::new(report)));
-            ExitCode::SUCCESS
-        }
-        Err(e) => {
-            say(&ChildMessage::Failed(e));
-            ExitCode::FAILURE
-        }
+    let answer = prepare::answer(&task, &mut |step| say(&ChildMessage::Step(step)));
+    let code = match answer {
+        ChildMessage::Failed(_) => ExitCode::FAILURE,
+        _ => ExitCode::SUCCESS,
     };
+    say(&answer);
     Ok(code)
 }
 

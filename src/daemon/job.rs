@@ -263,6 +263,27 @@ pub struct Job {
     /// spool, whose folders are all in its config).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub origin: Option<Origin>,
+    /// The wall comparison of an enhanced job (its G-code against the unmodified model's,
+    /// sliced the same way), measured after the job is ready; its figures go into the slice
+    /// report's `walls`. None for a job with nothing to compare (printed unmodified,
+    /// pre-sliced, or prepared before the comparison was deferred).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub comparison: Option<Comparison>,
+}
+
+/// Where a job's wall comparison is. It is a measurement, never part of the job: the job
+/// is printable without it, and one that cannot be made is shown as not measured.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "state")]
+pub enum Comparison {
+    /// Waits for a moment when no job is being prepared or waits to be; `tries` counts
+    /// the runs started (a run the daemon's stop cut short leaves it pending).
+    Pending { tries: u32 },
+    /// Measured (the figures are the slice report's `walls`): when it started and how long
+    /// it took, seconds.
+    Done { started_s: f64, took_s: f64 },
+    /// Not measured, and not tried again: why.
+    NotMeasured { reason: String },
 }
 
 /// The host whose hot folder a farm job was dropped into, and that folder's rule as it
@@ -374,6 +395,7 @@ impl Job {
             machines: Default::default(),
             released: false,
             origin: None,
+            comparison: None,
         }
     }
 }

@@ -33,6 +33,10 @@ pub struct JobView {
     pub machines: Vec<String>,
     /// The pictures in the job's directory (see `crate::preview`).
     pub pictures: Vec<&'static str>,
+    /// Where its wall comparison is (measured after it is ready), so that a page showing
+    /// the job knows when to show it again.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub comparison: Option<crate::daemon::job::Comparison>,
 }
 
 #[derive(Debug, Serialize)]
@@ -115,7 +119,8 @@ fn job_view(
 ) -> JobView {
     let dir = store.job_dir(&j.id);
     let folder = config.folder(&j.folder);
-    let sidecar = store.get(&j.id).and_then(|job| job.sidecar.as_ref());
+    let job = store.get(&j.id);
+    let sidecar = job.and_then(|job| job.sidecar.as_ref());
     let task = folder.and_then(|f| {
         crate::daemon::prepare::resolve_task(&j.id, &dir, &j.file, f, printers, sidecar).ok()
     });
@@ -127,6 +132,7 @@ fn job_view(
         strength: task.as_ref().map(|t| t.strength),
         machines: folder.map(|f| f.printers.clone()).unwrap_or_default(),
         pictures: store.pictures(&j.id),
+        comparison: job.and_then(|job| job.comparison.clone()),
         status: j,
     }
 }

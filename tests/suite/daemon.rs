@@ -2192,3 +2192,86 @@ fn a_job_with_an_empty_history_is_prepared() {
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(!text.contains("panicked"), "{text}");
 }
+
+/// Issue 33: an enhanced job is ready (printable) as soon as its own G-code is checked;
+/// its wall comparison is measured afterwards, never ahead of another job's preparation,
+/// and the job's record (what its report and page show) gains it when it is done. Two
+/// jobs dropped together: each is ready before its comparison starts, and neither
+/// comparison starts before the other job's preparation has ended.
+#[test]
+fn the_wall_comparison_comes_after_every_preparation_and_the_job_does_not_wait_for_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (config, log) = small_farm(root, "");
+    // A finished print on the bed: the ready jobs wait rather than print.
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    std::fs::write(
+        root.join("spool/printers.json"),
+        r#"{"p": {"bed_not_cleared": true, "last_job": null}}"#,
+    )
+    .unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    for name in ["first.obj", "second.obj"] {
+        drop_model(&root.join("hot"), name, &spot());
+    }
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(180),
+        "both jobs ready",
+        |s| state_of(s, "first.obj") == "ready" && state_of(s, "second.obj") == "ready",
+    );
+    let job_json = |file: &str| -> Value {
+        let id = job_by_file(&s, file).unwrap()["id"].as_str().unwrap();
+        let path = root.join("spool/jobs").join(id).join("job.json");
+        serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+    };
+    let measured = |job: &Value| job["comparison"]["state"] == "done";
+    let started = Instant::now();
+    while !["first.obj", "second.obj"]
+        .iter()
+        .all(|f| measured(&job_json(f)))
+    {
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "the comparisons were not made: {} {}\nlog:\n{}",
+            job_json("first.obj"),
+            job_json("second.obj"),
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // When the job entered `state` (its last time).
+    let entered = |job: &Value, state: &str| -> f64 {
+        job["history"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .rev()
+            .find(|h| h[0] == state)
+            .unwrap_or_else(|| panic!("never {state}: {job}"))[1]
+            .as_f64()
+            .unwrap()
+    };
+    let jobs = [job_json("first.obj"), job_json("second.obj")];
+    let last_ready = jobs.iter().map(|j| entered(j, "ready")).fold(0.0, f64::max);
+    for job in &jobs {
+        let comparison = &job["comparison"];
+        let compared_at = comparison["started_s"].as_f64().unwrap();
+        assert!(
+            entered(job, "ready") < compared_at,
+            "ready before its comparison: {job}"
+        );
+        assert!(
+            last_ready <= compared_at,
+            "no comparison before every preparation has ended: {jobs:?}"
+        );
+        // The report gains the figures, and the job's page the walls picture.
+        let walls = &job["slice_report"]["walls"];
+        assert!(walls["layers"].as_u64().unwrap() > 50, "{walls}");
+        assert!(walls["mean_mm"].as_f64().unwrap() > 0.0, "{walls}");
+        let dir = root.join("spool/jobs").join(job["id"].as_str().unwrap());
+        assert!(dir.join("walls.png").is_file(), "{}", dir.display());
+        assert_eq!(job["state"], "ready", "the comparison changes no state");
+    }
+}

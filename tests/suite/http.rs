@@ -345,9 +345,15 @@ fn api_over_tcp_with_and_without_the_key() {
         "a second upload of the name either waits its turn (409) or follows the first: {}",
         a.text()
     );
-    let s = farm.wait_for(Duration::from_secs(180), "the upload printed", |s| {
-        job_by_file(s, "spot.obj").is_some_and(|j| j["state"] == "done")
-    });
+    // Its wall comparison is measured after it is ready: printing does not wait for it.
+    let s = farm.wait_for(
+        Duration::from_secs(180),
+        "the upload printed and measured",
+        |s| {
+            job_by_file(s, "spot.obj")
+                .is_some_and(|j| j["state"] == "done" && j["comparison"]["state"] == "done")
+        },
+    );
     let done = job_by_file(&s, "spot.obj").unwrap().clone();
     let id = done["id"].as_str().unwrap();
     assert_eq!(done["height_mm"], 25.0);

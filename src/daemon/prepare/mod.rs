@@ -9,6 +9,13 @@
 //! job's report.
 //! [`queue`] is the daemon's loop that takes queued jobs through this.
 //!
+//! An enhanced job is ready as soon as its own G-code is checked. Whether the enhancement
+//! reaches the nozzle (its outer walls against the unmodified model's, sliced the same
+//! way: [`crate::slice::walls`]) is measured afterwards by a task of its own
+//! ([`PrepareTask::compare`]), which the queue runs only while no job is being prepared or
+//! waits to be, in a child process at the lowest CPU priority: the measurement used to
+//! nearly double every job's preparation.
+//!
 //! The work runs in a child process (`crispen prepare-job`, [`run_child`]) rather than on a
 //! thread: loading, cleaning and enhancing a model are long computations with nowhere to
 //! stop, so a hostile or merely huge file could otherwise hold a preparation slot for as
@@ -26,6 +33,7 @@ use super::job::{ForMachine, Sidecar};
 use crate::enhance::Strength;
 use crate::machine::Machine;
 use crate::mesh::place::UpAxis;
+use crate::slice::walls::WallComparison;
 use crate::slice::{SliceReport, SlicerKind};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
@@ -51,6 +59,11 @@ pub struct PrepareTask {
     pub settings: crate::slice::SliceSettings,
     /// The whole preparation (load, enhance, slice) is stopped after this long.
     pub timeout: Duration,
+    /// Not a preparation but the measurement of one already made: the job's G-code for
+    /// its first machine (`machines[0].output`) against the unmodified model's, answered
+    /// with [`ChildMessage::Compared`].
+    #[serde(default)]
+    pub compare: bool,
 }
 
 /// One machine of a task and where its G-code goes.
@@ -119,7 +132,9 @@ pub enum ChildMessage {
     /// The step it is on (shown by `crispen status`).
     Step(String),
     Done(Box<Prepared>),
-    /// The job failed; the reason is for the operator.
+    /// The wall comparison a [`PrepareTask::compare`] task made.
+    Compared(Box<WallComparison>),
+    /// The job (or its comparison) failed; the reason is for the operator.
     Failed(String),
 }
 
@@ -153,8 +168,41 @@ pub async fn run_child(
     program: &Path,
     task: &PrepareTask,
     cancel: &CancellationToken,
-    mut on_step: impl FnMut(String),
+    on_step: impl FnMut(String),
 ) -> Result<Prepared, PrepareError> {
+    match child_answer(program, task, cancel, on_step).await? {
+        ChildMessage::Done(prepared) => Ok(*prepared),
+        other => Err(unexpected(other)),
+    }
+}
+
+/// Runs a [`PrepareTask::compare`] task in a child process, as [`run_child`] runs a
+/// preparation.
+pub async fn run_compare_child(
+    program: &Path,
+    task: &PrepareTask,
+    cancel: &CancellationToken,
+) -> Result<WallComparison, PrepareError> {
+    match child_answer(program, task, cancel, |_| {}).await? {
+        ChildMessage::Compared(comparison) => Ok(*comparison),
+        other => Err(unexpected(other)),
+    }
+}
+
+/// A child that answered another task's message: a crispen of another version.
+fn unexpected(message: ChildMessage) -> PrepareError {
+    PrepareError::Failed(format!(
+        "the preparation process answered the wrong kind of task: {message:?}"
+    ))
+}
+
+/// The child's last message, [`ChildMessage::Done`] or [`ChildMessage::Compared`].
+async fn child_answer(
+    program: &Path,
+    task: &PrepareTask,
+    cancel: &CancellationToken,
+    mut on_step: impl FnMut(String),
+) -> Result<ChildMessage, PrepareError> {
     let mut cmd = tokio::process::Command::new(program);
     cmd.arg("prepare-job")
         .stdin(std::process::Stdio::piped())
@@ -222,9 +270,9 @@ pub async fn run_child(
         }
     };
     match answer {
-        Some(ChildMessage::Done(report)) => Ok(*report),
         Some(ChildMessage::Failed(reason)) => Err(PrepareError::Failed(reason)),
-        _ => Err(PrepareError::Crashed {
+        Some(end) => Ok(end),
+        None => Err(PrepareError::Crashed {
             status: status.map_or_else(|e| e.to_string(), |s| s.to_string()),
             stderr_tail: Vec::from(tail).join("\n"),
         }),
@@ -305,12 +353,39 @@ pub fn resolve_task(
         profile: folder.profile.clone(),
         settings: folder.settings.clone(),
         timeout: folder.timeout,
+        compare: false,
     })
 }
 
 /// Whether a dropped file is G-code sliced elsewhere (printed as it is, never sliced).
 pub fn is_presliced(file: &str) -> bool {
     crate::daemon::hotfolder::file_kind(file) == Some(crate::daemon::hotfolder::FileKind::Gcode)
+}
+
+/// What the child answers for `task`: [`ChildMessage::Done`] for a preparation,
+/// [`ChildMessage::Compared`] for a comparison, or [`ChildMessage::Failed`]. `progress`
+/// hears each step's name. Blocking.
+pub fn answer(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> ChildMessage {
+    let answer = if task.compare {
+        compare_task(task).map(|c| ChildMessage::Compared(Box::new(c)))
+    } else {
+        run_task(task, progress).map(|p| ChildMessage::Done(Box::new(p)))
+    };
+    answer.unwrap_or_else(ChildMessage::Failed)
+}
+
+/// The [`steps`]' request for a task's model.
+fn slice_request(task: &PrepareTask) -> steps::SliceRequest {
+    let mut req = steps::SliceRequest::new(&task.model, task.height_mm);
+    req.slicer = task.slicer;
+    req.strength = task.strength;
+    req.up = task.up;
+    req.settings = task.settings.clone();
+    req.profile = task.profile.clone();
+    req.timeout = task.timeout;
+    // Pictures and thumbnails go next to the G-code, in the job's directory.
+    req.pictures = task.model.parent().map(Path::to_path_buf);
+    req
 }
 
 /// The preparation itself, as the child runs it: the [`steps`] for a model, the
@@ -321,18 +396,8 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
         progress("checking the pre-sliced G-code".into());
         return check_presliced(task);
     }
-    let mut req = steps::SliceRequest::new(&task.model, task.height_mm);
-    req.slicer = task.slicer;
-    req.strength = task.strength;
-    req.up = task.up;
-    req.settings = task.settings.clone();
-    req.profile = task.profile.clone();
-    req.timeout = task.timeout;
-    // Pictures and thumbnails go next to the G-code, in the job's directory.
-    req.pictures = task.model.parent().map(Path::to_path_buf);
-    // The G-code measure of the enhancement (one more slicing per machine): what the job
-    // page shows of whether the enhancement reaches the nozzle.
-    req.compare = true;
+    // No comparison here: the job is ready without it (see the module's comment).
+    let req = slice_request(task);
     let targets: Vec<steps::Target> = task
         .machines
         .iter()
@@ -352,6 +417,33 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
             .map(|(name, r)| (name, r.map_err(|e| e.to_string())))
             .collect(),
     })
+}
+
+/// Nice value of a comparison's process (and of the slicer it runs, which inherits it):
+/// the lowest priority, so that it takes only what CPU the farm leaves over.
+const COMPARE_NICE: i32 = 19;
+
+/// A comparison, as the child runs it: at the lowest CPU priority, the job's G-code for
+/// its first machine against the unmodified model's. Blocking.
+fn compare_task(task: &PrepareTask) -> Result<WallComparison, String> {
+    // SAFETY: setpriority only changes this process's scheduling; it touches no memory.
+    let niced = unsafe { nix::libc::setpriority(nix::libc::PRIO_PROCESS, 0, COMPARE_NICE) };
+    if niced != 0 {
+        // Still worth measuring; it only competes harder for the CPU.
+        tracing::warn!(error = %std::io::Error::last_os_error(), "cannot lower the comparison's priority");
+    }
+    let target = task
+        .machines
+        .first()
+        .ok_or("no machine's G-code to compare")?;
+    let req = slice_request(task);
+    steps::compare_prepared(
+        &req,
+        &target.machine,
+        &target.output,
+        req.pictures.as_deref(),
+    )
+    .map_err(|e| e.to_string())
 }
 
 /// A pre-sliced file: read what it was made for, then accept or refuse it per machine.

@@ -1,23 +1,34 @@
 //! The daemon's preparation queue: queued jobs are prepared oldest first, at most one per
 //! core at a time, each in its own child process ([`super::run_child`]); the outcome (G-code
 //! per machine, or the reason none can print it) is recorded in the job.
+//!
+//! An enhanced job is ready with its comparison pending ([`Comparison`]). Comparisons are
+//! the queue's low-priority work: one at a time, started only while no job is being
+//! prepared or waits to be (a job that arrives meanwhile is prepared at once, beside it:
+//! the comparison's process runs at the lowest CPU priority), each in a child process of
+//! its own ([`super::run_compare_child`]). Its figures go into the job's report through
+//! the store; a comparison that fails leaves the job as it was, marked not measured. Each
+//! start is counted in the job, so one that the daemon's stops keep cutting short is given
+//! up after [`COMPARE_TRIES`] rather than redone at every start.
 
 use crate::daemon::farm::Farm;
-use crate::daemon::job::{JobState, StoreError};
+use crate::daemon::job::{Comparison, JobState, StoreError};
 use crate::daemon::store::StateFilter;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
 use tracing::Instrument;
 
 /// Prepares queued jobs, oldest first, at most one per core at a time, each in its own
-/// child process under a token of its own (a child of the shutdown token).
+/// child process under a token of its own (a child of the shutdown token); in between,
+/// measures the ready jobs' comparisons (see the module's comment).
 pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
     let cores = std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1);
     let mut running = tokio::task::JoinSet::new();
+    let mut measuring = tokio::task::JoinSet::new();
     loop {
         // Followed from before the look at the queue: a change while looking is not
         // missed. A reload may let a job be prepared here.
@@ -70,18 +81,34 @@ pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 prepare_one(Arc::clone(&farm), id, program.clone(), cancel).instrument(span),
             );
         }
+        // A comparison never goes ahead of a preparation: none starts while a job is
+        // being prepared or waits to be (settling included).
+        let to_prepare = farm
+            .store()
+            .jobs()
+            .any(|j| j.state == JobState::Queued && can_prepare(&config, j));
+        if running.is_empty() && measuring.is_empty() && !to_prepare {
+            if let Some((id, tries)) = next_comparison(&farm, &config).await {
+                let span = tracing::info_span!("job", job = %id);
+                measuring.spawn(
+                    compare_one(Arc::clone(&farm), id, tries, program.clone()).instrument(span),
+                );
+            }
+        }
         let grace = Duration::from_secs_f64(wait_s.unwrap_or(0.0).clamp(0.0, 3600.0));
         tokio::select! {
             Ok(()) = jobs.changed() => {}
             Ok(()) = reloads.changed() => {}
             Some(_) = running.join_next() => {}
+            Some(_) = measuring.join_next() => {}
             _ = farm.shutdown.cancelled() => {}
             _ = tokio::time::sleep(grace), if wait_s.is_some() => {}
         }
     }
     // The shutdown token has stopped every preparation's child; wait for their jobs to be
-    // put back in the queue.
+    // put back in the queue (and a comparison's to stay pending).
     while running.join_next().await.is_some() {}
+    while measuring.join_next().await.is_some() {}
 }
 
 /// Whether this host can prepare a job: one from its own folders (a job whose folder has
@@ -182,8 +209,13 @@ async fn finish_preparation(
                         .await
                 }
                 None => {
+                    // Only an enhanced model has an unmodified one to be compared with.
+                    let enhanced = report
+                        .as_ref()
+                        .is_some_and(|r| r.enhancement.lambda2.is_some());
                     farm.jobs()
-                        .transition_from(id, STILL_PREPARING, JobState::Ready, None, |j| {
+                        .transition_from(id, STILL_PREPARING, JobState::Ready, None, move |j| {
+                            j.comparison = enhanced.then_some(Comparison::Pending { tries: 0 });
                             j.slice_report = report;
                             j.machines = machines;
                             j.sidecar = sidecar;
@@ -212,6 +244,143 @@ async fn finish_preparation(
     }
 }
 
+/// Starts of one job's comparison after which it is given up (each start that ended
+/// without an outcome was cut short by the daemon's stop or a crash).
+pub const COMPARE_TRIES: u32 = 2;
+
+/// The oldest job whose comparison is pending, with its start counted in the job (the
+/// count it now has); a job whose tries are used up is marked not measured on the way.
+async fn next_comparison(
+    farm: &Farm,
+    config: &crate::daemon::config::Config,
+) -> Option<(String, u32)> {
+    loop {
+        let (id, tries) = farm.store().jobs().find_map(|j| match j.comparison {
+            // A job prepared again gets a comparison of its own when it is ready.
+            Some(Comparison::Pending { tries })
+                if !matches!(j.state, JobState::Queued | JobState::Preparing)
+                    && can_prepare(config, j) =>
+            {
+                Some((j.id.clone(), tries))
+            }
+            _ => None,
+        })?;
+        let next = if tries >= COMPARE_TRIES {
+            tracing::warn!(job = %id, tries, "the wall comparison never ended; given up");
+            Comparison::NotMeasured {
+                reason: format!(
+                    "started {tries} times and cut short each time (the daemon stopped); not tried again"
+                ),
+            }
+        } else {
+            Comparison::Pending { tries: tries + 1 }
+        };
+        let counted = farm
+            .jobs()
+            .update(&id, move |j| {
+                if j.comparison == Some(Comparison::Pending { tries }) {
+                    j.comparison = Some(next);
+                }
+            })
+            .await;
+        match counted {
+            Ok(job) => match job.comparison {
+                Some(Comparison::Pending { tries: now }) if now == tries + 1 => {
+                    return Some((id, now))
+                }
+                // Given up, or changed meanwhile: look again.
+                _ => {}
+            },
+            Err(e) => {
+                // Tried again at the next change of the jobs.
+                tracing::error!(job = %id, error = %e, "cannot start the wall comparison");
+                return None;
+            }
+        }
+    }
+}
+
+/// Measures one job's comparison (its `tries`-th start) and records the outcome. Cut
+/// short by the daemon's stop, it stays pending, for the next start.
+async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) {
+    let (started_s, clock) = (crate::daemon::job::now_s(), Instant::now());
+    let task = {
+        let (farm, id) = (Arc::clone(&farm), id.clone());
+        tokio::task::spawn_blocking(move || resolve_comparison(&farm, &id))
+            .await
+            .unwrap_or_else(|e| Err(format!("the comparison crashed: {e}")))
+    };
+    let result = match task {
+        Err(reason) => Err(reason),
+        Ok(task) => {
+            tracing::info!(machine = %task.machines[0].machine.name, tries, "comparing the outer walls with the unmodified model's");
+            let cancel = farm.shutdown.child_token();
+            match super::run_compare_child(&program, &task, &cancel).await {
+                Err(super::PrepareError::Cancelled) => return,
+                result => result.map_err(|e| e.to_string()),
+            }
+        }
+    };
+    let took_s = clock.elapsed().as_secs_f64();
+    let result = result.map_err(|reason| {
+        tracing::warn!(%reason, "the wall comparison was not made; the job is as it was");
+        // Shown to clients: never the server's paths.
+        let dir = farm.store().job_dir(&id);
+        let spool = dir.ancestors().nth(2).unwrap_or(&dir);
+        crate::daemon::store::spool_relative(&reason, spool)
+    });
+    let recorded = farm
+        .jobs()
+        .update(&id, move |j| {
+            // Measured for the G-code the job has now: not when it was prepared again
+            // (and its comparison pending afresh) meanwhile.
+            if j.comparison != Some(Comparison::Pending { tries }) {
+                return;
+            }
+            j.comparison = Some(match result {
+                Ok(walls) => {
+                    if let Some(report) = &mut j.slice_report {
+                        report.walls = Some(walls);
+                    }
+                    Comparison::Done { started_s, took_s }
+                }
+                Err(reason) => Comparison::NotMeasured { reason },
+            });
+        })
+        .await;
+    match recorded {
+        Ok(_) => tracing::info!(seconds = took_s, "wall comparison recorded"),
+        // Moved to the history meanwhile: the comparison no longer has a job to go into.
+        Err(StoreError::NoSuchJob(_)) => {}
+        Err(e) => tracing::error!(error = %e, "cannot record the wall comparison"),
+    }
+}
+
+/// The comparison's task: the job's own (as it would be prepared now), for the machine of
+/// its report, whose G-code it compares.
+fn resolve_comparison(farm: &Farm, id: &str) -> Result<super::PrepareTask, String> {
+    let (mut task, _) = resolve(farm, id)?;
+    let job = farm.store().get(id).cloned().ok_or("job vanished")?;
+    let report = job.slice_report.as_ref().ok_or("the job has no report")?;
+    // Compared as it was prepared, or not at all: a measure of other settings would
+    // mislead.
+    if task.height_mm != report.height_mm || task.slicer != report.slicer {
+        return Err("the folder's settings changed since the job was prepared".into());
+    }
+    let gcode = job
+        .gcode_for(&report.machine)
+        .ok_or_else(|| format!("the job has no G-code for the {}", report.machine))?;
+    let machine = task
+        .machines
+        .drain(..)
+        .find(|m| m.machine.name == report.machine)
+        .ok_or_else(|| format!("the {} no longer serves the job's folder", report.machine))?;
+    let output = task.model.with_file_name(gcode);
+    task.machines = vec![super::TaskMachine { output, ..machine }];
+    task.compare = true;
+    Ok(task)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -231,6 +400,102 @@ mod tests {
         let read: Job = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
         assert!(read.history.is_empty());
         assert_eq!(settle_left(&read, 30.0, crate::daemon::job::now_s()), None);
+    }
+
+    fn farm(root: &std::path::Path) -> Arc<Farm> {
+        let text = "[spool]\ndir = \"spool\"\n";
+        let config =
+            crate::daemon::config::Config::parse(text, &root.join("crispen.toml")).unwrap();
+        let store = crate::daemon::store::spool::Spool::open(&root.join("spool")).unwrap();
+        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        tokio::spawn(task);
+        farm
+    }
+
+    /// A ready job whose comparison is `comparison`.
+    async fn ready_job(farm: &Farm, root: &std::path::Path, comparison: Comparison) -> String {
+        let hot = root.join("hot");
+        std::fs::create_dir_all(&hot).unwrap();
+        std::fs::write(hot.join("a.stl"), b"solid x\nendsolid x\n").unwrap();
+        let id = farm.jobs().admit(&hot.join("a.stl"), &hot, &[]).await.unwrap().id;
+        farm.jobs().transition(&id, JobState::Preparing, None)
+            .await
+            .unwrap();
+        farm.jobs().transition_with(&id, JobState::Ready, None, move |j| {
+            j.slice_report = Some(Default::default());
+            j.comparison = Some(comparison);
+        })
+        .await
+        .unwrap();
+        id
+    }
+
+    /// Each start of a comparison is counted in the job before it runs, so a daemon
+    /// stopped (or crashed) during it measures it again at its next start, but not
+    /// forever: after [`COMPARE_TRIES`] starts without an outcome it is not measured.
+    #[tokio::test]
+    async fn a_comparison_never_ended_is_given_up_after_its_tries() {
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(tmp.path());
+        let id = ready_job(&farm, tmp.path(), Comparison::Pending { tries: 0 }).await;
+        let config = farm.config();
+        for tries in 1..=COMPARE_TRIES {
+            assert_eq!(
+                next_comparison(&farm, &config).await,
+                Some((id.clone(), tries))
+            );
+            let kept = farm.store().get(&id).unwrap().comparison.clone();
+            assert_eq!(kept, Some(Comparison::Pending { tries }));
+        }
+        assert_eq!(next_comparison(&farm, &config).await, None);
+        let job = farm.store().get(&id).cloned().unwrap();
+        assert!(
+            matches!(&job.comparison, Some(Comparison::NotMeasured { reason }) if reason.contains("not tried again")),
+            "{:?}",
+            job.comparison
+        );
+        assert_eq!(job.state, JobState::Ready, "the job stays as it was");
+    }
+
+    /// A comparison that fails leaves the job ready and shows why, without the spool's
+    /// paths; one whose job was prepared again meanwhile (its comparison pending afresh)
+    /// is dropped rather than put over the new G-code's.
+    #[tokio::test]
+    async fn a_failed_or_stale_comparison_leaves_the_job_as_it_was() {
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(tmp.path());
+        let id = ready_job(&farm, tmp.path(), Comparison::Pending { tries: 0 }).await;
+        let config = farm.config();
+        let (_, tries) = next_comparison(&farm, &config).await.unwrap();
+        // The job's folder is not in the config: no task, so no comparison.
+        compare_one(Arc::clone(&farm), id.clone(), tries, "/nonexistent".into()).await;
+        let job = farm.store().get(&id).cloned().unwrap();
+        match &job.comparison {
+            Some(Comparison::NotMeasured { reason }) => {
+                assert!(reason.contains("no longer in the config"), "{reason}");
+                let spool = tmp.path().join("spool");
+                assert!(!reason.contains(&*spool.to_string_lossy()), "{reason}");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(job.state, JobState::Ready);
+        assert!(job.slice_report.unwrap().walls.is_none());
+
+        farm.jobs().update(&id, |j| {
+            j.comparison = Some(Comparison::Pending { tries: 0 })
+        })
+        .await
+        .unwrap();
+        let (_, tries) = next_comparison(&farm, &config).await.unwrap();
+        // Prepared again meanwhile: pending afresh.
+        farm.jobs().update(&id, |j| {
+            j.comparison = Some(Comparison::Pending { tries: 0 })
+        })
+        .await
+        .unwrap();
+        compare_one(Arc::clone(&farm), id.clone(), tries, "/nonexistent".into()).await;
+        let kept = farm.store().get(&id).unwrap().comparison.clone();
+        assert_eq!(kept, Some(Comparison::Pending { tries: 0 }));
     }
 
     /// The settle time applies to a job just picked up, and only to it.

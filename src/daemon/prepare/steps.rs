@@ -40,12 +40,15 @@ pub struct SliceRequest {
     /// The model's up axis (default Z).
     pub up: UpAxis,
     /// Where to draw the model before and after enhancement and the displacement's heat
-    /// map (`crate::preview`, only when it is enhanced); with it, the G-code also gets
-    /// PrusaSlicer-format thumbnails of the part as printed.
+    /// map (`crate::preview`, only when it is enhanced; in print-aware mode, as enhanced
+    /// for the first machine); with it, the G-code also gets PrusaSlicer-format thumbnails
+    /// of the part as printed.
     pub pictures: Option<PathBuf>,
     /// Also slice the model unmodified for each machine and compare the two jobs' outer
     /// walls (`SliceReport::walls`, [`crate::slice::walls`]); with `pictures`, draw a few
-    /// layers of both for the first machine. Only for an enhanced model.
+    /// layers of both for the first machine. Only for an enhanced model. `crispen slice
+    /// --compare` asks for it; the daemon never does (it would nearly double a job's
+    /// preparation): it measures a ready job later, with [`compare_prepared`].
     pub compare: bool,
     /// The paper's enhancement, or the print-aware one (bands and strength from each
     /// machine's nozzle and layer height, [`crate::enhance::print_aware`]; an explicit
@@ -171,21 +174,21 @@ pub fn prepare(
     };
     let mut shared: Option<Placed> = None;
     if !print_aware {
-        shared = Some(place(req, &original, None, progress)?);
+        shared = Some(place(
+            req,
+            &original,
+            None,
+            req.pictures.as_deref(),
+            progress,
+        )?);
     }
     let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
 
-    let mut plain = None;
-    if req.compare {
-        let mut p = original.clone();
-        if req.up == UpAxis::Y {
-            crate::mesh::place::turn_y_up(&mut p);
-        }
-        // The same placement as the enhanced mesh's, so both G-codes share one frame.
-        if crate::mesh::place::place_on_bed(&mut p, req.height_mm, [f64::INFINITY; 3]).is_ok() {
-            plain = Some(p);
-        }
-    }
+    let plain = if req.compare {
+        placed_plain(req, original.clone()).ok()
+    } else {
+        None
+    };
 
     let mut results = Vec::with_capacity(targets.len());
     for (index, target) in targets.iter().enumerate() {
@@ -197,7 +200,14 @@ pub fn prepare(
                 let known = per_printer.iter().position(|(p, _)| *p == printer);
                 let at = match known {
                     Some(at) => at,
-                    None => match place(req, &original, Some(printer), progress) {
+                    // The pictures are the first machine's, as the job's report is.
+                    None => match place(
+                        req,
+                        &original,
+                        Some(printer),
+                        req.pictures.as_deref().filter(|_| per_printer.is_empty()),
+                        progress,
+                    ) {
                         Ok(p) => {
                             per_printer.push((printer, p));
                             per_printer.len() - 1
@@ -241,7 +251,9 @@ pub fn prepare(
                 if let Some(plain) = compare {
                     progress(Step::Comparing(&machine.name));
                     let pictures = req.pictures.as_deref().filter(|_| index == 0);
-                    report.walls = compare_walls(req, plain, machine, &report.output, pictures);
+                    report.walls = compare_walls(req, plain, machine, &report.output, pictures)
+                        .map_err(|e| tracing::warn!(machine = %machine.name, error = %e, "no wall comparison"))
+                        .ok();
                 }
                 report.model_size_mm = placed.size;
                 report.timings.load_s = load_s;
@@ -266,17 +278,36 @@ struct Placed {
     summary: EnhancementSummary,
     displacements: Option<Displacements>,
     enhance_s: f64,
+    /// Its pictures, drawn while it is sliced.
+    _pictures: Drawing,
 }
 
-/// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it.
+/// Pictures drawn on a thread of their own, beside the slicing: a job's slicer need not
+/// wait for them. Joined when dropped, so that none is left half-written when the
+/// preparation (and its process) ends.
+struct Drawing(Option<std::thread::JoinHandle<()>>);
+
+impl Drop for Drawing {
+    fn drop(&mut self) {
+        if let Some(thread) = self.0.take() {
+            // A panic in a picture was the picture's; the job stands without it.
+            let _ = thread.join();
+        }
+    }
+}
+
+/// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it;
+/// draws its pictures into `pictures` meanwhile.
 fn place(
     req: &SliceRequest,
     original: &Mesh,
     printer: Option<PrintResolution>,
+    pictures: Option<&Path>,
     progress: &mut dyn FnMut(Step),
 ) -> Result<Placed, SliceError> {
     let t = Instant::now();
-    let (mut mesh, summary, displacements) = enhance(req, original.clone(), printer, progress)?;
+    let (mut mesh, summary, displacements, pictures) =
+        enhance(req, original.clone(), printer, pictures, progress)?;
     let enhance_s = t.elapsed().as_secs_f64();
     if req.up == UpAxis::Y {
         crate::mesh::place::turn_y_up(&mut mesh);
@@ -296,6 +327,7 @@ fn place(
         summary,
         displacements,
         enhance_s,
+        _pictures: pictures,
     })
 }
 
@@ -332,38 +364,79 @@ fn add_thumbnails(mesh: &Mesh, gcode: &Path) {
     }
 }
 
+/// Why a wall comparison was not made. A comparison is a measurement, not part of the
+/// job: its failure is the measurement's, never the job's.
+#[derive(Debug, thiserror::Error)]
+pub enum CompareError {
+    #[error("cannot slice the unmodified model to compare: {0}")]
+    Plain(#[source] SliceError),
+    #[error("cannot read the G-code to compare, {path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("no temporary folder to compare in: {0}")]
+    Work(#[source] std::io::Error),
+}
+
+/// The model unmodified, turned and placed as [`place`] places the enhanced one, so both
+/// G-codes share one frame.
+fn placed_plain(req: &SliceRequest, mut mesh: Mesh) -> Result<Mesh, SliceError> {
+    if req.up == UpAxis::Y {
+        crate::mesh::place::turn_y_up(&mut mesh);
+    }
+    crate::mesh::place::place_on_bed(&mut mesh, req.height_mm, [f64::INFINITY; 3])
+        .map_err(|e| place_error(e, req, "any machine"))?;
+    Ok(mesh)
+}
+
+/// The comparison of a job already prepared (the daemon measures it after the job is
+/// ready, see `daemon::prepare::queue`): loads the model, places it unmodified as
+/// [`prepare`] placed the enhanced one, and compares the outer walls of its slicing for
+/// `machine` with `enhanced_gcode`'s; with `pictures`, draws a few layers of both there.
+/// Blocking.
+pub fn compare_prepared(
+    req: &SliceRequest,
+    machine: &Machine,
+    enhanced_gcode: &Path,
+    pictures: Option<&Path>,
+) -> Result<crate::slice::walls::WallComparison, CompareError> {
+    let loaded = crate::mesh::load(&req.model).map_err(|e| CompareError::Plain(e.into()))?;
+    let plain = placed_plain(req, loaded.mesh).map_err(CompareError::Plain)?;
+    compare_walls(req, &plain, machine, enhanced_gcode, pictures)
+}
+
 /// Slices the placed, unmodified mesh as the enhanced one was and compares the two jobs'
-/// outer walls; with `pictures`, draws a few layers of both there. A comparison is a
-/// measurement, not part of the job: a failure is logged and gives `None`.
+/// outer walls; with `pictures`, draws a few layers of both there (a picture that cannot
+/// be written is logged: the figures stand without it).
 fn compare_walls(
     req: &SliceRequest,
     plain: &Mesh,
-    machine: &crate::machine::Machine,
+    machine: &Machine,
     enhanced_gcode: &Path,
     pictures: Option<&Path>,
-) -> Option<crate::slice::walls::WallComparison> {
+) -> Result<crate::slice::walls::WallComparison, CompareError> {
     use crate::slice::walls;
     let started = Instant::now();
     let work = tempfile::Builder::new()
         .prefix("crispen-compare-")
         .tempdir()
-        .map_err(|e| tracing::warn!(error = %e, "cannot compare: no temporary folder"))
-        .ok()?;
+        .map_err(CompareError::Work)?;
     let output = work.path().join("plain.gcode");
     let job = SliceJob {
         measure_only: true,
         ..slice_job(req, machine, &output)
     };
-    if let Err(e) = crate::slice::slice_mesh(plain, &job, &mut |_| {}) {
-        tracing::warn!(machine = %machine.name, error = %e, "cannot slice the unmodified model to compare");
-        return None;
-    }
-    let read = |p: &Path| {
-        std::fs::File::open(p)
+    crate::slice::slice_mesh(plain, &job, &mut |_| {}).map_err(CompareError::Plain)?;
+    let read = |path: &Path| {
+        std::fs::File::open(path)
             .map(std::io::BufReader::new)
             .and_then(walls::outer_walls)
-            .map_err(|e| tracing::warn!(file = %p.display(), error = %e, "cannot read the G-code to compare"))
-            .ok()
+            .map_err(|source| CompareError::Read {
+                path: path.to_path_buf(),
+                source,
+            })
     };
     let (plain_walls, enhanced_walls) = (read(&output)?, read(enhanced_gcode)?);
     let comparison = walls::compare(&plain_walls, &enhanced_walls);
@@ -390,7 +463,7 @@ fn compare_walls(
         seconds = started.elapsed().as_secs_f64(),
         "compared the outer walls with the unmodified model's"
     );
-    Some(comparison)
+    Ok(comparison)
 }
 
 /// How many layers the walls picture shows.
@@ -407,13 +480,15 @@ pub fn prepare_one(
 }
 
 /// The enhancement step: for the printed height, or none when the strength says so; with
-/// how far each vertex moved, for the printed figures.
+/// how far each vertex moved, for the printed figures, and its pictures being drawn into
+/// `pictures` (see [`Drawing`]).
 fn enhance(
     req: &SliceRequest,
     mesh: Mesh,
     printer: Option<PrintResolution>,
+    pictures: Option<&Path>,
     progress: &mut dyn FnMut(Step),
-) -> Result<(Mesh, EnhancementSummary, Option<Displacements>), SliceError> {
+) -> Result<(Mesh, EnhancementSummary, Option<Displacements>, Drawing), SliceError> {
     let lambda2 = req
         .strength_table
         .resolve(req.strength, Some(req.height_mm));
@@ -425,7 +500,7 @@ fn enhance(
             printed: None,
             print_aware: None,
         };
-        return Ok((mesh, summary, None));
+        return Ok((mesh, summary, None, Drawing(None)));
     };
     let mut on_phase = |p: Phase| progress(Step::Enhancing(p));
     let failed = |source| SliceError::Enhance {
@@ -468,10 +543,19 @@ fn enhance(
             (enhanced, report, lambda2, "enhanced", None)
         }
     };
-    if let Some(dir) = &req.pictures {
-        draw_pictures(&mesh, &enhanced, req.up, dir);
-    }
     let displacements = Displacements::between(&mesh, &enhanced);
+    let pictures = Drawing(pictures.and_then(|dir| {
+        let (dir, after, up) = (dir.to_path_buf(), enhanced.clone(), req.up);
+        let span = tracing::Span::current();
+        std::thread::Builder::new()
+            .name("pictures".into())
+            .spawn(move || {
+                let _entered = span.enter();
+                draw_pictures(&mesh, &after, up, &dir);
+            })
+            .map_err(|e| tracing::warn!(error = %e, "no pictures: cannot start a thread"))
+            .ok()
+    }));
     let summary = EnhancementSummary {
         lambda2: Some(lambda2),
         mode: mode.into(),
@@ -479,7 +563,7 @@ fn enhance(
         printed: None,
         print_aware,
     };
-    Ok((enhanced, summary, displacements))
+    Ok((enhanced, summary, displacements, pictures))
 }
 
 fn place_error(e: PlaceError, req: &SliceRequest, machine: &str) -> SliceError {

@@ -193,6 +193,16 @@ function render(status) {
   if (!$("#folders").dataset.busy) patch($("#folders"), folderZones(status));
   patch($("#queue"), queueTable(status));
   loadPictures($("#farm"));
+  // The job page open gains its comparison (measured after the job is ready) when it is made.
+  const open = location.hash.match(/^#job\/(.+)$/);
+  if (open) {
+    const job = status.jobs.find((j) => j.id === decodeURIComponent(open[1]));
+    const comparison = JSON.stringify(job && job.comparison);
+    if (job && render.comparison !== undefined && render.comparison !== comparison) showJob(job.id);
+    render.comparison = comparison;
+  } else {
+    render.comparison = undefined;
+  }
 }
 
 // Replaces only the parts that changed, so a button is not swapped out under a finger
@@ -378,6 +388,13 @@ function wallFigures(w) {
   return "<dl>" + rows.map(([k, v]) => "<dt>" + esc(k) + "</dt><dd>" + esc(v) + "</dd>").join("") + "</dl>";
 }
 
+// A job's wall comparison while it has no figures: measured after the job is ready.
+function comparisonText(c) {
+  if (c.state === "pending") return "Outer walls against the unmodified model's: pending (measured once no job is being prepared)";
+  if (c.state === "not_measured") return "Outer walls against the unmodified model's: not measured (" + c.reason + ")";
+  return "";
+}
+
 async function showJob(id) {
   const page = $("#jobpage");
   page.innerHTML = '<p><a href="#">← farm</a></p><p class="muted">loading…</p>';
@@ -415,6 +432,7 @@ async function showJob(id) {
       figures(Object.assign({ mode: e.mode, lambda2: e.lambda2 }, meshFigures));
     if (e.printed) html += '<h4>At the printed size</h4><div id="printed">' + printedFigures(e.printed) + "</div>";
     if (report.walls) html += '<h4>In the G-code</h4><div id="walls">' + wallFigures(report.walls) + "</div>";
+    else if (j.job.comparison) html += '<h4>In the G-code</h4><p class="muted" id="walls">' + esc(comparisonText(j.job.comparison)) + "</p>";
     if (j.pictures.includes("walls.png")) {
       html += '<figure class="walls">' + picture(base + "walls.png", "outer walls") +
         "<figcaption>Outer walls of three layers (the most changed of the bottom, middle and top thirds): " +

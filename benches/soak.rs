@@ -270,7 +270,11 @@ fn main() {
     println!(
         "soak: {printers} printers printing {}, sim time scale {time_scale} (1.0 = real speed), \
          window {:.0} s opening once every printer is heated and printing",
-        if load == Load::Moves { "short moves" } else { "Spot at 50 mm" },
+        if load == Load::Moves {
+            "short moves"
+        } else {
+            "Spot at 50 mm"
+        },
         window.as_secs_f64()
     );
 

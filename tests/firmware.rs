@@ -202,32 +202,47 @@ async fn clean_and_noisy(build: Build) {
     );
 }
 
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn marlin_default_exactly_once_under_noise() {
     clean_and_noisy(Build::Default).await;
 }
 
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn marlin_advok_exactly_once_under_noise() {
     clean_and_noisy(Build::AdvOk).await;
 }
 
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn marlin_wait_exactly_once_under_noise() {
     clean_and_noisy(Build::Wait).await;
 }
 
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ultimaker2_exactly_once_under_noise() {
     clean_and_noisy(Build::Ultimaker2).await;
 }
 
 /// A cable pulled mid-job: the job ends interrupted, with the last acknowledged line.
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_port_closed_mid_job_ends_it_interrupted() {
     let dir = firmware_dir();
@@ -247,7 +262,10 @@ async fn a_port_closed_mid_job_ends_it_interrupted() {
 
 /// Ultimaker2Marlin checks a checksum only up to the first `*`: with 5 % of lines having a
 /// `.` turned into `*`, the final position is still exact (no cut line ran).
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ultimaker2_runs_no_cut_line() {
     let dir = firmware_dir();
@@ -262,7 +280,10 @@ async fn ultimaker2_runs_no_cut_line() {
 }
 
 /// 200 consecutive corrupted lines: ridden out (paced replays), exactly once.
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_200_line_burst_is_ridden_out() {
     let dir = firmware_dir();
@@ -282,7 +303,10 @@ async fn a_200_line_burst_is_ridden_out() {
 /// minutes, so by default the test runs with a storm given up after 3 s and replays every
 /// 20 ms (about 25 s; still paced, still the same paths); CRISPEN_FIRMWARE_SWEEP=1 runs it
 /// with the default options.
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
     let dir = firmware_dir();
@@ -328,7 +352,10 @@ async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
 /// `crispen print` itself (the binary, as a user runs it) through the relay in front of the
 /// real firmware, under the noise: exactly once, by the firmware's own final `M114`
 /// after relative moves. Stock Marlin and the emulated Ultimaker 2.
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[test]
 fn crispen_print_through_the_relay_runs_every_line_once() {
     let dir = firmware_dir();
@@ -407,7 +434,10 @@ fn daemon_job(moves: usize) -> (String, [f64; 3]) {
 /// into its hot folder is prepared, heats both heaters and prints, and every move ran once
 /// by the firmware's own final `M114`. The daemon runs with `--exit-when-idle`, so it
 /// also ends on its own once the job is done.
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[test]
 fn the_daemon_through_the_relay_runs_every_line_once() {
     use common::daemon::{state_of, status, Daemon, BIN};
@@ -569,7 +599,10 @@ fn runs_as_the_policy_reads(machine: &str, mut fw: DirectFirmware, corpus: &[&st
     }
 }
 
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[test]
 fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
     let dir = firmware_dir();
@@ -613,7 +646,10 @@ fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
 
 /// The same on Ultimaker2Marlin in its AVR emulator (it cannot home there: `G92` sets the
 /// start).
-#[cfg_attr(not(crispen_firmware), ignore = "CRISPEN_FIRMWARE_DIR was unset at build time")]
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
 #[test]
 fn ultimaker2_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
     let dir = firmware_dir();

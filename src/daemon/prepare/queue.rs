@@ -417,16 +417,23 @@ mod tests {
         let hot = root.join("hot");
         std::fs::create_dir_all(&hot).unwrap();
         std::fs::write(hot.join("a.stl"), b"solid x\nendsolid x\n").unwrap();
-        let id = farm.jobs().admit(&hot.join("a.stl"), &hot, &[]).await.unwrap().id;
-        farm.jobs().transition(&id, JobState::Preparing, None)
+        let id = farm
+            .jobs()
+            .admit(&hot.join("a.stl"), &hot, &[])
+            .await
+            .unwrap()
+            .id;
+        farm.jobs()
+            .transition(&id, JobState::Preparing, None)
             .await
             .unwrap();
-        farm.jobs().transition_with(&id, JobState::Ready, None, move |j| {
-            j.slice_report = Some(Default::default());
-            j.comparison = Some(comparison);
-        })
-        .await
-        .unwrap();
+        farm.jobs()
+            .transition_with(&id, JobState::Ready, None, move |j| {
+                j.slice_report = Some(Default::default());
+                j.comparison = Some(comparison);
+            })
+            .await
+            .unwrap();
         id
     }
 
@@ -481,18 +488,20 @@ mod tests {
         assert_eq!(job.state, JobState::Ready);
         assert!(job.slice_report.unwrap().walls.is_none());
 
-        farm.jobs().update(&id, |j| {
-            j.comparison = Some(Comparison::Pending { tries: 0 })
-        })
-        .await
-        .unwrap();
+        farm.jobs()
+            .update(&id, |j| {
+                j.comparison = Some(Comparison::Pending { tries: 0 })
+            })
+            .await
+            .unwrap();
         let (_, tries) = next_comparison(&farm, &config).await.unwrap();
         // Prepared again meanwhile: pending afresh.
-        farm.jobs().update(&id, |j| {
-            j.comparison = Some(Comparison::Pending { tries: 0 })
-        })
-        .await
-        .unwrap();
+        farm.jobs()
+            .update(&id, |j| {
+                j.comparison = Some(Comparison::Pending { tries: 0 })
+            })
+            .await
+            .unwrap();
         compare_one(Arc::clone(&farm), id.clone(), tries, "/nonexistent".into()).await;
         let kept = farm.store().get(&id).unwrap().comparison.clone();
         assert_eq!(kept, Some(Comparison::Pending { tries: 0 }));

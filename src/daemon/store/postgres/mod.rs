@@ -32,10 +32,10 @@ use super::JobEdit;
 use super::StateFilter;
 use crate::daemon::config::{parse_conninfo, ConninfoError, PgSettings};
 use crate::daemon::job::{Job, JobState, Origin, PrinterGate, StoreError};
+use postgres_protocol::escape::escape_literal;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-use postgres_protocol::escape::escape_literal;
 use tokio_postgres::{GenericClient, Row};
 
 #[derive(Debug, thiserror::Error)]

@@ -88,7 +88,7 @@ fn write_config(root: &Path) -> PathBuf {
     let text = format!(
         "[spool]\ndir = {spool:?}\n[control]\nsocket = {socket:?}\n\
          [farm]\nmax_heating = 1\nsettle_s = 1\n\
-         [[printer]]\nname = \"p1\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[printer]]\nname = \"p1\"\nfirmware = \"marlin2\"\n[printer.simulate]\nspeed = \"instant\"\n\
          [[folder]]\npath = {hot:?}\nheight_mm = 30\nprinters = [\"p1\"]\n",
         spool = root.join("spool"),
         socket = root.join("crispen.sock"),

@@ -34,8 +34,8 @@ use std::time::{Duration, Instant};
 fn start_sim(firmware: &str, time_scale: f64, sims: &mut Vec<Killed>) -> PathBuf {
     let (child, device) = spawn_sim(
         Command::new(BIN)
-            .args(["sim", "--firmware", firmware, "--time-scale"])
-            .arg(time_scale.to_string()),
+            .args(["sim", "--firmware", firmware, "--speed"])
+            .arg(crispen::marlin::sim::speed_of_time_scale(time_scale)),
     );
     sims.push(Killed(child));
     device

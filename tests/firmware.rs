@@ -5,7 +5,7 @@
 //! doubled line moves the end position. Ignored, with the reason, where the variable was
 //! unset when the tests were built (a user's clone; see `build.rs`); CI sets it.
 //!
-//! `CRISPEN_FIRMWARE_SEEDS` (default 2) sets the noisy seeds per build; the full
+//! `CRISPEN_FIRMWARE_SEEDS` (default 1) sets the noisy seeds per build; the full
 //! sweep is 20. Recovery on the first seed costs at most three times the clean link's time.
 //! `CRISPEN_RELAY_TRACE=PREFIX` writes what crossed the relay
 //! in each noisy run to `PREFIX.<build>.<seed>`.
@@ -131,7 +131,7 @@ fn seeds() -> u64 {
     std::env::var("CRISPEN_FIRMWARE_SEEDS")
         .ok()
         .and_then(|s| s.parse().ok())
-        .unwrap_or(2)
+        .unwrap_or(1)
 }
 
 /// The noise: 2 % corrupted lines, 0.5 % lost `ok`s, 1 % lines lost whole (the
@@ -146,14 +146,16 @@ fn noise(seed: u64) -> RelayFaults {
     }
 }
 
+/// The time bound compares a build's clean run with its noisy ones: they have the machine's
+/// firmware tests to themselves (held for writing), the other tests run alongside one
+/// another (held for reading).
+static MEASURING: tokio::sync::RwLock<()> = tokio::sync::RwLock::const_new(());
+
 /// Each build: a clean 3,000-move job, then noisy ones, exactly once each, and the noisy
 /// ones at most three times the clean one's time.
 async fn clean_and_noisy(build: Build) {
     let dir = firmware_dir();
-    // The time bound compares runs of one build: one build measures at a time, so the
-    // clean run and the noisy ones share the load of the other tests alike.
-    static MEASURING: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-    let _measuring = MEASURING.lock().await;
+    let _measuring = MEASURING.write().await;
     let moves = 3000;
     let clean = print_through(&dir, build, RelayFaults::default(), moves).await;
     assert_exact(build, "clean", &clean, moves);
@@ -246,6 +248,7 @@ async fn ultimaker2_exactly_once_under_noise() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_port_closed_mid_job_ends_it_interrupted() {
     let dir = firmware_dir();
+    let _alongside = MEASURING.read().await;
     let faults = RelayFaults {
         close_after: Some(500),
         ..RelayFaults::default()
@@ -269,6 +272,7 @@ async fn a_port_closed_mid_job_ends_it_interrupted() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ultimaker2_runs_no_cut_line() {
     let dir = firmware_dir();
+    let _alongside = MEASURING.read().await;
     let faults = RelayFaults {
         seed: 7,
         star_for_dot: 0.05,
@@ -287,6 +291,7 @@ async fn ultimaker2_runs_no_cut_line() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_200_line_burst_is_ridden_out() {
     let dir = firmware_dir();
+    let _alongside = MEASURING.read().await;
     let faults = RelayFaults {
         seed: 1,
         burst: Some((400, 200)),
@@ -310,6 +315,7 @@ async fn a_200_line_burst_is_ridden_out() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
     let dir = firmware_dir();
+    let _alongside = MEASURING.read().await;
     let defaults = std::env::var_os("CRISPEN_FIRMWARE_SWEEP").is_some();
     let faults = RelayFaults {
         seed: 1,
@@ -359,6 +365,7 @@ async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
 #[test]
 fn crispen_print_through_the_relay_runs_every_line_once() {
     let dir = firmware_dir();
+    let _alongside = MEASURING.blocking_read();
     let moves = 1000;
     let (text, expected) = job(moves);
     let tmp = tempfile::tempdir().unwrap();
@@ -442,6 +449,7 @@ fn daemon_job(moves: usize) -> (String, [f64; 3]) {
 fn the_daemon_through_the_relay_runs_every_line_once() {
     use common::daemon::{state_of, status, Daemon, BIN};
     let dir = firmware_dir();
+    let _alongside = MEASURING.blocking_read();
     let moves = 1000;
     let (text, expected) = daemon_job(moves);
     let relay = Relay::start(&dir, Build::Default, noise(21));
@@ -606,6 +614,7 @@ fn runs_as_the_policy_reads(machine: &str, mut fw: DirectFirmware, corpus: &[&st
 #[test]
 fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
     let dir = firmware_dir();
+    let _alongside = MEASURING.blocking_read();
     let fw = DirectFirmware::start(
         std::process::Command::new(dir.join(Build::Default.name())),
         Duration::from_millis(1500),
@@ -653,6 +662,7 @@ fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
 #[test]
 fn ultimaker2_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
     let dir = firmware_dir();
+    let _alongside = MEASURING.blocking_read();
     let um2 = dir.join("ultimaker2");
     let mut command = std::process::Command::new(um2.join("um2sim"));
     command

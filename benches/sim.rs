@@ -70,8 +70,13 @@ fn main() {
         .unwrap_or(10_000);
     println!("firmware    lines  wall_s  lines_per_s  sim_cpu_ms_per_10k  idle_cpu_pct");
     for firmware in ["marlin2", "ultimaker2"] {
-        let (mut child, device) =
-            spawn_sim(Command::new(BIN).args(["sim", "--speed", "instant", "--firmware", firmware]));
+        let (mut child, device) = spawn_sim(Command::new(BIN).args([
+            "sim",
+            "--speed",
+            "instant",
+            "--firmware",
+            firmware,
+        ]));
         let file = std::fs::OpenOptions::new()
             .read(true)
             .write(true)

@@ -8,7 +8,7 @@ use super::control::{self, Command};
 use super::doubles::{farm_config, open_farm, ready_job, until, BenchPorts, SAFE_STOP};
 use super::farm::{Farm, PrinterState, PrinterStatus};
 use super::fleet::{Fleet, Port};
-use super::job::JobState;
+use super::job::{Job, JobState};
 use super::printer::{BoxFuture, ConnectError, Connector, PrinterLink};
 use std::sync::Arc;
 use std::time::Duration;
@@ -172,17 +172,24 @@ async fn shutdown_stops_prints_safely_and_ends_every_task() {
         .await
         .expect("the preparation loop ends")
         .unwrap();
+    let stored = cut_short_by_the_safe_stop(&bench, &farm, &job);
+    let reason = stored.reason.unwrap_or_default();
+    assert!(reason.contains("stopped safely at shutdown"), "{reason}");
+    assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Stopped);
+}
+
+/// The 10,000-line print on `p1` was cut short by the safe stop's lines; its job
+/// (returned) is interrupted.
+fn cut_short_by_the_safe_stop(bench: &BenchPorts, farm: &Farm, job: &str) -> Job {
     let sent = bench.printer("p1").job_lines();
     assert_eq!(
         sent[sent.len() - SAFE_STOP.len()..],
         SAFE_STOP.map(String::from)
     );
     assert!(sent.len() < 10_000, "cut short: {} lines", sent.len());
-    let stored = farm.store().get(&job).unwrap().clone();
+    let stored = farm.store().get(job).unwrap().clone();
     assert_eq!(stored.state, JobState::Interrupted);
-    let reason = stored.reason.unwrap_or_default();
-    assert!(reason.contains("stopped safely at shutdown"), "{reason}");
-    assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Stopped);
+    stored
 }
 
 /// Shutdown with `on_shutdown = "finish"`: the print goes on after the stop began, until
@@ -218,14 +225,7 @@ async fn a_finishing_print_goes_on_until_the_prints_are_stopped() {
     tokio::time::timeout(Duration::from_secs(60), fleet.join())
         .await
         .expect("the supervisor ends");
-    let sent = bench.printer("p1").job_lines();
-    assert_eq!(
-        sent[sent.len() - SAFE_STOP.len()..],
-        SAFE_STOP.map(String::from)
-    );
-    assert!(sent.len() < 10_000, "cut short: {} lines", sent.len());
-    let stored = farm.store().get(&job).unwrap().clone();
-    assert_eq!(stored.state, JobState::Interrupted);
+    cut_short_by_the_safe_stop(&bench, &farm, &job);
 }
 
 /// A reload adds a printer at once and removes an idle one at once while another prints,

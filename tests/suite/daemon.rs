@@ -1161,6 +1161,17 @@ fn reload_adds_and_retires_printers() {
     );
 }
 
+/// The small farm's printer starts with a finished print on its bed, so ready jobs wait
+/// rather than print.
+fn bed_not_cleared_at_start(root: &Path) {
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    std::fs::write(
+        root.join("spool/printers.json"),
+        r#"{"p": {"bed_not_cleared": true, "last_job": null}}"#,
+    )
+    .unwrap();
+}
+
 /// A config of one simulated printer `p` and the hot folder `hot`, with `extra` added to
 /// the folder's table.
 fn small_farm(root: &Path, folder_extra: &str) -> (PathBuf, PathBuf) {
@@ -1374,13 +1385,7 @@ fn a_removed_job_directory_does_not_stop_the_queue() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
     let (config, log) = small_farm(root, "");
-    // The printer starts with a finished print on its bed, so ready jobs wait.
-    std::fs::create_dir_all(root.join("spool")).unwrap();
-    std::fs::write(
-        root.join("spool/printers.json"),
-        r#"{"p": {"bed_not_cleared": true, "last_job": null}}"#,
-    )
-    .unwrap();
+    bed_not_cleared_at_start(root);
     let _daemon = Daemon::start(&config, &log);
     let hot = root.join("hot");
     // Pre-sliced files: the queue is the point here, not the slicer.
@@ -2052,18 +2057,19 @@ fn a_full_disk_loses_nothing_and_reprints_nothing() {
     let (ok, out) = ctl(&config, &["retry", &id]);
     assert!(!ok, "a done job is not offered again: {out}");
 
-    // Space returns: the outcome and the bed gate are written, the model is picked up.
+    // Space returns: the outcome and the bed gate are written (one after the other), the
+    // model is picked up.
     std::fs::remove_file(&filler).unwrap();
+    let gates = disk.inside(&spool.join("printers.json"));
     let started = Instant::now();
-    while on_disk(&job_json)["state"] != "done" {
+    while on_disk(&job_json)["state"] != "done" || !gates.exists() {
         assert!(
             started.elapsed() < Duration::from_secs(60),
-            "the outcome is written once space returns"
+            "the outcome and the bed gate are written once space returns"
         );
         std::thread::sleep(Duration::from_millis(200));
     }
-    let gates = on_disk(&disk.inside(&spool.join("printers.json")));
-    assert_eq!(gates["p"]["bed_not_cleared"], true);
+    assert_eq!(on_disk(&gates)["p"]["bed_not_cleared"], true);
     wait_for(
         &config,
         &log,
@@ -2149,13 +2155,7 @@ fn a_job_with_an_empty_history_is_prepared() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
     let (config, log) = small_farm(root, "");
-    // A finished print on the bed: the ready job waits rather than prints.
-    std::fs::create_dir_all(root.join("spool")).unwrap();
-    std::fs::write(
-        root.join("spool/printers.json"),
-        r#"{"p": {"bed_not_cleared": true, "last_job": null}}"#,
-    )
-    .unwrap();
+    bed_not_cleared_at_start(root);
     let mut daemon = Daemon::start(&config, &log);
     let gcode = common::farm::presliced_gcode("empty", 20, 1200);
     drop_model(&root.join("hot"), "empty.gcode", gcode.as_bytes());
@@ -2203,13 +2203,7 @@ fn the_wall_comparison_comes_after_every_preparation_and_the_job_does_not_wait_f
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
     let (config, log) = small_farm(root, "");
-    // A finished print on the bed: the ready jobs wait rather than print.
-    std::fs::create_dir_all(root.join("spool")).unwrap();
-    std::fs::write(
-        root.join("spool/printers.json"),
-        r#"{"p": {"bed_not_cleared": true, "last_job": null}}"#,
-    )
-    .unwrap();
+    bed_not_cleared_at_start(root);
     let _daemon = Daemon::start(&config, &log);
     for name in ["first.obj", "second.obj"] {
         drop_model(&root.join("hot"), name, &spot());

@@ -31,11 +31,6 @@ mod common;
 
 const HEIGHT_MM: f64 = 100.0;
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 /// The daemon's task for Spot dropped into a folder of an Ultimaker 2 at 100 mm.
 fn task(job_dir: &Path) -> PrepareTask {
     let model = job_dir.join("spot.obj");
@@ -110,11 +105,7 @@ fn slicer_alone(stl: &Path, machine: &Machine, settings: &SliceSettings, work: &
 }
 
 fn main() {
-    let runs: usize = std::env::var("CRISPEN_BENCH_RUNS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(3)
-        .max(1);
+    let runs = common::bench_runs(3);
     let program = Path::new(env!("CARGO_BIN_EXE_crispen"));
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -175,16 +166,16 @@ fn main() {
         before.push(before_s);
     }
     let (slicer, ready, compare, before) = (
-        median(slicer),
-        median(ready),
-        median(compare),
-        median(before),
+        common::median(slicer),
+        common::median(ready),
+        common::median(compare),
+        common::median(before),
     );
     let share = |prepared: f64| 100.0 * (prepared - slicer) / slicer;
     // On a shared machine the slicer's own time varies from run to run by more than
     // crispen adds: the share is also taken within each run, the slicer's run beside the
     // preparation's.
-    let paired = median(ratios);
+    let paired = common::median(ratios);
     println!("spot@{HEIGHT_MM}mm PrusaSlicer ultimaker2, median of {runs} runs");
     println!("  slicer alone                        {slicer:>7.2} s");
     println!(
@@ -195,7 +186,7 @@ fn main() {
     println!(
         "  crispen's added share, run by run   {paired:>7.1} % (median of each run's (ready - slicer) / slicer)"
     );
-    let step = |i: usize| median(steps.iter().map(|s| s[i]).collect());
+    let step = |i: usize| common::median(steps.iter().map(|s| s[i]).collect());
     println!(
         "    its steps: load {:.2} s, enhance {:.2} s, slice {:.2} s, check {:.2} s, total {:.2} s",
         step(0),

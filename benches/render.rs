@@ -12,13 +12,8 @@ use std::time::Instant;
 #[path = "../tests/common/mod.rs"]
 mod common;
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn time<T>(runs: usize, mut f: impl FnMut() -> T) -> f64 {
-    median(
+    common::median(
         (0..runs)
             .map(|_| {
                 let t = Instant::now();
@@ -30,11 +25,7 @@ fn time<T>(runs: usize, mut f: impl FnMut() -> T) -> f64 {
 }
 
 fn main() {
-    let runs: usize = std::env::var("CRISPEN_BENCH_RUNS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(5)
-        .max(1);
+    let runs = common::bench_runs(5);
     let load = |name: &str| mesh::load(&common::model(name)).unwrap().mesh;
     let homer = load("homer.obj");
     let cases: Vec<(&str, Mesh)> = vec![

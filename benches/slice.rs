@@ -19,17 +19,8 @@ fn um2(dir: &std::path::Path) -> Target {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn main() {
-    let runs: usize = std::env::var("CRISPEN_BENCH_RUNS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(3)
-        .max(1);
+    let runs = common::bench_runs(3);
     let cases = [
         ("spot", common::model("spot.obj"), 30.0),
         ("bunny", common::model("bunny.obj"), 40.0),
@@ -52,7 +43,8 @@ fn main() {
                         Err(e) => panic!("{name} with {slicer}: {e}"),
                     })
                     .collect();
-                let m = |f: fn(&SliceReport) -> f64| median(reports.iter().map(f).collect());
+                let m =
+                    |f: fn(&SliceReport) -> f64| common::median(reports.iter().map(f).collect());
                 let label = format!(
                     "{name}@{height}mm {slicer} {}",
                     if strength == Strength::Off {

@@ -15,17 +15,8 @@ use std::time::Instant;
 #[path = "../tests/common/mod.rs"]
 mod common;
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn main() {
-    let runs: usize = std::env::var("CRISPEN_BENCH_RUNS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(3)
-        .max(1);
+    let runs = common::bench_runs(3);
     let dir = tempfile::tempdir().expect("temporary folder");
     let machine = Machine::builtin("ultimaker2").expect("built in");
     println!("case          slice_s  MB(2 files)  segments  samples  read_s  compare_s  total_s");
@@ -71,7 +62,7 @@ fn main() {
             last = Some((plain.segment_count() + enhanced.segment_count(), c.samples));
         }
         let (segments, samples) = last.unwrap();
-        let (r, c) = (median(read), median(cmp));
+        let (r, c) = (common::median(read), common::median(cmp));
         println!(
             "{model:<5} {height:>3} mm {slice_s:>8.2} {:>12.1} {segments:>9} {samples:>8} {r:>7.3} {c:>10.3} {:>8.3}",
             bytes as f64 / 1e6,

@@ -158,12 +158,7 @@ async fn shutdown_stops_prints_safely_and_ends_every_task() {
         "/nonexistent/crispen".into(),
     ));
     let job = ready_job(&farm, "a.stl", &long_print(10_000)).await;
-    until(&farm, LIMIT, "printing past the heat-up", || {
-        printer(&farm, "p1")
-            .and_then(|p| p.progress)
-            .is_some_and(|l| l.heated)
-    })
-    .await;
+    past_the_heat_up(&farm).await;
     farm.begin_stop();
     tokio::time::timeout(Duration::from_secs(60), fleet.join())
         .await
@@ -176,6 +171,16 @@ async fn shutdown_stops_prints_safely_and_ends_every_task() {
     let reason = stored.reason.unwrap_or_default();
     assert!(reason.contains("stopped safely at shutdown"), "{reason}");
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Stopped);
+}
+
+/// Waits until `p1` prints past its heat-up.
+async fn past_the_heat_up(farm: &Farm) {
+    until(farm, LIMIT, "printing past the heat-up", || {
+        printer(farm, "p1")
+            .and_then(|p| p.progress)
+            .is_some_and(|l| l.heated)
+    })
+    .await;
 }
 
 /// The 10,000-line print on `p1` was cut short by the safe stop's lines; its job
@@ -208,12 +213,7 @@ async fn a_finishing_print_goes_on_until_the_prints_are_stopped() {
             .and_then(|p| p.progress)
             .map_or(0, |l| l.lines_acked)
     };
-    until(&farm, LIMIT, "printing past the heat-up", || {
-        printer(&farm, "p1")
-            .and_then(|p| p.progress)
-            .is_some_and(|l| l.heated)
-    })
-    .await;
+    past_the_heat_up(&farm).await;
     farm.begin_stop();
     let at_stop = acked(&farm);
     until(&farm, LIMIT, "the print going on", || {
@@ -391,12 +391,7 @@ async fn an_unplugged_printer_interrupts_its_job_and_reconnects() {
     let bench = BenchPorts::default();
     let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
     let job = ready_job(&farm, "a.stl", &long_print(1000)).await;
-    until(&farm, LIMIT, "printing past the heat-up", || {
-        printer(&farm, "p1")
-            .and_then(|p| p.progress)
-            .is_some_and(|l| l.heated)
-    })
-    .await;
+    past_the_heat_up(&farm).await;
     bench.printer("p1").unplug();
     until(&farm, LIMIT, "the job interrupted", || {
         state(&farm, &job) == JobState::Interrupted
@@ -430,12 +425,7 @@ async fn pause_resume_and_cancel_reach_the_print() {
     let bench = BenchPorts::default();
     let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
     let job = ready_job(&farm, "a.stl", &long_print(5000)).await;
-    until(&farm, LIMIT, "printing past the heat-up", || {
-        printer(&farm, "p1")
-            .and_then(|p| p.progress)
-            .is_some_and(|l| l.heated)
-    })
-    .await;
+    past_the_heat_up(&farm).await;
     let p1 = || Command::Pause {
         printer: "p1".into(),
     };

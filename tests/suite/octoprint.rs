@@ -574,6 +574,15 @@ fn application_keys_open_only_what_their_scope_allows() {
     let k = ("X-Api-Key", cura.as_str());
     let json_type = ("Content-Type", "application/json");
     let select_print = br#"{"command": "select", "print": true}"#;
+    // A job command (`POST api/job`) with the Cura key on one instance.
+    let post_job = |instance: &str, body: &[u8]| {
+        farm.call(
+            "POST",
+            &format!("/octoprint/{instance}/api/job"),
+            &[k, json_type],
+            body,
+        )
+    };
 
     // Listed with their scopes: the API, the CLI.
     let keys = farm
@@ -752,12 +761,7 @@ fn application_keys_open_only_what_their_scope_allows() {
     }
 
     // Control: not in its scope.
-    let a = farm.call(
-        "POST",
-        "/octoprint/hot/api/job",
-        &[k, json_type],
-        br#"{"command": "cancel"}"#,
-    );
+    let a = post_job("hot", br#"{"command": "cancel"}"#);
     assert_eq!(a.status, 409, "{}", a.text());
     assert!(
         a.error()
@@ -771,12 +775,7 @@ fn application_keys_open_only_what_their_scope_allows() {
     assert!(ok && said.contains("upload everywhere"), "{said}");
     let a = farm.call("GET", "/octoprint/other/api/printer", &[k], b"");
     assert_eq!(a.status, 200, "{}", a.text());
-    let a = farm.call(
-        "POST",
-        "/octoprint/other/api/job",
-        &[k, json_type],
-        br#"{"command": "pause", "action": "pause"}"#,
-    );
+    let a = post_job("other", br#"{"command": "pause", "action": "pause"}"#);
     assert_eq!(a.status, 409, "still no control: {}", a.text());
 
     // Control (and everywhere): pause, resume, cancel the print of `other`.
@@ -790,12 +789,7 @@ fn application_keys_open_only_what_their_scope_allows() {
         ok && listed.contains("upload, control everywhere"),
         "{listed}"
     );
-    let a = farm.call(
-        "POST",
-        "/octoprint/other/api/job",
-        &[k, json_type],
-        br#"{"command": "pause", "action": "pause"}"#,
-    );
+    let a = post_job("other", br#"{"command": "pause", "action": "pause"}"#);
     assert_eq!(a.status, 409, "nothing prints yet: {}", a.text());
     let (ct, body) = form(
         &[("file", "slow.gcode"), ("print", "true")],
@@ -811,7 +805,7 @@ fn application_keys_open_only_what_their_scope_allows() {
     let beta = |s: &Value| common::printer(s, "beta")["state"].clone();
     farm.wait_for("beta printing", |s| beta(s) == "printing");
     let job_command = |body: &[u8]| {
-        let a = farm.call("POST", "/octoprint/other/api/job", &[k, json_type], body);
+        let a = post_job("other", body);
         assert_eq!(a.status, 204, "{}", a.text());
     };
     job_command(br#"{"command": "pause", "action": "pause"}"#);

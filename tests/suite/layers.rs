@@ -14,11 +14,13 @@
 //!
 //! The granularity: at each level the nodes are the module's children, each with all its
 //! descendants (`daemon::store` is one node among `daemon`'s children, and its own children
-//! are a level of their own). The module's own file (`mod.rs`; `lib.rs` and `main.rs` at the
-//! top) is not a node: it is the module's root, declaring its children and wiring them, and
-//! its children may use what it defines (a mesh reader returns `super::Mesh`). So
-//! `daemon → http → daemon` is a cycle at the top level and
-//! `daemon::job → daemon::prepare → daemon::job` one among `daemon`'s children.
+//! are a level of their own), and the module's own file (`mod.rs`; `lib.rs` and `main.rs`
+//! at the top), shown as `daemon::store (root)`. A root that defines what its children use
+//! and also calls into them is a cycle like any other: the shared definitions go to a child
+//! of their own, which the root re-exports (a re-export alone is no edge, see above). So
+//! `daemon → http → daemon` is a cycle at the top level, `daemon::job → daemon::prepare →
+//! daemon::job` one among `daemon`'s children, and `mesh (root) → mesh::stl → mesh (root)`
+//! one when the root both reads through `stl` and defines the `Mesh` that `stl` returns.
 //!
 //! Run with `--nocapture` to see every level's graph and its cycles.
 
@@ -123,6 +125,23 @@ fn the_checker_reports_a_cycle_with_each_edges_place() {
     write("c/d.rs", "pub use super::e::E;\npub struct D(E);\n");
     let report = Graph::scan(&src).unwrap().report(&[]);
     assert_eq!(report.cycles.len(), 1, "{}", report.text);
+
+    // A root file is a node: defining what a child uses while calling into it is a cycle;
+    // the same definition in a child of its own, re-exported by the root, is not.
+    write("c.rs", "mod d;\nmod e;\npub struct Shared;\npub fn run() { d::go() }\n");
+    write("c/d.rs", "pub fn go() { let _ = super::Shared; }\n");
+    write("c/e.rs", "pub struct E;\n");
+    let report = Graph::scan(&src).unwrap().report(&[]);
+    assert_eq!(report.cycles.len(), 1, "{}", report.text);
+    assert!(
+        report.cycles[0].starts_with("cycle in `c`: c (root) → c::d → c (root)"),
+        "{}",
+        report.text
+    );
+    write("c.rs", "mod d;\nmod e;\npub use e::Shared;\npub fn run() { d::go() }\n");
+    write("c/e.rs", "pub struct Shared;\n");
+    let report = Graph::scan(&src).unwrap().report(&[]);
+    assert!(report.cycles.is_empty(), "{}", report.text);
 }
 
 // ------------------------------------------------------------------------------ the scan
@@ -399,12 +418,14 @@ fn name(module: &[String]) -> String {
     }
 }
 
-/// The node a module is at `level`: the child of `level` it is or is inside. The level's
-/// own file (its `mod.rs`, or `lib.rs`) is no node: it is the module's root, which
-/// declares its children and may use them, and whose items its children may use.
+/// The node a module is at `level`: the child of `level` it is or is inside, or the
+/// level's own file (its `mod.rs`, or `lib.rs`), `level (root)`.
 fn node_at(level: &[String], module: &[String]) -> Option<String> {
-    if module.len() <= level.len() || !module.starts_with(level) {
+    if !module.starts_with(level) {
         return None;
+    }
+    if module.len() == level.len() {
+        return Some(format!("{} (root)", name(level)));
     }
     Some(name(&module[..level.len() + 1]))
 }

@@ -21,68 +21,38 @@
 
 mod api;
 pub mod appkeys;
+mod appkeys_api;
 mod assets;
 mod auth;
 mod error;
 mod events;
 mod instance;
+mod limits;
 mod metrics;
 mod multipart;
 mod octoprint;
 pub mod serve;
+mod state;
+mod streams;
 mod upload;
 pub mod zeroconf;
 
-use crate::daemon::config::{ApiKey, HttpConfig};
+use crate::daemon::config::HttpConfig;
 use crate::daemon::farm::Farm;
 use axum::routing::{get, post, put};
 use axum::Router;
 use std::sync::Arc;
-use std::time::Duration;
 
 /// The check of an uploaded file's name and the reading of an upload's form (exported for
 /// the fuzz targets).
 pub use appkeys::AppKeys;
 pub use error::ApiError;
+pub use limits::{
+    DEFAULT_UPLOAD_MAX_BYTES, MAX_BODY_BYTES, REQUEST_TIMEOUT, UPLOAD_IDLE_TIMEOUT, UPLOAD_TIMEOUT,
+};
 pub use octoprint::{read_form as read_upload_form, truthy, Form as UploadForm};
+pub use state::{Access, AppState};
 pub use upload::{check_name as check_upload_name, upload_name, Upload};
-
-/// Who may do what on a listener.
-#[derive(Debug, Clone)]
-pub enum Access {
-    /// The control socket: whoever may open it (its mode is 0660) may do everything.
-    Socket,
-    /// TCP: every request carries the key, or reads go without it if allowed.
-    Key {
-        key: ApiKey,
-        read_only_without_key: bool,
-    },
-}
-
-/// What every handler needs.
-#[derive(Clone)]
-pub struct AppState {
-    pub farm: Arc<Farm>,
-    pub access: Arc<Access>,
-    /// The largest upload accepted, in bytes.
-    pub upload_max_bytes: u64,
-    /// The listener's open event streams (capped).
-    pub streams: Arc<events::Streams>,
-    /// Application keys and pending key requests (shared by both listeners).
-    pub appkeys: Arc<AppKeys>,
-}
-
-/// The upload bound where `[http]` sets none (the control socket without `[http]`).
-pub const DEFAULT_UPLOAD_MAX_BYTES: u64 = 512 * 1024 * 1024;
-
-/// Largest body of any request but an upload: actions carry no body or a few fields.
-pub const MAX_BODY_BYTES: usize = 64 * 1024;
-/// A request (other than an upload or the event stream) is answered within this or gets 503.
-pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
-/// An upload may take this long in all…
-pub const UPLOAD_TIMEOUT: Duration = Duration::from_secs(3600);
-/// …but no more than this between two pieces of it.
-pub const UPLOAD_IDLE_TIMEOUT: Duration = Duration::from_secs(60);
 
 /// The whole application: pages, API, metrics and the OctoPrint subset.
 pub fn router(state: AppState) -> Router {
@@ -111,8 +81,11 @@ pub fn router(state: AppState) -> Router {
         .route("/api/v1/folders", get(api::folders))
         .route("/metrics", get(metrics::metrics))
         // The application keys, as the dashboard and `crispen keys` manage them.
-        .route("/api/v1/appkeys", get(appkeys::list))
-        .route("/api/v1/appkeys/{kind}/{id}/{action}", post(appkeys::act))
+        .route("/api/v1/appkeys", get(appkeys_api::list))
+        .route(
+            "/api/v1/appkeys/{kind}/{id}/{action}",
+            post(appkeys_api::act),
+        )
         .merge(octoprint_api)
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
         .route_layer(axum::middleware::from_fn(auth::time_limit))

@@ -40,7 +40,7 @@ impl Default for Limits {
     fn default() -> Limits {
         Limits {
             // Well under the service's 1024 file descriptors; event streams are capped at
-            // a quarter of it (`events::MAX_STREAMS`).
+            // a quarter of it (`streams::MAX_STREAMS`).
             max_connections: 256,
             header_timeout: Duration::from_secs(10),
             write_stall: Duration::from_secs(60),

@@ -24,14 +24,16 @@ pub mod process;
 pub mod profiles;
 pub mod prusa;
 mod settings;
+mod slicer;
 pub mod walls;
 
 pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
+pub use slicer::{SliceError, SlicerKind};
 
-use crate::enhance::{EnhanceError, EnhanceReport, PrintedDisplacement};
-use crate::machine::{Machine, SKIRT_MARGIN_MM};
+use crate::enhance::{EnhanceReport, PrintedDisplacement};
+use crate::machine::Machine;
 use crate::mesh::place::UpAxis;
-use crate::mesh::{Mesh, MeshError};
+use crate::mesh::Mesh;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -45,63 +47,6 @@ pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_
 /// The layer height of the built-in profiles (`config/prusaslicer-ultimaker2.ini`,
 /// `config/cura-ultimaker2.toml`), mm, when neither the job nor the G-code says.
 pub const DEFAULT_LAYER_HEIGHT_MM: f64 = 0.2;
-
-/// Which slicer turns the mesh into G-code.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum SlicerKind {
-    /// PrusaSlicer (Debian package `prusa-slicer`), the default.
-    #[default]
-    Prusa,
-    /// CuraEngine (Debian package `cura-engine`) with Ultimaker's definitions.
-    Cura,
-}
-
-impl SlicerKind {
-    /// The program run when no other is configured.
-    pub fn default_program(self) -> &'static str {
-        match self {
-            SlicerKind::Prusa => "prusa-slicer",
-            SlicerKind::Cura => "CuraEngine",
-        }
-    }
-
-    /// The Debian package that provides the slicer.
-    pub fn package(self) -> &'static str {
-        match self {
-            SlicerKind::Prusa => "prusa-slicer",
-            SlicerKind::Cura => "cura-engine",
-        }
-    }
-
-    /// Environment variable naming another program to run (e.g. a wrapper script).
-    pub fn program_env(self) -> &'static str {
-        match self {
-            SlicerKind::Prusa => "CRISPEN_PRUSA_SLICER",
-            SlicerKind::Cura => "CRISPEN_CURA_ENGINE",
-        }
-    }
-}
-
-impl std::fmt::Display for SlicerKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            SlicerKind::Prusa => "PrusaSlicer",
-            SlicerKind::Cura => "CuraEngine",
-        })
-    }
-}
-
-impl std::str::FromStr for SlicerKind {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s.to_ascii_lowercase().as_str() {
-            "prusa" | "prusaslicer" | "prusa-slicer" => Ok(SlicerKind::Prusa),
-            "cura" | "curaengine" | "cura-engine" => Ok(SlicerKind::Cura),
-            _ => Err(format!("unknown slicer {s:?}; use prusa or cura")),
-        }
-    }
-}
 
 /// Loads `path`, or the built-in profile for the slicer, and checks the slicer's own
 /// files are installed.
@@ -224,109 +169,6 @@ pub struct SliceReport {
     /// refuses makes no report.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub policy: Option<policy::Verdict>,
-}
-
-/// Why a job failed. Messages name the model, slicer, exit status and the end of the
-/// slicer's output, and end with what the user can do.
-#[derive(Debug, thiserror::Error)]
-pub enum SliceError {
-    #[error(transparent)]
-    Mesh(#[from] MeshError),
-    #[error("{model}: {source}")]
-    Enhance {
-        model: PathBuf,
-        #[source]
-        source: EnhanceError,
-    },
-    #[error(
-        "{model}: at {height_mm} mm tall the model is {size_mm:.1?} mm (X, Y, Z), which does not fit \
-         the {machine}'s {max_mm:?} mm (keeping {SKIRT_MARGIN_MM} mm around it for the skirt); \
-         print it smaller"
-    )]
-    TooBig {
-        model: PathBuf,
-        machine: String,
-        height_mm: f64,
-        size_mm: [f64; 3],
-        max_mm: [f64; 3],
-    },
-    #[error("{model}: the model has no volume to print (empty or flat mesh)")]
-    EmptyModel { model: PathBuf },
-    #[error("bad setting {key}={value}: {hint}")]
-    BadSetting {
-        key: String,
-        value: String,
-        hint: String,
-    },
-    #[error("cannot read profile {path}: {reason}")]
-    BadProfile { path: PathBuf, reason: String },
-    #[error(
-        "{slicer} not found (tried to run {program}); install Debian's {package} package \
-         (`sudo apt-get install {package}`, or run scripts/setup), or set {env} to the program"
-    )]
-    SlicerMissing {
-        slicer: SlicerKind,
-        program: PathBuf,
-        package: &'static str,
-        env: &'static str,
-    },
-    #[error(
-        "CuraEngine needs Ultimaker's printer definitions, but {path} does not exist; run \
-         scripts/setup, or set CRISPEN_CURA_RESOURCES to the folder holding definitions/ and extruders/"
-    )]
-    CuraResourcesMissing { path: PathBuf },
-    #[error(
-        "{slicer} failed on {model} ({status}); end of its output:\n{output_tail}\nhint: the \
-         slicer's last lines above say why; check the profile (--profile) and the model"
-    )]
-    SlicerFailed {
-        slicer: SlicerKind,
-        model: PathBuf,
-        status: String,
-        output_tail: String,
-    },
-    #[error(
-        "{slicer} took longer than {after:?} on {model} and was stopped; end of its output:\n\
-         {output_tail}\nhint: raise the timeout (--timeout SECS) for big models"
-    )]
-    Timeout {
-        slicer: SlicerKind,
-        model: PathBuf,
-        after: Duration,
-        output_tail: String,
-    },
-    #[error("slicing {model} was cancelled")]
-    Cancelled { model: PathBuf },
-    #[error(
-        "{slicer} wrote unusable G-code for {model}: {reason}; the job was not written. End of \
-         the slicer's output:\n{output_tail}"
-    )]
-    BadOutput {
-        slicer: SlicerKind,
-        model: PathBuf,
-        reason: String,
-        output_tail: String,
-    },
-    #[error("{context} {path}: {source}")]
-    Io {
-        context: &'static str,
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-}
-
-impl SliceError {
-    fn io<'a>(
-        context: &'static str,
-        path: &'a Path,
-    ) -> impl FnOnce(std::io::Error) -> SliceError + 'a {
-        move |source| SliceError::Io {
-            context,
-            path: path.to_path_buf(),
-            source,
-        }
-    }
 }
 
 /// Slices a placed mesh for one machine, checks the G-code, and writes `job.output` (only

@@ -8,8 +8,9 @@
 //! a child module's name (`settings::…` in its parent), or a name a `use` brought in for a
 //! module; `use` trees (`crate::{a, b::c}`) are expanded; intra-doc links (`[`crate::x`]`,
 //! `[text](super::y)`) count too, since the documentation breaks when their target moves.
-//! A re-export (`pub use other::X`) is followed to the module that defines `X`; it is an
-//! edge of its own only when the re-exporting file uses `X` itself. Test code
+//! A name a module's `use` brings in is followed to the module that defines it (a child's
+//! `super::X` sees its parent's private imports as well as its re-exports); a re-export
+//! (`pub use other::X`) is an edge of its own only when the re-exporting file uses `X`. Test code
 //! (`#[cfg(test)]`) counts like any other: it is compiled into its module.
 //!
 //! The granularity: at each level the nodes are the module's children, each with all its
@@ -128,7 +129,10 @@ fn the_checker_reports_a_cycle_with_each_edges_place() {
 
     // A root file is a node: defining what a child uses while calling into it is a cycle;
     // the same definition in a child of its own, re-exported by the root, is not.
-    write("c.rs", "mod d;\nmod e;\npub struct Shared;\npub fn run() { d::go() }\n");
+    write(
+        "c.rs",
+        "mod d;\nmod e;\npub struct Shared;\npub fn run() { d::go() }\n",
+    );
     write("c/d.rs", "pub fn go() { let _ = super::Shared; }\n");
     write("c/e.rs", "pub struct E;\n");
     let report = Graph::scan(&src).unwrap().report(&[]);
@@ -138,10 +142,37 @@ fn the_checker_reports_a_cycle_with_each_edges_place() {
         "{}",
         report.text
     );
-    write("c.rs", "mod d;\nmod e;\npub use e::Shared;\npub fn run() { d::go() }\n");
+    write(
+        "c.rs",
+        "mod d;\nmod e;\npub use e::Shared;\npub fn run() { d::go() }\n",
+    );
     write("c/e.rs", "pub struct Shared;\n");
     let report = Graph::scan(&src).unwrap().report(&[]);
     assert!(report.cycles.is_empty(), "{}", report.text);
+    // A private import is followed too (children see it), a visibility restriction
+    // (`pub(in crate::c)`) uses nothing, and the root's own documentation linking to its
+    // children is its table of contents.
+    write(
+        "c.rs",
+        "//! Runs [`d`].\nmod d;\nmod e;\nuse e::Shared;\npub fn run() { d::go() }\n",
+    );
+    write("c/e.rs", "pub(in crate::c) struct Shared;\n");
+    let report = Graph::scan(&src).unwrap().report(&[]);
+    assert!(report.cycles.is_empty(), "{}", report.text);
+    // A child's item doc linking to its root is a use: with the root's import of `Shared`,
+    // a cycle.
+    write(
+        "c/e.rs",
+        "pub struct Shared;\n/// Not [`super::run`].\npub fn f() {}\n",
+    );
+    let report = Graph::scan(&src).unwrap().report(&[]);
+    assert!(
+        report.cycles.iter().any(
+            |c| c.starts_with("cycle in `c`: c (root) → c::e → c (root)") && c.contains("c/e.rs:2")
+        ),
+        "{}",
+        report.text
+    );
 }
 
 // ------------------------------------------------------------------------------ the scan
@@ -173,7 +204,9 @@ struct Source {
     module: ModPath,
     rel: String,
     tokens: Vec<Token>,
-    docs: Vec<(usize, String)>,
+    /// Doc comment lines: line number, text, and whether it documents the file's module
+    /// itself (`//!`).
+    docs: Vec<(usize, String, bool)>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -239,12 +272,12 @@ impl Graph {
                 docs,
             });
         }
-        // First every file's uses (re-exports are followed when resolving), then the paths.
+        // First every file's uses (imports are followed when resolving), then the paths.
         let parsed: Vec<(Vec<Use>, Vec<Written>, BTreeSet<String>)> =
             sources.iter().map(|s| s.parse()).collect();
         let mut reexports: BTreeMap<ModPath, BTreeMap<String, Vec<String>>> = BTreeMap::new();
         for (source, (uses, _, _)) in sources.iter().zip(&parsed) {
-            for u in uses.iter().filter(|u| u.public && u.scope == source.module) {
+            for u in uses.iter().filter(|u| u.scope == source.module) {
                 if let Some(name) = &u.name {
                     if let Some(abs) = absolute(&modules, &u.scope, &u.segments, &BTreeMap::new()) {
                         reexports
@@ -297,12 +330,20 @@ impl Graph {
             for w in written {
                 add(resolver.resolve(&w.scope, &w.segments, &aliases), w.line);
             }
-            for (line, doc) in &source.docs {
+            for (line, doc, inner) in &source.docs {
                 for link in doc_links(doc) {
                     let segments: Vec<String> = link.split("::").map(str::to_string).collect();
                     // Links resolve in the scope of the item they document; the file's
                     // module is that scope but for items in inline modules (rare in docs).
-                    add(resolver.resolve(&source.module, &segments, &aliases), *line);
+                    let target = resolver.resolve(&source.module, &segments, &aliases);
+                    // A root's own documentation naming its children is its table of
+                    // contents, like its `mod` lines, not a use of them.
+                    let own_child = target.as_ref().is_some_and(|t| {
+                        t.len() > source.module.len() && t.starts_with(&source.module)
+                    });
+                    if !(*inner && own_child) {
+                        add(target, *line);
+                    }
                 }
             }
         }
@@ -581,6 +622,13 @@ impl Source {
                 continue;
             }
             match t[i].ident() {
+                Some("pub") if t.get(i + 1).is_some_and(|t| t.is('(')) => {
+                    // `pub(in crate::a)` restricts visibility; it uses nothing.
+                    i = (i + 1..t.len())
+                        .find(|&k| t[k].is(')'))
+                        .map_or(t.len(), |k| k + 1);
+                    continue;
+                }
                 Some("mod") if i + 2 < t.len() && t[i + 2].is('{') => {
                     if let Some(name) = t[i + 1].ident() {
                         inline.push((name.to_string(), depth + 1));
@@ -594,9 +642,14 @@ impl Source {
                     continue;
                 }
                 Some("use") if i == 0 || !t[i - 1].is('.') => {
+                    // `pub use`, or `pub(…) use` with any restriction inside.
                     let public = i > 0
                         && (t[i - 1].ident() == Some("pub")
-                            || (t[i - 1].is(')') && i >= 3 && t[i - 3].is('(')));
+                            || (t[i - 1].is(')')
+                                && (0..i - 1)
+                                    .rev()
+                                    .find(|&k| t[k].is('('))
+                                    .is_some_and(|k| k > 0 && t[k - 1].ident() == Some("pub"))));
                     let end = (i..t.len()).find(|&j| t[j].is(';')).unwrap_or(t.len());
                     let mut trees = Vec::new();
                     expand_use(&t[i + 1..end], Vec::new(), &mut trees);
@@ -795,7 +848,7 @@ fn module_of(rel: &Path) -> ModPath {
 // ----------------------------------------------------------------------------- the lexer
 
 /// Tokens of Rust text and its doc comments' lines (each with its line number).
-type Lexed = (Vec<Token>, Vec<(usize, String)>);
+type Lexed = (Vec<Token>, Vec<(usize, String, bool)>);
 
 /// Tokens of Rust text (identifiers, `::`, punctuation) and its doc comments' lines;
 /// comments, strings and character literals are skipped.
@@ -822,7 +875,7 @@ fn lex(text: &str) -> Result<Lexed, String> {
             let is_doc =
                 (body.starts_with('/') && !body.starts_with("//")) || body.starts_with('!');
             if is_doc {
-                docs.push((line, body[1..].to_string()));
+                docs.push((line, body[1..].to_string(), body.starts_with('!')));
             }
             i = end;
         } else if ch == '/' && next == Some('*') {
@@ -844,8 +897,9 @@ fn lex(text: &str) -> Result<Lexed, String> {
             }
             let body: String = c[start..i].iter().collect();
             if body.starts_with("/**") && !body.starts_with("/***") || body.starts_with("/*!") {
+                let inner = body.starts_with("/*!");
                 for (k, l) in body.lines().enumerate() {
-                    docs.push((line + k, l.to_string()));
+                    docs.push((line + k, l.to_string(), inner));
                 }
             }
             count_lines(start, i, &mut line);

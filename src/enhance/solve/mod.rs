@@ -6,10 +6,13 @@
 
 mod cg;
 mod cholesky;
+mod choose;
 mod ordering;
 
+pub(in crate::enhance) use choose::solve;
+
 use super::operators::Operators;
-use super::{EnhanceError, Phase, PhaseTimings};
+use super::EnhanceError;
 
 /// How to solve the three systems of spec step 3.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -54,26 +57,6 @@ pub(super) struct Solutions {
     pub residuals: [f64; 3],
 }
 
-/// Solves the three systems with `solver`; fails when no solver reaches the residual.
-pub(super) fn solve(
-    problem: Problem,
-    solver: Solver,
-    timings: &mut PhaseTimings,
-    progress: &mut dyn FnMut(Phase),
-) -> Result<Solutions, EnhanceError> {
-    match solver {
-        Solver::Auto if problem.ops.n < CG_MAX_VERTICES => {
-            cg::solve(problem, timings, progress).or_else(|error| {
-                // Badly shaped triangles can make CG crawl; Cholesky does not care.
-                tracing::debug!(%error, "conjugate gradients failed; using Cholesky");
-                cholesky::solve(problem, timings, progress)
-            })
-        }
-        Solver::ConjugateGradient => cg::solve(problem, timings, progress),
-        Solver::Auto | Solver::Cholesky => cholesky::solve(problem, timings, progress),
-    }
-}
-
 /// How far `x` is from solving `A x = b`, for the symmetric `A` whose stored lower
 /// triangle is `values` (see [`Operators::system_values`]).
 pub(super) struct Residual {
@@ -116,87 +99,5 @@ fn residual_too_large(delta: f64, residual: f64, how: &str) -> EnhanceError {
             "{how} reached a relative residual of only {residual:.3e} (needs \
              {MAX_RELATIVE_RESIDUAL:e})"
         ),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// An equilateral triangle: M has a third of the area on each corner.
-    fn triangle() -> (Operators, Vec<[f64; 3]>) {
-        let h = 3f64.sqrt() / 2.0;
-        let v = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, h, 0.0]];
-        (Operators::build(&v, &[[0, 1, 2]]), v)
-    }
-
-    #[test]
-    fn the_residual_is_relative_per_column_and_takes_the_worst() {
-        let (ops, v) = triangle();
-        // δ = 0: A = M, so x = V solves A x = M V exactly.
-        let values = ops.system_values(0.0);
-        let b: Vec<[f64; 3]> = v
-            .iter()
-            .zip(&ops.mass)
-            .map(|(p, m)| p.map(|c| c * m))
-            .collect();
-        assert!(relative_residual(&ops, &values, &v, &b).relative < 1e-15);
-        // x = 0 leaves all of b: relative residual 1 in every column that has one.
-        let zero = vec![[0.0; 3]; 3];
-        let r = relative_residual(&ops, &values, &zero, &b);
-        assert!((r.relative - 1.0).abs() < 1e-15, "{}", r.relative);
-        assert_eq!(r.vector, b);
-        // x off in z only, where b is 0: the absolute residual counts, and it is the worst.
-        let lifted: Vec<[f64; 3]> = v.iter().map(|p| [p[0], p[1], 10.0]).collect();
-        let r = relative_residual(&ops, &values, &lifted, &b);
-        let expected = 10.0 * ops.mass.iter().map(|m| m * m).sum::<f64>().sqrt();
-        assert!((r.relative - expected).abs() < 1e-12, "{}", r.relative);
-    }
-
-    #[test]
-    fn both_solvers_pass_the_same_residual_check_and_agree() {
-        // A bumpy fan around a centre vertex, so every δ moves something.
-        let mut v = vec![[0.0, 0.0, 0.3]];
-        let mut faces = Vec::new();
-        for k in 0..8u32 {
-            let angle = f64::from(k) * std::f64::consts::TAU / 8.0;
-            v.push([angle.cos(), angle.sin(), 0.1 * f64::from(k % 2)]);
-            faces.push([0, 1 + k, 1 + (k + 1) % 8]);
-        }
-        let ops = Operators::build(&v, &faces);
-        let rhs: Vec<[f64; 3]> = v
-            .iter()
-            .zip(&ops.mass)
-            .map(|(p, m)| p.map(|c| c * m))
-            .collect();
-        let problem = Problem {
-            ops: &ops,
-            v0: &v,
-            rhs: &rhs,
-            deltas: DELTAS,
-        };
-        let mut timings = PhaseTimings::default();
-        let chol = solve(problem, Solver::Cholesky, &mut timings, &mut |_| {}).unwrap();
-        let cg = solve(
-            problem,
-            Solver::ConjugateGradient,
-            &mut timings,
-            &mut |_| {},
-        )
-        .unwrap();
-        for (k, delta) in DELTAS.iter().enumerate() {
-            let values = ops.system_values(*delta);
-            for solved in [&chol, &cg] {
-                let r = relative_residual(&ops, &values, &solved.v[k], &rhs).relative;
-                assert!(r <= MAX_RELATIVE_RESIDUAL, "δ = {delta}: {r:e}");
-                assert_eq!(solved.residuals[k], r);
-            }
-            let worst = chol.v[k]
-                .iter()
-                .zip(&cg.v[k])
-                .flat_map(|(a, b)| (0..3).map(move |c| (a[c] - b[c]).abs()))
-                .fold(0.0, f64::max);
-            assert!(worst < 1e-9, "δ = {delta}: solvers differ by {worst:e}");
-        }
     }
 }

@@ -229,7 +229,7 @@ pub async fn upload(
         .join("/");
     let location = format!(
         "{}{}api/files/local/{encoded}",
-        crate::http::appkeys::origin(&headers),
+        crate::http::appkeys_api::origin(&headers),
         instance.base
     );
     let body = serde_json::json!({

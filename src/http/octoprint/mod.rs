@@ -231,15 +231,15 @@ pub fn routes() -> (Router<AppState>, Router<AppState>, Router<AppState>) {
         open = open
             .route(
                 &format!("{base}/plugin/appkeys/probe"),
-                get(super::appkeys::probe),
+                get(super::appkeys_api::probe),
             )
             .route(
                 &format!("{base}/plugin/appkeys/request"),
-                post(super::appkeys::request),
+                post(super::appkeys_api::request),
             )
             .route(
                 &format!("{base}/plugin/appkeys/request/{{token}}"),
-                get(super::appkeys::poll),
+                get(super::appkeys_api::poll),
             );
     }
     (uploads, api, open)

@@ -14,7 +14,8 @@
 
 use super::history::{self, HistoryFiles, Retention, Retired};
 use super::pending::{Attempt, Pending};
-use super::{io_err, JobEdit, JobStore, RetiredJob, StateFilter};
+use super::rules::io_err;
+use super::{JobEdit, JobStore, RetiredJob, StateFilter};
 use crate::daemon::hotfolder::{find_named, normal_name};
 use crate::daemon::job::{now_s, Job, JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};

@@ -13,7 +13,7 @@
 //! so it appears once. In PostgreSQL the job's row is marked retired
 //! (`store::postgres`).
 
-use super::io_err;
+use super::rules::io_err;
 use crate::daemon::job::{Job, JobState, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};

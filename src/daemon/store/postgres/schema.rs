@@ -4,7 +4,7 @@
 //! version is newer than this binary knows was written by a newer crispen: refuse it
 //! rather than guess at its meaning.
 
-use super::PgError;
+use super::error::PgError;
 use tokio_postgres::Client;
 
 /// Every migration, oldest first; the schema's version is the number applied.

@@ -16,10 +16,11 @@ use super::{Change, FileBody, PgError, PgStore, MAX_FILE_BYTES};
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use crate::daemon::store::history::{self, Retention, Retired};
 use crate::daemon::store::pending::{Attempt, Pending};
+use crate::daemon::store::rules::io_err;
 use crate::daemon::store::spool::{
     late_sidecar_name, lock_dir, model_name, move_file, regular_file_size, sidecar_of,
 };
-use crate::daemon::store::{io_err, JobEdit, JobStore, RetiredJob, StateFilter};
+use crate::daemon::store::{JobEdit, JobStore, RetiredJob, StateFilter};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 

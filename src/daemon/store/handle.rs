@@ -1,0 +1,283 @@
+//! The way to the store's task: a cheap, cloneable [`StoreHandle`] that reads the
+//! published snapshot for free and sends every change as a request. Apart from the task so
+//! what callers see (one method per request) is one file.
+
+use super::history;
+use super::job_store::{JobEdit, RetiredJob};
+use super::request::{LateSidecar, Reply, Request};
+use super::rules::StateFilter;
+use super::snapshot::Snapshot;
+use super::stats;
+use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
+use std::path::Path;
+use std::sync::Arc;
+use tokio::sync::{mpsc, oneshot, watch};
+
+/// A cheap, cloneable way to the store's task.
+#[derive(Clone)]
+pub struct StoreHandle {
+    pub(super) tx: mpsc::Sender<Request>,
+    pub(super) snapshot: watch::Receiver<Arc<Snapshot>>,
+}
+
+impl StoreHandle {
+    /// The jobs and gates as of the last change; no round trip.
+    pub fn snapshot(&self) -> Arc<Snapshot> {
+        self.snapshot.borrow().clone()
+    }
+
+    /// Follows the snapshot: `changed()` resolves once a change after this call is
+    /// published (the way tasks wait for jobs and bed gates).
+    pub fn subscribe(&self) -> watch::Receiver<Arc<Snapshot>> {
+        let mut follower = self.snapshot.clone();
+        follower.mark_unchanged();
+        follower
+    }
+
+    async fn ask<T>(&self, request: impl FnOnce(Reply<T>) -> Request) -> Result<T, StoreError> {
+        let (reply, answer) = oneshot::channel();
+        self.tx
+            .send(request(reply))
+            .await
+            .map_err(|_| StoreError::Stopped)?;
+        answer.await.map_err(|_| StoreError::Stopped)?
+    }
+
+    pub async fn admit(
+        &self,
+        source: &Path,
+        folder: &Path,
+        printers: &[String],
+    ) -> Result<Job, StoreError> {
+        let (source, folder) = (source.to_path_buf(), folder.to_path_buf());
+        let printers = printers.to_vec();
+        self.ask(|reply| Request::Admit {
+            source,
+            folder,
+            printers,
+            reply,
+        })
+        .await
+    }
+
+    /// Gives a sidecar that arrived late to the newest job of its model `file` from
+    /// `folder`; `None` when there is no such job (yet).
+    pub async fn late_sidecar(
+        &self,
+        folder: &Path,
+        file: &str,
+        sidecar: &Path,
+    ) -> Result<Option<LateSidecar>, StoreError> {
+        let (folder, file, sidecar) = (folder.to_path_buf(), file.to_string(), sidecar.into());
+        self.ask(|reply| Request::LateSidecar {
+            folder,
+            file,
+            sidecar,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn transition(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+    ) -> Result<Job, StoreError> {
+        self.transition_with(id, state, reason, |_| {}).await
+    }
+
+    /// [`StoreHandle::transition`] with other fields changed in the same write.
+    pub async fn transition_with(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        self.change(id, None, state, reason, Box::new(also)).await
+    }
+
+    /// [`StoreHandle::transition_with`] only if the job is in one of the states `from`
+    /// (else [`StoreError::StateChanged`]), checked and changed as one step.
+    pub async fn transition_from(
+        &self,
+        id: &str,
+        from: StateFilter,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        self.change(id, Some(from), state, reason, Box::new(also))
+            .await
+    }
+
+    async fn change(
+        &self,
+        id: &str,
+        from: Option<StateFilter>,
+        to: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError> {
+        let id = id.to_string();
+        self.ask(|reply| Request::Transition {
+            id,
+            from,
+            to,
+            reason,
+            also,
+            reply,
+        })
+        .await
+    }
+
+    /// See [`JobStore::record_outcome`].
+    ///
+    /// [`JobStore::record_outcome`]: super::job_store::JobStore::record_outcome
+    pub async fn record_outcome(
+        &self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        let (id, also) = (id.to_string(), Box::new(also));
+        self.ask(|reply| Request::Outcome {
+            id,
+            to: state,
+            reason,
+            also,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn update(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Job) + Send + 'static,
+    ) -> Result<Job, StoreError> {
+        let (id, change) = (id.to_string(), Box::new(change));
+        self.ask(|reply| Request::Update { id, change, reply })
+            .await
+    }
+
+    pub async fn retry(&self, id: &str) -> Result<Job, StoreError> {
+        let id = id.to_string();
+        self.ask(|reply| Request::Retry { id, reply }).await
+    }
+
+    /// Takes the oldest ready job that `eligible` allows for `printer`, marking it
+    /// printing by that printer, as one step: two printers never take the same job.
+    pub async fn claim(
+        &self,
+        printer: &str,
+        eligible: impl Fn(&Job) -> bool + Send + 'static,
+    ) -> Result<Option<Job>, StoreError> {
+        let (printer, eligible) = (printer.to_string(), Box::new(eligible));
+        self.ask(|reply| Request::Claim {
+            printer,
+            eligible,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn set_gate(&self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+        let printer = printer.to_string();
+        self.ask(|reply| Request::SetGate {
+            printer,
+            gate,
+            reply,
+        })
+        .await
+    }
+
+    /// Closes a printer's bed gate after a print (`job`: the job on the bed).
+    pub async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
+        let gate = PrinterGate {
+            bed_not_cleared: true,
+            last_job: Some(job.to_string()),
+        };
+        self.set_gate(printer, gate).await
+    }
+
+    /// Marks a printer's bed cleared; false when it was clear already.
+    pub async fn clear_gate(&self, printer: &str) -> Result<bool, StoreError> {
+        let printer = printer.to_string();
+        self.ask(|reply| Request::ClearGate { printer, reply })
+            .await
+    }
+
+    /// Persists outcomes that could not be written before; returns how many remain.
+    pub async fn write_pending(&self) -> Result<usize, StoreError> {
+        self.ask(|reply| Request::WritePending { reply }).await
+    }
+
+    /// Takes in what other hosts changed (see [`JobStore::resync`]); true when anything had.
+    ///
+    /// [`JobStore::resync`]: super::job_store::JobStore::resync
+    pub async fn resync(&self) -> Result<bool, StoreError> {
+        self.ask(|reply| Request::Resync { reply }).await
+    }
+
+    /// Moves the finished jobs the retention no longer keeps live to the history now, as
+    /// of `now` (seconds since the epoch), one batch; the task also does this on its own.
+    pub async fn retire(&self, now: f64) -> Result<Vec<String>, StoreError> {
+        self.ask(|reply| Request::Retire { now, reply }).await
+    }
+
+    /// A job that has moved to the history (None: no such retired job).
+    pub async fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        let id = id.to_string();
+        self.ask(|reply| Request::Retired { id, reply }).await
+    }
+
+    /// A page of the history, newest first: jobs below sequence number `before`, at most
+    /// `limit` (bounded by [`history::PAGE_LIMIT`]).
+    pub async fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+    ) -> Result<history::Page, StoreError> {
+        self.history_where(before, limit, history::Filter::default())
+            .await
+    }
+
+    /// [`StoreHandle::history`] of the jobs `filter` takes.
+    pub async fn history_where(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: history::Filter,
+    ) -> Result<history::Page, StoreError> {
+        let limit = limit.clamp(*history::PAGE_LIMIT.start(), *history::PAGE_LIMIT.end());
+        self.ask(|reply| Request::History {
+            before,
+            limit,
+            filter,
+            reply,
+        })
+        .await
+    }
+
+    /// The statistics of `period` over the history and the live jobs (see [`stats`]);
+    /// `printers` and `folders` are listed even when they did nothing.
+    pub async fn stats(
+        &self,
+        period: stats::Period,
+        printers: Vec<String>,
+        folders: Vec<String>,
+        now: f64,
+    ) -> Result<stats::Stats, StoreError> {
+        self.ask(|reply| Request::Stats {
+            period,
+            printers,
+            folders,
+            now,
+            reply,
+        })
+        .await
+    }
+}

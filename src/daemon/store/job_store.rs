@@ -1,0 +1,106 @@
+//! What a store is: the [`JobStore`] trait the store's task drives (the spool, the farm
+//! database), the edit a change carries, and a retired job as the history gives it back.
+//! Apart from the task so each store implements it without depending on the task that
+//! calls it.
+
+use super::history::{self, Retention};
+use super::rules::StateFilter;
+use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// A change to a job's other fields, made in the same write as its state change.
+pub type JobEdit = Box<dyn FnOnce(&mut Job) + Send>;
+
+/// Where jobs are kept. Every method may block (disk, network): the store's task calls
+/// them on a blocking thread, one at a time. Opening (and taking whatever lock keeps two
+/// daemons apart) is each implementation's own constructor.
+pub trait JobStore: Send + 'static {
+    /// The local directory holding one directory per job (model, sidecar, G-code, report).
+    fn jobs_dir(&self) -> PathBuf;
+    /// Every job, oldest first.
+    fn jobs(&self) -> Vec<Job>;
+    fn job(&self, id: &str) -> Option<Job>;
+    fn gates(&self) -> BTreeMap<String, PrinterGate>;
+    /// Restart rules: preparing → queued, printing → interrupted (and its bed not cleared).
+    /// Returns the ids changed.
+    fn recover(&mut self) -> Result<Vec<String>, StoreError>;
+    /// Makes a complete file of a hot folder a queued job, or leaves it where it was.
+    /// `printers` is the folder's rule, for stores whose other hosts lack the folder.
+    fn admit(
+        &mut self,
+        source: &Path,
+        folder: &Path,
+        printers: &[String],
+    ) -> Result<Job, StoreError>;
+    /// Takes a sidecar that arrived after its model: as the job's sidecar when `applies`,
+    /// else kept aside. Returns `applies`.
+    fn late_sidecar(&mut self, id: &str, sidecar: &Path, applies: bool)
+        -> Result<bool, StoreError>;
+    /// Changes a job's state (checked against the table, and first against `from`, the
+    /// states it must be in now) with `also`'s changes, persisted.
+    fn transition_with(
+        &mut self,
+        id: &str,
+        from: Option<StateFilter>,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError>;
+    /// A state change that has already happened (a print ended): kept even when it cannot
+    /// be persisted now, and persisted by [`JobStore::write_pending`] later.
+    fn record_outcome(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError>;
+    /// Changes a job's other fields; never its state.
+    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError>;
+    /// Puts a failed, cancelled or interrupted job back (ready if its G-code is kept).
+    fn retry(&mut self, id: &str) -> Result<Job, StoreError>;
+    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError>;
+    /// Persists what [`JobStore::record_outcome`] and [`JobStore::set_gate`] could not;
+    /// returns how many remain.
+    fn write_pending(&mut self) -> usize;
+    /// How many recorded outcomes (and bed gates) wait to be persisted.
+    fn unwritten(&self) -> usize;
+    /// Takes in changes made elsewhere (other hosts of a shared store); true when it did,
+    /// so the snapshot must be rebuilt. A store only this daemon changes has none.
+    fn resync(&mut self) -> bool {
+        false
+    }
+    /// Moves the finished jobs `retention` no longer keeps live (by
+    /// [`history::to_retire`]) to the history; returns their ids, at most
+    /// [`history::BATCH`]. `now`: seconds since the epoch.
+    fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError>;
+    /// A job in the history; None when there is no such retired job.
+    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError>;
+    /// A page of the history, newest first, of jobs with a sequence number below `before`
+    /// that `filter` takes.
+    fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: &history::Filter,
+    ) -> Result<history::Page, StoreError>;
+    /// Forgets the jobs the history has kept longer than `keep_for` before `now` (their
+    /// records and files); returns how many. See [`Retention::keep_for`].
+    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError>;
+    /// Every job retired at or after `since` (seconds since the epoch), in no particular
+    /// order; a job may come twice (the statistics count it once).
+    fn each_retired(
+        &self,
+        since: f64,
+        visit: &mut dyn FnMut(history::Retired),
+    ) -> Result<(), StoreError>;
+}
+
+/// A job in the history: its record, and its whole state where it can still be read.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RetiredJob {
+    pub record: history::Retired,
+    pub job: Option<Job>,
+}

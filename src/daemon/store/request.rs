@@ -1,0 +1,365 @@
+//! The requests the store's task serves, each an mpsc message with a oneshot reply, and
+//! how each is carried out against the store on the task's blocking thread. Apart from
+//! the task's loop (which batches them) and the handle (which sends them).
+
+use super::clients::for_clients;
+use super::history::{self, Retention};
+use super::job_store::{JobEdit, JobStore, RetiredJob};
+use super::retiring::round;
+use super::rules::StateFilter;
+use super::snapshot::Snapshot;
+use super::stats;
+use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
+use std::path::PathBuf;
+use tokio::sync::oneshot;
+
+pub(super) type Reply<T> = oneshot::Sender<Result<T, StoreError>>;
+
+/// The messages the store's task serves.
+pub(super) enum Request {
+    Admit {
+        source: PathBuf,
+        folder: PathBuf,
+        printers: Vec<String>,
+        reply: Reply<Job>,
+    },
+    LateSidecar {
+        folder: PathBuf,
+        file: String,
+        sidecar: PathBuf,
+        reply: Reply<Option<LateSidecar>>,
+    },
+    Transition {
+        id: String,
+        from: Option<StateFilter>,
+        to: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+        reply: Reply<Job>,
+    },
+    Outcome {
+        id: String,
+        to: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+        reply: Reply<Job>,
+    },
+    Update {
+        id: String,
+        change: JobEdit,
+        reply: Reply<Job>,
+    },
+    Retry {
+        id: String,
+        reply: Reply<Job>,
+    },
+    Claim {
+        printer: String,
+        eligible: Box<dyn Fn(&Job) -> bool + Send>,
+        reply: Reply<Option<Job>>,
+    },
+    SetGate {
+        printer: String,
+        gate: PrinterGate,
+        reply: Reply<()>,
+    },
+    ClearGate {
+        printer: String,
+        reply: Reply<bool>,
+    },
+    WritePending {
+        reply: Reply<usize>,
+    },
+    Resync {
+        reply: Reply<bool>,
+    },
+    Retire {
+        now: f64,
+        reply: Reply<Vec<String>>,
+    },
+    Retired {
+        id: String,
+        reply: Reply<Option<RetiredJob>>,
+    },
+    History {
+        before: Option<u64>,
+        limit: usize,
+        filter: history::Filter,
+        reply: Reply<history::Page>,
+    },
+    Stats {
+        period: stats::Period,
+        printers: Vec<String>,
+        folders: Vec<String>,
+        now: f64,
+        reply: Reply<stats::Stats>,
+    },
+}
+
+/// What became of a sidecar that arrived after its model had become a job.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LateSidecar {
+    pub job: String,
+    /// The job's state when the sidecar arrived.
+    pub state: JobState,
+    /// Taken as the job's sidecar (it had not started preparing); else kept aside.
+    pub applies: bool,
+}
+
+/// A reply waiting for the snapshot that shows its change to be published.
+pub(super) type Delivery = Box<dyn FnOnce() + Send>;
+
+fn deliver<T: Send + 'static>(reply: Reply<T>, result: Result<T, StoreError>) -> Delivery {
+    Box::new(move || {
+        let _ = reply.send(result);
+    })
+}
+
+impl Request {
+    /// Carries out one request against the store, updating `view` with what changed;
+    /// says whether anything may have (a claim that found nothing, a clear of a clear
+    /// bed change nothing, and publish nothing: a task waiting for changes is not woken
+    /// by its own fruitless request).
+    pub(super) fn serve(
+        self,
+        store: &mut dyn JobStore,
+        view: &mut Snapshot,
+        retention: &Retention,
+    ) -> (Delivery, bool) {
+        match self {
+            Request::Admit {
+                source,
+                folder,
+                printers,
+                reply,
+            } => {
+                let result = store.admit(&source, &folder, &printers);
+                if let Ok(job) = &result {
+                    view.refresh(store, &job.id);
+                }
+                let changed = result.is_ok();
+                (deliver(reply, result), changed)
+            }
+            Request::LateSidecar {
+                folder,
+                file,
+                sidecar,
+                reply,
+            } => late_sidecar(store, view, folder, file, sidecar, reply),
+            Request::Transition {
+                id,
+                from,
+                to,
+                reason,
+                also,
+                reply,
+            } => {
+                let reason = reason.map(|r| for_clients(&r, store));
+                let result = store.transition_with(&id, from, to, reason, also);
+                view.refresh(store, &id);
+                (deliver(reply, result), true)
+            }
+            Request::Outcome {
+                id,
+                to,
+                reason,
+                also,
+                reply,
+            } => {
+                let reason = reason.map(|r| for_clients(&r, store));
+                let result = store.record_outcome(&id, to, reason, also);
+                view.refresh(store, &id);
+                view.unwritten = store.unwritten();
+                (deliver(reply, result), true)
+            }
+            Request::Update { id, change, reply } => {
+                let result = store.update(&id, change);
+                view.refresh(store, &id);
+                (deliver(reply, result), true)
+            }
+            Request::Retry { id, reply } => {
+                let result = store.retry(&id);
+                view.refresh(store, &id);
+                (deliver(reply, result), true)
+            }
+            Request::Claim {
+                printer,
+                eligible,
+                reply,
+            } => {
+                let (result, tried) = claim(store, view, &printer, &*eligible);
+                (deliver(reply, result), tried)
+            }
+            Request::SetGate {
+                printer,
+                gate,
+                reply,
+            } => {
+                let result = store.set_gate(&printer, gate);
+                view.gates = store.gates();
+                view.unwritten = store.unwritten();
+                (deliver(reply, result), true)
+            }
+            Request::ClearGate { printer, reply } => clear_gate(store, view, printer, reply),
+            Request::Resync { reply } => {
+                let changed = store.resync();
+                if changed {
+                    *view = Snapshot::of(store, Some(view));
+                }
+                (deliver(reply, Ok(changed)), changed)
+            }
+            Request::Retire { now, reply } => {
+                let retired = round(store, view, retention, now);
+                let changed = retired.as_ref().is_ok_and(|ids| !ids.is_empty());
+                (deliver(reply, retired), changed)
+            }
+            Request::Retired { id, reply } => (deliver(reply, store.retired(&id)), false),
+            Request::History {
+                before,
+                limit,
+                filter,
+                reply,
+            } => (deliver(reply, store.history(before, limit, &filter)), false),
+            Request::Stats {
+                period,
+                printers,
+                folders,
+                now,
+                reply,
+            } => statistics(store, view, period, printers, folders, now, reply),
+            Request::WritePending { reply } => {
+                // Only the persisted copy changes: the view already shows these outcomes.
+                let left = store.write_pending();
+                let changed = view.unwritten != left;
+                view.unwritten = left;
+                (deliver(reply, Ok(left)), changed)
+            }
+        }
+    }
+}
+
+/// A sidecar that arrived after its model: given to the newest job of that model from
+/// `folder`, if any (see [`Request::LateSidecar`]).
+fn late_sidecar(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    folder: PathBuf,
+    file: String,
+    sidecar: PathBuf,
+    reply: Reply<Option<LateSidecar>>,
+) -> (Delivery, bool) {
+    let found = view
+        .jobs()
+        .filter(|j| j.folder == folder && crate::daemon::hotfolder::same_name(&j.file, &file))
+        .last()
+        .map(|j| (j.id.clone(), j.state));
+    let result = match found {
+        None => Ok(None),
+        Some((id, state)) => store
+            .late_sidecar(&id, &sidecar, state == JobState::Queued)
+            .map(|applies| {
+                Some(LateSidecar {
+                    job: id,
+                    state,
+                    applies,
+                })
+            }),
+    };
+    let changed = !matches!(result, Ok(None));
+    (deliver(reply, result), changed)
+}
+
+/// Marks `printer`'s bed cleared, unless it was clear already (see [`Request::ClearGate`]).
+fn clear_gate(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    printer: String,
+    reply: Reply<bool>,
+) -> (Delivery, bool) {
+    let gate = view.gate(&printer);
+    let result = if gate.bed_not_cleared {
+        let cleared = PrinterGate {
+            bed_not_cleared: false,
+            last_job: gate.last_job,
+        };
+        store.set_gate(&printer, cleared).map(|()| true)
+    } else {
+        Ok(false)
+    };
+    if let Ok(true) = result {
+        tracing::info!(printer = %printer, "bed cleared");
+    }
+    view.gates = store.gates();
+    view.unwritten = store.unwritten();
+    let changed = !matches!(result, Ok(false));
+    (deliver(reply, result), changed)
+}
+
+/// The statistics of `period` over the history and the live jobs (see [`Request::Stats`]).
+fn statistics(
+    store: &dyn JobStore,
+    view: &Snapshot,
+    period: stats::Period,
+    printers: Vec<String>,
+    folders: Vec<String>,
+    now: f64,
+    reply: Reply<stats::Stats>,
+) -> (Delivery, bool) {
+    let mut builder = stats::Builder::new(period, &printers, &folders);
+    // A job retired before the period began ended before it too.
+    let result = store
+        .each_retired(period.from, &mut |r| builder.add(&r))
+        .map(|()| {
+            // The live jobs: finished ones not yet retired, and the printing
+            // time of those under way.
+            for job in view.jobs() {
+                if history::is_finished(job.state)
+                    || job.history.iter().any(|h| h.0 == JobState::Printing)
+                {
+                    let dir = view.job_dir(&job.id);
+                    builder.add(&history::Retired::of(job, dir, now));
+                }
+            }
+            builder.finish()
+        });
+    (deliver(reply, result), false)
+}
+
+/// Takes the oldest ready job `eligible` for `printer`, marking it printing. A job that
+/// fails as it is claimed (its directory is gone), or that another host took first, is
+/// passed over for the next one. Also says whether any job was tried (and may have
+/// changed).
+fn claim(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    printer: &str,
+    eligible: &dyn Fn(&Job) -> bool,
+) -> (Result<Option<Job>, StoreError>, bool) {
+    let candidates: Vec<String> = view
+        .jobs()
+        .filter(|j| j.state == JobState::Ready && eligible(j))
+        .map(|j| j.id.clone())
+        .collect();
+    let tried = !candidates.is_empty();
+    let result = (|| {
+        for id in candidates {
+            let name = printer.to_string();
+            let claimed = store.transition_with(
+                &id,
+                Some(&[JobState::Ready]),
+                JobState::Printing,
+                None,
+                Box::new(move |j| j.printer = Some(name)),
+            );
+            view.refresh(store, &id);
+            match claimed {
+                Ok(job) => return Ok(Some(job)),
+                Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
+                Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(None)
+    })();
+    (result, tried)
+}

@@ -1,0 +1,193 @@
+//! What the store's task publishes after every change: an immutable [`Snapshot`] of the
+//! live jobs and bed gates, with what is known of each job's pictures and what the jobs did
+//! (the counts and the tally). Apart from the task so the readers' side (status, HTTP,
+//! metrics, the printers' glances) is one file, and the task only builds and sends it.
+
+use super::counts::{Counted, JobCounts};
+use super::history;
+use super::job_store::JobStore;
+use super::stats;
+use crate::daemon::job::{Job, PrinterGate};
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// An immutable picture of every live job and bed gate, as of the store's last change.
+/// Cheap to publish: each job is shared (`Arc`), and the index is shared until a job
+/// comes or goes.
+#[derive(Clone, Debug, Default)]
+pub struct Snapshot {
+    /// Oldest first.
+    jobs: Vec<Arc<Live>>,
+    index: Arc<HashMap<String, usize>>,
+    pub(super) gates: BTreeMap<String, PrinterGate>,
+    jobs_dir: PathBuf,
+    /// Outcomes recorded but not yet persisted (a full disk).
+    pub(super) unwritten: usize,
+    /// What jobs did since the task started, counted as each change is published.
+    counted: Arc<Counted>,
+}
+
+/// A live job and what is known of its files.
+#[derive(Debug)]
+struct Live {
+    job: Job,
+    /// Which of [`PICTURES`] its directory holds (bit i for `PICTURES[i]`).
+    pictures: u8,
+}
+
+/// The pictures a job's directory may hold (see `crate::preview`).
+pub const PICTURES: [&str; 4] = [
+    crate::preview::BEFORE_PNG,
+    crate::preview::AFTER_PNG,
+    crate::preview::DISPLACEMENT_PNG,
+    crate::preview::walls::WALLS_PNG,
+];
+
+impl Live {
+    /// Looks at the job's pictures, unless `before` (the job as last seen, when the whole
+    /// snapshot is rebuilt after other hosts' changes) is the same job in the same state:
+    /// pictures are made while a job prepares, so a job whose history has not moved has
+    /// the ones it had.
+    fn of(job: Job, dir: &Path, before: Option<&Live>) -> Live {
+        let pictures = match before {
+            Some(b) if b.job.history.len() == job.history.len() && b.job.state == job.state => {
+                b.pictures
+            }
+            _ => PICTURES
+                .iter()
+                .enumerate()
+                .filter(|(_, name)| dir.join(name).is_file())
+                .fold(0, |bits, (i, _)| bits | 1 << i),
+        };
+        Live { job, pictures }
+    }
+}
+
+impl Snapshot {
+    /// The store's jobs as they are now. `before`: the snapshot published last (None: the
+    /// first, when the task starts: nothing is a change yet); what changed since is counted.
+    pub(super) fn of(store: &dyn JobStore, before: Option<&Snapshot>) -> Snapshot {
+        let jobs_dir = store.jobs_dir();
+        let mut counted = before.map(|b| Arc::clone(&b.counted)).unwrap_or_default();
+        let jobs: Vec<Arc<Live>> = store
+            .jobs()
+            .into_iter()
+            .map(|j| {
+                let old = before.and_then(|b| b.live(&j.id));
+                if before.is_some() {
+                    Arc::make_mut(&mut counted).changes(old.map(|l| &l.job), &j);
+                }
+                let dir = jobs_dir.join(&j.id);
+                Arc::new(Live::of(j, &dir, old))
+            })
+            .collect();
+        let index = jobs
+            .iter()
+            .enumerate()
+            .map(|(i, j)| (j.job.id.clone(), i))
+            .collect();
+        Snapshot {
+            jobs,
+            index: Arc::new(index),
+            gates: store.gates(),
+            jobs_dir,
+            unwritten: store.unwritten(),
+            counted,
+        }
+    }
+
+    fn live(&self, id: &str) -> Option<&Live> {
+        self.index.get(id).map(|&i| &*self.jobs[i])
+    }
+
+    pub fn get(&self, id: &str) -> Option<&Job> {
+        self.live(id).map(|l| &l.job)
+    }
+
+    /// Jobs oldest first.
+    pub fn jobs(&self) -> impl Iterator<Item = &Job> {
+        self.jobs.iter().map(|j| &j.job)
+    }
+
+    /// The pictures job `id`'s directory holds, of [`PICTURES`] (as of its last change).
+    pub fn pictures(&self, id: &str) -> Vec<&'static str> {
+        let bits = self.live(id).map_or(0, |l| l.pictures);
+        PICTURES
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| bits & (1 << i) != 0)
+            .map(|(_, p)| *p)
+            .collect()
+    }
+
+    pub fn gate(&self, printer: &str) -> PrinterGate {
+        self.gates.get(printer).cloned().unwrap_or_default()
+    }
+
+    pub fn job_dir(&self, id: &str) -> PathBuf {
+        self.jobs_dir.join(id)
+    }
+
+    /// Outcomes that happened but could not be persisted yet.
+    pub fn unwritten(&self) -> usize {
+        self.unwritten
+    }
+
+    /// How many jobs reached each state since the store's task started.
+    pub fn counts(&self) -> JobCounts {
+        self.counted.states
+    }
+
+    /// The metrics' counters by printer since the store's task started.
+    pub fn tally(&self) -> &stats::Tally {
+        &self.counted.tally
+    }
+
+    /// No job has work ahead of it.
+    pub fn idle(&self) -> bool {
+        !self.jobs().any(|j| j.state.is_active())
+    }
+
+    /// Finished jobs (done, failed, cancelled) still live.
+    pub fn finished_live(&self) -> usize {
+        self.jobs()
+            .filter(|j| history::is_finished(j.state))
+            .count()
+    }
+
+    /// Takes the store's current record of `id` (after a change, successful or not: a
+    /// failed change may still have failed the job, e.g. when its directory is gone), and
+    /// announces what it changed.
+    pub(super) fn refresh(&mut self, store: &dyn JobStore, id: &str) {
+        let Some(job) = store.job(id) else { return };
+        let before = self.index.get(id).map(|&i| Arc::clone(&self.jobs[i]));
+        Arc::make_mut(&mut self.counted).changes(before.as_ref().map(|l| &l.job), &job);
+        let dir = self.job_dir(id);
+        match self.index.get(id) {
+            // Looked at again at every change: a few stats per change, none per glance.
+            Some(&i) => self.jobs[i] = Arc::new(Live::of(job, &dir, None)),
+            // New jobs have the highest sequence number: appending keeps the order.
+            None => {
+                Arc::make_mut(&mut self.index).insert(job.id.clone(), self.jobs.len());
+                self.jobs.push(Arc::new(Live::of(job, &dir, None)));
+            }
+        }
+    }
+
+    /// Drops jobs that moved to the history.
+    pub(super) fn remove(&mut self, ids: &[String]) {
+        if ids.is_empty() {
+            return;
+        }
+        let gone: std::collections::HashSet<&str> = ids.iter().map(String::as_str).collect();
+        self.jobs.retain(|l| !gone.contains(l.job.id.as_str()));
+        self.index = Arc::new(
+            self.jobs
+                .iter()
+                .enumerate()
+                .map(|(i, l)| (l.job.id.clone(), i))
+                .collect(),
+        );
+    }
+}

@@ -1,0 +1,320 @@
+//! The store's task end to end, through its handle over the embedded spool: what a kept
+//! reason says, which jobs the snapshot keeps live, and what it counts, also of changes
+//! another host made. Apart from `task.rs` because they use every part of the store (the
+//! spool among them), which the task itself does not depend on.
+
+use super::history::{self, Retention};
+use super::job_store::{JobEdit, JobStore, RetiredJob};
+use super::rules::StateFilter;
+use super::spool;
+use super::task::{spawn, spawn_with};
+use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// A reason given to the store's task is kept (and so shown in the status and the
+/// history) with the spool's paths made relative.
+#[tokio::test]
+async fn a_kept_reason_names_no_spool_path() {
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir(&hot).unwrap();
+    let root = tmp.path().join("spool");
+    let store = spool::Spool::open(&root).unwrap();
+    let handle = spawn_with(store, Retention::default());
+    std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
+    let job = handle.admit(&hot.join("a.gcode"), &hot, &[]).await.unwrap();
+    let model = root.join("jobs").join(&job.id).join("a.gcode");
+    let reason = format!("not G-code: {}: line 1", model.display());
+    handle
+        .transition(&job.id, JobState::Failed, Some(reason))
+        .await
+        .unwrap();
+    let kept = handle
+        .snapshot()
+        .get(&job.id)
+        .unwrap()
+        .reason
+        .clone()
+        .unwrap();
+    assert_eq!(kept, format!("not G-code: jobs/{}/a.gcode: line 1", job.id));
+}
+
+/// Through the store's task: retired jobs leave the published snapshot (beyond
+/// `live_jobs` at the change that made one too many, older than `live_for` at a
+/// round), the history pages through them, and one is found by id; what pictures a
+/// job has is in the snapshot, looked at when the job changed.
+#[tokio::test]
+async fn the_snapshot_keeps_live_jobs_and_the_history_the_rest() {
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir(&hot).unwrap();
+    let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+    let retention = Retention {
+        live_for: std::time::Duration::from_secs(86_400),
+        live_jobs: 2,
+        keep_for: None,
+    };
+    let handle = spawn_with(store, retention);
+    let mut ids = Vec::new();
+    for i in 0..4 {
+        let model = hot.join(format!("m{i}.stl"));
+        std::fs::write(&model, b"solid x\nendsolid x\n").unwrap();
+        let job = handle.admit(&model, &hot, &[]).await.unwrap();
+        ids.push(job.id);
+    }
+    let snapshot = handle.snapshot();
+    assert!(snapshot.pictures(&ids[0]).is_empty());
+    std::fs::write(
+        snapshot.job_dir(&ids[0]).join(crate::preview::AFTER_PNG),
+        b"png",
+    )
+    .unwrap();
+    let cancel = |id: String| {
+        let handle = handle.clone();
+        async move {
+            handle
+                .transition(&id, JobState::Cancelled, None)
+                .await
+                .unwrap()
+        }
+    };
+    cancel(ids[0].clone()).await;
+    assert_eq!(
+        handle.snapshot().pictures(&ids[0]),
+        [crate::preview::AFTER_PNG]
+    );
+    cancel(ids[1].clone()).await;
+    assert!(handle.snapshot().get(&ids[0]).is_some(), "two finished");
+    cancel(ids[2].clone()).await;
+    let snapshot = handle.snapshot();
+    let live: Vec<&str> = snapshot.jobs().map(|j| j.id.as_str()).collect();
+    assert_eq!(
+        live,
+        &ids[1..],
+        "the oldest of three finished retired at once"
+    );
+
+    let two_days_on = crate::daemon::job::now_s() + 2.0 * 86_400.0;
+    let moved = handle.retire(two_days_on).await.unwrap();
+    assert_eq!(moved, ids[1..3].to_vec());
+    let snapshot = handle.snapshot();
+    let live: Vec<&str> = snapshot.jobs().map(|j| j.id.as_str()).collect();
+    assert_eq!(live, [ids[3].as_str()]);
+
+    let mut paged = Vec::new();
+    let mut next = None;
+    loop {
+        let page = handle.history(next, 1).await.unwrap();
+        paged.extend(page.jobs.iter().map(|j| j.id.clone()));
+        next = page.next;
+        if next.is_none() {
+            break;
+        }
+    }
+    assert_eq!(paged, [&*ids[2], &ids[1], &ids[0]], "newest first");
+    let retired = handle.retired(&ids[0]).await.unwrap().unwrap();
+    assert_eq!(retired.record.state, JobState::Cancelled);
+    assert!(handle.retired(&ids[3]).await.unwrap().is_none());
+}
+
+/// 3,000 jobs finishing within a minute (three bursts of 1,000, each finished as fast
+/// as the store takes them) never leave more than `live_jobs` finished jobs live, as
+/// every reply (sent after its snapshot) and the snapshot after each burst show. They
+/// once all stayed live until the next round, up to ten minutes later, and every
+/// status paid for them. The counts have every change.
+#[tokio::test]
+async fn a_burst_of_finished_jobs_never_exceeds_the_live_count() {
+    use futures_util::future::join_all;
+    const LIVE: usize = 50;
+    const BURST: usize = 1_000;
+    // 6,000 synced writes: in memory where there is a tmpfs (seconds, not minutes on
+    // a busy disk); what is tested is the live count, not the disk.
+    let tmp = tempfile::tempdir_in("/dev/shm")
+        .or_else(|_| tempfile::tempdir())
+        .unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir(&hot).unwrap();
+    let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+    let retention = Retention {
+        live_for: std::time::Duration::from_secs(86_400),
+        live_jobs: LIVE,
+        keep_for: None,
+    };
+    let handle = spawn_with(store, retention);
+    let mut last = String::new();
+    for burst in 1..=3 {
+        let admitted = join_all((0..BURST).map(|i| {
+            let (handle, hot) = (handle.clone(), hot.clone());
+            async move {
+                let model = hot.join(format!("b{burst}-{i}.gcode"));
+                std::fs::write(&model, b"G28\n").unwrap();
+                handle.admit(&model, &hot, &[]).await.unwrap().id
+            }
+        }))
+        .await;
+        let finished = join_all(admitted.iter().enumerate().map(|(i, id)| {
+            let handle = handle.clone();
+            // Every way a job ends for good.
+            let to = [JobState::Cancelled, JobState::Failed][i % 2];
+            async move {
+                handle.transition(id, to, None).await.unwrap();
+                handle.snapshot().finished_live()
+            }
+        }))
+        .await;
+        let most = finished.into_iter().max().unwrap();
+        assert!(most <= LIVE, "burst {burst}: {most} finished jobs live");
+        let snapshot = handle.snapshot();
+        assert_eq!(snapshot.finished_live(), LIVE, "burst {burst}");
+        assert_eq!(snapshot.jobs().count(), LIVE, "burst {burst}: only those");
+        let counts = snapshot.counts();
+        assert_eq!(counts.into_state(JobState::Queued), (burst * BURST) as u64);
+        assert_eq!(counts.finished(), (burst * BURST) as u64);
+        last = admitted.last().unwrap().clone();
+    }
+    // The newest stay live; the rest are in the history.
+    assert!(handle.snapshot().get(&last).is_some());
+    let page = handle.history(None, 1).await.unwrap();
+    assert!(page.jobs[0].seq < handle.snapshot().get(&last).unwrap().seq);
+}
+
+/// The embedded store with a second writer, as a shared farm has: changes queued in
+/// `elsewhere` are made behind the task's back, and taken in by the next resync.
+struct TwoHosts {
+    spool: spool::Spool,
+    elsewhere: Arc<std::sync::Mutex<Vec<(String, JobState)>>>,
+}
+
+impl JobStore for TwoHosts {
+    fn jobs_dir(&self) -> PathBuf {
+        self.spool.jobs_dir()
+    }
+    fn jobs(&self) -> Vec<Job> {
+        JobStore::jobs(&self.spool)
+    }
+    fn job(&self, id: &str) -> Option<Job> {
+        JobStore::job(&self.spool, id)
+    }
+    fn gates(&self) -> BTreeMap<String, PrinterGate> {
+        JobStore::gates(&self.spool)
+    }
+    fn recover(&mut self) -> Result<Vec<String>, StoreError> {
+        JobStore::recover(&mut self.spool)
+    }
+    fn admit(&mut self, source: &Path, folder: &Path, p: &[String]) -> Result<Job, StoreError> {
+        JobStore::admit(&mut self.spool, source, folder, p)
+    }
+    fn late_sidecar(&mut self, id: &str, s: &Path, applies: bool) -> Result<bool, StoreError> {
+        JobStore::late_sidecar(&mut self.spool, id, s, applies)
+    }
+    fn transition_with(
+        &mut self,
+        id: &str,
+        from: Option<StateFilter>,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError> {
+        JobStore::transition_with(&mut self.spool, id, from, state, reason, also)
+    }
+    fn record_outcome(
+        &mut self,
+        id: &str,
+        state: JobState,
+        reason: Option<String>,
+        also: JobEdit,
+    ) -> Result<Job, StoreError> {
+        JobStore::record_outcome(&mut self.spool, id, state, reason, also)
+    }
+    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
+        JobStore::update(&mut self.spool, id, change)
+    }
+    fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+        JobStore::retry(&mut self.spool, id)
+    }
+    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+        JobStore::set_gate(&mut self.spool, printer, gate)
+    }
+    fn write_pending(&mut self) -> usize {
+        JobStore::write_pending(&mut self.spool)
+    }
+    fn unwritten(&self) -> usize {
+        JobStore::unwritten(&self.spool)
+    }
+    fn resync(&mut self) -> bool {
+        let changes: Vec<_> = std::mem::take(&mut *self.elsewhere.lock().unwrap());
+        for (id, state) in &changes {
+            let on_p1: JobEdit = Box::new(|j| j.printer = Some("p1".into()));
+            JobStore::transition_with(&mut self.spool, id, None, *state, None, on_p1).unwrap();
+        }
+        // Always a rebuild of the snapshot: one with nothing new must count nothing.
+        true
+    }
+    fn retire(&mut self, r: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+        JobStore::retire(&mut self.spool, r, now)
+    }
+    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        JobStore::retired(&self.spool, id)
+    }
+    fn history(
+        &self,
+        before: Option<u64>,
+        limit: usize,
+        filter: &history::Filter,
+    ) -> Result<history::Page, StoreError> {
+        JobStore::history(&self.spool, before, limit, filter)
+    }
+    fn prune(&mut self, keep: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+        JobStore::prune(&mut self.spool, keep, now)
+    }
+    fn each_retired(
+        &self,
+        since: f64,
+        visit: &mut dyn FnMut(history::Retired),
+    ) -> Result<(), StoreError> {
+        JobStore::each_retired(&self.spool, since, visit)
+    }
+}
+
+/// Changes another host made are counted by the task from what a resync takes in,
+/// each once (a rebuild that brings nothing new counts nothing): the counts and the
+/// tally are the farm's, not only this host's requests (a wrapper around this host's
+/// requests once counted, and missed them).
+#[tokio::test]
+async fn changes_from_elsewhere_are_counted_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir(&hot).unwrap();
+    let elsewhere = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let store = TwoHosts {
+        spool: spool::Spool::open(&tmp.path().join("spool")).unwrap(),
+        elsewhere: Arc::clone(&elsewhere),
+    };
+    let handle = spawn(store);
+    std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
+    let job = handle.admit(&hot.join("a.gcode"), &hot, &[]).await.unwrap();
+    let counts = |state| handle.snapshot().counts().into_state(state);
+    assert_eq!(counts(JobState::Queued), 1, "this host's own change");
+    elsewhere.lock().unwrap().extend(
+        [
+            JobState::Preparing,
+            JobState::Ready,
+            JobState::Printing,
+            JobState::Done,
+        ]
+        .map(|s| (job.id.clone(), s)),
+    );
+    assert!(handle.resync().await.unwrap());
+    // Rebuilt again from the same jobs: nothing is counted twice.
+    assert!(handle.resync().await.unwrap());
+    for state in [JobState::Queued, JobState::Preparing, JobState::Ready] {
+        assert_eq!(counts(state), 1, "{state}");
+    }
+    assert_eq!((counts(JobState::Printing), counts(JobState::Done)), (1, 1));
+    let snapshot = handle.snapshot();
+    assert_eq!(snapshot.counts().finished(), 1);
+    let p1 = &snapshot.tally().read()["p1"];
+    assert_eq!((p1.done, p1.prints), (1, 1), "the print on p1");
+}

@@ -201,190 +201,252 @@ const STORE: &str = "job store";
 /// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
 /// shutdown token made here is handed down to every task; each races it at its waits.
 pub async fn run(config: Config, options: RunOptions) -> Result<(), ServiceError> {
-    use tokio::signal::unix::{signal, SignalKind};
-    let prepare_program = match &options.prepare_program {
-        Some(p) => p.clone(),
-        None => std::env::current_exe().map_err(ServiceError::PrepareProgram)?,
-    };
-    let mut sigterm = signal(SignalKind::terminate()).map_err(ServiceError::Signals)?;
-    let mut sigint = signal(SignalKind::interrupt()).map_err(ServiceError::Signals)?;
-    let mut sighup = signal(SignalKind::hangup()).map_err(ServiceError::Signals)?;
-
-    let shutdown = CancellationToken::new();
-    let crate::daemon::Opened {
-        farm,
-        store,
-        shared: shared_db,
-    } = crate::daemon::open_store(&config, &shutdown).await?;
-    let listener = control::bind(&config.socket)?;
-    let http_listener = match &config.http {
-        None => None,
-        Some(http) => {
-            let bound = bind_http(http).await?;
-            let address = bound
-                .local_addr()
-                .map_or_else(|_| http.listen.to_string(), |a| a.to_string());
-            tracing::info!(address = %address, "http: listening");
-            tracing::info!("dashboard: http://{address}/");
-            Some((bound, http.clone()))
-        }
-    };
-    let appkeys = Arc::new(crate::http::AppKeys::open(&config.spool_dir)?);
-    // Withdrawn when the service returns (dropped). Not announcing is no reason to stop
-    // printing: the failure is logged as an error and the farm runs on.
-    let _announced = match &http_listener {
-        Some((bound, _)) => match bound.local_addr() {
-            Ok(address) => crate::http::zeroconf::announce(&config, address)
-                .inspect_err(|e| tracing::error!(error = %e, "the hot folders are not announced on the network"))
-                .ok()
-                .flatten(),
-            Err(_) => None,
-        },
-        None => None,
-    };
-    tracing::info!(
-        config = %config.source.display(),
-        spool = %config.spool_dir.display(),
-        socket = %config.socket.display(),
-        printers = config.printers.len(),
-        folders = config.folders.len(),
-        "crispen daemon starting"
-    );
-    let mut tasks = Supervised::default();
-    // The only owner of the jobs: a panic in it stops the daemon (see `store::start`).
-    tasks.spawn(STORE, store);
-    // The lease is renewed until the last print has ended, after the shutdown token.
-    let stop_shared = CancellationToken::new();
-    if let Some((db, lease)) = shared_db {
-        tracing::info!(host = %db.host(), "sharing the farm's queue through its database");
-        // It ends on its own, for good, when another run took this host's name (its log
-        // and the status say so); only a panic is a failure.
-        tasks.spawn_may_end(
-            SHARED,
-            shared::run(Arc::clone(&farm), db, lease, stop_shared.clone()),
-        );
-    }
-    // Notifications outlive the prints: what a stop does to them is told too.
-    let stop_notify = CancellationToken::new();
-    let notify =
-        crate::notify::run(Arc::clone(&farm), stop_notify.clone()).map_err(ServiceError::Notify)?;
-    tasks.spawn(NOTIFY, notify);
-    let mut fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
-    // The listeners outlive the shutdown token: while prints finish at a stop, the
-    // operator can still watch them and cancel one.
-    let stop_listeners = CancellationToken::new();
-    tasks.spawn(
-        CONTROL,
-        crate::http::serve_socket(
-            Arc::clone(&farm),
-            Arc::clone(&appkeys),
-            config.http.clone(),
-            listener,
-            stop_listeners.clone(),
-        ),
-    );
-    if let Some((bound, http)) = http_listener {
-        tasks.spawn(
-            HTTP,
-            crate::http::serve_tcp(
-                Arc::clone(&farm),
-                Arc::clone(&appkeys),
-                http,
-                bound,
-                stop_listeners.clone(),
-            ),
-        );
-    }
-    tasks.spawn(PICKUP, crate::daemon::pickup(&farm, &config));
-    tasks.spawn(
-        PREPARATION,
-        prepare::queue::prepare_loop(Arc::clone(&farm), prepare_program),
-    );
-
-    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
-    let mut watchdog_usec = 0u64;
-    let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
-    let tick = if watchdog {
-        Duration::from_micros(watchdog_usec / 2).max(Duration::from_millis(100))
-    } else {
-        Duration::from_secs(5)
-    };
-    let mut ticker = tokio::time::interval(tick);
-    let mut jobs = farm.watch_jobs();
-    // Why the daemon stops on its own: a top-level task that ended or panicked.
-    let mut failure: Option<ServiceError> = None;
-    loop {
-        tokio::select! {
-            _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
-            _ = sigint.recv() => { tracing::info!("SIGINT: stopping"); break; }
-            _ = sighup.recv() => on_sighup(&farm, &options, &mut tasks, &mut fleet),
-            e = tasks.next_end() => {
-                tracing::error!("{e}");
-                failure = Some(e);
-                break;
-            }
-            (printer, how) = fleet.next_end() => {
-                let e = failure_of_printer(&printer, how);
-                tracing::error!(printer = %printer, "{e}");
-                failure = Some(e);
-                break;
-            }
-            _ = ticker.tick() => {
-                if farm.store().unwritten() > 0 {
-                    let farm = Arc::clone(&farm);
-                    tokio::spawn(async move { farm.jobs().write_pending().await });
-                }
-                if watchdog {
-                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
-                }
-                let summary = summary(&farm);
-                let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Status(&summary)]);
-            }
-            // A change is counted in the snapshot that publishes it: one look sees both.
-            Ok(()) = jobs.changed() => {
-                let store = farm.store();
-                if options.exit_when_idle && store.counts().finished() > 0 && store.idle() {
-                    tracing::info!("no work left: exiting (--exit-when-idle)");
-                    break;
-                }
-            }
-        }
-    }
-
-    // Shutdown: take no new work; preparation in progress is stopped (its job goes back to
-    // the queue); prints finish or stop per config.
-    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
-    farm.begin_stop();
-    tasks.stop(PICKUP);
-    tasks.join(PREPARATION).await;
-    finish_prints(&farm, fleet, &mut sigterm, &mut sigint).await;
-    if tasks.has(SHARED) {
-        // Prints have ended: their outcomes are in the store.
-        stop_shared.cancel();
-        tasks.join(SHARED).await;
-        let left = farm.jobs().write_pending().await.unwrap_or(0);
-        if left > 0 {
-            tracing::error!(outcomes = left, "the farm database is unreachable: outcomes not written (the jobs show as interrupted once this host's lease runs out)");
-        } else if let Some(db) = farm.db.get() {
-            // Nothing of this run is left to record: the next run under this name may
-            // start at once instead of waiting out the lease.
-            if let Err(e) = db.release_host().await {
-                tracing::warn!(error = %e, "cannot give up this host's lease; the next start under this name waits for it to run out");
-            }
-        }
-    }
-    stop_notify.cancel();
-    tasks.join(NOTIFY).await;
-    stop_listeners.cancel();
-    tasks.join(CONTROL).await;
-    tasks.join(HTTP).await;
-    let _ = std::fs::remove_file(&farm.config().socket);
+    let mut signals = Signals::new()?;
+    let mut running = Running::start(config, options).await?;
+    let failure = running.serve(&mut signals).await;
+    running.shut_down(&mut signals).await;
     match failure {
         Some(e) => Err(e),
         None => {
             tracing::info!("crispen daemon stopped");
             Ok(())
         }
+    }
+}
+
+/// The signals the daemon answers, set up before anything starts so none is missed.
+struct Signals {
+    term: tokio::signal::unix::Signal,
+    int: tokio::signal::unix::Signal,
+    hup: tokio::signal::unix::Signal,
+}
+
+impl Signals {
+    fn new() -> Result<Signals, ServiceError> {
+        use tokio::signal::unix::{signal, SignalKind};
+        let listen = |kind| signal(kind).map_err(ServiceError::Signals);
+        Ok(Signals {
+            term: listen(SignalKind::terminate())?,
+            int: listen(SignalKind::interrupt())?,
+            hup: listen(SignalKind::hangup())?,
+        })
+    }
+}
+
+/// A started daemon: its farm, its tasks and printers, and the tokens that stop each group
+/// of tasks in the order a shutdown needs.
+struct Running {
+    farm: Arc<Farm>,
+    options: RunOptions,
+    tasks: Supervised,
+    fleet: Fleet,
+    /// The lease is renewed until the last print has ended, after the shutdown token.
+    stop_shared: CancellationToken,
+    /// Notifications outlive the prints: what a stop does to them is told too.
+    stop_notify: CancellationToken,
+    /// The listeners outlive the shutdown token: while prints finish at a stop, the
+    /// operator can still watch them and cancel one.
+    stop_listeners: CancellationToken,
+    /// Withdrawn when the daemon stops (dropped).
+    _announced: Option<crate::http::zeroconf::Announcer>,
+}
+
+impl Running {
+    /// Opens the store, binds the listeners and starts every task and printer.
+    async fn start(config: Config, options: RunOptions) -> Result<Running, ServiceError> {
+        let prepare_program = match &options.prepare_program {
+            Some(p) => p.clone(),
+            None => std::env::current_exe().map_err(ServiceError::PrepareProgram)?,
+        };
+        let shutdown = CancellationToken::new();
+        let crate::daemon::Opened {
+            farm,
+            store,
+            shared: shared_db,
+        } = crate::daemon::open_store(&config, &shutdown).await?;
+        let listener = control::bind(&config.socket)?;
+        let http_listener = match &config.http {
+            None => None,
+            Some(http) => {
+                let bound = bind_http(http).await?;
+                let address = bound
+                    .local_addr()
+                    .map_or_else(|_| http.listen.to_string(), |a| a.to_string());
+                tracing::info!(address = %address, "http: listening");
+                tracing::info!("dashboard: http://{address}/");
+                Some((bound, http.clone()))
+            }
+        };
+        let appkeys = Arc::new(crate::http::AppKeys::open(&config.spool_dir)?);
+        // Not announcing is no reason to stop printing: the failure is logged as an error
+        // and the farm runs on.
+        let announced = match &http_listener {
+            Some((bound, _)) => match bound.local_addr() {
+                Ok(address) => crate::http::zeroconf::announce(&config, address)
+                    .inspect_err(|e| tracing::error!(error = %e, "the hot folders are not announced on the network"))
+                    .ok()
+                    .flatten(),
+                Err(_) => None,
+            },
+            None => None,
+        };
+        tracing::info!(
+            config = %config.source.display(),
+            spool = %config.spool_dir.display(),
+            socket = %config.socket.display(),
+            printers = config.printers.len(),
+            folders = config.folders.len(),
+            "crispen daemon starting"
+        );
+        let mut tasks = Supervised::default();
+        // The only owner of the jobs: a panic in it stops the daemon (see `store::start`).
+        tasks.spawn(STORE, store);
+        let stop_shared = CancellationToken::new();
+        if let Some((db, lease)) = shared_db {
+            tracing::info!(host = %db.host(), "sharing the farm's queue through its database");
+            // It ends on its own, for good, when another run took this host's name (its
+            // log and the status say so); only a panic is a failure.
+            tasks.spawn_may_end(
+                SHARED,
+                shared::run(Arc::clone(&farm), db, lease, stop_shared.clone()),
+            );
+        }
+        let stop_notify = CancellationToken::new();
+        let notify = crate::notify::run(Arc::clone(&farm), stop_notify.clone())
+            .map_err(ServiceError::Notify)?;
+        tasks.spawn(NOTIFY, notify);
+        let fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
+        let stop_listeners = CancellationToken::new();
+        tasks.spawn(
+            CONTROL,
+            crate::http::serve_socket(
+                Arc::clone(&farm),
+                Arc::clone(&appkeys),
+                config.http.clone(),
+                listener,
+                stop_listeners.clone(),
+            ),
+        );
+        if let Some((bound, http)) = http_listener {
+            tasks.spawn(
+                HTTP,
+                crate::http::serve_tcp(
+                    Arc::clone(&farm),
+                    Arc::clone(&appkeys),
+                    http,
+                    bound,
+                    stop_listeners.clone(),
+                ),
+            );
+        }
+        tasks.spawn(PICKUP, crate::daemon::pickup(&farm, &config));
+        tasks.spawn(
+            PREPARATION,
+            prepare::queue::prepare_loop(Arc::clone(&farm), prepare_program),
+        );
+        Ok(Running {
+            farm,
+            options,
+            tasks,
+            fleet,
+            stop_shared,
+            stop_notify,
+            stop_listeners,
+            _announced: announced,
+        })
+    }
+
+    /// Tells systemd the daemon is ready and serves until a signal, an idle farm with
+    /// `exit_when_idle`, or a task's end; returns the failure when it was one.
+    async fn serve(&mut self, signals: &mut Signals) -> Option<ServiceError> {
+        let farm = Arc::clone(&self.farm);
+        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
+        let mut watchdog_usec = 0u64;
+        let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
+        let tick = if watchdog {
+            Duration::from_micros(watchdog_usec / 2).max(Duration::from_millis(100))
+        } else {
+            Duration::from_secs(5)
+        };
+        let mut ticker = tokio::time::interval(tick);
+        let mut jobs = farm.watch_jobs();
+        loop {
+            tokio::select! {
+                _ = signals.term.recv() => { tracing::info!("SIGTERM: stopping"); return None; }
+                _ = signals.int.recv() => { tracing::info!("SIGINT: stopping"); return None; }
+                _ = signals.hup.recv() => on_sighup(&farm, &self.options, &mut self.tasks, &mut self.fleet),
+                // A top-level task that ended or panicked stops the daemon.
+                e = self.tasks.next_end() => {
+                    tracing::error!("{e}");
+                    return Some(e);
+                }
+                (printer, how) = self.fleet.next_end() => {
+                    let e = failure_of_printer(&printer, how);
+                    tracing::error!(printer = %printer, "{e}");
+                    return Some(e);
+                }
+                _ = ticker.tick() => {
+                    if farm.store().unwritten() > 0 {
+                        let farm = Arc::clone(&farm);
+                        tokio::spawn(async move { farm.jobs().write_pending().await });
+                    }
+                    if watchdog {
+                        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                    }
+                    let summary = summary(&farm);
+                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Status(&summary)]);
+                }
+                // A change is counted in the snapshot that publishes it: one look sees both.
+                Ok(()) = jobs.changed() => {
+                    let store = farm.store();
+                    if self.options.exit_when_idle && store.counts().finished() > 0 && store.idle() {
+                        tracing::info!("no work left: exiting (--exit-when-idle)");
+                        return None;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Shutdown: take no new work; preparation in progress is stopped (its job goes back
+    /// to the queue); prints finish or stop per config; then the shared farm's lease, the
+    /// notifications and the listeners, in that order.
+    async fn shut_down(self, signals: &mut Signals) {
+        let Running {
+            farm,
+            mut tasks,
+            fleet,
+            stop_shared,
+            stop_notify,
+            stop_listeners,
+            ..
+        } = self;
+        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+        farm.begin_stop();
+        tasks.stop(PICKUP);
+        tasks.join(PREPARATION).await;
+        finish_prints(&farm, fleet, &mut signals.term, &mut signals.int).await;
+        if tasks.has(SHARED) {
+            // Prints have ended: their outcomes are in the store.
+            stop_shared.cancel();
+            tasks.join(SHARED).await;
+            let left = farm.jobs().write_pending().await.unwrap_or(0);
+            if left > 0 {
+                tracing::error!(outcomes = left, "the farm database is unreachable: outcomes not written (the jobs show as interrupted once this host's lease runs out)");
+            } else if let Some(db) = farm.db.get() {
+                // Nothing of this run is left to record: the next run under this name may
+                // start at once instead of waiting out the lease.
+                if let Err(e) = db.release_host().await {
+                    tracing::warn!(error = %e, "cannot give up this host's lease; the next start under this name waits for it to run out");
+                }
+            }
+        }
+        stop_notify.cancel();
+        tasks.join(NOTIFY).await;
+        stop_listeners.cancel();
+        tasks.join(CONTROL).await;
+        tasks.join(HTTP).await;
+        let _ = std::fs::remove_file(&farm.config().socket);
     }
 }
 

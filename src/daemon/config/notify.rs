@@ -4,7 +4,9 @@
 //! retried. Checked here in the two stages of the config (the shape, then the secret file
 //! in `resolve`), each error naming the table by its number and name, and the key.
 
-use super::{seconds_in, Bounds, ConfigError};
+use super::check::{seconds_in, Bounds};
+use super::error::ConfigError;
+use super::secret::read_secret;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -282,7 +284,7 @@ pub(super) fn resolve(
             key: "secret_file".into(),
             message,
         };
-        let (text, warning) = super::read_secret(path).map_err(invalid)?;
+        let (text, warning) = read_secret(path).map_err(invalid)?;
         let secret = text.trim();
         if secret.len() < 16 {
             return Err(invalid(format!(

@@ -74,7 +74,7 @@ fn check_folder(
         ));
     }
     let inside = |a: &Path, b: &Path| normalise(a).starts_with(normalise(b));
-    if inside(&path, &spool_dir) || inside(&spool_dir, &path) {
+    if inside(&path, spool_dir) || inside(spool_dir, &path) {
         return Err(invalid(
             section,
             "path",

@@ -15,7 +15,6 @@
 //! `machines`, `printers`, `folders`, [`notify`], `http`, `history`), which this root calls
 //! in turn.
 
-// Read by tests only: they check the reload policy and `KNOWN_TABLES` against it.
 mod check;
 mod checked;
 mod error;
@@ -23,8 +22,6 @@ mod farm;
 mod folders;
 mod history;
 mod http;
-#[cfg(test)]
-pub(crate) mod keys;
 mod machines;
 pub mod notify;
 pub mod octoprint;
@@ -34,6 +31,11 @@ mod printers;
 mod raw;
 mod secret;
 mod store;
+
+// Read by tests only: they check the reload policy and `KNOWN_TABLES` against it.
+#[cfg(test)]
+pub(crate) mod keys;
+
 #[cfg(test)]
 mod tests;
 

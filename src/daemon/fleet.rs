@@ -9,8 +9,9 @@
 //! simulators ([`Ports::marlin`]), or a test's doubles.
 
 use super::config::{PrinterConfig, PrinterPort};
+use super::error::DaemonError;
 use super::farm::{printer_channels, Farm, PrinterLive};
-use super::{printer, DaemonError};
+use super::printer;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use tokio::sync::watch;

@@ -14,6 +14,7 @@
 //! - [`reload`]: SIGHUP, and when each config key's change takes effect.
 //! - [`farm`]: the handles to each piece of the farm's state and its owner.
 //! - [`shared`]: this host's part in a farm shared through PostgreSQL.
+//! - [`error`]: [`DaemonError`], what starting the daemon's pieces can fail with.
 //!
 //! The `service` module wires them together with the HTTP listeners and supervises them; the
 //! daemon does not know of `http`.
@@ -21,6 +22,7 @@
 pub mod command;
 pub mod config;
 pub mod control;
+pub mod error;
 pub mod farm;
 pub mod fleet;
 pub mod hotfolder;
@@ -36,6 +38,8 @@ pub(crate) mod doubles;
 #[cfg(test)]
 mod supervision_tests;
 
+pub use error::DaemonError;
+
 use config::Config;
 use farm::Farm;
 use job::JobState;
@@ -45,23 +49,6 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
-
-#[derive(Debug, thiserror::Error)]
-pub enum DaemonError {
-    #[error(transparent)]
-    Config(#[from] config::ConfigError),
-    #[error(transparent)]
-    Store(#[from] job::StoreError),
-    #[error(transparent)]
-    Control(#[from] control::ControlError),
-    #[error("printer {printer}: cannot start its simulator: {message}")]
-    Simulator { printer: String, message: String },
-    #[error("[store] postgres: {0}")]
-    Database(#[from] store::postgres::PgError),
-    /// Another run holds this host's name in the farm ([`store::postgres::PgError::HostInUse`]).
-    #[error("{0}")]
-    HostInUse(store::postgres::PgError),
-}
 
 /// What [`open_store`] opened.
 pub struct Opened {

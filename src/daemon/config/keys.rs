@@ -15,7 +15,7 @@ use std::cell::RefCell;
 /// key: what it holds is checked by its own type, not named by a struct.
 pub fn all() -> Result<Vec<String>, Error> {
     let keys = RefCell::new(Vec::new());
-    super::RawConfig::deserialize(Tracer {
+    super::raw::RawConfig::deserialize(Tracer {
         prefix: "",
         keys: &keys,
     })?;

@@ -4,7 +4,9 @@
 //! retried. Checked here in the two stages of the config (the shape, then the secret file
 //! in `resolve`), each error naming the table by its number and name, and the key.
 
-use super::{seconds_in, Bounds, ConfigError};
+use super::check::{seconds_in, Bounds};
+use super::error::ConfigError;
+use super::secret::read_secret;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -170,98 +172,110 @@ pub(super) fn check(
     }
     let mut receivers: Vec<Receiver> = Vec::new();
     for (i, r) in raw.into_iter().enumerate() {
-        let section = format!("[[notify]] #{} (name {:?})", i + 1, r.name);
-        let invalid = |key: &str, message: String| ConfigError::Invalid {
-            file: file.to_path_buf(),
-            section: section.clone(),
-            key: key.into(),
-            message,
-        };
-        let name_ok = !r.name.is_empty()
-            && r.name.chars().count() <= MAX_NAME_CHARS
-            && r.name
-                .chars()
-                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
-        if !name_ok {
-            return Err(invalid(
-                "name",
-                format!("must be 1 to {MAX_NAME_CHARS} letters, digits, '-' or '_' (it names the receiver's queue in the spool)"),
-            ));
-        }
-        if receivers.iter().any(|o| o.name == r.name) {
-            return Err(invalid(
-                "name",
-                "another [[notify]] table has this name".into(),
-            ));
-        }
-        let url = parse_url(&r.url).map_err(|m| invalid("url", m))?;
-        let events = match r.events {
-            None => EVENT_NAMES.iter().map(|e| e.to_string()).collect(),
-            Some(list) => {
-                if list.is_empty() {
-                    return Err(invalid(
-                        "events",
-                        "is empty: leave it out for every event, or remove the table".into(),
-                    ));
-                }
-                for e in &list {
-                    if !EVENT_NAMES.contains(&e.as_str()) {
-                        return Err(invalid(
-                            "events",
-                            format!("unknown event {e:?}; known: {}", EVENT_NAMES.join(", ")),
-                        ));
-                    }
-                }
-                let mut list = list;
-                list.dedup();
-                list
-            }
-        };
-        let format = match &r.format {
-            None => NotifyFormat::Json,
-            Some(f) => NotifyFormat::parse(f).ok_or_else(|| {
-                invalid(
-                    "format",
-                    format!(
-                        "unknown format {f:?}; one of {}",
-                        NotifyFormat::NAMES.join(", ")
-                    ),
-                )
-            })?,
-        };
-        let seconds = |key: &str, value: Option<f64>, default: f64, range: &Bounds| {
-            seconds_in(value.unwrap_or(default), range).map_err(|m| invalid(key, m))
-        };
-        let timeout = seconds("timeout_s", r.timeout_s, 10.0, &TIMEOUT_S)?;
-        let retry_for = seconds("retry_for_s", r.retry_for_s, 86_400.0, &RETRY_FOR_S)?;
-        let backoff_max = seconds("backoff_max_s", r.backoff_max_s, 300.0, &BACKOFF_MAX_S)?;
-        let max_attempts = r.max_attempts.unwrap_or(100);
-        if !MAX_ATTEMPTS.contains(&max_attempts) {
-            return Err(invalid(
-                "max_attempts",
-                format!(
-                    "must be from {} to {}, got {max_attempts}",
-                    MAX_ATTEMPTS.start(),
-                    MAX_ATTEMPTS.end()
-                ),
-            ));
-        }
-        receivers.push(Receiver {
-            name: r.name,
-            url,
-            events,
-            format,
-            secret_file: r.secret_file.as_deref().map(anchor),
-            secret: None,
-            timeout,
-            retry_for,
-            max_attempts: max_attempts as u32,
-            backoff_max,
-        });
+        let receiver = check_receiver(i, r, &receivers, file, anchor)?;
+        receivers.push(receiver);
     }
     Ok(NotifyConfig {
         receivers,
         dashboard,
+    })
+}
+
+/// The `i`th `[[notify]]` table (from 0), named apart from the receivers `taken` before it.
+fn check_receiver(
+    i: usize,
+    r: RawNotify,
+    taken: &[Receiver],
+    file: &Path,
+    anchor: &dyn Fn(&Path) -> PathBuf,
+) -> Result<Receiver, ConfigError> {
+    let section = format!("[[notify]] #{} (name {:?})", i + 1, r.name);
+    let invalid = |key: &str, message: String| ConfigError::Invalid {
+        file: file.to_path_buf(),
+        section: section.clone(),
+        key: key.into(),
+        message,
+    };
+    let name_ok = !r.name.is_empty()
+        && r.name.chars().count() <= MAX_NAME_CHARS
+        && r.name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    if !name_ok {
+        return Err(invalid(
+            "name",
+            format!("must be 1 to {MAX_NAME_CHARS} letters, digits, '-' or '_' (it names the receiver's queue in the spool)"),
+        ));
+    }
+    if taken.iter().any(|o| o.name == r.name) {
+        return Err(invalid(
+            "name",
+            "another [[notify]] table has this name".into(),
+        ));
+    }
+    let url = parse_url(&r.url).map_err(|m| invalid("url", m))?;
+    let events = match r.events {
+        None => EVENT_NAMES.iter().map(|e| e.to_string()).collect(),
+        Some(list) => {
+            if list.is_empty() {
+                return Err(invalid(
+                    "events",
+                    "is empty: leave it out for every event, or remove the table".into(),
+                ));
+            }
+            for e in &list {
+                if !EVENT_NAMES.contains(&e.as_str()) {
+                    return Err(invalid(
+                        "events",
+                        format!("unknown event {e:?}; known: {}", EVENT_NAMES.join(", ")),
+                    ));
+                }
+            }
+            let mut list = list;
+            list.dedup();
+            list
+        }
+    };
+    let format = match &r.format {
+        None => NotifyFormat::Json,
+        Some(f) => NotifyFormat::parse(f).ok_or_else(|| {
+            invalid(
+                "format",
+                format!(
+                    "unknown format {f:?}; one of {}",
+                    NotifyFormat::NAMES.join(", ")
+                ),
+            )
+        })?,
+    };
+    let seconds = |key: &str, value: Option<f64>, default: f64, range: &Bounds| {
+        seconds_in(value.unwrap_or(default), range).map_err(|m| invalid(key, m))
+    };
+    let timeout = seconds("timeout_s", r.timeout_s, 10.0, &TIMEOUT_S)?;
+    let retry_for = seconds("retry_for_s", r.retry_for_s, 86_400.0, &RETRY_FOR_S)?;
+    let backoff_max = seconds("backoff_max_s", r.backoff_max_s, 300.0, &BACKOFF_MAX_S)?;
+    let max_attempts = r.max_attempts.unwrap_or(100);
+    if !MAX_ATTEMPTS.contains(&max_attempts) {
+        return Err(invalid(
+            "max_attempts",
+            format!(
+                "must be from {} to {}, got {max_attempts}",
+                MAX_ATTEMPTS.start(),
+                MAX_ATTEMPTS.end()
+            ),
+        ));
+    }
+    Ok(Receiver {
+        name: r.name,
+        url,
+        events,
+        format,
+        secret_file: r.secret_file.as_deref().map(anchor),
+        secret: None,
+        timeout,
+        retry_for,
+        max_attempts: max_attempts as u32,
+        backoff_max,
     })
 }
 
@@ -282,7 +296,7 @@ pub(super) fn resolve(
             key: "secret_file".into(),
             message,
         };
-        let (text, warning) = super::read_secret(path).map_err(invalid)?;
+        let (text, warning) = read_secret(path).map_err(invalid)?;
         let secret = text.trim();
         if secret.len() < 16 {
             return Err(invalid(format!(

@@ -1,8 +1,9 @@
 //! The OctoPrint emulation's keys of `[http]`: whether each hot folder is announced by
 //! zeroconf (`announce`), and the folder an upload without a `path` goes to on the root
-//! instance (`default_folder`). Kept apart from `mod.rs` so that section stays small.
+//! instance (`default_folder`). Kept apart from the rest of `[http]` (`http.rs`) so that each
+//! stays small.
 
-use super::FolderConfig;
+use std::path::Path;
 
 /// `[http]`'s OctoPrint keys, checked.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -48,15 +49,15 @@ pub fn check(
     })
 }
 
-/// `default_folder` names exactly one configured hot folder.
+/// `default_folder` names exactly one configured hot folder (`folders`: their paths).
 pub fn check_folder(
     octoprint: &OctoPrintConfig,
-    folders: &[FolderConfig],
+    folders: &[&Path],
 ) -> Result<(), (&'static str, String)> {
     let Some(name) = &octoprint.default_folder else {
         return Ok(());
     };
-    let named = |f: &&FolderConfig| f.path.file_name().is_some_and(|n| n == name.as_str());
+    let named = |f: &&&Path| f.file_name().is_some_and(|n| n == name.as_str());
     match folders.iter().filter(named).count() {
         1 => Ok(()),
         0 => Err((
@@ -65,7 +66,7 @@ pub fn check_folder(
                 "no [[folder]] is called {name:?} (a folder's name is the last part of its path; the folders are: {})",
                 folders
                     .iter()
-                    .map(|f| f.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default())
+                    .map(|f| f.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default())
                     .collect::<Vec<_>>()
                     .join(", ")
             ),

@@ -3,7 +3,8 @@
 //! `/dev/ttyACM0`, which may name another printer after a reboot, gets a warning naming
 //! the stable `/dev/serial/by-id` link for the same device where there is one.
 
-use super::{ConfigError, PrinterConfig, PrinterPort};
+use super::checked::{PrinterConfig, PrinterPort};
+use super::error::ConfigError;
 use crate::ports;
 use std::path::Path;
 

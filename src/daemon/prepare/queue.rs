@@ -1,16 +1,18 @@
 //! The daemon's preparation queue: queued jobs are prepared oldest first, at most one per
-//! core at a time, each in its own child process ([`super::run_child`]); the outcome (G-code
-//! per machine, or the reason none can print it) is recorded in the job.
+//! core at a time, each in its own child process ([`super::process::run_child`]); the
+//! outcome (G-code per machine, or the reason none can print it) is recorded in the job.
 //!
 //! An enhanced job is ready with its comparison pending ([`Comparison`]). Comparisons are
 //! the queue's low-priority work: one at a time, started only while no job is being
 //! prepared or waits to be (a job that arrives meanwhile is prepared at once, beside it:
 //! the comparison's process runs at the lowest CPU priority), each in a child process of
-//! its own ([`super::run_compare_child`]). Its figures go into the job's report through
-//! the store; a comparison that fails leaves the job as it was, marked not measured. Each
-//! start is counted in the job, so one that the daemon's stops keep cutting short is given
-//! up after [`COMPARE_TRIES`] rather than redone at every start.
+//! its own ([`super::process::run_compare_child`]). Its figures go into the job's report
+//! through the store; a comparison that fails leaves the job as it was, marked not
+//! measured. Each start is counted in the job, so one that the daemon's stops keep cutting
+//! short is given up after [`COMPARE_TRIES`] rather than redone at every start.
 
+use super::process::{run_child, run_compare_child, PrepareError};
+use super::task::{resolve_task, PrepareTask, Prepared, TaskMachine};
 use crate::daemon::farm::Farm;
 use crate::daemon::job::{Comparison, JobState, StoreError};
 use crate::daemon::store::StateFilter;
@@ -140,7 +142,7 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
             .unwrap_or_else(|e| Err(format!("preparation crashed: {e}")))
     };
     let result = match resolved {
-        Err(reason) => Err(super::PrepareError::Failed(reason)),
+        Err(reason) => Err(PrepareError::Failed(reason)),
         Ok((task, sidecar)) => {
             tracing::info!(
                 model = %task.model.display(),
@@ -149,7 +151,7 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
                 "preparing"
             );
             let on_step = |step: String| farm.preparation_step(&id, step);
-            super::run_child(&program, &task, &cancel, on_step)
+            run_child(&program, &task, &cancel, on_step)
                 .await
                 .map(|report| (report, sidecar))
         }
@@ -161,7 +163,7 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
 fn resolve(
     farm: &Farm,
     id: &str,
-) -> Result<(super::PrepareTask, Option<crate::daemon::job::Sidecar>), String> {
+) -> Result<(PrepareTask, Option<crate::daemon::job::Sidecar>), String> {
     let (job, dir) = {
         let store = farm.store();
         let job = store.get(id).cloned().ok_or("job vanished")?;
@@ -175,7 +177,7 @@ fn resolve(
         )
     })?;
     let sidecar = crate::daemon::job::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
-    let task = super::resolve_task(
+    let task = resolve_task(
         id,
         &dir,
         &job.file,
@@ -191,7 +193,7 @@ fn resolve(
 async fn finish_preparation(
     farm: &Farm,
     id: &str,
-    result: Result<(super::Prepared, Option<crate::daemon::job::Sidecar>), super::PrepareError>,
+    result: Result<(Prepared, Option<crate::daemon::job::Sidecar>), PrepareError>,
 ) {
     farm.end_preparation(id);
     const STILL_PREPARING: StateFilter = &[JobState::Preparing];
@@ -226,7 +228,7 @@ async fn finish_preparation(
         }
         // Still preparing, so not cancelled by the operator: the daemon is stopping, and
         // the job is prepared again at the next start.
-        Err(super::PrepareError::Cancelled) => {
+        Err(PrepareError::Cancelled) => {
             farm.jobs()
                 .transition_from(id, STILL_PREPARING, JobState::Queued, None, |_| {})
                 .await
@@ -315,8 +317,8 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
         Ok(task) => {
             tracing::info!(machine = %task.machines[0].machine.name, tries, "comparing the outer walls with the unmodified model's");
             let cancel = farm.shutdown.child_token();
-            match super::run_compare_child(&program, &task, &cancel).await {
-                Err(super::PrepareError::Cancelled) => return,
+            match run_compare_child(&program, &task, &cancel).await {
+                Err(PrepareError::Cancelled) => return,
                 result => result.map_err(|e| e.to_string()),
             }
         }
@@ -358,7 +360,7 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
 
 /// The comparison's task: the job's own (as it would be prepared now), for the machine of
 /// its report, whose G-code it compares.
-fn resolve_comparison(farm: &Farm, id: &str) -> Result<super::PrepareTask, String> {
+fn resolve_comparison(farm: &Farm, id: &str) -> Result<PrepareTask, String> {
     let (mut task, _) = resolve(farm, id)?;
     let job = farm.store().get(id).cloned().ok_or("job vanished")?;
     let report = job.slice_report.as_ref().ok_or("the job has no report")?;
@@ -376,7 +378,7 @@ fn resolve_comparison(farm: &Farm, id: &str) -> Result<super::PrepareTask, Strin
         .find(|m| m.machine.name == report.machine)
         .ok_or_else(|| format!("the {} no longer serves the job's folder", report.machine))?;
     let output = task.model.with_file_name(gcode);
-    task.machines = vec![super::TaskMachine { output, ..machine }];
+    task.machines = vec![TaskMachine { output, ..machine }];
     task.compare = true;
     Ok(task)
 }

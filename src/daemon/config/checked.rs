@@ -1,0 +1,221 @@
+//! The config's checked types: what the daemon runs with ([`Config`]), section by section,
+//! and the second stage's [`Checked`], whose secrets are not read yet. Apart from the raw
+//! structs that mirror the file and from the checks that make these, so that every part of
+//! the daemon (and every section's check) can name them.
+
+use super::{notify, octoprint};
+use crate::enhance::Strength;
+use crate::marlin::firmware::Firmware;
+use crate::mesh::place::UpAxis;
+use crate::slice::SlicerKind;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// What SIGTERM does to a print in progress.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OnShutdown {
+    /// Keep streaming until the print ends, then exit.
+    Finish,
+    /// Stop safely (heaters off) and mark the job interrupted.
+    Stop,
+}
+
+/// The checked configuration the daemon runs with.
+#[derive(Debug, Clone)]
+pub struct Config {
+    /// The file it came from ("(built-in default)" when none).
+    pub source: PathBuf,
+    pub spool_dir: PathBuf,
+    pub socket: PathBuf,
+    pub farm: FarmConfig,
+    pub printers: Vec<PrinterConfig>,
+    /// The `[[machine]]` tables, checked (the built-in machines are not listed).
+    pub machines: Vec<crate::machine::Machine>,
+    pub folders: Vec<FolderConfig>,
+    /// The HTTP API and dashboard on TCP (`[http]`), when configured.
+    pub http: Option<HttpConfig>,
+    /// The farm's queue in PostgreSQL (`[store]`), shared with other hosts; None: this
+    /// host's own spool.
+    pub store: Option<StoreConfig>,
+    /// How long finished jobs stay live before they move to the history (`[history]`).
+    pub history: HistoryConfig,
+    /// Where the farm's events are sent (`[[notify]]`, see `notify`).
+    pub notify: notify::NotifyConfig,
+    /// What is accepted but unwise (a key file others can read), each naming its section
+    /// and key: shown by `crispen run --check` and logged at every start and reload.
+    pub warnings: Vec<String>,
+}
+
+/// `[history]`: a finished job (done, failed, cancelled) stays in the live queue (status,
+/// dashboard, metrics) for `live_days` after it ended, and only the newest `live_jobs`
+/// of them; older ones move to the history, which keeps them (see `store`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HistoryConfig {
+    pub live_for: Duration,
+    pub live_jobs: usize,
+    /// How long the history keeps a job (`keep_days`); None: for good.
+    pub keep_for: Option<Duration>,
+}
+
+impl Default for HistoryConfig {
+    fn default() -> HistoryConfig {
+        HistoryConfig {
+            live_for: Duration::from_secs(7 * 86_400),
+            live_jobs: 200,
+            keep_for: None,
+        }
+    }
+}
+
+/// `[store]`: the farm database.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoreConfig {
+    pub postgres: PgSettings,
+    /// A host silent this long loses its work to the others (see `store::postgres`).
+    pub lease: Duration,
+}
+
+/// How to reach the farm database: `[store] postgres` and `[store] password_file`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PgSettings {
+    /// A libpq connection string without a password (`host=/run/postgresql dbname=crispen`).
+    pub conninfo: String,
+    pub password_file: Option<PathBuf>,
+}
+
+/// `[http]`: the TCP listener of the HTTP API and dashboard (see `crate::http`).
+#[derive(Debug, Clone)]
+pub struct HttpConfig {
+    pub listen: std::net::SocketAddr,
+    /// The key every request must carry in `X-Api-Key`, read from `api_key_file`.
+    pub api_key: ApiKey,
+    /// GET requests (dashboard, status, pictures, metrics) are answered without the key.
+    pub read_only_without_key: bool,
+    /// The largest upload accepted, in bytes.
+    pub upload_max_bytes: u64,
+    /// Listen on a port the system picks when `listen`'s port is taken: only for the
+    /// built-in default, never for a configured port.
+    pub any_port_if_taken: bool,
+    /// The OctoPrint emulation's keys (`announce`, `default_folder`).
+    pub octoprint: octoprint::OctoPrintConfig,
+}
+
+/// An API key; never shown in logs or debug output.
+#[derive(Clone, PartialEq, Eq)]
+pub struct ApiKey(pub String);
+
+impl std::fmt::Debug for ApiKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ApiKey(..)")
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct FarmConfig {
+    /// At most this many printers heat up at once.
+    pub max_heating: usize,
+    pub on_shutdown: OnShutdown,
+    /// A dropped file whose size and mtime stay unchanged this long is taken as complete.
+    pub settle: Duration,
+    /// Hot folders are rescanned this often in case a watch event was missed.
+    pub rescan: Duration,
+    /// With `on_shutdown = "finish"`, prints still running this long after the stop began
+    /// are stopped safely (the daemon asks systemd for time up to then, no longer).
+    pub finish_timeout: Duration,
+    /// This host's name in a farm shared through `[store]` (default: the hostname).
+    pub host: String,
+}
+
+/// Where a printer is reached: a real serial port, or a simulated printer the daemon
+/// starts once at startup (and then treats exactly like a serial port).
+#[derive(Debug, Clone, PartialEq)]
+pub enum PrinterPort {
+    Serial(PathBuf),
+    Simulated {
+        time_scale: f64,
+        seed: u64,
+        record: Option<PathBuf>,
+    },
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct PrinterConfig {
+    pub name: String,
+    pub port: PrinterPort,
+    pub firmware: Firmware,
+    /// What its G-code is made for (see `crate::machine`).
+    pub machine: crate::machine::Machine,
+    pub baud: u32,
+    /// An M109/M190 whose temperature stops coming closer to its target for this long
+    /// fails the job (heaters off).
+    pub heat_timeout: Duration,
+    /// A pause the file asked for that nobody resumes this long turns the heaters off.
+    pub pause_heaters_off: Duration,
+}
+
+#[derive(Debug, Clone)]
+pub struct FolderConfig {
+    pub path: PathBuf,
+    pub height_mm: f64,
+    pub printers: Vec<String>,
+    pub strength: Strength,
+    pub slicer: SlicerKind,
+    /// Which of the dropped files' axes points up (STL: z; many OBJ files: y).
+    pub up: UpAxis,
+    pub profile: Option<PathBuf>,
+    pub timeout: Duration,
+    /// Slicer setting overrides on top of the profile.
+    pub settings: crate::slice::SliceSettings,
+}
+
+/// The second stage: every value of the file checked and converted, with nothing read but
+/// the file itself (no key or password file, no device). It is all that the commands which
+/// only read the machines or the printers need, and an operator in the daemon's group may
+/// not read its secrets; the daemon goes on to [`Checked::resolve`].
+#[derive(Debug, Clone)]
+pub struct Checked {
+    /// Everything but `[http]`, whose key is read in the third stage.
+    pub(super) config: Config,
+    pub(super) http: Option<CheckedHttp>,
+}
+
+/// `[http]` checked, its key file not yet read.
+#[derive(Debug, Clone)]
+pub(super) struct CheckedHttp {
+    pub(super) listen: std::net::SocketAddr,
+    pub(super) api_key_file: PathBuf,
+    pub(super) read_only_without_key: bool,
+    pub(super) upload_max_bytes: u64,
+    pub(super) octoprint: octoprint::OctoPrintConfig,
+}
+
+impl Checked {
+    /// The file the config came from.
+    pub fn source(&self) -> &Path {
+        &self.config.source
+    }
+
+    /// The control socket.
+    pub fn socket(&self) -> &Path {
+        &self.config.socket
+    }
+
+    /// The `[[printer]]` tables, checked.
+    pub fn printers(&self) -> &[PrinterConfig] {
+        &self.config.printers
+    }
+
+    /// The `[[machine]]` tables, checked (the built-in machines are not listed).
+    pub fn machines(&self) -> &[crate::machine::Machine] {
+        &self.config.machines
+    }
+}
+
+impl Config {
+    /// The folder configuration a hot-folder path belongs to.
+    pub fn folder(&self, path: &Path) -> Option<&FolderConfig> {
+        self.folders.iter().find(|f| f.path == path)
+    }
+}

@@ -2,6 +2,9 @@
 //! state machine ([`super::protocol::Host`]) to the serial link ([`super::transport`]),
 //! to a control channel (pause/resume/cancel) and to a progress watch. The daemon's
 //! printer supervisors and `crispen print` both use [`Connection`].
+//!
+//! Beside it: why a print failed ([`PrintError`], in `error.rs`) and the idle printer
+//! between jobs ([`Idle`] and the watch that reads its temperatures, in `idle.rs`).
 
 use super::firmware::Firmware;
 use super::gcode::{GcodeCommands, GcodeProgram};

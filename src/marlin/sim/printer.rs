@@ -6,10 +6,11 @@
 //! the host must wait), a 16-move planner that drains at the moves' real speed, and an
 //! emergency parser that sees M108/M112 as the bytes arrive.
 //!
-//! This file holds the printer's state, its main loop and command execution; the seams
-//! live beside it: [`serial`] (receive ring and line checks), [`motion`] (planner and
-//! move times), [`thermal`] (heaters and reports), [`dialect`] (what each flavour knows
-//! and says) and [`faults`] (what it does wrong on purpose).
+//! This file holds the printer's main loop and command execution; its state (the
+//! [`Printer`] and its parts) is in [`state`], and the seams live beside it: [`serial`]
+//! (receive ring and line checks), [`motion`] (planner and move times), [`thermal`]
+//! (heaters and reports), [`dialect`] (what each flavour knows and says) and [`faults`]
+//! (what it does wrong on purpose).
 
 mod dialect;
 mod faults;

@@ -4,7 +4,7 @@
 //! direction has no checksum and real answers arrive garbled (`okk`, `Resend:12`, a `start`
 //! glued to the end of a temperature report when the board resets mid-line).
 
-use super::{Temp, Temperatures};
+use super::temperature::{Temp, Temperatures};
 
 /// A classified printer line.
 #[derive(Debug, Clone, PartialEq)]

@@ -3,8 +3,13 @@
 //! duplicate requests real printers send) answers the host; the tests then check what the
 //! printer executed, not what the host believes.
 
+use super::line::{code_of, SAFE_STOP};
+use super::recovery::{SETTLE_MAX, SETTLE_QUIET_MAX};
+use super::reply::HostAction;
 use super::*;
+use crate::marlin::firmware::Firmware;
 use std::collections::HashSet;
+use std::time::Duration;
 
 const UM2_GREETING: &str = "FIRMWARE_NAME:Marlin Ultimaker2; Sprinter/grbl mashup for gen6 FIRMWARE_URL:http://github.com/Ultimaker PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ultimaker EXTRUDER_COUNT:1\n";
 const GREETING: &str = "FIRMWARE_NAME:Marlin 2.1.2.1 (Github) SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0 MACHINE_TYPE:Ender-3 EXTRUDER_COUNT:1 UUID:cede2a2f\nCap:AUTOREPORT_TEMP:1\nCap:EMERGENCY_PARSER:1\nCap:BUSY_PROTOCOL:1\n";
@@ -1528,7 +1533,7 @@ fn a_lost_answer_to_the_final_m105_is_recovered_and_the_job_ends() {
     host.start_job(job(10), now);
     let events = run_job(&mut host, &mut printer, now);
     assert!(done(&events), "{:?}", failure(&events));
-    assert!(host.probes > 0);
+    assert!(host.stats.probes > 0);
     assert_eq!(printer.job_executed(), job(10));
 }
 
@@ -1775,9 +1780,9 @@ mod invariant {
         if matches!(job, JobPhase::Paused { reported: true, .. }) {
             return; // paused on request: waiting is the point
         }
-        let held = host.resend_hold.is_some()
-            || host.settle.is_some()
-            || host.replay_after.is_some()
+        let held = host.recovery.resend_hold.is_some()
+            || host.recovery.settle.is_some()
+            || host.recovery.replay_after.is_some()
             || host.pending_error.is_some();
         assert!(
             !host.in_flight.is_empty() || held,
@@ -1838,7 +1843,7 @@ mod invariant {
 /// so that no single byte corrupted into `*` leaves a cut line that passes.
 #[test]
 fn ultimaker2_lines_are_written_so_no_cut_passes() {
-    use super::window::{cut_that_passes, uncuttable};
+    use super::framing::{cut_that_passes, uncuttable};
     // The issue's line: `N472 G1 X0.03 Y0.05 F6000` cut at `Y0.` passes (prefix XOR 5).
     let issue = b"N472 G1 X0.03 Y0.05 F6000";
     assert_eq!(cut_that_passes(issue, 5), Some(16));

@@ -17,7 +17,7 @@
 //! - a value is read with `strtof` up to the first `E` or `X` (either case), so there are
 //!   no exponents and no hexadecimal: `S1.5E2` is 1.5 (and `E2` another parameter).
 
-use super::View;
+use super::view::View;
 
 /// What Marlin 2 finds in `text` (a line's code, as the host sends it after its `N<n> `).
 pub fn read(text: &str) -> View {

@@ -17,9 +17,12 @@ pub mod marlin2;
 #[cfg(any(test, fuzzing))]
 pub mod transcribed;
 pub mod ultimaker2;
+mod view;
 
 use crate::marlin::firmware::Firmware;
 use crate::marlin::gcode::FILE_PAUSES;
+
+pub use view::View;
 
 /// One parameter of a command: its letter (upper case) and number, if it has one.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -171,43 +174,6 @@ pub fn read_for(firmware: Firmware, code: &str) -> Result<Option<Command<'_>>, U
     };
     agree(firmware, &cmd, &view)?;
     Ok(Some(cmd))
-}
-
-/// What one firmware's parser finds in a line: the command and, per letter A-Z, whether
-/// it is there and the number it reads for it.
-#[derive(Clone, Debug, PartialEq)]
-pub struct View {
-    /// Letter and number, or `None` when the firmware answers `Unknown command`.
-    pub command: Option<(char, u32)>,
-    /// Per letter A-Z: `None` not seen, `Some(None)` seen without a number the firmware
-    /// takes, `Some(Some(v))` seen with `v`.
-    pub params: [Option<Option<f64>>; 26],
-    /// Whether the firmware takes the rest of the line as one string (Marlin 2's string
-    /// commands): then the parameters are not read.
-    pub string: bool,
-}
-
-impl View {
-    pub fn new() -> View {
-        View {
-            command: None,
-            params: [None; 26],
-            string: false,
-        }
-    }
-
-    pub fn param(&self, letter: char) -> Option<Option<f64>> {
-        letter
-            .is_ascii_uppercase()
-            .then(|| self.params[(letter as u8 - b'A') as usize])
-            .flatten()
-    }
-}
-
-impl Default for View {
-    fn default() -> Self {
-        View::new()
-    }
 }
 
 /// Checks the firmware's view against the plain reading.

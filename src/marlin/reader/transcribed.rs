@@ -5,7 +5,7 @@
 //! [`super::ultimaker2`] are compared with this on random lines: a disagreement is a bug in
 //! one of them.
 
-use super::View;
+use super::view::View;
 use crate::marlin::protocol::frame;
 
 /// The bytes on the wire for line number 7 of `text`, NUL-terminated, without the newline.

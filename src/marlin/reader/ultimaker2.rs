@@ -12,7 +12,7 @@
 //!
 //! The host's `N<n> ` before the line and `*<checksum>` after it add no letter but `N`.
 
-use super::View;
+use super::view::View;
 
 /// What Ultimaker2Marlin finds in `text`.
 pub fn read(text: &str) -> View {

@@ -6,8 +6,10 @@
 //! `CRISPEN_COSIM_TRACE=1` prints the bytes each way with their virtual time;
 //! `CRISPEN_COSIM_ONLY=Ultimaker2:7` runs one firmware and seed of the noise test.
 
+use super::config::SimConfig;
+use super::is_housekeeping;
 use super::printer::Printer;
-use super::{is_housekeeping, Recorder, SimConfig};
+use super::recorder::Recorder;
 use crate::marlin::firmware::Firmware;
 use crate::marlin::protocol::{canonical, Event, Failure, Host, JobSummary, ProtocolOptions};
 use std::sync::{Arc, Mutex};

@@ -6,28 +6,34 @@
 //! the host must wait), a 16-move planner that drains at the moves' real speed, and an
 //! emergency parser that sees M108/M112 as the bytes arrive.
 //!
-//! This file holds the printer's state, its main loop and command execution; the seams
-//! live beside it: [`serial`] (receive ring and line checks), [`motion`] (planner and
-//! move times), [`thermal`] (heaters and reports), [`dialect`] (what each flavour knows
-//! and says) and [`faults`] (what it does wrong on purpose).
+//! This file holds the printer's main loop and command execution; its state (the
+//! [`Printer`] and its parts) is in [`state`], and the seams live beside it: [`serial`]
+//! (receive ring and line checks), [`motion`] (planner and move times), [`thermal`]
+//! (heaters and reports), [`dialect`] (what each flavour knows and says) and [`faults`]
+//! (what it does wrong on purpose).
 
 mod dialect;
 mod faults;
 mod motion;
 mod serial;
+mod state;
 mod thermal;
 
-use super::{Faults, Recorder, ReportStyle, SimConfig};
+pub(crate) use state::{Printer, Status};
+
+use super::config::SimConfig;
+use super::recorder::Recorder;
 use crate::marlin::firmware::Firmware;
 use dialect::known_marlin2;
 use motion::{parse_words, word, word_present};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use state::{Active, Heater, Queued, Temperature, Wait};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
+use thermal::AMBIENT;
 
 const PLANNER_MOVES: usize = 16;
-const AMBIENT: f64 = 21.0;
 /// A homing takes seconds: an Ultimaker 2 moves its bed up to 205 mm at 40 mm/s, and every
 /// axis bumps its switch twice. Longer than the host's 3 s silence probe, as on a real
 /// printer, whose firmware reads no serial input meanwhile.
@@ -36,117 +42,6 @@ const DEFAULT_FEEDRATE: f64 = 1500.0; // mm/min
 /// Shortest real interval between periodic messages, so a tiny time scale cannot turn
 /// keep-alives and temperature reports into a flood.
 const MIN_PERIOD: Duration = Duration::from_millis(50);
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Status {
-    Running,
-    /// After M112 or a fatal error: reads and discards input, says nothing.
-    Halted,
-    /// The silence fault: alive but mute.
-    Silent,
-    /// The unplug fault: the pty must be closed.
-    Unplugged,
-    /// Held in reset by the bootloader after the host opened the port (DTR): input is
-    /// lost until the firmware starts and says `start`.
-    Booting(Instant),
-}
-
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Heater {
-    Hotend,
-    Bed,
-}
-
-#[derive(Debug, Clone, Copy)]
-struct Temperature {
-    current: f64,
-    target: f64,
-}
-
-/// What the command at the head of the queue waits for before it can finish.
-#[derive(Debug, Clone)]
-enum Wait {
-    /// A move waits for a free planner slot.
-    PlannerSlot {
-        seconds: f64,
-    },
-    /// M400, and the synchronisation before G28/G4.
-    Drain {
-        then: Option<Box<Wait>>,
-    },
-    Until(Instant),
-    /// A `Until` that starts only when it is reached (after a drain).
-    For(f64),
-    Heat {
-        heater: Heater,
-        cooling_too: bool,
-    },
-    /// `M0`/`M1` (and `M600` with ADVANCED_PAUSE_FEATURE): until someone presses the knob,
-    /// which no test does: a host that sends one waits for an `ok` that never comes.
-    User,
-}
-
-struct Active {
-    wait: Wait,
-    /// Line number for ADVANCED_OK.
-    n: Option<u64>,
-    /// Its `ok` was sent when it entered the queue.
-    answered: bool,
-    /// Sends `echo:busy: processing` while it waits (long commands, busy fault).
-    busy: bool,
-    next_heat_report: Option<Instant>,
-}
-
-struct Queued {
-    n: Option<u64>,
-    cmd: String,
-    /// Already acknowledged on entering the queue (Ultimaker2Marlin's moves).
-    acked: bool,
-}
-
-pub(crate) struct Printer {
-    fw: Firmware,
-    time_scale: f64,
-    faults: Faults,
-    rng: ChaCha8Rng,
-    status: Status,
-    rx: VecDeque<u8>,
-    assembling: Vec<u8>,
-    /// Set when the assembled line overflowed MAX_CMD_SIZE (the rest of it is dropped).
-    overlong: bool,
-    emergency: Vec<u8>,
-    slots: VecDeque<Queued>,
-    last_n: u64,
-    active: Option<Active>,
-    planner: VecDeque<Duration>,
-    planner_head_end: Option<Instant>,
-    position: [f64; 4],
-    relative: bool,
-    relative_e: bool,
-    feedrate: f64,
-    hotend: Temperature,
-    bed: Temperature,
-    temps_at: Instant,
-    autoreport: Option<Duration>,
-    next_autoreport: Option<Instant>,
-    keepalive: f64,
-    next_keepalive: Option<Instant>,
-    heat_break: bool,
-    numbered_executed: usize,
-    /// A `;` was seen on the line being assembled (Ultimaker2Marlin's `:` rule stops there).
-    in_comment: bool,
-    /// The command being finished was acknowledged on entry: its `ok` is not sent again.
-    answered: bool,
-    /// NO_TIMEOUTS: say `wait` this often while the command queue is empty.
-    wait_when_idle: Option<Duration>,
-    next_wait: Option<Instant>,
-    /// `ok N<n> P<p> B<b>` (ADVANCED_OK).
-    advanced_ok: bool,
-    /// ADVANCED_PAUSE_FEATURE (see [`SimConfig::advanced_pause`]).
-    advanced_pause: bool,
-    report_style: ReportStyle,
-    out: Vec<u8>,
-}
 
 impl Printer {
     pub(crate) fn new(cfg: &SimConfig, now: Instant) -> Self {

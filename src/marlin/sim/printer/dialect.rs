@@ -1,6 +1,6 @@
 //! What differs between the firmware flavours in what they say: `M115` and its `Cap:`
 //! lines, and which G/M codes a stock build knows.
-use super::Printer;
+use super::state::Printer;
 use crate::marlin::firmware::Firmware;
 
 /// A Marlin 2.0 build as commonly configured: no ADVANCED_OK.

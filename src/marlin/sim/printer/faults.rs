@@ -4,8 +4,8 @@
 //! unplug, silence, halt, host actions, firmware errors), and pokes on demand. Kept out of
 //! the firmware model so that it reads as what a healthy printer does.
 
-use super::super::Poke;
-use super::{Printer, Status};
+use super::super::poke::Poke;
+use super::state::{Printer, Status};
 use rand::Rng;
 
 impl Printer {

@@ -1,6 +1,6 @@
 //! Motion: how long moves take at their feedrate, and the planner queue that drains at
 //! that pace (a move is acknowledged once it is in the planner).
-use super::Printer;
+use super::state::Printer;
 use crate::marlin::firmware::Firmware;
 use crate::marlin::reader;
 use std::time::Instant;

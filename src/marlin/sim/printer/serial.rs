@@ -4,8 +4,9 @@
 //! pass; a bad line flushes the ring and asks for a resend. Kept apart from the command
 //! execution because this is where the firmware flavours differ most on the wire.
 
+use super::super::recorder::Recorder;
 use super::motion::is_move;
-use super::{Printer, Queued, Recorder, Status, Wait};
+use super::state::{Printer, Queued, Status, Wait};
 use crate::marlin::firmware::Firmware;
 use std::time::Instant;
 
@@ -244,7 +245,7 @@ pub(super) fn leading_int(s: &str) -> Option<i64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::marlin::sim::SimConfig;
+    use crate::marlin::sim::config::SimConfig;
 
     /// Stock Marlin 2.1.2.1 (no ADVANCED_OK), running at real speed.
     fn stock_marlin() -> (Printer, Recorder) {

@@ -1,8 +1,12 @@
 //! The thermal model: heaters approach their targets at fixed rates, and the reports
 //! each firmware prints about them.
-use super::{Heater, Printer, ReportStyle, AMBIENT};
+use super::super::config::ReportStyle;
+use super::state::{Heater, Printer};
 use crate::marlin::firmware::Firmware;
 use std::time::Instant;
+
+/// The room's temperature: where heaters without a target settle.
+pub(super) const AMBIENT: f64 = 21.0;
 
 const HOTEND_HEAT_RATE: f64 = 2.5; // °C per simulated second
 const HOTEND_COOL_RATE: f64 = 1.0;

@@ -1,0 +1,51 @@
+//! The lines the host sends: what each is for, and what is known of one in flight.
+
+use std::time::Instant;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Kind {
+    /// Job command by index.
+    Job(usize),
+    /// M110 / M115 at connect or job start.
+    Setup,
+    /// M105 polls and probes; M155, M73.
+    Housekeeping,
+    /// The `M105` that ends a job or a stop: only its own answer (`ok T:`, or an `ok N`
+    /// past it) acknowledges it, never a plain `ok` that may belong to something else.
+    Sync,
+    /// M108 and the heaters/fan/motors-off lines.
+    SafeStop,
+}
+
+#[derive(Debug, Clone)]
+pub(super) struct Line {
+    pub(super) number: u64,
+    pub(super) kind: Kind,
+    pub(super) command: String,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub(super) struct InFlight {
+    pub(super) number: u64,
+    pub(super) bytes: usize,
+    pub(super) is_m105: bool,
+    pub(super) sync: bool,
+    pub(super) sent: Instant,
+}
+
+/// Commands that keep the printer busy for long without a word: silence is no sign of
+/// trouble while one runs.
+pub(super) const LONG_COMMANDS: [&str; 4] = ["G28", "G29", "M400", "G4"];
+/// Heaters, fan and motors off.
+pub(super) const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
+
+/// A command's code (`G1`, `M105`): its first word.
+pub(super) fn code_of(command: &str) -> &str {
+    command.split_whitespace().next().unwrap_or("")
+}
+
+/// Whether `command`'s code is one of `codes`.
+pub(super) fn is_code(command: &str, codes: &[&str]) -> bool {
+    let code = code_of(command);
+    codes.iter().any(|c| c.eq_ignore_ascii_case(code))
+}

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 /// Which step of an atomic write failed, on which path.
 #[derive(Debug, thiserror::Error)]
 #[error("{}: {step}: {source}", path.display())]
-pub struct WriteError {
+pub(crate) struct WriteError {
     pub path: PathBuf,
     /// "create", "write", "fsync", "rename into place", "fsync directory".
     pub step: &'static str,
@@ -32,24 +32,24 @@ impl From<WriteError> for std::io::Error {
 
 /// The temporary name next to `path`: hidden and marked as crispen's, so hot folders and
 /// job listings pass over it, and fixed, so a crash leaves at most one behind per file.
-pub fn temp_path(path: &Path) -> PathBuf {
+pub(crate) fn temp_path(path: &Path) -> PathBuf {
     let mut name = std::ffi::OsString::from(TEMP_PREFIX);
     name.push(path.file_name().unwrap_or_default());
     path.with_file_name(name)
 }
 
 /// How every temporary name made by [`temp_path`] starts.
-pub const TEMP_PREFIX: &str = ".crispen-tmp-";
+pub(crate) const TEMP_PREFIX: &str = ".crispen-tmp-";
 
 /// Writes `bytes` to `path` atomically (see the module's comment). The file is readable
 /// by others (0644 before the umask), like the job's other files.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), WriteError> {
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), WriteError> {
     write_atomic_with(path, |file| file.write_all(bytes))
 }
 
 /// [`write_atomic`] with the content written by `write` (a copy, a streamed answer, a
 /// serialiser), so a large file never has to be whole in memory.
-pub fn write_atomic_with(
+pub(crate) fn write_atomic_with(
     path: &Path,
     write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
 ) -> Result<(), WriteError> {
@@ -65,7 +65,7 @@ pub fn write_atomic_with(
 /// A file being written atomically, for writers that cannot be one closure (an async
 /// stream): [`AtomicFile::file`] to write, [`AtomicFile::commit`] to put it in place.
 /// Dropped without a commit, the temporary file is removed and the old file stays.
-pub struct AtomicFile {
+pub(crate) struct AtomicFile {
     file: Option<std::fs::File>,
     tmp: PathBuf,
     path: PathBuf,
@@ -74,7 +74,7 @@ pub struct AtomicFile {
 impl AtomicFile {
     /// Creates the temporary file next to `path` (readable by others, 0644 before the
     /// umask, like the job's other files).
-    pub fn create(path: &Path) -> Result<AtomicFile, WriteError> {
+    pub(crate) fn create(path: &Path) -> Result<AtomicFile, WriteError> {
         let tmp = temp_path(path);
         let file = std::fs::OpenOptions::new()
             .write(true)
@@ -94,14 +94,14 @@ impl AtomicFile {
         })
     }
 
-    pub fn file(&mut self) -> &mut std::fs::File {
+    pub(crate) fn file(&mut self) -> &mut std::fs::File {
         self.file
             .as_mut()
             .expect("an atomic file is open until committed")
     }
 
     /// Syncs the file, renames it over the target and syncs the directory.
-    pub fn commit(mut self) -> Result<(), WriteError> {
+    pub(crate) fn commit(mut self) -> Result<(), WriteError> {
         let file = self.file.take().expect("an atomic file is committed once");
         let fail = |path: &Path, step| {
             let path = path.to_path_buf();
@@ -128,7 +128,7 @@ impl Drop for AtomicFile {
 }
 
 /// Makes a directory's entries (a rename, a new file) durable.
-pub fn sync_dir(dir: &Path) -> Result<(), WriteError> {
+pub(crate) fn sync_dir(dir: &Path) -> Result<(), WriteError> {
     std::fs::File::open(dir)
         .and_then(|d| d.sync_all())
         .map_err(|source| WriteError {

@@ -24,7 +24,7 @@
 
 pub mod daemon;
 pub mod enhance;
-pub mod fsutil;
+pub(crate) mod fsutil;
 pub mod http;
 pub mod machine;
 pub mod marlin;

@@ -63,7 +63,7 @@ pub struct RunOptions {
 /// The top-level tasks, each with its name: one that ends while it should run is found
 /// by [`Supervised::next_end`].
 #[derive(Default)]
-pub struct Supervised {
+pub(crate) struct Supervised {
     tasks: JoinSet<()>,
     names: HashMap<Id, Task>,
 }
@@ -86,7 +86,7 @@ impl Supervised {
     }
 
     /// Starts a task that may end on its own (only a panic is a failure).
-    pub fn spawn_may_end(
+    pub(crate) fn spawn_may_end(
         &mut self,
         name: &'static str,
         task: impl std::future::Future<Output = ()> + Send + 'static,
@@ -112,7 +112,7 @@ impl Supervised {
     }
 
     /// Stops the task `name` (to start it anew, or at shutdown); its end is no failure.
-    pub fn stop(&mut self, name: &str) {
+    pub(crate) fn stop(&mut self, name: &str) {
         self.names.retain(|_, t| {
             let this = t.name == name;
             if this {
@@ -123,13 +123,13 @@ impl Supervised {
     }
 
     /// Whether the task `name` is running.
-    pub fn has(&self, name: &str) -> bool {
+    pub(crate) fn has(&self, name: &str) -> bool {
         self.names.values().any(|t| t.name == name)
     }
 
     /// Waits for a task that ended when it should not have: why it stops the service.
     /// Pending while every task runs (or none is left).
-    pub async fn next_end(&mut self) -> ServiceError {
+    pub(crate) async fn next_end(&mut self) -> ServiceError {
         loop {
             let Some(ended) = self.tasks.join_next_with_id().await else {
                 return std::future::pending().await;
@@ -149,7 +149,7 @@ impl Supervised {
     }
 
     /// Waits for the task `name` to end (after its stop token fired).
-    pub async fn join(&mut self, name: &str) {
+    pub(crate) async fn join(&mut self, name: &str) {
         while self.has(name) {
             let Some(ended) = self.tasks.join_next_with_id().await else {
                 return;
@@ -568,7 +568,7 @@ fn on_sighup(farm: &Arc<Farm>, options: &RunOptions, tasks: &mut Supervised, fle
         tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
         return;
     };
-    if let reload::Reloaded::Applied { config, .. } = reload::reload(farm, path) {
+    if let Some(config) = reload::reload(farm, path) {
         tasks.stop(PICKUP);
         fleet.apply(&config.printers);
         tasks.spawn(PICKUP, crate::daemon::pickup(farm, &config));

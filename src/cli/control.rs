@@ -27,7 +27,7 @@ const MAX_ANSWER_BYTES: usize = 64 * 1024 * 1024;
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(60);
 
 #[derive(Debug, clap::Args)]
-pub struct StatusArgs {
+pub(crate) struct StatusArgs {
     /// The daemon's config file (to find its control socket)
     #[arg(long, short)]
     pub config: Option<PathBuf>,
@@ -37,7 +37,7 @@ pub struct StatusArgs {
 }
 
 #[derive(Debug, clap::Args)]
-pub struct HistoryArgs {
+pub(crate) struct HistoryArgs {
     /// The daemon's config file (to find its control socket)
     #[arg(long, short)]
     pub config: Option<PathBuf>,
@@ -72,7 +72,7 @@ pub struct HistoryArgs {
 
 impl HistoryArgs {
     /// The filters as a query string (`&key=value...`).
-    pub fn filters(&self) -> String {
+    pub(crate) fn filters(&self) -> String {
         let mut q = String::new();
         for (key, value) in [
             ("printer", &self.printer),
@@ -90,7 +90,7 @@ impl HistoryArgs {
 }
 
 #[derive(Debug, clap::Args)]
-pub struct PrinterArgs {
+pub(crate) struct PrinterArgs {
     /// Printer name, as in the config's [[printer]] name
     pub printer: String,
     /// The daemon's config file (to find its control socket)
@@ -99,7 +99,7 @@ pub struct PrinterArgs {
 }
 
 #[derive(Debug, clap::Args)]
-pub struct JobArgs {
+pub(crate) struct JobArgs {
     /// Job id, as shown by `crispen status`
     pub job: String,
     /// The daemon's config file (to find its control socket)
@@ -109,7 +109,7 @@ pub struct JobArgs {
 
 /// Sends one request to the daemon; returns the JSON answer of a success, or the
 /// daemon's error message as the error.
-pub fn ask(
+pub(crate) fn ask(
     config: &Option<PathBuf>,
     method: Method,
     path: &str,
@@ -125,7 +125,7 @@ pub fn ask(
 
 /// Sends one GET to the daemon; returns the body of a success as text (a CSV export),
 /// or the daemon's error message as the error.
-pub fn ask_text(config: &Option<PathBuf>, path: &str) -> anyhow::Result<String> {
+pub(crate) fn ask_text(config: &Option<PathBuf>, path: &str) -> anyhow::Result<String> {
     let (_, body) = ask_raw(config, Method::GET, path)?;
     String::from_utf8(body.to_vec()).context("the daemon's answer is not UTF-8")
 }
@@ -207,7 +207,7 @@ fn act(config: &Option<PathBuf>, path: String) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
     let answer = ask(&a.config, Method::GET, "/api/v1/status")?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&answer)?);
@@ -321,7 +321,7 @@ pub fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// `crispen history`: a page of the finished jobs that have left the queue.
-pub fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
     let mut path = format!("/api/v1/history?limit={}{}", a.limit, a.filters());
     if let Some(before) = a.before {
         path.push_str(&format!("&before={before}"));
@@ -371,22 +371,22 @@ pub fn utc_minute(t: f64) -> String {
     format!("{y:04}-{m:02}-{d:02} {:02}:{:02}", minute / 60, minute % 60)
 }
 
-pub fn clear(a: PrinterArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn clear(a: PrinterArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, printer_path(&a.printer, "clear"))
 }
-pub fn cancel(a: JobArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn cancel(a: JobArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, job_path(&a.job, "cancel"))
 }
-pub fn pause(a: PrinterArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn pause(a: PrinterArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, printer_path(&a.printer, "pause"))
 }
-pub fn resume(a: PrinterArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn resume(a: PrinterArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, printer_path(&a.printer, "resume"))
 }
-pub fn retry(a: JobArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn retry(a: JobArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, job_path(&a.job, "retry"))
 }
-pub fn release(a: JobArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn release(a: JobArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, job_path(&a.job, "release"))
 }
 

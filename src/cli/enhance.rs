@@ -21,7 +21,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     /// Mesh to enhance (STL, OBJ or 3MF; the format is detected from the content)
     pub input: PathBuf,
     /// Where to write the result; `.stl` (binary) or `.obj` (full precision)
@@ -102,7 +102,7 @@ struct Timings {
     total_s: f64,
 }
 
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
     let started = Instant::now();
     if let Some(h) = args.height {
         anyhow::ensure!(

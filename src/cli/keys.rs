@@ -13,7 +13,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(clap::Args, Debug)]
-pub struct Args {
+pub(crate) struct Args {
     #[command(subcommand)]
     pub action: Option<Action>,
     /// The daemon's config file (to find its control socket)
@@ -22,7 +22,7 @@ pub struct Args {
 }
 
 #[derive(clap::Subcommand, Debug)]
-pub enum Action {
+pub(crate) enum Action {
     /// List pending requests and the keys given (the default)
     List,
     /// Give the application that made request ID a key of its own (upload only, on the
@@ -43,7 +43,7 @@ pub enum Action {
     Revoke { id: String },
 }
 
-pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(a: Args) -> anyhow::Result<ExitCode> {
     let path = match a.action.unwrap_or(Action::List) {
         Action::List => return list(&a.config),
         Action::Allow {

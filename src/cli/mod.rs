@@ -5,18 +5,18 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
-pub mod control;
-pub mod enhance;
-pub mod keys;
-pub mod logging;
-pub mod notify;
-pub mod ports;
-pub mod prepare_job;
-pub mod print;
-pub mod run;
-pub mod sim;
-pub mod slice;
-pub mod stats;
+pub(crate) mod control;
+pub(crate) mod enhance;
+pub(crate) mod keys;
+pub(crate) mod logging;
+pub(crate) mod notify;
+pub(crate) mod ports;
+pub(crate) mod prepare_job;
+pub(crate) mod print;
+pub(crate) mod run;
+pub(crate) mod sim;
+pub(crate) mod slice;
+pub(crate) mod stats;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -24,13 +24,13 @@ pub mod stats;
     version,
     about = "Sharpen small 3D prints, slice them, and print them on a farm of Marlin printers"
 )]
-pub struct Cli {
+pub(crate) struct Cli {
     #[command(subcommand)]
     pub command: Command,
 }
 
 #[derive(Debug, Subcommand)]
-pub enum Command {
+pub(crate) enum Command {
     /// Enhance a mesh for a printed height (adaptive unsharp masking)
     Enhance(enhance::Args),
     /// Enhance, scale and slice a model into Marlin G-code for one machine with a real slicer
@@ -70,7 +70,7 @@ pub enum Command {
     PrepareJob(prepare_job::Args),
 }
 
-pub fn main() -> ExitCode {
+pub(crate) fn main() -> ExitCode {
     let cli = Cli::parse();
     let daemon = matches!(&cli.command, Command::Run(a) if !a.check);
     if !daemon {

@@ -8,13 +8,13 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     #[command(subcommand)]
     pub command: NotifyCommand,
 }
 
 #[derive(Debug, clap::Subcommand)]
-pub enum NotifyCommand {
+pub(crate) enum NotifyCommand {
     /// Send a test event to every receiver and show what each answered
     Test {
         /// The daemon's config file (its [[notify]] tables)

@@ -11,10 +11,10 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 /// Where the Debian package installs the daemon's config.
-pub const DEFAULT_CONFIG: &str = "/etc/crispen/crispen.toml";
+pub(crate) const DEFAULT_CONFIG: &str = "/etc/crispen/crispen.toml";
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     /// Open this port, wait out the printer's reset, and print its answer to M115
     #[arg(long, value_name = "PATH")]
     pub probe: Option<PathBuf>,
@@ -41,7 +41,7 @@ pub struct Args {
     pub dev: PathBuf,
 }
 
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
     let config = load_config(args.config.as_deref())?;
     match &args.probe {
         Some(port) => probe_port(port, &args, config.as_ref()),

@@ -18,7 +18,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     /// The G-code file (Marlin flavour, with its own heating and start/end code)
     pub file: PathBuf,
     /// Serial device of the printer (e.g. /dev/ttyUSB0, or the pty `crispen sim` prints)

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     /// Config file (default: the built-in demo under ./crispen-demo/ with a simulated printer)
     #[arg(long, short)]
     pub config: Option<PathBuf>,

@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     /// Make a symlink to the pty device here (replaces an existing symlink)
     #[arg(long)]
     pub link: Option<PathBuf>,
@@ -115,7 +115,7 @@ fn parse_error(text: &str) -> Result<(usize, String), String> {
     Ok((n, message.trim().to_string()))
 }
 
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
     for (name, p) in [
         ("--corrupt", args.corrupt),
         ("--drop-ok", args.drop_ok),

@@ -15,7 +15,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     /// The model to print (STL, OBJ or 3MF)
     pub model: PathBuf,
     /// Where to write the G-code
@@ -112,7 +112,7 @@ fn find_machine(args: &Args) -> anyhow::Result<Machine> {
     }
 }
 
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut settings = SliceSettings::default();
     for pair in &args.set {
         let (key, value) = pair.split_once('=').with_context(|| {

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Debug, clap::Args)]
-pub struct Args {
+pub(crate) struct Args {
     /// The daemon's config file (to find its control socket)
     #[arg(long, short)]
     pub config: Option<PathBuf>,
@@ -28,7 +28,7 @@ pub struct Args {
     pub json: bool,
 }
 
-pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(a: Args) -> anyhow::Result<ExitCode> {
     let mut query = Vec::new();
     if let Some(days) = a.days {
         query.push(format!("days={days}"));

@@ -7,7 +7,7 @@
 /// travels as a word in the database's `commands` table ([`PrintCommand::word`],
 /// [`PrintCommand::parse`]: the one place a word becomes a command).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PrintCommand {
+pub(crate) enum PrintCommand {
     Pause,
     Resume,
     Cancel,
@@ -15,7 +15,7 @@ pub enum PrintCommand {
 
 impl PrintCommand {
     /// The word that stands for it in the farm database.
-    pub fn word(self) -> &'static str {
+    pub(crate) fn word(self) -> &'static str {
         match self {
             PrintCommand::Pause => "pause",
             PrintCommand::Resume => "resume",
@@ -26,7 +26,7 @@ impl PrintCommand {
     /// The command a word read from the farm database stands for. Anything else (a newer
     /// host's command, a hand-written row) is an error: it must never be taken for a
     /// cancel, which would stop a print.
-    pub fn parse(word: &str) -> Result<PrintCommand, UnknownCommand> {
+    pub(crate) fn parse(word: &str) -> Result<PrintCommand, UnknownCommand> {
         match word {
             "pause" => Ok(PrintCommand::Pause),
             "resume" => Ok(PrintCommand::Resume),
@@ -40,7 +40,7 @@ impl PrintCommand {
 /// database does not bound it), and shows it escaped.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("unknown command {text:?}")]
-pub struct UnknownCommand {
+pub(crate) struct UnknownCommand {
     /// At most [`UnknownCommand::SHOWN`] characters of the word, `…` after a longer one.
     pub text: String,
 }

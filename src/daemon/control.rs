@@ -15,7 +15,7 @@ use std::sync::Arc;
 /// What an operator may ask of the farm (`Release`: let a held job, `hold = true` in its
 /// sidecar, be printed).
 #[derive(Debug, Clone, PartialEq)]
-pub enum Command {
+pub(crate) enum Command {
     Clear { printer: String },
     Cancel { job: String },
     Pause { printer: String },
@@ -66,7 +66,7 @@ pub struct JobStatus {
 
 /// Why a command was refused; the operator sees the message.
 #[derive(Debug, thiserror::Error)]
-pub enum CommandError {
+pub(crate) enum CommandError {
     #[error("no printer {0:?} (hint: `crispen status` lists the printers)")]
     NoPrinter(String),
     #[error("{0} is not printing")]
@@ -83,7 +83,7 @@ pub enum CommandError {
 
 impl CommandError {
     /// The printer or job named does not exist (as opposed to: it cannot do that now).
-    pub fn is_not_found(&self) -> bool {
+    pub(crate) fn is_not_found(&self) -> bool {
         matches!(
             self,
             CommandError::NoPrinter(_) | CommandError::Store(StoreError::NoSuchJob(_))
@@ -101,7 +101,7 @@ pub struct ControlError {
 }
 
 /// Builds the status snapshot.
-pub fn status(farm: &Farm) -> Status {
+pub(crate) fn status(farm: &Farm) -> Status {
     let mut printers = farm.local_printers();
     let preparing = farm.preparation_steps();
     let store = farm.store();
@@ -151,7 +151,7 @@ pub fn status(farm: &Farm) -> Status {
 }
 
 /// Carries out one command; the answer says what was done.
-pub async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
+pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
     match command {
         Command::Clear { printer } => clear(farm, &printer).await,
         Command::Pause { printer } => send_print_command(farm, &printer, PrintCommand::Pause).await,
@@ -229,7 +229,7 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
 }
 
 /// Every printer's name: this host's, then (in a shared farm) the other hosts'.
-pub fn printer_names(farm: &Farm) -> Vec<String> {
+pub(crate) fn printer_names(farm: &Farm) -> Vec<String> {
     let mut names: Vec<String> = farm.local_printers().into_iter().map(|p| p.name).collect();
     if let Some(view) = farm.shared() {
         names.extend(view.printers.into_iter().map(|p| p.name));
@@ -339,7 +339,7 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
 /// Binds the control socket with mode 0660. An existing socket nobody answers on (left by
 /// a daemon that was killed) is replaced; anything else at the path is left alone and
 /// refused, so a mistyped `[control] socket` can never remove a file.
-pub fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
+pub(crate) fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlError> {
     use std::os::unix::fs::FileTypeExt;
     let io = |source| ControlError {
         socket: socket.to_path_buf(),

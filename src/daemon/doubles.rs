@@ -30,11 +30,11 @@ use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 
 /// The lines a stop sends: heaters, fan and motors off.
-pub const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
+pub(crate) const SAFE_STOP: [&str; 4] = ["M104 S0", "M140 S0", "M107", "M84"];
 
 /// One printer on the bench, shared by its connector and its links.
 #[derive(Clone, Default)]
-pub struct BenchPrinter(Arc<Mutex<Bench>>);
+pub(crate) struct BenchPrinter(Arc<Mutex<Bench>>);
 
 #[derive(Default)]
 struct Bench {
@@ -53,30 +53,30 @@ struct Bench {
 }
 
 impl BenchPrinter {
-    pub const HEAT_C_PER_S: f64 = 2.0;
-    pub const MOVE: Duration = Duration::from_millis(100);
-    pub const POLL: Duration = Duration::from_secs(3);
+    pub(crate) const HEAT_C_PER_S: f64 = 2.0;
+    pub(crate) const MOVE: Duration = Duration::from_millis(100);
+    pub(crate) const POLL: Duration = Duration::from_secs(3);
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Bench> {
         self.0.lock().unwrap()
     }
 
     /// Every line sent so far.
-    pub fn sent(&self) -> Vec<String> {
+    pub(crate) fn sent(&self) -> Vec<String> {
         self.lock().sent.clone()
     }
 
     /// The lines sent so far that are not temperature polls.
-    pub fn job_lines(&self) -> Vec<String> {
+    pub(crate) fn job_lines(&self) -> Vec<String> {
         self.sent().into_iter().filter(|l| l != "M105").collect()
     }
 
-    pub fn connects(&self) -> usize {
+    pub(crate) fn connects(&self) -> usize {
         self.lock().connects
     }
 
     /// Pulls the cable: the open link, if any, is lost; connecting fails until plugged.
-    pub fn unplug(&self) {
+    pub(crate) fn unplug(&self) {
         let mut bench = self.lock();
         bench.unplugged = true;
         if let Some(tx) = bench.unplug.take() {
@@ -84,16 +84,16 @@ impl BenchPrinter {
         }
     }
 
-    pub fn plug_in(&self) {
+    pub(crate) fn plug_in(&self) {
         self.lock().unplugged = false;
     }
 
-    pub fn halted(&self) -> bool {
+    pub(crate) fn halted(&self) -> bool {
         self.lock().halted
     }
 
     /// Presses the reset button: no longer halted, and the open link hears `start`.
-    pub fn reset(&self) {
+    pub(crate) fn reset(&self) {
         let mut bench = self.lock();
         bench.halted = false;
         if let Some(tx) = &bench.reset {
@@ -107,7 +107,7 @@ impl BenchPrinter {
 }
 
 /// Connects to a [`BenchPrinter`].
-pub struct BenchConnector(pub BenchPrinter);
+pub(crate) struct BenchConnector(pub BenchPrinter);
 
 impl Connector for BenchConnector {
     fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, ConnectError>> {
@@ -289,10 +289,10 @@ impl PrinterLink for BenchLink {
 
 /// Bench printers for a fleet, one per printer name (made on first use).
 #[derive(Clone, Default)]
-pub struct BenchPorts(Arc<Mutex<BTreeMap<String, BenchPrinter>>>);
+pub(crate) struct BenchPorts(Arc<Mutex<BTreeMap<String, BenchPrinter>>>);
 
 impl BenchPorts {
-    pub fn printer(&self, name: &str) -> BenchPrinter {
+    pub(crate) fn printer(&self, name: &str) -> BenchPrinter {
         self.0
             .lock()
             .unwrap()
@@ -302,7 +302,7 @@ impl BenchPorts {
     }
 
     /// The fleet's way to the bench printers.
-    pub fn ports(&self) -> Ports {
+    pub(crate) fn ports(&self) -> Ports {
         let bench = self.clone();
         Box::new(move |spec: &PrinterConfig| {
             Ok(Port {
@@ -316,7 +316,7 @@ impl BenchPorts {
 
 /// A farm on a spool in `root`: `printers` (simulated in the config, reached through the
 /// bench), one hot folder served by all of them, and `extra` config text.
-pub fn farm_config(root: &Path, printers: &[&str], extra: &str) -> Config {
+pub(crate) fn farm_config(root: &Path, printers: &[&str], extra: &str) -> Config {
     let hot = root.join("hot");
     std::fs::create_dir_all(&hot).unwrap();
     let mut text = format!("[spool]\ndir = \"spool\"\n{extra}\n");
@@ -333,7 +333,7 @@ pub fn farm_config(root: &Path, printers: &[&str], extra: &str) -> Config {
 }
 
 /// Opens the farm on its spool.
-pub fn open_farm(config: Config) -> Arc<Farm> {
+pub(crate) fn open_farm(config: Config) -> Arc<Farm> {
     let store = super::store::spool::Spool::open(&config.spool_dir).unwrap();
     let (farm, task) = Farm::new(config, store, Default::default());
     tokio::spawn(task);
@@ -342,7 +342,7 @@ pub fn open_farm(config: Config) -> Arc<Farm> {
 
 /// A job made ready with `gcode` for every printer of the config's machine, as
 /// preparation would leave it.
-pub async fn ready_job(farm: &Farm, name: &str, gcode: &str) -> String {
+pub(crate) async fn ready_job(farm: &Farm, name: &str, gcode: &str) -> String {
     let config = farm.config();
     let folder = &config.folders[0].path;
     let file = folder.join(name);
@@ -368,7 +368,12 @@ pub async fn ready_job(farm: &Farm, name: &str, gcode: &str) -> String {
 /// Waits until `test` holds, looking again at each change of the farm (a job, a
 /// printer's live status, a gate...), for at most `limit` of simulated time (the paused
 /// clock runs ahead while every task waits).
-pub async fn until(farm: &Farm, limit: Duration, what: &str, mut test: impl FnMut() -> bool) {
+pub(crate) async fn until(
+    farm: &Farm,
+    limit: Duration,
+    what: &str,
+    mut test: impl FnMut() -> bool,
+) {
     let deadline = tokio::time::Instant::now() + limit;
     let mut changes = farm.watch();
     while !test() {

@@ -25,7 +25,7 @@ use std::sync::Arc;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-pub use super::command::{PrintCommand, UnknownCommand};
+pub(crate) use super::command::{PrintCommand, UnknownCommand};
 
 /// A printer's state as shown by `crispen status` (lower case in JSON).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -80,7 +80,7 @@ pub struct PrinterTemperatures {
 
 /// What a printer's supervisor publishes about it, and only it changes.
 #[derive(Debug, Clone, PartialEq)]
-pub struct PrinterLive {
+pub(crate) struct PrinterLive {
     pub state: PrinterState,
     pub firmware: String,
     pub port: String,
@@ -95,7 +95,7 @@ pub struct PrinterLive {
 
 impl PrinterLive {
     /// A printer whose supervisor has not connected yet.
-    pub fn connecting(firmware: &str, port: &str) -> PrinterLive {
+    pub(crate) fn connecting(firmware: &str, port: &str) -> PrinterLive {
         PrinterLive {
             state: PrinterState::Connecting,
             firmware: firmware.to_string(),
@@ -138,20 +138,20 @@ pub struct PrinterStatus {
 /// What the fleet keeps of a printer in the farm: the receiving ends of what its
 /// supervisor owns.
 #[derive(Clone)]
-pub struct PrinterHandle {
+pub(crate) struct PrinterHandle {
     pub live: watch::Receiver<PrinterLive>,
     /// The control channel into the print in progress; None between prints.
     pub print: watch::Receiver<Option<mpsc::Sender<PrintCommand>>>,
 }
 
 /// The owning ends of a printer's [`PrinterHandle`], held by its supervisor.
-pub struct PrinterOwner {
+pub(crate) struct PrinterOwner {
     pub live: watch::Sender<PrinterLive>,
     pub print: watch::Sender<Option<mpsc::Sender<PrintCommand>>>,
 }
 
 /// A new printer's owner (for its supervisor) and handle (for the farm).
-pub fn printer_channels(initial: PrinterLive) -> (PrinterOwner, PrinterHandle) {
+pub(crate) fn printer_channels(initial: PrinterLive) -> (PrinterOwner, PrinterHandle) {
     let (live, live_rx) = watch::channel(initial);
     let (print, print_rx) = watch::channel(None);
     (
@@ -166,7 +166,7 @@ pub fn printer_channels(initial: PrinterLive) -> (PrinterOwner, PrinterHandle) {
 /// The rest of a shared farm as this host last read it from its database; written by
 /// the shared-farm task only.
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct FarmView {
+pub(crate) struct FarmView {
     /// None while the database answers; else why it does not.
     pub database: Option<String>,
     pub hosts: Vec<super::store::postgres::FarmHost>,
@@ -184,7 +184,7 @@ pub struct HeatingPermits {
 }
 
 /// One printer's leave to heat up; handed back when dropped.
-pub struct HeatingPermit {
+pub(crate) struct HeatingPermit {
     in_use: Arc<watch::Sender<usize>>,
 }
 
@@ -198,7 +198,7 @@ impl HeatingPermits {
     /// Waits for a permit. The limit is read from the config in force at each try, so a
     /// reload applies to the next permit (a lower limit lets permits already held run
     /// out). Not raced with shutdown here: the caller does that.
-    pub async fn acquire(&self, mut config: watch::Receiver<Arc<Config>>) -> HeatingPermit {
+    pub(crate) async fn acquire(&self, mut config: watch::Receiver<Arc<Config>>) -> HeatingPermit {
         let mut released = self.in_use.subscribe();
         loop {
             let limit = config.borrow_and_update().farm.max_heating;
@@ -223,14 +223,15 @@ impl HeatingPermits {
     }
 
     /// Permits held now.
-    pub fn in_use(&self) -> usize {
+    #[cfg(test)]
+    pub(crate) fn in_use(&self) -> usize {
         *self.in_use.borrow()
     }
 }
 
 /// A preparation in progress.
 #[derive(Clone)]
-pub struct Preparation {
+pub(crate) struct Preparation {
     pub step: String,
     /// Fired by `crispen cancel` (and by shutdown, of which it is a child): the
     /// preparation's process is killed at once.
@@ -262,7 +263,7 @@ pub struct Farm {
 impl Farm {
     /// Builds the farm around the store's task, which is returned for the caller to run
     /// (the service runs it in its supervised set; see [`super::store::start`]).
-    pub fn new(
+    pub(crate) fn new(
         config: Config,
         store: impl JobStore,
         shutdown: CancellationToken,
@@ -287,43 +288,43 @@ impl Farm {
         (farm, task)
     }
 
-    pub fn config(&self) -> Arc<Config> {
+    pub(crate) fn config(&self) -> Arc<Config> {
         self.config.borrow().clone()
     }
 
     /// Follows the config in force.
-    pub fn watch_config(&self) -> watch::Receiver<Arc<Config>> {
+    pub(crate) fn watch_config(&self) -> watch::Receiver<Arc<Config>> {
         self.config.subscribe()
     }
 
     /// Puts a config in force (the reload path).
-    pub fn set_config(&self, config: Config) {
+    pub(crate) fn set_config(&self, config: Config) {
         self.config.send_replace(Arc::new(config));
     }
 
     /// The job store's task: every change of a job or a bed gate is a request to it, and
     /// it alone logs and counts what changed.
-    pub fn jobs(&self) -> &StoreHandle {
+    pub(crate) fn jobs(&self) -> &StoreHandle {
         &self.jobs
     }
 
     /// The jobs and bed gates as of the store's last change (a glance: no round trip).
-    pub fn store(&self) -> Arc<Snapshot> {
+    pub(crate) fn store(&self) -> Arc<Snapshot> {
         self.jobs.snapshot()
     }
 
     /// Follows the jobs and bed gates.
-    pub fn watch_jobs(&self) -> watch::Receiver<Arc<Snapshot>> {
+    pub(crate) fn watch_jobs(&self) -> watch::Receiver<Arc<Snapshot>> {
         self.jobs.subscribe()
     }
 
-    pub fn stopping(&self) -> bool {
+    pub(crate) fn stopping(&self) -> bool {
         self.shutdown.is_cancelled()
     }
 
     /// Takes no new work; the prints in progress finish or stop as `[farm] on_shutdown`
     /// (in force now) says.
-    pub fn begin_stop(&self) {
+    pub(crate) fn begin_stop(&self) {
         self.shutdown.cancel();
         if self.config().farm.on_shutdown == super::config::OnShutdown::Stop {
             self.stop_prints();
@@ -332,19 +333,19 @@ impl Farm {
 
     /// Stops the prints in progress safely (heaters off; their jobs end interrupted) and
     /// takes no new work.
-    pub fn stop_prints(&self) {
+    pub(crate) fn stop_prints(&self) {
         self.shutdown.cancel();
         self.stop_prints.cancel();
     }
 
     /// Waits for one of the `[farm] max_heating` heating permits (see
     /// [`HeatingPermits::acquire`]).
-    pub async fn heating_permit(&self) -> HeatingPermit {
+    pub(crate) async fn heating_permit(&self) -> HeatingPermit {
         self.heating.acquire(self.watch_config()).await
     }
 
     /// The statistics of `period`, with every configured printer and folder listed.
-    pub async fn stats(
+    pub(crate) async fn stats(
         &self,
         period: super::store::stats::Period,
     ) -> Result<super::store::stats::Stats, StoreError> {
@@ -367,30 +368,30 @@ impl Farm {
     // Printers.
 
     /// Adds a printer (the fleet, as its supervisor starts).
-    pub fn add_printer(&self, name: &str, handle: PrinterHandle) {
+    pub(crate) fn add_printer(&self, name: &str, handle: PrinterHandle) {
         self.printers.send_modify(|p| {
             p.insert(name.to_string(), handle);
         });
     }
 
     /// Removes a printer (the fleet, once its retired supervisor has ended).
-    pub fn remove_printer(&self, name: &str) {
+    pub(crate) fn remove_printer(&self, name: &str) {
         self.printers.send_if_modified(|p| p.remove(name).is_some());
     }
 
     /// The handle of this host's printer `name`.
-    pub fn printer(&self, name: &str) -> Option<PrinterHandle> {
+    pub(crate) fn printer(&self, name: &str) -> Option<PrinterHandle> {
         self.printers.borrow().get(name).cloned()
     }
 
     /// Follows which printers this host has.
-    pub fn watch_printers(&self) -> watch::Receiver<BTreeMap<String, PrinterHandle>> {
+    pub(crate) fn watch_printers(&self) -> watch::Receiver<BTreeMap<String, PrinterHandle>> {
         self.printers.subscribe()
     }
 
     /// This host's printers as shown: each supervisor's live status with the bed gate
     /// from the store (the one place `bed_cleared` is made).
-    pub fn local_printers(&self) -> Vec<PrinterStatus> {
+    pub(crate) fn local_printers(&self) -> Vec<PrinterStatus> {
         let store = self.store();
         let config = self.config();
         let host = config.store.as_ref().map(|_| config.farm.host.clone());
@@ -418,7 +419,7 @@ impl Farm {
 
     /// Every printer that may take a job, by name, with its machine: this host's, and in a
     /// shared farm the other hosts' as they registered them.
-    pub fn printer_machines(&self) -> Vec<(String, crate::machine::Machine)> {
+    pub(crate) fn printer_machines(&self) -> Vec<(String, crate::machine::Machine)> {
         let mut all: Vec<(String, crate::machine::Machine)> = self
             .config()
             .printers
@@ -438,7 +439,7 @@ impl Farm {
     // Preparations (the preparation queue's).
 
     /// A preparation started.
-    pub fn start_preparation(&self, id: &str, cancel: CancellationToken) {
+    pub(crate) fn start_preparation(&self, id: &str, cancel: CancellationToken) {
         self.preparing.send_modify(|p| {
             let step = "starting".into();
             p.insert(id.to_string(), Preparation { step, cancel });
@@ -446,7 +447,7 @@ impl Farm {
     }
 
     /// A preparation's step changed.
-    pub fn preparation_step(&self, id: &str, step: String) {
+    pub(crate) fn preparation_step(&self, id: &str, step: String) {
         self.preparing.send_if_modified(|p| match p.get_mut(id) {
             Some(p) if p.step != step => {
                 p.step = step;
@@ -457,19 +458,19 @@ impl Farm {
     }
 
     /// A preparation ended.
-    pub fn end_preparation(&self, id: &str) {
+    pub(crate) fn end_preparation(&self, id: &str) {
         self.preparing.send_if_modified(|p| p.remove(id).is_some());
     }
 
     /// Stops a job's preparation in progress, if any.
-    pub fn cancel_preparation(&self, id: &str) {
+    pub(crate) fn cancel_preparation(&self, id: &str) {
         if let Some(p) = self.preparing.borrow().get(id) {
             p.cancel.cancel();
         }
     }
 
     /// Each preparation's current step, by job.
-    pub fn preparation_steps(&self) -> HashMap<String, String> {
+    pub(crate) fn preparation_steps(&self) -> HashMap<String, String> {
         self.preparing
             .borrow()
             .iter()
@@ -480,12 +481,12 @@ impl Farm {
     // The rest of a shared farm (the shared-farm task's).
 
     /// The rest of the farm as last read (None: not shared, or not read yet).
-    pub fn shared(&self) -> Option<FarmView> {
+    pub(crate) fn shared(&self) -> Option<FarmView> {
         self.shared.borrow().clone()
     }
 
     /// Changes the view of the rest of the farm; the followers wake only when it differs.
-    pub fn set_shared(&self, change: impl FnOnce(&mut FarmView)) {
+    pub(crate) fn set_shared(&self, change: impl FnOnce(&mut FarmView)) {
         self.shared.send_if_modified(|view| {
             let before = view.clone();
             change(view.get_or_insert_with(FarmView::default));
@@ -494,12 +495,12 @@ impl Farm {
     }
 
     /// Follows the rest of a shared farm.
-    pub fn watch_shared(&self) -> watch::Receiver<Option<FarmView>> {
+    pub(crate) fn watch_shared(&self) -> watch::Receiver<Option<FarmView>> {
         self.shared.subscribe()
     }
 
     /// Follows everything shown of the farm.
-    pub fn watch(&self) -> FarmWatch {
+    pub(crate) fn watch(&self) -> FarmWatch {
         let mut watch = FarmWatch {
             jobs: self.watch_jobs(),
             config: self.watch_config(),
@@ -515,7 +516,7 @@ impl Farm {
 
 /// Receivers of every piece of the farm's state: [`FarmWatch::changed`] resolves on the
 /// next change of any since the last call (or since it was made).
-pub struct FarmWatch {
+pub(crate) struct FarmWatch {
     jobs: watch::Receiver<Arc<Snapshot>>,
     config: watch::Receiver<Arc<Config>>,
     printers: watch::Receiver<BTreeMap<String, PrinterHandle>>,
@@ -545,7 +546,7 @@ impl FarmWatch {
     }
 
     /// Waits for the next change of the farm after the last call (or since made).
-    pub async fn changed(&mut self) {
+    pub(crate) async fn changed(&mut self) {
         self.follow_printers();
         let lives = &mut self.lives;
         let live = async {

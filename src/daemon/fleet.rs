@@ -18,7 +18,7 @@ use tokio::sync::watch;
 use tokio::task::{Id, JoinSet};
 
 /// A printer's way in, as [`Ports`] resolves it.
-pub struct Port {
+pub(crate) struct Port {
     pub connector: Box<dyn printer::Connector>,
     /// Shown in the status (the device, or the simulator's pty).
     pub shown: String,
@@ -27,10 +27,10 @@ pub struct Port {
 }
 
 /// Resolves a configured printer to its [`Port`].
-pub type Ports = Box<dyn Fn(&PrinterConfig) -> Result<Port, DaemonError> + Send + Sync>;
+pub(crate) type Ports = Box<dyn Fn(&PrinterConfig) -> Result<Port, DaemonError> + Send + Sync>;
 
 /// The real ports: a serial device, or a simulated printer started here.
-pub fn marlin_ports() -> Ports {
+pub(crate) fn marlin_ports() -> Ports {
     Box::new(|spec: &PrinterConfig| {
         let (port, simulator) = match &spec.port {
             PrinterPort::Serial(path) => (path.clone(), None),
@@ -79,7 +79,7 @@ pub fn marlin_ports() -> Ports {
 /// a printer added to the config starts at once; one removed or changed retires when it
 /// is not printing (a print in progress is never cut short by a reload), and a changed
 /// one then starts again with its new settings.
-pub struct Fleet {
+pub(crate) struct Fleet {
     farm: Arc<Farm>,
     ports: Ports,
     tasks: JoinSet<()>,
@@ -98,7 +98,7 @@ struct Supervised {
 }
 
 impl Fleet {
-    pub fn start_all(
+    pub(crate) fn start_all(
         farm: &Arc<Farm>,
         printers: &[PrinterConfig],
         ports: Ports,
@@ -144,7 +144,7 @@ impl Fleet {
     }
 
     /// Applies a reloaded config's printers.
-    pub fn apply(&mut self, printers: &[PrinterConfig]) {
+    pub(crate) fn apply(&mut self, printers: &[PrinterConfig]) {
         let names: Vec<String> = self.running.keys().cloned().collect();
         for name in names {
             let spec = &self.running[&name].spec;
@@ -192,7 +192,7 @@ impl Fleet {
     /// or at shutdown): its printer's name and how it ended. A retired one that ended is
     /// let go of here (and its printer taken out of the farm, or started again with its
     /// new settings). Pending while there is nothing to wait for.
-    pub async fn next_end(&mut self) -> (String, Result<(), tokio::task::JoinError>) {
+    pub(crate) async fn next_end(&mut self) -> (String, Result<(), tokio::task::JoinError>) {
         loop {
             let Some(ended) = self.tasks.join_next_with_id().await else {
                 return std::future::pending().await;
@@ -222,7 +222,7 @@ impl Fleet {
     }
 
     /// Waits for every supervisor to end (after [`Farm::begin_stop`]).
-    pub async fn join(mut self) {
+    pub(crate) async fn join(mut self) {
         while self.tasks.join_next().await.is_some() {}
     }
 }

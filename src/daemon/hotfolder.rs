@@ -24,7 +24,7 @@ use tokio::sync::mpsc;
 /// What a file is, by its name's extension (any case): the one classifier the pick-up, the
 /// preparation and the upload share.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FileKind {
+pub(crate) enum FileKind {
     /// A model for the pipeline (`.stl`, `.obj`, `.3mf`).
     Model,
     /// G-code sliced elsewhere, printed as it is (`.gcode`, `.gco`, `.g`), or binary G-code
@@ -39,7 +39,7 @@ const GCODE_EXTENSIONS: [&str; 4] = ["gcode", "gco", "g", "bgcode"];
 
 /// The kind of file `name` is, or None when its extension is neither a model's nor
 /// G-code's.
-pub fn file_kind(name: &str) -> Option<FileKind> {
+pub(crate) fn file_kind(name: &str) -> Option<FileKind> {
     let (_, extension) = name.rsplit_once('.')?;
     let extension = extension.to_ascii_lowercase();
     if MODEL_EXTENSIONS.contains(&extension.as_str()) {
@@ -53,7 +53,7 @@ pub fn file_kind(name: &str) -> Option<FileKind> {
 
 /// Whether a file name may be a model: not hidden, not a partial download, not a backup,
 /// not a sidecar.
-pub fn is_candidate_name(name: &str) -> bool {
+pub(crate) fn is_candidate_name(name: &str) -> bool {
     !(name.starts_with('.')
         || name.ends_with(".part")
         || name.ends_with('~')
@@ -65,15 +65,15 @@ pub fn is_candidate_name(name: &str) -> bool {
 /// The folder inside a hot folder where the pick-up sets aside files it refuses (a name
 /// with control or bidi characters, a sidecar whose model never came). The watcher takes
 /// only files directly in the hot folder, never from here.
-pub const SET_ASIDE_DIR: &str = "set-aside";
+pub(crate) const SET_ASIDE_DIR: &str = "set-aside";
 
 /// A sidecar whose model has not arrived within this many settle times (10 minutes at
 /// the default `settle_s = 5`) is set aside.
-pub const ORPHAN_SIDECAR_SETTLES: u32 = 120;
+pub(crate) const ORPHAN_SIDECAR_SETTLES: u32 = 120;
 
 /// Moves `path` into `folder/`[`SET_ASIDE_DIR`] under its own name (`.1`, `.2`, … added
 /// if that is taken), never replacing a file. Returns where it went.
-pub fn set_aside(path: &Path, folder: &Path) -> std::io::Result<PathBuf> {
+pub(crate) fn set_aside(path: &Path, folder: &Path) -> std::io::Result<PathBuf> {
     let dir = folder.join(SET_ASIDE_DIR);
     std::fs::create_dir_all(&dir)?;
     let name = path.file_name().unwrap_or_default();
@@ -109,7 +109,7 @@ fn is_bidi_control(c: char) -> bool {
 /// Why a file name cannot be taken as it is, if it cannot: a control character (an ESC
 /// sequence would reach terminals through `crispen status` and the log) or a bidi
 /// control (the name would show as another).
-pub fn name_problem(name: &str) -> Option<&'static str> {
+pub(crate) fn name_problem(name: &str) -> Option<&'static str> {
     if name.chars().any(char::is_control) {
         return Some("contains control characters");
     }
@@ -157,7 +157,7 @@ pub fn printable(name: &str) -> String {
 
 /// Whether a file name is a model's sidecar (`model.stl.toml`). Sidecars are tracked too,
 /// so one that arrives after its model can still be matched with it.
-pub fn is_sidecar_name(name: &str) -> bool {
+pub(crate) fn is_sidecar_name(name: &str) -> bool {
     !name.starts_with('.') && name.len() > ".toml".len() && name.ends_with(".toml")
 }
 
@@ -182,7 +182,7 @@ pub fn same_name(a: &str, b: &str) -> bool {
 /// a link: not followed): `folder/name` itself when it is there, else the first entry whose
 /// name is [`same_name`] as it. None when neither is there or the folder cannot be listed.
 /// Blocking: one `lstat`, and a listing of the folder only when that finds nothing.
-pub fn find_named(folder: &Path, name: &str) -> Option<PathBuf> {
+pub(crate) fn find_named(folder: &Path, name: &str) -> Option<PathBuf> {
     let exact = folder.join(name);
     if std::fs::symlink_metadata(&exact).is_ok() {
         return Some(exact);
@@ -210,7 +210,7 @@ struct Seen {
 
 /// What a look at a tracked path found (read on a blocking thread: see [`look`]).
 #[derive(Debug, Clone, PartialEq)]
-pub enum Found {
+pub(crate) enum Found {
     /// Nothing is there any more (or it cannot be read).
     Gone,
     /// A symbolic link: never followed, since it could lead out of the folder to any file.
@@ -225,7 +225,7 @@ pub enum Found {
 
 /// Looks at each path, not following links. Blocking, one `lstat` per path: run it on a
 /// blocking thread, never on the async worker (a hot folder on NFS may take seconds).
-pub fn look(paths: Vec<PathBuf>) -> Vec<(PathBuf, Found)> {
+pub(crate) fn look(paths: Vec<PathBuf>) -> Vec<(PathBuf, Found)> {
     paths
         .into_iter()
         .map(|path| {
@@ -245,7 +245,7 @@ pub fn look(paths: Vec<PathBuf>) -> Vec<(PathBuf, Found)> {
 
 /// The regular files directly in `dir` (none when it cannot be listed). Blocking, like
 /// [`look`].
-pub fn list_files(dir: &Path) -> Vec<PathBuf> {
+pub(crate) fn list_files(dir: &Path) -> Vec<PathBuf> {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return Vec::new();
     };
@@ -259,13 +259,13 @@ pub fn list_files(dir: &Path) -> Vec<PathBuf> {
 /// Tracks files in hot folders until they are complete. The decision ([`Self::complete`])
 /// is pure: what the file system holds comes in from [`look`] and [`list_files`].
 #[derive(Debug)]
-pub struct SettleTracker {
+pub(crate) struct SettleTracker {
     settle: Duration,
     seen: HashMap<PathBuf, Seen>,
 }
 
 impl SettleTracker {
-    pub fn new(settle: Duration) -> Self {
+    pub(crate) fn new(settle: Duration) -> Self {
         SettleTracker {
             settle,
             seen: HashMap::new(),
@@ -274,7 +274,7 @@ impl SettleTracker {
 
     /// Starts tracking a path (idempotent). `finished` marks a close-after-write or
     /// rename-in event.
-    pub fn note(&mut self, path: &Path, finished: bool) {
+    pub(crate) fn note(&mut self, path: &Path, finished: bool) {
         let name = match path.file_name() {
             Some(n) => n.to_string_lossy(),
             None => return,
@@ -294,12 +294,13 @@ impl SettleTracker {
     }
 
     /// The paths tracked, for [`look`].
-    pub fn tracked(&self) -> Vec<PathBuf> {
+    pub(crate) fn tracked(&self) -> Vec<PathBuf> {
         self.seen.keys().cloned().collect()
     }
 
     /// Lists a folder and tracks every regular file in it. Blocking (see [`list_files`]).
-    pub fn scan_dir(&mut self, dir: &Path) {
+    #[cfg(test)]
+    pub(crate) fn scan_dir(&mut self, dir: &Path) {
         for path in list_files(dir) {
             self.note(&path, false);
         }
@@ -307,14 +308,15 @@ impl SettleTracker {
 
     /// Looks at every tracked file and returns those complete now (see
     /// [`Self::complete`]). Blocking (see [`look`]).
-    pub fn take_complete(&mut self, now: Instant) -> Vec<PathBuf> {
+    #[cfg(test)]
+    pub(crate) fn take_complete(&mut self, now: Instant) -> Vec<PathBuf> {
         let found = look(self.tracked());
         self.complete(found, now)
     }
 
     /// From what a look found, the files that are complete now; stops tracking them and
     /// what is gone or no regular file. A tracked path the look did not cover is kept.
-    pub fn complete(&mut self, found: Vec<(PathBuf, Found)>, now: Instant) -> Vec<PathBuf> {
+    pub(crate) fn complete(&mut self, found: Vec<(PathBuf, Found)>, now: Instant) -> Vec<PathBuf> {
         let mut done = Vec::new();
         for (path, found) in found {
             let Some(seen) = self.seen.get_mut(&path) else {
@@ -394,7 +396,7 @@ impl EventQueue {
 
 /// Watches `folders` and sends each complete file (with its folder) on `out`, until `out`
 /// is closed. Rescans every `rescan` and at start.
-pub async fn watch(
+pub(crate) async fn watch(
     folders: Vec<PathBuf>,
     settle: Duration,
     rescan: Duration,

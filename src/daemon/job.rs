@@ -103,7 +103,7 @@ pub enum JobState {
 }
 
 impl JobState {
-    pub const ALL: [JobState; 8] = [
+    pub(crate) const ALL: [JobState; 8] = [
         JobState::Queued,
         JobState::Preparing,
         JobState::Ready,
@@ -119,7 +119,7 @@ impl JobState {
     /// finished job can never be offered for a reprint. Preparing goes back to queued only
     /// by the restart rules (preparation is redone); a job whose files vanished or whose
     /// state could not be read fails from wherever it waits.
-    pub fn can_go_to(self, next: JobState) -> bool {
+    pub(crate) fn can_go_to(self, next: JobState) -> bool {
         use JobState::*;
         matches!(
             (self, next),
@@ -144,7 +144,7 @@ impl JobState {
         }
     }
     /// Still has work ahead of it (the daemon is not idle while any job is active).
-    pub fn is_active(self) -> bool {
+    pub(crate) fn is_active(self) -> bool {
         matches!(
             self,
             JobState::Queued | JobState::Preparing | JobState::Ready | JobState::Printing
@@ -175,7 +175,7 @@ pub struct Sidecar {
 }
 
 /// Reads a sidecar file (`model.stl.toml`); unknown keys are an error.
-pub fn read_sidecar(path: &Path) -> Result<Option<Sidecar>, String> {
+pub(crate) fn read_sidecar(path: &Path) -> Result<Option<Sidecar>, String> {
     let file = match std::fs::File::open(path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
@@ -185,10 +185,10 @@ pub fn read_sidecar(path: &Path) -> Result<Option<Sidecar>, String> {
 }
 
 /// Copies of one model a sidecar may ask for.
-pub const MAX_COPIES: u32 = 100;
+pub(crate) const MAX_COPIES: u32 = 100;
 
 /// A sidecar holds a handful of short keys; anything bigger is not one.
-pub const MAX_SIDECAR_BYTES: u64 = 16 * 1024;
+pub(crate) const MAX_SIDECAR_BYTES: u64 = 16 * 1024;
 
 /// Parses a sidecar from any reader; `path` names it in errors.
 pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> {
@@ -307,7 +307,7 @@ pub enum ForMachine {
 impl Job {
     /// Held: its sidecar says `hold = true` and the operator has not released it yet. A
     /// held job is prepared as usual; no printer claims it.
-    pub fn held(&self) -> bool {
+    pub(crate) fn held(&self) -> bool {
         !self.released && self.sidecar.as_ref().and_then(|s| s.hold) == Some(true)
     }
 
@@ -401,7 +401,7 @@ impl Job {
 }
 
 impl Job {
-    pub fn copies_wanted(&self) -> u32 {
+    pub(crate) fn copies_wanted(&self) -> u32 {
         self.sidecar
             .as_ref()
             .and_then(|s| s.copies)
@@ -428,7 +428,7 @@ pub struct PrinterGate {
 impl Job {
     /// Checks a state change against [`JobState::can_go_to`] (the only place it is
     /// checked, for every store) and applies it with `also`'s changes to the other fields.
-    pub fn apply_transition(
+    pub(crate) fn apply_transition(
         &mut self,
         state: JobState,
         reason: Option<String>,

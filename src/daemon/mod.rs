@@ -22,13 +22,13 @@
 pub mod command;
 pub mod config;
 pub mod control;
-pub mod error;
+pub(crate) mod error;
 pub mod farm;
 pub mod fleet;
 pub mod hotfolder;
 pub mod job;
 pub mod prepare;
-pub mod printer;
+pub(crate) mod printer;
 pub mod reload;
 pub mod shared;
 pub mod store;
@@ -38,7 +38,7 @@ pub(crate) mod doubles;
 #[cfg(test)]
 mod supervision_tests;
 
-pub use error::DaemonError;
+pub(crate) use error::DaemonError;
 
 use config::Config;
 use farm::Farm;
@@ -51,7 +51,7 @@ use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
 /// What [`open_store`] opened.
-pub struct Opened {
+pub(crate) struct Opened {
     pub farm: Arc<Farm>,
     /// The job store's task, which nothing answers until the caller runs it (the service,
     /// in its supervised set).
@@ -62,7 +62,7 @@ pub struct Opened {
 
 /// Opens the job store the config names, applies the restart rules to what this host left
 /// mid-flight, and builds the farm around it.
-pub async fn open_store(
+pub(crate) async fn open_store(
     config: &Config,
     shutdown: &CancellationToken,
 ) -> Result<Opened, DaemonError> {
@@ -105,7 +105,7 @@ pub async fn open_store(
 
 /// Watches the hot folders and admits complete files as jobs, until dropped (a reload
 /// starts it anew with the new folders) or shutdown.
-pub fn pickup(
+pub(crate) fn pickup(
     farm: &Arc<Farm>,
     config: &Config,
 ) -> impl std::future::Future<Output = ()> + Send + 'static {

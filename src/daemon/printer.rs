@@ -40,11 +40,11 @@ use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 use tracing::Instrument;
 
-pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
+pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 
 /// How a print ended, if not well: the cause, with the streamer's own error.
 #[derive(Debug, thiserror::Error)]
-pub enum PrintFailure {
+pub(crate) enum PrintFailure {
     /// Stopped on request (heaters off).
     #[error("{0}")]
     Cancelled(PrintError),
@@ -64,7 +64,7 @@ pub enum PrintFailure {
 
 impl PrintFailure {
     /// The cause of a streamer's error: the one place its kinds are sorted.
-    pub fn of(e: PrintError) -> PrintFailure {
+    pub(crate) fn of(e: PrintError) -> PrintFailure {
         match e {
             PrintError::Cancelled { .. } => PrintFailure::Cancelled(e),
             PrintError::Open(_)
@@ -80,10 +80,10 @@ impl PrintFailure {
 /// A printer cannot be connected to (it is retried with backoff).
 #[derive(Debug, thiserror::Error)]
 #[error(transparent)]
-pub struct ConnectError(#[from] pub PrintError);
+pub(crate) struct ConnectError(#[from] pub PrintError);
 
 /// An open connection to a printer.
-pub trait PrinterLink: Send {
+pub(crate) trait PrinterLink: Send {
     /// Streams the G-code file at `gcode`; `control` pauses/resumes/cancels it, progress is
     /// published on `progress`. Returns a JSON report.
     fn print<'a>(
@@ -102,7 +102,7 @@ pub trait PrinterLink: Send {
 
 /// What a printer said between jobs that the supervisor must act on.
 #[derive(Debug, Clone, PartialEq)]
-pub enum IdleNews {
+pub(crate) enum IdleNews {
     /// It said `start`: reset or power-cycled (the next job greets it afresh).
     Rebooted,
     /// The link closed; the connection must be re-opened.
@@ -114,13 +114,13 @@ pub enum IdleNews {
 }
 
 /// Opens connections to one printer.
-pub trait Connector: Send + Sync {
+pub(crate) trait Connector: Send + Sync {
     fn connect(&self) -> BoxFuture<'_, Result<Box<dyn PrinterLink>, ConnectError>>;
 }
 
 /// Index (in the program's command list) of the last heat-and-wait command of the opening
 /// part of a program (before the first extruding move), if any.
-pub fn heat_up_end<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Option<usize> {
+pub(crate) fn heat_up_end<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Option<usize> {
     let mut last = None;
     for (i, c) in commands.into_iter().enumerate() {
         let c = c.as_ref();
@@ -154,7 +154,7 @@ impl Supervisor {
 
 /// Runs one printer's supervisor until shutdown, or until `retire` turns true (the printer
 /// left the config or changed); either takes effect between prints, never during one.
-pub async fn supervise(
+pub(crate) async fn supervise(
     farm: Arc<Farm>,
     name: String,
     owner: PrinterOwner,
@@ -738,7 +738,7 @@ fn printer_temperatures(t: &Temperatures) -> PrinterTemperatures {
 }
 
 /// The real printer connection: `crispen::marlin::stream` on a serial port or pty.
-pub struct MarlinConnector {
+pub(crate) struct MarlinConnector {
     pub port: PathBuf,
     pub firmware: crate::marlin::firmware::Firmware,
     pub baud: u32,

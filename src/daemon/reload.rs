@@ -12,7 +12,7 @@ use std::sync::Arc;
 
 /// When a changed config value takes effect.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Policy {
+pub(crate) enum Policy {
     /// At once: the next heat-up, pick-up, preparation or claim uses it.
     Live,
     /// When the printer's supervisor restarts with the new settings, which it does as soon
@@ -24,7 +24,7 @@ pub enum Policy {
 }
 
 impl Policy {
-    pub fn describe(self) -> &'static str {
+    pub(crate) fn describe(self) -> &'static str {
         match self {
             Policy::Live => "applied",
             Policy::PrinterRestart => "applies when the printer is not printing",
@@ -35,7 +35,7 @@ impl Policy {
 
 /// Every key of the config file and its reload policy. `printer` and `folder` alone stand
 /// for a printer or folder added or removed.
-pub const POLICY: &[(&str, Policy)] = &[
+pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("spool.dir", Policy::DaemonRestart),
     ("control.socket", Policy::DaemonRestart),
     ("http", Policy::DaemonRestart),
@@ -87,7 +87,8 @@ pub const POLICY: &[(&str, Policy)] = &[
 
 /// Keys of the file (and every key under them) whose change is seen as the change of a
 /// key of [`POLICY`]: they are settings of that key's value.
-pub const REPORTED_AS: &[(&str, &str)] = &[
+#[cfg(test)]
+pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     // A `[[machine]]` table matters only through the printers whose machine it is.
     ("machine", "printer.machine"),
     ("printer.nozzle_mm", "printer.machine"),
@@ -101,7 +102,7 @@ pub const REPORTED_AS: &[(&str, &str)] = &[
 
 /// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
 /// a daemon restart, the safe choice (a unit test keeps the table complete).
-pub fn policy(key: &str) -> Policy {
+pub(crate) fn policy(key: &str) -> Policy {
     POLICY
         .iter()
         .find(|(k, _)| *k == key)
@@ -110,7 +111,7 @@ pub fn policy(key: &str) -> Policy {
 
 /// The keys whose values differ between two configs (each once, in [`POLICY`]'s order; a
 /// key missing from it last, so it is still reported).
-pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
+pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     let mut changed = std::collections::BTreeSet::new();
     let mut differs = |key: &'static str, different: bool| {
         if different {
@@ -300,7 +301,7 @@ pub fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
 
 /// The config to run with after a reload: `new`, except the values whose policy is
 /// [`Policy::DaemonRestart`], which stay as in `old`.
-pub fn merge(old: &Config, new: Config) -> Config {
+pub(crate) fn merge(old: &Config, new: Config) -> Config {
     // The listener stays as it was bound; its key is the new file's.
     let http = match (&old.http, &new.http) {
         (Some(old), Some(new)) => Some(HttpConfig {
@@ -324,27 +325,15 @@ pub fn merge(old: &Config, new: Config) -> Config {
     }
 }
 
-/// What a reload did.
-#[derive(Debug)]
-#[allow(clippy::large_enum_variant)] // one per reload, moved once: boxing buys nothing
-pub enum Reloaded {
-    /// The new file was refused; the old config stays.
-    Refused(super::config::ConfigError),
-    /// The config now in force, and the keys that changed with their policies.
-    Applied {
-        config: Config,
-        changed: Vec<(&'static str, Policy)>,
-    },
-}
-
 /// Reads the config file again and installs it in the farm as [`merge`] says, logging
-/// each changed key with its policy. The caller restarts what depends on it (pick-up,
-/// printers).
-pub fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Reloaded {
+/// each changed key with its policy, and returns the config now in force; None when the
+/// new file was refused (the error is logged) and the old config stays. The caller
+/// restarts what depends on it (pick-up, printers).
+pub(crate) fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Option<Config> {
     let new = match Config::load(path) {
         Err(e) => {
             tracing::error!(error = %e, "SIGHUP: new config refused; keeping the old one");
-            return Reloaded::Refused(e);
+            return None;
         }
         Ok(new) => new,
     };
@@ -366,7 +355,7 @@ pub fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Reloaded {
     }
     let config = merge(&old, new);
     farm.set_config(config.clone());
-    Reloaded::Applied { config, changed }
+    Some(config)
 }
 
 #[cfg(test)]

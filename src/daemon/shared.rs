@@ -24,7 +24,7 @@ use tokio_util::sync::CancellationToken;
 const TICK: Duration = Duration::from_secs(1);
 
 /// Runs until `stop`; `lease` is `[store] lease_s`.
-pub async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: CancellationToken) {
+pub(crate) async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: CancellationToken) {
     let heartbeat_every = lease / 5;
     let mut last_heartbeat: Option<tokio::time::Instant> = None;
     let mut ticker = tokio::time::interval(TICK);

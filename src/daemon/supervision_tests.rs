@@ -338,9 +338,9 @@ async fn a_retry_is_announced_and_counted() {
         .unwrap();
     let all = |farm: &Farm| -> u64 {
         let counts = farm.store().counts();
-        JobState::ALL.iter().map(|s| counts.into_state(*s)).sum()
+        JobState::ALL.iter().map(|s| counts.entered(*s)).sum()
     };
-    let queued = || farm.store().counts().into_state(JobState::Queued);
+    let queued = || farm.store().counts().entered(JobState::Queued);
     let (before, queued_before) = (all(&farm), queued());
     control::execute(&farm, Command::Retry { job: job.clone() })
         .await

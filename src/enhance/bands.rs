@@ -150,7 +150,7 @@ impl Bands {
     }
 
     /// Spec step 5's default: μ = 0.1·λ2 / max‖Δ3_i‖² (0 when every Δ3_i is 0).
-    pub fn default_mu(&self, lambda2: f64) -> f64 {
+    pub(crate) fn default_mu(&self, lambda2: f64) -> f64 {
         if self.max_delta3_sq > 0.0 {
             0.1 * lambda2 / self.max_delta3_sq
         } else {
@@ -160,7 +160,7 @@ impl Bands {
 
     /// The area-weighted `q` quantile of ‖Δ2_i‖ (the mid band's amplitude), unit-sphere
     /// units.
-    pub fn mid_band_quantile(&self, q: f64) -> f64 {
+    pub(crate) fn mid_band_quantile(&self, q: f64) -> f64 {
         let mut pairs: Vec<(f64, f64)> = self
             .delta2
             .iter()

@@ -9,7 +9,7 @@
 mod bands;
 pub mod operators;
 pub mod print_aware;
-pub mod printed;
+pub(crate) mod printed;
 mod solve;
 mod strength;
 mod terms;

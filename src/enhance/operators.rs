@@ -191,7 +191,7 @@ impl Operators {
     }
 
     /// The stored (lower-triangle) values of `M − δL`.
-    pub fn system_values(&self, delta: f64) -> Vec<f64> {
+    pub(crate) fn system_values(&self, delta: f64) -> Vec<f64> {
         let mut values = Vec::with_capacity(self.row_idx.len());
         for j in 0..self.n {
             let range = self.col_ptr[j]..self.col_ptr[j + 1];
@@ -207,7 +207,7 @@ impl Operators {
 
     /// `y = A x` for the symmetric matrix whose lower triangle is `values`; `x`, `y` are
     /// n×3 row-major.
-    pub fn sym_matvec(&self, values: &[f64], x: &[[f64; 3]], y: &mut [[f64; 3]]) {
+    pub(crate) fn sym_matvec(&self, values: &[f64], x: &[[f64; 3]], y: &mut [[f64; 3]]) {
         y.iter_mut().for_each(|r| *r = [0.0; 3]);
         for j in 0..self.n {
             let range = self.col_ptr[j]..self.col_ptr[j + 1];

@@ -58,11 +58,11 @@ impl std::fmt::Display for Mode {
 }
 
 /// The band's wavelengths, in units of the printer's resolution s.
-pub const BAND_WAVELENGTHS: [f64; 2] = [2.0, 8.0];
+pub(crate) const BAND_WAVELENGTHS: [f64; 2] = [2.0, 8.0];
 /// The strength the largest displacement is capped by: the paper's strong setting.
-pub const PAPER_STRONG_LAMBDA2: f64 = 40.0;
+pub(crate) const PAPER_STRONG_LAMBDA2: f64 = 40.0;
 /// λ2 is never above this.
-pub const MAX_LAMBDA2: f64 = 200.0;
+pub(crate) const MAX_LAMBDA2: f64 = 200.0;
 
 /// What the print-aware mode chose, and why.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -90,7 +90,7 @@ pub struct PrintAwareReport {
 }
 
 /// The δ for a band of wavelengths `band_mm` on a mesh of bounding radius `radius_mm`.
-pub fn deltas_for(band_mm: [f64; 2], radius_mm: f64) -> [f64; 3] {
+pub(crate) fn deltas_for(band_mm: [f64; 2], radius_mm: f64) -> [f64; 3] {
     let delta = |l: f64| (l / (2.0 * std::f64::consts::PI * radius_mm)).powi(2);
     let (d1, d2) = (delta(band_mm[0]), delta(band_mm[1]));
     [d1, d2, 10.0 * d2].map(|d| d.clamp(1e-9, 10.0))

@@ -15,12 +15,12 @@ use serde::{Deserialize, Serialize};
 /// The fraction of the line width a displacement must exceed to count as one the
 /// printer draws: a quarter (0.1 mm on a 0.4 mm nozzle). Slicers place walls to a few
 /// hundredths of a millimetre, so a smaller move is lost in their rounding.
-pub const LINE_WIDTH_FRACTION: f64 = 0.25;
+pub(crate) const LINE_WIDTH_FRACTION: f64 = 0.25;
 
 /// The line width crispen asks of both slicers, from the nozzle: CuraEngine's line widths
 /// are set to the nozzle diameter; PrusaSlicer's external perimeter is 1.05–1.125 times
 /// it, which the quarter-width threshold does not distinguish.
-pub fn line_width_mm(nozzle_mm: f64) -> f64 {
+pub(crate) fn line_width_mm(nozzle_mm: f64) -> f64 {
     nozzle_mm
 }
 
@@ -125,7 +125,7 @@ impl Displacements {
     }
 
     /// The area-weighted `q` quantile of the displacement, model units.
-    pub fn quantile(&self, q: f64) -> f64 {
+    pub(crate) fn quantile(&self, q: f64) -> f64 {
         let target = q.clamp(0.0, 1.0) * self.total_area;
         let mut acc = 0.0;
         for &(d, a) in &self.sorted {
@@ -138,7 +138,7 @@ impl Displacements {
     }
 
     /// The share of the area (0–1) moved by more than `limit` model units.
-    pub fn share_above(&self, limit: f64) -> f64 {
+    pub(crate) fn share_above(&self, limit: f64) -> f64 {
         let first = self.sorted.partition_point(|x| x.0 <= limit);
         // A float sum starts at -0.0; the share of nothing is 0.
         (0.0 + self.sorted[first..].iter().map(|x| x.1).sum::<f64>()) / self.total_area

@@ -42,7 +42,8 @@ impl Default for StrengthTable {
 impl StrengthTable {
     /// Checks a table from a config file: finite, positive heights in ascending order
     /// below `unmodified_from_mm`, finite non-negative λ2.
-    pub fn validate(&self) -> Result<(), String> {
+    #[cfg(test)]
+    pub(crate) fn validate(&self) -> Result<(), String> {
         if self.points.is_empty() {
             return Err("the strength table needs at least one (height, lambda2) point".into());
         }
@@ -94,7 +95,7 @@ impl StrengthTable {
 
     /// λ2 for `strength` at an optional printed height; `None` = unmodified. `Auto`
     /// without a height cannot choose and leaves the model unmodified.
-    pub fn resolve(&self, strength: Strength, height_mm: Option<f64>) -> Option<f64> {
+    pub(crate) fn resolve(&self, strength: Strength, height_mm: Option<f64>) -> Option<f64> {
         match strength {
             Strength::Off => None,
             Strength::Lambda2(l) => Some(l),

@@ -26,7 +26,7 @@ impl EnhanceOptions {
         }
     }
 
-    pub fn validate(&self) -> Result<(), EnhanceError> {
+    pub(crate) fn validate(&self) -> Result<(), EnhanceError> {
         let bad = |name: &'static str, value: f64| EnhanceError::InvalidOption { name, value };
         if !self.lambda1.is_finite() {
             return Err(bad("lambda1", self.lambda1));

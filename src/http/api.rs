@@ -20,7 +20,7 @@ use serde::Serialize;
 
 /// A job in the queue, with what it will be made as.
 #[derive(Debug, Serialize)]
-pub struct JobView {
+pub(crate) struct JobView {
     #[serde(flatten)]
     pub status: JobStatus,
     /// The hot folder's name (see `upload::folder_name`).
@@ -40,7 +40,7 @@ pub struct JobView {
 }
 
 #[derive(Debug, Serialize)]
-pub struct FolderView {
+pub(crate) struct FolderView {
     pub name: String,
     pub height_mm: f64,
     pub strength: Strength,
@@ -50,7 +50,7 @@ pub struct FolderView {
 }
 
 #[derive(Debug, Serialize)]
-pub struct StatusView {
+pub(crate) struct StatusView {
     pub printers: Vec<PrinterStatus>,
     pub jobs: Vec<JobView>,
     pub folders: Vec<FolderView>,
@@ -67,7 +67,7 @@ const PICTURES: [&str; 4] = [
 ];
 
 /// The whole farm: printers, jobs (newest last) and hot folders.
-pub fn snapshot(farm: &Farm) -> StatusView {
+pub(crate) fn snapshot(farm: &Farm) -> StatusView {
     let status = control::status(farm);
     let config = farm.config();
     let store = farm.store();
@@ -147,15 +147,15 @@ async fn blocking<T: Send + 'static>(
         .map_err(ApiError::from)
 }
 
-pub async fn status(State(state): State<AppState>) -> Result<Json<StatusView>, ApiError> {
+pub(crate) async fn status(State(state): State<AppState>) -> Result<Json<StatusView>, ApiError> {
     blocking(&state, snapshot).await.map(Json)
 }
 
-pub async fn printers(State(state): State<AppState>) -> Json<Vec<PrinterStatus>> {
+pub(crate) async fn printers(State(state): State<AppState>) -> Json<Vec<PrinterStatus>> {
     Json(control::status(&state.farm).printers)
 }
 
-pub async fn printer(
+pub(crate) async fn printer(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<Json<PrinterStatus>, ApiError> {
@@ -167,14 +167,14 @@ pub async fn printer(
         .ok_or_else(|| no_printer(&state.farm, &name))
 }
 
-pub async fn jobs(State(state): State<AppState>) -> Result<Json<Vec<JobView>>, ApiError> {
+pub(crate) async fn jobs(State(state): State<AppState>) -> Result<Json<Vec<JobView>>, ApiError> {
     blocking(&state, |farm| snapshot(farm).jobs).await.map(Json)
 }
 
 /// One job: its queue entry and everything stored about it (slice and print reports,
 /// history, reason).
 #[derive(Debug, Serialize)]
-pub struct JobDetail {
+pub(crate) struct JobDetail {
     #[serde(flatten)]
     pub view: JobView,
     pub job: Job,
@@ -183,7 +183,7 @@ pub struct JobDetail {
 /// `GET /api/v1/jobs/{id}`: a live job's entry and record (without building every other
 /// job's entry), or a job in the history: its history record and its whole record with
 /// `"retired": true`.
-pub async fn job(
+pub(crate) async fn job(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
@@ -221,7 +221,7 @@ pub async fn job(
 /// since the epoch or a UTC date `YYYY-MM-DD`), and `format` (`json`, `csv`).
 #[derive(Debug, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct HistoryQuery {
+pub(crate) struct HistoryQuery {
     pub limit: Option<usize>,
     pub before: Option<u64>,
     pub printer: Option<String>,
@@ -275,7 +275,7 @@ impl HistoryQuery {
 /// `GET /api/v1/history`: finished jobs that have left the queue, newest first, a page at
 /// a time (`limit`, 1 to 1000, default 50; `before`: the `next` of the page before), or
 /// with `format=csv` every job the filters take, as CSV.
-pub async fn history(
+pub(crate) async fn history(
     State(state): State<AppState>,
     query: Result<axum::extract::Query<HistoryQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Response, ApiError> {
@@ -352,20 +352,20 @@ pub async fn history(
 }
 
 /// The most rows one CSV export holds (narrow it with `since`/`until` for more).
-pub const CSV_MAX_ROWS: usize = 200_000;
+pub(crate) const CSV_MAX_ROWS: usize = 200_000;
 
 /// `GET /api/v1/stats?days=N` (the last N UTC days, today included; default 7) or
 /// `?from=T&to=T` (seconds since the epoch or `YYYY-MM-DD`, `to` excluded).
 #[derive(Debug, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct StatsQuery {
+pub(crate) struct StatsQuery {
     pub days: Option<u32>,
     pub from: Option<String>,
     pub to: Option<String>,
 }
 
 /// `GET /api/v1/stats`: the statistics of a period, per printer and per folder.
-pub async fn stats(
+pub(crate) async fn stats(
     State(state): State<AppState>,
     query: Result<axum::extract::Query<StatsQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<stats::Stats>, ApiError> {
@@ -401,7 +401,7 @@ pub async fn stats(
 
 /// One of a job's pictures. Only the three fixed names are served, from the directory of
 /// a job the store knows, so no request can name another file.
-pub async fn picture(
+pub(crate) async fn picture(
     State(state): State<AppState>,
     Path((id, picture)): Path<(String, String)>,
 ) -> Result<Response, ApiError> {
@@ -440,7 +440,9 @@ pub async fn picture(
         .into_response())
 }
 
-pub async fn folders(State(state): State<AppState>) -> Result<Json<Vec<FolderView>>, ApiError> {
+pub(crate) async fn folders(
+    State(state): State<AppState>,
+) -> Result<Json<Vec<FolderView>>, ApiError> {
     blocking(&state, |farm| snapshot(farm).folders)
         .await
         .map(Json)
@@ -456,7 +458,7 @@ fn no_printer(farm: &Farm, name: &str) -> ApiError {
 }
 
 /// `POST /api/v1/printers/{name}/clear|pause|resume`.
-pub async fn printer_action(
+pub(crate) async fn printer_action(
     State(state): State<AppState>,
     Path((name, action)): Path<(String, String)>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
@@ -479,7 +481,7 @@ pub async fn printer_action(
 }
 
 /// `POST /api/v1/jobs/{id}/cancel|retry|release`.
-pub async fn job_action(
+pub(crate) async fn job_action(
     State(state): State<AppState>,
     Path((id, action)): Path<(String, String)>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
@@ -514,7 +516,7 @@ async fn act(state: &AppState, command: Command) -> Result<Json<serde_json::Valu
 }
 
 /// `PUT /api/v1/folders/{folder}/files/{file}`: the body is the file.
-pub async fn upload(
+pub(crate) async fn upload(
     State(state): State<AppState>,
     Path((folder, file)): Path<(String, String)>,
     body: Body,

@@ -44,34 +44,35 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 /// Requests waiting for the operator's decision at once.
-pub const MAX_PENDING: usize = 16;
+pub(crate) const MAX_PENDING: usize = 16;
 /// Requests from one address waiting at once: one client cannot take every place, and a
 /// client needs one (two: a retry while the first is still listed).
-pub const MAX_PENDING_PER_SOURCE: usize = 2;
+pub(crate) const MAX_PENDING_PER_SOURCE: usize = 2;
 /// A request not decided within this is forgotten; an allowed key not fetched within
 /// this after the decision is not told any more (the key stays, revocable).
-pub const PENDING_FOR: Duration = Duration::from_secs(10 * 60);
+pub(crate) const PENDING_FOR: Duration = Duration::from_secs(10 * 60);
 /// A request whose client has not polled for this long is forgotten: the client gave up
 /// (Cura polls every second; OctoPrint forgets a request after 5 s without a poll).
-pub const ABANDONED_AFTER: Duration = Duration::from_secs(60);
+pub(crate) const ABANDONED_AFTER: Duration = Duration::from_secs(60);
 /// Application keys kept at most; revoke one to make room.
-pub const MAX_KEYS: usize = 64;
+pub(crate) const MAX_KEYS: usize = 64;
 /// Longest application name kept (longer ones are cut).
 const MAX_APP_CHARS: usize = 64;
 /// The file in the spool directory.
-pub const FILE_NAME: &str = "appkeys.json";
+pub(crate) const FILE_NAME: &str = "appkeys.json";
 /// Largest key file read.
 const MAX_FILE_BYTES: u64 = 1024 * 1024;
 /// How the hold mark starts its line in a held upload's sidecar (a TOML comment: the
 /// sidecar's keys stay what they are).
-pub const HOLD_MARK_PREFIX: &str = "# held for the select-and-print of an OctoPrint upload: ";
+pub(crate) const HOLD_MARK_PREFIX: &str =
+    "# held for the select-and-print of an OctoPrint upload: ";
 
 /// What an application key may do, and where; chosen by the operator when allowing it.
 /// The default (also for keys stored before scopes existed) is the narrowest: upload,
 /// on the instance it was asked on.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct Scope {
+pub(crate) struct Scope {
     /// Also `POST api/job`: pause, resume, cancel the instance's print.
     pub control: bool,
     /// Every instance of the farm, not just the one it was asked on.
@@ -80,7 +81,7 @@ pub struct Scope {
 
 impl Scope {
     /// `upload` or `upload, control`, then where: as listings show it.
-    pub fn describe(&self, instance: &str) -> String {
+    pub(crate) fn describe(&self, instance: &str) -> String {
         format!(
             "{} {}",
             if self.control {
@@ -100,14 +101,14 @@ impl Scope {
 /// Who a request's key is: the operator (`[http]` key, or the control socket) or an
 /// application that was given a key of its own.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Who {
+pub(crate) enum Who {
     Operator,
     App(Grant),
 }
 
 /// An application key as a request presents it: whose it is and what it opens.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Grant {
+pub(crate) struct Grant {
     /// The key's id (not its secret).
     pub id: String,
     pub app: String,
@@ -141,7 +142,7 @@ impl Grant {
 
     /// Whether the key opens the instance `path` addresses; refused with the way to
     /// widen it.
-    pub fn check_instance(&self, path: &str) -> Result<(), ApiError> {
+    pub(crate) fn check_instance(&self, path: &str) -> Result<(), ApiError> {
         let asked = Instance::parse(path);
         if self.scope.everywhere || asked.folder == self.own_folder() {
             return Ok(());
@@ -159,7 +160,7 @@ impl Grant {
     /// Whether the key may put a file into `folder` through `instance` (which
     /// [`Grant::check_instance`] let through): on the root instance, a key of the root's
     /// own uploads into its default folder only (the root's `path` names any folder).
-    pub fn check_folder(
+    pub(crate) fn check_folder(
         &self,
         config: &Config,
         instance: &Instance,
@@ -186,7 +187,7 @@ impl Grant {
     }
 
     /// Whether the key may control prints (`POST api/job`).
-    pub fn check_control(&self, what: &str) -> Result<(), ApiError> {
+    pub(crate) fn check_control(&self, what: &str) -> Result<(), ApiError> {
         if self.scope.control {
             return Ok(());
         }
@@ -201,7 +202,7 @@ impl Grant {
     }
 
     /// Refuses releasing job `job`, which a sidecar or the operator held.
-    pub fn refuse_release(&self, job: &str, file: &str) -> ApiError {
+    pub(crate) fn refuse_release(&self, job: &str, file: &str) -> ApiError {
         refuse(
             self,
             &format!("print job {job} ({file})"),
@@ -213,7 +214,7 @@ impl Grant {
 /// A key handed to an application.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
-pub struct AppKey {
+pub(crate) struct AppKey {
     /// Names the key in lists and for revoking; not the key.
     pub id: String,
     pub app: String,
@@ -288,7 +289,7 @@ struct Answer {
 
 /// What a poll finds.
 #[derive(Debug, PartialEq)]
-pub enum Poll {
+pub(crate) enum Poll {
     Waiting,
     Granted(String),
     /// Denied, expired, abandoned, fetched already, or never asked.
@@ -297,7 +298,7 @@ pub enum Poll {
 
 /// A pending request as the dashboard lists it.
 #[derive(Debug, Serialize)]
-pub struct PendingView {
+pub(crate) struct PendingView {
     pub id: String,
     pub app: String,
     pub source: String,
@@ -309,14 +310,14 @@ pub struct PendingView {
 
 /// Everything the dashboard shows: requests and keys (without their secrets).
 #[derive(Debug, Serialize)]
-pub struct KeysView {
+pub(crate) struct KeysView {
     pub pending: Vec<PendingView>,
     pub keys: Vec<KeyView>,
 }
 
 /// A key as listed: everything but its secret.
 #[derive(Debug, Serialize)]
-pub struct KeyView {
+pub(crate) struct KeyView {
     pub id: String,
     pub app: String,
     pub source: String,
@@ -400,7 +401,7 @@ fn hold_signature(secret: &str, key_id: &str, nonce: &str, folder: &std::path::P
 
 impl AppKeys {
     /// Reads `spool_dir/appkeys.json` (none: no keys yet).
-    pub fn open(spool_dir: &std::path::Path) -> Result<AppKeys, AppKeysError> {
+    pub(crate) fn open(spool_dir: &std::path::Path) -> Result<AppKeys, AppKeysError> {
         let path = spool_dir.join(FILE_NAME);
         let failed = |message: String| AppKeysError {
             path: path.clone(),
@@ -436,7 +437,7 @@ impl AppKeys {
     }
 
     /// The key `given` is, if it is one of the keys: who holds it and what it opens.
-    pub fn grant_of(&self, given: &[u8]) -> Option<Grant> {
+    pub(crate) fn grant_of(&self, given: &[u8]) -> Option<Grant> {
         let state = self.lock();
         // Every key compared, whichever matches.
         let mut found = None;
@@ -449,12 +450,13 @@ impl AppKeys {
     }
 
     /// The application a key was given to, if it is one of the keys.
-    pub fn app_of(&self, given: &[u8]) -> Option<String> {
+    #[cfg(test)]
+    pub(crate) fn app_of(&self, given: &[u8]) -> Option<String> {
         self.grant_of(given).map(|g| g.app)
     }
 
     /// A new request; its poll token. Requests that no longer wait are dropped first.
-    pub fn request(
+    pub(crate) fn request(
         &self,
         app: &str,
         source: String,
@@ -522,7 +524,7 @@ impl AppKeys {
     }
 
     /// What the client polling `token` is told; a key is told once.
-    pub fn poll(&self, token: &str, now: Instant) -> Poll {
+    pub(crate) fn poll(&self, token: &str, now: Instant) -> Poll {
         let mut state = self.lock();
         state.prune(now);
         // Every entry compared, whichever matches.
@@ -551,7 +553,12 @@ impl AppKeys {
     /// Allows (with `scope`) or denies the request `id`; either way it leaves the pending
     /// list at once. An allowed one gets its key, stored durably before the client can
     /// fetch it. Blocking (writes the file).
-    pub fn decide(&self, id: &str, allow: Option<Scope>, now: Instant) -> Result<String, ApiError> {
+    pub(crate) fn decide(
+        &self,
+        id: &str,
+        allow: Option<Scope>,
+        now: Instant,
+    ) -> Result<String, ApiError> {
         let mut state = self.lock();
         state.prune(now);
         let Some(at) = state.pending.iter().position(|p| p.id == id) else {
@@ -603,7 +610,7 @@ impl AppKeys {
     }
 
     /// Sets the scope of key `id` (wider or narrower). Blocking (writes the file).
-    pub fn set_scope(&self, id: &str, scope: Scope) -> Result<String, ApiError> {
+    pub(crate) fn set_scope(&self, id: &str, scope: Scope) -> Result<String, ApiError> {
         let mut state = self.lock();
         let Some(at) = state.keys.iter().position(|k| k.id == id) else {
             return Err(no_key(id));
@@ -622,7 +629,7 @@ impl AppKeys {
     }
 
     /// Revokes the key `id`. Blocking (writes the file).
-    pub fn revoke(&self, id: &str) -> Result<String, ApiError> {
+    pub(crate) fn revoke(&self, id: &str) -> Result<String, ApiError> {
         let mut state = self.lock();
         let Some(at) = state.keys.iter().position(|k| k.id == id) else {
             return Err(no_key(id));
@@ -635,16 +642,11 @@ impl AppKeys {
         Ok(format!("revoked the key of {} (id {})", gone.app, gone.id))
     }
 
-    /// Whether `id` is a key (else perhaps a request).
-    pub fn is_key(&self, id: &str) -> bool {
-        self.lock().keys.iter().any(|k| k.id == id)
-    }
-
     /// The line a held upload's sidecar carries so that the key `grant` (and no other)
     /// may release the job it becomes: a fresh nonce and a signature made with the key's
     /// secret over key, nonce and hot folder. Nothing is remembered: the mark proves
     /// itself while the key exists, across restarts. None: the key is gone.
-    pub fn hold_mark(&self, grant: &Grant, folder: &std::path::Path) -> Option<String> {
+    pub(crate) fn hold_mark(&self, grant: &Grant, folder: &std::path::Path) -> Option<String> {
         let state = self.lock();
         let key = state.keys.iter().find(|k| k.id == grant.id)?;
         let nonce = random_text(12);
@@ -657,7 +659,7 @@ impl AppKeys {
 
     /// Whether `sidecar` (a job's sidecar text) carries the hold mark of `grant`'s own
     /// upload into `folder`.
-    pub fn held_by(&self, grant: &Grant, sidecar: &str, folder: &std::path::Path) -> bool {
+    pub(crate) fn held_by(&self, grant: &Grant, sidecar: &str, folder: &std::path::Path) -> bool {
         let Some(mark) = sidecar
             .lines()
             .find_map(|l| l.strip_prefix(HOLD_MARK_PREFIX))
@@ -684,7 +686,7 @@ impl AppKeys {
         )
     }
 
-    pub fn view(&self, now: Instant) -> KeysView {
+    pub(crate) fn view(&self, now: Instant) -> KeysView {
         let mut state = self.lock();
         state.prune(now);
         KeysView {

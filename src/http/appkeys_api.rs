@@ -16,12 +16,12 @@ use std::time::Instant;
 // ---- OctoPrint's plugin endpoints (no key needed: the client has none yet) ----
 
 /// `GET plugin/appkeys/probe`: the flow is supported.
-pub async fn probe() -> StatusCode {
+pub(crate) async fn probe() -> StatusCode {
     StatusCode::NO_CONTENT
 }
 
 #[derive(Debug, Deserialize)]
-pub struct RequestBody {
+pub(crate) struct RequestBody {
     app: String,
     // OctoPrint's optional `user`; crispen has no users.
     #[serde(default)]
@@ -31,7 +31,7 @@ pub struct RequestBody {
 
 /// `POST plugin/appkeys/request` with `{"app": "Name"}`: `201` with the poll address in
 /// `Location` and `app_token`.
-pub async fn request(
+pub(crate) async fn request(
     State(state): State<AppState>,
     client: Option<axum::Extension<super::serve::ClientAddr>>,
     uri: axum::http::Uri,
@@ -67,7 +67,7 @@ pub async fn request(
 
 /// `GET plugin/appkeys/request/<token>`: `202` while undecided, `200` with `api_key`
 /// once allowed, `404` when denied, expired, abandoned or unknown.
-pub async fn poll(
+pub(crate) async fn poll(
     State(state): State<AppState>,
     Path(params): Path<Vec<(String, String)>>,
 ) -> Result<Response, ApiError> {
@@ -98,7 +98,7 @@ fn instance_of(path: &str) -> String {
 
 /// `http://host` as the client addressed the server (its `Host`), for absolute
 /// `Location`s as OctoPrint gives them; empty (a relative address) without one.
-pub fn origin(headers: &HeaderMap) -> String {
+pub(crate) fn origin(headers: &HeaderMap) -> String {
     match headers.get(header::HOST).and_then(|h| h.to_str().ok()) {
         Some(host)
             if !host.is_empty()
@@ -115,13 +115,13 @@ pub fn origin(headers: &HeaderMap) -> String {
 // ---- the operator's side (`/api/v1/appkeys`), for the dashboard and `crispen keys` ----
 
 /// `GET /api/v1/appkeys`: pending requests and keys (never their secrets).
-pub async fn list(State(state): State<AppState>) -> Json<KeysView> {
+pub(crate) async fn list(State(state): State<AppState>) -> Json<KeysView> {
     Json(state.appkeys.view(Instant::now()))
 }
 
 /// The scope an allow gives: `?control=true&everywhere=true` (each absent: false).
 #[derive(Debug, Default, Deserialize)]
-pub struct ScopeQuery {
+pub(crate) struct ScopeQuery {
     #[serde(default)]
     control: Option<String>,
     #[serde(default)]
@@ -151,7 +151,7 @@ impl ScopeQuery {
 /// `POST /api/v1/appkeys/requests/{id}/allow[?control=true][&everywhere=true]`,
 /// `…/requests/{id}/deny`, `/api/v1/appkeys/keys/{id}/allow[?…]` (sets an existing key's
 /// scope to exactly what the query says) and `/api/v1/appkeys/keys/{id}/revoke`.
-pub async fn act(
+pub(crate) async fn act(
     State(state): State<AppState>,
     Path((kind, id, action)): Path<(String, String, String)>,
     Query(query): Query<ScopeQuery>,

@@ -15,7 +15,7 @@ const APPKEYS: &str = include_str!("assets/appkeys.js");
 const POLICY: &str =
     "default-src 'self'; img-src 'self' blob:; frame-ancestors 'none'; base-uri 'none'";
 
-pub async fn index() -> impl IntoResponse {
+pub(crate) async fn index() -> impl IntoResponse {
     (
         [
             (header::CONTENT_TYPE, "text/html; charset=utf-8"),
@@ -25,19 +25,19 @@ pub async fn index() -> impl IntoResponse {
     )
 }
 
-pub async fn script() -> impl IntoResponse {
+pub(crate) async fn script() -> impl IntoResponse {
     (
         [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
         SCRIPT,
     )
 }
 
-pub async fn style() -> impl IntoResponse {
+pub(crate) async fn style() -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE)
 }
 
 /// The statistics page (`/stats`): its own page and script, the dashboard's style.
-pub async fn stats_page() -> impl IntoResponse {
+pub(crate) async fn stats_page() -> impl IntoResponse {
     (
         [
             (header::CONTENT_TYPE, "text/html; charset=utf-8"),
@@ -47,7 +47,7 @@ pub async fn stats_page() -> impl IntoResponse {
     )
 }
 
-pub async fn stats_script() -> impl IntoResponse {
+pub(crate) async fn stats_script() -> impl IntoResponse {
     (
         [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
         STATS_SCRIPT,
@@ -55,7 +55,7 @@ pub async fn stats_script() -> impl IntoResponse {
 }
 
 /// The application-key requests panel (its own file; see `super::appkeys`).
-pub async fn appkeys_script() -> impl IntoResponse {
+pub(crate) async fn appkeys_script() -> impl IntoResponse {
     (
         [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
         APPKEYS,

@@ -16,7 +16,7 @@ use axum::response::{IntoResponse, Response};
 /// Lets a request through with the right key, or a read-only one without a key when
 /// `[http] read_only_without_key` allows it. On the control socket the socket's file
 /// mode has already decided.
-pub async fn require_key(
+pub(crate) async fn require_key(
     State(state): State<AppState>,
     mut request: Request,
     next: Next,
@@ -109,18 +109,18 @@ fn is_octoprint(path: &str) -> bool {
 /// Whether a request came with the key (or on the control socket), for the handlers
 /// whose bounds differ (event streams).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Keyed(pub bool);
+pub(crate) struct Keyed(pub bool);
 
 /// Compares in time independent of where the keys differ.
 fn same_key(given: &[u8], key: &[u8]) -> bool {
     subtle::ConstantTimeEq::ct_eq(given, key).into()
 }
 
-pub async fn time_limit(request: Request, next: Next) -> Response {
+pub(crate) async fn time_limit(request: Request, next: Next) -> Response {
     limited(REQUEST_TIMEOUT, request, next).await
 }
 
-pub async fn upload_time_limit(request: Request, next: Next) -> Response {
+pub(crate) async fn upload_time_limit(request: Request, next: Next) -> Response {
     limited(UPLOAD_TIMEOUT, request, next).await
 }
 

@@ -23,7 +23,7 @@ use std::time::Duration;
 /// and what changed meanwhile goes in one event (progress changes several times a second).
 const SPACING: Duration = Duration::from_millis(500);
 
-pub async fn events(
+pub(crate) async fn events(
     State(state): State<AppState>,
     client: Option<Extension<ClientAddr>>,
     keyed: Option<Extension<Keyed>>,

@@ -11,7 +11,7 @@ use axum::http::request::Parts;
 /// The OctoPrint instance a request addresses: a hot folder's (`/octoprint/<folder>/`)
 /// or the root (`/`).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Instance {
+pub(crate) struct Instance {
     /// The folder named in the address (percent-decoded); None on the root.
     pub folder: Option<String>,
     /// The instance's base address, as the client used it (`/octoprint/hot/` or `/`).
@@ -21,7 +21,7 @@ pub struct Instance {
 }
 
 impl Instance {
-    pub fn parse(path: &str) -> Instance {
+    pub(crate) fn parse(path: &str) -> Instance {
         match path.strip_prefix("/octoprint/") {
             Some(after) => {
                 let (segment, rest) = after.split_once('/').unwrap_or((after, ""));
@@ -41,7 +41,10 @@ impl Instance {
 
     /// The hot folder this instance stands for: its own, or on the root the default
     /// folder (`[http] default_folder`, else the only folder), or None.
-    pub fn folder<'a>(&self, config: &'a Config) -> Result<Option<&'a FolderConfig>, ApiError> {
+    pub(crate) fn folder<'a>(
+        &self,
+        config: &'a Config,
+    ) -> Result<Option<&'a FolderConfig>, ApiError> {
         match &self.folder {
             Some(name) => upload::find_folder(config, name).map(Some),
             None => Ok(default_folder(config)),
@@ -50,7 +53,7 @@ impl Instance {
 
     /// [`Instance::folder`], required: the root without a default folder is refused with
     /// the way out.
-    pub fn some_folder<'a>(&self, config: &'a Config) -> Result<&'a FolderConfig, ApiError> {
+    pub(crate) fn some_folder<'a>(&self, config: &'a Config) -> Result<&'a FolderConfig, ApiError> {
         self.folder(config)?.ok_or_else(|| no_default(config))
     }
 }
@@ -64,7 +67,7 @@ impl<S: Send + Sync> FromRequestParts<S> for Instance {
 }
 
 /// The folder the root instance stands for.
-pub fn default_folder(config: &Config) -> Option<&FolderConfig> {
+pub(crate) fn default_folder(config: &Config) -> Option<&FolderConfig> {
     let named = config
         .http
         .as_ref()

@@ -25,7 +25,7 @@ const PRINTER_STATES: [PrinterState; 10] = [
     PrinterState::Stopped,
 ];
 
-pub async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
+pub(crate) async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     let farm = state.farm.clone();
     let text = tokio::task::spawn_blocking(move || render(&farm))
         .await
@@ -67,7 +67,7 @@ impl Out {
     }
 }
 
-pub fn render(farm: &crate::daemon::farm::Farm) -> String {
+pub(crate) fn render(farm: &crate::daemon::farm::Farm) -> String {
     let view = super::api::snapshot(farm);
     let mut out = Out(String::new());
 
@@ -191,7 +191,7 @@ pub fn render(farm: &crate::daemon::farm::Farm) -> String {
         "Job state changes since the daemon started, by the state reached (in a shared farm, every host's).",
     );
     for s in JobState::ALL {
-        let n = counts.into_state(s);
+        let n = counts.entered(s);
         out.sample(
             "crispen_job_changes_total",
             &[("state", s.name())],
@@ -311,12 +311,12 @@ static CONTROL: std::sync::Mutex<
     std::collections::BTreeMap<(String, &'static str, &'static str), u64>,
 > = std::sync::Mutex::new(std::collections::BTreeMap::new());
 /// The most series `crispen_octoprint_control_total` keeps.
-pub const MAX_CONTROL_SERIES: usize = 4096;
+pub(crate) const MAX_CONTROL_SERIES: usize = 4096;
 
 /// Counts one control action through OctoPrint: `action` pause, resume, toggle, cancel,
 /// start; `result` done, refused (the key may not), failed (nothing to act on, or the
 /// farm refused).
-pub fn count_octoprint_control(folder: &str, action: &'static str, result: &'static str) {
+pub(crate) fn count_octoprint_control(folder: &str, action: &'static str, result: &'static str) {
     let mut map = CONTROL.lock().unwrap_or_else(|e| e.into_inner());
     let key = (folder.to_string(), action, result);
     if map.len() >= MAX_CONTROL_SERIES && !map.contains_key(&key) {

@@ -20,7 +20,7 @@
 //! - [`assets`]: the dashboard's page, script and style, built into the binary.
 
 mod api;
-pub mod appkeys;
+pub(crate) mod appkeys;
 mod appkeys_api;
 mod assets;
 mod auth;
@@ -31,11 +31,11 @@ mod limits;
 mod metrics;
 mod multipart;
 mod octoprint;
-pub mod serve;
+pub(crate) mod serve;
 mod state;
 mod streams;
 mod upload;
-pub mod zeroconf;
+pub(crate) mod zeroconf;
 
 use crate::daemon::config::HttpConfig;
 use crate::daemon::farm::Farm;
@@ -45,9 +45,9 @@ use std::sync::Arc;
 
 /// The check of an uploaded file's name and the reading of an upload's form (exported for
 /// the fuzz targets).
-pub use appkeys::AppKeys;
-pub use error::ApiError;
-pub use limits::{
+pub(crate) use appkeys::AppKeys;
+pub(crate) use error::ApiError;
+pub(crate) use limits::{
     DEFAULT_UPLOAD_MAX_BYTES, MAX_BODY_BYTES, REQUEST_TIMEOUT, UPLOAD_IDLE_TIMEOUT, UPLOAD_TIMEOUT,
 };
 pub use octoprint::{read_form as read_upload_form, truthy, Form as UploadForm};
@@ -55,7 +55,7 @@ pub use state::{Access, AppState};
 pub use upload::{check_name as check_upload_name, upload_name, Upload};
 
 /// The whole application: pages, API, metrics and the OctoPrint subset.
-pub fn router(state: AppState) -> Router {
+pub(crate) fn router(state: AppState) -> Router {
     let (octoprint_uploads, octoprint_api, octoprint_open) = octoprint::routes();
     let uploads = Router::new()
         .route("/api/v1/folders/{folder}/files/{file}", put(api::upload))
@@ -117,12 +117,12 @@ pub fn router(state: AppState) -> Router {
 }
 
 /// Binds the TCP listener of `[http] listen`.
-pub async fn bind(http: &HttpConfig) -> std::io::Result<tokio::net::TcpListener> {
+pub(crate) async fn bind(http: &HttpConfig) -> std::io::Result<tokio::net::TcpListener> {
     tokio::net::TcpListener::bind(http.listen).await
 }
 
 /// Serves the application on the control socket until `stop` fires.
-pub async fn serve_socket(
+pub(crate) async fn serve_socket(
     farm: Arc<Farm>,
     appkeys: Arc<AppKeys>,
     http: Option<HttpConfig>,
@@ -140,7 +140,7 @@ pub async fn serve_socket(
 }
 
 /// Serves the application on the TCP listener of `[http]` until `stop` fires.
-pub async fn serve_tcp(
+pub(crate) async fn serve_tcp(
     farm: Arc<Farm>,
     appkeys: Arc<AppKeys>,
     http: HttpConfig,
@@ -161,7 +161,7 @@ pub async fn serve_tcp(
 }
 
 /// Where the built-in default serves the dashboard.
-pub const DEMO_LISTEN: &str = "127.0.0.1:8080";
+pub(crate) const DEMO_LISTEN: &str = "127.0.0.1:8080";
 
 /// The demo's key file cannot be made or read.
 #[derive(Debug, thiserror::Error)]

@@ -9,7 +9,7 @@
 use axum::body::Bytes;
 
 /// Largest header block of one part (`Content-Disposition`, `Content-Type`).
-pub const MAX_PART_HEAD_BYTES: usize = 8 * 1024;
+pub(crate) const MAX_PART_HEAD_BYTES: usize = 8 * 1024;
 /// Largest preamble before the first delimiter (clients send none).
 const MAX_PREAMBLE_BYTES: usize = 4 * 1024;
 /// Most headers in one part.
@@ -19,7 +19,7 @@ const MAX_BOUNDARY: usize = 70;
 
 /// Why a body is not a readable multipart form.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum MultipartError {
+pub(crate) enum MultipartError {
     #[error("the Content-Type is not multipart/form-data with a boundary of 1 to 70 characters")]
     NotMultipart,
     #[error("more than {MAX_PREAMBLE_BYTES} bytes before the first boundary")]
@@ -34,7 +34,7 @@ pub enum MultipartError {
 
 /// The name and file name a part's `Content-Disposition` gives.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct PartHead {
+pub(crate) struct PartHead {
     pub name: String,
     pub file_name: Option<String>,
 }
@@ -64,7 +64,7 @@ enum Stage {
 /// The parser: [`Parser::push`] bytes, take [`Parser::next`] events until it answers
 /// `Ok(None)` (wants more), and call [`Parser::finish`] at the end of the body.
 #[derive(Debug)]
-pub struct Parser {
+pub(crate) struct Parser {
     /// `\r\n--boundary`: the body is read as if it began with `\r\n`, so the first
     /// delimiter looks like every other.
     delimiter: Vec<u8>,
@@ -74,7 +74,7 @@ pub struct Parser {
 }
 
 /// The boundary of a `multipart/form-data` Content-Type.
-pub fn boundary(content_type: &str) -> Result<String, MultipartError> {
+pub(crate) fn boundary(content_type: &str) -> Result<String, MultipartError> {
     let mut parts = content_type.split(';');
     let kind = parts.next().unwrap_or("").trim();
     if !kind.eq_ignore_ascii_case("multipart/form-data") {
@@ -103,7 +103,7 @@ pub fn boundary(content_type: &str) -> Result<String, MultipartError> {
 }
 
 impl Parser {
-    pub fn new(boundary: &str) -> Parser {
+    pub(crate) fn new(boundary: &str) -> Parser {
         Parser {
             delimiter: [b"\r\n--", boundary.as_bytes()].concat(),
             buf: b"\r\n".to_vec(),
@@ -113,17 +113,17 @@ impl Parser {
     }
 
     /// More of the body.
-    pub fn push(&mut self, bytes: &[u8]) {
+    pub(crate) fn push(&mut self, bytes: &[u8]) {
         self.buf.extend_from_slice(bytes);
     }
 
     /// The body has ended.
-    pub fn finish(&mut self) {
+    pub(crate) fn finish(&mut self) {
         self.eof = true;
     }
 
     /// The next event; `Ok(None)` when more of the body is needed first.
-    pub fn next(&mut self) -> Result<Option<Event>, MultipartError> {
+    pub(crate) fn next(&mut self) -> Result<Option<Event>, MultipartError> {
         loop {
             match self.stage {
                 Stage::Done => return Ok(Some(Event::End)),

@@ -26,7 +26,7 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio_util::sync::CancellationToken;
 
 /// Largest request head (request line and headers) read into memory.
-pub const MAX_HEAD_BYTES: usize = 64 * 1024;
+pub(crate) const MAX_HEAD_BYTES: usize = 64 * 1024;
 
 /// The bounds of one listener.
 #[derive(Debug, Clone, Copy)]
@@ -51,10 +51,10 @@ impl Default for Limits {
 /// The address a request came from (TCP; none on the control socket), for the per-client
 /// caps of the handlers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ClientAddr(pub Option<IpAddr>);
+pub(crate) struct ClientAddr(pub Option<IpAddr>);
 
 /// A listening socket: TCP or unix.
-pub trait Incoming: Send + 'static {
+pub(crate) trait Incoming: Send + 'static {
     type Io: AsyncRead + AsyncWrite + Unpin + Send + 'static;
     fn accept_io(&self) -> impl Future<Output = io::Result<(Self::Io, ClientAddr)>> + Send;
 }
@@ -185,7 +185,7 @@ impl http_body::Body for MarkedBody {
 
 /// Serves `app` on `listener` until `stop` fires; connections still open then are asked
 /// to finish their current response (a few seconds at most) and closed.
-pub async fn serve<L: Incoming>(
+pub(crate) async fn serve<L: Incoming>(
     listener: L,
     app: Router,
     limits: Limits,

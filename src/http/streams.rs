@@ -10,11 +10,11 @@ use std::net::IpAddr;
 use std::sync::{Arc, Mutex};
 
 /// Streams without the key from one client address.
-pub const MAX_STREAMS_PER_CLIENT: usize = 8;
+pub(crate) const MAX_STREAMS_PER_CLIENT: usize = 8;
 /// Streams without the key in all.
-pub const MAX_STREAMS_WITHOUT_KEY: usize = 32;
+pub(crate) const MAX_STREAMS_WITHOUT_KEY: usize = 32;
 /// Streams in all (a quarter of a listener's connections).
-pub const MAX_STREAMS: usize = 64;
+pub(crate) const MAX_STREAMS: usize = 64;
 
 /// The open event streams of one listener.
 #[derive(Debug, Default)]
@@ -28,7 +28,7 @@ struct Counts {
 }
 
 /// One open stream; closing it (dropping this) frees its place.
-pub struct StreamPlace {
+pub(crate) struct StreamPlace {
     streams: Arc<Streams>,
     client: Option<Option<IpAddr>>,
 }
@@ -51,7 +51,7 @@ impl Drop for StreamPlace {
 
 impl Streams {
     /// A place for one more stream from `client`, if the caps allow it.
-    pub fn open(
+    pub(crate) fn open(
         self: &Arc<Self>,
         client: Option<IpAddr>,
         keyed: bool,

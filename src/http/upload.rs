@@ -17,7 +17,7 @@ use tokio::io::AsyncWriteExt;
 const MAX_NAME_BYTES: usize = 200;
 
 /// A hot folder's name as the API shows it: the last component of its path.
-pub fn folder_name(folder: &FolderConfig) -> String {
+pub(crate) fn folder_name(folder: &FolderConfig) -> String {
     folder
         .path
         .file_name()
@@ -26,7 +26,10 @@ pub fn folder_name(folder: &FolderConfig) -> String {
 }
 
 /// The hot folder called `name`.
-pub fn find_folder<'a>(config: &'a Config, name: &str) -> Result<&'a FolderConfig, ApiError> {
+pub(crate) fn find_folder<'a>(
+    config: &'a Config,
+    name: &str,
+) -> Result<&'a FolderConfig, ApiError> {
     let names = || {
         config
             .folders
@@ -133,7 +136,7 @@ pub fn check_name(name: &str) -> Result<Upload, ApiError> {
 }
 
 /// Streams `body` into `folder/name`, at most `max` bytes. Returns the path and the size.
-pub async fn store<S, E>(
+pub(crate) async fn store<S, E>(
     folder: &Path,
     name: &str,
     body: S,
@@ -150,7 +153,7 @@ where
 
 /// An upload received whole into its hidden temporary file in the hot folder, not yet
 /// under its name; the temporary file is removed when this is dropped.
-pub struct Received {
+pub(crate) struct Received {
     temp: PathBuf,
     target: PathBuf,
     pub size: u64,
@@ -164,14 +167,14 @@ impl Drop for Received {
 
 impl Received {
     /// Links the file to its name, which fails rather than replace a file already there.
-    pub async fn place(self) -> Result<PathBuf, ApiError> {
+    pub(crate) async fn place(self) -> Result<PathBuf, ApiError> {
         place_with_sidecar(self, None).await
     }
 
     /// Moves the received file to another hot folder (an OctoPrint form whose `path`
     /// came after its file): linked to a new temporary name there, or copied (and
     /// synced) when the folders are on different file systems.
-    pub async fn relocate(self, folder: &Path) -> Result<Received, ApiError> {
+    pub(crate) async fn relocate(self, folder: &Path) -> Result<Received, ApiError> {
         let name = self
             .target
             .file_name()
@@ -244,7 +247,7 @@ impl Received {
 /// thread: the pick-up takes a file only once it has settled, so it finds the sidecar with
 /// its model, never alone. Nothing is linked when the model's name is taken; a sidecar
 /// linked for a model that then cannot be is removed again.
-pub async fn place_with_sidecar(
+pub(crate) async fn place_with_sidecar(
     model: Received,
     sidecar: Option<Received>,
 ) -> Result<PathBuf, ApiError> {
@@ -286,7 +289,7 @@ fn io_error(target: &Path, what: &str, e: std::io::Error) -> ApiError {
 }
 
 /// Streams `body` into a hidden temporary file in `folder`, at most `max` bytes, synced.
-pub async fn receive<S, E>(
+pub(crate) async fn receive<S, E>(
     folder: &Path,
     name: &str,
     body: S,

@@ -14,17 +14,17 @@
 use crate::daemon::config::Config;
 
 /// The service type OctoPrint announces.
-pub const SERVICE_TYPE: &str = "_octoprint._tcp.local.";
+pub(crate) const SERVICE_TYPE: &str = "_octoprint._tcp.local.";
 /// A DNS label's bound, which the instance name must keep.
 const MAX_LABEL_BYTES: usize = 63;
 
 /// The announcement failed (no multicast socket, a name refused).
 #[derive(Debug, thiserror::Error)]
 #[error("zeroconf: {0}")]
-pub struct ZeroconfError(String);
+pub(crate) struct ZeroconfError(String);
 
 /// The announcements in force; withdrawn when dropped.
-pub struct Announcer {
+pub(crate) struct Announcer {
     daemon: mdns_sd::ServiceDaemon,
     names: Vec<String>,
 }
@@ -39,7 +39,7 @@ impl Drop for Announcer {
 }
 
 /// "crispen: <folder>", cut to a DNS label's length on a character boundary.
-pub fn instance_name(folder: &str) -> String {
+pub(crate) fn instance_name(folder: &str) -> String {
     let mut name = format!("crispen: {folder}");
     while name.len() > MAX_LABEL_BYTES {
         name.pop();
@@ -49,7 +49,7 @@ pub fn instance_name(folder: &str) -> String {
 
 /// Announces every hot folder of `config` for the listener on `listen` (its real port).
 /// None when `[http] announce` is off or there is no `[http]`.
-pub fn announce(
+pub(crate) fn announce(
     config: &Config,
     listen: std::net::SocketAddr,
 ) -> Result<Option<Announcer>, ZeroconfError> {

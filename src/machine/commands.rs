@@ -11,7 +11,7 @@ use crate::marlin::firmware::Firmware;
 
 /// What the policy does with a command.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Class {
+pub(crate) enum Class {
     /// Sent as written: it changes nothing a job's checks need, nothing beyond the job.
     Allowed,
     /// Sent once the checks pass: moves and positions (followed), temperatures and tools
@@ -37,7 +37,7 @@ const UNFOLLOWED: &str = "moves the head where the motion checks cannot follow i
 
 /// Marlin 2.1's commands (its `GcodeSuite::process_parsed_command`), each with its class.
 /// Marlin 2.0 knows a subset; a command it lacks is answered `Unknown command`.
-pub const MARLIN2: &[(&str, Class)] = &[
+pub(crate) const MARLIN2: &[(&str, Class)] = &[
     ("G0", Checked),
     ("G1", Checked),
     ("G2", Checked),
@@ -311,7 +311,7 @@ pub const MARLIN2: &[(&str, Class)] = &[
 /// its own `M605`/`M606` (store and recall the print settings) and `M923` (start an SD
 /// file); its display commands `M10000`-`M10010` are past the numbers read alike, so the
 /// reader refuses them. The rest it shares, or answers `Unknown command`.
-pub const ULTIMAKER2: &[(&str, Class)] = &[
+pub(crate) const ULTIMAKER2: &[(&str, Class)] = &[
     (
         "M605",
         Guarded("stores the print settings, which the next M606 restores"),
@@ -325,7 +325,7 @@ pub const ULTIMAKER2: &[(&str, Class)] = &[
 
 /// The class of `code` (`G1`, `M104`, `T3`) on `firmware`; `None` for a command the table
 /// does not know.
-pub fn classify(firmware: Firmware, code: &str) -> Option<Class> {
+pub(crate) fn classify(firmware: Firmware, code: &str) -> Option<Class> {
     if code.starts_with('T') {
         return Some(Checked);
     }
@@ -342,7 +342,7 @@ pub fn classify(firmware: Firmware, code: &str) -> Option<Class> {
 
 /// Whether `code` (upper case) is a command a machine may allow: one the table guards,
 /// or one it does not know (a vendor's own command).
-pub fn allowable(code: &str) -> bool {
+pub(crate) fn allowable(code: &str) -> bool {
     let plain = code.len() > 1
         && matches!(code.as_bytes()[0], b'G' | b'M')
         && code[1..].bytes().all(|b| b.is_ascii_digit())
@@ -354,7 +354,7 @@ pub fn allowable(code: &str) -> bool {
 }
 
 /// The commands the table guards, for messages.
-pub fn guarded() -> impl Iterator<Item = &'static str> {
+pub(crate) fn guarded() -> impl Iterator<Item = &'static str> {
     MARLIN2
         .iter()
         .chain(ULTIMAKER2)
@@ -363,7 +363,8 @@ pub fn guarded() -> impl Iterator<Item = &'static str> {
 }
 
 /// The table as Markdown, as docs/gcode-policy.md shows it (a test keeps the two equal).
-pub fn markdown() -> String {
+#[cfg(test)]
+pub(crate) fn markdown() -> String {
     let mut out =
         String::from("| Command | Marlin 2 | Ultimaker2Marlin | Why |\n|---|---|---|---|\n");
     let name = |class: Option<Class>| match class {

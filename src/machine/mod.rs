@@ -11,7 +11,7 @@
 //! define: this module builds on `marlin`, never the other way round, and `slice` builds
 //! on this one.
 
-pub mod commands;
+pub(crate) mod commands;
 
 use crate::marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};
@@ -57,11 +57,11 @@ pub struct Machine {
 }
 
 /// Room kept free around the model on each side, for the skirt the profiles print.
-pub const SKIRT_MARGIN_MM: f64 = 5.0;
+pub(crate) const SKIRT_MARGIN_MM: f64 = 5.0;
 
 impl Machine {
     /// The box a model must fit in on this bed (X, Y, Z), keeping room for the skirt.
-    pub fn fits_mm(&self) -> [f64; 3] {
+    pub(crate) fn fits_mm(&self) -> [f64; 3] {
         [
             self.bed_mm[0] - 2.0 * SKIRT_MARGIN_MM,
             self.bed_mm[1] - 2.0 * SKIRT_MARGIN_MM,
@@ -112,7 +112,7 @@ impl Machine {
 
 /// The machine of a `marlin2`/`marlin20` printer whose config names none: a common
 /// 1.75 mm bed-slinger (220 x 220 x 250 mm, 0.4 mm nozzle, heated bed).
-pub const DEFAULT_MARLIN_MACHINE: &str = "marlin-175";
+pub(crate) const DEFAULT_MARLIN_MACHINE: &str = "marlin-175";
 
 /// A built-in machine as data.
 #[derive(Debug, Clone, Copy)]
@@ -130,7 +130,7 @@ pub struct Builtin {
 }
 
 impl Builtin {
-    pub fn machine(&self) -> Machine {
+    pub(crate) fn machine(&self) -> Machine {
         Machine {
             name: self.name.to_string(),
             firmware: self.firmware,
@@ -242,23 +242,23 @@ pub const BUILTIN: &[Builtin] = &[
 ];
 
 /// Bounds of a machine's values.
-pub const BED_MM: std::ops::RangeInclusive<f64> = 20.0..=2000.0;
-pub const NOZZLE_MM: std::ops::RangeInclusive<f64> = 0.1..=2.0;
-pub const FILAMENT_MM: std::ops::RangeInclusive<f64> = 1.0..=3.5;
+pub(crate) const BED_MM: std::ops::RangeInclusive<f64> = 20.0..=2000.0;
+pub(crate) const NOZZLE_MM: std::ops::RangeInclusive<f64> = 0.1..=2.0;
+pub(crate) const FILAMENT_MM: std::ops::RangeInclusive<f64> = 1.0..=3.5;
 /// Bounds of the temperature limits, °C: no hotend crispen drives takes more than 450,
 /// no bed more than 200 (0: files may not heat it).
-pub const HOTEND_C: std::ops::RangeInclusive<f64> = 100.0..=450.0;
-pub const BED_C: std::ops::RangeInclusive<f64> = 0.0..=200.0;
-pub const EXTRUDERS: std::ops::RangeInclusive<u8> = 1..=8;
+pub(crate) const HOTEND_C: std::ops::RangeInclusive<f64> = 100.0..=450.0;
+pub(crate) const BED_C: std::ops::RangeInclusive<f64> = 0.0..=200.0;
+pub(crate) const EXTRUDERS: std::ops::RangeInclusive<u8> = 1..=8;
 /// The largest start or end code file read.
-pub const MAX_CODE_BYTES: u64 = 64 * 1024;
+pub(crate) const MAX_CODE_BYTES: u64 = 64 * 1024;
 /// At most this many machines in one config.
-pub const MAX_MACHINES: usize = 64;
+pub(crate) const MAX_MACHINES: usize = 64;
 
 /// A `[[machine]]` table as written in the config.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct MachineSpec {
+pub(crate) struct MachineSpec {
     pub name: String,
     /// Start from this machine (built-in or defined earlier) and change what is given.
     pub based_on: Option<String>,
@@ -288,7 +288,7 @@ pub struct MachineSpec {
 }
 
 /// Whether a name may name a machine (it becomes part of G-code file names).
-pub fn valid_name(name: &str) -> bool {
+pub(crate) fn valid_name(name: &str) -> bool {
     !name.is_empty()
         && name.len() <= 64
         && name
@@ -299,7 +299,7 @@ pub fn valid_name(name: &str) -> bool {
 impl MachineSpec {
     /// Checks the table into a machine. `known` finds a machine by name (built-in or
     /// defined earlier); `anchor` makes a path absolute. Errors name the key.
-    pub fn check(
+    pub(crate) fn check(
         self,
         known: &dyn Fn(&str) -> Option<Machine>,
         anchor: &dyn Fn(&Path) -> PathBuf,

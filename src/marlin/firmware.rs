@@ -24,7 +24,7 @@ impl Firmware {
     pub const ALL: [Firmware; 3] = [Firmware::Marlin2, Firmware::Marlin20, Firmware::Ultimaker2];
 
     /// The Marlin 2 family (2.0 and 2.1).
-    pub fn is_marlin2(self) -> bool {
+    pub(crate) fn is_marlin2(self) -> bool {
         matches!(self, Firmware::Marlin2 | Firmware::Marlin20)
     }
 
@@ -42,18 +42,18 @@ impl Firmware {
         }
     }
     /// Bytes the printer's serial receive buffer holds (Marlin's RX_BUFFER_SIZE).
-    pub fn rx_buffer_bytes(self) -> usize {
+    pub(crate) fn rx_buffer_bytes(self) -> usize {
         128
     }
     /// Command slots (Marlin's BUFSIZE).
-    pub fn command_slots(self) -> usize {
+    pub(crate) fn command_slots(self) -> usize {
         match self {
             Firmware::Marlin2 | Firmware::Marlin20 => 4,
             Firmware::Ultimaker2 => 8,
         }
     }
     /// Longest command line the firmware accepts, newline excluded (MAX_CMD_SIZE).
-    pub fn max_line_bytes(self) -> usize {
+    pub(crate) fn max_line_bytes(self) -> usize {
         96
     }
     /// `ok N<line> P<planner> B<buffer>` answers.
@@ -61,23 +61,19 @@ impl Firmware {
         matches!(self, Firmware::Marlin2)
     }
     /// `M155 S<s>` temperature autoreport (and `Cap:AUTOREPORT_TEMP:1`).
-    pub fn autoreport_temp(self) -> bool {
+    pub(crate) fn autoreport_temp(self) -> bool {
         self.is_marlin2()
     }
     /// `echo:busy: processing` keep-alives (M113).
-    pub fn busy_protocol(self) -> bool {
-        self.is_marlin2()
-    }
-    /// `Cap:` lines in the M115 answer.
-    pub fn reports_capabilities(self) -> bool {
+    pub(crate) fn busy_protocol(self) -> bool {
         self.is_marlin2()
     }
     /// M112 emergency stop and M108 break-out of heat waits (EMERGENCY_PARSER).
-    pub fn emergency_parser(self) -> bool {
+    pub(crate) fn emergency_parser(self) -> bool {
         self.is_marlin2()
     }
     /// M73 progress display.
-    pub fn progress_m73(self) -> bool {
+    pub(crate) fn progress_m73(self) -> bool {
         self.is_marlin2()
     }
     /// Whether a `Resend:` request is followed by an `ok` for the rejected line. The host
@@ -87,7 +83,7 @@ impl Firmware {
     }
     /// Ultimaker2Marlin's reader ends a line at `:` (outside comments), so a command with a
     /// colon never passes its checksum.
-    pub fn colon_ends_line(self) -> bool {
+    pub(crate) fn colon_ends_line(self) -> bool {
         matches!(self, Firmware::Ultimaker2)
     }
     /// A line numbered like the last accepted one, or one less, is ignored without any
@@ -97,12 +93,12 @@ impl Firmware {
     }
     /// The checksum covers the line only up to its first `*` (Ultimaker2Marlin; Marlin 2
     /// takes the last), so a byte corrupted into `*` can cut a line that still passes.
-    pub fn checksum_to_first_star(self) -> bool {
+    pub(crate) fn checksum_to_first_star(self) -> bool {
         matches!(self, Firmware::Ultimaker2)
     }
     /// Moves (G0–G3) are acknowledged when they enter the command queue, other commands
     /// when they finish, so `ok`s do not come in line order (Ultimaker2Marlin).
-    pub fn acks_moves_on_entry(self) -> bool {
+    pub(crate) fn acks_moves_on_entry(self) -> bool {
         matches!(self, Firmware::Ultimaker2)
     }
 }

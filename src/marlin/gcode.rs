@@ -12,25 +12,25 @@ use std::sync::Arc;
 
 /// Bytes the host adds around a command: `N<number> ` before and `*<checksum>` after.
 /// Numbers up to 9 digits cover any job; the checksum is at most 3 digits.
-pub const FRAMING_BYTES: usize = 1 + 9 + 1 + 1 + 3;
+pub(crate) const FRAMING_BYTES: usize = 1 + 9 + 1 + 1 + 3;
 
 /// The largest G-code file crispen takes: checked when a pre-sliced file is prepared and
 /// again when a job is loaded. A day-long print sliced finely is well under 200 MiB; the
 /// shared farm's database keeps files of up to 1 GiB.
-pub const MAX_GCODE_BYTES: u64 = 512 << 20;
+pub(crate) const MAX_GCODE_BYTES: u64 = 512 << 20;
 
 /// The longest line, comment included, read before a file is refused. Slicers write
 /// thumbnails and settings in comment lines of a few KiB at most.
-pub const MAX_RAW_LINE_BYTES: u64 = 1 << 20;
+pub(crate) const MAX_RAW_LINE_BYTES: u64 = 1 << 20;
 
 /// The commands that wait for a temperature (nozzle, bed, every heater): the printer
 /// answers them only once it is reached. The one list for every layer: the protocol gives
 /// them the heat timeout instead of the silence probe, and the daemon holds a print's
 /// heating permit until the last of them in the program's opening is answered.
-pub const HEAT_WAITS: [&str; 3] = ["M109", "M190", "M116"];
+pub(crate) const HEAT_WAITS: [&str; 3] = ["M109", "M190", "M116"];
 
 /// Whether a command (its first word, in any case) is one of [`HEAT_WAITS`].
-pub fn is_heat_wait(command: &str) -> bool {
+pub(crate) fn is_heat_wait(command: &str) -> bool {
     let code = command.split_whitespace().next().unwrap_or("");
     HEAT_WAITS.iter().any(|c| c.eq_ignore_ascii_case(code))
 }
@@ -41,7 +41,7 @@ pub fn is_heat_wait(command: &str) -> bool {
 /// presses its knob (or does nothing at all where the firmware lacks it, and the pause the
 /// file wanted is lost). The host therefore never sends them: it pauses the printer itself
 /// at that point and waits for the operator (see `super::pause`).
-pub const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
+pub(crate) const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
 
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
@@ -117,7 +117,7 @@ pub struct GcodeCommands {
 
 impl GcodeCommands {
     /// Pack commands; `None` if they hold more than [`MAX_GCODE_BYTES`] of text.
-    pub fn pack<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Option<Self> {
+    pub(crate) fn pack<S: AsRef<str>>(commands: impl IntoIterator<Item = S>) -> Option<Self> {
         let mut text = String::new();
         let mut lens = SmallSeq::default();
         for command in commands {
@@ -146,7 +146,7 @@ impl GcodeCommands {
 
     /// Commands `range` of these, sharing the same buffers (no copy): the parts of a job
     /// between the pauses its file asks for are streamed one after the other.
-    pub fn part(&self, range: std::ops::Range<usize>) -> GcodeCommands {
+    pub(crate) fn part(&self, range: std::ops::Range<usize>) -> GcodeCommands {
         let end = range.end.min(self.count);
         let start = range.start.min(end);
         let first = self.first + start;
@@ -164,14 +164,14 @@ impl GcodeCommands {
         }
     }
 
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.count
     }
-    pub fn is_empty(&self) -> bool {
+    pub(crate) fn is_empty(&self) -> bool {
         self.count == 0
     }
     /// Command `index` (0-based), or `None` past the end.
-    pub fn get(&self, index: usize) -> Option<&str> {
+    pub(crate) fn get(&self, index: usize) -> Option<&str> {
         if index >= self.len() {
             return None;
         }
@@ -180,7 +180,7 @@ impl GcodeCommands {
         let end = start + self.lens.get(at) as usize;
         Some(&self.text[start..end])
     }
-    pub fn iter(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
+    pub(crate) fn iter(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
         let mut start = self.first_byte;
         (self.first..self.first + self.count).map(move |i| {
             let end = start + self.lens.get(i) as usize;
@@ -190,7 +190,7 @@ impl GcodeCommands {
         })
     }
     /// Owned copies of all commands (tests and small jobs only: this undoes the packing).
-    pub fn to_vec(&self) -> Vec<String> {
+    pub(crate) fn to_vec(&self) -> Vec<String> {
         self.iter().map(str::to_owned).collect()
     }
 }
@@ -290,7 +290,8 @@ pub struct GcodeProgram {
 
 impl GcodeProgram {
     /// Load a file that must suit every supported firmware.
-    pub fn load(path: &Path) -> Result<Self, GcodeError> {
+    #[cfg(test)]
+    pub(crate) fn load(path: &Path) -> Result<Self, GcodeError> {
         let mut program = None;
         for firmware in Firmware::ALL {
             program = Some(Self::load_for(path, firmware)?);
@@ -432,7 +433,7 @@ impl GcodeProgram {
         }
     }
 
-    pub fn name(&self) -> &str {
+    pub(crate) fn name(&self) -> &str {
         &self.name
     }
     pub fn len(&self) -> usize {
@@ -445,7 +446,8 @@ impl GcodeProgram {
         &self.commands
     }
     /// Command `index` (0-based), or `None` past the end.
-    pub fn command(&self, index: usize) -> Option<&str> {
+    #[cfg(test)]
+    pub(crate) fn command(&self, index: usize) -> Option<&str> {
         self.commands.get(index)
     }
     pub fn iter(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
@@ -456,7 +458,7 @@ impl GcodeProgram {
         self.commands.to_vec()
     }
     /// The commands as a shared handle (no copy), for the protocol core.
-    pub fn shared_commands(&self) -> GcodeCommands {
+    pub(crate) fn shared_commands(&self) -> GcodeCommands {
         self.commands.clone()
     }
     /// The 1-based line in the source file of command `index` (0-based).

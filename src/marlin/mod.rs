@@ -17,4 +17,4 @@ pub mod protocol;
 pub mod reader;
 pub mod sim;
 pub mod stream;
-pub mod transport;
+pub(crate) mod transport;

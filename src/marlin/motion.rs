@@ -22,7 +22,7 @@
 use crate::marlin::firmware::Firmware;
 use std::f64::consts::{FRAC_PI_2, TAU};
 
-pub use crate::marlin::reader::{Command, Word};
+pub(crate) use crate::marlin::reader::Command;
 
 /// A command the follower cannot follow for certain; the text says what and why.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -43,20 +43,20 @@ pub struct Move {
 
 impl Move {
     /// Filament pushed (negative: retracted), mm.
-    pub fn extruded(&self) -> f64 {
+    pub(crate) fn extruded(&self) -> f64 {
         self.to[3] - self.from[3]
     }
-    pub fn moves_xy(&self) -> bool {
+    pub(crate) fn moves_xy(&self) -> bool {
         self.to[0] != self.from[0] || self.to[1] != self.from[1] || self.curved
     }
-    pub fn moves_xyz(&self) -> bool {
+    pub(crate) fn moves_xyz(&self) -> bool {
         self.moves_xy() || self.to[2] != self.from[2]
     }
 }
 
 /// Where the first axis of `lo..hi` leaves `0..bed` (with `edge` allowance), if any; a
 /// coordinate that is no number counts as outside.
-pub fn outside(lo: [f64; 3], hi: [f64; 3], bed: [f64; 3], edge: f64) -> Option<usize> {
+pub(crate) fn outside(lo: [f64; 3], hi: [f64; 3], bed: [f64; 3], edge: f64) -> Option<usize> {
     (0..3).find(|&k| !(lo[k] >= -edge && hi[k] <= bed[k] + edge))
 }
 
@@ -121,7 +121,7 @@ impl Motion {
 
     /// Whether E moves are relative: `M83`, or on Marlin 2 a `G91` not followed by `M82`;
     /// on Ultimaker2Marlin (Marlin 1) `G91` makes E relative whatever `M82` said.
-    pub fn e_relative(&self) -> bool {
+    pub(crate) fn e_relative(&self) -> bool {
         match self.firmware {
             Firmware::Ultimaker2 => !self.absolute || !self.absolute_e,
             Firmware::Marlin2 | Firmware::Marlin20 => !self.absolute_e,
@@ -130,7 +130,7 @@ impl Motion {
 
     /// The commands that put the firmware back into the file's modes (positioning and E),
     /// after a host's own lines changed them.
-    pub fn mode_commands(&self) -> [&'static str; 2] {
+    pub(crate) fn mode_commands(&self) -> [&'static str; 2] {
         [
             if self.absolute { "G90" } else { "G91" },
             if self.absolute_e { "M82" } else { "M83" },
@@ -138,13 +138,13 @@ impl Motion {
     }
 
     /// Machine X, Y, Z, where the file has said where the head is (see [`Motion::new`]).
-    pub fn known_machine_position(&self) -> Option<[f64; 3]> {
+    pub(crate) fn known_machine_position(&self) -> Option<[f64; 3]> {
         (self.known[0] && self.known[1] && self.known[2]).then_some(self.native)
     }
 
     /// Where the head is in the file's own coordinates (what a `G90` move in the file
     /// names), per axis where known; E the file's.
-    pub fn file_position(&self) -> [Option<f64>; 4] {
+    pub(crate) fn file_position(&self) -> [Option<f64>; 4] {
         std::array::from_fn(|k| match k {
             3 => self.known[3].then_some(self.e),
             _ => (self.known[k] && self.shift_known[k]).then(|| self.native[k] + self.offset(k)),
@@ -157,7 +157,7 @@ impl Motion {
     }
 
     /// The last feed rate a move gave, mm/min.
-    pub fn feed(&self) -> Option<f64> {
+    pub(crate) fn feed(&self) -> Option<f64> {
         self.feed
     }
 

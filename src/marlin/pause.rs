@@ -55,7 +55,7 @@ pub fn find_pauses(commands: &GcodeCommands) -> Vec<FilePause> {
 /// own text (`M0 Insert magnets`), or else the last message shown before it, or else what
 /// the command is for. `None` for any other command. The host's pauses and the G-code
 /// policy's verdict both read pauses with this, so they name the same ones.
-pub fn pause_message(cmd: &Command, shown: &mut Option<String>) -> Option<String> {
+pub(crate) fn pause_message(cmd: &Command, shown: &mut Option<String>) -> Option<String> {
     if cmd.code == "M117" {
         // An empty M117 clears the display.
         *shown = (!cmd.rest.is_empty()).then(|| cmd.rest.to_string());
@@ -123,8 +123,8 @@ pub struct PauseSettings {
 impl PauseSettings {
     /// The lift, and where the head parks: X at its minimum, Y at its maximum (a bed-slinger
     /// brings the print forward to the operator; the head is clear of it either way).
-    pub const DEFAULT_LIFT_MM: f64 = 10.0;
-    pub const DEFAULT_HEATERS_OFF_AFTER: std::time::Duration =
+    pub(crate) const DEFAULT_LIFT_MM: f64 = 10.0;
+    pub(crate) const DEFAULT_HEATERS_OFF_AFTER: std::time::Duration =
         std::time::Duration::from_secs(30 * 60);
 
     pub fn new(volume_mm: [f64; 3]) -> PauseSettings {
@@ -198,7 +198,7 @@ pub fn park_lines(settings: &PauseSettings, motion: &Motion) -> Option<Vec<Strin
 
 /// The lines that turn the heaters off during a long pause (the fan and motors stay on:
 /// the motors keep the head's position for the resume).
-pub fn heaters_off_lines() -> Vec<String> {
+pub(crate) fn heaters_off_lines() -> Vec<String> {
     vec!["M104 S0".to_string(), "M140 S0".to_string()]
 }
 

@@ -155,14 +155,12 @@ impl Host {
         )
     }
 
-    pub fn options(&self) -> &ProtocolOptions {
+    #[cfg(test)]
+    pub(crate) fn options(&self) -> &ProtocolOptions {
         &self.opts
     }
-    pub fn firmware_info(&self) -> &FirmwareInfo {
-        &self.info
-    }
     /// Handshake done and no job running.
-    pub fn is_idle(&self) -> bool {
+    pub(crate) fn is_idle(&self) -> bool {
         self.phase == Phase::Idle
     }
     /// A failure or the end of a job was reported; nothing more will be sent.
@@ -179,7 +177,7 @@ impl Host {
     /// was sent and is not known to have ended: by an `ok` right after its `W:` reports (the
     /// firmware reads nothing while it waits), by an answer confirming a later line, or,
     /// where `ok`s keep line order, by its own `ok`.
-    pub fn heating(&self) -> bool {
+    pub(crate) fn heating(&self) -> bool {
         self.thermal.heat_reported || self.thermal.heat.is_some() || self.heat_at_front()
     }
 
@@ -191,20 +189,20 @@ impl Host {
     pub fn acked_job_lines(&self) -> usize {
         self.acked_job
     }
-    pub fn temperatures(&self) -> Temperatures {
+    pub(crate) fn temperatures(&self) -> Temperatures {
         self.thermal.temps
     }
-    pub fn lines_sent(&self) -> u64 {
-        self.stats.lines_sent
-    }
-    pub fn resends(&self) -> u64 {
+    #[cfg(test)]
+    pub(crate) fn resends(&self) -> u64 {
         self.stats.resends
     }
-    pub fn fragments(&self) -> u64 {
+    #[cfg(test)]
+    pub(crate) fn fragments(&self) -> u64 {
         self.stats.fragments
     }
     /// Whether the firmware was seen to send an `ok` after `Resend:` (None: not known yet).
-    pub fn ok_after_resend(&self) -> Option<bool> {
+    #[cfg(test)]
+    pub(crate) fn ok_after_resend(&self) -> Option<bool> {
         self.recovery.resend_ok.known()
     }
 
@@ -252,7 +250,7 @@ impl Host {
 
     /// Stop the job safely: no more job lines; break heat waits where the firmware can;
     /// then heaters, fan and motors off as ordinary numbered lines.
-    pub fn cancel(&mut self, now: Instant) {
+    pub(crate) fn cancel(&mut self, now: Instant) {
         if self.in_job() && self.stopping().is_none() {
             self.phase = Phase::Job(JobPhase::Stopping(Stop::Cancel));
             // Job lines waiting to be (re)sent are never sent now; the printer expects the
@@ -264,7 +262,7 @@ impl Host {
     }
 
     /// Stop sending job lines; [`Event::Paused`] follows once the printer drained them.
-    pub fn pause(&mut self, now: Instant) {
+    pub(crate) fn pause(&mut self, now: Instant) {
         // Once every job line is answered there is nothing left to hold back.
         if self.phase == Phase::Job(JobPhase::Streaming) {
             self.phase = Phase::Job(JobPhase::Paused {
@@ -275,7 +273,7 @@ impl Host {
         }
     }
 
-    pub fn resume(&mut self, now: Instant) {
+    pub(crate) fn resume(&mut self, now: Instant) {
         if matches!(self.phase, Phase::Job(JobPhase::Paused { .. })) {
             self.phase = Phase::Job(JobPhase::Streaming);
             self.events.push_back(Event::Resumed);

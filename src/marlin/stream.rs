@@ -25,7 +25,7 @@ mod idle;
 pub use super::pause::PauseSettings;
 pub use super::protocol::{FirmwareInfo, Temp, Temperatures};
 pub use error::{PrintError, StopOutcome};
-pub use idle::Idle;
+pub(crate) use idle::Idle;
 
 use idle::IdleWatch;
 
@@ -165,12 +165,6 @@ impl Connection {
     pub fn firmware_info(&self) -> &FirmwareInfo {
         &self.info
     }
-    pub fn port(&self) -> &Path {
-        &self.port
-    }
-    pub fn options(&self) -> &StreamOptions {
-        &self.opts
-    }
 
     /// Read and log what the printer says between jobs (temperature reports, `start` after
     /// a power cycle, host actions, messages) for up to `duration`, asking for its
@@ -178,7 +172,7 @@ impl Connection {
     /// [`Idle::Rebooted`] when the printer says `start`, with [`Idle::Temperatures`] on a
     /// report, with [`Idle::Silent`] once reports stop, and with an error if the link
     /// closes. Cancel-safe: the daemon races it against a bed being cleared.
-    pub async fn idle_for(&mut self, duration: Duration) -> Result<Idle, PrintError> {
+    pub(crate) async fn idle_for(&mut self, duration: Duration) -> Result<Idle, PrintError> {
         let until = tokio::time::Instant::now() + duration;
         let interval = self.opts.protocol.temperature_interval;
         let answer_wait = self.opts.protocol.silence_probe;

@@ -27,15 +27,14 @@ pub enum TransportError {
 
 /// What the port delivered.
 #[derive(Debug)]
-pub enum LinkEvent {
+pub(crate) enum LinkEvent {
     Data(Vec<u8>),
     /// The port is gone (EOF, EIO, unplugged); carries the reason.
     Closed(String),
 }
 
 /// An open serial link. Must be opened and used inside a tokio runtime with I/O enabled.
-pub struct Transport {
-    port: PathBuf,
+pub(crate) struct Transport {
     fd: AsyncFd<Port>,
     /// Bytes queued for the printer that the port has not taken yet (its output buffer is
     /// full when the printer stops reading).
@@ -48,7 +47,7 @@ pub struct Transport {
 const READ_CHUNK: usize = 4096;
 
 impl Transport {
-    pub fn open(port: &Path, baud: u32) -> Result<Transport, TransportError> {
+    pub(crate) fn open(port: &Path, baud: u32) -> Result<Transport, TransportError> {
         let open_err = |message: String| TransportError::Open {
             port: port.to_path_buf(),
             message,
@@ -79,20 +78,15 @@ impl Transport {
         }
         .map_err(|e| open_err(e.to_string()))?;
         Ok(Transport {
-            port: port.to_path_buf(),
             fd,
             outgoing: Vec::new(),
             failed: None,
         })
     }
 
-    pub fn port(&self) -> &Path {
-        &self.port
-    }
-
     /// Queue bytes for the printer and write what the port takes now; the rest goes out
     /// from [`Transport::recv`]. Errors show up there as [`LinkEvent::Closed`].
-    pub fn send(&mut self, bytes: Vec<u8>) {
+    pub(crate) fn send(&mut self, bytes: Vec<u8>) {
         if self.failed.is_some() {
             return;
         }
@@ -105,7 +99,7 @@ impl Transport {
     }
 
     /// A chunk already received, without waiting.
-    pub fn try_recv(&mut self) -> Option<LinkEvent> {
+    pub(crate) fn try_recv(&mut self) -> Option<LinkEvent> {
         if let Some(reason) = self.failed.take() {
             return Some(LinkEvent::Closed(reason));
         }
@@ -114,7 +108,7 @@ impl Transport {
 
     /// The next chunk from the printer, or `Closed`; writes queued bytes meanwhile.
     /// Cancel-safe: nothing is lost when another branch of a `select!` wins.
-    pub async fn recv(&mut self) -> LinkEvent {
+    pub(crate) async fn recv(&mut self) -> LinkEvent {
         loop {
             if let Some(reason) = self.failed.take() {
                 return LinkEvent::Closed(reason);

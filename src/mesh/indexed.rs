@@ -168,12 +168,12 @@ pub enum MeshError {
 }
 
 /// Parsed but not yet cleaned geometry. Indices are already validated.
-pub(crate) struct RawMesh {
+pub struct RawMesh {
     pub vertices: Vec<[f64; 3]>,
     pub faces: Vec<[u32; 3]>,
 }
 /// The (unnormalised) normal of triangle `f`: twice its area times its unit normal.
-pub(crate) fn triangle_normal(vertices: &[[f64; 3]], f: [u32; 3]) -> [f64; 3] {
+pub fn triangle_normal(vertices: &[[f64; 3]], f: [u32; 3]) -> [f64; 3] {
     let [a, b, c] = f.map(|i| vertices[i as usize]);
     let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
     let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];

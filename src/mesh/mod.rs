@@ -16,7 +16,7 @@ mod stl;
 mod threemf;
 
 pub use clean::clean;
-pub(crate) use indexed::{triangle_normal, RawMesh};
+pub use indexed::{triangle_normal, RawMesh};
 pub use indexed::{CleanReport, Limits, LoadedMesh, Mesh, MeshError, MeshFormat};
 pub use obj::write_obj;
 
@@ -29,7 +29,7 @@ pub fn load(path: &Path) -> Result<LoadedMesh, MeshError> {
 }
 
 /// [`load`] with an explicit memory budget.
-pub fn load_with_limits(path: &Path, limits: &Limits) -> Result<LoadedMesh, MeshError> {
+pub(crate) fn load_with_limits(path: &Path, limits: &Limits) -> Result<LoadedMesh, MeshError> {
     let source_name = path.display().to_string();
     let file = std::fs::File::open(path).map_err(|source| MeshError::Io {
         source_name: source_name.clone(),

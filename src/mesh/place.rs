@@ -35,7 +35,7 @@ impl std::str::FromStr for UpAxis {
 }
 
 /// A right-handed turn about X by +90°: the model's Y axis becomes Z (up), Z becomes -Y.
-pub fn turn_y_up(mesh: &mut Mesh) {
+pub(crate) fn turn_y_up(mesh: &mut Mesh) {
     for v in &mut mesh.vertices {
         *v = [v[0], -v[2], v[1]];
     }
@@ -91,7 +91,7 @@ pub fn place_on_bed(
 /// Whether a placed model of `size_mm` (X, Y, Z) fits `fits_mm`: placement is the same
 /// on every bed (centred, at the printed height), so one placed mesh is checked against
 /// each machine's bed.
-pub fn check_fits(size_mm: [f64; 3], fits_mm: [f64; 3]) -> Result<(), PlaceError> {
+pub(crate) fn check_fits(size_mm: [f64; 3], fits_mm: [f64; 3]) -> Result<(), PlaceError> {
     if (0..3).any(|k| !(size_mm[k] <= fits_mm[k] + 1e-9)) {
         return Err(PlaceError::TooBig {
             size_mm,

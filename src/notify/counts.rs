@@ -7,7 +7,7 @@ use std::sync::Mutex;
 
 /// What became of one attempt or event.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum Outcome {
+pub(crate) enum Outcome {
     /// The receiver took it (a 2xx answer).
     Delivered,
     /// An attempt failed (no answer, or an error answer); the event is retried.
@@ -18,9 +18,9 @@ pub enum Outcome {
 }
 
 impl Outcome {
-    pub const ALL: [Outcome; 3] = [Outcome::Delivered, Outcome::Error, Outcome::Dropped];
+    pub(crate) const ALL: [Outcome; 3] = [Outcome::Delivered, Outcome::Error, Outcome::Dropped];
 
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Outcome::Delivered => "delivered",
             Outcome::Error => "error",
@@ -36,19 +36,19 @@ fn counts() -> std::sync::MutexGuard<'static, BTreeMap<(String, Outcome), u64>> 
 }
 
 /// Shows `receiver`'s counters from zero (a series that exists before its first event).
-pub fn register(receiver: &str) {
+pub(crate) fn register(receiver: &str) {
     let mut c = counts();
     for o in Outcome::ALL {
         c.entry((receiver.to_string(), o)).or_insert(0);
     }
 }
 
-pub fn count(receiver: &str, outcome: Outcome) {
+pub(crate) fn count(receiver: &str, outcome: Outcome) {
     *counts().entry((receiver.to_string(), outcome)).or_insert(0) += 1;
 }
 
 /// Every (receiver, outcome, count), by receiver.
-pub fn all() -> Vec<(String, Outcome, u64)> {
+pub(crate) fn all() -> Vec<(String, Outcome, u64)> {
     counts()
         .iter()
         .map(|((r, o), n)| (r.clone(), *o, *n))

@@ -24,7 +24,7 @@ use tokio_util::sync::CancellationToken;
 
 /// After the stop, how long receivers may still take what was queued before the daemon
 /// exits (what is left waits on disk for the next run).
-pub const GRACE: Duration = Duration::from_secs(3);
+pub(crate) const GRACE: Duration = Duration::from_secs(3);
 /// The first wait after a failed attempt; it doubles up to the receiver's `backoff_max_s`.
 const FIRST_BACKOFF: Duration = Duration::from_secs(1);
 

@@ -27,7 +27,7 @@ pub enum EventKind {
 }
 
 impl EventKind {
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             EventKind::JobDone => "job_done",
             EventKind::JobFailed => "job_failed",
@@ -43,7 +43,7 @@ impl EventKind {
     }
 
     /// A short line for people (chat messages, phone notifications' titles).
-    pub fn title(self) -> &'static str {
+    pub(crate) fn title(self) -> &'static str {
         match self {
             EventKind::JobDone => "Print done: clear the bed",
             EventKind::JobFailed => "Job failed",
@@ -59,7 +59,7 @@ impl EventKind {
     }
 
     /// Whether it asks for someone to act (ntfy's priority, tags).
-    pub fn urgent(self) -> bool {
+    pub(crate) fn urgent(self) -> bool {
         matches!(
             self,
             EventKind::JobFailed
@@ -113,7 +113,7 @@ impl Event {
     }
 
     /// The event in a sentence, for chat and phone messages.
-    pub fn text(&self) -> String {
+    pub(crate) fn text(&self) -> String {
         let mut text = self.event.title().to_string();
         if let Some(p) = &self.printer {
             text += &format!(" on {p}");

@@ -13,11 +13,11 @@
 //! A slow or dead receiver delays nothing else: the observer only writes small files and
 //! wakes the receivers' tasks, each attempt has a time limit, and each queue is bounded.
 
-pub mod counts;
-pub mod deliver;
-pub mod event;
-pub mod observe;
-pub mod outbox;
+pub(crate) mod counts;
+pub(crate) mod deliver;
+pub(crate) mod event;
+pub(crate) mod observe;
+pub(crate) mod outbox;
 pub mod wire;
 
 pub use deliver::run;

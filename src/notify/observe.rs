@@ -60,7 +60,7 @@ struct PrinterSeen {
 
 /// What the observer was last shown.
 #[derive(Debug)]
-pub struct Observer {
+pub(crate) struct Observer {
     /// This host (`[farm] host`).
     host: String,
     /// The farm is shared with other hosts (`[store]`).
@@ -75,7 +75,7 @@ pub struct Observer {
 }
 
 /// The farm as it is now, as the observer reads it.
-pub struct Look<'a, J: Iterator<Item = &'a Job>> {
+pub(crate) struct Look<'a, J: Iterator<Item = &'a Job>> {
     pub jobs: J,
     /// This host's printers.
     pub printers: &'a [PrinterStatus],
@@ -86,7 +86,7 @@ pub struct Look<'a, J: Iterator<Item = &'a Job>> {
 }
 
 impl Observer {
-    pub fn new(host: &str, shared: bool, dashboard: Option<String>) -> Observer {
+    pub(crate) fn new(host: &str, shared: bool, dashboard: Option<String>) -> Observer {
         Observer {
             host: host.to_string(),
             shared,
@@ -98,7 +98,10 @@ impl Observer {
     }
 
     /// What happened since the last look.
-    pub fn observe<'a>(&mut self, look: Look<'a, impl Iterator<Item = &'a Job>>) -> Vec<Event> {
+    pub(crate) fn observe<'a>(
+        &mut self,
+        look: Look<'a, impl Iterator<Item = &'a Job>>,
+    ) -> Vec<Event> {
         let first = self.jobs.is_none();
         let mut events = Vec::new();
         let local: BTreeSet<&str> = look.printers.iter().map(|p| p.name.as_str()).collect();

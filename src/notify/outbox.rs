@@ -10,26 +10,26 @@ use crate::fsutil::{self, WriteError};
 use std::path::{Path, PathBuf};
 
 /// Most events kept per receiver: a receiver down for long loses the oldest beyond it.
-pub const MAX_PENDING: usize = 10_000;
+pub(crate) const MAX_PENDING: usize = 10_000;
 /// Largest event file read (an event is a few hundred bytes).
 const MAX_EVENT_BYTES: u64 = 64 * 1024;
 
 #[derive(Debug, Clone)]
-pub struct Outbox {
+pub(crate) struct Outbox {
     dir: PathBuf,
 }
 
 /// An event file that cannot be read as an event (set aside as `<name>.bad`).
 #[derive(Debug, thiserror::Error)]
 #[error("notification queue: {path}: {message}")]
-pub struct BadEvent {
+pub(crate) struct BadEvent {
     pub path: PathBuf,
     pub message: String,
 }
 
 impl Outbox {
     /// The queue of `receiver` in `spool`, made if missing.
-    pub fn open(spool: &Path, receiver: &str) -> std::io::Result<Outbox> {
+    pub(crate) fn open(spool: &Path, receiver: &str) -> std::io::Result<Outbox> {
         let dir = spool.join("notify").join(receiver);
         std::fs::create_dir_all(&dir).map_err(|e| {
             std::io::Error::new(e.kind(), format!("cannot make {}: {e}", dir.display()))
@@ -37,12 +37,12 @@ impl Outbox {
         Ok(Outbox { dir })
     }
 
-    pub fn dir(&self) -> &Path {
+    pub(crate) fn dir(&self) -> &Path {
         &self.dir
     }
 
     /// Keeps `event` until it is delivered.
-    pub fn put(&self, event: &Event) -> Result<(), WriteError> {
+    pub(crate) fn put(&self, event: &Event) -> Result<(), WriteError> {
         let bytes = serde_json::to_vec(event).unwrap_or_default();
         fsutil::write_atomic(&self.path(&event.id), &bytes)
     }
@@ -53,7 +53,7 @@ impl Outbox {
 
     /// The ids waiting, oldest first. Beyond [`MAX_PENDING`], the oldest are removed and
     /// returned as dropped.
-    pub fn pending(&self) -> std::io::Result<(Vec<String>, Vec<String>)> {
+    pub(crate) fn pending(&self) -> std::io::Result<(Vec<String>, Vec<String>)> {
         let mut ids: Vec<String> = std::fs::read_dir(&self.dir)?
             .filter_map(|e| e.ok())
             .filter_map(|e| {
@@ -73,7 +73,7 @@ impl Outbox {
 
     /// Reads the event `id`; one that cannot be read is set aside (renamed `.bad`) so it
     /// never blocks the queue.
-    pub fn read(&self, id: &str) -> Result<Event, BadEvent> {
+    pub(crate) fn read(&self, id: &str) -> Result<Event, BadEvent> {
         use std::io::Read;
         let path = self.path(id);
         let bad = |message: String| {
@@ -100,7 +100,7 @@ impl Outbox {
 
     /// Forgets a delivered (or dropped) event. Not synced: a removal lost in a crash sends
     /// the event again, which at-least-once delivery allows.
-    pub fn remove(&self, id: &str) -> std::io::Result<()> {
+    pub(crate) fn remove(&self, id: &str) -> std::io::Result<()> {
         match std::fs::remove_file(self.path(id)) {
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
             _ => Ok(()),

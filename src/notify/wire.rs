@@ -13,7 +13,7 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
 
 /// The part of an answer kept (shown by `crispen notify test`, logged on a failure).
-pub const MAX_ANSWER_BYTES: usize = 4096;
+pub(crate) const MAX_ANSWER_BYTES: usize = 4096;
 /// Discord refuses longer messages.
 const DISCORD_MAX_CHARS: usize = 2000;
 
@@ -33,7 +33,7 @@ impl Answer {
     /// An answer that will not change on a retry (a wrong URL, a refused body): the
     /// event is dropped at once. Timeouts (408), rate limits (429) and server errors are
     /// retried.
-    pub fn permanent(&self) -> bool {
+    pub(crate) fn permanent(&self) -> bool {
         (400..500).contains(&self.status) && self.status != 408 && self.status != 429
     }
 }
@@ -56,7 +56,7 @@ pub enum SendError {
 }
 
 /// The body and headers of `event` for `receiver`.
-pub fn render(receiver: &Receiver, event: &Event) -> (Vec<u8>, Vec<(&'static str, String)>) {
+pub(crate) fn render(receiver: &Receiver, event: &Event) -> (Vec<u8>, Vec<(&'static str, String)>) {
     let mut headers = vec![
         ("x-crispen-event", event.event.name().to_string()),
         ("x-crispen-id", event.id.clone()),
@@ -123,7 +123,7 @@ fn slack_escape(text: &str) -> String {
 }
 
 /// HMAC-SHA256 of `body` with `secret`, in lower-case hex.
-pub fn sign(secret: &[u8], body: &[u8]) -> String {
+pub(crate) fn sign(secret: &[u8], body: &[u8]) -> String {
     use hmac::{KeyInit, Mac};
     let mut mac =
         hmac::Hmac::<sha2::Sha256>::new_from_slice(secret).expect("HMAC takes a key of any length");

@@ -11,7 +11,7 @@ pub mod probe;
 use std::path::{Path, PathBuf};
 
 /// The folder udev fills with one stable link per serial device, under a `/dev` folder.
-pub const BY_ID: &str = "serial/by-id";
+pub(crate) const BY_ID: &str = "serial/by-id";
 
 /// One serial device.
 #[derive(Debug, Clone, PartialEq)]
@@ -65,7 +65,7 @@ pub fn list(dev_dir: &Path, all: bool) -> Result<Vec<SerialDevice>, ListError> {
 }
 
 /// The links in a by-id folder and the device each resolves to (None: dangling).
-pub fn by_id_links(by_id_dir: &Path) -> Vec<(PathBuf, Option<PathBuf>)> {
+pub(crate) fn by_id_links(by_id_dir: &Path) -> Vec<(PathBuf, Option<PathBuf>)> {
     let Ok(entries) = std::fs::read_dir(by_id_dir) else {
         return Vec::new(); // no folder: no USB serial device is plugged in
     };
@@ -82,7 +82,7 @@ pub fn by_id_links(by_id_dir: &Path) -> Vec<(PathBuf, Option<PathBuf>)> {
 }
 
 /// Joins the kernel's ports with the by-id links that point at them.
-pub fn join(
+pub(crate) fn join(
     kernel_ports: Vec<serialport::SerialPortInfo>,
     links: Vec<(PathBuf, Option<PathBuf>)>,
 ) -> Vec<SerialDevice> {
@@ -136,7 +136,7 @@ pub fn same_device(a: &Path, b: &Path) -> bool {
 
 /// The by-id link naming the same device as `port` now, looked up next to it: for
 /// `/dev/ttyACM0`, in `/dev/serial/by-id`.
-pub fn by_id_name(port: &Path) -> Option<PathBuf> {
+pub(crate) fn by_id_name(port: &Path) -> Option<PathBuf> {
     let target = std::fs::canonicalize(port).ok()?;
     let dev_dir = port.parent()?;
     by_id_links(&dev_dir.join(BY_ID))
@@ -147,7 +147,7 @@ pub fn by_id_name(port: &Path) -> Option<PathBuf> {
 
 /// Kernel names of USB serial devices, numbered in the order they appear, so the same name
 /// may mean another printer after a reboot or a re-plug.
-pub fn is_unstable_name(port: &Path) -> bool {
+pub(crate) fn is_unstable_name(port: &Path) -> bool {
     let in_by_id = port
         .parent()
         .is_some_and(|dir| dir.ends_with(BY_ID) || dir.ends_with("serial/by-path"));

@@ -13,14 +13,14 @@ use std::time::{Duration, Instant};
 /// After opening, greet once the printer has said nothing for this long. A board reset by
 /// the open stays silent in its bootloader for about a second, then prints `start` and its
 /// settings; if `start` comes after the greeting, the greeting starts over.
-pub const QUIET: Duration = Duration::from_millis(1500);
+pub(crate) const QUIET: Duration = Duration::from_millis(1500);
 /// Greet after this long even if the printer never goes quiet (temperature reports that
 /// a previous host switched on with `M155 S1` keep coming every second).
-pub const BOOT_LIMIT: Duration = Duration::from_secs(6);
+pub(crate) const BOOT_LIMIT: Duration = Duration::from_secs(6);
 /// A greeting line unanswered this long is sent again.
-pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(3);
+pub(crate) const ANSWER_TIMEOUT: Duration = Duration::from_secs(3);
 /// Greetings tried before giving up (the caller's overall timeout may end it sooner).
-pub const MAX_GREETINGS: u32 = 3;
+pub(crate) const MAX_GREETINGS: u32 = 3;
 /// Lines kept from the answer; Marlin prints a few dozen `Cap:` lines.
 const MAX_ANSWER_LINES: usize = 200;
 /// A line longer than this is noise, not firmware output.
@@ -40,7 +40,7 @@ enum Phase {
 
 /// One probe conversation.
 #[derive(Debug)]
-pub struct Probe {
+pub(crate) struct Probe {
     phase: Phase,
     /// When the current phase's timer started (last byte in Boot, the send otherwise).
     since: Instant,
@@ -59,7 +59,7 @@ pub struct Probe {
 
 impl Probe {
     /// A probe for a port opened at `now`.
-    pub fn new(now: Instant) -> Probe {
+    pub(crate) fn new(now: Instant) -> Probe {
         Probe {
             phase: Phase::Boot,
             since: now,
@@ -76,7 +76,7 @@ impl Probe {
     }
 
     /// Bytes from the printer.
-    pub fn feed(&mut self, bytes: &[u8], now: Instant) {
+    pub(crate) fn feed(&mut self, bytes: &[u8], now: Instant) {
         self.bytes_received += bytes.len();
         if self.phase == Phase::Boot {
             self.since = now;
@@ -92,7 +92,7 @@ impl Probe {
     }
 
     /// Time passed: greet after the quiet period, greet again after an unanswered one.
-    pub fn tick(&mut self, now: Instant) {
+    pub(crate) fn tick(&mut self, now: Instant) {
         let waited = now.saturating_duration_since(self.since);
         match self.phase {
             Phase::Boot if waited >= QUIET || now >= self.boot_began + BOOT_LIMIT => {
@@ -104,7 +104,7 @@ impl Probe {
     }
 
     /// When [`Probe::tick`] next has something to do.
-    pub fn next_deadline(&self) -> Option<Instant> {
+    pub(crate) fn next_deadline(&self) -> Option<Instant> {
         match self.phase {
             Phase::Boot => Some((self.since + QUIET).min(self.boot_began + BOOT_LIMIT)),
             Phase::Numbering | Phase::Asking => Some(self.since + ANSWER_TIMEOUT),
@@ -113,7 +113,7 @@ impl Probe {
     }
 
     /// Bytes to write to the port now.
-    pub fn take_outgoing(&mut self) -> Vec<u8> {
+    pub(crate) fn take_outgoing(&mut self) -> Vec<u8> {
         std::mem::take(&mut self.out)
     }
 
@@ -123,21 +123,21 @@ impl Probe {
     }
 
     /// Every greeting went unanswered.
-    pub fn gave_up(&self) -> bool {
+    pub(crate) fn gave_up(&self) -> bool {
         self.phase == Phase::GaveUp
     }
 
     /// The printer printed `start` (it was reset, most likely by the open).
-    pub fn saw_start(&self) -> bool {
+    pub(crate) fn saw_start(&self) -> bool {
         self.saw_start
     }
 
-    pub fn bytes_received(&self) -> usize {
+    pub(crate) fn bytes_received(&self) -> usize {
         self.bytes_received
     }
 
     /// Lines of printable text received (none with bytes received: likely a wrong baud rate).
-    pub fn lines_received(&self) -> usize {
+    pub(crate) fn lines_received(&self) -> usize {
         self.lines_received
     }
 

@@ -11,14 +11,14 @@
 mod raster;
 mod scene;
 pub mod thumbnail;
-pub mod walls;
+pub(crate) mod walls;
 
 use crate::mesh::place::UpAxis;
 use crate::mesh::Mesh;
 use std::path::{Path, PathBuf};
 
 pub use raster::render;
-pub(crate) use scene::{norm, normalize, sub};
+pub use scene::{norm, normalize, sub};
 pub use scene::{Camera, Image, Paint, MODEL_COLOR};
 
 /// The heat map's colours: dark blue (unmoved) through teal and green to yellow (moved
@@ -110,7 +110,7 @@ pub const DISPLACEMENT_PNG: &str = "displacement.png";
 
 /// Writes `image` to `path` as PNG, whole under a temporary name then renamed, readable
 /// by others like the job's other files.
-pub fn write_png(path: &Path, image: &Image) -> std::io::Result<()> {
+pub(crate) fn write_png(path: &Path, image: &Image) -> std::io::Result<()> {
     Ok(crate::fsutil::write_atomic(path, &image.to_png())?)
 }
 

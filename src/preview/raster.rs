@@ -41,7 +41,7 @@ pub fn render(mesh: &Mesh, camera: &Camera, paint: Paint) -> Image {
 
 /// Renders `mesh` once per paint, rasterising it only once. Faces that index outside the
 /// vertices are skipped (a mesh from the readers never has them).
-pub fn render_paints(mesh: &Mesh, camera: &Camera, paints: &[Paint]) -> Vec<Image> {
+pub(crate) fn render_paints(mesh: &Mesh, camera: &Camera, paints: &[Paint]) -> Vec<Image> {
     let (w, h) = (
         camera.width as usize * SUPERSAMPLE,
         camera.height as usize * SUPERSAMPLE,

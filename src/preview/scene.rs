@@ -95,7 +95,7 @@ impl Camera {
 
     /// The view farm tools and slicers show of a part on the bed: from the front, 30° to
     /// the right and 25° above, with the model's `up` axis up.
-    pub fn three_quarter(bounds: ([f64; 3], [f64; 3]), up: UpAxis, size: u32) -> Camera {
+    pub(crate) fn three_quarter(bounds: ([f64; 3], [f64; 3]), up: UpAxis, size: u32) -> Camera {
         let (az, el) = (30f64.to_radians(), 25f64.to_radians());
         let (side, front, height) = (az.sin() * el.cos(), az.cos() * el.cos(), el.sin());
         // Z up: the front of the bed is −Y. Y up (OBJ files): the front is +Z.
@@ -127,7 +127,7 @@ pub enum Paint<'a> {
 /// The colour of the model in the before and after pictures.
 pub const MODEL_COLOR: [f32; 3] = [0.72, 0.76, 0.82];
 
-pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+pub fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
@@ -143,11 +143,11 @@ pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     ]
 }
 
-pub(crate) fn norm(a: [f64; 3]) -> f64 {
+pub fn norm(a: [f64; 3]) -> f64 {
     dot(a, a).sqrt()
 }
 
-pub(crate) fn normalize(a: [f64; 3]) -> [f64; 3] {
+pub fn normalize(a: [f64; 3]) -> [f64; 3] {
     let n = norm(a);
     if n > 0.0 {
         a.map(|c| c / n)

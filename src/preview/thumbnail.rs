@@ -17,12 +17,12 @@ use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
 
 /// The sizes written: a large one for dashboards, a small one for lists and printer screens.
-pub const SIZES: [u32; 2] = [300, 32];
+pub(crate) const SIZES: [u32; 2] = [300, 32];
 
 const LINE_CHARS: usize = 78;
 
 /// One thumbnail block for `image`, lines ending in `\n`.
-pub fn block(image: &Image) -> String {
+pub(crate) fn block(image: &Image) -> String {
     let text = base64::engine::general_purpose::STANDARD.encode(image.to_png());
     let mut out = format!(
         ";\n; thumbnail begin {}x{} {}\n",

@@ -9,11 +9,11 @@ use std::path::{Path, PathBuf};
 
 /// Default place of Ultimaker's definitions (scripts/setup puts them there); the
 /// environment variable CRISPEN_CURA_RESOURCES overrides it.
-pub const DEFAULT_CURA_RESOURCES: &str = "/usr/local/share/crispen/cura";
+pub(crate) const DEFAULT_CURA_RESOURCES: &str = "/usr/local/share/crispen/cura";
 
 /// CuraEngine with its settings and the folder holding `definitions/` and `extruders/`.
 #[derive(Clone, Debug)]
-pub struct CuraProfile {
+pub(crate) struct CuraProfile {
     settings: Vec<(String, String)>,
     resources: PathBuf,
 }
@@ -21,7 +21,7 @@ pub struct CuraProfile {
 impl CuraProfile {
     /// Reads the profile text (`shown` names it in errors) and checks Ultimaker's
     /// definitions are installed.
-    pub fn load(text: &str, shown: &Path) -> Result<CuraProfile, SliceError> {
+    pub(crate) fn load(text: &str, shown: &Path) -> Result<CuraProfile, SliceError> {
         let settings = parse_cura_toml(text).map_err(|reason| SliceError::BadProfile {
             path: shown.to_path_buf(),
             reason,
@@ -144,7 +144,7 @@ pub fn cura_resources() -> PathBuf {
 }
 
 /// Reads a CuraEngine settings file: a TOML table of scalar values.
-pub fn parse_cura_toml(text: &str) -> Result<Vec<(String, String)>, String> {
+pub(crate) fn parse_cura_toml(text: &str) -> Result<Vec<(String, String)>, String> {
     let table: toml::Table = toml::from_str(text).map_err(|e| e.to_string())?;
     let mut out = Vec::with_capacity(table.len());
     for (key, value) in table {

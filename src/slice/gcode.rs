@@ -15,7 +15,7 @@ use std::io::BufRead;
 
 /// What the job must satisfy.
 #[derive(Clone, Debug)]
-pub struct Expectations {
+pub(crate) struct Expectations {
     pub bed_mm: [f64; 3],
     /// Printed height of the model.
     pub height_mm: f64,
@@ -29,7 +29,7 @@ pub struct Expectations {
 
 /// Figures read from a G-code file that passed the check.
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct GcodeStats {
+pub(crate) struct GcodeStats {
     pub lines: usize,
     /// Distinct heights at which the model is printed (extruding moves in X/Y).
     pub layer_count: usize,
@@ -44,13 +44,13 @@ pub struct GcodeStats {
 }
 
 /// How many layers below the model's top the last printed layer may be.
-pub const TOP_LAYERS_ALLOWED: f64 = 3.0;
+pub(crate) const TOP_LAYERS_ALLOWED: f64 = 3.0;
 
 /// Allowance for rounding at the edges of the machine.
 const EDGE_MM: f64 = 0.5;
 
 /// Parses `1d 2h 3m 4s`, `21m 14s` or `45s` into seconds.
-pub fn parse_duration_words(text: &str) -> Option<f64> {
+pub(crate) fn parse_duration_words(text: &str) -> Option<f64> {
     let mut total = 0.0;
     let mut any = false;
     for word in text.split_whitespace() {
@@ -69,7 +69,7 @@ pub fn parse_duration_words(text: &str) -> Option<f64> {
 }
 
 /// CuraEngine's `-v` log line `Print time (s): 2637`.
-pub fn parse_cura_log_time(line: &str) -> Option<f64> {
+pub(crate) fn parse_cura_log_time(line: &str) -> Option<f64> {
     line.trim()
         .strip_prefix("Print time (s):")
         .and_then(|v| v.trim().parse().ok())
@@ -81,7 +81,7 @@ fn comment_value<'a>(comment: &'a str, key: &str) -> Option<&'a str> {
 }
 
 /// Reads and checks G-code; the error is the reason it is not a usable job.
-pub fn check(reader: impl BufRead, expect: &Expectations) -> Result<GcodeStats, String> {
+pub(crate) fn check(reader: impl BufRead, expect: &Expectations) -> Result<GcodeStats, String> {
     let mut stats = GcodeStats::default();
     let mut motion = Motion::new(expect.firmware);
     let mut nozzle_heated = false;

@@ -17,12 +17,12 @@
 //! heats with them.
 
 pub mod cura;
-pub mod gcode;
+pub(crate) mod gcode;
 pub mod policy;
 pub mod presliced;
-pub mod process;
+pub(crate) mod process;
 pub mod profiles;
-pub mod prusa;
+pub(crate) mod prusa;
 mod settings;
 mod slicer;
 pub mod walls;
@@ -42,11 +42,11 @@ use std::time::{Duration, Instant};
 /// Printed heights accepted, mm: from a height that still holds a shape of a few layers
 /// to the tallest machine that can be described; whether a machine builds it is the
 /// placement's check.
-pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_MM.end();
+pub(crate) const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_MM.end();
 
 /// The layer height of the built-in profiles (`config/prusaslicer-ultimaker2.ini`,
 /// `config/cura-ultimaker2.toml`), mm, when neither the job nor the G-code says.
-pub const DEFAULT_LAYER_HEIGHT_MM: f64 = 0.2;
+pub(crate) const DEFAULT_LAYER_HEIGHT_MM: f64 = 0.2;
 
 /// Loads `path`, or the built-in profile for the slicer, and checks the slicer's own
 /// files are installed.
@@ -81,7 +81,7 @@ pub enum SliceStep {
 /// One slicing: a mesh already enhanced and placed on the machine's bed (see
 /// [`crate::mesh::place`]), sliced for one machine into `output`.
 #[derive(Clone, Debug)]
-pub struct SliceJob<'a> {
+pub(crate) struct SliceJob<'a> {
     /// The model file the mesh came from (named in messages and the report).
     pub model: &'a Path,
     pub output: &'a Path,
@@ -175,7 +175,7 @@ pub struct SliceReport {
 /// when the G-code passed the checks; an existing file is replaced atomically). The report's
 /// model-side fields (`up`, `enhancement`, `model_size_mm`, load and enhance timings) are
 /// the composer's to fill. Blocking.
-pub fn slice_mesh(
+pub(crate) fn slice_mesh(
     mesh: &Mesh,
     job: &SliceJob,
     progress: &mut dyn FnMut(SliceStep),
@@ -359,7 +359,7 @@ pub fn slice_mesh(
 
 /// Copies a finished file (checked G-code, the mesh that was sliced) to its destination
 /// without ever leaving a half-written one there: copy next to it, then rename over it.
-pub fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
+pub(crate) fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     let mut src = std::fs::File::open(from).map_err(SliceError::io("cannot read", from))?;
     crate::fsutil::write_atomic_with(to, |file| std::io::copy(&mut src, file).map(|_| ())).map_err(
         |e| SliceError::Io {

@@ -35,8 +35,6 @@ use serde::{Deserialize, Serialize};
 use std::io::{BufRead, Read};
 use std::path::Path;
 
-pub use crate::marlin::gcode::FILE_PAUSES;
-
 /// The most refusals and pauses a verdict lists (it counts them all).
 pub const MAX_LISTED: usize = 20;
 /// Allowance at the bed's edges for rounding, mm (as the other checks).
@@ -147,8 +145,6 @@ fn quote(command: &str) -> String {
         c.to_string()
     }
 }
-
-pub use crate::machine::commands::allowable;
 
 /// Whether a guarded command, with these parameters, is refused unless allowed: `M211`
 /// only switching the endstops off (`S0`), `M302` only allowing cold extrusion (`P`, `S`);
@@ -462,7 +458,7 @@ pub enum PolicyError {
 /// text, line length, characters the firmware cannot take), without keeping the program.
 ///
 /// [`GcodeProgram::load_for`]: crate::marlin::gcode::GcodeProgram::load_for
-pub fn load_check(
+pub(crate) fn load_check(
     path: &Path,
     firmware: crate::marlin::firmware::Firmware,
 ) -> Result<(), PolicyError> {
@@ -482,7 +478,7 @@ pub fn check_path(path: &Path, machine: &Machine) -> Result<Verdict, PolicyError
 
 /// The host's load-time checks for the machine's firmware, then [`check`]: what a job
 /// preparation runs on every G-code file before a printer may claim it.
-pub fn check_file(path: &Path, machine: &Machine) -> Result<Verdict, PolicyError> {
+pub(crate) fn check_file(path: &Path, machine: &Machine) -> Result<Verdict, PolicyError> {
     load_check(path, machine.firmware)?;
     check_path(path, machine)
 }

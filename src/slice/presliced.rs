@@ -17,7 +17,7 @@ use crate::marlin::motion::Motion;
 use std::io::BufRead;
 
 /// The first bytes of a binary G-code file (PrusaSlicer 2.7's `.bgcode`).
-pub const BINARY_MAGIC: &[u8; 4] = b"GCDE";
+pub(crate) const BINARY_MAGIC: &[u8; 4] = b"GCDE";
 
 /// Allowance for rounding at the edges of the bed, mm.
 const EDGE_MM: f64 = 0.5;

@@ -16,13 +16,13 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 /// Lines of output kept for error messages.
-pub const TAIL_LINES: usize = 30;
+pub(crate) const TAIL_LINES: usize = 30;
 /// Longer lines are cut: CuraEngine logs all its settings on one enormous line.
-pub const TAIL_LINE_CHARS: usize = 400;
+pub(crate) const TAIL_LINE_CHARS: usize = 400;
 
 /// How a run ended.
 #[derive(Debug)]
-pub enum End {
+pub(crate) enum End {
     Exited(ExitStatus),
     TimedOut,
     Cancelled,
@@ -32,7 +32,7 @@ pub enum End {
 /// kept apart because their relative order is lost anyway (two reader threads), and so a
 /// chatty stdout cannot push the error message out of stderr's tail.
 #[derive(Debug)]
-pub struct Outcome {
+pub(crate) struct Outcome {
     pub end: End,
     pub stdout_tail: Vec<String>,
     pub stderr_tail: Vec<String>,
@@ -41,7 +41,7 @@ pub struct Outcome {
 impl Outcome {
     /// The end of the output for an error message: the last few stdout lines, then
     /// stderr's tail (where slicers put their errors).
-    pub fn tail_text(&self) -> String {
+    pub(crate) fn tail_text(&self) -> String {
         let out = &self.stdout_tail[self.stdout_tail.len().saturating_sub(8)..];
         out.iter()
             .chain(self.stderr_tail.iter())
@@ -51,7 +51,7 @@ impl Outcome {
     }
 
     /// Every kept line, stdout's then stderr's.
-    pub fn lines(&self) -> impl Iterator<Item = &str> {
+    pub(crate) fn lines(&self) -> impl Iterator<Item = &str> {
         self.stdout_tail
             .iter()
             .chain(self.stderr_tail.iter())
@@ -60,7 +60,7 @@ impl Outcome {
 }
 
 #[derive(Debug)]
-pub enum RunError {
+pub(crate) enum RunError {
     /// The program does not exist.
     NotFound,
     Spawn(std::io::Error),
@@ -165,7 +165,7 @@ fn spawn_reader(
 
 /// Makes the kernel kill the child `cmd` starts if this process dies without a chance to
 /// clean up (kill -9, a crash), instead of leaving it to run on with no one waiting for it.
-pub fn die_with_this_process(cmd: &mut Command) {
+pub(crate) fn die_with_this_process(cmd: &mut Command) {
     let parent = nix::unistd::getpid();
     // SAFETY: between fork and exec only async-signal-safe calls (prctl and getppid) and no
     // allocation: an errno becomes an `io::Error` without a heap block, unlike a message.
@@ -183,7 +183,7 @@ pub fn die_with_this_process(cmd: &mut Command) {
 
 /// Runs `program args` with extra environment `env`, stdin closed, until it exits, the
 /// timeout passes or `cancel` becomes true.
-pub fn run(
+pub(crate) fn run(
     program: &Path,
     args: &[OsString],
     env: &[(OsString, OsString)],

@@ -28,10 +28,10 @@ use crate::machine::Machine;
 use std::ffi::OsString;
 use std::path::Path;
 
-pub const PRUSA_PROFILE: &str = include_str!("../../config/prusaslicer-ultimaker2.ini");
-pub const CURA_PROFILE: &str = include_str!("../../config/cura-ultimaker2.toml");
-pub const START_GCODE: &str = include_str!("../../gcode/start.gcode");
-pub const END_GCODE: &str = include_str!("../../gcode/end.gcode");
+pub(crate) const PRUSA_PROFILE: &str = include_str!("../../config/prusaslicer-ultimaker2.ini");
+pub(crate) const CURA_PROFILE: &str = include_str!("../../config/cura-ultimaker2.toml");
+pub(crate) const START_GCODE: &str = include_str!("../../gcode/start.gcode");
+pub(crate) const END_GCODE: &str = include_str!("../../gcode/end.gcode");
 
 /// A slicer with its profile loaded, ready to slice jobs.
 pub trait SlicerProfile: std::fmt::Debug + Send + Sync {
@@ -65,7 +65,7 @@ pub struct Invocation {
 
 /// The machine's start and end code with this job's values filled in. A machine without
 /// a heated bed loses the lines that heat it.
-pub fn start_end_gcode(job: &JobParams) -> (String, String) {
+pub(crate) fn start_end_gcode(job: &JobParams) -> (String, String) {
     let m = job.machine;
     let present_z = (job.height_mm + 50.0).min(m.bed_mm[2] - 5.0);
     let start = m.start_gcode.as_deref().unwrap_or(START_GCODE);

@@ -8,13 +8,13 @@ use std::path::Path;
 
 /// PrusaSlicer with its `.ini` profile.
 #[derive(Clone, Debug)]
-pub struct PrusaProfile {
+pub(crate) struct PrusaProfile {
     ini: String,
 }
 
 impl PrusaProfile {
     /// Checks the profile text (`shown` names it in errors).
-    pub fn load(ini: String, shown: &Path) -> Result<PrusaProfile, SliceError> {
+    pub(crate) fn load(ini: String, shown: &Path) -> Result<PrusaProfile, SliceError> {
         check_prusa_ini(&ini).map_err(|reason| SliceError::BadProfile {
             path: shown.to_path_buf(),
             reason,

@@ -119,7 +119,7 @@ impl SliceSettings {
     }
 
     /// Checks every given setting is within what an Ultimaker 2 with a 0.4 mm nozzle can do.
-    pub fn validate(&self) -> Result<(), SliceError> {
+    pub(crate) fn validate(&self) -> Result<(), SliceError> {
         fn range(
             key: &str,
             v: Option<f64>,
@@ -150,7 +150,7 @@ impl SliceSettings {
     }
 
     /// The material preset named (PLA when none is).
-    pub fn material_preset(&self) -> Result<&'static Material, SliceError> {
+    pub(crate) fn material_preset(&self) -> Result<&'static Material, SliceError> {
         let name = self.material.as_deref().unwrap_or("pla");
         MATERIALS
             .iter()

@@ -29,7 +29,7 @@ impl SlicerKind {
     }
 
     /// The Debian package that provides the slicer.
-    pub fn package(self) -> &'static str {
+    pub(crate) fn package(self) -> &'static str {
         match self {
             SlicerKind::Prusa => "prusa-slicer",
             SlicerKind::Cura => "cura-engine",
@@ -37,7 +37,7 @@ impl SlicerKind {
     }
 
     /// Environment variable naming another program to run (e.g. a wrapper script).
-    pub fn program_env(self) -> &'static str {
+    pub(crate) fn program_env(self) -> &'static str {
         match self {
             SlicerKind::Prusa => "CRISPEN_PRUSA_SLICER",
             SlicerKind::Cura => "CRISPEN_CURA_ENGINE",

@@ -20,25 +20,25 @@ use std::collections::BTreeMap;
 use std::io::BufRead;
 
 /// Distance between samples along the enhanced wall, mm.
-pub const SAMPLE_SPACING_MM: f64 = 0.05;
+pub(crate) const SAMPLE_SPACING_MM: f64 = 0.05;
 /// Distances are capped here, mm.
 pub const MAX_DISTANCE_MM: f64 = 5.0;
 /// Coordinates beyond ±this are not a printer's, mm; such moves are dropped.
-pub const COORD_LIMIT_MM: f64 = 10_000.0;
+pub(crate) const COORD_LIMIT_MM: f64 = 10_000.0;
 /// At most this many samples in one comparison (Spot 100 mm tall has 1.6 million; a
 /// taller print is sampled more coarsely, which changes its figures little, as the
 /// samples only weight the wall by length).
-pub const MAX_SAMPLES: usize = 2_000_000;
+pub(crate) const MAX_SAMPLES: usize = 2_000_000;
 /// At most this many wall segments are kept from one file (Spot 100 mm tall has 40,000).
-pub const MAX_SEGMENTS: usize = 5_000_000;
+pub(crate) const MAX_SEGMENTS: usize = 5_000_000;
 /// The shares reported: wall moved more than these, mm.
-pub const THRESHOLDS_MM: [f64; 3] = [0.05, 0.1, 0.2];
+pub(crate) const THRESHOLDS_MM: [f64; 3] = [0.05, 0.1, 0.2];
 
 /// Histogram bin for the percentile, mm (the p95 is exact to this).
 const BIN_MM: f64 = 0.0005;
 
 /// A wall segment in the XY plane, mm.
-pub type Segment = [[f64; 2]; 2];
+pub(crate) type Segment = [[f64; 2]; 2];
 
 /// The outer walls of one G-code file: per layer (Z in µm), the segments drawn.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -220,20 +220,6 @@ pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls) -> WallComparison {
         out.share_over_0_2_mm = over[2] as f64 / n;
     }
     out
-}
-
-/// Reads both files and compares them.
-pub fn compare_files(
-    plain: &std::path::Path,
-    enhanced: &std::path::Path,
-) -> std::io::Result<WallComparison> {
-    let read = |p: &std::path::Path| {
-        std::fs::File::open(p)
-            .map(std::io::BufReader::new)
-            .and_then(outer_walls)
-            .map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", p.display())))
-    };
-    Ok(compare(&read(plain)?, &read(enhanced)?))
 }
 
 fn seg_len(s: &Segment) -> f64 {

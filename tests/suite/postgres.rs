@@ -492,7 +492,7 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         let snapshot = store.snapshot();
         let counts = snapshot.counts();
         for state in states.iter().copied() {
-            assert_eq!(counts.into_state(state), 1, "{host}: into {state}");
+            assert_eq!(counts.entered(state), 1, "{host}: into {state}");
         }
         assert_eq!(counts.finished(), 1, "{host}");
         let tally = snapshot.tally().read();

@@ -198,7 +198,8 @@ impl Checked {
     }
 
     /// The control socket.
-    pub fn socket(&self) -> &Path {
+    #[cfg(test)]
+    pub(crate) fn socket(&self) -> &Path {
         &self.config.socket
     }
 
@@ -215,7 +216,7 @@ impl Checked {
 
 impl Config {
     /// The folder configuration a hot-folder path belongs to.
-    pub fn folder(&self, path: &Path) -> Option<&FolderConfig> {
+    pub(crate) fn folder(&self, path: &Path) -> Option<&FolderConfig> {
         self.folders.iter().find(|f| f.path == path)
     }
 }

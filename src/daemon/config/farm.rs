@@ -13,9 +13,9 @@ const SETTLE_S: Bounds = 0.05..=3600.0;
 /// Rescan period of the hot folders.
 const RESCAN_S: Bounds = 0.5..=86_400.0;
 /// How long prints may take to finish at a stop: from a second (tests) to two days.
-pub const FINISH_TIMEOUT_S: Bounds = 1.0..=2.0 * 86_400.0;
+pub(crate) const FINISH_TIMEOUT_S: Bounds = 1.0..=2.0 * 86_400.0;
 /// Two hours, what the service unit once waited for a stop before it killed the daemon.
-pub const DEFAULT_FINISH_TIMEOUT_S: f64 = 2.0 * 3600.0;
+pub(crate) const DEFAULT_FINISH_TIMEOUT_S: f64 = 2.0 * 3600.0;
 
 /// Checks `[farm]` (all of it optional).
 pub(super) fn check(raw: Option<RawFarm>, cx: &Context) -> Result<FarmConfig, ConfigError> {

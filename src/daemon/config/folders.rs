@@ -10,7 +10,7 @@ use crate::enhance::Strength;
 use std::path::{Path, PathBuf};
 
 /// Time limit of one preparation (enhance and slice).
-pub const PREPARE_TIMEOUT_S: Bounds = 0.1..=7.0 * 86_400.0;
+pub(crate) const PREPARE_TIMEOUT_S: Bounds = 0.1..=7.0 * 86_400.0;
 
 /// Checks the `[[folder]]` tables in order, each path once. `printers` are the
 /// `[[printer]]` tables, checked; in a `shared` farm, a folder may name other hosts'
@@ -136,7 +136,7 @@ fn check_folder(
 }
 
 /// A printed height in mm: what the printer can build, and enough to hold a shape.
-pub fn check_height(height_mm: f64) -> Result<(), String> {
+pub(crate) fn check_height(height_mm: f64) -> Result<(), String> {
     let range = crate::slice::HEIGHT_MM;
     if height_mm.is_finite() && range.contains(&height_mm) {
         Ok(())
@@ -168,10 +168,10 @@ fn normalise(path: &Path) -> PathBuf {
 
 /// The strongest enhancement accepted: five times the automatic table's strongest (20),
 /// beyond which a shape is distorted rather than sharpened.
-pub const MAX_LAMBDA2: f64 = 100.0;
+pub(crate) const MAX_LAMBDA2: f64 = 100.0;
 
 /// `strength = "auto" | "off" | <lambda2>`.
-pub fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
+pub(crate) fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     match value {
         toml::Value::String(s) if s == "auto" => Ok(Strength::Auto),
         toml::Value::String(s) if s == "off" => Ok(Strength::Off),

@@ -7,11 +7,11 @@ use super::raw::RawHistory;
 use std::time::Duration;
 
 /// Bounds of `[history] live_days` (0: a finished job leaves the queue at once).
-pub const LIVE_DAYS: Bounds = 0.0..=3650.0;
+pub(crate) const LIVE_DAYS: Bounds = 0.0..=3650.0;
 /// Bounds of `[history] keep_days`: at least a day; absent, the history keeps everything.
-pub const KEEP_DAYS: Bounds = 1.0..=36_500.0;
+pub(crate) const KEEP_DAYS: Bounds = 1.0..=36_500.0;
 /// Bounds of `[history] live_jobs`: the live queue stays small whatever the history holds.
-pub const LIVE_JOBS: std::ops::RangeInclusive<i64> = 0..=10_000;
+pub(crate) const LIVE_JOBS: std::ops::RangeInclusive<i64> = 0..=10_000;
 
 /// Checks `[history]`; the error names the key.
 pub(super) fn check(h: RawHistory) -> Result<HistoryConfig, (&'static str, String)> {

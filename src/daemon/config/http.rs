@@ -9,9 +9,9 @@ use super::secret::read_secret;
 use std::path::{Path, PathBuf};
 
 /// Shortest API key accepted: a guessable key on a network port is no key.
-pub const MIN_API_KEY_CHARS: usize = 16;
+pub(crate) const MIN_API_KEY_CHARS: usize = 16;
 /// Bounds of `[http] upload_max_mb`.
-pub const UPLOAD_MAX_MB: std::ops::RangeInclusive<i64> = 1..=4096;
+pub(crate) const UPLOAD_MAX_MB: std::ops::RangeInclusive<i64> = 1..=4096;
 
 /// Checks `[http]`; errors name the key. Its key file is read by [`super::Checked::resolve`],
 /// so a missing or weak key stops the daemon at startup rather than leaving the port open.
@@ -94,7 +94,7 @@ pub(super) fn resolve(
 }
 
 /// Reads an API key file; a missing or weak key is refused (see [`read_secret`]).
-pub fn read_api_key(key_file: &Path) -> Result<ApiKey, String> {
+pub(crate) fn read_api_key(key_file: &Path) -> Result<ApiKey, String> {
     read_api_key_warning(key_file).map(|(key, _)| key)
 }
 

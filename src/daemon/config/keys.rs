@@ -13,7 +13,7 @@ use std::cell::RefCell;
 /// Every key of the file, dotted from the top (`printer.simulate.seed`), tables included
 /// (`printer.simulate`). A free-form value (`folder.settings`, `folder.strength`) is one
 /// key: what it holds is checked by its own type, not named by a struct.
-pub fn all() -> Result<Vec<String>, Error> {
+pub(crate) fn all() -> Result<Vec<String>, Error> {
     let keys = RefCell::new(Vec::new());
     super::raw::RawConfig::deserialize(Tracer {
         prefix: "",
@@ -23,7 +23,7 @@ pub fn all() -> Result<Vec<String>, Error> {
 }
 
 /// The top-level tables (`spool`, ..., `notify`), as a header names them.
-pub fn tables() -> Result<Vec<String>, Error> {
+pub(crate) fn tables() -> Result<Vec<String>, Error> {
     Ok(all()?.into_iter().filter(|k| !k.contains('.')).collect())
 }
 

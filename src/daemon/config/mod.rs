@@ -23,8 +23,8 @@ mod folders;
 mod history;
 mod http;
 mod machines;
-pub mod notify;
-pub mod octoprint;
+pub(crate) mod notify;
+pub(crate) mod octoprint;
 mod pause;
 pub mod ports;
 mod printers;
@@ -44,14 +44,11 @@ pub use checked::{
     ApiKey, Checked, Config, FarmConfig, FolderConfig, HistoryConfig, HttpConfig, OnShutdown,
     PgSettings, PrinterConfig, PrinterPort, StoreConfig,
 };
-pub use error::ConfigError;
-pub use farm::{DEFAULT_FINISH_TIMEOUT_S, FINISH_TIMEOUT_S};
-pub use folders::{check_height, parse_strength, MAX_LAMBDA2, PREPARE_TIMEOUT_S};
-pub use history::{KEEP_DAYS, LIVE_DAYS, LIVE_JOBS};
-pub use http::{read_api_key, MIN_API_KEY_CHARS, UPLOAD_MAX_MB};
-pub use printers::MAX_PRINTERS;
-pub use secret::{read_secret, MAX_SECRET_BYTES};
-pub use store::{parse_conninfo, ConninfoError, LEASE_S};
+pub(crate) use error::ConfigError;
+pub(crate) use folders::{check_height, parse_strength};
+pub(crate) use http::read_api_key;
+pub(crate) use secret::read_secret;
+pub(crate) use store::{parse_conninfo, ConninfoError};
 
 use check::Context;
 use farm::spool_and_socket;
@@ -66,7 +63,7 @@ impl Checked {
 
     /// Parses and checks config text; `path` names it in errors and anchors relative paths
     /// (they are relative to the file's directory).
-    pub fn parse(text: &str, path: &Path) -> Result<Checked, ConfigError> {
+    pub(crate) fn parse(text: &str, path: &Path) -> Result<Checked, ConfigError> {
         let (raw, base) = parse_raw(text, path)?;
         Config::check(raw, path, &base)
     }
@@ -75,7 +72,7 @@ impl Checked {
     /// the API key file (its key is what `[http]` runs with), the database password file
     /// (as the store will read it), and the printers' devices (two printers on one device
     /// are refused). Warnings (a secret others can read) are added to the config's.
-    pub fn resolve(self) -> Result<Config, ConfigError> {
+    pub(crate) fn resolve(self) -> Result<Config, ConfigError> {
         let Checked { mut config, http } = self;
         let file = config.source.clone();
         store::resolve(config.store.as_ref(), &file, &mut config.warnings)?;

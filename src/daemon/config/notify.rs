@@ -27,7 +27,7 @@ pub(super) struct RawNotify {
 }
 
 /// The events a receiver may ask for, by name (the `event` field of what is sent).
-pub const EVENT_NAMES: [&str; 10] = [
+pub(crate) const EVENT_NAMES: [&str; 10] = [
     "job_done",
     "job_failed",
     "job_cancelled",
@@ -55,7 +55,7 @@ pub enum NotifyFormat {
 }
 
 impl NotifyFormat {
-    pub const NAMES: [&'static str; 4] = ["json", "ntfy", "slack", "discord"];
+    pub(crate) const NAMES: [&'static str; 4] = ["json", "ntfy", "slack", "discord"];
 
     fn parse(name: &str) -> Option<NotifyFormat> {
         match name {
@@ -113,7 +113,7 @@ pub struct Receiver {
 }
 
 impl Receiver {
-    pub fn wants(&self, event: &str) -> bool {
+    pub(crate) fn wants(&self, event: &str) -> bool {
         self.events.iter().any(|e| e == event)
     }
 }
@@ -128,20 +128,20 @@ pub struct NotifyConfig {
 }
 
 /// Bounds of `timeout_s`.
-pub const TIMEOUT_S: Bounds = 0.1..=120.0;
+pub(crate) const TIMEOUT_S: Bounds = 0.1..=120.0;
 /// Bounds of `retry_for_s` (up to a week).
-pub const RETRY_FOR_S: Bounds = 1.0..=7.0 * 86_400.0;
+pub(crate) const RETRY_FOR_S: Bounds = 1.0..=7.0 * 86_400.0;
 /// Bounds of `backoff_max_s`.
-pub const BACKOFF_MAX_S: Bounds = 0.1..=3600.0;
+pub(crate) const BACKOFF_MAX_S: Bounds = 0.1..=3600.0;
 /// Bounds of `max_attempts`.
-pub const MAX_ATTEMPTS: std::ops::RangeInclusive<i64> = 1..=10_000;
+pub(crate) const MAX_ATTEMPTS: std::ops::RangeInclusive<i64> = 1..=10_000;
 /// Most receivers.
-pub const MAX_RECEIVERS: usize = 32;
+pub(crate) const MAX_RECEIVERS: usize = 32;
 /// Longest receiver name; its characters are letters, digits, `-` and `_` (it names a
 /// directory of the spool and a metrics label).
-pub const MAX_NAME_CHARS: usize = 64;
+pub(crate) const MAX_NAME_CHARS: usize = 64;
 /// Longest URL.
-pub const MAX_URL_CHARS: usize = 2048;
+pub(crate) const MAX_URL_CHARS: usize = 2048;
 
 /// Checks the `[[notify]]` tables and `[http] public_url` (stage two: nothing read).
 pub(super) fn check(
@@ -317,7 +317,7 @@ pub(super) fn resolve(
 /// An `http://` or `https://` URL with a host, an optional port and path; no user or
 /// password part (a secret belongs in `secret_file`, or in the path where the service
 /// puts it, as Slack and Discord do).
-pub fn parse_url(text: &str) -> Result<ReceiverUrl, String> {
+pub(crate) fn parse_url(text: &str) -> Result<ReceiverUrl, String> {
     if text.len() > MAX_URL_CHARS {
         return Err(format!("longer than {MAX_URL_CHARS} characters"));
     }

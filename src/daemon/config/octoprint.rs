@@ -29,7 +29,7 @@ impl Default for OctoPrintConfig {
 const MAX_FOLDER_NAME: usize = 255;
 
 /// Checks the raw keys; the error names the key.
-pub fn check(
+pub(crate) fn check(
     announce: Option<bool>,
     default_folder: Option<String>,
 ) -> Result<OctoPrintConfig, (&'static str, String)> {
@@ -50,7 +50,7 @@ pub fn check(
 }
 
 /// `default_folder` names exactly one configured hot folder (`folders`: their paths).
-pub fn check_folder(
+pub(crate) fn check_folder(
     octoprint: &OctoPrintConfig,
     folders: &[&Path],
 ) -> Result<(), (&'static str, String)> {

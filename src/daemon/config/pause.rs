@@ -7,10 +7,10 @@ use std::time::Duration;
 
 /// Bounds of `pause_heaters_off_s`: at least 10 s (tests and impatient farms), at most a day
 /// (a hot nozzle left alone longer is a fire risk nobody asked for).
-pub const PAUSE_HEATERS_OFF_S: std::ops::RangeInclusive<i64> = 10..=86_400;
+pub(crate) const PAUSE_HEATERS_OFF_S: std::ops::RangeInclusive<i64> = 10..=86_400;
 
 /// The default: half an hour, time for someone to come to the printer.
-pub const DEFAULT_PAUSE_HEATERS_OFF_S: u64 = 30 * 60;
+pub(crate) const DEFAULT_PAUSE_HEATERS_OFF_S: u64 = 30 * 60;
 
 /// The value in force, or why the given one is refused.
 pub(super) fn heaters_off_after(raw: Option<i64>) -> Result<Duration, String> {

@@ -10,7 +10,7 @@ use std::path::Path;
 
 /// Refuses printers that share a device, also when their paths differ but resolve to the
 /// same file (a by-id link and the device it points at). `file` names the config in errors.
-pub fn check_unique(printers: &[PrinterConfig], file: &Path) -> Result<(), ConfigError> {
+pub(crate) fn check_unique(printers: &[PrinterConfig], file: &Path) -> Result<(), ConfigError> {
     let serial: Vec<(usize, &PrinterConfig, &Path)> = printers
         .iter()
         .enumerate()

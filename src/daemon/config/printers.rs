@@ -14,7 +14,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 /// At most this many printers (and so heating permits) in one farm.
-pub const MAX_PRINTERS: usize = 256;
+pub(crate) const MAX_PRINTERS: usize = 256;
 
 /// Checks the `[[printer]]` tables in order, each name once; `machines` are the
 /// `[[machine]]` tables, checked.

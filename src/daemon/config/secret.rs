@@ -6,13 +6,13 @@ use std::io::Read;
 use std::path::Path;
 
 /// The largest key or password file read: a secret is a line, not a stream.
-pub const MAX_SECRET_BYTES: u64 = 4096;
+pub(crate) const MAX_SECRET_BYTES: u64 = 4096;
 
 /// Reads a secret file (an API key, a database password): a regular file (a link to one
 /// is followed) of at most [`MAX_SECRET_BYTES`] of UTF-8. Returns its text, and a warning
 /// when users other than its owner may read it: accepted (a root-owned file readable by
 /// group `crispen` is a fair setup), but said at every start and by `--check`.
-pub fn read_secret(path: &Path) -> Result<(String, Option<String>), String> {
+pub(crate) fn read_secret(path: &Path) -> Result<(String, Option<String>), String> {
     use std::os::unix::fs::PermissionsExt;
     let shown = path.display();
     let meta = std::fs::metadata(path).map_err(|e| format!("cannot read {shown}: {e}"))?;

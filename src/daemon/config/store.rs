@@ -11,7 +11,7 @@ use std::path::Path;
 
 /// Why a `[store] postgres` connection string is refused.
 #[derive(Debug, Clone, PartialEq)]
-pub enum ConninfoError {
+pub(crate) enum ConninfoError {
     /// It holds a password, which belongs in `password_file` or `PGPASSWORD`.
     Password,
     /// It is too long, does not parse or names no server; the reason.
@@ -21,7 +21,7 @@ pub enum ConninfoError {
 /// A `[store] postgres` connection string checked and parsed, the one rule for both the
 /// config check and the store's connection: at most 4096 characters, it parses, names the
 /// server (there is no default to fall back on), and holds no password.
-pub fn parse_conninfo(conninfo: &str) -> Result<tokio_postgres::Config, ConninfoError> {
+pub(crate) fn parse_conninfo(conninfo: &str) -> Result<tokio_postgres::Config, ConninfoError> {
     if conninfo.len() > 4096 {
         return Err(ConninfoError::Bad(format!(
             "{} characters: too long for a connection string",
@@ -46,7 +46,7 @@ pub fn parse_conninfo(conninfo: &str) -> Result<tokio_postgres::Config, Conninfo
 
 /// Bounds of `[store] lease_s`: long enough for a busy host's heartbeat, short enough that
 /// a dead host's printers are seen offline the same minute.
-pub const LEASE_S: Bounds = 3.0..=600.0;
+pub(crate) const LEASE_S: Bounds = 3.0..=600.0;
 
 /// Checks `[store]` (stage two: its password file is not read yet).
 pub(super) fn check(

@@ -28,11 +28,11 @@
 //! - [`process`]: the daemon's side, running the child; [`work`]: the child's side.
 //! - [`steps`]: enhancing and slicing a model; [`queue`]: the daemon's loop.
 
-pub mod process;
+pub(crate) mod process;
 pub mod queue;
 pub mod steps;
-pub mod task;
-pub mod work;
+pub(crate) mod task;
+pub(crate) mod work;
 
 pub use process::{run_child, run_compare_child, PrepareError};
 pub use task::{is_presliced, resolve_task, ChildMessage, PrepareTask, Prepared, TaskMachine};

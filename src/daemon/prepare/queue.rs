@@ -25,7 +25,7 @@ use tracing::Instrument;
 /// Prepares queued jobs, oldest first, at most one per core at a time, each in its own
 /// child process under a token of its own (a child of the shutdown token); in between,
 /// measures the ready jobs' comparisons (see the module's comment).
-pub async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
+pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
     let cores = std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1);
@@ -248,7 +248,7 @@ async fn finish_preparation(
 
 /// Starts of one job's comparison after which it is given up (each start that ended
 /// without an outcome was cut short by the daemon's stop or a crash).
-pub const COMPARE_TRIES: u32 = 2;
+pub(crate) const COMPARE_TRIES: u32 = 2;
 
 /// The oldest job whose comparison is pending, with its start counted in the job (the
 /// count it now has); a job whose tries are used up is marked not measured on the way.

@@ -116,7 +116,7 @@ impl Step<'_> {
 }
 
 /// What one machine got: its G-code's report, or why it cannot print the job.
-pub type MachineResult = (String, Result<SliceReport, SliceError>);
+pub(crate) type MachineResult = (String, Result<SliceReport, SliceError>);
 
 /// Prepares a model for each target machine: load, enhance (once), place, then per
 /// machine check the fit and slice. An error of the shared steps (the model cannot be
@@ -367,7 +367,7 @@ fn add_thumbnails(mesh: &Mesh, gcode: &Path) {
 /// Why a wall comparison was not made. A comparison is a measurement, not part of the
 /// job: its failure is the measurement's, never the job's.
 #[derive(Debug, thiserror::Error)]
-pub enum CompareError {
+pub(crate) enum CompareError {
     #[error("cannot slice the unmodified model to compare: {0}")]
     Plain(#[source] SliceError),
     #[error("cannot read the G-code to compare, {path}: {source}")]
@@ -396,7 +396,7 @@ fn placed_plain(req: &SliceRequest, mut mesh: Mesh) -> Result<Mesh, SliceError> 
 /// [`prepare`] placed the enhanced one, and compares the outer walls of its slicing for
 /// `machine` with `enhanced_gcode`'s; with `pictures`, draws a few layers of both there.
 /// Blocking.
-pub fn compare_prepared(
+pub(crate) fn compare_prepared(
     req: &SliceRequest,
     machine: &Machine,
     enhanced_gcode: &Path,
@@ -467,7 +467,7 @@ fn compare_walls(
 }
 
 /// How many layers the walls picture shows.
-pub const WALL_LAYERS_SHOWN: usize = 3;
+pub(crate) const WALL_LAYERS_SHOWN: usize = 3;
 
 /// [`prepare`] for one machine, its error the job's.
 pub fn prepare_one(
@@ -582,7 +582,7 @@ fn place_error(e: PlaceError, req: &SliceRequest, machine: &str) -> SliceError {
 }
 
 /// Side of the before/after pictures of a job, pixels.
-pub const PICTURE_SIZE: u32 = 600;
+pub(crate) const PICTURE_SIZE: u32 = 600;
 
 /// Draws the before/after pictures and the heat map into `dir`; failures are logged, not
 /// returned (see [`SliceRequest::pictures`]).

@@ -55,7 +55,7 @@ pub struct Prepared {
 impl Prepared {
     /// The job's record of it: per machine, the G-code file (in the job's directory) or
     /// the reason; and the first report, for the job's summary.
-    pub fn for_machines(
+    pub(crate) fn for_machines(
         &self,
     ) -> (
         std::collections::BTreeMap<String, ForMachine>,

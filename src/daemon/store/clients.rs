@@ -18,7 +18,7 @@ pub(super) fn for_clients(reason: &str, store: &dyn JobStore) -> String {
 /// `spool` itself as "the spool". The spool's path is matched as it is written and as it
 /// resolves (a spool under a symbolic link), only where it is a whole path, not a piece of
 /// a longer name (`/srv/spool` in `/srv/spool2/x` is left alone).
-pub fn spool_relative(text: &str, spool: &Path) -> String {
+pub(crate) fn spool_relative(text: &str, spool: &Path) -> String {
     let mut spellings: Vec<String> = vec![spool.to_string_lossy().into_owned()];
     if let Ok(real) = spool.canonicalize() {
         spellings.push(real.to_string_lossy().into_owned());

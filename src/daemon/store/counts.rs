@@ -18,7 +18,7 @@ impl JobCounts {
     }
 
     /// Changes into `state`.
-    pub fn into_state(&self, state: JobState) -> u64 {
+    pub fn entered(&self, state: JobState) -> u64 {
         JobState::ALL
             .iter()
             .position(|s| *s == state)
@@ -30,7 +30,7 @@ impl JobCounts {
         JobState::ALL
             .iter()
             .filter(|s| !s.is_active())
-            .map(|s| self.into_state(*s))
+            .map(|s| self.entered(*s))
             .sum()
     }
 }

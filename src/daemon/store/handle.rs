@@ -28,7 +28,7 @@ impl StoreHandle {
 
     /// Follows the snapshot: `changed()` resolves once a change after this call is
     /// published (the way tasks wait for jobs and bed gates).
-    pub fn subscribe(&self) -> watch::Receiver<Arc<Snapshot>> {
+    pub(crate) fn subscribe(&self) -> watch::Receiver<Arc<Snapshot>> {
         let mut follower = self.snapshot.clone();
         follower.mark_unchanged();
         follower
@@ -62,7 +62,7 @@ impl StoreHandle {
 
     /// Gives a sidecar that arrived late to the newest job of its model `file` from
     /// `folder`; `None` when there is no such job (yet).
-    pub async fn late_sidecar(
+    pub(crate) async fn late_sidecar(
         &self,
         folder: &Path,
         file: &str,
@@ -88,7 +88,7 @@ impl StoreHandle {
     }
 
     /// [`StoreHandle::transition`] with other fields changed in the same write.
-    pub async fn transition_with(
+    pub(crate) async fn transition_with(
         &self,
         id: &str,
         state: JobState,
@@ -153,7 +153,7 @@ impl StoreHandle {
         .await
     }
 
-    pub async fn update(
+    pub(crate) async fn update(
         &self,
         id: &str,
         change: impl FnOnce(&mut Job) + Send + 'static,
@@ -195,7 +195,7 @@ impl StoreHandle {
     }
 
     /// Closes a printer's bed gate after a print (`job`: the job on the bed).
-    pub async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
+    pub(crate) async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
         let gate = PrinterGate {
             bed_not_cleared: true,
             last_job: Some(job.to_string()),
@@ -204,7 +204,7 @@ impl StoreHandle {
     }
 
     /// Marks a printer's bed cleared; false when it was clear already.
-    pub async fn clear_gate(&self, printer: &str) -> Result<bool, StoreError> {
+    pub(crate) async fn clear_gate(&self, printer: &str) -> Result<bool, StoreError> {
         let printer = printer.to_string();
         self.ask(|reply| Request::ClearGate { printer, reply })
             .await

@@ -44,11 +44,11 @@ impl Default for Retention {
 
 /// At most this many jobs move to the history in one step of the store's task, so a
 /// first start on a long-kept spool never holds the store for long.
-pub const BATCH: usize = 256;
+pub(crate) const BATCH: usize = 256;
 
 /// A job that has ended for good as far as the queue is concerned: done, failed or
 /// cancelled (an interrupted job waits for the operator, so it stays live).
-pub fn is_finished(state: JobState) -> bool {
+pub(crate) fn is_finished(state: JobState) -> bool {
     matches!(
         state,
         JobState::Done | JobState::Failed | JobState::Cancelled
@@ -56,14 +56,14 @@ pub fn is_finished(state: JobState) -> bool {
 }
 
 /// When a job ended: its last state change.
-pub fn ended_at(job: &Job) -> f64 {
+pub(crate) fn ended_at(job: &Job) -> f64 {
     job.history.last().map_or(0.0, |h| h.1)
 }
 
 /// The one rule of retirement, for both stores: of the finished `jobs`, those that ended
 /// more than `live_for` before `now`, and those beyond the newest `live_jobs`; oldest
 /// first, at most [`BATCH`]. `skip` are jobs that must stay (an outcome not yet written).
-pub fn to_retire<'a>(
+pub(crate) fn to_retire<'a>(
     jobs: impl Iterator<Item = &'a Job>,
     retention: &Retention,
     now: f64,
@@ -128,7 +128,7 @@ pub struct Retired {
 
 /// The times `job` was printing, from its state changes: each `Printing` until the next
 /// change; one still printing ends at `now`.
-pub fn printing_times(job: &Job, now: f64) -> Vec<(f64, f64)> {
+pub(crate) fn printing_times(job: &Job, now: f64) -> Vec<(f64, f64)> {
     let mut out = Vec::new();
     for (i, (state, start)) in job.history.iter().enumerate() {
         if *state == JobState::Printing {
@@ -154,7 +154,7 @@ pub struct Filter {
 }
 
 impl Filter {
-    pub fn matches(&self, r: &Retired) -> bool {
+    pub(crate) fn matches(&self, r: &Retired) -> bool {
         self.printer
             .as_ref()
             .is_none_or(|p| r.printer.as_deref() == Some(p.as_str()))
@@ -164,18 +164,18 @@ impl Filter {
             && self.until.is_none_or(|t| r.ended_at < t)
     }
 
-    pub fn is_empty(&self) -> bool {
+    pub(crate) fn is_empty(&self) -> bool {
         *self == Filter::default()
     }
 }
 
 /// Whether `folder` is the one called `name` (its last part) or at path `name`.
-pub fn folder_is(folder: &Path, name: &str) -> bool {
+pub(crate) fn folder_is(folder: &Path, name: &str) -> bool {
     folder.file_name().is_some_and(|n| n == name) || folder == Path::new(name)
 }
 
 impl Retired {
-    pub fn of(job: &Job, dir: PathBuf, now: f64) -> Retired {
+    pub(crate) fn of(job: &Job, dir: PathBuf, now: f64) -> Retired {
         let report = job.slice_report.as_ref();
         Retired {
             id: job.id.clone(),
@@ -217,11 +217,11 @@ pub struct Page {
 }
 
 /// Bounds of a page's `limit`.
-pub const PAGE_LIMIT: std::ops::RangeInclusive<usize> = 1..=1000;
+pub(crate) const PAGE_LIMIT: std::ops::RangeInclusive<usize> = 1..=1000;
 
 /// Keeps the newest `limit` of `records` (by sequence number, each job once) below
 /// `before` that `filter` takes, as a page.
-pub fn page_of(
+pub(crate) fn page_of(
     records: impl Iterator<Item = Retired>,
     before: Option<u64>,
     limit: usize,
@@ -248,7 +248,7 @@ pub fn page_of(
 }
 
 /// The columns of the history as CSV, in order.
-pub const CSV_COLUMNS: [&str; 23] = [
+pub(crate) const CSV_COLUMNS: [&str; 23] = [
     "id",
     "seq",
     "file",
@@ -276,13 +276,13 @@ pub const CSV_COLUMNS: [&str; 23] = [
 
 impl Retired {
     /// Its time spent printing, over all its prints.
-    pub fn printing_s(&self) -> f64 {
+    pub(crate) fn printing_s(&self) -> f64 {
         self.printing.iter().map(|(a, b)| (b - a).max(0.0)).sum()
     }
 
     /// One CSV line (RFC 4180, CRLF-ended) in the order of [`CSV_COLUMNS`]: times as UTC
     /// `YYYY-MM-DDTHH:MM:SSZ`, an absent value empty.
-    pub fn csv_line(&self) -> String {
+    pub(crate) fn csv_line(&self) -> String {
         let num = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
         let time = |v: Option<f64>| v.map_or(String::new(), iso_utc);
         let fields = [
@@ -317,7 +317,7 @@ impl Retired {
 }
 
 /// The CSV header line.
-pub fn csv_header() -> String {
+pub(crate) fn csv_header() -> String {
     format!("{}\r\n", CSV_COLUMNS.join(","))
 }
 
@@ -339,7 +339,7 @@ fn csv_text(text: &str) -> String {
 }
 
 /// `YYYY-MM-DDTHH:MM:SSZ` of seconds since the epoch.
-pub fn iso_utc(t: f64) -> String {
+pub(crate) fn iso_utc(t: f64) -> String {
     let secs = t.max(0.0).floor() as i64;
     let (y, m, d) = civil_date(secs.div_euclid(86_400));
     let s = secs.rem_euclid(86_400);
@@ -352,14 +352,14 @@ pub fn iso_utc(t: f64) -> String {
 }
 
 /// The spool's history files, `<spool>/history/YYYY-MM.jsonl`.
-pub struct HistoryFiles {
+pub(crate) struct HistoryFiles {
     dir: PathBuf,
 }
 
 impl HistoryFiles {
     /// Reads the ids of every retired job, mending a line cut short by a crash (it is
     /// cut off: that job was not retired, and is again).
-    pub fn open(spool: &Path) -> Result<(HistoryFiles, HashSet<String>), StoreError> {
+    pub(crate) fn open(spool: &Path) -> Result<(HistoryFiles, HashSet<String>), StoreError> {
         let dir = spool.join("history");
         std::fs::create_dir_all(&dir).map_err(io_err(&dir, "create"))?;
         let files = HistoryFiles { dir };
@@ -411,7 +411,7 @@ impl HistoryFiles {
 
     /// Appends `records` to the month of `now` and syncs them (and the directory, for a
     /// new month's file) before returning.
-    pub fn append(&self, records: &[Retired], now: f64) -> Result<(), StoreError> {
+    pub(crate) fn append(&self, records: &[Retired], now: f64) -> Result<(), StoreError> {
         let path = self.dir.join(format!("{}.jsonl", month_of(now)));
         let new = !path.exists();
         let mut text = Vec::new();
@@ -434,13 +434,16 @@ impl HistoryFiles {
 
     /// Every record, oldest file first, read a line at a time (never the whole history in
     /// memory). A line that cannot be read is logged and passed over.
-    pub fn records(&self) -> Result<impl Iterator<Item = Retired>, StoreError> {
+    pub(crate) fn records(&self) -> Result<impl Iterator<Item = Retired>, StoreError> {
         self.records_since(0.0)
     }
 
     /// [`HistoryFiles::records`] of the months from that of `since` on: the records of
     /// jobs retired at or after `since`, and some before.
-    pub fn records_since(&self, since: f64) -> Result<impl Iterator<Item = Retired>, StoreError> {
+    pub(crate) fn records_since(
+        &self,
+        since: f64,
+    ) -> Result<impl Iterator<Item = Retired>, StoreError> {
         let first = format!("{}.jsonl", month_of(since));
         let mut files = self.files()?;
         files.retain(|f| {
@@ -470,7 +473,7 @@ impl HistoryFiles {
 
     /// The month files wholly older than `cutoff` (every job in them retired before it),
     /// oldest first.
-    pub fn months_before(&self, cutoff: f64) -> Result<Vec<PathBuf>, StoreError> {
+    pub(crate) fn months_before(&self, cutoff: f64) -> Result<Vec<PathBuf>, StoreError> {
         let first_kept = format!("{}.jsonl", month_of(cutoff));
         let mut files = self.files()?;
         files.retain(|f| {
@@ -481,7 +484,7 @@ impl HistoryFiles {
     }
 
     /// The records of one month file (unreadable lines passed over, as in `records`).
-    pub fn records_of(path: &Path) -> Result<Vec<Retired>, StoreError> {
+    pub(crate) fn records_of(path: &Path) -> Result<Vec<Retired>, StoreError> {
         let text = std::fs::read_to_string(path).map_err(io_err(path, "read"))?;
         Ok(text
             .lines()
@@ -490,14 +493,14 @@ impl HistoryFiles {
     }
 
     /// Removes a month file once its jobs' directories are gone (and syncs the directory).
-    pub fn remove_month(&self, path: &Path) -> Result<(), StoreError> {
+    pub(crate) fn remove_month(&self, path: &Path) -> Result<(), StoreError> {
         std::fs::remove_file(path).map_err(io_err(path, "remove"))?;
         crate::fsutil::sync_dir(&self.dir)?;
         Ok(())
     }
 
     /// The record of one retired job.
-    pub fn find(&self, id: &str) -> Result<Option<Retired>, StoreError> {
+    pub(crate) fn find(&self, id: &str) -> Result<Option<Retired>, StoreError> {
         Ok(self.records()?.filter(|r| r.id == id).last())
     }
 }
@@ -524,7 +527,7 @@ fn is_month_file(name: &str) -> bool {
 }
 
 /// The UTC month of `t` (seconds since the epoch) as `YYYY-MM`.
-pub fn month_of(t: f64) -> String {
+pub(crate) fn month_of(t: f64) -> String {
     let (y, m, _) = civil_date((t.max(0.0) / 86_400.0).floor() as i64);
     format!("{y:04}-{m:02}")
 }

@@ -11,7 +11,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// A change to a job's other fields, made in the same write as its state change.
-pub type JobEdit = Box<dyn FnOnce(&mut Job) + Send>;
+pub(crate) type JobEdit = Box<dyn FnOnce(&mut Job) + Send>;
 
 /// Where jobs are kept. Every method may block (disk, network): the store's task calls
 /// them on a blocking thread, one at a time. Opening (and taking whatever lock keeps two

@@ -43,7 +43,7 @@
 pub mod history;
 pub mod pending;
 pub mod postgres;
-pub mod spool;
+pub(crate) mod spool;
 pub mod stats;
 
 mod clients;
@@ -58,12 +58,10 @@ mod task;
 #[cfg(test)]
 mod task_tests;
 
-pub use clients::spool_relative;
-pub use counts::JobCounts;
-pub use handle::StoreHandle;
+pub(crate) use clients::spool_relative;
+pub(crate) use handle::StoreHandle;
 pub use history::Retention;
-pub use job_store::{JobEdit, JobStore, RetiredJob};
-pub use request::LateSidecar;
-pub use rules::{check_from, gcode_files, prepared, retired_refusal, StateFilter};
+pub(crate) use job_store::{JobEdit, JobStore, RetiredJob};
+pub(crate) use rules::{check_from, prepared, retired_refusal, StateFilter};
 pub use snapshot::{Snapshot, PICTURES};
 pub use task::{spawn, spawn_with, start, StoreTask};

@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 
 /// Works out an outcome on `job` (the table checked): the state it was in, and the job
 /// after it.
-pub fn outcome(
+pub(crate) fn outcome(
     job: &Job,
     state: JobState,
     reason: Option<String>,
@@ -23,7 +23,7 @@ pub fn outcome(
 
 /// Outcomes and bed gates kept until they can be written.
 #[derive(Debug, Default)]
-pub struct Pending {
+pub(crate) struct Pending {
     /// By job: the state it was in before the outcome, and the job after it.
     outcomes: BTreeMap<String, (JobState, Job)>,
     gates: BTreeMap<String, PrinterGate>,
@@ -31,7 +31,7 @@ pub struct Pending {
 
 /// How one attempt to write something kept went.
 #[derive(Debug)]
-pub enum Attempt {
+pub(crate) enum Attempt {
     /// Written; with the store's record of the job afterwards, when it has one.
     Written(Option<Box<Job>>),
     /// Not this one, now; the others may still be written (a job's own directory).
@@ -45,7 +45,7 @@ pub enum Attempt {
 
 /// What [`Pending::write`] did.
 #[derive(Debug, Default)]
-pub struct Written {
+pub(crate) struct Written {
     /// The jobs' records after their outcomes were written.
     pub jobs: Vec<Job>,
     /// Jobs whose outcome was dropped: the store's record of them is to be read again.
@@ -56,45 +56,46 @@ pub struct Written {
 
 impl Pending {
     /// Keeps an outcome (`from`: the state the job was in) to be written later.
-    pub fn keep_outcome(&mut self, from: JobState, job: Job) {
+    pub(crate) fn keep_outcome(&mut self, from: JobState, job: Job) {
         self.outcomes.insert(job.id.clone(), (from, job));
     }
 
     /// A later change of the job was written, so its kept outcome was too.
-    pub fn written(&mut self, id: &str) {
+    pub(crate) fn written(&mut self, id: &str) {
         self.outcomes.remove(id);
     }
 
-    pub fn has_outcome(&self, id: &str) -> bool {
+    pub(crate) fn has_outcome(&self, id: &str) -> bool {
         self.outcomes.contains_key(id)
     }
 
-    pub fn keep_gate(&mut self, printer: &str, gate: PrinterGate) {
+    pub(crate) fn keep_gate(&mut self, printer: &str, gate: PrinterGate) {
         self.gates.insert(printer.to_string(), gate);
     }
 
     /// A later gate of the printer was written.
-    pub fn gate_written(&mut self, printer: &str) {
+    pub(crate) fn gate_written(&mut self, printer: &str) {
         self.gates.remove(printer);
     }
 
     /// The gates kept, by printer.
-    pub fn gates(&self) -> impl Iterator<Item = (&String, &PrinterGate)> {
+    pub(crate) fn gates(&self) -> impl Iterator<Item = (&String, &PrinterGate)> {
         self.gates.iter()
     }
 
     /// How many outcomes and gates wait.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.outcomes.len() + self.gates.len()
     }
 
-    pub fn is_empty(&self) -> bool {
+    #[cfg(test)]
+    pub(crate) fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
     /// Tries to write what is kept (outcomes, then gates) with `outcome` and `gate`,
     /// keeping what is not written; see [`Attempt`].
-    pub fn write(
+    pub(crate) fn write(
         &mut self,
         mut outcome: impl FnMut(&str, JobState, &Job) -> Attempt,
         mut gate: impl FnMut(&str, &PrinterGate) -> Attempt,

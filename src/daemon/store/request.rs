@@ -98,7 +98,7 @@ pub(super) enum Request {
 
 /// What became of a sidecar that arrived after its model had become a job.
 #[derive(Debug, Clone, PartialEq)]
-pub struct LateSidecar {
+pub(crate) struct LateSidecar {
     pub job: String,
     /// The job's state when the sidecar arrived.
     pub state: JobState,

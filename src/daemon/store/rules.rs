@@ -9,10 +9,10 @@ use std::path::Path;
 
 /// What a job must be in for a change to go ahead; checked inside the store's task, so
 /// nothing can change the job between the check and the change.
-pub type StateFilter = &'static [JobState];
+pub(crate) type StateFilter = &'static [JobState];
 
 /// What a change of a retired job meets: the history is not the queue.
-pub fn retired_refusal(id: &str, state: JobState, action: &'static str) -> StoreError {
+pub(crate) fn retired_refusal(id: &str, state: JobState, action: &'static str) -> StoreError {
     StoreError::WrongState {
         id: id.to_string(),
         state,
@@ -23,7 +23,7 @@ pub fn retired_refusal(id: &str, state: JobState, action: &'static str) -> Store
 
 /// The names of the G-code files preparation made for a job: one per machine, or, for a
 /// job prepared before machines existed (sliced for an Ultimaker 2), `<file>.gcode`.
-pub fn gcode_files(job: &Job) -> Vec<String> {
+pub(crate) fn gcode_files(job: &Job) -> Vec<String> {
     if job.machines.is_empty() {
         return vec![format!("{}.gcode", job.file)];
     }
@@ -39,7 +39,7 @@ pub fn gcode_files(job: &Job) -> Vec<String> {
 /// Whether a job that is retried keeps its G-code (and goes back to ready) or is prepared
 /// again: it was prepared, and one of its G-code files is still there (`has`: in its
 /// directory, or in the farm database). The one rule of both stores.
-pub fn prepared(job: &Job, has: impl Fn(&str) -> bool) -> bool {
+pub(crate) fn prepared(job: &Job, has: impl Fn(&str) -> bool) -> bool {
     job.slice_report.is_some() && gcode_files(job).iter().any(|f| has(f))
 }
 
@@ -54,7 +54,7 @@ impl From<crate::fsutil::WriteError> for StoreError {
 }
 
 /// Checks that a job is in one of the states `from` (when given).
-pub fn check_from(job: &Job, from: Option<StateFilter>) -> Result<(), StoreError> {
+pub(crate) fn check_from(job: &Job, from: Option<StateFilter>) -> Result<(), StoreError> {
     match from {
         Some(from) if !from.contains(&job.state) => Err(StoreError::StateChanged {
             id: job.id.clone(),

@@ -111,7 +111,7 @@ impl Snapshot {
     }
 
     /// The pictures job `id`'s directory holds, of [`PICTURES`] (as of its last change).
-    pub fn pictures(&self, id: &str) -> Vec<&'static str> {
+    pub(crate) fn pictures(&self, id: &str) -> Vec<&'static str> {
         let bits = self.live(id).map_or(0, |l| l.pictures);
         PICTURES
             .iter()
@@ -145,12 +145,12 @@ impl Snapshot {
     }
 
     /// No job has work ahead of it.
-    pub fn idle(&self) -> bool {
+    pub(crate) fn idle(&self) -> bool {
         !self.jobs().any(|j| j.state.is_active())
     }
 
     /// Finished jobs (done, failed, cancelled) still live.
-    pub fn finished_live(&self) -> usize {
+    pub(crate) fn finished_live(&self) -> usize {
         self.jobs()
             .filter(|j| history::is_finished(j.state))
             .count()

@@ -20,9 +20,9 @@ use std::collections::{BTreeMap, HashMap};
 const DAY: f64 = 86_400.0;
 
 /// The longest period asked for (the chart has a column per day).
-pub const MAX_DAYS: f64 = 400.0;
+pub(crate) const MAX_DAYS: f64 = 400.0;
 /// How many failure reasons are listed, most common first.
-pub const TOP_REASONS: usize = 5;
+pub(crate) const TOP_REASONS: usize = 5;
 /// A failure reason is compared (and shown) by its first line, at most this long.
 const REASON_CHARS: usize = 200;
 
@@ -52,7 +52,7 @@ impl Period {
     }
 
     /// The last `days` whole UTC days up to and including the day of `now`.
-    pub fn last_days(days: u32, now: f64) -> Result<Period, String> {
+    pub(crate) fn last_days(days: u32, now: f64) -> Result<Period, String> {
         let end = ((now / DAY).floor() + 1.0) * DAY;
         Period::new(end - f64::from(days) * DAY, end)
     }
@@ -71,7 +71,7 @@ impl Period {
 }
 
 /// A time given as seconds since the epoch, or as a UTC date `YYYY-MM-DD` (its midnight).
-pub fn parse_time(text: &str) -> Result<f64, String> {
+pub(crate) fn parse_time(text: &str) -> Result<f64, String> {
     if let Ok(t) = text.parse::<f64>() {
         if t.is_finite() && t >= 0.0 {
             return Ok(t);
@@ -100,7 +100,7 @@ pub fn parse_time(text: &str) -> Result<f64, String> {
 
 /// Days since 1970-01-01 of a proleptic Gregorian date (the inverse of
 /// [`super::history::civil_date`]).
-pub fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
+pub(crate) fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
     let y = if m <= 2 { y - 1 } else { y };
     let era = y.div_euclid(400);
     let year_of_era = y.rem_euclid(400);
@@ -111,7 +111,7 @@ pub fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
 }
 
 /// `YYYY-MM-DD` of a time.
-pub fn date_of(t: f64) -> String {
+pub(crate) fn date_of(t: f64) -> String {
     let (y, m, d) = super::history::civil_date((t / DAY).floor() as i64);
     format!("{y:04}-{m:02}-{d:02}")
 }
@@ -204,7 +204,7 @@ impl Sums {
 /// Adds records up into [`Stats`]; each job once, however often it is added (the same
 /// job may be live on one host and retired on another, or twice in a spool's history
 /// after a crash while retiring).
-pub struct Builder {
+pub(crate) struct Builder {
     period: Period,
     days: Vec<(f64, f64)>,
     seen: std::collections::HashSet<u64>,
@@ -216,7 +216,7 @@ pub struct Builder {
 impl Builder {
     /// `printers`: those listed even when they did nothing (the config's); `folders`
     /// likewise (their names).
-    pub fn new(period: Period, printers: &[String], folders: &[String]) -> Builder {
+    pub(crate) fn new(period: Period, printers: &[String], folders: &[String]) -> Builder {
         let days = period.days();
         let empty = || Sums {
             daily_s: vec![0.0; days.len()],
@@ -232,7 +232,7 @@ impl Builder {
         }
     }
 
-    pub fn add(&mut self, r: &Retired) {
+    pub(crate) fn add(&mut self, r: &Retired) {
         if !self.seen.insert(r.seq) {
             return;
         }
@@ -294,7 +294,7 @@ impl Builder {
         }
     }
 
-    pub fn finish(self) -> Stats {
+    pub(crate) fn finish(self) -> Stats {
         let Builder {
             period,
             days,
@@ -360,7 +360,7 @@ pub struct Tally(BTreeMap<String, PrinterTally>);
 impl Tally {
     /// Counts `job`'s state change `k` (its entry in `job.history`). Jobs without a printer
     /// (a failed preparation) have nothing to count.
-    pub fn count(&mut self, job: &Job, k: usize) {
+    pub(crate) fn count(&mut self, job: &Job, k: usize) {
         let Some(printer) = &job.printer else { return };
         let Some(&(now_state, at)) = job.history.get(k) else {
             return;

@@ -170,7 +170,7 @@ async fn a_burst_of_finished_jobs_never_exceeds_the_live_count() {
         assert_eq!(snapshot.finished_live(), LIVE, "burst {burst}");
         assert_eq!(snapshot.jobs().count(), LIVE, "burst {burst}: only those");
         let counts = snapshot.counts();
-        assert_eq!(counts.into_state(JobState::Queued), (burst * BURST) as u64);
+        assert_eq!(counts.entered(JobState::Queued), (burst * BURST) as u64);
         assert_eq!(counts.finished(), (burst * BURST) as u64);
         last = admitted.last().unwrap().clone();
     }
@@ -295,7 +295,7 @@ async fn changes_from_elsewhere_are_counted_once() {
     let handle = spawn(store);
     std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
     let job = handle.admit(&hot.join("a.gcode"), &hot, &[]).await.unwrap();
-    let counts = |state| handle.snapshot().counts().into_state(state);
+    let counts = |state| handle.snapshot().counts().entered(state);
     assert_eq!(counts(JobState::Queued), 1, "this host's own change");
     elsewhere.lock().unwrap().extend(
         [

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
 /// Returns the elimination order (`order[k]` = the vertex eliminated k-th) for the
 /// symmetric pattern given as a lower-triangular CSC (`col_ptr`, `row_idx`, diagonal
 /// entries included or not).
-pub fn nested_dissection(
+pub(crate) fn nested_dissection(
     positions: &[[f64; 3]],
     col_ptr: &[usize],
     row_idx: &[usize],

@@ -84,7 +84,7 @@ fn folder_for<'a>(
     }
 }
 
-pub async fn upload(
+pub(crate) async fn upload(
     State(state): State<AppState>,
     instance: Instance,
     who: Option<axum::Extension<Who>>,
@@ -288,7 +288,7 @@ struct FileCommand {
 /// `POST api/files/local/<path>`: `select` (the held job stays held) or `select` with
 /// `print` (the held job is released and prints, once). Other commands (slice, copy,
 /// move) are refused. `204` as OctoPrint answers.
-pub async fn command(
+pub(crate) async fn command(
     State(state): State<AppState>,
     instance: Instance,
     who: Option<axum::Extension<Who>>,

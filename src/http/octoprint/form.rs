@@ -10,9 +10,9 @@ use super::super::upload;
 use super::super::ApiError;
 
 /// The longest value of a text field (`path`, `print`, `select`, or one this ignores).
-pub const MAX_FIELD_BYTES: usize = 1024;
+pub(crate) const MAX_FIELD_BYTES: usize = 1024;
 /// The most parts in a form: slicers send two to four.
-pub const MAX_PARTS: usize = 16;
+pub(crate) const MAX_PARTS: usize = 16;
 
 /// What an upload's text fields said.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
@@ -31,7 +31,7 @@ pub fn truthy(value: &str) -> bool {
 
 /// What [`FormReader::step`] found.
 #[derive(Debug, PartialEq, Eq)]
-pub enum Step {
+pub(crate) enum Step {
     /// Push more of the body (or finish it).
     More,
     /// The file begins; its name is in its one spelling (NFC) and has passed
@@ -49,7 +49,7 @@ pub enum Step {
 /// are collected (each bounded while it is read), the file's name checked, its bytes
 /// passed on. The handler drives it from the request body, the fuzz target from bytes.
 #[derive(Debug)]
-pub struct FormReader {
+pub(crate) struct FormReader {
     parser: super::super::multipart::Parser,
     form: Form,
     field: Option<(String, Vec<u8>)>,
@@ -59,7 +59,7 @@ pub struct FormReader {
 }
 
 impl FormReader {
-    pub fn new(content_type: &str) -> Result<FormReader, ApiError> {
+    pub(crate) fn new(content_type: &str) -> Result<FormReader, ApiError> {
         let boundary = super::super::multipart::boundary(content_type).map_err(|e| {
             ApiError::bad_request(format!(
                 "POST /api/files/local needs a multipart/form-data body with a `file` field: {e}"
@@ -75,20 +75,20 @@ impl FormReader {
         })
     }
 
-    pub fn push(&mut self, bytes: &[u8]) {
+    pub(crate) fn push(&mut self, bytes: &[u8]) {
         self.parser.push(bytes);
     }
 
-    pub fn finish(&mut self) {
+    pub(crate) fn finish(&mut self) {
         self.parser.finish();
     }
 
     /// The text fields read so far (all of them once [`Step::End`] came).
-    pub fn form(&self) -> &Form {
+    pub(crate) fn form(&self) -> &Form {
         &self.form
     }
 
-    pub fn step(&mut self) -> Result<Step, ApiError> {
+    pub(crate) fn step(&mut self) -> Result<Step, ApiError> {
         use super::super::multipart::Event;
         loop {
             let event = self

@@ -17,34 +17,34 @@ use std::io::{Read, Write};
 use std::path::Path;
 
 /// The seed's file in the spool directory.
-pub const SEED_FILE: &str = "octoprint-uuid-seed";
+pub(crate) const SEED_FILE: &str = "octoprint-uuid-seed";
 /// The seed's length in bytes (written as twice as many hex digits).
 const SEED_BYTES: usize = 32;
 
 /// The seed cannot be read or made.
 #[derive(Debug, thiserror::Error)]
 #[error("the OctoPrint instances' identity seed {path}: {message}")]
-pub struct IdentityError {
+pub(crate) struct IdentityError {
     pub path: String,
     pub message: String,
 }
 
 /// Which instance: the root (`/`) or a hot folder's (`/octoprint/<folder>/`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Which<'a> {
+pub(crate) enum Which<'a> {
     Root,
     Folder(&'a str),
 }
 
 /// The UUID of instance `which` on the farm whose spool is `spool_dir`; the seed is made
 /// there the first time.
-pub fn uuid(spool_dir: &Path, which: Which<'_>) -> Result<String, IdentityError> {
+pub(crate) fn uuid(spool_dir: &Path, which: Which<'_>) -> Result<String, IdentityError> {
     let seed = seed(spool_dir)?;
     Ok(uuid_from(&seed, which))
 }
 
 /// The UUID of `which` for `seed` (pure).
-pub fn uuid_from(seed: &[u8], which: Which<'_>) -> String {
+pub(crate) fn uuid_from(seed: &[u8], which: Which<'_>) -> String {
     let mut hash = Sha256::new();
     hash.update(b"crispen octoprint instance\0");
     hash.update(seed);

@@ -23,11 +23,11 @@
 //! an application key's whose scope has `control` (see `super::appkeys`); Home
 //! Assistant's buttons use it.
 
-pub mod files;
-pub mod form;
-pub mod identity;
-pub mod pending;
-pub mod state;
+pub(crate) mod files;
+pub(crate) mod form;
+pub(crate) mod identity;
+pub(crate) mod pending;
+pub(crate) mod state;
 
 use super::upload;
 use super::{ApiError, AppState};
@@ -35,15 +35,15 @@ use axum::http::StatusCode;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 
-pub use super::instance::Instance;
+pub(crate) use super::instance::Instance;
 pub use form::{read_form, truthy, Form};
 
 /// The OctoPrint API version whose answers these are.
-pub const API_VERSION: &str = "0.1";
+pub(crate) const API_VERSION: &str = "0.1";
 /// The OctoPrint server version reported; clients only check that it is recent enough.
-pub const SERVER_VERSION: &str = "1.10.0";
+pub(crate) const SERVER_VERSION: &str = "1.10.0";
 
-pub async fn version() -> Json<serde_json::Value> {
+pub(crate) async fn version() -> Json<serde_json::Value> {
     Json(serde_json::json!({
         "api": API_VERSION,
         "server": SERVER_VERSION,
@@ -53,7 +53,7 @@ pub async fn version() -> Json<serde_json::Value> {
 
 /// `GET api/server`: OctoPrint's version, and no safe mode (crispen has no plugins to
 /// leave out), as Home Assistant's `pyoctoprintapi` reads it.
-pub async fn server() -> Json<serde_json::Value> {
+pub(crate) async fn server() -> Json<serde_json::Value> {
     Json(serde_json::json!({ "version": SERVER_VERSION, "safemode": null }))
 }
 
@@ -63,7 +63,7 @@ pub async fn server() -> Json<serde_json::Value> {
 /// bundled Discovery plugin's settings, for its `upnpUuid`: the instance's identity (see
 /// [`identity`]), which Home Assistant's setup needs; no `tracking` (anonymous usage
 /// tracking is off, as OctoPrint leaves it without consent).
-pub async fn settings(
+pub(crate) async fn settings(
     axum::extract::State(state): axum::extract::State<AppState>,
     instance: Instance,
 ) -> Result<Json<serde_json::Value>, ApiError> {
@@ -131,7 +131,7 @@ pub async fn settings(
 /// `POST api/login` with `{"passive": true}`: who the key is (an application key's
 /// application, or the operator for the `[http]` key). Logging in with a user name and
 /// password is refused: crispen has keys, not users.
-pub async fn login(
+pub(crate) async fn login(
     who: Option<axum::Extension<super::appkeys::Who>>,
     body: axum::body::Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
@@ -187,7 +187,7 @@ async fn system_refused(instance: Instance) -> ApiError {
 
 /// Every OctoPrint route, for the root instance and each folder's: (uploads, API under
 /// the key, key requests without one).
-pub fn routes() -> (Router<AppState>, Router<AppState>, Router<AppState>) {
+pub(crate) fn routes() -> (Router<AppState>, Router<AppState>, Router<AppState>) {
     let mut uploads = Router::new();
     let mut api = Router::new();
     let mut open = Router::new();

@@ -24,15 +24,15 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 /// How the token's line starts in a held upload's sidecar.
-pub const TOKEN_PREFIX: &str = "# octoprint upload: ";
+pub(crate) const TOKEN_PREFIX: &str = "# octoprint upload: ";
 /// Uploads remembered at most.
-pub const MAX_PENDING: usize = 1024;
+pub(crate) const MAX_PENDING: usize = 1024;
 /// How long an upload is remembered, and a wanted one looked for: far longer than a hot
 /// folder takes to settle a file (a sidecar whose model never came is dropped after ten
 /// settle times).
-pub const MAX_WAIT: Duration = Duration::from_secs(30 * 60);
+pub(crate) const MAX_WAIT: Duration = Duration::from_secs(30 * 60);
 /// How often the sweeper looks for the jobs of wanted uploads.
-pub const SWEEP: Duration = Duration::from_millis(200);
+pub(crate) const SWEEP: Duration = Duration::from_millis(200);
 
 /// One held upload.
 #[derive(Debug, Clone)]
@@ -56,14 +56,14 @@ fn pending() -> MutexGuard<'static, Vec<Entry>> {
 }
 
 /// A fresh token: 128 random bits in hex.
-pub fn token() -> String {
+pub(crate) fn token() -> String {
     let mut bytes = [0u8; 16];
     rand::fill(&mut bytes[..]);
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// The sidecar line that carries `token`.
-pub fn sidecar_line(token: &str) -> String {
+pub(crate) fn sidecar_line(token: &str) -> String {
     format!("{TOKEN_PREFIX}{token}\n")
 }
 
@@ -76,7 +76,7 @@ fn token_in(sidecar: &str) -> Option<&str> {
 }
 
 /// Remembers a held upload of `file` into `folder` by the key `key` (None: the operator).
-pub fn remember(folder: &Path, file: &str, token: &str, key: Option<&str>) {
+pub(crate) fn remember(folder: &Path, file: &str, token: &str, key: Option<&str>) {
     let mut p = pending();
     let now = Instant::now();
     p.retain(|e| now.duration_since(e.since) < MAX_WAIT);
@@ -94,7 +94,7 @@ pub fn remember(folder: &Path, file: &str, token: &str, key: Option<&str>) {
 }
 
 /// The newest remembered upload of `file` into `folder`: (token, its key).
-pub fn newest(folder: &Path, file: &str) -> Option<(String, Option<String>)> {
+pub(crate) fn newest(folder: &Path, file: &str) -> Option<(String, Option<String>)> {
     pending()
         .iter()
         .rev()
@@ -104,7 +104,7 @@ pub fn newest(folder: &Path, file: &str) -> Option<(String, Option<String>)> {
 
 /// The remembered uploads into `folder` not asked to print yet, newest first, that `key`
 /// may start (its own; the operator's key, None, any): (token, file).
-pub fn unwanted(folder: &Path, key: Option<&str>) -> Vec<(String, String)> {
+pub(crate) fn unwanted(folder: &Path, key: Option<&str>) -> Vec<(String, String)> {
     pending()
         .iter()
         .rev()
@@ -119,7 +119,7 @@ fn forget(token: &str) {
 
 /// What became of a wanted upload's select-and-print.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Outcome {
+pub(crate) enum Outcome {
     /// Its job was released now.
     Released(String),
     /// Its job exists and is not held (released already): nothing to do.
@@ -131,7 +131,7 @@ pub enum Outcome {
 /// A select-and-print for the upload `token`: released now if its job exists, else
 /// marked wanted for the sweeper. Errors: the farm refused the release (the job was
 /// cancelled meanwhile, say).
-pub async fn print(farm: &Arc<Farm>, token: &str) -> Result<Outcome, CommandError> {
+pub(crate) async fn print(farm: &Arc<Farm>, token: &str) -> Result<Outcome, CommandError> {
     let entry = {
         let mut p = pending();
         let Some(e) = p.iter_mut().find(|e| e.token == token) else {

@@ -141,7 +141,7 @@ fn temperature(actual: Option<f64>, target: Option<f64>) -> Value {
 
 /// `GET api/printer` (`exclude`, `history` and `limit` are accepted and ignored: there is
 /// no temperature history).
-pub async fn printer(
+pub(crate) async fn printer(
     State(state): State<AppState>,
     instance: Instance,
 ) -> Result<Json<Value>, ApiError> {
@@ -182,7 +182,7 @@ pub async fn printer(
 }
 
 /// `GET api/job`.
-pub async fn job(
+pub(crate) async fn job(
     State(state): State<AppState>,
     instance: Instance,
 ) -> Result<Json<Value>, ApiError> {
@@ -276,7 +276,7 @@ fn no_progress() -> Value {
 
 /// `GET api/printerprofiles`: one profile, current and default: the focus printer's
 /// machine (build volume, heated bed, nozzle; the filament diameter under `crispen`).
-pub async fn printer_profiles(
+pub(crate) async fn printer_profiles(
     State(state): State<AppState>,
     instance: Instance,
 ) -> Result<Json<Value>, ApiError> {
@@ -323,7 +323,7 @@ pub async fn printer_profiles(
 
 /// `GET api/connection`: the focus printer's connection. Connecting and disconnecting
 /// (`POST`) are crispen's own business and refused.
-pub async fn connection(
+pub(crate) async fn connection(
     State(state): State<AppState>,
     instance: Instance,
 ) -> Result<Json<Value>, ApiError> {
@@ -383,7 +383,7 @@ impl From<ApiError> for Refusal {
 /// --control`). `restart` is refused (`409`): crispen prints a job once. Nothing to act
 /// on: `409`, as OctoPrint answers. `204`. Every command is logged with the key's
 /// application and counted (`crispen_octoprint_control_total`).
-pub async fn job_command(
+pub(crate) async fn job_command(
     State(state): State<AppState>,
     instance: Instance,
     who: Option<axum::Extension<Who>>,

@@ -20,7 +20,7 @@ pub struct FirmwareInfo {
 }
 
 impl FirmwareInfo {
-    pub fn capability(&self, name: &str) -> Option<bool> {
+    pub(crate) fn capability(&self, name: &str) -> Option<bool> {
         self.capabilities.get(name).copied()
     }
 

@@ -199,7 +199,7 @@ fn parse_ok(line: &str) -> OkReply {
 /// heating: no target). Firmwares space the `/` every way (`T:24.99 /0.00` from Marlin,
 /// `T:24.99/ 0.00` from OctoPrint's virtual printer, `T:24.99/0.00`, `T:24.99 / 0.00`), so
 /// the spaces around it are dropped first. None if the line has no hotend or bed reading.
-pub fn parse_report(line: &str) -> Option<Report> {
+pub(crate) fn parse_report(line: &str) -> Option<Report> {
     let mut temps = Temperatures::default();
     let mut waiting = false;
     let joined = line

@@ -20,7 +20,7 @@
 use super::view::View;
 
 /// What Marlin 2 finds in `text` (a line's code, as the host sends it after its `N<n> `).
-pub fn read(text: &str) -> View {
+pub(crate) fn read(text: &str) -> View {
     let b = text.as_bytes();
     let at = |i: usize| b.get(i).copied().unwrap_or(0);
     let mut view = View::new();

@@ -13,16 +13,16 @@
 //! the last. A check that read such a line its own way would judge a command the printer
 //! never runs.
 
-pub mod marlin2;
+pub(crate) mod marlin2;
 #[cfg(any(test, fuzzing))]
 pub mod transcribed;
-pub mod ultimaker2;
+pub(crate) mod ultimaker2;
 mod view;
 
 use crate::marlin::firmware::Firmware;
 use crate::marlin::gcode::FILE_PAUSES;
 
-pub use view::View;
+pub(crate) use view::View;
 
 /// One parameter of a command: its letter (upper case) and number, if it has one.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -52,12 +52,12 @@ impl Command<'_> {
     }
 
     /// Whether `letter` is given (with or without a number).
-    pub fn has(&self, letter: char) -> bool {
+    pub(crate) fn has(&self, letter: char) -> bool {
         self.words.iter().any(|w| w.letter == letter)
     }
 
     /// The command's letter: `G`, `M` or `T`.
-    pub fn letter(&self) -> char {
+    pub(crate) fn letter(&self) -> char {
         self.code.as_bytes()[0] as char
     }
 
@@ -74,12 +74,12 @@ pub struct Unreadable(pub String);
 
 /// The highest command number read (Marlin keeps it in 16 bits; Ultimaker2Marlin in an
 /// AVR `int`, so numbers past 32767 wrap): beyond, numbers are not read alike.
-pub const MAX_CODE: u32 = 9999;
+pub(crate) const MAX_CODE: u32 = 9999;
 
 /// Commands whose text after the code is a string, not parameters, on Marlin 2
 /// (`GCodeParser::parse` stops at them). Ultimaker2Marlin has no such notion: it looks for
 /// its letters in the whole line, which [`ultimaker2`] models.
-pub const STRING_COMMANDS: [&str; 6] = ["M23", "M28", "M30", "M117", "M118", "M928"];
+pub(crate) const STRING_COMMANDS: [&str; 6] = ["M23", "M28", "M30", "M117", "M118", "M928"];
 
 /// A line's code (its comment already cut at `;`) as written: `None` for a blank line.
 /// This is the reading every firmware agrees with for the lines it accepts; [`read_for`]

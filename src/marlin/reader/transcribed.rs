@@ -41,7 +41,7 @@ fn strtof(b: &[u8]) -> f64 {
 }
 
 /// Marlin 2.1.2.1's `GCodeParser::parse` and `value_float` on the wire bytes.
-pub fn marlin2(text: &str) -> View {
+pub(crate) fn marlin2(text: &str) -> View {
     let mut buf = wire(text);
     let mut view = View::new();
     // queue.cpp hands the parser the line with the checksum; the parser cuts at the first
@@ -144,7 +144,7 @@ pub fn marlin2(text: &str) -> View {
 /// Ultimaker2Marlin's `process_command` with `code_seen` (`strchr` over the whole command
 /// buffer, the host's line number and checksum included: get_command keeps them) and
 /// `code_value` (`strtod`).
-pub fn ultimaker2(text: &str) -> View {
+pub(crate) fn ultimaker2(text: &str) -> View {
     let buf = wire(text);
     let strchr = |c: u8| buf.iter().take_while(|&&b| b != 0).position(|&b| b == c);
     let mut view = View::new();

@@ -15,7 +15,7 @@
 use super::view::View;
 
 /// What Ultimaker2Marlin finds in `text`.
-pub fn read(text: &str) -> View {
+pub(crate) fn read(text: &str) -> View {
     let b = text.as_bytes();
     let mut view = View::new();
     // Where each upper-case letter first occurs (what `strchr` finds), in one pass.
@@ -47,7 +47,7 @@ pub fn read(text: &str) -> View {
 
 /// avr-libc's `strtod` (on a 32-bit `double`): the value and how many bytes it took (0 and
 /// 0 when no number starts the text).
-pub fn strtod(b: &[u8]) -> (f64, usize) {
+pub(crate) fn strtod(b: &[u8]) -> (f64, usize) {
     let mut i = 0;
     while b
         .get(i)

@@ -6,7 +6,7 @@
 /// What one firmware's parser finds in a line: the command and, per letter A-Z, whether
 /// it is there and the number it reads for it.
 #[derive(Clone, Debug, PartialEq)]
-pub struct View {
+pub(crate) struct View {
     /// Letter and number, or `None` when the firmware answers `Unknown command`.
     pub command: Option<(char, u32)>,
     /// Per letter A-Z: `None` not seen, `Some(None)` seen without a number the firmware
@@ -18,7 +18,7 @@ pub struct View {
 }
 
 impl View {
-    pub fn new() -> View {
+    pub(crate) fn new() -> View {
         View {
             command: None,
             params: [None; 26],
@@ -26,7 +26,8 @@ impl View {
         }
     }
 
-    pub fn param(&self, letter: char) -> Option<Option<f64>> {
+    #[cfg(any(test, fuzzing))]
+    pub(crate) fn param(&self, letter: char) -> Option<Option<f64>> {
         letter
             .is_ascii_uppercase()
             .then(|| self.params[(letter as u8 - b'A') as usize])

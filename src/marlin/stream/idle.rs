@@ -9,7 +9,7 @@ use std::time::Duration;
 
 /// What `Connection::idle_for` saw.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Idle {
+pub(crate) enum Idle {
     /// Nothing that needs acting on (reports and messages are logged).
     Quiet,
     /// The printer said `start`: it was reset or power-cycled. The next job begins with a

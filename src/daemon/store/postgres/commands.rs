@@ -8,7 +8,7 @@ use super::lease::PgStore;
 impl PgStore {
     /// Asks the host of `printer` to pause, resume or cancel its print; false when the
     /// farm has no such printer.
-    pub async fn push_command(
+    pub(crate) async fn push_command(
         &self,
         printer: &str,
         command: crate::daemon::command::PrintCommand,
@@ -28,7 +28,7 @@ impl PgStore {
     /// parsed: an unknown one is taken out of the table all the same (the table has no
     /// state; a row taken is a row answered), for the caller to log and refuse.
     #[allow(clippy::type_complexity)]
-    pub async fn take_commands(
+    pub(crate) async fn take_commands(
         &self,
     ) -> Result<
         Vec<(

@@ -22,7 +22,7 @@ pub enum FileBody<'a> {
 
 impl PgStore {
     /// Stores (or replaces) one of a job's files.
-    pub async fn put_file(&self, id: &str, name: &str, bytes: &[u8]) -> Result<(), PgError> {
+    pub(crate) async fn put_file(&self, id: &str, name: &str, bytes: &[u8]) -> Result<(), PgError> {
         let client = self.client().await?;
         client
             .execute(
@@ -35,7 +35,7 @@ impl PgStore {
     }
 
     /// The names of a job's files.
-    pub async fn file_names(&self, id: &str) -> Result<Vec<String>, PgError> {
+    pub(crate) async fn file_names(&self, id: &str) -> Result<Vec<String>, PgError> {
         let client = self.client().await?;
         Ok(ids(client
             .query("SELECT name FROM job_files WHERE job_id = $1", &[&id])

@@ -72,7 +72,7 @@ impl From<PgError> for StoreError {
 impl PgError {
     /// The database could not be reached or answered with a failure of its own (as opposed
     /// to refusing the change by the job's rules).
-    pub fn is_outage(&self) -> bool {
+    pub(crate) fn is_outage(&self) -> bool {
         matches!(
             self,
             PgError::Pool(_) | PgError::Db(_) | PgError::Unreachable(_)

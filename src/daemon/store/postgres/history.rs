@@ -10,7 +10,7 @@ use crate::daemon::job::{Job, JobState};
 impl PgStore {
     /// Marks the jobs `ids` retired, those still finished and live (another host may have
     /// retried or retired one meanwhile); returns the ones it marked.
-    pub async fn retire(&self, wanted: &[String]) -> Result<Vec<String>, PgError> {
+    pub(crate) async fn retire(&self, wanted: &[String]) -> Result<Vec<String>, PgError> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         self.check_token(&tx).await?;
@@ -33,7 +33,7 @@ impl PgStore {
     /// A page of the farm's history, newest first: jobs retired at or after
     /// `retired_since` (seconds since the epoch) below `before`, with the time each was
     /// retired.
-    pub async fn history(
+    pub(crate) async fn history(
         &self,
         before: Option<u64>,
         limit: usize,
@@ -76,7 +76,7 @@ impl PgStore {
     }
 
     /// A retired job and when it was retired; None when `id` is live or unknown.
-    pub async fn retired_job(&self, id: &str) -> Result<Option<(Job, f64)>, PgError> {
+    pub(crate) async fn retired_job(&self, id: &str) -> Result<Option<(Job, f64)>, PgError> {
         let client = self.client().await?;
         let row = client
             .query_opt(

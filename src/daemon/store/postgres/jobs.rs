@@ -16,14 +16,14 @@ use std::path::{Path, PathBuf};
 
 /// What [`PgStore::jobs_since`] found.
 #[derive(Debug, Default)]
-pub struct Changes {
+pub(crate) struct Changes {
     pub jobs: Vec<Job>,
     pub retired: Vec<String>,
     pub now: f64,
 }
 
 /// A change of one job, made by [`PgStore::modify`] on its locked row.
-pub struct Change<'a> {
+pub(crate) struct Change<'a> {
     /// The states the job must be in now (else [`StoreError::StateChanged`]). A job
     /// preparing or printing must also be held by this host (else
     /// [`StoreError::LostClaim`]), unless the change cancels it.
@@ -41,7 +41,7 @@ pub struct Change<'a> {
 }
 
 impl Change<'_> {
-    pub fn to(state: JobState) -> Change<'static> {
+    pub(crate) fn to(state: JobState) -> Change<'static> {
         Change {
             from: None,
             to: Some(state),
@@ -185,7 +185,7 @@ impl PgStore {
     }
 
     /// Makes one change of a job as one transaction on its locked row (see [`Change`]).
-    pub async fn modify(&self, id: &str, change: Change<'_>) -> Result<Job, PgError> {
+    pub(crate) async fn modify(&self, id: &str, change: Change<'_>) -> Result<Job, PgError> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         self.check_token(&tx).await?;
@@ -291,7 +291,7 @@ impl PgStore {
 
     /// Writes an outcome recorded while the database was unreachable: `job` as this host
     /// left it, if the job is still `from` and held by this host.
-    pub async fn write_outcome(&self, job: &Job, from: JobState) -> Result<Job, PgError> {
+    pub(crate) async fn write_outcome(&self, job: &Job, from: JobState) -> Result<Job, PgError> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         self.check_token(&tx).await?;
@@ -335,7 +335,7 @@ impl PgStore {
 
     /// The live jobs changed since `since` (seconds since the epoch, by the database's
     /// clock), the jobs retired since then, and the database's time now, for the next call.
-    pub async fn jobs_since(&self, since: f64) -> Result<Changes, PgError> {
+    pub(crate) async fn jobs_since(&self, since: f64) -> Result<Changes, PgError> {
         let client = self.client().await?;
         let now: f64 = client
             .query_one("SELECT extract(epoch FROM now())::float8", &[])

@@ -175,7 +175,7 @@ impl PgStore {
 
     /// Gives the lease up at a clean stop (this run's prints have ended): the next run
     /// under this name may start at once, and the others see the host offline now.
-    pub async fn release_host(&self) -> Result<(), PgError> {
+    pub(crate) async fn release_host(&self) -> Result<(), PgError> {
         let client = self.client().await?;
         client
             .execute(
@@ -186,7 +186,7 @@ impl PgStore {
         Ok(())
     }
 
-    pub fn host(&self) -> &str {
+    pub(crate) fn host(&self) -> &str {
         &self.host
     }
 
@@ -308,7 +308,7 @@ impl PgStore {
     }
 
     /// Every host of the farm and whether its lease holds.
-    pub async fn hosts(&self) -> Result<Vec<FarmHost>, PgError> {
+    pub(crate) async fn hosts(&self) -> Result<Vec<FarmHost>, PgError> {
         let client = self.client().await?;
         let rows = client
             .query(

@@ -41,6 +41,5 @@ mod rows;
 
 pub use copy::{FileBody, MAX_FILE_BYTES};
 pub use error::PgError;
-pub use jobs::{Change, Changes};
+pub(crate) use jobs::{Change, Changes};
 pub use lease::{Expired, FarmHost, PgStore};
-pub use printers::FarmPrinter;

@@ -43,7 +43,7 @@ impl PgStore {
     }
 
     /// Publishes the live status of this host's printers (JSON, by name).
-    pub async fn publish_printers(
+    pub(crate) async fn publish_printers(
         &self,
         statuses: &[(String, serde_json::Value)],
     ) -> Result<(), PgError> {
@@ -64,7 +64,7 @@ impl PgStore {
     }
 
     /// Sets a printer's bed gate (any host's printer: an operator clears beds farm-wide).
-    pub async fn set_gate(&self, printer: &str, gate: &PrinterGate) -> Result<(), PgError> {
+    pub(crate) async fn set_gate(&self, printer: &str, gate: &PrinterGate) -> Result<(), PgError> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         self.check_token(&tx).await?;
@@ -80,7 +80,7 @@ impl PgStore {
     }
 
     /// Every printer's bed gate.
-    pub async fn gates(&self) -> Result<BTreeMap<String, PrinterGate>, PgError> {
+    pub(crate) async fn gates(&self) -> Result<BTreeMap<String, PrinterGate>, PgError> {
         let client = self.client().await?;
         let rows = client
             .query("SELECT name, bed_not_cleared, last_job FROM printers", &[])

@@ -113,7 +113,7 @@ pub const SCHEMA_VERSION: i32 = MIGRATIONS.len() as i32;
 const MIGRATION_LOCK: i64 = 0x6372_6973_7065_6e00; // "crispen\0"
 
 /// Brings the database to [`SCHEMA_VERSION`]; returns the version found before.
-pub async fn migrate(client: &mut Client) -> Result<i32, PgError> {
+pub(crate) async fn migrate(client: &mut Client) -> Result<i32, PgError> {
     let tx = client.transaction().await?;
     tx.execute("SELECT pg_advisory_xact_lock($1)", &[&MIGRATION_LOCK])
         .await?;

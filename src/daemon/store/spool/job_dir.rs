@@ -84,7 +84,7 @@ fn is_reserved_name(name: &str) -> bool {
 
 /// The sequence number of a well-formed job id (`<digits>-<letters, digits, -, _>`), as
 /// `Spool::admit` makes them; `None` for anything else.
-pub fn seq_of_id(id: &str) -> Option<u64> {
+pub(crate) fn seq_of_id(id: &str) -> Option<u64> {
     let (seq, stem) = id.split_once('-')?;
     let stem_ok = stem.len() <= 40
         && stem

@@ -24,14 +24,14 @@ mod job_dir;
 #[cfg(test)]
 mod tests;
 
-pub use job_dir::seq_of_id;
+pub(crate) use job_dir::seq_of_id;
 pub(super) use job_dir::{late_sidecar_name, model_name, move_file, regular_file_size, sidecar_of};
 use job_dir::{load_job, read_origin, unreadable_job, Origin};
 
 /// The spool on disk plus its in-memory index. Not synchronised: only the store's task
 /// uses it (see [`super::spawn`]). Holds the spool's lock (`<spool>/lock`, an flock) while
 /// open, so two daemons never share a spool.
-pub struct Spool {
+pub(crate) struct Spool {
     _lock: nix::fcntl::Flock<std::fs::File>,
     root: PathBuf,
     jobs: BTreeMap<String, Job>,
@@ -77,7 +77,7 @@ impl Spool {
     /// in it. A job whose state cannot be read is loaded as failed, never stopping the
     /// others; a directory that is not a job of this spool (a copy of one, a stray
     /// folder) is left alone and logged.
-    pub fn open(root: &Path) -> Result<Spool, StoreError> {
+    pub(crate) fn open(root: &Path) -> Result<Spool, StoreError> {
         let jobs_dir = root.join("jobs");
         let lock = lock_dir(root)?;
         let (history, retired) = HistoryFiles::open(root)?;
@@ -177,7 +177,7 @@ impl Spool {
 
     /// Restart rules: preparation is redone, a print that was running is interrupted and its
     /// printer must have its bed cleared by a person. Returns the ids changed.
-    pub fn recover(&mut self) -> Result<Vec<String>, StoreError> {
+    pub(crate) fn recover(&mut self) -> Result<Vec<String>, StoreError> {
         let mut changed = Vec::new();
         let ids: Vec<String> = self.jobs.keys().cloned().collect();
         for id in ids {
@@ -213,30 +213,27 @@ impl Spool {
         Ok(changed)
     }
 
-    pub fn root(&self) -> &Path {
-        &self.root
-    }
-
-    pub fn job_dir(&self, id: &str) -> PathBuf {
+    pub(crate) fn job_dir(&self, id: &str) -> PathBuf {
         self.root.join("jobs").join(id)
     }
 
-    pub fn get(&self, id: &str) -> Option<&Job> {
+    pub(crate) fn get(&self, id: &str) -> Option<&Job> {
         self.jobs.get(id)
     }
 
     /// Jobs oldest first.
-    pub fn jobs(&self) -> impl Iterator<Item = &Job> {
+    pub(crate) fn jobs(&self) -> impl Iterator<Item = &Job> {
         let mut all: Vec<&Job> = self.jobs.values().collect();
         all.sort_by_key(|j| j.seq);
         all.into_iter()
     }
 
-    pub fn gate(&self, printer: &str) -> PrinterGate {
+    #[cfg(test)]
+    pub(crate) fn gate(&self, printer: &str) -> PrinterGate {
         self.gates.get(printer).cloned().unwrap_or_default()
     }
 
-    pub fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+    pub(crate) fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
         self.gates.insert(printer.to_string(), gate.clone());
         let written = self.save_gates();
         match &written {
@@ -255,7 +252,7 @@ impl Spool {
     /// Creates a job by moving `source` (a complete file in a hot folder) into a new job
     /// directory. The file is renamed, not copied, when spool and folder share a filesystem;
     /// otherwise it is copied, synced, and only then removed from the folder.
-    pub fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
+    pub(crate) fn admit(&mut self, source: &Path, folder: &Path) -> Result<Job, StoreError> {
         // Never follow a link out of the hot folder: only the folder's own files are taken.
         regular_file_size(source)?;
         let file = model_name(source);
@@ -319,7 +316,7 @@ impl Spool {
     /// Moves a sidecar that arrived after its model into the job's directory: as the
     /// job's sidecar when `applies` (the job has not started preparing), else aside as
     /// `<file>.toml.late`, kept but not used. Returns `applies`.
-    pub fn late_sidecar(
+    pub(crate) fn late_sidecar(
         &mut self,
         id: &str,
         sidecar: &Path,
@@ -341,7 +338,7 @@ impl Spool {
     }
 
     /// Changes a job's state (with a reason for failed/cancelled/interrupted) and persists it.
-    pub fn transition(
+    pub(crate) fn transition(
         &mut self,
         id: &str,
         state: JobState,
@@ -352,7 +349,7 @@ impl Spool {
 
     /// [`Spool::transition`] with other fields changed in the same write (the printer
     /// that claimed the job, the preparation's report).
-    pub fn transition_with(
+    pub(crate) fn transition_with(
         &mut self,
         id: &str,
         state: JobState,
@@ -366,7 +363,7 @@ impl Spool {
     /// ended): it is recorded in memory even when it cannot be written (a full disk), and
     /// written by [`Spool::write_pending`] once it can, so a finished print is never
     /// taken for an unfinished one and offered again.
-    pub fn record_outcome(
+    pub(crate) fn record_outcome(
         &mut self,
         id: &str,
         state: JobState,
@@ -388,7 +385,7 @@ impl Spool {
 
     /// Writes the outcomes and gates that could not be written before; returns how many
     /// remain.
-    pub fn write_pending(&mut self) -> usize {
+    pub(crate) fn write_pending(&mut self) -> usize {
         let mut pending = std::mem::take(&mut self.pending);
         pending.write(
             |id, _, job| match self.save(job) {
@@ -408,7 +405,11 @@ impl Spool {
 
     /// Applies `change` to a job's other fields and persists it; its state stays (only
     /// [`Spool::transition`] changes that).
-    pub fn update(&mut self, id: &str, change: impl FnOnce(&mut Job)) -> Result<Job, StoreError> {
+    pub(crate) fn update(
+        &mut self,
+        id: &str,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Job, StoreError> {
         self.change(id, |job| {
             let state = job.state;
             change(job);
@@ -456,7 +457,7 @@ impl Spool {
     }
 
     /// Puts a failed, cancelled or interrupted job back in the queue.
-    pub fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+    pub(crate) fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
         if let Some(retired) = self.retired_job(id)? {
             return Err(super::retired_refusal(id, retired.record.state, "retry"));
         }
@@ -491,7 +492,11 @@ impl Spool {
     /// Moves the finished jobs `retention` no longer keeps live to the history: their
     /// records are appended and synced first, then they leave the live jobs. Returns
     /// their ids (at most [`history::BATCH`]).
-    pub fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+    pub(crate) fn retire(
+        &mut self,
+        retention: &Retention,
+        now: f64,
+    ) -> Result<Vec<String>, StoreError> {
         let pending = &self.pending;
         let ids = history::to_retire(self.jobs.values(), retention, now, &|id| {
             pending.has_outcome(id)
@@ -514,7 +519,11 @@ impl Spool {
     /// Forgets the history's months wholly older than `keep_for` before `now`: each job's
     /// directory first, then the month's file (a crash in between leaves the file, whose
     /// remaining directories go next time). Returns how many jobs went.
-    pub fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+    pub(crate) fn prune(
+        &mut self,
+        keep_for: std::time::Duration,
+        now: f64,
+    ) -> Result<usize, StoreError> {
         let cutoff = now - keep_for.as_secs_f64();
         let mut gone = 0;
         for file in self.history.months_before(cutoff)? {
@@ -539,7 +548,7 @@ impl Spool {
     }
 
     /// A retired job: its history record, and its whole state from its directory.
-    pub fn retired_job(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+    pub(crate) fn retired_job(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
         if !self.retired.contains(id) {
             return Ok(None);
         }

@@ -22,6 +22,10 @@
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
 //! not depend on clap, anyhow or indicatif.
 
+// `pub(crate)` is the default: an item is `pub` only when something outside the library (the
+// binary, tests/, benches/, fuzz/) names it, so the public API is what is used.
+#![warn(unreachable_pub)]
+
 pub mod daemon;
 pub mod enhance;
 pub(crate) mod fsutil;

@@ -77,7 +77,7 @@ struct Task {
 
 impl Supervised {
     /// Starts a task that must run until the service stops it.
-    pub fn spawn(
+    pub(crate) fn spawn(
         &mut self,
         name: &'static str,
         task: impl std::future::Future<Output = ()> + Send + 'static,

@@ -41,7 +41,7 @@ pub(crate) struct PartHead {
 
 /// What the parser found next.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Event {
+pub(super) enum Event {
     /// A part begins.
     Part(PartHead),
     /// A piece of the current part's value.

@@ -30,7 +30,7 @@ pub(crate) const MAX_HEAD_BYTES: usize = 64 * 1024;
 
 /// The bounds of one listener.
 #[derive(Debug, Clone, Copy)]
-pub struct Limits {
+pub(crate) struct Limits {
     pub max_connections: usize,
     pub header_timeout: Duration,
     pub write_stall: Duration,

@@ -118,7 +118,7 @@ impl Probe {
     }
 
     /// The M115 answer, once its `ok` arrived.
-    pub fn answer(&self) -> Option<&[String]> {
+    pub(crate) fn answer(&self) -> Option<&[String]> {
         (self.phase == Phase::Answered).then_some(&self.answer[..])
     }
 

@@ -296,7 +296,20 @@ pub(crate) fn slice_mesh(
         heated_bed: job.machine.heated_bed,
         firmware: job.machine.firmware,
     };
-    let stats = match gcode::check(std::io::BufReader::new(file), &expect) {
+    // Defence in depth: a profile's start and end code is G-code too, and crispen's own
+    // output must pass what an uploaded file must. The two readings are independent and the
+    // job waits for both, so they run side by side (half the wait on two cores).
+    let (checked, verdict) = std::thread::scope(|scope| {
+        let verdict = (!job.measure_only)
+            .then(|| scope.spawn(|| policy::check_file(&gcode_path, job.machine)));
+        let checked = gcode::check(std::io::BufReader::new(file), &expect);
+        let verdict = verdict.map(|t| {
+            t.join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        });
+        (checked, verdict)
+    });
+    let stats = match checked {
         Ok(stats) => stats,
         Err(reason) if job.measure_only => {
             tracing::warn!(model = %job.model.display(), %reason, "the G-code measured would not pass as a job");
@@ -304,17 +317,15 @@ pub(crate) fn slice_mesh(
         }
         Err(reason) => return Err(bad_output(reason)),
     };
-    // Defence in depth: a profile's start and end code is G-code too, and crispen's own
-    // output must pass what an uploaded file must.
-    let verdict = if job.measure_only {
-        None
-    } else {
-        let verdict =
-            policy::check_file(&gcode_path, job.machine).map_err(|e| bad_output(e.to_string()))?;
-        if !verdict.passed() {
-            return Err(bad_output(verdict.summary()));
+    let verdict = match verdict {
+        None => None,
+        Some(verdict) => {
+            let verdict = verdict.map_err(|e| bad_output(e.to_string()))?;
+            if !verdict.passed() {
+                return Err(bad_output(verdict.summary()));
+            }
+            Some(verdict)
         }
-        Some(verdict)
     };
     timings.check_s = t.elapsed().as_secs_f64();
 

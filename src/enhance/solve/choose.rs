@@ -31,36 +31,6 @@ mod tests {
     use crate::enhance::operators::Operators;
     use crate::enhance::solve::{relative_residual, DELTAS, MAX_RELATIVE_RESIDUAL};
 
-    /// An equilateral triangle: M has a third of the area on each corner.
-    fn triangle() -> (Operators, Vec<[f64; 3]>) {
-        let h = 3f64.sqrt() / 2.0;
-        let v = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, h, 0.0]];
-        (Operators::build(&v, &[[0, 1, 2]]), v)
-    }
-
-    #[test]
-    fn the_residual_is_relative_per_column_and_takes_the_worst() {
-        let (ops, v) = triangle();
-        // δ = 0: A = M, so x = V solves A x = M V exactly.
-        let values = ops.system_values(0.0);
-        let b: Vec<[f64; 3]> = v
-            .iter()
-            .zip(&ops.mass)
-            .map(|(p, m)| p.map(|c| c * m))
-            .collect();
-        assert!(relative_residual(&ops, &values, &v, &b).relative < 1e-15);
-        // x = 0 leaves all of b: relative residual 1 in every column that has one.
-        let zero = vec![[0.0; 3]; 3];
-        let r = relative_residual(&ops, &values, &zero, &b);
-        assert!((r.relative - 1.0).abs() < 1e-15, "{}", r.relative);
-        assert_eq!(r.vector, b);
-        // x off in z only, where b is 0: the absolute residual counts, and it is the worst.
-        let lifted: Vec<[f64; 3]> = v.iter().map(|p| [p[0], p[1], 10.0]).collect();
-        let r = relative_residual(&ops, &values, &lifted, &b);
-        let expected = 10.0 * ops.mass.iter().map(|m| m * m).sum::<f64>().sqrt();
-        assert!((r.relative - expected).abs() < 1e-12, "{}", r.relative);
-    }
-
     #[test]
     fn both_solvers_pass_the_same_residual_check_and_agree() {
         // A bumpy fan around a centre vertex, so every δ moves something.

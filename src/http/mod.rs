@@ -43,13 +43,13 @@ use axum::routing::{get, post, put};
 use axum::Router;
 use std::sync::Arc;
 
-/// The check of an uploaded file's name and the reading of an upload's form (exported for
-/// the fuzz targets).
 pub(crate) use appkeys::AppKeys;
 pub(crate) use error::ApiError;
 pub(crate) use limits::{
     DEFAULT_UPLOAD_MAX_BYTES, MAX_BODY_BYTES, REQUEST_TIMEOUT, UPLOAD_IDLE_TIMEOUT, UPLOAD_TIMEOUT,
 };
+// The reading of an upload's form and the check of its file's name are exported for the
+// fuzz targets.
 pub use octoprint::{read_form as read_upload_form, truthy, Form as UploadForm};
 pub use state::{Access, AppState};
 pub use upload::{check_name as check_upload_name, upload_name, Upload};

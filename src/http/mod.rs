@@ -48,10 +48,11 @@ pub(crate) use error::ApiError;
 pub(crate) use limits::{
     DEFAULT_UPLOAD_MAX_BYTES, MAX_BODY_BYTES, REQUEST_TIMEOUT, UPLOAD_IDLE_TIMEOUT, UPLOAD_TIMEOUT,
 };
+pub use state::{Access, AppState};
+
 // The reading of an upload's form and the check of its file's name are exported for the
 // fuzz targets.
 pub use octoprint::{read_form as read_upload_form, truthy, Form as UploadForm};
-pub use state::{Access, AppState};
 pub use upload::{check_name as check_upload_name, upload_name, Upload};
 
 /// The whole application: pages, API, metrics and the OctoPrint subset.

@@ -317,16 +317,10 @@ pub(crate) fn slice_mesh(
         }
         Err(reason) => return Err(bad_output(reason)),
     };
-    let verdict = match verdict {
-        None => None,
-        Some(verdict) => {
-            let verdict = verdict.map_err(|e| bad_output(e.to_string()))?;
-            if !verdict.passed() {
-                return Err(bad_output(verdict.summary()));
-            }
-            Some(verdict)
-        }
-    };
+    let verdict = verdict.transpose().map_err(|e| bad_output(e.to_string()))?;
+    if let Some(verdict) = verdict.as_ref().filter(|v| !v.passed()) {
+        return Err(bad_output(verdict.summary()));
+    }
     timings.check_s = t.elapsed().as_secs_f64();
 
     // Cura's G-code header holds placeholders when run from the command line; its log has

@@ -11,6 +11,8 @@
 //! printer's real final `M114` position, whatever the host saw.
 #![allow(dead_code)] // each test binary uses its own part of this module
 
+use crispen::marlin::gcode::GcodeProgram;
+use crispen::marlin::stream::{Connection, PrintError, PrintProgress, PrintReport, StreamOptions};
 use nix::fcntl::{fcntl, FcntlArg, OFlag};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::termios;
@@ -27,6 +29,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
+use tokio::sync::{mpsc, watch};
 
 /// The real firmware this machine has, from `CRISPEN_FIRMWARE_DIR`. The tests that call
 /// this are `ignore`d where the variable was unset at build time (`build.rs` sets the
@@ -516,5 +519,87 @@ fn run(
         if !out.is_empty() && !write_all(host, &out, &stop) {
             // The host is gone; what it would have read is lost with the cable.
         }
+    }
+}
+
+// Jobs through the relay: what the firmware tests and the recovery benchmark run.
+
+/// `moves` short relative moves, then the position asked for; and the position they end at.
+pub fn job(moves: usize) -> (String, [f64; 3]) {
+    let mut text = String::from("G92 X0 Y0 Z0\nG91\n");
+    let (mut x, mut y) = (0i64, 0i64); // in hundredths of a millimetre
+    for i in 0..moves {
+        let dx = (i % 3 + 1) as i64;
+        let dy = (i % 4 + 1) as i64;
+        x += dx;
+        y += dy;
+        text.push_str(&format!("G1 X0.{dx:02} Y0.{dy:02} F6000\n"));
+    }
+    text.push_str("G90\nM400\nM114\n");
+    (text, [x as f64 / 100.0, y as f64 / 100.0, 0.0])
+}
+
+pub fn firmware(build: Build) -> crispen::marlin::firmware::Firmware {
+    match build {
+        Build::Ultimaker2 => crispen::marlin::firmware::Firmware::Ultimaker2,
+        _ => crispen::marlin::firmware::Firmware::Marlin2,
+    }
+}
+
+pub struct Outcome {
+    pub result: Result<PrintReport, PrintError>,
+    pub log: RelayLog,
+    pub took: Duration,
+}
+
+pub async fn print_through(
+    dir: &std::path::Path,
+    build: Build,
+    faults: RelayFaults,
+    moves: usize,
+) -> Outcome {
+    print_through_with(dir, build, faults, moves, |_| {}).await
+}
+
+/// [`print_through`] with the host's options changed by `tweak`.
+pub async fn print_through_with(
+    dir: &std::path::Path,
+    build: Build,
+    faults: RelayFaults,
+    moves: usize,
+    tweak: impl FnOnce(&mut StreamOptions),
+) -> Outcome {
+    let relay = Relay::start(dir, build, faults);
+    let (text, _) = job(moves);
+    let fw = firmware(build);
+    let program = GcodeProgram::read(text.as_bytes(), "job.gcode", fw).unwrap();
+    let mut opts = StreamOptions::for_firmware(fw);
+    tweak(&mut opts);
+    let started = Instant::now();
+    let result = async {
+        let mut conn = Connection::open(relay.device_path(), &opts).await?;
+        let (_control, control_rx) = mpsc::channel(1);
+        let (progress, _) = watch::channel(PrintProgress::default());
+        conn.print(&program, control_rx, progress).await
+    };
+    let result = tokio::time::timeout(Duration::from_secs(600), result)
+        .await
+        .unwrap_or_else(|_| panic!("{}: no end after 10 minutes", build.name()));
+    let took = started.elapsed();
+    // The firmware's own answer to the job's final M114 (it is recorded before any fault
+    // touches it, so it comes whatever the host saw).
+    let log = tokio::task::block_in_place(|| relay.wait_position(Duration::from_secs(10)));
+    Outcome { result, log, took }
+}
+
+/// The noise: 2 % corrupted lines, 0.5 % lost `ok`s, 1 % lines lost whole (the
+/// printer asks for them again: resends the host did not cause).
+pub fn noise(seed: u64) -> RelayFaults {
+    RelayFaults {
+        seed,
+        corrupt_line: 0.02,
+        lose_ok: 0.005,
+        drop_line: 0.01,
+        ..RelayFaults::default()
     }
 }

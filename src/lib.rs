@@ -15,8 +15,11 @@
 //!   serving the farm's handles and operations.
 //! - [`notify`]: notifications of the farm's events (a bed to clear, a failed job, a
 //!   printer offline) to webhooks, ntfy, Slack and Discord, queued in the spool.
+//! - [`camera`]: the printers' cameras: frames fetched off the printing path, each
+//!   printer's picture, and the snapshots and timelapse kept with each job.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
+//! - `tls`: the TLS client of every outbound https connection.
 //! - [`percent`]: names in addresses (percent-encoding), for the API, its clients and links.
 //!
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
@@ -26,6 +29,7 @@
 // binary, tests/, benches/, fuzz/) names it, so the public API is what is used.
 #![warn(unreachable_pub)]
 
+pub mod camera;
 pub mod daemon;
 pub mod enhance;
 pub(crate) mod fsutil;
@@ -39,3 +43,4 @@ pub mod ports;
 pub mod preview;
 pub mod service;
 pub mod slice;
+pub(crate) mod tls;

@@ -196,6 +196,7 @@ const SHARED: &str = "shared farm";
 const CONTROL: &str = "control socket";
 const HTTP: &str = "http listener";
 const NOTIFY: &str = "notifications";
+const CAMERAS: &str = "cameras";
 const STORE: &str = "job store";
 
 /// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
@@ -244,6 +245,7 @@ struct Running {
     stop_shared: CancellationToken,
     /// Notifications outlive the prints: what a stop does to them is told too.
     stop_notify: CancellationToken,
+    stop_cameras: CancellationToken,
     /// The listeners outlive the shutdown token: while prints finish at a stop, the
     /// operator can still watch them and cancel one.
     stop_listeners: CancellationToken,
@@ -315,6 +317,18 @@ impl Running {
         let notify = crate::notify::run(Arc::clone(&farm), stop_notify.clone())
             .map_err(ServiceError::Notify)?;
         tasks.spawn(NOTIFY, notify);
+        let (cameras, camera_sources) = crate::camera::Cameras::new(&config);
+        let cameras = Arc::new(cameras);
+        let stop_cameras = CancellationToken::new();
+        tasks.spawn(
+            CAMERAS,
+            crate::camera::run(
+                Arc::clone(&farm),
+                Arc::clone(&cameras),
+                camera_sources,
+                stop_cameras.clone(),
+            ),
+        );
         let fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
         let stop_listeners = CancellationToken::new();
         tasks.spawn(
@@ -322,6 +336,7 @@ impl Running {
             crate::http::serve_socket(
                 Arc::clone(&farm),
                 Arc::clone(&appkeys),
+                Arc::clone(&cameras),
                 config.http.clone(),
                 listener,
                 stop_listeners.clone(),
@@ -333,6 +348,7 @@ impl Running {
                 crate::http::serve_tcp(
                     Arc::clone(&farm),
                     Arc::clone(&appkeys),
+                    Arc::clone(&cameras),
                     http,
                     bound,
                     stop_listeners.clone(),
@@ -351,6 +367,7 @@ impl Running {
             fleet,
             stop_shared,
             stop_notify,
+            stop_cameras,
             stop_listeners,
             _announced: announced,
         })
@@ -418,6 +435,7 @@ impl Running {
             fleet,
             stop_shared,
             stop_notify,
+            stop_cameras,
             stop_listeners,
             ..
         } = self;
@@ -441,6 +459,9 @@ impl Running {
                 }
             }
         }
+        // The prints have ended: their last pictures are taken as the recorders stop.
+        stop_cameras.cancel();
+        tasks.join(CAMERAS).await;
         stop_notify.cancel();
         tasks.join(NOTIFY).await;
         stop_listeners.cancel();

@@ -65,6 +65,9 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("history.live_jobs", Policy::DaemonRestart),
     ("history.keep_days", Policy::DaemonRestart),
     ("notify", Policy::DaemonRestart),
+    // The cameras' tasks take their settings and sources when the daemon starts.
+    ("camera", Policy::DaemonRestart),
+    ("printer.camera", Policy::DaemonRestart),
     ("printer", Policy::PrinterRestart),
     ("printer.port", Policy::PrinterRestart),
     ("printer.simulate", Policy::PrinterRestart),
@@ -98,6 +101,8 @@ pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     // `enhance = false` is `strength = "off"`.
     ("folder.enhance", "folder.strength"),
     ("notify", "notify"),
+    ("camera", "camera"),
+    ("printer.camera", "printer.camera"),
 ];
 
 /// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
@@ -132,6 +137,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         store,
         history,
         notify,
+        camera,
         // Said again at every reload; not a setting.
         warnings: _,
     } = new;
@@ -164,6 +170,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     differs("history.keep_days", *keep_for != old.history.keep_for);
     differs("http.public_url", notify.dashboard != old.notify.dashboard);
     differs("notify", notify.receivers != old.notify.receivers);
+    differs("camera", *camera != old.camera);
     match (store, &old.store) {
         (None, None) => {}
         (Some(new), Some(old)) => {
@@ -230,6 +237,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             baud,
             heat_timeout,
             pause_heaters_off,
+            camera,
         } = new;
         let simulated = |p: &super::config::PrinterPort| {
             matches!(p, super::config::PrinterPort::Simulated { .. })
@@ -248,6 +256,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             *pause_heaters_off != old.pause_heaters_off,
         );
         differs("printer.machine", *machine != old.machine);
+        differs("printer.camera", *camera != old.camera);
     }
     differs(
         "printer",
@@ -317,6 +326,21 @@ pub(crate) fn merge(old: &Config, new: Config) -> Config {
         store: old.store.clone(),
         history: old.history,
         notify: old.notify.clone(),
+        camera: old.camera.clone(),
+        // The cameras' sources are fetched as the daemon started: a printer keeps the
+        // camera it had (a new printer has none) until the next start.
+        printers: new
+            .printers
+            .into_iter()
+            .map(|mut p| {
+                p.camera = old
+                    .printers
+                    .iter()
+                    .find(|o| o.name == p.name)
+                    .and_then(|o| o.camera.clone());
+                p
+            })
+            .collect(),
         farm: super::config::FarmConfig {
             host: old.farm.host.clone(),
             ..new.farm
@@ -441,6 +465,12 @@ mod tests {
             "notify",
             "[http]\n",
             "[[notify]]\nname = \"phone\"\nurl = \"https://ntfy.sh/farm\"\nformat = \"ntfy\"\n[http]\n",
+        ),
+        ("camera", "[history]\n", "[camera]\nrefresh_s = 2\n[history]\n"),
+        (
+            "printer.camera",
+            "time_scale = 0.0\n",
+            "time_scale = 0.0\n[printer.camera]\nsnapshot = \"http://cam:8080/snapshot\"\n",
         ),
         (
             "printer",

@@ -178,6 +178,9 @@ pub(crate) struct JobDetail {
     #[serde(flatten)]
     pub view: JobView,
     pub job: Job,
+    /// Its printer's snapshots and timelapse, once it has printed with a camera.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera: Option<crate::camera::recorder::JobCamera>,
 }
 
 /// `GET /api/v1/jobs/{id}`: a live job's entry and record (without building every other
@@ -188,6 +191,7 @@ pub(crate) async fn job(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let wanted = id.clone();
+    let camera_root = state.cameras.root().to_path_buf();
     let found = blocking(&state, move |farm| {
         let store = farm.store();
         let job = store.get(&wanted).cloned()?;
@@ -196,7 +200,8 @@ pub(crate) async fn job(
             .into_iter()
             .find(|j| j.id == wanted)?;
         let view = job_view(&farm.config(), &store, &farm.printer_machines(), status);
-        Some(JobDetail { view, job })
+        let camera = super::camera::manifest(&camera_root, &wanted);
+        Some(JobDetail { view, job, camera })
     })
     .await?;
     if let Some(detail) = found {
@@ -206,6 +211,13 @@ pub(crate) async fn job(
         Ok(Some(retired)) => {
             let mut answer = serde_json::to_value(&retired.record).unwrap_or_default();
             answer["retired"] = serde_json::Value::Bool(true);
+            let root = state.cameras.root().to_path_buf();
+            let wanted = id.clone();
+            if let Ok(Some(camera)) =
+                tokio::task::spawn_blocking(move || super::camera::manifest(&root, &wanted)).await
+            {
+                answer["camera"] = serde_json::to_value(camera).unwrap_or_default();
+            }
             answer["job"] = serde_json::to_value(&retired.job).unwrap_or_default();
             Ok(Json(answer).into_response())
         }

@@ -13,7 +13,7 @@ const APPKEYS: &str = include_str!("assets/appkeys.js");
 
 /// Only this page's own files; nothing framed elsewhere.
 const POLICY: &str =
-    "default-src 'self'; img-src 'self' blob:; frame-ancestors 'none'; base-uri 'none'";
+    "default-src 'self'; img-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'none'; base-uri 'none'";
 
 pub(crate) async fn index() -> impl IntoResponse {
     (

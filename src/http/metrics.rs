@@ -27,9 +27,11 @@ const PRINTER_STATES: [PrinterState; 10] = [
 
 pub(crate) async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     let farm = state.farm.clone();
-    let text = tokio::task::spawn_blocking(move || render(&farm))
-        .await
-        .unwrap_or_default();
+    let cameras = state.cameras.clone();
+    let text =
+        tokio::task::spawn_blocking(move || render(&farm) + &render_cameras(&farm, &cameras))
+            .await
+            .unwrap_or_default();
     (
         [(
             header::CONTENT_TYPE,
@@ -65,6 +67,83 @@ impl Out {
         };
         let _ = writeln!(self.0, "{name}{labels} {value}");
     }
+}
+
+/// The cameras' figures: whether each answers, its frames and failures, and what the
+/// jobs' pictures take on disk.
+fn render_cameras(farm: &crate::daemon::farm::Farm, cameras: &crate::camera::Cameras) -> String {
+    use crate::camera::feed::CameraState;
+    let mut out = Out(String::new());
+    let statuses: Vec<_> = cameras
+        .printers()
+        .filter_map(|p| {
+            let printing = farm.printer(p).is_some_and(|h| {
+                h.live.borrow().state == crate::daemon::farm::PrinterState::Printing
+            });
+            cameras.status(p, printing)
+        })
+        .collect();
+    out.family(
+        "crispen_camera_online",
+        "gauge",
+        "1 when the printer's camera gives fresh frames (0: offline, starting or frozen).",
+    );
+    for s in &statuses {
+        let online = s.state == CameraState::Online;
+        out.sample(
+            "crispen_camera_online",
+            &[("printer", &s.printer)],
+            f64::from(u8::from(online)),
+        );
+    }
+    out.family(
+        "crispen_camera_frozen",
+        "gauge",
+        "1 when the printer's camera repeats one picture while it prints.",
+    );
+    for s in &statuses {
+        let frozen = s.state == CameraState::Frozen;
+        out.sample(
+            "crispen_camera_frozen",
+            &[("printer", &s.printer)],
+            f64::from(u8::from(frozen)),
+        );
+    }
+    out.family(
+        "crispen_camera_frames_total",
+        "counter",
+        "Frames taken from the printer's camera.",
+    );
+    for s in &statuses {
+        out.sample(
+            "crispen_camera_frames_total",
+            &[("printer", &s.printer)],
+            s.frames as f64,
+        );
+    }
+    out.family(
+        "crispen_camera_failures_total",
+        "counter",
+        "Fetches from the printer's camera that failed.",
+    );
+    for s in &statuses {
+        out.sample(
+            "crispen_camera_failures_total",
+            &[("printer", &s.printer)],
+            s.failures as f64,
+        );
+    }
+    out.family(
+        "crispen_camera_disk_bytes",
+        "gauge",
+        "Bytes the jobs' snapshots and timelapses take ([camera] disk_limit_mb bounds it).",
+    );
+    out.sample(
+        "crispen_camera_disk_bytes",
+        &[],
+        crate::camera::timelapse::total_bytes(cameras.root()) as f64,
+    );
+    out.0
 }
 
 pub(crate) fn render(farm: &crate::daemon::farm::Farm) -> String {

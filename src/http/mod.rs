@@ -11,6 +11,7 @@
 //!   are the farm's own operations (`daemon::control::execute`).
 //! - [`upload`]: files streamed into a hot folder under a temporary name, then linked in.
 //! - [`multipart`]: an upload's `multipart/form-data` body read as it arrives, bounded.
+//! - [`camera`]: the printers' pictures and live views, the jobs' snapshots and timelapses.
 //! - [`events`]: live state, progress and temperatures as server-sent events.
 //! - [`metrics`]: the farm in Prometheus' text format.
 //! - [`octoprint`]: OctoPrint's API for slicers and other clients, one instance per hot
@@ -24,6 +25,7 @@ pub(crate) mod appkeys;
 mod appkeys_api;
 mod assets;
 mod auth;
+mod camera;
 mod error;
 mod events;
 mod instance;
@@ -79,6 +81,9 @@ pub(crate) fn router(state: AppState) -> Router {
         .route("/api/v1/stats", get(api::stats))
         .route("/api/v1/jobs/{id}/{action}", post(api::job_action))
         .route("/api/v1/jobs/{id}/pictures/{picture}", get(api::picture))
+        .route("/api/v1/jobs/{id}/camera/{file}", get(camera::job_file))
+        .route("/api/v1/cameras", get(camera::cameras))
+        .route("/api/v1/printers/{name}/snapshot", get(camera::snapshot))
         .route("/api/v1/folders", get(api::folders))
         .route("/metrics", get(metrics::metrics))
         // The application keys, as the dashboard and `crispen keys` manage them.
@@ -91,7 +96,8 @@ pub(crate) fn router(state: AppState) -> Router {
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
         .route_layer(axum::middleware::from_fn(auth::time_limit))
         // The event stream outlives any request time limit by design.
-        .route("/api/v1/events", get(events::events));
+        .route("/api/v1/events", get(events::events))
+        .route("/api/v1/printers/{name}/stream", get(camera::stream));
     // A client asks for its key before it has one.
     let open = octoprint_open
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
@@ -126,6 +132,7 @@ pub(crate) async fn bind(http: &HttpConfig) -> std::io::Result<tokio::net::TcpLi
 pub(crate) async fn serve_socket(
     farm: Arc<Farm>,
     appkeys: Arc<AppKeys>,
+    cameras: Arc<crate::camera::Cameras>,
     http: Option<HttpConfig>,
     listener: tokio::net::UnixListener,
     stop: tokio_util::sync::CancellationToken,
@@ -136,6 +143,7 @@ pub(crate) async fn serve_socket(
         upload_max_bytes: http.map_or(DEFAULT_UPLOAD_MAX_BYTES, |h| h.upload_max_bytes),
         streams: Arc::default(),
         appkeys,
+        cameras,
     });
     serve::serve(listener, app, serve::Limits::default(), stop, "socket").await;
 }
@@ -144,6 +152,7 @@ pub(crate) async fn serve_socket(
 pub(crate) async fn serve_tcp(
     farm: Arc<Farm>,
     appkeys: Arc<AppKeys>,
+    cameras: Arc<crate::camera::Cameras>,
     http: HttpConfig,
     listener: tokio::net::TcpListener,
     stop: tokio_util::sync::CancellationToken,
@@ -157,6 +166,7 @@ pub(crate) async fn serve_tcp(
         upload_max_bytes: http.upload_max_bytes,
         streams: Arc::default(),
         appkeys,
+        cameras,
     });
     serve::serve(listener, app, serve::Limits::default(), stop, "tcp").await;
 }

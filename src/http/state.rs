@@ -31,4 +31,6 @@ pub struct AppState {
     pub streams: Arc<Streams>,
     /// Application keys and pending key requests (shared by both listeners).
     pub appkeys: Arc<AppKeys>,
+    /// The printers' cameras (shared by both listeners).
+    pub cameras: Arc<crate::camera::Cameras>,
 }

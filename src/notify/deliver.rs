@@ -108,6 +108,14 @@ async fn observe_loop(farm: &Farm, queues: &[Queue], stop: &CancellationToken) {
         &config.farm.host,
         config.store.is_some(),
         config.notify.dashboard.clone(),
+    )
+    .with_cameras(
+        config
+            .printers
+            .iter()
+            .filter(|p| p.camera.is_some())
+            .map(|p| p.name.clone())
+            .collect(),
     );
     let mut watch = farm.watch();
     loop {

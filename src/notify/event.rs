@@ -95,6 +95,10 @@ pub struct Event {
     pub reason: Option<String>,
     /// The dashboard (`[http] public_url`), where one is configured.
     pub link: Option<String>,
+    /// The picture the printer's camera took as its print ended, under the dashboard's
+    /// address (a printer with a camera, and `[http] public_url`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub snapshot: Option<String>,
 }
 
 impl Event {
@@ -109,6 +113,7 @@ impl Event {
             job: None,
             reason: None,
             link: None,
+            snapshot: None,
         }
     }
 

@@ -66,6 +66,8 @@ pub(crate) struct Observer {
     /// The farm is shared with other hosts (`[store]`).
     shared: bool,
     dashboard: Option<String>,
+    /// The printers with a camera: their jobs' events carry its snapshot.
+    cameras: BTreeSet<String>,
     /// None until the first look, which is the baseline: what was so before this run is
     /// not news.
     jobs: Option<HashMap<String, JobState>>,
@@ -91,10 +93,17 @@ impl Observer {
             host: host.to_string(),
             shared,
             dashboard,
+            cameras: BTreeSet::new(),
             jobs: None,
             printers: BTreeMap::new(),
             hosts: BTreeMap::new(),
         }
+    }
+
+    /// Job events on these printers carry the snapshot their camera took.
+    pub(crate) fn with_cameras(mut self, printers: BTreeSet<String>) -> Observer {
+        self.cameras = printers;
+        self
     }
 
     /// What happened since the last look.
@@ -210,6 +219,29 @@ impl Observer {
         if let Some(link) = &mut e.link {
             link.push_str("/#job/");
             link.push_str(&crate::percent::percent_encode(&job.id));
+        }
+        // The picture the printer's camera took as the print ended (see `camera::recorder`).
+        let picture = match kind {
+            EventKind::JobDone => Some("end.jpg"),
+            EventKind::JobFailed
+            | EventKind::JobCancelled
+            | EventKind::JobInterrupted
+            | EventKind::PrinterError => Some("failure.jpg"),
+            EventKind::PrinterOffline
+            | EventKind::PrinterOnline
+            | EventKind::PrinterWaiting
+            | EventKind::HostLost
+            | EventKind::Test => None,
+        };
+        if let (Some(dashboard), Some(picture), Some(printer)) =
+            (&self.dashboard, picture, &job.printer)
+        {
+            if self.cameras.contains(printer) {
+                e.snapshot = Some(format!(
+                    "{dashboard}/api/v1/jobs/{}/camera/{picture}",
+                    crate::percent::percent_encode(&job.id)
+                ));
+            }
         }
         e.job = Some(EventJob {
             id: job.id.clone(),
@@ -332,6 +364,44 @@ mod tests {
         assert_eq!(f.job.as_ref().unwrap().id, "f");
         assert_eq!(f.printer.as_deref(), Some("p"));
         assert_eq!(f.link.as_deref(), Some("http://farm/#job/f"));
+        assert_eq!(f.snapshot, None, "p has no camera");
+    }
+
+    /// A printer's camera puts the picture of the print's end in its jobs' events: the
+    /// last one for a done job, the failure's for the others; other printers' have none.
+    #[test]
+    fn job_events_carry_the_camera_snapshot() {
+        let mut o = Observer::new("h", false, Some("http://farm".into()))
+            .with_cameras(["cam".to_string()].into());
+        let p = [
+            printer("cam", PrinterState::Idle),
+            printer("blind", PrinterState::Idle),
+        ];
+        let printing = [
+            job("a", JobState::Printing, Some("cam")),
+            job("b", JobState::Printing, Some("cam")),
+            job("c", JobState::Printing, Some("blind")),
+        ];
+        assert!(look(&mut o, &printing, &p, &[]).is_empty());
+        let mut ended = printing.clone();
+        ended[0].state = JobState::Done;
+        ended[1].state = JobState::Cancelled;
+        ended[2].state = JobState::Done;
+        let made = o.observe(Look {
+            jobs: ended.iter(),
+            printers: &p,
+            hosts: &[],
+            now: 5.0,
+        });
+        let snapshots: Vec<Option<&str>> = made.iter().map(|e| e.snapshot.as_deref()).collect();
+        assert_eq!(
+            snapshots,
+            [
+                Some("http://farm/api/v1/jobs/a/camera/end.jpg"),
+                Some("http://farm/api/v1/jobs/b/camera/failure.jpg"),
+                None
+            ]
+        );
     }
 
     /// A printer offline is told once however often it retries, and its return once;

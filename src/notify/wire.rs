@@ -8,7 +8,6 @@ use crate::daemon::config::notify::{NotifyFormat, Receiver};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full, Limited};
 use hyper_util::rt::TokioIo;
-use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
 
@@ -81,6 +80,11 @@ pub(crate) fn render(receiver: &Receiver, event: &Event) -> (Vec<u8>, Vec<(&'sta
             if let Some(link) = &event.link {
                 headers.push(("click", link.clone()));
             }
+            // ntfy shows an attachment given by its URL under the message.
+            if let Some(picture) = &event.snapshot {
+                headers.push(("attach", picture.clone()));
+                headers.push(("filename", "snapshot.jpg".into()));
+            }
             event.text().into_bytes()
         }
         NotifyFormat::Slack => {
@@ -90,7 +94,15 @@ pub(crate) fn render(receiver: &Receiver, event: &Event) -> (Vec<u8>, Vec<(&'sta
             if let Some(link) = &event.link {
                 text += &format!(" <{}|dashboard>", slack_escape(link));
             }
-            serde_json::to_vec(&serde_json::json!({ "text": text })).unwrap_or_default()
+            let mut body = serde_json::json!({ "text": text });
+            if let Some(picture) = &event.snapshot {
+                // The text stays the notification's; the picture is a block under it.
+                body["blocks"] = serde_json::json!([
+                    { "type": "section", "text": { "type": "mrkdwn", "text": text } },
+                    { "type": "image", "image_url": picture, "alt_text": "the printer's camera" },
+                ]);
+            }
+            serde_json::to_vec(&body).unwrap_or_default()
         }
         NotifyFormat::Discord => {
             headers.push(("content-type", "application/json".into()));
@@ -100,10 +112,13 @@ pub(crate) fn render(receiver: &Receiver, event: &Event) -> (Vec<u8>, Vec<(&'sta
             }
             let text: String = text.chars().take(DISCORD_MAX_CHARS).collect();
             // A file named "@everyone" must not ping a whole server.
-            let body = serde_json::json!({
+            let mut body = serde_json::json!({
                 "content": text,
                 "allowed_mentions": { "parse": [] },
             });
+            if let Some(picture) = &event.snapshot {
+                body["embeds"] = serde_json::json!([{ "image": { "url": picture } }]);
+            }
             serde_json::to_vec(&body).unwrap_or_default()
         }
     };
@@ -183,10 +198,13 @@ async fn exchange(
                 host: url.host.clone(),
                 message: e.to_string(),
             })?;
-        let tls = tls().connect(name, tcp).await.map_err(|e| SendError::Tls {
-            host: url.host.clone(),
-            message: e.to_string(),
-        })?;
+        let tls = crate::tls::connector()
+            .connect(name, tcp)
+            .await
+            .map_err(|e| SendError::Tls {
+                host: url.host.clone(),
+                message: e.to_string(),
+            })?;
         over(tls, request).await
     } else {
         over(tcp, request).await
@@ -235,25 +253,6 @@ async fn over(
     }
 }
 
-fn tls() -> tokio_rustls::TlsConnector {
-    static CONNECTOR: OnceLock<tokio_rustls::TlsConnector> = OnceLock::new();
-    CONNECTOR
-        .get_or_init(|| {
-            use tokio_rustls::rustls;
-            let roots = rustls::RootCertStore {
-                roots: webpki_roots::TLS_SERVER_ROOTS.to_vec(),
-            };
-            let provider = Arc::new(rustls::crypto::ring::default_provider());
-            let config = rustls::ClientConfig::builder_with_provider(provider)
-                .with_safe_default_protocol_versions()
-                .expect("ring supports the default TLS versions")
-                .with_root_certificates(roots)
-                .with_no_client_auth();
-            tokio_rustls::TlsConnector::from(Arc::new(config))
-        })
-        .clone()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -273,6 +272,32 @@ mod tests {
             max_attempts: 3,
             backoff_max: Duration::from_secs(1),
         }
+    }
+
+    /// A camera's snapshot goes with the message: ntfy's attachment, Slack's image block,
+    /// Discord's embedded image, the JSON's `snapshot`.
+    #[test]
+    fn snapshots_go_as_each_receiver_shows_pictures() {
+        let mut e = Event::new(EventKind::JobDone, 10.0, "h");
+        e.snapshot = Some("http://farm/api/v1/jobs/j/camera/end.jpg".into());
+        let url = e.snapshot.clone().unwrap();
+        let (_, headers) = render(&receiver(NotifyFormat::Ntfy), &e);
+        assert!(headers.contains(&("attach", url.clone())), "{headers:?}");
+        let (body, _) = render(&receiver(NotifyFormat::Slack), &e);
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(v["blocks"][1]["image_url"], url.as_str(), "{v}");
+        assert!(v["text"].is_string());
+        let (body, _) = render(&receiver(NotifyFormat::Discord), &e);
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(v["embeds"][0]["image"]["url"], url.as_str(), "{v}");
+        let (body, _) = render(&receiver(NotifyFormat::Json), &e);
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(v["snapshot"], url.as_str(), "{v}");
+        // Without a camera, nothing is added.
+        e.snapshot = None;
+        let (body, _) = render(&receiver(NotifyFormat::Discord), &e);
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert!(v.get("embeds").is_none(), "{v}");
     }
 
     /// The signature is RFC 4231's HMAC-SHA256, over the exact body sent, in every format.

@@ -212,6 +212,7 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
     }
     Mesh { vertices, faces }
 }
+pub mod camera;
 pub mod daemon;
 pub mod farm;
 pub mod http;

@@ -768,7 +768,7 @@ fn idle_temperatures_follow_the_printer() {
 
 /// chromedriver and one headless Chromium session, spoken to in W3C WebDriver JSON over
 /// the same minimal HTTP client.
-struct Browser {
+pub(crate) struct Browser {
     _driver: Killed,
     addr: String,
     session: String,
@@ -777,7 +777,7 @@ struct Browser {
 const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
 
 impl Browser {
-    fn start(profile: &Path) -> Browser {
+    pub(crate) fn start(profile: &Path) -> Browser {
         let port = std::net::TcpListener::bind("127.0.0.1:0")
             .unwrap()
             .local_addr()
@@ -828,7 +828,7 @@ impl Browser {
         }
     }
 
-    fn call(&self, method: &str, path: &str, body: &Value) -> Value {
+    pub(crate) fn call(&self, method: &str, path: &str, body: &Value) -> Value {
         webdriver(
             &self.addr,
             method,
@@ -837,11 +837,11 @@ impl Browser {
         )
     }
 
-    fn go(&self, url: &str) {
+    pub(crate) fn go(&self, url: &str) {
         self.call("POST", "/url", &json!({ "url": url }));
     }
 
-    fn exec(&self, script: &str, args: Value) -> Value {
+    pub(crate) fn exec(&self, script: &str, args: Value) -> Value {
         self.call(
             "POST",
             "/execute/sync",
@@ -849,7 +849,7 @@ impl Browser {
         )
     }
 
-    fn find(&self, css: &str) -> String {
+    pub(crate) fn find(&self, css: &str) -> String {
         let v = self.call(
             "POST",
             "/element",
@@ -861,12 +861,12 @@ impl Browser {
             .to_string()
     }
 
-    fn click(&self, css: &str) {
+    pub(crate) fn click(&self, css: &str) {
         let id = self.find(css);
         self.call("POST", &format!("/element/{id}/click"), &json!({}));
     }
 
-    fn type_into(&self, css: &str, text: &str) {
+    pub(crate) fn type_into(&self, css: &str, text: &str) {
         let id = self.find(css);
         self.call(
             "POST",
@@ -875,7 +875,7 @@ impl Browser {
         );
     }
 
-    fn screenshot(&self, path: &Path) {
+    pub(crate) fn screenshot(&self, path: &Path) {
         use base64::Engine;
         let v = self.call("GET", "/screenshot", &Value::Null);
         let png = base64::engine::general_purpose::STANDARD
@@ -886,7 +886,7 @@ impl Browser {
 
     /// Waits until `script` (a function body) returns true in the page; anything else it
     /// returns is shown if it never does.
-    fn wait_until(&self, limit: Duration, what: &str, script: &str) {
+    pub(crate) fn wait_until(&self, limit: Duration, what: &str, script: &str) {
         let started = Instant::now();
         let mut seen: Vec<Value> = Vec::new();
         loop {

@@ -43,6 +43,8 @@ pub struct Config {
     pub history: HistoryConfig,
     /// Where the farm's events are sent (`[[notify]]`, see `notify`).
     pub notify: notify::NotifyConfig,
+    /// How frames are fetched and kept (`[camera]`); each printer's camera is its own.
+    pub camera: super::camera::CameraSettings,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,
@@ -153,6 +155,8 @@ pub struct PrinterConfig {
     pub heat_timeout: Duration,
     /// A pause the file asked for that nobody resumes this long turns the heaters off.
     pub pause_heaters_off: Duration,
+    /// Where its pictures come from (`[printer.camera]`).
+    pub camera: Option<super::camera::PrinterCamera>,
 }
 
 #[derive(Debug, Clone)]

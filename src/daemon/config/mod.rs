@@ -15,6 +15,7 @@
 //! `machines`, `printers`, `folders`, [`notify`], `http`, `history`), which this root calls
 //! in turn.
 
+pub mod camera;
 mod check;
 mod checked;
 mod error;
@@ -177,6 +178,8 @@ printers = ["demo"]
                 Some(http::check(h, &anchor).map_err(|(key, m)| invalid("[http]".into(), key, m))?)
             }
         };
+        let camera =
+            camera::check(raw.camera).map_err(|(key, m)| invalid("[camera]".into(), key, m))?;
         let history = match raw.history {
             None => HistoryConfig::default(),
             Some(h) => history::check(h).map_err(|(key, m)| invalid("[history]".into(), key, m))?,
@@ -195,6 +198,7 @@ printers = ["demo"]
                 store,
                 history,
                 notify,
+                camera,
                 warnings,
             },
             http,

@@ -317,7 +317,7 @@ pub(super) fn resolve(
 /// An `http://` or `https://` URL with a host, an optional port and path; no user or
 /// password part (a secret belongs in `secret_file`, or in the path where the service
 /// puts it, as Slack and Discord do).
-pub(crate) fn parse_url(text: &str) -> Result<ReceiverUrl, String> {
+pub fn parse_url(text: &str) -> Result<ReceiverUrl, String> {
     if text.len() > MAX_URL_CHARS {
         return Err(format!("longer than {MAX_URL_CHARS} characters"));
     }

@@ -95,6 +95,13 @@ fn check_printer(
     };
     let pause_heaters_off = pause::heaters_off_after(p.pause_heaters_off_s)
         .map_err(|m| invalid(section.clone(), "pause_heaters_off_s", m))?;
+    let camera = match p.camera {
+        None => None,
+        Some(c) => Some(
+            super::camera::check_printer(c)
+                .map_err(|(key, m)| invalid(format!("{section}.camera"), key, m))?,
+        ),
+    };
     let port = port_of(section, &p.name, p.port, p.simulate, cx, warnings)?;
     Ok(PrinterConfig {
         name: p.name,
@@ -104,6 +111,7 @@ fn check_printer(
         baud,
         heat_timeout,
         pause_heaters_off,
+        camera,
     })
 }
 

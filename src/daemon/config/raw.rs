@@ -34,6 +34,8 @@ pub(super) struct RawConfig {
     pub(super) history: Option<RawHistory>,
     #[serde(default, rename = "notify")]
     pub(super) notify: Vec<notify::RawNotify>,
+    #[serde(default)]
+    pub(super) camera: Option<super::camera::RawCamera>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -103,6 +105,7 @@ pub(super) struct RawPrinter {
     /// See `pause.rs`.
     pub(super) pause_heaters_off_s: Option<i64>,
     pub(super) simulate: Option<RawSimulate>,
+    pub(super) camera: Option<super::camera::RawPrinterCamera>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -202,7 +205,7 @@ pub(super) fn parse_raw(text: &str, path: &Path) -> Result<(RawConfig, PathBuf),
 
 /// The tables as their headers are written, for an error about an unknown one. A test
 /// checks it against the file's shape (`keys::tables`).
-pub(super) const KNOWN_TABLES: [&str; 10] = [
+pub(super) const KNOWN_TABLES: [&str; 11] = [
     "[spool]",
     "[control]",
     "[farm]",
@@ -213,6 +216,7 @@ pub(super) const KNOWN_TABLES: [&str; 10] = [
     "[store]",
     "[history]",
     "[[notify]]",
+    "[camera]",
 ];
 
 /// The table header on the line of `offset`, when that header names no known table.

@@ -7,6 +7,8 @@ const $ = (sel) => document.querySelector(sel);
 let key = localStorage.getItem("crispen-key") || "";
 let last = null;
 const pictureCache = new Map(); // url -> blob URL
+// Cameras: printer -> { state, error, frame_at, shown (frame_at shown), url (blob URL) }.
+const cameras = new Map();
 
 function headers(extra) {
   const h = Object.assign({}, extra || {});
@@ -112,6 +114,7 @@ function printerTile(p, status) {
   if (shown && shown.pictures.includes("after.png")) {
     html += picture("/api/v1/jobs/" + encodeURIComponent(shown.id) + "/pictures/after.png", shown.file, "part");
   }
+  html += cameraView(p.name);
   html += '<div class="job">' + (job ? '<a href="#job/' + esc(job.id) + '">' + esc(job.file) + "</a>" : '<span class="muted">no job</span>') + "</div>";
   if (pct != null) {
     // A <progress> element: the page's policy allows no inline styles.
@@ -133,6 +136,77 @@ function printerTile(p, status) {
   if (job && (p.state === "printing" || p.state === "paused" || p.state === "waiting_for_operator")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
   html += "</div></article>";
   return html;
+}
+
+// A printer's camera on its tile: its latest picture (a click opens the live view) and,
+// when it gives none, why.
+function cameraView(name) {
+  const c = cameras.get(name);
+  if (!c) return "";
+  let html = '<a class="camera" href="#camera/' + encodeURIComponent(name) + '" title="live view">';
+  html += c.url ? '<img class="cam" data-camera="' + esc(name) + '" alt="camera of ' + esc(name) + '" src="' + c.url + '">' :
+    '<span class="cam none">no picture</span>';
+  html += "</a>";
+  if (c.state !== "online") {
+    html += '<div class="camstate cam-' + esc(c.state) + '">camera ' + esc(c.state) + (c.error ? ": " + esc(c.error) : "") + "</div>";
+  }
+  return html;
+}
+
+// Each camera's picture is fetched only when the camera has a new frame.
+async function refreshCameras() {
+  let list;
+  try { list = await api("GET", "/api/v1/cameras"); } catch (_) { return; }
+  let changed = false;
+  for (const s of list) {
+    const c = cameras.get(s.printer) || {};
+    if (c.state !== s.state || c.error !== s.error) changed = true;
+    Object.assign(c, { state: s.state, error: s.error, frame_at: s.frame_at });
+    cameras.set(s.printer, c);
+    if (s.frame_at != null && s.frame_at !== c.shown) {
+      try {
+        const r = await fetch("/api/v1/printers/" + encodeURIComponent(s.printer) + "/snapshot", { headers: headers() });
+        if (r.ok) {
+          const url = URL.createObjectURL(await r.blob());
+          if (c.url) URL.revokeObjectURL(c.url);
+          if (!c.url) changed = true;
+          c.url = url;
+          c.shown = s.frame_at;
+          document.querySelectorAll('img.cam[data-camera="' + CSS.escape(s.printer) + '"]').forEach((img) => { img.src = url; });
+        }
+      } catch (_) { /* the next round tries again */ }
+    }
+  }
+  if (changed && last) render(last);
+}
+
+// The live view: the printer's picture as often as its camera gives a new one.
+async function showCamera(name) {
+  const page = $("#jobpage");
+  page.innerHTML = '<p><a href="#">← farm</a></p><h2>Camera of ' + esc(name) + '</h2>' +
+    '<img id="live" class="live" alt="live view of ' + esc(name) + '"><p class="muted" id="livestate"></p>';
+  const token = showCamera.token = {};
+  let shown = null;
+  while (showCamera.token === token && location.hash === "#camera/" + encodeURIComponent(name)) {
+    try {
+      const r = await fetch("/api/v1/printers/" + encodeURIComponent(name) + "/snapshot", { headers: headers() });
+      if (r.ok) {
+        const at = r.headers.get("x-frame-time");
+        if (at !== shown) {
+          shown = at;
+          const img = $("#live");
+          const old = img.src;
+          img.src = URL.createObjectURL(await r.blob());
+          if (old) URL.revokeObjectURL(old);
+          $("#livestate").textContent = "frame of " + new Date(1000 * at).toLocaleTimeString();
+        }
+      } else {
+        const answer = await r.json().catch(() => ({}));
+        $("#livestate").textContent = answer.error || ("HTTP " + r.status);
+      }
+    } catch (err) { $("#livestate").textContent = err.message; }
+    await new Promise((ok) => setTimeout(ok, 1000));
+  }
 }
 
 function strengthText(s) {
@@ -442,21 +516,57 @@ async function showJob(id) {
       Object.entries(report).filter(([, v]) => v == null || typeof v !== "object")));
     if (report.gcode) html += "<h4>G-code</h4>" + figures(report.gcode);
   }
+  if (j.camera) html += cameraSection(id, j.camera);
   if (j.job.print_report) html += "<h3>Printing</h3>" + figures(j.job.print_report);
   html += "<h3>History</h3><ol class='history'>" + j.job.history.map(([state, t]) =>
     "<li>" + esc(state) + " <span class='muted'>" + new Date(t * 1000).toLocaleString() + "</span></li>").join("") + "</ol>";
   html += '<div class="actions">' + jobButtons(j) + "</div>";
   page.innerHTML = html;
   loadPictures(page);
+  loadVideos(page);
+}
+
+// A job's snapshots and timelapse, as its printer's camera took them.
+function cameraSection(id, cam) {
+  const base = "/api/v1/jobs/" + encodeURIComponent(id) + "/camera/";
+  let html = '<h3>Camera <small class="muted">' + esc(cam.printer) + "</small></h3>";
+  if (cam.timelapse) {
+    html += '<figure class="timelapse"><video controls muted playsinline data-src="' + esc(base + cam.timelapse.file) + '"></video>' +
+      "<figcaption>Timelapse: " + cam.timelapse.frames + " frames, " + (cam.timelapse.bytes / 1024).toFixed(0) + " KiB</figcaption></figure>";
+  } else if (cam.timelapse_error) {
+    html += '<p class="muted">No timelapse: ' + esc(cam.timelapse_error) + "</p>";
+  }
+  if (cam.snapshots.length) {
+    html += '<div class="pictures snapshots">';
+    for (const s of cam.snapshots) {
+      html += "<figure>" + picture(base + s.file, s.name) + "<figcaption>" + esc(s.name.replace(/-/g, " ")) +
+        ' <span class="muted">' + new Date(s.at * 1000).toLocaleTimeString() + "</span></figcaption></figure>";
+    }
+    html += "</div>";
+  }
+  return html;
+}
+
+function loadVideos(root) {
+  root.querySelectorAll("video[data-src]:not([src])").forEach(async (video) => {
+    try {
+      const r = await fetch(video.dataset.src, { headers: headers() });
+      if (r.ok) video.src = URL.createObjectURL(await r.blob());
+    } catch (_) { /* left without */ }
+  });
 }
 
 function route() {
   const m = location.hash.match(/^#job\/(.+)$/);
-  $("#farm").hidden = !!m;
-  $("#jobpage").hidden = !m;
+  const cam = location.hash.match(/^#camera\/(.+)$/);
+  $("#farm").hidden = !!(m || cam);
+  $("#jobpage").hidden = !(m || cam);
   if (m) showJob(decodeURIComponent(m[1]));
+  if (cam) showCamera(decodeURIComponent(cam[1]));
 }
 
 window.addEventListener("hashchange", route);
 route();
 connect();
+refreshCameras();
+setInterval(refreshCameras, 3000);

@@ -57,8 +57,10 @@ pub(crate) async fn server() -> Json<serde_json::Value> {
     Json(serde_json::json!({ "version": SERVER_VERSION, "safemode": null }))
 }
 
-/// `GET api/settings`: what clients read of OctoPrint's settings. No SD card, no webcam
-/// (there as OctoPrint has it with the webcam off, so Home Assistant adds no camera), no
+/// `GET api/settings`: what clients read of OctoPrint's settings. No SD card; the webcam
+/// is the camera of the folder's first printer that has one, served by crispen (Home
+/// Assistant's camera entity reads `streamUrl`, and asks it `?action=snapshot` for stills,
+/// as mjpg-streamer answers), else off as OctoPrint has it without one; no
 /// G-code analysis (crispen prepares and estimates itself). Of the plugins only the
 /// bundled Discovery plugin's settings, for its `upnpUuid`: the instance's identity (see
 /// [`identity`]), which Home Assistant's setup needs; no `tracking` (anonymous usage
@@ -66,9 +68,29 @@ pub(crate) async fn server() -> Json<serde_json::Value> {
 pub(crate) async fn settings(
     axum::extract::State(state): axum::extract::State<AppState>,
     instance: Instance,
+    headers: axum::http::HeaderMap,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let config = state.farm.config();
-    let folder = instance.folder(&config)?.map(upload::folder_name);
+    let folder_config = instance.folder(&config)?;
+    let camera = folder_config.and_then(|f| f.printers.iter().find(|p| state.cameras.has(p)));
+    // The address the client reached crispen by, unless the dashboard's public one is set.
+    let origin = config.notify.dashboard.clone().or_else(|| {
+        let host = headers.get(axum::http::header::HOST)?.to_str().ok()?;
+        host.chars()
+            .all(|c| c.is_ascii_alphanumeric() || ".-:[]".contains(c))
+            .then(|| format!("http://{host}"))
+    });
+    let (stream_url, snapshot_url) = match (camera, &origin) {
+        (Some(p), Some(origin)) => {
+            let at = format!(
+                "{origin}/api/v1/printers/{}",
+                crate::percent::percent_encode(p)
+            );
+            (format!("{at}/stream"), format!("{at}/snapshot"))
+        }
+        _ => (String::new(), String::new()),
+    };
+    let folder = folder_config.map(upload::folder_name);
     let spool = config.spool_dir.clone();
     drop(config);
     let own = instance.folder.is_some();
@@ -114,10 +136,10 @@ pub(crate) async fn settings(
         "serial": { "autoconnect": true },
         "temperature": { "profiles": [] },
         "webcam": {
-            "webcamEnabled": false,
+            "webcamEnabled": !stream_url.is_empty(),
             "timelapseEnabled": false,
-            "streamUrl": "",
-            "snapshotUrl": "",
+            "streamUrl": stream_url,
+            "snapshotUrl": snapshot_url,
             "snapshotSslValidation": true,
             "flipH": false,
             "flipV": false,

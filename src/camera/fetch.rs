@@ -1,0 +1,254 @@
+//! Asking a camera server for frames over HTTP: one JPEG from a snapshot URL, or the
+//! frames of an MJPEG stream as they come. Each wait has the camera's time limit and each
+//! frame its size limit; what a camera answers instead (an error page, HTML, a stream with
+//! no boundary) is an error that says what came.
+
+use super::mjpeg::{boundary_of, is_jpeg, megabytes, MjpegError, MjpegReader};
+use crate::daemon::config::notify::ReceiverUrl;
+use bytes::Bytes;
+use http_body_util::{BodyExt, Empty};
+use hyper::body::Incoming;
+use hyper_util::rt::TokioIo;
+use std::time::Duration;
+
+/// Why no frame came.
+#[derive(Debug, thiserror::Error)]
+pub enum FetchError {
+    #[error("cannot connect to {host}:{port}: {message}")]
+    Connect {
+        host: String,
+        port: u16,
+        message: String,
+    },
+    #[error("no answer within {0:?}")]
+    Timeout(Duration),
+    #[error("no whole frame within {0:?}")]
+    NoFrame(Duration),
+    #[error("answered HTTP {0}")]
+    Status(u16),
+    #[error("answered {0}, not a JPEG")]
+    NotJpeg(String),
+    #[error("a frame larger than {} ([camera] frame_max_mb)", megabytes(*.0))]
+    TooLarge(usize),
+    #[error("answered {0}, not an MJPEG stream (multipart/x-mixed-replace with a boundary)")]
+    NotStream(String),
+    #[error("the stream: {0}")]
+    Stream(#[from] MjpegError),
+    #[error("HTTP: {0}")]
+    Http(String),
+    #[error("the stream ended")]
+    Closed,
+}
+
+/// An answer whose body is read on; its connection is driven by a task of its own, which
+/// ends with it.
+struct Answer {
+    response: hyper::Response<Incoming>,
+    _connection: tokio_util::task::AbortOnDropHandle<()>,
+}
+
+async fn get(url: &ReceiverUrl, timeout: Duration) -> Result<Answer, FetchError> {
+    tokio::time::timeout(timeout, get_inner(url))
+        .await
+        .map_err(|_| FetchError::Timeout(timeout))?
+}
+
+async fn get_inner(url: &ReceiverUrl) -> Result<Answer, FetchError> {
+    let connect_error = |message: String| FetchError::Connect {
+        host: url.host.clone(),
+        port: url.port,
+        message,
+    };
+    let tcp = tokio::net::TcpStream::connect((url.host.as_str(), url.port))
+        .await
+        .map_err(|e| connect_error(e.to_string()))?;
+    let _ = tcp.set_nodelay(true);
+    let host_header = match (url.https, url.port) {
+        (true, 443) | (false, 80) => url.host.clone(),
+        _ if url.host.contains(':') => format!("[{}]:{}", url.host, url.port),
+        _ => format!("{}:{}", url.host, url.port),
+    };
+    let request = hyper::Request::get(url.path.as_str())
+        .header(hyper::header::HOST, host_header)
+        .header(
+            hyper::header::USER_AGENT,
+            concat!("crispen/", env!("CARGO_PKG_VERSION")),
+        )
+        .body(Empty::<Bytes>::new())
+        .map_err(|e| FetchError::Http(e.to_string()))?;
+    let http = |e: hyper::Error| FetchError::Http(e.to_string());
+    if url.https {
+        let name = tokio_rustls::rustls::pki_types::ServerName::try_from(url.host.clone())
+            .map_err(|e| connect_error(e.to_string()))?;
+        let tls = crate::tls::connector()
+            .connect(name, tcp)
+            .await
+            .map_err(|e| connect_error(format!("TLS: {e}")))?;
+        let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(tls))
+            .await
+            .map_err(http)?;
+        let connection = drive(connection);
+        let response = sender.send_request(request).await.map_err(http)?;
+        Ok(Answer {
+            response,
+            _connection: connection,
+        })
+    } else {
+        let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(tcp))
+            .await
+            .map_err(http)?;
+        let connection = drive(connection);
+        let response = sender.send_request(request).await.map_err(http)?;
+        Ok(Answer {
+            response,
+            _connection: connection,
+        })
+    }
+}
+
+fn drive<F>(connection: F) -> tokio_util::task::AbortOnDropHandle<()>
+where
+    F: std::future::Future + Send + 'static,
+{
+    tokio_util::task::AbortOnDropHandle::new(tokio::spawn(async move {
+        let _ = connection.await;
+    }))
+}
+
+fn content_type(response: &hyper::Response<Incoming>) -> String {
+    response
+        .headers()
+        .get(hyper::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("no Content-Type")
+        .chars()
+        .take(100)
+        .collect()
+}
+
+fn check_status(response: &hyper::Response<Incoming>) -> Result<(), FetchError> {
+    let status = response.status();
+    if status.is_success() {
+        Ok(())
+    } else {
+        Err(FetchError::Status(status.as_u16()))
+    }
+}
+
+/// One JPEG from a snapshot URL, whole within `timeout`.
+pub async fn snapshot(
+    url: &ReceiverUrl,
+    timeout: Duration,
+    max: usize,
+) -> Result<Vec<u8>, FetchError> {
+    tokio::time::timeout(timeout, async {
+        let answer = get(url, timeout).await?;
+        check_status(&answer.response)?;
+        let kind = content_type(&answer.response);
+        let mut body = answer.response.into_body();
+        let mut bytes = Vec::new();
+        while let Some(frame) = body.frame().await {
+            let frame = frame.map_err(|e| FetchError::Http(e.to_string()))?;
+            if let Ok(data) = frame.into_data() {
+                if bytes.len() + data.len() > max {
+                    return Err(FetchError::TooLarge(max));
+                }
+                bytes.extend_from_slice(&data);
+            }
+        }
+        if is_jpeg(&bytes) {
+            Ok(bytes)
+        } else {
+            Err(FetchError::NotJpeg(format!(
+                "{kind} ({} bytes)",
+                bytes.len()
+            )))
+        }
+    })
+    .await
+    .map_err(|_| FetchError::Timeout(timeout))?
+}
+
+/// The body's first bytes, up to its first line's end (at most 256 bytes).
+async fn first_line(response: &mut hyper::Response<Incoming>) -> Result<Vec<u8>, FetchError> {
+    let mut start = Vec::new();
+    while start.len() < 256 && !start.contains(&b'\n') {
+        let Some(frame) = response.body_mut().frame().await else {
+            break;
+        };
+        let frame = frame.map_err(|e| FetchError::Http(e.to_string()))?;
+        if let Ok(data) = frame.into_data() {
+            start.extend_from_slice(&data);
+        }
+    }
+    Ok(start)
+}
+
+/// An open MJPEG stream.
+pub struct Stream {
+    answer: Answer,
+    reader: MjpegReader,
+    ready: std::collections::VecDeque<Vec<u8>>,
+    timeout: Duration,
+}
+
+impl Stream {
+    /// Opens the stream. Its boundary is the content type's, or (ffmpeg's own server says
+    /// `application/octet-stream`) the first line of the body when that is one.
+    pub async fn open(
+        url: &ReceiverUrl,
+        timeout: Duration,
+        max: usize,
+    ) -> Result<Stream, FetchError> {
+        let mut answer = get(url, timeout).await?;
+        check_status(&answer.response)?;
+        let kind = content_type(&answer.response);
+        let (boundary, start) = match boundary_of(&kind) {
+            Some(b) => (b, Vec::new()),
+            None => {
+                let start = tokio::time::timeout(timeout, first_line(&mut answer.response))
+                    .await
+                    .map_err(|_| FetchError::NoFrame(timeout))??;
+                let line = String::from_utf8_lossy(&start).into_owned();
+                let boundary = line
+                    .lines()
+                    .next()
+                    .and_then(|l| l.strip_prefix("--"))
+                    .map(|b| b.trim().to_string())
+                    .filter(|b| !b.is_empty() && line.contains('\n'))
+                    .ok_or(FetchError::NotStream(kind))?;
+                (boundary, start)
+            }
+        };
+        let mut stream = Stream {
+            answer,
+            reader: MjpegReader::new(&boundary, max),
+            ready: Default::default(),
+            timeout,
+        };
+        stream.ready.extend(stream.reader.feed(&start)?);
+        Ok(stream)
+    }
+
+    /// The next frame; an error when none is whole within the time limit (a stream that
+    /// trickles bytes without a frame is as dead as a silent one).
+    pub async fn next(&mut self) -> Result<Vec<u8>, FetchError> {
+        let timeout = self.timeout;
+        tokio::time::timeout(timeout, async {
+            loop {
+                if let Some(frame) = self.ready.pop_front() {
+                    return Ok(frame);
+                }
+                let Some(frame) = self.answer.response.body_mut().frame().await else {
+                    return Err(FetchError::Closed);
+                };
+                let frame = frame.map_err(|e| FetchError::Http(e.to_string()))?;
+                if let Ok(data) = frame.into_data() {
+                    self.ready.extend(self.reader.feed(&data)?);
+                }
+            }
+        })
+        .await
+        .map_err(|_| FetchError::NoFrame(timeout))?
+    }
+}

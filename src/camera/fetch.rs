@@ -76,7 +76,6 @@ async fn get_inner(url: &ReceiverUrl) -> Result<Answer, FetchError> {
         )
         .body(Empty::<Bytes>::new())
         .map_err(|e| FetchError::Http(e.to_string()))?;
-    let http = |e: hyper::Error| FetchError::Http(e.to_string());
     if url.https {
         let name = tokio_rustls::rustls::pki_types::ServerName::try_from(url.host.clone())
             .map_err(|e| connect_error(e.to_string()))?;
@@ -84,26 +83,27 @@ async fn get_inner(url: &ReceiverUrl) -> Result<Answer, FetchError> {
             .connect(name, tcp)
             .await
             .map_err(|e| connect_error(format!("TLS: {e}")))?;
-        let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(tls))
-            .await
-            .map_err(http)?;
-        let connection = drive(connection);
-        let response = sender.send_request(request).await.map_err(http)?;
-        Ok(Answer {
-            response,
-            _connection: connection,
-        })
+        exchange(tls, request).await
     } else {
-        let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(tcp))
-            .await
-            .map_err(http)?;
-        let connection = drive(connection);
-        let response = sender.send_request(request).await.map_err(http)?;
-        Ok(Answer {
-            response,
-            _connection: connection,
-        })
+        exchange(tcp, request).await
     }
+}
+
+/// `request` on one connection, which a task of its own drives while the body is read.
+async fn exchange(
+    io: impl tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+    request: hyper::Request<Empty<Bytes>>,
+) -> Result<Answer, FetchError> {
+    let http = |e: hyper::Error| FetchError::Http(e.to_string());
+    let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(io))
+        .await
+        .map_err(http)?;
+    let connection = drive(connection);
+    let response = sender.send_request(request).await.map_err(http)?;
+    Ok(Answer {
+        response,
+        _connection: connection,
+    })
 }
 
 fn drive<F>(connection: F) -> tokio_util::task::AbortOnDropHandle<()>

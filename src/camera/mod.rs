@@ -33,6 +33,8 @@ pub(crate) async fn run(
     stop: CancellationToken,
 ) {
     let mut tasks = tokio::task::JoinSet::new();
+    // The timelapses being encoded: waited for at the stop, up to `ENCODE_AT_STOP`.
+    let encodes = tokio_util::task::TaskTracker::new();
     for (name, source, feed) in sources {
         tasks.spawn(feed::run(
             name,
@@ -44,13 +46,14 @@ pub(crate) async fn run(
     }
     {
         let root = cameras.root().to_path_buf();
-        tasks.spawn(async move { recorder::encode_leftovers(&root).await });
+        encodes.spawn(async move { recorder::encode_leftovers(&root).await });
     }
     for printer in cameras.printers() {
         tasks.spawn(recorder::record(
             Arc::clone(&farm),
             Arc::clone(&cameras),
             printer.to_string(),
+            encodes.clone(),
             stop.clone(),
         ));
     }
@@ -65,4 +68,17 @@ pub(crate) async fn run(
     // No camera at all, or every task ended at the stop: this one ends with the stop, as
     // the service expects of a task that runs as long as it does.
     stop.cancelled().await;
+    // The timelapses of the prints that just ended are made before the daemon exits (a
+    // single job's `--exit-when-idle` run wants its video); one still encoding after
+    // `ENCODE_AT_STOP` is left to the next start (`recorder::encode_leftovers`).
+    encodes.close();
+    if tokio::time::timeout(ENCODE_AT_STOP, encodes.wait())
+        .await
+        .is_err()
+    {
+        tracing::warn!("camera: a timelapse is still encoding; it is made at the next start");
+    }
 }
+
+/// The longest the stop waits for timelapses being encoded.
+const ENCODE_AT_STOP: std::time::Duration = std::time::Duration::from_secs(60);

@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 
 /// What a job's camera folder holds (`camera.json`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -71,11 +72,12 @@ struct Recording {
     recent: VecDeque<Picture>,
 }
 
-/// Records the jobs of `printer` until `stop`.
+/// Records the jobs of `printer` until `stop`; timelapses are encoded in `encodes`.
 pub async fn record(
     farm: Arc<Farm>,
     cameras: Arc<Cameras>,
     printer: String,
+    encodes: TaskTracker,
     stop: CancellationToken,
 ) {
     let mut printers = farm.watch_printers();
@@ -91,7 +93,7 @@ pub async fn record(
         let mut live = handle.live;
         loop {
             let now = live.borrow_and_update().clone();
-            step(&farm, &cameras, &printer, &mut recording, &now).await;
+            step(&farm, &cameras, &printer, &encodes, &mut recording, &now).await;
             tokio::select! {
                 r = live.changed() => if r.is_err() { break },
                 _ = tokio::time::sleep(TICK) => {}
@@ -100,7 +102,7 @@ pub async fn record(
         }
         if stop.is_cancelled() {
             if let Some(rec) = recording.take() {
-                finish(&farm, &cameras, &printer, rec).await;
+                finish(&farm, &cameras, &printer, &encodes, rec).await;
             }
             return;
         }
@@ -118,12 +120,13 @@ async fn step(
     farm: &Farm,
     cameras: &Arc<Cameras>,
     printer: &str,
+    encodes: &TaskTracker,
     recording: &mut Option<Recording>,
     live: &PrinterLive,
 ) {
     let current = live.job.as_deref().filter(|_| printing(live.state));
     if let Some(rec) = recording.take_if(|r| current != Some(r.job.as_str())) {
-        finish(farm, cameras, printer, rec).await;
+        finish(farm, cameras, printer, encodes, rec).await;
     }
     let Some(job) = current else { return };
     if recording.is_none() {
@@ -151,10 +154,8 @@ async fn picture(cameras: &Arc<Cameras>, printer: &str) -> Option<Picture> {
 
 async fn start(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, job: &str) -> Recording {
     let dir = cameras.root().join(job);
-    let layer_starts = match cameras.settings.timelapse {
-        Timelapse::Layers => layer_starts_of(farm, printer, job).await,
-        _ => Vec::new(),
-    };
+    // The first layer's snapshot needs them whatever the timelapse does.
+    let layer_starts = layer_starts_of(farm, printer, job).await;
     tracing::info!(printer, job, layers = layer_starts.len() + 1, folder = %dir.display(), "camera: recording the print");
     let mut rec = Recording {
         job: job.to_string(),
@@ -221,7 +222,11 @@ async fn follow(cameras: &Arc<Cameras>, printer: &str, rec: &mut Recording, acke
         snapshot(rec, "first-layer", &p).await;
     }
     // One frame per layer finished, the same picture for layers quicker than the camera.
-    let frames = if timed { 1 } else { crossed };
+    let frames = match cameras.settings.timelapse {
+        Timelapse::Layers => crossed,
+        Timelapse::Every(_) => usize::from(timed),
+        Timelapse::Off => 0,
+    };
     for _ in 0..frames {
         timelapse_frame(rec, &p).await;
     }
@@ -277,7 +282,13 @@ async fn write_manifest(dir: &Path, manifest: &JobCamera) {
 }
 
 /// The print is over (or left this printer): the last pictures, then the timelapse.
-async fn finish(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, mut rec: Recording) {
+async fn finish(
+    farm: &Farm,
+    cameras: &Arc<Cameras>,
+    printer: &str,
+    encodes: &TaskTracker,
+    mut rec: Recording,
+) {
     let state = farm.store().get(&rec.job).map(|j| j.state);
     let failed = matches!(
         state,
@@ -306,7 +317,7 @@ async fn finish(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, mut rec: Rec
     tracing::info!(printer, job = %rec.job, frames = rec.frames, "camera: print recorded; encoding its timelapse");
     let cameras = Arc::clone(cameras);
     // Off the printer's way: its next job is recorded meanwhile.
-    tokio::spawn(async move {
+    encodes.spawn(async move {
         encode(&mut rec).await;
         timelapse::enforce_limit(cameras.root(), cameras.settings.disk_limit_bytes, &rec.job).await;
     });

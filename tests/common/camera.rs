@@ -17,6 +17,15 @@ use std::time::Duration;
 pub const WIDTH: u32 = 320;
 pub const HEIGHT: u32 = 240;
 
+/// ffmpeg making the moving pattern at `fps`, in real time; the output is the caller's.
+pub fn pattern(fps: u32) -> Command {
+    let mut c = Command::new("ffmpeg");
+    c.args(["-hide_banner", "-loglevel", "error", "-nostdin", "-re"])
+        .args(["-f", "lavfi", "-i"])
+        .arg(format!("testsrc2=size={WIDTH}x{HEIGHT}:rate={fps}"));
+    c
+}
+
 pub struct TestCamera {
     pub addr: String,
     latest: Arc<Mutex<(u64, Vec<u8>)>>,
@@ -27,18 +36,7 @@ pub struct TestCamera {
 impl TestCamera {
     /// ffmpeg at `fps` frames a second, and the server in front of it.
     pub fn start(fps: u32) -> TestCamera {
-        let mut ffmpeg = Command::new("ffmpeg")
-            .args([
-                "-hide_banner",
-                "-loglevel",
-                "error",
-                "-nostdin",
-                "-re",
-                "-f",
-                "lavfi",
-                "-i",
-            ])
-            .arg(format!("testsrc2=size={WIDTH}x{HEIGHT}:rate={fps}"))
+        let mut ffmpeg = pattern(fps)
             .args(["-f", "image2pipe", "-c:v", "mjpeg", "-q:v", "5", "pipe:1"])
             .stdin(Stdio::null())
             .stdout(Stdio::piped())

@@ -54,6 +54,25 @@ impl Drop for Daemon {
     }
 }
 
+/// The address a starting daemon logs for `[http] listen` (port 0: the system's pick), read
+/// from its `log` once it is there.
+pub fn http_address(log: &Path) -> String {
+    let started = Instant::now();
+    loop {
+        let text = std::fs::read_to_string(log).unwrap_or_default();
+        if let Some(line) = text.lines().find(|l| l.contains("http: listening")) {
+            let at = line.find("address=").expect("address field") + "address=".len();
+            return line[at..].split_whitespace().next().unwrap().to_string();
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the daemon did not start listening:
+{text}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 /// Any other child process, killed and reaped when dropped.
 pub struct Killed(pub Child);
 

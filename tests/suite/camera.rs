@@ -85,18 +85,7 @@ async fn ffmpegs_own_mjpeg_server_is_read_frame_by_frame() {
         .port();
     let url = format!("http://127.0.0.1:{port}/stream");
     let _ffmpeg = Killed(
-        Command::new("ffmpeg")
-            .args([
-                "-hide_banner",
-                "-loglevel",
-                "error",
-                "-nostdin",
-                "-re",
-                "-f",
-                "lavfi",
-                "-i",
-            ])
-            .arg(format!("testsrc2=size={WIDTH}x{HEIGHT}:rate=10"))
+        common::camera::pattern(10)
             .args(["-f", "mpjpeg", "-q:v", "5", "-listen", "1"])
             .arg(&url)
             .stdin(Stdio::null())
@@ -160,7 +149,7 @@ impl Farm {
 
 /// The daemon's printers, one with a working camera and five with cameras that fail in
 /// each way, every printer printing the same layered job at once.
-fn start_farm(root: &Path, camera: &TestCamera) -> Farm {
+fn start_farm(root: &Path, camera: &TestCamera, hook: &common::receiver::Receiver) -> Farm {
     for folder in ["seen", "bad"] {
         std::fs::create_dir_all(root.join(folder)).unwrap();
     }
@@ -175,11 +164,20 @@ fn start_farm(root: &Path, camera: &TestCamera) -> Farm {
              [printer.simulate]\ntime_scale = 0.3\n[printer.camera]\n{camera}\n"
         )
     };
-    let mut config = String::from(
+    // The dashboard's public address is in the events' links: a port known beforehand.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut config = format!(
         "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
          [farm]\nsettle_s = 0.3\nmax_heating = 8\n\
-         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\nread_only_without_key = true\n\
+         [http]\nlisten = \"127.0.0.1:{port}\"\napi_key_file = \"key\"\nread_only_without_key = true\n\
+         public_url = \"http://127.0.0.1:{port}\"\n\
+         [[notify]]\nname = \"hook\"\nurl = \"{}\"\nevents = [\"job_done\"]\n\
          [camera]\nrefresh_s = 1\ntimeout_s = 2\n",
+        hook.url("/hook")
     );
     config += &printer(
         "seen",
@@ -202,19 +200,7 @@ fn start_farm(root: &Path, camera: &TestCamera) -> Farm {
     std::fs::write(&file, config).unwrap();
     let log = root.join("daemon.log");
     let daemon = Daemon::start(&file, &log);
-    let started = Instant::now();
-    let addr = loop {
-        let text = std::fs::read_to_string(&log).unwrap_or_default();
-        if let Some(line) = text.lines().find(|l| l.contains("http: listening")) {
-            let at = line.find("address=").expect("address field") + "address=".len();
-            break line[at..].split_whitespace().next().unwrap().to_string();
-        }
-        assert!(
-            started.elapsed() < Duration::from_secs(30),
-            "no listener:\n{text}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let addr = common::daemon::http_address(&log);
     Farm {
         _daemon: daemon,
         addr,
@@ -226,7 +212,8 @@ fn start_farm(root: &Path, camera: &TestCamera) -> Farm {
 fn prints_keep_their_snapshots_and_timelapse_and_bad_cameras_change_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     let camera = TestCamera::start(10);
-    let farm = start_farm(tmp.path(), &camera);
+    let hook = common::receiver::Receiver::start();
+    let farm = start_farm(tmp.path(), &camera, &hook);
     let gcode = layered_gcode();
     std::fs::write(tmp.path().join("seen/wall.gcode"), &gcode).unwrap();
     for i in 0..5 {
@@ -383,6 +370,41 @@ fn prints_keep_their_snapshots_and_timelapse_and_bad_cameras_change_nothing() {
         "FIGURES timelapse of a {LAYERS}-layer print: {frames} frames, {} bytes",
         cam["timelapse"]["bytes"]
     );
+    // The "done" notification carries the print's last picture, which crispen serves.
+    let taken = hook.wait_taken(
+        Duration::from_secs(30),
+        "the done event of wall.gcode",
+        |t| t.iter().any(|r| r.json()["job"]["file"] == "wall.gcode"),
+        String::new,
+    );
+    let event = taken
+        .iter()
+        .map(|r| r.json())
+        .find(|e| e["job"]["file"] == "wall.gcode")
+        .unwrap();
+    let link = format!("http://{}/api/v1/jobs/{seen_id}/camera/end.jpg", farm.addr);
+    assert_eq!(event["snapshot"], link.as_str(), "{event}");
+    let a = get(
+        &farm.addr,
+        link.strip_prefix(&format!("http://{}", farm.addr)).unwrap(),
+    );
+    assert_eq!(decode(&a.body).dimensions(), (150, 200));
+    let blind = taken
+        .iter()
+        .map(|r| r.json())
+        .find(|e| e["job"]["file"] == "wall-0.gcode");
+    if let Some(e) = blind {
+        // A failing camera took no picture, but its printer is one with a camera: the link
+        // is there and answers 404 until a picture exists (never another job's).
+        let path = e["snapshot"]
+            .as_str()
+            .unwrap()
+            .split_once("/api/")
+            .unwrap()
+            .1;
+        assert_eq!(get(&farm.addr, &format!("/api/{path}")).status, 404);
+    }
+
     // Only the files the manifest lists are served.
     for other in [
         "camera.json",

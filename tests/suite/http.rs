@@ -58,20 +58,7 @@ impl Farm {
         .unwrap();
         let log = root.join("daemon.log");
         let daemon = Daemon::start(&config, &log);
-        // The daemon logs the address it listens on (port 0: the system's pick).
-        let started = Instant::now();
-        let addr = loop {
-            let text = std::fs::read_to_string(&log).unwrap_or_default();
-            if let Some(line) = text.lines().find(|l| l.contains("http: listening")) {
-                let at = line.find("address=").expect("address field") + "address=".len();
-                break line[at..].split_whitespace().next().unwrap().to_string();
-            }
-            assert!(
-                started.elapsed() < Duration::from_secs(30),
-                "the daemon did not start listening:\n{text}"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        };
+        let addr = common::daemon::http_address(&log);
         Farm {
             _daemon: daemon,
             addr,

@@ -72,23 +72,6 @@ fn prepare(root: &Path, http_extra: &str) -> PathBuf {
     config
 }
 
-/// The address the daemon logged it listens on.
-fn listening(log: &Path) -> String {
-    let started = Instant::now();
-    loop {
-        let text = std::fs::read_to_string(log).unwrap_or_default();
-        if let Some(line) = text.lines().find(|l| l.contains("http: listening")) {
-            let at = line.find("address=").expect("address field") + "address=".len();
-            return line[at..].split_whitespace().next().unwrap().to_string();
-        }
-        assert!(
-            started.elapsed() < Duration::from_secs(60),
-            "the daemon did not start listening:\n{text}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
 impl Farm {
     fn start(root: &Path) -> Farm {
         prepare(root, "default_folder = \"hot\"\nannounce = false\n");
@@ -100,7 +83,7 @@ impl Farm {
         let config = root.join("crispen.toml");
         let log = root.join("daemon.log");
         let daemon = Daemon::start(&config, &log);
-        let addr = listening(&log);
+        let addr = common::daemon::http_address(&log);
         Farm {
             daemon,
             addr,
@@ -1197,7 +1180,7 @@ print(json.dumps(found))
             BIN,
         ]);
         let daemon = Daemon::start_by(launcher, &config, &log);
-        let addr = listening(&log);
+        let addr = common::daemon::http_address(&log);
         let port = addr.rsplit(':').next().unwrap().to_string();
         let pid = daemon.child.id().to_string();
         let (want, limit) = if announce { ("2", "20") } else { ("1", "4") };
@@ -1439,7 +1422,7 @@ fn home_assistant_sets_up_and_its_buttons_act_on_the_printer() {
     farm.daemon.kill9();
     farm.daemon = Daemon::start(&root.join("crispen.toml"), &root.join("daemon2.log"));
     farm.log = root.join("daemon2.log");
-    farm.addr = listening(&farm.log);
+    farm.addr = common::daemon::http_address(&farm.log);
     let again = ha_step(&farm, "discovery", path, &key);
     assert_eq!(
         again["uuid"],

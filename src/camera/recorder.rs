@@ -9,7 +9,7 @@
 use super::hub::{Cameras, Picture};
 use super::timelapse;
 use crate::daemon::config::camera::Timelapse;
-use crate::daemon::farm::{Farm, PrinterLive, PrinterState};
+use crate::daemon::farm::{Farm, PrinterLive};
 use crate::daemon::job::JobState;
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
@@ -109,13 +109,6 @@ pub async fn record(
     }
 }
 
-fn printing(state: PrinterState) -> bool {
-    matches!(
-        state,
-        PrinterState::Printing | PrinterState::Paused | PrinterState::WaitingForOperator
-    )
-}
-
 async fn step(
     farm: &Farm,
     cameras: &Arc<Cameras>,
@@ -124,7 +117,10 @@ async fn step(
     recording: &mut Option<Recording>,
     live: &PrinterLive,
 ) {
-    let current = live.job.as_deref().filter(|_| printing(live.state));
+    let current = live
+        .job
+        .as_deref()
+        .filter(|_| live.state.has_print_under_way());
     if let Some(rec) = recording.take_if(|r| current != Some(r.job.as_str())) {
         finish(farm, cameras, printer, encodes, rec).await;
     }
@@ -178,7 +174,7 @@ async fn start(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, job: &str) ->
         }
     }
     // Frames an earlier attempt left unencoded come first in the timelapse.
-    rec.frames = std::fs::read_dir(rec.dir.join(FRAMES_DIR)).map_or(0, |d| d.count()) as u32;
+    rec.frames = frames_kept(&rec.dir).await;
     if let Some(p) = picture(cameras, printer).await {
         snapshot(&mut rec, "start", &p).await;
     }
@@ -362,14 +358,10 @@ pub async fn encode_leftovers(root: &Path) {
         let Ok(manifest) = serde_json::from_slice::<JobCamera>(&text) else {
             continue;
         };
-        if manifest.timelapse.is_some()
-            || !tokio::fs::try_exists(dir.join(FRAMES_DIR))
-                .await
-                .unwrap_or(false)
-        {
+        let frames = frames_kept(&dir).await;
+        if manifest.timelapse.is_some() || frames == 0 {
             continue;
         }
-        let frames = std::fs::read_dir(dir.join(FRAMES_DIR)).map_or(0, |d| d.count()) as u32;
         let mut rec = Recording {
             job: entry.file_name().to_string_lossy().into_owned(),
             dir,
@@ -384,6 +376,18 @@ pub async fn encode_leftovers(root: &Path) {
         tracing::info!(job = %rec.job, frames, "camera: making the timelapse the last run left");
         encode(&mut rec).await;
     }
+}
+
+/// The timelapse frames waiting in a job's camera folder for the encoder.
+async fn frames_kept(dir: &Path) -> u32 {
+    let Ok(mut entries) = tokio::fs::read_dir(dir.join(FRAMES_DIR)).await else {
+        return 0;
+    };
+    let mut n = 0;
+    while let Ok(Some(_)) = entries.next_entry().await {
+        n += 1;
+    }
+    n
 }
 
 /// Where each layer after the first starts, as command indices of the job's G-code as it

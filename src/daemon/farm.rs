@@ -49,6 +49,17 @@ pub enum PrinterState {
     Stopped,
 }
 
+impl PrinterState {
+    /// A print is under way on the printer: printing, paused, or at a pause its file asked
+    /// for (what a camera watches, and where one repeating picture means it is frozen).
+    pub(crate) fn has_print_under_way(self) -> bool {
+        matches!(
+            self,
+            PrinterState::Printing | PrinterState::Paused | PrinterState::WaitingForOperator
+        )
+    }
+}
+
 /// Live figures of a print (from the streamer).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct LiveProgress {

@@ -9,7 +9,6 @@ use super::serve::ClientAddr;
 use super::{ApiError, AppState};
 use crate::camera::hub::{CameraStatus, Picture};
 use crate::camera::recorder::{JobCamera, MANIFEST};
-use crate::daemon::farm::PrinterState;
 use axum::body::Body;
 use axum::extract::{Path, Query, State};
 use axum::http::{header, StatusCode};
@@ -17,14 +16,10 @@ use axum::response::{IntoResponse, Response};
 use axum::{Extension, Json};
 use std::time::Duration;
 
-/// Whether a printer prints now (a camera showing one picture then is frozen).
-fn prints(state: &AppState, printer: &str) -> bool {
-    state.farm.printer(printer).is_some_and(|h| {
-        matches!(
-            h.live.borrow().state,
-            PrinterState::Printing | PrinterState::Paused | PrinterState::WaitingForOperator
-        )
-    })
+/// Whether a print is under way on a printer (a camera showing one picture then is frozen).
+pub(super) fn prints(farm: &crate::daemon::farm::Farm, printer: &str) -> bool {
+    farm.printer(printer)
+        .is_some_and(|h| h.live.borrow().state.has_print_under_way())
 }
 
 /// `GET /api/v1/cameras`: each printer's camera and how it is doing.
@@ -32,7 +27,7 @@ pub(crate) async fn cameras(State(state): State<AppState>) -> Json<Vec<CameraSta
     let list = state
         .cameras
         .printers()
-        .filter_map(|p| state.cameras.status(p, prints(&state, p)))
+        .filter_map(|p| state.cameras.status(p, prints(&state.farm, p)))
         .collect();
     Json(list)
 }

@@ -76,62 +76,40 @@ fn render_cameras(farm: &crate::daemon::farm::Farm, cameras: &crate::camera::Cam
     let mut out = Out(String::new());
     let statuses: Vec<_> = cameras
         .printers()
-        .filter_map(|p| {
-            let printing = farm.printer(p).is_some_and(|h| {
-                h.live.borrow().state == crate::daemon::farm::PrinterState::Printing
-            });
-            cameras.status(p, printing)
-        })
+        .filter_map(|p| cameras.status(p, super::camera::prints(farm, p)))
         .collect();
-    out.family(
-        "crispen_camera_online",
-        "gauge",
-        "1 when the printer's camera gives fresh frames (0: offline, starting or frozen).",
-    );
-    for s in &statuses {
-        let online = s.state == CameraState::Online;
-        out.sample(
+    type Figure = fn(&crate::camera::hub::CameraStatus) -> f64;
+    let families: [(&str, &str, &str, Figure); 4] = [
+        (
             "crispen_camera_online",
-            &[("printer", &s.printer)],
-            f64::from(u8::from(online)),
-        );
-    }
-    out.family(
-        "crispen_camera_frozen",
-        "gauge",
-        "1 when the printer's camera repeats one picture while it prints.",
-    );
-    for s in &statuses {
-        let frozen = s.state == CameraState::Frozen;
-        out.sample(
+            "gauge",
+            "1 when the printer's camera gives fresh frames (0: offline, starting or frozen).",
+            |s| f64::from(u8::from(s.state == CameraState::Online)),
+        ),
+        (
             "crispen_camera_frozen",
-            &[("printer", &s.printer)],
-            f64::from(u8::from(frozen)),
-        );
-    }
-    out.family(
-        "crispen_camera_frames_total",
-        "counter",
-        "Frames taken from the printer's camera.",
-    );
-    for s in &statuses {
-        out.sample(
+            "gauge",
+            "1 when the printer's camera repeats one picture while it prints.",
+            |s| f64::from(u8::from(s.state == CameraState::Frozen)),
+        ),
+        (
             "crispen_camera_frames_total",
-            &[("printer", &s.printer)],
-            s.frames as f64,
-        );
-    }
-    out.family(
-        "crispen_camera_failures_total",
-        "counter",
-        "Fetches from the printer's camera that failed.",
-    );
-    for s in &statuses {
-        out.sample(
+            "counter",
+            "Frames taken from the printer's camera.",
+            |s| s.frames as f64,
+        ),
+        (
             "crispen_camera_failures_total",
-            &[("printer", &s.printer)],
-            s.failures as f64,
-        );
+            "counter",
+            "Fetches from the printer's camera that failed.",
+            |s| s.failures as f64,
+        ),
+    ];
+    for (name, kind, help, figure) in families {
+        out.family(name, kind, help);
+        for s in &statuses {
+            out.sample(name, &[("printer", &s.printer)], figure(s));
+        }
     }
     out.family(
         "crispen_camera_disk_bytes",

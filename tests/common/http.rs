@@ -138,3 +138,27 @@ pub fn exchange(mut stream: impl Read + Write, bytes: &[u8]) -> Answer {
         return Answer { body, ..answer };
     }
 }
+
+/// Polls `status` (a daemon's `GET /api/v1/status`) until `check` holds on it; after
+/// `limit`, panics naming `what`, with the last status and the daemon's `log`.
+pub fn poll_status(
+    limit: Duration,
+    what: &str,
+    log: &Path,
+    status: impl Fn() -> Value,
+    check: impl Fn(&Value) -> bool,
+) -> Value {
+    let started = std::time::Instant::now();
+    loop {
+        let s = status();
+        if check(&s) {
+            return s;
+        }
+        assert!(
+            started.elapsed() < limit,
+            "timed out waiting for {what}\nlast status: {s:#}\nlog:\n{}",
+            std::fs::read_to_string(log).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}

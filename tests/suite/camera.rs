@@ -131,19 +131,7 @@ impl Farm {
     }
 
     fn wait_for(&self, limit: Duration, what: &str, check: impl Fn(&Value) -> bool) -> Value {
-        let started = Instant::now();
-        loop {
-            let s = self.status();
-            if check(&s) {
-                return s;
-            }
-            assert!(
-                started.elapsed() < limit,
-                "timed out waiting for {what}\nlast status: {s:#}\nlog:\n{}",
-                std::fs::read_to_string(&self.log).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(200));
-        }
+        common::http::poll_status(limit, what, &self.log, || self.status(), check)
     }
 }
 

@@ -83,20 +83,7 @@ impl Farm {
 
     /// Polls the status until `check` holds.
     fn wait_for(&self, limit: Duration, what: &str, check: impl Fn(&Value) -> bool) -> Value {
-        let started = Instant::now();
-        loop {
-            let s = self.status();
-            if check(&s) {
-                return s;
-            }
-            if started.elapsed() > limit {
-                panic!(
-                    "timed out waiting for {what}\nlast status: {s:#}\nlog:\n{}",
-                    std::fs::read_to_string(&self.log).unwrap_or_default()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(200));
-        }
+        common::http::poll_status(limit, what, &self.log, || self.status(), check)
     }
 }
 

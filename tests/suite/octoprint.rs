@@ -103,19 +103,13 @@ impl Farm {
     }
 
     fn wait_for(&self, what: &str, check: impl Fn(&Value) -> bool) -> Value {
-        let started = Instant::now();
-        loop {
-            let s = self.status();
-            if check(&s) {
-                return s;
-            }
-            assert!(
-                started.elapsed() < Duration::from_secs(120),
-                "timed out waiting for {what}\nlast status: {s:#}\nlog:\n{}",
-                std::fs::read_to_string(&self.log).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(200));
-        }
+        common::http::poll_status(
+            Duration::from_secs(120),
+            what,
+            &self.log,
+            || self.status(),
+            check,
+        )
     }
 }
 

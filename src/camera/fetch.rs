@@ -63,13 +63,8 @@ async fn get_inner(url: &ReceiverUrl) -> Result<Answer, FetchError> {
         .await
         .map_err(|e| connect_error(e.to_string()))?;
     let _ = tcp.set_nodelay(true);
-    let host_header = match (url.https, url.port) {
-        (true, 443) | (false, 80) => url.host.clone(),
-        _ if url.host.contains(':') => format!("[{}]:{}", url.host, url.port),
-        _ => format!("{}:{}", url.host, url.port),
-    };
     let request = hyper::Request::get(url.path.as_str())
-        .header(hyper::header::HOST, host_header)
+        .header(hyper::header::HOST, url.host_header())
         .header(
             hyper::header::USER_AGENT,
             concat!("crispen/", env!("CARGO_PKG_VERSION")),

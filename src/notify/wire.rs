@@ -172,15 +172,10 @@ async fn exchange(
             source,
         })?;
     let _ = tcp.set_nodelay(true);
-    let host_header = match (url.https, url.port) {
-        (true, 443) | (false, 80) => url.host.clone(),
-        _ if url.host.contains(':') => format!("[{}]:{}", url.host, url.port),
-        _ => format!("{}:{}", url.host, url.port),
-    };
     let mut request = hyper::Request::builder()
         .method(hyper::Method::POST)
         .uri(url.path.as_str())
-        .header(hyper::header::HOST, host_header)
+        .header(hyper::header::HOST, url.host_header())
         .header(hyper::header::CONNECTION, "close")
         .header(
             hyper::header::USER_AGENT,

@@ -80,6 +80,22 @@ pub struct ReceiverUrl {
     pub path: String,
 }
 
+impl ReceiverUrl {
+    /// The request's `Host` header: the port only where it is not the scheme's own, an
+    /// IPv6 address in brackets (RFC 9110, 7.2).
+    pub(crate) fn host_header(&self) -> String {
+        let host = if self.host.contains(':') {
+            format!("[{}]", self.host)
+        } else {
+            self.host.clone()
+        };
+        match (self.https, self.port) {
+            (true, 443) | (false, 80) => host,
+            _ => format!("{host}:{}", self.port),
+        }
+    }
+}
+
 /// A secret; never shown in logs or debug output.
 #[derive(Clone, PartialEq, Eq)]
 pub struct NotifySecret(pub Vec<u8>);
@@ -393,6 +409,21 @@ pub fn parse_url(text: &str) -> Result<ReceiverUrl, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The port is left out where it is the scheme's own; an IPv6 host is bracketed.
+    #[test]
+    fn host_headers_name_the_port_only_when_needed() {
+        for (url, host) in [
+            ("https://ntfy.sh/x", "ntfy.sh"),
+            ("http://farm/", "farm"),
+            ("http://farm:443/", "farm:443"),
+            ("https://farm:8443/", "farm:8443"),
+            ("http://[::1]:7912/", "[::1]:7912"),
+            ("http://[::1]/", "[::1]"),
+        ] {
+            assert_eq!(parse_url(url).unwrap().host_header(), host, "{url}");
+        }
+    }
 
     #[test]
     fn urls_are_split_and_bad_ones_named() {

@@ -17,6 +17,8 @@
 //!   printer offline) to webhooks, ntfy, Slack and Discord, queued in the spool.
 //! - [`camera`]: the printers' cameras: frames fetched off the printing path, each
 //!   printer's picture, and the snapshots and timelapse kept with each job.
+//! - [`spoolman`]: a client for Spoolman, the filament-spool inventory server: spools, and
+//!   the filament a print used booked against its spool.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
 //! - `tls`: the TLS client of every outbound https connection.
@@ -43,4 +45,5 @@ pub mod ports;
 pub mod preview;
 pub mod service;
 pub mod slice;
+pub mod spoolman;
 pub(crate) mod tls;

@@ -219,3 +219,4 @@ pub mod http;
 pub mod postgres;
 pub mod receiver;
 pub mod relay;
+pub mod spoolman;

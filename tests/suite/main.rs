@@ -31,3 +31,4 @@ mod print;
 mod service;
 mod sim;
 mod slice;
+mod spoolman;

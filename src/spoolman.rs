@@ -1,0 +1,671 @@
+//! A client for Spoolman, the filament-spool inventory server many farms already keep: the
+//! spools it knows (material, colour, brand, weight left, price per kilogram), and the
+//! filament a print used booked against its spool, so the inventory follows the farm
+//! without anyone weighing spools.
+//!
+//! Spoolman's REST API (`/api/v1`) is spoken over HTTP/1.1 like the notification and camera
+//! clients do: one connection per request (requests are rare), the whole exchange within
+//! the client's time limit, answers capped at [`MAX_ANSWER_BYTES`]. What Spoolman answers
+//! is read into private shapes of its JSON and then checked, so a spool handed out has
+//! finite, non-negative weights and a field that is missing or wrong is named in the error.
+
+// The base address is split like a notification receiver's; both are public here for the
+// callers outside the crate that make a client.
+pub use crate::daemon::config::notify::{parse_url, ReceiverUrl};
+use bytes::Bytes;
+use http_body_util::{BodyExt, Full};
+use hyper_util::rt::TokioIo;
+use serde::{Deserialize, Serialize};
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite};
+
+/// The largest answer read: a list of some thousand spools is well under 8 MiB; anything
+/// bigger is not Spoolman speaking.
+pub const MAX_ANSWER_BYTES: usize = 8 << 20;
+
+/// The start of an error message kept from Spoolman's answer.
+const MAX_MESSAGE_CHARS: usize = 300;
+
+/// Why Spoolman could not be asked, or what it answered instead.
+#[derive(Debug, thiserror::Error)]
+pub enum SpoolmanError {
+    #[error("cannot connect to Spoolman at {host}:{port}: {message}")]
+    Connect {
+        host: String,
+        port: u16,
+        message: String,
+    },
+    #[error("no answer from Spoolman within {0:?}")]
+    Timeout(Duration),
+    #[error("Spoolman answered {request} with HTTP {status}{}", colon(.message))]
+    Status {
+        request: String,
+        status: u16,
+        /// Spoolman's own `message` (or FastAPI's `detail`), when the answer had one.
+        message: Option<String>,
+    },
+    #[error("Spoolman's answer to {request} is not what was expected: {detail}")]
+    BadAnswer { request: String, detail: String },
+    #[error("Spoolman's answer to {request} is larger than {} MiB", MAX_ANSWER_BYTES >> 20)]
+    TooLarge { request: String },
+    #[error("HTTP with Spoolman: {0}")]
+    Http(String),
+    #[error("{0} g is not an amount of filament used (a finite number of grams, at least 0)")]
+    Amount(f64),
+}
+
+fn colon(message: &Option<String>) -> String {
+    message
+        .as_deref()
+        .map(|m| format!(": {m}"))
+        .unwrap_or_default()
+}
+
+/// One spool as the farm needs it, from Spoolman's spool and the filament it holds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SpoolmanSpool {
+    pub id: u64,
+    pub filament_name: Option<String>,
+    pub material: Option<String>,
+    /// As Spoolman has it: six or eight hex digits, no `#`.
+    pub colour_hex: Option<String>,
+    /// The filament's vendor.
+    pub brand: Option<String>,
+    pub diameter_mm: f64,
+    pub density_g_cm3: f64,
+    pub initial_g: Option<f64>,
+    pub used_g: f64,
+    /// Spoolman's own figure (it needs an initial weight, the spool's or the filament's).
+    pub remaining_g: Option<f64>,
+    /// The spool's price over its weight when the spool has a price, else the filament's
+    /// price over the filament's weight; None when neither can be worked out.
+    pub price_per_kg: Option<f64>,
+    pub archived: bool,
+}
+
+/// Spoolman's spool as it sends it; absent and `null` fields are None, unknown ones are
+/// ignored (Spoolman adds fields between versions). The filament is read as a layer of
+/// its own, so a malformed one is named as the filament's.
+#[derive(Deserialize)]
+struct RawSpool {
+    id: u64,
+    filament: Option<serde_json::Value>,
+    price: Option<f64>,
+    initial_weight: Option<f64>,
+    used_weight: Option<f64>,
+    remaining_weight: Option<f64>,
+    archived: Option<bool>,
+}
+
+#[derive(Deserialize)]
+struct RawFilament {
+    name: Option<String>,
+    material: Option<String>,
+    color_hex: Option<String>,
+    vendor: Option<serde_json::Value>,
+    diameter: Option<f64>,
+    density: Option<f64>,
+    /// The net weight of filament on a spool of this kind, in grams.
+    weight: Option<f64>,
+    price: Option<f64>,
+}
+
+#[derive(Deserialize)]
+struct RawVendor {
+    name: Option<String>,
+}
+
+/// `value` when it is a finite number of at least 0 (Spoolman keeps weights and prices
+/// there); what is wrong with `field` otherwise.
+fn non_negative(value: Option<f64>, field: &str) -> Result<Option<f64>, String> {
+    match value {
+        Some(v) if !(v >= 0.0) || !v.is_finite() => {
+            Err(format!("{field} is {v}, not a finite number of at least 0"))
+        }
+        v => Ok(v),
+    }
+}
+
+/// A quantity the spool cannot do without (its filament's diameter and density): present,
+/// finite and above 0.
+fn positive(value: Option<f64>, field: &str) -> Result<f64, String> {
+    match value {
+        None => Err(format!("{field} is missing")),
+        Some(v) if !(v > 0.0) || !v.is_finite() => {
+            Err(format!("{field} is {v}, not a finite number above 0"))
+        }
+        Some(v) => Ok(v),
+    }
+}
+
+/// One spool of Spoolman's JSON, checked.
+fn spool_from_json(value: serde_json::Value) -> Result<SpoolmanSpool, String> {
+    let raw: RawSpool = serde_json::from_value(value).map_err(|e| format!("not a spool ({e})"))?;
+    let id = raw.id;
+    let at = |detail: String| format!("spool {id}: {detail}");
+    let filament = raw
+        .filament
+        .ok_or_else(|| at("filament is missing".into()))?;
+    let filament: RawFilament = serde_json::from_value(filament)
+        .map_err(|e| at(format!("filament is not a filament ({e})")))?;
+    let brand = match filament.vendor {
+        None => None,
+        Some(vendor) => {
+            serde_json::from_value::<RawVendor>(vendor)
+                .map_err(|e| at(format!("filament.vendor is not a vendor ({e})")))?
+                .name
+        }
+    };
+    let diameter_mm = positive(filament.diameter, "filament.diameter").map_err(at)?;
+    let density_g_cm3 = positive(filament.density, "filament.density").map_err(at)?;
+    let filament_weight = non_negative(filament.weight, "filament.weight").map_err(at)?;
+    let filament_price = non_negative(filament.price, "filament.price").map_err(at)?;
+    let initial_g = non_negative(raw.initial_weight, "initial_weight").map_err(at)?;
+    let used_g = non_negative(raw.used_weight, "used_weight")
+        .map_err(at)?
+        .unwrap_or(0.0);
+    let remaining_g = non_negative(raw.remaining_weight, "remaining_weight").map_err(at)?;
+    let spool_price = non_negative(raw.price, "price").map_err(at)?;
+
+    // A spool without its own initial weight holds the filament's weight: Spoolman works
+    // out the weight left the same way.
+    let per_kg = |price: Option<f64>, grams: Option<f64>| match (price, grams) {
+        (Some(price), Some(grams)) if grams > 0.0 => Some(price / grams * 1000.0),
+        _ => None,
+    };
+    let price_per_kg = match spool_price {
+        Some(_) => per_kg(spool_price, initial_g.or(filament_weight)),
+        None => None,
+    }
+    .or_else(|| per_kg(filament_price, filament_weight));
+
+    Ok(SpoolmanSpool {
+        id,
+        filament_name: filament.name,
+        material: filament.material,
+        colour_hex: filament.color_hex,
+        brand,
+        diameter_mm,
+        density_g_cm3,
+        initial_g,
+        used_g,
+        remaining_g,
+        price_per_kg,
+        archived: raw.archived.unwrap_or(false),
+    })
+}
+
+/// Spoolman's explanation in an error answer: its own `{"message": …}`, or FastAPI's
+/// `{"detail": …}` (a text, or a list of what failed validation), cut to a readable length.
+fn error_message(body: &[u8]) -> Option<String> {
+    let value: serde_json::Value = serde_json::from_slice(body).ok()?;
+    let text = match (&value["message"], &value["detail"]) {
+        (serde_json::Value::String(m), _) => m.clone(),
+        (_, serde_json::Value::String(d)) => d.clone(),
+        (_, serde_json::Value::Array(items)) => items.first()?["msg"].as_str()?.to_string(),
+        _ => return None,
+    };
+    let text = text.trim();
+    (!text.is_empty()).then(|| text.chars().take(MAX_MESSAGE_CHARS).collect())
+}
+
+/// A Spoolman server.
+#[derive(Debug, Clone)]
+pub struct Spoolman {
+    url: ReceiverUrl,
+    timeout: Duration,
+}
+
+impl Spoolman {
+    /// The server at `url`, its base address (`http://127.0.0.1:7912`, or with the path a
+    /// proxy serves it under, `https://farm.example/spoolman`); each request, from connecting
+    /// to the answer's last byte, takes at most `timeout`.
+    pub fn new(url: ReceiverUrl, timeout: Duration) -> Spoolman {
+        Spoolman { url, timeout }
+    }
+
+    /// The base address as given.
+    pub fn url(&self) -> &str {
+        &self.url.text
+    }
+
+    /// Whether the server is up and says it is healthy.
+    pub async fn health(&self) -> Result<(), SpoolmanError> {
+        let (request, body) = self
+            .call(hyper::Method::GET, "/api/v1/health", None)
+            .await?;
+        let value: serde_json::Value =
+            serde_json::from_slice(&body).map_err(|e| SpoolmanError::BadAnswer {
+                request: request.clone(),
+                detail: format!("not JSON ({e})"),
+            })?;
+        match value["status"].as_str() {
+            Some("healthy") => Ok(()),
+            other => Err(SpoolmanError::BadAnswer {
+                request,
+                detail: match other {
+                    Some(s) => format!("status is {s:?}, not \"healthy\""),
+                    None => "no status".into(),
+                },
+            }),
+        }
+    }
+
+    /// Every spool, archived ones too (flagged): Spoolman leaves them out unless asked.
+    pub async fn spools(&self) -> Result<Vec<SpoolmanSpool>, SpoolmanError> {
+        let (request, body) = self
+            .call(
+                hyper::Method::GET,
+                "/api/v1/spool?allow_archived=true",
+                None,
+            )
+            .await?;
+        let bad = |detail: String| SpoolmanError::BadAnswer {
+            request: request.clone(),
+            detail,
+        };
+        let list: Vec<serde_json::Value> = serde_json::from_slice(&body)
+            .map_err(|e| bad(format!("not a JSON list of spools ({e})")))?;
+        list.into_iter()
+            .enumerate()
+            .map(|(i, v)| spool_from_json(v).map_err(|d| bad(format!("item {i}: {d}"))))
+            .collect()
+    }
+
+    /// Spool `id`; an unknown one is Spoolman's 404.
+    pub async fn spool(&self, id: u64) -> Result<SpoolmanSpool, SpoolmanError> {
+        let (request, body) = self
+            .call(hyper::Method::GET, &format!("/api/v1/spool/{id}"), None)
+            .await?;
+        one_spool(request, &body, id)
+    }
+
+    /// Books `grams` of filament used against spool `id` and returns the spool as it is
+    /// now. A print only uses filament, so a negative amount is refused here (Spoolman
+    /// would take it as filament given back).
+    pub async fn use_weight(&self, id: u64, grams: f64) -> Result<SpoolmanSpool, SpoolmanError> {
+        if !(grams >= 0.0) || !grams.is_finite() {
+            return Err(SpoolmanError::Amount(grams));
+        }
+        let body = serde_json::json!({ "use_weight": grams }).to_string();
+        let (request, body) = self
+            .call(
+                hyper::Method::PUT,
+                &format!("/api/v1/spool/{id}/use"),
+                Some(body.into_bytes()),
+            )
+            .await?;
+        one_spool(request, &body, id)
+    }
+
+    /// `path` (under `/api/v1`) on the base address: the base's own path with its query
+    /// and trailing slashes left out.
+    fn target(&self, path: &str) -> String {
+        let base = self.url.path.split('?').next().unwrap_or("");
+        format!("{}{path}", base.trim_end_matches('/'))
+    }
+
+    /// One request, whole within the time limit: the request's name for errors (method
+    /// and path) and a successful answer's body; any other status is an error.
+    async fn call(
+        &self,
+        method: hyper::Method,
+        path: &str,
+        json: Option<Vec<u8>>,
+    ) -> Result<(String, Vec<u8>), SpoolmanError> {
+        let target = self.target(path);
+        let request = format!("{method} {target}");
+        let (status, body) =
+            tokio::time::timeout(self.timeout, self.exchange(method, &target, json, &request))
+                .await
+                .map_err(|_| SpoolmanError::Timeout(self.timeout))??;
+        if (200..300).contains(&status) {
+            Ok((request, body))
+        } else {
+            Err(SpoolmanError::Status {
+                request,
+                status,
+                message: error_message(&body),
+            })
+        }
+    }
+
+    async fn exchange(
+        &self,
+        method: hyper::Method,
+        target: &str,
+        json: Option<Vec<u8>>,
+        name: &str,
+    ) -> Result<(u16, Vec<u8>), SpoolmanError> {
+        let url = &self.url;
+        let connect_error = |message: String| SpoolmanError::Connect {
+            host: url.host.clone(),
+            port: url.port,
+            message,
+        };
+        let tcp = tokio::net::TcpStream::connect((url.host.as_str(), url.port))
+            .await
+            .map_err(|e| connect_error(e.to_string()))?;
+        let _ = tcp.set_nodelay(true);
+        let mut request = hyper::Request::builder()
+            .method(method)
+            .uri(target)
+            .header(hyper::header::HOST, url.host_header())
+            .header(hyper::header::CONNECTION, "close")
+            .header(hyper::header::ACCEPT, "application/json")
+            .header(
+                hyper::header::USER_AGENT,
+                concat!("crispen/", env!("CARGO_PKG_VERSION")),
+            );
+        if json.is_some() {
+            request = request.header(hyper::header::CONTENT_TYPE, "application/json");
+        }
+        let request = request
+            .body(Full::new(Bytes::from(json.unwrap_or_default())))
+            .map_err(|e| SpoolmanError::Http(e.to_string()))?;
+        if url.https {
+            let server = tokio_rustls::rustls::pki_types::ServerName::try_from(url.host.clone())
+                .map_err(|e| connect_error(e.to_string()))?;
+            let tls = crate::tls::connector()
+                .connect(server, tcp)
+                .await
+                .map_err(|e| connect_error(format!("TLS: {e}")))?;
+            over(tls, request, name).await
+        } else {
+            over(tcp, request, name).await
+        }
+    }
+}
+
+/// The spool in an answer about spool `id`.
+fn one_spool(request: String, body: &[u8], id: u64) -> Result<SpoolmanSpool, SpoolmanError> {
+    let bad = |detail: String| SpoolmanError::BadAnswer {
+        request: request.clone(),
+        detail,
+    };
+    let value: serde_json::Value =
+        serde_json::from_slice(body).map_err(|e| bad(format!("not JSON ({e})")))?;
+    let spool = spool_from_json(value).map_err(bad)?;
+    if spool.id != id {
+        return Err(bad(format!("it is about spool {}", spool.id)));
+    }
+    Ok(spool)
+}
+
+/// The request on one connection, driven here rather than by a task of its own, so
+/// nothing is left running when the call is dropped at its time limit.
+async fn over(
+    io: impl AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    request: hyper::Request<Full<Bytes>>,
+    name: &str,
+) -> Result<(u16, Vec<u8>), SpoolmanError> {
+    let http = |e: hyper::Error| SpoolmanError::Http(e.to_string());
+    let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(io))
+        .await
+        .map_err(http)?;
+    let answer = async {
+        let response = sender.send_request(request).await.map_err(http)?;
+        let status = response.status().as_u16();
+        let too_large = || SpoolmanError::TooLarge {
+            request: name.to_string(),
+        };
+        // A declared length over the cap is refused before any of it is read.
+        let declared = response
+            .headers()
+            .get(hyper::header::CONTENT_LENGTH)
+            .and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+        if declared.is_some_and(|n| n > MAX_ANSWER_BYTES as u64) {
+            return Err(too_large());
+        }
+        let mut body = Vec::new();
+        let mut stream = response.into_body();
+        while let Some(frame) = stream.frame().await {
+            let frame = frame.map_err(http)?;
+            if let Ok(data) = frame.into_data() {
+                if body.len() + data.len() > MAX_ANSWER_BYTES {
+                    return Err(too_large());
+                }
+                body.extend_from_slice(&data);
+            }
+        }
+        Ok((status, body))
+    };
+    tokio::pin!(answer);
+    tokio::pin!(connection);
+    let mut connection_open = true;
+    loop {
+        tokio::select! {
+            a = &mut answer => return a,
+            c = &mut connection, if connection_open => {
+                connection_open = false;
+                c.map_err(http)?;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// A spool as Spoolman 0.26 sends it (measured), with its filament and vendor.
+    fn measured() -> serde_json::Value {
+        json!({
+            "id": 1, "registered": "2026-12-04T22:27:52Z",
+            "filament": {
+                "id": 1, "registered": "2026-12-04T22:27:52Z", "name": "PETG Black",
+                "vendor": {"id": 1, "registered": "2026-12-04T22:27:52Z", "name": "Prusament", "extra": {}},
+                "material": "PETG", "price": 25.0, "density": 1.27, "diameter": 1.75,
+                "weight": 1000.0, "color_hex": "000000", "extra": {}
+            },
+            "remaining_weight": 900.0, "initial_weight": 1000.0, "used_weight": 100.0,
+            "remaining_length": 294627.1805268575, "used_length": 32736.353391873057,
+            "archived": false, "extra": {}
+        })
+    }
+
+    #[test]
+    fn a_measured_spool_converts() {
+        let s = spool_from_json(measured()).unwrap();
+        assert_eq!(
+            s,
+            SpoolmanSpool {
+                id: 1,
+                filament_name: Some("PETG Black".into()),
+                material: Some("PETG".into()),
+                colour_hex: Some("000000".into()),
+                brand: Some("Prusament".into()),
+                diameter_mm: 1.75,
+                density_g_cm3: 1.27,
+                initial_g: Some(1000.0),
+                used_g: 100.0,
+                remaining_g: Some(900.0),
+                price_per_kg: Some(25.0),
+                archived: false,
+            }
+        );
+        // The farm keeps it as JSON too: it comes back the same.
+        let text = serde_json::to_string(&s).unwrap();
+        assert_eq!(serde_json::from_str::<SpoolmanSpool>(&text).unwrap(), s);
+    }
+
+    /// The spool's own price goes over its own weight (or the filament's when it has none);
+    /// without one the filament's price goes over the filament's weight.
+    #[test]
+    fn price_per_kg_follows_spool_then_filament() {
+        let mut v = measured();
+        v["price"] = json!(20.0);
+        v["initial_weight"] = json!(500.0);
+        assert_eq!(spool_from_json(v.clone()).unwrap().price_per_kg, Some(40.0));
+        v["initial_weight"] = json!(null);
+        assert_eq!(spool_from_json(v.clone()).unwrap().price_per_kg, Some(20.0));
+        // No weight to divide by: the filament's own figure.
+        v["filament"]["weight"] = json!(0.0);
+        v["filament"]["price"] = json!(30.0);
+        assert_eq!(spool_from_json(v.clone()).unwrap().price_per_kg, None);
+        v["filament"]["weight"] = json!(750.0);
+        v["initial_weight"] = json!(0.0);
+        assert_eq!(spool_from_json(v.clone()).unwrap().price_per_kg, Some(40.0));
+        let mut v = measured();
+        v["filament"]["weight"] = json!(250.0);
+        v["filament"]["price"] = json!(5.0);
+        assert_eq!(spool_from_json(v.clone()).unwrap().price_per_kg, Some(20.0));
+        v["filament"].as_object_mut().unwrap().remove("price");
+        assert_eq!(spool_from_json(v).unwrap().price_per_kg, None);
+    }
+
+    /// The least Spoolman sends (a filament with only its density and diameter): every
+    /// optional figure is None, the used weight 0.
+    #[test]
+    fn missing_fields_are_none_or_defaults() {
+        let v = json!({
+            "id": 2,
+            "filament": {"id": 2, "density": 1.24, "diameter": 1.75, "extra": {}},
+            "used_weight": 0.0, "archived": true, "extra": {}
+        });
+        let s = spool_from_json(v).unwrap();
+        assert_eq!(
+            s,
+            SpoolmanSpool {
+                id: 2,
+                filament_name: None,
+                material: None,
+                colour_hex: None,
+                brand: None,
+                diameter_mm: 1.75,
+                density_g_cm3: 1.24,
+                initial_g: None,
+                used_g: 0.0,
+                remaining_g: None,
+                price_per_kg: None,
+                archived: true,
+            }
+        );
+        let v = json!({"id": 3, "filament": {"density": 1.24, "diameter": 1.75, "vendor": null}});
+        let s = spool_from_json(v).unwrap();
+        assert_eq!((s.used_g, s.archived, s.brand), (0.0, false, None));
+    }
+
+    /// Whatever comes, the answer is an error naming what is wrong, never a panic.
+    #[test]
+    fn garbage_is_an_error_naming_the_field() {
+        let cases: Vec<(serde_json::Value, &str)> = vec![
+            (json!(null), "not a spool"),
+            (json!([1, 2]), "not a spool"),
+            (json!({"filament": {}}), "id"),
+            (json!({"id": -1}), "not a spool"),
+            (json!({"id": 4}), "spool 4: filament is missing"),
+            (
+                json!({"id": 4, "filament": "PLA"}),
+                "spool 4: filament is not",
+            ),
+            (
+                json!({"id": 4, "filament": {"density": 1.24}}),
+                "filament.diameter is missing",
+            ),
+            (
+                json!({"id": 4, "filament": {"density": 0, "diameter": 1.75}}),
+                "filament.density is 0",
+            ),
+            (
+                json!({"id": 4, "filament": {"density": "x", "diameter": 1.75}}),
+                "spool 4: filament is not",
+            ),
+            (
+                json!({"id": 4, "filament": {"density": 1.2, "diameter": 1.75, "vendor": 7}}),
+                "filament.vendor",
+            ),
+            (
+                json!({"id": 4, "filament": {"density": 1.2, "diameter": 1.75}, "used_weight": -3}),
+                "used_weight is -3",
+            ),
+            (
+                json!({"id": 4, "filament": {"density": 1.2, "diameter": 1.75}, "remaining_weight": -0.5}),
+                "remaining_weight is -0.5",
+            ),
+            (
+                json!({"id": 4, "filament": {"density": 1.2, "diameter": 1.75, "price": -1}}),
+                "filament.price is -1",
+            ),
+        ];
+        for (value, expected) in cases {
+            let text = value.to_string();
+            let error = spool_from_json(value).unwrap_err();
+            assert!(error.contains(expected), "{text}: {error}");
+        }
+        // A number too large for a double is refused by the JSON reader.
+        let huge = r#"{"id": 1, "filament": {"density": 1e999, "diameter": 1.75}}"#;
+        let parsed = serde_json::from_str::<serde_json::Value>(huge);
+        if let Ok(value) = parsed {
+            assert!(spool_from_json(value).is_err());
+        }
+    }
+
+    #[test]
+    fn error_messages_are_read_from_either_shape() {
+        assert_eq!(
+            error_message(br#"{"message":"No spool with ID 99 found."}"#).as_deref(),
+            Some("No spool with ID 99 found.")
+        );
+        assert_eq!(
+            error_message(
+                br#"{"detail":[{"type":"float_parsing","msg":"Input should be a valid number"}]}"#
+            )
+            .as_deref(),
+            Some("Input should be a valid number")
+        );
+        assert_eq!(
+            error_message(br#"{"detail":"Not Found"}"#).as_deref(),
+            Some("Not Found")
+        );
+        for nothing in [
+            &b"<html>"[..],
+            b"",
+            b"[]",
+            br#"{"message":""}"#,
+            br#"{"detail":[]}"#,
+        ] {
+            assert_eq!(error_message(nothing), None);
+        }
+        let long = format!(r#"{{"message":"{}"}}"#, "é".repeat(1000));
+        assert_eq!(
+            error_message(long.as_bytes()).unwrap().chars().count(),
+            MAX_MESSAGE_CHARS
+        );
+        let e = SpoolmanError::Status {
+            request: "GET /api/v1/spool/99".into(),
+            status: 404,
+            message: Some("No spool with ID 99 found.".into()),
+        };
+        assert_eq!(
+            e.to_string(),
+            "Spoolman answered GET /api/v1/spool/99 with HTTP 404: No spool with ID 99 found."
+        );
+    }
+
+    /// The base address's path is a prefix (a proxy's); its query and trailing slash are
+    /// not part of the API's paths.
+    #[test]
+    fn paths_go_under_the_base_address() {
+        let at = |base: &str| {
+            let url = parse_url(base).unwrap();
+            Spoolman::new(url, Duration::from_secs(1)).target("/api/v1/spool/3")
+        };
+        assert_eq!(at("http://127.0.0.1:7912"), "/api/v1/spool/3");
+        assert_eq!(at("http://127.0.0.1:7912/"), "/api/v1/spool/3");
+        assert_eq!(at("https://farm/spoolman/"), "/spoolman/api/v1/spool/3");
+        assert_eq!(at("https://farm/spoolman?x=1"), "/spoolman/api/v1/spool/3");
+    }
+
+    /// Amounts that are not filament used are refused before anything is sent.
+    #[tokio::test]
+    async fn odd_amounts_are_refused() {
+        let url = parse_url("http://127.0.0.1:1").unwrap();
+        let spoolman = Spoolman::new(url, Duration::from_secs(1));
+        for grams in [-1.0, f64::NAN, f64::INFINITY] {
+            let e = spoolman.use_weight(1, grams).await.unwrap_err();
+            assert!(matches!(e, SpoolmanError::Amount(_)), "{e}");
+        }
+    }
+}

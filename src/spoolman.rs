@@ -658,6 +658,129 @@ mod tests {
         assert_eq!(at("https://farm/spoolman?x=1"), "/spoolman/api/v1/spool/3");
     }
 
+    /// A server on a free port of 127.0.0.1 that takes one request, hands its head and body
+    /// back, and answers `answer` (nothing at all when None) then keeps the connection open.
+    async fn one_answer(
+        answer: Option<Vec<u8>>,
+    ) -> (Spoolman, tokio::sync::oneshot::Receiver<String>) {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        tokio::spawn(async move {
+            let (mut socket, _) = listener.accept().await.unwrap();
+            let mut request = Vec::new();
+            let mut buf = [0u8; 4096];
+            // The head, then as much body as its Content-Length says.
+            loop {
+                let n = socket.read(&mut buf).await.unwrap();
+                request.extend_from_slice(&buf[..n]);
+                let text = String::from_utf8_lossy(&request).to_string();
+                if let Some(end) = text.find("\r\n\r\n") {
+                    let length = text
+                        .lines()
+                        .find_map(|l| {
+                            l.to_ascii_lowercase()
+                                .strip_prefix("content-length:")
+                                .map(|v| v.trim().parse::<usize>().unwrap())
+                        })
+                        .unwrap_or(0);
+                    if n == 0 || request.len() >= end + 4 + length {
+                        break;
+                    }
+                }
+                if n == 0 {
+                    break;
+                }
+            }
+            let _ = tx.send(String::from_utf8_lossy(&request).into_owned());
+            if let Some(answer) = answer {
+                let _ = socket.write_all(&answer).await;
+            }
+            tokio::time::sleep(Duration::from_secs(30)).await;
+        });
+        let url = parse_url(&format!("http://127.0.0.1:{port}/spoolman/")).unwrap();
+        (Spoolman::new(url, Duration::from_millis(500)), rx)
+    }
+
+    /// The request as Spoolman gets it: under the base path, with Host, User-Agent, and a
+    /// JSON body said to be JSON.
+    #[tokio::test]
+    async fn requests_carry_their_headers_and_body() {
+        let spool = measured().to_string();
+        let answer = format!(
+            "HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{spool}",
+            spool.len()
+        );
+        let (spoolman, request) = one_answer(Some(answer.into_bytes())).await;
+        let port = spoolman.url.port;
+        let s = spoolman.use_weight(1, 12.5).await.unwrap();
+        assert_eq!(s.id, 1);
+        let request = request.await.unwrap();
+        let lower = request.to_ascii_lowercase();
+        assert!(
+            request.starts_with("PUT /spoolman/api/v1/spool/1/use HTTP/1.1\r\n"),
+            "{request}"
+        );
+        assert!(
+            lower.contains(&format!("host: 127.0.0.1:{port}\r\n")),
+            "{request}"
+        );
+        assert!(lower.contains("user-agent: crispen/"), "{request}");
+        assert!(
+            lower.contains("content-type: application/json\r\n"),
+            "{request}"
+        );
+        assert!(
+            request.ends_with("\r\n\r\n{\"use_weight\":12.5}"),
+            "{request}"
+        );
+    }
+
+    /// A server that takes the request and says nothing is a timeout, at the time limit.
+    #[tokio::test]
+    async fn silence_is_a_timeout() {
+        let (spoolman, _request) = one_answer(None).await;
+        let started = std::time::Instant::now();
+        let e = spoolman.spools().await.unwrap_err();
+        assert!(matches!(e, SpoolmanError::Timeout(_)), "{e}");
+        assert!(
+            started.elapsed() < Duration::from_secs(5),
+            "{:?}",
+            started.elapsed()
+        );
+    }
+
+    /// An answer over the cap is refused, whether its length is declared or not.
+    #[tokio::test]
+    async fn answers_over_the_cap_are_refused() {
+        let declared = format!(
+            "HTTP/1.1 200 OK\r\nContent-Length: {}\r\n\r\n[",
+            MAX_ANSWER_BYTES + 1
+        );
+        let mut streamed = b"HTTP/1.1 200 OK\r\nConnection: close\r\n\r\n[".to_vec();
+        streamed.resize(streamed.len() + MAX_ANSWER_BYTES + 1, b' ');
+        for answer in [declared.into_bytes(), streamed] {
+            let (mut spoolman, _request) = one_answer(Some(answer)).await;
+            spoolman.timeout = Duration::from_secs(20);
+            let e = spoolman.spools().await.unwrap_err();
+            assert!(matches!(e, SpoolmanError::TooLarge { .. }), "{e}");
+        }
+    }
+
+    /// An answer that is not Spoolman's JSON is named with the request it answered.
+    #[tokio::test]
+    async fn a_page_instead_of_json_is_named() {
+        let answer = b"HTTP/1.1 200 OK\r\nContent-Length: 6\r\n\r\n<html>".to_vec();
+        let (spoolman, _request) = one_answer(Some(answer)).await;
+        let e = spoolman.spools().await.unwrap_err().to_string();
+        assert!(
+            e.contains("GET /spoolman/api/v1/spool?allow_archived=true")
+                && e.contains("not a JSON list of spools"),
+            "{e}"
+        );
+    }
+
     /// Amounts that are not filament used are refused before anything is sent.
     #[tokio::test]
     async fn odd_amounts_are_refused() {

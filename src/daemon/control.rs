@@ -62,6 +62,23 @@ pub struct JobStatus {
     /// Waits for the operator's release before a printer may take it.
     #[serde(default)]
     pub held: bool,
+    /// What it asks of its printer.
+    #[serde(
+        default,
+        skip_serializing_if = "crate::daemon::filament::Asks::is_empty"
+    )]
+    pub asks: crate::daemon::filament::Asks,
+    /// Ready, but no printer can take it now: why ("waiting for PETG black ...").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub waiting: Option<String>,
+    /// Filament one print of it needs, grams (at PLA's density until it is printed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub need_g: Option<f64>,
+    /// What its prints took, grams, and their cost where the spool's price is known.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub used_g: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cost: Option<f64>,
 }
 
 /// Why a command was refused; the operator sees the message.
@@ -117,6 +134,9 @@ pub(crate) fn status(farm: &Farm) -> Status {
     if let Some(view) = shared {
         printers.extend(view.printers);
     }
+    let config = farm.config();
+    let names: Vec<&str> = config.printers.iter().map(|p| p.name.as_str()).collect();
+    let offers = super::farm::offers(&config, &store, &names);
     let jobs = store
         .jobs()
         .map(|j| JobStatus {
@@ -141,6 +161,16 @@ pub(crate) fn status(farm: &Farm) -> Status {
             copies: j.copies_wanted(),
             updated: j.history.last().map(|h| h.1).unwrap_or(0.0),
             held: j.held(),
+            asks: j.asks.clone(),
+            waiting: super::farm::waiting_reason(&config, j, &offers),
+            need_g: j.slice_report.as_ref().and_then(|r| r.filament_g),
+            used_g: (!j.uses.is_empty()).then(|| j.uses.iter().map(|u| u.grams).sum()),
+            cost: j
+                .uses
+                .iter()
+                .map(|u| u.cost)
+                .sum::<Option<f64>>()
+                .filter(|_| !j.uses.is_empty()),
         })
         .collect();
     Status {

@@ -144,6 +144,9 @@ pub struct PrinterStatus {
     /// Its host stopped renewing its lease: what is shown is as of then.
     #[serde(default)]
     pub offline: bool,
+    /// Its filament, spool and nozzle.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holds: Option<super::filament::routing::Holding>,
 }
 
 /// What the fleet keeps of a printer in the farm: the receiving ends of what its
@@ -406,12 +409,20 @@ impl Farm {
         let store = self.store();
         let config = self.config();
         let host = config.store.as_ref().map(|_| config.farm.host.clone());
+        let names: Vec<String> = self.printers.borrow().keys().cloned().collect();
+        let names: Vec<&str> = names.iter().map(String::as_str).collect();
+        let offers = offers(&config, &store, &names);
         self.printers
             .borrow()
             .iter()
             .map(|(name, handle)| {
                 let live = handle.live.borrow().clone();
+                let holds = offers
+                    .iter()
+                    .find(|o| o.printer == name)
+                    .map(super::filament::routing::Holding::of);
                 PrinterStatus {
+                    holds,
                     name: name.clone(),
                     state: live.state,
                     firmware: live.firmware,
@@ -671,4 +682,89 @@ mod tests {
             .await
             .expect("woken by the gate");
     }
+}
+
+/// What each printer of `printers` offers a job now: see [`offer`]; the filament the job
+/// printing on it will take is reserved.
+pub(crate) fn offers<'a>(
+    config: &'a Config,
+    snapshot: &'a Snapshot,
+    printers: &[&str],
+) -> Vec<super::filament::routing::Offer<'a>> {
+    config
+        .printers
+        .iter()
+        .filter(|p| printers.contains(&p.name.as_str()))
+        .map(|p| {
+            let reserved_mm = snapshot
+                .jobs()
+                .filter(|j| {
+                    j.state == super::job::JobState::Printing
+                        && j.printer.as_deref() == Some(p.name.as_str())
+                })
+                .filter_map(|j| j.need_mm())
+                .sum();
+            offer(p, snapshot.inventory(), reserved_mm)
+        })
+        .collect()
+}
+
+/// What `printer` offers a job: its config (nozzle, groups, default filament) with what
+/// the inventory records it holds; `reserved_mm` of its spool are promised to its current
+/// job. One place for the claim and the reasons shown to the operator.
+pub(crate) fn offer<'a>(
+    printer: &'a super::config::PrinterConfig,
+    inventory: &'a super::filament::Inventory,
+    reserved_mm: f64,
+) -> super::filament::routing::Offer<'a> {
+    let spool = inventory.spool_on(&printer.name);
+    let unloaded = inventory.loaded.get(&printer.name) == Some(&super::filament::Loaded::Nothing);
+    super::filament::routing::Offer {
+        printer: &printer.name,
+        spool,
+        filament: match (spool, unloaded) {
+            (Some(s), _) => Some(&s.filament),
+            (None, true) => None,
+            (None, false) => printer.filament.as_ref(),
+        },
+        unloaded,
+        nozzle_mm: printer.machine.nozzle_mm,
+        hardened: printer.hardened,
+        machine_filament_mm: printer.machine.filament_mm,
+        tags: &printer.tags,
+        reserved_mm,
+    }
+}
+
+/// Why no printer can take a ready job now, in words; None when one can (or it is not
+/// ready, or no printer of this host serves it). `offers`: this host's printers' (see
+/// [`offers`]).
+pub(crate) fn waiting_reason(
+    config: &Config,
+    job: &super::job::Job,
+    offers: &[super::filament::routing::Offer],
+) -> Option<String> {
+    if job.state != super::job::JobState::Ready || job.held() {
+        return None;
+    }
+    let rule = match (&job.origin, config.folder(&job.folder)) {
+        (Some(o), f) if o.host != config.farm.host || f.is_none() => Some(&o.printers),
+        (_, f) => f.map(|f| &f.printers),
+    }?;
+    let wanted = job.sidecar.as_ref().and_then(|s| s.printer.as_deref());
+    let serving: Vec<super::filament::routing::Offer> = offers
+        .iter()
+        .filter(|o| rule.iter().any(|p| p == o.printer) && wanted.is_none_or(|w| w == o.printer))
+        .filter(|o| {
+            config
+                .printers
+                .iter()
+                .any(|c| c.name == o.printer && job.gcode_for(&c.machine.name).is_some())
+        })
+        .cloned()
+        .collect();
+    if serving.is_empty() {
+        return None;
+    }
+    super::filament::routing::waiting_reason(&job.asks, job.need_mm(), &serving)
 }

@@ -56,6 +56,8 @@ pub enum StoreError {
         host: String,
         state: JobState,
     },
+    #[error("{0}")]
+    Filament(#[from] crate::daemon::filament::FilamentError),
     #[error("job {id} is {state}; {action} needs it to be {allowed}")]
     WrongState {
         id: String,
@@ -172,6 +174,13 @@ pub struct Sidecar {
     /// `hold = true`: prepare the job, but let no printer take it until the operator
     /// releases it (`crispen release JOB`); what an upload with `print=false` asks for.
     pub hold: Option<bool>,
+    /// What the printer must hold (see `crate::daemon::filament`): these override the
+    /// folder's.
+    pub material: Option<String>,
+    pub colour: Option<String>,
+    pub nozzle_mm: Option<f64>,
+    pub tags: Option<Vec<String>>,
+    pub priority: Option<i32>,
 }
 
 /// Reads a sidecar file (`model.stl.toml`); unknown keys are an error.
@@ -205,7 +214,7 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
     }
     let sidecar: Sidecar = toml::from_str(&text).map_err(|e| {
         format!(
-            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer, hold)",
+            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer, hold, material, colour, nozzle_mm, tags, priority)",
             path.display(),
             e.message().trim()
         )
@@ -226,6 +235,14 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
         crate::daemon::config::parse_strength(s)
             .map_err(|m| format!("sidecar {}: key `strength`: {m}", path.display()))?;
     }
+    crate::daemon::config::check_asks(
+        sidecar.material.as_deref(),
+        sidecar.colour.as_deref(),
+        sidecar.nozzle_mm,
+        sidecar.tags.as_deref(),
+        sidecar.priority,
+    )
+    .map_err(|(key, m)| format!("sidecar {}: key `{key}`: {m}", path.display()))?;
     Ok(sidecar)
 }
 
@@ -269,6 +286,34 @@ pub struct Job {
     /// pre-sliced, or prepared before the comparison was deferred).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub comparison: Option<Comparison>,
+    /// What it asks of its printer (material, colour, nozzle, group, priority), set when
+    /// it is prepared from its folder and sidecar.
+    #[serde(
+        default,
+        skip_serializing_if = "crate::daemon::filament::Asks::is_empty"
+    )]
+    pub asks: crate::daemon::filament::Asks,
+    /// What each of its prints took from a spool, recorded with the print's outcome (the
+    /// spools' ledgers are brought up to date from these, once each).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub uses: Vec<JobUse>,
+}
+
+/// What one print of a job took from the spool on its printer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobUse {
+    /// The use's key in the spool's ledger (`<job>#<n>`).
+    pub key: String,
+    /// The spool it came from; None: no spool was recorded on the printer.
+    pub spool: Option<String>,
+    pub printer: String,
+    pub material: String,
+    pub colour: String,
+    pub grams: f64,
+    pub mm: f64,
+    /// grams × the spool's price per kg; None: its price is not known.
+    pub cost: Option<f64>,
+    pub at_s: f64,
 }
 
 /// Where a job's wall comparison is. It is a measurement, never part of the job: the job
@@ -396,11 +441,18 @@ impl Job {
             released: false,
             origin: None,
             comparison: None,
+            asks: Default::default(),
+            uses: Vec::new(),
         }
     }
 }
 
 impl Job {
+    /// Filament one print of it needs, mm (as its G-code pushes it), when measured.
+    pub fn need_mm(&self) -> Option<f64> {
+        self.slice_report.as_ref().and_then(|r| r.filament_mm)
+    }
+
     pub(crate) fn copies_wanted(&self) -> u32 {
         self.sidecar
             .as_ref()

@@ -24,6 +24,7 @@ pub mod config;
 pub mod control;
 pub(crate) mod error;
 pub mod farm;
+pub mod filament;
 pub mod fleet;
 pub mod hotfolder;
 pub mod job;
@@ -32,6 +33,7 @@ pub(crate) mod printer;
 pub mod reload;
 pub mod shared;
 pub mod store;
+pub(crate) mod usage;
 
 #[cfg(test)]
 pub(crate) mod doubles;

@@ -176,6 +176,8 @@ async fn supervise_inner(
     let farm = &sup.farm;
     let mut backoff = Duration::from_millis(500);
     let done = |retire: &watch::Receiver<bool>| farm.stopping() || *retire.borrow();
+    // A print the daemon was stopped during (a kill): its filament, before anything else.
+    super::usage::recover(farm, &sup.name).await;
     'connect: loop {
         if done(&retire) {
             break;
@@ -443,6 +445,7 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
         .find(|p| p.name == printer)
         .map(|p| p.machine.name.clone())?;
     let name = printer.to_string();
+    let snapshot = farm.store();
     let eligible = move |j: &super::job::Job| {
         let printer = name.as_str();
         // The folder's rule: as the config has it, or as recorded when a job came from
@@ -457,7 +460,21 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
             .as_ref()
             .and_then(|s| s.printer.as_deref())
             .is_none_or(|p| p == printer);
-        served && wanted && !j.held() && j.gcode_for(&machine).is_some()
+        // What it asks of the printer, against what the printer holds as the store had
+        // it just before the claim (the store's task serves the claim; a spool loaded
+        // meanwhile is seen at the next claim).
+        // An idle printer has nothing reserved.
+        let fits = || {
+            config
+                .printers
+                .iter()
+                .find(|p| p.name == printer)
+                .is_some_and(|p| {
+                    let offer = super::farm::offer(p, snapshot.inventory(), 0.0);
+                    super::filament::routing::refusal(&j.asks, j.need_mm(), &offer).is_none()
+                })
+        };
+        served && wanted && !j.held() && j.gcode_for(&machine).is_some() && fits()
     };
     match farm.jobs().claim(printer, eligible).await {
         Ok(job) => job.map(|j| j.id),
@@ -548,6 +565,32 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         return end;
     };
     tracing::info!(gcode = %gcode.display(), "starting print");
+    // The odometer: what the print pushed is measured from it, even after a kill.
+    let odometer_path = super::usage::path(&farm.config().spool_dir, printer);
+    let mut odometer = {
+        let config = farm.config();
+        let store = farm.store();
+        let holds = config
+            .printers
+            .iter()
+            .find(|p| p.name == printer)
+            .map(|p| super::farm::offer(p, store.inventory(), 0.0));
+        super::usage::Odometer {
+            job: job_id.to_string(),
+            printer: printer.to_string(),
+            print: store.get(job_id).map_or(0, |j| j.uses.len()),
+            spool: holds.as_ref().and_then(|o| o.spool).map(|s| s.id.clone()),
+            filament: holds.as_ref().and_then(|o| o.filament).cloned(),
+            gcode: gcode.clone(),
+            firmware: config
+                .printers
+                .iter()
+                .find(|p| p.name == printer)
+                .map_or(crate::marlin::firmware::Firmware::Marlin2, |p| p.firmware),
+            lines_acked: 0,
+        }
+    };
+    odometer.write(&odometer_path).await;
     sup.show(|p| {
         p.state = PrinterState::Printing;
         p.detail = None;
@@ -570,6 +613,10 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             changed = progress_rx.changed(), if progress_open => {
                 if changed.is_err() { progress_open = false; continue; }
                 let live = progress_rx.borrow_and_update().clone();
+                if live.lines_acked != odometer.lines_acked {
+                    odometer.lines_acked = live.lines_acked;
+                    odometer.write(&odometer_path).await;
+                }
                 if permit.is_some() && live.heated {
                     permit = None;
                     tracing::info!("heat-up done; heating permit released");
@@ -620,6 +667,13 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         Err(PrintFailure::Failed(PrintError::Fatal { message, .. })) => Some(message.clone()),
         _ => None,
     };
+    // What the print pushed: every line of a finished one, else what was acknowledged.
+    odometer.lines_acked = match &outcome {
+        Ok(report) => report.lines_acked,
+        Err(_) if sent_nothing => 0,
+        Err(_) => progress_rx.borrow().lines_acked,
+    };
+    let usage = odometer.measure().await;
     let mut printed = None;
     let (state, reason, lost) = match outcome {
         Ok(report) => {
@@ -659,15 +713,22 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     };
     let recorded = farm
         .jobs()
-        .record_outcome(job_id, state, reason, |j| {
+        .record_outcome(job_id, state, reason, move |j| {
             if let Some(report) = printed {
                 j.copies_done += 1;
                 j.print_report = Some(report);
             }
+            if let Some(usage) = usage {
+                if j.uses.len() == odometer.print {
+                    j.uses.push(usage);
+                }
+            }
         })
         .await;
-    if let Err(e) = recorded {
-        tracing::error!(error = %e, "cannot record the print's outcome");
+    match recorded {
+        Ok(_) => super::usage::remove(&odometer_path).await,
+        // Kept: the next start records the use from it.
+        Err(e) => tracing::error!(error = %e, "cannot record the print's outcome"),
     }
     sup.show(|p| {
         p.state = if sent_nothing {

@@ -86,6 +86,16 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("folder.profile", Policy::Live),
     ("folder.timeout_s", Policy::Live),
     ("folder.settings", Policy::Live),
+    // What a printer holds and carries, and what a folder's jobs ask: the next claim and
+    // the next preparation read them.
+    ("printer.material", Policy::Live),
+    ("printer.nozzle", Policy::Live),
+    ("printer.tags", Policy::Live),
+    ("folder.material", Policy::Live),
+    ("folder.colour", Policy::Live),
+    ("folder.nozzle_mm", Policy::Live),
+    ("folder.tags", Policy::Live),
+    ("folder.priority", Policy::Live),
 ];
 
 /// Keys of the file (and every key under them) whose change is seen as the change of a
@@ -103,6 +113,8 @@ pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     ("notify", "notify"),
     ("camera", "camera"),
     ("printer.camera", "printer.camera"),
+    // The default filament is the material and colour together.
+    ("printer.colour", "printer.material"),
 ];
 
 /// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
@@ -238,6 +250,9 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             heat_timeout,
             pause_heaters_off,
             camera,
+            filament,
+            hardened,
+            tags,
         } = new;
         let simulated = |p: &super::config::PrinterPort| {
             matches!(p, super::config::PrinterPort::Simulated { .. })
@@ -257,6 +272,9 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         );
         differs("printer.machine", *machine != old.machine);
         differs("printer.camera", *camera != old.camera);
+        differs("printer.material", *filament != old.filament);
+        differs("printer.nozzle", *hardened != old.hardened);
+        differs("printer.tags", *tags != old.tags);
     }
     differs(
         "printer",
@@ -279,6 +297,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             profile,
             timeout,
             settings,
+            asks,
         } = new;
         // Compared by their debug form: these types carry no equality of their own.
         let same =
@@ -290,7 +309,16 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("folder.up", !same(up, &old.up));
         differs("folder.profile", *profile != old.profile);
         differs("folder.timeout_s", *timeout != old.timeout);
-        differs("folder.settings", !same(settings, &old.settings));
+        // `material` sets the slicer's material too: one change, reported as itself.
+        differs(
+            "folder.settings",
+            !same(settings, &old.settings) && asks.material == old.asks.material,
+        );
+        differs("folder.material", asks.material != old.asks.material);
+        differs("folder.colour", asks.colour != old.asks.colour);
+        differs("folder.nozzle_mm", asks.nozzle_mm != old.asks.nozzle_mm);
+        differs("folder.tags", asks.tags != old.asks.tags);
+        differs("folder.priority", asks.priority != old.asks.priority);
     }
     differs(
         "folder",
@@ -544,6 +572,46 @@ mod tests {
             "folder.settings",
             "printers = [\"a\"]\n",
             "printers = [\"a\"]\n[folder.settings]\ninfill_percent = 30\n",
+        ),
+        (
+            "printer.material",
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\nmaterial = \"PETG\"\n",
+        ),
+        (
+            "printer.nozzle",
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\nnozzle = \"hardened\"\n",
+        ),
+        (
+            "printer.tags",
+            "port = \"/dev/ttyUSB0\"\n",
+            "port = \"/dev/ttyUSB0\"\ntags = [\"big\"]\n",
+        ),
+        (
+            "folder.material",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nmaterial = \"PETG\"\n",
+        ),
+        (
+            "folder.colour",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\ncolour = \"black\"\n",
+        ),
+        (
+            "folder.nozzle_mm",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nnozzle_mm = 0.4\n",
+        ),
+        (
+            "folder.tags",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\ntags = [\"big\"]\n",
+        ),
+        (
+            "folder.priority",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\npriority = 3\n",
         ),
     ];
 

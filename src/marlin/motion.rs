@@ -457,6 +457,26 @@ impl Motion {
     }
 }
 
+/// Net filament `commands` push, mm (a retraction counts back until it is pushed again),
+/// followed as `firmware` follows them: what a print of them takes from the spool. A
+/// command the firmware could not follow ends the count there, as it would end the print.
+pub fn extruded_mm<'a>(commands: impl IntoIterator<Item = &'a str>, firmware: Firmware) -> f64 {
+    let mut motion = Motion::new(firmware);
+    let mut total = 0.0;
+    for line in commands {
+        let code = line.split(';').next().unwrap_or_default();
+        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
+            continue;
+        };
+        match motion.apply(&cmd) {
+            Ok(Some(m)) => total += m.extruded(),
+            Ok(None) => {}
+            Err(_) => break,
+        }
+    }
+    total
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -304,6 +304,7 @@ mod tests {
             bed_cleared: true,
             host: None,
             offline: false,
+            holds: None,
         }
     }
 

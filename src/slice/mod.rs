@@ -27,7 +27,7 @@ mod settings;
 mod slicer;
 pub mod walls;
 
-pub use settings::{Material, SliceSettings, MATERIALS, SETTING_KEYS};
+pub use settings::{density_of, Material, SliceSettings, MATERIALS, SETTING_KEYS};
 pub use slicer::{SliceError, SlicerKind};
 
 use crate::enhance::{EnhanceReport, PrintedDisplacement};

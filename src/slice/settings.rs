@@ -14,7 +14,8 @@ pub struct SliceSettings {
     pub supports: Option<bool>,
     pub nozzle_temp_c: Option<f64>,
     pub bed_temp_c: Option<f64>,
-    /// A material preset: `pla` (default), `petg` or `abs`; sets temperatures and density.
+    /// A material preset: `pla` (default), `petg`, `abs` or `tpu`; sets temperatures and
+    /// density.
     pub material: Option<String>,
 }
 
@@ -35,6 +36,19 @@ pub struct Material {
     pub nozzle_temp_c: f64,
     pub bed_temp_c: f64,
     pub density_g_cm3: f64,
+    /// The hotend temperatures it prints between, °C: the G-code policy refuses a file
+    /// for it that heats beyond.
+    pub nozzle_range_c: [f64; 2],
+    pub bed_range_c: [f64; 2],
+}
+
+/// Density of a material by name (a preset's; PLA's for one crispen has no preset of).
+pub fn density_of(material: &str) -> f64 {
+    MATERIALS
+        .iter()
+        .find(|m| m.name.eq_ignore_ascii_case(material.trim()))
+        .unwrap_or(&MATERIALS[0])
+        .density_g_cm3
 }
 
 /// Presets from PrusaSlicer's Ultimaker 2 filament profiles.
@@ -44,18 +58,33 @@ pub const MATERIALS: &[Material] = &[
         nozzle_temp_c: 210.0,
         bed_temp_c: 60.0,
         density_g_cm3: 1.24,
+        nozzle_range_c: [180.0, 230.0],
+        bed_range_c: [0.0, 70.0],
     },
     Material {
         name: "petg",
         nozzle_temp_c: 235.0,
         bed_temp_c: 85.0,
         density_g_cm3: 1.27,
+        nozzle_range_c: [220.0, 255.0],
+        bed_range_c: [60.0, 95.0],
     },
     Material {
         name: "abs",
         nozzle_temp_c: 240.0,
         bed_temp_c: 80.0,
         density_g_cm3: 1.10,
+        nozzle_range_c: [220.0, 260.0],
+        bed_range_c: [70.0, 110.0],
+    },
+    // Flexible: slower and cooler; from the TPU 95A data sheets of the common brands.
+    Material {
+        name: "tpu",
+        nozzle_temp_c: 225.0,
+        bed_temp_c: 50.0,
+        density_g_cm3: 1.21,
+        nozzle_range_c: [210.0, 240.0],
+        bed_range_c: [0.0, 65.0],
     },
 ];
 

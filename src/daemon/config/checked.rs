@@ -157,6 +157,12 @@ pub struct PrinterConfig {
     pub pause_heaters_off: Duration,
     /// Where its pictures come from (`[printer.camera]`).
     pub camera: Option<super::camera::PrinterCamera>,
+    /// The filament it holds while no spool is recorded on it (`material`, `colour`).
+    pub filament: Option<crate::daemon::filament::Filament>,
+    /// Its nozzle is hardened steel (`nozzle = "hardened"`): it may print abrasive fills.
+    pub hardened: bool,
+    /// Its groups (`tags`).
+    pub tags: Vec<String>,
 }
 
 #[derive(Debug, Clone)]
@@ -172,6 +178,8 @@ pub struct FolderConfig {
     pub timeout: Duration,
     /// Slicer setting overrides on top of the profile.
     pub settings: crate::slice::SliceSettings,
+    /// What its jobs ask of their printer, unless a sidecar says otherwise.
+    pub asks: crate::daemon::filament::Asks,
 }
 
 /// The second stage: every value of the file checked and converted, with nothing read but

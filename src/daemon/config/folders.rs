@@ -122,7 +122,44 @@ fn check_folder(
             settings
         }
     };
+    check_asks(
+        f.material.as_deref(),
+        f.colour.as_deref(),
+        f.nozzle_mm,
+        f.tags.as_deref(),
+        f.priority,
+    )
+    .map_err(|(key, m)| invalid(section.clone(), key, m))?;
+    let mut settings = settings;
+    // `material` is what the jobs ask of their printer, and what they are sliced for.
+    if let Some(m) = &f.material {
+        let preset = m.trim().to_ascii_lowercase();
+        match &settings.material {
+            Some(s) if *s != preset => {
+                return Err(invalid(
+                    section,
+                    "material",
+                    format!("{m:?} differs from settings.material {s:?}; give one"),
+                ))
+            }
+            _ => {}
+        }
+        if crate::slice::MATERIALS.iter().any(|p| p.name == preset) {
+            settings.material = Some(preset);
+        }
+    }
+    let asks = crate::daemon::filament::Asks {
+        material: f
+            .material
+            .or_else(|| settings.material.clone())
+            .map(|m| m.trim().to_ascii_uppercase()),
+        colour: f.colour.map(|c| c.trim().to_ascii_lowercase()),
+        nozzle_mm: f.nozzle_mm,
+        tags: f.tags.unwrap_or_default(),
+        priority: f.priority.unwrap_or(0),
+    };
     Ok(FolderConfig {
+        asks,
         path,
         height_mm: f.height_mm,
         printers: f.printers,
@@ -133,6 +170,54 @@ fn check_folder(
         timeout,
         settings,
     })
+}
+
+/// Checks what a folder, a sidecar or a printer asks or holds; the error names its key.
+pub(crate) fn check_asks(
+    material: Option<&str>,
+    colour: Option<&str>,
+    nozzle_mm: Option<f64>,
+    tags: Option<&[String]>,
+    priority: Option<i32>,
+) -> Result<(), (&'static str, String)> {
+    for (key, text) in [("material", material), ("colour", colour)] {
+        if let Some(t) = text {
+            let t = t.trim();
+            if t.is_empty() || t.chars().count() > 40 || t.chars().any(char::is_control) {
+                return Err((key, format!("1 to 40 printable characters, got {t:?}")));
+            }
+        }
+    }
+    if let Some(n) = nozzle_mm {
+        if !(0.1..=2.0).contains(&n) {
+            return Err(("nozzle_mm", format!("0.1 to 2 mm, got {n}")));
+        }
+    }
+    if let Some(tags) = tags {
+        if tags.len() > crate::daemon::filament::routing::MAX_TAGS {
+            return Err((
+                "tags",
+                format!(
+                    "at most {} tags, got {}",
+                    crate::daemon::filament::routing::MAX_TAGS,
+                    tags.len()
+                ),
+            ));
+        }
+        for t in tags {
+            crate::daemon::filament::routing::check_tag(t).map_err(|m| ("tags", m))?;
+        }
+    }
+    if let Some(p) = priority {
+        let range = crate::daemon::filament::routing::PRIORITY;
+        if !range.contains(&p) {
+            return Err((
+                "priority",
+                format!("{} to {}, got {p}", range.start(), range.end()),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A printed height in mm: what the printer can build, and enough to hold a shape.

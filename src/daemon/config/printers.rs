@@ -5,6 +5,7 @@
 use super::check::{number, Context};
 use super::checked::{PrinterConfig, PrinterPort};
 use super::error::ConfigError;
+use super::folders::check_asks;
 use super::pause;
 use super::raw::{RawPrinter, RawSimulate};
 use crate::machine::Machine;
@@ -102,8 +103,55 @@ fn check_printer(
                 .map_err(|(key, m)| invalid(format!("{section}.camera"), key, m))?,
         ),
     };
+    check_asks(
+        p.material.as_deref(),
+        p.colour.as_deref(),
+        None,
+        p.tags.as_deref(),
+        None,
+    )
+    .map_err(|(key, m)| invalid(section.clone(), key, m))?;
+    let hardened = match p.nozzle.as_deref() {
+        None | Some("brass") => false,
+        Some("hardened") => true,
+        Some(other) => {
+            return Err(invalid(
+                section,
+                "nozzle",
+                format!("\"brass\" or \"hardened\", got {other:?}"),
+            ))
+        }
+    };
+    let filament = p
+        .material
+        .as_deref()
+        .map(|m| crate::daemon::filament::Filament {
+            material: m.trim().to_ascii_uppercase(),
+            colour: p
+                .colour
+                .as_deref()
+                .unwrap_or("unknown")
+                .trim()
+                .to_ascii_lowercase(),
+            colour_hex: None,
+            brand: None,
+            diameter_mm: machine.filament_mm,
+            density_g_cm3: crate::slice::density_of(m),
+            price_per_kg: None,
+        });
+    if p.colour.is_some() && filament.is_none() {
+        return Err(invalid(
+            section,
+            "colour",
+            "needs `material` beside it (the filament the printer holds)".into(),
+        ));
+    }
+    let tags = p.tags.unwrap_or_default();
     let port = port_of(section, &p.name, p.port, p.simulate, cx, warnings)?;
     Ok(PrinterConfig {
+        filament,
+        hardened,
+        tags,
         name: p.name,
         port,
         firmware,

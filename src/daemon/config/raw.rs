@@ -106,6 +106,13 @@ pub(super) struct RawPrinter {
     pub(super) pause_heaters_off_s: Option<i64>,
     pub(super) simulate: Option<RawSimulate>,
     pub(super) camera: Option<super::camera::RawPrinterCamera>,
+    /// The filament it holds until a spool is loaded (see `crate::daemon::filament`).
+    pub(super) material: Option<String>,
+    pub(super) colour: Option<String>,
+    /// `brass` or `hardened`.
+    pub(super) nozzle: Option<String>,
+    /// Its groups: a job asking for tags goes only to printers carrying all of them.
+    pub(super) tags: Option<Vec<String>>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -132,6 +139,12 @@ pub(super) struct RawFolder {
     pub(super) profile: Option<PathBuf>,
     pub(super) timeout_s: Option<f64>,
     pub(super) settings: Option<toml::Table>,
+    /// What its jobs ask of their printer (a sidecar may override each).
+    pub(super) material: Option<String>,
+    pub(super) colour: Option<String>,
+    pub(super) nozzle_mm: Option<f64>,
+    pub(super) tags: Option<Vec<String>>,
+    pub(super) priority: Option<i32>,
 }
 
 /// The largest config file read.

@@ -151,9 +151,10 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
                 "preparing"
             );
             let on_step = |step: String| farm.preparation_step(&id, step);
+            let asks = task.asks.clone();
             run_child(&program, &task, &cancel, on_step)
                 .await
-                .map(|report| (report, sidecar))
+                .map(|report| (report, sidecar, asks))
         }
     };
     finish_preparation(&farm, &id, result).await;
@@ -193,12 +194,19 @@ fn resolve(
 async fn finish_preparation(
     farm: &Farm,
     id: &str,
-    result: Result<(Prepared, Option<crate::daemon::job::Sidecar>), PrepareError>,
+    result: Result<
+        (
+            Prepared,
+            Option<crate::daemon::job::Sidecar>,
+            crate::daemon::filament::Asks,
+        ),
+        PrepareError,
+    >,
 ) {
     farm.end_preparation(id);
     const STILL_PREPARING: StateFilter = &[JobState::Preparing];
     let outcome = match result {
-        Ok((prepared, sidecar)) => {
+        Ok((prepared, sidecar, asks)) => {
             let (machines, report) = prepared.for_machines();
             match prepared.failure() {
                 // No machine can print it: failed, with each machine's reason.
@@ -207,6 +215,7 @@ async fn finish_preparation(
                         .transition_from(id, STILL_PREPARING, JobState::Failed, Some(reason), |j| {
                             j.machines = machines;
                             j.sidecar = sidecar;
+                            j.asks = asks;
                         })
                         .await
                 }
@@ -221,6 +230,7 @@ async fn finish_preparation(
                             j.slice_report = report;
                             j.machines = machines;
                             j.sidecar = sidecar;
+                            j.asks = asks;
                         })
                         .await
                 }

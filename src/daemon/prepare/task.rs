@@ -3,6 +3,7 @@
 //! ([`ChildMessage`], with what it [`Prepared`]).
 
 use crate::daemon::config::{parse_strength, FolderConfig};
+use crate::daemon::filament::Asks;
 #[cfg(test)]
 use crate::daemon::job::parse_sidecar;
 use crate::daemon::job::{ForMachine, Sidecar};
@@ -37,6 +38,9 @@ pub struct PrepareTask {
     /// with [`ChildMessage::Compared`].
     #[serde(default)]
     pub compare: bool,
+    /// What the job asks of its printer (the folder's, with the sidecar's over them).
+    #[serde(default)]
+    pub asks: crate::daemon::filament::Asks,
 }
 
 /// One machine of a task and where its G-code goes.
@@ -150,11 +154,17 @@ pub fn resolve_task(
             }
         }
     }
+    let (asks, settings) = asks_of(folder, sidecar, file)?;
     let wanted = sidecar.and_then(|s| s.printer.as_deref());
     let mut machines: Vec<TaskMachine> = Vec::new();
     for (name, machine) in printers {
-        let serves = folder.printers.contains(name) && wanted.is_none_or(|w| w == name);
+        let serves = folder.printers.contains(name)
+            && wanted.is_none_or(|w| w == name)
+            && asks
+                .nozzle_mm
+                .is_none_or(|n| (n - machine.nozzle_mm).abs() < 1e-6);
         if serves && !machines.iter().any(|m| m.machine.name == machine.name) {
+            let machine = &for_material(machine, settings.material.as_deref());
             let output = if is_presliced(file) {
                 job_dir.join(file)
             } else {
@@ -166,6 +176,13 @@ pub fn resolve_task(
             });
         }
     }
+    if let (true, Some(n)) = (machines.is_empty(), asks.nozzle_mm) {
+        return Err(format!(
+            "no printer of folder {} has a {n} mm nozzle (its printers: {})",
+            folder.path.display(),
+            folder.printers.join(", ")
+        ));
+    }
     Ok(PrepareTask {
         job: job.to_string(),
         model: job_dir.join(file),
@@ -176,10 +193,69 @@ pub fn resolve_task(
         slicer: folder.slicer,
         up,
         profile: folder.profile.clone(),
-        settings: folder.settings.clone(),
+        settings,
         timeout: folder.timeout,
         compare: false,
+        asks,
     })
+}
+
+/// What a job asks of its printer, its folder's with its sidecar's over them, and the
+/// slicer settings for the material it asks.
+fn asks_of(
+    folder: &FolderConfig,
+    sidecar: Option<&Sidecar>,
+    file: &str,
+) -> Result<(Asks, crate::slice::SliceSettings), String> {
+    let mut asks = folder.asks.clone();
+    let mut settings = folder.settings.clone();
+    let Some(s) = sidecar else {
+        return Ok((asks, settings));
+    };
+    if let Some(m) = &s.material {
+        let preset = m.trim().to_ascii_lowercase();
+        if crate::slice::MATERIALS.iter().any(|p| p.name == preset) {
+            settings.material = Some(preset);
+        } else if !is_presliced(file) {
+            return Err(format!(
+                "sidecar {file}.toml: key `material`: crispen slices for {} (a material of your own is set per folder, with its temperatures in [folder.settings])",
+                crate::slice::MATERIALS
+                    .iter()
+                    .map(|p| p.name.to_ascii_uppercase())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        asks.material = Some(m.trim().to_ascii_uppercase());
+    }
+    if let Some(c) = &s.colour {
+        asks.colour = Some(c.trim().to_ascii_lowercase());
+    }
+    if let Some(n) = s.nozzle_mm {
+        asks.nozzle_mm = Some(n);
+    }
+    if let Some(t) = &s.tags {
+        asks.tags = t.clone();
+    }
+    if let Some(p) = s.priority {
+        asks.priority = p;
+    }
+    Ok((asks, settings))
+}
+
+/// `machine` with the G-code policy's temperature limits narrowed to what `material` (a
+/// preset's name) prints at: a file that heats PLA to 250 °C is refused like one that
+/// heats beyond the machine.
+fn for_material(machine: &Machine, material: Option<&str>) -> Machine {
+    let preset = crate::slice::MATERIALS
+        .iter()
+        .find(|m| Some(m.name) == material);
+    let mut narrowed = machine.clone();
+    if let Some(p) = preset {
+        narrowed.max_hotend_c = narrowed.max_hotend_c.min(p.nozzle_range_c[1]);
+        narrowed.max_bed_c = narrowed.max_bed_c.min(p.bed_range_c[1]);
+    }
+    narrowed
 }
 
 /// Whether a dropped file is G-code sliced elsewhere (printed as it is, never sliced).
@@ -213,7 +289,67 @@ mod tests {
             profile: None,
             timeout: Duration::from_secs(60),
             settings: Default::default(),
+            asks: Default::default(),
         }
+    }
+
+    /// The sidecar's asks override the folder's; the material is what the job is sliced
+    /// for and narrows the policy's temperature limits; a nozzle no printer of the folder
+    /// has fails the job with the reason.
+    #[test]
+    fn asks_come_from_folder_and_sidecar() {
+        let mut f = folder();
+        f.asks.priority = 5;
+        f.asks.tags = vec!["big".into()];
+        let s = parse_sidecar(
+            &b"material = \"petg\"\ncolour = \"Black\"\npriority = 9\n"[..],
+            Path::new("m.stl.toml"),
+        )
+        .unwrap();
+        let task = resolve_task(
+            "j",
+            Path::new("/spool/j"),
+            "m.stl",
+            &f,
+            &printers(),
+            Some(&s),
+        )
+        .unwrap();
+        assert_eq!(task.asks.material.as_deref(), Some("PETG"));
+        assert_eq!(task.asks.colour.as_deref(), Some("black"));
+        assert_eq!(
+            (task.asks.priority, task.asks.tags.clone()),
+            (9, vec!["big".to_string()])
+        );
+        assert_eq!(task.settings.material.as_deref(), Some("petg"));
+        assert!(task
+            .machines
+            .iter()
+            .all(|m| m.machine.max_hotend_c <= 255.0));
+        let s = parse_sidecar(&b"nozzle_mm = 0.8\n"[..], Path::new("m.stl.toml")).unwrap();
+        let e = resolve_task(
+            "j",
+            Path::new("/spool/j"),
+            "m.stl",
+            &f,
+            &printers(),
+            Some(&s),
+        )
+        .unwrap_err();
+        assert!(e.contains("0.8 mm nozzle"), "{e}");
+        let s = parse_sidecar(&b"material = \"nylon\"\n"[..], Path::new("m.stl.toml")).unwrap();
+        let e = resolve_task(
+            "j",
+            Path::new("/spool/j"),
+            "m.stl",
+            &f,
+            &printers(),
+            Some(&s),
+        )
+        .unwrap_err();
+        assert!(e.contains("key `material`"), "{e}");
+        assert!(parse_sidecar(&b"priority = 1000\n"[..], Path::new("m.stl.toml")).is_err());
+        assert!(parse_sidecar(&b"tags = [\"a b\"]\n"[..], Path::new("m.stl.toml")).is_err());
     }
 
     /// Printers a and c are Ultimaker 2s, b a 1.75 mm Marlin machine; d serves no folder.

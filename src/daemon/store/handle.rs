@@ -8,6 +8,7 @@ use super::request::{LateSidecar, Reply, Request};
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
 use super::stats;
+use crate::daemon::filament::{FilamentError, Inventory};
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use std::path::Path;
 use std::sync::Arc;
@@ -264,6 +265,19 @@ impl StoreHandle {
 
     /// The statistics of `period` over the history and the live jobs (see [`stats`]);
     /// `printers` and `folders` are listed even when they did nothing.
+    /// Changes the farm's spools by `edit` (see [`JobStore::edit_inventory`]); the
+    /// inventory as written.
+    pub async fn edit_inventory(
+        &self,
+        edit: impl FnMut(&mut Inventory) -> Result<(), FilamentError> + Send + 'static,
+    ) -> Result<Inventory, StoreError> {
+        self.ask(|reply| Request::EditInventory {
+            edit: Box::new(edit),
+            reply,
+        })
+        .await
+    }
+
     pub async fn stats(
         &self,
         period: stats::Period,

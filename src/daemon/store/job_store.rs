@@ -5,6 +5,7 @@
 
 use super::history::{self, Retention};
 use super::rules::StateFilter;
+use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -12,6 +13,11 @@ use std::path::{Path, PathBuf};
 
 /// A change to a job's other fields, made in the same write as its state change.
 pub(crate) type JobEdit = Box<dyn FnOnce(&mut Job) + Send>;
+
+/// A change to the inventory; may be applied more than once (a shared store applies it
+/// again to a newer inventory), so it must not count on its first attempt's result.
+pub(crate) type InventoryEdit<'a> =
+    dyn FnMut(&mut Inventory) -> Result<(), crate::daemon::filament::FilamentError> + Send + 'a;
 
 /// Where jobs are kept. Every method may block (disk, network): the store's task calls
 /// them on a blocking thread, one at a time. Opening (and taking whatever lock keeps two
@@ -23,6 +29,12 @@ pub trait JobStore: Send + 'static {
     fn jobs(&self) -> Vec<Job>;
     fn job(&self, id: &str) -> Option<Job>;
     fn gates(&self) -> BTreeMap<String, PrinterGate>;
+    /// The farm's spools and which printer holds which.
+    fn inventory(&self) -> Inventory;
+    /// Changes the inventory by `edit` and persists it; a refused edit changes nothing.
+    /// Farm-wide in a shared store: the edit applies to the inventory as the database
+    /// holds it, under a lock, so hosts' changes never overwrite each other.
+    fn edit_inventory(&mut self, edit: &mut InventoryEdit<'_>) -> Result<Inventory, StoreError>;
     /// Restart rules: preparing → queued, printing → interrupted (and its bed not cleared).
     /// Returns the ids changed.
     fn recover(&mut self) -> Result<Vec<String>, StoreError>;

@@ -4,11 +4,12 @@
 
 use super::clients::for_clients;
 use super::history::{self, Retention};
-use super::job_store::{JobEdit, JobStore, RetiredJob};
+use super::job_store::{InventoryEdit, JobEdit, JobStore, RetiredJob};
 use super::retiring::round;
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
 use super::stats;
+use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use std::path::PathBuf;
 use tokio::sync::oneshot;
@@ -86,6 +87,10 @@ pub(super) enum Request {
         limit: usize,
         filter: history::Filter,
         reply: Reply<history::Page>,
+    },
+    EditInventory {
+        edit: Box<InventoryEdit<'static>>,
+        reply: Reply<Inventory>,
     },
     Stats {
         period: stats::Period,
@@ -214,6 +219,14 @@ impl Request {
                 (deliver(reply, retired), changed)
             }
             Request::Retired { id, reply } => (deliver(reply, store.retired(&id)), false),
+            Request::EditInventory { mut edit, reply } => {
+                let result = store.edit_inventory(&mut *edit);
+                let changed = result.as_ref().is_ok_and(|i| i != view.inventory());
+                if let Ok(inventory) = &result {
+                    view.inventory = std::sync::Arc::new(inventory.clone());
+                }
+                (deliver(reply, result), changed)
+            }
             Request::History {
                 before,
                 limit,
@@ -325,7 +338,8 @@ fn statistics(
     (deliver(reply, result), false)
 }
 
-/// Takes the oldest ready job `eligible` for `printer`, marking it printing. A job that
+/// Takes the ready job `eligible` for `printer` of the highest priority, oldest first,
+/// marking it printing. A job that
 /// fails as it is claimed (its directory is gone), or that another host took first, is
 /// passed over for the next one. Also says whether any job was tried (and may have
 /// changed).
@@ -335,12 +349,16 @@ fn claim(
     printer: &str,
     eligible: &dyn Fn(&Job) -> bool,
 ) -> (Result<Option<Job>, StoreError>, bool) {
-    let candidates: Vec<String> = view
+    // Higher priority first; the oldest first among equals (the jobs are oldest first, and
+    // the sort is stable).
+    let mut candidates: Vec<(i32, String)> = view
         .jobs()
         .filter(|j| j.state == JobState::Ready && eligible(j))
-        .map(|j| j.id.clone())
+        .map(|j| (j.asks.priority, j.id.clone()))
         .collect();
-    let tried = !candidates.is_empty();
+    candidates.sort_by_key(|(p, _)| std::cmp::Reverse(*p));
+    let candidates = candidates.into_iter().map(|(_, id)| id);
+    let tried = candidates.len() > 0;
     let result = (|| {
         for id in candidates {
             let name = printer.to_string();

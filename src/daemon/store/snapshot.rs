@@ -7,6 +7,7 @@ use super::counts::{Counted, JobCounts};
 use super::history;
 use super::job_store::JobStore;
 use super::stats;
+use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, PrinterGate};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -21,6 +22,8 @@ pub struct Snapshot {
     jobs: Vec<Arc<Live>>,
     index: Arc<HashMap<String, usize>>,
     pub(super) gates: BTreeMap<String, PrinterGate>,
+    /// The farm's spools and which printer holds which.
+    pub(super) inventory: Arc<Inventory>,
     jobs_dir: PathBuf,
     /// Outcomes recorded but not yet persisted (a full disk).
     pub(super) unwritten: usize,
@@ -91,6 +94,7 @@ impl Snapshot {
             jobs,
             index: Arc::new(index),
             gates: store.gates(),
+            inventory: Arc::new(store.inventory()),
             jobs_dir,
             unwritten: store.unwritten(),
             counted,
@@ -123,6 +127,11 @@ impl Snapshot {
 
     pub fn gate(&self, printer: &str) -> PrinterGate {
         self.gates.get(printer).cloned().unwrap_or_default()
+    }
+
+    /// The farm's spools and which printer holds which.
+    pub fn inventory(&self) -> &Inventory {
+        &self.inventory
     }
 
     pub fn job_dir(&self, id: &str) -> PathBuf {

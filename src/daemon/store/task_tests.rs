@@ -200,6 +200,15 @@ impl JobStore for TwoHosts {
     fn gates(&self) -> BTreeMap<String, PrinterGate> {
         JobStore::gates(&self.spool)
     }
+    fn inventory(&self) -> crate::daemon::filament::Inventory {
+        JobStore::inventory(&self.spool)
+    }
+    fn edit_inventory(
+        &mut self,
+        edit: &mut crate::daemon::store::InventoryEdit<'_>,
+    ) -> Result<crate::daemon::filament::Inventory, StoreError> {
+        JobStore::edit_inventory(&mut self.spool, edit)
+    }
     fn recover(&mut self) -> Result<Vec<String>, StoreError> {
         JobStore::recover(&mut self.spool)
     }

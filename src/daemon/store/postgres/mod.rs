@@ -33,6 +33,7 @@ pub mod store;
 mod commands;
 mod copy;
 mod error;
+mod filament;
 mod history;
 mod jobs;
 mod lease;

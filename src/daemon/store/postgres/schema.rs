@@ -104,6 +104,14 @@ const MIGRATIONS: &[&str] = &[
     ALTER TABLE jobs ADD COLUMN retired_at timestamptz;
     CREATE INDEX jobs_history ON jobs (seq) WHERE retired_at IS NOT NULL;
     "#,
+    // 5: the farm's spools and which printer holds which (issue 34): one document, changed
+    // under its row's lock.
+    r#"
+    CREATE TABLE filament (
+        id  integer PRIMARY KEY CHECK (id = 1),
+        doc jsonb NOT NULL
+    );
+    "#,
 ];
 
 /// The newest schema version this binary knows.

@@ -13,6 +13,7 @@
 //! [`StoreError::Database`], so nothing new is claimed.
 
 use super::{Change, FileBody, PgError, PgStore, MAX_FILE_BYTES};
+use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use crate::daemon::store::history::{self, Retention, Retired};
 use crate::daemon::store::pending::{Attempt, Pending};
@@ -20,7 +21,7 @@ use crate::daemon::store::rules::io_err;
 use crate::daemon::store::spool::{
     late_sidecar_name, lock_dir, model_name, move_file, regular_file_size, sidecar_of,
 };
-use crate::daemon::store::{JobEdit, JobStore, RetiredJob, StateFilter};
+use crate::daemon::store::{InventoryEdit, JobEdit, JobStore, RetiredJob, StateFilter};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -38,6 +39,8 @@ pub struct PgJobStore {
     jobs_dir: PathBuf,
     jobs: BTreeMap<String, Job>,
     gates: BTreeMap<String, PrinterGate>,
+    /// The farm's spools as last read or written.
+    inventory: Inventory,
     /// Outcomes recorded, and bed gates set, while the database was unreachable.
     pending: Pending,
     /// The database's time of the last resync.
@@ -72,7 +75,9 @@ impl PgJobStore {
         let changes = db.jobs_since(f64::NEG_INFINITY).await?;
         let (jobs, synced_to) = (changes.jobs, changes.now);
         let gates = db.gates().await?;
+        let inventory = db.inventory().await?;
         Ok(PgJobStore {
+            inventory,
             rt: tokio::runtime::Handle::current(),
             _lock: lock,
             jobs_dir: spool_dir.join("jobs"),
@@ -172,6 +177,17 @@ impl JobStore for PgJobStore {
 
     fn gates(&self) -> BTreeMap<String, PrinterGate> {
         self.gates.clone()
+    }
+
+    fn inventory(&self) -> Inventory {
+        self.inventory.clone()
+    }
+
+    fn edit_inventory(&mut self, edit: &mut InventoryEdit<'_>) -> Result<Inventory, StoreError> {
+        let db = self.db.clone();
+        let inventory = self.reach(db.edit_inventory(edit))?;
+        self.inventory = inventory.clone();
+        Ok(inventory)
     }
 
     fn recover(&mut self) -> Result<Vec<String>, StoreError> {
@@ -505,7 +521,8 @@ impl JobStore for PgJobStore {
         let read = self.block(async {
             let jobs = self.db.jobs_since(since).await?;
             let gates = self.db.gates().await?;
-            Ok::<_, PgError>((jobs, gates))
+            let inventory = self.db.inventory().await?;
+            Ok::<_, PgError>((jobs, gates, inventory))
         });
         let (
             super::Changes {
@@ -514,6 +531,7 @@ impl JobStore for PgJobStore {
                 now,
             },
             mut gates,
+            inventory,
         ) = match read {
             Ok(read) => read,
             Err(e) => {
@@ -544,6 +562,10 @@ impl JobStore for PgJobStore {
         if gates != self.gates {
             any = true;
             self.gates = gates;
+        }
+        if inventory != self.inventory {
+            any = true;
+            self.inventory = inventory;
         }
         any
     }

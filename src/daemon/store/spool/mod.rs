@@ -15,7 +15,8 @@
 use super::history::{self, HistoryFiles, Retention, Retired};
 use super::pending::{Attempt, Pending};
 use super::rules::io_err;
-use super::{JobEdit, JobStore, RetiredJob, StateFilter};
+use super::{InventoryEdit, JobEdit, JobStore, RetiredJob, StateFilter};
+use crate::daemon::filament::Inventory;
 use crate::daemon::job::{now_s, Job, JobState, PrinterGate, StoreError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -36,6 +37,8 @@ pub(crate) struct Spool {
     root: PathBuf,
     jobs: BTreeMap<String, Job>,
     gates: BTreeMap<String, PrinterGate>,
+    /// The farm's spools, in `<spool>/filament.json`.
+    inventory: Inventory,
     next_seq: u64,
     /// Outcomes newer in memory than on disk (see [`Spool::record_outcome`]), and bed
     /// gates newer than `printers.json` (a full disk): a bed that needs clearing must
@@ -66,6 +69,9 @@ pub(super) fn lock_dir(root: &Path) -> Result<nix::fcntl::Flock<std::fs::File>, 
         },
     )
 }
+
+/// The spools' file in the spool directory.
+const INVENTORY_FILE: &str = "filament.json";
 
 /// Writes `bytes` to `path` atomically and durably (see [`crate::fsutil`]).
 pub(super) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
@@ -123,11 +129,21 @@ impl Spool {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => BTreeMap::new(),
             Err(e) => return Err(io_err(&gates_file, "read")(e)),
         };
+        let inventory_file = root.join(INVENTORY_FILE);
+        let inventory = match std::fs::read(&inventory_file) {
+            Ok(t) => serde_json::from_slice(&t).map_err(|e| StoreError::Corrupt {
+                path: inventory_file.clone(),
+                message: e.to_string(),
+            })?,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Inventory::default(),
+            Err(e) => return Err(io_err(&inventory_file, "read")(e)),
+        };
         let mut store = Spool {
             _lock: lock,
             root: root.to_path_buf(),
             jobs,
             gates,
+            inventory,
             next_seq,
             pending: Pending::default(),
             history,
@@ -572,6 +588,19 @@ impl JobStore for Spool {
     }
     fn gates(&self) -> BTreeMap<String, PrinterGate> {
         self.gates.clone()
+    }
+    fn inventory(&self) -> Inventory {
+        self.inventory.clone()
+    }
+    fn edit_inventory(&mut self, edit: &mut InventoryEdit<'_>) -> Result<Inventory, StoreError> {
+        let mut changed = self.inventory.clone();
+        edit(&mut changed)?;
+        if changed != self.inventory {
+            let bytes = serde_json::to_vec(&changed).expect("the inventory serialises");
+            write_atomic(&self.root.join(INVENTORY_FILE), &bytes)?;
+            self.inventory = changed;
+        }
+        Ok(self.inventory.clone())
     }
     fn recover(&mut self) -> Result<Vec<String>, StoreError> {
         Spool::recover(self)

@@ -198,6 +198,7 @@ const HTTP: &str = "http listener";
 const NOTIFY: &str = "notifications";
 const CAMERAS: &str = "cameras";
 const STORE: &str = "job store";
+const SPOOLMAN: &str = "Spoolman link";
 
 /// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
 /// shutdown token made here is handed down to every task; each races it at its waits.
@@ -317,6 +318,11 @@ impl Running {
         let notify = crate::notify::run(Arc::clone(&farm), stop_notify.clone())
             .map_err(ServiceError::Notify)?;
         tasks.spawn(NOTIFY, notify);
+        // Like the notifications, it outlives the prints: their last uses are told.
+        tasks.spawn(
+            SPOOLMAN,
+            crate::spoolman::link::run(Arc::clone(&farm), stop_notify.clone()),
+        );
         let (cameras, camera_sources) = crate::camera::Cameras::new(&config);
         let cameras = Arc::new(cameras);
         let stop_cameras = CancellationToken::new();
@@ -463,6 +469,7 @@ impl Running {
         stop_cameras.cancel();
         tasks.join(CAMERAS).await;
         stop_notify.cancel();
+        tasks.join(SPOOLMAN).await;
         tasks.join(NOTIFY).await;
         stop_listeners.cancel();
         tasks.join(CONTROL).await;

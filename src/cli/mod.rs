@@ -16,6 +16,7 @@ pub(crate) mod print;
 pub(crate) mod run;
 pub(crate) mod sim;
 pub(crate) mod slice;
+pub(crate) mod spools;
 pub(crate) mod stats;
 
 #[derive(Debug, Parser)]
@@ -61,6 +62,12 @@ pub(crate) enum Command {
     Retry(control::JobArgs),
     /// Let a held job (an upload without "print", or `hold = true` in its sidecar) print
     Release(control::JobArgs),
+    /// Load a spool on a printer: one the farm knows (--spool), or a new one
+    Load(spools::LoadArgs),
+    /// Take the spool off a printer (it takes no job until one is loaded)
+    Unload(control::PrinterArgs),
+    /// List the farm's spools: material, colour, what is left, the printer each is on
+    Spools(spools::SpoolsArgs),
     /// Notifications: `crispen notify test` sends a test event to every receiver
     Notify(notify::Args),
     /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
@@ -99,6 +106,9 @@ pub(crate) fn main() -> ExitCode {
         Command::Resume(a) => control::resume(a),
         Command::Retry(a) => control::retry(a),
         Command::Release(a) => control::release(a),
+        Command::Load(a) => spools::load(a),
+        Command::Unload(a) => spools::unload(a),
+        Command::Spools(a) => spools::spools(a),
         Command::Notify(a) => notify::run(a),
         Command::Keys(a) => keys::run(a),
         Command::PrepareJob(a) => prepare_job::run(a),

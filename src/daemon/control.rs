@@ -16,12 +16,32 @@ use std::sync::Arc;
 /// sidecar, be printed).
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) enum Command {
-    Clear { printer: String },
-    Cancel { job: String },
-    Pause { printer: String },
-    Resume { printer: String },
-    Retry { job: String },
-    Release { job: String },
+    Clear {
+        printer: String,
+    },
+    Cancel {
+        job: String,
+    },
+    Pause {
+        printer: String,
+    },
+    Resume {
+        printer: String,
+    },
+    Retry {
+        job: String,
+    },
+    Release {
+        job: String,
+    },
+    Load {
+        printer: String,
+        what: super::spools::Load,
+    },
+    Unload {
+        printer: String,
+    },
+    AddSpool(super::spools::NewSpool),
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -98,12 +118,22 @@ pub(crate) enum CommandError {
     Store(#[from] StoreError),
 }
 
+impl From<super::filament::FilamentError> for CommandError {
+    fn from(e: super::filament::FilamentError) -> CommandError {
+        CommandError::Store(StoreError::Filament(e))
+    }
+}
+
 impl CommandError {
     /// The printer or job named does not exist (as opposed to: it cannot do that now).
     pub(crate) fn is_not_found(&self) -> bool {
         matches!(
             self,
-            CommandError::NoPrinter(_) | CommandError::Store(StoreError::NoSuchJob(_))
+            CommandError::NoPrinter(_)
+                | CommandError::Store(StoreError::NoSuchJob(_))
+                | CommandError::Store(StoreError::Filament(
+                    super::filament::FilamentError::NoSuchSpool(_)
+                ))
         )
     }
 }
@@ -202,6 +232,9 @@ pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String
             })
         }
         Command::Release { job } => release(farm, &job).await,
+        Command::Load { printer, what } => super::spools::load(farm, &printer, what).await,
+        Command::Unload { printer } => super::spools::unload(farm, &printer).await,
+        Command::AddSpool(new) => super::spools::add(farm, new).await,
     }
 }
 

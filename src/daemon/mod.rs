@@ -32,6 +32,7 @@ pub mod prepare;
 pub(crate) mod printer;
 pub mod reload;
 pub mod shared;
+pub mod spools;
 pub mod store;
 pub(crate) mod usage;
 

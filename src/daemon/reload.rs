@@ -96,6 +96,9 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("folder.nozzle_mm", Policy::Live),
     ("folder.tags", Policy::Live),
     ("folder.priority", Policy::Live),
+    ("farm.spool_low_g", Policy::Live),
+    // The link to Spoolman is one task started with the daemon.
+    ("spoolman", Policy::DaemonRestart),
 ];
 
 /// Keys of the file (and every key under them) whose change is seen as the change of a
@@ -115,6 +118,7 @@ pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     ("printer.camera", "printer.camera"),
     // The default filament is the material and colour together.
     ("printer.colour", "printer.material"),
+    ("spoolman", "spoolman"),
 ];
 
 /// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
@@ -150,6 +154,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         history,
         notify,
         camera,
+        spoolman,
         // Said again at every reload; not a setting.
         warnings: _,
     } = new;
@@ -162,6 +167,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         rescan,
         finish_timeout,
         host,
+        spool_low_g,
     } = farm;
     differs("farm.max_heating", *max_heating != old.farm.max_heating);
     differs("farm.on_shutdown", *on_shutdown != old.farm.on_shutdown);
@@ -172,6 +178,8 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         *finish_timeout != old.farm.finish_timeout,
     );
     differs("farm.host", *host != old.farm.host);
+    differs("farm.spool_low_g", *spool_low_g != old.farm.spool_low_g);
+    differs("spoolman", *spoolman != old.spoolman);
     let super::config::HistoryConfig {
         live_for,
         live_jobs,
@@ -355,6 +363,7 @@ pub(crate) fn merge(old: &Config, new: Config) -> Config {
         history: old.history,
         notify: old.notify.clone(),
         camera: old.camera.clone(),
+        spoolman: old.spoolman.clone(),
         // The cameras' sources are fetched as the daemon started: a printer keeps the
         // camera it had (a new printer has none) until the next start.
         printers: new
@@ -612,6 +621,16 @@ mod tests {
             "folder.priority",
             "printers = [\"a\"]\n",
             "printers = [\"a\"]\npriority = 3\n",
+        ),
+        (
+            "farm.spool_low_g",
+            "rescan_s = 10",
+            "rescan_s = 10\nspool_low_g = 50",
+        ),
+        (
+            "spoolman",
+            "[history]\n",
+            "[spoolman]\nurl = \"http://127.0.0.1:7912\"\n[history]\n",
         ),
     ];
 

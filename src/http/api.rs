@@ -245,7 +245,7 @@ pub(crate) struct HistoryQuery {
 }
 
 /// A query string that cannot be read, as the API's JSON error.
-fn bad_query(e: axum::extract::rejection::QueryRejection) -> ApiError {
+pub(super) fn bad_query(e: axum::extract::rejection::QueryRejection) -> ApiError {
     ApiError::bad_request(format!(
         "{} (see README: History and statistics)",
         e.body_text()
@@ -460,7 +460,7 @@ pub(crate) async fn folders(
         .map(Json)
 }
 
-fn no_printer(farm: &Farm, name: &str) -> ApiError {
+pub(super) fn no_printer(farm: &Farm, name: &str) -> ApiError {
     let names = control::printer_names(farm);
     ApiError::not_found(format!(
         "no printer {} (the printers are: {})",
@@ -469,7 +469,7 @@ fn no_printer(farm: &Farm, name: &str) -> ApiError {
     ))
 }
 
-/// `POST /api/v1/printers/{name}/clear|pause|resume`.
+/// `POST /api/v1/printers/{name}/clear|pause|resume|unload` (`load`: see `spools`).
 pub(crate) async fn printer_action(
     State(state): State<AppState>,
     Path((name, action)): Path<(String, String)>,
@@ -482,9 +482,10 @@ pub(crate) async fn printer_action(
         "clear" => Command::Clear { printer },
         "pause" => Command::Pause { printer },
         "resume" => Command::Resume { printer },
+        "unload" => Command::Unload { printer },
         other => {
             return Err(ApiError::not_found(format!(
-                "no printer action {}; the printer actions are clear, pause, resume",
+                "no printer action {}; the printer actions are clear, pause, resume, load, unload",
                 quoted(other)
             )))
         }
@@ -518,7 +519,10 @@ pub(crate) async fn job_action(
     act(&state, command).await
 }
 
-async fn act(state: &AppState, command: Command) -> Result<Json<serde_json::Value>, ApiError> {
+pub(super) async fn act(
+    state: &AppState,
+    command: Command,
+) -> Result<Json<serde_json::Value>, ApiError> {
     tracing::info!(?command, "http: action");
     match control::execute(&state.farm, command).await {
         Ok(message) => Ok(Json(serde_json::json!({ "ok": true, "message": message }))),

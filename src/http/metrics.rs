@@ -242,6 +242,27 @@ pub(crate) fn render(farm: &crate::daemon::farm::Farm) -> String {
         let n = view.jobs.iter().filter(|j| j.status.state == s).count();
         out.sample("crispen_jobs", &[("state", s.name())], n as f64);
     }
+    // What is left on each spool the farm knows and has not archived.
+    let inventory = store.inventory();
+    out.family(
+        "crispen_spool_remaining_grams",
+        "gauge",
+        "Filament left on each spool, grams (less what prints took that its source has not counted yet); `printer` is where it is loaded.",
+    );
+    for s in inventory.spools.values().filter(|s| !s.archived) {
+        if let Some(g) = s.remaining_g() {
+            out.sample(
+                "crispen_spool_remaining_grams",
+                &[
+                    ("spool", s.id.as_str()),
+                    ("material", s.filament.material.as_str()),
+                    ("colour", s.filament.colour.as_str()),
+                    ("printer", inventory.holder(&s.id).unwrap_or("")),
+                ],
+                g,
+            );
+        }
+    }
     out.family(
         "crispen_job_changes_total",
         "counter",

@@ -34,6 +34,7 @@ mod metrics;
 mod multipart;
 mod octoprint;
 pub(crate) mod serve;
+mod spools;
 mod state;
 mod streams;
 mod upload;
@@ -75,6 +76,8 @@ pub(crate) fn router(state: AppState) -> Router {
             "/api/v1/printers/{name}/{action}",
             post(api::printer_action),
         )
+        .route("/api/v1/printers/{name}/load", post(spools::load))
+        .route("/api/v1/spools", get(spools::list).post(spools::add))
         .route("/api/v1/jobs", get(api::jobs))
         .route("/api/v1/jobs/{id}", get(api::job))
         .route("/api/v1/history", get(api::history))

@@ -127,6 +127,8 @@ async fn observe_loop(farm: &Farm, queues: &[Queue], stop: &CancellationToken) {
                 jobs: snapshot.jobs(),
                 printers: &printers,
                 hosts: &hosts,
+                inventory: snapshot.inventory(),
+                spool_low_g: farm.config().farm.spool_low_g,
                 now: now(),
             })
         };

@@ -22,6 +22,8 @@ pub enum EventKind {
     PrinterWaiting,
     /// A host of a shared farm stopped renewing its lease.
     HostLost,
+    /// A print left a spool with less than `[farm] spool_low_g`.
+    SpoolLow,
     /// `crispen notify test`.
     Test,
 }
@@ -38,6 +40,7 @@ impl EventKind {
             EventKind::PrinterOnline => "printer_online",
             EventKind::PrinterWaiting => "printer_waiting",
             EventKind::HostLost => "host_lost",
+            EventKind::SpoolLow => "spool_low",
             EventKind::Test => "test",
         }
     }
@@ -54,6 +57,7 @@ impl EventKind {
             EventKind::PrinterOnline => "Printer back online",
             EventKind::PrinterWaiting => "Printer waiting for the operator",
             EventKind::HostLost => "Farm host lost",
+            EventKind::SpoolLow => "Spool running low",
             EventKind::Test => "Test notification",
         }
     }
@@ -68,6 +72,7 @@ impl EventKind {
                 | EventKind::PrinterOffline
                 | EventKind::PrinterWaiting
                 | EventKind::HostLost
+                | EventKind::SpoolLow
         )
     }
 }
@@ -159,6 +164,7 @@ mod tests {
             EventKind::PrinterOnline,
             EventKind::PrinterWaiting,
             EventKind::HostLost,
+            EventKind::SpoolLow,
             EventKind::Test,
         ];
         let names: Vec<&str> = all.iter().map(|k| k.name()).collect();

@@ -16,6 +16,7 @@
 
 use super::event::{Event, EventJob, EventKind};
 use crate::daemon::farm::{PrinterState, PrinterStatus};
+use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState};
 use crate::daemon::store::postgres::FarmHost;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -74,6 +75,8 @@ pub(crate) struct Observer {
     printers: BTreeMap<String, PrinterSeen>,
     /// Whether each host of a shared farm was alive.
     hosts: BTreeMap<String, bool>,
+    /// Whether each spool was low (below `[farm] spool_low_g`) at the last look.
+    low: BTreeMap<String, bool>,
 }
 
 /// The farm as it is now, as the observer reads it.
@@ -83,6 +86,9 @@ pub(crate) struct Look<'a, J: Iterator<Item = &'a Job>> {
     pub printers: &'a [PrinterStatus],
     /// The hosts of a shared farm (empty when not shared).
     pub hosts: &'a [FarmHost],
+    /// The farm's spools, and below how many grams one is low.
+    pub inventory: &'a Inventory,
+    pub spool_low_g: f64,
     /// Seconds since the epoch.
     pub now: f64,
 }
@@ -97,6 +103,7 @@ impl Observer {
             jobs: None,
             printers: BTreeMap::new(),
             hosts: BTreeMap::new(),
+            low: BTreeMap::new(),
         }
     }
 
@@ -190,6 +197,33 @@ impl Observer {
             hosts.insert(h.name.clone(), h.alive);
         }
         self.hosts = hosts;
+
+        // A spool that became low: told by the host of the printer holding it (the first
+        // live host for one on no printer).
+        let mut low = BTreeMap::new();
+        for s in look.inventory.spools.values().filter(|s| !s.archived) {
+            let Some(left) = s.remaining_g() else {
+                continue;
+            };
+            let is_low = left < look.spool_low_g;
+            let holder = look.inventory.holder(&s.id);
+            let tells = match holder {
+                Some(p) => !self.shared || local.contains(p),
+                None => teller,
+            };
+            if !first && is_low && self.low.get(&s.id) == Some(&false) && tells {
+                let mut e = self.event(EventKind::SpoolLow, look.now);
+                e.printer = holder.map(str::to_string);
+                e.reason = Some(format!(
+                    "{} has {left:.0} g left, below [farm] spool_low_g ({:.0} g): load a fuller spool before a long print",
+                    s.describe_filament(),
+                    look.spool_low_g
+                ));
+                events.push(e);
+            }
+            low.insert(s.id.clone(), is_low);
+        }
+        self.low = low;
         events
     }
 
@@ -231,6 +265,7 @@ impl Observer {
             | EventKind::PrinterOnline
             | EventKind::PrinterWaiting
             | EventKind::HostLost
+            | EventKind::SpoolLow
             | EventKind::Test => None,
         };
         if let (Some(dashboard), Some(picture), Some(printer)) =
@@ -318,6 +353,8 @@ mod tests {
             jobs: jobs.iter(),
             printers,
             hosts,
+            inventory: &Inventory::default(),
+            spool_low_g: 100.0,
             now: 1000.0,
         })
         .iter()
@@ -357,6 +394,8 @@ mod tests {
             jobs: [job("f", JobState::Interrupted, Some("p"))].iter(),
             printers: &p,
             hosts: &[],
+            inventory: &Inventory::default(),
+            spool_low_g: 100.0,
             now: 5.0,
         });
         assert_eq!(made.len(), 1);
@@ -392,6 +431,8 @@ mod tests {
             jobs: ended.iter(),
             printers: &p,
             hosts: &[],
+            inventory: &Inventory::default(),
+            spool_low_g: 100.0,
             now: 5.0,
         });
         let snapshots: Vec<Option<&str>> = made.iter().map(|e| e.snapshot.as_deref()).collect();
@@ -465,5 +506,60 @@ mod tests {
         let done = [job("1", JobState::Done, Some("pc"))];
         assert_eq!(look(&mut a, &done, &pa, &hosts(false)), ["host_lost"]);
         assert_eq!(look(&mut c, &done, &pc, &hosts(false)), ["job_done"]);
+    }
+
+    /// A spool that falls below the threshold is told once, by the host of its printer;
+    /// one already low at the first look is not news.
+    #[test]
+    fn a_spool_falling_low_is_told_once() {
+        use crate::daemon::filament::{Filament, Report, Use};
+        let mut inv = Inventory::default();
+        let f = Filament {
+            material: "PETG".into(),
+            colour: "black".into(),
+            colour_hex: None,
+            brand: None,
+            diameter_mm: 2.85,
+            density_g_cm3: 1.27,
+            price_per_kg: None,
+        };
+        let id = inv.add_spool(f.clone(), 150.0).unwrap();
+        let low = inv.add_spool(f, 50.0).unwrap();
+        inv.load("p", &id).unwrap();
+        let p = [printer("p", PrinterState::Idle)];
+        let mut o = Observer::new("h", false, None);
+        let look = |o: &mut Observer, inv: &Inventory| -> Vec<Event> {
+            o.observe(Look {
+                jobs: std::iter::empty(),
+                printers: &p,
+                hosts: &[],
+                inventory: inv,
+                spool_low_g: 100.0,
+                now: 1.0,
+            })
+        };
+        assert!(
+            look(&mut o, &inv).is_empty(),
+            "{low} was low before: not news"
+        );
+        let use_of = |g: f64| Use {
+            job: "j".into(),
+            printer: "p".into(),
+            grams: g,
+            mm: 0.0,
+            at_s: 0.0,
+            report: Report::Local,
+        };
+        inv.record_use(&id, "j#0", use_of(40.0));
+        assert!(look(&mut o, &inv).is_empty(), "110 g left");
+        inv.record_use(&id, "j#1", use_of(20.0));
+        let made = look(&mut o, &inv);
+        assert_eq!(made.len(), 1);
+        assert_eq!(made[0].event, EventKind::SpoolLow);
+        assert_eq!(made[0].printer.as_deref(), Some("p"));
+        let reason = made[0].reason.as_deref().unwrap();
+        assert!(reason.contains("PETG black (s1) has 90 g left"), "{reason}");
+        inv.record_use(&id, "j#2", use_of(20.0));
+        assert!(look(&mut o, &inv).is_empty(), "told once");
     }
 }

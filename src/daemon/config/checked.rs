@@ -45,6 +45,8 @@ pub struct Config {
     pub notify: notify::NotifyConfig,
     /// How frames are fetched and kept (`[camera]`); each printer's camera is its own.
     pub camera: super::camera::CameraSettings,
+    /// The farm's spools come from Spoolman (`[spoolman]`); None: crispen keeps its own.
+    pub spoolman: Option<super::spoolman::SpoolmanConfig>,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,
@@ -128,6 +130,8 @@ pub struct FarmConfig {
     pub finish_timeout: Duration,
     /// This host's name in a farm shared through `[store]` (default: the hostname).
     pub host: String,
+    /// A spool with less than this many grams left after a print sends `spool_low`.
+    pub spool_low_g: f64,
 }
 
 /// Where a printer is reached: a real serial port, or a simulated printer the daemon

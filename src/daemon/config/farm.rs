@@ -17,6 +17,9 @@ pub(crate) const FINISH_TIMEOUT_S: Bounds = 1.0..=2.0 * 86_400.0;
 /// Two hours, what the service unit once waited for a stop before it killed the daemon.
 pub(crate) const DEFAULT_FINISH_TIMEOUT_S: f64 = 2.0 * 3600.0;
 
+/// A spool with less than this left after a print is low: about one more small print.
+pub(crate) const DEFAULT_SPOOL_LOW_G: f64 = 100.0;
+
 /// Checks `[farm]` (all of it optional).
 pub(super) fn check(raw: Option<RawFarm>, cx: &Context) -> Result<FarmConfig, ConfigError> {
     let Context { invalid, .. } = *cx;
@@ -27,6 +30,7 @@ pub(super) fn check(raw: Option<RawFarm>, cx: &Context) -> Result<FarmConfig, Co
         rescan_s: None,
         finish_timeout_s: None,
         host: None,
+        spool_low_g: None,
     });
     let max_heating = match raw_farm.max_heating {
         None => 2,
@@ -53,6 +57,19 @@ pub(super) fn check(raw: Option<RawFarm>, cx: &Context) -> Result<FarmConfig, Co
             DEFAULT_FINISH_TIMEOUT_S,
             &FINISH_TIMEOUT_S,
         )?,
+        spool_low_g: match raw_farm.spool_low_g.unwrap_or(DEFAULT_SPOOL_LOW_G) {
+            g if (0.0..=crate::daemon::filament::MAX_SPOOL_G).contains(&g) => g,
+            g => {
+                return Err(invalid(
+                    "[farm]".into(),
+                    "spool_low_g",
+                    format!(
+                        "must be between 0 and {} g, got {g}",
+                        crate::daemon::filament::MAX_SPOOL_G
+                    ),
+                ))
+            }
+        },
         host: match raw_farm.host {
             None => this_hostname(),
             Some(h) => check_host_name(&h).map_err(|m| invalid("[farm]".into(), "host", m))?,

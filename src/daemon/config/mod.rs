@@ -31,6 +31,7 @@ pub mod ports;
 mod printers;
 mod raw;
 mod secret;
+pub mod spoolman;
 mod store;
 
 // Read by tests only: they check the reload policy and `KNOWN_TABLES` against it.
@@ -180,6 +181,12 @@ printers = ["demo"]
         };
         let camera =
             camera::check(raw.camera).map_err(|(key, m)| invalid("[camera]".into(), key, m))?;
+        let spoolman = match raw.spoolman {
+            None => None,
+            Some(s) => {
+                Some(spoolman::check(s).map_err(|(key, m)| invalid("[spoolman]".into(), key, m))?)
+            }
+        };
         let history = match raw.history {
             None => HistoryConfig::default(),
             Some(h) => history::check(h).map_err(|(key, m)| invalid("[history]".into(), key, m))?,
@@ -199,6 +206,7 @@ printers = ["demo"]
                 history,
                 notify,
                 camera,
+                spoolman,
                 warnings,
             },
             http,

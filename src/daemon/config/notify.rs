@@ -27,7 +27,7 @@ pub(super) struct RawNotify {
 }
 
 /// The events a receiver may ask for, by name (the `event` field of what is sent).
-pub(crate) const EVENT_NAMES: [&str; 10] = [
+pub(crate) const EVENT_NAMES: [&str; 11] = [
     "job_done",
     "job_failed",
     "job_cancelled",
@@ -37,6 +37,7 @@ pub(crate) const EVENT_NAMES: [&str; 10] = [
     "printer_online",
     "printer_waiting",
     "host_lost",
+    "spool_low",
     "test",
 ];
 

@@ -36,6 +36,8 @@ pub(super) struct RawConfig {
     pub(super) notify: Vec<notify::RawNotify>,
     #[serde(default)]
     pub(super) camera: Option<super::camera::RawCamera>,
+    #[serde(default)]
+    pub(super) spoolman: Option<super::spoolman::RawSpoolman>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -88,6 +90,8 @@ pub(super) struct RawFarm {
     pub(super) rescan_s: Option<f64>,
     pub(super) finish_timeout_s: Option<f64>,
     pub(super) host: Option<String>,
+    /// A spool left with less than this after a print sends `spool_low`.
+    pub(super) spool_low_g: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]

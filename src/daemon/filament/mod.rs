@@ -111,6 +111,11 @@ impl Spool {
         Some(base - open)
     }
 
+    /// `PETG black (s3)`.
+    pub fn describe_filament(&self) -> String {
+        format!("{} ({})", self.filament.describe(), self.id)
+    }
+
     /// `PETG black (s3, 412 g left)`.
     pub fn describe(&self) -> String {
         match self.remaining_g() {

@@ -128,12 +128,18 @@ function printerTile(p, status) {
     html += '<div class="temps"><span>Hotend <b>' + temp(t.hotend_c, t.hotend_target_c) + "</b></span>" +
       "<span>Bed <b>" + temp(t.bed_c, t.bed_target_c) + "</b></span></div>";
   }
+  html += holdsLine(p.holds);
   if (p.detail) html += '<div class="detail">' + esc(p.detail) + "</div>";
   html += '<div class="actions">';
   if (!p.bed_cleared) html += '<button class="clear" data-action="clear" data-printer="' + esc(p.name) + '">Bed is clear</button>';
   if (p.state === "printing") html += '<button data-action="pause" data-printer="' + esc(p.name) + '">Pause</button>';
   if (p.state === "paused" || p.state === "waiting_for_operator") html += '<button data-action="resume" data-printer="' + esc(p.name) + '">Resume</button>';
   if (job && (p.state === "printing" || p.state === "paused" || p.state === "waiting_for_operator")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
+  // A spool is changed between prints (a print's filament is booked to the spool it began with).
+  if (p.holds && !job) {
+    html += '<button class="spool" data-spool-printer="' + esc(p.name) + '">Load spool</button>';
+    if (!p.holds.unloaded && (p.holds.spool || p.holds.filament)) html += '<button data-action="unload" data-printer="' + esc(p.name) + '">Unload</button>';
+  }
   html += "</div></article>";
   return html;
 }
@@ -209,6 +215,75 @@ async function showCamera(name) {
   }
 }
 
+// A filament's colour as a swatch: an SVG fill (the page's policy allows no inline styles).
+function swatch(f) {
+  const hex = f && f.colour_hex && /^[0-9a-fA-F]{6}$/.test(f.colour_hex) ? "#" + f.colour_hex : null;
+  const fill = hex || NAMED[f && f.colour] || "#9aa3ad";
+  return '<svg class="swatch" width="14" height="14" viewBox="0 0 14 14" aria-hidden="true"><circle cx="7" cy="7" r="6" fill="' + fill + '" stroke="#0004"/></svg>';
+}
+const NAMED = { black: "#111111", white: "#f4f4f4", grey: "#8a8a8a", silver: "#c0c0c0", red: "#c81e1e",
+  orange: "#ff8200", yellow: "#fadc00", green: "#1ea03c", blue: "#1e50c8", purple: "#7832a0", pink: "#f078aa", brown: "#78461e" };
+
+function grams(g) { return g == null ? "?" : Math.round(g) + " g"; }
+
+// What a printer holds: its filament and spool (what is left, what its print takes), its nozzle.
+function holdsLine(h) {
+  if (!h) return "";
+  let text;
+  if (h.unloaded) text = '<span class="warn">nothing loaded</span>';
+  else if (!h.filament) text = '<span class="muted">filament not known</span>';
+  else {
+    const f = h.filament;
+    text = swatch(f) + " <b>" + esc(f.material) + " " + esc(f.colour) + "</b>";
+    if (h.spool) text += ' <span class="muted">' + esc(h.spool) + "</span> · " + grams(h.remaining_g) + " left";
+    if (h.reserved_g) text += " · " + grams(h.reserved_g) + " for this print";
+  }
+  const nozzle = h.nozzle_mm + " mm " + (h.hardened ? "hardened" : "brass") + (h.tags && h.tags.length ? " · " + esc(h.tags.join(", ")) : "");
+  return '<div class="holds">' + text + '</div><div class="nozzle muted">' + nozzle + "</div>";
+}
+
+// The "load a spool" panel: a spool the farm knows (not on another printer), or a new one.
+async function openLoad(printer) {
+  const form = $("#loadform");
+  form.dataset.printer = printer;
+  $("#loadtitle").textContent = "Load a spool on " + printer;
+  let list = { spools: [], source: "crispen" };
+  try { list = await api("GET", "/api/v1/spools"); } catch (err) { notice(err.message, true); }
+  const free = list.spools.filter((s) => !s.loaded_on || s.loaded_on === printer);
+  $("#loadspool").innerHTML = '<option value="">' + (free.length ? "a new spool…" : "no spool free: a new one") + "</option>" +
+    free.map((s) => '<option value="' + esc(s.id) + '">' + esc(s.id + " · " + s.material + " " + s.colour +
+      (s.remaining_g != null ? " · " + Math.round(s.remaining_g) + " g" : "") + (s.brand ? " · " + s.brand : "")) + "</option>").join("");
+  // Spoolman's spools are added in Spoolman: only those are loaded here.
+  openLoad.spoolman = list.source === "spoolman";
+  $("#loadspool").required = openLoad.spoolman;
+  $("#newspool").hidden = openLoad.spoolman;
+  form.hidden = false;
+}
+
+$("#loadspool").addEventListener("change", () => {
+  $("#newspool").hidden = !!$("#loadspool").value || openLoad.spoolman;
+});
+
+$("#loadcancel").addEventListener("click", () => { $("#loadform").hidden = true; });
+
+$("#loadform").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  const form = $("#loadform");
+  const q = new URLSearchParams();
+  if ($("#loadspool").value) q.set("spool", $("#loadspool").value);
+  else for (const k of ["material", "colour", "grams", "price_per_kg"]) {
+    const v = form.elements[k].value.trim();
+    if (v) q.set(k, v);
+  }
+  try {
+    const answer = await api("POST", "/api/v1/printers/" + encodeURIComponent(form.dataset.printer) + "/load?" + q);
+    notice(answer.message || "loaded");
+    form.hidden = true;
+  } catch (err) {
+    notice(err.message, true);
+  }
+});
+
 function strengthText(s) {
   if (s == null) return "–";
   if (typeof s === "string") return s;
@@ -230,14 +305,28 @@ function queueTable(status) {
     else if (live && live.lines_total) extra = (100 * live.lines_acked / live.lines_total).toFixed(1) + " %";
     html += '<tr data-job="' + esc(j.id) + '" class="job-' + esc(j.state) + '">' +
       '<td><a href="#job/' + esc(j.id) + '">' + esc(j.file) + '</a><div class="muted">' + esc(j.folder_name) + "</div>" +
-      (j.reason ? '<div class="reason">' + esc(j.reason) + "</div>" : "") + "</td>" +
-      '<td><span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span> " + (j.held ? '<span class="pill held">held</span> ' : "") + esc(extra) + "</td>" +
+      (j.reason ? '<div class="reason">' + esc(j.reason) + "</div>" : "") +
+      (j.waiting ? '<div class="waiting">' + esc(j.waiting) + "</div>" : "") + "</td>" +
+      '<td><span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span> " + (j.held ? '<span class="pill held">held</span> ' : "") +
+      (j.asks && j.asks.priority ? '<span class="pill prio">priority ' + esc(j.asks.priority) + "</span> " : "") + esc(extra) +
+      (asksText(j.asks) ? '<div class="muted">' + esc(asksText(j.asks)) + "</div>" : "") + "</td>" +
       "<td>" + (j.height_mm != null ? j.height_mm + " mm" : "–") + "</td>" +
       "<td>" + esc(strengthText(j.strength)) + "</td>" +
       "<td>" + esc(j.printer || j.machines.join(", ")) + "</td><td>";
     html += jobButtons(j) + "</td></tr>";
   }
   return html + "</tbody></table>";
+}
+
+// What a job asks of its printer, in words.
+function asksText(a) {
+  if (!a) return "";
+  const parts = [];
+  const f = [a.material, a.colour].filter(Boolean).join(" ");
+  if (f) parts.push(f);
+  if (a.nozzle_mm) parts.push(a.nozzle_mm + " mm nozzle");
+  if (a.tags && a.tags.length) parts.push("group " + a.tags.join("+"));
+  return parts.join(" · ");
 }
 
 // A job's actions: a held job (uploaded without "print") waits for its Print button.
@@ -368,9 +457,12 @@ const ACTIONS = {
   cancel: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/cancel", "Cancel this job?"],
   retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
   release: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/release"],
+  unload: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/unload", "Take the spool off " + el.dataset.printer + "? It takes no job until one is loaded."],
 };
 
 document.addEventListener("click", async (e) => {
+  const spool = e.target.closest("button[data-spool-printer]");
+  if (spool) { openLoad(spool.dataset.spoolPrinter); return; }
   const el = e.target.closest("button[data-action]");
   if (!el) return;
   const [path, confirmText] = ACTIONS[el.dataset.action](el);

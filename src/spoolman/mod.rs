@@ -9,6 +9,8 @@
 //! is read into private shapes of its JSON and then checked, so a spool handed out has
 //! finite, non-negative weights and a field that is missing or wrong is named in the error.
 
+pub mod link;
+
 // The base address is split like a notification receiver's; both are public here for the
 // callers outside the crate that make a client.
 pub use crate::daemon::config::notify::{parse_url, ReceiverUrl};

@@ -14,6 +14,7 @@ mod camera;
 mod daemon;
 mod enhance;
 mod farm;
+mod filament;
 mod history;
 mod http;
 mod layers;

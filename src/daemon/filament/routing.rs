@@ -225,28 +225,21 @@ pub fn waiting_reason(asks: &Asks, need_mm: Option<f64>, offers: &[Offer]) -> Op
         d if d.is_empty() => "a printer".to_string(),
         d => d,
     };
-    // A job that only lacks filament says how much it needs and what is left where.
-    if refusals
+    // A spool is checked last: a printer refused for its spool holds everything else the
+    // job asks. Then the job lacks only filament: it says how much, and what is left where.
+    let short: Vec<(&str, f64, f64)> = refusals
         .iter()
-        .any(|(_, r)| matches!(r, Refusal::Spool { .. }))
-        && refusals
+        .filter_map(|(o, r)| match r {
+            Refusal::Spool { need_g, left_g } => Some((o.printer, *need_g, *left_g)),
+            _ => None,
+        })
+        .collect();
+    if !short.is_empty() {
+        let need_g = short.iter().map(|s| s.1).fold(0.0, f64::max);
+        let left: Vec<String> = short
             .iter()
-            .all(|(_, r)| matches!(r, Refusal::Spool { .. } | Refusal::Unloaded))
-    {
-        let left: Vec<String> = refusals
-            .iter()
-            .filter_map(|(o, r)| match r {
-                Refusal::Spool { left_g, .. } => Some(format!("{} has {left_g:.0} g", o.printer)),
-                _ => None,
-            })
+            .map(|(p, _, left_g)| format!("{p} has {left_g:.0} g"))
             .collect();
-        let need_g = refusals
-            .iter()
-            .filter_map(|(_, r)| match r {
-                Refusal::Spool { need_g, .. } => Some(*need_g),
-                _ => None,
-            })
-            .fold(0.0, f64::max);
         return Some(format!(
             "waiting for a spool with {need_g:.0} g for {wanted}: {}",
             left.join(", ")

@@ -53,6 +53,7 @@ fn task(job_dir: &Path) -> PrepareTask {
         settings: SliceSettings::default(),
         timeout: Duration::from_secs(600),
         compare: false,
+        asks: Default::default(),
     }
 }
 

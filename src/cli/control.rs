@@ -339,7 +339,7 @@ pub(crate) fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
     let page: crispen::daemon::store::history::Page =
         serde_json::from_value(answer).context("the daemon's history is not as expected")?;
     use crispen::daemon::hotfolder::{escaped, printable};
-    println!("JOB                          STATE        PRINTER          ENDED (UTC)       FILE / REASON");
+    println!("JOB                          STATE        PRINTER          ENDED (UTC)       MATERIAL      COST FILE / REASON");
     for r in &page.jobs {
         let file = printable(&r.file);
         let extra = match &r.reason {
@@ -347,11 +347,13 @@ pub(crate) fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
             None => file,
         };
         println!(
-            "{:<28} {:<12} {:<16} {:<17} {}",
+            "{:<28} {:<12} {:<16} {:<17} {:<8} {:>9} {}",
             r.id,
             r.state.name(),
             r.printer.as_deref().unwrap_or("-"),
             utc_minute(r.ended_at),
+            r.material.as_deref().map_or_else(|| "-".into(), printable),
+            r.cost.map_or_else(|| "-".into(), |c| format!("{c:.2}")),
             extra
         );
     }

@@ -1,5 +1,5 @@
 //! `crispen stats`: the farm's statistics over a period (`GET /api/v1/stats` on the
-//! control socket), as tables per printer and per hot folder, or as JSON.
+//! control socket), as tables per printer, per hot folder and per material, or as JSON.
 
 use super::control::ask;
 use anyhow::Context;
@@ -57,14 +57,18 @@ pub(crate) fn run(a: Args) -> anyhow::Result<ExitCode> {
     println!();
     table("FOLDER", &stats.folders, false);
     println!();
+    if !stats.materials.is_empty() {
+        table("MATERIAL", &stats.materials, false);
+        println!();
+    }
     table("FARM", std::slice::from_ref(&stats.farm), false);
     Ok(ExitCode::SUCCESS)
 }
 
 fn table(title: &str, groups: &[Group], printers: bool) {
     println!(
-        "{title:<16} {:>6} {:>6} {:>9} {:>9} {:>7} {:>10} {:>10}  MOST COMMON FAILURES",
-        "DONE", "FAILED", "CANCELLED", "PRINTING", "USE", "FILAMENT", "FILAMENT"
+        "{title:<16} {:>6} {:>6} {:>9} {:>9} {:>7} {:>10} {:>10} {:>9}  MOST COMMON FAILURES",
+        "DONE", "FAILED", "CANCELLED", "PRINTING", "USE", "FILAMENT", "USED", "COST"
     );
     for g in groups {
         let utilisation = match (printers, g.utilisation) {
@@ -82,8 +86,9 @@ fn table(title: &str, groups: &[Group], printers: bool) {
                 )
             })
             .collect();
+        let cost = g.cost.map_or_else(|| "-".into(), |c| format!("{c:.2}"));
         println!(
-            "{:<16} {:>6} {:>6} {:>9} {:>8.1}h {:>7} {:>9.2}m {:>9.1}g  {}",
+            "{:<16} {:>6} {:>6} {:>9} {:>8.1}h {:>7} {:>9.2}m {:>9.1}g {:>9}  {}",
             crispen::daemon::hotfolder::printable(&g.name),
             g.jobs.done,
             g.jobs.failed,
@@ -91,7 +96,8 @@ fn table(title: &str, groups: &[Group], printers: bool) {
             g.printing_s / 3600.0,
             utilisation,
             g.filament_mm / 1000.0,
-            g.filament_g,
+            g.used_g,
+            cost,
             reasons.join("; ")
         );
     }

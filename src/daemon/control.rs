@@ -94,7 +94,8 @@ pub struct JobStatus {
     /// Filament one print of it needs, grams (at PLA's density until it is printed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub need_g: Option<f64>,
-    /// What its prints took, grams, and their cost where the spool's price is known.
+    /// What its prints took, grams, and their cost where the spool's price is known
+    /// ([`Job::used`](super::job::Job::used)).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub used_g: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -194,13 +195,8 @@ pub(crate) fn status(farm: &Farm) -> Status {
             asks: j.asks.clone(),
             waiting: super::farm::waiting_reason(&config, j, &offers),
             need_g: j.slice_report.as_ref().and_then(|r| r.filament_g),
-            used_g: (!j.uses.is_empty()).then(|| j.uses.iter().map(|u| u.grams).sum()),
-            cost: j
-                .uses
-                .iter()
-                .map(|u| u.cost)
-                .sum::<Option<f64>>()
-                .filter(|_| !j.uses.is_empty()),
+            used_g: j.used().grams,
+            cost: j.used().cost,
         })
         .collect();
     Status {

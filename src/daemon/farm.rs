@@ -603,87 +603,6 @@ impl FarmWatch {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn farm(max_heating: usize, spool: &std::path::Path) -> Arc<Farm> {
-        let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
-        let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
-        let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
-        let (farm, task) = Farm::new(config, store, CancellationToken::new());
-        tokio::spawn(task);
-        farm
-    }
-
-    /// `max_heating` applies on reload: raising it lets a waiting printer heat at once
-    /// (the permits were once a semaphore sized at startup).
-    #[tokio::test(start_paused = true)]
-    async fn max_heating_applies_on_reload() {
-        let tmp = tempfile::tempdir().unwrap();
-        let farm = farm(1, tmp.path());
-        let first = farm.heating_permit().await;
-        let waiting = tokio::spawn({
-            let farm = Arc::clone(&farm);
-            async move { farm.heating_permit().await }
-        });
-        tokio::task::yield_now().await;
-        assert!(!waiting.is_finished(), "one permit only");
-        let mut raised = (*farm.config()).clone();
-        raised.farm.max_heating = 2;
-        farm.set_config(raised);
-        let second = tokio::time::timeout(std::time::Duration::from_secs(30), waiting)
-            .await
-            .expect("the raised limit lets the waiting printer heat")
-            .unwrap();
-        assert_eq!(farm.heating.in_use(), 2);
-        drop((first, second));
-        assert_eq!(farm.heating.in_use(), 0, "permits are handed back");
-    }
-
-    /// A printer's bed gate is shown from the store, as it is now: closed after a print,
-    /// open after a clear. It was once a field set when the printer started and never
-    /// changed, corrected where it was read, and published stale to the farm database.
-    #[tokio::test]
-    async fn bed_cleared_is_the_stores_gate() {
-        let tmp = tempfile::tempdir().unwrap();
-        let farm = farm(1, tmp.path());
-        let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
-        farm.add_printer("p1", handle);
-        let shown = |farm: &Farm| farm.local_printers()[0].bed_cleared;
-        assert!(shown(&farm));
-        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
-        assert!(!shown(&farm), "a finished print is on the bed");
-        assert!(farm.jobs().clear_gate("p1").await.unwrap());
-        assert!(shown(&farm), "cleared");
-    }
-
-    /// The farm's watch ends a wait on a change of a printer's live status, once, and
-    /// not for a change from before it was made (it once took every earlier change for a
-    /// new one, and the event stream spun).
-    #[tokio::test(start_paused = true)]
-    async fn the_farm_watch_wakes_once_per_change() {
-        use std::time::Duration;
-        let tmp = tempfile::tempdir().unwrap();
-        let farm = farm(1, tmp.path());
-        let (owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
-        farm.add_printer("p1", handle);
-        owner.live.send_modify(|p| p.state = PrinterState::Idle);
-        let mut watch = farm.watch();
-        let quiet = Duration::from_secs(600);
-        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
-        owner.live.send_modify(|p| p.state = PrinterState::Printing);
-        tokio::time::timeout(quiet, watch.changed())
-            .await
-            .expect("woken by the change");
-        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
-        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
-        tokio::time::timeout(quiet, watch.changed())
-            .await
-            .expect("woken by the gate");
-    }
-}
-
 /// What each printer of `printers` offers a job now: see [`offer`]; the filament the job
 /// printing on it will take is reserved.
 pub(crate) fn offers<'a>(
@@ -767,4 +686,85 @@ pub(crate) fn waiting_reason(
         return None;
     }
     super::filament::routing::waiting_reason(&job.asks, job.need_mm(), &serving)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn farm(max_heating: usize, spool: &std::path::Path) -> Arc<Farm> {
+        let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
+        let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
+        let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
+        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        tokio::spawn(task);
+        farm
+    }
+
+    /// `max_heating` applies on reload: raising it lets a waiting printer heat at once
+    /// (the permits were once a semaphore sized at startup).
+    #[tokio::test(start_paused = true)]
+    async fn max_heating_applies_on_reload() {
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(1, tmp.path());
+        let first = farm.heating_permit().await;
+        let waiting = tokio::spawn({
+            let farm = Arc::clone(&farm);
+            async move { farm.heating_permit().await }
+        });
+        tokio::task::yield_now().await;
+        assert!(!waiting.is_finished(), "one permit only");
+        let mut raised = (*farm.config()).clone();
+        raised.farm.max_heating = 2;
+        farm.set_config(raised);
+        let second = tokio::time::timeout(std::time::Duration::from_secs(30), waiting)
+            .await
+            .expect("the raised limit lets the waiting printer heat")
+            .unwrap();
+        assert_eq!(farm.heating.in_use(), 2);
+        drop((first, second));
+        assert_eq!(farm.heating.in_use(), 0, "permits are handed back");
+    }
+
+    /// A printer's bed gate is shown from the store, as it is now: closed after a print,
+    /// open after a clear. It was once a field set when the printer started and never
+    /// changed, corrected where it was read, and published stale to the farm database.
+    #[tokio::test]
+    async fn bed_cleared_is_the_stores_gate() {
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(1, tmp.path());
+        let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
+        farm.add_printer("p1", handle);
+        let shown = |farm: &Farm| farm.local_printers()[0].bed_cleared;
+        assert!(shown(&farm));
+        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
+        assert!(!shown(&farm), "a finished print is on the bed");
+        assert!(farm.jobs().clear_gate("p1").await.unwrap());
+        assert!(shown(&farm), "cleared");
+    }
+
+    /// The farm's watch ends a wait on a change of a printer's live status, once, and
+    /// not for a change from before it was made (it once took every earlier change for a
+    /// new one, and the event stream spun).
+    #[tokio::test(start_paused = true)]
+    async fn the_farm_watch_wakes_once_per_change() {
+        use std::time::Duration;
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = farm(1, tmp.path());
+        let (owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
+        farm.add_printer("p1", handle);
+        owner.live.send_modify(|p| p.state = PrinterState::Idle);
+        let mut watch = farm.watch();
+        let quiet = Duration::from_secs(600);
+        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
+        owner.live.send_modify(|p| p.state = PrinterState::Printing);
+        tokio::time::timeout(quiet, watch.changed())
+            .await
+            .expect("woken by the change");
+        assert!(tokio::time::timeout(quiet, watch.changed()).await.is_err());
+        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
+        tokio::time::timeout(quiet, watch.changed())
+            .await
+            .expect("woken by the gate");
+    }
 }

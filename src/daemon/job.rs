@@ -316,6 +316,29 @@ pub struct JobUse {
     pub at_s: f64,
 }
 
+impl JobUse {
+    /// The `material` and `colour` of a use on a printer whose filament was not known:
+    /// its `grams` are 0 for want of a density, not because nothing was pushed.
+    pub const UNKNOWN: &'static str = "unknown";
+
+    /// Its `grams` are a weight (the printer's filament was known).
+    pub fn weighed(&self) -> bool {
+        self.material != JobUse::UNKNOWN
+    }
+}
+
+/// What a job's prints took from spools, summed from its weighed uses ([`Job::used`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Used {
+    /// The first weighed print's.
+    pub material: Option<String>,
+    /// None: no print was weighed.
+    pub grams: Option<f64>,
+    /// The prints whose spool's price is known (a print without one adds nothing);
+    /// None: no price was known.
+    pub cost: Option<f64>,
+}
+
 /// Where a job's wall comparison is. It is a measurement, never part of the job: the job
 /// is printable without it, and one that cannot be made is shown as not measured.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -451,6 +474,21 @@ impl Job {
     /// Filament one print of it needs, mm (as its G-code pushes it), when measured.
     pub fn need_mm(&self) -> Option<f64> {
         self.slice_report.as_ref().and_then(|r| r.filament_mm)
+    }
+
+    /// What its prints took (each copy, and a print that failed or was cancelled as far
+    /// as it got): the one sum of its uses, for its status, its history record and the
+    /// statistics.
+    pub fn used(&self) -> Used {
+        let mut used = Used::default();
+        for u in self.uses.iter().filter(|u| u.weighed()) {
+            used.material.get_or_insert_with(|| u.material.clone());
+            *used.grams.get_or_insert(0.0) += u.grams;
+            if let Some(cost) = u.cost {
+                *used.cost.get_or_insert(0.0) += cost;
+            }
+        }
+        used
     }
 
     pub(crate) fn copies_wanted(&self) -> u32 {

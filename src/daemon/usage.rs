@@ -102,11 +102,11 @@ impl Odometer {
             material: self
                 .filament
                 .as_ref()
-                .map_or_else(|| "unknown".into(), |f| f.material.clone()),
+                .map_or_else(|| JobUse::UNKNOWN.into(), |f| f.material.clone()),
             colour: self
                 .filament
                 .as_ref()
-                .map_or_else(|| "unknown".into(), |f| f.colour.clone()),
+                .map_or_else(|| JobUse::UNKNOWN.into(), |f| f.colour.clone()),
             grams,
             mm,
             cost: self

@@ -241,12 +241,13 @@ fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
     let config = root.join("crispen.toml");
     // Finished jobs stay live until the next start's round moves them all to the history
     // (`live_days = 0`); `live_jobs` is above their four, or each would leave as it ends.
+    // p1's filament is known (PLA, no price): its prints are weighed, not costed.
     std::fs::write(
         &config,
         format!(
             "[spool]\ndir = {:?}\n[control]\nsocket = {:?}\n[farm]\nsettle_s = 0.2\n\
              [history]\nlive_days = 0\nlive_jobs = 10\n\
-             [[printer]]\nname = \"p1\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.05\n\
+             [[printer]]\nname = \"p1\"\nfirmware = \"marlin2\"\nmaterial = \"PLA\"\n[printer.simulate]\ntime_scale = 0.05\n\
              [[folder]]\npath = {:?}\nheight_mm = 30\nprinters = [\"p1\"]\n",
             root.join("spool"),
             root.join("crispen.sock"),
@@ -342,6 +343,15 @@ fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
         assert!(daily > 0.0, "{stats}");
         assert!(near(&p1["filament_mm"], filament_mm), "{stats}");
         assert!(near(&p1["filament_g"], filament_g), "{stats}");
+        // Weighed: every line of a and c acknowledged, so what the slicer said; no price.
+        assert!(near(&p1["used_g"], filament_g), "{stats}");
+        assert_eq!(p1["cost"], serde_json::Value::Null, "{stats}");
+        let materials = stats["materials"].as_array().unwrap();
+        assert_eq!(materials.len(), 1, "{stats}");
+        assert_eq!(materials[0]["name"], "PLA");
+        assert_eq!(materials[0]["jobs"]["done"], 2, "{stats}");
+        assert!(near(&materials[0]["used_g"], filament_g), "{stats}");
+        assert!(near(&materials[0]["printing_s"], printing_s), "{stats}");
         assert_eq!(farm["failure_reasons"][0]["reason"], failure, "{stats}");
         assert_eq!(farm["failure_reasons"][0]["jobs"], 1);
         assert_eq!(stats["folders"][0]["name"], "hot");
@@ -424,6 +434,11 @@ fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
     assert!((record["filament_mm"].as_f64().unwrap() - 66.0).abs() < 1e-6);
     assert!(record["filament_g"].as_f64().unwrap() > 0.0);
     assert_eq!(record["resends"], 0);
+    assert_eq!(record["material"], "PLA");
+    assert!(
+        (record["used_g"].as_f64().unwrap() - record["filament_g"].as_f64().unwrap()).abs() < 1e-6
+    );
+    assert_eq!(record["cost"], serde_json::Value::Null);
     assert!(record["print_s"].as_f64().unwrap() > 0.0);
 
     // The export, by the CLI, read as CSV by another program.
@@ -458,6 +473,15 @@ fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
         row["filament_mm"].as_str().unwrap().parse::<f64>().unwrap(),
         33.0
     );
+    assert_eq!(row["material"], "PLA");
+    assert!(row["used_g"].as_str().unwrap().parse::<f64>().unwrap() > 0.0);
+    assert_eq!(row["cost"], "", "no price known");
+    let row = rows.iter().find(|r| r["file"] == "big.gcode").unwrap();
+    assert_eq!(
+        (&row["material"], &row["used_g"]),
+        (&serde_json::json!(""), &serde_json::json!("")),
+        "never printed"
+    );
     let text = history_cli(&config, &["--state", "failed"]);
     assert!(
         text.contains("big.gcode") && !text.contains("a.gcode"),
@@ -478,6 +502,10 @@ fn statistics_history_filters_and_csv_of_jobs_the_farm_ran() {
     assert!(
         text.lines()
             .any(|l| l.starts_with("p1 ") && l.contains(" 2 ")),
+        "{text}"
+    );
+    assert!(
+        text.contains("MATERIAL") && text.lines().any(|l| l.starts_with("PLA ")),
         "{text}"
     );
 }

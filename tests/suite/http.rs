@@ -1704,7 +1704,8 @@ fn dashboard_shows_a_file_pause_and_its_resume_button_resumes() {
 
 /// The statistics page in a real browser: finished jobs in the spool (alpha printed two
 /// today, one of them across the last hour) are drawn as alpha's bar of today in the
-/// SVG chart and counted in the table; the dashboard links to the page.
+/// SVG chart and counted in the table, with the filament the weighed one used and its
+/// cost, also per material; the dashboard links to the page.
 #[test]
 fn statistics_page_in_a_real_browser() {
     use crispen::daemon::job::{Job, JobState};
@@ -1728,6 +1729,19 @@ fn statistics_page_in_a_real_browser() {
         job.state = JobState::Done;
         job.printer = Some("alpha".into());
         job.copies_done = 1;
+        if seq == 1 {
+            job.uses = vec![crispen::daemon::job::JobUse {
+                key: format!("{}#0", job.id),
+                spool: Some("s1".into()),
+                printer: "alpha".into(),
+                material: "PETG".into(),
+                colour: "black".into(),
+                grams: 12.5,
+                mm: 4000.0,
+                cost: Some(0.3125),
+                at_s: now - end,
+            }];
+        }
         std::fs::write(dir.join("job.json"), serde_json::to_vec(&job).unwrap()).unwrap();
     }
     let farm = Farm::start(root, 0.0, "read_only_without_key = true");
@@ -1748,8 +1762,11 @@ fn statistics_page_in_a_real_browser() {
          const row = document.querySelector('#printers tr[data-name=\"alpha\"]');
          const beta = document.querySelector('#printers tr[data-name=\"beta\"]');
          const cells = row ? [...row.querySelectorAll('td')].map(c => c.textContent) : [];
-         return (bars.length === 7 && used > 0 && cells[1] === '2' && cells[4] === '0.3' && !!beta)
-           || JSON.stringify({bars: bars.length, used, cells});",
+         const petg = document.querySelector('#materials tr[data-name=\"PETG\"]');
+         const material = petg ? [...petg.querySelectorAll('td')].map(c => c.textContent) : [];
+         return (bars.length === 7 && used > 0 && cells[1] === '2' && cells[4] === '0.3' && !!beta
+                 && cells[7] === '12.5' && cells[8] === '0.31' && material[1] === '1' && material[7] === '0.31')
+           || JSON.stringify({bars: bars.length, used, cells, material});",
     );
     let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
     browser.screenshot(&shots.join("stats.png"));

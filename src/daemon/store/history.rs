@@ -113,6 +113,8 @@ pub struct Retired {
     /// From the last print's report.
     pub resends: Option<u64>,
     pub print_s: Option<f64>,
+    /// Filament one print needs, as the slicer estimated it (see `used_g` for what was
+    /// taken).
     pub filament_mm: Option<f64>,
     pub filament_g: Option<f64>,
     /// The job's directory on the host that kept it (model, G-code, pictures, job.json).
@@ -124,6 +126,14 @@ pub struct Retired {
     /// this field existed have none.
     #[serde(default)]
     pub printing: Vec<(f64, f64)>,
+    /// What its prints took from spools ([`Job::used`]): the material, grams and cost.
+    /// None in records written before uses were recorded.
+    #[serde(default)]
+    pub material: Option<String>,
+    #[serde(default)]
+    pub used_g: Option<f64>,
+    #[serde(default)]
+    pub cost: Option<f64>,
 }
 
 /// The times `job` was printing, from its state changes: each `Printing` until the next
@@ -177,6 +187,7 @@ pub(crate) fn folder_is(folder: &Path, name: &str) -> bool {
 impl Retired {
     pub(crate) fn of(job: &Job, dir: PathBuf, now: f64) -> Retired {
         let report = job.slice_report.as_ref();
+        let used = job.used();
         Retired {
             id: job.id.clone(),
             seq: job.seq,
@@ -204,6 +215,9 @@ impl Retired {
             dir,
             retired_at: now,
             printing: printing_times(job, now),
+            material: used.material,
+            used_g: used.grams,
+            cost: used.cost,
         }
     }
 }
@@ -248,7 +262,8 @@ pub(crate) fn page_of(
 }
 
 /// The columns of the history as CSV, in order.
-pub(crate) const CSV_COLUMNS: [&str; 23] = [
+/// Columns are only ever added at the end, so a consumer's column positions hold.
+pub(crate) const CSV_COLUMNS: [&str; 26] = [
     "id",
     "seq",
     "file",
@@ -272,12 +287,23 @@ pub(crate) const CSV_COLUMNS: [&str; 23] = [
     "dir",
     "retired_at",
     "ended_unix",
+    "material",
+    "used_g",
+    "cost",
 ];
 
 impl Retired {
-    /// Its time spent printing, over all its prints.
+    /// Its time spent printing, over all its prints: the printers' time it took.
     pub(crate) fn printing_s(&self) -> f64 {
         self.printing.iter().map(|(a, b)| (b - a).max(0.0)).sum()
+    }
+
+    /// Grams of filament it used: as its prints were weighed, else the slicer's estimate
+    /// for each copy printed (a record from before uses were recorded, or prints on a
+    /// printer whose filament was not known).
+    pub(crate) fn used_or_estimated_g(&self) -> Option<f64> {
+        self.used_g
+            .or_else(|| self.filament_g.map(|g| g * f64::from(self.copies_done)))
     }
 
     /// One CSV line (RFC 4180, CRLF-ended) in the order of [`CSV_COLUMNS`]: times as UTC
@@ -309,6 +335,9 @@ impl Retired {
             csv_text(&self.dir.display().to_string()),
             time(Some(self.retired_at)),
             format!("{}", self.ended_at),
+            csv_text(self.material.as_deref().unwrap_or("")),
+            num(self.used_g),
+            num(self.cost),
         ];
         let mut line = fields.join(",");
         line.push_str("\r\n");
@@ -551,6 +580,7 @@ pub fn civil_date(days: i64) -> (i64, u32, u32) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::daemon::job::JobUse;
 
     fn job(seq: u64, state: JobState, ended: f64) -> Job {
         let mut j = Job::queued(
@@ -647,6 +677,100 @@ mod tests {
         let line = Retired::of(&j, "/d".into(), 1e9).csv_line();
         assert!(line.ends_with("\r\n"));
         assert!(line.contains(",\"bad, \"\"very\"\"\","), "{line}");
+    }
+
+    fn a_use(n: u32, material: &str, grams: f64, cost: Option<f64>) -> JobUse {
+        JobUse {
+            key: format!("0001-m_stl#{n}"),
+            spool: None,
+            printer: "p1".into(),
+            material: material.into(),
+            colour: "black".into(),
+            grams,
+            mm: grams * 300.0,
+            cost,
+            at_s: 1e9,
+        }
+    }
+
+    /// Material, grams and cost from the job's uses; its printers' time from its state
+    /// changes.
+    #[test]
+    fn what_a_job_used_and_cost() {
+        // Two copies, each weighed and priced (20 €/kg); a retried print first failed
+        // part way, its partial use counted too.
+        let mut j = job(1, JobState::Done, 1e9);
+        j.history = vec![
+            (JobState::Queued, 0.0),
+            (JobState::Printing, 100.0),
+            (JobState::Failed, 130.0),
+            (JobState::Ready, 140.0),
+            (JobState::Printing, 150.0),
+            (JobState::Ready, 250.0),
+            (JobState::Printing, 300.0),
+            (JobState::Done, 400.0),
+        ];
+        j.uses = vec![
+            a_use(0, "PETG", 2.0, Some(0.04)),
+            a_use(1, "PETG", 10.0, Some(0.2)),
+            a_use(2, "PLA", 10.0, Some(0.2)),
+        ];
+        let r = Retired::of(&j, "/d".into(), 1e9);
+        assert_eq!(r.material.as_deref(), Some("PETG"), "the first print's");
+        assert!((r.used_g.unwrap() - 22.0).abs() < 1e-9);
+        assert!((r.cost.unwrap() - 0.44).abs() < 1e-9);
+        assert_eq!(r.printing_s(), 30.0 + 100.0 + 100.0);
+
+        // A failed job: its one partial print.
+        let mut j = job(2, JobState::Failed, 1e9);
+        j.uses = vec![a_use(0, "PLA", 1.5, Some(0.03))];
+        let r = Retired::of(&j, "/d".into(), 1e9);
+        assert_eq!((r.used_g, r.cost), (Some(1.5), Some(0.03)));
+
+        // No price known: grams, no cost; one print priced of two: that one's cost.
+        let mut j = job(3, JobState::Done, 1e9);
+        j.uses = vec![a_use(0, "PLA", 5.0, None), a_use(1, "PLA", 5.0, None)];
+        let r = Retired::of(&j, "/d".into(), 1e9);
+        assert_eq!((r.used_g, r.cost), (Some(10.0), None));
+        j.uses[1].cost = Some(0.1);
+        assert_eq!(Retired::of(&j, "/d".into(), 1e9).cost, Some(0.1));
+
+        // On a printer whose filament was not known, a use has no weight: the slicer's
+        // estimate stands in for it.
+        let mut j = job(4, JobState::Done, 1e9);
+        j.copies_done = 2;
+        j.slice_report = None;
+        j.uses = vec![a_use(0, JobUse::UNKNOWN, 0.0, None)];
+        let mut r = Retired::of(&j, "/d".into(), 1e9);
+        assert_eq!((&r.material, r.used_g, r.cost), (&None, None, None));
+        r.filament_g = Some(3.0);
+        assert_eq!(r.used_or_estimated_g(), Some(6.0), "3 g each of 2 copies");
+        r.used_g = Some(5.5);
+        assert_eq!(
+            r.used_or_estimated_g(),
+            Some(5.5),
+            "weighed beats estimated"
+        );
+    }
+
+    /// A record written before uses were recorded still reads, without them; its CSV line
+    /// leaves their columns empty, after the older columns.
+    #[test]
+    fn an_old_record_reads_without_uses() {
+        let mut old =
+            serde_json::to_value(Retired::of(&job(5, JobState::Done, 1e9), "/d".into(), 1e9))
+                .unwrap();
+        for field in ["material", "used_g", "cost"] {
+            old.as_object_mut().unwrap().remove(field).unwrap();
+        }
+        let r: Retired = serde_json::from_value(old).unwrap();
+        assert_eq!((&r.material, r.used_g, r.cost), (&None, None, None));
+        let line = r.csv_line();
+        assert_eq!(line.split(',').count(), CSV_COLUMNS.len());
+        assert!(line.ends_with(",,,\r\n"), "{line}");
+        // The columns consumers know stay where they were; the new ones come last.
+        assert_eq!(CSV_COLUMNS[22], "ended_unix");
+        assert_eq!(CSV_COLUMNS[23..], ["material", "used_g", "cost"]);
     }
 
     #[test]

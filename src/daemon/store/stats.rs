@@ -1,15 +1,15 @@
-//! Statistics of the farm over a chosen period, per printer and per hot folder: jobs by
-//! outcome, printing time, utilisation (the share of the period a printer was printing,
-//! also per UTC day for the dashboard's chart), filament used and the most common
-//! failure reasons. Computed from the history's records and the live jobs (both as
+//! Statistics of the farm over a chosen period, per printer, per hot folder and per
+//! material: jobs by outcome, printing time, utilisation (the share of the period a
+//! printer was printing, also per UTC day for the dashboard's chart), filament used, its
+//! cost and the most common failure reasons. Computed from the history's records and the live jobs (both as
 //! [`Retired`] records), by arithmetic without I/O, so the rules are tested on their own.
 //!
 //! Also the counters behind `/metrics` ([`Tally`]): counted by the store's task as jobs
 //! change state, from the start of the process (Prometheus takes a restart's reset), so they never
 //! go down when finished jobs move to the history.
 //!
-//! The rules: a job counts in the outcomes, filament and failure reasons of the period in
-//! which it ended; its printing time counts where it was printing (a print across
+//! The rules: a job counts in the outcomes, filament, cost and failure reasons of the
+//! period in which it ended; its printing time counts where it was printing (a print across
 //! midnight or across the period's edge is split there).
 
 use super::history::{folder_is, Retired};
@@ -131,16 +131,26 @@ pub struct Reason {
     pub jobs: u64,
 }
 
-/// The figures of one printer, one folder, or the whole farm.
+/// The figures of one printer, one folder, one material, or the whole farm.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Group {
     pub name: String,
     pub jobs: Outcomes,
     /// Time spent printing within the period.
     pub printing_s: f64,
-    /// Filament of the prints finished in the period (each copy printed counts).
+    /// Filament of the prints finished in the period (each copy printed counts), as the
+    /// slicer estimated it.
     pub filament_mm: f64,
     pub filament_g: f64,
+    /// Filament the jobs that ended in the period used, grams: as their prints were
+    /// weighed (a failed or cancelled print as far as it got), else the estimate
+    /// (`Retired::used_or_estimated_g`).
+    #[serde(default)]
+    pub used_g: f64,
+    /// What the filament they used cost, of the prints whose spool's price is known; None:
+    /// no price was known.
+    #[serde(default)]
+    pub cost: Option<f64>,
     /// Most common first, at most [`TOP_REASONS`].
     pub failure_reasons: Vec<Reason>,
     /// Printers only: `printing_s` over the period's length, and the same per day of
@@ -161,6 +171,10 @@ pub struct Stats {
     pub farm: Group,
     pub printers: Vec<Group>,
     pub folders: Vec<Group>,
+    /// By the material the jobs were printed in (jobs whose prints were not weighed are
+    /// in none).
+    #[serde(default)]
+    pub materials: Vec<Group>,
 }
 
 /// A group while its records are added.
@@ -170,6 +184,8 @@ struct Sums {
     printing_s: f64,
     filament_mm: f64,
     filament_g: f64,
+    used_g: f64,
+    cost: Option<f64>,
     reasons: HashMap<String, u64>,
     daily_s: Vec<f64>,
 }
@@ -189,6 +205,8 @@ impl Sums {
             printing_s: self.printing_s,
             filament_mm: self.filament_mm,
             filament_g: self.filament_g,
+            used_g: self.used_g,
+            cost: self.cost,
             failure_reasons: reasons,
             utilisation: printer.then(|| self.printing_s / (period.to - period.from)),
             daily_utilisation: printer.then(|| {
@@ -211,6 +229,7 @@ pub(crate) struct Builder {
     farm: Sums,
     printers: BTreeMap<String, Sums>,
     folders: BTreeMap<String, Sums>,
+    materials: BTreeMap<String, Sums>,
 }
 
 impl Builder {
@@ -226,6 +245,7 @@ impl Builder {
             printers: printers.iter().map(|p| (p.clone(), empty())).collect(),
             folders: folders.iter().map(|f| (f.clone(), empty())).collect(),
             farm: empty(),
+            materials: BTreeMap::new(),
             seen: Default::default(),
             period,
             days,
@@ -258,16 +278,17 @@ impl Builder {
             None => folder,
         };
         let days = self.days.len();
-        let mut groups: Vec<&mut Sums> = vec![&mut self.farm];
-        groups.push(self.folders.entry(folder).or_insert_with(|| Sums {
+        let empty = || Sums {
             daily_s: vec![0.0; days],
             ..Sums::default()
-        }));
+        };
+        let mut groups: Vec<&mut Sums> = vec![&mut self.farm];
+        groups.push(self.folders.entry(folder).or_insert_with(empty));
         if let Some(p) = &r.printer {
-            groups.push(self.printers.entry(p.clone()).or_insert_with(|| Sums {
-                daily_s: vec![0.0; days],
-                ..Sums::default()
-            }));
+            groups.push(self.printers.entry(p.clone()).or_insert_with(empty));
+        }
+        if let Some(m) = &r.material {
+            groups.push(self.materials.entry(m.clone()).or_insert_with(empty));
         }
         for g in groups {
             g.printing_s += printing;
@@ -291,6 +312,10 @@ impl Builder {
             let copies = f64::from(r.copies_done);
             g.filament_mm += r.filament_mm.unwrap_or(0.0) * copies;
             g.filament_g += r.filament_g.unwrap_or(0.0) * copies;
+            g.used_g += r.used_or_estimated_g().unwrap_or(0.0);
+            if let Some(cost) = r.cost {
+                *g.cost.get_or_insert(0.0) += cost;
+            }
         }
     }
 
@@ -301,6 +326,7 @@ impl Builder {
             farm,
             printers,
             folders,
+            materials,
             ..
         } = self;
         Stats {
@@ -313,6 +339,10 @@ impl Builder {
                 .map(|(n, s)| s.finish(n, &period, &days, true))
                 .collect(),
             folders: folders
+                .into_iter()
+                .map(|(n, s)| s.finish(n, &period, &days, false))
+                .collect(),
+            materials: materials
                 .into_iter()
                 .map(|(n, s)| s.finish(n, &period, &days, false))
                 .collect(),
@@ -424,6 +454,9 @@ mod tests {
             dir: PathBuf::from("/d"),
             retired_at: ended,
             printing: printing.to_vec(),
+            material: None,
+            used_g: None,
+            cost: None,
         }
     }
 
@@ -487,6 +520,78 @@ mod tests {
             }]
         );
         assert_eq!(p1.filament_mm, 0.0, "a failed job printed no whole copy");
+    }
+
+    /// Used filament, cost and printing time per printer, folder and material: weighed
+    /// where the job was, else estimated; a cost only where a price was known.
+    #[test]
+    fn used_filament_and_cost_per_material() {
+        let period = Period::new(D0, D0 + DAY).unwrap();
+        let mut b = Builder::new(period, &["p1".into(), "p2".into()], &[]);
+        let h = |x: f64| D0 + x * 3600.0;
+        // Two copies of PETG, weighed and priced.
+        let mut two = record(
+            1,
+            JobState::Done,
+            &[(h(1.0), h(2.0)), (h(3.0), h(4.0))],
+            h(4.0),
+        );
+        two.copies_done = 2;
+        (two.material, two.used_g, two.cost) = (Some("PETG".into()), Some(7.0), Some(0.14));
+        b.add(&two);
+        // A failed PETG print, part of it weighed and priced.
+        let mut failed = record(2, JobState::Failed, &[(h(5.0), h(5.5))], h(5.5));
+        (failed.material, failed.used_g, failed.cost) =
+            (Some("PETG".into()), Some(1.0), Some(0.02));
+        b.add(&failed);
+        // PLA weighed, its price unknown, on p2.
+        let mut pla = record(3, JobState::Done, &[(h(6.0), h(8.0))], h(8.0));
+        (pla.material, pla.used_g, pla.printer) =
+            (Some("PLA".into()), Some(4.0), Some("p2".into()));
+        b.add(&pla);
+        // An old record, not weighed: its estimate (3 g a copy), in no material.
+        b.add(&record(4, JobState::Done, &[(h(9.0), h(10.0))], h(10.0)));
+        let s = b.finish();
+
+        let p1 = &s.printers[0];
+        assert_eq!(p1.used_g, 7.0 + 1.0 + 3.0);
+        assert!((p1.cost.unwrap() - 0.16).abs() < 1e-9);
+        assert_eq!(p1.printing_s, 3.5 * 3600.0);
+        assert_eq!(
+            p1.filament_g,
+            3.0 * 3.0,
+            "the estimate: copies printed only"
+        );
+        let p2 = &s.printers[1];
+        assert_eq!(
+            (p2.used_g, p2.cost),
+            (4.0, None),
+            "no price: no cost, not 0"
+        );
+        assert_eq!(s.farm.used_g, 15.0);
+        assert_eq!(s.folders[0].used_g, 15.0);
+
+        let names: Vec<&str> = s.materials.iter().map(|m| m.name.as_str()).collect();
+        assert_eq!(names, ["PETG", "PLA"]);
+        let petg = &s.materials[0];
+        assert_eq!((petg.jobs.done, petg.jobs.failed), (1, 1));
+        assert_eq!(petg.used_g, 8.0);
+        assert!((petg.cost.unwrap() - 0.16).abs() < 1e-9);
+        assert_eq!(petg.printing_s, 2.5 * 3600.0);
+        assert_eq!(petg.utilisation, None);
+        let pla = &s.materials[1];
+        assert_eq!((pla.jobs.done, pla.used_g, pla.cost), (1, 4.0, None));
+        assert_eq!(pla.printing_s, 2.0 * 3600.0);
+
+        // Statistics from before materials were counted still read.
+        let mut old = serde_json::to_value(&s).unwrap();
+        old.as_object_mut().unwrap().remove("materials");
+        for field in ["used_g", "cost"] {
+            old["farm"].as_object_mut().unwrap().remove(field);
+        }
+        let read: Stats = serde_json::from_value(old).unwrap();
+        assert!(read.materials.is_empty());
+        assert_eq!((read.farm.used_g, read.farm.cost), (0.0, None));
     }
 
     #[test]

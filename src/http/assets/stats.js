@@ -16,6 +16,8 @@ function el(tag, attrs, text) {
 
 function hours(s) { return (s / 3600).toFixed(1); }
 function pct(x) { return x == null ? "" : (100 * x).toFixed(1) + "%"; }
+// Empty when no print's price was known (not a cost of 0).
+function money(x) { return x == null ? "" : x.toFixed(2); }
 
 // One bar per printer within each day's slot; the y axis 0 to 100 %.
 function chart(stats) {
@@ -62,7 +64,7 @@ function table(groups, id, printers) {
   const t = el("table", { class: "stats" });
   const head = ["name", "done", "failed", "cancelled", "printing h"];
   if (printers) head.push("utilisation");
-  head.push("filament m", "filament g", "most common failures");
+  head.push("filament m", "used g", "cost", "most common failures");
   const tr = el("tr");
   head.forEach((h) => tr.append(el("th", {}, h)));
   t.append(tr);
@@ -70,7 +72,7 @@ function table(groups, id, printers) {
     const row = el("tr", { "data-name": g.name });
     const cells = [g.name, g.jobs.done, g.jobs.failed, g.jobs.cancelled, hours(g.printing_s)];
     if (printers) cells.push(pct(g.utilisation));
-    cells.push((g.filament_mm / 1000).toFixed(2), g.filament_g.toFixed(1),
+    cells.push((g.filament_mm / 1000).toFixed(2), g.used_g.toFixed(1), money(g.cost),
       g.failure_reasons.map((r) => `${r.reason} (${r.jobs})`).join("; "));
     cells.forEach((c) => row.append(el("td", {}, String(c))));
     t.append(row);
@@ -88,6 +90,7 @@ async function load() {
     chart(body);
     table(body.printers, "printers", true);
     table(body.folders, "folders", false);
+    table(body.materials, "materials", false);
     document.getElementById("summary").textContent =
       `statistics ${body.days[0]} to ${body.days[body.days.length - 1]}: ` +
       `${body.farm.jobs.done} done, ${body.farm.jobs.failed} failed, ${body.farm.jobs.cancelled} cancelled`;

@@ -261,7 +261,7 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
     // with the key.
     let (ok, out) = ctl(&config, &["load", "a", "--spool", "s5"]);
     assert!(!ok && out.contains("spool s5 is loaded on c"), "{out}");
-    let (ok, out) = ctl(&config, &["load", "a", "--material", "PLA", "--colour", "white", "--grams", "-3"]);
+    let (ok, out) = ctl(&config, &["load", "a", "--material", "PLA", "--colour", "white", "--grams=-3"]);
     assert!(!ok && out.contains("grams"), "{out}");
     let (ok, out) = ctl(&config, &["load", "zz", "--spool", "s1"]);
     assert!(!ok && out.contains("no printer"), "{out}");

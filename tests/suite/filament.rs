@@ -142,14 +142,27 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
     let root = tmp.path();
     let (config, log) = four_printers(root, "");
     let _daemon = Daemon::start(&config, &log);
-    wait_for(&config, &log, Duration::from_secs(30), "the printers", |s| {
-        s["printers"].as_array().is_some_and(|p| p.len() == 4)
-    });
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(30),
+        "the printers",
+        |s| s["printers"].as_array().is_some_and(|p| p.len() == 4),
+    );
     for (printer, args) in [
-        ("a", "--material PLA --colour white --grams 1000 --price-per-kg 20"),
-        ("b", "--material PLA --colour black --grams 1000 --price-per-kg 20"),
+        (
+            "a",
+            "--material PLA --colour white --grams 1000 --price-per-kg 20",
+        ),
+        (
+            "b",
+            "--material PLA --colour black --grams 1000 --price-per-kg 20",
+        ),
         // Enough for a small job, not for the heavy one.
-        ("c", "--material PETG --colour black --grams 20 --price-per-kg 30"),
+        (
+            "c",
+            "--material PETG --colour black --grams 20 --price-per-kg 30",
+        ),
         ("d", "--material PETG --colour white --grams 1000"),
     ] {
         let mut argv = vec!["load", printer];
@@ -158,27 +171,67 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
         assert!(ok && out.contains("loaded"), "{out}");
     }
     let hot = root.join("hot");
-    let sidecar = |name: &str, text: &str| drop_file(&hot, &format!("{name}.toml"), text.as_bytes());
+    let sidecar =
+        |name: &str, text: &str| drop_file(&hot, &format!("{name}.toml"), text.as_bytes());
     // Each job's sidecar first, then its G-code: the sidecar is read as it is prepared.
     let jobs: &[(&str, &str, String)] = &[
-        ("petg-black", "material = \"PETG\"\ncolour = \"black\"\n", presliced_gcode("petg-black", 100, 6000)),
-        ("nozzle-06", "nozzle_mm = 0.6\n", gcode_for_nozzle("nozzle-06", 100, "0.6")),
-        ("big", "tags = [\"big\"]\n", presliced_gcode("big", 100, 6000)),
+        (
+            "petg-black",
+            "material = \"PETG\"\ncolour = \"black\"\n",
+            presliced_gcode("petg-black", 100, 6000),
+        ),
+        (
+            "nozzle-06",
+            "nozzle_mm = 0.6\n",
+            gcode_for_nozzle("nozzle-06", 100, "0.6"),
+        ),
+        (
+            "big",
+            "tags = [\"big\"]\n",
+            presliced_gcode("big", 100, 6000),
+        ),
         // Dropped oldest first: the priority, not the age, orders them.
-        ("black-low", "material = \"PLA\"\ncolour = \"black\"\npriority = -5\n", presliced_gcode("black-low", 50, 6000)),
-        ("black-mid", "material = \"PLA\"\ncolour = \"black\"\n", presliced_gcode("black-mid", 50, 6000)),
-        ("black-high", "material = \"PLA\"\ncolour = \"black\"\npriority = 10\n", presliced_gcode("black-high", 50, 6000)),
-        ("abs", "material = \"ABS\"\ncolour = \"red\"\n", presliced_gcode("abs", 50, 6000)),
+        (
+            "black-low",
+            "material = \"PLA\"\ncolour = \"black\"\npriority = -5\n",
+            presliced_gcode("black-low", 50, 6000),
+        ),
+        (
+            "black-mid",
+            "material = \"PLA\"\ncolour = \"black\"\n",
+            presliced_gcode("black-mid", 50, 6000),
+        ),
+        (
+            "black-high",
+            "material = \"PLA\"\ncolour = \"black\"\npriority = 10\n",
+            presliced_gcode("black-high", 50, 6000),
+        ),
+        (
+            "abs",
+            "material = \"ABS\"\ncolour = \"red\"\n",
+            presliced_gcode("abs", 50, 6000),
+        ),
         // About 30 g of PETG: more than c's spool holds.
-        ("heavy", "material = \"PETG\"\ncolour = \"black\"\n", presliced_gcode("heavy", 3000, 6000)),
+        (
+            "heavy",
+            "material = \"PETG\"\ncolour = \"black\"\n",
+            presliced_gcode("heavy", 3000, 6000),
+        ),
     ];
     for (name, asks, gcode) in jobs {
         sidecar(&format!("{name}.gcode"), asks);
         drop_file(&hot, &format!("{name}.gcode"), gcode.as_bytes());
     }
-    let s = wait_for(&config, &log, Duration::from_secs(60), "every job ready", |s| {
-        jobs.iter().all(|(n, _, _)| state_of(s, &format!("{n}.gcode")) == "ready")
-    });
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "every job ready",
+        |s| {
+            jobs.iter()
+                .all(|(n, _, _)| state_of(s, &format!("{n}.gcode")) == "ready")
+        },
+    );
     // The jobs nobody can take say why, in the operator's words.
     let abs = job(&s, "abs.gcode")["waiting"].as_str().unwrap_or_default();
     assert!(
@@ -187,7 +240,9 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
             && abs.contains("PETG black (c)"),
         "{abs}"
     );
-    let heavy = job(&s, "heavy.gcode")["waiting"].as_str().unwrap_or_default();
+    let heavy = job(&s, "heavy.gcode")["waiting"]
+        .as_str()
+        .unwrap_or_default();
     assert!(
         heavy.starts_with("waiting for a spool with 30 g for PETG black: c has 20 g"),
         "{heavy}"
@@ -199,9 +254,18 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
     assert_eq!(c["holds"]["remaining_g"], 20.0);
     assert_eq!(common::printer(&s, "d")["holds"]["nozzle_mm"], 0.6);
 
-    let printable = ["petg-black", "nozzle-06", "big", "black-low", "black-mid", "black-high"];
+    let printable = [
+        "petg-black",
+        "nozzle-06",
+        "big",
+        "black-low",
+        "black-mid",
+        "black-high",
+    ];
     clear_until(&config, &log, "the printable jobs done", |s| {
-        printable.iter().all(|n| state_of(s, &format!("{n}.gcode")) == "done")
+        printable
+            .iter()
+            .all(|n| state_of(s, &format!("{n}.gcode")) == "done")
     });
     let markers_of = |p: &str| markers(&root.join(format!("{p}.rec")));
     assert_eq!(markers_of("a"), ["big"]);
@@ -214,7 +278,18 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
     assert_eq!(state_of(&s, "heavy.gcode"), "ready");
     let (ok, out) = ctl(
         &config,
-        &["load", "c", "--material", "PETG", "--colour", "black", "--grams", "750", "--price-per-kg", "30"],
+        &[
+            "load",
+            "c",
+            "--material",
+            "PETG",
+            "--colour",
+            "black",
+            "--grams",
+            "750",
+            "--price-per-kg",
+            "30",
+        ],
     );
     assert!(ok, "{out}");
     let s = clear_until(&config, &log, "the heavy job done", |s| {
@@ -231,7 +306,13 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
         .iter()
         .flat_map(|p| executed_by_marker(&root.join(format!("{p}.rec"))))
         .collect();
-    let mm_of = |m: &str| by_marker.iter().find(|(k, _)| k == m).map(|(_, mm)| *mm).unwrap();
+    let mm_of = |m: &str| {
+        by_marker
+            .iter()
+            .find(|(k, _)| k == m)
+            .map(|(_, mm)| *mm)
+            .unwrap()
+    };
     for (name, density, price) in [
         ("petg-black", petg, Some(30.0)),
         ("heavy", petg, Some(30.0)),
@@ -241,7 +322,10 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
         let j = job(&s, &format!("{name}.gcode"));
         let expected = mm_of(name) * density;
         let used = j["used_g"].as_f64().unwrap();
-        assert!((used - expected).abs() < 1e-6, "{name}: used {used} g, executed {expected} g");
+        assert!(
+            (used - expected).abs() < 1e-6,
+            "{name}: used {used} g, executed {expected} g"
+        );
         match price {
             Some(p) => assert!((j["cost"].as_f64().unwrap() - expected * p / 1000.0).abs() < 1e-6),
             None => assert!(j["cost"].is_null(), "{name}: no price, no cost"),
@@ -249,10 +333,14 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
     }
     // c's first spool: 20 g less the small job; the new one: 750 g less the heavy one.
     let first = spool(&list, "s3");
-    assert!((first["remaining_g"].as_f64().unwrap() - (20.0 - mm_of("petg-black") * petg)).abs() < 1e-6);
+    assert!(
+        (first["remaining_g"].as_f64().unwrap() - (20.0 - mm_of("petg-black") * petg)).abs() < 1e-6
+    );
     let fresh = spool(&list, "s5");
     assert_eq!(fresh["loaded_on"], "c");
-    assert!((fresh["remaining_g"].as_f64().unwrap() - (750.0 - mm_of("heavy") * petg)).abs() < 1e-6);
+    assert!(
+        (fresh["remaining_g"].as_f64().unwrap() - (750.0 - mm_of("heavy") * petg)).abs() < 1e-6
+    );
     let b = spool(&list, "s2");
     let executed_b = executed_mm(&root.join("b.rec")) * pla;
     assert!((b["remaining_g"].as_f64().unwrap() - (1000.0 - executed_b)).abs() < 1e-6);
@@ -261,7 +349,18 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
     // with the key.
     let (ok, out) = ctl(&config, &["load", "a", "--spool", "s5"]);
     assert!(!ok && out.contains("spool s5 is loaded on c"), "{out}");
-    let (ok, out) = ctl(&config, &["load", "a", "--material", "PLA", "--colour", "white", "--grams=-3"]);
+    let (ok, out) = ctl(
+        &config,
+        &[
+            "load",
+            "a",
+            "--material",
+            "PLA",
+            "--colour",
+            "white",
+            "--grams=-3",
+        ],
+    );
     assert!(!ok && out.contains("grams"), "{out}");
     let (ok, out) = ctl(&config, &["load", "zz", "--spool", "s1"]);
     assert!(!ok && out.contains("no printer"), "{out}");
@@ -324,7 +423,19 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
         std::thread::sleep(Duration::from_millis(200));
     }
     // A new spool belongs in Spoolman, not in crispen.
-    let (ok, out) = ctl(&config, &["load", "a", "--material", "PLA", "--colour", "red", "--grams", "5"]);
+    let (ok, out) = ctl(
+        &config,
+        &[
+            "load",
+            "a",
+            "--material",
+            "PLA",
+            "--colour",
+            "red",
+            "--grams",
+            "5",
+        ],
+    );
     assert!(!ok && out.contains("Spoolman"), "{out}");
     for (printer, id) in [("a", &pla), ("b", &petg)] {
         let (ok, out) = ctl(&config, &["load", printer, "--spool", id]);
@@ -332,24 +443,47 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
     }
     let hot = root.join("hot");
     drop_file(&hot, "pla.gcode.toml", b"material = \"PLA\"\n");
-    drop_file(&hot, "pla.gcode", presliced_gcode("pla", 300, 6000).as_bytes());
+    drop_file(
+        &hot,
+        "pla.gcode",
+        presliced_gcode("pla", 300, 6000).as_bytes(),
+    );
     drop_file(&hot, "petg.gcode.toml", b"material = \"PETG\"\n");
-    drop_file(&hot, "petg.gcode", presliced_gcode("petg", 200, 6000).as_bytes());
+    drop_file(
+        &hot,
+        "petg.gcode",
+        presliced_gcode("petg", 200, 6000).as_bytes(),
+    );
     let acked = |s: &Value| {
         job(s, "petg.gcode")["progress"]["lines_acked"]
             .as_u64()
             .unwrap_or(0)
     };
-    wait_for(&config, &log, Duration::from_secs(60), "pla done, petg part printed", |s| {
-        state_of(s, "pla.gcode") == "done" && state_of(s, "petg.gcode") == "printing" && acked(s) > 60
-    });
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "pla done, petg part printed",
+        |s| {
+            state_of(s, "pla.gcode") == "done"
+                && state_of(s, "petg.gcode") == "printing"
+                && acked(s) > 60
+        },
+    );
     daemon.kill9();
 
     // The restart interrupts the print, and books what it had pushed.
     let mut daemon = Daemon::start(&config, &log);
-    let s = wait_for(&config, &log, Duration::from_secs(60), "petg interrupted", |s| {
-        state_of(s, "petg.gcode") == "interrupted" && job(s, "petg.gcode")["used_g"].as_f64().is_some()
-    });
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(60),
+        "petg interrupted",
+        |s| {
+            state_of(s, "petg.gcode") == "interrupted"
+                && job(s, "petg.gcode")["used_g"].as_f64().is_some()
+        },
+    );
     let partial = job(&s, "petg.gcode")["used_g"].as_f64().unwrap();
     let petg_g = grams_per_mm(1.27);
     let executed_before = executed_mm(&root.join("b.rec")) * petg_g;
@@ -359,7 +493,10 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
     );
     // Printed again from the start once the bed is clear.
     assert!(ctl(&config, &["clear", "b"]).0);
-    let (ok, out) = ctl(&config, &["retry", job(&s, "petg.gcode")["id"].as_str().unwrap()]);
+    let (ok, out) = ctl(
+        &config,
+        &["retry", job(&s, "petg.gcode")["id"].as_str().unwrap()],
+    );
     assert!(ok, "{out}");
     wait_for(&config, &log, Duration::from_secs(120), "petg done", |s| {
         state_of(s, "petg.gcode") == "done"
@@ -368,7 +505,11 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
     // Spoolman has each use once: its weights are the starting ones less what was executed.
     let expected_pla = 1000.0 - executed_mm(&root.join("a.rec")) * grams_per_mm(1.24);
     let expected_petg = 400.0 - executed_mm(&root.join("b.rec")) * petg_g;
-    let remaining = |id: u64| spoolman.spool_json(id)["remaining_weight"].as_f64().unwrap();
+    let remaining = |id: u64| {
+        spoolman.spool_json(id)["remaining_weight"]
+            .as_f64()
+            .unwrap()
+    };
     let settled = |what: &str| {
         let started = Instant::now();
         loop {
@@ -391,7 +532,10 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
         }
     };
     let list = settled("after the jobs");
-    for (id, farm_id, expected) in [(pla_id, &pla, expected_pla), (petg_id, &petg, expected_petg)] {
+    for (id, farm_id, expected) in [
+        (pla_id, &pla, expected_pla),
+        (petg_id, &petg, expected_petg),
+    ] {
         let got = remaining(id);
         assert!(
             (got - expected).abs() < 0.5,
@@ -399,16 +543,165 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
         );
         // crispen shows what Spoolman holds.
         let shown = spool(&list, farm_id)["remaining_g"].as_f64().unwrap();
-        assert!((shown - got).abs() < 1e-6, "{farm_id}: shown {shown} g, Spoolman {got} g");
+        assert!(
+            (shown - got).abs() < 1e-6,
+            "{farm_id}: shown {shown} g, Spoolman {got} g"
+        );
     }
     // Nothing is told twice: a restart leaves Spoolman as it is.
     let before = (remaining(pla_id), remaining(petg_id));
     daemon.kill9();
     let _daemon = Daemon::start(&config, &log);
-    wait_for(&config, &log, Duration::from_secs(30), "the daemon again", |s| {
-        s["printers"].as_array().is_some_and(|p| p.len() == 2)
-    });
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(30),
+        "the daemon again",
+        |s| s["printers"].as_array().is_some_and(|p| p.len() == 2),
+    );
     std::thread::sleep(Duration::from_secs(3));
     settled("after a restart");
     assert_eq!((remaining(pla_id), remaining(petg_id)), before);
+}
+
+/// The dashboard in a real headless Chromium: each tile shows what its printer holds (a
+/// swatch of the spool's colour, its material, what is left, its nozzle); "Load spool"
+/// opens the panel, a spool picked there is loaded; a job nobody can take shows why.
+#[test]
+fn spools_on_the_dashboard_in_a_real_browser() {
+    use common::http::request;
+    const KEY: &str = "filament-key-0123456789abcdef";
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    std::fs::write(root.join("key"), KEY).unwrap();
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n\
+         [[printer]]\nname = \"alpha\"\nfirmware = \"marlin2\"\ntags = [\"big\"]\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[printer]]\nname = \"beta\"\nfirmware = \"marlin2\"\nnozzle = \"hardened\"\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[folder]]\npath = \"hot\"\nheight_mm = 1\nprinters = [\"alpha\", \"beta\"]\n",
+    )
+    .unwrap();
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    let addr = common::daemon::http_address(&log);
+    let key = [("X-Api-Key", KEY)];
+    let post = |path: &str| {
+        let a = request(&addr, "POST", path, &key, b"");
+        assert_eq!(a.status, 200, "{path}: {}", a.text());
+        a.json()
+    };
+    post("/api/v1/printers/alpha/load?material=PLA&colour=white&colour_hex=f4f4f4&grams=1000&price_per_kg=20&brand=Acme");
+    let added = post(
+        "/api/v1/spools?material=PETG&colour=black&colour_hex=101010&grams=750&price_per_kg=30",
+    );
+    assert!(
+        added["message"]
+            .as_str()
+            .unwrap()
+            .starts_with("spool s2 added"),
+        "{added}"
+    );
+    // Bad requests name what is wrong.
+    let a = request(
+        &addr,
+        "POST",
+        "/api/v1/spools?material=PETG&grams=5",
+        &key,
+        b"",
+    );
+    assert_eq!(a.status, 400);
+    assert!(a.error().contains("`colour`"), "{}", a.error());
+    let a = request(
+        &addr,
+        "POST",
+        "/api/v1/spools?material=PETG&colour=x&grams=5&colour=y&weight=2",
+        &key,
+        b"",
+    );
+    assert_eq!(a.status, 400, "{}", a.text());
+    let a = request(
+        &addr,
+        "POST",
+        "/api/v1/printers/beta/load?spool=s9",
+        &key,
+        b"",
+    );
+    assert_eq!(a.status, 404, "{}", a.text());
+    let a = request(
+        &addr,
+        "POST",
+        "/api/v1/printers/beta/load?spool=s1",
+        &[],
+        b"",
+    );
+    assert_eq!(a.status, 401, "changes need the key");
+    // A job nobody can take.
+    for (name, body) in [
+        ("abs.gcode.toml", b"material = \"ABS\"\n".to_vec()),
+        ("abs.gcode", presliced_gcode("abs", 20, 6000).into_bytes()),
+    ] {
+        let a = request(
+            &addr,
+            "PUT",
+            &format!("/api/v1/folders/hot/files/{name}"),
+            &key,
+            &body,
+        );
+        assert_eq!(a.status, 201, "{}", a.text());
+    }
+
+    let browser = crate::http::Browser::start(&root.join("chromium-profile"));
+    // The key as the page keeps it once entered.
+    browser.go(&format!("http://{addr}/"));
+    browser.exec(
+        "localStorage.setItem('crispen-key', arguments[0]);",
+        serde_json::json!([KEY]),
+    );
+    browser.go(&format!("http://{addr}/"));
+    browser.wait_until(
+        Duration::from_secs(60),
+        "alpha's spool on its tile, and the ABS job's reason",
+        "const a = document.querySelector('[data-printer=\"alpha\"]');
+         const h = a && a.querySelector('.holds');
+         const fill = h && h.querySelector('svg.swatch circle');
+         const row = Array.from(document.querySelectorAll('#queue tr[data-job]')).find(r => r.textContent.includes('abs.gcode'));
+         const why = row && row.querySelector('.waiting');
+         return (!!h && /PLA white/.test(h.textContent) && /s1/.test(h.textContent) && /1000 g left/.test(h.textContent)
+           && fill.getAttribute('fill') === '#f4f4f4' && /0.4 mm brass · big/.test(a.querySelector('.nozzle').textContent)
+           && !!why && /waiting for ABS: loaded are PLA white \\(alpha\\)/.test(why.textContent))
+           || [h && h.textContent, why && why.textContent].join(' | ');",
+    );
+    // Beta holds nothing known; its panel offers the free spool.
+    browser.click("button[data-spool-printer=\"beta\"]");
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the load panel with the free spool",
+        "const f = document.querySelector('#loadform');
+         return (!f.hidden && /beta/.test(f.querySelector('#loadtitle').textContent)
+           && Array.from(f.querySelectorAll('#loadspool option')).some(o => o.value === 's2')
+           && !Array.from(f.querySelectorAll('#loadspool option')).some(o => o.value === 's1'))
+           || f.textContent;",
+    );
+    browser.exec(
+        "const s = document.querySelector('#loadspool'); s.value = 's2'; s.dispatchEvent(new Event('change'));",
+        serde_json::json!([]),
+    );
+    browser.click("#loadform button[type=submit]");
+    browser.wait_until(
+        Duration::from_secs(20),
+        "beta's tile with the PETG spool",
+        "const b = document.querySelector('[data-printer=\"beta\"] .holds');
+         return (!!b && /PETG black/.test(b.textContent) && /750 g left/.test(b.textContent)
+           && b.querySelector('svg.swatch circle').getAttribute('fill') === '#101010'
+           && document.querySelector('#loadform').hidden) || (b && b.textContent);",
+    );
+    let s = status(&config).unwrap();
+    assert_eq!(common::printer(&s, "beta")["holds"]["spool"], "s2");
+    assert_eq!(common::printer(&s, "beta")["holds"]["hardened"], true);
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard-spools.png"));
 }

@@ -109,8 +109,8 @@ pub(crate) fn spools(a: SpoolsArgs) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     println!(
-        "{:<8} {:<8} {:<10} {:>10} {:>8} {:<12} {}",
-        "SPOOL", "MATERIAL", "COLOUR", "LEFT", "PRICE/KG", "ON", "BRAND"
+        "{:<8} {:<8} {:<10} {:>10} {:>8} {:<12} BRAND",
+        "SPOOL", "MATERIAL", "COLOUR", "LEFT", "PRICE/KG", "ON"
     );
     for s in spools {
         let text = |k: &str| s[k].as_str().unwrap_or("-").to_string();

@@ -222,7 +222,7 @@ pub(super) fn parse_raw(text: &str, path: &Path) -> Result<(RawConfig, PathBuf),
 
 /// The tables as their headers are written, for an error about an unknown one. A test
 /// checks it against the file's shape (`keys::tables`).
-pub(super) const KNOWN_TABLES: [&str; 11] = [
+pub(super) const KNOWN_TABLES: [&str; 12] = [
     "[spool]",
     "[control]",
     "[farm]",
@@ -234,6 +234,7 @@ pub(super) const KNOWN_TABLES: [&str; 11] = [
     "[history]",
     "[[notify]]",
     "[camera]",
+    "[spoolman]",
 ];
 
 /// The table header on the line of `offset`, when that header names no known table.

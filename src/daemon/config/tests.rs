@@ -461,6 +461,7 @@ fn a_missing_key_is_named_in_every_table() {
             "[http]: missing key `listen`",
         ),
         ("[store]\nlease_s = 5\n", "[store]: missing key `postgres`"),
+        ("[spoolman]\npoll_s = 5\n", "[spoolman]: missing key `url`"),
     ];
     for (table, expected) in cases {
         let err = parse(&format!("{GOOD}{table}")).unwrap_err().to_string();
@@ -623,4 +624,97 @@ fn builtin_default_is_a_simulated_demo() {
     // Absolute, so watch events (which carry absolute paths) match the folder.
     assert!(c.folders[0].path.is_absolute() && c.spool_dir.is_absolute());
     assert_eq!(c.folders[0].height_mm, 50.0);
+}
+
+/// What printers hold and folders ask: read into the checked config, and every bad value
+/// refused with its section and key.
+#[test]
+fn filament_keys_are_checked_with_section_and_key() {
+    let text = GOOD
+        .replace(
+            "port = \"/dev/ttyACM0\"\n",
+            "port = \"/dev/ttyACM0\"\nmaterial = \"petg\"\ncolour = \"Black\"\nnozzle = \"hardened\"\ntags = [\"big\"]\n",
+        )
+        + "[spoolman]\nurl = \"http://127.0.0.1:7912\"\npoll_s = 5\n";
+    let c = parse(&text).unwrap();
+    let p = &c.printers[0];
+    let f = p.filament.as_ref().unwrap();
+    assert_eq!((f.material.as_str(), f.colour.as_str()), ("PETG", "black"));
+    assert_eq!(f.diameter_mm, p.machine.filament_mm);
+    assert!(p.hardened);
+    assert_eq!(p.tags, ["big"]);
+    assert_eq!(
+        c.spoolman.as_ref().unwrap().poll,
+        std::time::Duration::from_secs(5)
+    );
+    assert_eq!(c.farm.spool_low_g, 100.0);
+    for (from, to, expected) in [
+        (
+            "port = \"/dev/ttyACM0\"\n",
+            "port = \"/dev/ttyACM0\"\nnozzle = \"steel\"\n",
+            "[[printer]] #1 (name \"um2-a\"): key `nozzle`",
+        ),
+        (
+            "port = \"/dev/ttyACM0\"\n",
+            "port = \"/dev/ttyACM0\"\ncolour = \"red\"\n",
+            "key `colour`: needs `material`",
+        ),
+        (
+            "port = \"/dev/ttyACM0\"\n",
+            "port = \"/dev/ttyACM0\"\ntags = [\"a b\"]\n",
+            "key `tags`",
+        ),
+        (
+            "max_heating = 1\n",
+            "max_heating = 1\nspool_low_g = -1\n",
+            "[farm]: key `spool_low_g`",
+        ),
+    ] {
+        let err = parse(&GOOD.replacen(from, to, 1)).unwrap_err().to_string();
+        assert!(err.contains(expected), "{err}");
+    }
+    for (extra, expected) in [
+        ("[spoolman]\nurl = \"ftp://x\"\n", "[spoolman]: key `url`"),
+        (
+            "[spoolman]\nurl = \"http://x\"\npoll_s = 0\n",
+            "[spoolman]: key `poll_s`",
+        ),
+        (
+            "[spoolman]\nurl = \"http://x\"\nport = 1\n",
+            "unknown field `port`",
+        ),
+    ] {
+        let err = parse(&format!("{GOOD}{extra}")).unwrap_err().to_string();
+        assert!(err.contains(expected), "{err}");
+    }
+    let folder = |extra: &str| {
+        let text = format!(
+            "{GOOD}[[folder]]\npath = \"/srv/x\"\nheight_mm = 30\nprinters = [\"um2-a\"]\n{extra}"
+        );
+        parse(&text)
+    };
+    let c = folder("material = \"PETG\"\ncolour = \"black\"\nnozzle_mm = 0.4\npriority = 5\ntags = [\"big\"]\n").unwrap();
+    let f = c.folders.last().unwrap();
+    assert_eq!(f.asks.material.as_deref(), Some("PETG"));
+    assert_eq!(
+        f.settings.material.as_deref(),
+        Some("petg"),
+        "sliced for what it asks"
+    );
+    assert_eq!((f.asks.priority, f.asks.nozzle_mm), (5, Some(0.4)));
+    for (extra, key) in [
+        ("priority = 101\n", "key `priority`"),
+        ("nozzle_mm = 0\n", "key `nozzle_mm`"),
+        ("material = \"\"\n", "key `material`"),
+        (
+            "material = \"pla\"\n[folder.settings]\nmaterial = \"petg\"\n",
+            "key `material`",
+        ),
+    ] {
+        let err = folder(extra).unwrap_err().to_string();
+        assert!(
+            err.contains("[[folder]]") && err.contains(key),
+            "{extra}: {err}"
+        );
+    }
 }

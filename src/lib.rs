@@ -21,7 +21,7 @@
 //!   the filament a print used booked against its spool.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
-//! - `tls`: the TLS client of every outbound https connection.
+//! - `outbound`: outbound HTTP (notifications, cameras, Spoolman) and its TLS client.
 //! - [`percent`]: names in addresses (percent-encoding), for the API, its clients and links.
 //!
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
@@ -40,10 +40,10 @@ pub mod machine;
 pub mod marlin;
 pub mod mesh;
 pub mod notify;
+pub mod outbound;
 pub mod percent;
 pub mod ports;
 pub mod preview;
 pub mod service;
 pub mod slice;
 pub mod spoolman;
-pub(crate) mod tls;

@@ -54,34 +54,27 @@ async fn get(url: &ReceiverUrl, timeout: Duration) -> Result<Answer, FetchError>
 }
 
 async fn get_inner(url: &ReceiverUrl) -> Result<Answer, FetchError> {
-    let connect_error = |message: String| FetchError::Connect {
-        host: url.host.clone(),
-        port: url.port,
-        message,
-    };
-    let tcp = tokio::net::TcpStream::connect((url.host.as_str(), url.port))
-        .await
-        .map_err(|e| connect_error(e.to_string()))?;
-    let _ = tcp.set_nodelay(true);
-    let request = hyper::Request::get(url.path.as_str())
-        .header(hyper::header::HOST, url.host_header())
-        .header(
-            hyper::header::USER_AGENT,
-            concat!("crispen/", env!("CARGO_PKG_VERSION")),
-        )
+    let io = crate::outbound::connect(url).await.map_err(|e| match e {
+        crate::outbound::OutboundError::Connect {
+            host,
+            port,
+            message,
+        } => FetchError::Connect {
+            host,
+            port,
+            message,
+        },
+        crate::outbound::OutboundError::Tls { host, message } => FetchError::Connect {
+            host,
+            port: url.port,
+            message: format!("TLS: {message}"),
+        },
+        other => FetchError::Http(other.to_string()),
+    })?;
+    let request = crate::outbound::request(url, hyper::Method::GET, &url.path)
         .body(Empty::<Bytes>::new())
         .map_err(|e| FetchError::Http(e.to_string()))?;
-    if url.https {
-        let name = tokio_rustls::rustls::pki_types::ServerName::try_from(url.host.clone())
-            .map_err(|e| connect_error(e.to_string()))?;
-        let tls = crate::tls::connector()
-            .connect(name, tcp)
-            .await
-            .map_err(|e| connect_error(format!("TLS: {e}")))?;
-        exchange(tls, request).await
-    } else {
-        exchange(tcp, request).await
-    }
+    exchange(io, request).await
 }
 
 /// `request` on one connection, which a task of its own drives while the body is read.

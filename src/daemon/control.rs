@@ -119,12 +119,6 @@ pub(crate) enum CommandError {
     Store(#[from] StoreError),
 }
 
-impl From<super::filament::FilamentError> for CommandError {
-    fn from(e: super::filament::FilamentError) -> CommandError {
-        CommandError::Store(StoreError::Filament(e))
-    }
-}
-
 impl CommandError {
     /// The printer or job named does not exist (as opposed to: it cannot do that now).
     pub(crate) fn is_not_found(&self) -> bool {
@@ -228,9 +222,15 @@ pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String
             })
         }
         Command::Release { job } => release(farm, &job).await,
-        Command::Load { printer, what } => super::spools::load(farm, &printer, what).await,
-        Command::Unload { printer } => super::spools::unload(farm, &printer).await,
-        Command::AddSpool(new) => super::spools::add(farm, new).await,
+        Command::Load { printer, what } => {
+            known_printer(farm, &printer)?;
+            Ok(super::spools::load(farm, &printer, what).await?)
+        }
+        Command::Unload { printer } => {
+            known_printer(farm, &printer)?;
+            Ok(super::spools::unload(farm, &printer).await?)
+        }
+        Command::AddSpool(new) => Ok(super::spools::add(farm, new).await?),
     }
 }
 

@@ -462,8 +462,7 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
             .is_none_or(|p| p == printer);
         // What it asks of the printer, against what the printer holds as the store had
         // it just before the claim (the store's task serves the claim; a spool loaded
-        // meanwhile is seen at the next claim).
-        // An idle printer has nothing reserved.
+        // meanwhile is seen at the next claim). An idle printer has nothing reserved.
         let fits = || {
             config
                 .printers
@@ -567,29 +566,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     tracing::info!(gcode = %gcode.display(), "starting print");
     // The odometer: what the print pushed is measured from it, even after a kill.
     let odometer_path = super::usage::path(&farm.config().spool_dir, printer);
-    let mut odometer = {
-        let config = farm.config();
-        let store = farm.store();
-        let holds = config
-            .printers
-            .iter()
-            .find(|p| p.name == printer)
-            .map(|p| super::farm::offer(p, store.inventory(), 0.0));
-        super::usage::Odometer {
-            job: job_id.to_string(),
-            printer: printer.to_string(),
-            print: store.get(job_id).map_or(0, |j| j.uses.len()),
-            spool: holds.as_ref().and_then(|o| o.spool).map(|s| s.id.clone()),
-            filament: holds.as_ref().and_then(|o| o.filament).cloned(),
-            gcode: gcode.clone(),
-            firmware: config
-                .printers
-                .iter()
-                .find(|p| p.name == printer)
-                .map_or(crate::marlin::firmware::Firmware::Marlin2, |p| p.firmware),
-            lines_acked: 0,
-        }
-    };
+    let mut odometer = super::usage::Odometer::start(farm, printer, job_id, &gcode);
     odometer.write(&odometer_path).await;
     sup.show(|p| {
         p.state = PrinterState::Printing;
@@ -725,10 +702,11 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             }
         })
         .await;
-    match recorded {
-        Ok(_) => super::usage::remove(&odometer_path).await,
-        // Kept: the next start records the use from it.
-        Err(e) => tracing::error!(error = %e, "cannot record the print's outcome"),
+    // The odometer stays: the next start reads it, and records its use only if the job
+    // has none for this print (removing it here would free space under a full disk that
+    // the outcome waits for, and buys nothing).
+    if let Err(e) = recorded {
+        tracing::error!(error = %e, "cannot record the print's outcome");
     }
     sup.show(|p| {
         p.state = if sent_nothing {

@@ -2,10 +2,9 @@
 //! one), unload it, add a spool to the farm's own inventory. Each is one change of the
 //! inventory by the job store's task, checked there against the inventory as it is.
 
-use super::control::CommandError;
 use super::farm::Farm;
 use super::filament::{check_filament, check_grams, Filament, FilamentError};
-use super::job::JobState;
+use super::job::{JobState, StoreError};
 
 /// A spool the operator describes (what `crispen load --material ...` and the dashboard's
 /// "new spool" send). What is left out comes from the printer's machine (diameter) and the
@@ -50,7 +49,7 @@ pub enum Load {
 /// Loads a spool on `printer` (this host's or, in a shared farm, another's: the inventory
 /// is the farm's). Refused while the printer prints: its print's filament is booked to
 /// the spool it started with.
-pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<String, CommandError> {
+pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<String, StoreError> {
     let diameter = machine_filament(farm, printer)?;
     check_not_printing(farm, printer)?;
     let spoolman = farm.config().spoolman.is_some();
@@ -87,7 +86,7 @@ pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<Strin
 }
 
 /// Takes the spool off `printer`: it holds nothing, and takes no job, until one is loaded.
-pub(crate) async fn unload(farm: &Farm, printer: &str) -> Result<String, CommandError> {
+pub(crate) async fn unload(farm: &Farm, printer: &str) -> Result<String, StoreError> {
     machine_filament(farm, printer)?;
     check_not_printing(farm, printer)?;
     let name = printer.to_string();
@@ -104,7 +103,7 @@ pub(crate) async fn unload(farm: &Farm, printer: &str) -> Result<String, Command
 }
 
 /// Adds a spool of the farm's own, loaded nowhere; its id.
-pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<String, CommandError> {
+pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<String, StoreError> {
     if farm.config().spoolman.is_some() {
         return Err(FilamentError::Invalid(
             "the farm's spools come from Spoolman: add the spool there".into(),
@@ -133,8 +132,9 @@ pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<String, CommandErr
     Ok(format!("spool {id} added ({grams} g)"))
 }
 
-/// The filament diameter `printer`'s machine takes; an unknown printer is refused.
-fn machine_filament(farm: &Farm, printer: &str) -> Result<f64, CommandError> {
+/// The filament diameter `printer`'s machine takes (the caller has checked the printer is
+/// the farm's; one whose machine is not known yet is refused).
+fn machine_filament(farm: &Farm, printer: &str) -> Result<f64, StoreError> {
     if let Some(p) = farm.config().printers.iter().find(|p| p.name == printer) {
         return Ok(p.machine.filament_mm);
     }
@@ -143,10 +143,15 @@ fn machine_filament(farm: &Farm, printer: &str) -> Result<f64, CommandError> {
         .into_iter()
         .find(|(n, _)| n == printer)
         .map(|(_, m)| m.filament_mm)
-        .ok_or_else(|| CommandError::NoPrinter(printer.to_string()))
+        .ok_or_else(|| {
+            FilamentError::Invalid(format!(
+                "{printer}: its machine is not known yet (its host has not registered it)"
+            ))
+            .into()
+        })
 }
 
-fn check_not_printing(farm: &Farm, printer: &str) -> Result<(), CommandError> {
+fn check_not_printing(farm: &Farm, printer: &str) -> Result<(), StoreError> {
     let store = farm.store();
     let printing = store
         .jobs()

@@ -7,7 +7,8 @@
 //! odometer while it prints: `<spool>/odometer/<printer>.json`, the job and the lines
 //! acknowledged, rewritten with the progress (a few times a second). A process killed
 //! leaves the file as last written (the kernel has it); the next start of that printer's
-//! supervisor measures the use from it and records it with the job, once.
+//! supervisor measures the use from it and records it with the job if the job has no use
+//! for that print yet (a print that ended recorded its own), then removes it.
 
 use super::filament::Filament;
 use super::job::JobUse;
@@ -37,6 +38,30 @@ pub(crate) fn path(spool_dir: &Path, printer: &str) -> PathBuf {
 }
 
 impl Odometer {
+    /// The odometer of `job`'s print starting on `printer` from `gcode`: what the printer
+    /// holds now (the print's filament is booked to it), no line acknowledged yet.
+    pub(crate) fn start(
+        farm: &super::farm::Farm,
+        printer: &str,
+        job: &str,
+        gcode: &Path,
+    ) -> Odometer {
+        let config = farm.config();
+        let store = farm.store();
+        let on = config.printers.iter().find(|p| p.name == printer);
+        let holds = on.map(|p| super::farm::offer(p, store.inventory(), 0.0));
+        Odometer {
+            job: job.to_string(),
+            printer: printer.to_string(),
+            print: store.get(job).map_or(0, |j| j.uses.len()),
+            spool: holds.as_ref().and_then(|o| o.spool).map(|s| s.id.clone()),
+            filament: holds.as_ref().and_then(|o| o.filament).cloned(),
+            gcode: gcode.to_path_buf(),
+            firmware: on.map_or(Firmware::Marlin2, |p| p.firmware),
+            lines_acked: 0,
+        }
+    }
+
     /// Writes the odometer (a temporary file renamed over it, not synced: it must outlive
     /// the process, not a power cut, and it is rewritten several times a second).
     pub(crate) async fn write(&self, path: &Path) {
@@ -119,7 +144,7 @@ impl Odometer {
     }
 }
 
-pub(crate) async fn remove(path: &Path) {
+async fn remove(path: &Path) {
     match tokio::fs::remove_file(path).await {
         Ok(()) => {}
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}

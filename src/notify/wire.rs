@@ -6,10 +6,8 @@
 use super::event::Event;
 use crate::daemon::config::notify::{NotifyFormat, Receiver};
 use bytes::Bytes;
-use http_body_util::{BodyExt, Full, Limited};
-use hyper_util::rt::TokioIo;
+use http_body_util::Full;
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncWrite};
 
 /// The part of an answer kept (shown by `crispen notify test`, logged on a failure).
 pub(crate) const MAX_ANSWER_BYTES: usize = 4096;
@@ -39,15 +37,9 @@ impl Answer {
 
 #[derive(Debug, thiserror::Error)]
 pub enum SendError {
-    #[error("cannot connect to {host}:{port}: {source}")]
-    Connect {
-        host: String,
-        port: u16,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("TLS with {host}: {message}")]
-    Tls { host: String, message: String },
+    /// Connecting, TLS or HTTP failed.
+    #[error(transparent)]
+    Outbound(#[from] crate::outbound::OutboundError),
     #[error("HTTP: {0}")]
     Http(String),
     #[error("no answer within {0:?}")]
@@ -164,88 +156,20 @@ async fn exchange(
     headers: Vec<(&'static str, String)>,
 ) -> Result<Answer, SendError> {
     let url = &receiver.url;
-    let tcp = tokio::net::TcpStream::connect((url.host.as_str(), url.port))
-        .await
-        .map_err(|source| SendError::Connect {
-            host: url.host.clone(),
-            port: url.port,
-            source,
-        })?;
-    let _ = tcp.set_nodelay(true);
-    let mut request = hyper::Request::builder()
-        .method(hyper::Method::POST)
-        .uri(url.path.as_str())
-        .header(hyper::header::HOST, url.host_header())
-        .header(hyper::header::CONNECTION, "close")
-        .header(
-            hyper::header::USER_AGENT,
-            concat!("crispen/", env!("CARGO_PKG_VERSION")),
-        );
+    let mut request = crate::outbound::request(url, hyper::Method::POST, &url.path);
     for (name, value) in headers {
         request = request.header(name, value);
     }
     let request = request
         .body(Full::new(Bytes::from(body)))
         .map_err(|e| SendError::Http(e.to_string()))?;
-    if url.https {
-        let name = tokio_rustls::rustls::pki_types::ServerName::try_from(url.host.clone())
-            .map_err(|e| SendError::Tls {
-                host: url.host.clone(),
-                message: e.to_string(),
-            })?;
-        let tls = crate::tls::connector()
-            .connect(name, tcp)
-            .await
-            .map_err(|e| SendError::Tls {
-                host: url.host.clone(),
-                message: e.to_string(),
-            })?;
-        over(tls, request).await
-    } else {
-        over(tcp, request).await
-    }
-}
-
-/// The request on one connection, driven here (nothing is left running when the attempt
-/// is dropped at its timeout).
-async fn over(
-    io: impl AsyncRead + AsyncWrite + Unpin + Send + 'static,
-    request: hyper::Request<Full<Bytes>>,
-) -> Result<Answer, SendError> {
-    let http = |e: hyper::Error| SendError::Http(e.to_string());
-    let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(io))
-        .await
-        .map_err(http)?;
-    let answer = async {
-        let response = sender.send_request(request).await.map_err(http)?;
-        let status = response.status().as_u16();
-        // Only the start of the body is kept; a longer one is cut, not an error.
-        let mut body = Vec::new();
-        let mut stream = Limited::new(response.into_body(), 1 << 20);
-        while let Some(frame) = stream.frame().await {
-            let Ok(frame) = frame else { break };
-            if let Ok(data) = frame.into_data() {
-                let room = MAX_ANSWER_BYTES.saturating_sub(body.len());
-                body.extend_from_slice(&data[..data.len().min(room)]);
-            }
-        }
-        Ok(Answer {
-            status,
-            body: String::from_utf8_lossy(&body).into_owned(),
-        })
-    };
-    tokio::pin!(answer);
-    tokio::pin!(connection);
-    let mut connection_open = true;
-    loop {
-        tokio::select! {
-            a = &mut answer => return a,
-            c = &mut connection, if connection_open => {
-                connection_open = false;
-                c.map_err(http)?;
-            }
-        }
-    }
+    // Only the start of the body is kept; a longer one is cut, not an error.
+    let (status, body) =
+        crate::outbound::send(url, request, crate::outbound::Cap::Cut(MAX_ANSWER_BYTES)).await?;
+    Ok(Answer {
+        status,
+        body: String::from_utf8_lossy(&body).into_owned(),
+    })
 }
 
 #[cfg(test)]

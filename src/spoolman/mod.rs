@@ -15,11 +15,9 @@ pub mod link;
 // callers outside the crate that make a client.
 pub use crate::daemon::config::notify::{parse_url, ReceiverUrl};
 use bytes::Bytes;
-use http_body_util::{BodyExt, Full};
-use hyper_util::rt::TokioIo;
+use http_body_util::Full;
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncWrite};
 
 /// The largest answer read: a list of some thousand spools is well under 8 MiB; anything
 /// bigger is not Spoolman speaking.
@@ -339,43 +337,37 @@ impl Spoolman {
         json: Option<Vec<u8>>,
         name: &str,
     ) -> Result<(u16, Vec<u8>), SpoolmanError> {
-        let url = &self.url;
-        let connect_error = |message: String| SpoolmanError::Connect {
-            host: url.host.clone(),
-            port: url.port,
-            message,
-        };
-        let tcp = tokio::net::TcpStream::connect((url.host.as_str(), url.port))
-            .await
-            .map_err(|e| connect_error(e.to_string()))?;
-        let _ = tcp.set_nodelay(true);
-        let mut request = hyper::Request::builder()
-            .method(method)
-            .uri(target)
-            .header(hyper::header::HOST, url.host_header())
-            .header(hyper::header::CONNECTION, "close")
-            .header(hyper::header::ACCEPT, "application/json")
-            .header(
-                hyper::header::USER_AGENT,
-                concat!("crispen/", env!("CARGO_PKG_VERSION")),
-            );
+        let mut request = crate::outbound::request(&self.url, method, target)
+            .header(hyper::header::ACCEPT, "application/json");
         if json.is_some() {
             request = request.header(hyper::header::CONTENT_TYPE, "application/json");
         }
         let request = request
             .body(Full::new(Bytes::from(json.unwrap_or_default())))
             .map_err(|e| SpoolmanError::Http(e.to_string()))?;
-        if url.https {
-            let server = tokio_rustls::rustls::pki_types::ServerName::try_from(url.host.clone())
-                .map_err(|e| connect_error(e.to_string()))?;
-            let tls = crate::tls::connector()
-                .connect(server, tcp)
-                .await
-                .map_err(|e| connect_error(format!("TLS: {e}")))?;
-            over(tls, request, name).await
-        } else {
-            over(tcp, request, name).await
-        }
+        let cap = crate::outbound::Cap::Refuse(MAX_ANSWER_BYTES);
+        crate::outbound::send(&self.url, request, cap)
+            .await
+            .map_err(|e| match e {
+                crate::outbound::OutboundError::Connect {
+                    host,
+                    port,
+                    message,
+                } => SpoolmanError::Connect {
+                    host,
+                    port,
+                    message,
+                },
+                crate::outbound::OutboundError::Tls { host, message } => SpoolmanError::Connect {
+                    host,
+                    port: self.url.port,
+                    message: format!("TLS: {message}"),
+                },
+                crate::outbound::OutboundError::Http(m) => SpoolmanError::Http(m),
+                crate::outbound::OutboundError::TooLarge(_) => SpoolmanError::TooLarge {
+                    request: name.to_string(),
+                },
+            })
     }
 }
 
@@ -392,58 +384,6 @@ fn one_spool(request: String, body: &[u8], id: u64) -> Result<SpoolmanSpool, Spo
         return Err(bad(format!("it is about spool {}", spool.id)));
     }
     Ok(spool)
-}
-
-/// The request on one connection, driven here rather than by a task of its own, so
-/// nothing is left running when the call is dropped at its time limit.
-async fn over(
-    io: impl AsyncRead + AsyncWrite + Unpin + Send + 'static,
-    request: hyper::Request<Full<Bytes>>,
-    name: &str,
-) -> Result<(u16, Vec<u8>), SpoolmanError> {
-    let http = |e: hyper::Error| SpoolmanError::Http(e.to_string());
-    let (mut sender, connection) = hyper::client::conn::http1::handshake(TokioIo::new(io))
-        .await
-        .map_err(http)?;
-    let answer = async {
-        let response = sender.send_request(request).await.map_err(http)?;
-        let status = response.status().as_u16();
-        let too_large = || SpoolmanError::TooLarge {
-            request: name.to_string(),
-        };
-        // A declared length over the cap is refused before any of it is read.
-        let declared = response
-            .headers()
-            .get(hyper::header::CONTENT_LENGTH)
-            .and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
-        if declared.is_some_and(|n| n > MAX_ANSWER_BYTES as u64) {
-            return Err(too_large());
-        }
-        let mut body = Vec::new();
-        let mut stream = response.into_body();
-        while let Some(frame) = stream.frame().await {
-            let frame = frame.map_err(http)?;
-            if let Ok(data) = frame.into_data() {
-                if body.len() + data.len() > MAX_ANSWER_BYTES {
-                    return Err(too_large());
-                }
-                body.extend_from_slice(&data);
-            }
-        }
-        Ok((status, body))
-    };
-    tokio::pin!(answer);
-    tokio::pin!(connection);
-    let mut connection_open = true;
-    loop {
-        tokio::select! {
-            a = &mut answer => return a,
-            c = &mut connection, if connection_open => {
-                connection_open = false;
-                c.map_err(http)?;
-            }
-        }
-    }
 }
 
 #[cfg(test)]

@@ -487,6 +487,9 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
     let partial = job(&s, "petg.gcode")["used_g"].as_f64().unwrap();
     let petg_g = grams_per_mm(1.27);
     let executed_before = executed_mm(&root.join("b.rec")) * petg_g;
+    eprintln!(
+        "killed mid-print: booked {partial:.3} g, the printer had executed {executed_before:.3} g"
+    );
     assert!(
         (partial - executed_before).abs() < 0.25,
         "the interrupted print booked {partial} g; b executed {executed_before} g"
@@ -537,6 +540,9 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
         (petg_id, &petg, expected_petg),
     ] {
         let got = remaining(id);
+        eprintln!(
+            "spool {id}: Spoolman holds {got:.3} g, the printers executed down to {expected:.3} g"
+        );
         assert!(
             (got - expected).abs() < 0.5,
             "spool {id}: Spoolman holds {got} g, the printers executed down to {expected} g"

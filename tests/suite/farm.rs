@@ -1069,3 +1069,115 @@ fn an_unknown_command_from_the_database_does_not_cancel_a_print() {
     });
     assert_eq!(state_of(&s, "long.gcode"), "printing", "{s:#}");
 }
+
+/// The spools are the farm's: a spool loaded through one host on another host's printer is
+/// what both hosts show; a job asking for its material goes to that printer, whichever
+/// host it was dropped on; and what the print took is booked to the spool once, as every
+/// host sees it (the inventory is one row of the database, changed under its lock).
+#[test]
+fn the_spools_are_the_whole_farms() {
+    let specs = vec![
+        HostSpec {
+            name: "a".into(),
+            printers: vec!["a1".into()],
+            folders: vec![("hot/in".into(), vec!["a1".into(), "b1".into()])],
+            time_scale: 0.0,
+            lease_s: None,
+        },
+        HostSpec {
+            name: "b".into(),
+            printers: vec!["b1".into()],
+            folders: vec![],
+            time_scale: 0.0,
+            lease_s: None,
+        },
+    ];
+    let farm = Farm::start(&specs);
+    for h in ["a", "b"] {
+        farm.wait_status(h, Duration::from_secs(120), "the farm up", |s| {
+            ["a1", "b1"].iter().all(|p| printer(s, p).is_some())
+        });
+    }
+    // Each host loads a spool on the other's printer.
+    let (ok, out) = farm.host("a").ctl(&[
+        "load",
+        "b1",
+        "--material",
+        "PETG",
+        "--colour",
+        "black",
+        "--grams",
+        "500",
+        "--price-per-kg",
+        "30",
+    ]);
+    assert!(ok, "{out}");
+    let (ok, out) = farm.host("b").ctl(&[
+        "load",
+        "a1",
+        "--material",
+        "PLA",
+        "--colour",
+        "white",
+        "--grams",
+        "800",
+    ]);
+    assert!(ok, "{out}");
+    let holds = |s: &Value, p: &str| {
+        printer(s, p).map_or(String::new(), |p| {
+            format!(
+                "{} {} {}",
+                p["holds"]["filament"]["material"].as_str().unwrap_or("?"),
+                p["holds"]["spool"].as_str().unwrap_or("?"),
+                p["holds"]["remaining_g"]
+            )
+        })
+    };
+    for h in ["a", "b"] {
+        farm.wait_status(
+            h,
+            Duration::from_secs(60),
+            "both spools, seen from every host",
+            |s| holds(s, "b1") == "PETG s1 500.0" && holds(s, "a1") == "PLA s2 800.0",
+        );
+    }
+    drop_file(
+        &farm.root.join("hot/in"),
+        "petg.gcode.toml",
+        b"material = \"PETG\"\n",
+    );
+    drop_file(
+        &farm.root.join("hot/in"),
+        "petg.gcode",
+        presliced_gcode("petg", 100, 6000).as_bytes(),
+    );
+    let s = farm.wait_status(
+        "a",
+        Duration::from_secs(120),
+        "the PETG job done on b1",
+        |s| state_of(s, "petg.gcode") == "done",
+    );
+    let job = common::job_by_file(&s, "petg.gcode").unwrap();
+    assert_eq!(job["printer"], "b1");
+    let used = job["used_g"].as_f64().unwrap();
+    assert!(used > 0.5, "{job}");
+    for h in ["a", "b"] {
+        farm.wait_status(
+            h,
+            Duration::from_secs(60),
+            "the use booked, seen from every host",
+            |s| {
+                printer(s, "b1")
+                    .and_then(|p| p["holds"]["remaining_g"].as_f64())
+                    .is_some_and(|g| (g - (500.0 - used)).abs() < 1e-9)
+            },
+        );
+    }
+    let rows = farm.query("SELECT doc->'spools'->'s1'->'uses' FROM filament", &[]);
+    let uses: Value = rows[0].get(0);
+    assert_eq!(
+        uses.as_object().map(|u| u.len()),
+        Some(1),
+        "booked once: {uses}"
+    );
+}

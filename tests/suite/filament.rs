@@ -705,6 +705,13 @@ fn spools_on_the_dashboard_in_a_real_browser() {
            && b.querySelector('svg.swatch circle').getAttribute('fill') === '#101010'
            && document.querySelector('#loadform').hidden) || (b && b.textContent);",
     );
+    let metrics = request(&addr, "GET", "/metrics", &key, b"").text();
+    for line in [
+        "crispen_spool_remaining_grams{spool=\"s1\",material=\"PLA\",colour=\"white\",printer=\"alpha\"} 1000",
+        "crispen_spool_remaining_grams{spool=\"s2\",material=\"PETG\",colour=\"black\",printer=\"beta\"} 750",
+    ] {
+        assert!(metrics.lines().any(|l| l == line), "{line} in\n{metrics}");
+    }
     let s = status(&config).unwrap();
     assert_eq!(common::printer(&s, "beta")["holds"]["spool"], "s2");
     assert_eq!(common::printer(&s, "beta")["holds"]["hardened"], true);

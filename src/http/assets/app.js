@@ -578,6 +578,15 @@ async function showJob(id) {
     (j.height_mm != null ? j.height_mm + " mm" : "") + " · strength " + esc(strengthText(j.strength)) +
     (j.printer ? " · printer " + esc(j.printer) : "") + "</p>";
   if (j.reason) html += '<p class="reason" id="reason">' + esc(j.reason) + "</p>";
+  if (j.waiting) html += '<p class="waiting">' + esc(j.waiting) + "</p>";
+  // Filament: what it asks, what a print needs, what its prints took and cost.
+  const filament = [];
+  if (asksText(j.asks)) filament.push("asks " + asksText(j.asks));
+  if (j.asks && j.asks.priority) filament.push("priority " + j.asks.priority);
+  if (j.need_g != null) filament.push("needs about " + grams(j.need_g) + " a print");
+  if (j.used_g != null) filament.push("used " + (+j.used_g.toFixed(2)) + " g");
+  if (j.cost != null) filament.push("cost " + j.cost.toFixed(2));
+  if (filament.length) html += '<p id="filament">' + esc(filament.join(" · ")) + "</p>";
   if (j.pictures.length) {
     html += '<div class="pictures">';
     for (const [name, title] of [["before.png", "Before"], ["after.png", "After"], ["displacement.png", "Displacement"]]) {

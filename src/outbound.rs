@@ -32,6 +32,18 @@ pub enum OutboundError {
     TooLarge(usize),
 }
 
+impl OutboundError {
+    /// Why no connection was made (TLS included), for a client's own "cannot connect"
+    /// error; None for what failed after connecting.
+    pub(crate) fn connect_failure(&self) -> Option<String> {
+        match self {
+            OutboundError::Connect { message, .. } => Some(message.clone()),
+            OutboundError::Tls { message, .. } => Some(format!("TLS: {message}")),
+            OutboundError::Http(_) | OutboundError::TooLarge(_) => None,
+        }
+    }
+}
+
 fn connector() -> tokio_rustls::TlsConnector {
     static CONNECTOR: OnceLock<tokio_rustls::TlsConnector> = OnceLock::new();
     CONNECTOR

@@ -54,23 +54,16 @@ async fn get(url: &ReceiverUrl, timeout: Duration) -> Result<Answer, FetchError>
 }
 
 async fn get_inner(url: &ReceiverUrl) -> Result<Answer, FetchError> {
-    let io = crate::outbound::connect(url).await.map_err(|e| match e {
-        crate::outbound::OutboundError::Connect {
-            host,
-            port,
-            message,
-        } => FetchError::Connect {
-            host,
-            port,
-            message,
-        },
-        crate::outbound::OutboundError::Tls { host, message } => FetchError::Connect {
-            host,
-            port: url.port,
-            message: format!("TLS: {message}"),
-        },
-        other => FetchError::Http(other.to_string()),
-    })?;
+    let io = crate::outbound::connect(url)
+        .await
+        .map_err(|e| match e.connect_failure() {
+            Some(message) => FetchError::Connect {
+                host: url.host.clone(),
+                port: url.port,
+                message,
+            },
+            None => FetchError::Http(e.to_string()),
+        })?;
     let request = crate::outbound::request(url, hyper::Method::GET, &url.path)
         .body(Empty::<Bytes>::new())
         .map_err(|e| FetchError::Http(e.to_string()))?;

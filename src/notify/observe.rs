@@ -512,17 +512,9 @@ mod tests {
     /// one already low at the first look is not news.
     #[test]
     fn a_spool_falling_low_is_told_once() {
-        use crate::daemon::filament::{Filament, Report, Use};
+        use crate::daemon::filament::{Report, Use};
         let mut inv = Inventory::default();
-        let f = Filament {
-            material: "PETG".into(),
-            colour: "black".into(),
-            colour_hex: None,
-            brand: None,
-            diameter_mm: 2.85,
-            density_g_cm3: 1.27,
-            price_per_kg: None,
-        };
+        let f = crate::daemon::filament::tests::petg_black();
         let id = inv.add_spool(f.clone(), 150.0).unwrap();
         let low = inv.add_spool(f, 50.0).unwrap();
         inv.load("p", &id).unwrap();

@@ -348,25 +348,16 @@ impl Spoolman {
         let cap = crate::outbound::Cap::Refuse(MAX_ANSWER_BYTES);
         crate::outbound::send(&self.url, request, cap)
             .await
-            .map_err(|e| match e {
-                crate::outbound::OutboundError::Connect {
-                    host,
-                    port,
-                    message,
-                } => SpoolmanError::Connect {
-                    host,
-                    port,
-                    message,
-                },
-                crate::outbound::OutboundError::Tls { host, message } => SpoolmanError::Connect {
-                    host,
+            .map_err(|e| match (e.connect_failure(), e) {
+                (Some(message), _) => SpoolmanError::Connect {
+                    host: self.url.host.clone(),
                     port: self.url.port,
-                    message: format!("TLS: {message}"),
+                    message,
                 },
-                crate::outbound::OutboundError::Http(m) => SpoolmanError::Http(m),
-                crate::outbound::OutboundError::TooLarge(_) => SpoolmanError::TooLarge {
+                (None, crate::outbound::OutboundError::TooLarge(_)) => SpoolmanError::TooLarge {
                     request: name.to_string(),
                 },
+                (None, e) => SpoolmanError::Http(e.to_string()),
             })
     }
 }

@@ -425,7 +425,7 @@ pub fn colour_name(name: Option<&str>, hex: Option<&str>) -> String {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     pub(crate) fn petg_black() -> Filament {

@@ -301,20 +301,18 @@ mod tests {
         let mut f = folder();
         f.asks.priority = 5;
         f.asks.tags = vec!["big".into()];
-        let s = parse_sidecar(
-            &b"material = \"petg\"\ncolour = \"Black\"\npriority = 9\n"[..],
-            Path::new("m.stl.toml"),
-        )
-        .unwrap();
-        let task = resolve_task(
-            "j",
-            Path::new("/spool/j"),
-            "m.stl",
-            &f,
-            &printers(),
-            Some(&s),
-        )
-        .unwrap();
+        let resolve = |sidecar: &str| {
+            let s = parse_sidecar(sidecar.as_bytes(), Path::new("m.stl.toml"))?;
+            resolve_task(
+                "j",
+                Path::new("/spool/j"),
+                "m.stl",
+                &f,
+                &printers(),
+                Some(&s),
+            )
+        };
+        let task = resolve("material = \"petg\"\ncolour = \"Black\"\npriority = 9\n").unwrap();
         assert_eq!(task.asks.material.as_deref(), Some("PETG"));
         assert_eq!(task.asks.colour.as_deref(), Some("black"));
         assert_eq!(
@@ -326,30 +324,12 @@ mod tests {
             .machines
             .iter()
             .all(|m| m.machine.max_hotend_c <= 255.0));
-        let s = parse_sidecar(&b"nozzle_mm = 0.8\n"[..], Path::new("m.stl.toml")).unwrap();
-        let e = resolve_task(
-            "j",
-            Path::new("/spool/j"),
-            "m.stl",
-            &f,
-            &printers(),
-            Some(&s),
-        )
-        .unwrap_err();
+        let e = resolve("nozzle_mm = 0.8\n").unwrap_err();
         assert!(e.contains("0.8 mm nozzle"), "{e}");
-        let s = parse_sidecar(&b"material = \"nylon\"\n"[..], Path::new("m.stl.toml")).unwrap();
-        let e = resolve_task(
-            "j",
-            Path::new("/spool/j"),
-            "m.stl",
-            &f,
-            &printers(),
-            Some(&s),
-        )
-        .unwrap_err();
+        let e = resolve("material = \"nylon\"\n").unwrap_err();
         assert!(e.contains("key `material`"), "{e}");
-        assert!(parse_sidecar(&b"priority = 1000\n"[..], Path::new("m.stl.toml")).is_err());
-        assert!(parse_sidecar(&b"tags = [\"a b\"]\n"[..], Path::new("m.stl.toml")).is_err());
+        assert!(resolve("priority = 1000\n").is_err());
+        assert!(resolve("tags = [\"a b\"]\n").is_err());
     }
 
     /// Printers a and c are Ultimaker 2s, b a 1.75 mm Marlin machine; d serves no folder.

@@ -1,6 +1,7 @@
 //! Moving finished jobs out of the live snapshot to the history: at a change that left
 //! too many live, and in the task's periodic round. Apart because both a request (an
-//! operator's `retire`) and the task's own timer make the round.
+//! operator's `retire`) and the task's own timer make the round. Before any job leaves,
+//! the spools' ledgers take the uses the live jobs recorded ([`catch_up_ledgers`]).
 
 use super::history::Retention;
 use super::job_store::JobStore;
@@ -15,6 +16,9 @@ fn retire(
     retention: &Retention,
     now: f64,
 ) -> Result<Vec<String>, StoreError> {
+    if catch_up_ledgers(store, view).is_err() {
+        return Ok(Vec::new());
+    }
     let ids = store.retire(retention, now)?;
     if !ids.is_empty() {
         tracing::info!(jobs = ids.len(), first = %ids[0], "finished jobs moved to the history");
@@ -67,4 +71,56 @@ pub(super) fn retire_beyond_limit(
         }
     }
     moved
+}
+
+/// Brings the spools' ledgers up to date with the uses the live jobs recorded with their
+/// outcomes (a use is in the job's record first, in the same write as the outcome; here it
+/// reaches its spool, once: the ledger is keyed by the use). Says whether anything changed.
+/// A failure (the disk, the database) is logged and tried again at the next change; until
+/// it succeeds no finished job leaves the live view (its use would leave with it).
+pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) -> Result<bool, ()> {
+    let inventory = view.inventory();
+    let missing: Vec<crate::daemon::job::JobUse> = view
+        .jobs()
+        .flat_map(|j| j.uses.iter())
+        .filter(|u| {
+            u.spool
+                .as_ref()
+                .and_then(|s| inventory.spools.get(s))
+                .is_some_and(|s| !s.uses.contains_key(&u.key))
+        })
+        .cloned()
+        .collect();
+    if missing.is_empty() {
+        return Ok(false);
+    }
+    let job_of = |key: &str| key.rsplit_once('#').map_or(key, |(j, _)| j).to_string();
+    let result = store.edit_inventory(&mut |inv| {
+        for u in &missing {
+            let Some(spool) = &u.spool else { continue };
+            inv.record_use(
+                spool,
+                &u.key,
+                crate::daemon::filament::Use {
+                    job: job_of(&u.key),
+                    printer: u.printer.clone(),
+                    grams: u.grams,
+                    mm: u.mm,
+                    at_s: u.at_s,
+                    report: crate::daemon::filament::Report::Local,
+                },
+            );
+        }
+        Ok(())
+    });
+    match result {
+        Ok(inventory) => {
+            view.inventory = std::sync::Arc::new(inventory);
+            Ok(true)
+        }
+        Err(e) => {
+            tracing::error!(error = %e, "cannot record the prints' filament on their spools; tried again at the next change");
+            Err(())
+        }
+    }
 }

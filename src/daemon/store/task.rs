@@ -7,7 +7,7 @@ use super::handle::StoreHandle;
 use super::history::{self, Retention};
 use super::job_store::JobStore;
 use super::request::Request;
-use super::retiring::{retire_beyond_limit, round};
+use super::retiring::{catch_up_ledgers, retire_beyond_limit, round};
 use super::snapshot::Snapshot;
 use std::sync::Arc;
 use tokio::sync::{mpsc, watch};
@@ -97,11 +97,10 @@ async fn serve(
                         deliveries.push(delivery);
                         changed |= change;
                     }
+                    changed |= catch_up_ledgers(&mut *store, &mut view).unwrap_or(false);
                     changed |= retire_beyond_limit(&mut *store, &mut view, &retention);
-                    changed |= catch_up_ledgers(&mut *store, &mut view);
                 }
                 Work::Retire => {
-                    changed |= catch_up_ledgers(&mut *store, &mut view);
                     let now = crate::daemon::job::now_s();
                     match round(&mut *store, &mut view, &retention, now) {
                         Ok(ids) => {
@@ -135,57 +134,6 @@ async fn serve(
         }
         for delivery in deliveries {
             delivery();
-        }
-    }
-}
-
-/// Brings the spools' ledgers up to date with the uses the live jobs recorded with their
-/// outcomes (a use is in the job's record first, in the same write as the outcome; here it
-/// reaches its spool, once: the ledger is keyed by the use). Says whether anything changed.
-/// A failure (the disk, the database) is logged and tried again at the next change.
-fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
-    let inventory = view.inventory();
-    let missing: Vec<crate::daemon::job::JobUse> = view
-        .jobs()
-        .flat_map(|j| j.uses.iter())
-        .filter(|u| {
-            u.spool
-                .as_ref()
-                .and_then(|s| inventory.spools.get(s))
-                .is_some_and(|s| !s.uses.contains_key(&u.key))
-        })
-        .cloned()
-        .collect();
-    if missing.is_empty() {
-        return false;
-    }
-    let job_of = |key: &str| key.rsplit_once('#').map_or(key, |(j, _)| j).to_string();
-    let result = store.edit_inventory(&mut |inv| {
-        for u in &missing {
-            let Some(spool) = &u.spool else { continue };
-            inv.record_use(
-                spool,
-                &u.key,
-                crate::daemon::filament::Use {
-                    job: job_of(&u.key),
-                    printer: u.printer.clone(),
-                    grams: u.grams,
-                    mm: u.mm,
-                    at_s: u.at_s,
-                    report: crate::daemon::filament::Report::Local,
-                },
-            );
-        }
-        Ok(())
-    });
-    match result {
-        Ok(inventory) => {
-            view.inventory = Arc::new(inventory);
-            true
-        }
-        Err(e) => {
-            tracing::error!(error = %e, "cannot record the prints' filament on their spools; tried again at the next change");
-            false
         }
     }
 }

@@ -327,3 +327,60 @@ async fn changes_from_elsewhere_are_counted_once() {
     let p1 = &snapshot.tally().read()["p1"];
     assert_eq!((p1.done, p1.prints), (1, 1), "the print on p1");
 }
+
+/// A print's use reaches its spool even when its job leaves the live view in the same
+/// change (`live_jobs = 0`): the ledgers are brought up to date before anything retires.
+#[tokio::test]
+async fn a_use_is_booked_before_its_job_retires() {
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir(&hot).unwrap();
+    let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+    let retention = Retention {
+        live_for: std::time::Duration::from_secs(86_400),
+        live_jobs: 0,
+        keep_for: None,
+    };
+    let handle = spawn_with(store, retention);
+    let inventory = handle
+        .edit_inventory(|inv| {
+            let id = inv.add_spool(crate::daemon::filament::tests::petg_black(), 100.0)?;
+            inv.load("p", &id)
+        })
+        .await
+        .unwrap();
+    let spool = inventory.spool_on("p").unwrap().id.clone();
+    // The job ends with its use recorded, and leaves the live view in the same change.
+    let id = {
+        let model = hot.join("b.gcode");
+        std::fs::write(&model, b"G28\n").unwrap();
+        handle.admit(&model, &hot, &[]).await.unwrap().id
+    };
+    let key = format!("{id}#0");
+    let usage = crate::daemon::job::JobUse {
+        key: key.clone(),
+        spool: Some(spool.clone()),
+        printer: "p".into(),
+        material: "PETG".into(),
+        colour: "black".into(),
+        grams: 12.5,
+        mm: 0.0,
+        cost: None,
+        at_s: 0.0,
+    };
+    handle
+        .transition_from(
+            &id,
+            &[JobState::Queued],
+            JobState::Cancelled,
+            None,
+            move |j| j.uses.push(usage),
+        )
+        .await
+        .unwrap();
+    let snapshot = handle.snapshot();
+    assert!(snapshot.get(&id).is_none(), "retired at once");
+    let s = &snapshot.inventory().spools[&spool];
+    assert!(s.uses.contains_key(&key), "{:?}", s.uses);
+    assert_eq!(s.remaining_g(), Some(87.5));
+}

@@ -655,6 +655,18 @@ pub(crate) fn offer<'a>(
     }
 }
 
+/// The printers `job`'s folder lets print it: as the config has it, or as recorded when
+/// the job came from another host of a shared farm.
+pub(crate) fn folder_rule<'a>(
+    config: &'a Config,
+    job: &'a super::job::Job,
+) -> Option<&'a Vec<String>> {
+    match (&job.origin, config.folder(&job.folder)) {
+        (Some(o), f) if o.host != config.farm.host || f.is_none() => Some(&o.printers),
+        (_, f) => f.map(|f| &f.printers),
+    }
+}
+
 /// Why no printer can take a ready job now, in words; None when one can (or it is not
 /// ready, or no printer of this host serves it). `offers`: this host's printers' (see
 /// [`offers`]).
@@ -666,10 +678,7 @@ pub(crate) fn waiting_reason(
     if job.state != super::job::JobState::Ready || job.held() {
         return None;
     }
-    let rule = match (&job.origin, config.folder(&job.folder)) {
-        (Some(o), f) if o.host != config.farm.host || f.is_none() => Some(&o.printers),
-        (_, f) => f.map(|f| &f.printers),
-    }?;
+    let rule = folder_rule(config, job)?;
     let wanted = job.sidecar.as_ref().and_then(|s| s.printer.as_deref());
     let serving: Vec<super::filament::routing::Offer> = offers
         .iter()

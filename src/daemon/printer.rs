@@ -448,13 +448,8 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let snapshot = farm.store();
     let eligible = move |j: &super::job::Job| {
         let printer = name.as_str();
-        // The folder's rule: as the config has it, or as recorded when a job came from
-        // another host of a shared farm.
-        let rule = match (&j.origin, config.folder(&j.folder)) {
-            (Some(o), f) if o.host != config.farm.host || f.is_none() => Some(&o.printers),
-            (_, f) => f.map(|f| &f.printers),
-        };
-        let served = rule.is_some_and(|r| r.iter().any(|p| p == printer));
+        let served =
+            super::farm::folder_rule(&config, j).is_some_and(|r| r.iter().any(|p| p == printer));
         let wanted = j
             .sidecar
             .as_ref()

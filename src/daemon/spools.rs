@@ -66,21 +66,19 @@ pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<Strin
         Load::Spool(id) => Ok(id),
     };
     let name = printer.to_string();
-    let loaded = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
-    let out = std::sync::Arc::clone(&loaded);
-    farm.jobs()
+    let inventory = farm
+        .jobs()
         .edit_inventory(move |inv| {
             let id = match &what {
                 Ok(id) => id.clone(),
                 Err((filament, grams)) => inv.add_spool(filament.clone(), *grams)?,
             };
-            inv.load(&name, &id)?;
-            *out.lock().unwrap_or_else(|e| e.into_inner()) =
-                inv.spools.get(&id).map(|s| s.describe()).unwrap_or(id);
-            Ok(())
+            inv.load(&name, &id)
         })
         .await?;
-    let spool = loaded.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let spool = inventory
+        .spool_on(printer)
+        .map_or_else(String::new, |s| s.describe());
     tracing::info!(printer, spool = %spool, "spool loaded");
     Ok(format!("{printer}: loaded {spool}"))
 }
@@ -118,16 +116,12 @@ pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<String, StoreError
         .map_or(1.75, |p| p.machine.filament_mm);
     let filament = new.filament(diameter)?;
     let grams = check_grams(new.grams)?;
-    let id = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
-    let out = std::sync::Arc::clone(&id);
-    farm.jobs()
-        .edit_inventory(move |inv| {
-            *out.lock().unwrap_or_else(|e| e.into_inner()) =
-                inv.add_spool(filament.clone(), grams)?;
-            Ok(())
-        })
+    let inventory = farm
+        .jobs()
+        .edit_inventory(move |inv| inv.add_spool(filament.clone(), grams).map(drop))
         .await?;
-    let id = id.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    // Ids are handed out in order: the newest is the one just added.
+    let id = format!("s{}", inventory.next_id);
     tracing::info!(spool = %id, "spool added");
     Ok(format!("spool {id} added ({grams} g)"))
 }

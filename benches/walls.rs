@@ -57,7 +57,7 @@ fn main() {
             let (plain, enhanced) = (read_walls(&paths[0]), read_walls(&paths[1]));
             read.push(t.elapsed().as_secs_f64());
             let t = Instant::now();
-            let c = walls::compare(&plain, &enhanced);
+            let c = walls::compare(&plain, &enhanced, 0.4);
             cmp.push(t.elapsed().as_secs_f64());
             last = Some((plain.segment_count() + enhanced.segment_count(), c.samples));
         }

@@ -15,7 +15,7 @@ fuzz_target!(|data: &[u8]| {
     let (Ok(plain), Ok(enhanced)) = (outer_walls(plain), outer_walls(enhanced)) else {
         return;
     };
-    let c = compare(&plain, &enhanced);
+    let c = compare(&plain, &enhanced, 0.4);
     assert!(c.mean_mm.is_finite() && c.mean_mm >= 0.0 && c.mean_mm <= MAX_DISTANCE_MM);
     assert!(c.max_mm <= MAX_DISTANCE_MM && c.p95_mm <= c.max_mm);
     for share in [c.share_over_0_05_mm, c.share_over_0_1_mm, c.share_over_0_2_mm] {

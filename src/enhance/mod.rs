@@ -18,6 +18,7 @@ pub use bands::{Bands, Combined};
 pub use operators::COT_BOUND;
 pub use print_aware::Mode;
 pub use printed::{Displacements, PrintResolution, PrintedDisplacement};
+pub(crate) use printed::{line_width_mm, LINE_WIDTH_FRACTION};
 pub use solve::{Solver, CG_MAX_VERTICES, DELTAS, MAX_RELATIVE_RESIDUAL};
 pub use strength::{Strength, StrengthTable};
 pub use terms::{EnhanceError, EnhanceOptions, EnhanceReport, Phase, PhaseTimings};

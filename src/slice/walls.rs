@@ -140,14 +140,24 @@ pub struct WallComparison {
     pub share_over_0_05_mm: f64,
     pub share_over_0_1_mm: f64,
     pub share_over_0_2_mm: f64,
+    /// A quarter of the machine's line width (the threshold a printer's rounding hides a
+    /// move under, `crate::enhance::printed`), mm, and the share of the wall moved more.
+    #[serde(default)]
+    pub quarter_line_mm: f64,
+    #[serde(default)]
+    pub share_over_quarter_line: f64,
     /// Per compared layer, bottom to top (not kept in reports: a figure per layer).
     #[serde(skip)]
     pub per_layer: Vec<LayerFigures>,
 }
 
-/// Compares the enhanced walls against the plain ones (see the module's comment).
-pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls) -> WallComparison {
-    let mut out = WallComparison::default();
+/// Compares the enhanced walls against the plain ones (see the module's comment), for a
+/// machine drawing lines `line_width_mm` wide.
+pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls, line_width_mm: f64) -> WallComparison {
+    let mut out = WallComparison {
+        quarter_line_mm: crate::enhance::LINE_WIDTH_FRACTION * line_width_mm,
+        ..WallComparison::default()
+    };
     let matched: Vec<(i64, &[Segment], &[Segment])> = enhanced
         .layers
         .iter()
@@ -171,6 +181,7 @@ pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls) -> WallComparison {
     let mut histogram = vec![0u64; bins];
     let mut sum = 0.0;
     let mut over = [0u64; 3];
+    let mut over_quarter_line = 0u64;
     for (z, p, e) in matched {
         let grid = Grid::new(p, e);
         let (mut layer_n, mut layer_sum, mut layer_over) = (0u64, 0.0, 0u64);
@@ -191,6 +202,7 @@ pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls) -> WallComparison {
                 for (c, t) in over.iter_mut().zip(THRESHOLDS_MM) {
                     *c += u64::from(d > t);
                 }
+                over_quarter_line += u64::from(d > out.quarter_line_mm);
                 layer_n += 1;
                 layer_sum += d;
                 layer_over += u64::from(d > 0.1);
@@ -218,6 +230,7 @@ pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls) -> WallComparison {
         out.share_over_0_05_mm = over[0] as f64 / n;
         out.share_over_0_1_mm = over[1] as f64 / n;
         out.share_over_0_2_mm = over[2] as f64 / n;
+        out.share_over_quarter_line = over_quarter_line as f64 / n;
     }
     out
 }
@@ -403,7 +416,7 @@ mod tests {
     #[test]
     fn a_wall_moved_out_by_a_known_distance() {
         let plain = outer_walls(square_gcode("External perimeter", 10.0, 2).as_bytes()).unwrap();
-        let same = compare(&plain, &plain);
+        let same = compare(&plain, &plain, 0.4);
         assert_eq!(same.layers, 2);
         assert!(same.mean_mm < 1e-12, "{same:?}");
         assert_eq!(same.share_over_0_05_mm, 0.0);
@@ -411,7 +424,7 @@ mod tests {
         assert!(same.samples >= 3200, "{}", same.samples);
 
         let grown = outer_walls(square_gcode("External perimeter", 10.15, 2).as_bytes()).unwrap();
-        let c = compare(&plain, &grown);
+        let c = compare(&plain, &grown, 0.4);
         // Every sample of the grown square is 0.15 mm out (the corners, further along the
         // diagonal, are nearest to the plain corner: up to 0.15·√2).
         assert!((c.mean_mm - 0.15).abs() < 2e-3, "{c:?}");
@@ -420,6 +433,9 @@ mod tests {
         assert_eq!(c.share_over_0_05_mm, 1.0);
         assert_eq!(c.share_over_0_1_mm, 1.0);
         assert!(c.share_over_0_2_mm < 0.01, "{c:?}");
+        // A quarter of a 0.4 mm line is 0.1 mm, of a 0.8 mm one 0.2 mm.
+        assert_eq!(c.share_over_quarter_line, 1.0);
+        assert!(compare(&plain, &grown, 0.8).share_over_quarter_line < 0.01);
         assert_eq!(c.per_layer.len(), 2);
         assert_eq!(c.per_layer[0].z_mm, 0.2);
     }
@@ -434,11 +450,11 @@ mod tests {
             }
         }
         far.layers.insert(999_000, vec![[[0.0, 0.0], [1.0, 0.0]]]);
-        let c = compare(&plain, &far);
+        let c = compare(&plain, &far, 0.4);
         assert_eq!(c.max_mm, MAX_DISTANCE_MM);
         assert_eq!(c.layers, 2);
         assert_eq!(c.layers_unmatched, 1);
-        let empty = compare(&OuterWalls::default(), &plain);
+        let empty = compare(&OuterWalls::default(), &plain, 0.4);
         assert_eq!((empty.layers, empty.samples, empty.mean_mm), (0, 0, 0.0));
     }
 
@@ -454,7 +470,7 @@ mod tests {
         let enhanced = OuterWalls {
             layers: [(200, vec![[[dx, dy], [300.0 + dx, 290.0 + dy]]])].into(),
         };
-        let c = compare(&plain, &enhanced);
+        let c = compare(&plain, &enhanced, 0.4);
         assert!(
             (c.max_mm - 0.3).abs() < 1e-9 && (c.mean_mm - 0.3).abs() < 1e-9,
             "{c:?}"
@@ -471,7 +487,7 @@ mod tests {
         // policy refuses them before anything prints.
         assert_eq!(w.layers[&200].len(), 2, "{w:?}");
         assert_eq!(w.layers[&200][1], [[10.0, 0.0], [10.0, 10.0]]);
-        let _ = compare(&w, &w);
+        let _ = compare(&w, &w, 0.4);
         // Random bytes from G-code's alphabet.
         const ALPHABET: &[u8] = b"G1XYZE0123456789.-; \nTYPE:External perimeter\nM83G92";
         let mut state = 12345u64;
@@ -485,7 +501,7 @@ mod tests {
                 })
                 .collect();
             let w = outer_walls(&bytes[..]).unwrap();
-            let c = compare(&w, &w);
+            let c = compare(&w, &w, 0.4);
             assert!(c.mean_mm.is_finite() && c.max_mm <= MAX_DISTANCE_MM);
         }
     }

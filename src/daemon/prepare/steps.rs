@@ -439,7 +439,11 @@ fn compare_walls(
             })
     };
     let (plain_walls, enhanced_walls) = (read(&output)?, read(enhanced_gcode)?);
-    let comparison = walls::compare(&plain_walls, &enhanced_walls);
+    let comparison = walls::compare(
+        &plain_walls,
+        &enhanced_walls,
+        crate::enhance::line_width_mm(machine.nozzle_mm),
+    );
     if let Some(dir) = pictures {
         let layers = crate::preview::walls::layers_to_show(&comparison, WALL_LAYERS_SHOWN);
         let drawn = crate::preview::walls::walls_picture(

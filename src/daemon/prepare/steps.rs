@@ -74,7 +74,7 @@ impl SliceRequest {
             up: UpAxis::Z,
             pictures: None,
             compare: false,
-            mode: Mode::Paper,
+            mode: Mode::default(),
         }
     }
 }
@@ -518,13 +518,15 @@ fn enhance(
             let extent = mesh.bounds().map_or(0.0, |(lo, hi)| hi[axis] - lo[axis]);
             let scale = req.height_mm / extent;
             let (enhanced, report, chosen) =
-                crate::enhance::print_aware::enhance(&mesh, scale, printer, &mut on_phase)
+                crate::enhance::print_aware::enhance(&mesh, scale, printer, lambda2, &mut on_phase)
                     .map_err(failed)?;
             tracing::info!(
                 nozzle_mm = printer.nozzle_mm,
                 band_mm = ?chosen.band_mm,
                 lambda2 = chosen.lambda2,
-                capped = chosen.capped,
+                share = chosen.share,
+                target_share = chosen.target_share,
+                limited_by = ?chosen.limited_by,
                 "print-aware enhancement"
             );
             let lambda2 = chosen.lambda2;

@@ -1,7 +1,8 @@
-//! The print-aware variant of the enhancement (`--mode print-aware`, a folder's `enhancement = "print-aware"`): the
-//! paper's operators, bands, weight W and combination, with the bands and the strength
-//! chosen for the printer instead of fixed in the unit sphere. `docs/method.md` ("The
-//! enhancement, as printed") has the study that judges it against the paper's method.
+//! The print-aware variant of the enhancement (`--mode print-aware`, a folder's
+//! `enhancement = "print-aware"`): the paper's operators, bands, weight W and combination,
+//! with the bands and the strength chosen for the printer instead of fixed in the unit
+//! sphere. `docs/method.md` ("The enhancement, as printed") has the study that judges it
+//! against the paper's method.
 //!
 //! - **Bands.** An implicit step (M − δL) damps a surface wave of wavelength ℓ (unit
 //!   sphere) by 1 / (1 + δ(2π/ℓ)²), half at ℓ = 2π√δ. The printer draws features down to
@@ -138,6 +139,24 @@ pub(crate) fn target_share(paper_lambda2: f64) -> f64 {
     }
 }
 
+/// The boundary of `holds` in [lo, hi], where it holds at `lo` and not at `hi`: the last
+/// value found to hold and the first found not to.
+fn bisect(
+    mut lo: f64,
+    mut hi: f64,
+    holds: impl Fn(f64) -> Result<bool, EnhanceError>,
+) -> Result<(f64, f64), EnhanceError> {
+    for _ in 0..BISECTION_STEPS {
+        let mid = 0.5 * (lo + hi);
+        if holds(mid)? {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Ok((lo, hi))
+}
+
 /// One combination's figures, model units.
 struct Trial {
     share: f64,
@@ -229,41 +248,19 @@ pub fn enhance(
     // Each figure grows with λ2 (W's falloff grows with it too, but only where the band is
     // held back), so the largest λ2 within the bounds and the smallest reaching the
     // target are found by bisection; λ2 = 1 changes the band only where W holds it back.
-    let (mut lo, mut hi) = (1.0, MAX_LAMBDA2);
-    let mut bound = None;
-    if let Some(why) = limit(&trial(hi)?) {
-        bound = Some(why);
-        for _ in 0..BISECTION_STEPS {
-            let mid = 0.5 * (lo + hi);
-            if limit(&trial(mid)?).is_none() {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        hi = lo;
-    }
-    let highest = hi;
-    let mut lambda2 = highest;
-    let mut limited_by = None;
-    if trial(highest)?.share >= target {
-        let (mut lo, mut hi) = (1.0, highest);
-        if trial(lo)?.share >= target {
-            hi = lo;
-        } else {
-            for _ in 0..BISECTION_STEPS {
-                let mid = 0.5 * (lo + hi);
-                if trial(mid)?.share >= target {
-                    hi = mid;
-                } else {
-                    lo = mid;
-                }
-            }
-        }
-        lambda2 = hi;
+    let reaches = |lambda2| -> Result<bool, EnhanceError> { Ok(trial(lambda2)?.share >= target) };
+    let bound = limit(&trial(MAX_LAMBDA2)?);
+    let highest = match bound {
+        None => MAX_LAMBDA2,
+        Some(_) => bisect(1.0, MAX_LAMBDA2, |l| Ok(limit(&trial(l)?).is_none()))?.0,
+    };
+    let (lambda2, limited_by) = if !reaches(highest)? {
+        (highest, bound)
+    } else if reaches(1.0)? {
+        (1.0, None)
     } else {
-        limited_by = bound;
-    }
+        (bisect(1.0, highest, |l| Ok(!reaches(l)?))?.1, None)
+    };
     let combined = bands.combine(&opts(lambda2))?;
     let chosen_trial = trial(lambda2)?;
     let chosen = PrintAwareReport {

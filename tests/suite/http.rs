@@ -1154,7 +1154,25 @@ fn the_job_page_reads_as_a_report_in_a_real_browser() {
         !page.split_whitespace().any(|w| w == "mu"),
         "mu on the page:\n{page}"
     );
-    browser.screenshot(&Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard-report.png"));
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard-report.png"));
+    // At a phone's width the page fits, its tables of figures too.
+    browser.call(
+        "POST",
+        "/window/rect",
+        &json!({"width": 390, "height": 844}),
+    );
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the job page at a phone's width",
+        "const wide = Array.from(document.querySelectorAll('#jobpage *'))
+           .filter(e => e.getBoundingClientRect().right > window.innerWidth + 1)
+           .map(e => e.tagName + '.' + e.className + ' ' + Math.round(e.getBoundingClientRect().right));
+         return (document.documentElement.scrollWidth <= window.innerWidth && wide.length === 0
+           && getComputedStyle(document.querySelector('table#walls thead')).display !== 'none')
+           || [window.innerWidth, document.documentElement.scrollWidth, ...wide.slice(0, 5)].join(' ');",
+    );
+    browser.screenshot(&shots.join("dashboard-report-phone.png"));
 
     // The raw report opens in a window of its own, as the page fetched it (with its key).
     browser.click("a#raw");

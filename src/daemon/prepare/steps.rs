@@ -10,6 +10,7 @@ use crate::enhance::{
 use crate::machine::Machine;
 use crate::mesh::place::{PlaceError, UpAxis};
 use crate::mesh::Mesh;
+use crate::slice::moved::WallsState;
 use crate::slice::{
     EnhancementSummary, SliceError, SliceJob, SliceReport, SliceSettings, SliceStep, SlicerKind,
     HEIGHT_MM,
@@ -255,6 +256,12 @@ pub fn prepare(
                         .map_err(|e| tracing::warn!(machine = %machine.name, error = %e, "no wall comparison"))
                         .ok();
                 }
+                // Asked for and not made: the warning above says why.
+                report.set_moved(if req.compare {
+                    WallsState::NotMeasured
+                } else {
+                    WallsState::NotAsked
+                });
                 report.model_size_mm = placed.size;
                 report.timings.load_s = load_s;
                 report.timings.enhance_s = placed.enhance_s;

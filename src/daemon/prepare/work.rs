@@ -153,7 +153,7 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                 machine: m.machine.name.clone(),
                 enhancement: crate::slice::EnhancementSummary {
                     lambda2: None,
-                    mode: "pre-sliced".into(),
+                    mode: crate::slice::moved::PRESLICED.into(),
                     report: None,
                     printed: None,
                     print_aware: None,

@@ -1,6 +1,7 @@
 //! What the enhancement moved, in one line an operator reads: how much of the print moves
 //! by more than a printer draws (a quarter of the line width, `crate::enhance::printed`),
-//! on how much of it, and by how much at most, in mm.
+//! on how much of it, and how far all but 1 % of it moves, in mm (the largest move of a
+//! wall is often a contour that a tiny change in Z moved far, not what a viewer sees).
 //!
 //! The outer walls of the G-code ([`WallComparison`]) are what a viewer sees of the
 //! print, so they are said when measured; until then (the daemon measures them after the
@@ -83,7 +84,38 @@ fn walls_line(w: &WallComparison) -> String {
         Limit::QuarterLine(_) => w.share_over_quarter_line,
         Limit::Fixed(_) => w.share_over_0_1_mm,
     };
-    share_line("The outer wall", limit, Some(share), "length", w.max_mm) + "."
+    share_line(
+        "The outer wall",
+        limit,
+        Some(share),
+        "length",
+        reach(w.p99_mm, w.max_mm),
+    ) + "."
+}
+
+/// How far the moves go: all but 1 % of them, or the largest where a report from before
+/// the 99th percentile was kept has only that.
+fn reach(p99_mm: f64, max_mm: f64) -> Reach {
+    if p99_mm > 0.0 || max_mm == 0.0 {
+        Reach::P99(p99_mm)
+    } else {
+        Reach::Max(max_mm)
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Reach {
+    P99(f64),
+    Max(f64),
+}
+
+impl std::fmt::Display for Reach {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            Reach::P99(v) => write!(f, "at most {} on 99 % of it", mm(v)),
+            Reach::Max(v) => write!(f, "at most {}", mm(v)),
+        }
+    }
 }
 
 /// The mesh's figures (without a machine, its share is not known: only its largest move).
@@ -94,9 +126,9 @@ fn mesh_line(p: &PrintedDisplacement) -> String {
             Limit::QuarterLine(t),
             p.share_above_threshold,
             "area",
-            p.max_mm,
+            reach(p.p99_mm, p.max_mm),
         ),
-        None => format!("The surface moves by at most {}", mm(p.max_mm)),
+        None => format!("The surface moves {}", reach(p.p99_mm, p.max_mm)),
     }
 }
 
@@ -106,23 +138,22 @@ enum Limit {
     Fixed(f64),
 }
 
-/// "`what` moves by more than `limit` on `share` of its `extent`; at most `max`".
-fn share_line(what: &str, limit: Limit, share: Option<f64>, extent: &str, max: f64) -> String {
+/// "`what` moves by more than `limit` on `share` of its `extent`; `reach`".
+fn share_line(what: &str, limit: Limit, share: Option<f64>, extent: &str, reach: Reach) -> String {
     let limit = match limit {
         Limit::QuarterLine(t) => format!("a quarter line width ({})", mm(t)),
         Limit::Fixed(t) => mm(t),
     };
-    let at_most = mm(max);
     match share.filter(|s| s.is_finite()) {
-        None => format!("{what} moves by at most {at_most}"),
+        None => format!("{what} moves {reach}"),
         Some(s) if s <= 0.0 => {
-            format!("{what} moves by no more than {limit} anywhere; at most {at_most}")
+            format!("{what} moves by no more than {limit} anywhere; {reach}")
         }
         Some(s) if s >= 1.0 => {
-            format!("{what} moves by more than {limit} on all of its {extent}; at most {at_most}")
+            format!("{what} moves by more than {limit} on all of its {extent}; {reach}")
         }
         Some(s) => format!(
-            "{what} moves by more than {limit} on {} of its {extent}; at most {at_most}",
+            "{what} moves by more than {limit} on {} of its {extent}; {reach}",
             percent(s)
         ),
     }
@@ -181,19 +212,22 @@ mod tests {
         }
     }
 
-    fn walls(share: f64, max_mm: f64) -> WallComparison {
+    /// Walls whose largest move is a far contour (5 mm), unless nothing moved.
+    fn walls(share: f64, p99_mm: f64) -> WallComparison {
         WallComparison {
             layers: 40,
             quarter_line_mm: 0.1,
             share_over_quarter_line: share,
-            max_mm,
+            p99_mm,
+            max_mm: if p99_mm > 0.0 { 5.0 } else { 0.0 },
             ..WallComparison::default()
         }
     }
 
-    fn printed(share: Option<f64>, max_mm: f64) -> PrintedDisplacement {
+    fn printed(share: Option<f64>, p99_mm: f64) -> PrintedDisplacement {
         PrintedDisplacement {
-            max_mm,
+            p99_mm,
+            max_mm: 1.5 * p99_mm,
             threshold_mm: share.map(|_| 0.1),
             share_above_threshold: share,
             ..PrintedDisplacement::default()
@@ -209,7 +243,7 @@ mod tests {
         assert_eq!(
             line(walls(0.2149, 0.1849)),
             "The outer wall moves by more than a quarter line width (0.1 mm) on 21 % of its \
-             length; at most 0.18 mm."
+             length; at most 0.18 mm on 99 % of it."
         );
         assert!(line(walls(0.2151, 0.18)).contains("on 22 % of"));
         // Below 10 %, one decimal; a share never reads as 0 % or 100 %.
@@ -225,12 +259,12 @@ mod tests {
         assert_eq!(
             line(walls(0.0, 0.06)),
             "The outer wall moves by no more than a quarter line width (0.1 mm) anywhere; at \
-             most 0.06 mm."
+             most 0.06 mm on 99 % of it."
         );
         assert_eq!(
             line(walls(1.0, 1.5)),
             "The outer wall moves by more than a quarter line width (0.1 mm) on all of its \
-             length; at most 1.5 mm."
+             length; at most 1.5 mm on 99 % of it."
         );
         // A share past 1 (never made, but read from a file) is all of it.
         assert!(line(walls(1.7, 1.5)).contains("on all of its length"));
@@ -238,15 +272,15 @@ mod tests {
 
     #[test]
     fn tiny_and_broken_numbers_are_said_without_a_false_zero() {
-        assert!(line(walls(0.0, 0.0)).ends_with("at most 0 mm."));
-        assert!(line(walls(0.0, 0.0003)).ends_with("at most less than 0.001 mm."));
-        assert!(line(walls(0.0, 0.0123)).ends_with("at most 0.012 mm."));
-        assert!(line(walls(0.0, 0.0996)).ends_with("at most 0.1 mm."));
-        assert!(line(walls(0.5, f64::NAN)).ends_with("at most an unknown distance."));
+        assert!(line(walls(0.0, 0.0)).ends_with("at most 0 mm on 99 % of it."));
+        assert!(line(walls(0.0, 0.0003)).ends_with("at most less than 0.001 mm on 99 % of it."));
+        assert!(line(walls(0.0, 0.0123)).ends_with("at most 0.012 mm on 99 % of it."));
+        assert!(line(walls(0.0, 0.0996)).ends_with("at most 0.1 mm on 99 % of it."));
+        assert!(line(walls(0.5, f64::NAN)).ends_with("at most an unknown distance on 99 % of it."));
         // A share that is not a number says only the largest move.
         assert_eq!(
             line(walls(f64::NAN, 0.2)),
-            "The outer wall moves by at most 0.2 mm."
+            "The outer wall moves at most 0.2 mm on 99 % of it."
         );
         let mut w = walls(0.5, 0.2);
         // A 0.25 mm nozzle's quarter line, to the thousandth (an exact tie rounds to even).
@@ -276,7 +310,7 @@ mod tests {
         assert_eq!(
             moved(&e, None, WallsState::Pending),
             "The surface moves by more than a quarter line width (0.1 mm) on 40 % of its area; \
-             at most 0.31 mm (from the enhanced mesh at the printed size; the outer walls in \
+             at most 0.31 mm on 99 % of it (from the enhanced mesh at the printed size; the outer walls in \
              the G-code are still to be compared)."
         );
         assert!(moved(&e, None, WallsState::NotMeasured).ends_with("could not be compared)."));
@@ -284,7 +318,7 @@ mod tests {
         // Without a machine the share is not known.
         let e = enhanced(Some(printed(None, 0.31)));
         assert!(moved(&e, None, WallsState::NotAsked)
-            .starts_with("The surface moves by at most 0.31 mm (from the enhanced mesh"));
+            .starts_with("The surface moves at most 0.31 mm on 99 % of it (from the enhanced"));
         let e = enhanced(None);
         assert_eq!(
             moved(&e, None, WallsState::Pending),

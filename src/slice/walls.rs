@@ -135,6 +135,10 @@ pub struct WallComparison {
     /// Distance from the enhanced wall to the plain one, over the wall's length, mm.
     pub mean_mm: f64,
     pub p95_mm: f64,
+    /// What all but 1 % of the wall is within (the largest is often a contour that a
+    /// tiny change in Z moved far, not a move of the wall), mm.
+    #[serde(default)]
+    pub p99_mm: f64,
     pub max_mm: f64,
     /// Share (0–1) of the enhanced wall's length moved more than 0.05, 0.1, 0.2 mm.
     pub share_over_0_05_mm: f64,
@@ -218,15 +222,19 @@ pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls, line_width_mm: f64) ->
     if out.samples > 0 {
         let n = out.samples as f64;
         out.mean_mm = sum / n;
-        let target = (0.95 * n).ceil() as u64;
-        let mut acc = 0u64;
-        for (i, c) in histogram.iter().enumerate() {
-            acc += c;
-            if acc >= target {
-                out.p95_mm = ((i + 1) as f64 * BIN_MM).min(out.max_mm);
-                break;
+        let quantile = |q: f64| {
+            let target = (q * n).ceil() as u64;
+            let mut acc = 0u64;
+            for (i, c) in histogram.iter().enumerate() {
+                acc += c;
+                if acc >= target {
+                    return ((i + 1) as f64 * BIN_MM).min(out.max_mm);
+                }
             }
-        }
+            out.max_mm
+        };
+        out.p95_mm = quantile(0.95);
+        out.p99_mm = quantile(0.99);
         out.share_over_0_05_mm = over[0] as f64 / n;
         out.share_over_0_1_mm = over[1] as f64 / n;
         out.share_over_0_2_mm = over[2] as f64 / n;
@@ -429,6 +437,7 @@ mod tests {
         // diagonal, are nearest to the plain corner: up to 0.15·√2).
         assert!((c.mean_mm - 0.15).abs() < 2e-3, "{c:?}");
         assert!((c.p95_mm - 0.15).abs() < 2e-3, "{c:?}");
+        assert!(c.p99_mm >= c.p95_mm && c.p99_mm <= c.max_mm, "{c:?}");
         assert!(c.max_mm <= 0.15 * 2f64.sqrt() + 1e-9);
         assert_eq!(c.share_over_0_05_mm, 1.0);
         assert_eq!(c.share_over_0_1_mm, 1.0);

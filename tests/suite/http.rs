@@ -1120,7 +1120,7 @@ fn the_job_page_reads_as_a_report_in_a_real_browser() {
            machine: /Machine\\s*(ultimaker2|marlin-175), on printer (alpha|beta)/.test(text(p)),
            time: /Print time\\s*([0-9]+ h )?[0-9]+ (min|s)/.test(text(p)),
            filament: /Filament\\s*[0-9.]+ g \\/ [0-9.]+ m/.test(text(p)),
-           strength: /Enhancement\\s*(strong|medium|light) \\(λ2 [0-9.]+, paper mode\\)/.test(text(p)),
+           strength: /Enhancement\\s*(strong|medium|light) \\(λ2 [0-9.]+, the paper's method\\)/.test(text(p)),
            walls: /more than 0.1 mm\\s*[0-9.]+ %/.test(text(document.querySelector('table#walls'))),
            printing: /took .*: finished/.test(text(document.querySelector('#printing'))),
            history: /ready to print/.test(text(document.querySelector('.history'))),

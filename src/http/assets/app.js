@@ -532,14 +532,23 @@ const STATE_WORDS = {
 };
 function stateWords(state) { return STATE_WORDS[state] || label(state); }
 
-// The enhancement's strength in words: λ2 is the spec's height table's (20 for small
-// prints, 15 at 50 mm, 6 at 100 mm, towards 1 where prints are left unmodified).
+// The enhancement's strength in words. The paper's: its user study's medium is λ2 = 20
+// (the height table's for small prints; 15 at 50 mm, 6 at 100 mm), its strong 40. The
+// print-aware mode's λ2 is on a different band and says nothing alone: its target share
+// and what bounded it do.
+const LIMIT_WORDS = {
+  strong_p99: "held to the paper's strong setting",
+  ceiling: "held to a line width",
+};
 function strengthWords(e) {
   if (e.lambda2 == null) return e.mode === "pre-sliced" ? "none: sliced elsewhere" : "none: printed unmodified";
-  const word = e.lambda2 >= 15 ? "strong" : e.lambda2 >= 6 ? "medium" : "light";
-  const mode = !e.print_aware ? "paper mode" :
-    "print-aware mode" + (e.print_aware.capped ? ", capped at the paper's strong setting" : "");
-  return word + " (λ2 " + num(e.lambda2, 2) + ", " + mode + ")";
+  const pa = e.print_aware;
+  if (pa) {
+    return "print-aware, λ2 " + num(e.lambda2, 2) + " (aims at " + num(100 * pa.target_share, 1) +
+      " % of the surface past a quarter line" + (pa.limited_by ? ", " + (LIMIT_WORDS[pa.limited_by] || pa.limited_by) : "") + ")";
+  }
+  const word = e.lambda2 >= 30 ? "strong" : e.lambda2 >= 10 ? "medium" : "light";
+  return word + " (λ2 " + num(e.lambda2, 2) + ", the paper's method)";
 }
 
 // Rows of [what, figure] as a definition list (the page's layout for figures).

@@ -156,7 +156,7 @@ mod tests {
                 .layers
                 .insert(z, square(if z == 400 { 11.0 } else { 10.0 }));
         }
-        let c = compare(&plain, &enhanced);
+        let c = compare(&plain, &enhanced, 0.4);
         assert_eq!(layers_to_show(&c, 1), [400]);
         assert_eq!(layers_to_show(&c, 5).len(), 3);
         let image = walls_picture(&plain, &enhanced, &[200, 400], 100).unwrap();

@@ -411,7 +411,7 @@ pub(crate) async fn stats(
         .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
 }
 
-/// One of a job's pictures. Only the three fixed names are served, from the directory of
+/// One of a job's pictures. Only the fixed names of [`PICTURES`] are served, from the directory of
 /// a job the store knows, so no request can name another file.
 pub(crate) async fn picture(
     State(state): State<AppState>,
@@ -437,7 +437,7 @@ pub(crate) async fn picture(
     };
     let bytes = bytes.ok_or_else(|| {
         ApiError::not_found(format!(
-            "job {} has no {} (pictures are drawn for enhanced jobs once prepared)",
+            "job {} has no {} (pictures are drawn once a job is prepared; the preview of the print once no job is being prepared)",
             quoted(&id),
             quoted(name)
         ))

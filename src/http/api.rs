@@ -59,12 +59,8 @@ pub(crate) struct StatusView {
     pub farm: Option<control::FarmStatus>,
 }
 
-const PICTURES: [&str; 4] = [
-    crate::preview::BEFORE_PNG,
-    crate::preview::AFTER_PNG,
-    crate::preview::DISPLACEMENT_PNG,
-    crate::preview::walls::WALLS_PNG,
-];
+// The names served: the pictures the store knows a job's directory may hold.
+use crate::daemon::store::PICTURES;
 
 /// The whole farm: printers, jobs (newest last) and hot folders.
 pub(crate) fn snapshot(farm: &Farm) -> StatusView {

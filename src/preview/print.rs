@@ -6,8 +6,8 @@
 //! the plain print and the enhanced one side by side from one camera, and below them the
 //! prints at the size they will be printed.
 //!
-//! The G-code is followed as the rest of crispen follows it ([`crate::marlin::reader`],
-//! [`crate::marlin::motion::Motion`]); every input is bounded: moves beyond the walls'
+//! The G-code is followed as the walls' measure follows it
+//! ([`crate::slice::walls::extruding_moves`]: Marlin's reading and motion); every input is bounded: moves beyond the walls'
 //! [`COORD_LIMIT_MM`] or not finite are dropped, and a print of more than
 //! [`MAX_SEGMENTS`] visible lines is sampled (every k-th layer, drawn k layers tall so the
 //! surface stays closed) rather than refused.
@@ -20,7 +20,6 @@
 use super::raster::{self, Shader, SUPERSAMPLE};
 use super::scene::dot;
 use super::{normalize, sub, Camera, Image, Lighting, Paint, MODEL_COLOR};
-use crate::marlin::motion::Motion;
 use crate::mesh::place::UpAxis;
 use crate::mesh::Mesh;
 use crate::slice::walls::COORD_LIMIT_MM;
@@ -169,42 +168,17 @@ pub fn read_print(
     };
     let max_segments = max_segments.max(1);
     let mut kept = 0usize;
-    let mut motion = Motion::default();
-    let mut visible = false;
     // The layer being read: its Z (µm) and its index.
     let mut current: Option<(i64, usize)> = None;
-    for line in reader.split(b'\n') {
-        let line = line?;
-        let line = String::from_utf8_lossy(&line);
-        let (code, comment) = match line.find(';') {
-            Some(i) => (&line[..i], Some(&line[i + 1..])),
-            None => (&line[..], None),
-        };
-        if let Some(c) = comment {
-            let c = c.trim();
-            if let Some(kind) = c.strip_prefix("TYPE:") {
-                visible = is_visible(kind);
-            } else if c.starts_with("LAYER:") || c == "LAYER_CHANGE" {
-                visible = false;
-            }
-        }
-        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
-            continue;
-        };
-        // A command that cannot be followed leaves the position as it was: a file the
-        // policy refuses is never printed anyway.
-        let Ok(Some(m)) = motion.apply(&cmd) else {
-            continue;
-        };
-        if !(visible && m.extruded() > 0.0 && m.moves_xy()) {
-            continue;
+    crate::slice::walls::extruding_moves(reader, is_visible, |m| {
+        if !m.moves_xy() {
+            return;
         }
         let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
         if !(sane(&m.from) && sane(&m.to)) {
             print.dropped += 1;
-            continue;
+            return;
         }
-        // Arcs are taken as chords, as the walls take them.
         let z_um = (m.to[2] * 1000.0).round() as i64;
         let index = match current {
             Some((z, i)) if z == z_um => i,
@@ -222,13 +196,13 @@ pub fn read_print(
                 kept = print.segment_count();
             }
             if kept >= max_segments {
-                continue;
+                return;
             }
         }
         let layer = match print.layers.get_mut(&z_um) {
             Some(layer) => layer,
             // A later layer, or one the sampling passes over.
-            None if index % print.stride != 0 => continue,
+            None if index % print.stride != 0 => return,
             None => print.layers.entry(z_um).or_insert(Layer {
                 index,
                 lines: Vec::new(),
@@ -239,7 +213,7 @@ pub fn read_print(
             [m.to[0] as f32, m.to[1] as f32],
         ]);
         kept += 1;
-    }
+    })?;
     Ok(print)
 }
 

@@ -339,7 +339,7 @@ fn slice_bunny(strength: Strength, out: &std::path::Path) {
 /// The print drawn from the G-code shows the enhancement where the nozzle's path moved:
 /// seen level (so that each picture row is one height of the print), the rows of the
 /// layers whose outer wall moved most differ between the plain and the enhanced print
-/// more than the rows of the layers that moved least.
+/// more than the rows of the layers that moved least; a stronger enhancement changes more.
 #[test]
 fn the_enhanced_print_differs_from_the_plain_one_where_the_walls_moved() {
     use crispen::preview::print::{read_print_file, render_print};
@@ -409,6 +409,29 @@ fn the_enhanced_print_differs_from_the_plain_one_where_the_walls_moved() {
     assert!(
         most > 1.3 * least && most > 0.05,
         "rows of the most moved layers differ {most:.3}, of the least moved {least:.3}"
+    );
+
+    // A stronger enhancement (λ2 = 40 against the default 20 at this height) shows more.
+    let stronger_path = dir.path().join("e40.gcode");
+    slice_bunny(Strength::Lambda2(40.0), &stronger_path);
+    let stronger = render_print(
+        &read_print_file(&stronger_path, 0.4).unwrap(),
+        &camera,
+        &light,
+    );
+    let changed = |other: &Image| {
+        (0..size)
+            .flat_map(|y| (0..size).map(move |x| (x, y)))
+            .filter(|&(x, y)| {
+                let (a, b) = (p.pixel(x, y), other.pixel(x, y));
+                (0..4).any(|k| a[k].abs_diff(b[k]) > 12)
+            })
+            .count()
+    };
+    let (at_20, at_40) = (changed(&e), changed(&stronger));
+    assert!(
+        at_40 > at_20,
+        "λ2 40 changes {at_40} pixels, the default {at_20}"
     );
 }
 

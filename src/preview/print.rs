@@ -801,6 +801,54 @@ mod tests {
         assert!(inside > 150, "only {inside} pixels differ");
     }
 
+    /// Seen level and close up, a wall is its layers: along a column the light rises and
+    /// falls once per layer, as each bead's rounded face turns from the light to the bed.
+    #[test]
+    fn layer_lines_show_as_ridges() {
+        let p = read(&tower(50, |_| 10.0));
+        let base = Camera::looking_at(
+            p.bounds().unwrap(),
+            [0.0, -1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            200,
+            200,
+        );
+        // 50 px per mm on the middle of the front wall: 4 mm, 20 layers, fill the picture.
+        let camera = Camera {
+            center: [100.0, 90.0, 5.0],
+            scale: 50.0,
+            ..base
+        };
+        let image = render_print(
+            &p,
+            &camera,
+            &Lighting::grazing(&camera, [0.0, 0.0, 1.0], 20.0),
+        );
+        let column: Vec<f64> = (0..200)
+            .map(|y| {
+                let c = image.pixel(100, y);
+                assert_eq!(c[3], 255, "the wall fills the picture");
+                f64::from(c[0]) + f64::from(c[1]) + f64::from(c[2])
+            })
+            .collect();
+        let mean = column.iter().sum::<f64>() / column.len() as f64;
+        let rises = column
+            .windows(2)
+            .filter(|w| w[0] < mean && w[1] >= mean)
+            .count();
+        assert!(
+            (19..=21).contains(&rises),
+            "{rises} ridges in 20 layers: {column:?}"
+        );
+        let (lo, hi) = column
+            .iter()
+            .fold((f64::MAX, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
+        assert!(
+            hi - lo > 100.0,
+            "the ridges are light and shadow: {lo}..{hi}"
+        );
+    }
+
     #[test]
     fn a_print_over_the_cap_is_sampled_and_stays_closed() {
         let g = tower(200, |_| 10.0);

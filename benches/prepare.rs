@@ -46,6 +46,7 @@ fn task(job_dir: &Path) -> PrepareTask {
         model,
         height_mm: HEIGHT_MM,
         strength: Strength::Auto,
+        mode: Default::default(),
         slicer: SlicerKind::Prusa,
         // The OBJ is Y-up.
         up: UpAxis::Y,

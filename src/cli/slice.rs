@@ -219,6 +219,9 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
             report.timings.total_s,
             report.output.display()
         );
+        if let Some(moved) = &report.moved {
+            println!("{moved}");
+        }
         if let Some(verdict) = &report.policy {
             println!("{}", verdict.summary());
         }

@@ -100,6 +100,9 @@ pub struct JobStatus {
     pub used_g: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cost: Option<f64>,
+    /// What the enhancement moved, in words (its slicing report's `moved`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub moved: Option<String>,
 }
 
 /// Why a command was refused; the operator sees the message.
@@ -191,6 +194,7 @@ pub(crate) fn status(farm: &Farm) -> Status {
             need_g: j.slice_report.as_ref().and_then(|r| r.filament_g),
             used_g: j.used().grams,
             cost: j.used().cost,
+            moved: j.slice_report.as_ref().and_then(|r| r.moved.clone()),
         })
         .collect();
     Status {

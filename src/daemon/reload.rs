@@ -81,6 +81,7 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("folder.height_mm", Policy::Live),
     ("folder.printers", Policy::Live),
     ("folder.strength", Policy::Live),
+    ("folder.enhancement", Policy::Live),
     ("folder.slicer", Policy::Live),
     ("folder.up", Policy::Live),
     ("folder.profile", Policy::Live),
@@ -300,6 +301,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             height_mm,
             printers,
             strength,
+            mode,
             slicer,
             up,
             profile,
@@ -313,6 +315,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("folder.height_mm", *height_mm != old.height_mm);
         differs("folder.printers", *printers != old.printers);
         differs("folder.strength", !same(strength, &old.strength));
+        differs("folder.enhancement", *mode != old.mode);
         differs("folder.slicer", !same(slicer, &old.slicer));
         differs("folder.up", !same(up, &old.up));
         differs("folder.profile", *profile != old.profile);
@@ -556,6 +559,11 @@ mod tests {
             "folder.strength",
             "printers = [\"a\"]\n",
             "printers = [\"a\"]\nstrength = 2.5\n",
+        ),
+        (
+            "folder.enhancement",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nenhancement = \"print-aware\"\n",
         ),
         (
             "folder.slicer",

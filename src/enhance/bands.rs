@@ -45,6 +45,8 @@ pub struct Combined {
     /// Distance each vertex moved, in input units: largest and mean.
     pub max_displacement: f64,
     pub mean_displacement: f64,
+    /// Distance each vertex moved, input units.
+    pub(crate) moved: Vec<f64>,
 }
 
 impl Bands {
@@ -158,26 +160,16 @@ impl Bands {
         }
     }
 
-    /// The area-weighted `q` quantile of ‖Δ2_i‖ (the mid band's amplitude), unit-sphere
-    /// units.
-    pub(crate) fn mid_band_quantile(&self, q: f64) -> f64 {
-        let mut pairs: Vec<(f64, f64)> = self
-            .delta2
-            .iter()
-            .zip(&self.area)
-            .map(|(d, a)| (dist_sq(*d, [0.0; 3]).sqrt(), *a))
-            .collect();
-        pairs.sort_by(|x, y| x.0.total_cmp(&y.0));
-        let total: f64 = pairs.iter().map(|x| x.1).sum();
-        let target = q.clamp(0.0, 1.0) * total;
-        let mut acc = 0.0;
-        for (d, a) in &pairs {
-            acc += a;
-            if acc >= target {
-                return *d;
-            }
-        }
-        pairs.last().map_or(0.0, |x| x.0)
+    /// How far `combined`'s vertices moved, weighted by the area each stands for.
+    pub(crate) fn displacements(&self, combined: &Combined) -> Option<super::Displacements> {
+        super::Displacements::from_pairs(
+            combined
+                .moved
+                .iter()
+                .copied()
+                .zip(self.area.iter().copied())
+                .collect(),
+        )
     }
 
     /// Band RMS in unit-sphere units: sqrt(mean ‖Δk_i‖²) for k = 1, 2, 3.
@@ -218,9 +210,11 @@ impl Bands {
             w_mean: 0.0,
             max_displacement: 0.0,
             mean_displacement: 0.0,
+            moved: Vec::with_capacity(per_vertex.len()),
         };
         for (v, w, moved) in per_vertex {
             combined.vertices.push(v);
+            combined.moved.push(moved);
             combined.w_min = combined.w_min.min(w);
             combined.w_mean += w / n;
             combined.max_displacement = combined.max_displacement.max(moved);

@@ -38,9 +38,12 @@ pub struct PrintedDisplacement {
     pub height_mm: f64,
     /// Model units → printed mm.
     pub scale: f64,
-    /// Largest, 95th percentile and mean displacement (area-weighted), mm.
+    /// Largest, 95th and 99th percentile and mean displacement (area-weighted), mm.
     pub max_mm: f64,
     pub p95_mm: f64,
+    /// 99th percentile (the print-aware mode's bound is on it), mm.
+    #[serde(default)]
+    pub p99_mm: f64,
     pub mean_mm: f64,
     /// The machine's nozzle and layer height, when the figures are for a machine.
     pub nozzle_mm: Option<f64>,
@@ -82,20 +85,36 @@ impl Displacements {
                 area[c] += third;
             }
         }
-        let mut sorted: Vec<(f64, f64)> = before
+        let pairs = before
             .vertices
             .iter()
             .zip(&after.vertices)
-            .zip(&area)
-            .map(|((p, q), &a)| {
+            .zip(area)
+            .map(|((p, q), a)| {
                 let d =
                     ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt();
-                (if d.is_finite() { d } else { f64::INFINITY }, a)
+                (d, a)
             })
             .collect();
+        Displacements::from_pairs(pairs)
+    }
+
+    /// From (distance moved, area) per vertex; `None` when the areas sum to nothing. A
+    /// distance that is not a number counts as infinitely far.
+    pub(crate) fn from_pairs(mut sorted: Vec<(f64, f64)>) -> Option<Displacements> {
+        for pair in &mut sorted {
+            if !pair.0.is_finite() {
+                pair.0 = f64::INFINITY;
+            }
+        }
         sorted.sort_by(|x, y| x.0.total_cmp(&y.0));
         let total_area: f64 = sorted.iter().map(|x| x.1).sum();
         (total_area > 0.0 && total_area.is_finite()).then_some(Displacements { sorted, total_area })
+    }
+
+    /// The largest distance moved, model units.
+    pub(crate) fn max(&self) -> f64 {
+        self.sorted.last().map_or(0.0, |x| x.0)
     }
 
     /// The figures at `scale` (model units → mm) for a print `height_mm` tall, and for a
@@ -107,7 +126,7 @@ impl Displacements {
         printer: Option<PrintResolution>,
     ) -> PrintedDisplacement {
         let mean = self.sorted.iter().map(|(d, a)| d * a).sum::<f64>() / self.total_area;
-        let max = self.sorted.last().map_or(0.0, |x| x.0);
+        let max = self.max();
         let line_width = printer.map(|p| line_width_mm(p.nozzle_mm));
         let threshold = line_width.map(|w| w * LINE_WIDTH_FRACTION);
         PrintedDisplacement {
@@ -115,6 +134,7 @@ impl Displacements {
             scale,
             max_mm: max * scale,
             p95_mm: self.quantile(0.95) * scale,
+            p99_mm: self.quantile(0.99) * scale,
             mean_mm: mean * scale,
             nozzle_mm: printer.map(|p| p.nozzle_mm),
             layer_height_mm: printer.map(|p| p.layer_height_mm),

@@ -18,6 +18,7 @@
 
 pub mod cura;
 pub(crate) mod gcode;
+pub mod moved;
 pub mod policy;
 pub mod presliced;
 pub(crate) mod process;
@@ -165,6 +166,10 @@ pub struct SliceReport {
     /// for, see `SliceRequest::compare`).
     #[serde(default)]
     pub walls: Option<walls::WallComparison>,
+    /// What the enhancement moved, in one line ([`moved`]): made with the report and
+    /// again when its walls are compared. None in reports made before it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub moved: Option<String>,
     /// What the G-code policy found (pauses, commands the machine allowed); a file it
     /// refuses makes no report.
     #[serde(default, skip_serializing_if = "Option::is_none")]

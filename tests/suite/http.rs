@@ -1051,9 +1051,9 @@ fn dashboard_in_a_real_browser() {
         "const imgs = document.querySelectorAll('#jobpage .pictures img');
          return imgs.length === 3 && Array.from(imgs).every(i => i.naturalWidth > 0)
            && document.querySelector('#jobpage h2').textContent.includes('left.obj')
-           && document.querySelector('#jobpage').textContent.includes('Enhancement and slicing')
-           && /max displacement\\s*[0-9.]+ mm/.test(document.querySelector('#printed').textContent)
-           && document.querySelector('#walls').textContent.includes('wall moved > 0.1 mm')
+           && document.querySelector('#jobpage').textContent.includes('What moved')
+           && /mean \\/ p95 \\/ max\\s*[0-9.]+ \\/ [0-9.]+ \\/ [0-9.]+ mm/.test(document.querySelector('#printed').textContent)
+           && /more than 0.1 mm\\s*[0-9.]+ %/.test(document.querySelector('#walls').textContent)
            && document.querySelector('#jobpage figure.walls img').naturalWidth > 0
            && document.querySelector('#jobpage #preview img')?.naturalWidth > 0
            && (document.querySelector('#preview figcaption')?.textContent || '').includes('actual size');",
@@ -1078,6 +1078,138 @@ fn dashboard_in_a_real_browser() {
            || [window.innerWidth, document.documentElement.scrollWidth, ...wide.slice(0, 5)].join(' ');",
     );
     browser.screenshot(&shots.join("dashboard-phone.png"));
+}
+
+/// An enhanced job's page reads as a report for an operator: once the job is prepared,
+/// compared and printed, it says in one line how much the enhancement moved (in % and mm),
+/// the printed size, machine and print time, how the print went, and the history in
+/// words; none of the report's raw keys (`mu`, the solver's residual, the radius in model
+/// units, the timings as JSON) nor the server's paths; the raw report is one click away.
+#[test]
+fn the_job_page_reads_as_a_report_in_a_real_browser() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "");
+    let a = request(
+        &farm.addr,
+        "PUT",
+        "/api/v1/folders/hot/files/spot.obj",
+        &key_header(Some(KEY)),
+        &spot_obj(),
+    );
+    assert_eq!(a.status, 201, "{}", a.text());
+    let s = farm.wait_for(
+        Duration::from_secs(600),
+        "spot.obj prepared, compared and printed",
+        |s| {
+            job_by_file(s, "spot.obj")
+                .is_some_and(|j| j["state"] == "done" && j["comparison"]["state"] == "done")
+        },
+    );
+    let job = job_by_file(&s, "spot.obj").unwrap();
+    let id = job["id"].as_str().unwrap().to_string();
+    // The line is the report's, as every client reads it.
+    let moved = job["moved"].as_str().unwrap().to_string();
+    assert!(moved.starts_with("The outer wall moves by"), "{moved}");
+
+    let browser = Browser::start(&tmp.path().join("chromium-profile"));
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.exec(
+        "localStorage.setItem('crispen-key', arguments[0]);",
+        json!([KEY]),
+    );
+    // Only the hash changes: the page is loaded again to read the key.
+    browser.go(&format!("http://{}/#job/{id}", farm.addr));
+    browser.call("POST", "/refresh", &json!({}));
+    browser.wait_until(
+        Duration::from_secs(30),
+        "the job page as a report",
+        "const m = document.querySelector('#moved');
+         const p = document.querySelector('#print');
+         const pics = document.querySelector('#jobpage .pictures');
+         const text = (e) => e ? e.textContent : '';
+         const checks = {
+           moved: !!m && /[0-9.]+ %/.test(m.textContent) && /[0-9.]+ mm/.test(m.textContent),
+           movedFirst: !!m && !!pics && !!(m.compareDocumentPosition(pics) & Node.DOCUMENT_POSITION_FOLLOWING),
+           size: /Printed size\\s*[0-9.]+ × [0-9.]+ × 25 mm/.test(text(p)),
+           machine: /Machine\\s*(ultimaker2|marlin-175), on printer (alpha|beta)/.test(text(p)),
+           time: /Print time\\s*([0-9]+ h )?[0-9]+ (min|s)/.test(text(p)),
+           filament: /Filament\\s*[0-9.]+ g \\/ [0-9.]+ m/.test(text(p)),
+           strength: /Enhancement\\s*(strong|medium|light) \\(λ2 [0-9.]+, paper mode\\)/.test(text(p)),
+           walls: /more than 0.1 mm\\s*[0-9.]+ %/.test(text(document.querySelector('table#walls'))),
+           printing: /took .*: finished/.test(text(document.querySelector('#printing'))),
+           history: /ready to print/.test(text(document.querySelector('.history'))),
+           raw: !!document.querySelector('a#raw[href^=\"blob:\"]'),
+         };
+         const failed = Object.keys(checks).filter(k => !checks[k]);
+         return failed.length === 0 || failed.join(' ');",
+    );
+    let page = browser
+        .exec(
+            "return document.querySelector('#jobpage').innerText",
+            json!([]),
+        )
+        .as_str()
+        .unwrap()
+        .to_string();
+    println!("the job page:\n{page}");
+    assert!(page.contains(&moved), "{page}");
+    let root = tmp.path().to_str().unwrap();
+    for dump in [
+        "max solve residual",
+        "radius",
+        "\"timings\"",
+        "load_s",
+        root,
+        "/spool/",
+    ] {
+        assert!(!page.contains(dump), "{dump:?} on the page:\n{page}");
+    }
+    assert!(
+        !page.split_whitespace().any(|w| w == "mu"),
+        "mu on the page:\n{page}"
+    );
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard-report.png"));
+    // At a phone's width the page fits, its tables of figures too.
+    browser.call(
+        "POST",
+        "/window/rect",
+        &json!({"width": 390, "height": 844}),
+    );
+    browser.wait_until(
+        Duration::from_secs(20),
+        "the job page at a phone's width",
+        "const wide = Array.from(document.querySelectorAll('#jobpage *'))
+           .filter(e => e.getBoundingClientRect().right > window.innerWidth + 1)
+           .map(e => e.tagName + '.' + e.className + ' ' + Math.round(e.getBoundingClientRect().right));
+         return (document.documentElement.scrollWidth <= window.innerWidth && wide.length === 0
+           && getComputedStyle(document.querySelector('table#walls thead')).display !== 'none')
+           || [window.innerWidth, document.documentElement.scrollWidth, ...wide.slice(0, 5)].join(' ');",
+    );
+    browser.screenshot(&shots.join("dashboard-report-phone.png"));
+
+    // The raw report opens in a window of its own, as the page fetched it (with its key).
+    browser.click("a#raw");
+    let handles = browser.call("GET", "/window/handles", &Value::Null);
+    let page_window = browser.call("GET", "/window", &Value::Null);
+    let raw_window = handles
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|h| **h != page_window)
+        .unwrap_or_else(|| panic!("no window for the raw report: {handles}"))
+        .clone();
+    browser.call("POST", "/window", &json!({ "handle": raw_window }));
+    let read = "const t = (document.querySelector('pre') || document.body).textContent;
+         try { return JSON.parse(t).job.id === ID || t.slice(0, 200); } catch (_) { return t.slice(0, 200); }"
+        .replace("ID", &format!("{id:?}"));
+    browser.wait_until(Duration::from_secs(20), "the raw report", &read);
+    let raw = browser.exec(
+        "return JSON.parse((document.querySelector('pre') || document.body).textContent);",
+        json!([]),
+    );
+    assert_eq!(raw["job"]["slice_report"]["moved"], json!(moved));
+    assert!(raw["job"]["slice_report"]["enhancement"]["report"].is_object());
 }
 
 /// The quick start's `crispen run` without a config serves the dashboard on

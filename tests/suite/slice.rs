@@ -653,6 +653,13 @@ fn the_cli_compares_the_enhanced_outer_walls_with_the_unmodified_ones() {
     let printed = &report["enhancement"]["printed"];
     assert_eq!(printed["nozzle_mm"], 0.4);
     assert_eq!(printed["threshold_mm"], 0.1);
+    // The comparison in one line, as `crispen slice` prints it.
+    let moved = report["moved"].as_str().unwrap();
+    assert!(
+        moved.starts_with("The outer wall moves by more than a quarter line width (0.1 mm) on ")
+            && moved.contains(" % of its length; at most "),
+        "{moved}"
+    );
     let png = std::fs::read(pictures.join("walls.png")).expect("walls.png");
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
 }

@@ -175,6 +175,8 @@ pub struct FolderConfig {
     pub height_mm: f64,
     pub printers: Vec<String>,
     pub strength: Strength,
+    /// How the enhancement chooses its bands and strength (`enhancement`).
+    pub mode: crate::enhance::Mode,
     pub slicer: SlicerKind,
     /// Which of the dropped files' axes points up (STL: z; many OBJ files: y).
     pub up: UpAxis,

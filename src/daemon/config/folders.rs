@@ -164,6 +164,7 @@ fn check_folder(
         height_mm: f.height_mm,
         printers: f.printers,
         strength,
+        mode: f.enhancement.unwrap_or_default(),
         slicer: f.slicer.unwrap_or_default(),
         up: f.up.unwrap_or_default(),
         profile: f.profile.map(|p| anchor(&p)),

@@ -138,6 +138,8 @@ pub(super) struct RawFolder {
     pub(super) printers: Vec<String>,
     pub(super) strength: Option<toml::Value>,
     pub(super) enhance: Option<bool>,
+    /// How the enhancement chooses its bands and strength (`print-aware` or `paper`).
+    pub(super) enhancement: Option<crate::enhance::Mode>,
     pub(super) slicer: Option<SlicerKind>,
     pub(super) up: Option<UpAxis>,
     pub(super) profile: Option<PathBuf>,

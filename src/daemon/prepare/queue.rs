@@ -21,6 +21,7 @@ use super::task::{resolve_task, PrepareTask, Prepared, TaskMachine};
 use crate::daemon::farm::Farm;
 use crate::daemon::job::{Comparison, JobState, StoreError};
 use crate::daemon::store::StateFilter;
+use crate::slice::moved::WallsState;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -220,7 +221,7 @@ async fn finish_preparation(
     const STILL_PREPARING: StateFilter = &[JobState::Preparing];
     let outcome = match result {
         Ok((prepared, sidecar, asks)) => {
-            let (machines, report) = prepared.for_machines();
+            let (machines, mut report) = prepared.for_machines();
             match prepared.failure() {
                 // No machine can print it: failed, with each machine's reason.
                 Some(reason) => {
@@ -237,6 +238,13 @@ async fn finish_preparation(
                     let enhanced = report
                         .as_ref()
                         .is_some_and(|r| r.enhancement.lambda2.is_some());
+                    if let Some(r) = &mut report {
+                        r.set_moved(if enhanced {
+                            WallsState::Pending
+                        } else {
+                            WallsState::NotAsked
+                        });
+                    }
                     farm.jobs()
                         .transition_from(id, STILL_PREPARING, JobState::Ready, None, move |j| {
                             j.comparison = enhanced.then_some(Comparison::Pending { tries: 0 });
@@ -362,6 +370,7 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
             if j.comparison != Some(Comparison::Pending { tries }) {
                 return;
             }
+            let measured = result.is_ok();
             j.comparison = Some(match result {
                 Ok(walls) => {
                     if let Some(report) = &mut j.slice_report {
@@ -371,6 +380,14 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
                 }
                 Err(reason) => Comparison::NotMeasured { reason },
             });
+            if let Some(report) = &mut j.slice_report {
+                // With the walls measured their figures are said; else why they are not.
+                report.set_moved(if measured {
+                    WallsState::Pending
+                } else {
+                    WallsState::NotMeasured
+                });
+            }
         })
         .await;
     match recorded {

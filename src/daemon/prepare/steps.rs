@@ -10,6 +10,7 @@ use crate::enhance::{
 use crate::machine::Machine;
 use crate::mesh::place::{PlaceError, UpAxis};
 use crate::mesh::Mesh;
+use crate::slice::moved::WallsState;
 use crate::slice::{
     EnhancementSummary, SliceError, SliceJob, SliceReport, SliceSettings, SliceStep, SlicerKind,
     HEIGHT_MM,
@@ -81,7 +82,7 @@ impl SliceRequest {
             pictures: None,
             compare: false,
             preview: None,
-            mode: Mode::Paper,
+            mode: Mode::default(),
         }
     }
 }
@@ -269,6 +270,12 @@ pub fn prepare(
                     // Printed unmodified: its own G-code is the plain print.
                     draw_preview(dir, &placed.mesh, machine, &report.output, None);
                 }
+                // Asked for (by --preview too) and not made: the warning above says why.
+                report.set_moved(if req.compare || req.preview.is_some() {
+                    WallsState::NotMeasured
+                } else {
+                    WallsState::NotAsked
+                });
                 report.model_size_mm = placed.size;
                 report.timings.load_s = load_s;
                 report.timings.enhance_s = placed.enhance_s;
@@ -579,13 +586,15 @@ fn enhance(
             let extent = mesh.bounds().map_or(0.0, |(lo, hi)| hi[axis] - lo[axis]);
             let scale = req.height_mm / extent;
             let (enhanced, report, chosen) =
-                crate::enhance::print_aware::enhance(&mesh, scale, printer, &mut on_phase)
+                crate::enhance::print_aware::enhance(&mesh, scale, printer, lambda2, &mut on_phase)
                     .map_err(failed)?;
             tracing::info!(
                 nozzle_mm = printer.nozzle_mm,
                 band_mm = ?chosen.band_mm,
                 lambda2 = chosen.lambda2,
-                capped = chosen.capped,
+                share = chosen.share,
+                target_share = chosen.target_share,
+                limited_by = ?chosen.limited_by,
                 "print-aware enhancement"
             );
             let lambda2 = chosen.lambda2;

@@ -27,6 +27,9 @@ pub struct PrepareTask {
     pub enhanced_mesh: PathBuf,
     pub height_mm: f64,
     pub strength: Strength,
+    /// The enhancement's mode, the folder's.
+    #[serde(default)]
+    pub mode: crate::enhance::Mode,
     pub slicer: SlicerKind,
     pub up: UpAxis,
     pub profile: Option<PathBuf>,
@@ -190,6 +193,7 @@ pub fn resolve_task(
         enhanced_mesh: job_dir.join(format!("{file}.enhanced.stl")),
         height_mm,
         strength,
+        mode: folder.mode,
         slicer: folder.slicer,
         up,
         profile: folder.profile.clone(),
@@ -284,6 +288,7 @@ mod tests {
             height_mm: 50.0,
             printers: vec!["a".into(), "b".into(), "c".into()],
             strength: Strength::Auto,
+            mode: Default::default(),
             slicer: SlicerKind::Prusa,
             up: UpAxis::Z,
             profile: None,

@@ -25,6 +25,7 @@ fn slice_request(task: &PrepareTask) -> steps::SliceRequest {
     let mut req = steps::SliceRequest::new(&task.model, task.height_mm);
     req.slicer = task.slicer;
     req.strength = task.strength;
+    req.mode = task.mode;
     req.up = task.up;
     req.settings = task.settings.clone();
     req.profile = task.profile.clone();
@@ -162,7 +163,7 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                 machine: m.machine.name.clone(),
                 enhancement: crate::slice::EnhancementSummary {
                     lambda2: None,
-                    mode: "pre-sliced".into(),
+                    mode: crate::slice::moved::PRESLICED.into(),
                     report: None,
                     printed: None,
                     print_aware: None,

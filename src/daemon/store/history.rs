@@ -134,6 +134,9 @@ pub struct Retired {
     pub used_g: Option<f64>,
     #[serde(default)]
     pub cost: Option<f64>,
+    /// What the enhancement moved, in words (its slicing report's `moved`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub moved: Option<String>,
 }
 
 /// The times `job` was printing, from its state changes: each `Printing` until the next
@@ -218,6 +221,7 @@ impl Retired {
             material: used.material,
             used_g: used.grams,
             cost: used.cost,
+            moved: report.and_then(|r| r.moved.clone()),
         }
     }
 }

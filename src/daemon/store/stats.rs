@@ -457,6 +457,7 @@ mod tests {
             material: None,
             used_g: None,
             cost: None,
+            moved: None,
         }
     }
 

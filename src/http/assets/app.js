@@ -520,38 +520,116 @@ folders.addEventListener("change", (e) => {
 window.addEventListener("dragover", (e) => e.preventDefault());
 window.addEventListener("drop", (e) => e.preventDefault());
 
-function figures(obj) {
-  if (!obj || typeof obj !== "object") return "";
-  let html = "<dl>";
-  for (const [k, v] of Object.entries(obj)) {
-    if (v == null) continue;
-    const shown = typeof v === "object" ? JSON.stringify(v) : typeof v === "number" ? +v.toFixed(3) : v;
-    html += "<dt>" + esc(label(k)) + "</dt><dd>" + esc(shown) + "</dd>";
+// Numbers as an operator reads them: a few digits, the unit always said.
+function num(v, digits) { return +Number(v).toFixed(digits); }
+function mm(v) { return v == null || !isFinite(v) ? "?" : num(v, 3) + " mm"; }
+function pct(v) { return v == null || !isFinite(v) ? "?" : num(100 * v, 2) + " %"; }
+
+// A job's states in words (the API's names are for programs).
+const STATE_WORDS = {
+  queued: "queued for preparation", preparing: "being prepared", ready: "ready to print", printing: "printing",
+  done: "printed", failed: "failed", cancelled: "cancelled", interrupted: "interrupted",
+};
+function stateWords(state) { return STATE_WORDS[state] || label(state); }
+
+// The enhancement's strength in words: λ2 is the spec's height table's (20 for small
+// prints, 15 at 50 mm, 6 at 100 mm, towards 1 where prints are left unmodified).
+function strengthWords(e) {
+  if (e.lambda2 == null) return e.mode === "pre-sliced" ? "none: sliced elsewhere" : "none: printed unmodified";
+  const word = e.lambda2 >= 15 ? "strong" : e.lambda2 >= 6 ? "medium" : "light";
+  const mode = !e.print_aware ? "paper mode" :
+    "print-aware mode" + (e.print_aware.capped ? ", capped at the paper's strong setting" : "");
+  return word + " (λ2 " + num(e.lambda2, 2) + ", " + mode + ")";
+}
+
+// Rows of [what, figure] as a definition list (the page's layout for figures).
+function rowsList(rows, id) {
+  return "<dl" + (id ? ' id="' + id + '"' : "") + ">" + rows.filter((r) => r[1] != null && r[1] !== "")
+    .map(([k, v]) => "<dt>" + esc(k) + "</dt><dd>" + esc(v) + "</dd>").join("") + "</dl>";
+}
+
+// A short table of shares and distances, mm and %.
+function figureTable(head, rows, id) {
+  return '<table class="figures-table" id="' + id + '"><thead><tr><th>' + esc(head[0]) + "</th><th>" + esc(head[1]) +
+    "</th></tr></thead><tbody>" + rows.map(([k, v]) => "<tr><td>" + esc(k) + "</td><td>" + esc(v) + "</td></tr>").join("") +
+    "</tbody></table>";
+}
+
+// What an operator decides with: strength, printed size, machine, nozzle and layers,
+// material, and what the G-code says a print takes. The report's server paths and the
+// enhancement's solver figures stay in the raw report.
+function printSummary(j, report) {
+  const e = report.enhancement || {};
+  const p = e.printed || {};
+  const s = report.model_size_mm || [];
+  const size = s.length === 3 && s.every((v) => isFinite(v) && v > 0) ?
+    s.map((v) => num(v, 1)).join(" × ") + " mm (W × D × H)" + (p.scale ? ", the model file scaled ×" + num(p.scale, 4) : "") : null;
+  const nozzle = p.nozzle_mm || (e.print_aware && e.print_aware.nozzle_mm) || (j.asks && j.asks.nozzle_mm);
+  const layers = [nozzle ? nozzle + " mm nozzle" : "", report.layer_height_mm ? num(report.layer_height_mm, 3) + " mm layers" : "",
+    report.layer_count ? report.layer_count + " layers" : ""].filter(Boolean).join(", ");
+  const colour = (j.asks && j.asks.colour) || "any colour";
+  const temps = [report.nozzle_temp_c ? num(report.nozzle_temp_c, 0) + " °C nozzle" : "",
+    report.bed_temp_c ? num(report.bed_temp_c, 0) + " °C bed" : "unheated bed"].filter(Boolean).join(", ");
+  const time = report.estimated_print_time_s != null ? duration(report.estimated_print_time_s) + " (the slicer's estimate)" : null;
+  const filament = [report.filament_g != null ? num(report.filament_g, 1) + " g" : "",
+    report.filament_mm != null ? num(report.filament_mm / 1000, 2) + " m" : ""].filter(Boolean).join(" / ");
+  return rowsList([
+    ["Enhancement", strengthWords(e)],
+    ["Printed size", size],
+    ["Machine", report.machine ? report.machine + (j.printer && j.printer !== report.machine ? ", on printer " + j.printer : "") : j.printer],
+    ["Slicer", report.slicer_version || report.slicer],
+    ["Nozzle and layers", layers],
+    ["Material", report.material ? report.material.toUpperCase() + ", " + colour + (temps ? " (" + temps + ")" : "") : null],
+    ["Print time", time],
+    ["Filament", filament],
+  ], "print");
+}
+
+// The enhancement in figures: the outer walls the nozzle draws (against the unmodified
+// model's G-code), and the mesh at the printed size.
+function movedFigures(j, report) {
+  const e = report.enhancement || {};
+  let html = "";
+  const w = report.walls;
+  if (w) {
+    const rows = [];
+    if (w.quarter_line_mm > 0) rows.push(["more than a quarter line width (" + mm(w.quarter_line_mm) + ")", pct(w.share_over_quarter_line)]);
+    rows.push(["more than 0.05 mm", pct(w.share_over_0_05_mm)], ["more than 0.1 mm", pct(w.share_over_0_1_mm)],
+      ["more than 0.2 mm", pct(w.share_over_0_2_mm)], ["mean / p95 / max", num(w.mean_mm, 3) + " / " + num(w.p95_mm, 3) + " / " + mm(w.max_mm)],
+      ["layers compared", String(w.layers) + (w.layers_unmatched ? " (" + w.layers_unmatched + " in one file only)" : "")]);
+    html += figureTable(["Outer wall in the G-code moved", "of its length"], rows, "walls");
+  } else if (j.job.comparison) {
+    html += '<p class="muted" id="walls">' + esc(comparisonText(j.job.comparison)) + "</p>";
   }
-  return html + "</dl>";
+  const p = e.printed;
+  if (p) {
+    const rows = [];
+    if (p.threshold_mm != null) rows.push(["more than a quarter line width (" + mm(p.threshold_mm) + ")", pct(p.share_above_threshold)]);
+    rows.push(["mean / p95 / max", num(p.mean_mm, 3) + " / " + num(p.p95_mm, 3) + " / " + mm(p.max_mm)]);
+    html += figureTable(["Surface of the enhanced mesh moved", "of its area"], rows, "printed");
+  }
+  return html;
 }
 
-function mm(v) { return v == null ? "?" : (+v.toFixed(3)) + " mm"; }
-function pct(v) { return v == null ? "?" : (+(100 * v).toFixed(2)) + " %"; }
-
-// The enhancement in printed millimetres, next to the machine's nozzle and layers.
-function printedFigures(p) {
-  const rows = [
-    ["max displacement", mm(p.max_mm)], ["p95 displacement", mm(p.p95_mm)], ["mean displacement", mm(p.mean_mm)],
-    ["nozzle", mm(p.nozzle_mm)], ["layer height", mm(p.layer_height_mm)],
-  ];
-  if (p.threshold_mm != null) rows.push(["surface moved > " + mm(p.threshold_mm) + " (¼ line width)", pct(p.share_above_threshold)]);
-  return "<dl>" + rows.map(([k, v]) => "<dt>" + esc(k) + "</dt><dd>" + esc(v) + "</dd>").join("") + "</dl>";
-}
-
-// The outer walls against the unmodified model's, sliced the same way.
-function wallFigures(w) {
-  const rows = [
-    ["wall moved, mean", mm(w.mean_mm)], ["wall moved, p95", mm(w.p95_mm)], ["wall moved, max", mm(w.max_mm)],
-    ["wall moved > 0.05 mm", pct(w.share_over_0_05_mm)], ["wall moved > 0.1 mm", pct(w.share_over_0_1_mm)],
-    ["wall moved > 0.2 mm", pct(w.share_over_0_2_mm)], ["layers compared", String(w.layers)],
-  ];
-  return "<dl>" + rows.map(([k, v]) => "<dt>" + esc(k) + "</dt><dd>" + esc(v) + "</dd>").join("") + "</dl>";
+// A job's prints in words: when the last one started, how long it took, how it ended.
+function printingText(j) {
+  const h = j.job.history || [];
+  let at = -1;
+  h.forEach(([state], i) => { if (state === "printing") at = i; });
+  if (at < 0) return "";
+  const started = h[at][1];
+  const next = h[at + 1];
+  const where = j.printer ? " on " + j.printer : "";
+  const when = new Date(started * 1000).toLocaleString();
+  if (!next) return "Printing" + where + " since " + when + " (" + duration(Date.now() / 1000 - started) + " so far).";
+  const r = j.job.print_report;
+  const took = r && r.duration_s != null ? r.duration_s : next[1] - started;
+  const outcome = { done: "finished", ready: "finished; another copy waits", failed: "failed", cancelled: "cancelled",
+    interrupted: "interrupted" }[next[0]] || stateWords(next[0]);
+  let text = "Started" + where + " " + when + ", took " + duration(took) + ": " + outcome + ".";
+  if (j.job.copies_done > 1) text += " " + j.job.copies_done + " copies printed.";
+  if (r && r.resends) text += " The printer asked for " + r.resends + " line" + (r.resends === 1 ? "" : "s") + " again.";
+  return text;
 }
 
 // A job's wall comparison while it has no figures: measured after the job is ready.
@@ -559,6 +637,14 @@ function comparisonText(c) {
   if (c.state === "pending") return "Outer walls against the unmodified model's: pending (measured once no job is being prepared)";
   if (c.state === "not_measured") return "Outer walls against the unmodified model's: not measured (" + c.reason + ")";
   return "";
+}
+
+// The raw report, as fetched: a blob the link opens (a plain link would not carry the
+// API key). The previous page's blob is let go.
+function rawLink(j) {
+  if (rawLink.url) URL.revokeObjectURL(rawLink.url);
+  rawLink.url = URL.createObjectURL(new Blob([JSON.stringify(j, null, 2)], { type: "application/json" }));
+  return '<p><a id="raw" href="' + rawLink.url + '" target="_blank">raw report (JSON)</a></p>';
 }
 
 async function showJob(id) {
@@ -571,14 +657,21 @@ async function showJob(id) {
     page.innerHTML = '<p><a href="#">← farm</a></p><p class="reason">' + esc(err.message) + "</p>";
     return;
   }
+  // A job in the history has its record's fields, not a queue entry's (and may have lost
+  // its whole record).
+  j.pictures = j.pictures || [];
+  j.job = j.job || { history: [] };
+  const folder = j.folder_name || String(j.folder || "").split("/").filter(Boolean).pop() || "";
   const base = "/api/v1/jobs/" + encodeURIComponent(id) + "/pictures/";
-  let html = '<p><a href="#">← farm</a></p><h2>' + esc(j.file) + ' <span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span>" +
+  const report = j.job && j.job.slice_report;
+  let html = '<p><a href="#">← farm</a></p><h2>' + esc(j.file) + ' <span class="pill s-' + esc(j.state) + '">' + esc(stateWords(j.state)) + "</span>" +
     (j.held ? ' <span class="pill held">held</span>' : "") + "</h2>";
-  html += '<p class="muted">' + esc(j.id) + " · folder " + esc(j.folder_name) + " · " +
-    (j.height_mm != null ? j.height_mm + " mm" : "") + " · strength " + esc(strengthText(j.strength)) +
-    (j.printer ? " · printer " + esc(j.printer) : "") + "</p>";
+  html += '<p class="muted">' + esc(j.id) + " · folder " + esc(folder) + (j.printer ? " · printer " + esc(j.printer) : "") + "</p>";
   if (j.reason) html += '<p class="reason" id="reason">' + esc(j.reason) + "</p>";
   if (j.waiting) html += '<p class="waiting">' + esc(j.waiting) + "</p>";
+  const moved = (report && report.moved) || j.moved;
+  if (moved) html += '<p class="moved" id="moved">' + esc(moved) + "</p>";
+  if (report) html += printSummary(j, report);
   // Filament: what it asks, what a print needs, what its prints took and cost.
   const filament = [];
   if (asksText(j.asks)) filament.push("asks " + asksText(j.asks));
@@ -601,31 +694,20 @@ async function showJob(id) {
       "<figcaption>The print as the printer will lay it, from its G-code: the original model, the plain print " +
       "and the enhanced print (one camera, a low light from the left); below, the prints at their actual size</figcaption></figure>";
   }
-  const report = j.job.slice_report;
-  if (report) {
-    const e = report.enhancement || {};
-    // The mesh's own displacement is in the model file's units; the printed figures
-    // below say it in mm at the printed size.
-    const meshFigures = Object.fromEntries(Object.entries(e.report || {})
-      .filter(([k]) => k !== "max_displacement" && k !== "mean_displacement"));
-    html += "<h3>Enhancement and slicing</h3>" +
-      figures(Object.assign({ mode: e.mode, lambda2: e.lambda2 }, meshFigures));
-    if (e.printed) html += '<h4>At the printed size</h4><div id="printed">' + printedFigures(e.printed) + "</div>";
-    if (report.walls) html += '<h4>In the G-code</h4><div id="walls">' + wallFigures(report.walls) + "</div>";
-    else if (j.job.comparison) html += '<h4>In the G-code</h4><p class="muted" id="walls">' + esc(comparisonText(j.job.comparison)) + "</p>";
+  if (report && report.enhancement && report.enhancement.lambda2 != null) {
+    html += "<h3>What moved</h3>" + movedFigures(j, report);
     if (j.pictures.includes("walls.png")) {
       html += '<figure class="walls">' + picture(base + "walls.png", "outer walls") +
         "<figcaption>Outer walls of three layers (the most changed of the bottom, middle and top thirds): " +
         "unmodified grey, enhanced red</figcaption></figure>";
     }
-    html += figures(Object.fromEntries(
-      Object.entries(report).filter(([, v]) => v == null || typeof v !== "object")));
-    if (report.gcode) html += "<h4>G-code</h4>" + figures(report.gcode);
   }
+  const printing = printingText(j);
+  if (printing) html += '<h3>Printing</h3><p id="printing">' + esc(printing) + "</p>";
   if (j.camera) html += cameraSection(id, j.camera);
-  if (j.job.print_report) html += "<h3>Printing</h3>" + figures(j.job.print_report);
-  html += "<h3>History</h3><ol class='history'>" + j.job.history.map(([state, t]) =>
-    "<li>" + esc(state) + " <span class='muted'>" + new Date(t * 1000).toLocaleString() + "</span></li>").join("") + "</ol>";
+  html += "<h3>History</h3><ol class='history'>" + (j.job.history || []).map(([state, t]) =>
+    "<li>" + esc(stateWords(state)) + " <span class='muted'>" + new Date(t * 1000).toLocaleString() + "</span></li>").join("") + "</ol>";
+  html += rawLink(j);
   html += '<div class="actions">' + jobButtons(j) + "</div>";
   page.innerHTML = html;
   loadPictures(page);

@@ -70,6 +70,12 @@ pub(crate) struct Args {
     /// DIR/walls.png (and the model before and after, as a job's pictures)
     #[arg(long, value_name = "DIR", requires = "compare")]
     pub pictures: Option<PathBuf>,
+    /// Draw the print as the printer will lay it, from the G-code, into DIR/preview.png:
+    /// the model, the plain print and the enhanced one from one camera under a grazing
+    /// light, and below them the prints at their printed size. For an enhanced model this
+    /// also slices the model unmodified, as --compare does
+    #[arg(long, value_name = "DIR")]
+    pub preview: Option<PathBuf>,
     /// Stop the slicer after this many seconds
     #[arg(long, value_name = "SECS", default_value_t = 600)]
     pub timeout: u64,
@@ -145,6 +151,13 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create the picture folder {}", dir.display()))?;
         req.pictures = Some(dir.clone());
+    }
+    if let Some(dir) = &args.preview {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create the preview folder {}", dir.display()))?;
+        // Not an earlier run's picture taken for this one's.
+        let _ = std::fs::remove_file(dir.join(crispen::preview::PREVIEW_PNG));
+        req.preview = Some(dir.clone());
     }
 
     let bar = std::io::stderr().is_terminal().then(|| {
@@ -244,10 +257,23 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
                 100.0 * w.share_over_0_1_mm,
                 100.0 * w.share_over_0_2_mm
             ),
-            None if args.compare => println!(
+            None if args.compare || args.preview.is_some() && report.enhancement.lambda2.is_some() => println!(
                 "no comparison: the model was printed unmodified, or the unmodified slicing failed (see the log)"
             ),
             None => {}
+        }
+    }
+    if let Some(dir) = &args.preview {
+        let path = dir.join(crispen::preview::PREVIEW_PNG);
+        // Drawn or not, the G-code stands: a picture that failed is in the log.
+        if path.is_file() {
+            if args.json {
+                eprintln!("wrote {}", path.display());
+            } else {
+                println!("wrote {}", path.display());
+            }
+        } else {
+            eprintln!("no preview drawn (see the log)");
         }
     }
     Ok(ExitCode::SUCCESS)

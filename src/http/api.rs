@@ -59,12 +59,8 @@ pub(crate) struct StatusView {
     pub farm: Option<control::FarmStatus>,
 }
 
-const PICTURES: [&str; 4] = [
-    crate::preview::BEFORE_PNG,
-    crate::preview::AFTER_PNG,
-    crate::preview::DISPLACEMENT_PNG,
-    crate::preview::walls::WALLS_PNG,
-];
+// The names served: the pictures the store knows a job's directory may hold.
+use crate::daemon::store::PICTURES;
 
 /// The whole farm: printers, jobs (newest last) and hot folders.
 pub(crate) fn snapshot(farm: &Farm) -> StatusView {
@@ -411,7 +407,7 @@ pub(crate) async fn stats(
         .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
 }
 
-/// One of a job's pictures. Only the three fixed names are served, from the directory of
+/// One of a job's pictures. Only the fixed names of [`PICTURES`] are served, from the directory of
 /// a job the store knows, so no request can name another file.
 pub(crate) async fn picture(
     State(state): State<AppState>,
@@ -437,7 +433,7 @@ pub(crate) async fn picture(
     };
     let bytes = bytes.ok_or_else(|| {
         ApiError::not_found(format!(
-            "job {} has no {} (pictures are drawn for enhanced jobs once prepared)",
+            "job {} has no {} (pictures are drawn once a job is prepared; the preview of the print once no job is being prepared)",
             quoted(&id),
             quoted(name)
         ))

@@ -1,13 +1,15 @@
 //! Pictures of a job's mesh, made on the CPU (no GPU, no display): the model before and
 //! after the enhancement from one camera, a heat map of how far each point of the surface
 //! moved, the G-code thumbnails other farm tools show ([`thumbnail`]), and the outer walls
-//! of a few layers, plain and enhanced ([`walls`]).
+//! of a few layers, plain and enhanced ([`walls`]), and the print as the printer will lay
+//! it, drawn from the G-code ([`print`]).
 //!
 //! A small z-buffer rasteriser is all this needs: orthographic projection, per-pixel
 //! interpolated normals (the enhancement is a change of shading, so flat or per-vertex
 //! lighting would hide what it did), 2×2 supersampling for smooth edges, and a transparent
 //! background so the pictures sit on any page.
 
+pub mod print;
 mod raster;
 mod scene;
 pub mod thumbnail;
@@ -17,9 +19,10 @@ use crate::mesh::place::UpAxis;
 use crate::mesh::Mesh;
 use std::path::{Path, PathBuf};
 
-pub use raster::render;
+pub use print::PREVIEW_PNG;
+pub use raster::{render, render_lit};
 pub use scene::{norm, normalize, sub};
-pub use scene::{Camera, Image, Paint, MODEL_COLOR};
+pub use scene::{Camera, Image, Lighting, Paint, MODEL_COLOR};
 
 /// The heat map's colours: dark blue (unmoved) through teal and green to yellow (moved
 /// most), a perceptually ordered ramp that stays readable for colour-blind viewers.
@@ -92,6 +95,7 @@ pub fn pictures(before: &Mesh, after: &Mesh, up: UpAxis, size: u32) -> Option<Pi
         after,
         &camera,
         &[Paint::Uniform(MODEL_COLOR), Paint::PerVertex(&heat)],
+        &Lighting::key(&camera),
     )
     .try_into()
     .ok()?;

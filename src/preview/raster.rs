@@ -4,15 +4,15 @@
 //! One rasterisation serves several paints of the same geometry (the after picture and
 //! its heat map). Both passes split the picture into bands of rows across threads.
 
-use super::{normalize, Camera, Image, Paint};
+use super::{normalize, Camera, Image, Lighting, Paint};
 use crate::mesh::Mesh;
 use rayon::prelude::*;
 
 /// Samples per pixel along each axis.
-const SUPERSAMPLE: usize = 2;
+pub(super) const SUPERSAMPLE: usize = 2;
 
 /// Picture rows per band handed to a thread.
-const BAND_ROWS: usize = 32;
+pub(super) const BAND_ROWS: usize = 32;
 
 /// cos 30°: the largest bend between a face and its vertex normals that is shaded smooth.
 const CREASE_COS: f32 = 0.866;
@@ -34,14 +34,25 @@ const EMPTY: Sample = Sample {
     b2: 0.0,
 };
 
-/// Renders `mesh` as `camera` sees it, painted with `paint`.
+/// Renders `mesh` as `camera` sees it, painted with `paint`, under the pictures' key light
+/// ([`Lighting::key`]).
 pub fn render(mesh: &Mesh, camera: &Camera, paint: Paint) -> Image {
-    render_paints(mesh, camera, &[paint]).remove(0)
+    render_lit(mesh, camera, paint, &Lighting::key(camera))
+}
+
+/// [`render`] under another light.
+pub fn render_lit(mesh: &Mesh, camera: &Camera, paint: Paint, lighting: &Lighting) -> Image {
+    render_paints(mesh, camera, &[paint], lighting).remove(0)
 }
 
 /// Renders `mesh` once per paint, rasterising it only once. Faces that index outside the
 /// vertices are skipped (a mesh from the readers never has them).
-pub(crate) fn render_paints(mesh: &Mesh, camera: &Camera, paints: &[Paint]) -> Vec<Image> {
+pub(crate) fn render_paints(
+    mesh: &Mesh,
+    camera: &Camera,
+    paints: &[Paint],
+    lighting: &Lighting,
+) -> Vec<Image> {
     let (w, h) = (
         camera.width as usize * SUPERSAMPLE,
         camera.height as usize * SUPERSAMPLE,
@@ -79,7 +90,7 @@ pub(crate) fn render_paints(mesh: &Mesh, camera: &Camera, paints: &[Paint]) -> V
     let normals = Normals::of(mesh);
     paints
         .iter()
-        .map(|&paint| shade_and_filter(mesh, camera, paint, &normals, &samples))
+        .map(|&paint| shade_and_filter(mesh, camera, paint, lighting, &normals, &samples))
         .collect()
 }
 
@@ -185,22 +196,21 @@ fn shade_and_filter(
     mesh: &Mesh,
     camera: &Camera,
     paint: Paint,
+    lighting: &Lighting,
     normals: &Normals,
     samples: &[Sample],
 ) -> Image {
-    let to_viewer = camera.forward.map(|c| -c);
-    // A key light above and to the left of the viewer; the half vector for its highlight.
-    let light = normalize(std::array::from_fn(|k| {
-        0.8 * to_viewer[k] + 0.55 * camera.up[k] - 0.35 * camera.right[k]
-    }));
-    let half = normalize(std::array::from_fn(|k| light[k] + to_viewer[k]));
-    let (light, half, to_viewer) = (f32x3(light), f32x3(half), f32x3(to_viewer));
     // A heat map keeps more ambient light and no highlight: its colours are the message,
     // and white would read as a value on the ramp.
-    let (ambient, shininess) = match paint {
-        Paint::Uniform(_) => (0.3, 0.18),
-        Paint::PerVertex(_) => (0.5, 0.0),
+    let lighting = match paint {
+        Paint::Uniform(_) => *lighting,
+        Paint::PerVertex(_) => Lighting {
+            ambient: 0.5,
+            shininess: 0.0,
+            ..*lighting
+        },
     };
+    let shader = Shader::new(camera, &lighting);
 
     let shade = |s: &Sample| -> [f32; 3] {
         let f = mesh.faces[s.face as usize].map(|i| i as usize);
@@ -225,11 +235,9 @@ fn shade_and_filter(
             n = n.map(|c| c / len);
         }
         // Two-sided: the inside of a hole (the bunny's base) is lit like the outside.
-        if dot3(n, to_viewer) < 0.0 {
+        if dot3(n, shader.to_viewer) < 0.0 {
             n = n.map(|c| -c);
         }
-        let diffuse = dot3(n, light).max(0.0);
-        let specular = shininess * dot3(n, half).max(0.0).powi(32);
         let base = match paint {
             Paint::Uniform(color) => color,
             Paint::PerVertex(colors) => {
@@ -243,27 +251,73 @@ fn shade_and_filter(
                 c
             }
         };
-        base.map(|c| (c * (ambient + (1.0 - ambient) * diffuse) + specular).clamp(0.0, 1.0))
+        shader.shade(base, n)
     };
+    resolve(camera, |i| {
+        let s = &samples[i];
+        (s.face != u32::MAX).then(|| shade(s))
+    })
+}
 
+/// Lighting as the shading pass applies it: unit vectors in `f32`, and the half vector
+/// of the highlight.
+pub(super) struct Shader {
+    light: [f32; 3],
+    half: [f32; 3],
+    pub(super) to_viewer: [f32; 3],
+    ambient: f32,
+    shininess: f32,
+}
+
+impl Shader {
+    pub(super) fn new(camera: &Camera, lighting: &Lighting) -> Shader {
+        let to_viewer = camera.forward.map(|c| -c);
+        let light = normalize(lighting.direction);
+        let half = normalize(std::array::from_fn(|k| light[k] + to_viewer[k]));
+        Shader {
+            light: f32x3(light),
+            half: f32x3(half),
+            to_viewer: f32x3(to_viewer),
+            ambient: lighting.ambient,
+            shininess: lighting.shininess,
+        }
+    }
+
+    /// `base` lit on a surface of unit normal `n` (facing the viewer).
+    pub(super) fn shade(&self, base: [f32; 3], n: [f32; 3]) -> [f32; 3] {
+        let diffuse = dot3(n, self.light).max(0.0);
+        let specular = if self.shininess > 0.0 {
+            self.shininess * dot3(n, self.half).max(0.0).powi(32)
+        } else {
+            0.0
+        };
+        base.map(|c| {
+            (c * (self.ambient + (1.0 - self.ambient) * diffuse) + specular).clamp(0.0, 1.0)
+        })
+    }
+}
+
+/// The picture from a supersampled one: `color(i)` is the colour of sample `i` (row-major,
+/// [`SUPERSAMPLE`] × the camera's size), None where nothing was drawn; each pixel is the
+/// mean of its covered samples, its alpha the share covered. In bands across threads.
+pub(super) fn resolve(camera: &Camera, color: impl Fn(usize) -> Option<[f32; 3]> + Sync) -> Image {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let sw = w * SUPERSAMPLE;
     let mut rgba = vec![0u8; 4 * w * h];
-    rgba.par_chunks_mut(4 * w * BAND_ROWS)
+    rgba.par_chunks_mut((4 * w * BAND_ROWS).max(1))
         .enumerate()
         .for_each(|(band, rows)| {
             for (dy, row) in rows.chunks_mut(4 * w).enumerate() {
                 let y = band * BAND_ROWS + dy;
                 for (x, px) in row.chunks_mut(4).enumerate() {
-                    let mut color = [0.0f32; 3];
+                    let mut sum = [0.0f32; 3];
                     let mut covered = 0u32;
                     for sy in 0..SUPERSAMPLE {
-                        let line = &samples[(y * SUPERSAMPLE + sy) * sw..][..sw];
-                        for s in &line[x * SUPERSAMPLE..(x + 1) * SUPERSAMPLE] {
-                            if s.face != u32::MAX {
-                                let c = shade(s);
+                        let line = (y * SUPERSAMPLE + sy) * sw;
+                        for sx in x * SUPERSAMPLE..(x + 1) * SUPERSAMPLE {
+                            if let Some(c) = color(line + sx) {
                                 for k in 0..3 {
-                                    color[k] += c[k];
+                                    sum[k] += c[k];
                                 }
                                 covered += 1;
                             }
@@ -271,7 +325,7 @@ fn shade_and_filter(
                     }
                     if covered > 0 {
                         for k in 0..3 {
-                            px[k] = (255.0 * color[k] / covered as f32).round() as u8;
+                            px[k] = (255.0 * sum[k] / covered as f32).round() as u8;
                         }
                         px[3] = (255 * covered / (SUPERSAMPLE * SUPERSAMPLE) as u32) as u8;
                     }
@@ -285,10 +339,10 @@ fn shade_and_filter(
     }
 }
 
-fn f32x3(v: [f64; 3]) -> [f32; 3] {
+pub(super) fn f32x3(v: [f64; 3]) -> [f32; 3] {
     v.map(|c| c as f32)
 }
 
-fn dot3(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub(super) fn dot3(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }

@@ -117,6 +117,55 @@ impl Camera {
     }
 }
 
+/// Where the light comes from, and how much of it reaches every surface.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lighting {
+    /// Towards the light (normalised where it is used).
+    pub direction: [f64; 3],
+    /// The share of the light every surface gets, whichever way it faces.
+    pub ambient: f32,
+    /// Strength of the highlight (0: none).
+    pub shininess: f32,
+}
+
+impl Lighting {
+    /// The mesh pictures' light: a key light above and to the left of the viewer, and a
+    /// fair ambient share, so every side of the model reads.
+    pub fn key(camera: &Camera) -> Lighting {
+        let to_viewer = camera.forward.map(|c| -c);
+        Lighting {
+            direction: normalize(std::array::from_fn(|k| {
+                0.8 * to_viewer[k] + 0.55 * camera.up[k] - 0.35 * camera.right[k]
+            })),
+            ambient: 0.3,
+            shininess: 0.18,
+        }
+    }
+
+    /// A grazing light, as an inspector holds a lamp to a surface: `elevation_deg` above
+    /// the horizon (the plane normal to `world_up`), from the viewer's left and 60° round
+    /// from the viewer, with little ambient. Flat light hides relief of a tenth of a
+    /// millimetre; a low one turns each layer line and each moved wall into light and
+    /// shadow.
+    pub fn grazing(camera: &Camera, world_up: [f64; 3], elevation_deg: f64) -> Lighting {
+        let up = normalize(world_up);
+        let flat = |v: [f64; 3]| normalize(sub(v, up.map(|c| c * dot(v, up))));
+        let (to_viewer, right) = (flat(camera.forward.map(|c| -c)), flat(camera.right));
+        let azimuth = 60f64.to_radians();
+        let horizontal = normalize(std::array::from_fn(|k| {
+            azimuth.cos() * to_viewer[k] - azimuth.sin() * right[k]
+        }));
+        let el = elevation_deg.to_radians();
+        Lighting {
+            direction: normalize(std::array::from_fn(|k| {
+                el.cos() * horizontal[k] + el.sin() * up[k]
+            })),
+            ambient: 0.18,
+            shininess: 0.08,
+        }
+    }
+}
+
 /// How a surface is coloured: one colour, or a colour per vertex.
 #[derive(Clone, Copy, Debug)]
 pub enum Paint<'a> {

@@ -62,39 +62,10 @@ fn is_outer_wall(kind: &str) -> bool {
 pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
     let mut walls = OuterWalls::default();
     let mut kept = 0usize;
-    let mut motion = Motion::default();
-    let mut in_wall = false;
-    for line in reader.split(b'\n') {
-        let line = line?;
-        let line = String::from_utf8_lossy(&line);
-        let (code, comment) = match line.find(';') {
-            Some(i) => (&line[..i], Some(&line[i + 1..])),
-            None => (&line[..], None),
-        };
-        if let Some(c) = comment {
-            let c = c.trim();
-            if let Some(kind) = c.strip_prefix("TYPE:") {
-                in_wall = is_outer_wall(kind);
-            } else if c.starts_with("LAYER:") || c == "LAYER_CHANGE" {
-                in_wall = false;
-            }
-        }
-        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
-            continue;
-        };
-        // A command that cannot be followed leaves the position as it was: the measure
-        // of a file the policy refuses is never printed anyway.
-        let Ok(Some(m)) = motion.apply(&cmd) else {
-            continue;
-        };
-        // Arcs are taken as chords: the slicers here write none (arc fitting is off in
-        // the built-in profiles), and a chord only shortens the wall.
+    extruding_moves(reader, is_outer_wall, |m| {
         let (pos, target) = (m.from, m.to);
-        let extrudes = target[3] > pos[3];
         let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
-        if in_wall
-            && extrudes
-            && sane(&pos)
+        if sane(&pos)
             && sane(&target)
             && (target[0] != pos[0] || target[1] != pos[1])
             && kept < MAX_SEGMENTS
@@ -107,8 +78,51 @@ pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
                 .push([[pos[0], pos[1]], [target[0], target[1]]]);
             kept += 1;
         }
-    }
+    })?;
     Ok(walls)
+}
+
+/// Follows G-code as Marlin would ([`crate::marlin::motion`]) and hands `each` every move
+/// that pushes filament (E increasing) within a `;TYPE:` section whose kind `kind` accepts
+/// (a layer change ends a section). Arcs come as their chords: the slicers here write none
+/// (arc fitting is off in the built-in profiles), and a chord only shortens a line. The
+/// outer walls and the preview of the print (`crate::preview::print`) read G-code so.
+/// Fails only when the reader fails.
+pub(crate) fn extruding_moves(
+    reader: impl BufRead,
+    kind: impl Fn(&str) -> bool,
+    mut each: impl FnMut(crate::marlin::motion::Move),
+) -> std::io::Result<()> {
+    let mut motion = Motion::default();
+    let mut in_kind = false;
+    for line in reader.split(b'\n') {
+        let line = line?;
+        let line = String::from_utf8_lossy(&line);
+        let (code, comment) = match line.find(';') {
+            Some(i) => (&line[..i], Some(&line[i + 1..])),
+            None => (&line[..], None),
+        };
+        if let Some(c) = comment {
+            let c = c.trim();
+            if let Some(k) = c.strip_prefix("TYPE:") {
+                in_kind = kind(k);
+            } else if c.starts_with("LAYER:") || c == "LAYER_CHANGE" {
+                in_kind = false;
+            }
+        }
+        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
+            continue;
+        };
+        // A command that cannot be followed leaves the position as it was: a file the
+        // policy refuses is never printed anyway.
+        let Ok(Some(m)) = motion.apply(&cmd) else {
+            continue;
+        };
+        if in_kind && m.to[3] > m.from[3] {
+            each(m);
+        }
+    }
+    Ok(())
 }
 
 /// One layer's figures.

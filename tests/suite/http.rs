@@ -334,7 +334,13 @@ fn api_over_tcp_with_and_without_the_key() {
     assert_eq!(done["strength"], "auto");
     assert_eq!(
         done["pictures"],
-        json!(["before.png", "after.png", "displacement.png", "walls.png"])
+        json!([
+            "before.png",
+            "after.png",
+            "displacement.png",
+            "walls.png",
+            "preview.png"
+        ])
     );
     let detail = farm.get(&format!("/api/v1/jobs/{id}"), Some(KEY));
     assert_eq!(detail.status, 200);
@@ -358,7 +364,13 @@ fn api_over_tcp_with_and_without_the_key() {
             .unwrap()
             > 1000
     );
-    for name in ["before.png", "after.png", "displacement.png", "walls.png"] {
+    for name in [
+        "before.png",
+        "after.png",
+        "displacement.png",
+        "walls.png",
+        "preview.png",
+    ] {
         let a = farm.get(&format!("/api/v1/jobs/{id}/pictures/{name}"), Some(KEY));
         assert_eq!(a.status, 200, "{name}");
         assert_eq!(a.header("content-type").as_deref(), Some("image/png"));
@@ -1026,7 +1038,7 @@ fn dashboard_in_a_real_browser() {
         |s| job_by_file(s, "held.gcode").is_some_and(|j| j["held"] == false),
     );
 
-    // The job page: the report and the three pictures.
+    // The job page: the report, the three pictures and the preview of the print.
     let s = farm.status();
     let left = job_by_file(&s, "left.obj").unwrap()["id"]
         .as_str()
@@ -1042,7 +1054,9 @@ fn dashboard_in_a_real_browser() {
            && document.querySelector('#jobpage').textContent.includes('What moved')
            && /mean \\/ p95 \\/ max\\s*[0-9.]+ \\/ [0-9.]+ \\/ [0-9.]+ mm/.test(document.querySelector('#printed').textContent)
            && /more than 0.1 mm\\s*[0-9.]+ %/.test(document.querySelector('#walls').textContent)
-           && document.querySelector('#jobpage figure.walls img').naturalWidth > 0;",
+           && document.querySelector('#jobpage figure.walls img').naturalWidth > 0
+           && document.querySelector('#jobpage #preview img')?.naturalWidth > 0
+           && (document.querySelector('#preview figcaption')?.textContent || '').includes('actual size');",
     );
     browser.screenshot(&shots.join("dashboard-job.png"));
 

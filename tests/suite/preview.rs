@@ -1,14 +1,17 @@
 //! The pictures, checked by what they show: known shapes give their known silhouettes, the
 //! lighting shows the surface, the heat map varies where the displacement does, the G-code
-//! thumbnails read back as PNGs in PrusaSlicer's format, and `crispen enhance --preview`
-//! writes all three pictures.
+//! thumbnails read back as PNGs in PrusaSlicer's format, `crispen enhance --preview`
+//! writes all three pictures, and the print drawn from real G-code shows the enhancement
+//! where the walls moved (`crispen slice --preview`).
 
 use crate::common;
 
-use crispen::enhance::{self, EnhanceOptions};
+use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
+use crispen::enhance::{self, EnhanceOptions, Strength};
+use crispen::machine::Machine;
 use crispen::mesh::place::UpAxis;
 use crispen::mesh::{self, Mesh};
-use crispen::preview::{self, thumbnail, Camera, Image, Paint, MODEL_COLOR};
+use crispen::preview::{self, thumbnail, Camera, Image, Lighting, Paint, MODEL_COLOR};
 use std::process::Command;
 
 /// A sphere of radius 1 around the origin: an icosahedron subdivided and pushed out.
@@ -317,4 +320,184 @@ fn enhance_command_writes_the_three_pictures() {
     }
     assert_ne!(before, after);
     assert!(chroma_spread(&heat) > 2.0 * chroma_spread(&after));
+}
+
+/// Slices the bunny at 20 mm for a 0.4 mm nozzle with PrusaSlicer, at `strength`, into
+/// `out`.
+fn slice_bunny(strength: Strength, out: &std::path::Path) {
+    let mut req = SliceRequest::new(common::model("bunny.obj"), 20.0);
+    req.up = UpAxis::Y;
+    req.strength = strength;
+    let target = Target {
+        machine: Machine::builtin("ultimaker2plus").unwrap(),
+        output: out.to_path_buf(),
+        keep_mesh: None,
+    };
+    prepare_one(&req, target, &mut |_| {}).expect("sliced");
+}
+
+/// The print drawn from the G-code shows the enhancement where the nozzle's path moved:
+/// seen level (so that each picture row is one height of the print), the rows of the
+/// layers whose outer wall moved most differ between the plain and the enhanced print
+/// more than the rows of the layers that moved least; a stronger enhancement changes more.
+#[test]
+fn the_enhanced_print_differs_from_the_plain_one_where_the_walls_moved() {
+    use crispen::preview::print::{read_print_file, render_print};
+    use crispen::slice::walls;
+    let dir = tempfile::tempdir().unwrap();
+    let (plain_path, enhanced_path) = (dir.path().join("plain.gcode"), dir.path().join("e.gcode"));
+    slice_bunny(Strength::Off, &plain_path);
+    slice_bunny(Strength::Auto, &enhanced_path);
+    let read_walls = |p: &std::path::Path| {
+        walls::outer_walls(std::io::BufReader::new(std::fs::File::open(p).unwrap())).unwrap()
+    };
+    let comparison = walls::compare(&read_walls(&plain_path), &read_walls(&enhanced_path), 0.4);
+    let (plain, enhanced) = (
+        read_print_file(&plain_path, 0.4).unwrap(),
+        read_print_file(&enhanced_path, 0.4).unwrap(),
+    );
+    assert_eq!(plain.stride, 1, "a 20 mm bunny is drawn whole");
+    assert!(plain.segment_count() > 10_000, "{}", plain.segment_count());
+
+    // Level, from the front-right: a row is a height.
+    let (lo, hi) = plain.bounds().unwrap();
+    let size = 400;
+    let camera = Camera::looking_at((lo, hi), [0.5, -0.866, 0.0], [0.0, 0.0, 1.0], size, size);
+    let light = Lighting::grazing(&camera, [0.0, 0.0, 1.0], 20.0);
+    let (p, e) = (
+        render_print(&plain, &camera, &light),
+        render_print(&enhanced, &camera, &light),
+    );
+    assert_ne!(p, e);
+    let row_of = |z: f64| {
+        let y = 0.5 * f64::from(size) - (z - camera.center[2]) * camera.scale;
+        y.clamp(0.0, f64::from(size) - 1.0) as u32
+    };
+    // Per layer: the share of its rows' drawn pixels that differ.
+    let differs = |y: u32| {
+        let (mut drawn, mut changed) = (0, 0);
+        for x in 0..size {
+            let (a, b) = (p.pixel(x, y), e.pixel(x, y));
+            if a[3] > 0 || b[3] > 0 {
+                drawn += 1;
+                changed += u32::from((0..4).any(|k| a[k].abs_diff(b[k]) > 12));
+            }
+        }
+        (drawn, changed)
+    };
+    let mut layers: Vec<(f64, f64)> = comparison
+        .per_layer
+        .iter()
+        // The first layers are the bed's and the top ones the ears' tips: too few rows.
+        .filter(|l| l.z_mm > 1.0 && l.z_mm < hi[2] - 1.0)
+        .map(|l| {
+            let (top, bottom) = (row_of(l.z_mm), row_of(l.z_mm - 0.2));
+            let (drawn, changed) = (top..=bottom)
+                .map(differs)
+                .fold((0, 0), |s, d| (s.0 + d.0, s.1 + d.1));
+            (l.mean_mm, f64::from(changed) / f64::from(drawn.max(1)))
+        })
+        .collect();
+    assert!(layers.len() > 60, "{} layers", layers.len());
+    layers.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let quarter = layers.len() / 4;
+    let mean = |s: &[(f64, f64)]| s.iter().map(|l| l.1).sum::<f64>() / s.len() as f64;
+    let (least, most) = (
+        mean(&layers[..quarter]),
+        mean(&layers[layers.len() - quarter..]),
+    );
+    assert!(
+        most > 1.3 * least && most > 0.05,
+        "rows of the most moved layers differ {most:.3}, of the least moved {least:.3}"
+    );
+
+    // A stronger enhancement (λ2 = 40 against the default 20 at this height) shows more.
+    let stronger_path = dir.path().join("e40.gcode");
+    slice_bunny(Strength::Lambda2(40.0), &stronger_path);
+    let stronger = render_print(
+        &read_print_file(&stronger_path, 0.4).unwrap(),
+        &camera,
+        &light,
+    );
+    let changed = |other: &Image| {
+        (0..size)
+            .flat_map(|y| (0..size).map(move |x| (x, y)))
+            .filter(|&(x, y)| {
+                let (a, b) = (p.pixel(x, y), other.pixel(x, y));
+                (0..4).any(|k| a[k].abs_diff(b[k]) > 12)
+            })
+            .count()
+    };
+    let (at_20, at_40) = (changed(&e), changed(&stronger));
+    assert!(
+        at_40 > at_20,
+        "λ2 40 changes {at_40} pixels, the default {at_20}"
+    );
+}
+
+/// `crispen slice --preview DIR` writes DIR/preview.png: the model, the plain print and
+/// the enhanced one in a row of panels, the prints at their size below; a PNG of bounded
+/// size in which the enhanced panel differs from the plain one.
+#[test]
+fn slice_command_writes_the_preview_of_the_print() {
+    use crispen::preview::print::{PANEL_PX, PREVIEW_PNG};
+    let dir = tempfile::tempdir().unwrap();
+    let preview_dir = dir.path().join("preview");
+    let result = Command::new(env!("CARGO_BIN_EXE_crispen"))
+        .args(["slice", common::model("bunny.obj").to_str().unwrap(), "-o"])
+        .arg(dir.path().join("bunny.gcode"))
+        .args(["--height", "20", "--up", "y", "--machine", "ultimaker2plus"])
+        .arg("--preview")
+        .arg(&preview_dir)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&result.stdout);
+    assert!(
+        result.status.success(),
+        "{}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    let path = preview_dir.join(PREVIEW_PNG);
+    assert!(
+        stdout.contains(&format!("wrote {}", path.display())),
+        "{stdout}"
+    );
+    let bytes = std::fs::read(&path).unwrap();
+    assert!(bytes.len() < 4 << 20, "{} bytes", bytes.len());
+    let image = decode_png(&bytes);
+    let gap = 8;
+    assert_eq!(image.width, 3 * PANEL_PX + 2 * gap);
+    assert!(image.height > PANEL_PX + gap + 40 && image.height <= 2 * PANEL_PX + gap);
+    let panel = |k: u32| {
+        let x0 = k * (PANEL_PX + gap);
+        (0..PANEL_PX)
+            .flat_map(|y| (x0..x0 + PANEL_PX).map(move |x| (x, y)))
+            .map(|(x, y)| image.pixel(x, y))
+            .collect::<Vec<_>>()
+    };
+    let (mesh, plain, enhanced) = (panel(0), panel(1), panel(2));
+    let drawn = |p: &[[u8; 4]]| p.iter().filter(|c| c[3] > 0).count();
+    for p in [&mesh, &plain, &enhanced] {
+        assert!(
+            drawn(p) > (PANEL_PX * PANEL_PX / 8) as usize,
+            "a panel is filled"
+        );
+    }
+    let differ = plain
+        .iter()
+        .zip(&enhanced)
+        .filter(|(a, b)| (0..4).any(|k| a[k].abs_diff(b[k]) > 12))
+        .count();
+    assert!(
+        differ > 1000 && differ < drawn(&plain),
+        "{differ} pixels differ"
+    );
+    // The strip at the printed size: a 20 mm bunny at 4 px/mm is about 80 px tall.
+    let strip: usize = (PANEL_PX + gap..image.height)
+        .filter(|&y| (0..image.width).any(|x| image.pixel(x, y)[3] > 0))
+        .count();
+    assert!(
+        (60..=140).contains(&strip),
+        "{strip} rows at the printed size"
+    );
 }

@@ -10,6 +10,11 @@
 //! through the store; a comparison that fails leaves the job as it was, marked not
 //! measured. Each start is counted in the job, so one that the daemon's stops keep cutting
 //! short is given up after [`COMPARE_TRIES`] rather than redone at every start.
+//!
+//! The comparison also draws the enhanced job's preview of the print (`preview.png`,
+//! [`crate::preview::print`]). A job printed unmodified has no comparison; its preview is
+//! drawn as the same low-priority work ([`preview_one`]), once per job and G-code: a
+//! preview that fails is logged and the job stands.
 
 use super::process::{run_child, run_compare_child, PrepareError};
 use super::task::{resolve_task, PrepareTask, Prepared, TaskMachine};
@@ -17,7 +22,8 @@ use crate::daemon::farm::Farm;
 use crate::daemon::job::{Comparison, JobState, StoreError};
 use crate::daemon::store::StateFilter;
 use crate::slice::moved::WallsState;
-use std::path::PathBuf;
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
@@ -32,6 +38,9 @@ pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
         .unwrap_or(1);
     let mut running = tokio::task::JoinSet::new();
     let mut measuring = tokio::task::JoinSet::new();
+    // The unmodified jobs whose preview was tried in this run, each as of its history
+    // (a job prepared again has a longer one, and a new G-code to draw).
+    let mut previewed: HashSet<(String, usize)> = HashSet::new();
     loop {
         // Followed from before the look at the queue: a change while looking is not
         // missed. A reload may let a job be prepared here.
@@ -96,6 +105,10 @@ pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 measuring.spawn(
                     compare_one(Arc::clone(&farm), id, tries, program.clone()).instrument(span),
                 );
+            } else if let Some(key) = next_preview(&farm, &config, &previewed) {
+                let span = tracing::info_span!("job", job = %key.0);
+                measuring.spawn(preview_one(Arc::clone(&farm), key.0.clone()).instrument(span));
+                previewed.insert(key);
             }
         }
         let grace = Duration::from_secs_f64(wait_s.unwrap_or(0.0).clamp(0.0, 3600.0));
@@ -382,6 +395,92 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
         // Moved to the history meanwhile: the comparison no longer has a job to go into.
         Err(StoreError::NoSuchJob(_)) => {}
         Err(e) => tracing::error!(error = %e, "cannot record the wall comparison"),
+    }
+}
+
+/// The oldest job printed unmodified (from a model) whose preview is missing or older
+/// than its G-code, and not yet tried in this run; with its history's length.
+fn next_preview(
+    farm: &Farm,
+    config: &crate::daemon::config::Config,
+    tried: &HashSet<(String, usize)>,
+) -> Option<(String, usize)> {
+    let store = farm.store();
+    let found = store.jobs().find(|j| {
+        let unmodified = j
+            .slice_report
+            .as_ref()
+            .is_some_and(|r| r.enhancement.lambda2.is_none());
+        let gcode = j
+            .slice_report
+            .as_ref()
+            .and_then(|r| j.gcode_for(&r.machine));
+        unmodified
+            && j.comparison.is_none()
+            && matches!(
+                j.state,
+                JobState::Ready | JobState::Printing | JobState::Done | JobState::Interrupted
+            )
+            && !super::task::is_presliced(&j.file)
+            && can_prepare(config, j)
+            && !tried.contains(&(j.id.clone(), j.history.len()))
+            && gcode.is_some_and(|g| {
+                let dir = store.job_dir(&j.id);
+                preview_missing(&dir, &dir.join(g))
+            })
+    });
+    found.map(|j| (j.id.clone(), j.history.len()))
+}
+
+/// Whether `dir` has no preview of the print newer than `gcode`.
+fn preview_missing(dir: &Path, gcode: &Path) -> bool {
+    let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    match (
+        modified(&dir.join(crate::preview::PREVIEW_PNG)),
+        modified(gcode),
+    ) {
+        (Some(picture), Some(gcode)) => picture < gcode,
+        (None, Some(_)) => true,
+        // No G-code: nothing to draw.
+        (_, None) => false,
+    }
+}
+
+/// Draws the preview of a job printed unmodified (see the module's comment), in this
+/// process but on one thread at the lowest CPU priority, so that a preparation that
+/// starts meanwhile has the cores. A preview that fails is logged; the job is as it was.
+async fn preview_one(farm: Arc<Farm>, id: String) {
+    let clock = Instant::now();
+    let drawn = {
+        let (farm, id) = (Arc::clone(&farm), id.clone());
+        tokio::task::spawn_blocking(move || -> Result<(), String> {
+            let task = resolve_comparison(&farm, &id)?;
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .thread_name(|_| "preview".into())
+                .start_handler(|_| {
+                    // SAFETY: setpriority only changes this thread's scheduling (Linux
+                    // nices threads one by one); it touches no memory.
+                    unsafe { nix::libc::setpriority(nix::libc::PRIO_PROCESS, 0, 19) };
+                })
+                .build()
+                .map_err(|e| format!("no thread to draw on: {e}"))?;
+            pool.install(|| super::work::preview_task(&task))
+        })
+        .await
+        .unwrap_or_else(|e| Err(format!("the preview crashed: {e}")))
+    };
+    match drawn {
+        Ok(()) => tracing::info!(
+            seconds = clock.elapsed().as_secs_f64(),
+            "preview of the print done"
+        ),
+        Err(reason) => tracing::warn!(%reason, "no preview of the print; the job is as it was"),
+    }
+    // A change of the job, for its pictures to be looked at again.
+    match farm.jobs().update(&id, |_| {}).await {
+        Ok(_) | Err(StoreError::NoSuchJob(_)) => {}
+        Err(e) => tracing::error!(error = %e, "cannot record the preview"),
     }
 }
 

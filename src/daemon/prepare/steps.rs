@@ -51,6 +51,12 @@ pub struct SliceRequest {
     /// --compare` asks for it; the daemon never does (it would nearly double a job's
     /// preparation): it measures a ready job later, with [`compare_prepared`].
     pub compare: bool,
+    /// Where to draw the print as the printer will lay it, from the G-code
+    /// ([`crate::preview::print`], `preview.png`), for the first machine: beside the
+    /// unmodified print for an enhanced model (sliced for it as `compare` does, which this
+    /// implies), alone for one printed unmodified. The daemon never asks it of a
+    /// preparation: it draws a ready job's, with [`compare_prepared`] or [`draw_preview`].
+    pub preview: Option<PathBuf>,
     /// The paper's enhancement, or the print-aware one (bands and strength from each
     /// machine's nozzle and layer height, [`crate::enhance::print_aware`]; an explicit
     /// strength is then ignored, `Off` still prints unmodified).
@@ -75,6 +81,7 @@ impl SliceRequest {
             up: UpAxis::Z,
             pictures: None,
             compare: false,
+            preview: None,
             mode: Mode::default(),
         }
     }
@@ -185,7 +192,7 @@ pub fn prepare(
     }
     let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
 
-    let plain = if req.compare {
+    let plain = if req.compare || req.preview.is_some() {
         placed_plain(req, original.clone()).ok()
     } else {
         None
@@ -251,13 +258,20 @@ pub fn prepare(
                 });
                 if let Some(plain) = compare {
                     progress(Step::Comparing(&machine.name));
-                    let pictures = req.pictures.as_deref().filter(|_| index == 0);
-                    report.walls = compare_walls(req, plain, machine, &report.output, pictures)
+                    let first = |dir: &Option<PathBuf>| dir.clone().filter(|_| index == 0);
+                    let drawn = Drawn {
+                        pictures: first(&req.pictures),
+                        preview: first(&req.preview),
+                    };
+                    report.walls = compare_walls(req, plain, machine, &report.output, &drawn)
                         .map_err(|e| tracing::warn!(machine = %machine.name, error = %e, "no wall comparison"))
                         .ok();
+                } else if let Some(dir) = req.preview.as_deref().filter(|_| index == 0) {
+                    // Printed unmodified: its own G-code is the plain print.
+                    draw_preview(dir, &placed.mesh, machine, &report.output, None);
                 }
-                // Asked for and not made: the warning above says why.
-                report.set_moved(if req.compare {
+                // Asked for (by --preview too) and not made: the warning above says why.
+                report.set_moved(if req.compare || req.preview.is_some() {
                     WallsState::NotMeasured
                 } else {
                     WallsState::NotAsked
@@ -407,22 +421,66 @@ pub(crate) fn compare_prepared(
     req: &SliceRequest,
     machine: &Machine,
     enhanced_gcode: &Path,
-    pictures: Option<&Path>,
+    drawn: &Drawn,
 ) -> Result<crate::slice::walls::WallComparison, CompareError> {
     let loaded = crate::mesh::load(&req.model).map_err(|e| CompareError::Plain(e.into()))?;
     let plain = placed_plain(req, loaded.mesh).map_err(CompareError::Plain)?;
-    compare_walls(req, &plain, machine, enhanced_gcode, pictures)
+    compare_walls(req, &plain, machine, enhanced_gcode, drawn)
+}
+
+/// The preview of a job printed unmodified, already prepared (the daemon draws it after
+/// the job is ready, see `daemon::prepare::queue`): loads the model, places it as
+/// [`prepare`] placed it, and draws it beside its print from `gcode` into `dir`. A picture
+/// that cannot be drawn is logged; the job stands without it. Blocking.
+pub(crate) fn preview_prepared(req: &SliceRequest, machine: &Machine, gcode: &Path, dir: &Path) {
+    let mesh = crate::mesh::load(&req.model)
+        .map_err(SliceError::from)
+        .and_then(|loaded| placed_plain(req, loaded.mesh));
+    match mesh {
+        Ok(mesh) => draw_preview(dir, &mesh, machine, gcode, None),
+        Err(e) => tracing::warn!(machine = %machine.name, error = %e, "no preview of the print"),
+    }
+}
+
+/// Where the pictures of a comparison go: the walls of a few layers into `pictures`, the
+/// preview of both prints into `preview` (either may be None).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Drawn {
+    pub pictures: Option<PathBuf>,
+    pub preview: Option<PathBuf>,
+}
+
+/// Draws [`crate::preview::PREVIEW_PNG`] into `dir` from `plain_gcode` (and the enhanced
+/// print's, when there is one) beside the placed `mesh`; a failure is logged, never the
+/// job's.
+fn draw_preview(
+    dir: &Path,
+    mesh: &Mesh,
+    machine: &Machine,
+    plain_gcode: &Path,
+    enhanced_gcode: Option<&Path>,
+) {
+    let drawn = crate::preview::print::draw_preview(
+        dir,
+        Some(mesh),
+        plain_gcode,
+        enhanced_gcode,
+        crate::enhance::line_width_mm(machine.nozzle_mm),
+    );
+    if let Err(e) = drawn {
+        tracing::warn!(machine = %machine.name, error = %e, "no preview of the print");
+    }
 }
 
 /// Slices the placed, unmodified mesh as the enhanced one was and compares the two jobs'
-/// outer walls; with `pictures`, draws a few layers of both there (a picture that cannot
-/// be written is logged: the figures stand without it).
+/// outer walls; draws a few layers of both and the preview of both prints where `drawn`
+/// says (a picture that cannot be written is logged: the figures stand without it).
 fn compare_walls(
     req: &SliceRequest,
     plain: &Mesh,
     machine: &Machine,
     enhanced_gcode: &Path,
-    pictures: Option<&Path>,
+    drawn: &Drawn,
 ) -> Result<crate::slice::walls::WallComparison, CompareError> {
     use crate::slice::walls;
     let started = Instant::now();
@@ -451,7 +509,10 @@ fn compare_walls(
         &enhanced_walls,
         crate::enhance::line_width_mm(machine.nozzle_mm),
     );
-    if let Some(dir) = pictures {
+    if let Some(dir) = &drawn.preview {
+        draw_preview(dir, plain, machine, &output, Some(enhanced_gcode));
+    }
+    if let Some(dir) = &drawn.pictures {
         let layers = crate::preview::walls::layers_to_show(&comparison, WALL_LAYERS_SHOWN);
         let drawn = crate::preview::walls::walls_picture(
             &plain_walls,

@@ -84,13 +84,23 @@ fn compare_task(task: &PrepareTask) -> Result<WallComparison, String> {
         .first()
         .ok_or("no machine's G-code to compare")?;
     let req = slice_request(task);
-    steps::compare_prepared(
-        &req,
-        &target.machine,
-        &target.output,
-        req.pictures.as_deref(),
-    )
-    .map_err(|e| e.to_string())
+    // The walls of a few layers, and the preview of both prints, into the job's directory.
+    let drawn = steps::Drawn {
+        pictures: req.pictures.clone(),
+        preview: req.pictures.clone(),
+    };
+    steps::compare_prepared(&req, &target.machine, &target.output, &drawn)
+        .map_err(|e| e.to_string())
+}
+
+/// The preview of a job printed unmodified: its G-code for its first machine beside the
+/// model, into the job's directory (failures are logged there). Blocking.
+pub(crate) fn preview_task(task: &PrepareTask) -> Result<(), String> {
+    let target = task.machines.first().ok_or("no machine's G-code to draw")?;
+    let req = slice_request(task);
+    let dir = req.pictures.as_deref().ok_or("no job directory")?;
+    steps::preview_prepared(&req, &target.machine, &target.output, dir);
+    Ok(())
 }
 
 /// A pre-sliced file: read what it was made for, then accept or refuse it per machine.

@@ -39,13 +39,16 @@ struct Live {
     pictures: u8,
 }
 
-/// The pictures a job's directory may hold (see `crate::preview`).
-pub const PICTURES: [&str; 4] = [
+/// The pictures a job's directory may hold (see `crate::preview`); at most 8, one bit of
+/// [`Live::pictures`] each.
+pub const PICTURES: [&str; 5] = [
     crate::preview::BEFORE_PNG,
     crate::preview::AFTER_PNG,
     crate::preview::DISPLACEMENT_PNG,
     crate::preview::walls::WALLS_PNG,
+    crate::preview::PREVIEW_PNG,
 ];
+const _: () = assert!(PICTURES.len() <= u8::BITS as usize);
 
 impl Live {
     /// Looks at the job's pictures, unless `before` (the job as last seen, when the whole

@@ -698,6 +698,11 @@ async function showJob(id) {
   } else {
     html += '<p class="muted">No pictures: they are drawn for enhanced jobs once prepared.</p>';
   }
+  if (j.pictures.includes("preview.png")) {
+    html += '<figure id="preview">' + picture(base + "preview.png", "preview of the print") +
+      "<figcaption>The print as the printer will lay it, from its G-code: the original model, the plain print " +
+      "and the enhanced print (one camera, a low light from the left); below, the prints at their actual size</figcaption></figure>";
+  }
   if (report && report.enhancement && report.enhancement.lambda2 != null) {
     html += "<h3>What moved</h3>" + movedFigures(j, report);
     if (j.pictures.includes("walls.png")) {

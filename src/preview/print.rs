@@ -170,50 +170,55 @@ pub fn read_print(
     let mut kept = 0usize;
     // The layer being read: its Z (µm) and its index.
     let mut current: Option<(i64, usize)> = None;
-    crate::slice::walls::extruding_moves(reader, is_visible, |m| {
-        if !m.moves_xy() {
-            return;
-        }
-        let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
-        if !(sane(&m.from) && sane(&m.to)) {
-            print.dropped += 1;
-            return;
-        }
-        let z_um = (m.to[2] * 1000.0).round() as i64;
-        let index = match current {
-            Some((z, i)) if z == z_um => i,
-            Some((_, i)) => i + 1,
-            None => 0,
-        };
-        current = Some((z_um, index));
-        if kept >= max_segments {
-            // Sample: keep every other layer of those kept, until there is room (one
-            // layer alone beyond the cap keeps what it has).
-            while kept >= max_segments && print.layers.len() > 1 {
-                print.stride = print.stride.saturating_mul(2);
-                let stride = print.stride;
-                print.layers.retain(|_, l| l.index % stride == 0);
-                kept = print.segment_count();
-            }
-            if kept >= max_segments {
+    // A file that marks no kinds (another slicer's, or written by hand) is drawn whole.
+    crate::slice::walls::extruding_moves(
+        reader,
+        |k| k.is_none_or(is_visible),
+        |m| {
+            if !m.moves_xy() {
                 return;
             }
-        }
-        let layer = match print.layers.get_mut(&z_um) {
-            Some(layer) => layer,
-            // A later layer, or one the sampling passes over.
-            None if index % print.stride != 0 => return,
-            None => print.layers.entry(z_um).or_insert(Layer {
-                index,
-                lines: Vec::new(),
-            }),
-        };
-        layer.lines.push([
-            [m.from[0] as f32, m.from[1] as f32],
-            [m.to[0] as f32, m.to[1] as f32],
-        ]);
-        kept += 1;
-    })?;
+            let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
+            if !(sane(&m.from) && sane(&m.to)) {
+                print.dropped += 1;
+                return;
+            }
+            let z_um = (m.to[2] * 1000.0).round() as i64;
+            let index = match current {
+                Some((z, i)) if z == z_um => i,
+                Some((_, i)) => i + 1,
+                None => 0,
+            };
+            current = Some((z_um, index));
+            if kept >= max_segments {
+                // Sample: keep every other layer of those kept, until there is room (one
+                // layer alone beyond the cap keeps what it has).
+                while kept >= max_segments && print.layers.len() > 1 {
+                    print.stride = print.stride.saturating_mul(2);
+                    let stride = print.stride;
+                    print.layers.retain(|_, l| l.index % stride == 0);
+                    kept = print.segment_count();
+                }
+                if kept >= max_segments {
+                    return;
+                }
+            }
+            let layer = match print.layers.get_mut(&z_um) {
+                Some(layer) => layer,
+                // A later layer, or one the sampling passes over.
+                None if index % print.stride != 0 => return,
+                None => print.layers.entry(z_um).or_insert(Layer {
+                    index,
+                    lines: Vec::new(),
+                }),
+            };
+            layer.lines.push([
+                [m.from[0] as f32, m.from[1] as f32],
+                [m.to[0] as f32, m.to[1] as f32],
+            ]);
+            kept += 1;
+        },
+    )?;
     Ok(print)
 }
 
@@ -695,6 +700,16 @@ mod tests {
         );
         assert_eq!(hidden.segment_count(), 0);
         assert!(preview_picture(None, &hidden, None, 100).is_none());
+        // A file that marks no kinds (another slicer's, or by hand) is drawn whole.
+        let unmarked = read(
+            &tower(2, |_| 10.0)
+                .lines()
+                .filter(|l| !l.starts_with(";TYPE:"))
+                .collect::<Vec<_>>()
+                .join("\n"),
+        );
+        // Its walls and its one infill line that moves (the other starts where it ends).
+        assert_eq!(unmarked.segment_count(), 2 * (8 + 1));
     }
 
     #[test]

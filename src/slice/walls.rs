@@ -62,39 +62,46 @@ fn is_outer_wall(kind: &str) -> bool {
 pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
     let mut walls = OuterWalls::default();
     let mut kept = 0usize;
-    extruding_moves(reader, is_outer_wall, |m| {
-        let (pos, target) = (m.from, m.to);
-        let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
-        if sane(&pos)
-            && sane(&target)
-            && (target[0] != pos[0] || target[1] != pos[1])
-            && kept < MAX_SEGMENTS
-        {
-            let z = (target[2] * 1000.0).round() as i64;
-            walls
-                .layers
-                .entry(z)
-                .or_default()
-                .push([[pos[0], pos[1]], [target[0], target[1]]]);
-            kept += 1;
-        }
-    })?;
+    // A file that marks no outer wall has none to compare.
+    extruding_moves(
+        reader,
+        |k| k.is_some_and(is_outer_wall),
+        |m| {
+            let (pos, target) = (m.from, m.to);
+            let sane = |p: &[f64; 4]| p[..3].iter().all(|c| c.abs() <= COORD_LIMIT_MM);
+            if sane(&pos)
+                && sane(&target)
+                && (target[0] != pos[0] || target[1] != pos[1])
+                && kept < MAX_SEGMENTS
+            {
+                let z = (target[2] * 1000.0).round() as i64;
+                walls
+                    .layers
+                    .entry(z)
+                    .or_default()
+                    .push([[pos[0], pos[1]], [target[0], target[1]]]);
+                kept += 1;
+            }
+        },
+    )?;
     Ok(walls)
 }
 
 /// Follows G-code as Marlin would ([`crate::marlin::motion`]) and hands `each` every move
 /// that pushes filament (E increasing) within a `;TYPE:` section whose kind `kind` accepts
-/// (a layer change ends a section). Arcs come as their chords: the slicers here write none
-/// (arc fitting is off in the built-in profiles), and a chord only shortens a line. The
-/// outer walls and the preview of the print (`crate::preview::print`) read G-code so.
-/// Fails only when the reader fails.
+/// (a layer change ends a section); `kind(None)` says whether to take the moves of a file
+/// that has marked none so far (one from another slicer, or written by hand). Arcs come as
+/// their chords: the slicers here write none (arc fitting is off in the built-in
+/// profiles), and a chord only shortens a line. The outer walls and the preview of the
+/// print (`crate::preview::print`) read G-code so. Fails only when the reader fails.
 pub(crate) fn extruding_moves(
     reader: impl BufRead,
-    kind: impl Fn(&str) -> bool,
+    kind: impl Fn(Option<&str>) -> bool,
     mut each: impl FnMut(crate::marlin::motion::Move),
 ) -> std::io::Result<()> {
     let mut motion = Motion::default();
-    let mut in_kind = false;
+    let mut marked = false;
+    let mut in_kind = kind(None);
     for line in reader.split(b'\n') {
         let line = line?;
         let line = String::from_utf8_lossy(&line);
@@ -105,8 +112,9 @@ pub(crate) fn extruding_moves(
         if let Some(c) = comment {
             let c = c.trim();
             if let Some(k) = c.strip_prefix("TYPE:") {
-                in_kind = kind(k);
-            } else if c.starts_with("LAYER:") || c == "LAYER_CHANGE" {
+                marked = true;
+                in_kind = kind(Some(k));
+            } else if (c.starts_with("LAYER:") || c == "LAYER_CHANGE") && marked {
                 in_kind = false;
             }
         }

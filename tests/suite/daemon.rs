@@ -2274,42 +2274,46 @@ fn the_wall_comparison_comes_after_every_preparation_and_the_job_does_not_wait_f
 
 /// A job printed unmodified has no comparison, and still gets its preview of the print,
 /// drawn once the queue is idle: ready first, then `preview.png` in its directory and in
-/// its pictures, the job as it was.
+/// its pictures, the job as it was. So does a pre-sliced job (its print alone).
 #[test]
-fn a_job_printed_unmodified_gets_its_preview_after_it_is_ready() {
+fn jobs_printed_unmodified_or_presliced_get_their_preview_after_they_are_ready() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
     let (config, log) = small_farm(root, "strength = \"off\"");
     bed_not_cleared_at_start(root);
     let _daemon = Daemon::start(&config, &log);
     drop_model(&root.join("hot"), "plain.obj", &spot());
+    let gcode = common::farm::presliced_gcode("spot", 20, 1200);
+    drop_model(&root.join("hot"), "sliced.gcode", gcode.as_bytes());
     let s = wait_for(
         &config,
         &log,
         Duration::from_secs(180),
-        "the job ready",
-        |s| state_of(s, "plain.obj") == "ready",
+        "the jobs ready",
+        |s| state_of(s, "plain.obj") == "ready" && state_of(s, "sliced.gcode") == "ready",
     );
-    let id = job_by_file(&s, "plain.obj").unwrap()["id"]
-        .as_str()
-        .unwrap()
-        .to_string();
-    let job_dir = root.join("spool/jobs").join(&id);
-    let started = Instant::now();
-    while !job_dir.join("preview.png").is_file() {
-        assert!(
-            started.elapsed() < Duration::from_secs(120),
-            "no preview drawn\nlog:\n{}",
-            std::fs::read_to_string(&log).unwrap_or_default()
-        );
-        std::thread::sleep(Duration::from_millis(200));
+    for file in ["plain.obj", "sliced.gcode"] {
+        let id = job_by_file(&s, file).unwrap()["id"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        let job_dir = root.join("spool/jobs").join(&id);
+        let started = Instant::now();
+        while !job_dir.join("preview.png").is_file() {
+            assert!(
+                started.elapsed() < Duration::from_secs(120),
+                "no preview drawn for {file}\nlog:\n{}",
+                std::fs::read_to_string(&log).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+        let record: Value =
+            serde_json::from_slice(&std::fs::read(job_dir.join("job.json")).unwrap()).unwrap();
+        assert!(record.get("comparison").is_none(), "{record}");
+        assert_eq!(record["state"], "ready", "the preview changes no state");
+        let png = std::fs::read(job_dir.join("preview.png")).unwrap();
+        assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+        // Not the enhanced job's pictures: only the model and its print.
+        assert!(!job_dir.join("after.png").exists());
     }
-    let record: Value =
-        serde_json::from_slice(&std::fs::read(job_dir.join("job.json")).unwrap()).unwrap();
-    assert!(record.get("comparison").is_none(), "{record}");
-    assert_eq!(record["state"], "ready", "the preview changes no state");
-    let png = std::fs::read(job_dir.join("preview.png")).unwrap();
-    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
-    // Not the enhanced job's pictures: only the model and its print.
-    assert!(!job_dir.join("after.png").exists());
 }

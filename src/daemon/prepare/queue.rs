@@ -12,8 +12,9 @@
 //! short is given up after [`COMPARE_TRIES`] rather than redone at every start.
 //!
 //! The comparison also draws the enhanced job's preview of the print (`preview.png`,
-//! [`crate::preview::print`]). A job printed unmodified has no comparison; its preview is
-//! drawn as the same low-priority work ([`preview_one`]), once per job and G-code: a
+//! [`crate::preview::print`]). A job printed unmodified or pre-sliced has no comparison;
+//! its preview (a pre-sliced one's without a model beside it) is drawn as the same
+//! low-priority work ([`preview_one`]), once per job and G-code: a
 //! preview that fails is logged and the job stands.
 
 use super::process::{run_child, run_compare_child, PrepareError};
@@ -398,7 +399,7 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
     }
 }
 
-/// The oldest job printed unmodified (from a model) whose preview is missing or older
+/// The oldest job printed unmodified or pre-sliced whose preview is missing or older
 /// than its G-code, and not yet tried in this run; with its history's length.
 fn next_preview(
     farm: &Farm,
@@ -421,7 +422,6 @@ fn next_preview(
                 j.state,
                 JobState::Ready | JobState::Printing | JobState::Done | JobState::Interrupted
             )
-            && !super::task::is_presliced(&j.file)
             && can_prepare(config, j)
             && !tried.contains(&(j.id.clone(), j.history.len()))
             && gcode.is_some_and(|g| {
@@ -446,9 +446,9 @@ fn preview_missing(dir: &Path, gcode: &Path) -> bool {
     }
 }
 
-/// Draws the preview of a job printed unmodified (see the module's comment), in this
-/// process but on one thread at the lowest CPU priority, so that a preparation that
-/// starts meanwhile has the cores. A preview that fails is logged; the job is as it was.
+/// Draws the preview of a job printed unmodified or pre-sliced (see the module's
+/// comment), in this process but on one thread at the lowest CPU priority, so that a
+/// preparation that starts meanwhile has the cores. A preview that fails is logged; the job is as it was.
 async fn preview_one(farm: Arc<Farm>, id: String) {
     let clock = Instant::now();
     let drawn = {
@@ -491,8 +491,9 @@ fn resolve_comparison(farm: &Farm, id: &str) -> Result<PrepareTask, String> {
     let job = farm.store().get(id).cloned().ok_or("job vanished")?;
     let report = job.slice_report.as_ref().ok_or("the job has no report")?;
     // Compared as it was prepared, or not at all: a measure of other settings would
-    // mislead.
-    if task.height_mm != report.height_mm || task.slicer != report.slicer {
+    // mislead. (A pre-sliced file was made elsewhere: only its preview is drawn, from it.)
+    let presliced = super::task::is_presliced(&job.file);
+    if !presliced && (task.height_mm != report.height_mm || task.slicer != report.slicer) {
         return Err("the folder's settings changed since the job was prepared".into());
     }
     let gcode = job

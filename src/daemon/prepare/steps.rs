@@ -268,7 +268,7 @@ pub fn prepare(
                         .ok();
                 } else if let Some(dir) = req.preview.as_deref().filter(|_| index == 0) {
                     // Printed unmodified: its own G-code is the plain print.
-                    draw_preview(dir, &placed.mesh, machine, &report.output, None);
+                    draw_preview(dir, Some(&placed.mesh), machine, &report.output, None);
                 }
                 // Asked for (by --preview too) and not made: the warning above says why.
                 report.set_moved(if req.compare || req.preview.is_some() {
@@ -428,16 +428,22 @@ pub(crate) fn compare_prepared(
     compare_walls(req, &plain, machine, enhanced_gcode, drawn)
 }
 
-/// The preview of a job printed unmodified, already prepared (the daemon draws it after
-/// the job is ready, see `daemon::prepare::queue`): loads the model, places it as
-/// [`prepare`] placed it, and draws it beside its print from `gcode` into `dir`. A picture
+/// The preview of a job printed unmodified or pre-sliced, already prepared (the daemon
+/// draws it after the job is ready, see `daemon::prepare::queue`): loads the model, places
+/// it as [`prepare`] placed it, and draws it beside its print from `gcode` into `dir` (a
+/// pre-sliced job's print alone). A picture
 /// that cannot be drawn is logged; the job stands without it. Blocking.
 pub(crate) fn preview_prepared(req: &SliceRequest, machine: &Machine, gcode: &Path, dir: &Path) {
+    let name = req.model.file_name().unwrap_or_default().to_string_lossy();
+    // A pre-sliced job has no model: its print is drawn alone.
+    if super::task::is_presliced(&name) {
+        return draw_preview(dir, None, machine, gcode, None);
+    }
     let mesh = crate::mesh::load(&req.model)
         .map_err(SliceError::from)
         .and_then(|loaded| placed_plain(req, loaded.mesh));
     match mesh {
-        Ok(mesh) => draw_preview(dir, &mesh, machine, gcode, None),
+        Ok(mesh) => draw_preview(dir, Some(&mesh), machine, gcode, None),
         Err(e) => tracing::warn!(machine = %machine.name, error = %e, "no preview of the print"),
     }
 }
@@ -455,14 +461,14 @@ pub(crate) struct Drawn {
 /// job's.
 fn draw_preview(
     dir: &Path,
-    mesh: &Mesh,
+    mesh: Option<&Mesh>,
     machine: &Machine,
     plain_gcode: &Path,
     enhanced_gcode: Option<&Path>,
 ) {
     let drawn = crate::preview::print::draw_preview(
         dir,
-        Some(mesh),
+        mesh,
         plain_gcode,
         enhanced_gcode,
         crate::enhance::line_width_mm(machine.nozzle_mm),
@@ -510,7 +516,7 @@ fn compare_walls(
         crate::enhance::line_width_mm(machine.nozzle_mm),
     );
     if let Some(dir) = &drawn.preview {
-        draw_preview(dir, plain, machine, &output, Some(enhanced_gcode));
+        draw_preview(dir, Some(plain), machine, &output, Some(enhanced_gcode));
     }
     if let Some(dir) = &drawn.pictures {
         let layers = crate::preview::walls::layers_to_show(&comparison, WALL_LAYERS_SHOWN);

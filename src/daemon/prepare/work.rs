@@ -93,8 +93,9 @@ fn compare_task(task: &PrepareTask) -> Result<WallComparison, String> {
         .map_err(|e| e.to_string())
 }
 
-/// The preview of a job printed unmodified: its G-code for its first machine beside the
-/// model, into the job's directory (failures are logged there). Blocking.
+/// The preview of a job printed unmodified or pre-sliced: its G-code for its first
+/// machine (beside the model, if it has one), into the job's directory (failures are
+/// logged there). Blocking.
 pub(crate) fn preview_task(task: &PrepareTask) -> Result<(), String> {
     let target = task.machines.first().ok_or("no machine's G-code to draw")?;
     let req = slice_request(task);

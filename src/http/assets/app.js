@@ -696,7 +696,7 @@ async function showJob(id) {
     }
     html += "</div>";
   } else {
-    html += '<p class="muted">No pictures: they are drawn for enhanced jobs once prepared.</p>';
+    html += '<p class="muted">No pictures yet: pictures of the model are drawn for enhanced jobs once prepared, the preview of the print once no job is being prepared.</p>';
   }
   if (j.pictures.includes("preview.png")) {
     html += '<figure id="preview">' + picture(base + "preview.png", "preview of the print") +

@@ -13,22 +13,9 @@ use crispen::machine::Machine;
 use crispen::mesh::place::UpAxis;
 use crispen::preview::print::{self, read_print, read_print_file, render_print, PANEL_PX};
 use crispen::preview::{Camera, Lighting};
-use std::time::Instant;
 
 #[path = "../tests/common/mod.rs"]
 mod common;
-
-fn time<T>(runs: usize, mut f: impl FnMut() -> T) -> f64 {
-    common::median(
-        (0..runs)
-            .map(|_| {
-                let t = Instant::now();
-                std::hint::black_box(f());
-                t.elapsed().as_secs_f64()
-            })
-            .collect(),
-    )
-}
 
 fn main() {
     let runs = common::bench_runs(3);
@@ -54,7 +41,7 @@ fn main() {
             paths.push(output);
         }
         let mb = std::fs::metadata(&paths[0]).map_or(0, |m| m.len()) as f64 / 1e6;
-        let read = time(runs, || read_print_file(&paths[0], 0.4).unwrap());
+        let read = common::median_seconds(runs, || read_print_file(&paths[0], 0.4).unwrap());
         let plain = read_print_file(&paths[0], 0.4).unwrap();
         let enhanced = read_print_file(&paths[1], 0.4).unwrap();
         let camera = Camera::looking_at(
@@ -65,9 +52,9 @@ fn main() {
             PANEL_PX,
         );
         let light = Lighting::grazing(&camera, [0.0, 0.0, 1.0], 20.0);
-        let panel = time(runs, || render_print(&plain, &camera, &light));
+        let panel = common::median_seconds(runs, || render_print(&plain, &camera, &light));
         let mut png = 0;
-        let preview = time(runs, || {
+        let preview = common::median_seconds(runs, || {
             let image = print::preview_picture(None, &plain, Some(&enhanced), PANEL_PX).unwrap();
             png = image.to_png().len();
         });
@@ -92,11 +79,11 @@ fn main() {
             );
         }
     }
-    let read = time(runs, || {
+    let read = common::median_seconds(runs, || {
         read_print(g.as_bytes(), 0.4, print::MAX_SEGMENTS).unwrap()
     });
     let tower = read_print(g.as_bytes(), 0.4, print::MAX_SEGMENTS).unwrap();
-    let preview = time(runs, || {
+    let preview = common::median_seconds(runs, || {
         print::preview_picture(None, &tower, None, PANEL_PX).unwrap()
     });
     println!(

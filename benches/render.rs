@@ -7,22 +7,9 @@ use crispen::enhance::{self, EnhanceOptions};
 use crispen::mesh::place::UpAxis;
 use crispen::mesh::{self, Mesh};
 use crispen::preview::{self, thumbnail};
-use std::time::Instant;
 
 #[path = "../tests/common/mod.rs"]
 mod common;
-
-fn time<T>(runs: usize, mut f: impl FnMut() -> T) -> f64 {
-    common::median(
-        (0..runs)
-            .map(|_| {
-                let t = Instant::now();
-                std::hint::black_box(f());
-                t.elapsed().as_secs_f64()
-            })
-            .collect(),
-    )
-}
 
 fn main() {
     let runs = common::bench_runs(5);
@@ -44,14 +31,14 @@ fn main() {
     for (name, before) in &cases {
         let (after, _) =
             enhance::enhance(before, &EnhanceOptions::with_lambda2(20.0), &mut |_| {}).unwrap();
-        let render = time(runs, || {
+        let render = common::median_seconds(runs, || {
             preview::pictures(before, &after, UpAxis::Y, 800).unwrap()
         });
         let pictures = preview::pictures(before, &after, UpAxis::Y, 800).unwrap();
-        let png = time(runs, || {
+        let png = common::median_seconds(runs, || {
             [&pictures.before, &pictures.after, &pictures.displacement].map(|i| i.to_png())
         });
-        let thumbnails = time(runs, || thumbnail::blocks(&after, UpAxis::Y));
+        let thumbnails = common::median_seconds(runs, || thumbnail::blocks(&after, UpAxis::Y));
         println!(
             "{:<10} {:>9} {:>10.3} {:>8.3} {:>8.3} {:>11.3}",
             name,

@@ -733,14 +733,7 @@ mod tests {
         const ALPHABET: &[u8] = b"G1XYZE0123456789.-; \nTYPE:External perimeter\nM83G92e+";
         let mut state = 12345u64;
         for _ in 0..100 {
-            let bytes: Vec<u8> = (0..400)
-                .map(|_| {
-                    state = state
-                        .wrapping_mul(6364136223846793005)
-                        .wrapping_add(1442695040888963407);
-                    ALPHABET[(state >> 33) as usize % ALPHABET.len()]
-                })
-                .collect();
+            let bytes = crate::slice::walls::random_bytes(&mut state, ALPHABET, 400);
             let p = read_print(&bytes[..], f64::NAN, MAX_SEGMENTS).unwrap();
             if let Some(image) = preview_picture(None, &p, Some(&p), 32) {
                 assert!(image.width <= 3 * 32 + 16 && image.height <= 2 * 32 + 8);

@@ -402,6 +402,20 @@ impl<'a> Grid<'a> {
     }
 }
 
+/// `len` bytes drawn from `alphabet` by a fixed generator (`state` its seed and its
+/// state): G-code's noise, the same at every run.
+#[cfg(test)]
+pub(crate) fn random_bytes(state: &mut u64, alphabet: &[u8], len: usize) -> Vec<u8> {
+    (0..len)
+        .map(|_| {
+            *state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            alphabet[(*state >> 33) as usize % alphabet.len()]
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -523,14 +537,7 @@ mod tests {
         const ALPHABET: &[u8] = b"G1XYZE0123456789.-; \nTYPE:External perimeter\nM83G92";
         let mut state = 12345u64;
         for _ in 0..200 {
-            let bytes: Vec<u8> = (0..400)
-                .map(|_| {
-                    state = state
-                        .wrapping_mul(6364136223846793005)
-                        .wrapping_add(1442695040888963407);
-                    ALPHABET[(state >> 33) as usize % ALPHABET.len()]
-                })
-                .collect();
+            let bytes = random_bytes(&mut state, ALPHABET, 400);
             let w = outer_walls(&bytes[..]).unwrap();
             let c = compare(&w, &w, 0.4);
             assert!(c.mean_mm.is_finite() && c.max_mm <= MAX_DISTANCE_MM);

@@ -166,7 +166,7 @@ pub struct SliceReport {
     /// for, see `SliceRequest::compare`).
     #[serde(default)]
     pub walls: Option<walls::WallComparison>,
-    /// What the enhancement moved, in one line ([`moved`]): made with the report and
+    /// What the enhancement moved, in one line (see `moved.rs`): made with the report and
     /// again when its walls are compared. None in reports made before it was.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub moved: Option<String>,

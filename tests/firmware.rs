@@ -254,9 +254,14 @@ fn crispen_print_through_the_relay_runs_every_line_once() {
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(out.status.success(), "{}: {stderr}", build.name());
         let log = relay.wait_position(Duration::from_secs(10));
-        let at = log
-            .answered_position()
-            .unwrap_or_else(|| panic!("{}: no position reported", build.name()));
+        let at = log.answered_position().unwrap_or_else(|| {
+            panic!(
+                "{}: no position reported ({}); crispen said: {stderr}\nthe wire's last lines:\n{}",
+                build.name(),
+                counts(&log),
+                wire_tail(&log, 30)
+            )
+        });
         for axis in 0..2 {
             assert!(
                 (at[axis] - expected[axis]).abs() < 0.005,

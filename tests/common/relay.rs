@@ -119,8 +119,8 @@ pub struct RelayLog {
     /// Every line each way with its time since the relay started, as it crossed (after
     /// faults): `>` to the printer, `<` to the host.
     pub wire: Vec<(f64, char, String)>,
-    /// How many lines the firmware had written when the last `M114` crossed to it: its
-    /// answer comes after them.
+    /// How many lines the firmware had written when the first `M114` crossed to it: its
+    /// answer comes after them (the job asks for the position once).
     pub m114_at: Option<usize>,
 }
 
@@ -448,7 +448,10 @@ fn run(
                             continue;
                         }
                     }
-                    if line.windows(4).any(|w| w == b"M114") {
+                    // The first crossing: a replay after the answer (the host honouring a
+                    // resend request that proves stale; the firmware refuses the line by
+                    // its number) must not hide the answer.
+                    if log.m114_at.is_none() && line.windows(4).any(|w| w == b"M114") {
                         log.m114_at = Some(log.printer_lines.len());
                     }
                     let due = now + delay(&mut rng);

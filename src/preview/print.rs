@@ -7,7 +7,8 @@
 //! prints at the size they will be printed.
 //!
 //! The G-code is followed as the walls' measure follows it
-//! ([`crate::slice::walls::extruding_moves`]: Marlin's reading and motion); every input is bounded: moves beyond the walls'
+//! ([`crate::slice::walls::extruding_moves`]: Marlin's reading and motion), and a file that
+//! marks no kinds of line is drawn whole. Every input is bounded: moves beyond the walls'
 //! [`COORD_LIMIT_MM`] or not finite are dropped, and a print of more than
 //! [`MAX_SEGMENTS`] visible lines is sampled (every k-th layer, drawn k layers tall so the
 //! surface stays closed) rather than refused.

@@ -448,7 +448,8 @@ fn preview_missing(dir: &Path, gcode: &Path) -> bool {
 
 /// Draws the preview of a job printed unmodified or pre-sliced (see the module's
 /// comment), in this process but on one thread at the lowest CPU priority, so that a
-/// preparation that starts meanwhile has the cores. A preview that fails is logged; the job is as it was.
+/// preparation that starts meanwhile has the cores. A preview that fails is logged; the
+/// job is as it was.
 async fn preview_one(farm: Arc<Farm>, id: String) {
     let clock = Instant::now();
     let drawn = {

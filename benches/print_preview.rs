@@ -7,10 +7,7 @@
 //! lines, sampled under the cap. `cargo bench --bench print_preview`
 //! (CRISPEN_BENCH_RUNS sets the runs).
 
-use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
-use crispen::enhance::Strength;
 use crispen::machine::Machine;
-use crispen::mesh::place::UpAxis;
 use crispen::preview::print::{self, read_print, read_print_file, render_print, PANEL_PX};
 use crispen::preview::{Camera, Lighting};
 
@@ -26,20 +23,7 @@ fn main() {
          case              MB  segments stride  read_s  panel_s  preview_s  png_KiB"
     );
     for (model, height) in [("bunny", 20.0), ("spot", 25.0), ("spot", 50.0)] {
-        let mut paths = Vec::new();
-        for (name, strength) in [("plain", Strength::Off), ("enhanced", Strength::Auto)] {
-            let mut req = SliceRequest::new(common::model(&format!("{model}.obj")), height);
-            req.up = UpAxis::Y;
-            req.strength = strength;
-            let output = dir.path().join(format!("{model}-{name}-{height}.gcode"));
-            let target = Target {
-                machine: machine.clone(),
-                output: output.clone(),
-                keep_mesh: None,
-            };
-            prepare_one(&req, target, &mut |_| {}).expect("PrusaSlicer slices the model");
-            paths.push(output);
-        }
+        let (paths, _) = common::slice_plain_and_enhanced(dir.path(), &machine, model, height);
         let mb = std::fs::metadata(&paths[0]).map_or(0, |m| m.len()) as f64 / 1e6;
         let read = common::median_seconds(runs, || read_print_file(&paths[0], 0.4).unwrap());
         let plain = read_print_file(&paths[0], 0.4).unwrap();

@@ -5,10 +5,7 @@
 //! comparing them: the median of a few runs. (The bunny's open base makes PrusaSlicer
 //! leave empty layers in it unmodified above about 40 mm.) `cargo bench --bench walls` (CRISPEN_BENCH_RUNS sets the runs).
 
-use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
-use crispen::enhance::Strength;
 use crispen::machine::Machine;
-use crispen::mesh::place::UpAxis;
 use crispen::slice::walls;
 use std::time::Instant;
 
@@ -26,23 +23,8 @@ fn main() {
         ("spot", 50.0),
         ("spot", 100.0),
     ] {
-        let mut slice_s = 0.0;
-        let mut paths = Vec::new();
-        for (name, strength) in [("plain", Strength::Off), ("enhanced", Strength::Auto)] {
-            let mut req = SliceRequest::new(common::model(&format!("{model}.obj")), height);
-            req.up = UpAxis::Y;
-            req.strength = strength;
-            let output = dir.path().join(format!("{model}-{name}-{height}.gcode"));
-            let target = Target {
-                machine: machine.clone(),
-                output: output.clone(),
-                keep_mesh: None,
-            };
-            let t = Instant::now();
-            prepare_one(&req, target, &mut |_| {}).expect("PrusaSlicer slices the model");
-            slice_s += t.elapsed().as_secs_f64();
-            paths.push(output);
-        }
+        let (paths, slice_s) =
+            common::slice_plain_and_enhanced(dir.path(), &machine, model, height);
         let bytes: u64 = paths
             .iter()
             .map(|p| std::fs::metadata(p).map_or(0, |m| m.len()))

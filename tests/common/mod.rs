@@ -37,6 +37,34 @@ pub fn median_seconds<T>(runs: usize, mut f: impl FnMut() -> T) -> f64 {
     )
 }
 
+/// Slices the test model `model` (Y up) `height_mm` tall for `machine` with PrusaSlicer,
+/// unmodified and enhanced (the default strength), into `dir`: the two G-code files, in
+/// that order, and the seconds both slicings took (the benchmarks' shared setup).
+pub fn slice_plain_and_enhanced(
+    dir: &Path,
+    machine: &crispen::machine::Machine,
+    model: &str,
+    height_mm: f64,
+) -> ([PathBuf; 2], f64) {
+    use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
+    use crispen::enhance::Strength;
+    let started = std::time::Instant::now();
+    let paths = [("plain", Strength::Off), ("enhanced", Strength::Auto)].map(|(name, strength)| {
+        let mut req = SliceRequest::new(self::model(&format!("{model}.obj")), height_mm);
+        req.up = crispen::mesh::place::UpAxis::Y;
+        req.strength = strength;
+        let output = dir.join(format!("{model}-{name}-{height_mm}.gcode"));
+        let target = Target {
+            machine: machine.clone(),
+            output: output.clone(),
+            keep_mesh: None,
+        };
+        prepare_one(&req, target, &mut |_| {}).expect("PrusaSlicer slices the model");
+        output
+    });
+    (paths, started.elapsed().as_secs_f64())
+}
+
 pub fn data_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data")
 }

@@ -14,8 +14,8 @@
 //! The comparison also draws the enhanced job's preview of the print (`preview.png`,
 //! [`crate::preview::print`]). A job printed unmodified or pre-sliced has no comparison;
 //! its preview (a pre-sliced one's without a model beside it) is drawn as the same
-//! low-priority work ([`preview_one`]), once per job and G-code: a
-//! preview that fails is logged and the job stands.
+//! low-priority work ([`preview_one`]), once per job and G-code: a preview that fails is
+//! logged and the job stands.
 
 use super::process::{run_child, run_compare_child, PrepareError};
 use super::task::{resolve_task, PrepareTask, Prepared, TaskMachine};
@@ -39,9 +39,9 @@ pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
         .unwrap_or(1);
     let mut running = tokio::task::JoinSet::new();
     let mut measuring = tokio::task::JoinSet::new();
-    // The unmodified jobs whose preview was tried in this run, each as of its history
-    // (a job prepared again has a longer one, and a new G-code to draw).
-    let mut previewed: HashSet<(String, usize)> = HashSet::new();
+    // The unmodified jobs whose preview was looked at in this run, each as of its
+    // history (a job prepared again has a longer one, and a new G-code to draw).
+    let mut looked_at: HashSet<(String, usize)> = HashSet::new();
     loop {
         // Followed from before the look at the queue: a change while looking is not
         // missed. A reload may let a job be prepared here.
@@ -106,10 +106,9 @@ pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 measuring.spawn(
                     compare_one(Arc::clone(&farm), id, tries, program.clone()).instrument(span),
                 );
-            } else if let Some(key) = next_preview(&farm, &config, &previewed) {
-                let span = tracing::info_span!("job", job = %key.0);
-                measuring.spawn(preview_one(Arc::clone(&farm), key.0.clone()).instrument(span));
-                previewed.insert(key);
+            } else if let Some(id) = next_preview(&farm, &config, &mut looked_at) {
+                let span = tracing::info_span!("job", job = %id);
+                measuring.spawn(preview_one(Arc::clone(&farm), id).instrument(span));
             }
         }
         let grace = Duration::from_secs_f64(wait_s.unwrap_or(0.0).clamp(0.0, 3600.0));
@@ -400,36 +399,42 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
 }
 
 /// The oldest job printed unmodified or pre-sliced whose preview is missing or older
-/// than its G-code, and not yet tried in this run; with its history's length.
+/// than its G-code. Each job's files are looked at once per state change in this run
+/// (`looked_at`, by its history's length): not at every turn of the loop, under the
+/// store's lock, for every job the farm has kept.
 fn next_preview(
     farm: &Farm,
     config: &crate::daemon::config::Config,
-    tried: &HashSet<(String, usize)>,
-) -> Option<(String, usize)> {
+    looked_at: &mut HashSet<(String, usize)>,
+) -> Option<String> {
     let store = farm.store();
-    let found = store.jobs().find(|j| {
+    for j in store.jobs() {
         let unmodified = j
             .slice_report
             .as_ref()
             .is_some_and(|r| r.enhancement.lambda2.is_none());
-        let gcode = j
-            .slice_report
-            .as_ref()
-            .and_then(|r| j.gcode_for(&r.machine));
-        unmodified
+        let drawable = unmodified
             && j.comparison.is_none()
             && matches!(
                 j.state,
                 JobState::Ready | JobState::Printing | JobState::Done | JobState::Interrupted
             )
-            && can_prepare(config, j)
-            && !tried.contains(&(j.id.clone(), j.history.len()))
-            && gcode.is_some_and(|g| {
-                let dir = store.job_dir(&j.id);
-                preview_missing(&dir, &dir.join(g))
-            })
-    });
-    found.map(|j| (j.id.clone(), j.history.len()))
+            && can_prepare(config, j);
+        if !drawable || !looked_at.insert((j.id.clone(), j.history.len())) {
+            continue;
+        }
+        let gcode = j
+            .slice_report
+            .as_ref()
+            .and_then(|r| j.gcode_for(&r.machine));
+        if gcode.is_some_and(|g| {
+            let dir = store.job_dir(&j.id);
+            preview_missing(&dir, &dir.join(g))
+        }) {
+            return Some(j.id.clone());
+        }
+    }
+    None
 }
 
 /// Whether `dir` has no preview of the print newer than `gcode`.

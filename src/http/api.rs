@@ -9,7 +9,8 @@ use super::{ApiError, AppState};
 use crate::daemon::control::{self, Command, JobStatus};
 use crate::daemon::farm::{Farm, PrinterStatus};
 use crate::daemon::job::{Job, JobState};
-use crate::daemon::store::{history, stats};
+// The pictures served are those the store knows a job's directory may hold.
+use crate::daemon::store::{history, stats, PICTURES};
 use crate::enhance::Strength;
 use axum::body::Body;
 use axum::extract::{Path, State};
@@ -58,9 +59,6 @@ pub(crate) struct StatusView {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub farm: Option<control::FarmStatus>,
 }
-
-// The names served: the pictures the store knows a job's directory may hold.
-use crate::daemon::store::PICTURES;
 
 /// The whole farm: printers, jobs (newest last) and hot folders.
 pub(crate) fn snapshot(farm: &Farm) -> StatusView {
@@ -407,8 +405,8 @@ pub(crate) async fn stats(
         .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
 }
 
-/// One of a job's pictures. Only the fixed names of [`PICTURES`] are served, from the directory of
-/// a job the store knows, so no request can name another file.
+/// One of a job's pictures. Only the fixed names of [`PICTURES`] are served, from the
+/// directory of a job the store knows, so no request can name another file.
 pub(crate) async fn picture(
     State(state): State<AppState>,
     Path((id, picture)): Path<(String, String)>,

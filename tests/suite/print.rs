@@ -83,7 +83,15 @@ async fn stream(
         conn.print(program, control_rx, progress),
     )
     .await
-    .expect("job ends within two minutes")
+    .unwrap_or_else(|_| {
+        // Where it stood, for a wedge seen once under CI's load and never here.
+        let done = sim.executed();
+        panic!(
+            "job ends within two minutes: {} commands executed, the last {:?}",
+            done.len(),
+            &done[done.len().saturating_sub(5)..]
+        )
+    })
 }
 
 async fn exactly_once(fw: Firmware, faults: Faults, seed: u64, moves: usize) -> PrintReport {

@@ -12,6 +12,14 @@
 //! circles, P turns) reach their circle's extremes, a Bézier move (`G5`) stays in the hull
 //! of its control points.
 //!
+//! Every position is computed as the firmware computes it, in its 32-bit floats (each
+//! number read as its own `strtof` or avr-libc `strtod` reads it, `G92` and offsets as its
+//! workspace keeps them, arcs through its own `plan_arc` or `mc_arc`: [`firmware_arc`]), and
+//! again from the file's own numbers in 64-bit: where the two disagree on what the printer
+//! does (an arc a whole circle in one, a sliver in the other; the bed's edge), or the
+//! firmware would skip the move or answer an error, the line is refused. The rules, with
+//! their source lines, are in `docs/gcode-policy.md` ("Arithmetic").
+//!
 //! What cannot be followed for certain is refused ([`Unfollowable`]), never guessed:
 //! workspace coordinate systems (`G53`–`G59`, `G10 L2`/`L20`: off in stock Marlin, kept in
 //! EEPROM where on, so a file's offsets would shift every later job), other arc planes

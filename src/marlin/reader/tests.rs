@@ -147,8 +147,10 @@ fn readers_agree_with_the_transcribed_parsers_on_random_lines() {
 
 /// Each firmware's own float of a number: Marlin 2's `strtof` rounds to the nearest float;
 /// Ultimaker2Marlin's avr-libc `strtod` gathers the digits into a 32-bit integer and
-/// scales it by float powers of ten, which can land one float away. The values are the
-/// avr-libc 2.0 algorithm's, worked by hand: 149999 is exact, times 1e-2f then 1e-1f.
+/// scales it by float powers of ten, which can land one float away (149999 is exact, then
+/// times 1e-2f and 1e-1f, each rounded). The values are the avr-libc 2.0 algorithm's, as an
+/// independent transcription (numpy's float32) also gave them; that the emulated Ultimaker 2
+/// reads `149.999992` as 150 is shown by `tests/firmware.rs` (a whole circle).
 #[test]
 fn each_firmware_reads_a_number_into_its_own_float() {
     for (text, nearest, avr) in [

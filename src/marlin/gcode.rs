@@ -286,6 +286,11 @@ pub struct GcodeProgram {
     commands: GcodeCommands,
     /// The gap between each command's source line and the previous one's.
     source_lines: Arc<SmallSeq>,
+    /// The firmware it was read for.
+    firmware: Firmware,
+    /// Which part of a plate each command belongs to, where the file labels its parts
+    /// ([`crate::marlin::plate`]); label commands are not among the commands.
+    marks: Option<Arc<crate::marlin::plate::Marks>>,
 }
 
 impl GcodeProgram {
@@ -339,6 +344,7 @@ impl GcodeProgram {
         let mut line_no = 0;
         let mut last_command_line = 0;
         let mut total = 0u64;
+        let mut labels = crate::marlin::plate::LabelReader::default();
         loop {
             raw.clear();
             let n = (&mut reader)
@@ -360,6 +366,12 @@ impl GcodeProgram {
                     file: name.to_string(),
                     line: line_no,
                 });
+            }
+            if may_label(&raw) {
+                let line = String::from_utf8_lossy(&raw);
+                if labels.line(&line, lens.len()) == crate::marlin::plate::LineLabel::Command {
+                    continue;
+                }
             }
             // Comments may hold anything (slicers write non-UTF-8 names); cut them first.
             let code = match raw.iter().position(|&b| b == b';') {
@@ -413,10 +425,13 @@ impl GcodeProgram {
             });
         }
         source_lines.shrink_to_fit();
+        let marks = labels.finish(lens.len()).map(Arc::new);
         Ok(GcodeProgram {
             name: name.to_string(),
             commands: GcodeCommands::from_parts(text, lens),
             source_lines: Arc::new(source_lines),
+            firmware,
+            marks,
         })
     }
 
@@ -430,11 +445,21 @@ impl GcodeProgram {
             name: name.to_string(),
             commands: commands.into(),
             source_lines: Arc::new(source_lines),
+            firmware: Firmware::Marlin2,
+            marks: None,
         }
     }
 
     pub(crate) fn name(&self) -> &str {
         &self.name
+    }
+    /// The firmware it was read for.
+    pub fn firmware(&self) -> Firmware {
+        self.firmware
+    }
+    /// Which part of a plate each command belongs to, if the file labels its parts.
+    pub fn marks(&self) -> Option<&Arc<crate::marlin::plate::Marks>> {
+        self.marks.as_ref()
     }
     pub fn len(&self) -> usize {
         self.commands.len()
@@ -466,6 +491,19 @@ impl GcodeProgram {
         (index < self.source_lines.len())
             .then(|| (self.source_lines.sum_before(index) + self.source_lines.get(index)) as usize)
     }
+}
+
+/// Whether a line as read may be a plate's label (a comment, or a label command: see
+/// [`crate::marlin::plate`]): a cheap look at its first bytes.
+fn may_label(raw: &[u8]) -> bool {
+    let start = raw
+        .iter()
+        .position(|b| !b.is_ascii_whitespace())
+        .unwrap_or(raw.len());
+    let head = &raw[start..];
+    let starts =
+        |word: &[u8]| head.len() >= word.len() && head[..word.len()].eq_ignore_ascii_case(word);
+    head.first() == Some(&b';') || starts(b"M486") || starts(b"EXCLUDE_OBJECT")
 }
 
 /// A `\\` outside a `"..."` string: Marlin's parser drops it.

@@ -5,6 +5,8 @@
 //!   one follower of where its moves take the head, and the pauses a file asks for.
 //! - `protocol`: the host state machine. Pure: bytes and the current time go in, lines to
 //!   send, events and deadlines come out. No ports, no clocks.
+//! - `plate`: a plate's parts, as its file labels them, and the host's filter that drops
+//!   a cancelled part's lines.
 //! - `transport` / `stream`: the serial port and the async driver around the state machine.
 //! - `sim`: a simulated printer on a real pty, speaking the same protocol, with injectable
 //!   faults. Tests, the quick start and the demo farm use it.
@@ -13,6 +15,7 @@ pub mod firmware;
 pub mod gcode;
 pub mod motion;
 pub mod pause;
+pub mod plate;
 pub mod protocol;
 pub mod reader;
 pub mod sim;

@@ -560,6 +560,11 @@ impl Motion {
         }
     }
 
+    /// Whether X, Y and Z moves are relative (`G91`).
+    pub(crate) fn xyz_relative(&self) -> bool {
+        !self.absolute
+    }
+
     /// The commands that put the firmware back into the file's modes (positioning and E),
     /// after a host's own lines changed them.
     pub(crate) fn mode_commands(&self) -> [&'static str; 2] {

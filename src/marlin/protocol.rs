@@ -44,7 +44,8 @@ pub use framing::{canonical, checksum, frame};
 pub use options::ProtocolOptions;
 pub use temperature::{Temp, Temperatures};
 
-use super::gcode::{is_heat_wait, GcodeCommands};
+use super::gcode::is_heat_wait;
+use super::plate::JobLines;
 use event::Stats;
 use line::{InFlight, Kind, Line};
 use phase::{JobPhase, Phase, Stop};
@@ -64,7 +65,9 @@ pub struct Host {
     outgoing: Vec<u8>,
     events: VecDeque<Event>,
 
-    job: GcodeCommands,
+    /// The job's lines, taken one at a time as they are sent (a plate's filter decides
+    /// each then: see `plate::JobLines`).
+    job: JobLines,
     next_job: usize,
     acked_job: usize,
     pending: VecDeque<(Kind, String)>,
@@ -114,7 +117,7 @@ impl Host {
             rx_partial: Vec::new(),
             outgoing: Vec::new(),
             events: VecDeque::new(),
-            job: GcodeCommands::default(),
+            job: JobLines::default(),
             next_job: 0,
             acked_job: 0,
             pending: VecDeque::new(),
@@ -189,6 +192,10 @@ impl Host {
     pub fn acked_job_lines(&self) -> usize {
         self.acked_job
     }
+    /// The job's lines, for a change to those not sent yet (a plate's part cancelled).
+    pub(crate) fn job_lines(&mut self) -> &mut JobLines {
+        &mut self.job
+    }
     pub(crate) fn temperatures(&self) -> Temperatures {
         self.thermal.temps
     }
@@ -218,7 +225,7 @@ impl Host {
     /// Returns false when the host is not idle. Pass a shared handle (e.g.
     /// [`GcodeProgram::shared_commands`](super::gcode::GcodeProgram::shared_commands)) so a
     /// long job is not held in memory twice.
-    pub fn start_job(&mut self, commands: impl Into<GcodeCommands>, now: Instant) -> bool {
+    pub fn start_job(&mut self, commands: impl Into<JobLines>, now: Instant) -> bool {
         if self.phase != Phase::Idle {
             return false;
         }

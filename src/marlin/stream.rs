@@ -10,12 +10,14 @@ use super::firmware::Firmware;
 use super::gcode::{GcodeCommands, GcodeProgram};
 use super::motion::Motion;
 use super::pause::{find_pauses, heaters_off_lines, park_lines, resume_lines, FilePause};
+use super::plate::{JobLines, PartFilter};
 use super::protocol::reply::HostAction;
 use super::protocol::{Event, Host, ProtocolOptions};
 use super::reader;
 use super::transport::{LinkEvent, Transport};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
@@ -69,6 +71,21 @@ pub enum StreamControl {
     Pause,
     Resume,
     Cancel,
+    /// Stop printing this part of the plate (its number in the file's
+    /// [`Marks`](super::plate::Marks)) from the next line not sent; the last part cancels
+    /// the print.
+    CancelPart(u16),
+}
+
+/// A part of a plate the host stopped printing.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct CancelledPart {
+    /// Its number in the file's [`Marks`](super::plate::Marks), and its name.
+    pub part: u16,
+    pub name: String,
+    /// The job's command (0-based) it was dropped from: every line before it was sent as
+    /// the file has it.
+    pub from: usize,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Default)]
@@ -115,6 +132,8 @@ pub struct PrintProgress {
     pub remaining_s: Option<f64>,
     /// Set while the print waits at a pause the file asked for.
     pub pause: Option<PauseInfo>,
+    /// The parts of the plate cancelled so far, in order.
+    pub cancelled_parts: Vec<CancelledPart>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -320,6 +339,19 @@ impl Connection {
     pub async fn print(
         &mut self,
         program: &GcodeProgram,
+        control: mpsc::Receiver<StreamControl>,
+        progress: watch::Sender<PrintProgress>,
+    ) -> Result<PrintReport, PrintError> {
+        self.print_plate(program, &[], control, progress).await
+    }
+
+    /// [`Connection::print`], with parts of the plate cancelled before it starts (their
+    /// numbers in the file's [`Marks`](super::plate::Marks)): they are dropped from its
+    /// first line. A program whose file labels no parts has nothing to cancel.
+    pub async fn print_plate(
+        &mut self,
+        program: &GcodeProgram,
+        cancelled: &[u16],
         mut control: mpsc::Receiver<StreamControl>,
         progress: watch::Sender<PrintProgress>,
     ) -> Result<PrintReport, PrintError> {
@@ -340,7 +372,22 @@ impl Connection {
             pause: None,
             control_open: true,
             sent: Sent::default(),
+            filter: program
+                .marks()
+                .map(|marks| PartFilter::new(Arc::clone(marks), program.firmware())),
+            cancelled: Vec::new(),
+            all: program.shared_commands(),
         };
+        for &part in cancelled {
+            run.cancel_part(None, part);
+        }
+        if run.filter.as_ref().is_some_and(PartFilter::all_cancelled) {
+            return Err(PrintError::Cancelled {
+                port: run.port.clone(),
+                last_acked: 0,
+                stop: StopOutcome::None,
+            });
+        }
         let commands = program.shared_commands();
         let mut motion = Motion::new(self.opts.firmware);
         let mut from = 0;
@@ -460,7 +507,12 @@ impl Connection {
                 Woke::Control(None) => run.control_open = false,
                 Woke::Control(Some(StreamControl::Resume)) => break,
                 Woke::Control(Some(StreamControl::Pause)) => {}
-                Woke::Control(Some(StreamControl::Cancel)) => {
+                Woke::Control(Some(StreamControl::CancelPart(part)))
+                    if !run.cancel_part(None, part) =>
+                {
+                    run.publish(at, shown, PrintState::WaitingForOperator);
+                }
+                Woke::Control(Some(StreamControl::Cancel | StreamControl::CancelPart(_))) => {
                     run.publish(at, shown, PrintState::Cancelling);
                     let stop = GcodeCommands::from(
                         ["M104 S0", "M140 S0", "M107", "M84"]
@@ -530,7 +582,11 @@ impl Connection {
         };
         let mut state = part.state();
         let mut stop = StopOutcome::None;
-        self.host.start_job(commands, Instant::now());
+        let lines = match run.filter.take().filter(|_| job_lines) {
+            Some(filter) => JobLines::filtered(commands, run.all.clone(), offset, filter),
+            None => JobLines::from(commands),
+        };
+        self.host.start_job(lines, Instant::now());
         run.publish(acked(&self.host), self.host.temperatures(), state);
         let mut last_publish = Instant::now();
         loop {
@@ -541,6 +597,9 @@ impl Connection {
             while let Some(event) = self.host.poll_event() {
                 match event {
                     Event::Done(summary) => {
+                        if let Some(filter) = self.host.job_lines().take_filter() {
+                            run.filter = Some(filter);
+                        }
                         run.sent.lines_sent += summary.lines_sent;
                         run.sent.resends += summary.resends;
                         run.sent.probes += summary.probes;
@@ -636,7 +695,11 @@ impl Connection {
                     Some(StreamControl::Pause | StreamControl::Resume) => {
                         tracing::debug!(port = %port.display(), gcode = run.name, "pause/resume ignored while the host parks or resumes the printer");
                     }
-                    Some(StreamControl::Cancel) => {
+                    Some(StreamControl::CancelPart(p)) if !run.cancel_part(Some(self.host.job_lines()), p) => {
+                        tracing::info!(port = %port.display(), gcode = run.name, part = p, "a part of the plate cancelled");
+                        run.publish(acked(&self.host), self.host.temperatures(), state);
+                    }
+                    Some(StreamControl::Cancel | StreamControl::CancelPart(_)) => {
                         state = PrintState::Cancelling;
                         self.host.cancel(Instant::now());
                         run.publish(acked(&self.host), self.host.temperatures(), state);
@@ -684,6 +747,13 @@ struct Run {
     pause: Option<PauseInfo>,
     control_open: bool,
     sent: Sent,
+    /// The plate's filter while no part of the job streams (between its parts, at a
+    /// pause); a part streaming holds it in its lines.
+    filter: Option<PartFilter>,
+    /// The parts cancelled so far.
+    cancelled: Vec<CancelledPart>,
+    /// The whole job's commands, which the filter's indices count.
+    all: GcodeCommands,
 }
 
 /// The report's counts, summed over the parts.
@@ -696,6 +766,30 @@ struct Sent {
 }
 
 impl Run {
+    /// Cancels a part of the plate (in `lines`' filter while a part of the job streams,
+    /// else in the run's). Returns whether every part is cancelled now: the print is then
+    /// cancelled as a whole.
+    fn cancel_part(&mut self, lines: Option<&mut JobLines>, part: u16) -> bool {
+        let filter = match lines.and_then(JobLines::filter_mut) {
+            Some(filter) => Some(filter),
+            None => self.filter.as_mut(),
+        };
+        let Some(filter) = filter else {
+            tracing::warn!(port = %self.port.display(), gcode = self.name, part, "a part cancelled, but the file labels no parts");
+            return false;
+        };
+        let Some(from) = filter.cancel(part) else {
+            tracing::warn!(port = %self.port.display(), gcode = self.name, part, "no such part to cancel");
+            return false;
+        };
+        if !self.cancelled.iter().any(|c| c.part == part) {
+            let name = filter.marks().names()[usize::from(part)].clone();
+            tracing::info!(port = %self.port.display(), gcode = self.name, part = name, from, "part cancelled: its lines are dropped from here on");
+            self.cancelled.push(CancelledPart { part, name, from });
+        }
+        filter.all_cancelled()
+    }
+
     fn publish(&self, acked: usize, t: Temperatures, state: PrintState) {
         let elapsed = self.started.elapsed().as_secs_f64();
         let total = self.total;
@@ -710,6 +804,7 @@ impl Run {
             elapsed_s: elapsed,
             remaining_s: if acked >= total { Some(0.0) } else { remaining },
             pause: self.pause.clone(),
+            cancelled_parts: self.cancelled.clone(),
         });
     }
 }

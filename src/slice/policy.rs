@@ -193,6 +193,10 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
             v.refuse(number, "", "is not text (UTF-8)".into());
             continue;
         };
+        // A plate's labels are read by the host, which never sends them.
+        if crate::marlin::plate::is_label_command(code) {
+            continue;
+        }
         let cmd = match reader::read_for(machine.firmware, code) {
             Ok(Some(cmd)) => cmd,
             Ok(None) => continue,

@@ -179,9 +179,13 @@ impl Host {
             }
             let candidate_len = if let Some((_, command)) = self.pending.front() {
                 command.len()
-            } else if self.accepting_job_lines() && self.next_job < self.job.len() {
-                self.job[self.next_job].len()
+            } else if !self.accepting_job_lines() {
+                break;
+            } else if let Some((_, len)) = self.job.peek(self.next_job) {
+                len
             } else {
+                // The lines left are none to send (a cancelled part's).
+                self.next_job = self.job.len();
                 break;
             };
             let number = self.next_number;
@@ -191,9 +195,8 @@ impl Host {
             let number = if let Some((kind, command)) = self.pending.pop_front() {
                 self.new_line(kind, command)
             } else {
-                let idx = self.next_job;
-                self.next_job += 1;
-                let command = self.job[idx].to_owned();
+                let (idx, command) = self.job.take(self.next_job).expect("peeked above");
+                self.next_job = idx + 1;
                 self.new_line(Kind::Job(idx), command)
             };
             self.transmit(number, now);

@@ -9,6 +9,8 @@
 //! sweep is 20. What the noise costs in time is `cargo bench --bench recovery`.
 
 mod common;
+#[path = "firmware/plates.rs"]
+mod plates;
 use common::relay::{
     firmware_dir, job, noise, print_through, print_through_with, Build, Outcome, Relay,
     RelayFaults, RelayLog,

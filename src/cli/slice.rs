@@ -38,6 +38,11 @@ pub(crate) struct Args {
     /// Slicer to run: prusa (PrusaSlicer) or cura (CuraEngine)
     #[arg(long, default_value = "prusa", value_parser = parse_slicer)]
     pub slicer: SlicerKind,
+    /// Copies of the model side by side on one bed, each a part of the plate that can be
+    /// cancelled alone while printing
+    #[arg(long, value_name = "N", default_value_t = 1,
+          value_parser = clap::value_parser!(u32).range(1..=i64::from(crispen::slice::plate::MAX_PER_PLATE)))]
+    pub per_plate: u32,
     /// Enhancement strength λ2 (default: chosen from the printed height)
     #[arg(long, value_name = "L2", conflicts_with = "no_enhance")]
     pub strength: Option<f64>,
@@ -147,6 +152,7 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
     req.timeout = Duration::from_secs(args.timeout.max(1));
     req.compare = args.compare;
     req.mode = args.mode;
+    req.per_plate = args.per_plate;
     if let Some(dir) = &args.pictures {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create the picture folder {}", dir.display()))?;

@@ -181,6 +181,9 @@ pub struct Sidecar {
     pub nozzle_mm: Option<f64>,
     pub tags: Option<Vec<String>>,
     pub priority: Option<i32>,
+    /// Copies of the model side by side on one bed (a plate): each a part that can be
+    /// cancelled alone while the others print on.
+    pub per_plate: Option<u32>,
 }
 
 /// Reads a sidecar file (`model.stl.toml`); unknown keys are an error.
@@ -214,7 +217,7 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
     }
     let sidecar: Sidecar = toml::from_str(&text).map_err(|e| {
         format!(
-            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, printer, hold, material, colour, nozzle_mm, tags, priority)",
+            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, per_plate, printer, hold, material, colour, nozzle_mm, tags, priority)",
             path.display(),
             e.message().trim()
         )
@@ -230,6 +233,10 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
                 path.display()
             ));
         }
+    }
+    if let Some(n) = sidecar.per_plate {
+        crate::daemon::config::check_per_plate(n)
+            .map_err(|m| format!("sidecar {}: key `per_plate`: {m}", path.display()))?;
     }
     if let Some(s) = &sidecar.strength {
         crate::daemon::config::parse_strength(s)

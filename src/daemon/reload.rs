@@ -308,11 +308,13 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             timeout,
             settings,
             asks,
+            per_plate,
         } = new;
         // Compared by their debug form: these types carry no equality of their own.
         let same =
             |a: &dyn std::fmt::Debug, b: &dyn std::fmt::Debug| format!("{a:?}") == format!("{b:?}");
         differs("folder.height_mm", *height_mm != old.height_mm);
+        differs("folder.per_plate", *per_plate != old.per_plate);
         differs("folder.printers", *printers != old.printers);
         differs("folder.strength", !same(strength, &old.strength));
         differs("folder.enhancement", *mode != old.mode);

@@ -77,10 +77,10 @@ pub(crate) enum Bounds {
 
 impl Move {
     /// Filament pushed (negative: retracted), mm.
-    pub(crate) fn extruded(&self) -> f64 {
+    pub fn extruded(&self) -> f64 {
         self.to[3] - self.from[3]
     }
-    pub(crate) fn moves_xy(&self) -> bool {
+    pub fn moves_xy(&self) -> bool {
         self.to[0] != self.from[0] || self.to[1] != self.from[1] || self.curved
     }
     pub(crate) fn moves_xyz(&self) -> bool {

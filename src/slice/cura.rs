@@ -43,7 +43,7 @@ impl SlicerProfile for CuraProfile {
         &self,
         job: &JobParams,
         _workdir: &Path,
-        stl: &Path,
+        stls: &[PathBuf],
         gcode: &Path,
     ) -> Result<Invocation, SliceError> {
         let (start, end) = start_end_gcode(job);
@@ -119,12 +119,12 @@ impl SlicerProfile for CuraProfile {
             args.push("-s".into());
             args.push(format!("{k}={v}").into());
         }
-        args.extend([
-            "-o".into(),
-            gcode.as_os_str().to_owned(),
-            "-l".into(),
-            stl.as_os_str().to_owned(),
-        ]);
+        args.extend(["-o".into(), gcode.as_os_str().to_owned()]);
+        // One mesh per part of the plate, each where crispen placed it; CuraEngine labels
+        // each by its file's name (`;MESH:NAME`).
+        for stl in stls {
+            args.extend(["-l".into(), stl.as_os_str().to_owned()]);
+        }
         let mut search = OsString::from(definitions);
         search.push(":");
         search.push(extruders);

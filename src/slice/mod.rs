@@ -19,6 +19,7 @@
 pub mod cura;
 pub(crate) mod gcode;
 pub mod moved;
+pub mod plate;
 pub mod policy;
 pub mod presliced;
 pub(crate) mod process;
@@ -107,6 +108,8 @@ pub(crate) struct SliceJob<'a> {
     /// a slicer's trouble with the unmodified model (an open scan's empty layers) is no
     /// reason not to measure the enhanced one.
     pub measure_only: bool,
+    /// Copies of the model side by side on one bed (1: one), each a part of the plate.
+    pub per_plate: u32,
 }
 
 /// How the model was changed before slicing.
@@ -174,14 +177,33 @@ pub struct SliceReport {
     /// refuses makes no report.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub policy: Option<policy::Verdict>,
+    /// The parts of the plate, as the G-code labels them (see `crate::marlin::plate`):
+    /// each may be cancelled while the others print on. Empty for a file that labels none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub parts: Vec<crate::marlin::plate::PartInfo>,
 }
 
-/// Slices a placed mesh for one machine, checks the G-code, and writes `job.output` (only
-/// when the G-code passed the checks; an existing file is replaced atomically). The report's
-/// model-side fields (`up`, `enhancement`, `model_size_mm`, load and enhance timings) are
-/// the composer's to fill. Blocking.
+/// Slices a placed mesh for one machine ([`slice_plate`] with the model as its one part,
+/// `job.per_plate` times).
 pub(crate) fn slice_mesh(
     mesh: &Mesh,
+    job: &SliceJob,
+    progress: &mut dyn FnMut(SliceStep),
+) -> Result<SliceReport, SliceError> {
+    let name = job
+        .model
+        .file_stem()
+        .map_or_else(|| "model".to_string(), |s| s.to_string_lossy().into_owned());
+    slice_plate(&[plate::PlatePart { name: &name, mesh }], job, progress)
+}
+
+/// Slices placed meshes as one plate for one machine (each `job.per_plate` times, each a
+/// part the G-code labels: see [`plate`]), checks the G-code, and writes `job.output`
+/// (only when the G-code passed the checks; an existing file is replaced atomically). The
+/// report's model-side fields (`up`, `enhancement`, `model_size_mm`, load and enhance
+/// timings) are the composer's to fill. Blocking.
+pub(crate) fn slice_plate(
+    parts: &[plate::PlatePart],
     job: &SliceJob,
     progress: &mut dyn FnMut(SliceStep),
 ) -> Result<SliceReport, SliceError> {
@@ -208,17 +230,9 @@ pub(crate) fn slice_mesh(
             "cannot create a temporary folder in",
             &std::env::temp_dir(),
         ))?;
-    let stl_path = work.path().join("model.stl");
-    {
-        let file = std::fs::File::create(&stl_path)
-            .map_err(SliceError::io("cannot write temporary STL", &stl_path))?;
-        let mut w = std::io::BufWriter::new(file);
-        crate::mesh::write_stl(&mut w, mesh)
-            .and_then(|_| std::io::Write::flush(&mut w))
-            .map_err(SliceError::io("cannot write temporary STL", &stl_path))?;
-    }
-    if let Some(keep) = job.keep_mesh {
-        persist(&stl_path, keep)?;
+    let (stls, copies) = write_plate(parts, job, work.path())?;
+    if let (Some(keep), Some(first)) = (job.keep_mesh, stls.first()) {
+        persist(first, keep)?;
     }
     let gcode_path = work.path().join("job.gcode");
     let params = profiles::JobParams {
@@ -227,8 +241,9 @@ pub(crate) fn slice_mesh(
         nozzle_temp_c,
         bed_temp_c,
         height_mm: job.height_mm,
+        copies,
     };
-    let invocation = profile.invocation(&params, work.path(), &stl_path, &gcode_path)?;
+    let invocation = profile.invocation(&params, work.path(), &stls, &gcode_path)?;
     let program = job
         .slicer_program
         .map(Path::to_path_buf)
@@ -342,6 +357,7 @@ pub(crate) fn slice_mesh(
         })
     });
 
+    let parts = plate_parts(&gcode_path, job.machine.firmware);
     persist(&gcode_path, job.output)?;
     timings.total_s = started.elapsed().as_secs_f64();
     Ok(SliceReport {
@@ -363,8 +379,113 @@ pub(crate) fn slice_mesh(
         filament_g,
         gcode_lines: stats.lines,
         policy: verdict,
+        parts,
         ..SliceReport::default()
     })
+}
+
+/// Writes the plate's meshes into `dir` for the slicer: PrusaSlicer gets each part once
+/// and lays out `per_plate` copies itself; CuraEngine gets every copy placed by crispen
+/// ([`plate::arrange`]), one file each. Refused when they cannot fit the bed together.
+/// Returns the files and the copies the slicer makes of each.
+fn write_plate(
+    parts: &[plate::PlatePart],
+    job: &SliceJob,
+    dir: &Path,
+) -> Result<(Vec<PathBuf>, u32), SliceError> {
+    let per_plate = job.per_plate.max(1);
+    let fits = job.machine.fits_mm();
+    let mut footprints = Vec::new();
+    for part in parts {
+        for _ in 0..per_plate {
+            footprints.push(plate::footprint(part.mesh));
+        }
+    }
+    let centres = plate::arrange(&footprints, [fits[0], fits[1]]).map_err(|no| {
+        let sizes: Vec<String> = parts
+            .iter()
+            .map(|p| {
+                let f = plate::footprint(p.mesh);
+                format!("{:.1} x {:.1} mm", f[0], f[1])
+            })
+            .collect();
+        SliceError::PlateTooBig {
+            model: job.model.to_path_buf(),
+            machine: job.machine.name.clone(),
+            asked: footprints.len(),
+            footprints: sizes.join(", "),
+            area_mm: [fits[0], fits[1]],
+            fit: no.fit,
+        }
+    })?;
+    let write = |path: &Path, mesh: &Mesh| -> Result<(), SliceError> {
+        let file = std::fs::File::create(path)
+            .map_err(SliceError::io("cannot write temporary STL", path))?;
+        let mut w = std::io::BufWriter::new(file);
+        crate::mesh::write_stl(&mut w, mesh)
+            .and_then(|_| std::io::Write::flush(&mut w))
+            .map_err(SliceError::io("cannot write temporary STL", path))
+    };
+    let mut stls = Vec::new();
+    let mut taken: Vec<String> = Vec::new();
+    let mut unique = |stem: String| {
+        let mut name = stem.clone();
+        let mut n = 1;
+        while taken.contains(&name) {
+            n += 1;
+            name = format!("{stem}-{n}");
+        }
+        taken.push(name.clone());
+        name
+    };
+    match job.slicer {
+        SlicerKind::Prusa => {
+            for part in parts {
+                let path = dir.join(format!("{}.stl", unique(plate::file_stem(part.name))));
+                write(&path, part.mesh)?;
+                stls.push(path);
+            }
+            Ok((stls, per_plate))
+        }
+        SlicerKind::Cura => {
+            let many = footprints.len() > 1;
+            let mut centre = centres.iter();
+            for part in parts {
+                for copy in 1..=per_plate {
+                    let at = *centre.next().expect("a centre per copy");
+                    let stem = plate::file_stem(part.name);
+                    let stem = if many && per_plate > 1 {
+                        format!("{stem}-{copy}")
+                    } else {
+                        stem
+                    };
+                    let path = dir.join(format!("{}.stl", unique(stem)));
+                    write(&path, &plate::moved(part.mesh, at))?;
+                    stls.push(path);
+                }
+            }
+            Ok((stls, 1))
+        }
+    }
+}
+
+/// The parts a G-code file labels, with their outlines (none when it labels none, or
+/// cannot be read: the checks above have read it already).
+pub(crate) fn plate_parts(
+    gcode: &Path,
+    firmware: crate::marlin::firmware::Firmware,
+) -> Vec<crate::marlin::plate::PartInfo> {
+    let program = match crate::marlin::gcode::GcodeProgram::load_for(gcode, firmware) {
+        Ok(p) => p,
+        Err(e) => {
+            tracing::warn!(gcode = %gcode.display(), error = %e, "cannot read the plate's parts");
+            return Vec::new();
+        }
+    };
+    match program.marks() {
+        Some(marks) => crate::marlin::plate::PlateMap::read(program.iter(), marks, firmware).parts,
+        None => Vec::new(),
+    }
 }
 
 /// Copies a finished file (checked G-code, the mesh that was sliced) to its destination

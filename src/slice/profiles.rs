@@ -35,12 +35,14 @@ pub(crate) const END_GCODE: &str = include_str!("../../gcode/end.gcode");
 
 /// A slicer with its profile loaded, ready to slice jobs.
 pub trait SlicerProfile: std::fmt::Debug + Send + Sync {
-    /// The slicer's command line for one job; files it needs are written into `workdir`.
+    /// The slicer's command line for one job of the meshes `stls` (each a part of the
+    /// plate, placed where it goes, or one model the slicer duplicates
+    /// `job.copies` times); files it needs are written into `workdir`.
     fn invocation(
         &self,
         job: &JobParams,
         workdir: &Path,
-        stl: &Path,
+        stls: &[std::path::PathBuf],
         gcode: &Path,
     ) -> Result<Invocation, SliceError>;
 }
@@ -54,6 +56,9 @@ pub struct JobParams<'a> {
     pub nozzle_temp_c: f64,
     pub bed_temp_c: f64,
     pub height_mm: f64,
+    /// Copies of the one mesh the slicer lays out itself (PrusaSlicer's `--duplicate`);
+    /// 1 where crispen placed each part.
+    pub copies: u32,
 }
 
 /// Arguments and extra environment for the slicer program.
@@ -111,6 +116,7 @@ mod tests {
             nozzle_temp_c: 215.0,
             bed_temp_c: 65.0,
             height_mm: 40.0,
+            copies: 1,
         };
         let (start, end) = start_end_gcode(&job);
         assert!(

@@ -28,7 +28,7 @@ impl SlicerProfile for PrusaProfile {
         &self,
         job: &JobParams,
         workdir: &Path,
-        stl: &Path,
+        stls: &[std::path::PathBuf],
         gcode: &Path,
     ) -> Result<Invocation, SliceError> {
         let (start, end) = start_end_gcode(job);
@@ -60,6 +60,9 @@ impl SlicerProfile for PrusaProfile {
         put("max_print_height", z);
         put("nozzle_diameter", fmt_num(m.nozzle_mm));
         put("filament_diameter", fmt_num(m.filament_mm));
+        // Each object labelled (`; printing object NAME`), so a part of a plate can be
+        // cancelled while the others print on.
+        put("gcode_label_objects", "1".into());
         put("start_gcode", prusa_escape(&start));
         put("end_gcode", prusa_escape(&end));
         let profile_path = workdir.join("profile.ini");
@@ -72,18 +75,25 @@ impl SlicerProfile for PrusaProfile {
             })?;
         }
         let centre = bed_centre(job.machine);
-        let args: Vec<OsString> = vec![
+        let mut args: Vec<OsString> = vec![
             "--export-gcode".into(),
             "--load".into(),
             profile_path.into(),
             "--load".into(),
             job_path.into(),
+        ];
+        // Several objects or copies are arranged on the bed by PrusaSlicer itself, the
+        // whole centred on the bed.
+        if job.copies > 1 {
+            args.extend(["--duplicate".into(), job.copies.to_string().into()]);
+        }
+        args.extend([
             "--center".into(),
             centre.into(),
             "--output".into(),
             gcode.into(),
-            stl.into(),
-        ];
+        ]);
+        args.extend(stls.iter().map(|s| s.as_os_str().to_owned()));
         Ok(Invocation { args, env: vec![] })
     }
 }

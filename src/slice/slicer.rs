@@ -89,6 +89,21 @@ pub enum SliceError {
         size_mm: [f64; 3],
         max_mm: [f64; 3],
     },
+    #[error(
+        "{model}: {asked} parts of {footprints} do not fit the {machine}'s {area_mm:?} mm \
+         together (keeping {} mm between them and {SKIRT_MARGIN_MM} mm around them); at most \
+         {fit} do: ask for fewer per plate, or print them smaller",
+        crate::slice::plate::GAP_MM
+    )]
+    PlateTooBig {
+        model: PathBuf,
+        machine: String,
+        asked: usize,
+        /// The parts' footprints, in words.
+        footprints: String,
+        area_mm: [f64; 2],
+        fit: usize,
+    },
     #[error("{model}: the model has no volume to print (empty or flat mesh)")]
     EmptyModel { model: PathBuf },
     #[error("bad setting {key}={value}: {hint}")]

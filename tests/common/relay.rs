@@ -144,12 +144,18 @@ impl RelayLog {
 /// `X:1.00 Y:0.00 Z:0.00 E:0.00 Count X:80 …` (Marlin) or `X:101.00Y:98.00Z:10.00E:0.00
 /// Count …` (Ultimaker2Marlin).
 pub fn parse_position(line: &str) -> Option<[f64; 3]> {
+    let [x, y, z, _] = parse_position_e(line)?;
+    Some([x, y, z])
+}
+
+/// [`parse_position`] with the extruder's position (`E:`) too.
+pub fn parse_position_e(line: &str) -> Option<[f64; 4]> {
     let head = line.split("Count").next()?;
     if !head.starts_with("X:") {
         return None;
     }
-    let mut out = [0.0; 3];
-    for (i, axis) in ["X:", "Y:", "Z:"].iter().enumerate() {
+    let mut out = [0.0; 4];
+    for (i, axis) in ["X:", "Y:", "Z:", "E:"].iter().enumerate() {
         let at = head.find(axis)? + 2;
         let rest = &head[at..];
         let end = rest

@@ -186,6 +186,9 @@ pub struct FolderConfig {
     pub settings: crate::slice::SliceSettings,
     /// What its jobs ask of their printer, unless a sidecar says otherwise.
     pub asks: crate::daemon::filament::Asks,
+    /// Copies of each model side by side on one bed, each a part of the plate that can be
+    /// cancelled alone (`per_plate`, 1 by default).
+    pub per_plate: u32,
 }
 
 /// The second stage: every value of the file checked and converted, with nothing read but

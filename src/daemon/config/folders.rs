@@ -108,6 +108,8 @@ fn check_folder(
     };
     let timeout = seconds_in(f.timeout_s.unwrap_or(600.0), &PREPARE_TIMEOUT_S)
         .map_err(|m| invalid(section.clone(), "timeout_s", m))?;
+    let per_plate = f.per_plate.unwrap_or(1);
+    check_per_plate(per_plate).map_err(|m| invalid(section.clone(), "per_plate", m))?;
     let settings = match f.settings {
         None => crate::slice::SliceSettings::default(),
         Some(table) => {
@@ -170,7 +172,18 @@ fn check_folder(
         profile: f.profile.map(|p| anchor(&p)),
         timeout,
         settings,
+        per_plate,
     })
+}
+
+/// Checks how many copies a folder or a sidecar puts on one plate.
+pub(crate) fn check_per_plate(n: u32) -> Result<(), String> {
+    let max = crate::slice::plate::MAX_PER_PLATE;
+    if (1..=max).contains(&n) {
+        Ok(())
+    } else {
+        Err(format!("must be from 1 to {max}, got {n}"))
+    }
 }
 
 /// Checks what a folder, a sidecar or a printer asks or holds; the error names its key.

@@ -61,6 +61,9 @@ pub struct SliceRequest {
     /// machine's nozzle and layer height, [`crate::enhance::print_aware`]; an explicit
     /// strength is then ignored, `Off` still prints unmodified).
     pub mode: Mode,
+    /// Copies of the model side by side on one bed, each a part of the plate
+    /// ([`crate::slice::plate`]).
+    pub per_plate: u32,
 }
 
 impl SliceRequest {
@@ -83,6 +86,7 @@ impl SliceRequest {
             compare: false,
             preview: None,
             mode: Mode::default(),
+            per_plate: 1,
         }
     }
 }
@@ -372,6 +376,7 @@ fn slice_job<'a>(
         cancel: req.cancel.as_deref(),
         keep_mesh: None,
         measure_only: false,
+        per_plate: req.per_plate,
     }
 }
 

@@ -44,6 +44,13 @@ pub struct PrepareTask {
     /// What the job asks of its printer (the folder's, with the sidecar's over them).
     #[serde(default)]
     pub asks: crate::daemon::filament::Asks,
+    /// Copies of the model side by side on one bed (the folder's, or the sidecar's).
+    #[serde(default = "one")]
+    pub per_plate: u32,
+}
+
+fn one() -> u32 {
+    1
 }
 
 /// One machine of a task and where its G-code goes.
@@ -201,6 +208,9 @@ pub fn resolve_task(
         timeout: folder.timeout,
         compare: false,
         asks,
+        per_plate: sidecar
+            .and_then(|s| s.per_plate)
+            .unwrap_or(folder.per_plate),
     })
 }
 
@@ -295,6 +305,7 @@ mod tests {
             timeout: Duration::from_secs(60),
             settings: Default::default(),
             asks: Default::default(),
+            per_plate: 1,
         }
     }
 

@@ -30,6 +30,7 @@ fn slice_request(task: &PrepareTask) -> steps::SliceRequest {
     req.settings = task.settings.clone();
     req.profile = task.profile.clone();
     req.timeout = task.timeout;
+    req.per_plate = task.per_plate;
     // Pictures and thumbnails go next to the G-code, in the job's directory.
     req.pictures = task.model.parent().map(Path::to_path_buf);
     req
@@ -188,6 +189,7 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                 }),
                 gcode_lines: target.lines,
                 policy: Some(verdict),
+                parts: crate::slice::plate_parts(model, m.machine.firmware),
                 ..SliceReport::default()
             })
             .map_err(|reason| {

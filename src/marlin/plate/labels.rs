@@ -125,6 +125,8 @@ impl LabelReader {
                     if name.trim() == "NONMESH" {
                         self.stop(next_command);
                     } else {
+                        // CuraEngine names a mesh by the file it was given, folders and all.
+                        let name = name.rsplit(['/', '\\']).next().unwrap_or(name);
                         self.start(name, next_command);
                     }
                 }
@@ -404,7 +406,7 @@ mod tests {
     #[test]
     fn cura_meshes_end_at_the_next_mesh_or_nonmesh() {
         let (marks, commands) = read(
-            ";LAYER:0\nG0 X1\n;MESH:a.stl\nG1 X2 E1\n;MESH:b.stl\nG1 X3 E2\n;MESH:NONMESH\nG0 Z1\n",
+            ";LAYER:0\nG0 X1\n;MESH:a.stl\nG1 X2 E1\n;MESH:/tmp/x/b.stl\nG1 X3 E2\n;MESH:NONMESH\nG0 Z1\n",
         );
         let marks = marks.unwrap();
         assert_eq!(

@@ -1,5 +1,6 @@
 //! The farm's operations, shared by every way in: the status snapshot ([`status`]) and the
-//! operator's commands ([`execute`]: clear, cancel, pause, resume, retry, release), and the
+//! operator's commands ([`execute`]: clear, cancel, cancel a part of a plate, pause,
+//! resume, retry, release), and the
 //! control socket they are served on ([`bind`]). The socket speaks the same HTTP API as the
 //! TCP listener (the `http` module); its file mode (0660: the service user and its group)
 //! decides who may use it, so no key is asked there.
@@ -21,6 +22,12 @@ pub(crate) enum Command {
     },
     Cancel {
         job: String,
+    },
+    /// Stop printing one part of the job's plate (its name, or its number from 1); the
+    /// others print on. The last part cancels the job.
+    CancelPart {
+        job: String,
+        part: String,
     },
     Pause {
         printer: String,
@@ -118,6 +125,14 @@ pub(crate) enum CommandError {
     NotActive { id: String, state: JobState },
     #[error("job {0} is not held; it prints once ready")]
     NotHeld(String),
+    #[error("job {id} has no parts to cancel one of: its G-code labels none{}", if *.prepared { "" } else { " yet (it is not prepared)" })]
+    NoParts { id: String, prepared: bool },
+    #[error("job {id} has no part {part:?} (its parts: {names})")]
+    NoSuchPart {
+        id: String,
+        part: String,
+        names: String,
+    },
     #[error(transparent)]
     Store(#[from] StoreError),
 }
@@ -128,6 +143,7 @@ impl CommandError {
         matches!(
             self,
             CommandError::NoPrinter(_)
+                | CommandError::NoSuchPart { .. }
                 | CommandError::Store(StoreError::NoSuchJob(_))
                 | CommandError::Store(StoreError::Filament(
                     super::filament::FilamentError::NoSuchSpool(_)
@@ -213,6 +229,7 @@ pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String
             send_print_command(farm, &printer, PrintCommand::Resume).await
         }
         Command::Cancel { job } => cancel(farm, &job).await,
+        Command::CancelPart { job, part } => cancel_part(farm, &job, &part).await,
         Command::Retry { job } => {
             let retried = farm.jobs().retry(&job).await?;
             let held = if retried.held() {
@@ -338,7 +355,7 @@ pub(crate) async fn send_print_command(
             .get()
             .ok_or(CommandError::NoPrinter(printer.to_string()))?;
         if !db
-            .push_command(printer, command)
+            .push_command(printer, &command)
             .await
             .map_err(|e| CommandError::Store(e.into()))?
         {
@@ -355,7 +372,7 @@ pub(crate) async fn send_print_command(
     let Some(tx) = tx else {
         return Err(CommandError::NotPrinting(printer.to_string()));
     };
-    tx.send(command)
+    tx.send(command.clone())
         .await
         .map_err(|_| CommandError::PrintEnded(printer.to_string()))?;
     tracing::info!(printer, ?command, "print command sent");
@@ -397,6 +414,94 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
         }),
         Err(e) => Err(e.into()),
     }
+}
+
+/// Cancels a part of a job's plate: on the printer printing it (the others print on; its
+/// supervisor records where it was dropped), or, before the job prints, in the job's record
+/// (the print drops it from its first line). The last part cancels the job.
+async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<String, CommandError> {
+    let job = farm
+        .store()
+        .get(id)
+        .cloned()
+        .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+    let names = job.part_names();
+    if names.is_empty() {
+        return Err(CommandError::NoParts {
+            id: id.to_string(),
+            prepared: job.slice_report.is_some(),
+        });
+    }
+    let name = names
+        .iter()
+        .position(|n| *n == part)
+        .or_else(|| {
+            let n: usize = part.trim().parse().ok()?;
+            (1..=names.len()).contains(&n).then(|| n - 1)
+        })
+        .map(|i| names[i].to_string())
+        .ok_or_else(|| CommandError::NoSuchPart {
+            id: id.to_string(),
+            part: part.to_string(),
+            names: names
+                .iter()
+                .enumerate()
+                .map(|(i, n)| format!("{} {n:?}", i + 1))
+                .collect::<Vec<_>>()
+                .join(", "),
+        })?;
+    if job.state == JobState::Printing {
+        let printer = job.printer.clone().unwrap_or_default();
+        send_print_command(farm, &printer, PrintCommand::CancelPart(name.clone())).await?;
+        return Ok(format!(
+            "job {id}: part {name:?} is no longer printed on {printer}; the others print on"
+        ));
+    }
+    // Checked and changed as one step of the store: a printer claiming the job between a
+    // check and the change would print it with the part.
+    let wrote = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flag = Arc::clone(&wrote);
+    let (wanted, every) = (name.clone(), names.len());
+    let job = farm
+        .jobs()
+        .update(id, move |j| {
+            if j.state != JobState::Ready {
+                return;
+            }
+            let print = j.print_number();
+            if !j.parts_cancelled_in(print).any(|c| c.part == wanted) {
+                j.parts_cancelled.push(super::job::PartCancel {
+                    part: wanted,
+                    print,
+                    at_s: super::job::now_s(),
+                    dropped: None,
+                });
+            }
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        })
+        .await?;
+    if !wrote.load(std::sync::atomic::Ordering::SeqCst) {
+        return match job.state {
+            // A printer took it meanwhile: the printer drops it.
+            JobState::Printing => Box::pin(cancel_part(farm, id, &name)).await,
+            state => Err(CommandError::Store(StoreError::WrongState {
+                id: id.to_string(),
+                state,
+                action: "cancelling a part",
+                allowed: "ready or printing",
+            })),
+        };
+    }
+    tracing::info!(job = id, part = %name, "part of the plate cancelled before its print");
+    if job.parts_cancelled_in(job.print_number()).count() >= every {
+        cancel(farm, id).await?;
+        return Ok(format!(
+            "job {id}: part {name:?} cancelled; it was the last part left, so the job is cancelled"
+        ));
+    }
+    Ok(format!(
+        "job {id}: part {name:?} will not be printed; the others will"
+    ))
 }
 
 /// Binds the control socket with mode 0660. An existing socket nobody answers on (left by

@@ -195,6 +195,7 @@ impl PrinterLink for BenchLink {
     fn print<'a>(
         &'a mut self,
         gcode: &'a Path,
+        _cancelled: Vec<String>,
         mut control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>> {
@@ -234,6 +235,8 @@ impl PrinterLink for BenchLink {
                 match command {
                     Some(PrintCommand::Pause) => paused = true,
                     Some(PrintCommand::Resume) => paused = false,
+                    // The bench printer draws nothing: a part's lines are sent all the same.
+                    Some(PrintCommand::CancelPart(_)) => {}
                     Some(PrintCommand::Cancel) => {
                         for line in SAFE_STOP {
                             self.printer.send(line);

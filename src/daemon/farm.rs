@@ -77,6 +77,10 @@ pub struct LiveProgress {
     /// Set while the print waits at a pause its file asked for.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pause: Option<crate::marlin::stream::PauseInfo>,
+    /// The parts of its plate dropped so far, each with where (its `print` is the
+    /// supervisor's to fill in).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub parts_cancelled: Vec<super::job::PartCancel>,
 }
 
 /// A printer's hotend and bed (°C, current and target) as read now: from the job's

@@ -304,6 +304,39 @@ pub struct Job {
     /// spools' ledgers are brought up to date from these, once each).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub uses: Vec<JobUse>,
+    /// The parts of its plate the operator cancelled, per print, in order (see
+    /// `crate::marlin::plate`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub parts_cancelled: Vec<PartCancel>,
+}
+
+/// A part of a job's plate the operator cancelled: the rest of the plate prints on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PartCancel {
+    /// The part's name, as its G-code labels it (the slice report's `parts`).
+    pub part: String,
+    /// The print of the job it was cancelled for, from 1 (see [`Job::print_number`]).
+    pub print: u32,
+    /// When it was asked for (seconds since the epoch).
+    pub at_s: f64,
+    /// Where the print dropped it; None while not known (cancelled before the print began:
+    /// dropped from its first line; or asked for and not yet carried out).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dropped: Option<Dropped>,
+}
+
+/// Where a print dropped a cancelled part.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Dropped {
+    /// The G-code's command (0-based, comments and blank lines not counted) it was dropped
+    /// from, and that command's line in the file (1-based).
+    pub command: usize,
+    pub line: usize,
+    /// The layer that command is in (from 1) and its Z, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layer: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_mm: Option<f64>,
 }
 
 /// What one print of a job took from the spool on its printer.
@@ -473,6 +506,7 @@ impl Job {
             comparison: None,
             asks: Default::default(),
             uses: Vec::new(),
+            parts_cancelled: Vec::new(),
         }
     }
 }
@@ -496,6 +530,34 @@ impl Job {
             }
         }
         used
+    }
+
+    /// The print its next or running print is, from 1: how many times it went to a
+    /// printer (its history's `printing` entries), the next one when it is not printing.
+    pub fn print_number(&self) -> u32 {
+        let started = self
+            .history
+            .iter()
+            .filter(|(s, _)| *s == JobState::Printing)
+            .count() as u32;
+        if self.state == JobState::Printing {
+            started.max(1)
+        } else {
+            started + 1
+        }
+    }
+
+    /// The parts cancelled for print `print`.
+    pub fn parts_cancelled_in(&self, print: u32) -> impl Iterator<Item = &PartCancel> {
+        self.parts_cancelled.iter().filter(move |c| c.print == print)
+    }
+
+    /// The names of its plate's parts (empty: no plate labelled).
+    pub fn part_names(&self) -> Vec<&str> {
+        self.slice_report
+            .as_ref()
+            .map(|r| r.parts.iter().map(|p| p.name.as_str()).collect())
+            .unwrap_or_default()
     }
 
     pub(crate) fn copies_wanted(&self) -> u32 {

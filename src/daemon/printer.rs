@@ -84,11 +84,13 @@ pub(crate) struct ConnectError(#[from] pub PrintError);
 
 /// An open connection to a printer.
 pub(crate) trait PrinterLink: Send {
-    /// Streams the G-code file at `gcode`; `control` pauses/resumes/cancels it, progress is
-    /// published on `progress`. Returns a JSON report.
+    /// Streams the G-code file at `gcode` without the parts of its plate named in
+    /// `cancelled` (dropped from its first line); `control` pauses, resumes, cancels it or
+    /// a part of it, progress is published on `progress`. Returns a JSON report.
     fn print<'a>(
         &'a mut self,
         gcode: &'a Path,
+        cancelled: Vec<String>,
         control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>>;
@@ -497,12 +499,18 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         .iter()
         .find(|p| p.name == printer)
         .map(|p| p.machine.name.clone());
-    let gcode: PathBuf = {
+    // The parts cancelled before this print began (dropped from its first line).
+    let (gcode, print_number, cancelled): (PathBuf, u32, Vec<String>) = {
         let store = farm.store();
         let Some(job) = store.get(job_id) else {
             return JobEnd::default();
         };
-        match machine.and_then(|m| job.gcode_for(&m)) {
+        let print_number = job.print_number();
+        let cancelled = job
+            .parts_cancelled_in(print_number)
+            .map(|c| c.part.clone())
+            .collect();
+        let gcode = match machine.and_then(|m| job.gcode_for(&m)) {
             Some(file) => store.job_dir(job_id).join(file),
             None => {
                 // The printer's machine changed (a reload) since the claim: not for it.
@@ -512,7 +520,8 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
                 }
                 return JobEnd::default();
             }
-        }
+        };
+        (gcode, print_number, cancelled)
     };
 
     sup.show(|p| {
@@ -575,8 +584,10 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     // A stop requested by shutdown (`Farm::stop_prints`) is a cancel that ends as
     // interrupted rather than cancelled.
     let mut permit = Some(permit);
-    let print = link.print(&gcode, control_rx, progress_tx);
+    let print = link.print(&gcode, cancelled, control_rx, progress_tx);
     tokio::pin!(print);
+    // The parts dropped so far that the store has (it keeps them across a restart).
+    let mut recorded_parts = 0;
     let mut shutdown_stop = false;
     let mut progress_open = true;
     let outcome = loop {
@@ -585,9 +596,21 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             changed = progress_rx.changed(), if progress_open => {
                 if changed.is_err() { progress_open = false; continue; }
                 let live = progress_rx.borrow_and_update().clone();
-                if live.lines_acked != odometer.lines_acked {
+                let new_parts = live.parts_cancelled.len() > recorded_parts;
+                if new_parts {
+                    odometer.cancels = live
+                        .parts_cancelled
+                        .iter()
+                        .filter_map(|c| Some((c.part.clone(), c.dropped.as_ref()?.command)))
+                        .collect();
+                }
+                if live.lines_acked != odometer.lines_acked || new_parts {
                     odometer.lines_acked = live.lines_acked;
                     odometer.write(&odometer_path).await;
+                }
+                if new_parts {
+                    record_parts(farm, job_id, print_number, &live.parts_cancelled[recorded_parts..]).await;
+                    recorded_parts = live.parts_cancelled.len();
                 }
                 if permit.is_some() && live.heated {
                     permit = None;
@@ -714,6 +737,36 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     JobEnd { lost, halted }
 }
 
+/// Records in the job the parts its print `print` dropped, with where: one the operator
+/// cancelled before the print is completed with it, any other added.
+async fn record_parts(
+    farm: &Farm,
+    job_id: &str,
+    print: u32,
+    dropped: &[super::job::PartCancel],
+) {
+    let dropped = dropped.to_vec();
+    let recorded = farm
+        .jobs()
+        .update(job_id, move |j| {
+            for d in dropped {
+                tracing::info!(part = %d.part, at = ?d.dropped, "a part of the plate dropped");
+                let known = j
+                    .parts_cancelled
+                    .iter_mut()
+                    .find(|c| c.print == print && c.part == d.part);
+                match known {
+                    Some(c) => c.dropped = c.dropped.take().or(d.dropped),
+                    None => j.parts_cancelled.push(super::job::PartCancel { print, ..d }),
+                }
+            }
+        })
+        .await;
+    if let Err(e) = recorded {
+        tracing::error!(error = %e, "cannot record the parts of the plate dropped");
+    }
+}
+
 /// The status line of a printer waiting at a pause its file asked for.
 fn waiting_detail(pause: &crate::marlin::stream::PauseInfo) -> String {
     let mut text = format!("waiting for the operator: {}", pause.message);
@@ -745,9 +798,19 @@ fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
     p.progress = Some(live);
 }
 
-fn live_progress(p: &PrintProgress, heated: bool, paused: bool) -> LiveProgress {
+fn live_progress(
+    p: &PrintProgress,
+    heated: bool,
+    paused: bool,
+    plate: &Plate,
+) -> LiveProgress {
     let pause = p.pause.clone();
     LiveProgress {
+        parts_cancelled: p
+            .cancelled_parts
+            .iter()
+            .map(|c| plate.dropped(c))
+            .collect(),
         lines_acked: p.lines_acked,
         lines_total: p.lines_total,
         hotend_c: p.hotend.map(|t| t.current),
@@ -768,6 +831,30 @@ fn printer_temperatures(t: &Temperatures) -> PrinterTemperatures {
         hotend_target_c: t.hotend.and_then(|t| t.target),
         bed_c: t.bed.map(|t| t.current),
         bed_target_c: t.bed.and_then(|t| t.target),
+    }
+}
+
+/// What a print knows of its plate: its program's lines and layers, to say where a part
+/// was dropped.
+struct Plate {
+    program: GcodeProgram,
+    map: Option<crate::marlin::plate::PlateMap>,
+}
+
+impl Plate {
+    fn dropped(&self, c: &crate::marlin::stream::CancelledPart) -> super::job::PartCancel {
+        let layer = self.map.as_ref().and_then(|m| m.layer_at(c.from));
+        super::job::PartCancel {
+            part: c.name.clone(),
+            print: 0,
+            at_s: super::job::now_s(),
+            dropped: Some(super::job::Dropped {
+                command: c.from,
+                line: self.program.source_line(c.from).unwrap_or(0),
+                layer: layer.map(|l| l.number),
+                z_mm: layer.map(|l| l.z_mm),
+            }),
+        }
     }
 }
 
@@ -806,20 +893,38 @@ impl PrinterLink for MarlinLink {
     fn print<'a>(
         &'a mut self,
         gcode: &'a Path,
+        cancelled: Vec<String>,
         mut control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>> {
         Box::pin(async move {
-            // Reading and checking a file of millions of lines is blocking work.
+            // Reading and checking a file of millions of lines is blocking work; so is
+            // following its plate's layers.
             let (path, firmware) = (gcode.to_path_buf(), self.firmware);
-            let program =
-                tokio::task::spawn_blocking(move || GcodeProgram::load_for(&path, firmware))
-                    .await
-                    .map_err(PrintFailure::LoaderCrashed)??;
+            let plate = tokio::task::spawn_blocking(move || {
+                let program = GcodeProgram::load_for(&path, firmware)?;
+                let map = program.marks().map(|marks| {
+                    crate::marlin::plate::PlateMap::read(program.iter(), marks, firmware)
+                });
+                Ok::<_, GcodeError>(Plate { program, map })
+            })
+            .await
+            .map_err(PrintFailure::LoaderCrashed)??;
+            let program = &plate.program;
             let heat_end = heat_up_end(program.iter());
+            let part_of = |name: &str| {
+                let part = program.marks().and_then(|m| m.find(name));
+                if part.is_none() {
+                    tracing::warn!(part = name, "no such part in the plate's G-code; nothing dropped");
+                }
+                part
+            };
+            let dropped: Vec<u16> = cancelled.iter().filter_map(|n| part_of(n)).collect();
             let (stream_tx, stream_rx) = mpsc::channel(8);
             let (inner_tx, mut inner_rx) = watch::channel(PrintProgress::default());
-            let print = self.connection.print(&program, stream_rx, inner_tx);
+            let print = self
+                .connection
+                .print_plate(program, &dropped, stream_rx, inner_tx);
             tokio::pin!(print);
             let mut control_open = true;
             let mut progress_open = true;
@@ -827,6 +932,7 @@ impl PrinterLink for MarlinLink {
             let mut last_heated = false;
             let mut last_paused = false;
             let mut last_pause = None;
+            let mut last_parts = 0;
             let result = loop {
                 tokio::select! {
                     result = &mut print => break result,
@@ -837,6 +943,10 @@ impl PrinterLink for MarlinLink {
                                 PrintCommand::Pause => StreamControl::Pause,
                                 PrintCommand::Resume => StreamControl::Resume,
                                 PrintCommand::Cancel => StreamControl::Cancel,
+                                PrintCommand::CancelPart(name) => match part_of(&name) {
+                                    Some(part) => StreamControl::CancelPart(part),
+                                    None => continue,
+                                },
                             };
                             let _ = stream_tx.send(c).await;
                         }
@@ -861,7 +971,8 @@ impl PrinterLink for MarlinLink {
                         let due = last_forward.elapsed() >= Duration::from_millis(250)
                             || heated != last_heated
                             || paused != last_paused
-                            || p.pause != last_pause;
+                            || p.pause != last_pause
+                            || p.cancelled_parts.len() != last_parts;
                         if !due {
                             continue;
                         }
@@ -869,13 +980,19 @@ impl PrinterLink for MarlinLink {
                         last_heated = heated;
                         last_paused = paused;
                         last_pause = p.pause.clone();
-                        progress.send_replace(live_progress(&p, heated, paused));
+                        last_parts = p.cancelled_parts.len();
+                        progress.send_replace(live_progress(&p, heated, paused, &plate));
                     }
                 }
             };
             // The last figures, which the throttle above may have held back: a finished
             // print shows all its lines acknowledged.
-            progress.send_replace(live_progress(&inner_rx.borrow(), last_heated, last_paused));
+            progress.send_replace(live_progress(
+                &inner_rx.borrow(),
+                last_heated,
+                last_paused,
+                &plate,
+            ));
             match result {
                 Ok(report) => Ok(report.into()),
                 Err(e) => Err(PrintFailure::of(e)),

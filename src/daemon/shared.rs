@@ -175,7 +175,7 @@ mod tests {
     fn an_unknown_command_from_another_host_is_refused() {
         for word in ["stop", "CANCEL", "pause\n"] {
             assert_eq!(
-                to_carry_out("p1", PrintCommand::parse(word)),
+                to_carry_out("p1", PrintCommand::parse(word, None)),
                 None,
                 "{word:?}"
             );
@@ -184,8 +184,12 @@ mod tests {
             PrintCommand::Pause,
             PrintCommand::Resume,
             PrintCommand::Cancel,
+            PrintCommand::CancelPart("a".into()),
         ] {
-            assert_eq!(to_carry_out("p1", PrintCommand::parse(c.word())), Some(c));
+            assert_eq!(
+                to_carry_out("p1", PrintCommand::parse(c.word(), c.part())),
+                Some(c)
+            );
         }
     }
 

@@ -30,6 +30,10 @@ pub(crate) struct Odometer {
     pub gcode: PathBuf,
     pub firmware: Firmware,
     pub lines_acked: usize,
+    /// The parts of the plate the print dropped, and the command each was dropped from:
+    /// their lines from there on pushed nothing.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cancels: Vec<(String, usize)>,
 }
 
 /// Where `printer`'s odometer is kept.
@@ -59,6 +63,7 @@ impl Odometer {
             gcode: gcode.to_path_buf(),
             firmware: on.map_or(Firmware::Marlin2, |p| p.firmware),
             lines_acked: 0,
+            cancels: Vec::new(),
         }
     }
 
@@ -93,18 +98,31 @@ impl Odometer {
     }
 
     /// The use of the print as far as it got: the filament the acknowledged lines of its
-    /// G-code push. Reads the G-code on a blocking thread. None when nothing was
-    /// acknowledged or the G-code cannot be read.
+    /// G-code push, as the host sent them (a cancelled part's lines from its cancel on
+    /// push nothing: `crate::marlin::plate::sent_lines`). Reads the G-code on a blocking
+    /// thread. None when nothing was acknowledged or the G-code cannot be read.
     pub(crate) async fn measure(&self) -> Option<JobUse> {
         if self.lines_acked == 0 {
             return None;
         }
         let (gcode, firmware, lines) = (self.gcode.clone(), self.firmware, self.lines_acked);
+        let cancels = self.cancels.clone();
         let mm = tokio::task::spawn_blocking(move || {
             let program = crate::marlin::gcode::GcodeProgram::load_for(&gcode, firmware)?;
+            let cancels: Vec<(u16, usize)> = program
+                .marks()
+                .map(|marks| {
+                    cancels
+                        .iter()
+                        .filter_map(|(name, from)| Some((marks.find(name)?, *from)))
+                        .collect()
+                })
+                .unwrap_or_default();
+            let sent = crate::marlin::plate::sent_lines(&program, &cancels)
+                .take_while(|(i, _)| *i < lines)
+                .filter_map(|(_, line)| line);
             Ok::<_, crate::marlin::gcode::GcodeError>(crate::marlin::motion::extruded_mm(
-                program.iter().take(lines),
-                firmware,
+                sent, firmware,
             ))
         })
         .await;

@@ -963,11 +963,11 @@ impl Motion {
 /// Net filament `commands` push, mm (a retraction counts back until it is pushed again),
 /// followed as `firmware` follows them: what a print of them takes from the spool. A
 /// command the firmware could not follow ends the count there, as it would end the print.
-pub fn extruded_mm<'a>(commands: impl IntoIterator<Item = &'a str>, firmware: Firmware) -> f64 {
+pub fn extruded_mm<S: AsRef<str>>(commands: impl IntoIterator<Item = S>, firmware: Firmware) -> f64 {
     let mut motion = Motion::new(firmware);
     let mut total = 0.0;
     for line in commands {
-        let code = line.split(';').next().unwrap_or_default();
+        let code = line.as_ref().split(';').next().unwrap_or_default();
         let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
             continue;
         };

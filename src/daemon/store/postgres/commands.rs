@@ -11,14 +11,14 @@ impl PgStore {
     pub(crate) async fn push_command(
         &self,
         printer: &str,
-        command: crate::daemon::command::PrintCommand,
+        command: &crate::daemon::command::PrintCommand,
     ) -> Result<bool, PgError> {
         let client = self.client().await?;
         let added = client
             .execute(
-                "INSERT INTO commands (host, printer, command) \
-                 SELECT host, name, $2 FROM printers WHERE name = $1",
-                &[&printer, &command.word()],
+                "INSERT INTO commands (host, printer, command, part) \
+                 SELECT host, name, $2, $3 FROM printers WHERE name = $1",
+                &[&printer, &command.word(), &command.part()],
             )
             .await?;
         Ok(added == 1)
@@ -42,7 +42,7 @@ impl PgStore {
             .query(
                 "DELETE FROM commands WHERE host = $1 \
                  AND EXISTS (SELECT 1 FROM hosts WHERE name = $1 AND token = $2) \
-                 RETURNING id, printer, command",
+                 RETURNING id, printer, command, part",
                 &[&self.host, &self.token],
             )
             .await?;
@@ -51,7 +51,11 @@ impl PgStore {
             .iter()
             .map(|r| {
                 let word: String = r.get(2);
-                (r.get(1), crate::daemon::command::PrintCommand::parse(&word))
+                let part: Option<String> = r.get(3);
+                (
+                    r.get(1),
+                    crate::daemon::command::PrintCommand::parse(&word, part.as_deref()),
+                )
             })
             .collect())
     }

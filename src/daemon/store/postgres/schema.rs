@@ -112,6 +112,14 @@ const MIGRATIONS: &[&str] = &[
         doc jsonb NOT NULL
     );
     "#,
+    // 6: a part of a plate cancelled on another host's printer (issue 45): the command and
+    // the part's name beside it.
+    r#"
+    ALTER TABLE commands DROP CONSTRAINT commands_command_check;
+    ALTER TABLE commands ADD CONSTRAINT commands_command_check
+        CHECK (command IN ('pause', 'resume', 'cancel', 'cancel-part'));
+    ALTER TABLE commands ADD COLUMN part text;
+    "#,
 ];
 
 /// The newest schema version this binary knows.

@@ -4,6 +4,8 @@
 //! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
 //! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
+//! - [`observe`]: a model of a person looking at a print: how much a small print looks
+//!   like the same model printed large, from their G-code.
 //! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
 //! - [`machine`]: the kinds of printer a job is sliced for (bed, nozzle, filament, firmware).
 //! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
@@ -40,6 +42,7 @@ pub mod machine;
 pub mod marlin;
 pub mod mesh;
 pub mod notify;
+pub mod observe;
 pub mod outbound;
 pub mod percent;
 pub mod ports;

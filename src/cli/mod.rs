@@ -10,6 +10,7 @@ pub(crate) mod enhance;
 pub(crate) mod keys;
 pub(crate) mod logging;
 pub(crate) mod notify;
+pub(crate) mod observe;
 pub(crate) mod ports;
 pub(crate) mod prepare_job;
 pub(crate) mod print;
@@ -36,6 +37,9 @@ pub(crate) enum Command {
     Enhance(enhance::Args),
     /// Enhance, scale and slice a model into Marlin G-code for one machine with a real slicer
     Slice(slice::Args),
+    /// Which small print looks most like the big one: each strength's print against the
+    /// unmodified model at a reference height, through a model of a person's eye
+    Observe(observe::Args),
     /// Stream a G-code file to a Marlin printer over serial
     Print(print::Args),
     /// Run a simulated Marlin printer on a pty
@@ -93,6 +97,7 @@ pub(crate) fn main() -> ExitCode {
     let result = match cli.command {
         Command::Enhance(a) => enhance::run(a),
         Command::Slice(a) => slice::run(a),
+        Command::Observe(a) => observe::run(a),
         Command::Print(a) => print::run(a),
         Command::Sim(a) => sim::run(a),
         Command::Ports(a) => ports::run(a),

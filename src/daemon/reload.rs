@@ -100,6 +100,10 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("farm.spool_low_g", Policy::Live),
     // The link to Spoolman is one task started with the daemon.
     ("spoolman", Policy::DaemonRestart),
+    // Read by each preparation.
+    ("enhancement", Policy::Live),
+    ("enhancement.reference_height_mm", Policy::Live),
+    ("enhancement.observe_timeout_s", Policy::Live),
 ];
 
 /// Keys of the file (and every key under them) whose change is seen as the change of a
@@ -156,6 +160,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         notify,
         camera,
         spoolman,
+        enhancement,
         // Said again at every reload; not a setting.
         warnings: _,
     } = new;
@@ -181,6 +186,18 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     differs("farm.host", *host != old.farm.host);
     differs("farm.spool_low_g", *spool_low_g != old.farm.spool_low_g);
     differs("spoolman", *spoolman != old.spoolman);
+    let super::prepare::steps::observed::ObserveSettings {
+        reference_height_mm,
+        timeout,
+    } = enhancement;
+    differs(
+        "enhancement.reference_height_mm",
+        *reference_height_mm != old.enhancement.reference_height_mm,
+    );
+    differs(
+        "enhancement.observe_timeout_s",
+        *timeout != old.enhancement.timeout,
+    );
     let super::config::HistoryConfig {
         live_for,
         live_jobs,

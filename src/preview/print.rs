@@ -129,6 +129,14 @@ impl Print {
         })
     }
 
+    /// The layers as drawn, bottom to top: the Z of each layer's top and its height (as
+    /// [`Print::layer_heights`] settles them), and its lines in XY, mm. The observer
+    /// (`crate::observe`) draws its own pictures of the beads from these.
+    pub fn layers(&self) -> impl Iterator<Item = (f64, f64, &[[[f32; 2]; 2]])> + '_ {
+        self.layer_heights()
+            .map(|(z, h, layer)| (z, h, layer.lines.as_slice()))
+    }
+
     /// The box the beads fill, mm; None for a print with no visible line.
     pub fn bounds(&self) -> Option<([f64; 3], [f64; 3])> {
         let r = 0.5 * self.line_width_mm;

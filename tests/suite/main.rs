@@ -21,6 +21,7 @@ mod layers;
 mod machines;
 mod mesh_io;
 mod notify;
+mod observe;
 mod octoprint;
 mod pauses;
 mod policy;

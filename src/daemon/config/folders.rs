@@ -256,17 +256,18 @@ fn normalise(path: &Path) -> PathBuf {
 /// beyond which a shape is distorted rather than sharpened.
 pub(crate) const MAX_LAMBDA2: f64 = 100.0;
 
-/// `strength = "auto" | "off" | <lambda2>`.
+/// `strength = "auto" | "off" | "observed" | <lambda2>`.
 pub(crate) fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     match value {
         toml::Value::String(s) if s == "auto" => Ok(Strength::Auto),
         toml::Value::String(s) if s == "off" => Ok(Strength::Off),
+        toml::Value::String(s) if s == "observed" => Ok(Strength::Observed),
         toml::Value::Float(x) if (0.0..=MAX_LAMBDA2).contains(x) => Ok(Strength::Lambda2(*x)),
         toml::Value::Integer(x) if (0..=MAX_LAMBDA2 as i64).contains(x) => {
             Ok(Strength::Lambda2(*x as f64))
         }
         other => Err(format!(
-            "must be \"auto\", \"off\" or a lambda2 from 0 to {MAX_LAMBDA2}, got {other}"
+            "must be \"auto\", \"off\", \"observed\" or a lambda2 from 0 to {MAX_LAMBDA2}, got {other}"
         )),
     }
 }

@@ -38,6 +38,16 @@ pub(super) struct RawConfig {
     pub(super) camera: Option<super::camera::RawCamera>,
     #[serde(default)]
     pub(super) spoolman: Option<super::spoolman::RawSpoolman>,
+    #[serde(default)]
+    pub(super) enhancement: Option<RawEnhancement>,
+}
+
+/// `[enhancement]`: see `enhancement.rs`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawEnhancement {
+    pub(super) reference_height_mm: Option<f64>,
+    pub(super) observe_timeout_s: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -224,7 +234,7 @@ pub(super) fn parse_raw(text: &str, path: &Path) -> Result<(RawConfig, PathBuf),
 
 /// The tables as their headers are written, for an error about an unknown one. A test
 /// checks it against the file's shape (`keys::tables`).
-pub(super) const KNOWN_TABLES: [&str; 12] = [
+pub(super) const KNOWN_TABLES: [&str; 13] = [
     "[spool]",
     "[control]",
     "[farm]",
@@ -237,6 +247,7 @@ pub(super) const KNOWN_TABLES: [&str; 12] = [
     "[[notify]]",
     "[camera]",
     "[spoolman]",
+    "[enhancement]",
 ];
 
 /// The table header on the line of `offset`, when that header names no known table.

@@ -362,7 +362,7 @@ fn every_value_is_bounded() {
         ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nfinish_timeout_s = 1e9", "[farm]: key `finish_timeout_s`"),
         ("height_mm = 50", "height_mm = 0.001", "key `height_mm`: must be from 1 to 2000 mm"),
         ("height_mm = 50", "height_mm = 500", "key `height_mm`: 500 mm is taller than any of its printers' machines builds (250 mm)"),
-        ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\" or a lambda2 from 0 to 100"),
+        ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\", \"observed\" or a lambda2 from 0 to 100"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib/crispen/hot\"", "[[folder]] #1 (path \"/var/lib/crispen/hot\"): key `path`: the hot folder and the spool (/var/lib/crispen) must not contain each other"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib\"", "key `path`: the hot folder and the spool"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib/x/../crispen/./in\"", "key `path`: the hot folder and the spool"),

@@ -192,7 +192,7 @@ fn resolve(
         )
     })?;
     let sidecar = crate::daemon::job::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
-    let task = resolve_task(
+    let mut task = resolve_task(
         id,
         &dir,
         &job.file,
@@ -200,6 +200,7 @@ fn resolve(
         &farm.printer_machines(),
         sidecar.as_ref(),
     )?;
+    task.observe = config.enhancement.clone();
     Ok((task, sidecar))
 }
 

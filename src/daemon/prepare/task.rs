@@ -44,6 +44,10 @@ pub struct PrepareTask {
     /// What the job asks of its printer (the folder's, with the sidecar's over them).
     #[serde(default)]
     pub asks: crate::daemon::filament::Asks,
+    /// The observer's reference size and time bound (`[enhancement]`), for
+    /// `strength = "observed"`.
+    #[serde(default)]
+    pub observe: super::steps::observed::ObserveSettings,
 }
 
 /// One machine of a task and where its G-code goes.
@@ -201,6 +205,7 @@ pub fn resolve_task(
         timeout: folder.timeout,
         compare: false,
         asks,
+        observe: Default::default(),
     })
 }
 

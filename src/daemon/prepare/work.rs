@@ -30,6 +30,7 @@ fn slice_request(task: &PrepareTask) -> steps::SliceRequest {
     req.settings = task.settings.clone();
     req.profile = task.profile.clone();
     req.timeout = task.timeout;
+    req.observe = task.observe.clone();
     // Pictures and thumbnails go next to the G-code, in the job's directory.
     req.pictures = task.model.parent().map(Path::to_path_buf);
     req
@@ -168,6 +169,7 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
                     report: None,
                     printed: None,
                     print_aware: None,
+                    observed: None,
                 },
                 slicer_version: target.slicer.clone(),
                 model_size_mm: target

@@ -41,12 +41,13 @@ struct Live {
 
 /// The pictures a job's directory may hold (see `crate::preview`); at most 8, one bit of
 /// [`Live::pictures`] each.
-pub const PICTURES: [&str; 5] = [
+pub const PICTURES: [&str; 6] = [
     crate::preview::BEFORE_PNG,
     crate::preview::AFTER_PNG,
     crate::preview::DISPLACEMENT_PNG,
     crate::preview::walls::WALLS_PNG,
     crate::preview::PREVIEW_PNG,
+    crate::daemon::prepare::steps::observed::OBSERVED_PNG,
 ];
 const _: () = assert!(PICTURES.len() <= u8::BITS as usize);
 

@@ -551,6 +551,59 @@ function strengthWords(e) {
   return word + " (λ2 " + num(e.lambda2, 2) + ", the paper's method)";
 }
 
+// A candidate of the observer (strength = "observed") in words.
+function candidateWords(c) {
+  if (c.mode === "plain") return "plain (unmodified)";
+  if (c.mode === "print-aware") return "print-aware, λ2 " + num(c.strength, 2);
+  const word = { 10: "light", 20: "medium", 40: "strong" }[c.strength];
+  return (word ? "the paper's " + word + ", " : "the paper's method, ") + "λ2 " + num(c.strength, 2);
+}
+
+// Why the observer's strength is what it is.
+function choiceText(o) {
+  const seen = "the model printed " + num(o.reference_height_mm, 0) + " mm tall" +
+    (o.conditions ? ", seen from " + num(o.conditions.distance_mm / 10, 0) + " cm in " + o.conditions.views + " views" : "");
+  const c = o.chosen != null ? o.candidates[o.chosen] : null;
+  switch (o.choice) {
+    case "most_alike":
+      return c ? "Of " + o.candidates.length + " candidates, " + candidateWords(c) + " looks most like " + seen +
+        " (resemblance " + num(c.resemblance, 3) + "; 1 would be indistinguishable)." : "";
+    case "at_reference":
+      return "Printed " + num(o.height_mm, 0) + " mm tall, at or above the reference size (" +
+        num(o.reference_height_mm, 0) + " mm): unmodified, as the paper's table prints it there.";
+    case "timed_out":
+      return "The observer ran out of time after " + duration(o.seconds) + "; the strength is the paper's table's.";
+    case "failed":
+      return "The observer could not look (" + (o.failure || "no candidate could be made") + "); the strength is the paper's table's.";
+  }
+  return "";
+}
+
+// The observer's section: every candidate's resemblance to the print at the reference
+// size, what it lost and added (in multiples of a just-visible difference), the views.
+function observedSection(j, o) {
+  let html = '<h3>Strength chosen by the observer</h3><p id="observed-why">' + esc(choiceText(o)) + "</p>";
+  if (o.candidates && o.candidates.length) {
+    html += '<table class="figures-table" id="observed"><thead><tr><th>candidate</th><th>resemblance</th>' +
+      "<th>visible difference</th><th>lost</th><th>added</th></tr></thead><tbody>";
+    o.candidates.forEach((c, i) => {
+      const mark = i === o.chosen ? ' class="chosen"' : "";
+      const cells = c.resemblance != null ?
+        [num(c.resemblance, 3), num(c.difference_jnd, 2), num(c.lost_jnd, 2), num(c.added_jnd, 2)] :
+        ["not made: " + (c.error || "?"), "", "", ""];
+      html += "<tr" + mark + "><td>" + esc(candidateWords(c) + (i === o.chosen ? " (chosen)" : "")) + "</td>" +
+        cells.map((v) => "<td>" + esc(v) + "</td>").join("") + "</tr>";
+    });
+    html += "</tbody></table>";
+  }
+  if (j.pictures.includes("observed.png")) {
+    html += '<figure id="observed-views">' + picture("/api/v1/jobs/" + encodeURIComponent(j.id) + "/pictures/observed.png", "the observer's views") +
+      "<figcaption>What the observer compared, one view a column: first the model printed at the reference size, " +
+      "scaled to this print's size; then each candidate, in the order of the table</figcaption></figure>";
+  }
+  return html;
+}
+
 // Rows of [what, figure] as a definition list (the page's layout for figures).
 function rowsList(rows, id) {
   return "<dl" + (id ? ' id="' + id + '"' : "") + ">" + rows.filter((r) => r[1] != null && r[1] !== "")
@@ -703,6 +756,7 @@ async function showJob(id) {
       "<figcaption>The print as the printer will lay it, from its G-code: the original model, the plain print " +
       "and the enhanced print (one camera, a low light from the left); below, the prints at their actual size</figcaption></figure>";
   }
+  if (report && report.enhancement && report.enhancement.observed) html += observedSection(j, report.enhancement.observed);
   if (report && report.enhancement && report.enhancement.lambda2 != null) {
     html += "<h3>What moved</h3>" + movedFigures(j, report);
     if (j.pictures.includes("walls.png")) {

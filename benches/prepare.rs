@@ -55,6 +55,7 @@ fn task(job_dir: &Path) -> PrepareTask {
         timeout: Duration::from_secs(600),
         compare: false,
         asks: Default::default(),
+        observe: Default::default(),
     }
 }
 

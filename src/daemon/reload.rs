@@ -101,7 +101,6 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     // The link to Spoolman is one task started with the daemon.
     ("spoolman", Policy::DaemonRestart),
     // Read by each preparation.
-    ("enhancement", Policy::Live),
     ("enhancement.reference_height_mm", Policy::Live),
     ("enhancement.observe_timeout_s", Policy::Live),
 ];
@@ -656,6 +655,16 @@ mod tests {
             "spoolman",
             "[history]\n",
             "[spoolman]\nurl = \"http://127.0.0.1:7912\"\n[history]\n",
+        ),
+        (
+            "enhancement.reference_height_mm",
+            "[history]\n",
+            "[enhancement]\nreference_height_mm = 100\n[history]\n",
+        ),
+        (
+            "enhancement.observe_timeout_s",
+            "[history]\n",
+            "[enhancement]\nobserve_timeout_s = 60\n[history]\n",
         ),
     ];
 

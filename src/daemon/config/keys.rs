@@ -243,7 +243,7 @@ mod tests {
             super::tables().unwrap(),
             [
                 "spool", "control", "farm", "machine", "printer", "folder", "http", "store",
-                "history", "notify", "camera", "spoolman"
+                "history", "notify", "camera", "spoolman", "enhancement"
             ]
         );
     }

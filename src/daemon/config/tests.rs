@@ -347,6 +347,34 @@ fn the_history_keeps_for_good_or_as_long_as_asked() {
     }
 }
 
+/// `[enhancement]`: absent, the observer compares with 150 mm prints and may take ten
+/// minutes; each key bounded, and named when wrong; a folder may ask `"observed"`.
+#[test]
+fn the_observers_settings_are_checked() {
+    let c = parse(GOOD).unwrap();
+    assert_eq!(c.enhancement.reference_height_mm, 150.0);
+    assert_eq!(c.enhancement.timeout, Duration::from_secs(600));
+    let with = |table: &str| parse(&format!("{GOOD}\n[enhancement]\n{table}\n"));
+    let c = with("reference_height_mm = 120\nobserve_timeout_s = 90").unwrap();
+    assert_eq!(c.enhancement.reference_height_mm, 120.0);
+    assert_eq!(c.enhancement.timeout, Duration::from_secs(90));
+    for (bad, key) in [
+        ("reference_height_mm = 0", "reference_height_mm"),
+        ("reference_height_mm = nan", "reference_height_mm"),
+        ("observe_timeout_s = 1", "observe_timeout_s"),
+        ("observe_timeout_s = 1e300", "observe_timeout_s"),
+        ("reference_heigth_mm = 100", "reference_heigth_mm"),
+    ] {
+        let err = with(bad).unwrap_err().to_string();
+        assert!(
+            err.contains("[enhancement]") && err.contains(key),
+            "{bad}: {err}"
+        );
+    }
+    let observed = parse(&GOOD.replacen("strength = 0.4", "strength = \"observed\"", 1)).unwrap();
+    assert_eq!(observed.folders[0].strength, Strength::Observed);
+}
+
 /// Values that once passed the check and then crashed the daemon (a duration too big
 /// for `Duration`, a zero rescan period panicking the watcher) or made no sense (a
 /// 0.001 mm print, a hot folder inside the spool) are refused, section and key named.

@@ -114,8 +114,10 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
             if m.moves_xyz() {
                 let e = extent.get_or_insert([[f64::INFINITY, f64::NEG_INFINITY]; 3]);
                 for (k, [lo, hi]) in e.iter_mut().enumerate() {
-                    *lo = lo.min(m.lo[k]);
-                    *hi = hi.max(m.hi[k]);
+                    // As the file writes it: an extent is reported, the bed is the
+                    // policy's to judge in both readings.
+                    *lo = lo.min(m.written.0[k]);
+                    *hi = hi.max(m.written.1[k]);
                 }
             }
         }

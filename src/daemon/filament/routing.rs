@@ -358,6 +358,8 @@ impl fmt::Display for Waiting<'_> {
                 filament.as_deref().unwrap_or("filament")
             ),
             (None, Some(fil)) => format!("{fil}{printer}"),
+            // No filament asked: the nozzle is what it waits for ("a 0.8 mm nozzle in
+            // group big"), else any printer of its groups.
             (None, None) => match printer.strip_prefix(" on ") {
                 Some(nozzle) => nozzle.to_string(),
                 None => format!("a printer{printer}"),

@@ -148,8 +148,9 @@ fn curaengine_output_is_checked_by_its_moves_and_flavour() {
     assert!(e.contains("UltiGCode"), "{e}");
 }
 
-/// What a file pushes net, and what its forward moves alone add up to, mm (Marlin 2).
-fn net_and_forward_mm(file: &Path) -> (f64, f64) {
+/// What a file pushes net, and what its forward moves alone add up to (every
+/// un-retraction counted as new filament), mm, followed as Marlin 2 follows it.
+pub(crate) fn net_and_forward_mm(file: &Path) -> (f64, f64) {
     use crispen::marlin::motion::{extruded_mm, Motion};
     let text = std::fs::read_to_string(file).unwrap();
     let firmware = crispen::marlin::firmware::Firmware::Marlin2;

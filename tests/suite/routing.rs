@@ -11,6 +11,7 @@
 //!   file included, in grams of the material asked, and `crispen status` shows it.
 
 use crate::common;
+use crate::presliced::net_and_forward_mm;
 
 use common::daemon::{ctl, recorded, status, wait_for, Daemon};
 use common::farm::{drop_file, state_of};
@@ -18,7 +19,7 @@ use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
 use crispen::enhance::Strength;
 use crispen::machine::Machine;
 use crispen::marlin::firmware::Firmware;
-use crispen::marlin::motion::{extruded_mm, Motion};
+use crispen::marlin::motion::extruded_mm;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -57,25 +58,6 @@ fn sliced(dir: &Path, name: &str, profile_lines: &str) -> PathBuf {
     };
     prepare_one(&req, target, &mut |_| {}).expect("sliced");
     output
-}
-
-/// What a file pushes net, and what its forward moves alone add up to (every
-/// un-retraction counted as new filament), mm, followed as Marlin 2 follows it.
-fn net_and_forward_mm(file: &Path) -> (f64, f64) {
-    let text = std::fs::read_to_string(file).unwrap();
-    let net = extruded_mm(text.lines(), Firmware::Marlin2);
-    let mut motion = Motion::new(Firmware::Marlin2);
-    let mut forward = 0.0;
-    for line in text.lines() {
-        let code = line.split(';').next().unwrap_or_default();
-        let Ok(Some(cmd)) = crispen::marlin::reader::read(code) else {
-            continue;
-        };
-        if let Ok(Some(m)) = motion.apply(&cmd) {
-            forward += (m.to[3] - m.from[3]).max(0.0);
-        }
-    }
-    (net, forward)
 }
 
 /// Grams told as the daemon tells them.

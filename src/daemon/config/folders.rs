@@ -157,6 +157,7 @@ fn check_folder(
         nozzle_mm: f.nozzle_mm,
         tags: f.tags.unwrap_or_default(),
         priority: f.priority.unwrap_or(0),
+        ..Default::default()
     };
     Ok(FolderConfig {
         asks,

@@ -235,7 +235,7 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
         crate::daemon::config::parse_strength(s)
             .map_err(|m| format!("sidecar {}: key `strength`: {m}", path.display()))?;
     }
-    crate::daemon::config::check_asks(
+    crate::daemon::filament::routing::check_asks(
         sidecar.material.as_deref(),
         sidecar.colour.as_deref(),
         sidecar.nozzle_mm,

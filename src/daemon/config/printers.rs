@@ -5,7 +5,7 @@
 use super::check::{number, Context};
 use super::checked::{PrinterConfig, PrinterPort};
 use super::error::ConfigError;
-use super::folders::check_asks;
+use crate::daemon::filament::routing::check_asks;
 use super::pause;
 use super::raw::{RawPrinter, RawSimulate};
 use crate::machine::Machine;

@@ -57,7 +57,7 @@ fn weight_per_mm(diameter_mm: f64, density_g_cm3: f64) -> f64 {
 
 /// Grams per mm of `material` `diameter_mm` thick, at the density crispen knows for it
 /// (its materials' table, [`crate::slice::MATERIALS`]); None for a material it does not
-/// know, whose need is then told as a length ([`routing::Need`]).
+/// know, whose need is then told as a length (`Need`).
 pub fn grams_per_mm(material: &str, diameter_mm: f64) -> Option<f64> {
     crate::slice::MATERIALS
         .iter()

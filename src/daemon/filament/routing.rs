@@ -74,7 +74,7 @@ impl Asks {
         // Cut before the check, whose message quotes it: one too long to pass is refused
         // all the same, and quoted within bounds.
         let m: String = m.trim().chars().take(41).collect();
-        crate::daemon::config::check_asks(Some(&m), None, None, None, None)
+        check_asks(Some(&m), None, None, None, None)
             .map_err(|(_, e)| format!("the material the file was sliced for: {e}"))?;
         self.material = Some(m.to_ascii_uppercase());
         self.material_of_file = true;
@@ -415,6 +415,54 @@ impl fmt::Display for Waiting<'_> {
         }
         write!(f, "waiting for {wanted}: {}", parts.join("; "))
     }
+}
+
+/// Checks what a folder, a sidecar or a printer asks or holds; the error names its key.
+pub(crate) fn check_asks(
+    material: Option<&str>,
+    colour: Option<&str>,
+    nozzle_mm: Option<f64>,
+    tags: Option<&[String]>,
+    priority: Option<i32>,
+) -> Result<(), (&'static str, String)> {
+    for (key, text) in [("material", material), ("colour", colour)] {
+        if let Some(t) = text {
+            let t = t.trim();
+            if t.is_empty() || t.chars().count() > 40 || t.chars().any(char::is_control) {
+                return Err((key, format!("1 to 40 printable characters, got {t:?}")));
+            }
+        }
+    }
+    if let Some(n) = nozzle_mm {
+        if !(0.1..=2.0).contains(&n) {
+            return Err(("nozzle_mm", format!("0.1 to 2 mm, got {n}")));
+        }
+    }
+    if let Some(tags) = tags {
+        if tags.len() > MAX_TAGS {
+            return Err((
+                "tags",
+                format!(
+                    "at most {} tags, got {}",
+                    MAX_TAGS,
+                    tags.len()
+                ),
+            ));
+        }
+        for t in tags {
+            check_tag(t).map_err(|m| ("tags", m))?;
+        }
+    }
+    if let Some(p) = priority {
+        let range = PRIORITY;
+        if !range.contains(&p) {
+            return Err((
+                "priority",
+                format!("{} to {}, got {p}", range.start(), range.end()),
+            ));
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

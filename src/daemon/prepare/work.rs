@@ -74,7 +74,9 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
                         .find(|m| m.machine.name == name)
                         .ok_or("a G-code for a machine not asked for")?;
                     let mm = pushed_mm(&report.output, m.machine.firmware)?;
-                    weigh(&mut report, mm, &m.machine, material);
+                    // A job that asks no material is weighed as what it was sliced for.
+                    let material = material.unwrap_or(&report.material).to_owned();
+                    weigh(&mut report, mm, &m.machine, Some(&material));
                     Ok(report)
                 });
                 (name, r)

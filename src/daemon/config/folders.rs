@@ -2,11 +2,11 @@
 //! other folders), the height its models are printed at, the printers it feeds, and how its
 //! jobs are enhanced and sliced. The height and strength rules are also a sidecar's.
 
-use crate::daemon::filament::routing::check_asks;
 use super::check::{number, seconds_in, Bounds, Context};
 use super::checked::{FolderConfig, PrinterConfig};
 use super::error::ConfigError;
 use super::raw::RawFolder;
+use crate::daemon::filament::routing::check_asks;
 use crate::enhance::Strength;
 use std::path::{Path, PathBuf};
 

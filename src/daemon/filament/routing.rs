@@ -442,11 +442,7 @@ pub(crate) fn check_asks(
         if tags.len() > MAX_TAGS {
             return Err((
                 "tags",
-                format!(
-                    "at most {} tags, got {}",
-                    MAX_TAGS,
-                    tags.len()
-                ),
+                format!("at most {} tags, got {}", MAX_TAGS, tags.len()),
             ));
         }
         for t in tags {

@@ -30,6 +30,7 @@ mod postgres;
 mod presliced;
 mod preview;
 mod print;
+mod routing;
 mod service;
 mod sim;
 mod slice;

@@ -79,8 +79,10 @@ fn spot() -> std::path::PathBuf {
 fn at_the_reference_size_no_enhancement_scores_above_the_plain_print() {
     let o = observe(&spot(), UpAxis::Y, 30.0, 30.0, &[0.0, 10.0, 20.0, 40.0]);
     let plain = resemblance(&o, 0);
-    // Two slicings of one mesh differ by the slicer's own noise: hundredths of a threshold.
-    assert!(plain > 0.95, "plain {plain}: {o:?}");
+    // Two slicings of one mesh differ by the slicer's own noise (its G-code is not the
+    // same line for line): hundredths of a threshold, far below what a person sees.
+    let noise = o.candidates[0].seen.as_ref().unwrap().difference_jnd;
+    assert!(noise < 0.1, "plain {plain}, {noise} thresholds: {o:?}");
     for i in 1..4 {
         let r = resemblance(&o, i);
         assert!(

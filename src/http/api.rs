@@ -521,6 +521,10 @@ pub(super) async fn act(
     match control::execute(&state.farm, command).await {
         Ok(message) => Ok(Json(serde_json::json!({ "ok": true, "message": message }))),
         Err(e) if e.is_not_found() => Err(ApiError::not_found(e.to_string())),
+        Err(e) if e.is_unavailable() => Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            e.to_string(),
+        )),
         Err(e) => Err(ApiError::conflict(e.to_string())),
     }
 }

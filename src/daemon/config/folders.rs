@@ -33,6 +33,10 @@ pub(super) fn check(
         if f.path.as_os_str().is_empty() {
             return Err(invalid(section, "path", "must not be empty".into()));
         }
+        // Its name is the folder's name in the API, the dashboard and uploads.
+        if let Some(problem) = crate::names::problem(&f.path.to_string_lossy()) {
+            return Err(invalid(section, "path", problem.into()));
+        }
         let path = anchor(&f.path);
         if folders.iter().any(|o| o.path == path) {
             return Err(invalid(section, "path", "is configured twice".into()));
@@ -183,10 +187,8 @@ pub(crate) fn check_asks(
 ) -> Result<(), (&'static str, String)> {
     for (key, text) in [("material", material), ("colour", colour)] {
         if let Some(t) = text {
-            let t = t.trim();
-            if t.is_empty() || t.chars().count() > 40 || t.chars().any(char::is_control) {
-                return Err((key, format!("1 to 40 printable characters, got {t:?}")));
-            }
+            use crate::daemon::filament::{check_name, MAX_NAME_CHARS};
+            check_name(t, MAX_NAME_CHARS).map_err(|m| (key, m))?;
         }
     }
     if let Some(n) = nozzle_mm {

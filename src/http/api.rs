@@ -58,6 +58,8 @@ pub(crate) struct StatusView {
     /// The hosts of a farm shared through `[store]`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub farm: Option<control::FarmStatus>,
+    /// See [`control::Status::version`].
+    pub version: u64,
 }
 
 /// The whole farm: printers, jobs (newest last) and hot folders.
@@ -88,6 +90,7 @@ pub(crate) fn snapshot(farm: &Farm) -> StatusView {
         jobs,
         folders,
         farm: status.farm,
+        version: status.version,
     };
     for job in &view.jobs {
         let waiting = matches!(

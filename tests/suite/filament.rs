@@ -384,10 +384,12 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
 fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
     let spoolman = common::spoolman::SpoolmanServer::start();
     let pla_id = spoolman.create_spool("PLA", "ffffff", "Acme", 1000.0, 0.0, 20.0, 1.75);
-    // Used past its weight (Spoolman's remaining weight is negative), between the two: it
-    // is set aside alone, with why; it once failed the whole list as "cannot reach
-    // Spoolman", and the farm had no spools.
-    let overused = spoolman.create_spool("PLA", "ff0000", "Acme", 100.0, 150.0, 20.0, 1.75);
+    // A filament no farm spool could be (a density of 80 g/cm³), between the two: it is
+    // set aside alone, with why, and the others are taken (it was taken as it was).
+    let unlikely = spoolman.create_raw(
+        serde_json::json!({"material": "PLA", "density": 80.0, "diameter": 1.75, "weight": 1000.0}),
+        serde_json::json!({}),
+    );
     let petg_id = spoolman.create_spool("PETG", "000000", "Acme", 500.0, 100.0, 30.0, 1.75);
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path();
@@ -421,16 +423,16 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
             assert_eq!(spool(&list, &petg)["price_per_kg"], 30.0);
             let aside = &list["set_aside"];
             assert_eq!(aside.as_array().map(Vec::len), Some(1), "{list:#}");
-            assert_eq!(aside[0]["id"], format!("sm{overused}"));
+            assert_eq!(aside[0]["id"], format!("sm{unlikely}"));
             assert_eq!(
                 aside[0]["reason"],
-                format!("spool {overused}: remaining_weight: 0 to 100000 g, got -50")
+                format!("spool {unlikely}: density: 0.5 to 5 g/cm³, got 80")
             );
             assert!(list["spools"]
                 .as_array()
                 .unwrap()
                 .iter()
-                .all(|s| s["id"] != format!("sm{overused}")));
+                .all(|s| s["id"] != format!("sm{unlikely}")));
             break;
         }
         assert!(
@@ -456,16 +458,16 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
     );
     assert!(!ok && out.contains("Spoolman"), "{out}");
     // The spool set aside is not loaded, and says why; `crispen spools` lists it apart.
-    let (ok, out) = ctl(&config, &["load", "a", "--spool", &format!("sm{overused}")]);
+    let (ok, out) = ctl(&config, &["load", "a", "--spool", &format!("sm{unlikely}")]);
     assert!(
-        !ok && out.contains("was set aside") && out.contains("remaining_weight"),
+        !ok && out.contains("was set aside") && out.contains("density"),
         "{out}"
     );
     let (ok, table) = ctl(&config, &["spools"]);
     assert!(ok, "{table}");
     let aside = table.split("set aside").nth(1).unwrap_or_default();
     assert!(
-        aside.contains(&format!("sm{overused}")) && aside.contains("got -50"),
+        aside.contains(&format!("sm{unlikely}")) && aside.contains("got 80"),
         "{table}"
     );
     // Logged when it was first set aside, not at each read: two reads later, still once.

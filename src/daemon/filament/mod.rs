@@ -319,13 +319,7 @@ impl Inventory {
 
     /// Puts `spool` on `printer` (in place of whatever it held).
     pub fn load(&mut self, printer: &str, spool: &str) -> Result<(), FilamentError> {
-        let s = self
-            .spools
-            .get(spool)
-            .ok_or_else(|| FilamentError::NoSuchSpool(spool.to_string()))?;
-        if s.archived {
-            return Err(FilamentError::Archived(spool.to_string()));
-        }
+        // Set aside at Spoolman's last read, whether the farm knew it before or not.
         if let Some(aside) = self
             .set_aside
             .iter()
@@ -335,6 +329,13 @@ impl Inventory {
                 spool: spool.to_string(),
                 reason: aside.reason.clone(),
             });
+        }
+        let s = self
+            .spools
+            .get(spool)
+            .ok_or_else(|| FilamentError::NoSuchSpool(spool.to_string()))?;
+        if s.archived {
+            return Err(FilamentError::Archived(spool.to_string()));
         }
         if let Some(other) = self.holder(spool).filter(|p| *p != printer) {
             return Err(FilamentError::LoadedElsewhere {
@@ -588,6 +589,35 @@ pub(crate) mod tests {
             inv.load("p", "sm7"),
             Err(FilamentError::Archived(_))
         ));
+    }
+
+    /// A spool of Spoolman's set aside at a read is listed with why and never loaded,
+    /// known before or not; one known before stays as last read (not archived: it is
+    /// still Spoolman's), and is taken again once it is corrected.
+    #[test]
+    fn a_spool_set_aside_is_kept_as_last_read_and_never_loaded() {
+        let mut inv = Inventory::default();
+        let f = petg_black();
+        inv.take_spoolman(vec![(7, f.clone(), Some(900.0), false)], vec![]);
+        let aside = |sm: u64| SetAside {
+            spoolman: Some(sm),
+            reason: format!("spool {sm}: density: 0.5 to 5 g/cm³, got 80"),
+        };
+        assert!(inv.take_spoolman(vec![], vec![aside(7), aside(8)]));
+        assert_eq!(inv.set_aside, [aside(7), aside(8)]);
+        let kept = &inv.spools["sm7"];
+        assert!(!kept.archived && kept.remaining_g() == Some(900.0));
+        for id in ["sm7", "sm8"] {
+            let e = inv.load("p", id).unwrap_err();
+            assert!(matches!(e, FilamentError::SetAside { .. }), "{e}");
+            assert!(e.to_string().contains("got 80"), "{e}");
+        }
+        // Corrected in Spoolman: taken, loadable.
+        assert!(inv.take_spoolman(vec![(7, f, Some(800.0), false)], vec![]));
+        assert!(inv.set_aside.is_empty());
+        inv.load("p", "sm7").unwrap();
+        assert_eq!(inv.spool_on("p").unwrap().remaining_g(), Some(800.0));
+        assert!(!inv.spools.contains_key("sm8"));
     }
 
     #[test]

@@ -302,9 +302,9 @@ impl SettleTracker {
 }
 
 /// The first wait before a file whose pick-up failed is tried again.
-pub(crate) const RETRY_FIRST: Duration = Duration::from_secs(1);
+const RETRY_FIRST: Duration = Duration::from_secs(1);
 /// The longest wait: the wait doubles with each failure up to this.
-pub(crate) const RETRY_MOST: Duration = Duration::from_secs(60);
+const RETRY_MOST: Duration = Duration::from_secs(60);
 
 /// Files whose pick-up failed (the spool's disk full): each is tried again after a wait
 /// that doubles with each failure, from [`RETRY_FIRST`] to [`RETRY_MOST`], and not before,

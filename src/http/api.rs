@@ -221,8 +221,17 @@ pub(crate) async fn job(
         Ok(None) => Err(ApiError::not_found(
             "no such job (hint: GET /api/v1/jobs lists them, GET /api/v1/history the finished ones)",
         )),
-        Err(e) => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())),
+        Err(e) => Err(store_unavailable(&state.farm, e)),
     }
+}
+
+/// The job store could not answer a reading (its history unreadable, the farm database
+/// down): 503, with the spool's files named relative to it (the log has the whole path).
+fn store_unavailable(farm: &Farm, e: crate::daemon::job::StoreError) -> ApiError {
+    tracing::error!(error = %e, "http: the job store could not answer");
+    let spool = &farm.config().spool_dir;
+    let message = crate::daemon::store::spool_relative(&e.to_string(), spool);
+    ApiError::new(StatusCode::SERVICE_UNAVAILABLE, message)
 }
 
 /// `GET /api/v1/history?limit=N&before=SEQ` and the filters: `printer`, `folder` (name or
@@ -290,9 +299,7 @@ pub(crate) async fn history(
 ) -> Result<Response, ApiError> {
     let query = query.map_err(bad_query)?.0;
     let filter = query.filter()?;
-    let unavailable = |e: crate::daemon::job::StoreError| {
-        ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
-    };
+    let unavailable = |e| store_unavailable(&state.farm, e);
     let csv = match query.format.as_deref() {
         None | Some("json") => false,
         Some("csv") => true,
@@ -405,7 +412,7 @@ pub(crate) async fn stats(
         .stats(period)
         .await
         .map(Json)
-        .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
+        .map_err(|e| store_unavailable(&state.farm, e))
 }
 
 /// One of a job's pictures. Only the fixed names of [`PICTURES`] are served, from the

@@ -607,12 +607,14 @@ mod tests {
     /// attack run's `remaining_weight: 1e308` and `color_hex: "zzzzzz"` were taken.
     #[test]
     fn a_spool_is_held_to_the_farms_bounds() {
-        let with = |edit: &dyn Fn(&mut serde_json::Value)| {
+        /// A change made to a measured spool's JSON.
+        type Edit<'a> = &'a dyn Fn(&mut serde_json::Value);
+        let with = |edit: Edit| {
             let mut v = measured();
             edit(&mut v);
             spool_from_json(v)
         };
-        let cases: Vec<(&dyn Fn(&mut serde_json::Value), &str)> = vec![
+        let cases: Vec<(Edit, &str)> = vec![
             (
                 &|v| v["remaining_weight"] = json!(1e308),
                 "spool 1: remaining_weight: 0 to 100000 g, got 1e308",
@@ -691,7 +693,7 @@ mod tests {
             assert!(error.contains(expected), "{error} (expected {expected})");
         }
         // At the bounds, and Spoolman's own forms: taken.
-        let taken: Vec<&dyn Fn(&mut serde_json::Value)> = vec![
+        let taken: Vec<Edit> = vec![
             &|v| v["remaining_weight"] = json!(100_000.0),
             &|v| v["remaining_weight"] = json!(0.0),
             &|v| v["filament"]["color_hex"] = json!("FF8800CC"),

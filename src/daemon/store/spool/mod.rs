@@ -262,7 +262,7 @@ impl Spool {
                 Ok(())
             }
             Err(e) if gate.bed_not_cleared => {
-                tracing::error!(printer, error = %e, "cannot write the bed gate; kept here and written when possible");
+                tracing::error!(printer = %printer, error = %e, "cannot write the bed gate; kept here and written when possible");
                 self.pending.keep_gate(printer, gate);
                 Ok(())
             }

@@ -506,11 +506,8 @@ fn a_printer_halting_mid_print_sends_a_printer_error() {
         |t| !events_of(t, "printer_error").is_empty(),
         log_of(&log),
     );
-    std::thread::sleep(Duration::from_millis(500));
-    let taken = {
-        drop(taken);
-        receiver.taken()
-    };
+    drop(taken);
+    let taken = taken_before_a_later_event(&receiver, root, &log);
     let errors = events_of(&taken, "printer_error");
     assert_eq!(errors.len(), 1, "one printer_error");
     assert_signed(errors[0]);

@@ -137,12 +137,22 @@ impl Verdict {
     }
 }
 
+/// The command as shown in a refusal: shortened, and a control character written out
+/// (`\r`), so that a line end inside a line cannot break the report's lines.
 fn quote(command: &str) -> String {
     let c = command.trim();
+    let shown = |c: char| -> String {
+        if c.is_control() {
+            c.escape_default().to_string()
+        } else {
+            c.to_string()
+        }
+    };
+    let text: String = c.chars().take(QUOTED_CHARS).map(shown).collect();
     if c.chars().count() > QUOTED_CHARS {
-        format!("{}...", c.chars().take(QUOTED_CHARS).collect::<String>())
+        format!("{text}...")
     } else {
-        c.to_string()
+        text
     }
 }
 

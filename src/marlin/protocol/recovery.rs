@@ -102,6 +102,10 @@ pub(super) struct Recovery {
     /// already on their way (see [`Settle`]).
     pub(super) settle: Option<Settle>,
     pub(super) resend_ok: ResendOk,
+    /// Answers since the last acknowledged line that the host cannot explain: requests
+    /// for lines beyond any it sent without an error naming the line before, `ok N` for a
+    /// line never sent. Two mean the printer counts from elsewhere.
+    pub(super) unexplained: u32,
 }
 
 impl Recovery {
@@ -123,5 +127,6 @@ impl Recovery {
         self.settle = None;
         self.ok_may_follow = None;
         self.resend_hold = None;
+        self.unexplained = 0;
     }
 }

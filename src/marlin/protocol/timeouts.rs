@@ -46,8 +46,8 @@ impl Host {
                 if let Some(settle) = &self.recovery.settle {
                     at(settle.deadline());
                 }
-                if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
-                    at(*give_up);
+                if let Some(stop) = self.stopping() {
+                    at(self.stop_gives_up(stop));
                 }
                 if let Some(deadline) = self.thermal.deadline(self.opts.heat_timeout) {
                     at(deadline);
@@ -99,8 +99,10 @@ impl Host {
             self.firmware_error(message, now);
             return;
         }
-        if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
-            if now >= *give_up || now - self.timers.last_rx >= self.opts.silence_fail {
+        if let Some(stop) = self.stopping() {
+            if now >= self.stop_gives_up(stop)
+                || now - self.timers.last_rx >= self.opts.silence_fail
+            {
                 self.finish_stop(false);
                 return;
             }
@@ -138,6 +140,12 @@ impl Host {
             .deadline(self.opts.heat_timeout)
             .is_some_and(|d| now >= d)
         {
+            if self.stopping().is_some() {
+                // The stop waited for the heat-up (see `stop_gives_up`) as long as it could.
+                self.thermal.heat = None;
+                self.finish_stop(false);
+                return;
+            }
             let heat = self
                 .thermal
                 .heat
@@ -191,6 +199,17 @@ impl Host {
         }
         if self.in_job() && now >= self.next_probe_at() {
             self.probe(now);
+        }
+    }
+
+    /// When a stop is given up unconfirmed: at its own limit, or, while the printer waits for
+    /// a heater and reads nothing until it is there (Ultimaker2Marlin), when that wait times
+    /// out: its heaters-off lines run only then.
+    fn stop_gives_up(&self, stop: &Stop) -> Instant {
+        let give_up = stop.give_up();
+        match self.thermal.deadline(self.opts.heat_timeout) {
+            Some(heat) if !self.breaks_heat_wait() && self.heating() => give_up.max(heat),
+            _ => give_up,
         }
     }
 

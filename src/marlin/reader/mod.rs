@@ -11,9 +11,12 @@
 //! (`S2.7E2` is 270 on Ultimaker2Marlin), finds a `G` anywhere in a line (Ultimaker2Marlin
 //! runs `M400 G92 Z50` as `G92 Z50`), or takes the first of two values where another takes
 //! the last. A check that read such a line its own way would judge a command the printer
-//! never runs.
+//! never runs. Before the parser comes the serial input ([`serial`]): where a line ends,
+//! which number it is taken for (`M117 M110 N999` renumbers Marlin 2's count), what of it
+//! is kept.
 
 pub(crate) mod marlin2;
+pub(crate) mod serial;
 #[cfg(any(test, fuzzing))]
 pub mod transcribed;
 pub(crate) mod ultimaker2;
@@ -161,9 +164,13 @@ pub fn read(code: &str) -> Result<Option<Command<'_>>, Unreadable> {
 
 /// [`read`], and the firmware's own reading of the same line must find the same command
 /// with the same parameters: otherwise the line is [`Unreadable`], naming the firmware and
-/// what it would read.
+/// what it would read. Before its parser, the firmware's serial input must take the line
+/// whole, as the one line the host numbered ([`serial::check`]).
 pub fn read_for(firmware: Firmware, code: &str) -> Result<Option<Command<'_>>, Unreadable> {
     let text = code.trim();
+    if !text.is_empty() {
+        serial::check(firmware, text)?;
+    }
     let plain = read(text)?;
     let Some(cmd) = plain else {
         return Ok(None);

@@ -119,6 +119,11 @@ pub struct SimConfig {
     /// ADVANCED_OK on or off, whatever the firmware profile says (`None`: the profile's).
     /// The real Marlin 2.1.2.1 ships with it off.
     pub advanced_ok: Option<bool>,
+    /// EMERGENCY_PARSER on or off (`Cap:EMERGENCY_PARSER`), whatever the profile says
+    /// (`None`: the profile's). On, `M108`/`M112`/`M410` act as their bytes arrive; off (as
+    /// in the real Marlin 2.1.2.1 builds here), an unnumbered one acts when the queue reads
+    /// it, which it does during a heat wait while a command slot is free (queue.cpp:524-531).
+    pub emergency_parser: Option<bool>,
     /// How temperature reports are spaced around `/`.
     pub report_style: ReportStyle,
     /// Marlin 2 built with ADVANCED_PAUSE_FEATURE: `M600` parks and waits for the user
@@ -155,6 +160,7 @@ impl SimConfig {
             wait_when_idle: None,
             reset_on_open: None,
             advanced_ok: None,
+            emergency_parser: None,
             report_style: ReportStyle::Marlin,
             advanced_pause: false,
         }

@@ -1,7 +1,7 @@
 //! Why a print failed, as the operator reads it: each protocol [`Failure`] with the port,
 //! the last acknowledged line and what became of the safe stop.
 
-use crate::marlin::protocol::{Failure, Temp, Temperatures};
+use crate::marlin::protocol::{Failure, Numbering, Temp, Temperatures};
 use crate::marlin::transport::TransportError;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -101,6 +101,17 @@ pub enum PrintError {
         stop: StopOutcome,
     },
     #[error(
+        "printer on {port} no longer counts lines as the host does: {what}; the job was \
+         stopped, the printer's count reset and the printer stopped, last acknowledged line \
+         {last_acked}{stop}"
+    )]
+    LostNumbering {
+        port: PathBuf,
+        what: Numbering,
+        last_acked: usize,
+        stop: StopOutcome,
+    },
+    #[error(
         "printer on {port} kept talking but acknowledged no line for {waited_s:.0} s; \
          stopped, last acknowledged line {last_acked}{stop}"
     )]
@@ -182,6 +193,7 @@ impl PrintError {
             | PrintError::LineGone { last_acked, .. }
             | PrintError::Silent { last_acked, .. }
             | PrintError::LostState { last_acked, .. }
+            | PrintError::LostNumbering { last_acked, .. }
             | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
             | PrintError::Cancelled { last_acked, .. }
@@ -202,6 +214,7 @@ impl PrintError {
             | PrintError::LineGone { last_acked, .. }
             | PrintError::Silent { last_acked, .. }
             | PrintError::LostState { last_acked, .. }
+            | PrintError::LostNumbering { last_acked, .. }
             | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
             | PrintError::Cancelled { last_acked, .. }
@@ -223,6 +236,7 @@ impl PrintError {
             PrintError::ResendLimit { stop, .. }
             | PrintError::LineGone { stop, .. }
             | PrintError::LostState { stop, .. }
+            | PrintError::LostNumbering { stop, .. }
             | PrintError::NoProgress { stop, .. }
             | PrintError::HeatTimeout { stop, .. }
             | PrintError::Cancelled { stop, .. }
@@ -279,6 +293,12 @@ impl PrintError {
                 port,
                 line,
                 confirmed,
+                last_acked,
+                stop,
+            },
+            Failure::LostNumbering { what, last_acked } => PrintError::LostNumbering {
+                port,
+                what,
                 last_acked,
                 stop,
             },

@@ -44,6 +44,13 @@ struct MiniPrinter {
     other_error_texts: bool,
     /// The number of the line being answered.
     got: u64,
+    /// Once it has run this command, it counts on from this number, as Marlin 2 does after
+    /// a line with `M110 N<k>` anywhere in it (queue.cpp:463-470): `M117 M110 N999`.
+    renumber_at: Option<(String, u64)>,
+    /// Once it has run this command, it answers every numbered line (but an `M110`) with
+    /// this text instead of running it.
+    refuse_after: Option<(String, String)>,
+    refusing: Option<String>,
 }
 
 impl MiniPrinter {
@@ -65,6 +72,9 @@ impl MiniPrinter {
             corrupt_all: false,
             other_error_texts: false,
             got: 0,
+            renumber_at: None,
+            refuse_after: None,
+            refusing: None,
         }
     }
 
@@ -120,8 +130,14 @@ impl MiniPrinter {
             self.got = n;
             let last = self.expected - 1;
             if cmd.starts_with("M110") {
+                // A new count: whatever it refused before, it takes lines again.
+                self.refusing = None;
                 self.expected = cmd.trim_start_matches("M110 N").parse::<u64>().unwrap() + 1;
                 out.push_str(&self.ok_line(n));
+                continue;
+            }
+            if let Some(answer) = &self.refusing {
+                out.push_str(answer);
                 continue;
             }
             if n != self.expected {
@@ -148,6 +164,12 @@ impl MiniPrinter {
             }
             self.expected += 1;
             self.executed.push(canonical(cmd));
+            if let Some((_, last)) = self.renumber_at.take_if(|(c, _)| *c == canonical(cmd)) {
+                self.expected = last + 1;
+            }
+            if let Some((_, answer)) = self.refuse_after.take_if(|(c, _)| *c == canonical(cmd)) {
+                self.refusing = Some(answer);
+            }
             if self.lose_ok_of.as_deref() == Some(cmd) {
                 self.lose_ok_of = None;
                 continue;
@@ -2032,3 +2054,5 @@ fn the_replay_goes_after_a_quiet_moment_when_fewer_blocks_come() {
     };
     assert!(replay.starts_with("N2 "), "{replay:?}");
 }
+
+mod numbering;

@@ -591,6 +591,36 @@ mod tests {
         ));
     }
 
+    /// Issue 42: a carriage return inside a line (where both firmwares end a line, the
+    /// middle piece then running unnumbered) and a message that renumbers Marlin 2 are
+    /// refused when the file is loaded, naming the line and the firmware's rule.
+    #[test]
+    fn lines_the_serial_input_would_split_or_renumber_are_refused_naming_the_line() {
+        for fw in Firmware::ALL {
+            let err = GcodeProgram::read(&b"G28\nM117 a\rM104 S300\rM117 b\n"[..], "job.gcode", fw)
+                .unwrap_err();
+            let msg = err.to_string();
+            assert!(
+                matches!(err, GcodeError::Serial { line: 2, .. }),
+                "{fw}: {msg}"
+            );
+            assert!(msg.starts_with("job.gcode:2:"), "{msg}");
+            assert!(
+                msg.contains("carriage return") && msg.contains(".cpp:"),
+                "{msg}"
+            );
+            assert!(!msg.contains('\r'), "the line end is written out: {msg:?}");
+            let err =
+                GcodeProgram::read(&b"G28\nM117 M110 N999\n"[..], "job.gcode", fw).unwrap_err();
+            assert!(
+                matches!(err, GcodeError::Serial { line: 2, .. }),
+                "{fw}: {err}"
+            );
+        }
+        // A file with CRLF line ends is fine: the CR ends the line where the host does.
+        assert!(parse(b"G28\r\nG1 X1\r\n").is_ok());
+    }
+
     #[test]
     fn small_sequences_keep_large_values_and_sums_across_blocks() {
         let values: Vec<u64> = (0..1000u64)

@@ -82,6 +82,9 @@ pub struct Host {
     /// Answers to `M105`s sent before a stop began, still to come: each confirms nothing of
     /// the stop's lines, which the printer runs after it.
     stale_m105s: u32,
+    /// An `M105` sent without a number (a probe while the host's `M110` waits to run) is
+    /// unanswered: the numbers below this were sent before it, and its answer settles them.
+    unnumbered_probe: Option<(u64, Instant)>,
     /// One line in flight until this line number is reached (after a resend).
     cautious_until: u64,
     /// `ok N<n> P<p> B<b>` seen: `ok`s are matched to lines by number.
@@ -130,6 +133,7 @@ impl Host {
             in_flight_bytes: 0,
             swallow_oks: 0,
             stale_m105s: 0,
+            unnumbered_probe: None,
             cautious_until: 0,
             advanced_ok: false,
             confirmed: None,

@@ -232,6 +232,15 @@ impl Host {
             return;
         }
         if ok.text {
+            if let Some((before, _)) = self.unnumbered_probe.take() {
+                // The answer of the M105 sent without a number: the printer ran it after
+                // every line sent before it, and only those.
+                self.swallow_oks = 0;
+                if let Some(last) = before.checked_sub(1) {
+                    self.ack_through(last, now);
+                }
+                return;
+            }
             // The answer of an M105 (only it carries text, whether or not the temperatures
             // in it could be read): the printer processed it after every earlier line.
             if let Some(pos) = self.in_flight.iter().position(|f| f.is_m105) {

@@ -30,7 +30,8 @@ impl Host {
                 self.history_line(f.number)
                     .is_some_and(|l| is_code(&l.command, &["M105"]))
             })
-            .count() as u32;
+            .count() as u32
+            + u32::from(self.unnumbered_probe.is_some());
         self.reset_numbering();
         self.stale_m105s = stale;
         self.next_number = first;

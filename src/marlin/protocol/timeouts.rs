@@ -221,6 +221,25 @@ impl Host {
             return;
         }
         self.timers.last_probe = Some(now);
+        if self.counter_reset_in_flight() {
+            // The host's `M110` waits to run (behind a long command, or moves): a numbered
+            // line read before it runs is counted again from the M110's number when it
+            // does (M110.cpp:31-32), and the printer would refuse the next one. An M105
+            // without a number asks all the same.
+            // Only the M110 is in flight, so a late answer of an earlier one settles the
+            // same line: one taken for lost is simply asked again.
+            let patience = self.timers.m105_patience(self.opts.silence_probe);
+            let due = self
+                .unnumbered_probe
+                .is_none_or(|(_, sent)| now.saturating_duration_since(sent) >= patience);
+            if due {
+                self.stats.probes += 1;
+                self.events.push_back(Event::Probe);
+                self.outgoing.extend_from_slice(b"M105\n");
+                self.unnumbered_probe = Some((self.next_number, now));
+            }
+            return;
+        }
         let replay = self
             .history_line(self.send_cursor)
             .filter(|_| self.send_cursor < self.next_number)
@@ -271,6 +290,13 @@ impl Host {
             let number = self.new_line(Kind::Housekeeping, "M105".into());
             self.transmit(number, now);
         }
+    }
+
+    /// The host's own `M110` is the oldest line unanswered: nothing numbered goes out
+    /// until it has run.
+    fn counter_reset_in_flight(&self) -> bool {
+        self.front_line()
+            .is_some_and(|l| l.kind == Kind::Setup && is_code(&l.command, &["M110"]))
     }
 
     /// When to probe with M105 if nothing moves. Long commands are probed too: the M105

@@ -30,6 +30,7 @@ impl Host {
         self.send_cursor = 0;
         self.swallow_oks = 0;
         self.stale_m105s = 0;
+        self.unnumbered_probe = None;
         self.recovery.clear_episode();
         self.cautious_until = 0;
         self.confirmed = None;

@@ -48,6 +48,9 @@ pub struct Faults {
     /// Firmware errors that are not a halt (`Error:TEXT`, e.g. a failed probing) to report
     /// after N numbered lines: `(N, "Probing Failed")`.
     pub errors: Vec<(usize, String)>,
+    /// Lines to receive after N numbered lines, as if they came over the cable between the
+    /// host's (a relay injecting them): `(N, "N0 M117 M110 N999*<checksum>")`.
+    pub receive: Vec<(usize, String)>,
 }
 
 /// The largest speed-up factor taken; faster than that is "instant".

@@ -90,8 +90,9 @@ pub enum PrintError {
     },
     #[error(
         "printer on {port} asked for line {line} again although it had confirmed line \
-         {confirmed}: it lost its state (reset or power dip?); stopped rather than \
-         replaying onto a half-printed part, last acknowledged line {last_acked}{stop}"
+         {confirmed}: its line count went back (a line it ran set it, or it was reset without \
+         saying so, a power dip); stopped rather than replaying onto a half-printed part, \
+         last acknowledged line {last_acked}{stop}"
     )]
     LostState {
         port: PathBuf,

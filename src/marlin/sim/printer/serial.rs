@@ -51,7 +51,7 @@ impl Printer {
             } else {
                 lost += 1;
             }
-            if b == b'\n' && self.fw == Firmware::Marlin2 {
+            if (b == b'\n' || b == b'\r') && self.fw == Firmware::Marlin2 {
                 self.advance(now, recorder);
             }
         }
@@ -411,6 +411,20 @@ mod tests {
         (p, rec)
     }
 
+    fn printer(fw: Firmware, emergency_parser: bool) -> (Printer, Recorder) {
+        let mut cfg = SimConfig::new(fw);
+        cfg.time_scale = 1.0;
+        cfg.advanced_ok = Some(false);
+        cfg.emergency_parser = Some(emergency_parser);
+        let mut p = Printer::new(&cfg, Instant::now());
+        p.take_output();
+        let rec = Recorder {
+            executed: None,
+            file: None,
+        };
+        (p, rec)
+    }
+
     fn numbered(n: u64, cmd: &str) -> String {
         let line = format!("N{n} {cmd}");
         let sum = line.bytes().fold(0u8, |a, b| a ^ b);
@@ -484,5 +498,146 @@ mod tests {
         assert_eq!(strip_number_and_checksum("N12 G1 X5*34"), "G1 X5");
         assert_eq!(strip_number_and_checksum("N0 M110 N0*125"), "M110 N0");
         assert_eq!(strip_number_and_checksum("G28"), "G28");
+    }
+
+    /// Marlin 2.1.2.1's queue takes a numbered line with `M110` anywhere in it for a new
+    /// count, its number the one after the next `N` (queue.cpp:463-470): after `M117 M110
+    /// N999` every later line is refused, as on the real firmware. Ultimaker2Marlin takes
+    /// the line's first `N` (Marlin_main.cpp:550-554): its count stays the host's.
+    #[test]
+    fn a_message_with_m110_renumbers_as_each_firmware_does() {
+        let (mut p, mut rec) = printer(Firmware::Marlin2, false);
+        let now = Instant::now();
+        let write = numbered(1, "G1 X1 F6000") + &numbered(2, "M117 M110 N999");
+        p.receive(write.as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert_eq!(said(&mut p), ["ok", "ok"]);
+        p.receive(numbered(3, "G1 X2").as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert_eq!(
+            said(&mut p),
+            [
+                "Error:Line Number is not Last Line Number+1, Last Line: 999",
+                "Resend: 1000",
+                "ok"
+            ]
+        );
+        // A line numbered 999 (or 998) is dropped unanswered; an `M110` line passes.
+        p.receive(numbered(999, "G1 X3").as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert!(said(&mut p).is_empty());
+        p.receive(numbered(4, "M110 N4").as_bytes(), now, &mut rec);
+        p.receive(numbered(5, "G1 X4").as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert_eq!(said(&mut p), ["ok", "ok"]);
+
+        let (mut p, mut rec) = printer(Firmware::Ultimaker2, false);
+        p.receive(write.as_bytes(), now, &mut rec);
+        p.receive(numbered(3, "G1 X2").as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        // Moves acknowledged on entry, M117 when done: no error.
+        assert!(said(&mut p).iter().all(|l| l == "ok"));
+        assert_eq!(p.last_n, 3);
+        // An unnumbered line with an `N` in it is a numbered one there.
+        p.receive(b"M117 DONE\n", now, &mut rec);
+        p.advance(now, &mut rec);
+        assert_eq!(
+            said(&mut p)[0],
+            "Error:Line Number is not Last Line Number+1, Last Line: 3"
+        );
+    }
+
+    /// A carriage return ends a line on both firmwares (queue.cpp:450, Marlin_main.cpp:538):
+    /// the piece after it arrives without number or checksum and runs unchecked, as the
+    /// real Marlin did when its flush had not taken it. A backspace erases on Marlin 2
+    /// (queue.cpp:367-370): erased back to before its `N`, a line runs unchecked too.
+    #[test]
+    fn line_ends_and_erasures_inside_a_line_run_what_the_file_did_not_say() {
+        let (mut p, mut rec) = printer(Firmware::Marlin2, false);
+        let now = Instant::now();
+        let sum = |l: &str| l.bytes().fold(0u8, |a, b| a ^ b);
+        let body = "N1 M117 a\rM104 S300\rM117 b";
+        // Byte by byte, as a UART delivers them.
+        for b in format!("{body}*{}\n", sum(body)).bytes() {
+            p.receive(&[b], now, &mut rec);
+            p.advance(now, &mut rec);
+        }
+        assert_eq!(p.hotend.target, 300.0);
+        let said = said(&mut p);
+        assert_eq!(said[0], "Error:No Checksum with line number, Last Line: 0");
+
+        let (mut p, mut rec) = printer(Firmware::Marlin2, false);
+        let body = format!("N1 M117 {}M104 S280", "\u{8}".repeat(8));
+        p.receive(format!("{body}*{}\n", sum(&body)).as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert_eq!(p.hotend.target, 280.0);
+        assert_eq!(p.last_n, 0, "the line ran as an unnumbered one");
+    }
+
+    /// Ultimaker2Marlin keeps nothing after a `;`, drops the line, and drops the next one
+    /// too: `comment_mode` is cleared only by an empty line (Marlin_main.cpp:542-547, 641).
+    #[test]
+    fn a_comment_drops_the_line_and_the_next_on_ultimaker2marlin() {
+        let (mut p, mut rec) = printer(Firmware::Ultimaker2, false);
+        let now = Instant::now();
+        let write = "N1 M105 ;x*1\n".to_string() + &numbered(2, "M105") + &numbered(3, "M105");
+        p.receive(write.as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert_eq!(
+            said(&mut p)[0],
+            "Error:Line Number is not Last Line Number+1, Last Line: 0"
+        );
+        // Marlin 2 drops only the rest of the line, its checksum with it.
+        let (mut p, mut rec) = printer(Firmware::Marlin2, false);
+        p.receive(write.as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert_eq!(
+            said(&mut p)[0],
+            "Error:No Checksum with line number, Last Line: 0"
+        );
+    }
+
+    /// Without an emergency parser, Marlin 2 reads lines into free command slots while it
+    /// waits for a heater (temperature.cpp:4122, MarlinCore.cpp:412) and ends the wait on
+    /// an unnumbered `M108` as it reads it (queue.cpp:524-531); with every slot taken, the
+    /// `M108` waits in the receive buffer with the rest. Ultimaker2Marlin reads nothing.
+    #[test]
+    fn an_unnumbered_m108_ends_a_heat_wait_where_the_firmware_reads_it() {
+        let now = Instant::now();
+        for (fw, queued_behind, breaks) in [
+            (Firmware::Marlin2, 0, true),
+            (Firmware::Marlin2, 3, false),
+            (Firmware::Marlin20, 0, true),
+            (Firmware::Ultimaker2, 0, false),
+        ] {
+            let (mut p, mut rec) = printer(fw, false);
+            let mut write = numbered(1, "M109 S200");
+            for n in 0..queued_behind {
+                write += &numbered(2 + n, "G4 P1");
+            }
+            p.receive(write.as_bytes(), now, &mut rec);
+            p.advance(now, &mut rec);
+            assert!(p.in_heat_wait(), "{fw}");
+            p.take_output();
+            let later = now + std::time::Duration::from_millis(500);
+            p.receive(b"M108\n", later, &mut rec);
+            p.advance(later, &mut rec);
+            assert_eq!(
+                !p.in_heat_wait(),
+                breaks,
+                "{fw} with {queued_behind} behind"
+            );
+            if breaks {
+                assert!(p.hotend.current < 100.0);
+            }
+        }
+        // With an emergency parser, it acts on arrival, slots full or not, numbered or not.
+        let (mut p, mut rec) = printer(Firmware::Marlin2, true);
+        let write = numbered(1, "M109 S200") + &numbered(2, "G4 P1") + &numbered(3, "G4 P1");
+        p.receive(write.as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        p.receive(numbered(4, "M1080").as_bytes(), now, &mut rec);
+        p.advance(now, &mut rec);
+        assert!(!p.in_heat_wait());
     }
 }

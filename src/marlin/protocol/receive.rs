@@ -259,8 +259,7 @@ impl Host {
             } else if self.stopping().is_none() && self.in_job() {
                 // An answer for a line the host never sent: the printer counts from
                 // elsewhere (a line that set its count was answered with its own number).
-                self.recovery.unexplained += 1;
-                if self.recovery.unexplained >= 2 {
+                if self.unexplained_answer() {
                     let what = Numbering::NoAdvance {
                         refusals: self.recovery.unexplained,
                         sent: self.next_number.saturating_sub(1),

@@ -9,7 +9,7 @@
 use super::event::{Event, Failure, Numbering};
 use super::line::{is_code, Kind};
 use super::phase::Phase;
-use super::recovery::{OkFollow, Settle, REPLAY_PROBE, SETTLE_MAX};
+use super::recovery::{OkFollow, Settle, REPLAY_PROBE, SETTLE_MAX, UNEXPLAINED_LIMIT};
 use super::Host;
 use std::time::{Duration, Instant};
 
@@ -121,9 +121,8 @@ impl Host {
                 return true;
             }
             // A garbled number, or a refusal whose error was lost: its `ok` is no line's.
-            // A second one before any progress is no accident.
-            self.recovery.unexplained += 1;
-            if self.recovery.unexplained >= 2 {
+            // More of them, one for each line sent and unanswered, are no accident.
+            if self.unexplained_answer() {
                 let refusals = self.recovery.unexplained;
                 self.numbering_lost(Numbering::NoAdvance { refusals, sent }, now);
                 return true;
@@ -282,6 +281,16 @@ impl Host {
                 self.recovery.resend_hold = Some(now + self.opts.resend_ok_wait);
             }
         }
+    }
+
+    /// Counts an answer the host cannot explain (see `Recovery::unexplained`); true when
+    /// enough came, each standing for another line still owed an answer, to stop the job.
+    pub(super) fn unexplained_answer(&mut self) -> bool {
+        let owed = self.in_flight.len() + usize::from(self.unnumbered_probe.is_some());
+        if (self.recovery.unexplained as usize) < owed {
+            self.recovery.unexplained += 1;
+        }
+        self.recovery.unexplained >= UNEXPLAINED_LIMIT
     }
 
     /// The printer's count is no longer the host's: sending on would print nothing (every

@@ -225,8 +225,9 @@ fn each_order_of_the_refusals_ends_the_same_way() {
 }
 
 /// A request for a line beyond any the host sent, with no error naming the line before it
-/// (a garbled number): ignored, and the `ok` printed with it is no line's. A second one
-/// before any line is answered is no accident: the printer counts from elsewhere.
+/// (a garbled number): ignored, and the `ok` printed with it is no line's. Three in a
+/// row, each for a line sent and unanswered, with no line answered between, are no
+/// accident: the printer counts from elsewhere.
 #[test]
 fn a_resend_for_a_future_line_is_ignored_once_and_stops_the_job_when_repeated() {
     let mut o = opts(Firmware::Marlin2);
@@ -251,7 +252,7 @@ fn a_resend_for_a_future_line_is_ignored_once_and_stops_the_job_when_repeated() 
     assert!(done(&events), "{:?}", failure(&events));
     assert_eq!(printer.job_executed(), commands);
 
-    // Every line refused so, its error line lost: the second refusal stops the job.
+    // Every line refused so, its error lines lost: the third refusal stops the job.
     let (mut host, _, now) = connected(o);
     let mut printer = MiniPrinter::new();
     printer.expected = 2;
@@ -263,7 +264,7 @@ fn a_resend_for_a_future_line_is_ignored_once_and_stops_the_job_when_repeated() 
         matches!(
             failure(&events),
             Some(Failure::LostNumbering {
-                what: Numbering::NoAdvance { refusals: 2, .. },
+                what: Numbering::NoAdvance { refusals: 3, .. },
                 ..
             })
         ),

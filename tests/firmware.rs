@@ -981,7 +981,10 @@ async fn stopped_through(
             ),
         }
     }
-    panic!("{}: the firmware halted on its own {STARTS} times", build.name())
+    panic!(
+        "{}: the firmware halted on its own {STARTS} times",
+        build.name()
+    )
 }
 
 /// A job through the relay, cancelled once the printer's progress passes `cancel_when`;

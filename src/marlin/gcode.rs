@@ -10,9 +10,7 @@ use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// Bytes the host adds around a command: `N<number> ` before and `*<checksum>` after.
-/// Numbers up to 9 digits cover any job; the checksum is at most 3 digits.
-pub(crate) const FRAMING_BYTES: usize = 1 + 9 + 1 + 1 + 3;
+pub(crate) use super::reader::serial::FRAMING_BYTES;
 
 /// The largest G-code file crispen takes: checked when a pre-sliced file is prepared and
 /// again when a job is loaded. A day-long print sliced finely is well under 200 MiB; the
@@ -35,13 +33,7 @@ pub(crate) fn is_heat_wait(command: &str) -> bool {
     HEAT_WAITS.iter().any(|c| c.eq_ignore_ascii_case(code))
 }
 
-/// The commands with which a file asks for a pause: wait for the user (`M0`, `M1`), pause
-/// the print (`M25`, `M601`), park (`M125`), wait for a pin (`M226`), change the filament
-/// (`M600`). On a printer with no one in front of it, each stops the printer until someone
-/// presses its knob (or does nothing at all where the firmware lacks it, and the pause the
-/// file wanted is lost). The host therefore never sends them: it pauses the printer itself
-/// at that point and waits for the operator (see `super::pause`).
-pub(crate) const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
+pub(crate) use super::reader::FILE_PAUSES;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
@@ -422,7 +414,7 @@ impl GcodeProgram {
                         .collect::<String>()
                         .escape_debug()
                         .to_string(),
-                    reason: why.0,
+                    reason: why,
                     firmware,
                 });
             }

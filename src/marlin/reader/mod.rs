@@ -23,9 +23,16 @@ pub(crate) mod ultimaker2;
 mod view;
 
 use crate::marlin::firmware::Firmware;
-use crate::marlin::gcode::FILE_PAUSES;
 
 pub(crate) use view::View;
+
+/// The commands with which a file asks for a pause: wait for the user (`M0`, `M1`), pause
+/// the print (`M25`, `M601`), park (`M125`), wait for a pin (`M226`), change the filament
+/// (`M600`). On a printer with no one in front of it, each stops the printer until someone
+/// presses its knob (or does nothing at all where the firmware lacks it, and the pause the
+/// file wanted is lost). The host therefore never sends them: it pauses the printer itself
+/// at that point and waits for the operator (see `crate::marlin::pause`).
+pub(crate) const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
 
 /// One parameter of a command: its letter (upper case) and number, if it has one.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -188,7 +195,7 @@ pub fn read(code: &str) -> Result<Option<Command<'_>>, Unreadable> {
 pub fn read_for(firmware: Firmware, code: &str) -> Result<Option<Command<'_>>, Unreadable> {
     let text = code.trim();
     if !text.is_empty() {
-        serial::check(firmware, text)?;
+        serial::check(firmware, text).map_err(Unreadable)?;
     }
     let plain = read(text)?;
     let Some(cmd) = plain else {

@@ -12,9 +12,11 @@
 //! The host's load check cuts a line's comment (`;`) before anything reads it; a `;` that
 //! reached [`check`] would be refused with what the firmware does with it.
 
-use super::Unreadable;
 use crate::marlin::firmware::Firmware;
-use crate::marlin::gcode::FRAMING_BYTES;
+
+/// Bytes the host adds around a command: `N<number> ` before and `*<checksum>` after.
+/// Numbers up to 9 digits cover any job; the checksum is at most 3 digits.
+pub(crate) const FRAMING_BYTES: usize = 1 + 9 + 1 + 1 + 3;
 
 /// Codes a Marlin 2 built with EMERGENCY_PARSER acts on as soon as their bytes arrive
 /// (`EmergencyParser::update`, e_parser.h): the command's first letters after `N<n> `, so
@@ -24,11 +26,12 @@ const EMERGENCY: [&str; 5] = ["M108", "M112", "M410", "M524", "M876"];
 /// Refuses `code` (a line as the host sends it after `N<n> `: trimmed, its comment cut)
 /// when the firmware's serial input would not take it whole, as one line with the host's
 /// number, and hand it to the parser as written.
-pub(crate) fn check(firmware: Firmware, code: &str) -> Result<(), Unreadable> {
+/// The reason says what the firmware would do instead, with its source line.
+pub(crate) fn check(firmware: Firmware, code: &str) -> Result<(), String> {
     let marlin = firmware.is_marlin2();
     let max = firmware.max_line_bytes() - FRAMING_BYTES;
     if code.len() > max {
-        return Err(Unreadable(format!(
+        return Err(format!(
             "is {} bytes long: with the host's line number and checksum it would not fit the \
              firmware's line buffer of {} bytes, which cuts it ({}), checksum and all; at \
              most {max} bytes",
@@ -39,13 +42,13 @@ pub(crate) fn check(firmware: Firmware, code: &str) -> Result<(), Unreadable> {
             } else {
                 "Marlin_main.cpp:540"
             }
-        )));
+        ));
     }
     if let Some(c) = code.chars().find(|&c| c.is_ascii_control() && c != '\t') {
-        return Err(Unreadable(control(marlin, c)));
+        return Err(control(marlin, c));
     }
     if code.contains('*') {
-        return Err(Unreadable(if marlin {
+        return Err(if marlin {
             "holds `*`, where the host's checksum begins: Marlin 2 checks a line up to its \
              last `*` (queue.cpp:481-489) and its parser ends the command at the first \
              (parser.cpp:141-146), so it would run less than the file says, or refuse the \
@@ -56,12 +59,12 @@ pub(crate) fn check(firmware: Firmware, code: &str) -> Result<(), Unreadable> {
              only up to its first `*` (Marlin_main.cpp:564-571), so it would refuse the line \
              again and again"
                 .into()
-        }));
+        });
     }
     if code.contains(';') {
         // The host's load check cuts comments before anything reads a line; a caller that
         // did not is told what the firmware would do.
-        return Err(Unreadable(if marlin {
+        return Err(if marlin {
             "holds `;`, where Marlin 2's serial input drops the rest of the line, the host's \
              checksum with it (queue.cpp:355-358), and would refuse the line again and again"
                 .into()
@@ -69,43 +72,43 @@ pub(crate) fn check(firmware: Firmware, code: &str) -> Result<(), Unreadable> {
             "holds `;`, after which Ultimaker2Marlin keeps nothing, and drops the whole line \
              and the next one unanswered (Marlin_main.cpp:547, 641-642)"
                 .into()
-        }));
+        });
     }
     if let Some(at) = code.find("M110") {
-        return Err(Unreadable(m110(marlin, code, at)));
+        return Err(m110(marlin, code, at));
     }
     if !marlin && code.contains(':') {
-        return Err(Unreadable(
+        return Err(
             "holds `:`, where Ultimaker2Marlin ends a line (Marlin_main.cpp:539): the text \
              after it would arrive as a line of its own and the rest fail its checksum"
                 .into(),
-        ));
+        );
     }
     if marlin && code.contains('\\') {
-        return Err(Unreadable(
+        return Err(
             "holds `\\`, which Marlin 2's serial input drops, taking the character after it \
              as it is (queue.cpp:337-343): the line would no longer match its checksum and \
              be refused again and again"
                 .into(),
-        ));
+        );
     }
     if marlin {
         if let Some(open) = code.find('(') {
             if !code[open..].contains(')') {
-                return Err(Unreadable(
+                return Err(
                     "holds `(` with no `)` after it: a Marlin 2 built with PAREN_COMMENTS \
                      (stock builds are not) drops the rest of the line from it, the host's \
                      checksum too (queue.cpp:330-334, 360-365), and would refuse the line \
                      again and again"
                         .into(),
-                ));
+                );
             }
         }
         // A longer code that begins with one (`M4100`, which a machine could allow) is
         // taken for it too.
         let word = code.split(' ').next().unwrap_or(code);
         if EMERGENCY.iter().any(|e| word.starts_with(e)) {
-            return Err(Unreadable(emergency(word)));
+            return Err(emergency(word));
         }
     }
     Ok(())
@@ -227,7 +230,7 @@ mod tests {
     use super::*;
 
     fn refused(fw: Firmware, code: &str) -> String {
-        check(fw, code).unwrap_err().0
+        check(fw, code).unwrap_err()
     }
 
     #[test]

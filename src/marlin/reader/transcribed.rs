@@ -6,7 +6,14 @@
 //! compared with this on random lines: a disagreement is a bug in one of them.
 
 use super::view::View;
-use crate::marlin::protocol::frame;
+
+/// A line as the host frames it: `N<n> <text>*<checksum>\n`, the checksum the XOR of every
+/// byte before the `*`.
+fn frame(n: u64, text: &str) -> String {
+    let body = format!("N{n} {text}");
+    let sum = body.bytes().fold(0u8, |a, b| a ^ b);
+    format!("{body}*{sum}\n")
+}
 
 /// The bytes on the wire for line number 7 of `text`, NUL-terminated, without the newline.
 fn wire(text: &str) -> Vec<u8> {

@@ -77,6 +77,10 @@ pub struct LiveProgress {
     /// Set while the print waits at a pause its file asked for.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pause: Option<crate::marlin::stream::PauseInfo>,
+    /// Set while a stop waits for the printer's heat-up to end (its firmware reads nothing
+    /// until then): which heater, where it is and must get to, how long that may take.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_wait: Option<crate::marlin::stream::StopWait>,
 }
 
 /// A printer's hotend and bed (°C, current and target) as read now: from the job's

@@ -607,7 +607,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
                         }
                         None => {
                             p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
-                            p.detail = None;
+                            p.detail = live.stop_wait.as_ref().map(stop_wait_detail);
                         }
                     }
                     show_progress(p, live);
@@ -737,6 +737,24 @@ fn waiting_detail(pause: &crate::marlin::stream::PauseInfo) -> String {
     text
 }
 
+/// What a stop that waits for the heat-up waits for, as the status shows it.
+fn stop_wait_detail(w: &crate::marlin::stream::StopWait) -> String {
+    let heater = if w.bed { "bed" } else { "hotend" };
+    let mut text = format!("stopping: the printer reads nothing until its {heater} is hot");
+    if let Some(command) = &w.command {
+        text += &format!(" (`{command}`)");
+    }
+    if let (Some(now), Some(target)) = (w.current_c, w.target_c) {
+        text += &format!(", {now:.0} of {target:.0} °C");
+    }
+    match w.remaining_s {
+        Some(s) => text += &format!("; heaters off in about {s:.0} s"),
+        None => text += "; heaters off once it is there",
+    }
+    text += &format!(" (at most {:.0} s)", w.limit_s);
+    text
+}
+
 /// A print's progress, and its temperatures once the printer has reported them (until
 /// then the last ones read before the job stand).
 fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
@@ -754,6 +772,7 @@ fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
 fn live_progress(p: &PrintProgress, heated: bool, paused: bool) -> LiveProgress {
     let pause = p.pause.clone();
     LiveProgress {
+        stop_wait: p.stop_wait.clone(),
         lines_acked: p.lines_acked,
         lines_total: p.lines_total,
         hotend_c: p.hotend.map(|t| t.current),
@@ -833,6 +852,7 @@ impl PrinterLink for MarlinLink {
             let mut last_heated = false;
             let mut last_paused = false;
             let mut last_pause = None;
+            let mut last_stop_wait = None;
             let result = loop {
                 tokio::select! {
                     result = &mut print => break result,
@@ -867,7 +887,8 @@ impl PrinterLink for MarlinLink {
                         let due = last_forward.elapsed() >= Duration::from_millis(250)
                             || heated != last_heated
                             || paused != last_paused
-                            || p.pause != last_pause;
+                            || p.pause != last_pause
+                            || p.stop_wait != last_stop_wait;
                         if !due {
                             continue;
                         }
@@ -875,6 +896,7 @@ impl PrinterLink for MarlinLink {
                         last_heated = heated;
                         last_paused = paused;
                         last_pause = p.pause.clone();
+                        last_stop_wait = p.stop_wait.clone();
                         progress.send_replace(live_progress(&p, heated, paused));
                     }
                 }

@@ -3,7 +3,7 @@
 //! a temperature report updates the heaters, an error waits a moment to show whether it
 //! belongs to a resend or a halt, and a `Resend:` goes to `resend.rs`.
 
-use super::event::{Event, Failure};
+use super::event::{Event, Failure, Numbering};
 use super::framing::{canonical, strip_framing};
 use super::line::{is_code, InFlight, Kind, LONG_COMMANDS};
 use super::phase::Phase;
@@ -203,6 +203,18 @@ impl Host {
         self.thermal.take(report.temperatures, report.waiting, now);
         self.events
             .push_back(Event::Temperatures(self.thermal.temps));
+        if report.waiting && self.stopping().is_some() && self.breaks_heat_wait() {
+            // A heat wait began after the stop's M108 was read (it waited behind another
+            // command): an M108 read before the wait starts is lost, as the wait sets its
+            // flag anew (temperature.cpp:4097). Break this one too, once a second at most.
+            let due = self
+                .timers
+                .last_m108
+                .is_none_or(|t| now.saturating_duration_since(t) >= Duration::from_secs(1));
+            if due {
+                self.send_unnumbered("M108", now);
+            }
+        }
     }
 
     fn handle_ok(&mut self, ok: &OkReply, now: Instant) {
@@ -213,7 +225,22 @@ impl Host {
             // waited, so this is the heat command's own.
             self.thermal.heat = None;
         }
+        if ok.text && self.stale_m105s > 0 {
+            // The answer of an M105 sent before the stop began: it says nothing of the
+            // stop's lines, which the printer runs after it.
+            self.stale_m105s -= 1;
+            return;
+        }
         if ok.text {
+            if let Some((before, _)) = self.unnumbered_probe.take() {
+                // The answer of the M105 sent without a number: the printer ran it after
+                // every line sent before it, and only those.
+                self.swallow_oks = 0;
+                if let Some(last) = before.checked_sub(1) {
+                    self.ack_through(last, now);
+                }
+                return;
+            }
             // The answer of an M105 (only it carries text, whether or not the temperatures
             // in it could be read): the printer processed it after every earlier line.
             if let Some(pos) = self.in_flight.iter().position(|f| f.is_m105) {
@@ -229,7 +256,22 @@ impl Host {
             self.advanced_ok = true;
             if n < self.next_number {
                 self.ack_through(n, now);
+            } else if self.stopping().is_none() && self.in_job() {
+                // An answer for a line the host never sent: the printer counts from
+                // elsewhere (a line that set its count was answered with its own number).
+                if self.unexplained_answer() {
+                    let what = Numbering::NoAdvance {
+                        refusals: self.recovery.unexplained,
+                        sent: self.next_number.saturating_sub(1),
+                    };
+                    self.numbering_lost(what, now);
+                }
             }
+            return;
+        }
+        if ok.advanced && self.swallow_oks > 0 {
+            // A line of the host's own without a number (a stop's heaters off).
+            self.swallow_oks -= 1;
             return;
         }
         if ok.advanced {
@@ -312,6 +354,7 @@ impl Host {
         }
         self.timers.front_since = now;
         self.timers.last_ack = now;
+        self.recovery.unexplained = 0;
         if !self.opts.firmware.acks_moves_on_entry()
             && self
                 .thermal

@@ -40,6 +40,8 @@ pub(super) struct Timers {
     pub(super) m105_latency: Option<Duration>,
     pub(super) greeting_sent_at: Instant,
     pub(super) next_poll: Instant,
+    /// When a stop last sent an unnumbered `M108`.
+    pub(super) last_m108: Option<Instant>,
 }
 
 impl Timers {
@@ -57,6 +59,7 @@ impl Timers {
             m105_latency: None,
             greeting_sent_at: now,
             next_poll: now,
+            last_m108: None,
         }
     }
 

@@ -29,26 +29,11 @@ impl Host {
         self.next_number = 0;
         self.send_cursor = 0;
         self.swallow_oks = 0;
+        self.stale_m105s = 0;
+        self.unnumbered_probe = None;
         self.recovery.clear_episode();
         self.cautious_until = 0;
         self.confirmed = None;
-    }
-
-    pub(super) fn discard_unsent_job_lines(&mut self) {
-        let Some(first) = self.history.front().map(|l| l.number) else {
-            return;
-        };
-        if self.send_cursor >= self.next_number {
-            return;
-        }
-        let keep = (self.send_cursor - first) as usize;
-        let dropped: Vec<Line> = self.history.drain(keep..).collect();
-        self.next_number = self.send_cursor;
-        for line in dropped.into_iter().rev() {
-            if line.kind == Kind::SafeStop {
-                self.pending.push_front((line.kind, line.command));
-            }
-        }
     }
 
     /// Give the next line a number and remember it for resends.
@@ -117,6 +102,7 @@ impl Host {
             bytes: wire.len(),
             is_m105,
             sync,
+            heat: is_heat,
             sent: now,
         });
         self.in_flight_bytes += wire.len();
@@ -127,6 +113,15 @@ impl Host {
     pub(super) fn window_allows(&self, number: u64, bytes: usize) -> bool {
         if self.in_flight.is_empty() {
             return true;
+        }
+        if self.in_flight.iter().any(|f| f.heat) {
+            // Nothing behind a heat wait until it is answered: a stop during the wait then
+            // finds a free command slot for its unnumbered M108 (Marlin 2 reads lines into
+            // free slots while it waits, and acts on an M108 as it reads it), and on
+            // Ultimaker2Marlin, which reads nothing while it waits, an empty receive
+            // buffer for its heaters-off lines; and no move of the job runs after a stop.
+            // (Probes still go, in the room kept for one.)
+            return false;
         }
         // Lines the printer took off its ring (see `handle_resend`) no longer count here.
         let in_ring = self.in_flight.iter().any(|f| f.bytes > 0);

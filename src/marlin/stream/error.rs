@@ -1,7 +1,7 @@
 //! Why a print failed, as the operator reads it: each protocol [`Failure`] with the port,
 //! the last acknowledged line and what became of the safe stop.
 
-use crate::marlin::protocol::{Failure, Temp, Temperatures};
+use crate::marlin::protocol::{Failure, Numbering, Temp, Temperatures};
 use crate::marlin::transport::TransportError;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -90,13 +90,25 @@ pub enum PrintError {
     },
     #[error(
         "printer on {port} asked for line {line} again although it had confirmed line \
-         {confirmed}: it lost its state (reset or power dip?); stopped rather than \
-         replaying onto a half-printed part, last acknowledged line {last_acked}{stop}"
+         {confirmed}: its line count went back (a line it ran set it, or it was reset without \
+         saying so, a power dip); stopped rather than replaying onto a half-printed part, \
+         last acknowledged line {last_acked}{stop}"
     )]
     LostState {
         port: PathBuf,
         line: u64,
         confirmed: u64,
+        last_acked: usize,
+        stop: StopOutcome,
+    },
+    #[error(
+        "printer on {port} no longer counts lines as the host does: {what}; the job was \
+         stopped, the printer's count reset and the printer stopped, last acknowledged line \
+         {last_acked}{stop}"
+    )]
+    LostNumbering {
+        port: PathBuf,
+        what: Numbering,
         last_acked: usize,
         stop: StopOutcome,
     },
@@ -182,6 +194,7 @@ impl PrintError {
             | PrintError::LineGone { last_acked, .. }
             | PrintError::Silent { last_acked, .. }
             | PrintError::LostState { last_acked, .. }
+            | PrintError::LostNumbering { last_acked, .. }
             | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
             | PrintError::Cancelled { last_acked, .. }
@@ -202,6 +215,7 @@ impl PrintError {
             | PrintError::LineGone { last_acked, .. }
             | PrintError::Silent { last_acked, .. }
             | PrintError::LostState { last_acked, .. }
+            | PrintError::LostNumbering { last_acked, .. }
             | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
             | PrintError::Cancelled { last_acked, .. }
@@ -223,6 +237,7 @@ impl PrintError {
             PrintError::ResendLimit { stop, .. }
             | PrintError::LineGone { stop, .. }
             | PrintError::LostState { stop, .. }
+            | PrintError::LostNumbering { stop, .. }
             | PrintError::NoProgress { stop, .. }
             | PrintError::HeatTimeout { stop, .. }
             | PrintError::Cancelled { stop, .. }
@@ -279,6 +294,12 @@ impl PrintError {
                 port,
                 line,
                 confirmed,
+                last_acked,
+                stop,
+            },
+            Failure::LostNumbering { what, last_acked } => PrintError::LostNumbering {
+                port,
+                what,
                 last_acked,
                 stop,
             },

@@ -77,4 +77,22 @@ fn main() {
         tower.stride,
         "-"
     );
+
+    // 6,000 short moves stacked within 0.3 mm (a purge pattern, or a file crafted so): the
+    // camera fits the spot, so every bead covers most of the panel.
+    let g = common::stacked_moves(6000, 0.3);
+    let read = common::median_seconds(runs, || {
+        read_print(g.as_bytes(), 0.4, print::MAX_SEGMENTS).unwrap()
+    });
+    let stack = read_print(g.as_bytes(), 0.4, print::MAX_SEGMENTS).unwrap();
+    let preview = common::median_seconds(runs, || {
+        print::preview_picture(None, &stack, None, PANEL_PX).unwrap()
+    });
+    println!(
+        "stack 0.3 mm {:>8.1} {:>9} {:>6} {read:>7.3} {:>8} {preview:>10.3}",
+        g.len() as f64 / 1e6,
+        stack.segment_count(),
+        stack.stride,
+        "-"
+    );
 }

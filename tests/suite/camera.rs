@@ -11,6 +11,7 @@ use common::camera::{TestCamera, HEIGHT, WIDTH};
 use common::daemon::{Daemon, Killed};
 use common::http::{request, Answer};
 use common::job_by_file;
+use crispen::camera::mjpeg::Part;
 use serde_json::Value;
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -50,6 +51,14 @@ fn decode(jpeg: &[u8]) -> image::RgbImage {
     image::load_from_memory_with_format(jpeg, image::ImageFormat::Jpeg)
         .expect("a JPEG")
         .to_rgb8()
+}
+
+/// A stream's part that must be a whole frame.
+fn whole(part: Result<Part, crispen::camera::fetch::FetchError>) -> Vec<u8> {
+    match part {
+        Ok(Part::Frame(jpeg)) => jpeg,
+        other => panic!("not a whole frame: {other:?}"),
+    }
 }
 
 /// Frames and size of a video, by ffprobe.
@@ -106,8 +115,7 @@ async fn ffmpegs_own_mjpeg_server_is_read_frame_by_frame() {
     };
     let mut frames = Vec::new();
     for _ in 0..5 {
-        let jpeg = stream.next().await.expect("a frame");
-        let picture = decode(&jpeg);
+        let picture = decode(&whole(stream.next().await));
         assert_eq!(picture.dimensions(), (WIDTH, HEIGHT));
         frames.push(picture);
     }
@@ -446,7 +454,7 @@ fn prints_keep_their_snapshots_and_timelapse_and_bad_cameras_change_nothing() {
             .expect("crispen's own stream");
         let mut frames = Vec::new();
         for _ in 0..2 {
-            frames.push(decode(&s.next().await.expect("a frame")));
+            frames.push(decode(&whole(s.next().await)));
         }
         frames
     });

@@ -29,6 +29,7 @@ mod postgres;
 mod presliced;
 mod preview;
 mod print;
+mod routing;
 mod service;
 mod sim;
 mod slice;

@@ -620,15 +620,22 @@ impl Farm {
         )
     }
 
-    /// The job's camera section once its timelapse is made or given up (the recorder's
-    /// last word on it).
+    /// The job's camera section once the recorder has said its last word on it: its
+    /// timelapse made or given up, or its last layer said to have no frame (then there is
+    /// no timelapse to make).
     fn finished_camera(&self, job: &str) -> Value {
         common::http::poll_status(
             Duration::from_secs(60),
-            "the job's timelapse made or given up",
+            "the job's timelapse made or given up, or its last layer missing",
             &self.log,
             || get(&self.addr, &format!("/api/v1/jobs/{job}")).json()["camera"].clone(),
-            |c| !c["timelapse"].is_null() || !c["timelapse_error"].is_null(),
+            |c| {
+                let last_missing = c["missing"]
+                    .as_array()
+                    .and_then(|m| m.last())
+                    .is_some_and(|m| m["last"] == c["layers"]);
+                !c["timelapse"].is_null() || !c["timelapse_error"].is_null() || last_missing
+            },
         )
     }
 }

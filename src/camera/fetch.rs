@@ -3,7 +3,8 @@
 //! frame its size limit; what a camera answers instead (an error page, HTML, a stream with
 //! no boundary) is an error that says what came.
 
-use super::mjpeg::{boundary_of, is_jpeg, megabytes, MjpegError, MjpegReader};
+use super::feed::CameraFault;
+use super::mjpeg::{boundary_of, check_jpeg, megabytes, FrameFault, MjpegError, MjpegReader, Part};
 use crate::daemon::config::notify::ReceiverUrl;
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
@@ -38,6 +39,38 @@ pub enum FetchError {
     Http(String),
     #[error("the stream ended")]
     Closed,
+    /// A frame that is not a whole JPEG (cut, run into the next part, not decoding).
+    #[error("{0}")]
+    Refused(FrameFault),
+}
+
+impl FetchError {
+    /// What went wrong, as data (the words and the details are the log's).
+    pub fn fault(&self) -> CameraFault {
+        match self {
+            FetchError::Connect { .. } => CameraFault::Connect,
+            FetchError::Timeout(d) => CameraFault::Timeout {
+                seconds: d.as_secs_f64(),
+            },
+            FetchError::NoFrame(d) => CameraFault::NoFrame {
+                seconds: d.as_secs_f64(),
+            },
+            FetchError::Status(code) => CameraFault::Status { code: *code },
+            FetchError::NotJpeg(_) | FetchError::Stream(MjpegError::NotJpeg { .. }) => {
+                CameraFault::NotJpeg
+            }
+            FetchError::TooLarge(max) | FetchError::Stream(MjpegError::TooLarge { max }) => {
+                CameraFault::TooLarge { max_bytes: *max }
+            }
+            FetchError::NotStream(_) => CameraFault::NotStream,
+            FetchError::Stream(MjpegError::NoBoundary { max }) => {
+                CameraFault::NoBoundary { max_bytes: *max }
+            }
+            FetchError::Stream(MjpegError::Ended) | FetchError::Closed => CameraFault::Closed,
+            FetchError::Http(_) => CameraFault::Http,
+            FetchError::Refused(frame) => CameraFault::Refused { frame: *frame },
+        }
+    }
 }
 
 /// An answer whose body is read on; its connection is driven by a task of its own, which
@@ -137,13 +170,15 @@ pub async fn snapshot(
                 bytes.extend_from_slice(&data);
             }
         }
-        if is_jpeg(&bytes) {
-            Ok(bytes)
-        } else {
-            Err(FetchError::NotJpeg(format!(
-                "{kind} ({} bytes)",
-                bytes.len()
-            )))
+        match check_jpeg(&bytes) {
+            Ok(len) => {
+                bytes.truncate(len);
+                Ok(bytes)
+            }
+            Err(FrameFault::NotJpeg { bytes: n }) => {
+                Err(FetchError::NotJpeg(format!("{kind} ({n} bytes)")))
+            }
+            Err(fault) => Err(FetchError::Refused(fault)),
         }
     })
     .await
@@ -169,7 +204,7 @@ async fn first_line(response: &mut hyper::Response<Incoming>) -> Result<Vec<u8>,
 pub struct Stream {
     answer: Answer,
     reader: MjpegReader,
-    ready: std::collections::VecDeque<Vec<u8>>,
+    ready: std::collections::VecDeque<Part>,
     timeout: Duration,
 }
 
@@ -211,14 +246,15 @@ impl Stream {
         Ok(stream)
     }
 
-    /// The next frame; an error when none is whole within the time limit (a stream that
-    /// trickles bytes without a frame is as dead as a silent one).
-    pub async fn next(&mut self) -> Result<Vec<u8>, FetchError> {
+    /// The next part: a whole frame, or one refused (the stream goes on after it); an
+    /// error when none comes within the time limit (a stream that trickles bytes without
+    /// a part is as dead as a silent one).
+    pub async fn next(&mut self) -> Result<Part, FetchError> {
         let timeout = self.timeout;
         tokio::time::timeout(timeout, async {
             loop {
-                if let Some(frame) = self.ready.pop_front() {
-                    return Ok(frame);
+                if let Some(part) = self.ready.pop_front() {
+                    return Ok(part);
                 }
                 let Some(frame) = self.answer.response.body_mut().frame().await else {
                     return Err(FetchError::Closed);

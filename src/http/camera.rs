@@ -40,7 +40,7 @@ async fn latest(state: &AppState, printer: &str) -> Result<Picture, ApiError> {
         )));
     }
     let (cameras, name) = (state.cameras.clone(), printer.to_string());
-    let made = tokio::task::spawn_blocking(move || cameras.picture(&name, false))
+    let made = tokio::task::spawn_blocking(move || cameras.picture(&name))
         .await
         .map_err(ApiError::from)?;
     match made {

@@ -734,6 +734,13 @@ function cameraSection(id, cam) {
   } else if (cam.timelapse_error) {
     html += '<p class="muted">No timelapse: ' + esc(cam.timelapse_error) + "</p>";
   }
+  if (cam.missing && cam.missing.length) {
+    const of = cam.layers ? " of " + cam.layers : "";
+    html += '<ul class="missing">' + cam.missing.map((m) =>
+      "<li>No timelapse frame of " + (m.first === m.last ? "layer " + m.first : "layers " + m.first + "–" + m.last) + of +
+      ": " + esc(noFrameWords(m.why)) + ' <span class="muted">' + new Date(m.at * 1000).toLocaleTimeString() + "</span></li>").join("") +
+      "</ul>";
+  }
   if (cam.snapshots.length) {
     html += '<div class="pictures snapshots">';
     for (const s of cam.snapshots) {
@@ -743,6 +750,52 @@ function cameraSection(id, cam) {
     html += "</div>";
   }
   return html;
+}
+
+// Why a job has no frame where it wanted one (a NoFrame of its camera.json), in words.
+function noFrameWords(why) {
+  switch (why.kind) {
+    case "starting": return "the camera had given no frame yet";
+    case "offline": {
+      const since = why.since ? " since " + new Date(why.since * 1000).toLocaleTimeString() : "";
+      return "the camera was offline" + since + (why.fault ? " (" + cameraFaultWords(why.fault) + ")" : "");
+    }
+    case "stale": return "the camera's latest frame was " + Math.round(why.age_s) + " s old";
+    case "picture": return "the camera's frame could not be made into a picture";
+    case "disk": return "the frame could not be written to the disk";
+    default: return label(why.kind);
+  }
+}
+
+// A camera's last failure (a CameraFault), in words.
+function cameraFaultWords(f) {
+  switch (f.kind) {
+    case "connect": return "cannot connect";
+    case "timeout": return "no answer within " + f.seconds + " s";
+    case "no_frame": return "no frame within " + f.seconds + " s";
+    case "status": return "HTTP status " + f.code;
+    case "not_jpeg": return "not a JPEG";
+    case "too_large": return "a frame larger than " + (f.max_bytes / 1048576).toFixed(1) + " MB";
+    case "not_stream": return "not an MJPEG stream";
+    case "no_boundary": return "no boundary within " + (f.max_bytes / 1048576).toFixed(1) + " MB";
+    case "closed": return "the stream ended";
+    case "http": return "the HTTP exchange failed";
+    case "refused": return frameFaultWords(f.frame);
+    default: return label(f.kind);
+  }
+}
+
+// Why a camera's frame was refused (a FrameFault), in words.
+function frameFaultWords(f) {
+  switch (f.kind) {
+    case "headers": return "a part's headers were unreadable";
+    case "not_jpeg": return "a part that is not a JPEG";
+    case "cut": return "frames cut short";
+    case "trailing": return "frames run into the next part";
+    case "malformed": return "frames whose JPEG segments are malformed";
+    case "undecodable": return "frames whose picture does not decode";
+    default: return label(f.kind);
+  }
 }
 
 function loadVideos(root) {

@@ -125,6 +125,7 @@ pub async fn run(
         feed,
         last_digest: None,
         warned: None,
+        said_offline: false,
     };
     let mut retry = settings.refresh;
     loop {
@@ -198,6 +199,9 @@ struct Publisher {
     last_digest: Option<u64>,
     /// When a failure was last logged.
     warned: Option<Instant>,
+    /// The log said the camera went offline and has not yet said it is back: a camera
+    /// whose failures were too frequent to log is not announced online at each frame.
+    said_offline: bool,
 }
 
 impl Publisher {
@@ -227,11 +231,11 @@ impl Publisher {
         let same = self.last_digest == Some(digest);
         self.last_digest = Some(digest);
         let name = &self.name;
-        let warned = self.warned.is_some();
+        let said_offline = self.said_offline;
         self.feed.send_modify(|f| {
             if f.state != CameraState::Online
                 && f.state != CameraState::Frozen
-                && (f.frames == 0 || warned)
+                && (f.frames == 0 || said_offline)
             {
                 tracing::info!(camera = %name, frames = f.frames + 1, failures = f.failures, "camera online");
             }
@@ -249,6 +253,7 @@ impl Publisher {
                 f.same_since = Instant::now();
             }
         });
+        self.said_offline = false;
     }
 
     /// A failed fetch or a frame refused: logged when the camera goes offline or fails
@@ -276,6 +281,7 @@ impl Publisher {
         });
         if warned {
             self.warned = Some(Instant::now());
+            self.said_offline = true;
         }
     }
 }

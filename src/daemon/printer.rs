@@ -242,12 +242,16 @@ async fn supervise_inner(
                 }
                 continue;
             }
+            // The store's version this look starts from: what it passes over below, it
+            // passed over in this version or a later one.
+            let version = farm.store().version();
             let gate = farm.store().gate(&sup.name);
             if gate.bed_not_cleared {
                 sup.show(|p| {
                     p.state = PrinterState::BedNotCleared;
                     p.job = gate.last_job.clone();
                 });
+                sup.owner.looked.send_replace(version);
                 match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     Between::Lost => continue 'connect,
                     Between::Halted(message) => halted = Some(message),
@@ -261,6 +265,7 @@ async fn supervise_inner(
                     p.job = None;
                     p.progress = None;
                 });
+                sup.owner.looked.send_replace(version);
                 match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     Between::Lost => continue 'connect,
                     Between::Halted(message) => halted = Some(message),

@@ -340,6 +340,7 @@ mod tests {
             host: None,
             offline: false,
             holds: None,
+            looked_at: 0,
         }
     }
 

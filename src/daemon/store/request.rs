@@ -304,7 +304,9 @@ fn clear_gate(
     }
     view.gates = store.gates();
     view.unwritten = store.unwritten();
-    let changed = !matches!(result, Ok(false));
+    // A clear the store could not write is not done (see `JobStore::set_gate`): nothing
+    // to publish.
+    let changed = matches!(result, Ok(true));
     (deliver(reply, result), changed)
 }
 

@@ -462,8 +462,8 @@ pub(crate) fn scan(
             });
         }
         if code.contains('\\') {
-            // Stock Marlin has no quoted strings (GCODE_QUOTED_STRINGS), so a
-            // backslash is dropped wherever it stands (queue.cpp:337-343).
+            // Stock Marlin has no quoted strings (GCODE_QUOTED_STRINGS), so a backslash is
+            // dropped wherever it stands (queue.cpp:337-343).
             return Err(GcodeError::Backslash {
                 file: name.to_string(),
                 line: line_no,

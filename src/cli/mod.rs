@@ -5,6 +5,7 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+pub(crate) mod bedcheck;
 pub(crate) mod control;
 pub(crate) mod enhance;
 pub(crate) mod keys;
@@ -51,7 +52,7 @@ pub(crate) enum Command {
     /// Statistics per printer and per hot folder over a period (jobs, hours, filament)
     Stats(stats::Args),
     /// Confirm a printer's bed has been cleared so it may take the next job
-    Clear(control::PrinterArgs),
+    Clear(control::ClearArgs),
     /// Cancel a job (a printing job is stopped safely)
     Cancel(control::JobArgs),
     /// Pause a printer's current print
@@ -72,6 +73,8 @@ pub(crate) enum Command {
     Notify(notify::Args),
     /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
     Keys(keys::Args),
+    /// Compare a picture of the bed with a picture of it empty, as the daemon's bed check does
+    BedCheck(bedcheck::Args),
     /// The daemon's preparation child (internal)
     #[command(hide = true)]
     PrepareJob(prepare_job::Args),
@@ -111,6 +114,7 @@ pub(crate) fn main() -> ExitCode {
         Command::Spools(a) => spools::spools(a),
         Command::Notify(a) => notify::run(a),
         Command::Keys(a) => keys::run(a),
+        Command::BedCheck(a) => bedcheck::run(a),
         Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {
@@ -124,7 +128,7 @@ pub(crate) fn main() -> ExitCode {
 
 /// The error and its causes on one line. The library's errors already name their cause
 /// in their own message, so a cause is added only when its text is not there yet.
-fn describe(err: &anyhow::Error) -> String {
+pub(crate) fn describe(err: &anyhow::Error) -> String {
     let mut message = err.to_string();
     for cause in err.chain().skip(1) {
         let cause = cause.to_string();

@@ -12,7 +12,7 @@ use axum::http::header;
 use axum::response::IntoResponse;
 use std::fmt::Write;
 
-const PRINTER_STATES: [PrinterState; 10] = [
+const PRINTER_STATES: [PrinterState; 12] = [
     PrinterState::Connecting,
     PrinterState::Idle,
     PrinterState::WaitingToHeat,
@@ -21,6 +21,8 @@ const PRINTER_STATES: [PrinterState; 10] = [
     PrinterState::WaitingForOperator,
     PrinterState::Halted,
     PrinterState::BedNotCleared,
+    PrinterState::Ejecting,
+    PrinterState::CheckingBed,
     PrinterState::Disconnected,
     PrinterState::Stopped,
 ];

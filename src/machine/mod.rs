@@ -12,6 +12,7 @@
 //! on this one.
 
 pub(crate) mod commands;
+pub mod eject;
 
 use crate::marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};
@@ -54,6 +55,9 @@ pub struct Machine {
     pub extruders: u8,
     /// Commands the G-code policy refuses that this machine allows in files (`M500`).
     pub allow: Vec<String>,
+    /// How its printers push a finished print off the bed (`[machine.eject]`), if they can.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eject: Option<eject::Eject>,
 }
 
 /// Room kept free around the model on each side, for the skirt the profiles print.
@@ -149,6 +153,7 @@ impl Builtin {
             max_bed_c: self.max_bed_c,
             extruders: 1,
             allow: Vec::new(),
+            eject: None,
         }
     }
 }
@@ -285,6 +290,8 @@ pub(crate) struct MachineSpec {
     /// Commands the G-code policy guards or does not know that this machine allows in files
     /// ([`commands::allowable`]).
     pub allow: Option<Vec<String>>,
+    /// How its printers push a print off the bed (see [`eject`]).
+    pub eject: Option<eject::EjectSpec>,
 }
 
 /// Whether a name may name a machine (it becomes part of G-code file names).
@@ -496,12 +503,31 @@ impl MachineSpec {
             max_bed_c,
             extruders,
             allow,
+            eject: match self.eject {
+                Some(spec) => Some(
+                    spec.check(bed_mm[2], &anchor(Path::new(".")))
+                        .map_err(|(key, m)| (eject_key(key), m))?,
+                ),
+                None => base.as_ref().and_then(|b| b.eject.clone()),
+            },
         })
     }
 }
 
+/// An eject key as the machine's error names it (`eject.max_height_mm`).
+fn eject_key(key: &'static str) -> &'static str {
+    match key {
+        "gcode" => "eject.gcode",
+        "file" => "eject.file",
+        "release_bed_c" => "eject.release_bed_c",
+        "max_height_mm" => "eject.max_height_mm",
+        "allow" => "eject.allow",
+        _ => "eject",
+    }
+}
+
 /// Reads a start or end code file: text, at most [`MAX_CODE_BYTES`].
-fn read_code(path: &Path) -> Result<String, String> {
+pub(crate) fn read_code(path: &Path) -> Result<String, String> {
     use std::io::Read;
     let mut text = String::new();
     std::fs::File::open(path)

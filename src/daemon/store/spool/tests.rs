@@ -98,12 +98,12 @@ fn restart_rules_and_gates_survive_reopen() {
     assert_eq!(store.get(&b).unwrap().state, JobState::Interrupted);
     assert!(store.get(&b).unwrap().reason.is_some());
     assert_eq!(store.get(&c).unwrap().state, JobState::Ready);
-    assert!(store.gate("p1").bed_not_cleared);
-    assert!(!store.gate("p2").bed_not_cleared);
+    assert!(store.gate("p1").bed_not_cleared());
+    assert!(!store.gate("p2").bed_not_cleared());
 
     drop(store);
     let store = Spool::open(&spool).unwrap();
-    assert!(store.gate("p1").bed_not_cleared);
+    assert!(store.gate("p1").bed_not_cleared());
     let order: Vec<&str> = store.jobs().map(|j| j.id.as_str()).collect();
     assert_eq!(order, vec![a.as_str(), b.as_str(), c.as_str()]);
 }

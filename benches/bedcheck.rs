@@ -13,9 +13,11 @@ fn main() {
     let cases = common::bed::check_all();
     println!("bed check on the pictures of tests/data/bed ({} pictures)", cases.len());
     println!(
-        "{:<34} {:<10} {:>7} {:<6} {:<10} {:>9} {:>6} {:>6}  largest patch",
-        "picture", "what", "size_mm", "colour", "light", "expected", "found", "diff%"
+        "{:<34} {:<10} {:>7} {:<6} {:<10} {:>9} {:>6} {:>6} {:>5}  largest patch",
+        "picture", "what", "size_mm", "colour", "light", "expected", "found", "diff%", "thr"
     );
+    // CRISPEN_BENCH_MARKED=DIR: the marked picture of each wrong answer, to look at.
+    let marked = std::env::var_os("CRISPEN_BENCH_MARKED").map(std::path::PathBuf::from);
     for c in &cases {
         let word = |clear: bool| if clear { "clear" } else { "not" };
         let largest = c
@@ -27,8 +29,13 @@ fn main() {
                 None => format!("{} x {} px", p.w, p.h),
             })
             .unwrap_or_default();
+        if let (Some(dir), true) = (&marked, c.clear != c.verdict.clear) {
+            let jpeg = crispen::bedcheck::marked_jpeg(&common::bed::read(&c.file), &c.verdict)
+                .unwrap();
+            std::fs::write(dir.join(&c.file), jpeg).unwrap();
+        }
         println!(
-            "{:<34} {:<10} {:>7} {:<6} {:<10} {:>9} {:>6} {:>6.2}  {}{}",
+            "{:<34} {:<10} {:>7} {:<6} {:<10} {:>9} {:>6} {:>6.2} {:>5.1}  {}{}",
             c.file,
             c.what,
             c.size_mm.map_or("-".into(), |s| format!("{s}")),
@@ -37,6 +44,7 @@ fn main() {
             word(c.clear),
             word(c.verdict.clear),
             c.verdict.differs_percent,
+            c.verdict.threshold,
             largest,
             if c.clear == c.verdict.clear { "" } else { "   <-- WRONG" }
         );

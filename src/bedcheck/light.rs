@@ -14,8 +14,9 @@ use faer::Mat;
 
 /// A block's side, working pixels.
 const BLOCK: usize = 24;
-/// Added to both means before their ratio, levels: a black bed's blocks are not noise.
-const EPS: f64 = 4.0;
+/// A block darker than this in the reference (levels) says nothing of the light: its
+/// ratio is noise.
+const DARK: f64 = 8.0;
 /// Tukey's constant (95 % efficiency at the normal).
 const TUKEY: f64 = 4.685;
 
@@ -135,8 +136,9 @@ pub(super) fn field(reference: &Planes, frame: &Aligned) -> Field {
         let ratios: Vec<Option<f64>> = sums
             .iter()
             .map(|s| {
-                (s[6] >= (BLOCK * BLOCK / 4) as f64)
-                    .then(|| ((s[3 + c] / s[6] + EPS) / (s[c] / s[6] + EPS)).ln())
+                let (frame, reference) = (s[3 + c] / s[6].max(1.0), s[c] / s[6].max(1.0));
+                (s[6] >= (BLOCK * BLOCK / 4) as f64 && reference >= DARK && frame > 0.0)
+                    .then(|| (frame / reference).ln())
             })
             .collect();
         let surface = robust_quadratic(&ratios, &at);

@@ -23,10 +23,12 @@
 //!    smallest difference counts, so an edge that moved by a pixel is no difference), in
 //!    each colour channel, and also by its gradient (an edge the reference lacks: a part
 //!    of the bed's own colour shows by its sides and shadow).
-//! 5. The threshold is the picture's own noise: a high quantile of the differences over
-//!    the whole region, where a part is a small share, times a factor, with a floor for
-//!    JPEG's artefacts. Pixels above it seed patches; pixels above half of it grow them
-//!    (hysteresis), closed by a pixel so a spaghetti's strands make one nest.
+//! 5. The thresholds, of brightness and of colour, are the picture's own noise: the spread
+//!    of the plain differences over the whole region (a part is a small share of it),
+//!    times a factor, with a floor for JPEG's artefacts. Pixels above them seed patches;
+//!    pixels above half of them grow them (hysteresis), closed by a pixel so a spaghetti's
+//!    strands make one nest. A picture whose noise puts the threshold of brightness over
+//!    [`MAX_THRESHOLD`] is too dark to tell: never "clear".
 //! 6. A patch with at least [`MIN_PATCH_PX`] pixels and [`MIN_SEED_PX`] seeds makes the bed
 //!    not clear. The figures: the share of the region's pixels in patches, each patch's
 //!    box in the picture's pixels, and its size in mm when the bed's size is known (the
@@ -162,8 +164,13 @@ pub struct Verdict {
     pub shift_px: [f64; 2],
     /// The frame's light over the reference's (the median of the field).
     pub light: f64,
-    /// The threshold, in 8-bit levels of difference after the light is corrected.
+    /// The threshold of brightness, in 8-bit levels of difference after the light is
+    /// corrected: the picture's noise times a factor.
     pub threshold: f64,
+    /// The picture is too noisy (too dark) to tell: not clear, whatever was found (its
+    /// threshold is above [`MAX_THRESHOLD`]).
+    #[serde(default)]
+    pub unsure: bool,
     /// How many mm one picture pixel is across the region (None: the bed's size unknown).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mm_per_px: Option<f64>,
@@ -173,6 +180,12 @@ impl Verdict {
     /// The decision and its figures in one line ("clear: 0.3 % of the bed differs",
     /// "not clear: 6.1 % of the bed differs, largest patch 14 × 9 mm").
     pub fn summary(&self) -> String {
+        if self.unsure && self.patches.is_empty() {
+            return format!(
+                "not clear: cannot tell, the picture is too dark or noisy (its noise threshold is {:.0} levels, at most {MAX_THRESHOLD:.0}): more light on the bed",
+                self.threshold
+            );
+        }
         let word = if self.clear { "clear" } else { "not clear" };
         let mut text = format!("{word}: {:.1} % of the bed differs", self.differs_percent);
         if let Some(p) = self.patches.first() {
@@ -261,10 +274,12 @@ pub struct Reference {
     size: (u32, u32),
     region: Region,
     planes: Planes,
-    /// Its gradient magnitude, and that of its half size (the coarse alignment).
+    /// Its gradient magnitude (of brightness), which the alignment correlates.
     grad: Vec<f32>,
-    /// The largest gradient in each pixel's 3 × 3 neighbourhood.
-    grad_max: Vec<f32>,
+    /// The largest gradient of brightness and of each colour difference in each pixel's
+    /// 3 × 3 neighbourhood: where the picture has an edge, a difference of up to a pixel's
+    /// worth of it is the edge moved, not something new.
+    edges: [Vec<f32>; 3],
     bed_mm: Option<[f64; 2]>,
 }
 
@@ -326,13 +341,26 @@ impl Reference {
         let (w, h) = working_size(region);
         let planes = Planes::of(picture, region, w, h);
         let grad = gradient(&planes.luma, planes.w, planes.h);
-        let grad_max = max3(&grad, planes.w, planes.h);
+        let n = planes.w * planes.h;
+        let colour = |k: usize| -> Vec<f32> {
+            // A colour difference brought to 0..255 for the gradient (it spans ±255).
+            let plane: Vec<f32> = (0..n)
+                .map(|i| {
+                    128.0 + 0.5 * ycc([planes.rgb[0][i], planes.rgb[1][i], planes.rgb[2][i]])[k]
+                })
+                .collect();
+            max3(&gradient(&plane, planes.w, planes.h), planes.w, planes.h)
+                .into_iter()
+                .map(|g| 2.0 * g)
+                .collect()
+        };
+        let edges = [max3(&grad, planes.w, planes.h), colour(1), colour(2)];
         Ok(Reference {
             size: (width, height),
             region,
             planes,
             grad,
-            grad_max,
+            edges,
             bed_mm,
         })
     }
@@ -392,8 +420,10 @@ impl Reference {
             })
             .collect();
         patches.sort_by(|a, b| b.area_px.cmp(&a.area_px));
+        let unsure = diff.threshold > MAX_THRESHOLD;
         Ok(Verdict {
-            clear: patches.is_empty(),
+            clear: patches.is_empty() && !unsure,
+            unsure,
             differs_percent: 100.0 * differing as f64 / compared,
             patches,
             region: self.region,
@@ -421,13 +451,24 @@ struct Difference {
 /// How many times the noise a difference must be to count (the noise measured as the
 /// spread of the plain differences: most of a bed is unchanged).
 const NOISE_FACTOR: f32 = 4.5;
-/// The least threshold, levels: JPEG's ringing at the bed's edges and the grain of its
-/// sheet under a changed light stay below it.
+/// The least threshold of brightness, levels: JPEG's ringing at the bed's edges and the
+/// grain of its sheet under a changed light stay below it.
 const FLOOR: f32 = 10.0;
+/// The least threshold of colour (each of the two colour differences), levels.
+const COLOUR_FLOOR: f32 = 8.0;
+/// Sobel's magnitude of a ramp is 8 times its slope a pixel: a difference up to an
+/// eighth of the reference's gradient nearby is its edge moved by a pixel.
+const EDGE_SLACK: f32 = 1.0 / 8.0;
+/// Above this threshold of brightness the picture is too noisy (too dark) to see a small
+/// dark part on a dark bed: the check answers "not clear", unsure, rather than "clear".
+pub const MAX_THRESHOLD: f32 = 32.0;
 /// An edge must be this much stronger than the reference's strongest nearby to count.
 const EDGE_FACTOR: f32 = 1.6;
 /// A channel at or above this level is clipped: what it would be is not known.
 const CLIPPED: f32 = 250.0;
+/// Pixels this near the region's edge are not compared (the gradient there is the
+/// crop's, not the picture's).
+const MARGIN: usize = 2;
 
 /// The spread of `values` as a normal's standard deviation (1.4826 × the median of the
 /// absolute values: robust to the few pixels a part covers).
@@ -439,78 +480,89 @@ fn spread(values: &mut [f32]) -> f32 {
     1.4826 * *values.select_nth_unstable_by(k, f32::total_cmp).1
 }
 
+/// Brightness and the two colour differences of an RGB pixel.
+fn ycc([r, g, b]: [f32; 3]) -> [f32; 3] {
+    let y = 0.299 * r + 0.587 * g + 0.114 * b;
+    [y, b - y, r - y]
+}
+
+/// The frame's pixel `f` against the reference's `r` brought to the frame's light
+/// (`gain`), in brightness and colour, in the reference's levels; a channel the light
+/// clips in both is taken as equal.
+fn apart(f: [f32; 3], r: [f32; 3], gain: [f32; 3], luma_gain: f32) -> [f32; 3] {
+    let predicted: [f32; 3] = std::array::from_fn(|c| {
+        let p = (r[c] * gain[c]).min(255.0);
+        if f[c] >= CLIPPED && p >= CLIPPED {
+            f[c]
+        } else {
+            p
+        }
+    });
+    let (a, b) = (ycc(f), ycc(predicted));
+    std::array::from_fn(|k| (a[k] - b[k]).abs() / luma_gain)
+}
+
 /// Compares the aligned frame with the reference brought to the frame's light (see the
-/// module). Differences are in the reference's levels; a channel the frame's light would
-/// clip is compared as clipped.
+/// module): each pixel's difference in brightness and colour, the smallest over the
+/// reference's 3 × 3 pixels around it, over the threshold of each (its noise), and its
+/// new edges.
 fn difference(reference: &Reference, frame: &align::Aligned, field: &light::Field) -> Difference {
     let r = &reference.planes;
     let (w, h) = (r.w, r.h);
     let n = w * h;
-    let mut colour = vec![f32::NAN; n];
-    let mut edge = vec![f32::NAN; n];
-    let mut plain: Vec<f32> = Vec::with_capacity(n);
+    let rgb = |p: &Planes, i: usize| [p.rgb[0][i], p.rgb[1][i], p.rgb[2][i]];
+    let compared = |i: usize| {
+        let (x, y) = (i % w, i / w);
+        frame.valid[i] && x >= MARGIN && y >= MARGIN && x + MARGIN < w && y + MARGIN < h
+    };
+    let luma_gain = |g: [f32; 3]| 0.299 * g[0] + 0.587 * g[1] + 0.114 * g[2];
+    // The noise of each of brightness and colour, from the plain differences.
+    let mut plain: [Vec<f32>; 3] = Default::default();
+    for i in (0..n).filter(|&i| compared(i)) {
+        let g = field.at(i);
+        let d = apart(rgb(&frame.planes, i), rgb(r, i), g, luma_gain(g));
+        for k in 0..3 {
+            plain[k].push(d[k]);
+        }
+    }
+    let floors = [FLOOR, COLOUR_FLOOR, COLOUR_FLOOR];
+    let thresholds: [f32; 3] =
+        std::array::from_fn(|k| (NOISE_FACTOR * spread(&mut plain[k])).max(floors[k]));
+    // Sobel's magnitude of a step is 4 times its height, and on a flat, noisy bed about
+    // 3.5 times the noise: an edge counts as a step of a threshold's height.
+    let edge_threshold = 4.0 * thresholds[0];
+    let mut score = vec![f32::NAN; n];
+    let mut count = 0;
     for y in 0..h {
         for x in 0..w {
             let i = y * w + x;
-            if !frame.valid[i] {
+            if !compared(i) {
                 continue;
             }
-            let gain = field.at(i);
-            let f = [
-                frame.planes.rgb[0][i],
-                frame.planes.rgb[1][i],
-                frame.planes.rgb[2][i],
-            ];
-            // The reference at j as the frame's light would show it, against the frame.
-            let apart = |j: usize| {
-                let mut d = 0f32;
-                for c in 0..3 {
-                    let predicted = (r.rgb[c][j] * gain[c]).min(255.0);
-                    let seen = f[c];
-                    let delta = if seen >= CLIPPED && predicted >= CLIPPED {
-                        0.0
-                    } else {
-                        (seen - predicted).abs() / gain[c]
-                    };
-                    d = d.max(delta);
-                }
-                d
-            };
-            let mut best = apart(i);
-            plain.push(best);
-            for yy in y.saturating_sub(1)..(y + 2).min(h) {
-                for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                    best = best.min(apart(yy * w + xx));
+            count += 1;
+            let g = field.at(i);
+            let lg = luma_gain(g);
+            let f = rgb(&frame.planes, i);
+            let mut best = f32::MAX;
+            for yy in y - 1..=y + 1 {
+                for xx in x - 1..=x + 1 {
+                    let d = apart(f, rgb(r, yy * w + xx), g, lg);
+                    let s = (0..3)
+                        .map(|k| {
+                            d[k] / (thresholds[k] + EDGE_SLACK * reference.edges[k][i])
+                        })
+                        .fold(0f32, f32::max);
+                    best = best.min(s);
                 }
             }
-            colour[i] = best;
-            let luma_gain = 0.299 * gain[0] + 0.587 * gain[1] + 0.114 * gain[2];
-            let g = frame.grad[i] / luma_gain;
-            edge[i] = (g - EDGE_FACTOR * reference.grad_max[i]).max(0.0);
+            let edge = (frame.grad[i] / lg - EDGE_FACTOR * reference.edges[0][i]).max(0.0);
+            score[i] = best.max(edge / edge_threshold);
         }
     }
-    // The plain differences' spread is the noise of both pictures together (the largest
-    // of three channels, so about 1.5 times one channel's).
-    let noise = spread(&mut plain);
-    let threshold = (NOISE_FACTOR * noise).max(FLOOR);
-    // Sobel's magnitude on a flat, noisy bed is about 3.5 times the noise; an edge must
-    // stand out from that as a difference does from the noise, and be a step of a
-    // threshold's height (Sobel's magnitude of a step is 4 times it).
-    let edge_threshold = (NOISE_FACTOR * 3.5 * noise).max(4.0 * threshold);
-    let mut compared = 0;
-    let score = (0..n)
-        .map(|i| {
-            if colour[i].is_nan() {
-                return f32::NAN;
-            }
-            compared += 1;
-            (colour[i] / threshold).max(edge[i] / edge_threshold)
-        })
-        .collect();
     Difference {
         score,
-        compared,
-        threshold,
+        compared: count,
+        threshold: thresholds[0],
     }
 }
 

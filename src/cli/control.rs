@@ -294,11 +294,22 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
                 .map(|h| format!("  [{h}]"))
                 .unwrap_or_default()
         );
-        if !p.bed_cleared {
-            println!(
+        use crispen::daemon::bed::Bed;
+        match &p.bed {
+            _ if p.bed_cleared => {}
+            Bed::Waiting { why: None } => println!(
                 "{:<16} bed not cleared: remove the print, then `crispen clear {}`",
                 "", p.name
-            );
+            ),
+            bed => println!(
+                "{:<16} bed {}: {}",
+                "",
+                bed.name().replace('_', " "),
+                crispen::daemon::hotfolder::escaped(&bed.describe().unwrap_or_default())
+            ),
+        }
+        if let Some(check) = &p.last_check {
+            println!("{:<16} last bed check: {}", "", check.verdict.summary());
         }
     }
     println!();

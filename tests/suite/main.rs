@@ -10,6 +10,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod bedcheck;
 mod camera;
 mod daemon;
 mod enhance;

@@ -456,12 +456,16 @@ const NOISE_FACTOR: f32 = 4.5;
 const FLOOR: f32 = 10.0;
 /// The least threshold of colour (each of the two colour differences), levels.
 const COLOUR_FLOOR: f32 = 8.0;
+/// Bands of the reference's brightness with a noise of their own (64 levels each).
+const BANDS: usize = 4;
+/// A band with fewer pixels than this takes the region's threshold.
+const BAND_PIXELS: usize = 2000;
 /// Sobel's magnitude of a ramp is 8 times its slope a pixel: a difference up to an
 /// eighth of the reference's gradient nearby is its edge moved by a pixel.
 const EDGE_SLACK: f32 = 1.0 / 8.0;
 /// Above this threshold of brightness the picture is too noisy (too dark) to see a small
 /// dark part on a dark bed: the check answers "not clear", unsure, rather than "clear".
-pub const MAX_THRESHOLD: f32 = 32.0;
+pub const MAX_THRESHOLD: f32 = 24.0;
 /// An edge must be this much stronger than the reference's strongest nearby to count.
 const EDGE_FACTOR: f32 = 1.6;
 /// A channel at or above this level is clipped: what it would be is not known.
@@ -516,18 +520,34 @@ fn difference(reference: &Reference, frame: &align::Aligned, field: &light::Fiel
         frame.valid[i] && x >= MARGIN && y >= MARGIN && x + MARGIN < w && y + MARGIN < h
     };
     let luma_gain = |g: [f32; 3]| 0.299 * g[0] + 0.587 * g[1] + 0.114 * g[2];
-    // The noise of each of brightness and colour, from the plain differences.
+    // The noise of each of brightness and colour, from the plain differences: over the
+    // whole region, and over the pixels of each band of brightness (a camera's noise is
+    // larger in the dark parts of its picture, after its gamma).
+    let band = |i: usize| ((r.luma[i] / 64.0) as usize).min(BANDS - 1);
     let mut plain: [Vec<f32>; 3] = Default::default();
+    let mut banded: [[Vec<f32>; 3]; BANDS] = Default::default();
     for i in (0..n).filter(|&i| compared(i)) {
         let g = field.at(i);
         let d = apart(rgb(&frame.planes, i), rgb(r, i), g, luma_gain(g));
         for k in 0..3 {
             plain[k].push(d[k]);
+            banded[band(i)][k].push(d[k]);
         }
     }
     let floors = [FLOOR, COLOUR_FLOOR, COLOUR_FLOOR];
     let thresholds: [f32; 3] =
         std::array::from_fn(|k| (NOISE_FACTOR * spread(&mut plain[k])).max(floors[k]));
+    // A band's own threshold where it has enough pixels to tell, never below the region's.
+    let band_thresholds: [[f32; 3]; BANDS] = std::array::from_fn(|b| {
+        std::array::from_fn(|k| {
+            let values = &mut banded[b][k];
+            if values.len() < BAND_PIXELS {
+                thresholds[k]
+            } else {
+                (NOISE_FACTOR * spread(values)).max(thresholds[k])
+            }
+        })
+    });
     // Sobel's magnitude of a step is 4 times its height, and on a flat, noisy bed about
     // 3.5 times the noise: an edge counts as a step of a threshold's height.
     let edge_threshold = 4.0 * thresholds[0];
@@ -543,6 +563,7 @@ fn difference(reference: &Reference, frame: &align::Aligned, field: &light::Fiel
             let g = field.at(i);
             let lg = luma_gain(g);
             let f = rgb(&frame.planes, i);
+            let thresholds = band_thresholds[band(i)];
             let mut best = f32::MAX;
             for yy in y - 1..=y + 1 {
                 for xx in x - 1..=x + 1 {

@@ -101,3 +101,148 @@ pub fn rates(cases: &[Case]) -> (f64, f64) {
     };
     (rate(false), rate(true))
 }
+
+/// A camera over each simulated printer's bed for the daemon's tests: it shows the empty
+/// bed, or the bed with a part on it once the printer's record (`crispen sim`'s record of
+/// what it executed) shows a print ended (`M117 printed`), until an eject sequence ran
+/// (`M117 ejected`); a printer whose eject "fails" keeps showing its part. Each answer is
+/// a different file (a comment with a counter), as a real camera's frames are.
+pub struct BedCamera {
+    pub addr: String,
+    cams: Arc<Mutex<HashMap<String, Cam>>>,
+    stop: Arc<AtomicBool>,
+}
+
+struct Cam {
+    record: PathBuf,
+    eject_removes: bool,
+    delay: Duration,
+}
+
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader, Write};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+/// The pictures it shows: the empty bed (the one a reference is taken of, then one under
+/// another light and a small shift), and a part on it.
+pub const EMPTY: &str = "pei-reference.jpg";
+pub const EMPTY_LATER: &str = "pei-02-empty-evening.jpg";
+pub const PART: &str = "pei-30-part20mm-red.jpg";
+
+impl BedCamera {
+    pub fn start() -> BedCamera {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap().to_string();
+        let cams: Arc<Mutex<HashMap<String, Cam>>> = Default::default();
+        let stop = Arc::new(AtomicBool::new(false));
+        let pictures = Arc::new([read(EMPTY), read(EMPTY_LATER), read(PART)]);
+        let counter = Arc::new(AtomicU64::new(0));
+        {
+            let (cams, stop) = (Arc::clone(&cams), Arc::clone(&stop));
+            std::thread::spawn(move || {
+                for conn in listener.incoming() {
+                    if stop.load(Ordering::SeqCst) {
+                        return;
+                    }
+                    let Ok(conn) = conn else { continue };
+                    let (cams, pictures, counter) =
+                        (Arc::clone(&cams), Arc::clone(&pictures), Arc::clone(&counter));
+                    std::thread::spawn(move || serve_bed(conn, &cams, &pictures, &counter));
+                }
+            });
+        }
+        BedCamera { addr, cams, stop }
+    }
+
+    /// A printer's bed, followed from its simulator's `record`.
+    pub fn add(&self, printer: &str, record: &std::path::Path, eject_removes: bool) {
+        self.cams.lock().unwrap().insert(
+            printer.to_string(),
+            Cam {
+                record: record.to_path_buf(),
+                eject_removes,
+                delay: Duration::ZERO,
+            },
+        );
+    }
+
+    /// Makes the printer's camera answer only after `delay`.
+    pub fn slow(&self, printer: &str, delay: Duration) {
+        if let Some(c) = self.cams.lock().unwrap().get_mut(printer) {
+            c.delay = delay;
+        }
+    }
+
+    pub fn url(&self, printer: &str) -> String {
+        format!("http://{}/cam/{printer}/snapshot", self.addr)
+    }
+}
+
+impl Drop for BedCamera {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        let _ = std::net::TcpStream::connect(&self.addr);
+    }
+}
+
+/// Prints ended and ejects run on a printer, by its record.
+pub fn prints_and_ejects(record: &std::path::Path) -> (usize, usize) {
+    let text = std::fs::read_to_string(record).unwrap_or_default();
+    let count = |what: &str| text.lines().filter(|l| l.starts_with(what)).count();
+    (count("M117 printed"), count("M117 ejected"))
+}
+
+fn serve_bed(
+    mut conn: std::net::TcpStream,
+    cams: &Mutex<HashMap<String, Cam>>,
+    pictures: &[Vec<u8>; 3],
+    counter: &AtomicU64,
+) {
+    let mut reader = BufReader::new(conn.try_clone().unwrap());
+    let mut request = String::new();
+    if reader.read_line(&mut request).is_err() {
+        return;
+    }
+    loop {
+        let mut line = String::new();
+        if reader.read_line(&mut line).unwrap_or(0) == 0 || line == "\r\n" || line == "\n" {
+            break;
+        }
+    }
+    let path = request.split_whitespace().nth(1).unwrap_or("/").to_string();
+    let printer = path
+        .strip_prefix("/cam/")
+        .and_then(|p| p.strip_suffix("/snapshot"))
+        .unwrap_or("");
+    let (record, removes, delay) = match cams.lock().unwrap().get(printer) {
+        Some(c) => (c.record.clone(), c.eject_removes, c.delay),
+        None => {
+            let _ = conn.write_all(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
+            return;
+        }
+    };
+    std::thread::sleep(delay);
+    let (printed, ejected) = prints_and_ejects(&record);
+    let on_bed = if removes { printed > ejected } else { printed > 0 };
+    let picture = match (on_bed, printed) {
+        (true, _) => &pictures[2],
+        (false, 0) => &pictures[0],
+        (false, _) => &pictures[1],
+    };
+    // A comment after the start of image: the same picture, another file.
+    let n = counter.fetch_add(1, Ordering::SeqCst);
+    let comment = format!("frame {n}");
+    let mut jpeg = picture[..2].to_vec();
+    jpeg.extend_from_slice(&[0xFF, 0xFE]);
+    jpeg.extend_from_slice(&((comment.len() + 2) as u16).to_be_bytes());
+    jpeg.extend_from_slice(comment.as_bytes());
+    jpeg.extend_from_slice(&picture[2..]);
+    let _ = write!(
+        conn,
+        "HTTP/1.1 200 OK\r\nContent-Type: image/jpeg\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        jpeg.len()
+    );
+    let _ = conn.write_all(&jpeg);
+}

@@ -19,6 +19,7 @@ mod filament;
 mod history;
 mod http;
 mod layers;
+mod night;
 mod machines;
 mod mesh_io;
 mod notify;

@@ -222,7 +222,7 @@ fn a_night_of_printing_clears_its_own_beds() {
     daemon.kill9();
     assert_eq!(night.gate_on_disk("b")["bed"]["state"], "check_due");
     camera.slow("b", Duration::ZERO);
-    let mut daemon = night.start();
+    let daemon = night.start();
     let s = night.wait(60, "b's bed checked clear after the restart", |s| {
         bed_state(s, "b") == "clear"
     });

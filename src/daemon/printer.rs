@@ -284,12 +284,19 @@ async fn supervise_inner(
             }
             let Some(job_id) = claim_job(farm, &sup.name).await else {
                 sup.show(|p| {
+                    // What was said of the bed is said no more once it is clear.
+                    let bed_said = matches!(
+                        p.state,
+                        PrinterState::BedNotCleared
+                            | PrinterState::Ejecting
+                            | PrinterState::CheckingBed
+                    );
+                    if bed_said || p.detail.as_deref().is_some_and(eject::is_bed_detail) {
+                        p.detail = None;
+                    }
                     p.state = PrinterState::Idle;
                     p.job = None;
                     p.progress = None;
-                    if p.detail.as_deref().is_some_and(eject::is_bed_detail) {
-                        p.detail = None;
-                    }
                 });
                 match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     Between::Lost => continue 'connect,

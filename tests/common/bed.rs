@@ -117,6 +117,8 @@ struct Cam {
     record: PathBuf,
     eject_removes: bool,
     delay: Duration,
+    /// Parts a person took off by hand.
+    removed: usize,
 }
 
 use std::collections::HashMap;
@@ -164,6 +166,7 @@ impl BedCamera {
                 record: record.to_path_buf(),
                 eject_removes,
                 delay: Duration::ZERO,
+                removed: 0,
             },
         );
     }
@@ -172,6 +175,13 @@ impl BedCamera {
     pub fn slow(&self, printer: &str, delay: Duration) {
         if let Some(c) = self.cams.lock().unwrap().get_mut(printer) {
             c.delay = delay;
+        }
+    }
+
+    /// A person took the part off the printer's bed by hand.
+    pub fn person_cleared(&self, printer: &str) {
+        if let Some(c) = self.cams.lock().unwrap().get_mut(printer) {
+            c.removed += 1;
         }
     }
 
@@ -216,8 +226,8 @@ fn serve_bed(
         .strip_prefix("/cam/")
         .and_then(|p| p.strip_suffix("/snapshot"))
         .unwrap_or("");
-    let (record, removes, delay) = match cams.lock().unwrap().get(printer) {
-        Some(c) => (c.record.clone(), c.eject_removes, c.delay),
+    let (record, removes, delay, removed) = match cams.lock().unwrap().get(printer) {
+        Some(c) => (c.record.clone(), c.eject_removes, c.delay, c.removed),
         None => {
             let _ = conn.write_all(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
             return;
@@ -225,7 +235,8 @@ fn serve_bed(
     };
     std::thread::sleep(delay);
     let (printed, ejected) = prints_and_ejects(&record);
-    let on_bed = if removes { printed > ejected } else { printed > 0 };
+    let taken_off = removed + if removes { ejected } else { 0 };
+    let on_bed = printed > taken_off;
     let picture = match (on_bed, printed) {
         (true, _) => &pictures[2],
         (false, 0) => &pictures[0],

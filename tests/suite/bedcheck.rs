@@ -45,13 +45,16 @@ fn the_bed_pictures_are_found_clear_or_not_as_measured() {
         !c.clear && c.verdict.clear && (c.what != "part" || c.size_mm.is_some_and(|s| s >= 10.0))
     });
     assert!(missed.is_empty(), "missed: {missed:?}");
-    // A part found is boxed where it is: a few mm around a 3 mm part, not the whole bed.
+    // A part found is boxed where it is: a patch of a few mm for a 3 mm part, not one
+    // over the whole bed.
     for c in cases.iter().filter(|c| {
         c.what == "part" && c.size_mm == Some(3.0) && !c.verdict.clear && !c.verdict.unsure
     }) {
-        let p = &c.verdict.patches[0];
-        let [w, h] = p.size_mm.unwrap();
-        assert!(w < 25.0 && h < 25.0, "{}: {}", c.file, c.verdict.summary());
+        let small = c.verdict.patches.iter().any(|p| {
+            let [w, h] = p.size_mm.unwrap();
+            w < 25.0 && h < 25.0
+        });
+        assert!(small, "{}: {}", c.file, c.verdict.summary());
     }
 }
 

@@ -209,6 +209,7 @@ fn a_night_of_printing_clears_its_own_beds() {
     assert_eq!(bed_why(&s, "a"), "eject_interrupted", "{}", printer(&s, "a"));
     assert_eq!(state_of(&s, "part-01.gcode"), "done");
     assert_eq!(ejects_begun("a"), begun, "the eject is never sent again");
+    camera.person_cleared("a");
     let (ok, out) = ctl(&night.config, &["clear", "a"]);
     assert!(ok, "{out}");
 
@@ -252,18 +253,17 @@ fn a_night_of_printing_clears_its_own_beds() {
     assert_eq!(check["verdict"]["clear"], false);
     let picture = check["picture"].as_str().expect("a marked picture");
     assert!(root.join("spool").join(picture).is_file(), "{picture}");
+    let of = |r: &common::receiver::Received, p: &str| {
+        let e = r.json();
+        e["event"] == "bed_not_clear" && e["printer"] == p
+    };
     let told = hook.wait_taken(
         Duration::from_secs(60),
-        "bed_not_clear",
-        |r| r.iter().any(|r| r.json()["event"] == "bed_not_clear"),
+        "bed_not_clear of c",
+        |r| r.iter().any(|r| of(r, "c")),
         || std::fs::read_to_string(&night.log).unwrap_or_default(),
     );
-    let event = told
-        .iter()
-        .map(|r| r.json())
-        .find(|e| e["event"] == "bed_not_clear")
-        .unwrap();
-    assert_eq!(event["printer"], "c", "{event}");
+    let event = told.iter().find(|r| of(r, "c")).unwrap().json();
     assert!(
         event["reason"].as_str().unwrap().contains("% of the bed differs"),
         "{event}"
@@ -275,12 +275,16 @@ fn a_night_of_printing_clears_its_own_beds() {
     assert_eq!(&a.body[..2], b"\xff\xd8", "a JPEG");
 
     // Every good job is printed, each once, by a, b and d; c keeps its first.
-    let s = night.wait(600, "every job printed", |s| {
+    night.wait(600, "every job printed", |s| {
         names
             .iter()
             .filter(|n| state_of(s, n) == "done")
             .count()
             == JOBS - 1
+    });
+    // The last prints' ejects and checks, after them.
+    let s = night.wait(120, "every bed but c's clear again", |s| {
+        ["a", "b", "d"].iter().all(|p| bed_state(s, p) == "clear")
     });
     let printed: Vec<String> = ["a", "b", "c", "d"]
         .iter()

@@ -284,16 +284,7 @@ async fn supervise_inner(
             }
             let Some(job_id) = claim_job(farm, &sup.name).await else {
                 sup.show(|p| {
-                    // What was said of the bed is said no more once it is clear.
-                    let bed_said = matches!(
-                        p.state,
-                        PrinterState::BedNotCleared
-                            | PrinterState::Ejecting
-                            | PrinterState::CheckingBed
-                    );
-                    if bed_said || p.detail.as_deref().is_some_and(eject::is_bed_detail) {
-                        p.detail = None;
-                    }
+                    eject::forget_bed_shown(p);
                     p.state = PrinterState::Idle;
                     p.job = None;
                     p.progress = None;

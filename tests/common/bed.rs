@@ -106,17 +106,19 @@ pub fn rates(cases: &[Case]) -> (f64, f64) {
 /// bed, or the bed with a part on it once the printer's record (`crispen sim`'s record of
 /// what it executed) shows a print ended (`M117 printed`), until an eject sequence ran
 /// (`M117 ejected`); a printer whose eject "fails" keeps showing its part. Each answer is
-/// a different file (a comment with a counter), as a real camera's frames are.
+/// a different file (a comment with a counter), as a real camera's frames are. A camera
+/// can be held: it answers nothing until let go ([`BedCamera::hold`]), so a test can act
+/// while a check waits for it without racing the clock.
 pub struct BedCamera {
     pub addr: String,
-    cams: Arc<Mutex<HashMap<String, Cam>>>,
+    cams: Arc<(Mutex<HashMap<String, Cam>>, Condvar)>,
     stop: Arc<AtomicBool>,
 }
 
 struct Cam {
     record: PathBuf,
     eject_removes: bool,
-    delay: Duration,
+    held: bool,
     /// Parts a person took off by hand.
     removed: usize,
 }
@@ -124,8 +126,7 @@ struct Cam {
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::sync::{Arc, Condvar, Mutex};
 
 /// The pictures it shows: the empty bed (the one a reference is taken of, then one under
 /// another light and a small shift), and a part on it.
@@ -137,7 +138,7 @@ impl BedCamera {
     pub fn start() -> BedCamera {
         let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let addr = listener.local_addr().unwrap().to_string();
-        let cams: Arc<Mutex<HashMap<String, Cam>>> = Default::default();
+        let cams: Arc<(Mutex<HashMap<String, Cam>>, Condvar)> = Default::default();
         let stop = Arc::new(AtomicBool::new(false));
         let pictures = Arc::new([read(EMPTY), read(EMPTY_LATER), read(PART)]);
         let counter = Arc::new(AtomicU64::new(0));
@@ -160,27 +161,29 @@ impl BedCamera {
 
     /// A printer's bed, followed from its simulator's `record`.
     pub fn add(&self, printer: &str, record: &std::path::Path, eject_removes: bool) {
-        self.cams.lock().unwrap().insert(
+        self.cams.0.lock().unwrap().insert(
             printer.to_string(),
             Cam {
                 record: record.to_path_buf(),
                 eject_removes,
-                delay: Duration::ZERO,
+                held: false,
                 removed: 0,
             },
         );
     }
 
-    /// Makes the printer's camera answer only after `delay`.
-    pub fn slow(&self, printer: &str, delay: Duration) {
-        if let Some(c) = self.cams.lock().unwrap().get_mut(printer) {
-            c.delay = delay;
+    /// Holds the printer's camera (`true`: each request waits, unanswered) or lets it go
+    /// (the requests held are answered with the bed as it is then).
+    pub fn hold(&self, printer: &str, held: bool) {
+        if let Some(c) = self.cams.0.lock().unwrap().get_mut(printer) {
+            c.held = held;
         }
+        self.cams.1.notify_all();
     }
 
     /// A person took the part off the printer's bed by hand.
     pub fn person_cleared(&self, printer: &str) {
-        if let Some(c) = self.cams.lock().unwrap().get_mut(printer) {
+        if let Some(c) = self.cams.0.lock().unwrap().get_mut(printer) {
             c.removed += 1;
         }
     }
@@ -193,6 +196,10 @@ impl BedCamera {
 impl Drop for BedCamera {
     fn drop(&mut self) {
         self.stop.store(true, Ordering::SeqCst);
+        if let Ok(mut cams) = self.cams.0.lock() {
+            cams.values_mut().for_each(|c| c.held = false);
+        }
+        self.cams.1.notify_all();
         let _ = std::net::TcpStream::connect(&self.addr);
     }
 }
@@ -206,7 +213,7 @@ pub fn prints_and_ejects(record: &std::path::Path) -> (usize, usize) {
 
 fn serve_bed(
     mut conn: std::net::TcpStream,
-    cams: &Mutex<HashMap<String, Cam>>,
+    cams: &(Mutex<HashMap<String, Cam>>, Condvar),
     pictures: &[Vec<u8>; 3],
     counter: &AtomicU64,
 ) {
@@ -226,14 +233,17 @@ fn serve_bed(
         .strip_prefix("/cam/")
         .and_then(|p| p.strip_suffix("/snapshot"))
         .unwrap_or("");
-    let (record, removes, delay, removed) = match cams.lock().unwrap().get(printer) {
-        Some(c) => (c.record.clone(), c.eject_removes, c.delay, c.removed),
+    let (lock, let_go) = cams;
+    let held = |c: &mut HashMap<String, Cam>| c.get(printer).is_some_and(|c| c.held);
+    let cams = let_go.wait_while(lock.lock().unwrap(), held).unwrap();
+    let (record, removes, removed) = match cams.get(printer) {
+        Some(c) => (c.record.clone(), c.eject_removes, c.removed),
         None => {
             let _ = conn.write_all(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
             return;
         }
     };
-    std::thread::sleep(delay);
+    drop(cams);
     let (printed, ejected) = prints_and_ejects(&record);
     let taken_off = removed + if removes { ejected } else { 0 };
     let on_bed = printed > taken_off;

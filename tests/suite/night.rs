@@ -39,15 +39,24 @@ fn job(name: &str) -> String {
     g
 }
 
-/// A push-off in lanes across the bed, long enough to be caught in the middle.
-fn eject_gcode() -> String {
-    let mut g = String::from("M117 eject start\nG28\nG1 Z2 F600\n");
+/// A push-off in lanes across the bed. `held`: a dwell of ten (simulated) hours right
+/// after its start, which only the test's `kill -9` ends: an eject caught in the middle
+/// by an event (the dwell in the printer's record), not by a race with the clock.
+fn eject_gcode(held: bool) -> String {
+    let mut g = String::from("M117 eject start\n");
+    if held {
+        g += HOLD;
+        g += "\n";
+    }
+    g += "G28\nG1 Z2 F600\n";
     for x in [20, 45, 70, 95, 120, 145, 170, 195] {
         g += &format!("G1 X{x} Y0 F6000\nG1 Y210 F1200\nG1 Y0 F6000\n");
     }
     g += "M117 ejected\n";
     g
 }
+
+const HOLD: &str = "G4 S36000";
 
 struct Night {
     root: PathBuf,
@@ -143,10 +152,13 @@ fn a_night_of_printing_clears_its_own_beds() {
          [http]\nlisten = \"127.0.0.1:{port}\"\napi_key_file = \"key\"\n\
          public_url = \"http://127.0.0.1:{port}\"\n\
          [[notify]]\nname = \"hook\"\nurl = \"{}\"\nevents = [\"bed_not_clear\"]\n\
-         [camera]\nrefresh_s = 1\ntimeout_s = 4\n",
+         [camera]\nrefresh_s = 1\ntimeout_s = 60\n",
         hook.url("/hook")
     );
-    let eject = eject_gcode();
+    // a's sequence is a file under the config's folder, held in its first run.
+    let a_eject = root.join("eject-a.gcode");
+    std::fs::write(&a_eject, eject_gcode(true)).unwrap();
+    let eject = eject_gcode(false);
     for name in ["a", "b", "c", "d"] {
         let record = root.join(format!("{name}.rec"));
         let port = if name == "d" {
@@ -159,8 +171,13 @@ fn a_night_of_printing_clears_its_own_beds() {
         config += &format!(
             "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\nbed_clear = \"eject-and-check\"\n{keys}{sim}\
              [printer.camera]\nsnapshot = \"{}\"\n\
-             [printer.eject]\ngcode = \"\"\"\n{eject}\"\"\"\nrelease_bed_c = 35\nmax_height_mm = 60\n",
-            camera.url(name)
+             [printer.eject]\n{sequence}release_bed_c = 35\nmax_height_mm = 60\n",
+            camera.url(name),
+            sequence = if name == "a" {
+                "file = \"eject-a.gcode\"\n".to_string()
+            } else {
+                format!("gcode = \"\"\"\n{eject}\"\"\"\n")
+            },
         );
         // c's eject "fails to remove the part": its camera keeps showing it.
         camera.add(name, &record, name != "c");
@@ -183,15 +200,20 @@ fn a_night_of_printing_clears_its_own_beds() {
     }
 
     // 1. A kill -9 in the middle of an eject: a job for a alone, the daemon killed while
-    //    its eject sequence runs. After the restart the eject is not run again: the bed
-    //    waits for a person, who clears it.
+    //    its eject sequence runs (held in its dwell). After the restart the eject is not
+    //    run again: the bed waits for a person, who clears it.
     drop_job(&hot, "part-01.gcode", Some("a"));
     night.wait(120, "a's eject sequence running", |s| {
         let p = printer(s, "a");
         p["state"] == "ejecting"
             && p["detail"].as_str() == Some("ejecting: the eject sequence is running")
     });
+    night.wait(60, "a's eject in its dwell", |_| {
+        common::daemon::recorded(&night.record("a")).iter().any(|l| l == HOLD)
+    });
     daemon.kill9();
+    // The operator's sequence from now on, without the hold.
+    std::fs::write(&a_eject, eject_gcode(false)).unwrap();
     assert_eq!(night.gate_on_disk("a")["bed"]["state"], "ejecting");
     let ejects_begun = |p: &str| {
         std::fs::read_to_string(night.record(p))
@@ -213,16 +235,17 @@ fn a_night_of_printing_clears_its_own_beds() {
     let (ok, out) = ctl(&night.config, &["clear", "a"]);
     assert!(ok, "{out}");
 
-    // 2. A kill -9 in the middle of a check: b's camera answers slowly, the daemon killed
-    //    while the check waits for it; after the restart the check is made again.
-    camera.slow("b", Duration::from_millis(2500));
+    // 2. A kill -9 in the middle of a check: b's camera is held (it answers nothing), the
+    //    daemon killed while the check waits for its frame (up to the camera's 60 s
+    //    timeout and a few refreshes); after the restart the check is made again.
+    camera.hold("b", true);
     drop_job(&hot, "part-02.gcode", Some("b"));
     night.wait(120, "b's bed being checked", |s| {
         printer(s, "b")["state"] == "checking_bed"
     });
     daemon.kill9();
     assert_eq!(night.gate_on_disk("b")["bed"]["state"], "check_due");
-    camera.slow("b", Duration::ZERO);
+    camera.hold("b", false);
     let daemon = night.start();
     let s = night.wait(60, "b's bed checked clear after the restart", |s| {
         bed_state(s, "b") == "clear"
@@ -343,5 +366,51 @@ fn a_night_of_printing_clears_its_own_beds() {
         metrics.lines().any(|l| l.starts_with("crispen_bed_checks_total{printer=\"a\",result=\"clear\"}") && !l.ends_with(" 0")),
         "{metrics}"
     );
+
+    // The dashboard in a real headless Chromium: c's tile shows the marked picture and
+    // the check's figures, and its job's page the eject and the check with the picture.
+    let c_job = jobs
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|j| j["printer"] == "c" && j["state"] == "done")
+        .map(|j| j["id"].as_str().unwrap().to_string())
+        .expect("c's job");
+    let browser = crate::http::Browser::start(&root.join("chromium-profile"));
+    browser.go(&format!("http://{}/", night.addr));
+    browser.exec(
+        "localStorage.setItem('crispen-key', arguments[0])",
+        serde_json::json!([KEY]),
+    );
+    browser.go(&format!("http://{}/", night.addr));
+    let not_clear = r"/^not clear: \d+\.\d % of the bed differs, largest patch \d+ × \d+ mm/";
+    browser.wait_until(
+        Duration::from_secs(60),
+        "c's tile with the marked picture and the check's figures",
+        &format!(
+            "const t = document.querySelector('[data-printer=\"c\"]');
+             const img = t && t.querySelector('.bedcheck img.marked');
+             const v = t && t.querySelector('.bedcheck .verdict');
+             return (!!img && img.naturalWidth > 0 && !!v && {not_clear}.test(v.textContent)
+               && !!t.querySelector('button[data-action=\"clear\"]'))
+               || [!!img && img.naturalWidth, v && v.textContent].join(' ');"
+        ),
+    );
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("night-tile-not-clear.png"));
+    browser.go(&format!("http://{}/#job/{c_job}", night.addr));
+    browser.wait_until(
+        Duration::from_secs(60),
+        "c's job page with its eject and the check's marked picture",
+        &format!(
+            "const steps = document.querySelectorAll('#clearing > li');
+             const img = document.querySelector('#clearing figure img.marked');
+             return (steps.length === 2 && /Eject sequence on c .*: done/.test(steps[0].textContent)
+               && /not clear: /.test(steps[1].textContent) && {not_clear}.test(steps[1].querySelector('b').textContent)
+               && !!img && img.naturalWidth > 0)
+               || [steps.length, steps.length && steps[steps.length - 1].textContent, !!img && img.naturalWidth].join(' ');"
+        ),
+    );
+    browser.screenshot(&shots.join("night-job-not-clear.png"));
     drop(daemon);
 }

@@ -9,7 +9,7 @@
 
 use super::{JobEnd, PrintFailure, PrinterLink, Supervisor};
 use crate::daemon::bed::{Bed, CheckFor, ClearBy, ClearedBy, Clearing, Why};
-use crate::daemon::farm::{Farm, LiveProgress, PrintCommand, PrinterState};
+use crate::daemon::farm::{Farm, LiveProgress, PrintCommand, PrinterLive, PrinterState};
 use crate::daemon::job::now_s;
 use crate::daemon::store::BedChange;
 use crate::marlin::stream::PrintError;
@@ -113,9 +113,20 @@ pub(super) async fn check_before_job(farm: &Farm, printer: &str) {
     }
 }
 
-/// Whether `detail` is one this module shows (cleared when the printer goes idle).
-pub(super) fn is_bed_detail(detail: &str) -> bool {
-    detail.starts_with(COOLING) || detail.starts_with(EJECTING)
+/// Forgets what `p` said of its bed (its gate's reason, the eject's progress) as it goes
+/// idle on a clear bed.
+pub(super) fn forget_bed_shown(p: &mut PrinterLive) {
+    let gate_shown = matches!(
+        p.state,
+        PrinterState::BedNotCleared | PrinterState::Ejecting | PrinterState::CheckingBed
+    );
+    let eject_shown = p
+        .detail
+        .as_deref()
+        .is_some_and(|d| d.starts_with(COOLING) || d.starts_with(EJECTING));
+    if gate_shown || eject_shown {
+        p.detail = None;
+    }
 }
 
 const COOLING: &str = "ejecting: waiting for the bed to cool";

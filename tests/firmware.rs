@@ -517,6 +517,24 @@ fn marlin_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
             "M117 Printing M104 S400",
             "G28 X Y",
             "G1 X20 Y30",
+            // Arcs near the float boundaries the policy lets through (issue 42): ends a
+            // thousandth from the start, whole circles as written, R arcs, relative and
+            // after G92, P0.
+            "G1 X150 Y150 F6000",
+            "G2 X150.001 Y149.999 I-50 J-50",
+            "G3 X150 Y150 I-50.001 J-49.999",
+            "G2 I-10 J0",
+            "G3 X150 Y150 I10 J0",
+            "G2 X160 Y150 R5",
+            "G3 X150 Y150 R-5",
+            "G91",
+            "G2 X10 Y0 I5 J0",
+            "G3 X-10 Y0.001 I-5 J0",
+            "G90",
+            "G92 X0 Y0",
+            "G2 X0.001 Y-0.001 I-50 J-50",
+            "G2 I-5 J0 P0",
+            "G92 X150 Y150",
             "M140 S0",
             "M104 S0",
         ],
@@ -562,12 +580,241 @@ fn ultimaker2_runs_the_lines_the_policy_allows_as_the_policy_reads_them() {
             "G1 X-5 Y10 Z1",
             "G90",
             "G0 X50 Y50",
+            // Arcs near the float boundaries the policy lets through (issue 42), with the
+            // numbers read by avr-libc's strtod (149.999 one float from the nearest).
+            "G1 X150 Y150 F6000",
+            "G2 X150.001 Y149.999 I-50 J-50",
+            "G3 X150 Y150 I-50.001 J-49.999",
+            "G2 I-10 J0",
+            "G91",
+            "G2 X10 Y0 I5 J0",
+            "G90",
+            "G92 X0 Y0",
+            "G2 X0.001 Y-0.001 I-50 J-50",
+            "G92 X150 Y150",
             "M400",
             "M117 Printing M104 S400",
             "M140 S0",
             "M104 S0",
         ],
     );
+}
+
+/// One arc the policy refuses because the firmware's floats make it a whole circle, sent
+/// after `before` (lines the policy passes), and the circle's length in seconds at its feed
+/// rate: the `M400` after it cannot be answered sooner (acceleration and load only make it
+/// later), where the sliver the file's own numbers describe takes no time at all.
+struct WholeCircle {
+    before: &'static [&'static str],
+    arc: &'static str,
+    seconds: f64,
+    after: &'static [&'static str],
+}
+
+/// Issue 42 on the firmware itself: every arc of `cases` is refused by the policy for the
+/// firmware's machine, naming its line, and the firmware really runs it as a whole circle;
+/// then it stands where its floats put the end (its start) by its own `M114`.
+fn runs_the_whole_circles_the_policy_refuses(
+    machine: &str,
+    fw: &mut DirectFirmware,
+    setup: &[&str],
+    cases: &[WholeCircle],
+) {
+    use crispen::machine::Machine;
+    use crispen::slice::policy;
+    let machine = Machine::builtin(machine).unwrap();
+    for line in setup {
+        fw.send(line);
+    }
+    for case in cases {
+        let lines: Vec<&str> = setup
+            .iter()
+            .chain(case.before)
+            .chain([&case.arc])
+            .copied()
+            .collect();
+        let verdict = policy::check((lines.join("\n") + "\n").as_bytes(), &machine).unwrap();
+        assert_eq!(
+            verdict.refusals_total,
+            1,
+            "{}: {}",
+            case.arc,
+            verdict.summary()
+        );
+        assert_eq!(
+            verdict.refusals[0].line,
+            lines.len(),
+            "{}",
+            verdict.summary()
+        );
+        for line in case.before {
+            fw.send(line);
+        }
+        let position = |fw: &mut DirectFirmware| {
+            let answer = fw.send("M114");
+            common::relay::parse_position(
+                answer.lines().find(|l| l.starts_with("X:")).unwrap_or(""),
+            )
+            .unwrap_or_else(|| panic!("{}: {answer}", case.arc))
+        };
+        fw.send("M400");
+        let start = position(fw);
+        let started = Instant::now();
+        fw.send(case.arc);
+        fw.send("M400");
+        let took = started.elapsed().as_secs_f64();
+        assert!(
+            took >= 0.9 * case.seconds,
+            "`{}` took {took:.2} s: no whole circle of {:.2} s ran",
+            case.arc,
+            case.seconds
+        );
+        // Back at its start: the end its floats read.
+        let at = position(fw);
+        assert_eq!(at, start, "`{}`", case.arc);
+        eprintln!(
+            "FIGURES {}: `{}` took {took:.2} s (its whole circle {:.2} s), then at {at:?}",
+            machine.name, case.arc, case.seconds
+        );
+        for line in case.after {
+            fw.send(line);
+        }
+    }
+}
+
+/// A whole circle's seconds: radius `r` mm at `f` mm/min.
+fn circle_s(r: f64, f: f64) -> f64 {
+    std::f64::consts::TAU * r / (f / 60.0)
+}
+
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
+#[test]
+fn marlin_runs_a_whole_circle_where_the_ends_are_equal_in_float() {
+    let dir = firmware_dir();
+    let mut fw = DirectFirmware::start(
+        std::process::Command::new(dir.join(Build::Default.name())),
+        Duration::from_millis(1500),
+    );
+    let at_150 = &["G90", "G1 X150 Y150 F6000"];
+    let r50 = 50.0 * 2f64.sqrt();
+    let r5 = 5.0 * 2f64.sqrt();
+    let cases = [
+        // The issue's reproduction: X and Y both.
+        WholeCircle {
+            before: at_150,
+            arc: "G2 X150.000005 Y149.999995 I-50 J-50 F3000",
+            seconds: circle_s(r50, 3000.0),
+            after: &[],
+        },
+        // X only, Y only, counter-clockwise.
+        WholeCircle {
+            before: at_150,
+            arc: "G2 X150.000005 Y150 I-5 J0 F1200",
+            seconds: circle_s(5.0, 1200.0),
+            after: &[],
+        },
+        WholeCircle {
+            before: at_150,
+            arc: "G2 X150 Y149.999995 I-5 J0 F1200",
+            seconds: circle_s(5.0, 1200.0),
+            after: &[],
+        },
+        WholeCircle {
+            before: at_150,
+            arc: "G3 X150.000005 Y149.999995 I-5 J-5 F1200",
+            seconds: circle_s(r5, 1200.0),
+            after: &[],
+        },
+        // Relative: 150 + 0.000005 is 150 in float.
+        WholeCircle {
+            before: &["G90", "G1 X150 Y150 F6000", "G91"],
+            arc: "G2 X0.000005 Y-0.000005 I-5 J-5 F1200",
+            seconds: circle_s(r5, 1200.0),
+            after: &["G90"],
+        },
+        // After G92: Marlin 2 adds the file's small numbers to its workspace offset.
+        WholeCircle {
+            before: &["G90", "G1 X150 Y150 F6000", "G92 X0 Y0"],
+            arc: "G2 X0.000005 Y-0.000005 I-5 J-5 F1200",
+            seconds: circle_s(r5, 1200.0),
+            after: &["G92 X150 Y150"],
+        },
+    ];
+    runs_the_whole_circles_the_policy_refuses("marlin-175", &mut fw, &["G28"], &cases);
+    // The R form back to its start in float: refused by the policy for Marlin's own error,
+    // which the firmware answers, not moving.
+    let machine = crispen::machine::Machine::builtin("marlin-175").unwrap();
+    let text = "G28\nG1 X150 Y150\nG2 X150.000005 Y150.000005 R50\n";
+    let verdict = crispen::slice::policy::check(text.as_bytes(), &machine).unwrap();
+    assert!(
+        verdict.summary().contains("bad parameters"),
+        "{}",
+        verdict.summary()
+    );
+    fw.send("G1 X150 Y150");
+    let answer = fw.send_answer("G2 X150.000005 Y150.000005 R50", true);
+    assert!(
+        answer.contains("Error:G2/G3 bad parameters"),
+        "the R form: {answer}"
+    );
+}
+
+/// The same on Ultimaker2Marlin, whose numbers avr-libc's `strtod` reads: `149.999992` is
+/// 150 there (the nearest float is one below, where this clockwise arc would be a sliver
+/// it skips), so the circle it runs shows the firmware reads numbers as the follower does.
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
+#[test]
+fn ultimaker2_runs_a_whole_circle_where_the_ends_are_equal_in_float() {
+    let dir = firmware_dir();
+    let um2 = dir.join("ultimaker2");
+    let mut command = std::process::Command::new(um2.join("um2sim"));
+    command
+        .arg("--elf")
+        .arg(um2.join("ultimaker2marlin-8698fb6.elf"))
+        .arg("--stdio");
+    let mut fw = DirectFirmware::start(command, Duration::from_millis(4000));
+    let at_150 = &["G90", "G1 X150 Y150 F6000"];
+    let r50 = 50.0 * 2f64.sqrt();
+    let r5 = 5.0 * 2f64.sqrt();
+    let cases = [
+        WholeCircle {
+            before: at_150,
+            arc: "G2 X150.000005 Y149.999995 I-50 J-50 F3000",
+            seconds: circle_s(r50, 3000.0),
+            after: &[],
+        },
+        WholeCircle {
+            before: at_150,
+            arc: "G2 X150.000005 Y150 I-5 J0 F1200",
+            seconds: circle_s(5.0, 1200.0),
+            after: &[],
+        },
+        WholeCircle {
+            before: at_150,
+            arc: "G2 X150 Y149.999995 I-5 J0 F1200",
+            seconds: circle_s(5.0, 1200.0),
+            after: &[],
+        },
+        WholeCircle {
+            before: at_150,
+            arc: "G2 X150 Y149.999992 I-5 J0 F1200",
+            seconds: circle_s(5.0, 1200.0),
+            after: &[],
+        },
+        WholeCircle {
+            before: &["G90", "G1 X150 Y150 F6000", "G91"],
+            arc: "G2 X0.000005 Y-0.000005 I-5 J-5 F1200",
+            seconds: circle_s(r5, 1200.0),
+            after: &["G90"],
+        },
+    ];
+    runs_the_whole_circles_the_policy_refuses("ultimaker2", &mut fw, &["G92 X0 Y0 Z10"], &cases);
 }
 
 /// The firmware as a plain child process on pipes (no host, no relay): lines go in numbered
@@ -611,6 +858,12 @@ impl DirectFirmware {
     }
 
     fn raw(&mut self, framed: &str) -> String {
+        self.raw_answer(framed, false)
+    }
+
+    /// Sends `framed` and returns the answer up to its `ok`; an `Error:` line in it fails
+    /// the test unless `errors` are expected.
+    fn raw_answer(&mut self, framed: &str, errors: bool) -> String {
         use std::io::Write;
         let stdin = self.child.stdin.as_mut().unwrap();
         writeln!(stdin, "{framed}").unwrap();
@@ -621,7 +874,7 @@ impl DirectFirmware {
                 .lines
                 .recv_timeout(Duration::from_secs(60))
                 .unwrap_or_else(|_| panic!("no answer to `{framed}`: {answer}"));
-            assert!(!line.starts_with("Error"), "`{framed}`: {line}");
+            assert!(errors || !line.starts_with("Error"), "`{framed}`: {line}");
             let done = line.starts_with("ok");
             answer.push_str(&line);
             answer.push('\n');
@@ -632,9 +885,13 @@ impl DirectFirmware {
     }
 
     fn send(&mut self, line: &str) -> String {
+        self.send_answer(line, false)
+    }
+
+    fn send_answer(&mut self, line: &str, errors: bool) -> String {
         self.number += 1;
         let framed = crispen::marlin::protocol::frame(self.number, line);
-        self.raw(framed.trim_end())
+        self.raw_answer(framed.trim_end(), errors)
     }
 }
 

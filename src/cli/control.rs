@@ -340,6 +340,10 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             j.printer.as_deref().unwrap_or("-"),
             extra
         );
+        // Why a ready job waits, under it.
+        if let Some(why) = &j.waiting {
+            println!("{:<28} {}", "", escaped(why));
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

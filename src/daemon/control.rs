@@ -91,9 +91,13 @@ pub struct JobStatus {
     /// Ready, but no printer can take it now: why ("waiting for PETG black ...").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub waiting: Option<String>,
-    /// Filament one print of it needs, grams (at PLA's density until it is printed).
+    /// Filament one print of it needs (on the machine of its report), in grams at the
+    /// density of the material it asks, where crispen knows it ...
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub need_g: Option<f64>,
+    /// ... else in metres of filament.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub need_m: Option<f64>,
     /// What its prints took, grams, and their cost where the spool's price is known
     /// ([`Job::used`](super::job::Job::used)).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -169,7 +173,8 @@ pub(crate) fn status(farm: &Farm) -> Status {
     let offers = super::farm::offers(&config, &store, &names);
     let jobs = store
         .jobs()
-        .map(|j| JobStatus {
+        .map(|j| (j, first_need(j)))
+        .map(|(j, need)| JobStatus {
             id: j.id.clone(),
             file: j.file.clone(),
             folder: j.folder.clone(),
@@ -192,8 +197,10 @@ pub(crate) fn status(farm: &Farm) -> Status {
             updated: j.history.last().map(|h| h.1).unwrap_or(0.0),
             held: j.held(),
             asks: j.asks.clone(),
-            waiting: super::farm::waiting_reason(&config, j, &offers),
-            need_g: j.slice_report.as_ref().and_then(|r| r.filament_g),
+            // Worded here, at the edge: the routing's reasons are data.
+            waiting: super::farm::waiting(&config, j, &offers).map(|w| w.to_string()),
+            need_g: need.and_then(|n| n.g),
+            need_m: need.filter(|n| n.g.is_none()).map(|n| n.mm / 1000.0),
             used_g: j.used().grams,
             cost: j.used().cost,
             moved: j.slice_report.as_ref().and_then(|r| r.moved.clone()),
@@ -204,6 +211,11 @@ pub(crate) fn status(farm: &Farm) -> Status {
         jobs,
         farm: farm_status,
     }
+}
+
+/// What one print of `job` needs on the machine of its report (its first).
+fn first_need(job: &super::job::Job) -> Option<super::filament::Need> {
+    job.need_on(&job.slice_report.as_ref()?.machine)
 }
 
 /// Carries out one command; the answer says what was done.

@@ -635,7 +635,8 @@ pub(crate) fn offers<'a>(
                     j.state == super::job::JobState::Printing
                         && j.printer.as_deref() == Some(p.name.as_str())
                 })
-                .filter_map(|j| j.need_mm())
+                .filter_map(|j| j.need_on(&p.machine.name))
+                .map(|n| n.mm)
                 .sum();
             offer(p, snapshot.inventory(), reserved_mm)
         })
@@ -654,6 +655,7 @@ pub(crate) fn offer<'a>(
     let unloaded = inventory.loaded.get(&printer.name) == Some(&super::filament::Loaded::Nothing);
     super::filament::routing::Offer {
         printer: &printer.name,
+        machine: &printer.machine.name,
         spool,
         filament: match (spool, unloaded) {
             (Some(s), _) => Some(&s.filament),
@@ -681,34 +683,50 @@ pub(crate) fn folder_rule<'a>(
     }
 }
 
-/// Why no printer can take a ready job now, in words; None when one can (or it is not
-/// ready, or no printer of this host serves it). `offers`: this host's printers' (see
-/// [`offers`]).
-pub(crate) fn waiting_reason(
+/// Why no printer can take a ready job now; None when one can (or it is not ready, or no
+/// printer of this host serves it). `offers`: this host's printers' (see [`offers`]).
+/// Every printer that serves it is named with why it cannot, its machine's refusal of
+/// the file included.
+pub(crate) fn waiting<'a>(
     config: &Config,
-    job: &super::job::Job,
-    offers: &[super::filament::routing::Offer],
-) -> Option<String> {
+    job: &'a super::job::Job,
+    offers: &[super::filament::routing::Offer<'a>],
+) -> Option<super::filament::routing::Waiting<'a>> {
+    use super::filament::routing::{refusal, Refusal, Waiting};
     if job.state != super::job::JobState::Ready || job.held() {
         return None;
     }
     let rule = folder_rule(config, job)?;
     let wanted = job.sidecar.as_ref().and_then(|s| s.printer.as_deref());
-    let serving: Vec<super::filament::routing::Offer> = offers
+    let serving: Vec<&super::filament::routing::Offer> = offers
         .iter()
         .filter(|o| rule.iter().any(|p| p == o.printer) && wanted.is_none_or(|w| w == o.printer))
-        .filter(|o| {
-            config
-                .printers
-                .iter()
-                .any(|c| c.name == o.printer && job.gcode_for(&c.machine.name).is_some())
-        })
-        .cloned()
         .collect();
     if serving.is_empty() {
         return None;
     }
-    super::filament::routing::waiting_reason(&job.asks, job.need_mm(), &serving)
+    let mut refused = Vec::new();
+    for o in serving {
+        let need = job.need_on(o.machine);
+        let why = match (job.gcode_for(o.machine), job.machines.get(o.machine)) {
+            (Some(_), _) => refusal(&job.asks, need, o),
+            (None, Some(super::job::ForMachine::Refused(reason))) => Some(Refusal::Machine {
+                machine: o.machine.to_string(),
+                reason: Some(reason.clone()),
+            }),
+            // Not prepared for its machine (its nozzle was not the one asked, or it came
+            // after): what it holds says why, if that does.
+            (None, _) => Some(refusal(&job.asks, need, o).unwrap_or(Refusal::Machine {
+                machine: o.machine.to_string(),
+                reason: None,
+            })),
+        };
+        refused.push((o.clone(), why?));
+    }
+    Some(Waiting {
+        asks: &job.asks,
+        refused,
+    })
 }
 
 #[cfg(test)]

@@ -241,7 +241,7 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
         crate::daemon::config::parse_strength(s)
             .map_err(|m| format!("sidecar {}: key `strength`: {m}", path.display()))?;
     }
-    crate::daemon::config::check_asks(
+    crate::daemon::filament::routing::check_asks(
         sidecar.material.as_deref(),
         sidecar.colour.as_deref(),
         sidecar.nozzle_mm,
@@ -307,6 +307,10 @@ pub struct Job {
     /// order (see `daemon::bed`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub clearing: Vec<super::bed::Clearing>,
+    /// Filament one print needs, per machine it has G-code for (the net push of that
+    /// G-code, as a print of it is booked), set when it is prepared.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub needs: std::collections::BTreeMap<String, crate::daemon::filament::Need>,
 }
 
 /// What one print of a job took from the spool on its printer.
@@ -477,14 +481,20 @@ impl Job {
             asks: Default::default(),
             uses: Vec::new(),
             clearing: Vec::new(),
+            needs: Default::default(),
         }
     }
 }
 
 impl Job {
-    /// Filament one print of it needs, mm (as its G-code pushes it), when measured.
-    pub fn need_mm(&self) -> Option<f64> {
-        self.slice_report.as_ref().and_then(|r| r.filament_mm)
+    /// Filament one print of it needs on `machine`, when measured. A job prepared before
+    /// needs were kept per machine has its first machine's length, told in metres.
+    pub fn need_on(&self, machine: &str) -> Option<crate::daemon::filament::Need> {
+        if self.needs.is_empty() {
+            let mm = self.slice_report.as_ref()?.filament_mm?;
+            return Some(crate::daemon::filament::Need { mm, g: None });
+        }
+        self.needs.get(machine).copied()
     }
 
     /// What its prints took (each copy, and a print that failed or was cancelled as far

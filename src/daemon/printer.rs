@@ -509,7 +509,8 @@ fn eligible(
                 .find(|p| p.name == printer)
                 .is_some_and(|p| {
                     let offer = super::farm::offer(p, snapshot.inventory(), 0.0);
-                    super::filament::routing::refusal(&j.asks, j.need_mm(), &offer).is_none()
+                    super::filament::routing::refusal(&j.asks, j.need_on(&machine), &offer)
+                        .is_none()
                 })
         };
         served && wanted && !j.held() && j.gcode_for(&machine).is_some() && fits()

@@ -312,7 +312,8 @@ mod tests {
         let m = followed(&["G28", "G90", "M83", "G1 Z0.2 F600", "G1 X10 Y20 E1 F1800"]);
         assert_eq!(
             m.file_position(),
-            [Some(10.0), Some(20.0), Some(0.2), None],
+            // Z as the firmware holds it: 0.2 in a 32-bit float.
+            [Some(10.0), Some(20.0), Some(f64::from(0.2f32)), None],
             "E relative from an unknown start stays unknown"
         );
         assert!(m.e_relative());

@@ -27,7 +27,7 @@
 
 use crate::machine::commands::{classify, Class};
 use crate::machine::Machine;
-use crate::marlin::motion::{self, Command, Motion};
+use crate::marlin::motion::{Bounds, Command, Motion};
 use crate::marlin::pause::pause_message;
 use crate::marlin::protocol::reply::Reply;
 use crate::marlin::reader;
@@ -306,8 +306,9 @@ fn judge(
     }
     match motion.apply(cmd) {
         Err(e) => v.refuse(line, text, format!("cannot be followed: {e}")),
-        Ok(Some(m)) => {
-            if let Some(k) = motion::outside(m.lo, m.hi, machine.bed_mm, EDGE_MM) {
+        Ok(Some(m)) => match m.bounds(machine.bed_mm, EDGE_MM) {
+            Bounds::Inside => {}
+            Bounds::Outside(k) => {
                 let axis = ['X', 'Y', 'Z'][k];
                 let past = if m.lo[k] < -EDGE_MM { m.lo[k] } else { m.hi[k] };
                 v.refuse(
@@ -321,7 +322,26 @@ fn judge(
                     ),
                 );
             }
-        }
+            Bounds::Rounding(k) => {
+                let axis = ['X', 'Y', 'Z'][k];
+                v.refuse(
+                    line,
+                    text,
+                    format!(
+                        "{} {axis} to the edge of the {}'s 0 .. {} mm, inside or outside as \
+                         the firmware's 32-bit floats round it ({:.6} .. {:.6} mm) or as \
+                         the file writes it ({:.6} .. {:.6} mm)",
+                        if m.curved { "sweeps" } else { "moves" },
+                        machine.name,
+                        machine.bed_mm[k],
+                        m.lo[k],
+                        m.hi[k],
+                        m.written.0[k],
+                        m.written.1[k]
+                    ),
+                );
+            }
+        },
         Ok(None) => {}
     }
 }
@@ -695,6 +715,42 @@ mod tests {
         };
         let v = verdict("M206 X-100\nG28\nG1 X200\n", &allowing);
         assert!(v.refusals[0].reason.contains("moves X to 300.0"), "{v:?}");
+    }
+
+    /// Issue 42's reproduction: a sliver in 64-bit, a whole circle of 141 mm radius (off
+    /// the bed) in the firmware's 32-bit floats. Refused on both firmwares, naming the
+    /// line; the same arc ending a thousandth away passes.
+    #[test]
+    fn an_arc_whose_ends_are_equal_in_float_not_in_double_is_refused() {
+        let marlin = Machine::builtin("marlin-175").unwrap();
+        for machine in [marlin, um2()] {
+            let v = verdict(
+                "G28\nG1 X210 Y210 F6000\nG2 X210.000005 Y209.999995 I-100 J-100 F3000\n",
+                &machine,
+            );
+            assert_eq!(v.refusals_total, 1, "{}: {v:?}", machine.name);
+            assert_eq!(v.refusals[0].line, 3);
+            assert!(
+                v.refusals[0].reason.contains("whole circle"),
+                "{}: {v:?}",
+                machine.name
+            );
+            let v = verdict(
+                "G28\nG1 X150 Y150 F6000\nG2 X150.001 Y149.999 I-50 J-50 F3000\n",
+                &machine,
+            );
+            assert!(v.passed(), "{}: {v:?}", machine.name);
+        }
+        let v = verdict(
+            "G28\nG1 X150 Y150\nG2 X150.000005 Y150.000005 R50\n",
+            &Machine::builtin("marlin-175").unwrap(),
+        );
+        assert!(v.refusals[0].reason.contains("bad parameters"), "{v:?}");
+        let v = verdict(
+            "G28\nG1 X220.5000001 Y10\n",
+            &Machine::builtin("marlin-175").unwrap(),
+        );
+        assert!(v.refusals[0].reason.contains("32-bit"), "{v:?}");
     }
 
     #[test]

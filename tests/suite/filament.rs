@@ -244,7 +244,7 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
         .as_str()
         .unwrap_or_default();
     assert!(
-        heavy.starts_with("waiting for a spool with 30 g for PETG black: c has 20 g"),
+        heavy.starts_with("waiting for 30 g of PETG black: c has 20 g;"),
         "{heavy}"
     );
     assert!(job(&s, "petg-black.gcode")["waiting"].is_null());

@@ -31,6 +31,7 @@ mod postgres;
 mod presliced;
 mod preview;
 mod print;
+mod routing;
 mod service;
 mod sim;
 mod slice;

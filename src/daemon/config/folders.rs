@@ -6,6 +6,7 @@ use super::check::{number, seconds_in, Bounds, Context};
 use super::checked::{FolderConfig, PrinterConfig};
 use super::error::ConfigError;
 use super::raw::RawFolder;
+use crate::daemon::filament::routing::check_asks;
 use crate::enhance::Strength;
 use std::path::{Path, PathBuf};
 
@@ -157,6 +158,7 @@ fn check_folder(
         nozzle_mm: f.nozzle_mm,
         tags: f.tags.unwrap_or_default(),
         priority: f.priority.unwrap_or(0),
+        ..Default::default()
     };
     let bed_clear = match f.bed_clear.as_deref() {
         None => None,
@@ -185,54 +187,6 @@ fn check_folder(
         timeout,
         settings,
     })
-}
-
-/// Checks what a folder, a sidecar or a printer asks or holds; the error names its key.
-pub(crate) fn check_asks(
-    material: Option<&str>,
-    colour: Option<&str>,
-    nozzle_mm: Option<f64>,
-    tags: Option<&[String]>,
-    priority: Option<i32>,
-) -> Result<(), (&'static str, String)> {
-    for (key, text) in [("material", material), ("colour", colour)] {
-        if let Some(t) = text {
-            let t = t.trim();
-            if t.is_empty() || t.chars().count() > 40 || t.chars().any(char::is_control) {
-                return Err((key, format!("1 to 40 printable characters, got {t:?}")));
-            }
-        }
-    }
-    if let Some(n) = nozzle_mm {
-        if !(0.1..=2.0).contains(&n) {
-            return Err(("nozzle_mm", format!("0.1 to 2 mm, got {n}")));
-        }
-    }
-    if let Some(tags) = tags {
-        if tags.len() > crate::daemon::filament::routing::MAX_TAGS {
-            return Err((
-                "tags",
-                format!(
-                    "at most {} tags, got {}",
-                    crate::daemon::filament::routing::MAX_TAGS,
-                    tags.len()
-                ),
-            ));
-        }
-        for t in tags {
-            crate::daemon::filament::routing::check_tag(t).map_err(|m| ("tags", m))?;
-        }
-    }
-    if let Some(p) = priority {
-        let range = crate::daemon::filament::routing::PRIORITY;
-        if !range.contains(&p) {
-            return Err((
-                "priority",
-                format!("{} to {}, got {p}", range.start(), range.end()),
-            ));
-        }
-    }
-    Ok(())
 }
 
 /// A printed height in mm: what the printer can build, and enough to hold a shape.

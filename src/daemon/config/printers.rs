@@ -5,10 +5,10 @@
 use super::check::{number, Context};
 use super::checked::{PrinterConfig, PrinterPort};
 use super::error::ConfigError;
-use super::folders::check_asks;
 use super::pause;
 use super::raw::{RawPrinter, RawSimulate};
 use crate::daemon::bed::ClearBy;
+use crate::daemon::filament::routing::check_asks;
 use crate::machine::Machine;
 use crate::marlin::firmware::Firmware;
 use std::collections::BTreeSet;

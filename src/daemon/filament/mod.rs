@@ -5,7 +5,8 @@
 //!   task owns it and keeps it with the jobs (both stores), so a shared farm agrees.
 //! - [`Asks`]: a job's material, colour, nozzle, printer group and priority, resolved from
 //!   its folder and sidecar once it is prepared.
-//! - [`routing`]: whether a printer may take a job, and in words why no printer can.
+//! - [`routing`]: whether a printer may take a job, and why no printer can; a job's
+//!   filament [`Need`], told in grams of the material it asks or in metres.
 //!
 //! Nothing here does I/O: the store persists the inventory, `spoolman` talks to Spoolman,
 //! and the printers' supervisors measure what a print pushed.
@@ -15,7 +16,7 @@ pub mod routing;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-pub use routing::Asks;
+pub use routing::{Asks, Need};
 
 /// A filament as the routing and the accounting see it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -44,9 +45,24 @@ impl Filament {
 
     /// Grams of `mm` of this filament.
     pub fn grams(&self, mm: f64) -> f64 {
-        let r_cm = self.diameter_mm / 20.0;
-        mm / 10.0 * std::f64::consts::PI * r_cm * r_cm * self.density_g_cm3
+        mm * weight_per_mm(self.diameter_mm, self.density_g_cm3)
     }
+}
+
+/// Grams per mm of filament `diameter_mm` thick at `density_g_cm3`.
+fn weight_per_mm(diameter_mm: f64, density_g_cm3: f64) -> f64 {
+    let r_cm = diameter_mm / 20.0;
+    0.1 * std::f64::consts::PI * r_cm * r_cm * density_g_cm3
+}
+
+/// Grams per mm of `material` `diameter_mm` thick, at the density crispen knows for it
+/// (its materials' table, [`crate::slice::MATERIALS`]); None for a material it does not
+/// know, whose need is then told as a length (`Need`).
+pub fn grams_per_mm(material: &str, diameter_mm: f64) -> Option<f64> {
+    crate::slice::MATERIALS
+        .iter()
+        .find(|m| m.name.eq_ignore_ascii_case(material.trim()))
+        .map(|m| weight_per_mm(diameter_mm, m.density_g_cm3))
 }
 
 /// One spool: its filament, what was on it when crispen last learnt it from its source

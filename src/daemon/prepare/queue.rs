@@ -168,7 +168,14 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
             let asks = task.asks.clone();
             run_child(&program, &task, &cancel, on_step)
                 .await
-                .map(|report| (report, sidecar, asks))
+                .and_then(|prepared| {
+                    // The file's own material, checked here too: the child read it from
+                    // a file anyone may drop.
+                    let asks = asks
+                        .with_file_material(prepared.file_material.as_deref())
+                        .map_err(PrepareError::Failed)?;
+                    Ok((prepared, sidecar, asks))
+                })
         }
     };
     finish_preparation(&farm, &id, result).await;
@@ -222,6 +229,7 @@ async fn finish_preparation(
     let outcome = match result {
         Ok((prepared, sidecar, asks)) => {
             let (machines, mut report) = prepared.for_machines();
+            let needs = prepared.needs();
             match prepared.failure() {
                 // No machine can print it: failed, with each machine's reason.
                 Some(reason) => {
@@ -250,6 +258,7 @@ async fn finish_preparation(
                             j.comparison = enhanced.then_some(Comparison::Pending { tries: 0 });
                             j.slice_report = report;
                             j.machines = machines;
+                            j.needs = needs;
                             j.sidecar = sidecar;
                             j.asks = asks;
                         })

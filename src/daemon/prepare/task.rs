@@ -57,6 +57,11 @@ pub struct TaskMachine {
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Prepared {
     pub machines: Vec<(String, Result<SliceReport, String>)>,
+    /// The material a pre-sliced file says it was sliced for (see
+    /// `crate::slice::presliced`), as written: what the job asks unless its folder or
+    /// sidecar names one ([`Asks::with_file_material`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file_material: Option<String>,
 }
 
 impl Prepared {
@@ -85,6 +90,24 @@ impl Prepared {
             })
             .collect();
         (record, first)
+    }
+
+    /// What one print needs on each machine with G-code: its report's net filament,
+    /// weighed as the report weighed it.
+    pub(crate) fn needs(
+        &self,
+    ) -> std::collections::BTreeMap<String, crate::daemon::filament::Need> {
+        self.machines
+            .iter()
+            .filter_map(|(name, r)| {
+                let r = r.as_ref().ok()?;
+                let need = crate::daemon::filament::Need {
+                    mm: r.filament_mm?,
+                    g: r.filament_g,
+                };
+                Some((name.clone(), need))
+            })
+            .collect()
     }
 
     /// The job's failure when no machine can print it: every machine's reason.
@@ -410,6 +433,7 @@ mod tests {
                 ("ultimaker2".into(), Err("too big".into())),
                 ("marlin-175".into(), Err("also too big".into())),
             ],
+            file_material: None,
         };
         let reason = prepared.failure().unwrap();
         assert!(
@@ -427,6 +451,7 @@ mod tests {
                     }),
                 ),
             ],
+            file_material: None,
         };
         assert_eq!(prepared.failure(), None);
         let (record, first) = prepared.for_machines();

@@ -738,6 +738,7 @@ async function showJob(id) {
   if (asksText(j.asks)) filament.push("asks " + asksText(j.asks));
   if (j.asks && j.asks.priority) filament.push("priority " + j.asks.priority);
   if (j.need_g != null) filament.push("needs about " + grams(j.need_g) + " a print");
+  else if (j.need_m != null) filament.push("needs about " + (+j.need_m.toFixed(2)) + " m a print");
   if (j.used_g != null) filament.push("used " + (+j.used_g.toFixed(2)) + " g");
   if (j.cost != null) filament.push("cost " + j.cost.toFixed(2));
   if (filament.length) html += '<p id="filament">' + esc(filament.join(" · ")) + "</p>";

@@ -96,7 +96,7 @@ fn valid_float(b: &[u8]) -> bool {
 /// `value_float()`: `strtof` over the text up to the first `E`, `e`, `X` or `x` (before a
 /// space or the end). What `strtof` takes of a text starting `[+-]?.?[0-9]`, with no
 /// exponent left, is a sign, digits and one point.
-fn value_float(b: &[u8]) -> f64 {
+pub(super) fn value_float(b: &[u8]) -> f64 {
     let end = b
         .iter()
         .position(|&c| c == b' ' || matches!(c, b'E' | b'e' | b'X' | b'x'))

@@ -26,9 +26,12 @@ pub(crate) use view::View;
 
 /// One parameter of a command: its letter (upper case) and number, if it has one.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Word {
+pub struct Word<'a> {
     pub letter: char,
     pub value: Option<f64>,
+    /// The number as written (`-2.5`): each firmware reads it into a 32-bit float of its
+    /// own ([`firmware_float`]).
+    pub text: Option<&'a str>,
 }
 
 /// One command of a line, as every firmware reads it.
@@ -36,7 +39,7 @@ pub struct Word {
 pub struct Command<'a> {
     /// `G1`, `M104`, `T1`: letter and number (leading zeros dropped: `G01` is `G1`).
     pub code: String,
-    pub words: Vec<Word>,
+    pub words: Vec<Word<'a>>,
     /// The text after the code: the message of `M117`, the file of `M23`, the words of a
     /// pause (which the host intercepts, so its text is never sent).
     pub rest: &'a str,
@@ -49,6 +52,12 @@ impl Command<'_> {
             .iter()
             .find(|w| w.letter == letter)
             .and_then(|w| w.value)
+    }
+
+    /// The number given for `letter` as `firmware` reads it ([`firmware_float`]).
+    pub fn get_f32(&self, letter: char, firmware: Firmware) -> Option<f32> {
+        let text = self.words.iter().find(|w| w.letter == letter)?.text?;
+        Some(firmware_float(firmware, text))
     }
 
     /// Whether `letter` is given (with or without a number).
@@ -64,6 +73,16 @@ impl Command<'_> {
     /// The command's number (`104` for `M104`).
     pub fn number(&self) -> u32 {
         self.code[1..].parse().unwrap_or(u32::MAX)
+    }
+}
+
+/// A plain number (`[+-]digits[.digits]`) as `firmware` reads it: Marlin 2 with `strtof`,
+/// rounded to the nearest float (glibc, and Rust's parser likewise); Ultimaker2Marlin with
+/// avr-libc's `strtod`, which can land one float away ([`ultimaker2::strtod`]).
+pub fn firmware_float(firmware: Firmware, text: &str) -> f32 {
+    match firmware {
+        Firmware::Marlin2 | Firmware::Marlin20 => marlin2::value_float(text.as_bytes()) as f32,
+        Firmware::Ultimaker2 => ultimaker2::strtod(text.as_bytes()).0 as f32,
     }
 }
 
@@ -213,17 +232,18 @@ fn agree(firmware: Firmware, cmd: &Command, view: &View) -> Result<(), Unreadabl
         if letter == cmd.letter() || letter == 'N' {
             continue;
         }
-        let written = cmd
-            .words
-            .iter()
-            .find(|w| w.letter == letter)
-            .map(|w| w.value);
+        let word = cmd.words.iter().find(|w| w.letter == letter);
+        let written = word.map(|w| w.value);
         let read = view.params[i as usize];
         let same = match (written, read) {
             (None, None) => true,
             (Some(None), Some(None)) => true,
-            // Values as parsed from the same digits: compared as the firmware's float.
-            (Some(Some(a)), Some(Some(b))) => (a as f32) == (b as f32),
+            // The firmware's value must be what it reads from the written digits.
+            (Some(Some(_)), Some(Some(b))) => {
+                word.and_then(|w| w.text)
+                    .map(|t| firmware_float(firmware, t))
+                    == Some(b as f32)
+            }
             _ => false,
         };
         if !same {
@@ -244,7 +264,7 @@ fn agree(firmware: Firmware, cmd: &Command, view: &View) -> Result<(), Unreadabl
 
 /// The parameters of a non-string command, written plainly: `X10 Y-2.5 E.4 F1800`, with or
 /// without spaces between them, a space allowed between a letter and its number.
-fn parameters(text: &str, command: char) -> Result<Vec<Word>, Unreadable> {
+fn parameters(text: &str, command: char) -> Result<Vec<Word<'_>>, Unreadable> {
     let bytes = text.as_bytes();
     let mut words: Vec<Word> = Vec::new();
     let mut i = 0;
@@ -287,8 +307,8 @@ fn parameters(text: &str, command: char) -> Result<Vec<Word>, Unreadable> {
             j += 1;
         }
         let len = number_len(&bytes[j..]);
-        let value = if len > 0 {
-            let n = &text[j..j + len];
+        let number = (len > 0).then(|| &text[j..j + len]);
+        let value = if let Some(n) = number {
             i = j + len;
             // Digits, a sign and one point parse; a value past f64 is no plain number.
             match n.parse::<f64>() {
@@ -307,7 +327,11 @@ fn parameters(text: &str, command: char) -> Result<Vec<Word>, Unreadable> {
                 return Err(junk(text, i));
             }
         }
-        words.push(Word { letter, value });
+        words.push(Word {
+            letter,
+            value,
+            text: number,
+        });
     }
     Ok(words)
 }

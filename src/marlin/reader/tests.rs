@@ -144,3 +144,33 @@ fn readers_agree_with_the_transcribed_parsers_on_random_lines() {
     // The generator reaches lines each firmware accepts, not only refusals.
     assert!(accepted.iter().all(|&n| n > 500), "{accepted:?}");
 }
+
+/// Each firmware's own float of a number: Marlin 2's `strtof` rounds to the nearest float;
+/// Ultimaker2Marlin's avr-libc `strtod` gathers the digits into a 32-bit integer and
+/// scales it by float powers of ten, which can land one float away (149999 is exact, then
+/// times 1e-2f and 1e-1f, each rounded). The values are the avr-libc 2.0 algorithm's, as an
+/// independent transcription (numpy's float32) also gave them; that the emulated Ultimaker 2
+/// reads `149.999992` as 150 is shown by `tests/firmware.rs` (a whole circle).
+#[test]
+fn each_firmware_reads_a_number_into_its_own_float() {
+    for (text, nearest, avr) in [
+        ("150.3", 150.3f32, 150.3f32),
+        ("0.3", 0.3, 0.3),
+        ("150.000005", 150.0, 150.0),
+        ("149.999", 149.999, 149.999_01),
+        // One float (1.5e-5) above 150 to the nearest, 150 itself by avr-libc.
+        ("150.000008", 150.000_02, 150.0),
+        ("149.999992", 149.999_98, 150.0),
+        ("-2.5", -2.5, -2.5),
+        (".4", 0.4, 0.4),
+    ] {
+        assert_eq!(firmware_float(Marlin2, text), nearest, "{text}");
+        assert_eq!(firmware_float(Ultimaker2, text), avr, "{text}");
+        let line = format!("G1 X{text}");
+        let c = read_for(Ultimaker2, &line).unwrap().unwrap();
+        assert_eq!(c.get_f32('X', Ultimaker2), Some(avr), "{text}");
+        assert_eq!(c.get_f32('X', Marlin2), Some(nearest), "{text}");
+    }
+    assert_ne!(149.999_01f32, 149.999f32);
+    assert_ne!(150.000_02f32, 150.0f32);
+}

@@ -218,7 +218,8 @@ pub fn disagreement(line: &str) -> Option<String> {
         }
         for w in &c.words {
             let read = theirs.param(w.letter).flatten().map(|v| v as f32);
-            if read != w.value.map(|v| v as f32) || theirs.param(w.letter).is_none() {
+            let written = w.text.map(|t| super::firmware_float(fw, t));
+            if read != written || theirs.param(w.letter).is_none() {
                 return Some(format!(
                     "{fw} {line:?}: {} accepted as {:?}, read as {:?}",
                     w.letter,

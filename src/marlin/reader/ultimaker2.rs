@@ -45,9 +45,18 @@ pub(crate) fn read(text: &str) -> View {
     view
 }
 
-/// avr-libc's `strtod` (on a 32-bit `double`): the value and how many bytes it took (0 and
-/// 0 when no number starts the text).
+/// avr-libc's `strtod` (avr-libc 2.0 and 2.1, `libc/stdlib/strtod.c`, which Debian's and
+/// Arduino's AVR toolchains ship; `double` is 32-bit there): the value and how many bytes
+/// it took (0 and 0 when no number starts the text). It is not rounded as a decimal is
+/// rounded to the nearest float: the digits are gathered into a 32-bit integer (lines
+/// 137-163: past 429496728 further digits only count in the exponent), converted to a
+/// float (line 197, `__floatunsisf`, to nearest), then multiplied by float powers of ten
+/// from the largest (`1e32f`, `1e16f`, ... `1e1f`, or their inverses; lines 201-219), each
+/// product rounded to nearest. `150.3` is the nearest float to 150.3 that way, but a value
+/// with more digits can land one float away from glibc's `strtof`.
 pub(crate) fn strtod(b: &[u8]) -> (f64, usize) {
+    const P10: [f32; 6] = [1e1, 1e2, 1e4, 1e8, 1e16, 1e32];
+    const M10: [f32; 6] = [1e-1, 1e-2, 1e-4, 1e-8, 1e-16, 1e-32];
     let mut i = 0;
     while b
         .get(i)
@@ -72,36 +81,54 @@ pub(crate) fn strtod(b: &[u8]) -> (f64, usize) {
     if word(b"nan", i) {
         return (f64::NAN, i + 3);
     }
-    let start = i;
-    let int = b[i..].iter().take_while(|c| c.is_ascii_digit()).count();
-    i += int;
-    let mut frac = 0;
-    if b.get(i) == Some(&b'.') {
-        frac = b[i + 1..].iter().take_while(|c| c.is_ascii_digit()).count();
-        i += 1 + frac;
+    let (mut mantissa, mut exp, mut any, mut dot, mut full) = (0u32, 0i32, false, false, false);
+    while let Some(&c) = b.get(i) {
+        if c.is_ascii_digit() {
+            any = true;
+            if full {
+                exp += i32::from(!dot);
+            } else {
+                exp -= i32::from(dot);
+                mantissa = mantissa.wrapping_mul(10).wrapping_add(u32::from(c - b'0'));
+                full = mantissa >= (u32::MAX - 9) / 10;
+            }
+        } else if c == b'.' && !dot {
+            dot = true;
+        } else {
+            break;
+        }
+        i += 1;
     }
-    if int + frac == 0 {
+    if !any {
         return (0.0, 0);
     }
-    let mantissa_end = i;
     if matches!(b.get(i), Some(b'e' | b'E')) {
         let mut j = i + 1;
+        let minus = b.get(j) == Some(&b'-');
         if matches!(b.get(j), Some(b'+' | b'-')) {
             j += 1;
         }
-        let digits = b[j..].iter().take_while(|c| c.is_ascii_digit()).count();
-        if digits > 0 {
-            i = j + digits;
+        if b.get(j).is_some_and(u8::is_ascii_digit) {
+            let mut e = 0i32;
+            while let Some(d) = b.get(j).filter(|d| d.is_ascii_digit()) {
+                if e < 3200 {
+                    e = e * 10 + i32::from(d - b'0');
+                }
+                j += 1;
+            }
+            exp += if minus { -e } else { e };
+            i = j;
         }
     }
-    let text = std::str::from_utf8(&b[start..i]).unwrap_or("0");
-    let mut v: f64 = text.parse().unwrap_or_else(|_| {
-        std::str::from_utf8(&b[start..mantissa_end])
-            .ok()
-            .and_then(|t| t.parse().ok())
-            .unwrap_or(0.0)
-    });
-    // A 32-bit double: overflow is infinity.
-    v = f64::from(v as f32);
-    (sign * v, i)
+    let mut x = mantissa as f32;
+    if x != 0.0 {
+        let (powers, mut left) = if exp < 0 { (M10, -exp) } else { (P10, exp) };
+        for k in (0..6).rev() {
+            while left >= 1 << k {
+                x *= powers[k];
+                left -= 1 << k;
+            }
+        }
+    }
+    (sign * f64::from(x), i)
 }

@@ -693,8 +693,45 @@ mod tests {
             &parse_words(Firmware::Marlin2, "G3 X0 Y10 I-10 J0 F3600"),
             3,
         );
+        // The firmware's angle is a float's: within 1e-7 of a quarter turn.
         let expected = std::f64::consts::FRAC_PI_2 * 10.0 / 60.0;
-        assert!((secs - expected).abs() < 1e-9, "{secs} vs {expected}");
+        assert!((secs - expected).abs() < 1e-6, "{secs} vs {expected}");
+    }
+
+    /// Issue 42: an arc whose ends are equal in float, not in double, is a whole circle on
+    /// both firmwares (141 mm of radius: about 17.8 s at 50 mm/s); the same arc ending a
+    /// thousandth away is a sliver. Marlin 2 answers the R form back to its start with
+    /// `bad parameters`; Ultimaker2Marlin runs no counter-clockwise circle.
+    #[test]
+    fn arcs_run_as_the_firmware_computes_them() {
+        let whole = 2.0 * std::f64::consts::PI * 100.0 * 2f64.sqrt() / 50.0;
+        for fw in [Firmware::Marlin2, Firmware::Ultimaker2] {
+            let mut p = printer(fw);
+            p.position = [210.0, 210.0, 0.0, 0.0];
+            let line = "G2 X210.000005 Y209.999995 I-100 J-100 F3000";
+            let secs = p.move_seconds(&parse_words(fw, line), 2);
+            assert!((secs - whole).abs() < 1e-3, "{fw}: {secs} vs {whole}");
+            let line = "G2 X210.001 Y209.999 I-100 J-100";
+            let secs = p.move_seconds(&parse_words(fw, line), 2);
+            assert!(secs < 1e-4, "{fw}: {secs}");
+            let read = |t| f64::from(crate::marlin::reader::firmware_float(fw, t));
+            assert_eq!(p.position[..2], [read("210.001"), read("209.999")], "{fw}");
+        }
+        let mut p = printer(Firmware::Marlin2);
+        p.position = [150.0, 150.0, 0.0, 0.0];
+        let secs = p.move_seconds(
+            &parse_words(Firmware::Marlin2, "G2 X150.000005 Y150.000005 R50"),
+            2,
+        );
+        assert_eq!(secs, 0.0);
+        assert!(String::from_utf8_lossy(p.output()).contains("Error:G2/G3 bad parameters"));
+        assert_eq!(p.position[..2], [150.0, 150.0]);
+        let mut p = printer(Firmware::Ultimaker2);
+        p.position = [150.0, 150.0, 0.0, 0.0];
+        let secs = p.move_seconds(&parse_words(Firmware::Ultimaker2, "G3 I-5 J0"), 3);
+        assert_eq!(secs, 0.0);
+        let secs = p.move_seconds(&parse_words(Firmware::Ultimaker2, "G2 I-5 J0 F600"), 2);
+        assert!((secs - std::f64::consts::PI).abs() < 1e-5, "{secs}");
     }
 
     #[test]

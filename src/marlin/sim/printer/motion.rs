@@ -2,6 +2,7 @@
 //! that pace (a move is acknowledged once it is in the planner).
 use super::state::Printer;
 use crate::marlin::firmware::Firmware;
+use crate::marlin::motion::{firmware_arc, ArcRun};
 use crate::marlin::reader;
 use std::time::Instant;
 
@@ -24,14 +25,21 @@ impl Printer {
         self.planner.push_back(d);
     }
 
-    /// Simulated seconds a G0–G3 takes at its feedrate (F is persistent, mm/min).
+    /// Simulated seconds a G0–G3 takes at its feedrate (F is persistent, mm/min), the
+    /// position moved as the firmware moves it: in its 32-bit floats, an arc run by its own
+    /// arithmetic (`crate::marlin::motion::firmware_arc`: Marlin 2's `plan_arc`,
+    /// Ultimaker2Marlin's `mc_arc`), so an arc whose ends are equal in float is a whole
+    /// circle here too, one Marlin 2 cannot make answers `Error:G2/G3 bad parameters`,
+    /// and one the firmware skips takes no time. The position is the file's own
+    /// coordinates (what `M114` reports): exact for Ultimaker2Marlin, and for Marlin 2
+    /// while no `G92` shifted its workspace.
     pub(super) fn move_seconds(&mut self, words: &[(char, f64)], code: i64) -> f64 {
         if let Some(f) = word(words, 'F') {
             if f > 0.0 {
                 self.feedrate = f;
             }
         }
-        let start = self.position;
+        let start = self.position.map(|v| v as f32);
         let mut end = start;
         for (i, axis) in ['X', 'Y', 'Z', 'E'].into_iter().enumerate() {
             if let Some(v) = word(words, axis) {
@@ -41,31 +49,36 @@ impl Printer {
                 } else {
                     self.relative
                 };
-                end[i] = if rel { start[i] + v } else { v };
+                // The views' values are the firmware's floats already.
+                end[i] = if rel { start[i] + v as f32 } else { v as f32 };
             }
         }
-        self.position = end;
-        let (dx, dy, dz) = (end[0] - start[0], end[1] - start[1], end[2] - start[2]);
-        let mut distance = (dx * dx + dy * dy + dz * dz).sqrt();
+        let d: Vec<f64> = (0..4)
+            .map(|k| f64::from(end[k]) - f64::from(start[k]))
+            .collect();
+        let mut distance = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         if code == 2 || code == 3 {
-            let (i, j) = (
-                word(words, 'I').unwrap_or(0.0),
-                word(words, 'J').unwrap_or(0.0),
-            );
-            let radius = (i * i + j * j).sqrt();
-            if radius > 0.0 {
-                let (cx, cy) = (start[0] + i, start[1] + j);
-                let a0 = (start[1] - cy).atan2(start[0] - cx);
-                let a1 = (end[1] - cy).atan2(end[0] - cx);
-                let mut sweep = if code == 3 { a1 - a0 } else { a0 - a1 };
-                if sweep <= 1e-9 {
-                    sweep += std::f64::consts::TAU;
+            let read = ['R', 'I', 'J'].map(|l| word(words, l).map(|v| v as f32));
+            match firmware_arc(self.fw, code == 2, start, end, read) {
+                ArcRun::Runs { radius, sweep, .. } => {
+                    distance = (f64::from(radius) * f64::from(sweep)).hypot(d[2]);
                 }
-                distance = (radius * sweep).hypot(dz);
+                ArcRun::BadParameters => {
+                    self.say("Error:G2/G3 bad parameters");
+                    return 0.0;
+                }
+                ArcRun::Skipped(_) => {
+                    // Ultimaker2Marlin takes the end as reached; Marlin 2 stays.
+                    if self.fw == Firmware::Ultimaker2 {
+                        self.position = end.map(f64::from);
+                    }
+                    return 0.0;
+                }
             }
         }
+        self.position = end.map(f64::from);
         if distance == 0.0 {
-            distance = (end[3] - start[3]).abs();
+            distance = d[3].abs();
         }
         distance / (self.feedrate / 60.0)
     }

@@ -11,7 +11,10 @@ mod common;
 
 fn main() {
     let cases = common::bed::check_all();
-    println!("bed check on the pictures of tests/data/bed ({} pictures)", cases.len());
+    println!(
+        "bed check on the pictures of tests/data/bed ({} pictures)",
+        cases.len()
+    );
     println!(
         "{:<34} {:<10} {:>7} {:<6} {:<10} {:>9} {:>6} {:>6} {:>5}  largest patch",
         "picture", "what", "size_mm", "colour", "light", "expected", "found", "diff%", "thr"
@@ -30,8 +33,8 @@ fn main() {
             })
             .unwrap_or_default();
         if let (Some(dir), true) = (&marked, c.clear != c.verdict.clear) {
-            let jpeg = crispen::bedcheck::marked_jpeg(&common::bed::read(&c.file), &c.verdict)
-                .unwrap();
+            let jpeg =
+                crispen::bedcheck::marked_jpeg(&common::bed::read(&c.file), &c.verdict).unwrap();
             std::fs::write(dir.join(&c.file), jpeg).unwrap();
         }
         println!(
@@ -46,7 +49,11 @@ fn main() {
             c.verdict.differs_percent,
             c.verdict.threshold,
             largest,
-            if c.clear == c.verdict.clear { "" } else { "   <-- WRONG" }
+            if c.clear == c.verdict.clear {
+                ""
+            } else {
+                "   <-- WRONG"
+            }
         );
     }
     let (false_clear, false_not_clear) = common::bed::rates(&cases);

@@ -3,7 +3,11 @@
 //! it), searched at half size over [`MAX_SHIFT`] and refined by a pixel at the working
 //! size; and the frame moved back by it.
 
-use super::{Planes, MAX_SHIFT};
+use super::planes::Planes;
+
+/// The largest camera shift found, working pixels each way (2.5 % of the region's
+/// longer side).
+pub const MAX_SHIFT: i32 = 10;
 
 /// Working pixels (x, y) by which the frame's content lies further than the reference's.
 pub(super) type Shift = (i32, i32);

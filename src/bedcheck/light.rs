@@ -8,7 +8,7 @@
 //! blocks' centres.
 
 use super::align::Aligned;
-use super::Planes;
+use super::planes::Planes;
 use faer::linalg::solvers::SolveLstsq;
 use faer::Mat;
 
@@ -82,11 +82,7 @@ fn robust_quadratic(values: &[Option<f64>], at: &[(f64, f64)]) -> Vec<f64> {
         for (w, r) in weights.iter_mut().zip(&residuals) {
             let t = r / (TUKEY * scale);
             // The square root of Tukey's weight: the rows are scaled by it.
-            *w = if t.abs() < 1.0 {
-                1.0 - t * t
-            } else {
-                0.0
-            };
+            *w = if t.abs() < 1.0 { 1.0 - t * t } else { 0.0 };
         }
     }
     at.iter()

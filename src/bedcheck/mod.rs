@@ -40,17 +40,17 @@
 mod align;
 mod light;
 mod mark;
+mod planes;
 
+pub use align::MAX_SHIFT;
 pub use mark::marked_jpeg;
+use planes::Planes;
 
 use image::{GenericImageView, RgbImage};
 use serde::{Deserialize, Serialize};
 
 /// The working picture's longer side, pixels.
 pub const WORK_MAX: u32 = 400;
-/// The largest camera shift found, working pixels each way (2.5 % of the region's
-/// longer side).
-pub const MAX_SHIFT: i32 = 10;
 /// A patch smaller than this many working pixels is noise, not an object.
 pub const MIN_PATCH_PX: usize = 12;
 /// Pixels over the full threshold a patch must hold.
@@ -201,43 +201,6 @@ impl Verdict {
     }
 }
 
-/// One picture at the working size: its three channels and luminance, row by row.
-#[derive(Debug, Clone)]
-struct Planes {
-    w: usize,
-    h: usize,
-    rgb: [Vec<f32>; 3],
-    luma: Vec<f32>,
-}
-
-impl Planes {
-    /// `picture`'s `region`, brought to `w` × `h` by area averages.
-    fn of(picture: &RgbImage, region: Region, w: u32, h: u32) -> Planes {
-        let view = picture.view(region.x, region.y, region.w, region.h);
-        let small = if (w, h) == (region.w, region.h) {
-            view.to_image()
-        } else {
-            image::imageops::thumbnail(&*view, w, h)
-        };
-        let n = (w * h) as usize;
-        let mut rgb = [vec![0f32; n], vec![0f32; n], vec![0f32; n]];
-        let mut luma = vec![0f32; n];
-        for (i, px) in small.pixels().enumerate() {
-            let [r, g, b] = px.0.map(f32::from);
-            rgb[0][i] = r;
-            rgb[1][i] = g;
-            rgb[2][i] = b;
-            luma[i] = 0.299 * r + 0.587 * g + 0.114 * b;
-        }
-        Planes {
-            w: w as usize,
-            h: h as usize,
-            rgb,
-            luma,
-        }
-    }
-}
-
 /// The gradient magnitude of a plane (Sobel, by imageproc), as f32.
 fn gradient(plane: &[f32], w: usize, h: usize) -> Vec<f32> {
     let gray = image::GrayImage::from_fn(w as u32, h as u32, |x, y| {
@@ -339,7 +302,7 @@ impl Reference {
             })
             .within(width, height)?;
         let (w, h) = working_size(region);
-        let planes = Planes::of(picture, region, w, h);
+        let planes = Planes::of(&picture.view(region.x, region.y, region.w, region.h), w, h);
         let grad = gradient(&planes.luma, planes.w, planes.h);
         let n = planes.w * planes.h;
         let colour = |k: usize| -> Vec<f32> {
@@ -390,7 +353,11 @@ impl Reference {
         }
         let reference = &self.planes;
         let (w, h) = (reference.w, reference.h);
-        let planes = Planes::of(frame, self.region, w as u32, h as u32);
+        let planes = Planes::of(
+            &frame.view(self.region.x, self.region.y, self.region.w, self.region.h),
+            w as u32,
+            h as u32,
+        );
         let grad = gradient(&planes.luma, w, h);
         let shift = align::shift(&self.grad, &grad, w, h);
         let aligned = align::apply(&planes, &grad, shift);
@@ -419,7 +386,7 @@ impl Reference {
                 }
             })
             .collect();
-        patches.sort_by(|a, b| b.area_px.cmp(&a.area_px));
+        patches.sort_by_key(|p| std::cmp::Reverse(p.area_px));
         let unsure = diff.threshold > MAX_THRESHOLD;
         Ok(Verdict {
             clear: patches.is_empty() && !unsure,
@@ -427,10 +394,7 @@ impl Reference {
             differs_percent: 100.0 * differing as f64 / compared,
             patches,
             region: self.region,
-            shift_px: [
-                f64::from(shift.0) / scale,
-                f64::from(shift.1) / scale,
-            ],
+            shift_px: [f64::from(shift.0) / scale, f64::from(shift.1) / scale],
             light: f64::from(field.median),
             threshold: f64::from(diff.threshold),
             mm_per_px,
@@ -569,9 +533,7 @@ fn difference(reference: &Reference, frame: &align::Aligned, field: &light::Fiel
                 for xx in x - 1..=x + 1 {
                     let d = apart(f, rgb(r, yy * w + xx), g, lg);
                     let s = (0..3)
-                        .map(|k| {
-                            d[k] / (thresholds[k] + EDGE_SLACK * reference.edges[k][i])
-                        })
+                        .map(|k| d[k] / (thresholds[k] + EDGE_SLACK * reference.edges[k][i]))
                         .fold(0f32, f32::max);
                     best = best.min(s);
                 }

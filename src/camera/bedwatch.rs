@@ -13,7 +13,7 @@
 
 use super::hub::Cameras;
 use crate::bedcheck::{Reference, Region};
-use crate::daemon::bed::{Bed, CameraProblem, CheckRecord, Clearing, ClearedBy, Why};
+use crate::daemon::bed::{Bed, CameraProblem, CheckRecord, ClearedBy, Clearing, Why};
 use crate::daemon::farm::Farm;
 use crate::daemon::job::now_s;
 use crate::daemon::store::BedChange;
@@ -95,7 +95,8 @@ pub(crate) async fn watch(
         };
         if let Some(after_s) = due {
             let span = tracing::info_span!("bed check", printer = %printer);
-            let checked = check(&farm, &cameras, &printer, after_s, &mut reference).instrument(span);
+            let checked =
+                check(&farm, &cameras, &printer, after_s, &mut reference).instrument(span);
             let answer = tokio::select! {
                 a = checked => a,
                 _ = stop.cancelled() => return,
@@ -114,8 +115,12 @@ pub(crate) async fn watch(
                 }),
             };
             match farm.jobs().change_bed(&printer, change).await {
-                Ok(_) => tracing::info!(printer = %printer, job = job.as_deref().unwrap_or("-"), "bed checked"),
-                Err(e) => tracing::warn!(printer = %printer, error = %e, "the bed check's answer came too late"),
+                Ok(_) => {
+                    tracing::info!(printer = %printer, job = job.as_deref().unwrap_or("-"), "bed checked")
+                }
+                Err(e) => {
+                    tracing::warn!(printer = %printer, error = %e, "the bed check's answer came too late")
+                }
             }
             continue;
         }
@@ -199,7 +204,11 @@ async fn check(
     let (cams, name) = (Arc::clone(cameras), printer.to_string());
     let picture = match tokio::task::spawn_blocking(move || cams.picture(&name, true)).await {
         Ok(Some(Ok(p))) => p,
-        Ok(Some(Err(e))) => return no(CameraProblem::Unreadable { error: e.to_string() }),
+        Ok(Some(Err(e))) => {
+            return no(CameraProblem::Unreadable {
+                error: e.to_string(),
+            })
+        }
         _ => return no(CameraProblem::Offline { error: None }),
     };
     let job = farm.store().gate(printer).last_job;
@@ -249,7 +258,11 @@ async fn check(
     let record = match compared {
         Ok(Ok(r)) => r,
         Ok(Err(e)) => return no(CameraProblem::Unreadable { error: e }),
-        Err(e) => return no(CameraProblem::Unreadable { error: e.to_string() }),
+        Err(e) => {
+            return no(CameraProblem::Unreadable {
+                error: e.to_string(),
+            })
+        }
     };
     tracing::info!(printer, summary = %record.verdict.summary(), "bed check");
     let to = if record.verdict.clear {

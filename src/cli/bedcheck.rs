@@ -62,7 +62,7 @@ fn read(path: &PathBuf) -> anyhow::Result<Vec<u8>> {
 pub(crate) fn run(a: Args) -> anyhow::Result<ExitCode> {
     // 1 is "not clear": an error must not read as an answer.
     check(a).or_else(|e| {
-        eprintln!("error: {}", super::describe(&e));
+        eprintln!("error: {}", super::error::describe(&e));
         Ok(ExitCode::from(2))
     })
 }

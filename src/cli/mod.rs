@@ -3,11 +3,13 @@
 //! `anyhow` is used only in this layer.
 
 use clap::{Parser, Subcommand};
+use error::describe;
 use std::process::ExitCode;
 
 pub(crate) mod bedcheck;
 pub(crate) mod control;
 pub(crate) mod enhance;
+mod error;
 pub(crate) mod keys;
 pub(crate) mod logging;
 pub(crate) mod notify;
@@ -124,17 +126,4 @@ pub(crate) fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
-}
-
-/// The error and its causes on one line. The library's errors already name their cause
-/// in their own message, so a cause is added only when its text is not there yet.
-pub(crate) fn describe(err: &anyhow::Error) -> String {
-    let mut message = err.to_string();
-    for cause in err.chain().skip(1) {
-        let cause = cause.to_string();
-        if !message.contains(&cause) {
-            message = format!("{message}: {cause}");
-        }
-    }
-    message
 }

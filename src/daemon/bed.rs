@@ -1,7 +1,8 @@
 //! A printer's bed between prints ([`Bed`]) and its one table of legal changes
 //! ([`Bed::can_go_to`]), which the job store applies to every change of a bed, as it
-//! applies [`JobState::can_go_to`] to jobs; what a bed's clearing left in a job's record
-//! ([`Clearing`]); and how each printer's bed is cleared (`bed_clear`, [`ClearBy`]).
+//! applies the jobs' own table (`JobState::can_go_to`) to jobs; what a bed's clearing
+//! left in a job's record ([`Clearing`]); and how each printer's bed is cleared
+//! (`bed_clear`, [`ClearBy`]).
 //!
 //! A print ends on a bed that is then clear only once someone makes it so: a person
 //! (`crispen clear`, the dashboard), or the printer's eject sequence, trusted
@@ -9,8 +10,6 @@
 //! is recorded before each step makes a restart safe: an eject that had begun is never run
 //! again (the bed waits for a person), a check that had not answered is made again (it
 //! moves nothing).
-//!
-//! [`JobState::can_go_to`]: super::job::JobState::can_go_to
 
 use serde::{Deserialize, Serialize};
 
@@ -41,9 +40,7 @@ impl ClearBy {
         [ClearBy::Person, ClearBy::Eject, ClearBy::EjectAndCheck]
             .into_iter()
             .find(|c| c.name() == text)
-            .ok_or_else(|| {
-                format!("\"person\", \"eject\" or \"eject-and-check\", got {text:?}")
-            })
+            .ok_or_else(|| format!("\"person\", \"eject\" or \"eject-and-check\", got {text:?}"))
     }
 }
 
@@ -242,16 +239,20 @@ impl Bed {
     pub fn describe(&self) -> Option<String> {
         match self {
             Bed::Clear { .. } => None,
-            Bed::Waiting { why: None } => Some("the print is on the bed: remove it, then clear the bed".into()),
+            Bed::Waiting { why: None } => {
+                Some("the print is on the bed: remove it, then clear the bed".into())
+            }
             Bed::Waiting { why: Some(why) } => Some(why.describe()),
             Bed::EjectDue { .. } => Some("the eject sequence is to run".into()),
             Bed::Ejecting { .. } => Some("the eject sequence is running".into()),
-            Bed::CheckDue { before: CheckFor::AfterEject, .. } => {
-                Some("the camera is checking the bed after the eject".into())
-            }
-            Bed::CheckDue { before: CheckFor::NextJob, .. } => {
-                Some("the camera is checking the bed before the next job".into())
-            }
+            Bed::CheckDue {
+                before: CheckFor::AfterEject,
+                ..
+            } => Some("the camera is checking the bed after the eject".into()),
+            Bed::CheckDue {
+                before: CheckFor::NextJob,
+                ..
+            } => Some("the camera is checking the bed before the next job".into()),
         }
     }
 }
@@ -312,14 +313,20 @@ mod tests {
     #[test]
     fn bed_table_is_exactly_this() {
         let clear = |by| Bed::Clear { by, at_s: 1.0 };
-        let due = |before| Bed::CheckDue { after_s: 1.0, before };
+        let due = |before| Bed::CheckDue {
+            after_s: 1.0,
+            before,
+        };
         let states = [
             clear(ClearedBy::Person),
             clear(ClearedBy::Camera),
             clear(ClearedBy::Eject),
             Bed::Waiting { why: None },
             Bed::EjectDue { check: true },
-            Bed::Ejecting { since_s: 1.0, check: true },
+            Bed::Ejecting {
+                since_s: 1.0,
+                check: true,
+            },
             due(CheckFor::AfterEject),
             due(CheckFor::NextJob),
         ];
@@ -344,7 +351,10 @@ mod tests {
 
     #[test]
     fn bed_clear_is_read_as_written() {
-        assert_eq!(ClearBy::parse("eject-and-check"), Ok(ClearBy::EjectAndCheck));
+        assert_eq!(
+            ClearBy::parse("eject-and-check"),
+            Ok(ClearBy::EjectAndCheck)
+        );
         assert!(ClearBy::parse("robot").unwrap_err().contains("\"eject\""));
     }
 }

@@ -22,11 +22,11 @@
 //! ([`PrinterOwner`]); it follows the job store's snapshot (a job ready, its bed cleared),
 //! the config and the shared farm's database state, never a global wake-up.
 
+use super::bed::Bed;
 use super::farm::{
     Farm, FarmView, LiveProgress, PrintCommand, PrinterLive, PrinterOwner, PrinterState,
     PrinterTemperatures,
 };
-use super::bed::Bed;
 use super::job::{JobState, PrintReport};
 use crate::marlin::gcode::{GcodeError, GcodeProgram};
 use crate::marlin::stream::{

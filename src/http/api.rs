@@ -522,7 +522,11 @@ async fn clear(
                 .map_err(ApiError::from)?;
         note = match taken {
             Ok(()) => "; the camera's picture of it is the reference of the bed check now".into(),
-            Err(e) if reference => return Err(ApiError::conflict(format!("{printer}: no reference taken: {e}; the bed was not marked clear"))),
+            Err(e) if reference => {
+                return Err(ApiError::conflict(format!(
+                    "{printer}: no reference taken: {e}; the bed was not marked clear"
+                )))
+            }
             Err(e) => format!("; no reference of the empty bed taken: {e}"),
         };
     } else if reference {

@@ -51,17 +51,21 @@ impl EjectSpec {
     ) -> Result<Eject, (&'static str, String)> {
         let gcode = match (self.gcode, self.file) {
             (Some(g), None) => {
-                if g.len() as u64 > super::MAX_CODE_BYTES {
+                if g.len() as u64 > super::code::MAX_CODE_BYTES {
                     return Err((
                         "gcode",
-                        format!("larger than {} bytes; an eject sequence is a few lines", super::MAX_CODE_BYTES),
+                        format!(
+                            "larger than {} bytes; an eject sequence is a few lines",
+                            super::code::MAX_CODE_BYTES
+                        ),
                     ));
                 }
                 g
             }
             (None, Some(f)) => {
                 let under = f.is_relative()
-                    && f.components().all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
+                    && f.components()
+                        .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
                 if !under || f.as_os_str().is_empty() {
                     return Err((
                         "file",
@@ -71,15 +75,19 @@ impl EjectSpec {
                         ),
                     ));
                 }
-                super::read_code(&config_dir.join(&f)).map_err(|m| ("file", m))?
+                super::code::read_code(&config_dir.join(&f)).map_err(|m| ("file", m))?
             }
             (Some(_), Some(_)) => {
-                return Err(("file", "give `gcode` (the sequence) or `file`, not both".into()))
+                return Err((
+                    "file",
+                    "give `gcode` (the sequence) or `file`, not both".into(),
+                ))
             }
             (None, None) => {
                 return Err((
                     "gcode",
-                    "missing: give the sequence as `gcode` or a `file` under the config's folder".into(),
+                    "missing: give the sequence as `gcode` or a `file` under the config's folder"
+                        .into(),
                 ))
             }
         };
@@ -151,24 +159,39 @@ mod tests {
     fn an_eject_is_bounded_and_read_from_under_the_config() {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("push.gcode"), "G28\nG1 Y220\n").unwrap();
-        let e = spec("file = \"push.gcode\"\nrelease_bed_c = 30\nmax_height_mm = 60\nallow = [\"m1234\"]")
-            .check(205.0, dir.path())
-            .unwrap();
+        let e = spec(
+            "file = \"push.gcode\"\nrelease_bed_c = 30\nmax_height_mm = 60\nallow = [\"m1234\"]",
+        )
+        .check(205.0, dir.path())
+        .unwrap();
         assert_eq!(e.gcode, "G28\nG1 Y220\n");
         assert_eq!((e.release_bed_c, e.max_height_mm), (Some(30.0), 60.0));
         assert_eq!(e.allow, ["M1234"]);
         for (text, key) in [
             ("file = \"../push.gcode\"\nmax_height_mm = 60", "file"),
             ("file = \"/etc/push.gcode\"\nmax_height_mm = 60", "file"),
-            ("gcode = \"G28\"\nfile = \"push.gcode\"\nmax_height_mm = 60", "file"),
+            (
+                "gcode = \"G28\"\nfile = \"push.gcode\"\nmax_height_mm = 60",
+                "file",
+            ),
             ("max_height_mm = 60", "gcode"),
             ("gcode = \"G28\"", "max_height_mm"),
             ("gcode = \"G28\"\nmax_height_mm = 300", "max_height_mm"),
-            ("gcode = \"G28\"\nmax_height_mm = 60\nrelease_bed_c = 95", "release_bed_c"),
-            ("gcode = \"G28\"\nmax_height_mm = 60\nallow = [\"G1\"]", "allow"),
+            (
+                "gcode = \"G28\"\nmax_height_mm = 60\nrelease_bed_c = 95",
+                "release_bed_c",
+            ),
+            (
+                "gcode = \"G28\"\nmax_height_mm = 60\nallow = [\"G1\"]",
+                "allow",
+            ),
             ("gcode = \"  \"\nmax_height_mm = 60", "gcode"),
         ] {
-            assert_eq!(spec(text).check(205.0, dir.path()).unwrap_err().0, key, "{text}");
+            assert_eq!(
+                spec(text).check(205.0, dir.path()).unwrap_err().0,
+                key,
+                "{text}"
+            );
         }
     }
 }

@@ -11,8 +11,11 @@
 //! define: this module builds on `marlin`, never the other way round, and `slice` builds
 //! on this one.
 
+mod code;
 pub(crate) mod commands;
 pub mod eject;
+
+use code::read_code;
 
 use crate::marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};
@@ -255,8 +258,6 @@ pub(crate) const FILAMENT_MM: std::ops::RangeInclusive<f64> = 1.0..=3.5;
 pub(crate) const HOTEND_C: std::ops::RangeInclusive<f64> = 100.0..=450.0;
 pub(crate) const BED_C: std::ops::RangeInclusive<f64> = 0.0..=200.0;
 pub(crate) const EXTRUDERS: std::ops::RangeInclusive<u8> = 1..=8;
-/// The largest start or end code file read.
-pub(crate) const MAX_CODE_BYTES: u64 = 64 * 1024;
 /// At most this many machines in one config.
 pub(crate) const MAX_MACHINES: usize = 64;
 
@@ -524,22 +525,6 @@ fn eject_key(key: &'static str) -> &'static str {
         "allow" => "eject.allow",
         _ => "eject",
     }
-}
-
-/// Reads a start or end code file: text, at most [`MAX_CODE_BYTES`].
-pub(crate) fn read_code(path: &Path) -> Result<String, String> {
-    use std::io::Read;
-    let mut text = String::new();
-    std::fs::File::open(path)
-        .and_then(|f| f.take(MAX_CODE_BYTES + 1).read_to_string(&mut text))
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    if text.len() as u64 > MAX_CODE_BYTES {
-        return Err(format!(
-            "{}: larger than {MAX_CODE_BYTES} bytes; start and end code is a few lines",
-            path.display()
-        ));
-    }
-    Ok(text)
 }
 
 #[cfg(test)]

@@ -15,8 +15,8 @@
 //! name sorts first.
 
 use super::event::{Event, EventJob, EventKind};
-use crate::daemon::farm::{PrinterState, PrinterStatus};
 use crate::daemon::bed::Why;
+use crate::daemon::farm::{PrinterState, PrinterStatus};
 use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState};
 use crate::daemon::store::postgres::FarmHost;
@@ -245,8 +245,12 @@ impl Observer {
         let mut e = self.event(EventKind::BedNotClear, now);
         e.printer = Some(p.name.clone());
         e.reason = p.bed.describe();
-        if let (Some(dashboard), crate::daemon::bed::Bed::Waiting { why: Some(Why::NotClear { check }) }) =
-            (&self.dashboard, &p.bed)
+        if let (
+            Some(dashboard),
+            crate::daemon::bed::Bed::Waiting {
+                why: Some(Why::NotClear { check }),
+            },
+        ) = (&self.dashboard, &p.bed)
         {
             if let Some(picture) = &check.picture {
                 e.snapshot = Some(format!(
@@ -331,10 +335,9 @@ fn bed_stopped(bed: &crate::daemon::bed::Bed) -> bool {
     use crate::daemon::bed::Bed;
     match bed {
         Bed::Waiting { why } => why.is_some(),
-        Bed::Clear { .. }
-        | Bed::EjectDue { .. }
-        | Bed::Ejecting { .. }
-        | Bed::CheckDue { .. } => false,
+        Bed::Clear { .. } | Bed::EjectDue { .. } | Bed::Ejecting { .. } | Bed::CheckDue { .. } => {
+            false
+        }
     }
 }
 

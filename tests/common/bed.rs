@@ -150,8 +150,11 @@ impl BedCamera {
                         return;
                     }
                     let Ok(conn) = conn else { continue };
-                    let (cams, pictures, counter) =
-                        (Arc::clone(&cams), Arc::clone(&pictures), Arc::clone(&counter));
+                    let (cams, pictures, counter) = (
+                        Arc::clone(&cams),
+                        Arc::clone(&pictures),
+                        Arc::clone(&counter),
+                    );
                     std::thread::spawn(move || serve_bed(conn, &cams, &pictures, &counter));
                 }
             });
@@ -239,7 +242,9 @@ fn serve_bed(
     let (record, removes, removed) = match cams.get(printer) {
         Some(c) => (c.record.clone(), c.eject_removes, c.removed),
         None => {
-            let _ = conn.write_all(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
+            let _ = conn.write_all(
+                b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
+            );
             return;
         }
     };

@@ -38,9 +38,13 @@ fn the_bed_pictures_are_found_clear_or_not_as_measured() {
         "false not clear {false_not_clear:.1} %: {:?}",
         listed(&|c| c.clear && !c.verdict.clear)
     );
-    let refused_in_good_light =
-        listed(&|c| c.clear && !c.verdict.clear && ["evening", "daylight"].contains(&c.light.as_str()));
-    assert!(refused_in_good_light.is_empty(), "{refused_in_good_light:?}");
+    let refused_in_good_light = listed(&|c| {
+        c.clear && !c.verdict.clear && ["evening", "daylight"].contains(&c.light.as_str())
+    });
+    assert!(
+        refused_in_good_light.is_empty(),
+        "{refused_in_good_light:?}"
+    );
     let missed = listed(&|c| {
         !c.clear && c.verdict.clear && (c.what != "part" || c.size_mm.is_some_and(|s| s >= 10.0))
     });
@@ -72,7 +76,11 @@ fn bed_check_on_the_command_line() {
         .collect::<Vec<_>>()
         .join(",");
     let run = |args: &[&str]| {
-        let out = Command::new(BIN).arg("bed-check").args(args).output().unwrap();
+        let out = Command::new(BIN)
+            .arg("bed-check")
+            .args(args)
+            .output()
+            .unwrap();
         (
             out.status.code(),
             String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -81,7 +89,12 @@ fn bed_check_on_the_command_line() {
     };
     let path = |f: &str| dir().join(f).display().to_string();
     let empty = path("pei-reference.jpg");
-    let (code, out, _) = run(&[&empty, &path("pei-05-empty-daylight.jpg"), "--region", &region]);
+    let (code, out, _) = run(&[
+        &empty,
+        &path("pei-05-empty-daylight.jpg"),
+        "--region",
+        &region,
+    ]);
     assert_eq!(code, Some(0), "{out}");
     assert!(out.starts_with("clear: 0.0 % of the bed differs"), "{out}");
 
@@ -112,9 +125,15 @@ fn bed_check_on_the_command_line() {
     let picture = image::open(&marked).unwrap().to_rgb8();
     assert_eq!(picture.dimensions(), (960, 540));
     // The patch's box is drawn in red around it.
-    let (x, y) = (patch["x"].as_u64().unwrap() as u32, patch["y"].as_u64().unwrap() as u32);
+    let (x, y) = (
+        patch["x"].as_u64().unwrap() as u32,
+        patch["y"].as_u64().unwrap() as u32,
+    );
     let px = picture.get_pixel(x - 4, y + 2).0;
-    assert!(px[0] > 180 && px[1] < 90 && px[2] < 90, "red box at the patch: {px:?}");
+    assert!(
+        px[0] > 180 && px[1] < 90 && px[2] < 90,
+        "red box at the patch: {px:?}"
+    );
 
     let (code, _, err) = run(&[&empty, &path("pictures.json")]);
     assert_eq!(code, Some(2));

@@ -22,12 +22,17 @@ use std::time::Duration;
 const KEY: &str = "night-test-key-0123456789";
 const JOBS: usize = 12;
 
-/// A small print: heat, three layers of a square, the marker the camera and the test
+/// A small print: heat, six layers of a square, the marker the camera and the test
 /// read, cool down. 1.2 mm tall.
 fn job(name: &str) -> String {
+    job_of(name, 6)
+}
+
+/// A print of `layers` layers of 0.2 mm.
+fn job_of(name: &str, layers: u32) -> String {
     let mut g = String::from("M140 S50\nM104 S200\nM190 S50\nM109 S200\nG28\nG92 E0\n");
     let mut e = 0.0;
-    for layer in 1..=6 {
+    for layer in 1..=layers {
         let z = 0.2 * f64::from(layer);
         g += &format!(";LAYER_CHANGE\n;Z:{z:.1}\nG1 Z{z:.1} F600\nG1 X90 Y90 F6000\n");
         for (x, y) in [(110, 90), (110, 110), (90, 110), (90, 90)] {
@@ -67,11 +72,23 @@ struct Night {
 
 impl Night {
     fn status(&self) -> Value {
-        wait_for(&self.config, &self.log, Duration::from_secs(30), "status", |_| true)
+        wait_for(
+            &self.config,
+            &self.log,
+            Duration::from_secs(30),
+            "status",
+            |_| true,
+        )
     }
 
     fn wait(&self, limit_s: u64, what: &str, check: impl Fn(&Value) -> bool) -> Value {
-        wait_for(&self.config, &self.log, Duration::from_secs(limit_s), what, check)
+        wait_for(
+            &self.config,
+            &self.log,
+            Duration::from_secs(limit_s),
+            what,
+            check,
+        )
     }
 
     fn record(&self, printer: &str) -> PathBuf {
@@ -88,9 +105,9 @@ impl Night {
     fn start(&self) -> Daemon {
         let d = Daemon::start(&self.config, &self.log);
         self.wait(30, "the printers connected", |s| {
-            s["printers"].as_array().is_some_and(|p| {
-                p.len() == 4 && p.iter().all(|p| p["state"] != "connecting")
-            })
+            s["printers"]
+                .as_array()
+                .is_some_and(|p| p.len() == 4 && p.iter().all(|p| p["state"] != "connecting"))
         });
         d
     }
@@ -101,7 +118,10 @@ impl Night {
 }
 
 fn bed_state(s: &Value, p: &str) -> String {
-    printer(s, p)["bed"]["state"].as_str().unwrap_or("").to_string()
+    printer(s, p)["bed"]["state"]
+        .as_str()
+        .unwrap_or("")
+        .to_string()
 }
 
 fn bed_why(s: &Value, p: &str) -> String {
@@ -117,9 +137,90 @@ fn state_of(s: &Value, file: &str) -> String {
 
 fn drop_job(hot: &Path, name: &str, only: Option<&str>) {
     if let Some(p) = only {
-        std::fs::write(hot.join(format!("{name}.toml")), format!("printer = \"{p}\"\n")).unwrap();
+        std::fs::write(
+            hot.join(format!("{name}.toml")),
+            format!("printer = \"{p}\"\n"),
+        )
+        .unwrap();
     }
     common::daemon::drop_model(hot, name, job(name).as_bytes());
+}
+
+/// A bed the machine may not clear waits for a person, with the reason: a check the
+/// camera cannot make (no picture of the empty bed yet: the eject ran, the bed is not
+/// called clear), and a print taller than the sequence may push off (no eject at all). A
+/// person's clear takes the missing reference.
+#[test]
+fn a_bed_the_machine_may_not_clear_waits_for_a_person() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().to_path_buf();
+    let hot = root.join("hot");
+    std::fs::create_dir_all(&hot).unwrap();
+    let camera = BedCamera::start();
+    let record = root.join("e.rec");
+    camera.add("e", &record, true);
+    let config = root.join("crispen.toml");
+    let log = root.join("daemon.log");
+    std::fs::write(
+        &config,
+        format!(
+            "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.3\n\
+             [camera]\nrefresh_s = 1\n\
+             [[printer]]\nname = \"e\"\nfirmware = \"marlin2\"\nbed_clear = \"eject-and-check\"\n\
+             [printer.simulate]\ntime_scale = 0.05\nrecord = \"{}\"\n\
+             [printer.camera]\nsnapshot = \"{}\"\n\
+             [printer.eject]\ngcode = \"\"\"\n{}\"\"\"\nmax_height_mm = 2\n\
+             [[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"e\"]\n",
+            record.display(),
+            camera.url("e"),
+            eject_gcode(false),
+        ),
+    )
+    .unwrap();
+    let _daemon = Daemon::start(&config, &log);
+    let wait = |what: &str, check: &dyn Fn(&Value) -> bool| {
+        wait_for(&config, &log, Duration::from_secs(120), what, check)
+    };
+
+    common::daemon::drop_model(&hot, "low.gcode", job_of("low.gcode", 6).as_bytes());
+    let s = wait("e's bed waiting: no reference to check it with", &|s| {
+        bed_state(s, "e") == "waiting" && printer(s, "e")["state"] == "bed_not_cleared"
+    });
+    let why = &printer(&s, "e")["bed"]["why"];
+    assert_eq!(why["kind"], "no_check", "{why}");
+    assert_eq!(why["problem"]["kind"], "no_reference", "{why}");
+    assert_eq!(
+        prints_and_ejects(&record),
+        (1, 1),
+        "the eject ran, then no check"
+    );
+    let (ok, out) = ctl(&config, &["status"]);
+    assert!(
+        ok && out.contains("no picture of the empty bed yet"),
+        "{out}"
+    );
+
+    camera.person_cleared("e");
+    let (ok, out) = ctl(&config, &["clear", "e"]);
+    assert!(ok && out.contains("reference"), "{out}");
+    assert!(root.join("spool/bed/e/reference.jpg").is_file());
+
+    // 3 mm tall, over the sequence's 2 mm: printed, never ejected.
+    common::daemon::drop_model(&hot, "tall.gcode", job_of("tall.gcode", 15).as_bytes());
+    let s = wait("e's bed waiting: the print too tall to push off", &|s| {
+        state_of(s, "tall.gcode") == "done" && bed_state(s, "e") == "waiting"
+    });
+    let why = &printer(&s, "e")["bed"]["why"];
+    assert_eq!(why["kind"], "too_tall", "{why}");
+    assert!(
+        (why["height_mm"].as_f64().unwrap() - 3.0).abs() < 0.01,
+        "{why}"
+    );
+    assert_eq!(
+        prints_and_ejects(&record),
+        (2, 1),
+        "no eject of a tall print"
+    );
 }
 
 #[test]
@@ -164,10 +265,17 @@ fn a_night_of_printing_clears_its_own_beds() {
         let port = if name == "d" {
             format!("port = \"{}\"\n", d_port.display())
         } else {
-            format!("[printer.simulate]\ntime_scale = 0.05\nrecord = \"{}\"\n", record.display())
+            format!(
+                "[printer.simulate]\ntime_scale = 0.05\nrecord = \"{}\"\n",
+                record.display()
+            )
         };
         // The table order: the printer's keys, then its sub-tables.
-        let (keys, sim) = port.split_once("[printer.simulate]").map_or((port.as_str(), String::new()), |(k, s)| (k, format!("[printer.simulate]{s}")));
+        let (keys, sim) = port
+            .split_once("[printer.simulate]")
+            .map_or((port.as_str(), String::new()), |(k, s)| {
+                (k, format!("[printer.simulate]{s}"))
+            });
         config += &format!(
             "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\nbed_clear = \"eject-and-check\"\n{keys}{sim}\
              [printer.camera]\nsnapshot = \"{}\"\n\
@@ -182,7 +290,8 @@ fn a_night_of_printing_clears_its_own_beds() {
         // c's eject "fails to remove the part": its camera keeps showing it.
         camera.add(name, &record, name != "c");
     }
-    config += "[[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"a\", \"b\", \"c\", \"d\"]\n";
+    config +=
+        "[[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"a\", \"b\", \"c\", \"d\"]\n";
     let night = Night {
         config: root.join("crispen.toml"),
         log: root.join("daemon.log"),
@@ -209,7 +318,9 @@ fn a_night_of_printing_clears_its_own_beds() {
             && p["detail"].as_str() == Some("ejecting: the eject sequence is running")
     });
     night.wait(60, "a's eject in its dwell", |_| {
-        common::daemon::recorded(&night.record("a")).iter().any(|l| l == HOLD)
+        common::daemon::recorded(&night.record("a"))
+            .iter()
+            .any(|l| l == HOLD)
     });
     daemon.kill9();
     // The operator's sequence from now on, without the hold.
@@ -228,7 +339,12 @@ fn a_night_of_printing_clears_its_own_beds() {
     let s = night.wait(30, "a's bed waiting after the interrupted eject", |s| {
         bed_state(s, "a") == "waiting" && printer(s, "a")["state"] == "bed_not_cleared"
     });
-    assert_eq!(bed_why(&s, "a"), "eject_interrupted", "{}", printer(&s, "a"));
+    assert_eq!(
+        bed_why(&s, "a"),
+        "eject_interrupted",
+        "{}",
+        printer(&s, "a")
+    );
     assert_eq!(state_of(&s, "part-01.gcode"), "done");
     assert_eq!(ejects_begun("a"), begun, "the eject is never sent again");
     camera.person_cleared("a");
@@ -250,7 +366,12 @@ fn a_night_of_printing_clears_its_own_beds() {
     let s = night.wait(60, "b's bed checked clear after the restart", |s| {
         bed_state(s, "b") == "clear"
     });
-    assert_eq!(printer(&s, "b")["bed"]["by"], "camera", "{}", printer(&s, "b"));
+    assert_eq!(
+        printer(&s, "b")["bed"]["by"],
+        "camera",
+        "{}",
+        printer(&s, "b")
+    );
 
     // 3. The rest of the night: ten jobs for any printer.
     let names: Vec<String> = (1..=JOBS).map(|i| format!("part-{i:02}.gcode")).collect();
@@ -261,9 +382,20 @@ fn a_night_of_printing_clears_its_own_beds() {
     let s = night.wait(240, "d's failed print waiting for a person", |s| {
         names.iter().any(|n| state_of(s, n) == "failed") && bed_state(s, "d") == "waiting"
     });
-    assert!(printer(&s, "d")["bed"]["why"].is_null(), "{}", printer(&s, "d"));
-    assert_eq!(prints_and_ejects(&d_record), (0, 0), "no eject after a failed print");
-    let failed: Vec<&String> = names.iter().filter(|n| state_of(&s, n) == "failed").collect();
+    assert!(
+        printer(&s, "d")["bed"]["why"].is_null(),
+        "{}",
+        printer(&s, "d")
+    );
+    assert_eq!(
+        prints_and_ejects(&d_record),
+        (0, 0),
+        "no eject after a failed print"
+    );
+    let failed: Vec<&String> = names
+        .iter()
+        .filter(|n| state_of(&s, n) == "failed")
+        .collect();
     assert_eq!(failed.len(), 1, "{s:#}");
     let (ok, out) = ctl(&night.config, &["clear", "d"]);
     assert!(ok, "{out}");
@@ -288,7 +420,10 @@ fn a_night_of_printing_clears_its_own_beds() {
     );
     let event = told.iter().find(|r| of(r, "c")).unwrap().json();
     assert!(
-        event["reason"].as_str().unwrap().contains("% of the bed differs"),
+        event["reason"]
+            .as_str()
+            .unwrap()
+            .contains("% of the bed differs"),
         "{event}"
     );
     let link = event["snapshot"].as_str().expect("the picture's link");
@@ -299,11 +434,7 @@ fn a_night_of_printing_clears_its_own_beds() {
 
     // Every good job is printed, each once, by a, b and d; c keeps its first.
     night.wait(600, "every job printed", |s| {
-        names
-            .iter()
-            .filter(|n| state_of(s, n) == "done")
-            .count()
-            == JOBS - 1
+        names.iter().filter(|n| state_of(s, n) == "done").count() == JOBS - 1
     });
     // The last prints' ejects and checks, after them.
     let s = night.wait(120, "every bed but c's clear again", |s| {
@@ -326,7 +457,12 @@ fn a_night_of_printing_clears_its_own_beds() {
     }
     // Each good print was ejected once and then checked, in its job's record.
     let jobs = night.get("/api/v1/jobs").json();
-    for j in jobs.as_array().unwrap().iter().filter(|j| j["state"] == "done") {
+    for j in jobs
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|j| j["state"] == "done")
+    {
         let id = j["id"].as_str().unwrap();
         let detail = night.get(&format!("/api/v1/jobs/{id}")).json();
         let steps: Vec<&str> = detail["job"]["clearing"]
@@ -345,7 +481,11 @@ fn a_night_of_printing_clears_its_own_beds() {
         let begun = ejects_begun(p);
         assert_eq!(begun, prints, "{p}: one eject begun per good print");
         let cut = usize::from(p == "a");
-        assert_eq!(ejects, prints - cut, "{p}: every eject but the one cut ran to its end");
+        assert_eq!(
+            ejects,
+            prints - cut,
+            "{p}: every eject but the one cut ran to its end"
+        );
     }
     assert_eq!(prints_and_ejects(&night.record("c")), (1, 1));
     let s = night.status();
@@ -353,7 +493,10 @@ fn a_night_of_printing_clears_its_own_beds() {
 
     // What the farm says of it: status, metrics.
     let (ok, out) = ctl(&night.config, &["status"]);
-    assert!(ok && out.contains("bed waiting: the camera found the bed not clear"), "{out}");
+    assert!(
+        ok && out.contains("bed waiting: the camera found the bed not clear"),
+        "{out}"
+    );
     let metrics = night.get("/metrics").text();
     for line in [
         "crispen_ejects_total{printer=\"c\",result=\"done\"} 1",
@@ -363,7 +506,9 @@ fn a_night_of_printing_clears_its_own_beds() {
         assert!(metrics.contains(line), "{line} in\n{metrics}");
     }
     assert!(
-        metrics.lines().any(|l| l.starts_with("crispen_bed_checks_total{printer=\"a\",result=\"clear\"}") && !l.ends_with(" 0")),
+        metrics.lines().any(|l| l
+            .starts_with("crispen_bed_checks_total{printer=\"a\",result=\"clear\"}")
+            && !l.ends_with(" 0")),
         "{metrics}"
     );
 
@@ -410,6 +555,10 @@ fn a_night_of_printing_clears_its_own_beds() {
                && !!img && img.naturalWidth > 0)
                || [steps.length, steps.length && steps[steps.length - 1].textContent, !!img && img.naturalWidth].join(' ');"
         ),
+    );
+    browser.exec(
+        "document.querySelector('#clearing').scrollIntoView()",
+        serde_json::json!([]),
     );
     browser.screenshot(&shots.join("night-job-not-clear.png"));
     drop(daemon);

@@ -167,7 +167,13 @@ fn check_folder(
                 .map_err(|m| invalid(section.clone(), "bed_clear", m))?;
             for p in printers.iter().filter(|p| f.printers.contains(&p.name)) {
                 super::printers::needs_for(clear, p.eject.is_some(), p.camera.is_some()).map_err(
-                    |m| invalid(section.clone(), "bed_clear", format!("printer {:?}: {m}", p.name)),
+                    |m| {
+                        invalid(
+                            section.clone(),
+                            "bed_clear",
+                            format!("printer {:?}: {m}", p.name),
+                        )
+                    },
                 )?;
             }
             Some(clear)

@@ -68,7 +68,11 @@ pub(super) fn eject_fits(
             allowed.allow.push(code.clone());
         }
     }
-    code_fits(&eject.gcode, &allowed, "the sequence runs with nobody there")
+    code_fits(
+        &eject.gcode,
+        &allowed,
+        "the sequence runs with nobody there",
+    )
 }
 
 /// `code` loads as a job's lines for `machine`'s firmware, passes its policy and asks for

@@ -148,7 +148,14 @@ fn check_printer(
         ));
     }
     let tags = p.tags.unwrap_or_default();
-    let (eject, bed_clear) = clearing_of(&section, p.eject, p.bed_clear.as_deref(), &machine, camera.is_some(), cx)?;
+    let (eject, bed_clear) = clearing_of(
+        &section,
+        p.eject,
+        p.bed_clear.as_deref(),
+        &machine,
+        camera.is_some(),
+        cx,
+    )?;
     let port = port_of(section, &p.name, p.port, p.simulate, cx, warnings)?;
     Ok(PrinterConfig {
         eject,
@@ -182,18 +189,22 @@ fn clearing_of(
     let eject_section = format!("{section}.eject");
     let eject = match spec {
         Some(spec) => {
+            // A sequence the policy refuses is named by the key that gave it.
+            let code_key = if spec.file.is_some() { "file" } else { "gcode" };
             let eject = spec
                 .check(machine.bed_mm[2], &anchor(std::path::Path::new(".")))
                 .map_err(|(key, m)| invalid(eject_section.clone(), key, m))?;
             super::machines::eject_fits(&eject, machine)
-                .map_err(|m| invalid(eject_section.clone(), "gcode", m))?;
+                .map_err(|m| invalid(eject_section.clone(), code_key, m))?;
             Some(eject)
         }
         None => machine.eject.clone(),
     };
     let bed_clear = match bed_clear {
         None => ClearBy::Person,
-        Some(text) => ClearBy::parse(text).map_err(|m| invalid(section.to_string(), "bed_clear", m))?,
+        Some(text) => {
+            ClearBy::parse(text).map_err(|m| invalid(section.to_string(), "bed_clear", m))?
+        }
     };
     needs_for(bed_clear, eject.is_some(), has_camera)
         .map_err(|m| invalid(section.to_string(), "bed_clear", m))?;

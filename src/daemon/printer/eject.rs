@@ -171,7 +171,9 @@ async fn cool(
                     p.temperatures = t;
                     p.detail = Some(format!(
                         "{COOLING} to {release_c:.0} °C{}",
-                        bed_c.map(|c| format!(" (now {c:.0} °C)")).unwrap_or_default()
+                        bed_c
+                            .map(|c| format!(" (now {c:.0} °C)"))
+                            .unwrap_or_default()
                     ));
                 });
                 if bed_c.is_some_and(|c| c <= release_c) {
@@ -187,7 +189,13 @@ async fn cool(
 }
 
 /// Sets the bed from `from` to `to`, with a step for the last job's record.
-async fn settle(farm: &Farm, printer: &str, from: &'static [&'static str], to: Bed, record: Option<Clearing>) {
+async fn settle(
+    farm: &Farm,
+    printer: &str,
+    from: &'static [&'static str],
+    to: Bed,
+    record: Option<Clearing>,
+) {
     let change = BedChange {
         from: Some(from),
         to,
@@ -222,7 +230,9 @@ pub(super) async fn run(
             .and_then(|p| p.eject.clone())
         else {
             // A reload took the printer's sequence away since the print ended.
-            let to = Bed::Waiting { why: Some(Why::NoEject) };
+            let to = Bed::Waiting {
+                why: Some(Why::NoEject),
+            };
             settle(farm, printer, &["eject_due"], to, None).await;
             return JobEnd::default();
         };
@@ -236,7 +246,11 @@ pub(super) async fn run(
                 Cooled::Yes => {}
                 Cooled::Changed => return JobEnd::default(),
                 Cooled::TimedOut(bed_c) => {
-                    tracing::warn!(release_c, bed_c, "the bed did not cool in time; it waits for a person");
+                    tracing::warn!(
+                        release_c,
+                        bed_c,
+                        "the bed did not cool in time; it waits for a person"
+                    );
                     let to = Bed::Waiting {
                         why: Some(Why::StayedWarm { bed_c, release_c }),
                     };
@@ -245,11 +259,17 @@ pub(super) async fn run(
                 }
                 Cooled::Lost(why) => {
                     super::lost_between_jobs(sup, why);
-                    return JobEnd { lost: true, halted: None };
+                    return JobEnd {
+                        lost: true,
+                        halted: None,
+                    };
                 }
                 Cooled::Halted(message) => {
                     tracing::error!(message, "the printer halted while its bed cooled");
-                    return JobEnd { lost: false, halted: Some(message) };
+                    return JobEnd {
+                        lost: false,
+                        halted: Some(message),
+                    };
                 }
             }
         }
@@ -257,7 +277,10 @@ pub(super) async fn run(
         let started_s = now_s();
         let begin = BedChange {
             from: Some(&["eject_due"]),
-            to: Bed::Ejecting { since_s: started_s, check },
+            to: Bed::Ejecting {
+                since_s: started_s,
+                check,
+            },
             printed: None,
             check: None,
             record: None,
@@ -289,12 +312,16 @@ pub(super) async fn run(
                 why: Some(Why::EjectInterrupted),
             },
             Err(e) => Bed::Waiting {
-                why: Some(Why::EjectFailed { error: e.to_string() }),
+                why: Some(Why::EjectFailed {
+                    error: e.to_string(),
+                }),
             },
         };
         match &error {
             None => tracing::info!("eject sequence done"),
-            Some(e) => tracing::error!(error = %e, "eject sequence failed; the bed waits for a person"),
+            Some(e) => {
+                tracing::error!(error = %e, "eject sequence failed; the bed waits for a person")
+            }
         }
         settle(farm, printer, &["ejecting"], to, Some(record)).await;
         sup.show(|p| {
@@ -304,7 +331,10 @@ pub(super) async fn run(
         match outcome {
             Err(PrintFailure::Lost(_)) => {
                 sup.show(|p| p.temperatures = None);
-                JobEnd { lost: true, halted: None }
+                JobEnd {
+                    lost: true,
+                    halted: None,
+                }
             }
             Err(PrintFailure::Failed(PrintError::Fatal { message, .. })) => JobEnd {
                 lost: false,
@@ -319,7 +349,11 @@ pub(super) async fn run(
 
 /// Streams the sequence (with an `M400`, so its last answer comes once the moves are
 /// done and the camera sees the bed as they left it) from a file in the spool.
-async fn stream(sup: &Supervisor, link: &mut dyn PrinterLink, gcode: &str) -> Result<(), PrintFailure> {
+async fn stream(
+    sup: &Supervisor,
+    link: &mut dyn PrinterLink,
+    gcode: &str,
+) -> Result<(), PrintFailure> {
     let farm = &sup.farm;
     let dir = farm.config().spool_dir.join("eject");
     let path = dir.join(format!("{}.gcode", sup.name));

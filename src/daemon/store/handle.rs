@@ -195,7 +195,7 @@ impl StoreHandle {
         let printer = printer.to_string();
         self.ask(|reply| Request::Bed {
             printer,
-            change,
+            change: Box::new(change),
             reply,
         })
         .await

@@ -65,7 +65,8 @@ pub(super) enum Request {
     /// [`Bed::can_go_to`]: crate::daemon::bed::Bed::can_go_to
     Bed {
         printer: String,
-        change: BedChange,
+        /// Boxed: a check's record is large beside the other requests.
+        change: Box<BedChange>,
         reply: Reply<PrinterGate>,
     },
     WritePending {
@@ -213,7 +214,7 @@ impl Request {
                 printer,
                 change,
                 reply,
-            } => change_bed(store, view, printer, change, reply),
+            } => change_bed(store, view, printer, *change, reply),
             Request::Resync { reply } => {
                 let changed = store.resync();
                 if changed {
@@ -329,7 +330,9 @@ fn change_bed(
             // The job's record is told, not asked: a job gone to the history keeps its own.
             match store.update(job, Box::new(move |j| j.clearing.push(step))) {
                 Ok(_) => view.refresh(store, job),
-                Err(e) => tracing::warn!(printer = %printer, job = %job, error = %e, "cannot add the bed's clearing to the job's record"),
+                Err(e) => {
+                    tracing::warn!(printer = %printer, job = %job, error = %e, "cannot add the bed's clearing to the job's record")
+                }
             }
         }
     }

@@ -215,7 +215,9 @@ impl Spool {
                             .into()),
                     )?;
                     if let Some(p) = printer {
-                        let gate = self.gate_of(&p).after_print(&id, Bed::Waiting { why: None });
+                        let gate = self
+                            .gate_of(&p)
+                            .after_print(&id, Bed::Waiting { why: None });
                         self.set_gate(&p, gate)?;
                     }
                     changed.push(id);

@@ -25,6 +25,7 @@
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
 //! - `outbound`: outbound HTTP (notifications, cameras, Spoolman) and its TLS client.
 //! - [`percent`]: names in addresses (percent-encoding), for the API, its clients and links.
+//! - [`names`]: what a name an operator gives may hold, and how any name is shown.
 //!
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
 //! not depend on clap, anyhow or indicatif.
@@ -42,6 +43,7 @@ pub mod http;
 pub mod machine;
 pub mod marlin;
 pub mod mesh;
+pub mod names;
 pub mod notify;
 pub mod outbound;
 pub mod percent;

@@ -158,6 +158,11 @@ pub struct PrinterStatus {
     pub bed: super::bed::Bed,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub last_check: Option<super::bed::CheckRecord>,
+    /// The job store's version (the status's `version`) in which this printer last looked
+    /// for a job and took none (its bed waits to be cleared, or no ready job is for it):
+    /// every job ready by then was passed over by it. 0 until it first looks.
+    #[serde(default)]
+    pub looked_at: u64,
 }
 
 /// What the fleet keeps of a printer in the farm: the receiving ends of what its
@@ -165,6 +170,8 @@ pub struct PrinterStatus {
 #[derive(Clone)]
 pub(crate) struct PrinterHandle {
     pub live: watch::Receiver<PrinterLive>,
+    /// See [`PrinterStatus::looked_at`]; nobody waits on it.
+    pub looked: watch::Receiver<u64>,
     /// The control channel into the print in progress; None between prints.
     pub print: watch::Receiver<Option<mpsc::Sender<PrintCommand>>>,
 }
@@ -172,17 +179,24 @@ pub(crate) struct PrinterHandle {
 /// The owning ends of a printer's [`PrinterHandle`], held by its supervisor.
 pub(crate) struct PrinterOwner {
     pub live: watch::Sender<PrinterLive>,
+    pub looked: watch::Sender<u64>,
     pub print: watch::Sender<Option<mpsc::Sender<PrintCommand>>>,
 }
 
 /// A new printer's owner (for its supervisor) and handle (for the farm).
 pub(crate) fn printer_channels(initial: PrinterLive) -> (PrinterOwner, PrinterHandle) {
     let (live, live_rx) = watch::channel(initial);
+    let (looked, looked_rx) = watch::channel(0);
     let (print, print_rx) = watch::channel(None);
     (
-        PrinterOwner { live, print },
+        PrinterOwner {
+            live,
+            looked,
+            print,
+        },
         PrinterHandle {
             live: live_rx,
+            looked: looked_rx,
             print: print_rx,
         },
     )
@@ -448,6 +462,7 @@ impl Farm {
                     last_check: gate.last_check,
                     host: host.clone(),
                     offline: false,
+                    looked_at: *handle.looked.borrow(),
                 }
             })
             .collect()

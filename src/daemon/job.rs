@@ -241,6 +241,12 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
         crate::daemon::config::parse_strength(s)
             .map_err(|m| format!("sidecar {}: key `strength`: {m}", path.display()))?;
     }
+    if let Some(problem) = sidecar.printer.as_deref().and_then(crate::names::problem) {
+        return Err(format!(
+            "sidecar {}: key `printer`: {problem}",
+            path.display()
+        ));
+    }
     crate::daemon::filament::routing::check_asks(
         sidecar.material.as_deref(),
         sidecar.colour.as_deref(),
@@ -623,6 +629,33 @@ impl Job {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A sidecar's names (what it asks the printer to hold, the printer it asks for) are
+    /// refused with a control or bidi character, naming the sidecar and key, the name
+    /// shown escaped.
+    #[test]
+    fn a_sidecar_refuses_names_with_control_or_bidi_characters() {
+        let path = Path::new("hot/m.stl.toml");
+        for (text, key) in [
+            ("material = \"PLA\\u202E\"\n", "material"),
+            ("material = \"PLA\"\ncolour = \"re\\u001Bd\"\n", "colour"),
+            ("printer = \"p\\u2067\"\n", "printer"),
+            ("tags = [\"a\\u202Db\"]\n", "tags"),
+            ("material = \"PLA\\u0085\"\n", "material"),
+        ] {
+            let err = parse_sidecar(text.as_bytes(), path).unwrap_err();
+            assert!(
+                err.contains("hot/m.stl.toml") && err.contains(&format!("key `{key}`")),
+                "{text}: {err}"
+            );
+            assert!(
+                !err.contains(['\u{202e}', '\u{1b}', '\u{2067}', '\u{202d}', '\u{85}']),
+                "{err:?}"
+            );
+        }
+        let fine = "material = \"PLA+\"\ncolour = \"gris fonc\u{e9}\"\nprinter = \"a\"\n";
+        parse_sidecar(fine.as_bytes(), path).unwrap();
+    }
 
     /// Every pair of states, against a table written out by hand: a change to
     /// `can_go_to` must be a deliberate change here too.

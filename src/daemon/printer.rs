@@ -245,6 +245,9 @@ async fn supervise_inner(
                 }
                 continue;
             }
+            // The store's version this look starts from: what it passes over below, it
+            // passed over in this version or a later one.
+            let version = farm.store().version();
             let gate = farm.store().gate(&sup.name);
             match &gate.bed {
                 Bed::Clear { .. } if eject::check_first(farm, &sup.name, &gate.bed) => {
@@ -274,6 +277,7 @@ async fn supervise_inner(
                         p.progress = None;
                         p.detail = detail;
                     });
+                    sup.owner.looked.send_replace(version);
                     match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                         Between::Lost => continue 'connect,
                         Between::Halted(message) => halted = Some(message),
@@ -289,6 +293,7 @@ async fn supervise_inner(
                     p.job = None;
                     p.progress = None;
                 });
+                sup.owner.looked.send_replace(version);
                 match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     Between::Lost => continue 'connect,
                     Between::Halted(message) => halted = Some(message),

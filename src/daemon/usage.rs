@@ -100,12 +100,19 @@ impl Odometer {
             return None;
         }
         let (gcode, firmware, lines) = (self.gcode.clone(), self.firmware, self.lines_acked);
+        // The commands as the host loaded them, read as they stream by: a job of millions
+        // of lines is not held a second time for this.
         let mm = tokio::task::spawn_blocking(move || {
-            let program = crate::marlin::gcode::GcodeProgram::load_for(&gcode, firmware)?;
-            Ok::<_, crate::marlin::gcode::GcodeError>(crate::marlin::motion::extruded_mm(
-                program.iter().take(lines),
-                firmware,
-            ))
+            let (file, _) = crate::marlin::gcode::open_job(&gcode)?;
+            let mut pushed = crate::marlin::motion::Pushed::new(firmware);
+            let mut left = lines;
+            crate::marlin::gcode::scan(file, &gcode.display().to_string(), firmware, |code, _| {
+                if left > 0 {
+                    left -= 1;
+                    pushed.follow(code);
+                }
+            })?;
+            Ok::<_, crate::marlin::gcode::GcodeError>(pushed.mm())
         })
         .await;
         let mm = match mm {

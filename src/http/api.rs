@@ -58,6 +58,8 @@ pub(crate) struct StatusView {
     /// The hosts of a farm shared through `[store]`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub farm: Option<control::FarmStatus>,
+    /// See [`control::Status::version`].
+    pub version: u64,
 }
 
 /// The whole farm: printers, jobs (newest last) and hot folders.
@@ -88,6 +90,7 @@ pub(crate) fn snapshot(farm: &Farm) -> StatusView {
         jobs,
         folders,
         farm: status.farm,
+        version: status.version,
     };
     for job in &view.jobs {
         let waiting = matches!(
@@ -218,8 +221,17 @@ pub(crate) async fn job(
         Ok(None) => Err(ApiError::not_found(
             "no such job (hint: GET /api/v1/jobs lists them, GET /api/v1/history the finished ones)",
         )),
-        Err(e) => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())),
+        Err(e) => Err(store_unavailable(&state.farm, e)),
     }
+}
+
+/// The job store could not answer a reading (its history unreadable, the farm database
+/// down): 503, with the spool's files named relative to it (the log has the whole path).
+fn store_unavailable(farm: &Farm, e: crate::daemon::job::StoreError) -> ApiError {
+    tracing::error!(error = %e, "http: the job store could not answer");
+    let spool = &farm.config().spool_dir;
+    let message = crate::daemon::store::spool_relative(&e.to_string(), spool);
+    ApiError::new(StatusCode::SERVICE_UNAVAILABLE, message)
 }
 
 /// `GET /api/v1/history?limit=N&before=SEQ` and the filters: `printer`, `folder` (name or
@@ -287,9 +299,7 @@ pub(crate) async fn history(
 ) -> Result<Response, ApiError> {
     let query = query.map_err(bad_query)?.0;
     let filter = query.filter()?;
-    let unavailable = |e: crate::daemon::job::StoreError| {
-        ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
-    };
+    let unavailable = |e| store_unavailable(&state.farm, e);
     let csv = match query.format.as_deref() {
         None | Some("json") => false,
         Some("csv") => true,
@@ -402,7 +412,7 @@ pub(crate) async fn stats(
         .stats(period)
         .await
         .map(Json)
-        .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
+        .map_err(|e| store_unavailable(&state.farm, e))
 }
 
 /// One of a job's pictures. Only the fixed names of [`PICTURES`] are served, from the
@@ -575,6 +585,10 @@ pub(super) async fn act(
     match control::execute(&state.farm, command).await {
         Ok(message) => Ok(Json(serde_json::json!({ "ok": true, "message": message }))),
         Err(e) if e.is_not_found() => Err(ApiError::not_found(e.to_string())),
+        Err(e) if e.is_unavailable() => Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            e.to_string(),
+        )),
         Err(e) => Err(ApiError::conflict(e.to_string())),
     }
 }

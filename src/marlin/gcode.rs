@@ -97,6 +97,19 @@ pub enum GcodeError {
     HugeLine { file: String, line: usize },
 }
 
+impl GcodeError {
+    /// A reading error of [`scan`] (which knows the file by name only) with the file's path.
+    fn at(self, path: &Path) -> Self {
+        match self {
+            GcodeError::Io { source, .. } => GcodeError::Io {
+                path: path.to_path_buf(),
+                source,
+            },
+            other => other,
+        }
+    }
+}
+
 /// A job's commands stored back to back in one shared buffer, with the length of each.
 ///
 /// A sliced job has tens of thousands of short commands (a file of tiny moves, millions);
@@ -236,6 +249,14 @@ struct SmallSeq {
 impl SmallSeq {
     const BLOCK: usize = 64;
 
+    fn with_capacity(entries: usize) -> Self {
+        SmallSeq {
+            bytes: Vec::with_capacity(entries),
+            totals: Vec::with_capacity(entries / Self::BLOCK + 1),
+            ..SmallSeq::default()
+        }
+    }
+
     fn push(&mut self, value: u64) {
         if self.bytes.len() % Self::BLOCK == 0 {
             self.totals.push(self.sum);
@@ -301,123 +322,27 @@ impl GcodeProgram {
 
     /// Load a file for one firmware.
     pub fn load_for(path: &Path, firmware: Firmware) -> Result<Self, GcodeError> {
-        let io = |source| GcodeError::Io {
-            path: path.to_path_buf(),
-            source,
-        };
-        let file = File::open(path).map_err(io)?;
-        // Refused before reading a byte; `read` counts too, for files that grow meanwhile.
-        if file.metadata().map_err(io)?.len() > MAX_GCODE_BYTES {
-            return Err(GcodeError::TooLarge {
-                file: path.display().to_string(),
-            });
-        }
-        Self::read(file, &path.display().to_string(), firmware).map_err(|e| match e {
-            GcodeError::Io { source, .. } => GcodeError::Io {
-                path: path.to_path_buf(),
-                source,
-            },
-            other => other,
+        let (file, size) = open_job(path)?;
+        let size = usize::try_from(size).unwrap_or(0);
+        // The buffers are reserved for the most the file can hold (every command at least
+        // two bytes with its line end) rather than grown by doubling: growing copies a
+        // buffer while the old one is still held, which for a large job would double the
+        // daemon's peak memory; reserved pages never written cost no memory.
+        let mut program = Loading::with_capacity(size);
+        scan(file, &path.display().to_string(), firmware, |code, line| {
+            program.push(code, line)
         })
+        .map_err(|e| e.at(path))?;
+        program.finish(&path.display().to_string())
     }
 
     /// Parse G-code from any reader; `name` is used in error messages.
-    ///
-    /// Memory stays near the size of the commands themselves (comments and blank lines
-    /// cost nothing), and no line, however long, is held whole beyond [`MAX_RAW_LINE_BYTES`].
     pub fn read(reader: impl Read, name: &str, firmware: Firmware) -> Result<Self, GcodeError> {
-        let max = firmware.max_line_bytes().saturating_sub(FRAMING_BYTES);
-        let io = |source| GcodeError::Io {
-            path: PathBuf::from(name),
-            source,
-        };
-        let mut text = String::new();
-        let mut lens = SmallSeq::default();
-        let mut source_lines = SmallSeq::default();
-        let mut reader = BufReader::new(reader.take(MAX_GCODE_BYTES + 1));
-        let mut raw = Vec::new();
-        let mut line_no = 0;
-        let mut last_command_line = 0;
-        let mut total = 0u64;
-        loop {
-            raw.clear();
-            let n = (&mut reader)
-                .take(MAX_RAW_LINE_BYTES)
-                .read_until(b'\n', &mut raw)
-                .map_err(io)?;
-            if n == 0 {
-                break;
-            }
-            line_no += 1;
-            total += n as u64;
-            if total > MAX_GCODE_BYTES {
-                return Err(GcodeError::TooLarge {
-                    file: name.to_string(),
-                });
-            }
-            if n as u64 == MAX_RAW_LINE_BYTES && raw.last() != Some(&b'\n') {
-                return Err(GcodeError::HugeLine {
-                    file: name.to_string(),
-                    line: line_no,
-                });
-            }
-            // Comments may hold anything (slicers write non-UTF-8 names); cut them first.
-            let code = match raw.iter().position(|&b| b == b';') {
-                Some(i) => &raw[..i],
-                None => &raw[..],
-            };
-            let code = std::str::from_utf8(code).map_err(|_| GcodeError::NotText {
-                file: name.to_string(),
-                line: line_no,
-            })?;
-            let code = code.trim();
-            if code.is_empty() {
-                continue;
-            }
-            if code.contains('*') {
-                return Err(GcodeError::Asterisk {
-                    file: name.to_string(),
-                    line: line_no,
-                });
-            }
-            if firmware.colon_ends_line() && code.contains(':') {
-                return Err(GcodeError::Colon {
-                    file: name.to_string(),
-                    line: line_no,
-                    firmware,
-                });
-            }
-            if has_unquoted_backslash(code) {
-                return Err(GcodeError::Backslash {
-                    file: name.to_string(),
-                    line: line_no,
-                });
-            }
-            if code.len() > max {
-                return Err(GcodeError::LineTooLong {
-                    file: name.to_string(),
-                    line: line_no,
-                    len: code.len(),
-                    max,
-                    firmware,
-                });
-            }
-            text.push_str(code);
-            lens.push(code.len() as u64);
-            source_lines.push((line_no - last_command_line) as u64);
-            last_command_line = line_no;
-        }
-        if lens.len() == 0 {
-            return Err(GcodeError::Empty {
-                file: name.to_string(),
-            });
-        }
-        source_lines.shrink_to_fit();
-        Ok(GcodeProgram {
-            name: name.to_string(),
-            commands: GcodeCommands::from_parts(text, lens),
-            source_lines: Arc::new(source_lines),
-        })
+        let mut program = Loading::with_capacity(0);
+        scan(reader, name, firmware, |code, line| {
+            program.push(code, line)
+        })?;
+        program.finish(name)
     }
 
     /// Build a program from commands already in memory (benchmarks, generated jobs).
@@ -465,6 +390,159 @@ impl GcodeProgram {
     pub fn source_line(&self, index: usize) -> Option<usize> {
         (index < self.source_lines.len())
             .then(|| (self.source_lines.sum_before(index) + self.source_lines.get(index)) as usize)
+    }
+}
+
+/// Reads G-code as the host loads it for `firmware`, line by line, without holding it:
+/// each command (comment cut, trimmed) goes to `each` with its line number. One reading,
+/// so the program the host streams and every figure taken from the file agree; memory
+/// stays near nothing, and no line, however long, is held whole beyond
+/// [`MAX_RAW_LINE_BYTES`].
+pub(crate) fn scan(
+    reader: impl Read,
+    name: &str,
+    firmware: Firmware,
+    mut each: impl FnMut(&str, usize),
+) -> Result<(), GcodeError> {
+    let max = firmware.max_line_bytes().saturating_sub(FRAMING_BYTES);
+    let io = |source| GcodeError::Io {
+        path: PathBuf::from(name),
+        source,
+    };
+    let mut reader = BufReader::new(reader.take(MAX_GCODE_BYTES + 1));
+    let mut raw = Vec::new();
+    let mut line_no = 0;
+    let mut total = 0u64;
+    loop {
+        raw.clear();
+        let n = (&mut reader)
+            .take(MAX_RAW_LINE_BYTES)
+            .read_until(b'\n', &mut raw)
+            .map_err(io)?;
+        if n == 0 {
+            break;
+        }
+        line_no += 1;
+        total += n as u64;
+        if total > MAX_GCODE_BYTES {
+            return Err(GcodeError::TooLarge {
+                file: name.to_string(),
+            });
+        }
+        if n as u64 == MAX_RAW_LINE_BYTES && raw.last() != Some(&b'\n') {
+            return Err(GcodeError::HugeLine {
+                file: name.to_string(),
+                line: line_no,
+            });
+        }
+        // Comments may hold anything (slicers write non-UTF-8 names); cut them first.
+        let code = match raw.iter().position(|&b| b == b';') {
+            Some(i) => &raw[..i],
+            None => &raw[..],
+        };
+        let code = std::str::from_utf8(code).map_err(|_| GcodeError::NotText {
+            file: name.to_string(),
+            line: line_no,
+        })?;
+        let code = code.trim();
+        if code.is_empty() {
+            continue;
+        }
+        if code.contains('*') {
+            return Err(GcodeError::Asterisk {
+                file: name.to_string(),
+                line: line_no,
+            });
+        }
+        if firmware.colon_ends_line() && code.contains(':') {
+            return Err(GcodeError::Colon {
+                file: name.to_string(),
+                line: line_no,
+                firmware,
+            });
+        }
+        if has_unquoted_backslash(code) {
+            return Err(GcodeError::Backslash {
+                file: name.to_string(),
+                line: line_no,
+            });
+        }
+        if code.len() > max {
+            return Err(GcodeError::LineTooLong {
+                file: name.to_string(),
+                line: line_no,
+                len: code.len(),
+                max,
+                firmware,
+            });
+        }
+        each(code, line_no);
+    }
+    Ok(())
+}
+
+/// Opens a job's file for [`scan`], refusing one too large before reading a byte (`scan`
+/// counts too, for files that grow meanwhile); with its size.
+pub(crate) fn open_job(path: &Path) -> Result<(File, u64), GcodeError> {
+    let io = |source| GcodeError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = File::open(path).map_err(io)?;
+    let size = file.metadata().map_err(io)?.len();
+    if size > MAX_GCODE_BYTES {
+        return Err(GcodeError::TooLarge {
+            file: path.display().to_string(),
+        });
+    }
+    Ok((file, size))
+}
+
+/// A program as [`scan`] hands it over.
+struct Loading {
+    text: String,
+    lens: SmallSeq,
+    source_lines: SmallSeq,
+    last_command_line: usize,
+}
+
+impl Loading {
+    fn with_capacity(bytes: usize) -> Self {
+        let bytes = bytes.min(usize::try_from(MAX_GCODE_BYTES).unwrap_or(usize::MAX));
+        Loading {
+            text: String::with_capacity(bytes),
+            lens: SmallSeq::with_capacity(bytes / 2),
+            source_lines: SmallSeq::with_capacity(bytes / 2),
+            last_command_line: 0,
+        }
+    }
+
+    fn push(&mut self, code: &str, line: usize) {
+        self.text.push_str(code);
+        self.lens.push(code.len() as u64);
+        self.source_lines
+            .push((line - self.last_command_line) as u64);
+        self.last_command_line = line;
+    }
+
+    fn finish(self, name: &str) -> Result<GcodeProgram, GcodeError> {
+        let Loading {
+            text,
+            lens,
+            mut source_lines,
+            ..
+        } = self;
+        if lens.len() == 0 {
+            return Err(GcodeError::Empty {
+                file: name.to_string(),
+            });
+        }
+        source_lines.shrink_to_fit();
+        Ok(GcodeProgram {
+            name: name.to_string(),
+            commands: GcodeCommands::from_parts(text, lens),
+            source_lines: Arc::new(source_lines),
+        })
     }
 }
 

@@ -396,6 +396,7 @@ mod tests {
             holds: None,
             bed: Default::default(),
             last_check: None,
+            looked_at: 0,
         }
     }
 

@@ -34,6 +34,10 @@ pub(super) fn check(
         if f.path.as_os_str().is_empty() {
             return Err(invalid(section, "path", "must not be empty".into()));
         }
+        // Its name is the folder's name in the API, the dashboard and uploads.
+        if let Some(problem) = crate::names::problem(&f.path.to_string_lossy()) {
+            return Err(invalid(section, "path", problem.into()));
+        }
         let path = anchor(&f.path);
         if folders.iter().any(|o| o.path == path) {
             return Err(invalid(section, "path", "is configured twice".into()));

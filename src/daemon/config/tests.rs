@@ -718,3 +718,100 @@ fn filament_keys_are_checked_with_section_and_key() {
         );
     }
 }
+
+/// Every name an operator gives in the config is refused with a control or bidi
+/// character, naming its section and key (a material with U+202E was taken and printed
+/// raw by `crispen spools`): by the one check file names have (`crate::names`), or by the
+/// plain-word rules of printer, machine, host and tag names.
+#[test]
+fn names_with_control_or_bidi_characters_are_refused() {
+    // TOML escapes: the parsed text holds the characters themselves.
+    let printer = "port = \"/dev/ttyACM0\"\n";
+    for (from, to, section, key) in [
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\nmaterial = \"PLA\\u202EGTEP\"\n",
+            "[[printer]] #1",
+            "key `material`",
+        ),
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\nmaterial = \"PLA\"\ncolour = \"bl\\u001B[31mack\"\n",
+            "[[printer]] #1",
+            "key `colour`",
+        ),
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\nmaterial = \"PLA\\u2028x\"\n",
+            "[[printer]] #1",
+            "key `material`",
+        ),
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\ntags = [\"big\\u2066\"]\n",
+            "[[printer]] #1",
+            "key `tags`",
+        ),
+        (
+            "name = \"um2-a\"",
+            "name = \"um2\\u202E-a\"",
+            "[[printer]] #1",
+            "key `name`",
+        ),
+        (
+            "path = \"/srv/print/5cm\"",
+            "path = \"/srv/print/5cm\\u202Emc5\"",
+            "[[folder]] #1",
+            "key `path`",
+        ),
+        (
+            "path = \"hot/igea\"",
+            "path = \"hot/ig\\u0007ea\"",
+            "[[folder]] #2",
+            "key `path`",
+        ),
+        (
+            "strength = 0.4\n",
+            "strength = 0.4\nmaterial = \"P\\u200FLA\"\n",
+            "[[folder]] #1",
+            "key `material`",
+        ),
+        (
+            "strength = 0.4\n",
+            "strength = 0.4\nmaterial = \"PLA\"\ncolour = \"\\u061Cred\"\n",
+            "[[folder]] #1",
+            "key `colour`",
+        ),
+        (
+            "max_heating = 1\n",
+            "max_heating = 1\nhost = \"rack\\u202E1\"\n",
+            "[farm]",
+            "key `host`",
+        ),
+    ] {
+        let text = GOOD.replacen(from, to, 1);
+        assert_ne!(text, GOOD, "{to}");
+        let err = parse(&text).unwrap_err().to_string();
+        assert!(err.contains(section) && err.contains(key), "{to}: {err}");
+        // The error shows the name harmless.
+        assert!(
+            !err.contains([
+                '\u{202e}', '\u{1b}', '\u{2028}', '\u{2066}', '\u{7}', '\u{200f}', '\u{61c}'
+            ]),
+            "{to}: {err:?}"
+        );
+    }
+    let machine = format!("{GOOD}\n[[machine]]\nname = \"m\\u202E\"\nbased_on = \"ultimaker2\"\n");
+    let err = parse(&machine).unwrap_err().to_string();
+    assert!(
+        err.contains("[[machine]] #1") && err.contains("name"),
+        "{err}"
+    );
+    // Any script is a name all the same.
+    let text = GOOD.replacen(
+        "strength = 0.4\n",
+        "strength = 0.4\nmaterial = \"PLA\"\ncolour = \"чёрный\"\n",
+        1,
+    );
+    parse(&text).unwrap();
+}

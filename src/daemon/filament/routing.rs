@@ -427,10 +427,7 @@ pub(crate) fn check_asks(
 ) -> Result<(), (&'static str, String)> {
     for (key, text) in [("material", material), ("colour", colour)] {
         if let Some(t) = text {
-            let t = t.trim();
-            if t.is_empty() || t.chars().count() > 40 || t.chars().any(char::is_control) {
-                return Err((key, format!("1 to 40 printable characters, got {t:?}")));
-            }
+            super::check_name(t, super::MAX_NAME_CHARS).map_err(|m| (key, m))?;
         }
     }
     if let Some(n) = nozzle_mm {

@@ -338,7 +338,10 @@ fn change_bed(
     }
     view.gates = store.gates();
     view.unwritten = store.unwritten();
-    (deliver(reply, result.map(|()| before)), true)
+    // A change the store could not write is not done (see `JobStore::set_gate`): nothing
+    // to publish.
+    let changed = result.is_ok();
+    (deliver(reply, result.map(|()| before)), changed)
 }
 
 /// The statistics of `period` over the history and the live jobs (see [`Request::Stats`]).

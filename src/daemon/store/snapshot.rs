@@ -29,6 +29,8 @@ pub struct Snapshot {
     pub(super) unwritten: usize,
     /// What jobs did since the task started, counted as each change is published.
     counted: Arc<Counted>,
+    /// How many snapshots the task has published since it started (see [`Snapshot::version`]).
+    pub(super) version: u64,
 }
 
 /// A live job and what is known of its files.
@@ -101,6 +103,7 @@ impl Snapshot {
             jobs_dir,
             unwritten: store.unwritten(),
             counted,
+            version: before.map_or(0, |b| b.version),
         }
     }
 
@@ -139,6 +142,13 @@ impl Snapshot {
 
     pub fn job_dir(&self, id: &str) -> PathBuf {
         self.jobs_dir.join(id)
+    }
+
+    /// How many changes the store's task has published since it started, this one
+    /// included: a reader that acted on version `n` acted on every change up to it (a
+    /// printer's supervisor says which version it last looked for a job in).
+    pub fn version(&self) -> u64 {
+        self.version
     }
 
     /// Outcomes that happened but could not be persisted yet.

@@ -269,15 +269,31 @@ impl Spool {
         self.gates.get(printer).cloned().unwrap_or_default()
     }
 
+    /// Sets a printer's bed gate and writes it. When it cannot be written (a full disk),
+    /// the rule of both stores: a bed that needs clearing (a print ended) is kept here and
+    /// written later, so it still needs clearing after the outage; a clear is not done
+    /// (the gate stays as it was, here as on disk) and the error says so.
     pub(crate) fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
-        self.gates.insert(printer.to_string(), gate.clone());
-        let written = self.save_gates();
-        match &written {
+        let before = self.gates.insert(printer.to_string(), gate.clone());
+        match self.save_gates() {
             // One file holds every gate: all kept ones are written with it.
-            Ok(()) => self.pending.gate_written(printer),
-            Err(_) => self.pending.keep_gate(printer, gate),
+            Ok(()) => {
+                self.pending.gate_written(printer);
+                Ok(())
+            }
+            Err(e) if gate.bed_not_cleared() => {
+                tracing::error!(printer = %printer, error = %e, "cannot write the bed gate; kept here and written when possible");
+                self.pending.keep_gate(printer, gate);
+                Ok(())
+            }
+            Err(e) => {
+                match before {
+                    Some(before) => self.gates.insert(printer.to_string(), before),
+                    None => self.gates.remove(printer),
+                };
+                Err(e)
+            }
         }
-        written
     }
 
     fn save_gates(&self) -> Result<(), StoreError> {
@@ -308,6 +324,11 @@ impl Spool {
             }
             if undone {
                 let _ = std::fs::remove_dir_all(&dir);
+                // Never a job: its number is the next pick-up's (the same file tried
+                // again after a full disk keeps one id, not a new one each time).
+                if !dir.exists() {
+                    self.next_seq = seq;
+                }
             } else {
                 tracing::error!(job = %id, dir = %dir.display(), "a failed pick-up could not be undone; its files stay in the job directory");
             }

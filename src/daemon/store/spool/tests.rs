@@ -428,13 +428,19 @@ fn gates_on_disk(spool: &Path) -> BTreeMap<String, PrinterGate> {
 #[test]
 fn a_clear_that_cannot_be_written_is_not_done() {
     let (_tmp, _hot, spool, mut store) = open_with_hot_folder();
+    use crate::daemon::bed::{Bed, ClearedBy};
     let closed = |job: &str| PrinterGate {
-        bed_not_cleared: true,
+        bed: Bed::Waiting { why: None },
         last_job: Some(job.into()),
+        last_check: None,
     };
     let cleared = |job: &str| PrinterGate {
-        bed_not_cleared: false,
+        bed: Bed::Clear {
+            by: ClearedBy::Person,
+            at_s: 1.0,
+        },
         last_job: Some(job.into()),
+        last_check: None,
     };
     store.set_gate("p1", closed("0001-a")).unwrap();
 

@@ -124,6 +124,8 @@ pub(crate) enum CommandError {
     PrintEnded(String),
     #[error("job {id} is {state}; only active jobs can be cancelled")]
     NotActive { id: String, state: JobState },
+    #[error("{0} is running its eject sequence; wait until it ends (its bed then waits for you if it must)")]
+    Ejecting(String),
     #[error("job {0} is not held; it prints once ready")]
     NotHeld(String),
     /// The job store could not write the change (a full disk): what stays as it was, and
@@ -438,10 +440,13 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
 
 async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
-    if !farm.jobs().clear_gate(printer).await? {
-        return Ok(format!("{printer}: bed was already clear"));
+    match farm.jobs().clear_gate(printer).await {
+        Ok(true) => Ok(format!("{printer}: bed cleared; it may take the next job")),
+        Ok(false) => Ok(format!("{printer}: bed was already clear")),
+        // The one state a person's clear cannot end: the printer is moving.
+        Err(StoreError::BedChange { .. }) => Err(CommandError::Ejecting(printer.to_string())),
+        Err(e) => Err(e.into()),
     }
-    Ok(format!("{printer}: bed cleared; it may take the next job"))
 }
 
 /// Pauses, resumes or cancels a printer's print: here, or through the farm database by
@@ -644,7 +649,7 @@ mod tests {
         }
         let nothing_changed = |farm: &Farm| {
             let store = farm.store();
-            assert!(store.gate("p1").bed_not_cleared);
+            assert!(store.gate("p1").bed_not_cleared());
             assert_eq!(store.get(&job).unwrap().state, JobState::Ready);
             assert!(store.inventory().spools.is_empty());
             assert_eq!(store.inventory().spool_on("p1"), None);

@@ -22,6 +22,7 @@
 //! ([`PrinterOwner`]); it follows the job store's snapshot (a job ready, its bed cleared),
 //! the config and the shared farm's database state, never a global wake-up.
 
+use super::bed::Bed;
 use super::farm::{
     Farm, FarmView, LiveProgress, PrintCommand, PrinterLive, PrinterOwner, PrinterState,
     PrinterTemperatures,
@@ -39,6 +40,8 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 use tracing::Instrument;
+
+mod eject;
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 
@@ -246,21 +249,46 @@ async fn supervise_inner(
             // passed over in this version or a later one.
             let version = farm.store().version();
             let gate = farm.store().gate(&sup.name);
-            if gate.bed_not_cleared {
-                sup.show(|p| {
-                    p.state = PrinterState::BedNotCleared;
-                    p.job = gate.last_job.clone();
-                });
-                sup.owner.looked.send_replace(version);
-                match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
-                    Between::Lost => continue 'connect,
-                    Between::Halted(message) => halted = Some(message),
-                    Between::Changed => {}
+            match &gate.bed {
+                Bed::Clear { .. } if eject::check_first(farm, &sup.name, &gate.bed) => {
+                    eject::check_before_job(farm, &sup.name).await;
+                    continue;
                 }
-                continue;
+                Bed::Clear { .. } => {}
+                Bed::EjectDue { check } => {
+                    let end = eject::run(sup, link.as_mut(), *check, &mut follow).await;
+                    if end.lost {
+                        continue 'connect;
+                    }
+                    halted = end.halted;
+                    continue;
+                }
+                bed => {
+                    let (state, detail) = match bed {
+                        Bed::CheckDue { .. } => (PrinterState::CheckingBed, bed.describe()),
+                        // An eject a restart found under way is the store's to end (its
+                        // restart rules); another host's change may show it a moment.
+                        Bed::Ejecting { .. } => (PrinterState::Ejecting, bed.describe()),
+                        _ => (PrinterState::BedNotCleared, bed.describe()),
+                    };
+                    sup.show(|p| {
+                        p.state = state;
+                        p.job = gate.last_job.clone();
+                        p.progress = None;
+                        p.detail = detail;
+                    });
+                    sup.owner.looked.send_replace(version);
+                    match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                        Between::Lost => continue 'connect,
+                        Between::Halted(message) => halted = Some(message),
+                        Between::Changed => {}
+                    }
+                    continue;
+                }
             }
             let Some(job_id) = claim_job(farm, &sup.name).await else {
                 sup.show(|p| {
+                    eject::forget_bed_shown(p);
                     p.state = PrinterState::Idle;
                     p.job = None;
                     p.progress = None;
@@ -442,6 +470,22 @@ fn lost_between_jobs(sup: &Supervisor, why: String) {
 /// the change are one request to the job store: supervisors run on several threads, and
 /// two of them must never take the same job.
 async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
+    let eligible = eligible(farm, printer)?;
+    match farm.jobs().claim(printer, eligible).await {
+        Ok(job) => job.map(|j| j.id),
+        Err(e) => {
+            tracing::error!(error = %e, "cannot claim a job");
+            None
+        }
+    }
+}
+
+/// Whether a job may go to `printer` now (a ready job is claimed if so); None when the
+/// printer is not in the config.
+fn eligible(
+    farm: &Farm,
+    printer: &str,
+) -> Option<impl Fn(&super::job::Job) -> bool + Send + 'static> {
     let config = farm.config();
     // A printer only receives G-code made for its machine.
     let machine = config
@@ -451,7 +495,7 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
         .map(|p| p.machine.name.clone())?;
     let name = printer.to_string();
     let snapshot = farm.store();
-    let eligible = move |j: &super::job::Job| {
+    Some(move |j: &super::job::Job| {
         let printer = name.as_str();
         let served =
             super::farm::folder_rule(&config, j).is_some_and(|r| r.iter().any(|p| p == printer));
@@ -475,14 +519,16 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
                 })
         };
         served && wanted && !j.held() && j.gcode_for(&machine).is_some() && fits()
-    };
-    match farm.jobs().claim(printer, eligible).await {
-        Ok(job) => job.map(|j| j.id),
-        Err(e) => {
-            tracing::error!(error = %e, "cannot claim a job");
-            None
-        }
-    }
+    })
+}
+
+/// A ready job `printer` could take now, by the snapshot (no claim is made).
+pub(crate) fn job_waiting_for(farm: &Farm, printer: &str) -> bool {
+    eligible(farm, printer).is_some_and(|eligible| {
+        farm.store()
+            .jobs()
+            .any(|j| j.state == JobState::Ready && eligible(j))
+    })
 }
 
 /// How a job's run left its printer.
@@ -631,15 +677,13 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     sup.owner.print.send_replace(None);
 
     // A job that failed to load sent nothing: the bed is as it was, and nobody needs to
-    // clear it.
+    // clear it. A print that ended well may be ejected; any other waits for a person.
     let sent_nothing = matches!(
         outcome,
         Err(PrintFailure::Gcode(_) | PrintFailure::LoaderCrashed(_))
     );
     if !sent_nothing {
-        if let Err(e) = farm.jobs().close_gate(printer, job_id).await {
-            tracing::error!(error = %e, "cannot persist the bed gate");
-        }
+        eject::close_gate(farm, printer, job_id, outcome.is_ok() && !shutdown_stop).await;
     }
     let halted = match &outcome {
         Err(PrintFailure::Failed(PrintError::Fatal { message, .. })) => Some(message.clone()),
@@ -716,6 +760,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             PrinterState::BedNotCleared
         };
         p.detail = None;
+        p.progress = None;
     });
     JobEnd { lost, halted }
 }

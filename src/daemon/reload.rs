@@ -98,6 +98,10 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("folder.tags", Policy::Live),
     ("folder.priority", Policy::Live),
     ("farm.spool_low_g", Policy::Live),
+    // How a bed is cleared: read when a print ends, and the sequence when it is sent.
+    ("printer.eject", Policy::Live),
+    ("printer.bed_clear", Policy::Live),
+    ("folder.bed_clear", Policy::Live),
     // The link to Spoolman is one task started with the daemon.
     ("spoolman", Policy::DaemonRestart),
 ];
@@ -117,6 +121,7 @@ pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     ("notify", "notify"),
     ("camera", "camera"),
     ("printer.camera", "printer.camera"),
+    ("printer.eject", "printer.eject"),
     // The default filament is the material and colour together.
     ("printer.colour", "printer.material"),
     ("spoolman", "spoolman"),
@@ -262,6 +267,8 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             filament,
             hardened,
             tags,
+            eject,
+            bed_clear,
         } = new;
         let simulated = |p: &super::config::PrinterPort| {
             matches!(p, super::config::PrinterPort::Simulated { .. })
@@ -284,6 +291,8 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("printer.material", *filament != old.filament);
         differs("printer.nozzle", *hardened != old.hardened);
         differs("printer.tags", *tags != old.tags);
+        differs("printer.eject", *eject != old.eject);
+        differs("printer.bed_clear", *bed_clear != old.bed_clear);
     }
     differs(
         "printer",
@@ -308,6 +317,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             timeout,
             settings,
             asks,
+            bed_clear,
         } = new;
         // Compared by their debug form: these types carry no equality of their own.
         let same =
@@ -330,6 +340,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("folder.nozzle_mm", asks.nozzle_mm != old.asks.nozzle_mm);
         differs("folder.tags", asks.tags != old.asks.tags);
         differs("folder.priority", asks.priority != old.asks.priority);
+        differs("folder.bed_clear", *bed_clear != old.bed_clear);
     }
     differs(
         "folder",

@@ -272,6 +272,7 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
     }
     Mesh { vertices, faces }
 }
+pub mod bed;
 pub mod camera;
 pub mod daemon;
 pub mod farm;

@@ -318,6 +318,7 @@ mod tests {
             timeout: Duration::from_secs(60),
             settings: Default::default(),
             asks: Default::default(),
+            bed_clear: None,
         }
     }
 

@@ -129,9 +129,11 @@ function printerTile(p, status) {
       "<span>Bed <b>" + temp(t.bed_c, t.bed_target_c) + "</b></span></div>";
   }
   html += holdsLine(p.holds);
+  html += bedView(p);
   if (p.detail) html += '<div class="detail">' + esc(p.detail) + "</div>";
   html += '<div class="actions">';
-  if (!p.bed_cleared) html += '<button class="clear" data-action="clear" data-printer="' + esc(p.name) + '">Bed is clear</button>';
+  if (!p.bed_cleared && p.bed.state !== "ejecting") html += '<button class="clear" data-action="clear" data-printer="' + esc(p.name) + '">Bed is clear</button>';
+  if (cameras.has(p.name) && p.state !== "printing" && p.state !== "ejecting") html += '<button class="reference" data-action="reference" data-printer="' + esc(p.name) + '" title="take the camera\'s picture now as the empty bed the check compares with">New reference</button>';
   if (p.state === "printing") html += '<button data-action="pause" data-printer="' + esc(p.name) + '">Pause</button>';
   if (p.state === "paused" || p.state === "waiting_for_operator") html += '<button data-action="resume" data-printer="' + esc(p.name) + '">Resume</button>';
   if (job && (p.state === "printing" || p.state === "paused" || p.state === "waiting_for_operator")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
@@ -142,6 +144,55 @@ function printerTile(p, status) {
   }
   html += "</div></article>";
   return html;
+}
+
+// A printer's bed when its camera found it not clear: the marked picture and the figures.
+function bedView(p) {
+  const why = p.bed && p.bed.state === "waiting" && p.bed.why;
+  if (!why || why.kind !== "not_clear") return "";
+  const check = why.check;
+  let html = '<div class="bedcheck">';
+  if (check.picture) {
+    const file = check.picture.split("/").pop();
+    html += picture("/api/v1/printers/" + encodeURIComponent(p.name) + "/bed/" + encodeURIComponent(file), "bed check of " + p.name, "marked");
+  }
+  html += '<div class="verdict">' + esc(checkSummary(check.verdict)) + "</div></div>";
+  return html;
+}
+
+// A check's answer in words, as the daemon says it ("not clear: 6.1 % of the bed differs, ...").
+function checkSummary(v) {
+  if (v.unsure && !v.patches.length) return "not clear: cannot tell, the picture is too dark or noisy";
+  let text = (v.clear ? "clear" : "not clear") + ": " + v.differs_percent.toFixed(1) + " % of the bed differs";
+  const largest = v.patches[0];
+  if (largest) {
+    text += largest.size_mm ? ", largest patch " + largest.size_mm[0].toFixed(0) + " × " + largest.size_mm[1].toFixed(0) + " mm"
+      : ", largest patch " + largest.w + " × " + largest.h + " px";
+    if (v.patches.length > 1) text += " (" + v.patches.length + " patches)";
+  }
+  return text;
+}
+
+// A job's prints cleared off the bed by machine: each eject and camera check.
+function clearingSection(id, steps) {
+  if (!steps || !steps.length) return "";
+  let html = '<h3>Clearing the bed</h3><ol class="clearing" id="clearing">';
+  for (const s of steps) {
+    if (s.step === "eject") {
+      html += "<li>Eject sequence on " + esc(s.printer) + " " + new Date(s.started_s * 1000).toLocaleTimeString() + ", " +
+        duration(s.ended_s - s.started_s) + ": " + (s.error ? '<span class="reason">failed: ' + esc(s.error) + "</span>" : "done") + "</li>";
+    } else if (s.step === "check") {
+      const c = s.check;
+      html += '<li>Camera check on ' + esc(s.printer) + " " + new Date(c.at_s * 1000).toLocaleTimeString() + ': <b class="' +
+        (c.verdict.clear ? "ok" : "reason") + '">' + esc(checkSummary(c.verdict)) + "</b>";
+      if (c.picture && c.picture.startsWith("camera/")) {
+        html += "<figure>" + picture("/api/v1/jobs/" + encodeURIComponent(id) + "/camera/" + encodeURIComponent(c.picture.split("/").pop()), "bed check", "marked") +
+          "<figcaption>The bed as the camera saw it, what differs from the empty bed boxed in red</figcaption></figure>";
+      }
+      html += "</li>";
+    }
+  }
+  return html + "</ol>";
 }
 
 // A printer's camera on its tile: its latest picture (a click opens the live view) and,
@@ -458,6 +509,7 @@ const ACTIONS = {
   retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
   release: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/release"],
   unload: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/unload", "Take the spool off " + el.dataset.printer + "? It takes no job until one is loaded."],
+  reference: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/clear?reference=true", "Is the bed of " + el.dataset.printer + " empty, and its camera where it stays? Its picture now becomes the empty bed the check compares with."],
 };
 
 document.addEventListener("click", async (e) => {
@@ -714,6 +766,7 @@ async function showJob(id) {
   }
   const printing = printingText(j);
   if (printing) html += '<h3>Printing</h3><p id="printing">' + esc(printing) + "</p>";
+  html += clearingSection(id, j.job.clearing);
   if (j.camera) html += cameraSection(id, j.camera);
   html += "<h3>History</h3><ol class='history'>" + (j.job.history || []).map(([state, t]) =>
     "<li>" + esc(stateWords(state)) + " <span class='muted'>" + new Date(t * 1000).toLocaleString() + "</span></li>").join("") + "</ol>";

@@ -11,7 +11,7 @@
 //! reference sends the bed to a person with that reason. A daemon killed during a check
 //! finds it due again at its next start, and makes it again: it moves nothing.
 
-use super::hub::Cameras;
+use super::hub::{Cameras, NoFrame};
 use crate::bedcheck::{Reference, Region};
 use crate::daemon::bed::{Bed, CameraProblem, CheckRecord, ClearedBy, Clearing, Why};
 use crate::daemon::farm::Farm;
@@ -58,10 +58,14 @@ pub fn take_reference(
     if !cameras.has(printer) {
         return Err(ReferenceError::NoCamera(printer.to_string()));
     }
-    let picture = match cameras.picture(printer, true) {
+    let picture = match cameras.fresh_picture(printer) {
         Some(Ok(p)) => p,
-        Some(Err(e)) => return Err(ReferenceError::NoPicture(e.to_string())),
-        None => {
+        Some(Err(NoFrame::Picture)) => {
+            return Err(ReferenceError::NoPicture(
+                "the camera's frame could not be made into the printer's picture".into(),
+            ))
+        }
+        _ => {
             let why = cameras
                 .status(printer, false)
                 .and_then(|s| s.error)
@@ -202,11 +206,11 @@ async fn check(
         }
     }
     let (cams, name) = (Arc::clone(cameras), printer.to_string());
-    let picture = match tokio::task::spawn_blocking(move || cams.picture(&name, true)).await {
+    let picture = match tokio::task::spawn_blocking(move || cams.fresh_picture(&name)).await {
         Ok(Some(Ok(p))) => p,
-        Ok(Some(Err(e))) => {
+        Ok(Some(Err(NoFrame::Picture))) => {
             return no(CameraProblem::Unreadable {
-                error: e.to_string(),
+                error: "the camera's frame could not be made into the printer's picture".into(),
             })
         }
         _ => return no(CameraProblem::Offline { error: None }),

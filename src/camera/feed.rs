@@ -6,11 +6,12 @@
 //! not (cut short, run into the next part, undecodable) is a failure like a refused
 //! connection: counted, and the camera offline until a whole frame comes.
 
+pub use super::fetch::CameraFault;
 use super::fetch::{self, FetchError};
 use super::mjpeg::{FrameFault, Part};
 use crate::daemon::config::camera::{CameraSettings, CameraSource};
 use bytes::Bytes;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
@@ -28,35 +29,6 @@ pub enum CameraState {
     /// It answers, but with the same picture for `[camera] frozen_after_s` while its
     /// printer prints (decided per printer, see `hub`).
     Frozen,
-}
-
-/// Why a camera gave no frame, as data: the status and the job page word it, and a job's
-/// `camera.json` keeps it (the details, an OS's or a library's words, are the log's).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum CameraFault {
-    /// The connection was refused or could not be made.
-    Connect,
-    /// No answer within the time limit.
-    Timeout { seconds: f64 },
-    /// An MJPEG stream gave no part within the time limit.
-    NoFrame { seconds: f64 },
-    /// An HTTP status other than success.
-    Status { code: u16 },
-    /// Something other than a JPEG (an error page).
-    NotJpeg,
-    /// A frame over `[camera] frame_max_mb`.
-    TooLarge { max_bytes: usize },
-    /// Not an MJPEG stream where one was configured.
-    NotStream,
-    /// A stream without its boundary.
-    NoBoundary { max_bytes: usize },
-    /// The stream or the connection ended.
-    Closed,
-    /// The HTTP exchange failed otherwise.
-    Http,
-    /// A frame that is not a whole JPEG.
-    Refused { frame: FrameFault },
 }
 
 /// A frame as the camera sent it.

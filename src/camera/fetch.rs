@@ -3,14 +3,43 @@
 //! frame its size limit; what a camera answers instead (an error page, HTML, a stream with
 //! no boundary) is an error that says what came.
 
-use super::feed::CameraFault;
 use super::mjpeg::{boundary_of, check_jpeg, megabytes, FrameFault, MjpegError, MjpegReader, Part};
 use crate::daemon::config::notify::ReceiverUrl;
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
 use hyper::body::Incoming;
 use hyper_util::rt::TokioIo;
+use serde::{Deserialize, Serialize};
 use std::time::Duration;
+
+/// Why a camera gave no frame, as data: the status and the job page word it, and a job's
+/// `camera.json` keeps it (the details, an OS's or a library's words, are the log's).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum CameraFault {
+    /// The connection was refused or could not be made.
+    Connect,
+    /// No answer within the time limit.
+    Timeout { seconds: f64 },
+    /// An MJPEG stream gave no part within the time limit.
+    NoFrame { seconds: f64 },
+    /// An HTTP status other than success.
+    Status { code: u16 },
+    /// Something other than a JPEG (an error page).
+    NotJpeg,
+    /// A frame over `[camera] frame_max_mb`.
+    TooLarge { max_bytes: usize },
+    /// Not an MJPEG stream where one was configured.
+    NotStream,
+    /// A stream without its boundary.
+    NoBoundary { max_bytes: usize },
+    /// The stream or the connection ended.
+    Closed,
+    /// The HTTP exchange failed otherwise.
+    Http,
+    /// A frame that is not a whole JPEG.
+    Refused { frame: FrameFault },
+}
 
 /// Why no frame came.
 #[derive(Debug, thiserror::Error)]

@@ -444,6 +444,7 @@ mod tests {
         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n\
         [[machine]]\nname = \"wide\"\nbased_on = \"marlin-175\"\nbed_mm = [300, 300, 300]\n\
         [[printer]]\nname = \"a\"\nfirmware = \"marlin2\"\nbaud = 115200\n[printer.simulate]\ntime_scale = 0.0\n\
+        [printer.eject]\ngcode = \"G1 Z20 F600\"\nmax_height_mm = 30\n\
         [[printer]]\nname = \"b\"\nport = \"/dev/ttyUSB0\"\nfirmware = \"marlin2\"\n\
         [[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"a\"]\n";
 
@@ -645,6 +646,21 @@ mod tests {
             "farm.spool_low_g",
             "rescan_s = 10",
             "rescan_s = 10\nspool_low_g = 50",
+        ),
+        (
+            "printer.eject",
+            "gcode = \"G1 Z20 F600\"",
+            "gcode = \"G1 Z25 F600\"",
+        ),
+        (
+            "printer.bed_clear",
+            "baud = 115200\n",
+            "baud = 115200\nbed_clear = \"eject\"\n",
+        ),
+        (
+            "folder.bed_clear",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nbed_clear = \"eject\"\n",
         ),
         (
             "spoolman",

@@ -161,14 +161,7 @@ impl CommandError {
     }
 }
 
-/// The control socket cannot be set up.
-#[derive(Debug, thiserror::Error)]
-#[error("control socket {socket}: {source}")]
-pub struct ControlError {
-    pub socket: PathBuf,
-    #[source]
-    pub source: std::io::Error,
-}
+pub use super::error::ControlError;
 
 /// Builds the status snapshot.
 pub(crate) fn status(farm: &Farm) -> Status {

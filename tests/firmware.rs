@@ -201,8 +201,10 @@ async fn a_1000_line_burst_ends_with_heaters_confirmed_off() {
     let burst_end = o.log.host_lines >= 400 + 1000;
     assert!(
         burst_end,
-        "the stop gave up before the burst was over ({})",
-        counts(&o.log)
+        "the stop gave up before the burst was over ({}): {:?}\n{}",
+        counts(&o.log),
+        o.result.as_ref().err().map(ToString::to_string),
+        wire_tail(&o.log, 60)
     );
     let err = o.result.as_ref().expect_err("the job cannot have survived");
     assert_eq!(

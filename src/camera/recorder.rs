@@ -321,11 +321,21 @@ async fn write_manifest(dir: &Path, manifest: &JobCamera) {
     let path = dir.join(MANIFEST);
     let bytes = serde_json::to_vec_pretty(manifest).unwrap_or_default();
     let p = path.clone();
-    let written =
-        tokio::task::spawn_blocking(move || crate::fsutil::write_atomic(&p, &bytes)).await;
-    if !matches!(written, Ok(Ok(()))) {
-        tracing::warn!(file = %path.display(), "camera: cannot write the job's camera manifest");
-    }
+    // A camera that never gave a frame has made no folder yet; its manifest (saying the
+    // layers have none) is still the job's record.
+    let written = tokio::task::spawn_blocking(move || {
+        if let Some(dir) = p.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
+        }
+        crate::fsutil::write_atomic(&p, &bytes).map_err(|e| e.to_string())
+    })
+    .await;
+    let error = match written {
+        Ok(Ok(())) => return,
+        Ok(Err(e)) => e,
+        Err(e) => e.to_string(),
+    };
+    tracing::warn!(file = %path.display(), %error, "camera: cannot write the job's camera manifest");
 }
 
 /// The print is over (or left this printer): the last pictures, then the timelapse.

@@ -45,7 +45,7 @@ pub enum StoreError {
         "the job store has stopped (the daemon is shutting down, or the store failed; see the log)"
     )]
     Stopped,
-    #[error("the farm database: {message} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
+    #[error("{message} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
     Database {
         failure: DatabaseFailure,
         message: String,

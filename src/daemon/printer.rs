@@ -219,6 +219,9 @@ async fn supervise_inner(
         // The firmware's message while it is halted; a new connection has had its
         // handshake answered, which a halted firmware never does.
         let mut halted: Option<String> = None;
+        // The printer reset itself while idle: shown beside its other news until the
+        // next job starts (it begins with a fresh handshake).
+        let mut reset_between = false;
         loop {
             // Followed from before the look at the gate and the queue: a change while
             // looking is not missed.
@@ -271,6 +274,7 @@ async fn supervise_inner(
                         Bed::Ejecting { .. } => (PrinterState::Ejecting, bed.describe()),
                         _ => (PrinterState::BedNotCleared, bed.describe()),
                     };
+                    let detail = with_reset_note(reset_between, detail);
                     sup.show(|p| {
                         p.state = state;
                         p.job = gate.last_job.clone();
@@ -281,6 +285,7 @@ async fn supervise_inner(
                     match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                         Between::Lost => continue 'connect,
                         Between::Halted(message) => halted = Some(message),
+                        Between::Rebooted => reset_between = true,
                         Between::Changed => {}
                     }
                     continue;
@@ -289,6 +294,9 @@ async fn supervise_inner(
             let Some(job_id) = claim_job(farm, &sup.name).await else {
                 sup.show(|p| {
                     eject::forget_bed_shown(p);
+                    if reset_between {
+                        p.detail = with_reset_note(true, None);
+                    }
                     p.state = PrinterState::Idle;
                     p.job = None;
                     p.progress = None;
@@ -297,10 +305,12 @@ async fn supervise_inner(
                 match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     Between::Lost => continue 'connect,
                     Between::Halted(message) => halted = Some(message),
+                    Between::Rebooted => reset_between = true,
                     Between::Changed => {}
                 }
                 continue;
             };
+            reset_between = false;
             let span = tracing::info_span!("job", job = %job_id);
             let end = run_job(sup, &job_id, link.as_mut()).instrument(span).await;
             if end.lost {
@@ -378,11 +388,24 @@ enum Between {
     Lost,
     /// The firmware said it halted.
     Halted(String),
+    /// The printer reset itself (it said `start`).
+    Rebooted,
+}
+
+/// `detail` with the note of a reset between jobs in front, when there was one.
+fn with_reset_note(reset: bool, detail: Option<String>) -> Option<String> {
+    const NOTE: &str =
+        "the printer reset between jobs (it said `start`); the next job starts with a fresh handshake";
+    match (reset, detail) {
+        (false, detail) => detail,
+        (true, None) => Some(NOTE.into()),
+        (true, Some(d)) => Some(format!("{NOTE}; {d}")),
+    }
 }
 
 /// Waits for a change the printer may act on (a bed cleared, a job ready, a reload) while
-/// reading what the printer says meanwhile and showing its temperatures. A reset is noted
-/// in the printer's status until its next job starts.
+/// reading what the printer says meanwhile and showing its temperatures; a reset ends the
+/// wait, for the caller to note it until the next job starts.
 async fn between_jobs(
     sup: &Supervisor,
     link: &mut dyn PrinterLink,
@@ -403,14 +426,7 @@ async fn between_jobs(
             }
             IdleNews::Rebooted => {
                 tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
-                sup.show(|p| {
-                    p.detail = Some(
-                        "the printer reset between jobs (it said `start`); the next job starts \
-                         with a fresh handshake"
-                            .into(),
-                    )
-                });
-                return Between::Changed;
+                return Between::Rebooted;
             }
             IdleNews::Lost(why) => {
                 lost_between_jobs(sup, why);

@@ -174,12 +174,49 @@ pub struct Relay {
     thread: Option<JoinHandle<()>>,
     server: Child,
     _dir: tempfile::TempDir,
+    _slot: Slot,
+}
+
+/// Firmware instances running at once in this test process, at most one per core
+/// (`CRISPEN_FIRMWARE_AT_ONCE` overrides). Each keeps its printer's real time only with
+/// its share of a core (the AVR emulator alone takes about 40 % of one): a starved
+/// firmware boots and answers slower than any real printer, and the host rightly gives up
+/// on it, which would test the machine's load rather than the host.
+static RUNNING: (Mutex<usize>, std::sync::Condvar) = (Mutex::new(0), std::sync::Condvar::new());
+
+/// One firmware's place among [`RUNNING`], given back when dropped.
+struct Slot;
+
+impl Slot {
+    fn take() -> Slot {
+        let limit = std::env::var("CRISPEN_FIRMWARE_AT_ONCE")
+            .ok()
+            .and_then(|v| v.parse::<usize>().ok())
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(2, |n| n.get()))
+            .max(1);
+        let (running, freed) = &RUNNING;
+        let mut n = running.lock().unwrap_or_else(|e| e.into_inner());
+        while *n >= limit {
+            n = freed.wait(n).unwrap_or_else(|e| e.into_inner());
+        }
+        *n += 1;
+        Slot
+    }
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        let (running, freed) = &RUNNING;
+        *running.lock().unwrap_or_else(|e| e.into_inner()) -= 1;
+        freed.notify_one();
+    }
 }
 
 impl Relay {
     /// Serve `build` from `firmware` and put the relay in front of it. The firmware boots
     /// when the host opens [`Relay::device_path`].
     pub fn start(firmware: &Path, build: Build, faults: RelayFaults) -> Relay {
+        let slot = Slot::take();
         let dir = tempfile::tempdir().unwrap();
         let link = dir.path().join("printer");
         let mut cmd = match build {
@@ -245,6 +282,7 @@ impl Relay {
             thread: Some(thread),
             server,
             _dir: dir,
+            _slot: slot,
         }
     }
 

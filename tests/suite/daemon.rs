@@ -543,10 +543,9 @@ fn assert_prefix_then_safe_stop(recorded: &[String], job: &[String]) {
     // Before the numbered stop, the lines that work whatever line number the printer
     // expects: `M108` where it breaks a wait, heaters off unnumbered, the count reset.
     let mut prefix = &recorded[..recorded.len() - safe_stop.len()];
-    while prefix
-        .last()
-        .is_some_and(|c| ["M108", "M104 S0", "M140 S0"].contains(&c.as_str()) || c.starts_with("M110"))
-    {
+    while prefix.last().is_some_and(|c| {
+        ["M108", "M104 S0", "M140 S0"].contains(&c.as_str()) || c.starts_with("M110")
+    }) {
         prefix = &prefix[..prefix.len() - 1];
     }
     assert!(

@@ -73,6 +73,9 @@ impl Host {
         } else if let Some(first) = stop_first.filter(|&f| n < f) {
             // The printer still counts from before the stop: it rejected our M110. The
             // safe-stop lines are harmless to run twice, so replaying from it is safe.
+            // Whatever answer seemed to confirm a line of the stop's count (an M105's,
+            // after a refusal taken for a duplicate) did not: the printer took none.
+            self.confirmed = self.confirmed.filter(|&c| c < first);
             first
         } else {
             n
@@ -245,6 +248,11 @@ impl Host {
 
     /// The printer dropped line n and everything after it.
     fn drop_lines_from(&mut self, n: u64, now: Instant) {
+        // An unnumbered M105 on its way answers after the lines the printer took, which
+        // no longer include these: its answer confirms none of them (see `handle_ok`).
+        if let Some((before, _)) = &mut self.unnumbered_probe {
+            *before = (*before).min(n);
+        }
         let mut dropped_after = 0;
         self.in_flight.retain(|f| {
             if f.number >= n {

@@ -236,7 +236,8 @@ impl Host {
                 self.stats.probes += 1;
                 self.events.push_back(Event::Probe);
                 self.outgoing.extend_from_slice(b"M105\n");
-                self.unnumbered_probe = Some((self.next_number, now));
+                // It follows the lines sent so far, not those waiting to be replayed.
+                self.unnumbered_probe = Some((self.send_cursor, now));
             }
             return;
         }

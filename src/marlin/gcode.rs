@@ -514,6 +514,28 @@ pub(crate) fn open_job(path: &Path) -> Result<(File, u64), GcodeError> {
     Ok((file, size))
 }
 
+/// Net filament the first `limit` commands of the job file at `path` push (all of them
+/// with `None`), mm, followed as `firmware` follows them
+/// ([`Pushed`](super::motion::Pushed)) and read as they stream by; with the number of
+/// commands read. What a pre-sliced job needs, and what a print took up to its last
+/// acknowledged line.
+pub(crate) fn pushed_mm(
+    path: &Path,
+    firmware: Firmware,
+    limit: Option<usize>,
+) -> Result<(f64, usize), GcodeError> {
+    let (file, _) = open_job(path)?;
+    let mut pushed = super::motion::Pushed::new(firmware);
+    let mut commands = 0usize;
+    scan(file, &path.display().to_string(), firmware, |code, _| {
+        if limit.is_none_or(|l| commands < l) {
+            pushed.follow(code);
+        }
+        commands += 1;
+    })?;
+    Ok((pushed.mm(), commands))
+}
+
 /// A program as [`scan`] hands it over.
 struct Loading {
     text: String,

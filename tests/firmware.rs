@@ -1319,6 +1319,16 @@ async fn ultimaker2_a_cancel_during_the_heat_up_waits_for_it_and_says_so() {
         .fold(0.0, f64::max);
     assert!(hottest >= 87.0, "{hottest}");
     assert!(!log.wire.iter().any(|(_, d, l)| *d == '>' && l == "M108"));
+    // What the stop said it may take is not far short of what it took (a straight line
+    // from the first readings once said 8.4 s of 22).
+    let took = cancel_to_report
+        .expect("the stop was reported")
+        .as_secs_f64();
+    assert!(
+        wait.remaining_s.is_some_and(|r| r >= 0.7 * took),
+        "said {:?} s, took {took:.1} s",
+        wait.remaining_s
+    );
 }
 
 /// `crispen cancel` on a printer renumbered while the job was paused (nothing in flight,

@@ -320,22 +320,17 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
         | Command::Unload { printer } => (printer.as_str(), "-"),
         Command::AddSpool(_) => ("-", "-"),
     };
-    let why = match e {
+    // Why, and the spool's file it could not write (for the log only).
+    let (why, file) = match e {
         CommandError::Store(StoreError::Io {
             path,
             action,
             source,
-        }) => {
-            tracing::error!(printer = %printer, job = %job, file = %path.display(), action, error = %source, "the spool could not be written");
-            Unwritable::Spool(source.to_string())
-        }
+        }) => (Unwritable::Spool(source.to_string()), Some((path, action))),
         CommandError::Store(StoreError::Database {
             failure: DatabaseFailure::Outage,
             message,
-        }) => {
-            tracing::error!(printer = %printer, job = %job, error = %message, "the farm database could not be reached");
-            Unwritable::Database(message)
-        }
+        }) => (Unwritable::Database(message), None),
         CommandError::Store(StoreError::DirectoryGone { id, dir }) => {
             tracing::error!(job = %id, dir = %dir.display(), "the job's directory was removed; the job failed");
             return CommandError::DirectoryGone(id);
@@ -381,6 +376,14 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
             "ask again".to_string(),
         ),
     };
+    match &file {
+        Some((path, action)) => {
+            tracing::error!(printer = %printer, job = %job, file = %path.display(), action, error = %why, "{undone}: the spool could not be written")
+        }
+        None => {
+            tracing::error!(printer = %printer, job = %job, error = %why, "{undone}: the farm database could not be reached")
+        }
+    }
     CommandError::NotWritten {
         undone,
         why,

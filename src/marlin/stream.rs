@@ -130,7 +130,7 @@ pub struct StopWait {
     pub bed: bool,
     pub current_c: Option<f64>,
     pub target_c: Option<f64>,
-    /// At the rate the heater has closed in on its target so far.
+    /// From how the heater has closed in on its target so far, erring long.
     pub remaining_s: Option<f64>,
     /// The longest the host waits: until the heater has not come closer to its target for
     /// the heat timeout.

@@ -621,20 +621,21 @@ impl Farm {
     }
 
     /// The job's camera section once the recorder has said its last word on it: its
-    /// timelapse made or given up, or its last layer said to have no frame (then there is
-    /// no timelapse to make).
+    /// timelapse made or given up, or every layer said to have no frame (then there is no
+    /// timelapse to make).
     fn finished_camera(&self, job: &str) -> Value {
         common::http::poll_status(
             Duration::from_secs(60),
-            "the job's timelapse made or given up, or its last layer missing",
+            "the job's timelapse made or given up, or every layer said to have no frame",
             &self.log,
             || get(&self.addr, &format!("/api/v1/jobs/{job}")).json()["camera"].clone(),
             |c| {
-                let last_missing = c["missing"]
-                    .as_array()
-                    .and_then(|m| m.last())
-                    .is_some_and(|m| m["last"] == c["layers"]);
-                !c["timelapse"].is_null() || !c["timelapse_error"].is_null() || last_missing
+                // With no frame at all there is no timelapse to make: the layers said
+                // missing, the last one included, are the recorder's last word.
+                let none_taken = c["missing"].as_array().is_some_and(|m| {
+                    m.len() == 1 && m[0]["first"] == 1 && m[0]["last"] == c["layers"]
+                });
+                !c["timelapse"].is_null() || !c["timelapse_error"].is_null() || none_taken
             },
         )
     }

@@ -130,7 +130,7 @@ pub struct StopWait {
     pub bed: bool,
     pub current_c: Option<f64>,
     pub target_c: Option<f64>,
-    /// From how the heater has closed in on its target so far, erring long.
+    /// At the rate the heater has closed in on its target so far.
     pub remaining_s: Option<f64>,
     /// The longest the host waits: until the heater has not come closer to its target for
     /// the heat timeout.
@@ -564,6 +564,8 @@ impl Connection {
         };
         let mut state = part.state();
         let mut stop = StopOutcome::None;
+        // The printer's report showed its heaters off during a stop (`Event::HeatersOff`).
+        let mut heaters_off = false;
         self.host.start_job(commands, Instant::now());
         run.publish(acked(&self.host), self.host.temperatures(), state);
         let mut last_publish = Instant::now();
@@ -628,9 +630,19 @@ impl Connection {
                         stop = StopOutcome::Confirmed;
                         tracing::info!(port = %port.display(), gcode = run.name, "printer stopped safely: heaters, fan and motors off")
                     }
+                    Event::SafeStop { confirmed: false } if heaters_off => {
+                        stop = StopOutcome::HeatersOff;
+                        tracing::warn!(port = %port.display(), gcode = run.name, "the printer did not take the stop's numbered lines (fan and motors), but its report shows its heaters off")
+                    }
                     Event::SafeStop { confirmed: false } => {
                         stop = StopOutcome::NotConfirmed;
                         tracing::error!(port = %port.display(), gcode = run.name, "the printer did not confirm heaters off; check it now")
+                    }
+                    Event::HeatersOff => {
+                        if !heaters_off {
+                            tracing::info!(port = %port.display(), gcode = run.name, "the printer's report shows its heaters off");
+                        }
+                        heaters_off = true;
                     }
                     Event::StopWaitsForHeat(estimate) => {
                         let wait = StopWait::from(estimate);

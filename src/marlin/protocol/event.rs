@@ -240,6 +240,11 @@ pub enum Event {
     SafeStop {
         confirmed: bool,
     },
+    /// During a stop, the printer's own answer to an `M105` sent after the stop's
+    /// unnumbered heaters-off lines shows both targets at 0: whatever becomes of the
+    /// stop's numbered lines (a noisy link may keep refusing them), the heaters are off,
+    /// and nothing the host sends after can turn them on.
+    HeatersOff,
     /// A stop was asked for while the printer waits for a heater, and its firmware reads
     /// nothing until the wait is over (Ultimaker2Marlin): the heaters go off only then.
     StopWaitsForHeat(HeatWaitEstimate),

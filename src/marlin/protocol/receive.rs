@@ -9,6 +9,7 @@ use super::line::{is_code, InFlight, Kind, LONG_COMMANDS};
 use super::phase::Phase;
 use super::recovery::OkFollow;
 use super::reply::{HostAction, OkReply, Reply, Report};
+use super::temperature::Temp;
 use super::Host;
 use crate::marlin::gcode::is_heat_wait;
 use std::time::{Duration, Instant};
@@ -238,6 +239,16 @@ impl Host {
                 self.swallow_oks = 0;
                 if let Some(last) = before.checked_sub(1) {
                     self.ack_through(last, now);
+                }
+                // During a stop, after the stop's own unnumbered heaters-off lines too (a
+                // probe from before the stop is answered as a stale one, above).
+                let off = |t: Option<Temp>| t.is_some_and(|t| t.target == Some(0.0));
+                let heaters_off = ok
+                    .report
+                    .as_ref()
+                    .is_some_and(|r| off(r.temperatures.hotend) && off(r.temperatures.bed));
+                if self.stopping().is_some() && heaters_off {
+                    self.events.push_back(Event::HeatersOff);
                 }
                 return;
             }

@@ -127,8 +127,8 @@ impl Thermal {
         }
     }
 
-    /// How long the heat wait the printer is in may last (see [`remaining_heat`]), and at
-    /// most until the host's heat timeout.
+    /// How long the heat wait the printer is in may last: at the rate its heater has
+    /// closed in on the target so far, and at most until the host's heat timeout.
     pub(super) fn estimate(&self, now: Instant, heat_timeout: Duration) -> HeatWaitEstimate {
         let heat = self.heat.as_ref();
         let bed = heat.is_some_and(|h| h.bed);
@@ -138,7 +138,9 @@ impl Thermal {
             self.temps.hotend
         };
         let remaining = heat.and_then(|h| {
-            remaining_heat(h.first?, h.latest?).map(|s| Duration::from_secs_f64(s.min(1e6)))
+            let ((g0, t0), (g1, t1)) = (h.first?, h.latest?);
+            let rate = (g0 - g1) / t1.saturating_duration_since(t0).as_secs_f64();
+            (rate > 0.01).then(|| Duration::from_secs_f64((g1 / rate).min(1e6)))
         });
         let limit = self
             .deadline(heat_timeout)
@@ -161,74 +163,5 @@ impl Thermal {
         let heat = self.heat.as_ref()?;
         let progress = heat.best.map_or(heat.since, |(_, at)| at.max(heat.since));
         Some(progress + heat_timeout)
-    }
-}
-
-/// How close to its target a heater must come for a wait to end, °C (Ultimaker2Marlin
-/// ends `M109` when the reading reaches the target; Marlin 2 within `TEMP_WINDOW`, 1 °C).
-const HEAT_WINDOW_C: f64 = 1.0;
-
-/// Seconds a heat wait may still last, from the distance to its target first seen and the
-/// latest, each with its time. A heater closes in ever more slowly as it nears the target,
-/// so the rate seen so far, kept up, promises an end too soon (a straight line from the
-/// first readings said 8.4 s where Ultimaker2Marlin took 22 s): the approach is taken as
-/// exponential, the distance falling by the same factor in equal times, down to
-/// [`HEAT_WINDOW_C`], which errs long. `None` while no progress was seen.
-fn remaining_heat((g0, t0): (f64, Instant), (g1, t1): (f64, Instant)) -> Option<f64> {
-    if g1 <= HEAT_WINDOW_C {
-        return Some(0.0);
-    }
-    let seconds = t1.saturating_duration_since(t0).as_secs_f64();
-    if seconds <= 0.0 || g0 <= g1 + 0.1 {
-        return None;
-    }
-    let tau = seconds / (g0 / g1).ln();
-    Some(tau * (g1 / HEAT_WINDOW_C).ln())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A heater that closes in on its target at a rate falling with the distance (90 °C
-    /// from 20 °C, time constant 20 s): the estimate from its first seconds is not short of
-    /// what is left, and not more than half again as long.
-    #[test]
-    fn a_heat_up_is_estimated_long_rather_than_short() {
-        let start = Instant::now();
-        let gap = |t: f64| 70.0 * (-t / 20.0).exp();
-        // The wait ends within HEAT_WINDOW_C: 20 ln(70) s after the start.
-        let ends = 20.0 * 70f64.ln();
-        for seen in [2.0, 5.0, 10.0, 30.0] {
-            let at = |t: f64| start + Duration::from_secs_f64(t);
-            let said = remaining_heat((gap(0.0), at(0.0)), (gap(seen), at(seen))).unwrap();
-            let left = ends - seen;
-            assert!(
-                said >= left * 0.99 && said <= left * 1.5,
-                "after {seen} s: said {said:.1}, left {left:.1}"
-            );
-        }
-        // A heater at full power toward 150 °C, cut off at its 90 °C target: it closes
-        // in faster than exponentially, and the estimate is longer still.
-        let temp = |t: f64| 20.0 + 130.0 * (1.0 - (-t / 40.0).exp());
-        let ends = -40.0 * (1.0f64 - 69.0 / 130.0).ln();
-        for seen in [2.0, 5.0, 10.0] {
-            let at = |t: f64| start + Duration::from_secs_f64(t);
-            let said = remaining_heat((70.0, at(0.0)), (90.0 - temp(seen), at(seen))).unwrap();
-            assert!(
-                said >= ends - seen,
-                "after {seen} s: said {said:.1}, left {:.1}",
-                ends - seen
-            );
-        }
-        // No progress yet: nothing to say; there: nothing left.
-        assert_eq!(
-            remaining_heat((70.0, start), (70.0, start + Duration::from_secs(3))),
-            None
-        );
-        assert_eq!(
-            remaining_heat((70.0, start), (0.5, start + Duration::from_secs(3))),
-            Some(0.0)
-        );
     }
 }

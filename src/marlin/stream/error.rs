@@ -15,6 +15,9 @@ pub enum StopOutcome {
     Confirmed,
     /// The host gave up before the printer confirmed them: it may still be hot.
     NotConfirmed,
+    /// The host gave up on the stop's numbered lines (fan and motors), but the printer's
+    /// own temperature report, after the heaters-off lines, showed both targets at 0.
+    HeatersOff,
     /// No stop was needed or possible (a reset or halted printer has switched its heaters
     /// off; nothing was sent yet).
     None,
@@ -28,6 +31,9 @@ impl std::fmt::Display for StopOutcome {
             StopOutcome::NotConfirmed => {
                 f.write_str("; heaters NOT confirmed off: check the printer now")
             }
+            StopOutcome::HeatersOff => f.write_str(
+                "; heaters confirmed off by the printer's report (fan and motors not confirmed)",
+            ),
             StopOutcome::None => Ok(()),
         }
     }

@@ -500,3 +500,51 @@ fn a_stop_that_must_wait_for_the_heat_up_says_how_long() {
         "{events:?}"
     );
 }
+
+/// A stop whose numbered lines the printer does not take (its new count lost on a noisy
+/// link) still learns the heaters are off from the printer's own answer to the M105 sent
+/// without a number after the unnumbered heaters-off lines; an answer with a target not
+/// at 0 says nothing of the kind.
+#[test]
+fn the_printers_report_after_the_unnumbered_stop_shows_its_heaters_off() {
+    for (target, off) in [("0.0", true), ("210.0", false)] {
+        let now = Instant::now();
+        let mut host = Host::new(opts(Firmware::Marlin2), now);
+        host.feed(b"start\n", now);
+        let now = now + Duration::from_secs(1);
+        host.tick(now);
+        host.take_outgoing();
+        host.feed(format!("ok\n{GREETING}ok\n").as_bytes(), now);
+        assert!(host.is_idle());
+        host.start_job(job(10), now);
+        sent(&mut host);
+        host.cancel(now);
+        let out = sent(&mut host);
+        assert!(out.contains("M104 S0\nM140 S0\n"), "{out:?}");
+        // The unnumbered lines are answered; the new count's M110 never is.
+        host.feed(b"ok\nok\nok\n", now);
+        let (t, probe) = loop {
+            let t = host.next_deadline().expect("the stop waits for something");
+            host.tick(t);
+            let out = sent(&mut host);
+            if out.lines().any(|l| l == "M105") {
+                break (t, out);
+            }
+            assert!(
+                !host.is_finished(),
+                "no unnumbered M105 before the stop ended"
+            );
+        };
+        drain_events(&mut host);
+        host.feed(
+            format!("ok T:20.0 /{target} B:20.0 /0.0 @:0 B@:0\n").as_bytes(),
+            t,
+        );
+        let events = drain_events(&mut host);
+        assert_eq!(
+            events.contains(&Event::HeatersOff),
+            off,
+            "target {target} after {probe:?}: {events:?}"
+        );
+    }
+}

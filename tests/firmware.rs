@@ -951,8 +951,11 @@ struct Stopped {
     /// The firmware's own answer to an `M105` asked past the host afterwards.
     report: String,
     log: RelayLog,
-    /// What the printer's progress said while a stop waited for the heat-up.
-    stop_wait: Option<crispen::marlin::stream::StopWait>,
+    /// What the printer's progress said while a stop waited for the heat-up, each figure
+    /// with its time since the cancel.
+    said: Vec<(Duration, crispen::marlin::stream::StopWait)>,
+    /// From the cancel to the end of the print (the stop confirmed or given up).
+    cancel_to_end: Option<Duration>,
     /// From the cancel to the firmware's own `M105` answer showing the stop.
     cancel_to_report: Option<Duration>,
     /// From the line slipped in crossing to the printer to the answer of the stop's
@@ -1018,19 +1021,22 @@ async fn stopped_once(
     let (control, control_rx) = mpsc::channel(1);
     let (progress, mut progress_rx) = watch::channel(PrintProgress::default());
     let watcher = tokio::spawn(async move {
-        let mut cancelled = None;
-        let mut stop_wait = None;
+        let mut cancelled: Option<Instant> = None;
+        let mut said: Vec<(Duration, crispen::marlin::stream::StopWait)> = Vec::new();
         while progress_rx.changed().await.is_ok() {
             let p = progress_rx.borrow().clone();
             if cancelled.is_none() && cancel_when.is_some_and(|when| when(&p)) {
                 cancelled = Some(Instant::now());
                 let _ = control.send(StreamControl::Cancel).await;
             }
-            if p.stop_wait.is_some() {
-                stop_wait = p.stop_wait;
+            if let Some(wait) = p.stop_wait {
+                if said.last().is_none_or(|(_, last)| *last != wait) {
+                    let at = cancelled.map_or(Duration::ZERO, |t| t.elapsed());
+                    said.push((at, wait));
+                }
             }
         }
-        (stop_wait, cancelled)
+        (said, cancelled)
     });
     let result = tokio::time::timeout(
         Duration::from_secs(300),
@@ -1038,7 +1044,8 @@ async fn stopped_once(
     )
     .await
     .unwrap_or_else(|_| panic!("{}: no end after 5 minutes", build.name()));
-    let (stop_wait, cancelled) = watcher.await.unwrap();
+    let (said, cancelled) = watcher.await.unwrap();
+    let cancel_to_end = cancelled.map(|t| t.elapsed());
     let at_end = relay.log();
     if halted_on_its_own(&at_end) {
         return Err(at_end);
@@ -1072,7 +1079,8 @@ async fn stopped_once(
         result,
         report,
         log,
-        stop_wait,
+        said,
+        cancel_to_end,
         cancel_to_report,
         slip_to_confirmed,
     })
@@ -1236,7 +1244,7 @@ async fn a_cancel_during_the_heat_up_stops_a_renumbered_printer() {
             result,
             report,
             log,
-            stop_wait,
+            said,
             cancel_to_report,
             ..
         } = stopped_through(
@@ -1247,7 +1255,7 @@ async fn a_cancel_during_the_heat_up_stops_a_renumbered_printer() {
             |_| {},
         )
         .await;
-        assert!(stop_wait.is_none(), "Marlin breaks the wait");
+        assert!(said.is_empty(), "Marlin breaks the wait");
         let err = result.expect_err("cancelled");
         eprintln!(
             "cancel during M109 S200 ({slipped:?} slipped in): {:.2} s from the cancel to the \
@@ -1287,7 +1295,8 @@ async fn ultimaker2_a_cancel_during_the_heat_up_waits_for_it_and_says_so() {
         result,
         report,
         log,
-        stop_wait,
+        said,
+        cancel_to_end,
         cancel_to_report,
         ..
     } = stopped_through(
@@ -1298,7 +1307,10 @@ async fn ultimaker2_a_cancel_during_the_heat_up_waits_for_it_and_says_so() {
         |_| {},
     )
     .await;
-    let wait = stop_wait.expect("the progress said the stop waits for the heat-up");
+    let (_, wait) = said
+        .first()
+        .cloned()
+        .expect("the progress said the stop waits for the heat-up");
     assert_eq!(wait.command.as_deref(), Some("M109 S90"));
     assert_eq!(wait.target_c, Some(90.0));
     assert!(wait.limit_s > 0.0);
@@ -1324,6 +1336,28 @@ async fn ultimaker2_a_cancel_during_the_heat_up_waits_for_it_and_says_so() {
         .fold(0.0, f64::max);
     assert!(hottest >= 87.0, "{hottest}");
     assert!(!log.wire.iter().any(|(_, d, l)| *d == '>' && l == "M108"));
+    // The figure follows the heater: said again as it closes in, the last one said ends
+    // within seconds of when the stop came through (its lines and confirming M105 after
+    // the heat-up take about a second).
+    let end = cancel_to_end.expect("cancelled").as_secs_f64();
+    let ends: Vec<String> = said
+        .iter()
+        .map(|(at, w)| {
+            let then = w.remaining_s.map(|r| at.as_secs_f64() + r);
+            format!("{:.1} s: {:?}", at.as_secs_f64(), then)
+        })
+        .collect();
+    eprintln!("Ultimaker2Marlin, the stop's figures (said at: end foreseen), ended at {end:.1} s: {ends:?}");
+    assert!(
+        said.len() >= 2,
+        "said again as the heater closed in: {ends:?}"
+    );
+    let (at, last) = said.last().unwrap();
+    let foreseen = at.as_secs_f64() + last.remaining_s.unwrap_or(f64::INFINITY);
+    assert!(
+        (foreseen - end).abs() < 8.0,
+        "the last figure foresaw {foreseen:.1} s, the stop ended at {end:.1} s: {ends:?}"
+    );
 }
 
 /// `crispen cancel` on a printer renumbered while the job was paused (nothing in flight,

@@ -646,16 +646,19 @@ impl Connection {
                     }
                     Event::StopWaitsForHeat(estimate) => {
                         let wait = StopWait::from(estimate);
-                        tracing::warn!(
-                            port = %port.display(),
-                            gcode = run.name,
-                            command = wait.command.as_deref().unwrap_or("?"),
-                            current_c = wait.current_c,
-                            target_c = wait.target_c,
-                            remaining_s = wait.remaining_s,
-                            limit_s = wait.limit_s,
-                            "the stop waits for the heat-up: the firmware reads nothing until it ends, then the heaters go off"
-                        );
+                        // Said again as the heater's reports come: the log has the first.
+                        if run.stop_wait.is_none() {
+                            tracing::warn!(
+                                port = %port.display(),
+                                gcode = run.name,
+                                command = wait.command.as_deref().unwrap_or("?"),
+                                current_c = wait.current_c,
+                                target_c = wait.target_c,
+                                remaining_s = wait.remaining_s,
+                                limit_s = wait.limit_s,
+                                "the stop waits for the heat-up: the firmware reads nothing until it ends, then the heaters go off"
+                            );
+                        }
                         run.stop_wait = Some(wait);
                         state_changed = true;
                     }

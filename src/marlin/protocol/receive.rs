@@ -9,6 +9,7 @@ use super::line::{is_code, InFlight, Kind, LONG_COMMANDS};
 use super::phase::Phase;
 use super::recovery::OkFollow;
 use super::reply::{HostAction, OkReply, Reply, Report};
+use super::stop::STOP_WAIT_EVERY;
 use super::temperature::Temp;
 use super::Host;
 use crate::marlin::gcode::is_heat_wait;
@@ -204,6 +205,11 @@ impl Host {
         self.thermal.take(report.temperatures, report.waiting, now);
         self.events
             .push_back(Event::Temperatures(self.thermal.temps));
+        let stop_waits = self.stopping().is_some() && !self.breaks_heat_wait() && self.heating();
+        let said = self.timers.last_stop_wait;
+        if stop_waits && said.is_some_and(|t| now.saturating_duration_since(t) >= STOP_WAIT_EVERY) {
+            self.say_stop_waits(now);
+        }
         if report.waiting && self.stopping().is_some() && self.breaks_heat_wait() {
             // A heat wait began after the stop's M108 was read (it waited behind another
             // command): an M108 read before the wait starts is lost, as the wait sets its

@@ -6,7 +6,10 @@ use super::event::{Event, Failure};
 use super::line::{is_code, Kind, HEATERS_OFF, SAFE_STOP};
 use super::phase::{JobPhase, Phase, Stop};
 use super::Host;
-use std::time::Instant;
+use std::time::{Duration, Instant};
+
+/// How often a stop that waits for a heat-up says again how long it may take.
+pub(super) const STOP_WAIT_EVERY: Duration = Duration::from_secs(5);
 
 impl Host {
     /// Stops the job safely, whatever line the printer expects next. First, at once and
@@ -45,11 +48,11 @@ impl Host {
         for cmd in HEATERS_OFF {
             self.send_unnumbered(cmd, now);
         }
+        self.timers.last_stop_wait = None;
         if !breaks && self.heating() {
             // Ultimaker2Marlin reads nothing while it waits for a heater: the stop runs
             // when the wait is over. Say so, and how long that may be.
-            let estimate = self.thermal.estimate(now, self.opts.heat_timeout);
-            self.events.push_back(Event::StopWaitsForHeat(estimate));
+            self.say_stop_waits(now);
         }
         self.pending
             .push_back((Kind::Setup, format!("M110 N{first}")));
@@ -77,6 +80,15 @@ impl Host {
         if cmd == "M108" {
             self.timers.last_m108 = Some(now);
         }
+    }
+
+    /// The stop waits for a heat-up the printer does not break off: how long that may take,
+    /// from the readings so far. Said when the stop begins, and again as the heater's
+    /// reports come (every [`STOP_WAIT_EVERY`] at most), so the figure follows the heater.
+    pub(super) fn say_stop_waits(&mut self, now: Instant) {
+        self.timers.last_stop_wait = Some(now);
+        let estimate = self.thermal.estimate(now, self.opts.heat_timeout);
+        self.events.push_back(Event::StopWaitsForHeat(estimate));
     }
 
     /// Whether an unnumbered `M108` ends a heat wait on this printer: where an emergency

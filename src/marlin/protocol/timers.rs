@@ -42,6 +42,8 @@ pub(super) struct Timers {
     pub(super) next_poll: Instant,
     /// When a stop last sent an unnumbered `M108`.
     pub(super) last_m108: Option<Instant>,
+    /// When a stop that waits for a heat-up last said how long it may take.
+    pub(super) last_stop_wait: Option<Instant>,
 }
 
 impl Timers {
@@ -60,6 +62,7 @@ impl Timers {
             greeting_sent_at: now,
             next_poll: now,
             last_m108: None,
+            last_stop_wait: None,
         }
     }
 

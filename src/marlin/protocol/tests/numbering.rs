@@ -485,8 +485,30 @@ fn a_stop_that_must_wait_for_the_heat_up_says_how_long() {
     assert!(estimate.limit <= opts(Firmware::Ultimaker2).heat_timeout);
     // Past the stop's own limit the printer still heats and reports: the stop waits on.
     let stop_timeout = opts(Firmware::Ultimaker2).stop_timeout;
-    let (t, during) = heat_reports(&mut host, t, stop_timeout.as_secs() + 10, false);
+    let seconds = stop_timeout.as_secs() + 10;
+    let (t, during) = heat_reports(&mut host, t, seconds, false);
     assert!(!host.is_finished());
+    // Said again as the heater's reports come, every five seconds: the figure follows it.
+    let again: Vec<_> = drain_events(&mut host)
+        .into_iter()
+        .filter_map(|e| match e {
+            Event::StopWaitsForHeat(e) => Some(e),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(again.len() as u64, seconds / 5, "{again:?}");
+    assert!(
+        again.windows(2).all(|w| w[1].current > w[0].current),
+        "{again:?}"
+    );
+    let below = |e: &HeatWaitEstimate| e.current < e.target;
+    assert!(
+        again
+            .windows(2)
+            .filter(|w| below(&w[1]))
+            .all(|w| w[1].remaining < w[0].remaining),
+        "closer, less to wait: {again:?}"
+    );
     // The wait ends: its `ok`, then what waited in the printer's buffer, in order (a probe
     // sent before the stop is answered first, and confirms nothing of it).
     host.feed(b"ok\n", t);

@@ -205,9 +205,12 @@ impl Host {
         self.thermal.take(report.temperatures, report.waiting, now);
         self.events
             .push_back(Event::Temperatures(self.thermal.temps));
-        let stop_waits = self.stopping().is_some() && !self.breaks_heat_wait() && self.heating();
+        // A stop that said it waits for the heat-up (`begin_stop`) says so again.
         let said = self.timers.last_stop_wait;
-        if stop_waits && said.is_some_and(|t| now.saturating_duration_since(t) >= STOP_WAIT_EVERY) {
+        if self.stopping().is_some()
+            && self.heating()
+            && said.is_some_and(|t| now.saturating_duration_since(t) >= STOP_WAIT_EVERY)
+        {
             self.say_stop_waits(now);
         }
         if report.waiting && self.stopping().is_some() && self.breaks_heat_wait() {

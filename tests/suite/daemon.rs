@@ -2346,21 +2346,16 @@ fn the_wall_comparison_comes_after_every_preparation_and_the_job_does_not_wait_f
         let path = root.join("spool/jobs").join(id).join("job.json");
         serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
     };
-    let measured = |job: &Value| job["comparison"]["state"] == "done";
-    let started = Instant::now();
-    while !["first.obj", "second.obj"]
-        .iter()
-        .all(|f| measured(&job_json(f)))
-    {
-        assert!(
-            started.elapsed() < Duration::from_secs(120),
-            "the comparisons were not made: {} {}\nlog:\n{}",
-            job_json("first.obj"),
-            job_json("second.obj"),
-            std::fs::read_to_string(&log).unwrap_or_default()
-        );
-        std::thread::sleep(Duration::from_millis(200));
-    }
+    // Each comparison runs at the lowest CPU priority: waited for as the job's record
+    // says it is made, however long a busy machine takes.
+    let measured = |file: &str| job_json(file)["comparison"]["state"] == "done";
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(600),
+        "both comparisons made",
+        |_| measured("first.obj") && measured("second.obj"),
+    );
     // When the job entered `state` (its last time).
     let entered = |job: &Value, state: &str| -> f64 {
         job["history"]

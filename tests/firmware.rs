@@ -830,11 +830,13 @@ struct DirectFirmware {
     child: std::process::Child,
     lines: std::sync::mpsc::Receiver<String>,
     number: u64,
+    _slot: common::relay::Slot,
 }
 
 impl DirectFirmware {
     /// Starts `command` and waits `boot` for its banner.
     fn start(mut command: std::process::Command, boot: Duration) -> DirectFirmware {
+        let slot = common::relay::Slot::take();
         use std::io::BufRead;
         let mut child = command
             .stdin(std::process::Stdio::piped())
@@ -855,6 +857,7 @@ impl DirectFirmware {
             child,
             lines,
             number: 0,
+            _slot: slot,
         };
         // The banner ends with the settings report; M110 then starts the numbering.
         std::thread::sleep(boot);

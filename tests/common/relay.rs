@@ -184,11 +184,12 @@ pub struct Relay {
 /// on it, which would test the machine's load rather than the host.
 static RUNNING: (Mutex<usize>, std::sync::Condvar) = (Mutex::new(0), std::sync::Condvar::new());
 
-/// One firmware's place among [`RUNNING`], given back when dropped.
-struct Slot;
+/// One firmware's place among [`RUNNING`], given back when dropped: held by each relay,
+/// and by a test that runs a firmware itself.
+pub struct Slot;
 
 impl Slot {
-    fn take() -> Slot {
+    pub fn take() -> Slot {
         let limit = std::env::var("CRISPEN_FIRMWARE_AT_ONCE")
             .ok()
             .and_then(|v| v.parse::<usize>().ok())

@@ -46,7 +46,7 @@ pub use temperature::{HeatWaitEstimate, Temp, Temperatures};
 
 use super::gcode::{is_heat_wait, GcodeCommands};
 use event::Stats;
-use line::{InFlight, Kind, Line};
+use line::{InFlight, Kind, Line, Owed};
 use phase::{JobPhase, Phase, Stop};
 use recovery::Recovery;
 use reply::Reply;
@@ -76,12 +76,11 @@ pub struct Host {
     send_cursor: u64,
     in_flight: VecDeque<InFlight>,
     in_flight_bytes: usize,
-    /// `ok`s to ignore: those of the unnumbered lines of a stop (each answered when the
-    /// queue reaches it).
-    swallow_oks: u32,
-    /// Answers to `M105`s sent before a stop began, still to come: each confirms nothing of
-    /// the stop's lines, which the printer runs after it.
-    stale_m105s: u32,
+    /// Answers owed by lines outside the current count, oldest first (see [`Owed`]): their
+    /// `ok`s are not taken for the count's lines, nor an `M105`'s report for the stop's
+    /// (the printer runs the stop's lines after them), and the send window counts their
+    /// bytes: a stop begun while the printer's ring is full must not overrun it.
+    owed: VecDeque<Owed>,
     /// An `M105` sent without a number (a probe while the host's `M110` waits to run) is
     /// unanswered: the numbers below this were sent before it, and its answer settles them.
     unnumbered_probe: Option<(u64, Instant)>,
@@ -131,8 +130,7 @@ impl Host {
             send_cursor: 0,
             in_flight: VecDeque::new(),
             in_flight_bytes: 0,
-            swallow_oks: 0,
-            stale_m105s: 0,
+            owed: VecDeque::new(),
             unnumbered_probe: None,
             cautious_until: 0,
             advanced_ok: false,

@@ -35,6 +35,28 @@ pub(super) struct InFlight {
     pub(super) sent: Instant,
 }
 
+/// An `M105` without number or checksum: the printer runs it whatever line it expects.
+pub(super) const UNNUMBERED_PROBE: &[u8] = b"M105\n";
+
+/// A line whose answer names no line of the current count: one sent before a stop began,
+/// or one without a number (a stop's heaters off, its probe). Until answered it may still
+/// sit in the printer's receive ring.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Owed {
+    pub(super) bytes: usize,
+    pub(super) what: OwedLine,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) enum OwedLine {
+    /// A numbered line of the count before: `ok` (with that number on ADVANCED_OK).
+    Before,
+    /// A line without a number: `ok` (without a number on ADVANCED_OK).
+    Unnumbered,
+    /// An `M105`, numbered or not: answered with its report, after every line before it.
+    M105,
+}
+
 /// Commands that keep the printer busy for long without a word: silence is no sign of
 /// trouble while one runs.
 pub(super) const LONG_COMMANDS: [&str; 4] = ["G28", "G29", "M400", "G4"];

@@ -5,7 +5,7 @@
 
 use super::event::{Event, Failure, Numbering};
 use super::framing::{canonical, strip_framing};
-use super::line::{is_code, InFlight, Kind, LONG_COMMANDS};
+use super::line::{is_code, InFlight, Kind, OwedLine, LONG_COMMANDS};
 use super::phase::Phase;
 use super::recovery::OkFollow;
 use super::reply::{HostAction, OkReply, Reply, Report};
@@ -235,17 +235,16 @@ impl Host {
             // waited, so this is the heat command's own.
             self.thermal.heat = None;
         }
-        if ok.text && self.stale_m105s > 0 {
-            // The answer of an M105 sent before the stop began: it says nothing of the
-            // stop's lines, which the printer runs after it.
-            self.stale_m105s -= 1;
+        if ok.text && self.settle_owed_m105() {
+            // The answer of an M105 sent before the stop's count began: it says nothing of
+            // the stop's lines, which the printer runs after it.
             return;
         }
         if ok.text {
             if let Some((before, _)) = self.unnumbered_probe.take() {
                 // The answer of the M105 sent without a number: the printer ran it after
                 // every line sent before it, and only those.
-                self.swallow_oks = 0;
+                self.owed.clear();
                 if let Some(last) = before.checked_sub(1) {
                     self.ack_through(last, now);
                 }
@@ -267,13 +266,17 @@ impl Host {
                 let number = self.in_flight[pos].number;
                 // Every `ok` owed by an earlier `Resend:` or fragment came before this one:
                 // a debt still open was a guess that went wrong.
-                self.swallow_oks = 0;
+                self.owed.clear();
                 self.ack_through(number, now);
                 return;
             }
         }
         if let Some(n) = ok.line {
             self.advanced_ok = true;
+            if self.stopping().is_some() && n < self.stop_from {
+                // A line sent before the stop's count began.
+                self.settle_owed_ok(&[OwedLine::Before]);
+            }
             if n < self.next_number {
                 self.ack_through(n, now);
             } else if self.stopping().is_none() && self.in_job() {
@@ -289,9 +292,8 @@ impl Host {
             }
             return;
         }
-        if ok.advanced && self.swallow_oks > 0 {
+        if ok.advanced && self.settle_owed_ok(&[OwedLine::Unnumbered]) {
             // A line of the host's own without a number (a stop's heaters off).
-            self.swallow_oks -= 1;
             return;
         }
         if ok.advanced {
@@ -307,8 +309,8 @@ impl Host {
             // A plain `ok` in an ADVANCED_OK build is the one after `Resend:`.
             return;
         }
-        if self.swallow_oks > 0 {
-            self.swallow_oks -= 1;
+        if self.settle_owed_ok(&[OwedLine::Before, OwedLine::Unnumbered]) {
+            // A line sent before the stop's count began, or one without a number.
             return;
         }
         // A plain `ok` answers the oldest line, but never an `M105`: its answer carries the

@@ -3,7 +3,7 @@
 //! printer still answers.
 
 use super::event::{Event, Failure};
-use super::line::{is_code, Kind, HEATERS_OFF, SAFE_STOP};
+use super::line::{is_code, Kind, Owed, OwedLine, HEATERS_OFF, SAFE_STOP, UNNUMBERED_PROBE};
 use super::phase::{JobPhase, Phase, Stop};
 use super::Host;
 use std::time::{Duration, Instant};
@@ -22,21 +22,41 @@ impl Host {
     /// queue.cpp:463-473, Marlin_main.cpp:554), and, once that is answered, the safe-stop
     /// lines numbered from there and an `M105` whose answered report confirms them all.
     pub(super) fn begin_stop(&mut self, stop: Stop, now: Instant) {
+        let cancel = matches!(stop, Stop::Cancel { .. });
         self.phase = Phase::Job(JobPhase::Stopping(stop));
         // A new episode with numbers of its own: a request for an older number then means
         // the printer rejected the M110 (see `requested_line`).
         let first = self.next_number;
-        let stale = self
-            .in_flight
-            .iter()
-            .filter(|f| {
-                self.history_line(f.number)
-                    .is_some_and(|l| is_code(&l.command, &["M105"]))
-            })
-            .count() as u32
-            + u32::from(self.unnumbered_probe.is_some());
+        // After a cancel the printer reads the lines still in flight, in order, before the
+        // stop's (Ultimaker2Marlin behind a queue of moves it works off at their speed):
+        // they hold room in its ring, and their `ok`s come first. After a failure they
+        // are presumed refused (flushed with an error, or counted elsewhere); waiting for
+        // them could hold the stop back for good. An `M105` among them is answered either
+        // way, and its answer says nothing of the stop's lines.
+        let mut owed = std::mem::take(&mut self.owed);
+        for f in &self.in_flight {
+            let m105 = self
+                .history_line(f.number)
+                .is_some_and(|l| is_code(&l.command, &["M105"]));
+            if cancel || m105 {
+                owed.push_back(Owed {
+                    bytes: if cancel { f.bytes } else { 0 },
+                    what: if m105 {
+                        OwedLine::M105
+                    } else {
+                        OwedLine::Before
+                    },
+                });
+            }
+        }
+        if self.unnumbered_probe.is_some() {
+            owed.push_back(Owed {
+                bytes: if cancel { UNNUMBERED_PROBE.len() } else { 0 },
+                what: OwedLine::M105,
+            });
+        }
         self.reset_numbering();
-        self.stale_m105s = stale;
+        self.owed = owed;
         self.next_number = first;
         self.send_cursor = first;
         self.stop_from = first;
@@ -76,10 +96,43 @@ impl Host {
     pub(super) fn send_unnumbered(&mut self, cmd: &str, now: Instant) {
         self.outgoing.extend_from_slice(cmd.as_bytes());
         self.outgoing.push(b'\n');
-        self.swallow_oks += 1;
+        self.owed.push_back(Owed {
+            bytes: cmd.len() + 1,
+            what: OwedLine::Unnumbered,
+        });
         if cmd == "M108" {
             self.timers.last_m108 = Some(now);
         }
+    }
+
+    /// When the stop's numbered lines, waiting for room in the ring that lines sent before
+    /// them may still hold, ask with an unnumbered `M105` whether those were read (their
+    /// `ok`s may have been lost, and its answer comes after all of theirs): once the
+    /// printer has been quiet for a probe's interval, and again each interval while one
+    /// more fits the ring.
+    pub(super) fn owed_probe_at(&self) -> Option<Instant> {
+        let waiting = self.stopping().is_some()
+            && self.in_flight.is_empty()
+            && !self.pending.is_empty()
+            && !self.owed.is_empty()
+            && self.probe_fits_unnumbered();
+        let since = match self.timers.last_probe {
+            Some(p) => p.max(self.timers.last_progress),
+            None => self.timers.last_progress,
+        };
+        waiting.then(|| since + self.opts.silence_probe)
+    }
+
+    /// Asks, at `owed_probe_at`.
+    pub(super) fn probe_owed(&mut self, now: Instant) {
+        self.stats.probes += 1;
+        self.events.push_back(Event::Probe);
+        self.timers.last_probe = Some(now);
+        self.outgoing.extend_from_slice(UNNUMBERED_PROBE);
+        self.owed.push_back(Owed {
+            bytes: UNNUMBERED_PROBE.len(),
+            what: OwedLine::M105,
+        });
     }
 
     /// The stop waits for a heat-up the printer does not break off: how long that may take,

@@ -868,6 +868,100 @@ fn cancel_during_a_resend_renumbers_the_safe_stop_lines() {
     assert_eq!(&executed[executed.len() - 4..], SAFE_STOP);
 }
 
+/// A stop begun while the printer's ring still holds the lines sent before it (on
+/// Ultimaker2Marlin, behind a queue of moves it works off at their speed) sends its
+/// numbered lines only as the ring makes room: bytes beyond it are lost, and with them a
+/// line of the stop, which an answered probe then seemed to confirm (seen in CI: a cancel
+/// that ended in "its line count went back").
+#[test]
+fn a_stop_never_overruns_a_ring_still_holding_the_lines_before_it() {
+    for fw in Firmware::ALL {
+        let (mut host, mut printer, now) = connected(opts(fw));
+        host.start_job(job(300), now);
+        exchange(&mut host, &mut printer, now, 3);
+        // In flight, not yet read by the printer.
+        let unread = host.take_outgoing();
+        host.cancel(now);
+        let mut stop = host.take_outgoing();
+        // The printer stays busy and silent; the host probes as it would.
+        let mut t = now;
+        while let Some(d) = host
+            .next_deadline()
+            .filter(|d| *d < now + Duration::from_secs(20))
+        {
+            t = d.max(t);
+            host.tick(t);
+            stop.extend(host.take_outgoing());
+        }
+        let ring = fw.rx_buffer_bytes();
+        assert!(unread.len() > ring / 2, "{fw}: the window was full");
+        assert!(
+            unread.len() + stop.len() < ring,
+            "{fw}: {} bytes unread, then {:?}",
+            unread.len(),
+            String::from_utf8_lossy(&stop)
+        );
+        // Once the printer reads them, the stop goes on and ends confirmed.
+        let mut all = unread;
+        all.extend(stop);
+        let answer = printer.receive(&all);
+        host.feed(&answer, now);
+        let events = run_job(&mut host, &mut printer, t);
+        assert!(
+            matches!(failure(&events), Some(Failure::Cancelled { .. })),
+            "{fw}: {events:?}"
+        );
+        let executed = printer.job_executed();
+        assert_eq!(&executed[executed.len() - 4..], SAFE_STOP, "{fw}");
+    }
+}
+
+#[test]
+fn the_ring_keeps_room_for_a_probe_and_for_what_a_stop_sends_at_once() {
+    use super::framing::wire_len_bound;
+    use super::line::{HEATERS_OFF, UNNUMBERED_PROBE};
+    use super::window::PROBE_RESERVE;
+    let probe = wire_len_bound(99_999_999, "M105");
+    let stop = "M108\n".len()
+        + HEATERS_OFF.iter().map(|c| c.len() + 1).sum::<usize>()
+        + UNNUMBERED_PROBE.len();
+    assert_eq!(PROBE_RESERVE, probe.max(stop));
+}
+
+/// The `ok`s of the lines before a stop may be lost on the wire: their bytes then hold the
+/// stop's numbered lines back only until an unnumbered `M105`, sent once the printer has
+/// been quiet for a probe's interval, is answered after all of them.
+#[test]
+fn a_stop_whose_earlier_lines_lost_their_oks_asks_with_an_unnumbered_m105() {
+    let fw = Firmware::Ultimaker2;
+    let (mut host, mut printer, now) = connected(opts(fw));
+    host.start_job(job(300), now);
+    exchange(&mut host, &mut printer, now, 3);
+    let unread = host.take_outgoing();
+    host.cancel(now);
+    let mut all = unread;
+    all.extend(host.take_outgoing());
+    // The printer runs them all; every `ok` is lost.
+    printer.receive(&all);
+    let quiet = now + host.opts.silence_probe;
+    assert_eq!(host.next_deadline(), Some(quiet), "the probe is due then");
+    host.tick(quiet);
+    assert_eq!(sent(&mut host), "M105\n");
+    host.feed(printer.m105_answer.clone().as_bytes(), quiet);
+    // The ring is known empty: the stop's numbered lines go.
+    let out = host.take_outgoing();
+    assert!(String::from_utf8_lossy(&out).contains("M110"), "{out:?}");
+    let answer = printer.receive(&out);
+    host.feed(&answer, quiet);
+    let events = run_job(&mut host, &mut printer, quiet);
+    assert!(
+        matches!(failure(&events), Some(Failure::Cancelled { .. })),
+        "{events:?}"
+    );
+    let executed = printer.job_executed();
+    assert_eq!(&executed[executed.len() - 4..], SAFE_STOP);
+}
+
 #[test]
 fn pause_stops_job_lines_and_resume_continues() {
     let (mut host, mut printer, now) = connected(opts(Firmware::Ultimaker2));

@@ -4,7 +4,7 @@
 //! clocks themselves are [`Timers`](super::timers::Timers).
 
 use super::event::{Event, Failure};
-use super::line::{is_code, Kind, LONG_COMMANDS};
+use super::line::{is_code, Kind, LONG_COMMANDS, UNNUMBERED_PROBE};
 use super::phase::{Phase, Stop};
 use super::Host;
 use std::time::{Duration, Instant};
@@ -48,6 +48,9 @@ impl Host {
                 }
                 if let Some(stop) = self.stopping() {
                     at(self.stop_gives_up(stop));
+                }
+                if let Some(t) = self.owed_probe_at() {
+                    at(t);
                 }
                 if let Some(deadline) = self.thermal.deadline(self.opts.heat_timeout) {
                     at(deadline);
@@ -106,6 +109,9 @@ impl Host {
                 self.finish_stop(false);
                 return;
             }
+        }
+        if self.owed_probe_at().is_some_and(|t| now >= t) {
+            self.probe_owed(now);
         }
         if self.recovery.replay_after.is_some_and(|t| now >= t) {
             self.recovery.replay_after = None;
@@ -235,7 +241,7 @@ impl Host {
             if due {
                 self.stats.probes += 1;
                 self.events.push_back(Event::Probe);
-                self.outgoing.extend_from_slice(b"M105\n");
+                self.outgoing.extend_from_slice(UNNUMBERED_PROBE);
                 // It follows the lines sent so far, not those waiting to be replayed.
                 self.unnumbered_probe = Some((self.send_cursor, now));
             }

@@ -1095,7 +1095,8 @@ async fn stopped_once(
 /// `M110` in it for a new count (queue.cpp:463-470) and refuses every later line: once
 /// crispen counted those refusals' `ok`s, showed 100 % and stayed printing with the
 /// heaters held. Now the job fails saying what happened, with no progress for the
-/// refused lines, and the firmware's own `M105` shows both targets at 0.
+/// refused lines (but the one whose `ok` the slipped-in line's own can pass for), and the
+/// firmware's own `M105` shows both targets at 0.
 #[cfg_attr(
     not(crispen_firmware),
     ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
@@ -1131,7 +1132,13 @@ async fn a_printer_renumbered_by_a_message_is_stopped_with_its_heaters_off() {
                 },
             last_acked,
             ..
-        } => assert!(*last_acked <= 11, "{err}"),
+        } => {
+            // The slipped-in line's own `ok` comes where the next line's would: on a
+            // firmware without ADVANCED_OK nothing tells them apart, and where that line was
+            // already on its way the host credits it (seen: 12, one run in three). Never
+            // more: the refusals after it are no line's.
+            assert!(*last_acked <= 12, "{err}\n{}", wire_tail(&log, 60))
+        }
         other => panic!("{other}\n{}", wire_tail(&log, 40)),
     }
     assert_eq!(err.stop_outcome(), StopOutcome::Confirmed, "{err}");

@@ -919,18 +919,17 @@ fn a_stop_never_overruns_a_ring_still_holding_the_lines_before_it() {
 #[test]
 fn the_ring_keeps_room_for_a_probe_and_for_what_a_stop_sends_at_once() {
     use super::framing::wire_len_bound;
-    use super::line::{HEATERS_OFF, UNNUMBERED_PROBE};
+    use super::line::HEATERS_OFF;
     use super::window::PROBE_RESERVE;
     let probe = wire_len_bound(99_999_999, "M105");
-    let stop = "M108\n".len()
-        + HEATERS_OFF.iter().map(|c| c.len() + 1).sum::<usize>()
-        + UNNUMBERED_PROBE.len();
+    let stop = "M108\n".len() + HEATERS_OFF.iter().map(|c| c.len() + 1).sum::<usize>();
     assert_eq!(PROBE_RESERVE, probe.max(stop));
 }
 
 /// The `ok`s of the lines before a stop may be lost on the wire: their bytes then hold the
 /// stop's numbered lines back only until an unnumbered `M105`, sent once the printer has
-/// been quiet for a probe's interval, is answered after all of them.
+/// been quiet for a probe's interval (where it fits the ring), is answered after all of
+/// them.
 #[test]
 fn a_stop_whose_earlier_lines_lost_their_oks_asks_with_an_unnumbered_m105() {
     let fw = Firmware::Ultimaker2;

@@ -17,6 +17,8 @@
 //!   serving the farm's handles and operations.
 //! - [`notify`]: notifications of the farm's events (a bed to clear, a failed job, a
 //!   printer offline) to webhooks, ntfy, Slack and Discord, queued in the spool.
+//! - [`bedcheck`]: the camera's bed check: a frame against the picture of the empty bed.
+//!   No I/O.
 //! - [`camera`]: the printers' cameras: frames fetched off the printing path, each
 //!   printer's picture, and the snapshots and timelapse kept with each job.
 //! - [`spoolman`]: a client for Spoolman, the filament-spool inventory server: spools, and
@@ -34,6 +36,7 @@
 // binary, tests/, benches/, fuzz/) names it, so the public API is what is used.
 #![warn(unreachable_pub)]
 
+pub mod bedcheck;
 pub mod camera;
 pub mod daemon;
 pub mod enhance;

@@ -6,7 +6,8 @@
 //! terminal, forge a log line or show as another name. [`problem`] is the one check,
 //! wherever a name comes in (config, sidecars, the API and the command line, Spoolman's
 //! answers, hot folders and uploads); [`printable`] and [`escaped`] show any text safely
-//! (what was stored before the check, a name quoted in an error). A leaf module.
+//! (what was stored before the check, a name quoted in an error); [`number`] shows a
+//! number an operator gave. A leaf module.
 
 /// Whether `c` changes the direction text is shown in: such a name looks like another.
 fn is_bidi_control(c: char) -> bool {
@@ -64,6 +65,17 @@ pub fn printable(name: &str) -> String {
         escaped[..half].concat(),
         escaped[escaped.len() - half..].concat()
     )
+}
+
+/// A number as an error shows it: as written for ordinary values, in exponent form when
+/// that would take more than 16 characters (`1e308`, not 309 digits).
+pub fn number(value: f64) -> String {
+    let plain = value.to_string();
+    if plain.len() <= 16 {
+        plain
+    } else {
+        format!("{value:e}")
+    }
 }
 
 #[cfg(test)]

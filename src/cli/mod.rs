@@ -3,10 +3,13 @@
 //! `anyhow` is used only in this layer.
 
 use clap::{Parser, Subcommand};
+use error::describe;
 use std::process::ExitCode;
 
+pub(crate) mod bedcheck;
 pub(crate) mod control;
 pub(crate) mod enhance;
+mod error;
 pub(crate) mod keys;
 pub(crate) mod logging;
 pub(crate) mod notify;
@@ -55,7 +58,7 @@ pub(crate) enum Command {
     /// Statistics per printer and per hot folder over a period (jobs, hours, filament)
     Stats(stats::Args),
     /// Confirm a printer's bed has been cleared so it may take the next job
-    Clear(control::PrinterArgs),
+    Clear(control::ClearArgs),
     /// Cancel a job (a printing job is stopped safely)
     Cancel(control::JobArgs),
     /// Pause a printer's current print
@@ -76,6 +79,8 @@ pub(crate) enum Command {
     Notify(notify::Args),
     /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
     Keys(keys::Args),
+    /// Compare a picture of the bed with a picture of it empty, as the daemon's bed check does
+    BedCheck(bedcheck::Args),
     /// The daemon's preparation child (internal)
     #[command(hide = true)]
     PrepareJob(prepare_job::Args),
@@ -116,6 +121,7 @@ pub(crate) fn main() -> ExitCode {
         Command::Spools(a) => spools::spools(a),
         Command::Notify(a) => notify::run(a),
         Command::Keys(a) => keys::run(a),
+        Command::BedCheck(a) => bedcheck::run(a),
         Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {
@@ -125,17 +131,4 @@ pub(crate) fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
-}
-
-/// The error and its causes on one line. The library's errors already name their cause
-/// in their own message, so a cause is added only when its text is not there yet.
-fn describe(err: &anyhow::Error) -> String {
-    let mut message = err.to_string();
-    for cause in err.chain().skip(1) {
-        let cause = cause.to_string();
-        if !message.contains(&cause) {
-            message = format!("{message}: {cause}");
-        }
-    }
-    message
 }

@@ -6,7 +6,7 @@
 //! `crispen status|clear|cancel|pause|resume|retry|release` are its clients.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
-use super::job::{JobState, StoreError};
+use super::job::{DatabaseFailure, JobState, StoreError};
 use serde::{Deserialize, Serialize};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -124,14 +124,17 @@ pub(crate) enum CommandError {
     PrintEnded(String),
     #[error("job {id} is {state}; only active jobs can be cancelled")]
     NotActive { id: String, state: JobState },
+    #[error("{0} is running its eject sequence; wait until it ends (its bed then waits for you if it must)")]
+    Ejecting(String),
     #[error("job {0} is not held; it prints once ready")]
     NotHeld(String),
-    /// The job store could not write the change (a full disk): what stays as it was, and
-    /// what to do. The server's path is in the log, never in the answer.
-    #[error("{undone}: the spool could not be written ({cause}); {stays} (hint: free space on the spool's disk, then {again})")]
+    /// The job store could not write the change (a full disk, the farm database down):
+    /// what stays as it was, and what to do. The server's path is in the log, never in
+    /// the answer.
+    #[error("{undone}: {why}; {stays} (hint: {fix}, then {again})", fix = why.fix())]
     NotWritten {
         undone: String,
-        cause: String,
+        why: Unwritable,
         stays: String,
         again: String,
     },
@@ -139,6 +142,33 @@ pub(crate) enum CommandError {
     DirectoryGone(String),
     #[error(transparent)]
     Store(#[from] StoreError),
+}
+
+/// Why a command's change could not be written.
+#[derive(Debug)]
+pub enum Unwritable {
+    /// The spool's disk (full, most often).
+    Spool(String),
+    /// The farm database could not be reached.
+    Database(String),
+}
+
+impl std::fmt::Display for Unwritable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Unwritable::Spool(cause) => write!(f, "the spool could not be written ({cause})"),
+            Unwritable::Database(cause) => write!(f, "{cause}"),
+        }
+    }
+}
+
+impl Unwritable {
+    fn fix(&self) -> &'static str {
+        match self {
+            Unwritable::Spool(_) => "free space on the spool's disk",
+            Unwritable::Database(_) => "check that PostgreSQL runs and [store] postgres reaches it",
+        }
+    }
 }
 
 impl CommandError {
@@ -154,21 +184,14 @@ impl CommandError {
         )
     }
 
-    /// The change could not be written now (a full disk): the same command may succeed
-    /// later, unchanged.
+    /// The change could not be written now (a full disk, the farm database down): the
+    /// same command may succeed later, unchanged.
     pub(crate) fn is_unavailable(&self) -> bool {
         matches!(self, CommandError::NotWritten { .. })
     }
 }
 
-/// The control socket cannot be set up.
-#[derive(Debug, thiserror::Error)]
-#[error("control socket {socket}: {source}")]
-pub struct ControlError {
-    pub socket: PathBuf,
-    #[source]
-    pub source: std::io::Error,
-}
+pub use super::error::ControlError;
 
 /// Builds the status snapshot.
 pub(crate) fn status(farm: &Farm) -> Status {
@@ -280,18 +303,34 @@ async fn run(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError>
 }
 
 /// A command's error as its client is told it: a store error naming a file of the spool
-/// (the disk full, a job's directory removed) says what did not happen and what stays
-/// as it was, and the file is named in the log (with the printer or job), not to the
-/// client. Every change the store could not write is one it did not make: a clear, a
-/// cancel, a retry, a release, a spool's change (a print's end and the bed gate it
-/// closes are kept and written later, but no command makes those).
+/// (the disk full, a job's directory removed), or the farm database unreachable, says
+/// what did not happen and what stays as it was; a file is named in the log (with the
+/// printer or job), not to the client. Every change the store could not write is one it
+/// did not make: a clear, a cancel, a retry, a release, a spool's change (a print's end
+/// and the bed gate it closes are kept and written later, but no command makes those).
 fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError {
-    let (path, action, source) = match e {
+    let (printer, job) = match command {
+        Command::Cancel { job } | Command::Retry { job } | Command::Release { job } => {
+            ("-", job.as_str())
+        }
+        Command::Clear { printer }
+        | Command::Pause { printer }
+        | Command::Resume { printer }
+        | Command::Load { printer, .. }
+        | Command::Unload { printer } => (printer.as_str(), "-"),
+        Command::AddSpool(_) => ("-", "-"),
+    };
+    // Why, and the spool's file it could not write (for the log only).
+    let (why, file) = match e {
         CommandError::Store(StoreError::Io {
             path,
             action,
             source,
-        }) => (path, action, source),
+        }) => (Unwritable::Spool(source.to_string()), Some((path, action))),
+        CommandError::Store(StoreError::Database {
+            failure: DatabaseFailure::Outage,
+            message,
+        }) => (Unwritable::Database(message), None),
         CommandError::Store(StoreError::DirectoryGone { id, dir }) => {
             tracing::error!(job = %id, dir = %dir.display(), "the job's directory was removed; the job failed");
             return CommandError::DirectoryGone(id);
@@ -299,7 +338,7 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
         e => return e,
     };
     let state_of = |id: &str| farm.store().get(id).map_or("unknown", |j| j.state.name());
-    // What was not done, what stays as it was, and what to do once there is room.
+    // What was not done, what stays as it was, and what to do once it can be written.
     let (undone, stays, again) = match command {
         Command::Clear { printer } => (
             format!("{printer}: the bed is not marked clear"),
@@ -337,21 +376,17 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
             "ask again".to_string(),
         ),
     };
-    let (printer, job) = match command {
-        Command::Cancel { job } | Command::Retry { job } | Command::Release { job } => {
-            ("-", job.as_str())
+    match &file {
+        Some((path, action)) => {
+            tracing::error!(printer = %printer, job = %job, file = %path.display(), action, error = %why, "{undone}: the spool could not be written")
         }
-        Command::Clear { printer }
-        | Command::Pause { printer }
-        | Command::Resume { printer }
-        | Command::Load { printer, .. }
-        | Command::Unload { printer } => (printer.as_str(), "-"),
-        Command::AddSpool(_) => ("-", "-"),
-    };
-    tracing::error!(printer = %printer, job = %job, file = %path.display(), action, error = %source, "{undone}: the spool could not be written");
+        None => {
+            tracing::error!(printer = %printer, job = %job, error = %why, "{undone}: the farm database could not be reached")
+        }
+    }
     CommandError::NotWritten {
         undone,
-        cause: source.to_string(),
+        why,
         stays,
         again,
     }
@@ -438,10 +473,13 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
 
 async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
-    if !farm.jobs().clear_gate(printer).await? {
-        return Ok(format!("{printer}: bed was already clear"));
+    match farm.jobs().clear_gate(printer).await {
+        Ok(true) => Ok(format!("{printer}: bed cleared; it may take the next job")),
+        Ok(false) => Ok(format!("{printer}: bed was already clear")),
+        // The one state a person's clear cannot end: the printer is moving.
+        Err(StoreError::BedChange { .. }) => Err(CommandError::Ejecting(printer.to_string())),
+        Err(e) => Err(e.into()),
     }
-    Ok(format!("{printer}: bed cleared; it may take the next job"))
 }
 
 /// Pauses, resumes or cancels a printer's print: here, or through the farm database by
@@ -644,7 +682,7 @@ mod tests {
         }
         let nothing_changed = |farm: &Farm| {
             let store = farm.store();
-            assert!(store.gate("p1").bed_not_cleared);
+            assert!(store.gate("p1").bed_not_cleared());
             assert_eq!(store.get(&job).unwrap().state, JobState::Ready);
             assert!(store.inventory().spools.is_empty());
             assert_eq!(store.inventory().spool_on("p1"), None);

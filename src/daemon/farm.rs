@@ -45,6 +45,11 @@ pub enum PrinterState {
     /// that completes the handshake, which a halted firmware never answers).
     Halted,
     BedNotCleared,
+    /// Its eject sequence runs (or waits for the bed to cool): a short job of its own
+    /// that pushes the print off (see `daemon::bed`).
+    Ejecting,
+    /// Its camera checks the bed against the picture of it empty.
+    CheckingBed,
     Disconnected,
     Stopped,
 }
@@ -77,6 +82,10 @@ pub struct LiveProgress {
     /// Set while the print waits at a pause its file asked for.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pause: Option<crate::marlin::stream::PauseInfo>,
+    /// Set while a stop waits for the printer's heat-up to end (its firmware reads nothing
+    /// until then): which heater, where it is and must get to, how long that may take.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_wait: Option<crate::marlin::stream::StopWait>,
 }
 
 /// A printer's hotend and bed (°C, current and target) as read now: from the job's
@@ -147,6 +156,12 @@ pub struct PrinterStatus {
     /// Its filament, spool and nozzle.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub holds: Option<super::filament::routing::Holding>,
+    /// Its bed between prints (cleared by a person, ejected, checked by the camera) and
+    /// the camera's last check of it.
+    #[serde(default)]
+    pub bed: super::bed::Bed,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_check: Option<super::bed::CheckRecord>,
     /// The job store's version (the status's `version`) in which this printer last looked
     /// for a job and took none (its bed waits to be cleared, or no ready job is for it):
     /// every job ready by then was passed over by it. 0 until it first looks.
@@ -431,6 +446,7 @@ impl Farm {
             .iter()
             .map(|(name, handle)| {
                 let live = handle.live.borrow().clone();
+                let gate = store.gate(name);
                 let holds = offers
                     .iter()
                     .find(|o| o.printer == name)
@@ -445,7 +461,9 @@ impl Farm {
                     progress: live.progress,
                     temperatures: live.temperatures,
                     detail: live.detail,
-                    bed_cleared: !store.gate(name).bed_not_cleared,
+                    bed_cleared: !gate.bed_not_cleared(),
+                    bed: gate.bed,
+                    last_check: gate.last_check,
                     host: host.clone(),
                     offline: false,
                     looked_at: *handle.looked.borrow(),

@@ -45,7 +45,7 @@ pub enum StoreError {
         "the job store has stopped (the daemon is shutting down, or the store failed; see the log)"
     )]
     Stopped,
-    #[error("the farm database: {message} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
+    #[error("{message} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
     Database {
         failure: DatabaseFailure,
         message: String,
@@ -58,6 +58,12 @@ pub enum StoreError {
     },
     #[error("{0}")]
     Filament(#[from] crate::daemon::filament::FilamentError),
+    #[error("printer {printer}'s bed is {from}; it cannot go to {to} now")]
+    BedChange {
+        printer: String,
+        from: &'static str,
+        to: &'static str,
+    },
     #[error("job {id} is {state}; {action} needs it to be {allowed}")]
     WrongState {
         id: String,
@@ -303,6 +309,10 @@ pub struct Job {
     /// spools' ledgers are brought up to date from these, once each).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub uses: Vec<JobUse>,
+    /// How its prints were cleared off the bed by machine: each eject and camera check, in
+    /// order (see `daemon::bed`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub clearing: Vec<super::bed::Clearing>,
     /// Filament one print needs, per machine it has G-code for (the net push of that
     /// G-code, as a print of it is booked), set when it is prepared.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
@@ -476,6 +486,7 @@ impl Job {
             comparison: None,
             asks: Default::default(),
             uses: Vec::new(),
+            clearing: Vec::new(),
             needs: Default::default(),
         }
     }
@@ -523,12 +534,70 @@ pub fn now_s() -> f64 {
         .unwrap_or(0.0)
 }
 
-/// Persisted per-printer state that must survive a restart.
+/// Persisted per-printer state that must survive a restart: its bed (see
+/// [`super::bed`]) and the last job printed on it.
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(from = "GateFile", into = "GateFile")]
 pub struct PrinterGate {
-    /// A print ended (or was interrupted) and nobody has confirmed the bed is clear.
-    pub bed_not_cleared: bool,
+    pub bed: super::bed::Bed,
     pub last_job: Option<String>,
+    /// The camera's last check of the bed, whatever it answered.
+    pub last_check: Option<super::bed::CheckRecord>,
+}
+
+impl PrinterGate {
+    /// A print ended (or was interrupted) and the bed is not known clear since: the
+    /// printer takes no job.
+    pub fn bed_not_cleared(&self) -> bool {
+        !self.bed.is_clear()
+    }
+
+    /// The gate after a print of `job` that leaves the bed `bed`.
+    pub(crate) fn after_print(&self, job: &str, bed: super::bed::Bed) -> PrinterGate {
+        PrinterGate {
+            bed,
+            last_job: Some(job.to_string()),
+            last_check: self.last_check.clone(),
+        }
+    }
+}
+
+/// A gate as written (`printers.json`, the farm database): `bed_not_cleared` as before
+/// beds had states, so a gate written before reads as waiting or clear.
+#[derive(Serialize, Deserialize)]
+struct GateFile {
+    bed_not_cleared: bool,
+    last_job: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    bed: Option<super::bed::Bed>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    last_check: Option<super::bed::CheckRecord>,
+}
+
+impl From<GateFile> for PrinterGate {
+    fn from(f: GateFile) -> PrinterGate {
+        let bed = match (f.bed, f.bed_not_cleared) {
+            (Some(bed), _) => bed,
+            (None, true) => super::bed::Bed::Waiting { why: None },
+            (None, false) => super::bed::Bed::default(),
+        };
+        PrinterGate {
+            bed,
+            last_job: f.last_job,
+            last_check: f.last_check,
+        }
+    }
+}
+
+impl From<PrinterGate> for GateFile {
+    fn from(g: PrinterGate) -> GateFile {
+        GateFile {
+            bed_not_cleared: g.bed_not_cleared(),
+            last_job: g.last_job,
+            bed: Some(g.bed),
+            last_check: g.last_check,
+        }
+    }
 }
 
 impl Job {

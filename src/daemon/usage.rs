@@ -103,16 +103,7 @@ impl Odometer {
         // The commands as the host loaded them, read as they stream by: a job of millions
         // of lines is not held a second time for this.
         let mm = tokio::task::spawn_blocking(move || {
-            let (file, _) = crate::marlin::gcode::open_job(&gcode)?;
-            let mut pushed = crate::marlin::motion::Pushed::new(firmware);
-            let mut left = lines;
-            crate::marlin::gcode::scan(file, &gcode.display().to_string(), firmware, |code, _| {
-                if left > 0 {
-                    left -= 1;
-                    pushed.follow(code);
-                }
-            })?;
-            Ok::<_, crate::marlin::gcode::GcodeError>(pushed.mm())
+            crate::marlin::gcode::pushed_mm(&gcode, firmware, Some(lines)).map(|(mm, _)| mm)
         })
         .await;
         let mm = match mm {

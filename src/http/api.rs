@@ -473,17 +473,25 @@ pub(super) fn no_printer(farm: &Farm, name: &str) -> ApiError {
     ))
 }
 
-/// `POST /api/v1/printers/{name}/clear|pause|resume|unload` (`load`: see `spools`).
+/// `POST /api/v1/printers/{name}/clear|pause|resume|unload` (`load`: see `spools`);
+/// `clear?reference=true` also takes the camera's picture as the empty bed's reference.
 pub(crate) async fn printer_action(
     State(state): State<AppState>,
     Path((name, action)): Path<(String, String)>,
+    query: Result<axum::extract::Query<ActionQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     if !control::printer_names(&state.farm).contains(&name) {
         return Err(no_printer(&state.farm, &name));
     }
+    let query = query.map_err(bad_query)?.0;
+    if query.reference.is_some() && action != "clear" {
+        return Err(ApiError::bad_request(
+            "`reference` goes with `clear` only".to_string(),
+        ));
+    }
     let printer = name;
     let command = match action.as_str() {
-        "clear" => Command::Clear { printer },
+        "clear" => return clear(&state, printer, query.reference == Some(true)).await,
         "pause" => Command::Pause { printer },
         "resume" => Command::Resume { printer },
         "unload" => Command::Unload { printer },
@@ -495,6 +503,52 @@ pub(crate) async fn printer_action(
         }
     };
     act(&state, command).await
+}
+
+/// The query of a printer action: `reference=true` with `clear`.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ActionQuery {
+    pub reference: Option<bool>,
+}
+
+/// A person says the printer's bed is clear. With a camera, its picture now becomes the
+/// reference of the bed check (before the bed opens to a job, so the picture is of the
+/// empty bed) when there is none yet or `reference` asks for a new one.
+async fn clear(
+    state: &AppState,
+    printer: String,
+    reference: bool,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    use crate::camera::bedwatch;
+    let spool = state.farm.config().spool_dir.clone();
+    let mut note = String::new();
+    let local = state.cameras.has(&printer);
+    if local && (reference || !bedwatch::reference_path(&spool, &printer).exists()) {
+        let (cameras, name) = (state.cameras.clone(), printer.clone());
+        let taken =
+            tokio::task::spawn_blocking(move || bedwatch::take_reference(&cameras, &spool, &name))
+                .await
+                .map_err(ApiError::from)?;
+        note = match taken {
+            Ok(()) => "; the camera's picture of it is the reference of the bed check now".into(),
+            Err(e) if reference => {
+                return Err(ApiError::conflict(format!(
+                    "{printer}: no reference taken: {e}; the bed was not marked clear"
+                )))
+            }
+            Err(e) => format!("; no reference of the empty bed taken: {e}"),
+        };
+    } else if reference {
+        return Err(ApiError::conflict(format!(
+            "{printer} has no camera on this host: no reference can be taken here"
+        )));
+    }
+    let mut answer = act(state, Command::Clear { printer }).await?;
+    if let Some(message) = answer.0.get_mut("message") {
+        *message = serde_json::Value::String(format!("{}{note}", message.as_str().unwrap_or("")));
+    }
+    Ok(answer)
 }
 
 /// `POST /api/v1/jobs/{id}/cancel|retry|release`.

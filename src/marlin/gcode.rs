@@ -10,9 +10,7 @@ use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// Bytes the host adds around a command: `N<number> ` before and `*<checksum>` after.
-/// Numbers up to 9 digits cover any job; the checksum is at most 3 digits.
-pub(crate) const FRAMING_BYTES: usize = 1 + 9 + 1 + 1 + 3;
+pub(crate) use super::reader::serial::FRAMING_BYTES;
 
 /// The largest G-code file crispen takes: checked when a pre-sliced file is prepared and
 /// again when a job is loaded. A day-long print sliced finely is well under 200 MiB; the
@@ -35,13 +33,7 @@ pub(crate) fn is_heat_wait(command: &str) -> bool {
     HEAT_WAITS.iter().any(|c| c.eq_ignore_ascii_case(code))
 }
 
-/// The commands with which a file asks for a pause: wait for the user (`M0`, `M1`), pause
-/// the print (`M25`, `M601`), park (`M125`), wait for a pin (`M226`), change the filament
-/// (`M600`). On a printer with no one in front of it, each stops the printer until someone
-/// presses its knob (or does nothing at all where the firmware lacks it, and the pause the
-/// file wanted is lost). The host therefore never sends them: it pauses the printer itself
-/// at that point and waits for the operator (see `super::pause`).
-pub(crate) const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
+pub(crate) use super::reader::FILE_PAUSES;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
@@ -77,10 +69,18 @@ pub enum GcodeError {
         firmware: Firmware,
     },
     #[error(
-        "{file}:{line}: command contains `\\` outside quotes, which Marlin drops, so the \
-         printer would run something else than the file says; remove it"
+        "{file}:{line}: command contains `\\`, which Marlin drops (taking the character after \
+         it as it is), so the printer would refuse the line again and again; remove it"
     )]
     Backslash { file: String, line: usize },
+    #[error("{file}:{line}: command `{command}` {reason}; {firmware} cannot be sent it")]
+    Serial {
+        file: String,
+        line: usize,
+        command: String,
+        reason: String,
+        firmware: Firmware,
+    },
     #[error("{file}:{line}: command is not valid text (UTF-8)")]
     NotText { file: String, line: usize },
     #[error("{file}: no G-code commands in the file (only comments or blank lines)")]
@@ -461,7 +461,9 @@ pub(crate) fn scan(
                 firmware,
             });
         }
-        if has_unquoted_backslash(code) {
+        if code.contains('\\') {
+            // Stock Marlin has no quoted strings (GCODE_QUOTED_STRINGS), so a backslash is
+            // dropped wherever it stands (queue.cpp:337-343).
             return Err(GcodeError::Backslash {
                 file: name.to_string(),
                 line: line_no,
@@ -473,6 +475,20 @@ pub(crate) fn scan(
                 line: line_no,
                 len: code.len(),
                 max,
+                firmware,
+            });
+        }
+        if let Err(why) = super::reader::serial::check(firmware, code) {
+            return Err(GcodeError::Serial {
+                file: name.to_string(),
+                line: line_no,
+                command: code
+                    .chars()
+                    .take(60)
+                    .collect::<String>()
+                    .escape_debug()
+                    .to_string(),
+                reason: why,
                 firmware,
             });
         }
@@ -496,6 +512,28 @@ pub(crate) fn open_job(path: &Path) -> Result<(File, u64), GcodeError> {
         });
     }
     Ok((file, size))
+}
+
+/// Net filament the first `limit` commands of the job file at `path` push (all of them
+/// with `None`), mm, followed as `firmware` follows them
+/// ([`Pushed`](super::motion::Pushed)) and read as they stream by; with the number of
+/// commands read. What a pre-sliced job needs, and what a print took up to its last
+/// acknowledged line.
+pub(crate) fn pushed_mm(
+    path: &Path,
+    firmware: Firmware,
+    limit: Option<usize>,
+) -> Result<(f64, usize), GcodeError> {
+    let (file, _) = open_job(path)?;
+    let mut pushed = super::motion::Pushed::new(firmware);
+    let mut commands = 0usize;
+    scan(file, &path.display().to_string(), firmware, |code, _| {
+        if limit.is_none_or(|l| commands < l) {
+            pushed.follow(code);
+        }
+        commands += 1;
+    })?;
+    Ok((pushed.mm(), commands))
 }
 
 /// A program as [`scan`] hands it over.
@@ -544,23 +582,6 @@ impl Loading {
             source_lines: Arc::new(source_lines),
         })
     }
-}
-
-/// A `\\` outside a `"..."` string: Marlin's parser drops it.
-fn has_unquoted_backslash(code: &str) -> bool {
-    let mut quoted = false;
-    let mut bytes = code.bytes();
-    while let Some(b) = bytes.next() {
-        match b {
-            b'"' => quoted = !quoted,
-            b'\\' if quoted => {
-                bytes.next(); // an escape inside quotes
-            }
-            b'\\' => return true,
-            _ => {}
-        }
-    }
-    false
 }
 
 #[cfg(test)]
@@ -655,10 +676,41 @@ mod tests {
                 "{fw}: {err}"
             );
         }
-        assert!(
-            parse(b"M118 \"a\\\"b\"\n").is_ok(),
-            "escapes inside quotes are kept"
-        );
+        // Stock Marlin 2.1.2.1 has no quoted strings: the backslash is dropped there too.
+        assert!(matches!(
+            parse(b"M118 \"a\\\"b\"\n").unwrap_err(),
+            GcodeError::Backslash { line: 1, .. }
+        ));
+    }
+
+    /// Issue 42: a carriage return inside a line (where both firmwares end a line, the
+    /// middle piece then running unnumbered) and a message that renumbers Marlin 2 are
+    /// refused when the file is loaded, naming the line and the firmware's rule.
+    #[test]
+    fn lines_the_serial_input_would_split_or_renumber_are_refused_naming_the_line() {
+        for fw in Firmware::ALL {
+            let err = GcodeProgram::read(&b"G28\nM117 a\rM104 S300\rM117 b\n"[..], "job.gcode", fw)
+                .unwrap_err();
+            let msg = err.to_string();
+            assert!(
+                matches!(err, GcodeError::Serial { line: 2, .. }),
+                "{fw}: {msg}"
+            );
+            assert!(msg.starts_with("job.gcode:2:"), "{msg}");
+            assert!(
+                msg.contains("carriage return") && msg.contains(".cpp:"),
+                "{msg}"
+            );
+            assert!(!msg.contains('\r'), "the line end is written out: {msg:?}");
+            let err =
+                GcodeProgram::read(&b"G28\nM117 M110 N999\n"[..], "job.gcode", fw).unwrap_err();
+            assert!(
+                matches!(err, GcodeError::Serial { line: 2, .. }),
+                "{fw}: {err}"
+            );
+        }
+        // A file with CRLF line ends is fine: the CR ends the line where the host does.
+        assert!(parse(b"G28\r\nG1 X1\r\n").is_ok());
     }
 
     #[test]

@@ -177,7 +177,7 @@ fn price(value: Option<f64>, field: &str) -> Result<Option<f64>, String> {
     match value {
         Some(p) if !(p >= 0.0) || !p.is_finite() => Err(format!(
             "{field}: a price of at least 0, got {}",
-            crate::daemon::config::number(p)
+            crate::names::number(p)
         )),
         v => Ok(v),
     }

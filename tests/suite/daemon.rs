@@ -531,7 +531,7 @@ fn daemon_killed_during_preparation_resumes_the_job() {
 }
 
 /// Asserts the recorded commands are a prefix of the job followed by the safe-stop lines
-/// (heaters, fan, motors off; on Marlin 2 after an M108 that breaks a heating wait).
+/// (heaters, fan, motors off), after the unnumbered stop lines.
 #[track_caller]
 fn assert_prefix_then_safe_stop(recorded: &[String], job: &[String]) {
     let safe_stop = ["M104 S0", "M140 S0", "M107", "M84"].map(String::from);
@@ -540,8 +540,12 @@ fn assert_prefix_then_safe_stop(recorded: &[String], job: &[String]) {
         recorded.ends_with(&safe_stop),
         "the print must end with the safe-stop lines: {tail:?}"
     );
+    // Before the numbered stop, the lines that work whatever line number the printer
+    // expects: `M108` where it breaks a wait, heaters off unnumbered, the count reset.
     let mut prefix = &recorded[..recorded.len() - safe_stop.len()];
-    if prefix.last().is_some_and(|c| c == "M108") {
+    while prefix.last().is_some_and(|c| {
+        ["M108", "M104 S0", "M140 S0"].contains(&c.as_str()) || c.starts_with("M110")
+    }) {
         prefix = &prefix[..prefix.len() - 1];
     }
     assert!(
@@ -2342,21 +2346,16 @@ fn the_wall_comparison_comes_after_every_preparation_and_the_job_does_not_wait_f
         let path = root.join("spool/jobs").join(id).join("job.json");
         serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
     };
-    let measured = |job: &Value| job["comparison"]["state"] == "done";
-    let started = Instant::now();
-    while !["first.obj", "second.obj"]
-        .iter()
-        .all(|f| measured(&job_json(f)))
-    {
-        assert!(
-            started.elapsed() < Duration::from_secs(120),
-            "the comparisons were not made: {} {}\nlog:\n{}",
-            job_json("first.obj"),
-            job_json("second.obj"),
-            std::fs::read_to_string(&log).unwrap_or_default()
-        );
-        std::thread::sleep(Duration::from_millis(200));
-    }
+    // Each comparison runs at the lowest CPU priority: waited for as the job's record
+    // says it is made, however long a busy machine takes.
+    let measured = |file: &str| job_json(file)["comparison"]["state"] == "done";
+    wait_for(
+        &config,
+        &log,
+        Duration::from_secs(600),
+        "both comparisons made",
+        |_| measured("first.obj") && measured("second.obj"),
+    );
     // When the job entered `state` (its last time).
     let entered = |job: &Value, state: &str| -> f64 {
         job["history"]

@@ -593,6 +593,7 @@ fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
     // During the outage: each host says so, and no printer starts a job it did not have.
     let mut said_unreachable = BTreeSet::new();
     let mut ended_while_down = BTreeSet::new();
+    let mut refused_clear: Option<String> = None;
     let mut polls: BTreeMap<String, Vec<String>> = BTreeMap::new();
     while stopped.elapsed() < Duration::from_secs(20) {
         for h in &farm.hosts {
@@ -636,6 +637,23 @@ fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
                     );
                 } else if p["state"] == "bed_not_cleared" {
                     ended_while_down.insert(file);
+                    // A person's clear cannot be written to the farm: refused, saying
+                    // what stays as it was and what to do.
+                    if refused_clear.is_none() {
+                        let name = p["name"].as_str().unwrap();
+                        let (ok, out) = h.ctl(&["clear", name]);
+                        assert!(
+                            !ok,
+                            "crispen clear {name} while the database is down: {out}"
+                        );
+                        assert!(
+                            out.contains(&format!("{name}: the bed is not marked clear"))
+                                && out.contains("the printer takes no job until it is")
+                                && out.contains("PostgreSQL"),
+                            "{out}"
+                        );
+                        refused_clear = Some(name.to_string());
+                    }
                 }
             }
         }
@@ -654,6 +672,16 @@ fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
         !ended_while_down.is_empty(),
         "some prints ended during the outage (their outcomes to be recorded later)"
     );
+    // Each host reaches the database again on its own before a person's clear can be
+    // written through it.
+    for h in ["a", "b", "c"] {
+        farm.wait_status(
+            h,
+            Duration::from_secs(120),
+            "the database reached again",
+            |s| s["farm"]["database"].is_null(),
+        );
+    }
 
     // Back: the outcomes are recorded, beds cleared, the other three jobs printed.
     farm.wait_until(Duration::from_secs(600), "every job done", |last| {

@@ -1038,8 +1038,14 @@ fn dashboard_in_a_real_browser() {
         |s| job_by_file(s, "held.gcode").is_some_and(|j| j["held"] == false),
     );
 
-    // The job page: the report, the three pictures and the preview of the print.
-    let s = farm.status();
+    // The job page: the report, the three pictures and the preview of the print. Its
+    // wall comparison runs at the lowest CPU priority, after every preparation: the page
+    // is looked at once the daemon says it is made, however long a busy machine took.
+    let s = farm.wait_for(
+        Duration::from_secs(600),
+        "left.obj's wall comparison made",
+        |s| job_by_file(s, "left.obj").is_some_and(|j| j["comparison"]["state"] == "done"),
+    );
     let left = job_by_file(&s, "left.obj").unwrap()["id"]
         .as_str()
         .unwrap()

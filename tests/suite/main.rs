@@ -10,6 +10,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod bedcheck;
 mod camera;
 mod daemon;
 mod enhance;
@@ -20,6 +21,7 @@ mod http;
 mod layers;
 mod machines;
 mod mesh_io;
+mod night;
 mod notify;
 mod observe;
 mod octoprint;

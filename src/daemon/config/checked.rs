@@ -169,6 +169,12 @@ pub struct PrinterConfig {
     pub hardened: bool,
     /// Its groups (`tags`).
     pub tags: Vec<String>,
+    /// Its eject sequence: `[printer.eject]`, else its machine's (checked against the
+    /// machine's G-code policy).
+    pub eject: Option<crate::machine::eject::Eject>,
+    /// How its bed is cleared after a good print (`bed_clear`), unless the job's folder
+    /// says otherwise.
+    pub bed_clear: crate::daemon::bed::ClearBy,
 }
 
 #[derive(Debug, Clone)]
@@ -188,6 +194,8 @@ pub struct FolderConfig {
     pub settings: crate::slice::SliceSettings,
     /// What its jobs ask of their printer, unless a sidecar says otherwise.
     pub asks: crate::daemon::filament::Asks,
+    /// How its jobs' beds are cleared (`bed_clear`); None: as each printer says.
+    pub bed_clear: Option<crate::daemon::bed::ClearBy>,
 }
 
 /// The second stage: every value of the file checked and converted, with nothing read but

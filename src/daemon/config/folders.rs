@@ -164,7 +164,27 @@ fn check_folder(
         priority: f.priority.unwrap_or(0),
         ..Default::default()
     };
+    let bed_clear = match f.bed_clear.as_deref() {
+        None => None,
+        Some(text) => {
+            let clear = crate::daemon::bed::ClearBy::parse(text)
+                .map_err(|m| invalid(section.clone(), "bed_clear", m))?;
+            for p in printers.iter().filter(|p| f.printers.contains(&p.name)) {
+                super::printers::needs_for(clear, p.eject.is_some(), p.camera.is_some()).map_err(
+                    |m| {
+                        invalid(
+                            section.clone(),
+                            "bed_clear",
+                            format!("printer {:?}: {m}", p.name),
+                        )
+                    },
+                )?;
+            }
+            Some(clear)
+        }
+    };
     Ok(FolderConfig {
+        bed_clear,
         asks,
         path,
         height_mm: f.height_mm,

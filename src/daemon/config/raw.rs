@@ -127,6 +127,10 @@ pub(super) struct RawPrinter {
     pub(super) nozzle: Option<String>,
     /// Its groups: a job asking for tags goes only to printers carrying all of them.
     pub(super) tags: Option<Vec<String>>,
+    /// Its eject sequence (`[printer.eject]`), replacing its machine's.
+    pub(super) eject: Option<crate::machine::eject::EjectSpec>,
+    /// How its bed is cleared after a good print: "person", "eject", "eject-and-check".
+    pub(super) bed_clear: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -161,6 +165,8 @@ pub(super) struct RawFolder {
     pub(super) nozzle_mm: Option<f64>,
     pub(super) tags: Option<Vec<String>>,
     pub(super) priority: Option<i32>,
+    /// How the beds of its jobs' printers are cleared, replacing the printers' own.
+    pub(super) bed_clear: Option<String>,
 }
 
 /// The largest config file read.

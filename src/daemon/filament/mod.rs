@@ -253,7 +253,7 @@ pub fn check_filament(mut f: Filament) -> Result<Filament, FilamentError> {
         }
         f.colour_hex = Some(h.to_ascii_lowercase());
     }
-    let number = crate::daemon::config::number;
+    let number = crate::names::number;
     if !DIAMETER_MM.contains(&f.diameter_mm) {
         return bad(format!(
             "diameter_mm: {} to {} mm, got {}",
@@ -289,7 +289,7 @@ pub fn grams_in_bounds(g: f64) -> Result<f64, String> {
     } else {
         Err(format!(
             "0 to {MAX_SPOOL_G} g, got {}",
-            crate::daemon::config::number(g)
+            crate::names::number(g)
         ))
     }
 }

@@ -323,6 +323,7 @@ mod tests {
             timeout: Duration::from_secs(60),
             settings: Default::default(),
             asks: Default::default(),
+            bed_clear: None,
         }
     }
 

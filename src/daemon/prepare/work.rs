@@ -87,25 +87,16 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
     })
 }
 
-/// The net filament a G-code file pushes, mm, followed as the host books a print of it:
-/// the commands as the host loads them for `firmware`, through
-/// [`crate::marlin::motion::Pushed`], read as they stream by (a job of millions of lines
-/// is not held for it). A job's need and what its print took are so one figure. The
-/// error is the host's refusal to load it.
+/// The net filament a G-code file pushes, mm, as a print of it is booked
+/// ([`gcode::pushed_mm`]): a job's need and what its print took are one figure. The error
+/// is the host's refusal to load it.
 fn pushed_mm(gcode: &Path, firmware: Firmware) -> Result<f64, String> {
-    let (file, _) = gcode::open_job(gcode).map_err(|e| e.to_string())?;
-    let name = gcode.display().to_string();
-    let mut pushed = crate::marlin::motion::Pushed::new(firmware);
-    let mut commands = 0usize;
-    gcode::scan(file, &name, firmware, |code, _| {
-        commands += 1;
-        pushed.follow(code)
-    })
-    .map_err(|e| e.to_string())?;
+    let (mm, commands) = gcode::pushed_mm(gcode, firmware, None).map_err(|e| e.to_string())?;
     if commands == 0 {
-        return Err(gcode::GcodeError::Empty { file: name }.to_string());
+        let file = gcode.display().to_string();
+        return Err(gcode::GcodeError::Empty { file }.to_string());
     }
-    Ok(pushed.mm())
+    Ok(mm)
 }
 
 /// Sets what one print needs on `machine` in its report: `mm`, weighed at the density of

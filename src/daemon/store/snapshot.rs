@@ -167,6 +167,20 @@ impl Snapshot {
         &self.counted.tally
     }
 
+    /// The beds' ejects and checks since the store's task started: (printer, `ejects` or
+    /// `checks`, result) and how many.
+    pub fn bed_counts(&self) -> &BTreeMap<(String, &'static str, &'static str), u64> {
+        &self.counted.beds
+    }
+
+    /// Counts a change of `printer`'s bed (see [`crate::daemon::bed::Bed::counted`]).
+    pub(super) fn count_bed(&mut self, printer: &str, kind: &'static str, result: &'static str) {
+        *Arc::make_mut(&mut self.counted)
+            .beds
+            .entry((printer.to_string(), kind, result))
+            .or_default() += 1;
+    }
+
     /// No job has work ahead of it.
     pub(crate) fn idle(&self) -> bool {
         !self.jobs().any(|j| j.state.is_active())

@@ -399,15 +399,15 @@ async fn a_refused_clear_is_not_published() {
     let follower = handle.subscribe();
     let refused = handle.clear_gate("p1").await.unwrap_err();
     assert!(matches!(refused, StoreError::Io { .. }), "{refused}");
-    assert!(handle.snapshot().gate("p1").bed_not_cleared);
+    assert!(handle.snapshot().gate("p1").bed_not_cleared());
     assert_eq!(handle.snapshot().unwritten(), 0);
     std::fs::remove_dir(&blocker).unwrap();
     assert_eq!(handle.write_pending().await.unwrap(), 0);
-    assert!(handle.snapshot().gate("p1").bed_not_cleared);
+    assert!(handle.snapshot().gate("p1").bed_not_cleared());
     assert!(
         !follower.has_changed().unwrap(),
         "nothing changed, nothing published"
     );
     assert!(handle.clear_gate("p1").await.unwrap());
-    assert!(!handle.snapshot().gate("p1").bed_not_cleared);
+    assert!(!handle.snapshot().gate("p1").bed_not_cleared());
 }

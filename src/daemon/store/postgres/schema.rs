@@ -112,6 +112,11 @@ const MIGRATIONS: &[&str] = &[
         doc jsonb NOT NULL
     );
     "#,
+    // 6: a bed's state between prints (issue 43: ejected by the printer, checked by its
+    // camera) and the camera's last check; `bed_not_cleared` stays what claims read.
+    r#"
+    ALTER TABLE printers ADD COLUMN bed jsonb, ADD COLUMN last_check jsonb;
+    "#,
 ];
 
 /// The newest schema version this binary knows.

@@ -98,12 +98,12 @@ fn restart_rules_and_gates_survive_reopen() {
     assert_eq!(store.get(&b).unwrap().state, JobState::Interrupted);
     assert!(store.get(&b).unwrap().reason.is_some());
     assert_eq!(store.get(&c).unwrap().state, JobState::Ready);
-    assert!(store.gate("p1").bed_not_cleared);
-    assert!(!store.gate("p2").bed_not_cleared);
+    assert!(store.gate("p1").bed_not_cleared());
+    assert!(!store.gate("p2").bed_not_cleared());
 
     drop(store);
     let store = Spool::open(&spool).unwrap();
-    assert!(store.gate("p1").bed_not_cleared);
+    assert!(store.gate("p1").bed_not_cleared());
     let order: Vec<&str> = store.jobs().map(|j| j.id.as_str()).collect();
     assert_eq!(order, vec![a.as_str(), b.as_str(), c.as_str()]);
 }
@@ -428,13 +428,19 @@ fn gates_on_disk(spool: &Path) -> BTreeMap<String, PrinterGate> {
 #[test]
 fn a_clear_that_cannot_be_written_is_not_done() {
     let (_tmp, _hot, spool, mut store) = open_with_hot_folder();
+    use crate::daemon::bed::{Bed, ClearedBy};
     let closed = |job: &str| PrinterGate {
-        bed_not_cleared: true,
+        bed: Bed::Waiting { why: None },
         last_job: Some(job.into()),
+        last_check: None,
     };
     let cleared = |job: &str| PrinterGate {
-        bed_not_cleared: false,
+        bed: Bed::Clear {
+            by: ClearedBy::Person,
+            at_s: 1.0,
+        },
         last_job: Some(job.into()),
+        last_check: None,
     };
     store.set_gate("p1", closed("0001-a")).unwrap();
 

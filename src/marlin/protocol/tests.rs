@@ -116,7 +116,11 @@ impl MiniPrinter {
                     "numbered line without checksum: {line}"
                 );
                 self.executed.push(line.clone());
-                out.push_str(if self.advanced { "ok P15 B3\n" } else { "ok\n" });
+                if line == "M105" {
+                    out.push_str(&self.m105_answer);
+                } else {
+                    out.push_str(if self.advanced { "ok P15 B3\n" } else { "ok\n" });
+                }
                 continue;
             };
             assert_eq!(
@@ -919,10 +923,12 @@ fn a_stop_never_overruns_a_ring_still_holding_the_lines_before_it() {
 #[test]
 fn the_ring_keeps_room_for_a_probe_and_for_what_a_stop_sends_at_once() {
     use super::framing::wire_len_bound;
-    use super::line::HEATERS_OFF;
+    use super::line::{HEATERS_OFF, UNNUMBERED_PROBE};
     use super::window::PROBE_RESERVE;
     let probe = wire_len_bound(99_999_999, "M105");
-    let stop = "M108\n".len() + HEATERS_OFF.iter().map(|c| c.len() + 1).sum::<usize>();
+    let stop = "M108\n".len()
+        + HEATERS_OFF.iter().map(|c| c.len() + 1).sum::<usize>()
+        + UNNUMBERED_PROBE.len();
     assert_eq!(PROBE_RESERVE, probe.max(stop));
 }
 

@@ -13,9 +13,8 @@ use std::time::Instant;
 
 /// Bytes of the printer's receive ring kept free: for a probe, `N<number> M105*<cs>\n` with
 /// up to eight digits of line number (19), and for what a stop sends at once, unnumbered,
-/// whatever the ring holds: `M108` and the heaters off (21). A stop's unnumbered `M105`
-/// goes only where it fits (see `owed_probe_at`).
-pub(super) const PROBE_RESERVE: usize = 21;
+/// whatever the ring holds: `M108`, the heaters off and one `M105` (26; see `owed_probe_at`).
+pub(super) const PROBE_RESERVE: usize = 26;
 
 impl Host {
     pub(super) fn history_line(&self, number: u64) -> Option<&Line> {

@@ -47,6 +47,7 @@ pub mod marlin;
 pub mod mesh;
 pub mod names;
 pub mod notify;
+pub mod observation;
 pub mod observe;
 pub mod outbound;
 pub mod percent;

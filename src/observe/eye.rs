@@ -4,7 +4,7 @@
 //! (Barten's contrast sensitivity function), how a strong pattern raises the threshold
 //! of another in its band (Daly's masking), and how the chance of seeing several
 //! differences adds up (probability summation with the psychometric function's slope).
-//! Pure functions of numbers: the pictures are [`super::compare`]'s.
+//! Pure functions of numbers: the pictures are the comparison's.
 
 /// Barten's contrast sensitivity (P. G. J. Barten, "Formula for the contrast sensitivity
 /// of the human eye", Proc. SPIE 5294, 2004, 231–238: the closed form of his 1999 model

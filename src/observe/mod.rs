@@ -26,42 +26,10 @@ mod render;
 use crate::preview::print::Print;
 use crate::preview::Image;
 use render::{cross, dot, normalize, sub, Camera, Light, Lighting};
-use serde::{Deserialize, Serialize};
 
-/// How the prints are looked at.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Conditions {
-    /// From the eye to the print, mm.
-    pub distance_mm: f64,
-    /// The resolution every print is drawn at, at least, pixels per degree: twice the
-    /// highest frequency a person resolves (60 cycles per degree, where Barten's
-    /// sensitivity at office luminance falls below 1).
-    pub pixels_per_degree: f64,
-    /// How far above the print's horizon the eye is, degrees.
-    pub elevation_deg: f64,
-    /// How many views, evenly around the print (the first from 45° to the front's left).
-    pub views: usize,
-}
-
-impl Default for Conditions {
-    /// A print on a table, looked at from 40 cm and from 30° above, walked around in four
-    /// views.
-    fn default() -> Self {
-        Conditions {
-            distance_mm: 400.0,
-            pixels_per_degree: 120.0,
-            elevation_deg: 30.0,
-            views: 4,
-        }
-    }
-}
-
-/// The bounds of [`Conditions`].
-pub const DISTANCE_MM: std::ops::RangeInclusive<f64> = 100.0..=5000.0;
-pub const PIXELS_PER_DEGREE: std::ops::RangeInclusive<f64> = 30.0..=240.0;
-pub const ELEVATION_DEG: std::ops::RangeInclusive<f64> = 0.0..=80.0;
-pub const VIEWS: std::ops::RangeInclusive<usize> = 1..=8;
+pub use crate::observation::{
+    BandDifference, Conditions, Resemblance, DISTANCE_MM, ELEVATION_DEG, PIXELS_PER_DEGREE, VIEWS,
+};
 
 impl Conditions {
     /// Checks each value against its bounds; the error names the value.
@@ -161,35 +129,6 @@ pub struct OnBed<'a> {
     pub print: &'a Print,
     pub centre_xy: [f64; 2],
     pub height_mm: f64,
-}
-
-/// How alike a print looks to the reference.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Resemblance {
-    /// 1 / (1 + the difference): 1 when nothing visible differs, higher is more alike.
-    pub resemblance: f64,
-    /// The visible difference, pooled over the bands, the places and the views, in
-    /// multiples of the threshold (1: a difference a person sees half the time).
-    pub difference_jnd: f64,
-    /// The part of it where the reference shows more (features lost) and where the print
-    /// shows more (features added: an over-enhanced surface, coarser layer lines).
-    pub lost_jnd: f64,
-    pub added_jnd: f64,
-    /// Per band, finest first.
-    pub bands: Vec<BandDifference>,
-    /// Per view, the difference seen from it.
-    pub views_jnd: Vec<f64>,
-}
-
-/// One octave band of the object: its frequency on the reference's retina and on this
-/// print's (None where this print's picture has no such band: finer than it can show),
-/// and what is lost and added in it.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct BandDifference {
-    pub reference_cpd: f64,
-    pub cpd: Option<f64>,
-    pub lost_jnd: f64,
-    pub added_jnd: f64,
 }
 
 #[derive(Debug, thiserror::Error)]

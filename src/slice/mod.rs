@@ -127,7 +127,7 @@ pub struct EnhancementSummary {
     /// With `strength = "observed"`: what the observer saw of each candidate and why
     /// this strength.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub observed: Option<crate::daemon::prepare::steps::observed::Observation>,
+    pub observed: Option<crate::observation::Observation>,
 }
 
 /// Seconds spent in each step.

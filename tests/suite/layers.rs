@@ -39,6 +39,15 @@ const ALLOWED: &[(&str, &str)] = &[
     // like) once the copies, maintenance and plates of issues 44 and 45, which reshape
     // the same file, have landed; until then one step of the file is kept out of it.
     ("daemon::printer::eject", "daemon::printer (root)"),
+    // The observer's preparation step (issue 46) slices each candidate with the
+    // preparation's own slicing (`place`, `slice_job`, `SliceRequest`, `Step`), defined
+    // in `daemon/prepare/steps.rs`, which calls it for `strength = "observed"`. The
+    // slicing moves to a child of its own with the crate split (issue 47), which takes
+    // this layer apart anyway; until then the observer's step is kept out of the file.
+    (
+        "daemon::prepare::steps::observed",
+        "daemon::prepare::steps (root)",
+    ),
 ];
 
 #[test]

@@ -48,7 +48,7 @@ pub struct Config {
     /// The farm's spools come from Spoolman (`[spoolman]`); None: crispen keeps its own.
     pub spoolman: Option<super::spoolman::SpoolmanConfig>,
     /// The observer's reference size and time bound (`[enhancement]`).
-    pub enhancement: crate::daemon::prepare::steps::observed::ObserveSettings,
+    pub enhancement: crate::observation::ObserveSettings,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,

@@ -5,7 +5,7 @@
 use super::check::{seconds_in, Bounds};
 use super::folders::check_height;
 use super::raw::RawEnhancement;
-use crate::daemon::prepare::steps::observed::{ObserveSettings, DEFAULT_OBSERVE_TIMEOUT_S};
+use crate::observation::{ObserveSettings, DEFAULT_OBSERVE_TIMEOUT_S};
 
 /// Bounds of `observe_timeout_s`: long enough to slice a few prints, at most a day.
 pub(crate) const OBSERVE_TIMEOUT_S: Bounds = 10.0..=86_400.0;

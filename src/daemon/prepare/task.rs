@@ -47,7 +47,7 @@ pub struct PrepareTask {
     /// The observer's reference size and time bound (`[enhancement]`), for
     /// `strength = "observed"`.
     #[serde(default)]
-    pub observe: super::steps::observed::ObserveSettings,
+    pub observe: crate::observation::ObserveSettings,
 }
 
 /// One machine of a task and where its G-code goes.

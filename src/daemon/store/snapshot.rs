@@ -49,7 +49,7 @@ pub const PICTURES: [&str; 6] = [
     crate::preview::DISPLACEMENT_PNG,
     crate::preview::walls::WALLS_PNG,
     crate::preview::PREVIEW_PNG,
-    crate::daemon::prepare::steps::observed::OBSERVED_PNG,
+    crate::observation::OBSERVED_PNG,
 ];
 const _: () = assert!(PICTURES.len() <= u8::BITS as usize);
 

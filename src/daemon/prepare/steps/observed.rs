@@ -13,24 +13,17 @@ use super::{place, placed_plain, slice_job, Placed, PrintResolution, SliceReques
 use crate::enhance::{Bands, Mode, Strength};
 use crate::machine::Machine;
 use crate::mesh::Mesh;
-use crate::observe::{Conditions, ObserveError, OnBed, Resemblance};
+use crate::observe::{Conditions, ObserveError, OnBed};
 use crate::preview::print::{read_print_file, Print};
 use crate::slice::{SliceError, SliceJob, SliceReport};
 use serde::{Deserialize, Serialize};
+
+pub use crate::observation::{
+    CandidateMode, Choice, Looked, Observation, ObserveSettings, DEFAULT_OBSERVE_TIMEOUT_S,
+    OBSERVED_PNG,
+};
 use std::path::Path;
 use std::time::{Duration, Instant};
-
-/// How a candidate is made.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum CandidateMode {
-    /// The model unmodified.
-    Plain,
-    /// The paper's method at its λ2.
-    Paper,
-    /// The print-aware mode, its target from the strength (the height table's when none).
-    PrintAware,
-}
 
 /// One print the observer looks at.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -101,81 +94,6 @@ impl Candidate {
     }
 }
 
-/// The observer's settings in a farm (`[enhancement]`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ObserveSettings {
-    /// The size the small print should look like, mm (`reference_height_mm`): where the
-    /// paper's table prints unmodified.
-    pub reference_height_mm: f64,
-    /// How long the observer may take (`observe_timeout_s`), within half the job's
-    /// preparation time, so that the chosen print can still be made.
-    pub timeout: Duration,
-}
-
-impl Default for ObserveSettings {
-    fn default() -> Self {
-        ObserveSettings {
-            reference_height_mm: crate::enhance::StrengthTable::default().unmodified_from_mm,
-            timeout: Duration::from_secs(DEFAULT_OBSERVE_TIMEOUT_S),
-        }
-    }
-}
-
-/// The default time bound of an observation, seconds: Spot at 50 mm takes about a
-/// minute on two cores (see `benches/observe.rs`).
-pub const DEFAULT_OBSERVE_TIMEOUT_S: u64 = 600;
-
-/// What the observer found, and what it chose.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Observation {
-    pub height_mm: f64,
-    pub reference_height_mm: f64,
-    /// The machine the prints were sliced for.
-    pub machine: String,
-    pub conditions: Conditions,
-    pub candidates: Vec<Looked>,
-    /// The candidate chosen (an index into `candidates`), when the observer chose.
-    pub chosen: Option<usize>,
-    pub choice: Choice,
-    /// Why nothing was observed, when `choice` is `failed`: the error.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub failure: Option<String>,
-    pub seconds: f64,
-}
-
-/// One candidate as the observer saw it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Looked {
-    pub mode: CandidateMode,
-    /// The λ2 it was made with (0: the plain print; print-aware: the one its search chose).
-    pub strength: f64,
-    /// How alike it looks to the reference (its `resemblance`, higher is more alike), when
-    /// it was made and looked at.
-    #[serde(flatten)]
-    pub seen: Option<Resemblance>,
-    /// Why it was not looked at (its slicing failed).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub error: Option<String>,
-    /// The time its slicing took, and the visible lines of its G-code.
-    pub slice_s: f64,
-    pub lines: usize,
-}
-
-/// Why the strength is what it is.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Choice {
-    /// The candidate the observer found most like the reference (the first of equals).
-    #[default]
-    MostAlike,
-    /// Printed at or above the reference size: unmodified, as the table prints it there.
-    AtReference,
-    /// The time bound passed before every candidate was seen: the paper's table.
-    TimedOut,
-    /// The reference could not be made or seen, or no candidate could: the paper's table.
-    Failed,
-}
-
 /// A candidate made and sliced, ready to be the job (see the module's comment).
 pub(super) struct Made {
     pub(super) placed: Placed,
@@ -190,9 +108,6 @@ pub enum PictureScale {
     /// As large as fits this many pixels across (never larger than the real size).
     FitWidth(u32),
 }
-
-/// The picture of the views, in `--pictures` and in a job's directory.
-pub const OBSERVED_PNG: &str = "observed.png";
 
 /// Where an observation's files go and how it is bounded.
 pub struct ObserveJob<'a> {

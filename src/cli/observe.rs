@@ -3,7 +3,7 @@
 //! prints how alike each looks to a model of a person's eye
 //! (`crispen::daemon::prepare::steps::observed`, docs/method.md "The observer").
 
-use super::slice::{find_machine, parse_slicer, parse_up};
+use super::slice::{find_machine, parse_slicer, parse_up, step_spinner};
 use anyhow::Context;
 use crispen::daemon::prepare::steps::observed::{
     self, Candidate, CandidateMode, Choice, ObserveJob, ObserveSettings, PictureScale,
@@ -13,7 +13,6 @@ use crispen::enhance::Mode;
 use crispen::mesh::place::UpAxis;
 use crispen::observe::Conditions;
 use crispen::slice::SlicerKind;
-use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
@@ -138,15 +137,7 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
             .map(|d| (d, PictureScale::RealSize)),
     };
 
-    let bar = std::io::stderr().is_terminal().then(|| {
-        let bar = indicatif::ProgressBar::new_spinner();
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
-        );
-        bar.enable_steady_tick(Duration::from_millis(120));
-        bar
-    });
+    let bar = step_spinner();
     let mut progress = |step: Step| {
         if let Some(bar) = &bar {
             bar.set_message(format!("{}: {}", args.model.display(), step.describe()));

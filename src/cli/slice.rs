@@ -164,15 +164,7 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
         req.preview = Some(dir.clone());
     }
 
-    let bar = std::io::stderr().is_terminal().then(|| {
-        let bar = indicatif::ProgressBar::new_spinner();
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
-        );
-        bar.enable_steady_tick(Duration::from_millis(120));
-        bar
-    });
+    let bar = step_spinner();
     let mut progress = |step: Step| {
         if let Some(bar) = &bar {
             bar.set_message(format!("{}: {}", args.model.display(), step.describe()));
@@ -281,4 +273,18 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A spinner on the terminal that shows the preparation's step and the time so far;
+/// none when standard error is no terminal.
+pub(super) fn step_spinner() -> Option<indicatif::ProgressBar> {
+    std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new_spinner();
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        );
+        bar.enable_steady_tick(Duration::from_millis(120));
+        bar
+    })
 }

@@ -25,7 +25,8 @@ mod render;
 
 use crate::preview::print::Print;
 use crate::preview::Image;
-use render::{cross, dot, normalize, sub, Camera, Light, Lighting};
+use crate::preview::{cross, dot, normalize, sub};
+use render::{Camera, Light, Lighting};
 
 pub use crate::observation::{
     BandDifference, Conditions, Resemblance, DISTANCE_MM, ELEVATION_DEG, PIXELS_PER_DEGREE, VIEWS,

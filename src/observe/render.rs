@@ -14,6 +14,7 @@
 
 use super::pyramid::Plane;
 use crate::preview::print::Print;
+use crate::preview::{dot, sub};
 use rayon::prelude::*;
 
 /// An orthographic camera: the point at the picture's centre, its basis (unit vectors to
@@ -311,30 +312,5 @@ fn draw(
                 }
             }
         }
-    }
-}
-
-pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-pub(crate) fn normalize(a: [f64; 3]) -> [f64; 3] {
-    let n = dot(a, a).sqrt();
-    if n > 0.0 {
-        a.map(|c| c / n)
-    } else {
-        a
     }
 }

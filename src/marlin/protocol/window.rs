@@ -111,8 +111,7 @@ impl Host {
     }
 
     pub(super) fn window_allows(&self, number: u64, bytes: usize) -> bool {
-        let owed = self.owed_bytes();
-        if self.in_flight.is_empty() && owed == 0 {
+        if self.in_flight.is_empty() && self.owed.iter().all(|o| o.bytes == 0) {
             return true;
         }
         if self.in_flight.iter().any(|f| f.heat) {
@@ -137,13 +136,18 @@ impl Host {
         // (`<`): Marlin's ring tells full from empty by leaving one cell unused. The last
         // `PROBE_RESERVE` bytes are kept for one probe (see `probe_fits`). Lines outside
         // the count still owed an answer may sit in the ring too.
-        self.in_flight_bytes + owed + bytes + PROBE_RESERVE < self.opts.firmware.rx_buffer_bytes()
+        self.ring_has_room(bytes + PROBE_RESERVE)
     }
 
     /// Whether an unnumbered `M105` still fits the receive ring.
     pub(super) fn probe_fits_unnumbered(&self) -> bool {
-        self.in_flight_bytes + self.owed_bytes() + UNNUMBERED_PROBE.len()
-            < self.opts.firmware.rx_buffer_bytes()
+        self.ring_has_room(UNNUMBERED_PROBE.len())
+    }
+
+    /// Whether `bytes` more fit the receive ring beside everything that may still sit in
+    /// it (one cell is left unused: see `window_allows`).
+    fn ring_has_room(&self, bytes: usize) -> bool {
+        self.in_flight_bytes + self.owed_bytes() + bytes < self.opts.firmware.rx_buffer_bytes()
     }
 
     /// Bytes of the lines outside the count that may still sit in the receive ring.
@@ -178,8 +182,7 @@ impl Host {
     /// during which Ultimaker2Marlin reads nothing), and its remains would merge with the
     /// next line.
     pub(super) fn probe_fits(&self, number: u64, command: &str) -> bool {
-        self.in_flight_bytes + self.owed_bytes() + wire_len_bound(number, command)
-            < self.opts.firmware.rx_buffer_bytes()
+        self.ring_has_room(wire_len_bound(number, command))
     }
 
     /// Send whatever the window allows. A line gets its number only when it is sent, so

@@ -55,6 +55,8 @@ fn task(job_dir: &Path) -> PrepareTask {
         timeout: Duration::from_secs(600),
         compare: false,
         asks: Default::default(),
+        observe: Default::default(),
+        per_plate: 1,
     }
 }
 
@@ -90,9 +92,10 @@ fn slicer_alone(stl: &Path, machine: &Machine, settings: &SliceSettings, work: &
         nozzle_temp_c,
         bed_temp_c: if machine.heated_bed { bed_temp_c } else { 0.0 },
         height_mm: HEIGHT_MM,
+        copies: 1,
     };
     let invocation = profile
-        .invocation(&params, work, stl, &work.join("alone.gcode"))
+        .invocation(&params, work, &[stl.to_path_buf()], &work.join("alone.gcode"))
         .expect("the command line");
     let t = Instant::now();
     let status = std::process::Command::new(SlicerKind::Prusa.default_program())

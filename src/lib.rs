@@ -4,6 +4,8 @@
 //! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
 //! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
+//! - [`observe`]: a model of a person looking at a print: how much a small print looks
+//!   like the same model printed large, from their G-code.
 //! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
 //! - [`machine`]: the kinds of printer a job is sliced for (bed, nozzle, filament, firmware).
 //! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
@@ -15,6 +17,8 @@
 //!   serving the farm's handles and operations.
 //! - [`notify`]: notifications of the farm's events (a bed to clear, a failed job, a
 //!   printer offline) to webhooks, ntfy, Slack and Discord, queued in the spool.
+//! - [`bedcheck`]: the camera's bed check: a frame against the picture of the empty bed.
+//!   No I/O.
 //! - [`camera`]: the printers' cameras: frames fetched off the printing path, each
 //!   printer's picture, and the snapshots and timelapse kept with each job.
 //! - [`spoolman`]: a client for Spoolman, the filament-spool inventory server: spools, and
@@ -23,6 +27,7 @@
 //! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
 //! - `outbound`: outbound HTTP (notifications, cameras, Spoolman) and its TLS client.
 //! - [`percent`]: names in addresses (percent-encoding), for the API, its clients and links.
+//! - [`names`]: what a name an operator gives may hold, and how any name is shown.
 //!
 //! The `crispen` command line lives on the binary's side (`src/cli`), so the library does
 //! not depend on clap, anyhow or indicatif.
@@ -31,6 +36,7 @@
 // binary, tests/, benches/, fuzz/) names it, so the public API is what is used.
 #![warn(unreachable_pub)]
 
+pub mod bedcheck;
 pub mod camera;
 pub mod daemon;
 pub mod enhance;
@@ -39,7 +45,10 @@ pub mod http;
 pub mod machine;
 pub mod marlin;
 pub mod mesh;
+pub mod names;
 pub mod notify;
+pub mod observation;
+pub mod observe;
 pub mod outbound;
 pub mod percent;
 pub mod ports;

@@ -7,7 +7,7 @@
 //! one more than its value mod 64); the rest is the stream, whose boundary is `frame`.
 #![no_main]
 
-use crispen::camera::mjpeg::{is_jpeg, MjpegReader};
+use crispen::camera::mjpeg::{is_jpeg, MjpegReader, Part};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
@@ -43,7 +43,10 @@ fn read(stream: &[u8], max: usize, cuts: &mut dyn Iterator<Item = usize>) -> (Ve
         rest = tail;
         match reader.feed(piece) {
             Ok(got) => {
-                for f in got {
+                // A part refused (not a JPEG, cut short, over the limit) is skipped, and
+                // the stream goes on: only whole frames are compared.
+                for part in got {
+                    let Part::Frame(f) = part else { continue };
                     assert!(f.len() <= max, "{} bytes over the limit {max}", f.len());
                     assert!(is_jpeg(&f), "not a JPEG: {f:?}");
                     frames.push(f);

@@ -1,8 +1,14 @@
 //! One camera source (a snapshot URL or an MJPEG stream), fetched by a task of its own that
 //! alone publishes what it has: the latest frame, whether the camera answers, and counts.
 //! Nothing on the printing path waits on it: readers glance at the published feed.
+//!
+//! A frame is published only when it is a whole JPEG whose picture decodes; one that is
+//! not (cut short, run into the next part, undecodable) is a failure like a refused
+//! connection: counted, and the camera offline until a whole frame comes.
 
+pub use super::fetch::CameraFault;
 use super::fetch::{self, FetchError};
+use super::mjpeg::{FrameFault, Part};
 use crate::daemon::config::camera::{CameraSettings, CameraSource};
 use bytes::Bytes;
 use serde::Serialize;
@@ -40,7 +46,11 @@ pub struct Frame {
 pub struct CameraFeed {
     pub state: CameraState,
     pub frame: Option<Arc<Frame>>,
+    /// Why the last fetch failed, in words (with the details) and as data.
     pub error: Option<String>,
+    pub fault: Option<CameraFault>,
+    /// Unix seconds of the first failure since the camera last gave a frame.
+    pub offline_since: Option<f64>,
     pub frames: u64,
     pub failures: u64,
     /// Since when (monotonic) the frames have been the same picture, byte for byte.
@@ -53,6 +63,8 @@ impl CameraFeed {
             state: CameraState::Starting,
             frame: None,
             error: None,
+            fault: None,
+            offline_since: None,
             frames: 0,
             failures: 0,
             same_since: Instant::now(),
@@ -84,6 +96,8 @@ pub async fn run(
         name,
         feed,
         last_digest: None,
+        warned: None,
+        said_offline: false,
     };
     let mut retry = settings.refresh;
     loop {
@@ -93,7 +107,13 @@ pub async fn run(
                     got = fetch::snapshot(url, settings.timeout, settings.frame_max_bytes) => got,
                     _ = stop.cancelled() => return,
                 };
-                got.map(|jpeg| publisher.frame(jpeg))
+                match got {
+                    Ok(jpeg) => {
+                        publisher.checked_frame(jpeg).await;
+                        Ok(())
+                    }
+                    Err(e) => Err(e),
+                }
             }
             CameraSource::Stream(url) => tokio::select! {
                 r = stream(url, &settings, &mut publisher) => r,
@@ -119,7 +139,8 @@ pub async fn run(
     }
 }
 
-/// Reads a stream until it fails, publishing a frame per [`STREAM_PACE`] at most.
+/// Reads a stream until it fails, publishing a frame per [`STREAM_PACE`] at most; each
+/// part refused is a failure.
 async fn stream(
     url: &crate::daemon::config::notify::ReceiverUrl,
     settings: &CameraSettings,
@@ -128,21 +149,50 @@ async fn stream(
     let mut stream = fetch::Stream::open(url, settings.timeout, settings.frame_max_bytes).await?;
     let mut last = None::<Instant>;
     loop {
-        let jpeg = stream.next().await?;
-        if last.is_none_or(|t| t.elapsed() >= STREAM_PACE) {
-            last = Some(Instant::now());
-            publisher.frame(jpeg);
+        match stream.next().await? {
+            Part::Frame(jpeg) => {
+                if last.is_none_or(|t| t.elapsed() >= STREAM_PACE) {
+                    last = Some(Instant::now());
+                    publisher.checked_frame(jpeg).await;
+                }
+            }
+            Part::Refused(fault) => publisher.failed(&FetchError::Refused(fault)),
         }
     }
 }
+
+/// A camera failing over and over is logged at most this often (a camera whose frames
+/// come cut now and then would otherwise log each one).
+const WARN_EVERY: Duration = Duration::from_secs(60);
 
 struct Publisher {
     name: String,
     feed: watch::Sender<CameraFeed>,
     last_digest: Option<u64>,
+    /// When a failure was last logged.
+    warned: Option<Instant>,
+    /// The log said the camera went offline and has not yet said it is back: a camera
+    /// whose failures were too frequent to log is not announced online at each frame.
+    said_offline: bool,
 }
 
 impl Publisher {
+    /// A whole frame from the camera, published when its picture decodes (off the
+    /// runtime), refused otherwise.
+    async fn checked_frame(&mut self, jpeg: Vec<u8>) {
+        match tokio::task::spawn_blocking(move || super::picture::decodes(&jpeg).map(|()| jpeg))
+            .await
+        {
+            Ok(Ok(jpeg)) => self.frame(jpeg),
+            Ok(Err(e)) => {
+                tracing::debug!(camera = %self.name, error = %e, "camera: a frame that does not decode");
+                self.failed(&FetchError::Refused(FrameFault::Undecodable));
+            }
+            // The decoder panicked: the frame is refused with the rest.
+            Err(_) => self.failed(&FetchError::Refused(FrameFault::Undecodable)),
+        }
+    }
+
     fn frame(&mut self, jpeg: Vec<u8>) {
         let digest = {
             use std::hash::{Hash, Hasher};
@@ -153,9 +203,13 @@ impl Publisher {
         let same = self.last_digest == Some(digest);
         self.last_digest = Some(digest);
         let name = &self.name;
+        let said_offline = self.said_offline;
         self.feed.send_modify(|f| {
-            if f.state != CameraState::Online && f.state != CameraState::Frozen {
-                tracing::info!(camera = %name, "camera online");
+            if f.state != CameraState::Online
+                && f.state != CameraState::Frozen
+                && (f.frames == 0 || said_offline)
+            {
+                tracing::info!(camera = %name, frames = f.frames + 1, failures = f.failures, "camera online");
             }
             f.frames += 1;
             f.frame = Some(Arc::new(Frame {
@@ -165,23 +219,41 @@ impl Publisher {
             }));
             f.state = CameraState::Online;
             f.error = None;
+            f.fault = None;
+            f.offline_since = None;
             if !same {
                 f.same_since = Instant::now();
             }
         });
+        self.said_offline = false;
     }
 
-    /// A failed fetch: logged when the camera goes offline or fails otherwise than before.
+    /// A failed fetch or a frame refused: logged when the camera goes offline or fails
+    /// otherwise than before, at most once per [`WARN_EVERY`].
     fn failed(&mut self, e: &FetchError) {
-        let text = e.to_string();
+        let (text, fault) = (e.to_string(), e.fault());
         let name = &self.name;
+        let quiet = self.warned.is_some_and(|t| t.elapsed() < WARN_EVERY);
+        let mut warned = false;
         self.feed.send_modify(|f| {
             f.failures += 1;
-            if f.state != CameraState::Offline || f.error.as_deref() != Some(&text) {
-                tracing::warn!(camera = %name, error = %text, "camera offline; the prints go on without it");
+            let changed = f.state != CameraState::Offline
+                || f.fault.map(|k| std::mem::discriminant(&k))
+                    != Some(std::mem::discriminant(&fault));
+            if changed && !quiet {
+                tracing::warn!(camera = %name, error = %text, failures = f.failures, "camera offline; the prints go on without it");
+                warned = true;
+            }
+            if f.state != CameraState::Offline {
+                f.offline_since = Some(unix_now());
             }
             f.state = CameraState::Offline;
             f.error = Some(text);
+            f.fault = Some(fault);
         });
+        if warned {
+            self.warned = Some(Instant::now());
+            self.said_offline = true;
+        }
     }
 }

@@ -3,13 +3,43 @@
 //! frame its size limit; what a camera answers instead (an error page, HTML, a stream with
 //! no boundary) is an error that says what came.
 
-use super::mjpeg::{boundary_of, is_jpeg, megabytes, MjpegError, MjpegReader};
+use super::mjpeg::{boundary_of, check_jpeg, megabytes, FrameFault, MjpegError, MjpegReader, Part};
 use crate::daemon::config::notify::ReceiverUrl;
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
 use hyper::body::Incoming;
 use hyper_util::rt::TokioIo;
+use serde::{Deserialize, Serialize};
 use std::time::Duration;
+
+/// Why a camera gave no frame, as data: the status and the job page word it, and a job's
+/// `camera.json` keeps it (the details, an OS's or a library's words, are the log's).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum CameraFault {
+    /// The connection was refused or could not be made.
+    Connect,
+    /// No answer within the time limit.
+    Timeout { seconds: f64 },
+    /// An MJPEG stream gave no part within the time limit.
+    NoFrame { seconds: f64 },
+    /// An HTTP status other than success.
+    Status { code: u16 },
+    /// Something other than a JPEG (an error page).
+    NotJpeg,
+    /// A frame over `[camera] frame_max_mb`.
+    TooLarge { max_bytes: usize },
+    /// Not an MJPEG stream where one was configured.
+    NotStream,
+    /// A stream without its boundary.
+    NoBoundary { max_bytes: usize },
+    /// The stream or the connection ended.
+    Closed,
+    /// The HTTP exchange failed otherwise.
+    Http,
+    /// A frame that is not a whole JPEG.
+    Refused { frame: FrameFault },
+}
 
 /// Why no frame came.
 #[derive(Debug, thiserror::Error)]
@@ -38,6 +68,38 @@ pub enum FetchError {
     Http(String),
     #[error("the stream ended")]
     Closed,
+    /// A frame that is not a whole JPEG (cut, run into the next part, not decoding).
+    #[error("{0}")]
+    Refused(FrameFault),
+}
+
+impl FetchError {
+    /// What went wrong, as data (the words and the details are the log's).
+    pub fn fault(&self) -> CameraFault {
+        match self {
+            FetchError::Connect { .. } => CameraFault::Connect,
+            FetchError::Timeout(d) => CameraFault::Timeout {
+                seconds: d.as_secs_f64(),
+            },
+            FetchError::NoFrame(d) => CameraFault::NoFrame {
+                seconds: d.as_secs_f64(),
+            },
+            FetchError::Status(code) => CameraFault::Status { code: *code },
+            FetchError::NotJpeg(_) | FetchError::Stream(MjpegError::NotJpeg { .. }) => {
+                CameraFault::NotJpeg
+            }
+            FetchError::TooLarge(max) | FetchError::Stream(MjpegError::TooLarge { max }) => {
+                CameraFault::TooLarge { max_bytes: *max }
+            }
+            FetchError::NotStream(_) => CameraFault::NotStream,
+            FetchError::Stream(MjpegError::NoBoundary { max }) => {
+                CameraFault::NoBoundary { max_bytes: *max }
+            }
+            FetchError::Stream(MjpegError::Ended) | FetchError::Closed => CameraFault::Closed,
+            FetchError::Http(_) => CameraFault::Http,
+            FetchError::Refused(frame) => CameraFault::Refused { frame: *frame },
+        }
+    }
 }
 
 /// An answer whose body is read on; its connection is driven by a task of its own, which
@@ -137,13 +199,15 @@ pub async fn snapshot(
                 bytes.extend_from_slice(&data);
             }
         }
-        if is_jpeg(&bytes) {
-            Ok(bytes)
-        } else {
-            Err(FetchError::NotJpeg(format!(
-                "{kind} ({} bytes)",
-                bytes.len()
-            )))
+        match check_jpeg(&bytes) {
+            Ok(len) => {
+                bytes.truncate(len);
+                Ok(bytes)
+            }
+            Err(FrameFault::NotJpeg { bytes: n }) => {
+                Err(FetchError::NotJpeg(format!("{kind} ({n} bytes)")))
+            }
+            Err(fault) => Err(FetchError::Refused(fault)),
         }
     })
     .await
@@ -169,7 +233,7 @@ async fn first_line(response: &mut hyper::Response<Incoming>) -> Result<Vec<u8>,
 pub struct Stream {
     answer: Answer,
     reader: MjpegReader,
-    ready: std::collections::VecDeque<Vec<u8>>,
+    ready: std::collections::VecDeque<Part>,
     timeout: Duration,
 }
 
@@ -211,14 +275,15 @@ impl Stream {
         Ok(stream)
     }
 
-    /// The next frame; an error when none is whole within the time limit (a stream that
-    /// trickles bytes without a frame is as dead as a silent one).
-    pub async fn next(&mut self) -> Result<Vec<u8>, FetchError> {
+    /// The next part: a whole frame, or one refused (the stream goes on after it); an
+    /// error when none comes within the time limit (a stream that trickles bytes without
+    /// a part is as dead as a silent one).
+    pub async fn next(&mut self) -> Result<Part, FetchError> {
         let timeout = self.timeout;
         tokio::time::timeout(timeout, async {
             loop {
-                if let Some(frame) = self.ready.pop_front() {
-                    return Ok(frame);
+                if let Some(part) = self.ready.pop_front() {
+                    return Ok(part);
                 }
                 let Some(frame) = self.answer.response.body_mut().frame().await else {
                     return Err(FetchError::Closed);

@@ -2,14 +2,15 @@
 //! by the printers that name the same camera) and how its picture is made; the pictures
 //! made last are kept so that many viewers cost one encoding per frame.
 
-use super::feed::{CameraFeed, CameraState};
+use super::feed::{CameraFault, CameraFeed, CameraState, Frame};
 use super::picture::{self, PictureError};
 use crate::daemon::config::camera::{CameraSettings, CameraSource, CameraTransform};
 use crate::daemon::config::Config;
 use bytes::Bytes;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::Mutex;
 use tokio::sync::watch;
 
@@ -143,52 +144,101 @@ impl Cameras {
         })
     }
 
-    /// The printer's latest picture (blocking: it may decode and encode a frame); None when
-    /// it has no camera or no frame came yet. `fresh`: only a frame of a camera that is
-    /// online now, no older than a few refreshes (a job's snapshot must show the print as
-    /// it is, not as it was when the camera died).
-    pub fn picture(&self, printer: &str, fresh: bool) -> Option<Result<Picture, PictureError>> {
+    /// The printer's latest picture (blocking: it may decode and encode a frame), however
+    /// old; None when it has no camera or no frame came yet.
+    pub fn picture(&self, printer: &str) -> Option<Result<Picture, PictureError>> {
+        let cam = self.printers.get(printer)?;
+        let frame = cam.feed.borrow().frame.clone()?;
+        Some(made(cam, &frame))
+    }
+
+    /// The printer's picture as the print is now (blocking, as [`Cameras::picture`]): a
+    /// frame of a camera online now, no older than a few refreshes (a job's snapshot must
+    /// show the print as it is, not as it was when the camera died); why there is none
+    /// otherwise. None when the printer has no camera.
+    pub fn fresh_picture(&self, printer: &str) -> Option<Result<Picture, NoFrame>> {
         let cam = self.printers.get(printer)?;
         let frame = {
             let feed = cam.feed.borrow();
-            if fresh && feed.state != CameraState::Online {
-                return None;
+            match (feed.state, &feed.frame) {
+                (CameraState::Offline, _) => {
+                    return Some(Err(NoFrame::Offline {
+                        fault: feed.fault,
+                        since: feed.offline_since,
+                    }))
+                }
+                (CameraState::Starting, _) | (_, None) => return Some(Err(NoFrame::Starting)),
+                (_, Some(frame)) => Arc::clone(frame),
             }
-            feed.frame.clone()?
         };
-        if fresh {
-            let max_age = (self.settings.refresh * 3).max(std::time::Duration::from_secs(15));
-            let age = super::feed::unix_now() - frame.at;
-            if age > max_age.as_secs_f64() {
-                return None;
-            }
+        let max_age = (self.settings.refresh * 3).max(std::time::Duration::from_secs(15));
+        let age = super::feed::unix_now() - frame.at;
+        if age > max_age.as_secs_f64() {
+            return Some(Err(NoFrame::Stale { age_s: age }));
         }
-        let mut made = cam.made.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((seq, jpeg)) = made.as_ref().filter(|(seq, _)| *seq == frame.seq) {
-            return Some(Ok(Picture {
-                jpeg: jpeg.clone(),
-                seq: *seq,
-                at: frame.at,
-            }));
-        }
-        let jpeg = match picture::make(&frame.jpeg, &cam.transform) {
-            Ok(p) => Bytes::from(p),
-            Err(e) => return Some(Err(e)),
-        };
-        *made = Some((frame.seq, jpeg.clone()));
-        Some(Ok(Picture {
-            jpeg,
-            seq: frame.seq,
-            at: frame.at,
+        Some(made(cam, &frame).map_err(|e| {
+            tracing::warn!(printer, error = %e, "camera: no picture");
+            NoFrame::Picture
         }))
     }
+}
+
+/// Why there was no picture of the print when one was wanted (a snapshot, a timelapse
+/// frame), as data: a job's `camera.json` keeps it and the job page words it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum NoFrame {
+    /// The camera has given no frame yet.
+    Starting,
+    /// The camera is offline: its last failure, and since when (Unix seconds).
+    Offline {
+        fault: Option<CameraFault>,
+        since: Option<f64>,
+    },
+    /// Its latest frame is this old (seconds), too old to show the print as it is.
+    Stale { age_s: f64 },
+    /// The frame could not be made into the printer's picture (cut and turned).
+    Picture,
+    /// The picture could not be written to the job's camera folder.
+    Disk,
+}
+
+impl NoFrame {
+    /// Whether `self` and `other` have the same cause (a run of layers without a frame
+    /// is one entry while it does).
+    pub fn same_cause(&self, other: &NoFrame) -> bool {
+        use std::mem::discriminant;
+        match (self, other) {
+            (NoFrame::Offline { fault: a, .. }, NoFrame::Offline { fault: b, .. }) => {
+                a.as_ref().map(discriminant) == b.as_ref().map(discriminant)
+            }
+            _ => discriminant(self) == discriminant(other),
+        }
+    }
+}
+
+/// The picture of `frame` for `cam`'s printer, the last one made when it is the same frame.
+fn made(cam: &PrinterCamera, frame: &Frame) -> Result<Picture, PictureError> {
+    let mut made = cam.made.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((seq, jpeg)) = made.as_ref().filter(|(seq, _)| *seq == frame.seq) {
+        return Ok(Picture {
+            jpeg: jpeg.clone(),
+            seq: *seq,
+            at: frame.at,
+        });
+    }
+    let jpeg = Bytes::from(picture::make(&frame.jpeg, &cam.transform)?);
+    *made = Some((frame.seq, jpeg.clone()));
+    Ok(Picture {
+        jpeg,
+        seq: frame.seq,
+        at: frame.at,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::feed::Frame;
-    use std::sync::Arc;
     use std::time::{Duration, Instant};
 
     fn cameras(text: &str) -> (Cameras, Vec<Source>) {
@@ -253,8 +303,11 @@ mod tests {
         assert_eq!(printing.state, CameraState::Frozen);
         assert!(printing.error.unwrap().contains("the same picture"));
         assert_eq!(cams.status("p", false).unwrap().state, CameraState::Online);
-        assert!(cams.picture("p", true).is_none(), "too old for a snapshot");
-        let shown = cams.picture("p", false).unwrap().unwrap();
+        assert!(
+            matches!(cams.fresh_picture("p"), Some(Err(NoFrame::Stale { age_s })) if age_s > 60.0),
+            "too old for a snapshot"
+        );
+        let shown = cams.picture("p").unwrap().unwrap();
         assert_eq!(shown.seq, 7);
     }
 }

@@ -8,8 +8,10 @@
 //! - `hub`: [`Cameras`], each printer's camera as the dashboard, the API and the
 //!   recorder see it.
 //! - `recorder`: the snapshots and timelapse of each job, from its printer's state.
+//! - `bedwatch`: the picture of each empty bed, and the bed checks the store says are due.
 //! - `timelapse`: the MP4 made by ffmpeg, and the cameras' disk limit.
 
+pub mod bedwatch;
 pub mod feed;
 pub mod fetch;
 pub mod hub;
@@ -49,6 +51,12 @@ pub(crate) async fn run(
         encodes.spawn(async move { recorder::encode_leftovers(&root).await });
     }
     for printer in cameras.printers() {
+        tasks.spawn(bedwatch::watch(
+            Arc::clone(&farm),
+            Arc::clone(&cameras),
+            printer.to_string(),
+            stop.clone(),
+        ));
         tasks.spawn(recorder::record(
             Arc::clone(&farm),
             Arc::clone(&cameras),

@@ -28,6 +28,31 @@ pub enum PictureError {
     Encode(String),
 }
 
+/// Frames wider or higher than this are not decoded.
+const MAX_SIDE: usize = 16_384;
+
+/// Whether the JPEG `frame` decodes whole. Strictly: a decoder that forgives (the `image`
+/// crate's) fills what is missing or wrong with a flat colour, which is how a cut frame
+/// shows its bottom half green; within [`MAX_PIXELS`], as [`make`]. The decoder's words
+/// when it does not. (Even strict, it takes an end marker that comes before the last
+/// block for the end of the picture: a frame cut and then closed is found by nothing
+/// short of counting its blocks.)
+pub fn decodes(frame: &[u8]) -> Result<(), String> {
+    use zune_core::bytestream::ZCursor;
+    use zune_core::options::DecoderOptions;
+    let options = DecoderOptions::default()
+        .set_strict_mode(true)
+        .set_max_width(MAX_SIDE)
+        .set_max_height(MAX_SIDE);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(frame), options);
+    decoder.decode_headers().map_err(|e| e.to_string())?;
+    let (w, h) = decoder.dimensions().ok_or("no frame header")?;
+    if w as u64 * h as u64 > MAX_PIXELS {
+        return Err(format!("{w}x{h} is more than {MAX_PIXELS} pixels"));
+    }
+    decoder.decode().map(drop).map_err(|e| e.to_string())
+}
+
 /// The picture `transform` makes of the JPEG `frame`.
 pub fn make(frame: &[u8], transform: &CameraTransform) -> Result<Vec<u8>, PictureError> {
     if transform.is_identity() {
@@ -149,5 +174,51 @@ mod tests {
             make(b"\xff\xd8\xffjunk", &right),
             Err(PictureError::Decode(_))
         ));
+    }
+
+    /// A frame with detail all over, so that most of its bytes are the picture's.
+    fn busy_frame() -> Vec<u8> {
+        let img = image::RgbImage::from_fn(256, 192, |x, y| {
+            let v = (x * 7 + y * 13 + (x * y) % 17) as u8;
+            image::Rgb([v, v.wrapping_mul(3), 255 - v])
+        });
+        let mut out = Vec::new();
+        img.write_with_encoder(image::codecs::jpeg::JpegEncoder::new_with_quality(
+            &mut out, 90,
+        ))
+        .unwrap();
+        out
+    }
+
+    /// A frame cut short decodes with the forgiving decoder (the rest filled in) and not
+    /// with the strict one; nor one without its quantisation tables, nor one whose header
+    /// claims too many pixels.
+    #[test]
+    fn a_cut_or_broken_frame_does_not_decode() {
+        use crate::camera::mjpeg::check_jpeg;
+        let f = busy_frame();
+        assert_eq!(decodes(&f), Ok(()));
+        let cut = &f[..f.len() * 2 / 3];
+        assert!(image::load_from_memory_with_format(cut, image::ImageFormat::Jpeg).is_ok());
+        assert!(decodes(cut).is_err());
+        // Its DQT segments taken out: whole by its markers, no picture.
+        let mut no_tables = f[..2].to_vec();
+        let mut at = 2;
+        while f[at + 1] != 0xDA {
+            let len = 2 + usize::from(u16::from_be_bytes([f[at + 2], f[at + 3]]));
+            if f[at + 1] != 0xDB {
+                no_tables.extend_from_slice(&f[at..at + len]);
+            }
+            at += len;
+        }
+        no_tables.extend_from_slice(&f[at..]);
+        assert!(no_tables.len() < f.len());
+        assert_eq!(check_jpeg(&no_tables), Ok(no_tables.len()));
+        assert!(decodes(&no_tables).is_err());
+        // A frame header claiming 60000 x 60000.
+        let mut huge = f.clone();
+        let sof = huge.windows(2).position(|w| w == [0xFF, 0xC0]).unwrap();
+        huge[sof + 5..sof + 9].copy_from_slice(&[0xEA, 0x60, 0xEA, 0x60]);
+        assert!(decodes(&huge).is_err());
     }
 }

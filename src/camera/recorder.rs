@@ -4,9 +4,10 @@
 //! once the print is over. The recorder follows the printer's published state, as the
 //! notifier does, and never touches the print: a camera that is slow, lying or down costs
 //! a missing picture, logged, and nothing else. What a job has is in its `camera.json`,
-//! written by the recorder alone.
+//! written by the recorder alone, with the layers its timelapse has no frame of and why
+//! (a camera that dies mid-print leaves a short timelapse that says so).
 
-use super::hub::{Cameras, Picture};
+use super::hub::{Cameras, NoFrame, Picture};
 use super::timelapse;
 use crate::daemon::config::camera::Timelapse;
 use crate::daemon::farm::{Farm, PrinterLive};
@@ -30,6 +31,23 @@ pub struct JobCamera {
     /// Why the timelapse is missing, when it is.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub timelapse_error: Option<String>,
+    /// The print's layers (from its layer comments; 1 when it has none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layers: Option<u32>,
+    /// The layers the timelapse has no frame of, in runs of one cause, oldest first.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub missing: Vec<MissingFrames>,
+}
+
+/// Layers `first..=last` (from 1) of a print have no timelapse frame, for one cause.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MissingFrames {
+    pub first: u32,
+    pub last: u32,
+    /// Why, as it was when the first of them was missed.
+    pub why: NoFrame,
+    /// Unix seconds when the first of them was missed.
+    pub at: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -135,16 +153,14 @@ async fn step(
     follow(cameras, printer, rec, acked).await;
 }
 
-/// The printer's picture now, if its camera has a fresh one (decoding off the runtime).
-async fn picture(cameras: &Arc<Cameras>, printer: &str) -> Option<Picture> {
+/// The printer's picture now, if its camera has a fresh one (decoding off the runtime);
+/// why not otherwise.
+async fn picture(cameras: &Arc<Cameras>, printer: &str) -> Result<Picture, NoFrame> {
     let (cams, name) = (Arc::clone(cameras), printer.to_string());
-    match tokio::task::spawn_blocking(move || cams.picture(&name, true)).await {
-        Ok(Some(Ok(p))) => Some(p),
-        Ok(Some(Err(e))) => {
-            tracing::warn!(printer, error = %e, "camera: no picture");
-            None
-        }
-        _ => None,
+    match tokio::task::spawn_blocking(move || cams.fresh_picture(&name)).await {
+        Ok(Some(got)) => got,
+        // No camera (the recorder runs for printers with one), or the decoder panicked.
+        Ok(None) | Err(_) => Err(NoFrame::Picture),
     }
 }
 
@@ -152,7 +168,8 @@ async fn start(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, job: &str) ->
     let dir = cameras.root().join(job);
     // The first layer's snapshot needs them whatever the timelapse does.
     let layer_starts = layer_starts_of(farm, printer, job).await;
-    tracing::info!(printer, job, layers = layer_starts.len() + 1, folder = %dir.display(), "camera: recording the print");
+    let layers = layer_starts.len() as u32 + 1;
+    tracing::info!(printer, job, layers, folder = %dir.display(), "camera: recording the print");
     let mut rec = Recording {
         job: job.to_string(),
         dir,
@@ -175,7 +192,8 @@ async fn start(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, job: &str) ->
     }
     // Frames an earlier attempt left unencoded come first in the timelapse.
     rec.frames = frames_kept(&rec.dir).await;
-    if let Some(p) = picture(cameras, printer).await {
+    rec.manifest.layers = Some(layers);
+    if let Ok(p) = picture(cameras, printer).await {
         snapshot(&mut rec, "start", &p).await;
     }
     rec
@@ -204,8 +222,23 @@ async fn follow(cameras: &Arc<Cameras>, printer: &str, rec: &mut Recording, acke
     if crossed == 0 && !timed && !wants_first_layer && !keep_recent {
         return;
     }
-    let Some(p) = picture(cameras, printer).await else {
-        return;
+    // One frame per layer finished, the same picture for layers quicker than the camera.
+    // Layers are counted from 1: the ones finished are those before the one under way.
+    let (frames, first) = match cameras.settings.timelapse {
+        Timelapse::Layers => (crossed, rec.next_layer - crossed + 1),
+        Timelapse::Every(_) => (usize::from(timed), rec.next_layer + 1),
+        Timelapse::Off => (0, 0),
+    };
+    let p = match picture(cameras, printer).await {
+        Ok(p) => p,
+        Err(why) => {
+            if frames > 0 {
+                missed(rec, first, first + frames - 1, why).await;
+                // Looked for again at the next period, not at every tick.
+                rec.last_frame = Some(Instant::now());
+            }
+            return;
+        }
     };
     if rec.recent.back().is_none_or(|r| r.seq != p.seq) {
         rec.recent.push_back(p.clone());
@@ -217,18 +250,35 @@ async fn follow(cameras: &Arc<Cameras>, printer: &str, rec: &mut Recording, acke
         rec.first_layer_taken = true;
         snapshot(rec, "first-layer", &p).await;
     }
-    // One frame per layer finished, the same picture for layers quicker than the camera.
-    let frames = match cameras.settings.timelapse {
-        Timelapse::Layers => crossed,
-        Timelapse::Every(_) => usize::from(timed),
-        Timelapse::Off => 0,
-    };
-    for _ in 0..frames {
-        timelapse_frame(rec, &p).await;
+    for layer in first..first + frames {
+        timelapse_frame(rec, layer, &p).await;
     }
 }
 
-async fn timelapse_frame(rec: &mut Recording, p: &Picture) {
+/// Layers `first..=last` have no frame, for `why`: added to the manifest (to the run
+/// before when they follow it for the same cause), logged when a run starts.
+async fn missed(rec: &mut Recording, first: usize, last: usize, why: NoFrame) {
+    let (first, last) = (first as u32, last as u32);
+    let missing = &mut rec.manifest.missing;
+    match missing.last_mut() {
+        Some(run) if run.why.same_cause(&why) && first <= run.last + 1 => {
+            run.last = run.last.max(last);
+        }
+        _ => {
+            tracing::warn!(printer = %rec.manifest.printer, job = %rec.job, first, last, why = ?why, "camera: no timelapse frame for these layers");
+            missing.push(MissingFrames {
+                first,
+                last,
+                why,
+                at: super::feed::unix_now(),
+            });
+        }
+    }
+    write_manifest(&rec.dir, &rec.manifest).await;
+}
+
+/// The timelapse frame of `layer` (from 1); a frame that cannot be kept is missed.
+async fn timelapse_frame(rec: &mut Recording, layer: usize, p: &Picture) {
     let dir = rec.dir.join(FRAMES_DIR);
     let path = dir.join(format!("{:05}.jpg", rec.frames + 1));
     let written = async {
@@ -241,7 +291,8 @@ async fn timelapse_frame(rec: &mut Recording, p: &Picture) {
             rec.last_frame = Some(Instant::now());
         }
         Err(e) => {
-            tracing::warn!(job = %rec.job, error = %e, file = %path.display(), "camera: cannot keep a timelapse frame")
+            tracing::warn!(job = %rec.job, error = %e, file = %path.display(), "camera: cannot keep a timelapse frame");
+            missed(rec, layer, layer, NoFrame::Disk).await;
         }
     }
 }
@@ -270,11 +321,21 @@ async fn write_manifest(dir: &Path, manifest: &JobCamera) {
     let path = dir.join(MANIFEST);
     let bytes = serde_json::to_vec_pretty(manifest).unwrap_or_default();
     let p = path.clone();
-    let written =
-        tokio::task::spawn_blocking(move || crate::fsutil::write_atomic(&p, &bytes)).await;
-    if !matches!(written, Ok(Ok(()))) {
-        tracing::warn!(file = %path.display(), "camera: cannot write the job's camera manifest");
-    }
+    // A camera that never gave a frame has made no folder yet; its manifest (saying the
+    // layers have none) is still the job's record.
+    let written = tokio::task::spawn_blocking(move || {
+        if let Some(dir) = p.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
+        }
+        crate::fsutil::write_atomic(&p, &bytes).map_err(|e| e.to_string())
+    })
+    .await;
+    let error = match written {
+        Ok(Ok(())) => return,
+        Ok(Err(e)) => e,
+        Err(e) => e.to_string(),
+    };
+    tracing::warn!(file = %path.display(), %error, "camera: cannot write the job's camera manifest");
 }
 
 /// The print is over (or left this printer): the last pictures, then the timelapse.
@@ -290,7 +351,15 @@ async fn finish(
         state,
         Some(JobState::Failed | JobState::Cancelled | JobState::Interrupted)
     );
-    if let Some(p) = picture(cameras, printer).await {
+    // The layer under way: the last one of a print done.
+    let last_layer = rec.next_layer + 1;
+    let took = picture(cameras, printer).await;
+    if let Err(why) = took {
+        if cameras.settings.timelapse != Timelapse::Off {
+            missed(&mut rec, last_layer, last_layer, why).await;
+        }
+    }
+    if let Ok(p) = took {
         if failed {
             let before: Vec<Picture> = rec
                 .recent
@@ -307,7 +376,7 @@ async fn finish(
         }
         if cameras.settings.timelapse != Timelapse::Off {
             // The finished print: the last layer's frame.
-            timelapse_frame(&mut rec, &p).await;
+            timelapse_frame(&mut rec, last_layer, &p).await;
         }
     }
     tracing::info!(printer, job = %rec.job, frames = rec.frames, "camera: print recorded; encoding its timelapse");

@@ -99,6 +99,19 @@ pub(crate) struct PrinterArgs {
 }
 
 #[derive(Debug, clap::Args)]
+pub(crate) struct ClearArgs {
+    /// Printer name, as in the config's [[printer]] name
+    pub printer: String,
+    /// Also take the camera's picture of the empty bed now as the reference its bed check
+    /// compares with (replacing the one it has)
+    #[arg(long)]
+    pub reference: bool,
+    /// The daemon's config file (to find its control socket)
+    #[arg(long, short)]
+    pub config: Option<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
 pub(crate) struct JobArgs {
     /// Job id, as shown by `crispen status`
     pub job: String,
@@ -281,11 +294,22 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
                 .map(|h| format!("  [{h}]"))
                 .unwrap_or_default()
         );
-        if !p.bed_cleared {
-            println!(
+        use crispen::daemon::bed::Bed;
+        match &p.bed {
+            _ if p.bed_cleared => {}
+            Bed::Waiting { why: None } => println!(
                 "{:<16} bed not cleared: remove the print, then `crispen clear {}`",
                 "", p.name
-            );
+            ),
+            bed => println!(
+                "{:<16} bed {}: {}",
+                "",
+                bed.name().replace('_', " "),
+                crispen::daemon::hotfolder::escaped(&bed.describe().unwrap_or_default())
+            ),
+        }
+        if let Some(check) = &p.last_check {
+            println!("{:<16} last bed check: {}", "", check.verdict.summary());
         }
     }
     println!();
@@ -316,6 +340,10 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             j.printer.as_deref().unwrap_or("-"),
             extra
         );
+        // Why a ready job waits, under it.
+        if let Some(why) = &j.waiting {
+            println!("{:<28} {}", "", escaped(why));
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -373,8 +401,12 @@ pub fn utc_minute(t: f64) -> String {
     format!("{y:04}-{m:02}-{d:02} {:02}:{:02}", minute / 60, minute % 60)
 }
 
-pub(crate) fn clear(a: PrinterArgs) -> anyhow::Result<ExitCode> {
-    act(&a.config, printer_path(&a.printer, "clear"))
+pub(crate) fn clear(a: ClearArgs) -> anyhow::Result<ExitCode> {
+    let mut path = printer_path(&a.printer, "clear");
+    if a.reference {
+        path.push_str("?reference=true");
+    }
+    act(&a.config, path)
 }
 pub(crate) fn cancel(a: JobArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, job_path(&a.job, "cancel"))

@@ -3,13 +3,17 @@
 //! `anyhow` is used only in this layer.
 
 use clap::{Parser, Subcommand};
+use error::describe;
 use std::process::ExitCode;
 
+pub(crate) mod bedcheck;
 pub(crate) mod control;
 pub(crate) mod enhance;
+mod error;
 pub(crate) mod keys;
 pub(crate) mod logging;
 pub(crate) mod notify;
+pub(crate) mod observe;
 pub(crate) mod ports;
 pub(crate) mod prepare_job;
 pub(crate) mod print;
@@ -36,6 +40,9 @@ pub(crate) enum Command {
     Enhance(enhance::Args),
     /// Enhance, scale and slice a model into Marlin G-code for one machine with a real slicer
     Slice(slice::Args),
+    /// Which small print looks most like the big one: each strength's print against the
+    /// unmodified model at a reference height, through a model of a person's eye
+    Observe(observe::Args),
     /// Stream a G-code file to a Marlin printer over serial
     Print(print::Args),
     /// Run a simulated Marlin printer on a pty
@@ -51,7 +58,7 @@ pub(crate) enum Command {
     /// Statistics per printer and per hot folder over a period (jobs, hours, filament)
     Stats(stats::Args),
     /// Confirm a printer's bed has been cleared so it may take the next job
-    Clear(control::PrinterArgs),
+    Clear(control::ClearArgs),
     /// Cancel a job (a printing job is stopped safely)
     Cancel(control::JobArgs),
     /// Pause a printer's current print
@@ -72,6 +79,8 @@ pub(crate) enum Command {
     Notify(notify::Args),
     /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
     Keys(keys::Args),
+    /// Compare a picture of the bed with a picture of it empty, as the daemon's bed check does
+    BedCheck(bedcheck::Args),
     /// The daemon's preparation child (internal)
     #[command(hide = true)]
     PrepareJob(prepare_job::Args),
@@ -93,6 +102,7 @@ pub(crate) fn main() -> ExitCode {
     let result = match cli.command {
         Command::Enhance(a) => enhance::run(a),
         Command::Slice(a) => slice::run(a),
+        Command::Observe(a) => observe::run(a),
         Command::Print(a) => print::run(a),
         Command::Sim(a) => sim::run(a),
         Command::Ports(a) => ports::run(a),
@@ -111,6 +121,7 @@ pub(crate) fn main() -> ExitCode {
         Command::Spools(a) => spools::spools(a),
         Command::Notify(a) => notify::run(a),
         Command::Keys(a) => keys::run(a),
+        Command::BedCheck(a) => bedcheck::run(a),
         Command::PrepareJob(a) => prepare_job::run(a),
     };
     match result {
@@ -120,17 +131,4 @@ pub(crate) fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
-}
-
-/// The error and its causes on one line. The library's errors already name their cause
-/// in their own message, so a cause is added only when its text is not there yet.
-fn describe(err: &anyhow::Error) -> String {
-    let mut message = err.to_string();
-    for cause in err.chain().skip(1) {
-        let cause = cause.to_string();
-        if !message.contains(&cause) {
-            message = format!("{message}: {cause}");
-        }
-    }
-    message
 }

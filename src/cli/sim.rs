@@ -76,9 +76,14 @@ pub(crate) struct Args {
     #[arg(long, value_name = "N:TEXT", value_parser = parse_error)]
     pub error_after: Vec<(usize, String)>,
     /// Read commands from stdin, one a line, as a person at the printer: `reset`, `action
-    /// NAME` (the printer's menu), `error TEXT` (a firmware error)
+    /// NAME` (the printer's menu), `error TEXT` (a firmware error), `line TEXT` (received
+    /// as if from the cable, between the host's lines)
     #[arg(long)]
     pub stdin: bool,
+    /// Build without EMERGENCY_PARSER (`Cap:EMERGENCY_PARSER:0`), as the real Marlin
+    /// 2.1.2.1 builds: an unnumbered M108 then acts only when the queue reads it
+    #[arg(long)]
+    pub no_emergency_parser: bool,
     /// Say `wait` every MS milliseconds while the command queue is empty (NO_TIMEOUTS)
     #[arg(long, value_name = "MS")]
     pub wait_when_idle_ms: Option<u64>,
@@ -178,7 +183,12 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
         fatal_after_lines: args.fatal_after,
         actions: args.action_after.clone(),
         errors: args.error_after.clone(),
+        // Tests only: `line TEXT` on --stdin receives a line by hand.
+        receive: Vec::new(),
     };
+    if args.no_emergency_parser {
+        cfg.emergency_parser = Some(false);
+    }
     if args.wait_when_idle_ms == Some(0) {
         bail!("--wait-when-idle-ms 0 would flood the link; give an interval such as 1000");
     }

@@ -86,17 +86,22 @@ pub(crate) struct Args {
     pub timeout: u64,
 }
 
-fn parse_slicer(s: &str) -> Result<SlicerKind, String> {
+pub(crate) fn parse_slicer(s: &str) -> Result<SlicerKind, String> {
     s.parse()
 }
 
-fn parse_up(s: &str) -> Result<UpAxis, String> {
+pub(crate) fn parse_up(s: &str) -> Result<UpAxis, String> {
     s.parse()
 }
 
-/// The machine `--machine` names: one of the config's, or a built-in one.
-fn find_machine(args: &Args) -> anyhow::Result<Machine> {
-    let defined = match &args.config {
+/// The machine `--machine` names (`name`): one of `--config`'s, or a built-in one; with
+/// `--nozzle`, that nozzle fitted.
+pub(crate) fn find_machine(
+    name: &str,
+    nozzle: Option<f64>,
+    config: Option<&std::path::Path>,
+) -> anyhow::Result<Machine> {
+    let defined = match config {
         // Checked only: the machines need none of the daemon's key and password files.
         Some(path) => crispen::daemon::config::Checked::load(path)?
             .machines()
@@ -105,17 +110,16 @@ fn find_machine(args: &Args) -> anyhow::Result<Machine> {
     };
     let machine = defined
         .into_iter()
-        .find(|m| m.name == args.machine)
-        .or_else(|| Machine::builtin(&args.machine))
+        .find(|m| m.name == name)
+        .or_else(|| Machine::builtin(name))
         .with_context(|| {
             let builtin: Vec<&str> = crispen::machine::BUILTIN.iter().map(|b| b.name).collect();
             format!(
-                "--machine {:?}: no such machine (built-in: {}; others from --config FILE's [[machine]] tables)",
-                args.machine,
+                "--machine {name:?}: no such machine (built-in: {}; others from --config FILE's [[machine]] tables)",
                 builtin.join(", ")
             )
         })?;
-    match args.nozzle {
+    match nozzle {
         Some(mm) => machine
             .with_nozzle(mm)
             .map_err(|m| anyhow::anyhow!("--nozzle {mm}: {m}")),
@@ -141,7 +145,7 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else {
         Strength::Auto
     };
-    let machine = find_machine(&args)?;
+    let machine = find_machine(&args.machine, args.nozzle, args.config.as_deref())?;
     let mut req = SliceRequest::new(&args.model, args.height);
     req.slicer = args.slicer;
     req.up = args.up;
@@ -166,15 +170,7 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
         req.preview = Some(dir.clone());
     }
 
-    let bar = std::io::stderr().is_terminal().then(|| {
-        let bar = indicatif::ProgressBar::new_spinner();
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
-        );
-        bar.enable_steady_tick(Duration::from_millis(120));
-        bar
-    });
+    let bar = step_spinner();
     let mut progress = |step: Step| {
         if let Some(bar) = &bar {
             bar.set_message(format!("{}: {}", args.model.display(), step.describe()));
@@ -283,4 +279,18 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A spinner on the terminal that shows the preparation's step and the time so far;
+/// none when standard error is no terminal.
+pub(super) fn step_spinner() -> Option<indicatif::ProgressBar> {
+    std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new_spinner();
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        );
+        bar.enable_steady_tick(Duration::from_millis(120));
+        bar
+    })
 }

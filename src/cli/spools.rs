@@ -101,19 +101,38 @@ pub(crate) fn spools(a: SpoolsArgs) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let spools = answer["spools"].as_array().cloned().unwrap_or_default();
+    let set_aside = answer["set_aside"].as_array().cloned().unwrap_or_default();
+    print_spools(&answer, &spools);
+    if !set_aside.is_empty() {
+        println!("\nset aside (not taken from Spoolman; correct them there):");
+        for a in set_aside {
+            println!(
+                "{:<8} {}",
+                crispen::names::printable(a["id"].as_str().unwrap_or("-")),
+                crispen::names::escaped(a["reason"].as_str().unwrap_or(""))
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The table of spools (or a line saying there are none).
+fn print_spools(answer: &serde_json::Value, spools: &[serde_json::Value]) {
     if spools.is_empty() {
         println!(
             "no spools ({}); load one with `crispen load PRINTER --material PLA --colour white --grams 750`",
             answer["source"].as_str().unwrap_or("crispen")
         );
-        return Ok(ExitCode::SUCCESS);
+        return;
     }
     println!(
         "{:<8} {:<8} {:<10} {:>10} {:>8} {:<12} BRAND",
         "SPOOL", "MATERIAL", "COLOUR", "LEFT", "PRICE/KG", "ON"
     );
     for s in spools {
-        let text = |k: &str| s[k].as_str().unwrap_or("-").to_string();
+        // Names as the farm shows them everywhere: a control or bidi character stored
+        // before names were checked is escaped, never printed raw.
+        let text = |k: &str| crispen::names::printable(s[k].as_str().unwrap_or("-"));
         let left = s["remaining_g"]
             .as_f64()
             .map_or("unknown".into(), |g| format!("{g:.1} g"));
@@ -135,5 +154,4 @@ pub(crate) fn spools(a: SpoolsArgs) -> anyhow::Result<ExitCode> {
             text("brand")
         );
     }
-    Ok(ExitCode::SUCCESS)
 }

@@ -7,7 +7,7 @@
 //! `crispen status|clear|cancel|pause|resume|retry|release` are its clients.
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
-use super::job::{JobState, StoreError};
+use super::job::{DatabaseFailure, JobState, StoreError};
 use serde::{Deserialize, Serialize};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -59,6 +59,10 @@ pub struct Status {
     /// The farm shared through `[store]`; absent for a host with its own spool.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub farm: Option<FarmStatus>,
+    /// The job store's version these jobs are of: how many changes its task has published
+    /// since the daemon started (a printer's `looked_at` is one of these).
+    #[serde(default)]
+    pub version: u64,
 }
 
 /// The hosts of a shared farm, as this host sees them.
@@ -98,9 +102,13 @@ pub struct JobStatus {
     /// Ready, but no printer can take it now: why ("waiting for PETG black ...").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub waiting: Option<String>,
-    /// Filament one print of it needs, grams (at PLA's density until it is printed).
+    /// Filament one print of it needs (on the machine of its report), in grams at the
+    /// density of the material it asks, where crispen knows it ...
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub need_g: Option<f64>,
+    /// ... else in metres of filament.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub need_m: Option<f64>,
     /// What its prints took, grams, and their cost where the spool's price is known
     /// ([`Job::used`](super::job::Job::used)).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -123,6 +131,8 @@ pub(crate) enum CommandError {
     PrintEnded(String),
     #[error("job {id} is {state}; only active jobs can be cancelled")]
     NotActive { id: String, state: JobState },
+    #[error("{0} is running its eject sequence; wait until it ends (its bed then waits for you if it must)")]
+    Ejecting(String),
     #[error("job {0} is not held; it prints once ready")]
     NotHeld(String),
     #[error("job {id} has no parts to cancel one of: its G-code labels none{}", if *.prepared { "" } else { " yet (it is not prepared)" })]
@@ -133,8 +143,47 @@ pub(crate) enum CommandError {
         part: String,
         names: String,
     },
+    /// The job store could not write the change (a full disk, the farm database down):
+    /// what stays as it was, and what to do. The server's path is in the log, never in
+    /// the answer.
+    #[error("{undone}: {why}; {stays} (hint: {fix}, then {again})", fix = why.fix())]
+    NotWritten {
+        undone: String,
+        why: Unwritable,
+        stays: String,
+        again: String,
+    },
+    #[error("job {0}: its directory in the spool was removed; the job failed")]
+    DirectoryGone(String),
     #[error(transparent)]
     Store(#[from] StoreError),
+}
+
+/// Why a command's change could not be written.
+#[derive(Debug)]
+pub enum Unwritable {
+    /// The spool's disk (full, most often).
+    Spool(String),
+    /// The farm database could not be reached.
+    Database(String),
+}
+
+impl std::fmt::Display for Unwritable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Unwritable::Spool(cause) => write!(f, "the spool could not be written ({cause})"),
+            Unwritable::Database(cause) => write!(f, "{cause}"),
+        }
+    }
+}
+
+impl Unwritable {
+    fn fix(&self) -> &'static str {
+        match self {
+            Unwritable::Spool(_) => "free space on the spool's disk",
+            Unwritable::Database(_) => "check that PostgreSQL runs and [store] postgres reaches it",
+        }
+    }
 }
 
 impl CommandError {
@@ -150,16 +199,15 @@ impl CommandError {
                 ))
         )
     }
+
+    /// The change could not be written now (a full disk, the farm database down): the
+    /// same command may succeed later, unchanged.
+    pub(crate) fn is_unavailable(&self) -> bool {
+        matches!(self, CommandError::NotWritten { .. })
+    }
 }
 
-/// The control socket cannot be set up.
-#[derive(Debug, thiserror::Error)]
-#[error("control socket {socket}: {source}")]
-pub struct ControlError {
-    pub socket: PathBuf,
-    #[source]
-    pub source: std::io::Error,
-}
+pub use super::error::ControlError;
 
 /// Builds the status snapshot.
 pub(crate) fn status(farm: &Farm) -> Status {
@@ -183,7 +231,8 @@ pub(crate) fn status(farm: &Farm) -> Status {
     let offers = super::farm::offers(&config, &store, &names);
     let jobs = store
         .jobs()
-        .map(|j| JobStatus {
+        .map(|j| (j, first_need(j)))
+        .map(|(j, need)| JobStatus {
             id: j.id.clone(),
             file: j.file.clone(),
             folder: j.folder.clone(),
@@ -206,8 +255,10 @@ pub(crate) fn status(farm: &Farm) -> Status {
             updated: j.history.last().map(|h| h.1).unwrap_or(0.0),
             held: j.held(),
             asks: j.asks.clone(),
-            waiting: super::farm::waiting_reason(&config, j, &offers),
-            need_g: j.slice_report.as_ref().and_then(|r| r.filament_g),
+            // Worded here, at the edge: the routing's reasons are data.
+            waiting: super::farm::waiting(&config, j, &offers).map(|w| w.to_string()),
+            need_g: need.and_then(|n| n.g),
+            need_m: need.filter(|n| n.g.is_none()).map(|n| n.mm / 1000.0),
             used_g: j.used().grams,
             cost: j.used().cost,
             moved: j.slice_report.as_ref().and_then(|r| r.moved.clone()),
@@ -217,11 +268,24 @@ pub(crate) fn status(farm: &Farm) -> Status {
         printers,
         jobs,
         farm: farm_status,
+        version: store.version(),
     }
 }
 
-/// Carries out one command; the answer says what was done.
+/// What one print of `job` needs on the machine of its report (its first).
+fn first_need(job: &super::job::Job) -> Option<super::filament::Need> {
+    job.need_on(&job.slice_report.as_ref()?.machine)
+}
+
+/// Carries out one command; the answer says what was done, or what was not and why.
 pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
+    let asked = command.clone();
+    run(farm, command)
+        .await
+        .map_err(|e| for_clients(farm, &asked, e))
+}
+
+async fn run(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
     match command {
         Command::Clear { printer } => clear(farm, &printer).await,
         Command::Pause { printer } => send_print_command(farm, &printer, PrintCommand::Pause).await,
@@ -252,6 +316,102 @@ pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String
             Ok(super::spools::unload(farm, &printer).await?)
         }
         Command::AddSpool(new) => Ok(super::spools::add(farm, new).await?),
+    }
+}
+
+/// A command's error as its client is told it: a store error naming a file of the spool
+/// (the disk full, a job's directory removed), or the farm database unreachable, says
+/// what did not happen and what stays as it was; a file is named in the log (with the
+/// printer or job), not to the client. Every change the store could not write is one it
+/// did not make: a clear, a cancel, a retry, a release, a spool's change (a print's end
+/// and the bed gate it closes are kept and written later, but no command makes those).
+fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError {
+    let (printer, job) = match command {
+        Command::Cancel { job }
+        | Command::CancelPart { job, .. }
+        | Command::Retry { job }
+        | Command::Release { job } => ("-", job.as_str()),
+        Command::Clear { printer }
+        | Command::Pause { printer }
+        | Command::Resume { printer }
+        | Command::Load { printer, .. }
+        | Command::Unload { printer } => (printer.as_str(), "-"),
+        Command::AddSpool(_) => ("-", "-"),
+    };
+    // Why, and the spool's file it could not write (for the log only).
+    let (why, file) = match e {
+        CommandError::Store(StoreError::Io {
+            path,
+            action,
+            source,
+        }) => (Unwritable::Spool(source.to_string()), Some((path, action))),
+        CommandError::Store(StoreError::Database {
+            failure: DatabaseFailure::Outage,
+            message,
+        }) => (Unwritable::Database(message), None),
+        CommandError::Store(StoreError::DirectoryGone { id, dir }) => {
+            tracing::error!(job = %id, dir = %dir.display(), "the job's directory was removed; the job failed");
+            return CommandError::DirectoryGone(id);
+        }
+        e => return e,
+    };
+    let state_of = |id: &str| farm.store().get(id).map_or("unknown", |j| j.state.name());
+    // What was not done, what stays as it was, and what to do once it can be written.
+    let (undone, stays, again) = match command {
+        Command::Clear { printer } => (
+            format!("{printer}: the bed is not marked clear"),
+            "the printer takes no job until it is".to_string(),
+            format!("`crispen clear {printer}` again"),
+        ),
+        Command::Cancel { job } => (
+            format!("job {job} is not cancelled"),
+            format!("it stays {}", state_of(job)),
+            "cancel it again".to_string(),
+        ),
+        Command::CancelPart { job, part } => (
+            format!("job {job}: part {part:?} is not cancelled"),
+            format!("it prints on, {}", state_of(job)),
+            "cancel the part again".to_string(),
+        ),
+        Command::Retry { job } => (
+            format!("job {job} is not retried"),
+            format!("it stays {}", state_of(job)),
+            "retry it again".to_string(),
+        ),
+        Command::Release { job } => (
+            format!("job {job} is not released"),
+            format!("it stays {} and held", state_of(job)),
+            "release it again".to_string(),
+        ),
+        Command::Load { printer, .. } | Command::Unload { printer } => (
+            format!("{printer}: its spool is not changed"),
+            "it holds what it held".to_string(),
+            "load or unload it again".to_string(),
+        ),
+        Command::AddSpool(_) => (
+            "the spool is not added".to_string(),
+            "the farm's spools are as they were".to_string(),
+            "add it again".to_string(),
+        ),
+        Command::Pause { printer } | Command::Resume { printer } => (
+            format!("{printer}: not done"),
+            "nothing changed".to_string(),
+            "ask again".to_string(),
+        ),
+    };
+    match &file {
+        Some((path, action)) => {
+            tracing::error!(printer = %printer, job = %job, file = %path.display(), action, error = %why, "{undone}: the spool could not be written")
+        }
+        None => {
+            tracing::error!(printer = %printer, job = %job, error = %why, "{undone}: the farm database could not be reached")
+        }
+    }
+    CommandError::NotWritten {
+        undone,
+        why,
+        stays,
+        again,
     }
 }
 
@@ -336,10 +496,13 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
 
 async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
     known_printer(farm, printer)?;
-    if !farm.jobs().clear_gate(printer).await? {
-        return Ok(format!("{printer}: bed was already clear"));
+    match farm.jobs().clear_gate(printer).await {
+        Ok(true) => Ok(format!("{printer}: bed cleared; it may take the next job")),
+        Ok(false) => Ok(format!("{printer}: bed was already clear")),
+        // The one state a person's clear cannot end: the printer is moving.
+        Err(StoreError::BedChange { .. }) => Err(CommandError::Ejecting(printer.to_string())),
+        Err(e) => Err(e.into()),
     }
-    Ok(format!("{printer}: bed cleared; it may take the next job"))
 }
 
 /// Pauses, resumes or cancels a printer's print: here, or through the farm database by
@@ -538,4 +701,120 @@ pub(crate) fn bind(socket: &Path) -> Result<tokio::net::UnixListener, ControlErr
     let listener = tokio::net::UnixListener::bind(socket).map_err(io)?;
     std::fs::set_permissions(socket, std::fs::Permissions::from_mode(0o660)).map_err(io)?;
     Ok(listener)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::daemon::doubles::{farm_config, open_farm, ready_job};
+    use crate::daemon::farm::{printer_channels, PrinterLive};
+
+    /// Makes every later write of `file` fail, as a full disk would: its temporary name
+    /// is taken by a directory.
+    fn block(file: &Path) -> PathBuf {
+        let blocker = crate::fsutil::temp_path(file);
+        std::fs::create_dir_all(&blocker).unwrap();
+        blocker
+    }
+
+    /// A command whose change the store cannot write says what did not happen, what
+    /// stays as it was and what to do, never a server path (the log has it), with 503's
+    /// test; and it did not happen, then or once writing works again. `crispen clear`
+    /// once answered `spool /abs/.../.crispen-tmp-printers.json: write: No space left on
+    /// device`, and the clear took effect when space came back.
+    #[tokio::test]
+    async fn a_change_that_cannot_be_written_says_so_without_a_path() {
+        let tmp = tempfile::tempdir().unwrap();
+        let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+        let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
+        farm.add_printer("p1", handle);
+        farm.jobs().close_gate("p1", "0001-a").await.unwrap();
+        let job = ready_job(&farm, "b.stl", "G28\n").await;
+        let spool = farm.config().spool_dir.clone();
+        let blockers = [
+            block(&spool.join("printers.json")),
+            block(&spool.join("filament.json")),
+            block(&farm.store().job_dir(&job).join("job.json")),
+        ];
+        let new_spool = crate::daemon::spools::NewSpool {
+            material: "PLA".into(),
+            colour: "white".into(),
+            grams: 750.0,
+            ..Default::default()
+        };
+        let cases = [
+            (
+                Command::Clear {
+                    printer: "p1".into(),
+                },
+                "p1: the bed is not marked clear",
+                "the printer takes no job until it is",
+            ),
+            (
+                Command::Cancel { job: job.clone() },
+                &*format!("job {job} is not cancelled"),
+                "it stays ready",
+            ),
+            (
+                Command::Load {
+                    printer: "p1".into(),
+                    what: crate::daemon::spools::Load::New(new_spool.clone()),
+                },
+                "p1: its spool is not changed",
+                "it holds what it held",
+            ),
+            (
+                Command::AddSpool(new_spool),
+                "the spool is not added",
+                "the farm's spools are as they were",
+            ),
+        ];
+        for (command, undone, stays) in cases {
+            let e = execute(&farm, command.clone()).await.unwrap_err();
+            assert!(e.is_unavailable() && !e.is_not_found(), "{command:?}: {e}");
+            let text = e.to_string();
+            for said in [
+                undone,
+                stays,
+                "the spool could not be written",
+                "free space",
+            ] {
+                assert!(
+                    text.contains(said),
+                    "{command:?}: {text}\n(expected {said})"
+                );
+            }
+            assert!(
+                !text.contains(&spool.display().to_string())
+                    && !text.contains(crate::fsutil::TEMP_PREFIX)
+                    && !text.contains('/'),
+                "{command:?}: a path in {text}"
+            );
+        }
+        let nothing_changed = |farm: &Farm| {
+            let store = farm.store();
+            assert!(store.gate("p1").bed_not_cleared());
+            assert_eq!(store.get(&job).unwrap().state, JobState::Ready);
+            assert!(store.inventory().spools.is_empty());
+            assert_eq!(store.inventory().spool_on("p1"), None);
+        };
+        nothing_changed(&farm);
+        for blocker in blockers {
+            std::fs::remove_dir(blocker).unwrap();
+        }
+        assert_eq!(farm.jobs().write_pending().await.unwrap(), 0);
+        nothing_changed(&farm);
+        let gates: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(spool.join("printers.json")).unwrap()).unwrap();
+        assert_eq!(gates["p1"]["bed_not_cleared"], true);
+        let said = execute(
+            &farm,
+            Command::Clear {
+                printer: "p1".into(),
+            },
+        )
+        .await
+        .unwrap();
+        assert!(said.contains("bed cleared"), "{said}");
+    }
 }

@@ -45,6 +45,11 @@ pub enum PrinterState {
     /// that completes the handshake, which a halted firmware never answers).
     Halted,
     BedNotCleared,
+    /// Its eject sequence runs (or waits for the bed to cool): a short job of its own
+    /// that pushes the print off (see `daemon::bed`).
+    Ejecting,
+    /// Its camera checks the bed against the picture of it empty.
+    CheckingBed,
     Disconnected,
     Stopped,
 }
@@ -81,6 +86,10 @@ pub struct LiveProgress {
     /// supervisor's to fill in).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub parts_cancelled: Vec<super::job::PartCancel>,
+    /// Set while a stop waits for the printer's heat-up to end (its firmware reads nothing
+    /// until then): which heater, where it is and must get to, how long that may take.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_wait: Option<crate::marlin::stream::StopWait>,
 }
 
 /// A printer's hotend and bed (°C, current and target) as read now: from the job's
@@ -151,6 +160,17 @@ pub struct PrinterStatus {
     /// Its filament, spool and nozzle.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub holds: Option<super::filament::routing::Holding>,
+    /// Its bed between prints (cleared by a person, ejected, checked by the camera) and
+    /// the camera's last check of it.
+    #[serde(default)]
+    pub bed: super::bed::Bed,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_check: Option<super::bed::CheckRecord>,
+    /// The job store's version (the status's `version`) in which this printer last looked
+    /// for a job and took none (its bed waits to be cleared, or no ready job is for it):
+    /// every job ready by then was passed over by it. 0 until it first looks.
+    #[serde(default)]
+    pub looked_at: u64,
 }
 
 /// What the fleet keeps of a printer in the farm: the receiving ends of what its
@@ -158,6 +178,8 @@ pub struct PrinterStatus {
 #[derive(Clone)]
 pub(crate) struct PrinterHandle {
     pub live: watch::Receiver<PrinterLive>,
+    /// See [`PrinterStatus::looked_at`]; nobody waits on it.
+    pub looked: watch::Receiver<u64>,
     /// The control channel into the print in progress; None between prints.
     pub print: watch::Receiver<Option<mpsc::Sender<PrintCommand>>>,
 }
@@ -165,17 +187,24 @@ pub(crate) struct PrinterHandle {
 /// The owning ends of a printer's [`PrinterHandle`], held by its supervisor.
 pub(crate) struct PrinterOwner {
     pub live: watch::Sender<PrinterLive>,
+    pub looked: watch::Sender<u64>,
     pub print: watch::Sender<Option<mpsc::Sender<PrintCommand>>>,
 }
 
 /// A new printer's owner (for its supervisor) and handle (for the farm).
 pub(crate) fn printer_channels(initial: PrinterLive) -> (PrinterOwner, PrinterHandle) {
     let (live, live_rx) = watch::channel(initial);
+    let (looked, looked_rx) = watch::channel(0);
     let (print, print_rx) = watch::channel(None);
     (
-        PrinterOwner { live, print },
+        PrinterOwner {
+            live,
+            looked,
+            print,
+        },
         PrinterHandle {
             live: live_rx,
+            looked: looked_rx,
             print: print_rx,
         },
     )
@@ -421,6 +450,7 @@ impl Farm {
             .iter()
             .map(|(name, handle)| {
                 let live = handle.live.borrow().clone();
+                let gate = store.gate(name);
                 let holds = offers
                     .iter()
                     .find(|o| o.printer == name)
@@ -435,9 +465,12 @@ impl Farm {
                     progress: live.progress,
                     temperatures: live.temperatures,
                     detail: live.detail,
-                    bed_cleared: !store.gate(name).bed_not_cleared,
+                    bed_cleared: !gate.bed_not_cleared(),
+                    bed: gate.bed,
+                    last_check: gate.last_check,
                     host: host.clone(),
                     offline: false,
+                    looked_at: *handle.looked.borrow(),
                 }
             })
             .collect()
@@ -625,7 +658,8 @@ pub(crate) fn offers<'a>(
                     j.state == super::job::JobState::Printing
                         && j.printer.as_deref() == Some(p.name.as_str())
                 })
-                .filter_map(|j| j.need_mm())
+                .filter_map(|j| j.need_on(&p.machine.name))
+                .map(|n| n.mm)
                 .sum();
             offer(p, snapshot.inventory(), reserved_mm)
         })
@@ -644,6 +678,7 @@ pub(crate) fn offer<'a>(
     let unloaded = inventory.loaded.get(&printer.name) == Some(&super::filament::Loaded::Nothing);
     super::filament::routing::Offer {
         printer: &printer.name,
+        machine: &printer.machine.name,
         spool,
         filament: match (spool, unloaded) {
             (Some(s), _) => Some(&s.filament),
@@ -671,34 +706,50 @@ pub(crate) fn folder_rule<'a>(
     }
 }
 
-/// Why no printer can take a ready job now, in words; None when one can (or it is not
-/// ready, or no printer of this host serves it). `offers`: this host's printers' (see
-/// [`offers`]).
-pub(crate) fn waiting_reason(
+/// Why no printer can take a ready job now; None when one can (or it is not ready, or no
+/// printer of this host serves it). `offers`: this host's printers' (see [`offers`]).
+/// Every printer that serves it is named with why it cannot, its machine's refusal of
+/// the file included.
+pub(crate) fn waiting<'a>(
     config: &Config,
-    job: &super::job::Job,
-    offers: &[super::filament::routing::Offer],
-) -> Option<String> {
+    job: &'a super::job::Job,
+    offers: &[super::filament::routing::Offer<'a>],
+) -> Option<super::filament::routing::Waiting<'a>> {
+    use super::filament::routing::{refusal, Refusal, Waiting};
     if job.state != super::job::JobState::Ready || job.held() {
         return None;
     }
     let rule = folder_rule(config, job)?;
     let wanted = job.sidecar.as_ref().and_then(|s| s.printer.as_deref());
-    let serving: Vec<super::filament::routing::Offer> = offers
+    let serving: Vec<&super::filament::routing::Offer> = offers
         .iter()
         .filter(|o| rule.iter().any(|p| p == o.printer) && wanted.is_none_or(|w| w == o.printer))
-        .filter(|o| {
-            config
-                .printers
-                .iter()
-                .any(|c| c.name == o.printer && job.gcode_for(&c.machine.name).is_some())
-        })
-        .cloned()
         .collect();
     if serving.is_empty() {
         return None;
     }
-    super::filament::routing::waiting_reason(&job.asks, job.need_mm(), &serving)
+    let mut refused = Vec::new();
+    for o in serving {
+        let need = job.need_on(o.machine);
+        let why = match (job.gcode_for(o.machine), job.machines.get(o.machine)) {
+            (Some(_), _) => refusal(&job.asks, need, o),
+            (None, Some(super::job::ForMachine::Refused(reason))) => Some(Refusal::Machine {
+                machine: o.machine.to_string(),
+                reason: Some(reason.clone()),
+            }),
+            // Not prepared for its machine (its nozzle was not the one asked, or it came
+            // after): what it holds says why, if that does.
+            (None, _) => Some(refusal(&job.asks, need, o).unwrap_or(Refusal::Machine {
+                machine: o.machine.to_string(),
+                reason: None,
+            })),
+        };
+        refused.push((o.clone(), why?));
+    }
+    Some(Waiting {
+        asks: &job.asks,
+        refused,
+    })
 }
 
 #[cfg(test)]

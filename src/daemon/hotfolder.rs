@@ -7,8 +7,9 @@
 //! reported like models, for the pick-up to match with their model. Models and G-code
 //! sliced elsewhere (`*.gcode`, printed as it is) are taken alike; what a file is, is the
 //! preparation's to find out.
-//! A name with control or bidi characters is refused (set aside in [`SET_ASIDE_DIR`]),
-//! and names are shown through [`printable`] wherever they are printed.
+//! A name with control or bidi characters is refused (set aside in [`SET_ASIDE_DIR`]) by
+//! the check every operator-given name goes through ([`crate::names::problem`]), and
+//! names are shown through [`printable`] wherever they are printed.
 //! [`SettleTracker`] is the pure decision; [`watch`] drives it with `notify` events, a
 //! periodic rescan (in case an event was missed) and a short tick.
 
@@ -100,60 +101,8 @@ pub(crate) fn set_aside(path: &Path, folder: &Path) -> std::io::Result<PathBuf> 
     ))
 }
 
-/// Whether `c` changes the direction text is shown in (U+202E makes `gcode.exe` of
-/// `exe.edocg`): such a name looks like another file's.
-fn is_bidi_control(c: char) -> bool {
-    matches!(c, '\u{061C}' | '\u{200E}' | '\u{200F}' | '\u{202A}'..='\u{202E}' | '\u{2066}'..='\u{2069}')
-}
-
-/// Why a file name cannot be taken as it is, if it cannot: a control character (an ESC
-/// sequence would reach terminals through `crispen status` and the log) or a bidi
-/// control (the name would show as another).
-pub(crate) fn name_problem(name: &str) -> Option<&'static str> {
-    if name.chars().any(char::is_control) {
-        return Some("contains control characters");
-    }
-    if name.chars().any(is_bidi_control) {
-        return Some("contains characters that reverse the text's direction (bidi controls)");
-    }
-    None
-}
-
-/// `text` with control and bidi characters escaped (`\u{1b}`), whole: for what the
-/// daemon reports about a job (a failure's reason may quote a name) on a terminal.
-pub fn escaped(text: &str) -> String {
-    text.chars()
-        .map(|c| match c.is_control() || is_bidi_control(c) {
-            true => c.escape_unicode().to_string(),
-            false => c.to_string(),
-        })
-        .collect()
-}
-
-/// Longest name shown in a message, in characters; longer ones are cut in the middle.
-const SHOWN_NAME_CHARS: usize = 80;
-
-/// A name as messages, logs and `crispen status` show it: control and bidi characters
-/// escaped (`\u{1b}`), so a name cannot drive a terminal or reverse the text around it,
-/// and cut to [`SHOWN_NAME_CHARS`] with `…` in the middle.
-pub fn printable(name: &str) -> String {
-    let escaped: Vec<String> = name
-        .chars()
-        .map(|c| match c.is_control() || is_bidi_control(c) {
-            true => c.escape_unicode().to_string(),
-            false => c.to_string(),
-        })
-        .collect();
-    if escaped.len() <= SHOWN_NAME_CHARS {
-        return escaped.concat();
-    }
-    let half = SHOWN_NAME_CHARS / 2;
-    format!(
-        "{}…{}",
-        escaped[..half].concat(),
-        escaped[escaped.len() - half..].concat()
-    )
-}
+// A name is shown through the one function for every name an operator gives.
+pub use crate::names::{escaped, printable};
 
 /// Whether a file name is a model's sidecar (`model.stl.toml`). Sidecars are tracked too,
 /// so one that arrives after its model can still be matched with it.
@@ -349,6 +298,73 @@ impl SettleTracker {
         }
         done.sort();
         done
+    }
+}
+
+/// The first wait before a file whose pick-up failed is tried again.
+const RETRY_FIRST: Duration = Duration::from_secs(1);
+/// The longest wait: the wait doubles with each failure up to this.
+const RETRY_MOST: Duration = Duration::from_secs(60);
+
+/// Files whose pick-up failed (the spool's disk full): each is tried again after a wait
+/// that doubles with each failure, from [`RETRY_FIRST`] to [`RETRY_MOST`], and not before,
+/// however often the watcher offers it meanwhile (a failed pick-up that moves the file
+/// back, or reads it, makes events of its own). The pure decision, with time passed in.
+#[derive(Debug, Default)]
+pub(crate) struct Retries {
+    waiting: HashMap<PathBuf, Retry>,
+}
+
+#[derive(Debug)]
+struct Retry {
+    folder: PathBuf,
+    failures: u32,
+    at: Instant,
+}
+
+impl Retries {
+    /// Notes that picking up `path` (of `folder`) failed at `now`; the wait until it is
+    /// tried again.
+    pub(crate) fn failed(&mut self, path: &Path, folder: &Path, now: Instant) -> Duration {
+        let retry = self.waiting.entry(path.to_path_buf()).or_insert(Retry {
+            folder: folder.to_path_buf(),
+            failures: 0,
+            at: now,
+        });
+        retry.failures = retry.failures.saturating_add(1);
+        let wait = RETRY_FIRST
+            .saturating_mul(1 << (retry.failures - 1).min(16))
+            .min(RETRY_MOST);
+        retry.at = now + wait;
+        wait
+    }
+
+    /// `path` was picked up, or is gone: no more tries.
+    pub(crate) fn forget(&mut self, path: &Path) {
+        self.waiting.remove(path);
+    }
+
+    /// Whether `path` waits to be tried again after `now` (so an offer now is passed over).
+    pub(crate) fn waits(&self, path: &Path, now: Instant) -> bool {
+        self.waiting.get(path).is_some_and(|r| r.at > now)
+    }
+
+    /// When the next file is due, if any waits.
+    pub(crate) fn next_due(&self) -> Option<Instant> {
+        self.waiting.values().map(|r| r.at).min()
+    }
+
+    /// The files due at `now`, with their folders (they stay noted until they are
+    /// picked up or forgotten).
+    pub(crate) fn due(&self, now: Instant) -> Vec<(PathBuf, PathBuf)> {
+        let mut due: Vec<(PathBuf, PathBuf)> = self
+            .waiting
+            .iter()
+            .filter(|(_, r)| r.at <= now)
+            .map(|(p, r)| (p.clone(), r.folder.clone()))
+            .collect();
+        due.sort();
+        due
     }
 }
 
@@ -610,16 +626,46 @@ mod tests {
         assert_eq!(tracker.take_complete(later), [tmp.path().join("quiet.stl")]);
     }
 
+    /// A failed pick-up is tried again after 1, 2, 4 ... s, at most a minute apart, and
+    /// never while it waits; each file on its own, until it is picked up or gone.
     #[test]
-    fn names_are_printed_harmless_and_short() {
-        assert_eq!(printable("bust.stl"), "bust.stl");
-        assert_eq!(printable("a\u{1b}[31mb.stl"), "a\\u{1b}[31mb.stl");
-        assert_eq!(printable("x\u{202e}lts.exe"), "x\\u{202e}lts.exe");
-        let long = printable(&"é".repeat(4096));
-        assert_eq!(long.chars().count(), SHOWN_NAME_CHARS + 1);
-        assert_eq!(name_problem("a b.stl"), None);
-        assert!(name_problem("a\u{1b}.stl").is_some());
-        assert!(name_problem("a\u{2067}.stl").is_some());
+    fn failed_pickups_back_off_each_on_its_own() {
+        let t0 = Instant::now();
+        let (a, b, hot) = (
+            Path::new("/h/a.stl"),
+            Path::new("/h/b.stl"),
+            Path::new("/h"),
+        );
+        let mut retries = Retries::default();
+        assert_eq!(retries.next_due(), None);
+        assert!(!retries.waits(a, t0));
+        let mut now = t0;
+        let mut waits = Vec::new();
+        for _ in 0..10 {
+            let wait = retries.failed(a, hot, now);
+            waits.push(wait.as_secs());
+            assert!(retries.waits(a, now));
+            assert!(retries.waits(a, now + wait - Duration::from_millis(1)));
+            assert!(retries
+                .due(now + wait - Duration::from_millis(1))
+                .is_empty());
+            now += wait;
+            assert!(!retries.waits(a, now));
+            assert_eq!(retries.due(now), [(a.to_path_buf(), hot.to_path_buf())]);
+        }
+        assert_eq!(waits, [1, 2, 4, 8, 16, 32, 60, 60, 60, 60]);
+        // A second file starts at the first wait; the next due is the earlier of the two.
+        assert_eq!(retries.failed(b, hot, now), RETRY_FIRST);
+        assert_eq!(retries.next_due(), Some(now));
+        retries.forget(a);
+        assert_eq!(retries.next_due(), Some(now + RETRY_FIRST));
+        assert!(!retries.waits(a, now));
+        // Failing for ever stays bounded (no overflow).
+        for _ in 0..100 {
+            assert!(retries.failed(b, hot, now) <= RETRY_MOST);
+        }
+        retries.forget(b);
+        assert_eq!(retries.next_due(), None);
     }
 
     /// Two spellings of one name are one name; a name is found in a folder in either.

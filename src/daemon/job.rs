@@ -45,7 +45,7 @@ pub enum StoreError {
         "the job store has stopped (the daemon is shutting down, or the store failed; see the log)"
     )]
     Stopped,
-    #[error("the farm database: {message} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
+    #[error("{message} (hint: check that PostgreSQL runs and [store] postgres reaches it; outcomes are kept and written once it is back)")]
     Database {
         failure: DatabaseFailure,
         message: String,
@@ -58,6 +58,12 @@ pub enum StoreError {
     },
     #[error("{0}")]
     Filament(#[from] crate::daemon::filament::FilamentError),
+    #[error("printer {printer}'s bed is {from}; it cannot go to {to} now")]
+    BedChange {
+        printer: String,
+        from: &'static str,
+        to: &'static str,
+    },
     #[error("job {id} is {state}; {action} needs it to be {allowed}")]
     WrongState {
         id: String,
@@ -242,7 +248,13 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
         crate::daemon::config::parse_strength(s)
             .map_err(|m| format!("sidecar {}: key `strength`: {m}", path.display()))?;
     }
-    crate::daemon::config::check_asks(
+    if let Some(problem) = sidecar.printer.as_deref().and_then(crate::names::problem) {
+        return Err(format!(
+            "sidecar {}: key `printer`: {problem}",
+            path.display()
+        ));
+    }
+    crate::daemon::filament::routing::check_asks(
         sidecar.material.as_deref(),
         sidecar.colour.as_deref(),
         sidecar.nozzle_mm,
@@ -308,6 +320,14 @@ pub struct Job {
     /// `crate::marlin::plate`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub parts_cancelled: Vec<PartCancel>,
+    /// How its prints were cleared off the bed by machine: each eject and camera check, in
+    /// order (see `daemon::bed`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub clearing: Vec<super::bed::Clearing>,
+    /// Filament one print needs, per machine it has G-code for (the net push of that
+    /// G-code, as a print of it is booked), set when it is prepared.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub needs: std::collections::BTreeMap<String, crate::daemon::filament::Need>,
 }
 
 /// A part of a job's plate the operator cancelled: the rest of the plate prints on.
@@ -507,14 +527,21 @@ impl Job {
             asks: Default::default(),
             uses: Vec::new(),
             parts_cancelled: Vec::new(),
+            clearing: Vec::new(),
+            needs: Default::default(),
         }
     }
 }
 
 impl Job {
-    /// Filament one print of it needs, mm (as its G-code pushes it), when measured.
-    pub fn need_mm(&self) -> Option<f64> {
-        self.slice_report.as_ref().and_then(|r| r.filament_mm)
+    /// Filament one print of it needs on `machine`, when measured. A job prepared before
+    /// needs were kept per machine has its first machine's length, told in metres.
+    pub fn need_on(&self, machine: &str) -> Option<crate::daemon::filament::Need> {
+        if self.needs.is_empty() {
+            let mm = self.slice_report.as_ref()?.filament_mm?;
+            return Some(crate::daemon::filament::Need { mm, g: None });
+        }
+        self.needs.get(machine).copied()
     }
 
     /// What its prints took (each copy, and a print that failed or was cancelled as far
@@ -576,12 +603,70 @@ pub fn now_s() -> f64 {
         .unwrap_or(0.0)
 }
 
-/// Persisted per-printer state that must survive a restart.
+/// Persisted per-printer state that must survive a restart: its bed (see
+/// [`super::bed`]) and the last job printed on it.
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(from = "GateFile", into = "GateFile")]
 pub struct PrinterGate {
-    /// A print ended (or was interrupted) and nobody has confirmed the bed is clear.
-    pub bed_not_cleared: bool,
+    pub bed: super::bed::Bed,
     pub last_job: Option<String>,
+    /// The camera's last check of the bed, whatever it answered.
+    pub last_check: Option<super::bed::CheckRecord>,
+}
+
+impl PrinterGate {
+    /// A print ended (or was interrupted) and the bed is not known clear since: the
+    /// printer takes no job.
+    pub fn bed_not_cleared(&self) -> bool {
+        !self.bed.is_clear()
+    }
+
+    /// The gate after a print of `job` that leaves the bed `bed`.
+    pub(crate) fn after_print(&self, job: &str, bed: super::bed::Bed) -> PrinterGate {
+        PrinterGate {
+            bed,
+            last_job: Some(job.to_string()),
+            last_check: self.last_check.clone(),
+        }
+    }
+}
+
+/// A gate as written (`printers.json`, the farm database): `bed_not_cleared` as before
+/// beds had states, so a gate written before reads as waiting or clear.
+#[derive(Serialize, Deserialize)]
+struct GateFile {
+    bed_not_cleared: bool,
+    last_job: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    bed: Option<super::bed::Bed>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    last_check: Option<super::bed::CheckRecord>,
+}
+
+impl From<GateFile> for PrinterGate {
+    fn from(f: GateFile) -> PrinterGate {
+        let bed = match (f.bed, f.bed_not_cleared) {
+            (Some(bed), _) => bed,
+            (None, true) => super::bed::Bed::Waiting { why: None },
+            (None, false) => super::bed::Bed::default(),
+        };
+        PrinterGate {
+            bed,
+            last_job: f.last_job,
+            last_check: f.last_check,
+        }
+    }
+}
+
+impl From<PrinterGate> for GateFile {
+    fn from(g: PrinterGate) -> GateFile {
+        GateFile {
+            bed_not_cleared: g.bed_not_cleared(),
+            last_job: g.last_job,
+            bed: Some(g.bed),
+            last_check: g.last_check,
+        }
+    }
 }
 
 impl Job {
@@ -613,6 +698,33 @@ impl Job {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A sidecar's names (what it asks the printer to hold, the printer it asks for) are
+    /// refused with a control or bidi character, naming the sidecar and key, the name
+    /// shown escaped.
+    #[test]
+    fn a_sidecar_refuses_names_with_control_or_bidi_characters() {
+        let path = Path::new("hot/m.stl.toml");
+        for (text, key) in [
+            ("material = \"PLA\\u202E\"\n", "material"),
+            ("material = \"PLA\"\ncolour = \"re\\u001Bd\"\n", "colour"),
+            ("printer = \"p\\u2067\"\n", "printer"),
+            ("tags = [\"a\\u202Db\"]\n", "tags"),
+            ("material = \"PLA\\u0085\"\n", "material"),
+        ] {
+            let err = parse_sidecar(text.as_bytes(), path).unwrap_err();
+            assert!(
+                err.contains("hot/m.stl.toml") && err.contains(&format!("key `{key}`")),
+                "{text}: {err}"
+            );
+            assert!(
+                !err.contains(['\u{202e}', '\u{1b}', '\u{2067}', '\u{202d}', '\u{85}']),
+                "{err:?}"
+            );
+        }
+        let fine = "material = \"PLA+\"\ncolour = \"gris fonc\u{e9}\"\nprinter = \"a\"\n";
+        parse_sidecar(fine.as_bytes(), path).unwrap();
+    }
 
     /// Every pair of states, against a table written out by hand: a change to
     /// `can_go_to` must be a deliberate change here too.

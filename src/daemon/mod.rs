@@ -4,6 +4,8 @@
 //!
 //! - [`config`]: the TOML configuration, checked in two stages.
 //! - [`job`]: a job, its states and the one table of legal changes.
+//! - [`bed`]: a printer's bed between prints (cleared by a person, ejected by the printer,
+//!   checked by its camera) and its table of legal changes; [`eject`]: running the eject.
 //! - [`store`]: the task that owns the jobs (the embedded spool by default), its handle
 //!   and the snapshot readers glance at.
 //! - [`hotfolder`]: deciding when a dropped file is complete; [`pickup`] admits them.
@@ -19,6 +21,7 @@
 //! The `service` module wires them together with the HTTP listeners and supervises them; the
 //! daemon does not know of `http`.
 
+pub mod bed;
 pub mod command;
 pub mod config;
 pub mod control;
@@ -120,16 +123,51 @@ pub(crate) fn pickup(
     async move {
         // The watcher goes with the pick-up, however it ends.
         let _watcher = AbortOnDrop(tokio::spawn(hotfolder::watch(folders, settle, rescan, tx)));
-        let mut lone_sidecars = HashMap::new();
-        let orphan_after = settle * hotfolder::ORPHAN_SIDECAR_SETTLES;
-        while let Some((path, folder)) = rx.recv().await {
-            if farm.stopping() {
-                // Shutdown stops this task; until then nothing more is admitted.
-                return std::future::pending().await;
+        let mut at = Pickup {
+            lone_sidecars: HashMap::new(),
+            retries: hotfolder::Retries::default(),
+            orphan_after: settle * hotfolder::ORPHAN_SIDECAR_SETTLES,
+        };
+        loop {
+            let due = at.retries.next_due().map(tokio::time::Instant::from_std);
+            let offered = tokio::select! {
+                offered = rx.recv() => match offered {
+                    Some(offered) => vec![offered],
+                    None => break,
+                },
+                () = sleep_until(due) => at.retries.due(std::time::Instant::now()),
+            };
+            for (path, folder) in offered {
+                if farm.stopping() {
+                    // Shutdown stops this task; until then nothing more is admitted.
+                    return std::future::pending().await;
+                }
+                // Offered again by the events its failed pick-up made: it waits its turn.
+                if at.retries.waits(&path, std::time::Instant::now()) {
+                    continue;
+                }
+                pick_up(&farm, &path, &folder, &mut at).await;
             }
-            pick_up(&farm, &path, &folder, &mut lone_sidecars, orphan_after).await;
         }
     }
+}
+
+/// Sleeps until `deadline`; for ever without one.
+async fn sleep_until(deadline: Option<tokio::time::Instant>) {
+    match deadline {
+        Some(deadline) => tokio::time::sleep_until(deadline).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// What the pick-up keeps from one file to the next.
+struct Pickup {
+    /// When each sidecar without a model was first seen.
+    lone_sidecars: HashMap<PathBuf, std::time::Instant>,
+    /// The files whose pick-up failed, and when each is tried again.
+    retries: hotfolder::Retries,
+    /// How long a sidecar waits for its model before it is set aside.
+    orphan_after: Duration,
 }
 
 struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
@@ -145,20 +183,21 @@ impl<T> Drop for AbortOnDrop<T> {
 /// job if the job has not started preparing, and is otherwise reported and kept aside.
 /// A file whose name has control or bidi characters, and a sidecar whose model has not
 /// come within `orphan_after` (it is looked at again on each rescan), are set aside
-/// ([`hotfolder::set_aside`]) with a log line naming them. `lone_sidecars` holds when each
-/// sidecar without a model was first seen.
-async fn pick_up(
-    farm: &Farm,
-    path: &std::path::Path,
-    folder: &std::path::Path,
-    lone_sidecars: &mut HashMap<PathBuf, std::time::Instant>,
-    orphan_after: Duration,
-) {
+/// ([`hotfolder::set_aside`]) with a log line naming them. A model whose pick-up fails
+/// (the spool's disk full) stays in its folder and is tried again after a wait that grows
+/// with each failure ([`hotfolder::Retries`]).
+async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path, at: &mut Pickup) {
+    let Pickup {
+        lone_sidecars,
+        retries,
+        orphan_after,
+    } = at;
+    let orphan_after = *orphan_after;
     let raw_name = path.file_name().unwrap_or_default();
     let name = raw_name.to_string_lossy().into_owned();
     let problem = match raw_name.to_str() {
         None => Some("is not valid UTF-8"),
-        Some(name) => hotfolder::name_problem(name),
+        Some(name) => crate::names::problem(name),
     };
     if let Some(problem) = problem {
         set_aside(path, folder, &format!("its name {problem}"));
@@ -171,8 +210,19 @@ async fn pick_up(
             .map(|f| f.printers.clone())
             .unwrap_or_default();
         match farm.jobs().admit(path, folder, &printers).await {
-            Ok(job) => tracing::info!(job = %job.id, file = %path.display(), "picked up"),
-            Err(e) => tracing::error!(file = %path.display(), error = %e, "cannot pick up"),
+            Ok(job) => {
+                retries.forget(path);
+                tracing::info!(job = %job.id, file = %path.display(), "picked up")
+            }
+            // Taken away meanwhile: nothing to try again.
+            Err(e) if !path.exists() => {
+                retries.forget(path);
+                tracing::warn!(file = %path.display(), error = %e, "cannot pick up: the file is gone")
+            }
+            Err(e) => {
+                let wait = retries.failed(path, folder, std::time::Instant::now());
+                tracing::error!(file = %path.display(), error = %e, retry_in_s = wait.as_secs(), "cannot pick up; the file stays in its folder and is tried again");
+            }
         }
         return;
     }

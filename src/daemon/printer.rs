@@ -22,6 +22,7 @@
 //! ([`PrinterOwner`]); it follows the job store's snapshot (a job ready, its bed cleared),
 //! the config and the shared farm's database state, never a global wake-up.
 
+use super::bed::Bed;
 use super::farm::{
     Farm, FarmView, LiveProgress, PrintCommand, PrinterLive, PrinterOwner, PrinterState,
     PrinterTemperatures,
@@ -39,6 +40,8 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 use tracing::Instrument;
+
+mod eject;
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 
@@ -218,6 +221,9 @@ async fn supervise_inner(
         // The firmware's message while it is halted; a new connection has had its
         // handshake answered, which a halted firmware never does.
         let mut halted: Option<String> = None;
+        // The printer reset itself while idle: shown beside its other news until the
+        // next job starts (it begins with a fresh handshake).
+        let mut reset_between = false;
         loop {
             // Followed from before the look at the gate and the queue: a change while
             // looking is not missed.
@@ -244,32 +250,69 @@ async fn supervise_inner(
                 }
                 continue;
             }
+            // The store's version this look starts from: what it passes over below, it
+            // passed over in this version or a later one.
+            let version = farm.store().version();
             let gate = farm.store().gate(&sup.name);
-            if gate.bed_not_cleared {
-                sup.show(|p| {
-                    p.state = PrinterState::BedNotCleared;
-                    p.job = gate.last_job.clone();
-                });
-                match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
-                    Between::Lost => continue 'connect,
-                    Between::Halted(message) => halted = Some(message),
-                    Between::Changed => {}
+            match &gate.bed {
+                Bed::Clear { .. } if eject::check_first(farm, &sup.name, &gate.bed) => {
+                    eject::check_before_job(farm, &sup.name).await;
+                    continue;
                 }
-                continue;
+                Bed::Clear { .. } => {}
+                Bed::EjectDue { check } => {
+                    let end = eject::run(sup, link.as_mut(), *check, &mut follow).await;
+                    if end.lost {
+                        continue 'connect;
+                    }
+                    halted = end.halted;
+                    continue;
+                }
+                bed => {
+                    let (state, detail) = match bed {
+                        Bed::CheckDue { .. } => (PrinterState::CheckingBed, bed.describe()),
+                        // An eject a restart found under way is the store's to end (its
+                        // restart rules); another host's change may show it a moment.
+                        Bed::Ejecting { .. } => (PrinterState::Ejecting, bed.describe()),
+                        _ => (PrinterState::BedNotCleared, bed.describe()),
+                    };
+                    let detail = with_reset_note(reset_between, detail);
+                    sup.show(|p| {
+                        p.state = state;
+                        p.job = gate.last_job.clone();
+                        p.progress = None;
+                        p.detail = detail;
+                    });
+                    sup.owner.looked.send_replace(version);
+                    match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                        Between::Lost => continue 'connect,
+                        Between::Halted(message) => halted = Some(message),
+                        Between::Rebooted => reset_between = true,
+                        Between::Changed => {}
+                    }
+                    continue;
+                }
             }
             let Some(job_id) = claim_job(farm, &sup.name).await else {
                 sup.show(|p| {
+                    eject::forget_bed_shown(p);
+                    if reset_between {
+                        p.detail = with_reset_note(true, None);
+                    }
                     p.state = PrinterState::Idle;
                     p.job = None;
                     p.progress = None;
                 });
+                sup.owner.looked.send_replace(version);
                 match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
                     Between::Lost => continue 'connect,
                     Between::Halted(message) => halted = Some(message),
+                    Between::Rebooted => reset_between = true,
                     Between::Changed => {}
                 }
                 continue;
             };
+            reset_between = false;
             let span = tracing::info_span!("job", job = %job_id);
             let end = run_job(sup, &job_id, link.as_mut()).instrument(span).await;
             if end.lost {
@@ -347,11 +390,24 @@ enum Between {
     Lost,
     /// The firmware said it halted.
     Halted(String),
+    /// The printer reset itself (it said `start`).
+    Rebooted,
+}
+
+/// `detail` with the note of a reset between jobs in front, when there was one.
+fn with_reset_note(reset: bool, detail: Option<String>) -> Option<String> {
+    const NOTE: &str =
+        "the printer reset between jobs (it said `start`); the next job starts with a fresh handshake";
+    match (reset, detail) {
+        (false, detail) => detail,
+        (true, None) => Some(NOTE.into()),
+        (true, Some(d)) => Some(format!("{NOTE}; {d}")),
+    }
 }
 
 /// Waits for a change the printer may act on (a bed cleared, a job ready, a reload) while
-/// reading what the printer says meanwhile and showing its temperatures. A reset is noted
-/// in the printer's status until its next job starts.
+/// reading what the printer says meanwhile and showing its temperatures; a reset ends the
+/// wait, for the caller to note it until the next job starts.
 async fn between_jobs(
     sup: &Supervisor,
     link: &mut dyn PrinterLink,
@@ -372,14 +428,7 @@ async fn between_jobs(
             }
             IdleNews::Rebooted => {
                 tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
-                sup.show(|p| {
-                    p.detail = Some(
-                        "the printer reset between jobs (it said `start`); the next job starts \
-                         with a fresh handshake"
-                            .into(),
-                    )
-                });
-                return Between::Changed;
+                return Between::Rebooted;
             }
             IdleNews::Lost(why) => {
                 lost_between_jobs(sup, why);
@@ -439,6 +488,22 @@ fn lost_between_jobs(sup: &Supervisor, why: String) {
 /// the change are one request to the job store: supervisors run on several threads, and
 /// two of them must never take the same job.
 async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
+    let eligible = eligible(farm, printer)?;
+    match farm.jobs().claim(printer, eligible).await {
+        Ok(job) => job.map(|j| j.id),
+        Err(e) => {
+            tracing::error!(error = %e, "cannot claim a job");
+            None
+        }
+    }
+}
+
+/// Whether a job may go to `printer` now (a ready job is claimed if so); None when the
+/// printer is not in the config.
+fn eligible(
+    farm: &Farm,
+    printer: &str,
+) -> Option<impl Fn(&super::job::Job) -> bool + Send + 'static> {
     let config = farm.config();
     // A printer only receives G-code made for its machine.
     let machine = config
@@ -448,7 +513,7 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
         .map(|p| p.machine.name.clone())?;
     let name = printer.to_string();
     let snapshot = farm.store();
-    let eligible = move |j: &super::job::Job| {
+    Some(move |j: &super::job::Job| {
         let printer = name.as_str();
         let served =
             super::farm::folder_rule(&config, j).is_some_and(|r| r.iter().any(|p| p == printer));
@@ -467,18 +532,21 @@ async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
                 .find(|p| p.name == printer)
                 .is_some_and(|p| {
                     let offer = super::farm::offer(p, snapshot.inventory(), 0.0);
-                    super::filament::routing::refusal(&j.asks, j.need_mm(), &offer).is_none()
+                    super::filament::routing::refusal(&j.asks, j.need_on(&machine), &offer)
+                        .is_none()
                 })
         };
         served && wanted && !j.held() && j.gcode_for(&machine).is_some() && fits()
-    };
-    match farm.jobs().claim(printer, eligible).await {
-        Ok(job) => job.map(|j| j.id),
-        Err(e) => {
-            tracing::error!(error = %e, "cannot claim a job");
-            None
-        }
-    }
+    })
+}
+
+/// A ready job `printer` could take now, by the snapshot (no claim is made).
+pub(crate) fn job_waiting_for(farm: &Farm, printer: &str) -> bool {
+    eligible(farm, printer).is_some_and(|eligible| {
+        farm.store()
+            .jobs()
+            .any(|j| j.state == JobState::Ready && eligible(j))
+    })
 }
 
 /// How a job's run left its printer.
@@ -624,7 +692,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
                         }
                         None => {
                             p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
-                            p.detail = None;
+                            p.detail = live.stop_wait.as_ref().map(stop_wait_detail);
                         }
                     }
                     show_progress(p, live);
@@ -648,15 +716,13 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     sup.owner.print.send_replace(None);
 
     // A job that failed to load sent nothing: the bed is as it was, and nobody needs to
-    // clear it.
+    // clear it. A print that ended well may be ejected; any other waits for a person.
     let sent_nothing = matches!(
         outcome,
         Err(PrintFailure::Gcode(_) | PrintFailure::LoaderCrashed(_))
     );
     if !sent_nothing {
-        if let Err(e) = farm.jobs().close_gate(printer, job_id).await {
-            tracing::error!(error = %e, "cannot persist the bed gate");
-        }
+        eject::close_gate(farm, printer, job_id, outcome.is_ok() && !shutdown_stop).await;
     }
     let halted = match &outcome {
         Err(PrintFailure::Failed(PrintError::Fatal { message, .. })) => Some(message.clone()),
@@ -733,6 +799,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             PrinterState::BedNotCleared
         };
         p.detail = None;
+        p.progress = None;
     });
     JobEnd { lost, halted }
 }
@@ -784,6 +851,24 @@ fn waiting_detail(pause: &crate::marlin::stream::PauseInfo) -> String {
     text
 }
 
+/// What a stop that waits for the heat-up waits for, as the status shows it.
+fn stop_wait_detail(w: &crate::marlin::stream::StopWait) -> String {
+    let heater = if w.bed { "bed" } else { "hotend" };
+    let mut text = format!("stopping: the printer reads nothing until its {heater} is hot");
+    if let Some(command) = &w.command {
+        text += &format!(" (`{command}`)");
+    }
+    if let (Some(now), Some(target)) = (w.current_c, w.target_c) {
+        text += &format!(", {now:.0} of {target:.0} °C");
+    }
+    match w.remaining_s {
+        Some(s) => text += &format!("; heaters off in about {s:.0} s"),
+        None => text += "; heaters off once it is there",
+    }
+    text += &format!(" (at most {:.0} s)", w.limit_s);
+    text
+}
+
 /// A print's progress, and its temperatures once the printer has reported them (until
 /// then the last ones read before the job stand).
 fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
@@ -811,6 +896,7 @@ fn live_progress(
             .iter()
             .map(|c| plate.dropped(c))
             .collect(),
+        stop_wait: p.stop_wait.clone(),
         lines_acked: p.lines_acked,
         lines_total: p.lines_total,
         hotend_c: p.hotend.map(|t| t.current),
@@ -933,6 +1019,7 @@ impl PrinterLink for MarlinLink {
             let mut last_paused = false;
             let mut last_pause = None;
             let mut last_parts = 0;
+            let mut last_stop_wait = None;
             let result = loop {
                 tokio::select! {
                     result = &mut print => break result,
@@ -972,7 +1059,8 @@ impl PrinterLink for MarlinLink {
                             || heated != last_heated
                             || paused != last_paused
                             || p.pause != last_pause
-                            || p.cancelled_parts.len() != last_parts;
+                            || p.cancelled_parts.len() != last_parts
+                            || p.stop_wait != last_stop_wait;
                         if !due {
                             continue;
                         }
@@ -980,6 +1068,7 @@ impl PrinterLink for MarlinLink {
                         last_heated = heated;
                         last_paused = paused;
                         last_pause = p.pause.clone();
+                        last_stop_wait = p.stop_wait.clone();
                         last_parts = p.cancelled_parts.len();
                         progress.send_replace(live_progress(&p, heated, paused, &plate));
                     }

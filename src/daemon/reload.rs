@@ -98,8 +98,15 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("folder.tags", Policy::Live),
     ("folder.priority", Policy::Live),
     ("farm.spool_low_g", Policy::Live),
+    // How a bed is cleared: read when a print ends, and the sequence when it is sent.
+    ("printer.eject", Policy::Live),
+    ("printer.bed_clear", Policy::Live),
+    ("folder.bed_clear", Policy::Live),
     // The link to Spoolman is one task started with the daemon.
     ("spoolman", Policy::DaemonRestart),
+    // Read by each preparation.
+    ("enhancement.reference_height_mm", Policy::Live),
+    ("enhancement.observe_timeout_s", Policy::Live),
 ];
 
 /// Keys of the file (and every key under them) whose change is seen as the change of a
@@ -117,6 +124,7 @@ pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     ("notify", "notify"),
     ("camera", "camera"),
     ("printer.camera", "printer.camera"),
+    ("printer.eject", "printer.eject"),
     // The default filament is the material and colour together.
     ("printer.colour", "printer.material"),
     ("spoolman", "spoolman"),
@@ -156,6 +164,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         notify,
         camera,
         spoolman,
+        enhancement,
         // Said again at every reload; not a setting.
         warnings: _,
     } = new;
@@ -181,6 +190,18 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
     differs("farm.host", *host != old.farm.host);
     differs("farm.spool_low_g", *spool_low_g != old.farm.spool_low_g);
     differs("spoolman", *spoolman != old.spoolman);
+    let super::prepare::steps::observed::ObserveSettings {
+        reference_height_mm,
+        timeout,
+    } = enhancement;
+    differs(
+        "enhancement.reference_height_mm",
+        *reference_height_mm != old.enhancement.reference_height_mm,
+    );
+    differs(
+        "enhancement.observe_timeout_s",
+        *timeout != old.enhancement.timeout,
+    );
     let super::config::HistoryConfig {
         live_for,
         live_jobs,
@@ -262,6 +283,8 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             filament,
             hardened,
             tags,
+            eject,
+            bed_clear,
         } = new;
         let simulated = |p: &super::config::PrinterPort| {
             matches!(p, super::config::PrinterPort::Simulated { .. })
@@ -284,6 +307,8 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("printer.material", *filament != old.filament);
         differs("printer.nozzle", *hardened != old.hardened);
         differs("printer.tags", *tags != old.tags);
+        differs("printer.eject", *eject != old.eject);
+        differs("printer.bed_clear", *bed_clear != old.bed_clear);
     }
     differs(
         "printer",
@@ -309,6 +334,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             settings,
             asks,
             per_plate,
+            bed_clear,
         } = new;
         // Compared by their debug form: these types carry no equality of their own.
         let same =
@@ -332,6 +358,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("folder.nozzle_mm", asks.nozzle_mm != old.asks.nozzle_mm);
         differs("folder.tags", asks.tags != old.asks.tags);
         differs("folder.priority", asks.priority != old.asks.priority);
+        differs("folder.bed_clear", *bed_clear != old.bed_clear);
     }
     differs(
         "folder",
@@ -435,6 +462,7 @@ mod tests {
         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n\
         [[machine]]\nname = \"wide\"\nbased_on = \"marlin-175\"\nbed_mm = [300, 300, 300]\n\
         [[printer]]\nname = \"a\"\nfirmware = \"marlin2\"\nbaud = 115200\n[printer.simulate]\ntime_scale = 0.0\n\
+        [printer.eject]\ngcode = \"G1 Z20 F600\"\nmax_height_mm = 30\n\
         [[printer]]\nname = \"b\"\nport = \"/dev/ttyUSB0\"\nfirmware = \"marlin2\"\n\
         [[folder]]\npath = \"hot\"\nheight_mm = 20\nprinters = [\"a\"]\n";
 
@@ -638,9 +666,34 @@ mod tests {
             "rescan_s = 10\nspool_low_g = 50",
         ),
         (
+            "printer.eject",
+            "gcode = \"G1 Z20 F600\"",
+            "gcode = \"G1 Z25 F600\"",
+        ),
+        (
+            "printer.bed_clear",
+            "baud = 115200\n",
+            "baud = 115200\nbed_clear = \"eject\"\n",
+        ),
+        (
+            "folder.bed_clear",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nbed_clear = \"eject\"\n",
+        ),
+        (
             "spoolman",
             "[history]\n",
             "[spoolman]\nurl = \"http://127.0.0.1:7912\"\n[history]\n",
+        ),
+        (
+            "enhancement.reference_height_mm",
+            "[history]\n",
+            "[enhancement]\nreference_height_mm = 100\n[history]\n",
+        ),
+        (
+            "enhancement.observe_timeout_s",
+            "[history]\n",
+            "[enhancement]\nobserve_timeout_s = 60\n[history]\n",
         ),
     ];
 

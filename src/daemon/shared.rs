@@ -112,6 +112,9 @@ async fn tick(
         status.host = Some(p.host);
         status.offline = p.offline;
         status.bed_cleared = !p.bed_not_cleared;
+        let gate = farm.store().gate(&p.name);
+        status.bed = gate.bed;
+        status.last_check = gate.last_check;
         view.printers.push(status);
     }
     view.hosts = hosts;

@@ -50,6 +50,12 @@ pub enum Load {
 /// is the farm's). Refused while the printer prints: its print's filament is booked to
 /// the spool it started with.
 pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<String, StoreError> {
+    if let Load::Spool(id) = &what {
+        if let Some(problem) = crate::names::problem(id) {
+            let id = crate::names::printable(id);
+            return Err(FilamentError::Invalid(format!("spool \"{id}\": {problem}")).into());
+        }
+    }
     let diameter = machine_filament(farm, printer)?;
     check_not_printing(farm, printer)?;
     let spoolman = farm.config().spoolman.is_some();

@@ -108,6 +108,12 @@ impl Odometer {
         let (gcode, firmware, lines) = (self.gcode.clone(), self.firmware, self.lines_acked);
         let cancels = self.cancels.clone();
         let mm = tokio::task::spawn_blocking(move || {
+            if cancels.is_empty() {
+                // The commands as the host loaded them, read as they stream by: a job of
+                // millions of lines is not held a second time for this.
+                return crate::marlin::gcode::pushed_mm(&gcode, firmware, Some(lines))
+                    .map(|(mm, _)| mm);
+            }
             let program = crate::marlin::gcode::GcodeProgram::load_for(&gcode, firmware)?;
             let cancels: Vec<(u16, usize)> = program
                 .marks()

@@ -5,13 +5,15 @@
 use serde::{Deserialize, Serialize};
 
 /// How strongly to enhance: from the height table, not at all (models whose surface
-/// detail reads as defects, like the paper's Igea), or a fixed λ2.
+/// detail reads as defects, like the paper's Igea), a fixed λ2, or as the observer
+/// chooses among a few (`crate::observe`, the daemon's preparation).
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(rename_all = "lowercase")]
 pub enum Strength {
     Auto,
     Off,
     Lambda2(f64),
+    Observed,
 }
 
 /// Height → λ2. `points` are (printed height in mm, λ2) in ascending height; below the
@@ -94,12 +96,16 @@ impl StrengthTable {
     }
 
     /// λ2 for `strength` at an optional printed height; `None` = unmodified. `Auto`
-    /// without a height cannot choose and leaves the model unmodified.
+    /// without a height cannot choose and leaves the model unmodified. `Observed` is
+    /// settled by the preparation before it enhances; here, where the observer has not
+    /// chosen, it is the table's, the default it falls back to.
     pub(crate) fn resolve(&self, strength: Strength, height_mm: Option<f64>) -> Option<f64> {
         match strength {
             Strength::Off => None,
             Strength::Lambda2(l) => Some(l),
-            Strength::Auto => height_mm.and_then(|h| self.lambda2_for_height(h)),
+            Strength::Auto | Strength::Observed => {
+                height_mm.and_then(|h| self.lambda2_for_height(h))
+            }
         }
     }
 }

@@ -58,6 +58,8 @@ pub(crate) struct StatusView {
     /// The hosts of a farm shared through `[store]`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub farm: Option<control::FarmStatus>,
+    /// See [`control::Status::version`].
+    pub version: u64,
 }
 
 /// The whole farm: printers, jobs (newest last) and hot folders.
@@ -88,6 +90,7 @@ pub(crate) fn snapshot(farm: &Farm) -> StatusView {
         jobs,
         folders,
         farm: status.farm,
+        version: status.version,
     };
     for job in &view.jobs {
         let waiting = matches!(
@@ -218,8 +221,17 @@ pub(crate) async fn job(
         Ok(None) => Err(ApiError::not_found(
             "no such job (hint: GET /api/v1/jobs lists them, GET /api/v1/history the finished ones)",
         )),
-        Err(e) => Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())),
+        Err(e) => Err(store_unavailable(&state.farm, e)),
     }
+}
+
+/// The job store could not answer a reading (its history unreadable, the farm database
+/// down): 503, with the spool's files named relative to it (the log has the whole path).
+fn store_unavailable(farm: &Farm, e: crate::daemon::job::StoreError) -> ApiError {
+    tracing::error!(error = %e, "http: the job store could not answer");
+    let spool = &farm.config().spool_dir;
+    let message = crate::daemon::store::spool_relative(&e.to_string(), spool);
+    ApiError::new(StatusCode::SERVICE_UNAVAILABLE, message)
 }
 
 /// `GET /api/v1/history?limit=N&before=SEQ` and the filters: `printer`, `folder` (name or
@@ -287,9 +299,7 @@ pub(crate) async fn history(
 ) -> Result<Response, ApiError> {
     let query = query.map_err(bad_query)?.0;
     let filter = query.filter()?;
-    let unavailable = |e: crate::daemon::job::StoreError| {
-        ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
-    };
+    let unavailable = |e| store_unavailable(&state.farm, e);
     let csv = match query.format.as_deref() {
         None | Some("json") => false,
         Some("csv") => true,
@@ -402,7 +412,7 @@ pub(crate) async fn stats(
         .stats(period)
         .await
         .map(Json)
-        .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
+        .map_err(|e| store_unavailable(&state.farm, e))
 }
 
 /// One of a job's pictures. Only the fixed names of [`PICTURES`] are served, from the
@@ -463,17 +473,25 @@ pub(super) fn no_printer(farm: &Farm, name: &str) -> ApiError {
     ))
 }
 
-/// `POST /api/v1/printers/{name}/clear|pause|resume|unload` (`load`: see `spools`).
+/// `POST /api/v1/printers/{name}/clear|pause|resume|unload` (`load`: see `spools`);
+/// `clear?reference=true` also takes the camera's picture as the empty bed's reference.
 pub(crate) async fn printer_action(
     State(state): State<AppState>,
     Path((name, action)): Path<(String, String)>,
+    query: Result<axum::extract::Query<ActionQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     if !control::printer_names(&state.farm).contains(&name) {
         return Err(no_printer(&state.farm, &name));
     }
+    let query = query.map_err(bad_query)?.0;
+    if query.reference.is_some() && action != "clear" {
+        return Err(ApiError::bad_request(
+            "`reference` goes with `clear` only".to_string(),
+        ));
+    }
     let printer = name;
     let command = match action.as_str() {
-        "clear" => Command::Clear { printer },
+        "clear" => return clear(&state, printer, query.reference == Some(true)).await,
         "pause" => Command::Pause { printer },
         "resume" => Command::Resume { printer },
         "unload" => Command::Unload { printer },
@@ -485,6 +503,52 @@ pub(crate) async fn printer_action(
         }
     };
     act(&state, command).await
+}
+
+/// The query of a printer action: `reference=true` with `clear`.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ActionQuery {
+    pub reference: Option<bool>,
+}
+
+/// A person says the printer's bed is clear. With a camera, its picture now becomes the
+/// reference of the bed check (before the bed opens to a job, so the picture is of the
+/// empty bed) when there is none yet or `reference` asks for a new one.
+async fn clear(
+    state: &AppState,
+    printer: String,
+    reference: bool,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    use crate::camera::bedwatch;
+    let spool = state.farm.config().spool_dir.clone();
+    let mut note = String::new();
+    let local = state.cameras.has(&printer);
+    if local && (reference || !bedwatch::reference_path(&spool, &printer).exists()) {
+        let (cameras, name) = (state.cameras.clone(), printer.clone());
+        let taken =
+            tokio::task::spawn_blocking(move || bedwatch::take_reference(&cameras, &spool, &name))
+                .await
+                .map_err(ApiError::from)?;
+        note = match taken {
+            Ok(()) => "; the camera's picture of it is the reference of the bed check now".into(),
+            Err(e) if reference => {
+                return Err(ApiError::conflict(format!(
+                    "{printer}: no reference taken: {e}; the bed was not marked clear"
+                )))
+            }
+            Err(e) => format!("; no reference of the empty bed taken: {e}"),
+        };
+    } else if reference {
+        return Err(ApiError::conflict(format!(
+            "{printer} has no camera on this host: no reference can be taken here"
+        )));
+    }
+    let mut answer = act(state, Command::Clear { printer }).await?;
+    if let Some(message) = answer.0.get_mut("message") {
+        *message = serde_json::Value::String(format!("{}{note}", message.as_str().unwrap_or("")));
+    }
+    Ok(answer)
 }
 
 /// `POST /api/v1/jobs/{id}/cancel|retry|release`.
@@ -521,6 +585,10 @@ pub(super) async fn act(
     match control::execute(&state.farm, command).await {
         Ok(message) => Ok(Json(serde_json::json!({ "ok": true, "message": message }))),
         Err(e) if e.is_not_found() => Err(ApiError::not_found(e.to_string())),
+        Err(e) if e.is_unavailable() => Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            e.to_string(),
+        )),
         Err(e) => Err(ApiError::conflict(e.to_string())),
     }
 }

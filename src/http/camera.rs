@@ -40,7 +40,7 @@ async fn latest(state: &AppState, printer: &str) -> Result<Picture, ApiError> {
         )));
     }
     let (cameras, name) = (state.cameras.clone(), printer.to_string());
-    let made = tokio::task::spawn_blocking(move || cameras.picture(&name, false))
+    let made = tokio::task::spawn_blocking(move || cameras.picture(&name))
         .await
         .map_err(ApiError::from)?;
     match made {
@@ -172,11 +172,21 @@ pub(crate) async fn job_file(
 ) -> Result<Response, ApiError> {
     let root = state.cameras.root().to_path_buf();
     let wanted = (id.clone(), file.clone());
+    let checks: Vec<String> = state
+        .farm
+        .store()
+        .get(&id)
+        .map(|j| check_pictures(&j.clearing))
+        .unwrap_or_default();
     let found = tokio::task::spawn_blocking(move || {
         let (id, file) = wanted;
-        let m = manifest(&root, &id)?;
-        let listed = m.snapshots.iter().any(|s| s.file == file)
-            || m.timelapse.as_ref().is_some_and(|t| t.file == file);
+        // A bed check's marked picture is listed in the job's record, not its manifest.
+        let checked = checks.iter().any(|c| *c == format!("camera/{id}/{file}"));
+        let listed = checked
+            || manifest(&root, &id).is_some_and(|m| {
+                m.snapshots.iter().any(|s| s.file == file)
+                    || m.timelapse.as_ref().is_some_and(|t| t.file == file)
+            });
         if !listed {
             return None;
         }
@@ -209,4 +219,77 @@ pub(crate) async fn job_file(
         Body::from(bytes),
     )
         .into_response())
+}
+
+/// The marked pictures of a job's bed checks, relative to the spool.
+fn check_pictures(steps: &[crate::daemon::bed::Clearing]) -> Vec<String> {
+    steps
+        .iter()
+        .filter_map(|s| match s {
+            crate::daemon::bed::Clearing::Check { check, .. } => check.picture.clone(),
+            crate::daemon::bed::Clearing::Eject { .. } => None,
+        })
+        .collect()
+}
+
+/// `GET /api/v1/printers/{name}/bed/{file}`: the picture of the printer's empty bed
+/// (`reference.jpg`), or the marked picture of its camera's last check (as its bed names
+/// it); no request can name another file.
+pub(crate) async fn bed_file(
+    State(state): State<AppState>,
+    Path((name, file)): Path<(String, String)>,
+) -> Result<Response, ApiError> {
+    let spool = state.farm.config().spool_dir.clone();
+    let gate = state.farm.store().gate(&name);
+    let named = |picture: &Option<String>| {
+        picture.clone().filter(|p| {
+            std::path::Path::new(p)
+                .file_name()
+                .is_some_and(|n| n.to_string_lossy() == file)
+        })
+    };
+    let relative = if file == "reference.jpg" {
+        Some(format!("bed/{name}/reference.jpg"))
+    } else {
+        let waiting = match &gate.bed {
+            crate::daemon::bed::Bed::Waiting {
+                why: Some(crate::daemon::bed::Why::NotClear { check }),
+            } => named(&check.picture),
+            _ => None,
+        };
+        waiting.or_else(|| gate.last_check.as_ref().and_then(|c| named(&c.picture)))
+    };
+    let known = control_names(&state.farm).contains(&name);
+    let found = match relative.filter(|_| known) {
+        None => None,
+        Some(relative) => tokio::task::spawn_blocking(move || {
+            let path = spool.join(relative);
+            let meta = std::fs::symlink_metadata(&path).ok()?;
+            if !meta.is_file() || meta.len() > 64 << 20 {
+                return None;
+            }
+            std::fs::read(&path).ok()
+        })
+        .await
+        .map_err(ApiError::from)?,
+    };
+    let bytes = found.ok_or_else(|| {
+        ApiError::not_found(format!(
+            "printer {} has no bed picture {} (its reference is reference.jpg; its last check's picture is named in GET /api/v1/printers/{{name}})",
+            quoted(&name),
+            quoted(&file)
+        ))
+    })?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/jpeg"),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        Body::from(bytes),
+    )
+        .into_response())
+}
+
+fn control_names(farm: &crate::daemon::farm::Farm) -> Vec<String> {
+    crate::daemon::control::printer_names(farm)
 }

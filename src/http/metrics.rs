@@ -12,7 +12,7 @@ use axum::http::header;
 use axum::response::IntoResponse;
 use std::fmt::Write;
 
-const PRINTER_STATES: [PrinterState; 10] = [
+const PRINTER_STATES: [PrinterState; 12] = [
     PrinterState::Connecting,
     PrinterState::Idle,
     PrinterState::WaitingToHeat,
@@ -21,6 +21,8 @@ const PRINTER_STATES: [PrinterState; 10] = [
     PrinterState::WaitingForOperator,
     PrinterState::Halted,
     PrinterState::BedNotCleared,
+    PrinterState::Ejecting,
+    PrinterState::CheckingBed,
     PrinterState::Disconnected,
     PrinterState::Stopped,
 ];
@@ -375,9 +377,47 @@ pub(crate) fn render(farm: &crate::daemon::farm::Farm) -> String {
             out.sample(name, &[("printer", printer)], read(t));
         }
     }
+    beds(&mut out, &store, tally.keys());
     notifications(&mut out);
     octoprint_control(&mut out);
     out.0
+}
+
+/// The beds' ejects and camera checks since the daemon started, by printer and result
+/// (counted by the job store's task as it changes the beds), every printer's series from
+/// the start.
+fn beds<'a>(
+    out: &mut Out,
+    store: &crate::daemon::store::Snapshot,
+    printers: impl Iterator<Item = &'a String> + Clone,
+) {
+    use crate::daemon::bed::result;
+    let counts = store.bed_counts();
+    for (name, kind, results, help) in [
+        (
+            "crispen_ejects_total",
+            "ejects",
+            &result::EJECTS[..],
+            "Eject sequences run since the daemon started, by printer and result (done, failed).",
+        ),
+        (
+            "crispen_bed_checks_total",
+            "checks",
+            &result::CHECKS[..],
+            "Camera checks of a bed since the daemon started, by printer and result (clear, not_clear, unavailable: the camera could not check).",
+        ),
+    ] {
+        out.family(name, "counter", help);
+        for printer in printers.clone() {
+            for &r in results {
+                let n = counts
+                    .get(&(printer.clone(), kind, r))
+                    .copied()
+                    .unwrap_or(0);
+                out.sample(name, &[("printer", printer), ("result", r)], n as f64);
+            }
+        }
+    }
 }
 
 /// Control actions asked through an OctoPrint instance (`POST api/job`): by hot folder,

@@ -87,6 +87,7 @@ pub(crate) fn router(state: AppState) -> Router {
         .route("/api/v1/jobs/{id}/camera/{file}", get(camera::job_file))
         .route("/api/v1/cameras", get(camera::cameras))
         .route("/api/v1/printers/{name}/snapshot", get(camera::snapshot))
+        .route("/api/v1/printers/{name}/bed/{file}", get(camera::bed_file))
         .route("/api/v1/folders", get(api::folders))
         .route("/metrics", get(metrics::metrics))
         // The application keys, as the dashboard and `crispen keys` manage them.

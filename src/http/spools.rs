@@ -1,5 +1,5 @@
 //! The farm's spools over the API: `GET /api/v1/spools` lists them (with the printer each
-//! is on and what is left), `POST /api/v1/spools?material=..&colour=..&grams=..` adds one of
+//! is on and what is left, and Spoolman's spools set aside with why), `POST /api/v1/spools?material=..&colour=..&grams=..` adds one of
 //! the farm's own, `POST /api/v1/printers/{name}/load?spool=s3` (or a new spool's fields)
 //! loads one; `unload` is a printer action. The changes are the farm's own commands.
 
@@ -33,6 +33,17 @@ pub(crate) struct SpoolsView {
     /// `spoolman` (its spools, read every `[spoolman] poll_s`) or `crispen` (its own).
     pub source: &'static str,
     pub spools: Vec<SpoolView>,
+    /// Spoolman's spools not taken at its last read, each with why (`id`: `sm<id>`,
+    /// absent for an item that is not even a spool).
+    pub set_aside: Vec<SetAsideView>,
+}
+
+/// A spool of Spoolman's the farm did not take.
+#[derive(Debug, Serialize)]
+pub(crate) struct SetAsideView {
+    pub id: Option<String>,
+    pub spoolman: Option<u64>,
+    pub reason: String,
 }
 
 #[derive(Debug, Deserialize)]
@@ -79,7 +90,20 @@ pub(crate) async fn list(
     } else {
         "crispen"
     };
-    Ok(Json(SpoolsView { source, spools }))
+    let set_aside = inventory
+        .set_aside
+        .iter()
+        .map(|a| SetAsideView {
+            id: a.id(),
+            spoolman: a.spoolman,
+            reason: a.reason.clone(),
+        })
+        .collect();
+    Ok(Json(SpoolsView {
+        source,
+        spools,
+        set_aside,
+    }))
 }
 
 /// A new spool's fields, or an existing spool's id (`load` only).

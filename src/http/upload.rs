@@ -97,7 +97,7 @@ pub fn check_name(name: &str) -> Result<Upload, ApiError> {
     if name.contains(['/', '\\', '\0']) || name == "." || name == ".." {
         return Err(bad("must be a plain file name, without folders"));
     }
-    if let Some(problem) = crate::daemon::hotfolder::name_problem(name) {
+    if let Some(problem) = crate::names::problem(name) {
         return Err(bad(&format!("{problem}; rename the file")));
     }
     let mut components = Path::new(name).components();

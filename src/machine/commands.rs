@@ -101,7 +101,7 @@ pub(crate) const MARLIN2: &[(&str, Class)] = &[
     ("M25", Intercepted),
     ("M26", Refused(SD_FILE)),
     ("M27", Allowed),
-    ("M28", Guarded("writes a file to the printer's SD card")),
+    ("M28", Refused("makes the printer write every later line to its SD card instead of running it (Marlin queue.cpp:654-679, Ultimaker2Marlin Marlin_main.cpp:492-503), until an M29")),
     ("M29", Guarded("ends writing a file to the SD card")),
     ("M30", Guarded("deletes a file from the printer's SD card")),
     ("M31", Allowed),
@@ -131,7 +131,7 @@ pub(crate) const MARLIN2: &[(&str, Class)] = &[
     ("M105", Allowed),
     ("M106", Allowed),
     ("M107", Allowed),
-    ("M108", Allowed),
+    ("M108", Refused("breaks a heat wait: a Marlin 2 built with EMERGENCY_PARSER acts on it as soon as it arrives (feature/e_parser.h), ending the file's own M109/M190 before the lines sent ahead of it")),
     ("M109", Checked),
     ("M110", Refused("sets the line number, which belongs to the host: the next line would be refused and resent")),
     ("M111", Refused("changes the firmware's debug flags, and with them what it prints and whether it heats or extrudes at all (dry run)")),
@@ -303,7 +303,7 @@ pub(crate) const MARLIN2: &[(&str, Class)] = &[
     ("M994", Guarded("restores the SPI flash from the SD card")),
     ("M995", Guarded("calibrates the touch screen")),
     ("M997", Guarded("starts a firmware update")),
-    ("M999", Guarded("restarts a halted printer")),
+    ("M999", Refused("resets the printer's line count (Ultimaker2Marlin Marlin_main.cpp:2329-2333) or asks the host to resend from its last line (Marlin M999.cpp:44), which belongs to the host")),
     ("T0", Checked),
 ];
 

@@ -11,7 +11,11 @@
 //! define: this module builds on `marlin`, never the other way round, and `slice` builds
 //! on this one.
 
+mod code;
 pub(crate) mod commands;
+pub mod eject;
+
+use code::read_code;
 
 use crate::marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};
@@ -54,6 +58,9 @@ pub struct Machine {
     pub extruders: u8,
     /// Commands the G-code policy refuses that this machine allows in files (`M500`).
     pub allow: Vec<String>,
+    /// How its printers push a finished print off the bed (`[machine.eject]`), if they can.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eject: Option<eject::Eject>,
 }
 
 /// Room kept free around the model on each side, for the skirt the profiles print.
@@ -149,6 +156,7 @@ impl Builtin {
             max_bed_c: self.max_bed_c,
             extruders: 1,
             allow: Vec::new(),
+            eject: None,
         }
     }
 }
@@ -250,8 +258,6 @@ pub(crate) const FILAMENT_MM: std::ops::RangeInclusive<f64> = 1.0..=3.5;
 pub(crate) const HOTEND_C: std::ops::RangeInclusive<f64> = 100.0..=450.0;
 pub(crate) const BED_C: std::ops::RangeInclusive<f64> = 0.0..=200.0;
 pub(crate) const EXTRUDERS: std::ops::RangeInclusive<u8> = 1..=8;
-/// The largest start or end code file read.
-pub(crate) const MAX_CODE_BYTES: u64 = 64 * 1024;
 /// At most this many machines in one config.
 pub(crate) const MAX_MACHINES: usize = 64;
 
@@ -285,6 +291,8 @@ pub(crate) struct MachineSpec {
     /// Commands the G-code policy guards or does not know that this machine allows in files
     /// ([`commands::allowable`]).
     pub allow: Option<Vec<String>>,
+    /// How its printers push a print off the bed (see [`eject`]).
+    pub eject: Option<eject::EjectSpec>,
 }
 
 /// Whether a name may name a machine (it becomes part of G-code file names).
@@ -496,24 +504,27 @@ impl MachineSpec {
             max_bed_c,
             extruders,
             allow,
+            eject: match self.eject {
+                Some(spec) => Some(
+                    spec.check(bed_mm[2], &anchor(Path::new(".")))
+                        .map_err(|(key, m)| (eject_key(key), m))?,
+                ),
+                None => base.as_ref().and_then(|b| b.eject.clone()),
+            },
         })
     }
 }
 
-/// Reads a start or end code file: text, at most [`MAX_CODE_BYTES`].
-fn read_code(path: &Path) -> Result<String, String> {
-    use std::io::Read;
-    let mut text = String::new();
-    std::fs::File::open(path)
-        .and_then(|f| f.take(MAX_CODE_BYTES + 1).read_to_string(&mut text))
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    if text.len() as u64 > MAX_CODE_BYTES {
-        return Err(format!(
-            "{}: larger than {MAX_CODE_BYTES} bytes; start and end code is a few lines",
-            path.display()
-        ));
+/// An eject key as the machine's error names it (`eject.max_height_mm`).
+fn eject_key(key: &'static str) -> &'static str {
+    match key {
+        "gcode" => "eject.gcode",
+        "file" => "eject.file",
+        "release_bed_c" => "eject.release_bed_c",
+        "max_height_mm" => "eject.max_height_mm",
+        "allow" => "eject.allow",
+        _ => "eject",
     }
-    Ok(text)
 }
 
 #[cfg(test)]

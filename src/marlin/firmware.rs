@@ -72,6 +72,15 @@ impl Firmware {
     pub(crate) fn emergency_parser(self) -> bool {
         self.is_marlin2()
     }
+    /// The firmware reads its serial input during a heat wait and acts on an unnumbered
+    /// `M108` as it reads it, even without an emergency parser: Marlin 2's heat waits call
+    /// `idle()`, whose `manage_inactivity` reads lines into free command slots
+    /// (temperature.cpp:4122, MarlinCore.cpp:412), and its queue clears `wait_for_heatup`
+    /// on reading `M108` (queue.cpp:524-531). Ultimaker2Marlin's M109/M190 loops read
+    /// nothing (Marlin_main.cpp:1419-1460, 1472-1490).
+    pub(crate) fn reads_serial_while_heating(self) -> bool {
+        self.is_marlin2()
+    }
     /// M73 progress display.
     pub(crate) fn progress_m73(self) -> bool {
         self.is_marlin2()

@@ -10,9 +10,7 @@ use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// Bytes the host adds around a command: `N<number> ` before and `*<checksum>` after.
-/// Numbers up to 9 digits cover any job; the checksum is at most 3 digits.
-pub(crate) const FRAMING_BYTES: usize = 1 + 9 + 1 + 1 + 3;
+pub(crate) use super::reader::serial::FRAMING_BYTES;
 
 /// The largest G-code file crispen takes: checked when a pre-sliced file is prepared and
 /// again when a job is loaded. A day-long print sliced finely is well under 200 MiB; the
@@ -35,13 +33,7 @@ pub(crate) fn is_heat_wait(command: &str) -> bool {
     HEAT_WAITS.iter().any(|c| c.eq_ignore_ascii_case(code))
 }
 
-/// The commands with which a file asks for a pause: wait for the user (`M0`, `M1`), pause
-/// the print (`M25`, `M601`), park (`M125`), wait for a pin (`M226`), change the filament
-/// (`M600`). On a printer with no one in front of it, each stops the printer until someone
-/// presses its knob (or does nothing at all where the firmware lacks it, and the pause the
-/// file wanted is lost). The host therefore never sends them: it pauses the printer itself
-/// at that point and waits for the operator (see `super::pause`).
-pub(crate) const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
+pub(crate) use super::reader::FILE_PAUSES;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GcodeError {
@@ -77,10 +69,18 @@ pub enum GcodeError {
         firmware: Firmware,
     },
     #[error(
-        "{file}:{line}: command contains `\\` outside quotes, which Marlin drops, so the \
-         printer would run something else than the file says; remove it"
+        "{file}:{line}: command contains `\\`, which Marlin drops (taking the character after \
+         it as it is), so the printer would refuse the line again and again; remove it"
     )]
     Backslash { file: String, line: usize },
+    #[error("{file}:{line}: command `{command}` {reason}; {firmware} cannot be sent it")]
+    Serial {
+        file: String,
+        line: usize,
+        command: String,
+        reason: String,
+        firmware: Firmware,
+    },
     #[error("{file}:{line}: command is not valid text (UTF-8)")]
     NotText { file: String, line: usize },
     #[error("{file}: no G-code commands in the file (only comments or blank lines)")]
@@ -95,6 +95,19 @@ pub enum GcodeError {
         MAX_RAW_LINE_BYTES >> 10
     )]
     HugeLine { file: String, line: usize },
+}
+
+impl GcodeError {
+    /// A reading error of [`scan`] (which knows the file by name only) with the file's path.
+    fn at(self, path: &Path) -> Self {
+        match self {
+            GcodeError::Io { source, .. } => GcodeError::Io {
+                path: path.to_path_buf(),
+                source,
+            },
+            other => other,
+        }
+    }
 }
 
 /// A job's commands stored back to back in one shared buffer, with the length of each.
@@ -236,6 +249,14 @@ struct SmallSeq {
 impl SmallSeq {
     const BLOCK: usize = 64;
 
+    fn with_capacity(entries: usize) -> Self {
+        SmallSeq {
+            bytes: Vec::with_capacity(entries),
+            totals: Vec::with_capacity(entries / Self::BLOCK + 1),
+            ..SmallSeq::default()
+        }
+    }
+
     fn push(&mut self, value: u64) {
         if self.bytes.len() % Self::BLOCK == 0 {
             self.totals.push(self.sum);
@@ -306,133 +327,25 @@ impl GcodeProgram {
 
     /// Load a file for one firmware.
     pub fn load_for(path: &Path, firmware: Firmware) -> Result<Self, GcodeError> {
-        let io = |source| GcodeError::Io {
-            path: path.to_path_buf(),
-            source,
-        };
-        let file = File::open(path).map_err(io)?;
-        // Refused before reading a byte; `read` counts too, for files that grow meanwhile.
-        if file.metadata().map_err(io)?.len() > MAX_GCODE_BYTES {
-            return Err(GcodeError::TooLarge {
-                file: path.display().to_string(),
-            });
-        }
-        Self::read(file, &path.display().to_string(), firmware).map_err(|e| match e {
-            GcodeError::Io { source, .. } => GcodeError::Io {
-                path: path.to_path_buf(),
-                source,
-            },
-            other => other,
+        let (file, size) = open_job(path)?;
+        let size = usize::try_from(size).unwrap_or(0);
+        // The buffers are reserved for the most the file can hold (every command at least
+        // two bytes with its line end) rather than grown by doubling: growing copies a
+        // buffer while the old one is still held, which for a large job would double the
+        // daemon's peak memory; reserved pages never written cost no memory.
+        let mut program = Loading::with_capacity(size);
+        let marks = scan(file, &path.display().to_string(), firmware, |code, line| {
+            program.push(code, line)
         })
+        .map_err(|e| e.at(path))?;
+        program.finish(&path.display().to_string(), firmware, marks)
     }
 
     /// Parse G-code from any reader; `name` is used in error messages.
-    ///
-    /// Memory stays near the size of the commands themselves (comments and blank lines
-    /// cost nothing), and no line, however long, is held whole beyond [`MAX_RAW_LINE_BYTES`].
     pub fn read(reader: impl Read, name: &str, firmware: Firmware) -> Result<Self, GcodeError> {
-        let max = firmware.max_line_bytes().saturating_sub(FRAMING_BYTES);
-        let io = |source| GcodeError::Io {
-            path: PathBuf::from(name),
-            source,
-        };
-        let mut text = String::new();
-        let mut lens = SmallSeq::default();
-        let mut source_lines = SmallSeq::default();
-        let mut reader = BufReader::new(reader.take(MAX_GCODE_BYTES + 1));
-        let mut raw = Vec::new();
-        let mut line_no = 0;
-        let mut last_command_line = 0;
-        let mut total = 0u64;
-        let mut labels = crate::marlin::plate::LabelReader::default();
-        loop {
-            raw.clear();
-            let n = (&mut reader)
-                .take(MAX_RAW_LINE_BYTES)
-                .read_until(b'\n', &mut raw)
-                .map_err(io)?;
-            if n == 0 {
-                break;
-            }
-            line_no += 1;
-            total += n as u64;
-            if total > MAX_GCODE_BYTES {
-                return Err(GcodeError::TooLarge {
-                    file: name.to_string(),
-                });
-            }
-            if n as u64 == MAX_RAW_LINE_BYTES && raw.last() != Some(&b'\n') {
-                return Err(GcodeError::HugeLine {
-                    file: name.to_string(),
-                    line: line_no,
-                });
-            }
-            if may_label(&raw) {
-                let line = String::from_utf8_lossy(&raw);
-                if labels.line(&line, lens.len()) == crate::marlin::plate::LineLabel::Command {
-                    continue;
-                }
-            }
-            // Comments may hold anything (slicers write non-UTF-8 names); cut them first.
-            let code = match raw.iter().position(|&b| b == b';') {
-                Some(i) => &raw[..i],
-                None => &raw[..],
-            };
-            let code = std::str::from_utf8(code).map_err(|_| GcodeError::NotText {
-                file: name.to_string(),
-                line: line_no,
-            })?;
-            let code = code.trim();
-            if code.is_empty() {
-                continue;
-            }
-            if code.contains('*') {
-                return Err(GcodeError::Asterisk {
-                    file: name.to_string(),
-                    line: line_no,
-                });
-            }
-            if firmware.colon_ends_line() && code.contains(':') {
-                return Err(GcodeError::Colon {
-                    file: name.to_string(),
-                    line: line_no,
-                    firmware,
-                });
-            }
-            if has_unquoted_backslash(code) {
-                return Err(GcodeError::Backslash {
-                    file: name.to_string(),
-                    line: line_no,
-                });
-            }
-            if code.len() > max {
-                return Err(GcodeError::LineTooLong {
-                    file: name.to_string(),
-                    line: line_no,
-                    len: code.len(),
-                    max,
-                    firmware,
-                });
-            }
-            text.push_str(code);
-            lens.push(code.len() as u64);
-            source_lines.push((line_no - last_command_line) as u64);
-            last_command_line = line_no;
-        }
-        if lens.len() == 0 {
-            return Err(GcodeError::Empty {
-                file: name.to_string(),
-            });
-        }
-        source_lines.shrink_to_fit();
-        let marks = labels.finish(lens.len()).map(Arc::new);
-        Ok(GcodeProgram {
-            name: name.to_string(),
-            commands: GcodeCommands::from_parts(text, lens),
-            source_lines: Arc::new(source_lines),
-            firmware,
-            marks,
-        })
+        let mut program = Loading::with_capacity(0);
+        let marks = scan(reader, name, firmware, |code, line| program.push(code, line))?;
+        program.finish(name, firmware, marks)
     }
 
     /// Build a program from commands already in memory (benchmarks, generated jobs).
@@ -506,21 +419,213 @@ fn may_label(raw: &[u8]) -> bool {
     head.first() == Some(&b';') || starts(b"M486") || starts(b"EXCLUDE_OBJECT")
 }
 
-/// A `\\` outside a `"..."` string: Marlin's parser drops it.
-fn has_unquoted_backslash(code: &str) -> bool {
-    let mut quoted = false;
-    let mut bytes = code.bytes();
-    while let Some(b) = bytes.next() {
-        match b {
-            b'"' => quoted = !quoted,
-            b'\\' if quoted => {
-                bytes.next(); // an escape inside quotes
-            }
-            b'\\' => return true,
-            _ => {}
+/// Reads G-code as the host loads it for `firmware`, line by line, without holding it:
+/// each command (comment cut, trimmed) goes to `each` with its line number, and the plate's
+/// labels are read on the way ([`crate::marlin::plate`]; a label command is not a command
+/// sent, so every reader counts commands alike). One reading,
+/// so the program the host streams and every figure taken from the file agree; memory
+/// stays near nothing, and no line, however long, is held whole beyond
+/// [`MAX_RAW_LINE_BYTES`].
+pub(crate) fn scan(
+    reader: impl Read,
+    name: &str,
+    firmware: Firmware,
+    mut each: impl FnMut(&str, usize),
+) -> Result<Option<crate::marlin::plate::Marks>, GcodeError> {
+    let max = firmware.max_line_bytes().saturating_sub(FRAMING_BYTES);
+    let io = |source| GcodeError::Io {
+        path: PathBuf::from(name),
+        source,
+    };
+    let mut reader = BufReader::new(reader.take(MAX_GCODE_BYTES + 1));
+    let mut raw = Vec::new();
+    let mut line_no = 0;
+    let mut total = 0u64;
+    let mut labels = crate::marlin::plate::LabelReader::default();
+    let mut commands = 0usize;
+    loop {
+        raw.clear();
+        let n = (&mut reader)
+            .take(MAX_RAW_LINE_BYTES)
+            .read_until(b'\n', &mut raw)
+            .map_err(io)?;
+        if n == 0 {
+            break;
+        }
+        line_no += 1;
+        total += n as u64;
+        if total > MAX_GCODE_BYTES {
+            return Err(GcodeError::TooLarge {
+                file: name.to_string(),
+            });
+        }
+        if n as u64 == MAX_RAW_LINE_BYTES && raw.last() != Some(&b'\n') {
+            return Err(GcodeError::HugeLine {
+                file: name.to_string(),
+                line: line_no,
+            });
+        }
+        if may_label(&raw)
+            && labels.line(&String::from_utf8_lossy(&raw), commands)
+                == crate::marlin::plate::LineLabel::Command
+        {
+            continue;
+        }
+        // Comments may hold anything (slicers write non-UTF-8 names); cut them first.
+        let code = match raw.iter().position(|&b| b == b';') {
+            Some(i) => &raw[..i],
+            None => &raw[..],
+        };
+        let code = std::str::from_utf8(code).map_err(|_| GcodeError::NotText {
+            file: name.to_string(),
+            line: line_no,
+        })?;
+        let code = code.trim();
+        if code.is_empty() {
+            continue;
+        }
+        if code.contains('*') {
+            return Err(GcodeError::Asterisk {
+                file: name.to_string(),
+                line: line_no,
+            });
+        }
+        if firmware.colon_ends_line() && code.contains(':') {
+            return Err(GcodeError::Colon {
+                file: name.to_string(),
+                line: line_no,
+                firmware,
+            });
+        }
+        if code.contains('\\') {
+            // Stock Marlin has no quoted strings (GCODE_QUOTED_STRINGS), so a backslash is
+            // dropped wherever it stands (queue.cpp:337-343).
+            return Err(GcodeError::Backslash {
+                file: name.to_string(),
+                line: line_no,
+            });
+        }
+        if code.len() > max {
+            return Err(GcodeError::LineTooLong {
+                file: name.to_string(),
+                line: line_no,
+                len: code.len(),
+                max,
+                firmware,
+            });
+        }
+        if let Err(why) = super::reader::serial::check(firmware, code) {
+            return Err(GcodeError::Serial {
+                file: name.to_string(),
+                line: line_no,
+                command: code
+                    .chars()
+                    .take(60)
+                    .collect::<String>()
+                    .escape_debug()
+                    .to_string(),
+                reason: why,
+                firmware,
+            });
+        }
+        each(code, line_no);
+        commands += 1;
+    }
+    Ok(labels.finish(commands))
+}
+
+/// Opens a job's file for [`scan`], refusing one too large before reading a byte (`scan`
+/// counts too, for files that grow meanwhile); with its size.
+pub(crate) fn open_job(path: &Path) -> Result<(File, u64), GcodeError> {
+    let io = |source| GcodeError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = File::open(path).map_err(io)?;
+    let size = file.metadata().map_err(io)?.len();
+    if size > MAX_GCODE_BYTES {
+        return Err(GcodeError::TooLarge {
+            file: path.display().to_string(),
+        });
+    }
+    Ok((file, size))
+}
+
+/// Net filament the first `limit` commands of the job file at `path` push (all of them
+/// with `None`), mm, followed as `firmware` follows them
+/// ([`Pushed`](super::motion::Pushed)) and read as they stream by; with the number of
+/// commands read. What a pre-sliced job needs, and what a print took up to its last
+/// acknowledged line.
+pub(crate) fn pushed_mm(
+    path: &Path,
+    firmware: Firmware,
+    limit: Option<usize>,
+) -> Result<(f64, usize), GcodeError> {
+    let (file, _) = open_job(path)?;
+    let mut pushed = super::motion::Pushed::new(firmware);
+    let mut commands = 0usize;
+    scan(file, &path.display().to_string(), firmware, |code, _| {
+        if limit.is_none_or(|l| commands < l) {
+            pushed.follow(code);
+        }
+        commands += 1;
+    })?;
+    Ok((pushed.mm(), commands))
+}
+
+/// A program as [`scan`] hands it over.
+struct Loading {
+    text: String,
+    lens: SmallSeq,
+    source_lines: SmallSeq,
+    last_command_line: usize,
+}
+
+impl Loading {
+    fn with_capacity(bytes: usize) -> Self {
+        let bytes = bytes.min(usize::try_from(MAX_GCODE_BYTES).unwrap_or(usize::MAX));
+        Loading {
+            text: String::with_capacity(bytes),
+            lens: SmallSeq::with_capacity(bytes / 2),
+            source_lines: SmallSeq::with_capacity(bytes / 2),
+            last_command_line: 0,
         }
     }
-    false
+
+    fn push(&mut self, code: &str, line: usize) {
+        self.text.push_str(code);
+        self.lens.push(code.len() as u64);
+        self.source_lines
+            .push((line - self.last_command_line) as u64);
+        self.last_command_line = line;
+    }
+
+    fn finish(
+        self,
+        name: &str,
+        firmware: Firmware,
+        marks: Option<crate::marlin::plate::Marks>,
+    ) -> Result<GcodeProgram, GcodeError> {
+        let Loading {
+            text,
+            lens,
+            mut source_lines,
+            ..
+        } = self;
+        if lens.len() == 0 {
+            return Err(GcodeError::Empty {
+                file: name.to_string(),
+            });
+        }
+        source_lines.shrink_to_fit();
+        Ok(GcodeProgram {
+            name: name.to_string(),
+            commands: GcodeCommands::from_parts(text, lens),
+            source_lines: Arc::new(source_lines),
+            firmware,
+            marks: marks.map(Arc::new),
+        })
+    }
 }
 
 #[cfg(test)]
@@ -615,10 +720,41 @@ mod tests {
                 "{fw}: {err}"
             );
         }
-        assert!(
-            parse(b"M118 \"a\\\"b\"\n").is_ok(),
-            "escapes inside quotes are kept"
-        );
+        // Stock Marlin 2.1.2.1 has no quoted strings: the backslash is dropped there too.
+        assert!(matches!(
+            parse(b"M118 \"a\\\"b\"\n").unwrap_err(),
+            GcodeError::Backslash { line: 1, .. }
+        ));
+    }
+
+    /// Issue 42: a carriage return inside a line (where both firmwares end a line, the
+    /// middle piece then running unnumbered) and a message that renumbers Marlin 2 are
+    /// refused when the file is loaded, naming the line and the firmware's rule.
+    #[test]
+    fn lines_the_serial_input_would_split_or_renumber_are_refused_naming_the_line() {
+        for fw in Firmware::ALL {
+            let err = GcodeProgram::read(&b"G28\nM117 a\rM104 S300\rM117 b\n"[..], "job.gcode", fw)
+                .unwrap_err();
+            let msg = err.to_string();
+            assert!(
+                matches!(err, GcodeError::Serial { line: 2, .. }),
+                "{fw}: {msg}"
+            );
+            assert!(msg.starts_with("job.gcode:2:"), "{msg}");
+            assert!(
+                msg.contains("carriage return") && msg.contains(".cpp:"),
+                "{msg}"
+            );
+            assert!(!msg.contains('\r'), "the line end is written out: {msg:?}");
+            let err =
+                GcodeProgram::read(&b"G28\nM117 M110 N999\n"[..], "job.gcode", fw).unwrap_err();
+            assert!(
+                matches!(err, GcodeError::Serial { line: 2, .. }),
+                "{fw}: {err}"
+            );
+        }
+        // A file with CRLF line ends is fine: the CR ends the line where the host does.
+        assert!(parse(b"G28\r\nG1 X1\r\n").is_ok());
     }
 
     #[test]

@@ -964,20 +964,47 @@ impl Motion {
 /// followed as `firmware` follows them: what a print of them takes from the spool. A
 /// command the firmware could not follow ends the count there, as it would end the print.
 pub fn extruded_mm<S: AsRef<str>>(commands: impl IntoIterator<Item = S>, firmware: Firmware) -> f64 {
-    let mut motion = Motion::new(firmware);
-    let mut total = 0.0;
+    let mut pushed = Pushed::new(firmware);
     for line in commands {
-        let code = line.as_ref().split(';').next().unwrap_or_default();
-        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
-            continue;
-        };
-        match motion.apply(&cmd) {
-            Ok(Some(m)) => total += m.extruded(),
-            Ok(None) => {}
-            Err(_) => break,
+        pushed.follow(line.as_ref());
+    }
+    pushed.mm()
+}
+
+/// [`extruded_mm`] one command at a time, for commands read as they stream by.
+pub struct Pushed {
+    motion: Motion,
+    total: f64,
+    ended: bool,
+}
+
+impl Pushed {
+    pub fn new(firmware: Firmware) -> Self {
+        Pushed {
+            motion: Motion::new(firmware),
+            total: 0.0,
+            ended: false,
         }
     }
-    total
+
+    pub fn follow(&mut self, line: &str) {
+        if self.ended {
+            return;
+        }
+        let code = line.split(';').next().unwrap_or_default();
+        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
+            return;
+        };
+        match self.motion.apply(&cmd) {
+            Ok(Some(m)) => self.total += m.extruded(),
+            Ok(None) => {}
+            Err(_) => self.ended = true,
+        }
+    }
+
+    pub fn mm(&self) -> f64 {
+        self.total
+    }
 }
 
 #[cfg(test)]

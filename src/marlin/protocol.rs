@@ -39,15 +39,15 @@ mod timeouts;
 mod timers;
 mod window;
 
-pub use event::{Event, Failure, FirmwareInfo, JobSummary, MAX_CAPABILITIES};
+pub use event::{Event, Failure, FirmwareInfo, JobSummary, Numbering, MAX_CAPABILITIES};
 pub use framing::{canonical, checksum, frame};
 pub use options::ProtocolOptions;
-pub use temperature::{Temp, Temperatures};
+pub use temperature::{HeatWaitEstimate, Temp, Temperatures};
 
 use super::gcode::is_heat_wait;
 use super::plate::JobLines;
 use event::Stats;
-use line::{InFlight, Kind, Line};
+use line::{InFlight, Kind, Line, Owed};
 use phase::{JobPhase, Phase, Stop};
 use recovery::Recovery;
 use reply::Reply;
@@ -79,8 +79,14 @@ pub struct Host {
     send_cursor: u64,
     in_flight: VecDeque<InFlight>,
     in_flight_bytes: usize,
-    /// `ok`s to ignore: the unnumbered `M108`'s (answered when the queue reaches it).
-    swallow_oks: u32,
+    /// Answers owed by lines outside the current count, oldest first (see [`Owed`]): their
+    /// `ok`s are not taken for the count's lines, nor an `M105`'s report for the stop's
+    /// (the printer runs the stop's lines after them), and the send window counts their
+    /// bytes: a stop begun while the printer's ring is full must not overrun it.
+    owed: VecDeque<Owed>,
+    /// An `M105` sent without a number (a probe while the host's `M110` waits to run) is
+    /// unanswered: the numbers below this were sent before it, and its answer settles them.
+    unnumbered_probe: Option<(u64, Instant)>,
     /// One line in flight until this line number is reached (after a resend).
     cautious_until: u64,
     /// `ok N<n> P<p> B<b>` seen: `ok`s are matched to lines by number.
@@ -127,7 +133,8 @@ impl Host {
             send_cursor: 0,
             in_flight: VecDeque::new(),
             in_flight_bytes: 0,
-            swallow_oks: 0,
+            owed: VecDeque::new(),
+            unnumbered_probe: None,
             cautious_until: 0,
             advanced_ok: false,
             confirmed: None,
@@ -255,16 +262,13 @@ impl Host {
         true
     }
 
-    /// Stop the job safely: no more job lines; break heat waits where the firmware can;
-    /// then heaters, fan and motors off as ordinary numbered lines.
+    /// Stop the job safely: no more job lines; break a heat wait where the firmware can;
+    /// heaters off at once, then a new line count and heaters, fan and motors off,
+    /// confirmed by an `M105` (see `begin_stop`).
     pub(crate) fn cancel(&mut self, now: Instant) {
         if self.in_job() && self.stopping().is_none() {
-            self.phase = Phase::Job(JobPhase::Stopping(Stop::Cancel));
-            // Job lines waiting to be (re)sent are never sent now; the printer expects the
-            // first of them next, so the safe-stop lines take over their numbers.
-            self.discard_unsent_job_lines();
-            self.queue_safe_stop(now);
-            self.pump(now);
+            let give_up = now + self.opts.stop_timeout;
+            self.begin_stop(Stop::Cancel { give_up }, now);
         }
     }
 

@@ -12,7 +12,7 @@ use super::motion::Motion;
 use super::pause::{find_pauses, heaters_off_lines, park_lines, resume_lines, FilePause};
 use super::plate::{JobLines, PartFilter};
 use super::protocol::reply::HostAction;
-use super::protocol::{Event, Host, ProtocolOptions};
+use super::protocol::{Event, HeatWaitEstimate, Host, ProtocolOptions};
 use super::reader;
 use super::transport::{LinkEvent, Transport};
 use serde::Serialize;
@@ -134,6 +134,39 @@ pub struct PrintProgress {
     pub pause: Option<PauseInfo>,
     /// The parts of the plate cancelled so far, in order.
     pub cancelled_parts: Vec<CancelledPart>,
+    /// Set while a stop waits for the printer's heat-up to end.
+    pub stop_wait: Option<StopWait>,
+}
+
+/// A stop (a cancel, a failure, a shutdown) that waits for the printer's heat-up to end: its
+/// firmware reads nothing while it waits for a heater (Ultimaker2Marlin), so the heaters go
+/// off only then. Figures, for the log and the printer's status.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+pub struct StopWait {
+    /// The heat wait the printer is in (`M109 S210`), where the host sent it.
+    pub command: Option<String>,
+    /// The bed's heater, else the hotend's.
+    pub bed: bool,
+    pub current_c: Option<f64>,
+    pub target_c: Option<f64>,
+    /// At the rate the heater has closed in on its target so far.
+    pub remaining_s: Option<f64>,
+    /// The longest the host waits: until the heater has not come closer to its target for
+    /// the heat timeout.
+    pub limit_s: f64,
+}
+
+impl From<HeatWaitEstimate> for StopWait {
+    fn from(e: HeatWaitEstimate) -> Self {
+        StopWait {
+            command: e.command,
+            bed: e.bed,
+            current_c: e.current,
+            target_c: e.target,
+            remaining_s: e.remaining.map(|d| d.as_secs_f64()),
+            limit_s: e.limit.as_secs_f64(),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -370,6 +403,7 @@ impl Connection {
             name: program.name().to_string(),
             progress,
             pause: None,
+            stop_wait: None,
             control_open: true,
             sent: Sent::default(),
             filter: program
@@ -587,6 +621,8 @@ impl Connection {
             None => JobLines::from(commands),
         };
         self.host.start_job(lines, Instant::now());
+        // The printer's report showed its heaters off during a stop (`Event::HeatersOff`).
+        let mut heaters_off = false;
         run.publish(acked(&self.host), self.host.temperatures(), state);
         let mut last_publish = Instant::now();
         loop {
@@ -653,12 +689,44 @@ impl Connection {
                         stop = StopOutcome::Confirmed;
                         tracing::info!(port = %port.display(), gcode = run.name, "printer stopped safely: heaters, fan and motors off")
                     }
+                    Event::SafeStop { confirmed: false } if heaters_off => {
+                        stop = StopOutcome::HeatersOff;
+                        tracing::warn!(port = %port.display(), gcode = run.name, "the printer did not take the stop's numbered lines (fan and motors), but its report shows its heaters off")
+                    }
                     Event::SafeStop { confirmed: false } => {
                         stop = StopOutcome::NotConfirmed;
                         tracing::error!(port = %port.display(), gcode = run.name, "the printer did not confirm heaters off; check it now")
                     }
+                    Event::HeatersOff => {
+                        if !heaters_off {
+                            tracing::info!(port = %port.display(), gcode = run.name, "the printer's report shows its heaters off");
+                        }
+                        heaters_off = true;
+                    }
+                    Event::StopWaitsForHeat(estimate) => {
+                        let wait = StopWait::from(estimate);
+                        // Said again as the heater's reports come: the log has the first.
+                        if run.stop_wait.is_none() {
+                            tracing::warn!(
+                                port = %port.display(),
+                                gcode = run.name,
+                                command = wait.command.as_deref().unwrap_or("?"),
+                                current_c = wait.current_c,
+                                target_c = wait.target_c,
+                                remaining_s = wait.remaining_s,
+                                limit_s = wait.limit_s,
+                                "the stop waits for the heat-up: the firmware reads nothing until it ends, then the heaters go off"
+                            );
+                        }
+                        run.stop_wait = Some(wait);
+                        state_changed = true;
+                    }
                     Event::Connected(_) => {}
                 }
+            }
+            if run.stop_wait.is_some() && !self.host.heating() {
+                run.stop_wait = None;
+                state_changed = true;
             }
             if state_changed || (changed && last_publish.elapsed() >= Duration::from_millis(100)) {
                 let shown = if state == PrintState::Printing && self.host.heating() {
@@ -745,6 +813,7 @@ struct Run {
     name: String,
     progress: watch::Sender<PrintProgress>,
     pause: Option<PauseInfo>,
+    stop_wait: Option<StopWait>,
     control_open: bool,
     sent: Sent,
     /// The plate's filter while no part of the job streams (between its parts, at a
@@ -805,6 +874,7 @@ impl Run {
             remaining_s: if acked >= total { Some(0.0) } else { remaining },
             pause: self.pause.clone(),
             cancelled_parts: self.cancelled.clone(),
+            stop_wait: self.stop_wait.clone(),
         });
     }
 }

@@ -24,6 +24,9 @@ pub enum EventKind {
     HostLost,
     /// A print left a spool with less than `[farm] spool_low_g`.
     SpoolLow,
+    /// A printer that clears its bed by machine stopped for a person: the camera found the
+    /// bed not clear (with the marked picture), could not check it, or the eject failed.
+    BedNotClear,
     /// `crispen notify test`.
     Test,
 }
@@ -41,6 +44,7 @@ impl EventKind {
             EventKind::PrinterWaiting => "printer_waiting",
             EventKind::HostLost => "host_lost",
             EventKind::SpoolLow => "spool_low",
+            EventKind::BedNotClear => "bed_not_clear",
             EventKind::Test => "test",
         }
     }
@@ -58,6 +62,7 @@ impl EventKind {
             EventKind::PrinterWaiting => "Printer waiting for the operator",
             EventKind::HostLost => "Farm host lost",
             EventKind::SpoolLow => "Spool running low",
+            EventKind::BedNotClear => "Bed not clear: the printer waits for a person",
             EventKind::Test => "Test notification",
         }
     }
@@ -73,6 +78,7 @@ impl EventKind {
                 | EventKind::PrinterWaiting
                 | EventKind::HostLost
                 | EventKind::SpoolLow
+                | EventKind::BedNotClear
         )
     }
 }
@@ -165,6 +171,7 @@ mod tests {
             EventKind::PrinterWaiting,
             EventKind::HostLost,
             EventKind::SpoolLow,
+            EventKind::BedNotClear,
             EventKind::Test,
         ];
         let names: Vec<&str> = all.iter().map(|k| k.name()).collect();

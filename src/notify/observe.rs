@@ -15,6 +15,7 @@
 //! name sorts first.
 
 use super::event::{Event, EventJob, EventKind};
+use crate::daemon::bed::Why;
 use crate::daemon::farm::{PrinterState, PrinterStatus};
 use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState};
@@ -41,7 +42,9 @@ fn presence(state: PrinterState) -> Presence {
         PrinterState::Idle
         | PrinterState::WaitingToHeat
         | PrinterState::Printing
-        | PrinterState::BedNotCleared => Presence::Online,
+        | PrinterState::BedNotCleared
+        | PrinterState::Ejecting
+        | PrinterState::CheckingBed => Presence::Online,
         // A halted printer needs the operator as much as a paused one: it takes no job
         // until it was reset. (A halt that stopped a print is the job's `printer_error`.)
         PrinterState::Paused | PrinterState::WaitingForOperator | PrinterState::Halted => {
@@ -57,6 +60,9 @@ struct PrinterSeen {
     presence: Presence,
     /// A `printer_offline` was sent and no `printer_online` since.
     told_offline: bool,
+    /// Its bed waits for a person because clearing it by machine stopped (a bed found
+    /// not clear, no check possible, a failed eject): `bed_not_clear` was told.
+    bed_stopped: bool,
 }
 
 /// What the observer was last shown.
@@ -164,11 +170,17 @@ impl Observer {
                     tell(EventKind::PrinterWaiting);
                 }
             }
+            let bed_stopped = bed_stopped(&p.bed);
+            let was_stopped = seen.is_some_and(|s| s.bed_stopped);
+            if !first && bed_stopped && !was_stopped {
+                events.push(self.bed_event(p, look.now));
+            }
             printers.insert(
                 p.name.clone(),
                 PrinterSeen {
                     presence: now,
                     told_offline,
+                    bed_stopped,
                 },
             );
         }
@@ -227,6 +239,36 @@ impl Observer {
         events
     }
 
+    /// `bed_not_clear` of printer `p`: why, the job on its bed, and the marked picture of
+    /// the camera's check when there is one (under the dashboard's address).
+    fn bed_event(&self, p: &PrinterStatus, now: f64) -> Event {
+        let mut e = self.event(EventKind::BedNotClear, now);
+        e.printer = Some(p.name.clone());
+        e.reason = p.bed.describe();
+        if let (
+            Some(dashboard),
+            crate::daemon::bed::Bed::Waiting {
+                why: Some(Why::NotClear { check }),
+            },
+        ) = (&self.dashboard, &p.bed)
+        {
+            if let Some(picture) = &check.picture {
+                e.snapshot = Some(format!(
+                    "{dashboard}/api/v1/printers/{}/bed/{}",
+                    crate::percent::percent_encode(&p.name),
+                    crate::percent::percent_encode(
+                        std::path::Path::new(picture)
+                            .file_name()
+                            .map(|n| n.to_string_lossy())
+                            .unwrap_or_default()
+                            .as_ref()
+                    )
+                ));
+            }
+        }
+        e
+    }
+
     /// Whether this host tells of `job` (see the module on shared farms).
     fn mine(&self, job: &Job, local: &BTreeSet<&str>) -> bool {
         if !self.shared {
@@ -266,6 +308,7 @@ impl Observer {
             | EventKind::PrinterWaiting
             | EventKind::HostLost
             | EventKind::SpoolLow
+            | EventKind::BedNotClear
             | EventKind::Test => None,
         };
         if let (Some(dashboard), Some(picture), Some(printer)) =
@@ -284,6 +327,17 @@ impl Observer {
             folder: job.folder.display().to_string(),
         });
         e
+    }
+}
+
+/// A bed that waits for a person because clearing it by machine stopped.
+fn bed_stopped(bed: &crate::daemon::bed::Bed) -> bool {
+    use crate::daemon::bed::Bed;
+    match bed {
+        Bed::Waiting { why } => why.is_some(),
+        Bed::Clear { .. } | Bed::EjectDue { .. } | Bed::Ejecting { .. } | Bed::CheckDue { .. } => {
+            false
+        }
     }
 }
 
@@ -340,6 +394,9 @@ mod tests {
             host: None,
             offline: false,
             holds: None,
+            bed: Default::default(),
+            last_check: None,
+            looked_at: 0,
         }
     }
 

@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 
 pub use print::PREVIEW_PNG;
 pub use raster::{render, render_lit};
+pub(crate) use scene::{cross, dot};
 pub use scene::{norm, normalize, sub};
 pub use scene::{Camera, Image, Lighting, Paint, MODEL_COLOR};
 

@@ -151,7 +151,9 @@ pub(crate) fn check(reader: impl BufRead, expect: &Expectations) -> Result<Gcode
             }
             if m.moves_xy() {
                 extruding_moves += 1;
-                let z = m.to[2];
+                // The file's own number (the firmware's float of 0.4 is 0.40000001): a
+                // layer is reported as sliced.
+                let z = m.written.1[2];
                 top_z = top_z.max(z);
                 if !layer_zs.iter().any(|lz| (lz - z).abs() < 1e-4) {
                     layer_zs.push(z);

@@ -127,6 +127,10 @@ pub struct EnhancementSummary {
     /// In print-aware mode, what it chose for this machine (band, lift, λ2, cap).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub print_aware: Option<crate::enhance::print_aware::PrintAwareReport>,
+    /// With `strength = "observed"`: what the observer saw of each candidate and why
+    /// this strength.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observed: Option<crate::observation::Observation>,
 }
 
 /// Seconds spent in each step.

@@ -137,12 +137,22 @@ impl Verdict {
     }
 }
 
+/// The command as shown in a refusal: shortened, and a control character written out
+/// (`\r`), so that a line end inside a line cannot break the report's lines.
 fn quote(command: &str) -> String {
     let c = command.trim();
+    let shown = |c: char| -> String {
+        if c.is_control() {
+            c.escape_default().to_string()
+        } else {
+            c.to_string()
+        }
+    };
+    let text: String = c.chars().take(QUOTED_CHARS).map(shown).collect();
     if c.chars().count() > QUOTED_CHARS {
-        format!("{}...", c.chars().take(QUOTED_CHARS).collect::<String>())
+        format!("{text}...")
     } else {
-        c.to_string()
+        text
     }
 }
 
@@ -631,6 +641,53 @@ mod tests {
         };
         assert!(verdict("G26 H200 B60\nM1234 S1\n", &allowing).passed());
         assert_eq!(verdict("G26 H400\n", &allowing).refusals_total, 1);
+    }
+
+    /// Issue 42: lines the firmware's serial input would not take as the one line the
+    /// host numbered, refused naming the firmware's source and what it would do: a message
+    /// that renumbers Marlin 2 (`M110` anywhere, queue.cpp:463-470), a carriage return
+    /// where both firmwares end a line, a backspace Marlin 2 erases with, codes an
+    /// emergency parser acts on at once, commands that take the printer's count or its
+    /// queue away from the host.
+    #[test]
+    fn lines_the_serial_input_would_not_take_whole_are_refused() {
+        let marlin = Machine::builtin("marlin-175").unwrap();
+        // The issue's file.
+        let file = "M104 S50\nM140 S35\nG28\nM109 S50\nM190 S35\nG90\nM82\nG92 E0\n\
+                    G1 Z5 F600\nG1 X60 Y60 F3000\nG1 X100 Y60 E2\nM117 M110 N999\nM104 S0\n\
+                    M140 S0\nG1 Z10\n";
+        let v = verdict(file, &marlin);
+        assert_eq!(v.refusals_total, 1, "{v:?}");
+        let r = &v.refusals[0];
+        assert_eq!(r.line, 12);
+        assert!(
+            r.reason.contains("queue.cpp:463") && r.reason.contains("999"),
+            "{r}"
+        );
+        assert!(!verdict(file, &um2()).passed());
+        for (text, says) in [
+            ("M117 a\rM104 S300\rM117 b", "carriage return"),
+            ("M117 x M110", "M110"),
+            ("M117 \u{8}\u{8}\u{8}\u{8}\u{8}M104 S300", "backspace"),
+            ("M108", "EMERGENCY_PARSER"),
+            ("M4100", "e_parser.h"),
+            ("M999", "line count"),
+            ("M28 job.gco", "SD card"),
+            ("M117 (unclosed", "PAREN_COMMENTS"),
+        ] {
+            let v = verdict(&format!("G28\n{text}\nG1 X10\n"), &marlin);
+            assert_eq!(v.refusals_total, 1, "{text:?}: {v:?}");
+            assert_eq!(v.refusals[0].line, 2, "{text:?}");
+            assert!(v.refusals[0].reason.contains(says), "{text:?}: {v:?}");
+            // The refusal shows a line end written out, never raw.
+            assert!(!v.refusals[0].command.contains('\r'), "{text:?}");
+        }
+        // A colon is a line end only on Ultimaker2Marlin; a message may say `M108` after
+        // its code; a backslash stands for itself there.
+        assert!(verdict("M117 ETA 01:23\n", &marlin).passed());
+        assert!(!verdict("M117 ETA 01:23\n", &um2()).passed());
+        assert!(verdict("M117 press M108\n", &marlin).passed());
+        assert!(verdict("M117 a\\b\n", &um2()).passed());
     }
 
     #[test]

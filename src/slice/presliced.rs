@@ -3,10 +3,13 @@
 //!
 //! [`read_target`] reads what the slicer wrote where it writes it: PrusaSlicer's config
 //! block at the end (`; filament_diameter = 2.85`, `; nozzle_diameter`, `; printer_model`,
-//! `; bed_shape`, `; max_print_height`), CuraEngine's header (`;FLAVOR:`,
-//! `;NOZZLE_DIAMETER:`) and Cura's settings block (`;SETTING_3 ...definition = ultimaker2...`),
-//! and follows the moves as Marlin would ([`crate::marlin::motion`]) for their extent, arcs
-//! included. [`check_for`] compares that with
+//! `; bed_shape`, `; max_print_height`, `; filament_type = PLA`), CuraEngine's header
+//! (`;FLAVOR:`, `;NOZZLE_DIAMETER:`, and in the header Cura puts at the top of a Griffin
+//! file, `;EXTRUDER_TRAIN.0.MATERIAL.GUID:`) and Cura's settings block
+//! (`;SETTING_3 ...definition = ultimaker2...`), and follows the moves as Marlin would
+//! ([`crate::marlin::motion`]) for their extent, arcs included. A file's material is
+//! only what its slicer wrote as one, never guessed from its temperatures; CuraEngine's
+//! Marlin flavour names none, and UltiGCode's `;MATERIAL:` is a volume, not a name. [`check_for`] compares that with
 //! a [`Machine`]: a file made for another filament or nozzle, another known printer, the
 //! SD-card-only UltiGCode flavour, or whose moves leave the machine's bed is refused with
 //! the reason. Binary G-code (PrusaSlicer's `.bgcode`) is refused by [`read_target`].
@@ -35,12 +38,15 @@ pub struct GcodeTarget {
     /// PrusaSlicer's `printer_model`, or the Cura definition's id.
     pub printer_model: Option<String>,
     pub filament_mm: Option<f64>,
+    /// The material it was sliced for, as the slicer names it (`PLA`, PrusaSlicer's
+    /// `FLEX`), unchecked: the job's asks check it.
+    pub material: Option<String>,
     pub nozzle_mm: Option<f64>,
     /// The bed the slicer was told of (PrusaSlicer's `bed_shape` and `max_print_height`).
     pub stated_bed_mm: Option<[f64; 3]>,
     /// Lowest and highest X, Y, Z any move goes to: [[min x, max x], [min y, max y], [min z, max z]].
     pub extent_mm: Option<[[f64; 2]; 3]>,
-    /// Net filament pushed, mm.
+    /// Net filament pushed, mm (a retraction counts back until it is pushed again).
     pub extruded_mm: f64,
     /// Line of the first extruding move, when it comes before any nozzle heating.
     pub extrudes_cold_at: Option<usize>,
@@ -105,17 +111,17 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
         // here is of what can.
         if let Ok(Some(m)) = motion.apply(&cmd) {
             let de = m.extruded();
-            if de > 0.0 {
-                t.extruded_mm += de;
-                if !heated && t.extrudes_cold_at.is_none() {
-                    t.extrudes_cold_at = Some(t.lines);
-                }
+            t.extruded_mm += de;
+            if de > 0.0 && !heated && t.extrudes_cold_at.is_none() {
+                t.extrudes_cold_at = Some(t.lines);
             }
             if m.moves_xyz() {
                 let e = extent.get_or_insert([[f64::INFINITY, f64::NEG_INFINITY]; 3]);
                 for (k, [lo, hi]) in e.iter_mut().enumerate() {
-                    *lo = lo.min(m.lo[k]);
-                    *hi = hi.max(m.hi[k]);
+                    // As the file writes it: an extent is reported, the bed is the
+                    // policy's to judge in both readings.
+                    *lo = lo.min(m.written.0[k]);
+                    *hi = hi.max(m.written.1[k]);
                 }
             }
         }
@@ -152,6 +158,10 @@ fn read_comment(
         t.flavor = Some(v.trim().to_string());
     } else if let Some(v) = c.strip_prefix("NOZZLE_DIAMETER:") {
         t.nozzle_mm = t.nozzle_mm.or(num(v));
+    } else if let Some(guid) = c.strip_prefix("EXTRUDER_TRAIN.0.MATERIAL.GUID:") {
+        if let Some(m) = cura_material(guid) {
+            t.material = Some(m.into());
+        }
     } else if let Some(blob) = c.strip_prefix("SETTING_3 ") {
         // Cura's front end: its profile as JSON text, newlines escaped (`\\n` in the file).
         let blob = blob.replace("\\\\n", "\n").replace("\\n", "\n");
@@ -171,6 +181,16 @@ fn read_comment(
         match k.trim() {
             "filament_diameter" => t.filament_mm = num(v),
             "nozzle_diameter" => t.nozzle_mm = num(v),
+            // One per extruder (`PLA;PETG`): the first extruder's, the one a
+            // single-extruder printer has.
+            "filament_type" => {
+                t.material = v
+                    .split(';')
+                    .next()
+                    .map(str::trim)
+                    .filter(|m| !m.is_empty())
+                    .map(String::from)
+            }
             "printer_model" if !v.is_empty() => t.printer_model = Some(v.to_string()),
             "gcode_flavor" => t.flavor = Some(v.to_string()),
             "max_print_height" => *bed_z = num(v),
@@ -198,6 +218,23 @@ fn read_comment(
             _ => {}
         }
     }
+}
+
+/// The material of one of Cura's generic material profiles, by its GUID (from Ultimaker's
+/// `fdm_materials`: `generic_pla.xml.fdm_material` and its siblings), for the materials
+/// crispen knows. Any other profile (a brand's) is not guessed at.
+fn cura_material(guid: &str) -> Option<&'static str> {
+    const GENERIC: &[(&str, &str)] = &[
+        ("506c9f0d-e3aa-4bd4-b2d2-23e2425b1aa9", "PLA"),
+        ("1cbfaeb3-1906-4b26-b2e7-6f777a8c197a", "PETG"),
+        ("60636bb4-518f-42e7-8237-fe77b194ebe0", "ABS"),
+        ("1d52b2be-a3a2-41de-a8b1-3bcdb5618695", "TPU"),
+    ];
+    let guid = guid.trim();
+    GENERIC
+        .iter()
+        .find(|(g, _)| g.eq_ignore_ascii_case(guid))
+        .map(|(_, m)| *m)
 }
 
 /// The built-in machine a slicer's printer model names (Cura definition ids), if known.
@@ -350,6 +387,52 @@ mod tests {
         assert!(e.contains("line 2 extrudes before"), "{e}");
         let e = check_for(&read(&format!(";FLAVOR:UltiGCode\n{MOVES}")), &um2()).unwrap_err();
         assert!(e.contains("UltiGCode"), "{e}");
+    }
+
+    /// The material is what the slicer wrote as one: PrusaSlicer's `filament_type` (the
+    /// first extruder's), the Cura header's generic material GUID; never UltiGCode's
+    /// `;MATERIAL:` (a volume), nor a brand's GUID crispen does not know.
+    #[test]
+    fn the_material_is_what_the_slicer_wrote() {
+        let material = |text: &str| read(&format!("{MOVES}{text}")).material;
+        assert_eq!(material("; filament_type = PLA\n").as_deref(), Some("PLA"));
+        assert_eq!(
+            material("; filament_type = FLEX;PETG\n").as_deref(),
+            Some("FLEX")
+        );
+        assert_eq!(material("; filament_type = \n"), None);
+        assert_eq!(
+            material(";EXTRUDER_TRAIN.0.MATERIAL.GUID:1CBFAEB3-1906-4b26-b2e7-6f777a8c197a\n")
+                .as_deref(),
+            Some("PETG")
+        );
+        assert_eq!(
+            material(";EXTRUDER_TRAIN.0.MATERIAL.GUID:00000000-0000-0000-0000-000000000000\n"),
+            None
+        );
+        assert_eq!(
+            material(";FLAVOR:UltiGCode\n;MATERIAL:6666\n;MATERIAL2:0\n"),
+            None
+        );
+        assert_eq!(
+            material("M104 S240\nM140 S85\n"),
+            None,
+            "never from temperatures"
+        );
+    }
+
+    /// What a file pushes is net: a retraction counts back until it is pushed again,
+    /// with absolute and relative E, after `G92 E0`, and with firmware retraction
+    /// (`G10`/`G11` leave the file's E where it was).
+    #[test]
+    fn the_filament_pushed_is_net_of_retractions() {
+        let absolute = "G28\nM104 S210\nM109 S210\nM82\nG92 E0\nG1 X10 Y10 E5\n\
+                        G1 E-1 F2400\nG1 X20\nG1 E5\nG1 X30 E8\nG92 E0\nG1 E-6\nG1 X40\n\
+                        G1 E0\nG1 X50 E2\n";
+        assert!((read(absolute).extruded_mm - 10.0).abs() < 1e-9);
+        let relative = "G28\nM104 S210\nM109 S210\nM83\nG1 X10 Y10 E5\nG1 E-6.5\nG1 X20\n\
+                        G1 E6.5\nG1 X30 E3\nG10\nG1 X40\nG11\nG1 X50 E2\n";
+        assert!((read(relative).extruded_mm - 10.0).abs() < 1e-9);
     }
 
     #[test]

@@ -11,9 +11,9 @@
 //! user while it holds it.) A use Spoolman cannot be told now stays pending and is tried
 //! at the next round; nothing is dropped.
 
-use super::{Spoolman, SpoolmanError, SpoolmanSpool};
+use super::{Spoolman, SpoolmanError};
 use crate::daemon::farm::Farm;
-use crate::daemon::filament::{colour_name, Filament, Report};
+use crate::daemon::filament::{Report, SetAside};
 use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
 
@@ -46,7 +46,7 @@ pub async fn run(farm: Arc<Farm>, stop: CancellationToken) {
                 failing = None;
             }
             (Err(e), None) => {
-                tracing::warn!(url = client.url(), error = %e, "cannot reach Spoolman; the farm's spools stay as last read and uses are kept until it answers");
+                tracing::warn!(url = client.url(), error = %e, "cannot read the farm's spools from Spoolman; they stay as last read and uses are kept until it answers");
                 failing = Some(e.to_string());
             }
             _ => {}
@@ -79,42 +79,37 @@ pub async fn run(farm: Arc<Farm>, stop: CancellationToken) {
     }
 }
 
-/// Takes in Spoolman's spools.
+/// Takes in Spoolman's spools; each one set aside is logged once, when it first is.
 async fn read(farm: &Farm, client: &Spoolman) -> Result<(), LinkError> {
-    let spools: Vec<_> = client
-        .spools()
-        .await?
-        .into_iter()
-        .map(as_farm_spool)
-        .collect();
+    let list = client.spools().await?;
+    let mut spools = Vec::new();
+    let mut set_aside = list.set_aside;
+    for s in list.spools {
+        // Checked as it was read: this cannot fail, and would be set aside if it did.
+        match s.for_farm() {
+            Ok((filament, remaining)) => spools.push((s.id, filament, remaining, s.archived)),
+            Err(e) => set_aside.push(SetAside {
+                spoolman: Some(s.id),
+                reason: format!("spool {}: {e}", s.id),
+            }),
+        }
+    }
+    let before = farm.store().inventory().set_aside.clone();
+    for aside in set_aside.iter().filter(|a| !before.contains(a)) {
+        tracing::warn!(
+            url = client.url(),
+            spool = aside.id().as_deref().unwrap_or("-"),
+            reason = %crate::names::escaped(&aside.reason),
+            "a spool of Spoolman's is set aside: it is outside the bounds of a spool of the farm's own; the others are taken (correct it in Spoolman)"
+        );
+    }
     farm.jobs()
         .edit_inventory(move |inv| {
-            inv.take_spoolman(spools.clone());
+            inv.take_spoolman(spools.clone(), set_aside.clone());
             Ok(())
         })
         .await?;
     Ok(())
-}
-
-/// A Spoolman spool as the farm's inventory keeps it: its id, filament, weight left and
-/// whether it is archived.
-fn as_farm_spool(s: SpoolmanSpool) -> (u64, Filament, Option<f64>, bool) {
-    let filament = Filament {
-        material: s
-            .material
-            .as_deref()
-            .map(str::trim)
-            .filter(|m| !m.is_empty())
-            .unwrap_or("unknown")
-            .to_ascii_uppercase(),
-        colour: colour_name(s.filament_name.as_deref(), s.colour_hex.as_deref()),
-        colour_hex: s.colour_hex.clone(),
-        brand: s.brand.clone(),
-        diameter_mm: s.diameter_mm,
-        density_g_cm3: s.density_g_cm3,
-        price_per_kg: s.price_per_kg,
-    };
-    (s.id, filament, s.remaining_g, s.archived)
 }
 
 /// Tells Spoolman each use it has not counted yet (see the module).
@@ -126,6 +121,12 @@ async fn report(farm: &Farm, client: &Spoolman) -> Result<(), LinkError> {
             Err(SpoolmanError::Status { status: 404, .. }) => {
                 tracing::error!(spool = %spool, job = %usage.job, grams = usage.grams, "the spool is gone from Spoolman: this use is not booked anywhere");
                 mark(farm, &spool, &key, Report::Sent, None).await?;
+                continue;
+            }
+            // A spool outside the farm's bounds (set aside at the read, and logged then):
+            // its uses wait until it is corrected; the other spools' go on.
+            Err(e @ SpoolmanError::BadAnswer { .. }) => {
+                tracing::debug!(spool = %spool, job = %usage.job, error = %e, "a use waits: its spool's answer is not taken");
                 continue;
             }
             other => other?,
@@ -153,7 +154,15 @@ async fn report(farm: &Farm, client: &Spoolman) -> Result<(), LinkError> {
                 now.used_g
             }
         };
-        let after = client.use_weight(id, usage.grams).await?;
+        let after = match client.use_weight(id, usage.grams).await {
+            // Booked, but the spool's answer is outside the farm's bounds (used past its
+            // weight): the use stays `sending`, and is found counted once it is corrected.
+            Err(e @ SpoolmanError::BadAnswer { .. }) => {
+                tracing::warn!(spool = %spool, job = %usage.job, error = %e, "filament use told to Spoolman; its answer is not taken");
+                continue;
+            }
+            other => other?,
+        };
         tracing::info!(
             spool = %spool,
             job = %usage.job,

@@ -6,14 +6,19 @@
 //! Spoolman's REST API (`/api/v1`) is spoken over HTTP/1.1 like the notification and camera
 //! clients do: one connection per request (requests are rare), the whole exchange within
 //! the client's time limit, answers capped at [`MAX_ANSWER_BYTES`]. What Spoolman answers
-//! is read into private shapes of its JSON and then checked, so a spool handed out has
-//! finite, non-negative weights and a field that is missing or wrong is named in the error.
+//! is read into private shapes of its JSON and then checked with the bounds of a spool of
+//! the farm's own (the one check, `daemon::filament`'s), so a spool handed out is one the
+//! farm could have entered itself, and a field that is missing or wrong is named. In a
+//! list, a spool that fails the check is set aside with why, never the whole list.
 
 pub mod link;
 
 // The base address is split like a notification receiver's; both are public here for the
 // callers outside the crate that make a client.
 pub use crate::daemon::config::notify::{parse_url, ReceiverUrl};
+use crate::daemon::filament::{
+    check_filament, colour_name, grams_in_bounds, Filament, FilamentError, SetAside,
+};
 use bytes::Bytes;
 use http_body_util::Full;
 use serde::{Deserialize, Serialize};
@@ -83,6 +88,50 @@ pub struct SpoolmanSpool {
     pub archived: bool,
 }
 
+impl SpoolmanSpool {
+    /// The spool as the farm's inventory keeps it, its filament and weight left, checked
+    /// by the one check of a spool ([`check_filament`], [`grams_in_bounds`]) whether the
+    /// farm's own or Spoolman's. A material Spoolman leaves blank is `unknown`; the colour
+    /// is named from the filament's name and hex colour, whose alpha (`RRGGBBAA`) is not
+    /// kept.
+    pub fn for_farm(&self) -> Result<(Filament, Option<f64>), FilamentError> {
+        let material = self
+            .material
+            .as_deref()
+            .map(str::trim)
+            .filter(|m| !m.is_empty())
+            .unwrap_or("unknown");
+        let colour_hex = self.colour_hex.as_deref().map(|h| match h.len() {
+            8 => h.get(..6).unwrap_or(h),
+            _ => h,
+        });
+        let filament = check_filament(Filament {
+            material: material.to_string(),
+            colour: colour_name(self.filament_name.as_deref(), colour_hex),
+            colour_hex: colour_hex.map(str::to_string),
+            brand: self.brand.clone(),
+            diameter_mm: self.diameter_mm,
+            density_g_cm3: self.density_g_cm3,
+            price_per_kg: self.price_per_kg,
+        })?;
+        let remaining = self
+            .remaining_g
+            .map(|g| {
+                grams_in_bounds(g)
+                    .map_err(|e| FilamentError::Invalid(format!("remaining_weight: {e}")))
+            })
+            .transpose()?;
+        Ok((filament, remaining))
+    }
+}
+
+/// Spoolman's spools as read: those the farm takes, and those set aside, each with why.
+#[derive(Debug, Default)]
+pub struct SpoolList {
+    pub spools: Vec<SpoolmanSpool>,
+    pub set_aside: Vec<SetAside>,
+}
+
 /// Spoolman's spool as it sends it; absent and `null` fields are None, unknown ones are
 /// ignored (Spoolman adds fields between versions). The filament is read as a layer of
 /// its own, so a malformed one is named as the filament's.
@@ -115,30 +164,33 @@ struct RawVendor {
     name: Option<String>,
 }
 
-/// `value` when it is a finite number of at least 0 (Spoolman keeps weights and prices
-/// there); what is wrong with `field` otherwise.
-fn non_negative(value: Option<f64>, field: &str) -> Result<Option<f64>, String> {
+/// A weight of Spoolman's (`field`), within the bounds of a spool of the farm's own.
+fn weight(value: Option<f64>, field: &str) -> Result<Option<f64>, String> {
+    value
+        .map(|g| grams_in_bounds(g).map_err(|e| format!("{field}: {e}")))
+        .transpose()
+}
+
+/// A price of Spoolman's (`field`): a finite amount of at least 0 (the price per kg
+/// worked out from it is checked with the filament).
+fn price(value: Option<f64>, field: &str) -> Result<Option<f64>, String> {
     match value {
-        Some(v) if !(v >= 0.0) || !v.is_finite() => {
-            Err(format!("{field} is {v}, not a finite number of at least 0"))
-        }
+        Some(p) if !(p >= 0.0) || !p.is_finite() => Err(format!(
+            "{field}: a price of at least 0, got {}",
+            crate::names::number(p)
+        )),
         v => Ok(v),
     }
 }
 
-/// A quantity the spool cannot do without (its filament's diameter and density): present,
-/// finite and above 0.
-fn positive(value: Option<f64>, field: &str) -> Result<f64, String> {
-    match value {
-        None => Err(format!("{field} is missing")),
-        Some(v) if !(v > 0.0) || !v.is_finite() => {
-            Err(format!("{field} is {v}, not a finite number above 0"))
-        }
-        Some(v) => Ok(v),
-    }
+/// A quantity the spool cannot do without (its filament's diameter and density); its
+/// bounds are checked with the rest of the filament ([`SpoolmanSpool::for_farm`]).
+fn present(value: Option<f64>, field: &str) -> Result<f64, String> {
+    value.ok_or_else(|| format!("{field} is missing"))
 }
 
-/// One spool of Spoolman's JSON, checked.
+/// One spool of Spoolman's JSON, read and checked with the bounds of a spool of the
+/// farm's own (see [`SpoolmanSpool::for_farm`]); what is wrong with it otherwise.
 fn spool_from_json(value: serde_json::Value) -> Result<SpoolmanSpool, String> {
     let raw: RawSpool = serde_json::from_value(value).map_err(|e| format!("not a spool ({e})"))?;
     let id = raw.id;
@@ -156,19 +208,19 @@ fn spool_from_json(value: serde_json::Value) -> Result<SpoolmanSpool, String> {
                 .name
         }
     };
-    let diameter_mm = positive(filament.diameter, "filament.diameter").map_err(at)?;
-    let density_g_cm3 = positive(filament.density, "filament.density").map_err(at)?;
-    let filament_weight = non_negative(filament.weight, "filament.weight").map_err(at)?;
-    let filament_price = non_negative(filament.price, "filament.price").map_err(at)?;
-    let initial_g = non_negative(raw.initial_weight, "initial_weight").map_err(at)?;
-    let used_g = non_negative(raw.used_weight, "used_weight")
+    let diameter_mm = present(filament.diameter, "filament.diameter").map_err(at)?;
+    let density_g_cm3 = present(filament.density, "filament.density").map_err(at)?;
+    let filament_weight = weight(filament.weight, "filament.weight").map_err(at)?;
+    let initial_g = weight(raw.initial_weight, "initial_weight").map_err(at)?;
+    let used_g = weight(raw.used_weight, "used_weight")
         .map_err(at)?
         .unwrap_or(0.0);
-    let remaining_g = non_negative(raw.remaining_weight, "remaining_weight").map_err(at)?;
-    let spool_price = non_negative(raw.price, "price").map_err(at)?;
+    let remaining_g = raw.remaining_weight;
+    let spool_price = price(raw.price, "price").map_err(at)?;
+    let filament_price = price(filament.price, "filament.price").map_err(at)?;
 
     // A spool without its own initial weight holds the filament's weight: Spoolman works
-    // out the weight left the same way.
+    // out the weight left the same way. The price per kg is checked with the filament.
     let per_kg = |price: Option<f64>, grams: Option<f64>| match (price, grams) {
         (Some(price), Some(grams)) if grams > 0.0 => Some(price / grams * 1000.0),
         _ => None,
@@ -179,7 +231,7 @@ fn spool_from_json(value: serde_json::Value) -> Result<SpoolmanSpool, String> {
     }
     .or_else(|| per_kg(filament_price, filament_weight));
 
-    Ok(SpoolmanSpool {
+    let spool = SpoolmanSpool {
         id,
         filament_name: filament.name,
         material: filament.material,
@@ -192,7 +244,9 @@ fn spool_from_json(value: serde_json::Value) -> Result<SpoolmanSpool, String> {
         remaining_g,
         price_per_kg,
         archived: raw.archived.unwrap_or(false),
-    })
+    };
+    spool.for_farm().map_err(|e| at(e.to_string()))?;
+    Ok(spool)
 }
 
 /// Spoolman's explanation in an error answer: its own `{"message": …}`, or FastAPI's
@@ -251,8 +305,10 @@ impl Spoolman {
         }
     }
 
-    /// Every spool, archived ones too (flagged): Spoolman leaves them out unless asked.
-    pub async fn spools(&self) -> Result<Vec<SpoolmanSpool>, SpoolmanError> {
+    /// Every spool, archived ones too (flagged): Spoolman leaves them out unless asked. A
+    /// spool outside the bounds of a spool of the farm's own is set aside with why, and
+    /// the others are taken all the same; only an answer that is not a list fails.
+    pub async fn spools(&self) -> Result<SpoolList, SpoolmanError> {
         let (request, body) = self
             .call(
                 hyper::Method::GET,
@@ -260,16 +316,27 @@ impl Spoolman {
                 None,
             )
             .await?;
-        let bad = |detail: String| SpoolmanError::BadAnswer {
-            request: request.clone(),
-            detail,
-        };
-        let list: Vec<serde_json::Value> = serde_json::from_slice(&body)
-            .map_err(|e| bad(format!("not a JSON list of spools ({e})")))?;
-        list.into_iter()
-            .enumerate()
-            .map(|(i, v)| spool_from_json(v).map_err(|d| bad(format!("item {i}: {d}"))))
-            .collect()
+        let list: Vec<serde_json::Value> =
+            serde_json::from_slice(&body).map_err(|e| SpoolmanError::BadAnswer {
+                request: request.clone(),
+                detail: format!("not a JSON list of spools ({e})"),
+            })?;
+        let mut read = SpoolList::default();
+        for (i, value) in list.into_iter().enumerate() {
+            let spoolman = value["id"].as_u64();
+            match spool_from_json(value) {
+                Ok(spool) => read.spools.push(spool),
+                Err(reason) => read.set_aside.push(SetAside {
+                    spoolman,
+                    // One without an id is named by its place in the list.
+                    reason: match spoolman {
+                        Some(_) => reason,
+                        None => format!("item {i}: {reason}"),
+                    },
+                }),
+            }
+        }
+        Ok(read)
     }
 
     /// Spool `id`; an unknown one is Spoolman's 404.
@@ -499,7 +566,7 @@ mod tests {
             ),
             (
                 json!({"id": 4, "filament": {"density": 0, "diameter": 1.75}}),
-                "filament.density is 0",
+                "spool 4: density: 0.5 to 5 g/cm³, got 0",
             ),
             (
                 json!({"id": 4, "filament": {"density": "x", "diameter": 1.75}}),
@@ -511,15 +578,15 @@ mod tests {
             ),
             (
                 json!({"id": 4, "filament": {"density": 1.2, "diameter": 1.75}, "used_weight": -3}),
-                "used_weight is -3",
+                "spool 4: used_weight: 0 to 100000 g, got -3",
             ),
             (
                 json!({"id": 4, "filament": {"density": 1.2, "diameter": 1.75}, "remaining_weight": -0.5}),
-                "remaining_weight is -0.5",
+                "spool 4: remaining_weight: 0 to 100000 g, got -0.5",
             ),
             (
                 json!({"id": 4, "filament": {"density": 1.2, "diameter": 1.75, "price": -1}}),
-                "filament.price is -1",
+                "spool 4: filament.price: a price of at least 0, got -1",
             ),
         ];
         for (value, expected) in cases {
@@ -533,6 +600,152 @@ mod tests {
         if let Ok(value) = parsed {
             assert!(spool_from_json(value).is_err());
         }
+    }
+
+    /// A spool of Spoolman's is held to the bounds of a spool of the farm's own, by the
+    /// same check: its weights, diameter, density, price per kg, colour and names. The
+    /// attack run's `remaining_weight: 1e308` and `color_hex: "zzzzzz"` were taken.
+    #[test]
+    fn a_spool_is_held_to_the_farms_bounds() {
+        /// A change made to a measured spool's JSON.
+        type Edit<'a> = &'a dyn Fn(&mut serde_json::Value);
+        let with = |edit: Edit| {
+            let mut v = measured();
+            edit(&mut v);
+            spool_from_json(v)
+        };
+        let cases: Vec<(Edit, &str)> = vec![
+            (
+                &|v| v["remaining_weight"] = json!(1e308),
+                "spool 1: remaining_weight: 0 to 100000 g, got 1e308",
+            ),
+            (
+                &|v| v["remaining_weight"] = json!(100_000.5),
+                "remaining_weight: 0 to 100000 g, got 100000.5",
+            ),
+            (
+                &|v| v["remaining_weight"] = json!(-50.0),
+                "remaining_weight: 0 to 100000 g, got -50",
+            ),
+            (
+                &|v| v["initial_weight"] = json!(1e300),
+                "initial_weight: 0 to 100000 g",
+            ),
+            (
+                &|v| v["filament"]["weight"] = json!(-1.0),
+                "filament.weight: 0 to 100000 g",
+            ),
+            (
+                &|v| v["filament"]["color_hex"] = json!("zzzzzz"),
+                "colour_hex: six hex digits (RRGGBB), got \"zzzzzz\"",
+            ),
+            (
+                &|v| v["filament"]["color_hex"] = json!("12345"),
+                "colour_hex: six hex digits",
+            ),
+            (
+                &|v| v["filament"]["color_hex"] = json!("ééé"),
+                "colour_hex: six hex digits",
+            ),
+            (
+                &|v| v["filament"]["diameter"] = json!(0.0),
+                "diameter_mm: 1 to 3.5 mm, got 0",
+            ),
+            (
+                &|v| v["filament"]["diameter"] = json!(1e308),
+                "diameter_mm: 1 to 3.5 mm",
+            ),
+            (
+                &|v| v["filament"]["density"] = json!(1e-9),
+                "density: 0.5 to 5 g/cm³",
+            ),
+            (
+                &|v| v["filament"]["price"] = json!(1e12),
+                "price_per_kg: 0 to 100000",
+            ),
+            (
+                &|v| v["price"] = json!(-3),
+                "price: a price of at least 0, got -3",
+            ),
+            (
+                &|v| v["filament"]["material"] = json!("PLA\u{202e}GTEP"),
+                "material: \"PLA\\u{202e}GTEP\" contains characters that reverse",
+            ),
+            (
+                &|v| v["filament"]["material"] = json!("PLA\u{1b}[31m"),
+                "material: \"PLA\\u{1b}[31m\" contains control characters",
+            ),
+            (
+                &|v| v["filament"]["material"] = json!("x".repeat(41)),
+                "material: 1 to 40 characters",
+            ),
+            (
+                &|v| v["filament"]["vendor"]["name"] = json!("Acme\u{2066}"),
+                "brand: \"Acme\\u{2066}\" contains characters that reverse",
+            ),
+            (
+                &|v| v["filament"]["vendor"]["name"] = json!("b".repeat(81)),
+                "brand: 1 to 80 characters",
+            ),
+        ];
+        for (edit, expected) in cases {
+            let error = with(edit).unwrap_err();
+            assert!(error.contains(expected), "{error} (expected {expected})");
+        }
+        // At the bounds, and Spoolman's own forms: taken.
+        let taken: Vec<Edit> = vec![
+            &|v| v["remaining_weight"] = json!(100_000.0),
+            &|v| v["remaining_weight"] = json!(0.0),
+            &|v| v["filament"]["color_hex"] = json!("FF8800CC"),
+            &|v| v["filament"]["color_hex"] = json!(null),
+            &|v| v["filament"]["material"] = json!("  "),
+            &|v| v["filament"]["vendor"]["name"] = json!(""),
+            &|v| v["filament"]["material"] = json!("PLA+ Ζ"),
+        ];
+        for edit in taken {
+            let spool = with(edit).unwrap();
+            spool.for_farm().unwrap();
+        }
+        // An eight-digit colour keeps its RRGGBB; a blank material is `unknown`.
+        let spool = with(&|v| v["filament"]["color_hex"] = json!("FF8800CC")).unwrap();
+        assert_eq!(
+            spool.for_farm().unwrap().0.colour_hex.as_deref(),
+            Some("ff8800")
+        );
+        let spool = with(&|v| v["filament"]["material"] = json!(" ")).unwrap();
+        assert_eq!(spool.for_farm().unwrap().0.material, "UNKNOWN");
+    }
+
+    /// In a list, a spool outside the bounds (or not a spool at all) is set aside with
+    /// why, and the rest is taken: one bad spool once failed the whole list.
+    #[tokio::test]
+    async fn a_bad_spool_is_set_aside_from_the_list_alone() {
+        let mut negative = measured();
+        negative["id"] = json!(2);
+        negative["remaining_weight"] = json!(-5.0);
+        let mut third = measured();
+        third["id"] = json!(3);
+        let list = json!([measured(), negative, {"no": "id"}, third]).to_string();
+        let answer = format!(
+            "HTTP/1.1 200 OK\r\nContent-Length: {}\r\n\r\n{list}",
+            list.len()
+        );
+        let (spoolman, _request) = one_answer(Some(answer.into_bytes())).await;
+        let read = spoolman.spools().await.unwrap();
+        let ids: Vec<u64> = read.spools.iter().map(|s| s.id).collect();
+        assert_eq!(ids, [1, 3]);
+        assert_eq!(read.set_aside.len(), 2, "{:?}", read.set_aside);
+        assert_eq!(read.set_aside[0].spoolman, Some(2));
+        assert_eq!(
+            read.set_aside[0].reason,
+            "spool 2: remaining_weight: 0 to 100000 g, got -5"
+        );
+        assert_eq!(read.set_aside[1].spoolman, None);
+        assert!(
+            read.set_aside[1].reason.starts_with("item 2: not a spool"),
+            "{}",
+            read.set_aside[1].reason
+        );
     }
 
     #[test]

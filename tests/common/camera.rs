@@ -2,8 +2,10 @@
 //! moving gradient) encoded to JPEG frames by ffmpeg itself, served on 127.0.0.1 the ways
 //! camera servers publish them: `/snapshot` (one JPEG, as ustreamer's) and `/stream` (an
 //! MJPEG stream, `multipart/x-mixed-replace`). And the ways a camera goes wrong: `/hang`
-//! (reads the request, never answers), `/html` (an error page), `/huge` (a 50 MB "JPEG")
-//! and `/noboundary` (a stream that never sends a boundary).
+//! (reads the request, never answers), `/html` (an error page), `/huge` (a 50 MB "JPEG"),
+//! `/noboundary` (a stream that never sends a boundary), and streams whose parts declare a
+//! `Content-Length` shorter than the JPEG they carry: `/cut` every part, `/sometimes-cut`
+//! every other one (the whole JPEG is sent all the same, as such cameras do).
 
 use super::daemon::Killed;
 use std::io::{BufRead, BufReader, Read, Write};
@@ -135,32 +137,9 @@ fn serve(mut conn: TcpStream, latest: &Mutex<(u64, Vec<u8>)>, stop: &AtomicBool)
             );
             let _ = conn.write_all(&jpeg);
         }
-        "/stream" => {
-            if conn
-                .write_all(b"HTTP/1.1 200 OK\r\nContent-Type: multipart/x-mixed-replace;boundary=testframe\r\nConnection: close\r\n\r\n")
-                .is_err()
-            {
-                return;
-            }
-            let mut sent = 0;
-            while !stop.load(Ordering::SeqCst) {
-                let (seq, jpeg) = frame();
-                if seq != sent {
-                    sent = seq;
-                    let head = format!(
-                        "--testframe\r\nContent-Type: image/jpeg\r\nContent-Length: {}\r\n\r\n",
-                        jpeg.len()
-                    );
-                    if conn.write_all(head.as_bytes()).is_err()
-                        || conn.write_all(&jpeg).is_err()
-                        || conn.write_all(b"\r\n").is_err()
-                    {
-                        return;
-                    }
-                }
-                std::thread::sleep(Duration::from_millis(20));
-            }
-        }
+        "/stream" => stream(conn, latest, stop, |_| false),
+        "/cut" => stream(conn, latest, stop, |_| true),
+        "/sometimes-cut" => stream(conn, latest, stop, |seq| seq % 2 == 0),
         "/hang" => {
             while !stop.load(Ordering::SeqCst) {
                 std::thread::sleep(Duration::from_millis(100));
@@ -201,5 +180,43 @@ fn serve(mut conn: TcpStream, latest: &Mutex<(u64, Vec<u8>)>, stop: &AtomicBool)
                 b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
             );
         }
+    }
+}
+
+/// Serves the frames as an MJPEG stream, each part's `Content-Length` two thirds of its
+/// JPEG where `lie(frame number)`.
+fn stream(
+    mut conn: TcpStream,
+    latest: &Mutex<(u64, Vec<u8>)>,
+    stop: &AtomicBool,
+    lie: fn(u64) -> bool,
+) {
+    if conn
+        .write_all(b"HTTP/1.1 200 OK\r\nContent-Type: multipart/x-mixed-replace;boundary=testframe\r\nConnection: close\r\n\r\n")
+        .is_err()
+    {
+        return;
+    }
+    let mut sent = 0;
+    while !stop.load(Ordering::SeqCst) {
+        let (seq, jpeg) = latest.lock().unwrap().clone();
+        if seq != sent {
+            sent = seq;
+            let length = if lie(seq) {
+                jpeg.len() * 2 / 3
+            } else {
+                jpeg.len()
+            };
+            let head = format!(
+                "--testframe\r\nContent-Type: image/jpeg\r\nContent-Length: {length}\r\n\r\n"
+            );
+            if conn.write_all(head.as_bytes()).is_err()
+                || conn.write_all(&jpeg).is_err()
+                || conn.write_all(b"\r\n").is_err()
+            {
+                return;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
     }
 }

@@ -179,30 +179,25 @@ pub fn wait_for(
     );
 }
 
-/// Polls the status for `window`, asserting `check` on every answer, and returns the last:
-/// for what must not happen (a gate that holds, a pause that stays paused), which no event
-/// announces. Callers first wait for the event after which it would have happened.
-pub fn holds_for(
+/// Waits until each of `printers` has looked for a job in the job store's version of
+/// `since` (a status answer) or a later one and taken none (its `looked_at`): the event
+/// after which a ready job it could take would have been taken, so what it did not do
+/// by then is proven not done, with no window watched. Returns that status.
+pub fn passed_over(
     config: &Path,
     log: &Path,
-    window: Duration,
+    since: &Value,
+    printers: &[&str],
     what: &str,
-    check: impl Fn(&Value) -> bool,
 ) -> Value {
-    let start = Instant::now();
-    loop {
-        let s = status(config).unwrap_or_else(|| panic!("no status while checking {what}"));
-        assert!(
-            check(&s),
-            "{what} did not hold\nstatus: {}\nlog:\n{}",
-            serde_json::to_string_pretty(&s).unwrap(),
-            std::fs::read_to_string(log).unwrap_or_default()
-        );
-        if start.elapsed() >= window {
-            return s;
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    let version = since["version"].as_u64().expect("a status has its version");
+    wait_for(config, log, Duration::from_secs(60), what, |s| {
+        printers.iter().all(|name| {
+            super::printer(s, name)["looked_at"]
+                .as_u64()
+                .is_some_and(|v| v >= version)
+        })
+    })
 }
 
 /// The state of the job for `file` in a status answer ("" when there is none).

@@ -65,6 +65,25 @@ pub fn slice_plain_and_enhanced(
     (paths, started.elapsed().as_secs_f64())
 }
 
+/// A pre-sliced file of `moves` short extruding moves stacked on one spot of the bed, all
+/// within a square `within_mm` a side on the first layer (a purge or calibration pattern
+/// does this; a file crafted so keeps a preview busy). It marks no kinds, so all of it is
+/// drawn.
+pub fn stacked_moves(moves: usize, within_mm: f64) -> String {
+    let mut g = String::from("G90\nM83\nG1 Z0.2 F600\nG1 X100 Y100 F3000\n");
+    // A zig-zag across the square, each stroke a little further along the other side.
+    for i in 0..moves {
+        let along = if i % 2 == 0 { within_mm } else { 0.0 };
+        let across = within_mm * (i % 7) as f64 / 6.0;
+        g += &format!(
+            "G1 X{:.4} Y{:.4} E0.01 F1200\n",
+            100.0 + along,
+            100.0 + across
+        );
+    }
+    g
+}
+
 pub fn data_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data")
 }
@@ -253,6 +272,7 @@ pub fn subdivide(mesh: &Mesh, k: usize) -> Mesh {
     }
     Mesh { vertices, faces }
 }
+pub mod bed;
 pub mod camera;
 pub mod daemon;
 pub mod farm;

@@ -101,6 +101,10 @@ pub struct RelayFaults {
     pub jitter: Duration,
     /// Close the host's port after this many numbered host lines (an unplugged cable).
     pub close_after: Option<u64>,
+    /// Once a host line containing the first text crosses, the second is sent to the
+    /// printer right behind it, once: a line slipped in between the host's (a second
+    /// writer on the port), e.g. one with `M110` in it that renumbers Marlin.
+    pub inject: Option<(String, String)>,
 }
 
 /// What the relay saw.
@@ -170,16 +174,56 @@ pub fn parse_position_e(line: &str) -> Option<[f64; 4]> {
 pub struct Relay {
     device: PathBuf,
     log: Arc<Mutex<RelayLog>>,
+    /// Lines the test itself sends to the firmware (see [`Relay::ask`]).
+    direct: Arc<Mutex<Vec<u8>>>,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
     server: Child,
     _dir: tempfile::TempDir,
+    _slot: Slot,
+}
+
+/// Firmware instances running at once in this test process, at most one per core
+/// (`CRISPEN_FIRMWARE_AT_ONCE` overrides). Each keeps its printer's real time only with
+/// its share of a core (the AVR emulator alone takes about 40 % of one): a starved
+/// firmware boots and answers slower than any real printer, and the host rightly gives up
+/// on it, which would test the machine's load rather than the host.
+static RUNNING: (Mutex<usize>, std::sync::Condvar) = (Mutex::new(0), std::sync::Condvar::new());
+
+/// One firmware's place among [`RUNNING`], given back when dropped: held by each relay,
+/// and by a test that runs a firmware itself.
+pub struct Slot;
+
+impl Slot {
+    pub fn take() -> Slot {
+        let limit = std::env::var("CRISPEN_FIRMWARE_AT_ONCE")
+            .ok()
+            .and_then(|v| v.parse::<usize>().ok())
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(2, |n| n.get()))
+            .max(1);
+        let (running, freed) = &RUNNING;
+        let mut n = running.lock().unwrap_or_else(|e| e.into_inner());
+        while *n >= limit {
+            n = freed.wait(n).unwrap_or_else(|e| e.into_inner());
+        }
+        *n += 1;
+        Slot
+    }
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        let (running, freed) = &RUNNING;
+        *running.lock().unwrap_or_else(|e| e.into_inner()) -= 1;
+        freed.notify_one();
+    }
 }
 
 impl Relay {
     /// Serve `build` from `firmware` and put the relay in front of it. The firmware boots
     /// when the host opens [`Relay::device_path`].
     pub fn start(firmware: &Path, build: Build, faults: RelayFaults) -> Relay {
+        let slot = Slot::take();
         let dir = tempfile::tempdir().unwrap();
         let link = dir.path().join("printer");
         let mut cmd = match build {
@@ -229,19 +273,23 @@ impl Relay {
 
         let log = Arc::new(Mutex::new(RelayLog::default()));
         let stop = Arc::new(AtomicBool::new(false));
+        let direct = Arc::new(Mutex::new(Vec::new()));
         let thread = {
             let log = log.clone();
             let stop = stop.clone();
+            let direct = direct.clone();
             let master = pty.master;
-            std::thread::spawn(move || run(master, link, faults, log, stop))
+            std::thread::spawn(move || run(master, link, faults, log, stop, direct))
         };
         Relay {
             device,
             log,
+            direct,
             stop,
             thread: Some(thread),
             server,
             _dir: dir,
+            _slot: slot,
         }
     }
 
@@ -251,6 +299,31 @@ impl Relay {
 
     pub fn log(&self) -> RelayLog {
         self.log.lock().unwrap().clone()
+    }
+
+    /// Asks the firmware itself, past the host: sends `line` (unnumbered) and returns the
+    /// first line it writes afterwards that starts with `answer`, waiting up to `limit`.
+    /// The host's port must still be open (the relay ends the firmware's with it).
+    pub fn ask(&self, line: &str, answer: &str, limit: Duration) -> Option<String> {
+        let from = self.log().printer_lines.len();
+        self.direct
+            .lock()
+            .unwrap()
+            .extend_from_slice(format!("{line}\n").as_bytes());
+        let deadline = Instant::now() + limit;
+        loop {
+            let log = self.log();
+            if let Some(l) = log.printer_lines[from..]
+                .iter()
+                .find(|l| l.starts_with(answer))
+            {
+                return Some(l.clone());
+            }
+            if Instant::now() >= deadline {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
     }
 
     /// Waits (up to `limit`) for the firmware's own answer to the last `M114` sent to it
@@ -364,8 +437,10 @@ fn run(
     faults: RelayFaults,
     log: Arc<Mutex<RelayLog>>,
     stop: Arc<AtomicBool>,
+    direct: Arc<Mutex<Vec<u8>>>,
 ) {
     let mut rng = ChaCha8Rng::seed_from_u64(faults.seed);
+    let mut inject = faults.inject.clone();
     let mut master = Some(master);
     let mut printer: Option<File> = None;
     let mut to_printer = Lane::new();
@@ -467,7 +542,13 @@ fn run(
                         '>',
                         String::from_utf8_lossy(&line).trim_end().to_string(),
                     ));
+                    let slipped = inject
+                        .take_if(|(after, _)| String::from_utf8_lossy(&line).contains(&**after));
                     to_printer.push(due, line);
+                    if let Some((_, extra)) = slipped {
+                        log.wire.push((at, '>', format!("{extra} (slipped in)")));
+                        to_printer.push(due, format!("{extra}\n").into_bytes());
+                    }
                 }
             }
         }
@@ -515,6 +596,12 @@ fn run(
                     }
                 }
                 Err(_) => {}
+            }
+        }
+        let asked = std::mem::take(&mut *direct.lock().unwrap());
+        if !asked.is_empty() {
+            if let Some(p) = &printer {
+                write_all(p, &asked, &stop);
             }
         }
         let now = Instant::now();

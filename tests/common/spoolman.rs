@@ -1,8 +1,8 @@
 //! A real Spoolman server (0.26.1) for one test, from the folder `CRISPEN_SPOOLMAN_DIR`
 //! names (its `serve-spoolman PORT DATA_DIR` script): on a free port of 127.0.0.1, with a
 //! fresh SQLite database in a temporary folder, stopped when the value is dropped. The
-//! server is not part of the repository, so without the variable a test says it is
-//! skipped and returns.
+//! server is not part of the repository: the tests that use it are `ignore`d, with the
+//! reason, where the variable was unset at build time (the `crispen_spoolman` cfg).
 #![allow(dead_code)] // each test binary uses its own part of this module
 
 use super::http;
@@ -27,23 +27,23 @@ pub struct SpoolmanServer {
     data: tempfile::TempDir,
 }
 
-/// The folder with `serve-spoolman`, or None (and a line saying the test is skipped) when
-/// `CRISPEN_SPOOLMAN_DIR` is unset.
-fn spoolman_dir() -> Option<PathBuf> {
-    let Some(dir) = std::env::var_os("CRISPEN_SPOOLMAN_DIR").filter(|d| !d.is_empty()) else {
-        println!(
-            "spoolman: skipped, CRISPEN_SPOOLMAN_DIR is unset (the folder with the real \
-             server's serve-spoolman)"
+/// The folder with `serve-spoolman`, from `CRISPEN_SPOOLMAN_DIR`. The tests that start a
+/// server are `ignore`d where the variable was unset at build time (`build.rs` sets the
+/// `crispen_spoolman` cfg), so this is reached without it only through `--ignored`.
+fn spoolman_dir() -> PathBuf {
+    let dir = std::env::var_os("CRISPEN_SPOOLMAN_DIR")
+        .filter(|d| !d.is_empty())
+        .map(PathBuf::from)
+        .expect(
+            "set CRISPEN_SPOOLMAN_DIR to the folder with the real Spoolman server \
+             (serve-spoolman) to run this test",
         );
-        return None;
-    };
-    let dir = PathBuf::from(dir);
     assert!(
         dir.join("serve-spoolman").exists(),
         "CRISPEN_SPOOLMAN_DIR={} has no serve-spoolman",
         dir.display()
     );
-    Some(dir)
+    dir
 }
 
 /// A port nothing listens on now. Another process could take it before Spoolman binds it;
@@ -64,10 +64,9 @@ enum Start {
 }
 
 impl SpoolmanServer {
-    /// Starts a server and waits until it says it is healthy; None, with a line printed,
-    /// when `CRISPEN_SPOOLMAN_DIR` is unset.
-    pub fn start() -> Option<SpoolmanServer> {
-        let dir = spoolman_dir()?;
+    /// Starts a server and waits until it says it is healthy.
+    pub fn start() -> SpoolmanServer {
+        let dir = spoolman_dir();
         let data = tempfile::Builder::new()
             .prefix("crispen-spoolman.")
             .tempdir()
@@ -84,7 +83,7 @@ impl SpoolmanServer {
             server.url = format!("http://{}", server.addr);
             server.child = Some(server.spawn(&dir, port));
             if let Start::Healthy = server.wait_healthy(port) {
-                return Some(server);
+                return server;
             }
         }
         panic!(
@@ -100,6 +99,8 @@ impl SpoolmanServer {
         Command::new(dir.join("serve-spoolman"))
             .arg(port.to_string())
             .arg(self.data.path().join("db"))
+            // Its access log goes to a file: line by line, so a test can follow it.
+            .env("PYTHONUNBUFFERED", "1")
             .process_group(0)
             .stdin(Stdio::null())
             .stdout(log.try_clone().unwrap())
@@ -234,6 +235,26 @@ impl SpoolmanServer {
             })),
         );
         spool["id"].as_u64().unwrap()
+    }
+
+    /// A spool of a new filament, both as given (Spoolman's own fields: what its API
+    /// takes, whatever crispen makes of it); its id. `filament` needs no vendor.
+    pub fn create_raw(&self, filament: Value, spool: Value) -> u64 {
+        let filament = self.call("POST", "/api/v1/filament", Some(filament));
+        let mut spool = spool;
+        spool["filament_id"] = filament["id"].clone();
+        self.call("POST", "/api/v1/spool", Some(spool))["id"]
+            .as_u64()
+            .unwrap()
+    }
+
+    /// How many times the spools were listed (`GET /api/v1/spool?...`), from the
+    /// server's access log: a client's reading of them, seen from the server.
+    pub fn listings(&self) -> usize {
+        self.log()
+            .lines()
+            .filter(|l| l.contains("\"GET /api/v1/spool?"))
+            .count()
     }
 
     /// Spoolman's own JSON for spool `id`.

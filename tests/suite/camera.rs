@@ -11,6 +11,7 @@ use common::camera::{TestCamera, HEIGHT, WIDTH};
 use common::daemon::{Daemon, Killed};
 use common::http::{request, Answer};
 use common::job_by_file;
+use crispen::camera::mjpeg::Part;
 use serde_json::Value;
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -50,6 +51,14 @@ fn decode(jpeg: &[u8]) -> image::RgbImage {
     image::load_from_memory_with_format(jpeg, image::ImageFormat::Jpeg)
         .expect("a JPEG")
         .to_rgb8()
+}
+
+/// A stream's part that must be a whole frame.
+fn whole(part: Result<Part, crispen::camera::fetch::FetchError>) -> Vec<u8> {
+    match part {
+        Ok(Part::Frame(jpeg)) => jpeg,
+        other => panic!("not a whole frame: {other:?}"),
+    }
 }
 
 /// Frames and size of a video, by ffprobe.
@@ -106,8 +115,7 @@ async fn ffmpegs_own_mjpeg_server_is_read_frame_by_frame() {
     };
     let mut frames = Vec::new();
     for _ in 0..5 {
-        let jpeg = stream.next().await.expect("a frame");
-        let picture = decode(&jpeg);
+        let picture = decode(&whole(stream.next().await));
         assert_eq!(picture.dimensions(), (WIDTH, HEIGHT));
         frames.push(picture);
     }
@@ -446,7 +454,7 @@ fn prints_keep_their_snapshots_and_timelapse_and_bad_cameras_change_nothing() {
             .expect("crispen's own stream");
         let mut frames = Vec::new();
         for _ in 0..2 {
-            frames.push(decode(&s.next().await.expect("a frame")));
+            frames.push(decode(&whole(s.next().await)));
         }
         frames
     });
@@ -560,4 +568,301 @@ fn prints_keep_their_snapshots_and_timelapse_and_bad_cameras_change_nothing() {
         "const img = document.querySelector('#live');
          return !!img && img.naturalWidth === 150 && /frame of/.test(document.querySelector('#livestate').textContent);",
     );
+}
+
+/// A daemon with one printer per `(name, camera table)`, each fed by a folder of its name.
+fn start_printers(root: &Path, printers: &[(&str, String)]) -> Farm {
+    let mut config = String::from(
+        "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+         [farm]\nsettle_s = 0.3\nmax_heating = 8\n\
+         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\nread_only_without_key = true\n\
+         [camera]\nrefresh_s = 1\ntimeout_s = 2\n",
+    );
+    std::fs::write(root.join("key"), format!("{KEY}\n")).unwrap();
+    for (name, camera) in printers {
+        std::fs::create_dir_all(root.join(name)).unwrap();
+        config += &format!(
+            "[[printer]]\nname = \"{name}\"\nfirmware = \"marlin2\"\n\
+             [printer.simulate]\ntime_scale = 0.3\n[printer.camera]\n{camera}\n\
+             [[folder]]\npath = \"{name}\"\nheight_mm = 25\nprinters = [\"{name}\"]\n"
+        );
+    }
+    let file = root.join("crispen.toml");
+    std::fs::write(&file, config).unwrap();
+    let log = root.join("daemon.log");
+    let daemon = Daemon::start(&file, &log);
+    let addr = common::daemon::http_address(&log);
+    Farm {
+        _daemon: daemon,
+        addr,
+        log,
+    }
+}
+
+impl Farm {
+    fn camera(&self, printer: &str) -> Value {
+        let cams = get(&self.addr, "/api/v1/cameras").json();
+        cams.as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["printer"] == printer)
+            .unwrap_or_else(|| panic!("no camera for {printer}: {cams}"))
+            .clone()
+    }
+
+    fn wait_camera(&self, printer: &str, what: &str, check: impl Fn(&Value) -> bool) -> Value {
+        common::http::poll_status(
+            Duration::from_secs(60),
+            what,
+            &self.log,
+            || self.camera(printer),
+            check,
+        )
+    }
+
+    /// The job's camera section once the recorder has said its last word on it: its
+    /// timelapse made or given up, or every layer said to have no frame (then there is no
+    /// timelapse to make).
+    fn finished_camera(&self, job: &str) -> Value {
+        common::http::poll_status(
+            Duration::from_secs(60),
+            "the job's timelapse made or given up, or every layer said to have no frame",
+            &self.log,
+            || get(&self.addr, &format!("/api/v1/jobs/{job}")).json()["camera"].clone(),
+            |c| {
+                // With no frame at all there is no timelapse to make: the layers said
+                // missing, the last one included, are the recorder's last word.
+                let none_taken = c["missing"].as_array().is_some_and(|m| {
+                    m.len() == 1 && m[0]["first"] == 1 && m[0]["last"] == c["layers"]
+                });
+                !c["timelapse"].is_null() || !c["timelapse_error"].is_null() || none_taken
+            },
+        )
+    }
+}
+
+/// A camera that dies mid-print: the timelapse is short, and the job's `camera.json` and
+/// its page (in a real browser) say which layers have no frame and why (the camera went
+/// offline: its stream ended, then no connection). The frames and the layers said missing
+/// add up to the print's layers.
+#[test]
+fn a_camera_that_dies_mid_print_says_which_layers_have_no_frame() {
+    const LAYERS: u64 = 12;
+    let tmp = tempfile::tempdir().unwrap();
+    let camera = TestCamera::start(10);
+    let farm = start_printers(
+        tmp.path(),
+        &[("seen", format!("stream = \"{}\"", camera.url("/stream")))],
+    );
+    farm.wait_camera("seen", "the camera online", |c| c["state"] == "online");
+    std::fs::write(
+        tmp.path().join("seen/wall.gcode"),
+        layered_gcode_of(LAYERS as usize),
+    )
+    .unwrap();
+    // The first layer's frame is taken with its snapshot: then the camera dies.
+    let s = farm.wait_for(Duration::from_secs(120), "the job printing", |s| {
+        job_by_file(s, "wall.gcode").is_some()
+    });
+    let id = job_by_file(&s, "wall.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    common::http::poll_status(
+        Duration::from_secs(120),
+        "the first layer's snapshot",
+        &farm.log,
+        || get(&farm.addr, &format!("/api/v1/jobs/{id}")).json(),
+        |j| {
+            j["camera"]["snapshots"]
+                .as_array()
+                .is_some_and(|s| s.iter().any(|s| s["name"] == "first-layer"))
+        },
+    );
+    drop(camera);
+    farm.wait_camera("seen", "the camera offline", |c| c["state"] == "offline");
+    let j = get(&farm.addr, &format!("/api/v1/jobs/{id}")).json();
+    assert_eq!(
+        j["job"]["state"], "printing",
+        "the camera must die mid-print for this test: {j:#}"
+    );
+    farm.wait_for(Duration::from_secs(240), "the job done", |s| {
+        job_by_file(s, "wall.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    let cam = farm.finished_camera(&id);
+    assert_eq!(cam["layers"], LAYERS, "{cam:#}");
+    let missing = cam["missing"].as_array().expect("layers without a frame");
+    let mut said = 0;
+    let mut next = None;
+    for m in missing {
+        let (first, last) = (m["first"].as_u64().unwrap(), m["last"].as_u64().unwrap());
+        assert!(first <= last && next.is_none_or(|n| first >= n), "{cam:#}");
+        next = Some(last + 1);
+        said += last - first + 1;
+        assert_eq!(m["why"]["kind"], "offline", "{cam:#}");
+        assert!(
+            ["closed", "connect"].contains(&m["why"]["fault"]["kind"].as_str().unwrap_or("")),
+            "{cam:#}"
+        );
+        assert!(m["why"]["since"].as_f64().is_some() && m["at"].as_f64().is_some());
+    }
+    assert!(missing[0]["first"].as_u64() >= Some(2), "{cam:#}");
+    assert_eq!(
+        next,
+        Some(LAYERS + 1),
+        "the last layers have no frame: {cam:#}"
+    );
+    let frames = cam["timelapse"]["frames"].as_u64().expect("a timelapse");
+    assert_eq!(frames + said, LAYERS, "{cam:#}");
+    let video = tmp
+        .path()
+        .join("spool/camera")
+        .join(&id)
+        .join("timelapse.mp4");
+    assert_eq!(probe(&video).0, frames);
+    // camera.json itself, as the recorder wrote it.
+    let manifest: Value = serde_json::from_slice(
+        &std::fs::read(
+            tmp.path()
+                .join("spool/camera")
+                .join(&id)
+                .join("camera.json"),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    assert_eq!(manifest["missing"], cam["missing"]);
+    eprintln!(
+        "FIGURES a camera dead mid-print: {frames} frames of {LAYERS} layers, missing {missing:?}"
+    );
+
+    // The job page says it.
+    let browser = Browser::start(&tmp.path().join("chromium-profile"));
+    browser.go(&format!("http://{}/#job/{id}", farm.addr));
+    let first = missing[0]["first"].as_u64().unwrap();
+    let expected = if missing.len() == 1 && first < LAYERS {
+        format!("No timelapse frame of layers {first}–{LAYERS} of {LAYERS}: the camera was offline")
+    } else {
+        "No timelapse frame of layer".to_string()
+    };
+    browser.wait_until(
+        Duration::from_secs(30),
+        "the job page's missing layers",
+        &format!(
+            "const li = document.querySelectorAll('#jobpage ul.missing li');
+             const t = Array.from(li).map(l => l.textContent);
+             return (li.length === {} && t[0].startsWith({expected:?})
+               && t.every(x => /offline since .*\\((the stream ended|cannot connect)\\)/.test(x))) || t.join(' | ');",
+            missing.len()
+        ),
+    );
+    browser.screenshot(&Path::new(env!("CARGO_TARGET_TMPDIR")).join("job-camera-missing.png"));
+}
+
+/// Cameras whose MJPEG parts declare a `Content-Length` shorter than the JPEG they carry:
+/// every part (the camera is offline, says the frames are cut, gives no picture, and the
+/// job's layers have no frame for that reason), or every other one (the cut ones are
+/// failures; every picture kept is a whole JPEG that decodes strictly).
+#[test]
+fn cut_frames_are_failures_and_never_a_jobs_pictures() {
+    const LAYERS: u64 = 3;
+    let tmp = tempfile::tempdir().unwrap();
+    let camera = TestCamera::start(10);
+    let farm = start_printers(
+        tmp.path(),
+        &[
+            ("cut", format!("stream = \"{}\"", camera.url("/cut"))),
+            (
+                "sometimes",
+                format!("stream = \"{}\"", camera.url("/sometimes-cut")),
+            ),
+        ],
+    );
+    farm.wait_camera("cut", "the cut camera failing", |c| {
+        c["failures"].as_u64() > Some(2)
+    });
+    farm.wait_camera(
+        "sometimes",
+        "the other camera with frames and failures",
+        |c| c["frames"].as_u64() > Some(0) && c["failures"].as_u64() > Some(0),
+    );
+    for printer in ["cut", "sometimes"] {
+        std::fs::write(
+            tmp.path().join(printer).join("wall.gcode"),
+            layered_gcode_of(LAYERS as usize),
+        )
+        .unwrap();
+    }
+    let s = farm.wait_for(Duration::from_secs(240), "both jobs done", |s| {
+        s["jobs"]
+            .as_array()
+            .is_some_and(|j| j.len() == 2 && j.iter().all(|j| j["state"] == "done"))
+    });
+    let job_of = |printer: &str| {
+        s["jobs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|j| j["printer"] == printer)
+            .unwrap_or_else(|| panic!("no job on {printer}: {s:#}"))["id"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+
+    let cut = farm.camera("cut");
+    assert_eq!(cut["state"], "offline", "{cut}");
+    assert_eq!(cut["frames"], 0, "{cut}");
+    assert!(
+        cut["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("cut short")),
+        "{cut}"
+    );
+    let a = get(&farm.addr, "/api/v1/printers/cut/snapshot");
+    assert_eq!(a.status, 503, "{}", a.text());
+    let cam = farm.finished_camera(&job_of("cut"));
+    assert!(
+        cam["snapshots"].as_array().is_some_and(|s| s.is_empty()),
+        "{cam:#}"
+    );
+    assert!(cam["timelapse"].is_null(), "{cam:#}");
+    let missing = cam["missing"].as_array().expect("layers without a frame");
+    assert_eq!(missing.len(), 1, "{cam:#}");
+    assert_eq!(
+        (missing[0]["first"].as_u64(), missing[0]["last"].as_u64()),
+        (Some(1), Some(LAYERS)),
+        "{cam:#}"
+    );
+    assert_eq!(missing[0]["why"]["kind"], "offline", "{cam:#}");
+    assert_eq!(missing[0]["why"]["fault"]["kind"], "refused", "{cam:#}");
+    assert_eq!(
+        missing[0]["why"]["fault"]["frame"]["kind"], "cut",
+        "{cam:#}"
+    );
+
+    // Every picture of the other camera is a whole JPEG, strictly decoded.
+    let whole = |what: &str, jpeg: &[u8]| {
+        assert_eq!(
+            crispen::camera::mjpeg::check_jpeg(jpeg),
+            Ok(jpeg.len()),
+            "{what}"
+        );
+        assert_eq!(crispen::camera::picture::decodes(jpeg), Ok(()), "{what}");
+        assert_eq!(decode(jpeg).dimensions(), (WIDTH, HEIGHT), "{what}");
+    };
+    let sometimes = farm.camera("sometimes");
+    assert!(sometimes["frames"].as_u64() > Some(0), "{sometimes}");
+    assert!(sometimes["failures"].as_u64() > Some(0), "{sometimes}");
+    let a = get(&farm.addr, "/api/v1/printers/sometimes/snapshot");
+    assert_eq!(a.status, 200, "{}", a.text());
+    whole("the latest picture", &a.body);
+    let id = job_of("sometimes");
+    let cam = farm.finished_camera(&id);
+    for s in cam["snapshots"].as_array().unwrap() {
+        let file = s["file"].as_str().unwrap();
+        let a = get(&farm.addr, &format!("/api/v1/jobs/{id}/camera/{file}"));
+        assert_eq!(a.status, 200, "{}", a.text());
+        whole(file, &a.body);
+    }
 }

@@ -507,15 +507,32 @@ fn a_host_killed_mid_print_loses_its_work_to_the_others() {
         assert_eq!(p["bed_cleared"], false, "{p}");
         assert_ne!(p["state"], "printing", "{p}");
     }
-    // Nothing announces a print that does not start: host a's own status is watched for
-    // a while, and the interrupted prints must stay so throughout.
-    let watched = Instant::now();
-    while watched.elapsed() < Duration::from_millis(1500) {
-        let s = farm.host("a").status().unwrap();
-        for f in ["long-1.gcode", "long-2.gcode"] {
-            assert_eq!(state_of(&s, f), "interrupted", "{f} after a's restart");
-        }
-        std::thread::sleep(Duration::from_millis(100));
+    // A print that does not start announces nothing, but a printer that looks for a job
+    // and takes none does (its `looked_at`): once both of host a's printers have looked
+    // in the job store's version of that status or a later one, whatever they would have
+    // started they would have started by then. Until then, and after, the interrupted
+    // prints stay so.
+    let since = s["version"].as_u64().expect("a status has its version");
+    let s = farm.wait_status(
+        "a",
+        Duration::from_secs(120),
+        "host a's printers to look for a job since it came back",
+        |s| {
+            for f in ["long-1.gcode", "long-2.gcode"] {
+                assert_eq!(
+                    state_of(s, f),
+                    "interrupted",
+                    "{f} after a's restart: {s:#}"
+                );
+            }
+            ["a1", "a2"].iter().all(|p| {
+                printer(s, p).is_some_and(|p| p["looked_at"].as_u64().is_some_and(|v| v >= since))
+            })
+        },
+    );
+    for p in ["a1", "a2"] {
+        let p = printer(&s, p).unwrap();
+        assert_eq!(p["state"], "bed_not_cleared", "{p}");
     }
     printed_once_by_history(&farm, &files, &[]);
     stop_endless_slicers(&farm.root);
@@ -576,6 +593,7 @@ fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
     // During the outage: each host says so, and no printer starts a job it did not have.
     let mut said_unreachable = BTreeSet::new();
     let mut ended_while_down = BTreeSet::new();
+    let mut refused_clear: Option<String> = None;
     let mut polls: BTreeMap<String, Vec<String>> = BTreeMap::new();
     while stopped.elapsed() < Duration::from_secs(20) {
         for h in &farm.hosts {
@@ -619,6 +637,23 @@ fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
                     );
                 } else if p["state"] == "bed_not_cleared" {
                     ended_while_down.insert(file);
+                    // A person's clear cannot be written to the farm: refused, saying
+                    // what stays as it was and what to do.
+                    if refused_clear.is_none() {
+                        let name = p["name"].as_str().unwrap();
+                        let (ok, out) = h.ctl(&["clear", name]);
+                        assert!(
+                            !ok,
+                            "crispen clear {name} while the database is down: {out}"
+                        );
+                        assert!(
+                            out.contains(&format!("{name}: the bed is not marked clear"))
+                                && out.contains("the printer takes no job until it is")
+                                && out.contains("PostgreSQL"),
+                            "{out}"
+                        );
+                        refused_clear = Some(name.to_string());
+                    }
                 }
             }
         }
@@ -637,6 +672,16 @@ fn a_database_outage_loses_nothing_and_prints_nothing_twice() {
         !ended_while_down.is_empty(),
         "some prints ended during the outage (their outcomes to be recorded later)"
     );
+    // Each host reaches the database again on its own before a person's clear can be
+    // written through it.
+    for h in ["a", "b", "c"] {
+        farm.wait_status(
+            h,
+            Duration::from_secs(120),
+            "the database reached again",
+            |s| s["farm"]["database"].is_null(),
+        );
+    }
 
     // Back: the outcomes are recorded, beds cleared, the other three jobs printed.
     farm.wait_until(Duration::from_secs(600), "every job done", |last| {

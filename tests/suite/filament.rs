@@ -244,7 +244,7 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
         .as_str()
         .unwrap_or_default();
     assert!(
-        heavy.starts_with("waiting for a spool with 30 g for PETG black: c has 20 g"),
+        heavy.starts_with("waiting for 30 g of PETG black: c has 20 g;"),
         "{heavy}"
     );
     assert!(job(&s, "petg-black.gcode")["waiting"].is_null());
@@ -376,12 +376,20 @@ fn jobs_go_to_the_printers_that_hold_what_they_ask() {
 /// With Spoolman: its spools are the farm's, and after the jobs each spool's weight in
 /// Spoolman is its starting weight less what the printers executed, to the gram, a
 /// `kill -9` in the middle of a print and the restart after it included.
+#[cfg_attr(
+    not(crispen_spoolman),
+    ignore = "CRISPEN_SPOOLMAN_DIR was unset at build time"
+)]
 #[test]
 fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
-    let Some(spoolman) = common::spoolman::SpoolmanServer::start() else {
-        return;
-    };
+    let spoolman = common::spoolman::SpoolmanServer::start();
     let pla_id = spoolman.create_spool("PLA", "ffffff", "Acme", 1000.0, 0.0, 20.0, 1.75);
+    // A filament no farm spool could be (a density of 80 g/cm³), between the two: it is
+    // set aside alone, with why, and the others are taken (it was taken as it was).
+    let unlikely = spoolman.create_raw(
+        serde_json::json!({"material": "PLA", "density": 80.0, "diameter": 1.75, "weight": 1000.0}),
+        serde_json::json!({}),
+    );
     let petg_id = spoolman.create_spool("PETG", "000000", "Acme", 500.0, 100.0, 30.0, 1.75);
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path();
@@ -413,6 +421,18 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
             assert_eq!(spool(&list, &pla)["colour"], "white");
             assert_eq!(spool(&list, &petg)["remaining_g"], 400.0);
             assert_eq!(spool(&list, &petg)["price_per_kg"], 30.0);
+            let aside = &list["set_aside"];
+            assert_eq!(aside.as_array().map(Vec::len), Some(1), "{list:#}");
+            assert_eq!(aside[0]["id"], format!("sm{unlikely}"));
+            assert_eq!(
+                aside[0]["reason"],
+                format!("spool {unlikely}: density: 0.5 to 5 g/cm³, got 80")
+            );
+            assert!(list["spools"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .all(|s| s["id"] != format!("sm{unlikely}")));
             break;
         }
         assert!(
@@ -437,6 +457,32 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
         ],
     );
     assert!(!ok && out.contains("Spoolman"), "{out}");
+    // The spool set aside is not loaded, and says why; `crispen spools` lists it apart.
+    let (ok, out) = ctl(&config, &["load", "a", "--spool", &format!("sm{unlikely}")]);
+    assert!(
+        !ok && out.contains("was set aside") && out.contains("density"),
+        "{out}"
+    );
+    let (ok, table) = ctl(&config, &["spools"]);
+    assert!(ok, "{table}");
+    let aside = table.split("set aside").nth(1).unwrap_or_default();
+    assert!(
+        aside.contains(&format!("sm{unlikely}")) && aside.contains("got 80"),
+        "{table}"
+    );
+    // Logged when it was first set aside, not at each read: two reads later, still once.
+    let listed = spoolman.listings();
+    let started = Instant::now();
+    while spoolman.listings() < listed + 2 {
+        assert!(started.elapsed() < Duration::from_secs(60), "no more reads");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let said = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .filter(|l| l.contains("a spool of Spoolman's is set aside"))
+        .count();
+    assert_eq!(said, 1, "logged once");
     for (printer, id) in [("a", &pla), ("b", &petg)] {
         let (ok, out) = ctl(&config, &["load", printer, "--spool", id]);
         assert!(ok, "{out}");
@@ -554,20 +600,126 @@ fn spoolman_holds_what_the_printers_pushed_across_a_kill() {
             "{farm_id}: shown {shown} g, Spoolman {got} g"
         );
     }
-    // Nothing is told twice: a restart leaves Spoolman as it is.
+    // Nothing is told twice: a restart leaves Spoolman as it is. The restarted daemon's
+    // first round tells Spoolman what it has not counted, then lists the spools: once
+    // Spoolman has been asked for the list, that round's telling is over.
     let before = (remaining(pla_id), remaining(petg_id));
     daemon.kill9();
+    let listed = spoolman.listings();
     let _daemon = Daemon::start(&config, &log);
-    wait_for(
-        &config,
-        &log,
-        Duration::from_secs(30),
-        "the daemon again",
-        |s| s["printers"].as_array().is_some_and(|p| p.len() == 2),
-    );
-    std::thread::sleep(Duration::from_secs(3));
+    let started = Instant::now();
+    while spoolman.listings() == listed {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "the restarted daemon never listed the spools:\n{}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
     settled("after a restart");
     assert_eq!((remaining(pla_id), remaining(petg_id)), before);
+}
+
+/// A name with a control or bidi character is refused wherever the operator gives one
+/// on the command line (a new spool's material, colour and brand, a spool's id), naming
+/// the key and showing the name escaped; and one stored before names were checked is
+/// printed escaped by `crispen spools`, never raw (a material with U+202E was taken and
+/// printed as it was).
+#[test]
+fn names_with_control_or_bidi_characters_are_refused_and_never_printed_raw() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    std::fs::create_dir_all(root.join("spool")).unwrap();
+    std::fs::write(
+        root.join("spool/filament.json"),
+        serde_json::json!({
+            "spools": {"s1": {
+                "id": "s1", "material": "PLA\u{202e}GTEP", "colour": "wh\u{1b}[31mite",
+                "brand": "Acme\u{2067}", "diameter_mm": 1.75, "density_g_cm3": 1.24,
+                "base_g": 750.0, "uses": {}, "archived": false
+            }},
+            "loaded": {},
+            "next_id": 1
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n\
+         [[printer]]\nname = \"p\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[folder]]\npath = \"hot\"\nheight_mm = 1\nprinters = [\"p\"]\n",
+    )
+    .unwrap();
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    wait_for(&config, &log, Duration::from_secs(30), "the daemon", |s| {
+        s["printers"].as_array().is_some_and(|p| p.len() == 1)
+    });
+    let raw = ['\u{202e}', '\u{1b}', '\u{2067}', '\u{7}', '\u{2028}'];
+    let (ok, table) = ctl(&config, &["spools"]);
+    assert!(ok, "{table}");
+    assert!(
+        table.contains("PLA\\u{202e}GTEP") && table.contains("wh\\u{1b}[31mite"),
+        "{table}"
+    );
+    assert!(!table.contains(raw), "raw in the table: {table:?}");
+
+    let new_spool = |material: &str, colour: &str, brand: &str| {
+        ctl(
+            &config,
+            &[
+                "load",
+                "p",
+                "--material",
+                material,
+                "--colour",
+                colour,
+                "--grams",
+                "750",
+                "--brand",
+                brand,
+            ],
+        )
+    };
+    for ((ok, out), key, shown) in [
+        (
+            new_spool("PLA\u{202e}", "white", "Acme"),
+            "material",
+            "PLA\\u{202e}",
+        ),
+        (
+            new_spool("PLA", "wh\u{7}ite", "Acme"),
+            "colour",
+            "wh\\u{7}ite",
+        ),
+        (
+            new_spool("PLA", "white", "Ac\u{2028}me"),
+            "brand",
+            "Ac\\u{2028}me",
+        ),
+        (
+            ctl(&config, &["load", "p", "--spool", "s1\u{2067}"]),
+            "spool",
+            "s1\\u{2067}",
+        ),
+    ] {
+        assert!(!ok, "{out}");
+        assert!(
+            out.contains(key) && out.contains(shown) && out.contains("contains"),
+            "{key}: {out}"
+        );
+        assert!(!out.contains(raw), "raw in the answer: {out:?}");
+    }
+    // Nothing was added; the stored spool is still the only one.
+    let list = spools(&config);
+    assert_eq!(list["spools"].as_array().unwrap().len(), 1, "{list}");
+    assert!(
+        !std::fs::read_to_string(&log).unwrap().contains(raw),
+        "raw in the log"
+    );
 }
 
 /// The dashboard in a real headless Chromium: each tile shows what its printer holds (a

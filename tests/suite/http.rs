@@ -1038,8 +1038,14 @@ fn dashboard_in_a_real_browser() {
         |s| job_by_file(s, "held.gcode").is_some_and(|j| j["held"] == false),
     );
 
-    // The job page: the report, the three pictures and the preview of the print.
-    let s = farm.status();
+    // The job page: the report, the three pictures and the preview of the print. Its
+    // wall comparison runs at the lowest CPU priority, after every preparation: the page
+    // is looked at once the daemon says it is made, however long a busy machine took.
+    let s = farm.wait_for(
+        Duration::from_secs(600),
+        "left.obj's wall comparison made",
+        |s| job_by_file(s, "left.obj").is_some_and(|j| j["comparison"]["state"] == "done"),
+    );
     let left = job_by_file(&s, "left.obj").unwrap()["id"]
         .as_str()
         .unwrap()
@@ -1078,6 +1084,76 @@ fn dashboard_in_a_real_browser() {
            || [window.innerWidth, document.documentElement.scrollWidth, ...wide.slice(0, 5)].join(' ');",
     );
     browser.screenshot(&shots.join("dashboard-phone.png"));
+}
+
+/// A job whose sidecar asks `strength = "observed"`: the observer looks at the folder's
+/// five candidates against the model printed at the farm's reference size
+/// (`[enhancement] reference_height_mm`), and the job page says which it chose and why,
+/// with every candidate's score and the views it compared.
+#[test]
+fn the_job_page_shows_what_the_observer_chose_in_a_real_browser() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start_with(
+        tmp.path(),
+        0.0,
+        "\n[enhancement]\nreference_height_mm = 50\n",
+        "",
+    );
+    let hot = tmp.path().join("hot");
+    std::fs::write(hot.join("spot.obj.toml"), "strength = \"observed\"\n").unwrap();
+    std::fs::write(hot.join("spot.obj"), spot_obj()).unwrap();
+    let s = farm.wait_for(Duration::from_secs(900), "spot.obj prepared", |s| {
+        job_by_file(s, "spot.obj").is_some_and(|j| {
+            ["ready", "printing", "done", "waiting"].contains(&j["state"].as_str().unwrap_or(""))
+                || j["state"] == "failed"
+        })
+    });
+    let job = job_by_file(&s, "spot.obj").unwrap();
+    assert_ne!(job["state"], "failed", "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    let answer = farm.get(&format!("/api/v1/jobs/{id}"), Some(KEY)).json();
+    let observed = &answer["job"]["slice_report"]["enhancement"]["observed"];
+    assert_eq!(observed["choice"], "most_alike", "{observed}");
+    assert_eq!(observed["reference_height_mm"], 50.0);
+    assert_eq!(
+        observed["candidates"].as_array().unwrap().len(),
+        5,
+        "{observed}"
+    );
+    assert!(
+        answer["pictures"]
+            .as_array()
+            .unwrap()
+            .contains(&json!("observed.png")),
+        "{answer}"
+    );
+
+    let browser = Browser::start(&tmp.path().join("chromium-profile"));
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.exec(
+        "localStorage.setItem('crispen-key', arguments[0]);",
+        json!([KEY]),
+    );
+    browser.go(&format!("http://{}/#job/{id}", farm.addr));
+    browser.call("POST", "/refresh", &json!({}));
+    browser.wait_until(
+        Duration::from_secs(30),
+        "the observer's section",
+        "const text = (q) => (document.querySelector(q) || {}).textContent || '';
+         const rows = document.querySelectorAll('table#observed tbody tr');
+         const checks = {
+           heading: text('#jobpage').includes('Strength chosen by the observer'),
+           why: /looks most like the model printed 50 mm tall, seen from 40 cm in 4 views/.test(text('#observed-why')),
+           rows: rows.length === 5,
+           chosen: document.querySelectorAll('table#observed tr.chosen').length === 1,
+           scores: Array.from(rows).every(r => /0\\.[0-9]+/.test(r.textContent)),
+           views: document.querySelector('#observed-views img')?.naturalWidth > 0,
+         };
+         const failed = Object.keys(checks).filter(k => !checks[k]);
+         return failed.length === 0 || failed.join(' ');",
+    );
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard-observed.png"));
 }
 
 /// An enhanced job's page reads as a report for an operator: once the job is prepared,

@@ -28,11 +28,27 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::path::{Path, PathBuf};
 
-/// Edges allowed to close a cycle, each with the reason it must: none. The list stays so a
+/// Edges allowed to close a cycle, each with the reason it must. The list stays so a
 /// cycle that has to be lived with for a while is named here, with its reason, rather than
 /// hidden; an entry that no longer matches an edge fails the test, so it cannot outlive
 /// its cycle.
-const ALLOWED: &[(&str, &str)] = &[];
+const ALLOWED: &[(&str, &str)] = &[
+    // The eject run (issue 43) is one of the supervisor's steps between jobs: it drives
+    // the supervisor's link, shows its state and follows its gate, all defined in
+    // `daemon/printer.rs`. Those move to a child of their own (`printer::link` or the
+    // like) once the copies, maintenance and plates of issues 44 and 45, which reshape
+    // the same file, have landed; until then one step of the file is kept out of it.
+    ("daemon::printer::eject", "daemon::printer (root)"),
+    // The observer's preparation step (issue 46) slices each candidate with the
+    // preparation's own slicing (`place`, `slice_job`, `SliceRequest`, `Step`), defined
+    // in `daemon/prepare/steps.rs`, which calls it for `strength = "observed"`. The
+    // slicing moves to a child of its own with the crate split (issue 47), which takes
+    // this layer apart anyway; until then the observer's step is kept out of the file.
+    (
+        "daemon::prepare::steps::observed",
+        "daemon::prepare::steps (root)",
+    ),
+];
 
 #[test]
 fn src_has_no_module_cycle() {

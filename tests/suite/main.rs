@@ -10,6 +10,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod bedcheck;
 mod camera;
 mod daemon;
 mod enhance;
@@ -20,7 +21,9 @@ mod http;
 mod layers;
 mod machines;
 mod mesh_io;
+mod night;
 mod notify;
+mod observe;
 mod octoprint;
 mod pauses;
 mod policy;
@@ -29,6 +32,7 @@ mod postgres;
 mod presliced;
 mod preview;
 mod print;
+mod routing;
 mod service;
 mod sim;
 mod slice;

@@ -359,7 +359,7 @@ fn an_outage_fails_calls_quickly_and_the_store_recovers() {
 /// is kept and written once it is back, and the other host sees it.
 #[test]
 fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
-    use crispen::daemon::job::{ForMachine, PrinterGate};
+    use crispen::daemon::job::ForMachine;
     use crispen::daemon::store::postgres::store::PgJobStore;
     let mut pg = PgServer::start();
     let tmp = tempfile::tempdir().unwrap();
@@ -447,11 +447,10 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
         .block_on(a.record_outcome(&job.id, JobState::Done, None, |j| j.copies_done = 1))
         .expect("an outcome that happened is kept");
     assert_eq!(done.state, JobState::Done);
-    let gate = PrinterGate {
-        bed_not_cleared: true,
-        last_job: Some(job.id.clone()),
-    };
-    rt.block_on(a.set_gate("p1", gate.clone())).unwrap();
+    rt.block_on(a.close_gate("p1", &job.id)).unwrap();
+    let gate = a.snapshot().gate("p1");
+    assert!(gate.bed_not_cleared());
+    assert_eq!(gate.last_job.as_deref(), Some(job.id.as_str()));
     assert_eq!(a.snapshot().unwritten(), 2);
     assert!(matches!(
         rt.block_on(b.transition(&job.id, JobState::Cancelled, None)),

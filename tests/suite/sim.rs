@@ -614,8 +614,10 @@ fn overrunning_the_receive_buffer_loses_bytes_and_asks_for_a_resend() {
         .into_iter()
         .filter(|c| c.starts_with("G1"))
         .collect();
-    // M109 blocks the main loop, so only the 128-byte ring takes lines (3 of 35 bytes).
-    assert_eq!(moves.len(), 3, "{moves:?}");
+    // M109 holds the main loop, but Marlin reads lines into its three free command slots
+    // while it waits (temperature.cpp:4122 `idle()`, MarlinCore.cpp:412, as the real
+    // 2.1.2.1 does); then only the 128-byte ring takes lines (3 of 35 bytes).
+    assert_eq!(moves.len(), 6, "{moves:?}");
     assert_eq!(moves.len(), first_lost - 2, "an exact prefix: {moves:?}");
     assert!(!sim.executed().contains(&"M108".to_string()));
 }
@@ -827,8 +829,14 @@ fn ultimaker2_ends_a_line_at_a_colon_and_refuses_checksums_without_numbers() {
     );
     assert!(port.drain(Duration::from_millis(200)).is_empty(), "no ok");
     assert!(job_commands(&sim).is_empty());
-    // A colon inside a comment does not end the line.
+    // A colon inside a comment does not end the line; but after a `;` the firmware keeps
+    // nothing, drops the line, and drops the next one too (`comment_mode` is cleared only by
+    // an empty line: Marlin_main.cpp:542-547, 641), as the real firmware does.
     port.send(&format!("{} ; at 01:23", numbered(1, "G1 X1")));
+    port.send(&numbered(1, "G1 X1"));
+    assert!(port.drain(Duration::from_millis(300)).is_empty());
+    assert!(job_commands(&sim).is_empty());
+    port.send(&numbered(1, "G1 X1"));
     port.until("ok");
     assert_eq!(job_commands(&sim), ["G1 X1"]);
 }

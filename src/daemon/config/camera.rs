@@ -35,6 +35,9 @@ pub(super) struct RawPrinterCamera {
     pub(super) flip_vertical: Option<bool>,
     /// Clockwise degrees: 0, 90, 180 or 270.
     pub(super) rotate: Option<i64>,
+    /// `[x, y, width, height]` of the bed in the printer's picture (after the crop and
+    /// turns), for the bed check; default: the whole picture.
+    pub(super) bed_region: Option<Vec<i64>>,
 }
 
 /// `[camera]`, checked.
@@ -114,6 +117,8 @@ impl CameraTransform {
 pub struct PrinterCamera {
     pub source: CameraSource,
     pub transform: CameraTransform,
+    /// The bed's region in the printer's picture (None: all of it), for the bed check.
+    pub bed_region: Option<crate::bedcheck::Region>,
 }
 
 const REFRESH_S: Bounds = 1.0..=3600.0;
@@ -203,23 +208,26 @@ pub(super) fn check_printer(
             ))
         }
     };
-    let crop = match raw.crop {
-        None => None,
+    let rectangle = |key: &'static str, c: Option<Vec<i64>>, whose: &str| match c {
+        None => Ok(None),
         Some(c) => {
             let ok = c.len() == 4
                 && c[..2].iter().all(|v| (0..MAX_CROP_EDGE).contains(v))
                 && c[2..].iter().all(|v| (1..=MAX_CROP_EDGE).contains(v));
             if !ok {
                 return Err((
-                    "crop",
+                    key,
                     format!(
-                        "must be [x, y, width, height] in the camera's pixels (x, y from 0, width and height from 1, each below {MAX_CROP_EDGE}), got {c:?}"
+                        "must be [x, y, width, height] in {whose} pixels (x, y from 0, width and height from 1, each below {MAX_CROP_EDGE}), got {c:?}"
                     ),
                 ));
             }
-            Some([c[0] as u32, c[1] as u32, c[2] as u32, c[3] as u32])
+            Ok(Some([c[0] as u32, c[1] as u32, c[2] as u32, c[3] as u32]))
         }
     };
+    let crop = rectangle("crop", raw.crop, "the camera's")?;
+    let bed_region = rectangle("bed_region", raw.bed_region, "the printer's picture's")?
+        .map(|[x, y, w, h]| crate::bedcheck::Region { x, y, w, h });
     let quarter_turns = match raw.rotate.unwrap_or(0) {
         0 => 0,
         90 => 1,
@@ -240,6 +248,7 @@ pub(super) fn check_printer(
             flip_vertical: raw.flip_vertical.unwrap_or(false),
             quarter_turns,
         },
+        bed_region,
     })
 }
 

@@ -34,16 +34,7 @@ pub(super) fn seconds_in(value: f64, range: &Bounds) -> Result<Duration, String>
     }
 }
 
-/// A number as an error shows it: as written for ordinary values, in exponent form when
-/// that would take more than 16 characters (`1e308`, not 309 digits).
-pub fn number(value: f64) -> String {
-    let plain = value.to_string();
-    if plain.len() <= 16 {
-        plain
-    } else {
-        format!("{value:e}")
-    }
-}
+pub use crate::names::number;
 
 /// A value as an error echoes it: at most 80 characters, the rest marked as cut.
 pub(super) fn shorten(text: &str) -> String {

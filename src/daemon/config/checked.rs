@@ -47,6 +47,8 @@ pub struct Config {
     pub camera: super::camera::CameraSettings,
     /// The farm's spools come from Spoolman (`[spoolman]`); None: crispen keeps its own.
     pub spoolman: Option<super::spoolman::SpoolmanConfig>,
+    /// The observer's reference size and time bound (`[enhancement]`).
+    pub enhancement: crate::observation::ObserveSettings,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,
@@ -167,6 +169,12 @@ pub struct PrinterConfig {
     pub hardened: bool,
     /// Its groups (`tags`).
     pub tags: Vec<String>,
+    /// Its eject sequence: `[printer.eject]`, else its machine's (checked against the
+    /// machine's G-code policy).
+    pub eject: Option<crate::machine::eject::Eject>,
+    /// How its bed is cleared after a good print (`bed_clear`), unless the job's folder
+    /// says otherwise.
+    pub bed_clear: crate::daemon::bed::ClearBy,
 }
 
 #[derive(Debug, Clone)]
@@ -189,6 +197,8 @@ pub struct FolderConfig {
     /// Copies of each model side by side on one bed, each a part of the plate that can be
     /// cancelled alone (`per_plate`, 1 by default).
     pub per_plate: u32,
+    /// How its jobs' beds are cleared (`bed_clear`); None: as each printer says.
+    pub bed_clear: Option<crate::daemon::bed::ClearBy>,
 }
 
 /// The second stage: every value of the file checked and converted, with nothing read but

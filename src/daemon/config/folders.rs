@@ -6,6 +6,7 @@ use super::check::{number, seconds_in, Bounds, Context};
 use super::checked::{FolderConfig, PrinterConfig};
 use super::error::ConfigError;
 use super::raw::RawFolder;
+use crate::daemon::filament::routing::check_asks;
 use crate::enhance::Strength;
 use std::path::{Path, PathBuf};
 
@@ -32,6 +33,10 @@ pub(super) fn check(
         );
         if f.path.as_os_str().is_empty() {
             return Err(invalid(section, "path", "must not be empty".into()));
+        }
+        // Its name is the folder's name in the API, the dashboard and uploads.
+        if let Some(problem) = crate::names::problem(&f.path.to_string_lossy()) {
+            return Err(invalid(section, "path", problem.into()));
         }
         let path = anchor(&f.path);
         if folders.iter().any(|o| o.path == path) {
@@ -159,8 +164,29 @@ fn check_folder(
         nozzle_mm: f.nozzle_mm,
         tags: f.tags.unwrap_or_default(),
         priority: f.priority.unwrap_or(0),
+        ..Default::default()
+    };
+    let bed_clear = match f.bed_clear.as_deref() {
+        None => None,
+        Some(text) => {
+            let clear = crate::daemon::bed::ClearBy::parse(text)
+                .map_err(|m| invalid(section.clone(), "bed_clear", m))?;
+            for p in printers.iter().filter(|p| f.printers.contains(&p.name)) {
+                super::printers::needs_for(clear, p.eject.is_some(), p.camera.is_some()).map_err(
+                    |m| {
+                        invalid(
+                            section.clone(),
+                            "bed_clear",
+                            format!("printer {:?}: {m}", p.name),
+                        )
+                    },
+                )?;
+            }
+            Some(clear)
+        }
     };
     Ok(FolderConfig {
+        bed_clear,
         asks,
         path,
         height_mm: f.height_mm,
@@ -184,54 +210,6 @@ pub(crate) fn check_per_plate(n: u32) -> Result<(), String> {
     } else {
         Err(format!("must be from 1 to {max}, got {n}"))
     }
-}
-
-/// Checks what a folder, a sidecar or a printer asks or holds; the error names its key.
-pub(crate) fn check_asks(
-    material: Option<&str>,
-    colour: Option<&str>,
-    nozzle_mm: Option<f64>,
-    tags: Option<&[String]>,
-    priority: Option<i32>,
-) -> Result<(), (&'static str, String)> {
-    for (key, text) in [("material", material), ("colour", colour)] {
-        if let Some(t) = text {
-            let t = t.trim();
-            if t.is_empty() || t.chars().count() > 40 || t.chars().any(char::is_control) {
-                return Err((key, format!("1 to 40 printable characters, got {t:?}")));
-            }
-        }
-    }
-    if let Some(n) = nozzle_mm {
-        if !(0.1..=2.0).contains(&n) {
-            return Err(("nozzle_mm", format!("0.1 to 2 mm, got {n}")));
-        }
-    }
-    if let Some(tags) = tags {
-        if tags.len() > crate::daemon::filament::routing::MAX_TAGS {
-            return Err((
-                "tags",
-                format!(
-                    "at most {} tags, got {}",
-                    crate::daemon::filament::routing::MAX_TAGS,
-                    tags.len()
-                ),
-            ));
-        }
-        for t in tags {
-            crate::daemon::filament::routing::check_tag(t).map_err(|m| ("tags", m))?;
-        }
-    }
-    if let Some(p) = priority {
-        let range = crate::daemon::filament::routing::PRIORITY;
-        if !range.contains(&p) {
-            return Err((
-                "priority",
-                format!("{} to {}, got {p}", range.start(), range.end()),
-            ));
-        }
-    }
-    Ok(())
 }
 
 /// A printed height in mm: what the printer can build, and enough to hold a shape.
@@ -269,17 +247,18 @@ fn normalise(path: &Path) -> PathBuf {
 /// beyond which a shape is distorted rather than sharpened.
 pub(crate) const MAX_LAMBDA2: f64 = 100.0;
 
-/// `strength = "auto" | "off" | <lambda2>`.
+/// `strength = "auto" | "off" | "observed" | <lambda2>`.
 pub(crate) fn parse_strength(value: &toml::Value) -> Result<Strength, String> {
     match value {
         toml::Value::String(s) if s == "auto" => Ok(Strength::Auto),
         toml::Value::String(s) if s == "off" => Ok(Strength::Off),
+        toml::Value::String(s) if s == "observed" => Ok(Strength::Observed),
         toml::Value::Float(x) if (0.0..=MAX_LAMBDA2).contains(x) => Ok(Strength::Lambda2(*x)),
         toml::Value::Integer(x) if (0..=MAX_LAMBDA2 as i64).contains(x) => {
             Ok(Strength::Lambda2(*x as f64))
         }
         other => Err(format!(
-            "must be \"auto\", \"off\" or a lambda2 from 0 to {MAX_LAMBDA2}, got {other}"
+            "must be \"auto\", \"off\", \"observed\" or a lambda2 from 0 to {MAX_LAMBDA2}, got {other}"
         )),
     }
 }

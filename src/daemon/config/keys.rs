@@ -242,8 +242,19 @@ mod tests {
         assert_eq!(
             super::tables().unwrap(),
             [
-                "spool", "control", "farm", "machine", "printer", "folder", "http", "store",
-                "history", "notify", "camera", "spoolman"
+                "spool",
+                "control",
+                "farm",
+                "machine",
+                "printer",
+                "folder",
+                "http",
+                "store",
+                "history",
+                "notify",
+                "camera",
+                "spoolman",
+                "enhancement"
             ]
         );
     }

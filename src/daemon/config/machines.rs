@@ -39,6 +39,10 @@ pub(super) fn check(
                 pause_code_fits(code, &machine).map_err(|m| invalid(section.clone(), key, m))?;
             }
         }
+        if let Some(eject) = &machine.eject {
+            eject_fits(eject, &machine)
+                .map_err(|m| invalid(format!("{section}.eject"), "gcode", m))?;
+        }
         machines.push(machine);
     }
     Ok(machines)
@@ -48,6 +52,32 @@ pub(super) fn check(
 /// load as any job's lines do (text, length, characters), pass the machine's G-code
 /// policy, and ask for no pause itself.
 fn pause_code_fits(code: &str, machine: &crate::machine::Machine) -> Result<(), String> {
+    code_fits(code, machine, "the code runs at one")
+}
+
+/// An eject sequence is streamed as a short job of its own after a print: it must load
+/// and pass the policy as a job's lines do, with the commands it is allowed (a plate
+/// changer's) beside the machine's, and ask for no pause (nobody is there).
+pub(super) fn eject_fits(
+    eject: &crate::machine::eject::Eject,
+    machine: &crate::machine::Machine,
+) -> Result<(), String> {
+    let mut allowed = machine.clone();
+    for code in &eject.allow {
+        if !allowed.allow.contains(code) {
+            allowed.allow.push(code.clone());
+        }
+    }
+    code_fits(
+        &eject.gcode,
+        &allowed,
+        "the sequence runs with nobody there",
+    )
+}
+
+/// `code` loads as a job's lines for `machine`'s firmware, passes its policy and asks for
+/// no pause (`why_not`: why a pause is refused).
+fn code_fits(code: &str, machine: &crate::machine::Machine, why_not: &str) -> Result<(), String> {
     crate::marlin::gcode::GcodeProgram::read(code.as_bytes(), "the code", machine.firmware)
         .map_err(|e| e.to_string())?;
     let verdict = crate::slice::policy::check(code.as_bytes(), machine)
@@ -57,7 +87,7 @@ fn pause_code_fits(code: &str, machine: &crate::machine::Machine) -> Result<(), 
     }
     match verdict.pauses.first() {
         Some(p) => Err(format!(
-            "line {}: `{}` asks for a pause; the code runs at one",
+            "line {}: `{}` asks for a pause; {why_not}",
             p.line, p.command
         )),
         None => Ok(()),

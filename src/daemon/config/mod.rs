@@ -12,12 +12,13 @@
 //!
 //! The file's shape (the `Raw*` structs) and its reading are in `raw`, the checked types in
 //! `checked`; each section has its check in a module of its own (`farm`, `store`,
-//! `machines`, `printers`, `folders`, [`notify`], `http`, `history`), which this root calls
+//! `machines`, `printers`, `folders`, [`notify`], `http`, `history`, `enhancement`), which this root calls
 //! in turn.
 
 pub mod camera;
 mod check;
 mod checked;
+mod enhancement;
 mod error;
 mod farm;
 mod folders;
@@ -47,7 +48,7 @@ pub use checked::{
     PgSettings, PrinterConfig, PrinterPort, StoreConfig,
 };
 pub(crate) use error::ConfigError;
-pub(crate) use folders::{check_asks, check_height, check_per_plate, parse_strength};
+pub(crate) use folders::{check_height, check_per_plate, parse_strength};
 pub(crate) use http::read_api_key;
 pub(crate) use secret::read_secret;
 pub(crate) use store::{parse_conninfo, ConninfoError};
@@ -187,6 +188,8 @@ printers = ["demo"]
                 Some(spoolman::check(s).map_err(|(key, m)| invalid("[spoolman]".into(), key, m))?)
             }
         };
+        let enhancement = enhancement::check(raw.enhancement)
+            .map_err(|(key, m)| invalid("[enhancement]".into(), key, m))?;
         let history = match raw.history {
             None => HistoryConfig::default(),
             Some(h) => history::check(h).map_err(|(key, m)| invalid("[history]".into(), key, m))?,
@@ -207,6 +210,7 @@ printers = ["demo"]
                 notify,
                 camera,
                 spoolman,
+                enhancement,
                 warnings,
             },
             http,

@@ -27,7 +27,7 @@ pub(super) struct RawNotify {
 }
 
 /// The events a receiver may ask for, by name (the `event` field of what is sent).
-pub(crate) const EVENT_NAMES: [&str; 11] = [
+pub(crate) const EVENT_NAMES: [&str; 12] = [
     "job_done",
     "job_failed",
     "job_cancelled",
@@ -38,6 +38,7 @@ pub(crate) const EVENT_NAMES: [&str; 11] = [
     "printer_waiting",
     "host_lost",
     "spool_low",
+    "bed_not_clear",
     "test",
 ];
 

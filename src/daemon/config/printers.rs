@@ -5,9 +5,10 @@
 use super::check::{number, Context};
 use super::checked::{PrinterConfig, PrinterPort};
 use super::error::ConfigError;
-use super::folders::check_asks;
 use super::pause;
 use super::raw::{RawPrinter, RawSimulate};
+use crate::daemon::bed::ClearBy;
+use crate::daemon::filament::routing::check_asks;
 use crate::machine::Machine;
 use crate::marlin::firmware::Firmware;
 use std::collections::BTreeSet;
@@ -147,8 +148,18 @@ fn check_printer(
         ));
     }
     let tags = p.tags.unwrap_or_default();
+    let (eject, bed_clear) = clearing_of(
+        &section,
+        p.eject,
+        p.bed_clear.as_deref(),
+        &machine,
+        camera.is_some(),
+        cx,
+    )?;
     let port = port_of(section, &p.name, p.port, p.simulate, cx, warnings)?;
     Ok(PrinterConfig {
+        eject,
+        bed_clear,
         filament,
         hardened,
         tags,
@@ -161,6 +172,60 @@ fn check_printer(
         pause_heaters_off,
         camera,
     })
+}
+
+/// How a printer's bed is cleared: its eject sequence (`[printer.eject]`, else its
+/// machine's), checked against the machine's G-code policy, and `bed_clear`, which needs
+/// a sequence (and a camera, to check).
+fn clearing_of(
+    section: &str,
+    spec: Option<crate::machine::eject::EjectSpec>,
+    bed_clear: Option<&str>,
+    machine: &Machine,
+    has_camera: bool,
+    cx: &Context,
+) -> Result<(Option<crate::machine::eject::Eject>, ClearBy), ConfigError> {
+    let Context { invalid, anchor } = *cx;
+    let eject_section = format!("{section}.eject");
+    let eject = match spec {
+        Some(spec) => {
+            // A sequence the policy refuses is named by the key that gave it.
+            let code_key = if spec.file.is_some() { "file" } else { "gcode" };
+            let eject = spec
+                .check(machine.bed_mm[2], &anchor(std::path::Path::new(".")))
+                .map_err(|(key, m)| invalid(eject_section.clone(), key, m))?;
+            super::machines::eject_fits(&eject, machine)
+                .map_err(|m| invalid(eject_section.clone(), code_key, m))?;
+            Some(eject)
+        }
+        None => machine.eject.clone(),
+    };
+    let bed_clear = match bed_clear {
+        None => ClearBy::Person,
+        Some(text) => {
+            ClearBy::parse(text).map_err(|m| invalid(section.to_string(), "bed_clear", m))?
+        }
+    };
+    needs_for(bed_clear, eject.is_some(), has_camera)
+        .map_err(|m| invalid(section.to_string(), "bed_clear", m))?;
+    Ok((eject, bed_clear))
+}
+
+/// What `bed_clear` needs of a printer: an eject sequence, and a camera to check with.
+pub(super) fn needs_for(clear: ClearBy, has_eject: bool, has_camera: bool) -> Result<(), String> {
+    if clear != ClearBy::Person && !has_eject {
+        return Err(format!(
+            "{:?} needs an eject sequence: a [printer.eject] table, or one in the machine's [machine.eject]",
+            clear.name()
+        ));
+    }
+    if clear == ClearBy::EjectAndCheck && !has_camera {
+        return Err(format!(
+            "{:?} needs a camera to check the bed with: a [printer.camera] table",
+            clear.name()
+        ));
+    }
+    Ok(())
 }
 
 /// The machine a printer is: the one its `machine` names, else the default for its

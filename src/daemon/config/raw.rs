@@ -38,6 +38,16 @@ pub(super) struct RawConfig {
     pub(super) camera: Option<super::camera::RawCamera>,
     #[serde(default)]
     pub(super) spoolman: Option<super::spoolman::RawSpoolman>,
+    #[serde(default)]
+    pub(super) enhancement: Option<RawEnhancement>,
+}
+
+/// `[enhancement]`: see `enhancement.rs`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawEnhancement {
+    pub(super) reference_height_mm: Option<f64>,
+    pub(super) observe_timeout_s: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -117,6 +127,10 @@ pub(super) struct RawPrinter {
     pub(super) nozzle: Option<String>,
     /// Its groups: a job asking for tags goes only to printers carrying all of them.
     pub(super) tags: Option<Vec<String>>,
+    /// Its eject sequence (`[printer.eject]`), replacing its machine's.
+    pub(super) eject: Option<crate::machine::eject::EjectSpec>,
+    /// How its bed is cleared after a good print: "person", "eject", "eject-and-check".
+    pub(super) bed_clear: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -153,6 +167,8 @@ pub(super) struct RawFolder {
     pub(super) nozzle_mm: Option<f64>,
     pub(super) tags: Option<Vec<String>>,
     pub(super) priority: Option<i32>,
+    /// How the beds of its jobs' printers are cleared, replacing the printers' own.
+    pub(super) bed_clear: Option<String>,
 }
 
 /// The largest config file read.
@@ -226,7 +242,7 @@ pub(super) fn parse_raw(text: &str, path: &Path) -> Result<(RawConfig, PathBuf),
 
 /// The tables as their headers are written, for an error about an unknown one. A test
 /// checks it against the file's shape (`keys::tables`).
-pub(super) const KNOWN_TABLES: [&str; 12] = [
+pub(super) const KNOWN_TABLES: [&str; 13] = [
     "[spool]",
     "[control]",
     "[farm]",
@@ -239,6 +255,7 @@ pub(super) const KNOWN_TABLES: [&str; 12] = [
     "[[notify]]",
     "[camera]",
     "[spoolman]",
+    "[enhancement]",
 ];
 
 /// The table header on the line of `offset`, when that header names no known table.

@@ -347,6 +347,34 @@ fn the_history_keeps_for_good_or_as_long_as_asked() {
     }
 }
 
+/// `[enhancement]`: absent, the observer compares with 150 mm prints and may take ten
+/// minutes; each key bounded, and named when wrong; a folder may ask `"observed"`.
+#[test]
+fn the_observers_settings_are_checked() {
+    let c = parse(GOOD).unwrap();
+    assert_eq!(c.enhancement.reference_height_mm, 150.0);
+    assert_eq!(c.enhancement.timeout, Duration::from_secs(600));
+    let with = |table: &str| parse(&format!("{GOOD}\n[enhancement]\n{table}\n"));
+    let c = with("reference_height_mm = 120\nobserve_timeout_s = 90").unwrap();
+    assert_eq!(c.enhancement.reference_height_mm, 120.0);
+    assert_eq!(c.enhancement.timeout, Duration::from_secs(90));
+    for (bad, key) in [
+        ("reference_height_mm = 0", "reference_height_mm"),
+        ("reference_height_mm = nan", "reference_height_mm"),
+        ("observe_timeout_s = 1", "observe_timeout_s"),
+        ("observe_timeout_s = 1e300", "observe_timeout_s"),
+        ("reference_heigth_mm = 100", "reference_heigth_mm"),
+    ] {
+        let err = with(bad).unwrap_err().to_string();
+        assert!(
+            err.contains("[enhancement]") && err.contains(key),
+            "{bad}: {err}"
+        );
+    }
+    let observed = parse(&GOOD.replacen("strength = 0.4", "strength = \"observed\"", 1)).unwrap();
+    assert_eq!(observed.folders[0].strength, Strength::Observed);
+}
+
 /// Values that once passed the check and then crashed the daemon (a duration too big
 /// for `Duration`, a zero rescan period panicking the watcher) or made no sense (a
 /// 0.001 mm print, a hot folder inside the spool) are refused, section and key named.
@@ -362,7 +390,7 @@ fn every_value_is_bounded() {
         ("on_shutdown = \"stop\"", "on_shutdown = \"stop\"\nfinish_timeout_s = 1e9", "[farm]: key `finish_timeout_s`"),
         ("height_mm = 50", "height_mm = 0.001", "key `height_mm`: must be from 1 to 2000 mm"),
         ("height_mm = 50", "height_mm = 500", "key `height_mm`: 500 mm is taller than any of its printers' machines builds (250 mm)"),
-        ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\" or a lambda2 from 0 to 100"),
+        ("strength = 0.4", "strength = 1e9", "key `strength`: must be \"auto\", \"off\", \"observed\" or a lambda2 from 0 to 100"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib/crispen/hot\"", "[[folder]] #1 (path \"/var/lib/crispen/hot\"): key `path`: the hot folder and the spool (/var/lib/crispen) must not contain each other"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib\"", "key `path`: the hot folder and the spool"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib/x/../crispen/./in\"", "key `path`: the hot folder and the spool"),
@@ -717,4 +745,101 @@ fn filament_keys_are_checked_with_section_and_key() {
             "{extra}: {err}"
         );
     }
+}
+
+/// Every name an operator gives in the config is refused with a control or bidi
+/// character, naming its section and key (a material with U+202E was taken and printed
+/// raw by `crispen spools`): by the one check file names have (`crate::names`), or by the
+/// plain-word rules of printer, machine, host and tag names.
+#[test]
+fn names_with_control_or_bidi_characters_are_refused() {
+    // TOML escapes: the parsed text holds the characters themselves.
+    let printer = "port = \"/dev/ttyACM0\"\n";
+    for (from, to, section, key) in [
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\nmaterial = \"PLA\\u202EGTEP\"\n",
+            "[[printer]] #1",
+            "key `material`",
+        ),
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\nmaterial = \"PLA\"\ncolour = \"bl\\u001B[31mack\"\n",
+            "[[printer]] #1",
+            "key `colour`",
+        ),
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\nmaterial = \"PLA\\u2028x\"\n",
+            "[[printer]] #1",
+            "key `material`",
+        ),
+        (
+            printer,
+            "port = \"/dev/ttyACM0\"\ntags = [\"big\\u2066\"]\n",
+            "[[printer]] #1",
+            "key `tags`",
+        ),
+        (
+            "name = \"um2-a\"",
+            "name = \"um2\\u202E-a\"",
+            "[[printer]] #1",
+            "key `name`",
+        ),
+        (
+            "path = \"/srv/print/5cm\"",
+            "path = \"/srv/print/5cm\\u202Emc5\"",
+            "[[folder]] #1",
+            "key `path`",
+        ),
+        (
+            "path = \"hot/igea\"",
+            "path = \"hot/ig\\u0007ea\"",
+            "[[folder]] #2",
+            "key `path`",
+        ),
+        (
+            "strength = 0.4\n",
+            "strength = 0.4\nmaterial = \"P\\u200FLA\"\n",
+            "[[folder]] #1",
+            "key `material`",
+        ),
+        (
+            "strength = 0.4\n",
+            "strength = 0.4\nmaterial = \"PLA\"\ncolour = \"\\u061Cred\"\n",
+            "[[folder]] #1",
+            "key `colour`",
+        ),
+        (
+            "max_heating = 1\n",
+            "max_heating = 1\nhost = \"rack\\u202E1\"\n",
+            "[farm]",
+            "key `host`",
+        ),
+    ] {
+        let text = GOOD.replacen(from, to, 1);
+        assert_ne!(text, GOOD, "{to}");
+        let err = parse(&text).unwrap_err().to_string();
+        assert!(err.contains(section) && err.contains(key), "{to}: {err}");
+        // The error shows the name harmless.
+        assert!(
+            !err.contains([
+                '\u{202e}', '\u{1b}', '\u{2028}', '\u{2066}', '\u{7}', '\u{200f}', '\u{61c}'
+            ]),
+            "{to}: {err:?}"
+        );
+    }
+    let machine = format!("{GOOD}\n[[machine]]\nname = \"m\\u202E\"\nbased_on = \"ultimaker2\"\n");
+    let err = parse(&machine).unwrap_err().to_string();
+    assert!(
+        err.contains("[[machine]] #1") && err.contains("name"),
+        "{err}"
+    );
+    // Any script is a name all the same.
+    let text = GOOD.replacen(
+        "strength = 0.4\n",
+        "strength = 0.4\nmaterial = \"PLA\"\ncolour = \"чёрный\"\n",
+        1,
+    );
+    parse(&text).unwrap();
 }

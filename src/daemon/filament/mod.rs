@@ -5,7 +5,8 @@
 //!   task owns it and keeps it with the jobs (both stores), so a shared farm agrees.
 //! - [`Asks`]: a job's material, colour, nozzle, printer group and priority, resolved from
 //!   its folder and sidecar once it is prepared.
-//! - [`routing`]: whether a printer may take a job, and in words why no printer can.
+//! - [`routing`]: whether a printer may take a job, and why no printer can; a job's
+//!   filament [`Need`], told in grams of the material it asks or in metres.
 //!
 //! Nothing here does I/O: the store persists the inventory, `spoolman` talks to Spoolman,
 //! and the printers' supervisors measure what a print pushed.
@@ -15,7 +16,7 @@ pub mod routing;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-pub use routing::Asks;
+pub use routing::{Asks, Need};
 
 /// A filament as the routing and the accounting see it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -44,9 +45,24 @@ impl Filament {
 
     /// Grams of `mm` of this filament.
     pub fn grams(&self, mm: f64) -> f64 {
-        let r_cm = self.diameter_mm / 20.0;
-        mm / 10.0 * std::f64::consts::PI * r_cm * r_cm * self.density_g_cm3
+        mm * weight_per_mm(self.diameter_mm, self.density_g_cm3)
     }
+}
+
+/// Grams per mm of filament `diameter_mm` thick at `density_g_cm3`.
+fn weight_per_mm(diameter_mm: f64, density_g_cm3: f64) -> f64 {
+    let r_cm = diameter_mm / 20.0;
+    0.1 * std::f64::consts::PI * r_cm * r_cm * density_g_cm3
+}
+
+/// Grams per mm of `material` `diameter_mm` thick, at the density crispen knows for it
+/// (its materials' table, [`crate::slice::MATERIALS`]); None for a material it does not
+/// know, whose need is then told as a length (`Need`).
+pub fn grams_per_mm(material: &str, diameter_mm: f64) -> Option<f64> {
+    crate::slice::MATERIALS
+        .iter()
+        .find(|m| m.name.eq_ignore_ascii_case(material.trim()))
+        .map(|m| weight_per_mm(diameter_mm, m.density_g_cm3))
 }
 
 /// One spool: its filament, what was on it when crispen last learnt it from its source
@@ -144,6 +160,27 @@ pub struct Inventory {
     /// The next id of a spool of crispen's own (`s<N>`).
     #[serde(default)]
     pub next_id: u64,
+    /// Spoolman's spools not taken at its last read (outside the bounds of a spool of the
+    /// farm's own), each with why: shown with the spools, never loaded. One the farm knew
+    /// before stays as it was last read.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub set_aside: Vec<SetAside>,
+}
+
+/// A spool of Spoolman's the farm did not take, and why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SetAside {
+    /// Spoolman's id; None for an item of its list that is not even a spool.
+    pub spoolman: Option<u64>,
+    /// What is wrong with it (its field, the bound, the value).
+    pub reason: String,
+}
+
+impl SetAside {
+    /// The farm's id of the spool (`sm<id>`), when it has one.
+    pub fn id(&self) -> Option<String> {
+        self.spoolman.map(|sm| format!("sm{sm}"))
+    }
 }
 
 /// An inventory change refused, in words for the operator.
@@ -153,6 +190,8 @@ pub enum FilamentError {
     NoSuchSpool(String),
     #[error("spool {0} is archived (used up or removed); load another")]
     Archived(String),
+    #[error("spool {spool} was set aside when Spoolman was last read: {reason} (hint: correct it in Spoolman; it is read again every poll_s)")]
+    SetAside { spool: String, reason: String },
     #[error("spool {spool} is loaded on {printer}; unload it there first")]
     LoadedElsewhere { spool: String, printer: String },
     #[error("{0}")]
@@ -167,21 +206,46 @@ pub const DENSITY_G_CM3: std::ops::RangeInclusive<f64> = 0.5..=5.0;
 /// Most spools one farm keeps (its own and Spoolman's).
 pub const MAX_SPOOLS: usize = 10_000;
 
-/// Checks a filament's text and numbers, trimming its names.
+/// Longest material or colour name, in characters.
+pub const MAX_NAME_CHARS: usize = 40;
+/// Longest brand name, in characters.
+pub const MAX_BRAND_CHARS: usize = 80;
+
+/// Checks a name given to a filament (its material, colour or brand: by the operator, a
+/// folder, a sidecar, or Spoolman): none of its characters a control or bidi character
+/// (the one check of [`crate::names`]; blanks around it included, which are not kept),
+/// and 1 to `max` characters without them. What is wrong, quoting the name.
+pub fn check_name(text: &str, max: usize) -> Result<(), String> {
+    let quoted = crate::names::printable(text);
+    if let Some(problem) = crate::names::problem(text) {
+        return Err(format!("\"{quoted}\" {problem}"));
+    }
+    let text = text.trim();
+    if text.is_empty() || text.chars().count() > max {
+        return Err(format!("1 to {max} characters, got \"{quoted}\""));
+    }
+    Ok(())
+}
+
+/// Checks a filament's text and numbers, trimming its names: the one check of a spool,
+/// whether the operator entered it or Spoolman sent it.
 pub fn check_filament(mut f: Filament) -> Result<Filament, FilamentError> {
     let bad = |m: String| Err(FilamentError::Invalid(m));
+    for (key, text) in [("material", &f.material), ("colour", &f.colour)] {
+        if let Err(m) = check_name(text, MAX_NAME_CHARS) {
+            return bad(format!("{key}: {m}"));
+        }
+    }
+    // No brand is said by leaving it out.
+    f.brand = f.brand.filter(|b| !b.trim().is_empty());
+    if let Some(b) = &f.brand {
+        if let Err(m) = check_name(b, MAX_BRAND_CHARS) {
+            return bad(format!("brand: {m}"));
+        }
+    }
     f.material = f.material.trim().to_ascii_uppercase();
     f.colour = f.colour.trim().to_ascii_lowercase();
-    for (key, text) in [("material", &f.material), ("colour", &f.colour)] {
-        if text.is_empty() || text.chars().count() > 40 || text.chars().any(char::is_control) {
-            return bad(format!("{key}: 1 to 40 printable characters, got {text:?}"));
-        }
-    }
-    if let Some(b) = &f.brand {
-        if b.chars().count() > 80 || b.chars().any(char::is_control) {
-            return bad(format!("brand: at most 80 printable characters, got {b:?}"));
-        }
-    }
+    f.brand = f.brand.map(|b| b.trim().to_string());
     if let Some(h) = &f.colour_hex {
         let h = h.trim_start_matches('#');
         if h.len() != 6 || !h.chars().all(|c| c.is_ascii_hexdigit()) {
@@ -189,12 +253,13 @@ pub fn check_filament(mut f: Filament) -> Result<Filament, FilamentError> {
         }
         f.colour_hex = Some(h.to_ascii_lowercase());
     }
+    let number = crate::names::number;
     if !DIAMETER_MM.contains(&f.diameter_mm) {
         return bad(format!(
             "diameter_mm: {} to {} mm, got {}",
             DIAMETER_MM.start(),
             DIAMETER_MM.end(),
-            f.diameter_mm
+            number(f.diameter_mm)
         ));
     }
     if !DENSITY_G_CM3.contains(&f.density_g_cm3) {
@@ -202,26 +267,36 @@ pub fn check_filament(mut f: Filament) -> Result<Filament, FilamentError> {
             "density: {} to {} g/cm³, got {}",
             DENSITY_G_CM3.start(),
             DENSITY_G_CM3.end(),
-            f.density_g_cm3
+            number(f.density_g_cm3)
         ));
     }
     if let Some(p) = f.price_per_kg {
         if !(0.0..=MAX_PRICE_PER_KG).contains(&p) {
-            return bad(format!("price_per_kg: 0 to {MAX_PRICE_PER_KG}, got {p}"));
+            return bad(format!(
+                "price_per_kg: 0 to {MAX_PRICE_PER_KG}, got {}",
+                number(p)
+            ));
         }
     }
     Ok(f)
 }
 
-/// Checks the grams on a spool.
-pub fn check_grams(g: f64) -> Result<f64, FilamentError> {
+/// Grams on a spool (what is on it, used, or its filament's weight), within bounds; what
+/// is wrong otherwise.
+pub fn grams_in_bounds(g: f64) -> Result<f64, String> {
     if (0.0..=MAX_SPOOL_G).contains(&g) {
         Ok(g)
     } else {
-        Err(FilamentError::Invalid(format!(
-            "grams: 0 to {MAX_SPOOL_G}, got {g}"
-        )))
+        Err(format!(
+            "0 to {MAX_SPOOL_G} g, got {}",
+            crate::names::number(g)
+        ))
     }
+}
+
+/// Checks the grams on a spool.
+pub fn check_grams(g: f64) -> Result<f64, FilamentError> {
+    grams_in_bounds(g).map_err(|e| FilamentError::Invalid(format!("grams: {e}")))
 }
 
 impl Inventory {
@@ -260,6 +335,17 @@ impl Inventory {
 
     /// Puts `spool` on `printer` (in place of whatever it held).
     pub fn load(&mut self, printer: &str, spool: &str) -> Result<(), FilamentError> {
+        // Set aside at Spoolman's last read, whether the farm knew it before or not.
+        if let Some(aside) = self
+            .set_aside
+            .iter()
+            .find(|a| a.id().as_deref() == Some(spool))
+        {
+            return Err(FilamentError::SetAside {
+                spool: spool.to_string(),
+                reason: aside.reason.clone(),
+            });
+        }
         let s = self
             .spools
             .get(spool)
@@ -340,11 +426,18 @@ impl Inventory {
     }
 
     /// Takes in Spoolman's spools as just read: each becomes (or updates) spool
-    /// `sm<id>`; a Spoolman spool crispen knew that is gone is archived. Says whether
-    /// anything changed.
-    pub fn take_spoolman(&mut self, spools: Vec<(u64, Filament, Option<f64>, bool)>) -> bool {
+    /// `sm<id>`; one `set_aside` (outside the farm's bounds) is listed with why, and one
+    /// crispen knew stays as last read; a Spoolman spool crispen knew that is gone is
+    /// archived. Says whether anything changed.
+    pub fn take_spoolman(
+        &mut self,
+        spools: Vec<(u64, Filament, Option<f64>, bool)>,
+        set_aside: Vec<SetAside>,
+    ) -> bool {
         let before = self.clone();
-        let mut seen = std::collections::BTreeSet::new();
+        let mut seen: std::collections::BTreeSet<String> =
+            set_aside.iter().filter_map(SetAside::id).collect();
+        self.set_aside = set_aside;
         for (sm, filament, remaining, archived) in spools {
             let id = format!("sm{sm}");
             seen.insert(id.clone());
@@ -487,8 +580,8 @@ pub(crate) mod tests {
     fn spoolman_uses_count_until_spoolman_has_them() {
         let mut inv = Inventory::default();
         let f = petg_black();
-        assert!(inv.take_spoolman(vec![(7, f.clone(), Some(900.0), false)]));
-        assert!(!inv.take_spoolman(vec![(7, f.clone(), Some(900.0), false)]));
+        assert!(inv.take_spoolman(vec![(7, f.clone(), Some(900.0), false)], vec![]));
+        assert!(!inv.take_spoolman(vec![(7, f.clone(), Some(900.0), false)], vec![]));
         assert!(inv.record_use("sm7", "j#0", a_use(10.0)));
         assert_eq!(inv.spools["sm7"].remaining_g(), Some(890.0));
         assert_eq!(inv.unreported().len(), 1);
@@ -501,17 +594,46 @@ pub(crate) mod tests {
             None,
         );
         // A read while the use is on its way does not move the base.
-        inv.take_spoolman(vec![(7, f.clone(), Some(890.0), false)]);
+        inv.take_spoolman(vec![(7, f.clone(), Some(890.0), false)], vec![]);
         assert_eq!(inv.spools["sm7"].remaining_g(), Some(890.0));
         inv.set_report("sm7", "j#0", Report::Sent, Some(890.0));
         assert_eq!(inv.spools["sm7"].remaining_g(), Some(890.0));
         assert!(inv.unreported().is_empty());
         // Gone from Spoolman: archived, never loaded again.
-        inv.take_spoolman(vec![]);
+        inv.take_spoolman(vec![], vec![]);
         assert!(matches!(
             inv.load("p", "sm7"),
             Err(FilamentError::Archived(_))
         ));
+    }
+
+    /// A spool of Spoolman's set aside at a read is listed with why and never loaded,
+    /// known before or not; one known before stays as last read (not archived: it is
+    /// still Spoolman's), and is taken again once it is corrected.
+    #[test]
+    fn a_spool_set_aside_is_kept_as_last_read_and_never_loaded() {
+        let mut inv = Inventory::default();
+        let f = petg_black();
+        inv.take_spoolman(vec![(7, f.clone(), Some(900.0), false)], vec![]);
+        let aside = |sm: u64| SetAside {
+            spoolman: Some(sm),
+            reason: format!("spool {sm}: density: 0.5 to 5 g/cm³, got 80"),
+        };
+        assert!(inv.take_spoolman(vec![], vec![aside(7), aside(8)]));
+        assert_eq!(inv.set_aside, [aside(7), aside(8)]);
+        let kept = &inv.spools["sm7"];
+        assert!(!kept.archived && kept.remaining_g() == Some(900.0));
+        for id in ["sm7", "sm8"] {
+            let e = inv.load("p", id).unwrap_err();
+            assert!(matches!(e, FilamentError::SetAside { .. }), "{e}");
+            assert!(e.to_string().contains("got 80"), "{e}");
+        }
+        // Corrected in Spoolman: taken, loadable.
+        assert!(inv.take_spoolman(vec![(7, f, Some(800.0), false)], vec![]));
+        assert!(inv.set_aside.is_empty());
+        inv.load("p", "sm7").unwrap();
+        assert_eq!(inv.spool_on("p").unwrap().remaining_g(), Some(800.0));
+        assert!(!inv.spools.contains_key("sm8"));
     }
 
     #[test]

@@ -1,15 +1,30 @@
 //! Which printer may take a job: what the job asks ([`Asks`]) against what a printer
-//! offers ([`Offer`]), and, when no printer can take it, the reason in the operator's
-//! words ("waiting for PETG black on a 0.4 mm nozzle: loaded are PLA white (um2-a)").
+//! offers ([`Offer`]), and, when no printer can take it, why ([`Waiting`]: data, put in
+//! the operator's words only where it is shown, "waiting for PETG black on a 0.4 mm
+//! nozzle: loaded are PLA white (um2-a), PLA black (um2-b)").
+//!
+//! Filament is measured as a length: the net millimetres a job's G-code pushes, from the
+//! follower that books what a print took ([`crate::marlin::motion::extruded_mm`]). One
+//! rule tells it to the operator, in a job's status and in every reason alike: grams at
+//! the density of the material the job asks, where crispen knows that density (its
+//! materials' table: PLA, PETG, ABS, TPU); metres of filament otherwise ([`Need`]).
 
 use super::{Filament, Spool};
 use serde::{Deserialize, Serialize};
+use std::fmt;
 
-/// What a job asks of its printer, from its folder and its sidecar. Empty asks nothing.
+/// What a job asks of its printer, from its folder and its sidecar, or for the material,
+/// from its file. Empty asks nothing.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Asks {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub material: Option<String>,
+    /// The material is the one its pre-sliced file was sliced for (PrusaSlicer's
+    /// `filament_type`, Cura's material), not the folder's or the sidecar's: a printer
+    /// known to hold another material does not take it, one whose filament is not known
+    /// does.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub material_of_file: bool,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub colour: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -49,25 +64,60 @@ impl Asks {
         *self == Asks::default()
     }
 
-    /// `PETG black on a 0.6 mm nozzle, group big`: what it asks, in words (empty when it
-    /// asks nothing).
-    pub fn describe(&self) -> String {
-        let mut parts = Vec::new();
-        let filament = [self.material.as_deref(), self.colour.as_deref()]
-            .into_iter()
-            .flatten()
-            .collect::<Vec<_>>()
-            .join(" ");
-        if !filament.is_empty() {
-            parts.push(filament);
+    /// These asks with the material a pre-sliced file was sliced for, `material`, where
+    /// the folder and the sidecar name none; checked as any operator-given name is (a
+    /// file's text is anyone's), the error saying why it cannot be.
+    pub fn with_file_material(mut self, material: Option<&str>) -> Result<Asks, String> {
+        let (None, Some(m)) = (&self.material, material) else {
+            return Ok(self);
+        };
+        // Cut before the check, whose message quotes it: one too long to pass is refused
+        // all the same, and quoted within bounds.
+        let m: String = m.trim().chars().take(41).collect();
+        check_asks(Some(&m), None, None, None, None)
+            .map_err(|(_, e)| format!("the material the file was sliced for: {e}"))?;
+        self.material = Some(m.to_ascii_uppercase());
+        self.material_of_file = true;
+        Ok(self)
+    }
+}
+
+/// Filament one print of a job needs on one machine: the net length its G-code for that
+/// machine pushes, and what that weighs at the density of the material the job asks,
+/// where crispen knows it ([`super::grams_per_mm`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Need {
+    pub mm: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub g: Option<f64>,
+}
+
+impl Need {
+    /// `mm` of this machine's filament, for a job asking `material`.
+    pub fn of(mm: f64, material: Option<&str>, filament_mm: f64) -> Need {
+        Need {
+            mm,
+            g: material
+                .and_then(|m| super::grams_per_mm(m, filament_mm))
+                .map(|per_mm| mm * per_mm),
         }
-        if let Some(n) = self.nozzle_mm {
-            parts.push(format!("on a {n} mm nozzle"));
+    }
+
+    /// `mm` of the same filament, told as this need is: in grams at the same density
+    /// where it has a weight, else in metres.
+    fn tell(&self, mm: f64) -> String {
+        match self.g.filter(|_| self.mm > 0.0) {
+            Some(g) => {
+                let g = mm * g / self.mm;
+                if g < 10.0 {
+                    format!("{g:.1} g")
+                } else {
+                    format!("{g:.0} g")
+                }
+            }
+            None if mm < 10_000.0 => format!("{:.2} m", mm / 1000.0),
+            None => format!("{:.1} m", mm / 1000.0),
         }
-        if !self.tags.is_empty() {
-            parts.push(format!("group {}", self.tags.join("+")));
-        }
-        parts.join(" ")
     }
 }
 
@@ -75,10 +125,12 @@ impl Asks {
 #[derive(Debug, Clone)]
 pub struct Offer<'a> {
     pub printer: &'a str,
+    /// Its machine's name (a job has G-code, and a need, per machine).
+    pub machine: &'a str,
     /// The spool on it, when one is recorded.
     pub spool: Option<&'a Spool>,
     /// Its filament: the spool's, else its config's default; None: unknown (it takes a
-    /// job that asks for no material or colour).
+    /// job that asks for no material or colour, or only for its file's material).
     pub filament: Option<&'a Filament>,
     /// Nothing is loaded (the operator unloaded it): it takes no job.
     pub unloaded: bool,
@@ -142,10 +194,18 @@ pub enum Refusal {
     },
     /// The material needs a hardened nozzle.
     Abrasive,
-    /// The spool has less than the job needs.
+    /// The spool has less than the job needs: `left_mm` of its filament, less what the
+    /// print under way on it will take.
     Spool {
-        need_g: f64,
-        left_g: f64,
+        need: Need,
+        left_mm: f64,
+    },
+    /// Its machine cannot print the job's file: why, as the job's preparation found
+    /// (made for another machine, beyond its bed, refused by the G-code policy); None
+    /// when no G-code was made for its machine at all.
+    Machine {
+        machine: String,
+        reason: Option<String>,
     },
 }
 
@@ -155,9 +215,9 @@ fn abrasive(material: &str) -> bool {
     m.contains("-CF") || m.contains("-GF") || m.ends_with("CF") || m.contains("GLOW")
 }
 
-/// Whether `offer` may take a job asking `asks` that needs `need_mm` of filament (None: not
-/// known), and if not, the first reason.
-pub fn refusal(asks: &Asks, need_mm: Option<f64>, offer: &Offer) -> Option<Refusal> {
+/// Whether `offer` may take a job asking `asks` that needs `need` on the offer's machine
+/// (None: not known), and if not, the first reason.
+pub fn refusal(asks: &Asks, need: Option<Need>, offer: &Offer) -> Option<Refusal> {
     if offer.unloaded {
         return Some(Refusal::Unloaded);
     }
@@ -172,7 +232,14 @@ pub fn refusal(asks: &Asks, need_mm: Option<f64>, offer: &Offer) -> Option<Refus
     }
     let same = |a: &str, b: &str| a.trim().eq_ignore_ascii_case(b.trim());
     if let Some(m) = &asks.material {
-        if !offer.filament.is_some_and(|f| same(&f.material, m)) {
+        let holds = offer.filament.map(|f| same(&f.material, m));
+        // An operator's ask wants a printer known to hold it; a file's own material only
+        // keeps it from a printer known to hold another.
+        let refused = match asks.material_of_file {
+            false => holds != Some(true),
+            true => holds == Some(false),
+        };
+        if refused {
             return Some(Refusal::Material);
         }
     }
@@ -198,80 +265,197 @@ pub fn refusal(asks: &Asks, need_mm: Option<f64>, offer: &Offer) -> Option<Refus
             return Some(Refusal::Abrasive);
         }
     }
-    if let (Some(mm), Some(spool)) = (need_mm, offer.spool) {
-        let need = spool.filament.grams(mm);
-        let left =
-            spool.remaining_g().unwrap_or(f64::INFINITY) - spool.filament.grams(offer.reserved_mm);
-        if need > left {
+    if let (Some(need), Some(spool)) = (need, offer.spool) {
+        // Compared as lengths: the spool's grams at its own density and diameter.
+        let left_mm = spool
+            .remaining_g()
+            .map_or(f64::INFINITY, |g| g / spool.filament.grams(1.0))
+            - offer.reserved_mm;
+        if need.mm > left_mm {
             return Some(Refusal::Spool {
-                need_g: need,
-                left_g: left.max(0.0),
+                need,
+                left_mm: left_mm.max(0.0),
             });
         }
     }
     None
 }
 
-/// Why no printer in `offers` can take the job, in words; None when one can.
-pub fn waiting_reason(asks: &Asks, need_mm: Option<f64>, offers: &[Offer]) -> Option<String> {
-    let refusals: Vec<(&Offer, Refusal)> = offers
-        .iter()
-        .map(|o| refusal(asks, need_mm, o).map(|r| (o, r)))
-        .collect::<Option<_>>()?;
-    if refusals.is_empty() {
-        return Some("waiting for a printer: none serves its folder".into());
+/// Why no printer can take a ready job: what it asks, and each printer that serves it
+/// with why it cannot. Data; its `Display` is the operator's words.
+#[derive(Debug, Clone)]
+pub struct Waiting<'a> {
+    pub asks: &'a Asks,
+    pub refused: Vec<(Offer<'a>, Refusal)>,
+}
+
+/// `a`, `a and b`, `a, b and c`.
+fn listed(items: &[String]) -> String {
+    match items {
+        [] => String::new(),
+        [one] => one.clone(),
+        [rest @ .., last] => format!("{} and {last}", rest.join(", ")),
     }
-    let wanted = match asks.describe() {
-        d if d.is_empty() => "a printer".to_string(),
-        d => d,
-    };
-    // A spool is checked last: a printer refused for its spool holds everything else the
-    // job asks. Then the job lacks only filament: it says how much, and what is left where.
-    let short: Vec<(&str, f64, f64)> = refusals
-        .iter()
-        .filter_map(|(o, r)| match r {
-            Refusal::Spool { need_g, left_g } => Some((o.printer, *need_g, *left_g)),
-            _ => None,
-        })
-        .collect();
-    if !short.is_empty() {
-        let need_g = short.iter().map(|s| s.1).fold(0.0, f64::max);
-        let left: Vec<String> = short
+}
+
+impl Asks {
+    /// The filament it asks, in words (`PETG black`, `black filament`), if any.
+    fn filament_words(&self) -> Option<String> {
+        let of_file = if self.material_of_file {
+            " (the file's material)"
+        } else {
+            ""
+        };
+        match (&self.material, &self.colour) {
+            (Some(m), Some(c)) => Some(format!("{m} {c}{of_file}")),
+            (Some(m), None) => Some(format!("{m}{of_file}")),
+            (None, Some(c)) => Some(format!("{c} filament")),
+            (None, None) => None,
+        }
+    }
+
+    /// ` on a 0.6 mm nozzle in group big`: what it asks of the printer beyond its
+    /// filament, each part with its preposition.
+    fn printer_words(&self) -> String {
+        let mut words = String::new();
+        if let Some(n) = self.nozzle_mm {
+            words += &format!(" on a {n} mm nozzle");
+        }
+        match self.tags.as_slice() {
+            [] => {}
+            [one] => words += &format!(" in group {one}"),
+            tags => words += &format!(" in groups {}", listed(tags)),
+        }
+        words
+    }
+}
+
+impl fmt::Display for Waiting<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let asks = self.asks;
+        if self.refused.is_empty() {
+            return f.write_str("waiting for a printer: none serves its folder");
+        }
+        // A spool is checked last: a printer refused for its spool holds everything else
+        // the job asks, and the job lacks only filament there.
+        let short: Vec<(&Offer, &Need, f64)> = self
+            .refused
             .iter()
-            .map(|(p, _, left_g)| format!("{p} has {left_g:.0} g"))
+            .filter_map(|(o, r)| match r {
+                Refusal::Spool { need, left_mm } => Some((o, need, *left_mm)),
+                _ => None,
+            })
             .collect();
-        return Some(format!(
-            "waiting for a spool with {need_g:.0} g for {wanted}: {}",
-            left.join(", ")
-        ));
+        let printer = asks.printer_words();
+        let filament = asks.filament_words();
+        let wanted = match (
+            short.iter().max_by(|a, b| a.1.mm.total_cmp(&b.1.mm)),
+            &filament,
+        ) {
+            (Some((_, need, _)), _) => format!(
+                "{} of {}{printer}",
+                need.tell(need.mm),
+                filament.as_deref().unwrap_or("filament")
+            ),
+            (None, Some(fil)) => format!("{fil}{printer}"),
+            // No filament asked: the nozzle is what it waits for ("a 0.8 mm nozzle in
+            // group big"), else any printer of its groups.
+            (None, None) => match printer.strip_prefix(" on ") {
+                Some(nozzle) => nozzle.to_string(),
+                None => format!("a printer{printer}"),
+            },
+        };
+        let mut parts = Vec::new();
+        if !short.is_empty() {
+            let left: Vec<String> = short
+                .iter()
+                .map(|(o, need, left_mm)| format!("{} has {}", o.printer, need.tell(*left_mm)))
+                .collect();
+            parts.push(left.join(", "));
+        }
+        let loaded: Vec<String> = self
+            .refused
+            .iter()
+            .filter(|(_, r)| !matches!(r, Refusal::Spool { .. } | Refusal::Machine { .. }))
+            .map(|(o, r)| {
+                let holds = match (o.unloaded, o.filament) {
+                    (true, _) => "nothing".to_string(),
+                    (false, Some(f)) => f.describe(),
+                    (false, None) => "unknown filament".to_string(),
+                };
+                let detail = match r {
+                    Refusal::Nozzle => format!(", {} mm nozzle", o.nozzle_mm),
+                    Refusal::Group if o.tags.is_empty() => ", no group".into(),
+                    Refusal::Group => format!(", group {}", o.tags.join("+")),
+                    Refusal::Diameter {
+                        spool_mm,
+                        machine_mm,
+                    } => format!(", a {spool_mm} mm spool on a {machine_mm} mm machine"),
+                    Refusal::Abrasive => ", brass nozzle".into(),
+                    _ => String::new(),
+                };
+                format!("{holds} ({}{detail})", o.printer)
+            })
+            .collect();
+        match loaded.len() {
+            0 => {}
+            1 => parts.push(format!("loaded is {}", loaded[0])),
+            _ => parts.push(format!("loaded are {}", loaded.join(", "))),
+        }
+        for (o, r) in &self.refused {
+            if let Refusal::Machine { machine, reason } = r {
+                parts.push(match reason {
+                    Some(why) => format!("{} cannot print it ({why})", o.printer),
+                    None => format!(
+                        "{} cannot print it (no G-code was made for its machine, {machine})",
+                        o.printer
+                    ),
+                });
+            }
+        }
+        write!(f, "waiting for {wanted}: {}", parts.join("; "))
     }
-    let loaded: Vec<String> = refusals
-        .iter()
-        .map(|(o, r)| {
-            let holds = match (o.unloaded, o.filament) {
-                (true, _) => "nothing".to_string(),
-                (false, Some(f)) => f.describe(),
-                (false, None) => "unknown filament".to_string(),
-            };
-            let detail = match r {
-                Refusal::Nozzle => format!(", {} mm nozzle", o.nozzle_mm),
-                Refusal::Group if o.tags.is_empty() => ", no group".into(),
-                Refusal::Group => format!(", group {}", o.tags.join("+")),
-                Refusal::Diameter {
-                    spool_mm,
-                    machine_mm,
-                } => format!(", a {spool_mm} mm spool on a {machine_mm} mm machine"),
-                Refusal::Abrasive => ", brass nozzle".into(),
-                Refusal::Spool { left_g, .. } => format!(", {left_g:.0} g left"),
-                _ => String::new(),
-            };
-            format!("{holds} ({}{detail})", o.printer)
-        })
-        .collect();
-    Some(format!(
-        "waiting for {wanted}: loaded are {}",
-        loaded.join(", ")
-    ))
+}
+
+/// Checks what a folder, a sidecar or a printer asks or holds; the error names its key.
+pub(crate) fn check_asks(
+    material: Option<&str>,
+    colour: Option<&str>,
+    nozzle_mm: Option<f64>,
+    tags: Option<&[String]>,
+    priority: Option<i32>,
+) -> Result<(), (&'static str, String)> {
+    for (key, text) in [("material", material), ("colour", colour)] {
+        if let Some(t) = text {
+            super::check_name(t, super::MAX_NAME_CHARS).map_err(|m| (key, m))?;
+        }
+    }
+    if let Some(n) = nozzle_mm {
+        if !(0.1..=2.0).contains(&n) {
+            return Err(("nozzle_mm", format!("0.1 to 2 mm, got {n}")));
+        }
+    }
+    if let Some(tags) = tags {
+        if tags.len() > MAX_TAGS {
+            return Err((
+                "tags",
+                format!("at most {} tags, got {}", MAX_TAGS, tags.len()),
+            ));
+        }
+        for t in tags {
+            check_tag(t).map_err(|m| ("tags", m))?;
+        }
+    }
+    if let Some(p) = priority {
+        let range = PRIORITY;
+        if !range.contains(&p) {
+            return Err((
+                "priority",
+                format!("{} to {}, got {p}", range.start(), range.end()),
+            ));
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -294,6 +478,7 @@ mod tests {
     fn offer<'a>(printer: &'a str, f: Option<&'a Filament>) -> Offer<'a> {
         Offer {
             printer,
+            machine: "ultimaker2",
             spool: None,
             filament: f,
             unloaded: false,
@@ -303,6 +488,16 @@ mod tests {
             tags: &[],
             reserved_mm: 0.0,
         }
+    }
+
+    /// Why no printer of `offers` can take a job asking `asks` and needing `need` on
+    /// each, in words; None when one can.
+    fn words(asks: &Asks, need: Option<Need>, offers: &[Offer]) -> Option<String> {
+        let refused = offers
+            .iter()
+            .map(|o| refusal(asks, need, o).map(|r| (o.clone(), r)))
+            .collect::<Option<_>>()?;
+        Some(Waiting { asks, refused }.to_string())
     }
 
     #[test]
@@ -355,6 +550,53 @@ mod tests {
         );
     }
 
+    /// A file's own material keeps it from a printer holding another, not from one
+    /// whose filament nobody recorded; the folder's or sidecar's comes first, and a
+    /// file's name is checked as an operator's is.
+    #[test]
+    fn a_files_material_refuses_only_a_printer_holding_another() {
+        let (pla, tpu) = (filament("PLA", "white"), filament("TPU", "red"));
+        let asks = Asks::default().with_file_material(Some(" pla ")).unwrap();
+        assert_eq!(
+            (asks.material.as_deref(), asks.material_of_file),
+            (Some("PLA"), true)
+        );
+        assert_eq!(refusal(&asks, None, &offer("a", Some(&pla))), None);
+        assert_eq!(refusal(&asks, None, &offer("a", None)), None);
+        assert_eq!(
+            refusal(&asks, None, &offer("a", Some(&tpu))),
+            Some(Refusal::Material)
+        );
+        let mut unloaded = offer("a", None);
+        unloaded.unloaded = true;
+        assert_eq!(refusal(&asks, None, &unloaded), Some(Refusal::Unloaded));
+        // The folder or the sidecar says otherwise: theirs, asked as an operator's.
+        let sidecar = Asks {
+            material: Some("TPU".into()),
+            ..Asks::default()
+        };
+        let asks = sidecar.clone().with_file_material(Some("PLA")).unwrap();
+        assert_eq!(asks, sidecar);
+        assert_eq!(refusal(&asks, None, &offer("a", Some(&tpu))), None);
+        assert_eq!(
+            refusal(&asks, None, &offer("a", None)),
+            Some(Refusal::Material)
+        );
+        // Nothing named: nothing asked.
+        assert_eq!(
+            Asks::default().with_file_material(None),
+            Ok(Asks::default())
+        );
+        for bad in ["", "PLA\u{7}", &"P".repeat(10_000)] {
+            let e = Asks::default().with_file_material(Some(bad)).unwrap_err();
+            assert!(
+                e.starts_with("the material the file was sliced for: "),
+                "{e}"
+            );
+            assert!(e.len() < 200, "quoted within bounds: {e}");
+        }
+    }
+
     #[test]
     fn a_job_bigger_than_the_spool_waits() {
         let mut inv = Inventory::default();
@@ -376,19 +618,39 @@ mod tests {
         o.spool = Some(spool);
         // mm of this filament per gram.
         let per_g = 1.0 / spool.filament.grams(1.0);
-        assert_eq!(refusal(&Asks::default(), Some(30.0 * per_g), &o), None);
+        let pla = |g: f64| Need::of(g * per_g, Some("PLA"), 2.85);
+        assert_eq!(refusal(&Asks::default(), Some(pla(30.0)), &o), None);
         assert!(matches!(
-            refusal(&Asks::default(), Some(30.5 * per_g), &o),
-            Some(Refusal::Spool { need_g, left_g }) if (need_g - 30.5).abs() < 1e-9 && (left_g - 30.0).abs() < 1e-9
+            refusal(&Asks::default(), Some(pla(30.5)), &o),
+            Some(Refusal::Spool { need, left_mm }) if (need.g.unwrap() - 30.5).abs() < 1e-9 && (left_mm - 30.0 * per_g).abs() < 1e-9
         ));
         // What the printer's current job will take is not there for the next one.
         o.reserved_mm = 10.0 * per_g;
-        assert!(refusal(&Asks::default(), Some(25.0 * per_g), &o).is_some());
-        let why = waiting_reason(&Asks::default(), Some(42.0 * per_g), &[o]).unwrap();
-        assert_eq!(
-            why,
-            "waiting for a spool with 42 g for a printer: a has 20 g"
-        );
+        assert!(refusal(&Asks::default(), Some(pla(25.0)), &o).is_some());
+        let why = words(&Asks::default(), Some(pla(42.0)), &[o.clone()]).unwrap();
+        assert_eq!(why, "waiting for 42 g of filament: a has 20 g");
+        // A material whose density crispen does not know: the need and what is left in
+        // metres, the one unit both are told in.
+        let unknown = Need::of(42.0 * per_g, Some("PA-CF"), 2.85);
+        assert_eq!(unknown.g, None);
+        let why = words(&Asks::default(), Some(unknown), &[o]).unwrap();
+        assert_eq!(why, "waiting for 5.31 m of filament: a has 2.53 m");
+    }
+
+    /// Grams are told at the density of the material asked: PETG's, not PLA's, for a
+    /// PETG job, whatever the spool's own figure.
+    #[test]
+    fn the_need_is_weighed_at_the_asked_materials_density() {
+        let petg = Need::of(1000.0, Some("petg"), 1.75);
+        let pla = Need::of(1000.0, Some("PLA"), 1.75);
+        let ratio = petg.g.unwrap() / pla.g.unwrap();
+        assert!((ratio - 1.27 / 1.24).abs() < 1e-12, "{ratio}");
+        // 1 m of 1.75 mm PLA is about 3 g.
+        assert!((pla.g.unwrap() - 2.98).abs() < 0.01);
+        assert_eq!(Need::of(1000.0, None, 1.75).g, None);
+        assert_eq!(Need::of(0.0, Some("PLA"), 1.75).tell(0.0), "0.00 m");
+        assert_eq!(petg.tell(1000.0), "3.1 g");
+        assert_eq!(Need::of(12_345.0, None, 1.75).tell(12_345.0), "12.3 m");
     }
 
     #[test]
@@ -402,15 +664,193 @@ mod tests {
         };
         let offers = [offer("um2-a", Some(&pla_w)), offer("um2-b", Some(&pla_b))];
         assert_eq!(
-            waiting_reason(&asks, None, &offers).unwrap(),
+            words(&asks, None, &offers).unwrap(),
             "waiting for PETG black on a 0.4 mm nozzle: loaded are PLA white (um2-a), PLA black (um2-b)"
         );
         let petg = filament("PETG", "black");
         let offers = [offer("um2-a", Some(&pla_w)), offer("um2-c", Some(&petg))];
-        assert_eq!(waiting_reason(&asks, None, &offers), None);
+        assert_eq!(words(&asks, None, &offers), None);
         assert_eq!(
-            waiting_reason(&asks, None, &[]).unwrap(),
+            words(&asks, None, &[]).unwrap(),
             "waiting for a printer: none serves its folder"
         );
+    }
+
+    /// A printer whose machine cannot print the file is named with why, beside those
+    /// short of filament and those holding another; each detail in its place.
+    #[test]
+    fn every_printer_left_out_is_named_with_why() {
+        let petg = filament("PETG", "black");
+        let mut inv = Inventory::default();
+        let id = inv.add_spool(petg.clone(), 5.0).unwrap();
+        let mut short = offer("c", Some(&inv.spools[&id].filament));
+        short.spool = Some(&inv.spools[&id]);
+        let pla = filament("PLA", "white");
+        let mut thin = filament("PETG", "black");
+        thin.diameter_mm = 1.75;
+        let cf = filament("PETG-CF", "black");
+        let tags = ["small".to_string()];
+        let mut grouped = offer("f", Some(&petg));
+        grouped.tags = &tags;
+        let asks = Asks {
+            material: Some("PETG".into()),
+            ..Asks::default()
+        };
+        // 42 g at PETG's density (crispen's table: 1.27 g/cm³).
+        let per_g = 1.0 / crate::daemon::filament::grams_per_mm("PETG", 2.85).unwrap();
+        let need = Need::of(42.0 * per_g, Some("PETG"), 2.85);
+        let refused = vec![
+            (short.clone(), refusal(&asks, Some(need), &short).unwrap()),
+            (offer("a", Some(&pla)), Refusal::Material),
+            (offer("b", Some(&thin)), refusal(&asks, None, &offer("b", Some(&thin))).unwrap()),
+            (offer("d", Some(&cf)), Refusal::Abrasive),
+            (grouped, Refusal::Group),
+            (
+                offer("m", None),
+                Refusal::Machine {
+                    machine: "ultimaker2".into(),
+                    reason: Some("x.gcode is not for the ultimaker2: it was sliced for 1.75 mm filament, the ultimaker2 takes 2.85 mm".into()),
+                },
+            ),
+            (
+                offer("n", None),
+                Refusal::Machine {
+                    machine: "marlin-175".into(),
+                    reason: None,
+                },
+            ),
+        ];
+        let why = Waiting {
+            asks: &asks,
+            refused,
+        }
+        .to_string();
+        // The spool's 5 g at its own 1.24 g/cm³ are told at PETG's 1.27, as the need is:
+        // one density in one sentence.
+        assert_eq!(
+            why,
+            "waiting for 42 g of PETG: c has 5.1 g; \
+             loaded are PLA white (a), PETG black (b, a 1.75 mm spool on a 2.85 mm machine), \
+             PETG-CF black (d, brass nozzle), PETG black (f, group small); \
+             m cannot print it (x.gcode is not for the ultimaker2: it was sliced for 1.75 mm filament, the ultimaker2 takes 2.85 mm); \
+             n cannot print it (no G-code was made for its machine, marlin-175)"
+        );
+    }
+
+    /// Every combination of what a job may ask (material, the operator's or the file's;
+    /// colour; nozzle; none, one or two groups), worded plainly and as a spool's lack.
+    #[test]
+    fn every_combination_of_asks_is_worded() {
+        let materials = [
+            (None, false, ""),
+            (Some("PETG"), false, "PETG"),
+            (Some("PLA"), true, "PLA (the file's material)"),
+        ];
+        let mut seen = 0;
+        for (material, of_file, m_words) in materials {
+            for colour in [None, Some("black")] {
+                for nozzle in [None, Some(0.6)] {
+                    for tags in [&[][..], &["big"][..], &["big", "fast"][..]] {
+                        let asks = Asks {
+                            material: material.map(String::from),
+                            material_of_file: of_file,
+                            colour: colour.map(String::from),
+                            nozzle_mm: nozzle,
+                            tags: tags.iter().map(|t| t.to_string()).collect(),
+                            priority: 0,
+                        };
+                        let filament = match (material, colour) {
+                            (Some(_), Some(c)) if of_file => {
+                                format!("PLA {c} (the file's material)")
+                            }
+                            (Some(m), Some(c)) => format!("{m} {c}"),
+                            (Some(_), None) => m_words.to_string(),
+                            (None, Some(c)) => format!("{c} filament"),
+                            (None, None) => String::new(),
+                        };
+                        let mut printer = String::new();
+                        if let Some(n) = nozzle {
+                            printer += &format!(" on a {n} mm nozzle");
+                        }
+                        printer += match tags.len() {
+                            0 => "",
+                            1 => " in group big",
+                            _ => " in groups big and fast",
+                        };
+                        let plain = match (filament.is_empty(), nozzle) {
+                            (false, _) => format!("{filament}{printer}"),
+                            (true, Some(_)) => printer[4..].to_string(),
+                            (true, None) => format!("a printer{printer}"),
+                        };
+                        let lacking = format!(
+                            "20 g of {}{printer}",
+                            if filament.is_empty() {
+                                "filament"
+                            } else {
+                                &filament
+                            }
+                        );
+                        // Worded plainly: a printer that holds nothing.
+                        let mut empty = offer("p", None);
+                        empty.unloaded = true;
+                        let why = words(&asks, None, &[empty]).unwrap();
+                        assert_eq!(why, format!("waiting for {plain}: loaded is nothing (p)"));
+                        // Short of filament: a printer that has everything else.
+                        let f = filament_for(&asks);
+                        let tags_owned: Vec<String> = asks.tags.clone();
+                        let mut inv = Inventory::default();
+                        let id = inv.add_spool(f, 5.0).unwrap();
+                        let spool = &inv.spools[&id];
+                        let mut full = offer("q", Some(&spool.filament));
+                        full.spool = Some(spool);
+                        full.nozzle_mm = nozzle.unwrap_or(0.4);
+                        full.tags = &tags_owned;
+                        let need = Need {
+                            mm: 1000.0,
+                            g: Some(20.0),
+                        };
+                        let why = words(&asks, Some(need), &[full]).unwrap();
+                        assert!(
+                            why.starts_with(&format!("waiting for {lacking}: q has ")),
+                            "{why} for {asks:?}"
+                        );
+                        for w in [&plain, &lacking] {
+                            assert!(!w.contains("  ") && !w.starts_with(' '), "{w}");
+                        }
+                        seen += 1;
+                    }
+                }
+            }
+        }
+        assert_eq!(seen, 36);
+        // A few in full, as an operator reads them.
+        let asks = |m: Option<&str>, c: Option<&str>, n: Option<f64>, t: &[&str]| Asks {
+            material: m.map(String::from),
+            colour: c.map(String::from),
+            nozzle_mm: n,
+            tags: t.iter().map(|t| t.to_string()).collect(),
+            ..Asks::default()
+        };
+        let mut empty = offer("p", None);
+        empty.unloaded = true;
+        for (a, expected) in [
+            (asks(None, None, Some(0.8), &[]), "waiting for a 0.8 mm nozzle: loaded is nothing (p)"),
+            (asks(None, None, None, &["big"]), "waiting for a printer in group big: loaded is nothing (p)"),
+            (asks(None, Some("red"), None, &[]), "waiting for red filament: loaded is nothing (p)"),
+            (
+                asks(Some("PETG"), Some("black"), Some(0.6), &["a", "b", "c"]),
+                "waiting for PETG black on a 0.6 mm nozzle in groups a, b and c: loaded is nothing (p)",
+            ),
+        ] {
+            assert_eq!(words(&a, None, &[empty.clone()]).unwrap(), expected);
+        }
+    }
+
+    /// A filament that has what `asks` asks (PETG when it asks none).
+    fn filament_for(asks: &Asks) -> Filament {
+        filament(
+            asks.material.as_deref().unwrap_or("PETG"),
+            asks.colour.as_deref().unwrap_or("white"),
+        )
     }
 }

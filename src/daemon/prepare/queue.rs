@@ -168,7 +168,14 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
             let asks = task.asks.clone();
             run_child(&program, &task, &cancel, on_step)
                 .await
-                .map(|report| (report, sidecar, asks))
+                .and_then(|prepared| {
+                    // The file's own material, checked here too: the child read it from
+                    // a file anyone may drop.
+                    let asks = asks
+                        .with_file_material(prepared.file_material.as_deref())
+                        .map_err(PrepareError::Failed)?;
+                    Ok((prepared, sidecar, asks))
+                })
         }
     };
     finish_preparation(&farm, &id, result).await;
@@ -192,7 +199,7 @@ fn resolve(
         )
     })?;
     let sidecar = crate::daemon::job::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
-    let task = resolve_task(
+    let mut task = resolve_task(
         id,
         &dir,
         &job.file,
@@ -200,6 +207,7 @@ fn resolve(
         &farm.printer_machines(),
         sidecar.as_ref(),
     )?;
+    task.observe = config.enhancement.clone();
     Ok((task, sidecar))
 }
 
@@ -222,6 +230,7 @@ async fn finish_preparation(
     let outcome = match result {
         Ok((prepared, sidecar, asks)) => {
             let (machines, mut report) = prepared.for_machines();
+            let needs = prepared.needs();
             match prepared.failure() {
                 // No machine can print it: failed, with each machine's reason.
                 Some(reason) => {
@@ -250,6 +259,7 @@ async fn finish_preparation(
                             j.comparison = enhanced.then_some(Comparison::Pending { tries: 0 });
                             j.slice_report = report;
                             j.machines = machines;
+                            j.needs = needs;
                             j.sidecar = sidecar;
                             j.asks = asks;
                         })

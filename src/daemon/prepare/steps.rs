@@ -4,8 +4,10 @@
 //! machine's bed and slice it ([`crate::slice::slice_mesh`]). The enhancement depends on
 //! the height, not the machine, so it is shared; the slicing is once per machine.
 
+pub mod observed;
+
 use crate::enhance::{
-    Displacements, EnhanceOptions, Mode, Phase, PrintResolution, Strength, StrengthTable,
+    Bands, Displacements, EnhanceOptions, Mode, Phase, PrintResolution, Strength, StrengthTable,
 };
 use crate::machine::Machine;
 use crate::mesh::place::{PlaceError, UpAxis};
@@ -64,6 +66,9 @@ pub struct SliceRequest {
     /// Copies of the model side by side on one bed, each a part of the plate
     /// ([`crate::slice::plate`]).
     pub per_plate: u32,
+    /// With `strength` [`Strength::Observed`]: the observer's reference size and time
+    /// bound ([`observed`]).
+    pub observe: observed::ObserveSettings,
 }
 
 impl SliceRequest {
@@ -87,6 +92,7 @@ impl SliceRequest {
             preview: None,
             mode: Mode::default(),
             per_plate: 1,
+            observe: observed::ObserveSettings::default(),
         }
     }
 }
@@ -109,6 +115,8 @@ pub enum Step<'a> {
     Slice(&'a str, SliceStep),
     /// Slicing the unmodified model for the named machine and comparing the G-code.
     Comparing(&'a str),
+    /// Choosing the strength by looking ([`observed`]).
+    Observing(observed::Observing),
 }
 
 impl Step<'_> {
@@ -123,6 +131,15 @@ impl Step<'_> {
             Step::Slice(m, SliceStep::Slicing) => format!("slicing for {m}"),
             Step::Slice(m, SliceStep::Checking) => format!("checking the G-code for {m}"),
             Step::Comparing(m) => format!("slicing the unmodified model for {m} to compare"),
+            Step::Observing(observed::Observing::Reference) => {
+                "observing: slicing the model at the reference size".into()
+            }
+            Step::Observing(observed::Observing::Candidate(i, n)) => {
+                format!("observing: making candidate {i} of {n}")
+            }
+            Step::Observing(observed::Observing::Looking(i, n)) => {
+                format!("observing: looking from view {i} of {n}")
+            }
         }
     }
 }
@@ -169,6 +186,19 @@ pub fn prepare(
     let load_s = t.elapsed().as_secs_f64();
     let original = loaded.mesh;
 
+    // `strength = "observed"`: the observer settles the strength and the mode first, for
+    // the first machine, whose G-code is then the chosen print as the observer made it.
+    let mut chosen = match req.strength {
+        Strength::Observed => Some(observed::choose(req, &original, targets.first(), progress)?),
+        _ => None,
+    };
+    let (mut adopted, mut made_placed) = match chosen.as_mut().and_then(|c| c.made.take()) {
+        Some(m) => (Some(m.report), Some(m.placed)),
+        None => (None, None),
+    };
+    let req = chosen.as_ref().map_or(req, |c| &c.req);
+    let observation = chosen.as_ref().and_then(|c| c.observation.clone());
+
     // The paper's enhancement depends on the printed height only, so it is shared by every
     // machine; the print-aware one on each machine's nozzle and layer height.
     let print_aware = req.mode == Mode::PrintAware
@@ -185,16 +215,22 @@ pub fn prepare(
         layer_height_mm,
     };
     let mut shared: Option<Placed> = None;
-    if !print_aware {
+    let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
+    match (made_placed.take(), targets.first()) {
+        (Some(p), Some(first)) if print_aware => per_printer.push((printer_of(&first.machine), p)),
+        (Some(p), _) => shared = Some(p),
+        (None, _) => {}
+    }
+    if !print_aware && shared.is_none() {
         shared = Some(place(
             req,
             &original,
             None,
             req.pictures.as_deref(),
+            None,
             progress,
         )?);
     }
-    let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
 
     let plain = if req.compare || req.preview.is_some() {
         placed_plain(req, original.clone()).ok()
@@ -218,6 +254,7 @@ pub fn prepare(
                         &original,
                         Some(printer),
                         req.pictures.as_deref().filter(|_| per_printer.is_empty()),
+                        None,
                         progress,
                     ) {
                         Ok(p) => {
@@ -238,6 +275,17 @@ pub fn prepare(
         let sliced = crate::mesh::place::check_fits(placed.size, machine.fits_mm())
             .map_err(|e| place_error(e, req, &machine.name))
             .and_then(|()| {
+                // The observer's chosen print, made for this machine: its G-code is the job's.
+                if let Some(report) = adopted.take().filter(|_| index == 0) {
+                    let report = observed::adopt(report, &target.output)?;
+                    if let Some(path) = &target.keep_mesh {
+                        keep_mesh(&placed.mesh, path)?;
+                    }
+                    if req.pictures.is_some() {
+                        add_thumbnails(&placed.mesh, &target.output);
+                    }
+                    return Ok(report);
+                }
                 let job = SliceJob {
                     keep_mesh: target.keep_mesh.as_deref(),
                     ..slice_job(req, machine, &target.output)
@@ -253,6 +301,7 @@ pub fn prepare(
             .map(|mut report| {
                 report.up = req.up;
                 report.enhancement = placed.summary.clone();
+                report.enhancement.observed = observation.clone();
                 report.enhancement.printed = placed.displacements.as_ref().map(|d| {
                     let printer = PrintResolution {
                         nozzle_mm: machine.nozzle_mm,
@@ -321,18 +370,20 @@ impl Drop for Drawing {
     }
 }
 
-/// Enhances `original` (for `printer` in print-aware mode), turns it upright and places it;
-/// draws its pictures into `pictures` meanwhile.
+/// Enhances `original` (for `printer` in print-aware mode; from `bands`, `original`'s,
+/// when they are at hand in the paper's mode), turns it upright and places it; draws its
+/// pictures into `pictures` meanwhile.
 fn place(
     req: &SliceRequest,
     original: &Mesh,
     printer: Option<PrintResolution>,
     pictures: Option<&Path>,
+    bands: Option<&Bands>,
     progress: &mut dyn FnMut(Step),
 ) -> Result<Placed, SliceError> {
     let t = Instant::now();
     let (mut mesh, summary, displacements, pictures) =
-        enhance(req, original.clone(), printer, pictures, progress)?;
+        enhance(req, original.clone(), printer, pictures, bands, progress)?;
     let enhance_s = t.elapsed().as_secs_f64();
     if req.up == UpAxis::Y {
         crate::mesh::place::turn_y_up(&mut mesh);
@@ -378,6 +429,20 @@ fn slice_job<'a>(
         measure_only: false,
         per_plate: req.per_plate,
     }
+}
+
+/// Writes the mesh that was sliced to `path` (binary STL), as a slicing keeps it.
+fn keep_mesh(mesh: &Mesh, path: &Path) -> Result<(), SliceError> {
+    crate::fsutil::write_atomic_with(path, |file| {
+        let mut w = std::io::BufWriter::new(file);
+        crate::mesh::write_stl(&mut w, mesh)?;
+        std::io::Write::flush(&mut w)
+    })
+    .map_err(|e| SliceError::Io {
+        context: "cannot write",
+        path: path.to_path_buf(),
+        source: e.into(),
+    })
 }
 
 /// Puts PrusaSlicer-format thumbnails of the part as sliced (Z up) into its G-code, after
@@ -564,12 +629,14 @@ pub fn prepare_one(
 
 /// The enhancement step: for the printed height, or none when the strength says so; with
 /// how far each vertex moved, for the printed figures, and its pictures being drawn into
-/// `pictures` (see [`Drawing`]).
+/// `pictures` (see [`Drawing`]). The paper's mode combines `bands` (the mesh's) when given
+/// rather than computing them.
 fn enhance(
     req: &SliceRequest,
     mesh: Mesh,
     printer: Option<PrintResolution>,
     pictures: Option<&Path>,
+    bands: Option<&Bands>,
     progress: &mut dyn FnMut(Step),
 ) -> Result<(Mesh, EnhancementSummary, Option<Displacements>, Drawing), SliceError> {
     let lambda2 = req
@@ -582,6 +649,7 @@ fn enhance(
             report: None,
             printed: None,
             print_aware: None,
+            observed: None,
         };
         return Ok((mesh, summary, None, Drawing(None)));
     };
@@ -623,8 +691,18 @@ fn enhance(
                 lambda2,
                 mu: None,
             };
-            let (enhanced, report) =
-                crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(failed)?;
+            let (enhanced, report) = match bands {
+                Some(bands) => {
+                    on_phase(Phase::Combine);
+                    let t = Instant::now();
+                    let combined = opts
+                        .validate()
+                        .and_then(|()| bands.combine(&opts))
+                        .map_err(failed)?;
+                    crate::enhance::finish(&mesh, bands, combined, opts.lambda1, lambda2, t)
+                }
+                None => crate::enhance::enhance(&mesh, &opts, &mut on_phase).map_err(failed)?,
+            };
             (enhanced, report, lambda2, "enhanced", None)
         }
     };
@@ -647,6 +725,7 @@ fn enhance(
         report: Some(report),
         printed: None,
         print_aware,
+        observed: None,
     };
     Ok((enhanced, summary, displacements, pictures))
 }

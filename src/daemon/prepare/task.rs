@@ -47,6 +47,10 @@ pub struct PrepareTask {
     /// Copies of the model side by side on one bed (the folder's, or the sidecar's).
     #[serde(default = "one")]
     pub per_plate: u32,
+    /// The observer's reference size and time bound (`[enhancement]`), for
+    /// `strength = "observed"`.
+    #[serde(default)]
+    pub observe: crate::observation::ObserveSettings,
 }
 
 fn one() -> u32 {
@@ -64,6 +68,11 @@ pub struct TaskMachine {
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Prepared {
     pub machines: Vec<(String, Result<SliceReport, String>)>,
+    /// The material a pre-sliced file says it was sliced for (see
+    /// `crate::slice::presliced`), as written: what the job asks unless its folder or
+    /// sidecar names one ([`Asks::with_file_material`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file_material: Option<String>,
 }
 
 impl Prepared {
@@ -92,6 +101,24 @@ impl Prepared {
             })
             .collect();
         (record, first)
+    }
+
+    /// What one print needs on each machine with G-code: its report's net filament,
+    /// weighed as the report weighed it.
+    pub(crate) fn needs(
+        &self,
+    ) -> std::collections::BTreeMap<String, crate::daemon::filament::Need> {
+        self.machines
+            .iter()
+            .filter_map(|(name, r)| {
+                let r = r.as_ref().ok()?;
+                let need = crate::daemon::filament::Need {
+                    mm: r.filament_mm?,
+                    g: r.filament_g,
+                };
+                Some((name.clone(), need))
+            })
+            .collect()
     }
 
     /// The job's failure when no machine can print it: every machine's reason.
@@ -211,6 +238,7 @@ pub fn resolve_task(
         per_plate: sidecar
             .and_then(|s| s.per_plate)
             .unwrap_or(folder.per_plate),
+        observe: Default::default(),
     })
 }
 
@@ -306,6 +334,7 @@ mod tests {
             settings: Default::default(),
             asks: Default::default(),
             per_plate: 1,
+            bed_clear: None,
         }
     }
 
@@ -420,6 +449,7 @@ mod tests {
                 ("ultimaker2".into(), Err("too big".into())),
                 ("marlin-175".into(), Err("also too big".into())),
             ],
+            file_material: None,
         };
         let reason = prepared.failure().unwrap();
         assert!(
@@ -437,6 +467,7 @@ mod tests {
                     }),
                 ),
             ],
+            file_material: None,
         };
         assert_eq!(prepared.failure(), None);
         let (record, first) = prepared.for_machines();

@@ -4,6 +4,10 @@
 
 use super::steps;
 use super::task::{is_presliced, ChildMessage, PrepareTask, Prepared};
+use crate::daemon::filament::Need;
+use crate::machine::Machine;
+use crate::marlin::firmware::Firmware;
+use crate::marlin::gcode;
 use crate::slice::walls::WallComparison;
 use crate::slice::SliceReport;
 use std::path::Path;
@@ -31,6 +35,7 @@ fn slice_request(task: &PrepareTask) -> steps::SliceRequest {
     req.profile = task.profile.clone();
     req.timeout = task.timeout;
     req.per_plate = task.per_plate;
+    req.observe = task.observe.clone();
     // Pictures and thumbnails go next to the G-code, in the job's directory.
     req.pictures = task.model.parent().map(Path::to_path_buf);
     req
@@ -59,12 +64,48 @@ pub fn run_task(task: &PrepareTask, progress: &mut dyn FnMut(String)) -> Result<
         .collect();
     let results = steps::prepare(&req, &targets, &mut |step| progress(step.describe()))
         .map_err(|e| e.to_string())?;
+    let material = task.asks.material.as_deref();
     Ok(Prepared {
         machines: results
             .into_iter()
-            .map(|(name, r)| (name, r.map_err(|e| e.to_string())))
+            .map(|(name, r)| {
+                let r = r.map_err(|e| e.to_string()).and_then(|mut report| {
+                    let m = task
+                        .machines
+                        .iter()
+                        .find(|m| m.machine.name == name)
+                        .ok_or("a G-code for a machine not asked for")?;
+                    let mm = pushed_mm(&report.output, m.machine.firmware)?;
+                    // A job that asks no material is weighed as what it was sliced for.
+                    let material = material.unwrap_or(&report.material).to_owned();
+                    weigh(&mut report, mm, &m.machine, Some(&material));
+                    Ok(report)
+                });
+                (name, r)
+            })
             .collect(),
+        file_material: None,
     })
+}
+
+/// The net filament a G-code file pushes, mm, as a print of it is booked
+/// ([`gcode::pushed_mm`]): a job's need and what its print took are one figure. The error
+/// is the host's refusal to load it.
+fn pushed_mm(gcode: &Path, firmware: Firmware) -> Result<f64, String> {
+    let (mm, commands) = gcode::pushed_mm(gcode, firmware, None).map_err(|e| e.to_string())?;
+    if commands == 0 {
+        let file = gcode.display().to_string();
+        return Err(gcode::GcodeError::Empty { file }.to_string());
+    }
+    Ok(mm)
+}
+
+/// Sets what one print needs on `machine` in its report: `mm`, weighed at the density of
+/// `material`, the material the job asks, where crispen knows it.
+fn weigh(report: &mut SliceReport, mm: f64, machine: &Machine, material: Option<&str>) {
+    let need = Need::of(mm, material, machine.filament_mm);
+    report.filament_mm = Some(need.mm);
+    report.filament_g = need.g;
 }
 
 /// Nice value of a comparison's process (and of the slicer it runs, which inherits it):
@@ -135,62 +176,63 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
         printer_model = ?target.printer_model,
         "pre-sliced G-code"
     );
-    // The host's load checks depend on the firmware only: run once per firmware.
-    let mut loads: Vec<(crate::marlin::firmware::Firmware, Result<(), String>)> = Vec::new();
+    // What the job asks: the file's own material where its folder and sidecar name none.
+    let asks = task
+        .asks
+        .clone()
+        .with_file_material(target.material.as_deref())
+        .map_err(|e| format!("{name}: {e}"))?;
+    // The host's load, and what it pushes, depend on the firmware only: once per firmware.
+    let mut loads: Vec<(Firmware, Result<f64, String>)> = Vec::new();
     let mut machines = Vec::new();
     for m in &task.machines {
         let firmware = m.machine.firmware;
         let load = match loads.iter().find(|(f, _)| *f == firmware) {
             Some((_, r)) => r.clone(),
             None => {
-                let r = policy::load_check(model, firmware).map_err(|e| e.to_string());
+                let r = pushed_mm(model, firmware);
                 loads.push((firmware, r.clone()));
                 r
             }
         };
         // The policy first: its refusals name the line.
         let verdict = load
-            .and_then(|()| {
+            .and_then(|mm| {
                 let verdict = policy::check_path(model, &m.machine).map_err(|e| e.to_string())?;
                 if verdict.passed() {
-                    Ok(verdict)
+                    Ok((mm, verdict))
                 } else {
                     Err(verdict.summary())
                 }
             })
-            .and_then(|verdict| presliced::check_for(&target, &m.machine).map(|()| verdict))
-            .map(|verdict| SliceReport {
-                model: model.clone(),
-                output: m.output.clone(),
-                machine: m.machine.name.clone(),
-                enhancement: crate::slice::EnhancementSummary {
-                    lambda2: None,
-                    mode: crate::slice::moved::PRESLICED.into(),
-                    report: None,
-                    printed: None,
-                    print_aware: None,
-                },
-                slicer_version: target.slicer.clone(),
-                model_size_mm: target
-                    .extent_mm
-                    .map_or([0.0; 3], |e| e.map(|[lo, hi]| hi - lo)),
-                top_layer_z_mm: target.extent_mm.map_or(0.0, |e| e[2][1]),
-                filament_mm: Some(target.extruded_mm),
-                // The file names no material: grams as for PLA (the default preset),
-                // on this machine's filament.
-                filament_g: Some({
-                    let r_cm = m.machine.filament_mm / 20.0;
-                    let pla = crate::slice::MATERIALS[0];
-                    target.extruded_mm / 10.0
-                        * std::f64::consts::PI
-                        * r_cm
-                        * r_cm
-                        * pla.density_g_cm3
-                }),
-                gcode_lines: target.lines,
-                policy: Some(verdict),
-                parts: crate::slice::plate_parts(model, m.machine.firmware),
-                ..SliceReport::default()
+            .and_then(|(mm, verdict)| {
+                presliced::check_for(&target, &m.machine).map(|()| (mm, verdict))
+            })
+            .map(|(mm, verdict)| {
+                let mut report = SliceReport {
+                    model: model.clone(),
+                    output: m.output.clone(),
+                    machine: m.machine.name.clone(),
+                    enhancement: crate::slice::EnhancementSummary {
+                        lambda2: None,
+                        mode: crate::slice::moved::PRESLICED.into(),
+                        report: None,
+                        printed: None,
+                        print_aware: None,
+                        observed: None,
+                    },
+                    slicer_version: target.slicer.clone(),
+                    model_size_mm: target
+                        .extent_mm
+                        .map_or([0.0; 3], |e| e.map(|[lo, hi]| hi - lo)),
+                    top_layer_z_mm: target.extent_mm.map_or(0.0, |e| e[2][1]),
+                    gcode_lines: target.lines,
+                    policy: Some(verdict),
+                    parts: crate::slice::plate_parts(model, m.machine.firmware),
+                    ..SliceReport::default()
+                };
+                weigh(&mut report, mm, &m.machine, asks.material.as_deref());
+                report
             })
             .map_err(|reason| {
                 format!(
@@ -206,5 +248,9 @@ fn check_presliced(task: &PrepareTask) -> Result<Prepared, String> {
         }
         machines.push((m.machine.name.clone(), verdict));
     }
-    Ok(Prepared { machines })
+    Ok(Prepared {
+        machines,
+        // Only as checked, and only where it is what the job asks.
+        file_material: asks.material.filter(|_| asks.material_of_file),
+    })
 }

@@ -45,6 +45,9 @@ impl JobCounts {
 pub(super) struct Counted {
     pub(super) states: JobCounts,
     pub(super) tally: stats::Tally,
+    /// The beds' ejects and checks by (printer, kind, result): counted as this host's
+    /// changes of its beds are served.
+    pub(super) beds: std::collections::BTreeMap<(String, &'static str, &'static str), u64>,
 }
 
 impl Counted {

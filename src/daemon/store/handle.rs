@@ -4,7 +4,7 @@
 
 use super::history;
 use super::job_store::{JobEdit, RetiredJob};
-use super::request::{LateSidecar, Reply, Request};
+use super::request::{BedChange, LateSidecar, Reply, Request};
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
 use super::stats;
@@ -185,30 +185,51 @@ impl StoreHandle {
         .await
     }
 
-    pub async fn set_gate(&self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+    /// Changes a printer's bed (see [`BedChange`]), checked against the bed's table of
+    /// legal changes in the same step; returns the gate as it was.
+    pub(crate) async fn change_bed(
+        &self,
+        printer: &str,
+        change: BedChange,
+    ) -> Result<PrinterGate, StoreError> {
         let printer = printer.to_string();
-        self.ask(|reply| Request::SetGate {
+        self.ask(|reply| Request::Bed {
             printer,
-            gate,
+            change: Box::new(change),
             reply,
         })
         .await
     }
 
-    /// Closes a printer's bed gate after a print (`job`: the job on the bed).
-    pub(crate) async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
-        let gate = PrinterGate {
-            bed_not_cleared: true,
-            last_job: Some(job.to_string()),
+    /// The gate after a print of `job` on `printer`: its bed waits for a person (what a
+    /// print that did not end well leaves; the printers' supervisors decide the rest, see
+    /// `daemon::printer`).
+    pub async fn close_gate(&self, printer: &str, job: &str) -> Result<(), StoreError> {
+        let change = BedChange {
+            from: None,
+            to: crate::daemon::bed::Bed::Waiting { why: None },
+            printed: Some(job.to_string()),
+            check: None,
+            record: None,
         };
-        self.set_gate(printer, gate).await
+        self.change_bed(printer, change).await.map(|_| ())
     }
 
-    /// Marks a printer's bed cleared; false when it was clear already.
+    /// A person says the printer's bed is clear; false when it was clear already.
     pub(crate) async fn clear_gate(&self, printer: &str) -> Result<bool, StoreError> {
-        let printer = printer.to_string();
-        self.ask(|reply| Request::ClearGate { printer, reply })
+        let change = BedChange {
+            from: None,
+            to: crate::daemon::bed::Bed::Clear {
+                by: crate::daemon::bed::ClearedBy::Person,
+                at_s: crate::daemon::job::now_s(),
+            },
+            printed: None,
+            check: None,
+            record: None,
+        };
+        self.change_bed(printer, change)
             .await
+            .map(|before| before.bed_not_cleared())
     }
 
     /// Persists outcomes that could not be written before; returns how many remain.

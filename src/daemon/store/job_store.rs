@@ -73,6 +73,10 @@ pub trait JobStore: Send + 'static {
     fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError>;
     /// Puts a failed, cancelled or interrupted job back (ready if its G-code is kept).
     fn retry(&mut self, id: &str) -> Result<Job, StoreError>;
+    /// Sets a printer's bed gate. When it cannot be persisted now (a full disk, an
+    /// outage), a closed gate (a print ended) is kept and persisted by
+    /// [`JobStore::write_pending`], so the bed still needs clearing afterwards; a clear is
+    /// not done (the gate stays as it was) and is an error.
     fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError>;
     /// Persists what [`JobStore::record_outcome`] and [`JobStore::set_gate`] could not;
     /// returns how many remain.

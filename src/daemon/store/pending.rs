@@ -171,8 +171,8 @@ mod tests {
         pending.keep_gate(
             "p1",
             PrinterGate {
-                bed_not_cleared: true,
-                last_job: None,
+                bed: crate::daemon::bed::Bed::Waiting { why: None },
+                ..Default::default()
             },
         );
         assert_eq!(pending.len(), 5);

@@ -9,6 +9,7 @@ use super::retiring::round;
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
 use super::stats;
+use crate::daemon::bed::{Bed, CheckRecord, Clearing};
 use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use std::path::PathBuf;
@@ -59,14 +60,14 @@ pub(super) enum Request {
         eligible: Box<dyn Fn(&Job) -> bool + Send>,
         reply: Reply<Option<Job>>,
     },
-    SetGate {
+    /// A change of a printer's bed, checked against [`Bed::can_go_to`] and its `from`.
+    ///
+    /// [`Bed::can_go_to`]: crate::daemon::bed::Bed::can_go_to
+    Bed {
         printer: String,
-        gate: PrinterGate,
-        reply: Reply<()>,
-    },
-    ClearGate {
-        printer: String,
-        reply: Reply<bool>,
+        /// Boxed: a check's record is large beside the other requests.
+        change: Box<BedChange>,
+        reply: Reply<PrinterGate>,
     },
     WritePending {
         reply: Reply<usize>,
@@ -99,6 +100,20 @@ pub(super) enum Request {
         now: f64,
         reply: Reply<stats::Stats>,
     },
+}
+
+/// A change of a printer's bed (see [`Request::Bed`]).
+pub(crate) struct BedChange {
+    /// The names of the states the bed must be in now ([`Bed::name`]); None: any the
+    /// table allows to go to `to`.
+    pub from: Option<&'static [&'static str]>,
+    pub to: Bed,
+    /// A print of this job just ended on it: it becomes the gate's last job.
+    pub printed: Option<String>,
+    /// The camera's check that led to it, kept as the gate's last.
+    pub check: Option<CheckRecord>,
+    /// A step of clearing the last job's print, added to that job's record.
+    pub record: Option<Clearing>,
 }
 
 /// What became of a sidecar that arrived after its model had become a job.
@@ -195,17 +210,11 @@ impl Request {
                 let (result, tried) = claim(store, view, &printer, &*eligible);
                 (deliver(reply, result), tried)
             }
-            Request::SetGate {
+            Request::Bed {
                 printer,
-                gate,
+                change,
                 reply,
-            } => {
-                let result = store.set_gate(&printer, gate);
-                view.gates = store.gates();
-                view.unwritten = store.unwritten();
-                (deliver(reply, result), true)
-            }
-            Request::ClearGate { printer, reply } => clear_gate(store, view, printer, reply),
+            } => change_bed(store, view, printer, *change, reply),
             Request::Resync { reply } => {
                 let changed = store.resync();
                 if changed {
@@ -282,30 +291,57 @@ fn late_sidecar(
     (deliver(reply, result), changed)
 }
 
-/// Marks `printer`'s bed cleared, unless it was clear already (see [`Request::ClearGate`]).
-fn clear_gate(
+/// Changes `printer`'s bed as `change` says if the table and its `from` allow (see
+/// [`Request::Bed`]); the reply is the gate as it was.
+fn change_bed(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     printer: String,
-    reply: Reply<bool>,
+    change: BedChange,
+    reply: Reply<PrinterGate>,
 ) -> (Delivery, bool) {
-    let gate = view.gate(&printer);
-    let result = if gate.bed_not_cleared {
-        let cleared = PrinterGate {
-            bed_not_cleared: false,
-            last_job: gate.last_job,
+    let before = view.gate(&printer);
+    let allowed = change.from.is_none_or(|f| f.contains(&before.bed.name()))
+        && before.bed.can_go_to(&change.to);
+    if !allowed {
+        let refused = StoreError::BedChange {
+            printer,
+            from: before.bed.name(),
+            to: change.to.name(),
         };
-        store.set_gate(&printer, cleared).map(|()| true)
-    } else {
-        Ok(false)
+        return (deliver(reply, Err(refused)), false);
+    }
+    let gate = PrinterGate {
+        bed: change.to,
+        last_job: change.printed.clone().or(before.last_job.clone()),
+        last_check: change.check.or(before.last_check.clone()),
     };
-    if let Ok(true) = result {
-        tracing::info!(printer = %printer, "bed cleared");
+    if gate == before {
+        return (deliver(reply, Ok(before)), false);
+    }
+    let counted = before.bed.counted(&gate.bed);
+    let result = store.set_gate(&printer, gate.clone());
+    if result.is_ok() {
+        tracing::info!(printer = %printer, bed = gate.bed.name(), reason = gate.bed.describe(), "bed");
+        if let Some((kind, outcome)) = counted {
+            view.count_bed(&printer, kind, outcome);
+        }
+        if let (Some(step), Some(job)) = (change.record, &gate.last_job) {
+            // The job's record is told, not asked: a job gone to the history keeps its own.
+            match store.update(job, Box::new(move |j| j.clearing.push(step))) {
+                Ok(_) => view.refresh(store, job),
+                Err(e) => {
+                    tracing::warn!(printer = %printer, job = %job, error = %e, "cannot add the bed's clearing to the job's record")
+                }
+            }
+        }
     }
     view.gates = store.gates();
     view.unwritten = store.unwritten();
-    let changed = !matches!(result, Ok(false));
-    (deliver(reply, result), changed)
+    // A change the store could not write is not done (see `JobStore::set_gate`): nothing
+    // to publish.
+    let changed = result.is_ok();
+    (deliver(reply, result.map(|()| before)), changed)
 }
 
 /// The statistics of `period` over the history and the live jobs (see [`Request::Stats`]).

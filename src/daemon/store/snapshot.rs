@@ -29,6 +29,8 @@ pub struct Snapshot {
     pub(super) unwritten: usize,
     /// What jobs did since the task started, counted as each change is published.
     counted: Arc<Counted>,
+    /// How many snapshots the task has published since it started (see [`Snapshot::version`]).
+    pub(super) version: u64,
 }
 
 /// A live job and what is known of its files.
@@ -41,12 +43,13 @@ struct Live {
 
 /// The pictures a job's directory may hold (see `crate::preview`); at most 8, one bit of
 /// [`Live::pictures`] each.
-pub const PICTURES: [&str; 5] = [
+pub const PICTURES: [&str; 6] = [
     crate::preview::BEFORE_PNG,
     crate::preview::AFTER_PNG,
     crate::preview::DISPLACEMENT_PNG,
     crate::preview::walls::WALLS_PNG,
     crate::preview::PREVIEW_PNG,
+    crate::observation::OBSERVED_PNG,
 ];
 const _: () = assert!(PICTURES.len() <= u8::BITS as usize);
 
@@ -101,6 +104,7 @@ impl Snapshot {
             jobs_dir,
             unwritten: store.unwritten(),
             counted,
+            version: before.map_or(0, |b| b.version),
         }
     }
 
@@ -141,6 +145,13 @@ impl Snapshot {
         self.jobs_dir.join(id)
     }
 
+    /// How many changes the store's task has published since it started, this one
+    /// included: a reader that acted on version `n` acted on every change up to it (a
+    /// printer's supervisor says which version it last looked for a job in).
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
     /// Outcomes that happened but could not be persisted yet.
     pub fn unwritten(&self) -> usize {
         self.unwritten
@@ -154,6 +165,20 @@ impl Snapshot {
     /// The metrics' counters by printer since the store's task started.
     pub fn tally(&self) -> &stats::Tally {
         &self.counted.tally
+    }
+
+    /// The beds' ejects and checks since the store's task started: (printer, `ejects` or
+    /// `checks`, result) and how many.
+    pub fn bed_counts(&self) -> &BTreeMap<(String, &'static str, &'static str), u64> {
+        &self.counted.beds
+    }
+
+    /// Counts a change of `printer`'s bed (see [`crate::daemon::bed::Bed::counted`]).
+    pub(super) fn count_bed(&mut self, printer: &str, kind: &'static str, result: &'static str) {
+        *Arc::make_mut(&mut self.counted)
+            .beds
+            .entry((printer.to_string(), kind, result))
+            .or_default() += 1;
     }
 
     /// No job has work ahead of it.

@@ -138,8 +138,9 @@ pub struct Group {
     pub jobs: Outcomes,
     /// Time spent printing within the period.
     pub printing_s: f64,
-    /// Filament of the prints finished in the period (each copy printed counts), as the
-    /// slicer estimated it.
+    /// Filament of the prints finished in the period (each copy printed counts), as their
+    /// G-code pushes it net; in grams, of the jobs that asked a material crispen knows
+    /// the density of (see `crate::daemon::filament::routing::Need`).
     pub filament_mm: f64,
     pub filament_g: f64,
     /// Filament the jobs that ended in the period used, grams: as their prints were

@@ -130,6 +130,7 @@ async fn serve(
         }
         // A batch that changed nothing wakes no follower.
         if changed {
+            view.version += 1;
             snapshots.send_replace(Arc::new(view.clone()));
         }
         for delivery in deliveries {

@@ -384,3 +384,30 @@ async fn a_use_is_booked_before_its_job_retires() {
     assert!(s.uses.contains_key(&key), "{:?}", s.uses);
     assert_eq!(s.remaining_g(), Some(87.5));
 }
+
+/// Through the store's task, a clear that cannot be written is refused and the published
+/// snapshot agrees: the bed still waits, now and once writing works again (the task
+/// publishes before it replies, so a reader never sees a clear the reply denies).
+#[tokio::test]
+async fn a_refused_clear_is_not_published() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("spool");
+    let handle = spawn(spool::Spool::open(&root).unwrap());
+    handle.close_gate("p1", "0001-a").await.unwrap();
+    let blocker = crate::fsutil::temp_path(&root.join("printers.json"));
+    std::fs::create_dir_all(&blocker).unwrap();
+    let follower = handle.subscribe();
+    let refused = handle.clear_gate("p1").await.unwrap_err();
+    assert!(matches!(refused, StoreError::Io { .. }), "{refused}");
+    assert!(handle.snapshot().gate("p1").bed_not_cleared());
+    assert_eq!(handle.snapshot().unwritten(), 0);
+    std::fs::remove_dir(&blocker).unwrap();
+    assert_eq!(handle.write_pending().await.unwrap(), 0);
+    assert!(handle.snapshot().gate("p1").bed_not_cleared());
+    assert!(
+        !follower.has_changed().unwrap(),
+        "nothing changed, nothing published"
+    );
+    assert!(handle.clear_gate("p1").await.unwrap());
+    assert!(!handle.snapshot().gate("p1").bed_not_cleared());
+}

@@ -129,9 +129,11 @@ function printerTile(p, status) {
       "<span>Bed <b>" + temp(t.bed_c, t.bed_target_c) + "</b></span></div>";
   }
   html += holdsLine(p.holds);
+  html += bedView(p);
   if (p.detail) html += '<div class="detail">' + esc(p.detail) + "</div>";
   html += '<div class="actions">';
-  if (!p.bed_cleared) html += '<button class="clear" data-action="clear" data-printer="' + esc(p.name) + '">Bed is clear</button>';
+  if (!p.bed_cleared && p.bed.state !== "ejecting") html += '<button class="clear" data-action="clear" data-printer="' + esc(p.name) + '">Bed is clear</button>';
+  if (cameras.has(p.name) && p.state !== "printing" && p.state !== "ejecting") html += '<button class="reference" data-action="reference" data-printer="' + esc(p.name) + '" title="take the camera\'s picture now as the empty bed the check compares with">New reference</button>';
   if (p.state === "printing") html += '<button data-action="pause" data-printer="' + esc(p.name) + '">Pause</button>';
   if (p.state === "paused" || p.state === "waiting_for_operator") html += '<button data-action="resume" data-printer="' + esc(p.name) + '">Resume</button>';
   if (job && (p.state === "printing" || p.state === "paused" || p.state === "waiting_for_operator")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
@@ -142,6 +144,55 @@ function printerTile(p, status) {
   }
   html += "</div></article>";
   return html;
+}
+
+// A printer's bed when its camera found it not clear: the marked picture and the figures.
+function bedView(p) {
+  const why = p.bed && p.bed.state === "waiting" && p.bed.why;
+  if (!why || why.kind !== "not_clear") return "";
+  const check = why.check;
+  let html = '<div class="bedcheck">';
+  if (check.picture) {
+    const file = check.picture.split("/").pop();
+    html += picture("/api/v1/printers/" + encodeURIComponent(p.name) + "/bed/" + encodeURIComponent(file), "bed check of " + p.name, "marked");
+  }
+  html += '<div class="verdict">' + esc(checkSummary(check.verdict)) + "</div></div>";
+  return html;
+}
+
+// A check's answer in words, as the daemon says it ("not clear: 6.1 % of the bed differs, ...").
+function checkSummary(v) {
+  if (v.unsure && !v.patches.length) return "not clear: cannot tell, the picture is too dark or noisy";
+  let text = (v.clear ? "clear" : "not clear") + ": " + v.differs_percent.toFixed(1) + " % of the bed differs";
+  const largest = v.patches[0];
+  if (largest) {
+    text += largest.size_mm ? ", largest patch " + largest.size_mm[0].toFixed(0) + " × " + largest.size_mm[1].toFixed(0) + " mm"
+      : ", largest patch " + largest.w + " × " + largest.h + " px";
+    if (v.patches.length > 1) text += " (" + v.patches.length + " patches)";
+  }
+  return text;
+}
+
+// A job's prints cleared off the bed by machine: each eject and camera check.
+function clearingSection(id, steps) {
+  if (!steps || !steps.length) return "";
+  let html = '<h3>Clearing the bed</h3><ol class="clearing" id="clearing">';
+  for (const s of steps) {
+    if (s.step === "eject") {
+      html += "<li>Eject sequence on " + esc(s.printer) + " " + new Date(s.started_s * 1000).toLocaleTimeString() + ", " +
+        duration(s.ended_s - s.started_s) + ": " + (s.error ? '<span class="reason">failed: ' + esc(s.error) + "</span>" : "done") + "</li>";
+    } else if (s.step === "check") {
+      const c = s.check;
+      html += '<li>Camera check on ' + esc(s.printer) + " " + new Date(c.at_s * 1000).toLocaleTimeString() + ': <b class="' +
+        (c.verdict.clear ? "ok" : "reason") + '">' + esc(checkSummary(c.verdict)) + "</b>";
+      if (c.picture && c.picture.startsWith("camera/")) {
+        html += "<figure>" + picture("/api/v1/jobs/" + encodeURIComponent(id) + "/camera/" + encodeURIComponent(c.picture.split("/").pop()), "bed check", "marked") +
+          "<figcaption>The bed as the camera saw it, what differs from the empty bed boxed in red</figcaption></figure>";
+      }
+      html += "</li>";
+    }
+  }
+  return html + "</ol>";
 }
 
 // A printer's camera on its tile: its latest picture (a click opens the live view) and,
@@ -458,6 +509,7 @@ const ACTIONS = {
   retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
   release: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/release"],
   unload: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/unload", "Take the spool off " + el.dataset.printer + "? It takes no job until one is loaded."],
+  reference: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/clear?reference=true", "Is the bed of " + el.dataset.printer + " empty, and its camera where it stays? Its picture now becomes the empty bed the check compares with."],
 };
 
 document.addEventListener("click", async (e) => {
@@ -549,6 +601,59 @@ function strengthWords(e) {
   }
   const word = e.lambda2 >= 30 ? "strong" : e.lambda2 >= 10 ? "medium" : "light";
   return word + " (λ2 " + num(e.lambda2, 2) + ", the paper's method)";
+}
+
+// A candidate of the observer (strength = "observed") in words.
+function candidateWords(c) {
+  if (c.mode === "plain") return "plain (unmodified)";
+  if (c.mode === "print-aware") return "print-aware, λ2 " + num(c.strength, 2);
+  const word = { 10: "light", 20: "medium", 40: "strong" }[c.strength];
+  return (word ? "the paper's " + word + ", " : "the paper's method, ") + "λ2 " + num(c.strength, 2);
+}
+
+// Why the observer's strength is what it is.
+function choiceText(o) {
+  const seen = "the model printed " + num(o.reference_height_mm, 0) + " mm tall" +
+    (o.conditions ? ", seen from " + num(o.conditions.distance_mm / 10, 0) + " cm in " + o.conditions.views + " views" : "");
+  const c = o.chosen != null ? o.candidates[o.chosen] : null;
+  switch (o.choice) {
+    case "most_alike":
+      return c ? "Of " + o.candidates.length + " candidates, " + candidateWords(c) + " looks most like " + seen +
+        " (resemblance " + num(c.resemblance, 3) + "; 1 would be indistinguishable)." : "";
+    case "at_reference":
+      return "Printed " + num(o.height_mm, 0) + " mm tall, at or above the reference size (" +
+        num(o.reference_height_mm, 0) + " mm): unmodified, as the paper's table prints it there.";
+    case "timed_out":
+      return "The observer ran out of time after " + duration(o.seconds) + "; the strength is the paper's table's.";
+    case "failed":
+      return "The observer could not look (" + (o.failure || "no candidate could be made") + "); the strength is the paper's table's.";
+  }
+  return "";
+}
+
+// The observer's section: every candidate's resemblance to the print at the reference
+// size, what it lost and added (in multiples of a just-visible difference), the views.
+function observedSection(j, o) {
+  let html = '<h3>Strength chosen by the observer</h3><p id="observed-why">' + esc(choiceText(o)) + "</p>";
+  if (o.candidates && o.candidates.length) {
+    html += '<table class="figures-table" id="observed"><thead><tr><th>candidate</th><th>resemblance</th>' +
+      "<th>visible difference</th><th>lost</th><th>added</th></tr></thead><tbody>";
+    o.candidates.forEach((c, i) => {
+      const mark = i === o.chosen ? ' class="chosen"' : "";
+      const cells = c.resemblance != null ?
+        [num(c.resemblance, 3), num(c.difference_jnd, 2), num(c.lost_jnd, 2), num(c.added_jnd, 2)] :
+        ["not made: " + (c.error || "?"), "", "", ""];
+      html += "<tr" + mark + "><td>" + esc(candidateWords(c) + (i === o.chosen ? " (chosen)" : "")) + "</td>" +
+        cells.map((v) => "<td>" + esc(v) + "</td>").join("") + "</tr>";
+    });
+    html += "</tbody></table>";
+  }
+  if (j.pictures.includes("observed.png")) {
+    html += '<figure id="observed-views">' + picture("/api/v1/jobs/" + encodeURIComponent(j.id) + "/pictures/observed.png", "the observer's views") +
+      "<figcaption>What the observer compared, one view a column: first the model printed at the reference size, " +
+      "scaled to this print's size; then each candidate, in the order of the table</figcaption></figure>";
+  }
+  return html;
 }
 
 // Rows of [what, figure] as a definition list (the page's layout for figures).
@@ -686,6 +791,7 @@ async function showJob(id) {
   if (asksText(j.asks)) filament.push("asks " + asksText(j.asks));
   if (j.asks && j.asks.priority) filament.push("priority " + j.asks.priority);
   if (j.need_g != null) filament.push("needs about " + grams(j.need_g) + " a print");
+  else if (j.need_m != null) filament.push("needs about " + (+j.need_m.toFixed(2)) + " m a print");
   if (j.used_g != null) filament.push("used " + (+j.used_g.toFixed(2)) + " g");
   if (j.cost != null) filament.push("cost " + j.cost.toFixed(2));
   if (filament.length) html += '<p id="filament">' + esc(filament.join(" · ")) + "</p>";
@@ -703,6 +809,7 @@ async function showJob(id) {
       "<figcaption>The print as the printer will lay it, from its G-code: the original model, the plain print " +
       "and the enhanced print (one camera, a low light from the left); below, the prints at their actual size</figcaption></figure>";
   }
+  if (report && report.enhancement && report.enhancement.observed) html += observedSection(j, report.enhancement.observed);
   if (report && report.enhancement && report.enhancement.lambda2 != null) {
     html += "<h3>What moved</h3>" + movedFigures(j, report);
     if (j.pictures.includes("walls.png")) {
@@ -713,6 +820,7 @@ async function showJob(id) {
   }
   const printing = printingText(j);
   if (printing) html += '<h3>Printing</h3><p id="printing">' + esc(printing) + "</p>";
+  html += clearingSection(id, j.job.clearing);
   if (j.camera) html += cameraSection(id, j.camera);
   html += "<h3>History</h3><ol class='history'>" + (j.job.history || []).map(([state, t]) =>
     "<li>" + esc(stateWords(state)) + " <span class='muted'>" + new Date(t * 1000).toLocaleString() + "</span></li>").join("") + "</ol>";
@@ -733,6 +841,13 @@ function cameraSection(id, cam) {
   } else if (cam.timelapse_error) {
     html += '<p class="muted">No timelapse: ' + esc(cam.timelapse_error) + "</p>";
   }
+  if (cam.missing && cam.missing.length) {
+    const of = cam.layers ? " of " + cam.layers : "";
+    html += '<ul class="missing">' + cam.missing.map((m) =>
+      "<li>No timelapse frame of " + (m.first === m.last ? "layer " + m.first : "layers " + m.first + "–" + m.last) + of +
+      ": " + esc(noFrameWords(m.why)) + ' <span class="muted">' + new Date(m.at * 1000).toLocaleTimeString() + "</span></li>").join("") +
+      "</ul>";
+  }
   if (cam.snapshots.length) {
     html += '<div class="pictures snapshots">';
     for (const s of cam.snapshots) {
@@ -742,6 +857,52 @@ function cameraSection(id, cam) {
     html += "</div>";
   }
   return html;
+}
+
+// Why a job has no frame where it wanted one (a NoFrame of its camera.json), in words.
+function noFrameWords(why) {
+  switch (why.kind) {
+    case "starting": return "the camera had given no frame yet";
+    case "offline": {
+      const since = why.since ? " since " + new Date(why.since * 1000).toLocaleTimeString() : "";
+      return "the camera was offline" + since + (why.fault ? " (" + cameraFaultWords(why.fault) + ")" : "");
+    }
+    case "stale": return "the camera's latest frame was " + Math.round(why.age_s) + " s old";
+    case "picture": return "the camera's frame could not be made into a picture";
+    case "disk": return "the frame could not be written to the disk";
+    default: return label(why.kind);
+  }
+}
+
+// A camera's last failure (a CameraFault), in words.
+function cameraFaultWords(f) {
+  switch (f.kind) {
+    case "connect": return "cannot connect";
+    case "timeout": return "no answer within " + f.seconds + " s";
+    case "no_frame": return "no frame within " + f.seconds + " s";
+    case "status": return "HTTP status " + f.code;
+    case "not_jpeg": return "not a JPEG";
+    case "too_large": return "a frame larger than " + (f.max_bytes / 1048576).toFixed(1) + " MB";
+    case "not_stream": return "not an MJPEG stream";
+    case "no_boundary": return "no boundary within " + (f.max_bytes / 1048576).toFixed(1) + " MB";
+    case "closed": return "the stream ended";
+    case "http": return "the HTTP exchange failed";
+    case "refused": return frameFaultWords(f.frame);
+    default: return label(f.kind);
+  }
+}
+
+// Why a camera's frame was refused (a FrameFault), in words.
+function frameFaultWords(f) {
+  switch (f.kind) {
+    case "headers": return "a part's headers were unreadable";
+    case "not_jpeg": return "a part that is not a JPEG";
+    case "cut": return "frames cut short";
+    case "trailing": return "frames run into the next part";
+    case "malformed": return "frames whose JPEG segments are malformed";
+    case "undecodable": return "frames whose picture does not decode";
+    default: return label(f.kind);
+  }
 }
 
 function loadVideos(root) {

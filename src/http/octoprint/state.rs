@@ -96,7 +96,11 @@ fn state_text(p: Option<&PrinterStatus>) -> String {
         PrinterState::WaitingToHeat => "Starting".to_string(),
         // A finished print still on the bed: the printer is there, it takes no job until
         // the operator clears it (`crispen.printers` says so).
-        PrinterState::Idle | PrinterState::BedNotCleared => "Operational".to_string(),
+        PrinterState::Idle | PrinterState::BedNotCleared | PrinterState::CheckingBed => {
+            "Operational".to_string()
+        }
+        // The eject sequence moves the printer: busy, as while it prints.
+        PrinterState::Ejecting => "Printing".to_string(),
         PrinterState::Connecting => "Connecting".to_string(),
         PrinterState::Disconnected => "Offline".to_string(),
         PrinterState::Stopped | PrinterState::Halted => format!(
@@ -118,6 +122,8 @@ fn flags(p: Option<&PrinterStatus>) -> Value {
                 | PrinterState::Paused
                 | PrinterState::WaitingForOperator
                 | PrinterState::BedNotCleared
+                | PrinterState::Ejecting
+                | PrinterState::CheckingBed
         )
     );
     json!({

@@ -2,7 +2,7 @@
 //! cost ([`JobSummary`]), and what the printer said about itself ([`FirmwareInfo`]).
 
 use super::reply::HostAction;
-use super::temperature::Temperatures;
+use super::temperature::{HeatWaitEstimate, Temperatures};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -95,6 +95,13 @@ pub enum Failure {
         oldest_kept: u64,
         last_acked: usize,
     },
+    /// The printer no longer counts lines as the host does (a line it ran set its count, as
+    /// `M110` inside a message does on Marlin 2): it refuses the host's lines or asks for
+    /// ones it had acknowledged. Sending on would print nothing, or print twice.
+    LostNumbering {
+        what: Numbering,
+        last_acked: usize,
+    },
     /// The printer asked for a line it had already confirmed (an answered `M105`, an
     /// `ok N`): it lost its state (a reset without `start`, a power dip); replaying on top
     /// of a half-printed layer would be guessing.
@@ -133,6 +140,62 @@ pub enum Failure {
         message: String,
         last_acked: usize,
     },
+}
+
+/// How the host found that the printer's line count is no longer its own.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Numbering {
+    /// It asked for line `requested`, which the host never sent (it had sent lines up to
+    /// `sent`), after an error naming `last_line` as the last it took: e.g. `Last Line:
+    /// 999`, `Resend: 1000` when the host had sent 13.
+    AheadOfHost {
+        requested: u64,
+        last_line: Option<u64>,
+        sent: u64,
+    },
+    /// It asked again for line `requested` after acknowledging every line up to
+    /// `acknowledged` in order: its count went back.
+    WentBack { requested: u64, acknowledged: u64 },
+    /// Its answers advanced nothing: `refusals` answers in a row asked for lines the host
+    /// never sent (it had sent lines up to `sent`), each with its `ok`.
+    NoAdvance { refusals: u32, sent: u64 },
+}
+
+impl std::fmt::Display for Numbering {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Numbering::AheadOfHost {
+                requested,
+                last_line,
+                sent,
+            } => {
+                write!(f, "it asked for line {requested}")?;
+                if let Some(last) = last_line {
+                    write!(f, " (its last line {last})")?;
+                }
+                write!(
+                    f,
+                    ", but the host had sent lines only up to {sent}: a line it ran set its \
+                     count (as `M110` anywhere in a line does on Marlin)"
+                )
+            }
+            Numbering::WentBack {
+                requested,
+                acknowledged,
+            } => write!(
+                f,
+                "it asked for line {requested} again after acknowledging every line up to \
+                 {acknowledged}: its count went back (a line it ran set it, or it restarted \
+                 without saying so)"
+            ),
+            Numbering::NoAdvance { refusals, sent } => write!(
+                f,
+                "it refused {refusals} lines in a row, each time asking for a line the host \
+                 never sent (it had sent lines up to {sent}), and acknowledged none"
+            ),
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -177,6 +240,14 @@ pub enum Event {
     SafeStop {
         confirmed: bool,
     },
+    /// During a stop, the printer's own answer to an `M105` sent after the stop's
+    /// unnumbered heaters-off lines shows both targets at 0: whatever becomes of the
+    /// stop's numbered lines (a noisy link may keep refusing them), the heaters are off,
+    /// and nothing the host sends after can turn them on.
+    HeatersOff,
+    /// A stop was asked for while the printer waits for a heater, and its firmware reads
+    /// nothing until the wait is over (Ultimaker2Marlin): the heaters go off only then.
+    StopWaitsForHeat(HeatWaitEstimate),
     Done(JobSummary),
     Failed(Failure),
 }

@@ -36,11 +36,19 @@ pub(super) enum JobPhase {
 /// Why a job stops sending its lines.
 #[derive(Debug, Clone, PartialEq)]
 pub(super) enum Stop {
-    /// On request: the safe-stop lines follow the job's numbering.
-    Cancel,
-    /// A failure while the printer still answers: the line counter is reset with `M110`
-    /// (the printer's idea of the next line is not to be trusted), the safe-stop lines go
-    /// out, and the failure is reported once an `M105` after them is answered or `give_up`
-    /// passes.
+    /// On request. Given up, unconfirmed, at `give_up` (as a failure's stop).
+    Cancel { give_up: Instant },
+    /// A failure while the printer still answers: the safe-stop lines go out (as for a
+    /// cancel), and the failure is reported once an `M105` after them is answered or
+    /// `give_up` passes.
     Failure { failure: Failure, give_up: Instant },
+}
+
+impl Stop {
+    /// When the stop is given up unconfirmed, while the printer keeps talking.
+    pub(super) fn give_up(&self) -> Instant {
+        match self {
+            Stop::Cancel { give_up } | Stop::Failure { give_up, .. } => *give_up,
+        }
+    }
 }

@@ -3,12 +3,14 @@
 //! a temperature report updates the heaters, an error waits a moment to show whether it
 //! belongs to a resend or a halt, and a `Resend:` goes to `resend.rs`.
 
-use super::event::{Event, Failure};
+use super::event::{Event, Failure, Numbering};
 use super::framing::{canonical, strip_framing};
-use super::line::{is_code, InFlight, Kind, LONG_COMMANDS};
+use super::line::{is_code, InFlight, Kind, OwedLine, LONG_COMMANDS};
 use super::phase::Phase;
 use super::recovery::OkFollow;
 use super::reply::{HostAction, OkReply, Reply, Report};
+use super::stop::STOP_WAIT_EVERY;
+use super::temperature::Temp;
 use super::Host;
 use crate::marlin::gcode::is_heat_wait;
 use std::time::{Duration, Instant};
@@ -203,6 +205,26 @@ impl Host {
         self.thermal.take(report.temperatures, report.waiting, now);
         self.events
             .push_back(Event::Temperatures(self.thermal.temps));
+        // A stop that said it waits for the heat-up (`begin_stop`) says so again.
+        let said = self.timers.last_stop_wait;
+        if self.stopping().is_some()
+            && self.heating()
+            && said.is_some_and(|t| now.saturating_duration_since(t) >= STOP_WAIT_EVERY)
+        {
+            self.say_stop_waits(now);
+        }
+        if report.waiting && self.stopping().is_some() && self.breaks_heat_wait() {
+            // A heat wait began after the stop's M108 was read (it waited behind another
+            // command): an M108 read before the wait starts is lost, as the wait sets its
+            // flag anew (temperature.cpp:4097). Break this one too, once a second at most.
+            let due = self
+                .timers
+                .last_m108
+                .is_none_or(|t| now.saturating_duration_since(t) >= Duration::from_secs(1));
+            if due {
+                self.send_unnumbered("M108", now);
+            }
+        }
     }
 
     fn handle_ok(&mut self, ok: &OkReply, now: Instant) {
@@ -213,23 +235,65 @@ impl Host {
             // waited, so this is the heat command's own.
             self.thermal.heat = None;
         }
+        if ok.text && self.settle_owed_m105() {
+            // The answer of an M105 sent before the stop's count began: it says nothing of
+            // the stop's lines, which the printer runs after it.
+            return;
+        }
         if ok.text {
+            if let Some((before, _)) = self.unnumbered_probe.take() {
+                // The answer of the M105 sent without a number: the printer ran it after
+                // every line sent before it, and only those.
+                self.owed.clear();
+                if let Some(last) = before.checked_sub(1) {
+                    self.ack_through(last, now);
+                }
+                // During a stop, after the stop's own unnumbered heaters-off lines too (a
+                // probe from before the stop is answered as a stale one, above).
+                let off = |t: Option<Temp>| t.is_some_and(|t| t.target == Some(0.0));
+                let heaters_off = ok
+                    .report
+                    .as_ref()
+                    .is_some_and(|r| off(r.temperatures.hotend) && off(r.temperatures.bed));
+                if self.stopping().is_some() && heaters_off {
+                    self.events.push_back(Event::HeatersOff);
+                }
+                return;
+            }
             // The answer of an M105 (only it carries text, whether or not the temperatures
             // in it could be read): the printer processed it after every earlier line.
             if let Some(pos) = self.in_flight.iter().position(|f| f.is_m105) {
                 let number = self.in_flight[pos].number;
                 // Every `ok` owed by an earlier `Resend:` or fragment came before this one:
                 // a debt still open was a guess that went wrong.
-                self.swallow_oks = 0;
+                self.owed.clear();
                 self.ack_through(number, now);
                 return;
             }
         }
         if let Some(n) = ok.line {
             self.advanced_ok = true;
+            if self.stopping().is_some() && n < self.stop_from {
+                // A line sent before the stop's count began.
+                self.settle_owed_ok(&[OwedLine::Before]);
+            }
             if n < self.next_number {
                 self.ack_through(n, now);
+            } else if self.stopping().is_none() && self.in_job() {
+                // An answer for a line the host never sent: the printer counts from
+                // elsewhere (a line that set its count was answered with its own number).
+                if self.unexplained_answer() {
+                    let what = Numbering::NoAdvance {
+                        refusals: self.recovery.unexplained,
+                        sent: self.next_number.saturating_sub(1),
+                    };
+                    self.numbering_lost(what, now);
+                }
             }
+            return;
+        }
+        if ok.advanced && self.settle_owed_ok(&[OwedLine::Unnumbered]) {
+            // A line of the host's own without a number (a stop's heaters off).
             return;
         }
         if ok.advanced {
@@ -245,8 +309,8 @@ impl Host {
             // A plain `ok` in an ADVANCED_OK build is the one after `Resend:`.
             return;
         }
-        if self.swallow_oks > 0 {
-            self.swallow_oks -= 1;
+        if self.settle_owed_ok(&[OwedLine::Before, OwedLine::Unnumbered]) {
+            // A line sent before the stop's count began, or one without a number.
             return;
         }
         // A plain `ok` answers the oldest line, but never an `M105`: its answer carries the
@@ -312,6 +376,7 @@ impl Host {
         }
         self.timers.front_since = now;
         self.timers.last_ack = now;
+        self.recovery.unexplained = 0;
         if !self.opts.firmware.acks_moves_on_entry()
             && self
                 .thermal

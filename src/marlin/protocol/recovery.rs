@@ -15,6 +15,12 @@ pub(super) const SETTLE_MAX: Duration = Duration::from_millis(150);
 /// replayed line is still unanswered (its answer would have come at once).
 pub(super) const REPLAY_PROBE: Duration = Duration::from_millis(30);
 
+/// Unexplained answers (see [`Recovery::unexplained`]) with no line answered between them
+/// that stop a job: one may be noise whose `ok`, taken for the refusal's, was a line's own
+/// (its line then waits for a probe's answer); three, each standing for another line the
+/// host sent, is a printer refusing each line it gets.
+pub(super) const UNEXPLAINED_LIMIT: u32 = 3;
+
 /// What the line after a `Resend:` or a fragment's `Unknown command` may be.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct OkFollow {
@@ -102,6 +108,12 @@ pub(super) struct Recovery {
     /// already on their way (see [`Settle`]).
     pub(super) settle: Option<Settle>,
     pub(super) resend_ok: ResendOk,
+    /// Answers since the last acknowledged line that the host cannot explain: requests
+    /// for lines beyond any it sent without an error naming the line before, `ok N` for a
+    /// line never sent; never more than the lines still owed an answer (a printer that
+    /// counts from elsewhere answers each line it gets so; noise beyond them follows no
+    /// line of the host's). [`UNEXPLAINED_LIMIT`] mean the printer counts from elsewhere.
+    pub(super) unexplained: u32,
 }
 
 impl Recovery {
@@ -123,5 +135,6 @@ impl Recovery {
         self.settle = None;
         self.ok_may_follow = None;
         self.resend_hold = None;
+        self.unexplained = 0;
     }
 }

@@ -6,12 +6,20 @@
 //! that may follow, and the rewind of the send cursor. What is kept between requests is
 //! [`Recovery`](super::recovery::Recovery).
 
-use super::event::{Event, Failure};
-use super::line::{is_code, Kind, Line};
-use super::phase::{Phase, Stop};
-use super::recovery::{OkFollow, Settle, REPLAY_PROBE, SETTLE_MAX};
+use super::event::{Event, Failure, Numbering};
+use super::line::{is_code, Kind};
+use super::phase::Phase;
+use super::recovery::{OkFollow, Settle, REPLAY_PROBE, SETTLE_MAX, UNEXPLAINED_LIMIT};
 use super::Host;
 use std::time::{Duration, Instant};
+
+/// Acknowledged lines a request may disown before the host takes the printer's count for
+/// gone back: an `ok` taken for a line's may have been a fragment's (the firmware ran the
+/// tail of a cut line) or a line's whose corrupted `N` made it run unchecked. Four: the
+/// real Ultimaker2Marlin behind the noisy relay once disowned four such answers in one
+/// window (`Resend: 86` after `ok`s taken for 86 to 89); a count that really went back
+/// (a restart, an `M110` slipped in) lands far below the lines in flight.
+const WENT_BACK_SLACK: u64 = 4;
 
 impl Host {
     pub(super) fn handle_resend(&mut self, n: u64, now: Instant) {
@@ -23,8 +31,9 @@ impl Host {
             self.send_greeting(now);
             return;
         }
+        let last_line = self.recovery.error_last_line;
         let n = self.requested_line(n, first);
-        if self.refuse_resend(n, first, now) {
+        if self.refuse_resend(n, first, last_line, expect_ok, now) {
             return;
         }
         self.free_ring_before(n);
@@ -36,7 +45,7 @@ impl Host {
         }
         self.drop_lines_from(n, now);
         self.listen_for_ok_after_resend(expect_ok, now);
-        self.rewind_to(n, first);
+        self.rewind_to(n);
     }
 
     /// Whether an `ok` follows this `Resend:` (plain `ok`s are ignored anyway where
@@ -61,15 +70,15 @@ impl Host {
         // while our `M110` is unanswered: the printer rejected the `M110` (its counter still
         // runs from before). Send it again. A garbled number never matches its error.
         let consistent = std::mem::take(&mut self.recovery.error_last_line) == n.checked_sub(1);
-        let stop_first = match self.stopping() {
-            Some(Stop::Failure { .. }) => Some(first),
-            _ => None,
-        };
+        let stop_first = self.stopping().map(|_| first);
         if never_sent && counter_reset_pending && consistent {
             first
         } else if let Some(first) = stop_first.filter(|&f| n < f) {
             // The printer still counts from before the stop: it rejected our M110. The
             // safe-stop lines are harmless to run twice, so replaying from it is safe.
+            // Whatever answer seemed to confirm a line of the stop's count (an M105's,
+            // after a refusal taken for a duplicate) did not: the printer took none.
+            self.confirmed = self.confirmed.filter(|&c| c < first);
             first
         } else {
             n
@@ -77,8 +86,17 @@ impl Host {
     }
 
     /// A request that cannot be honoured: for a line the printer had confirmed (it lost its
-    /// state), for one never sent (ignored), or for one no longer kept. True if it was one.
-    fn refuse_resend(&mut self, n: u64, first: u64, now: Instant) -> bool {
+    /// state), for one never sent, for lines it had acknowledged in order (its count is no
+    /// longer the host's), or for one no longer kept. True if it was one. `last_line`: the
+    /// `Last Line:` of the error before it.
+    fn refuse_resend(
+        &mut self,
+        n: u64,
+        first: u64,
+        last_line: Option<u64>,
+        expect_ok: bool,
+        now: Instant,
+    ) -> bool {
         if let Some(confirmed) = self.confirmed.filter(|&c| n <= c) {
             let last_acked = self.acked_job;
             self.fail_safely(
@@ -91,11 +109,57 @@ impl Host {
             );
             return true;
         }
+        // The error before a real request names the line before it (`Last Line: 999`,
+        // `Resend: 1000`); a garbled number does not match its error.
+        let consistent = last_line == n.checked_sub(1);
+        // A stop has a count of its own, and sends its M110 again where it was rejected.
+        let streaming = self.stopping().is_none();
+        if n > self.next_number && streaming {
+            // Beyond the next line the host would send: the printer counts from elsewhere.
+            let sent = self.next_number.saturating_sub(1);
+            if consistent {
+                let what = Numbering::AheadOfHost {
+                    requested: n,
+                    last_line,
+                    sent,
+                };
+                self.numbering_lost(what, now);
+                return true;
+            }
+            // A garbled number, or a refusal whose error was lost: its `ok` is no line's.
+            // More of them, one for each line sent and unanswered, are no accident.
+            if self.unexplained_answer() {
+                let refusals = self.recovery.unexplained;
+                self.numbering_lost(Numbering::NoAdvance { refusals, sent }, now);
+                return true;
+            }
+        }
         if n >= self.next_number || n > self.send_cursor {
-            // Never sent: a garbled number (`Resend: 034497`). Nothing to replay.
+            // Never sent (`Resend: 034497`, or Ultimaker2Marlin's answer to a fragment with
+            // an `N` in it): nothing to replay. The `ok` printed with it is not a line's.
+            self.recovery.ok_may_follow = Some(OkFollow {
+                swallow: expect_ok,
+                learn: false,
+            });
             self.events.push_back(Event::Message(format!(
                 "ignored resend request for line {n}"
             )));
+            return true;
+        }
+        // Lines before the oldest one still unanswered were answered in order: a request
+        // for them disowns those answers. One or two may have been another line's `ok` (a
+        // fragment the firmware ran, a lost line whose number was corrupted away); more is
+        // a printer whose count went back.
+        let answered_front = self
+            .in_flight
+            .front()
+            .map_or(self.send_cursor, |f| f.number);
+        if streaming && consistent && n + WENT_BACK_SLACK < answered_front {
+            let what = Numbering::WentBack {
+                requested: n,
+                acknowledged: answered_front - 1,
+            };
+            self.numbering_lost(what, now);
             return true;
         }
         if n < first {
@@ -162,7 +226,7 @@ impl Host {
             _ => (1, now),
         };
         self.recovery.repeated = Some((n, times, since));
-        let stopping = matches!(self.stopping(), Some(Stop::Failure { .. }));
+        let stopping = self.stopping().is_some();
         if stopping && times > 1 {
             // The safe stop rides out the noise, paced, until `stop_timeout` (see `tick_job`).
             self.recovery.replay_after = Some(now + self.opts.stop_pause);
@@ -187,6 +251,11 @@ impl Host {
 
     /// The printer dropped line n and everything after it.
     fn drop_lines_from(&mut self, n: u64, now: Instant) {
+        // An unnumbered M105 on its way answers after the lines the printer took, which
+        // no longer include these: its answer confirms none of them (see `handle_ok`).
+        if let Some((before, _)) = &mut self.unnumbered_probe {
+            *before = (*before).min(n);
+        }
         let mut dropped_after = 0;
         self.in_flight.retain(|f| {
             if f.number >= n {
@@ -225,9 +294,30 @@ impl Host {
         }
     }
 
+    /// Counts an answer the host cannot explain (see `Recovery::unexplained`); true when
+    /// enough came, each standing for another line still owed an answer, to stop the job.
+    pub(super) fn unexplained_answer(&mut self) -> bool {
+        let owed = self.in_flight.len() + usize::from(self.unnumbered_probe.is_some());
+        if (self.recovery.unexplained as usize) < owed {
+            self.recovery.unexplained += 1;
+        }
+        self.recovery.unexplained >= UNEXPLAINED_LIMIT
+    }
+
+    /// The printer's count is no longer the host's: sending on would print nothing (every
+    /// line refused) or print lines twice (replaying what it had run). Stop the job and the
+    /// printer; the stop works whatever the printer counts (`begin_stop`).
+    pub(super) fn numbering_lost(&mut self, what: Numbering, now: Instant) {
+        let last_acked = self.acked_job;
+        self.events.push_back(Event::Message(format!(
+            "the printer's line count is not the host's: {what}"
+        )));
+        self.fail_safely(Failure::LostNumbering { what, last_acked }, now);
+    }
+
     /// Sends again from line n: the send cursor goes back, a few lines go one at a time,
     /// and an `M105` after the replay settles whatever `ok`s were owed around the request.
-    fn rewind_to(&mut self, n: u64, first: u64) {
+    fn rewind_to(&mut self, n: u64) {
         let replay = self.send_cursor - n;
         self.cautious_until = self.send_cursor.max(n) + self.opts.cautious_lines;
         self.send_cursor = n;
@@ -238,17 +328,6 @@ impl Host {
             // none, earlier lines' answered late, some lost), the answer of an `M105` sent
             // after the replay settles them all: the printer runs it after every earlier line.
             self.pending.push_front((Kind::Housekeeping, "M105".into()));
-        }
-        if self.stopping() == Some(&Stop::Cancel) {
-            // Job lines after n are not sent again during a stop; renumber the rest.
-            let keep = (n - first) as usize;
-            let dropped: Vec<Line> = self.history.drain(keep..).collect();
-            self.next_number = n;
-            for line in dropped.into_iter().rev() {
-                if !matches!(line.kind, Kind::Job(_)) {
-                    self.pending.push_front((line.kind, line.command));
-                }
-            }
         }
     }
 

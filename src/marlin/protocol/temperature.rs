@@ -31,6 +31,28 @@ pub(super) struct HeatWait {
     pub(super) since: Instant,
     /// The closest distance to the target seen so far, and when.
     pub(super) best: Option<(f64, Instant)>,
+    /// The first distance to the target seen during the wait, and when: with the latest,
+    /// how fast the heater closes in.
+    pub(super) first: Option<(f64, Instant)>,
+    /// The latest distance to the target, and when.
+    pub(super) latest: Option<(f64, Instant)>,
+}
+
+/// What a stop that waits for a heat-up waits for: the heat wait, where its heater is and
+/// must get to, and how long that may take. Figures, for the log and the printer's status.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct HeatWaitEstimate {
+    /// The command the printer waits in (`M109 S210`), where the host sent it.
+    pub command: Option<String>,
+    /// The bed's heater (`M190`), else the hotend's.
+    pub bed: bool,
+    pub current: Option<f64>,
+    pub target: Option<f64>,
+    /// At the rate the heater has closed in so far; `None` before it was seen to.
+    pub remaining: Option<Duration>,
+    /// The longest the host waits for it: until the heater has not come closer to its
+    /// target for the heat timeout.
+    pub limit: Duration,
 }
 
 impl HeatWait {
@@ -48,6 +70,8 @@ impl HeatWait {
             target,
             since: now,
             best: None,
+            first: None,
+            latest: None,
         }
     }
 }
@@ -88,6 +112,8 @@ impl Thermal {
                     // Progress is coming closer to the target: rising for a heat-up,
                     // falling for a cool-down (`M190 R30`).
                     let gap = (target - reading.current).abs();
+                    heat.first.get_or_insert((gap, now));
+                    heat.latest = Some((gap, now));
                     match heat.best {
                         Some((best, _)) if gap > best - 0.5 => {}
                         _ => heat.best = Some((gap, now)),
@@ -98,6 +124,36 @@ impl Thermal {
                     }
                 }
             }
+        }
+    }
+
+    /// How long the heat wait the printer is in may last: at the rate its heater has
+    /// closed in on the target so far, and at most until the host's heat timeout.
+    pub(super) fn estimate(&self, now: Instant, heat_timeout: Duration) -> HeatWaitEstimate {
+        let heat = self.heat.as_ref();
+        let bed = heat.is_some_and(|h| h.bed);
+        let reading = if bed {
+            self.temps.bed
+        } else {
+            self.temps.hotend
+        };
+        let remaining = heat.and_then(|h| {
+            let ((g0, t0), (g1, t1)) = (h.first?, h.latest?);
+            let rate = (g0 - g1) / t1.saturating_duration_since(t0).as_secs_f64();
+            (rate > 0.01).then(|| Duration::from_secs_f64((g1 / rate).min(1e6)))
+        });
+        let limit = self
+            .deadline(heat_timeout)
+            .map_or(heat_timeout, |d| d.saturating_duration_since(now));
+        HeatWaitEstimate {
+            command: heat.map(|h| h.command.clone()),
+            bed,
+            current: reading.map(|r| r.current),
+            target: heat
+                .and_then(|h| h.target)
+                .or(reading.and_then(|r| r.target)),
+            remaining,
+            limit,
         }
     }
 

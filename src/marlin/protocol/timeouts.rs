@@ -4,7 +4,7 @@
 //! clocks themselves are [`Timers`](super::timers::Timers).
 
 use super::event::{Event, Failure};
-use super::line::{is_code, Kind, LONG_COMMANDS};
+use super::line::{is_code, Kind, LONG_COMMANDS, UNNUMBERED_PROBE};
 use super::phase::{Phase, Stop};
 use super::Host;
 use std::time::{Duration, Instant};
@@ -46,8 +46,11 @@ impl Host {
                 if let Some(settle) = &self.recovery.settle {
                     at(settle.deadline());
                 }
-                if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
-                    at(*give_up);
+                if let Some(stop) = self.stopping() {
+                    at(self.stop_gives_up(stop));
+                }
+                if let Some(t) = self.owed_probe_at() {
+                    at(t);
                 }
                 if let Some(deadline) = self.thermal.deadline(self.opts.heat_timeout) {
                     at(deadline);
@@ -99,11 +102,16 @@ impl Host {
             self.firmware_error(message, now);
             return;
         }
-        if let Some(Stop::Failure { give_up, .. }) = self.stopping() {
-            if now >= *give_up || now - self.timers.last_rx >= self.opts.silence_fail {
+        if let Some(stop) = self.stopping() {
+            if now >= self.stop_gives_up(stop)
+                || now - self.timers.last_rx >= self.opts.silence_fail
+            {
                 self.finish_stop(false);
                 return;
             }
+        }
+        if self.owed_probe_at().is_some_and(|t| now >= t) {
+            self.probe_owed(now);
         }
         if self.recovery.replay_after.is_some_and(|t| now >= t) {
             self.recovery.replay_after = None;
@@ -138,6 +146,12 @@ impl Host {
             .deadline(self.opts.heat_timeout)
             .is_some_and(|d| now >= d)
         {
+            if self.stopping().is_some() {
+                // The stop waited for the heat-up (see `stop_gives_up`) as long as it could.
+                self.thermal.heat = None;
+                self.finish_stop(false);
+                return;
+            }
             let heat = self
                 .thermal
                 .heat
@@ -194,6 +208,17 @@ impl Host {
         }
     }
 
+    /// When a stop is given up unconfirmed: at its own limit, or, while the printer waits for
+    /// a heater and reads nothing until it is there (Ultimaker2Marlin), when that wait times
+    /// out: its heaters-off lines run only then.
+    fn stop_gives_up(&self, stop: &Stop) -> Instant {
+        let give_up = stop.give_up();
+        match self.thermal.deadline(self.opts.heat_timeout) {
+            Some(heat) if !self.breaks_heat_wait() && self.heating() => give_up.max(heat),
+            _ => give_up,
+        }
+    }
+
     /// Send an `M105` at once, in the room the send window keeps for it: the printer is most
     /// likely idle and the window only looks full because an `ok` was lost. Its answer
     /// acknowledges every earlier line.
@@ -202,6 +227,26 @@ impl Host {
             return;
         }
         self.timers.last_probe = Some(now);
+        if self.counter_reset_in_flight() {
+            // The host's `M110` waits to run (behind a long command, or moves): a numbered
+            // line read before it runs is counted again from the M110's number when it
+            // does (M110.cpp:31-32), and the printer would refuse the next one. An M105
+            // without a number asks all the same.
+            // Only the M110 is in flight, so a late answer of an earlier one settles the
+            // same line: one taken for lost is simply asked again.
+            let patience = self.timers.m105_patience(self.opts.silence_probe);
+            let due = self
+                .unnumbered_probe
+                .is_none_or(|(_, sent)| now.saturating_duration_since(sent) >= patience);
+            if due {
+                self.stats.probes += 1;
+                self.events.push_back(Event::Probe);
+                self.outgoing.extend_from_slice(UNNUMBERED_PROBE);
+                // It follows the lines sent so far, not those waiting to be replayed.
+                self.unnumbered_probe = Some((self.send_cursor, now));
+            }
+            return;
+        }
         let replay = self
             .history_line(self.send_cursor)
             .filter(|_| self.send_cursor < self.next_number)
@@ -252,6 +297,13 @@ impl Host {
             let number = self.new_line(Kind::Housekeeping, "M105".into());
             self.transmit(number, now);
         }
+    }
+
+    /// The host's own `M110` is the oldest line unanswered: nothing numbered goes out
+    /// until it has run.
+    fn counter_reset_in_flight(&self) -> bool {
+        self.front_line()
+            .is_some_and(|l| l.kind == Kind::Setup && is_code(&l.command, &["M110"]))
     }
 
     /// When to probe with M105 if nothing moves. Long commands are probed too: the M105

@@ -40,6 +40,10 @@ pub(super) struct Timers {
     pub(super) m105_latency: Option<Duration>,
     pub(super) greeting_sent_at: Instant,
     pub(super) next_poll: Instant,
+    /// When a stop last sent an unnumbered `M108`.
+    pub(super) last_m108: Option<Instant>,
+    /// When a stop that waits for a heat-up last said how long it may take.
+    pub(super) last_stop_wait: Option<Instant>,
 }
 
 impl Timers {
@@ -57,6 +61,8 @@ impl Timers {
             m105_latency: None,
             greeting_sent_at: now,
             next_poll: now,
+            last_m108: None,
+            last_stop_wait: None,
         }
     }
 

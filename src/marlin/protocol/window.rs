@@ -4,16 +4,17 @@
 
 use super::event::Failure;
 use super::framing::{frame, uncuttable, wire_len_bound};
-use super::line::{code_of, is_code, InFlight, Kind, Line};
+use super::line::{code_of, is_code, InFlight, Kind, Line, OwedLine, UNNUMBERED_PROBE};
 use super::phase::Phase;
 use super::temperature::HeatWait;
 use super::Host;
 use crate::marlin::gcode::is_heat_wait;
 use std::time::Instant;
 
-/// Bytes of the printer's receive ring kept free for a probe: `N<number> M105*<cs>\n` with
-/// up to eight digits of line number.
-const PROBE_RESERVE: usize = 1 + 8 + 1 + 4 + 1 + 3 + 1;
+/// Bytes of the printer's receive ring kept free: for a probe, `N<number> M105*<cs>\n` with
+/// up to eight digits of line number (19), and for what a stop sends at once, unnumbered,
+/// whatever the ring holds: `M108`, the heaters off and one `M105` (26; see `owed_probe_at`).
+pub(super) const PROBE_RESERVE: usize = 26;
 
 impl Host {
     pub(super) fn history_line(&self, number: u64) -> Option<&Line> {
@@ -28,27 +29,11 @@ impl Host {
         self.pending.clear();
         self.next_number = 0;
         self.send_cursor = 0;
-        self.swallow_oks = 0;
+        self.owed.clear();
+        self.unnumbered_probe = None;
         self.recovery.clear_episode();
         self.cautious_until = 0;
         self.confirmed = None;
-    }
-
-    pub(super) fn discard_unsent_job_lines(&mut self) {
-        let Some(first) = self.history.front().map(|l| l.number) else {
-            return;
-        };
-        if self.send_cursor >= self.next_number {
-            return;
-        }
-        let keep = (self.send_cursor - first) as usize;
-        let dropped: Vec<Line> = self.history.drain(keep..).collect();
-        self.next_number = self.send_cursor;
-        for line in dropped.into_iter().rev() {
-            if line.kind == Kind::SafeStop {
-                self.pending.push_front((line.kind, line.command));
-            }
-        }
     }
 
     /// Give the next line a number and remember it for resends.
@@ -117,6 +102,7 @@ impl Host {
             bytes: wire.len(),
             is_m105,
             sync,
+            heat: is_heat,
             sent: now,
         });
         self.in_flight_bytes += wire.len();
@@ -125,8 +111,17 @@ impl Host {
     }
 
     pub(super) fn window_allows(&self, number: u64, bytes: usize) -> bool {
-        if self.in_flight.is_empty() {
+        if self.in_flight.is_empty() && self.owed.iter().all(|o| o.bytes == 0) {
             return true;
+        }
+        if self.in_flight.iter().any(|f| f.heat) {
+            // Nothing behind a heat wait until it is answered: a stop during the wait then
+            // finds a free command slot for its unnumbered M108 (Marlin 2 reads lines into
+            // free slots while it waits, and acts on an M108 as it reads it), and on
+            // Ultimaker2Marlin, which reads nothing while it waits, an empty receive
+            // buffer for its heaters-off lines; and no move of the job runs after a stop.
+            // (Probes still go, in the room kept for one.)
+            return false;
         }
         // Lines the printer took off its ring (see `handle_resend`) no longer count here.
         let in_ring = self.in_flight.iter().any(|f| f.bytes > 0);
@@ -139,8 +134,45 @@ impl Host {
         // bytes. Bytes beyond the ring are lost and two lines merge into one whose checksum
         // may even pass; so the bytes in flight never exceed the ring. One byte of margin
         // (`<`): Marlin's ring tells full from empty by leaving one cell unused. The last
-        // `PROBE_RESERVE` bytes are kept for one probe (see `probe_fits`).
-        self.in_flight_bytes + bytes + PROBE_RESERVE < self.opts.firmware.rx_buffer_bytes()
+        // `PROBE_RESERVE` bytes are kept for one probe (see `probe_fits`). Lines outside
+        // the count still owed an answer may sit in the ring too.
+        self.ring_has_room(bytes + PROBE_RESERVE)
+    }
+
+    /// Whether an unnumbered `M105` still fits the receive ring.
+    pub(super) fn probe_fits_unnumbered(&self) -> bool {
+        self.ring_has_room(UNNUMBERED_PROBE.len())
+    }
+
+    /// Whether `bytes` more fit the receive ring beside everything that may still sit in
+    /// it (one cell is left unused: see `window_allows`).
+    fn ring_has_room(&self, bytes: usize) -> bool {
+        self.in_flight_bytes + self.owed_bytes() + bytes < self.opts.firmware.rx_buffer_bytes()
+    }
+
+    /// Bytes of the lines outside the count that may still sit in the receive ring.
+    fn owed_bytes(&self) -> usize {
+        self.owed.iter().map(|o| o.bytes).sum()
+    }
+
+    /// An `ok` without a report, of a line of one of these kinds: the oldest such owed
+    /// line's, if one is owed.
+    pub(super) fn settle_owed_ok(&mut self, kinds: &[OwedLine]) -> bool {
+        let Some(pos) = self.owed.iter().position(|o| kinds.contains(&o.what)) else {
+            return false;
+        };
+        self.owed.remove(pos);
+        true
+    }
+
+    /// An `M105`'s answer: the oldest owed `M105`'s, if one is owed; the printer read every
+    /// line before it, whose `ok`s, if still to come, were lost.
+    pub(super) fn settle_owed_m105(&mut self) -> bool {
+        let Some(pos) = self.owed.iter().position(|o| o.what == OwedLine::M105) else {
+            return false;
+        };
+        self.owed.drain(..=pos);
+        true
     }
 
     /// Whether a probe (or a replayed line sent as one) still fits the printer's receive
@@ -150,8 +182,7 @@ impl Host {
     /// during which Ultimaker2Marlin reads nothing), and its remains would merge with the
     /// next line.
     pub(super) fn probe_fits(&self, number: u64, command: &str) -> bool {
-        self.in_flight_bytes + wire_len_bound(number, command)
-            < self.opts.firmware.rx_buffer_bytes()
+        self.ring_has_room(wire_len_bound(number, command))
     }
 
     /// Send whatever the window allows. A line gets its number only when it is sent, so

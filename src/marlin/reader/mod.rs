@@ -11,18 +11,28 @@
 //! (`S2.7E2` is 270 on Ultimaker2Marlin), finds a `G` anywhere in a line (Ultimaker2Marlin
 //! runs `M400 G92 Z50` as `G92 Z50`), or takes the first of two values where another takes
 //! the last. A check that read such a line its own way would judge a command the printer
-//! never runs.
+//! never runs. Before the parser comes the serial input ([`serial`]): where a line ends,
+//! which number it is taken for (`M117 M110 N999` renumbers Marlin 2's count), what of it
+//! is kept.
 
 pub(crate) mod marlin2;
+pub(crate) mod serial;
 #[cfg(any(test, fuzzing))]
 pub mod transcribed;
 pub(crate) mod ultimaker2;
 mod view;
 
 use crate::marlin::firmware::Firmware;
-use crate::marlin::gcode::FILE_PAUSES;
 
 pub(crate) use view::View;
+
+/// The commands with which a file asks for a pause: wait for the user (`M0`, `M1`), pause
+/// the print (`M25`, `M601`), park (`M125`), wait for a pin (`M226`), change the filament
+/// (`M600`). On a printer with no one in front of it, each stops the printer until someone
+/// presses its knob (or does nothing at all where the firmware lacks it, and the pause the
+/// file wanted is lost). The host therefore never sends them: it pauses the printer itself
+/// at that point and waits for the operator (see `crate::marlin::pause`).
+pub(crate) const FILE_PAUSES: [&str; 7] = ["M0", "M1", "M25", "M125", "M226", "M601", "M600"];
 
 /// One parameter of a command: its letter (upper case) and number, if it has one.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -180,9 +190,13 @@ pub fn read(code: &str) -> Result<Option<Command<'_>>, Unreadable> {
 
 /// [`read`], and the firmware's own reading of the same line must find the same command
 /// with the same parameters: otherwise the line is [`Unreadable`], naming the firmware and
-/// what it would read.
+/// what it would read. Before its parser, the firmware's serial input must take the line
+/// whole, as the one line the host numbered ([`serial::check`]).
 pub fn read_for(firmware: Firmware, code: &str) -> Result<Option<Command<'_>>, Unreadable> {
     let text = code.trim();
+    if !text.is_empty() {
+        serial::check(firmware, text).map_err(Unreadable)?;
+    }
     let plain = read(text)?;
     let Some(cmd) = plain else {
         return Ok(None);

@@ -125,6 +125,9 @@ fn readers_agree_with_the_transcribed_parsers_on_random_lines() {
         "G", "M", "T", "N", "S", "X", "Y", "Z", "E", "F", "I", "R", "H", "B", "P", "e", "x", "s",
         "g", "1", "0", "4", "9", "2.7", ".", "+", "-", " ", "  ", "@", "\"", "(", ")", "!", "#",
         "nan", "inf", "104", "117", "28", "92", "\t", "M117 ", "G1 ", "M104 ", "M140 ",
+        // What the serial input reads before the parser: line ends, erasures, checksums,
+        // escapes, renumbering, Ultimaker2Marlin's line end, emergency codes.
+        "\r", "\u{8}", "*", "\\", ":", "M110", "N9", "N", "M108", "M4100", ";",
     ];
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(31);
     let mut accepted = [0usize; 2];

@@ -48,6 +48,9 @@ pub struct Faults {
     /// Firmware errors that are not a halt (`Error:TEXT`, e.g. a failed probing) to report
     /// after N numbered lines: `(N, "Probing Failed")`.
     pub errors: Vec<(usize, String)>,
+    /// Lines to receive after N numbered lines, as if they came over the cable between the
+    /// host's (a relay injecting them): `(N, "N0 M117 M110 N999*<checksum>")`.
+    pub receive: Vec<(usize, String)>,
 }
 
 /// The largest speed-up factor taken; faster than that is "instant".
@@ -119,6 +122,11 @@ pub struct SimConfig {
     /// ADVANCED_OK on or off, whatever the firmware profile says (`None`: the profile's).
     /// The real Marlin 2.1.2.1 ships with it off.
     pub advanced_ok: Option<bool>,
+    /// EMERGENCY_PARSER on or off (`Cap:EMERGENCY_PARSER`), whatever the profile says
+    /// (`None`: the profile's). On, `M108`/`M112`/`M410` act as their bytes arrive; off (as
+    /// in the real Marlin 2.1.2.1 builds here), an unnumbered one acts when the queue reads
+    /// it, which it does during a heat wait while a command slot is free (queue.cpp:524-531).
+    pub emergency_parser: Option<bool>,
     /// How temperature reports are spaced around `/`.
     pub report_style: ReportStyle,
     /// Marlin 2 built with ADVANCED_PAUSE_FEATURE: `M600` parks and waits for the user
@@ -155,6 +163,7 @@ impl SimConfig {
             wait_when_idle: None,
             reset_on_open: None,
             advanced_ok: None,
+            emergency_parser: None,
             report_style: ReportStyle::Marlin,
             advanced_pause: false,
         }

@@ -14,11 +14,15 @@ pub enum Poke {
     Action(String),
     /// Report a firmware error that is not a halt: `Error:TEXT`.
     Error(String),
+    /// Receive this line as if it came over the cable between the host's lines (a relay
+    /// or a second host writing to the port): `N0 M117 M110 N999*<checksum>` renumbers
+    /// Marlin 2 as a message with `M110` in it does.
+    Receive(String),
 }
 
 impl std::str::FromStr for Poke {
     type Err = String;
-    /// `reset`, `action NAME`, `error TEXT`.
+    /// `reset`, `action NAME`, `error TEXT`, `line TEXT`.
     fn from_str(text: &str) -> Result<Poke, String> {
         let text = text.trim();
         let (word, rest) = text.split_once(' ').unwrap_or((text, ""));
@@ -34,8 +38,12 @@ impl std::str::FromStr for Poke {
             "error" if !rest.is_empty() && !rest.contains(['\n', '\r']) => {
                 Ok(Poke::Error(rest.to_string()))
             }
+            "line" if !rest.is_empty() && !rest.contains(['\n', '\r']) => {
+                Ok(Poke::Receive(rest.to_string()))
+            }
             _ => Err(format!(
-                "`{text}`: expected `reset`, `action NAME` (cancel, pause, resume) or `error TEXT`"
+                "`{text}`: expected `reset`, `action NAME` (cancel, pause, resume), `error TEXT` \
+                 or `line TEXT` (received as if from the cable)"
             )),
         }
     }

@@ -53,7 +53,6 @@ impl Printer {
             status: Status::Running,
             rx: VecDeque::new(),
             assembling: Vec::new(),
-            overlong: false,
             emergency: Vec::new(),
             slots: VecDeque::new(),
             last_n: 0,
@@ -80,6 +79,10 @@ impl Printer {
             heat_break: false,
             numbered_executed: 0,
             in_comment: false,
+            escaped: false,
+            emergency_parser: cfg
+                .emergency_parser
+                .unwrap_or(cfg.firmware.emergency_parser()),
             answered: false,
             wait_when_idle: cfg.wait_when_idle,
             next_wait: None,
@@ -96,7 +99,6 @@ impl Printer {
     fn boot(&mut self) {
         self.rx.clear();
         self.assembling.clear();
-        self.overlong = false;
         self.emergency.clear();
         self.slots.clear();
         self.last_n = 0;
@@ -115,6 +117,7 @@ impl Printer {
         self.next_keepalive = None;
         self.heat_break = false;
         self.in_comment = false;
+        self.escaped = false;
         self.next_wait = None;
         self.say("start");
         if self.fw == Firmware::Marlin20 {
@@ -218,6 +221,16 @@ impl Printer {
             // waiting for planner room blocks in its handler): no lines are read meanwhile.
             if self.active.is_some() {
                 if !self.progress_active(now) {
+                    // Marlin 2's heat waits call idle(), whose manage_inactivity reads the
+                    // serial input into free command slots (temperature.cpp:4122,
+                    // MarlinCore.cpp:412): an unnumbered M108 read there ends the wait.
+                    // Ultimaker2Marlin's read nothing (Marlin_main.cpp:1419-1460, 1472-1490).
+                    if self.fw.is_marlin2() && self.in_heat_wait() {
+                        self.fill_slots();
+                        if self.heat_break {
+                            continue;
+                        }
+                    }
                     break;
                 }
                 continue;
@@ -268,6 +281,12 @@ impl Printer {
                 self.next_wait = None;
             }
         }
+    }
+
+    fn in_heat_wait(&self) -> bool {
+        self.active
+            .as_ref()
+            .is_some_and(|a| matches!(a.wait, Wait::Heat { .. }))
     }
 
     fn is_idle(&self) -> bool {
@@ -518,7 +537,7 @@ impl Printer {
                 return;
             }
             ('M', Some(108)) => {}
-            ('M', Some(112)) if self.fw.emergency_parser() => {
+            ('M', Some(112)) if self.fw.is_marlin2() => {
                 self.say("Error:Printer halted. kill() called!");
                 self.status = Status::Halted;
                 return;
@@ -527,7 +546,14 @@ impl Printer {
                 // No M110 handler: the line's own number already reset the counter.
                 self.say(&format!("echo:Unknown command: \"{cmd}\""));
             }
-            ('M', Some(110)) => {}
+            ('M', Some(110)) => {
+                // M110.cpp:31-32: the count is set again when the command runs (for an
+                // unnumbered `M110 N5`, only then).
+                let view = crate::marlin::reader::marlin2::read(&cmd);
+                if let Some(Some(v)) = view.params[usize::from(b'N' - b'A')] {
+                    self.last_n = v.max(0.0) as u64;
+                }
+            }
             ('M', Some(113)) if self.fw.busy_protocol() => {
                 match word(&words, 'S') {
                     // S0 turns the keep-alives off, as in Marlin.

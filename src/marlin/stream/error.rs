@@ -1,7 +1,7 @@
 //! Why a print failed, as the operator reads it: each protocol [`Failure`] with the port,
 //! the last acknowledged line and what became of the safe stop.
 
-use crate::marlin::protocol::{Failure, Temp, Temperatures};
+use crate::marlin::protocol::{Failure, Numbering, Temp, Temperatures};
 use crate::marlin::transport::TransportError;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -15,6 +15,9 @@ pub enum StopOutcome {
     Confirmed,
     /// The host gave up before the printer confirmed them: it may still be hot.
     NotConfirmed,
+    /// The host gave up on the stop's numbered lines (fan and motors), but the printer's
+    /// own temperature report, after the heaters-off lines, showed both targets at 0.
+    HeatersOff,
     /// No stop was needed or possible (a reset or halted printer has switched its heaters
     /// off; nothing was sent yet).
     None,
@@ -28,6 +31,9 @@ impl std::fmt::Display for StopOutcome {
             StopOutcome::NotConfirmed => {
                 f.write_str("; heaters NOT confirmed off: check the printer now")
             }
+            StopOutcome::HeatersOff => f.write_str(
+                "; heaters confirmed off by the printer's report (fan and motors not confirmed)",
+            ),
             StopOutcome::None => Ok(()),
         }
     }
@@ -90,13 +96,25 @@ pub enum PrintError {
     },
     #[error(
         "printer on {port} asked for line {line} again although it had confirmed line \
-         {confirmed}: it lost its state (reset or power dip?); stopped rather than \
-         replaying onto a half-printed part, last acknowledged line {last_acked}{stop}"
+         {confirmed}: its line count went back (a line it ran set it, or it was reset without \
+         saying so, a power dip); stopped rather than replaying onto a half-printed part, \
+         last acknowledged line {last_acked}{stop}"
     )]
     LostState {
         port: PathBuf,
         line: u64,
         confirmed: u64,
+        last_acked: usize,
+        stop: StopOutcome,
+    },
+    #[error(
+        "printer on {port} no longer counts lines as the host does: {what}; the job was \
+         stopped, the printer's count reset and the printer stopped, last acknowledged line \
+         {last_acked}{stop}"
+    )]
+    LostNumbering {
+        port: PathBuf,
+        what: Numbering,
         last_acked: usize,
         stop: StopOutcome,
     },
@@ -182,6 +200,7 @@ impl PrintError {
             | PrintError::LineGone { last_acked, .. }
             | PrintError::Silent { last_acked, .. }
             | PrintError::LostState { last_acked, .. }
+            | PrintError::LostNumbering { last_acked, .. }
             | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
             | PrintError::Cancelled { last_acked, .. }
@@ -202,6 +221,7 @@ impl PrintError {
             | PrintError::LineGone { last_acked, .. }
             | PrintError::Silent { last_acked, .. }
             | PrintError::LostState { last_acked, .. }
+            | PrintError::LostNumbering { last_acked, .. }
             | PrintError::NoProgress { last_acked, .. }
             | PrintError::HeatTimeout { last_acked, .. }
             | PrintError::Cancelled { last_acked, .. }
@@ -223,6 +243,7 @@ impl PrintError {
             PrintError::ResendLimit { stop, .. }
             | PrintError::LineGone { stop, .. }
             | PrintError::LostState { stop, .. }
+            | PrintError::LostNumbering { stop, .. }
             | PrintError::NoProgress { stop, .. }
             | PrintError::HeatTimeout { stop, .. }
             | PrintError::Cancelled { stop, .. }
@@ -279,6 +300,12 @@ impl PrintError {
                 port,
                 line,
                 confirmed,
+                last_acked,
+                stop,
+            },
+            Failure::LostNumbering { what, last_acked } => PrintError::LostNumbering {
+                port,
+                what,
                 last_acked,
                 stop,
             },

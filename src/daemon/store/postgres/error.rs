@@ -29,8 +29,9 @@ pub enum PgError {
     },
     #[error("the farm database is unreachable: {0}")]
     Pool(#[from] deadpool_postgres::PoolError),
-    /// An earlier call found it unreachable, and it has not been reached since.
-    #[error("the farm database is unreachable (since: {0})")]
+    /// An earlier call found it unreachable (what that call met), and it has not been
+    /// reached since.
+    #[error("{0}")]
     Unreachable(String),
     #[error("the farm database: {0}")]
     Db(#[from] tokio_postgres::Error),

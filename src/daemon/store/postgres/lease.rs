@@ -291,11 +291,20 @@ impl PgStore {
         for row in &interrupted_rows {
             let printer: Option<String> = row.get(1);
             tx.execute(
-                "UPDATE printers SET bed_not_cleared = true, last_job = $2 WHERE name = $1",
+                "UPDATE printers SET bed_not_cleared = true, last_job = $2, bed = NULL \
+                 WHERE name = $1",
                 &[&printer, &row.get::<_, String>(0)],
             )
             .await?;
         }
+        // An eject sequence that was running is never run again: a person looks.
+        tx.execute(
+            "UPDATE printers SET bed_not_cleared = true, \
+             bed = '{\"state\": \"waiting\", \"why\": {\"kind\": \"eject_interrupted\"}}' \
+             WHERE host = ANY($1) AND bed->>'state' = 'ejecting'",
+            &[&hosts],
+        )
+        .await?;
         let interrupted = ids(interrupted_rows);
         for (ids, state) in [(&requeued, "queued"), (&interrupted, "interrupted")] {
             tx.execute(

@@ -7,6 +7,26 @@ use super::lease::PgStore;
 use crate::daemon::job::PrinterGate;
 use std::collections::BTreeMap;
 
+/// The gate in a row's columns from `at`: `bed_not_cleared`, `last_job`, `bed`,
+/// `last_check` (a row written before beds had states reads as waiting or clear).
+fn gate_of(row: &tokio_postgres::Row, at: usize) -> PrinterGate {
+    let file = serde_json::json!({
+        "bed_not_cleared": row.get::<_, bool>(at),
+        "last_job": row.get::<_, Option<String>>(at + 1),
+        "bed": row.get::<_, Option<serde_json::Value>>(at + 2),
+        "last_check": row.get::<_, Option<serde_json::Value>>(at + 3),
+    });
+    serde_json::from_value(file).unwrap_or_else(|e| {
+        // A bed of a newer crispen's: waiting is the safe reading.
+        tracing::warn!(error = %e, "a printer's bed in the farm database cannot be read; it waits for a person");
+        PrinterGate {
+            bed: crate::daemon::bed::Bed::Waiting { why: None },
+            last_job: row.get(at + 1),
+            last_check: None,
+        }
+    })
+}
+
 /// A printer as the whole farm sees it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FarmPrinter {
@@ -68,11 +88,24 @@ impl PgStore {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         self.check_token(&tx).await?;
+        let bed = serde_json::to_value(&gate.bed).expect("a bed serialises");
+        let check = gate
+            .last_check
+            .as_ref()
+            .map(|c| serde_json::to_value(c).expect("a check serialises"));
         tx.execute(
-            "INSERT INTO printers (name, host, bed_not_cleared, last_job) \
-                 VALUES ($1, $2, $3, $4) ON CONFLICT (name) DO UPDATE \
-                 SET bed_not_cleared = EXCLUDED.bed_not_cleared, last_job = EXCLUDED.last_job",
-            &[&printer, &self.host, &gate.bed_not_cleared, &gate.last_job],
+            "INSERT INTO printers (name, host, bed_not_cleared, last_job, bed, last_check) \
+                 VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (name) DO UPDATE \
+                 SET bed_not_cleared = EXCLUDED.bed_not_cleared, last_job = EXCLUDED.last_job, \
+                 bed = EXCLUDED.bed, last_check = EXCLUDED.last_check",
+            &[
+                &printer,
+                &self.host,
+                &gate.bed_not_cleared(),
+                &gate.last_job,
+                &bed,
+                &check,
+            ],
         )
         .await?;
         tx.commit().await?;
@@ -83,18 +116,12 @@ impl PgStore {
     pub(crate) async fn gates(&self) -> Result<BTreeMap<String, PrinterGate>, PgError> {
         let client = self.client().await?;
         let rows = client
-            .query("SELECT name, bed_not_cleared, last_job FROM printers", &[])
+            .query(
+                "SELECT name, bed_not_cleared, last_job, bed, last_check FROM printers",
+                &[],
+            )
             .await?;
-        Ok(rows
-            .iter()
-            .map(|r| {
-                let gate = PrinterGate {
-                    bed_not_cleared: r.get(1),
-                    last_job: r.get(2),
-                };
-                (r.get(0), gate)
-            })
-            .collect())
+        Ok(rows.iter().map(|r| (r.get(0), gate_of(r, 1))).collect())
     }
 
     /// Every printer of the farm, with whether its host is offline.

@@ -112,7 +112,12 @@ const MIGRATIONS: &[&str] = &[
         doc jsonb NOT NULL
     );
     "#,
-    // 6: a part of a plate cancelled on another host's printer (issue 45): the command and
+    // 6: a bed's state between prints (issue 43: ejected by the printer, checked by its
+    // camera) and the camera's last check; `bed_not_cleared` stays what claims read.
+    r#"
+    ALTER TABLE printers ADD COLUMN bed jsonb, ADD COLUMN last_check jsonb;
+    "#,
+    // 7: a part of a plate cancelled on another host's printer (issue 45): the command and
     // the part's name beside it.
     r#"
     ALTER TABLE commands DROP CONSTRAINT commands_command_check;

@@ -377,7 +377,7 @@ impl JobStore for PgJobStore {
                 self.gates.insert(printer.to_string(), gate);
                 Ok(())
             }
-            Err(e) if e.is_outage() && gate.bed_not_cleared => {
+            Err(e) if e.is_outage() && gate.bed_not_cleared() => {
                 // A print ended: its bed must still need clearing after the outage.
                 tracing::error!(printer, error = %e, "cannot record the bed gate in the farm database; kept here and written once it is back");
                 self.pending.keep_gate(printer, gate.clone());

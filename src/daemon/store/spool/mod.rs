@@ -16,6 +16,7 @@ use super::history::{self, HistoryFiles, Retention, Retired};
 use super::pending::{Attempt, Pending};
 use super::rules::io_err;
 use super::{InventoryEdit, JobEdit, JobStore, RetiredJob, StateFilter};
+use crate::daemon::bed::{Bed, Why};
 use crate::daemon::filament::Inventory;
 use crate::daemon::job::{now_s, Job, JobState, PrinterGate, StoreError};
 use std::collections::BTreeMap;
@@ -192,7 +193,8 @@ impl Spool {
     }
 
     /// Restart rules: preparation is redone, a print that was running is interrupted and its
-    /// printer must have its bed cleared by a person. Returns the ids changed.
+    /// printer must have its bed cleared by a person, as must a printer whose eject
+    /// sequence was running (it is never run again). Returns the ids of the jobs changed.
     pub(crate) fn recover(&mut self) -> Result<Vec<String>, StoreError> {
         let mut changed = Vec::new();
         let ids: Vec<String> = self.jobs.keys().cloned().collect();
@@ -213,18 +215,32 @@ impl Spool {
                             .into()),
                     )?;
                     if let Some(p) = printer {
-                        self.set_gate(
-                            &p,
-                            PrinterGate {
-                                bed_not_cleared: true,
-                                last_job: Some(id.clone()),
-                            },
-                        )?;
+                        let gate = self
+                            .gate_of(&p)
+                            .after_print(&id, Bed::Waiting { why: None });
+                        self.set_gate(&p, gate)?;
                     }
                     changed.push(id);
                 }
                 _ => {}
             }
+        }
+        // An eject sequence the daemon stopped in: never run again; a person looks.
+        let ejecting: Vec<String> = self
+            .gates
+            .iter()
+            .filter(|(_, g)| matches!(g.bed, Bed::Ejecting { .. }))
+            .map(|(p, _)| p.clone())
+            .collect();
+        for p in ejecting {
+            tracing::warn!(printer = %p, "the daemon stopped while the printer's eject sequence ran; its bed waits for a person");
+            let gate = PrinterGate {
+                bed: Bed::Waiting {
+                    why: Some(Why::EjectInterrupted),
+                },
+                ..self.gate_of(&p)
+            };
+            self.set_gate(&p, gate)?;
         }
         Ok(changed)
     }
@@ -246,18 +262,38 @@ impl Spool {
 
     #[cfg(test)]
     pub(crate) fn gate(&self, printer: &str) -> PrinterGate {
+        self.gate_of(printer)
+    }
+
+    fn gate_of(&self, printer: &str) -> PrinterGate {
         self.gates.get(printer).cloned().unwrap_or_default()
     }
 
+    /// Sets a printer's bed gate and writes it. When it cannot be written (a full disk),
+    /// the rule of both stores: a bed that needs clearing (a print ended) is kept here and
+    /// written later, so it still needs clearing after the outage; a clear is not done
+    /// (the gate stays as it was, here as on disk) and the error says so.
     pub(crate) fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
-        self.gates.insert(printer.to_string(), gate.clone());
-        let written = self.save_gates();
-        match &written {
+        let before = self.gates.insert(printer.to_string(), gate.clone());
+        match self.save_gates() {
             // One file holds every gate: all kept ones are written with it.
-            Ok(()) => self.pending.gate_written(printer),
-            Err(_) => self.pending.keep_gate(printer, gate),
+            Ok(()) => {
+                self.pending.gate_written(printer);
+                Ok(())
+            }
+            Err(e) if gate.bed_not_cleared() => {
+                tracing::error!(printer = %printer, error = %e, "cannot write the bed gate; kept here and written when possible");
+                self.pending.keep_gate(printer, gate);
+                Ok(())
+            }
+            Err(e) => {
+                match before {
+                    Some(before) => self.gates.insert(printer.to_string(), before),
+                    None => self.gates.remove(printer),
+                };
+                Err(e)
+            }
         }
-        written
     }
 
     fn save_gates(&self) -> Result<(), StoreError> {
@@ -288,6 +324,11 @@ impl Spool {
             }
             if undone {
                 let _ = std::fs::remove_dir_all(&dir);
+                // Never a job: its number is the next pick-up's (the same file tried
+                // again after a full disk keeps one id, not a new one each time).
+                if !dir.exists() {
+                    self.next_seq = seq;
+                }
             } else {
                 tracing::error!(job = %id, dir = %dir.display(), "a failed pick-up could not be undone; its files stay in the job directory");
             }

@@ -98,12 +98,12 @@ fn restart_rules_and_gates_survive_reopen() {
     assert_eq!(store.get(&b).unwrap().state, JobState::Interrupted);
     assert!(store.get(&b).unwrap().reason.is_some());
     assert_eq!(store.get(&c).unwrap().state, JobState::Ready);
-    assert!(store.gate("p1").bed_not_cleared);
-    assert!(!store.gate("p2").bed_not_cleared);
+    assert!(store.gate("p1").bed_not_cleared());
+    assert!(!store.gate("p2").bed_not_cleared());
 
     drop(store);
     let store = Spool::open(&spool).unwrap();
-    assert!(store.gate("p1").bed_not_cleared);
+    assert!(store.gate("p1").bed_not_cleared());
     let order: Vec<&str> = store.jobs().map(|j| j.id.as_str()).collect();
     assert_eq!(order, vec![a.as_str(), b.as_str(), c.as_str()]);
 }
@@ -381,6 +381,100 @@ fn a_pickup_that_cannot_be_written_is_undone() {
     assert_eq!(store.jobs().count(), 0);
     drop(store);
     assert_eq!(Spool::open(&spool).unwrap().jobs().count(), 0);
+}
+
+/// A pick-up that fails again and again (a full disk) keeps one job number: the one that
+/// works is the next number, not one more for each failure (0011 became 0048 in 15 s).
+#[test]
+fn failed_pickups_keep_one_job_number() {
+    let (_tmp, hot, spool, mut store) = open_with_hot_folder();
+    let src = drop_file(&hot, "a.stl");
+    for _ in 0..5 {
+        // The failed pick-up removes the job's directory, the blocker with it.
+        block_writes(&store, "0001-a_stl");
+        store.admit(&src, &hot).unwrap_err();
+    }
+    assert_eq!(store.admit(&src, &hot).unwrap().id, "0001-a_stl");
+    let next = store.admit(&drop_file(&hot, "b.stl"), &hot).unwrap();
+    assert_eq!(next.id, "0002-b_stl");
+    // A failure of another file in between takes no number either.
+    block_writes(&store, "0003-c_stl");
+    store.admit(&drop_file(&hot, "c.stl"), &hot).unwrap_err();
+    let d = store.admit(&drop_file(&hot, "d.stl"), &hot).unwrap();
+    assert_eq!(d.id, "0003-d_stl");
+    drop(store);
+    let reopened = Spool::open(&spool).unwrap();
+    let ids: Vec<&str> = reopened.jobs().map(|j| j.id.as_str()).collect();
+    assert_eq!(ids, ["0001-a_stl", "0002-b_stl", "0003-d_stl"]);
+}
+
+/// Makes every write of the bed gates fail, as a full disk would (see [`block_writes`]).
+fn block_gate_writes(spool: &Path) -> PathBuf {
+    let blocker = crate::fsutil::temp_path(&spool.join("printers.json"));
+    std::fs::create_dir_all(&blocker).unwrap();
+    blocker
+}
+
+/// The bed gates on disk.
+fn gates_on_disk(spool: &Path) -> BTreeMap<String, PrinterGate> {
+    serde_json::from_slice(&std::fs::read(spool.join("printers.json")).unwrap()).unwrap()
+}
+
+/// A bed gate that cannot be written: a closed one (a print ended) is kept and written
+/// later, so the bed still waits after the outage; a clear is not done, here as on disk,
+/// and stays undone when writing works again (it once took effect in memory, was
+/// reported failed, and was written later: the operator was told it failed while the
+/// printer took the next job).
+#[test]
+fn a_clear_that_cannot_be_written_is_not_done() {
+    let (_tmp, _hot, spool, mut store) = open_with_hot_folder();
+    use crate::daemon::bed::{Bed, ClearedBy};
+    let closed = |job: &str| PrinterGate {
+        bed: Bed::Waiting { why: None },
+        last_job: Some(job.into()),
+        last_check: None,
+    };
+    let cleared = |job: &str| PrinterGate {
+        bed: Bed::Clear {
+            by: ClearedBy::Person,
+            at_s: 1.0,
+        },
+        last_job: Some(job.into()),
+        last_check: None,
+    };
+    store.set_gate("p1", closed("0001-a")).unwrap();
+
+    // Written before the disk filled: the clear is refused and nothing is kept for later.
+    let blocker = block_gate_writes(&spool);
+    store.set_gate("p1", cleared("0001-a")).unwrap_err();
+    assert_eq!(store.gate("p1"), closed("0001-a"));
+    assert_eq!(store.unwritten(), 0, "nothing to write later");
+    // A print on another printer ends meanwhile: its closed gate stands, kept.
+    store.set_gate("p2", closed("0002-b")).unwrap();
+    assert_eq!(store.gate("p2"), closed("0002-b"));
+    assert_eq!(store.unwritten(), 1);
+    // Its clear while still full is refused, and the closed gate stays kept.
+    store.set_gate("p2", cleared("0002-b")).unwrap_err();
+    assert_eq!(store.gate("p2"), closed("0002-b"));
+    assert_eq!(store.unwritten(), 1);
+    // A printer never seen before: refused, and it has no gate.
+    store.set_gate("p3", cleared("0003-c")).unwrap_err();
+    assert_eq!(store.gate("p3"), PrinterGate::default());
+    assert!(!store.gates.contains_key("p3"));
+
+    // Room again: what is written is what was said, both beds still to clear.
+    std::fs::remove_dir(&blocker).unwrap();
+    assert_eq!(store.write_pending(), 0);
+    let on_disk = gates_on_disk(&spool);
+    assert_eq!(on_disk["p1"], closed("0001-a"));
+    assert_eq!(on_disk["p2"], closed("0002-b"));
+    assert!(!on_disk.contains_key("p3"));
+    drop(store);
+    let mut store = Spool::open(&spool).unwrap();
+    assert_eq!(store.gate("p1"), closed("0001-a"));
+    // Now the clear is done, and written.
+    store.set_gate("p1", cleared("0001-a")).unwrap();
+    assert_eq!(gates_on_disk(&spool)["p1"], cleared("0001-a"));
 }
 
 /// A print that finished while its state could not be written counts as done at

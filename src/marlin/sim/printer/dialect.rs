@@ -61,12 +61,17 @@ impl Printer {
              MACHINE_TYPE:crispen sim EXTRUDER_COUNT:1 UUID:cede2a2f-41a2-4748-9b12-c55c62f367ff"
         ));
         for cap in caps {
-            match cap.strip_prefix("ADVANCED_OK:") {
-                Some(_) => {
+            let name = cap.split(':').next().unwrap_or(cap);
+            match name {
+                "ADVANCED_OK" => {
                     let on = u8::from(self.advanced_ok);
                     self.say(&format!("Cap:ADVANCED_OK:{on}"))
                 }
-                None => self.say(&format!("Cap:{cap}")),
+                "EMERGENCY_PARSER" => {
+                    let on = u8::from(self.emergency_parser);
+                    self.say(&format!("Cap:EMERGENCY_PARSER:{on}"))
+                }
+                _ => self.say(&format!("Cap:{cap}")),
             }
         }
     }

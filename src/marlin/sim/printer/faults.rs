@@ -122,6 +122,7 @@ impl Printer {
         };
         let pokes: Vec<Poke> = (due(&self.faults.actions).into_iter().map(Poke::Action))
             .chain(due(&self.faults.errors).into_iter().map(Poke::Error))
+            .chain(due(&self.faults.receive).into_iter().map(Poke::Receive))
             .collect();
         for poke in pokes {
             tracing::info!(lines = count, ?poke, "fault: due after these lines");
@@ -171,6 +172,21 @@ impl Printer {
             Poke::Error(text) => {
                 tracing::warn!(error = %text, "poke: firmware error");
                 self.say(&format!("Error:{text}"));
+            }
+            Poke::Receive(text) => {
+                tracing::warn!(line = %text, "poke: a line received between the host's");
+                // Between two of the host's lines: next, or after the one being received.
+                let at = if self.assembling.is_empty() {
+                    0
+                } else {
+                    self.rx
+                        .iter()
+                        .position(|&b| b == b'\n' || b == b'\r')
+                        .map_or(self.rx.len(), |i| i + 1)
+                };
+                for (i, b) in text.bytes().chain([b'\n']).enumerate() {
+                    self.rx.insert(at + i, b);
+                }
             }
         }
     }

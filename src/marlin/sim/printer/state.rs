@@ -84,8 +84,6 @@ pub(crate) struct Printer {
     pub(super) status: Status,
     pub(super) rx: VecDeque<u8>,
     pub(super) assembling: Vec<u8>,
-    /// Set when the assembled line overflowed MAX_CMD_SIZE (the rest of it is dropped).
-    pub(super) overlong: bool,
     pub(super) emergency: Vec<u8>,
     pub(super) slots: VecDeque<Queued>,
     pub(super) last_n: u64,
@@ -105,8 +103,14 @@ pub(crate) struct Printer {
     pub(super) next_keepalive: Option<Instant>,
     pub(super) heat_break: bool,
     pub(super) numbered_executed: usize,
-    /// A `;` was seen on the line being assembled (Ultimaker2Marlin's `:` rule stops there).
+    /// A `;` was seen on the line being assembled: Marlin 2 keeps nothing more of the line;
+    /// Ultimaker2Marlin's `comment_mode`, which drops the line and the next one and stops
+    /// its `:` rule.
     pub(super) in_comment: bool,
+    /// Marlin 2 read a `\\`: the next character is kept as it is (queue.cpp:337-343).
+    pub(super) escaped: bool,
+    /// EMERGENCY_PARSER (see [`SimConfig::emergency_parser`](super::super::config::SimConfig::emergency_parser)).
+    pub(super) emergency_parser: bool,
     /// The command being finished was acknowledged on entry: its `ok` is not sent again.
     pub(super) answered: bool,
     /// NO_TIMEOUTS: say `wait` this often while the command queue is empty.

@@ -120,6 +120,19 @@ pub(crate) struct JobArgs {
     pub config: Option<PathBuf>,
 }
 
+#[derive(Debug, clap::Args)]
+pub(crate) struct CancelArgs {
+    /// Job id, as shown by `crispen status`
+    pub job: String,
+    /// Cancel only this part of the job's plate, by its name or its number from 1 (as
+    /// `crispen status --json` and the job page list them); the others print on
+    #[arg(long)]
+    pub part: Option<String>,
+    /// The daemon's config file (to find its control socket)
+    #[arg(long, short)]
+    pub config: Option<PathBuf>,
+}
+
 /// Sends one request to the daemon; returns the JSON answer of a success, or the
 /// daemon's error message as the error.
 pub(crate) fn ask(
@@ -340,6 +353,16 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             j.printer.as_deref().unwrap_or("-"),
             extra
         );
+        if let Some(parts) = j.parts.as_ref().filter(|p| !p.cancelled.is_empty()) {
+            let names: Vec<String> = parts.cancelled.iter().map(|n| printable(n)).collect();
+            println!(
+                "{:<28} {} of {} parts on the plate; cancelled: {}",
+                "",
+                parts.total - parts.cancelled.len().min(parts.total),
+                parts.total,
+                names.join(", ")
+            );
+        }
         // Why a ready job waits, under it.
         if let Some(why) = &j.waiting {
             println!("{:<28} {}", "", escaped(why));
@@ -408,8 +431,18 @@ pub(crate) fn clear(a: ClearArgs) -> anyhow::Result<ExitCode> {
     }
     act(&a.config, path)
 }
-pub(crate) fn cancel(a: JobArgs) -> anyhow::Result<ExitCode> {
-    act(&a.config, job_path(&a.job, "cancel"))
+pub(crate) fn cancel(a: CancelArgs) -> anyhow::Result<ExitCode> {
+    match &a.part {
+        Some(part) => act(
+            &a.config,
+            format!(
+                "/api/v1/jobs/{}/parts/{}/cancel",
+                percent_encode(&a.job),
+                percent_encode(part)
+            ),
+        ),
+        None => act(&a.config, job_path(&a.job, "cancel")),
+    }
 }
 pub(crate) fn pause(a: PrinterArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, printer_path(&a.printer, "pause"))

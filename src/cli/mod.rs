@@ -59,8 +59,8 @@ pub(crate) enum Command {
     Stats(stats::Args),
     /// Confirm a printer's bed has been cleared so it may take the next job
     Clear(control::ClearArgs),
-    /// Cancel a job (a printing job is stopped safely)
-    Cancel(control::JobArgs),
+    /// Cancel a job (a printing job is stopped safely), or one part of its plate (--part)
+    Cancel(control::CancelArgs),
     /// Pause a printer's current print
     Pause(control::PrinterArgs),
     /// Resume a paused printer

@@ -118,6 +118,30 @@ pub struct JobStatus {
     /// What the enhancement moved, in words (its slicing report's `moved`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub moved: Option<String>,
+    /// A plate of several parts: how many, and those cancelled for its current print.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parts: Option<PartsStatus>,
+}
+
+/// A plate's parts, as status shows them.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct PartsStatus {
+    pub total: usize,
+    /// By name, in the order they were cancelled.
+    pub cancelled: Vec<String>,
+}
+
+impl PartsStatus {
+    fn of(job: &super::job::Job) -> Option<Self> {
+        let total = job.part_names().len();
+        (total > 1).then(|| PartsStatus {
+            total,
+            cancelled: job
+                .parts_cancelled_in(job.shown_print())
+                .map(|c| c.part.clone())
+                .collect(),
+        })
+    }
 }
 
 /// Why a command was refused; the operator sees the message.
@@ -262,6 +286,7 @@ pub(crate) fn status(farm: &Farm) -> Status {
             used_g: j.used().grams,
             cost: j.used().cost,
             moved: j.slice_report.as_ref().and_then(|r| r.moved.clone()),
+            parts: PartsStatus::of(j),
         })
         .collect();
     Status {

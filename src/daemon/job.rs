@@ -574,6 +574,19 @@ impl Job {
         }
     }
 
+    /// The print a plate's cancelled parts are shown for: the running or next one while
+    /// the job may still print, else its last.
+    pub fn shown_print(&self) -> u32 {
+        match self.state {
+            JobState::Queued | JobState::Preparing | JobState::Ready | JobState::Printing => {
+                self.print_number()
+            }
+            JobState::Done | JobState::Failed | JobState::Cancelled | JobState::Interrupted => {
+                self.print_number().saturating_sub(1).max(1)
+            }
+        }
+    }
+
     /// The parts cancelled for print `print`.
     pub fn parts_cancelled_in(&self, print: u32) -> impl Iterator<Item = &PartCancel> {
         self.parts_cancelled.iter().filter(move |c| c.print == print)

@@ -577,6 +577,15 @@ pub(crate) async fn job_action(
     act(&state, command).await
 }
 
+/// `POST /api/v1/jobs/{id}/parts/{part}/cancel`: the part by its name or its number from 1
+/// (the job's `slice_report.parts`).
+pub(crate) async fn cancel_part(
+    State(state): State<AppState>,
+    Path((job, part)): Path<(String, String)>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    act(&state, Command::CancelPart { job, part }).await
+}
+
 pub(super) async fn act(
     state: &AppState,
     command: Command,

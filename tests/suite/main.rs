@@ -26,6 +26,7 @@ mod notify;
 mod observe;
 mod octoprint;
 mod pauses;
+mod plates;
 mod policy;
 mod ports;
 mod postgres;

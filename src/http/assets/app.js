@@ -506,6 +506,8 @@ const ACTIONS = {
   pause: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/pause"],
   resume: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/resume"],
   cancel: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/cancel", "Cancel this job?"],
+  cancelpart: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/parts/" + encodeURIComponent(el.dataset.part) + "/cancel",
+    "Stop printing " + el.dataset.part + "? The other parts print on."],
   retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
   release: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/release"],
   unload: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/unload", "Take the spool off " + el.dataset.printer + "? It takes no job until one is loaded."],
@@ -523,6 +525,7 @@ document.addEventListener("click", async (e) => {
   try {
     const answer = await api("POST", path);
     notice(answer.message || "done");
+    if (el.dataset.action === "cancelpart") showJob(el.dataset.job);
   } catch (err) {
     notice(err.message, true);
   } finally {
@@ -809,6 +812,7 @@ async function showJob(id) {
       "<figcaption>The print as the printer will lay it, from its G-code: the original model, the plain print " +
       "and the enhanced print (one camera, a low light from the left); below, the prints at their actual size</figcaption></figure>";
   }
+  if (report && report.parts && report.parts.length > 1) html += partsSection(j, report.parts);
   if (report && report.enhancement && report.enhancement.observed) html += observedSection(j, report.enhancement.observed);
   if (report && report.enhancement && report.enhancement.lambda2 != null) {
     html += "<h3>What moved</h3>" + movedFigures(j, report);
@@ -829,6 +833,45 @@ async function showJob(id) {
   page.innerHTML = html;
   loadPictures(page);
   loadVideos(page);
+}
+
+// A plate's parts on the bed, as its G-code lays them (outlines in machine X and Y, mm),
+// with those cancelled for the current print and a button to cancel each of the others.
+function partsSection(j, parts) {
+  const h = j.job.history || [];
+  const started = h.filter(([state]) => state === "printing").length;
+  const print = ["queued", "preparing", "ready"].includes(j.state) ? started + 1 : Math.max(started, 1);
+  const cancelled = new Map((j.job.parts_cancelled || []).filter((c) => c.print === print).map((c) => [c.part, c]));
+  const xs = [], ys = [];
+  for (const p of parts) for (const [x, y] of p.outline) { xs.push(x); ys.push(y); }
+  let svg = "";
+  if (xs.length) {
+    const pad = 5, x0 = Math.min(...xs) - pad, y1 = Math.max(...ys) + pad;
+    const w = Math.max(...xs) + pad - x0, hgt = y1 - (Math.min(...ys) - pad);
+    // Machine Y points away from the viewer: flipped so the plate looks as from the front.
+    const at = ([x, y]) => (x - x0).toFixed(2) + "," + (y1 - y).toFixed(2);
+    svg = '<svg class="plate" viewBox="0 0 ' + w.toFixed(2) + " " + hgt.toFixed(2) + '" role="img" aria-label="the plate\'s parts on the bed">' +
+      parts.map((p, i) => {
+        if (!p.outline.length) return "";
+        const cx = p.outline.reduce((a, q) => a + q[0], 0) / p.outline.length;
+        const cy = p.outline.reduce((a, q) => a + q[1], 0) / p.outline.length;
+        return '<g class="part' + (cancelled.has(p.name) ? " cancelled" : "") + '"><title>' + esc(p.name) + "</title>" +
+          '<polygon points="' + p.outline.map(at).join(" ") + '"/>' +
+          '<text x="' + (cx - x0).toFixed(2) + '" y="' + (y1 - cy).toFixed(2) + '">' + (i + 1) + "</text></g>";
+      }).join("") + "</svg>";
+  }
+  const can = ["ready", "printing"].includes(j.state);
+  const rows = parts.map((p, i) => {
+    const c = cancelled.get(p.name);
+    let what = (+p.extruded_mm.toFixed(0)) + " mm of filament";
+    if (c) {
+      const d = c.dropped;
+      what = "cancelled" + (d && d.layer ? " at layer " + d.layer + (d.z_mm != null ? " (Z " + (+d.z_mm.toFixed(2)) + " mm)" : "") : d ? " from line " + d.line : " before its print");
+    }
+    const button = can && !c ? ' <button class="danger" data-action="cancelpart" data-job="' + esc(j.id) + '" data-part="' + esc(p.name) + '">Cancel part</button>' : "";
+    return "<li" + (c ? ' class="cancelled"' : "") + "><b>" + (i + 1) + "</b> " + esc(p.name) + ' <span class="muted">' + esc(what) + "</span>" + button + "</li>";
+  }).join("");
+  return '<h3>Parts <small class="muted">' + (parts.length - cancelled.size) + " of " + parts.length + ' on the plate</small></h3><div class="parts">' + svg + '<ol id="parts">' + rows + "</ol></div>";
 }
 
 // A job's snapshots and timelapse, as its printer's camera took them.

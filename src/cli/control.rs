@@ -276,8 +276,8 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
                         100.0 * l.lines_acked as f64 / l.lines_total as f64,
                         l.lines_acked,
                         l.lines_total,
-                        l.remaining_s
-                            .map(|r| format!(", {:.0} min left", r / 60.0))
+                        l.time_left
+                            .map(|t| format!(", {}", time_left_words(&t)))
                             .unwrap_or_default()
                     )
                 } else {
@@ -369,6 +369,20 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A print's time left with what it rests on: "12 min left (planned, × 1.04 by 3 prints)".
+fn time_left_words(t: &crispen::daemon::time_left::TimeLeft) -> String {
+    let pace = match t.pace.prints {
+        0 => String::new(),
+        1 => format!(" × {:.2} by 1 print", t.pace.factor),
+        n => format!(" × {:.2} by {n} prints", t.pace.factor),
+    };
+    let heating = if t.heating { " + heat-up" } else { "" };
+    format!(
+        "{:.0} min left{heating} (planned{pace})",
+        t.seconds() / 60.0
+    )
 }
 
 /// `crispen history`: a page of the finished jobs that have left the queue.

@@ -196,6 +196,7 @@ impl PrinterLink for BenchLink {
         &'a mut self,
         gcode: &'a Path,
         _cancelled: Vec<String>,
+        _pace: crate::daemon::time_left::Pace,
         mut control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>> {

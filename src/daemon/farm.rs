@@ -75,7 +75,11 @@ pub struct LiveProgress {
     pub bed_c: Option<f64>,
     pub bed_target_c: Option<f64>,
     pub elapsed_s: f64,
+    /// What [`time_left`](Self::time_left) comes to, seconds.
     pub remaining_s: Option<f64>,
+    /// What the time left rests on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_left: Option<super::time_left::TimeLeft>,
     /// The program's heat-up part is done (see `printer` on staggered heat-ups).
     pub heated: bool,
     pub paused: bool,

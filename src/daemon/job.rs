@@ -470,6 +470,10 @@ pub struct PrintReport {
     /// Pieces of lines the printer answered on their own after a receive-buffer flush.
     pub fragments: u64,
     pub duration_s: f64,
+    /// Its motion as planned and as it went, for its printer's pace (none for a print
+    /// paused, or with a part cancelled).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pace: Option<super::time_left::PaceSample>,
 }
 
 impl From<crate::marlin::stream::PrintReport> for PrintReport {
@@ -483,6 +487,7 @@ impl From<crate::marlin::stream::PrintReport> for PrintReport {
             silence_probes: r.silence_probes,
             fragments: r.fragments,
             duration_s: r.duration_s,
+            pace: None,
         }
     }
 }

@@ -37,6 +37,7 @@ pub mod reload;
 pub mod shared;
 pub mod spools;
 pub mod store;
+pub mod time_left;
 pub(crate) mod usage;
 
 #[cfg(test)]

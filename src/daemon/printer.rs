@@ -28,6 +28,7 @@ use super::farm::{
     PrinterTemperatures,
 };
 use super::job::{JobState, PrintReport};
+use super::time_left::{Pace, PaceSample, TimeLeft};
 use crate::marlin::gcode::{GcodeError, GcodeProgram};
 use crate::marlin::stream::{
     Connection, Idle, PauseSettings, PrintError, PrintProgress, PrintState, StreamControl,
@@ -89,11 +90,13 @@ pub(crate) struct ConnectError(#[from] pub PrintError);
 pub(crate) trait PrinterLink: Send {
     /// Streams the G-code file at `gcode` without the parts of its plate named in
     /// `cancelled` (dropped from its first line); `control` pauses, resumes, cancels it or
-    /// a part of it, progress is published on `progress`. Returns a JSON report.
+    /// a part of it, progress is published on `progress` (its time left at the printer's
+    /// `pace`). Returns a JSON report.
     fn print<'a>(
         &'a mut self,
         gcode: &'a Path,
         cancelled: Vec<String>,
+        pace: Pace,
         control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>>;
@@ -568,11 +571,22 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         .find(|p| p.name == printer)
         .map(|p| p.machine.name.clone());
     // The parts cancelled before this print began (dropped from its first line).
-    let (gcode, print_number, cancelled): (PathBuf, u32, Vec<String>) = {
+    let (gcode, print_number, cancelled, pace): (PathBuf, u32, Vec<String>, Pace) = {
         let store = farm.store();
         let Some(job) = store.get(job_id) else {
             return JobEnd::default();
         };
+        // The printer's pace, from its finished prints the farm still holds.
+        let mut paced: Vec<(f64, PaceSample)> = store
+            .jobs()
+            .filter(|j| j.printer.as_deref() == Some(printer))
+            .filter_map(|j| {
+                let sample = j.print_report.as_ref()?.pace?;
+                Some((j.history.last().map_or(0.0, |h| h.1), sample))
+            })
+            .collect();
+        paced.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let pace = Pace::of(paced.into_iter().map(|(_, s)| s));
         let print_number = job.print_number();
         let cancelled = job
             .parts_cancelled_in(print_number)
@@ -589,7 +603,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
                 return JobEnd::default();
             }
         };
-        (gcode, print_number, cancelled)
+        (gcode, print_number, cancelled, pace)
     };
 
     sup.show(|p| {
@@ -652,7 +666,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     // A stop requested by shutdown (`Farm::stop_prints`) is a cancel that ends as
     // interrupted rather than cancelled.
     let mut permit = Some(permit);
-    let print = link.print(&gcode, cancelled, control_rx, progress_tx);
+    let print = link.print(&gcode, cancelled, pace, control_rx, progress_tx);
     tokio::pin!(print);
     // The parts dropped so far that the store has (it keeps them across a restart).
     let mut recorded_parts = 0;
@@ -890,6 +904,11 @@ fn live_progress(
     plate: &Plate,
 ) -> LiveProgress {
     let pause = p.pause.clone();
+    let time_left = TimeLeft {
+        planned_s: plate.estimate.left_after_acked(p.lines_acked, plate.ahead),
+        pace: plate.pace,
+        heating: !heated,
+    };
     LiveProgress {
         parts_cancelled: p
             .cancelled_parts
@@ -904,7 +923,8 @@ fn live_progress(
         bed_c: p.bed.map(|t| t.current),
         bed_target_c: p.bed.and_then(|t| t.target),
         elapsed_s: p.elapsed_s,
-        remaining_s: p.remaining_s,
+        remaining_s: Some(time_left.seconds()),
+        time_left: Some(time_left),
         heated,
         paused,
         pause,
@@ -921,10 +941,15 @@ fn printer_temperatures(t: &Temperatures) -> PrinterTemperatures {
 }
 
 /// What a print knows of its plate: its program's lines and layers, to say where a part
-/// was dropped.
+/// was dropped; the planner's estimate of its commands and its printer's pace, to say
+/// how long it has left.
 struct Plate {
     program: GcodeProgram,
     map: Option<crate::marlin::plate::PlateMap>,
+    estimate: crate::marlin::estimate::Estimate,
+    /// The moves its printer may hold acknowledged but not yet made.
+    ahead: usize,
+    pace: Pace,
 }
 
 impl Plate {
@@ -980,19 +1005,27 @@ impl PrinterLink for MarlinLink {
         &'a mut self,
         gcode: &'a Path,
         cancelled: Vec<String>,
+        pace: Pace,
         mut control: mpsc::Receiver<PrintCommand>,
         progress: watch::Sender<LiveProgress>,
     ) -> BoxFuture<'a, Result<PrintReport, PrintFailure>> {
         Box::pin(async move {
             // Reading and checking a file of millions of lines is blocking work; so is
-            // following its plate's layers.
+            // following its plate's layers and planning its moves.
             let (path, firmware) = (gcode.to_path_buf(), self.firmware);
             let plate = tokio::task::spawn_blocking(move || {
                 let program = GcodeProgram::load_for(&path, firmware)?;
                 let map = program.marks().map(|marks| {
                     crate::marlin::plate::PlateMap::read(program.iter(), marks, firmware)
                 });
-                Ok::<_, GcodeError>(Plate { program, map })
+                let estimate = crate::marlin::estimate::estimate(program.iter(), firmware);
+                Ok::<_, GcodeError>(Plate {
+                    program,
+                    map,
+                    estimate,
+                    ahead: crate::marlin::estimate::moves_ahead(firmware),
+                    pace,
+                })
             })
             .await
             .map_err(PrintFailure::LoaderCrashed)??;
@@ -1020,6 +1053,10 @@ impl PrinterLink for MarlinLink {
             let mut last_pause = None;
             let mut last_parts = 0;
             let mut last_stop_wait = None;
+            // For the printer's pace: when the heat-up ended, and whether the print kept
+            // to its plan (no pause, no part dropped).
+            let mut heated_at = None;
+            let mut as_planned = dropped.is_empty();
             let result = loop {
                 tokio::select! {
                     result = &mut print => break result,
@@ -1061,8 +1098,12 @@ impl PrinterLink for MarlinLink {
                             || p.pause != last_pause
                             || p.cancelled_parts.len() != last_parts
                             || p.stop_wait != last_stop_wait;
+                        as_planned &= !paused && p.pause.is_none() && p.cancelled_parts.is_empty();
                         if !due {
                             continue;
+                        }
+                        if heated && !last_heated {
+                            heated_at = Some(std::time::Instant::now());
                         }
                         last_forward = std::time::Instant::now();
                         last_heated = heated;
@@ -1083,7 +1124,14 @@ impl PrinterLink for MarlinLink {
                 &plate,
             ));
             match result {
-                Ok(report) => Ok(report.into()),
+                Ok(report) => {
+                    let mut report = PrintReport::from(report);
+                    report.pace = heated_at.filter(|_| as_planned).map(|at| PaceSample {
+                        planned_s: plate.estimate.left_after(heat_end.map_or(0, |i| i + 1)),
+                        took_s: at.elapsed().as_secs_f64(),
+                    });
+                    Ok(report)
+                }
                 Err(e) => Err(PrintFailure::of(e)),
             }
         })

@@ -5,12 +5,14 @@
 //!   one follower of where its moves take the head, and the pauses a file asks for.
 //! - `protocol`: the host state machine. Pure: bytes and the current time go in, lines to
 //!   send, events and deadlines come out. No ports, no clocks.
+//! - `estimate`: how long a job takes as the firmware's planner moves it.
 //! - `plate`: a plate's parts, as its file labels them, and the host's filter that drops
 //!   a cancelled part's lines.
 //! - `transport` / `stream`: the serial port and the async driver around the state machine.
 //! - `sim`: a simulated printer on a real pty, speaking the same protocol, with injectable
 //!   faults. Tests, the quick start and the demo farm use it.
 
+pub mod estimate;
 pub mod firmware;
 pub mod gcode;
 pub mod motion;

@@ -128,8 +128,6 @@ pub struct PrintProgress {
     pub bed: Option<Temp>,
     pub state: PrintState,
     pub elapsed_s: f64,
-    /// Estimated from the acknowledgement rate so far.
-    pub remaining_s: Option<f64>,
     /// Set while the print waits at a pause the file asked for.
     pub pause: Option<PauseInfo>,
     /// The parts of the plate cancelled so far, in order.
@@ -862,8 +860,6 @@ impl Run {
     fn publish(&self, acked: usize, t: Temperatures, state: PrintState) {
         let elapsed = self.started.elapsed().as_secs_f64();
         let total = self.total;
-        let remaining =
-            (acked > 0 && acked < total).then(|| elapsed / acked as f64 * (total - acked) as f64);
         self.progress.send_replace(PrintProgress {
             lines_acked: acked,
             lines_total: total,
@@ -871,7 +867,6 @@ impl Run {
             bed: t.bed,
             state,
             elapsed_s: elapsed,
-            remaining_s: if acked >= total { Some(0.0) } else { remaining },
             pause: self.pause.clone(),
             cancelled_parts: self.cancelled.clone(),
             stop_wait: self.stop_wait.clone(),

@@ -1,7 +1,8 @@
 //! Plates through the daemon: a folder's `per_plate` copies sliced as one plate by the real
 //! PrusaSlicer, a part cancelled mid-print with `crispen cancel JOB --part` (the printer
 //! executes exactly what the host's filter predicts from where the store says it was
-//! dropped, and the job ends done), and parts cancelled before the print (a missing part
+//! dropped, and the job ends done; status shows the time left and what it rests on), and
+//! parts cancelled before the print (a missing part
 //! named with the plate's parts, the last part left cancelling the job).
 
 use crate::common;
@@ -68,6 +69,12 @@ fn a_part_cancelled_mid_print_is_dropped_and_the_others_print_exactly() {
     let job = job_by_file(&s, "spot.obj").unwrap();
     let id = job["id"].as_str().unwrap().to_string();
     assert_eq!(job["parts"]["total"], 3, "{job:#}");
+    // The time left is the planner's over the commands not yet acknowledged, at the pace
+    // of a printer that has no finished print yet.
+    let left = &printer(&s, "p")["progress"]["time_left"];
+    assert!(left["planned_s"].as_f64().unwrap() > 1.0, "{left}");
+    assert_eq!(left["pace"], serde_json::json!({"factor": 1.0, "prints": 0}), "{left}");
+    assert_eq!(left["heating"], false, "{left}");
     let names: Vec<String> = record(root, &id)["slice_report"]["parts"]
         .as_array()
         .unwrap()
@@ -89,6 +96,8 @@ fn a_part_cancelled_mid_print_is_dropped_and_the_others_print_exactly() {
 
     // The store says where the part was dropped; the printer executed exactly what the
     // host's filter sends from there.
+    // A print with a part dropped says nothing of its printer's pace.
+    assert!(record(root, &id)["print_report"]["pace"].is_null());
     let cancels = record(root, &id)["parts_cancelled"].clone();
     assert_eq!(cancels.as_array().unwrap().len(), 1, "{cancels:#}");
     let dropped = &cancels[0]["dropped"];

@@ -100,6 +100,16 @@ function duration(s) {
   return h ? h + " h " + String(m).padStart(2, "0") + " min" : m ? m + " min" : sec + " s";
 }
 
+// What a print's time left rests on: the firmware's planner over the lines not yet
+// acknowledged, at the printer's pace on its earlier prints.
+function timeLeftBasis(t) {
+  if (!t) return "";
+  const pace = t.pace.prints
+    ? " × " + t.pace.factor.toFixed(2) + ", this printer's pace over its last " + (t.pace.prints === 1 ? "print" : t.pace.prints + " prints")
+    : " (no finished print on this printer yet to correct it)";
+  return "the planner's " + duration(t.planned_s) + pace + (t.heating ? "; the heat-up's own time on top" : "");
+}
+
 function label(state) { return String(state).replace(/_/g, " "); }
 
 function jobOf(status, id) { return status.jobs.find((j) => j.id === id); }
@@ -120,7 +130,8 @@ function printerTile(p, status) {
     // A <progress> element: the page's policy allows no inline styles.
     html += '<progress class="bar" max="100" value="' + pct.toFixed(1) + '"></progress>';
     html += '<div class="figures"><span class="pct">' + pct.toFixed(1) + " %</span>" +
-      (live.remaining_s != null ? '<span class="left">' + duration(live.remaining_s) + " left</span>" : "") + "</div>";
+      (live.remaining_s != null ? '<span class="left" title="' + esc(timeLeftBasis(live.time_left)) + '">' + duration(live.remaining_s) + " left" +
+        (live.time_left && live.time_left.heating ? " + heat-up" : "") + "</span>" : "") + "</div>";
   }
   // Current temperatures, printing or idle; none while the daemon cannot read them.
   const t = p.temperatures;

@@ -224,7 +224,7 @@ pub(crate) async fn job(
                     "filepos": null,
                     "printTime": g.elapsed_s.round() as u64,
                     "printTimeLeft": g.remaining_s.map(|s| s.round() as u64),
-                    "printTimeLeftOrigin": g.remaining_s.map(|_| "estimate"),
+                    "printTimeLeftOrigin": g.remaining_s.map(|_| "analysis"),
                 }),
                 None => no_progress(),
             };

@@ -95,7 +95,12 @@ fn slicer_alone(stl: &Path, machine: &Machine, settings: &SliceSettings, work: &
         copies: 1,
     };
     let invocation = profile
-        .invocation(&params, work, &[stl.to_path_buf()], &work.join("alone.gcode"))
+        .invocation(
+            &params,
+            work,
+            &[stl.to_path_buf()],
+            &work.join("alone.gcode"),
+        )
         .expect("the command line");
     let t = Instant::now();
     let status = std::process::Command::new(SlicerKind::Prusa.default_program())

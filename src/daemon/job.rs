@@ -594,7 +594,9 @@ impl Job {
 
     /// The parts cancelled for print `print`.
     pub fn parts_cancelled_in(&self, print: u32) -> impl Iterator<Item = &PartCancel> {
-        self.parts_cancelled.iter().filter(move |c| c.print == print)
+        self.parts_cancelled
+            .iter()
+            .filter(move |c| c.print == print)
     }
 
     /// The names of its plate's parts (empty: no plate labelled).

@@ -820,12 +820,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
 
 /// Records in the job the parts its print `print` dropped, with where: one the operator
 /// cancelled before the print is completed with it, any other added.
-async fn record_parts(
-    farm: &Farm,
-    job_id: &str,
-    print: u32,
-    dropped: &[super::job::PartCancel],
-) {
+async fn record_parts(farm: &Farm, job_id: &str, print: u32, dropped: &[super::job::PartCancel]) {
     let dropped = dropped.to_vec();
     let recorded = farm
         .jobs()
@@ -838,7 +833,9 @@ async fn record_parts(
                     .find(|c| c.print == print && c.part == d.part);
                 match known {
                     Some(c) => c.dropped = c.dropped.take().or(d.dropped),
-                    None => j.parts_cancelled.push(super::job::PartCancel { print, ..d }),
+                    None => j
+                        .parts_cancelled
+                        .push(super::job::PartCancel { print, ..d }),
                 }
             }
         })
@@ -897,12 +894,7 @@ fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
     p.progress = Some(live);
 }
 
-fn live_progress(
-    p: &PrintProgress,
-    heated: bool,
-    paused: bool,
-    plate: &Plate,
-) -> LiveProgress {
+fn live_progress(p: &PrintProgress, heated: bool, paused: bool, plate: &Plate) -> LiveProgress {
     let pause = p.pause.clone();
     let time_left = TimeLeft {
         planned_s: plate.estimate.left_after_acked(p.lines_acked, plate.ahead),
@@ -910,11 +902,7 @@ fn live_progress(
         heating: !heated,
     };
     LiveProgress {
-        parts_cancelled: p
-            .cancelled_parts
-            .iter()
-            .map(|c| plate.dropped(c))
-            .collect(),
+        parts_cancelled: p.cancelled_parts.iter().map(|c| plate.dropped(c)).collect(),
         stop_wait: p.stop_wait.clone(),
         lines_acked: p.lines_acked,
         lines_total: p.lines_total,
@@ -1034,7 +1022,10 @@ impl PrinterLink for MarlinLink {
             let part_of = |name: &str| {
                 let part = program.marks().and_then(|m| m.find(name));
                 if part.is_none() {
-                    tracing::warn!(part = name, "no such part in the plate's G-code; nothing dropped");
+                    tracing::warn!(
+                        part = name,
+                        "no such part in the plate's G-code; nothing dropped"
+                    );
                 }
                 part
             };

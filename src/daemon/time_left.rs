@@ -109,6 +109,9 @@ mod tests {
         let even = Pace::of([sample(100.0, 100.0), sample(100.0, 110.0)]);
         assert!((even.factor - 1.05).abs() < 1e-12);
         // A print too short to say anything, or with no figure, is not counted.
-        assert_eq!(Pace::of([sample(0.5, 1.0), sample(10.0, f64::NAN)]).prints, 0);
+        assert_eq!(
+            Pace::of([sample(0.5, 1.0), sample(10.0, f64::NAN)]).prints,
+            0
+        );
     }
 }

@@ -83,7 +83,10 @@ pub(crate) fn router(state: AppState) -> Router {
         .route("/api/v1/history", get(api::history))
         .route("/api/v1/stats", get(api::stats))
         .route("/api/v1/jobs/{id}/{action}", post(api::job_action))
-        .route("/api/v1/jobs/{id}/parts/{part}/cancel", post(api::cancel_part))
+        .route(
+            "/api/v1/jobs/{id}/parts/{part}/cancel",
+            post(api::cancel_part),
+        )
         .route("/api/v1/jobs/{id}/pictures/{picture}", get(api::picture))
         .route("/api/v1/jobs/{id}/camera/{file}", get(camera::job_file))
         .route("/api/v1/cameras", get(camera::cameras))

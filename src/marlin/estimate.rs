@@ -218,11 +218,12 @@ fn take(w: &Words, c: char, dst: &mut f64, lo: f64, used: &mut Vec<char>) -> boo
 const AXES: [char; 4] = ['X', 'Y', 'Z', 'E'];
 
 fn strip_comment(line: &str) -> &str {
-    let line = line.split(';').next().unwrap_or("");
-    line.split('*').next().unwrap_or("").trim() // `*nn` checksum of a numbered line
+    line.split(';').next().unwrap_or("").trim()
 }
 
-/// One parsed line: the command (letter, number) and its finite, clamped parameters.
+/// One line's command (letter, number) and its finite, clamped parameters, as
+/// [`crate::marlin::reader`] reads it (the one reader of G-code: a line it cannot read is
+/// one the job could not hold, and plans as nothing).
 struct Words {
     cmd: (u8, u32),
     vals: [Option<f64>; 26],
@@ -230,35 +231,20 @@ struct Words {
 
 impl Words {
     fn parse(s: &str) -> Words {
-        let b = s.as_bytes();
         let mut w = Words {
             cmd: (0, 0),
             vals: [None; 26],
         };
-        let mut i = 0;
-        while i < b.len() {
-            let c = b[i];
-            i += 1;
-            if !c.is_ascii_uppercase() {
-                continue;
-            } // Marlin is case-sensitive by default
-            let start = i;
-            while i < b.len() && (b[i].is_ascii_digit() || matches!(b[i], b'.' | b'-' | b'+')) {
-                i += 1;
-            }
-            let v = s
-                .get(start..i)
-                .and_then(|t| t.parse::<f64>().ok())
-                .filter(|v| v.is_finite());
-            if w.cmd.0 == 0 && c != b'N' {
-                // First word is the command; G1.5 etc. count as their integer part.
-                w.cmd = (
-                    c,
-                    v.filter(|v| *v >= 0.0 && *v < 1e6)
-                        .map_or(u32::MAX, |v| v as u32),
-                );
-            } else if w.cmd.0 != 0 {
-                w.vals[(c - b'A') as usize] = v.map(|v| v.clamp(-BIG, BIG));
+        let Ok(Some(command)) = crate::marlin::reader::read(s) else {
+            return w;
+        };
+        w.cmd = (command.letter() as u8, command.number());
+        for word in &command.words {
+            if word.letter.is_ascii_uppercase() {
+                w.vals[(word.letter as u8 - b'A') as usize] = word
+                    .value
+                    .filter(|v| v.is_finite())
+                    .map(|v| v.clamp(-BIG, BIG));
             }
         }
         w
@@ -830,11 +816,12 @@ impl Limits {
 }
 
 /// The moves a printer on `firmware` may hold acknowledged but not yet made: its planner's
-/// blocks, and on Ultimaker2Marlin its command slots too (it acknowledges `G0`-`G3` as they
-/// are queued, before they reach the planner).
+/// blocks (one fewer than its buffer's size: a ring that keeps one slot free), and on
+/// Ultimaker2Marlin its command slots too (it acknowledges `G0`-`G3` as they are queued,
+/// before they reach the planner).
 pub fn moves_ahead(firmware: crate::marlin::firmware::Firmware) -> usize {
     use crate::marlin::firmware::Firmware;
-    let planner = Limits::of(firmware).block_buffer_size;
+    let planner = Limits::of(firmware).block_buffer_size - 1;
     match firmware {
         Firmware::Ultimaker2 => planner + firmware.command_slots(),
         Firmware::Marlin2 | Firmware::Marlin20 => planner,
@@ -1051,5 +1038,4 @@ mod tests {
         close(e.left_after_acked(81, 16), e.left_after(65), 1e-9);
         assert!(e.left_after_acked(60, 16) > e.left_after(60));
     }
-
 }

@@ -344,7 +344,9 @@ impl GcodeProgram {
     /// Parse G-code from any reader; `name` is used in error messages.
     pub fn read(reader: impl Read, name: &str, firmware: Firmware) -> Result<Self, GcodeError> {
         let mut program = Loading::with_capacity(0);
-        let marks = scan(reader, name, firmware, |code, line| program.push(code, line))?;
+        let marks = scan(reader, name, firmware, |code, line| {
+            program.push(code, line)
+        })?;
         program.finish(name, firmware, marks)
     }
 

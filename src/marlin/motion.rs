@@ -963,7 +963,10 @@ impl Motion {
 /// Net filament `commands` push, mm (a retraction counts back until it is pushed again),
 /// followed as `firmware` follows them: what a print of them takes from the spool. A
 /// command the firmware could not follow ends the count there, as it would end the print.
-pub fn extruded_mm<S: AsRef<str>>(commands: impl IntoIterator<Item = S>, firmware: Firmware) -> f64 {
+pub fn extruded_mm<S: AsRef<str>>(
+    commands: impl IntoIterator<Item = S>,
+    firmware: Firmware,
+) -> f64 {
     let mut pushed = Pushed::new(firmware);
     for line in commands {
         pushed.follow(line.as_ref());

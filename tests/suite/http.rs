@@ -1156,6 +1156,81 @@ fn the_job_page_shows_what_the_observer_chose_in_a_real_browser() {
     browser.screenshot(&shots.join("dashboard-observed.png"));
 }
 
+/// A plate's parts on the job page, in a real browser: three copies of Spot on one bed
+/// (`per_plate` in its sidecar, held so that it waits), drawn as their outlines on the bed
+/// and listed, each with its button; the second's button cancels it (the store has it,
+/// the page draws it cancelled), and the others stay.
+#[test]
+fn the_job_page_shows_a_plates_parts_and_cancels_one_in_a_real_browser() {
+    let tmp = tempfile::tempdir().unwrap();
+    let farm = Farm::start(tmp.path(), 0.0, "");
+    let hot = tmp.path().join("hot");
+    std::fs::write(
+        hot.join("spot.obj.toml"),
+        "per_plate = 3\nhold = true\nstrength = \"off\"\n",
+    )
+    .unwrap();
+    std::fs::write(hot.join("spot.obj"), spot_obj()).unwrap();
+    let s = farm.wait_for(Duration::from_secs(600), "the plate prepared", |s| {
+        job_by_file(s, "spot.obj").is_some_and(|j| j["state"] == "ready" || j["state"] == "failed")
+    });
+    let job = job_by_file(&s, "spot.obj").unwrap();
+    assert_eq!(job["state"], "ready", "{job}");
+    assert_eq!(job["parts"]["total"], 3, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    let answer = farm.get(&format!("/api/v1/jobs/{id}"), Some(KEY)).json();
+    let second = answer["job"]["slice_report"]["parts"][1]["name"]
+        .as_str()
+        .unwrap()
+        .to_string();
+
+    let browser = Browser::start(&tmp.path().join("chromium-profile"));
+    browser.go(&format!("http://{}/", farm.addr));
+    browser.exec(
+        "localStorage.setItem('crispen-key', arguments[0]);",
+        json!([KEY]),
+    );
+    browser.go(&format!("http://{}/#job/{id}", farm.addr));
+    browser.call("POST", "/refresh", &json!({}));
+    browser.wait_until(
+        Duration::from_secs(30),
+        "the plate's parts",
+        "const checks = {
+           heading: /Parts\\s*3 of 3 on the plate/.test(document.querySelector('#jobpage').textContent),
+           outlines: document.querySelectorAll('svg.plate polygon').length === 3,
+           rows: document.querySelectorAll('#parts li').length === 3,
+           buttons: document.querySelectorAll('#parts button[data-action=\"cancelpart\"]').length === 3,
+         };
+         const failed = Object.keys(checks).filter(k => !checks[k]);
+         return failed.length === 0 || failed.join(' ');",
+    );
+    browser.exec(
+        "window.confirm = () => true;
+         document.querySelectorAll('#parts button[data-action=\"cancelpart\"]')[1].click();",
+        json!([]),
+    );
+    browser.wait_until(
+        Duration::from_secs(30),
+        "the second part drawn cancelled",
+        "const rows = document.querySelectorAll('#parts li');
+         const checks = {
+           heading: /Parts\\s*2 of 3 on the plate/.test(document.querySelector('#jobpage').textContent),
+           second: rows.length === 3 && rows[1].classList.contains('cancelled') && /before its print/.test(rows[1].textContent),
+           others: rows.length === 3 && !rows[0].classList.contains('cancelled') && !rows[2].classList.contains('cancelled'),
+           outline: document.querySelectorAll('svg.plate g.cancelled').length === 1,
+           buttons: document.querySelectorAll('#parts button[data-action=\"cancelpart\"]').length === 2,
+         };
+         const failed = Object.keys(checks).filter(k => !checks[k]);
+         return failed.length === 0 || failed.join(' ');",
+    );
+    let s = farm.status();
+    let job = job_by_file(&s, "spot.obj").unwrap();
+    assert_eq!(job["parts"]["cancelled"], json!([second]), "{job}");
+    assert_eq!(job["state"], "ready", "{job}");
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard-plate.png"));
+}
+
 /// An enhanced job's page reads as a report for an operator: once the job is prepared,
 /// compared and printed, it says in one line how much the enhancement moved (in % and mm),
 /// the printed size, machine and print time, how the print went, and the history in

@@ -62,10 +62,16 @@ fn a_part_cancelled_mid_print_is_dropped_and_the_others_print_exactly() {
             p["lines_total"].as_u64().unwrap_or(u64::MAX),
         )
     };
-    let s = wait_for(&config, &log, Duration::from_secs(180), "a third printed", |s| {
-        let (acked, total) = progress(s);
-        printer(s, "p")["state"] == "printing" && acked * 3 > total
-    });
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(180),
+        "a third printed",
+        |s| {
+            let (acked, total) = progress(s);
+            printer(s, "p")["state"] == "printing" && acked * 3 > total
+        },
+    );
     let job = job_by_file(&s, "spot.obj").unwrap();
     let id = job["id"].as_str().unwrap().to_string();
     assert_eq!(job["parts"]["total"], 3, "{job:#}");
@@ -73,7 +79,11 @@ fn a_part_cancelled_mid_print_is_dropped_and_the_others_print_exactly() {
     // of a printer that has no finished print yet.
     let left = &printer(&s, "p")["progress"]["time_left"];
     assert!(left["planned_s"].as_f64().unwrap() > 1.0, "{left}");
-    assert_eq!(left["pace"], serde_json::json!({"factor": 1.0, "prints": 0}), "{left}");
+    assert_eq!(
+        left["pace"],
+        serde_json::json!({"factor": 1.0, "prints": 0}),
+        "{left}"
+    );
     assert_eq!(left["heating"], false, "{left}");
     let names: Vec<String> = record(root, &id)["slice_report"]["parts"]
         .as_array()
@@ -85,12 +95,19 @@ fn a_part_cancelled_mid_print_is_dropped_and_the_others_print_exactly() {
 
     let (ok, out) = ctl(&config, &["cancel", &id, "--part", "2"]);
     assert!(ok, "{out}");
-    assert!(out.contains(&names[1]) && out.contains("others print on"), "{out}");
+    assert!(
+        out.contains(&names[1]) && out.contains("others print on"),
+        "{out}"
+    );
     let s = wait_for(&config, &log, Duration::from_secs(300), "done", |s| {
         state_of(s, "spot.obj") == "done"
     });
     let job = job_by_file(&s, "spot.obj").unwrap();
-    assert_eq!(job["parts"]["cancelled"], serde_json::json!([names[1]]), "{job:#}");
+    assert_eq!(
+        job["parts"]["cancelled"],
+        serde_json::json!([names[1]]),
+        "{job:#}"
+    );
     let (_, text) = ctl(&config, &["status"]);
     assert!(text.contains("2 of 3 parts on the plate"), "{text}");
 
@@ -116,7 +133,10 @@ fn a_part_cancelled_mid_print_is_dropped_and_the_others_print_exactly() {
     assert!(expected.len() < program.len(), "the filter dropped moves");
     assert_eq!(executed.len(), expected.len(), "commands executed");
     if let Some(i) = (0..expected.len()).find(|&i| executed[i] != expected[i]) {
-        panic!("executed command {i} is {:?}, the host's filter sent {:?}", executed[i], expected[i]);
+        panic!(
+            "executed command {i} is {:?}, the host's filter sent {:?}",
+            executed[i], expected[i]
+        );
     }
 }
 
@@ -139,15 +159,24 @@ fn parts_cancelled_before_the_print_and_the_last_one_cancels_the_job() {
 
     let (ok, out) = ctl(&config, &["cancel", &id, "--part", "no such part"]);
     assert!(!ok, "{out}");
-    assert!(out.contains("no part \"no such part\"") && out.contains("1 \""), "{out}");
+    assert!(
+        out.contains("no part \"no such part\"") && out.contains("1 \""),
+        "{out}"
+    );
 
     let (ok, out) = ctl(&config, &["cancel", &id, "--part", "1"]);
     assert!(ok && out.contains("will not be printed"), "{out}");
-    let s = wait_for(&config, &log, Duration::from_secs(10), "one part cancelled", |s| {
-        job_by_file(s, "spot.obj").unwrap()["parts"]["cancelled"]
-            .as_array()
-            .is_some_and(|c| c.len() == 1)
-    });
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(10),
+        "one part cancelled",
+        |s| {
+            job_by_file(s, "spot.obj").unwrap()["parts"]["cancelled"]
+                .as_array()
+                .is_some_and(|c| c.len() == 1)
+        },
+    );
     assert_eq!(state_of(&s, "spot.obj"), "ready");
 
     let (ok, out) = ctl(&config, &["cancel", &id, "--part", "2"]);
@@ -155,5 +184,11 @@ fn parts_cancelled_before_the_print_and_the_last_one_cancels_the_job() {
     wait_for(&config, &log, Duration::from_secs(10), "cancelled", |s| {
         state_of(s, "spot.obj") == "cancelled"
     });
-    assert_eq!(record(root, &id)["parts_cancelled"].as_array().unwrap().len(), 2);
+    assert_eq!(
+        record(root, &id)["parts_cancelled"]
+            .as_array()
+            .unwrap()
+            .len(),
+        2
+    );
 }

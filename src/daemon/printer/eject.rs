@@ -380,7 +380,13 @@ async fn stream(
     sup.show(|p| p.detail = Some(EJECTING.to_string()));
     let (control_tx, control_rx) = mpsc::channel(8);
     let (progress_tx, mut progress_rx) = watch::channel(LiveProgress::default());
-    let print = link.print(&path, Vec::new(), Default::default(), control_rx, progress_tx);
+    let print = link.print(
+        &path,
+        Vec::new(),
+        Default::default(),
+        control_rx,
+        progress_tx,
+    );
     tokio::pin!(print);
     let mut stopping = false;
     let mut progress_open = true;

@@ -97,6 +97,7 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("folder.nozzle_mm", Policy::Live),
     ("folder.tags", Policy::Live),
     ("folder.priority", Policy::Live),
+    ("folder.per_plate", Policy::Live),
     ("farm.spool_low_g", Policy::Live),
     // How a bed is cleared: read when a print ends, and the sequence when it is sent.
     ("printer.eject", Policy::Live),
@@ -679,6 +680,11 @@ mod tests {
             "folder.bed_clear",
             "printers = [\"a\"]\n",
             "printers = [\"a\"]\nbed_clear = \"eject\"\n",
+        ),
+        (
+            "folder.per_plate",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nper_plate = 4\n",
         ),
         (
             "spoolman",

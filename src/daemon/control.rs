@@ -646,9 +646,8 @@ async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<String, C
         ));
     }
     // Checked and changed as one step of the store: a printer claiming the job between a
-    // check and the change would print it with the part.
-    let wrote = Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let flag = Arc::clone(&wrote);
+    // check and the change would print it with the part. The job it returns is as the
+    // change left it: ready, the part recorded; anything else, nothing changed.
     let (wanted, every) = (name.clone(), names.len());
     let job = farm
         .jobs()
@@ -665,10 +664,9 @@ async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<String, C
                     dropped: None,
                 });
             }
-            flag.store(true, std::sync::atomic::Ordering::SeqCst);
         })
         .await?;
-    if !wrote.load(std::sync::atomic::Ordering::SeqCst) {
+    if job.state != JobState::Ready {
         return match job.state {
             // A printer took it meanwhile: the printer drops it.
             JobState::Printing => Box::pin(cancel_part(farm, id, &name)).await,

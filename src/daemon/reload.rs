@@ -662,6 +662,11 @@ mod tests {
             "printers = [\"a\"]\npriority = 3\n",
         ),
         (
+            "folder.per_plate",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\nper_plate = 4\n",
+        ),
+        (
             "farm.spool_low_g",
             "rescan_s = 10",
             "rescan_s = 10\nspool_low_g = 50",
@@ -680,11 +685,6 @@ mod tests {
             "folder.bed_clear",
             "printers = [\"a\"]\n",
             "printers = [\"a\"]\nbed_clear = \"eject\"\n",
-        ),
-        (
-            "folder.per_plate",
-            "printers = [\"a\"]\n",
-            "printers = [\"a\"]\nper_plate = 4\n",
         ),
         (
             "spoolman",

@@ -3,7 +3,8 @@
 //!
 //! Pure and streaming: feed lines to [`Estimator`], then [`Estimator::finish`] gives an
 //! [`Estimate`] with the total, the number of heating waits (their length is unknowable to a
-//! planner, so they are counted, not timed) and per-command cumulative times.
+//! planner, so they are counted, not timed) and the times of the commands, kept in chunks
+//! (a job of ten million commands keeps under 4 MB of them).
 //!
 //! Model: every accepted move is a block with a nominal speed (feed, min feed, min segment time
 //! slowdown, per-axis max feed), an acceleration (print / travel / retract, clamped per axis) and a
@@ -278,12 +279,15 @@ pub struct Estimator {
     front_entry: Option<f64>, // entry of window[0] once its predecessor has run
     queued: usize,            // blocks in the buffer before the next one (0 after a sync)
     prev: Option<([f64; 4], [f64; 4], f64)>, // unit vector, axis speeds, nominal speed
-    per_cmd: Vec<f32>,        // per-command seconds (f32: progress only needs ~ms)
-    total: f64,               // exact sum in f64
+    /// Seconds of the commands from `first` on, whose blocks may still be in the window,
+    /// and whether each waits for the planner to empty.
+    per_cmd: VecDeque<(f32, bool)>,
+    first: usize,
+    /// The commands settled so far, as the estimate keeps them.
+    kept: Kept,
+    total: f64, // exact sum in f64
     dwell: f64,
     heat_waits: usize,
-    /// The commands that wait for the planner to empty, in order.
-    syncs: Vec<usize>,
 }
 
 /// Result of a whole file.
@@ -294,27 +298,86 @@ pub struct Estimate {
     pub dwell_seconds: f64,
     /// M109/M190/M116 count: their duration depends on the heaters, not the planner.
     pub heating_waits: usize,
-    cumulative: Vec<f32>,
-    /// The commands that wait for the planner to empty, in order: once one is
-    /// acknowledged, every move before it is made.
-    syncs: Vec<usize>,
+    kept: Kept,
+}
+
+/// Commands per chunk of [`Kept`].
+const CHUNK: usize = 16;
+
+/// The commands' times, compact: the seconds at the end of each chunk of [`CHUNK`]
+/// commands, which commands take time and which wait for the planner to empty (a bit
+/// each); within a chunk, its time is shared among those that take time. Per-command
+/// figures would cost a job of ten million commands 40 MB or more, beside its program.
+#[derive(Clone, Debug, Default)]
+struct Kept {
+    commands: usize,
+    chunks: Vec<f64>,
+    timed: Vec<u64>,
+    /// Once one of these is acknowledged, every move before it is made.
+    syncs: Vec<u64>,
+    seconds: f64,
+}
+
+impl Kept {
+    fn push(&mut self, seconds: f64, sync: bool) {
+        let k = self.commands;
+        if k % 64 == 0 {
+            self.timed.push(0);
+            self.syncs.push(0);
+        }
+        if seconds > 0.0 {
+            self.timed[k / 64] |= 1 << (k % 64);
+        }
+        if sync {
+            self.syncs[k / 64] |= 1 << (k % 64);
+        }
+        self.seconds += seconds;
+        self.commands += 1;
+        if self.commands % CHUNK == 0 {
+            self.chunks.push(self.seconds);
+        }
+    }
+
+    fn timed(&self, k: usize) -> bool {
+        self.timed[k / 64] >> (k % 64) & 1 == 1
+    }
+
+    fn sync(&self, k: usize) -> bool {
+        self.syncs[k / 64] >> (k % 64) & 1 == 1
+    }
+
+    /// Seconds of the first `done` commands.
+    fn elapsed_at(&self, done: usize) -> f64 {
+        let done = done.min(self.commands);
+        let c = done / CHUNK;
+        let before = if c == 0 { 0.0 } else { self.chunks[c - 1] };
+        let (start, end) = (c * CHUNK, ((c + 1) * CHUNK).min(self.commands));
+        if done == start {
+            return before;
+        }
+        let after = self.chunks.get(c).copied().unwrap_or(self.seconds);
+        let timed = (start..end).filter(|&k| self.timed(k)).count();
+        let done_timed = (start..done).filter(|&k| self.timed(k)).count();
+        if timed == 0 {
+            return before;
+        }
+        before + (after - before) * done_timed as f64 / timed as f64
+    }
 }
 
 impl Estimate {
     /// Number of commands (non-empty lines after stripping `;` comments).
     pub fn commands(&self) -> usize {
-        self.cumulative.len()
+        self.kept.commands
     }
-    /// Seconds of motion in the first `done` commands.
+    /// Seconds of motion in the first `done` commands (within a chunk of [`CHUNK`], shared
+    /// among its commands that take time).
     pub fn elapsed_at(&self, done: usize) -> f64 {
-        done.min(self.cumulative.len())
-            .checked_sub(1)
-            .map_or(0.0, |n| self.cumulative[n] as f64)
+        self.kept.elapsed_at(done)
     }
     /// Seconds left once `done` commands have completed; non-increasing, 0 at the end.
     pub fn left_after(&self, done: usize) -> f64 {
-        let end = self.cumulative.last().copied().unwrap_or(0.0) as f64;
-        (end - self.elapsed_at(done)).max(0.0)
+        (self.kept.seconds - self.elapsed_at(done)).max(0.0)
     }
 
     /// Seconds left once the printer has acknowledged `acked` commands, holding up to
@@ -322,15 +385,17 @@ impl Estimate {
     /// as still to come, back to the last acknowledged command that waits for the planner
     /// to empty (`M400`, a dwell, a heat wait, homing), before which every move is made.
     pub fn left_after_acked(&self, acked: usize, ahead: usize) -> f64 {
-        let acked = acked.min(self.cumulative.len());
-        let floor = match self.syncs.partition_point(|&s| s < acked) {
-            0 => 0,
-            n => self.syncs[n - 1] + 1,
-        };
+        // Commands that neither move nor wait are passed over, as many as a printer could
+        // hold between two moves and no more: the walk stays short whatever the file.
+        const PASSED_OVER: usize = 100_000;
+        let acked = acked.min(self.kept.commands);
         let (mut done, mut moves) = (acked, 0);
-        while done > floor && moves < ahead {
+        while done > 0 && moves < ahead && acked - done < PASSED_OVER {
+            if self.kept.sync(done - 1) {
+                break;
+            }
             done -= 1;
-            if self.elapsed_at(done + 1) > self.elapsed_at(done) {
+            if self.kept.timed(done) {
                 moves += 1;
             }
         }
@@ -360,7 +425,7 @@ fn norm(v: &[f64; 4]) -> f64 {
 
 impl Estimator {
     pub fn new(lim: Limits) -> Estimator {
-        let (pos, ppos, window, per_cmd) = ([0.0; 4], [0.0; 4], VecDeque::new(), Vec::new());
+        let (pos, ppos, window, per_cmd) = ([0.0; 4], [0.0; 4], VecDeque::new(), VecDeque::new());
         let feed = 1500.0 / 60.0; // both firmwares start at F1500
         let (rel_xyz, rel_e, speed_pct, front_entry, queued, prev) =
             (false, false, 100.0, None, 0, None);
@@ -378,10 +443,11 @@ impl Estimator {
             queued,
             prev,
             per_cmd,
+            first: 0,
+            kept: Kept::default(),
             total,
             dwell,
             heat_waits,
-            syncs: Vec::new(),
         }
     }
 
@@ -391,8 +457,14 @@ impl Estimator {
         if s.is_empty() {
             return;
         }
-        let cmd = self.per_cmd.len();
-        self.per_cmd.push(0.0);
+        // Commands whose blocks have all run are settled into the compact record.
+        let settled = self
+            .window
+            .front()
+            .map_or(self.first + self.per_cmd.len(), |b| b.cmd);
+        self.settle(settled);
+        let cmd = self.first + self.per_cmd.len();
+        self.per_cmd.push_back((0.0, false));
         let w = Words::parse(s);
         match w.cmd {
             (b'G', 0) | (b'G', 1) => {
@@ -407,7 +479,7 @@ impl Estimator {
                 let secs = (ms / 1000.0).clamp(0.0, BIG);
                 self.dwell += secs;
                 self.total += secs;
-                self.per_cmd[cmd] += secs as f32;
+                self.per_cmd[cmd - self.first].0 += secs as f32;
             }
             (b'G', 28) => {
                 // Homing takes unknown, small time: count zero. Position: homed axes at 0.
@@ -761,7 +833,7 @@ impl Estimator {
             let t = trapezoid_time(b.mm, b.accel, b.entry_sqr, exit, b.nominal_sqr);
             if t.is_finite() {
                 self.total += t;
-                let c = &mut self.per_cmd[b.cmd];
+                let c = &mut self.per_cmd[b.cmd - self.first].0;
                 *c = (*c as f64 + t).min(f32::MAX as f64 / 4.0) as f32;
             }
             self.front_entry = self.window.front().map(|n| n.entry_sqr);
@@ -771,7 +843,9 @@ impl Estimator {
     /// [`sync`](Self::sync) for command `cmd`, which waits for it.
     fn sync_at(&mut self, cmd: usize) {
         self.sync();
-        self.syncs.push(cmd);
+        if let Some(c) = self.per_cmd.get_mut(cmd - self.first) {
+            c.1 = true;
+        }
     }
 
     /// Drain the buffer to a standstill (G4, M400, heating waits, G28, G92 of X/Y/Z).
@@ -783,23 +857,25 @@ impl Estimator {
         (self.front_entry, self.queued, self.prev) = (None, 0, None); // next move starts from rest
     }
 
+    /// Moves the commands before `upto` into the compact record.
+    fn settle(&mut self, upto: usize) {
+        while self.first < upto {
+            let Some((t, sync)) = self.per_cmd.pop_front() else {
+                break;
+            };
+            self.kept.push(t as f64, sync);
+            self.first += 1;
+        }
+    }
+
     pub fn finish(mut self) -> Estimate {
         self.sync();
-        let mut acc = 0.0f64;
-        let cumulative = self
-            .per_cmd
-            .iter()
-            .map(|t| {
-                acc += *t as f64;
-                acc as f32
-            })
-            .collect();
+        self.settle(usize::MAX);
         Estimate {
             total_seconds: self.total,
             dwell_seconds: self.dwell,
             heating_waits: self.heat_waits,
-            cumulative,
-            syncs: self.syncs,
+            kept: self.kept,
         }
     }
 }
@@ -982,7 +1058,7 @@ mod tests {
         let left: Vec<f64> = (0..=9).map(|k| est.left_after(k)).collect();
         assert!(left.windows(2).all(|p| p[1] <= p[0]), "{left:?}");
         // Half circle r=5 at 50 mm/s: a little more than length / speed.
-        let arc = est.elapsed_at(8) - est.elapsed_at(7);
+        let arc = m2("G1 X10 F3000\nG2 X0 Y0 I-5 J0") - m2("G1 X10 F3000");
         assert!(
             arc > 5.0 * std::f64::consts::PI / 50.0 && arc < 0.45,
             "{arc}"

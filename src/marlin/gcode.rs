@@ -310,8 +310,8 @@ pub struct GcodeProgram {
     /// The firmware it was read for.
     firmware: Firmware,
     /// Which part of a plate each command belongs to, where the file labels its parts
-    /// ([`crate::marlin::plate`]); label commands are not among the commands.
-    marks: Option<Arc<crate::marlin::plate::Marks>>,
+    /// ([`crate::marlin::labels`]); label commands are not among the commands.
+    marks: Option<Arc<crate::marlin::labels::Marks>>,
 }
 
 impl GcodeProgram {
@@ -373,7 +373,7 @@ impl GcodeProgram {
         self.firmware
     }
     /// Which part of a plate each command belongs to, if the file labels its parts.
-    pub fn marks(&self) -> Option<&Arc<crate::marlin::plate::Marks>> {
+    pub fn marks(&self) -> Option<&Arc<crate::marlin::labels::Marks>> {
         self.marks.as_ref()
     }
     pub fn len(&self) -> usize {
@@ -409,7 +409,7 @@ impl GcodeProgram {
 }
 
 /// Whether a line as read may be a plate's label (a comment, or a label command: see
-/// [`crate::marlin::plate`]): a cheap look at its first bytes.
+/// [`crate::marlin::labels`]): a cheap look at its first bytes.
 fn may_label(raw: &[u8]) -> bool {
     let start = raw
         .iter()
@@ -423,7 +423,7 @@ fn may_label(raw: &[u8]) -> bool {
 
 /// Reads G-code as the host loads it for `firmware`, line by line, without holding it:
 /// each command (comment cut, trimmed) goes to `each` with its line number, and the plate's
-/// labels are read on the way ([`crate::marlin::plate`]; a label command is not a command
+/// labels are read on the way ([`crate::marlin::labels`]; a label command is not a command
 /// sent, so every reader counts commands alike). One reading,
 /// so the program the host streams and every figure taken from the file agree; memory
 /// stays near nothing, and no line, however long, is held whole beyond
@@ -433,7 +433,7 @@ pub(crate) fn scan(
     name: &str,
     firmware: Firmware,
     mut each: impl FnMut(&str, usize),
-) -> Result<Option<crate::marlin::plate::Marks>, GcodeError> {
+) -> Result<Option<crate::marlin::labels::Marks>, GcodeError> {
     let max = firmware.max_line_bytes().saturating_sub(FRAMING_BYTES);
     let io = |source| GcodeError::Io {
         path: PathBuf::from(name),
@@ -443,7 +443,7 @@ pub(crate) fn scan(
     let mut raw = Vec::new();
     let mut line_no = 0;
     let mut total = 0u64;
-    let mut labels = crate::marlin::plate::LabelReader::default();
+    let mut labels = crate::marlin::labels::LabelReader::default();
     let mut commands = 0usize;
     loop {
         raw.clear();
@@ -469,7 +469,7 @@ pub(crate) fn scan(
         }
         if may_label(&raw)
             && labels.line(&String::from_utf8_lossy(&raw), commands)
-                == crate::marlin::plate::LineLabel::Command
+                == crate::marlin::labels::LineLabel::Command
         {
             continue;
         }
@@ -606,7 +606,7 @@ impl Loading {
         self,
         name: &str,
         firmware: Firmware,
-        marks: Option<crate::marlin::plate::Marks>,
+        marks: Option<crate::marlin::labels::Marks>,
     ) -> Result<GcodeProgram, GcodeError> {
         let Loading {
             text,

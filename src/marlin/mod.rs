@@ -6,6 +6,8 @@
 //! - `protocol`: the host state machine. Pure: bytes and the current time go in, lines to
 //!   send, events and deadlines come out. No ports, no clocks.
 //! - `estimate`: how long a job takes as the firmware's planner moves it.
+//! - `labels`: which part of a plate each command is, as the file labels it (read as a job
+//!   is loaded).
 //! - `plate`: a plate's parts, as its file labels them, and the host's filter that drops
 //!   a cancelled part's lines.
 //! - `transport` / `stream`: the serial port and the async driver around the state machine.
@@ -15,6 +17,7 @@
 pub mod estimate;
 pub mod firmware;
 pub mod gcode;
+pub mod labels;
 pub mod motion;
 pub mod pause;
 pub mod plate;

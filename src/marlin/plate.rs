@@ -1,9 +1,10 @@
 //! Plates: several parts on one bed, each labelled by the slicer that laid it out, and a
 //! part dropped mid-print while the others print on, by the host on any firmware.
 //!
-//! - `labels`: the ways slicers and firmwares say which part a line belongs to
-//!   (PrusaSlicer's `; printing object`, CuraEngine's `;MESH:`, Klipper's
-//!   `EXCLUDE_OBJECT_*`, Marlin's `M486`), read as a file is loaded into [`Marks`];
+//! - the sibling `labels`: the ways slicers and firmwares say which part a line belongs
+//!   to (PrusaSlicer's `; printing object`, CuraEngine's `;MESH:`, Klipper's
+//!   `EXCLUDE_OBJECT_*`, Marlin's `M486`), read as a file is loaded into [`Marks`] (apart
+//!   from this module, which follows the loaded program: the loader reads labels);
 //! - `map`: each part's name, outline on the bed and filament, and the plate's layers
 //!   ([`PlateMap`]);
 //! - `filter`: what the host sends once parts are cancelled ([`PartFilter`]), pure: a
@@ -17,13 +18,11 @@
 //! time left) guessing what the printer skipped.
 
 mod filter;
-mod labels;
 mod lines;
 mod map;
 
+pub use crate::marlin::labels::{Marks, MAX_NAME_CHARS, MAX_PARTS};
 pub use filter::{Decision, PartFilter};
-pub(crate) use labels::{is_label_command, LabelReader, LineLabel};
-pub use labels::{Marks, MAX_NAME_CHARS, MAX_PARTS};
 pub use lines::JobLines;
 pub use map::{Layer, PartInfo, PlateMap};
 

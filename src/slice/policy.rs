@@ -204,7 +204,7 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
             continue;
         };
         // A plate's labels are read by the host, which never sends them.
-        if crate::marlin::plate::is_label_command(code) {
+        if crate::marlin::labels::is_label_command(code) {
             continue;
         }
         let cmd = match reader::read_for(machine.firmware, code) {

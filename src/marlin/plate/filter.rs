@@ -21,9 +21,9 @@
 //! The other parts' lines are therefore the file's own, and the head is where the file
 //! would have left it whenever a line of theirs is sent.
 
-use super::labels::Marks;
 use crate::marlin::firmware::Firmware;
 use crate::marlin::gcode::GcodeCommands;
+use crate::marlin::labels::Marks;
 use crate::marlin::motion::{Command, Motion};
 use crate::marlin::reader;
 use std::borrow::Cow;

@@ -3,8 +3,8 @@
 //! it takes and its layers; and the plate's layers, so that a cancel can say at which
 //! layer it took effect.
 
-use super::labels::Marks;
 use crate::marlin::firmware::Firmware;
+use crate::marlin::labels::Marks;
 use crate::marlin::motion::Motion;
 use crate::marlin::reader;
 use serde::{Deserialize, Serialize};
@@ -180,14 +180,14 @@ mod tests {
 
     #[test]
     fn parts_get_their_outline_filament_and_layers() {
-        let mut reader = super::super::labels::LabelReader::default();
+        let mut reader = crate::marlin::labels::LabelReader::default();
         let text = "G28\nG1 Z0.2 F600\n; printing object a\nG1 X10 Y10\nG1 X20 Y10 E1\n\
                     G1 X20 Y20 E2\n; stop printing object a\n; printing object b\nG1 X50 Y50\n\
                     G1 X60 Y50 E3\n; stop printing object b\nG1 Z0.4\n; printing object a\n\
                     G1 X10 Y10\nG1 X10 Y20 E4\n; stop printing object a\n";
         let mut commands = Vec::new();
         for line in text.lines() {
-            if reader.line(line, commands.len()) == super::super::labels::LineLabel::No {
+            if reader.line(line, commands.len()) == crate::marlin::labels::LineLabel::No {
                 commands.push(line.to_string());
             }
         }

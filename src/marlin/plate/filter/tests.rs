@@ -5,7 +5,7 @@
 //! does not.
 
 use super::*;
-use crate::marlin::plate::labels::{LabelReader, LineLabel};
+use crate::marlin::labels::{LabelReader, LineLabel};
 
 /// A file's commands and marks, as the host loads them.
 fn load(text: &str) -> (GcodeCommands, Arc<Marks>) {

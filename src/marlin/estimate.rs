@@ -111,7 +111,7 @@ impl Limits {
     /// Marlin 2.1.2.1 (09d0b4d) stock config, as in MarlinFirmware/Configurations tag 2.1.2.1
     /// config/default/Configuration.h (C) and Configuration_adv.h (A), which are the stock
     /// Marlin/ files. Cross-checked with `M503` of the firmware built for BOARD_SIMULATED
-    /// (../shared/firmware/marlin-2.1.2.1-default): M203 X300 Y300 Z5 E25, M201 X3000 Y3000
+    /// (the firmware tests' `marlin-2.1.2.1-default` build): M203 X300 Y300 Z5 E25, M201 X3000 Y3000
     /// Z100 E10000, M204 P3000 R3000 T3000, M205 B20000 S0 T0 J0.01, M92 .. E500; M115 Cap:ARCS:1.
     pub fn marlin_2_1_2_1() -> Limits {
         Limits {

@@ -350,3 +350,90 @@ fn a_3mf_of_several_objects_prints_as_one_plate_of_its_models() {
     assert!(expected.len() < program.len(), "the filter dropped the box");
     assert_eq!(executed, expected, "commands executed");
 }
+
+/// A pre-sliced file labelled the Klipper way (`EXCLUDE_OBJECT_DEFINE`/`_START`/`_END`,
+/// as OrcaSlicer and PrusaSlicer write for Klipper) or with Marlin's `M486`: the daemon
+/// reads its parts as for a plate it sliced (names, outlines on the bed), which the job
+/// page draws.
+#[test]
+fn a_labelled_pre_sliced_file_shows_its_parts() {
+    use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let mut req = SliceRequest::new(common::model("spot.obj"), 10.0);
+    req.strength = crispen::enhance::Strength::Off;
+    req.per_plate = 2;
+    let sliced = root.join("sliced.gcode");
+    let target = Target {
+        machine: crispen::machine::Machine::builtin("marlin-175").unwrap(),
+        output: sliced.clone(),
+        keep_mesh: None,
+    };
+    prepare_one(&req, target, &mut |_| {}).expect("sliced");
+    let text = std::fs::read_to_string(&sliced).unwrap();
+    // PrusaSlicer's labels, rewritten as the other two schemes write them.
+    let relabel = |start: &dyn Fn(usize) -> String, end: &dyn Fn(usize) -> String| {
+        let mut names: Vec<String> = Vec::new();
+        let mut out = String::new();
+        for line in text.lines() {
+            let (name, open) = match (
+                line.strip_prefix("; printing object "),
+                line.strip_prefix("; stop printing object "),
+            ) {
+                (Some(n), _) => (n, true),
+                (_, Some(n)) => (n, false),
+                _ => {
+                    out.push_str(line);
+                    out.push('\n');
+                    continue;
+                }
+            };
+            let i = names.iter().position(|n| n == name).unwrap_or_else(|| {
+                names.push(name.to_string());
+                names.len() - 1
+            });
+            out.push_str(&if open { start(i) } else { end(i) });
+            out.push('\n');
+        }
+        assert_eq!(names.len(), 2, "PrusaSlicer labelled two copies");
+        out
+    };
+    let klipper = relabel(
+        &|i| format!("EXCLUDE_OBJECT_START NAME=spot_{}", i + 1),
+        &|i| format!("EXCLUDE_OBJECT_END NAME=spot_{}", i + 1),
+    );
+    let klipper =
+        format!("EXCLUDE_OBJECT_DEFINE NAME=spot_1\nEXCLUDE_OBJECT_DEFINE NAME=spot_2\n{klipper}");
+    let marlin = relabel(&|i| format!("M486 S{i}\nM486 Aspot {}", i + 1), &|_| {
+        "M486 S-1".into()
+    });
+    let marlin = format!("M486 T2\n{marlin}");
+
+    let config = farm(root, 1, 0.01);
+    std::fs::write(root.join("hot/klipper.gcode.toml"), "hold = true\n").unwrap();
+    std::fs::write(root.join("hot/marlin.gcode.toml"), "hold = true\n").unwrap();
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    drop_model(&root.join("hot"), "klipper.gcode", klipper.as_bytes());
+    drop_model(&root.join("hot"), "marlin.gcode", marlin.as_bytes());
+    let s = wait_for(&config, &log, Duration::from_secs(60), "both ready", |s| {
+        state_of(s, "klipper.gcode") == "ready" && state_of(s, "marlin.gcode") == "ready"
+    });
+    for (file, names) in [
+        ("klipper.gcode", ["spot_1", "spot_2"]),
+        ("marlin.gcode", ["spot 1", "spot 2"]),
+    ] {
+        let job = job_by_file(&s, file).unwrap();
+        assert_eq!(job["parts"]["total"], 2, "{job:#}");
+        let report = record(root, job["id"].as_str().unwrap())["slice_report"].clone();
+        let parts = report["parts"].as_array().unwrap();
+        let got: Vec<&str> = parts.iter().map(|p| p["name"].as_str().unwrap()).collect();
+        assert_eq!(got, names, "{file}");
+        for p in parts {
+            // An outline of the part's extrusions, on the bed.
+            let outline = p["outline"].as_array().unwrap();
+            assert!(outline.len() >= 3, "{file}: {p}");
+            assert!(p["extruded_mm"].as_f64().unwrap() > 10.0, "{file}: {p}");
+        }
+    }
+}

@@ -370,6 +370,7 @@ pub fn prepare(
 
 /// One model of a job: its name (a part of the plate's label) and the printed height it
 /// gets.
+#[derive(Debug)]
 struct Model {
     name: String,
     mesh: Mesh,
@@ -380,6 +381,7 @@ struct Model {
 /// a 3MF whose build places several, tallest first, as one plate: scaled alike so that
 /// the tallest is the job's height (a set of parts keeps its proportions), each enhanced
 /// for its own printed height and arranged on the bed by the slicer.
+#[derive(Debug)]
 struct Models(Vec<Model>);
 
 impl Models {
@@ -394,6 +396,22 @@ impl Models {
                 mesh: loaded.mesh,
                 height_mm: req.height_mm,
             }]));
+        }
+        // Each object is enhanced on its own: as many as a plate may hold copies, no more.
+        let max = crate::slice::plate::MAX_PER_PLATE as usize;
+        let copies = loaded.objects.len() * req.per_plate.max(1) as usize;
+        if copies > max {
+            return Err(SliceError::BadSetting {
+                key: "per_plate".into(),
+                value: req.per_plate.to_string(),
+                hint: format!(
+                    "{} holds a plate of {} objects, {copies} parts with {} of each: a plate \
+                     holds at most {max} (split the file, or lower per_plate)",
+                    req.model.display(),
+                    loaded.objects.len(),
+                    req.per_plate
+                ),
+            });
         }
         // The extent along the model's up axis, which becomes its printed height.
         let up = match req.up {
@@ -891,5 +909,65 @@ fn draw_pictures(before: &Mesh, after: &Mesh, up: UpAxis, dir: &Path) {
             tracing::info!(dir = %dir.display(), seconds = t.elapsed().as_secs_f64(), "pictures drawn")
         }
         Err(e) => tracing::warn!(dir = %dir.display(), error = %e, "cannot write the pictures"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::{CleanReport, LoadedMesh, MeshFormat, MeshObject};
+
+    /// `n` tetrahedra side by side, the `i`th `i + 1` units tall, each an object.
+    fn plate_of(n: usize) -> LoadedMesh {
+        let mut mesh = Mesh::default();
+        let mut objects = Vec::new();
+        for i in 0..n {
+            let (x, h, base) = (3.0 * i as f64, (i + 1) as f64, mesh.vertices.len() as u32);
+            mesh.vertices
+                .extend([[x, 0., 0.], [x + 1., 0., 0.], [x, 1., 0.], [x, 0., h]]);
+            let faces = mesh.faces.len();
+            mesh.faces.extend(
+                [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]].map(|f: [u32; 3]| f.map(|v| v + base)),
+            );
+            objects.push(MeshObject {
+                name: format!("t{i}"),
+                faces: faces..faces + 4,
+            });
+        }
+        LoadedMesh {
+            mesh,
+            format: MeshFormat::ThreeMf,
+            clean: CleanReport::default(),
+            objects,
+        }
+    }
+
+    /// A plate's models: tallest first at the job's height, the others in proportion; a
+    /// model that would print under the least height, or more models than a plate holds,
+    /// refused with the file and the figures.
+    #[test]
+    fn a_plates_models_keep_their_proportions_within_bounds() {
+        let req = SliceRequest::new("set.3mf", 30.0);
+        let models = Models::of(&req, plate_of(3)).unwrap();
+        let got: Vec<(&str, f64)> = models
+            .0
+            .iter()
+            .map(|m| (m.name.as_str(), m.height_mm))
+            .collect();
+        assert_eq!(got, [("t2", 30.0), ("t1", 20.0), ("t0", 10.0)]);
+        assert_eq!(models.0[2].mesh.faces.len(), 4);
+
+        let small = SliceRequest::new("set.3mf", 2.0);
+        let e = Models::of(&small, plate_of(3)).unwrap_err().to_string();
+        assert!(
+            e.contains("set.3mf") && e.contains("\"t0\"") && e.contains("0.67 mm"),
+            "{e}"
+        );
+
+        let mut many = SliceRequest::new("set.3mf", 30.0);
+        many.per_plate = 2;
+        let e = Models::of(&many, plate_of(26)).unwrap_err().to_string();
+        assert!(e.contains("26 objects") && e.contains("52 parts"), "{e}");
+        Models::of(&many, plate_of(25)).unwrap();
     }
 }

@@ -330,10 +330,16 @@ impl Relay {
     /// (after an `M400`, it is the position once every move ran), and returns the log
     /// with it; the log as it is when no answer came.
     pub fn wait_position(&self, limit: Duration) -> RelayLog {
+        self.wait_until(limit, |log| log.answered_position().is_some())
+    }
+
+    /// Waits (up to `limit`) until the log shows `done`, and returns it; the log as it is
+    /// when it never did.
+    pub fn wait_until(&self, limit: Duration, done: impl Fn(&RelayLog) -> bool) -> RelayLog {
         let deadline = Instant::now() + limit;
         loop {
             let log = self.log();
-            if log.answered_position().is_some() || Instant::now() >= deadline {
+            if done(&log) || Instant::now() >= deadline {
                 return log;
             }
             std::thread::sleep(Duration::from_millis(10));

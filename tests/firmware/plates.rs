@@ -156,11 +156,36 @@ async fn print_plate(build: Build, program: &GcodeProgram, part: u16, cancel_at:
         )
     });
     let cancelled = progress_rx.borrow().cancelled_parts.clone();
-    let log = tokio::task::block_in_place(|| relay.wait_position(Duration::from_secs(10)));
+    // Every line is acknowledged, but the firmware still holds moves in its planner (and
+    // Ultimaker2Marlin in its command slots) ahead of the last reports: they come once
+    // those moves ran. The limit only keeps a firmware that never answers from hanging.
+    let reports = program
+        .iter()
+        .filter_map(|line| reader::read(line).ok().flatten())
+        .filter(|cmd| answers_position(program.firmware(), &cmd.code))
+        .count();
+    let log = tokio::task::block_in_place(|| {
+        relay.wait_until(Duration::from_secs(300), |log| {
+            log.printer_lines
+                .iter()
+                .filter_map(|l| parse_position_e(l))
+                .count()
+                >= reports
+        })
+    });
     Printed {
         report,
         cancelled,
         log,
+    }
+}
+
+/// Whether the firmware answers `code` with its position: `M114`, and on Marlin 2.1 `G92`
+/// and `G28` too (`G92.cpp`, `G28.cpp`: `report_current_position()` at their end).
+fn answers_position(fw: Firmware, code: &str) -> bool {
+    match fw {
+        Firmware::Ultimaker2 => code == "M114",
+        _ => matches!(code, "M114" | "G92" | "G28"),
     }
 }
 
@@ -186,13 +211,7 @@ fn predict(program: &GcodeProgram, part: u16, from: usize) -> (Vec<[f64; 4]>, Ve
                 reset = Some(e);
             }
         }
-        // What the firmware answers with its position: `M114`, and on Marlin 2.1 `G92` and
-        // `G28` too (`G92.cpp`, `G28.cpp`: `report_current_position()` at their end).
-        let answers_position = match fw {
-            Firmware::Ultimaker2 => cmd.code == "M114",
-            _ => matches!(cmd.code.as_str(), "M114" | "G92" | "G28"),
-        };
-        if answers_position {
+        if answers_position(fw, &cmd.code) {
             let p = motion.position();
             reports.push([
                 motion.to_file(0, p[0]),

@@ -122,8 +122,8 @@ impl JobState {
         JobState::Interrupted,
     ];
 
-    /// The one table of legal state changes; [`JobStore::transition_with`](super::store::job_store::JobStore::transition_with) refuses
-    /// any other.
+    /// The one table of legal state changes; the store's `transition_with` refuses any
+    /// other.
     /// A job is prepared once per retry and printed once per copy; `done` is final, so a
     /// finished job can never be offered for a reprint. Preparing goes back to queued only
     /// by the restart rules (preparation is redone); a job whose files vanished or whose

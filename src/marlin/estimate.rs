@@ -140,8 +140,11 @@ impl Limits {
         }
     }
 
-    /// Take settings from `M503` output (`echo:  M203 X300 ...`). Unknown lines and keys are
-    /// ignored. Returns the keys taken, like `"M203 X"`.
+    /// Take settings from `M503` output (`echo:  M203 X300.00 ...`). Unknown lines and keys are
+    /// ignored. Returns the keys taken, like `"M203 X"`. Both firmwares print their values
+    /// with two decimals (Marlin 2.1.2.1 reports its junction deviation of 0.013 mm as
+    /// `J0.01`): a reported value within that rounding of the one held is the same value,
+    /// and the one held, more precise, is kept.
     pub fn apply_m503(&mut self, text: &str) -> Vec<String> {
         let mut taken = Vec::new();
         for line in text.lines() {
@@ -149,12 +152,63 @@ impl Limits {
             let line = line.strip_prefix("echo:").unwrap_or(line);
             let w = Words::parse(strip_comment(line));
             if w.cmd.0 == b'M' {
+                let before = self.clone();
                 for k in self.apply_setting(w.cmd.1, &w) {
                     taken.push(format!("M{} {}", w.cmd.1, k));
                 }
+                self.keep_within_rounding(&before);
             }
         }
         taken
+    }
+
+    /// Apply one command that sets the planner (`M203 X200`), exactly as given; other
+    /// commands change nothing. For a printer's own planner, as the simulator keeps it.
+    pub fn apply_command(&mut self, command: &str) {
+        let w = Words::parse(strip_comment(command));
+        if w.cmd.0 == b'M' {
+            self.apply_setting(w.cmd.1, &w);
+        }
+    }
+
+    /// Where a value differs from `before` by no more than a report's rounding (half of
+    /// its last decimal), `before`'s is kept.
+    fn keep_within_rounding(&mut self, before: &Limits) {
+        const HALF_LAST_DECIMAL: f64 = 0.005;
+        let keep = |now: &mut f64, was: f64| {
+            if (*now - was).abs() <= HALF_LAST_DECIMAL + 1e-12 {
+                *now = was;
+            }
+        };
+        for i in 0..4 {
+            keep(&mut self.max_feedrate[i], before.max_feedrate[i]);
+            keep(&mut self.max_accel[i], before.max_accel[i]);
+            keep(&mut self.steps_per_mm[i], before.steps_per_mm[i]);
+        }
+        keep(&mut self.accel, before.accel);
+        keep(&mut self.retract_accel, before.retract_accel);
+        if let (Some(now), Some(was)) = (&mut self.travel_accel, before.travel_accel) {
+            keep(now, was);
+        }
+        keep(&mut self.min_feedrate, before.min_feedrate);
+        keep(&mut self.min_travel_feedrate, before.min_travel_feedrate);
+        keep(&mut self.min_segment_time_us, before.min_segment_time_us);
+        match (&mut self.junction, before.junction) {
+            (
+                Junction::Classic { xy, z, e },
+                Junction::Classic {
+                    xy: x0,
+                    z: z0,
+                    e: e0,
+                },
+            ) => {
+                keep(xy, x0);
+                keep(z, z0);
+                keep(e, e0);
+            }
+            (Junction::Deviation { mm }, Junction::Deviation { mm: was }) => keep(mm, was),
+            _ => {}
+        }
     }
 
     /// Apply M92/M201/M203/M204/M205; returns the parameter letters used.
@@ -259,6 +313,8 @@ impl Words {
 #[derive(Clone, Debug)]
 struct Block {
     cmd: usize,
+    /// Step events: the most steps of any axis.
+    steps: f64,
     mm: f64,
     accel: f64,
     nominal_sqr: f64,
@@ -279,13 +335,14 @@ pub struct Estimator {
     front_entry: Option<f64>, // entry of window[0] once its predecessor has run
     queued: usize,            // blocks in the buffer before the next one (0 after a sync)
     prev: Option<([f64; 4], [f64; 4], f64)>, // unit vector, axis speeds, nominal speed
-    /// Seconds of the commands from `first` on, whose blocks may still be in the window,
-    /// and whether each waits for the planner to empty.
-    per_cmd: VecDeque<(f32, bool)>,
+    /// Seconds and step events of the commands from `first` on, whose blocks may still
+    /// be in the window, and whether each waits for the planner to empty.
+    per_cmd: VecDeque<(f32, f32, bool)>,
     first: usize,
     /// The commands settled so far, as the estimate keeps them.
     kept: Kept,
     total: f64, // exact sum in f64
+    steps: f64,
     dwell: f64,
     heat_waits: usize,
 }
@@ -298,28 +355,35 @@ pub struct Estimate {
     pub dwell_seconds: f64,
     /// M109/M190/M116 count: their duration depends on the heaters, not the planner.
     pub heating_waits: usize,
+    /// Step events: the stepper's interrupts at one step each, the most steps any axis
+    /// makes in each move. What a printer's stepper costs beyond the planner's time goes
+    /// by these (the printer's pace, `daemon::time_left`).
+    pub total_steps: f64,
     kept: Kept,
 }
 
 /// Commands per chunk of [`Kept`].
 const CHUNK: usize = 16;
 
-/// The commands' times, compact: the seconds at the end of each chunk of [`CHUNK`]
-/// commands, which commands take time and which wait for the planner to empty (a bit
-/// each); within a chunk, its time is shared among those that take time. Per-command
-/// figures would cost a job of ten million commands 40 MB or more, beside its program.
+/// The commands' times, compact: the seconds and step events at the end of each chunk of
+/// [`CHUNK`] commands, which commands take time and which wait for the planner to empty (a
+/// bit each); within a chunk, its time and steps are shared among those that take time.
+/// Per-command figures would cost a job of ten million commands 40 MB or more, beside its
+/// program.
 #[derive(Clone, Debug, Default)]
 struct Kept {
     commands: usize,
     chunks: Vec<f64>,
+    step_chunks: Vec<f64>,
     timed: Vec<u64>,
     /// Once one of these is acknowledged, every move before it is made.
     syncs: Vec<u64>,
     seconds: f64,
+    steps: f64,
 }
 
 impl Kept {
-    fn push(&mut self, seconds: f64, sync: bool) {
+    fn push(&mut self, seconds: f64, steps: f64, sync: bool) {
         let k = self.commands;
         if k % 64 == 0 {
             self.timed.push(0);
@@ -332,9 +396,11 @@ impl Kept {
             self.syncs[k / 64] |= 1 << (k % 64);
         }
         self.seconds += seconds;
+        self.steps += steps;
         self.commands += 1;
         if self.commands % CHUNK == 0 {
             self.chunks.push(self.seconds);
+            self.step_chunks.push(self.steps);
         }
     }
 
@@ -348,14 +414,25 @@ impl Kept {
 
     /// Seconds of the first `done` commands.
     fn elapsed_at(&self, done: usize) -> f64 {
+        self.share(done, &self.chunks, self.seconds)
+    }
+
+    /// Step events of the first `done` commands.
+    fn steps_at(&self, done: usize) -> f64 {
+        self.share(done, &self.step_chunks, self.steps)
+    }
+
+    /// What of a quantity kept in `chunks` (cumulative, `total` in all) the first `done`
+    /// commands take.
+    fn share(&self, done: usize, chunks: &[f64], total: f64) -> f64 {
         let done = done.min(self.commands);
         let c = done / CHUNK;
-        let before = if c == 0 { 0.0 } else { self.chunks[c - 1] };
+        let before = if c == 0 { 0.0 } else { chunks[c - 1] };
         let (start, end) = (c * CHUNK, ((c + 1) * CHUNK).min(self.commands));
         if done == start {
             return before;
         }
-        let after = self.chunks.get(c).copied().unwrap_or(self.seconds);
+        let after = chunks.get(c).copied().unwrap_or(total);
         let timed = (start..end).filter(|&k| self.timed(k)).count();
         let done_timed = (start..done).filter(|&k| self.timed(k)).count();
         if timed == 0 {
@@ -385,6 +462,23 @@ impl Estimate {
     /// as still to come, back to the last acknowledged command that waits for the planner
     /// to empty (`M400`, a dwell, a heat wait, homing), before which every move is made.
     pub fn left_after_acked(&self, acked: usize, ahead: usize) -> f64 {
+        self.left_after(self.done_after_acked(acked, ahead))
+    }
+
+    /// Step events left once `done` commands have completed.
+    pub fn steps_left_after(&self, done: usize) -> f64 {
+        (self.kept.steps - self.kept.steps_at(done)).max(0.0)
+    }
+
+    /// Step events left once the printer has acknowledged `acked` commands (as
+    /// [`left_after_acked`](Self::left_after_acked) counts them).
+    pub fn steps_left_after_acked(&self, acked: usize, ahead: usize) -> f64 {
+        self.steps_left_after(self.done_after_acked(acked, ahead))
+    }
+
+    /// The commands certainly done once `acked` are acknowledged, `ahead` of whose moves
+    /// the printer may still hold.
+    fn done_after_acked(&self, acked: usize, ahead: usize) -> usize {
         // Commands that neither move nor wait are passed over, as many as a printer could
         // hold between two moves and no more: the walk stays short whatever the file.
         const PASSED_OVER: usize = 100_000;
@@ -399,7 +493,7 @@ impl Estimate {
                 moves += 1;
             }
         }
-        self.left_after(done)
+        done
     }
 }
 
@@ -446,6 +540,7 @@ impl Estimator {
             first: 0,
             kept: Kept::default(),
             total,
+            steps: 0.0,
             dwell,
             heat_waits,
         }
@@ -464,7 +559,7 @@ impl Estimator {
             .map_or(self.first + self.per_cmd.len(), |b| b.cmd);
         self.settle(settled);
         let cmd = self.first + self.per_cmd.len();
-        self.per_cmd.push_back((0.0, false));
+        self.per_cmd.push_back((0.0, 0.0, false));
         let w = Words::parse(s);
         match w.cmd {
             (b'G', 0) | (b'G', 1) => {
@@ -792,6 +887,7 @@ impl Estimator {
         let max_entry_sqr = max_entry * max_entry;
         self.window.push_back(Block {
             cmd,
+            steps: events,
             mm,
             accel: a,
             nominal_sqr: nominal * nominal,
@@ -833,8 +929,10 @@ impl Estimator {
             let t = trapezoid_time(b.mm, b.accel, b.entry_sqr, exit, b.nominal_sqr);
             if t.is_finite() {
                 self.total += t;
-                let c = &mut self.per_cmd[b.cmd - self.first].0;
-                *c = (*c as f64 + t).min(f32::MAX as f64 / 4.0) as f32;
+                self.steps += b.steps;
+                let c = &mut self.per_cmd[b.cmd - self.first];
+                c.0 = (c.0 as f64 + t).min(f32::MAX as f64 / 4.0) as f32;
+                c.1 = (c.1 as f64 + b.steps).min(f32::MAX as f64 / 4.0) as f32;
             }
             self.front_entry = self.window.front().map(|n| n.entry_sqr);
         }
@@ -844,7 +942,7 @@ impl Estimator {
     fn sync_at(&mut self, cmd: usize) {
         self.sync();
         if let Some(c) = self.per_cmd.get_mut(cmd - self.first) {
-            c.1 = true;
+            c.2 = true;
         }
     }
 
@@ -860,10 +958,10 @@ impl Estimator {
     /// Moves the commands before `upto` into the compact record.
     fn settle(&mut self, upto: usize) {
         while self.first < upto {
-            let Some((t, sync)) = self.per_cmd.pop_front() else {
+            let Some((t, steps, sync)) = self.per_cmd.pop_front() else {
                 break;
             };
-            self.kept.push(t as f64, sync);
+            self.kept.push(t as f64, steps as f64, sync);
             self.first += 1;
         }
     }
@@ -875,6 +973,7 @@ impl Estimator {
             total_seconds: self.total,
             dwell_seconds: self.dwell,
             heating_waits: self.heat_waits,
+            total_steps: self.steps,
             kept: self.kept,
         }
     }
@@ -904,12 +1003,22 @@ pub fn moves_ahead(firmware: crate::marlin::firmware::Firmware) -> usize {
     }
 }
 
-/// The planner's estimate of a job's commands (as loaded, one per command) on `firmware`.
+/// The planner's estimate of a job's commands (as loaded, one per command) on `firmware`
+/// with its stock settings.
 pub fn estimate<S: AsRef<str>>(
     commands: impl IntoIterator<Item = S>,
     firmware: crate::marlin::firmware::Firmware,
 ) -> Estimate {
-    let mut estimator = Estimator::new(Limits::of(firmware));
+    estimate_with(commands, Limits::of(firmware))
+}
+
+/// The planner's estimate of a job's commands with the planner's settings `limits` (a
+/// printer's own, as it reported them).
+pub fn estimate_with<S: AsRef<str>>(
+    commands: impl IntoIterator<Item = S>,
+    limits: Limits,
+) -> Estimate {
+    let mut estimator = Estimator::new(limits);
     for command in commands {
         estimator.feed(command.as_ref());
     }
@@ -1099,6 +1208,28 @@ mod tests {
             let r = e.finish();
             assert!(r.total_seconds.is_finite() && r.total_seconds >= 0.0);
         }
+    }
+
+    /// Step events are the most steps any axis makes in each move (the stepper's
+    /// interrupts), counted with the moves' times: left after the moves done, and after
+    /// those the printer may still hold.
+    #[test]
+    fn step_events_are_kept_beside_the_times() {
+        let steps = |g: &str| run(Limits::marlin_2_1_2_1(), g).total_steps;
+        // X and Y 80 steps/mm, Z 400: a move's are its largest axis's; a dwell has none.
+        assert_eq!(steps("G1 X100 Y50 F6000"), 8000.0);
+        assert_eq!(steps("G1 X10 Z5 F6000"), 2000.0);
+        assert_eq!(steps("G4 P100"), 0.0);
+        let g: String = (0..32)
+            .map(|i| format!("G1 X{} F6000\n", if i % 2 == 0 { 100 } else { 0 }))
+            .collect();
+        let e = run(Limits::marlin_2_1_2_1(), &g);
+        assert_eq!(e.total_steps, 32.0 * 8000.0);
+        assert_eq!(e.steps_left_after(0), e.total_steps);
+        assert_eq!(e.steps_left_after(16), 16.0 * 8000.0);
+        assert_eq!(e.steps_left_after(32), 0.0);
+        // All acknowledged, the last five moves perhaps still held: their steps to come.
+        assert_eq!(e.steps_left_after_acked(32, 5), 5.0 * 8000.0);
     }
 
     #[test]

@@ -200,8 +200,8 @@ fn main() {
         }
     }
     // Raw: what the daemon shows before a printer has finished a print. Paced: what it
-    // shows once it has, the printer's pace (seconds a step beyond the planner's time)
-    // taken from its other jobs here as the daemon takes it from its earlier prints.
+    // shows once it has, the printer's pace taken from its other jobs here as the daemon
+    // takes it from its earlier prints.
     let mut worst = [[0.0f64; 2]; 2];
     for (paced, title) in [
         (false, "the planner alone"),
@@ -210,7 +210,7 @@ fn main() {
         println!("{title}:");
         println!(
             "{:<24} {:<22} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
-            "firmware", "job", "took s", "µs/step", "start", "25 %", "50 %", "75 %", "slicer"
+            "firmware", "job", "took s", "pace", "start", "25 %", "50 %", "75 %", "slicer"
         );
         for r in &runs {
             let pace = if paced {
@@ -220,25 +220,23 @@ fn main() {
                         .map(|o| PaceSample {
                             planned_s: o.planned,
                             took_s: o.took,
-                            steps: o.steps,
                         }),
                 )
             } else {
                 Pace::default()
             };
             let mut row = format!(
-                "{:<24} {:<22} {:>8.1} {:>8.2}",
+                "{:<24} {:<22} {:>8.1} {:>8.3}",
                 r.build.name(),
                 r.job,
                 r.took,
-                pace.per_step_s * 1e6
+                pace.factor
             );
             for (k, point) in r.points.iter().enumerate() {
                 match point {
                     Some(p) => {
                         let shown = TimeLeft {
                             planned_s: p.planned_s,
-                            steps_left: p.steps_left,
                             pace,
                             heating: false,
                             settings: Settings::Printer,
@@ -267,23 +265,21 @@ fn main() {
     }
 }
 
-/// One job's run: how long it took, the planner's total and its step events, and the time
-/// left at the start and at 25, 50 and 75 % of its commands.
+/// One job's run: how long it took, the planner's total, and the time left at the start
+/// and at 25, 50 and 75 % of its commands.
 struct Run {
     build: Build,
     job: String,
-    steps: f64,
     points: [Option<Point>; 4],
     took: f64,
     planned: f64,
     slicer_s: Option<f64>,
 }
 
-/// The time left at one point of a job: the planner's seconds and step events, and the
-/// seconds the firmware then took to finish.
+/// The time left at one point of a job: the planner's seconds, and the seconds the
+/// firmware then took to finish.
 struct Point {
     planned_s: f64,
-    steps_left: f64,
     actual_s: f64,
 }
 
@@ -341,7 +337,6 @@ fn run(
         };
         Some(Point {
             planned_s: estimate.left_after_acked(n, ahead),
-            steps_left: estimate.steps_left_after_acked(n, ahead),
             actual_s: took - t,
         })
     });
@@ -350,7 +345,6 @@ fn run(
         job: job.name.clone(),
         took,
         planned: estimate.left_after_acked(0, ahead),
-        steps: estimate.steps_left_after_acked(0, ahead),
         points,
         slicer_s: job.slicer_s,
     })

@@ -372,14 +372,13 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// A print's time left with what it rests on: "12 min left (planned with the printer's
-/// settings, +6.2 µs a step by 3 prints)".
+/// settings, × 1.04 by 3 prints)".
 fn time_left_words(t: &crispen::daemon::time_left::TimeLeft) -> String {
     use crispen::daemon::time_left::Settings;
-    let per_step = format!("{:+.1} µs a step", t.pace.per_step_s * 1e6);
     let pace = match t.pace.prints {
         0 => String::new(),
-        1 => format!(", {per_step} by 1 print"),
-        n => format!(", {per_step} by {n} prints"),
+        1 => format!(", × {:.2} by 1 print", t.pace.factor),
+        n => format!(", × {:.2} by {n} prints", t.pace.factor),
     };
     let settings = match t.settings {
         Settings::Printer => "the printer's settings",

@@ -898,9 +898,6 @@ fn live_progress(p: &PrintProgress, heated: bool, paused: bool, plate: &Plate) -
     let pause = p.pause.clone();
     let time_left = TimeLeft {
         planned_s: plate.estimate.left_after_acked(p.lines_acked, plate.ahead),
-        steps_left: plate
-            .estimate
-            .steps_left_after_acked(p.lines_acked, plate.ahead),
         pace: plate.pace,
         heating: !heated,
         settings: plate.settings,
@@ -1129,11 +1126,9 @@ impl PrinterLink for MarlinLink {
             match result {
                 Ok(report) => {
                     let mut report = PrintReport::from(report);
-                    let heated_from = heat_end.map_or(0, |i| i + 1);
                     report.pace = heated_at.filter(|_| as_planned).map(|at| PaceSample {
-                        planned_s: plate.estimate.left_after(heated_from),
+                        planned_s: plate.estimate.left_after(heat_end.map_or(0, |i| i + 1)),
                         took_s: at.elapsed().as_secs_f64(),
-                        steps: plate.estimate.steps_left_after(heated_from),
                     });
                     Ok(report)
                 }

@@ -313,8 +313,6 @@ impl Words {
 #[derive(Clone, Debug)]
 struct Block {
     cmd: usize,
-    /// Step events: the most steps of any axis.
-    steps: f64,
     mm: f64,
     accel: f64,
     nominal_sqr: f64,
@@ -335,14 +333,13 @@ pub struct Estimator {
     front_entry: Option<f64>, // entry of window[0] once its predecessor has run
     queued: usize,            // blocks in the buffer before the next one (0 after a sync)
     prev: Option<([f64; 4], [f64; 4], f64)>, // unit vector, axis speeds, nominal speed
-    /// Seconds and step events of the commands from `first` on, whose blocks may still
-    /// be in the window, and whether each waits for the planner to empty.
-    per_cmd: VecDeque<(f32, f32, bool)>,
+    /// Seconds of the commands from `first` on, whose blocks may still be in the window,
+    /// and whether each waits for the planner to empty.
+    per_cmd: VecDeque<(f32, bool)>,
     first: usize,
     /// The commands settled so far, as the estimate keeps them.
     kept: Kept,
     total: f64, // exact sum in f64
-    steps: f64,
     dwell: f64,
     heat_waits: usize,
 }
@@ -355,35 +352,28 @@ pub struct Estimate {
     pub dwell_seconds: f64,
     /// M109/M190/M116 count: their duration depends on the heaters, not the planner.
     pub heating_waits: usize,
-    /// Step events: the stepper's interrupts at one step each, the most steps any axis
-    /// makes in each move. What a printer's stepper costs beyond the planner's time goes
-    /// by these (the printer's pace, `daemon::time_left`).
-    pub total_steps: f64,
     kept: Kept,
 }
 
 /// Commands per chunk of [`Kept`].
 const CHUNK: usize = 16;
 
-/// The commands' times, compact: the seconds and step events at the end of each chunk of
-/// [`CHUNK`] commands, which commands take time and which wait for the planner to empty (a
-/// bit each); within a chunk, its time and steps are shared among those that take time.
-/// Per-command figures would cost a job of ten million commands 40 MB or more, beside its
-/// program.
+/// The commands' times, compact: the seconds at the end of each chunk of [`CHUNK`]
+/// commands, which commands take time and which wait for the planner to empty (a bit
+/// each); within a chunk, its time is shared among those that take time. Per-command
+/// figures would cost a job of ten million commands 40 MB or more, beside its program.
 #[derive(Clone, Debug, Default)]
 struct Kept {
     commands: usize,
     chunks: Vec<f64>,
-    step_chunks: Vec<f64>,
     timed: Vec<u64>,
     /// Once one of these is acknowledged, every move before it is made.
     syncs: Vec<u64>,
     seconds: f64,
-    steps: f64,
 }
 
 impl Kept {
-    fn push(&mut self, seconds: f64, steps: f64, sync: bool) {
+    fn push(&mut self, seconds: f64, sync: bool) {
         let k = self.commands;
         if k % 64 == 0 {
             self.timed.push(0);
@@ -396,11 +386,9 @@ impl Kept {
             self.syncs[k / 64] |= 1 << (k % 64);
         }
         self.seconds += seconds;
-        self.steps += steps;
         self.commands += 1;
         if self.commands % CHUNK == 0 {
             self.chunks.push(self.seconds);
-            self.step_chunks.push(self.steps);
         }
     }
 
@@ -414,25 +402,14 @@ impl Kept {
 
     /// Seconds of the first `done` commands.
     fn elapsed_at(&self, done: usize) -> f64 {
-        self.share(done, &self.chunks, self.seconds)
-    }
-
-    /// Step events of the first `done` commands.
-    fn steps_at(&self, done: usize) -> f64 {
-        self.share(done, &self.step_chunks, self.steps)
-    }
-
-    /// What of a quantity kept in `chunks` (cumulative, `total` in all) the first `done`
-    /// commands take.
-    fn share(&self, done: usize, chunks: &[f64], total: f64) -> f64 {
         let done = done.min(self.commands);
         let c = done / CHUNK;
-        let before = if c == 0 { 0.0 } else { chunks[c - 1] };
+        let before = if c == 0 { 0.0 } else { self.chunks[c - 1] };
         let (start, end) = (c * CHUNK, ((c + 1) * CHUNK).min(self.commands));
         if done == start {
             return before;
         }
-        let after = chunks.get(c).copied().unwrap_or(total);
+        let after = self.chunks.get(c).copied().unwrap_or(self.seconds);
         let timed = (start..end).filter(|&k| self.timed(k)).count();
         let done_timed = (start..done).filter(|&k| self.timed(k)).count();
         if timed == 0 {
@@ -462,23 +439,6 @@ impl Estimate {
     /// as still to come, back to the last acknowledged command that waits for the planner
     /// to empty (`M400`, a dwell, a heat wait, homing), before which every move is made.
     pub fn left_after_acked(&self, acked: usize, ahead: usize) -> f64 {
-        self.left_after(self.done_after_acked(acked, ahead))
-    }
-
-    /// Step events left once `done` commands have completed.
-    pub fn steps_left_after(&self, done: usize) -> f64 {
-        (self.kept.steps - self.kept.steps_at(done)).max(0.0)
-    }
-
-    /// Step events left once the printer has acknowledged `acked` commands (as
-    /// [`left_after_acked`](Self::left_after_acked) counts them).
-    pub fn steps_left_after_acked(&self, acked: usize, ahead: usize) -> f64 {
-        self.steps_left_after(self.done_after_acked(acked, ahead))
-    }
-
-    /// The commands certainly done once `acked` are acknowledged, `ahead` of whose moves
-    /// the printer may still hold.
-    fn done_after_acked(&self, acked: usize, ahead: usize) -> usize {
         // Commands that neither move nor wait are passed over, as many as a printer could
         // hold between two moves and no more: the walk stays short whatever the file.
         const PASSED_OVER: usize = 100_000;
@@ -493,7 +453,7 @@ impl Estimate {
                 moves += 1;
             }
         }
-        done
+        self.left_after(done)
     }
 }
 
@@ -540,7 +500,6 @@ impl Estimator {
             first: 0,
             kept: Kept::default(),
             total,
-            steps: 0.0,
             dwell,
             heat_waits,
         }
@@ -559,7 +518,7 @@ impl Estimator {
             .map_or(self.first + self.per_cmd.len(), |b| b.cmd);
         self.settle(settled);
         let cmd = self.first + self.per_cmd.len();
-        self.per_cmd.push_back((0.0, 0.0, false));
+        self.per_cmd.push_back((0.0, false));
         let w = Words::parse(s);
         match w.cmd {
             (b'G', 0) | (b'G', 1) => {
@@ -887,7 +846,6 @@ impl Estimator {
         let max_entry_sqr = max_entry * max_entry;
         self.window.push_back(Block {
             cmd,
-            steps: events,
             mm,
             accel: a,
             nominal_sqr: nominal * nominal,
@@ -929,10 +887,8 @@ impl Estimator {
             let t = trapezoid_time(b.mm, b.accel, b.entry_sqr, exit, b.nominal_sqr);
             if t.is_finite() {
                 self.total += t;
-                self.steps += b.steps;
-                let c = &mut self.per_cmd[b.cmd - self.first];
-                c.0 = (c.0 as f64 + t).min(f32::MAX as f64 / 4.0) as f32;
-                c.1 = (c.1 as f64 + b.steps).min(f32::MAX as f64 / 4.0) as f32;
+                let c = &mut self.per_cmd[b.cmd - self.first].0;
+                *c = (*c as f64 + t).min(f32::MAX as f64 / 4.0) as f32;
             }
             self.front_entry = self.window.front().map(|n| n.entry_sqr);
         }
@@ -942,7 +898,7 @@ impl Estimator {
     fn sync_at(&mut self, cmd: usize) {
         self.sync();
         if let Some(c) = self.per_cmd.get_mut(cmd - self.first) {
-            c.2 = true;
+            c.1 = true;
         }
     }
 
@@ -958,10 +914,10 @@ impl Estimator {
     /// Moves the commands before `upto` into the compact record.
     fn settle(&mut self, upto: usize) {
         while self.first < upto {
-            let Some((t, steps, sync)) = self.per_cmd.pop_front() else {
+            let Some((t, sync)) = self.per_cmd.pop_front() else {
                 break;
             };
-            self.kept.push(t as f64, steps as f64, sync);
+            self.kept.push(t as f64, sync);
             self.first += 1;
         }
     }
@@ -973,7 +929,6 @@ impl Estimator {
             total_seconds: self.total,
             dwell_seconds: self.dwell,
             heating_waits: self.heat_waits,
-            total_steps: self.steps,
             kept: self.kept,
         }
     }
@@ -1208,28 +1163,6 @@ mod tests {
             let r = e.finish();
             assert!(r.total_seconds.is_finite() && r.total_seconds >= 0.0);
         }
-    }
-
-    /// Step events are the most steps any axis makes in each move (the stepper's
-    /// interrupts), counted with the moves' times: left after the moves done, and after
-    /// those the printer may still hold.
-    #[test]
-    fn step_events_are_kept_beside_the_times() {
-        let steps = |g: &str| run(Limits::marlin_2_1_2_1(), g).total_steps;
-        // X and Y 80 steps/mm, Z 400: a move's are its largest axis's; a dwell has none.
-        assert_eq!(steps("G1 X100 Y50 F6000"), 8000.0);
-        assert_eq!(steps("G1 X10 Z5 F6000"), 2000.0);
-        assert_eq!(steps("G4 P100"), 0.0);
-        let g: String = (0..32)
-            .map(|i| format!("G1 X{} F6000\n", if i % 2 == 0 { 100 } else { 0 }))
-            .collect();
-        let e = run(Limits::marlin_2_1_2_1(), &g);
-        assert_eq!(e.total_steps, 32.0 * 8000.0);
-        assert_eq!(e.steps_left_after(0), e.total_steps);
-        assert_eq!(e.steps_left_after(16), 16.0 * 8000.0);
-        assert_eq!(e.steps_left_after(32), 0.0);
-        // All acknowledged, the last five moves perhaps still held: their steps to come.
-        assert_eq!(e.steps_left_after_acked(32, 5), 5.0 * 8000.0);
     }
 
     #[test]

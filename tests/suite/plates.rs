@@ -81,7 +81,7 @@ fn a_part_cancelled_mid_print_is_dropped_and_the_others_print_exactly() {
     assert!(left["planned_s"].as_f64().unwrap() > 1.0, "{left}");
     assert_eq!(
         left["pace"],
-        serde_json::json!({"per_step_s": 0.0, "prints": 0}),
+        serde_json::json!({"factor": 1.0, "prints": 0}),
         "{left}"
     );
     assert_eq!(left["heating"], false, "{left}");

@@ -105,9 +105,8 @@ function duration(s) {
 // earlier prints.
 function timeLeftBasis(t) {
   if (!t) return "";
-  const perStep = t.pace.per_step_s * 1e6;
   const pace = t.pace.prints
-    ? ", " + (perStep >= 0 ? "+" : "") + perStep.toFixed(1) + " µs a step for its " + Math.round(t.steps_left) + " steps left, this printer's pace over its last " + (t.pace.prints === 1 ? "print" : t.pace.prints + " prints")
+    ? " × " + t.pace.factor.toFixed(2) + ", this printer's pace over its last " + (t.pace.prints === 1 ? "print" : t.pace.prints + " prints")
     : " (no finished print on this printer yet to correct it)";
   const settings = t.settings === "printer" ? " with the printer's own settings (M503)" : " with the machine's stock settings";
   return "the planner's " + duration(t.planned_s) + settings + pace + (t.heating ? "; the heat-up's own time on top" : "");

@@ -4,11 +4,13 @@
 //! 2.1.2.1 (its Linux build: its planner and stepper timing in real time) and to
 //! Ultimaker2Marlin in its AVR emulator (the board's planner at the board's pace); each
 //! acknowledgement is timed. At the start and at 25, 50 and 75 % of the job's commands,
-//! the planner's time left (`crispen::marlin::estimate`, what the daemon shows before a
-//! printer has a pace of its own) is set against the time the firmware then took to finish
+//! the planner's time left (`crispen::marlin::estimate` with the settings the printer
+//! reported to `M503`, what the daemon shows before a printer has a pace of its own) is set
+//! against the time the firmware then took to finish
 //! (to the end of a final `M400`), counting the moves the printer may hold acknowledged
 //! but not yet made as still to come; the slicer's own estimate beside it at the start.
-//! `CRISPEN_BENCH_TRACE=DIR` writes each run's acknowledgements over time there. Target
+//! `CRISPEN_BENCH_TRACE=DIR` writes each run's acknowledgements over time there (seconds,
+//! commands acknowledged, the seconds the estimate then says have passed), and its job. Target
 //! (issue 45): within 3 % at the start, 2 % from 25 % on. The jobs are made cold (heating
 //! commands and homing out, `M302 S0` and a `G92` in), so the heaters' time, which no
 //! planner knows, stays out of what is measured. Runs in real time: about 10 minutes.
@@ -19,6 +21,7 @@ mod common;
 use common::relay::{firmware, Build, Relay, RelayFaults};
 
 use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
+use crispen::daemon::time_left::{Pace, PaceSample, Settings, TimeLeft};
 use crispen::enhance::Strength;
 use crispen::machine::Machine;
 use crispen::marlin::gcode::GcodeProgram;
@@ -110,19 +113,30 @@ fn long_travels() -> Job {
     cold("long travels".into(), &g, None)
 }
 
-/// Seconds from the first acknowledgement to the end, and the acknowledged count over time.
+/// A streamed job: seconds from the start of the print to the end, the acknowledged count
+/// over time, and the planner's settings the printer reported at connect (`M503`).
+struct Streamed {
+    took: f64,
+    timeline: Vec<(f64, usize)>,
+    settings: Vec<String>,
+}
+
+/// Streams `program` on a fresh connection; its clock starts as the print does (the
+/// printer moves before the host hears its first acknowledgements).
 async fn stream(
     relay: &Relay,
     program: &GcodeProgram,
     build: Build,
-) -> Result<(f64, Vec<(f64, usize)>), crispen::marlin::stream::PrintError> {
+) -> Result<Streamed, crispen::marlin::stream::PrintError> {
     let opts = StreamOptions::for_firmware(firmware(build));
     let mut conn = Connection::open(relay.device_path(), &opts)
         .await
         .expect("connected");
+    let settings = conn.settings().to_vec();
     let (_control, control_rx) = mpsc::channel(1);
     let (progress, mut seen) = watch::channel(PrintProgress::default());
     let mut acked: Vec<(Instant, usize)> = Vec::new();
+    let start = Instant::now();
     let print = conn.print(program, control_rx, progress);
     tokio::pin!(print);
     let result = loop {
@@ -139,12 +153,15 @@ async fn stream(
     };
     let end = Instant::now();
     result?;
-    let start = acked.iter().find(|a| a.1 > 0).map_or(end, |a| a.0);
     let timeline = acked
         .iter()
         .map(|(t, n)| (t.saturating_duration_since(start).as_secs_f64(), *n))
         .collect();
-    Ok((end.duration_since(start).as_secs_f64(), timeline))
+    Ok(Streamed {
+        took: end.duration_since(start).as_secs_f64(),
+        timeline,
+        settings,
+    })
 }
 
 fn main() {
@@ -183,8 +200,8 @@ fn main() {
         }
     }
     // Raw: what the daemon shows before a printer has finished a print. Paced: what it
-    // shows once it has, the planner scaled by the median of took/planned over the
-    // printer's other jobs here.
+    // shows once it has, the printer's pace taken from its other jobs here as the daemon
+    // takes it from its earlier prints.
     let mut worst = [[0.0f64; 2]; 2];
     for (paced, title) in [
         (false, "the planner alone"),
@@ -192,30 +209,39 @@ fn main() {
     ] {
         println!("{title}:");
         println!(
-            "{:<24} {:<22} {:>8} {:>6} {:>8} {:>8} {:>8} {:>8} {:>9}",
+            "{:<24} {:<22} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
             "firmware", "job", "took s", "pace", "start", "25 %", "50 %", "75 %", "slicer"
         );
         for r in &runs {
-            let others: Vec<f64> = runs
-                .iter()
-                .filter(|o| o.build == r.build && o.job != r.job)
-                .map(|o| o.took / o.planned)
-                .collect();
-            let pace = if paced && !others.is_empty() {
-                common::median(others)
+            let pace = if paced {
+                Pace::of(
+                    runs.iter()
+                        .filter(|o| o.build == r.build && o.job != r.job)
+                        .map(|o| PaceSample {
+                            planned_s: o.planned,
+                            took_s: o.took,
+                        }),
+                )
             } else {
-                1.0
+                Pace::default()
             };
             let mut row = format!(
-                "{:<24} {:<22} {:>8.1} {pace:>6.3}",
+                "{:<24} {:<22} {:>8.1} {:>8.3}",
                 r.build.name(),
                 r.job,
-                r.took
+                r.took,
+                pace.factor
             );
-            for (k, error) in r.errors.iter().enumerate() {
-                match error {
-                    Some(e) => {
-                        let e = (1.0 + e) * pace - 1.0;
+            for (k, point) in r.points.iter().enumerate() {
+                match point {
+                    Some(p) => {
+                        let shown = TimeLeft {
+                            planned_s: p.planned_s,
+                            pace,
+                            heating: false,
+                            settings: Settings::Printer,
+                        };
+                        let e = shown.seconds() / p.actual_s - 1.0;
                         let w = &mut worst[usize::from(paced)][usize::from(k > 0)];
                         *w = w.max(e.abs());
                         row.push_str(&format!(" {:>+7.1}%", 100.0 * e));
@@ -239,15 +265,22 @@ fn main() {
     }
 }
 
-/// One job's run: how long it took, the planner's total, and the planner's error at the
-/// start and at 25, 50 and 75 % of its commands.
+/// One job's run: how long it took, the planner's total, and the time left at the start
+/// and at 25, 50 and 75 % of its commands.
 struct Run {
     build: Build,
     job: String,
+    points: [Option<Point>; 4],
     took: f64,
     planned: f64,
-    errors: [Option<f64>; 4],
     slicer_s: Option<f64>,
+}
+
+/// The time left at one point of a job: the planner's seconds, and the seconds the
+/// firmware then took to finish.
+struct Point {
+    planned_s: f64,
+    actual_s: f64,
 }
 
 fn run(
@@ -258,12 +291,24 @@ fn run(
 ) -> Result<Run, crispen::marlin::stream::PrintError> {
     let fw = firmware(build);
     let program = GcodeProgram::read(job.text.as_bytes(), &job.name, fw).expect("the job reads");
-    let estimate = crispen::marlin::estimate::estimate(program.iter(), fw);
     let ahead = crispen::marlin::estimate::moves_ahead(fw);
     let relay = Relay::start(dir, build, RelayFaults::default());
     let streamed = rt.block_on(stream(&relay, &program, build));
     drop(relay);
-    let (took, timeline) = streamed?;
+    let Streamed {
+        took,
+        timeline,
+        settings,
+    } = streamed?;
+    // As the daemon plans it: with the settings the printer reported, else stock ones.
+    let (limits, whose) = Settings::limits(fw, &settings);
+    assert_eq!(
+        whose,
+        Settings::Printer,
+        "{} reported no settings to M503",
+        build.name()
+    );
+    let estimate = crispen::marlin::estimate::estimate_with(program.iter(), limits);
     if let Some(dir) = std::env::var_os("CRISPEN_BENCH_TRACE") {
         let text: String = timeline
             .iter()
@@ -274,23 +319,33 @@ fn run(
                 )
             })
             .collect();
-        let name = format!("{}-{}.txt", build.name(), job.name.replace(' ', "_"));
-        std::fs::write(std::path::Path::new(&dir).join(name), text).unwrap();
+        let name = format!("{}-{}", build.name(), job.name.replace(' ', "_"));
+        let dir = std::path::Path::new(&dir);
+        std::fs::write(dir.join(format!("{name}.txt")), text).unwrap();
+        std::fs::write(dir.join(format!("{name}.gcode")), &job.text).unwrap();
     }
     let total = program.len();
-    let errors = [0.0, 0.25, 0.5, 0.75].map(|share| {
-        let (t, n) = timeline
-            .iter()
-            .find(|(_, n)| *n as f64 >= share * total as f64 && *n > 0)
-            .copied()?;
-        Some(estimate.left_after_acked(n, ahead) / (took - t) - 1.0)
+    // At the start: what the job shows as it begins, nothing acknowledged.
+    let points = [0.0, 0.25, 0.5, 0.75].map(|share| {
+        let (t, n) = if share == 0.0 {
+            (0.0, 0)
+        } else {
+            timeline
+                .iter()
+                .find(|(_, n)| *n as f64 >= share * total as f64)
+                .copied()?
+        };
+        Some(Point {
+            planned_s: estimate.left_after_acked(n, ahead),
+            actual_s: took - t,
+        })
     });
     Ok(Run {
         build,
         job: job.name.clone(),
         took,
         planned: estimate.left_after_acked(0, ahead),
-        errors,
+        points,
         slicer_s: job.slicer_s,
     })
 }

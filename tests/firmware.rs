@@ -136,6 +136,42 @@ async fn a_port_closed_mid_job_ends_it_interrupted() {
     }
 }
 
+/// Issue 45: each real firmware answers the unnumbered `M503` sent at connect, and what
+/// the host reads of it is the firmware's stock planner (Marlin 2.1.2.1's junction
+/// deviation of 0.013 mm, reported as `J0.01`, kept exact); the NO_TIMEOUTS build's
+/// `wait`s in between change nothing.
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_firmware_reports_its_planner_settings_to_m503() {
+    use crispen::daemon::time_left::Settings;
+    use crispen::marlin::estimate::Limits;
+    use crispen::marlin::stream::{Connection, StreamOptions};
+    let dir = firmware_dir();
+    for build in [Build::Default, Build::Wait, Build::Ultimaker2] {
+        let relay = Relay::start(&dir, build, RelayFaults::default());
+        let fw = common::relay::firmware(build);
+        let conn = Connection::open(relay.device_path(), &StreamOptions::for_firmware(fw))
+            .await
+            .unwrap_or_else(|e| panic!("{}: {e}", build.name()));
+        assert_eq!(
+            conn.settings().len(),
+            5,
+            "{}: {:?}",
+            build.name(),
+            conn.settings()
+        );
+        assert_eq!(
+            Settings::limits(fw, conn.settings()),
+            (Limits::of(fw), Settings::Printer),
+            "{}",
+            build.name()
+        );
+    }
+}
+
 /// Ultimaker2Marlin checks a checksum only up to the first `*`: with 5 % of lines having a
 /// `.` turned into `*`, the final position is still exact (no cut line ran).
 #[cfg_attr(

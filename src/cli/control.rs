@@ -371,16 +371,22 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// A print's time left with what it rests on: "12 min left (planned, × 1.04 by 3 prints)".
+/// A print's time left with what it rests on: "12 min left (planned with the printer's
+/// settings, × 1.04 by 3 prints)".
 fn time_left_words(t: &crispen::daemon::time_left::TimeLeft) -> String {
+    use crispen::daemon::time_left::Settings;
     let pace = match t.pace.prints {
         0 => String::new(),
-        1 => format!(" × {:.2} by 1 print", t.pace.factor),
-        n => format!(" × {:.2} by {n} prints", t.pace.factor),
+        1 => format!(", × {:.2} by 1 print", t.pace.factor),
+        n => format!(", × {:.2} by {n} prints", t.pace.factor),
+    };
+    let settings = match t.settings {
+        Settings::Printer => "the printer's settings",
+        Settings::Stock => "stock settings",
     };
     let heating = if t.heating { " + heat-up" } else { "" };
     format!(
-        "{:.0} min left{heating} (planned{pace})",
+        "{:.0} min left{heating} (planned with {settings}{pace})",
         t.seconds() / 60.0
     )
 }

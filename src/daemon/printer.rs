@@ -900,6 +900,7 @@ fn live_progress(p: &PrintProgress, heated: bool, paused: bool, plate: &Plate) -
         planned_s: plate.estimate.left_after_acked(p.lines_acked, plate.ahead),
         pace: plate.pace,
         heating: !heated,
+        settings: plate.settings,
     };
     LiveProgress {
         parts_cancelled: p.cancelled_parts.iter().map(|c| plate.dropped(c)).collect(),
@@ -938,6 +939,8 @@ struct Plate {
     /// The moves its printer may hold acknowledged but not yet made.
     ahead: usize,
     pace: Pace,
+    /// Whose planner settings the estimate was made with.
+    settings: super::time_left::Settings,
 }
 
 impl Plate {
@@ -1001,18 +1004,24 @@ impl PrinterLink for MarlinLink {
             // Reading and checking a file of millions of lines is blocking work; so is
             // following its plate's layers and planning its moves.
             let (path, firmware) = (gcode.to_path_buf(), self.firmware);
+            // The printer's own planner settings where it reported them (M503 at
+            // connect), else the machine's stock ones.
+            let (limits, settings) =
+                super::time_left::Settings::limits(firmware, self.connection.settings());
+            tracing::debug!(?settings, ?limits, "the time left's planner settings");
             let plate = tokio::task::spawn_blocking(move || {
                 let program = GcodeProgram::load_for(&path, firmware)?;
                 let map = program.marks().map(|marks| {
                     crate::marlin::plate::PlateMap::read(program.iter(), marks, firmware)
                 });
-                let estimate = crate::marlin::estimate::estimate(program.iter(), firmware);
+                let estimate = crate::marlin::estimate::estimate_with(program.iter(), limits);
                 Ok::<_, GcodeError>(Plate {
                     program,
                     map,
                     estimate,
                     ahead: crate::marlin::estimate::moves_ahead(firmware),
                     pace,
+                    settings,
                 })
             })
             .await

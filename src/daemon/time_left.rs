@@ -1,5 +1,6 @@
 //! A print's time left, and what it rests on: the planner's estimate of the commands not
-//! yet acknowledged (`marlin::estimate`), scaled by the printer's own pace on its earlier
+//! yet acknowledged (`marlin::estimate`, with the printer's own settings where it reported
+//! them to `M503`), scaled by the printer's own pace on its earlier
 //! prints (what each took against what the planner said), with the heat-up apart (a
 //! heater's time is the heater's, not the planner's).
 
@@ -65,6 +66,36 @@ impl Pace {
     }
 }
 
+/// Whose settings the planner's estimate was made with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Settings {
+    /// The printer's own, as it reported them in answer to `M503` at connect.
+    Printer,
+    /// The machine's stock values: the printer reported none (no `M503`).
+    #[default]
+    Stock,
+}
+
+impl Settings {
+    /// The planner's settings for a printer on `firmware` that reported `reported` (the
+    /// `M503` lines of [`Connection::settings`](crate::marlin::stream::Connection::settings)),
+    /// and whose they are.
+    pub fn limits(
+        firmware: crate::marlin::firmware::Firmware,
+        reported: &[String],
+    ) -> (crate::marlin::estimate::Limits, Settings) {
+        let mut limits = crate::marlin::estimate::Limits::of(firmware);
+        let taken = limits.apply_m503(&reported.join("\n"));
+        let whose = if taken.is_empty() {
+            Settings::Stock
+        } else {
+            Settings::Printer
+        };
+        (limits, whose)
+    }
+}
+
 /// What a print's time left rests on (its `remaining_s` is `planned_s × pace`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TimeLeft {
@@ -73,6 +104,9 @@ pub struct TimeLeft {
     pub pace: Pace,
     /// Still heating up: the heat-up's own time comes on top.
     pub heating: bool,
+    /// Whose settings the planner used.
+    #[serde(default)]
+    pub settings: Settings,
 }
 
 impl TimeLeft {
@@ -113,5 +147,26 @@ mod tests {
             Pace::of([sample(0.5, 1.0), sample(10.0, f64::NAN)]).prints,
             0
         );
+    }
+
+    /// Where the printer reported its settings, they are its planner's; where it reported
+    /// none, the machine's stock ones, and the time left says which.
+    #[test]
+    fn the_planner_takes_the_printers_settings_where_it_reported_them() {
+        use crate::marlin::estimate::{Junction, Limits};
+        use crate::marlin::firmware::Firmware;
+        assert_eq!(
+            Settings::limits(Firmware::Marlin2, &[]),
+            (Limits::of(Firmware::Marlin2), Settings::Stock)
+        );
+        let reported = [
+            "M203 X200.00 Y200.00 Z5.00 E25.00".to_string(),
+            "M205 B20000.00 S0.00 T0.00 J0.01".to_string(),
+        ];
+        let (limits, whose) = Settings::limits(Firmware::Marlin2, &reported);
+        assert_eq!(whose, Settings::Printer);
+        assert_eq!(limits.max_feedrate, [200.0, 200.0, 5.0, 25.0]);
+        // J0.01 is the stock 0.013 mm as the report rounds it: the exact value is kept.
+        assert_eq!(limits.junction, Junction::Deviation { mm: 0.013 });
     }
 }

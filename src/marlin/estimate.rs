@@ -140,8 +140,11 @@ impl Limits {
         }
     }
 
-    /// Take settings from `M503` output (`echo:  M203 X300 ...`). Unknown lines and keys are
-    /// ignored. Returns the keys taken, like `"M203 X"`.
+    /// Take settings from `M503` output (`echo:  M203 X300.00 ...`). Unknown lines and keys are
+    /// ignored. Returns the keys taken, like `"M203 X"`. Both firmwares print their values
+    /// with two decimals (Marlin 2.1.2.1 reports its junction deviation of 0.013 mm as
+    /// `J0.01`): a reported value within that rounding of the one held is the same value,
+    /// and the one held, more precise, is kept.
     pub fn apply_m503(&mut self, text: &str) -> Vec<String> {
         let mut taken = Vec::new();
         for line in text.lines() {
@@ -149,12 +152,63 @@ impl Limits {
             let line = line.strip_prefix("echo:").unwrap_or(line);
             let w = Words::parse(strip_comment(line));
             if w.cmd.0 == b'M' {
+                let before = self.clone();
                 for k in self.apply_setting(w.cmd.1, &w) {
                     taken.push(format!("M{} {}", w.cmd.1, k));
                 }
+                self.keep_within_rounding(&before);
             }
         }
         taken
+    }
+
+    /// Apply one command that sets the planner (`M203 X200`), exactly as given; other
+    /// commands change nothing. For a printer's own planner, as the simulator keeps it.
+    pub fn apply_command(&mut self, command: &str) {
+        let w = Words::parse(strip_comment(command));
+        if w.cmd.0 == b'M' {
+            self.apply_setting(w.cmd.1, &w);
+        }
+    }
+
+    /// Where a value differs from `before` by no more than a report's rounding (half of
+    /// its last decimal), `before`'s is kept.
+    fn keep_within_rounding(&mut self, before: &Limits) {
+        const HALF_LAST_DECIMAL: f64 = 0.005;
+        let keep = |now: &mut f64, was: f64| {
+            if (*now - was).abs() <= HALF_LAST_DECIMAL + 1e-12 {
+                *now = was;
+            }
+        };
+        for i in 0..4 {
+            keep(&mut self.max_feedrate[i], before.max_feedrate[i]);
+            keep(&mut self.max_accel[i], before.max_accel[i]);
+            keep(&mut self.steps_per_mm[i], before.steps_per_mm[i]);
+        }
+        keep(&mut self.accel, before.accel);
+        keep(&mut self.retract_accel, before.retract_accel);
+        if let (Some(now), Some(was)) = (&mut self.travel_accel, before.travel_accel) {
+            keep(now, was);
+        }
+        keep(&mut self.min_feedrate, before.min_feedrate);
+        keep(&mut self.min_travel_feedrate, before.min_travel_feedrate);
+        keep(&mut self.min_segment_time_us, before.min_segment_time_us);
+        match (&mut self.junction, before.junction) {
+            (
+                Junction::Classic { xy, z, e },
+                Junction::Classic {
+                    xy: x0,
+                    z: z0,
+                    e: e0,
+                },
+            ) => {
+                keep(xy, x0);
+                keep(z, z0);
+                keep(e, e0);
+            }
+            (Junction::Deviation { mm }, Junction::Deviation { mm: was }) => keep(mm, was),
+            _ => {}
+        }
     }
 
     /// Apply M92/M201/M203/M204/M205; returns the parameter letters used.
@@ -904,12 +958,22 @@ pub fn moves_ahead(firmware: crate::marlin::firmware::Firmware) -> usize {
     }
 }
 
-/// The planner's estimate of a job's commands (as loaded, one per command) on `firmware`.
+/// The planner's estimate of a job's commands (as loaded, one per command) on `firmware`
+/// with its stock settings.
 pub fn estimate<S: AsRef<str>>(
     commands: impl IntoIterator<Item = S>,
     firmware: crate::marlin::firmware::Firmware,
 ) -> Estimate {
-    let mut estimator = Estimator::new(Limits::of(firmware));
+    estimate_with(commands, Limits::of(firmware))
+}
+
+/// The planner's estimate of a job's commands with the planner's settings `limits` (a
+/// printer's own, as it reported them).
+pub fn estimate_with<S: AsRef<str>>(
+    commands: impl IntoIterator<Item = S>,
+    limits: Limits,
+) -> Estimate {
+    let mut estimator = Estimator::new(limits);
     for command in commands {
         estimator.feed(command.as_ref());
     }

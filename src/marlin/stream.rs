@@ -201,7 +201,7 @@ impl Connection {
         let mut transport = Transport::open(port, opts.baud)?;
         let (host, info) = greet(&mut transport, port, opts).await?;
         tracing::info!(port = %port.display(), firmware = ?info.name, "printer connected");
-        Ok(Connection {
+        let mut connection = Connection {
             transport,
             host,
             port: port.to_path_buf(),
@@ -209,11 +209,31 @@ impl Connection {
             info,
             idle: IdleWatch::new(),
             rebooted: false,
-        })
+        };
+        connection.ask_settings().await?;
+        Ok(connection)
     }
 
     pub fn firmware_info(&self) -> &FirmwareInfo {
         &self.info
+    }
+
+    /// The planner's settings as the printer reported them in answer to `M503` (or in a
+    /// boot banner since), one command a line (`M203 X300.00 Y300.00 Z5.00 E25.00`); empty
+    /// where it reported none.
+    pub fn settings(&self) -> &[String] {
+        &self.idle.settings
+    }
+
+    /// Asks the greeted printer for its planner's settings with an `M503` sent without a
+    /// line number, as the idle `M105`s are (the next job's numbering is not touched), and
+    /// waits for its `ok`. A firmware without `M503` answers `Unknown command` and `ok`:
+    /// no settings, and the estimate rests on the machine's stock values.
+    async fn ask_settings(&mut self) -> Result<(), PrintError> {
+        self.transport.send(b"M503\n".to_vec());
+        self.idle.unanswered += 1;
+        self.idle.last_sent = Some(tokio::time::Instant::now());
+        self.await_idle_answers().await
     }
 
     /// Read and log what the printer says between jobs (temperature reports, `start` after
@@ -313,7 +333,7 @@ impl Connection {
     async fn await_idle_answers(&mut self) -> Result<(), PrintError> {
         let answer_wait = self.opts.protocol.silence_probe;
         while let Some(deadline) = self.idle.answer_deadline(answer_wait) {
-            tracing::debug!(port = %self.port.display(), "waiting for the answer to an idle M105 before the job starts");
+            tracing::debug!(port = %self.port.display(), "waiting for the answer to an idle M105 or M503 before going on");
             tokio::select! {
                 link = self.transport.recv() => match link {
                     LinkEvent::Data(bytes) => {
@@ -325,7 +345,7 @@ impl Connection {
                     }
                 },
                 _ = tokio::time::sleep_until(deadline) => {
-                    tracing::warn!(port = %self.port.display(), "an idle M105 went unanswered; starting the job as if it was lost");
+                    tracing::warn!(port = %self.port.display(), "an idle M105 or M503 went unanswered; going on as if it was lost");
                     self.idle.unanswered = 0;
                 }
             }
@@ -349,6 +369,7 @@ impl Connection {
             let (host, info) = greet(&mut self.transport, &self.port, &self.opts).await?;
             self.host = host;
             self.info = info;
+            self.ask_settings().await?;
         } else if !self.host.is_idle() {
             // A previous job ended: the protocol core is single-use per job outcome, so
             // start a fresh one on the same (already greeted) link.

@@ -101,13 +101,15 @@ function duration(s) {
 }
 
 // What a print's time left rests on: the firmware's planner over the lines not yet
-// acknowledged, at the printer's pace on its earlier prints.
+// acknowledged, with the printer's settings or the machine's, at the printer's pace on its
+// earlier prints.
 function timeLeftBasis(t) {
   if (!t) return "";
   const pace = t.pace.prints
     ? " × " + t.pace.factor.toFixed(2) + ", this printer's pace over its last " + (t.pace.prints === 1 ? "print" : t.pace.prints + " prints")
     : " (no finished print on this printer yet to correct it)";
-  return "the planner's " + duration(t.planned_s) + pace + (t.heating ? "; the heat-up's own time on top" : "");
+  const settings = t.settings === "printer" ? " with the printer's own settings (M503)" : " with the machine's stock settings";
+  return "the planner's " + duration(t.planned_s) + settings + pace + (t.heating ? "; the heat-up's own time on top" : "");
 }
 
 function label(state) { return String(state).replace(/_/g, " "); }

@@ -91,7 +91,11 @@ impl Host {
                     HostAction::Other(_) => {}
                 }
             }
-            Reply::Other(line) => self.events.push_back(Event::Message(line)),
+            // Settings the boot banner lists: read between jobs, where `M503` asks for them
+            // (`stream::idle`); here only logged.
+            Reply::Setting(line) | Reply::Other(line) => {
+                self.events.push_back(Event::Message(line))
+            }
         }
     }
 

@@ -35,6 +35,11 @@ pub enum Reply {
     FirmwareName(String),
     /// `Cap:NAME:0|1`.
     Capability(String, bool),
+    /// `echo:  M203 X300.00 Y300.00 Z5.00 E25.00`: one of the planner's settings (steps
+    /// per mm `M92`, accelerations `M201`/`M204`, feed rates `M203`, advanced `M205`) as the
+    /// printer reports them in answer to `M503` and in its boot banner; the command as
+    /// written, without `echo:`.
+    Setting(String),
     /// `//action:NAME ...` (HOST_ACTION_COMMANDS): the printer's own Stop or Pause menu.
     Action(HostAction),
     /// Anything else (`echo:` lines, banners, noise), kept for the log.
@@ -135,6 +140,9 @@ impl Reply {
                 ));
             }
         }
+        if let Some(setting) = parse_setting(line) {
+            return Some(Reply::Setting(setting.to_string()));
+        }
         if let Some(report) = parse_report(line) {
             return Some(Reply::Temperatures(report));
         }
@@ -153,6 +161,20 @@ fn ends_with_start(lower: &str) -> bool {
         .last()
         .is_none_or(|c| !c.is_ascii_alphabetic())
         && !before.contains('"')
+}
+
+/// The planner settings `M503` reports, as the one G-code reader reads them (both
+/// firmwares write them as plain commands after `echo:` and spaces; Marlin 2 puts a
+/// comment line before each, Ultimaker2Marlin a title).
+const SETTINGS: [&str; 5] = ["M92", "M201", "M203", "M204", "M205"];
+
+/// `echo:  M92 X80.00 Y80.00 Z400.00 E500.00`: the command, if it is one of [`SETTINGS`]
+/// with at least one value.
+fn parse_setting(line: &str) -> Option<&str> {
+    let command = line.strip_prefix("echo:").unwrap_or(line).trim();
+    let read = crate::marlin::reader::read(command).ok()??;
+    (SETTINGS.contains(&read.code.as_str()) && read.words.iter().any(|w| w.value.is_some()))
+        .then_some(command)
 }
 
 /// `Resend: 12`, `Resend:12`, `rs 12`, `rs:12`.
@@ -321,6 +343,50 @@ mod tests {
         ));
         assert!(matches!(parse("\u{fffd}(noise"), Reply::Other(_)));
         assert_eq!(Reply::parse(b"  \r"), None);
+    }
+
+    /// The answers of the real firmware to `M503` (Marlin 2.1.2.1's Linux build,
+    /// Ultimaker2Marlin in its emulator), as they came: the planner's settings are read,
+    /// every other line (titles, `G21`, `M149 C`, `M206`, PID) is not one.
+    #[test]
+    fn settings_are_read_from_both_firmwares_m503_answers() {
+        let settings = |text: &str| -> Vec<String> {
+            text.lines()
+                .filter_map(|l| match parse(l) {
+                    Reply::Setting(s) => Some(s),
+                    _ => None,
+                })
+                .collect()
+        };
+        assert_eq!(
+            settings(include_str!("tests/m503/marlin-2.1.2.1.txt")),
+            [
+                "M92 X80.00 Y80.00 Z400.00 E500.00",
+                "M203 X300.00 Y300.00 Z5.00 E25.00",
+                "M201 X3000.00 Y3000.00 Z100.00 E10000.00",
+                "M204 P3000.00 R3000.00 T3000.00",
+                "M205 B20000.00 S0.00 T0.00 J0.01",
+            ]
+        );
+        assert_eq!(
+            settings(include_str!("tests/m503/ultimaker2marlin-8698fb6.txt")),
+            [
+                "M92 X80.00 Y80.00 Z200.00 E282.00",
+                "M203 X300.00 Y300.00 Z40.00 E45.00",
+                "M201 X9000 Y9000 Z100 E10000",
+                "M204 S3000.00 T3000.00",
+                "M205 S0.00 T0.00 B20000 X20.00 Z0.40 E5.00",
+            ]
+        );
+        // Not a setting: no value, another command, a garbled one, a message about one.
+        for line in [
+            "echo:  M203",
+            "echo:  M206 X0.00 Y0.00 Z0.00",
+            "echo:  M2O3 X300.00",
+            "echo:Unknown command: \"M203 X1\"",
+        ] {
+            assert!(!matches!(parse(line), Reply::Setting(_)), "{line}");
+        }
     }
 
     /// Issue 21, failure 0: OctoPrint's virtual printer writes `T:24.99/ 0.00`; read as no

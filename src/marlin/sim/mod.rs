@@ -47,7 +47,7 @@ pub fn is_housekeeping(cmd: &str) -> bool {
     let word = cmd.split_whitespace().next().unwrap_or("");
     matches!(
         word.to_ascii_uppercase().as_str(),
-        "M105" | "M110" | "M115" | "M155" | "M114" | "M27" | "M73"
+        "M105" | "M110" | "M115" | "M155" | "M114" | "M27" | "M73" | "M503"
     )
 }
 

@@ -63,6 +63,7 @@ impl Printer {
             relative: false,
             relative_e: false,
             feedrate: DEFAULT_FEEDRATE,
+            settings: crate::marlin::estimate::Limits::of(cfg.firmware),
             hotend: Temperature {
                 current: AMBIENT,
                 target: 0.0,
@@ -109,6 +110,7 @@ impl Printer {
         self.relative = false;
         self.relative_e = false;
         self.feedrate = DEFAULT_FEEDRATE;
+        self.settings = crate::marlin::estimate::Limits::of(self.fw);
         self.hotend.target = 0.0;
         self.bed.target = 0.0;
         self.autoreport = None;
@@ -574,6 +576,10 @@ impl Printer {
                 ));
             }
             ('M', Some(115)) => self.m115(),
+            ('M', Some(503)) => self.m503(),
+            ('M', Some(92 | 201 | 203 | 204 | 205)) => {
+                self.settings.apply_command(&cmd);
+            }
             ('M', Some(155)) if self.fw.autoreport_temp() => {
                 let s = word(&words, 'S').unwrap_or(0.0);
                 if s > 0.0 {
@@ -707,6 +713,56 @@ mod tests {
                 assert_eq!(p.position[3], expected, "{fw} {commands:?}");
                 assert_eq!(host.file_position()[3], Some(expected), "{fw} {commands:?}");
             }
+        }
+    }
+
+    /// `M503` answers as the real firmware does (its transcripts, taken from Marlin
+    /// 2.1.2.1's Linux build and Ultimaker2Marlin in its emulator), and reports a setting
+    /// a command changed; the host's reading of it gives the firmware's stock planner.
+    #[test]
+    fn m503_answers_as_the_real_firmware_does() {
+        use crate::marlin::estimate::Limits;
+        for (fw, real) in [
+            (
+                Firmware::Marlin2,
+                include_str!("../protocol/tests/m503/marlin-2.1.2.1.txt"),
+            ),
+            (
+                Firmware::Ultimaker2,
+                include_str!("../protocol/tests/m503/ultimaker2marlin-8698fb6.txt"),
+            ),
+        ] {
+            let mut p = printer(fw);
+            p.take_output();
+            let mut recorder = Recorder {
+                executed: None,
+                file: None,
+            };
+            let mut run = |p: &mut Printer, cmd: &str| {
+                let queued = Queued {
+                    n: None,
+                    cmd: cmd.to_string(),
+                    acked: false,
+                };
+                p.execute(queued, Instant::now(), &mut recorder);
+                String::from_utf8(p.take_output()).unwrap()
+            };
+            let answer = run(&mut p, "M503");
+            // Up to its `ok` (the sim's Marlin 2 has ADVANCED_OK on, the real build not).
+            let before_ok = |t: &str| t.lines().take_while(|l| !l.starts_with("ok")).count();
+            let (lines, real_lines) = (answer.lines(), real.lines());
+            assert_eq!(
+                lines.take(before_ok(&answer)).collect::<Vec<_>>(),
+                real_lines.take(before_ok(real)).collect::<Vec<_>>(),
+                "{fw}"
+            );
+            let mut read = Limits::of(fw);
+            read.apply_m503(&answer);
+            assert_eq!(read, Limits::of(fw), "{fw}");
+            run(&mut p, "M203 X200 Z4.5");
+            let mut read = Limits::of(fw);
+            read.apply_m503(&run(&mut p, "M503"));
+            assert_eq!((read.max_feedrate[0], read.max_feedrate[2]), (200.0, 4.5));
         }
     }
 

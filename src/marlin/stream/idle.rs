@@ -48,6 +48,9 @@ pub(super) struct IdleWatch {
     pub(super) last_report: Option<tokio::time::Instant>,
     /// [`Idle::Silent`] was returned since the last report.
     pub(super) silent: bool,
+    /// The planner's settings as the printer last reported them (`M503`, or its boot
+    /// banner), one line per command (`M203 X300.00 ...`), the latest of each.
+    pub(super) settings: Vec<String>,
 }
 
 /// What a chunk of idle talk held.
@@ -70,6 +73,7 @@ impl IdleWatch {
             temperatures: Temperatures::default(),
             last_report: None,
             silent: false,
+            settings: Vec::new(),
         }
     }
 
@@ -124,6 +128,13 @@ impl IdleWatch {
                 Reply::Busy(line) => {
                     self.alive_at = Some(now);
                     tracing::debug!(port = %port.display(), "idle printer: {line}");
+                }
+                Reply::Setting(line) => {
+                    tracing::debug!(port = %port.display(), "idle printer's setting: {line}");
+                    let code = line.split_whitespace().next().unwrap_or("").to_string();
+                    self.settings
+                        .retain(|s| s.split_whitespace().next() != Some(code.as_str()));
+                    self.settings.push(line);
                 }
                 Reply::Fatal(line) => {
                     tracing::error!(port = %port.display(), "idle printer halted: {line}");

@@ -100,3 +100,96 @@ pub(super) fn known_marlin2(letter: char, code: f64) -> bool {
         _ => false,
     }
 }
+
+impl Printer {
+    /// `M503`: the settings report, line for line as each firmware writes it (Marlin
+    /// 2.1.2.1: `MarlinSettings::report` in settings.cpp, every value with two decimals;
+    /// Ultimaker2Marlin: `Config_PrintSettings` in ConfigurationStore.cpp, the maximum
+    /// accelerations as whole numbers), from the planner's settings as they stand.
+    pub(super) fn m503(&mut self) {
+        use crate::marlin::estimate::Junction;
+        let l = &self.settings;
+        let axes = |v: &[f64; 4], whole: bool| {
+            let f = |x: f64| {
+                if whole {
+                    format!("{x:.0}")
+                } else {
+                    format!("{x:.2}")
+                }
+            };
+            format!("X{} Y{} Z{} E{}", f(v[0]), f(v[1]), f(v[2]), f(v[3]))
+        };
+        let lines: Vec<String> = match self.fw {
+            Firmware::Ultimaker2 => {
+                let (xy, z, e) = match l.junction {
+                    Junction::Classic { xy, z, e } => (xy, z, e),
+                    Junction::Deviation { .. } => (0.0, 0.0, 0.0),
+                };
+                vec![
+                    "echo:Steps per unit:".into(),
+                    format!("echo:  M92 {}", axes(&l.steps_per_mm, false)),
+                    "echo:Maximum feedrates (mm/s):".into(),
+                    format!("echo:  M203 {}", axes(&l.max_feedrate, false)),
+                    "echo:Maximum Acceleration (mm/s2):".into(),
+                    format!("echo:  M201 {}", axes(&l.max_accel, true)),
+                    "echo:Acceleration: S=acceleration, T=retract acceleration".into(),
+                    format!("echo:  M204 S{:.2} T{:.2}", l.accel, l.retract_accel),
+                    "echo:Advanced variables: S=Min feedrate (mm/s), T=Min travel feedrate (mm/s), \
+                     B=minimum segment time (ms), X=maximum XY jerk (mm/s),  Z=maximum Z jerk \
+                     (mm/s),  E=maximum E jerk (mm/s)"
+                        .into(),
+                    format!(
+                        "echo:  M205 S{:.2} T{:.2} B{:.0} X{xy:.2} Z{z:.2} E{e:.2}",
+                        l.min_feedrate, l.min_travel_feedrate, l.min_segment_time_us
+                    ),
+                    "echo:Home offset (mm):".into(),
+                    "echo:  M206 X0.00 Y0.00 Z0.00".into(),
+                    "echo:PID settings:".into(),
+                    "echo:   M301 P10.00 I2.50 D100.00".into(),
+                ]
+            }
+            Firmware::Marlin2 | Firmware::Marlin20 => {
+                let jd = match l.junction {
+                    Junction::Deviation { mm } => mm,
+                    Junction::Classic { .. } => 0.0,
+                };
+                vec![
+                    "echo:; Linear Units:".into(),
+                    "echo:  G21 ; (mm)".into(),
+                    "echo:; Temperature Units:".into(),
+                    "echo:  M149 C ; Units in Celsius".into(),
+                    "echo:; Filament settings (Disabled):".into(),
+                    "echo:  M200 S0 D1.75".into(),
+                    "echo:; Steps per unit:".into(),
+                    format!("echo:  M92 {}", axes(&l.steps_per_mm, false)),
+                    "echo:; Max feedrates (units/s):".into(),
+                    format!("echo:  M203 {}", axes(&l.max_feedrate, false)),
+                    "echo:; Max Acceleration (units/s2):".into(),
+                    format!("echo:  M201 {}", axes(&l.max_accel, false)),
+                    "echo:; Acceleration (units/s2) (P<print-accel> R<retract-accel> T<travel-accel>):"
+                        .into(),
+                    format!(
+                        "echo:  M204 P{:.2} R{:.2} T{:.2}",
+                        l.accel,
+                        l.retract_accel,
+                        l.travel_accel.unwrap_or(l.accel)
+                    ),
+                    "echo:; Advanced (B<min_segment_time_us> S<min_feedrate> \
+                     T<min_travel_feedrate> J<junc_dev>):"
+                        .into(),
+                    format!(
+                        "echo:  M205 B{:.2} S{:.2} T{:.2} J{jd:.2}",
+                        l.min_segment_time_us, l.min_feedrate, l.min_travel_feedrate
+                    ),
+                    "echo:; Home offset:".into(),
+                    "echo:  M206 X0.00 Y0.00 Z0.00".into(),
+                    "echo:; Hotend PID:".into(),
+                    "echo:  M301 P22.20 I1.08 D114.00".into(),
+                ]
+            }
+        };
+        for line in lines {
+            self.say(&line);
+        }
+    }
+}

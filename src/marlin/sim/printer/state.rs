@@ -94,6 +94,9 @@ pub(crate) struct Printer {
     pub(super) relative: bool,
     pub(super) relative_e: bool,
     pub(super) feedrate: f64,
+    /// The planner's settings: the firmware's stock values, changed by `M92`, `M201`,
+    /// `M203`, `M204`, `M205` until a reset (no EEPROM), reported by `M503`.
+    pub(super) settings: crate::marlin::estimate::Limits,
     pub(super) hotend: Temperature,
     pub(super) bed: Temperature,
     pub(super) temps_at: Instant,

@@ -6,7 +6,7 @@
 //! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
 //! - [`observe`]: a model of a person looking at a print: how much a small print looks
 //!   like the same model printed large, from their G-code.
-//! - [`slice`]: running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
+//! - [`slice`](mod@slice): running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
 //! - [`machine`]: the kinds of printer a job is sliced for (bed, nozzle, filament, firmware).
 //! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
 //!   and the simulated printer used by tests, the quick start and the demo farm.

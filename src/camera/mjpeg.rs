@@ -350,7 +350,7 @@ impl MjpegReader {
 /// header and at least one scan, the scans' data up to the next marker, and EOI; after it
 /// only padding (blanks, line ends, NULs, which some cameras add inside the part). The
 /// length up to the end of EOI when so. Reads the markers only, never the picture (see
-/// [`decodes`] for that).
+/// [`decodes`](super::picture::decodes) for that).
 pub fn check_jpeg(bytes: &[u8]) -> Result<usize, FrameFault> {
     if !is_jpeg(bytes) {
         return Err(FrameFault::NotJpeg { bytes: bytes.len() });

@@ -37,6 +37,23 @@ pub struct JobCamera {
     /// The layers the timelapse has no frame of, in runs of one cause, oldest first.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub missing: Vec<MissingFrames>,
+    /// The parts of the plate the print dropped, where the timelapse shows it.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub dropped: Vec<DroppedPart>,
+}
+
+/// A part of the plate cancelled during the print: from which frame of the timelapse it is
+/// no longer printed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DroppedPart {
+    pub part: String,
+    /// The layer it was dropped at (from 1), where the G-code tells.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layer: Option<usize>,
+    /// The frames taken before it was dropped: the next is the first without it.
+    pub frame: u32,
+    /// Where that frame is in the encoded timelapse, seconds.
+    pub video_s: f64,
 }
 
 /// Layers `first..=last` (from 1) of a print have no timelapse frame, for one cause.
@@ -84,6 +101,8 @@ struct Recording {
     layer_starts: Vec<usize>,
     next_layer: usize,
     frames: u32,
+    /// The frames an earlier attempt at the print left, which come first.
+    earlier_frames: u32,
     last_frame: Option<Instant>,
     first_layer_taken: bool,
     /// The latest distinct pictures, for a failure.
@@ -151,6 +170,50 @@ async fn step(
     };
     let acked = live.progress.as_ref().map_or(0, |p| p.lines_acked);
     follow(cameras, printer, rec, acked).await;
+    mark_dropped(farm, cameras.settings.timelapse, rec).await;
+}
+
+/// Marks in the manifest, once each, the parts the store says this print dropped: with a
+/// frame a layer, before the frame of the layer it was dropped at (whenever the recorder
+/// sees it); else at the frame the timelapse has come to.
+async fn mark_dropped(farm: &Farm, timelapse: Timelapse, rec: &mut Recording) {
+    let dropped: Vec<(String, Option<usize>)> = {
+        let store = farm.store();
+        let Some(job) = store.get(&rec.job) else {
+            return;
+        };
+        job.parts_cancelled_in(job.print_number())
+            .filter(|c| !rec.manifest.dropped.iter().any(|d| d.part == c.part))
+            .filter_map(|c| Some((c.part.clone(), c.dropped.as_ref()?.layer)))
+            .collect()
+    };
+    if dropped.is_empty() {
+        return;
+    }
+    for (part, layer) in dropped {
+        let frame = match (timelapse, layer) {
+            (Timelapse::Layers, Some(layer)) => {
+                // The layers before it, less those the camera gave no frame of.
+                let before = layer.saturating_sub(1) as u32;
+                let missed: u32 = rec
+                    .manifest
+                    .missing
+                    .iter()
+                    .map(|m| m.last.min(before).saturating_sub(m.first.saturating_sub(1)))
+                    .sum();
+                rec.earlier_frames + before.saturating_sub(missed)
+            }
+            _ => rec.frames,
+        };
+        tracing::info!(printer = %rec.manifest.printer, job = %rec.job, part, frame, "camera: the timelapse marks a part dropped");
+        rec.manifest.dropped.push(DroppedPart {
+            part,
+            layer,
+            frame,
+            video_s: timelapse::seconds_at(frame),
+        });
+    }
+    write_manifest(&rec.dir, &rec.manifest).await;
 }
 
 /// The printer's picture now, if its camera has a fresh one (decoding off the runtime);
@@ -180,6 +243,7 @@ async fn start(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, job: &str) ->
         layer_starts,
         next_layer: 0,
         frames: 0,
+        earlier_frames: 0,
         last_frame: None,
         first_layer_taken: false,
         recent: VecDeque::new(),
@@ -192,6 +256,7 @@ async fn start(farm: &Farm, cameras: &Arc<Cameras>, printer: &str, job: &str) ->
     }
     // Frames an earlier attempt left unencoded come first in the timelapse.
     rec.frames = frames_kept(&rec.dir).await;
+    rec.earlier_frames = rec.frames;
     rec.manifest.layers = Some(layers);
     if let Ok(p) = picture(cameras, printer).await {
         snapshot(&mut rec, "start", &p).await;
@@ -438,6 +503,7 @@ pub async fn encode_leftovers(root: &Path) {
             layer_starts: Vec::new(),
             next_layer: 0,
             frames,
+            earlier_frames: 0,
             last_frame: None,
             first_layer_taken: true,
             recent: VecDeque::new(),

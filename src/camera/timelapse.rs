@@ -9,6 +9,11 @@ use tokio::io::AsyncReadExt;
 
 /// Frames per second of a timelapse.
 const FPS: u32 = 10;
+
+/// Where frame `frame` (from 0) is in an encoded timelapse, seconds.
+pub(crate) fn seconds_at(frame: u32) -> f64 {
+    f64::from(frame) / f64::from(FPS)
+}
 /// The longest an encoding may take.
 const ENCODE_TIMEOUT: Duration = Duration::from_secs(600);
 /// What is kept of ffmpeg's complaints.

@@ -6,7 +6,7 @@
 //! by a reload.
 //!
 //! How a printer's port is reached is handed in ([`Ports`]): the real serial ports and
-//! simulators ([`Ports::marlin`]), or a test's doubles.
+//! simulators ([`marlin_ports`]), or a test's doubles.
 
 use super::config::{PrinterConfig, PrinterPort};
 use super::error::DaemonError;

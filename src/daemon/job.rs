@@ -122,7 +122,8 @@ impl JobState {
         JobState::Interrupted,
     ];
 
-    /// The one table of legal state changes; [`JobStore::transition`] refuses any other.
+    /// The one table of legal state changes; [`JobStore::transition_with`](super::store::job_store::JobStore::transition_with) refuses
+    /// any other.
     /// A job is prepared once per retry and printed once per copy; `done` is final, so a
     /// finished job can never be offered for a reprint. Preparing goes back to queued only
     /// by the restart rules (preparation is redone); a job whose files vanished or whose
@@ -541,12 +542,49 @@ impl Job {
 impl Job {
     /// Filament one print of it needs on `machine`, when measured. A job prepared before
     /// needs were kept per machine has its first machine's length, told in metres.
+    /// Parts of the plate cancelled before its next or running print began are not
+    /// needed, so their share is left out; a part cancelled mid-print stays counted (what
+    /// is left of it is not known without following the print, and too much booked is
+    /// safer than too little).
     pub fn need_on(&self, machine: &str) -> Option<crate::daemon::filament::Need> {
-        if self.needs.is_empty() {
+        let need = if self.needs.is_empty() {
             let mm = self.slice_report.as_ref()?.filament_mm?;
-            return Some(crate::daemon::filament::Need { mm, g: None });
-        }
-        self.needs.get(machine).copied()
+            crate::daemon::filament::Need { mm, g: None }
+        } else {
+            *self.needs.get(machine)?
+        };
+        let left = 1.0 - self.share_cancelled_before_print();
+        Some(crate::daemon::filament::Need {
+            mm: need.mm * left,
+            g: need.g.map(|g| g * left),
+        })
+    }
+
+    /// The share of the plate's filament (as its report's G-code pushes it) in parts
+    /// cancelled before the next or running print began, 0 to 1.
+    fn share_cancelled_before_print(&self) -> f64 {
+        let Some(report) = self.slice_report.as_ref() else {
+            return 0.0;
+        };
+        let Some(total) = report.filament_mm.filter(|mm| *mm > 0.0) else {
+            return 0.0;
+        };
+        let began = match self.state {
+            JobState::Printing => self
+                .history
+                .iter()
+                .rev()
+                .find(|(s, _)| *s == JobState::Printing)
+                .map_or(f64::INFINITY, |(_, at)| *at),
+            _ => f64::INFINITY,
+        };
+        let dropped: f64 = self
+            .parts_cancelled_in(self.print_number())
+            .filter(|c| c.at_s <= began)
+            .filter_map(|c| report.parts.iter().find(|p| p.name == c.part))
+            .map(|p| p.extruded_mm)
+            .sum();
+        (dropped / total).clamp(0.0, 1.0)
     }
 
     /// What its prints took (each copy, and a print that failed or was cancelled as far
@@ -744,6 +782,64 @@ mod tests {
         }
         let fine = "material = \"PLA+\"\ncolour = \"gris fonc\u{e9}\"\nprinter = \"a\"\n";
         parse_sidecar(fine.as_bytes(), path).unwrap();
+    }
+
+    /// A part cancelled before the print leaves the booking; one cancelled while it
+    /// prints, or for an earlier print, does not.
+    #[test]
+    fn a_part_cancelled_before_its_print_is_not_booked() {
+        use crate::daemon::filament::Need;
+        use crate::marlin::plate::PartInfo;
+        let part = |name: &str, mm: f64| PartInfo {
+            name: name.into(),
+            outline: Vec::new(),
+            extruded_mm: mm,
+            z_mm: [0.2, 4.0],
+        };
+        let mut job = Job::queued("0001-p".into(), 1, "p.3mf".into(), PathBuf::from("hot"));
+        job.state = JobState::Ready;
+        job.slice_report = Some(crate::slice::SliceReport {
+            machine: "um2".into(),
+            filament_mm: Some(1000.0),
+            parts: vec![part("a", 300.0), part("b", 500.0)],
+            ..Default::default()
+        });
+        job.needs.insert(
+            "um2".into(),
+            Need {
+                mm: 1000.0,
+                g: Some(8.0),
+            },
+        );
+        // A second machine's G-code pushes more: the same share of it is left out.
+        job.needs.insert(
+            "mk3".into(),
+            Need {
+                mm: 2000.0,
+                g: None,
+            },
+        );
+        let cancel = |part: &str, print: u32, at_s: f64| PartCancel {
+            part: part.into(),
+            print,
+            at_s,
+            dropped: None,
+        };
+        assert_eq!(job.need_on("um2").unwrap().mm, 1000.0);
+        job.parts_cancelled.push(cancel("a", 1, 100.0));
+        let need = job.need_on("um2").unwrap();
+        assert!((need.mm - 700.0).abs() < 1e-9, "{need:?}");
+        assert!((need.g.unwrap() - 5.6).abs() < 1e-9, "{need:?}");
+        assert!((job.need_on("mk3").unwrap().mm - 1400.0).abs() < 1e-9);
+        // Printing since 200 s: a cancel at 300 s is mid-print and stays booked.
+        job.state = JobState::Printing;
+        job.history.push((JobState::Printing, 200.0));
+        job.parts_cancelled.push(cancel("b", 1, 300.0));
+        assert!((job.need_on("um2").unwrap().mm - 700.0).abs() < 1e-9);
+        // The next print: the first print's cancels are not its.
+        job.state = JobState::Ready;
+        job.history.push((JobState::Ready, 400.0));
+        assert_eq!(job.need_on("um2").unwrap().mm, 1000.0);
     }
 
     /// Every pair of states, against a table written out by hand: a change to

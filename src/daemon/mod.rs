@@ -5,7 +5,7 @@
 //! - [`config`]: the TOML configuration, checked in two stages.
 //! - [`job`]: a job, its states and the one table of legal changes.
 //! - [`bed`]: a printer's bed between prints (cleared by a person, ejected by the printer,
-//!   checked by its camera) and its table of legal changes; [`eject`]: running the eject.
+//!   checked by its camera) and its table of legal changes; `printer::eject`: running the eject.
 //! - [`store`]: the task that owns the jobs (the embedded spool by default), its handle
 //!   and the snapshot readers glance at.
 //! - [`hotfolder`]: deciding when a dropped file is complete; [`pickup`] admits them.

@@ -4,7 +4,8 @@
 //! [`changed_keys`] destructures the config without `..`, so a field added to the config
 //! does not compile until it is compared here; and a test walks every key of the file as
 //! its `Raw*` structs declare it (`config::keys`), so a key added to the file fails the
-//! suite until it has a policy here, or is said to change as another key ([`REPORTED_AS`]).
+//! suite until it has a policy here, or is said to change as another key (the tests'
+//! `REPORTED_AS`).
 
 use super::config::{Config, FarmConfig, FolderConfig, HttpConfig, PrinterConfig};
 use super::farm::Farm;

@@ -71,7 +71,7 @@ pub struct PhaseTimings {
     pub combine_s: f64,
 }
 
-/// What [`enhance`] did, in the input's units.
+/// What [`enhance`](super::enhance) did, in the input's units.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct EnhanceReport {
     pub vertices: usize,

@@ -1,6 +1,6 @@
 //! Each hot folder announced on the local network as an OctoPrint instance
 //! (`_octoprint._tcp`, as OctoPrint announces itself), so Cura's OctoPrint connection
-//! lists "crispen: <folder>" without anyone typing an address. The TXT record carries
+//! lists "crispen: &lt;folder&gt;" without anyone typing an address. The TXT record carries
 //! what Cura reads: `path` (the instance's base, `/octoprint/<folder>/`), `version` and
 //! `api`, and what Home Assistant reads: `uuid`, the instance's identity, the same as its
 //! `api/settings` `plugins.discovery.upnpUuid` (see `super::octoprint::identity`), so a
@@ -38,7 +38,7 @@ impl Drop for Announcer {
     }
 }
 
-/// "crispen: <folder>", cut to a DNS label's length on a character boundary.
+/// "crispen: &lt;folder&gt;", cut to a DNS label's length on a character boundary.
 pub(crate) fn instance_name(folder: &str) -> String {
     let mut name = format!("crispen: {folder}");
     while name.len() > MAX_LABEL_BYTES {

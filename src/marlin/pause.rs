@@ -1,5 +1,5 @@
 //! Pauses a G-code file asks for (`M0`, `M1`, `M25`, `M125`, `M226`, `M601`, `M600`: see
-//! [`FILE_PAUSES`](super::gcode::FILE_PAUSES)): where they are, what the operator is told, and
+//! [`FILE_PAUSES`]): where they are, what the operator is told, and
 //! the G-code the host sends to park the printer and to take up the print again. Pure: no
 //! I/O and no clock; the stream driver (`stream.rs`) drives it.
 //!

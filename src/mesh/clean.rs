@@ -7,6 +7,16 @@ use std::collections::HashMap;
 
 /// Cleans an indexed mesh. Face indices must be valid for `vertices`.
 pub fn clean(vertices: Vec<[f64; 3]>, faces: Vec<[u32; 3]>) -> (Mesh, CleanReport) {
+    clean_marked(vertices, faces, &mut [])
+}
+
+/// [`clean`], also moving each of `ends` (ascending face counts: where a run of faces
+/// ends, a 3MF object's) to where that run ends among the faces kept.
+pub(super) fn clean_marked(
+    vertices: Vec<[f64; 3]>,
+    faces: Vec<[u32; 3]>,
+    ends: &mut [usize],
+) -> (Mesh, CleanReport) {
     let mut report = CleanReport::default();
 
     // Weld: map every vertex to the first vertex with the same coordinates. -0.0 and 0.0
@@ -24,13 +34,21 @@ pub fn clean(vertices: Vec<[f64; 3]>, faces: Vec<[u32; 3]>) -> (Mesh, CleanRepor
     drop(first_with);
 
     let mut kept_faces: Vec<[u32; 3]> = Vec::with_capacity(faces.len());
-    for f in &faces {
+    let mut next_end = 0;
+    for (at, f) in faces.iter().enumerate() {
+        while ends.get(next_end) == Some(&at) {
+            ends[next_end] = kept_faces.len();
+            next_end += 1;
+        }
         let g = f.map(|i| weld_to[i as usize]);
         if g[0] == g[1] || g[1] == g[2] || g[0] == g[2] || zero_area(&vertices, g) {
             report.dropped_degenerate_faces += 1;
             continue;
         }
         kept_faces.push(g);
+    }
+    for end in &mut ends[next_end..] {
+        *end = kept_faces.len();
     }
     drop(faces);
 

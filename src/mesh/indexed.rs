@@ -26,6 +26,25 @@ impl Mesh {
         }
         Some((lo, hi))
     }
+
+    /// The mesh of the faces in `faces` alone, its vertices kept in their order here (one
+    /// object of a 3MF's build, see [`LoadedMesh::objects`]).
+    pub fn sub(&self, faces: std::ops::Range<usize>) -> Mesh {
+        let faces = &self.faces[faces];
+        let mut index = vec![u32::MAX; self.vertices.len()];
+        for &i in faces.iter().flatten() {
+            index[i as usize] = 0;
+        }
+        let mut vertices = Vec::new();
+        for (slot, v) in index.iter_mut().zip(&self.vertices) {
+            if *slot == 0 {
+                *slot = vertices.len() as u32;
+                vertices.push(*v);
+            }
+        }
+        let faces = faces.iter().map(|f| f.map(|i| index[i as usize])).collect();
+        Mesh { vertices, faces }
+    }
 }
 
 /// The file format a mesh was read from.
@@ -67,6 +86,18 @@ pub struct LoadedMesh {
     pub mesh: Mesh,
     pub format: MeshFormat,
     pub clean: CleanReport,
+    /// The objects of a 3MF whose build places several (a plate of several models), each
+    /// a run of `mesh`'s faces in build order; empty for a file of one object and for STL
+    /// and OBJ, whose files hold one model.
+    pub objects: Vec<MeshObject>,
+}
+
+/// One object of a 3MF's build: its name and its faces in the loaded mesh.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeshObject {
+    /// The object's `name`, or `object {id}` for one without.
+    pub name: String,
+    pub faces: std::ops::Range<usize>,
 }
 
 /// The memory budget for reading: larger inputs are refused with [`MeshError::TooLarge`]
@@ -171,6 +202,8 @@ pub enum MeshError {
 pub struct RawMesh {
     pub vertices: Vec<[f64; 3]>,
     pub faces: Vec<[u32; 3]>,
+    /// A 3MF's build items in order: each one's name and where its faces end.
+    pub objects: Vec<(String, usize)>,
 }
 /// The (unnormalised) normal of triangle `f`: twice its area times its unit normal.
 pub fn triangle_normal(vertices: &[[f64; 3]], f: [u32; 3]) -> [f64; 3] {

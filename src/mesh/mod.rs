@@ -17,7 +17,7 @@ mod threemf;
 
 pub use clean::clean;
 pub use indexed::{triangle_normal, RawMesh};
-pub use indexed::{CleanReport, Limits, LoadedMesh, Mesh, MeshError, MeshFormat};
+pub use indexed::{CleanReport, Limits, LoadedMesh, Mesh, MeshError, MeshFormat, MeshObject};
 pub use obj::write_obj;
 
 use std::io::{Read, Write};
@@ -67,7 +67,8 @@ pub fn read_with_limits(
         });
     }
     let (format, raw) = parse_bytes(bytes, source_name, limits)?;
-    let (mesh, clean_report) = clean(raw.vertices, raw.faces);
+    let (names, mut ends): (Vec<String>, Vec<usize>) = raw.objects.into_iter().unzip();
+    let (mesh, clean_report) = clean::clean_marked(raw.vertices, raw.faces, &mut ends);
     if mesh.faces.is_empty() {
         let detail = if clean_report.dropped_degenerate_faces > 0 {
             format!(
@@ -82,10 +83,26 @@ pub fn read_with_limits(
             detail,
         });
     }
+    // Each object with faces left after cleaning is one; a build of one is the model.
+    let mut start = 0;
+    let mut objects = Vec::new();
+    for (name, end) in names.into_iter().zip(ends) {
+        if end > start {
+            objects.push(MeshObject {
+                name,
+                faces: start..end,
+            });
+        }
+        start = end;
+    }
+    if objects.len() < 2 {
+        objects.clear();
+    }
     Ok(LoadedMesh {
         mesh,
         format,
         clean: clean_report,
+        objects,
     })
 }
 

@@ -93,7 +93,11 @@ pub(super) fn parse(
             _ => {}
         }
     }
-    Ok(RawMesh { vertices, faces })
+    Ok(RawMesh {
+        vertices,
+        faces,
+        objects: Vec::new(),
+    })
 }
 
 /// Writes `mesh` as OBJ: `v` lines at full precision, then 1-based `f` lines.

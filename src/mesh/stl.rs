@@ -109,7 +109,11 @@ fn collect(
         }
         faces.push([base, base + 1, base + 2]);
     }
-    Ok(RawMesh { vertices, faces })
+    Ok(RawMesh {
+        vertices,
+        faces,
+        objects: Vec::new(),
+    })
 }
 
 fn check_face_budget(n: usize, source_name: &str, limits: &Limits) -> Result<(), MeshError> {

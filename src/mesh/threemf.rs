@@ -46,6 +46,8 @@ struct Component {
 struct Part {
     unit_mm: f64,
     objects: HashMap<String, Object>,
+    /// The objects' `name` attributes, by id.
+    names: HashMap<String, String>,
     build: Vec<(String, Transform)>,
 }
 
@@ -113,6 +115,7 @@ pub(super) fn parse(
     let mut out = RawMesh {
         vertices: Vec::new(),
         faces: Vec::new(),
+        objects: Vec::new(),
     };
     let unit = [
         [root_part.unit_mm, 0., 0.],
@@ -155,6 +158,12 @@ pub(super) fn parse(
             depth: 0,
         };
         flatten(&parts, at, &mut instances, &mut out, source_name, limits)?;
+        let name = root_part
+            .names
+            .get(id)
+            .cloned()
+            .unwrap_or_else(|| format!("object {id}"));
+        out.objects.push((name, out.faces.len()));
     }
     Ok(out)
 }
@@ -277,6 +286,7 @@ fn parse_part(
     let mut part = Part {
         unit_mm: 1.0,
         objects: HashMap::new(),
+        names: HashMap::new(),
         build: Vec::new(),
     };
     // The object being read: its id, and its mesh or components so far.
@@ -309,6 +319,9 @@ fn parse_part(
                     }
                     b"object" => {
                         let id = get("id").ok_or_else(|| err("an <object> has no id".into()))?;
+                        if let Some(name) = get("name").map(str::trim).filter(|n| !n.is_empty()) {
+                            part.names.insert(id.to_string(), name.to_string());
+                        }
                         current = Some((id.to_string(), Vec::new(), Vec::new(), Vec::new()));
                     }
                     b"vertex" => {

@@ -2,7 +2,7 @@
 //! after the enhancement from one camera, a heat map of how far each point of the surface
 //! moved, the G-code thumbnails other farm tools show ([`thumbnail`]), and the outer walls
 //! of a few layers, plain and enhanced ([`walls`]), and the print as the printer will lay
-//! it, drawn from the G-code ([`print`]).
+//! it, drawn from the G-code ([`print`](mod@print)).
 //!
 //! A small z-buffer rasteriser is all this needs: orthographic projection, per-pixel
 //! interpolated normals (the enhancement is a change of shading, so flat or per-vertex

@@ -16,7 +16,7 @@
 //!   host or to hardware no machine has are refused always;
 //! - every move is followed ([`crate::marlin::motion`]) and must stay on the bed, arcs included;
 //!   what cannot be followed is refused;
-//! - pauses the file asks for ([`FILE_PAUSES`]) are not refused: the host intercepts them;
+//! - pauses the file asks for ([`FILE_PAUSES`](crate::marlin::reader::FILE_PAUSES)) are not refused: the host intercepts them;
 //!   the verdict lists them with the message the host will show
 //!   ([`crate::marlin::pause::pause_message`]).
 //!

@@ -87,6 +87,11 @@ impl SlicerProfile for PrusaProfile {
         if job.copies > 1 {
             args.extend(["--duplicate".into(), job.copies.to_string().into()]);
         }
+        // Without `--merge` PrusaSlicer slices each input file alone, each over the same
+        // output, leaving the last; with it, one plate of them all, arranged.
+        if stls.len() > 1 {
+            args.push("--merge".into());
+        }
         args.extend([
             "--center".into(),
             centre.into(),

@@ -866,3 +866,85 @@ fn cut_frames_are_failures_and_never_a_jobs_pictures() {
         whole(file, &a.body);
     }
 }
+
+/// A plate of two labelled parts, one cancelled mid-print: the timelapse marks where it
+/// was dropped (the store's layer, and the frames taken before it), and the job's camera
+/// section says so for the page.
+#[test]
+fn the_timelapse_marks_where_a_part_was_dropped() {
+    const LAYERS: usize = 12;
+    let tmp = tempfile::tempdir().unwrap();
+    let camera = TestCamera::start(10);
+    let farm = start_printers(
+        tmp.path(),
+        &[("seen", format!("stream = \"{}\"", camera.url("/stream")))],
+    );
+    farm.wait_camera("seen", "the camera online", |c| c["state"] == "online");
+    // Two squares a layer, labelled as PrusaSlicer labels its objects.
+    let mut g = String::from("M140 S60\nM104 S200\nM190 S60\nM109 S200\nG28\nG92 E0\n");
+    let mut e = 0.0;
+    for layer in 0..LAYERS {
+        let z = 0.2 * (layer + 1) as f64;
+        g += &format!(";LAYER_CHANGE\n;Z:{z:.1}\nG1 Z{z:.1} F600\n");
+        for (name, x0) in [("a", 40), ("b", 100)] {
+            g += &format!("; printing object {name}\nG1 X{x0} Y40 F6000\n");
+            for (x, y) in [(x0 + 30, 40), (x0 + 30, 70), (x0, 70), (x0, 40)] {
+                e += 1.0;
+                g += &format!("G1 X{x} Y{y} E{e:.1} F1200\n");
+            }
+            g += &format!("; stop printing object {name}\n");
+        }
+    }
+    g += "M104 S0\nM140 S0\nM84\n";
+    std::fs::write(tmp.path().join("seen/plate.gcode"), g).unwrap();
+    let s = farm.wait_for(Duration::from_secs(120), "a few layers printed", |s| {
+        job_by_file(s, "plate.gcode").is_some_and(|j| j["state"] == "printing")
+            && common::printer(s, "seen")["progress"]["lines_acked"].as_u64() > Some(60)
+    });
+    let id = job_by_file(&s, "plate.gcode").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let a = request(
+        &farm.addr,
+        "POST",
+        &format!("/api/v1/jobs/{id}/parts/b/cancel"),
+        &[("X-Api-Key", KEY)],
+        b"",
+    );
+    assert!(a.status < 300, "{}", a.text());
+    farm.wait_for(Duration::from_secs(240), "the job done", |s| {
+        job_by_file(s, "plate.gcode").is_some_and(|j| j["state"] == "done")
+    });
+    let cam = farm.finished_camera(&id);
+    let job = get(&farm.addr, &format!("/api/v1/jobs/{id}")).json()["job"].clone();
+    let layer = job["parts_cancelled"][0]["dropped"]["layer"].clone();
+    assert!(layer.as_u64().is_some_and(|l| l > 1), "{job:#}");
+    let dropped = cam["dropped"].as_array().expect("a mark");
+    assert_eq!(dropped.len(), 1, "{cam:#}");
+    let mark = &dropped[0];
+    assert_eq!(mark["part"], "b", "{cam:#}");
+    assert_eq!(mark["layer"], layer, "{cam:#}");
+    // One frame a layer: the frames before it are those of the layers before the one it
+    // was dropped at, less any the camera gave none of; at 10 frames a second.
+    let layer = layer.as_u64().unwrap();
+    let missed: u64 = cam["missing"].as_array().map_or(0, |runs| {
+        runs.iter()
+            .map(|m| {
+                let (first, last) = (m["first"].as_u64().unwrap(), m["last"].as_u64().unwrap());
+                (last.min(layer - 1) + 1).saturating_sub(first)
+            })
+            .sum()
+    });
+    let frame = mark["frame"].as_u64().unwrap();
+    assert_eq!(frame, layer - 1 - missed, "{cam:#}");
+    assert!(
+        frame <= cam["timelapse"]["frames"].as_u64().unwrap(),
+        "{cam:#}"
+    );
+    assert_eq!(
+        mark["video_s"].as_f64(),
+        Some(frame as f64 / 10.0),
+        "{cam:#}"
+    );
+}

@@ -518,3 +518,49 @@ fn mutated_inputs_never_panic() {
         }
     }
 }
+
+/// A 3MF whose build places several objects is a plate of several models: each object is
+/// a run of the loaded mesh's faces, named as the file names it (or by its id), with the
+/// runs moved past the faces cleaning dropped; an assembly (one build item of several
+/// components) stays one model.
+#[test]
+fn three_mf_objects_of_a_build_are_kept_apart() {
+    let degenerate = r#"<triangle v1="0" v2="0" v3="1"/>"#;
+    let root = format!(
+        r#"<?xml version="1.0"?>
+<model unit="millimeter" xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02">
+ <resources>
+  <object id="1" name="Rook"><mesh><vertices>{TETRA_VERTICES}</vertices><triangles>{degenerate}{TETRA_TRIANGLES}</triangles></mesh></object>
+  <object id="2"><mesh><vertices>{TETRA_VERTICES}</vertices><triangles>{TETRA_TRIANGLES}{degenerate}</triangles></mesh></object>
+  <object id="3" name="  "><mesh><vertices>{TETRA_VERTICES}</vertices><triangles>{degenerate}</triangles></mesh></object>
+ </resources>
+ <build><item objectid="1"/><item objectid="3"/><item objectid="2" transform="2 0 0 0 2 0 0 0 2 10 0 0"/></build>
+</model>"#
+    );
+    let loaded = read(&three_mf(&[("3D/3dmodel.model", &root)])).unwrap();
+    assert_eq!(loaded.clean.dropped_degenerate_faces, 3);
+    // The object of degenerate faces alone has none left: it is no part of the plate.
+    let objects: Vec<(&str, std::ops::Range<usize>)> = loaded
+        .objects
+        .iter()
+        .map(|o| (o.name.as_str(), o.faces.clone()))
+        .collect();
+    assert_eq!(objects, [("Rook", 0..4), ("object 2", 4..8)]);
+    let second = loaded.mesh.sub(4..8);
+    assert_eq!(second.faces, tetrahedron().faces);
+    let doubled: Vec<[f64; 3]> = tetrahedron()
+        .vertices
+        .iter()
+        .map(|v| [2.0 * v[0] + 10.0, 2.0 * v[1], 2.0 * v[2]])
+        .collect();
+    assert_eq!(second.vertices, doubled);
+    assert_eq!(loaded.mesh.sub(0..4), tetrahedron());
+
+    // One build item, however many components: one model.
+    let one = read(&three_mf(&[(
+        "3D/3dmodel.model",
+        &model_xml(TETRA_VERTICES, TETRA_TRIANGLES, ""),
+    )]))
+    .unwrap();
+    assert!(one.objects.is_empty());
+}

@@ -192,3 +192,248 @@ fn parts_cancelled_before_the_print_and_the_last_one_cancels_the_job() {
         2
     );
 }
+
+/// A 3MF of `objects`, each a named mesh placed as a build item of its own.
+fn three_mf(objects: &[(&str, &crispen::mesh::Mesh)]) -> Vec<u8> {
+    use std::fmt::Write as _;
+    use std::io::Write as _;
+    let mut resources = String::new();
+    let mut build = String::new();
+    for (i, (name, mesh)) in objects.iter().enumerate() {
+        let id = i + 1;
+        write!(
+            resources,
+            "<object id=\"{id}\" name=\"{name}\" type=\"model\"><mesh><vertices>"
+        )
+        .unwrap();
+        for v in &mesh.vertices {
+            write!(
+                resources,
+                "<vertex x=\"{}\" y=\"{}\" z=\"{}\"/>",
+                v[0], v[1], v[2]
+            )
+            .unwrap();
+        }
+        resources.push_str("</vertices><triangles>");
+        for f in &mesh.faces {
+            write!(
+                resources,
+                "<triangle v1=\"{}\" v2=\"{}\" v3=\"{}\"/>",
+                f[0], f[1], f[2]
+            )
+            .unwrap();
+        }
+        resources.push_str("</triangles></mesh></object>");
+        write!(build, "<item objectid=\"{id}\"/>").unwrap();
+    }
+    let model = format!(
+        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<model unit=\"millimeter\" \
+         xmlns=\"http://schemas.microsoft.com/3dmanufacturing/core/2015/02\">\
+         <resources>{resources}</resources><build>{build}</build></model>"
+    );
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let options = zip::write::SimpleFileOptions::default();
+    zip.start_file("3D/3dmodel.model", options).unwrap();
+    zip.write_all(model.as_bytes()).unwrap();
+    zip.finish().unwrap().into_inner()
+}
+
+/// A box of `size` with its low corner at `at`.
+fn block(at: [f64; 3], size: f64) -> crispen::mesh::Mesh {
+    let vertices = (0..8)
+        .map(|i| [0, 1, 2].map(|k| at[k] + if i >> k & 1 == 1 { size } else { 0.0 }))
+        .collect();
+    // Outward faces of the unit cube, corners numbered by their bits (x 1, y 2, z 4).
+    let faces = vec![
+        [0, 2, 1],
+        [1, 2, 3],
+        [4, 5, 6],
+        [5, 7, 6],
+        [0, 1, 4],
+        [1, 5, 4],
+        [2, 6, 3],
+        [3, 6, 7],
+        [0, 4, 2],
+        [2, 4, 6],
+        [1, 3, 5],
+        [3, 7, 5],
+    ];
+    crispen::mesh::Mesh { vertices, faces }
+}
+
+/// A 3MF whose build places Spot and a box half its height is one plate of two models:
+/// the box prints half as tall (the set keeps its proportions), the G-code labels each
+/// by the object's name, the box cancelled before the print leaves the booking and the
+/// print, and the printer executes exactly the plate without it.
+#[test]
+fn a_3mf_of_several_objects_prints_as_one_plate_of_its_models() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let config = farm(root, 1, 0.01);
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    let spot = crispen::mesh::load(&common::model("spot.obj"))
+        .unwrap()
+        .mesh;
+    let (lo, hi) = spot.bounds().unwrap();
+    let height = hi[2] - lo[2];
+    let side = block([hi[0] + height, lo[1], lo[2]], height / 2.0);
+    std::fs::write(root.join("hot/set.3mf.toml"), "hold = true\n").unwrap();
+    drop_model(
+        &root.join("hot"),
+        "set.3mf",
+        &three_mf(&[("Block", &side), ("Spot", &spot)]),
+    );
+    let s = wait_for(&config, &log, Duration::from_secs(180), "ready", |s| {
+        state_of(s, "set.3mf") == "ready"
+    });
+    let job = job_by_file(&s, "set.3mf").unwrap();
+    let id = job["id"].as_str().unwrap().to_string();
+    // In grams where the material is known, else metres.
+    let booked = |job: &Value| job["need_g"].as_f64().or(job["need_m"].as_f64()).unwrap();
+    let need = booked(job);
+    let report = record(root, &id)["slice_report"].clone();
+    let parts = report["parts"].as_array().unwrap();
+    assert_eq!(parts.len(), 2, "{report:#}");
+    // PrusaSlicer labels each object by the file crispen gave it, named after the object.
+    let part = |name: &str| {
+        parts
+            .iter()
+            .find(|p| {
+                p["name"]
+                    .as_str()
+                    .unwrap()
+                    .starts_with(&format!("{name}.stl"))
+            })
+            .unwrap_or_else(|| panic!("no part {name}: {report:#}"))
+    };
+    let block = part("Block")["name"].as_str().unwrap().to_string();
+    let top = |name: &str| part(name)["z_mm"][1].as_f64().unwrap();
+    // The tallest at the folder's 10 mm; the box at half, to a layer.
+    assert!((top("Spot") - 10.0).abs() <= 0.3, "{report:#}");
+    assert!((top("Block") - 5.0).abs() <= 0.3, "{report:#}");
+
+    let (ok, out) = ctl(&config, &["cancel", &id, "--part", &block]);
+    assert!(ok && out.contains("will not be printed"), "{out}");
+    let s = wait_for(
+        &config,
+        &log,
+        Duration::from_secs(10),
+        "Block cancelled",
+        |s| job_by_file(s, "set.3mf").unwrap()["parts"]["cancelled"] == serde_json::json!([block]),
+    );
+    // The booking leaves the box's share out.
+    let share =
+        part("Block")["extruded_mm"].as_f64().unwrap() / report["filament_mm"].as_f64().unwrap();
+    let left = booked(job_by_file(&s, "set.3mf").unwrap());
+    assert!(share > 0.01, "{report:#}");
+    assert!(
+        (left - need * (1.0 - share)).abs() < 1e-3,
+        "{left} of {need}"
+    );
+
+    let (ok, out) = ctl(&config, &["release", &id]);
+    assert!(ok, "{out}");
+    wait_for(&config, &log, Duration::from_secs(300), "done", |s| {
+        state_of(s, "set.3mf") == "done"
+    });
+    let gcode = root
+        .join("spool/jobs")
+        .join(&id)
+        .join("set.3mf.marlin-175.gcode");
+    let program = GcodeProgram::load_for(&gcode, Firmware::Marlin2).unwrap();
+    let dropped = program.marks().unwrap().find(&block).unwrap();
+    let expected: Vec<String> = crispen::marlin::plate::sent_lines(&program, &[(dropped, 0)])
+        .filter_map(|(_, line)| line.map(|l| l.into_owned()))
+        .collect();
+    let executed = recorded(&root.join("p.rec"));
+    assert!(expected.len() < program.len(), "the filter dropped the box");
+    assert_eq!(executed, expected, "commands executed");
+}
+
+/// A pre-sliced file labelled the Klipper way (`EXCLUDE_OBJECT_DEFINE`/`_START`/`_END`,
+/// as OrcaSlicer and PrusaSlicer write for Klipper) or with Marlin's `M486`: the daemon
+/// reads its parts as for a plate it sliced (names, outlines on the bed), which the job
+/// page draws.
+#[test]
+fn a_labelled_pre_sliced_file_shows_its_parts() {
+    use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let mut req = SliceRequest::new(common::model("spot.obj"), 10.0);
+    req.strength = crispen::enhance::Strength::Off;
+    req.per_plate = 2;
+    let sliced = root.join("sliced.gcode");
+    let target = Target {
+        machine: crispen::machine::Machine::builtin("marlin-175").unwrap(),
+        output: sliced.clone(),
+        keep_mesh: None,
+    };
+    prepare_one(&req, target, &mut |_| {}).expect("sliced");
+    let text = std::fs::read_to_string(&sliced).unwrap();
+    // PrusaSlicer's labels, rewritten as the other two schemes write them.
+    let relabel = |start: &dyn Fn(usize) -> String, end: &dyn Fn(usize) -> String| {
+        let mut names: Vec<String> = Vec::new();
+        let mut out = String::new();
+        for line in text.lines() {
+            let (name, open) = match (
+                line.strip_prefix("; printing object "),
+                line.strip_prefix("; stop printing object "),
+            ) {
+                (Some(n), _) => (n, true),
+                (_, Some(n)) => (n, false),
+                _ => {
+                    out.push_str(line);
+                    out.push('\n');
+                    continue;
+                }
+            };
+            let i = names.iter().position(|n| n == name).unwrap_or_else(|| {
+                names.push(name.to_string());
+                names.len() - 1
+            });
+            out.push_str(&if open { start(i) } else { end(i) });
+            out.push('\n');
+        }
+        assert_eq!(names.len(), 2, "PrusaSlicer labelled two copies");
+        out
+    };
+    let klipper = relabel(
+        &|i| format!("EXCLUDE_OBJECT_START NAME=spot_{}", i + 1),
+        &|i| format!("EXCLUDE_OBJECT_END NAME=spot_{}", i + 1),
+    );
+    let klipper =
+        format!("EXCLUDE_OBJECT_DEFINE NAME=spot_1\nEXCLUDE_OBJECT_DEFINE NAME=spot_2\n{klipper}");
+    let marlin = relabel(&|i| format!("M486 S{i}\nM486 Aspot {}", i + 1), &|_| {
+        "M486 S-1".into()
+    });
+    let marlin = format!("M486 T2\n{marlin}");
+
+    let config = farm(root, 1, 0.01);
+    std::fs::write(root.join("hot/klipper.gcode.toml"), "hold = true\n").unwrap();
+    std::fs::write(root.join("hot/marlin.gcode.toml"), "hold = true\n").unwrap();
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    drop_model(&root.join("hot"), "klipper.gcode", klipper.as_bytes());
+    drop_model(&root.join("hot"), "marlin.gcode", marlin.as_bytes());
+    let s = wait_for(&config, &log, Duration::from_secs(60), "both ready", |s| {
+        state_of(s, "klipper.gcode") == "ready" && state_of(s, "marlin.gcode") == "ready"
+    });
+    for (file, names) in [
+        ("klipper.gcode", ["spot_1", "spot_2"]),
+        ("marlin.gcode", ["spot 1", "spot 2"]),
+    ] {
+        let job = job_by_file(&s, file).unwrap();
+        assert_eq!(job["parts"]["total"], 2, "{job:#}");
+        let report = record(root, job["id"].as_str().unwrap())["slice_report"].clone();
+        let parts = report["parts"].as_array().unwrap();
+        let got: Vec<&str> = parts.iter().map(|p| p["name"].as_str().unwrap()).collect();
+        assert_eq!(got, names, "{file}");
+        for p in parts {
+            // An outline of the part's extrusions, on the bed.
+            let outline = p["outline"].as_array().unwrap();
+            assert!(outline.len() >= 3, "{file}: {p}");
+            assert!(p["extruded_mm"].as_f64().unwrap() > 10.0, "{file}: {p}");
+        }
+    }
+}

@@ -184,12 +184,25 @@ pub fn prepare(
     let t = Instant::now();
     let loaded = crate::mesh::load(&req.model)?;
     let load_s = t.elapsed().as_secs_f64();
-    let original = loaded.mesh;
+    let models = Models::of(req, loaded)?;
+    let original = &models.0[0].mesh;
 
     // `strength = "observed"`: the observer settles the strength and the mode first, for
     // the first machine, whose G-code is then the chosen print as the observer made it.
     let mut chosen = match req.strength {
-        Strength::Observed => Some(observed::choose(req, &original, targets.first(), progress)?),
+        Strength::Observed if models.0.len() > 1 => {
+            return Err(SliceError::BadSetting {
+                key: "strength".into(),
+                value: "observed".into(),
+                hint: format!(
+                    "the observer chooses the strength of one model, and {} holds a plate of {} \
+                     objects: give the job a strength (\"auto\" or a number)",
+                    req.model.display(),
+                    models.0.len()
+                ),
+            })
+        }
+        Strength::Observed => Some(observed::choose(req, original, targets.first(), progress)?),
         _ => None,
     };
     let (mut adopted, mut made_placed) = match chosen.as_mut().and_then(|c| c.made.take()) {
@@ -214,25 +227,23 @@ pub fn prepare(
         nozzle_mm: machine.nozzle_mm,
         layer_height_mm,
     };
-    let mut shared: Option<Placed> = None;
-    let mut per_printer: Vec<(PrintResolution, Placed)> = Vec::new();
+    // Each model of the job, placed: one, or a plate's several (the first is the tallest).
+    let mut shared: Option<Vec<Placed>> = None;
+    let mut per_printer: Vec<(PrintResolution, Vec<Placed>)> = Vec::new();
     match (made_placed.take(), targets.first()) {
-        (Some(p), Some(first)) if print_aware => per_printer.push((printer_of(&first.machine), p)),
-        (Some(p), _) => shared = Some(p),
+        (Some(p), Some(first)) if print_aware => {
+            per_printer.push((printer_of(&first.machine), vec![p]))
+        }
+        (Some(p), _) => shared = Some(vec![p]),
         (None, _) => {}
     }
     if !print_aware && shared.is_none() {
-        shared = Some(place(
-            req,
-            &original,
-            None,
-            req.pictures.as_deref(),
-            None,
-            progress,
-        )?);
+        shared = Some(models.place(req, None, req.pictures.as_deref(), progress)?);
     }
 
-    let plain = if req.compare || req.preview.is_some() {
+    // A plate of several models is neither compared nor drawn beside its model: the
+    // unmodified print would be one model, and the preview's mesh is one.
+    let plain = if (req.compare || req.preview.is_some()) && models.0.len() == 1 {
         placed_plain(req, original.clone()).ok()
     } else {
         None
@@ -241,7 +252,7 @@ pub fn prepare(
     let mut results = Vec::with_capacity(targets.len());
     for (index, target) in targets.iter().enumerate() {
         let machine = &target.machine;
-        let placed: &Placed = match &shared {
+        let plate: &[Placed] = match &shared {
             Some(p) => p,
             None => {
                 let printer = printer_of(machine);
@@ -249,12 +260,10 @@ pub fn prepare(
                 let at = match known {
                     Some(at) => at,
                     // The pictures are the first machine's, as the job's report is.
-                    None => match place(
+                    None => match models.place(
                         req,
-                        &original,
                         Some(printer),
                         req.pictures.as_deref().filter(|_| per_printer.is_empty()),
-                        None,
                         progress,
                     ) {
                         Ok(p) => {
@@ -271,8 +280,12 @@ pub fn prepare(
                 &per_printer[at].1
             }
         };
+        // The tallest model stands for the plate in the report's enhancement and pictures.
+        let placed = &plate[0];
         let compare = plain.as_ref().filter(|_| placed.summary.lambda2.is_some());
-        let sliced = crate::mesh::place::check_fits(placed.size, machine.fits_mm())
+        let sliced = plate
+            .iter()
+            .try_for_each(|p| crate::mesh::place::check_fits(p.size, machine.fits_mm()))
             .map_err(|e| place_error(e, req, &machine.name))
             .and_then(|()| {
                 // The observer's chosen print, made for this machine: its G-code is the job's.
@@ -290,7 +303,16 @@ pub fn prepare(
                     keep_mesh: target.keep_mesh.as_deref(),
                     ..slice_job(req, machine, &target.output)
                 };
-                let report = crate::slice::slice_mesh(&placed.mesh, &job, &mut |s| {
+                let parts: Vec<crate::slice::plate::PlatePart> = models
+                    .0
+                    .iter()
+                    .zip(plate)
+                    .map(|(model, p)| crate::slice::plate::PlatePart {
+                        name: &model.name,
+                        mesh: &p.mesh,
+                    })
+                    .collect();
+                let report = crate::slice::slice_plate(&parts, &job, &mut |s| {
                     progress(Step::Slice(&machine.name, s))
                 })?;
                 if req.pictures.is_some() {
@@ -329,9 +351,12 @@ pub fn prepare(
                 } else {
                     WallsState::NotAsked
                 });
-                report.model_size_mm = placed.size;
+                // What the plate's largest model takes on each axis.
+                report.model_size_mm = plate.iter().fold([0.0; 3], |size, p| {
+                    [0, 1, 2].map(|k| size[k].max(p.size[k]))
+                });
                 report.timings.load_s = load_s;
-                report.timings.enhance_s = placed.enhance_s;
+                report.timings.enhance_s = plate.iter().map(|p| p.enhance_s).sum();
                 report.timings.total_s = started.elapsed().as_secs_f64();
                 report
             });
@@ -341,6 +366,120 @@ pub fn prepare(
         results.push((machine.name.clone(), sliced));
     }
     Ok(results)
+}
+
+/// One model of a job: its name (a part of the plate's label) and the printed height it
+/// gets.
+#[derive(Debug)]
+struct Model {
+    name: String,
+    mesh: Mesh,
+    height_mm: f64,
+}
+
+/// The models a job prints: the file's one model at the job's height, or the objects of
+/// a 3MF whose build places several, tallest first, as one plate: scaled alike so that
+/// the tallest is the job's height (a set of parts keeps its proportions), each enhanced
+/// for its own printed height and arranged on the bed by the slicer.
+#[derive(Debug)]
+struct Models(Vec<Model>);
+
+impl Models {
+    fn of(req: &SliceRequest, loaded: crate::mesh::LoadedMesh) -> Result<Models, SliceError> {
+        if loaded.objects.is_empty() {
+            let name = req
+                .model
+                .file_stem()
+                .map_or_else(|| "model".to_string(), |s| s.to_string_lossy().into_owned());
+            return Ok(Models(vec![Model {
+                name,
+                mesh: loaded.mesh,
+                height_mm: req.height_mm,
+            }]));
+        }
+        // Each object is enhanced on its own: as many as a plate may hold copies, no more.
+        let max = crate::slice::plate::MAX_PER_PLATE as usize;
+        let copies = loaded.objects.len() * req.per_plate.max(1) as usize;
+        if copies > max {
+            return Err(SliceError::BadSetting {
+                key: "per_plate".into(),
+                value: req.per_plate.to_string(),
+                hint: format!(
+                    "{} holds a plate of {} objects, {copies} parts with {} of each: a plate \
+                     holds at most {max} (split the file, or lower per_plate)",
+                    req.model.display(),
+                    loaded.objects.len(),
+                    req.per_plate
+                ),
+            });
+        }
+        // The extent along the model's up axis, which becomes its printed height.
+        let up = match req.up {
+            UpAxis::Z => 2,
+            UpAxis::Y => 1,
+        };
+        let mut models: Vec<(Model, f64)> = loaded
+            .objects
+            .iter()
+            .map(|object| {
+                let mesh = loaded.mesh.sub(object.faces.clone());
+                let extent = mesh.bounds().map_or(0.0, |(lo, hi)| hi[up] - lo[up]);
+                let model = Model {
+                    name: object.name.clone(),
+                    mesh,
+                    height_mm: 0.0,
+                };
+                (model, extent)
+            })
+            .collect();
+        models.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let tallest = models[0].1;
+        let mut out = Vec::with_capacity(models.len());
+        for (mut model, extent) in models {
+            model.height_mm = req.height_mm * extent / tallest;
+            if !(model.height_mm >= *HEIGHT_MM.start()) {
+                return Err(SliceError::BadSetting {
+                    key: "height".into(),
+                    value: req.height_mm.to_string(),
+                    hint: format!(
+                        "{}: object {:?} would print {:.2} mm tall beside the tallest at {} mm, \
+                         under the least printed height of {} mm: print it larger, or on a \
+                         plate of its own",
+                        req.model.display(),
+                        model.name,
+                        model.height_mm,
+                        req.height_mm,
+                        HEIGHT_MM.start()
+                    ),
+                });
+            }
+            out.push(model);
+        }
+        Ok(Models(out))
+    }
+
+    /// Enhances each model (for `printer` in print-aware mode) and places it; the first
+    /// model's pictures go into `pictures`.
+    fn place(
+        &self,
+        req: &SliceRequest,
+        printer: Option<PrintResolution>,
+        pictures: Option<&Path>,
+        progress: &mut dyn FnMut(Step),
+    ) -> Result<Vec<Placed>, SliceError> {
+        self.0
+            .iter()
+            .enumerate()
+            .map(|(i, model)| {
+                let req = &SliceRequest {
+                    height_mm: model.height_mm,
+                    ..req.clone()
+                };
+                let pictures = pictures.filter(|_| i == 0);
+                place(req, &model.mesh, printer, pictures, None, progress)
+            })
+            .collect()
+    }
 }
 
 /// A mesh enhanced (for a printer, in print-aware mode) and placed on the bed.
@@ -467,6 +606,8 @@ pub(crate) enum CompareError {
         #[source]
         source: std::io::Error,
     },
+    #[error("a plate of {0} models is not compared with one unmodified model")]
+    Plate(usize),
     #[error("no temporary folder to compare in: {0}")]
     Work(#[source] std::io::Error),
 }
@@ -494,6 +635,9 @@ pub(crate) fn compare_prepared(
     drawn: &Drawn,
 ) -> Result<crate::slice::walls::WallComparison, CompareError> {
     let loaded = crate::mesh::load(&req.model).map_err(|e| CompareError::Plain(e.into()))?;
+    if !loaded.objects.is_empty() {
+        return Err(CompareError::Plate(loaded.objects.len()));
+    }
     let plain = placed_plain(req, loaded.mesh).map_err(CompareError::Plain)?;
     compare_walls(req, &plain, machine, enhanced_gcode, drawn)
 }
@@ -511,9 +655,13 @@ pub(crate) fn preview_prepared(req: &SliceRequest, machine: &Machine, gcode: &Pa
     }
     let mesh = crate::mesh::load(&req.model)
         .map_err(SliceError::from)
-        .and_then(|loaded| placed_plain(req, loaded.mesh));
+        .and_then(|loaded| match loaded.objects.is_empty() {
+            true => placed_plain(req, loaded.mesh).map(Some),
+            // A plate of several models: its print alone, as no one mesh stands beside it.
+            false => Ok(None),
+        });
     match mesh {
-        Ok(mesh) => draw_preview(dir, Some(&mesh), machine, gcode, None),
+        Ok(mesh) => draw_preview(dir, mesh.as_ref(), machine, gcode, None),
         Err(e) => tracing::warn!(machine = %machine.name, error = %e, "no preview of the print"),
     }
 }
@@ -761,5 +909,65 @@ fn draw_pictures(before: &Mesh, after: &Mesh, up: UpAxis, dir: &Path) {
             tracing::info!(dir = %dir.display(), seconds = t.elapsed().as_secs_f64(), "pictures drawn")
         }
         Err(e) => tracing::warn!(dir = %dir.display(), error = %e, "cannot write the pictures"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::{CleanReport, LoadedMesh, MeshFormat, MeshObject};
+
+    /// `n` tetrahedra side by side, the `i`th `i + 1` units tall, each an object.
+    fn plate_of(n: usize) -> LoadedMesh {
+        let mut mesh = Mesh::default();
+        let mut objects = Vec::new();
+        for i in 0..n {
+            let (x, h, base) = (3.0 * i as f64, (i + 1) as f64, mesh.vertices.len() as u32);
+            mesh.vertices
+                .extend([[x, 0., 0.], [x + 1., 0., 0.], [x, 1., 0.], [x, 0., h]]);
+            let faces = mesh.faces.len();
+            mesh.faces.extend(
+                [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]].map(|f: [u32; 3]| f.map(|v| v + base)),
+            );
+            objects.push(MeshObject {
+                name: format!("t{i}"),
+                faces: faces..faces + 4,
+            });
+        }
+        LoadedMesh {
+            mesh,
+            format: MeshFormat::ThreeMf,
+            clean: CleanReport::default(),
+            objects,
+        }
+    }
+
+    /// A plate's models: tallest first at the job's height, the others in proportion; a
+    /// model that would print under the least height, or more models than a plate holds,
+    /// refused with the file and the figures.
+    #[test]
+    fn a_plates_models_keep_their_proportions_within_bounds() {
+        let req = SliceRequest::new("set.3mf", 30.0);
+        let models = Models::of(&req, plate_of(3)).unwrap();
+        let got: Vec<(&str, f64)> = models
+            .0
+            .iter()
+            .map(|m| (m.name.as_str(), m.height_mm))
+            .collect();
+        assert_eq!(got, [("t2", 30.0), ("t1", 20.0), ("t0", 10.0)]);
+        assert_eq!(models.0[2].mesh.faces.len(), 4);
+
+        let small = SliceRequest::new("set.3mf", 2.0);
+        let e = Models::of(&small, plate_of(3)).unwrap_err().to_string();
+        assert!(
+            e.contains("set.3mf") && e.contains("\"t0\"") && e.contains("0.67 mm"),
+            "{e}"
+        );
+
+        let mut many = SliceRequest::new("set.3mf", 30.0);
+        many.per_plate = 2;
+        let e = Models::of(&many, plate_of(26)).unwrap_err().to_string();
+        assert!(e.contains("26 objects") && e.contains("52 parts"), "{e}");
+        Models::of(&many, plate_of(25)).unwrap();
     }
 }

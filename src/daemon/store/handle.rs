@@ -286,7 +286,7 @@ impl StoreHandle {
 
     /// The statistics of `period` over the history and the live jobs (see [`stats`]);
     /// `printers` and `folders` are listed even when they did nothing.
-    /// Changes the farm's spools by `edit` (see [`JobStore::edit_inventory`]); the
+    /// Changes the farm's spools by `edit` (see [`JobStore::edit_inventory`](super::job_store::JobStore::edit_inventory)); the
     /// inventory as written.
     pub async fn edit_inventory(
         &self,

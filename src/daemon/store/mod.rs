@@ -25,9 +25,9 @@
 //! [`JobState::can_go_to`], applied by [`Job::apply_transition`] inside the store.
 //!
 //! Finished jobs leave the live snapshot for the [`history`]: beyond `live_jobs` at the
-//! change that made one too many, older than `live_for` at a round every
-//! [`RETIRE_EVERY`]; the task retires them in batches on its blocking thread, so what
-//! every reader pays for follows the jobs at work, not the farm's past. The snapshot also
+//! change that made one too many, older than `live_for` at a round every ten minutes
+//! (`task::RETIRE_EVERY`); the task retires them in batches on its blocking thread, so
+//! what every reader pays for follows the jobs at work, not the farm's past. The snapshot also
 //! keeps what would otherwise be looked up on disk at every glance (which pictures a job
 //! has), worked out once when the job changes.
 //!
@@ -38,7 +38,6 @@
 //!
 //! [`JobState::can_go_to`]: crate::daemon::job::JobState::can_go_to
 //! [`Job::apply_transition`]: crate::daemon::job::Job::apply_transition
-//! [`RETIRE_EVERY`]: task::RETIRE_EVERY
 
 pub mod history;
 pub mod pending;

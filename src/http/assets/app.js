@@ -528,6 +528,12 @@ const ACTIONS = {
 document.addEventListener("click", async (e) => {
   const spool = e.target.closest("button[data-spool-printer]");
   if (spool) { openLoad(spool.dataset.spoolPrinter); return; }
+  const seek = e.target.closest("button[data-seek]");
+  if (seek) {
+    const video = document.querySelector("#jobpage figure.timelapse video");
+    if (video) { video.currentTime = Number(seek.dataset.seek); video.play().catch(() => {}); }
+    return;
+  }
   const el = e.target.closest("button[data-action]");
   if (!el) return;
   const [path, confirmText] = ACTIONS[el.dataset.action](el);
@@ -894,6 +900,14 @@ function cameraSection(id, cam) {
       "<figcaption>Timelapse: " + cam.timelapse.frames + " frames, " + (cam.timelapse.bytes / 1024).toFixed(0) + " KiB</figcaption></figure>";
   } else if (cam.timelapse_error) {
     html += '<p class="muted">No timelapse: ' + esc(cam.timelapse_error) + "</p>";
+  }
+  if (cam.dropped && cam.dropped.length) {
+    // Where each cancelled part stops printing in the timelapse; a button plays from there.
+    html += '<ul class="dropped">' + cam.dropped.map((d) => {
+      const at = Math.floor(d.video_s / 60) + ":" + (d.video_s % 60).toFixed(1).padStart(4, "0");
+      const seek = cam.timelapse ? ' <button data-seek="' + d.video_s + '">from ' + at + " in the timelapse</button>" : "";
+      return "<li>" + esc(d.part) + " dropped" + (d.layer ? " at layer " + d.layer : "") + ", after frame " + d.frame + seek + "</li>";
+    }).join("") + "</ul>";
   }
   if (cam.missing && cam.missing.length) {
     const of = cam.layers ? " of " + cam.layers : "";

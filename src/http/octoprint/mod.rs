@@ -2,7 +2,7 @@
 //! "OctoPrint Connection" plugin, PrusaSlicer and OrcaSlicer (physical printer, type
 //! OctoPrint), `octorest`, OctoPrint's own `octoprint client`. Each hot folder is an
 //! OctoPrint instance of its own under `/octoprint/<folder>/` (announced by zeroconf, see
-//! `super::zeroconf`), so Cura lists "crispen: <folder>" and a job sent to one lands in
+//! `super::zeroconf`), so Cura lists "crispen: &lt;folder&gt;" and a job sent to one lands in
 //! that folder; the root (`/api/...`) is one more instance, standing for `[http]
 //! default_folder` (or the only folder), where uploads may name their folder in `path`.
 //!

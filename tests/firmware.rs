@@ -11,6 +11,8 @@
 mod common;
 #[path = "firmware/plates.rs"]
 mod plates;
+#[path = "firmware/ring.rs"]
+mod ring;
 use common::relay::{
     firmware_dir, job, noise, print_through, print_through_with, Build, Outcome, Relay,
     RelayFaults, RelayLog,

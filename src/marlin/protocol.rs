@@ -79,6 +79,10 @@ pub struct Host {
     send_cursor: u64,
     in_flight: VecDeque<InFlight>,
     in_flight_bytes: usize,
+    /// `M105`s taken for answered by an answer that may have been an earlier one's (one a
+    /// probe took for lost: see `handle_ok`), oldest first: each may still wait unread in
+    /// the printer's ring, its answer to come.
+    unsettled_m105s: VecDeque<u64>,
     /// Answers owed by lines outside the current count, oldest first (see [`Owed`]): their
     /// `ok`s are not taken for the count's lines, nor an `M105`'s report for the stop's
     /// (the printer runs the stop's lines after them), and the send window counts their
@@ -133,6 +137,7 @@ impl Host {
             send_cursor: 0,
             in_flight: VecDeque::new(),
             in_flight_bytes: 0,
+            unsettled_m105s: VecDeque::new(),
             owed: VecDeque::new(),
             unnumbered_probe: None,
             cautious_until: 0,

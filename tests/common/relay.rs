@@ -179,7 +179,7 @@ pub struct Relay {
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
     server: Child,
-    _dir: tempfile::TempDir,
+    dir: tempfile::TempDir,
     _slot: Slot,
 }
 
@@ -229,7 +229,8 @@ impl Relay {
         let mut cmd = match build {
             Build::Ultimaker2 => {
                 let mut c = Command::new(firmware.join("ultimaker2/serve-ultimaker2"));
-                c.arg(&link);
+                // The emulator's own log of the wire (see `Relay::ring_overruns`).
+                c.arg(&link).arg("--tap").arg(dir.path().join(TAP));
                 c
             }
             _ => {
@@ -288,7 +289,7 @@ impl Relay {
             stop,
             thread: Some(thread),
             server,
-            _dir: dir,
+            dir,
             _slot: slot,
         }
     }
@@ -299,6 +300,19 @@ impl Relay {
 
     pub fn log(&self) -> RelayLog {
         self.log.lock().unwrap().clone()
+    }
+
+    /// Ultimaker2Marlin's own record of its receive ring overflowing: each line of its tap
+    /// (`um2sim --tap`) that lost bytes, with the bytes lost. The emulator notes the loss
+    /// on the line the surviving bytes make up, so a loss shows once a later line arrived
+    /// whole (a job's final `M114` does). Empty for the Linux builds, which have no tap.
+    pub fn ring_overruns(&self) -> Vec<String> {
+        std::fs::read_to_string(self.dir.path().join(TAP))
+            .unwrap_or_default()
+            .lines()
+            .filter(|l| l.contains("dropped: RX ring full"))
+            .map(str::to_string)
+            .collect()
     }
 
     /// Asks the firmware itself, past the host: sends `line` (unnumbered) and returns the
@@ -359,6 +373,9 @@ impl Drop for Relay {
         let _ = self.server.wait();
     }
 }
+
+/// The file in the relay's folder where the Ultimaker 2 emulator logs the wire.
+const TAP: &str = "tap.txt";
 
 fn set_nonblocking(fd: &OwnedFd) {
     let flags = fcntl(fd, FcntlArg::F_GETFL).unwrap();

@@ -28,7 +28,10 @@ pub(super) struct Line {
 pub(super) struct InFlight {
     pub(super) number: u64,
     pub(super) bytes: usize,
+    /// Awaiting an `M105`'s answer (a probe may take its answer for lost: see `probe`).
     pub(super) is_m105: bool,
+    /// An `M105`, whatever became of `is_m105`.
+    pub(super) m105: bool,
     pub(super) sync: bool,
     /// A heat wait (M109/M190/M116): nothing is sent behind it until it is answered.
     pub(super) heat: bool,

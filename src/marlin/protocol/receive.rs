@@ -250,6 +250,7 @@ impl Host {
                 // every line sent before it, and only those.
                 self.owed.clear();
                 if let Some(last) = before.checked_sub(1) {
+                    self.confirm_through(last);
                     self.ack_through(last, now);
                 }
                 // During a stop, after the stop's own unnumbered heaters-off lines too (a
@@ -266,14 +267,38 @@ impl Host {
             }
             // The answer of an M105 (only it carries text, whether or not the temperatures
             // in it could be read): the printer processed it after every earlier line.
+            // Printers run M105s in the order sent, so it is the oldest unanswered one's,
+            // or a later one's where an earlier answer was lost. It is taken for the
+            // oldest one's still awaited, skipping those a probe took for lost (else,
+            // after one lost answer, each answer would settle the M105 before its own and
+            // the job would never move again). But the printer has certainly run only the
+            // oldest M105 whose answer may still come: only that far are lines confirmed.
+            // Ultimaker2Marlin, blocked by a long move, answers probes taken for lost
+            // seconds later: taken for a later probe's answer, one confirmed that probe
+            // while it still waited unread in the ring, and a resend request for it was
+            // taken for a printer that had lost its state (issue 48).
+            let oldest = self.oldest_m105();
             if let Some(pos) = self.in_flight.iter().position(|f| f.is_m105) {
                 let number = self.in_flight[pos].number;
                 // Every `ok` owed by an earlier `Resend:` or fragment came before this one:
                 // a debt still open was a guess that went wrong.
                 self.owed.clear();
+                self.confirm_through(oldest.unwrap_or(number).min(number));
                 self.ack_through(number, now);
                 return;
             }
+            // No M105 awaits an answer: this is the late answer of one a probe took for
+            // lost. Taken for a move's `ok`, it counted a line out of the printer's ring
+            // that was still in it (issue 48: a clean link overran Ultimaker2Marlin's).
+            if let Some(oldest) = oldest {
+                self.confirm_through(oldest);
+                if let Some(pos) = self.in_flight.iter().position(|f| f.number == oldest) {
+                    let f = self.in_flight.remove(pos).expect("position is valid");
+                    self.in_flight_bytes -= f.bytes;
+                    self.acknowledged(f, now, false);
+                }
+            }
+            return;
         }
         if let Some(n) = ok.line {
             self.advanced_ok = true;
@@ -282,6 +307,7 @@ impl Host {
                 self.settle_owed_ok(&[OwedLine::Before]);
             }
             if n < self.next_number {
+                self.confirm_through(n);
                 self.ack_through(n, now);
             } else if self.stopping().is_none() && self.in_job() {
                 // An answer for a line the host never sent: the printer counts from
@@ -322,8 +348,15 @@ impl Host {
         // `M105` only when it runs, so the `ok`s of moves sent after an `M105` come before
         // its answer; taken for the `M105`'s, they left its answer to be taken for a later
         // `M105`'s, which the printer may never have received (a corrupted line), and the
-        // resend that followed looked like a printer that had lost its state.
-        if let Some(pos) = self.in_flight.iter().position(|f| !f.sync && !f.is_m105) {
+        // resend that followed looked like a printer that had lost its state. There, too,
+        // an `M105` a probe took for lost is still owed its answer, which comes only when
+        // it runs; where `ok`s come in line order, a later line's says it came and went.
+        let in_order = !self.opts.firmware.acks_moves_on_entry();
+        if let Some(pos) = self
+            .in_flight
+            .iter()
+            .position(|f| !f.sync && !f.is_m105 && (in_order || !f.m105))
+        {
             let f = self.in_flight.remove(pos).expect("position is valid");
             self.in_flight_bytes -= f.bytes;
             self.acknowledged(f, now, true);
@@ -336,15 +369,19 @@ impl Host {
         }
     }
 
-    /// Every line up to `number` is acknowledged (and certainly accepted by the printer).
+    /// Every line up to `number` is acknowledged. An `M105` among them not yet confirmed
+    /// may still be answered (see `handle_ok`): it is kept among the unsettled until a
+    /// confirmation passes it.
     fn ack_through(&mut self, number: u64, now: Instant) {
         while self.in_flight.front().is_some_and(|f| f.number <= number) {
             let f = self.in_flight.pop_front().expect("front exists");
             self.in_flight_bytes -= f.bytes;
+            if f.m105 && self.confirmed.is_none_or(|c| f.number > c) {
+                self.unsettled_m105s.push_back(f.number);
+            }
             let own = f.number == number;
             self.acknowledged(f, now, own);
         }
-        self.confirmed = Some(self.confirmed.map_or(number, |c| c.max(number)));
         if self
             .thermal
             .heat

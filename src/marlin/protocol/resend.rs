@@ -185,6 +185,7 @@ impl Host {
             f.bytes = 0;
         }
         self.in_flight_bytes = self.in_flight.iter().map(|f| f.bytes).sum();
+        self.unsettled_m105s.retain(|&m| m >= n);
     }
 
     /// A request caused by a line that was already on its way when the replay of `n`
@@ -268,6 +269,8 @@ impl Host {
             }
         });
         self.in_flight_bytes = self.in_flight.iter().map(|f| f.bytes).sum();
+        // The printer discarded its ring: lines from n on are sent again.
+        self.unsettled_m105s.retain(|&m| m < n);
         self.recovery.duplicate_budget = Some((n, dropped_after));
         // Lines sent after n may still reach the printer, each drawing an error block that
         // flushes its ring: the replay waits for them (see `Settle`).

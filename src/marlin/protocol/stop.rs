@@ -206,8 +206,16 @@ impl Host {
         let Phase::Job(job) = &self.phase else {
             return;
         };
-        let drained = self.in_flight.is_empty()
-            && self.send_cursor >= self.next_number
+        // The host's own M105s (polls, probes) hold nothing back once every other line is
+        // answered: where an answer was lost, each later one is taken for the M105 before
+        // its own (see `handle_ok`), and waiting for the newest probe's would only send
+        // probe after probe.
+        let drained = self.in_flight.iter().all(|f| {
+            f.m105
+                && self
+                    .history_line(f.number)
+                    .is_some_and(|l| l.kind == Kind::Housekeeping)
+        }) && self.send_cursor >= self.next_number
             && self.pending.is_empty();
         if !drained {
             return;

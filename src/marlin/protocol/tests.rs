@@ -2154,4 +2154,5 @@ fn the_replay_goes_after_a_quiet_moment_when_fewer_blocks_come() {
     assert!(replay.starts_with("N2 "), "{replay:?}");
 }
 
+mod late_answers;
 mod numbering;

@@ -289,8 +289,15 @@ impl Host {
             } else {
                 0
             };
+            // And only those the printer has certainly read (see `confirm_through`): one
+            // still in its ring was not lost, it waits (Ultimaker2Marlin reads nothing
+            // while a move waits for a planner block); taken for lost, its answer came
+            // seconds later and was taken for a later probe's (issue 48).
             for f in self.in_flight.iter_mut() {
-                if f.number >= keep_below && now.saturating_duration_since(f.sent) >= patience {
+                if f.number >= keep_below
+                    && f.bytes == 0
+                    && now.saturating_duration_since(f.sent) >= patience
+                {
                     f.is_m105 = false;
                 }
             }

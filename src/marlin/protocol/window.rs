@@ -26,6 +26,7 @@ impl Host {
         self.history.clear();
         self.in_flight.clear();
         self.in_flight_bytes = 0;
+        self.unsettled_m105s.clear();
         self.pending.clear();
         self.next_number = 0;
         self.send_cursor = 0;
@@ -101,6 +102,7 @@ impl Host {
             number,
             bytes: wire.len(),
             is_m105,
+            m105: is_m105,
             sync,
             heat: is_heat,
             sent: now,
@@ -148,6 +150,25 @@ impl Host {
     /// it (one cell is left unused: see `window_allows`).
     fn ring_has_room(&self, bytes: usize) -> bool {
         self.in_flight_bytes + self.owed_bytes() + bytes < self.opts.firmware.rx_buffer_bytes()
+    }
+
+    /// The printer has certainly read and accepted every line up to `number` (an answer
+    /// that names it, or an `M105`'s, which it runs after them): they no longer take room
+    /// in its receive ring.
+    pub(super) fn confirm_through(&mut self, number: u64) {
+        self.unsettled_m105s.retain(|&n| n > number);
+        for f in self.in_flight.iter_mut().filter(|f| f.number <= number) {
+            self.in_flight_bytes -= f.bytes;
+            f.bytes = 0;
+        }
+        self.confirmed = Some(self.confirmed.map_or(number, |c| c.max(number)));
+    }
+
+    /// The oldest `M105` whose answer may still come, taken for lost or not: an `M105`'s
+    /// answer is certainly its or a later one's (printers run them in the order sent).
+    pub(super) fn oldest_m105(&self) -> Option<u64> {
+        let in_flight = self.in_flight.iter().filter(|f| f.m105).map(|f| f.number);
+        self.unsettled_m105s.iter().copied().chain(in_flight).min()
     }
 
     /// Bytes of the lines outside the count that may still sit in the receive ring.

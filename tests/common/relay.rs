@@ -695,20 +695,30 @@ pub async fn print_through_with(
     let mut opts = StreamOptions::for_firmware(fw);
     tweak(&mut opts);
     let started = Instant::now();
+    let (result, log) = print_program(&relay, &program, &opts).await;
+    let took = started.elapsed();
+    Outcome { result, log, took }
+}
+
+/// Connects through `relay` and prints `program` (within 10 minutes); then the relay's
+/// log with the firmware's own answer to the job's final M114 (it is recorded before any
+/// fault touches it, so it comes whatever the host saw).
+pub async fn print_program(
+    relay: &Relay,
+    program: &GcodeProgram,
+    opts: &StreamOptions,
+) -> (Result<PrintReport, PrintError>, RelayLog) {
     let result = async {
-        let mut conn = Connection::open(relay.device_path(), &opts).await?;
+        let mut conn = Connection::open(relay.device_path(), opts).await?;
         let (_control, control_rx) = mpsc::channel(1);
         let (progress, _) = watch::channel(PrintProgress::default());
-        conn.print(&program, control_rx, progress).await
+        conn.print(program, control_rx, progress).await
     };
     let result = tokio::time::timeout(Duration::from_secs(600), result)
         .await
-        .unwrap_or_else(|_| panic!("{}: no end after 10 minutes", build.name()));
-    let took = started.elapsed();
-    // The firmware's own answer to the job's final M114 (it is recorded before any fault
-    // touches it, so it comes whatever the host saw).
+        .unwrap_or_else(|_| panic!("{}: no end after 10 minutes", program.firmware().name()));
     let log = tokio::task::block_in_place(|| relay.wait_position(Duration::from_secs(10)));
-    Outcome { result, log, took }
+    (result, log)
 }
 
 /// The noise: 2 % corrupted lines, 0.5 % lost `ok`s, 1 % lines lost whole (the

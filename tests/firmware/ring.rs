@@ -6,17 +6,15 @@
 //! for later lines'. The same job through the relay must lose no byte and end where the
 //! file says, by the firmware's own `M114`.
 
-use super::common::relay::{firmware, firmware_dir, Build, Relay, RelayFaults};
+use super::common::relay::{firmware, firmware_dir, print_program, Build, Relay, RelayFaults};
 use crispen::daemon::prepare::steps::{prepare_one, SliceRequest, Target};
 use crispen::enhance::Strength;
 use crispen::machine::Machine;
 use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::motion::Motion;
 use crispen::marlin::reader;
-use crispen::marlin::stream::{Connection, PrintProgress, StreamOptions};
+use crispen::marlin::stream::StreamOptions;
 use crispen::slice::SlicerKind;
-use std::time::Duration;
-use tokio::sync::{mpsc, watch};
 
 /// Spot sliced by PrusaSlicer for the Ultimaker 2 at 4 mm, as the time-left bench makes
 /// it cold: what heats, waits for heat or homes left out (the emulated printer has no
@@ -72,17 +70,7 @@ async fn ultimaker2_a_cold_primed_job_never_overruns_the_ring() {
     let program = GcodeProgram::read(text.as_bytes(), "spot.gcode", fw).unwrap();
     let expected = end_position(&program);
     let relay = Relay::start(&firmware_dir(), Build::Ultimaker2, RelayFaults::default());
-    let opts = StreamOptions::for_firmware(fw);
-    let result = async {
-        let mut conn = Connection::open(relay.device_path(), &opts).await?;
-        let (_control, control_rx) = mpsc::channel(1);
-        let (progress, _) = watch::channel(PrintProgress::default());
-        conn.print(&program, control_rx, progress).await
-    };
-    let result = tokio::time::timeout(Duration::from_secs(600), result)
-        .await
-        .expect("the job ends within 10 minutes");
-    let log = tokio::task::block_in_place(|| relay.wait_position(Duration::from_secs(10)));
+    let (result, log) = print_program(&relay, &program, &StreamOptions::for_firmware(fw)).await;
     let overruns = relay.ring_overruns();
     assert!(
         overruns.is_empty(),

@@ -227,13 +227,11 @@ impl Connection {
 
     /// Asks the greeted printer for its planner's settings with an `M503` sent without a
     /// line number, as the idle `M105`s are (the next job's numbering is not touched), and
-    /// waits for its `ok`. A firmware without `M503` answers `Unknown command` and `ok`:
-    /// no settings, and the estimate rests on the machine's stock values.
+    /// waits until it is answered. A firmware without `M503` answers `Unknown command` and
+    /// `ok`: no settings, and the estimate rests on the machine's stock values.
     async fn ask_settings(&mut self) -> Result<(), PrintError> {
         self.transport.send(b"M503\n".to_vec());
-        self.idle.unanswered += 1;
-        self.idle.last_sent = Some(tokio::time::Instant::now());
-        self.await_idle_answers().await
+        self.synchronize().await
     }
 
     /// Read and log what the printer says between jobs (temperature reports, `start` after
@@ -327,30 +325,41 @@ impl Connection {
         Ok(())
     }
 
-    /// Waits until every `M105` sent between jobs is answered (or known lost): an answer
-    /// arriving after the job's `M110 N0` would be taken for its `ok`, and every later
-    /// `ok` for the line before its own.
-    async fn await_idle_answers(&mut self) -> Result<(), PrintError> {
-        let answer_wait = self.opts.protocol.silence_probe;
-        while let Some(deadline) = self.idle.answer_deadline(answer_wait) {
-            tracing::debug!(port = %self.port.display(), "waiting for the answer to an idle M105 or M503 before going on");
+    /// Makes sure every answer to what was sent between jobs is in before a job's first
+    /// line goes: sends the sync line (see [`idle::sync_line`]) and waits for its echo and
+    /// `ok`. Each wait is `silence_probe`, longer while the printer says it is busy; then a
+    /// new sync line goes, with a number of its own. A printer that answers none within
+    /// `connect_timeout` is not answering.
+    async fn synchronize(&mut self) -> Result<(), PrintError> {
+        let started = tokio::time::Instant::now();
+        let give_up = started + self.opts.connect_timeout;
+        let wait = self.opts.protocol.silence_probe;
+        self.transport.send(self.idle.begin_sync(started));
+        loop {
+            let deadline = self.idle.sync_deadline(wait).unwrap_or(give_up).min(give_up);
             tokio::select! {
                 link = self.transport.recv() => match link {
                     LinkEvent::Data(bytes) => {
-                        let now = tokio::time::Instant::now();
-                        self.rebooted |= self.idle.hear(&self.port, &bytes, now).rebooted;
+                        let heard = self.idle.hear(&self.port, &bytes, tokio::time::Instant::now());
+                        self.rebooted |= heard.rebooted;
+                        if heard.synced {
+                            return Ok(());
+                        }
                     }
                     LinkEvent::Closed(reason) => {
                         return Err(PrintError::Disconnected { port: self.port.clone(), reason, last_acked: 0 });
                     }
                 },
                 _ = tokio::time::sleep_until(deadline) => {
-                    tracing::warn!(port = %self.port.display(), "an idle M105 or M503 went unanswered; going on as if it was lost");
-                    self.idle.unanswered = 0;
+                    let now = tokio::time::Instant::now();
+                    if now >= give_up {
+                        return Err(PrintError::NoAnswer { port: self.port.clone(), waited_s: (now - started).as_secs_f64() });
+                    }
+                    tracing::debug!(port = %self.port.display(), "the sync line is not answered yet; sending another");
+                    self.transport.send(self.idle.begin_sync(now));
                 }
             }
         }
-        Ok(())
     }
 
     /// Begin the next job on a clean link: what the printer said between jobs is logged,
@@ -358,7 +367,7 @@ impl Connection {
     /// firmware may even have changed), which lets the boot banner through first.
     async fn clean_link(&mut self) -> Result<(), PrintError> {
         self.drain_idle_input()?;
-        self.await_idle_answers().await?;
+        self.synchronize().await?;
         self.idle.partial.clear();
         // Reports from before the job say nothing about after it: the watch starts afresh,
         // as on a new connection (the first look after a job longer than `stale_after`

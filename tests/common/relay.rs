@@ -105,6 +105,10 @@ pub struct RelayFaults {
     /// printer right behind it, once: a line slipped in between the host's (a second
     /// writer on the port), e.g. one with `M110` in it that renumbers Marlin.
     pub inject: Option<(String, String)>,
+    /// Once a host line containing the text crosses, what the printer says within the
+    /// given time after reaches the host only then (in order): a printer that answers late,
+    /// as one busy with a command of its own or an emulator starved of the CPU does.
+    pub hold_replies: Option<(String, Duration)>,
 }
 
 /// What the relay saw.
@@ -464,6 +468,8 @@ fn run(
 ) {
     let mut rng = ChaCha8Rng::seed_from_u64(faults.seed);
     let mut inject = faults.inject.clone();
+    let mut hold = faults.hold_replies.clone();
+    let mut held_until: Option<Instant> = None;
     let mut master = Some(master);
     let mut printer: Option<File> = None;
     let mut to_printer = Lane::new();
@@ -565,6 +571,11 @@ fn run(
                         '>',
                         String::from_utf8_lossy(&line).trim_end().to_string(),
                     ));
+                    if let Some((_, held)) = hold
+                        .take_if(|(after, _)| String::from_utf8_lossy(&line).contains(&**after))
+                    {
+                        held_until = Some(now + held);
+                    }
                     let slipped = inject
                         .take_if(|(after, _)| String::from_utf8_lossy(&line).contains(&**after));
                     to_printer.push(due, line);
@@ -609,6 +620,7 @@ fn run(
                             log.garbled += 1;
                         }
                         let due = now + delay(&mut rng);
+                        let due = held_until.filter(|&u| now < u).map_or(due, |u| due.max(u));
                         let at = (now - born).as_secs_f64();
                         log.wire.push((
                             at,

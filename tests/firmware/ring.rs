@@ -88,3 +88,60 @@ async fn ultimaker2_a_cold_primed_job_never_overruns_the_ring() {
         );
     }
 }
+
+/// The connect's `M503` answered 8 s late (longer than the host waits for an idle answer:
+/// what a starved emulator did under load, failing the test above and the settings
+/// test): its `ok` must not be taken for the job's first line's. The job's first line
+/// goes only after that answer came; a dwell early in the job fills Ultimaker2Marlin's
+/// ring, which a host one `ok` ahead overruns.
+#[cfg_attr(
+    not(crispen_firmware),
+    ignore = "CRISPEN_FIRMWARE_DIR was unset at build time"
+)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_answer_before_the_job_never_counts_for_it() {
+    for build in [Build::Default, Build::Ultimaker2] {
+        let faults = RelayFaults {
+            hold_replies: Some(("M503".into(), std::time::Duration::from_secs(8))),
+            ..RelayFaults::default()
+        };
+        let relay = Relay::start(&firmware_dir(), build, faults);
+        let (text, expected) = super::common::relay::job(400);
+        let text = text.replacen("G91\n", "G91\nG4 P3000\n", 1);
+        let fw = firmware(build);
+        let program = GcodeProgram::read(text.as_bytes(), "job.gcode", fw).unwrap();
+        let (result, log) = print_program(&relay, &program, &StreamOptions::for_firmware(fw)).await;
+        let name = build.name();
+        let report = result.unwrap_or_else(|e| panic!("{name}: the job failed: {e}"));
+        assert_eq!(report.resends, 0, "{name}: a clean link needs no resend");
+        let overruns = relay.ring_overruns();
+        assert!(overruns.is_empty(), "{name}: the ring overran: {overruns:#?}");
+        // The answer was held, not lost, and the job began only after it came.
+        assert!(
+            log.wire.iter().any(|(_, dir, line)| *dir == '<' && line.contains("M203")),
+            "{name}: the held M503 answer never reached the host"
+        );
+        let crossed = |what: &str, after: f64| {
+            log.wire
+                .iter()
+                .find(|(at, dir, line)| *at >= after && *dir == '>' && line.starts_with(what))
+                .map(|(at, _, _)| *at)
+        };
+        let asked = crossed("M503", 0.0).expect("the host asked for the settings");
+        let began = crossed("N0 M110", asked).expect("the job began");
+        assert!(
+            began >= asked + 8.0,
+            "{name}: the job began {:.1} s after the M503, before its answer (held 8 s) came",
+            began - asked
+        );
+        let at = log
+            .answered_position()
+            .unwrap_or_else(|| panic!("{name}: the firmware answered no final M114"));
+        for axis in 0..2 {
+            assert!(
+                (at[axis] - expected[axis]).abs() < 0.005,
+                "{name}: the firmware ends at {at:?}, the job at {expected:?}"
+            );
+        }
+    }
+}

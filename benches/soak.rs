@@ -35,7 +35,7 @@ fn start_sim(firmware: &str, time_scale: f64, sims: &mut Vec<Killed>) -> PathBuf
     let (child, device) = spawn_sim(
         Command::new(BIN)
             .args(["sim", "--firmware", firmware, "--speed"])
-            .arg(crispen::marlin::sim::speed_of_time_scale(time_scale)),
+            .arg(crispen::sim::speed_of_time_scale(time_scale)),
     );
     sims.push(Killed(child));
     device

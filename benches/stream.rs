@@ -63,7 +63,7 @@ const PTY: Link = Link {
 fn start_sim(fw: Firmware, time_scale: f64, link: Link) -> (Killed, PathBuf) {
     let mut sim = Command::new(BIN);
     sim.args(["sim", "--firmware", fw.name(), "--speed"])
-        .arg(crispen::marlin::sim::speed_of_time_scale(time_scale))
+        .arg(crispen::sim::speed_of_time_scale(time_scale))
         // The simulator delays each direction by this, so a round trip costs twice it.
         .arg("--latency-ms")
         .arg((link.round_trip_ms / 2.0).to_string());

@@ -1,6 +1,9 @@
 //! crispen: make small 3D prints keep the features of their big originals.
 //!
-//! The library is layered so each part can be used and tested on its own:
+//! The library is layered so each part can be used and tested on its own; `mesh` and
+//! `enhance` (the crate `crispen-geometry`), `marlin` (`crispen-marlin`), `sim`
+//! (`crispen-sim`) and `fsutil` (`crispen-fsutil`) are crates of their own under `crates/`,
+//! re-exported here:
 //! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
 //! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
@@ -8,8 +11,8 @@
 //!   like the same model printed large, from their G-code.
 //! - [`slice`](mod@slice): running a real slicer (PrusaSlicer, CuraEngine) on an enhanced mesh.
 //! - [`machine`]: the kinds of printer a job is sliced for (bed, nozzle, filament, firmware).
-//! - [`marlin`]: the Marlin host protocol as a pure state machine, its serial transport,
-//!   and the simulated printer used by tests, the quick start and the demo farm.
+//! - [`marlin`]: the Marlin host protocol as a pure state machine, and its serial transport.
+//! - [`sim`]: the simulated printer used by tests, the quick start and the demo farm.
 //! - [`ports`]: finding serial devices and asking a printer what it is (M115).
 //! - [`daemon`]: the print-farm service: config, hot folders, job spool, printer
 //!   supervisors, control socket.
@@ -24,7 +27,7 @@
 //! - [`spoolman`]: a client for Spoolman, the filament-spool inventory server: spools, and
 //!   the filament a print used booked against its spool.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
-//! - [`fsutil`]: the one atomic, durable file write ([`fsutil::write_atomic`]).
+//! - `fsutil`: the one atomic, durable file write (`fsutil::write_atomic`).
 //! - `outbound`: outbound HTTP (notifications, cameras, Spoolman) and its TLS client.
 //! - [`percent`]: names in addresses (percent-encoding), for the API, its clients and links.
 //! - [`names`]: what a name an operator gives may hold, and how any name is shown.
@@ -39,12 +42,12 @@
 pub mod bedcheck;
 pub mod camera;
 pub mod daemon;
-pub mod enhance;
-pub(crate) mod fsutil;
+use crispen_fsutil as fsutil;
+pub use crispen_geometry::enhance;
 pub mod http;
 pub mod machine;
-pub mod marlin;
-pub mod mesh;
+pub use crispen_geometry::mesh;
+pub use crispen_marlin as marlin;
 pub mod names;
 pub mod notify;
 pub mod observation;
@@ -54,5 +57,6 @@ pub mod percent;
 pub mod ports;
 pub mod preview;
 pub mod service;
+pub use crispen_sim as sim;
 pub mod slice;
 pub mod spoolman;

@@ -199,6 +199,7 @@ const NOTIFY: &str = "notifications";
 const CAMERAS: &str = "cameras";
 const STORE: &str = "job store";
 const SPOOLMAN: &str = "Spoolman link";
+const UPLOADS: &str = "OctoPrint's held uploads";
 
 /// Runs the daemon until SIGTERM/SIGINT (or until idle with `exit_when_idle`). The
 /// shutdown token made here is handed down to every task; each races it at its waits.
@@ -315,8 +316,9 @@ impl Running {
             );
         }
         let stop_notify = CancellationToken::new();
-        let notify = crate::notify::run(Arc::clone(&farm), stop_notify.clone())
+        let (notifications, notify) = crate::notify::run(Arc::clone(&farm), stop_notify.clone())
             .map_err(ServiceError::Notify)?;
+        let counters = Arc::new(crate::http::Counters::new(notifications));
         tasks.spawn(NOTIFY, notify);
         // Like the notifications, it outlives the prints: their last uses are told.
         tasks.spawn(
@@ -337,12 +339,25 @@ impl Running {
         );
         let fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
         let stop_listeners = CancellationToken::new();
+        let shared = crate::http::Shared {
+            appkeys: Arc::clone(&appkeys),
+            cameras: Arc::clone(&cameras),
+            counters,
+            pending: Arc::default(),
+        };
+        tasks.spawn(
+            UPLOADS,
+            crate::http::pending::sweep(
+                Arc::clone(&farm),
+                Arc::clone(&shared.pending),
+                stop_listeners.clone(),
+            ),
+        );
         tasks.spawn(
             CONTROL,
             crate::http::serve_socket(
                 Arc::clone(&farm),
-                Arc::clone(&appkeys),
-                Arc::clone(&cameras),
+                shared.clone(),
                 config.http.clone(),
                 listener,
                 stop_listeners.clone(),
@@ -353,8 +368,7 @@ impl Running {
                 HTTP,
                 crate::http::serve_tcp(
                     Arc::clone(&farm),
-                    Arc::clone(&appkeys),
-                    Arc::clone(&cameras),
+                    shared,
                     http,
                     bound,
                     stop_listeners.clone(),
@@ -474,6 +488,7 @@ impl Running {
         stop_listeners.cancel();
         tasks.join(CONTROL).await;
         tasks.join(HTTP).await;
+        tasks.join(UPLOADS).await;
         let _ = std::fs::remove_file(&farm.config().socket);
     }
 }

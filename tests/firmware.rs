@@ -399,14 +399,16 @@ fn the_daemon_through_the_relay_runs_every_line_once() {
     let started = Instant::now();
     let log_of = || std::fs::read_to_string(&log).unwrap_or_default();
     // The job ends done, and then the daemon exits on its own; any other end (the job
-    // failed, the daemon exited first) fails at once with the daemon's log.
+    // failed, the daemon exited first) fails at once with the daemon's log. The limit is
+    // a guard against a hang, not a deadline: on a loaded machine the niced firmware heats
+    // and prints far slower (90 s did not suffice beside two busy loops and a fuzzer).
     let code = loop {
         if let Some(code) = daemon.child.try_wait().unwrap() {
             break code;
         }
         assert!(
-            started.elapsed() < Duration::from_secs(90),
-            "no end after 90 s\nlog:\n{}\nthe last lines through the relay:\n{}",
+            started.elapsed() < Duration::from_secs(600),
+            "no end after 600 s\nlog:\n{}\nthe last lines through the relay:\n{}",
             log_of(),
             wire_tail(&relay.log(), 60)
         );

@@ -4,7 +4,7 @@
 
 use anyhow::{bail, Context};
 use crispen::marlin::firmware::Firmware;
-use crispen::marlin::sim::{self, Faults, SimConfig};
+use crispen::sim::{self, Faults, SimConfig};
 use nix::sys::signal::{SigSet, Signal};
 use std::io::Write;
 use std::path::PathBuf;

@@ -39,17 +39,16 @@ pub(crate) fn marlin_ports() -> Ports {
                 seed,
                 record,
             } => {
-                let mut sim = crate::marlin::sim::SimConfig::new(spec.firmware);
+                let mut sim = crate::sim::SimConfig::new(spec.firmware);
                 sim.time_scale = *time_scale;
                 sim.seed = *seed;
                 sim.record = record.clone();
                 // Tests read what it ran from the record file; memory must not grow with jobs.
                 sim.keep_executed = false;
-                let handle =
-                    crate::marlin::sim::spawn(sim).map_err(|e| DaemonError::Simulator {
-                        printer: spec.name.clone(),
-                        message: e.to_string(),
-                    })?;
+                let handle = crate::sim::spawn(sim).map_err(|e| DaemonError::Simulator {
+                    printer: spec.name.clone(),
+                    message: e.to_string(),
+                })?;
                 let device = handle.device_path().to_path_buf();
                 tracing::info!(printer = %spec.name, device = %device.display(), time_scale, "simulated printer started");
                 (device, Some(handle))

@@ -4,6 +4,7 @@
 //! folder names, all from the config; never a file name, which would make a new series
 //! for every job.
 
+use super::counters::Counters;
 use super::AppState;
 use crate::daemon::farm::PrinterState;
 use crate::daemon::job::JobState;
@@ -30,10 +31,12 @@ const PRINTER_STATES: [PrinterState; 12] = [
 pub(crate) async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     let farm = state.farm.clone();
     let cameras = state.cameras.clone();
-    let text =
-        tokio::task::spawn_blocking(move || render(&farm) + &render_cameras(&farm, &cameras))
-            .await
-            .unwrap_or_default();
+    let counters = state.counters.clone();
+    let text = tokio::task::spawn_blocking(move || {
+        render(&farm, &counters) + &render_cameras(&farm, &cameras)
+    })
+    .await
+    .unwrap_or_default();
     (
         [(
             header::CONTENT_TYPE,
@@ -126,7 +129,7 @@ fn render_cameras(farm: &crate::daemon::farm::Farm, cameras: &crate::camera::Cam
     out.0
 }
 
-pub(crate) fn render(farm: &crate::daemon::farm::Farm) -> String {
+pub(crate) fn render(farm: &crate::daemon::farm::Farm, counters: &Counters) -> String {
     let view = super::api::snapshot(farm);
     let mut out = Out(String::new());
 
@@ -349,7 +352,7 @@ pub(crate) fn render(farm: &crate::daemon::farm::Farm) -> String {
         }
     }
     type Read = fn(&crate::daemon::store::stats::PrinterTally) -> f64;
-    let counters: [(&str, &str, Read); 4] = [
+    let printer_counters: [(&str, &str, Read); 4] = [
         (
             "crispen_printing_seconds_total",
             "Time spent printing since the daemon started.",
@@ -371,15 +374,15 @@ pub(crate) fn render(farm: &crate::daemon::farm::Farm) -> String {
             |t| t.silence_probes as f64,
         ),
     ];
-    for (name, help, read) in counters {
+    for (name, help, read) in printer_counters {
         out.family(name, "counter", help);
         for (printer, t) in &tally {
             out.sample(name, &[("printer", printer)], read(t));
         }
     }
     beds(&mut out, &store, tally.keys());
-    notifications(&mut out);
-    octoprint_control(&mut out);
+    notifications(&mut out, counters);
+    octoprint_control(&mut out, counters);
     out.0
 }
 
@@ -420,53 +423,29 @@ fn beds<'a>(
     }
 }
 
-/// Control actions asked through an OctoPrint instance (`POST api/job`): by hot folder,
-/// action and result. The process's counts, from zero at each start. Bounded: folders are
-/// the config's (a request naming no configured folder is refused before it is counted),
-/// actions and results are fixed words; past [`MAX_CONTROL_SERIES`] series (folders
-/// renamed by many reloads) new series are not made.
-static CONTROL: std::sync::Mutex<
-    std::collections::BTreeMap<(String, &'static str, &'static str), u64>,
-> = std::sync::Mutex::new(std::collections::BTreeMap::new());
-/// The most series `crispen_octoprint_control_total` keeps.
-pub(crate) const MAX_CONTROL_SERIES: usize = 4096;
-
-/// Counts one control action through OctoPrint: `action` pause, resume, toggle, cancel,
-/// start; `result` done, refused (the key may not), failed (nothing to act on, or the
-/// farm refused).
-pub(crate) fn count_octoprint_control(folder: &str, action: &'static str, result: &'static str) {
-    let mut map = CONTROL.lock().unwrap_or_else(|e| e.into_inner());
-    let key = (folder.to_string(), action, result);
-    if map.len() >= MAX_CONTROL_SERIES && !map.contains_key(&key) {
-        return;
-    }
-    *map.entry(key).or_insert(0) += 1;
-}
-
-fn octoprint_control(out: &mut Out) {
+fn octoprint_control(out: &mut Out, counters: &Counters) {
     out.family(
         "crispen_octoprint_control_total",
         "counter",
         "Control actions (pause, resume, toggle, cancel, start) asked through an OctoPrint instance, by hot folder, action and result (done, refused, failed).",
     );
-    let map = CONTROL.lock().unwrap_or_else(|e| e.into_inner());
-    for ((folder, action, result), n) in map.iter() {
+    for (folder, action, result, n) in counters.octoprint_control() {
         out.sample(
             "crispen_octoprint_control_total",
-            &[("folder", folder), ("action", action), ("result", result)],
-            *n as f64,
+            &[("folder", &folder), ("action", action), ("result", result)],
+            n as f64,
         );
     }
 }
 
-/// The notification counters (see `crate::notify::counts`) and the build's version.
-fn notifications(out: &mut Out) {
+/// The notification counters and the build's version.
+fn notifications(out: &mut Out, counters: &Counters) {
     out.family(
         "crispen_notifications_total",
         "counter",
         "Notification attempts and events by receiver: delivered, error (an attempt failed; retried), dropped (given up).",
     );
-    for (receiver, outcome, n) in crate::notify::counts::all() {
+    for (receiver, outcome, n) in counters.notifications() {
         out.sample(
             "crispen_notifications_total",
             &[("receiver", &receiver), ("result", outcome.name())],

@@ -26,6 +26,7 @@ mod appkeys_api;
 mod assets;
 mod auth;
 mod camera;
+mod counters;
 mod error;
 mod events;
 mod instance;
@@ -33,6 +34,7 @@ mod limits;
 mod metrics;
 mod multipart;
 mod octoprint;
+pub(crate) mod pending;
 pub(crate) mod serve;
 mod spools;
 mod state;
@@ -47,6 +49,7 @@ use axum::Router;
 use std::sync::Arc;
 
 pub(crate) use appkeys::AppKeys;
+pub(crate) use counters::Counters;
 pub(crate) use error::ApiError;
 pub(crate) use limits::{
     DEFAULT_UPLOAD_MAX_BYTES, MAX_BODY_BYTES, REQUEST_TIMEOUT, UPLOAD_IDLE_TIMEOUT, UPLOAD_TIMEOUT,
@@ -136,46 +139,58 @@ pub(crate) async fn bind(http: &HttpConfig) -> std::io::Result<tokio::net::TcpLi
     tokio::net::TcpListener::bind(http.listen).await
 }
 
+/// What both listeners share, made once by the service: the application keys, the
+/// cameras, the run's counters and OctoPrint's held uploads (whose sweeper is a task of
+/// the service, see `pending::sweep`).
+#[derive(Clone)]
+pub(crate) struct Shared {
+    pub(crate) appkeys: Arc<AppKeys>,
+    pub(crate) cameras: Arc<crate::camera::Cameras>,
+    pub(crate) counters: Arc<counters::Counters>,
+    pub(crate) pending: Arc<pending::Pending>,
+}
+
+impl Shared {
+    fn state(self, farm: Arc<Farm>, access: Access, upload_max_bytes: u64) -> AppState {
+        AppState {
+            farm,
+            access: Arc::new(access),
+            upload_max_bytes,
+            streams: Arc::default(),
+            appkeys: self.appkeys,
+            cameras: self.cameras,
+            counters: self.counters,
+            pending: self.pending,
+        }
+    }
+}
+
 /// Serves the application on the control socket until `stop` fires.
 pub(crate) async fn serve_socket(
     farm: Arc<Farm>,
-    appkeys: Arc<AppKeys>,
-    cameras: Arc<crate::camera::Cameras>,
+    shared: Shared,
     http: Option<HttpConfig>,
     listener: tokio::net::UnixListener,
     stop: tokio_util::sync::CancellationToken,
 ) {
-    let app = router(AppState {
-        farm,
-        access: Arc::new(Access::Socket),
-        upload_max_bytes: http.map_or(DEFAULT_UPLOAD_MAX_BYTES, |h| h.upload_max_bytes),
-        streams: Arc::default(),
-        appkeys,
-        cameras,
-    });
+    let upload_max_bytes = http.map_or(DEFAULT_UPLOAD_MAX_BYTES, |h| h.upload_max_bytes);
+    let app = router(shared.state(farm, Access::Socket, upload_max_bytes));
     serve::serve(listener, app, serve::Limits::default(), stop, "socket").await;
 }
 
 /// Serves the application on the TCP listener of `[http]` until `stop` fires.
 pub(crate) async fn serve_tcp(
     farm: Arc<Farm>,
-    appkeys: Arc<AppKeys>,
-    cameras: Arc<crate::camera::Cameras>,
+    shared: Shared,
     http: HttpConfig,
     listener: tokio::net::TcpListener,
     stop: tokio_util::sync::CancellationToken,
 ) {
-    let app = router(AppState {
-        farm,
-        access: Arc::new(Access::Key {
-            key: http.api_key,
-            read_only_without_key: http.read_only_without_key,
-        }),
-        upload_max_bytes: http.upload_max_bytes,
-        streams: Arc::default(),
-        appkeys,
-        cameras,
-    });
+    let access = Access::Key {
+        key: http.api_key,
+        read_only_without_key: http.read_only_without_key,
+    };
+    let app = router(shared.state(farm, access, http.upload_max_bytes));
     serve::serve(listener, app, serve::Limits::default(), stop, "tcp").await;
 }
 

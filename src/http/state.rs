@@ -33,4 +33,9 @@ pub struct AppState {
     pub appkeys: Arc<AppKeys>,
     /// The printers' cameras (shared by both listeners).
     pub cameras: Arc<crate::camera::Cameras>,
+    /// The run's counters for `/metrics` (shared by both listeners).
+    pub(crate) counters: Arc<super::counters::Counters>,
+    /// OctoPrint's held uploads waiting for their select-and-print (shared by both
+    /// listeners and the sweeper).
+    pub(crate) pending: Arc<super::pending::Pending>,
 }

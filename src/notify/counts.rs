@@ -1,9 +1,11 @@
 //! What became of notification attempts, per receiver, for `crispen_notifications_total`.
 //! Receivers are the config's (at most `MAX_RECEIVERS`), so the labels stay bounded. The
-//! counts are the process's: they start at zero with each run, as Prometheus counters do.
+//! counts are the run's: they start at zero with each run, as Prometheus counters do.
+//! Each receiver's tally is published by its tasks (its sender, and the observer when it
+//! cannot queue an event) as a `watch`, and read through [`Counts`] by `/metrics`.
 
-use std::collections::BTreeMap;
-use std::sync::Mutex;
+use std::sync::Arc;
+use tokio::sync::watch;
 
 /// What became of one attempt or event.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -29,28 +31,35 @@ impl Outcome {
     }
 }
 
-static COUNTS: Mutex<BTreeMap<(String, Outcome), u64>> = Mutex::new(BTreeMap::new());
+/// One receiver's counts, by outcome (in [`Outcome::ALL`]'s order).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(crate) struct Tally([u64; 3]);
 
-fn counts() -> std::sync::MutexGuard<'static, BTreeMap<(String, Outcome), u64>> {
-    COUNTS.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Shows `receiver`'s counters from zero (a series that exists before its first event).
-pub(crate) fn register(receiver: &str) {
-    let mut c = counts();
-    for o in Outcome::ALL {
-        c.entry((receiver.to_string(), o)).or_insert(0);
+impl Tally {
+    /// Counts one `outcome` on `tally`.
+    pub(crate) fn count(tally: &watch::Sender<Tally>, outcome: Outcome) {
+        tally.send_modify(|t| t.0[outcome as usize] += 1);
     }
 }
 
-pub(crate) fn count(receiver: &str, outcome: Outcome) {
-    *counts().entry((receiver.to_string(), outcome)).or_insert(0) += 1;
-}
+/// Every receiver's counts, as `/metrics` reads them: each one's name and its tally (from
+/// zero before its first event, so its series exist from the start).
+#[derive(Debug, Clone, Default)]
+pub struct Counts(Arc<Vec<(String, watch::Receiver<Tally>)>>);
 
-/// Every (receiver, outcome, count), by receiver.
-pub(crate) fn all() -> Vec<(String, Outcome, u64)> {
-    counts()
-        .iter()
-        .map(|((r, o), n)| (r.clone(), *o, *n))
-        .collect()
+impl Counts {
+    pub(crate) fn new(receivers: Vec<(String, watch::Receiver<Tally>)>) -> Counts {
+        Counts(Arc::new(receivers))
+    }
+
+    /// Every (receiver, outcome, count), by receiver.
+    pub(crate) fn all(&self) -> Vec<(String, Outcome, u64)> {
+        self.0
+            .iter()
+            .flat_map(|(name, tally)| {
+                let tally = *tally.borrow();
+                Outcome::ALL.map(|o| (name.clone(), o, tally.0[o as usize]))
+            })
+            .collect()
+    }
 }

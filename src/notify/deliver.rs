@@ -8,7 +8,7 @@
 //! `max_attempts` failed in this run, or when the receiver refuses it for good (a 4xx
 //! answer other than 408 and 429).
 
-use super::counts::{self, Outcome};
+use super::counts::{Counts, Outcome, Tally};
 use super::event::Event;
 use super::observe::{Look, Observer};
 use super::outbox::Outbox;
@@ -41,21 +41,28 @@ struct Queue {
     outbox: Outbox,
     wake: Arc<Notify>,
     idle: watch::Receiver<bool>,
+    tally: watch::Sender<Tally>,
 }
 
 /// Runs the notifications until `stop`: the observer and one task per receiver. Opens
-/// the queues first: a spool where they cannot be made is an error at once.
+/// the queues first: a spool where they cannot be made is an error at once. Returns the
+/// receivers' counts with the task.
 pub fn run(
     farm: Arc<Farm>,
     stop: CancellationToken,
-) -> std::io::Result<impl std::future::Future<Output = ()> + Send + 'static> {
+) -> std::io::Result<(
+    Counts,
+    impl std::future::Future<Output = ()> + Send + 'static,
+)> {
     let config = farm.config();
     let mut senders = JoinSet::new();
     let stop_senders = CancellationToken::new();
     let mut queues = Vec::new();
+    let mut tallies = Vec::new();
     for receiver in &config.notify.receivers {
         let outbox = Outbox::open(&config.spool_dir, &receiver.name)?;
-        counts::register(&receiver.name);
+        let (tally, tally_rx) = watch::channel(Tally::default());
+        tallies.push((receiver.name.clone(), tally_rx));
         let wake = Arc::new(Notify::new());
         let (idle_tx, idle) = watch::channel(false);
         senders.spawn(send_loop(
@@ -63,6 +70,7 @@ pub fn run(
             outbox.clone(),
             Arc::clone(&wake),
             idle_tx,
+            tally.clone(),
             stop_senders.clone(),
         ));
         queues.push(Queue {
@@ -70,9 +78,10 @@ pub fn run(
             outbox,
             wake,
             idle,
+            tally,
         });
     }
-    Ok(async move {
+    let task = async move {
         if queues.is_empty() {
             // Nothing to send; the task still runs until the stop, as every task of
             // the service does (one that ends is taken for a failure).
@@ -98,7 +107,8 @@ pub fn run(
                 }
             }
         }
-    })
+    };
+    Ok((Counts::new(tallies), task))
 }
 
 /// Observes the farm until `stop`, then looks once more (the stop's own changes).
@@ -155,25 +165,27 @@ async fn queue(queues: &[Queue], events: Vec<Event>) {
             job = event.job.as_ref().map_or("", |j| j.id.as_str()),
             "notification"
         );
-        let wanted: Vec<(String, Outbox)> = queues
+        let wanted: Vec<(usize, Outbox)> = queues
             .iter()
-            .filter(|q| q.receiver.wants(event.event.name()))
-            .map(|q| (q.receiver.name.clone(), q.outbox.clone()))
+            .enumerate()
+            .filter(|(_, q)| q.receiver.wants(event.event.name()))
+            .map(|(i, q)| (i, q.outbox.clone()))
             .collect();
         let written = tokio::task::spawn_blocking(move || {
             wanted
                 .into_iter()
-                .map(|(name, outbox)| (name, outbox.put(&event)))
+                .map(|(i, outbox)| (i, outbox.put(&event)))
                 .collect::<Vec<_>>()
         })
         .await
         .unwrap_or_default();
-        for (name, result) in written {
+        for (i, result) in written {
             if let Err(e) = result {
                 // The spool is what the farm runs on; when it cannot take a small file
                 // the operator hears of it from the store's own errors too.
-                tracing::error!(receiver = %name, error = %e, "notification not queued: lost");
-                counts::count(&name, Outcome::Dropped);
+                let q = &queues[i];
+                tracing::error!(receiver = %q.receiver.name, error = %e, "notification not queued: lost");
+                Tally::count(&q.tally, Outcome::Dropped);
             }
         }
     }
@@ -188,6 +200,7 @@ async fn send_loop(
     outbox: Outbox,
     wake: Arc<Notify>,
     idle: watch::Sender<bool>,
+    tally: watch::Sender<Tally>,
     stop: CancellationToken,
 ) {
     let name = receiver.name.clone();
@@ -202,7 +215,7 @@ async fn send_loop(
             Ok(Ok((ids, dropped))) => {
                 for id in dropped {
                     tracing::error!(receiver = %name, id = %id, "notification dropped: the queue is full (the receiver has been down long)");
-                    counts::count(&name, Outcome::Dropped);
+                    Tally::count(&tally, Outcome::Dropped);
                 }
                 ids
             }
@@ -230,7 +243,7 @@ async fn send_loop(
             Ok(Ok(e)) => e,
             Ok(Err(e)) => {
                 tracing::error!(receiver = %name, "{e}");
-                counts::count(&name, Outcome::Dropped);
+                Tally::count(&tally, Outcome::Dropped);
                 // It was set aside; should that have failed too, it is not read again
                 // at once.
                 tokio::select! {
@@ -251,7 +264,7 @@ async fn send_loop(
             None
         };
         if let Some(why) = give_up {
-            drop_event(&outbox, &name, &event, &why).await;
+            drop_event(&outbox, &name, &tally, &event, &why).await;
             attempts.remove(&id);
             continue;
         }
@@ -271,14 +284,14 @@ async fn send_loop(
                     return;
                 }
                 tracing::info!(receiver = %name, id = %id, event = event.event.name(), status = answer.status, "notification delivered");
-                counts::count(&name, Outcome::Delivered);
+                Tally::count(&tally, Outcome::Delivered);
                 attempts.remove(&id);
                 backoff = FIRST_BACKOFF.min(receiver.backoff_max);
                 continue;
             }
             Ok(answer) if answer.permanent() => {
                 let why = format!("refused with HTTP {}: {}", answer.status, answer.body);
-                drop_event(&outbox, &name, &event, &why).await;
+                drop_event(&outbox, &name, &tally, &event, &why).await;
                 attempts.remove(&id);
                 continue;
             }
@@ -289,7 +302,7 @@ async fn send_loop(
                 tracing::warn!(receiver = %name, id = %id, error = %e, retry_in_s = backoff.as_secs_f64(), "notification not sent; retrying");
             }
         }
-        counts::count(&name, Outcome::Error);
+        Tally::count(&tally, Outcome::Error);
         *attempts.entry(id).or_insert(0) += 1;
         tokio::select! {
             () = tokio::time::sleep(backoff) => {}
@@ -299,9 +312,15 @@ async fn send_loop(
     }
 }
 
-async fn drop_event(outbox: &Outbox, name: &str, event: &Event, why: &str) {
+async fn drop_event(
+    outbox: &Outbox,
+    name: &str,
+    tally: &watch::Sender<Tally>,
+    event: &Event,
+    why: &str,
+) {
     tracing::error!(receiver = %name, id = %event.id, event = event.event.name(), "notification dropped: {why}");
-    counts::count(name, Outcome::Dropped);
+    Tally::count(tally, Outcome::Dropped);
     let (outbox, id) = (outbox.clone(), event.id.clone());
     let _ = tokio::task::spawn_blocking(move || outbox.remove(&id)).await;
 }

@@ -20,5 +20,6 @@ pub(crate) mod observe;
 pub(crate) mod outbox;
 pub mod wire;
 
+pub use counts::Counts;
 pub use deliver::run;
 pub use event::{Event, EventKind};

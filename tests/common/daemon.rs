@@ -4,7 +4,7 @@
 
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
-use crispen::marlin::sim::is_housekeeping;
+use crispen::sim::is_housekeeping;
 use serde_json::Value;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};

@@ -267,7 +267,7 @@ impl Relay {
             std::thread::sleep(Duration::from_millis(20));
         }
 
-        let pty = crispen::marlin::sim::open_pty().expect("a pty for the host side");
+        let pty = crispen::sim::open_pty().expect("a pty for the host side");
         let mut attrs = termios::tcgetattr(&pty.slave).unwrap();
         termios::cfmakeraw(&mut attrs);
         termios::tcsetattr(&pty.slave, termios::SetArg::TCSANOW, &attrs).unwrap();
@@ -571,8 +571,8 @@ fn run(
                         '>',
                         String::from_utf8_lossy(&line).trim_end().to_string(),
                     ));
-                    if let Some((_, held)) = hold
-                        .take_if(|(after, _)| String::from_utf8_lossy(&line).contains(&**after))
+                    if let Some((_, held)) =
+                        hold.take_if(|(after, _)| String::from_utf8_lossy(&line).contains(&**after))
                     {
                         held_until = Some(now + held);
                     }

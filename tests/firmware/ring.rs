@@ -115,10 +115,15 @@ async fn a_late_answer_before_the_job_never_counts_for_it() {
         let report = result.unwrap_or_else(|e| panic!("{name}: the job failed: {e}"));
         assert_eq!(report.resends, 0, "{name}: a clean link needs no resend");
         let overruns = relay.ring_overruns();
-        assert!(overruns.is_empty(), "{name}: the ring overran: {overruns:#?}");
+        assert!(
+            overruns.is_empty(),
+            "{name}: the ring overran: {overruns:#?}"
+        );
         // The answer was held, not lost, and the job began only after it came.
         assert!(
-            log.wire.iter().any(|(_, dir, line)| *dir == '<' && line.contains("M203")),
+            log.wire
+                .iter()
+                .any(|(_, dir, line)| *dir == '<' && line.contains("M203")),
             "{name}: the held M503 answer never reached the host"
         );
         let crossed = |what: &str, after: f64| {

@@ -12,7 +12,7 @@ use crate::common;
 use common::farm::{drop_file, presliced_gcode, state_of, Farm, HostSpec};
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
-use crispen::marlin::sim::is_housekeeping;
+use crispen::sim::is_housekeeping;
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;

@@ -8,7 +8,7 @@ use crate::common;
 use common::daemon::{ctl, drop_model, recorded, state_of, wait_for, Daemon, BIN};
 use common::{job_by_file, printer};
 
-use crispen::marlin::sim::is_housekeeping;
+use crispen::sim::is_housekeeping;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;

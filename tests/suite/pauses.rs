@@ -10,11 +10,11 @@ use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::motion::Motion;
 use crispen::marlin::pause::{find_pauses, park_lines, resume_lines};
 use crispen::marlin::reader;
-use crispen::marlin::sim::{self, is_housekeeping, SimConfig, SimHandle};
 use crispen::marlin::stream::{
     Connection, PauseSettings, PrintError, PrintProgress, PrintState, StreamControl, StreamOptions,
     Temp, Temperatures,
 };
+use crispen::sim::{self, is_housekeeping, SimConfig, SimHandle};
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 

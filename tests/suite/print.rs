@@ -9,10 +9,10 @@ use common::daemon::{self, Reaper};
 use crispen::marlin::firmware::Firmware;
 use crispen::marlin::gcode::GcodeProgram;
 use crispen::marlin::protocol::canonical;
-use crispen::marlin::sim::{self, Faults, SimConfig, SimHandle};
 use crispen::marlin::stream::{
     Connection, PrintError, PrintProgress, PrintReport, StopOutcome, StreamControl, StreamOptions,
 };
+use crispen::sim::{self, Faults, SimConfig, SimHandle};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};

@@ -3,7 +3,7 @@
 //! `crispen sim` command.
 
 use crispen::marlin::firmware::Firmware;
-use crispen::marlin::sim::{self, is_housekeeping, Faults, SimConfig, SimHandle};
+use crispen::sim::{self, is_housekeeping, Faults, SimConfig, SimHandle};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::termios;
 use std::fs::File;

@@ -349,7 +349,7 @@ fn port_of(
     Ok(port)
 }
 
-/// `[printer.simulate] speed` (see [`crate::marlin::sim::time_scale_of_speed`]), or the
+/// `[printer.simulate] speed` (see [`crate::sim::time_scale_of_speed`]), or the
 /// old `time_scale`, its inverse, read as before with a warning in `warnings` that names
 /// `speed`: the simulator's time scale. An error names its key.
 fn simulate_time_scale(
@@ -358,7 +358,7 @@ fn simulate_time_scale(
     section: &str,
     warnings: &mut Vec<String>,
 ) -> Result<f64, (&'static str, String)> {
-    use crate::marlin::sim::{speed_of_time_scale, time_scale_of_speed};
+    use crate::sim::{speed_of_time_scale, time_scale_of_speed};
     match (speed, time_scale) {
         (Some(_), Some(_)) => Err((
             "time_scale",

@@ -21,7 +21,7 @@
 //!   anything else is refused with the folders' names.
 //!
 //! The select command is never lost: a held upload is remembered with a token of its
-//! own (`super::pending`), and its select-and-print releases that upload's job whenever
+//! own (`crate::http::pending`), and its select-and-print releases that upload's job whenever
 //! it comes, before the hot folder has even taken the file.
 //!
 //! The answer is OctoPrint's: `201`, the file's address in `Location` (under the
@@ -187,16 +187,16 @@ pub(crate) async fn upload(
         )?),
         _ => None,
     };
-    // The upload's own token (see `super::pending`): its select-and-print finds this
+    // The upload's own token (see `crate::http::pending`): its select-and-print finds this
     // upload's job by it, whenever the command comes.
-    let token = hold.then(super::pending::token);
+    let token = hold.then(crate::http::pending::token);
     let sidecar = match &token {
         Some(token) => Some(receive_hold(&folder.path, &file_name, token, mark.as_deref()).await?),
         None => None,
     };
     let stored = upload::place_with_sidecar(received, sidecar).await?;
     if let Some(token) = &token {
-        super::pending::remember(
+        state.pending.remember(
             &folder.path,
             &file_name,
             token,
@@ -259,7 +259,7 @@ async fn receive_hold(
 ) -> Result<upload::Received, ApiError> {
     let content = format!(
         "{HOLD_SIDECAR}{}{}",
-        super::pending::sidecar_line(token),
+        crate::http::pending::sidecar_line(token),
         mark.unwrap_or("")
     );
     let size = content.len() as u64;
@@ -341,9 +341,9 @@ pub(crate) async fn command(
     let shown = crate::daemon::hotfolder::printable(&file);
     let folder_name = upload::folder_name(folder);
     drop(config);
-    // An upload of this name remembered (see `super::pending`): the command is its own,
+    // An upload of this name remembered (see `crate::http::pending`): the command is its own,
     // taken now whatever the upload's job is (not there yet, preparing, ready).
-    if let Some((token, key)) = super::pending::newest(&folder_path, &file) {
+    if let Some((token, key)) = state.pending.newest(&folder_path, &file) {
         let may = match (&grant, &key) {
             (None, _) => true,
             (Some(grant), Some(key)) => &grant.id == key,
@@ -358,7 +358,9 @@ pub(crate) async fn command(
                 return Err(grant.refuse_release("(not a job yet)", &shown));
             }
         }
-        let outcome = super::pending::print(&state.farm, &token)
+        let outcome = state
+            .pending
+            .print(&state.farm, &token)
             .await
             .map_err(|e| ApiError::conflict(e.to_string()))?;
         tracing::info!(file = %shown, folder = %folder_name, ?outcome, "octoprint: select and print");

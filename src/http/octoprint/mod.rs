@@ -26,7 +26,6 @@
 pub(crate) mod files;
 pub(crate) mod form;
 pub(crate) mod identity;
-pub(crate) mod pending;
 pub(crate) mod state;
 
 use super::upload;

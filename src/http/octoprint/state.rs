@@ -441,7 +441,9 @@ pub(crate) async fn job_command(
         Ok(_) => "done",
         Err(r) => r.result,
     };
-    crate::http::metrics::count_octoprint_control(&folder.1, action, result);
+    state
+        .counters
+        .count_octoprint_control(&folder.1, action, result);
     match done {
         Ok(message) => {
             tracing::info!(app = %by, folder = %folder.1, action, %message, instance = %instance.base, "octoprint: job command");
@@ -529,7 +531,7 @@ async fn control_job(
 
 /// `start`: the newest held job of the folder that `grant`'s uploads held (the
 /// operator's key: any held job) is released; else the newest such upload that has not
-/// become a job yet is printed once it does (`super::pending`).
+/// become a job yet is printed once it does (`crate::http::pending`).
 async fn start(
     state: &AppState,
     grant: Option<&crate::http::appkeys::Grant>,
@@ -566,16 +568,18 @@ async fn start(
         .map_err(|e| ApiError::conflict(e.to_string()).into());
     }
     let key = grant.map(|g| g.id.as_str());
-    if let Some((token, file)) = super::pending::unwanted(folder, key).into_iter().next() {
-        let outcome = super::pending::print(&state.farm, &token)
+    if let Some((token, file)) = state.pending.unwanted(folder, key).into_iter().next() {
+        let outcome = state
+            .pending
+            .print(&state.farm, &token)
             .await
             .map_err(|e| Refusal::from(ApiError::conflict(e.to_string())))?;
         return Ok(match outcome {
-            super::pending::Outcome::Released(job) => format!("{file}: job {job} released"),
-            super::pending::Outcome::AlreadyFree(job) => {
+            crate::http::pending::Outcome::Released(job) => format!("{file}: job {job} released"),
+            crate::http::pending::Outcome::AlreadyFree(job) => {
                 format!("{file}: job {job} was not held; it prints once ready")
             }
-            super::pending::Outcome::Waiting => {
+            crate::http::pending::Outcome::Waiting => {
                 format!("{file}: prints as soon as the hot folder has taken it")
             }
         });

@@ -146,7 +146,7 @@ pub(crate) async fn bind(http: &HttpConfig) -> std::io::Result<tokio::net::TcpLi
 pub(crate) struct Shared {
     pub(crate) appkeys: Arc<AppKeys>,
     pub(crate) cameras: Arc<crate::camera::Cameras>,
-    pub(crate) counters: Arc<counters::Counters>,
+    pub(crate) counters: Arc<Counters>,
     pub(crate) pending: Arc<pending::Pending>,
 }
 

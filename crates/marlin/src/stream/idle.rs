@@ -164,16 +164,13 @@ impl IdleWatch {
                     self.unanswered = 0;
                     heard.synced = true;
                 }
-                Reply::UnknownCommand(text)
-                    if self
-                        .sync
-                        .as_ref()
-                        .is_some_and(|s| text == sync_line(s.token)) =>
-                {
-                    if let Some(sync) = &mut self.sync {
-                        sync.echoed = true;
+                Reply::UnknownCommand(text) => match &mut self.sync {
+                    Some(sync) if text == sync_line(sync.token) => sync.echoed = true,
+                    // An earlier sync line's echo, or a command of someone else's.
+                    _ => {
+                        tracing::info!(port = %port.display(), "idle printer: unknown command {text:?}")
                     }
-                }
+                },
                 Reply::Ok(ok) => {
                     self.unanswered = self.unanswered.saturating_sub(1);
                     if let Some(report) = ok.report {

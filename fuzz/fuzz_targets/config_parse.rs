@@ -4,6 +4,7 @@
 #![no_main]
 
 use crispen::daemon::config::Config;
+use crispen::slice::HEIGHT_MM;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
@@ -19,7 +20,7 @@ fuzz_target!(|data: &[u8]| {
                 assert!(http.listen.port() == 0 || http.listen.port() >= 1024);
             }
             for folder in &config.folders {
-                assert!(folder.height_mm >= 1.0 && folder.height_mm <= 205.0);
+                assert!(HEIGHT_MM.contains(&folder.height_mm));
                 assert!(!folder.path.starts_with(&config.spool_dir));
             }
         }

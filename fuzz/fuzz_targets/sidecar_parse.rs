@@ -3,6 +3,7 @@
 #![no_main]
 
 use crispen::daemon::job::parse_sidecar;
+use crispen::slice::HEIGHT_MM;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
@@ -10,7 +11,7 @@ fuzz_target!(|data: &[u8]| {
     match parse_sidecar(data, path) {
         Ok(sidecar) => {
             if let Some(h) = sidecar.height_mm {
-                assert!((1.0..=205.0).contains(&h));
+                assert!(HEIGHT_MM.contains(&h));
             }
             if let Some(n) = sidecar.copies {
                 assert!(n >= 1);

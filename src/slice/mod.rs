@@ -44,7 +44,7 @@ use std::time::{Duration, Instant};
 /// Printed heights accepted, mm: from a height that still holds a shape of a few layers
 /// to the tallest machine that can be described; whether a machine builds it is the
 /// placement's check.
-pub(crate) const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_MM.end();
+pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_MM.end();
 
 /// The layer height of the built-in profiles (`config/prusaslicer-ultimaker2.ini`,
 /// `config/cura-ultimaker2.toml`), mm, when neither the job nor the G-code says.

@@ -239,7 +239,7 @@ pub enum ProbeError {
 /// Opens `port` at `baud` and asks the printer for its M115 answer, giving up after
 /// `timeout` in all.
 pub async fn probe(port: &Path, baud: u32, timeout: Duration) -> Result<ProbeReport, ProbeError> {
-    let mut link = Transport::open(port, baud)?;
+    let mut link = Transport::open(port, baud).await?;
     let started = Instant::now();
     let give_up = started + timeout;
     let mut probe = Probe::new(started);

@@ -146,6 +146,41 @@ async fn the_printers_own_settings_are_read_at_connect() {
     }
 }
 
+/// A port another opener has locked is waited for, as it is for the moment a child process
+/// of this one holds it between fork and exec: released while the open waits, it opens;
+/// held past the wait, the error says the port is in use. (The first case under load once
+/// failed the settings test above: a reopen right after a close met the lock.)
+#[tokio::test]
+async fn a_locked_port_is_waited_for_then_named_in_use() {
+    use crispen::marlin::transport::{Transport, TransportError, BUSY_WAIT};
+    let sim = start_sim(Firmware::Marlin2, Faults::default(), 3);
+    let path = sim.device_path().to_path_buf();
+    let holder = serialport::new(path.to_string_lossy(), 0)
+        .open_native()
+        .unwrap();
+    let mut opening = Box::pin(Transport::open(&path, 115_200));
+    // A zero timeout polls the open once: it met the lock and waits.
+    assert!(tokio::time::timeout(Duration::ZERO, &mut opening)
+        .await
+        .is_err());
+    drop(holder);
+    opening.await.expect("opens once the holder let go");
+
+    let holder = serialport::new(path.to_string_lossy(), 0)
+        .open_native()
+        .unwrap();
+    match Transport::open(&path, 115_200).await {
+        Err(e @ TransportError::Busy { waited_s, .. }) => {
+            assert!(waited_s >= BUSY_WAIT.as_secs_f64(), "{e}");
+            assert!(e.to_string().contains("is in use"), "{e}");
+        }
+        Err(e) => panic!("not named busy: {e}"),
+        Ok(_) => panic!("opened a port another opener holds"),
+    }
+    drop(holder);
+    sim.shutdown();
+}
+
 #[tokio::test]
 async fn clean_link_delivers_the_file_exactly_once() {
     for fw in Firmware::ALL {

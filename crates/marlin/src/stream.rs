@@ -198,7 +198,7 @@ pub struct Connection {
 impl Connection {
     /// Open the port and run the handshake (wait for `start` or quiet, M110, M115).
     pub async fn open(port: &Path, opts: &StreamOptions) -> Result<Connection, PrintError> {
-        let mut transport = Transport::open(port, opts.baud)?;
+        let mut transport = Transport::open(port, opts.baud).await?;
         let (host, info) = greet(&mut transport, port, opts).await?;
         tracing::info!(port = %port.display(), firmware = ?info.name, "printer connected");
         let mut connection = Connection {

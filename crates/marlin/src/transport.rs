@@ -13,6 +13,7 @@ use nix::fcntl::{fcntl, FcntlArg, OFlag};
 use nix::sys::termios::{self, ControlFlags, SetArg};
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 use tokio::io::unix::AsyncFd;
 use tokio::io::Interest;
 
@@ -23,7 +24,21 @@ pub enum TransportError {
          plugged in, and that you may use the device (e.g. the dialout group)"
     )]
     Open { port: PathBuf, message: String },
+    #[error(
+        "printer port {port} is in use: another program held it for the {waited_s:.1} s \
+         crispen waited (hint: stop the other host, e.g. OctoPrint or a terminal, or give it \
+         another port)"
+    )]
+    Busy { port: PathBuf, waited_s: f64 },
 }
+
+/// How long an open waits for a port another holder has locked. A process this one starts
+/// (a slicer, ffmpeg) holds a copy of every descriptor between its fork and its exec, and
+/// with it the port's lock, even though close-on-exec is set: a port closed and reopened in
+/// that moment is briefly busy. Another program keeps it busy past this.
+pub const BUSY_WAIT: Duration = Duration::from_secs(3);
+/// Between two tries at a busy port.
+const BUSY_RETRY: Duration = Duration::from_millis(25);
 
 /// What the port delivered.
 #[derive(Debug)]
@@ -47,20 +62,48 @@ pub struct Transport {
 const READ_CHUNK: usize = 4096;
 
 impl Transport {
-    pub fn open(port: &Path, baud: u32) -> Result<Transport, TransportError> {
-        let open_err = |message: String| TransportError::Open {
-            port: port.to_path_buf(),
-            message,
+    /// Opens the port, waiting up to [`BUSY_WAIT`] while another holder has it locked.
+    pub async fn open(port: &Path, baud: u32) -> Result<Transport, TransportError> {
+        let started = tokio::time::Instant::now();
+        loop {
+            match Transport::open_once(port, baud) {
+                Err(Opened::Busy) if started.elapsed() < BUSY_WAIT => {
+                    tokio::time::sleep(BUSY_RETRY).await;
+                }
+                Err(Opened::Busy) => {
+                    return Err(TransportError::Busy {
+                        port: port.to_path_buf(),
+                        waited_s: started.elapsed().as_secs_f64(),
+                    })
+                }
+                Err(Opened::Failed(e)) => return Err(e),
+                Ok(transport) => return Ok(transport),
+            }
+        }
+    }
+
+    fn open_once(port: &Path, baud: u32) -> Result<Transport, Opened> {
+        let open_err = |message: String| {
+            Opened::Failed(TransportError::Open {
+                port: port.to_path_buf(),
+                message,
+            })
         };
         let path = port.to_string_lossy().into_owned();
         let native = serialport::new(&path, baud)
             .dtr_on_open(true)
             .open_native()
-            .or_else(|_| {
+            .or_else(|e| match e.kind() {
+                serialport::ErrorKind::NoDevice => Err(e),
                 // Some pty drivers refuse custom baud rates; the rate means nothing there.
-                serialport::new(&path, 0).open_native()
+                _ => serialport::new(&path, 0).open_native(),
             })
-            .map_err(|e| open_err(e.to_string()))?;
+            .map_err(|e| match e.kind() {
+                // serialport's kind for a port locked by another opener (its exclusive
+                // flock, or TIOCEXCL's EBUSY).
+                serialport::ErrorKind::NoDevice => Opened::Busy,
+                _ => open_err(e.to_string()),
+            })?;
         let native = Port(native);
         clear_hupcl(&native);
         // serialport opens blocking; its own read and write also poll with a timeout first.
@@ -137,6 +180,12 @@ impl Transport {
             }
         }
     }
+}
+
+/// Why one try at opening failed.
+enum Opened {
+    Busy,
+    Failed(TransportError),
 }
 
 /// The open port: `serialport` configures it (and drops exclusive access on close); the

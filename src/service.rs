@@ -20,6 +20,10 @@ use std::time::Duration;
 use tokio::task::{AbortHandle, Id, JoinError, JoinSet};
 use tokio_util::sync::CancellationToken;
 
+mod systemd;
+use sd_notify::NotifyState;
+use systemd::Systemd;
+
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
     #[error(transparent)]
@@ -253,6 +257,7 @@ struct Running {
     stop_listeners: CancellationToken,
     /// Withdrawn when the daemon stops (dropped).
     _announced: Option<crate::http::zeroconf::Announcer>,
+    systemd: Systemd,
 }
 
 impl Running {
@@ -390,6 +395,7 @@ impl Running {
             stop_cameras,
             stop_listeners,
             _announced: announced,
+            systemd: Systemd::from_env(),
         })
     }
 
@@ -397,7 +403,7 @@ impl Running {
     /// `exit_when_idle`, or a task's end; returns the failure when it was one.
     async fn serve(&mut self, signals: &mut Signals) -> Option<ServiceError> {
         let farm = Arc::clone(&self.farm);
-        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
+        self.systemd.notify(&[NotifyState::Ready]);
         let mut watchdog_usec = 0u64;
         let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
         let tick = if watchdog {
@@ -423,15 +429,11 @@ impl Running {
                     return Some(e);
                 }
                 _ = ticker.tick() => {
-                    if farm.store().unwritten() > 0 {
-                        let farm = Arc::clone(&farm);
-                        tokio::spawn(async move { farm.jobs().write_pending().await });
-                    }
                     if watchdog {
-                        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                        self.systemd.notify(&[NotifyState::Watchdog]);
                     }
                     let summary = summary(&farm);
-                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Status(&summary)]);
+                    self.systemd.notify(&[NotifyState::Status(&summary)]);
                 }
                 // A change is counted in the snapshot that publishes it: one look sees both.
                 Ok(()) = jobs.changed() => {
@@ -457,13 +459,14 @@ impl Running {
             stop_notify,
             stop_cameras,
             stop_listeners,
+            systemd,
             ..
         } = self;
-        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+        systemd.notify(&[NotifyState::Stopping]);
         farm.begin_stop();
         tasks.stop(PICKUP);
         tasks.join(PREPARATION).await;
-        finish_prints(&farm, fleet, &mut signals.term, &mut signals.int).await;
+        finish_prints(&farm, &systemd, fleet, &mut signals.term, &mut signals.int).await;
         if tasks.has(SHARED) {
             // Prints have ended: their outcomes are in the store.
             stop_shared.cancel();
@@ -509,6 +512,7 @@ const STOP_GRACE: Duration = Duration::from_secs(60);
 /// stops them at once. A daemon killed by systemd would leave the heaters on.
 async fn finish_prints(
     farm: &Farm,
+    systemd: &Systemd,
     fleet: Fleet,
     sigterm: &mut tokio::signal::unix::Signal,
     sigint: &mut tokio::signal::unix::Signal,
@@ -543,7 +547,7 @@ async fn finish_prints(
                 let left = last.saturating_duration_since(Instant::now()).min(EXTEND_BY);
                 if !left.is_zero() {
                     let usec = u32::try_from(left.as_micros()).unwrap_or(u32::MAX);
-                    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::ExtendTimeoutUsec(usec)]);
+                    systemd.notify(&[NotifyState::ExtendTimeoutUsec(usec)]);
                 }
                 continue;
             }

@@ -250,14 +250,21 @@ impl Request {
                 reply,
             } => statistics(store, view, period, printers, folders, now, reply),
             Request::WritePending { reply } => {
-                // Only the persisted copy changes: the view already shows these outcomes.
-                let left = store.write_pending();
-                let changed = view.unwritten != left;
-                view.unwritten = left;
+                let (left, changed) = write_pending(store, view);
                 (deliver(reply, Ok(left)), changed)
             }
         }
     }
+}
+
+/// Writes the outcomes kept while the database was unreachable: how many are left, and
+/// whether the view changed. Only the persisted copy changes: the view already shows the
+/// outcomes themselves.
+pub(super) fn write_pending(store: &mut dyn JobStore, view: &mut Snapshot) -> (usize, bool) {
+    let left = store.write_pending();
+    let changed = view.unwritten != left;
+    view.unwritten = left;
+    (left, changed)
 }
 
 /// A sidecar that arrived after its model: given to the newest job of that model from

@@ -17,6 +17,10 @@ use tokio::sync::{mpsc, watch};
 /// once while a batch was full). Jobs beyond `live_jobs` do not wait for it.
 const RETIRE_EVERY: std::time::Duration = std::time::Duration::from_secs(600);
 
+/// How often the store's task tries again to write the outcomes kept while the farm
+/// database was unreachable (only while some are).
+pub(super) const WRITE_PENDING_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// The store's task, to be run in the daemon's supervised set: it ends only when the
 /// last handle is dropped, and a panic (in the store, or in a request's edit) is the
 /// task's, so the daemon stops rather than go on with a change done halfway.
@@ -50,12 +54,14 @@ pub fn spawn_with(store: impl JobStore, retention: Retention) -> StoreHandle {
 enum Work {
     Requests(Vec<Request>),
     Retire,
+    WritePending,
 }
 
 /// The store's task: takes whatever requests are waiting, serves them in order on a
 /// blocking thread, retires finished jobs beyond `live_jobs`, publishes the new
 /// snapshot, then sends the replies. Every [`RETIRE_EVERY`] it makes its [`round`] the
-/// same way.
+/// same way, and every [`WRITE_PENDING_EVERY`] while outcomes wait to be written, it
+/// tries them (one try at a time, as everything here).
 async fn serve(
     mut store: Box<dyn JobStore>,
     mut view: Snapshot,
@@ -66,6 +72,8 @@ async fn serve(
     const BATCH: usize = 64;
     let mut retiring = tokio::time::interval(RETIRE_EVERY);
     retiring.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut writing = tokio::time::interval(WRITE_PENDING_EVERY);
+    writing.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         let work = tokio::select! {
             // Requests first: retiring can always wait a little.
@@ -82,6 +90,7 @@ async fn serve(
                 Work::Requests(batch)
             }
             _ = retiring.tick() => Work::Retire,
+            _ = writing.tick(), if view.unwritten > 0 => Work::WritePending,
         };
         let work = tokio::task::spawn_blocking(move || {
             let mut deliveries = Vec::new();
@@ -99,6 +108,9 @@ async fn serve(
                     }
                     changed |= catch_up_ledgers(&mut *store, &mut view).unwrap_or(false);
                     changed |= retire_beyond_limit(&mut *store, &mut view, &retention);
+                }
+                Work::WritePending => {
+                    changed = super::request::write_pending(&mut *store, &mut view).1
                 }
                 Work::Retire => {
                     let now = crate::daemon::job::now_s();

@@ -11,6 +11,7 @@ use super::task::{spawn, spawn_with};
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 /// A reason given to the store's task is kept (and so shown in the status and the
@@ -182,9 +183,13 @@ async fn a_burst_of_finished_jobs_never_exceeds_the_live_count() {
 
 /// The embedded store with a second writer, as a shared farm has: changes queued in
 /// `elsewhere` are made behind the task's back, and taken in by the next resync.
+/// `kept` stands for outcomes kept while the database was unreachable: written at the
+/// first try once `reachable` is set.
 struct TwoHosts {
     spool: spool::Spool,
     elsewhere: Arc<std::sync::Mutex<Vec<(String, JobState)>>>,
+    kept: Arc<AtomicUsize>,
+    reachable: Arc<AtomicBool>,
 }
 
 impl JobStore for TwoHosts {
@@ -247,10 +252,13 @@ impl JobStore for TwoHosts {
         JobStore::set_gate(&mut self.spool, printer, gate)
     }
     fn write_pending(&mut self) -> usize {
-        JobStore::write_pending(&mut self.spool)
+        if self.reachable.load(Ordering::SeqCst) {
+            self.kept.store(0, Ordering::SeqCst);
+        }
+        self.kept.load(Ordering::SeqCst)
     }
     fn unwritten(&self) -> usize {
-        JobStore::unwritten(&self.spool)
+        self.kept.load(Ordering::SeqCst)
     }
     fn resync(&mut self) -> bool {
         let changes: Vec<_> = std::mem::take(&mut *self.elsewhere.lock().unwrap());
@@ -300,6 +308,8 @@ async fn changes_from_elsewhere_are_counted_once() {
     let store = TwoHosts {
         spool: spool::Spool::open(&tmp.path().join("spool")).unwrap(),
         elsewhere: Arc::clone(&elsewhere),
+        kept: Arc::default(),
+        reachable: Arc::new(AtomicBool::new(true)),
     };
     let handle = spawn(store);
     std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
@@ -326,6 +336,34 @@ async fn changes_from_elsewhere_are_counted_once() {
     assert_eq!(snapshot.counts().finished(), 1);
     let p1 = &snapshot.tally().read()["p1"];
     assert_eq!((p1.done, p1.prints), (1, 1), "the print on p1");
+}
+
+/// Outcomes kept while the database was unreachable are written by the task on its own,
+/// tried again while it stays out of reach, with no request asking (before, the service
+/// sent one every tick, a new one even while the last still waited).
+#[tokio::test(start_paused = true)]
+async fn kept_outcomes_are_written_once_the_database_is_back() {
+    let tmp = tempfile::tempdir().unwrap();
+    let kept = Arc::new(AtomicUsize::new(2));
+    let reachable = Arc::new(AtomicBool::new(false));
+    let handle = spawn(TwoHosts {
+        spool: spool::Spool::open(&tmp.path().join("spool")).unwrap(),
+        elsewhere: Arc::default(),
+        kept: Arc::clone(&kept),
+        reachable: Arc::clone(&reachable),
+    });
+    let mut follower = handle.subscribe();
+    assert_eq!(handle.snapshot().unwritten(), 2);
+    // Several tries while the database is away (the clock runs ahead while all wait).
+    tokio::time::sleep(super::task::WRITE_PENDING_EVERY * 3).await;
+    assert_eq!(handle.snapshot().unwritten(), 2);
+    reachable.store(true, Ordering::SeqCst);
+    let written = follower.wait_for(|s| s.unwritten() == 0);
+    tokio::time::timeout(super::task::WRITE_PENDING_EVERY * 2, written)
+        .await
+        .expect("written at the next try")
+        .unwrap();
+    assert_eq!(kept.load(Ordering::SeqCst), 0);
 }
 
 /// A print's use reaches its spool even when its job leaves the live view in the same

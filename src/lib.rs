@@ -28,7 +28,9 @@
 //!   the filament a print used booked against its spool.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
 //! - `fsutil`: the one atomic, durable file write (`fsutil::write_atomic`).
-//! - `outbound`: outbound HTTP (notifications, cameras, Spoolman) and its TLS client.
+//! - `outbound`: outbound HTTP (notifications, cameras, Spoolman), its TLS client and the
+//!   URLs it is given.
+//! - [`calendar`]: the calendar dates of the farm's times, in UTC.
 //! - [`percent`]: names in addresses (percent-encoding), for the API, its clients and links.
 //! - [`names`]: what a name an operator gives may hold, and how any name is shown.
 //!
@@ -40,6 +42,7 @@
 #![warn(unreachable_pub)]
 
 pub mod bedcheck;
+pub mod calendar;
 pub mod camera;
 pub mod daemon;
 use crispen_fsutil as fsutil;

@@ -142,7 +142,7 @@ pub async fn run(
 /// Reads a stream until it fails, publishing a frame per [`STREAM_PACE`] at most; each
 /// part refused is a failure.
 async fn stream(
-    url: &crate::daemon::config::notify::ReceiverUrl,
+    url: &crate::outbound::HttpUrl,
     settings: &CameraSettings,
     publisher: &mut Publisher,
 ) -> Result<(), FetchError> {

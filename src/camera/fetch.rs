@@ -4,7 +4,7 @@
 //! no boundary) is an error that says what came.
 
 use super::mjpeg::{boundary_of, check_jpeg, megabytes, FrameFault, MjpegError, MjpegReader, Part};
-use crate::daemon::config::notify::ReceiverUrl;
+use crate::outbound::HttpUrl;
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
 use hyper::body::Incoming;
@@ -109,13 +109,13 @@ struct Answer {
     _connection: tokio_util::task::AbortOnDropHandle<()>,
 }
 
-async fn get(url: &ReceiverUrl, timeout: Duration) -> Result<Answer, FetchError> {
+async fn get(url: &HttpUrl, timeout: Duration) -> Result<Answer, FetchError> {
     tokio::time::timeout(timeout, get_inner(url))
         .await
         .map_err(|_| FetchError::Timeout(timeout))?
 }
 
-async fn get_inner(url: &ReceiverUrl) -> Result<Answer, FetchError> {
+async fn get_inner(url: &HttpUrl) -> Result<Answer, FetchError> {
     let io = crate::outbound::connect(url)
         .await
         .map_err(|e| match e.connect_failure() {
@@ -179,11 +179,7 @@ fn check_status(response: &hyper::Response<Incoming>) -> Result<(), FetchError> 
 }
 
 /// One JPEG from a snapshot URL, whole within `timeout`.
-pub async fn snapshot(
-    url: &ReceiverUrl,
-    timeout: Duration,
-    max: usize,
-) -> Result<Vec<u8>, FetchError> {
+pub async fn snapshot(url: &HttpUrl, timeout: Duration, max: usize) -> Result<Vec<u8>, FetchError> {
     tokio::time::timeout(timeout, async {
         let answer = get(url, timeout).await?;
         check_status(&answer.response)?;
@@ -240,11 +236,7 @@ pub struct Stream {
 impl Stream {
     /// Opens the stream. Its boundary is the content type's, or (ffmpeg's own server says
     /// `application/octet-stream`) the first line of the body when that is one.
-    pub async fn open(
-        url: &ReceiverUrl,
-        timeout: Duration,
-        max: usize,
-    ) -> Result<Stream, FetchError> {
+    pub async fn open(url: &HttpUrl, timeout: Duration, max: usize) -> Result<Stream, FetchError> {
         let mut answer = get(url, timeout).await?;
         check_status(&answer.response)?;
         let kind = content_type(&answer.response);

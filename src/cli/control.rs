@@ -422,7 +422,7 @@ pub(crate) fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
             r.id,
             r.state.name(),
             r.printer.as_deref().unwrap_or("-"),
-            utc_minute(r.ended_at),
+            crispen::calendar::utc_minute(r.ended_at),
             r.material.as_deref().map_or_else(|| "-".into(), printable),
             r.cost.map_or_else(|| "-".into(), |c| format!("{c:.2}")),
             extra
@@ -434,14 +434,6 @@ pub(crate) fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
         None => {}
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// `YYYY-MM-DD HH:MM` of seconds since the epoch, in UTC.
-pub fn utc_minute(t: f64) -> String {
-    let secs = t.max(0.0) as i64;
-    let (y, m, d) = crispen::daemon::store::history::civil_date(secs.div_euclid(86_400));
-    let minute = secs.rem_euclid(86_400) / 60;
-    format!("{y:04}-{m:02}-{d:02} {:02}:{:02}", minute / 60, minute % 60)
 }
 
 pub(crate) fn clear(a: ClearArgs) -> anyhow::Result<ExitCode> {

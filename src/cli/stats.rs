@@ -49,8 +49,8 @@ pub(crate) fn run(a: Args) -> anyhow::Result<ExitCode> {
         serde_json::from_value(answer).context("the daemon's statistics are not as expected")?;
     println!(
         "{} to {} (UTC)",
-        super::control::utc_minute(stats.from),
-        super::control::utc_minute(stats.to)
+        crispen::calendar::utc_minute(stats.from),
+        crispen::calendar::utc_minute(stats.to)
     );
     println!();
     table("PRINTER", &stats.printers, true);

@@ -123,7 +123,9 @@ pub(crate) fn pickup(
     let rescan = config.farm.rescan;
     async move {
         // The watcher goes with the pick-up, however it ends.
-        let _watcher = AbortOnDrop(tokio::spawn(hotfolder::watch(folders, settle, rescan, tx)));
+        let _watcher = tokio_util::task::AbortOnDropHandle::new(tokio::spawn(hotfolder::watch(
+            folders, settle, rescan, tx,
+        )));
         let mut at = Pickup {
             lone_sidecars: HashMap::new(),
             retries: hotfolder::Retries::default(),
@@ -169,14 +171,6 @@ struct Pickup {
     retries: hotfolder::Retries,
     /// How long a sidecar waits for its model before it is set aside.
     orphan_after: Duration,
-}
-
-struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
-
-impl<T> Drop for AbortOnDrop<T> {
-    fn drop(&mut self) {
-        self.0.abort();
-    }
 }
 
 /// Admits one complete file of a hot folder: a model becomes a job (with its sidecar if

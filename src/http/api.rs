@@ -333,7 +333,7 @@ pub(crate) async fn history(
     }
     // The export: page after page until the history (or CSV_MAX_ROWS) ends; `limit`
     // is the size of each read.
-    let mut text = history::csv_header();
+    let mut csv = history::Csv::new();
     let (mut before, mut rows) = (query.before, 0usize);
     loop {
         let page = state
@@ -343,7 +343,7 @@ pub(crate) async fn history(
             .await
             .map_err(unavailable)?;
         for r in &page.jobs {
-            text.push_str(&r.csv_line());
+            csv.push(r);
         }
         rows += page.jobs.len();
         match page.next {
@@ -362,7 +362,7 @@ pub(crate) async fn history(
                 "attachment; filename=\"crispen-history.csv\"",
             ),
         ],
-        text,
+        csv.into_bytes(),
     )
         .into_response())
 }

@@ -175,13 +175,14 @@ async fn exchange(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::daemon::config::notify::{parse_url, NotifySecret};
+    use crate::daemon::config::notify::NotifySecret;
     use crate::notify::event::EventKind;
+    use crate::outbound::HttpUrl;
 
     fn receiver(format: NotifyFormat) -> Receiver {
         Receiver {
             name: "r".into(),
-            url: parse_url("http://127.0.0.1:1/hook").unwrap(),
+            url: HttpUrl::parse("http://127.0.0.1:1/hook").unwrap(),
             events: vec![],
             format,
             secret_file: None,

@@ -1,9 +1,11 @@
 //! crispen's outbound HTTP/1.1 (notification receivers, cameras, Spoolman): one connection
-//! per request to a [`ReceiverUrl`], https through rustls with the ring provider and the
+//! per request to an [`HttpUrl`], https through rustls with the ring provider and the
 //! Mozilla roots (built once), every request with the same Host and User-Agent. One place,
 //! so that the three clients connect, speak TLS and name their failures alike.
 
-use crate::daemon::config::notify::ReceiverUrl;
+mod url;
+pub use url::{HttpUrl, MAX_URL_CHARS};
+
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full};
 use hyper_util::rt::TokioIo;
@@ -64,7 +66,7 @@ fn connector() -> tokio_rustls::TlsConnector {
 }
 
 /// A connection to `url`'s host, through TLS for https.
-pub(crate) async fn connect(url: &ReceiverUrl) -> Result<Io, OutboundError> {
+pub(crate) async fn connect(url: &HttpUrl) -> Result<Io, OutboundError> {
     let tcp = TcpStream::connect((url.host.as_str(), url.port))
         .await
         .map_err(|e| OutboundError::Connect {
@@ -91,7 +93,7 @@ pub(crate) async fn connect(url: &ReceiverUrl) -> Result<Io, OutboundError> {
 
 /// A request for `target` on `url`'s host, with the headers every outbound request has.
 pub(crate) fn request(
-    url: &ReceiverUrl,
+    url: &HttpUrl,
     method: hyper::Method,
     target: &str,
 ) -> hyper::http::request::Builder {
@@ -118,7 +120,7 @@ pub(crate) enum Cap {
 /// its status and body (as `cap` says). The connection is driven here, not by a task of its
 /// own, so nothing is left running when the call is dropped at its caller's time limit.
 pub(crate) async fn send(
-    url: &ReceiverUrl,
+    url: &HttpUrl,
     request: hyper::Request<Full<Bytes>>,
     cap: Cap,
 ) -> Result<(u16, Vec<u8>), OutboundError> {

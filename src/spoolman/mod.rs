@@ -13,12 +13,10 @@
 
 pub mod link;
 
-// The base address is split like a notification receiver's; both are public here for the
-// callers outside the crate that make a client.
-pub use crate::daemon::config::notify::{parse_url, ReceiverUrl};
 use crate::daemon::filament::{
     check_filament, colour_name, grams_in_bounds, Filament, FilamentError, SetAside,
 };
+use crate::outbound::HttpUrl;
 use bytes::Bytes;
 use http_body_util::Full;
 use serde::{Deserialize, Serialize};
@@ -266,7 +264,7 @@ fn error_message(body: &[u8]) -> Option<String> {
 /// A Spoolman server.
 #[derive(Debug, Clone)]
 pub struct Spoolman {
-    url: ReceiverUrl,
+    url: HttpUrl,
     timeout: Duration,
 }
 
@@ -274,7 +272,7 @@ impl Spoolman {
     /// The server at `url`, its base address (`http://127.0.0.1:7912`, or with the path a
     /// proxy serves it under, `https://farm.example/spoolman`); each request, from connecting
     /// to the answer's last byte, takes at most `timeout`.
-    pub fn new(url: ReceiverUrl, timeout: Duration) -> Spoolman {
+    pub fn new(url: HttpUrl, timeout: Duration) -> Spoolman {
         Spoolman { url, timeout }
     }
 
@@ -795,7 +793,7 @@ mod tests {
     #[test]
     fn paths_go_under_the_base_address() {
         let at = |base: &str| {
-            let url = parse_url(base).unwrap();
+            let url = HttpUrl::parse(base).unwrap();
             Spoolman::new(url, Duration::from_secs(1)).target("/api/v1/spool/3")
         };
         assert_eq!(at("http://127.0.0.1:7912"), "/api/v1/spool/3");
@@ -845,7 +843,7 @@ mod tests {
             }
             tokio::time::sleep(Duration::from_secs(30)).await;
         });
-        let url = parse_url(&format!("http://127.0.0.1:{port}/spoolman/")).unwrap();
+        let url = HttpUrl::parse(&format!("http://127.0.0.1:{port}/spoolman/")).unwrap();
         (Spoolman::new(url, Duration::from_millis(500)), rx)
     }
 
@@ -930,7 +928,7 @@ mod tests {
     /// Amounts that are not filament used are refused before anything is sent.
     #[tokio::test]
     async fn odd_amounts_are_refused() {
-        let url = parse_url("http://127.0.0.1:1").unwrap();
+        let url = HttpUrl::parse("http://127.0.0.1:1").unwrap();
         let spoolman = Spoolman::new(url, Duration::from_secs(1));
         for grams in [-1.0, f64::NAN, f64::INFINITY] {
             let e = spoolman.use_weight(1, grams).await.unwrap_err();

@@ -101,7 +101,7 @@ async fn ffmpegs_own_mjpeg_server_is_read_frame_by_frame() {
             .spawn()
             .expect("ffmpeg (Debian's package; scripts/setup installs it)"),
     );
-    let parsed = crispen::daemon::config::camera::parse_url(&url).unwrap();
+    let parsed = crispen::outbound::HttpUrl::parse(&url).unwrap();
     let started = Instant::now();
     let mut stream = loop {
         match crispen::camera::fetch::Stream::open(&parsed, Duration::from_secs(5), 8 << 20).await {
@@ -448,7 +448,7 @@ fn prints_keep_their_snapshots_and_timelapse_and_bad_cameras_change_nothing() {
         "the folder's first printer with a camera"
     );
     let frames = tokio::runtime::Runtime::new().unwrap().block_on(async {
-        let url = crispen::daemon::config::camera::parse_url(&stream_url).unwrap();
+        let url = crispen::outbound::HttpUrl::parse(&stream_url).unwrap();
         let mut s = crispen::camera::fetch::Stream::open(&url, Duration::from_secs(5), 8 << 20)
             .await
             .expect("crispen's own stream");

@@ -5,13 +5,14 @@
 //! named as they are.
 
 use crate::common::spoolman::SpoolmanServer;
-use crispen::spoolman::{parse_url, Spoolman, SpoolmanError, SpoolmanSpool};
+use crispen::outbound::HttpUrl;
+use crispen::spoolman::{Spoolman, SpoolmanError, SpoolmanSpool};
 use std::time::{Duration, Instant};
 
 const TIMEOUT: Duration = Duration::from_secs(5);
 
 fn client(url: &str) -> Spoolman {
-    Spoolman::new(parse_url(url).unwrap(), TIMEOUT)
+    Spoolman::new(HttpUrl::parse(url).unwrap(), TIMEOUT)
 }
 
 fn block_on<F: std::future::Future>(future: F) -> F::Output {

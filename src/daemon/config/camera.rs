@@ -5,7 +5,7 @@
 
 use super::check::{number, seconds_in, Bounds};
 /// A camera's URL is read as a notification receiver's is.
-pub use super::notify::{parse_url, ReceiverUrl};
+use crate::outbound::HttpUrl;
 use serde::Deserialize;
 use std::time::Duration;
 
@@ -83,12 +83,12 @@ pub enum Timelapse {
 /// Where a camera's frames come from.
 #[derive(Debug, Clone, PartialEq)]
 pub enum CameraSource {
-    Snapshot(ReceiverUrl),
-    Stream(ReceiverUrl),
+    Snapshot(HttpUrl),
+    Stream(HttpUrl),
 }
 
 impl CameraSource {
-    pub fn url(&self) -> &ReceiverUrl {
+    pub fn url(&self) -> &HttpUrl {
         match self {
             CameraSource::Snapshot(u) | CameraSource::Stream(u) => u,
         }
@@ -192,8 +192,8 @@ pub(super) fn check_printer(
     raw: RawPrinterCamera,
 ) -> Result<PrinterCamera, (&'static str, String)> {
     let source = match (raw.snapshot, raw.stream) {
-        (Some(u), None) => CameraSource::Snapshot(parse_url(&u).map_err(|m| ("snapshot", m))?),
-        (None, Some(u)) => CameraSource::Stream(parse_url(&u).map_err(|m| ("stream", m))?),
+        (Some(u), None) => CameraSource::Snapshot(HttpUrl::parse(&u).map_err(|m| ("snapshot", m))?),
+        (None, Some(u)) => CameraSource::Stream(HttpUrl::parse(&u).map_err(|m| ("stream", m))?),
         (Some(_), Some(_)) => return Err((
             "stream",
             "give `snapshot` (a URL answering one JPEG) or `stream` (an MJPEG stream), not both"

@@ -7,6 +7,7 @@
 use super::check::{seconds_in, Bounds};
 use super::error::ConfigError;
 use super::secret::read_secret;
+use crate::outbound::HttpUrl;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -70,34 +71,6 @@ impl NotifyFormat {
     }
 }
 
-/// A receiver's URL, split as the client needs it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ReceiverUrl {
-    /// As written (shown in logs and by `crispen notify test`).
-    pub text: String,
-    pub https: bool,
-    pub host: String,
-    pub port: u16,
-    /// Path and query, at least "/".
-    pub path: String,
-}
-
-impl ReceiverUrl {
-    /// The request's `Host` header: the port only where it is not the scheme's own, an
-    /// IPv6 address in brackets (RFC 9110, 7.2).
-    pub(crate) fn host_header(&self) -> String {
-        let host = if self.host.contains(':') {
-            format!("[{}]", self.host)
-        } else {
-            self.host.clone()
-        };
-        match (self.https, self.port) {
-            (true, 443) | (false, 80) => host,
-            _ => format!("{host}:{}", self.port),
-        }
-    }
-}
-
 /// A secret; never shown in logs or debug output.
 #[derive(Clone, PartialEq, Eq)]
 pub struct NotifySecret(pub Vec<u8>);
@@ -113,7 +86,7 @@ impl std::fmt::Debug for NotifySecret {
 pub struct Receiver {
     /// Its label: in logs, metrics (`receiver`) and the name of its queue on disk.
     pub name: String,
-    pub url: ReceiverUrl,
+    pub url: HttpUrl,
     /// The event names it gets (all of [`EVENT_NAMES`] by default).
     pub events: Vec<String>,
     pub format: NotifyFormat,
@@ -158,8 +131,6 @@ pub(crate) const MAX_RECEIVERS: usize = 32;
 /// Longest receiver name; its characters are letters, digits, `-` and `_` (it names a
 /// directory of the spool and a metrics label).
 pub(crate) const MAX_NAME_CHARS: usize = 64;
-/// Longest URL.
-pub(crate) const MAX_URL_CHARS: usize = 2048;
 
 /// Checks the `[[notify]]` tables and `[http] public_url` (stage two: nothing read).
 pub(super) fn check(
@@ -171,7 +142,7 @@ pub(super) fn check(
     let dashboard = match public_url {
         None => None,
         Some(u) => {
-            parse_url(u).map_err(|m| ConfigError::Invalid {
+            HttpUrl::parse(u).map_err(|m| ConfigError::Invalid {
                 file: file.to_path_buf(),
                 section: "[http]".into(),
                 key: "public_url".into(),
@@ -231,7 +202,7 @@ fn check_receiver(
             "another [[notify]] table has this name".into(),
         ));
     }
-    let url = parse_url(&r.url).map_err(|m| invalid("url", m))?;
+    let url = HttpUrl::parse(&r.url).map_err(|m| invalid("url", m))?;
     let events = match r.events {
         None => EVENT_NAMES.iter().map(|e| e.to_string()).collect(),
         Some(list) => {
@@ -330,129 +301,4 @@ pub(super) fn resolve(
         r.secret = Some(NotifySecret(secret.as_bytes().to_vec()));
     }
     Ok(())
-}
-
-/// An `http://` or `https://` URL with a host, an optional port and path; no user or
-/// password part (a secret belongs in `secret_file`, or in the path where the service
-/// puts it, as Slack and Discord do).
-pub fn parse_url(text: &str) -> Result<ReceiverUrl, String> {
-    if text.len() > MAX_URL_CHARS {
-        return Err(format!("longer than {MAX_URL_CHARS} characters"));
-    }
-    if text.chars().any(|c| c.is_whitespace() || c.is_control()) {
-        return Err(format!("{text:?} holds spaces or control characters"));
-    }
-    let (https, rest) = if let Some(rest) = text.strip_prefix("https://") {
-        (true, rest)
-    } else if let Some(rest) = text.strip_prefix("http://") {
-        (false, rest)
-    } else {
-        return Err(format!(
-            "{text:?} is not an http:// or https:// URL (e.g. \"https://ntfy.sh/my-farm\")"
-        ));
-    };
-    let (authority, path) = match rest.find(['/', '?']) {
-        Some(i) if rest[i..].starts_with('?') => (&rest[..i], format!("/{}", &rest[i..])),
-        Some(i) => (&rest[..i], rest[i..].to_string()),
-        None => (rest, "/".to_string()),
-    };
-    let path = match path.find('#') {
-        Some(i) => path[..i].to_string(),
-        None => path,
-    };
-    if authority.contains('@') {
-        return Err(format!(
-            "{text:?} holds a user or password: put a signing secret in secret_file instead"
-        ));
-    }
-    let (host, port) = if let Some(v6) = authority.strip_prefix('[') {
-        let Some(end) = v6.find(']') else {
-            return Err(format!("{text:?}: unclosed '[' in the host"));
-        };
-        let host = v6[..end].to_string();
-        match &v6[end + 1..] {
-            "" => (host, None),
-            p => match p.strip_prefix(':') {
-                Some(p) => (host, Some(p)),
-                None => return Err(format!("{text:?}: junk after the host")),
-            },
-        }
-    } else {
-        match authority.rsplit_once(':') {
-            Some((h, p)) => (h.to_string(), Some(p)),
-            None => (authority.to_string(), None),
-        }
-    };
-    if host.is_empty() {
-        return Err(format!("{text:?} names no host"));
-    }
-    let port = match port {
-        None => {
-            if https {
-                443
-            } else {
-                80
-            }
-        }
-        Some(p) => match p.parse::<u16>() {
-            Ok(p) if p > 0 => p,
-            _ => return Err(format!("{text:?}: {p:?} is not a port (1 to 65535)")),
-        },
-    };
-    Ok(ReceiverUrl {
-        text: text.to_string(),
-        https,
-        host,
-        port,
-        path,
-    })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The port is left out where it is the scheme's own; an IPv6 host is bracketed.
-    #[test]
-    fn host_headers_name_the_port_only_when_needed() {
-        for (url, host) in [
-            ("https://ntfy.sh/x", "ntfy.sh"),
-            ("http://farm/", "farm"),
-            ("http://farm:443/", "farm:443"),
-            ("https://farm:8443/", "farm:8443"),
-            ("http://[::1]:7912/", "[::1]:7912"),
-            ("http://[::1]/", "[::1]"),
-        ] {
-            assert_eq!(parse_url(url).unwrap().host_header(), host, "{url}");
-        }
-    }
-
-    #[test]
-    fn urls_are_split_and_bad_ones_named() {
-        let u = parse_url("https://ntfy.sh/my-farm").unwrap();
-        assert_eq!(
-            (u.https, u.host.as_str(), u.port, u.path.as_str()),
-            (true, "ntfy.sh", 443, "/my-farm")
-        );
-        let u = parse_url("http://127.0.0.1:8123/api/webhook/abc?x=1#frag").unwrap();
-        assert_eq!(
-            (u.https, u.host.as_str(), u.port, u.path.as_str()),
-            (false, "127.0.0.1", 8123, "/api/webhook/abc?x=1")
-        );
-        let u = parse_url("http://[::1]:9000").unwrap();
-        assert_eq!(
-            (u.host.as_str(), u.port, u.path.as_str()),
-            ("::1", 9000, "/")
-        );
-        for bad in [
-            "ftp://x/",
-            "http://",
-            "http://u:p@host/",
-            "http://host:0/",
-            "http://host:99999/",
-            "http://ho st/",
-        ] {
-            assert!(parse_url(bad).is_err(), "{bad}");
-        }
-    }
 }

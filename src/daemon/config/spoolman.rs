@@ -1,7 +1,7 @@
 //! `[spoolman]`: the Spoolman server the farm's spools come from, and how often it is read.
 
 use super::check::{seconds_in, Bounds};
-use super::notify::{parse_url, ReceiverUrl};
+use crate::outbound::HttpUrl;
 use serde::Deserialize;
 use std::time::Duration;
 
@@ -17,7 +17,7 @@ pub(super) struct RawSpoolman {
 #[derive(Debug, Clone, PartialEq)]
 pub struct SpoolmanConfig {
     /// Its base address (`http://spoolman:7912`).
-    pub url: ReceiverUrl,
+    pub url: HttpUrl,
     /// Its spools are read this often (and after every use reported).
     pub poll: Duration,
     /// Each request's time limit.
@@ -29,7 +29,7 @@ const TIMEOUT_S: Bounds = 0.5..=120.0;
 
 pub(super) fn check(raw: RawSpoolman) -> Result<SpoolmanConfig, (&'static str, String)> {
     Ok(SpoolmanConfig {
-        url: parse_url(&raw.url).map_err(|m| ("url", m))?,
+        url: HttpUrl::parse(&raw.url).map_err(|m| ("url", m))?,
         poll: seconds_in(raw.poll_s.unwrap_or(30.0), &POLL_S).map_err(|m| ("poll_s", m))?,
         timeout: seconds_in(raw.timeout_s.unwrap_or(5.0), &TIMEOUT_S)
             .map_err(|m| ("timeout_s", m))?,

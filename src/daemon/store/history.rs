@@ -14,6 +14,7 @@
 //! (`store::postgres`).
 
 use super::rules::io_err;
+use crate::calendar::{iso_utc, month_of};
 use crate::daemon::job::{Job, JobState, StoreError};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
@@ -310,23 +311,24 @@ impl Retired {
             .or_else(|| self.filament_g.map(|g| g * f64::from(self.copies_done)))
     }
 
-    /// One CSV line (RFC 4180, CRLF-ended) in the order of [`CSV_COLUMNS`]: times as UTC
-    /// `YYYY-MM-DDTHH:MM:SSZ`, an absent value empty.
-    pub(crate) fn csv_line(&self) -> String {
+    /// Its CSV record in the order of [`CSV_COLUMNS`]: times as UTC
+    /// `YYYY-MM-DDTHH:MM:SSZ`, an absent value empty, texts [`spreadsheet_safe`].
+    fn csv_record(&self) -> [String; CSV_COLUMNS.len()] {
         let num = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
         let time = |v: Option<f64>| v.map_or(String::new(), iso_utc);
-        let fields = [
-            csv_text(&self.id),
+        let text = |v: &str| spreadsheet_safe(v);
+        [
+            text(&self.id),
             self.seq.to_string(),
-            csv_text(&self.file),
-            csv_text(&self.folder.display().to_string()),
-            csv_text(self.machine.as_deref().unwrap_or("")),
-            csv_text(self.printer.as_deref().unwrap_or("")),
+            text(&self.file),
+            text(&self.folder.display().to_string()),
+            text(self.machine.as_deref().unwrap_or("")),
+            text(self.printer.as_deref().unwrap_or("")),
             num(self.height_mm),
-            csv_text(self.enhancement.as_deref().unwrap_or("")),
+            text(self.enhancement.as_deref().unwrap_or("")),
             num(self.lambda2),
             self.state.name().to_string(),
-            csv_text(self.reason.as_deref().unwrap_or("")),
+            text(self.reason.as_deref().unwrap_or("")),
             time(Some(self.queued_at)),
             time(self.started_at),
             time(Some(self.ended_at)),
@@ -336,52 +338,50 @@ impl Retired {
             num(self.filament_mm),
             num(self.filament_g),
             self.resends.map_or(String::new(), |r| r.to_string()),
-            csv_text(&self.dir.display().to_string()),
+            text(&self.dir.display().to_string()),
             time(Some(self.retired_at)),
             format!("{}", self.ended_at),
-            csv_text(self.material.as_deref().unwrap_or("")),
+            text(self.material.as_deref().unwrap_or("")),
             num(self.used_g),
             num(self.cost),
-        ];
-        let mut line = fields.join(",");
-        line.push_str("\r\n");
-        line
+        ]
     }
 }
 
-/// The CSV header line.
-pub(crate) fn csv_header() -> String {
-    format!("{}\r\n", CSV_COLUMNS.join(","))
+/// The history as CSV (RFC 4180, CRLF-ended records, quoted where needed): the header,
+/// then one record a retired job.
+pub(crate) struct Csv(csv::Writer<Vec<u8>>);
+
+impl Csv {
+    pub(crate) fn new() -> Csv {
+        let mut writer = csv::WriterBuilder::new()
+            .terminator(csv::Terminator::CRLF)
+            .from_writer(Vec::new());
+        // Into memory: a write cannot fail.
+        let _ = writer.write_record(CSV_COLUMNS);
+        Csv(writer)
+    }
+
+    pub(crate) fn push(&mut self, job: &Retired) {
+        let _ = self.0.write_record(job.csv_record());
+    }
+
+    pub(crate) fn into_bytes(self) -> Vec<u8> {
+        self.0
+            .into_inner()
+            .unwrap_or_else(|e| e.into_inner().into_inner().unwrap_or_default())
+    }
 }
 
-/// A text field of a CSV line: quoted when it holds a comma, quote or line break (quotes
-/// doubled). A text starting with `=`, `+`, `-`, `@` or a tab gets a `'` in front, so a
-/// spreadsheet opening the file shows a file name or reason as text and never runs it
-/// as a formula.
-fn csv_text(text: &str) -> String {
-    let text = if text.starts_with(['=', '+', '-', '@', '\t', '\r']) {
+/// A text a spreadsheet opening the file shows as text: one starting with `=`, `+`,
+/// `-`, `@`, a tab or a carriage return gets a `'` in front, so a file name or reason is
+/// never run as a formula.
+fn spreadsheet_safe(text: &str) -> String {
+    if text.starts_with(['=', '+', '-', '@', '\t', '\r']) {
         format!("'{text}")
     } else {
         text.to_string()
-    };
-    if text.contains([',', '"', '\r', '\n']) || text.starts_with(' ') || text.ends_with(' ') {
-        format!("\"{}\"", text.replace('"', "\"\""))
-    } else {
-        text
     }
-}
-
-/// `YYYY-MM-DDTHH:MM:SSZ` of seconds since the epoch.
-pub(crate) fn iso_utc(t: f64) -> String {
-    let secs = t.max(0.0).floor() as i64;
-    let (y, m, d) = civil_date(secs.div_euclid(86_400));
-    let s = secs.rem_euclid(86_400);
-    format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
-        s / 3600,
-        s / 60 % 60,
-        s % 60
-    )
 }
 
 /// The spool's history files, `<spool>/history/YYYY-MM.jsonl`.
@@ -559,28 +559,6 @@ fn is_month_file(name: &str) -> bool {
         && b[..4].iter().chain(&b[5..7]).all(u8::is_ascii_digit)
 }
 
-/// The UTC month of `t` (seconds since the epoch) as `YYYY-MM`.
-pub(crate) fn month_of(t: f64) -> String {
-    let (y, m, _) = civil_date((t.max(0.0) / 86_400.0).floor() as i64);
-    format!("{y:04}-{m:02}")
-}
-
-/// The proleptic Gregorian (year, month, day) of a count of days since 1970-01-01.
-pub fn civil_date(days: i64) -> (i64, u32, u32) {
-    // Counted in 400-year eras from 0000-03-01, so leap days fall at the end of a year.
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let day_of_era = z.rem_euclid(146_097);
-    let year_of_era =
-        (day_of_era - day_of_era / 1460 + day_of_era / 36_524 - day_of_era / 146_096) / 365;
-    let day_of_year = day_of_era - (365 * year_of_era + year_of_era / 4 - year_of_era / 100);
-    let mp = (5 * day_of_year + 2) / 153;
-    let day = (day_of_year - (153 * mp + 2) / 5 + 1) as u32;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    let year = year_of_era + era * 400 + i64::from(month <= 2);
-    (year, month, day)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -671,16 +649,24 @@ mod tests {
 
     #[test]
     fn csv_fields_are_quoted() {
-        assert_eq!(csv_text("plain.stl"), "plain.stl");
-        assert_eq!(csv_text("a,b"), "\"a,b\"");
-        assert_eq!(csv_text("say \"hi\"\nthen"), "\"say \"\"hi\"\"\nthen\"");
-        assert_eq!(csv_text("=cmd()"), "'=cmd()");
-        assert_eq!(iso_utc(1_709_208_000.0), "2024-02-29T12:00:00Z");
+        let csv = |jobs: &[Retired]| {
+            let mut csv = Csv::new();
+            for j in jobs {
+                csv.push(j);
+            }
+            String::from_utf8(csv.into_bytes()).unwrap()
+        };
         let mut j = job(3, JobState::Failed, 1e9);
-        j.reason = Some("bad, \"very\"".into());
-        let line = Retired::of(&j, "/d".into(), 1e9).csv_line();
+        j.reason = Some("bad, \"very\"\nso".into());
+        j.file = "=cmd().stl".into();
+        let text = csv(&[Retired::of(&j, "/d".into(), 1e9)]);
+        let (header, line) = text.split_once("\r\n").unwrap();
+        assert_eq!(header, CSV_COLUMNS.join(","));
         assert!(line.ends_with("\r\n"));
-        assert!(line.contains(",\"bad, \"\"very\"\"\","), "{line}");
+        assert!(line.contains(",\"bad, \"\"very\"\"\nso\","), "{line}");
+        assert!(line.contains(",'=cmd().stl,"), "{line}");
+        assert!(line.contains(",failed,"), "{line}");
+        assert_eq!(csv(&[]), format!("{}\r\n", CSV_COLUMNS.join(",")));
     }
 
     fn a_use(n: u32, material: &str, grams: f64, cost: Option<f64>) -> JobUse {
@@ -769,21 +755,19 @@ mod tests {
         }
         let r: Retired = serde_json::from_value(old).unwrap();
         assert_eq!((&r.material, r.used_g, r.cost), (&None, None, None));
-        let line = r.csv_line();
+        let mut csv = Csv::new();
+        csv.push(&r);
+        let text = String::from_utf8(csv.into_bytes()).unwrap();
+        let line = text.split("\r\n").nth(1).unwrap();
         assert_eq!(line.split(',').count(), CSV_COLUMNS.len());
-        assert!(line.ends_with(",,,\r\n"), "{line}");
+        assert!(line.ends_with(",,,"), "{line}");
         // The columns consumers know stay where they were; the new ones come last.
         assert_eq!(CSV_COLUMNS[22], "ended_unix");
         assert_eq!(CSV_COLUMNS[23..], ["material", "used_g", "cost"]);
     }
 
     #[test]
-    fn months_of_dates() {
-        assert_eq!(month_of(0.0), "1970-01");
-        // 2024-02-29T12:00Z and 2026-12-02T14:00Z.
-        assert_eq!(month_of(1_709_208_000.0), "2024-02");
-        assert_eq!(civil_date(19_782), (2024, 2, 29));
-        assert_eq!(month_of(1_796_220_000.0), "2026-12");
+    fn month_files_are_known_by_name() {
         assert!(is_month_file("2026-12.jsonl"));
         assert!(!is_month_file("2026-12.jsonl.tmp"));
         assert!(!is_month_file("notes.jsonl"));

@@ -543,7 +543,7 @@ fn the_history_forgets_months_older_than_it_keeps() {
     assert_eq!(store.retire(&retention(7, 0), now).unwrap(), done[1..]);
     let old_month = spool
         .join("history")
-        .join(format!("{}.jsonl", history::month_of(old)));
+        .join(format!("{}.jsonl", crate::calendar::month_of(old)));
     assert!(old_month.is_file());
 
     let keep = std::time::Duration::from_secs(30 * 86_400);
@@ -643,7 +643,7 @@ fn a_crash_while_retiring_loses_nothing_and_shows_nothing_twice() {
     // And a line cut short, for the third.
     let file = spool
         .join("history")
-        .join(format!("{}.jsonl", history::month_of(now)));
+        .join(format!("{}.jsonl", crate::calendar::month_of(now)));
     let third = serde_json::to_string(&Retired::of(
         &Spool::open(&spool).unwrap().get(&done[2]).unwrap().clone(),
         PathBuf::new(),

@@ -70,7 +70,8 @@ mod tests {
         // Out of range, nonsense: the nearest date shown.
         assert_eq!(iso_utc(-5.0), "1970-01-01T00:00:00Z");
         assert_eq!(iso_utc(f64::NAN), "1970-01-01T00:00:00Z");
-        assert_eq!(date_of(f64::INFINITY), "9999-12-31");
+        // jiff's last instant is late on 9999-12-30 UTC (its offsets reach a day either way).
+        assert_eq!(date_of(f64::INFINITY), "9999-12-30");
     }
 
     #[test]

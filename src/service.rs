@@ -681,7 +681,12 @@ mod tests {
         let job = ready_job(&farm, "a.stl", "G28\n").await;
         let asked = farm
             .jobs()
-            .update(&job, |_| panic!("an edit broke its promise"))
+            .update(
+                &job,
+                crate::daemon::store::JobChange::Edit(Box::new(|_| {
+                    panic!("an edit broke its promise")
+                })),
+            )
             .await;
         assert!(matches!(asked, Err(StoreError::Stopped)), "{asked:?}");
         let e = tokio::time::timeout(Duration::from_secs(30), tasks.next_end())

@@ -8,6 +8,7 @@
 
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{DatabaseFailure, JobState, StoreError};
+use super::store::JobChange;
 use serde::{Deserialize, Serialize};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -461,20 +462,12 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
             matches!(read, Ok(Ok(Some(s))) if s.hold == Some(true))
         }
     };
-    let released = Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let flag = Arc::clone(&released);
-    let job = farm
+    let released = farm
         .jobs()
-        .update(id, move |j| {
-            let held_unprepared =
-                held_on_disk && !j.released && j.sidecar.is_none() && UNPREPARED.contains(&j.state);
-            if (j.held() || held_unprepared) && j.state.is_active() {
-                j.released = true;
-                flag.store(true, std::sync::atomic::Ordering::SeqCst);
-            }
-        })
+        .update(id, JobChange::Release { held_on_disk })
         .await?;
-    if !released.load(std::sync::atomic::Ordering::SeqCst) {
+    let job = released.job;
+    if !released.applied {
         return Err(match job.sidecar.as_ref().and_then(|s| s.hold) {
             Some(true) if !job.released => CommandError::Store(StoreError::WrongState {
                 id: id.to_string(),
@@ -574,7 +567,13 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
     let reason = Some("cancelled by the operator".into());
     let cancelled = farm
         .jobs()
-        .transition_from(id, NOT_STARTED, JobState::Cancelled, reason, |_| {})
+        .transition_from(
+            id,
+            NOT_STARTED,
+            JobState::Cancelled,
+            reason,
+            JobChange::Nothing,
+        )
         .await;
     match cancelled {
         Ok(_) => {
@@ -648,24 +647,12 @@ async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<String, C
     // Checked and changed as one step of the store: a printer claiming the job between a
     // check and the change would print it with the part. The job it returns is as the
     // change left it: ready, the part recorded; anything else, nothing changed.
-    let (wanted, every) = (name.clone(), names.len());
-    let job = farm
-        .jobs()
-        .update(id, move |j| {
-            if j.state != JobState::Ready {
-                return;
-            }
-            let print = j.print_number();
-            if !j.parts_cancelled_in(print).any(|c| c.part == wanted) {
-                j.parts_cancelled.push(super::job::PartCancel {
-                    part: wanted,
-                    print,
-                    at_s: super::job::now_s(),
-                    dropped: None,
-                });
-            }
-        })
-        .await?;
+    let every = names.len();
+    let change = JobChange::CancelPart {
+        part: name.clone(),
+        at_s: super::job::now_s(),
+    };
+    let job = farm.jobs().update(id, change).await?.job;
     if job.state != JobState::Ready {
         return match job.state {
             // A printer took it meanwhile: the printer drops it.

@@ -21,6 +21,7 @@ use super::job::{ForMachine, JobState, PrintReport};
 use super::printer::{
     heat_up_end, BoxFuture, ConnectError, Connector, IdleNews, PrintFailure, PrinterLink,
 };
+use super::store::JobChange;
 use crate::marlin::stream::{PrintError, StopOutcome};
 use crate::marlin::transport::TransportError;
 use std::collections::BTreeMap;
@@ -361,9 +362,14 @@ pub(crate) async fn ready_job(farm: &Farm, name: &str, gcode: &str) -> String {
         .await
         .unwrap();
     farm.jobs()
-        .transition_with(&job.id, JobState::Ready, None, move |j| {
-            j.machines.insert(machine, ForMachine::Gcode(gcode_name));
-        })
+        .transition_with(
+            &job.id,
+            JobState::Ready,
+            None,
+            JobChange::Edit(Box::new(move |j| {
+                j.machines.insert(machine, ForMachine::Gcode(gcode_name));
+            })),
+        )
         .await
         .unwrap();
     job.id

@@ -28,6 +28,7 @@ use super::farm::{
     PrinterTemperatures,
 };
 use super::job::{JobState, PrintReport};
+use super::store::{JobChange, Use};
 use super::time_left::{Pace, PaceSample, TimeLeft};
 use crate::marlin::gcode::{GcodeError, GcodeProgram};
 use crate::marlin::stream::{
@@ -788,17 +789,18 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     };
     let recorded = farm
         .jobs()
-        .record_outcome(job_id, state, reason, move |j| {
-            if let Some(report) = printed {
-                j.copies_done += 1;
-                j.print_report = Some(report);
-            }
-            if let Some(usage) = usage {
-                if j.uses.len() == odometer.print {
-                    j.uses.push(usage);
-                }
-            }
-        })
+        .record_outcome(
+            job_id,
+            state,
+            reason,
+            JobChange::Printed {
+                report: printed,
+                usage: usage.map(|usage| Use {
+                    print: odometer.print,
+                    usage,
+                }),
+            },
+        )
         .await;
     // The odometer stays: the next start reads it, and records its use only if the job
     // has none for this print (removing it here would free space under a full disk that
@@ -821,25 +823,11 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
 /// Records in the job the parts its print `print` dropped, with where: one the operator
 /// cancelled before the print is completed with it, any other added.
 async fn record_parts(farm: &Farm, job_id: &str, print: u32, dropped: &[super::job::PartCancel]) {
-    let dropped = dropped.to_vec();
-    let recorded = farm
-        .jobs()
-        .update(job_id, move |j| {
-            for d in dropped {
-                tracing::info!(part = %d.part, at = ?d.dropped, "a part of the plate dropped");
-                let known = j
-                    .parts_cancelled
-                    .iter_mut()
-                    .find(|c| c.print == print && c.part == d.part);
-                match known {
-                    Some(c) => c.dropped = c.dropped.take().or(d.dropped),
-                    None => j
-                        .parts_cancelled
-                        .push(super::job::PartCancel { print, ..d }),
-                }
-            }
-        })
-        .await;
+    let change = JobChange::PartsDropped {
+        print,
+        dropped: dropped.to_vec(),
+    };
+    let recorded = farm.jobs().update(job_id, change).await;
     if let Err(e) = recorded {
         tracing::error!(error = %e, "cannot record the parts of the plate dropped");
     }

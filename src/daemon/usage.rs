@@ -12,6 +12,7 @@
 
 use super::filament::Filament;
 use super::job::JobUse;
+use super::store::{JobChange, Use};
 use crate::marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -189,11 +190,7 @@ pub(crate) async fn recover(farm: &super::farm::Farm, printer: &str) {
         let (print, grams) = (odometer.print, usage.grams);
         let recorded = farm
             .jobs()
-            .update(&odometer.job, move |j| {
-                if j.uses.len() == print {
-                    j.uses.push(usage);
-                }
-            })
+            .update(&odometer.job, JobChange::Used(Use { print, usage }))
             .await;
         match recorded {
             Ok(_) => {

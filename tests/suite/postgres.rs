@@ -10,6 +10,7 @@ use common::postgres::PgServer;
 use crispen::daemon::config::PgSettings;
 use crispen::daemon::job::{JobState, StoreError};
 use crispen::daemon::store::postgres::{FileBody, PgError, PgStore};
+use crispen::daemon::store::{JobChange, PreparedJob};
 use std::collections::HashSet;
 use std::time::Duration;
 
@@ -396,31 +397,57 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
     // and host 1 coming second is refused.
     assert!(rt.block_on(b.resync()).unwrap(), "the new job is a change");
     let queued: &[JobState] = &[JobState::Queued];
-    rt.block_on(b.transition_from(&job.id, queued, JobState::Preparing, None, |_| {}))
-        .unwrap();
+    rt.block_on(b.transition_from(
+        &job.id,
+        queued,
+        JobState::Preparing,
+        None,
+        JobChange::Nothing,
+    ))
+    .unwrap();
     let dir_b = b.snapshot().job_dir(&job.id);
     assert_eq!(
         std::fs::read(dir_b.join(name)).unwrap(),
         b"solid part\nendsolid part\n"
     );
     assert!(dir_b.join(format!("{name}.toml")).is_file());
-    match rt.block_on(a.transition_from(&job.id, queued, JobState::Preparing, None, |_| {})) {
+    match rt.block_on(a.transition_from(
+        &job.id,
+        queued,
+        JobState::Preparing,
+        None,
+        JobChange::Nothing,
+    )) {
         Err(StoreError::StateChanged { state, .. }) => assert_eq!(state, JobState::Preparing),
         other => panic!("host 1 took a job host 2 had: {other:?}"),
     }
     // Only the preparing host records the preparation's outcome.
     let preparing: &[JobState] = &[JobState::Preparing];
     assert!(matches!(
-        rt.block_on(a.transition_from(&job.id, preparing, JobState::Ready, None, |_| {})),
+        rt.block_on(a.transition_from(
+            &job.id,
+            preparing,
+            JobState::Ready,
+            None,
+            JobChange::Nothing
+        )),
         Err(StoreError::LostClaim { .. })
     ));
     std::fs::write(dir_b.join(format!("{name}.m.gcode")), b"G28\nM84\n").unwrap();
-    rt.block_on(
-        b.transition_from(&job.id, preparing, JobState::Ready, None, move |j| {
-            j.machines
-                .insert("m".into(), ForMachine::Gcode(format!("{name}.m.gcode")));
-        }),
-    )
+    rt.block_on(b.transition_from(
+        &job.id,
+        preparing,
+        JobState::Ready,
+        None,
+        JobChange::Prepared(Box::new(PreparedJob {
+            machines: [("m".into(), ForMachine::Gcode(format!("{name}.m.gcode")))].into(),
+            needs: Default::default(),
+            sidecar: None,
+            asks: Default::default(),
+            report: None,
+            comparison: None,
+        })),
+    ))
     .unwrap();
 
     // Host 1 claims it for its printer: the G-code arrives in its job directory.
@@ -444,7 +471,15 @@ fn two_hosts_stores_pass_a_job_and_its_files_through_an_outage() {
     // The print ends while the database is down: the outcome and the bed gate are kept.
     pg.stop();
     let done = rt
-        .block_on(a.record_outcome(&job.id, JobState::Done, None, |j| j.copies_done = 1))
+        .block_on(a.record_outcome(
+            &job.id,
+            JobState::Done,
+            None,
+            JobChange::Printed {
+                report: Some(Default::default()),
+                usage: None,
+            },
+        ))
         .expect("an outcome that happened is kept");
     assert_eq!(done.state, JobState::Done);
     rt.block_on(a.close_gate("p1", &job.id)).unwrap();
@@ -555,18 +590,33 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
     // The first job is prepared the old way: one `<file>.gcode`, no machines.
     let queued: &[JobState] = &[JobState::Queued];
     let preparing: &[JobState] = &[JobState::Preparing];
-    rt.block_on(a.transition_from(&ids[0], queued, JobState::Preparing, None, |_| {}))
-        .unwrap();
+    rt.block_on(a.transition_from(
+        &ids[0],
+        queued,
+        JobState::Preparing,
+        None,
+        JobChange::Nothing,
+    ))
+    .unwrap();
     let gcode: Vec<u8> = (0..200_000)
         .flat_map(|i| format!("G1 X{} Y{}\n", i % 200, i % 7).into_bytes())
         .collect();
     let dir_a = a.snapshot().job_dir(&ids[0]);
     std::fs::write(dir_a.join("part0.stl.gcode"), &gcode).unwrap();
-    rt.block_on(
-        a.transition_from(&ids[0], preparing, JobState::Ready, None, |j| {
-            j.slice_report = Some(Default::default());
-        }),
-    )
+    rt.block_on(a.transition_from(
+        &ids[0],
+        preparing,
+        JobState::Ready,
+        None,
+        JobChange::Prepared(Box::new(PreparedJob {
+            machines: Default::default(),
+            needs: Default::default(),
+            sidecar: None,
+            asks: Default::default(),
+            report: Some(Default::default()),
+            comparison: None,
+        })),
+    ))
     .unwrap();
     rt.block_on(b.resync()).unwrap();
     rt.block_on(b.claim("p1", |_| true))
@@ -577,8 +627,13 @@ fn retired_jobs_leave_every_hosts_memory_and_stay_in_the_history() {
         std::fs::read(dir_b.join("part0.stl.gcode")).unwrap() == gcode,
         "the G-code arrived whole"
     );
-    rt.block_on(b.record_outcome(&ids[0], JobState::Cancelled, Some("stopped".into()), |_| {}))
-        .unwrap();
+    rt.block_on(b.record_outcome(
+        &ids[0],
+        JobState::Cancelled,
+        Some("stopped".into()),
+        JobChange::Nothing,
+    ))
+    .unwrap();
     rt.block_on(a.resync()).unwrap();
     let retried = rt.block_on(a.retry(&ids[0])).unwrap();
     assert_eq!(

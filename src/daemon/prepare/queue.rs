@@ -21,7 +21,7 @@ use super::process::{run_child, run_compare_child, PrepareError};
 use super::task::{resolve_task, PrepareTask, Prepared, TaskMachine};
 use crate::daemon::farm::Farm;
 use crate::daemon::job::{Comparison, JobState, StoreError};
-use crate::daemon::store::StateFilter;
+use crate::daemon::store::{JobChange, PreparedJob, StateFilter};
 use crate::slice::moved::WallsState;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -71,7 +71,13 @@ pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
             let Some(id) = next else { break };
             let claimed = farm
                 .jobs()
-                .transition_from(&id, &[JobState::Queued], JobState::Preparing, None, |_| {})
+                .transition_from(
+                    &id,
+                    &[JobState::Queued],
+                    JobState::Preparing,
+                    None,
+                    JobChange::Nothing,
+                )
                 .await;
             if let Err(e) = claimed {
                 if matches!(e, StoreError::StateChanged { .. }) {
@@ -234,12 +240,19 @@ async fn finish_preparation(
             match prepared.failure() {
                 // No machine can print it: failed, with each machine's reason.
                 Some(reason) => {
+                    let change = JobChange::Unprintable {
+                        machines,
+                        sidecar,
+                        asks,
+                    };
                     farm.jobs()
-                        .transition_from(id, STILL_PREPARING, JobState::Failed, Some(reason), |j| {
-                            j.machines = machines;
-                            j.sidecar = sidecar;
-                            j.asks = asks;
-                        })
+                        .transition_from(
+                            id,
+                            STILL_PREPARING,
+                            JobState::Failed,
+                            Some(reason),
+                            change,
+                        )
                         .await
                 }
                 None => {
@@ -254,15 +267,16 @@ async fn finish_preparation(
                             WallsState::NotAsked
                         });
                     }
+                    let change = JobChange::Prepared(Box::new(PreparedJob {
+                        machines,
+                        needs,
+                        sidecar,
+                        asks,
+                        report,
+                        comparison: enhanced.then_some(Comparison::Pending { tries: 0 }),
+                    }));
                     farm.jobs()
-                        .transition_from(id, STILL_PREPARING, JobState::Ready, None, move |j| {
-                            j.comparison = enhanced.then_some(Comparison::Pending { tries: 0 });
-                            j.slice_report = report;
-                            j.machines = machines;
-                            j.needs = needs;
-                            j.sidecar = sidecar;
-                            j.asks = asks;
-                        })
+                        .transition_from(id, STILL_PREPARING, JobState::Ready, None, change)
                         .await
                 }
             }
@@ -271,13 +285,25 @@ async fn finish_preparation(
         // the job is prepared again at the next start.
         Err(PrepareError::Cancelled) => {
             farm.jobs()
-                .transition_from(id, STILL_PREPARING, JobState::Queued, None, |_| {})
+                .transition_from(
+                    id,
+                    STILL_PREPARING,
+                    JobState::Queued,
+                    None,
+                    JobChange::Nothing,
+                )
                 .await
         }
         Err(e) => {
             let reason = Some(e.to_string());
             farm.jobs()
-                .transition_from(id, STILL_PREPARING, JobState::Failed, reason, |_| {})
+                .transition_from(
+                    id,
+                    STILL_PREPARING,
+                    JobState::Failed,
+                    reason,
+                    JobChange::Nothing,
+                )
                 .await
         }
     };
@@ -320,14 +346,10 @@ async fn next_comparison(
         };
         let counted = farm
             .jobs()
-            .update(&id, move |j| {
-                if j.comparison == Some(Comparison::Pending { tries }) {
-                    j.comparison = Some(next);
-                }
-            })
+            .update(&id, JobChange::ComparisonStarted { tries, next })
             .await;
         match counted {
-            Ok(job) => match job.comparison {
+            Ok(updated) => match updated.job.comparison {
                 Some(Comparison::Pending { tries: now }) if now == tries + 1 => {
                     return Some((id, now))
                 }
@@ -372,34 +394,13 @@ async fn compare_one(farm: Arc<Farm>, id: String, tries: u32, program: PathBuf) 
         let spool = dir.ancestors().nth(2).unwrap_or(&dir);
         crate::daemon::store::spool_relative(&reason, spool)
     });
-    let recorded = farm
-        .jobs()
-        .update(&id, move |j| {
-            // Measured for the G-code the job has now: not when it was prepared again
-            // (and its comparison pending afresh) meanwhile.
-            if j.comparison != Some(Comparison::Pending { tries }) {
-                return;
-            }
-            let measured = result.is_ok();
-            j.comparison = Some(match result {
-                Ok(walls) => {
-                    if let Some(report) = &mut j.slice_report {
-                        report.walls = Some(walls);
-                    }
-                    Comparison::Done { started_s, took_s }
-                }
-                Err(reason) => Comparison::NotMeasured { reason },
-            });
-            if let Some(report) = &mut j.slice_report {
-                // With the walls measured their figures are said; else why they are not.
-                report.set_moved(if measured {
-                    WallsState::Pending
-                } else {
-                    WallsState::NotMeasured
-                });
-            }
-        })
-        .await;
+    let change = JobChange::ComparisonEnded {
+        tries,
+        walls: result,
+        started_s,
+        took_s,
+    };
+    let recorded = farm.jobs().update(&id, change).await;
     match recorded {
         Ok(_) => tracing::info!(seconds = took_s, "wall comparison recorded"),
         // Moved to the history meanwhile: the comparison no longer has a job to go into.
@@ -494,7 +495,7 @@ async fn preview_one(farm: Arc<Farm>, id: String) {
         Err(reason) => tracing::warn!(%reason, "no preview of the print; the job is as it was"),
     }
     // A change of the job, for its pictures to be looked at again.
-    match farm.jobs().update(&id, |_| {}).await {
+    match farm.jobs().update(&id, JobChange::Nothing).await {
         Ok(_) | Err(StoreError::NoSuchJob(_)) => {}
         Err(e) => tracing::error!(error = %e, "cannot record the preview"),
     }
@@ -573,10 +574,15 @@ mod tests {
             .await
             .unwrap();
         farm.jobs()
-            .transition_with(&id, JobState::Ready, None, move |j| {
-                j.slice_report = Some(Default::default());
-                j.comparison = Some(comparison);
-            })
+            .transition_with(
+                &id,
+                JobState::Ready,
+                None,
+                JobChange::Edit(Box::new(move |j| {
+                    j.slice_report = Some(Default::default());
+                    j.comparison = Some(comparison);
+                })),
+            )
             .await
             .unwrap();
         id
@@ -633,20 +639,15 @@ mod tests {
         assert_eq!(job.state, JobState::Ready);
         assert!(job.slice_report.unwrap().walls.is_none());
 
-        farm.jobs()
-            .update(&id, |j| {
+        let pending_afresh = || {
+            JobChange::Edit(Box::new(|j| {
                 j.comparison = Some(Comparison::Pending { tries: 0 })
-            })
-            .await
-            .unwrap();
+            }))
+        };
+        farm.jobs().update(&id, pending_afresh()).await.unwrap();
         let (_, tries) = next_comparison(&farm, &config).await.unwrap();
         // Prepared again meanwhile: pending afresh.
-        farm.jobs()
-            .update(&id, |j| {
-                j.comparison = Some(Comparison::Pending { tries: 0 })
-            })
-            .await
-            .unwrap();
+        farm.jobs().update(&id, pending_afresh()).await.unwrap();
         compare_one(Arc::clone(&farm), id.clone(), tries, "/nonexistent".into()).await;
         let kept = farm.store().get(&id).unwrap().comparison.clone();
         assert_eq!(kept, Some(Comparison::Pending { tries: 0 }));

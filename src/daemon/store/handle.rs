@@ -2,9 +2,10 @@
 //! published snapshot for free and sends every change as a request. Apart from the task so
 //! what callers see (one method per request) is one file.
 
+use super::change::JobChange;
 use super::history;
-use super::job_store::{JobEdit, RetiredJob};
-use super::request::{BedChange, LateSidecar, Reply, Request};
+use super::job_store::RetiredJob;
+use super::request::{BedChange, LateSidecar, Reply, Request, Updated};
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
 use super::stats;
@@ -85,18 +86,20 @@ impl StoreHandle {
         state: JobState,
         reason: Option<String>,
     ) -> Result<Job, StoreError> {
-        self.transition_with(id, state, reason, |_| {}).await
+        self.change(id, None, state, reason, JobChange::Nothing)
+            .await
     }
 
     /// [`StoreHandle::transition`] with other fields changed in the same write.
+    #[cfg(test)]
     pub(crate) async fn transition_with(
         &self,
         id: &str,
         state: JobState,
         reason: Option<String>,
-        also: impl FnOnce(&mut Job) + Send + 'static,
+        also: JobChange,
     ) -> Result<Job, StoreError> {
-        self.change(id, None, state, reason, Box::new(also)).await
+        self.change(id, None, state, reason, also).await
     }
 
     /// [`StoreHandle::transition_with`] only if the job is in one of the states `from`
@@ -107,10 +110,9 @@ impl StoreHandle {
         from: StateFilter,
         state: JobState,
         reason: Option<String>,
-        also: impl FnOnce(&mut Job) + Send + 'static,
+        also: JobChange,
     ) -> Result<Job, StoreError> {
-        self.change(id, Some(from), state, reason, Box::new(also))
-            .await
+        self.change(id, Some(from), state, reason, also).await
     }
 
     async fn change(
@@ -119,7 +121,7 @@ impl StoreHandle {
         from: Option<StateFilter>,
         to: JobState,
         reason: Option<String>,
-        also: JobEdit,
+        also: JobChange,
     ) -> Result<Job, StoreError> {
         let id = id.to_string();
         self.ask(|reply| Request::Transition {
@@ -141,9 +143,9 @@ impl StoreHandle {
         id: &str,
         state: JobState,
         reason: Option<String>,
-        also: impl FnOnce(&mut Job) + Send + 'static,
+        also: JobChange,
     ) -> Result<Job, StoreError> {
-        let (id, also) = (id.to_string(), Box::new(also));
+        let id = id.to_string();
         self.ask(|reply| Request::Outcome {
             id,
             to: state,
@@ -154,12 +156,9 @@ impl StoreHandle {
         .await
     }
 
-    pub(crate) async fn update(
-        &self,
-        id: &str,
-        change: impl FnOnce(&mut Job) + Send + 'static,
-    ) -> Result<Job, StoreError> {
-        let (id, change) = (id.to_string(), Box::new(change));
+    /// Changes a job's fields as `change` says, checked and changed as one step.
+    pub(crate) async fn update(&self, id: &str, change: JobChange) -> Result<Updated, StoreError> {
+        let id = id.to_string();
         self.ask(|reply| Request::Update { id, change, reply })
             .await
     }

@@ -45,6 +45,7 @@ pub mod postgres;
 pub(crate) mod spool;
 pub mod stats;
 
+mod change;
 mod clients;
 mod counts;
 mod handle;
@@ -57,6 +58,7 @@ mod task;
 #[cfg(test)]
 mod task_tests;
 
+pub use change::{JobChange, PreparedJob, Use};
 pub(crate) use clients::spool_relative;
 pub(crate) use handle::StoreHandle;
 pub use history::Retention;

@@ -2,9 +2,10 @@
 //! how each is carried out against the store on the task's blocking thread. Apart from
 //! the task's loop (which batches them) and the handle (which sends them).
 
+use super::change::JobChange;
 use super::clients::for_clients;
 use super::history::{self, Retention};
-use super::job_store::{InventoryEdit, JobEdit, JobStore, RetiredJob};
+use super::job_store::{InventoryEdit, JobStore, RetiredJob};
 use super::retiring::round;
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
@@ -13,6 +14,8 @@ use crate::daemon::bed::{Bed, CheckRecord, Clearing};
 use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use tokio::sync::oneshot;
 
 pub(super) type Reply<T> = oneshot::Sender<Result<T, StoreError>>;
@@ -36,20 +39,20 @@ pub(super) enum Request {
         from: Option<StateFilter>,
         to: JobState,
         reason: Option<String>,
-        also: JobEdit,
+        also: JobChange,
         reply: Reply<Job>,
     },
     Outcome {
         id: String,
         to: JobState,
         reason: Option<String>,
-        also: JobEdit,
+        also: JobChange,
         reply: Reply<Job>,
     },
     Update {
         id: String,
-        change: JobEdit,
-        reply: Reply<Job>,
+        change: JobChange,
+        reply: Reply<Updated>,
     },
     Retry {
         id: String,
@@ -126,6 +129,20 @@ pub(crate) struct LateSidecar {
     pub applies: bool,
 }
 
+/// An updated job, and whether the change applied (see [`JobChange::apply`]).
+#[derive(Debug)]
+pub(crate) struct Updated {
+    pub(crate) job: Job,
+    pub(crate) applied: bool,
+}
+
+/// A typed change as the stores' edit.
+fn edit(change: JobChange) -> super::job_store::JobEdit {
+    Box::new(move |j| {
+        change.apply(j);
+    })
+}
+
 /// A reply waiting for the snapshot that shows its change to be published.
 pub(super) type Delivery = Box<dyn FnOnce() + Send>;
 
@@ -175,7 +192,7 @@ impl Request {
                 reply,
             } => {
                 let reason = reason.map(|r| for_clients(&r, store));
-                let result = store.transition_with(&id, from, to, reason, also);
+                let result = store.transition_with(&id, from, to, reason, edit(also));
                 view.refresh(store, &id);
                 (deliver(reply, result), true)
             }
@@ -187,13 +204,25 @@ impl Request {
                 reply,
             } => {
                 let reason = reason.map(|r| for_clients(&r, store));
-                let result = store.record_outcome(&id, to, reason, also);
+                let result = store.record_outcome(&id, to, reason, edit(also));
                 view.refresh(store, &id);
                 view.unwritten = store.unwritten();
                 (deliver(reply, result), true)
             }
             Request::Update { id, change, reply } => {
-                let result = store.update(&id, change);
+                // The store's edits return nothing: whether the change applied comes back
+                // beside the job.
+                let applied = Arc::new(AtomicBool::new(false));
+                let flag = Arc::clone(&applied);
+                let result = store
+                    .update(
+                        &id,
+                        Box::new(move |j| flag.store(change.apply(j), Ordering::Relaxed)),
+                    )
+                    .map(|job| Updated {
+                        job,
+                        applied: applied.load(Ordering::Relaxed),
+                    });
                 view.refresh(store, &id);
                 (deliver(reply, result), true)
             }

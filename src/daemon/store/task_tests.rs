@@ -3,6 +3,7 @@
 //! another host made. Apart from `task.rs` because they use every part of the store (the
 //! spool among them), which the task itself does not depend on.
 
+use super::change::{JobChange, Use};
 use super::history::{self, Retention};
 use super::job_store::{JobEdit, JobStore, RetiredJob};
 use super::rules::StateFilter;
@@ -412,7 +413,7 @@ async fn a_use_is_booked_before_its_job_retires() {
             &[JobState::Queued],
             JobState::Cancelled,
             None,
-            move |j| j.uses.push(usage),
+            JobChange::Used(Use { print: 0, usage }),
         )
         .await
         .unwrap();

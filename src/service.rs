@@ -9,7 +9,7 @@
 //! farm's handles and operations the service hands it; `daemon` knows neither.
 
 use crate::daemon::config::{self, Config};
-use crate::daemon::farm::{Farm, PrinterState};
+use crate::daemon::farm::{ConfigOwner, Farm, PrinterState};
 use crate::daemon::fleet::{self, Fleet};
 use crate::daemon::job::JobState;
 use crate::daemon::{control, prepare, reload, shared, DaemonError};
@@ -244,6 +244,8 @@ impl Signals {
 /// of tasks in the order a shutdown needs.
 struct Running {
     farm: Arc<Farm>,
+    /// A reload puts its config in force.
+    config_owner: ConfigOwner,
     options: RunOptions,
     tasks: Supervised,
     fleet: Fleet,
@@ -270,9 +272,18 @@ impl Running {
         let shutdown = CancellationToken::new();
         let crate::daemon::Opened {
             farm,
+            owners,
             store,
             shared: shared_db,
         } = crate::daemon::open_store(&config, &shutdown).await?;
+        // Each piece of the farm's state to its one owner (the config's stays here: the
+        // reload is the service's).
+        let crate::daemon::farm::Owners {
+            config: config_owner,
+            printers: printers_owner,
+            preparing: preparing_owner,
+            shared: shared_owner,
+        } = owners;
         let listener = control::bind(&config.socket)?;
         let http_listener = match &config.http {
             None => None,
@@ -317,7 +328,13 @@ impl Running {
             // log and the status say so); only a panic is a failure.
             tasks.spawn_may_end(
                 SHARED,
-                shared::run(Arc::clone(&farm), db, lease, stop_shared.clone()),
+                shared::run(
+                    Arc::clone(&farm),
+                    shared_owner,
+                    db,
+                    lease,
+                    stop_shared.clone(),
+                ),
             );
         }
         let stop_notify = CancellationToken::new();
@@ -342,7 +359,12 @@ impl Running {
                 stop_cameras.clone(),
             ),
         );
-        let fleet = Fleet::start_all(&farm, &config.printers, fleet::marlin_ports())?;
+        let fleet = Fleet::start_all(
+            &farm,
+            printers_owner,
+            &config.printers,
+            fleet::marlin_ports(),
+        )?;
         let stop_listeners = CancellationToken::new();
         let shared = crate::http::Shared {
             appkeys: Arc::clone(&appkeys),
@@ -383,10 +405,11 @@ impl Running {
         tasks.spawn(PICKUP, crate::daemon::pickup(&farm, &config));
         tasks.spawn(
             PREPARATION,
-            prepare::queue::prepare_loop(Arc::clone(&farm), prepare_program),
+            prepare::queue::prepare_loop(Arc::clone(&farm), preparing_owner, prepare_program),
         );
         Ok(Running {
             farm,
+            config_owner,
             options,
             tasks,
             fleet,
@@ -417,7 +440,7 @@ impl Running {
             tokio::select! {
                 _ = signals.term.recv() => { tracing::info!("SIGTERM: stopping"); return None; }
                 _ = signals.int.recv() => { tracing::info!("SIGINT: stopping"); return None; }
-                _ = signals.hup.recv() => on_sighup(&farm, &self.options, &mut self.tasks, &mut self.fleet),
+                _ = signals.hup.recv() => on_sighup(&farm, &self.config_owner, &self.options, &mut self.tasks, &mut self.fleet),
                 // A top-level task that ended or panicked stops the daemon.
                 e = self.tasks.next_end() => {
                     tracing::error!("{e}");
@@ -610,12 +633,18 @@ fn summary(farm: &Farm) -> String {
 /// SIGHUP: re-read the config file and apply it as [`reload::POLICY`] declares; a bad
 /// file is refused and the old config kept. Pick-up restarts with the new folders, and
 /// the printers change as [`Fleet::apply`] says.
-fn on_sighup(farm: &Arc<Farm>, options: &RunOptions, tasks: &mut Supervised, fleet: &mut Fleet) {
+fn on_sighup(
+    farm: &Arc<Farm>,
+    owner: &ConfigOwner,
+    options: &RunOptions,
+    tasks: &mut Supervised,
+    fleet: &mut Fleet,
+) {
     let Some(path) = &options.config_path else {
         tracing::warn!("SIGHUP: running on the built-in default config; nothing to reload");
         return;
     };
-    if let Some(config) = reload::reload(farm, path) {
+    if let Some(config) = reload::reload(farm, owner, path) {
         tasks.stop(PICKUP);
         fleet.apply(&config.printers);
         tasks.spawn(PICKUP, crate::daemon::pickup(farm, &config));
@@ -675,7 +704,7 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let config = farm_config(tmp.path(), &["p1"], "");
         let store = crate::daemon::store::spool::Spool::open(&config.spool_dir).unwrap();
-        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        let (farm, _owners, task) = Farm::new(config, store, CancellationToken::new());
         let mut tasks = Supervised::default();
         tasks.spawn(STORE, task);
         let job = ready_job(&farm, "a.stl", "G28\n").await;

@@ -735,9 +735,9 @@ mod tests {
     #[tokio::test]
     async fn a_change_that_cannot_be_written_says_so_without_a_path() {
         let tmp = tempfile::tempdir().unwrap();
-        let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+        let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
         let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
-        farm.add_printer("p1", handle);
+        owners.printers.add("p1", handle);
         farm.jobs().close_gate("p1", "0001-a").await.unwrap();
         let job = ready_job(&farm, "b.stl", "G28\n").await;
         let spool = farm.config().spool_dir.clone();

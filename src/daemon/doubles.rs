@@ -337,12 +337,12 @@ pub(crate) fn farm_config(root: &Path, printers: &[&str], extra: &str) -> Config
     Config::parse(&text, &root.join("crispen.toml")).unwrap()
 }
 
-/// Opens the farm on its spool.
-pub(crate) fn open_farm(config: Config) -> Arc<Farm> {
+/// Opens the farm on its spool, with the owners of its state for the test to hand out.
+pub(crate) fn open_farm(config: Config) -> (Arc<Farm>, super::farm::Owners) {
     let store = super::store::spool::Spool::open(&config.spool_dir).unwrap();
-    let (farm, task) = Farm::new(config, store, Default::default());
+    let (farm, owners, task) = Farm::new(config, store, Default::default());
     tokio::spawn(task);
-    farm
+    (farm, owners)
 }
 
 /// A job made ready with `gcode` for every printer of the config's machine, as

@@ -8,13 +8,16 @@
 //!   supervisor (the `printer` module), one watch per printer; which printers there are:
 //!   the fleet (the `fleet` module). Whether its bed is cleared is not part of it: that is
 //!   the store's gate, and [`Farm::local_printers`] derives it in one place.
-//! - the config in force: the reload path ([`Farm::set_config`]).
+//! - the config in force: the reload path ([`ConfigOwner`]).
 //! - heating permits: [`HeatingPermits`].
 //! - preparations in progress: the preparation queue.
 //! - the rest of a shared farm: the shared-farm task (`super::shared`).
 //!
 //! One `Arc<Farm>` of handles is given to the pick-up, preparation, printer, shared-farm
-//! and control tasks; [`FarmWatch`] follows all of it (the event stream does).
+//! and control tasks; [`FarmWatch`] follows all of it (the event stream does). `Farm`
+//! reads and follows; it sends nothing. The senders of the config, the printers, the
+//! preparations and the shared view are [`Owners`], made with the farm and handed each to
+//! its one owner, which alone can change that piece.
 
 use super::config::Config;
 use super::job::StoreError;
@@ -290,16 +293,18 @@ pub(crate) struct Preparation {
 }
 
 pub struct Farm {
-    /// The config in force; written by [`Farm::set_config`] (the reload path) only.
+    /// The config in force; its sender here is never sent on (see [`ConfigOwner`]), as for
+    /// the printers, the preparations and the shared view below.
     config: watch::Sender<Arc<Config>>,
     /// The job store's task: the only way a job changes ([`Farm::jobs`]).
     jobs: StoreHandle,
-    /// The printers of this host; the fleet adds and removes them.
+    /// The printers of this host; the fleet adds and removes them ([`PrintersOwner`]).
     printers: watch::Sender<BTreeMap<String, PrinterHandle>>,
-    /// Jobs being prepared; the preparation queue adds, steps and removes them.
+    /// Jobs being prepared; the preparation queue adds, steps and removes them
+    /// ([`PreparingOwner`]).
     preparing: watch::Sender<BTreeMap<String, Preparation>>,
     pub heating: HeatingPermits,
-    /// The rest of a shared farm; the shared-farm task writes it.
+    /// The rest of a shared farm; the shared-farm task writes it ([`SharedOwner`]).
     shared: watch::Sender<Option<FarmView>>,
     /// Cancelled once SIGTERM arrived: no new work is taken, waits end.
     pub shutdown: CancellationToken,
@@ -313,12 +318,13 @@ pub struct Farm {
 
 impl Farm {
     /// Builds the farm around the store's task, which is returned for the caller to run
-    /// (the service runs it in its supervised set; see [`super::store::start`]).
+    /// (the service runs it in its supervised set; see [`super::store::start`]), with the
+    /// owners of the farm's other state, for the caller to hand each to its owner.
     pub(crate) fn new(
         config: Config,
         store: impl JobStore,
         shutdown: CancellationToken,
-    ) -> (Arc<Farm>, StoreTask) {
+    ) -> (Arc<Farm>, Owners, StoreTask) {
         let retention = super::store::Retention {
             live_for: config.history.live_for,
             live_jobs: config.history.live_jobs,
@@ -336,7 +342,13 @@ impl Farm {
             stop_prints: CancellationToken::new(),
             db: Default::default(),
         });
-        (farm, task)
+        let owners = Owners {
+            config: ConfigOwner(farm.config.clone()),
+            printers: PrintersOwner(farm.printers.clone()),
+            preparing: PreparingOwner(farm.preparing.clone()),
+            shared: SharedOwner(farm.shared.clone()),
+        };
+        (farm, owners, task)
     }
 
     pub(crate) fn config(&self) -> Arc<Config> {
@@ -346,11 +358,6 @@ impl Farm {
     /// Follows the config in force.
     pub(crate) fn watch_config(&self) -> watch::Receiver<Arc<Config>> {
         self.config.subscribe()
-    }
-
-    /// Puts a config in force (the reload path).
-    pub(crate) fn set_config(&self, config: Config) {
-        self.config.send_replace(Arc::new(config));
     }
 
     /// The job store's task: every change of a job or a bed gate is a request to it, and
@@ -416,19 +423,7 @@ impl Farm {
         self.jobs.stats(period, printers, folders, now).await
     }
 
-    // Printers.
-
-    /// Adds a printer (the fleet, as its supervisor starts).
-    pub(crate) fn add_printer(&self, name: &str, handle: PrinterHandle) {
-        self.printers.send_modify(|p| {
-            p.insert(name.to_string(), handle);
-        });
-    }
-
-    /// Removes a printer (the fleet, once its retired supervisor has ended).
-    pub(crate) fn remove_printer(&self, name: &str) {
-        self.printers.send_if_modified(|p| p.remove(name).is_some());
-    }
+    // Printers (the fleet's: see [`PrintersOwner`]).
 
     /// The handle of this host's printer `name`.
     pub(crate) fn printer(&self, name: &str) -> Option<PrinterHandle> {
@@ -499,31 +494,7 @@ impl Farm {
         all
     }
 
-    // Preparations (the preparation queue's).
-
-    /// A preparation started.
-    pub(crate) fn start_preparation(&self, id: &str, cancel: CancellationToken) {
-        self.preparing.send_modify(|p| {
-            let step = "starting".into();
-            p.insert(id.to_string(), Preparation { step, cancel });
-        });
-    }
-
-    /// A preparation's step changed.
-    pub(crate) fn preparation_step(&self, id: &str, step: String) {
-        self.preparing.send_if_modified(|p| match p.get_mut(id) {
-            Some(p) if p.step != step => {
-                p.step = step;
-                true
-            }
-            _ => false,
-        });
-    }
-
-    /// A preparation ended.
-    pub(crate) fn end_preparation(&self, id: &str) {
-        self.preparing.send_if_modified(|p| p.remove(id).is_some());
-    }
+    // Preparations (the preparation queue's: see [`PreparingOwner`]).
 
     /// Stops a job's preparation in progress, if any.
     pub(crate) fn cancel_preparation(&self, id: &str) {
@@ -541,20 +512,11 @@ impl Farm {
             .collect()
     }
 
-    // The rest of a shared farm (the shared-farm task's).
+    // The rest of a shared farm (the shared-farm task's: see [`SharedOwner`]).
 
     /// The rest of the farm as last read (None: not shared, or not read yet).
     pub(crate) fn shared(&self) -> Option<FarmView> {
         self.shared.borrow().clone()
-    }
-
-    /// Changes the view of the rest of the farm; the followers wake only when it differs.
-    pub(crate) fn set_shared(&self, change: impl FnOnce(&mut FarmView)) {
-        self.shared.send_if_modified(|view| {
-            let before = view.clone();
-            change(view.get_or_insert_with(FarmView::default));
-            *view != before
-        });
     }
 
     /// Follows the rest of a shared farm.
@@ -574,6 +536,86 @@ impl Farm {
         };
         watch.follow_printers();
         watch
+    }
+}
+
+/// The senders of the farm's state besides the store's, each for its one owner: the
+/// reload path, the fleet, the preparation queue, the shared-farm task. Whoever builds the
+/// farm hands them out; nothing else can change these pieces.
+pub(crate) struct Owners {
+    pub(crate) config: ConfigOwner,
+    pub(crate) printers: PrintersOwner,
+    pub(crate) preparing: PreparingOwner,
+    pub(crate) shared: SharedOwner,
+}
+
+/// Puts a config in force (the reload path's).
+pub(crate) struct ConfigOwner(watch::Sender<Arc<Config>>);
+
+impl ConfigOwner {
+    pub(crate) fn set(&self, config: Config) {
+        self.0.send_replace(Arc::new(config));
+    }
+}
+
+/// Which printers this host has (the fleet's).
+pub(crate) struct PrintersOwner(watch::Sender<BTreeMap<String, PrinterHandle>>);
+
+impl PrintersOwner {
+    /// Adds a printer, as its supervisor starts.
+    pub(crate) fn add(&self, name: &str, handle: PrinterHandle) {
+        self.0.send_modify(|p| {
+            p.insert(name.to_string(), handle);
+        });
+    }
+
+    /// Removes a printer, once its retired supervisor has ended.
+    pub(crate) fn remove(&self, name: &str) {
+        self.0.send_if_modified(|p| p.remove(name).is_some());
+    }
+}
+
+/// The preparations in progress (the preparation queue's; its tasks share it).
+#[derive(Clone)]
+pub(crate) struct PreparingOwner(watch::Sender<BTreeMap<String, Preparation>>);
+
+impl PreparingOwner {
+    /// A preparation started.
+    pub(crate) fn start(&self, id: &str, cancel: CancellationToken) {
+        self.0.send_modify(|p| {
+            let step = "starting".into();
+            p.insert(id.to_string(), Preparation { step, cancel });
+        });
+    }
+
+    /// A preparation's step changed.
+    pub(crate) fn step(&self, id: &str, step: String) {
+        self.0.send_if_modified(|p| match p.get_mut(id) {
+            Some(p) if p.step != step => {
+                p.step = step;
+                true
+            }
+            _ => false,
+        });
+    }
+
+    /// A preparation ended.
+    pub(crate) fn end(&self, id: &str) {
+        self.0.send_if_modified(|p| p.remove(id).is_some());
+    }
+}
+
+/// The view of the rest of a shared farm (the shared-farm task's).
+pub(crate) struct SharedOwner(watch::Sender<Option<FarmView>>);
+
+impl SharedOwner {
+    /// Changes the view; the followers wake only when it differs.
+    pub(crate) fn set(&self, change: impl FnOnce(&mut FarmView)) {
+        self.0.send_if_modified(|view| {
+            let before = view.clone();
+            change(view.get_or_insert_with(FarmView::default));
+            *view != before
+        });
     }
 }
 
@@ -760,13 +802,13 @@ pub(crate) fn waiting<'a>(
 mod tests {
     use super::*;
 
-    fn farm(max_heating: usize, spool: &std::path::Path) -> Arc<Farm> {
+    fn farm(max_heating: usize, spool: &std::path::Path) -> (Arc<Farm>, Owners) {
         let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
         let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
         let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
-        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        let (farm, owners, task) = Farm::new(config, store, CancellationToken::new());
         tokio::spawn(task);
-        farm
+        (farm, owners)
     }
 
     /// `max_heating` applies on reload: raising it lets a waiting printer heat at once
@@ -774,7 +816,7 @@ mod tests {
     #[tokio::test(start_paused = true)]
     async fn max_heating_applies_on_reload() {
         let tmp = tempfile::tempdir().unwrap();
-        let farm = farm(1, tmp.path());
+        let (farm, owners) = farm(1, tmp.path());
         let first = farm.heating_permit().await;
         let waiting = tokio::spawn({
             let farm = Arc::clone(&farm);
@@ -784,7 +826,7 @@ mod tests {
         assert!(!waiting.is_finished(), "one permit only");
         let mut raised = (*farm.config()).clone();
         raised.farm.max_heating = 2;
-        farm.set_config(raised);
+        owners.config.set(raised);
         let second = tokio::time::timeout(std::time::Duration::from_secs(30), waiting)
             .await
             .expect("the raised limit lets the waiting printer heat")
@@ -800,9 +842,9 @@ mod tests {
     #[tokio::test]
     async fn bed_cleared_is_the_stores_gate() {
         let tmp = tempfile::tempdir().unwrap();
-        let farm = farm(1, tmp.path());
+        let (farm, owners) = farm(1, tmp.path());
         let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
-        farm.add_printer("p1", handle);
+        owners.printers.add("p1", handle);
         let shown = |farm: &Farm| farm.local_printers()[0].bed_cleared;
         assert!(shown(&farm));
         farm.jobs().close_gate("p1", "0001-a").await.unwrap();
@@ -818,9 +860,9 @@ mod tests {
     async fn the_farm_watch_wakes_once_per_change() {
         use std::time::Duration;
         let tmp = tempfile::tempdir().unwrap();
-        let farm = farm(1, tmp.path());
+        let (farm, owners) = farm(1, tmp.path());
         let (owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
-        farm.add_printer("p1", handle);
+        owners.printers.add("p1", handle);
         owner.live.send_modify(|p| p.state = PrinterState::Idle);
         let mut watch = farm.watch();
         let quiet = Duration::from_secs(600);

@@ -10,7 +10,7 @@
 
 use super::config::{PrinterConfig, PrinterPort};
 use super::error::DaemonError;
-use super::farm::{printer_channels, Farm, PrinterLive};
+use super::farm::{printer_channels, Farm, PrinterLive, PrintersOwner};
 use super::printer;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
@@ -80,6 +80,7 @@ pub(crate) fn marlin_ports() -> Ports {
 /// one then starts again with its new settings.
 pub(crate) struct Fleet {
     farm: Arc<Farm>,
+    owner: PrintersOwner,
     ports: Ports,
     tasks: JoinSet<()>,
     running: BTreeMap<String, Supervised>,
@@ -97,13 +98,17 @@ struct Supervised {
 }
 
 impl Fleet {
+    /// Starts a supervisor for each of `printers`; the fleet alone adds and removes the
+    /// farm's printers (`owner`).
     pub(crate) fn start_all(
         farm: &Arc<Farm>,
+        owner: PrintersOwner,
         printers: &[PrinterConfig],
         ports: Ports,
     ) -> Result<Fleet, DaemonError> {
         let mut fleet = Fleet {
             farm: Arc::clone(farm),
+            owner,
             ports,
             tasks: JoinSet::new(),
             running: BTreeMap::new(),
@@ -121,7 +126,7 @@ impl Fleet {
         let port = (self.ports)(&spec)?;
         let (owner, handle) =
             printer_channels(PrinterLive::connecting(spec.firmware.name(), &port.shown));
-        self.farm.add_printer(&spec.name, handle);
+        self.owner.add(&spec.name, handle);
         let (retire, retired) = watch::channel(false);
         let task = self.tasks.spawn(printer::supervise(
             Arc::clone(&self.farm),
@@ -203,7 +208,7 @@ impl Fleet {
             if let Some(retired) = self.retiring.remove(&id) {
                 let name = retired.spec.name.clone();
                 if !self.running.contains_key(&name) {
-                    self.farm.remove_printer(&name);
+                    self.owner.remove(&name);
                 }
                 self.start_waiting();
                 continue;

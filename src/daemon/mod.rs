@@ -60,6 +60,8 @@ use tokio_util::sync::CancellationToken;
 /// What [`open_store`] opened.
 pub(crate) struct Opened {
     pub farm: Arc<Farm>,
+    /// The owners of the farm's other state, for the service to hand out.
+    pub owners: farm::Owners,
     /// The job store's task, which nothing answers until the caller runs it (the service,
     /// in its supervised set).
     pub store: store::StoreTask,
@@ -81,9 +83,10 @@ pub(crate) async fn open_store(
         for id in store.recover()? {
             mid_flight(&id, store.get(&id).expect("recovered job exists").state);
         }
-        let (farm, store) = Farm::new(config.clone(), store, shutdown.clone());
+        let (farm, owners, store) = Farm::new(config.clone(), store, shutdown.clone());
         return Ok(Opened {
             farm,
+            owners,
             store,
             shared: None,
         });
@@ -96,7 +99,7 @@ pub(crate) async fn open_store(
         })?;
     let recovered = db.recover_own().await?;
     let store = store::postgres::store::PgJobStore::open(db.clone(), &config.spool_dir).await?;
-    let (farm, store) = Farm::new(config.clone(), store, shutdown.clone());
+    let (farm, owners, store) = Farm::new(config.clone(), store, shutdown.clone());
     for id in recovered {
         if let Some(job) = farm.store().get(&id) {
             mid_flight(&id, job.state);
@@ -105,6 +108,7 @@ pub(crate) async fn open_store(
     let _ = farm.db.set(db.clone());
     Ok(Opened {
         farm,
+        owners,
         store,
         shared: Some((db, shared.lease)),
     })

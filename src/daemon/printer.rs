@@ -1214,7 +1214,7 @@ mod tests {
                 ids.push(job.id);
             }
         }
-        let (farm, task) = Farm::new(config, store, Default::default());
+        let (farm, _owners, task) = Farm::new(config, store, Default::default());
         tokio::spawn(task);
         let start = Arc::new(tokio::sync::Barrier::new(printers.len()));
         let tasks: Vec<_> = printers

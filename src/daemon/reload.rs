@@ -8,7 +8,7 @@
 //! `REPORTED_AS`).
 
 use super::config::{Config, FarmConfig, FolderConfig, HttpConfig, PrinterConfig};
-use super::farm::Farm;
+use super::farm::{ConfigOwner, Farm};
 use std::sync::Arc;
 
 /// When a changed config value takes effect.
@@ -424,7 +424,11 @@ pub(crate) fn merge(old: &Config, new: Config) -> Config {
 /// each changed key with its policy, and returns the config now in force; None when the
 /// new file was refused (the error is logged) and the old config stays. The caller
 /// restarts what depends on it (pick-up, printers).
-pub(crate) fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Option<Config> {
+pub(crate) fn reload(
+    farm: &Arc<Farm>,
+    owner: &ConfigOwner,
+    path: &std::path::Path,
+) -> Option<Config> {
     let new = match Config::load(path) {
         Err(e) => {
             tracing::error!(error = %e, "SIGHUP: new config refused; keeping the old one");
@@ -449,7 +453,7 @@ pub(crate) fn reload(farm: &Arc<Farm>, path: &std::path::Path) -> Option<Config>
         }
     }
     let config = merge(&old, new);
-    farm.set_config(config.clone());
+    owner.set(config.clone());
     Some(config)
 }
 

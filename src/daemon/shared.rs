@@ -14,7 +14,7 @@
 //! (stopping them would not help the printers); their outcomes are not recorded.
 
 use super::control;
-use super::farm::{Farm, FarmView, PrintCommand, PrinterStatus, UnknownCommand};
+use super::farm::{Farm, FarmView, PrintCommand, PrinterStatus, SharedOwner, UnknownCommand};
 use super::store::postgres::{PgError, PgStore};
 use std::sync::Arc;
 use std::time::Duration;
@@ -24,7 +24,14 @@ use tokio_util::sync::CancellationToken;
 const TICK: Duration = Duration::from_secs(1);
 
 /// Runs until `stop`; `lease` is `[store] lease_s`.
-pub(crate) async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: CancellationToken) {
+/// `owner`: the view of the rest of the farm is this task's to show.
+pub(crate) async fn run(
+    farm: Arc<Farm>,
+    owner: SharedOwner,
+    db: PgStore,
+    lease: Duration,
+    stop: CancellationToken,
+) {
     let heartbeat_every = lease / 5;
     let mut last_heartbeat: Option<tokio::time::Instant> = None;
     let mut ticker = tokio::time::interval(TICK);
@@ -37,21 +44,21 @@ pub(crate) async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: Can
         let due = last_heartbeat.is_none_or(|t| t.elapsed() >= heartbeat_every);
         let outcome = tokio::select! {
             _ = stop.cancelled() => break,
-            outcome = tick(&farm, &db, lease, due) => outcome,
+            outcome = tick(&farm, &owner, &db, lease, due) => outcome,
         };
         match outcome {
             Ok(()) => {
                 if due {
                     last_heartbeat = Some(tokio::time::Instant::now());
                 }
-                set_database(&farm, None);
+                set_database(&farm, &owner, None);
             }
             Err(e @ PgError::Displaced { .. }) => {
                 tracing::error!(host = %db.host(), "{e}");
-                farm.set_shared(|view| view.database = Some(e.to_string()));
+                owner.set(|view| view.database = Some(e.to_string()));
                 return;
             }
-            Err(e) => set_database(&farm, Some(e.to_string())),
+            Err(e) => set_database(&farm, &owner, Some(e.to_string())),
         }
     }
 }
@@ -59,6 +66,7 @@ pub(crate) async fn run(farm: Arc<Farm>, db: PgStore, lease: Duration, stop: Can
 /// One round; fails at the first call the database does not answer.
 async fn tick(
     farm: &Arc<Farm>,
+    owner: &SharedOwner,
     db: &PgStore,
     lease: Duration,
     heartbeat: bool,
@@ -119,7 +127,7 @@ async fn tick(
     }
     view.hosts = hosts;
     // Whether the database answers is `set_database`'s to change (and log).
-    farm.set_shared(|shown| {
+    owner.set(|shown| {
         view.database = shown.database.take();
         *shown = view;
     });
@@ -156,7 +164,7 @@ fn to_carry_out(
 
 /// Records whether the database answers, logging each change once (the printers waiting
 /// for a job follow it: claims that failed meanwhile are tried again).
-fn set_database(farm: &Farm, error: Option<String>) {
+fn set_database(farm: &Farm, owner: &SharedOwner, error: Option<String>) {
     let was = farm.shared().and_then(|v| v.database);
     match (&was, &error) {
         (None, Some(e)) => {
@@ -165,7 +173,7 @@ fn set_database(farm: &Farm, error: Option<String>) {
         (Some(_), None) => tracing::info!("the farm database answers again"),
         _ => {}
     }
-    farm.set_shared(|view| view.database = error);
+    owner.set(|view| view.database = error);
 }
 
 #[cfg(test)]
@@ -205,9 +213,9 @@ mod tests {
         use crate::daemon::doubles::{farm_config, open_farm};
         use crate::daemon::farm::{printer_channels, PrinterLive};
         let tmp = tempfile::tempdir().unwrap();
-        let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+        let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
         let (_owner, handle) = printer_channels(PrinterLive::connecting("marlin2", "/dev/x"));
-        farm.add_printer("p1", handle);
+        owners.printers.add("p1", handle);
         let bed_cleared = |farm: &Farm| {
             let published = published(farm);
             assert_eq!(published.len(), 1);

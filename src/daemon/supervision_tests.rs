@@ -46,9 +46,15 @@ const LIMIT: Duration = Duration::from_secs(3600);
 #[tokio::test(start_paused = true)]
 async fn a_printer_prints_then_waits_for_its_bed_to_be_cleared() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let first = ready_job(&farm, "a.stl", HEAT_AND_PRINT).await;
     until(&farm, LIMIT, "the first job done", || {
         state(&farm, &first) == JobState::Done
@@ -104,9 +110,15 @@ async fn a_printer_prints_then_waits_for_its_bed_to_be_cleared() {
 async fn one_heating_permit_staggers_two_heat_ups() {
     let tmp = tempfile::tempdir().unwrap();
     let config = farm_config(tmp.path(), &["p1", "p2"], "[farm]\nmax_heating = 1\n");
-    let farm = open_farm(config);
+    let (farm, owners) = open_farm(config);
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let a = ready_job(&farm, "a.stl", &long_print(600)).await;
     let b = ready_job(&farm, "b.stl", &long_print(600)).await;
     let mut waited = false;
@@ -150,11 +162,18 @@ async fn one_heating_permit_staggers_two_heat_ups() {
 async fn shutdown_stops_prints_safely_and_ends_every_task() {
     let tmp = tempfile::tempdir().unwrap();
     let config = farm_config(tmp.path(), &["p1"], "[farm]\non_shutdown = \"stop\"\n");
-    let farm = open_farm(config);
+    let (farm, owners) = open_farm(config);
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let preparation = tokio::spawn(super::prepare::queue::prepare_loop(
         Arc::clone(&farm),
+        owners.preparing,
         "/nonexistent/crispen".into(),
     ));
     let job = ready_job(&farm, "a.stl", &long_print(10_000)).await;
@@ -204,9 +223,15 @@ fn cut_short_by_the_safe_stop(bench: &BenchPorts, farm: &Farm, job: &str) -> Job
 async fn a_finishing_print_goes_on_until_the_prints_are_stopped() {
     let tmp = tempfile::tempdir().unwrap();
     let config = farm_config(tmp.path(), &["p1"], "[farm]\non_shutdown = \"finish\"\n");
-    let farm = open_farm(config);
+    let (farm, owners) = open_farm(config);
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let job = ready_job(&farm, "a.stl", &long_print(10_000)).await;
     let acked = |farm: &Farm| {
         printer(farm, "p1")
@@ -234,9 +259,15 @@ async fn a_finishing_print_goes_on_until_the_prints_are_stopped() {
 #[tokio::test(start_paused = true)]
 async fn a_reload_never_cuts_a_print_short() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let bench = BenchPorts::default();
-    let mut fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let mut fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let gcode = long_print(3000);
     let job = ready_job(&farm, "a.stl", &gcode).await;
     until(&farm, LIMIT, "p1 printing", || {
@@ -246,7 +277,7 @@ async fn a_reload_never_cuts_a_print_short() {
 
     // p2 added.
     let both = farm_config(tmp.path(), &["p1", "p2"], "");
-    farm.set_config(both.clone());
+    owners.config.set(both.clone());
     fleet.apply(&both.printers);
     until(&farm, LIMIT, "p2 connected", || {
         printer(&farm, "p2").is_some_and(|p| p.state == PrinterState::Idle)
@@ -255,7 +286,7 @@ async fn a_reload_never_cuts_a_print_short() {
 
     // p2 removed while p1 prints: p2 leaves at once, p1 prints on.
     let only_p1 = farm_config(tmp.path(), &["p1"], "");
-    farm.set_config(only_p1.clone());
+    owners.config.set(only_p1.clone());
     fleet.apply(&only_p1.printers);
     tokio::select! {
         (name, how) = fleet.next_end() => panic!("{name}'s supervisor ended: {how:?}"),
@@ -265,7 +296,7 @@ async fn a_reload_never_cuts_a_print_short() {
 
     // p2 back, and p1 removed while it prints: it goes on to the end, then leaves.
     let only_p2 = farm_config(tmp.path(), &["p2"], "");
-    farm.set_config(only_p2.clone());
+    owners.config.set(only_p2.clone());
     fleet.apply(&only_p2.printers);
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Printing);
     tokio::select! {
@@ -293,11 +324,12 @@ async fn a_panicking_supervisor_is_reported_by_name() {
         }
     }
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["good", "bad"], ""));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["good", "bad"], ""));
     let bench = BenchPorts::default();
     let ports = bench.ports();
     let mut fleet = Fleet::start_all(
         &farm,
+        owners.printers,
         &farm.config().printers,
         Box::new(move |spec| {
             if spec.name == "bad" {
@@ -330,7 +362,7 @@ async fn a_panicking_supervisor_is_reported_by_name() {
 #[tokio::test(start_paused = true)]
 async fn a_retry_is_announced_and_counted() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let (farm, _) = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let job = ready_job(&farm, "a.stl", HEAT_AND_PRINT).await;
     farm.jobs()
         .transition(&job, JobState::Cancelled, None)
@@ -357,9 +389,15 @@ async fn a_retry_is_announced_and_counted() {
 async fn shutdown_while_waiting_to_heat_sends_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     let extra = "[farm]\nmax_heating = 1\non_shutdown = \"stop\"\n";
-    let farm = open_farm(farm_config(tmp.path(), &["p1", "p2"], extra));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1", "p2"], extra));
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     ready_job(&farm, "a.stl", &long_print(100)).await;
     ready_job(&farm, "b.stl", &long_print(100)).await;
     until(&farm, LIMIT, "one heating, one waiting", || {
@@ -387,9 +425,15 @@ async fn shutdown_while_waiting_to_heat_sends_nothing() {
 #[tokio::test(start_paused = true)]
 async fn an_unplugged_printer_interrupts_its_job_and_reconnects() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let job = ready_job(&farm, "a.stl", &long_print(1000)).await;
     past_the_heat_up(&farm).await;
     bench.printer("p1").unplug();
@@ -421,9 +465,15 @@ async fn an_unplugged_printer_interrupts_its_job_and_reconnects() {
 #[tokio::test(start_paused = true)]
 async fn pause_resume_and_cancel_reach_the_print() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let job = ready_job(&farm, "a.stl", &long_print(5000)).await;
     past_the_heat_up(&farm).await;
     let p1 = || Command::Pause {
@@ -480,9 +530,15 @@ async fn pause_resume_and_cancel_reach_the_print() {
 #[tokio::test(start_paused = true)]
 async fn a_halted_printer_takes_no_job_until_it_was_reset() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let bench = BenchPorts::default();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     let first = ready_job(&farm, "a.stl", "G28\nM112\nG1 X10\n").await;
     until(&farm, LIMIT, "the halted job failed", || {
         state(&farm, &first) == JobState::Failed
@@ -532,7 +588,7 @@ async fn a_halted_printer_takes_no_job_until_it_was_reset() {
 #[tokio::test(start_paused = true)]
 async fn a_job_that_sent_nothing_leaves_no_bed_to_clear() {
     let tmp = tempfile::tempdir().unwrap();
-    let farm = open_farm(farm_config(tmp.path(), &["p1"], ""));
+    let (farm, owners) = open_farm(farm_config(tmp.path(), &["p1"], ""));
     let bench = BenchPorts::default();
     let first = ready_job(&farm, "a.stl", HEAT_AND_PRINT).await;
     let machine = farm.config().printers[0].machine.name.clone();
@@ -541,7 +597,13 @@ async fn a_job_that_sent_nothing_leaves_no_bed_to_clear() {
         .job_dir(&first)
         .join(format!("a.stl.{machine}.gcode"));
     std::fs::remove_file(gcode).unwrap();
-    let fleet = Fleet::start_all(&farm, &farm.config().printers, bench.ports()).unwrap();
+    let fleet = Fleet::start_all(
+        &farm,
+        owners.printers,
+        &farm.config().printers,
+        bench.ports(),
+    )
+    .unwrap();
     until(&farm, LIMIT, "the unreadable job failed", || {
         state(&farm, &first) == JobState::Failed
     })

@@ -19,7 +19,7 @@
 
 use super::process::{run_child, run_compare_child, PrepareError};
 use super::task::{resolve_task, PrepareTask, Prepared, TaskMachine};
-use crate::daemon::farm::Farm;
+use crate::daemon::farm::{Farm, PreparingOwner};
 use crate::daemon::job::{Comparison, JobState, StoreError};
 use crate::daemon::store::{JobChange, PreparedJob, StateFilter};
 use crate::slice::moved::WallsState;
@@ -33,7 +33,8 @@ use tracing::Instrument;
 /// Prepares queued jobs, oldest first, at most one per core at a time, each in its own
 /// child process under a token of its own (a child of the shutdown token); in between,
 /// measures the ready jobs' comparisons (see the module's comment).
-pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
+/// `owner`: the preparations in progress are this queue's to show.
+pub(crate) async fn prepare_loop(farm: Arc<Farm>, owner: PreparingOwner, program: PathBuf) {
     let cores = std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1);
@@ -94,10 +95,17 @@ pub(crate) async fn prepare_loop(farm: Arc<Farm>, program: PathBuf) {
                 continue;
             }
             let cancel = farm.shutdown.child_token();
-            farm.start_preparation(&id, cancel.clone());
+            owner.start(&id, cancel.clone());
             let span = tracing::info_span!("job", job = %id);
             running.spawn(
-                prepare_one(Arc::clone(&farm), id, program.clone(), cancel).instrument(span),
+                prepare_one(
+                    Arc::clone(&farm),
+                    owner.clone(),
+                    id,
+                    program.clone(),
+                    cancel,
+                )
+                .instrument(span),
             );
         }
         // A comparison never goes ahead of a preparation: none starts while a job is
@@ -154,7 +162,13 @@ fn can_prepare(config: &crate::daemon::config::Config, job: &crate::daemon::job:
 }
 
 /// Prepares one job and records the outcome.
-async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: CancellationToken) {
+async fn prepare_one(
+    farm: Arc<Farm>,
+    owner: PreparingOwner,
+    id: String,
+    program: PathBuf,
+    cancel: CancellationToken,
+) {
     let resolved = {
         let (farm, id) = (Arc::clone(&farm), id.clone());
         tokio::task::spawn_blocking(move || resolve(&farm, &id))
@@ -170,7 +184,7 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
                 strength = ?task.strength,
                 "preparing"
             );
-            let on_step = |step: String| farm.preparation_step(&id, step);
+            let on_step = |step: String| owner.step(&id, step);
             let asks = task.asks.clone();
             run_child(&program, &task, &cancel, on_step)
                 .await
@@ -184,7 +198,7 @@ async fn prepare_one(farm: Arc<Farm>, id: String, program: PathBuf, cancel: Canc
                 })
         }
     };
-    finish_preparation(&farm, &id, result).await;
+    finish_preparation(&farm, &owner, &id, result).await;
 }
 
 /// Reads the job's sidecar and works out its task.
@@ -221,6 +235,7 @@ fn resolve(
 /// meanwhile: the store checks that it is still preparing as one step with the change.
 async fn finish_preparation(
     farm: &Farm,
+    owner: &PreparingOwner,
     id: &str,
     result: Result<
         (
@@ -231,7 +246,7 @@ async fn finish_preparation(
         PrepareError,
     >,
 ) {
-    farm.end_preparation(id);
+    owner.end(id);
     const STILL_PREPARING: StateFilter = &[JobState::Preparing];
     let outcome = match result {
         Ok((prepared, sidecar, asks)) => {
@@ -553,7 +568,7 @@ mod tests {
         let config =
             crate::daemon::config::Config::parse(text, &root.join("crispen.toml")).unwrap();
         let store = crate::daemon::store::spool::Spool::open(&root.join("spool")).unwrap();
-        let (farm, task) = Farm::new(config, store, CancellationToken::new());
+        let (farm, _owners, task) = Farm::new(config, store, CancellationToken::new());
         tokio::spawn(task);
         farm
     }

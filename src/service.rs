@@ -9,7 +9,7 @@
 //! farm's handles and operations the service hands it; `daemon` knows neither.
 
 use crate::daemon::config::{self, Config};
-use crate::daemon::farm::{ConfigOwner, Farm, PrinterState};
+use crate::daemon::farm::{ConfigOwner, Farm, PrinterState, StopOwner};
 use crate::daemon::fleet::{self, Fleet};
 use crate::daemon::job::JobState;
 use crate::daemon::{control, prepare, reload, shared, DaemonError};
@@ -246,6 +246,8 @@ struct Running {
     farm: Arc<Farm>,
     /// A reload puts its config in force.
     config_owner: ConfigOwner,
+    /// A signal stops the farm.
+    stop: StopOwner,
     options: RunOptions,
     tasks: Supervised,
     fleet: Fleet,
@@ -269,13 +271,12 @@ impl Running {
             Some(p) => p.clone(),
             None => std::env::current_exe().map_err(ServiceError::PrepareProgram)?,
         };
-        let shutdown = CancellationToken::new();
         let crate::daemon::Opened {
             farm,
             owners,
             store,
             shared: shared_db,
-        } = crate::daemon::open_store(&config, &shutdown).await?;
+        } = crate::daemon::open_store(&config).await?;
         // Each piece of the farm's state to its one owner (the config's stays here: the
         // reload is the service's).
         let crate::daemon::farm::Owners {
@@ -283,6 +284,7 @@ impl Running {
             printers: printers_owner,
             preparing: preparing_owner,
             shared: shared_owner,
+            stop,
         } = owners;
         let listener = control::bind(&config.socket)?;
         let http_listener = match &config.http {
@@ -410,6 +412,7 @@ impl Running {
         Ok(Running {
             farm,
             config_owner,
+            stop,
             options,
             tasks,
             fleet,
@@ -483,13 +486,22 @@ impl Running {
             stop_cameras,
             stop_listeners,
             systemd,
+            stop,
             ..
         } = self;
         systemd.notify(&[NotifyState::Stopping]);
-        farm.begin_stop();
+        stop.begin();
         tasks.stop(PICKUP);
         tasks.join(PREPARATION).await;
-        finish_prints(&farm, &systemd, fleet, &mut signals.term, &mut signals.int).await;
+        finish_prints(
+            &farm,
+            &stop,
+            &systemd,
+            fleet,
+            &mut signals.term,
+            &mut signals.int,
+        )
+        .await;
         if tasks.has(SHARED) {
             // Prints have ended: their outcomes are in the store.
             stop_shared.cancel();
@@ -527,7 +539,7 @@ const EXTEND_BY: Duration = Duration::from_secs(20);
 /// lines and the printers' answers) before systemd may kill the daemon.
 const STOP_GRACE: Duration = Duration::from_secs(60);
 
-/// Waits for the printers' supervisors to end after [`Farm::begin_stop`]. While prints
+/// Waits for the printers' supervisors to end after [`StopOwner::begin`]. While prints
 /// finish, systemd is asked for more time (`EXTEND_TIMEOUT_USEC`, renewed before it runs
 /// out), so the unit's short `TimeoutStopSec` does not kill a daemon whose printers are
 /// hot; but only up to `[farm] finish_timeout_s` (and the grace of the safe stop after
@@ -535,6 +547,7 @@ const STOP_GRACE: Duration = Duration::from_secs(60);
 /// stops them at once. A daemon killed by systemd would leave the heaters on.
 async fn finish_prints(
     farm: &Farm,
+    stop: &StopOwner,
     systemd: &Systemd,
     fleet: Fleet,
     sigterm: &mut tokio::signal::unix::Signal,
@@ -576,7 +589,7 @@ async fn finish_prints(
             }
         };
         tracing::warn!("{why}: stopping the prints safely (heaters off)");
-        farm.stop_prints();
+        stop.stop_prints();
         stopping = true;
         last = last.min(Instant::now() + STOP_GRACE);
     }
@@ -704,7 +717,7 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let config = farm_config(tmp.path(), &["p1"], "");
         let store = crate::daemon::store::spool::Spool::open(&config.spool_dir).unwrap();
-        let (farm, _owners, task) = Farm::new(config, store, CancellationToken::new());
+        let (farm, _owners, task) = Farm::new(config, store);
         let mut tasks = Supervised::default();
         tasks.spawn(STORE, task);
         let job = ready_job(&farm, "a.stl", "G28\n").await;

@@ -6,6 +6,7 @@
 //! decides who may use it, so no key is asked there.
 //! `crispen status|clear|cancel|pause|resume|retry|release` are its clients.
 
+use super::done::Done;
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{DatabaseFailure, JobState, StoreError};
 use super::store::JobChange;
@@ -304,14 +305,14 @@ fn first_need(job: &super::job::Job) -> Option<super::filament::Need> {
 }
 
 /// Carries out one command; the answer says what was done, or what was not and why.
-pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
+pub(crate) async fn execute(farm: &Arc<Farm>, command: Command) -> Result<Done, CommandError> {
     let asked = command.clone();
     run(farm, command)
         .await
         .map_err(|e| for_clients(farm, &asked, e))
 }
 
-async fn run(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError> {
+async fn run(farm: &Arc<Farm>, command: Command) -> Result<Done, CommandError> {
     match command {
         Command::Clear { printer } => clear(farm, &printer).await,
         Command::Pause { printer } => send_print_command(farm, &printer, PrintCommand::Pause).await,
@@ -322,14 +323,10 @@ async fn run(farm: &Arc<Farm>, command: Command) -> Result<String, CommandError>
         Command::CancelPart { job, part } => cancel_part(farm, &job, &part).await,
         Command::Retry { job } => {
             let retried = farm.jobs().retry(&job).await?;
-            let held = if retried.held() {
-                format!("; it stays held until `crispen release {job}`")
-            } else {
-                String::new()
-            };
-            Ok(match retried.state {
-                JobState::Ready => format!("job {job} is ready to print again{held}"),
-                _ => format!("job {job} queued for preparation again{held}"),
+            Ok(Done::Retried {
+                ready: retried.state == JobState::Ready,
+                held: retried.held(),
+                job,
             })
         }
         Command::Release { job } => release(farm, &job).await,
@@ -443,7 +440,7 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
 
 /// Releases a held job, checked and changed as one step of the store (a cancel between a
 /// check and the change would otherwise leave a cancelled job released for a retry).
-async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
+async fn release(farm: &Farm, id: &str) -> Result<Done, CommandError> {
     // A job not prepared yet has not had its sidecar read into it (the preparation does
     // that): whether it is held is in the sidecar file in its directory. Released now, it
     // stays released when the preparation reads the sidecar.
@@ -480,9 +477,9 @@ async fn release(farm: &Farm, id: &str) -> Result<String, CommandError> {
         });
     }
     tracing::info!(job = id, "held job released");
-    Ok(match job.state {
-        JobState::Ready => format!("job {id} released; the next free printer takes it"),
-        _ => format!("job {id} released; it prints once ready"),
+    Ok(Done::Released {
+        job: id.to_string(),
+        ready: job.state == JobState::Ready,
     })
 }
 
@@ -512,11 +509,13 @@ fn known_printer(farm: &Farm, printer: &str) -> Result<Whose, CommandError> {
     }
 }
 
-async fn clear(farm: &Farm, printer: &str) -> Result<String, CommandError> {
+async fn clear(farm: &Farm, printer: &str) -> Result<Done, CommandError> {
     known_printer(farm, printer)?;
     match farm.jobs().clear_gate(printer).await {
-        Ok(true) => Ok(format!("{printer}: bed cleared; it may take the next job")),
-        Ok(false) => Ok(format!("{printer}: bed was already clear")),
+        Ok(cleared) => Ok(Done::Cleared {
+            printer: printer.to_string(),
+            already: !cleared,
+        }),
         // The one state a person's clear cannot end: the printer is moving.
         Err(StoreError::BedChange { .. }) => Err(CommandError::Ejecting(printer.to_string())),
         Err(e) => Err(e.into()),
@@ -529,7 +528,7 @@ pub(crate) async fn send_print_command(
     farm: &Farm,
     printer: &str,
     command: PrintCommand,
-) -> Result<String, CommandError> {
+) -> Result<Done, CommandError> {
     if let Whose::Other = known_printer(farm, printer)? {
         let db = farm
             .db
@@ -547,7 +546,11 @@ pub(crate) async fn send_print_command(
             ?command,
             "print command left for the printer's host"
         );
-        return Ok(format!("{printer}: {command:?} sent to its host"));
+        return Ok(Done::Sent {
+            printer: printer.to_string(),
+            command,
+            to_its_host: true,
+        });
     }
     let tx = farm.printer(printer).and_then(|p| p.print.borrow().clone());
     let Some(tx) = tx else {
@@ -557,10 +560,14 @@ pub(crate) async fn send_print_command(
         .await
         .map_err(|_| CommandError::PrintEnded(printer.to_string()))?;
     tracing::info!(printer, ?command, "print command sent");
-    Ok(format!("{printer}: {command:?} sent"))
+    Ok(Done::Sent {
+        printer: printer.to_string(),
+        command,
+        to_its_host: false,
+    })
 }
 
-async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
+async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<Done, CommandError> {
     // Checked and changed as one step of the store: a printer claiming the job between
     // the two would otherwise print a job marked cancelled.
     const NOT_STARTED: &[JobState] = &[JobState::Queued, JobState::Preparing, JobState::Ready];
@@ -579,7 +586,9 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
         Ok(_) => {
             // A slicer already running for it is stopped, not left to finish unwanted.
             farm.cancel_preparation(id);
-            Ok(format!("job {id} cancelled"))
+            Ok(Done::Cancelled {
+                job: id.to_string(),
+            })
         }
         Err(StoreError::StateChanged {
             state: JobState::Printing,
@@ -591,9 +600,10 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
                 .and_then(|j| j.printer.clone())
                 .unwrap_or_default();
             send_print_command(farm, &printer, PrintCommand::Cancel).await?;
-            Ok(format!(
-                "job {id}: stopping the print on {printer} (heaters off)"
-            ))
+            Ok(Done::Stopping {
+                job: id.to_string(),
+                printer,
+            })
         }
         Err(StoreError::StateChanged { state, .. }) => Err(CommandError::NotActive {
             id: id.to_string(),
@@ -606,7 +616,7 @@ async fn cancel(farm: &Arc<Farm>, id: &str) -> Result<String, CommandError> {
 /// Cancels a part of a job's plate: on the printer printing it (the others print on; its
 /// supervisor records where it was dropped), or, before the job prints, in the job's record
 /// (the print drops it from its first line). The last part cancels the job.
-async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<String, CommandError> {
+async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<Done, CommandError> {
     let job = farm
         .store()
         .get(id)
@@ -640,9 +650,11 @@ async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<String, C
     if job.state == JobState::Printing {
         let printer = job.printer.clone().unwrap_or_default();
         send_print_command(farm, &printer, PrintCommand::CancelPart(name.clone())).await?;
-        return Ok(format!(
-            "job {id}: part {name:?} is no longer printed on {printer}; the others print on"
-        ));
+        return Ok(Done::PartDropped {
+            job: id.to_string(),
+            part: name,
+            printer,
+        });
     }
     // Checked and changed as one step of the store: a printer claiming the job between a
     // check and the change would print it with the part. The job it returns is as the
@@ -666,15 +678,15 @@ async fn cancel_part(farm: &Arc<Farm>, id: &str, part: &str) -> Result<String, C
         };
     }
     tracing::info!(job = id, part = %name, "part of the plate cancelled before its print");
-    if job.parts_cancelled_in(job.print_number()).count() >= every {
+    let last = job.parts_cancelled_in(job.print_number()).count() >= every;
+    if last {
         cancel(farm, id).await?;
-        return Ok(format!(
-            "job {id}: part {name:?} cancelled; it was the last part left, so the job is cancelled"
-        ));
     }
-    Ok(format!(
-        "job {id}: part {name:?} will not be printed; the others will"
-    ))
+    Ok(Done::PartCancelled {
+        job: id.to_string(),
+        part: name,
+        last,
+    })
 }
 
 /// Binds the control socket with mode 0660. An existing socket nobody answers on (left by
@@ -825,6 +837,12 @@ mod tests {
         )
         .await
         .unwrap();
-        assert!(said.contains("bed cleared"), "{said}");
+        assert_eq!(
+            said,
+            Done::Cleared {
+                printer: "p1".into(),
+                already: false
+            }
+        );
     }
 }

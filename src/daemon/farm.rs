@@ -307,11 +307,11 @@ pub struct Farm {
     /// The rest of a shared farm; the shared-farm task writes it ([`SharedOwner`]).
     shared: watch::Sender<Option<FarmView>>,
     /// Cancelled once SIGTERM arrived: no new work is taken, waits end.
-    pub shutdown: CancellationToken,
+    pub(crate) shutdown: Stop,
     /// Cancelled when the prints in progress are to stop safely (heaters off): at once
     /// with `on_shutdown = "stop"`; with "finish", at a second SIGTERM or when
-    /// `finish_timeout_s` ran out ([`Farm::stop_prints`]).
-    pub stop_prints: CancellationToken,
+    /// `finish_timeout_s` ran out ([`StopOwner::stop_prints`]).
+    pub(crate) stop_prints: Stop,
     /// The farm database, when `[store] postgres` shares the farm with other hosts.
     pub db: std::sync::OnceLock<crate::daemon::store::postgres::PgStore>,
 }
@@ -320,17 +320,14 @@ impl Farm {
     /// Builds the farm around the store's task, which is returned for the caller to run
     /// (the service runs it in its supervised set; see [`super::store::start`]), with the
     /// owners of the farm's other state, for the caller to hand each to its owner.
-    pub(crate) fn new(
-        config: Config,
-        store: impl JobStore,
-        shutdown: CancellationToken,
-    ) -> (Arc<Farm>, Owners, StoreTask) {
+    pub(crate) fn new(config: Config, store: impl JobStore) -> (Arc<Farm>, Owners, StoreTask) {
         let retention = super::store::Retention {
             live_for: config.history.live_for,
             live_jobs: config.history.live_jobs,
             keep_for: config.history.keep_for,
         };
         let (jobs, task) = super::store::start(store, retention);
+        let (shutdown, stop_prints) = (CancellationToken::new(), CancellationToken::new());
         let farm = Arc::new(Farm {
             config: watch::channel(Arc::new(config)).0,
             jobs,
@@ -338,8 +335,8 @@ impl Farm {
             preparing: watch::channel(BTreeMap::new()).0,
             heating: HeatingPermits::default(),
             shared: watch::channel(None).0,
-            shutdown,
-            stop_prints: CancellationToken::new(),
+            shutdown: Stop(shutdown.clone()),
+            stop_prints: Stop(stop_prints.clone()),
             db: Default::default(),
         });
         let owners = Owners {
@@ -347,6 +344,11 @@ impl Farm {
             printers: PrintersOwner(farm.printers.clone()),
             preparing: PreparingOwner(farm.preparing.clone()),
             shared: SharedOwner(farm.shared.clone()),
+            stop: StopOwner {
+                shutdown,
+                stop_prints,
+                config: farm.config.subscribe(),
+            },
         };
         (farm, owners, task)
     }
@@ -378,22 +380,6 @@ impl Farm {
 
     pub(crate) fn stopping(&self) -> bool {
         self.shutdown.is_cancelled()
-    }
-
-    /// Takes no new work; the prints in progress finish or stop as `[farm] on_shutdown`
-    /// (in force now) says.
-    pub(crate) fn begin_stop(&self) {
-        self.shutdown.cancel();
-        if self.config().farm.on_shutdown == super::config::OnShutdown::Stop {
-            self.stop_prints();
-        }
-    }
-
-    /// Stops the prints in progress safely (heaters off; their jobs end interrupted) and
-    /// takes no new work.
-    pub(crate) fn stop_prints(&self) {
-        self.shutdown.cancel();
-        self.stop_prints.cancel();
     }
 
     /// Waits for one of the `[farm] max_heating` heating permits (see
@@ -547,6 +533,51 @@ pub(crate) struct Owners {
     pub(crate) printers: PrintersOwner,
     pub(crate) preparing: PreparingOwner,
     pub(crate) shared: SharedOwner,
+    pub(crate) stop: StopOwner,
+}
+
+/// A stop the service decides, as the farm's tasks see it: whether it came, a wait for
+/// it, and tokens of their own that end with it (cancelling one never reaches it).
+#[derive(Clone)]
+pub(crate) struct Stop(CancellationToken);
+
+impl Stop {
+    pub(crate) fn is_cancelled(&self) -> bool {
+        self.0.is_cancelled()
+    }
+
+    pub(crate) fn cancelled(&self) -> tokio_util::sync::WaitForCancellationFuture<'_> {
+        self.0.cancelled()
+    }
+
+    pub(crate) fn child_token(&self) -> CancellationToken {
+        self.0.child_token()
+    }
+}
+
+/// Stops the farm (the service's, at a signal).
+pub(crate) struct StopOwner {
+    shutdown: CancellationToken,
+    stop_prints: CancellationToken,
+    config: watch::Receiver<Arc<Config>>,
+}
+
+impl StopOwner {
+    /// Takes no new work; the prints in progress finish or stop as `[farm] on_shutdown`
+    /// (in force now) says.
+    pub(crate) fn begin(&self) {
+        self.shutdown.cancel();
+        if self.config.borrow().farm.on_shutdown == super::config::OnShutdown::Stop {
+            self.stop_prints();
+        }
+    }
+
+    /// Stops the prints in progress safely (heaters off; their jobs end interrupted) and
+    /// takes no new work.
+    pub(crate) fn stop_prints(&self) {
+        self.shutdown.cancel();
+        self.stop_prints.cancel();
+    }
 }
 
 /// Puts a config in force (the reload path's).
@@ -806,7 +837,7 @@ mod tests {
         let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
         let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
         let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
-        let (farm, owners, task) = Farm::new(config, store, CancellationToken::new());
+        let (farm, owners, task) = Farm::new(config, store);
         tokio::spawn(task);
         (farm, owners)
     }

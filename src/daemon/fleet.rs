@@ -225,7 +225,7 @@ impl Fleet {
         }
     }
 
-    /// Waits for every supervisor to end (after [`Farm::begin_stop`]).
+    /// Waits for every supervisor to end (after [`StopOwner::begin`](super::farm::StopOwner::begin)).
     pub(crate) async fn join(mut self) {
         while self.tasks.join_next().await.is_some() {}
     }

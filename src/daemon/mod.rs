@@ -12,7 +12,7 @@
 //! - [`prepare`]: a job's preparation (sidecars, machines, the steps) and its queue.
 //! - [`printer`]: printer supervisors and staggered heat-ups; [`fleet`]: the set of them.
 //! - [`control`]: the farm's operations (status and the operator's commands), served by
-//!   the `http` module on the control socket and on TCP.
+//!   the `http` module on the control socket and on TCP; [`done`]: what a command did.
 //! - [`reload`]: SIGHUP, and when each config key's change takes effect.
 //! - [`farm`]: the handles to each piece of the farm's state and its owner.
 //! - [`shared`]: this host's part in a farm shared through PostgreSQL.
@@ -25,6 +25,7 @@ pub mod bed;
 pub mod command;
 pub mod config;
 pub mod control;
+pub mod done;
 pub(crate) mod error;
 pub mod farm;
 pub mod filament;
@@ -55,7 +56,6 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::mpsc;
-use tokio_util::sync::CancellationToken;
 
 /// What [`open_store`] opened.
 pub(crate) struct Opened {
@@ -71,10 +71,7 @@ pub(crate) struct Opened {
 
 /// Opens the job store the config names, applies the restart rules to what this host left
 /// mid-flight, and builds the farm around it.
-pub(crate) async fn open_store(
-    config: &Config,
-    shutdown: &CancellationToken,
-) -> Result<Opened, DaemonError> {
+pub(crate) async fn open_store(config: &Config) -> Result<Opened, DaemonError> {
     let mid_flight = |id: &str, state: JobState| {
         tracing::warn!(job = %id, state = state.name(), "job found mid-flight after a restart");
     };
@@ -83,7 +80,7 @@ pub(crate) async fn open_store(
         for id in store.recover()? {
             mid_flight(&id, store.get(&id).expect("recovered job exists").state);
         }
-        let (farm, owners, store) = Farm::new(config.clone(), store, shutdown.clone());
+        let (farm, owners, store) = Farm::new(config.clone(), store);
         return Ok(Opened {
             farm,
             owners,
@@ -99,7 +96,7 @@ pub(crate) async fn open_store(
         })?;
     let recovered = db.recover_own().await?;
     let store = store::postgres::store::PgJobStore::open(db.clone(), &config.spool_dir).await?;
-    let (farm, owners, store) = Farm::new(config.clone(), store, shutdown.clone());
+    let (farm, owners, store) = Farm::new(config.clone(), store);
     for id in recovered {
         if let Some(job) = farm.store().get(&id) {
             mid_flight(&id, job.state);

@@ -343,7 +343,7 @@ struct Follow {
     jobs: watch::Receiver<Arc<super::store::Snapshot>>,
     config: watch::Receiver<Arc<super::config::Config>>,
     shared: watch::Receiver<Option<FarmView>>,
-    shutdown: tokio_util::sync::CancellationToken,
+    shutdown: super::farm::Stop,
 }
 
 impl Follow {
@@ -664,7 +664,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     sup.owner.print.send_replace(Some(control_tx.clone()));
     let (progress_tx, mut progress_rx) = watch::channel(LiveProgress::default());
 
-    // A stop requested by shutdown (`Farm::stop_prints`) is a cancel that ends as
+    // A stop requested by shutdown (`StopOwner::stop_prints`) is a cancel that ends as
     // interrupted rather than cancelled.
     let mut permit = Some(permit);
     let print = link.print(&gcode, cancelled, pace, control_rx, progress_tx);
@@ -1214,7 +1214,7 @@ mod tests {
                 ids.push(job.id);
             }
         }
-        let (farm, _owners, task) = Farm::new(config, store, Default::default());
+        let (farm, _owners, task) = Farm::new(config, store);
         tokio::spawn(task);
         let start = Arc::new(tokio::sync::Barrier::new(printers.len()));
         let tasks: Vec<_> = printers

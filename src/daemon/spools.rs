@@ -2,6 +2,7 @@
 //! one), unload it, add a spool to the farm's own inventory. Each is one change of the
 //! inventory by the job store's task, checked there against the inventory as it is.
 
+use super::done::Done;
 use super::farm::Farm;
 use super::filament::{check_filament, check_grams, Filament, FilamentError};
 use super::job::{JobState, StoreError};
@@ -49,7 +50,7 @@ pub enum Load {
 /// Loads a spool on `printer` (this host's or, in a shared farm, another's: the inventory
 /// is the farm's). Refused while the printer prints: its print's filament is booked to
 /// the spool it started with.
-pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<String, StoreError> {
+pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<Done, StoreError> {
     if let Load::Spool(id) = &what {
         if let Some(problem) = crate::names::problem(id) {
             let id = crate::names::printable(id);
@@ -86,11 +87,14 @@ pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<Strin
         .spool_on(printer)
         .map_or_else(String::new, |s| s.describe());
     tracing::info!(printer, spool = %spool, "spool loaded");
-    Ok(format!("{printer}: loaded {spool}"))
+    Ok(Done::Loaded {
+        printer: printer.to_string(),
+        spool,
+    })
 }
 
 /// Takes the spool off `printer`: it holds nothing, and takes no job, until one is loaded.
-pub(crate) async fn unload(farm: &Farm, printer: &str) -> Result<String, StoreError> {
+pub(crate) async fn unload(farm: &Farm, printer: &str) -> Result<Done, StoreError> {
     machine_filament(farm, printer)?;
     check_not_printing(farm, printer)?;
     let name = printer.to_string();
@@ -101,13 +105,13 @@ pub(crate) async fn unload(farm: &Farm, printer: &str) -> Result<String, StoreEr
         })
         .await?;
     tracing::info!(printer, "spool unloaded");
-    Ok(format!(
-        "{printer}: unloaded; it takes no job until a spool is loaded"
-    ))
+    Ok(Done::Unloaded {
+        printer: printer.to_string(),
+    })
 }
 
 /// Adds a spool of the farm's own, loaded nowhere; its id.
-pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<String, StoreError> {
+pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<Done, StoreError> {
     if farm.config().spoolman.is_some() {
         return Err(FilamentError::Invalid(
             "the farm's spools come from Spoolman: add the spool there".into(),
@@ -129,7 +133,7 @@ pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<String, StoreError
     // Ids are handed out in order: the newest is the one just added.
     let id = format!("s{}", inventory.next_id);
     tracing::info!(spool = %id, "spool added");
-    Ok(format!("spool {id} added ({grams} g)"))
+    Ok(Done::SpoolAdded { id, grams })
 }
 
 /// The filament diameter `printer`'s machine takes (the caller has checked the printer is

@@ -5,6 +5,7 @@
 //! milliseconds, and nothing depends on how fast the machine is.
 
 use super::control::{self, Command};
+use super::done::Done;
 use super::doubles::{farm_config, open_farm, ready_job, until, BenchPorts, SAFE_STOP};
 use super::farm::{Farm, PrinterState, PrinterStatus};
 use super::fleet::{Fleet, Port};
@@ -89,7 +90,13 @@ async fn a_printer_prints_then_waits_for_its_bed_to_be_cleared() {
     )
     .await
     .unwrap();
-    assert!(said.contains("bed cleared"), "{said}");
+    assert_eq!(
+        said,
+        Done::Cleared {
+            printer: "p1".into(),
+            already: false
+        }
+    );
     until(&farm, LIMIT, "the second job done", || {
         state(&farm, &second) == JobState::Done
     })
@@ -99,7 +106,7 @@ async fn a_printer_prints_then_waits_for_its_bed_to_be_cleared() {
         [lines(HEAT_AND_PRINT), lines(HEAT_AND_PRINT)].concat()
     );
     assert_eq!(bench.printer("p1").connects(), 1);
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
     assert_eq!(printer(&farm, "p1").unwrap().state, PrinterState::Stopped);
 }
@@ -151,7 +158,7 @@ async fn one_heating_permit_staggers_two_heat_ups() {
     }
     assert!(waited, "one printer waited for the permit");
     assert_eq!(farm.heating.in_use(), 0, "permits handed back");
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
 }
 
@@ -178,7 +185,7 @@ async fn shutdown_stops_prints_safely_and_ends_every_task() {
     ));
     let job = ready_job(&farm, "a.stl", &long_print(10_000)).await;
     past_the_heat_up(&farm).await;
-    farm.begin_stop();
+    owners.stop.begin();
     tokio::time::timeout(Duration::from_secs(60), fleet.join())
         .await
         .expect("the supervisor ends");
@@ -217,7 +224,7 @@ fn cut_short_by_the_safe_stop(bench: &BenchPorts, farm: &Farm, job: &str) -> Job
 }
 
 /// Shutdown with `on_shutdown = "finish"`: the print goes on after the stop began, until
-/// `Farm::stop_prints` (a second SIGTERM, or `finish_timeout_s` run out) stops it through
+/// `StopOwner::stop_prints` (a second SIGTERM, or `finish_timeout_s` run out) stops it through
 /// the same safe stop as "stop".
 #[tokio::test(start_paused = true)]
 async fn a_finishing_print_goes_on_until_the_prints_are_stopped() {
@@ -239,14 +246,14 @@ async fn a_finishing_print_goes_on_until_the_prints_are_stopped() {
             .map_or(0, |l| l.lines_acked)
     };
     past_the_heat_up(&farm).await;
-    farm.begin_stop();
+    owners.stop.begin();
     let at_stop = acked(&farm);
     until(&farm, LIMIT, "the print going on", || {
         acked(&farm) > at_stop + 100
     })
     .await;
     assert!(!farm.stop_prints.is_cancelled());
-    farm.stop_prints();
+    owners.stop.stop_prints();
     tokio::time::timeout(Duration::from_secs(60), fleet.join())
         .await
         .expect("the supervisor ends");
@@ -306,7 +313,7 @@ async fn a_reload_never_cuts_a_print_short() {
     assert_eq!(state(&farm, &job), JobState::Done);
     assert_eq!(bench.printer("p1").job_lines(), lines(&gcode));
     assert!(printer(&farm, "p2").is_some());
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
 }
 
@@ -352,7 +359,7 @@ async fn a_panicking_supervisor_is_reported_by_name() {
         Some(&"the link broke its promise")
     );
     assert_eq!(printer(&farm, "good").unwrap().state, PrinterState::Idle);
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
 }
 
@@ -411,7 +418,7 @@ async fn shutdown_while_waiting_to_heat_sends_nothing() {
         .find(|p| p.state == PrinterState::WaitingToHeat)
         .unwrap();
     let job = waiting.job.clone().unwrap();
-    farm.begin_stop();
+    owners.stop.begin();
     tokio::time::timeout(Duration::from_secs(60), fleet.join())
         .await
         .expect("the supervisors end");
@@ -455,7 +462,7 @@ async fn an_unplugged_printer_interrupts_its_job_and_reconnects() {
     })
     .await;
     assert!(!printer(&farm, "p1").unwrap().bed_cleared);
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
 }
 
@@ -506,7 +513,13 @@ async fn pause_resume_and_cancel_reach_the_print() {
     let said = control::execute(&farm, Command::Cancel { job: job.clone() })
         .await
         .unwrap();
-    assert!(said.contains("stopping the print on p1"), "{said}");
+    assert_eq!(
+        said,
+        Done::Stopping {
+            job: job.clone(),
+            printer: "p1".into()
+        }
+    );
     until(&farm, LIMIT, "cancelled", || {
         state(&farm, &job) == JobState::Cancelled
     })
@@ -520,7 +533,7 @@ async fn pause_resume_and_cancel_reach_the_print() {
     assert!(!printer(&farm, "p1").unwrap().bed_cleared);
     let e = control::execute(&farm, p1()).await.unwrap_err();
     assert!(e.to_string().contains("p1 is not printing"), "{e}");
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
 }
 
@@ -579,7 +592,7 @@ async fn a_halted_printer_takes_no_job_until_it_was_reset() {
         state(&farm, &second) == JobState::Done
     })
     .await;
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
 }
 
@@ -614,6 +627,6 @@ async fn a_job_that_sent_nothing_leaves_no_bed_to_clear() {
     })
     .await;
     assert_eq!(bench.printer("p1").job_lines(), lines(HEAT_AND_PRINT));
-    farm.begin_stop();
+    owners.stop.begin();
     fleet.join().await;
 }

@@ -592,7 +592,9 @@ pub(super) async fn act(
 ) -> Result<Json<serde_json::Value>, ApiError> {
     tracing::info!(?command, "http: action");
     match control::execute(&state.farm, command).await {
-        Ok(message) => Ok(Json(serde_json::json!({ "ok": true, "message": message }))),
+        Ok(done) => Ok(Json(
+            serde_json::json!({ "ok": true, "message": done.to_string() }),
+        )),
         Err(e) if e.is_not_found() => Err(ApiError::not_found(e.to_string())),
         Err(e) if e.is_unavailable() => Err(ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,

@@ -568,7 +568,7 @@ mod tests {
         let config =
             crate::daemon::config::Config::parse(text, &root.join("crispen.toml")).unwrap();
         let store = crate::daemon::store::spool::Spool::open(&root.join("spool")).unwrap();
-        let (farm, _owners, task) = Farm::new(config, store, CancellationToken::new());
+        let (farm, _owners, task) = Farm::new(config, store);
         tokio::spawn(task);
         farm
     }

@@ -102,8 +102,9 @@ impl StoreHandle {
         self.change(id, None, state, reason, also).await
     }
 
-    /// [`StoreHandle::transition_with`] only if the job is in one of the states `from`
-    /// (else [`StoreError::StateChanged`]), checked and changed as one step.
+    /// [`StoreHandle::transition`] with other fields changed in the same write (`also`),
+    /// only if the job is in one of the states `from` (else [`StoreError::StateChanged`]),
+    /// checked and changed as one step.
     pub async fn transition_from(
         &self,
         id: &str,

@@ -526,6 +526,7 @@ async fn control_job(
     };
     control::execute(&state.farm, act)
         .await
+        .map(|done| done.to_string())
         .map_err(|e| ApiError::conflict(e.to_string()).into())
 }
 
@@ -565,6 +566,7 @@ async fn start(
             },
         )
         .await
+        .map(|done| done.to_string())
         .map_err(|e| ApiError::conflict(e.to_string()).into());
     }
     let key = grant.map(|g| g.id.as_str());

@@ -5,6 +5,7 @@
 
 use anyhow::{bail, Context};
 use crispen::daemon::config::{Checked, PrinterConfig, PrinterPort};
+use crispen::marlin::transport::TransportError;
 use crispen::ports::{self, probe, SerialDevice};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -180,10 +181,9 @@ fn probe_port(port: &Path, args: &Args, config: Option<&Checked>) -> anyhow::Res
     let report = runtime
         .block_on(probe::probe(port, baud, timeout))
         .map_err(|e| match &e {
-            // serialport locks the port it opens: the daemon holds its printers' ports.
-            probe::ProbeError::Open(open) if is_busy(&open.to_string()) => anyhow::anyhow!(
-                "{e} (another program has it open: the crispen daemon keeps its printers' \
-                 ports; `crispen status` shows them)"
+            // The daemon holds its printers' ports.
+            probe::ProbeError::Open(TransportError::Busy { .. }) => anyhow::anyhow!(
+                "{e}; the crispen daemon keeps its printers' ports (`crispen status` shows them)"
             ),
             _ => e.into(),
         })?;
@@ -200,10 +200,4 @@ fn probe_port(port: &Path, args: &Args, config: Option<&Checked>) -> anyhow::Res
         }
     );
     Ok(ExitCode::SUCCESS)
-}
-
-fn is_busy(message: &str) -> bool {
-    let m = message.to_ascii_lowercase();
-    // EBUSY from TIOCEXCL for ordinary users; root passes that and meets the flock.
-    m.contains("busy") || m.contains("exclusive lock")
 }

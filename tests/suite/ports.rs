@@ -96,7 +96,8 @@ fn probe_of_a_silent_port_gives_up_with_the_reason() {
     );
     assert!(stderr.contains("nothing at all was received"), "{stderr}");
 
-    // A port another program holds (as the daemon holds its printers') is refused at once.
+    // A port another program holds (as the daemon holds its printers') is refused once the
+    // wait for it ran out.
     let held = serialport::new(s(&device), 0).open_native().unwrap();
     let out = crispen(&["ports", "--probe", s(&device), "--timeout", "2"]);
     let stderr = text(&out.stderr);

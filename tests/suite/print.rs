@@ -172,7 +172,7 @@ async fn a_locked_port_is_waited_for_then_named_in_use() {
     match Transport::open(&path, 115_200).await {
         Err(e @ TransportError::Busy { waited_s, .. }) => {
             assert!(waited_s >= BUSY_WAIT.as_secs_f64(), "{e}");
-            assert!(e.to_string().contains("is in use"), "{e}");
+            assert!(e.to_string().contains("another program has it open"), "{e}");
         }
         Err(e) => panic!("not named busy: {e}"),
         Ok(_) => panic!("opened a port another opener holds"),

@@ -25,9 +25,9 @@ pub enum TransportError {
     )]
     Open { port: PathBuf, message: String },
     #[error(
-        "printer port {port} is in use: another program held it for the {waited_s:.1} s \
-         crispen waited (hint: stop the other host, e.g. OctoPrint or a terminal, or give it \
-         another port)"
+        "cannot open printer port {port}: another program has it open (crispen waited \
+         {waited_s:.1} s for it; hint: stop the other host using it, e.g. OctoPrint or a \
+         serial terminal)"
     )]
     Busy { port: PathBuf, waited_s: f64 },
 }

@@ -130,6 +130,11 @@ async fn print_plate(build: Build, program: &GcodeProgram, part: u16, cancel_at:
     tokio::pin!(print);
     let total = program.len() as f64;
     let mut sent = false;
+    // A guard against a hang, not a deadline (the print takes about a minute): once the
+    // plate's print sat for twenty minutes with the firmware answering nothing but its
+    // temperature reports, and nothing ended it; the wire's last lines say where it stood.
+    let guard = tokio::time::sleep(Duration::from_secs(600));
+    tokio::pin!(guard);
     let result = loop {
         tokio::select! {
             result = &mut print => break result,
@@ -139,6 +144,20 @@ async fn print_plate(build: Build, program: &GcodeProgram, part: u16, cancel_at:
                     sent = true;
                     control.send(StreamControl::CancelPart(part)).await.unwrap();
                 }
+            }
+            () = &mut guard => {
+                let log = relay.log();
+                let wire: Vec<String> = log.wire[log.wire.len().saturating_sub(60)..]
+                    .iter()
+                    .map(|(t, way, line)| format!("{t:9.3} {way} {line}"))
+                    .collect();
+                panic!(
+                    "{}: the plate's print did not end within 600 s ({} lines acknowledged); \
+                     the wire's last lines:\n{}",
+                    build.name(),
+                    progress_rx.borrow().lines_acked,
+                    wire.join("\n")
+                );
             }
         }
     };

@@ -444,12 +444,11 @@ async fn release(farm: &Farm, id: &str) -> Result<Done, CommandError> {
     // A job not prepared yet has not had its sidecar read into it (the preparation does
     // that): whether it is held is in the sidecar file in its directory. Released now, it
     // stays released when the preparation reads the sidecar.
-    const UNPREPARED: &[JobState] = &[JobState::Queued, JobState::Preparing];
     let sidecar_file = {
         let store = farm.store();
         store
             .get(id)
-            .filter(|j| j.sidecar.is_none() && UNPREPARED.contains(&j.state))
+            .filter(|j| j.sidecar_unread())
             .map(|j| store.job_dir(id).join(format!("{}.toml", j.file)))
     };
     let held_on_disk = match sidecar_file {

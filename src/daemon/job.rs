@@ -434,6 +434,12 @@ pub enum ForMachine {
 }
 
 impl Job {
+    /// Its sidecar is not read into it yet: that is its preparation's first step, so a
+    /// job not prepared yet is held or not as the sidecar file in its directory says.
+    pub(crate) fn sidecar_unread(&self) -> bool {
+        self.sidecar.is_none() && matches!(self.state, JobState::Queued | JobState::Preparing)
+    }
+
     /// Held: its sidecar says `hold = true` and the operator has not released it yet. A
     /// held job is prepared as usual; no printer claims it.
     pub(crate) fn held(&self) -> bool {

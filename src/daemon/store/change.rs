@@ -123,12 +123,7 @@ impl JobChange {
                 true
             }
             JobChange::Release { held_on_disk } => {
-                // Not prepared yet: the sidecar is read into the job by its preparation.
-                const UNPREPARED: &[JobState] = &[JobState::Queued, JobState::Preparing];
-                let held_unprepared = held_on_disk
-                    && !job.released
-                    && job.sidecar.is_none()
-                    && UNPREPARED.contains(&job.state);
+                let held_unprepared = held_on_disk && !job.released && job.sidecar_unread();
                 let release = (job.held() || held_unprepared) && job.state.is_active();
                 job.released |= release;
                 release

@@ -130,16 +130,24 @@ async fn print_plate(build: Build, program: &GcodeProgram, part: u16, cancel_at:
     tokio::pin!(print);
     let total = program.len() as f64;
     let mut sent = false;
-    // A guard against a hang, not a deadline (the print takes about a minute): once the
-    // plate's print sat for twenty minutes with the firmware answering nothing but its
-    // temperature reports, and nothing ended it; the wire's last lines say where it stood.
-    let guard = tokio::time::sleep(Duration::from_secs(600));
+    // A guard against a hang, not a deadline: once the plate's print sat for twenty
+    // minutes with the firmware answering nothing but its temperature reports, and nothing
+    // ended it; the wire's last lines say where it stood. It counts from the last line
+    // acknowledged: on a starved machine the whole print takes ten minutes and more.
+    const STALL: Duration = Duration::from_secs(300);
+    let guard = tokio::time::sleep(STALL);
     tokio::pin!(guard);
+    let mut last_acked = 0;
     let result = loop {
         tokio::select! {
             result = &mut print => break result,
             Ok(()) = progress_rx.changed() => {
-                let acked = progress_rx.borrow_and_update().lines_acked as f64;
+                let acked = progress_rx.borrow_and_update().lines_acked;
+                if acked > last_acked {
+                    last_acked = acked;
+                    guard.as_mut().reset(tokio::time::Instant::now() + STALL);
+                }
+                let acked = acked as f64;
                 if !sent && acked >= cancel_at * total {
                     sent = true;
                     control.send(StreamControl::CancelPart(part)).await.unwrap();
@@ -152,10 +160,10 @@ async fn print_plate(build: Build, program: &GcodeProgram, part: u16, cancel_at:
                     .map(|(t, way, line)| format!("{t:9.3} {way} {line}"))
                     .collect();
                 panic!(
-                    "{}: the plate's print did not end within 600 s ({} lines acknowledged); \
-                     the wire's last lines:\n{}",
+                    "{}: no line acknowledged for {} s ({last_acked} so far); the wire's last \
+                     lines:\n{}",
                     build.name(),
-                    progress_rx.borrow().lines_acked,
+                    STALL.as_secs(),
                     wire.join("\n")
                 );
             }

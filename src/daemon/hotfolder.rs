@@ -10,6 +10,9 @@
 //! A name with control or bidi characters is refused (set aside in [`SET_ASIDE_DIR`]) by
 //! the check every operator-given name goes through ([`crate::names::problem`]), and
 //! names are shown through [`printable`] wherever they are printed.
+//! A folder directly in a hot folder is a plate of several models (see
+//! [`super::plate_folder`]); it is complete when nothing in it changed for the settle
+//! time, or when it was renamed in whole.
 //! [`SettleTracker`] is the pure decision; [`watch`] drives it with `notify` events, a
 //! periodic rescan (in case an event was missed) and a short tick.
 
@@ -72,8 +75,9 @@ pub(crate) const SET_ASIDE_DIR: &str = "set-aside";
 /// the default `settle_s = 5`) is set aside.
 pub(crate) const ORPHAN_SIDECAR_SETTLES: u32 = 120;
 
-/// Moves `path` into `folder/`[`SET_ASIDE_DIR`] under its own name (`.1`, `.2`, … added
-/// if that is taken), never replacing a file. Returns where it went.
+/// Moves `path` (a file or a plate folder) into `folder/`[`SET_ASIDE_DIR`] under its own
+/// name (`.1`, `.2`, … added if that is taken), never replacing a file. Returns where it
+/// went.
 pub(crate) fn set_aside(path: &Path, folder: &Path) -> std::io::Result<PathBuf> {
     let dir = folder.join(SET_ASIDE_DIR);
     std::fs::create_dir_all(&dir)?;
@@ -84,13 +88,8 @@ pub(crate) fn set_aside(path: &Path, folder: &Path) -> std::io::Result<PathBuf> 
             to_name.push(format!(".{n}"));
         }
         let to = dir.join(to_name);
-        // A hard link fails rather than replace; the hot folder and its set-aside
-        // folder are on one file system.
-        match std::fs::hard_link(path, &to) {
-            Ok(()) => {
-                std::fs::remove_file(path)?;
-                return Ok(to);
-            }
+        match move_no_replace(path, &to) {
+            Ok(()) => return Ok(to),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
             Err(e) => return Err(e),
         }
@@ -99,6 +98,14 @@ pub(crate) fn set_aside(path: &Path, folder: &Path) -> std::io::Result<PathBuf> 
         std::io::ErrorKind::AlreadyExists,
         "1000 files of this name are set aside already",
     ))
+}
+
+/// Moves a file or a folder to `to`, failing rather than replacing what is there (the hot
+/// folder and its set-aside folder are on one file system).
+fn move_no_replace(from: &Path, to: &Path) -> std::io::Result<()> {
+    use nix::fcntl::{renameat2, RenameFlags, AT_FDCWD};
+    renameat2(AT_FDCWD, from, AT_FDCWD, to, RenameFlags::RENAME_NOREPLACE)
+        .map_err(std::io::Error::from)
 }
 
 // A name is shown through the one function for every name an operator gives.
@@ -150,7 +157,8 @@ pub(crate) fn find_named(folder: &Path, name: &str) -> Option<PathBuf> {
 
 #[derive(Debug)]
 struct Seen {
-    size: u64,
+    /// What a look found last: a file's size, or a folder's files and bytes.
+    size: (u64, u64),
     mtime: Option<SystemTime>,
     unchanged_since: Instant,
     /// A CLOSE_WRITE or MOVED_TO event said the writer is done.
@@ -164,12 +172,39 @@ pub(crate) enum Found {
     Gone,
     /// A symbolic link: never followed, since it could lead out of the folder to any file.
     Symlink,
-    /// A directory, a device, a FIFO: nothing to take.
+    /// A device, a FIFO: nothing to take.
     NotAFile,
     File {
         size: u64,
         mtime: Option<SystemTime>,
     },
+    /// A folder (a plate of models): the files directly in it, their bytes, and the
+    /// latest change to it or to any of them.
+    Folder {
+        files: u64,
+        bytes: u64,
+        mtime: Option<SystemTime>,
+    },
+}
+
+/// What a folder holds, for [`Found::Folder`].
+fn look_into(dir: &Path, own_mtime: Option<SystemTime>) -> Found {
+    let (mut files, mut bytes, mut mtime) = (0u64, 0u64, own_mtime);
+    for meta in std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|e| e.metadata().ok())
+    {
+        files += 1;
+        bytes = bytes.saturating_add(meta.len());
+        mtime = mtime.max(meta.modified().ok());
+    }
+    Found::Folder {
+        files,
+        bytes,
+        mtime,
+    }
 }
 
 /// Looks at each path, not following links. Blocking, one `lstat` per path: run it on a
@@ -185,6 +220,7 @@ pub(crate) fn look(paths: Vec<PathBuf>) -> Vec<(PathBuf, Found)> {
                     mtime: meta.modified().ok(),
                 },
                 Ok(meta) if meta.is_symlink() => Found::Symlink,
+                Ok(meta) if meta.is_dir() => look_into(&path, meta.modified().ok()),
                 Ok(_) => Found::NotAFile,
             };
             (path, found)
@@ -192,15 +228,19 @@ pub(crate) fn look(paths: Vec<PathBuf>) -> Vec<(PathBuf, Found)> {
         .collect()
 }
 
-/// The regular files directly in `dir` (none when it cannot be listed). Blocking, like
-/// [`look`].
+/// The regular files and folders directly in `dir` (none when it cannot be listed).
+/// Blocking, like [`look`].
 pub(crate) fn list_files(dir: &Path) -> Vec<PathBuf> {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return Vec::new();
     };
     entries
         .flatten()
-        .filter(|e| e.file_type().map(|t| t.is_file()).unwrap_or(false))
+        .filter(|e| {
+            e.file_type()
+                .map(|t| t.is_file() || t.is_dir())
+                .unwrap_or(false)
+        })
         .map(|e| e.path())
         .collect()
 }
@@ -228,11 +268,11 @@ impl SettleTracker {
             Some(n) => n.to_string_lossy(),
             None => return,
         };
-        if !is_candidate_name(&name) && !is_sidecar_name(&name) {
+        if !is_candidate_name(&name) && !is_sidecar_name(&name) || name == SET_ASIDE_DIR {
             return;
         }
         let entry = self.seen.entry(path.to_path_buf()).or_insert(Seen {
-            size: u64::MAX,
+            size: (u64::MAX, u64::MAX),
             mtime: None,
             unchanged_since: Instant::now(),
             finished_by_event: false,
@@ -272,7 +312,12 @@ impl SettleTracker {
                 continue;
             };
             let (size, mtime) = match found {
-                Found::File { size, mtime } => (size, mtime),
+                Found::File { size, mtime } => ((size, 0), mtime),
+                Found::Folder {
+                    files,
+                    bytes,
+                    mtime,
+                } => ((bytes, files), mtime),
                 Found::Symlink => {
                     tracing::warn!(file = %path.display(), "a symbolic link in a hot folder is not picked up");
                     self.seen.remove(&path);
@@ -755,6 +800,39 @@ mod tests {
         assert!(tracker
             .take_complete(Instant::now() + Duration::from_secs(9))
             .is_empty());
+    }
+
+    /// A folder (a plate of models) is complete once nothing in it changed for the settle
+    /// time: a file added or grown starts the wait again. The set-aside folder and hidden
+    /// ones (the plates' staging) are never taken.
+    #[test]
+    fn a_folder_is_complete_once_nothing_in_it_changes() {
+        let tmp = tempfile::tempdir().unwrap();
+        let hot = tmp.path();
+        let plate = hot.join("set");
+        for dir in [
+            plate.clone(),
+            hot.join(SET_ASIDE_DIR),
+            hot.join(".crispen-plates"),
+        ] {
+            std::fs::create_dir(&dir).unwrap();
+        }
+        let settle = Duration::from_millis(200);
+        let mut tracker = SettleTracker::new(settle);
+        tracker.scan_dir(hot);
+        assert_eq!(tracker.tracked(), std::slice::from_ref(&plate));
+        let t0 = Instant::now();
+        assert!(tracker.take_complete(t0).is_empty());
+        std::fs::write(plate.join("a.stl"), b"solid").unwrap();
+        assert!(tracker.take_complete(t0 + settle).is_empty(), "a file came");
+        let mut f = std::fs::File::options()
+            .append(true)
+            .open(plate.join("a.stl"))
+            .unwrap();
+        f.write_all(b" a").unwrap();
+        assert!(tracker.take_complete(t0 + settle * 2).is_empty(), "it grew");
+        assert!(tracker.take_complete(t0 + settle * 5 / 2).is_empty());
+        assert_eq!(tracker.take_complete(t0 + settle * 3), [plate]);
     }
 
     /// A link is never taken, even when an event says it is complete: it could lead out

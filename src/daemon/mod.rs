@@ -32,6 +32,7 @@ pub mod filament;
 pub mod fleet;
 pub mod hotfolder;
 pub mod job;
+pub(crate) mod plate_folder;
 pub mod prepare;
 pub(crate) mod printer;
 pub mod reload;
@@ -123,12 +124,22 @@ pub(crate) fn pickup(
     let settle = config.farm.settle;
     let rescan = config.farm.rescan;
     async move {
+        // Plate folders a kill left half packed go back, or go, before anything is watched.
+        let staged = folders.clone();
+        let recovered = tokio::task::spawn_blocking(move || {
+            staged.iter().for_each(|f| drop(plate_folder::recover(f)))
+        });
+        if let Err(e) = recovered.await {
+            if e.is_panic() {
+                std::panic::resume_unwind(e.into_panic());
+            }
+        }
         // The watcher goes with the pick-up, however it ends.
         let _watcher = tokio_util::task::AbortOnDropHandle::new(tokio::spawn(hotfolder::watch(
             folders, settle, rescan, tx,
         )));
         let mut at = Pickup {
-            lone_sidecars: HashMap::new(),
+            waiting: HashMap::new(),
             retries: hotfolder::Retries::default(),
             orphan_after: settle * hotfolder::ORPHAN_SIDECAR_SETTLES,
         };
@@ -166,8 +177,9 @@ async fn sleep_until(deadline: Option<tokio::time::Instant>) {
 
 /// What the pick-up keeps from one file to the next.
 struct Pickup {
-    /// When each sidecar without a model was first seen.
-    lone_sidecars: HashMap<PathBuf, std::time::Instant>,
+    /// When each sidecar without a model, and each plate folder not whole yet, was first
+    /// seen.
+    waiting: HashMap<PathBuf, std::time::Instant>,
     /// The files whose pick-up failed, and when each is tried again.
     retries: hotfolder::Retries,
     /// How long a sidecar waits for its model before it is set aside.
@@ -181,10 +193,11 @@ struct Pickup {
 /// come within `orphan_after` (it is looked at again on each rescan), are set aside
 /// ([`hotfolder::set_aside`]) with a log line naming them. A model whose pick-up fails
 /// (the spool's disk full) stays in its folder and is tried again after a wait that grows
-/// with each failure ([`hotfolder::Retries`]).
+/// with each failure ([`hotfolder::Retries`]). A folder is a plate of models
+/// ([`pick_up_plate`]).
 async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path, at: &mut Pickup) {
     let Pickup {
-        lone_sidecars,
+        waiting: lone_sidecars,
         retries,
         orphan_after,
     } = at;
@@ -198,6 +211,9 @@ async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path, 
     if let Some(problem) = problem {
         set_aside(path, folder, &format!("its name {problem}"));
         return;
+    }
+    if std::fs::symlink_metadata(path).is_ok_and(|m| m.is_dir()) {
+        return pick_up_plate(farm, path, folder, at).await;
     }
     if !hotfolder::is_sidecar_name(&name) {
         let printers = farm
@@ -262,6 +278,86 @@ async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path, 
         Err(e) => {
             tracing::error!(file = %path.display(), error = %e, "cannot take the late sidecar")
         }
+    }
+}
+
+/// Admits a plate folder as one job of its models ([`plate_folder`]): packed into one 3MF,
+/// which is admitted, then the folder removed. A folder refused for what it holds is set
+/// aside with the reason; one without its sidecar or a model it names may still be
+/// arriving and is looked at again on each rescan until the sidecars' wait is over; one
+/// whose pick-up fails for the machine's sake (a full disk) is tried again as a model is.
+async fn pick_up_plate(
+    farm: &Farm,
+    dir: &std::path::Path,
+    folder: &std::path::Path,
+    at: &mut Pickup,
+) {
+    let (d, f) = (dir.to_path_buf(), folder.to_path_buf());
+    let staged = tokio::task::spawn_blocking(move || plate_folder::stage(&d, &f)).await;
+    let staged = match staged {
+        Ok(staged) => staged,
+        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
+        Err(_) => return,
+    };
+    let staged = match staged {
+        Ok(staged) => staged,
+        Err(e) if e.may_be_arriving() => {
+            let since = *at
+                .waiting
+                .entry(dir.to_path_buf())
+                .or_insert_with(std::time::Instant::now);
+            if since.elapsed() >= at.orphan_after {
+                at.waiting.remove(dir);
+                set_aside(dir, folder, &format!("a plate folder: {e}"));
+            } else {
+                tracing::debug!(folder = %dir.display(), reason = %e, "a plate folder not whole yet");
+            }
+            return;
+        }
+        Err(e) if e.is_the_folders() => {
+            at.waiting.remove(dir);
+            set_aside(dir, folder, &format!("a plate folder: {e}"));
+            return;
+        }
+        Err(e) => {
+            let wait = at.retries.failed(dir, folder, std::time::Instant::now());
+            tracing::error!(folder = %dir.display(), error = %e, retry_in_s = wait.as_secs(), "cannot pack a plate folder; it stays in its hot folder and is tried again");
+            return;
+        }
+    };
+    at.waiting.remove(dir);
+    let printers = farm
+        .config()
+        .folder(folder)
+        .map(|f| f.printers.clone())
+        .unwrap_or_default();
+    let admitted = farm.jobs().admit(&staged.model, folder, &printers).await;
+    let dir_back = dir.to_path_buf();
+    let (finished, job) = match admitted {
+        Ok(job) => {
+            at.retries.forget(dir);
+            tracing::info!(job = %job.id, folder = %dir.display(), "picked up a plate folder as one job of its models");
+            (
+                tokio::task::spawn_blocking(move || staged.admitted()),
+                Some(job.id),
+            )
+        }
+        Err(e) => {
+            let wait = at.retries.failed(dir, folder, std::time::Instant::now());
+            tracing::error!(folder = %dir.display(), error = %e, retry_in_s = wait.as_secs(), "cannot pick up a plate folder; it goes back to its hot folder and is tried again");
+            (
+                tokio::task::spawn_blocking(move || staged.undo(&dir_back)),
+                None,
+            )
+        }
+    };
+    match finished.await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => {
+            tracing::error!(job = ?job, folder = %dir.display(), error = %e, "cannot finish with a plate folder in its hot folder's {}/ (the next start finishes it)", plate_folder::STAGING_DIR)
+        }
+        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
+        Err(_) => {}
     }
 }
 

@@ -193,51 +193,6 @@ fn parts_cancelled_before_the_print_and_the_last_one_cancels_the_job() {
     );
 }
 
-/// A 3MF of `objects`, each a named mesh placed as a build item of its own.
-fn three_mf(objects: &[(&str, &crispen::mesh::Mesh)]) -> Vec<u8> {
-    use std::fmt::Write as _;
-    use std::io::Write as _;
-    let mut resources = String::new();
-    let mut build = String::new();
-    for (i, (name, mesh)) in objects.iter().enumerate() {
-        let id = i + 1;
-        write!(
-            resources,
-            "<object id=\"{id}\" name=\"{name}\" type=\"model\"><mesh><vertices>"
-        )
-        .unwrap();
-        for v in &mesh.vertices {
-            write!(
-                resources,
-                "<vertex x=\"{}\" y=\"{}\" z=\"{}\"/>",
-                v[0], v[1], v[2]
-            )
-            .unwrap();
-        }
-        resources.push_str("</vertices><triangles>");
-        for f in &mesh.faces {
-            write!(
-                resources,
-                "<triangle v1=\"{}\" v2=\"{}\" v3=\"{}\"/>",
-                f[0], f[1], f[2]
-            )
-            .unwrap();
-        }
-        resources.push_str("</triangles></mesh></object>");
-        write!(build, "<item objectid=\"{id}\"/>").unwrap();
-    }
-    let model = format!(
-        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<model unit=\"millimeter\" \
-         xmlns=\"http://schemas.microsoft.com/3dmanufacturing/core/2015/02\">\
-         <resources>{resources}</resources><build>{build}</build></model>"
-    );
-    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
-    let options = zip::write::SimpleFileOptions::default();
-    zip.start_file("3D/3dmodel.model", options).unwrap();
-    zip.write_all(model.as_bytes()).unwrap();
-    zip.finish().unwrap().into_inner()
-}
-
 /// A box of `size` with its low corner at `at`.
 fn block(at: [f64; 3], size: f64) -> crispen::mesh::Mesh {
     let vertices = (0..8)
@@ -282,7 +237,12 @@ fn a_3mf_of_several_objects_prints_as_one_plate_of_its_models() {
     drop_model(
         &root.join("hot"),
         "set.3mf",
-        &three_mf(&[("Block", &side), ("Spot", &spot)]),
+        &crispen::mesh::write_3mf(
+            std::io::Cursor::new(Vec::new()),
+            &[("Block", &side), ("Spot", &spot)],
+        )
+        .unwrap()
+        .into_inner(),
     );
     let s = wait_for(&config, &log, Duration::from_secs(180), "ready", |s| {
         state_of(s, "set.3mf") == "ready"
@@ -349,6 +309,93 @@ fn a_3mf_of_several_objects_prints_as_one_plate_of_its_models() {
     let executed = recorded(&root.join("p.rec"));
     assert!(expected.len() < program.len(), "the filter dropped the box");
     assert_eq!(executed, expected, "commands executed");
+}
+
+/// A folder of models with a `plate.toml` naming them, dropped into a hot folder, is one
+/// job: a plate of its models, each a part named after its file, with the sidecar's other
+/// keys; the folder leaves the hot folder, and nothing is left in its staging. A folder
+/// holding a file its `plate.toml` does not name is set aside whole, untouched.
+#[test]
+fn a_folder_of_models_dropped_as_one_job_is_a_plate_of_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let config = farm(root, 1, 0.01);
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    let spot = crispen::mesh::load(&common::model("spot.obj"))
+        .unwrap()
+        .mesh;
+    let (lo, hi) = spot.bounds().unwrap();
+    let height = hi[2] - lo[2];
+    // Each folder is made beside the hot folder and renamed in whole, as a file manager
+    // moving it does.
+    let make = |name: &str, sidecar: &str| {
+        let dir = root.join(name);
+        std::fs::create_dir(&dir).unwrap();
+        std::fs::copy(common::model("spot.obj"), dir.join("spot.obj")).unwrap();
+        let side = block([hi[0] + height, lo[1], lo[2]], height / 2.0);
+        crispen::mesh::save(&dir.join("box.stl"), &side).unwrap();
+        std::fs::write(dir.join("plate.toml"), sidecar).unwrap();
+        std::fs::rename(&dir, root.join("hot").join(name)).unwrap();
+    };
+    make("bad", "models = [\"spot.obj\"]\n");
+    make("set", "models = [\"spot.obj\", \"box.stl\"]\nhold = true\n");
+
+    let s = wait_for(&config, &log, Duration::from_secs(180), "ready", |s| {
+        state_of(s, "set.3mf") == "ready"
+    });
+    let id = job_by_file(&s, "set.3mf").unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let report = record(root, &id)["slice_report"].clone();
+    let mut names: Vec<&str> = report["parts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["name"].as_str().unwrap())
+        .collect();
+    names.sort();
+    assert!(
+        names.len() == 2 && names[0].starts_with("box.") && names[1].starts_with("spot."),
+        "{report:#}"
+    );
+    // The sidecar's other keys came with it.
+    assert_eq!(
+        record(root, &id)["sidecar"]["hold"],
+        true,
+        "{:#}",
+        record(root, &id)
+    );
+    // The job keeps the packed plate; the folder left the hot folder.
+    assert!(root.join("spool/jobs").join(&id).join("set.3mf").is_file());
+    let staging: Vec<_> = std::fs::read_dir(root.join("hot/.crispen-plates"))
+        .unwrap()
+        .collect();
+    assert!(staging.is_empty(), "{staging:?}");
+    assert!(!root.join("hot/set").exists());
+
+    // The refused folder is set aside whole, named in the log with the reason.
+    let aside = root.join("hot/set-aside/bad");
+    let start = std::time::Instant::now();
+    while !aside.join("box.stl").exists() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "bad was not set aside"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let mut held: Vec<String> = std::fs::read_dir(&aside)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    held.sort();
+    assert_eq!(held, ["box.stl", "plate.toml", "spot.obj"]);
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        text.contains("box.stl is in the folder but is not a model named in plate.toml"),
+        "{text}"
+    );
 }
 
 /// A pre-sliced file labelled the Klipper way (`EXCLUDE_OBJECT_DEFINE`/`_START`/`_END`,

@@ -42,6 +42,22 @@ pub(super) fn check(
         if folders.iter().any(|o| o.path == path) {
             return Err(invalid(section, "path", "is configured twice".into()));
         }
+        // A folder in a hot folder is a plate of models, packed and removed when taken.
+        let inside = |a: &Path, b: &Path| normalise(a).starts_with(normalise(b));
+        if let Some(o) = folders
+            .iter()
+            .find(|o| inside(&path, &o.path) || inside(&o.path, &path))
+        {
+            return Err(invalid(
+                section,
+                "path",
+                format!(
+                    "the hot folders {} and {} must not contain each other (a folder inside a hot folder is taken as a plate of models)",
+                    o.path.display(),
+                    path.display()
+                ),
+            ));
+        }
         folders.push(check_folder(
             section, path, f, printers, shared, spool_dir, cx,
         )?);

@@ -394,6 +394,7 @@ fn every_value_is_bounded() {
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib/crispen/hot\"", "[[folder]] #1 (path \"/var/lib/crispen/hot\"): key `path`: the hot folder and the spool (/var/lib/crispen) must not contain each other"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib\"", "key `path`: the hot folder and the spool"),
         ("path = \"/srv/print/5cm\"", "path = \"/var/lib/x/../crispen/./in\"", "key `path`: the hot folder and the spool"),
+        ("path = \"hot/igea\"", "path = \"/srv/print/5cm/igea\"", "[[folder]] #2 (path \"/srv/print/5cm/igea\"): key `path`: the hot folders /srv/print/5cm and /srv/print/5cm/igea must not contain each other"),
     ];
     for (from, to, expected) in cases {
         let text = GOOD.replacen(from, to, 1);

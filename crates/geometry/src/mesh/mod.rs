@@ -1,4 +1,4 @@
-//! Triangle meshes: reading STL / OBJ / 3MF, cleaning, writing STL / OBJ, and placing a
+//! Triangle meshes: reading STL / OBJ / 3MF, cleaning, writing STL / OBJ / 3MF, and placing a
 //! mesh on a printer's bed ([`place`]).
 //!
 //! This is the geometry core's only I/O. Everything that reads a file is a thin wrapper
@@ -14,11 +14,13 @@ mod obj;
 pub mod place;
 mod stl;
 mod threemf;
+mod threemf_write;
 
 pub use clean::clean;
 pub use indexed::{triangle_normal, RawMesh};
 pub use indexed::{CleanReport, Limits, LoadedMesh, Mesh, MeshError, MeshFormat, MeshObject};
 pub use obj::write_obj;
+pub use threemf_write::write_3mf;
 
 use std::io::{Read, Write};
 use std::path::Path;

@@ -883,7 +883,12 @@ fn show_progress(p: &mut PrinterLive, live: LiveProgress) {
 }
 
 fn live_progress(p: &PrintProgress, heated: bool, paused: bool, plate: &Plate) -> LiveProgress {
-    let pause = p.pause.clone();
+    // A file's pause is shown once the head is parked: an operator told to act while it
+    // still moves would reach into a moving printer (and the park is still the print's).
+    let pause = p
+        .pause
+        .clone()
+        .filter(|_| p.state == PrintState::WaitingForOperator);
     let time_left = TimeLeft {
         planned_s: plate.estimate.left_after_acked(p.lines_acked, plate.ahead),
         pace: plate.pace,

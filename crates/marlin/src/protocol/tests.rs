@@ -2155,6 +2155,7 @@ fn the_replay_goes_after_a_quiet_moment_when_fewer_blocks_come() {
 }
 
 mod late_answers;
+mod noisy;
 mod numbering;
 
 /// A lost `ok`, then the probe sent to find it lost whole on the wire: the next probe is

@@ -416,7 +416,9 @@ impl Retries {
 /// Runs file-system work on a blocking thread, so a slow hot folder (NFS) never stalls the
 /// async worker's other tasks (printer streams, the HTTP API). A panic there is the
 /// watcher's own; None when the runtime is shutting down.
-async fn blocking<R: Send + 'static>(work: impl FnOnce() -> R + Send + 'static) -> Option<R> {
+pub(crate) async fn blocking<R: Send + 'static>(
+    work: impl FnOnce() -> R + Send + 'static,
+) -> Option<R> {
     match tokio::task::spawn_blocking(work).await {
         Ok(result) => Some(result),
         Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),

@@ -126,14 +126,8 @@ pub(crate) fn pickup(
     async move {
         // Plate folders a kill left half packed go back, or go, before anything is watched.
         let staged = folders.clone();
-        let recovered = tokio::task::spawn_blocking(move || {
-            staged.iter().for_each(|f| drop(plate_folder::recover(f)))
-        });
-        if let Err(e) = recovered.await {
-            if e.is_panic() {
-                std::panic::resume_unwind(e.into_panic());
-            }
-        }
+        hotfolder::blocking(move || staged.iter().for_each(|f| drop(plate_folder::recover(f))))
+            .await;
         // The watcher goes with the pick-up, however it ends.
         let _watcher = tokio_util::task::AbortOnDropHandle::new(tokio::spawn(hotfolder::watch(
             folders, settle, rescan, tx,
@@ -182,7 +176,8 @@ struct Pickup {
     waiting: HashMap<PathBuf, std::time::Instant>,
     /// The files whose pick-up failed, and when each is tried again.
     retries: hotfolder::Retries,
-    /// How long a sidecar waits for its model before it is set aside.
+    /// How long a sidecar waits for its model, and a plate folder for its sidecar and
+    /// models, before it is set aside.
     orphan_after: Duration,
 }
 
@@ -293,11 +288,8 @@ async fn pick_up_plate(
     at: &mut Pickup,
 ) {
     let (d, f) = (dir.to_path_buf(), folder.to_path_buf());
-    let staged = tokio::task::spawn_blocking(move || plate_folder::stage(&d, &f)).await;
-    let staged = match staged {
-        Ok(staged) => staged,
-        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
-        Err(_) => return,
+    let Some(staged) = hotfolder::blocking(move || plate_folder::stage(&d, &f)).await else {
+        return;
     };
     let staged = match staged {
         Ok(staged) => staged,
@@ -338,7 +330,7 @@ async fn pick_up_plate(
             at.retries.forget(dir);
             tracing::info!(job = %job.id, folder = %dir.display(), "picked up a plate folder as one job of its models");
             (
-                tokio::task::spawn_blocking(move || staged.admitted()),
+                hotfolder::blocking(move || staged.admitted()).await,
                 Some(job.id),
             )
         }
@@ -346,18 +338,13 @@ async fn pick_up_plate(
             let wait = at.retries.failed(dir, folder, std::time::Instant::now());
             tracing::error!(folder = %dir.display(), error = %e, retry_in_s = wait.as_secs(), "cannot pick up a plate folder; it goes back to its hot folder and is tried again");
             (
-                tokio::task::spawn_blocking(move || staged.undo(&dir_back)),
+                hotfolder::blocking(move || staged.undo(&dir_back)).await,
                 None,
             )
         }
     };
-    match finished.await {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => {
-            tracing::error!(job = ?job, folder = %dir.display(), error = %e, "cannot finish with a plate folder in its hot folder's {}/ (the next start finishes it)", plate_folder::STAGING_DIR)
-        }
-        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
-        Err(_) => {}
+    if let Some(Err(e)) = finished {
+        tracing::error!(job = ?job, folder = %dir.display(), error = %e, "cannot finish with a plate folder in its hot folder's {}/ (the next start finishes it)", plate_folder::STAGING_DIR)
     }
 }
 

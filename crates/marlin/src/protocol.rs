@@ -88,9 +88,11 @@ pub struct Host {
     /// (the printer runs the stop's lines after them), and the send window counts their
     /// bytes: a stop begun while the printer's ring is full must not overrun it.
     owed: VecDeque<Owed>,
-    /// An `M105` sent without a number (a probe while the host's `M110` waits to run) is
-    /// unanswered: the numbers below this were sent before it, and its answer settles them.
-    unnumbered_probe: Option<(u64, Instant)>,
+    /// An `M105` sent without a number is unanswered: the numbers below this were sent
+    /// before it, and its answer settles them (see `probe`): it confirms them where it was
+    /// a probe while the host's `M110` waited to run (`true`), and says only that the
+    /// printer read them where it asked after a long wait without answers (`false`).
+    unnumbered_probe: Option<(u64, Instant, bool)>,
     /// One line in flight until this line number is reached (after a resend).
     cautious_until: u64,
     /// `ok N<n> P<p> B<b>` seen: `ok`s are matched to lines by number.

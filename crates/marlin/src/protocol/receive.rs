@@ -245,13 +245,27 @@ impl Host {
             return;
         }
         if ok.text {
-            if let Some((before, _)) = self.unnumbered_probe.take() {
+            if let Some((before, _, confirms)) = self.unnumbered_probe.take() {
                 // The answer of the M105 sent without a number: the printer ran it after
                 // every line sent before it, and only those.
                 self.owed.clear();
-                if let Some(last) = before.checked_sub(1) {
-                    self.confirm_through(last);
-                    self.ack_through(last, now);
+                match before.checked_sub(1) {
+                    Some(last) if confirms => {
+                        self.confirm_through(last);
+                        self.ack_through(last, now);
+                    }
+                    Some(last) => {
+                        // Asked after a long wait without answers: the printer read those
+                        // lines, but may have refused some (their resend requests lost
+                        // too), so none is confirmed. Their bytes are off its ring, and
+                        // their `M105`s are answered no more: a numbered probe now fits,
+                        // and its answer, or a resend request, tells the rest.
+                        self.read_through(last);
+                        for f in self.in_flight.iter_mut().filter(|f| f.number <= last) {
+                            f.is_m105 = false;
+                        }
+                    }
+                    None => {}
                 }
                 // During a stop, after the stop's own unnumbered heaters-off lines too (a
                 // probe from before the stop is answered as a stale one, above).

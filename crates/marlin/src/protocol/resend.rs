@@ -254,7 +254,7 @@ impl Host {
     fn drop_lines_from(&mut self, n: u64, now: Instant) {
         // An unnumbered M105 on its way answers after the lines the printer took, which
         // no longer include these: its answer confirms none of them (see `handle_ok`).
-        if let Some((before, _)) = &mut self.unnumbered_probe {
+        if let Some((before, _, _)) = &mut self.unnumbered_probe {
             *before = (*before).min(n);
         }
         let mut dropped_after = 0;

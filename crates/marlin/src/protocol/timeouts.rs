@@ -9,6 +9,12 @@ use super::phase::{Phase, Stop};
 use super::Host;
 use std::time::{Duration, Instant};
 
+/// How long no line may be answered, with no room for a numbered probe, before an `M105`
+/// without a number asks (see `probe`): well past a move that keeps a printer from
+/// reading its ring (Ultimaker2Marlin's 3-second prime, seen at 5.8 s with probes behind
+/// it), well inside the limit of progress (`no_progress_timeout`, 180 s by default).
+const STUCK: Duration = Duration::from_secs(10);
+
 impl Host {
     /// The earliest time [`Host::tick`] must be called, if any.
     pub fn next_deadline(&self) -> Option<Instant> {
@@ -234,17 +240,7 @@ impl Host {
             // without a number asks all the same.
             // Only the M110 is in flight, so a late answer of an earlier one settles the
             // same line: one taken for lost is simply asked again.
-            let patience = self.timers.m105_patience(self.opts.silence_probe);
-            let due = self
-                .unnumbered_probe
-                .is_none_or(|(_, sent)| now.saturating_duration_since(sent) >= patience);
-            if due {
-                self.stats.probes += 1;
-                self.events.push_back(Event::Probe);
-                self.outgoing.extend_from_slice(UNNUMBERED_PROBE);
-                // It follows the lines sent so far, not those waiting to be replayed.
-                self.unnumbered_probe = Some((self.send_cursor, now));
-            }
+            self.probe_unnumbered(now, true);
             return;
         }
         let replay = self
@@ -257,7 +253,17 @@ impl Host {
         };
         if !fits {
             // Earlier probes fill the room kept for one: the printer has not read them yet
-            // (blocked), or their answers were lost, which only silence can tell now.
+            // (blocked), or their answers were lost. A printer that reports its
+            // temperatures unasked is never silent, so silence cannot tell which: after
+            // [`STUCK`] without an answer, an `M105` without a number asks (it fits where
+            // a numbered line does not). Its answer says the printer ran every line sent
+            // before it; a lost burst of answers otherwise held the job until it failed
+            // for want of progress (issue 48, `tests/noisy.rs`).
+            if now.saturating_duration_since(self.timers.last_ack) >= STUCK
+                && self.probe_fits_unnumbered()
+            {
+                self.probe_unnumbered(now, false);
+            }
             return;
         }
         self.stats.probes += 1;
@@ -303,6 +309,23 @@ impl Host {
             }
             let number = self.new_line(Kind::Housekeeping, "M105".into());
             self.transmit(number, now);
+        }
+    }
+
+    /// Sends an `M105` without a number, unless one sent less than an `M105`'s patience ago
+    /// still waits for its answer; `confirms`: its answer confirms the lines before it
+    /// (see `Host::unnumbered_probe`).
+    fn probe_unnumbered(&mut self, now: Instant, confirms: bool) {
+        let patience = self.timers.m105_patience(self.opts.silence_probe);
+        let due = self
+            .unnumbered_probe
+            .is_none_or(|(_, sent, _)| now.saturating_duration_since(sent) >= patience);
+        if due {
+            self.stats.probes += 1;
+            self.events.push_back(Event::Probe);
+            self.outgoing.extend_from_slice(UNNUMBERED_PROBE);
+            // It follows the lines sent so far, not those waiting to be replayed.
+            self.unnumbered_probe = Some((self.send_cursor, now, confirms));
         }
     }
 

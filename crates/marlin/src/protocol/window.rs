@@ -167,11 +167,17 @@ impl Host {
     /// in its receive ring.
     pub(super) fn confirm_through(&mut self, number: u64) {
         self.unsettled_m105s.retain(|&n| n > number);
+        self.read_through(number);
+        self.confirmed = Some(self.confirmed.map_or(number, |c| c.max(number)));
+    }
+
+    /// The printer has read every line up to `number` off its receive ring, whatever it
+    /// made of them.
+    pub(super) fn read_through(&mut self, number: u64) {
         for f in self.in_flight.iter_mut().filter(|f| f.number <= number) {
             self.in_flight_bytes -= f.bytes;
             f.bytes = 0;
         }
-        self.confirmed = Some(self.confirmed.map_or(number, |c| c.max(number)));
     }
 
     /// The oldest `M105` whose answer may still come, taken for lost or not: an `M105`'s
@@ -211,9 +217,10 @@ impl Host {
     /// further one only once lines have been answered. A probe beyond the ring would be
     /// lost in part while the printer is blocked (a homing or a heat wait of minutes,
     /// during which Ultimaker2Marlin reads nothing), and its remains would merge with the
-    /// next line.
+    /// next line. Numbered probes leave room for one `M105` without a number, the last
+    /// way to ask once their answers were lost (see `probe`).
     pub(super) fn probe_fits(&self, number: u64, command: &str) -> bool {
-        self.ring_has_room(wire_len_bound(number, command))
+        self.ring_has_room(wire_len_bound(number, command) + UNNUMBERED_PROBE.len())
     }
 
     /// Send whatever the window allows. A line gets its number only when it is sent, so

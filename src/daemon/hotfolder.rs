@@ -11,7 +11,7 @@
 //! the check every operator-given name goes through ([`crate::names::problem`]), and
 //! names are shown through [`printable`] wherever they are printed.
 //! A folder directly in a hot folder is a plate of several models (see
-//! [`super::plate_folder`]); it is complete when nothing in it changed for the settle
+//! `daemon::plate_folder`); it is complete when nothing in it changed for the settle
 //! time, or when it was renamed in whole.
 //! [`SettleTracker`] is the pure decision; [`watch`] drives it with `notify` events, a
 //! periodic rescan (in case an event was missed) and a short tick.

@@ -13,8 +13,10 @@ use std::time::Instant;
 
 /// Bytes of the printer's receive ring kept free: for a probe, `N<number> M105*<cs>\n` with
 /// up to eight digits of line number (19), and for what a stop sends at once, unnumbered,
-/// whatever the ring holds: `M108`, the heaters off and one `M105` (26; see `owed_probe_at`).
-pub(super) const PROBE_RESERVE: usize = 26;
+/// whatever the ring holds: `M108`, the heaters off and one `M105` (26; see `owed_probe_at`);
+/// and beside them the `M105` without a number that numbered probes leave room for (5; see
+/// `probe_fits`), so that they fit as often as before it had room of its own.
+pub(super) const PROBE_RESERVE: usize = 26 + UNNUMBERED_PROBE.len();
 
 impl Host {
     pub(super) fn history_line(&self, number: u64) -> Option<&Line> {

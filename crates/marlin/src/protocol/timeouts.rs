@@ -256,7 +256,7 @@ impl Host {
             // (blocked), or their answers were lost. A printer that reports its
             // temperatures unasked is never silent, so silence cannot tell which: after
             // [`STUCK`] without an answer, an `M105` without a number asks (it fits where
-            // a numbered line does not). Its answer says the printer ran every line sent
+            // a numbered line does not). Its answer says the printer read every line sent
             // before it; a lost burst of answers otherwise held the job until it failed
             // for want of progress (issue 48, `tests/noisy.rs`).
             if now.saturating_duration_since(self.timers.last_ack) >= STUCK

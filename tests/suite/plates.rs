@@ -193,6 +193,17 @@ fn parts_cancelled_before_the_print_and_the_last_one_cancels_the_job() {
     );
 }
 
+/// Spot, and a box half its height standing beside it.
+fn spot_and_a_box() -> (crispen::mesh::Mesh, crispen::mesh::Mesh) {
+    let spot = crispen::mesh::load(&common::model("spot.obj"))
+        .unwrap()
+        .mesh;
+    let (lo, hi) = spot.bounds().unwrap();
+    let height = hi[2] - lo[2];
+    let side = block([hi[0] + height, lo[1], lo[2]], height / 2.0);
+    (spot, side)
+}
+
 /// A box of `size` with its low corner at `at`.
 fn block(at: [f64; 3], size: f64) -> crispen::mesh::Mesh {
     let vertices = (0..8)
@@ -227,12 +238,7 @@ fn a_3mf_of_several_objects_prints_as_one_plate_of_its_models() {
     let config = farm(root, 1, 0.01);
     let log = root.join("daemon.log");
     let _daemon = Daemon::start(&config, &log);
-    let spot = crispen::mesh::load(&common::model("spot.obj"))
-        .unwrap()
-        .mesh;
-    let (lo, hi) = spot.bounds().unwrap();
-    let height = hi[2] - lo[2];
-    let side = block([hi[0] + height, lo[1], lo[2]], height / 2.0);
+    let (spot, side) = spot_and_a_box();
     std::fs::write(root.join("hot/set.3mf.toml"), "hold = true\n").unwrap();
     drop_model(
         &root.join("hot"),
@@ -322,18 +328,13 @@ fn a_folder_of_models_dropped_as_one_job_is_a_plate_of_them() {
     let config = farm(root, 1, 0.01);
     let log = root.join("daemon.log");
     let _daemon = Daemon::start(&config, &log);
-    let spot = crispen::mesh::load(&common::model("spot.obj"))
-        .unwrap()
-        .mesh;
-    let (lo, hi) = spot.bounds().unwrap();
-    let height = hi[2] - lo[2];
+    let (_, side) = spot_and_a_box();
     // Each folder is made beside the hot folder and renamed in whole, as a file manager
     // moving it does.
     let make = |name: &str, sidecar: &str| {
         let dir = root.join(name);
         std::fs::create_dir(&dir).unwrap();
         std::fs::copy(common::model("spot.obj"), dir.join("spot.obj")).unwrap();
-        let side = block([hi[0] + height, lo[1], lo[2]], height / 2.0);
         crispen::mesh::save(&dir.join("box.stl"), &side).unwrap();
         std::fs::write(dir.join("plate.toml"), sidecar).unwrap();
         std::fs::rename(&dir, root.join("hot").join(name)).unwrap();

@@ -28,6 +28,40 @@ impl Noise {
 /// for): a printer that talks is never taken for silent.
 const AUTOREPORT: Duration = Duration::from_secs(2);
 
+/// The test's clock, the printer reporting its temperatures every [`AUTOREPORT`].
+struct Clock {
+    now: Instant,
+    reported: Instant,
+}
+
+impl Clock {
+    fn new(now: Instant) -> Self {
+        Clock { now, reported: now }
+    }
+
+    /// The link is quiet: time goes on to the host's deadline `d` or to the printer's next
+    /// report, whichever comes first.
+    fn pass(&mut self, host: &mut Host, d: Instant) {
+        if d > self.reported + AUTOREPORT {
+            self.now = self.now.max(self.reported + AUTOREPORT);
+            self.reported = self.now;
+            host.feed(b" T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n", self.now);
+        } else {
+            self.now = d.max(self.now);
+            host.tick(self.now);
+        }
+    }
+}
+
+/// The job's lines the printer ran, before the safe stop of a failure.
+fn job_lines_run(printer: &MiniPrinter) -> Vec<String> {
+    printer
+        .job_executed()
+        .into_iter()
+        .take_while(|c| c.starts_with("G1 "))
+        .collect()
+}
+
 /// Longer than any job here may take on the fake clock, limits and stop included: a job
 /// still running then is wedged.
 const WEDGED: Duration = Duration::from_secs(4 * 3600);
@@ -52,10 +86,9 @@ fn through_noise(
     printer.flush_on_error = seed % 2 == 1;
     let mut noise = Noise(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
     host.start_job(commands.to_vec(), start);
-    let mut now = start;
+    let mut clock = Clock::new(start);
     let mut events = Vec::new();
-    let mut reported = start;
-    while !host.is_finished() && now - start < WEDGED {
+    while !host.is_finished() && clock.now - start < WEDGED {
         let out = host.take_outgoing();
         if out.is_empty() {
             while let Some(e) = host.poll_event() {
@@ -67,16 +100,7 @@ fn through_noise(
                     host.debug_state()
                 );
             };
-            // The clock goes on to the host's deadline or the next report, whichever is
-            // first.
-            if d > reported + AUTOREPORT {
-                now = now.max(reported + AUTOREPORT);
-                reported = now;
-                host.feed(b" T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n", now);
-                continue;
-            }
-            now = d.max(now);
-            host.tick(now);
+            clock.pass(&mut host, d);
             continue;
         }
         let text = String::from_utf8(out).unwrap();
@@ -102,12 +126,12 @@ fn through_noise(
             .split_inclusive('\n')
             .filter(|_| !noise.hits(answers))
             .collect();
-        host.feed(heard.as_bytes(), now);
+        host.feed(heard.as_bytes(), clock.now);
     }
     while let Some(e) = host.poll_event() {
         events.push(e);
     }
-    let took = host.is_finished().then(|| now - start);
+    let took = host.is_finished().then(|| clock.now - start);
     (events, printer, took)
 }
 
@@ -129,12 +153,7 @@ fn noisy_jobs(firmware: Firmware, send_ahead: bool, advanced: bool) -> Vec<Strin
         let what = format!(
             "{firmware:?} send_ahead {send_ahead} advanced {advanced} seed {seed} {rates:?}"
         );
-        // The job's lines the printer ran, before the safe stop of a failure.
-        let executed: Vec<String> = printer
-            .job_executed()
-            .into_iter()
-            .take_while(|c| c.starts_with("G1 "))
-            .collect();
+        let executed = job_lines_run(&printer);
         assert_eq!(
             executed[..],
             commands[..executed.len()],
@@ -231,23 +250,16 @@ fn probes_whose_answers_were_lost_never_hold_a_job_for_ever() {
         }
         assert!(deaf > 2, "{firmware:?}: the host probed");
         // Heard again, with the printer's reports.
-        let mut reported = now;
-        while !host.is_finished() && now - start < WEDGED {
+        let mut clock = Clock::new(now);
+        while !host.is_finished() && clock.now - start < WEDGED {
             let out = host.take_outgoing();
             if out.is_empty() {
                 let d = host.next_deadline().expect("a job has a clock");
-                if d > reported + AUTOREPORT {
-                    now = now.max(reported + AUTOREPORT);
-                    reported = now;
-                    host.feed(b" T:20.1 /0.0 B:19.8 /0.0 @:0 B@:0\n", now);
-                    continue;
-                }
-                now = d.max(now);
-                host.tick(now);
+                clock.pass(&mut host, d);
                 continue;
             }
             let answer = printer.receive(&out);
-            host.feed(&answer, now);
+            host.feed(&answer, clock.now);
         }
         assert!(
             host.is_finished(),
@@ -256,11 +268,7 @@ fn probes_whose_answers_were_lost_never_hold_a_job_for_ever() {
         );
         let events = drain_events(&mut host);
         assert!(done(&events), "{firmware:?}: {:?}", failure(&events));
-        let executed: Vec<String> = printer
-            .job_executed()
-            .into_iter()
-            .take_while(|c| c.starts_with("G1 "))
-            .collect();
+        let executed = job_lines_run(&printer);
         assert_eq!(executed[..], commands[..executed.len()], "{firmware:?}");
     }
 }

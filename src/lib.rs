@@ -2,8 +2,9 @@
 //!
 //! The library is layered so each part can be used and tested on its own; `mesh` and
 //! `enhance` (the crate `crispen-geometry`), `marlin` (`crispen-marlin`), `sim`
-//! (`crispen-sim`) and `fsutil` (`crispen-fsutil`) are crates of their own under `crates/`,
-//! re-exported here:
+//! (`crispen-sim`), `slice`, `machine`, `preview`, `observe` and `observation`
+//! (`crispen-slicing`) and `fsutil` (`crispen-fsutil`) are crates of their own under
+//! `crates/`, re-exported here:
 //! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
 //! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
@@ -48,18 +49,14 @@ pub mod daemon;
 use crispen_fsutil as fsutil;
 pub use crispen_geometry::enhance;
 pub mod http;
-pub mod machine;
 pub use crispen_geometry::mesh;
 pub use crispen_marlin as marlin;
 pub mod names;
 pub mod notify;
-pub mod observation;
-pub mod observe;
 pub mod outbound;
 pub mod percent;
 pub mod ports;
-pub mod preview;
 pub mod service;
 pub use crispen_sim as sim;
-pub mod slice;
+pub use crispen_slicing::{machine, observation, observe, preview, slice};
 pub mod spoolman;

@@ -96,7 +96,8 @@ pub struct ObserveSettings {
 impl Default for ObserveSettings {
     fn default() -> Self {
         ObserveSettings {
-            reference_height_mm: crate::enhance::StrengthTable::default().unmodified_from_mm,
+            reference_height_mm: crispen_geometry::enhance::StrengthTable::default()
+                .unmodified_from_mm,
             timeout: Duration::from_secs(DEFAULT_OBSERVE_TIMEOUT_S),
         }
     }

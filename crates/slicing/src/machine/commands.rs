@@ -7,7 +7,7 @@
 //!
 //! Kept here, with the machine, because a machine's `allow` is checked against it.
 
-use crate::marlin::firmware::Firmware;
+use crispen_marlin::firmware::Firmware;
 
 /// What the policy does with a command.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -429,7 +429,7 @@ mod tests {
     /// docs/gcode-policy.md shows the table as it is.
     #[test]
     fn the_documented_table_is_the_table() {
-        let doc = include_str!("../../docs/gcode-policy.md");
+        let doc = include_str!("../../../../docs/gcode-policy.md");
         assert!(
             doc.contains(&markdown()),
             "docs/gcode-policy.md's command table differs from the code; its text is:\n{}",

@@ -17,7 +17,7 @@ pub mod eject;
 
 use code::read_code;
 
-use crate::marlin::firmware::Firmware;
+use crispen_marlin::firmware::Firmware;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -68,7 +68,7 @@ pub(crate) const SKIRT_MARGIN_MM: f64 = 5.0;
 
 impl Machine {
     /// The box a model must fit in on this bed (X, Y, Z), keeping room for the skirt.
-    pub(crate) fn fits_mm(&self) -> [f64; 3] {
+    pub fn fits_mm(&self) -> [f64; 3] {
         [
             self.bed_mm[0] - 2.0 * SKIRT_MARGIN_MM,
             self.bed_mm[1] - 2.0 * SKIRT_MARGIN_MM,
@@ -119,7 +119,7 @@ impl Machine {
 
 /// The machine of a `marlin2`/`marlin20` printer whose config names none: a common
 /// 1.75 mm bed-slinger (220 x 220 x 250 mm, 0.4 mm nozzle, heated bed).
-pub(crate) const DEFAULT_MARLIN_MACHINE: &str = "marlin-175";
+pub const DEFAULT_MARLIN_MACHINE: &str = "marlin-175";
 
 /// A built-in machine as data.
 #[derive(Debug, Clone, Copy)]
@@ -259,12 +259,12 @@ pub(crate) const HOTEND_C: std::ops::RangeInclusive<f64> = 100.0..=450.0;
 pub(crate) const BED_C: std::ops::RangeInclusive<f64> = 0.0..=200.0;
 pub(crate) const EXTRUDERS: std::ops::RangeInclusive<u8> = 1..=8;
 /// At most this many machines in one config.
-pub(crate) const MAX_MACHINES: usize = 64;
+pub const MAX_MACHINES: usize = 64;
 
 /// A `[[machine]]` table as written in the config.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub(crate) struct MachineSpec {
+pub struct MachineSpec {
     pub name: String,
     /// Start from this machine (built-in or defined earlier) and change what is given.
     pub based_on: Option<String>,
@@ -307,7 +307,7 @@ pub(crate) fn valid_name(name: &str) -> bool {
 impl MachineSpec {
     /// Checks the table into a machine. `known` finds a machine by name (built-in or
     /// defined earlier); `anchor` makes a path absolute. Errors name the key.
-    pub(crate) fn check(
+    pub fn check(
         self,
         known: &dyn Fn(&str) -> Option<Machine>,
         anchor: &dyn Fn(&Path) -> PathBuf,

@@ -13,10 +13,10 @@ pub mod print;
 mod raster;
 mod scene;
 pub mod thumbnail;
-pub(crate) mod walls;
+pub mod walls;
 
-use crate::mesh::place::UpAxis;
-use crate::mesh::Mesh;
+use crispen_geometry::mesh::place::UpAxis;
+use crispen_geometry::mesh::Mesh;
 use std::path::{Path, PathBuf};
 
 pub use print::PREVIEW_PNG;
@@ -115,8 +115,8 @@ pub const DISPLACEMENT_PNG: &str = "displacement.png";
 
 /// Writes `image` to `path` as PNG, whole under a temporary name then renamed, readable
 /// by others like the job's other files.
-pub(crate) fn write_png(path: &Path, image: &Image) -> std::io::Result<()> {
-    Ok(crate::fsutil::write_atomic(path, &image.to_png())?)
+pub fn write_png(path: &Path, image: &Image) -> std::io::Result<()> {
+    Ok(crispen_fsutil::write_atomic(path, &image.to_png())?)
 }
 
 impl Pictures {

@@ -25,9 +25,9 @@
 use super::raster::{self, Shader, SUPERSAMPLE};
 use super::scene::dot;
 use super::{normalize, sub, Camera, Image, Lighting, Paint, MODEL_COLOR};
-use crate::mesh::place::UpAxis;
-use crate::mesh::Mesh;
 use crate::slice::walls::COORD_LIMIT_MM;
+use crispen_geometry::mesh::place::UpAxis;
+use crispen_geometry::mesh::Mesh;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::io::BufRead;

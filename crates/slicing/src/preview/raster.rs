@@ -5,7 +5,7 @@
 //! its heat map). Both passes split the picture into bands of rows across threads.
 
 use super::{normalize, Camera, Image, Lighting, Paint};
-use crate::mesh::Mesh;
+use crispen_geometry::mesh::Mesh;
 use rayon::prelude::*;
 
 /// Samples per pixel along each axis.
@@ -169,7 +169,7 @@ impl Normals {
                 face.push([0.0; 3]);
                 continue;
             }
-            let n = normalize(crate::mesh::triangle_normal(v, *f));
+            let n = normalize(crispen_geometry::mesh::triangle_normal(v, *f));
             face.push(n.map(|c| c as f32));
             for corner in 0..3 {
                 let [a, b, c] = [0, 1, 2].map(|k| v[f[(corner + k) % 3] as usize]);

@@ -2,7 +2,7 @@
 //! vector arithmetic they share; apart from the root so the rasteriser, the thumbnails and
 //! the walls use them without depending on the pictures made from them.
 
-use crate::mesh::place::UpAxis;
+use crispen_geometry::mesh::place::UpAxis;
 
 /// An 8-bit RGBA picture, rows top to bottom.
 #[derive(Clone, Debug, PartialEq)]

@@ -10,9 +10,9 @@
 //! They are comments, so crispen's own streamer drops them before sending.
 
 use super::{render, Camera, Image, Paint, MODEL_COLOR};
-use crate::mesh::place::UpAxis;
-use crate::mesh::Mesh;
 use base64::Engine;
+use crispen_geometry::mesh::place::UpAxis;
+use crispen_geometry::mesh::Mesh;
 use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
 
@@ -61,7 +61,7 @@ pub fn blocks(mesh: &Mesh, up: UpAxis) -> String {
 pub fn insert_into_file(path: &Path, blocks: &str) -> std::io::Result<()> {
     let mut input = BufReader::new(std::fs::File::open(path)?);
     let permissions = std::fs::metadata(path)?.permissions();
-    crate::fsutil::write_atomic_with(path, |file| {
+    crispen_fsutil::write_atomic_with(path, |file| {
         file.set_permissions(permissions)?;
         let mut out = std::io::BufWriter::new(file);
         let mut first = String::new();

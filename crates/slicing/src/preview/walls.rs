@@ -7,7 +7,7 @@ use super::Image;
 use crate::slice::walls::{OuterWalls, Segment, WallComparison};
 
 /// The name of the picture in a job's directory.
-pub(crate) const WALLS_PNG: &str = "walls.png";
+pub const WALLS_PNG: &str = "walls.png";
 
 const PLAIN: [u8; 4] = [170, 170, 170, 255];
 const ENHANCED: [u8; 4] = [200, 30, 60, 255];
@@ -17,7 +17,7 @@ const GAP_PX: u32 = 8;
 /// The layers worth showing: the compared layers split into `count` runs from bottom to
 /// top, and in each the layer where the wall moved most on average. Z in µm, as
 /// [`OuterWalls::layers`] keys them.
-pub(crate) fn layers_to_show(comparison: &WallComparison, count: usize) -> Vec<i64> {
+pub fn layers_to_show(comparison: &WallComparison, count: usize) -> Vec<i64> {
     let layers = &comparison.per_layer;
     if layers.is_empty() || count == 0 {
         return Vec::new();
@@ -35,7 +35,7 @@ pub(crate) fn layers_to_show(comparison: &WallComparison, count: usize) -> Vec<i
 
 /// Draws `layers` (Z in µm) side by side, each panel `panel` pixels square. `None` when
 /// none of the layers has a wall in both files.
-pub(crate) fn walls_picture(
+pub fn walls_picture(
     plain: &OuterWalls,
     enhanced: &OuterWalls,
     layers: &[i64],

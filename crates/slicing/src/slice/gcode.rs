@@ -1,6 +1,6 @@
 //! Checking a slicer's G-code before it becomes a job, and reading its figures.
 //!
-//! The check follows the moves as Marlin would ([`crate::marlin::motion`]: G90/G91, M82/M83, G92,
+//! The check follows the moves as Marlin would ([`crispen_marlin::motion`]: G90/G91, M82/M83, G92,
 //! G28, arcs, offsets) and demands:
 //! some extruding moves; every move inside the machine (X, Y within the bed, Z within the
 //! height, with a 0.5 mm allowance for rounding: the start code's purge and the skirt are
@@ -9,8 +9,8 @@
 //! layers (which would leave the rest printed in the air); and both heaters switched on
 //! (M104/M109 and M140/M190) before the first extrusion. It also counts layers and reads the slicer's estimates.
 
-use crate::marlin::firmware::Firmware;
-use crate::marlin::motion::{self, Motion};
+use crispen_marlin::firmware::Firmware;
+use crispen_marlin::motion::{self, Motion};
 use std::io::BufRead;
 
 /// What the job must satisfy.
@@ -110,7 +110,7 @@ pub(crate) fn check(reader: impl BufRead, expect: &Expectations) -> Result<Gcode
                 &mut last_time_elapsed,
             );
         }
-        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
+        let Ok(Some(cmd)) = crispen_marlin::reader::read(code) else {
             continue;
         };
         let get = |letter: char| cmd.get(letter);

@@ -4,7 +4,7 @@
 //! [`slice_mesh`] runs PrusaSlicer or CuraEngine as a child process on a temporary STL
 //! ([`process`]) with the machine's profile, and checks the G-code before calling it a job
 //! ([`gcode`]). Loading, enhancing and placing the model are steps of their own
-//! ([`crate::mesh`], [`crate::enhance`], [`crate::mesh::place`]), composed by the daemon's
+//! ([`crispen_geometry::mesh`], [`crispen_geometry::enhance`], [`crispen_geometry::mesh::place`]), composed by the daemon's
 //! preparation (`crate::daemon::prepare`). The slicer profiles and the start/end G-code are
 //! embedded in the binary ([`profiles`]), so an installed `crispen` needs nothing from the
 //! source tree; a machine or a folder may name other profile files. G-code sliced
@@ -22,7 +22,7 @@ pub mod moved;
 pub mod plate;
 pub mod policy;
 pub mod presliced;
-pub(crate) mod process;
+pub mod process;
 pub mod profiles;
 pub(crate) mod prusa;
 mod settings;
@@ -32,10 +32,10 @@ pub mod walls;
 pub use settings::{density_of, Material, SliceSettings, MATERIALS, SETTING_KEYS};
 pub use slicer::{SliceError, SlicerKind};
 
-use crate::enhance::{EnhanceReport, PrintedDisplacement};
 use crate::machine::Machine;
-use crate::mesh::place::UpAxis;
-use crate::mesh::Mesh;
+use crispen_geometry::enhance::{EnhanceReport, PrintedDisplacement};
+use crispen_geometry::mesh::place::UpAxis;
+use crispen_geometry::mesh::Mesh;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -48,7 +48,7 @@ pub const HEIGHT_MM: std::ops::RangeInclusive<f64> = 1.0..=*crate::machine::BED_
 
 /// The layer height of the built-in profiles (`config/prusaslicer-ultimaker2.ini`,
 /// `config/cura-ultimaker2.toml`), mm, when neither the job nor the G-code says.
-pub(crate) const DEFAULT_LAYER_HEIGHT_MM: f64 = 0.2;
+pub const DEFAULT_LAYER_HEIGHT_MM: f64 = 0.2;
 
 /// Loads `path`, or the built-in profile for the slicer, and checks the slicer's own
 /// files are installed.
@@ -81,9 +81,9 @@ pub enum SliceStep {
 }
 
 /// One slicing: a mesh already enhanced and placed on the machine's bed (see
-/// [`crate::mesh::place`]), sliced for one machine into `output`.
+/// [`crispen_geometry::mesh::place`]), sliced for one machine into `output`.
 #[derive(Clone, Debug)]
-pub(crate) struct SliceJob<'a> {
+pub struct SliceJob<'a> {
     /// The model file the mesh came from (named in messages and the report).
     pub model: &'a Path,
     pub output: &'a Path,
@@ -126,7 +126,7 @@ pub struct EnhancementSummary {
     pub printed: Option<PrintedDisplacement>,
     /// In print-aware mode, what it chose for this machine (band, lift, λ2, cap).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub print_aware: Option<crate::enhance::print_aware::PrintAwareReport>,
+    pub print_aware: Option<crispen_geometry::enhance::print_aware::PrintAwareReport>,
     /// With `strength = "observed"`: what the observer saw of each candidate and why
     /// this strength.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -181,15 +181,15 @@ pub struct SliceReport {
     /// refuses makes no report.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub policy: Option<policy::Verdict>,
-    /// The parts of the plate, as the G-code labels them (see `crate::marlin::plate`):
+    /// The parts of the plate, as the G-code labels them (see `crispen_marlin::plate`):
     /// each may be cancelled while the others print on. Empty for a file that labels none.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub parts: Vec<crate::marlin::plate::PartInfo>,
+    pub parts: Vec<crispen_marlin::plate::PartInfo>,
 }
 
 /// Slices a placed mesh for one machine ([`slice_plate`] with the model as its one part,
 /// `job.per_plate` times).
-pub(crate) fn slice_mesh(
+pub fn slice_mesh(
     mesh: &Mesh,
     job: &SliceJob,
     progress: &mut dyn FnMut(SliceStep),
@@ -206,7 +206,7 @@ pub(crate) fn slice_mesh(
 /// (only when the G-code passed the checks; an existing file is replaced atomically). The
 /// report's model-side fields (`up`, `enhancement`, `model_size_mm`, load and enhance
 /// timings) are the composer's to fill. Blocking.
-pub(crate) fn slice_plate(
+pub fn slice_plate(
     parts: &[plate::PlatePart],
     job: &SliceJob,
     progress: &mut dyn FnMut(SliceStep),
@@ -426,7 +426,7 @@ fn write_plate(
         let file = std::fs::File::create(path)
             .map_err(SliceError::io("cannot write temporary STL", path))?;
         let mut w = std::io::BufWriter::new(file);
-        crate::mesh::write_stl(&mut w, mesh)
+        crispen_geometry::mesh::write_stl(&mut w, mesh)
             .and_then(|_| std::io::Write::flush(&mut w))
             .map_err(SliceError::io("cannot write temporary STL", path))
     };
@@ -475,11 +475,11 @@ fn write_plate(
 
 /// The parts a G-code file labels, with their outlines (none when it labels none, or
 /// cannot be read: the checks above have read it already).
-pub(crate) fn plate_parts(
+pub fn plate_parts(
     gcode: &Path,
-    firmware: crate::marlin::firmware::Firmware,
-) -> Vec<crate::marlin::plate::PartInfo> {
-    let program = match crate::marlin::gcode::GcodeProgram::load_for(gcode, firmware) {
+    firmware: crispen_marlin::firmware::Firmware,
+) -> Vec<crispen_marlin::plate::PartInfo> {
+    let program = match crispen_marlin::gcode::GcodeProgram::load_for(gcode, firmware) {
         Ok(p) => p,
         Err(e) => {
             tracing::warn!(gcode = %gcode.display(), error = %e, "cannot read the plate's parts");
@@ -487,16 +487,16 @@ pub(crate) fn plate_parts(
         }
     };
     match program.marks() {
-        Some(marks) => crate::marlin::plate::PlateMap::read(program.iter(), marks, firmware).parts,
+        Some(marks) => crispen_marlin::plate::PlateMap::read(program.iter(), marks, firmware).parts,
         None => Vec::new(),
     }
 }
 
 /// Copies a finished file (checked G-code, the mesh that was sliced) to its destination
 /// without ever leaving a half-written one there: copy next to it, then rename over it.
-pub(crate) fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
+pub fn persist(from: &Path, to: &Path) -> Result<(), SliceError> {
     let mut src = std::fs::File::open(from).map_err(SliceError::io("cannot read", from))?;
-    crate::fsutil::write_atomic_with(to, |file| std::io::copy(&mut src, file).map(|_| ())).map_err(
+    crispen_fsutil::write_atomic_with(to, |file| std::io::copy(&mut src, file).map(|_| ())).map_err(
         |e| SliceError::Io {
             context: "cannot write",
             path: to.to_path_buf(),

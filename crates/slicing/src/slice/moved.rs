@@ -1,5 +1,5 @@
 //! What the enhancement moved, in one line an operator reads: how much of the print moves
-//! by more than a printer draws (a quarter of the line width, `crate::enhance::printed`),
+//! by more than a printer draws (a quarter of the line width, `crispen_geometry::enhance::printed`),
 //! on how much of it, and how far all but 1 % of it moves, in mm (the largest move of a
 //! wall is often a contour that a tiny change in Z moved far, not what a viewer sees).
 //!
@@ -13,10 +13,10 @@
 
 use super::walls::WallComparison;
 use super::{EnhancementSummary, SliceReport};
-use crate::enhance::PrintedDisplacement;
+use crispen_geometry::enhance::PrintedDisplacement;
 
 /// The enhancement's mode of a job whose G-code was sliced elsewhere.
-pub(crate) const PRESLICED: &str = "pre-sliced";
+pub const PRESLICED: &str = "pre-sliced";
 
 /// Where the comparison of the outer walls stands when a report has none.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -1,5 +1,5 @@
 //! A plate: several parts sliced together onto one bed, each labelled in the G-code so
-//! that one can be cancelled while the others print on ([`crate::marlin::plate`]).
+//! that one can be cancelled while the others print on ([`crispen_marlin::plate`]).
 //!
 //! PrusaSlicer lays out a plate itself: its command line duplicates a model
 //! (`--duplicate N`) and arranges every object it is given on the bed, and
@@ -9,7 +9,7 @@
 //! the bed) and hands CuraEngine one mesh file per part, which it labels by the file's
 //! name (`;MESH:NAME`).
 
-use crate::mesh::Mesh;
+use crispen_geometry::mesh::Mesh;
 
 /// The most parts one plate may hold (copies included).
 pub const MAX_PER_PLATE: u32 = 50;
@@ -19,7 +19,7 @@ pub(crate) const GAP_MM: f64 = 6.0;
 
 /// One model of a plate.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct PlatePart<'a> {
+pub struct PlatePart<'a> {
     /// The name its label carries (its file's stem).
     pub name: &'a str,
     /// Placed: lowest point at Z = 0, footprint centred on X = Y = 0.

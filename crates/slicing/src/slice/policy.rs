@@ -6,7 +6,7 @@
 //! - temperatures above the machine's limits (`max_hotend_c`, `max_bed_c`; a chamber the
 //!   machine does not have), temperature units it cannot follow (`M149 F`/`K`), tools the
 //!   machine does not have (`T1` on one extruder) are refused;
-//! - each line is read as the machine's firmware reads it ([`crate::marlin::reader`]); a
+//! - each line is read as the machine's firmware reads it ([`crispen_marlin::reader`]); a
 //!   line it cannot take as exactly one command with known parameters is refused;
 //! - every command is classified ([`crate::machine::commands`]): commands that change a
 //!   printer beyond the job (EEPROM, firmware update, settings that outlive the job,
@@ -14,23 +14,23 @@
 //!   follower cannot, and every command the table does not know, are refused unless the
 //!   machine allows the command by name (`allow = ["M500"]`); commands that belong to the
 //!   host or to hardware no machine has are refused always;
-//! - every move is followed ([`crate::marlin::motion`]) and must stay on the bed, arcs included;
+//! - every move is followed ([`crispen_marlin::motion`]) and must stay on the bed, arcs included;
 //!   what cannot be followed is refused;
-//! - pauses the file asks for ([`FILE_PAUSES`](crate::marlin::reader::FILE_PAUSES)) are not refused: the host intercepts them;
+//! - pauses the file asks for ([`FILE_PAUSES`](crispen_marlin::reader::FILE_PAUSES)) are not refused: the host intercepts them;
 //!   the verdict lists them with the message the host will show
-//!   ([`crate::marlin::pause::pause_message`]).
+//!   ([`crispen_marlin::pause::pause_message`]).
 //!
 //! [`check`] is pure over a reader; [`check_file`] adds the host's own load-time checks
-//! ([`crate::marlin::gcode::GcodeProgram`]: text, line length, characters the firmware
+//! ([`crispen_marlin::gcode::GcodeProgram`]: text, line length, characters the firmware
 //! cannot take), so a file that cannot be streamed fails here too. Every refusal names the
 //! file's line, the command and why.
 
 use crate::machine::commands::{classify, Class};
 use crate::machine::Machine;
-use crate::marlin::motion::{Bounds, Command, Motion};
-use crate::marlin::pause::pause_message;
-use crate::marlin::protocol::reply::Reply;
-use crate::marlin::reader;
+use crispen_marlin::motion::{Bounds, Command, Motion};
+use crispen_marlin::pause::pause_message;
+use crispen_marlin::protocol::reply::Reply;
+use crispen_marlin::reader;
 use serde::{Deserialize, Serialize};
 use std::io::{BufRead, Read};
 use std::path::Path;
@@ -183,13 +183,13 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
         // up to a limit, and the rest of it skipped.
         let n = reader
             .by_ref()
-            .take(crate::marlin::gcode::MAX_RAW_LINE_BYTES)
+            .take(crispen_marlin::gcode::MAX_RAW_LINE_BYTES)
             .read_until(b'\n', &mut raw)?;
         if n == 0 {
             break;
         }
         number += 1;
-        if raw.last() != Some(&b'\n') && n as u64 == crate::marlin::gcode::MAX_RAW_LINE_BYTES {
+        if raw.last() != Some(&b'\n') && n as u64 == crispen_marlin::gcode::MAX_RAW_LINE_BYTES {
             v.refuse(number, "", "is longer than a printer can take".into());
             let mut sink = Vec::new();
             reader.read_until(b'\n', &mut sink)?;
@@ -204,7 +204,7 @@ pub fn check(reader: impl BufRead, machine: &Machine) -> std::io::Result<Verdict
             continue;
         };
         // A plate's labels are read by the host, which never sends them.
-        if crate::marlin::labels::is_label_command(code) {
+        if crispen_marlin::labels::is_label_command(code) {
             continue;
         }
         let cmd = match reader::read_for(machine.firmware, code) {
@@ -479,7 +479,7 @@ fn temperature(cmd: &Command, machine: &Machine) -> Option<String> {
 pub enum PolicyError {
     /// The host would refuse to load it (the message names the file and line).
     #[error(transparent)]
-    Load(#[from] crate::marlin::gcode::GcodeError),
+    Load(#[from] crispen_marlin::gcode::GcodeError),
     #[error("cannot read {path}: {source}")]
     Io {
         path: std::path::PathBuf,
@@ -491,12 +491,12 @@ pub enum PolicyError {
 /// The host's own load-time checks for a firmware ([`GcodeProgram::load_for`]: size,
 /// text, line length, characters the firmware cannot take), without keeping the program.
 ///
-/// [`GcodeProgram::load_for`]: crate::marlin::gcode::GcodeProgram::load_for
+/// [`GcodeProgram::load_for`]: crispen_marlin::gcode::GcodeProgram::load_for
 pub(crate) fn load_check(
     path: &Path,
-    firmware: crate::marlin::firmware::Firmware,
+    firmware: crispen_marlin::firmware::Firmware,
 ) -> Result<(), PolicyError> {
-    crate::marlin::gcode::GcodeProgram::load_for(path, firmware)?;
+    crispen_marlin::gcode::GcodeProgram::load_for(path, firmware)?;
     Ok(())
 }
 

@@ -7,7 +7,7 @@
 //! (`;FLAVOR:`, `;NOZZLE_DIAMETER:`, and in the header Cura puts at the top of a Griffin
 //! file, `;EXTRUDER_TRAIN.0.MATERIAL.GUID:`) and Cura's settings block
 //! (`;SETTING_3 ...definition = ultimaker2...`), and follows the moves as Marlin would
-//! ([`crate::marlin::motion`]) for their extent, arcs included. A file's material is
+//! ([`crispen_marlin::motion`]) for their extent, arcs included. A file's material is
 //! only what its slicer wrote as one, never guessed from its temperatures; CuraEngine's
 //! Marlin flavour names none, and UltiGCode's `;MATERIAL:` is a volume, not a name. [`check_for`] compares that with
 //! a [`Machine`]: a file made for another filament or nozzle, another known printer, the
@@ -16,7 +16,7 @@
 //! Pure functions over a reader; no slicer is run.
 
 use crate::machine::Machine;
-use crate::marlin::motion::Motion;
+use crispen_marlin::motion::Motion;
 use std::io::BufRead;
 
 /// The first bytes of a binary G-code file (PrusaSlicer 2.7's `.bgcode`).
@@ -100,7 +100,7 @@ pub fn read_target(mut reader: impl BufRead) -> Result<GcodeTarget, PreslicedErr
         if let Some(c) = comment {
             read_comment(c, &mut t, &mut bed_xy, &mut bed_z);
         }
-        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
+        let Ok(Some(cmd)) = crispen_marlin::reader::read(code) else {
             continue;
         };
         commands += 1;

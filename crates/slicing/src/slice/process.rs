@@ -165,7 +165,7 @@ fn spawn_reader(
 
 /// Makes the kernel kill the child `cmd` starts if this process dies without a chance to
 /// clean up (kill -9, a crash), instead of leaving it to run on with no one waiting for it.
-pub(crate) fn die_with_this_process(cmd: &mut Command) {
+pub fn die_with_this_process(cmd: &mut Command) {
     let parent = nix::unistd::getpid();
     // SAFETY: between fork and exec only async-signal-safe calls (prctl and getppid) and no
     // allocation: an errno becomes an `io::Error` without a heap block, unlike a message.

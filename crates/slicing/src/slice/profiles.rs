@@ -28,10 +28,11 @@ use crate::machine::Machine;
 use std::ffi::OsString;
 use std::path::Path;
 
-pub(crate) const PRUSA_PROFILE: &str = include_str!("../../config/prusaslicer-ultimaker2.ini");
-pub(crate) const CURA_PROFILE: &str = include_str!("../../config/cura-ultimaker2.toml");
-pub(crate) const START_GCODE: &str = include_str!("../../gcode/start.gcode");
-pub(crate) const END_GCODE: &str = include_str!("../../gcode/end.gcode");
+pub(crate) const PRUSA_PROFILE: &str =
+    include_str!("../../../../config/prusaslicer-ultimaker2.ini");
+pub(crate) const CURA_PROFILE: &str = include_str!("../../../../config/cura-ultimaker2.toml");
+pub(crate) const START_GCODE: &str = include_str!("../../../../gcode/start.gcode");
+pub(crate) const END_GCODE: &str = include_str!("../../../../gcode/end.gcode");
 
 /// A slicer with its profile loaded, ready to slice jobs.
 pub trait SlicerProfile: std::fmt::Debug + Send + Sync {

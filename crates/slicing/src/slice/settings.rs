@@ -148,7 +148,7 @@ impl SliceSettings {
     }
 
     /// Checks every given setting is within what an Ultimaker 2 with a 0.4 mm nozzle can do.
-    pub(crate) fn validate(&self) -> Result<(), SliceError> {
+    pub fn validate(&self) -> Result<(), SliceError> {
         fn range(
             key: &str,
             v: Option<f64>,

@@ -1,9 +1,9 @@
 //! Which slicer runs, and how slicing fails: the definitions every slicer's module (and
 //! the profiles and settings they read) shares, apart from the root that runs them.
 
-use crate::enhance::EnhanceError;
 use crate::machine::SKIRT_MARGIN_MM;
-use crate::mesh::MeshError;
+use crispen_geometry::enhance::EnhanceError;
+use crispen_geometry::mesh::MeshError;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -171,7 +171,7 @@ pub enum SliceError {
 }
 
 impl SliceError {
-    pub(crate) fn io<'a>(
+    pub fn io<'a>(
         context: &'static str,
         path: &'a Path,
     ) -> impl FnOnce(std::io::Error) -> SliceError + 'a {

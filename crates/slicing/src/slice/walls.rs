@@ -3,7 +3,7 @@
 //!
 //! The outer wall is what a viewer sees of a print, and slicers mark it: PrusaSlicer
 //! `;TYPE:External perimeter`, CuraEngine `;TYPE:WALL-OUTER`. [`outer_walls`] follows the
-//! moves as Marlin would ([`crate::marlin::motion`]) and keeps every extruding move of that
+//! moves as Marlin would ([`crispen_marlin::motion`]) and keeps every extruding move of that
 //! type as a segment of its layer (layers keyed by Z to the micrometre). [`compare`]
 //! samples the enhanced walls every [`SAMPLE_SPACING_MM`] and measures each sample's
 //! distance to the nearest segment of the plain wall of the same layer (a grid of cells
@@ -14,7 +14,7 @@
 //! [`MAX_DISTANCE_MM`] (a wall moved that far is not a detail, and the cap bounds the
 //! search), and a wall longer than [`MAX_SAMPLES`] samples is sampled more coarsely.
 
-use crate::marlin::motion::Motion;
+use crispen_marlin::motion::Motion;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::BufRead;
@@ -87,7 +87,7 @@ pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
     Ok(walls)
 }
 
-/// Follows G-code as Marlin would ([`crate::marlin::motion`]) and hands `each` every move
+/// Follows G-code as Marlin would ([`crispen_marlin::motion`]) and hands `each` every move
 /// that pushes filament (E increasing) within a `;TYPE:` section whose kind `kind` accepts
 /// (a layer change ends a section); `kind(None)` says whether to take the moves of a file
 /// that has marked none so far (one from another slicer, or written by hand). Arcs come as
@@ -97,7 +97,7 @@ pub fn outer_walls(reader: impl BufRead) -> std::io::Result<OuterWalls> {
 pub(crate) fn extruding_moves(
     reader: impl BufRead,
     kind: impl Fn(Option<&str>) -> bool,
-    mut each: impl FnMut(crate::marlin::motion::Move),
+    mut each: impl FnMut(crispen_marlin::motion::Move),
 ) -> std::io::Result<()> {
     let mut motion = Motion::default();
     let mut marked = false;
@@ -118,7 +118,7 @@ pub(crate) fn extruding_moves(
                 in_kind = false;
             }
         }
-        let Ok(Some(cmd)) = crate::marlin::reader::read(code) else {
+        let Ok(Some(cmd)) = crispen_marlin::reader::read(code) else {
             continue;
         };
         // A command that cannot be followed leaves the position as it was: a file the
@@ -167,7 +167,7 @@ pub struct WallComparison {
     pub share_over_0_1_mm: f64,
     pub share_over_0_2_mm: f64,
     /// A quarter of the machine's line width (the threshold a printer's rounding hides a
-    /// move under, `crate::enhance::printed`), mm, and the share of the wall moved more.
+    /// move under, `crispen_geometry::enhance::printed`), mm, and the share of the wall moved more.
     #[serde(default)]
     pub quarter_line_mm: f64,
     #[serde(default)]
@@ -181,7 +181,7 @@ pub struct WallComparison {
 /// machine drawing lines `line_width_mm` wide.
 pub fn compare(plain: &OuterWalls, enhanced: &OuterWalls, line_width_mm: f64) -> WallComparison {
     let mut out = WallComparison {
-        quarter_line_mm: crate::enhance::LINE_WIDTH_FRACTION * line_width_mm,
+        quarter_line_mm: crispen_geometry::enhance::LINE_WIDTH_FRACTION * line_width_mm,
         ..WallComparison::default()
     };
     let matched: Vec<(i64, &[Segment], &[Segment])> = enhanced

@@ -12,6 +12,7 @@ pub(crate) mod enhance;
 mod error;
 pub(crate) mod keys;
 pub(crate) mod logging;
+pub(crate) mod maintenance;
 pub(crate) mod notify;
 pub(crate) mod observe;
 pub(crate) mod ports;
@@ -75,6 +76,8 @@ pub(crate) enum Command {
     Unload(control::PrinterArgs),
     /// List the farm's spools: material, colour, what is left, the printer each is on
     Spools(spools::SpoolsArgs),
+    /// The printers' care by use: tasks due, work done, a printer in maintenance by hand
+    Maintenance(maintenance::Args),
     /// Notifications: `crispen notify test` sends a test event to every receiver
     Notify(notify::Args),
     /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
@@ -119,6 +122,7 @@ pub(crate) fn main() -> ExitCode {
         Command::Load(a) => spools::load(a),
         Command::Unload(a) => spools::unload(a),
         Command::Spools(a) => spools::spools(a),
+        Command::Maintenance(a) => maintenance::run(a),
         Command::Notify(a) => notify::run(a),
         Command::Keys(a) => keys::run(a),
         Command::BedCheck(a) => bedcheck::run(a),

@@ -51,6 +51,22 @@ pub(crate) enum Command {
         printer: String,
     },
     AddSpool(super::spools::NewSpool),
+    /// Record a printer's care: a `[[maintenance]]` task done, or the printer put into or
+    /// taken out of maintenance by hand; `by` and `note` are kept with it.
+    Care {
+        printer: String,
+        what: CareAsk,
+        by: String,
+        note: Option<String>,
+    },
+}
+
+/// What an operator records of a printer's care (see [`Command::Care`]).
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) enum CareAsk {
+    Done { task: String },
+    Start,
+    End,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -181,6 +197,14 @@ pub(crate) enum CommandError {
     },
     #[error("job {0}: its directory in the spool was removed; the job failed")]
     DirectoryGone(String),
+    #[error("no maintenance task {task:?} for printer {printer} (its tasks: {tasks}; see [[maintenance]] in the config)")]
+    NoSuchTask {
+        printer: String,
+        task: String,
+        tasks: String,
+    },
+    #[error("{0}")]
+    BadCareNote(String),
     #[error(transparent)]
     Store(#[from] StoreError),
 }
@@ -219,6 +243,7 @@ impl CommandError {
             self,
             CommandError::NoPrinter(_)
                 | CommandError::NoSuchPart { .. }
+                | CommandError::NoSuchTask { .. }
                 | CommandError::Store(StoreError::NoSuchJob(_))
                 | CommandError::Store(StoreError::Filament(
                     super::filament::FilamentError::NoSuchSpool(_)
@@ -339,7 +364,97 @@ async fn run(farm: &Arc<Farm>, command: Command) -> Result<Done, CommandError> {
             Ok(super::spools::unload(farm, &printer).await?)
         }
         Command::AddSpool(new) => Ok(super::spools::add(farm, new).await?),
+        Command::Care {
+            printer,
+            what,
+            by,
+            note,
+        } => care(farm, &printer, what, by, note).await,
     }
+}
+
+/// Records a printer's care (see [`Command::Care`]): the task must be one of the
+/// printer's, `by` and `note` within their bounds.
+async fn care(
+    farm: &Farm,
+    printer: &str,
+    what: CareAsk,
+    by: String,
+    note: Option<String>,
+) -> Result<Done, CommandError> {
+    use super::care::{CareChange, Work, BY_CHARS, NOTE_CHARS};
+    known_printer(farm, printer)?;
+    let bounded = |what: &str, text: &str, max: usize| {
+        if let Some(problem) = crate::names::problem(text) {
+            return Err(CommandError::BadCareNote(format!("the {what} {problem}")));
+        }
+        if text.trim().is_empty() || text.chars().count() > max {
+            return Err(CommandError::BadCareNote(format!(
+                "the {what} must be 1 to {max} characters"
+            )));
+        }
+        Ok(())
+    };
+    bounded("name of who did it", &by, BY_CHARS)?;
+    if let Some(note) = &note {
+        bounded("note", note, NOTE_CHARS)?;
+    }
+    let work = Work {
+        at_s: super::job::now_s(),
+        by: by.trim().to_string(),
+        note: note.map(|n| n.trim().to_string()),
+    };
+    let (change, done) = match what {
+        CareAsk::Done { task } => {
+            let config = farm.config();
+            let tags = config
+                .printers
+                .iter()
+                .find(|p| p.name == printer)
+                .map_or(&[][..], |p| &p.tags[..]);
+            let tasks: Vec<&str> = config
+                .maintenance
+                .iter()
+                .filter(|t| t.applies_to(printer, tags))
+                .map(|t| t.name.as_str())
+                .collect();
+            if !tasks.contains(&task.as_str()) {
+                return Err(CommandError::NoSuchTask {
+                    printer: printer.to_string(),
+                    task,
+                    tasks: if tasks.is_empty() {
+                        "none".into()
+                    } else {
+                        tasks.join(", ")
+                    },
+                });
+            }
+            let done = Done::Serviced {
+                printer: printer.to_string(),
+                task: task.clone(),
+            };
+            (CareChange::Done { task, work }, done)
+        }
+        CareAsk::Start => (
+            CareChange::Hold(work),
+            Done::InMaintenance {
+                printer: printer.to_string(),
+                now: true,
+            },
+        ),
+        CareAsk::End => (
+            CareChange::Release(work),
+            Done::InMaintenance {
+                printer: printer.to_string(),
+                now: false,
+            },
+        ),
+    };
+    let name = printer.to_string();
+    farm.jobs()
+        .edit_inventory(move |inv| Ok(change.clone().apply(&name, &mut inv.care)?))
+        .await?;
+    Ok(done)
 }
 
 /// A command's error as its client is told it: a store error naming a file of the spool
@@ -358,7 +473,8 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
         | Command::Pause { printer }
         | Command::Resume { printer }
         | Command::Load { printer, .. }
-        | Command::Unload { printer } => (printer.as_str(), "-"),
+        | Command::Unload { printer }
+        | Command::Care { printer, .. } => (printer.as_str(), "-"),
         Command::AddSpool(_) => ("-", "-"),
     };
     // Why, and the spool's file it could not write (for the log only).
@@ -420,6 +536,11 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
             format!("{printer}: not done"),
             "nothing changed".to_string(),
             "ask again".to_string(),
+        ),
+        Command::Care { printer, .. } => (
+            format!("{printer}: its maintenance is not recorded"),
+            "its care record is as it was".to_string(),
+            "record it again".to_string(),
         ),
     };
     match &file {

@@ -65,6 +65,16 @@ pub(crate) enum Done {
         id: String,
         grams: f64,
     },
+    /// A `[[maintenance]]` task is recorded done on the printer: its counts start again.
+    Serviced {
+        printer: String,
+        task: String,
+    },
+    /// The printer is put into maintenance by hand (`now`), or taken out of it.
+    InMaintenance {
+        printer: String,
+        now: bool,
+    },
 }
 
 impl std::fmt::Display for Done {
@@ -135,6 +145,18 @@ impl std::fmt::Display for Done {
                 "{printer}: unloaded; it takes no job until a spool is loaded"
             ),
             Done::SpoolAdded { id, grams } => write!(f, "spool {id} added ({grams} g)"),
+            Done::Serviced { printer, task } => write!(
+                f,
+                "{printer}: {task} recorded as done; its count starts again from now"
+            ),
+            Done::InMaintenance { printer, now: true } => write!(
+                f,
+                "{printer} is in maintenance: it finishes its print, then takes no job until `crispen maintenance end {printer}`"
+            ),
+            Done::InMaintenance {
+                printer,
+                now: false,
+            } => write!(f, "{printer} is out of maintenance; it may take the next job"),
         }
     }
 }

@@ -53,6 +53,9 @@ pub enum PrinterState {
     Ejecting,
     /// Its camera checks the bed against the picture of it empty.
     CheckingBed,
+    /// Out of the queue for its care: held by hand, or a blocking `[[maintenance]]` task
+    /// is due (see `daemon::care`); the detail says which.
+    Maintenance,
     Disconnected,
     Stopped,
 }
@@ -178,6 +181,15 @@ pub struct PrinterStatus {
     /// every job ready by then was passed over by it. 0 until it first looks.
     #[serde(default)]
     pub looked_at: u64,
+    /// Its `[[maintenance]]` tasks, and where each stands (see `daemon::care`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub maintenance: Vec<super::care::TaskStatus>,
+    /// What it has done since its counting began.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub care: Option<super::care::Counts>,
+    /// Put into maintenance by hand: by whom, when, why.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held: Option<super::care::Work>,
 }
 
 /// What the fleet keeps of a printer in the farm: the receiving ends of what its
@@ -430,12 +442,19 @@ impl Farm {
         let names: Vec<String> = self.printers.borrow().keys().cloned().collect();
         let names: Vec<&str> = names.iter().map(String::as_str).collect();
         let offers = offers(&config, &store, &names);
+        let now = super::job::now_s();
         self.printers
             .borrow()
             .iter()
             .map(|(name, handle)| {
                 let live = handle.live.borrow().clone();
                 let gate = store.gate(name);
+                let care = store.inventory().care.get(name);
+                let tags = config
+                    .printers
+                    .iter()
+                    .find(|p| &p.name == name)
+                    .map_or(&[][..], |p| &p.tags[..]);
                 let holds = offers
                     .iter()
                     .find(|o| o.printer == name)
@@ -456,6 +475,9 @@ impl Farm {
                     host: host.clone(),
                     offline: false,
                     looked_at: *handle.looked.borrow(),
+                    maintenance: super::care::status(&config.maintenance, name, tags, care, now),
+                    care: care.map(|c| c.counts.clone()),
+                    held: care.and_then(|c| c.held.clone()),
                 }
             })
             .collect()

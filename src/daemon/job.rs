@@ -375,6 +375,13 @@ pub struct JobUse {
     /// grams × the spool's price per kg; None: its price is not known.
     pub cost: Option<f64>,
     pub at_s: f64,
+    /// Seconds the print took, from its start to its end (0 in records made before it was
+    /// kept): the printer's care counts its hours by it.
+    #[serde(default)]
+    pub print_s: f64,
+    /// The print failed (a cancel, a stop or a daemon killed during it is no failure).
+    #[serde(default)]
+    pub failed: bool,
 }
 
 impl JobUse {

@@ -11,6 +11,8 @@
 //! - [`hotfolder`]: deciding when a dropped file is complete; [`pickup`] admits them.
 //! - [`prepare`]: a job's preparation (sidecars, machines, the steps) and its queue.
 //! - [`printer`]: printer supervisors and staggered heat-ups; [`fleet`]: the set of them.
+//! - [`care`]: a printer's care by use: its counts, its `[[maintenance]]` tasks falling
+//!   due, the work recorded, a printer held out of the queue by hand.
 //! - [`control`]: the farm's operations (status and the operator's commands), served by
 //!   the `http` module on the control socket and on TCP; [`done`]: what a command did.
 //! - [`reload`]: SIGHUP, and when each config key's change takes effect.
@@ -22,6 +24,7 @@
 //! daemon does not know of `http`.
 
 pub mod bed;
+pub mod care;
 pub mod command;
 pub mod config;
 pub mod control;

@@ -297,6 +297,23 @@ async fn supervise_inner(
                     continue;
                 }
             }
+            if let Some(kept) = kept_for_care(farm, &sup.name) {
+                sup.show(|p| {
+                    eject::forget_bed_shown(p);
+                    p.state = PrinterState::Maintenance;
+                    p.job = None;
+                    p.progress = None;
+                    p.detail = with_reset_note(reset_between, Some(kept.describe()));
+                });
+                sup.owner.looked.send_replace(version);
+                match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                    Between::Lost => continue 'connect,
+                    Between::Halted(message) => halted = Some(message),
+                    Between::Rebooted => reset_between = true,
+                    Between::Changed => {}
+                }
+                continue;
+            }
             let Some(job_id) = claim_job(farm, &sup.name).await else {
                 sup.show(|p| {
                     eject::forget_bed_shown(p);
@@ -491,6 +508,26 @@ fn lost_between_jobs(sup: &Supervisor, why: String) {
 /// Takes the oldest ready job this printer may print, marking it printing. The search and
 /// the change are one request to the job store: supervisors run on several threads, and
 /// two of them must never take the same job.
+/// Why `printer` takes no job for its care now, if it takes none: held by hand, or a
+/// blocking task due (by the counts and the clock as they are when it would claim one: a
+/// task due by days needs no change to be seen, since only a change brings a job).
+fn kept_for_care(farm: &Farm, printer: &str) -> Option<super::care::Kept> {
+    let config = farm.config();
+    let tags = config
+        .printers
+        .iter()
+        .find(|p| p.name == printer)
+        .map_or(&[][..], |p| &p.tags[..]);
+    let store = farm.store();
+    super::care::kept(
+        &config.maintenance,
+        printer,
+        tags,
+        store.inventory().care.get(printer),
+        super::job::now_s(),
+    )
+}
+
 async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let eligible = eligible(farm, printer)?;
     match farm.jobs().claim(printer, eligible).await {
@@ -749,7 +786,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         Err(_) if sent_nothing => 0,
         Err(_) => progress_rx.borrow().lines_acked,
     };
-    let usage = odometer.measure().await;
+    let mut usage = odometer.measure(super::job::now_s()).await;
     let mut printed = None;
     let (state, reason, lost) = match outcome {
         Ok(report) => {
@@ -787,6 +824,9 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             | PrintFailure::LoaderCrashed(_)),
         ) => (JobState::Failed, Some(why.to_string()), false),
     };
+    if let Some(u) = &mut usage {
+        u.failed = state == JobState::Failed;
+    }
     let recorded = farm
         .jobs()
         .record_outcome(

@@ -109,6 +109,8 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     // Read by each preparation.
     ("enhancement.reference_height_mm", Policy::Live),
     ("enhancement.observe_timeout_s", Policy::Live),
+    // Read at each claim, status and notification.
+    ("maintenance", Policy::Live),
 ];
 
 /// Keys of the file (and every key under them) whose change is seen as the change of a
@@ -130,6 +132,7 @@ pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     // The default filament is the material and colour together.
     ("printer.colour", "printer.material"),
     ("spoolman", "spoolman"),
+    ("maintenance", "maintenance"),
 ];
 
 /// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
@@ -167,9 +170,11 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         camera,
         spoolman,
         enhancement,
+        maintenance,
         // Said again at every reload; not a setting.
         warnings: _,
     } = new;
+    differs("maintenance", *maintenance != old.maintenance);
     differs("spool.dir", *spool_dir != old.spool_dir);
     differs("control.socket", *socket != old.socket);
     let FarmConfig {
@@ -705,6 +710,11 @@ mod tests {
             "enhancement.observe_timeout_s",
             "[history]\n",
             "[enhancement]\nobserve_timeout_s = 60\n[history]\n",
+        ),
+        (
+            "maintenance",
+            "[history]\n",
+            "[[maintenance]]\nname = \"nozzle\"\nevery_kg = 2\n[history]\n",
         ),
     ];
 

@@ -31,6 +31,13 @@ pub(crate) struct Odometer {
     pub gcode: PathBuf,
     pub firmware: Firmware,
     pub lines_acked: usize,
+    /// When the print started, and when the odometer was last written (seconds since the
+    /// epoch): a print the daemon was killed during took until then. 0 in odometers left
+    /// by a version that did not keep them.
+    #[serde(default)]
+    pub started_s: f64,
+    #[serde(default)]
+    pub written_s: f64,
     /// The parts of the plate the print dropped, and the command each was dropped from:
     /// their lines from there on pushed nothing.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -64,13 +71,16 @@ impl Odometer {
             gcode: gcode.to_path_buf(),
             firmware: on.map_or(Firmware::Marlin2, |p| p.firmware),
             lines_acked: 0,
+            started_s: super::job::now_s(),
+            written_s: 0.0,
             cancels: Vec::new(),
         }
     }
 
     /// Writes the odometer (a temporary file renamed over it, not synced: it must outlive
     /// the process, not a power cut, and it is rewritten several times a second).
-    pub(crate) async fn write(&self, path: &Path) {
+    pub(crate) async fn write(&mut self, path: &Path) {
+        self.written_s = super::job::now_s();
         let bytes = serde_json::to_vec(self).expect("an odometer serialises");
         let temp = crate::fsutil::temp_path(path);
         let written = async {
@@ -101,8 +111,9 @@ impl Odometer {
     /// The use of the print as far as it got: the filament the acknowledged lines of its
     /// G-code push, as the host sent them (a cancelled part's lines from its cancel on
     /// push nothing: `crate::marlin::plate::sent_lines`). Reads the G-code on a blocking
-    /// thread. None when nothing was acknowledged or the G-code cannot be read.
-    pub(crate) async fn measure(&self) -> Option<JobUse> {
+    /// thread. None when nothing was acknowledged or the G-code cannot be read. `ended_s`:
+    /// when the print ended.
+    pub(crate) async fn measure(&self, ended_s: f64) -> Option<JobUse> {
         if self.lines_acked == 0 {
             return None;
         }
@@ -164,7 +175,13 @@ impl Odometer {
                 .as_ref()
                 .and_then(|f| f.price_per_kg)
                 .map(|p| grams * p / 1000.0),
-            at_s: super::job::now_s(),
+            at_s: ended_s,
+            print_s: if self.started_s > 0.0 {
+                (ended_s - self.started_s).max(0.0)
+            } else {
+                0.0
+            },
+            failed: false,
         })
     }
 }
@@ -186,7 +203,13 @@ pub(crate) async fn recover(farm: &super::farm::Farm, printer: &str) {
     let Some(odometer) = Odometer::read(&path).await else {
         return;
     };
-    if let Some(usage) = odometer.measure().await {
+    // The print ended, as far as anyone can tell, when its odometer was last written.
+    let ended_s = if odometer.written_s > 0.0 {
+        odometer.written_s
+    } else {
+        super::job::now_s()
+    };
+    if let Some(usage) = odometer.measure(ended_s).await {
         let (print, grams) = (odometer.print, usage.grams);
         let recorded = farm
             .jobs()

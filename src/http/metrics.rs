@@ -13,7 +13,7 @@ use axum::http::header;
 use axum::response::IntoResponse;
 use std::fmt::Write;
 
-const PRINTER_STATES: [PrinterState; 12] = [
+const PRINTER_STATES: [PrinterState; 13] = [
     PrinterState::Connecting,
     PrinterState::Idle,
     PrinterState::WaitingToHeat,
@@ -24,6 +24,7 @@ const PRINTER_STATES: [PrinterState; 12] = [
     PrinterState::BedNotCleared,
     PrinterState::Ejecting,
     PrinterState::CheckingBed,
+    PrinterState::Maintenance,
     PrinterState::Disconnected,
     PrinterState::Stopped,
 ];
@@ -129,6 +130,69 @@ fn render_cameras(farm: &crate::daemon::farm::Farm, cameras: &crate::camera::Cam
     out.0
 }
 
+/// The printers' care (see `daemon::care`): what each has done since its counting began
+/// (kept in the store, so these survive restarts) and which `[[maintenance]]` tasks are due.
+fn render_care(out: &mut Out, printers: &[crate::daemon::farm::PrinterStatus]) {
+    type Figure = fn(&crate::daemon::care::Counts) -> f64;
+    let families: [(&str, &str, Figure); 4] = [
+        (
+            "crispen_printer_care_print_seconds_total",
+            "Seconds the printer has printed since its care counting began.",
+            |c| c.print_s,
+        ),
+        (
+            "crispen_printer_care_prints_total",
+            "Prints the printer has made (each heats it up once) since its counting began.",
+            |c| c.prints as f64,
+        ),
+        (
+            "crispen_printer_care_failed_prints_total",
+            "Of those prints, the ones that failed.",
+            |c| c.failed as f64,
+        ),
+        (
+            "crispen_printer_care_filament_grams_total",
+            "Grams of filament the printer has pushed (of prints whose filament was known).",
+            |c| c.filament_g,
+        ),
+    ];
+    for (name, help, figure) in families {
+        out.family(name, "counter", help);
+        for p in printers {
+            if let Some(c) = &p.care {
+                out.sample(name, &[("printer", &p.name)], figure(c));
+            }
+        }
+    }
+    out.family(
+        "crispen_maintenance_due",
+        "gauge",
+        "1 when the printer's [[maintenance]] task is due (blocking: it takes no job until done).",
+    );
+    for p in printers {
+        for t in &p.maintenance {
+            let block = if t.block { "true" } else { "false" };
+            out.sample(
+                "crispen_maintenance_due",
+                &[("printer", &p.name), ("task", &t.task), ("blocking", block)],
+                f64::from(u8::from(t.due)),
+            );
+        }
+    }
+    out.family(
+        "crispen_printer_in_maintenance",
+        "gauge",
+        "1 while the printer is in maintenance by hand.",
+    );
+    for p in printers {
+        out.sample(
+            "crispen_printer_in_maintenance",
+            &[("printer", &p.name)],
+            f64::from(u8::from(p.held.is_some())),
+        );
+    }
+}
+
 pub(crate) fn render(farm: &crate::daemon::farm::Farm, counters: &Counters) -> String {
     let view = super::api::snapshot(farm);
     let mut out = Out(String::new());
@@ -166,6 +230,7 @@ pub(crate) fn render(farm: &crate::daemon::farm::Farm, counters: &Counters) -> S
             );
         }
     }
+    render_care(&mut out, &view.printers);
     out.family(
         "crispen_printer_bed_cleared",
         "gauge",

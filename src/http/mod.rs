@@ -26,6 +26,7 @@ mod appkeys_api;
 mod assets;
 mod auth;
 mod camera;
+mod care;
 mod counters;
 mod error;
 mod events;
@@ -80,6 +81,11 @@ pub(crate) fn router(state: AppState) -> Router {
             post(api::printer_action),
         )
         .route("/api/v1/printers/{name}/load", post(spools::load))
+        .route("/api/v1/printers/{name}/maintenance", get(care::record))
+        .route(
+            "/api/v1/printers/{name}/maintenance/{action}",
+            post(care::action),
+        )
         .route("/api/v1/spools", get(spools::list).post(spools::add))
         .route("/api/v1/jobs", get(api::jobs))
         .route("/api/v1/jobs/{id}", get(api::job))

@@ -27,6 +27,8 @@ pub enum EventKind {
     /// A printer that clears its bed by machine stopped for a person: the camera found the
     /// bed not clear (with the marked picture), could not check it, or the eject failed.
     BedNotClear,
+    /// A `[[maintenance]]` task fell due on a printer (see `daemon::care`).
+    MaintenanceDue,
     /// `crispen notify test`.
     Test,
 }
@@ -45,6 +47,7 @@ impl EventKind {
             EventKind::HostLost => "host_lost",
             EventKind::SpoolLow => "spool_low",
             EventKind::BedNotClear => "bed_not_clear",
+            EventKind::MaintenanceDue => "maintenance_due",
             EventKind::Test => "test",
         }
     }
@@ -63,6 +66,7 @@ impl EventKind {
             EventKind::HostLost => "Farm host lost",
             EventKind::SpoolLow => "Spool running low",
             EventKind::BedNotClear => "Bed not clear: the printer waits for a person",
+            EventKind::MaintenanceDue => "Maintenance due",
             EventKind::Test => "Test notification",
         }
     }
@@ -79,6 +83,7 @@ impl EventKind {
                 | EventKind::HostLost
                 | EventKind::SpoolLow
                 | EventKind::BedNotClear
+                | EventKind::MaintenanceDue
         )
     }
 }
@@ -172,6 +177,7 @@ mod tests {
             EventKind::HostLost,
             EventKind::SpoolLow,
             EventKind::BedNotClear,
+            EventKind::MaintenanceDue,
             EventKind::Test,
         ];
         let names: Vec<&str> = all.iter().map(|k| k.name()).collect();

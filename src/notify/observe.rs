@@ -22,6 +22,36 @@ use crate::daemon::job::{Job, JobState};
 use crate::daemon::store::postgres::FarmHost;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
+/// Why `maintenance_due` was told: the task, the intervals it reached, and whether the
+/// printer waits for it.
+fn due_reason(printer: &str, task: &crate::daemon::care::TaskStatus) -> String {
+    let reached: Vec<String> = task
+        .intervals
+        .iter()
+        .filter(|i| i.reached())
+        .map(|i| {
+            format!(
+                "{} of {} {}",
+                crate::names::number((i.used * 10.0).round() / 10.0),
+                crate::names::number(i.every),
+                i.measure.unit()
+            )
+        })
+        .collect();
+    let then = if task.block {
+        format!(
+            "{printer} takes no job until `crispen maintenance done {printer} {:?}`",
+            task.task
+        )
+    } else {
+        format!(
+            "record it with `crispen maintenance done {printer} {:?}`",
+            task.task
+        )
+    };
+    format!("{}: {}; {then}", task.task, reached.join(", "))
+}
+
 /// How a printer's state counts for notifications.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Presence {
@@ -44,7 +74,9 @@ fn presence(state: PrinterState) -> Presence {
         | PrinterState::Printing
         | PrinterState::BedNotCleared
         | PrinterState::Ejecting
-        | PrinterState::CheckingBed => Presence::Online,
+        | PrinterState::CheckingBed
+        // Its due task is an event of its own (`maintenance_due`).
+        | PrinterState::Maintenance => Presence::Online,
         // A halted printer needs the operator as much as a paused one: it takes no job
         // until it was reset. (A halt that stopped a print is the job's `printer_error`.)
         PrinterState::Paused | PrinterState::WaitingForOperator | PrinterState::Halted => {
@@ -83,6 +115,8 @@ pub(crate) struct Observer {
     hosts: BTreeMap<String, bool>,
     /// Whether each spool was low (below `[farm] spool_low_g`) at the last look.
     low: BTreeMap<String, bool>,
+    /// The `[[maintenance]]` tasks due on each of this host's printers at the last look.
+    due: BTreeMap<String, BTreeSet<String>>,
 }
 
 /// The farm as it is now, as the observer reads it.
@@ -110,6 +144,7 @@ impl Observer {
             printers: BTreeMap::new(),
             hosts: BTreeMap::new(),
             low: BTreeMap::new(),
+            due: BTreeMap::new(),
         }
     }
 
@@ -175,6 +210,22 @@ impl Observer {
             if !first && bed_stopped && !was_stopped {
                 events.push(self.bed_event(p, look.now));
             }
+            let due: BTreeSet<String> = p
+                .maintenance
+                .iter()
+                .filter(|t| t.due)
+                .map(|t| t.task.clone())
+                .collect();
+            let was_due = self.due.remove(&p.name).unwrap_or_default();
+            for task in p.maintenance.iter().filter(|t| t.due) {
+                if !first && !was_due.contains(&task.task) {
+                    let mut e = self.event(EventKind::MaintenanceDue, look.now);
+                    e.printer = Some(p.name.clone());
+                    e.reason = Some(due_reason(&p.name, task));
+                    events.push(e);
+                }
+            }
+            self.due.insert(p.name.clone(), due);
             printers.insert(
                 p.name.clone(),
                 PrinterSeen {
@@ -309,6 +360,7 @@ impl Observer {
             | EventKind::HostLost
             | EventKind::SpoolLow
             | EventKind::BedNotClear
+            | EventKind::MaintenanceDue
             | EventKind::Test => None,
         };
         if let (Some(dashboard), Some(picture), Some(printer)) =
@@ -397,6 +449,9 @@ mod tests {
             bed: Default::default(),
             last_check: None,
             looked_at: 0,
+            maintenance: Vec::new(),
+            care: None,
+            held: None,
         }
     }
 

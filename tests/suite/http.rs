@@ -2039,6 +2039,8 @@ fn statistics_page_in_a_real_browser() {
                 mm: 4000.0,
                 cost: Some(0.3125),
                 at_s: now - end,
+                print_s: 0.0,
+                failed: false,
             }];
         }
         std::fs::write(dir.join("job.json"), serde_json::to_vec(&job).unwrap()).unwrap();

@@ -20,6 +20,7 @@ mod history;
 mod http;
 mod layers;
 mod machines;
+mod maintenance;
 mod mesh_io;
 mod night;
 mod notify;

@@ -49,6 +49,8 @@ pub struct Config {
     pub spoolman: Option<super::spoolman::SpoolmanConfig>,
     /// The observer's reference size and time bound (`[enhancement]`).
     pub enhancement: crate::observation::ObserveSettings,
+    /// The printers' care by use (`[[maintenance]]`).
+    pub maintenance: Vec<crate::daemon::care::Task>,
     /// What is accepted but unwise (a key file others can read), each naming its section
     /// and key: shown by `crispen run --check` and logged at every start and reload.
     pub warnings: Vec<String>,

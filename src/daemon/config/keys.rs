@@ -254,7 +254,8 @@ mod tests {
                 "notify",
                 "camera",
                 "spoolman",
-                "enhancement"
+                "enhancement",
+                "maintenance"
             ]
         );
     }

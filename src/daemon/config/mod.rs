@@ -25,6 +25,7 @@ mod folders;
 mod history;
 mod http;
 mod machines;
+mod maintenance;
 pub(crate) mod notify;
 pub(crate) mod octoprint;
 mod pause;
@@ -190,6 +191,8 @@ printers = ["demo"]
         };
         let enhancement = enhancement::check(raw.enhancement)
             .map_err(|(key, m)| invalid("[enhancement]".into(), key, m))?;
+        let maintenance = maintenance::check(raw.maintenance, &printers)
+            .map_err(|(section, key, m)| invalid(section, key, m))?;
         let history = match raw.history {
             None => HistoryConfig::default(),
             Some(h) => history::check(h).map_err(|(key, m)| invalid("[history]".into(), key, m))?,
@@ -211,6 +214,7 @@ printers = ["demo"]
                 camera,
                 spoolman,
                 enhancement,
+                maintenance,
                 warnings,
             },
             http,

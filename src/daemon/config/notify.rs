@@ -28,7 +28,7 @@ pub(super) struct RawNotify {
 }
 
 /// The events a receiver may ask for, by name (the `event` field of what is sent).
-pub(crate) const EVENT_NAMES: [&str; 12] = [
+pub(crate) const EVENT_NAMES: [&str; 13] = [
     "job_done",
     "job_failed",
     "job_cancelled",
@@ -40,6 +40,7 @@ pub(crate) const EVENT_NAMES: [&str; 12] = [
     "host_lost",
     "spool_low",
     "bed_not_clear",
+    "maintenance_due",
     "test",
 ];
 

@@ -40,6 +40,23 @@ pub(super) struct RawConfig {
     pub(super) spoolman: Option<super::spoolman::RawSpoolman>,
     #[serde(default)]
     pub(super) enhancement: Option<RawEnhancement>,
+    #[serde(default, rename = "maintenance")]
+    pub(super) maintenance: Vec<RawMaintenance>,
+}
+
+/// `[[maintenance]]`: see `maintenance.rs`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawMaintenance {
+    pub(super) name: String,
+    pub(super) printers: Option<Vec<String>>,
+    pub(super) tags: Option<Vec<String>>,
+    pub(super) every_print_hours: Option<f64>,
+    pub(super) every_kg: Option<f64>,
+    pub(super) every_abrasive_kg: Option<f64>,
+    pub(super) every_jobs: Option<f64>,
+    pub(super) every_days: Option<f64>,
+    pub(super) block: Option<bool>,
 }
 
 /// `[enhancement]`: see `enhancement.rs`.
@@ -242,7 +259,7 @@ pub(super) fn parse_raw(text: &str, path: &Path) -> Result<(RawConfig, PathBuf),
 
 /// The tables as their headers are written, for an error about an unknown one. A test
 /// checks it against the file's shape (`keys::tables`).
-pub(super) const KNOWN_TABLES: [&str; 13] = [
+pub(super) const KNOWN_TABLES: [&str; 14] = [
     "[spool]",
     "[control]",
     "[farm]",
@@ -256,6 +273,7 @@ pub(super) const KNOWN_TABLES: [&str; 13] = [
     "[camera]",
     "[spoolman]",
     "[enhancement]",
+    "[[maintenance]]",
 ];
 
 /// The table header on the line of `offset`, when that header names no known table.

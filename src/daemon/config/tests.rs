@@ -844,3 +844,65 @@ fn names_with_control_or_bidi_characters_are_refused() {
     );
     parse(&text).unwrap();
 }
+
+/// `[[maintenance]]`: tasks apply by printer or tag, need an interval within its bounds,
+/// and are refused naming the table and the key.
+#[test]
+fn maintenance_tasks_are_checked() {
+    let with = |table: &str| parse(&format!("{GOOD}\n[[maintenance]]\n{table}"));
+    let c = with(
+        "name = \"nozzle\"\nprinters = [\"sim\"]\nevery_kg = 2\nevery_jobs = 100\nblock = true\n",
+    )
+    .unwrap();
+    let t = &c.maintenance[0];
+    assert_eq!(t.name, "nozzle");
+    assert!(t.block);
+    assert_eq!(
+        t.every,
+        [
+            (crate::daemon::care::Measure::Kg, 2.0),
+            (crate::daemon::care::Measure::Jobs, 100.0)
+        ]
+    );
+    assert!(t.applies_to("sim", &[]) && !t.applies_to("um2-a", &[]));
+    for (table, key, says) in [
+        ("name = \"n\"\n", "every_print_hours", "needs an interval"),
+        (
+            "name = \"n\"\nevery_jobs = 0.5\n",
+            "every_jobs",
+            "whole number",
+        ),
+        ("name = \"n\"\nevery_kg = -1\n", "every_kg", "from 0.01"),
+        ("name = \"n\"\nevery_days = nan\n", "every_days", "got NaN"),
+        (
+            "name = \"n\"\nprinters = [\"x\"]\nevery_days = 1\n",
+            "printers",
+            "\"x\"",
+        ),
+        (
+            "name = \"n\"\ntags = [\"big\"]\nevery_days = 1\n",
+            "tags",
+            "\"big\"",
+        ),
+        ("name = \"a/b\"\nevery_days = 1\n", "name", "without `/`"),
+    ] {
+        let e = with(table).unwrap_err().to_string();
+        assert!(
+            e.contains("[[maintenance]] #1")
+                && e.contains(&format!("key `{key}`"))
+                && e.contains(says),
+            "{table}: {e}"
+        );
+    }
+    let e = with("name = \"n\"\nevery_days = 1\n[[maintenance]]\nname = \"n\"\nevery_days = 2\n")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("[[maintenance]] #2") && e.contains("another task"),
+        "{e}"
+    );
+    let e = with("name = \"n\"\nevery_day = 1\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("every_day"), "{e}");
+}

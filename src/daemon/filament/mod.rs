@@ -165,6 +165,11 @@ pub struct Inventory {
     /// before stays as it was last read.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub set_aside: Vec<SetAside>,
+    /// Each printer's care: what it has done, the work done on it, whether it is held (see
+    /// `crate::daemon::care`). Kept in this document so that a print is counted in the
+    /// same write, under the same lock, as the spools' ledgers.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub care: BTreeMap<String, crate::daemon::care::PrinterCare>,
 }
 
 /// A spool of Spoolman's the farm did not take, and why.
@@ -196,6 +201,9 @@ pub enum FilamentError {
     LoadedElsewhere { spool: String, printer: String },
     #[error("{0}")]
     Invalid(String),
+    /// A change of a printer's care record (kept in the same document) was refused.
+    #[error(transparent)]
+    Care(#[from] crate::daemon::care::CareError),
 }
 
 /// Bounds on what an operator may enter for a spool.

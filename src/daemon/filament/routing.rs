@@ -210,7 +210,7 @@ pub enum Refusal {
 }
 
 /// Materials that wear a brass nozzle out (carbon and glass fibre fills, glow-in-the-dark).
-fn abrasive(material: &str) -> bool {
+pub(crate) fn abrasive(material: &str) -> bool {
     let m = material.to_ascii_uppercase();
     m.contains("-CF") || m.contains("-GF") || m.ends_with("CF") || m.contains("GLOW")
 }

@@ -680,6 +680,8 @@ mod tests {
             mm: grams * 300.0,
             cost,
             at_s: 1e9,
+            print_s: 0.0,
+            failed: false,
         }
     }
 

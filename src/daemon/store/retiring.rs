@@ -1,12 +1,16 @@
 //! Moving finished jobs out of the live snapshot to the history: at a change that left
 //! too many live, and in the task's periodic round. Apart because both a request (an
 //! operator's `retire`) and the task's own timer make the round. Before any job leaves,
-//! the spools' ledgers take the uses the live jobs recorded ([`catch_up_ledgers`]).
+//! the spools' ledgers and the printers' care counts take the uses the live jobs recorded
+//! ([`catch_up_ledgers`]).
 
 use super::history::Retention;
 use super::job_store::JobStore;
 use super::snapshot::Snapshot;
-use crate::daemon::job::StoreError;
+use crate::daemon::care;
+use crate::daemon::filament::routing::abrasive;
+use crate::daemon::job::{JobUse, StoreError};
+use std::collections::HashSet;
 
 /// Moves what `retention` no longer keeps live to the history and out of the snapshot,
 /// one batch.
@@ -73,30 +77,54 @@ pub(super) fn retire_beyond_limit(
     moved
 }
 
-/// Brings the spools' ledgers up to date with the uses the live jobs recorded with their
-/// outcomes (a use is in the job's record first, in the same write as the outcome; here it
-/// reaches its spool, once: the ledger is keyed by the use). Says whether anything changed.
-/// A failure (the disk, the database) is logged and tried again at the next change; until
-/// it succeeds no finished job leaves the live view (its use would leave with it).
+/// How long a counted print's key is kept once its job is no longer live here: longer
+/// than any host of a shared farm can lag behind another in seeing a job (so none counts a
+/// print again that another counted and then retired).
+const COUNTED_KEPT_S: f64 = 86_400.0;
+
+/// Brings the spools' ledgers and the printers' care counts up to date with the uses the
+/// live jobs recorded with their outcomes (a use is in the job's record first, in the same
+/// write as the outcome; here it reaches its spool and its printer's counts, once: both are
+/// keyed by the use). Says whether anything changed. A failure (the disk, the database) is
+/// logged and tried again at the next change; until it succeeds no finished job leaves the
+/// live view (its use would leave with it).
 pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) -> Result<bool, ()> {
     let inventory = view.inventory();
-    let missing: Vec<crate::daemon::job::JobUse> = view
+    let uncounted = |u: &JobUse| {
+        inventory
+            .care
+            .get(&u.printer)
+            .is_none_or(|c| !c.counted.contains_key(&u.key))
+    };
+    let off_ledger = |u: &JobUse| {
+        u.spool
+            .as_ref()
+            .and_then(|s| inventory.spools.get(s))
+            .is_some_and(|s| !s.uses.contains_key(&u.key))
+    };
+    let missing: Vec<JobUse> = view
         .jobs()
         .flat_map(|j| j.uses.iter())
-        .filter(|u| {
-            u.spool
-                .as_ref()
-                .and_then(|s| inventory.spools.get(s))
-                .is_some_and(|s| !s.uses.contains_key(&u.key))
-        })
+        .filter(|u| off_ledger(u) || uncounted(u))
         .cloned()
         .collect();
     if missing.is_empty() {
         return Ok(false);
     }
+    let live: HashSet<&str> = view.jobs().map(|j| j.id.as_str()).collect();
     let job_of = |key: &str| key.rsplit_once('#').map_or(key, |(j, _)| j).to_string();
+    let now = crate::daemon::job::now_s();
     let result = store.edit_inventory(&mut |inv| {
         for u in &missing {
+            let print = care::Print {
+                print_s: u.print_s,
+                failed: u.failed,
+                material: &u.material,
+                mm: u.mm,
+                g: if u.weighed() { u.grams } else { 0.0 },
+                abrasive: u.weighed() && abrasive(&u.material),
+            };
+            care::count(&mut inv.care, &u.printer, &u.key, u.at_s, print);
             let Some(spool) = &u.spool else { continue };
             inv.record_use(
                 spool,
@@ -111,6 +139,9 @@ pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) ->
                 },
             );
         }
+        care::forget(&mut inv.care, |key, at| {
+            live.contains(job_of(key).as_str()) || now - at < COUNTED_KEPT_S
+        });
         Ok(())
     });
     match result {
@@ -119,7 +150,7 @@ pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) ->
             Ok(true)
         }
         Err(e) => {
-            tracing::error!(error = %e, "cannot record the prints' filament on their spools; tried again at the next change");
+            tracing::error!(error = %e, "cannot record the prints' filament on their spools and printers; tried again at the next change");
             Err(())
         }
     }

@@ -4,6 +4,7 @@
 //! spool among them), which the task itself does not depend on.
 
 use super::change::{JobChange, Use};
+use super::handle::StoreHandle;
 use super::history::{self, Retention};
 use super::job_store::{JobEdit, JobStore, RetiredJob};
 use super::rules::StateFilter;
@@ -406,6 +407,8 @@ async fn a_use_is_booked_before_its_job_retires() {
         mm: 0.0,
         cost: None,
         at_s: 0.0,
+        print_s: 0.0,
+        failed: false,
     };
     handle
         .transition_from(
@@ -422,6 +425,96 @@ async fn a_use_is_booked_before_its_job_retires() {
     let s = &snapshot.inventory().spools[&spool];
     assert!(s.uses.contains_key(&key), "{:?}", s.uses);
     assert_eq!(s.remaining_g(), Some(87.5));
+    // The printer's care counted it in the same write.
+    let care = &snapshot.inventory().care["p"];
+    assert_eq!((care.counts.prints, care.counts.filament_g), (1, 12.5));
+    assert_eq!(care.counts.materials["PETG"].g, 12.5);
+}
+
+/// A print is counted on its printer once, whoever sees its use and however often: a
+/// restart of the store reads the counts and the uses counted back, and counts nothing
+/// again; a failed print counts as one; the key of a use whose job left the live view a
+/// day before is forgotten at the next count.
+#[tokio::test]
+async fn a_print_is_counted_once_across_restarts() {
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir(&hot).unwrap();
+    let root = tmp.path().join("spool");
+    let print = |id: &str, n: usize, at_s: f64, failed: bool| {
+        JobChange::Used(Use {
+            print: n,
+            usage: crate::daemon::job::JobUse {
+                key: format!("{id}#{n}"),
+                spool: None,
+                printer: "p".into(),
+                material: "PLA".into(),
+                colour: "black".into(),
+                grams: 2.0,
+                mm: 660.0,
+                cost: None,
+                at_s,
+                print_s: 600.0,
+                failed,
+            },
+        })
+    };
+    let admit = |handle: &StoreHandle, name: &str| {
+        let model = hot.join(name);
+        std::fs::write(&model, b"G28\n").unwrap();
+        let handle = handle.clone();
+        let hot = hot.clone();
+        async move { handle.admit(&model, &hot, &[]).await.unwrap().id }
+    };
+    // The store's task is awaited once its last handle is gone, so the spool is free.
+    let (handle, task) =
+        super::task::start(spool::Spool::open(&root).unwrap(), Retention::default());
+    let task = tokio::spawn(task);
+    let old = admit(&handle, "old.gcode").await;
+    handle
+        .update(&old, print(&old, 0, 1.0, false))
+        .await
+        .unwrap();
+    let id = admit(&handle, "a.gcode").await;
+    handle
+        .update(&id, print(&id, 0, 1e12, false))
+        .await
+        .unwrap();
+    handle.update(&id, print(&id, 1, 1e12, true)).await.unwrap();
+    let care = handle.snapshot().inventory().care["p"].clone();
+    assert_eq!((care.counts.prints, care.counts.failed), (3, 1));
+    assert_eq!(care.counts.print_s, 1800.0);
+    assert_eq!(care.counted.len(), 3);
+    drop(handle);
+    task.await.unwrap();
+
+    let handle = spawn(spool::Spool::open(&root).unwrap());
+    // The first job leaves the live view; the next count forgets its key (its print ended
+    // long before), and counts nothing twice.
+    handle
+        .transition_from(
+            &old,
+            &[JobState::Queued],
+            JobState::Cancelled,
+            None,
+            JobChange::Nothing,
+        )
+        .await
+        .unwrap();
+    assert_eq!(handle.retire(1e12).await.unwrap(), std::slice::from_ref(&old));
+    let other = admit(&handle, "b.gcode").await;
+    handle
+        .update(&other, print(&other, 0, 1e12, false))
+        .await
+        .unwrap();
+    let care = handle.snapshot().inventory().care["p"].clone();
+    assert_eq!((care.counts.prints, care.counts.failed), (4, 1));
+    assert!(
+        !care.counted.contains_key(&format!("{old}#0")),
+        "{:?}",
+        care.counted
+    );
+    assert!(care.counted.contains_key(&format!("{id}#1")));
 }
 
 /// Through the store's task, a clear that cannot be written is refused and the published

@@ -142,6 +142,7 @@ function printerTile(p, status) {
       "<span>Bed <b>" + temp(t.bed_c, t.bed_target_c) + "</b></span></div>";
   }
   html += holdsLine(p.holds);
+  html += careView(p);
   html += bedView(p);
   if (p.detail) html += '<div class="detail">' + esc(p.detail) + "</div>";
   html += '<div class="actions">';
@@ -155,8 +156,32 @@ function printerTile(p, status) {
     html += '<button class="spool" data-spool-printer="' + esc(p.name) + '">Load spool</button>';
     if (!p.holds.unloaded && (p.holds.spool || p.holds.filament)) html += '<button data-action="unload" data-printer="' + esc(p.name) + '">Unload</button>';
   }
+  if (!p.offline) {
+    html += p.held
+      ? '<button data-action="careend" data-printer="' + esc(p.name) + '">End maintenance</button>'
+      : '<button data-action="carestart" data-printer="' + esc(p.name) + '" title="it finishes its print, then takes no job until maintenance ends">Maintenance</button>';
+  }
   html += "</div></article>";
   return html;
+}
+
+// One interval of a maintenance task: "1.2 of 2 kg".
+const CARE_UNITS = { print_hours: "print hours", kg: "kg", abrasive_kg: "kg abrasive", jobs: "prints", days: "days" };
+function careInterval(i) {
+  return (Math.round(i.used * 10) / 10) + " of " + i.every + " " + (CARE_UNITS[i.measure] || i.measure);
+}
+
+// A printer's due maintenance tasks, each with its intervals and a button to record it done.
+function careView(p) {
+  const due = (p.maintenance || []).filter((t) => t.due);
+  if (!due.length) return "";
+  let html = '<ul class="care">';
+  for (const t of due) {
+    const reached = t.intervals.filter((i) => i.used >= i.every).map(careInterval).join(", ");
+    html += '<li class="' + (t.block ? "blocking" : "due") + '">' + esc(t.task) + " due: " + esc(reached) +
+      ' <button data-action="caredone" data-printer="' + esc(p.name) + '" data-task="' + esc(t.task) + '">Done</button></li>';
+  }
+  return html + "</ul>";
 }
 
 // A printer's bed when its camera found it not clear: the marked picture and the figures.
@@ -524,6 +549,11 @@ const ACTIONS = {
   retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
   release: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/release"],
   unload: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/unload", "Take the spool off " + el.dataset.printer + "? It takes no job until one is loaded."],
+  caredone: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/maintenance/done?by=dashboard&task=" + encodeURIComponent(el.dataset.task),
+    "Record " + el.dataset.task + " as done on " + el.dataset.printer + "? Its count starts again from now."],
+  carestart: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/maintenance/start?by=dashboard",
+    "Put " + el.dataset.printer + " into maintenance? It finishes its print, then takes no job until maintenance ends."],
+  careend: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/maintenance/end?by=dashboard"],
   reference: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/clear?reference=true", "Is the bed of " + el.dataset.printer + " empty, and its camera where it stays? Its picture now becomes the empty bed the check compares with."],
 };
 

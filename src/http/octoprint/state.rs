@@ -96,9 +96,10 @@ fn state_text(p: Option<&PrinterStatus>) -> String {
         PrinterState::WaitingToHeat => "Starting".to_string(),
         // A finished print still on the bed: the printer is there, it takes no job until
         // the operator clears it (`crispen.printers` says so).
-        PrinterState::Idle | PrinterState::BedNotCleared | PrinterState::CheckingBed => {
-            "Operational".to_string()
-        }
+        PrinterState::Idle
+        | PrinterState::BedNotCleared
+        | PrinterState::CheckingBed
+        | PrinterState::Maintenance => "Operational".to_string(),
         // The eject sequence moves the printer: busy, as while it prints.
         PrinterState::Ejecting => "Printing".to_string(),
         PrinterState::Connecting => "Connecting".to_string(),
@@ -124,6 +125,7 @@ fn flags(p: Option<&PrinterStatus>) -> Value {
                 | PrinterState::BedNotCleared
                 | PrinterState::Ejecting
                 | PrinterState::CheckingBed
+                | PrinterState::Maintenance
         )
     );
     json!({

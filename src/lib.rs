@@ -25,6 +25,8 @@
 //!   No I/O.
 //! - [`camera`]: the printers' cameras: frames fetched off the printing path, each
 //!   printer's picture, and the snapshots and timelapse kept with each job.
+//! - [`power`]: the printers' power switches (Tasmota, Shelly, Home Assistant, plain
+//!   HTTP): the requests and answers of each, below the farm that decides.
 //! - [`spoolman`]: a client for Spoolman, the filament-spool inventory server: spools, and
 //!   the filament a print used booked against its spool.
 //! - [`service`]: `crispen run` as one supervised service: wires `daemon` and `http`.
@@ -56,6 +58,7 @@ pub mod notify;
 pub mod outbound;
 pub mod percent;
 pub mod ports;
+pub mod power;
 pub mod service;
 pub use crispen_sim as sim;
 pub use crispen_slicing::{machine, observation, observe, preview, slice};

@@ -16,6 +16,7 @@ pub(crate) mod maintenance;
 pub(crate) mod notify;
 pub(crate) mod observe;
 pub(crate) mod ports;
+pub(crate) mod power;
 pub(crate) mod prepare_job;
 pub(crate) mod print;
 pub(crate) mod run;
@@ -78,6 +79,8 @@ pub(crate) enum Command {
     Spools(spools::SpoolsArgs),
     /// The printers' care by use: tasks due, work done, a printer in maintenance by hand
     Maintenance(maintenance::Args),
+    /// Switch a printer with a [printer.power] switch on or off, between prints
+    Power(power::Args),
     /// Notifications: `crispen notify test` sends a test event to every receiver
     Notify(notify::Args),
     /// Application keys of OctoPrint clients: list, allow or deny a request, revoke a key
@@ -123,6 +126,7 @@ pub(crate) fn main() -> ExitCode {
         Command::Unload(a) => spools::unload(a),
         Command::Spools(a) => spools::spools(a),
         Command::Maintenance(a) => maintenance::run(a),
+        Command::Power(a) => power::run(a),
         Command::Notify(a) => notify::run(a),
         Command::Keys(a) => keys::run(a),
         Command::BedCheck(a) => bedcheck::run(a),

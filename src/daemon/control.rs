@@ -59,6 +59,13 @@ pub(crate) enum Command {
         by: String,
         note: Option<String>,
     },
+    /// Switch a printer with a `[printer.power]` switch on or off (off with `force`: even
+    /// with a print still on its bed; never while it prints or is hot).
+    Power {
+        printer: String,
+        on: bool,
+        force: bool,
+    },
 }
 
 /// What an operator records of a printer's care (see [`Command::Care`]).
@@ -205,6 +212,8 @@ pub(crate) enum CommandError {
     },
     #[error("{0}")]
     BadCareNote(String),
+    #[error("{0}")]
+    Power(String),
     #[error(transparent)]
     Store(#[from] StoreError),
 }
@@ -370,6 +379,69 @@ async fn run(farm: &Arc<Farm>, command: Command) -> Result<Done, CommandError> {
             by,
             note,
         } => care(farm, &printer, what, by, note).await,
+        Command::Power { printer, on, force } => power(farm, &printer, on, force).await,
+    }
+}
+
+/// Asks a printer's supervisor to switch it (see [`Command::Power`]); between prints
+/// only, as it answers within [`POWER_ANSWER`](super::farm::POWER_ANSWER).
+async fn power(farm: &Farm, printer: &str, on: bool, force: bool) -> Result<Done, CommandError> {
+    use super::farm::{PowerRequest, PrinterState, POWER_ANSWER};
+    let handle = match known_printer(farm, printer)? {
+        Whose::Mine => farm
+            .printer(printer)
+            .ok_or_else(|| CommandError::NoPrinter(printer.into()))?,
+        Whose::Other => {
+            return Err(CommandError::Power(format!(
+                "{printer} is another host's printer: switch it on its host"
+            )))
+        }
+    };
+    if !farm
+        .config()
+        .printers
+        .iter()
+        .any(|p| p.name == printer && p.power.is_some())
+    {
+        return Err(CommandError::Power(format!(
+            "{printer} has no [printer.power] switch"
+        )));
+    }
+    let state = handle.live.borrow().state;
+    let busy = state.has_print_under_way()
+        || matches!(
+            state,
+            PrinterState::WaitingToHeat | PrinterState::Ejecting | PrinterState::CheckingBed
+        );
+    if busy {
+        return Err(CommandError::Power(format!(
+            "{printer} is busy ({state:?}); it is switched between prints only"
+        )));
+    }
+    let (reply, answer) = tokio::sync::oneshot::channel();
+    let request = PowerRequest {
+        on,
+        force,
+        asked: std::time::Instant::now(),
+        reply,
+    };
+    handle.power.try_send(request).map_err(|_| {
+        CommandError::Power(format!("{printer}: other power requests wait; ask again"))
+    })?;
+    match tokio::time::timeout(POWER_ANSWER, answer).await {
+        Ok(Ok(Ok(changed))) => Ok(Done::Switched {
+            printer: printer.into(),
+            on,
+            already: !changed,
+        }),
+        Ok(Ok(Err(why))) => Err(CommandError::Power(format!("{printer}: {why}"))),
+        Ok(Err(_)) => Err(CommandError::Power(format!(
+            "{printer}: its supervisor stopped"
+        ))),
+        Err(_) => Err(CommandError::Power(format!(
+            "{printer}: no answer within {} s (it may have started a print); nothing was switched",
+            POWER_ANSWER.as_secs()
+        ))),
     }
 }
 
@@ -474,7 +546,8 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
         | Command::Resume { printer }
         | Command::Load { printer, .. }
         | Command::Unload { printer }
-        | Command::Care { printer, .. } => (printer.as_str(), "-"),
+        | Command::Care { printer, .. }
+        | Command::Power { printer, .. } => (printer.as_str(), "-"),
         Command::AddSpool(_) => ("-", "-"),
     };
     // Why, and the spool's file it could not write (for the log only).
@@ -535,6 +608,11 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
         Command::Pause { printer } | Command::Resume { printer } => (
             format!("{printer}: not done"),
             "nothing changed".to_string(),
+            "ask again".to_string(),
+        ),
+        Command::Power { printer, .. } => (
+            format!("{printer}: not switched"),
+            "its switch is as it was".to_string(),
             "ask again".to_string(),
         ),
         Command::Care { printer, .. } => (

@@ -75,6 +75,12 @@ pub(crate) enum Done {
         printer: String,
         now: bool,
     },
+    /// The printer's switch is switched on or off (`already`: it was).
+    Switched {
+        printer: String,
+        on: bool,
+        already: bool,
+    },
 }
 
 impl std::fmt::Display for Done {
@@ -157,6 +163,18 @@ impl std::fmt::Display for Done {
                 printer,
                 now: false,
             } => write!(f, "{printer} is out of maintenance; it may take the next job"),
+            Done::Switched {
+                printer,
+                on,
+                already,
+            } => {
+                let state = if *on { "on" } else { "off" };
+                match already {
+                    true => write!(f, "{printer} was already switched {state}"),
+                    false if *on => write!(f, "{printer} switched on; it connects once it has booted"),
+                    false => write!(f, "{printer} switched off; it is switched on again when it has work"),
+                }
+            }
         }
     }
 }

@@ -56,6 +56,10 @@ pub enum PrinterState {
     /// Out of the queue for its care: held by hand, or a blocking `[[maintenance]]` task
     /// is due (see `daemon::care`); the detail says which.
     Maintenance,
+    /// Switched off by its power switch (`[printer.power]`): idle and cool for long enough,
+    /// or by hand; switched on again when it has work. The detail says why, and what the
+    /// switch answered.
+    Off,
     Disconnected,
     Stopped,
 }
@@ -190,6 +194,9 @@ pub struct PrinterStatus {
     /// Put into maintenance by hand: by whom, when, why.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub held: Option<super::care::Work>,
+    /// It has a power switch (`[printer.power]`) its host switches.
+    #[serde(default)]
+    pub switchable: bool,
 }
 
 /// What the fleet keeps of a printer in the farm: the receiving ends of what its
@@ -201,6 +208,8 @@ pub(crate) struct PrinterHandle {
     pub looked: watch::Receiver<u64>,
     /// The control channel into the print in progress; None between prints.
     pub print: watch::Receiver<Option<mpsc::Sender<PrintCommand>>>,
+    /// Operators' switching of its power, to its supervisor.
+    pub power: mpsc::Sender<PowerRequest>,
 }
 
 /// The owning ends of a printer's [`PrinterHandle`], held by its supervisor.
@@ -208,23 +217,46 @@ pub(crate) struct PrinterOwner {
     pub live: watch::Sender<PrinterLive>,
     pub looked: watch::Sender<u64>,
     pub print: watch::Sender<Option<mpsc::Sender<PrintCommand>>>,
+    /// Operators' switching of its power; the supervisor alone takes them (the lock is
+    /// never contended: it only lets the supervisor's shared reference receive).
+    pub power: tokio::sync::Mutex<mpsc::Receiver<PowerRequest>>,
 }
+
+/// An operator's switching of a printer's power (`crispen power`, the dashboard), for its
+/// supervisor, which carries it out between prints only.
+#[derive(Debug)]
+pub(crate) struct PowerRequest {
+    pub on: bool,
+    /// Off even though a finished print is still on its bed (never while it is hot).
+    pub force: bool,
+    /// A request its supervisor takes later than [`POWER_ANSWER`] after this is refused:
+    /// its asker has been told it was not done.
+    pub asked: std::time::Instant,
+    /// Whether the switch changed (false: it was already so), or why it was not done.
+    pub reply: tokio::sync::oneshot::Sender<Result<bool, String>>,
+}
+
+/// How long an operator's power request waits for its supervisor.
+pub(crate) const POWER_ANSWER: std::time::Duration = std::time::Duration::from_secs(15);
 
 /// A new printer's owner (for its supervisor) and handle (for the farm).
 pub(crate) fn printer_channels(initial: PrinterLive) -> (PrinterOwner, PrinterHandle) {
     let (live, live_rx) = watch::channel(initial);
     let (looked, looked_rx) = watch::channel(0);
     let (print, print_rx) = watch::channel(None);
+    let (power, power_rx) = mpsc::channel(4);
     (
         PrinterOwner {
             live,
             looked,
             print,
+            power: tokio::sync::Mutex::new(power_rx),
         },
         PrinterHandle {
             live: live_rx,
             looked: looked_rx,
             print: print_rx,
+            power,
         },
     )
 }
@@ -478,6 +510,10 @@ impl Farm {
                     maintenance: super::care::status(&config.maintenance, name, tags, care, now),
                     care: care.map(|c| c.counts.clone()),
                     held: care.and_then(|c| c.held.clone()),
+                    switchable: config
+                        .printers
+                        .iter()
+                        .any(|p| &p.name == name && p.power.is_some()),
                 }
             })
             .collect()

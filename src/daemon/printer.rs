@@ -23,10 +23,12 @@
 //! the config and the shared farm's database state, never a global wake-up.
 
 use super::bed::Bed;
+use super::config::power::PowerConfig;
 use super::farm::{
     Farm, FarmView, LiveProgress, PrintCommand, PrinterLive, PrinterOwner, PrinterState,
     PrinterTemperatures,
 };
+use super::farm::{PowerRequest, POWER_ANSWER};
 use super::job::{JobState, PrintReport};
 use super::store::{JobChange, Use};
 use super::time_left::{Pace, PaceSample, TimeLeft};
@@ -187,9 +189,56 @@ async fn supervise_inner(
     let done = |retire: &watch::Receiver<bool>| farm.stopping() || *retire.borrow();
     // A print the daemon was stopped during (a kill): its filament, before anything else.
     super::usage::recover(farm, &sup.name).await;
+    // Its switch, as the config had it when the supervisor started (a change restarts it).
+    let power = farm
+        .config()
+        .printers
+        .iter()
+        .find(|p| p.name == sup.name)
+        .and_then(|p| p.power.clone());
+    // Why the printer is switched off, while it is; and until when a printer just switched
+    // on may take to answer.
+    let mut off = match &power {
+        Some(p) => off_at_start(p).await,
+        None => None,
+    };
+    let mut booting: Option<tokio::time::Instant> = None;
+    // Since when the printer has been idle on a clear bed with nothing to print.
+    let mut idle_since: Option<tokio::time::Instant> = None;
     'connect: loop {
         if done(&retire) {
             break;
+        }
+        if let (Some(p), Some(why)) = (&power, off.clone()) {
+            let reply = match while_off(sup, &why, &mut retire).await {
+                OffEnd::Stop => break,
+                OffEnd::Again => continue,
+                OffEnd::On(reply) => reply,
+            };
+            sup.show(|l| {
+                l.state = PrinterState::Connecting;
+                l.detail = Some("switching on".into());
+            });
+            match p.switch.send(crate::power::Ask::On).await {
+                Ok(_) => {
+                    tracing::info!(switch = p.switch.kind(), "switched the printer on");
+                    answer(reply, Ok(true));
+                    off = None;
+                    idle_since = None;
+                    booting = Some(tokio::time::Instant::now() + p.boot);
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot switch the printer on");
+                    answer(reply, Err(format!("cannot switch it on: {e}")));
+                    off = Some(format!("cannot switch it on: {e}; tried again in 30 s"));
+                    tokio::select! {
+                        _ = tokio::time::sleep(Duration::from_secs(30)) => {}
+                        _ = farm.shutdown.cancelled() => {}
+                        _ = retire.changed() => {}
+                    }
+                    continue;
+                }
+            }
         }
         sup.show(|p| {
             p.state = PrinterState::Connecting;
@@ -203,14 +252,36 @@ async fn supervise_inner(
         let mut link = match connected {
             Ok(link) => {
                 backoff = Duration::from_millis(500);
+                booting = None;
                 tracing::info!("connected");
                 link
             }
+            // Just switched on: its port appears, and its firmware answers, when it has
+            // booted; until then, tried again soon and shown as connecting.
+            Err(e) if booting.is_some_and(|until| tokio::time::Instant::now() < until) => {
+                sup.show(|p| {
+                    p.state = PrinterState::Connecting;
+                    p.detail = Some(format!("switched on; waiting for it to answer ({e})"));
+                });
+                tokio::select! {
+                    _ = tokio::time::sleep(Duration::from_millis(500)) => {}
+                    _ = farm.shutdown.cancelled() => {}
+                    _ = retire.changed() => {}
+                }
+                continue;
+            }
             Err(e) => {
                 tracing::warn!(error = %e, retry_in_s = backoff.as_secs_f64(), "cannot connect");
+                let waited = booting.take().and(power.as_ref()).map(|p| p.boot);
                 sup.show(|p| {
                     p.state = PrinterState::Disconnected;
-                    p.detail = Some(e.to_string());
+                    p.detail = Some(match waited {
+                        Some(boot) => format!(
+                            "switched on, but it did not answer within {} s: {e}",
+                            boot.as_secs()
+                        ),
+                        None => e.to_string(),
+                    });
                 });
                 tokio::select! {
                     _ = tokio::time::sleep(backoff) => {}
@@ -273,6 +344,7 @@ async fn supervise_inner(
                     continue;
                 }
                 bed => {
+                    idle_since = None;
                     let (state, detail) = match bed {
                         Bed::CheckDue { .. } => (PrinterState::CheckingBed, bed.describe()),
                         // An eject a restart found under way is the store's to end (its
@@ -288,16 +360,30 @@ async fn supervise_inner(
                         p.detail = detail;
                     });
                     sup.owner.looked.send_replace(version);
-                    match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                    match between_jobs(
+                        sup,
+                        link.as_mut(),
+                        &mut follow,
+                        &mut retire,
+                        power.as_ref(),
+                        None,
+                    )
+                    .await
+                    {
                         Between::Lost => continue 'connect,
                         Between::Halted(message) => halted = Some(message),
                         Between::Rebooted => reset_between = true,
                         Between::Changed => {}
+                        Between::Off(why) => {
+                            off = Some(why);
+                            continue 'connect;
+                        }
                     }
                     continue;
                 }
             }
             if let Some(kept) = kept_for_care(farm, &sup.name) {
+                idle_since = None;
                 sup.show(|p| {
                     eject::forget_bed_shown(p);
                     p.state = PrinterState::Maintenance;
@@ -306,11 +392,24 @@ async fn supervise_inner(
                     p.detail = with_reset_note(reset_between, Some(kept.describe()));
                 });
                 sup.owner.looked.send_replace(version);
-                match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                match between_jobs(
+                    sup,
+                    link.as_mut(),
+                    &mut follow,
+                    &mut retire,
+                    power.as_ref(),
+                    None,
+                )
+                .await
+                {
                     Between::Lost => continue 'connect,
                     Between::Halted(message) => halted = Some(message),
                     Between::Rebooted => reset_between = true,
                     Between::Changed => {}
+                    Between::Off(why) => {
+                        off = Some(why);
+                        continue 'connect;
+                    }
                 }
                 continue;
             }
@@ -325,15 +424,35 @@ async fn supervise_inner(
                     p.progress = None;
                 });
                 sup.owner.looked.send_replace(version);
-                match between_jobs(sup, link.as_mut(), &mut follow, &mut retire).await {
+                // Idle since it last had a print or a bed to wait for, whatever changed since.
+                let since = *idle_since.get_or_insert_with(tokio::time::Instant::now);
+                let off_at = power
+                    .as_ref()
+                    .and_then(|p| p.off_after_idle)
+                    .map(|a| since + a);
+                match between_jobs(
+                    sup,
+                    link.as_mut(),
+                    &mut follow,
+                    &mut retire,
+                    power.as_ref(),
+                    off_at,
+                )
+                .await
+                {
                     Between::Lost => continue 'connect,
                     Between::Halted(message) => halted = Some(message),
                     Between::Rebooted => reset_between = true,
                     Between::Changed => {}
+                    Between::Off(why) => {
+                        off = Some(why);
+                        continue 'connect;
+                    }
                 }
                 continue;
             };
             reset_between = false;
+            idle_since = None;
             let span = tracing::info_span!("job", job = %job_id);
             let end = run_job(sup, &job_id, link.as_mut()).instrument(span).await;
             if end.lost {
@@ -413,6 +532,8 @@ enum Between {
     Halted(String),
     /// The printer reset itself (it said `start`).
     Rebooted,
+    /// Its switch switched it off (why, as shown): idle and cool long enough, or by hand.
+    Off(String),
 }
 
 /// `detail` with the note of a reset between jobs in front, when there was one.
@@ -434,26 +555,240 @@ async fn between_jobs(
     link: &mut dyn PrinterLink,
     follow: &mut Follow,
     retire: &mut watch::Receiver<bool>,
+    power: Option<&PowerConfig>,
+    off_at: Option<tokio::time::Instant>,
 ) -> Between {
+    let mut requests = sup.owner.power.lock().await;
+    // An idle printer with a switch is switched off at `off_at`, once cool.
+    let after = power
+        .and_then(|p| p.off_after_idle)
+        .filter(|_| off_at.is_some());
+    // Without one, a timer that never fires (a century away).
+    let timer =
+        tokio::time::sleep_until(off_at.unwrap_or_else(|| {
+            tokio::time::Instant::now() + Duration::from_secs(100 * 365 * 86_400)
+        }));
+    tokio::pin!(timer);
+    let mut due = false;
     loop {
         let news = tokio::select! {
             () = follow.changed() => return Between::Changed,
             _ = retire.changed() => return Between::Changed,
-            news = link.watch_idle() => news,
+            () = &mut timer, if !due && after.is_some() => {
+                due = true;
+                None
+            }
+            Some(request) = requests.recv() => {
+                if let Some((p, reply)) = power.and_then(|p| by_hand(sup, p, request)) {
+                    if let Some(why) = switch_off(sup, p, Some(reply), "switched off by hand").await {
+                        return Between::Off(why);
+                    }
+                }
+                continue;
+            }
+            news = link.watch_idle() => Some(news),
         };
         match news {
-            IdleNews::Temperatures(t) => sup.show(|p| p.temperatures = t),
-            IdleNews::Halted(message) => {
+            Some(IdleNews::Temperatures(t)) => sup.show(|p| p.temperatures = t),
+            Some(IdleNews::Halted(message)) => {
                 tracing::error!(message, "the printer halted between jobs");
                 return Between::Halted(message);
             }
-            IdleNews::Rebooted => {
+            Some(IdleNews::Rebooted) => {
                 tracing::warn!("printer reset between jobs (it said `start`); the next job starts with a fresh handshake");
                 return Between::Rebooted;
             }
-            IdleNews::Lost(why) => {
+            Some(IdleNews::Lost(why)) => {
                 lost_between_jobs(sup, why);
                 return Between::Lost;
+            }
+            None => {}
+        }
+        let (Some(p), Some(after), true) = (power, after, due) else {
+            continue;
+        };
+        // Idle long enough: off once cool (never while its fan must cool the hotend).
+        match hotend_too_hot(sup, p) {
+            None => {
+                let why = format!("switched off after {} idle", minutes(after));
+                if let Some(why) = switch_off(sup, p, None, &why).await {
+                    return Between::Off(why);
+                }
+                // Not switched: tried again after as long again.
+                timer.as_mut().reset(tokio::time::Instant::now() + after);
+                due = false;
+            }
+            Some(hot) => sup.show(|l| {
+                l.detail = Some(format!(
+                    "idle {}; stays on while its hotend is {hot} (switched off below {} °C)",
+                    minutes(after),
+                    p.safe_hotend_c
+                ))
+            }),
+        }
+    }
+}
+
+/// `12 min`, `30 s`.
+fn minutes(d: Duration) -> String {
+    let s = d.as_secs_f64();
+    if s >= 60.0 {
+        format!("{} min", crate::names::number((s / 6.0).round() / 10.0))
+    } else {
+        format!("{} s", crate::names::number(s.round()))
+    }
+}
+
+/// Why the printer must not be switched off for its heat, if it must not: its hotend at or
+/// above `safe_hotend_c`, or not known.
+fn hotend_too_hot(sup: &Supervisor, p: &PowerConfig) -> Option<String> {
+    let hotend = sup
+        .owner
+        .live
+        .borrow()
+        .temperatures
+        .and_then(|t| t.hotend_c);
+    match hotend {
+        Some(c) if c < p.safe_hotend_c => None,
+        Some(c) => Some(format!("{c:.0} °C")),
+        None => Some("not known".into()),
+    }
+}
+
+/// An operator's power request while the printer is on and between prints: the switch and
+/// the reply when it is to be switched off now; else answered here (it is on already, or
+/// may not be switched off now).
+fn by_hand<'a>(
+    sup: &Supervisor,
+    p: &'a PowerConfig,
+    request: PowerRequest,
+) -> Option<(
+    &'a PowerConfig,
+    tokio::sync::oneshot::Sender<Result<bool, String>>,
+)> {
+    let refuse = |why: String| Err(why);
+    let answer_now = |reply: tokio::sync::oneshot::Sender<Result<bool, String>>, a| {
+        let _ = reply.send(a);
+        None
+    };
+    if request.asked.elapsed() > POWER_ANSWER {
+        return answer_now(
+            request.reply,
+            refuse("asked too long ago; ask again".into()),
+        );
+    }
+    if request.on {
+        return answer_now(request.reply, Ok(false));
+    }
+    let bed_waits = !matches!(
+        sup.owner.live.borrow().state,
+        PrinterState::Idle | PrinterState::Maintenance
+    );
+    if bed_waits && !request.force {
+        return answer_now(
+            request.reply,
+            refuse(
+                "a print is still on its bed: clear it first, or switch off with --force".into(),
+            ),
+        );
+    }
+    if let Some(hot) = hotend_too_hot(sup, p) {
+        return answer_now(
+            request.reply,
+            refuse(format!(
+                "its hotend is {hot}: it is switched off only below safe_hotend_c = {} °C",
+                p.safe_hotend_c
+            )),
+        );
+    }
+    Some((p, request.reply))
+}
+
+/// Switches the printer off: why it is off when it did (for [`Between::Off`]), else None
+/// with the switch's error shown. `reply`: an operator's request to answer.
+async fn switch_off(
+    sup: &Supervisor,
+    p: &PowerConfig,
+    reply: Option<tokio::sync::oneshot::Sender<Result<bool, String>>>,
+    why: &str,
+) -> Option<String> {
+    match p.switch.send(crate::power::Ask::Off).await {
+        Ok(_) => {
+            tracing::info!(switch = p.switch.kind(), why, "switched the printer off");
+            answer(reply, Ok(true));
+            Some(why.to_string())
+        }
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot switch the printer off");
+            sup.show(|l| l.detail = Some(format!("cannot switch it off: {e}")));
+            answer(reply, Err(format!("cannot switch it off: {e}")));
+            None
+        }
+    }
+}
+
+/// Answers an operator's power request, if there is one.
+fn answer(
+    reply: Option<tokio::sync::oneshot::Sender<Result<bool, String>>>,
+    result: Result<bool, String>,
+) {
+    if let Some(reply) = reply {
+        let _ = reply.send(result);
+    }
+}
+
+/// Whether a printer with a switch is off as the supervisor starts: why, if its switch
+/// says so (a switch that cannot be asked, or does not answer, is taken as on).
+async fn off_at_start(p: &PowerConfig) -> Option<String> {
+    match p.switch.send(crate::power::Ask::State).await {
+        Ok(false) => Some("its switch was off when the daemon started".into()),
+        Ok(true) | Err(crate::power::PowerError::NoState) => None,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot ask the printer's switch whether it is on; taken as on");
+            None
+        }
+    }
+}
+
+/// How waiting while switched off ended.
+enum OffEnd {
+    /// Switch it on: it has work, or an operator asked (their reply).
+    On(Option<tokio::sync::oneshot::Sender<Result<bool, String>>>),
+    /// The config changed: look again.
+    Again,
+    /// The farm stops.
+    Stop,
+}
+
+/// Shows the printer off (`why`) and waits for work it can take, an operator's request to
+/// switch it on, or the end.
+async fn while_off(sup: &Supervisor, why: &str, retire: &mut watch::Receiver<bool>) -> OffEnd {
+    let farm = &sup.farm;
+    let mut requests = sup.owner.power.lock().await;
+    loop {
+        let mut follow = Follow::new(farm);
+        sup.show(|p| {
+            p.state = PrinterState::Off;
+            p.detail = Some(why.to_string());
+            p.temperatures = None;
+            p.job = None;
+            p.progress = None;
+        });
+        if job_waiting_for(farm, &sup.name) {
+            return OffEnd::On(None);
+        }
+        tokio::select! {
+            () = follow.changed() => {}
+            _ = retire.changed() => return OffEnd::Again,
+            _ = farm.shutdown.cancelled() => return OffEnd::Stop,
+            Some(request) = requests.recv() => {
+                if request.asked.elapsed() > POWER_ANSWER {
+                    let _ = request.reply.send(Err("asked too long ago; ask again".into()));
+                } else if request.on {
+                    return OffEnd::On(Some(request.reply));
+                } else {
+                    let _ = request.reply.send(Ok(false));
+                }
             }
         }
     }

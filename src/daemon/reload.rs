@@ -109,6 +109,8 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     // Read by each preparation.
     ("enhancement.reference_height_mm", Policy::Live),
     ("enhancement.observe_timeout_s", Policy::Live),
+    // The printer's supervisor takes its switch when it starts.
+    ("printer.power", Policy::PrinterRestart),
     // Read at each claim, status and notification.
     ("maintenance", Policy::Live),
 ];
@@ -133,6 +135,7 @@ pub(crate) const REPORTED_AS: &[(&str, &str)] = &[
     ("printer.colour", "printer.material"),
     ("spoolman", "spoolman"),
     ("maintenance", "maintenance"),
+    ("printer.power", "printer.power"),
 ];
 
 /// The policy of a key of [`POLICY`]. A key missing from the table is treated as needing
@@ -292,6 +295,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             tags,
             eject,
             bed_clear,
+            power,
         } = new;
         let simulated = |p: &super::config::PrinterPort| {
             matches!(p, super::config::PrinterPort::Simulated { .. })
@@ -316,6 +320,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
         differs("printer.tags", *tags != old.tags);
         differs("printer.eject", *eject != old.eject);
         differs("printer.bed_clear", *bed_clear != old.bed_clear);
+        differs("printer.power", *power != old.power);
     }
     differs(
         "printer",
@@ -710,6 +715,11 @@ mod tests {
             "enhancement.observe_timeout_s",
             "[history]\n",
             "[enhancement]\nobserve_timeout_s = 60\n[history]\n",
+        ),
+        (
+            "printer.power",
+            "baud = 115200\n",
+            "baud = 115200\n[printer.power]\nkind = \"tasmota\"\nurl = \"http://plug\"\n",
         ),
         (
             "maintenance",

@@ -505,6 +505,43 @@ pub(crate) async fn printer_action(
     act(&state, command).await
 }
 
+/// The query of `POST /api/v1/printers/{name}/power/{on|off}`.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PowerQuery {
+    /// Off even with a print still on its bed.
+    pub force: Option<bool>,
+}
+
+/// `POST /api/v1/printers/{name}/power/{on|off}`: switches a printer with a
+/// `[printer.power]` switch, between prints.
+pub(crate) async fn power(
+    State(state): State<AppState>,
+    Path((name, switch)): Path<(String, String)>,
+    query: Result<axum::extract::Query<PowerQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let query = query.map_err(bad_query)?.0;
+    if !control::printer_names(&state.farm).contains(&name) {
+        return Err(no_printer(&state.farm, &name));
+    }
+    let on = match switch.as_str() {
+        "on" => true,
+        "off" => false,
+        other => {
+            return Err(ApiError::not_found(format!(
+                "no power action {}; they are on, off",
+                quoted(other)
+            )))
+        }
+    };
+    let command = Command::Power {
+        printer: name,
+        on,
+        force: query.force == Some(true),
+    };
+    act(&state, command).await
+}
+
 /// The query of a printer action: `reference=true` with `clear`.
 #[derive(Debug, serde::Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -13,7 +13,7 @@ use axum::http::header;
 use axum::response::IntoResponse;
 use std::fmt::Write;
 
-const PRINTER_STATES: [PrinterState; 13] = [
+const PRINTER_STATES: [PrinterState; 14] = [
     PrinterState::Connecting,
     PrinterState::Idle,
     PrinterState::WaitingToHeat,
@@ -25,6 +25,7 @@ const PRINTER_STATES: [PrinterState; 13] = [
     PrinterState::Ejecting,
     PrinterState::CheckingBed,
     PrinterState::Maintenance,
+    PrinterState::Off,
     PrinterState::Disconnected,
     PrinterState::Stopped,
 ];
@@ -205,7 +206,10 @@ pub(crate) fn render(farm: &crate::daemon::farm::Farm, counters: &Counters) -> S
     for p in &view.printers {
         let up = !matches!(
             p.state,
-            PrinterState::Connecting | PrinterState::Disconnected | PrinterState::Stopped
+            PrinterState::Connecting
+                | PrinterState::Disconnected
+                | PrinterState::Stopped
+                | PrinterState::Off
         );
         out.sample(
             "crispen_printer_up",

@@ -81,6 +81,7 @@ pub(crate) fn router(state: AppState) -> Router {
             post(api::printer_action),
         )
         .route("/api/v1/printers/{name}/load", post(spools::load))
+        .route("/api/v1/printers/{name}/power/{switch}", post(api::power))
         .route("/api/v1/printers/{name}/maintenance", get(care::record))
         .route(
             "/api/v1/printers/{name}/maintenance/{action}",

@@ -83,7 +83,8 @@ fn presence(state: PrinterState) -> Presence {
             Presence::Waiting
         }
         PrinterState::Disconnected => Presence::Offline,
-        PrinterState::Stopped => Presence::Stopped,
+        // Switched off on purpose (idle, or by hand): nothing to tell.
+        PrinterState::Stopped | PrinterState::Off => Presence::Stopped,
     }
 }
 
@@ -452,6 +453,7 @@ mod tests {
             maintenance: Vec::new(),
             care: None,
             held: None,
+            switchable: false,
         }
     }
 

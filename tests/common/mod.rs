@@ -277,6 +277,7 @@ pub mod camera;
 pub mod daemon;
 pub mod farm;
 pub mod http;
+pub mod plug;
 pub mod postgres;
 pub mod receiver;
 pub mod relay;

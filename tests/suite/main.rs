@@ -31,6 +31,7 @@ mod plates;
 mod policy;
 mod ports;
 mod postgres;
+mod power;
 mod presliced;
 mod preview;
 mod print;

@@ -177,6 +177,8 @@ pub struct PrinterConfig {
     /// How its bed is cleared after a good print (`bed_clear`), unless the job's folder
     /// says otherwise.
     pub bed_clear: crate::daemon::bed::ClearBy,
+    /// Its power switch (`[printer.power]`).
+    pub power: Option<super::power::PowerConfig>,
 }
 
 #[derive(Debug, Clone)]

@@ -30,6 +30,7 @@ pub(crate) mod notify;
 pub(crate) mod octoprint;
 mod pause;
 pub mod ports;
+pub mod power;
 mod printers;
 mod raw;
 mod secret;

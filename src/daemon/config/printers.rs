@@ -156,8 +156,16 @@ fn check_printer(
         camera.is_some(),
         cx,
     )?;
+    let power = match p.power {
+        None => None,
+        Some(raw) => Some(
+            super::power::check(raw, cx.anchor)
+                .map_err(|(key, m)| invalid(format!("{section}.power"), key, m))?,
+        ),
+    };
     let port = port_of(section, &p.name, p.port, p.simulate, cx, warnings)?;
     Ok(PrinterConfig {
+        power,
         eject,
         bed_clear,
         filament,

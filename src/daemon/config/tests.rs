@@ -906,3 +906,47 @@ fn maintenance_tasks_are_checked() {
         .to_string();
     assert!(e.contains("every_day"), "{e}");
 }
+
+/// `[printer.power]`: each kind with what it needs, nothing it does not take, bounded
+/// timings; the error names the printer's table and the key.
+#[test]
+fn power_switches_are_checked() {
+    let with = |table: &str| {
+        parse(&GOOD.replace(
+            "[[printer]]\nname = \"sim\"\nfirmware = \"marlin2\"\n",
+            &format!(
+                "[[printer]]\nname = \"sim\"\nfirmware = \"marlin2\"\n[printer.power]\n{table}"
+            ),
+        ))
+    };
+    let c =
+        with("kind = \"shelly\"\nurl = \"http://10.0.0.5\"\noff_after_idle_min = 30\n").unwrap();
+    let p = c.printers[1].power.as_ref().unwrap();
+    assert_eq!(p.switch.kind(), "shelly");
+    assert_eq!(p.off_after_idle, Some(Duration::from_secs(1800)));
+    assert_eq!((p.safe_hotend_c, p.boot), (50.0, Duration::from_secs(120)));
+    let c = with("kind = \"homeassistant\"\nurl = \"http://ha:8123\"\nentity = \"switch.um2\"\ntoken_file = \"ha.token\"\n")
+        .unwrap();
+    assert!(matches!(
+        &c.printers[1].power.as_ref().unwrap().switch,
+        crate::power::Switch::HomeAssistant { token_file, .. } if token_file == Path::new("/etc/crispen/ha.token")
+    ));
+    for (table, key, says) in [
+        ("kind = \"kasa\"\n", "kind", "\"kasa\""),
+        ("kind = \"tasmota\"\n", "url", "needs `url`"),
+        ("kind = \"tasmota\"\nurl = \"ftp://x\"\n", "url", "not an http"),
+        ("kind = \"tasmota\"\nurl = \"http://x\"\nentity = \"switch.a\"\n", "entity", "homeassistant"),
+        ("kind = \"homeassistant\"\nurl = \"http://x\"\nentity = \"light.a\"\ntoken_file = \"t\"\n", "entity", "switch.NAME"),
+        ("kind = \"homeassistant\"\nurl = \"http://x\"\nentity = \"switch.a\"\n", "token_file", "needs"),
+        ("kind = \"http\"\non_url = \"http://r/on\"\n", "off_url", "needs"),
+        ("kind = \"shelly\"\nurl = \"http://x\"\nsafe_hotend_c = 200\n", "safe_hotend_c", "from 25"),
+        ("kind = \"shelly\"\nurl = \"http://x\"\noff_after_idle_min = 0\n", "off_after_idle_min", "from 0.01"),
+        ("kind = \"shelly\"\nurl = \"http://x\"\nboot_s = inf\n", "boot_s", "got inf"),
+    ] {
+        let e = with(table).unwrap_err().to_string();
+        assert!(
+            e.contains("[[printer]] #2 (name \"sim\").power") && e.contains(&format!("key `{key}`")) && e.contains(says),
+            "{table}: {e}"
+        );
+    }
+}

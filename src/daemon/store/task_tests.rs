@@ -501,7 +501,10 @@ async fn a_print_is_counted_once_across_restarts() {
         )
         .await
         .unwrap();
-    assert_eq!(handle.retire(1e12).await.unwrap(), std::slice::from_ref(&old));
+    assert_eq!(
+        handle.retire(1e12).await.unwrap(),
+        std::slice::from_ref(&old)
+    );
     let other = admit(&handle, "b.gcode").await;
     handle
         .update(&other, print(&other, 0, 1e12, false))

@@ -156,6 +156,8 @@ function printerTile(p, status) {
     html += '<button class="spool" data-spool-printer="' + esc(p.name) + '">Load spool</button>';
     if (!p.holds.unloaded && (p.holds.spool || p.holds.filament)) html += '<button data-action="unload" data-printer="' + esc(p.name) + '">Unload</button>';
   }
+  if (p.switchable && p.state === "off") html += '<button data-action="poweron" data-printer="' + esc(p.name) + '">Power on</button>';
+  if (p.switchable && p.state === "idle") html += '<button data-action="poweroff" data-printer="' + esc(p.name) + '" title="only once its hotend is cool; it is switched on again when it has work">Power off</button>';
   if (!p.offline) {
     html += p.held
       ? '<button data-action="careend" data-printer="' + esc(p.name) + '">End maintenance</button>'
@@ -553,6 +555,8 @@ const ACTIONS = {
     "Record " + el.dataset.task + " as done on " + el.dataset.printer + "? Its count starts again from now."],
   carestart: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/maintenance/start?by=dashboard",
     "Put " + el.dataset.printer + " into maintenance? It finishes its print, then takes no job until maintenance ends."],
+  poweron: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/power/on"],
+  poweroff: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/power/off", "Switch " + el.dataset.printer + " off? It is switched on again when it has work."],
   careend: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/maintenance/end?by=dashboard"],
   reference: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/clear?reference=true", "Is the bed of " + el.dataset.printer + " empty, and its camera where it stays? Its picture now becomes the empty bed the check compares with."],
 };

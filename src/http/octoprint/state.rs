@@ -103,7 +103,7 @@ fn state_text(p: Option<&PrinterStatus>) -> String {
         // The eject sequence moves the printer: busy, as while it prints.
         PrinterState::Ejecting => "Printing".to_string(),
         PrinterState::Connecting => "Connecting".to_string(),
-        PrinterState::Disconnected => "Offline".to_string(),
+        PrinterState::Disconnected | PrinterState::Off => "Offline".to_string(),
         PrinterState::Stopped | PrinterState::Halted => format!(
             "Error: {}",
             p.detail.as_deref().unwrap_or("the printer stopped")

@@ -2,10 +2,24 @@
 //! farm uses it: on when the printer has work, off after `off_after_idle_min` idle with its
 //! hotend below `safe_hotend_c`.
 
-use super::raw::RawPower;
 use crate::outbound::HttpUrl;
 use crate::power::Switch;
 use std::time::Duration;
+
+/// `[printer.power]` as written.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawPower {
+    pub(super) kind: String,
+    pub(super) url: Option<String>,
+    pub(super) entity: Option<String>,
+    pub(super) token_file: Option<std::path::PathBuf>,
+    pub(super) on_url: Option<String>,
+    pub(super) off_url: Option<String>,
+    pub(super) off_after_idle_min: Option<f64>,
+    pub(super) safe_hotend_c: Option<f64>,
+    pub(super) boot_s: Option<f64>,
+}
 
 /// `[printer.power]`, checked.
 #[derive(Debug, Clone, PartialEq)]

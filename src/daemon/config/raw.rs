@@ -149,22 +149,7 @@ pub(super) struct RawPrinter {
     /// How its bed is cleared after a good print: "person", "eject", "eject-and-check".
     pub(super) bed_clear: Option<String>,
     /// Its power switch (`[printer.power]`).
-    pub(super) power: Option<RawPower>,
-}
-
-/// `[printer.power]`: see `power.rs`.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub(super) struct RawPower {
-    pub(super) kind: String,
-    pub(super) url: Option<String>,
-    pub(super) entity: Option<String>,
-    pub(super) token_file: Option<PathBuf>,
-    pub(super) on_url: Option<String>,
-    pub(super) off_url: Option<String>,
-    pub(super) off_after_idle_min: Option<f64>,
-    pub(super) safe_hotend_c: Option<f64>,
-    pub(super) boot_s: Option<f64>,
+    pub(super) power: Option<super::power::RawPower>,
 }
 
 #[derive(Debug, Deserialize)]

@@ -1119,8 +1119,9 @@ fn an_unknown_command_from_the_database_does_not_cancel_a_print() {
 
 /// The spools are the farm's: a spool loaded through one host on another host's printer is
 /// what both hosts show; a job asking for its material goes to that printer, whichever
-/// host it was dropped on; and what the print took is booked to the spool once, as every
-/// host sees it (the inventory is one row of the database, changed under its lock).
+/// host it was dropped on; and what the print took is booked to the spool, and counted in
+/// the printer's care, once, as every host sees it (the inventory is one row of the
+/// database, changed under its lock).
 #[test]
 fn the_spools_are_the_whole_farms() {
     let specs = vec![
@@ -1227,4 +1228,18 @@ fn the_spools_are_the_whole_farms() {
         Some(1),
         "booked once: {uses}"
     );
+    // The printer's care counted the print once, though both hosts' stores saw its use,
+    // and every host reads the same counts (`crispen maintenance log`).
+    for h in ["a", "b"] {
+        let (ok, out) = farm.host(h).ctl(&["maintenance", "log", "b1", "--json"]);
+        assert!(ok, "{out}");
+        let record: Value = serde_json::from_str(&out).unwrap();
+        let counts = &record["counts"];
+        assert_eq!(counts["prints"], 1, "on host {h}: {record}");
+        let g = counts["materials"]["PETG"]["g"].as_f64().unwrap();
+        assert!((g - used).abs() < 1e-9, "on host {h}: {g} g counted, {used} g used");
+    }
+    let rows = farm.query("SELECT doc->'care'->'b1'->'counts'->'prints' FROM filament", &[]);
+    let prints: Value = rows[0].get(0);
+    assert_eq!(prints, 1, "counted once in the farm database");
 }

@@ -416,8 +416,9 @@ async fn supervise_inner(
             let Some(job_id) = claim_job(farm, &sup.name).await else {
                 sup.show(|p| {
                     eject::forget_bed_shown(p);
-                    if reset_between {
-                        p.detail = with_reset_note(true, None);
+                    // Why it was kept for its care is past.
+                    if reset_between || p.state == PrinterState::Maintenance {
+                        p.detail = with_reset_note(reset_between, None);
                     }
                     p.state = PrinterState::Idle;
                     p.job = None;

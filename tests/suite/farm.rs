@@ -1237,9 +1237,15 @@ fn the_spools_are_the_whole_farms() {
         let counts = &record["counts"];
         assert_eq!(counts["prints"], 1, "on host {h}: {record}");
         let g = counts["materials"]["PETG"]["g"].as_f64().unwrap();
-        assert!((g - used).abs() < 1e-9, "on host {h}: {g} g counted, {used} g used");
+        assert!(
+            (g - used).abs() < 1e-9,
+            "on host {h}: {g} g counted, {used} g used"
+        );
     }
-    let rows = farm.query("SELECT doc->'care'->'b1'->'counts'->'prints' FROM filament", &[]);
+    let rows = farm.query(
+        "SELECT doc->'care'->'b1'->'counts'->'prints' FROM filament",
+        &[],
+    );
     let prints: Value = rows[0].get(0);
     assert_eq!(prints, 1, "counted once in the farm database");
 }

@@ -233,3 +233,99 @@ fn a_blocking_task_due_by_prints_holds_the_printer_until_it_is_done() {
         .collect();
     assert_eq!(kinds, ["done", "held", "released"]);
 }
+
+/// The dashboard in a real browser: a blocking task due shows on the printer's tile with
+/// what it reached and a **Done** button; clicking it records the work (by `dashboard`)
+/// and the printer goes back to idle; **Maintenance** and **End maintenance** hold it and
+/// give it back.
+#[test]
+fn the_tile_shows_a_due_task_and_records_it_done_in_a_real_browser() {
+    use common::http::request;
+    const KEY: &str = "maintenance-key-0123456789abcdef";
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    std::fs::create_dir_all(root.join("hot")).unwrap();
+    std::fs::write(root.join("key"), KEY).unwrap();
+    let config = root.join("crispen.toml");
+    std::fs::write(
+        &config,
+        "[spool]\ndir = \"spool\"\n[control]\nsocket = \"c.sock\"\n[farm]\nsettle_s = 0.2\n\
+         [http]\nlisten = \"127.0.0.1:0\"\napi_key_file = \"key\"\n\
+         [[printer]]\nname = \"a\"\nfirmware = \"marlin2\"\n[printer.simulate]\ntime_scale = 0.0\n\
+         [[folder]]\npath = \"hot\"\nheight_mm = 1\nprinters = [\"a\"]\n\
+         [[maintenance]]\nname = \"nozzle\"\nevery_jobs = 1\nblock = true\n",
+    )
+    .unwrap();
+    let log = root.join("daemon.log");
+    let _daemon = Daemon::start(&config, &log);
+    let addr = common::daemon::http_address(&log);
+    drop_file(
+        &root.join("hot"),
+        "one.gcode",
+        presliced_gcode("one", 20, 6000).as_bytes(),
+    );
+    clear_after(&config, &log, "one.gcode");
+
+    let browser = crate::http::Browser::start(&root.join("chromium-profile"));
+    browser.go(&format!("http://{addr}/"));
+    browser.exec(
+        "localStorage.setItem('crispen-key', arguments[0]); window.confirm = () => true;",
+        serde_json::json!([KEY]),
+    );
+    browser.go(&format!("http://{addr}/"));
+    browser.wait_until(
+        LIMIT,
+        "the due task on a's tile",
+        "const t = document.querySelector('article[data-printer=\"a\"]');
+         const li = t && t.querySelector('ul.care li.blocking');
+         return (!!li && t.classList.contains('state-maintenance') && /nozzle due: 1 of 1 prints/.test(li.textContent)
+           && !!li.querySelector('button[data-action=\"caredone\"][data-task=\"nozzle\"]'))
+           || (t ? t.textContent : 'no tile');",
+    );
+    browser.exec(
+        "window.confirm = () => true;
+         document.querySelector('button[data-action=\"caredone\"][data-task=\"nozzle\"]').click();",
+        serde_json::json!([]),
+    );
+    browser.wait_until(
+        LIMIT,
+        "a idle, nothing due",
+        "const t = document.querySelector('article[data-printer=\"a\"]');
+         return (!!t && t.classList.contains('state-idle') && !t.querySelector('ul.care')
+           && !/maintenance due/.test(t.textContent)
+           && !!t.querySelector('button[data-action=\"carestart\"]')) || (t ? t.className + ' ' + t.textContent : 'no tile');",
+    );
+    let record = request(
+        &addr,
+        "GET",
+        "/api/v1/printers/a/maintenance",
+        &[("X-Api-Key", KEY)],
+        b"",
+    )
+    .json();
+    assert_eq!(record["log"][0]["what"]["task"], "nozzle", "{record}");
+    assert_eq!(record["log"][0]["work"]["by"], "dashboard", "{record}");
+    // By hand, from the tile.
+    browser.exec(
+        "window.confirm = () => true;
+         document.querySelector('button[data-action=\"carestart\"]').click();",
+        serde_json::json!([]),
+    );
+    browser.wait_until(
+        LIMIT,
+        "a in maintenance by hand",
+        "const t = document.querySelector('article[data-printer=\"a\"]');
+         return (!!t && t.classList.contains('state-maintenance') && /by dashboard/.test(t.textContent)
+           && !!t.querySelector('button[data-action=\"careend\"]')) || (t ? t.textContent : 'no tile');",
+    );
+    browser.click("button[data-action=\"careend\"]");
+    browser.wait_until(
+        LIMIT,
+        "a idle again",
+        "const t = document.querySelector('article[data-printer=\"a\"]');
+         return (!!t && t.classList.contains('state-idle') && !/in maintenance/.test(t.textContent))
+           || (t ? t.textContent : 'no tile');",
+    );
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    browser.screenshot(&shots.join("dashboard-maintenance.png"));
+}

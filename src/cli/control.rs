@@ -324,6 +324,25 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
         if let Some(check) = &p.last_check {
             println!("{:<16} last bed check: {}", "", check.verdict.summary());
         }
+        for t in p.maintenance.iter().filter(|t| t.due) {
+            let reached: Vec<String> = t
+                .intervals
+                .iter()
+                .filter(|i| i.reached())
+                .map(ToString::to_string)
+                .collect();
+            println!(
+                "{:<16} maintenance due: {} ({}){}",
+                "",
+                crispen::names::escaped(&t.task),
+                reached.join(", "),
+                if t.block {
+                    ", takes no job until done"
+                } else {
+                    ""
+                }
+            );
+        }
     }
     println!();
     println!("JOB                          STATE        PRINTER          FILE / REASON");

@@ -6,6 +6,7 @@
 //! socket, as the dashboard is over TCP.
 
 use super::control::ask;
+use crispen::daemon::care::Interval;
 use crispen::names::{escaped, number, printable};
 use crispen::percent::percent_encode;
 use hyper::Method;
@@ -96,24 +97,6 @@ fn who() -> String {
     }
 }
 
-/// One interval as shown: `1.2 of 2 kg`.
-fn interval(i: &Value) -> String {
-    let unit = match i["measure"].as_str().unwrap_or("") {
-        "print_hours" => "print hours",
-        "kg" => "kg",
-        "abrasive_kg" => "kg abrasive",
-        "jobs" => "prints",
-        "days" => "days",
-        other => other,
-    };
-    let used = i["used"].as_f64().unwrap_or(0.0);
-    format!(
-        "{} of {} {unit}",
-        number((used * 10.0).round() / 10.0),
-        number(i["every"].as_f64().unwrap_or(0.0))
-    )
-}
-
 fn list(config: &Option<PathBuf>, json: bool) -> anyhow::Result<ExitCode> {
     let answer = ask(config, Method::GET, "/api/v1/printers")?;
     let printers = answer.as_array().cloned().unwrap_or_default();
@@ -154,12 +137,12 @@ fn list(config: &Option<PathBuf>, json: bool) -> anyhow::Result<ExitCode> {
                 (Some(true), _) => "DUE",
                 _ => "ok",
             };
-            let intervals: Vec<String> = t["intervals"]
-                .as_array()
-                .into_iter()
-                .flatten()
-                .map(interval)
-                .collect();
+            let intervals: Vec<String> =
+                serde_json::from_value::<Vec<Interval>>(t["intervals"].clone())
+                    .unwrap_or_default()
+                    .iter()
+                    .map(ToString::to_string)
+                    .collect();
             println!(
                 "{name:<12} {:<20} {mark:<18} {}",
                 escaped(t["task"].as_str().unwrap_or("?")),

@@ -362,6 +362,19 @@ impl Interval {
     }
 }
 
+/// `2.1 of 3 kg`: what was used, to a tenth, of the interval.
+impl std::fmt::Display for Interval {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} of {} {}",
+            crate::names::number((self.used * 10.0).round() / 10.0),
+            crate::names::number(self.every),
+            self.measure.unit()
+        )
+    }
+}
+
 /// Where each of `tasks` that applies to the printer stands at `now_s`, given its care
 /// record (None: it has printed nothing counted and had no work done).
 pub fn status(

@@ -29,14 +29,7 @@ fn due_reason(printer: &str, task: &crate::daemon::care::TaskStatus) -> String {
         .intervals
         .iter()
         .filter(|i| i.reached())
-        .map(|i| {
-            format!(
-                "{} of {} {}",
-                crate::names::number((i.used * 10.0).round() / 10.0),
-                crate::names::number(i.every),
-                i.measure.unit()
-            )
-        })
+        .map(ToString::to_string)
         .collect();
     let then = if task.block {
         format!(

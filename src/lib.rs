@@ -3,8 +3,8 @@
 //! The library is layered so each part can be used and tested on its own; `mesh` and
 //! `enhance` (the crate `crispen-geometry`), `marlin` (`crispen-marlin`), `sim`
 //! (`crispen-sim`), `slice`, `machine`, `preview`, `observe` and `observation`
-//! (`crispen-slicing`) and `fsutil` (`crispen-fsutil`) are crates of their own under
-//! `crates/`, re-exported here:
+//! (`crispen-slicing`), `outbound` and `power` (`crispen-adapters`) and `fsutil`
+//! (`crispen-fsutil`) are crates of their own under `crates/`, re-exported here:
 //! - [`mesh`]: reading, cleaning and writing triangle meshes (STL, OBJ, 3MF). No async.
 //! - [`enhance`]: adaptive unsharp masking of geometry (Herholz et al. 2017). No I/O.
 //! - [`preview`]: pictures of a mesh before and after enhancement, and G-code thumbnails.
@@ -55,11 +55,10 @@ pub use crispen_geometry::mesh;
 pub use crispen_marlin as marlin;
 pub mod names;
 pub mod notify;
-pub mod outbound;
 pub mod percent;
 pub mod ports;
-pub mod power;
 pub mod service;
+pub use crispen_adapters::{outbound, power};
 pub use crispen_sim as sim;
 pub use crispen_slicing::{machine, observation, observe, preview, slice};
 pub mod spoolman;

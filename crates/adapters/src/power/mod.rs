@@ -159,7 +159,8 @@ impl Switch {
             let text = String::from_utf8_lossy(&body[..body.len().min(200)]);
             return Err(PowerError::Refused {
                 status,
-                body: crate::names::escaped(text.trim()),
+                // A device's text, shown in an error: nothing in it may steer a terminal.
+                body: text.trim().escape_debug().to_string(),
             });
         }
         let json = || -> Result<serde_json::Value, PowerError> {

@@ -13,8 +13,7 @@ use std::sync::{Arc, OnceLock};
 use tokio::net::TcpStream;
 
 /// A connection: plain TCP, or TLS over it.
-pub(crate) type Io =
-    tokio_util::either::Either<TcpStream, tokio_rustls::client::TlsStream<TcpStream>>;
+pub type Io = tokio_util::either::Either<TcpStream, tokio_rustls::client::TlsStream<TcpStream>>;
 
 /// Why a request got no answer.
 #[derive(Debug, thiserror::Error)]
@@ -37,7 +36,7 @@ pub enum OutboundError {
 impl OutboundError {
     /// Why no connection was made (TLS included), for a client's own "cannot connect"
     /// error; None for what failed after connecting.
-    pub(crate) fn connect_failure(&self) -> Option<String> {
+    pub fn connect_failure(&self) -> Option<String> {
         match self {
             OutboundError::Connect { message, .. } => Some(message.clone()),
             OutboundError::Tls { message, .. } => Some(format!("TLS: {message}")),
@@ -66,7 +65,7 @@ fn connector() -> tokio_rustls::TlsConnector {
 }
 
 /// A connection to `url`'s host, through TLS for https.
-pub(crate) async fn connect(url: &HttpUrl) -> Result<Io, OutboundError> {
+pub async fn connect(url: &HttpUrl) -> Result<Io, OutboundError> {
     let tcp = TcpStream::connect((url.host.as_str(), url.port))
         .await
         .map_err(|e| OutboundError::Connect {
@@ -92,7 +91,7 @@ pub(crate) async fn connect(url: &HttpUrl) -> Result<Io, OutboundError> {
 }
 
 /// A request for `target` on `url`'s host, with the headers every outbound request has.
-pub(crate) fn request(
+pub fn request(
     url: &HttpUrl,
     method: hyper::Method,
     target: &str,
@@ -109,7 +108,7 @@ pub(crate) fn request(
 
 /// How much of an answer's body is read.
 #[derive(Debug, Clone, Copy)]
-pub(crate) enum Cap {
+pub enum Cap {
     /// An answer larger than this is an error (declared or as it comes).
     Refuse(usize),
     /// Only the start is kept; the rest is not read.
@@ -119,7 +118,7 @@ pub(crate) enum Cap {
 /// Sends `request` on a new connection to `url` (`Connection: close`) and reads the answer:
 /// its status and body (as `cap` says). The connection is driven here, not by a task of its
 /// own, so nothing is left running when the call is dropped at its caller's time limit.
-pub(crate) async fn send(
+pub async fn send(
     url: &HttpUrl,
     request: hyper::Request<Full<Bytes>>,
     cap: Cap,

@@ -90,7 +90,7 @@ impl HttpUrl {
 
     /// The request's `Host` header: the port only where it is not the scheme's own, an
     /// IPv6 address in brackets (RFC 9110, 7.2).
-    pub(crate) fn host_header(&self) -> String {
+    pub fn host_header(&self) -> String {
         let host = if self.host.contains(':') {
             format!("[{}]", self.host)
         } else {

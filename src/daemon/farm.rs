@@ -232,9 +232,12 @@ pub(crate) struct PowerRequest {
     /// A request its supervisor takes later than [`POWER_ANSWER`] after this is refused:
     /// its asker has been told it was not done.
     pub asked: std::time::Instant,
-    /// Whether the switch changed (false: it was already so), or why it was not done.
-    pub reply: tokio::sync::oneshot::Sender<Result<bool, String>>,
+    pub reply: PowerReply,
 }
+
+/// The answer to a [`PowerRequest`]: whether the switch changed (false: it was already
+/// so), or why it was not done.
+pub(crate) type PowerReply = tokio::sync::oneshot::Sender<Result<bool, String>>;
 
 /// How long an operator's power request waits for its supervisor.
 pub(crate) const POWER_ANSWER: std::time::Duration = std::time::Duration::from_secs(15);

@@ -28,7 +28,7 @@ use super::farm::{
     Farm, FarmView, LiveProgress, PrintCommand, PrinterLive, PrinterOwner, PrinterState,
     PrinterTemperatures,
 };
-use super::farm::{PowerRequest, POWER_ANSWER};
+use super::farm::{PowerReply, PowerRequest, POWER_ANSWER};
 use super::job::{JobState, PrintReport};
 use super::store::{JobChange, Use};
 use super::time_left::{Pace, PaceSample, TimeLeft};
@@ -360,7 +360,7 @@ async fn supervise_inner(
                         p.detail = detail;
                     });
                     sup.owner.looked.send_replace(version);
-                    match between_jobs(
+                    let waited = between_jobs(
                         sup,
                         link.as_mut(),
                         &mut follow,
@@ -368,16 +368,9 @@ async fn supervise_inner(
                         power.as_ref(),
                         None,
                     )
-                    .await
-                    {
-                        Between::Lost => continue 'connect,
-                        Between::Halted(message) => halted = Some(message),
-                        Between::Rebooted => reset_between = true,
-                        Between::Changed => {}
-                        Between::Off(why) => {
-                            off = Some(why);
-                            continue 'connect;
-                        }
+                    .await;
+                    if after_wait(waited, &mut halted, &mut reset_between, &mut off) {
+                        continue 'connect;
                     }
                     continue;
                 }
@@ -392,7 +385,7 @@ async fn supervise_inner(
                     p.detail = with_reset_note(reset_between, Some(kept.describe()));
                 });
                 sup.owner.looked.send_replace(version);
-                match between_jobs(
+                let waited = between_jobs(
                     sup,
                     link.as_mut(),
                     &mut follow,
@@ -400,16 +393,9 @@ async fn supervise_inner(
                     power.as_ref(),
                     None,
                 )
-                .await
-                {
-                    Between::Lost => continue 'connect,
-                    Between::Halted(message) => halted = Some(message),
-                    Between::Rebooted => reset_between = true,
-                    Between::Changed => {}
-                    Between::Off(why) => {
-                        off = Some(why);
-                        continue 'connect;
-                    }
+                .await;
+                if after_wait(waited, &mut halted, &mut reset_between, &mut off) {
+                    continue 'connect;
                 }
                 continue;
             }
@@ -431,7 +417,7 @@ async fn supervise_inner(
                     .as_ref()
                     .and_then(|p| p.off_after_idle)
                     .map(|a| since + a);
-                match between_jobs(
+                let waited = between_jobs(
                     sup,
                     link.as_mut(),
                     &mut follow,
@@ -439,16 +425,9 @@ async fn supervise_inner(
                     power.as_ref(),
                     off_at,
                 )
-                .await
-                {
-                    Between::Lost => continue 'connect,
-                    Between::Halted(message) => halted = Some(message),
-                    Between::Rebooted => reset_between = true,
-                    Between::Changed => {}
-                    Between::Off(why) => {
-                        off = Some(why);
-                        continue 'connect;
-                    }
+                .await;
+                if after_wait(waited, &mut halted, &mut reset_between, &mut off) {
+                    continue 'connect;
                 }
                 continue;
             };
@@ -537,6 +516,28 @@ enum Between {
     Off(String),
 }
 
+/// What a wait between jobs leaves the supervisor to know: the firmware's halt, a reset,
+/// the printer switched off (why). Whether the connection is to be made again (lost, or
+/// switched off).
+fn after_wait(
+    waited: Between,
+    halted: &mut Option<String>,
+    reset_between: &mut bool,
+    off: &mut Option<String>,
+) -> bool {
+    match waited {
+        Between::Lost => return true,
+        Between::Halted(message) => *halted = Some(message),
+        Between::Rebooted => *reset_between = true,
+        Between::Changed => {}
+        Between::Off(why) => {
+            *off = Some(why);
+            return true;
+        }
+    }
+    false
+}
+
 /// `detail` with the note of a reset between jobs in front, when there was one.
 fn with_reset_note(reset: bool, detail: Option<String>) -> Option<String> {
     const NOTE: &str =
@@ -580,7 +581,7 @@ async fn between_jobs(
                 None
             }
             Some(request) = requests.recv() => {
-                if let Some((p, reply)) = power.and_then(|p| by_hand(sup, p, request)) {
+                if let (Some(p), Some(reply)) = (power, by_hand(sup, power, request)) {
                     if let Some(why) = switch_off(sup, p, Some(reply), "switched off by hand").await {
                         return Between::Off(why);
                     }
@@ -656,53 +657,39 @@ fn hotend_too_hot(sup: &Supervisor, p: &PowerConfig) -> Option<String> {
     }
 }
 
-/// An operator's power request while the printer is on and between prints: the switch and
-/// the reply when it is to be switched off now; else answered here (it is on already, or
-/// may not be switched off now).
-fn by_hand<'a>(
+/// An operator's power request while the printer is on and between prints: its reply when
+/// the printer is to be switched off now; else answered here (it has no switch, it is on
+/// already, or it may not be switched off now).
+fn by_hand(
     sup: &Supervisor,
-    p: &'a PowerConfig,
+    power: Option<&PowerConfig>,
     request: PowerRequest,
-) -> Option<(
-    &'a PowerConfig,
-    tokio::sync::oneshot::Sender<Result<bool, String>>,
-)> {
-    let refuse = |why: String| Err(why);
-    let answer_now = |reply: tokio::sync::oneshot::Sender<Result<bool, String>>, a| {
-        let _ = reply.send(a);
-        None
-    };
-    if request.asked.elapsed() > POWER_ANSWER {
-        return answer_now(
-            request.reply,
-            refuse("asked too long ago; ask again".into()),
-        );
-    }
-    if request.on {
-        return answer_now(request.reply, Ok(false));
-    }
-    let bed_waits = !matches!(
-        sup.owner.live.borrow().state,
-        PrinterState::Idle | PrinterState::Maintenance
-    );
-    if bed_waits && !request.force {
-        return answer_now(
-            request.reply,
-            refuse(
-                "a print is still on its bed: clear it first, or switch off with --force".into(),
-            ),
-        );
-    }
-    if let Some(hot) = hotend_too_hot(sup, p) {
-        return answer_now(
-            request.reply,
-            refuse(format!(
+) -> Option<PowerReply> {
+    let refused = match power {
+        _ if request.asked.elapsed() > POWER_ANSWER => {
+            Err("asked too long ago; ask again".to_string())
+        }
+        None => Err("it has no [printer.power] switch".to_string()),
+        Some(_) if request.on => Ok(false),
+        Some(_)
+            if !request.force
+                && !matches!(
+                    sup.owner.live.borrow().state,
+                    PrinterState::Idle | PrinterState::Maintenance
+                ) =>
+        {
+            Err("a print is still on its bed: clear it first, or switch off with --force".into())
+        }
+        Some(p) => match hotend_too_hot(sup, p) {
+            Some(hot) => Err(format!(
                 "its hotend is {hot}: it is switched off only below safe_hotend_c = {} °C",
                 p.safe_hotend_c
             )),
-        );
-    }
-    Some((p, request.reply))
+            None => return Some(request.reply),
+        },
+    };
+    let _ = request.reply.send(refused);
+    None
 }
 
 /// Switches the printer off: why it is off when it did (for [`Between::Off`]), else None
@@ -710,7 +697,7 @@ fn by_hand<'a>(
 async fn switch_off(
     sup: &Supervisor,
     p: &PowerConfig,
-    reply: Option<tokio::sync::oneshot::Sender<Result<bool, String>>>,
+    reply: Option<PowerReply>,
     why: &str,
 ) -> Option<String> {
     match p.switch.send(crate::power::Ask::Off).await {
@@ -729,10 +716,7 @@ async fn switch_off(
 }
 
 /// Answers an operator's power request, if there is one.
-fn answer(
-    reply: Option<tokio::sync::oneshot::Sender<Result<bool, String>>>,
-    result: Result<bool, String>,
-) {
+fn answer(reply: Option<PowerReply>, result: Result<bool, String>) {
     if let Some(reply) = reply {
         let _ = reply.send(result);
     }
@@ -754,7 +738,7 @@ async fn off_at_start(p: &PowerConfig) -> Option<String> {
 /// How waiting while switched off ended.
 enum OffEnd {
     /// Switch it on: it has work, or an operator asked (their reply).
-    On(Option<tokio::sync::oneshot::Sender<Result<bool, String>>>),
+    On(Option<PowerReply>),
     /// The config changed: look again.
     Again,
     /// The farm stops.

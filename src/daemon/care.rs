@@ -375,20 +375,17 @@ impl std::fmt::Display for Interval {
     }
 }
 
-/// Where each of `tasks` that applies to the printer stands at `now_s`, given its care
-/// record (None: it has printed nothing counted and had no work done).
-pub fn status(
-    tasks: &[Task],
-    printer: &str,
-    tags: &[String],
+/// Where each of a printer's `tasks` stands at `now_s`, given its care record (None: it
+/// has printed nothing counted and had no work done).
+pub fn status<'a>(
+    tasks: impl IntoIterator<Item = &'a Task>,
     care: Option<&PrinterCare>,
     now_s: f64,
 ) -> Vec<TaskStatus> {
     let empty = PrinterCare::default();
     let care = care.unwrap_or(&empty);
     tasks
-        .iter()
-        .filter(|t| t.applies_to(printer, tags))
+        .into_iter()
         .map(|t| {
             let done = care.done.get(&t.name);
             let used = done.map_or_else(|| care.counts.clone(), |d| care.counts.since(&d.counts));
@@ -428,18 +425,17 @@ pub enum Kept {
     Due(Vec<String>),
 }
 
-/// Whether the printer is kept out of the queue: held by hand, or a blocking task due.
-pub fn kept(
-    tasks: &[Task],
-    printer: &str,
-    tags: &[String],
+/// Whether the printer is kept out of the queue: held by hand, or one of its blocking
+/// `tasks` due.
+pub fn kept<'a>(
+    tasks: impl IntoIterator<Item = &'a Task>,
     care: Option<&PrinterCare>,
     now_s: f64,
 ) -> Option<Kept> {
     if let Some(held) = care.and_then(|c| c.held.as_ref()) {
         return Some(Kept::Held(held.clone()));
     }
-    let due: Vec<String> = status(tasks, printer, tags, care, now_s)
+    let due: Vec<String> = status(tasks, care, now_s)
         .into_iter()
         .filter(|s| s.block && s.due)
         .map(|s| s.task)
@@ -508,13 +504,13 @@ mod tests {
         };
         record.counts.add(print(300.0, false));
         care.insert("a".to_string(), record);
-        assert_eq!(kept(&tasks, "a", &[], care.get("a"), 200.0), None);
+        assert_eq!(kept(&tasks, care.get("a"), 200.0), None);
         care.get_mut("a").unwrap().counts.add(print(300.0, true));
-        let s = status(&tasks, "a", &[], care.get("a"), 200.0);
+        let s = status(&tasks, care.get("a"), 200.0);
         assert!(s[0].due, "two prints: {s:?}");
         assert_eq!(s[0].intervals[1].used, 0.6);
         assert_eq!(
-            kept(&tasks, "a", &[], care.get("a"), 200.0),
+            kept(&tasks, care.get("a"), 200.0),
             Some(Kept::Due(vec!["nozzle".into()]))
         );
         CareChange::Done {
@@ -523,14 +519,14 @@ mod tests {
         }
         .apply("a", &mut care)
         .unwrap();
-        assert_eq!(kept(&tasks, "a", &[], care.get("a"), 300.0), None);
+        assert_eq!(kept(&tasks, care.get("a"), 300.0), None);
         care.get_mut("a").unwrap().counts.add(print(500.0, false));
-        let s = status(&tasks, "a", &[], care.get("a"), 300.0);
+        let s = status(&tasks, care.get("a"), 300.0);
         assert!(!s[0].due, "one print since: {s:?}");
         assert_eq!(s[0].intervals[0].used, 1.0);
         assert_eq!(s[0].intervals[1].used, 0.5);
         care.get_mut("a").unwrap().counts.add(print(600.0, false));
-        assert!(status(&tasks, "a", &[], care.get("a"), 300.0)[0].due);
+        assert!(status(&tasks, care.get("a"), 300.0)[0].due);
         let r = &care["a"];
         assert_eq!((r.counts.prints, r.counts.failed), (4, 1));
         assert_eq!(r.log.len(), 1);
@@ -541,15 +537,15 @@ mod tests {
     #[test]
     fn days_count_from_the_work_or_the_first_print() {
         let tasks = [task(vec![(Measure::Days, 30.0)], false)];
-        assert!(!status(&tasks, "a", &[], None, 1e9)[0].due);
+        assert!(!status(&tasks, None, 1e9)[0].due);
         let record = PrinterCare {
             since_s: 1000.0,
             ..PrinterCare::default()
         };
-        assert!(!status(&tasks, "a", &[], Some(&record), 1000.0 + 29.0 * 86_400.0)[0].due);
-        assert!(status(&tasks, "a", &[], Some(&record), 1000.0 + 30.0 * 86_400.0)[0].due);
+        assert!(!status(&tasks, Some(&record), 1000.0 + 29.0 * 86_400.0)[0].due);
+        assert!(status(&tasks, Some(&record), 1000.0 + 30.0 * 86_400.0)[0].due);
         // Not blocking: due, yet the printer is not kept.
-        assert_eq!(kept(&tasks, "a", &[], Some(&record), 1e12), None);
+        assert_eq!(kept(&tasks, Some(&record), 1e12), None);
     }
 
     /// A hold keeps the printer whatever its tasks; holding twice or releasing a printer
@@ -558,10 +554,7 @@ mod tests {
     fn a_printer_held_by_hand_stays_held_until_released() {
         let mut care = BTreeMap::new();
         CareChange::Hold(work(1.0)).apply("a", &mut care).unwrap();
-        assert!(matches!(
-            kept(&[], "a", &[], care.get("a"), 2.0),
-            Some(Kept::Held(_))
-        ));
+        assert!(matches!(kept(&[], care.get("a"), 2.0), Some(Kept::Held(_))));
         assert!(matches!(
             CareChange::Hold(work(2.0)).apply("a", &mut care),
             Err(CareError::AlreadyHeld(..))
@@ -569,7 +562,7 @@ mod tests {
         CareChange::Release(work(3.0))
             .apply("a", &mut care)
             .unwrap();
-        assert_eq!(kept(&[], "a", &[], care.get("a"), 4.0), None);
+        assert_eq!(kept(&[], care.get("a"), 4.0), None);
         assert_eq!(
             CareChange::Release(work(4.0)).apply("a", &mut care),
             Err(CareError::NotHeld("a".into()))

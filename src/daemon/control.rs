@@ -479,17 +479,7 @@ async fn care(
     let (change, done) = match what {
         CareAsk::Done { task } => {
             let config = farm.config();
-            let tags = config
-                .printers
-                .iter()
-                .find(|p| p.name == printer)
-                .map_or(&[][..], |p| &p.tags[..]);
-            let tasks: Vec<&str> = config
-                .maintenance
-                .iter()
-                .filter(|t| t.applies_to(printer, tags))
-                .map(|t| t.name.as_str())
-                .collect();
+            let tasks: Vec<&str> = config.tasks_of(printer).map(|t| t.name.as_str()).collect();
             if !tasks.contains(&task.as_str()) {
                 return Err(CommandError::NoSuchTask {
                     printer: printer.to_string(),

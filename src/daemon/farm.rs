@@ -485,11 +485,6 @@ impl Farm {
                 let live = handle.live.borrow().clone();
                 let gate = store.gate(name);
                 let care = store.inventory().care.get(name);
-                let tags = config
-                    .printers
-                    .iter()
-                    .find(|p| &p.name == name)
-                    .map_or(&[][..], |p| &p.tags[..]);
                 let holds = offers
                     .iter()
                     .find(|o| o.printer == name)
@@ -510,7 +505,7 @@ impl Farm {
                     host: host.clone(),
                     offline: false,
                     looked_at: *handle.looked.borrow(),
-                    maintenance: super::care::status(&config.maintenance, name, tags, care, now),
+                    maintenance: super::care::status(config.tasks_of(name), care, now),
                     care: care.map(|c| c.counts.clone()),
                     held: care.and_then(|c| c.held.clone()),
                     switchable: config

@@ -825,29 +825,22 @@ fn lost_between_jobs(sup: &Supervisor, why: String) {
     });
 }
 
-/// Takes the oldest ready job this printer may print, marking it printing. The search and
-/// the change are one request to the job store: supervisors run on several threads, and
-/// two of them must never take the same job.
 /// Why `printer` takes no job for its care now, if it takes none: held by hand, or a
 /// blocking task due (by the counts and the clock as they are when it would claim one: a
 /// task due by days needs no change to be seen, since only a change brings a job).
 fn kept_for_care(farm: &Farm, printer: &str) -> Option<super::care::Kept> {
     let config = farm.config();
-    let tags = config
-        .printers
-        .iter()
-        .find(|p| p.name == printer)
-        .map_or(&[][..], |p| &p.tags[..]);
     let store = farm.store();
     super::care::kept(
-        &config.maintenance,
-        printer,
-        tags,
+        config.tasks_of(printer),
         store.inventory().care.get(printer),
         super::job::now_s(),
     )
 }
 
+/// Takes the oldest ready job this printer may print, marking it printing. The search and
+/// the change are one request to the job store: supervisors run on several threads, and
+/// two of them must never take the same job.
 async fn claim_job(farm: &Farm, printer: &str) -> Option<String> {
     let eligible = eligible(farm, printer)?;
     match farm.jobs().claim(printer, eligible).await {

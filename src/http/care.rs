@@ -87,14 +87,9 @@ pub(crate) async fn record(
     let config = farm.config();
     let store = farm.store();
     let care = store.inventory().care.get(&name);
-    let tags = config
-        .printers
-        .iter()
-        .find(|p| p.name == name)
-        .map_or(&[][..], |p| &p.tags[..]);
     let now = crate::daemon::job::now_s();
     Ok(Json(CareView {
-        tasks: crate::daemon::care::status(&config.maintenance, &name, tags, care, now),
+        tasks: crate::daemon::care::status(config.tasks_of(&name), care, now),
         counts: care.map(|c| c.counts.clone()).unwrap_or_default(),
         held: care.and_then(|c| c.held.clone()),
         log: care.map(|c| c.log.clone()).unwrap_or_default(),

@@ -250,6 +250,22 @@ impl Checked {
 }
 
 impl Config {
+    /// The `[[maintenance]]` tasks that apply to `printer` (by name, by its tags, or to
+    /// every printer).
+    pub(crate) fn tasks_of<'a>(
+        &'a self,
+        printer: &'a str,
+    ) -> impl Iterator<Item = &'a crate::daemon::care::Task> {
+        let tags = self
+            .printers
+            .iter()
+            .find(|p| p.name == printer)
+            .map_or(&[][..], |p| &p.tags[..]);
+        self.maintenance
+            .iter()
+            .filter(move |t| t.applies_to(printer, tags))
+    }
+
     /// The folder configuration a hot-folder path belongs to.
     pub(crate) fn folder(&self, path: &Path) -> Option<&FolderConfig> {
         self.folders.iter().find(|f| f.path == path)

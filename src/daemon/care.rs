@@ -6,8 +6,8 @@
 //! The records live with the farm's spools (`Inventory::care`): one document in both
 //! stores, changed under its row's lock in PostgreSQL, so every host sees the same counts
 //! and a restart keeps them. A print is counted once, by whichever host's store first sees
-//! its use in the job's record (`Inventory::count_uses`, keyed by the use as the spools'
-//! ledgers are). A task done keeps the counts it was done at, and falls due again when
+//! its use in the job's record (the store's catch-up of the spools' ledgers, which calls
+//! [`count`]: keyed by the use as the ledgers are). A task done keeps the counts it was done at, and falls due again when
 //! the counts have grown by its interval since: a pruned history changes nothing. Nothing
 //! here does I/O or reads a clock.
 
@@ -120,12 +120,39 @@ pub(crate) fn count(
     true
 }
 
-/// Forgets the counted keys that `keep` (the key, when its print ended) says can no longer
-/// come again.
-pub(crate) fn forget(care: &mut BTreeMap<String, PrinterCare>, keep: impl Fn(&str, f64) -> bool) {
+/// Keeps the counted keys of [`PrinterCare::counted`] as long as a print could come again:
+/// a key whose job is live here (`live`) is marked seen at `now`; one not seen live for
+/// `kept_s` is forgotten (every host of a shared farm has seen its job leave by then).
+pub(crate) fn refresh(
+    care: &mut BTreeMap<String, PrinterCare>,
+    live: impl Fn(&str) -> bool,
+    now: f64,
+    kept_s: f64,
+) {
     for record in care.values_mut() {
-        record.counted.retain(|k, at| keep(k, *at));
+        record.counted.retain(|key, seen| {
+            if live(key) {
+                *seen = now;
+                true
+            } else {
+                now - *seen < kept_s
+            }
+        });
     }
+}
+
+/// Whether a counted key of a live job (`live`) was last marked seen more than `every_s`
+/// before `now`: [`refresh`] is due, so that a job long live is kept a whole `kept_s` from
+/// when it leaves.
+pub(crate) fn stale(
+    care: &BTreeMap<String, PrinterCare>,
+    live: impl Fn(&str) -> bool,
+    now: f64,
+    every_s: f64,
+) -> bool {
+    care.values()
+        .flat_map(|r| r.counted.iter())
+        .any(|(key, seen)| live(key) && now - seen > every_s)
 }
 
 /// A printer's care record: its counts, the work done on it, and whether it is held.
@@ -134,8 +161,9 @@ pub struct PrinterCare {
     /// When its counting began (days-long intervals of a task never done count from here).
     pub since_s: f64,
     pub counts: Counts,
-    /// The uses counted (`<job>#<n>`) and when each print ended, kept while their job may
-    /// still be live on some host, so no host counts one twice (see `Inventory::count_uses`).
+    /// The uses counted (`<job>#<n>`), each with when its job was last seen live (at first,
+    /// when its print ended), kept a day after its job left, so that no host whose view is
+    /// a moment behind counts one twice (see [`refresh`]).
     #[serde(default)]
     pub counted: BTreeMap<String, f64>,
     /// Each task's last time done, with the counts then.
@@ -578,6 +606,28 @@ mod tests {
         let log = &care["a"].log;
         assert_eq!(log.len(), LOG);
         assert_eq!(log.last().unwrap().work.at_s, 10.0 + (LOG + 9) as f64);
+    }
+
+    /// A counted key is marked while its job is live, kept `kept_s` after it was last seen
+    /// live, then forgotten; a key of a live job not marked for long is stale.
+    #[test]
+    fn counted_keys_outlive_their_job_by_the_time_kept() {
+        let mut care = BTreeMap::new();
+        assert!(count(&mut care, "a", "j1#0", 10.0, print(1.0, false)));
+        assert!(
+            !count(&mut care, "a", "j1#0", 10.0, print(1.0, false)),
+            "once"
+        );
+        let live = |on: bool| move |key: &str| on && key.starts_with("j1");
+        assert!(stale(&care, live(true), 5000.0, 3600.0));
+        refresh(&mut care, live(true), 5000.0, 86_400.0);
+        assert!(!stale(&care, live(true), 5000.0, 3600.0));
+        // It left the view: kept a day from when it was last seen live, not from its print.
+        refresh(&mut care, live(false), 5000.0 + 86_000.0, 86_400.0);
+        assert!(care["a"].counted.contains_key("j1#0"));
+        refresh(&mut care, live(false), 5000.0 + 86_400.0, 86_400.0);
+        assert!(care["a"].counted.is_empty());
+        assert_eq!(care["a"].counts.prints, 1);
     }
 
     /// Tasks apply by name, by tag, or to every printer when they name neither.

@@ -82,6 +82,10 @@ pub(super) fn retire_beyond_limit(
 /// print again that another counted and then retired).
 const COUNTED_KEPT_S: f64 = 86_400.0;
 
+/// How often the counted keys of live jobs are marked seen, at the latest (see
+/// `care::refresh`): a job live for weeks is still kept a day from when it left.
+const COUNTED_REFRESH_S: f64 = 3600.0;
+
 /// Brings the spools' ledgers and the printers' care counts up to date with the uses the
 /// live jobs recorded with their outcomes (a use is in the job's record first, in the same
 /// write as the outcome; here it reaches its spool and its printer's counts, once: both are
@@ -108,12 +112,13 @@ pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) ->
         .filter(|u| off_ledger(u) || uncounted(u))
         .cloned()
         .collect();
-    if missing.is_empty() {
+    let live_jobs: HashSet<&str> = view.jobs().map(|j| j.id.as_str()).collect();
+    let live = |key: &str| live_jobs.contains(key.rsplit_once('#').map_or(key, |(j, _)| j));
+    let now = crate::daemon::job::now_s();
+    if missing.is_empty() && !care::stale(&inventory.care, live, now, COUNTED_REFRESH_S) {
         return Ok(false);
     }
-    let live: HashSet<&str> = view.jobs().map(|j| j.id.as_str()).collect();
     let job_of = |key: &str| key.rsplit_once('#').map_or(key, |(j, _)| j).to_string();
-    let now = crate::daemon::job::now_s();
     let result = store.edit_inventory(&mut |inv| {
         for u in &missing {
             let print = care::Print {
@@ -139,9 +144,7 @@ pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) ->
                 },
             );
         }
-        care::forget(&mut inv.care, |key, at| {
-            live.contains(job_of(key).as_str()) || now - at < COUNTED_KEPT_S
-        });
+        care::refresh(&mut inv.care, live, now, COUNTED_KEPT_S);
         Ok(())
     });
     match result {

@@ -200,6 +200,20 @@ pub fn passed_over(
     })
 }
 
+/// Waits until the job of `file` is done on `printer` and its bed waits to be cleared, then
+/// clears it (`crispen clear`).
+pub fn clear_after_done(config: &Path, log: &Path, printer: &str, file: &str) {
+    wait_for(
+        config,
+        log,
+        Duration::from_secs(90),
+        &format!("{file} done"),
+        |s| state_of(s, file) == "done" && super::printer(s, printer)["bed_cleared"] == false,
+    );
+    let (ok, out) = ctl(config, &["clear", printer]);
+    assert!(ok, "{out}");
+}
+
 /// The state of the job for `file` in a status answer ("" when there is none).
 pub fn state_of(s: &Value, file: &str) -> String {
     super::job_by_file(s, file)

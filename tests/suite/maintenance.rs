@@ -7,7 +7,7 @@
 
 use crate::common;
 
-use common::daemon::{ctl, passed_over, recorded, wait_for, Daemon};
+use common::daemon::{clear_after_done, ctl, passed_over, recorded, wait_for, Daemon};
 use common::farm::{drop_file, presliced_gcode, state_of};
 use common::receiver::Receiver;
 use crispen::marlin::firmware::Firmware;
@@ -25,15 +25,6 @@ fn care_json(config: &Path, args: &[&str]) -> Value {
     let (ok, out) = ctl(config, &argv);
     assert!(ok, "crispen {argv:?}: {out}");
     serde_json::from_str(&out).unwrap_or_else(|e| panic!("{e}: {out}"))
-}
-
-/// Clears the printer's bed once its print `file` is done.
-fn clear_after(config: &Path, log: &Path, file: &str) {
-    wait_for(config, log, LIMIT, &format!("{file} done"), |s| {
-        state_of(s, file) == "done" && common::printer(s, "a")["bed_cleared"] == false
-    });
-    let (ok, out) = ctl(config, &["clear", "a"]);
-    assert!(ok, "{out}");
 }
 
 #[test]
@@ -73,7 +64,7 @@ fn a_blocking_task_due_by_prints_holds_the_printer_until_it_is_done() {
             &file,
             presliced_gcode(name, 40 + 10 * i, 6000).as_bytes(),
         );
-        clear_after(&config, &log, &file);
+        clear_after_done(&config, &log, "a", &file);
     }
     // The third is ready, and the printer looks at it and declines: in maintenance.
     drop_file(
@@ -158,7 +149,7 @@ fn a_blocking_task_due_by_prints_holds_the_printer_until_it_is_done() {
         ],
     );
     assert!(ok && out.contains("recorded as done"), "{out}");
-    clear_after(&config, &log, "three.gcode");
+    clear_after_done(&config, &log, "a", "three.gcode");
     let record = care_json(&config, &["log", "a"]);
     assert_eq!(record["counts"]["prints"], 3, "{record}");
     let nozzle = &record["tasks"].as_array().unwrap()[0];
@@ -223,7 +214,7 @@ fn a_blocking_task_due_by_prints_holds_the_printer_until_it_is_done() {
     assert_eq!(a["held"]["note"], "belt check", "{a}");
     let (ok, out) = ctl(&config, &["maintenance", "end", "a"]);
     assert!(ok && out.contains("out of maintenance"), "{out}");
-    clear_after(&config, &log, "four.gcode");
+    clear_after_done(&config, &log, "a", "four.gcode");
     let log_entries = care_json(&config, &["log", "a"])["log"].clone();
     let kinds: Vec<&str> = log_entries
         .as_array()
@@ -264,7 +255,7 @@ fn the_tile_shows_a_due_task_and_records_it_done_in_a_real_browser() {
         "one.gcode",
         presliced_gcode("one", 20, 6000).as_bytes(),
     );
-    clear_after(&config, &log, "one.gcode");
+    clear_after_done(&config, &log, "a", "one.gcode");
 
     let browser = crate::http::Browser::start(&root.join("chromium-profile"));
     browser.go(&format!("http://{addr}/"));

@@ -6,7 +6,7 @@
 
 use crate::common;
 
-use common::daemon::{ctl, wait_for, Daemon, BIN};
+use common::daemon::{clear_after_done, ctl, wait_for, Daemon, BIN};
 use common::farm::{drop_file, markers, presliced_gcode, state_of};
 use common::plug::{Plug, Switched};
 use serde_json::Value;
@@ -43,15 +43,6 @@ fn printer(s: &Value) -> &Value {
     common::printer(s, "a")
 }
 
-/// Waits until `file` is done, then clears the bed.
-fn print_and_clear(config: &Path, log: &Path, file: &str) {
-    wait_for(config, log, LIMIT, &format!("{file} done"), |s| {
-        state_of(s, file) == "done" && printer(s)["bed_cleared"] == false
-    });
-    let (ok, out) = ctl(config, &["clear", "a"]);
-    assert!(ok, "{out}");
-}
-
 /// Tasmota: off when idle and cool, on for the next job; a job that leaves the hotend hot
 /// keeps the printer on past its idle time (the supervisor says so once the time is up),
 /// and a hand asking it off is refused; once a job cools it, it goes off again.
@@ -79,7 +70,7 @@ fn an_idle_cool_printer_is_switched_off_and_on_again_by_the_next_job() {
     // A job whose end leaves the hotend at 200 °C: switched on for it, printed.
     let hot = presliced_gcode("hot", 30, 6000).replace("M104 S0\n", "");
     drop_file(&root.join("hot"), "hot.gcode", hot.as_bytes());
-    print_and_clear(&config, &log, "hot.gcode");
+    clear_after_done(&config, &log, "a", "hot.gcode");
     assert_eq!(plug.switched(), [Switched::Off, Switched::On]);
     // Idle past its time, it stays on while hot: the supervisor says so.
     let s = wait_for(&config, &log, LIMIT, "a kept on while hot", |s| {
@@ -102,7 +93,7 @@ fn an_idle_cool_printer_is_switched_off_and_on_again_by_the_next_job() {
         "cool.gcode",
         presliced_gcode("cool", 20, 6000).as_bytes(),
     );
-    print_and_clear(&config, &log, "cool.gcode");
+    clear_after_done(&config, &log, "a", "cool.gcode");
     wait_for(&config, &log, LIMIT, "a switched off again", |s| {
         printer(s)["state"] == "off"
     });

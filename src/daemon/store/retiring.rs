@@ -77,6 +77,11 @@ pub(super) fn retire_beyond_limit(
     moved
 }
 
+/// The job of a use's key (`<job>#<n>`).
+fn job_of(key: &str) -> &str {
+    key.rsplit_once('#').map_or(key, |(j, _)| j)
+}
+
 /// How long a counted print's key is kept once its job is no longer live here: longer
 /// than any host of a shared farm can lag behind another in seeing a job (so none counts a
 /// print again that another counted and then retired).
@@ -113,12 +118,11 @@ pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) ->
         .cloned()
         .collect();
     let live_jobs: HashSet<&str> = view.jobs().map(|j| j.id.as_str()).collect();
-    let live = |key: &str| live_jobs.contains(key.rsplit_once('#').map_or(key, |(j, _)| j));
+    let live = |key: &str| live_jobs.contains(job_of(key));
     let now = crate::daemon::job::now_s();
     if missing.is_empty() && !care::stale(&inventory.care, live, now, COUNTED_REFRESH_S) {
         return Ok(false);
     }
-    let job_of = |key: &str| key.rsplit_once('#').map_or(key, |(j, _)| j).to_string();
     let result = store.edit_inventory(&mut |inv| {
         for u in &missing {
             let print = care::Print {
@@ -135,7 +139,7 @@ pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) ->
                 spool,
                 &u.key,
                 crate::daemon::filament::Use {
-                    job: job_of(&u.key),
+                    job: job_of(&u.key).to_string(),
                     printer: u.printer.clone(),
                     grams: u.grams,
                     mm: u.mm,

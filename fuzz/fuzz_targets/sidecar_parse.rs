@@ -14,7 +14,14 @@ fuzz_target!(|data: &[u8]| {
                 assert!(HEIGHT_MM.contains(&h));
             }
             if let Some(n) = sidecar.copies {
-                assert!(n >= 1);
+                assert!((1..=100).contains(&n));
+            }
+            if let Some(printers) = &sidecar.printers {
+                assert!((1..=100).contains(&printers.len()));
+                assert!(sidecar.copies.is_none() && sidecar.printer.is_none());
+                for (i, p) in printers.iter().enumerate() {
+                    assert!(!printers[..i].contains(p), "{p} twice");
+                }
             }
         }
         Err(e) => assert!(e.contains("model.stl.toml")),

@@ -126,8 +126,25 @@ pub(crate) struct CancelArgs {
     pub job: String,
     /// Cancel only this part of the job's plate, by its name or its number from 1 (as
     /// `crispen status --json` and the job page list them); the others print on
-    #[arg(long)]
+    #[arg(long, conflicts_with = "copy")]
     pub part: Option<String>,
+    /// Of a job with copies, cancel only copy N (`crispen status` shows each copy's
+    /// number); without it every copy still active is cancelled
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub copy: Option<u32>,
+    /// The daemon's config file (to find its control socket)
+    #[arg(long, short)]
+    pub config: Option<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
+pub(crate) struct RetryArgs {
+    /// Job id, as shown by `crispen status`
+    pub job: String,
+    /// Of a job with copies, retry only copy N (the others stand); without it every copy
+    /// that failed, was cancelled or interrupted is retried
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub copy: Option<u32>,
     /// The daemon's config file (to find its control socket)
     #[arg(long, short)]
     pub config: Option<PathBuf>,
@@ -360,6 +377,10 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
             ),
             _ => file,
         };
+        let extra = match &j.copy {
+            Some(c) => format!("{extra} (copy {} of {}, {})", c.n, j.copies, c.job),
+            None => extra,
+        };
         let state = if j.held {
             format!("{} (held)", j.state.name())
         } else {
@@ -381,6 +402,9 @@ pub(crate) fn status(a: StatusArgs) -> anyhow::Result<ExitCode> {
                 parts.total,
                 names.join(", ")
             );
+        }
+        if let Some(copies) = &j.copies_status {
+            println!("{:<28} copies: {copies}", "");
         }
         // Why a ready job waits, under it.
         if let Some(why) = &j.waiting {
@@ -431,7 +455,10 @@ pub(crate) fn history(a: HistoryArgs) -> anyhow::Result<ExitCode> {
     use crispen::daemon::hotfolder::{escaped, printable};
     println!("JOB                          STATE        PRINTER          ENDED (UTC)       MATERIAL      COST FILE / REASON");
     for r in &page.jobs {
-        let file = printable(&r.file);
+        let file = match &r.copy {
+            Some(c) => format!("{} (copy {} of {})", printable(&r.file), c.n, c.job),
+            None => printable(&r.file),
+        };
         let extra = match &r.reason {
             Some(reason) => format!("{file}: {}", escaped(reason)),
             None => file,
@@ -472,7 +499,7 @@ pub(crate) fn cancel(a: CancelArgs) -> anyhow::Result<ExitCode> {
                 percent_encode(part)
             ),
         ),
-        None => act(&a.config, job_path(&a.job, "cancel")),
+        None => act(&a.config, copy_path(&a.job, "cancel", a.copy)),
     }
 }
 pub(crate) fn pause(a: PrinterArgs) -> anyhow::Result<ExitCode> {
@@ -481,8 +508,8 @@ pub(crate) fn pause(a: PrinterArgs) -> anyhow::Result<ExitCode> {
 pub(crate) fn resume(a: PrinterArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, printer_path(&a.printer, "resume"))
 }
-pub(crate) fn retry(a: JobArgs) -> anyhow::Result<ExitCode> {
-    act(&a.config, job_path(&a.job, "retry"))
+pub(crate) fn retry(a: RetryArgs) -> anyhow::Result<ExitCode> {
+    act(&a.config, copy_path(&a.job, "retry", a.copy))
 }
 pub(crate) fn release(a: JobArgs) -> anyhow::Result<ExitCode> {
     act(&a.config, job_path(&a.job, "release"))
@@ -494,4 +521,12 @@ fn printer_path(printer: &str, action: &str) -> String {
 
 fn job_path(job: &str, action: &str) -> String {
     format!("/api/v1/jobs/{}/{action}", percent_encode(job))
+}
+
+/// A job action for one copy of a job (`copy`), or for all of them.
+fn copy_path(job: &str, action: &str, copy: Option<u32>) -> String {
+    match copy {
+        Some(n) => format!("{}?copy={n}", job_path(job, action)),
+        None => job_path(job, action),
+    }
 }

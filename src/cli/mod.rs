@@ -68,7 +68,7 @@ pub(crate) enum Command {
     /// Resume a paused printer
     Resume(control::PrinterArgs),
     /// Put a failed, cancelled or interrupted job back in the queue
-    Retry(control::JobArgs),
+    Retry(control::RetryArgs),
     /// Let a held job (an upload without "print", or `hold = true` in its sidecar) print
     Release(control::JobArgs),
     /// Load a spool on a printer: one the farm knows (--spool), or a new one

@@ -22,8 +22,10 @@ pub(crate) enum Command {
     Clear {
         printer: String,
     },
+    /// Cancel a job; of a job with copies, every copy still active, or copy `copy` only.
     Cancel {
         job: String,
+        copy: Option<u32>,
     },
     /// Stop printing one part of the job's plate (its name, or its number from 1); the
     /// others print on. The last part cancels the job.
@@ -37,8 +39,11 @@ pub(crate) enum Command {
     Resume {
         printer: String,
     },
+    /// Put a finished job back; of a job with copies, every copy that failed, was
+    /// cancelled or interrupted, or copy `copy` only (the others stand).
     Retry {
         job: String,
+        copy: Option<u32>,
     },
     Release {
         job: String,
@@ -114,6 +119,12 @@ pub struct JobStatus {
     pub progress: Option<LiveProgress>,
     pub copies_done: u32,
     pub copies: u32,
+    /// A copy of another job: which, and its number.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub copy: Option<super::job::CopyOf>,
+    /// The job that asked for copies: how they stand, all of them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub copies_status: Option<CopiesStatus>,
     pub updated: f64,
     /// Waits for the operator's release before a printer may take it.
     #[serde(default)]
@@ -146,6 +157,75 @@ pub struct JobStatus {
     /// A plate of several parts: how many, and those cancelled for its current print.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub parts: Option<PartsStatus>,
+}
+
+/// How the copies of a job stand ("3 of 6 printed, 2 printing on a, c, 1 waiting").
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct CopiesStatus {
+    /// How many were asked for.
+    pub total: u32,
+    pub printed: u32,
+    /// The printers printing one, by copy number.
+    pub printing: Vec<String>,
+    /// Not printed yet nor printing: waiting to be prepared or for a printer.
+    pub waiting: u32,
+    /// Failed, cancelled or interrupted (each may be retried alone).
+    pub stopped: u32,
+    /// Each copy's job, by number from 1 (those made so far).
+    pub jobs: Vec<String>,
+}
+
+impl CopiesStatus {
+    /// Of the job `first` that asked for copies, with the other copies among `jobs`.
+    fn of(first: &super::job::Job, members: &[&super::job::Job]) -> Option<Self> {
+        let total = first.copies_wanted();
+        if first.copy.is_some() || total < 2 {
+            return None;
+        }
+        let mut members = members.to_vec();
+        members.sort_by_key(|j| j.copy_number());
+        let count = |states: &[JobState]| {
+            members.iter().filter(|j| states.contains(&j.state)).count() as u32
+        };
+        // A job of an older crispen printed its copies one after another: those count.
+        let printed = count(&[JobState::Done]) + first.copies_done.saturating_sub(1);
+        let stopped = count(&[JobState::Failed, JobState::Cancelled, JobState::Interrupted]);
+        let printing: Vec<String> = members
+            .iter()
+            .filter(|j| j.state == JobState::Printing)
+            .map(|j| j.printer.clone().unwrap_or_default())
+            .collect();
+        let settled = printed + stopped + printing.len() as u32;
+        Some(CopiesStatus {
+            total,
+            printed,
+            waiting: total.saturating_sub(settled),
+            stopped,
+            printing,
+            jobs: members.iter().map(|j| j.id.clone()).collect(),
+        })
+    }
+}
+
+impl std::fmt::Display for CopiesStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} of {} printed", self.printed, self.total)?;
+        if !self.printing.is_empty() {
+            write!(
+                f,
+                ", {} printing on {}",
+                self.printing.len(),
+                self.printing.join(", ")
+            )?;
+        }
+        if self.waiting > 0 {
+            write!(f, ", {} waiting", self.waiting)?;
+        }
+        if self.stopped > 0 {
+            write!(f, ", {} stopped (retry one with --copy N)", self.stopped)?;
+        }
+        Ok(())
+    }
 }
 
 /// A plate's parts, as status shows them.
@@ -210,6 +290,12 @@ pub(crate) enum CommandError {
         task: String,
         tasks: String,
     },
+    #[error("job {id} has no copy {copy} (its copies: {copies})")]
+    NoSuchCopy {
+        id: String,
+        copy: u32,
+        copies: String,
+    },
     #[error("{0}")]
     BadCareNote(String),
     #[error("{0}")]
@@ -253,6 +339,7 @@ impl CommandError {
             CommandError::NoPrinter(_)
                 | CommandError::NoSuchPart { .. }
                 | CommandError::NoSuchTask { .. }
+                | CommandError::NoSuchCopy { .. }
                 | CommandError::Store(StoreError::NoSuchJob(_))
                 | CommandError::Store(StoreError::Filament(
                     super::filament::FilamentError::NoSuchSpool(_)
@@ -289,6 +376,10 @@ pub(crate) fn status(farm: &Farm) -> Status {
     let config = farm.config();
     let names: Vec<&str> = config.printers.iter().map(|p| p.name.as_str()).collect();
     let offers = super::farm::offers(&config, &store, &names);
+    let mut groups: std::collections::HashMap<&str, Vec<&super::job::Job>> = Default::default();
+    for j in store.jobs() {
+        groups.entry(j.group()).or_default().push(j);
+    }
     let jobs = store
         .jobs()
         .map(|j| (j, first_need(j)))
@@ -312,6 +403,8 @@ pub(crate) fn status(farm: &Farm) -> Status {
                 .flatten(),
             copies_done: j.copies_done,
             copies: j.copies_wanted(),
+            copy: j.copy.clone(),
+            copies_status: CopiesStatus::of(j, groups.get(j.id.as_str()).map_or(&[], |g| g)),
             updated: j.history.last().map(|h| h.1).unwrap_or(0.0),
             held: j.held(),
             asks: j.asks.clone(),
@@ -353,17 +446,10 @@ async fn run(farm: &Arc<Farm>, command: Command) -> Result<Done, CommandError> {
         Command::Resume { printer } => {
             send_print_command(farm, &printer, PrintCommand::Resume).await
         }
-        Command::Cancel { job } => cancel(farm, &job).await,
+        Command::Cancel { job, copy } => each_copy(farm, &job, copy, Op::Cancel).await,
         Command::CancelPart { job, part } => cancel_part(farm, &job, &part).await,
-        Command::Retry { job } => {
-            let retried = farm.jobs().retry(&job).await?;
-            Ok(Done::Retried {
-                ready: retried.state == JobState::Ready,
-                held: retried.held(),
-                job,
-            })
-        }
-        Command::Release { job } => release(farm, &job).await,
+        Command::Retry { job, copy } => each_copy(farm, &job, copy, Op::Retry).await,
+        Command::Release { job } => each_copy(farm, &job, None, Op::Release).await,
         Command::Load { printer, what } => {
             known_printer(farm, &printer)?;
             Ok(super::spools::load(farm, &printer, what).await?)
@@ -527,9 +613,9 @@ async fn care(
 /// and the bed gate it closes are kept and written later, but no command makes those).
 fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError {
     let (printer, job) = match command {
-        Command::Cancel { job }
+        Command::Cancel { job, .. }
         | Command::CancelPart { job, .. }
-        | Command::Retry { job }
+        | Command::Retry { job, .. }
         | Command::Release { job } => ("-", job.as_str()),
         Command::Clear { printer }
         | Command::Pause { printer }
@@ -565,7 +651,7 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
             "the printer takes no job until it is".to_string(),
             format!("`crispen clear {printer}` again"),
         ),
-        Command::Cancel { job } => (
+        Command::Cancel { job, .. } => (
             format!("job {job} is not cancelled"),
             format!("it stays {}", state_of(job)),
             "cancel it again".to_string(),
@@ -575,7 +661,7 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
             format!("it prints on, {}", state_of(job)),
             "cancel the part again".to_string(),
         ),
-        Command::Retry { job } => (
+        Command::Retry { job, .. } => (
             format!("job {job} is not retried"),
             format!("it stays {}", state_of(job)),
             "retry it again".to_string(),
@@ -624,6 +710,109 @@ fn for_clients(farm: &Farm, command: &Command, e: CommandError) -> CommandError 
         why,
         stays,
         again,
+    }
+}
+
+/// A command that applies to each copy of a job (see [`Command::Cancel`]).
+#[derive(Clone, Copy)]
+enum Op {
+    Cancel,
+    Retry,
+    Release,
+}
+
+/// The copies of job `id` a command is for, by number: copy `copy` of its job's copies;
+/// else, for the job that asked for copies, every one of them; else the job alone.
+fn copies_for(
+    farm: &Farm,
+    id: &str,
+    copy: Option<u32>,
+) -> Result<Vec<(u32, String)>, CommandError> {
+    let store = farm.store();
+    let job = store
+        .get(id)
+        .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+    let mut members: Vec<(u32, String)> = store
+        .jobs()
+        .filter(|j| j.group() == job.group())
+        .map(|j| (j.copy_number(), j.id.clone()))
+        .collect();
+    members.sort();
+    match copy {
+        Some(n) => members
+            .iter()
+            .find(|(m, _)| *m == n)
+            .map(|m| vec![m.clone()])
+            .ok_or_else(|| CommandError::NoSuchCopy {
+                id: id.to_string(),
+                copy: n,
+                copies: members
+                    .iter()
+                    .map(|(m, _)| m.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            }),
+        None if job.copy.is_none() && members.len() > 1 => Ok(members),
+        None => Ok(vec![(job.copy_number(), id.to_string())]),
+    }
+}
+
+/// Carries `op` out on each of the copies [`copies_for`] names. A copy it does not apply
+/// to (a cancel of a finished one, a retry of a printed one) is passed over; when it
+/// applies to none, the first one's refusal is the answer.
+async fn each_copy(
+    farm: &Arc<Farm>,
+    id: &str,
+    copy: Option<u32>,
+    op: Op,
+) -> Result<Done, CommandError> {
+    let members = copies_for(farm, id, copy)?;
+    if let [(_, only)] = members.as_slice() {
+        return one(farm, only, op).await;
+    }
+    let mut each = Vec::new();
+    let mut first_refusal = None;
+    for (n, member) in members {
+        match one(farm, &member, op).await {
+            Ok(done) => each.push((n, done)),
+            Err(
+                e @ (CommandError::NotActive { .. }
+                | CommandError::NotHeld(_)
+                | CommandError::Store(StoreError::WrongState { .. })),
+            ) => {
+                first_refusal.get_or_insert(e);
+            }
+            Err(e) if each.is_empty() => return Err(e),
+            // Some copies changed already: the answer says which, and the log why the
+            // rest did not.
+            Err(e) => {
+                tracing::warn!(job = %member, error = %e, "a copy's command failed; the copies before it were changed");
+                break;
+            }
+        }
+    }
+    match first_refusal {
+        Some(e) if each.is_empty() => Err(e),
+        _ => Ok(Done::Copies {
+            job: id.to_string(),
+            each,
+        }),
+    }
+}
+
+/// `op` on one job.
+async fn one(farm: &Arc<Farm>, id: &str, op: Op) -> Result<Done, CommandError> {
+    match op {
+        Op::Cancel => cancel(farm, id).await,
+        Op::Release => release(farm, id).await,
+        Op::Retry => {
+            let retried = farm.jobs().retry(id).await?;
+            Ok(Done::Retried {
+                ready: retried.state == JobState::Ready,
+                held: retried.held(),
+                job: id.to_string(),
+            })
+        }
     }
 }
 
@@ -961,7 +1150,10 @@ mod tests {
                 "the printer takes no job until it is",
             ),
             (
-                Command::Cancel { job: job.clone() },
+                Command::Cancel {
+                    job: job.clone(),
+                    copy: None,
+                },
                 &*format!("job {job} is not cancelled"),
                 "it stays ready",
             ),

@@ -75,6 +75,12 @@ pub(crate) enum Done {
         printer: String,
         now: bool,
     },
+    /// A command carried out on several copies of a job: each copy's number and what was
+    /// done (copies it did not apply to are not named).
+    Copies {
+        job: String,
+        each: Vec<(u32, Done)>,
+    },
     /// The printer's switch is switched on or off (`already`: it was).
     Switched {
         printer: String,
@@ -163,6 +169,16 @@ impl std::fmt::Display for Done {
                 printer,
                 now: false,
             } => write!(f, "{printer} is out of maintenance; it may take the next job"),
+            Done::Copies { job, each } => {
+                write!(f, "job {job}, {} copies: ", each.len())?;
+                for (i, (n, done)) in each.iter().enumerate() {
+                    if i > 0 {
+                        f.write_str("; ")?;
+                    }
+                    write!(f, "copy {n}: {done}")?;
+                }
+                Ok(())
+            }
             Done::Switched {
                 printer,
                 on,

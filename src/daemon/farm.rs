@@ -853,7 +853,7 @@ pub(crate) fn waiting<'a>(
         return None;
     }
     let rule = folder_rule(config, job)?;
-    let wanted = job.sidecar.as_ref().and_then(|s| s.printer.as_deref());
+    let wanted = job.wanted_printer();
     let serving: Vec<&super::filament::routing::Offer> = offers
         .iter()
         .filter(|o| rule.iter().any(|p| p == o.printer) && wanted.is_none_or(|w| w == o.printer))

@@ -176,6 +176,9 @@ pub struct Sidecar {
     pub strength: Option<toml::Value>,
     pub copies: Option<u32>,
     pub printer: Option<String>,
+    /// One copy on each of these printers (copy N on the Nth), at the same time: what
+    /// the dashboard's "send to printers" asks. Neither `copies` nor `printer` with it.
+    pub printers: Option<Vec<String>>,
     /// Which of the model's axes points up: "z" or "y".
     pub up: Option<crate::mesh::place::UpAxis>,
     /// `hold = true`: prepare the job, but let no printer take it until the operator
@@ -224,7 +227,7 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
     }
     let sidecar: Sidecar = toml::from_str(&text).map_err(|e| {
         format!(
-            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, per_plate, printer, hold, material, colour, nozzle_mm, tags, priority)",
+            "sidecar {}: {} (allowed keys: height_mm, enhance, strength, up, copies, per_plate, printer, printers, hold, material, colour, nozzle_mm, tags, priority)",
             path.display(),
             e.message().trim()
         )
@@ -234,9 +237,27 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
             .map_err(|m| format!("sidecar {}: key `height_mm`: {m}", path.display()))?;
     }
     if let Some(n) = sidecar.copies {
-        if !(1..=MAX_COPIES).contains(&n) {
+        crate::daemon::config::check_copies(n)
+            .map_err(|m| format!("sidecar {}: key `copies`: {m}", path.display()))?;
+    }
+    if let Some(printers) = &sidecar.printers {
+        let problem = if sidecar.copies.is_some() || sidecar.printer.is_some() {
+            Some(
+                "one copy goes to each printer named: give neither `copies` nor `printer` with it"
+                    .to_string(),
+            )
+        } else if printers.is_empty() || printers.len() > MAX_COPIES as usize {
+            Some(format!("must name 1 to {MAX_COPIES} printers"))
+        } else if let Some(problem) = printers.iter().find_map(|p| crate::names::problem(p)) {
+            Some(problem.to_string())
+        } else if (1..printers.len()).any(|i| printers[..i].contains(&printers[i])) {
+            Some("names a printer twice (a printer prints one copy at a time)".to_string())
+        } else {
+            None
+        };
+        if let Some(problem) = problem {
             return Err(format!(
-                "sidecar {}: key `copies`: must be from 1 to {MAX_COPIES}, got {n}",
+                "sidecar {}: key `printers`: {problem}",
                 path.display()
             ));
         }
@@ -282,9 +303,19 @@ pub struct Job {
     pub printer: Option<String>,
     pub reason: Option<String>,
     pub sidecar: Option<Sidecar>,
-    /// Copies printed so far (a sidecar may ask for more than one).
+    /// Prints of it finished whole: 0 or 1 (a job prints once; its copies are jobs of
+    /// their own, [`Job::copy`]). A job of an older crispen printed its copies one after
+    /// another and counted them here.
     #[serde(default)]
     pub copies_done: u32,
+    /// A copy of another job (its sidecar asked for `copies`): which job, and which copy.
+    /// The job that asked is copy 1 itself; copies 2 to N are made, each a job of its own
+    /// with the first one's G-code, when it is ready ([`Job::copies_due`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub copy: Option<CopyOf>,
+    /// How many copies of it were made (the first job of copies only): they are made once.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub copies_made: u32,
     pub slice_report: Option<crate::slice::SliceReport>,
     pub print_report: Option<PrintReport>,
     /// Per machine that may print it: its G-code, or why it cannot (see
@@ -329,6 +360,19 @@ pub struct Job {
     /// G-code, as a print of it is booked), set when it is prepared.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub needs: std::collections::BTreeMap<String, crate::daemon::filament::Need>,
+}
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
+}
+
+/// Which copy of which job a job is (see [`Job::copy`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CopyOf {
+    /// The job that asked for the copies: copy 1.
+    pub job: String,
+    /// This one's number, from 2.
+    pub n: u32,
 }
 
 /// A part of a job's plate the operator cancelled: the rest of the plate prints on.
@@ -537,6 +581,8 @@ impl Job {
             reason: None,
             sidecar: None,
             copies_done: 0,
+            copy: None,
+            copies_made: 0,
             slice_report: None,
             print_report: None,
             machines: Default::default(),
@@ -659,11 +705,84 @@ impl Job {
     }
 
     pub(crate) fn copies_wanted(&self) -> u32 {
-        self.sidecar
-            .as_ref()
-            .and_then(|s| s.copies)
-            .unwrap_or(1)
-            .max(1)
+        let Some(sidecar) = &self.sidecar else {
+            return 1;
+        };
+        match &sidecar.printers {
+            Some(printers) => printers.len() as u32,
+            None => sidecar.copies.unwrap_or(1),
+        }
+        .max(1)
+    }
+
+    /// The one printer it may print on, if its sidecar names one: `printer`, or of
+    /// `printers`, the one for its copy.
+    pub fn wanted_printer(&self) -> Option<&str> {
+        let sidecar = self.sidecar.as_ref()?;
+        match &sidecar.printers {
+            Some(printers) => printers
+                .get(self.copy_number() as usize - 1)
+                .map(String::as_str),
+            None => sidecar.printer.as_deref(),
+        }
+    }
+
+    /// The job its copies belong to: the one that asked for them (its own id when it is
+    /// no copy).
+    pub fn group(&self) -> &str {
+        self.copy.as_ref().map_or(&self.id, |c| &c.job)
+    }
+
+    /// Which copy it is, from 1 (the job that asked for them is 1).
+    pub fn copy_number(&self) -> u32 {
+        self.copy.as_ref().map_or(1, |c| c.n)
+    }
+
+    /// The numbers of the copies still to be made of it: none until it is prepared (its
+    /// copies take its G-code), none once made, and none of a copy. A job of an older
+    /// crispen that printed some of its copies one after another makes only the rest.
+    pub(crate) fn copies_due(&self) -> std::ops::Range<u32> {
+        let prepared = matches!(
+            self.state,
+            JobState::Ready | JobState::Printing | JobState::Done
+        );
+        if self.copy.is_some() || self.copies_made > 0 || !prepared {
+            return 0..0;
+        }
+        // It prints once more unless it is done; what it printed (one after another, an
+        // older crispen's way) is not made again.
+        let own = u32::from(self.state != JobState::Done);
+        let first = (1 + own + self.copies_done).max(2);
+        first..self.copies_wanted() + 1
+    }
+
+    /// Copy `n` of this job (see [`Job::copies_due`]): a ready job of its own, numbered
+    /// `seq`, with this one's preparation (its G-code files are the caller's to give it),
+    /// and nothing printed.
+    pub(crate) fn copy_for(&self, n: u32, seq: u64) -> Job {
+        let mut copy = Job::queued(
+            Job::make_id(seq, &self.file),
+            seq,
+            self.file.clone(),
+            self.folder.clone(),
+        );
+        copy.state = JobState::Ready;
+        copy.history.push((JobState::Ready, now_s()));
+        copy.copy = Some(CopyOf {
+            job: self.id.clone(),
+            n,
+        });
+        copy.sidecar = self.sidecar.clone();
+        copy.released = self.released;
+        copy.origin = self.origin.clone();
+        copy.slice_report = self.slice_report.clone();
+        copy.machines = self.machines.clone();
+        copy.asks = self.asks.clone();
+        copy.needs = self.needs.clone();
+        // The same G-code: its wall comparison is the first job's, shared once made (see
+        // `daemon::store::copies`), never measured again.
+        copy.comparison = self.comparison.clone();
+        copy
     }
 }
 
@@ -877,6 +996,93 @@ mod tests {
             for (to, allowed) in JobState::ALL.into_iter().zip(row) {
                 assert_eq!(from.can_go_to(to), allowed == 1, "{from} -> {to}");
             }
+        }
+    }
+
+    /// Copies are made once the job is ready, numbered from 2, and none of a copy; a job
+    /// of an older crispen that printed some one after another makes only the rest; a
+    /// copy prints on the printer its number names in `printers`.
+    #[test]
+    fn which_copies_are_due() {
+        let mut job = Job::queued("0007-a_stl".into(), 7, "a.stl".into(), "/hot".into());
+        job.sidecar = Some(Sidecar {
+            copies: Some(4),
+            ..Default::default()
+        });
+        assert!(job.copies_due().is_empty(), "not prepared");
+        job.state = JobState::Ready;
+        assert_eq!(job.copies_due(), 2..5);
+        job.state = JobState::Printing;
+        assert_eq!(
+            job.copies_due(),
+            2..5,
+            "a run that stopped before making them"
+        );
+        job.state = JobState::Done;
+        job.copies_done = 1;
+        assert_eq!(
+            job.copies_due(),
+            2..5,
+            "printed itself, copies still to make"
+        );
+        job.copies_done = 4;
+        assert!(
+            job.copies_due().is_empty(),
+            "an older crispen printed all four"
+        );
+        job.copies_done = 0;
+        assert_eq!(
+            job.copies_due(),
+            2..5,
+            "done, but no print counted: never a copy 1"
+        );
+        job.state = JobState::Ready;
+        job.copies_done = 2;
+        assert_eq!(
+            job.copies_due(),
+            4..5,
+            "an older crispen printed two; it prints the third"
+        );
+        job.copies_done = 0;
+        job.copies_made = 4;
+        assert!(job.copies_due().is_empty(), "made");
+
+        job.copies_made = 0;
+        job.sidecar = Some(Sidecar {
+            printers: Some(vec!["a".into(), "c".into()]),
+            ..Default::default()
+        });
+        assert_eq!(job.copies_wanted(), 2);
+        assert_eq!(job.wanted_printer(), Some("a"));
+        let copy = job.copy_for(2, 9);
+        assert_eq!(copy.id, "0009-a_stl");
+        assert_eq!((copy.group(), copy.copy_number()), ("0007-a_stl", 2));
+        assert_eq!(copy.wanted_printer(), Some("c"));
+        assert_eq!(copy.state, JobState::Ready);
+        assert!(copy.copies_due().is_empty());
+    }
+
+    /// `printers` names each printer once, and neither `copies` nor `printer` with it.
+    #[test]
+    fn a_sidecars_printers_are_checked() {
+        let parse = |text: &str| parse_sidecar(text.as_bytes(), Path::new("m.stl.toml"));
+        assert_eq!(
+            parse("printers = [\"a\", \"b\"]\n")
+                .unwrap()
+                .printers
+                .unwrap()
+                .len(),
+            2
+        );
+        for (text, says) in [
+            ("printers = []\n", "1 to 100"),
+            ("printers = [\"a\", \"a\"]\n", "twice"),
+            ("printers = [\"a\"]\ncopies = 2\n", "neither"),
+            ("printers = [\"a\"]\nprinter = \"a\"\n", "neither"),
+            ("copies = 0\n", "from 1 to 100"),
+        ] {
+            let e = parse(text).unwrap_err();
+            assert!(e.contains("m.stl.toml") && e.contains(says), "{text}: {e}");
         }
     }
 }

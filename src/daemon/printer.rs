@@ -871,11 +871,7 @@ fn eligible(
         let printer = name.as_str();
         let served =
             super::farm::folder_rule(&config, j).is_some_and(|r| r.iter().any(|p| p == printer));
-        let wanted = j
-            .sidecar
-            .as_ref()
-            .and_then(|s| s.printer.as_deref())
-            .is_none_or(|p| p == printer);
+        let wanted = j.wanted_printer().is_none_or(|p| p == printer);
         // What it asks of the printer, against what the printer holds as the store had
         // it just before the claim (the store's task serves the claim; a spool loaded
         // meanwhile is seen at the next claim). An idle printer has nothing reserved.
@@ -1103,16 +1099,9 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     let mut printed = None;
     let (state, reason, lost) = match outcome {
         Ok(report) => {
-            let more = farm
-                .store()
-                .get(job_id)
-                .is_some_and(|j| j.copies_done + 1 < j.copies_wanted());
+            // One print per job: its other copies are jobs of their own.
             printed = Some(report);
-            if more {
-                (JobState::Ready, None, false)
-            } else {
-                (JobState::Done, None, false)
-            }
+            (JobState::Done, None, false)
         }
         Err(why @ PrintFailure::Cancelled(_)) if shutdown_stop => (
             JobState::Interrupted,

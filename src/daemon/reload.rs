@@ -99,6 +99,7 @@ pub(crate) const POLICY: &[(&str, Policy)] = &[
     ("folder.tags", Policy::Live),
     ("folder.priority", Policy::Live),
     ("folder.per_plate", Policy::Live),
+    ("folder.copies", Policy::Live),
     ("farm.spool_low_g", Policy::Live),
     // How a bed is cleared: read when a print ends, and the sequence when it is sent.
     ("printer.eject", Policy::Live),
@@ -346,6 +347,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             settings,
             asks,
             per_plate,
+            copies,
             bed_clear,
         } = new;
         // Compared by their debug form: these types carry no equality of their own.
@@ -353,6 +355,7 @@ pub(crate) fn changed_keys(old: &Config, new: &Config) -> Vec<&'static str> {
             |a: &dyn std::fmt::Debug, b: &dyn std::fmt::Debug| format!("{a:?}") == format!("{b:?}");
         differs("folder.height_mm", *height_mm != old.height_mm);
         differs("folder.per_plate", *per_plate != old.per_plate);
+        differs("folder.copies", *copies != old.copies);
         differs("folder.printers", *printers != old.printers);
         differs("folder.strength", !same(strength, &old.strength));
         differs("folder.enhancement", *mode != old.mode);
@@ -680,6 +683,11 @@ mod tests {
             "folder.per_plate",
             "printers = [\"a\"]\n",
             "printers = [\"a\"]\nper_plate = 4\n",
+        ),
+        (
+            "folder.copies",
+            "printers = [\"a\"]\n",
+            "printers = [\"a\"]\ncopies = 4\n",
         ),
         (
             "farm.spool_low_g",

@@ -381,9 +381,15 @@ async fn a_retry_is_announced_and_counted() {
     };
     let queued = || farm.store().counts().entered(JobState::Queued);
     let (before, queued_before) = (all(&farm), queued());
-    control::execute(&farm, Command::Retry { job: job.clone() })
-        .await
-        .unwrap();
+    control::execute(
+        &farm,
+        Command::Retry {
+            job: job.clone(),
+            copy: None,
+        },
+    )
+    .await
+    .unwrap();
     // Prepared again (the spool keeps no slice report for this hand-made job).
     assert_eq!(state(&farm, &job), JobState::Queued);
     assert_eq!(queued(), queued_before + 1);
@@ -510,9 +516,15 @@ async fn pause_resume_and_cancel_reach_the_print() {
         bench.printer("p1").job_lines().len() > sent + 10
     })
     .await;
-    let said = control::execute(&farm, Command::Cancel { job: job.clone() })
-        .await
-        .unwrap();
+    let said = control::execute(
+        &farm,
+        Command::Cancel {
+            job: job.clone(),
+            copy: None,
+        },
+    )
+    .await
+    .unwrap();
     assert_eq!(
         said,
         Done::Stopping {

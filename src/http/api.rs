@@ -588,11 +588,21 @@ async fn clear(
     Ok(answer)
 }
 
-/// `POST /api/v1/jobs/{id}/cancel|retry|release`.
+/// The query of a job action: `copy=N`, one copy of a job with copies (cancel, retry).
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct JobActionQuery {
+    pub copy: Option<u32>,
+}
+
+/// `POST /api/v1/jobs/{id}/cancel|retry|release[?copy=N]`: of a job with copies, every
+/// copy it applies to, or copy N.
 pub(crate) async fn job_action(
     State(state): State<AppState>,
     Path((id, action)): Path<(String, String)>,
+    query: Result<axum::extract::Query<JobActionQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
+    let copy = query.map_err(bad_query)?.0.copy;
     if state.farm.store().get(&id).is_none() {
         return Err(ApiError::not_found(format!(
             "no job {} (hint: GET /api/v1/jobs lists them)",
@@ -601,9 +611,14 @@ pub(crate) async fn job_action(
     }
     let job = id;
     let command = match action.as_str() {
-        "cancel" => Command::Cancel { job },
-        "retry" => Command::Retry { job },
-        "release" => Command::Release { job },
+        "cancel" => Command::Cancel { job, copy },
+        "retry" => Command::Retry { job, copy },
+        "release" if copy.is_none() => Command::Release { job },
+        "release" => {
+            return Err(ApiError::bad_request(
+                "release applies to every copy of a job: no `copy` with it".to_string(),
+            ))
+        }
         other => {
             return Err(ApiError::not_found(format!(
                 "no job action {}; the job actions are cancel, retry, release",

@@ -1249,3 +1249,206 @@ fn the_spools_are_the_whole_farms() {
     let prints: Value = rows[0].get(0);
     assert_eq!(prints, 1, "counted once in the farm database");
 }
+
+/// How the first job of `file`'s copies stands in `s` (its `copies_status`).
+fn copies_of(s: &Value, file: &str) -> Option<Value> {
+    s["jobs"]
+        .as_array()?
+        .iter()
+        .find(|j| j["file"] == file && j["copy"].is_null())
+        .map(|j| j["copies_status"].clone())
+}
+
+/// Copies at once across two hosts: six copies of one file on a farm of four printers on
+/// hosts a and b print four at once, one on each printer; b is killed with `kill -9`
+/// mid-print: its two copies become interrupted (never printed again on their own) while
+/// a's print on, and the two waiting copies go to a's printers; one interrupted copy
+/// retried alone (`crispen retry JOB --copy N`) prints once more. The copies were made
+/// once (six rows), each went to a printer once but the one retried, and b, started
+/// again, prints nothing blind and sees the copies as a does.
+#[test]
+fn copies_across_two_hosts_print_once_through_a_kill_9() {
+    let specs: Vec<HostSpec> = ["a", "b"]
+        .iter()
+        .map(|name| HostSpec {
+            name: name.to_string(),
+            printers: vec![format!("{name}1"), format!("{name}2")],
+            folders: vec![(
+                "hot/in".to_string(),
+                ["a1", "a2", "b1", "b2"].map(String::from).to_vec(),
+            )],
+            time_scale: 0.05,
+            lease_s: Some(6),
+        })
+        .collect();
+    let mut farm = Farm::start(&specs);
+    let all = ["a1", "a2", "b1", "b2"];
+    farm.wait_status("a", Duration::from_secs(120), "the farm up", |s| {
+        ["a", "b"].iter().all(|h| host_alive(s, h) == Some(true))
+            && all
+                .iter()
+                .all(|p| printer(s, p).is_some_and(|p| p["state"] == "idle"))
+    });
+    // 400 s of simulated printing each, 20 s here: long enough to be killed in.
+    let hot = farm.root.join("hot/in");
+    drop_file(&hot, "part.gcode.toml", b"copies = 6\n");
+    drop_file(
+        &hot,
+        "part.gcode",
+        presliced_gcode("part", 400, 6000).as_bytes(),
+    );
+
+    let s = farm.wait_status("a", Duration::from_secs(120), "four copies printing", |s| {
+        copies_of(s, "part.gcode")
+            .is_some_and(|c| c["printing"].as_array().is_some_and(|p| p.len() == 4))
+            && ["b1", "b2"].iter().all(|p| {
+                printer(s, p)
+                    .is_some_and(|p| p["progress"]["lines_acked"].as_u64().unwrap_or(0) > 20)
+            })
+    });
+    let c = copies_of(&s, "part.gcode").unwrap();
+    assert_eq!(
+        (c["printed"].as_u64(), c["waiting"].as_u64()),
+        (Some(0), Some(2)),
+        "{c}"
+    );
+    let on_b: Vec<String> = s["jobs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|j| {
+            j["file"] == "part.gcode" && j["printer"].as_str().is_some_and(|p| p.starts_with('b'))
+        })
+        .map(|j| j["id"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(on_b.len(), 2, "{s}");
+    let first = s["jobs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|j| j["file"] == "part.gcode" && j["copy"].is_null())
+        .unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+
+    farm.host_mut("b").kill9();
+    // After b's lease: its copies interrupted, a's printing, two waiting.
+    let s = farm.wait_status(
+        "a",
+        Duration::from_secs(120),
+        "b's copies interrupted",
+        |s| {
+            host_alive(s, "b") == Some(false)
+                && on_b.iter().all(|id| {
+                    s["jobs"]
+                        .as_array()
+                        .unwrap()
+                        .iter()
+                        .any(|j| j["id"] == *id && j["state"] == "interrupted")
+                })
+        },
+    );
+    let c = copies_of(&s, "part.gcode").unwrap();
+    assert_eq!(c["stopped"], 2, "{c}");
+    assert_eq!(
+        c["printed"].as_u64().unwrap()
+            + c["printing"].as_array().unwrap().len() as u64
+            + c["waiting"].as_u64().unwrap(),
+        4,
+        "{c}"
+    );
+
+    // a's printers print the rest; then the interrupted copy `n` is retried alone.
+    let retried: String = on_b[0].clone();
+    let n = s["jobs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|j| j["id"] == *retried)
+        .map(|j| j["copy"]["n"].as_u64().unwrap_or(1))
+        .unwrap();
+    farm.wait_until(
+        Duration::from_secs(300),
+        "four copies printed on a",
+        |last| {
+            let s = farm.host("a").status()?;
+            farm.clear_finished(&s, &["a"]);
+            let c = copies_of(&s, "part.gcode")?;
+            *last = c.to_string();
+            (c["printed"] == 4).then_some(())
+        },
+    );
+    let (ok, out) = farm
+        .host("a")
+        .ctl(&["retry", &first, "--copy", &n.to_string()]);
+    assert!(ok, "{out}");
+    assert!(
+        out.contains(&format!("job {retried} is ready to print again")),
+        "{out}"
+    );
+    let s = farm.wait_until(Duration::from_secs(300), "five copies printed", |last| {
+        let s = farm.host("a").status()?;
+        farm.clear_finished(&s, &["a"]);
+        let c = copies_of(&s, "part.gcode")?;
+        *last = c.to_string();
+        (c["printed"] == 5).then_some(s)
+    });
+    let c = copies_of(&s, "part.gcode").unwrap();
+    assert_eq!(
+        (c["stopped"].as_u64(), c["waiting"].as_u64()),
+        (Some(1), Some(0)),
+        "{c}"
+    );
+
+    // Made once, each to a printer once but the one retried; a's printers ran the other
+    // five prints, b's no more than the one each was killed in.
+    let ids: Vec<String> = farm
+        .query("SELECT id FROM jobs WHERE file = 'part.gcode'", &[])
+        .iter()
+        .map(|r| r.get(0))
+        .collect();
+    assert_eq!(ids.len(), 6, "{ids:?}");
+    let entries = farm.printing_entries();
+    for id in &ids {
+        let want = if *id == retried { 2 } else { 1 };
+        assert_eq!(
+            entries[id], want,
+            "copy {id} went to a printer {} times",
+            entries[id]
+        );
+    }
+    let markers = farm.markers_by_printer();
+    let on = |p: &str| markers[p].iter().filter(|m| *m == "part").count();
+    assert_eq!(on("a1") + on("a2"), 5, "{markers:?}");
+    assert!(on("b1") <= 1 && on("b2") <= 1, "{markers:?}");
+
+    // b again: nothing printed blind, its beds held, the copies as a sees them.
+    farm.host_mut("b").start();
+    let up = farm.wait_status("b", Duration::from_secs(120), "b back", |s| {
+        host_alive(s, "b") == Some(true)
+            && ["b1", "b2"]
+                .iter()
+                .all(|p| printer(s, p).is_some_and(|p| p["offline"] == false))
+    });
+    let since = up["version"].as_u64().expect("a status has its version");
+    let s = farm.wait_status("b", Duration::from_secs(120), "b's printers looking", |s| {
+        ["b1", "b2"].iter().all(|p| {
+            printer(s, p).is_some_and(|p| {
+                p["state"] == "bed_not_cleared"
+                    && p["looked_at"].as_u64().is_some_and(|v| v >= since)
+            })
+        })
+    });
+    let seen_by_b = copies_of(&s, "part.gcode").unwrap();
+    assert_eq!(
+        (seen_by_b["printed"].as_u64(), seen_by_b["stopped"].as_u64()),
+        (Some(5), Some(1)),
+        "{seen_by_b}"
+    );
+    assert_eq!(
+        farm.printing_entries(),
+        entries,
+        "nothing printed after b came back"
+    );
+}

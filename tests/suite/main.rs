@@ -12,6 +12,7 @@ mod common;
 
 mod bedcheck;
 mod camera;
+mod copies;
 mod daemon;
 mod enhance;
 mod farm;

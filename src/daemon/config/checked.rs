@@ -201,6 +201,9 @@ pub struct FolderConfig {
     /// Copies of each model side by side on one bed, each a part of the plate that can be
     /// cancelled alone (`per_plate`, 1 by default).
     pub per_plate: u32,
+    /// Copies of each model its jobs print, each on its own printer at the same time, as
+    /// many at once as printers are free (`copies`, 1 by default; a sidecar overrides).
+    pub copies: u32,
     /// How its jobs' beds are cleared (`bed_clear`); None: as each printer says.
     pub bed_clear: Option<crate::daemon::bed::ClearBy>,
 }

@@ -131,6 +131,8 @@ fn check_folder(
         .map_err(|m| invalid(section.clone(), "timeout_s", m))?;
     let per_plate = f.per_plate.unwrap_or(1);
     check_per_plate(per_plate).map_err(|m| invalid(section.clone(), "per_plate", m))?;
+    let copies = f.copies.unwrap_or(1);
+    check_copies(copies).map_err(|m| invalid(section.clone(), "copies", m))?;
     let settings = match f.settings {
         None => crate::slice::SliceSettings::default(),
         Some(table) => {
@@ -215,7 +217,18 @@ fn check_folder(
         timeout,
         settings,
         per_plate,
+        copies,
     })
+}
+
+/// Checks how many copies of a model a folder or a sidecar asks for.
+pub(crate) fn check_copies(n: u32) -> Result<(), String> {
+    let max = crate::daemon::job::MAX_COPIES;
+    if (1..=max).contains(&n) {
+        Ok(())
+    } else {
+        Err(format!("must be from 1 to {max}, got {n}"))
+    }
 }
 
 /// Checks how many copies a folder or a sidecar puts on one plate.

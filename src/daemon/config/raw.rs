@@ -179,6 +179,8 @@ pub(super) struct RawFolder {
     pub(super) timeout_s: Option<f64>,
     /// Copies of each model side by side on one bed (a plate).
     pub(super) per_plate: Option<u32>,
+    /// Copies of each model, each printed on its own printer at once.
+    pub(super) copies: Option<u32>,
     pub(super) settings: Option<toml::Table>,
     /// What its jobs ask of their printer (a sidecar may override each).
     pub(super) material: Option<String>,

@@ -218,7 +218,16 @@ fn resolve(
             job.folder.display()
         )
     })?;
-    let sidecar = crate::daemon::job::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
+    let mut sidecar = crate::daemon::job::read_sidecar(&dir.join(format!("{}.toml", job.file)))?;
+    // The folder's copies, unless the sidecar says: kept with the job, which makes its
+    // copies from what it holds once it is ready.
+    if folder.copies > 1
+        && sidecar
+            .as_ref()
+            .is_none_or(|s| s.copies.is_none() && s.printers.is_none())
+    {
+        sidecar.get_or_insert_with(Default::default).copies = Some(folder.copies);
+    }
     let mut task = resolve_task(
         id,
         &dir,
@@ -340,9 +349,11 @@ async fn next_comparison(
 ) -> Option<(String, u32)> {
     loop {
         let (id, tries) = farm.store().jobs().find_map(|j| match j.comparison {
-            // A job prepared again gets a comparison of its own when it is ready.
+            // A job prepared again gets a comparison of its own when it is ready; a copy
+            // takes its first job's.
             Some(Comparison::Pending { tries })
                 if !matches!(j.state, JobState::Queued | JobState::Preparing)
+                    && j.copy.is_none()
                     && can_prepare(config, j) =>
             {
                 Some((j.id.clone(), tries))

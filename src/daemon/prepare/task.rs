@@ -181,22 +181,31 @@ pub fn resolve_task(
         } else if s.enhance == Some(true) && strength == Strength::Off {
             strength = Strength::Auto;
         }
-        if let Some(p) = &s.printer {
-            if !folder.printers.contains(p) {
-                return Err(format!(
-                    "sidecar {file}.toml: key `printer`: {p:?} does not serve folder {} (it is served by {})",
-                    folder.path.display(),
-                    folder.printers.join(", ")
-                ));
-            }
+        let named = s.printer.iter().map(|p| ("printer", p));
+        let listed = s.printers.iter().flatten().map(|p| ("printers", p));
+        if let Some((key, p)) = named
+            .chain(listed)
+            .find(|(_, p)| !folder.printers.contains(p))
+        {
+            return Err(format!(
+                "sidecar {file}.toml: key `{key}`: {p:?} does not serve folder {} (it is served by {})",
+                folder.path.display(),
+                folder.printers.join(", ")
+            ));
         }
     }
     let (asks, settings) = asks_of(folder, sidecar, file)?;
-    let wanted = sidecar.and_then(|s| s.printer.as_deref());
+    // Sliced for the machines of the printers it may go to: the one named, or those of
+    // its copies.
+    let wanted: Option<Vec<&str>> = sidecar.and_then(|s| match (&s.printers, &s.printer) {
+        (Some(list), _) => Some(list.iter().map(String::as_str).collect()),
+        (None, Some(one)) => Some(vec![one.as_str()]),
+        (None, None) => None,
+    });
     let mut machines: Vec<TaskMachine> = Vec::new();
     for (name, machine) in printers {
         let serves = folder.printers.contains(name)
-            && wanted.is_none_or(|w| w == name)
+            && wanted.as_ref().is_none_or(|w| w.contains(&name.as_str()))
             && asks
                 .nozzle_mm
                 .is_none_or(|n| (n - machine.nozzle_mm).abs() < 1e-6);
@@ -334,6 +343,7 @@ mod tests {
             settings: Default::default(),
             asks: Default::default(),
             per_plate: 1,
+            copies: 1,
             bed_clear: None,
         }
     }

@@ -64,14 +64,23 @@ pub(crate) fn ended_at(job: &Job) -> f64 {
 /// The one rule of retirement, for both stores: of the finished `jobs`, those that ended
 /// more than `live_for` before `now`, and those beyond the newest `live_jobs`; oldest
 /// first, at most [`BATCH`]. `skip` are jobs that must stay (an outcome not yet written).
+/// Copies of one job leave together, once none is active, so the queue shows how many
+/// of them are printed as long as any is not.
 pub(crate) fn to_retire<'a>(
     jobs: impl Iterator<Item = &'a Job>,
     retention: &Retention,
     now: f64,
     skip: &dyn Fn(&str) -> bool,
 ) -> Vec<String> {
+    let jobs: Vec<&Job> = jobs.collect();
+    let busy: std::collections::HashSet<&str> = jobs
+        .iter()
+        .filter(|j| j.state.is_active())
+        .map(|j| j.group())
+        .collect();
     let mut finished: Vec<(f64, u64, &str)> = jobs
-        .filter(|j| is_finished(j.state) && !skip(&j.id))
+        .into_iter()
+        .filter(|j| is_finished(j.state) && !skip(&j.id) && !busy.contains(j.group()))
         .map(|j| (ended_at(j), j.seq, j.id.as_str()))
         .collect();
     // Newest first: the first `live_jobs` that ended recently enough stay.
@@ -111,6 +120,9 @@ pub struct Retired {
     pub started_at: Option<f64>,
     pub ended_at: f64,
     pub copies_done: u32,
+    /// A copy of another job: which, and its number.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub copy: Option<crate::daemon::job::CopyOf>,
     /// From the last print's report.
     pub resends: Option<u64>,
     pub print_s: Option<f64>,
@@ -212,6 +224,7 @@ impl Retired {
                 .map(|h| h.1),
             ended_at: ended_at(job),
             copies_done: job.copies_done,
+            copy: job.copy.clone(),
             resends: job.print_report.as_ref().map(|r| r.resends),
             print_s: job.print_report.as_ref().map(|r| r.duration_s),
             filament_mm: report.and_then(|r| r.filament_mm),
@@ -268,7 +281,7 @@ pub(crate) fn page_of(
 
 /// The columns of the history as CSV, in order.
 /// Columns are only ever added at the end, so a consumer's column positions hold.
-pub(crate) const CSV_COLUMNS: [&str; 26] = [
+pub(crate) const CSV_COLUMNS: [&str; 28] = [
     "id",
     "seq",
     "file",
@@ -295,6 +308,8 @@ pub(crate) const CSV_COLUMNS: [&str; 26] = [
     "material",
     "used_g",
     "cost",
+    "copy_of",
+    "copy",
 ];
 
 impl Retired {
@@ -344,6 +359,10 @@ impl Retired {
             text(self.material.as_deref().unwrap_or("")),
             num(self.used_g),
             num(self.cost),
+            text(self.copy.as_ref().map_or("", |c| c.job.as_str())),
+            self.copy
+                .as_ref()
+                .map_or(String::new(), |c| c.n.to_string()),
         ]
     }
 }
@@ -765,7 +784,8 @@ mod tests {
         assert!(line.ends_with(",,,"), "{line}");
         // The columns consumers know stay where they were; the new ones come last.
         assert_eq!(CSV_COLUMNS[22], "ended_unix");
-        assert_eq!(CSV_COLUMNS[23..], ["material", "used_g", "cost"]);
+        assert_eq!(CSV_COLUMNS[23..26], ["material", "used_g", "cost"]);
+        assert_eq!(CSV_COLUMNS[26..], ["copy_of", "copy"]);
     }
 
     #[test]
@@ -773,5 +793,36 @@ mod tests {
         assert!(is_month_file("2026-12.jsonl"));
         assert!(!is_month_file("2026-12.jsonl.tmp"));
         assert!(!is_month_file("notes.jsonl"));
+    }
+
+    /// Copies of one job leave the queue together: none while another is active.
+    #[test]
+    fn copies_retire_together() {
+        let retention = Retention {
+            live_for: std::time::Duration::ZERO,
+            ..Retention::default()
+        };
+        let mut first = Job::queued("0001-a_stl".into(), 1, "a.stl".into(), "/hot".into());
+        first.state = JobState::Done;
+        let mut second = first.copy_for(2, 2);
+        second.state = JobState::Printing;
+        let mut other = Job::queued("0003-b_stl".into(), 3, "b.stl".into(), "/hot".into());
+        other.state = JobState::Done;
+        let now = crate::daemon::job::now_s() + 10.0;
+        let ids = to_retire(
+            [&first, &second, &other].into_iter(),
+            &retention,
+            now,
+            &|_| false,
+        );
+        assert_eq!(ids, ["0003-b_stl"]);
+        second.state = JobState::Failed;
+        let ids = to_retire(
+            [&first, &second, &other].into_iter(),
+            &retention,
+            now,
+            &|_| false,
+        );
+        assert_eq!(ids.len(), 3);
     }
 }

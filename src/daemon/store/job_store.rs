@@ -69,6 +69,10 @@ pub trait JobStore: Send + 'static {
         reason: Option<String>,
         also: JobEdit,
     ) -> Result<Job, StoreError>;
+    /// Makes the copies due of job `id` ([`Job::copies_due`]), each a ready job with the
+    /// job's G-code, and marks them made, all or nothing: copies are made once whichever
+    /// host sees the job first. Returns the copies' ids (none when none were due).
+    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError>;
     /// Changes a job's other fields; never its state.
     fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError>;
     /// Puts a failed, cancelled or interrupted job back (ready if its G-code is kept).

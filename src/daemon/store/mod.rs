@@ -47,6 +47,7 @@ pub mod stats;
 
 mod change;
 mod clients;
+mod copies;
 mod counts;
 mod handle;
 pub(crate) mod job_store;

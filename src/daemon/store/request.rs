@@ -421,15 +421,18 @@ fn claim(
     printer: &str,
     eligible: &dyn Fn(&Job) -> bool,
 ) -> (Result<Option<Job>, StoreError>, bool) {
-    // Higher priority first; the oldest first among equals (the jobs are oldest first, and
-    // the sort is stable).
-    let mut candidates: Vec<(i32, String)> = view
+    // Higher priority first; the oldest first among equals, a copy as old as the job
+    // that asked for it (the jobs are oldest first, and the sort is stable).
+    let mut candidates: Vec<(i32, u64, String)> = view
         .jobs()
         .filter(|j| j.state == JobState::Ready && eligible(j))
-        .map(|j| (j.asks.priority, j.id.clone()))
+        .map(|j| {
+            let asked = super::spool::seq_of_id(j.group()).unwrap_or(j.seq);
+            (j.asks.priority, asked, j.id.clone())
+        })
         .collect();
-    candidates.sort_by_key(|(p, _)| std::cmp::Reverse(*p));
-    let candidates = candidates.into_iter().map(|(_, id)| id);
+    candidates.sort_by_key(|(p, asked, _)| (std::cmp::Reverse(*p), *asked));
+    let candidates = candidates.into_iter().map(|(_, _, id)| id);
     let tried = candidates.len() > 0;
     let result = (|| {
         for id in candidates {

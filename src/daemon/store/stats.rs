@@ -414,6 +414,7 @@ mod tests {
             started_at: printing.first().map(|p| p.0),
             ended_at: ended,
             copies_done: u32::from(state == JobState::Done),
+            copy: None,
             resends: None,
             print_s: None,
             filament_mm: Some(1000.0),

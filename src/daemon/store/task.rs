@@ -106,6 +106,7 @@ async fn serve(
                         deliveries.push(delivery);
                         changed |= change;
                     }
+                    changed |= super::copies::tend(&mut *store, &mut view);
                     changed |= catch_up_ledgers(&mut *store, &mut view).unwrap_or(false);
                     changed |= retire_beyond_limit(&mut *store, &mut view, &retention);
                 }
@@ -113,6 +114,7 @@ async fn serve(
                     changed = super::request::write_pending(&mut *store, &mut view).1
                 }
                 Work::Retire => {
+                    changed |= super::copies::tend(&mut *store, &mut view);
                     let now = crate::daemon::job::now_s();
                     match round(&mut *store, &mut view, &retention, now) {
                         Ok(ids) => {

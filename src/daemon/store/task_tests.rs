@@ -222,6 +222,9 @@ impl JobStore for TwoHosts {
     fn admit(&mut self, source: &Path, folder: &Path, p: &[String]) -> Result<Job, StoreError> {
         JobStore::admit(&mut self.spool, source, folder, p)
     }
+    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
+        JobStore::make_copies(&mut self.spool, id)
+    }
     fn late_sidecar(&mut self, id: &str, s: &Path, applies: bool) -> Result<bool, StoreError> {
         JobStore::late_sidecar(&mut self.spool, id, s, applies)
     }
@@ -545,4 +548,78 @@ async fn a_refused_clear_is_not_published() {
     );
     assert!(handle.clear_gate("p1").await.unwrap());
     assert!(!handle.snapshot().gate("p1").bed_not_cleared());
+}
+
+/// Through the store's task: a job that asks for three copies and becomes ready has them
+/// in the snapshot published with its change (ready jobs of their own); the wall
+/// comparison measured for it is given to its copies, which never measure their own.
+#[tokio::test]
+async fn a_ready_job_publishes_its_copies_and_shares_its_comparison() {
+    use super::change::PreparedJob;
+    use crate::daemon::job::{Comparison, ForMachine, Sidecar};
+    let tmp = tempfile::tempdir().unwrap();
+    let hot = tmp.path().join("hot");
+    std::fs::create_dir(&hot).unwrap();
+    let handle = spawn(spool::Spool::open(&tmp.path().join("spool")).unwrap());
+    std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
+    let id = handle
+        .admit(&hot.join("a.gcode"), &hot, &[])
+        .await
+        .unwrap()
+        .id;
+    handle
+        .transition(&id, JobState::Preparing, None)
+        .await
+        .unwrap();
+    let prepared = PreparedJob {
+        machines: [("m".to_string(), ForMachine::Gcode("a.gcode".into()))].into(),
+        needs: Default::default(),
+        sidecar: Some(Sidecar {
+            copies: Some(3),
+            ..Default::default()
+        }),
+        asks: Default::default(),
+        report: Some(Default::default()),
+        comparison: Some(Comparison::Pending { tries: 0 }),
+    };
+    handle
+        .transition_with(
+            &id,
+            JobState::Ready,
+            None,
+            JobChange::Prepared(Box::new(prepared)),
+        )
+        .await
+        .unwrap();
+    let snapshot = handle.snapshot();
+    let copies: Vec<&Job> = snapshot.jobs().filter(|j| j.copy.is_some()).collect();
+    assert_eq!(copies.len(), 2, "published with the change");
+    assert!(copies
+        .iter()
+        .all(|c| c.state == JobState::Ready && c.group() == id));
+    assert!(copies
+        .iter()
+        .all(|c| c.comparison == Some(Comparison::Pending { tries: 0 })));
+
+    handle
+        .update(
+            &id,
+            JobChange::ComparisonEnded {
+                tries: 0,
+                walls: Err("no slicer here".into()),
+                started_s: 1.0,
+                took_s: 2.0,
+            },
+        )
+        .await
+        .unwrap();
+    let snapshot = handle.snapshot();
+    let first = snapshot.get(&id).unwrap();
+    for copy in snapshot.jobs().filter(|j| j.copy.is_some()) {
+        assert_eq!(copy.comparison, first.comparison, "{}", copy.id);
+        assert_eq!(
+            copy.slice_report.as_ref().and_then(|r| r.moved.clone()),
+            first.slice_report.as_ref().and_then(|r| r.moved.clone())
+        );
+    }
 }

@@ -150,7 +150,8 @@ function printerTile(p, status) {
   if (cameras.has(p.name) && p.state !== "printing" && p.state !== "ejecting") html += '<button class="reference" data-action="reference" data-printer="' + esc(p.name) + '" title="take the camera\'s picture now as the empty bed the check compares with">New reference</button>';
   if (p.state === "printing") html += '<button data-action="pause" data-printer="' + esc(p.name) + '">Pause</button>';
   if (p.state === "paused" || p.state === "waiting_for_operator") html += '<button data-action="resume" data-printer="' + esc(p.name) + '">Resume</button>';
-  if (job && (p.state === "printing" || p.state === "paused" || p.state === "waiting_for_operator")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '">Cancel</button>';
+  // This printer's print only: of a job with copies, the copy it prints.
+  if (job && (p.state === "printing" || p.state === "paused" || p.state === "waiting_for_operator")) html += '<button class="danger" data-action="cancel" data-job="' + esc(job.id) + '" data-copy="' + (job.copy ? job.copy.n : 1) + '">Cancel</button>';
   // A spool is changed between prints (a print's filament is booked to the spool it began with).
   if (p.holds && !job) {
     html += '<button class="spool" data-spool-printer="' + esc(p.name) + '">Load spool</button>';
@@ -396,6 +397,8 @@ function queueTable(status) {
     else if (live && live.lines_total) extra = (100 * live.lines_acked / live.lines_total).toFixed(1) + " %";
     html += '<tr data-job="' + esc(j.id) + '" class="job-' + esc(j.state) + '">' +
       '<td><a href="#job/' + esc(j.id) + '">' + esc(j.file) + '</a><div class="muted">' + esc(j.folder_name) + "</div>" +
+      (j.copy ? '<div class="muted">copy ' + j.copy.n + " of " + j.copies + "</div>" : "") +
+      (j.copies_status ? '<div class="copies">' + esc(copiesText(j.copies_status)) + "</div>" : "") +
       (j.reason ? '<div class="reason">' + esc(j.reason) + "</div>" : "") +
       (j.waiting ? '<div class="waiting">' + esc(j.waiting) + "</div>" : "") + "</td>" +
       '<td><span class="pill s-' + esc(j.state) + '">' + esc(j.state) + "</span> " + (j.held ? '<span class="pill held">held</span> ' : "") +
@@ -407,6 +410,15 @@ function queueTable(status) {
     html += jobButtons(j) + "</td></tr>";
   }
   return html + "</tbody></table>";
+}
+
+// How a job's copies stand, in words: "3 of 6 printed, 2 printing on a, c, 1 waiting".
+function copiesText(c) {
+  let text = c.printed + " of " + c.total + " printed";
+  if (c.printing.length) text += ", " + c.printing.length + " printing on " + c.printing.join(", ");
+  if (c.waiting) text += ", " + c.waiting + " waiting";
+  if (c.stopped) text += ", " + c.stopped + " stopped";
+  return text;
 }
 
 // What a job asks of its printer, in words.
@@ -445,6 +457,7 @@ function render(status) {
   patch($("#printers"), status.printers.map((p) => printerTile(p, status)).join("") ||
     '<p class="muted">No printers configured.</p>');
   if (!$("#folders").dataset.busy) patch($("#folders"), folderZones(status));
+  sendToOptions(status);
   patch($("#queue"), queueTable(status));
   loadPictures($("#farm"));
   // The job page open gains its comparison (measured after the job is ready) when it is made.
@@ -545,7 +558,9 @@ const ACTIONS = {
   clear: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/clear"],
   pause: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/pause"],
   resume: (el) => ["/api/v1/printers/" + encodeURIComponent(el.dataset.printer) + "/resume"],
-  cancel: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/cancel", "Cancel this job?"],
+  cancel: (el) => el.dataset.copy
+    ? ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/cancel?copy=" + encodeURIComponent(el.dataset.copy), "Cancel this print?"]
+    : ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/cancel", "Cancel this job (and every copy of it still to print)?"],
   cancelpart: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/parts/" + encodeURIComponent(el.dataset.part) + "/cancel",
     "Stop printing " + el.dataset.part + "? The other parts print on."],
   retry: (el) => ["/api/v1/jobs/" + encodeURIComponent(el.dataset.job) + "/retry"],
@@ -586,11 +601,33 @@ document.addEventListener("click", async (e) => {
   }
 });
 
+// What the upload options ask of a model, as its sidecar: one copy on each printer ticked,
+// else the copies asked (nothing for one copy on any printer).
+function copiesSidecar() {
+  const chosen = [...document.querySelectorAll("#sendto input:checked")].map((c) => c.value);
+  if (chosen.length) return "printers = [" + chosen.map((n) => JSON.stringify(n)).join(", ") + "]\n";
+  const n = parseInt($("#uploadcopies").value, 10);
+  return n > 1 ? "copies = " + n + "\n" : "";
+}
+
+// The printers the upload options offer, redrawn only when the farm's printers change (not
+// under a finger ticking them).
+function sendToOptions(status) {
+  const names = status.printers.map((p) => p.name);
+  const box = $("#sendto");
+  if (box.dataset.names === names.join("\n")) return;
+  box.dataset.names = names.join("\n");
+  box.innerHTML = names.map((n) => '<label><input type="checkbox" value="' + esc(n) + '"> ' + esc(n) + "</label>").join("");
+}
+
 async function upload(folder, file) {
   const zone = document.querySelector('[data-folder="' + CSS.escape(folder) + '"]');
   $("#folders").dataset.busy = "1";
   if (zone) zone.classList.add("busy");
   try {
+    const sidecar = /\.toml$/i.test(file.name) ? "" : copiesSidecar();
+    // The sidecar goes first: the model is picked up with it.
+    if (sidecar) await api("PUT", "/api/v1/folders/" + encodeURIComponent(folder) + "/files/" + encodeURIComponent(file.name + ".toml"), new Blob([sidecar]));
     const answer = await api("PUT", "/api/v1/folders/" + encodeURIComponent(folder) + "/files/" + encodeURIComponent(file.name), file);
     notice(answer.message || "uploaded");
   } catch (err) {
@@ -837,6 +874,14 @@ async function showJob(id) {
   let html = '<p><a href="#">← farm</a></p><h2>' + esc(j.file) + ' <span class="pill s-' + esc(j.state) + '">' + esc(stateWords(j.state)) + "</span>" +
     (j.held ? ' <span class="pill held">held</span>' : "") + "</h2>";
   html += '<p class="muted">' + esc(j.id) + " · folder " + esc(folder) + (j.printer ? " · printer " + esc(j.printer) : "") + "</p>";
+  // Copies: the job that asked for them lists them all; a copy links back to it.
+  const copy = j.copy || (j.job && j.job.copy);
+  if (copy) html += '<p id="copyof">Copy ' + copy.n + ' of <a href="#job/' + encodeURIComponent(copy.job) + '">' + esc(copy.job) + "</a></p>";
+  if (j.copies_status) {
+    const c = j.copies_status;
+    html += '<p id="copies">Copies: ' + esc(copiesText(c)) + '</p><ol id="copylist">' + c.jobs.map((id) =>
+      '<li><a href="#job/' + encodeURIComponent(id) + '">' + esc(id) + "</a></li>").join("") + "</ol>";
+  }
   if (j.reason) html += '<p class="reason" id="reason">' + esc(j.reason) + "</p>";
   if (j.waiting) html += '<p class="waiting">' + esc(j.waiting) + "</p>";
   const moved = (report && report.moved) || j.moved;

@@ -242,9 +242,13 @@ pub(crate) async fn job(
         }
     };
     let file = match job {
+        // A copy is shown as one ("bust.stl (copy 2 of 6)"), its file as it is.
         Some(j) => json!({
             "name": j.file,
-            "display": j.file,
+            "display": match &j.copy {
+                Some(c) => format!("{} (copy {} of {})", j.file, c.n, j.copies),
+                None => j.file.clone(),
+            },
             "path": match instance.folder {
                 Some(_) => j.file.clone(),
                 None => format!("{}/{}", v.name, j.file),
@@ -267,7 +271,10 @@ pub(crate) async fn job(
         "state": state_text,
         "crispen": {
             "folder": v.name,
-            "job": job.map(|j| json!({ "id": j.id, "state": j.state, "held": j.held, "printer": j.printer })),
+            "job": job.map(|j| json!({
+                "id": j.id, "state": j.state, "held": j.held, "printer": j.printer,
+                "copy": j.copy, "copies": j.copies_status,
+            })),
         },
     })))
 }
@@ -518,9 +525,12 @@ async fn control_job(
     );
     let name = printer.name.clone();
     let act = match action {
-        "cancel" => Command::Cancel {
-            job: printer.job.clone().unwrap_or_default(),
-        },
+        // The print on this printer only: of a job with copies, the copy it prints.
+        "cancel" => {
+            let job = printer.job.clone().unwrap_or_default();
+            let copy = state.farm.store().get(&job).map(|j| j.copy_number());
+            Command::Cancel { job, copy }
+        }
         "resume" => Command::Resume { printer: name },
         "pause" => Command::Pause { printer: name },
         _ if paused => Command::Resume { printer: name },

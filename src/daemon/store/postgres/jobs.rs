@@ -184,6 +184,82 @@ impl PgStore {
         self.modify(id, change).await
     }
 
+    /// Makes the copies due of job `id` ([`Job::copies_due`]) in one transaction on its
+    /// locked row: each a ready job with the job's files (all but its own pictures), and
+    /// the job marked, so whichever host comes first makes them and no other does.
+    pub(crate) async fn make_copies(&self, id: &str) -> Result<Vec<Job>, PgError> {
+        let mut client = self.client().await?;
+        let tx = client.transaction().await?;
+        self.check_token(&tx).await?;
+        let made = undo_on_error(self.make_copies_in(&tx, id).await, tx).await?;
+        if made.is_empty() {
+            return Ok(Vec::new());
+        }
+        load_jobs(&**client, Only::Ids(&made)).await
+    }
+
+    async fn make_copies_in(
+        &self,
+        tx: &tokio_postgres::Transaction<'_>,
+        id: &str,
+    ) -> Result<Vec<String>, PgError> {
+        let row = tx
+            .query_opt(&format!("{JOB_COLUMNS} WHERE id = $1 FOR UPDATE"), &[&id])
+            .await?
+            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+        let mut job = job_of_row(&row)?;
+        let due = job.copies_due();
+        if row.get::<_, Option<f64>>(RETIRED_COLUMN).is_some() || due.is_empty() {
+            return Ok(Vec::new());
+        }
+        let (origin_host, printers): (String, Vec<String>) = (row.get(8), row.get(9));
+        let folder = job.folder.to_string_lossy().into_owned();
+        let mut made = Vec::new();
+        for n in due.clone() {
+            let seq: i64 = tx
+                .query_one("SELECT nextval(pg_get_serial_sequence('jobs', 'seq'))", &[])
+                .await?
+                .get(0);
+            let copy = job.copy_for(n, seq as u64);
+            tx.execute(
+                "INSERT INTO jobs (id, seq, file, origin_host, folder, printers, state, record) \
+                 OVERRIDING SYSTEM VALUE VALUES ($1, $2, $3, $4, $5, $6, 'ready', $7)",
+                &[
+                    &copy.id,
+                    &seq,
+                    &copy.file,
+                    &origin_host,
+                    &folder,
+                    &printers,
+                    &record_of(&copy),
+                ],
+            )
+            .await?;
+            // Its own pictures stay the job's (the names a copy shares, as in a spool).
+            tx.execute(
+                "INSERT INTO job_files (job_id, name, bytes) SELECT $1, name, bytes \
+                 FROM job_files WHERE job_id = $2 AND name NOT LIKE '%.jpg' \
+                 AND name NOT LIKE '%.mp4' AND name <> $3",
+                &[&copy.id, &id, &crate::observation::OBSERVED_PNG],
+            )
+            .await?;
+            tx.execute(
+                "INSERT INTO job_history (job_id, state, host) \
+                 VALUES ($1, 'queued', $2), ($1, 'ready', $2)",
+                &[&copy.id, &self.host],
+            )
+            .await?;
+            made.push(copy.id);
+        }
+        job.copies_made = due.end - 1;
+        tx.execute(
+            "UPDATE jobs SET record = $2, updated_at = now() WHERE id = $1",
+            &[&id, &record_of(&job)],
+        )
+        .await?;
+        Ok(made)
+    }
+
     /// Makes one change of a job as one transaction on its locked row (see [`Change`]).
     pub(crate) async fn modify(&self, id: &str, change: Change<'_>) -> Result<Job, PgError> {
         let mut client = self.client().await?;

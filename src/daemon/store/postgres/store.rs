@@ -322,6 +322,18 @@ impl JobStore for PgJobStore {
         }
     }
 
+    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
+        let db = self.db.clone();
+        let made = self.reach(db.make_copies(id))?;
+        // The job's record says they are made: read it back, as the copies.
+        self.reread(id);
+        let ids = made.iter().map(|j| j.id.clone()).collect();
+        for copy in made {
+            self.jobs.insert(copy.id.clone(), copy);
+        }
+        Ok(ids)
+    }
+
     fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
         let change = Change {
             from: None,

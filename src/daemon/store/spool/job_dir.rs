@@ -78,6 +78,35 @@ pub(crate) fn late_sidecar_name(file: &str, applies: bool) -> String {
     }
 }
 
+/// Whether a file of a job's directory is one a copy of it shares (see
+/// [`link_files`]): its model, sidecar, G-code and previews; not its state, nor what its
+/// own print left (the camera's pictures, a timelapse, the picture of the print).
+pub(crate) fn copy_shares(name: &str) -> bool {
+    !is_reserved_name(name)
+        && !name.ends_with(".jpg")
+        && !name.ends_with(".mp4")
+        && name != crate::observation::OBSERVED_PNG
+}
+
+/// Gives the directory `to` the files of `from` a copy shares ([`copy_shares`]): hard
+/// links, so the copies of a big G-code take no more room, or copies where links cannot be
+/// made (another filesystem).
+pub(super) fn link_files(from: &Path, to: &Path) -> Result<(), StoreError> {
+    for entry in std::fs::read_dir(from).map_err(io_err(from, "list"))? {
+        let entry = entry.map_err(io_err(from, "list"))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if !entry.file_type().is_ok_and(|t| t.is_file()) || !copy_shares(&name) {
+            continue;
+        }
+        let (source, target) = (entry.path(), to.join(&name));
+        if std::fs::hard_link(&source, &target).is_err() {
+            std::fs::copy(&source, &target)
+                .map_err(io_err(&target, "copy a job's file for its copy"))?;
+        }
+    }
+    Ok(())
+}
+
 fn is_reserved_name(name: &str) -> bool {
     matches!(name, "job.json" | "origin.json") || name.starts_with(".crispen-")
 }

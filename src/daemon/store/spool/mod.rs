@@ -513,6 +513,53 @@ impl Spool {
         Ok(job)
     }
 
+    /// Makes the copies due of job `id` (see [`JobStore::make_copies`]). Each copy's
+    /// directory is made whole under a name that is no job's (links to the job's files,
+    /// its `job.json`), then renamed into place, so a crash leaves a copy whole or not at
+    /// all; one already made (a crash before the job was marked) is not made again.
+    pub(crate) fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
+        let job = self
+            .jobs
+            .get(id)
+            .cloned()
+            .ok_or_else(|| StoreError::NoSuchJob(id.to_string()))?;
+        let due = job.copies_due();
+        if due.is_empty() {
+            return Ok(Vec::new());
+        }
+        let last = due.end - 1;
+        let mut made = Vec::new();
+        for n in due {
+            let exists = self
+                .jobs
+                .values()
+                .any(|j| j.copy.as_ref().is_some_and(|c| c.job == id && c.n == n));
+            if exists {
+                continue;
+            }
+            let seq = self.next_seq;
+            let copy = job.copy_for(n, seq);
+            let partial = self
+                .root
+                .join("jobs")
+                .join(format!(".crispen-copy-{}", copy.id));
+            let _ = std::fs::remove_dir_all(&partial);
+            std::fs::create_dir_all(&partial)
+                .map_err(io_err(&partial, "create a copy's directory"))?;
+            job_dir::link_files(&self.job_dir(id), &partial)?;
+            let bytes = serde_json::to_vec_pretty(&copy).expect("job serialises");
+            write_atomic(&partial.join("job.json"), &bytes)?;
+            let dir = self.job_dir(&copy.id);
+            std::fs::rename(&partial, &dir)
+                .map_err(io_err(&dir, "move a copy's directory into place"))?;
+            self.next_seq += 1;
+            made.push(copy.id.clone());
+            self.jobs.insert(copy.id.clone(), copy);
+        }
+        self.update(id, |j| j.copies_made = last)?;
+        Ok(made)
+    }
+
     /// Puts a failed, cancelled or interrupted job back in the queue.
     pub(crate) fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
         if let Some(retired) = self.retired_job(id)? {
@@ -645,6 +692,9 @@ impl JobStore for Spool {
     }
     fn recover(&mut self) -> Result<Vec<String>, StoreError> {
         Spool::recover(self)
+    }
+    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
+        Spool::make_copies(self, id)
     }
     fn admit(
         &mut self,

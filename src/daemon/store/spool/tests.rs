@@ -676,3 +676,87 @@ fn a_crash_while_retiring_loses_nothing_and_shows_nothing_twice() {
         "each once, newest first"
     );
 }
+
+/// A job with `copies = 3` that becomes ready gets copies 2 and 3: ready jobs of their
+/// own, with its G-code as hard links (not its pictures), made once, and kept across a
+/// reopen; copies already made by a run that stopped before it marked the job are not
+/// made again.
+#[test]
+fn a_ready_job_makes_its_copies_once() {
+    use std::os::unix::fs::MetadataExt;
+    let (_tmp, hot, spool, mut store) = open_with_hot_folder();
+    let src = drop_file(&hot, "a.stl");
+    std::fs::write(hot.join("a.stl.toml"), "copies = 3\n").unwrap();
+    let id = store.admit(&src, &hot).unwrap().id;
+    assert!(
+        store.make_copies(&id).unwrap().is_empty(),
+        "not prepared yet"
+    );
+    store.transition(&id, JobState::Preparing, None).unwrap();
+    let dir = store.job_dir(&id);
+    std::fs::write(dir.join("a.stl.ultimaker2.gcode"), "G28\n").unwrap();
+    std::fs::write(dir.join("00001.jpg"), "picture").unwrap();
+    store
+        .transition_with(&id, JobState::Ready, None, |j| {
+            j.sidecar = Some(crate::daemon::job::Sidecar {
+                copies: Some(3),
+                ..Default::default()
+            });
+            j.slice_report = Some(Default::default());
+            j.machines.insert(
+                "ultimaker2".into(),
+                crate::daemon::job::ForMachine::Gcode("a.stl.ultimaker2.gcode".into()),
+            );
+        })
+        .unwrap();
+    let made = store.make_copies(&id).unwrap();
+    assert_eq!(made.len(), 2);
+    for (n, copy_id) in (2..).zip(&made) {
+        let copy = store.get(copy_id).unwrap();
+        assert_eq!(copy.state, JobState::Ready);
+        assert_eq!(
+            copy.copy.as_ref().map(|c| (c.job.as_str(), c.n)),
+            Some((id.as_str(), n))
+        );
+        assert_eq!(
+            copy.gcode_for("ultimaker2").as_deref(),
+            Some("a.stl.ultimaker2.gcode")
+        );
+        let copy_dir = store.job_dir(copy_id);
+        let gcode = copy_dir.join("a.stl.ultimaker2.gcode");
+        assert_eq!(
+            std::fs::metadata(&gcode).unwrap().ino(),
+            std::fs::metadata(dir.join("a.stl.ultimaker2.gcode"))
+                .unwrap()
+                .ino(),
+            "a hard link"
+        );
+        assert!(
+            copy_dir.join("a.stl").is_file(),
+            "the model, for a retry that prepares again"
+        );
+        assert!(
+            !copy_dir.join("00001.jpg").exists(),
+            "its pictures stay the job's"
+        );
+        assert!(copy.copies_due().is_empty(), "a copy makes none");
+    }
+    assert_eq!(store.get(&id).unwrap().copies_made, 3);
+    assert!(store.make_copies(&id).unwrap().is_empty(), "made once");
+
+    // A run that made copy 2 and stopped before it marked the job: copy 3 only.
+    store.update(&id, |j| j.copies_made = 0).unwrap();
+    let three = made[1].clone();
+    std::fs::remove_dir_all(store.job_dir(&three)).unwrap();
+    drop(store);
+    let mut store = Spool::open(&spool).unwrap();
+    assert!(store.get(&made[0]).is_some(), "copy 2 kept across a reopen");
+    let again = store.make_copies(&id).unwrap();
+    assert_eq!(again.len(), 1);
+    assert_eq!(store.get(&again[0]).unwrap().copy.as_ref().unwrap().n, 3);
+    let copies = JobStore::jobs(&store)
+        .into_iter()
+        .filter(|j| j.copy.is_some())
+        .count();
+    assert_eq!(copies, 2);
+}

@@ -94,6 +94,18 @@ pub struct EventJob {
     pub id: String,
     pub file: String,
     pub folder: String,
+    /// One of the copies of a job that asked for several: which.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub copy: Option<EventCopy>,
+}
+
+/// Which copy of a job an event's job is: copy `n` of `total` of job `of` (the job that
+/// asked for them, copy 1).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EventCopy {
+    pub of: String,
+    pub n: u32,
+    pub total: u32,
 }
 
 /// One event, as kept in a receiver's queue and sent in the `json` format.
@@ -140,7 +152,11 @@ impl Event {
             text += &format!(" on {p}");
         }
         if let Some(j) = &self.job {
-            text += &format!(": {} (job {}, folder {})", j.file, j.id, j.folder);
+            text += &format!(": {}", j.file);
+            if let Some(c) = &j.copy {
+                text += &format!(", copy {} of {}", c.n, c.total);
+            }
+            text += &format!(" (job {}, folder {})", j.id, j.folder);
         }
         if let Some(r) = &self.reason {
             text += &format!(". {r}");
@@ -189,5 +205,30 @@ mod tests {
         let (a, b) = (new_id(1.0), new_id(1.0));
         assert_ne!(a, b, "ids are unique");
         assert!(new_id(1.0) < new_id(2.0), "ids sort by time");
+    }
+
+    /// A copy's event says which copy it is, in its sentence and its JSON.
+    #[test]
+    fn a_copy_says_which_it_is() {
+        let mut e = Event::new(EventKind::JobDone, 1.0, "h");
+        e.printer = Some("b".into());
+        e.job = Some(EventJob {
+            id: "0009-cup_stl".into(),
+            file: "cup.stl".into(),
+            folder: "/hot".into(),
+            copy: Some(EventCopy {
+                of: "0007-cup_stl".into(),
+                n: 2,
+                total: 6,
+            }),
+        });
+        assert!(
+            e.text()
+                .contains("on b: cup.stl, copy 2 of 6 (job 0009-cup_stl, folder /hot)"),
+            "{}",
+            e.text()
+        );
+        let json = serde_json::to_value(&e).unwrap();
+        assert_eq!(json["job"]["copy"]["of"], "0007-cup_stl");
     }
 }

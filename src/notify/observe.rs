@@ -14,7 +14,7 @@
 //! it was dropped into), a printer's by its host, a lost host's by the live host whose
 //! name sorts first.
 
-use super::event::{Event, EventJob, EventKind};
+use super::event::{Event, EventCopy, EventJob, EventKind};
 use crate::daemon::bed::Why;
 use crate::daemon::farm::{PrinterState, PrinterStatus};
 use crate::daemon::filament::Inventory;
@@ -367,10 +367,16 @@ impl Observer {
                 ));
             }
         }
+        let total = job.copies_wanted();
         e.job = Some(EventJob {
             id: job.id.clone(),
             file: job.file.clone(),
             folder: job.folder.display().to_string(),
+            copy: (total > 1).then(|| EventCopy {
+                of: job.group().to_string(),
+                n: job.copy_number(),
+                total,
+            }),
         });
         e
     }

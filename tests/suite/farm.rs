@@ -1264,8 +1264,8 @@ fn copies_of(s: &Value, file: &str) -> Option<Value> {
 /// mid-print: its two copies become interrupted (never printed again on their own) while
 /// a's print on, and the two waiting copies go to a's printers; one interrupted copy
 /// retried alone (`crispen retry JOB --copy N`) prints once more. The copies were made
-/// once (six rows), each went to a printer once but the one retried, and b, started
-/// again, prints nothing blind and sees the copies as a does.
+/// once (six rows, the G-code stored once), each went to a printer once but the one
+/// retried, and b, started again, prints nothing blind and sees the copies as a does.
 #[test]
 fn copies_across_two_hosts_print_once_through_a_kill_9() {
     let specs: Vec<HostSpec> = ["a", "b"]
@@ -1409,6 +1409,13 @@ fn copies_across_two_hosts_print_once_through_a_kill_9() {
         .map(|r| r.get(0))
         .collect();
     assert_eq!(ids.len(), 6, "{ids:?}");
+    // The G-code is kept once: the copies share the first job's files.
+    let copies_files: i64 = farm.query(
+        "SELECT count(*) FROM job_files WHERE job_id = ANY($1) AND job_id <> $2",
+        &[&ids, &first],
+    )[0]
+    .get(0);
+    assert_eq!(copies_files, 0);
     let entries = farm.printing_entries();
     for id in &ids {
         let want = if *id == retried { 2 } else { 1 };

@@ -6,6 +6,7 @@
 use super::error::PgError;
 use super::lease::PgStore;
 use super::rows::ids;
+use crate::daemon::job::Job;
 use postgres_protocol::escape::escape_literal;
 use std::path::Path;
 
@@ -34,11 +35,15 @@ impl PgStore {
         Ok(())
     }
 
-    /// The names of a job's files.
-    pub(crate) async fn file_names(&self, id: &str) -> Result<Vec<String>, PgError> {
+    /// The names of a job's files: its own, and (a copy) those of its first job, which
+    /// it shares.
+    pub(crate) async fn file_names(&self, job: &Job) -> Result<Vec<String>, PgError> {
         let client = self.client().await?;
         Ok(ids(client
-            .query("SELECT name FROM job_files WHERE job_id = $1", &[&id])
+            .query(
+                "SELECT DISTINCT name FROM job_files WHERE job_id = $1 OR job_id = $2",
+                &[&job.id, &job.group()],
+            )
             .await?))
     }
 }
@@ -211,28 +216,36 @@ async fn copy_file_out(
     Ok(())
 }
 
-/// Writes the job's files that `dir` lacks (only its G-code with `only_gcode`).
+/// Writes the job's files that `dir` lacks (only its G-code with `only_gcode`): its own,
+/// and those of its first job that a copy shares (a copy's own file of a name wins: a
+/// copy prepared again has G-code of its own).
 pub(super) async fn download_missing(
     tx: &tokio_postgres::Transaction<'_>,
-    id: &str,
+    job: &Job,
     dir: &Path,
     only_gcode: bool,
 ) -> Result<(), PgError> {
-    let names: Vec<String> = ids(tx
-        .query("SELECT name FROM job_files WHERE job_id = $1", &[&id])
-        .await?);
+    let id = job.id.as_str();
+    let rows = tx
+        .query(
+            "SELECT DISTINCT ON (name) name, job_id FROM job_files \
+             WHERE job_id = $1 OR job_id = $2 ORDER BY name, job_id = $1 DESC",
+            &[&id, &job.group()],
+        )
+        .await?;
+    let names: Vec<(String, String)> = rows.iter().map(|r| (r.get(0), r.get(1))).collect();
     let file_err = |name: &str| {
         let (id, name) = (id.to_string(), name.to_string());
         move |source| PgError::File { id, name, source }
     };
     std::fs::create_dir_all(dir).map_err(file_err("."))?;
-    for name in names {
+    for (name, owner) in names {
         // Names come from hosts of the farm; still, nothing leaves the job's directory.
         let plain = !name.is_empty() && !name.contains('/') && name != "." && name != "..";
         if !plain || (only_gcode && !name.ends_with(".gcode")) || dir.join(&name).exists() {
             continue;
         }
-        copy_file_out(tx, id, &name, &dir.join(&name)).await?;
+        copy_file_out(tx, &owner, &name, &dir.join(&name)).await?;
     }
     Ok(())
 }

@@ -185,8 +185,9 @@ impl PgStore {
     }
 
     /// Makes the copies due of job `id` ([`Job::copies_due`]) in one transaction on its
-    /// locked row: each a ready job with the job's files (all but its own pictures), and
-    /// the job marked, so whichever host comes first makes them and no other does.
+    /// locked row: each a ready job, and the job marked, so whichever host comes first
+    /// makes them and no other does. A copy stores no files: it shares its first job's
+    /// (see `download_missing`), so a big G-code is kept once however many copies.
     pub(crate) async fn make_copies(&self, id: &str) -> Result<Vec<Job>, PgError> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
@@ -233,14 +234,6 @@ impl PgStore {
                     &printers,
                     &record_of(&copy),
                 ],
-            )
-            .await?;
-            // Its own pictures stay the job's (the names a copy shares, as in a spool).
-            tx.execute(
-                "INSERT INTO job_files (job_id, name, bytes) SELECT $1, name, bytes \
-                 FROM job_files WHERE job_id = $2 AND name NOT LIKE '%.jpg' \
-                 AND name NOT LIKE '%.mp4' AND name <> $3",
-                &[&copy.id, &id, &crate::observation::OBSERVED_PNG],
             )
             .await?;
             tx.execute(
@@ -326,7 +319,7 @@ impl PgStore {
             upload_missing(tx, &job.id, dir).await?;
         }
         if let Some((dir, only_gcode)) = change.download_to {
-            download_missing(tx, &job.id, dir, only_gcode).await?;
+            download_missing(tx, &job, dir, only_gcode).await?;
         }
         let holder = is_held(state).then(|| self.host.clone());
         self.write_row(tx, &job, holder.as_deref(), state != before)

@@ -368,7 +368,7 @@ impl JobStore for PgJobStore {
             });
         }
         // As in the spool: a prepared job keeps its G-code and is printed again as it was.
-        let names = self.block(self.db.file_names(id))?;
+        let names = self.block(self.db.file_names(&job))?;
         let prepared = super::super::prepared(&job, |name| names.iter().any(|n| n == name));
         let state = if prepared {
             JobState::Ready

@@ -56,7 +56,7 @@ fn main() {
         // 1,000 ready jobs any printer may take.
         for i in 0..JOBS {
             hosts[i % HOSTS]
-                .admit("part.gcode", "/srv/in", &printers, &[])
+                .admit("part.gcode", "/srv/in", &printers, &[], None)
                 .await
                 .unwrap();
             let job = hosts[i % HOSTS].claim_preparation().await.unwrap().unwrap();

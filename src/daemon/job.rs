@@ -64,6 +64,8 @@ pub enum StoreError {
         from: &'static str,
         to: &'static str,
     },
+    #[error("{path}: picked up by another host of the farm (the hot folder is shared); it leaves the folder with that host")]
+    TakenElsewhere { path: PathBuf },
     #[error("job {id} is {state}; {action} needs it to be {allowed}")]
     WrongState {
         id: String,
@@ -206,9 +208,6 @@ pub(crate) fn read_sidecar(path: &Path) -> Result<Option<Sidecar>, String> {
     parse_sidecar(file, path).map(Some)
 }
 
-/// Copies of one model a sidecar may ask for.
-pub(crate) const MAX_COPIES: u32 = 100;
-
 /// A sidecar holds a handful of short keys; anything bigger is not one.
 pub(crate) const MAX_SIDECAR_BYTES: u64 = 16 * 1024;
 
@@ -241,6 +240,7 @@ pub fn parse_sidecar(reader: impl Read, path: &Path) -> Result<Sidecar, String> 
             .map_err(|m| format!("sidecar {}: key `copies`: {m}", path.display()))?;
     }
     if let Some(printers) = &sidecar.printers {
+        use crate::daemon::config::MAX_COPIES;
         let problem = if sidecar.copies.is_some() || sidecar.printer.is_some() {
             Some(
                 "one copy goes to each printer named: give neither `copies` nor `printer` with it"

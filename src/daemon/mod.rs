@@ -224,6 +224,11 @@ async fn pick_up(farm: &Farm, path: &std::path::Path, folder: &std::path::Path, 
                 retries.forget(path);
                 tracing::info!(job = %job.id, file = %path.display(), "picked up")
             }
+            // Another host sharing the folder took it first: it moves it away.
+            Err(e @ crate::daemon::job::StoreError::TakenElsewhere { .. }) => {
+                retries.forget(path);
+                tracing::info!(file = %path.display(), reason = %e, "not picked up here")
+            }
             // Taken away meanwhile: nothing to try again.
             Err(e) if !path.exists() => {
                 retries.forget(path);

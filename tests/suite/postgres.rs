@@ -40,12 +40,71 @@ async fn admit_n(store: &PgStore, n: usize, printers: &[String]) -> Vec<String> 
                 "/srv/in",
                 printers,
                 &[("model", FileBody::Bytes(b"solid x"))],
+                None,
             )
             .await
             .unwrap();
         ids.push(job.id);
     }
     ids
+}
+
+/// Two hosts watching one shared hot folder both see a dropped file: the second to admit
+/// it is refused (the file is the first's), while the same name dropped again (another
+/// file) is a job of its own.
+#[test]
+fn a_file_seen_by_two_hosts_is_one_job() {
+    use crispen::daemon::job::StoreError;
+    let pg = PgServer::start();
+    runtime().block_on(async {
+        let a = PgStore::connect(&settings(&pg), "rack-1", LEASE)
+            .await
+            .unwrap();
+        let b = PgStore::connect(&settings(&pg), "rack-2", LEASE)
+            .await
+            .unwrap();
+        let files = [("model", FileBody::Bytes(b"solid x"))];
+        let first = a
+            .admit(
+                "part.stl",
+                "/srv/in",
+                &[],
+                &files,
+                Some("7:7:1.000000001:/srv/in/part.stl"),
+            )
+            .await
+            .unwrap();
+        match b
+            .admit(
+                "part.stl",
+                "/srv/in",
+                &[],
+                &files,
+                Some("7:7:1.000000001:/srv/in/part.stl"),
+            )
+            .await
+        {
+            Err(e) => match StoreError::from(e) {
+                StoreError::TakenElsewhere { path } => {
+                    assert_eq!(path, std::path::Path::new("/srv/in/part.stl"))
+                }
+                other => panic!("{other}"),
+            },
+            Ok(job) => panic!("a second job {} of one file", job.id),
+        }
+        let again = b
+            .admit(
+                "part.stl",
+                "/srv/in",
+                &[],
+                &files,
+                Some("8:7:2.000000001:/srv/in/part.stl"),
+            )
+            .await
+            .unwrap();
+        assert_ne!(first.id, again.id);
+        assert_eq!(a.jobs().await.unwrap().len(), 2);
+    });
 }
 
 #[test]

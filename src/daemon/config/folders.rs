@@ -221,13 +221,15 @@ fn check_folder(
     })
 }
 
+/// Copies of one model a folder or a sidecar may ask for.
+pub(crate) const MAX_COPIES: u32 = 100;
+
 /// Checks how many copies of a model a folder or a sidecar asks for.
 pub(crate) fn check_copies(n: u32) -> Result<(), String> {
-    let max = crate::daemon::job::MAX_COPIES;
-    if (1..=max).contains(&n) {
+    if (1..=MAX_COPIES).contains(&n) {
         Ok(())
     } else {
-        Err(format!("must be from 1 to {max}, got {n}"))
+        Err(format!("must be from 1 to {MAX_COPIES}, got {n}"))
     }
 }
 

@@ -50,7 +50,7 @@ pub use checked::{
     PgSettings, PrinterConfig, PrinterPort, StoreConfig,
 };
 pub(crate) use error::ConfigError;
-pub(crate) use folders::{check_copies, check_height, check_per_plate, parse_strength};
+pub(crate) use folders::{check_copies, check_height, check_per_plate, parse_strength, MAX_COPIES};
 pub(crate) use http::read_api_key;
 pub(crate) use secret::read_secret;
 pub(crate) use store::{parse_conninfo, ConninfoError};

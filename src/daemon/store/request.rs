@@ -427,7 +427,7 @@ fn claim(
         .jobs()
         .filter(|j| j.state == JobState::Ready && eligible(j))
         .map(|j| {
-            let asked = super::spool::seq_of_id(j.group()).unwrap_or(j.seq);
+            let asked = view.get(j.group()).map_or(j.seq, |first| first.seq);
             (j.asks.priority, asked, j.id.clone())
         })
         .collect();

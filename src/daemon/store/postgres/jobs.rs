@@ -56,13 +56,16 @@ impl Change<'_> {
 impl PgStore {
     /// Records a picked-up file as a queued job of this host's folder `folder`, with its
     /// files, all or nothing. `printers` is the folder's rule; the id is made from the
-    /// farm-wide sequence number.
+    /// farm-wide sequence number. `pickup` names the dropped file itself (see
+    /// `PgJobStore::admit`): a second job of one file is refused with
+    /// [`StoreError::TakenElsewhere`].
     pub async fn admit(
         &self,
         file: &str,
         folder: &str,
         printers: &[String],
         files: &[(&str, FileBody<'_>)],
+        pickup: Option<&str>,
     ) -> Result<Job, PgError> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
@@ -81,20 +84,32 @@ impl PgStore {
             host: self.host.clone(),
             printers: printers.to_vec(),
         });
-        tx.execute(
-            "INSERT INTO jobs (id, seq, file, origin_host, folder, printers, state, record) \
-             OVERRIDING SYSTEM VALUE VALUES ($1, $2, $3, $4, $5, $6, 'queued', $7)",
-            &[
-                &job.id,
-                &seq,
-                &file,
-                &self.host,
-                &folder,
-                &printers,
-                &record_of(&job),
-            ],
-        )
-        .await?;
+        let inserted = tx
+            .execute(
+                "INSERT INTO jobs (id, seq, file, origin_host, folder, printers, state, record, \
+                 pickup) OVERRIDING SYSTEM VALUE VALUES ($1, $2, $3, $4, $5, $6, 'queued', $7, $8)",
+                &[
+                    &job.id,
+                    &seq,
+                    &file,
+                    &self.host,
+                    &folder,
+                    &printers,
+                    &record_of(&job),
+                    &pickup,
+                ],
+            )
+            .await;
+        if let Err(e) = &inserted {
+            let db = e.as_db_error();
+            if db.is_some_and(|d| d.constraint() == Some("jobs_pickup")) {
+                return Err(StoreError::TakenElsewhere {
+                    path: Path::new(folder).join(file),
+                }
+                .into());
+            }
+        }
+        inserted?;
         for (name, body) in files {
             match body {
                 FileBody::Bytes(bytes) => {

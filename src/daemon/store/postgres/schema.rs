@@ -125,6 +125,13 @@ const MIGRATIONS: &[&str] = &[
         CHECK (command IN ('pause', 'resume', 'cancel', 'cancel-part'));
     ALTER TABLE commands ADD COLUMN part text;
     "#,
+    // 8: which dropped file a job was made of (its folder, name, inode, size and
+    // modification time): two hosts watching one shared hot folder both see a file, and
+    // the one that comes second is refused instead of making a second job of it.
+    r#"
+    ALTER TABLE jobs ADD COLUMN pickup text;
+    CREATE UNIQUE INDEX jobs_pickup ON jobs (pickup);
+    "#,
 ];
 
 /// The newest schema version this binary knows.

@@ -147,6 +147,21 @@ impl PgJobStore {
     }
 }
 
+/// The dropped file itself, as every host sharing its hot folder sees it: the folder, its
+/// name, inode, size and modification time (the same file seen by two hosts is one pick-up;
+/// a file dropped again is another, even under the same name).
+fn pickup_of(source: &Path, folder: &str, file: &str) -> Result<String, StoreError> {
+    use std::os::unix::fs::MetadataExt;
+    let m = std::fs::metadata(source).map_err(io_err(source, "read"))?;
+    Ok(format!(
+        "{}:{}:{}.{:09}:{folder}/{file}",
+        m.ino(),
+        m.size(),
+        m.mtime(),
+        m.mtime_nsec()
+    ))
+}
+
 /// An edit that gives a job the fields of `after` (a change worked out beforehand), keeping
 /// its state and history for the transition to move on.
 fn becomes(after: Job) -> JobEdit {
@@ -218,8 +233,9 @@ impl JobStore for PgJobStore {
             files.push((&sidecar_name, FileBody::Path(&sidecar)));
         }
         let folder_name = folder.to_string_lossy();
+        let pickup = pickup_of(source, &folder_name, &file)?;
         let db = self.db.clone();
-        let job = self.reach(db.admit(&file, &folder_name, printers, &files))?;
+        let job = self.reach(db.admit(&file, &folder_name, printers, &files, Some(&pickup)))?;
         // The job is in the farm now: its files leave the hot folder for this host's copy,
         // which preparation here reads. A file that cannot be moved is removed, so it is
         // never picked up twice.

@@ -951,11 +951,26 @@ impl DirectFirmware {
         writeln!(stdin, "{framed}").unwrap();
         stdin.flush().unwrap();
         let mut answer = String::new();
+        // An answer may wait for the moves before it (M114 synchronises the planner),
+        // which the Linux build steps in real time and a loaded machine slows without
+        // bound: the wait ends on the answer, or on the firmware's exit, and the limit only
+        // catches a firmware that hangs for good.
+        let start = std::time::Instant::now();
         loop {
-            let line = self
-                .lines
-                .recv_timeout(Duration::from_secs(60))
-                .unwrap_or_else(|_| panic!("no answer to `{framed}`: {answer}"));
+            use std::sync::mpsc::RecvTimeoutError;
+            let line = match self.lines.recv_timeout(Duration::from_secs(1)) {
+                Ok(line) => line,
+                Err(RecvTimeoutError::Disconnected) => {
+                    let status = self.child.wait();
+                    panic!("the firmware ended ({status:?}) before answering `{framed}`: {answer}")
+                }
+                Err(RecvTimeoutError::Timeout) if start.elapsed() < Duration::from_secs(900) => {
+                    continue
+                }
+                Err(RecvTimeoutError::Timeout) => {
+                    panic!("no answer to `{framed}` in 900 s: {answer}")
+                }
+            };
             assert!(errors || !line.starts_with("Error"), "`{framed}`: {line}");
             let done = line.starts_with("ok");
             answer.push_str(&line);

@@ -849,9 +849,30 @@ impl Browser {
             .to_string()
     }
 
+    /// Clicks the element `css` selects. The dashboard redraws a tile at each change of
+    /// its printer: an element redrawn between its finding and its click ("stale element
+    /// reference", which a loaded machine makes likely) is found again and clicked, the
+    /// redraw being the event that says so.
     pub(crate) fn click(&self, css: &str) {
-        let id = self.find(css);
-        self.call("POST", &format!("/element/{id}/click"), &json!({}));
+        loop {
+            let id = self.find(css);
+            let path = format!("/session/{}/element/{id}/click", self.session);
+            let a = request(
+                &self.addr,
+                "POST",
+                &path,
+                &[("Content-Type", "application/json")],
+                b"{}",
+            );
+            let v = a.json();
+            if a.status == 200 {
+                return;
+            }
+            assert_eq!(
+                v["value"]["error"], "stale element reference",
+                "WebDriver POST {path}: {v}"
+            );
+        }
     }
 
     pub(crate) fn type_into(&self, css: &str, text: &str) {

@@ -188,7 +188,10 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
     let report = result?;
 
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        // The figures, and the line on what the enhancement moved in words, made here.
+        let mut json = serde_json::to_value(&report)?;
+        json["moved"] = report.moved().to_string().into();
+        println!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         let enhancement = match report.enhancement.lambda2 {
             Some(l2) => format!("{} with λ2 = {l2:.3}", report.enhancement.mode),
@@ -221,9 +224,7 @@ pub(crate) fn run(args: Args) -> anyhow::Result<ExitCode> {
             report.timings.total_s,
             report.output.display()
         );
-        if let Some(moved) = &report.moved {
-            println!("{moved}");
-        }
+        println!("{}", report.moved());
         if let Some(verdict) = &report.policy {
             println!("{}", verdict.summary());
         }

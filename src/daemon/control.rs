@@ -151,7 +151,7 @@ pub struct JobStatus {
     pub used_g: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cost: Option<f64>,
-    /// What the enhancement moved, in words (its slicing report's `moved`).
+    /// What the enhancement moved, in words (from its slicing report's figures).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub moved: Option<String>,
     /// A plate of several parts: how many, and those cancelled for its current print.
@@ -414,7 +414,7 @@ pub(crate) fn status(farm: &Farm) -> Status {
             need_m: need.filter(|n| n.g.is_none()).map(|n| n.mm / 1000.0),
             used_g: j.used().grams,
             cost: j.used().cost,
-            moved: j.slice_report.as_ref().and_then(|r| r.moved.clone()),
+            moved: j.slice_report.as_ref().map(|r| r.moved().to_string()),
             parts: PartsStatus::of(j),
         })
         .collect();

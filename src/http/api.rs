@@ -206,7 +206,12 @@ pub(crate) async fn job(
     }
     match state.farm.jobs().retired(&id).await {
         Ok(Some(retired)) => {
-            let mut answer = serde_json::to_value(&retired.record).unwrap_or_default();
+            let mut answer = said(&retired.record);
+            // A record from before the figures were kept: its job's report has them.
+            let report = retired.job.as_ref().and_then(|j| j.slice_report.as_ref());
+            if let (None, Some(report)) = (&retired.record.moved, report) {
+                answer["moved"] = report.moved().to_string().into();
+            }
             answer["retired"] = serde_json::Value::Bool(true);
             let root = state.cameras.root().to_path_buf();
             let wanted = id.clone();
@@ -223,6 +228,16 @@ pub(crate) async fn job(
         )),
         Err(e) => Err(store_unavailable(&state.farm, e)),
     }
+}
+
+/// A history record as the API shows it: what the enhancement moved in words, made here
+/// from the record's figures.
+fn said(record: &history::Retired) -> serde_json::Value {
+    let mut answer = serde_json::to_value(record).unwrap_or_default();
+    if let Some(moved) = &record.moved {
+        answer["moved"] = moved.to_string().into();
+    }
+    answer
 }
 
 /// The job store could not answer a reading (its history unreadable, the farm database
@@ -329,7 +344,8 @@ pub(crate) async fn history(
             .history_where(query.before, limit, filter)
             .await
             .map_err(unavailable)?;
-        return Ok(Json(page).into_response());
+        let jobs: Vec<serde_json::Value> = page.jobs.iter().map(said).collect();
+        return Ok(Json(serde_json::json!({ "jobs": jobs, "next": page.next })).into_response());
     }
     // The export: page after page until the history (or CSV_MAX_ROWS) ends; `limit`
     // is the size of each read.

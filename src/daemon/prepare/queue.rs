@@ -285,11 +285,11 @@ async fn finish_preparation(
                         .as_ref()
                         .is_some_and(|r| r.enhancement.lambda2.is_some());
                     if let Some(r) = &mut report {
-                        r.set_moved(if enhanced {
+                        r.walls_state = if enhanced {
                             WallsState::Pending
                         } else {
                             WallsState::NotAsked
-                        });
+                        };
                     }
                     let change = JobChange::Prepared(Box::new(PreparedJob {
                         machines,

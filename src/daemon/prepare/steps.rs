@@ -346,11 +346,11 @@ pub fn prepare(
                     draw_preview(dir, Some(&placed.mesh), machine, &report.output, None);
                 }
                 // Asked for (by --preview too) and not made: the warning above says why.
-                report.set_moved(if req.compare || req.preview.is_some() {
+                report.walls_state = if req.compare || req.preview.is_some() {
                     WallsState::NotMeasured
                 } else {
                     WallsState::NotAsked
-                });
+                };
                 // What the plate's largest model takes on each axis.
                 report.model_size_mm = plate.iter().fold([0.0; 3], |size, p| {
                     [0, 1, 2].map(|k| size[k].max(p.size[k]))

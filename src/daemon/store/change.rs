@@ -198,11 +198,11 @@ impl JobChange {
                 });
                 if let Some(report) = &mut job.slice_report {
                     // With the walls measured their figures are said; else why they are not.
-                    report.set_moved(if measured {
+                    report.walls_state = if measured {
                         WallsState::Pending
                     } else {
                         WallsState::NotMeasured
-                    });
+                    };
                 }
                 true
             }

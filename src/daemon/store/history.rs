@@ -16,6 +16,7 @@
 use super::rules::io_err;
 use crate::calendar::{iso_utc, month_of};
 use crate::daemon::job::{Job, JobState, StoreError};
+use crate::slice::moved::Moved;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
 use std::io::{BufRead, Write};
@@ -147,9 +148,29 @@ pub struct Retired {
     pub used_g: Option<f64>,
     #[serde(default)]
     pub cost: Option<f64>,
-    /// What the enhancement moved, in words (its slicing report's `moved`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub moved: Option<String>,
+    /// What the enhancement moved: its slicing report's figures, said where shown. None
+    /// in records made before they were kept, and in those that kept it in words.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "figures_only"
+    )]
+    pub moved: Option<Moved>,
+}
+
+/// A record's `moved`: its figures, or nothing for one that kept the line in words (before
+/// the words were made where shown), so an old record still reads.
+fn figures_only<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Moved>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Kept {
+        Figures(Moved),
+        Other(serde::de::IgnoredAny),
+    }
+    Ok(match Option::<Kept>::deserialize(d)? {
+        Some(Kept::Figures(m)) => Some(m),
+        Some(Kept::Other(_)) | None => None,
+    })
 }
 
 /// The times `job` was printing, from its state changes: each `Printing` until the next
@@ -235,7 +256,7 @@ impl Retired {
             material: used.material,
             used_g: used.grams,
             cost: used.cost,
-            moved: report.and_then(|r| r.moved.clone()),
+            moved: report.map(|r| r.moved()),
         }
     }
 }
@@ -786,6 +807,31 @@ mod tests {
         assert_eq!(CSV_COLUMNS[22], "ended_unix");
         assert_eq!(CSV_COLUMNS[23..26], ["material", "used_g", "cost"]);
         assert_eq!(CSV_COLUMNS[26..], ["copy_of", "copy"]);
+    }
+
+    /// A record keeps what the enhancement moved as figures and reads them back; one that
+    /// kept it in words (before the words were made where shown) reads without it.
+    #[test]
+    fn what_moved_is_kept_as_figures() {
+        let mut job = job(6, JobState::Done, 1e9);
+        job.slice_report = Some(crate::slice::SliceReport {
+            enhancement: crate::slice::EnhancementSummary {
+                mode: "unmodified".into(),
+                ..Default::default()
+            },
+            ..Default::default()
+        });
+        let r = Retired::of(&job, "/d".into(), 1e9);
+        assert_eq!(r.moved, Some(Moved::Unmodified));
+        let json = serde_json::to_value(&r).unwrap();
+        assert_eq!(json["moved"], serde_json::json!({"from": "unmodified"}));
+        assert_eq!(serde_json::from_value::<Retired>(json.clone()).unwrap(), r);
+        let mut words = json;
+        words["moved"] = "The outer wall moves by at most 0.1 mm.".into();
+        assert_eq!(
+            serde_json::from_value::<Retired>(words).unwrap().moved,
+            None
+        );
     }
 
     #[test]

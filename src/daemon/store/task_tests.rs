@@ -618,8 +618,8 @@ async fn a_ready_job_publishes_its_copies_and_shares_its_comparison() {
     for copy in snapshot.jobs().filter(|j| j.copy.is_some()) {
         assert_eq!(copy.comparison, first.comparison, "{}", copy.id);
         assert_eq!(
-            copy.slice_report.as_ref().and_then(|r| r.moved.clone()),
-            first.slice_report.as_ref().and_then(|r| r.moved.clone())
+            copy.slice_report.as_ref().map(|r| r.moved()),
+            first.slice_report.as_ref().map(|r| r.moved())
         );
     }
 }

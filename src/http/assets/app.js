@@ -884,7 +884,7 @@ async function showJob(id) {
   }
   if (j.reason) html += '<p class="reason" id="reason">' + esc(j.reason) + "</p>";
   if (j.waiting) html += '<p class="waiting">' + esc(j.waiting) + "</p>";
-  const moved = (report && report.moved) || j.moved;
+  const moved = j.moved;
   if (moved) html += '<p class="moved" id="moved">' + esc(moved) + "</p>";
   if (report) html += printSummary(j, report);
   // Filament: what it asks, what a print needs, what its prints took and cost.

@@ -173,10 +173,10 @@ pub struct SliceReport {
     /// for, see `SliceRequest::compare`).
     #[serde(default)]
     pub walls: Option<walls::WallComparison>,
-    /// What the enhancement moved, in one line (see `moved.rs`): made with the report and
-    /// again when its walls are compared. None in reports made before it was.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub moved: Option<String>,
+    /// Where the comparison of the outer walls stands while `walls` is none: what the
+    /// line on what the enhancement moved says of it ([`SliceReport::moved`]).
+    #[serde(default)]
+    pub walls_state: moved::WallsState,
     /// What the G-code policy found (pauses, commands the machine allowed); a file it
     /// refuses makes no report.
     #[serde(default, skip_serializing_if = "Option::is_none")]

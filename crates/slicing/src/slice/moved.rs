@@ -1,27 +1,31 @@
-//! What the enhancement moved, in one line an operator reads: how much of the print moves
-//! by more than a printer draws (a quarter of the line width, `crispen_geometry::enhance::printed`),
-//! on how much of it, and how far all but 1 % of it moves, in mm (the largest move of a
-//! wall is often a contour that a tiny change in Z moved far, not what a viewer sees).
+//! What the enhancement moved, as the figures of one line an operator reads: how much of
+//! the print moves by more than a printer draws (a quarter of the line width,
+//! `crispen_geometry::enhance::printed`), on how much of it, and how far all but 1 % of it
+//! moves, in mm (the largest move of a wall is often a contour that a tiny change in Z
+//! moved far, not what a viewer sees).
 //!
-//! The outer walls of the G-code ([`WallComparison`]) are what a viewer sees of the
+//! The outer walls of the G-code ([`WallComparison`](super::walls::WallComparison)) are what a viewer sees of the
 //! print, so they are said when measured; until then (the daemon measures them after the
 //! job is ready) the enhanced mesh's figures at the printed size stand in
-//! ([`PrintedDisplacement`]), and the line says so. The line is made once, when a report
-//! is made or its comparison recorded ([`SliceReport::set_moved`]), and kept in the
-//! report, so every reader (job page, `crispen slice`, `crispen status`, the history) says
-//! the same.
+//! ([`PrintedDisplacement`](crispen_geometry::enhance::PrintedDisplacement)), and the line says so. A report keeps only its figures and
+//! where its walls stand ([`SliceReport::walls_state`]); [`SliceReport::moved`] picks the
+//! figures ([`Moved`]), and the words are made where they are shown (its `Display`), so
+//! every reader (job page, `crispen slice`, `crispen status`, the history) says the same.
 
-use super::walls::WallComparison;
-use super::{EnhancementSummary, SliceReport};
-use crispen_geometry::enhance::PrintedDisplacement;
+use super::SliceReport;
+use serde::{Deserialize, Serialize};
+use std::fmt;
 
 /// The enhancement's mode of a job whose G-code was sliced elsewhere.
 pub const PRESLICED: &str = "pre-sliced";
 
 /// Where the comparison of the outer walls stands when a report has none.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum WallsState {
-    /// Not asked for (`crispen slice` without `--compare`).
+    /// Not asked for (`crispen slice` without `--compare`; reports made before the state
+    /// was kept).
+    #[default]
     NotAsked,
     /// To be measured (the daemon's, after the job is ready).
     Pending,
@@ -29,74 +33,161 @@ pub enum WallsState {
     NotMeasured,
 }
 
+/// What the enhancement moved: the figures its one line says. A distance or share that is
+/// not a finite number is `None` ("an unknown distance"), so the figures always read back.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "from", rename_all = "snake_case")]
+pub enum Moved {
+    /// Sliced elsewhere: crispen moved nothing.
+    Presliced,
+    /// Printed unmodified.
+    Unmodified,
+    /// The outer walls of the enhanced and the unmodified G-code, compared.
+    Walls {
+        /// Layers compared; none means the two share no layer.
+        layers: usize,
+        /// The limit a move is counted past: a quarter line width, or 0.1 mm in reports
+        /// made before the quarter line was measured (`quarter_line` false).
+        limit_mm: Option<f64>,
+        quarter_line: bool,
+        /// The share of the wall's length moved past the limit.
+        share: Option<f64>,
+        p99_mm: Option<f64>,
+        max_mm: Option<f64>,
+    },
+    /// The enhanced mesh at the printed size, standing in while the walls are not
+    /// measured (`walls` says why).
+    Mesh {
+        /// A quarter line width, when the machine is known (else no share either).
+        limit_mm: Option<f64>,
+        /// The share of the surface's area moved past the limit.
+        share: Option<f64>,
+        p99_mm: Option<f64>,
+        max_mm: Option<f64>,
+        walls: WallsState,
+    },
+    /// Enhanced, with neither the walls nor the mesh measured.
+    Unmeasured { walls: WallsState },
+}
+
 impl SliceReport {
-    /// Makes the report's `moved` line from its figures, the walls' standing as `state`
-    /// when it has no wall figures.
-    pub fn set_moved(&mut self, state: WallsState) {
-        self.moved = Some(moved(&self.enhancement, self.walls.as_ref(), state));
+    /// What the enhancement moved, from the report's figures.
+    pub fn moved(&self) -> Moved {
+        let e = &self.enhancement;
+        if e.lambda2.is_none() {
+            return if e.mode == PRESLICED {
+                Moved::Presliced
+            } else {
+                Moved::Unmodified
+            };
+        }
+        if let Some(w) = &self.walls {
+            // Reports made before `quarter_line_mm` was measured have it 0: their 0.1 mm
+            // share (a quarter of the common 0.4 mm line) is said instead.
+            let quarter_line = w.quarter_line_mm > 0.0;
+            return Moved::Walls {
+                layers: w.layers,
+                limit_mm: finite(if quarter_line { w.quarter_line_mm } else { 0.1 }),
+                quarter_line,
+                share: finite(if quarter_line {
+                    w.share_over_quarter_line
+                } else {
+                    w.share_over_0_1_mm
+                }),
+                p99_mm: finite(w.p99_mm),
+                max_mm: finite(w.max_mm),
+            };
+        }
+        let walls = self.walls_state;
+        match &e.printed {
+            Some(p) => Moved::Mesh {
+                limit_mm: p.threshold_mm.and_then(finite),
+                share: p.threshold_mm.and(p.share_above_threshold).and_then(finite),
+                p99_mm: finite(p.p99_mm),
+                max_mm: finite(p.max_mm),
+                walls,
+            },
+            None => Moved::Unmeasured { walls },
+        }
     }
 }
 
-/// The one line saying what the enhancement moved (see the module's comment).
-pub fn moved(
-    enhancement: &EnhancementSummary,
-    walls: Option<&WallComparison>,
-    state: WallsState,
-) -> String {
-    if enhancement.lambda2.is_none() {
-        return if enhancement.mode == PRESLICED {
-            "Sliced elsewhere: crispen moved nothing.".into()
-        } else {
-            "Printed unmodified: the enhancement moved nothing.".into()
+fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+/// The one line (see the module's comment).
+impl fmt::Display for Moved {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let source = |walls: &WallsState| match walls {
+            WallsState::NotAsked => "the outer walls in the G-code were not compared",
+            WallsState::Pending => "the outer walls in the G-code are still to be compared",
+            WallsState::NotMeasured => "the outer walls in the G-code could not be compared",
         };
+        match self {
+            Moved::Presliced => f.write_str("Sliced elsewhere: crispen moved nothing."),
+            Moved::Unmodified => f.write_str("Printed unmodified: the enhancement moved nothing."),
+            Moved::Walls { layers: 0, .. } => f.write_str(
+                "The outer walls of the enhanced and the unmodified G-code share no layer: \
+                 nothing to compare.",
+            ),
+            Moved::Walls {
+                limit_mm,
+                quarter_line,
+                share,
+                p99_mm,
+                max_mm,
+                ..
+            } => {
+                let limit = if *quarter_line {
+                    Limit::QuarterLine(*limit_mm)
+                } else {
+                    Limit::Fixed(*limit_mm)
+                };
+                let reach = reach(*p99_mm, *max_mm);
+                write!(
+                    f,
+                    "{}.",
+                    share_line("The outer wall", limit, *share, "length", reach)
+                )
+            }
+            Moved::Mesh {
+                limit_mm,
+                share,
+                p99_mm,
+                max_mm,
+                walls,
+            } => {
+                let reach = reach(*p99_mm, *max_mm);
+                let line = match limit_mm {
+                    Some(t) => share_line(
+                        "The surface",
+                        Limit::QuarterLine(Some(*t)),
+                        *share,
+                        "area",
+                        reach,
+                    ),
+                    None => format!("The surface moves {reach}"),
+                };
+                write!(
+                    f,
+                    "{line} (from the enhanced mesh at the printed size; {}).",
+                    source(walls)
+                )
+            }
+            Moved::Unmeasured { walls } => write!(
+                f,
+                "Enhanced; how far the surface moved was not measured, and {}.",
+                source(walls)
+            ),
+        }
     }
-    if let Some(w) = walls {
-        return walls_line(w);
-    }
-    let source = match state {
-        WallsState::NotAsked => "the outer walls in the G-code were not compared",
-        WallsState::Pending => "the outer walls in the G-code are still to be compared",
-        WallsState::NotMeasured => "the outer walls in the G-code could not be compared",
-    };
-    match &enhancement.printed {
-        Some(p) => format!(
-            "{} (from the enhanced mesh at the printed size; {source}).",
-            mesh_line(p)
-        ),
-        None => format!("Enhanced; how far the surface moved was not measured, and {source}."),
-    }
-}
-
-/// The outer wall's figures. Reports made before `quarter_line_mm` was measured have it
-/// 0: their 0.1 mm share (a quarter of the common 0.4 mm line) is said instead.
-fn walls_line(w: &WallComparison) -> String {
-    if w.layers == 0 {
-        return "The outer walls of the enhanced and the unmodified G-code share no layer: \
-                nothing to compare."
-            .into();
-    }
-    let limit = if w.quarter_line_mm > 0.0 {
-        Limit::QuarterLine(w.quarter_line_mm)
-    } else {
-        Limit::Fixed(0.1)
-    };
-    let share = match limit {
-        Limit::QuarterLine(_) => w.share_over_quarter_line,
-        Limit::Fixed(_) => w.share_over_0_1_mm,
-    };
-    share_line(
-        "The outer wall",
-        limit,
-        Some(share),
-        "length",
-        reach(w.p99_mm, w.max_mm),
-    ) + "."
 }
 
 /// How far the moves go: all but 1 % of them, or the largest where a report from before
 /// the 99th percentile was kept has only that.
-fn reach(p99_mm: f64, max_mm: f64) -> Reach {
-    if p99_mm > 0.0 || max_mm == 0.0 {
+fn reach(p99_mm: Option<f64>, max_mm: Option<f64>) -> Reach {
+    if p99_mm.is_some_and(|v| v > 0.0) || max_mm == Some(0.0) {
         Reach::P99(p99_mm)
     } else {
         Reach::Max(max_mm)
@@ -105,12 +196,12 @@ fn reach(p99_mm: f64, max_mm: f64) -> Reach {
 
 #[derive(Clone, Copy)]
 enum Reach {
-    P99(f64),
-    Max(f64),
+    P99(Option<f64>),
+    Max(Option<f64>),
 }
 
-impl std::fmt::Display for Reach {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+impl fmt::Display for Reach {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
             Reach::P99(v) => write!(f, "at most {} on 99 % of it", mm(v)),
             Reach::Max(v) => write!(f, "at most {}", mm(v)),
@@ -118,24 +209,10 @@ impl std::fmt::Display for Reach {
     }
 }
 
-/// The mesh's figures (without a machine, its share is not known: only its largest move).
-fn mesh_line(p: &PrintedDisplacement) -> String {
-    match p.threshold_mm {
-        Some(t) => share_line(
-            "The surface",
-            Limit::QuarterLine(t),
-            p.share_above_threshold,
-            "area",
-            reach(p.p99_mm, p.max_mm),
-        ),
-        None => format!("The surface moves {}", reach(p.p99_mm, p.max_mm)),
-    }
-}
-
 #[derive(Clone, Copy)]
 enum Limit {
-    QuarterLine(f64),
-    Fixed(f64),
+    QuarterLine(Option<f64>),
+    Fixed(Option<f64>),
 }
 
 /// "`what` moves by more than `limit` on `share` of its `extent`; `reach`".
@@ -144,7 +221,7 @@ fn share_line(what: &str, limit: Limit, share: Option<f64>, extent: &str, reach:
         Limit::QuarterLine(t) => format!("a quarter line width ({})", mm(t)),
         Limit::Fixed(t) => mm(t),
     };
-    match share.filter(|s| s.is_finite()) {
+    match share {
         None => format!("{what} moves {reach}"),
         Some(s) if s <= 0.0 => {
             format!("{what} moves by no more than {limit} anywhere; {reach}")
@@ -175,10 +252,11 @@ fn percent(share: f64) -> String {
 }
 
 /// A distance to a hundredth of a mm, a thousandth below 0.1 mm.
-fn mm(v: f64) -> String {
-    if !v.is_finite() || v < 0.0 {
-        return "an unknown distance".into();
-    }
+fn mm(v: Option<f64>) -> String {
+    let v = match v {
+        Some(v) if v >= 0.0 => v,
+        _ => return "an unknown distance".into(),
+    };
     if v == 0.0 {
         "0 mm".into()
     } else if v < 0.0005 {
@@ -202,6 +280,24 @@ fn trim(s: String) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::slice::walls::WallComparison;
+    use crate::slice::EnhancementSummary;
+    use crispen_geometry::enhance::PrintedDisplacement;
+
+    /// The line a report with these figures says.
+    fn said(
+        enhancement: &EnhancementSummary,
+        walls: Option<&WallComparison>,
+        walls_state: WallsState,
+    ) -> String {
+        let report = SliceReport {
+            enhancement: enhancement.clone(),
+            walls: walls.cloned(),
+            walls_state,
+            ..SliceReport::default()
+        };
+        report.moved().to_string()
+    }
 
     fn enhanced(printed: Option<PrintedDisplacement>) -> EnhancementSummary {
         EnhancementSummary {
@@ -235,7 +331,7 @@ mod tests {
     }
 
     fn line(w: WallComparison) -> String {
-        moved(&enhanced(None), Some(&w), WallsState::Pending)
+        said(&enhanced(None), Some(&w), WallsState::Pending)
     }
 
     #[test]
@@ -308,20 +404,20 @@ mod tests {
     fn without_walls_the_mesh_stands_in_and_says_so() {
         let e = enhanced(Some(printed(Some(0.4), 0.31)));
         assert_eq!(
-            moved(&e, None, WallsState::Pending),
+            said(&e, None, WallsState::Pending),
             "The surface moves by more than a quarter line width (0.1 mm) on 40 % of its area; \
              at most 0.31 mm on 99 % of it (from the enhanced mesh at the printed size; the outer walls in \
              the G-code are still to be compared)."
         );
-        assert!(moved(&e, None, WallsState::NotMeasured).ends_with("could not be compared)."));
-        assert!(moved(&e, None, WallsState::NotAsked).ends_with("were not compared)."));
+        assert!(said(&e, None, WallsState::NotMeasured).ends_with("could not be compared)."));
+        assert!(said(&e, None, WallsState::NotAsked).ends_with("were not compared)."));
         // Without a machine the share is not known.
         let e = enhanced(Some(printed(None, 0.31)));
-        assert!(moved(&e, None, WallsState::NotAsked)
+        assert!(said(&e, None, WallsState::NotAsked)
             .starts_with("The surface moves at most 0.31 mm on 99 % of it (from the enhanced"));
         let e = enhanced(None);
         assert_eq!(
-            moved(&e, None, WallsState::Pending),
+            said(&e, None, WallsState::Pending),
             "Enhanced; how far the surface moved was not measured, and the outer walls in the \
              G-code are still to be compared."
         );
@@ -333,34 +429,53 @@ mod tests {
             mode: "unmodified".into(),
             ..EnhancementSummary::default()
         };
-        let said = moved(&plain, None, WallsState::NotAsked);
-        assert_eq!(said, "Printed unmodified: the enhancement moved nothing.");
+        let words = said(&plain, None, WallsState::NotAsked);
+        assert_eq!(words, "Printed unmodified: the enhancement moved nothing.");
         assert_eq!(
-            moved(&plain, Some(&walls(0.5, 1.0)), WallsState::Pending),
-            said
+            said(&plain, Some(&walls(0.5, 1.0)), WallsState::Pending),
+            words
         );
         let presliced = EnhancementSummary {
             mode: PRESLICED.into(),
             ..EnhancementSummary::default()
         };
-        let said = moved(&presliced, None, WallsState::NotAsked);
-        assert_eq!(said, "Sliced elsewhere: crispen moved nothing.");
+        let words = said(&presliced, None, WallsState::NotAsked);
+        assert_eq!(words, "Sliced elsewhere: crispen moved nothing.");
     }
 
     #[test]
-    fn a_report_keeps_its_line() {
+    fn a_report_says_its_walls_once_measured() {
         let mut r = SliceReport {
             enhancement: enhanced(Some(printed(Some(0.4), 0.31))),
+            walls_state: WallsState::Pending,
             ..SliceReport::default()
         };
-        r.set_moved(WallsState::Pending);
-        assert!(r.moved.as_deref().unwrap().contains("still to be compared"));
+        assert!(r.moved().to_string().contains("still to be compared"));
         r.walls = Some(walls(0.21, 0.18));
-        r.set_moved(WallsState::Pending);
-        assert!(r
-            .moved
-            .as_deref()
-            .unwrap()
-            .starts_with("The outer wall moves"));
+        assert!(r.moved().to_string().starts_with("The outer wall moves"));
+    }
+
+    /// Figures that are not numbers are kept as unknown, so a record holding them (the
+    /// history's) reads back, and says the same.
+    #[test]
+    fn the_figures_read_back_whatever_they_hold() {
+        for (w, state) in [
+            (Some(walls(f64::NAN, f64::INFINITY)), WallsState::Pending),
+            (Some(walls(0.3, 0.2)), WallsState::NotAsked),
+            (None, WallsState::NotMeasured),
+        ] {
+            let e = enhanced(Some(printed(Some(f64::NAN), f64::NAN)));
+            let r = SliceReport {
+                enhancement: e,
+                walls: w,
+                walls_state: state,
+                ..SliceReport::default()
+            };
+            let figures = r.moved();
+            let json = serde_json::to_string(&figures).unwrap();
+            let back: Moved = serde_json::from_str(&json).unwrap();
+            assert_eq!(back, figures, "{json}");
+            assert_eq!(back.to_string(), figures.to_string());
+        }
     }
 }

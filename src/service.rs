@@ -716,7 +716,7 @@ mod tests {
         use crate::daemon::job::StoreError;
         let tmp = tempfile::tempdir().unwrap();
         let config = farm_config(tmp.path(), &["p1"], "");
-        let store = crate::daemon::store::spool::Spool::open(&config.spool_dir).unwrap();
+        let store = crate::daemon::store::spool::SpoolStore::open(&config.spool_dir).unwrap();
         let (farm, _owners, task) = Farm::new(config, store);
         let mut tasks = Supervised::default();
         tasks.spawn(STORE, task);

@@ -339,7 +339,7 @@ pub(crate) fn farm_config(root: &Path, printers: &[&str], extra: &str) -> Config
 
 /// Opens the farm on its spool, with the owners of its state for the test to hand out.
 pub(crate) fn open_farm(config: Config) -> (Arc<Farm>, super::farm::Owners) {
-    let store = super::store::spool::Spool::open(&config.spool_dir).unwrap();
+    let store = super::store::spool::SpoolStore::open(&config.spool_dir).unwrap();
     let (farm, owners, task) = Farm::new(config, store);
     tokio::spawn(task);
     (farm, owners)

@@ -892,7 +892,7 @@ mod tests {
     fn farm(max_heating: usize, spool: &std::path::Path) -> (Arc<Farm>, Owners) {
         let text = format!("[spool]\ndir = \"spool\"\n[farm]\nmax_heating = {max_heating}\n");
         let config = Config::parse(&text, &spool.join("crispen.toml")).unwrap();
-        let store = super::super::store::spool::Spool::open(&spool.join("spool")).unwrap();
+        let store = super::super::store::spool::SpoolStore::open(&spool.join("spool")).unwrap();
         let (farm, owners, task) = Farm::new(config, store);
         tokio::spawn(task);
         (farm, owners)

@@ -80,10 +80,21 @@ pub(crate) async fn open_store(config: &Config) -> Result<Opened, DaemonError> {
         tracing::warn!(job = %id, state = state.name(), "job found mid-flight after a restart");
     };
     let Some(shared) = &config.store else {
-        let mut store = store::spool::Spool::open(&config.spool_dir)?;
-        for id in store.recover()? {
-            mid_flight(&id, store.get(&id).expect("recovered job exists").state);
+        let dir = config.spool_dir.clone();
+        let (spool, recovered) = store::blocking(move || -> Result<_, job::StoreError> {
+            let mut spool = store::spool::Spool::open(&dir)?;
+            let recovered: Vec<(String, JobState)> = spool
+                .recover()?
+                .into_iter()
+                .filter_map(|id| Some((id.clone(), spool.get(&id)?.state)))
+                .collect();
+            Ok((spool, recovered))
+        })
+        .await?;
+        for (id, state) in recovered {
+            mid_flight(&id, state);
         }
+        let store = store::spool::SpoolStore::from(spool);
         let (farm, owners, store) = Farm::new(config.clone(), store);
         return Ok(Opened {
             farm,

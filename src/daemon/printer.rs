@@ -1561,6 +1561,7 @@ mod tests {
                 ids.push(job.id);
             }
         }
+        let store = crate::daemon::store::spool::SpoolStore::from(store);
         let (farm, _owners, task) = Farm::new(config, store);
         tokio::spawn(task);
         let start = Arc::new(tokio::sync::Barrier::new(printers.len()));

@@ -578,7 +578,7 @@ mod tests {
         let text = "[spool]\ndir = \"spool\"\n";
         let config =
             crate::daemon::config::Config::parse(text, &root.join("crispen.toml")).unwrap();
-        let store = crate::daemon::store::spool::Spool::open(&root.join("spool")).unwrap();
+        let store = crate::daemon::store::spool::SpoolStore::open(&root.join("spool")).unwrap();
         let (farm, _owners, task) = Farm::new(config, store);
         tokio::spawn(task);
         farm

@@ -12,7 +12,7 @@ use super::snapshot::Snapshot;
 /// Makes the copies due of every job in `view`, and shares the wall comparisons made;
 /// whether anything changed. A job whose copies cannot be made now (a full disk, the
 /// database away) keeps them due and is tried again after the next change.
-pub(super) fn tend(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
+pub(super) async fn tend(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
     let due: Vec<String> = view
         .jobs()
         .filter(|j| !j.copies_due().is_empty())
@@ -20,7 +20,7 @@ pub(super) fn tend(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
         .collect();
     let mut changed = false;
     for id in due {
-        match store.make_copies(&id) {
+        match store.make_copies(&id).await {
             Ok(made) => {
                 if !made.is_empty() {
                     tracing::info!(job = %id, copies = made.len(), "copies made, each printed on its own");
@@ -36,12 +36,12 @@ pub(super) fn tend(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
             }
         }
     }
-    changed | share_comparisons(store, view)
+    changed | share_comparisons(store, view).await
 }
 
 /// Gives each copy whose wall comparison waits the first job's, once that is made: its
 /// comparison and its slicing report (the figures of the same G-code).
-fn share_comparisons(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
+async fn share_comparisons(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
     use crate::daemon::job::Comparison;
     let waiting: Vec<(String, Comparison, Option<crate::slice::SliceReport>)> = view
         .jobs()
@@ -57,13 +57,15 @@ fn share_comparisons(store: &mut dyn JobStore, view: &mut Snapshot) -> bool {
         .collect();
     let mut changed = false;
     for (id, comparison, report) in waiting {
-        let shared = store.update(
-            &id,
-            Box::new(move |j| {
-                j.comparison = Some(comparison);
-                j.slice_report = report;
-            }),
-        );
+        let shared = store
+            .update(
+                &id,
+                Box::new(move |j| {
+                    j.comparison = Some(comparison);
+                    j.slice_report = report;
+                }),
+            )
+            .await;
         match shared {
             Ok(_) => {
                 view.refresh(store, &id);

@@ -517,31 +517,44 @@ impl HistoryFiles {
         &self,
         since: f64,
     ) -> Result<impl Iterator<Item = Retired>, StoreError> {
+        Ok(self
+            .months_since(since)?
+            .into_iter()
+            .flat_map(|path| HistoryFiles::month_records(&path)))
+    }
+
+    /// The month files from that of `since` on, oldest first.
+    pub(crate) fn months_since(&self, since: f64) -> Result<Vec<PathBuf>, StoreError> {
         let first = format!("{}.jsonl", month_of(since));
         let mut files = self.files()?;
         files.retain(|f| {
             f.file_name()
                 .is_some_and(|n| *n.to_string_lossy() >= *first.as_str())
         });
-        Ok(files.into_iter().flat_map(|path| {
-            let file = match std::fs::File::open(&path) {
-                Ok(f) => Some(std::io::BufReader::new(f)),
+        Ok(files)
+    }
+
+    /// The records of the month file at `path`, read a line at a time; a file or a line
+    /// that cannot be read is logged and passed over.
+    pub(crate) fn month_records(path: &Path) -> impl Iterator<Item = Retired> {
+        let path = path.to_path_buf();
+        let file = match std::fs::File::open(&path) {
+            Ok(f) => Some(std::io::BufReader::new(f)),
+            Err(e) => {
+                tracing::warn!(file = %path.display(), error = %e, "history file unreadable; passed over");
+                None
+            }
+        };
+        file.into_iter().flat_map(|f| f.lines()).filter_map(move |line| {
+            let line = line.ok()?;
+            match serde_json::from_str(&line) {
+                Ok(r) => Some(r),
                 Err(e) => {
-                    tracing::warn!(file = %path.display(), error = %e, "history file unreadable; passed over");
+                    tracing::warn!(file = %path.display(), error = %e, "history line unreadable; passed over");
                     None
                 }
-            };
-            file.into_iter().flat_map(|f| f.lines()).filter_map(move |line| {
-                let line = line.ok()?;
-                match serde_json::from_str(&line) {
-                    Ok(r) => Some(r),
-                    Err(e) => {
-                        tracing::warn!(file = %path.display(), error = %e, "history line unreadable; passed over");
-                        None
-                    }
-                }
-            })
-        }))
+            }
+        })
     }
 
     /// The month files wholly older than `cutoff` (every job in them retired before it),

@@ -19,9 +19,12 @@ pub(crate) type JobEdit = Box<dyn FnOnce(&mut Job) + Send>;
 pub(crate) type InventoryEdit<'a> =
     dyn FnMut(&mut Inventory) -> Result<(), crate::daemon::filament::FilamentError> + Send + 'a;
 
-/// Where jobs are kept. Every method may block (disk, network): the store's task calls
-/// them on a blocking thread, one at a time. Opening (and taking whatever lock keeps two
-/// daemons apart) is each implementation's own constructor.
+/// Where jobs are kept. The store's task calls it, one call at a time. What reads the
+/// store's memory only is a plain method; what reaches its disk or its database is async,
+/// and each store keeps its blocking work off the runtime's threads (the spool's on a
+/// blocking thread, the farm database's over its async client). Opening (and taking
+/// whatever lock keeps two daemons apart) is each implementation's own constructor.
+#[async_trait::async_trait]
 pub trait JobStore: Send + 'static {
     /// The local directory holding one directory per job (model, sidecar, G-code, report).
     fn jobs_dir(&self) -> PathBuf;
@@ -34,13 +37,16 @@ pub trait JobStore: Send + 'static {
     /// Changes the inventory by `edit` and persists it; a refused edit changes nothing.
     /// Farm-wide in a shared store: the edit applies to the inventory as the database
     /// holds it, under a lock, so hosts' changes never overwrite each other.
-    fn edit_inventory(&mut self, edit: &mut InventoryEdit<'_>) -> Result<Inventory, StoreError>;
+    async fn edit_inventory(
+        &mut self,
+        edit: &mut InventoryEdit<'_>,
+    ) -> Result<Inventory, StoreError>;
     /// Restart rules: preparing → queued, printing → interrupted (and its bed not cleared).
     /// Returns the ids changed.
-    fn recover(&mut self) -> Result<Vec<String>, StoreError>;
+    async fn recover(&mut self) -> Result<Vec<String>, StoreError>;
     /// Makes a complete file of a hot folder a queued job, or leaves it where it was.
     /// `printers` is the folder's rule, for stores whose other hosts lack the folder.
-    fn admit(
+    async fn admit(
         &mut self,
         source: &Path,
         folder: &Path,
@@ -48,11 +54,15 @@ pub trait JobStore: Send + 'static {
     ) -> Result<Job, StoreError>;
     /// Takes a sidecar that arrived after its model: as the job's sidecar when `applies`,
     /// else kept aside. Returns `applies`.
-    fn late_sidecar(&mut self, id: &str, sidecar: &Path, applies: bool)
-        -> Result<bool, StoreError>;
+    async fn late_sidecar(
+        &mut self,
+        id: &str,
+        sidecar: &Path,
+        applies: bool,
+    ) -> Result<bool, StoreError>;
     /// Changes a job's state (checked against the table, and first against `from`, the
     /// states it must be in now) with `also`'s changes, persisted.
-    fn transition_with(
+    async fn transition_with(
         &mut self,
         id: &str,
         from: Option<StateFilter>,
@@ -62,7 +72,7 @@ pub trait JobStore: Send + 'static {
     ) -> Result<Job, StoreError>;
     /// A state change that has already happened (a print ended): kept even when it cannot
     /// be persisted now, and persisted by [`JobStore::write_pending`] later.
-    fn record_outcome(
+    async fn record_outcome(
         &mut self,
         id: &str,
         state: JobState,
@@ -72,49 +82,50 @@ pub trait JobStore: Send + 'static {
     /// Makes the copies due of job `id` ([`Job::copies_due`]), each a ready job with the
     /// job's G-code, and marks them made, all or nothing: copies are made once whichever
     /// host sees the job first. Returns the copies' ids (none when none were due).
-    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError>;
+    async fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError>;
     /// Changes a job's other fields; never its state.
-    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError>;
+    async fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError>;
     /// Puts a failed, cancelled or interrupted job back (ready if its G-code is kept).
-    fn retry(&mut self, id: &str) -> Result<Job, StoreError>;
+    async fn retry(&mut self, id: &str) -> Result<Job, StoreError>;
     /// Sets a printer's bed gate. When it cannot be persisted now (a full disk, an
     /// outage), a closed gate (a print ended) is kept and persisted by
     /// [`JobStore::write_pending`], so the bed still needs clearing afterwards; a clear is
     /// not done (the gate stays as it was) and is an error.
-    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError>;
+    async fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError>;
     /// Persists what [`JobStore::record_outcome`] and [`JobStore::set_gate`] could not;
     /// returns how many remain.
-    fn write_pending(&mut self) -> usize;
+    async fn write_pending(&mut self) -> usize;
     /// How many recorded outcomes (and bed gates) wait to be persisted.
     fn unwritten(&self) -> usize;
     /// Takes in changes made elsewhere (other hosts of a shared store); true when it did,
     /// so the snapshot must be rebuilt. A store only this daemon changes has none.
-    fn resync(&mut self) -> bool {
+    async fn resync(&mut self) -> bool {
         false
     }
     /// Moves the finished jobs `retention` no longer keeps live (by
     /// [`history::to_retire`]) to the history; returns their ids, at most
     /// [`history::BATCH`]. `now`: seconds since the epoch.
-    fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError>;
+    async fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError>;
     /// A job in the history; None when there is no such retired job.
-    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError>;
+    async fn retired(&mut self, id: &str) -> Result<Option<RetiredJob>, StoreError>;
     /// A page of the history, newest first, of jobs with a sequence number below `before`
     /// that `filter` takes.
-    fn history(
-        &self,
+    async fn history(
+        &mut self,
         before: Option<u64>,
         limit: usize,
         filter: &history::Filter,
     ) -> Result<history::Page, StoreError>;
     /// Forgets the jobs the history has kept longer than `keep_for` before `now` (their
     /// records and files); returns how many. See [`Retention::keep_for`].
-    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError>;
+    async fn prune(&mut self, keep_for: std::time::Duration, now: f64)
+        -> Result<usize, StoreError>;
     /// Every job retired at or after `since` (seconds since the epoch), in no particular
     /// order; a job may come twice (the statistics count it once).
-    fn each_retired(
-        &self,
+    async fn each_retired(
+        &mut self,
         since: f64,
-        visit: &mut dyn FnMut(history::Retired),
+        visit: &mut (dyn FnMut(history::Retired) + Send),
     ) -> Result<(), StoreError>;
 }
 

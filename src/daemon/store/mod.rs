@@ -1,9 +1,10 @@
 //! The job store as one owner: a single task ([`start`]) owns the store (the embedded
-//! [`spool::Spool`] today, a database tomorrow) and is the only place a job or a bed gate
-//! changes. Everyone else holds a cheap, cloneable [`StoreHandle`] and sends it requests
-//! (an mpsc message with a oneshot reply). The task runs each batch of requests on a
-//! blocking thread (`spawn_blocking`): the store's disk writes never hold up the async
-//! runtime, and no lock is held across them, because nothing else can reach the store.
+//! spool, [`spool::SpoolStore`], or the farm database, [`postgres::store::PgJobStore`]) and
+//! is the only place a job or a bed gate changes. Everyone else holds a cheap, cloneable
+//! [`StoreHandle`] and sends it requests (an mpsc message with a oneshot reply). The store's
+//! trait is async ([`JobStore`]): the spool's disk work runs on a blocking thread, the
+//! database's is awaited on its async client, so neither holds up the runtime, and no lock
+//! is held across them, because nothing else can reach the store.
 //! The daemon runs the task in its supervised set: a panic (in the store, or in a
 //! request's edit) is not caught, so the daemon stops rather than go on with a change
 //! done halfway.
@@ -26,8 +27,7 @@
 //!
 //! Finished jobs leave the live snapshot for the [`history`]: beyond `live_jobs` at the
 //! change that made one too many, older than `live_for` at a round every ten minutes
-//! (`task::RETIRE_EVERY`); the task retires them in batches on its blocking thread, so
-//! what every reader pays for follows the jobs at work, not the farm's past. The snapshot also
+//! (`task::RETIRE_EVERY`); the task retires them in batches, so what every reader pays for follows the jobs at work, not the farm's past. The snapshot also
 //! keeps what would otherwise be looked up on disk at every glance (which pictures a job
 //! has), worked out once when the job changes.
 //!
@@ -68,3 +68,16 @@ pub(crate) use request::BedChange;
 pub(crate) use rules::{check_from, prepared, retired_refusal, StateFilter};
 pub use snapshot::{Snapshot, PICTURES};
 pub use task::{spawn, spawn_with, start, StoreTask};
+
+/// Runs blocking `work` (the disk) on a blocking thread, for a store's async method; a
+/// panic in it goes on as the caller's.
+pub(crate) async fn blocking<T: Send + 'static>(work: impl FnOnce() -> T + Send + 'static) -> T {
+    match tokio::task::spawn_blocking(work).await {
+        Ok(out) => out,
+        Err(e) => match e.try_into_panic() {
+            Ok(panic) => std::panic::resume_unwind(panic),
+            // Only a runtime shutting down cancels it, with the store's task.
+            Err(e) => panic!("a job store's blocking work was cancelled: {e}"),
+        },
+    }
+}

@@ -93,6 +93,63 @@ impl Pending {
         self.len() == 0
     }
 
+    /// Everything kept, outcomes first, each to be tried in turn and handed back to
+    /// [`Pending::settle`] with how it went (see [`Pending::write`]).
+    pub(crate) fn take(&mut self) -> Vec<Kept> {
+        let outcomes = std::mem::take(&mut self.outcomes)
+            .into_iter()
+            .map(|(id, (from, job))| Kept::Outcome {
+                id,
+                from,
+                job: Box::new(job),
+            });
+        let gates = std::mem::take(&mut self.gates)
+            .into_iter()
+            .map(|(printer, gate)| Kept::Gate { printer, gate });
+        outcomes.chain(gates).collect()
+    }
+
+    /// Settles one thing [`Pending::take`] gave with `attempt`: kept again unless written
+    /// or dropped, and noted in `done`. Once the store was found unreachable, what is
+    /// left is not tried: give it [`Pending::untried`]'s answer.
+    pub(crate) fn settle(&mut self, kept: Kept, attempt: Attempt, done: &mut Written) {
+        match (kept, attempt) {
+            (Kept::Outcome { id, .. }, Attempt::Written(record)) => {
+                tracing::info!(job = %id, "job outcome written after all");
+                done.jobs.extend(record.map(|j| *j));
+            }
+            (Kept::Outcome { id, from, job }, Attempt::Failed) => {
+                self.outcomes.insert(id, (from, *job));
+            }
+            (Kept::Outcome { id, from, job }, Attempt::Unreachable) => {
+                done.unreachable = true;
+                self.outcomes.insert(id, (from, *job));
+            }
+            (Kept::Outcome { id, .. }, Attempt::Dropped) => {
+                tracing::warn!(job = %id, "a kept outcome was not written: the job was moved on or removed meanwhile");
+                done.dropped.push(id);
+            }
+            (Kept::Gate { printer, .. }, Attempt::Written(_)) => {
+                tracing::info!(printer, "bed gate written after all")
+            }
+            (Kept::Gate { printer, gate }, Attempt::Failed) => {
+                self.gates.insert(printer, gate);
+            }
+            (Kept::Gate { printer, gate }, Attempt::Unreachable) => {
+                done.unreachable = true;
+                self.gates.insert(printer, gate);
+            }
+            (Kept::Gate { .. }, Attempt::Dropped) => {}
+        }
+    }
+
+    /// Whether the next thing kept is to be tried: not once the store was found
+    /// unreachable (the rest is kept as it is rather than each waiting out the same
+    /// failure).
+    pub(crate) fn untried(done: &Written) -> Option<Attempt> {
+        done.unreachable.then_some(Attempt::Unreachable)
+    }
+
     /// Tries to write what is kept (outcomes, then gates) with `outcome` and `gate`,
     /// keeping what is not written; see [`Attempt`].
     pub(crate) fn write(
@@ -101,50 +158,29 @@ impl Pending {
         mut gate: impl FnMut(&str, &PrinterGate) -> Attempt,
     ) -> Written {
         let mut done = Written::default();
-        for (id, (from, job)) in std::mem::take(&mut self.outcomes) {
-            let attempt = if done.unreachable {
-                Attempt::Unreachable
-            } else {
-                outcome(&id, from, &job)
-            };
-            match attempt {
-                Attempt::Written(record) => {
-                    tracing::info!(job = %id, "job outcome written after all");
-                    done.jobs.extend(record.map(|j| *j));
-                }
-                Attempt::Failed => {
-                    self.outcomes.insert(id, (from, job));
-                }
-                Attempt::Unreachable => {
-                    done.unreachable = true;
-                    self.outcomes.insert(id, (from, job));
-                }
-                Attempt::Dropped => {
-                    tracing::warn!(job = %id, "a kept outcome was not written: the job was moved on or removed meanwhile");
-                    done.dropped.push(id);
-                }
-            }
-        }
-        for (printer, kept) in std::mem::take(&mut self.gates) {
-            let attempt = if done.unreachable {
-                Attempt::Unreachable
-            } else {
-                gate(&printer, &kept)
-            };
-            match attempt {
-                Attempt::Written(_) => tracing::info!(printer, "bed gate written after all"),
-                Attempt::Failed => {
-                    self.gates.insert(printer, kept);
-                }
-                Attempt::Unreachable => {
-                    done.unreachable = true;
-                    self.gates.insert(printer, kept);
-                }
-                Attempt::Dropped => {}
-            }
+        for kept in self.take() {
+            let attempt = Pending::untried(&done).unwrap_or_else(|| match &kept {
+                Kept::Outcome { id, from, job } => outcome(id, *from, job),
+                Kept::Gate { printer, gate: g } => gate(printer, g),
+            });
+            self.settle(kept, attempt, &mut done);
         }
         done
     }
+}
+
+/// One thing kept (see [`Pending::take`]).
+#[derive(Debug)]
+pub(crate) enum Kept {
+    Outcome {
+        id: String,
+        from: JobState,
+        job: Box<Job>,
+    },
+    Gate {
+        printer: String,
+        gate: PrinterGate,
+    },
 }
 
 #[cfg(test)]

@@ -1,5 +1,5 @@
 //! The requests the store's task serves, each an mpsc message with a oneshot reply, and
-//! how each is carried out against the store on the task's blocking thread. Apart from
+//! how each is carried out against the store. Apart from
 //! the task's loop (which batches them) and the handle (which sends them).
 
 use super::change::JobChange;
@@ -157,7 +157,7 @@ impl Request {
     /// says whether anything may have (a claim that found nothing, a clear of a clear
     /// bed change nothing, and publish nothing: a task waiting for changes is not woken
     /// by its own fruitless request).
-    pub(super) fn serve(
+    pub(super) async fn serve(
         self,
         store: &mut dyn JobStore,
         view: &mut Snapshot,
@@ -170,7 +170,7 @@ impl Request {
                 printers,
                 reply,
             } => {
-                let result = store.admit(&source, &folder, &printers);
+                let result = store.admit(&source, &folder, &printers).await;
                 if let Ok(job) = &result {
                     view.refresh(store, &job.id);
                 }
@@ -182,7 +182,7 @@ impl Request {
                 file,
                 sidecar,
                 reply,
-            } => late_sidecar(store, view, folder, file, sidecar, reply),
+            } => late_sidecar(store, view, folder, file, sidecar, reply).await,
             Request::Transition {
                 id,
                 from,
@@ -192,7 +192,9 @@ impl Request {
                 reply,
             } => {
                 let reason = reason.map(|r| for_clients(&r, store));
-                let result = store.transition_with(&id, from, to, reason, edit(also));
+                let result = store
+                    .transition_with(&id, from, to, reason, edit(also))
+                    .await;
                 view.refresh(store, &id);
                 (deliver(reply, result), true)
             }
@@ -204,7 +206,7 @@ impl Request {
                 reply,
             } => {
                 let reason = reason.map(|r| for_clients(&r, store));
-                let result = store.record_outcome(&id, to, reason, edit(also));
+                let result = store.record_outcome(&id, to, reason, edit(also)).await;
                 view.refresh(store, &id);
                 view.unwritten = store.unwritten();
                 (deliver(reply, result), true)
@@ -219,6 +221,7 @@ impl Request {
                         &id,
                         Box::new(move |j| flag.store(change.apply(j), Ordering::Relaxed)),
                     )
+                    .await
                     .map(|job| Updated {
                         job,
                         applied: applied.load(Ordering::Relaxed),
@@ -227,7 +230,7 @@ impl Request {
                 (deliver(reply, result), true)
             }
             Request::Retry { id, reply } => {
-                let result = store.retry(&id);
+                let result = store.retry(&id).await;
                 view.refresh(store, &id);
                 (deliver(reply, result), true)
             }
@@ -236,29 +239,33 @@ impl Request {
                 eligible,
                 reply,
             } => {
-                let (result, tried) = claim(store, view, &printer, &*eligible);
+                // The order is worked out before the first await: the test of what fits
+                // the printer is the caller's and goes no further.
+                let candidates = claim_order(view, &*eligible);
+                drop(eligible);
+                let (result, tried) = claim(store, view, &printer, candidates).await;
                 (deliver(reply, result), tried)
             }
             Request::Bed {
                 printer,
                 change,
                 reply,
-            } => change_bed(store, view, printer, *change, reply),
+            } => change_bed(store, view, printer, *change, reply).await,
             Request::Resync { reply } => {
-                let changed = store.resync();
+                let changed = store.resync().await;
                 if changed {
                     *view = Snapshot::of(store, Some(view));
                 }
                 (deliver(reply, Ok(changed)), changed)
             }
             Request::Retire { now, reply } => {
-                let retired = round(store, view, retention, now);
+                let retired = round(store, view, retention, now).await;
                 let changed = retired.as_ref().is_ok_and(|ids| !ids.is_empty());
                 (deliver(reply, retired), changed)
             }
-            Request::Retired { id, reply } => (deliver(reply, store.retired(&id)), false),
+            Request::Retired { id, reply } => (deliver(reply, store.retired(&id).await), false),
             Request::EditInventory { mut edit, reply } => {
-                let result = store.edit_inventory(&mut *edit);
+                let result = store.edit_inventory(&mut *edit).await;
                 let changed = result.as_ref().is_ok_and(|i| i != view.inventory());
                 if let Ok(inventory) = &result {
                     view.inventory = std::sync::Arc::new(inventory.clone());
@@ -270,16 +277,19 @@ impl Request {
                 limit,
                 filter,
                 reply,
-            } => (deliver(reply, store.history(before, limit, &filter)), false),
+            } => (
+                deliver(reply, store.history(before, limit, &filter).await),
+                false,
+            ),
             Request::Stats {
                 period,
                 printers,
                 folders,
                 now,
                 reply,
-            } => statistics(store, view, period, printers, folders, now, reply),
+            } => statistics(store, view, period, printers, folders, now, reply).await,
             Request::WritePending { reply } => {
-                let (left, changed) = write_pending(store, view);
+                let (left, changed) = write_pending(store, view).await;
                 (deliver(reply, Ok(left)), changed)
             }
         }
@@ -289,8 +299,8 @@ impl Request {
 /// Writes the outcomes kept while the database was unreachable: how many are left, and
 /// whether the view changed. Only the persisted copy changes: the view already shows the
 /// outcomes themselves.
-pub(super) fn write_pending(store: &mut dyn JobStore, view: &mut Snapshot) -> (usize, bool) {
-    let left = store.write_pending();
+pub(super) async fn write_pending(store: &mut dyn JobStore, view: &mut Snapshot) -> (usize, bool) {
+    let left = store.write_pending().await;
     let changed = view.unwritten != left;
     view.unwritten = left;
     (left, changed)
@@ -298,7 +308,7 @@ pub(super) fn write_pending(store: &mut dyn JobStore, view: &mut Snapshot) -> (u
 
 /// A sidecar that arrived after its model: given to the newest job of that model from
 /// `folder`, if any (see [`Request::LateSidecar`]).
-fn late_sidecar(
+async fn late_sidecar(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     folder: PathBuf,
@@ -315,6 +325,7 @@ fn late_sidecar(
         None => Ok(None),
         Some((id, state)) => store
             .late_sidecar(&id, &sidecar, state == JobState::Queued)
+            .await
             .map(|applies| {
                 Some(LateSidecar {
                     job: id,
@@ -329,7 +340,7 @@ fn late_sidecar(
 
 /// Changes `printer`'s bed as `change` says if the table and its `from` allow (see
 /// [`Request::Bed`]); the reply is the gate as it was.
-fn change_bed(
+async fn change_bed(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     printer: String,
@@ -356,7 +367,7 @@ fn change_bed(
         return (deliver(reply, Ok(before)), false);
     }
     let counted = before.bed.counted(&gate.bed);
-    let result = store.set_gate(&printer, gate.clone());
+    let result = store.set_gate(&printer, gate.clone()).await;
     if result.is_ok() {
         tracing::info!(printer = %printer, bed = gate.bed.name(), reason = gate.bed.describe(), "bed");
         if let Some((kind, outcome)) = counted {
@@ -364,7 +375,10 @@ fn change_bed(
         }
         if let (Some(step), Some(job)) = (change.record, &gate.last_job) {
             // The job's record is told, not asked: a job gone to the history keeps its own.
-            match store.update(job, Box::new(move |j| j.clearing.push(step))) {
+            match store
+                .update(job, Box::new(move |j| j.clearing.push(step)))
+                .await
+            {
                 Ok(_) => view.refresh(store, job),
                 Err(e) => {
                     tracing::warn!(printer = %printer, job = %job, error = %e, "cannot add the bed's clearing to the job's record")
@@ -381,8 +395,8 @@ fn change_bed(
 }
 
 /// The statistics of `period` over the history and the live jobs (see [`Request::Stats`]).
-fn statistics(
-    store: &dyn JobStore,
+async fn statistics(
+    store: &mut dyn JobStore,
     view: &Snapshot,
     period: stats::Period,
     printers: Vec<String>,
@@ -394,6 +408,7 @@ fn statistics(
     // A job retired before the period began ended before it too.
     let result = store
         .each_retired(period.from, &mut |r| builder.add(&r))
+        .await
         .map(|()| {
             // The live jobs: finished ones not yet retired, and the printing
             // time of those under way.
@@ -410,19 +425,10 @@ fn statistics(
     (deliver(reply, result), false)
 }
 
-/// Takes the ready job `eligible` for `printer` of the highest priority, oldest first,
-/// marking it printing. A job that
-/// fails as it is claimed (its directory is gone), or that another host took first, is
-/// passed over for the next one. Also says whether any job was tried (and may have
-/// changed).
-fn claim(
-    store: &mut dyn JobStore,
-    view: &mut Snapshot,
-    printer: &str,
-    eligible: &dyn Fn(&Job) -> bool,
-) -> (Result<Option<Job>, StoreError>, bool) {
-    // Higher priority first; the oldest first among equals, a copy as old as the job
-    // that asked for it (the jobs are oldest first, and the sort is stable).
+/// The ready jobs `eligible` takes, in the order a printer claims them: higher priority
+/// first; the oldest first among equals, a copy as old as the job that asked for it (the
+/// jobs are oldest first, and the sort is stable).
+fn claim_order(view: &Snapshot, eligible: &dyn Fn(&Job) -> bool) -> Vec<String> {
     let mut candidates: Vec<(i32, u64, String)> = view
         .jobs()
         .filter(|j| j.state == JobState::Ready && eligible(j))
@@ -432,27 +438,38 @@ fn claim(
         })
         .collect();
     candidates.sort_by_key(|(p, asked, _)| (std::cmp::Reverse(*p), *asked));
-    let candidates = candidates.into_iter().map(|(_, _, id)| id);
-    let tried = candidates.len() > 0;
-    let result = (|| {
-        for id in candidates {
-            let name = printer.to_string();
-            let claimed = store.transition_with(
+    candidates.into_iter().map(|(_, _, id)| id).collect()
+}
+
+/// Takes the first of `candidates` (see [`claim_order`]) for `printer`, marking it
+/// printing. A job that fails as it is claimed (its directory is gone), or that another
+/// host took first, is passed over for the next one. Also says whether any job was tried
+/// (and may have changed).
+async fn claim(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+    printer: &str,
+    candidates: Vec<String>,
+) -> (Result<Option<Job>, StoreError>, bool) {
+    let tried = !candidates.is_empty();
+    for id in candidates {
+        let name = printer.to_string();
+        let claimed = store
+            .transition_with(
                 &id,
                 Some(&[JobState::Ready]),
                 JobState::Printing,
                 None,
                 Box::new(move |j| j.printer = Some(name)),
-            );
-            view.refresh(store, &id);
-            match claimed {
-                Ok(job) => return Ok(Some(job)),
-                Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
-                Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
-                Err(e) => return Err(e),
-            }
+            )
+            .await;
+        view.refresh(store, &id);
+        match claimed {
+            Ok(job) => return (Ok(Some(job)), tried),
+            Err(StoreError::StateChanged { .. } | StoreError::LostClaim { .. }) => continue,
+            Err(_) if view.get(&id).is_some_and(|j| j.state == JobState::Failed) => continue,
+            Err(e) => return (Err(e), tried),
         }
-        Ok(None)
-    })();
-    (result, tried)
+    }
+    (Ok(None), tried)
 }

@@ -14,16 +14,16 @@ use std::collections::HashSet;
 
 /// Moves what `retention` no longer keeps live to the history and out of the snapshot,
 /// one batch.
-fn retire(
+async fn retire(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     retention: &Retention,
     now: f64,
 ) -> Result<Vec<String>, StoreError> {
-    if catch_up_ledgers(store, view).is_err() {
+    if catch_up_ledgers(store, view).await.is_err() {
         return Ok(Vec::new());
     }
-    let ids = store.retire(retention, now)?;
+    let ids = store.retire(retention, now).await?;
     if !ids.is_empty() {
         tracing::info!(jobs = ids.len(), first = %ids[0], "finished jobs moved to the history");
     }
@@ -35,15 +35,15 @@ fn retire(
 /// else [`history::to_retire`] picks), and forgets what the history keeps no longer.
 ///
 /// [`history::to_retire`]: super::history::to_retire
-pub(super) fn round(
+pub(super) async fn round(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     retention: &Retention,
     now: f64,
 ) -> Result<Vec<String>, StoreError> {
-    let ids = retire(store, view, retention, now)?;
+    let ids = retire(store, view, retention, now).await?;
     if let Some(keep_for) = retention.keep_for {
-        match store.prune(keep_for, now) {
+        match store.prune(keep_for, now).await {
             Ok(0) => {}
             Ok(n) => tracing::info!(jobs = n, "jobs older than [history] keep_days forgotten"),
             Err(e) => {
@@ -57,14 +57,14 @@ pub(super) fn round(
 /// Retires the oldest finished jobs beyond `live_jobs` as soon as a batch of requests
 /// leaves more than that live, so a burst of finished jobs never makes every reader pay
 /// for all of them until the next round. Says whether any moved.
-pub(super) fn retire_beyond_limit(
+pub(super) async fn retire_beyond_limit(
     store: &mut dyn JobStore,
     view: &mut Snapshot,
     retention: &Retention,
 ) -> bool {
     let mut moved = false;
     while view.finished_live() > retention.live_jobs {
-        match retire(store, view, retention, crate::daemon::job::now_s()) {
+        match retire(store, view, retention, crate::daemon::job::now_s()).await {
             Ok(ids) if !ids.is_empty() => moved = true,
             // What is left must stay for now (an outcome not yet written).
             Ok(_) => break,
@@ -97,7 +97,10 @@ const COUNTED_REFRESH_S: f64 = 3600.0;
 /// keyed by the use). Says whether anything changed. A failure (the disk, the database) is
 /// logged and tried again at the next change; until it succeeds no finished job leaves the
 /// live view (its use would leave with it).
-pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) -> Result<bool, ()> {
+pub(super) async fn catch_up_ledgers(
+    store: &mut dyn JobStore,
+    view: &mut Snapshot,
+) -> Result<bool, ()> {
     let inventory = view.inventory();
     let uncounted = |u: &JobUse| {
         inventory
@@ -123,34 +126,36 @@ pub(super) fn catch_up_ledgers(store: &mut dyn JobStore, view: &mut Snapshot) ->
     if missing.is_empty() && !care::stale(&inventory.care, live, now, COUNTED_REFRESH_S) {
         return Ok(false);
     }
-    let result = store.edit_inventory(&mut |inv| {
-        for u in &missing {
-            let print = care::Print {
-                print_s: u.print_s,
-                failed: u.failed,
-                material: &u.material,
-                mm: u.mm,
-                g: if u.weighed() { u.grams } else { 0.0 },
-                abrasive: u.weighed() && abrasive(&u.material),
-            };
-            care::count(&mut inv.care, &u.printer, &u.key, u.at_s, print);
-            let Some(spool) = &u.spool else { continue };
-            inv.record_use(
-                spool,
-                &u.key,
-                crate::daemon::filament::Use {
-                    job: job_of(&u.key).to_string(),
-                    printer: u.printer.clone(),
-                    grams: u.grams,
+    let result = store
+        .edit_inventory(&mut |inv| {
+            for u in &missing {
+                let print = care::Print {
+                    print_s: u.print_s,
+                    failed: u.failed,
+                    material: &u.material,
                     mm: u.mm,
-                    at_s: u.at_s,
-                    report: crate::daemon::filament::Report::Local,
-                },
-            );
-        }
-        care::refresh(&mut inv.care, live, now, COUNTED_KEPT_S);
-        Ok(())
-    });
+                    g: if u.weighed() { u.grams } else { 0.0 },
+                    abrasive: u.weighed() && abrasive(&u.material),
+                };
+                care::count(&mut inv.care, &u.printer, &u.key, u.at_s, print);
+                let Some(spool) = &u.spool else { continue };
+                inv.record_use(
+                    spool,
+                    &u.key,
+                    crate::daemon::filament::Use {
+                        job: job_of(&u.key).to_string(),
+                        printer: u.printer.clone(),
+                        grams: u.grams,
+                        mm: u.mm,
+                        at_s: u.at_s,
+                        report: crate::daemon::filament::Report::Local,
+                    },
+                );
+            }
+            care::refresh(&mut inv.care, live, now, COUNTED_KEPT_S);
+            Ok(())
+        })
+        .await;
     match result {
         Ok(inventory) => {
             view.inventory = std::sync::Arc::new(inventory);

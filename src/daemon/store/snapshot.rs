@@ -34,11 +34,12 @@ pub struct Snapshot {
 }
 
 /// A live job and what is known of its files.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 struct Live {
     job: Job,
-    /// Which of [`PICTURES`] its directory holds (bit i for `PICTURES[i]`).
-    pictures: u8,
+    /// Which of [`PICTURES`] its directory holds (bit i for `PICTURES[i]`); None until the
+    /// task has looked ([`Snapshot::look`]), which it does before it publishes.
+    pictures: Option<u8>,
 }
 
 /// The pictures a job's directory may hold (see `crate::preview`); at most 8, one bit of
@@ -54,28 +55,32 @@ pub const PICTURES: [&str; 6] = [
 const _: () = assert!(PICTURES.len() <= u8::BITS as usize);
 
 impl Live {
-    /// Looks at the job's pictures, unless `before` (the job as last seen, when the whole
-    /// snapshot is rebuilt after other hosts' changes) is the same job in the same state:
-    /// pictures are made while a job prepares, so a job whose history has not moved has
-    /// the ones it had.
-    fn of(job: Job, dir: &Path, before: Option<&Live>) -> Live {
-        let pictures = match before {
-            Some(b) if b.job.history.len() == job.history.len() && b.job.state == job.state => {
-                b.pictures
-            }
-            _ => PICTURES
-                .iter()
-                .enumerate()
-                .filter(|(_, name)| dir.join(name).is_file())
-                .fold(0, |bits, (i, _)| bits | 1 << i),
-        };
+    /// The job, with the pictures `before` knew (the job as last seen, when the whole
+    /// snapshot is rebuilt after other hosts' changes) if it is the same job in the same
+    /// state: pictures are made while a job prepares, so a job whose history has not moved
+    /// has the ones it had. Else they are to be looked at.
+    fn of(job: Job, before: Option<&Live>) -> Live {
+        let pictures = before
+            .filter(|b| b.job.history.len() == job.history.len() && b.job.state == job.state)
+            .and_then(|b| b.pictures);
         Live { job, pictures }
     }
+}
+
+/// Which of [`PICTURES`] the job directory `dir` holds (a few `stat`s: on a blocking
+/// thread).
+fn pictures_in(dir: &Path) -> u8 {
+    PICTURES
+        .iter()
+        .enumerate()
+        .filter(|(_, name)| dir.join(name).is_file())
+        .fold(0, |bits, (i, _)| bits | 1 << i)
 }
 
 impl Snapshot {
     /// The store's jobs as they are now. `before`: the snapshot published last (None: the
     /// first, when the task starts: nothing is a change yet); what changed since is counted.
+    /// The pictures of the jobs that moved are looked at by [`Snapshot::look`].
     pub(super) fn of(store: &dyn JobStore, before: Option<&Snapshot>) -> Snapshot {
         let jobs_dir = store.jobs_dir();
         let mut counted = before.map(|b| Arc::clone(&b.counted)).unwrap_or_default();
@@ -87,8 +92,7 @@ impl Snapshot {
                 if before.is_some() {
                     Arc::make_mut(&mut counted).changes(old.map(|l| &l.job), &j);
                 }
-                let dir = jobs_dir.join(&j.id);
-                Arc::new(Live::of(j, &dir, old))
+                Arc::new(Live::of(j, old))
             })
             .collect();
         let index = jobs
@@ -123,7 +127,7 @@ impl Snapshot {
 
     /// The pictures job `id`'s directory holds, of [`PICTURES`] (as of its last change).
     pub(crate) fn pictures(&self, id: &str) -> Vec<&'static str> {
-        let bits = self.live(id).map_or(0, |l| l.pictures);
+        let bits = self.live(id).and_then(|l| l.pictures).unwrap_or(0);
         PICTURES
             .iter()
             .enumerate()
@@ -200,16 +204,41 @@ impl Snapshot {
         let Some(job) = store.job(id) else { return };
         let before = self.index.get(id).map(|&i| Arc::clone(&self.jobs[i]));
         Arc::make_mut(&mut self.counted).changes(before.as_ref().map(|l| &l.job), &job);
-        let dir = self.job_dir(id);
         match self.index.get(id) {
             // Looked at again at every change: a few stats per change, none per glance.
-            Some(&i) => self.jobs[i] = Arc::new(Live::of(job, &dir, None)),
+            Some(&i) => self.jobs[i] = Arc::new(Live::of(job, None)),
             // New jobs have the highest sequence number: appending keeps the order.
             None => {
                 Arc::make_mut(&mut self.index).insert(job.id.clone(), self.jobs.len());
-                self.jobs.push(Arc::new(Live::of(job, &dir, None)));
+                self.jobs.push(Arc::new(Live::of(job, None)));
             }
         }
+    }
+
+    /// Looks at the pictures of the jobs not looked at since they changed, all at once on
+    /// a blocking thread; the task does it before it publishes. Says whether any job has
+    /// a picture (what a reader would see differently).
+    pub(super) async fn look(&mut self) -> bool {
+        let unlooked: Vec<(usize, PathBuf)> = (self.jobs.iter().enumerate())
+            .filter(|(_, l)| l.pictures.is_none())
+            .map(|(i, l)| (i, self.jobs_dir.join(&l.job.id)))
+            .collect();
+        if unlooked.is_empty() {
+            return false;
+        }
+        let looked = super::blocking(move || {
+            unlooked
+                .into_iter()
+                .map(|(i, dir)| (i, pictures_in(&dir)))
+                .collect::<Vec<_>>()
+        })
+        .await;
+        let mut any = false;
+        for (i, bits) in looked {
+            Arc::make_mut(&mut self.jobs[i]).pictures = Some(bits);
+            any |= bits != 0;
+        }
+        any
     }
 
     /// Drops jobs that moved to the history.

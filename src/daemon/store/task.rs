@@ -1,5 +1,5 @@
 //! The store's task, the one owner of the store: it takes the waiting requests in
-//! batches, serves them on a blocking thread, publishes the new snapshot and then sends the
+//! batches, serves them one after another, publishes the new snapshot and then sends the
 //! replies; `start` opens it with its handle. Apart from the requests (what each does) and
 //! the handle (how callers reach it): this is the loop and its timing.
 
@@ -57,9 +57,9 @@ enum Work {
     WritePending,
 }
 
-/// The store's task: takes whatever requests are waiting, serves them in order on a
-/// blocking thread, retires finished jobs beyond `live_jobs`, publishes the new
-/// snapshot, then sends the replies. Every [`RETIRE_EVERY`] it makes its [`round`] the
+/// The store's task: takes whatever requests are waiting, serves them in order (each
+/// store keeps its own blocking work off the runtime), retires finished jobs beyond
+/// `live_jobs`, publishes the new snapshot, then sends the replies. Every [`RETIRE_EVERY`] it makes its [`round`] the
 /// same way, and every [`WRITE_PENDING_EVERY`] while outcomes wait to be written, it
 /// tries them (one try at a time, as everything here).
 async fn serve(
@@ -74,6 +74,11 @@ async fn serve(
     retiring.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut writing = tokio::time::interval(WRITE_PENDING_EVERY);
     writing.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // The first snapshot, made as the task was opened, has not looked at the jobs'
+    // pictures (that is disk work): it is published again once they are known.
+    if view.look().await {
+        snapshots.send_replace(Arc::new(view.clone()));
+    }
     loop {
         let work = tokio::select! {
             // Requests first: retiring can always wait a little.
@@ -92,53 +97,46 @@ async fn serve(
             _ = retiring.tick() => Work::Retire,
             _ = writing.tick(), if view.unwritten > 0 => Work::WritePending,
         };
-        let work = tokio::task::spawn_blocking(move || {
-            let mut deliveries = Vec::new();
-            let mut changed = false;
-            let mut full = false;
-            match work {
-                Work::Requests(batch) => {
-                    // A panic here (in the store, or in a request's edit) is not caught:
-                    // the change it left halfway is unknown, so the task ends with it and
-                    // the daemon stops; every reply not sent yet says `Stopped`.
-                    for request in batch {
-                        let (delivery, change) = request.serve(&mut *store, &mut view, &retention);
-                        deliveries.push(delivery);
-                        changed |= change;
+        let mut deliveries = Vec::new();
+        let (mut changed, mut full) = (false, false);
+        match work {
+            Work::Requests(batch) => {
+                // A panic here (in the store, or in a request's edit) is not caught: the
+                // change it left halfway is unknown, so the task ends with it and the
+                // daemon stops; every reply not sent yet says `Stopped`.
+                for request in batch {
+                    let (delivery, change) =
+                        request.serve(&mut *store, &mut view, &retention).await;
+                    deliveries.push(delivery);
+                    changed |= change;
+                }
+                changed |= super::copies::tend(&mut *store, &mut view).await;
+                changed |= catch_up_ledgers(&mut *store, &mut view)
+                    .await
+                    .unwrap_or(false);
+                changed |= retire_beyond_limit(&mut *store, &mut view, &retention).await;
+            }
+            Work::WritePending => {
+                changed = super::request::write_pending(&mut *store, &mut view)
+                    .await
+                    .1
+            }
+            Work::Retire => {
+                changed |= super::copies::tend(&mut *store, &mut view).await;
+                let now = crate::daemon::job::now_s();
+                match round(&mut *store, &mut view, &retention, now).await {
+                    Ok(ids) => {
+                        changed |= !ids.is_empty();
+                        full = ids.len() >= history::BATCH;
                     }
-                    changed |= super::copies::tend(&mut *store, &mut view);
-                    changed |= catch_up_ledgers(&mut *store, &mut view).unwrap_or(false);
-                    changed |= retire_beyond_limit(&mut *store, &mut view, &retention);
-                }
-                Work::WritePending => {
-                    changed = super::request::write_pending(&mut *store, &mut view).1
-                }
-                Work::Retire => {
-                    changed |= super::copies::tend(&mut *store, &mut view);
-                    let now = crate::daemon::job::now_s();
-                    match round(&mut *store, &mut view, &retention, now) {
-                        Ok(ids) => {
-                            changed |= !ids.is_empty();
-                            full = ids.len() >= history::BATCH;
-                        }
-                        Err(e) => {
-                            tracing::error!(error = %e, "cannot move finished jobs to the history; they stay live and it is tried again later")
-                        }
+                    Err(e) => {
+                        tracing::error!(error = %e, "cannot move finished jobs to the history; they stay live and it is tried again later")
                     }
                 }
             }
-            (store, view, deliveries, changed, full)
-        });
-        let (deliveries, changed, full);
-        (store, view, deliveries, changed, full) = match work.await {
-            Ok(done) => done,
-            // The panic goes on as this task's, for the supervisor to name.
-            Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
-            Err(e) => {
-                tracing::error!(error = %e, "the job store's thread was cancelled; the store stops");
-                return;
-            }
-        };
+        }
+        // What the changed jobs' directories hold, before anyone reads the change.
+        view.look().await;
         if full {
             retiring.reset_immediately();
         }

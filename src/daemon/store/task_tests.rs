@@ -24,7 +24,7 @@ async fn a_kept_reason_names_no_spool_path() {
     let hot = tmp.path().join("hot");
     std::fs::create_dir(&hot).unwrap();
     let root = tmp.path().join("spool");
-    let store = spool::Spool::open(&root).unwrap();
+    let store = spool::SpoolStore::open(&root).unwrap();
     let handle = spawn_with(store, Retention::default());
     std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
     let job = handle.admit(&hot.join("a.gcode"), &hot, &[]).await.unwrap();
@@ -53,7 +53,7 @@ async fn the_snapshot_keeps_live_jobs_and_the_history_the_rest() {
     let tmp = tempfile::tempdir().unwrap();
     let hot = tmp.path().join("hot");
     std::fs::create_dir(&hot).unwrap();
-    let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+    let store = spool::SpoolStore::open(&tmp.path().join("spool")).unwrap();
     let retention = Retention {
         live_for: std::time::Duration::from_secs(86_400),
         live_jobs: 2,
@@ -139,7 +139,7 @@ async fn a_burst_of_finished_jobs_never_exceeds_the_live_count() {
         .unwrap();
     let hot = tmp.path().join("hot");
     std::fs::create_dir(&hot).unwrap();
-    let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+    let store = spool::SpoolStore::open(&tmp.path().join("spool")).unwrap();
     let retention = Retention {
         live_for: std::time::Duration::from_secs(86_400),
         live_jobs: LIVE,
@@ -188,47 +188,58 @@ async fn a_burst_of_finished_jobs_never_exceeds_the_live_count() {
 /// `kept` stands for outcomes kept while the database was unreachable: written at the
 /// first try once `reachable` is set.
 struct TwoHosts {
-    spool: spool::Spool,
+    spool: spool::SpoolStore,
     elsewhere: Arc<std::sync::Mutex<Vec<(String, JobState)>>>,
     kept: Arc<AtomicUsize>,
     reachable: Arc<AtomicBool>,
 }
 
+#[async_trait::async_trait]
 impl JobStore for TwoHosts {
     fn jobs_dir(&self) -> PathBuf {
         self.spool.jobs_dir()
     }
     fn jobs(&self) -> Vec<Job> {
-        JobStore::jobs(&self.spool)
+        self.spool.jobs()
     }
     fn job(&self, id: &str) -> Option<Job> {
-        JobStore::job(&self.spool, id)
+        self.spool.job(id)
     }
     fn gates(&self) -> BTreeMap<String, PrinterGate> {
-        JobStore::gates(&self.spool)
+        self.spool.gates()
     }
     fn inventory(&self) -> crate::daemon::filament::Inventory {
-        JobStore::inventory(&self.spool)
+        self.spool.inventory()
     }
-    fn edit_inventory(
+    async fn edit_inventory(
         &mut self,
         edit: &mut crate::daemon::store::InventoryEdit<'_>,
     ) -> Result<crate::daemon::filament::Inventory, StoreError> {
-        JobStore::edit_inventory(&mut self.spool, edit)
+        self.spool.edit_inventory(edit).await
     }
-    fn recover(&mut self) -> Result<Vec<String>, StoreError> {
-        JobStore::recover(&mut self.spool)
+    async fn recover(&mut self) -> Result<Vec<String>, StoreError> {
+        self.spool.recover().await
     }
-    fn admit(&mut self, source: &Path, folder: &Path, p: &[String]) -> Result<Job, StoreError> {
-        JobStore::admit(&mut self.spool, source, folder, p)
+    async fn admit(
+        &mut self,
+        source: &Path,
+        folder: &Path,
+        p: &[String],
+    ) -> Result<Job, StoreError> {
+        self.spool.admit(source, folder, p).await
     }
-    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
-        JobStore::make_copies(&mut self.spool, id)
+    async fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
+        self.spool.make_copies(id).await
     }
-    fn late_sidecar(&mut self, id: &str, s: &Path, applies: bool) -> Result<bool, StoreError> {
-        JobStore::late_sidecar(&mut self.spool, id, s, applies)
+    async fn late_sidecar(
+        &mut self,
+        id: &str,
+        s: &Path,
+        applies: bool,
+    ) -> Result<bool, StoreError> {
+        self.spool.late_sidecar(id, s, applies).await
     }
-    fn transition_with(
+    async fn transition_with(
         &mut self,
         id: &str,
         from: Option<StateFilter>,
@@ -236,27 +247,29 @@ impl JobStore for TwoHosts {
         reason: Option<String>,
         also: JobEdit,
     ) -> Result<Job, StoreError> {
-        JobStore::transition_with(&mut self.spool, id, from, state, reason, also)
+        self.spool
+            .transition_with(id, from, state, reason, also)
+            .await
     }
-    fn record_outcome(
+    async fn record_outcome(
         &mut self,
         id: &str,
         state: JobState,
         reason: Option<String>,
         also: JobEdit,
     ) -> Result<Job, StoreError> {
-        JobStore::record_outcome(&mut self.spool, id, state, reason, also)
+        self.spool.record_outcome(id, state, reason, also).await
     }
-    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
-        JobStore::update(&mut self.spool, id, change)
+    async fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
+        self.spool.update(id, change).await
     }
-    fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
-        JobStore::retry(&mut self.spool, id)
+    async fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+        self.spool.retry(id).await
     }
-    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
-        JobStore::set_gate(&mut self.spool, printer, gate)
+    async fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+        self.spool.set_gate(printer, gate).await
     }
-    fn write_pending(&mut self) -> usize {
+    async fn write_pending(&mut self) -> usize {
         if self.reachable.load(Ordering::SeqCst) {
             self.kept.store(0, Ordering::SeqCst);
         }
@@ -265,38 +278,41 @@ impl JobStore for TwoHosts {
     fn unwritten(&self) -> usize {
         self.kept.load(Ordering::SeqCst)
     }
-    fn resync(&mut self) -> bool {
+    async fn resync(&mut self) -> bool {
         let changes: Vec<_> = std::mem::take(&mut *self.elsewhere.lock().unwrap());
         for (id, state) in &changes {
             let on_p1: JobEdit = Box::new(|j| j.printer = Some("p1".into()));
-            JobStore::transition_with(&mut self.spool, id, None, *state, None, on_p1).unwrap();
+            self.spool
+                .transition_with(id, None, *state, None, on_p1)
+                .await
+                .unwrap();
         }
         // Always a rebuild of the snapshot: one with nothing new must count nothing.
         true
     }
-    fn retire(&mut self, r: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
-        JobStore::retire(&mut self.spool, r, now)
+    async fn retire(&mut self, r: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+        self.spool.retire(r, now).await
     }
-    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
-        JobStore::retired(&self.spool, id)
+    async fn retired(&mut self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        self.spool.retired(id).await
     }
-    fn history(
-        &self,
+    async fn history(
+        &mut self,
         before: Option<u64>,
         limit: usize,
         filter: &history::Filter,
     ) -> Result<history::Page, StoreError> {
-        JobStore::history(&self.spool, before, limit, filter)
+        self.spool.history(before, limit, filter).await
     }
-    fn prune(&mut self, keep: std::time::Duration, now: f64) -> Result<usize, StoreError> {
-        JobStore::prune(&mut self.spool, keep, now)
+    async fn prune(&mut self, keep: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+        self.spool.prune(keep, now).await
     }
-    fn each_retired(
-        &self,
+    async fn each_retired(
+        &mut self,
         since: f64,
-        visit: &mut dyn FnMut(history::Retired),
+        visit: &mut (dyn FnMut(history::Retired) + Send),
     ) -> Result<(), StoreError> {
-        JobStore::each_retired(&self.spool, since, visit)
+        self.spool.each_retired(since, visit).await
     }
 }
 
@@ -311,7 +327,7 @@ async fn changes_from_elsewhere_are_counted_once() {
     std::fs::create_dir(&hot).unwrap();
     let elsewhere = Arc::new(std::sync::Mutex::new(Vec::new()));
     let store = TwoHosts {
-        spool: spool::Spool::open(&tmp.path().join("spool")).unwrap(),
+        spool: spool::SpoolStore::open(&tmp.path().join("spool")).unwrap(),
         elsewhere: Arc::clone(&elsewhere),
         kept: Arc::default(),
         reachable: Arc::new(AtomicBool::new(true)),
@@ -352,7 +368,7 @@ async fn kept_outcomes_are_written_once_the_database_is_back() {
     let kept = Arc::new(AtomicUsize::new(2));
     let reachable = Arc::new(AtomicBool::new(false));
     let handle = spawn(TwoHosts {
-        spool: spool::Spool::open(&tmp.path().join("spool")).unwrap(),
+        spool: spool::SpoolStore::open(&tmp.path().join("spool")).unwrap(),
         elsewhere: Arc::default(),
         kept: Arc::clone(&kept),
         reachable: Arc::clone(&reachable),
@@ -378,7 +394,7 @@ async fn a_use_is_booked_before_its_job_retires() {
     let tmp = tempfile::tempdir().unwrap();
     let hot = tmp.path().join("hot");
     std::fs::create_dir(&hot).unwrap();
-    let store = spool::Spool::open(&tmp.path().join("spool")).unwrap();
+    let store = spool::SpoolStore::open(&tmp.path().join("spool")).unwrap();
     let retention = Retention {
         live_for: std::time::Duration::from_secs(86_400),
         live_jobs: 0,
@@ -470,8 +486,10 @@ async fn a_print_is_counted_once_across_restarts() {
         async move { handle.admit(&model, &hot, &[]).await.unwrap().id }
     };
     // The store's task is awaited once its last handle is gone, so the spool is free.
-    let (handle, task) =
-        super::task::start(spool::Spool::open(&root).unwrap(), Retention::default());
+    let (handle, task) = super::task::start(
+        spool::SpoolStore::open(&root).unwrap(),
+        Retention::default(),
+    );
     let task = tokio::spawn(task);
     let old = admit(&handle, "old.gcode").await;
     handle
@@ -491,7 +509,7 @@ async fn a_print_is_counted_once_across_restarts() {
     drop(handle);
     task.await.unwrap();
 
-    let handle = spawn(spool::Spool::open(&root).unwrap());
+    let handle = spawn(spool::SpoolStore::open(&root).unwrap());
     // The first job leaves the live view; its key stays (a day from when it was last seen
     // live, though its print ended long before), and nothing is counted twice.
     handle
@@ -530,7 +548,7 @@ async fn a_print_is_counted_once_across_restarts() {
 async fn a_refused_clear_is_not_published() {
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path().join("spool");
-    let handle = spawn(spool::Spool::open(&root).unwrap());
+    let handle = spawn(spool::SpoolStore::open(&root).unwrap());
     handle.close_gate("p1", "0001-a").await.unwrap();
     let blocker = crate::fsutil::temp_path(&root.join("printers.json"));
     std::fs::create_dir_all(&blocker).unwrap();
@@ -560,7 +578,7 @@ async fn a_ready_job_publishes_its_copies_and_shares_its_comparison() {
     let tmp = tempfile::tempdir().unwrap();
     let hot = tmp.path().join("hot");
     std::fs::create_dir(&hot).unwrap();
-    let handle = spawn(spool::Spool::open(&tmp.path().join("spool")).unwrap());
+    let handle = spawn(spool::SpoolStore::open(&tmp.path().join("spool")).unwrap());
     std::fs::write(hot.join("a.gcode"), b"G28\n").unwrap();
     let id = handle
         .admit(&hot.join("a.gcode"), &hot, &[])

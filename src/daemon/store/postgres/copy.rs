@@ -1,12 +1,14 @@
 //! A job's files in the farm database: stored and read back with binary `COPY`, in
 //! pieces as they stream, never whole in memory; the files a job directory lacks on either
 //! side. Apart because the framing of the `COPY` format is its own matter, whichever
-//! change carries the files.
+//! change carries the files. The files are read and written off the runtime's threads
+//! (`tokio::fs`, or a blocking thread for the atomic write).
 
 use super::error::PgError;
 use super::lease::PgStore;
 use super::rows::ids;
 use crate::daemon::job::Job;
+use crate::daemon::store::blocking;
 use postgres_protocol::escape::escape_literal;
 use std::path::Path;
 
@@ -61,11 +63,10 @@ pub(super) async fn upload_missing(
         let (id, name) = (id.to_string(), name.to_string());
         move |source| PgError::File { id, name, source }
     };
-    let entries = std::fs::read_dir(dir).map_err(file_err("."))?;
-    for entry in entries {
-        let entry = entry.map_err(file_err("."))?;
+    let mut entries = tokio::fs::read_dir(dir).await.map_err(file_err("."))?;
+    while let Some(entry) = entries.next_entry().await.map_err(file_err("."))? {
         let name = entry.file_name().to_string_lossy().into_owned();
-        let meta = entry.metadata().map_err(file_err(&name))?;
+        let meta = entry.metadata().await.map_err(file_err(&name))?;
         let temporary = name.ends_with(".tmp") || name.starts_with(crate::fsutil::TEMP_PREFIX);
         if !meta.is_file() || have.contains(&name) || temporary {
             continue;
@@ -94,14 +95,14 @@ pub(super) async fn copy_file_in(
     path: &Path,
 ) -> Result<(), PgError> {
     use futures_util::SinkExt;
-    use std::io::Read;
+    use tokio::io::AsyncReadExt;
     let file_err = |source| PgError::File {
         id: id.to_string(),
         name: name.to_string(),
         source,
     };
-    let file = std::fs::File::open(path).map_err(file_err)?;
-    let len = file.metadata().map_err(file_err)?.len();
+    let file = tokio::fs::File::open(path).await.map_err(file_err)?;
+    let len = file.metadata().await.map_err(file_err)?.len();
     if len > MAX_FILE_BYTES {
         return Err(file_err(std::io::Error::other(format!(
             "{len} bytes, more than the farm database keeps ({MAX_FILE_BYTES})"
@@ -126,7 +127,7 @@ pub(super) async fn copy_file_in(
     let mut sent = 0u64;
     loop {
         let mut piece = vec![0u8; 1 << 20];
-        let n = reader.read(&mut piece).map_err(file_err)?;
+        let n = reader.read(&mut piece).await.map_err(file_err)?;
         if n == 0 {
             break;
         }
@@ -156,6 +157,8 @@ async fn copy_file_out(
 ) -> Result<(), PgError> {
     use futures_util::StreamExt;
     use std::io::Write;
+    /// Written a piece this large at a time, on a blocking thread.
+    const WRITE_PIECE: usize = 1 << 20;
     let file_err = |source| PgError::File {
         id: id.to_string(),
         name: name.to_string(),
@@ -175,8 +178,11 @@ async fn copy_file_out(
     );
     let stream = tx.copy_out(&query).await?;
     futures_util::pin_mut!(stream);
-    let mut out =
-        crate::fsutil::AtomicFile::create(to).map_err(|e| file_err(std::io::Error::from(e)))?;
+    let to = to.to_path_buf();
+    let mut out = blocking(move || crate::fsutil::AtomicFile::create(&to))
+        .await
+        .map_err(|e| file_err(std::io::Error::from(e)))?;
+    let mut unwritten: Vec<u8> = Vec::new();
     // Header, field count and length first; then the bytes, up to the trailer.
     const START: usize = COPY_HEADER.len() + 2 + 4;
     let mut head: Vec<u8> = Vec::new();
@@ -205,14 +211,24 @@ async fn copy_file_out(
         };
         let want = left.unwrap_or(0);
         let take = (data.len() as u64).min(want) as usize;
-        out.file().write_all(&data[..take]).map_err(file_err)?;
+        unwritten.extend_from_slice(&data[..take]);
         left = Some(want - take as u64);
+        if unwritten.len() >= WRITE_PIECE {
+            let piece = std::mem::take(&mut unwritten);
+            out = blocking(move || out.file().write_all(&piece).map(|()| out))
+                .await
+                .map_err(file_err)?;
+        }
     }
     if rows != 1 || left != Some(0) {
         return Err(corrupt("missing or cut short"));
     }
-    out.commit()
-        .map_err(|e| file_err(std::io::Error::from(e)))?;
+    blocking(move || {
+        out.file().write_all(&unwritten)?;
+        out.commit().map_err(std::io::Error::from)
+    })
+    .await
+    .map_err(file_err)?;
     Ok(())
 }
 
@@ -238,14 +254,20 @@ pub(super) async fn download_missing(
         let (id, name) = (id.to_string(), name.to_string());
         move |source| PgError::File { id, name, source }
     };
-    std::fs::create_dir_all(dir).map_err(file_err("."))?;
+    tokio::fs::create_dir_all(dir)
+        .await
+        .map_err(file_err("."))?;
     for (name, owner) in names {
         // Names come from hosts of the farm; still, nothing leaves the job's directory.
         let plain = !name.is_empty() && !name.contains('/') && name != "." && name != "..";
-        if !plain || (only_gcode && !name.ends_with(".gcode")) || dir.join(&name).exists() {
+        if !plain || (only_gcode && !name.ends_with(".gcode")) {
             continue;
         }
-        copy_file_out(tx, &owner, &name, &dir.join(&name)).await?;
+        let to = dir.join(&name);
+        if tokio::fs::try_exists(&to).await.unwrap_or(false) {
+            continue;
+        }
+        copy_file_out(tx, &owner, &name, &to).await?;
     }
     Ok(())
 }

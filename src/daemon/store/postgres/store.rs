@@ -1,5 +1,6 @@
-//! The daemon's [`JobStore`] over the farm database. The store's task calls it on a
-//! blocking thread, so each call waits on the async client with `block_on`.
+//! The daemon's [`JobStore`] over the farm database: each call awaits the async client,
+//! and what it does with this host's files (the hot folder's, the job directories') runs
+//! on a blocking thread.
 //!
 //! It keeps what the snapshot needs in memory (every job, every bed gate), so glances never
 //! reach the database; [`JobStore::resync`] takes in what other hosts changed. A job's
@@ -16,12 +17,12 @@ use super::{Change, FileBody, PgError, PgStore, MAX_FILE_BYTES};
 use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use crate::daemon::store::history::{self, Retention, Retired};
-use crate::daemon::store::pending::{Attempt, Pending};
+use crate::daemon::store::pending::{Attempt, Kept, Pending, Written};
 use crate::daemon::store::rules::io_err;
 use crate::daemon::store::spool::{
     late_sidecar_name, lock_dir, model_name, move_file, regular_file_size, sidecar_of,
 };
-use crate::daemon::store::{InventoryEdit, JobEdit, JobStore, RetiredJob, StateFilter};
+use crate::daemon::store::{blocking, InventoryEdit, JobEdit, JobStore, RetiredJob, StateFilter};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -34,7 +35,6 @@ const HISTORY_CHUNK: usize = 500;
 
 pub struct PgJobStore {
     db: PgStore,
-    rt: tokio::runtime::Handle,
     _lock: nix::fcntl::Flock<std::fs::File>,
     jobs_dir: PathBuf,
     jobs: BTreeMap<String, Job>,
@@ -71,14 +71,14 @@ impl PgJobStore {
     /// Opens the store for this host: its local directory `spool_dir` (locked, as a spool
     /// is) and every job and gate of the farm.
     pub async fn open(db: PgStore, spool_dir: &Path) -> Result<PgJobStore, StoreError> {
-        let lock = lock_dir(spool_dir)?;
+        let dir = spool_dir.to_path_buf();
+        let lock = blocking(move || lock_dir(&dir)).await?;
         let changes = db.jobs_since(f64::NEG_INFINITY).await?;
         let (jobs, synced_to) = (changes.jobs, changes.now);
         let gates = db.gates().await?;
         let inventory = db.inventory().await?;
         Ok(PgJobStore {
             inventory,
-            rt: tokio::runtime::Handle::current(),
             _lock: lock,
             jobs_dir: spool_dir.join("jobs"),
             jobs: jobs.into_iter().map(|j| (j.id.clone(), j)).collect(),
@@ -90,31 +90,27 @@ impl PgJobStore {
         })
     }
 
-    fn block<T>(&self, work: impl std::future::Future<Output = T>) -> T {
-        self.rt.block_on(work)
-    }
-
     fn job_dir(&self, id: &str) -> PathBuf {
         self.jobs_dir.join(id)
     }
 
     /// Takes the database's record of a job after a refused change (another host moved it).
-    fn reread(&mut self, id: &str) {
-        if let Ok(job) = self.block(self.db.job(id)) {
+    async fn reread(&mut self, id: &str) {
+        if let Ok(job) = self.db.job(id).await {
             self.jobs.insert(id.to_string(), job);
         }
     }
 
     /// Runs `work` against the database unless it is known to be unreachable, noting an
     /// outage when the call meets one.
-    fn reach<T>(
+    async fn reach<T>(
         &mut self,
         work: impl std::future::Future<Output = Result<T, PgError>>,
     ) -> Result<T, PgError> {
         if let Some(e) = &self.unreachable {
             return Err(PgError::Unreachable(e.clone()));
         }
-        let result = self.block(work);
+        let result = work.await;
         if let Err(e) = &result {
             if e.is_outage() {
                 self.unreachable = Some(e.to_string());
@@ -123,9 +119,9 @@ impl PgJobStore {
         result
     }
 
-    fn modify(&mut self, id: &str, change: Change<'_>) -> Result<Job, StoreError> {
+    async fn modify(&mut self, id: &str, change: Change<'_>) -> Result<Job, StoreError> {
         let db = self.db.clone();
-        let result = self.reach(db.modify(id, change));
+        let result = self.reach(db.modify(id, change)).await;
         match result {
             Ok(job) => {
                 self.jobs.insert(id.to_string(), job.clone());
@@ -133,7 +129,7 @@ impl PgJobStore {
             }
             Err(e) => {
                 if !e.is_outage() {
-                    self.reread(id);
+                    self.reread(id).await;
                 }
                 Err(e.into())
             }
@@ -175,6 +171,7 @@ fn becomes(after: Job) -> JobEdit {
     })
 }
 
+#[async_trait::async_trait]
 impl JobStore for PgJobStore {
     fn jobs_dir(&self) -> PathBuf {
         self.jobs_dir.clone()
@@ -198,44 +195,58 @@ impl JobStore for PgJobStore {
         self.inventory.clone()
     }
 
-    fn edit_inventory(&mut self, edit: &mut InventoryEdit<'_>) -> Result<Inventory, StoreError> {
+    async fn edit_inventory(
+        &mut self,
+        edit: &mut InventoryEdit<'_>,
+    ) -> Result<Inventory, StoreError> {
         let db = self.db.clone();
-        let inventory = self.reach(db.edit_inventory(edit))?;
+        let inventory = self.reach(db.edit_inventory(edit)).await?;
         self.inventory = inventory.clone();
         Ok(inventory)
     }
 
-    fn recover(&mut self) -> Result<Vec<String>, StoreError> {
-        let ids = self.block(self.db.recover_own())?;
-        self.resync();
+    async fn recover(&mut self) -> Result<Vec<String>, StoreError> {
+        let ids = self.db.recover_own().await?;
+        self.resync().await;
         Ok(ids)
     }
 
-    fn admit(
+    async fn admit(
         &mut self,
         source: &Path,
         folder: &Path,
         printers: &[String],
     ) -> Result<Job, StoreError> {
-        let size = regular_file_size(source)?;
-        if size > MAX_FILE_BYTES {
-            return Err(io_err(source, "read")(std::io::Error::other(format!(
-                "{size} bytes, more than the farm database keeps in one file ({MAX_FILE_BYTES})"
-            ))));
-        }
-        let file = model_name(source);
-        let sidecar = sidecar_of(source);
+        let folder_name = folder.to_string_lossy().into_owned();
+        // A hot folder may be on a network share: even a look at the file is made off
+        // the runtime.
+        let (file, sidecar, has_sidecar, pickup) = {
+            let (source, folder_name) = (source.to_path_buf(), folder_name.clone());
+            blocking(move || -> Result<_, StoreError> {
+                let size = regular_file_size(&source)?;
+                if size > MAX_FILE_BYTES {
+                    return Err(io_err(&source, "read")(std::io::Error::other(format!(
+                        "{size} bytes, more than the farm database keeps in one file ({MAX_FILE_BYTES})"
+                    ))));
+                }
+                let file = model_name(&source);
+                let sidecar = sidecar_of(&source);
+                let has_sidecar = std::fs::symlink_metadata(&sidecar).is_ok_and(|m| m.is_file());
+                let pickup = pickup_of(&source, &folder_name, &file)?;
+                Ok((file, sidecar, has_sidecar, pickup))
+            })
+            .await?
+        };
         let sidecar_name = format!("{file}.toml");
         // Read as they are stored, never whole in memory (a model may be large).
-        let has_sidecar = std::fs::symlink_metadata(&sidecar).is_ok_and(|m| m.is_file());
         let mut files = vec![(file.as_str(), FileBody::Path(source))];
         if has_sidecar {
             files.push((&sidecar_name, FileBody::Path(&sidecar)));
         }
-        let folder_name = folder.to_string_lossy();
-        let pickup = pickup_of(source, &folder_name, &file)?;
         let db = self.db.clone();
-        let job = self.reach(db.admit(&file, &folder_name, printers, &files, Some(&pickup)))?;
+        let job = self
+            .reach(db.admit(&file, &folder_name, printers, &files, Some(&pickup)))
+            .await?;
         // The job is in the farm now: its files leave the hot folder for this host's copy,
         // which preparation here reads. A file that cannot be moved is removed, so it is
         // never picked up twice.
@@ -244,37 +255,47 @@ impl JobStore for PgJobStore {
         if has_sidecar {
             moves.push((sidecar, dir.join(&sidecar_name)));
         }
-        let _ = std::fs::create_dir_all(&dir);
-        for (from, to) in moves {
-            if let Err(e) = move_file(&from, &to) {
-                tracing::warn!(job = %job.id, error = %e, "cannot keep a local copy; the farm database has the file");
-                if let Err(e) = std::fs::remove_file(&from) {
-                    tracing::error!(job = %job.id, file = %from.display(), error = %e, "cannot remove a picked-up file from its hot folder: remove it by hand, or it is picked up again");
+        let id = job.id.clone();
+        blocking(move || {
+            let _ = std::fs::create_dir_all(&dir);
+            for (from, to) in moves {
+                if let Err(e) = move_file(&from, &to) {
+                    tracing::warn!(job = %id, error = %e, "cannot keep a local copy; the farm database has the file");
+                    if let Err(e) = std::fs::remove_file(&from) {
+                        tracing::error!(job = %id, file = %from.display(), error = %e, "cannot remove a picked-up file from its hot folder: remove it by hand, or it is picked up again");
+                    }
                 }
             }
-        }
+        })
+        .await;
         self.jobs.insert(job.id.clone(), job.clone());
         Ok(job)
     }
 
-    fn late_sidecar(
+    async fn late_sidecar(
         &mut self,
         id: &str,
         sidecar: &Path,
         applies: bool,
     ) -> Result<bool, StoreError> {
-        let job = self.cached(id)?;
-        regular_file_size(sidecar)?;
-        let name = late_sidecar_name(&job.file, applies);
-        let bytes = std::fs::read(sidecar).map_err(io_err(sidecar, "read"))?;
-        self.block(self.db.put_file(id, &name, &bytes))?;
-        let dir = self.job_dir(id);
-        let _ = std::fs::create_dir_all(&dir);
-        move_file(sidecar, &dir.join(name))?;
+        let name = late_sidecar_name(&self.cached(id)?.file, applies);
+        let from = sidecar.to_path_buf();
+        let bytes = blocking(move || {
+            regular_file_size(&from)?;
+            std::fs::read(&from).map_err(io_err(&from, "read"))
+        })
+        .await?;
+        self.db.put_file(id, &name, &bytes).await?;
+        let (dir, from) = (self.job_dir(id), sidecar.to_path_buf());
+        blocking(move || {
+            let _ = std::fs::create_dir_all(&dir);
+            move_file(&from, &dir.join(name))
+        })
+        .await?;
         Ok(applies)
     }
 
-    fn transition_with(
+    async fn transition_with(
         &mut self,
         id: &str,
         from: Option<StateFilter>,
@@ -298,10 +319,10 @@ impl JobStore for PgJobStore {
                 _ => None,
             },
         };
-        self.modify(id, change)
+        self.modify(id, change).await
     }
 
-    fn record_outcome(
+    async fn record_outcome(
         &mut self,
         id: &str,
         state: JobState,
@@ -320,7 +341,7 @@ impl JobStore for PgJobStore {
             download_to: None,
         };
         let db = self.db.clone();
-        match self.reach(db.modify(id, change)) {
+        match self.reach(db.modify(id, change)).await {
             Ok(job) => {
                 self.jobs.insert(id.to_string(), job.clone());
                 Ok(job)
@@ -332,17 +353,17 @@ impl JobStore for PgJobStore {
                 Ok(after)
             }
             Err(e) => {
-                self.reread(id);
+                self.reread(id).await;
                 Err(e.into())
             }
         }
     }
 
-    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
+    async fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
         let db = self.db.clone();
-        let made = self.reach(db.make_copies(id))?;
+        let made = self.reach(db.make_copies(id)).await?;
         // The job's record says they are made: read it back, as the copies.
-        self.reread(id);
+        self.reread(id).await;
         let ids = made.iter().map(|j| j.id.clone()).collect();
         for copy in made {
             self.jobs.insert(copy.id.clone(), copy);
@@ -350,7 +371,7 @@ impl JobStore for PgJobStore {
         Ok(ids)
     }
 
-    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
+    async fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
         let change = Change {
             from: None,
             to: None,
@@ -359,14 +380,14 @@ impl JobStore for PgJobStore {
             upload_from: None,
             download_to: None,
         };
-        self.modify(id, change)
+        self.modify(id, change).await
     }
 
-    fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
+    async fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
         const FINISHED: StateFilter =
             &[JobState::Failed, JobState::Cancelled, JobState::Interrupted];
         if !self.jobs.contains_key(id) {
-            if let Some(retired) = self.retired(id)? {
+            if let Some(retired) = self.retired(id).await? {
                 return Err(crate::daemon::store::retired_refusal(
                     id,
                     retired.record.state,
@@ -384,7 +405,7 @@ impl JobStore for PgJobStore {
             });
         }
         // As in the spool: a prepared job keeps its G-code and is printed again as it was.
-        let names = self.block(self.db.file_names(&job))?;
+        let names = self.db.file_names(&job).await?;
         let prepared = super::super::prepared(&job, |name| names.iter().any(|n| n == name));
         let state = if prepared {
             JobState::Ready
@@ -394,12 +415,12 @@ impl JobStore for PgJobStore {
         let mut change = Change::to(state);
         change.from = Some(FINISHED);
         change.edit = Box::new(|j| j.printer = None);
-        self.modify(id, change)
+        self.modify(id, change).await
     }
 
-    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
+    async fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
         let db = self.db.clone();
-        match self.reach(db.set_gate(printer, &gate)) {
+        match self.reach(db.set_gate(printer, &gate)).await {
             Ok(()) => {
                 self.pending.gate_written(printer);
                 self.gates.insert(printer.to_string(), gate);
@@ -416,31 +437,36 @@ impl JobStore for PgJobStore {
         }
     }
 
-    fn write_pending(&mut self) -> usize {
+    async fn write_pending(&mut self) -> usize {
         // Tried whatever the last call found: this is how an outage is found to be over.
-        let mut pending = std::mem::take(&mut self.pending);
-        let db = self.db.clone();
-        let written = pending.write(
-            |_, from, job| match self.block(db.write_outcome(job, from)) {
-                Ok(written) => Attempt::Written(Some(Box::new(written))),
-                Err(e) if e.is_outage() => Attempt::Unreachable,
-                Err(e) => {
-                    tracing::warn!(job = %job.id, error = %e, "the farm moved the job on during the outage");
-                    Attempt::Dropped
+        let mut written = Written::default();
+        for kept in self.pending.take() {
+            let attempt = match (Pending::untried(&written), &kept) {
+                (Some(untried), _) => untried,
+                (None, Kept::Outcome { from, job, .. }) => {
+                    match self.db.write_outcome(job, *from).await {
+                        Ok(record) => Attempt::Written(Some(Box::new(record))),
+                        Err(e) if e.is_outage() => Attempt::Unreachable,
+                        Err(e) => {
+                            tracing::warn!(job = %job.id, error = %e, "the farm moved the job on during the outage");
+                            Attempt::Dropped
+                        }
+                    }
                 }
-            },
-            |printer, gate| match self.block(db.set_gate(printer, gate)) {
-                Ok(()) => Attempt::Written(None),
-                Err(e) if e.is_outage() => Attempt::Unreachable,
-                Err(_) => Attempt::Dropped,
-            },
-        );
-        self.pending = pending;
+                (None, Kept::Gate { printer, gate }) => match self.db.set_gate(printer, gate).await
+                {
+                    Ok(()) => Attempt::Written(None),
+                    Err(e) if e.is_outage() => Attempt::Unreachable,
+                    Err(_) => Attempt::Dropped,
+                },
+            };
+            self.pending.settle(kept, attempt, &mut written);
+        }
         for job in written.jobs {
             self.jobs.insert(job.id.clone(), job);
         }
         for id in written.dropped {
-            self.reread(&id);
+            self.reread(&id).await;
         }
         if !written.unreachable {
             self.unreachable = None;
@@ -452,7 +478,7 @@ impl JobStore for PgJobStore {
         self.pending.len()
     }
 
-    fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
+    async fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
         let pending = &self.pending;
         let wanted = history::to_retire(self.jobs.values(), retention, now, &|id| {
             pending.has_outcome(id)
@@ -461,23 +487,23 @@ impl JobStore for PgJobStore {
             return Ok(wanted);
         }
         let db = self.db.clone();
-        let retired = self.reach(db.retire(&wanted))?;
+        let retired = self.reach(db.retire(&wanted)).await?;
         for id in &retired {
             self.jobs.remove(id);
         }
         Ok(retired)
     }
 
-    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
-        let found = self.block(self.db.retired_job(id))?;
+    async fn retired(&mut self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
+        let found = self.db.retired_job(id).await?;
         Ok(found.map(|(job, at)| RetiredJob {
             record: Retired::of(&job, self.job_dir(id), at),
             job: Some(job),
         }))
     }
 
-    fn history(
-        &self,
+    async fn history(
+        &mut self,
         before: Option<u64>,
         limit: usize,
         filter: &history::Filter,
@@ -493,7 +519,7 @@ impl JobStore for PgJobStore {
         let since = filter.since.unwrap_or(0.0);
         let (mut jobs, mut more, mut cursor) = (Vec::new(), false, before);
         loop {
-            let read = self.block(self.db.history(cursor, chunk, since))?;
+            let read = self.db.history(cursor, chunk, since).await?;
             for (job, at) in &read {
                 let record = Retired::of(job, self.job_dir(&job.id), *at);
                 if filter.matches(&record) {
@@ -519,20 +545,32 @@ impl JobStore for PgJobStore {
         })
     }
 
-    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError> {
+    async fn prune(
+        &mut self,
+        keep_for: std::time::Duration,
+        now: f64,
+    ) -> Result<usize, StoreError> {
         // By the database's record of when each job was retired; any host may do it.
-        let gone = self.block(self.db.forget_retired(now - keep_for.as_secs_f64()))?;
-        for id in &gone {
-            // This host's copy of its files, where it has one.
-            let _ = std::fs::remove_dir_all(self.job_dir(id));
-        }
+        let gone = self.db.forget_retired(now - keep_for.as_secs_f64()).await?;
+        let dirs: Vec<PathBuf> = gone.iter().map(|id| self.job_dir(id)).collect();
+        blocking(move || {
+            for dir in dirs {
+                // This host's copy of its files, where it has one.
+                let _ = std::fs::remove_dir_all(dir);
+            }
+        })
+        .await;
         Ok(gone.len())
     }
 
-    fn each_retired(&self, since: f64, visit: &mut dyn FnMut(Retired)) -> Result<(), StoreError> {
+    async fn each_retired(
+        &mut self,
+        since: f64,
+        visit: &mut (dyn FnMut(Retired) + Send),
+    ) -> Result<(), StoreError> {
         let mut cursor = None;
         loop {
-            let read = self.block(self.db.history(cursor, HISTORY_CHUNK, since))?;
+            let read = self.db.history(cursor, HISTORY_CHUNK, since).await?;
             cursor = read.last().map(|(j, _)| j.seq);
             let n = read.len();
             for (job, at) in read {
@@ -544,14 +582,15 @@ impl JobStore for PgJobStore {
         }
     }
 
-    fn resync(&mut self) -> bool {
+    async fn resync(&mut self) -> bool {
         let since = self.synced_to - RESYNC_OVERLAP_S;
-        let read = self.block(async {
+        let read = async {
             let jobs = self.db.jobs_since(since).await?;
             let gates = self.db.gates().await?;
             let inventory = self.db.inventory().await?;
             Ok::<_, PgError>((jobs, gates, inventory))
-        });
+        }
+        .await;
         let (
             super::Changes {
                 jobs: changed,

@@ -10,12 +10,14 @@
 //! directories stay under `<spool>/jobs/`, and `<spool>/history/` says which ones are
 //! retired, so opening the spool never reads their state.
 //!
-//! The embedded, single-host implementation of [`JobStore`]: the default.
+//! The embedded, single-host implementation of [`JobStore`](super::JobStore), the default,
+//! is [`SpoolStore`], which makes the spool's calls that touch the disk on a blocking
+//! thread.
 
 use super::history::{self, HistoryFiles, Retention, Retired};
 use super::pending::{Attempt, Pending};
 use super::rules::io_err;
-use super::{InventoryEdit, JobEdit, JobStore, RetiredJob, StateFilter};
+use super::{JobEdit, RetiredJob, StateFilter};
 use crate::daemon::bed::{Bed, Why};
 use crate::daemon::filament::Inventory;
 use crate::daemon::job::{now_s, Job, JobState, PrinterGate, StoreError};
@@ -23,12 +25,14 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 mod job_dir;
+mod store;
 #[cfg(test)]
 mod tests;
 
 pub(crate) use job_dir::seq_of_id;
 pub(super) use job_dir::{late_sidecar_name, model_name, move_file, regular_file_size, sidecar_of};
 use job_dir::{load_job, read_origin, unreadable_job, Origin};
+pub(crate) use store::SpoolStore;
 
 /// The spool on disk plus its in-memory index. Not synchronised: only the store's task
 /// uses it (see [`super::spawn`]). Holds the spool's lock (`<spool>/lock`, an flock) while
@@ -664,55 +668,25 @@ impl Spool {
     }
 }
 
-impl JobStore for Spool {
-    fn jobs_dir(&self) -> PathBuf {
+impl Spool {
+    pub(crate) fn jobs_dir(&self) -> PathBuf {
         self.root.join("jobs")
     }
-    fn jobs(&self) -> Vec<Job> {
-        Spool::jobs(self).cloned().collect()
-    }
-    fn job(&self, id: &str) -> Option<Job> {
-        self.get(id).cloned()
-    }
-    fn gates(&self) -> BTreeMap<String, PrinterGate> {
-        self.gates.clone()
-    }
-    fn inventory(&self) -> Inventory {
-        self.inventory.clone()
-    }
-    fn edit_inventory(&mut self, edit: &mut InventoryEdit<'_>) -> Result<Inventory, StoreError> {
-        let mut changed = self.inventory.clone();
-        edit(&mut changed)?;
-        if changed != self.inventory {
-            let bytes = serde_json::to_vec(&changed).expect("the inventory serialises");
+
+    /// Makes `inventory` the spool's, written first when it differs (a refused edit of
+    /// it changes nothing: see [`SpoolStore`]).
+    fn set_inventory(&mut self, inventory: Inventory) -> Result<Inventory, StoreError> {
+        if inventory != self.inventory {
+            let bytes = serde_json::to_vec(&inventory).expect("the inventory serialises");
             write_atomic(&self.root.join(INVENTORY_FILE), &bytes)?;
-            self.inventory = changed;
+            self.inventory = inventory;
         }
         Ok(self.inventory.clone())
     }
-    fn recover(&mut self) -> Result<Vec<String>, StoreError> {
-        Spool::recover(self)
-    }
-    fn make_copies(&mut self, id: &str) -> Result<Vec<String>, StoreError> {
-        Spool::make_copies(self, id)
-    }
-    fn admit(
-        &mut self,
-        source: &Path,
-        folder: &Path,
-        _printers: &[String],
-    ) -> Result<Job, StoreError> {
-        Spool::admit(self, source, folder)
-    }
-    fn late_sidecar(
-        &mut self,
-        id: &str,
-        sidecar: &Path,
-        applies: bool,
-    ) -> Result<bool, StoreError> {
-        Spool::late_sidecar(self, id, sidecar, applies)
-    }
-    fn transition_with(
+
+    /// [`Spool::transition_with`], first checked against `from` (the states the job must be
+    /// in now), as [`JobStore::transition_with`] is.
+    pub(crate) fn transition_from(
         &mut self,
         id: &str,
         from: Option<StateFilter>,
@@ -725,37 +699,13 @@ impl JobStore for Spool {
             job.apply_transition(state, reason, also)
         })
     }
-    fn record_outcome(
-        &mut self,
-        id: &str,
-        state: JobState,
-        reason: Option<String>,
-        also: JobEdit,
-    ) -> Result<Job, StoreError> {
-        Spool::record_outcome(self, id, state, reason, also)
-    }
-    fn update(&mut self, id: &str, change: JobEdit) -> Result<Job, StoreError> {
-        Spool::update(self, id, change)
-    }
-    fn retry(&mut self, id: &str) -> Result<Job, StoreError> {
-        Spool::retry(self, id)
-    }
-    fn set_gate(&mut self, printer: &str, gate: PrinterGate) -> Result<(), StoreError> {
-        Spool::set_gate(self, printer, gate)
-    }
-    fn write_pending(&mut self) -> usize {
-        Spool::write_pending(self)
-    }
-    fn unwritten(&self) -> usize {
+
+    pub(crate) fn unwritten(&self) -> usize {
         self.pending.len()
     }
-    fn retire(&mut self, retention: &Retention, now: f64) -> Result<Vec<String>, StoreError> {
-        Spool::retire(self, retention, now)
-    }
-    fn retired(&self, id: &str) -> Result<Option<RetiredJob>, StoreError> {
-        self.retired_job(id)
-    }
-    fn history(
+
+    /// A page of the history (see [`JobStore::history`]).
+    pub(crate) fn history_page(
         &self,
         before: Option<u64>,
         limit: usize,
@@ -767,12 +717,5 @@ impl JobStore for Spool {
             limit,
             filter,
         ))
-    }
-    fn prune(&mut self, keep_for: std::time::Duration, now: f64) -> Result<usize, StoreError> {
-        Spool::prune(self, keep_for, now)
-    }
-    fn each_retired(&self, since: f64, visit: &mut dyn FnMut(Retired)) -> Result<(), StoreError> {
-        self.history.records_since(since)?.for_each(visit);
-        Ok(())
     }
 }

@@ -553,7 +553,8 @@ fn the_history_forgets_months_older_than_it_keeps() {
     assert!(store.job_dir(&done[1]).join("m1.stl").is_file());
     assert_eq!(store.prune(keep, now).unwrap(), 0);
     let listed = |store: &Spool| -> Vec<String> {
-        JobStore::history(store, None, 10, &Default::default())
+        store
+            .history_page(None, 10, &Default::default())
             .unwrap()
             .jobs
             .into_iter()
@@ -602,7 +603,7 @@ fn finished_jobs_move_to_the_history_and_stay_there() {
     drop(store);
     let store = Spool::open(&spool).unwrap();
     assert_eq!(store.jobs().count(), 1);
-    let page = JobStore::history(&store, None, 100, &Default::default()).unwrap();
+    let page = store.history_page(None, 100, &Default::default()).unwrap();
     let mut ids: Vec<String> = page.jobs.iter().map(|r| r.id.clone()).collect();
     ids.reverse();
     assert_eq!(ids, done);
@@ -668,7 +669,7 @@ fn a_crash_while_retiring_loses_nothing_and_shows_nothing_twice() {
     drop(store);
     let store = Spool::open(&spool).unwrap();
     assert_eq!(store.jobs().count(), 0);
-    let page = JobStore::history(&store, None, 100, &Default::default()).unwrap();
+    let page = store.history_page(None, 100, &Default::default()).unwrap();
     let ids: Vec<&str> = page.jobs.iter().map(|r| r.id.as_str()).collect();
     assert_eq!(
         ids,
@@ -754,9 +755,6 @@ fn a_ready_job_makes_its_copies_once() {
     let again = store.make_copies(&id).unwrap();
     assert_eq!(again.len(), 1);
     assert_eq!(store.get(&again[0]).unwrap().copy.as_ref().unwrap().n, 3);
-    let copies = JobStore::jobs(&store)
-        .into_iter()
-        .filter(|j| j.copy.is_some())
-        .count();
+    let copies = store.jobs().filter(|j| j.copy.is_some()).count();
     assert_eq!(copies, 2);
 }

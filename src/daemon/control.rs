@@ -10,6 +10,7 @@ use super::done::Done;
 use super::farm::{Farm, LiveProgress, PrintCommand, PrinterStatus};
 use super::job::{DatabaseFailure, JobState, StoreError};
 use super::store::JobChange;
+use crate::daemon::store::InventoryChange;
 use serde::{Deserialize, Serialize};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -598,9 +599,11 @@ async fn care(
             },
         ),
     };
-    let name = printer.to_string();
     farm.jobs()
-        .edit_inventory(move |inv| Ok(change.clone().apply(&name, &mut inv.care)?))
+        .edit_inventory(InventoryChange::Care {
+            printer: printer.to_string(),
+            change,
+        })
         .await?;
     Ok(done)
 }

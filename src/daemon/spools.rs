@@ -6,6 +6,7 @@ use super::done::Done;
 use super::farm::Farm;
 use super::filament::{check_filament, check_grams, Filament, FilamentError};
 use super::job::{JobState, StoreError};
+use super::store::InventoryChange;
 
 /// A spool the operator describes (what `crispen load --material ...` and the dashboard's
 /// "new spool" send). What is left out comes from the printer's machine (diameter) and the
@@ -61,7 +62,8 @@ pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<Done,
     check_not_printing(farm, printer)?;
     let spoolman = farm.config().spoolman.is_some();
     // A new spool checked before it reaches the store.
-    let what = match what {
+    let printer_name = printer.to_string();
+    let change = match what {
         Load::New(n) if spoolman => {
             return Err(FilamentError::Invalid(format!(
                 "the farm's spools come from Spoolman: add the {} {} spool there, then load it by its id (sm<id>)",
@@ -69,20 +71,17 @@ pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<Done,
             ))
             .into())
         }
-        Load::New(n) => Err((n.filament(diameter)?, check_grams(n.grams)?)),
-        Load::Spool(id) => Ok(id),
+        Load::New(n) => InventoryChange::AddAndLoad {
+            printer: printer_name,
+            filament: n.filament(diameter)?,
+            grams: check_grams(n.grams)?,
+        },
+        Load::Spool(spool) => InventoryChange::Load {
+            printer: printer_name,
+            spool,
+        },
     };
-    let name = printer.to_string();
-    let inventory = farm
-        .jobs()
-        .edit_inventory(move |inv| {
-            let id = match &what {
-                Ok(id) => id.clone(),
-                Err((filament, grams)) => inv.add_spool(filament.clone(), *grams)?,
-            };
-            inv.load(&name, &id)
-        })
-        .await?;
+    let inventory = farm.jobs().edit_inventory(change).await?;
     let spool = inventory
         .spool_on(printer)
         .map_or_else(String::new, |s| s.describe());
@@ -97,11 +96,9 @@ pub(crate) async fn load(farm: &Farm, printer: &str, what: Load) -> Result<Done,
 pub(crate) async fn unload(farm: &Farm, printer: &str) -> Result<Done, StoreError> {
     machine_filament(farm, printer)?;
     check_not_printing(farm, printer)?;
-    let name = printer.to_string();
     farm.jobs()
-        .edit_inventory(move |inv| {
-            inv.unload(&name);
-            Ok(())
+        .edit_inventory(InventoryChange::Unload {
+            printer: printer.to_string(),
         })
         .await?;
     tracing::info!(printer, "spool unloaded");
@@ -128,7 +125,7 @@ pub(crate) async fn add(farm: &Farm, new: NewSpool) -> Result<Done, StoreError> 
     let grams = check_grams(new.grams)?;
     let inventory = farm
         .jobs()
-        .edit_inventory(move |inv| inv.add_spool(filament.clone(), grams).map(drop))
+        .edit_inventory(InventoryChange::Add { filament, grams })
         .await?;
     // Ids are handed out in order: the newest is the one just added.
     let id = format!("s{}", inventory.next_id);

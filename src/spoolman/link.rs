@@ -14,6 +14,7 @@
 use super::{Spoolman, SpoolmanError};
 use crate::daemon::farm::Farm;
 use crate::daemon::filament::{Report, SetAside};
+use crate::daemon::store::InventoryChange;
 use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
 
@@ -104,10 +105,7 @@ async fn read(farm: &Farm, client: &Spoolman) -> Result<(), LinkError> {
         );
     }
     farm.jobs()
-        .edit_inventory(move |inv| {
-            inv.take_spoolman(spools.clone(), set_aside.clone());
-            Ok(())
-        })
+        .edit_inventory(InventoryChange::Spoolman { spools, set_aside })
         .await?;
     Ok(())
 }
@@ -184,11 +182,12 @@ async fn mark(
     report: Report,
     remaining_g: Option<f64>,
 ) -> Result<(), LinkError> {
-    let (spool, key) = (spool.to_string(), key.to_string());
     farm.jobs()
-        .edit_inventory(move |inv| {
-            inv.set_report(&spool, &key, report, remaining_g);
-            Ok(())
+        .edit_inventory(InventoryChange::Reported {
+            spool: spool.to_string(),
+            key: key.to_string(),
+            report,
+            remaining_g,
         })
         .await?;
     Ok(())

@@ -1,10 +1,12 @@
-//! What a request may change in a job besides its state, as typed commands: each variant
-//! names the fields it sets and the condition it sets them under, and [`JobChange::apply`]
-//! is the one place that carries them out, inside the store's step that also checks and
-//! changes the state (the embedded spool's write, or the farm database's transaction). A
-//! caller says what happened; the rule for what that does to the job lives here.
+//! What a request may change in a job besides its state, and in the farm's spools and the
+//! printers' care, as typed commands: each variant names what it sets and the condition
+//! it sets it under, and [`JobChange::apply`] and [`InventoryChange::apply`] are the one
+//! place that carries them out, inside the store's step that also checks and changes the
+//! state (the embedded spool's write, or the farm database's transaction). A caller says
+//! what happened; the rule for what that does lives here.
 
-use crate::daemon::filament::{Asks, Need};
+use crate::daemon::care::CareChange;
+use crate::daemon::filament::{Asks, Filament, FilamentError, Inventory, Need, Report, SetAside};
 use crate::daemon::job::{
     Comparison, ForMachine, Job, JobState, JobUse, PartCancel, PrintReport, Sidecar,
 };
@@ -210,6 +212,80 @@ impl JobChange {
             JobChange::Edit(edit) => {
                 edit(job);
                 true
+            }
+        }
+    }
+}
+
+/// A change to the farm's spools or a printer's care. A shared store may apply it again to
+/// a newer inventory (another host changed it meanwhile), so it never counts on what an
+/// earlier attempt did.
+#[derive(Debug, Clone)]
+pub enum InventoryChange {
+    /// Loads spool `spool` onto `printer`.
+    Load { printer: String, spool: String },
+    /// Adds a spool of the farm's own and loads it onto `printer`.
+    AddAndLoad {
+        printer: String,
+        filament: Filament,
+        grams: f64,
+    },
+    /// Takes the spool off `printer`.
+    Unload { printer: String },
+    /// Adds a spool of the farm's own, loaded nowhere.
+    Add { filament: Filament, grams: f64 },
+    /// A maintenance task done, or the printer held for one or released.
+    Care { printer: String, change: CareChange },
+    /// Spoolman's spools as just read (see `Inventory::take_spoolman`).
+    Spoolman {
+        spools: Vec<(u64, Filament, Option<f64>, bool)>,
+        set_aside: Vec<SetAside>,
+    },
+    /// Where a use stands with Spoolman after it was told.
+    Reported {
+        spool: String,
+        key: String,
+        report: Report,
+        remaining_g: Option<f64>,
+    },
+}
+
+impl InventoryChange {
+    /// Carries the change out on `inventory`; a refused change is an error, and the store
+    /// keeps the inventory as it was.
+    pub(crate) fn apply(&self, inventory: &mut Inventory) -> Result<(), FilamentError> {
+        match self {
+            InventoryChange::Load { printer, spool } => inventory.load(printer, spool),
+            InventoryChange::AddAndLoad {
+                printer,
+                filament,
+                grams,
+            } => {
+                let id = inventory.add_spool(filament.clone(), *grams)?;
+                inventory.load(printer, &id)
+            }
+            InventoryChange::Unload { printer } => {
+                inventory.unload(printer);
+                Ok(())
+            }
+            InventoryChange::Add { filament, grams } => {
+                inventory.add_spool(filament.clone(), *grams).map(drop)
+            }
+            InventoryChange::Care { printer, change } => {
+                Ok(change.clone().apply(printer, &mut inventory.care)?)
+            }
+            InventoryChange::Spoolman { spools, set_aside } => {
+                inventory.take_spoolman(spools.clone(), set_aside.clone());
+                Ok(())
+            }
+            InventoryChange::Reported {
+                spool,
+                key,
+                report,
+                remaining_g,
+            } => {
+                inventory.set_report(spool, key, *report, *remaining_g);
+                Ok(())
             }
         }
     }

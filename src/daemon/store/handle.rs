@@ -2,14 +2,14 @@
 //! published snapshot for free and sends every change as a request. Apart from the task so
 //! what callers see (one method per request) is one file.
 
-use super::change::JobChange;
+use super::change::{InventoryChange, JobChange};
 use super::history;
 use super::job_store::RetiredJob;
 use super::request::{BedChange, LateSidecar, Reply, Request, Updated};
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
 use super::stats;
-use crate::daemon::filament::{FilamentError, Inventory};
+use crate::daemon::filament::Inventory;
 use crate::daemon::job::{Job, JobState, PrinterGate, StoreError};
 use std::path::Path;
 use std::sync::Arc;
@@ -286,17 +286,12 @@ impl StoreHandle {
 
     /// The statistics of `period` over the history and the live jobs (see [`stats`]);
     /// `printers` and `folders` are listed even when they did nothing.
-    /// Changes the farm's spools by `edit` (see [`JobStore::edit_inventory`](super::job_store::JobStore::edit_inventory)); the
+    /// Changes the farm's spools or a printer's care (see
+    /// [`JobStore::edit_inventory`](super::job_store::JobStore::edit_inventory)); the
     /// inventory as written.
-    pub async fn edit_inventory(
-        &self,
-        edit: impl FnMut(&mut Inventory) -> Result<(), FilamentError> + Send + 'static,
-    ) -> Result<Inventory, StoreError> {
-        self.ask(|reply| Request::EditInventory {
-            edit: Box::new(edit),
-            reply,
-        })
-        .await
+    pub async fn edit_inventory(&self, change: InventoryChange) -> Result<Inventory, StoreError> {
+        self.ask(|reply| Request::EditInventory { change, reply })
+            .await
     }
 
     pub async fn stats(

@@ -59,7 +59,7 @@ mod task;
 #[cfg(test)]
 mod task_tests;
 
-pub use change::{JobChange, PreparedJob, Use};
+pub use change::{InventoryChange, JobChange, PreparedJob, Use};
 pub(crate) use clients::spool_relative;
 pub(crate) use handle::StoreHandle;
 pub use history::Retention;

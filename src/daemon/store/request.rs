@@ -2,10 +2,10 @@
 //! how each is carried out against the store. Apart from
 //! the task's loop (which batches them) and the handle (which sends them).
 
-use super::change::JobChange;
+use super::change::{InventoryChange, JobChange};
 use super::clients::for_clients;
 use super::history::{self, Retention};
-use super::job_store::{InventoryEdit, JobStore, RetiredJob};
+use super::job_store::{JobStore, RetiredJob};
 use super::retiring::round;
 use super::rules::StateFilter;
 use super::snapshot::Snapshot;
@@ -93,7 +93,7 @@ pub(super) enum Request {
         reply: Reply<history::Page>,
     },
     EditInventory {
-        edit: Box<InventoryEdit<'static>>,
+        change: InventoryChange,
         reply: Reply<Inventory>,
     },
     Stats {
@@ -264,8 +264,8 @@ impl Request {
                 (deliver(reply, retired), changed)
             }
             Request::Retired { id, reply } => (deliver(reply, store.retired(&id).await), false),
-            Request::EditInventory { mut edit, reply } => {
-                let result = store.edit_inventory(&mut *edit).await;
+            Request::EditInventory { change, reply } => {
+                let result = store.edit_inventory(&mut |inv| change.apply(inv)).await;
                 let changed = result.as_ref().is_ok_and(|i| i != view.inventory());
                 if let Ok(inventory) = &result {
                     view.inventory = std::sync::Arc::new(inventory.clone());

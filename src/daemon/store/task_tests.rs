@@ -402,9 +402,10 @@ async fn a_use_is_booked_before_its_job_retires() {
     };
     let handle = spawn_with(store, retention);
     let inventory = handle
-        .edit_inventory(|inv| {
-            let id = inv.add_spool(crate::daemon::filament::tests::petg_black(), 100.0)?;
-            inv.load("p", &id)
+        .edit_inventory(crate::daemon::store::InventoryChange::AddAndLoad {
+            printer: "p".into(),
+            filament: crate::daemon::filament::tests::petg_black(),
+            grams: 100.0,
         })
         .await
         .unwrap();

@@ -517,7 +517,7 @@ impl Spool {
         Ok(job)
     }
 
-    /// Makes the copies due of job `id` (see [`JobStore::make_copies`]). Each copy's
+    /// Makes the copies due of job `id` (see [`JobStore::make_copies`](super::JobStore::make_copies)). Each copy's
     /// directory is made whole under a name that is no job's (links to the job's files,
     /// its `job.json`), then renamed into place, so a crash leaves a copy whole or not at
     /// all; one already made (a crash before the job was marked) is not made again.
@@ -685,7 +685,7 @@ impl Spool {
     }
 
     /// [`Spool::transition_with`], first checked against `from` (the states the job must be
-    /// in now), as [`JobStore::transition_with`] is.
+    /// in now), as [`JobStore::transition_with`](super::JobStore::transition_with) is.
     pub(crate) fn transition_from(
         &mut self,
         id: &str,
@@ -704,7 +704,7 @@ impl Spool {
         self.pending.len()
     }
 
-    /// A page of the history (see [`JobStore::history`]).
+    /// A page of the history (see [`JobStore::history`](super::JobStore::history)).
     pub(crate) fn history_page(
         &self,
         before: Option<u64>,

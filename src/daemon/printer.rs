@@ -46,6 +46,7 @@ use tokio::sync::{mpsc, watch};
 use tracing::Instrument;
 
 mod eject;
+mod run;
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 
@@ -1010,14 +1011,10 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     sup.owner.print.send_replace(Some(control_tx.clone()));
     let (progress_tx, mut progress_rx) = watch::channel(LiveProgress::default());
 
-    // A stop requested by shutdown (`StopOwner::stop_prints`) is a cancel that ends as
-    // interrupted rather than cancelled.
+    let mut run = run::JobRun::new();
     let mut permit = Some(permit);
     let print = link.print(&gcode, cancelled, pace, control_rx, progress_tx);
     tokio::pin!(print);
-    // The parts dropped so far that the store has (it keeps them across a restart).
-    let mut recorded_parts = 0;
-    let mut shutdown_stop = false;
     let mut progress_open = true;
     let outcome = loop {
         tokio::select! {
@@ -1025,43 +1022,33 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
             changed = progress_rx.changed(), if progress_open => {
                 if changed.is_err() { progress_open = false; continue; }
                 let live = progress_rx.borrow_and_update().clone();
-                let new_parts = live.parts_cancelled.len() > recorded_parts;
-                if new_parts {
-                    odometer.cancels = live
-                        .parts_cancelled
-                        .iter()
-                        .filter_map(|c| Some((c.part.clone(), c.dropped.as_ref()?.command)))
-                        .collect();
-                }
-                if live.lines_acked != odometer.lines_acked || new_parts {
-                    odometer.lines_acked = live.lines_acked;
+                let step = run.progress(&live);
+                if let Some(write) = step.odometer {
+                    odometer.lines_acked = write.lines_acked;
+                    if let Some(cancels) = write.cancels {
+                        odometer.cancels = cancels;
+                    }
                     odometer.write(&odometer_path).await;
                 }
-                if new_parts {
-                    record_parts(farm, job_id, print_number, &live.parts_cancelled[recorded_parts..]).await;
-                    recorded_parts = live.parts_cancelled.len();
+                if !step.record_parts.is_empty() {
+                    record_parts(farm, job_id, print_number, &step.record_parts).await;
                 }
-                if permit.is_some() && live.heated {
+                if step.release_permit {
                     permit = None;
                     tracing::info!("heat-up done; heating permit released");
                 }
                 sup.show(|p| {
-                    match &live.pause {
-                        Some(pause) => {
-                            p.state = PrinterState::WaitingForOperator;
-                            p.detail = Some(waiting_detail(pause));
-                        }
-                        None => {
-                            p.state = if live.paused { PrinterState::Paused } else { PrinterState::Printing };
-                            p.detail = live.stop_wait.as_ref().map(stop_wait_detail);
-                        }
-                    }
+                    p.state = step.state;
+                    p.detail = step.detail;
                     show_progress(p, live);
                 });
             }
-            _ = farm.stop_prints.cancelled(), if !shutdown_stop => {
-                shutdown_stop = true;
-                let _ = control_tx.send(PrintCommand::Cancel).await;
+            // A stop requested by shutdown (`StopOwner::stop_prints`) is a cancel that
+            // ends as interrupted rather than cancelled.
+            _ = farm.stop_prints.cancelled(), if !run.stopped() => {
+                if run.stop() {
+                    let _ = control_tx.send(PrintCommand::Cancel).await;
+                }
             }
         }
     };
@@ -1076,65 +1063,26 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
     }
     sup.owner.print.send_replace(None);
 
+    let ending = run.end(&outcome, progress_rx.borrow().lines_acked);
     // A job that failed to load sent nothing: the bed is as it was, and nobody needs to
     // clear it. A print that ended well may be ejected; any other waits for a person.
-    let sent_nothing = matches!(
-        outcome,
-        Err(PrintFailure::Gcode(_) | PrintFailure::LoaderCrashed(_))
-    );
-    if !sent_nothing {
-        eject::close_gate(farm, printer, job_id, outcome.is_ok() && !shutdown_stop).await;
+    if !ending.sent_nothing {
+        eject::close_gate(farm, printer, job_id, ending.may_eject).await;
     }
-    let halted = match &outcome {
-        Err(PrintFailure::Failed(PrintError::Fatal { message, .. })) => Some(message.clone()),
-        _ => None,
-    };
     // What the print pushed: every line of a finished one, else what was acknowledged.
-    odometer.lines_acked = match &outcome {
-        Ok(report) => report.lines_acked,
-        Err(_) if sent_nothing => 0,
-        Err(_) => progress_rx.borrow().lines_acked,
-    };
+    odometer.lines_acked = ending.lines_acked;
     let mut usage = odometer.measure(super::job::now_s()).await;
-    let mut printed = None;
-    let (state, reason, lost) = match outcome {
-        Ok(report) => {
-            // One print per job: its other copies are jobs of their own.
-            printed = Some(report);
-            (JobState::Done, None, false)
-        }
-        Err(why @ PrintFailure::Cancelled(_)) if shutdown_stop => (
-            JobState::Interrupted,
-            Some(format!(
-                "stopped safely at shutdown ({why}); clear the bed, then `crispen retry` if wanted"
-            )),
-            false,
-        ),
-        Err(why @ PrintFailure::Cancelled(_)) => {
-            (JobState::Cancelled, Some(why.to_string()), false)
-        }
-        Err(why @ PrintFailure::Lost(_)) => (
-            JobState::Interrupted,
-            Some(format!(
-                "{why}; check the printer and clear its bed, then `crispen retry` if wanted"
-            )),
-            true,
-        ),
-        Err(
-            why @ (PrintFailure::Failed(_)
-            | PrintFailure::Gcode(_)
-            | PrintFailure::LoaderCrashed(_)),
-        ) => (JobState::Failed, Some(why.to_string()), false),
-    };
     if let Some(u) = &mut usage {
-        u.failed = state == JobState::Failed;
+        u.failed = ending.state == JobState::Failed;
     }
+    // One print per job: its other copies are jobs of their own.
+    let printed = outcome.ok();
     let recorded = farm
         .jobs()
         .record_outcome(
             job_id,
-            state,
-            reason,
+            ending.state,
+            ending.reason,
             JobChange::Printed {
                 report: printed,
                 usage: usage.map(|usage| Use {
@@ -1151,7 +1099,7 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         tracing::error!(error = %e, "cannot record the print's outcome");
     }
     sup.show(|p| {
-        p.state = if sent_nothing {
+        p.state = if ending.sent_nothing {
             PrinterState::Idle
         } else {
             PrinterState::BedNotCleared
@@ -1159,7 +1107,10 @@ async fn run_job(sup: &Supervisor, job_id: &str, link: &mut dyn PrinterLink) -> 
         p.detail = None;
         p.progress = None;
     });
-    JobEnd { lost, halted }
+    JobEnd {
+        lost: ending.lost,
+        halted: ending.halted,
+    }
 }
 
 /// Records in the job the parts its print `print` dropped, with where: one the operator

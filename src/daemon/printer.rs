@@ -48,42 +48,9 @@ use tracing::Instrument;
 mod eject;
 mod run;
 
+pub(crate) use run::PrintFailure;
+
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
-
-/// How a print ended, if not well: the cause, with the streamer's own error.
-#[derive(Debug, thiserror::Error)]
-pub(crate) enum PrintFailure {
-    /// Stopped on request (heaters off).
-    #[error("{0}")]
-    Cancelled(PrintError),
-    /// The printer went away; the connection must be re-opened.
-    #[error("{0}")]
-    Lost(PrintError),
-    /// The print failed on the printer's side (it said so, or reset).
-    #[error("{0}")]
-    Failed(PrintError),
-    /// The job's G-code cannot be read or is not for this printer; nothing was sent.
-    #[error("cannot load the G-code: {0}")]
-    Gcode(#[from] GcodeError),
-    /// Loading the G-code crashed; nothing was sent.
-    #[error("cannot load the G-code: {0}")]
-    LoaderCrashed(#[source] tokio::task::JoinError),
-}
-
-impl PrintFailure {
-    /// The cause of a streamer's error: the one place its kinds are sorted.
-    pub(crate) fn of(e: PrintError) -> PrintFailure {
-        match e {
-            PrintError::Cancelled { .. } => PrintFailure::Cancelled(e),
-            PrintError::Open(_)
-            | PrintError::NoAnswer { .. }
-            | PrintError::Disconnected { .. }
-            | PrintError::PrinterReset { .. }
-            | PrintError::Silent { .. } => PrintFailure::Lost(e),
-            _ => PrintFailure::Failed(e),
-        }
-    }
-}
 
 /// A printer cannot be connected to (it is retried with backoff).
 #[derive(Debug, thiserror::Error)]
@@ -1124,41 +1091,6 @@ async fn record_parts(farm: &Farm, job_id: &str, print: u32, dropped: &[super::j
     if let Err(e) = recorded {
         tracing::error!(error = %e, "cannot record the parts of the plate dropped");
     }
-}
-
-/// The status line of a printer waiting at a pause its file asked for.
-fn waiting_detail(pause: &crate::marlin::stream::PauseInfo) -> String {
-    let mut text = format!("waiting for the operator: {}", pause.message);
-    match pause.line {
-        Some(line) => text += &format!(" (`{}`, line {line})", pause.command),
-        None => text += &format!(" (`{}`)", pause.command),
-    }
-    if !pause.parked {
-        text += "; not parked: the head's position was not known from the file";
-    }
-    if pause.heaters_off {
-        text += "; heaters turned off after waiting too long, the resume heats up first";
-    }
-    text += "; resume with `crispen resume`";
-    text
-}
-
-/// What a stop that waits for the heat-up waits for, as the status shows it.
-fn stop_wait_detail(w: &crate::marlin::stream::StopWait) -> String {
-    let heater = if w.bed { "bed" } else { "hotend" };
-    let mut text = format!("stopping: the printer reads nothing until its {heater} is hot");
-    if let Some(command) = &w.command {
-        text += &format!(" (`{command}`)");
-    }
-    if let (Some(now), Some(target)) = (w.current_c, w.target_c) {
-        text += &format!(", {now:.0} of {target:.0} °C");
-    }
-    match w.remaining_s {
-        Some(s) => text += &format!("; heaters off in about {s:.0} s"),
-        None => text += "; heaters off once it is there",
-    }
-    text += &format!(" (at most {:.0} s)", w.limit_s);
-    text
 }
 
 /// A print's progress, and its temperatures once the printer has reported them (until

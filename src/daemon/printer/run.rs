@@ -5,9 +5,45 @@
 //! between the link, the store and the disk and decides nothing itself; this is tested
 //! without a printer, a store or a disk.
 
-use super::PrintFailure;
 use crate::daemon::farm::{LiveProgress, PrinterState};
 use crate::daemon::job::{JobState, PartCancel, PrintReport};
+use crate::marlin::gcode::GcodeError;
+use crate::marlin::stream::PrintError;
+
+/// How a print ended, if not well: the cause, with the streamer's own error.
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum PrintFailure {
+    /// Stopped on request (heaters off).
+    #[error("{0}")]
+    Cancelled(PrintError),
+    /// The printer went away; the connection must be re-opened.
+    #[error("{0}")]
+    Lost(PrintError),
+    /// The print failed on the printer's side (it said so, or reset).
+    #[error("{0}")]
+    Failed(PrintError),
+    /// The job's G-code cannot be read or is not for this printer; nothing was sent.
+    #[error("cannot load the G-code: {0}")]
+    Gcode(#[from] GcodeError),
+    /// Loading the G-code crashed; nothing was sent.
+    #[error("cannot load the G-code: {0}")]
+    LoaderCrashed(#[source] tokio::task::JoinError),
+}
+
+impl PrintFailure {
+    /// The cause of a streamer's error: the one place its kinds are sorted.
+    pub(crate) fn of(e: PrintError) -> PrintFailure {
+        match e {
+            PrintError::Cancelled { .. } => PrintFailure::Cancelled(e),
+            PrintError::Open(_)
+            | PrintError::NoAnswer { .. }
+            | PrintError::Disconnected { .. }
+            | PrintError::PrinterReset { .. }
+            | PrintError::Silent { .. } => PrintFailure::Lost(e),
+            _ => PrintFailure::Failed(e),
+        }
+    }
+}
 
 /// One print, from its first line to its end.
 #[derive(Debug)]
@@ -109,15 +145,15 @@ impl JobRun {
         (step.state, step.detail) = match &live.pause {
             Some(pause) => (
                 PrinterState::WaitingForOperator,
-                Some(super::waiting_detail(pause)),
+                Some(waiting_detail(pause)),
             ),
             None if live.paused => (
                 PrinterState::Paused,
-                live.stop_wait.as_ref().map(super::stop_wait_detail),
+                live.stop_wait.as_ref().map(stop_wait_detail),
             ),
             None => (
                 PrinterState::Printing,
-                live.stop_wait.as_ref().map(super::stop_wait_detail),
+                live.stop_wait.as_ref().map(stop_wait_detail),
             ),
         };
         step
@@ -149,9 +185,7 @@ impl JobRun {
             Err(_) => last_acked,
         };
         let halted = match outcome {
-            Err(PrintFailure::Failed(crate::marlin::stream::PrintError::Fatal {
-                message, ..
-            })) => Some(message.clone()),
+            Err(PrintFailure::Failed(PrintError::Fatal { message, .. })) => Some(message.clone()),
             _ => None,
         };
         let (state, reason, lost) = match outcome {
@@ -191,11 +225,46 @@ impl JobRun {
     }
 }
 
+/// The status line of a printer waiting at a pause its file asked for.
+fn waiting_detail(pause: &crate::marlin::stream::PauseInfo) -> String {
+    let mut text = format!("waiting for the operator: {}", pause.message);
+    match pause.line {
+        Some(line) => text += &format!(" (`{}`, line {line})", pause.command),
+        None => text += &format!(" (`{}`)", pause.command),
+    }
+    if !pause.parked {
+        text += "; not parked: the head's position was not known from the file";
+    }
+    if pause.heaters_off {
+        text += "; heaters turned off after waiting too long, the resume heats up first";
+    }
+    text += "; resume with `crispen resume`";
+    text
+}
+
+/// What a stop that waits for the heat-up waits for, as the status shows it.
+fn stop_wait_detail(w: &crate::marlin::stream::StopWait) -> String {
+    let heater = if w.bed { "bed" } else { "hotend" };
+    let mut text = format!("stopping: the printer reads nothing until its {heater} is hot");
+    if let Some(command) = &w.command {
+        text += &format!(" (`{command}`)");
+    }
+    if let (Some(now), Some(target)) = (w.current_c, w.target_c) {
+        text += &format!(", {now:.0} of {target:.0} °C");
+    }
+    match w.remaining_s {
+        Some(s) => text += &format!("; heaters off in about {s:.0} s"),
+        None => text += "; heaters off once it is there",
+    }
+    text += &format!(" (at most {:.0} s)", w.limit_s);
+    text
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::daemon::job::Dropped;
-    use crate::marlin::stream::{PauseInfo, PrintError, StopOutcome};
+    use crate::marlin::stream::{PauseInfo, StopOutcome};
     use std::path::PathBuf;
 
     fn live(lines_acked: usize) -> LiveProgress {
@@ -381,7 +450,7 @@ mod tests {
             Some("Printer halted. kill() called!")
         );
         let unread = run.end(
-            &Err(PrintFailure::Gcode(crate::marlin::gcode::GcodeError::Io {
+            &Err(PrintFailure::Gcode(GcodeError::Io {
                 path: PathBuf::from("/spool/job.gcode"),
                 source: std::io::Error::from(std::io::ErrorKind::NotFound),
             })),

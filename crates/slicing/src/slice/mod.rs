@@ -133,6 +133,20 @@ pub struct EnhancementSummary {
     pub observed: Option<crate::observation::Observation>,
 }
 
+/// Where the comparison of the outer walls stands when a report has none.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WallsState {
+    /// Not asked for (`crispen slice` without `--compare`; reports made before the state
+    /// was kept).
+    #[default]
+    NotAsked,
+    /// To be measured (the daemon's, after the job is ready).
+    Pending,
+    /// Asked for and not made (the reason is the comparison's own, shown beside it).
+    NotMeasured,
+}
+
 /// Seconds spent in each step.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct StepTimings {
@@ -176,7 +190,7 @@ pub struct SliceReport {
     /// Where the comparison of the outer walls stands while `walls` is none: what the
     /// line on what the enhancement moved says of it ([`SliceReport::moved`]).
     #[serde(default)]
-    pub walls_state: moved::WallsState,
+    pub walls_state: WallsState,
     /// What the G-code policy found (pauses, commands the machine allowed); a file it
     /// refuses makes no report.
     #[serde(default, skip_serializing_if = "Option::is_none")]

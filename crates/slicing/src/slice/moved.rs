@@ -19,19 +19,7 @@ use std::fmt;
 /// The enhancement's mode of a job whose G-code was sliced elsewhere.
 pub const PRESLICED: &str = "pre-sliced";
 
-/// Where the comparison of the outer walls stands when a report has none.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum WallsState {
-    /// Not asked for (`crispen slice` without `--compare`; reports made before the state
-    /// was kept).
-    #[default]
-    NotAsked,
-    /// To be measured (the daemon's, after the job is ready).
-    Pending,
-    /// Asked for and not made (the reason is the comparison's own, shown beside it).
-    NotMeasured,
-}
+pub use super::WallsState;
 
 /// What the enhancement moved: the figures its one line says. A distance or share that is
 /// not a finite number is `None` ("an unknown distance"), so the figures always read back.

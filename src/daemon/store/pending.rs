@@ -110,8 +110,9 @@ impl Pending {
     }
 
     /// Settles one thing [`Pending::take`] gave with `attempt`: kept again unless written
-    /// or dropped, and noted in `done`. Once the store was found unreachable, what is
-    /// left is not tried: give it [`Pending::untried`]'s answer.
+    /// or dropped, and noted in `done`. Once `done` says the store is unreachable, what is
+    /// left is not tried (each would wait out the same failure): it is settled as
+    /// [`Attempt::Unreachable`].
     pub(crate) fn settle(&mut self, kept: Kept, attempt: Attempt, done: &mut Written) {
         match (kept, attempt) {
             (Kept::Outcome { id, .. }, Attempt::Written(record)) => {
@@ -143,13 +144,6 @@ impl Pending {
         }
     }
 
-    /// Whether the next thing kept is to be tried: not once the store was found
-    /// unreachable (the rest is kept as it is rather than each waiting out the same
-    /// failure).
-    pub(crate) fn untried(done: &Written) -> Option<Attempt> {
-        done.unreachable.then_some(Attempt::Unreachable)
-    }
-
     /// Tries to write what is kept (outcomes, then gates) with `outcome` and `gate`,
     /// keeping what is not written; see [`Attempt`].
     pub(crate) fn write(
@@ -159,10 +153,11 @@ impl Pending {
     ) -> Written {
         let mut done = Written::default();
         for kept in self.take() {
-            let attempt = Pending::untried(&done).unwrap_or_else(|| match &kept {
+            let attempt = match &kept {
+                _ if done.unreachable => Attempt::Unreachable,
                 Kept::Outcome { id, from, job } => outcome(id, *from, job),
                 Kept::Gate { printer, gate: g } => gate(printer, g),
-            });
+            };
             self.settle(kept, attempt, &mut done);
         }
         done

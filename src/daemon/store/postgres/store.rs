@@ -441,20 +441,17 @@ impl JobStore for PgJobStore {
         // Tried whatever the last call found: this is how an outage is found to be over.
         let mut written = Written::default();
         for kept in self.pending.take() {
-            let attempt = match (Pending::untried(&written), &kept) {
-                (Some(untried), _) => untried,
-                (None, Kept::Outcome { from, job, .. }) => {
-                    match self.db.write_outcome(job, *from).await {
-                        Ok(record) => Attempt::Written(Some(Box::new(record))),
-                        Err(e) if e.is_outage() => Attempt::Unreachable,
-                        Err(e) => {
-                            tracing::warn!(job = %job.id, error = %e, "the farm moved the job on during the outage");
-                            Attempt::Dropped
-                        }
+            let attempt = match &kept {
+                _ if written.unreachable => Attempt::Unreachable,
+                Kept::Outcome { from, job, .. } => match self.db.write_outcome(job, *from).await {
+                    Ok(record) => Attempt::Written(Some(Box::new(record))),
+                    Err(e) if e.is_outage() => Attempt::Unreachable,
+                    Err(e) => {
+                        tracing::warn!(job = %job.id, error = %e, "the farm moved the job on during the outage");
+                        Attempt::Dropped
                     }
-                }
-                (None, Kept::Gate { printer, gate }) => match self.db.set_gate(printer, gate).await
-                {
+                },
+                Kept::Gate { printer, gate } => match self.db.set_gate(printer, gate).await {
                     Ok(()) => Attempt::Written(None),
                     Err(e) if e.is_outage() => Attempt::Unreachable,
                     Err(_) => Attempt::Dropped,
